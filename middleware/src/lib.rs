@@ -1,0 +1,1 @@
+//! marea: a MAREA-like middleware (work in progress).

@@ -1,0 +1,1 @@
+//! FPMa: the USAL Flight Plan Manager (work in progress).

@@ -1,0 +1,1 @@
+//! VAS: the USAL Virtual Autopilot System (work in progress).

@@ -1,0 +1,1 @@
+//! mavsim: an ArduPilot-compatible MAVLink vehicle simulator (work in progress).
