@@ -1,0 +1,265 @@
+//! Encoding and decoding of protocol types: synchronous, no I/O, no allocation sized by
+//! untrusted lengths.
+
+pub mod datagram;
+pub mod varint;
+
+use crate::protocol::Message;
+
+/// A message that could not be decoded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum MessageDecodeError {
+    /// postcard refused the bytes (unknown tag, truncated, bad varint...).
+    #[error("corrupt message: {0}")]
+    Corrupt(String),
+    /// The bytes decoded but some were left over.
+    #[error("{0} trailing bytes after message")]
+    TrailingBytes(usize),
+}
+
+/// Encodes a message with postcard.
+pub fn encode_message(msg: &Message) -> Vec<u8> {
+    // Serialising our own enum into a Vec cannot fail: every field type is supported by postcard
+    // and the output grows as needed.
+    postcard::to_stdvec(msg).expect("postcard encoding of a protocol message cannot fail")
+}
+
+/// Decodes one message, refusing trailing bytes.
+///
+/// # Errors
+/// [`MessageDecodeError`] when the bytes are not exactly one message.
+pub fn decode_message(bytes: &[u8]) -> Result<Message, MessageDecodeError> {
+    let (msg, rest) = postcard::take_from_bytes::<Message>(bytes)
+        .map_err(|e| MessageDecodeError::Corrupt(e.to_string()))?;
+    if rest.is_empty() {
+        Ok(msg)
+    } else {
+        Err(MessageDecodeError::TrailingBytes(rest.len()))
+    }
+}
+
+/// Encodes a user payload.
+///
+/// # Errors
+/// postcard's error when the type cannot be serialised (e.g. a map with non-string keys is fine,
+/// but a type whose `Serialize` fails is reported).
+pub fn encode_payload<T: serde::Serialize + ?Sized>(value: &T) -> Result<Vec<u8>, postcard::Error> {
+    postcard::to_stdvec(value)
+}
+
+/// Decodes a user payload.
+///
+/// # Errors
+/// postcard's error when the bytes do not hold a `T`.
+pub fn decode_payload<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, postcard::Error> {
+    postcard::from_bytes(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::*;
+    use crate::typeinfo::TypeInfo;
+
+    fn ti() -> TypeInfo {
+        TypeInfo {
+            name: "T".into(),
+            fingerprint: 0x0102,
+        }
+    }
+
+    /// Golden bytes, field by field, for every message type.
+    #[test]
+    fn golden_bytes_for_every_message() {
+        let cases: Vec<(Message, Vec<u8>)> = vec![
+            (
+                Message::Hello {
+                    node_id: 1,
+                    domain: "d".into(),
+                    node: "n".into(),
+                    namespace: "".into(),
+                    counter: 3,
+                    lease_ms: 300,
+                },
+                // tag 0, node_id 1, "d", "n", "", counter 3, lease 300 = 0xAC 0x02
+                vec![0, 1, 1, b'd', 1, b'n', 0, 3, 0xAC, 0x02],
+            ),
+            (
+                Message::Heartbeat {
+                    node_id: 2,
+                    domain_hash: 5,
+                    counter: 7,
+                },
+                vec![1, 2, 5, 7],
+            ),
+            (Message::DeclRequest { since: 4 }, vec![2, 4]),
+            (
+                Message::DeclBatch {
+                    entries: vec![
+                        LoggedDeclaration {
+                            counter: 1,
+                            decl: Declaration::Service {
+                                id: 1,
+                                name: "s".into(),
+                            },
+                        },
+                        LoggedDeclaration {
+                            counter: 2,
+                            decl: Declaration::Offer {
+                                id: 2,
+                                service: 1,
+                                kind: ItemKind::Variable,
+                                name: "s/v".into(),
+                                ty: ti(),
+                            },
+                        },
+                        LoggedDeclaration {
+                            counter: 3,
+                            decl: Declaration::Interest {
+                                id: 3,
+                                service: 1,
+                                kind: ItemKind::Event,
+                                pattern: "*".into(),
+                                ty: ti(),
+                            },
+                        },
+                        LoggedDeclaration {
+                            counter: 4,
+                            decl: Declaration::Withdraw { id: 2 },
+                        },
+                    ],
+                },
+                vec![
+                    3, 4, // tag, 4 entries
+                    1, 0, 1, 1, b's', // counter 1, Service{1,"s"}
+                    2, 1, 2, 1, 0, 3, b's', b'/', b'v', 1, b'T', 0x82, 0x02, // Offer
+                    3, 2, 3, 1, 1, 1, b'*', 1, b'T', 0x82, 0x02, // Interest
+                    4, 3, 2, // Withdraw{2}
+                ],
+            ),
+            (
+                Message::Refused {
+                    interest: 9,
+                    name: "a".into(),
+                    offered: ti(),
+                },
+                vec![4, 9, 1, b'a', 1, b'T', 0x82, 0x02],
+            ),
+            (
+                Message::Var {
+                    id: 5,
+                    payload: vec![0xAA, 0xBB],
+                },
+                vec![5, 5, 2, 0xAA, 0xBB],
+            ),
+            (
+                Message::Event {
+                    id: 6,
+                    payload: vec![0xCC],
+                },
+                vec![6, 6, 1, 0xCC],
+            ),
+            (
+                Message::Call {
+                    call_id: 1,
+                    id: 2,
+                    deadline_ms: 1000,
+                    args: vec![7],
+                },
+                vec![7, 1, 2, 0xE8, 0x07, 1, 7],
+            ),
+            (
+                Message::Reply {
+                    call_id: 1,
+                    result: Ok(vec![8]),
+                },
+                vec![8, 1, 0, 1, 8],
+            ),
+            (
+                Message::Reply {
+                    call_id: 1,
+                    result: Err(RemoteFailure::Handler("x".into())),
+                },
+                vec![8, 1, 1, 0, 1, b'x'],
+            ),
+            (
+                Message::FileOffer {
+                    transfer: 1,
+                    sink: 2,
+                    name: "f".into(),
+                    size: 3,
+                    hash: [0; 32],
+                },
+                {
+                    let mut v = vec![9, 1, 2, 1, b'f', 3];
+                    v.extend([0u8; 32]);
+                    v
+                },
+            ),
+            (
+                Message::FileAccept {
+                    transfer: 1,
+                    offset: 128,
+                },
+                vec![10, 1, 0x80, 0x01],
+            ),
+            (
+                Message::FileChunk {
+                    transfer: 1,
+                    offset: 0,
+                    data: vec![1, 2],
+                },
+                vec![11, 1, 0, 2, 1, 2],
+            ),
+            (
+                Message::FileDone {
+                    transfer: 1,
+                    verdict: FileVerdict::Stored,
+                },
+                vec![12, 1, 0],
+            ),
+            (
+                Message::FileDone {
+                    transfer: 1,
+                    verdict: FileVerdict::Failed("h".into()),
+                },
+                vec![12, 1, 1, 1, b'h'],
+            ),
+            (Message::FileCancel { transfer: 3 }, vec![13, 3]),
+            (Message::Bye { node_id: 4 }, vec![14, 4]),
+        ];
+        for (msg, bytes) in cases {
+            assert_eq!(encode_message(&msg), bytes, "encoding of {msg:?}");
+            assert_eq!(decode_message(&bytes).as_ref(), Ok(&msg));
+        }
+    }
+
+    #[test]
+    fn position_sample_is_35_bytes_as_a_message() {
+        let payload = encode_payload(&(1.0f64, 2.0f64, 3.0f64, 4.0f32, 5.0f32)).unwrap();
+        assert_eq!(payload.len(), 32);
+        let msg = Message::Var { id: 3, payload };
+        assert_eq!(encode_message(&msg).len(), 35);
+    }
+
+    #[test]
+    fn trailing_and_truncated_bytes_are_errors() {
+        assert_eq!(
+            decode_message(&[2, 4, 0]),
+            Err(MessageDecodeError::TrailingBytes(1))
+        );
+        assert!(matches!(
+            decode_message(&[5, 5, 200]),
+            Err(MessageDecodeError::Corrupt(_))
+        ));
+        assert!(decode_message(&[]).is_err());
+        assert!(decode_message(&[200]).is_err());
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn random_bytes_never_panic(bytes in proptest::collection::vec(proptest::num::u8::ANY, 0..300)) {
+            let _ = decode_message(&bytes);
+        }
+    }
+}

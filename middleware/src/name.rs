@@ -1,0 +1,156 @@
+//! Hierarchical names (`namespace/service/item`) and subscription patterns with wildcards.
+//!
+//! A name is a `/`-separated list of non-empty segments made of letters, digits, `_`, `-` and
+//! `.`. A pattern may also hold `*` (exactly one segment) and `**` (zero or more segments), so a
+//! ground station can follow a fleet with `*/vas/position` or everything of one vehicle with
+//! `rover1/**`.
+
+use std::fmt;
+
+/// Why a name or pattern was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NameParseError {
+    /// The string was empty.
+    #[error("name is empty")]
+    Empty,
+    /// A segment between two `/` was empty (`a//b`, leading or trailing `/`).
+    #[error("name {0:?} has an empty segment")]
+    EmptySegment(String),
+    /// A segment held a character outside `[A-Za-z0-9_.-]`.
+    #[error("name {name:?} has an invalid character {ch:?} (allowed: letters, digits, _ - .)")]
+    InvalidChar {
+        /// The whole name.
+        name: String,
+        /// The first offending character.
+        ch: char,
+    },
+    /// A wildcard was used where only a plain name is allowed (publications, functions).
+    #[error("name {0:?} contains a wildcard; only subscriptions may use * and **")]
+    WildcardNotAllowed(String),
+}
+
+fn check(name: &str, allow_wildcards: bool) -> Result<(), NameParseError> {
+    if name.is_empty() {
+        return Err(NameParseError::Empty);
+    }
+    for seg in name.split('/') {
+        if seg.is_empty() {
+            return Err(NameParseError::EmptySegment(name.to_owned()));
+        }
+        if seg == "*" || seg == "**" {
+            if !allow_wildcards {
+                return Err(NameParseError::WildcardNotAllowed(name.to_owned()));
+            }
+            continue;
+        }
+        if let Some(ch) = seg
+            .chars()
+            .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.')))
+        {
+            if ch == '*' && !allow_wildcards {
+                return Err(NameParseError::WildcardNotAllowed(name.to_owned()));
+            }
+            return Err(NameParseError::InvalidChar {
+                name: name.to_owned(),
+                ch,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Checks a concrete name (no wildcards).
+///
+/// # Errors
+/// [`NameParseError`] naming what is wrong.
+pub fn validate_name(name: &str) -> Result<(), NameParseError> {
+    check(name, false)
+}
+
+/// Checks a subscription pattern (wildcards allowed).
+///
+/// # Errors
+/// [`NameParseError`] naming what is wrong.
+pub fn validate_pattern(pattern: &str) -> Result<(), NameParseError> {
+    check(pattern, true)
+}
+
+/// Joins a namespace (possibly empty), a service and an item into a full name.
+pub fn join(namespace: Option<&str>, service: &str, item: &str) -> String {
+    match namespace {
+        Some(ns) if !ns.is_empty() => format!("{ns}/{service}/{item}"),
+        _ => format!("{service}/{item}"),
+    }
+}
+
+/// Whether `pattern` (with `*` and `**`) matches the concrete `name`.
+pub fn matches(pattern: &str, name: &str) -> bool {
+    let p: Vec<&str> = pattern.split('/').collect();
+    let n: Vec<&str> = name.split('/').collect();
+    match_segments(&p, &n)
+}
+
+fn match_segments(p: &[&str], n: &[&str]) -> bool {
+    match p.first() {
+        None => n.is_empty(),
+        Some(&"**") => (0..=n.len()).any(|skip| match_segments(&p[1..], &n[skip..])),
+        Some(&seg) => match n.first() {
+            Some(&first) if seg == "*" || seg == first => match_segments(&p[1..], &n[1..]),
+            _ => false,
+        },
+    }
+}
+
+/// Whether a pattern contains wildcards.
+pub fn is_pattern(s: &str) -> bool {
+    s.split('/').any(|seg| seg == "*" || seg == "**")
+}
+
+/// A displayable wrapper used in messages.
+pub struct Quoted<'a>(pub &'a str);
+
+impl fmt::Display for Quoted<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "'{}'", self.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wildcards_match_as_documented() {
+        assert!(matches("*/vas/position", "rover1/vas/position"));
+        assert!(!matches("*/vas/position", "vas/position"));
+        assert!(matches("**/vas/position", "vas/position"));
+        assert!(matches("**/vas/position", "fleet/rover1/vas/position"));
+        assert!(matches("rover1/**", "rover1/vas/position"));
+        assert!(matches("rover1/**", "rover1"));
+        assert!(!matches("rover1/**", "rover2/vas/position"));
+        assert!(matches("a/b", "a/b"));
+        assert!(!matches("a/b", "a/b/c"));
+        assert!(!matches("a/*", "a/b/c"));
+    }
+
+    #[test]
+    fn names_are_validated() {
+        assert_eq!(validate_name(""), Err(NameParseError::Empty));
+        assert!(matches!(
+            validate_name("a//b"),
+            Err(NameParseError::EmptySegment(_))
+        ));
+        assert!(matches!(
+            validate_name("a/*"),
+            Err(NameParseError::WildcardNotAllowed(_))
+        ));
+        assert!(matches!(
+            validate_name("a/b c"),
+            Err(NameParseError::InvalidChar { ch: ' ', .. })
+        ));
+        assert!(validate_pattern("*/vas/**").is_ok());
+        assert!(validate_name("rover-1/vas/position_2.x").is_ok());
+        assert_eq!(join(Some("rover1"), "vas", "position"), "rover1/vas/position");
+        assert_eq!(join(None, "vas", "position"), "vas/position");
+    }
+}

@@ -1,0 +1,278 @@
+//! Wire message types of the node protocol (what a message is; `codec` says how it looks).
+//!
+//! Every message is a postcard-encoded [`Message`]: one varint for the variant, then its fields
+//! in order (integers as varints, strings and byte strings as a varint length then the bytes).
+//! A link carries these messages inside its own framing (see `codec::datagram` for UDP, the
+//! Serial Transport Protocol for serial links).
+//!
+//! ```text
+//! Var (fast, 35 bytes for a 32-byte position):
+//! +---------+----------------+-------------+----------------------+
+//! | tag = 6 | pub id (varint)| len (varint)| payload (postcard T) |
+//! +---------+----------------+-------------+----------------------+
+//! ```
+
+use serde::{Deserialize, Serialize};
+
+use crate::typeinfo::TypeInfo;
+
+/// A node's random identity, fresh at every start.
+pub type NodeId = u64;
+
+/// What kind of item a declaration describes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ItemKind {
+    /// A best-effort, latest-value variable.
+    Variable,
+    /// A reliable, ordered event.
+    Event,
+    /// A remote invocation.
+    Function,
+    /// A file sink (receives file transfers).
+    File,
+}
+
+impl ItemKind {
+    /// Lower-case name for listings.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ItemKind::Variable => "variable",
+            ItemKind::Event => "event",
+            ItemKind::Function => "function",
+            ItemKind::File => "file",
+        }
+    }
+}
+
+/// One declaration of a node, identified by a node-local id.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Declaration {
+    /// A service hosted by the node.
+    Service {
+        /// Node-local id.
+        id: u32,
+        /// Service name.
+        name: String,
+    },
+    /// An item the node offers: a variable or event it publishes, a function it provides or a
+    /// file sink it accepts files on. `id` is the small per-link id data messages carry.
+    Offer {
+        /// Node-local id, used in data messages instead of the name.
+        id: u32,
+        /// The service that declared it.
+        service: u32,
+        /// Kind of item.
+        kind: ItemKind,
+        /// Full name.
+        name: String,
+        /// Payload type.
+        ty: TypeInfo,
+    },
+    /// Interest in items: subscribing to variables/events, or calling functions.
+    Interest {
+        /// Node-local id.
+        id: u32,
+        /// The service that declared it.
+        service: u32,
+        /// Kind of item.
+        kind: ItemKind,
+        /// Name or pattern.
+        pattern: String,
+        /// Expected payload type.
+        ty: TypeInfo,
+    },
+    /// Withdraws an earlier declaration (service, offer or interest) by id.
+    Withdraw {
+        /// The id withdrawn.
+        id: u32,
+    },
+}
+
+impl Declaration {
+    /// The id this declaration adds or withdraws.
+    pub fn id(&self) -> u32 {
+        match self {
+            Declaration::Service { id, .. }
+            | Declaration::Offer { id, .. }
+            | Declaration::Interest { id, .. }
+            | Declaration::Withdraw { id } => *id,
+        }
+    }
+}
+
+/// A declaration with its position in the node's declaration log.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LoggedDeclaration {
+    /// Counter value after this declaration (1 for the first).
+    pub counter: u32,
+    /// The declaration.
+    pub decl: Declaration,
+}
+
+/// Why a remote call failed on the provider's side.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RemoteFailure {
+    /// The provider's handler returned an error (its text).
+    Handler(String),
+    /// The provider could not decode the arguments (type mismatch or corrupt).
+    BadArguments(String),
+    /// The function id is not (or no longer) provided on that node.
+    NotProvided,
+    /// The deadline passed before the provider ran the handler.
+    DeadlineExpired,
+}
+
+/// Outcome of a file offer, sent by the receiver.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum FileVerdict {
+    /// Stored, hash verified, renamed into place.
+    Stored,
+    /// Refused or failed, with the reason.
+    Failed(String),
+}
+
+/// Every message exchanged between nodes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Message {
+    /// Announces a node (multicast at start and to a new peer as the first safe message).
+    Hello {
+        /// Sender's identity.
+        node_id: NodeId,
+        /// Isolation key: nodes of different domains ignore each other.
+        domain: String,
+        /// Node name from network.xml.
+        node: String,
+        /// Namespace prefixing the node's items.
+        namespace: String,
+        /// Current declaration counter.
+        counter: u32,
+        /// How long the sender may stay silent before being declared gone, in ms.
+        lease_ms: u32,
+    },
+    /// The small periodic liveness message (multicast / point to point).
+    Heartbeat {
+        /// Sender's identity.
+        node_id: NodeId,
+        /// Hash of the domain, to filter foreign domains cheaply.
+        domain_hash: u32,
+        /// Current declaration counter.
+        counter: u32,
+    },
+    /// Asks a peer for its declarations after `since` (0 = all).
+    DeclRequest {
+        /// Highest counter already known.
+        since: u32,
+    },
+    /// Declarations answering a request, in counter order.
+    DeclBatch {
+        /// The entries.
+        entries: Vec<LoggedDeclaration>,
+    },
+    /// The peer's subscription `interest` cannot be served by offer `offer`: types differ.
+    Refused {
+        /// The interest id on the receiver's side.
+        interest: u32,
+        /// Full name of the offer.
+        name: String,
+        /// The offer's type.
+        offered: TypeInfo,
+    },
+    /// A variable value (fast class).
+    Var {
+        /// Offer id on the sender.
+        id: u32,
+        /// postcard-encoded value.
+        #[serde(with = "serde_bytes_compat")]
+        payload: Vec<u8>,
+    },
+    /// An event (safe class).
+    Event {
+        /// Offer id on the sender.
+        id: u32,
+        /// postcard-encoded value.
+        #[serde(with = "serde_bytes_compat")]
+        payload: Vec<u8>,
+    },
+    /// A remote invocation (safe class).
+    Call {
+        /// Caller-chosen id.
+        call_id: u64,
+        /// Offer id of the function on the provider.
+        id: u32,
+        /// Milliseconds the caller will wait.
+        deadline_ms: u32,
+        /// postcard-encoded arguments.
+        #[serde(with = "serde_bytes_compat")]
+        args: Vec<u8>,
+    },
+    /// The answer to a call (safe class).
+    Reply {
+        /// The call answered.
+        call_id: u64,
+        /// postcard-encoded result or the failure.
+        result: Result<Vec<u8>, RemoteFailure>,
+    },
+    /// Offers a file to a sink (safe class).
+    FileOffer {
+        /// Transfer id: derived from the content hash and the name, stable across restarts.
+        transfer: u64,
+        /// Offer id of the sink on the receiver.
+        sink: u32,
+        /// File name (no directories).
+        name: String,
+        /// Size in bytes.
+        size: u64,
+        /// blake3 hash of the content.
+        hash: [u8; 32],
+    },
+    /// The receiver accepts and says where to resume.
+    FileAccept {
+        /// Transfer id.
+        transfer: u64,
+        /// Bytes the receiver already has.
+        offset: u64,
+    },
+    /// A chunk of file content (safe class, windowed by the link).
+    FileChunk {
+        /// Transfer id.
+        transfer: u64,
+        /// Offset of `data` in the file.
+        offset: u64,
+        /// Content.
+        #[serde(with = "serde_bytes_compat")]
+        data: Vec<u8>,
+    },
+    /// The receiver's final word on a transfer.
+    FileDone {
+        /// Transfer id.
+        transfer: u64,
+        /// Result.
+        verdict: FileVerdict,
+    },
+    /// The sender cancels a transfer.
+    FileCancel {
+        /// Transfer id.
+        transfer: u64,
+    },
+    /// A node leaves cleanly; peers drop it at once instead of waiting for the lease.
+    Bye {
+        /// Sender's identity.
+        node_id: NodeId,
+    },
+}
+
+/// postcard already encodes `Vec<u8>` as length + bytes; this module only makes that explicit
+/// and decodes through a borrowed slice so a claimed length is checked against the input before
+/// anything is allocated.
+mod serde_bytes_compat {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &[u8], s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(v)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+        let b: &[u8] = <&[u8]>::deserialize(d)?;
+        Ok(b.to_vec())
+    }
+}

@@ -1,0 +1,594 @@
+//! Automatic repeat request for the safe class: sequence numbers, cumulative + selective
+//! acknowledgements, retransmission with an adaptive timeout, duplicate suppression, in-order
+//! delivery, and a congestion window so retransmissions cannot saturate a weak link.
+//!
+//! Pure: no I/O, no clocks. The caller passes `now`, writes what [`ArqSender::push`] and
+//! [`ArqSender::due`] return, feeds received acknowledgements and sleeps until
+//! [`ArqSender::next_deadline`]. Sequence numbers are `u32` and compared with wrapping
+//! arithmetic, so a link may carry fewer bits on the wire (serial uses 16) and widen them back.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use crate::codec::datagram::AckInfo;
+
+/// Tuning of one ARQ session.
+#[derive(Debug, Clone, Copy)]
+pub struct ArqConfig {
+    /// Retransmission timeout before any round trip is measured.
+    pub initial_rto: Duration,
+    /// Lower bound of the adaptive timeout.
+    pub min_rto: Duration,
+    /// Upper bound (the serial link's `TimeToResend`).
+    pub max_rto: Duration,
+    /// Most messages in flight (also the receiver's reorder buffer).
+    pub max_window: u32,
+    /// Congestion window at start, in messages.
+    pub initial_window: u32,
+}
+
+impl ArqConfig {
+    /// Defaults for a LAN.
+    pub fn lan() -> Self {
+        ArqConfig {
+            initial_rto: Duration::from_millis(200),
+            min_rto: Duration::from_millis(5),
+            max_rto: Duration::from_secs(2),
+            max_window: 4096,
+            initial_window: 128,
+        }
+    }
+}
+
+/// Smoothed round-trip estimate (RFC 6298).
+#[derive(Debug, Clone)]
+pub struct RtoEstimator {
+    srtt: Option<Duration>,
+    rttvar: Duration,
+    rto: Duration,
+    min: Duration,
+    max: Duration,
+}
+
+impl RtoEstimator {
+    /// A new estimator.
+    pub fn new(initial: Duration, min: Duration, max: Duration) -> Self {
+        RtoEstimator {
+            srtt: None,
+            rttvar: Duration::ZERO,
+            rto: initial.clamp(min, max),
+            min,
+            max,
+        }
+    }
+
+    /// Feeds one round-trip sample (of a message sent once, per Karn's rule).
+    pub fn sample(&mut self, rtt: Duration) {
+        match self.srtt {
+            None => {
+                self.srtt = Some(rtt);
+                self.rttvar = rtt / 2;
+            }
+            Some(srtt) => {
+                let diff = if srtt > rtt { srtt - rtt } else { rtt - srtt };
+                self.rttvar = (self.rttvar * 3 + diff) / 4;
+                self.srtt = Some((srtt * 7 + rtt) / 8);
+            }
+        }
+        let srtt = self.srtt.unwrap_or(rtt);
+        self.rto = (srtt + (self.rttvar * 4).max(Duration::from_millis(1))).clamp(self.min, self.max);
+    }
+
+    /// Current timeout.
+    pub fn rto(&self) -> Duration {
+        self.rto
+    }
+
+    /// Smoothed round trip, if measured.
+    pub fn srtt(&self) -> Option<Duration> {
+        self.srtt
+    }
+}
+
+#[derive(Debug)]
+struct InFlight<T> {
+    seq: u32,
+    msg: Vec<u8>,
+    sent_at: Instant,
+    transmissions: u32,
+    token: Option<T>,
+    acked: bool,
+}
+
+/// Counters of a sender.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ArqSenderStats {
+    /// Messages sent for the first time.
+    pub sent: u64,
+    /// Retransmissions.
+    pub retransmitted: u64,
+    /// Messages acknowledged.
+    pub acked: u64,
+}
+
+/// The sending half of a session.
+#[derive(Debug)]
+pub struct ArqSender<T> {
+    session: u32,
+    session_acked: bool,
+    next_seq: u32,
+    in_flight: VecDeque<InFlight<T>>,
+    highest_acked: Option<u32>,
+    rto: RtoEstimator,
+    cwnd: f64,
+    ssthresh: f64,
+    config: ArqConfig,
+    stats: ArqSenderStats,
+}
+
+fn after(a: u32, b: u32) -> bool {
+    (a.wrapping_sub(b) as i32) > 0
+}
+
+impl<T> ArqSender<T> {
+    /// A sender for session `session` (random, so a restarted peer is told apart).
+    pub fn new(session: u32, config: ArqConfig) -> Self {
+        ArqSender {
+            session,
+            session_acked: false,
+            next_seq: 0,
+            in_flight: VecDeque::new(),
+            highest_acked: None,
+            rto: RtoEstimator::new(config.initial_rto, config.min_rto, config.max_rto),
+            cwnd: f64::from(config.initial_window.min(config.max_window)),
+            ssthresh: f64::from(config.max_window),
+            config,
+            stats: ArqSenderStats::default(),
+        }
+    }
+
+    /// The session id.
+    pub fn session(&self) -> u32 {
+        self.session
+    }
+
+    /// Whether the peer has acknowledged this session (until then every datagram carrying safe
+    /// entries also carries the SYN).
+    pub fn session_acked(&self) -> bool {
+        self.session_acked
+    }
+
+    /// Whether the window admits another message.
+    pub fn can_push(&self) -> bool {
+        (self.in_flight.len() as f64) < self.cwnd.min(f64::from(self.config.max_window))
+    }
+
+    /// Messages in flight.
+    pub fn in_flight(&self) -> usize {
+        self.in_flight.len()
+    }
+
+    /// Registers `msg` as sent now and returns its sequence number.
+    pub fn push(&mut self, now: Instant, msg: Vec<u8>, token: Option<T>) -> u32 {
+        let seq = self.next_seq;
+        self.next_seq = self.next_seq.wrapping_add(1);
+        self.in_flight.push_back(InFlight {
+            seq,
+            msg,
+            sent_at: now,
+            transmissions: 1,
+            token,
+            acked: false,
+        });
+        self.stats.sent += 1;
+        seq
+    }
+
+    /// The bytes of an in-flight message.
+    pub fn message(&self, seq: u32) -> Option<&[u8]> {
+        let base = self.in_flight.front()?.seq;
+        let idx = seq.wrapping_sub(base) as usize;
+        self.in_flight
+            .get(idx)
+            .filter(|f| f.seq == seq && !f.acked)
+            .map(|f| f.msg.as_slice())
+    }
+
+    fn deadline_of(&self, f: &InFlight<T>) -> Instant {
+        let backoff = 1u32 << (f.transmissions - 1).min(6);
+        f.sent_at + (self.rto.rto() * backoff).min(self.config.max_rto)
+    }
+
+    /// Applies an acknowledgement; returns the tokens of newly acknowledged messages.
+    pub fn on_ack(&mut self, now: Instant, ack: AckInfo) -> Vec<T> {
+        let mut done = Vec::new();
+        if ack.session != self.session {
+            return done;
+        }
+        self.session_acked = true;
+        let mut newly = 0u32;
+        for f in self.in_flight.iter_mut() {
+            if f.acked {
+                continue;
+            }
+            let offset = f.seq.wrapping_sub(ack.next);
+            let sacked = (1..=64).contains(&offset) && ack.sack & (1u64 << (offset - 1)) != 0;
+            if !(after(ack.next, f.seq) || sacked) {
+                continue;
+            }
+            f.acked = true;
+            newly += 1;
+            if f.transmissions == 1 {
+                self.rto.sample(now.saturating_duration_since(f.sent_at));
+            }
+            if let Some(t) = f.token.take() {
+                done.push(t);
+            }
+            if self.highest_acked.is_none_or(|h| after(f.seq, h)) {
+                self.highest_acked = Some(f.seq);
+            }
+        }
+        while self.in_flight.front().is_some_and(|f| f.acked) {
+            self.in_flight.pop_front();
+        }
+        self.stats.acked += u64::from(newly);
+        // Additive increase: slow start below the threshold, then one message per window.
+        for _ in 0..newly {
+            if self.cwnd < self.ssthresh {
+                self.cwnd += 1.0;
+            } else {
+                self.cwnd += 1.0 / self.cwnd;
+            }
+        }
+        self.cwnd = self.cwnd.min(f64::from(self.config.max_window));
+        done
+    }
+
+    /// Sequence numbers to retransmit now (timer expired, or a later message was acknowledged
+    /// while this one has been out for longer than the smoothed round trip). Each returned
+    /// message is marked as sent again at `now`.
+    pub fn due(&mut self, now: Instant) -> Vec<u32> {
+        let mut out = Vec::new();
+        let srtt = self.rto.srtt();
+        let mut timed_out = false;
+        let highest = self.highest_acked;
+        for i in 0..self.in_flight.len() {
+            let f = &self.in_flight[i];
+            if f.acked {
+                continue;
+            }
+            let expired = now >= self.deadline_of(f);
+            let hole = match (highest, srtt) {
+                (Some(h), Some(srtt)) => {
+                    after(h, f.seq)
+                        && f.transmissions == 1
+                        && now.saturating_duration_since(f.sent_at) >= srtt + srtt / 4
+                }
+                _ => false,
+            };
+            if expired || hole {
+                timed_out |= expired;
+                let f = &mut self.in_flight[i];
+                f.sent_at = now;
+                f.transmissions += 1;
+                out.push(f.seq);
+            }
+        }
+        if !out.is_empty() {
+            self.stats.retransmitted += out.len() as u64;
+            // Multiplicative decrease, once per loss episode.
+            self.ssthresh = (self.cwnd / 2.0).max(4.0);
+            self.cwnd = if timed_out { 4.0 } else { self.ssthresh };
+        }
+        out
+    }
+
+    /// When [`ArqSender::due`] should be called next.
+    pub fn next_deadline(&self) -> Option<Instant> {
+        self.in_flight
+            .iter()
+            .filter(|f| !f.acked)
+            .map(|f| self.deadline_of(f))
+            .min()
+    }
+
+    /// Ends the session; returns the tokens of everything never acknowledged.
+    pub fn close(self) -> Vec<T> {
+        self.in_flight.into_iter().filter_map(|f| f.token).collect()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> ArqSenderStats {
+        self.stats
+    }
+
+    /// The round-trip estimator.
+    pub fn rto(&self) -> &RtoEstimator {
+        &self.rto
+    }
+}
+
+/// What a SYN meant to a receiver.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SynOutcome {
+    /// First session from this peer.
+    Fresh,
+    /// The session already known (a retransmitted SYN).
+    Same,
+    /// A different session: the peer restarted its sending side.
+    Reset,
+}
+
+/// Counters of a receiver.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ArqReceiverStats {
+    /// Messages delivered in order.
+    pub delivered: u64,
+    /// Duplicates dropped.
+    pub duplicates: u64,
+    /// Messages beyond the reorder window dropped.
+    pub out_of_window: u64,
+    /// Safe messages dropped because no session was started.
+    pub without_session: u64,
+}
+
+/// The receiving half of a session.
+#[derive(Debug)]
+pub struct ArqReceiver {
+    session: Option<u32>,
+    next: u32,
+    buffered: BTreeMap<u32, Vec<u8>>,
+    max_window: u32,
+    ack_pending: bool,
+    stats: ArqReceiverStats,
+}
+
+impl ArqReceiver {
+    /// A receiver with a reorder buffer of `max_window` messages.
+    pub fn new(max_window: u32) -> Self {
+        ArqReceiver {
+            session: None,
+            next: 0,
+            buffered: BTreeMap::new(),
+            max_window,
+            ack_pending: false,
+            stats: ArqReceiverStats::default(),
+        }
+    }
+
+    /// Handles a SYN (the sender's session id).
+    pub fn on_syn(&mut self, session: u32) -> SynOutcome {
+        self.ack_pending = true;
+        match self.session {
+            Some(s) if s == session => SynOutcome::Same,
+            prev => {
+                self.session = Some(session);
+                self.next = 0;
+                self.buffered.clear();
+                if prev.is_some() {
+                    SynOutcome::Reset
+                } else {
+                    SynOutcome::Fresh
+                }
+            }
+        }
+    }
+
+    /// Handles one safe message; calls `deliver` for every message now deliverable in order.
+    pub fn on_safe(&mut self, seq: u32, msg: &[u8], mut deliver: impl FnMut(&[u8])) {
+        if self.session.is_none() {
+            self.stats.without_session += 1;
+            return;
+        }
+        self.ack_pending = true;
+        let ahead = seq.wrapping_sub(self.next);
+        if ahead == 0 {
+            deliver(msg);
+            self.stats.delivered += 1;
+            self.next = self.next.wrapping_add(1);
+            while let Some(m) = self.buffered.remove(&self.next) {
+                deliver(&m);
+                self.stats.delivered += 1;
+                self.next = self.next.wrapping_add(1);
+            }
+        } else if (ahead as i32) < 0 {
+            self.stats.duplicates += 1;
+        } else if ahead < self.max_window {
+            if self.buffered.insert(seq, msg.to_vec()).is_some() {
+                self.stats.duplicates += 1;
+            }
+        } else {
+            self.stats.out_of_window += 1;
+        }
+    }
+
+    /// The acknowledgement to send, if one is owed (clears the flag).
+    pub fn take_ack(&mut self) -> Option<AckInfo> {
+        if !self.ack_pending {
+            return None;
+        }
+        self.ack_pending = false;
+        self.current_ack()
+    }
+
+    /// The receiver's state as an acknowledgement.
+    pub fn current_ack(&self) -> Option<AckInfo> {
+        let session = self.session?;
+        let mut sack = 0u64;
+        for &seq in self.buffered.keys() {
+            let off = seq.wrapping_sub(self.next);
+            if (1..=64).contains(&off) {
+                sack |= 1 << (off - 1);
+            }
+        }
+        Some(AckInfo {
+            session,
+            next: self.next,
+            sack,
+        })
+    }
+
+    /// Whether an acknowledgement is owed.
+    pub fn ack_pending(&self) -> bool {
+        self.ack_pending
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> ArqReceiverStats {
+        self.stats
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn cfg() -> ArqConfig {
+        ArqConfig {
+            initial_rto: Duration::from_millis(100),
+            min_rto: Duration::from_millis(10),
+            max_rto: Duration::from_secs(1),
+            max_window: 64,
+            initial_window: 64,
+        }
+    }
+
+    #[test]
+    fn in_order_delivery_with_duplicates_suppressed() {
+        let mut r = ArqReceiver::new(16);
+        assert_eq!(r.on_syn(7), SynOutcome::Fresh);
+        let mut got = Vec::new();
+        r.on_safe(1, b"b", |m| got.push(m.to_vec()));
+        assert!(got.is_empty());
+        assert_eq!(
+            r.take_ack(),
+            Some(AckInfo {
+                session: 7,
+                next: 0,
+                sack: 1
+            })
+        );
+        r.on_safe(0, b"a", |m| got.push(m.to_vec()));
+        r.on_safe(0, b"a", |m| got.push(m.to_vec()));
+        r.on_safe(1, b"b", |m| got.push(m.to_vec()));
+        assert_eq!(got, vec![b"a".to_vec(), b"b".to_vec()]);
+        assert_eq!(r.stats().duplicates, 2);
+        assert_eq!(r.on_syn(7), SynOutcome::Same);
+        assert_eq!(r.on_syn(8), SynOutcome::Reset);
+    }
+
+    #[test]
+    fn timeout_retransmits_and_ack_completes() {
+        let t0 = Instant::now();
+        let mut s: ArqSender<u32> = ArqSender::new(1, cfg());
+        let seq = s.push(t0, b"x".to_vec(), Some(42));
+        assert_eq!(seq, 0);
+        assert!(s.due(t0 + Duration::from_millis(50)).is_empty());
+        assert_eq!(s.due(t0 + Duration::from_millis(100)), vec![0]);
+        // Backoff: the second retransmission waits twice as long.
+        assert!(s.due(t0 + Duration::from_millis(250)).is_empty());
+        assert_eq!(s.due(t0 + Duration::from_millis(300)), vec![0]);
+        let done = s.on_ack(
+            t0 + Duration::from_millis(310),
+            AckInfo {
+                session: 1,
+                next: 1,
+                sack: 0,
+            },
+        );
+        assert_eq!(done, vec![42]);
+        assert_eq!(s.in_flight(), 0);
+        assert_eq!(s.next_deadline(), None);
+        assert_eq!(s.stats().retransmitted, 2);
+    }
+
+    #[test]
+    fn acks_of_another_session_are_ignored_and_close_returns_pending() {
+        let t0 = Instant::now();
+        let mut s: ArqSender<u32> = ArqSender::new(1, cfg());
+        s.push(t0, b"x".to_vec(), Some(1));
+        assert!(s
+            .on_ack(
+                t0,
+                AckInfo {
+                    session: 2,
+                    next: 1,
+                    sack: 0
+                }
+            )
+            .is_empty());
+        assert_eq!(s.close(), vec![1]);
+    }
+
+    #[test]
+    fn rtt_adapts_the_timeout() {
+        let mut e = RtoEstimator::new(
+            Duration::from_millis(1000),
+            Duration::from_millis(1),
+            Duration::from_secs(5),
+        );
+        for _ in 0..20 {
+            e.sample(Duration::from_millis(10));
+        }
+        assert!(e.rto() < Duration::from_millis(30), "rto {:?}", e.rto());
+    }
+
+    proptest! {
+        /// Over a channel that drops, duplicates and reorders, every message arrives exactly
+        /// once and in order.
+        #[test]
+        fn lossy_channel_delivers_exactly_once_in_order(seed in any::<u64>(), n in 1usize..200) {
+            use rand::{Rng, SeedableRng};
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            let mut now = Instant::now();
+            let mut s: ArqSender<usize> = ArqSender::new(9, cfg());
+            let mut r = ArqReceiver::new(64);
+            r.on_syn(9);
+            let mut got: Vec<usize> = Vec::new();
+            let mut acked = 0usize;
+            let mut next_msg = 0usize;
+            let mut wire: Vec<(u32, Vec<u8>)> = Vec::new();
+            for _round in 0..20_000 {
+                if acked == n { break; }
+                while next_msg < n && s.can_push() {
+                    let m = (next_msg as u64).to_le_bytes().to_vec();
+                    let seq = s.push(now, m.clone(), Some(next_msg));
+                    wire.push((seq, m));
+                    next_msg += 1;
+                }
+                for seq in s.due(now) {
+                    let m = s.message(seq).unwrap().to_vec();
+                    wire.push((seq, m));
+                }
+                // Deliver a random subset in random order, maybe duplicated.
+                let mut delivered = Vec::new();
+                for (seq, m) in wire.drain(..) {
+                    let roll: f64 = rng.random();
+                    if roll < 0.3 { continue; }
+                    delivered.push((seq, m.clone()));
+                    if roll > 0.9 { delivered.push((seq, m)); }
+                }
+                for i in (1..delivered.len()).rev() {
+                    let j = rng.random_range(0..=i);
+                    delivered.swap(i, j);
+                }
+                for (seq, m) in delivered {
+                    r.on_safe(seq, &m, |b| {
+                        let mut a = [0u8; 8];
+                        a.copy_from_slice(b);
+                        got.push(u64::from_le_bytes(a) as usize);
+                    });
+                }
+                now += Duration::from_millis(5);
+                if let Some(ack) = r.take_ack() {
+                    if rng.random::<f64>() > 0.3 {
+                        acked += s.on_ack(now, ack).len();
+                    }
+                }
+            }
+            prop_assert_eq!(acked, n);
+            prop_assert_eq!(got, (0..n).collect::<Vec<_>>());
+        }
+    }
+}
