@@ -1,1 +1,8 @@
-//! FPMa: the USAL Flight Plan Manager (work in progress).
+//! FPMa: the USAL Flight Plan Manager library.
+pub mod expr;
+pub mod geo;
+pub mod model;
+pub mod parse;
+pub mod polygon;
+pub mod vehicle;
+pub mod xml;

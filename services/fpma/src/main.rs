@@ -1,0 +1,2 @@
+//! The `fpma` command-line tool.
+fn main() {}

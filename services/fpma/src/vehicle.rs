@@ -1,0 +1,63 @@
+//! Vehicle parameters that shape the waypoint stream (003 §6.2.3: a rover needs waypoints 4-5 m
+//! apart where an aircraft uses 100 m).
+
+use serde::{Deserialize, Serialize};
+
+/// What kind of vehicle a plan is expanded for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VehicleKind {
+    /// A ground rover that can turn on the spot.
+    Rover,
+    /// A fixed-wing aircraft.
+    Aircraft,
+}
+
+/// Parameters of the vehicle a plan is flown by.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VehicleParams {
+    /// Kind.
+    pub kind: VehicleKind,
+    /// Minimum distance between consecutive waypoints, metres: closer ones are dropped.
+    pub min_wp_distance: f64,
+    /// Speed when neither the leg nor the plan gives one, m/s.
+    pub default_speed: f64,
+    /// Minimum turn radius, metres: scans need spacing ≥ 2 × this, racetrack holds width ≥ 2 × this.
+    pub turn_radius: f64,
+    /// Largest angle between two waypoints of a densified arc, degrees.
+    pub max_arc_step_deg: f64,
+    /// Length of the inbound course drawn for a CF leg when the leg does not give one, metres.
+    pub cf_length: f64,
+}
+
+impl VehicleParams {
+    /// A small rover (the car-park tests of 003 §6.1.2).
+    pub fn rover() -> Self {
+        Self {
+            kind: VehicleKind::Rover,
+            min_wp_distance: 4.5,
+            default_speed: 2.0,
+            turn_radius: 1.0,
+            max_arc_step_deg: 45.0,
+            cf_length: 20.0,
+        }
+    }
+    /// A small fixed-wing aircraft.
+    pub fn aircraft() -> Self {
+        Self {
+            kind: VehicleKind::Aircraft,
+            min_wp_distance: 100.0,
+            default_speed: 22.0,
+            turn_radius: 60.0,
+            max_arc_step_deg: 45.0,
+            cf_length: 1000.0,
+        }
+    }
+    /// The defaults for `kind`.
+    pub fn for_kind(kind: VehicleKind) -> Self {
+        match kind {
+            VehicleKind::Rover => Self::rover(),
+            VehicleKind::Aircraft => Self::aircraft(),
+        }
+    }
+}
