@@ -1,1 +1,21 @@
-//! mavsim: an ArduPilot-compatible MAVLink vehicle simulator (work in progress).
+//! mavsim: an ArduPilot-compatible MAVLink vehicle simulator.
+//!
+//! Layers, bottom-up:
+//! - [`kinematics`]: local tangent plane and rover / copter / plane motion;
+//! - [`mission`]: the vehicle side of the mission protocol (pure state machine);
+//! - [`params`], [`modes`]: ArduPilot parameter and mode tables;
+//! - [`vehicle`]: the simulated autopilot (message handling, navigation, telemetry), pure;
+//! - [`link`]: UDP / serial / pty byte transports and MAVLink framing;
+//! - [`sim`]: the async driver tying a [`vehicle::Vehicle`] to a link at a speed-up factor;
+//! - [`log`]: the JSON-lines event log.
+
+// ArduPilot still speaks the superseded messages (MISSION_ITEM, MISSION_REQUEST,
+// SET_MODE, REQUEST_DATA_STREAM, MISSION_SET_CURRENT) and so must its simulator.
+#![allow(deprecated)]
+
+pub mod kinematics;
+pub mod log;
+pub mod mission;
+pub mod modes;
+pub mod params;
+pub mod vehicle;
