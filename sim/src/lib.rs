@@ -14,8 +14,10 @@
 #![allow(deprecated)]
 
 pub mod kinematics;
+pub mod link;
 pub mod log;
 pub mod mission;
 pub mod modes;
 pub mod params;
+pub mod sim;
 pub mod vehicle;

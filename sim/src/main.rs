@@ -1,1 +1,141 @@
-fn main() {}
+//! `mavsim`: command-line front end of the simulator (argument parsing, tracing, signals).
+
+use std::io::Write;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::{Parser, ValueEnum};
+use mavsim::kinematics::{GeoPoint, VehicleKind};
+use mavsim::link::{LinkConfig, LinkInfo};
+use mavsim::sim::{SimConfig, Simulator};
+use mavsim::vehicle::VehicleConfig;
+use tokio_util::sync::CancellationToken;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Kind {
+    Rover,
+    Copter,
+    Plane,
+}
+
+/// ArduPilot-compatible MAVLink vehicle simulator.
+#[derive(Debug, Parser)]
+#[command(version, about)]
+struct Args {
+    /// Vehicle kind.
+    #[arg(long, value_enum, default_value = "rover")]
+    vehicle: Kind,
+    /// MAVLink system id.
+    #[arg(long, default_value_t = 1)]
+    sysid: u8,
+    /// Home position: LAT,LON,ALT (degrees, degrees, metres AMSL).
+    #[arg(long, default_value = "41.2757,1.9881,10", allow_hyphen_values = true)]
+    home: String,
+    /// Simulated seconds per wall second.
+    #[arg(long, default_value_t = 1.0)]
+    speedup: f64,
+    /// UDP address to bind (port 0 picks one); replies go to the last sender.
+    #[arg(long, default_value = "127.0.0.1:14560")]
+    udp: SocketAddr,
+    /// Also send everything to this UDP address, as `udp:HOST:PORT` (like SITL --out).
+    #[arg(long)]
+    out: Option<String>,
+    /// Speak on this serial device instead of UDP.
+    #[arg(long, conflicts_with = "pty")]
+    serial: Option<String>,
+    /// Baud rate of --serial.
+    #[arg(long, default_value_t = 57_600)]
+    baud: u32,
+    /// Create a pty pair and speak on it instead of UDP; prints `MAVSIM_PTY=<slave path>`.
+    #[arg(long)]
+    pty: bool,
+    /// Write JSON lines of mission/mode/arming events to this file.
+    #[arg(long)]
+    log: Option<PathBuf>,
+}
+
+fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [lat, lon, alt] = parts[..] else {
+        bail!("--home wants LAT,LON,ALT, got {s:?}");
+    };
+    let home = GeoPoint {
+        lat_deg: lat.parse().with_context(|| format!("bad latitude {lat:?}"))?,
+        lon_deg: lon.parse().with_context(|| format!("bad longitude {lon:?}"))?,
+        alt_m: alt.parse().with_context(|| format!("bad altitude {alt:?}"))?,
+    };
+    if !(-90.0..=90.0).contains(&home.lat_deg) || !(-180.0..=180.0).contains(&home.lon_deg) {
+        bail!("--home out of range: {s:?}");
+    }
+    Ok(home)
+}
+
+fn parse_out(s: &str) -> anyhow::Result<SocketAddr> {
+    let addr = s.strip_prefix("udp:").unwrap_or(s);
+    addr.parse().with_context(|| format!("--out wants udp:HOST:PORT, got {s:?}"))
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "mavsim=info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    if !(args.speedup.is_finite() && args.speedup >= 0.01) {
+        bail!("--speedup must be at least 0.01");
+    }
+    let link = if args.pty {
+        LinkConfig::Pty
+    } else if let Some(path) = args.serial.clone() {
+        LinkConfig::Serial { path, baud: args.baud }
+    } else {
+        LinkConfig::Udp {
+            bind: args.udp,
+            out: args.out.as_deref().map(parse_out).transpose()?,
+        }
+    };
+    let cfg = SimConfig {
+        vehicle: VehicleConfig {
+            kind: match args.vehicle {
+                Kind::Rover => VehicleKind::Rover,
+                Kind::Copter => VehicleKind::Copter,
+                Kind::Plane => VehicleKind::Plane,
+            },
+            sysid: args.sysid,
+            home: parse_home(&args.home)?,
+        },
+        link,
+        speedup: args.speedup,
+        log: args.log,
+    };
+    let sim = Simulator::open(cfg).await.context("starting mavsim")?;
+    // One machine-readable line on stdout so scripts and tests find the endpoint.
+    let line = match sim.link_info() {
+        LinkInfo::Udp(addr) => format!("MAVSIM_UDP={addr}"),
+        LinkInfo::Serial(path) => format!("MAVSIM_SERIAL={path}"),
+        LinkInfo::Pty(path) => format!("MAVSIM_PTY={path}"),
+    };
+    {
+        let mut stdout = std::io::stdout().lock();
+        writeln!(stdout, "{line}")?;
+        stdout.flush()?;
+    }
+    tracing::info!("{line}");
+
+    let shutdown = CancellationToken::new();
+    let signal_token = shutdown.clone();
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .context("installing the SIGTERM handler")?;
+    tokio::spawn(async move {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = sigterm.recv() => {}
+        }
+        signal_token.cancel();
+    });
+    sim.run(shutdown).await.context("mavsim failed")
+}

@@ -1,0 +1,168 @@
+//! The async driver: runs a [`Vehicle`] on a [`Link`] in accelerated time.
+//!
+//! Time model: the vehicle is integrated at a fixed simulated step; every wall
+//! tick runs as many steps as `speedup × wall elapsed` requires. Heartbeats and
+//! telemetry streams are paced in *wall* time (a rate of 4 Hz is 4 messages per
+//! real second whatever the speed-up), so a ground station neither times out nor
+//! drowns; MISSION_ITEM_REACHED, STATUSTEXT and MISSION_CURRENT changes are sent
+//! the moment they happen in simulated time.
+
+use std::io;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use tokio_util::sync::CancellationToken;
+
+use crate::link::{Link, LinkConfig, LinkInfo, LinkOpenError};
+use crate::log::{LogRecord, LogWriter};
+use crate::vehicle::{Vehicle, VehicleConfig};
+
+/// Simulated seconds per integration step.
+pub const STEP_S: f64 = 0.02;
+/// Wall period of the driver loop.
+const TICK: Duration = Duration::from_millis(10);
+/// Bound on steps per tick so a stalled machine degrades to slower time instead of freezing.
+const MAX_STEPS_PER_TICK: u32 = 20_000;
+
+/// Everything needed to start a simulator.
+#[derive(Clone, Debug)]
+pub struct SimConfig {
+    /// The vehicle.
+    pub vehicle: VehicleConfig,
+    /// The transport.
+    pub link: LinkConfig,
+    /// Simulated seconds per wall second (≥ 0.01).
+    pub speedup: f64,
+    /// JSON-lines event log, if wanted.
+    pub log: Option<PathBuf>,
+}
+
+/// Errors of the simulator.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// The transport could not be opened.
+    #[error(transparent)]
+    LinkOpen(#[from] LinkOpenError),
+    /// The transport failed while running.
+    #[error("link I/O error: {0}")]
+    LinkIo(io::Error),
+    /// The log file could not be created or written.
+    #[error("log file {path}: {source}")]
+    Log {
+        /// Log path.
+        path: PathBuf,
+        /// Cause.
+        source: io::Error,
+    },
+}
+
+/// An opened simulator, ready to run.
+pub struct Simulator {
+    cfg: SimConfig,
+    vehicle: Vehicle,
+    link: Link,
+    log: Option<LogWriter>,
+    cancel_link: CancellationToken,
+}
+
+impl Simulator {
+    /// Opens the link and the log file.
+    ///
+    /// # Errors
+    /// When the link or the log file cannot be opened.
+    pub async fn open(cfg: SimConfig) -> Result<Self, SimError> {
+        let log = match &cfg.log {
+            Some(path) => Some(LogWriter::create(path).map_err(|source| SimError::Log {
+                path: path.clone(),
+                source,
+            })?),
+            None => None,
+        };
+        let cancel_link = CancellationToken::new();
+        let link = Link::open(&cfg.link, cfg.vehicle.sysid, cancel_link.clone()).await?;
+        let vehicle = Vehicle::new(cfg.vehicle, Instant::now());
+        Ok(Self {
+            cfg,
+            vehicle,
+            link,
+            log,
+            cancel_link,
+        })
+    }
+
+    /// What the link opened (bound UDP address, pty slave path...).
+    pub fn link_info(&self) -> &LinkInfo {
+        self.link.info()
+    }
+
+    fn flush_log(&mut self) -> Result<(), SimError> {
+        let events = self.vehicle.take_log();
+        if let Some(writer) = self.log.as_mut() {
+            for (t_sim, event) in events {
+                writer.write(&LogRecord { t_sim, event }).map_err(|source| SimError::Log {
+                    path: self.cfg.log.clone().unwrap_or_default(),
+                    source,
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs until `shutdown` is cancelled or the link fails.
+    ///
+    /// # Errors
+    /// When the link fails or the log cannot be written.
+    pub async fn run(mut self, shutdown: CancellationToken) -> Result<(), SimError> {
+        let result = self.run_loop(&shutdown).await;
+        self.cancel_link.cancel();
+        tracing::info!(
+            parse_errors = self.link.parse_errors(),
+            dropped = self.link.dropped(),
+            sim_time = self.vehicle.sim_time(),
+            "mavsim stopped"
+        );
+        self.link.close().await;
+        result
+    }
+
+    async fn run_loop(&mut self, shutdown: &CancellationToken) -> Result<(), SimError> {
+        let speedup = self.cfg.speedup.max(0.01);
+        let start = Instant::now();
+        let mut tick = tokio::time::interval(TICK);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        self.flush_log()?;
+        loop {
+            tokio::select! {
+                biased;
+                _ = shutdown.cancelled() => return Ok(()),
+                inbound = self.link.recv() => {
+                    let inbound = match inbound {
+                        Some(Ok(i)) => i,
+                        Some(Err(e)) => return Err(SimError::LinkIo(e)),
+                        None => return Err(SimError::LinkIo(io::ErrorKind::BrokenPipe.into())),
+                    };
+                    let from = (inbound.header.system_id as u8, inbound.header.component_id);
+                    for msg in self.vehicle.handle(from, &inbound.msg, Instant::now()) {
+                        self.link.send(&msg);
+                    }
+                    self.flush_log()?;
+                }
+                _ = tick.tick() => {
+                    let now = Instant::now();
+                    let target = now.duration_since(start).as_secs_f64() * speedup;
+                    let mut steps = 0;
+                    while self.vehicle.sim_time() + STEP_S / 2.0 < target && steps < MAX_STEPS_PER_TICK {
+                        for msg in self.vehicle.step(STEP_S) {
+                            self.link.send(&msg);
+                        }
+                        steps += 1;
+                    }
+                    for msg in self.vehicle.poll(now) {
+                        self.link.send(&msg);
+                    }
+                    self.flush_log()?;
+                }
+            }
+        }
+    }
+}
