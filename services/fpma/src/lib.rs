@@ -1,4 +1,5 @@
 //! FPMa: the USAL Flight Plan Manager library.
+pub mod expand;
 pub mod expr;
 pub mod geo;
 pub mod model;
