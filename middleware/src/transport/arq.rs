@@ -297,6 +297,11 @@ impl<T> ArqSender<T> {
         self.in_flight.into_iter().filter_map(|f| f.token).collect()
     }
 
+    /// The tuning this sender was created with.
+    pub fn config(&self) -> ArqConfig {
+        self.config
+    }
+
     /// Counters.
     pub fn stats(&self) -> ArqSenderStats {
         self.stats

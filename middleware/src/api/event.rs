@@ -1,0 +1,222 @@
+//! Events: every matched subscriber gets every event exactly once, in publish order; `raise`
+//! reports who acknowledged.
+
+use std::future::Future;
+use std::marker::PhantomData;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
+
+use tokio::sync::oneshot;
+
+use super::errors::{PublishError, RecvError};
+use super::service::Declared;
+use super::variable::{decode_delivery, wait_remote, Sample};
+use super::Payload;
+use crate::link::{LinkSendError, Outgoing};
+use crate::node::mailbox::{Delivery, Mailbox, RawSample};
+use crate::node::session::encode_data;
+use crate::node::{lock, LocalOffer, NodeInner};
+
+/// Who got an event.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct RaiseReport {
+    /// Subscribers that acknowledged, as `node/service`.
+    pub acknowledged: Vec<String>,
+    /// Subscribers that did not, with the reason (naming the node).
+    pub failed: Vec<(String, String)>,
+}
+
+impl RaiseReport {
+    /// Whether every matched subscriber acknowledged.
+    pub fn all_acknowledged(&self) -> bool {
+        self.failed.is_empty()
+    }
+}
+
+/// An event on its way; resolves to the [`RaiseReport`] when every subscriber acknowledged
+/// or was lost.
+pub struct PendingRaise {
+    report: RaiseReport,
+    waiting: Vec<(Vec<String>, String, oneshot::Receiver<Result<(), LinkSendError>>)>,
+}
+
+impl Future for PendingRaise {
+    type Output = RaiseReport;
+
+    fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<RaiseReport> {
+        let this = &mut *self;
+        let mut i = 0;
+        while i < this.waiting.len() {
+            match Pin::new(&mut this.waiting[i].2).poll(cx) {
+                Poll::Pending => i += 1,
+                Poll::Ready(r) => {
+                    let (subs, node, _) = this.waiting.swap_remove(i);
+                    match r {
+                        Ok(Ok(())) => this.report.acknowledged.extend(subs),
+                        Ok(Err(e)) => {
+                            let reason = format!("node '{node}' did not acknowledge: {e}");
+                            this.report
+                                .failed
+                                .extend(subs.into_iter().map(|s| (s, reason.clone())));
+                        }
+                        Err(_) => {
+                            let reason = format!("node '{node}' did not acknowledge: link closed");
+                            this.report
+                                .failed
+                                .extend(subs.into_iter().map(|s| (s, reason.clone())));
+                        }
+                    }
+                }
+            }
+        }
+        if this.waiting.is_empty() {
+            let mut r = std::mem::take(&mut this.report);
+            r.acknowledged.sort();
+            r.failed.sort();
+            Poll::Ready(r)
+        } else {
+            Poll::Pending
+        }
+    }
+}
+
+/// Publisher handle of an event. Dropping it withdraws the event.
+pub struct Event<T> {
+    node: Arc<NodeInner>,
+    offer: Arc<LocalOffer>,
+    _declared: Declared,
+    _t: PhantomData<fn(T)>,
+}
+
+impl<T: Payload> Event<T> {
+    pub(crate) fn new(node: Arc<NodeInner>, offer: Arc<LocalOffer>, declared: Declared) -> Self {
+        Event {
+            node,
+            offer,
+            _declared: declared,
+            _t: PhantomData,
+        }
+    }
+
+    /// Full name.
+    pub fn name(&self) -> &str {
+        &self.offer.name
+    }
+
+    /// Raises an event and waits until every matched subscriber acknowledged it end to end (or
+    /// was lost, which the report names).
+    ///
+    /// # Errors
+    /// [`PublishError::Encode`] when the value cannot be serialised.
+    pub async fn raise(&self, value: &T) -> Result<RaiseReport, PublishError> {
+        Ok(self.raise_nowait(value)?.await)
+    }
+
+    /// Raises an event now and returns a future for its report, so a publisher can keep many
+    /// events in flight. Events are delivered in the order of these calls.
+    ///
+    /// # Errors
+    /// [`PublishError::Encode`] when the value cannot be serialised.
+    pub fn raise_nowait(&self, value: &T) -> Result<PendingRaise, PublishError> {
+        let bytes = crate::codec::encode_payload(value).map_err(|source| PublishError::Encode {
+            name: self.offer.name.to_string(),
+            source,
+        })?;
+        let mut report = RaiseReport::default();
+        let local = lock(&self.offer.local).clone();
+        let me = &self.node.me.name;
+        for i in &local {
+            if let Some(m) = &i.mailbox {
+                m.push(Delivery::Sample(RawSample {
+                    name: self.offer.name.clone(),
+                    publisher: me.as_str().into(),
+                    payload: bytes.clone(),
+                    received: Instant::now(),
+                }));
+                report.acknowledged.push(format!("{me}/{}", i.service_name));
+            }
+        }
+        let remote = lock(&self.offer.remote).clone();
+        let mut waiting = Vec::with_capacity(remote.len());
+        if !remote.is_empty() {
+            let msg = encode_data(true, self.offer.id, &bytes);
+            for r in remote {
+                let (tx, rx) = oneshot::channel();
+                self.node.send_to(
+                    r.link,
+                    r.addr,
+                    Outgoing::Safe {
+                        msg: msg.clone(),
+                        done: Some(tx),
+                    },
+                );
+                let subs = r
+                    .services
+                    .iter()
+                    .map(|s| format!("{}/{s}", r.node_name))
+                    .collect();
+                waiting.push((subs, r.node_name.to_string(), rx));
+            }
+        }
+        Ok(PendingRaise { report, waiting })
+    }
+
+    /// Names of the remote nodes currently subscribed.
+    pub fn remote_subscribers(&self) -> Vec<String> {
+        lock(&self.offer.remote)
+            .iter()
+            .map(|r| r.node_name.to_string())
+            .collect()
+    }
+
+    /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
+    pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
+        wait_remote(&self.node, &self.offer, n, timeout).await
+    }
+}
+
+/// Subscriber handle of events.
+pub struct EventSubscriber<T> {
+    mailbox: Arc<Mailbox>,
+    _declared: Declared,
+    _t: PhantomData<fn() -> T>,
+}
+
+impl<T: Payload> EventSubscriber<T> {
+    pub(crate) fn new(mailbox: Arc<Mailbox>, declared: Declared) -> Self {
+        EventSubscriber {
+            mailbox,
+            _declared: declared,
+            _t: PhantomData,
+        }
+    }
+
+    /// The next event, in publish order per publisher.
+    ///
+    /// # Errors
+    /// [`RecvError::TypeMismatch`], [`RecvError::Decode`], [`RecvError::Closed`].
+    pub async fn recv(&self) -> Result<Sample<T>, RecvError> {
+        match self.mailbox.pop().await {
+            Some(d) => decode_delivery(d),
+            None => Err(RecvError::Closed),
+        }
+    }
+
+    /// Like [`EventSubscriber::recv`] with a time limit.
+    ///
+    /// # Errors
+    /// As `recv`, plus [`RecvError::Timeout`].
+    pub async fn recv_timeout(&self, timeout: Duration) -> Result<Sample<T>, RecvError> {
+        match tokio::time::timeout(timeout, self.recv()).await {
+            Ok(r) => r,
+            Err(_) => Err(RecvError::Timeout(timeout)),
+        }
+    }
+
+    /// An event if one is waiting.
+    pub fn try_recv(&self) -> Option<Result<Sample<T>, RecvError>> {
+        self.mailbox.try_pop().map(decode_delivery)
+    }
+}

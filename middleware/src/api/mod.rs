@@ -1,0 +1,24 @@
+//! The public API: [`Node`], the typed handles of the four primitives, and [`IService`].
+
+mod errors;
+mod event;
+mod file;
+mod function;
+mod node;
+mod service;
+mod variable;
+
+pub use errors::{CallError, DeclareError, FileSendError, NodeOpenError, PublishError, RecvError};
+pub use event::{Event, EventSubscriber, PendingRaise, RaiseReport};
+pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
+pub use function::{Function, FunctionProvider};
+pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};
+pub use service::{IService, Service, ServiceDescription, ServiceError};
+pub use variable::{Sample, Variable, VariableSubscriber};
+
+pub use crate::node::files::ReceivedFile;
+pub use crate::node::mailbox::TypeMismatch;
+
+/// Payload types: anything serde can encode, shared between processes.
+pub trait Payload: serde::Serialize + serde::de::DeserializeOwned + Send + Sync + 'static {}
+impl<T: serde::Serialize + serde::de::DeserializeOwned + Send + Sync + 'static> Payload for T {}

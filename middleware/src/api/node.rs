@@ -1,0 +1,425 @@
+//! [`Node`]: one per process; opens the links of a `network.xml`, hosts services, and lists
+//! what the network offers.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU32, AtomicU64};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Duration;
+
+use dashmap::DashMap;
+use serde::{Deserialize, Serialize};
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use super::errors::{DeclareError, NodeOpenError};
+use super::service::{IService, Service, ServiceError};
+use crate::config::{LinkConfig, NetworkConfig};
+use crate::link::udp::{UdpLink, UdpLinkOptions};
+use crate::link::{Link, LinkStats};
+use crate::name;
+use crate::node::discovery::domain_hash;
+use crate::node::{Handler, Identity, NodeInner};
+use crate::protocol::{ItemKind, Message};
+use crate::transport::arq::ArqConfig;
+
+/// A middleware node. Dropping it without [`Node::shutdown`] stops its tasks too, but without
+/// telling peers (they notice when the lease expires).
+pub struct Node {
+    pub(crate) inner: Arc<NodeInner>,
+    hosted: tokio::sync::Mutex<Vec<Box<dyn IService>>>,
+}
+
+/// What a node knows of one peer.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PeerInfo {
+    /// Node name.
+    pub name: String,
+    /// Namespace.
+    pub namespace: String,
+    /// Link it is reached on.
+    pub link: String,
+    /// Address on that link.
+    pub addr: String,
+    /// Milliseconds since it was last heard.
+    pub last_seen_ms: u64,
+}
+
+/// Whether an item is offered or wanted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ItemRole {
+    /// Published / provided / accepted.
+    Offer,
+    /// Subscribed / called.
+    Interest,
+}
+
+/// One item of a service, for listings.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ItemDescription {
+    /// Variable, event, function or file.
+    pub kind: ItemKind,
+    /// Offered or wanted.
+    pub role: ItemRole,
+    /// Full name (or pattern for interests).
+    pub name: String,
+    /// Payload type name.
+    pub type_name: String,
+}
+
+/// A node and its services, for listings.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct NodeDescription {
+    /// Node name.
+    pub name: String,
+    /// Namespace.
+    pub namespace: String,
+    /// Whether this is the local node.
+    pub local: bool,
+    /// Services with their items.
+    pub services: Vec<super::service::ServiceDescription>,
+}
+
+/// Everything a node knows about the network.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Catalog {
+    /// The local node first, then peers by name.
+    pub nodes: Vec<NodeDescription>,
+}
+
+fn arq_for_lan() -> ArqConfig {
+    ArqConfig::lan()
+}
+
+impl Node {
+    /// Opens the links of `config`, announces the node and starts discovery.
+    ///
+    /// # Errors
+    /// [`NodeOpenError`] when a link cannot be opened or a link kind is not supported.
+    pub async fn open(config: &NetworkConfig) -> Result<Node, NodeOpenError> {
+        name::validate_name(&config.node)?;
+        if let Some(ns) = &config.namespace {
+            name::validate_name(ns)?;
+        }
+        let (heartbeat, lease) = config
+            .links
+            .iter()
+            .map(|l| match l {
+                LinkConfig::Ethernet(e) => (e.heartbeat, e.lease),
+                LinkConfig::Shm(s) => (s.heartbeat, s.lease),
+                LinkConfig::Serial(s) => (s.heartbeat, s.lease),
+                LinkConfig::SerialDuo(s) => (s.heartbeat, s.lease),
+            })
+            .min()
+            .unwrap_or((Duration::from_secs(1), Duration::from_millis(3500)));
+        let (changed, _) = watch::channel(0u64);
+        let inner = Arc::new(NodeInner {
+            me: Identity {
+                id: rand::random(),
+                name: config.node.clone(),
+                namespace: config.namespace.clone().filter(|n| !n.is_empty()),
+                domain: config.domain.clone(),
+                domain_hash: domain_hash(&config.domain),
+                heartbeat,
+                lease,
+            },
+            links: OnceLock::new(),
+            decls: Mutex::default(),
+            next_id: AtomicU32::new(1),
+            services: DashMap::new(),
+            offers: DashMap::new(),
+            interests: DashMap::new(),
+            peers: DashMap::new(),
+            addrs: DashMap::new(),
+            calls: DashMap::new(),
+            next_call: AtomicU64::new(1),
+            transfers: Default::default(),
+            changed,
+            tasks: TaskTracker::new(),
+            cancel: CancellationToken::new(),
+            counters: Default::default(),
+        });
+        let mut links: Vec<Arc<dyn Link>> = Vec::new();
+        for (index, lc) in config.links.iter().enumerate() {
+            let handler = Arc::new(Handler(Arc::downgrade(&inner)));
+            match lc {
+                LinkConfig::Ethernet(e) => {
+                    let link = UdpLink::open(
+                        index,
+                        UdpLinkOptions {
+                            name: e.name.clone(),
+                            bind: e.bind,
+                            multicast: e.multicast,
+                            interface: e.interface,
+                            ttl: e.ttl,
+                            peers: e.peers.clone(),
+                            mtu: 1400,
+                            arq: arq_for_lan(),
+                        },
+                        handler,
+                        &inner.tasks,
+                        inner.cancel.child_token(),
+                    );
+                    match link {
+                        Ok(l) => links.push(l),
+                        Err(e) => {
+                            inner.cancel.cancel();
+                            return Err(e.into());
+                        }
+                    }
+                }
+                other => {
+                    inner.cancel.cancel();
+                    return Err(NodeOpenError::Unsupported {
+                        link: other.name().to_owned(),
+                        kind: match other {
+                            LinkConfig::Shm(_) => "shm",
+                            LinkConfig::Serial(_) => "serial",
+                            _ => "serialduo",
+                        },
+                    });
+                }
+            }
+        }
+        // Only this function sets the links, once, before any task can read them.
+        let _ = inner.links.set(links);
+        let hb = inner.clone();
+        inner.tasks.spawn(hb.heartbeat_loop());
+        inner.announce(&inner.hello());
+        tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), "node open");
+        Ok(Node {
+            inner,
+            hosted: tokio::sync::Mutex::new(Vec::new()),
+        })
+    }
+
+    /// This node's name.
+    pub fn name(&self) -> &str {
+        &self.inner.me.name
+    }
+
+    /// This node's namespace, if any.
+    pub fn namespace(&self) -> Option<&str> {
+        self.inner.me.namespace.as_deref()
+    }
+
+    /// Declares a service on this node; its items are named `namespace/service/item`.
+    ///
+    /// # Errors
+    /// [`DeclareError`] when the name is invalid or the node is stopping.
+    pub fn service(&self, name: &str) -> Result<Service, DeclareError> {
+        Service::create(self.inner.clone(), name)
+    }
+
+    /// Starts a service: creates its context and calls [`IService::start`]. The node calls
+    /// [`IService::stop`] at shutdown.
+    ///
+    /// # Errors
+    /// What the service's `start` returns, or a declaration error.
+    pub async fn add_service(&self, mut service: Box<dyn IService>) -> Result<(), ServiceError> {
+        let ctx = self.service(service.name())?;
+        service.start(ctx).await?;
+        self.hosted.lock().await.push(service);
+        Ok(())
+    }
+
+    /// The peers currently known.
+    pub fn peers(&self) -> Vec<PeerInfo> {
+        let links = self.inner.links();
+        let mut v: Vec<PeerInfo> = self
+            .inner
+            .peers
+            .iter()
+            .map(|p| PeerInfo {
+                name: p.name.to_string(),
+                namespace: p.namespace.clone(),
+                link: links
+                    .get(p.link)
+                    .map(|l| l.name().to_owned())
+                    .unwrap_or_default(),
+                addr: p.addr.to_string(),
+                last_seen_ms: p.last_seen.elapsed().as_millis() as u64,
+            })
+            .collect();
+        v.sort_by(|a, b| a.name.cmp(&b.name));
+        v
+    }
+
+    /// Waits until `pred` holds on this node's view of the network, re-checking whenever the
+    /// peer table or the routes change. Returns whether it held within `timeout`.
+    pub async fn wait_until(&self, timeout: Duration, mut pred: impl FnMut(&Node) -> bool) -> bool {
+        let mut rx = self.inner.changed.subscribe();
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            if pred(self) {
+                return true;
+            }
+            match tokio::time::timeout_at(deadline, rx.changed()).await {
+                Ok(Ok(())) => continue,
+                _ => return pred(self),
+            }
+        }
+    }
+
+    /// Whether some peer offers an item of `kind` whose name matches `pattern`.
+    pub fn is_offered(&self, kind: ItemKind, pattern: &str) -> bool {
+        self.inner.peers.iter().any(|p| {
+            p.offers
+                .values()
+                .any(|o| o.kind == kind && name::matches(pattern, &o.name))
+        }) || self
+            .inner
+            .offers
+            .iter()
+            .any(|o| o.kind == kind && name::matches(pattern, &o.name))
+    }
+
+    /// Counters of every link, by link name.
+    pub fn link_stats(&self) -> Vec<(String, LinkStats)> {
+        self.inner
+            .links()
+            .iter()
+            .map(|l| (l.name().to_owned(), l.stats()))
+            .collect()
+    }
+
+    /// Local addresses of the links (for logs).
+    pub fn link_addrs(&self) -> Vec<String> {
+        self.inner.links().iter().map(|l| l.local_addr()).collect()
+    }
+
+    /// Messages dropped because they could not be decoded or came from an unknown sender.
+    pub fn dropped_input(&self) -> (u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (
+            self.inner.counters.undecodable.load(Relaxed),
+            self.inner.counters.unknown_sender.load(Relaxed),
+        )
+    }
+
+    /// Everything this node knows: itself and every peer, with services and items.
+    pub fn catalog(&self) -> Catalog {
+        use super::node::{ItemDescription as I, ItemRole as R};
+        let mut nodes = Vec::new();
+        let mut services: HashMap<u32, super::service::ServiceDescription> = self
+            .inner
+            .services
+            .iter()
+            .map(|e| {
+                (
+                    *e.key(),
+                    super::service::ServiceDescription {
+                        name: e.value().to_string(),
+                        items: Vec::new(),
+                    },
+                )
+            })
+            .collect();
+        for o in self.inner.offers.iter() {
+            if let Some(s) = services.get_mut(&o.service) {
+                s.items.push(I {
+                    kind: o.kind,
+                    role: R::Offer,
+                    name: o.name.to_string(),
+                    type_name: o.ty.name.clone(),
+                });
+            }
+        }
+        for i in self.inner.interests.iter() {
+            if let Some(s) = services.get_mut(&i.service) {
+                s.items.push(I {
+                    kind: i.kind,
+                    role: R::Interest,
+                    name: i.pattern.clone(),
+                    type_name: i.ty.name.clone(),
+                });
+            }
+        }
+        for s in services.values_mut() {
+            s.items.sort_by(|a, b| a.name.cmp(&b.name));
+        }
+        let mut svc_list: Vec<_> = services.into_values().collect();
+        svc_list.sort_by(|a, b| a.name.cmp(&b.name));
+        nodes.push(NodeDescription {
+            name: self.inner.me.name.clone(),
+            namespace: self.inner.me.namespace.clone().unwrap_or_default(),
+            local: true,
+            services: svc_list,
+        });
+        let mut remote: Vec<NodeDescription> = self
+            .inner
+            .peers
+            .iter()
+            .map(|p| {
+                let mut svcs: HashMap<u32, super::service::ServiceDescription> = p
+                    .services
+                    .iter()
+                    .map(|(id, n)| {
+                        (
+                            *id,
+                            super::service::ServiceDescription {
+                                name: n.clone(),
+                                items: Vec::new(),
+                            },
+                        )
+                    })
+                    .collect();
+                for (role, map) in [(R::Offer, &p.offers), (R::Interest, &p.interests)] {
+                    for it in map.values() {
+                        if let Some(s) = svcs.get_mut(&it.service) {
+                            s.items.push(I {
+                                kind: it.kind,
+                                role,
+                                name: it.name.to_string(),
+                                type_name: it.ty.name.clone(),
+                            });
+                        }
+                    }
+                }
+                let mut list: Vec<_> = svcs.into_values().collect();
+                for s in &mut list {
+                    s.items.sort_by(|a, b| a.name.cmp(&b.name));
+                }
+                list.sort_by(|a, b| a.name.cmp(&b.name));
+                NodeDescription {
+                    name: p.name.to_string(),
+                    namespace: p.namespace.clone(),
+                    local: false,
+                    services: list,
+                }
+            })
+            .collect();
+        remote.sort_by(|a, b| a.name.cmp(&b.name));
+        nodes.extend(remote);
+        Catalog { nodes }
+    }
+
+    /// Stops the hosted services, tells peers we leave, and waits for every task to end.
+    pub async fn shutdown(self) {
+        let mut hosted = std::mem::take(&mut *self.hosted.lock().await);
+        for s in hosted.iter_mut() {
+            if let Err(e) = s.stop().await {
+                tracing::warn!(service = s.name(), error = %e, "service stop failed");
+            }
+        }
+        drop(hosted);
+        self.inner.announce(&Message::Bye {
+            node_id: self.inner.me.id,
+        });
+        self.inner.cancel.cancel();
+        self.inner.tasks.close();
+        if tokio::time::timeout(Duration::from_secs(5), self.inner.tasks.wait())
+            .await
+            .is_err()
+        {
+            tracing::warn!("some node tasks did not stop within 5 s");
+        }
+    }
+}
+
+impl Drop for Node {
+    fn drop(&mut self) {
+        self.inner.cancel.cancel();
+        self.inner.tasks.close();
+    }
+}

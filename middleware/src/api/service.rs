@@ -1,0 +1,385 @@
+//! [`IService`] (the USAL service interface) and [`Service`], the context a service declares
+//! its items through.
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+use super::errors::DeclareError;
+use super::event::{Event, EventSubscriber};
+use super::file::{FileSink, FileTransfer, SendFileOptions};
+use super::function::{Function, FunctionProvider};
+use super::node::ItemDescription;
+use super::variable::{Variable, VariableSubscriber};
+use super::Payload;
+use crate::name;
+use crate::node::files::SinkMailbox;
+use crate::node::mailbox::Mailbox;
+use crate::node::{BoxFuture, LocalInterest, LocalOffer, NodeInner, OfferRole};
+use crate::protocol::{Declaration, ItemKind};
+use crate::typeinfo::TypeInfo;
+
+/// A USAL service, hosted by a [`crate::Node`] (the seed's `IService`).
+#[async_trait::async_trait]
+pub trait IService: Send + 'static {
+    /// The service's name (the middle segment of its items' names).
+    fn name(&self) -> &str;
+    /// Declares the service's items through `ctx` and starts its work (spawn loops with
+    /// [`Service::spawn`] so they stop with the node).
+    async fn start(&mut self, ctx: Service) -> Result<(), ServiceError>;
+    /// Called once at node shutdown.
+    async fn stop(&mut self) -> Result<(), ServiceError> {
+        Ok(())
+    }
+}
+
+/// A service failed to start or stop.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// Declaring an item failed.
+    #[error(transparent)]
+    Declare(#[from] DeclareError),
+    /// The service's own failure.
+    #[error("{0}")]
+    Failed(String),
+}
+
+/// A service with its items, for listings.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ServiceDescription {
+    /// Service name.
+    pub name: String,
+    /// What it publishes, subscribes, provides and calls.
+    pub items: Vec<ItemDescription>,
+}
+
+/// Withdraws a declaration when the last handle to it is dropped.
+pub(crate) struct Declared {
+    pub node: Weak<NodeInner>,
+    pub id: u32,
+}
+
+impl Drop for Declared {
+    fn drop(&mut self) {
+        if let Some(n) = self.node.upgrade() {
+            n.withdraw(self.id);
+        }
+    }
+}
+
+struct ServiceInner {
+    node: Arc<NodeInner>,
+    name: Arc<str>,
+    _declared: Declared,
+    id: u32,
+}
+
+/// A service's context: declares its items (`namespace/service/item`), spawns its tasks.
+/// Cloning is cheap; the service is withdrawn when the last clone is dropped.
+#[derive(Clone)]
+pub struct Service {
+    inner: Arc<ServiceInner>,
+}
+
+impl Service {
+    pub(crate) fn create(node: Arc<NodeInner>, name: &str) -> Result<Self, DeclareError> {
+        name::validate_name(name)?;
+        if node.cancel.is_cancelled() {
+            return Err(DeclareError::Closed);
+        }
+        let id = node.fresh_id();
+        node.services.insert(id, name.into());
+        node.declare(Declaration::Service {
+            id,
+            name: name.to_owned(),
+        });
+        Ok(Service {
+            inner: Arc::new(ServiceInner {
+                _declared: Declared {
+                    node: Arc::downgrade(&node),
+                    id,
+                },
+                node,
+                name: name.into(),
+                id,
+            }),
+        })
+    }
+
+    /// The service name.
+    pub fn name(&self) -> &str {
+        &self.inner.name
+    }
+
+    /// The name of this node.
+    pub fn node_name(&self) -> &str {
+        &self.inner.node.me.name
+    }
+
+    /// The full name of one of this service's items: `namespace/service/item`.
+    pub fn full_name(&self, item: &str) -> String {
+        name::join(self.inner.node.me.namespace.as_deref(), &self.inner.name, item)
+    }
+
+    fn offer(
+        &self,
+        item: &str,
+        kind: ItemKind,
+        ty: TypeInfo,
+        role: OfferRole,
+    ) -> Result<(Arc<LocalOffer>, Declared), DeclareError> {
+        name::validate_name(item)?;
+        let node = &self.inner.node;
+        if node.cancel.is_cancelled() {
+            return Err(DeclareError::Closed);
+        }
+        let id = node.fresh_id();
+        let offer = Arc::new(LocalOffer {
+            id,
+            service: self.inner.id,
+            kind,
+            name: self.full_name(item).into(),
+            ty,
+            role,
+            remote: Mutex::default(),
+            local: Mutex::default(),
+            refused: Mutex::default(),
+        });
+        node.add_offer(offer.clone());
+        Ok((
+            offer,
+            Declared {
+                node: Arc::downgrade(node),
+                id,
+            },
+        ))
+    }
+
+    fn interest(
+        &self,
+        pattern: &str,
+        kind: ItemKind,
+        ty: TypeInfo,
+        mailbox: Option<Arc<Mailbox>>,
+    ) -> Result<Declared, DeclareError> {
+        name::validate_pattern(pattern)?;
+        let node = &self.inner.node;
+        if node.cancel.is_cancelled() {
+            return Err(DeclareError::Closed);
+        }
+        let id = node.fresh_id();
+        node.add_interest(Arc::new(LocalInterest {
+            id,
+            service: self.inner.id,
+            service_name: self.inner.name.clone(),
+            kind,
+            pattern: pattern.to_owned(),
+            ty,
+            mailbox,
+            reported: Mutex::default(),
+        }));
+        Ok(Declared {
+            node: Arc::downgrade(node),
+            id,
+        })
+    }
+
+    /// Publishes a variable `item` of type `T`.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name or a stopping node.
+    pub fn publish_variable<T: Payload>(&self, item: &str) -> Result<Variable<T>, DeclareError> {
+        let (offer, declared) = self.offer(
+            item,
+            ItemKind::Variable,
+            TypeInfo::of::<T>(),
+            OfferRole::Variable {
+                last: Mutex::new(None),
+            },
+        )?;
+        Ok(Variable::new(self.inner.node.clone(), offer, declared))
+    }
+
+    /// Subscribes to variables matching `pattern` (full names, wildcards allowed). The last
+    /// value of every matching variable arrives at once.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid pattern or a stopping node.
+    pub fn subscribe_variable<T: Payload>(
+        &self,
+        pattern: &str,
+    ) -> Result<VariableSubscriber<T>, DeclareError> {
+        let mailbox = Arc::new(Mailbox::new(true));
+        let declared = self.interest(
+            pattern,
+            ItemKind::Variable,
+            TypeInfo::of::<T>(),
+            Some(mailbox.clone()),
+        )?;
+        Ok(VariableSubscriber::new(mailbox, declared))
+    }
+
+    /// Publishes an event `item` of type `T`.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name or a stopping node.
+    pub fn publish_event<T: Payload>(&self, item: &str) -> Result<Event<T>, DeclareError> {
+        let (offer, declared) =
+            self.offer(item, ItemKind::Event, TypeInfo::of::<T>(), OfferRole::Event)?;
+        Ok(Event::new(self.inner.node.clone(), offer, declared))
+    }
+
+    /// Subscribes to events matching `pattern`.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid pattern or a stopping node.
+    pub fn subscribe_event<T: Payload>(
+        &self,
+        pattern: &str,
+    ) -> Result<EventSubscriber<T>, DeclareError> {
+        let mailbox = Arc::new(Mailbox::new(false));
+        let declared = self.interest(
+            pattern,
+            ItemKind::Event,
+            TypeInfo::of::<T>(),
+            Some(mailbox.clone()),
+        )?;
+        Ok(EventSubscriber::new(mailbox, declared))
+    }
+
+    /// Provides function `item`: `handler` gets the arguments and returns the result or an
+    /// error message for the caller. The function is withdrawn when the handle is dropped.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name or a stopping node.
+    pub fn provide_function<A, R, F, Fut>(
+        &self,
+        item: &str,
+        handler: F,
+    ) -> Result<FunctionProvider, DeclareError>
+    where
+        A: Payload,
+        R: Payload,
+        F: Fn(A) -> Fut + Send + Sync + 'static,
+        Fut: std::future::Future<Output = Result<R, String>> + Send + 'static,
+    {
+        let handler = Arc::new(handler);
+        let raw: crate::node::RawHandler = Arc::new(move |args: Vec<u8>| {
+            let handler = handler.clone();
+            let fut: BoxFuture<Result<Vec<u8>, crate::protocol::RemoteFailure>> =
+                Box::pin(async move {
+                    use crate::protocol::RemoteFailure;
+                    let a: A = crate::codec::decode_payload(&args)
+                        .map_err(|e| RemoteFailure::BadArguments(e.to_string()))?;
+                    let r = handler(a).await.map_err(RemoteFailure::Handler)?;
+                    crate::codec::encode_payload(&r)
+                        .map_err(|e| RemoteFailure::Handler(format!("cannot encode result: {e}")))
+                });
+            fut
+        });
+        let (offer, declared) = self.offer(
+            item,
+            ItemKind::Function,
+            TypeInfo::of_function::<A, R>(),
+            OfferRole::Function { handler: raw },
+        )?;
+        Ok(FunctionProvider::new(offer, declared))
+    }
+
+    /// A client for function `name` (a full name). Declares the intent, so listings show who
+    /// calls what.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name or a stopping node.
+    pub fn function<A: Payload, R: Payload>(&self, name: &str) -> Result<Function<A, R>, DeclareError> {
+        name::validate_name(name)?;
+        let declared = self.interest(
+            name,
+            ItemKind::Function,
+            TypeInfo::of_function::<A, R>(),
+            None,
+        )?;
+        Ok(Function::new(self.inner.node.clone(), name.to_owned(), declared))
+    }
+
+    /// Accepts files sent to `item` into directory `dir` (created if missing).
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name, an unusable directory or a stopping node.
+    pub fn file_sink(&self, item: &str, dir: impl Into<PathBuf>) -> Result<FileSink, DeclareError> {
+        let dir: PathBuf = dir.into();
+        std::fs::create_dir_all(&dir).map_err(|e| DeclareError::SinkDir {
+            dir: dir.display().to_string(),
+            reason: e.to_string(),
+        })?;
+        let mailbox = Arc::new(SinkMailbox::default());
+        let (offer, declared) = self.offer(
+            item,
+            ItemKind::File,
+            TypeInfo::of::<FileSink>(),
+            OfferRole::File {
+                dir,
+                mailbox: mailbox.clone(),
+            },
+        )?;
+        Ok(FileSink::new(offer, mailbox, declared))
+    }
+
+    /// Sends a file to the sink named `to` (a full name), in the background. The returned handle
+    /// shows progress and gives the outcome.
+    pub fn send_file(&self, path: impl Into<PathBuf>, to: &str, options: SendFileOptions) -> FileTransfer {
+        FileTransfer::start(self.inner.node.clone(), path.into(), to.to_owned(), options)
+    }
+
+    /// Spawns a task that belongs to the node: it is awaited at shutdown, and should stop when
+    /// [`Service::cancelled`] resolves.
+    pub fn spawn<F>(&self, fut: F)
+    where
+        F: std::future::Future<Output = ()> + Send + 'static,
+    {
+        self.inner.node.tasks.spawn(fut);
+    }
+
+    /// Resolves when the node shuts down.
+    pub async fn cancelled(&self) {
+        self.inner.node.cancel.cancelled().await
+    }
+
+    /// Describes this service's items.
+    pub fn describe(&self) -> ServiceDescription {
+        use super::node::ItemRole;
+        let node = &self.inner.node;
+        let mut items: Vec<ItemDescription> = node
+            .offers
+            .iter()
+            .filter(|o| o.service == self.inner.id)
+            .map(|o| ItemDescription {
+                kind: o.kind,
+                role: ItemRole::Offer,
+                name: o.name.to_string(),
+                type_name: o.ty.name.clone(),
+            })
+            .chain(
+                node.interests
+                    .iter()
+                    .filter(|i| i.service == self.inner.id)
+                    .map(|i| ItemDescription {
+                        kind: i.kind,
+                        role: ItemRole::Interest,
+                        name: i.pattern.clone(),
+                        type_name: i.ty.name.clone(),
+                    }),
+            )
+            .collect();
+        items.sort_by(|a, b| a.name.cmp(&b.name));
+        ServiceDescription {
+            name: self.inner.name.to_string(),
+            items,
+        }
+    }
+
+    /// Default deadline for calls made through this service.
+    pub const DEFAULT_CALL_TIMEOUT: Duration = Duration::from_secs(5);
+}

@@ -1,0 +1,113 @@
+//! Links move node messages over one medium, in two classes: **fast** (best effort, bounded
+//! queue, newest value per variable wins) and **safe** (reliable, ordered, acknowledged).
+//!
+//! A link knows nothing of declarations or names: it carries encoded [`crate::protocol::Message`]s
+//! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
+
+pub mod udp;
+
+use std::fmt;
+use std::net::SocketAddr;
+
+/// Where a peer is reached on a link.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum PeerAddr {
+    /// A UDP unicast address.
+    Udp(SocketAddr),
+    /// The single peer at the other end of a point-to-point link (serial).
+    PointToPoint,
+    /// A same-host peer by shared-memory identity.
+    Shm(u64),
+}
+
+impl fmt::Display for PeerAddr {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            PeerAddr::Udp(a) => write!(f, "udp://{a}"),
+            PeerAddr::PointToPoint => write!(f, "point-to-point"),
+            PeerAddr::Shm(id) => write!(f, "shm://{id:016x}"),
+        }
+    }
+}
+
+/// Why a safe message was not acknowledged.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LinkSendError {
+    /// The peer was closed (lease expired, node left, session reset) before acknowledging.
+    #[error("peer {0} closed before acknowledging")]
+    PeerClosed(String),
+    /// The link is shutting down.
+    #[error("link shut down")]
+    Shutdown,
+}
+
+/// Completion of a safe message: resolved when the peer acknowledges it (after the peer's node
+/// has dispatched it), or with the reason it never will be.
+pub type SafeCompletion = tokio::sync::oneshot::Sender<Result<(), LinkSendError>>;
+
+/// A message handed to a link.
+#[derive(Debug)]
+pub enum Outgoing {
+    /// Best effort. Messages with the same `coalesce` key replace each other while unsent.
+    Fast {
+        /// Coalescing key (a variable's id), if any.
+        coalesce: Option<u32>,
+        /// Encoded message.
+        msg: Vec<u8>,
+    },
+    /// Reliable and ordered.
+    Safe {
+        /// Encoded message.
+        msg: Vec<u8>,
+        /// Told when acknowledged.
+        done: Option<SafeCompletion>,
+    },
+}
+
+/// Receives what a link delivers. Called from the link's receive task: must not block.
+pub trait LinkHandler: Send + Sync + 'static {
+    /// A fast or (in order) safe message from `from`.
+    fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]);
+    /// A discovery message (Hello, Heartbeat, Bye) from `from`.
+    fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]);
+    /// `from` started a new safe session while one was running: it restarted or reset us.
+    fn on_peer_reset(&self, link: usize, from: PeerAddr);
+}
+
+/// Counters of a link, published as link health.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct LinkStats {
+    /// Datagrams or frames sent.
+    pub frames_out: u64,
+    /// Datagrams or frames received.
+    pub frames_in: u64,
+    /// Bytes sent.
+    pub bytes_out: u64,
+    /// Bytes received.
+    pub bytes_in: u64,
+    /// Received frames dropped as corrupt.
+    pub corrupt: u64,
+    /// Safe messages retransmitted.
+    pub retransmitted: u64,
+    /// Duplicate safe messages dropped.
+    pub duplicates: u64,
+    /// Fast messages dropped because a queue was full.
+    pub fast_dropped: u64,
+}
+
+/// A medium carrying node messages.
+pub trait Link: Send + Sync + 'static {
+    /// The link's name from network.xml.
+    fn name(&self) -> &str;
+    /// A human-readable local address.
+    fn local_addr(&self) -> String;
+    /// Queues `out` for `to`. Never blocks.
+    fn send(&self, to: PeerAddr, out: Outgoing);
+    /// Sends a discovery message to everyone reachable (multicast, point to point).
+    fn announce(&self, msg: &[u8]);
+    /// Forgets a peer: its unacknowledged safe messages complete with
+    /// [`LinkSendError::PeerClosed`]; a later message starts a fresh session.
+    fn close_peer(&self, to: PeerAddr);
+    /// Counters.
+    fn stats(&self) -> LinkStats;
+}

@@ -1,0 +1,627 @@
+//! The Ethernet link: UDP multicast for discovery (Hello, Heartbeat, Bye), UDP unicast for data,
+//! with the ARQ of [`crate::transport::arq`] for the safe class and batching of small messages
+//! into shared datagrams.
+//!
+//! Sending is inline when the link is idle (lowest latency: the caller's task writes the
+//! datagram) and batched by the link's transmit task when messages arrive faster than datagrams
+//! can be written (highest throughput: many messages share one datagram). Either way a peer's
+//! datagrams are written under that peer's lock, so fast messages are never reordered.
+
+use std::collections::{HashMap, VecDeque};
+use std::io;
+use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use tokio::net::UdpSocket;
+use tokio::sync::Notify;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
+use crate::codec::datagram::{self, Datagram, DatagramWriter, Entry};
+use crate::transport::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+
+/// How the UDP link is set up (taken from `<ethernet>` in network.xml).
+#[derive(Debug, Clone)]
+pub struct UdpLinkOptions {
+    /// Link name.
+    pub name: String,
+    /// Unicast bind address (port 0 = any).
+    pub bind: SocketAddr,
+    /// Multicast group and port for discovery.
+    pub multicast: SocketAddrV4,
+    /// Interface address for multicast (127.0.0.1 keeps everything on this host).
+    pub interface: Ipv4Addr,
+    /// Multicast TTL.
+    pub ttl: u32,
+    /// Static unicast peers that also receive discovery messages.
+    pub peers: Vec<SocketAddr>,
+    /// Largest datagram built from several messages.
+    pub mtu: usize,
+    /// ARQ tuning.
+    pub arq: ArqConfig,
+}
+
+/// Why the UDP link could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkOpenError {
+    /// Binding the unicast socket failed.
+    #[error("link {link}: cannot bind unicast socket {addr}: {source}")]
+    Bind {
+        /// Link name.
+        link: String,
+        /// The address.
+        addr: SocketAddr,
+        /// The OS error.
+        source: io::Error,
+    },
+    /// Setting up the multicast socket failed.
+    #[error("link {link}: cannot join multicast group {group} on interface {interface}: {source}")]
+    Multicast {
+        /// Link name.
+        link: String,
+        /// The group.
+        group: SocketAddrV4,
+        /// The interface.
+        interface: Ipv4Addr,
+        /// The OS error.
+        source: io::Error,
+    },
+}
+
+/// Most peer sessions a link keeps; beyond it, SYNs from new addresses are ignored.
+const MAX_PEERS: usize = 4096;
+/// Fast messages queued per peer before the oldest is dropped.
+const MAX_FAST_QUEUE: usize = 4096;
+/// A send within this long of the previous datagram is left to the transmit task to batch.
+const BATCH_WINDOW: Duration = Duration::from_micros(20);
+
+struct PeerState {
+    tx: ArqSender<SafeCompletion>,
+    rx: ArqReceiver,
+    fast: VecDeque<(Option<u32>, Vec<u8>)>,
+    safe: VecDeque<(Vec<u8>, Option<SafeCompletion>)>,
+    /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
+    blocked: VecDeque<Vec<u8>>,
+    last_write: Option<Instant>,
+}
+
+impl PeerState {
+    fn new(arq: ArqConfig) -> Self {
+        PeerState {
+            tx: ArqSender::new(rand::random(), arq),
+            rx: ArqReceiver::new(arq.max_window),
+            fast: VecDeque::new(),
+            safe: VecDeque::new(),
+            blocked: VecDeque::new(),
+            last_write: None,
+        }
+    }
+
+    fn has_work(&self) -> bool {
+        !self.fast.is_empty()
+            || (!self.safe.is_empty() && self.tx.can_push())
+            || self.rx.ack_pending()
+            || !self.blocked.is_empty()
+    }
+}
+
+#[derive(Default)]
+struct Counters {
+    frames_out: AtomicU64,
+    frames_in: AtomicU64,
+    bytes_out: AtomicU64,
+    bytes_in: AtomicU64,
+    corrupt: AtomicU64,
+    retransmitted: AtomicU64,
+    duplicates: AtomicU64,
+    fast_dropped: AtomicU64,
+}
+
+/// The UDP link.
+pub struct UdpLink {
+    index: usize,
+    options: UdpLinkOptions,
+    socket: Arc<UdpSocket>,
+    local: SocketAddr,
+    peers: Mutex<HashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
+    wake: Notify,
+    handler: Arc<dyn LinkHandler>,
+    counters: Counters,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A poisoned lock only means another thread panicked mid-update; the state is still
+    // structurally valid (queues and maps), so keep going rather than cascade the panic.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl UdpLink {
+    /// Opens the sockets and starts the receive and transmit tasks on `tasks`, stopping on
+    /// `cancel`.
+    ///
+    /// # Errors
+    /// [`LinkOpenError`] when a socket cannot be bound or the group joined.
+    pub fn open(
+        index: usize,
+        options: UdpLinkOptions,
+        handler: Arc<dyn LinkHandler>,
+        tasks: &TaskTracker,
+        cancel: CancellationToken,
+    ) -> Result<Arc<Self>, LinkOpenError> {
+        let bind_err = |source| LinkOpenError::Bind {
+            link: options.name.clone(),
+            addr: options.bind,
+            source,
+        };
+        let mcast_err = |source| LinkOpenError::Multicast {
+            link: options.name.clone(),
+            group: options.multicast,
+            interface: options.interface,
+            source,
+        };
+        let data = std::net::UdpSocket::bind(options.bind).map_err(bind_err)?;
+        data.set_nonblocking(true).map_err(bind_err)?;
+        let data2 = socket2::Socket::from(data);
+        // Bigger buffers absorb bursts of a batching sender; the OS may cap them.
+        let _ = data2.set_recv_buffer_size(4 << 20);
+        let _ = data2.set_send_buffer_size(4 << 20);
+        data2
+            .set_multicast_if_v4(&options.interface)
+            .map_err(mcast_err)?;
+        data2.set_multicast_loop_v4(true).map_err(mcast_err)?;
+        data2
+            .set_multicast_ttl_v4(options.ttl)
+            .map_err(mcast_err)?;
+        let data: std::net::UdpSocket = data2.into();
+        let socket = Arc::new(UdpSocket::from_std(data).map_err(bind_err)?);
+        let mut local = socket.local_addr().map_err(bind_err)?;
+        if local.ip().is_unspecified() && !options.interface.is_unspecified() {
+            local.set_ip(options.interface.into());
+        }
+
+        let mcast = {
+            use socket2::{Domain, Protocol, Socket, Type};
+            let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).map_err(mcast_err)?;
+            s.set_reuse_address(true).map_err(mcast_err)?;
+            s.bind(&SocketAddr::V4(options.multicast).into())
+                .map_err(mcast_err)?;
+            s.join_multicast_v4(options.multicast.ip(), &options.interface)
+                .map_err(mcast_err)?;
+            s.set_nonblocking(true).map_err(mcast_err)?;
+            UdpSocket::from_std(s.into()).map_err(mcast_err)?
+        };
+
+        let link = Arc::new(UdpLink {
+            index,
+            options,
+            socket,
+            local,
+            peers: Mutex::new(HashMap::new()),
+            wake: Notify::new(),
+            handler,
+            counters: Counters::default(),
+        });
+        let l = link.clone();
+        let c = cancel.clone();
+        tasks.spawn(async move { l.receive_loop(c).await });
+        let l = link.clone();
+        let c = cancel.clone();
+        tasks.spawn(async move { l.multicast_loop(mcast, c).await });
+        let l = link.clone();
+        tasks.spawn(async move { l.transmit_loop(cancel).await });
+        Ok(link)
+    }
+
+    /// The unicast address peers reach this link at.
+    pub fn local_socket_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    fn peer(&self, addr: SocketAddr, create: bool) -> Option<Arc<Mutex<PeerState>>> {
+        let mut peers = lock(&self.peers);
+        if let Some(p) = peers.get(&addr) {
+            return Some(p.clone());
+        }
+        if !create || peers.len() >= MAX_PEERS {
+            return None;
+        }
+        let p = Arc::new(Mutex::new(PeerState::new(self.options.arq)));
+        peers.insert(addr, p.clone());
+        Some(p)
+    }
+
+    /// Builds and writes every datagram `state` has ready. Called with the peer locked, so the
+    /// datagrams of one peer leave in the order they were built.
+    fn flush_locked(&self, addr: SocketAddr, st: &mut PeerState, now: Instant) {
+        while let Some(d) = st.blocked.front() {
+            match self.socket.try_send_to(d, addr) {
+                Ok(_) => {
+                    self.count_out(d.len());
+                    st.blocked.pop_front();
+                }
+                Err(_) => return,
+            }
+        }
+        let due = st.tx.due(now);
+        self.counters
+            .retransmitted
+            .fetch_add(due.len() as u64, Ordering::Relaxed);
+        let mut w = DatagramWriter::new(self.options.mtu);
+        let mut out: Vec<Vec<u8>> = Vec::new();
+        let mut carries_safe = false;
+        let syn = st.tx.session();
+        let need_syn = !st.tx.session_acked();
+        let finish = |w: &mut DatagramWriter, out: &mut Vec<Vec<u8>>, carries_safe: &mut bool| {
+            if !w.is_empty() {
+                out.push(w.take());
+            }
+            *carries_safe = false;
+        };
+        if let Some(ack) = st.rx.take_ack() {
+            w.push_ack(ack);
+        }
+        let push_safe = |w: &mut DatagramWriter,
+                             out: &mut Vec<Vec<u8>>,
+                             carries_safe: &mut bool,
+                             seq: u32,
+                             msg: &[u8]| {
+            loop {
+                if need_syn && !*carries_safe {
+                    if !w.push_syn(syn) {
+                        finish(w, out, carries_safe);
+                        continue;
+                    }
+                    *carries_safe = true;
+                }
+                if w.push_safe(seq, msg) {
+                    *carries_safe = true;
+                    return;
+                }
+                finish(w, out, carries_safe);
+            }
+        };
+        for seq in due {
+            if let Some(msg) = st.tx.message(seq) {
+                let msg = msg.to_vec();
+                push_safe(&mut w, &mut out, &mut carries_safe, seq, &msg);
+            }
+        }
+        while st.tx.can_push() {
+            let Some((msg, done)) = st.safe.pop_front() else {
+                break;
+            };
+            let seq = st.tx.push(now, msg, done);
+            if let Some(m) = st.tx.message(seq) {
+                let m = m.to_vec();
+                push_safe(&mut w, &mut out, &mut carries_safe, seq, &m);
+            }
+        }
+        while let Some((_, msg)) = st.fast.pop_front() {
+            if !w.push_fast(&msg) {
+                finish(&mut w, &mut out, &mut carries_safe);
+                w.push_fast(&msg);
+            }
+        }
+        finish(&mut w, &mut out, &mut carries_safe);
+        for d in out {
+            if !st.blocked.is_empty() {
+                st.blocked.push_back(d);
+                continue;
+            }
+            match self.socket.try_send_to(&d, addr) {
+                Ok(_) => self.count_out(d.len()),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => st.blocked.push_back(d),
+                Err(e) => {
+                    tracing::debug!(link = %self.options.name, %addr, error = %e, "datagram not sent");
+                }
+            }
+        }
+        st.last_write = Some(now);
+    }
+
+    fn count_out(&self, n: usize) {
+        self.counters.frames_out.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .bytes_out
+            .fetch_add(n as u64, Ordering::Relaxed);
+    }
+
+    async fn transmit_loop(self: Arc<Self>, cancel: CancellationToken) {
+        loop {
+            let now = Instant::now();
+            let mut deadline: Option<Instant> = None;
+            let mut blocked = false;
+            let peers: Vec<(SocketAddr, Arc<Mutex<PeerState>>)> = lock(&self.peers)
+                .iter()
+                .map(|(a, p)| (*a, p.clone()))
+                .collect();
+            for (addr, p) in peers {
+                let mut st = lock(&p);
+                let retransmit_due = st.tx.next_deadline().is_some_and(|d| d <= now);
+                if st.has_work() || retransmit_due {
+                    self.flush_locked(addr, &mut st, now);
+                }
+                blocked |= !st.blocked.is_empty();
+                if let Some(d) = st.tx.next_deadline() {
+                    deadline = Some(deadline.map_or(d, |x: Instant| x.min(d)));
+                }
+            }
+            let sleep_until = deadline.unwrap_or(now + Duration::from_secs(3600));
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                _ = self.wake.notified() => {}
+                _ = tokio::time::sleep_until(sleep_until.into()) => {}
+                r = self.socket.writable(), if blocked => { let _ = r; }
+            }
+        }
+        let peers: Vec<Arc<Mutex<PeerState>>> = lock(&self.peers).drain().map(|(_, p)| p).collect();
+        for p in peers {
+            fail_all(&mut lock(&p), LinkSendError::Shutdown);
+        }
+    }
+
+    async fn receive_loop(self: Arc<Self>, cancel: CancellationToken) {
+        let mut buf = vec![0u8; 65_536];
+        loop {
+            let r = tokio::select! {
+                _ = cancel.cancelled() => break,
+                r = self.socket.recv_from(&mut buf) => r,
+            };
+            match r {
+                Ok((n, from)) => {
+                    let mut touched = Vec::new();
+                    self.handle_datagram(&buf[..n], from, &mut touched);
+                    // Drain what else is waiting so acknowledgements are batched.
+                    for _ in 0..64 {
+                        match self.socket.try_recv_from(&mut buf) {
+                            Ok((n, from)) => self.handle_datagram(&buf[..n], from, &mut touched),
+                            Err(_) => break,
+                        }
+                    }
+                    let now = Instant::now();
+                    for addr in touched {
+                        if let Some(p) = self.peer(addr, false) {
+                            let mut st = lock(&p);
+                            if st.has_work() {
+                                self.flush_locked(addr, &mut st, now);
+                            }
+                        }
+                    }
+                    // Acks may have opened the window for queued safe messages.
+                    self.wake.notify_one();
+                }
+                Err(e) if is_transient(&e) => continue,
+                Err(e) => {
+                    tracing::warn!(link = %self.options.name, error = %e, "receive failed");
+                    tokio::select! {
+                        _ = cancel.cancelled() => break,
+                        _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+                    }
+                }
+            }
+        }
+    }
+
+    async fn multicast_loop(self: Arc<Self>, sock: UdpSocket, cancel: CancellationToken) {
+        let mut buf = vec![0u8; 65_536];
+        loop {
+            let r = tokio::select! {
+                _ = cancel.cancelled() => break,
+                r = sock.recv_from(&mut buf) => r,
+            };
+            match r {
+                Ok((n, from)) => {
+                    self.counters.frames_in.fetch_add(1, Ordering::Relaxed);
+                    self.counters
+                        .bytes_in
+                        .fetch_add(n as u64, Ordering::Relaxed);
+                    match datagram::decode(&buf[..n]) {
+                        Ok(Datagram::Discovery(msg)) => {
+                            self.handler
+                                .on_announce(self.index, PeerAddr::Udp(from), msg)
+                        }
+                        _ => {
+                            self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                }
+                Err(e) if is_transient(&e) => continue,
+                Err(e) => {
+                    tracing::warn!(link = %self.options.name, error = %e, "multicast receive failed");
+                    tokio::select! {
+                        _ = cancel.cancelled() => break,
+                        _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+                    }
+                }
+            }
+        }
+    }
+
+    fn handle_datagram(&self, bytes: &[u8], from: SocketAddr, touched: &mut Vec<SocketAddr>) {
+        self.counters.frames_in.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .bytes_in
+            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        let entries = match datagram::decode(bytes) {
+            Ok(Datagram::Data(e)) => e,
+            Ok(Datagram::Discovery(msg)) => {
+                self.handler
+                    .on_announce(self.index, PeerAddr::Udp(from), msg);
+                return;
+            }
+            Err(e) => {
+                self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                tracing::trace!(link = %self.options.name, %from, error = %e, "corrupt datagram dropped");
+                return;
+            }
+        };
+        let has_syn = entries.iter().any(|e| matches!(e, Entry::Syn(_)));
+        let Some(p) = self.peer(from, has_syn) else {
+            // No session with this address: only fast messages mean anything.
+            for e in entries {
+                if let Entry::Fast(msg) = e {
+                    self.handler.on_message(self.index, PeerAddr::Udp(from), msg);
+                }
+            }
+            return;
+        };
+        let mut deliver: Vec<Vec<u8>> = Vec::new();
+        let mut fast: Vec<&[u8]> = Vec::new();
+        let mut completed = Vec::new();
+        let mut reset = false;
+        {
+            let mut st = lock(&p);
+            let now = Instant::now();
+            let dups_before = st.rx.stats().duplicates;
+            for e in &entries {
+                match *e {
+                    Entry::Syn(session) => {
+                        if st.rx.on_syn(session) == SynOutcome::Reset {
+                            // The peer lost our session too: what we had in flight to it will
+                            // never be acknowledged, and our next messages start a new session.
+                            reset = true;
+                            fail_sender(&mut st, LinkSendError::PeerClosed(from.to_string()));
+                        }
+                    }
+                    Entry::Safe { seq, msg } => {
+                        st.rx.on_safe(seq, msg, |m| deliver.push(m.to_vec()));
+                    }
+                    Entry::Fast(msg) => fast.push(msg),
+                    Entry::Ack(ack) => completed.extend(st.tx.on_ack(now, ack)),
+                }
+            }
+            let dups = st.rx.stats().duplicates - dups_before;
+            self.counters.duplicates.fetch_add(dups, Ordering::Relaxed);
+        }
+        if !touched.contains(&from) {
+            touched.push(from);
+        }
+        let peer = PeerAddr::Udp(from);
+        if reset {
+            self.handler.on_peer_reset(self.index, peer);
+        }
+        for m in &deliver {
+            self.handler.on_message(self.index, peer, m);
+        }
+        for m in fast {
+            self.handler.on_message(self.index, peer, m);
+        }
+        for done in completed {
+            let _ = done.send(Ok(()));
+        }
+    }
+}
+
+fn is_transient(e: &io::Error) -> bool {
+    // ICMP port unreachable from a vanished peer surfaces as ConnectionRefused on Linux.
+    matches!(
+        e.kind(),
+        io::ErrorKind::ConnectionRefused | io::ErrorKind::ConnectionReset | io::ErrorKind::Interrupted
+    )
+}
+
+fn fail_all(st: &mut PeerState, err: LinkSendError) {
+    for (_, done) in st.safe.drain(..) {
+        if let Some(d) = done {
+            let _ = d.send(Err(err.clone()));
+        }
+    }
+    fail_sender(st, err);
+}
+
+/// Replaces the sending session with a fresh one, failing what was in flight.
+fn fail_sender(st: &mut PeerState, err: LinkSendError) {
+    let config = st.tx.config();
+    let tx = std::mem::replace(&mut st.tx, ArqSender::new(rand::random(), config));
+    for d in tx.close() {
+        let _ = d.send(Err(err.clone()));
+    }
+}
+
+impl Link for UdpLink {
+    fn name(&self) -> &str {
+        &self.options.name
+    }
+
+    fn local_addr(&self) -> String {
+        format!("udp://{}", self.local)
+    }
+
+    fn send(&self, to: PeerAddr, out: Outgoing) {
+        let PeerAddr::Udp(addr) = to else {
+            return;
+        };
+        let Some(p) = self.peer(addr, true) else {
+            if let Outgoing::Safe { done: Some(d), .. } = out {
+                let _ = d.send(Err(LinkSendError::PeerClosed(addr.to_string())));
+            }
+            return;
+        };
+        let mut st = lock(&p);
+        match out {
+            Outgoing::Fast { coalesce, msg } => {
+                let slot = coalesce.and_then(|k| st.fast.iter_mut().find(|(c, _)| *c == Some(k)));
+                if let Some(slot) = slot {
+                    slot.1 = msg;
+                } else {
+                    if st.fast.len() >= MAX_FAST_QUEUE {
+                        st.fast.pop_front();
+                        self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
+                    }
+                    st.fast.push_back((coalesce, msg));
+                }
+            }
+            Outgoing::Safe { msg, done } => st.safe.push_back((msg, done)),
+        }
+        let now = Instant::now();
+        let idle = st.blocked.is_empty()
+            && st
+                .last_write
+                .is_none_or(|t| now.saturating_duration_since(t) >= BATCH_WINDOW);
+        if idle {
+            self.flush_locked(addr, &mut st, now);
+        } else {
+            drop(st);
+            self.wake.notify_one();
+        }
+    }
+
+    fn announce(&self, msg: &[u8]) {
+        let d = datagram::discovery_datagram(msg);
+        let targets =
+            std::iter::once(SocketAddr::V4(self.options.multicast)).chain(self.options.peers.iter().copied());
+        for t in targets {
+            match self.socket.try_send_to(&d, t) {
+                Ok(_) => self.count_out(d.len()),
+                Err(e) => tracing::debug!(link = %self.options.name, to = %t, error = %e, "announce not sent"),
+            }
+        }
+    }
+
+    fn close_peer(&self, to: PeerAddr) {
+        let PeerAddr::Udp(addr) = to else {
+            return;
+        };
+        let p = lock(&self.peers).remove(&addr);
+        if let Some(p) = p {
+            fail_all(&mut lock(&p), LinkSendError::PeerClosed(addr.to_string()));
+        }
+    }
+
+    fn stats(&self) -> LinkStats {
+        let c = &self.counters;
+        LinkStats {
+            frames_out: c.frames_out.load(Ordering::Relaxed),
+            frames_in: c.frames_in.load(Ordering::Relaxed),
+            bytes_out: c.bytes_out.load(Ordering::Relaxed),
+            bytes_in: c.bytes_in.load(Ordering::Relaxed),
+            corrupt: c.corrupt.load(Ordering::Relaxed),
+            retransmitted: c.retransmitted.load(Ordering::Relaxed),
+            duplicates: c.duplicates.load(Ordering::Relaxed),
+            fast_dropped: c.fast_dropped.load(Ordering::Relaxed),
+        }
+    }
+}

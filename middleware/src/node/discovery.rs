@@ -1,0 +1,212 @@
+//! Discovery: Hello at start and towards each new peer, a small periodic heartbeat carrying the
+//! declaration counter, declaration requests when a counter is ahead, and leases.
+
+use std::collections::HashMap;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::{NodeInner, Peer};
+use crate::api::CallError;
+use crate::codec::encode_message;
+use crate::link::PeerAddr;
+use crate::protocol::{Message, NodeId};
+
+/// The 32-bit hash of a domain name carried in heartbeats.
+pub(crate) fn domain_hash(domain: &str) -> u32 {
+    let d = blake3::hash(domain.as_bytes());
+    let b = d.as_bytes();
+    u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+}
+
+impl NodeInner {
+    pub fn hello(&self) -> Message {
+        Message::Hello {
+            node_id: self.me.id,
+            domain: self.me.domain.clone(),
+            node: self.me.name.clone(),
+            namespace: self.me.namespace.clone().unwrap_or_default(),
+            counter: self.counter(),
+            lease_ms: u32::try_from(self.me.lease.as_millis()).unwrap_or(u32::MAX),
+        }
+    }
+
+    pub fn announce(&self, msg: &Message) {
+        let bytes = encode_message(msg);
+        for l in self.links() {
+            l.announce(&bytes);
+        }
+    }
+
+    pub fn heartbeat(&self) -> Message {
+        Message::Heartbeat {
+            node_id: self.me.id,
+            domain_hash: self.me.domain_hash,
+            counter: self.counter(),
+        }
+    }
+
+    /// Handles Hello, Heartbeat and Bye, whether multicast or inside a session.
+    pub fn on_discovery(&self, link: usize, from: PeerAddr, msg: Message, in_session: bool) {
+        match msg {
+            Message::Hello {
+                node_id,
+                domain,
+                node,
+                namespace,
+                counter,
+                lease_ms,
+            } => {
+                if node_id == self.me.id || domain != self.me.domain {
+                    return;
+                }
+                let lease = Duration::from_millis(u64::from(lease_ms.max(1)));
+                if self.peers.contains_key(&node_id) {
+                    self.seen(node_id, counter);
+                    return;
+                }
+                if let Some(old) = self.addrs.get(&(link, from)).map(|e| *e) {
+                    if old != node_id {
+                        self.drop_peer(old, "restarted with a new identity");
+                    }
+                }
+                tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
+                self.peers.insert(
+                    node_id,
+                    Peer {
+                        id: node_id,
+                        name: node.as_str().into(),
+                        namespace,
+                        link,
+                        addr: from,
+                        last_seen: Instant::now(),
+                        lease,
+                        known: 0,
+                        requested: Some(Instant::now()),
+                        services: HashMap::new(),
+                        offers: HashMap::new(),
+                        interests: HashMap::new(),
+                        routes: HashMap::new(),
+                    },
+                );
+                self.addrs.insert((link, from), node_id);
+                // Our Hello is the first message of our session towards it, so it knows us
+                // before anything else we send; then ask for its declarations.
+                self.send_safe(link, from, &self.hello());
+                self.send_safe(link, from, &Message::DeclRequest { since: 0 });
+                let _ = in_session;
+                self.bump();
+            }
+            Message::Heartbeat {
+                node_id,
+                domain_hash,
+                counter,
+            } => {
+                if node_id == self.me.id || domain_hash != self.me.domain_hash {
+                    return;
+                }
+                if self.peers.contains_key(&node_id) {
+                    self.seen(node_id, counter);
+                } else {
+                    // We missed its Hello: introduce ourselves, it answers with its own.
+                    self.send_safe(link, from, &self.hello());
+                }
+            }
+            Message::Bye { node_id } => {
+                if self.peers.contains_key(&node_id) {
+                    self.drop_peer(node_id, "left");
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// A peer is alive; ask for declarations if its counter is ahead of ours.
+    fn seen(&self, node: NodeId, counter: u32) {
+        let request = {
+            let Some(mut p) = self.peers.get_mut(&node) else {
+                return;
+            };
+            p.last_seen = Instant::now();
+            let stale = p
+                .requested
+                .is_none_or(|t| t.elapsed() > self.me.heartbeat * 2);
+            if counter > p.known && stale {
+                p.requested = Some(Instant::now());
+                Some(p.known)
+            } else {
+                None
+            }
+        };
+        if let Some(since) = request {
+            self.send_safe_to_node(node, &Message::DeclRequest { since });
+        }
+    }
+
+    /// The peer restarted its session with us: anything in flight towards it was lost, so
+    /// re-introduce ourselves in the new session.
+    pub fn on_peer_reset(&self, link: usize, from: PeerAddr) {
+        let node = self.addrs.get(&(link, from)).map(|e| *e);
+        if let Some(node) = node {
+            self.fail_calls_to(node, "session reset by the peer");
+        }
+        self.send_safe(link, from, &self.hello());
+    }
+
+    fn fail_calls_to(&self, node: NodeId, reason: &str) {
+        let ids: Vec<u64> = self
+            .calls
+            .iter()
+            .filter(|c| c.node == node)
+            .map(|c| *c.key())
+            .collect();
+        for id in ids {
+            if let Some((_, c)) = self.calls.remove(&id) {
+                let _ = c.reply.send(Err(CallError::LinkLost {
+                    node: c.node_name.to_string(),
+                    reason: reason.to_owned(),
+                }));
+            }
+        }
+    }
+
+    /// Forgets a peer: its subscriptions are dropped and everything pending on it completes
+    /// with an error naming it.
+    pub fn drop_peer(&self, node: NodeId, reason: &str) {
+        let Some((_, p)) = self.peers.remove(&node) else {
+            return;
+        };
+        tracing::warn!(peer = %p.name, reason, "peer dropped");
+        self.addrs.remove(&(p.link, p.addr));
+        if let Some(l) = self.links().get(p.link) {
+            l.close_peer(p.addr);
+        }
+        self.fail_calls_to(node, reason);
+        self.transfers.peer_lost(node, &p.name, reason);
+        self.recompute_routes();
+    }
+
+    /// Sends heartbeats and expires leases until the node stops.
+    pub async fn heartbeat_loop(self: Arc<Self>) {
+        let mut tick = tokio::time::interval(self.me.heartbeat);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                _ = self.cancel.cancelled() => break,
+                _ = tick.tick() => {}
+            }
+            self.announce(&self.heartbeat());
+            let now = Instant::now();
+            let expired: Vec<(NodeId, Duration)> = self
+                .peers
+                .iter()
+                .filter(|p| now.saturating_duration_since(p.last_seen) > p.lease)
+                .map(|p| (p.id, p.lease))
+                .collect();
+            for (id, lease) in expired {
+                self.drop_peer(id, &format!("lease of {} ms expired", lease.as_millis()));
+            }
+            let _ = self.counters.undecodable.load(Ordering::Relaxed);
+        }
+    }
+}

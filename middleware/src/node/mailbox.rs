@@ -1,0 +1,135 @@
+//! Where a subscription's deliveries wait for the application: FIFO for events, newest value
+//! per name for variables.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use tokio::sync::Notify;
+
+use crate::typeinfo::TypeInfo;
+
+/// A received value, still encoded.
+#[derive(Debug, Clone)]
+pub(crate) struct RawSample {
+    /// Full name of the item.
+    pub name: Arc<str>,
+    /// Name of the publishing node.
+    pub publisher: Arc<str>,
+    /// postcard bytes.
+    pub payload: Vec<u8>,
+    /// When it arrived.
+    pub received: Instant,
+}
+
+/// A publisher refused a subscription because the types differ.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TypeMismatch {
+    /// Full name of the publication.
+    pub name: String,
+    /// The node publishing it.
+    pub publisher: String,
+    /// What the publisher sends.
+    pub offered: TypeInfo,
+    /// What the subscriber expects.
+    pub expected: TypeInfo,
+}
+
+impl std::fmt::Display for TypeMismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "'{}' published by node '{}' carries {} but this subscriber expects {}",
+            self.name, self.publisher, self.offered.name, self.expected.name
+        )
+    }
+}
+
+#[derive(Debug)]
+pub(crate) enum Delivery {
+    Sample(RawSample),
+    Refused(TypeMismatch),
+}
+
+#[derive(Debug, Default)]
+struct Inner {
+    queue: VecDeque<Delivery>,
+    closed: bool,
+}
+
+/// A subscription's queue.
+#[derive(Debug)]
+pub(crate) struct Mailbox {
+    inner: Mutex<Inner>,
+    notify: Notify,
+    /// Variables keep only the newest undelivered value per name.
+    coalesce: bool,
+}
+
+impl Mailbox {
+    pub fn new(coalesce: bool) -> Self {
+        Mailbox {
+            inner: Mutex::new(Inner::default()),
+            notify: Notify::new(),
+            coalesce,
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub fn push(&self, d: Delivery) {
+        {
+            let mut g = self.lock();
+            if g.closed {
+                return;
+            }
+            if self.coalesce {
+                if let Delivery::Sample(s) = &d {
+                    let slot = g.queue.iter_mut().find(
+                        |q| matches!(q, Delivery::Sample(old) if old.name == s.name),
+                    );
+                    if let Some(slot) = slot {
+                        *slot = d;
+                        drop(g);
+                        self.notify.notify_one();
+                        return;
+                    }
+                }
+            }
+            g.queue.push_back(d);
+        }
+        self.notify.notify_one();
+    }
+
+    pub fn try_pop(&self) -> Option<Delivery> {
+        self.lock().queue.pop_front()
+    }
+
+    /// Waits for the next delivery; `None` once closed and drained.
+    pub async fn pop(&self) -> Option<Delivery> {
+        loop {
+            {
+                let mut g = self.lock();
+                if let Some(d) = g.queue.pop_front() {
+                    return Some(d);
+                }
+                if g.closed {
+                    return None;
+                }
+            }
+            self.notify.notified().await;
+        }
+    }
+
+    pub fn close(&self) {
+        self.lock().closed = true;
+        self.notify.notify_waiters();
+        self.notify.notify_one();
+    }
+
+    pub fn len(&self) -> usize {
+        self.lock().queue.len()
+    }
+}

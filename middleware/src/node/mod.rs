@@ -1,0 +1,326 @@
+//! The node: one per process. Holds the local services and their declarations, the peer table,
+//! the routes (which peer wants which offer) and the links, and dispatches what arrives.
+//!
+//! Local deliveries go straight into the local subscribers' mailboxes; a message goes to a link
+//! only where a remote node declared a matching interest (interest-based routing).
+
+pub(crate) mod discovery;
+pub(crate) mod files;
+pub(crate) mod mailbox;
+pub(crate) mod session;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock, Weak};
+use std::time::{Duration, Instant};
+
+use dashmap::DashMap;
+use tokio::sync::{oneshot, watch};
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use crate::codec::{decode_message, encode_message};
+use crate::link::{Link, LinkHandler, Outgoing, PeerAddr};
+use crate::protocol::{ItemKind, Message, NodeId, RemoteFailure};
+use crate::typeinfo::TypeInfo;
+use mailbox::Mailbox;
+
+/// Locks a std mutex, ignoring poisoning: every structure guarded here stays valid if a holder
+/// panicked (queues, maps, plain values), so one panic must not cascade into every task.
+pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A boxed future returned by function handlers.
+pub(crate) type BoxFuture<T> = std::pin::Pin<Box<dyn std::future::Future<Output = T> + Send>>;
+/// A type-erased function handler: encoded arguments in, encoded result out.
+pub(crate) type RawHandler =
+    Arc<dyn Fn(Vec<u8>) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
+
+/// What an offer does with what it is given.
+pub(crate) enum OfferRole {
+    /// A variable: keeps the last value for late joiners.
+    Variable { last: Mutex<Option<Vec<u8>>> },
+    /// An event publisher.
+    Event,
+    /// A function provider.
+    Function { handler: RawHandler },
+    /// A file sink writing into `dir`.
+    File {
+        dir: std::path::PathBuf,
+        mailbox: Arc<files::SinkMailbox>,
+    },
+}
+
+/// Something this node offers (publishes, provides, accepts).
+pub(crate) struct LocalOffer {
+    pub id: u32,
+    pub service: u32,
+    pub kind: ItemKind,
+    pub name: Arc<str>,
+    pub ty: TypeInfo,
+    pub role: OfferRole,
+    /// Remote nodes with a matching interest of the same type.
+    pub remote: Mutex<Vec<RemoteSubscriber>>,
+    /// Local interests with a matching pattern of the same type.
+    pub local: Mutex<Vec<Arc<LocalInterest>>>,
+    /// (node, interest) pairs already told that the types differ.
+    pub refused: Mutex<std::collections::HashSet<(NodeId, u32)>>,
+}
+
+/// A remote node subscribed to an offer.
+#[derive(Clone)]
+pub(crate) struct RemoteSubscriber {
+    pub node: NodeId,
+    pub node_name: Arc<str>,
+    pub link: usize,
+    pub addr: PeerAddr,
+    /// Services of that node with a matching interest (for reports and listings).
+    pub services: Vec<String>,
+}
+
+/// Something this node wants: a subscription or a function it calls.
+pub(crate) struct LocalInterest {
+    pub id: u32,
+    pub service: u32,
+    pub service_name: Arc<str>,
+    pub kind: ItemKind,
+    pub pattern: String,
+    pub ty: TypeInfo,
+    pub mailbox: Option<Arc<Mailbox>>,
+    /// Type mismatches already reported to the subscriber.
+    pub reported: Mutex<session::ReportedSet>,
+}
+
+/// What this node knows of a remote node.
+pub(crate) struct Peer {
+    pub id: NodeId,
+    pub name: Arc<str>,
+    pub namespace: String,
+    pub link: usize,
+    pub addr: PeerAddr,
+    pub last_seen: Instant,
+    pub lease: Duration,
+    /// Declarations applied up to this counter.
+    pub known: u32,
+    /// When declarations were last requested, if an answer is outstanding.
+    pub requested: Option<Instant>,
+    pub services: HashMap<u32, String>,
+    pub offers: HashMap<u32, session::RemoteItem>,
+    pub interests: HashMap<u32, session::RemoteItem>,
+    /// Local interests each remote offer is delivered to.
+    pub routes: HashMap<u32, Vec<Arc<LocalInterest>>>,
+}
+
+/// A call waiting for its reply.
+pub(crate) struct PendingCall {
+    pub node: NodeId,
+    pub node_name: Arc<str>,
+    pub reply: oneshot::Sender<Result<Vec<u8>, crate::api::CallError>>,
+}
+
+/// Static facts about this node.
+pub(crate) struct Identity {
+    pub id: NodeId,
+    pub name: String,
+    pub namespace: Option<String>,
+    pub domain: String,
+    pub domain_hash: u32,
+    pub heartbeat: Duration,
+    pub lease: Duration,
+}
+
+/// The shared state of a node.
+pub(crate) struct NodeInner {
+    pub me: Identity,
+    pub links: OnceLock<Vec<Arc<dyn Link>>>,
+    pub decls: Mutex<session::DeclarationLog>,
+    pub next_id: AtomicU32,
+    pub services: DashMap<u32, Arc<str>>,
+    pub offers: DashMap<u32, Arc<LocalOffer>>,
+    pub interests: DashMap<u32, Arc<LocalInterest>>,
+    pub peers: DashMap<NodeId, Peer>,
+    pub addrs: DashMap<(usize, PeerAddr), NodeId>,
+    pub calls: DashMap<u64, PendingCall>,
+    pub next_call: AtomicU64,
+    pub transfers: files::Transfers,
+    /// Bumped whenever routes or the peer table change, so waiters can re-check.
+    pub changed: watch::Sender<u64>,
+    pub tasks: TaskTracker,
+    pub cancel: CancellationToken,
+    pub counters: NodeCounters,
+}
+
+/// Things a node counts (dropped input among them).
+#[derive(Default)]
+pub(crate) struct NodeCounters {
+    pub undecodable: AtomicU64,
+    pub unknown_sender: AtomicU64,
+}
+
+impl NodeInner {
+    pub fn links(&self) -> &[Arc<dyn Link>] {
+        self.links.get().map(|v| v.as_slice()).unwrap_or(&[])
+    }
+
+    pub fn bump(&self) {
+        self.changed.send_modify(|v| *v += 1);
+    }
+
+    pub fn fresh_id(&self) -> u32 {
+        self.next_id.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Sends a message to a peer on its link.
+    pub fn send_to(&self, link: usize, addr: PeerAddr, out: Outgoing) {
+        if let Some(l) = self.links().get(link) {
+            l.send(addr, out);
+        }
+    }
+
+    /// Sends a safe message and forgets about its acknowledgement.
+    pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
+        self.send_to(
+            link,
+            addr,
+            Outgoing::Safe {
+                msg: encode_message(msg),
+                done: None,
+            },
+        );
+    }
+
+    /// Sends a safe message to a known peer.
+    pub fn send_safe_to_node(&self, node: NodeId, msg: &Message) -> bool {
+        let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
+            return false;
+        };
+        self.send_safe(link, addr, msg);
+        true
+    }
+
+    fn peer_of(&self, link: usize, from: PeerAddr) -> Option<NodeId> {
+        self.addrs.get(&(link, from)).map(|e| *e)
+    }
+
+    fn dispatch(self: &Arc<Self>, link: usize, from: PeerAddr, bytes: &[u8]) {
+        let msg = match decode_message(bytes) {
+            Ok(m) => m,
+            Err(e) => {
+                self.counters.undecodable.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(%from, error = %e, "undecodable message dropped");
+                return;
+            }
+        };
+        // Discovery messages may come from anyone; everything else only from a known peer.
+        if matches!(
+            msg,
+            Message::Hello { .. } | Message::Heartbeat { .. } | Message::Bye { .. }
+        ) {
+            self.on_discovery(link, from, msg, true);
+            return;
+        }
+        let Some(node) = self.peer_of(link, from) else {
+            self.counters.unknown_sender.fetch_add(1, Ordering::Relaxed);
+            tracing::trace!(%from, "message from an unknown sender dropped");
+            return;
+        };
+        if let Some(mut p) = self.peers.get_mut(&node) {
+            p.last_seen = Instant::now();
+        }
+        match msg {
+            Message::Var { id, payload } | Message::Event { id, payload } => {
+                self.deliver_remote(node, id, payload)
+            }
+            Message::DeclRequest { since } => self.answer_decl_request(node, since),
+            Message::DeclBatch { entries } => self.apply_decl_batch(node, entries),
+            Message::Refused {
+                interest,
+                name,
+                offered,
+            } => self.on_refused(node, interest, name, offered),
+            Message::Call {
+                call_id,
+                id,
+                deadline_ms,
+                args,
+            } => self.on_call(node, call_id, id, deadline_ms, args),
+            Message::Reply { call_id, result } => self.on_reply(node, call_id, result),
+            Message::FileOffer {
+                transfer,
+                sink,
+                name,
+                size,
+                hash,
+            } => self.on_file_offer(node, transfer, sink, name, size, hash),
+            Message::FileChunk {
+                transfer,
+                offset,
+                data,
+            } => self.on_file_chunk(node, transfer, offset, data),
+            Message::FileAccept { transfer, offset } => {
+                self.transfers.to_sender(transfer, files::Control::Accept(offset))
+            }
+            Message::FileDone { transfer, verdict } => {
+                self.transfers.to_sender(transfer, files::Control::Done(verdict))
+            }
+            Message::FileCancel { transfer } => self.on_file_cancel(node, transfer),
+            Message::Hello { .. } | Message::Heartbeat { .. } | Message::Bye { .. } => {}
+        }
+    }
+
+    fn on_call(self: &Arc<Self>, node: NodeId, call_id: u64, id: u32, deadline_ms: u32, args: Vec<u8>) {
+        let handler = self.offers.get(&id).and_then(|o| match &o.role {
+            OfferRole::Function { handler } => Some(handler.clone()),
+            _ => None,
+        });
+        let inner = self.clone();
+        let deadline = Duration::from_millis(u64::from(deadline_ms));
+        self.tasks.spawn(async move {
+            let result = match handler {
+                None => Err(RemoteFailure::NotProvided),
+                Some(h) => tokio::select! {
+                    r = h(args) => r,
+                    _ = tokio::time::sleep(deadline) => Err(RemoteFailure::DeadlineExpired),
+                    _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
+                },
+            };
+            inner.send_safe_to_node(node, &Message::Reply { call_id, result });
+        });
+    }
+
+    fn on_reply(&self, node: NodeId, call_id: u64, result: Result<Vec<u8>, RemoteFailure>) {
+        let Some((_, pending)) = self.calls.remove_if(&call_id, |_, p| p.node == node) else {
+            return;
+        };
+        let r = result.map_err(|f| crate::api::CallError::from_remote(&pending.node_name, f));
+        let _ = pending.reply.send(r);
+    }
+}
+
+/// Adapts the node to the links' callback interface without a reference cycle.
+pub(crate) struct Handler(pub Weak<NodeInner>);
+
+impl LinkHandler for Handler {
+    fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]) {
+        if let Some(n) = self.0.upgrade() {
+            n.dispatch(link, from, msg);
+        }
+    }
+
+    fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]) {
+        let Some(n) = self.0.upgrade() else { return };
+        match decode_message(msg) {
+            Ok(m) => n.on_discovery(link, from, m, false),
+            Err(_) => {
+                n.counters.undecodable.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    fn on_peer_reset(&self, link: usize, from: PeerAddr) {
+        if let Some(n) = self.0.upgrade() {
+            n.on_peer_reset(link, from);
+        }
+    }
+}

@@ -1,0 +1,491 @@
+//! Declarations and matching: the node's own declaration log, applying peers' declarations, and
+//! computing routes (which remote nodes and local subscribers each offer goes to).
+
+use std::collections::HashSet;
+use std::sync::Arc;
+use std::time::Instant;
+
+use super::mailbox::{Delivery, RawSample, TypeMismatch};
+use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole, RemoteSubscriber};
+use crate::codec::varint;
+use crate::link::Outgoing;
+use crate::name;
+use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId};
+use crate::typeinfo::TypeInfo;
+
+/// Declarations sent per DeclBatch message.
+const BATCH_ENTRIES: usize = 64;
+
+/// The node's own declarations, in order; a peer asks for those after the counter it knows.
+#[derive(Default)]
+pub(crate) struct DeclarationLog {
+    pub counter: u32,
+    pub entries: Vec<LoggedDeclaration>,
+}
+
+/// A remote offer or interest.
+#[derive(Debug, Clone)]
+pub(crate) struct RemoteItem {
+    pub service: u32,
+    pub kind: ItemKind,
+    /// Full name (offers) or pattern (interests).
+    pub name: Arc<str>,
+    pub ty: TypeInfo,
+}
+
+/// Encodes `Message::Var`/`Message::Event` without first copying the payload into a `Message`;
+/// the bytes are identical to postcard's (a unit test checks it).
+pub(crate) fn encode_data(event: bool, id: u32, payload: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(payload.len() + 12);
+    out.push(if event { 6 } else { 5 });
+    varint::put_u64(&mut out, u64::from(id));
+    varint::put_u64(&mut out, payload.len() as u64);
+    out.extend_from_slice(payload);
+    out
+}
+
+fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
+    offer == interest && matches!(offer, ItemKind::Variable | ItemKind::Event)
+}
+
+impl NodeInner {
+    /// Appends a declaration to the log and pushes it to every known peer.
+    pub fn declare(&self, decl: Declaration) {
+        let entry = {
+            let mut log = lock(&self.decls);
+            log.counter += 1;
+            let entry = LoggedDeclaration {
+                counter: log.counter,
+                decl,
+            };
+            log.entries.push(entry.clone());
+            entry
+        };
+        let msg = Message::DeclBatch {
+            entries: vec![entry],
+        };
+        let targets: Vec<_> = self.peers.iter().map(|p| (p.link, p.addr)).collect();
+        for (link, addr) in targets {
+            self.send_safe(link, addr, &msg);
+        }
+    }
+
+    pub fn counter(&self) -> u32 {
+        lock(&self.decls).counter
+    }
+
+    pub fn add_offer(&self, offer: Arc<LocalOffer>) {
+        let decl = Declaration::Offer {
+            id: offer.id,
+            service: offer.service,
+            kind: offer.kind,
+            name: offer.name.to_string(),
+            ty: offer.ty.clone(),
+        };
+        self.offers.insert(offer.id, offer);
+        self.declare(decl);
+        self.recompute_routes();
+    }
+
+    pub fn add_interest(&self, interest: Arc<LocalInterest>) {
+        let decl = Declaration::Interest {
+            id: interest.id,
+            service: interest.service,
+            kind: interest.kind,
+            pattern: interest.pattern.clone(),
+            ty: interest.ty.clone(),
+        };
+        self.interests.insert(interest.id, interest);
+        self.declare(decl);
+        self.recompute_routes();
+    }
+
+    /// Withdraws a service, offer or interest.
+    pub fn withdraw(&self, id: u32) {
+        let mut any = self.services.remove(&id).is_some();
+        if let Some((_, o)) = self.offers.remove(&id) {
+            if let OfferRole::File { mailbox, .. } = &o.role {
+                mailbox.close();
+            }
+            any = true;
+        }
+        if let Some((_, i)) = self.interests.remove(&id) {
+            if let Some(m) = &i.mailbox {
+                m.close();
+            }
+            any = true;
+        }
+        if any && !self.cancel.is_cancelled() {
+            self.declare(Declaration::Withdraw { id });
+            self.recompute_routes();
+        }
+    }
+
+    /// Recomputes every route from scratch. Declarations change rarely (start-up, a service
+    /// coming or going), so clarity beats incremental bookkeeping here.
+    pub fn recompute_routes(&self) {
+        let interests: Vec<Arc<LocalInterest>> =
+            self.interests.iter().map(|e| e.value().clone()).collect();
+        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
+        struct PeerView {
+            id: NodeId,
+            name: Arc<str>,
+            link: usize,
+            addr: crate::link::PeerAddr,
+            services: std::collections::HashMap<u32, String>,
+            interests: Vec<(u32, super::session::RemoteItem)>,
+        }
+        let peers: Vec<PeerView> = self
+            .peers
+            .iter()
+            .map(|p| PeerView {
+                id: p.id,
+                name: p.name.clone(),
+                link: p.link,
+                addr: p.addr,
+                services: p.services.clone(),
+                interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
+            })
+            .collect();
+        let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
+        let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
+        for o in &offers {
+            // Local subscribers.
+            let mut local = Vec::new();
+            for i in &interests {
+                if !kinds_match(o.kind, i.kind) || !name::matches(&i.pattern, &o.name) {
+                    continue;
+                }
+                if i.ty != o.ty {
+                    i.report_mismatch(&o.name, &self.me.name, &o.ty);
+                    continue;
+                }
+                local.push(i.clone());
+            }
+            // Remote subscribers.
+            let mut remote = Vec::new();
+            for p in &peers {
+                let mut services = Vec::new();
+                for (iid, it) in &p.interests {
+                    if !kinds_match(o.kind, it.kind) || !name::matches(&it.name, &o.name) {
+                        continue;
+                    }
+                    if it.ty != o.ty {
+                        if lock(&o.refused).insert((p.id, *iid)) {
+                            refusals.push((
+                                p.link,
+                                p.addr,
+                                Message::Refused {
+                                    interest: *iid,
+                                    name: o.name.to_string(),
+                                    offered: o.ty.clone(),
+                                },
+                            ));
+                        }
+                        continue;
+                    }
+                    let svc = p
+                        .services
+                        .get(&it.service)
+                        .cloned()
+                        .unwrap_or_else(|| format!("#{}", it.service));
+                    if !services.contains(&svc) {
+                        services.push(svc);
+                    }
+                }
+                if !services.is_empty() {
+                    remote.push(RemoteSubscriber {
+                        node: p.id,
+                        node_name: p.name.clone(),
+                        link: p.link,
+                        addr: p.addr,
+                        services,
+                    });
+                }
+            }
+            let last = match &o.role {
+                OfferRole::Variable { last } => lock(last).clone(),
+                _ => None,
+            };
+            {
+                let mut cur = lock(&o.local);
+                if let Some(v) = &last {
+                    for i in &local {
+                        if !cur.iter().any(|c| Arc::ptr_eq(c, i)) {
+                            if let Some(m) = &i.mailbox {
+                                m.push(Delivery::Sample(RawSample {
+                                    name: o.name.clone(),
+                                    publisher: self.me.name.as_str().into(),
+                                    payload: v.clone(),
+                                    received: Instant::now(),
+                                }));
+                            }
+                        }
+                    }
+                }
+                *cur = local;
+            }
+            {
+                let mut cur = lock(&o.remote);
+                if let Some(v) = &last {
+                    for r in &remote {
+                        if !cur.iter().any(|c| c.node == r.node) {
+                            late_remote.push((r.link, r.addr, encode_data(false, o.id, v)));
+                        }
+                    }
+                }
+                *cur = remote;
+            }
+        }
+        // Routes for what peers offer.
+        for mut p in self.peers.iter_mut() {
+            let routes = p
+                .offers
+                .iter()
+                .map(|(oid, item)| {
+                    let targets: Vec<Arc<LocalInterest>> = interests
+                        .iter()
+                        .filter(|i| {
+                            kinds_match(item.kind, i.kind)
+                                && name::matches(&i.pattern, &item.name)
+                                && i.ty == item.ty
+                        })
+                        .cloned()
+                        .collect();
+                    (*oid, targets)
+                })
+                .collect();
+            p.routes = routes;
+        }
+        for (link, addr, msg) in refusals {
+            self.send_safe(link, addr, &msg);
+        }
+        for (link, addr, msg) in late_remote {
+            self.send_to(link, addr, Outgoing::Fast { coalesce: None, msg });
+        }
+        self.bump();
+    }
+
+    pub fn answer_decl_request(&self, node: NodeId, since: u32) {
+        let entries: Vec<LoggedDeclaration> = lock(&self.decls)
+            .entries
+            .iter()
+            .filter(|e| e.counter > since)
+            .cloned()
+            .collect();
+        if entries.is_empty() {
+            self.send_safe_to_node(node, &Message::DeclBatch { entries });
+            return;
+        }
+        for chunk in entries.chunks(BATCH_ENTRIES) {
+            self.send_safe_to_node(
+                node,
+                &Message::DeclBatch {
+                    entries: chunk.to_vec(),
+                },
+            );
+        }
+    }
+
+    pub fn apply_decl_batch(&self, node: NodeId, mut entries: Vec<LoggedDeclaration>) {
+        entries.sort_by_key(|e| e.counter);
+        let mut changed = false;
+        let mut request = None;
+        {
+            let Some(mut p) = self.peers.get_mut(&node) else {
+                return;
+            };
+            let mut gap = false;
+            for e in entries {
+                if e.counter <= p.known {
+                    continue;
+                }
+                if e.counter != p.known + 1 {
+                    gap = true;
+                    break;
+                }
+                p.known = e.counter;
+                changed = true;
+                match e.decl {
+                    Declaration::Service { id, name } => {
+                        p.services.insert(id, name);
+                    }
+                    Declaration::Offer {
+                        id,
+                        service,
+                        kind,
+                        name,
+                        ty,
+                    } => {
+                        p.offers.insert(
+                            id,
+                            RemoteItem {
+                                service,
+                                kind,
+                                name: name.into(),
+                                ty,
+                            },
+                        );
+                    }
+                    Declaration::Interest {
+                        id,
+                        service,
+                        kind,
+                        pattern,
+                        ty,
+                    } => {
+                        p.interests.insert(
+                            id,
+                            RemoteItem {
+                                service,
+                                kind,
+                                name: pattern.into(),
+                                ty,
+                            },
+                        );
+                    }
+                    Declaration::Withdraw { id } => {
+                        p.services.remove(&id);
+                        p.offers.remove(&id);
+                        p.interests.remove(&id);
+                        p.routes.remove(&id);
+                    }
+                }
+            }
+            let stale = p
+                .requested
+                .is_none_or(|t| t.elapsed() > self.me.heartbeat);
+            if gap && stale {
+                p.requested = Some(Instant::now());
+                request = Some(p.known);
+            } else if !gap {
+                p.requested = None;
+            }
+        }
+        if let Some(since) = request {
+            self.send_safe_to_node(node, &Message::DeclRequest { since });
+        }
+        if changed {
+            self.recompute_routes();
+        }
+    }
+
+    /// Delivers a remote variable value or event to the local subscribers routed to it.
+    pub fn deliver_remote(&self, node: NodeId, id: u32, payload: Vec<u8>) {
+        let Some((targets, name, publisher)) = self.peers.get(&node).and_then(|p| {
+            let t = p.routes.get(&id)?.clone();
+            let name = p.offers.get(&id)?.name.clone();
+            Some((t, name, p.name.clone()))
+        }) else {
+            return;
+        };
+        let received = Instant::now();
+        let n = targets.len();
+        let mut payload = Some(payload);
+        for (k, i) in targets.iter().enumerate() {
+            let Some(m) = &i.mailbox else { continue };
+            let bytes = if k + 1 == n {
+                payload.take().unwrap_or_default()
+            } else {
+                payload.clone().unwrap_or_default()
+            };
+            m.push(Delivery::Sample(RawSample {
+                name: name.clone(),
+                publisher: publisher.clone(),
+                payload: bytes,
+                received,
+            }));
+        }
+    }
+
+    pub fn on_refused(&self, node: NodeId, interest: u32, name: String, offered: TypeInfo) {
+        let publisher = self
+            .peers
+            .get(&node)
+            .map(|p| p.name.to_string())
+            .unwrap_or_else(|| format!("{node:016x}"));
+        if let Some(i) = self.interests.get(&interest) {
+            i.report_mismatch(&name, &publisher, &offered);
+        }
+    }
+
+    /// Publishes a variable value: stored for late joiners, delivered locally, and sent to every
+    /// remote subscriber on the fast class (coalesced per variable while unsent).
+    pub fn publish_variable(&self, offer: &LocalOffer, bytes: Vec<u8>) {
+        if let OfferRole::Variable { last } = &offer.role {
+            *lock(last) = Some(bytes.clone());
+        }
+        let local = lock(&offer.local).clone();
+        for i in &local {
+            if let Some(m) = &i.mailbox {
+                m.push(Delivery::Sample(RawSample {
+                    name: offer.name.clone(),
+                    publisher: self.me.name.as_str().into(),
+                    payload: bytes.clone(),
+                    received: Instant::now(),
+                }));
+            }
+        }
+        let remote = lock(&offer.remote);
+        if remote.is_empty() {
+            return;
+        }
+        let msg = encode_data(false, offer.id, &bytes);
+        for r in remote.iter() {
+            self.send_to(
+                r.link,
+                r.addr,
+                Outgoing::Fast {
+                    coalesce: Some(offer.id),
+                    msg: msg.clone(),
+                },
+            );
+        }
+    }
+}
+
+impl LocalInterest {
+    /// Reports a type mismatch to the subscriber once per (publisher, name).
+    pub fn report_mismatch(&self, name: &str, publisher: &str, offered: &TypeInfo) {
+        let key = format!("{publisher}\u{0}{name}");
+        if !lock(&self.reported).insert(key) {
+            return;
+        }
+        if let Some(m) = &self.mailbox {
+            m.push(Delivery::Refused(TypeMismatch {
+                name: name.to_owned(),
+                publisher: publisher.to_owned(),
+                offered: offered.clone(),
+                expected: self.ty.clone(),
+            }));
+        }
+    }
+}
+
+/// A set type used for once-only reports.
+pub(crate) type ReportedSet = HashSet<String>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codec::encode_message;
+
+    #[test]
+    fn fast_data_encoding_equals_postcard() {
+        for event in [false, true] {
+            let payload: Vec<u8> = (0..200u8).collect();
+            let msg = if event {
+                Message::Event {
+                    id: 300,
+                    payload: payload.clone(),
+                }
+            } else {
+                Message::Var {
+                    id: 300,
+                    payload: payload.clone(),
+                }
+            };
+            assert_eq!(encode_data(event, 300, &payload), encode_message(&msg));
+        }
+    }
+}

@@ -1,0 +1,415 @@
+//! `marea-probe`: a small node driven from the command line, printing what it sees as JSON
+//! lines on stdout. The cross-process tests and the demo use it; users can use it to poke at a
+//! running system (publish a value, follow an event, call a function, send a file).
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::{Parser, Subcommand};
+use marea::config::{EthernetConfig, LinkConfig};
+use marea::{NetworkConfig, Node, SendFileOptions};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+/// A position sample as the VAS publishes it: 3×f64 + 2×f32 = 32 bytes of payload.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+struct Position {
+    lat: f64,
+    lon: f64,
+    alt: f64,
+    heading: f32,
+    speed: f32,
+}
+
+#[derive(Parser)]
+#[command(about = "A scriptable marea node for tests and demos")]
+struct Args {
+    /// Node name.
+    #[arg(long, default_value = "probe")]
+    node: String,
+    /// Namespace prefixing this node's items.
+    #[arg(long)]
+    namespace: Option<String>,
+    /// Discovery domain (nodes of other domains are ignored).
+    #[arg(long, default_value = "usal")]
+    domain: String,
+    /// network.xml to load instead of the loopback defaults below.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Multicast port for discovery on 127.0.0.1.
+    #[arg(long, default_value_t = 7477)]
+    mcast_port: u16,
+    /// Heartbeat period in ms.
+    #[arg(long, default_value_t = 1000)]
+    heartbeat_ms: u64,
+    /// Lease in ms.
+    #[arg(long, default_value_t = 3500)]
+    lease_ms: u64,
+    /// Service name for this probe's items.
+    #[arg(long, default_value = "probe")]
+    service: String,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Publish positions on ITEM: COUNT values every INTERVAL ms, then keep serving the last.
+    VarPub {
+        #[arg(long)]
+        item: String,
+        #[arg(long, default_value_t = 1)]
+        count: u64,
+        #[arg(long, default_value_t = 0)]
+        interval_ms: u64,
+    },
+    /// Print positions matching PATTERN; exit after COUNT (0 = run until stopped).
+    VarSub {
+        #[arg(long)]
+        pattern: String,
+        #[arg(long, default_value_t = 0)]
+        count: u64,
+    },
+    /// Subscribe to PATTERN expecting strings, to show a type refusal.
+    VarSubString {
+        #[arg(long)]
+        pattern: String,
+    },
+    /// Raise COUNT events (u64 sequence numbers) on ITEM once SUBS remote nodes subscribe.
+    EvPub {
+        #[arg(long)]
+        item: String,
+        #[arg(long)]
+        count: u64,
+        #[arg(long, default_value_t = 1)]
+        subs: usize,
+        /// Events in flight.
+        #[arg(long, default_value_t = 256)]
+        window: usize,
+        /// Pause between events in ms.
+        #[arg(long, default_value_t = 0)]
+        interval_ms: u64,
+    },
+    /// Receive events on PATTERN and check each publisher's sequence; exit after COUNT.
+    EvSub {
+        #[arg(long)]
+        pattern: String,
+        #[arg(long)]
+        count: u64,
+    },
+    /// Provide function ITEM: doubles its u64 argument after DELAY ms, or fails with FAIL.
+    Provide {
+        #[arg(long)]
+        item: String,
+        #[arg(long, default_value_t = 0)]
+        delay_ms: u64,
+        #[arg(long)]
+        fail: Option<String>,
+    },
+    /// Call function NAME with ARG.
+    Call {
+        #[arg(long)]
+        name: String,
+        #[arg(long, default_value_t = 21)]
+        arg: u64,
+        #[arg(long, default_value_t = 2000)]
+        timeout_ms: u64,
+        /// Wait this long for a provider to be discovered first (0 = call at once).
+        #[arg(long, default_value_t = 0)]
+        wait_ms: u64,
+    },
+    /// Accept files on ITEM into DIR.
+    Sink {
+        #[arg(long)]
+        item: String,
+        #[arg(long)]
+        dir: PathBuf,
+    },
+    /// Send FILE to sink TO.
+    Send {
+        #[arg(long)]
+        file: PathBuf,
+        #[arg(long)]
+        to: String,
+        #[arg(long, default_value_t = 60)]
+        retry_secs: u64,
+    },
+    /// List what the network offers after WAIT ms.
+    List {
+        #[arg(long, default_value_t = 1500)]
+        wait_ms: u64,
+    },
+}
+
+fn out(v: serde_json::Value) {
+    use std::io::Write;
+    let mut s = std::io::stdout().lock();
+    let _ = writeln!(s, "{v}");
+    let _ = s.flush();
+}
+
+async fn stopped() {
+    let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(t) => t,
+        Err(_) => return std::future::pending().await,
+    };
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
+    }
+}
+
+fn config(args: &Args) -> anyhow::Result<NetworkConfig> {
+    if let Some(path) = &args.config {
+        return Ok(NetworkConfig::load(path)?);
+    }
+    let mut c = NetworkConfig::ethernet_loopback(&args.node);
+    c.namespace = args.namespace.clone();
+    c.domain = args.domain.clone();
+    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
+        interface: std::net::Ipv4Addr::LOCALHOST,
+        bind: "127.0.0.1:0".parse()?,
+        multicast: std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 1), args.mcast_port),
+        heartbeat: Duration::from_millis(args.heartbeat_ms),
+        lease: Duration::from_millis(args.lease_ms),
+        ..EthernetConfig::default()
+    })];
+    Ok(c)
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    let cfg = config(&args)?;
+    let node = Node::open(&cfg).await.context("opening the node")?;
+    let svc = node.service(&args.service)?;
+    let result = run(&node, &svc, &args).await;
+    drop(svc);
+    node.shutdown().await;
+    result
+}
+
+async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<()> {
+    match &args.cmd {
+        Cmd::VarPub {
+            item,
+            count,
+            interval_ms,
+        } => {
+            let var = svc.publish_variable::<Position>(item)?;
+            out(json!({"ready": var.name()}));
+            for i in 0..*count {
+                var.set(&Position {
+                    lat: 41.275 + i as f64 * 1e-6,
+                    lon: 1.987,
+                    alt: i as f64,
+                    heading: 90.0,
+                    speed: 1.5,
+                })?;
+                if *interval_ms > 0 {
+                    tokio::time::sleep(Duration::from_millis(*interval_ms)).await;
+                }
+            }
+            out(json!({"published": count}));
+            stopped().await;
+        }
+        Cmd::VarSub { pattern, count } => {
+            let sub = svc.subscribe_variable::<Position>(pattern)?;
+            out(json!({"ready": pattern}));
+            let mut n = 0;
+            loop {
+                let s = tokio::select! {
+                    _ = stopped() => break,
+                    s = sub.recv() => s,
+                };
+                match s {
+                    Ok(s) => out(json!({"name": s.name, "publisher": s.publisher, "seq": s.value.alt as u64})),
+                    Err(e) => out(json!({"error": e.to_string()})),
+                }
+                n += 1;
+                if *count > 0 && n >= *count {
+                    break;
+                }
+            }
+        }
+        Cmd::VarSubString { pattern } => {
+            let sub = svc.subscribe_variable::<String>(pattern)?;
+            out(json!({"ready": pattern}));
+            tokio::select! {
+                _ = stopped() => {}
+                s = sub.recv() => match s {
+                    Ok(s) => out(json!({"value": s.value})),
+                    Err(e) => out(json!({"error": e.to_string()})),
+                }
+            }
+        }
+        Cmd::EvPub {
+            item,
+            count,
+            subs,
+            window,
+            interval_ms,
+        } => {
+            let ev = svc.publish_event::<u64>(item)?;
+            out(json!({"ready": ev.name()}));
+            if !ev.wait_remote_subscribers(*subs, Duration::from_secs(30)).await {
+                bail!("only {:?} subscribed within 30 s", ev.remote_subscribers());
+            }
+            out(json!({"subscribers": ev.remote_subscribers()}));
+            let mut inflight = std::collections::VecDeque::new();
+            let mut reported = std::collections::HashSet::new();
+            let mut acked_all = 0u64;
+            let started = Instant::now();
+            let mut handle = |r: marea::RaiseReport, reported: &mut std::collections::HashSet<String>| {
+                if r.failed.is_empty() {
+                    acked_all += 1;
+                }
+                for (sub, reason) in r.failed {
+                    if reported.insert(sub.clone()) {
+                        out(json!({"failed": sub, "reason": reason, "after_ms": started.elapsed().as_millis() as u64}));
+                    }
+                }
+            };
+            for i in 0..*count {
+                inflight.push_back(ev.raise_nowait(&i)?);
+                if inflight.len() >= *window {
+                    if let Some(p) = inflight.pop_front() {
+                        handle(p.await, &mut reported);
+                    }
+                }
+                if *interval_ms > 0 {
+                    tokio::time::sleep(Duration::from_millis(*interval_ms)).await;
+                }
+            }
+            while let Some(p) = inflight.pop_front() {
+                handle(p.await, &mut reported);
+            }
+            out(json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64}));
+            stopped().await;
+        }
+        Cmd::EvSub { pattern, count } => {
+            let sub = svc.subscribe_event::<u64>(pattern)?;
+            out(json!({"ready": pattern}));
+            let mut next: std::collections::HashMap<String, u64> = Default::default();
+            let (mut n, mut in_order) = (0u64, true);
+            while n < *count {
+                let s = tokio::select! {
+                    _ = stopped() => break,
+                    s = sub.recv() => s?,
+                };
+                let expected = next.entry(s.publisher.clone()).or_insert(0);
+                if s.value != *expected {
+                    in_order = false;
+                    out(json!({"out_of_order": s.value, "expected": *expected}));
+                }
+                *expected = s.value + 1;
+                n += 1;
+            }
+            out(json!({"received": n, "in_order": in_order}));
+            // Stay until stopped so the publisher sees our acknowledgements and lease.
+            stopped().await;
+        }
+        Cmd::Provide {
+            item,
+            delay_ms,
+            fail,
+        } => {
+            let delay = Duration::from_millis(*delay_ms);
+            let fail = fail.clone();
+            let _f = svc.provide_function(item, move |x: u64| {
+                let fail = fail.clone();
+                async move {
+                    tokio::time::sleep(delay).await;
+                    match fail {
+                        Some(m) => Err(m),
+                        None => Ok(x * 2),
+                    }
+                }
+            })?;
+            out(json!({"ready": svc.full_name(item)}));
+            stopped().await;
+        }
+        Cmd::Call {
+            name,
+            arg,
+            timeout_ms,
+            wait_ms,
+        } => {
+            let f = svc.function::<u64, u64>(name)?;
+            if *wait_ms > 0 {
+                f.wait_provider(Duration::from_millis(*wait_ms)).await;
+            }
+            let started = Instant::now();
+            match f.call(arg, Duration::from_millis(*timeout_ms)).await {
+                Ok(v) => out(json!({"ok": v, "ms": started.elapsed().as_millis() as u64})),
+                Err(e) => {
+                    let kind = match &e {
+                        marea::CallError::NoProvider { .. } => "no_provider",
+                        marea::CallError::Timeout { .. } => "timeout",
+                        marea::CallError::Remote { .. } => "remote",
+                        marea::CallError::LinkLost { .. } => "link_lost",
+                        marea::CallError::TypeMismatch { .. } => "type_mismatch",
+                        marea::CallError::Codec { .. } => "codec",
+                    };
+                    out(json!({"error": kind, "message": e.to_string(), "ms": started.elapsed().as_millis() as u64}));
+                }
+            }
+        }
+        Cmd::Sink { item, dir } => {
+            let sink = svc.file_sink(item, dir)?;
+            out(json!({"ready": sink.name()}));
+            loop {
+                let f = tokio::select! {
+                    _ = stopped() => break,
+                    f = sink.recv() => f?,
+                };
+                out(json!({"received": f.path, "size": f.size, "from": f.from, "resumed_from": f.resumed_from}));
+            }
+        }
+        Cmd::Send {
+            file,
+            to,
+            retry_secs,
+        } => {
+            let t = svc.send_file(
+                file,
+                to,
+                SendFileOptions {
+                    retry_for: Duration::from_secs(*retry_secs),
+                    ..Default::default()
+                },
+            );
+            let mut watch = t.watch_progress();
+            let progress = async move {
+                let mut last_pct = u64::MAX;
+                while watch.changed().await.is_ok() {
+                    let p = *watch.borrow();
+                    let pct = (p.acknowledged * 100).checked_div(p.total).unwrap_or(0);
+                    if pct / 10 != last_pct / 10 {
+                        last_pct = pct;
+                        out(json!({"progress": pct, "acknowledged": p.acknowledged, "sent": p.sent}));
+                    }
+                }
+            };
+            let r = tokio::select! {
+                r = t.wait() => r,
+                _ = progress => bail!("progress stream ended early"),
+            };
+            let r = r?;
+            out(json!({"done": r.size, "sent": r.sent, "resumed_from": r.resumed_from, "attempts": r.attempts, "ms": r.elapsed.as_millis() as u64}));
+        }
+        Cmd::List { wait_ms } => {
+            tokio::time::sleep(Duration::from_millis(*wait_ms)).await;
+            out(serde_json::to_value(node.catalog())?);
+        }
+    }
+    Ok(())
+}
