@@ -176,7 +176,11 @@ impl NodeInner {
         let Some((_, p)) = self.peers.remove(&node) else {
             return;
         };
-        tracing::warn!(peer = %p.name, reason, "peer dropped");
+        if reason == "left" {
+            tracing::info!(peer = %p.name, "peer left");
+        } else {
+            tracing::warn!(peer = %p.name, reason, "peer dropped");
+        }
         self.addrs.remove(&(p.link, p.addr));
         if let Some(l) = self.links().get(p.link) {
             l.close_peer(p.addr);

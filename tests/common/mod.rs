@@ -1,0 +1,167 @@
+//! Helpers for cross-process tests: start real child processes, read their JSON lines with
+//! deadlines, and kill them on drop so no test leaves a process behind.
+
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+/// A child process whose stdout lines are parsed as JSON.
+pub struct Proc {
+    pub name: String,
+    child: Child,
+    lines: mpsc::Receiver<Value>,
+    pub seen: Vec<Value>,
+}
+
+impl Proc {
+    pub fn spawn(name: &str, program: &str, args: &[String]) -> Proc {
+        let mut child = Command::new(program)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {program}: {e}"));
+        let stdout = child.stdout.take().expect("stdout is piped");
+        let (tx, rx) = mpsc::channel();
+        let tag = name.to_owned();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                match serde_json::from_str::<Value>(&line) {
+                    Ok(v) => {
+                        if tx.send(v).is_err() {
+                            break;
+                        }
+                    }
+                    Err(_) => eprintln!("[{tag}] {line}"),
+                }
+            }
+        });
+        Proc {
+            name: name.to_owned(),
+            child,
+            lines: rx,
+            seen: Vec::new(),
+        }
+    }
+
+    /// Waits for a line satisfying `pred`, failing the test after `timeout`.
+    pub fn expect(&mut self, timeout: Duration, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(v) => {
+                    self.seen.push(v.clone());
+                    if pred(&v) {
+                        return v;
+                    }
+                }
+                Err(_) => panic!(
+                    "{}: no line with {what} within {timeout:?}; saw {:?}",
+                    self.name, self.seen
+                ),
+            }
+        }
+    }
+
+    /// Waits for a line having key `key`.
+    pub fn expect_key(&mut self, timeout: Duration, key: &str) -> Value {
+        self.expect(timeout, key, |v| v.get(key).is_some())
+    }
+
+    /// Waits for the process to exit.
+    pub fn wait_exit(&mut self, timeout: Duration) -> std::process::ExitStatus {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Ok(Some(s)) = self.child.try_wait() {
+                return s;
+            }
+            if Instant::now() >= deadline {
+                panic!("{} did not exit within {timeout:?}", self.name);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    pub fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    pub fn terminate(&mut self) {
+        // SIGTERM lets the node say Bye.
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Arguments that put a probe in a test's own discovery domain and multicast port, with a
+/// short heartbeat and lease so failures show quickly.
+pub struct Net {
+    pub domain: String,
+    pub port: u16,
+    pub heartbeat_ms: u64,
+    pub lease_ms: u64,
+}
+
+impl Net {
+    pub fn new(test: &str) -> Net {
+        let h = test
+            .bytes()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
+        let h = h ^ u64::from(std::process::id()).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        Net {
+            domain: format!("{test}-{}", std::process::id()),
+            port: 20_000 + (h % 30_000) as u16,
+            heartbeat_ms: 200,
+            lease_ms: 1200,
+        }
+    }
+
+    pub fn probe(&self, node: &str, cmd: &[&str]) -> Proc {
+        self.probe_args(node, &[], cmd)
+    }
+
+    pub fn probe_ns(&self, node: &str, namespace: &str, cmd: &[&str]) -> Proc {
+        self.probe_args(node, &["--namespace", namespace], cmd)
+    }
+
+    fn probe_args(&self, node: &str, extra: &[&str], cmd: &[&str]) -> Proc {
+        let mut args: Vec<String> = vec![
+            "--node".into(),
+            node.into(),
+            "--domain".into(),
+            self.domain.clone(),
+            "--mcast-port".into(),
+            self.port.to_string(),
+            "--heartbeat-ms".into(),
+            self.heartbeat_ms.to_string(),
+            "--lease-ms".into(),
+            self.lease_ms.to_string(),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args.extend(cmd.iter().map(|s| s.to_string()));
+        Proc::spawn(node, env!("CARGO_BIN_EXE_marea-probe"), &args)
+    }
+}
+
+pub const T: Duration = Duration::from_secs(20);
