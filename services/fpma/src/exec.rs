@@ -780,8 +780,9 @@ impl Executive {
         Ok(())
     }
 
-    /// Re-tasks the vehicle to points of interest, visited in nearest-neighbour order from the
-    /// present position (seed 002), at `alt` (default the present altitude).
+    /// Re-tasks the vehicle to points of interest, visited in nearest-neighbour order (seed 002)
+    /// from the present position (`Now`) or from the end of the current leg (`AfterCurrentLeg`),
+    /// at `alt` (default the present altitude). Returns the plan version.
     ///
     /// # Errors
     /// No points, or no position known.
@@ -794,10 +795,18 @@ impl Executive {
         if points.is_empty() {
             return Err(CommandError::NoPoints);
         }
-        let from = self
-            .present
-            .or(self.last.map(|o| o.pos))
-            .ok_or(CommandError::NoPosition)?;
+        let here = self.present.or(self.last.map(|o| o.pos));
+        // Points visited after the current leg are ordered from where that leg ends.
+        let from = match mode {
+            RetaskMode::Now => here,
+            RetaskMode::AfterCurrentLeg => self
+                .active
+                .as_ref()
+                .and_then(|a| a.wps.last())
+                .map(Waypoint::pos)
+                .or(here),
+        }
+        .ok_or(CommandError::NoPosition)?;
         let order = nearest_neighbour(from, points);
         let alt = alt.or(self.last.map(|o| o.alt));
         match mode {

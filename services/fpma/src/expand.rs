@@ -161,8 +161,8 @@ pub fn expand_path(leg: &PathLeg, id: &str, ctx: &Ctx<'_>) -> Vec<Waypoint> {
 /// is at most the vehicle's arc step and, when the arc allows, at least its minimum waypoint
 /// distance.
 pub fn arc(c: Xy, a: Xy, b: Xy, sign: f64, sweep: f64, v: &VehicleParams) -> Vec<Xy> {
-    let (r0, r1) = (a.sub(c).norm(), b.sub(c).norm());
-    let a0 = a.sub(c).bearing();
+    let (r0, r1) = (a.minus(c).norm(), b.minus(c).norm());
+    let a0 = a.minus(c).bearing();
     let len = sweep.to_radians() * (r0 + r1) / 2.0;
     let mut n = (sweep / v.max_arc_step_deg).ceil().max(1.0) as usize;
     while n > 1 && len / n as f64 + 1e-9 < v.min_wp_distance {
@@ -171,7 +171,7 @@ pub fn arc(c: Xy, a: Xy, b: Xy, sign: f64, sweep: f64, v: &VehicleParams) -> Vec
     let mut out: Vec<Xy> = (1..n)
         .map(|k| {
             let t = k as f64 / n as f64;
-            c.add(Xy::unit(a0 + sign * sweep * t).scale(r0 + (r1 - r0) * t))
+            c.plus(Xy::unit(a0 + sign * sweep * t).scale(r0 + (r1 - r0) * t))
         })
         .collect();
     out.push(b);
@@ -232,20 +232,20 @@ pub fn hold_circuit(h: &Hold, id: &str, ctx: &Ctx<'_>) -> Vec<Waypoint> {
     let alt = hold_alt(h, ctx);
     let speed = ctx.speed(h.common.speed);
     let sigma = h.turn.sign();
-    let w2 = f.add(g.s.scale(2.0 * g.r));
-    let w3 = w2.sub(g.u.scale(g.len));
-    let w5 = f.sub(g.u.scale(g.len));
+    let w2 = f.plus(g.s.scale(2.0 * g.r));
+    let w3 = w2.minus(g.u.scale(g.len));
+    let w5 = f.minus(g.u.scale(g.len));
     let mut pts: Vec<(Xy, bool)> = Vec::new();
     match h.shape {
         HoldShape::Racetrack => {
-            let c1 = f.add(g.s.scale(g.r));
+            let c1 = f.plus(g.s.scale(g.r));
             pts.extend(
                 arc(c1, f, w2, sigma, 180.0, ctx.vehicle)
                     .into_iter()
                     .map(|p| (p, false)),
             );
             pts.push((w3, false));
-            let c2 = w5.add(g.s.scale(g.r));
+            let c2 = w5.plus(g.s.scale(g.r));
             pts.extend(
                 arc(c2, w3, w5, sigma, 180.0, ctx.vehicle)
                     .into_iter()
@@ -286,7 +286,7 @@ pub fn auto_sweep(pts: &[Xy]) -> f64 {
     let n = pts.len();
     let mut best = (f64::INFINITY, 0.0);
     for i in 0..n {
-        let e = pts[(i + 1) % n].sub(pts[i]);
+        let e = pts[(i + 1) % n].minus(pts[i]);
         if e.norm() < 1e-9 {
             continue;
         }
@@ -381,7 +381,7 @@ pub fn scan_tracks(s: &Scan, frame: &LocalFrame, prev: Option<Xy>) -> Vec<(Xy, X
             with_v.push((vk, merged));
         }
     }
-    let to_xy = |u: f64, v: f64| d.scale(u).add(left.scale(v));
+    let to_xy = |u: f64, v: f64| d.scale(u).plus(left.scale(v));
     let build = |left_first: bool, forward_first: bool| -> Vec<(Xy, Xy)> {
         let mut order: Vec<&(f64, Vec<(f64, f64)>)> = with_v.iter().collect();
         if left_first {
@@ -422,7 +422,7 @@ pub fn scan_tracks(s: &Scan, frame: &LocalFrame, prev: Option<Xy>) -> Vec<(Xy, X
         for &f in fwds {
             let t = build(l, f);
             let dist = match (prev, t.first()) {
-                (Some(p), Some(first)) => first.0.sub(p).norm(),
+                (Some(p), Some(first)) => first.0.minus(p).norm(),
                 _ => 0.0,
             };
             if best.as_ref().is_none_or(|b| dist < b.0 - 1e-9) {
@@ -453,7 +453,12 @@ pub fn expand_perimeter(p: &Perimeter, id: &str, ctx: &Ctx<'_>) -> Vec<Waypoint>
         }
         let start = cur.map_or(0, |c| {
             (0..ring.len())
-                .min_by(|a, b| ring[*a].sub(c).norm().total_cmp(&ring[*b].sub(c).norm()))
+                .min_by(|a, b| {
+                    ring[*a]
+                        .minus(c)
+                        .norm()
+                        .total_cmp(&ring[*b].minus(c).norm())
+                })
                 .unwrap_or(0)
         });
         for i in 0..=ring.len() {
@@ -785,13 +790,13 @@ mod tests {
     }
 
     fn seg_dist(p: Xy, a: Xy, b: Xy) -> f64 {
-        let ab = b.sub(a);
+        let ab = b.minus(a);
         let t = if ab.norm() < 1e-12 {
             0.0
         } else {
-            (p.sub(a).dot(ab) / ab.dot(ab)).clamp(0.0, 1.0)
+            (p.minus(a).dot(ab) / ab.dot(ab)).clamp(0.0, 1.0)
         };
-        p.sub(a.add(ab.scale(t))).norm()
+        p.minus(a.plus(ab.scale(t))).norm()
     }
 
     fn assert_covered(s: &Scan) {

@@ -223,11 +223,11 @@ impl Xy {
         Self { e, n }
     }
     /// Sum.
-    pub fn add(self, o: Xy) -> Xy {
+    pub fn plus(self, o: Xy) -> Xy {
         Xy::new(self.e + o.e, self.n + o.n)
     }
     /// Difference.
-    pub fn sub(self, o: Xy) -> Xy {
+    pub fn minus(self, o: Xy) -> Xy {
         Xy::new(self.e - o.e, self.n - o.n)
     }
     /// Scaled by `k`.

@@ -1079,7 +1079,7 @@ fn polygon(el: &Element) -> Result<Vec<GeoPoint>> {
     let frame = polygon_frame(&pts);
     let local: Vec<_> = pts.iter().map(|p| frame.to_local(*p)).collect();
     for i in 0..local.len() {
-        if local[i].sub(local[(i + 1) % local.len()]).norm() < 1e-3 {
+        if local[i].minus(local[(i + 1) % local.len()]).norm() < 1e-3 {
             return Err(PlanError::at(
                 el.children[(i + 1) % local.len()].pos,
                 PlanErrorKind::Structure("a polygon vertex repeats the previous one".into()),

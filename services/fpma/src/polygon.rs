@@ -18,7 +18,7 @@ pub fn signed_area(pts: &[Xy]) -> f64 {
 }
 
 fn orient(a: Xy, b: Xy, c: Xy) -> f64 {
-    b.sub(a).cross(c.sub(a))
+    b.minus(a).cross(c.minus(a))
 }
 
 fn on_segment(a: Xy, b: Xy, p: Xy) -> bool {
@@ -79,9 +79,9 @@ pub fn inset(pts: &[Xy], d: f64) -> Option<Vec<Xy>> {
         .map(|i| {
             let a = pts[i];
             let b = pts[(i + 1) % n];
-            let dir = b.sub(a).scale(1.0 / b.sub(a).norm().max(1e-12));
+            let dir = b.minus(a).scale(1.0 / b.minus(a).norm().max(1e-12));
             let normal = Xy::new(-dir.n, dir.e).scale(side);
-            (a.add(normal.scale(d)), dir)
+            (a.plus(normal.scale(d)), dir)
         })
         .collect();
     let mut out = Vec::with_capacity(n);
@@ -93,13 +93,13 @@ pub fn inset(pts: &[Xy], d: f64) -> Option<Vec<Xy>> {
             out.push(p2);
             continue;
         }
-        let t = p2.sub(p1).cross(d2) / den;
-        out.push(p1.add(d1.scale(t)));
+        let t = p2.minus(p1).cross(d2) / den;
+        out.push(p1.plus(d1.scale(t)));
     }
     // An edge that flipped direction means the offset passed through a collapse.
     for i in 0..n {
-        let before = pts[(i + 1) % n].sub(pts[i]);
-        let after = out[(i + 1) % n].sub(out[i]);
+        let before = pts[(i + 1) % n].minus(pts[i]);
+        let after = out[(i + 1) % n].minus(out[i]);
         if before.dot(after) <= 0.0 {
             return None;
         }
