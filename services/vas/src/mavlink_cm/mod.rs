@@ -1,0 +1,39 @@
+//! The MAVLink Communication Manager (003 §3.2.2): everything the VAS needs from
+//! a MAVLink autopilot, over serial, UDP or TCP, knowing nothing of USAL.
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), Box<dyn std::error::Error>> {
+//! use vas::mavlink_cm::{ManagerConfig, MavlinkManager, MissionItem, Telemetry};
+//! let mgr = MavlinkManager::open("udpout:127.0.0.1:14560", ManagerConfig::default()).await?;
+//! mgr.wait_connected(std::time::Duration::from_secs(5)).await?;
+//! mgr.request_telemetry(&[(Telemetry::Position, 4.0)]).await?;
+//! let home = MissionItem::waypoint(41.2757, 1.9881, 0.0);
+//! mgr.mission_upload(&[home, MissionItem::waypoint(41.2760, 1.9881, 0.0)]).await?;
+//! mgr.arm(true).await?;
+//! mgr.set_mode("AUTO").await?;
+//! let mut events = mgr.subscribe();
+//! while let Ok(ev) = events.recv().await {
+//!     println!("{ev:?}");
+//! }
+//! # Ok(()) }
+//! ```
+
+// ArduPilot still speaks the superseded messages (MISSION_ITEM, MISSION_REQUEST,
+// MISSION_SET_CURRENT, REQUEST_DATA_STREAM); the manager must understand them.
+#![allow(deprecated)]
+
+mod endpoint;
+mod manager;
+mod modes;
+mod reach;
+mod transport;
+mod types;
+
+pub use endpoint::{Endpoint, EndpointParseError};
+pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
+pub use modes::{ModeSpec, name as mode_name, number as mode_number};
+pub use reach::{ReachDetector, ReachSource, parse_reached_text};
+pub use types::*;
+
+/// The MAVLink dialect the manager speaks, re-exported for callers' convenience.
+pub use mavlink::dialects::ardupilotmega as dialect;
