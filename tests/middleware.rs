@@ -14,7 +14,10 @@ fn late_joiner_gets_the_last_value_at_once() {
     publ.expect_key(T, "published");
     // The subscriber starts after every value was published: it must get the last one (seq 4)
     // without any new publication.
-    let mut sub = net.probe("sub", &["var-sub", "--pattern", "probe/position", "--count", "1"]);
+    let mut sub = net.probe(
+        "sub",
+        &["var-sub", "--pattern", "probe/position", "--count", "1"],
+    );
     let v = sub.expect_key(T, "seq");
     assert_eq!(v["seq"], 4, "late joiner got {v}");
     assert_eq!(v["publisher"], "pub");
@@ -24,28 +27,53 @@ fn late_joiner_gets_the_last_value_at_once() {
 #[test]
 fn wildcard_subscription_follows_a_fleet() {
     let net = Net::new("fleet");
-    let mut r1 = net.probe_ns("r1", "rover1", &["var-pub", "--item", "position", "--count", "1"]);
-    let mut r2 = net.probe_ns("r2", "rover2", &["var-pub", "--item", "position", "--count", "1"]);
+    let mut r1 = net.probe_ns(
+        "r1",
+        "rover1",
+        &["var-pub", "--item", "position", "--count", "1"],
+    );
+    let mut r2 = net.probe_ns(
+        "r2",
+        "rover2",
+        &["var-pub", "--item", "position", "--count", "1"],
+    );
     r1.expect_key(T, "published");
     r2.expect_key(T, "published");
-    let mut station = net.probe("gs", &["var-sub", "--pattern", "*/probe/position", "--count", "2"]);
+    let mut station = net.probe(
+        "gs",
+        &["var-sub", "--pattern", "*/probe/position", "--count", "2"],
+    );
     let a = station.expect_key(T, "seq");
     let b = station.expect_key(T, "seq");
-    let mut names = vec![a["name"].as_str().unwrap().to_owned(), b["name"].as_str().unwrap().to_owned()];
+    let mut names = vec![
+        a["name"].as_str().unwrap().to_owned(),
+        b["name"].as_str().unwrap().to_owned(),
+    ];
     names.sort();
-    assert_eq!(names, vec!["rover1/probe/position", "rover2/probe/position"]);
+    assert_eq!(
+        names,
+        vec!["rover1/probe/position", "rover2/probe/position"]
+    );
 }
 
 #[test]
 fn ten_thousand_events_reach_three_subscribers_exactly_once_in_order() {
     let net = Net::new("events_3x10k");
     let mut subs: Vec<_> = (1..=3)
-        .map(|i| net.probe(&format!("sub{i}"), &["ev-sub", "--pattern", "probe/ev", "--count", "10000"]))
+        .map(|i| {
+            net.probe(
+                &format!("sub{i}"),
+                &["ev-sub", "--pattern", "probe/ev", "--count", "10000"],
+            )
+        })
         .collect();
     for s in subs.iter_mut() {
         s.expect_key(T, "ready");
     }
-    let mut publ = net.probe("pub", &["ev-pub", "--item", "ev", "--count", "10000", "--subs", "3"]);
+    let mut publ = net.probe(
+        "pub",
+        &["ev-pub", "--item", "ev", "--count", "10000", "--subs", "3"],
+    );
     let done = publ.expect_key(Duration::from_secs(60), "raised");
     assert_eq!(done["acknowledged_by_all"], 10000, "{done}");
     for s in subs.iter_mut() {
@@ -62,13 +90,31 @@ fn ten_thousand_events_reach_three_subscribers_exactly_once_in_order() {
 #[test]
 fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
     let net = Net::new("kill_sub");
-    let mut victim = net.probe("victim", &["ev-sub", "--pattern", "probe/ev", "--count", "1000000"]);
-    let mut keeper = net.probe("keeper", &["ev-sub", "--pattern", "probe/ev", "--count", "3000"]);
+    let mut victim = net.probe(
+        "victim",
+        &["ev-sub", "--pattern", "probe/ev", "--count", "1000000"],
+    );
+    let mut keeper = net.probe(
+        "keeper",
+        &["ev-sub", "--pattern", "probe/ev", "--count", "3000"],
+    );
     victim.expect_key(T, "ready");
     keeper.expect_key(T, "ready");
     let mut publ = net.probe(
         "pub",
-        &["ev-pub", "--item", "ev", "--count", "3000", "--subs", "2", "--interval-ms", "1", "--window", "64"],
+        &[
+            "ev-pub",
+            "--item",
+            "ev",
+            "--count",
+            "3000",
+            "--subs",
+            "2",
+            "--interval-ms",
+            "1",
+            "--window",
+            "64",
+        ],
     );
     publ.expect_key(T, "subscribers");
     std::thread::sleep(Duration::from_millis(300));
@@ -76,8 +122,14 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
     let killed_at = std::time::Instant::now();
     let failed = publ.expect_key(T, "failed");
     let waited = killed_at.elapsed();
-    assert!(failed["failed"].as_str().unwrap().starts_with("victim/"), "{failed}");
-    assert!(failed["reason"].as_str().unwrap().contains("victim"), "{failed}");
+    assert!(
+        failed["failed"].as_str().unwrap().starts_with("victim/"),
+        "{failed}"
+    );
+    assert!(
+        failed["reason"].as_str().unwrap().contains("victim"),
+        "{failed}"
+    );
     // Within the lease plus one heartbeat of slack for the check.
     assert!(
         waited < Duration::from_millis(net.lease_ms + 2 * net.heartbeat_ms + 500),
@@ -94,36 +146,108 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
 fn calls_fail_distinctly_no_provider_timeout_remote_error() {
     let net = Net::new("calls");
     // Nobody provides it: fails fast.
-    let mut c = net.probe("c0", &["call", "--name", "probe/nothing", "--timeout-ms", "5000"]);
+    let mut c = net.probe(
+        "c0",
+        &["call", "--name", "probe/nothing", "--timeout-ms", "5000"],
+    );
     let r = c.expect_key(T, "error");
     assert_eq!(r["error"], "no_provider");
     assert!(r["ms"].as_u64().unwrap() < 1000, "{r}");
 
-    let mut slow = net.probe("slow", &["--service", "slowsvc", "provide", "--item", "f", "--delay-ms", "3000"]);
+    let mut slow = net.probe(
+        "slow",
+        &[
+            "--service",
+            "slowsvc",
+            "provide",
+            "--item",
+            "f",
+            "--delay-ms",
+            "3000",
+        ],
+    );
     slow.expect_key(T, "ready");
-    let mut c = net.probe("c1", &["call", "--name", "slowsvc/f", "--timeout-ms", "300", "--wait-ms", "5000"]);
+    let mut c = net.probe(
+        "c1",
+        &[
+            "call",
+            "--name",
+            "slowsvc/f",
+            "--timeout-ms",
+            "300",
+            "--wait-ms",
+            "5000",
+        ],
+    );
     let r = c.expect_key(T, "error");
     assert_eq!(r["error"], "timeout", "{r}");
 
-    let mut bad = net.probe("bad", &["--service", "badsvc", "provide", "--item", "f", "--fail", "battery too low"]);
+    let mut bad = net.probe(
+        "bad",
+        &[
+            "--service",
+            "badsvc",
+            "provide",
+            "--item",
+            "f",
+            "--fail",
+            "battery too low",
+        ],
+    );
     bad.expect_key(T, "ready");
     let mut c = net.probe("c2", &["call", "--name", "badsvc/f", "--wait-ms", "5000"]);
     let r = c.expect_key(T, "error");
     assert_eq!(r["error"], "remote", "{r}");
-    assert!(r["message"].as_str().unwrap().contains("battery too low"), "{r}");
+    assert!(
+        r["message"].as_str().unwrap().contains("battery too low"),
+        "{r}"
+    );
 
     let mut good = net.probe("good", &["--service", "goodsvc", "provide", "--item", "f"]);
     good.expect_key(T, "ready");
-    let mut c = net.probe("c3", &["call", "--name", "goodsvc/f", "--arg", "21", "--wait-ms", "5000"]);
+    let mut c = net.probe(
+        "c3",
+        &[
+            "call",
+            "--name",
+            "goodsvc/f",
+            "--arg",
+            "21",
+            "--wait-ms",
+            "5000",
+        ],
+    );
     assert_eq!(c.expect_key(T, "ok")["ok"], 42);
 }
 
 #[test]
 fn provider_killed_mid_call_yields_link_lost() {
     let net = Net::new("call_lost");
-    let mut slow = net.probe("slow", &["--service", "slowsvc", "provide", "--item", "f", "--delay-ms", "30000"]);
+    let mut slow = net.probe(
+        "slow",
+        &[
+            "--service",
+            "slowsvc",
+            "provide",
+            "--item",
+            "f",
+            "--delay-ms",
+            "30000",
+        ],
+    );
     slow.expect_key(T, "ready");
-    let mut c = net.probe("c", &["call", "--name", "slowsvc/f", "--timeout-ms", "20000", "--wait-ms", "5000"]);
+    let mut c = net.probe(
+        "c",
+        &[
+            "call",
+            "--name",
+            "slowsvc/f",
+            "--timeout-ms",
+            "20000",
+            "--wait-ms",
+            "5000",
+        ],
+    );
     std::thread::sleep(Duration::from_millis(500));
     slow.kill9();
     let r = c.expect_key(T, "error");
@@ -142,7 +266,10 @@ fn wrong_payload_type_is_refused_with_a_clear_error() {
     assert!(msg.contains("probe/position"), "{msg}");
     assert!(msg.contains("Position"), "{msg}");
     assert!(msg.contains("String"), "{msg}");
-    assert!(sub.seen.iter().all(|v| v.get("value").is_none()), "garbage delivered");
+    assert!(
+        sub.seen.iter().all(|v| v.get("value").is_none()),
+        "garbage delivered"
+    );
 }
 
 #[test]
@@ -150,16 +277,31 @@ fn twenty_mb_file_arrives_identical_and_resumes_after_receiver_restart() {
     let net = Net::new("file_20mb");
     let dir = tempfile::tempdir().unwrap();
     let src = dir.path().join("payload.bin");
-    let data: Vec<u8> = (0..20_000_000u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+    let data: Vec<u8> = (0..20_000_000u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+        .collect();
     std::fs::write(&src, &data).unwrap();
     let inbox = dir.path().join("inbox");
     let inbox_s = inbox.to_str().unwrap();
 
     let mut rx = net.probe("rx", &["sink", "--item", "files", "--dir", inbox_s]);
     rx.expect_key(T, "ready");
-    let mut tx = net.probe("tx", &["send", "--file", src.to_str().unwrap(), "--to", "probe/files"]);
+    let mut tx = net.probe(
+        "tx",
+        &[
+            "send",
+            "--file",
+            src.to_str().unwrap(),
+            "--to",
+            "probe/files",
+        ],
+    );
     // Kill the receiver once some progress was acknowledged, before the end.
-    tx.expect(T, "progress >= 10", |v| v["progress"].as_u64().is_some_and(|p| (10..90).contains(&p)));
+    tx.expect(T, "progress >= 10", |v| {
+        v["progress"]
+            .as_u64()
+            .is_some_and(|p| (10..90).contains(&p))
+    });
     rx.kill9();
     let mut rx2 = net.probe("rx", &["sink", "--item", "files", "--dir", inbox_s]);
     let got = rx2.expect_key(Duration::from_secs(90), "received");
@@ -177,6 +319,10 @@ fn twenty_mb_file_arrives_identical_and_resumes_after_receiver_restart() {
     let out = std::fs::read(inbox.join("payload.bin")).unwrap();
     assert!(out == data, "file differs");
     // No temp file left behind.
-    let leftovers: Vec<_> = std::fs::read_dir(&inbox).unwrap().flatten().map(|e| e.file_name()).collect();
+    let leftovers: Vec<_> = std::fs::read_dir(&inbox)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name())
+        .collect();
     assert_eq!(leftovers.len(), 1, "{leftovers:?}");
 }

@@ -39,8 +39,14 @@ fn launch() -> Result<(), Box<dyn std::error::Error>> {
     let me = std::env::current_exe()?;
     let domain = format!("demo-{}", std::process::id());
     println!("demo: starting 'air' and 'ground' as two processes (domain {domain})");
-    let mut air = std::process::Command::new(&me).arg("air").env("DEMO_DOMAIN", &domain).spawn()?;
-    let ground = std::process::Command::new(&me).arg("ground").env("DEMO_DOMAIN", &domain).status()?;
+    let mut air = std::process::Command::new(&me)
+        .arg("air")
+        .env("DEMO_DOMAIN", &domain)
+        .spawn()?;
+    let ground = std::process::Command::new(&me)
+        .arg("ground")
+        .env("DEMO_DOMAIN", &domain)
+        .status()?;
     let _ = air.wait();
     if ground.success() {
         println!("demo: done");
@@ -74,7 +80,9 @@ async fn air() -> Result<(), Box<dyn std::error::Error>> {
     let dir = std::env::temp_dir().join(format!("marea-demo-{}", std::process::id()));
     let plans = vas.file_sink("plans", &dir)?;
     println!("[air]    publishing rover1/vas/position, raising rover1/vas/alarm, providing rover1/vas/change_state, accepting files on rover1/vas/plans");
-    position.wait_remote_subscribers(1, Duration::from_secs(10)).await;
+    position
+        .wait_remote_subscribers(1, Duration::from_secs(10))
+        .await;
     for i in 0..20u32 {
         position.set(&Position {
             lat: 41.2750 + f64::from(i) * 1e-5,
@@ -93,7 +101,10 @@ async fn air() -> Result<(), Box<dyn std::error::Error>> {
             println!("[air]    alarm acknowledged by {:?}", report.acknowledged);
         }
         if let Ok(Ok(f)) = tokio::time::timeout(Duration::from_millis(100), plans.recv()).await {
-            println!("[air]    received file {} ({} bytes) from {}", f.name, f.size, f.from);
+            println!(
+                "[air]    received file {} ({} bytes) from {}",
+                f.name, f.size, f.from
+            );
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -111,7 +122,10 @@ async fn ground() -> Result<(), Box<dyn std::error::Error>> {
         return Err("the air process was not discovered within 10 s".into());
     }
     for to in ["WAYPOINT_NAVIGATION", "LANDING"] {
-        match change_state.call(&to.to_owned(), Duration::from_secs(2)).await {
+        match change_state
+            .call(&to.to_owned(), Duration::from_secs(2))
+            .await
+        {
             Ok(r) => println!("[ground] change_state({to}) -> {r}"),
             Err(e) => println!("[ground] change_state({to}) failed: {e}"),
         }
@@ -137,7 +151,10 @@ async fn ground() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     let r = upload.wait().await?;
-    println!("[ground] uploaded {} bytes to {} in {:?}", r.size, r.receiver, r.elapsed);
+    println!(
+        "[ground] uploaded {} bytes to {} in {:?}",
+        r.size, r.receiver, r.elapsed
+    );
     println!("[ground] saw {got_pos} positions and {got_alarms} alarms");
     let _ = std::fs::remove_file(&plan);
     node.shutdown().await;

@@ -150,7 +150,10 @@ mod tests {
         ));
         assert!(validate_pattern("*/vas/**").is_ok());
         assert!(validate_name("rover-1/vas/position_2.x").is_ok());
-        assert_eq!(join(Some("rover1"), "vas", "position"), "rover1/vas/position");
+        assert_eq!(
+            join(Some("rover1"), "vas", "position"),
+            "rover1/vas/position"
+        );
         assert_eq!(join(None, "vas", "position"), "vas/position");
     }
 }

@@ -170,7 +170,10 @@ fn config(args: &Args) -> anyhow::Result<NetworkConfig> {
     c.links = vec![LinkConfig::Ethernet(EthernetConfig {
         interface: std::net::Ipv4Addr::LOCALHOST,
         bind: "127.0.0.1:0".parse()?,
-        multicast: std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 1), args.mcast_port),
+        multicast: std::net::SocketAddrV4::new(
+            std::net::Ipv4Addr::new(239, 255, 77, 1),
+            args.mcast_port,
+        ),
         heartbeat: Duration::from_millis(args.heartbeat_ms),
         lease: Duration::from_millis(args.lease_ms),
         ..EthernetConfig::default()
@@ -231,7 +234,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     s = sub.recv() => s,
                 };
                 match s {
-                    Ok(s) => out(json!({"name": s.name, "publisher": s.publisher, "seq": s.value.alt as u64})),
+                    Ok(s) => out(
+                        json!({"name": s.name, "publisher": s.publisher, "seq": s.value.alt as u64}),
+                    ),
                     Err(e) => out(json!({"error": e.to_string()})),
                 }
                 n += 1;
@@ -260,7 +265,10 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
         } => {
             let ev = svc.publish_event::<u64>(item)?;
             out(json!({"ready": ev.name()}));
-            if !ev.wait_remote_subscribers(*subs, Duration::from_secs(30)).await {
+            if !ev
+                .wait_remote_subscribers(*subs, Duration::from_secs(30))
+                .await
+            {
                 bail!("only {:?} subscribed within 30 s", ev.remote_subscribers());
             }
             out(json!({"subscribers": ev.remote_subscribers()}));
@@ -268,16 +276,19 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let mut reported = std::collections::HashSet::new();
             let mut acked_all = 0u64;
             let started = Instant::now();
-            let mut handle = |r: marea::RaiseReport, reported: &mut std::collections::HashSet<String>| {
-                if r.failed.is_empty() {
-                    acked_all += 1;
-                }
-                for (sub, reason) in r.failed {
-                    if reported.insert(sub.clone()) {
-                        out(json!({"failed": sub, "reason": reason, "after_ms": started.elapsed().as_millis() as u64}));
+            let mut handle =
+                |r: marea::RaiseReport, reported: &mut std::collections::HashSet<String>| {
+                    if r.failed.is_empty() {
+                        acked_all += 1;
                     }
-                }
-            };
+                    for (sub, reason) in r.failed {
+                        if reported.insert(sub.clone()) {
+                            out(
+                                json!({"failed": sub, "reason": reason, "after_ms": started.elapsed().as_millis() as u64}),
+                            );
+                        }
+                    }
+                };
             for i in 0..*count {
                 inflight.push_back(ev.raise_nowait(&i)?);
                 if inflight.len() >= *window {
@@ -292,7 +303,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             while let Some(p) = inflight.pop_front() {
                 handle(p.await, &mut reported);
             }
-            out(json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64}));
+            out(
+                json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64}),
+            );
             stopped().await;
         }
         Cmd::EvSub { pattern, count } => {
@@ -359,7 +372,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                         marea::CallError::TypeMismatch { .. } => "type_mismatch",
                         marea::CallError::Codec { .. } => "codec",
                     };
-                    out(json!({"error": kind, "message": e.to_string(), "ms": started.elapsed().as_millis() as u64}));
+                    out(
+                        json!({"error": kind, "message": e.to_string(), "ms": started.elapsed().as_millis() as u64}),
+                    );
                 }
             }
         }
@@ -371,7 +386,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     _ = stopped() => break,
                     f = sink.recv() => f?,
                 };
-                out(json!({"received": f.path, "size": f.size, "from": f.from, "resumed_from": f.resumed_from}));
+                out(
+                    json!({"received": f.path, "size": f.size, "from": f.from, "resumed_from": f.resumed_from}),
+                );
             }
         }
         Cmd::Send {
@@ -395,7 +412,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     let pct = (p.acknowledged * 100).checked_div(p.total).unwrap_or(0);
                     if pct / 10 != last_pct / 10 {
                         last_pct = pct;
-                        out(json!({"progress": pct, "acknowledged": p.acknowledged, "sent": p.sent}));
+                        out(
+                            json!({"progress": pct, "acknowledged": p.acknowledged, "sent": p.sent}),
+                        );
                     }
                 }
             };
@@ -404,7 +423,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 _ = progress => bail!("progress stream ended early"),
             };
             let r = r?;
-            out(json!({"done": r.size, "sent": r.sent, "resumed_from": r.resumed_from, "attempts": r.attempts, "ms": r.elapsed.as_millis() as u64}));
+            out(
+                json!({"done": r.size, "sent": r.sent, "resumed_from": r.resumed_from, "attempts": r.attempts, "ms": r.elapsed.as_millis() as u64}),
+            );
         }
         Cmd::List { wait_ms } => {
             tokio::time::sleep(Duration::from_millis(*wait_ms)).await;

@@ -52,7 +52,12 @@ impl Proc {
     }
 
     /// Waits for a line satisfying `pred`, failing the test after `timeout`.
-    pub fn expect(&mut self, timeout: Duration, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    pub fn expect(
+        &mut self,
+        timeout: Duration,
+        what: &str,
+        pred: impl Fn(&Value) -> bool,
+    ) -> Value {
         let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -125,9 +130,9 @@ pub struct Net {
 
 impl Net {
     pub fn new(test: &str) -> Net {
-        let h = test
-            .bytes()
-            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3));
+        let h = test.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3)
+        });
         let h = h ^ u64::from(std::process::id()).wrapping_mul(0x9E37_79B9_7F4A_7C15);
         Net {
             domain: format!("{test}-{}", std::process::id()),

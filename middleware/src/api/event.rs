@@ -35,11 +35,19 @@ impl RaiseReport {
     }
 }
 
+/// One remote node's acknowledgement awaited: its subscribers (`node/service`), its name, and
+/// the link's completion.
+type AwaitedAck = (
+    Vec<String>,
+    String,
+    oneshot::Receiver<Result<(), LinkSendError>>,
+);
+
 /// An event on its way; resolves to the [`RaiseReport`] when every subscriber acknowledged
 /// or was lost.
 pub struct PendingRaise {
     report: RaiseReport,
-    waiting: Vec<(Vec<String>, String, oneshot::Receiver<Result<(), LinkSendError>>)>,
+    waiting: Vec<AwaitedAck>,
 }
 
 impl Future for PendingRaise {

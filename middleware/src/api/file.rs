@@ -28,7 +28,11 @@ pub struct FileSink {
 }
 
 impl FileSink {
-    pub(crate) fn new(offer: Arc<LocalOffer>, mailbox: Arc<SinkMailbox>, declared: Declared) -> Self {
+    pub(crate) fn new(
+        offer: Arc<LocalOffer>,
+        mailbox: Arc<SinkMailbox>,
+        declared: Declared,
+    ) -> Self {
         FileSink {
             offer,
             mailbox,
@@ -118,7 +122,12 @@ pub struct FileTransfer {
 }
 
 impl FileTransfer {
-    pub(crate) fn start(node: Arc<NodeInner>, path: PathBuf, to: String, options: SendFileOptions) -> Self {
+    pub(crate) fn start(
+        node: Arc<NodeInner>,
+        path: PathBuf,
+        to: String,
+        options: SendFileOptions,
+    ) -> Self {
         let (ptx, prx) = watch::channel(FileProgress::default());
         let (rtx, rrx) = oneshot::channel();
         let tasks = node.tasks.clone();
@@ -253,7 +262,8 @@ impl Sender {
                         });
                     }
                     // Let the peer table settle (the receiver is dropped, then reappears).
-                    let _ = tokio::time::timeout(Duration::from_millis(200), changed.changed()).await;
+                    let _ =
+                        tokio::time::timeout(Duration::from_millis(200), changed.changed()).await;
                 }
             }
         }
@@ -314,7 +324,9 @@ impl Sender {
             }
             Ok(Some(Control::PeerLost(why))) => return Attempt::Retry(why),
             Ok(None) => return Attempt::Done(Err(FileSendError::Closed)),
-            Err(_) => return Attempt::Retry(format!("node '{peer_name}' did not answer the offer")),
+            Err(_) => {
+                return Attempt::Retry(format!("node '{peer_name}' did not answer the offer"))
+            }
         };
         self.progress.send_modify(|p| {
             p.resumed_from = offset;
@@ -343,7 +355,14 @@ impl Sender {
                     offset: pos,
                     data: buf[..want].to_vec(),
                 });
-                self.node.send_to(link, addr, Outgoing::Safe { msg, done: Some(tx) });
+                self.node.send_to(
+                    link,
+                    addr,
+                    Outgoing::Safe {
+                        msg,
+                        done: Some(tx),
+                    },
+                );
                 pos += want as u64;
                 inflight.push_back((pos, rx));
                 self.progress.send_modify(|p| p.sent += want as u64);

@@ -120,7 +120,11 @@ impl Service {
 
     /// The full name of one of this service's items: `namespace/service/item`.
     pub fn full_name(&self, item: &str) -> String {
-        name::join(self.inner.node.me.namespace.as_deref(), &self.inner.name, item)
+        name::join(
+            self.inner.node.me.namespace.as_deref(),
+            &self.inner.name,
+            item,
+        )
     }
 
     fn offer(
@@ -293,7 +297,10 @@ impl Service {
     ///
     /// # Errors
     /// [`DeclareError`] for an invalid name or a stopping node.
-    pub fn function<A: Payload, R: Payload>(&self, name: &str) -> Result<Function<A, R>, DeclareError> {
+    pub fn function<A: Payload, R: Payload>(
+        &self,
+        name: &str,
+    ) -> Result<Function<A, R>, DeclareError> {
         name::validate_name(name)?;
         let declared = self.interest(
             name,
@@ -301,7 +308,11 @@ impl Service {
             TypeInfo::of_function::<A, R>(),
             None,
         )?;
-        Ok(Function::new(self.inner.node.clone(), name.to_owned(), declared))
+        Ok(Function::new(
+            self.inner.node.clone(),
+            name.to_owned(),
+            declared,
+        ))
     }
 
     /// Accepts files sent to `item` into directory `dir` (created if missing).
@@ -329,7 +340,12 @@ impl Service {
 
     /// Sends a file to the sink named `to` (a full name), in the background. The returned handle
     /// shows progress and gives the outcome.
-    pub fn send_file(&self, path: impl Into<PathBuf>, to: &str, options: SendFileOptions) -> FileTransfer {
+    pub fn send_file(
+        &self,
+        path: impl Into<PathBuf>,
+        to: &str,
+        options: SendFileOptions,
+    ) -> FileTransfer {
         FileTransfer::start(self.inner.node.clone(), path.into(), to.to_owned(), options)
     }
 

@@ -284,7 +284,10 @@ mod tests {
             entries,
             vec![
                 Entry::Syn(0x0403_0201),
-                Entry::Safe { seq: 300, msg: &[9] },
+                Entry::Safe {
+                    seq: 300,
+                    msg: &[9]
+                },
                 Entry::Fast(&[7, 8]),
                 Entry::Ack(AckInfo {
                     session: 1,
@@ -300,7 +303,10 @@ mod tests {
     #[test]
     fn writer_respects_the_limit_but_takes_one_oversized_entry() {
         let mut w = DatagramWriter::new(10);
-        assert!(w.push_fast(&[0; 20]), "an empty datagram takes one big entry");
+        assert!(
+            w.push_fast(&[0; 20]),
+            "an empty datagram takes one big entry"
+        );
         assert!(!w.push_fast(&[0; 1]));
         let mut w = DatagramWriter::new(10);
         assert!(w.push_fast(&[0; 4]));
@@ -311,12 +317,18 @@ mod tests {
     fn malformed_datagrams_are_errors() {
         assert_eq!(decode(&[]), Err(DatagramDecodeError::Empty));
         assert_eq!(decode(&[0x00]), Err(DatagramDecodeError::UnknownKind(0)));
-        assert_eq!(decode(&[0xA1, 0x09]), Err(DatagramDecodeError::UnknownTag(9)));
+        assert_eq!(
+            decode(&[0xA1, 0x09]),
+            Err(DatagramDecodeError::UnknownTag(9))
+        );
         assert_eq!(
             decode(&[0xA1, 0x01, 5, 1]),
             Err(DatagramDecodeError::Truncated)
         );
-        assert_eq!(decode(&[0xA1, 0x03, 1]), Err(DatagramDecodeError::Truncated));
+        assert_eq!(
+            decode(&[0xA1, 0x03, 1]),
+            Err(DatagramDecodeError::Truncated)
+        );
         assert_eq!(
             decode(&[0xA1, 0x01, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0x01]),
             Err(DatagramDecodeError::Truncated)

@@ -172,9 +172,7 @@ impl UdpLink {
             .set_multicast_if_v4(&options.interface)
             .map_err(mcast_err)?;
         data2.set_multicast_loop_v4(true).map_err(mcast_err)?;
-        data2
-            .set_multicast_ttl_v4(options.ttl)
-            .map_err(mcast_err)?;
+        data2.set_multicast_ttl_v4(options.ttl).map_err(mcast_err)?;
         let data: std::net::UdpSocket = data2.into();
         let socket = Arc::new(UdpSocket::from_std(data).map_err(bind_err)?);
         let mut local = socket.local_addr().map_err(bind_err)?;
@@ -184,7 +182,8 @@ impl UdpLink {
 
         let mcast = {
             use socket2::{Domain, Protocol, Socket, Type};
-            let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).map_err(mcast_err)?;
+            let s =
+                Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).map_err(mcast_err)?;
             s.set_reuse_address(true).map_err(mcast_err)?;
             s.bind(&SocketAddr::V4(options.multicast).into())
                 .map_err(mcast_err)?;
@@ -264,10 +263,10 @@ impl UdpLink {
             w.push_ack(ack);
         }
         let push_safe = |w: &mut DatagramWriter,
-                             out: &mut Vec<Vec<u8>>,
-                             carries_safe: &mut bool,
-                             seq: u32,
-                             msg: &[u8]| {
+                         out: &mut Vec<Vec<u8>>,
+                         carries_safe: &mut bool,
+                         seq: u32,
+                         msg: &[u8]| {
             loop {
                 if need_syn && !*carries_safe {
                     if !w.push_syn(syn) {
@@ -463,7 +462,8 @@ impl UdpLink {
             // No session with this address: only fast messages mean anything.
             for e in entries {
                 if let Entry::Fast(msg) = e {
-                    self.handler.on_message(self.index, PeerAddr::Udp(from), msg);
+                    self.handler
+                        .on_message(self.index, PeerAddr::Udp(from), msg);
                 }
             }
             return;
@@ -519,7 +519,9 @@ fn is_transient(e: &io::Error) -> bool {
     // ICMP port unreachable from a vanished peer surfaces as ConnectionRefused on Linux.
     matches!(
         e.kind(),
-        io::ErrorKind::ConnectionRefused | io::ErrorKind::ConnectionReset | io::ErrorKind::Interrupted
+        io::ErrorKind::ConnectionRefused
+            | io::ErrorKind::ConnectionReset
+            | io::ErrorKind::Interrupted
     )
 }
 
@@ -591,12 +593,14 @@ impl Link for UdpLink {
 
     fn announce(&self, msg: &[u8]) {
         let d = datagram::discovery_datagram(msg);
-        let targets =
-            std::iter::once(SocketAddr::V4(self.options.multicast)).chain(self.options.peers.iter().copied());
+        let targets = std::iter::once(SocketAddr::V4(self.options.multicast))
+            .chain(self.options.peers.iter().copied());
         for t in targets {
             match self.socket.try_send_to(&d, t) {
                 Ok(_) => self.count_out(d.len()),
-                Err(e) => tracing::debug!(link = %self.options.name, to = %t, error = %e, "announce not sent"),
+                Err(e) => {
+                    tracing::debug!(link = %self.options.name, to = %t, error = %e, "announce not sent")
+                }
             }
         }
     }

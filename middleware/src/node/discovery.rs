@@ -2,7 +2,6 @@
 //! declaration counter, declaration requests when a counter is ahead, and leases.
 
 use std::collections::HashMap;
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -47,7 +46,7 @@ impl NodeInner {
     }
 
     /// Handles Hello, Heartbeat and Bye, whether multicast or inside a session.
-    pub fn on_discovery(&self, link: usize, from: PeerAddr, msg: Message, in_session: bool) {
+    pub fn on_discovery(&self, link: usize, from: PeerAddr, msg: Message) {
         match msg {
             Message::Hello {
                 node_id,
@@ -94,7 +93,6 @@ impl NodeInner {
                 // before anything else we send; then ask for its declarations.
                 self.send_safe(link, from, &self.hello());
                 self.send_safe(link, from, &Message::DeclRequest { since: 0 });
-                let _ = in_session;
                 self.bump();
             }
             Message::Heartbeat {
@@ -112,10 +110,8 @@ impl NodeInner {
                     self.send_safe(link, from, &self.hello());
                 }
             }
-            Message::Bye { node_id } => {
-                if self.peers.contains_key(&node_id) {
-                    self.drop_peer(node_id, "left");
-                }
+            Message::Bye { node_id } if self.peers.contains_key(&node_id) => {
+                self.drop_peer(node_id, "left");
             }
             _ => {}
         }
@@ -210,7 +206,6 @@ impl NodeInner {
             for (id, lease) in expired {
                 self.drop_peer(id, &format!("lease of {} ms expired", lease.as_millis()));
             }
-            let _ = self.counters.undecodable.load(Ordering::Relaxed);
         }
     }
 }

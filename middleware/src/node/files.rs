@@ -51,7 +51,8 @@ impl Transfers {
 
     pub fn peer_lost(&self, node: NodeId, name: &str, reason: &str) {
         for s in self.senders.iter().filter(|s| s.0 == node) {
-            let _ = s.1.send(Control::PeerLost(format!("node '{name}' {reason}")));
+            let _ =
+                s.1.send(Control::PeerLost(format!("node '{name}' {reason}")));
         }
         self.incoming.retain(|_, i| i.node != node);
     }
@@ -148,14 +149,20 @@ impl NodeInner {
             OfferRole::File { dir, mailbox } => Some((dir.clone(), mailbox.clone())),
             _ => None,
         }) else {
-            self.reply_file(node, transfer, FileVerdict::Failed("no such file sink".into()));
+            self.reply_file(
+                node,
+                transfer,
+                FileVerdict::Failed("no such file sink".into()),
+            );
             return;
         };
         if !safe_file_name(&name) {
             self.reply_file(
                 node,
                 transfer,
-                FileVerdict::Failed(format!("refused file name {name:?}: must be a plain file name")),
+                FileVerdict::Failed(format!(
+                    "refused file name {name:?}: must be a plain file name"
+                )),
             );
             return;
         }

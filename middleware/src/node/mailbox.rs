@@ -87,9 +87,10 @@ impl Mailbox {
             }
             if self.coalesce {
                 if let Delivery::Sample(s) = &d {
-                    let slot = g.queue.iter_mut().find(
-                        |q| matches!(q, Delivery::Sample(old) if old.name == s.name),
-                    );
+                    let slot = g
+                        .queue
+                        .iter_mut()
+                        .find(|q| matches!(q, Delivery::Sample(old) if old.name == s.name));
                     if let Some(slot) = slot {
                         *slot = d;
                         drop(g);

@@ -217,7 +217,7 @@ impl NodeInner {
             msg,
             Message::Hello { .. } | Message::Heartbeat { .. } | Message::Bye { .. }
         ) {
-            self.on_discovery(link, from, msg, true);
+            self.on_discovery(link, from, msg);
             return;
         }
         let Some(node) = self.peer_of(link, from) else {
@@ -258,18 +258,25 @@ impl NodeInner {
                 offset,
                 data,
             } => self.on_file_chunk(node, transfer, offset, data),
-            Message::FileAccept { transfer, offset } => {
-                self.transfers.to_sender(transfer, files::Control::Accept(offset))
-            }
-            Message::FileDone { transfer, verdict } => {
-                self.transfers.to_sender(transfer, files::Control::Done(verdict))
-            }
+            Message::FileAccept { transfer, offset } => self
+                .transfers
+                .to_sender(transfer, files::Control::Accept(offset)),
+            Message::FileDone { transfer, verdict } => self
+                .transfers
+                .to_sender(transfer, files::Control::Done(verdict)),
             Message::FileCancel { transfer } => self.on_file_cancel(node, transfer),
             Message::Hello { .. } | Message::Heartbeat { .. } | Message::Bye { .. } => {}
         }
     }
 
-    fn on_call(self: &Arc<Self>, node: NodeId, call_id: u64, id: u32, deadline_ms: u32, args: Vec<u8>) {
+    fn on_call(
+        self: &Arc<Self>,
+        node: NodeId,
+        call_id: u64,
+        id: u32,
+        deadline_ms: u32,
+        args: Vec<u8>,
+    ) {
         let handler = self.offers.get(&id).and_then(|o| match &o.role {
             OfferRole::Function { handler } => Some(handler.clone()),
             _ => None,
@@ -311,7 +318,7 @@ impl LinkHandler for Handler {
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]) {
         let Some(n) = self.0.upgrade() else { return };
         match decode_message(msg) {
-            Ok(m) => n.on_discovery(link, from, m, false),
+            Ok(m) => n.on_discovery(link, from, m),
             Err(_) => {
                 n.counters.undecodable.fetch_add(1, Ordering::Relaxed);
             }

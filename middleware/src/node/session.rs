@@ -261,7 +261,14 @@ impl NodeInner {
             self.send_safe(link, addr, &msg);
         }
         for (link, addr, msg) in late_remote {
-            self.send_to(link, addr, Outgoing::Fast { coalesce: None, msg });
+            self.send_to(
+                link,
+                addr,
+                Outgoing::Fast {
+                    coalesce: None,
+                    msg,
+                },
+            );
         }
         self.bump();
     }
@@ -352,9 +359,7 @@ impl NodeInner {
                     }
                 }
             }
-            let stale = p
-                .requested
-                .is_none_or(|t| t.elapsed() > self.me.heartbeat);
+            let stale = p.requested.is_none_or(|t| t.elapsed() > self.me.heartbeat);
             if gap && stale {
                 p.requested = Some(Instant::now());
                 request = Some(p.known);

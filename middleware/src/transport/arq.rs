@@ -70,13 +70,14 @@ impl RtoEstimator {
                 self.rttvar = rtt / 2;
             }
             Some(srtt) => {
-                let diff = if srtt > rtt { srtt - rtt } else { rtt - srtt };
+                let diff = srtt.abs_diff(rtt);
                 self.rttvar = (self.rttvar * 3 + diff) / 4;
                 self.srtt = Some((srtt * 7 + rtt) / 8);
             }
         }
         let srtt = self.srtt.unwrap_or(rtt);
-        self.rto = (srtt + (self.rttvar * 4).max(Duration::from_millis(1))).clamp(self.min, self.max);
+        self.rto =
+            (srtt + (self.rttvar * 4).max(Duration::from_millis(1))).clamp(self.min, self.max);
     }
 
     /// Current timeout.
