@@ -249,7 +249,12 @@ impl State {
                 } else {
                     (0.0, 0.0)
                 };
-                (vn, ve, du.clamp(-limits.max_climb, limits.max_climb).clamp(-du.abs() / dt, du.abs() / dt))
+                (
+                    vn,
+                    ve,
+                    du.clamp(-limits.max_climb, limits.max_climb)
+                        .clamp(-du.abs() / dt, du.abs() / dt),
+                )
             }
             Command::Hold(_) => {
                 self.yaw_rate = 0.0;
@@ -300,7 +305,9 @@ impl State {
         };
         self.speed = approach(self.speed, limits.cruise_speed, limits.max_accel * dt);
         let du = target_up - self.pos.up;
-        self.climb = du.clamp(-limits.max_climb, limits.max_climb).clamp(-du.abs() / dt, du.abs() / dt);
+        self.climb = du
+            .clamp(-limits.max_climb, limits.max_climb)
+            .clamp(-du.abs() / dt, du.abs() / dt);
         self.pos.up += self.climb * dt;
         // Coordinated turn: tan(roll) = v * yaw_rate / g.
         self.roll = (self.speed * self.yaw_rate / 9.81).atan();
@@ -439,6 +446,9 @@ mod tests {
             }
         }
         assert!((s.speed - 15.0).abs() < 1e-9);
-        assert!(max_dist < 3.0 * l.loiter_radius, "drifted {max_dist} m away");
+        assert!(
+            max_dist < 3.0 * l.loiter_radius,
+            "drifted {max_dist} m away"
+        );
     }
 }

@@ -9,8 +9,8 @@
 
 use std::io;
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::MessageReadError;
@@ -119,17 +119,28 @@ impl Link {
     ///
     /// # Errors
     /// When the socket, device or pty cannot be opened.
-    pub async fn open(cfg: &LinkConfig, sysid: u8, cancel: CancellationToken) -> Result<Self, LinkOpenError> {
+    pub async fn open(
+        cfg: &LinkConfig,
+        sysid: u8,
+        cancel: CancellationToken,
+    ) -> Result<Self, LinkOpenError> {
         let (tx, rx) = mpsc::channel(CHANNEL_DEPTH);
         let parse_errors = Arc::new(AtomicU64::new(0));
         let mut tasks = JoinSet::new();
         let mut pty_slave = None;
         let (info, writer) = match cfg {
             LinkConfig::Udp { bind, out } => {
-                let sock = UdpSocket::bind(bind)
-                    .await
-                    .map_err(|source| LinkOpenError::UdpBind { addr: *bind, source })?;
-                let local = sock.local_addr().map_err(|source| LinkOpenError::UdpBind { addr: *bind, source })?;
+                let sock =
+                    UdpSocket::bind(bind)
+                        .await
+                        .map_err(|source| LinkOpenError::UdpBind {
+                            addr: *bind,
+                            source,
+                        })?;
+                let local = sock.local_addr().map_err(|source| LinkOpenError::UdpBind {
+                    addr: *bind,
+                    source,
+                })?;
                 let sock = Arc::new(sock);
                 tasks.spawn(udp_reader(sock.clone(), tx, parse_errors.clone(), cancel));
                 (
@@ -142,12 +153,13 @@ impl Link {
                 )
             }
             LinkConfig::Serial { path, baud } => {
-                let port = tokio_serial::new(path, *baud)
-                    .open_native_async()
-                    .map_err(|source| LinkOpenError::Serial {
-                        path: path.clone(),
-                        source,
-                    })?;
+                let port =
+                    tokio_serial::new(path, *baud)
+                        .open_native_async()
+                        .map_err(|source| LinkOpenError::Serial {
+                            path: path.clone(),
+                            source,
+                        })?;
                 let writer = spawn_stream(&mut tasks, port, tx, parse_errors.clone(), cancel);
                 (LinkInfo::Serial(path.clone()), writer)
             }
@@ -193,7 +205,9 @@ impl Link {
     /// The next decoded message; `None` when the reader stopped. Cancel-safe.
     pub async fn recv(&mut self) -> Option<io::Result<Inbound>> {
         let inbound = self.rx.recv().await;
-        if let (Some(Ok(Inbound { peer: Some(p), .. })), Writer::Udp { peer, .. }) = (&inbound, &mut self.writer) {
+        if let (Some(Ok(Inbound { peer: Some(p), .. })), Writer::Udp { peer, .. }) =
+            (&inbound, &mut self.writer)
+        {
             *peer = Some(*p);
         }
         inbound
@@ -233,7 +247,9 @@ fn is_transient(e: &io::Error) -> bool {
     // An ICMP "port unreachable" from an earlier send surfaces on the next recv.
     matches!(
         e.kind(),
-        io::ErrorKind::ConnectionRefused | io::ErrorKind::ConnectionReset | io::ErrorKind::Interrupted
+        io::ErrorKind::ConnectionRefused
+            | io::ErrorKind::ConnectionReset
+            | io::ErrorKind::Interrupted
     )
 }
 
@@ -260,7 +276,15 @@ async fn udp_reader(
         loop {
             match reader.read_any_message::<MavMessage>() {
                 Ok((header, msg)) => {
-                    if tx.send(Ok(Inbound { header, msg, peer: Some(peer) })).await.is_err() {
+                    if tx
+                        .send(Ok(Inbound {
+                            header,
+                            msg,
+                            peer: Some(peer),
+                        }))
+                        .await
+                        .is_err()
+                    {
                         return;
                     }
                 }
@@ -305,7 +329,15 @@ async fn stream_reader<R: AsyncRead + Unpin>(
         };
         match r {
             Ok((header, msg)) => {
-                if tx.send(Ok(Inbound { header, msg, peer: None })).await.is_err() {
+                if tx
+                    .send(Ok(Inbound {
+                        header,
+                        msg,
+                        peer: None,
+                    }))
+                    .await
+                    .is_err()
+                {
                     return;
                 }
             }
@@ -320,7 +352,11 @@ async fn stream_reader<R: AsyncRead + Unpin>(
     }
 }
 
-async fn stream_writer<W: AsyncWrite + Unpin>(mut wr: W, mut rx: mpsc::Receiver<Vec<u8>>, cancel: CancellationToken) {
+async fn stream_writer<W: AsyncWrite + Unpin>(
+    mut wr: W,
+    mut rx: mpsc::Receiver<Vec<u8>>,
+    cancel: CancellationToken,
+) {
     loop {
         let buf = tokio::select! {
             _ = cancel.cancelled() => return,

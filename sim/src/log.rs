@@ -127,7 +127,10 @@ mod tests {
             },
         };
         let line = serde_json::to_string(&rec).unwrap();
-        assert_eq!(line, r#"{"t_sim":1.5,"event":"item_reached","seq":3,"lat":41.0,"lon":2.0}"#);
+        assert_eq!(
+            line,
+            r#"{"t_sim":1.5,"event":"item_reached","seq":3,"lat":41.0,"lon":2.0}"#
+        );
         let back: LogRecord = serde_json::from_str(&line).unwrap();
         assert_eq!(back, rec);
     }

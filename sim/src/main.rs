@@ -4,7 +4,7 @@ use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
-use anyhow::{Context, bail};
+use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
 use mavsim::kinematics::{GeoPoint, VehicleKind};
 use mavsim::link::{LinkConfig, LinkInfo};
@@ -61,9 +61,15 @@ fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
         bail!("--home wants LAT,LON,ALT, got {s:?}");
     };
     let home = GeoPoint {
-        lat_deg: lat.parse().with_context(|| format!("bad latitude {lat:?}"))?,
-        lon_deg: lon.parse().with_context(|| format!("bad longitude {lon:?}"))?,
-        alt_m: alt.parse().with_context(|| format!("bad altitude {alt:?}"))?,
+        lat_deg: lat
+            .parse()
+            .with_context(|| format!("bad latitude {lat:?}"))?,
+        lon_deg: lon
+            .parse()
+            .with_context(|| format!("bad longitude {lon:?}"))?,
+        alt_m: alt
+            .parse()
+            .with_context(|| format!("bad altitude {alt:?}"))?,
     };
     if !(-90.0..=90.0).contains(&home.lat_deg) || !(-180.0..=180.0).contains(&home.lon_deg) {
         bail!("--home out of range: {s:?}");
@@ -73,14 +79,16 @@ fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
 
 fn parse_out(s: &str) -> anyhow::Result<SocketAddr> {
     let addr = s.strip_prefix("udp:").unwrap_or(s);
-    addr.parse().with_context(|| format!("--out wants udp:HOST:PORT, got {s:?}"))
+    addr.parse()
+        .with_context(|| format!("--out wants udp:HOST:PORT, got {s:?}"))
 }
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "mavsim=info".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "mavsim=info".into()),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -91,7 +99,10 @@ async fn main() -> anyhow::Result<()> {
     let link = if args.pty {
         LinkConfig::Pty
     } else if let Some(path) = args.serial.clone() {
-        LinkConfig::Serial { path, baud: args.baud }
+        LinkConfig::Serial {
+            path,
+            baud: args.baud,
+        }
     } else {
         LinkConfig::Udp {
             bind: args.udp,

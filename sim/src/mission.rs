@@ -10,8 +10,8 @@
 use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::{
-    MISSION_ACK_DATA, MISSION_COUNT_DATA, MISSION_ITEM_DATA, MISSION_ITEM_INT_DATA,
-    MISSION_REQUEST_INT_DATA, MavCmd, MavFrame, MavMessage, MavMissionResult,
+    MavCmd, MavFrame, MavMessage, MavMissionResult, MISSION_ACK_DATA, MISSION_COUNT_DATA,
+    MISSION_ITEM_DATA, MISSION_ITEM_INT_DATA, MISSION_REQUEST_INT_DATA,
 };
 
 use crate::kinematics::GeoPoint;
@@ -196,7 +196,13 @@ impl MissionStore {
     /// MISSION_WRITE_PARTIAL_LIST: start replacing items `start..=end`
     /// (`end == -1` means "to the last item"). Only existing items can be
     /// replaced, as ArduPilot allows.
-    pub fn on_partial(&mut self, partner: (u8, u8), start: i16, end: i16, now: Instant) -> Vec<MavMessage> {
+    pub fn on_partial(
+        &mut self,
+        partner: (u8, u8),
+        start: i16,
+        end: i16,
+        now: Instant,
+    ) -> Vec<MavMessage> {
         let count = i32::from(self.count());
         let start = i32::from(start);
         let end = if end == -1 { count - 1 } else { i32::from(end) };
@@ -219,16 +225,31 @@ impl MissionStore {
 
     /// MISSION_ITEM_INT (or a converted MISSION_ITEM). Returns the replies and,
     /// when the transfer completes, what changed.
-    pub fn on_item(&mut self, partner: (u8, u8), item: Item, home: GeoPoint, now: Instant) -> (Vec<MavMessage>, Option<Change>) {
+    pub fn on_item(
+        &mut self,
+        partner: (u8, u8),
+        item: Item,
+        home: GeoPoint,
+        now: Instant,
+    ) -> (Vec<MavMessage>, Option<Change>) {
         let Some(rx) = self.receiving.as_mut() else {
             if self.last_commit == Some((item.seq, partner)) {
                 // Our ACK was lost and the client resent its last item.
-                return (vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)], None);
+                return (
+                    vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)],
+                    None,
+                );
             }
-            return (vec![ack(partner, MavMissionResult::MAV_MISSION_ERROR)], None);
+            return (
+                vec![ack(partner, MavMissionResult::MAV_MISSION_ERROR)],
+                None,
+            );
         };
         if rx.partner != partner {
-            return (vec![ack(partner, MavMissionResult::MAV_MISSION_DENIED)], None);
+            return (
+                vec![ack(partner, MavMissionResult::MAV_MISSION_DENIED)],
+                None,
+            );
         }
         if item.seq != rx.next {
             // Duplicate or out of order: ask again for the one we need.
@@ -268,12 +289,19 @@ impl MissionStore {
         self.items = rx.staged;
         self.items[0] = home_item(home);
         self.last_commit = Some((rx.end, partner));
-        (vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)], Some(change))
+        (
+            vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)],
+            Some(change),
+        )
     }
 
     /// MISSION_ACK from the client during an upload: a cancel.
     pub fn on_ack(&mut self, partner: (u8, u8)) {
-        if self.receiving.as_ref().is_some_and(|rx| rx.partner == partner) {
+        if self
+            .receiving
+            .as_ref()
+            .is_some_and(|rx| rx.partner == partner)
+        {
             self.receiving = None;
         }
     }
@@ -282,7 +310,10 @@ impl MissionStore {
     pub fn on_clear(&mut self, partner: (u8, u8)) -> (Vec<MavMessage>, Change) {
         self.receiving = None;
         self.items.truncate(1);
-        (vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)], Change::Cleared)
+        (
+            vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)],
+            Change::Cleared,
+        )
     }
 
     /// MISSION_REQUEST_LIST: announce the count.
@@ -323,7 +354,10 @@ impl MissionStore {
         if rx.retries >= MAX_REQUEST_RETRIES {
             let partner = rx.partner;
             self.receiving = None;
-            return vec![ack(partner, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED)];
+            return vec![ack(
+                partner,
+                MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+            )];
         }
         rx.retries += 1;
         rx.last_request = now;
@@ -372,7 +406,8 @@ mod tests {
         let now = Instant::now();
         assert_eq!(requested(&store.on_count(GCS, n, now)), Some(0));
         for seq in 0..n {
-            let (out, change) = store.on_item(GCS, wp(seq, 41.0 + f64::from(seq) * 1e-4), HOME, now);
+            let (out, change) =
+                store.on_item(GCS, wp(seq, 41.0 + f64::from(seq) * 1e-4), HOME, now);
             if seq + 1 < n {
                 assert_eq!(requested(&out), Some(seq + 1));
                 assert_eq!(change, None);
@@ -408,7 +443,10 @@ mod tests {
             assert_eq!(requested(&store.poll(t)), Some(2));
         }
         t += REQUEST_TIMEOUT;
-        assert_eq!(acked(&store.poll(t)), Some(MavMissionResult::MAV_MISSION_OPERATION_CANCELLED));
+        assert_eq!(
+            acked(&store.poll(t)),
+            Some(MavMissionResult::MAV_MISSION_OPERATION_CANCELLED)
+        );
         assert!(!store.is_receiving());
         assert_eq!(store.items(), &before[..]);
     }
@@ -474,7 +512,10 @@ mod tests {
             MavMessage::MISSION_ITEM(i) => assert!((i.x - 41.0001).abs() < 1e-5),
             other => panic!("{other:?}"),
         }
-        assert!(matches!(store.on_request(GCS, 9, true), MavMessage::MISSION_ACK(_)));
+        assert!(matches!(
+            store.on_request(GCS, 9, true),
+            MavMessage::MISSION_ACK(_)
+        ));
     }
 
     #[test]

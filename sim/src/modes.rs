@@ -119,6 +119,9 @@ mod tests {
         assert_eq!(name(VehicleKind::Rover, 10), "AUTO");
         assert_eq!(name(VehicleKind::Rover, 15), "GUIDED");
         assert_eq!(name(VehicleKind::Rover, 99), "UNKNOWN");
-        assert_eq!(lookup(VehicleKind::Copter, 3).map(|m| m.2), Some(Behaviour::Auto));
+        assert_eq!(
+            lookup(VehicleKind::Copter, 3).map(|m| m.2),
+            Some(Behaviour::Auto)
+        );
     }
 }

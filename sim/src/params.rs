@@ -128,10 +128,17 @@ mod tests {
         let mut params = Params::defaults(VehicleKind::Rover, 7);
         assert_eq!(params.get_or("SYSID_THISMAV", 0.0), 7.0);
         assert_eq!(params.get_or("WP_RADIUS", 0.0), 2.0);
-        assert_eq!(params.set("CRUISE_SPEED", 3.5), params.by_name("CRUISE_SPEED").map(|p| p.0));
+        assert_eq!(
+            params.set("CRUISE_SPEED", 3.5),
+            params.by_name("CRUISE_SPEED").map(|p| p.0)
+        );
         assert_eq!(params.get_or("CRUISE_SPEED", 0.0), 3.5);
         params.set("CRUISE_THROTTLE", 41.6);
-        assert_eq!(params.get_or("CRUISE_THROTTLE", 0.0), 42.0, "integers are rounded");
+        assert_eq!(
+            params.get_or("CRUISE_THROTTLE", 0.0),
+            42.0,
+            "integers are rounded"
+        );
         assert_eq!(params.set("NO_SUCH_PARAM", 1.0), None);
         assert!(params.list.iter().all(|p| p.name.len() <= 16));
     }

@@ -99,10 +99,12 @@ impl Simulator {
         let events = self.vehicle.take_log();
         if let Some(writer) = self.log.as_mut() {
             for (t_sim, event) in events {
-                writer.write(&LogRecord { t_sim, event }).map_err(|source| SimError::Log {
-                    path: self.cfg.log.clone().unwrap_or_default(),
-                    source,
-                })?;
+                writer
+                    .write(&LogRecord { t_sim, event })
+                    .map_err(|source| SimError::Log {
+                        path: self.cfg.log.clone().unwrap_or_default(),
+                        source,
+                    })?;
             }
         }
         Ok(())

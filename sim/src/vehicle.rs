@@ -11,9 +11,9 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::{
-    ATTITUDE_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA,
-    MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA, MavAutopilot, MavCmd, MavDataStream, MavFrame,
-    MavMessage, MavModeFlag, MavResult, MavSeverity, MavState, MavSysStatusSensor, MavType,
+    MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavResult, MavSeverity,
+    MavState, MavSysStatusSensor, MavType, ATTITUDE_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA,
+    GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA,
     PARAM_VALUE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
 };
 
@@ -305,7 +305,10 @@ impl Vehicle {
         let last = self.target.map_or(self.current, |t| t.seq);
         self.target = None;
         self.hold_point = self.state.pos;
-        out.push(statustext(MavSeverity::MAV_SEVERITY_INFO, "Mission Complete"));
+        out.push(statustext(
+            MavSeverity::MAV_SEVERITY_INFO,
+            "Mission Complete",
+        ));
         self.record(LogEvent::MissionComplete { seq: last });
         if let Some(mode) = modes::mission_complete(self.cfg.kind) {
             self.change_mode(mode, out);
@@ -313,7 +316,9 @@ impl Vehicle {
     }
 
     fn reached(&mut self, t: Target, out: &mut Vec<MavMessage>) {
-        out.push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq: t.seq }));
+        out.push(MavMessage::MISSION_ITEM_REACHED(
+            MISSION_ITEM_REACHED_DATA { seq: t.seq },
+        ));
         let dist = self.state.pos.horizontal_distance(&t.pos);
         let text = match self.cfg.kind {
             VehicleKind::Rover => format!("Reached waypoint #{}", t.seq),
@@ -359,7 +364,10 @@ impl Vehicle {
             return MavResult::MAV_RESULT_DENIED;
         };
         if behaviour == Behaviour::Auto && self.mission.count() <= 1 {
-            out.push(statustext(MavSeverity::MAV_SEVERITY_WARNING, "No Mission. Can't set AUTO."));
+            out.push(statustext(
+                MavSeverity::MAV_SEVERITY_WARNING,
+                "No Mission. Can't set AUTO.",
+            ));
             return MavResult::MAV_RESULT_FAILED;
         }
         if mode == self.mode {
@@ -391,7 +399,11 @@ impl Vehicle {
             self.record(LogEvent::Armed { armed });
             out.push(statustext(
                 MavSeverity::MAV_SEVERITY_INFO,
-                if armed { "Throttle armed" } else { "Throttle disarmed" },
+                if armed {
+                    "Throttle armed"
+                } else {
+                    "Throttle disarmed"
+                },
             ));
             out.push(self.heartbeat());
         }
@@ -426,7 +438,15 @@ impl Vehicle {
             },
             Behaviour::Rtl => {
                 let home = Ned {
-                    up: self.state.pos.up.max(if self.cfg.kind == VehicleKind::Rover { 0.0 } else { 15.0 }),
+                    up: self
+                        .state
+                        .pos
+                        .up
+                        .max(if self.cfg.kind == VehicleKind::Rover {
+                            0.0
+                        } else {
+                            15.0
+                        }),
                     ..Ned::default()
                 };
                 if self.state.pos.horizontal_distance(&home) <= self.wp_radius() {
@@ -441,7 +461,8 @@ impl Vehicle {
         if self.behaviour() == Behaviour::Auto {
             if let Some(t) = self.target {
                 let close = self.state.pos.horizontal_distance(&t.pos) <= self.wp_radius()
-                    && (self.cfg.kind != VehicleKind::Copter || (self.state.pos.up - t.pos.up).abs() <= self.wp_radius());
+                    && (self.cfg.kind != VehicleKind::Copter
+                        || (self.state.pos.up - t.pos.up).abs() <= self.wp_radius());
                 if close {
                     self.reached(t, &mut out);
                 }
@@ -616,13 +637,19 @@ impl Vehicle {
             MavMessage::REQUEST_DATA_STREAM(r) if self.for_us(r.target_system) => {
                 let ids: &[u32] = match r.req_stream_id {
                     MavDataStream::MAV_DATA_STREAM_ALL => &STREAMABLE,
-                    MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS => &[SYS_STATUS_ID, MISSION_CURRENT_ID],
+                    MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS => {
+                        &[SYS_STATUS_ID, MISSION_CURRENT_ID]
+                    }
                     MavDataStream::MAV_DATA_STREAM_POSITION => &[GLOBAL_POSITION_INT_ID],
                     MavDataStream::MAV_DATA_STREAM_EXTRA1 => &[ATTITUDE_ID],
                     MavDataStream::MAV_DATA_STREAM_EXTRA2 => &[VFR_HUD_ID],
                     _ => &[],
                 };
-                let hz = if r.start_stop == 0 { 0.0 } else { f64::from(r.req_message_rate) };
+                let hz = if r.start_stop == 0 {
+                    0.0
+                } else {
+                    f64::from(r.req_message_rate)
+                };
                 for &id in ids {
                     self.set_rate(id, hz, now);
                 }
@@ -649,7 +676,12 @@ impl Vehicle {
             }
             MavMessage::PARAM_SET(s) if self.for_us(s.target_system) => {
                 // Unknown names get no answer, as in ArduPilot.
-                if let Some(index) = s.param_id.to_str().ok().and_then(|n| self.params.set(n, s.param_value)) {
+                if let Some(index) = s
+                    .param_id
+                    .to_str()
+                    .ok()
+                    .and_then(|n| self.params.set(n, s.param_value))
+                {
                     out.extend(self.param_value(index));
                 }
             }
@@ -657,7 +689,10 @@ impl Vehicle {
                 out.extend(self.mission.on_count(from, c.count, now));
             }
             MavMessage::MISSION_WRITE_PARTIAL_LIST(p) if self.for_us(p.target_system) => {
-                out.extend(self.mission.on_partial(from, p.start_index, p.end_index, now));
+                out.extend(
+                    self.mission
+                        .on_partial(from, p.start_index, p.end_index, now),
+                );
             }
             MavMessage::MISSION_ITEM_INT(item) if self.for_us(item.target_system) => {
                 self.mission_item(from, item.clone(), now, &mut out);
@@ -683,7 +718,9 @@ impl Vehicle {
                 self.mission_changed(change);
             }
             MavMessage::MISSION_SET_CURRENT(s) if self.for_us(s.target_system) => {
-                if !self.set_current(s.seq, &mut out) {
+                let changed = self.set_current(s.seq, &mut out);
+                if !changed {
+                    // Refused: tell the client what is current instead.
                     out.push(self.mission_current());
                 }
             }
@@ -692,7 +729,13 @@ impl Vehicle {
         out
     }
 
-    fn mission_item(&mut self, from: (u8, u8), item: Item, now: Instant, out: &mut Vec<MavMessage>) {
+    fn mission_item(
+        &mut self,
+        from: (u8, u8),
+        item: Item,
+        now: Instant,
+        out: &mut Vec<MavMessage>,
+    ) {
         let (replies, change) = self.mission.on_item(from, item, self.cfg.home, now);
         out.extend(replies);
         if let Some(change) = change {
@@ -710,7 +753,12 @@ impl Vehicle {
         self.record(event);
     }
 
-    fn command(&mut self, c: &COMMAND_LONG_DATA, now: Instant, out: &mut Vec<MavMessage>) -> MavResult {
+    fn command(
+        &mut self,
+        c: &COMMAND_LONG_DATA,
+        now: Instant,
+        out: &mut Vec<MavMessage>,
+    ) -> MavResult {
         match c.command {
             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
                 if c.param1 == 1.0 {
@@ -816,9 +864,20 @@ mod tests {
     fn upload(v: &mut Vehicle, norths: &[f64]) {
         let now = Instant::now();
         let count = norths.len() as u16 + 1;
-        v.handle(GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, ..Default::default() }), now);
+        v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count,
+                ..Default::default()
+            }),
+            now,
+        );
         for seq in 0..count {
-            let north = if seq == 0 { 0.0 } else { norths[usize::from(seq) - 1] };
+            let north = if seq == 0 {
+                0.0
+            } else {
+                norths[usize::from(seq) - 1]
+            };
             let item = item_at(v, seq, north);
             v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item), now);
         }
@@ -827,11 +886,13 @@ mod tests {
 
     fn partial(v: &mut Vehicle, seq: u16, north: f64) {
         let now = Instant::now();
-        let msg = MavMessage::MISSION_WRITE_PARTIAL_LIST(mavlink::dialects::ardupilotmega::MISSION_WRITE_PARTIAL_LIST_DATA {
-            start_index: seq as i16,
-            end_index: seq as i16,
-            ..Default::default()
-        });
+        let msg = MavMessage::MISSION_WRITE_PARTIAL_LIST(
+            mavlink::dialects::ardupilotmega::MISSION_WRITE_PARTIAL_LIST_DATA {
+                start_index: seq as i16,
+                end_index: seq as i16,
+                ..Default::default()
+            },
+        );
         v.handle(GCS, &msg, now);
         let item = item_at(v, seq, north);
         v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item), now);
@@ -877,15 +938,27 @@ mod tests {
     }
 
     fn start_auto(v: &mut Vehicle) {
-        assert_eq!(command(v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0), MavResult::MAV_RESULT_ACCEPTED);
-        assert_eq!(command(v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0), MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(
+            command(v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(
+            command(v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
     }
 
     #[test]
     fn auto_needs_a_mission() {
         let mut v = rover();
-        assert_eq!(command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0), MavResult::MAV_RESULT_FAILED);
-        assert_eq!(command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 77.0), MavResult::MAV_RESULT_DENIED);
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0),
+            MavResult::MAV_RESULT_FAILED
+        );
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 77.0),
+            MavResult::MAV_RESULT_DENIED
+        );
         assert_eq!(v.mode(), 0);
     }
 
@@ -911,7 +984,10 @@ mod tests {
         assert_eq!(v.target_seq(), Some(1));
         run_until(&mut v, 60.0, |v| v.current() == 2);
         let pos = v.position();
-        assert!((pos.north - 20.0).abs() < 3.0, "reached the memorised item 1 at {pos:?}");
+        assert!(
+            (pos.north - 20.0).abs() < 3.0,
+            "reached the memorised item 1 at {pos:?}"
+        );
         // Then it takes index 2 *of the new plan*.
         run_until(&mut v, 200.0, |v| v.mode() == 4);
         assert!((v.position().north + 200.0).abs() < 3.0);
@@ -926,10 +1002,15 @@ mod tests {
         v.step(0.02);
         let out = v.handle(
             GCS,
-            &MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA { seq: 3, ..Default::default() }),
+            &MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA {
+                seq: 3,
+                ..Default::default()
+            }),
             Instant::now(),
         );
-        assert!(out.iter().any(|m| matches!(m, MavMessage::MISSION_CURRENT(c) if c.seq == 3)));
+        assert!(out
+            .iter()
+            .any(|m| matches!(m, MavMessage::MISSION_CURRENT(c) if c.seq == 3)));
         assert_eq!(v.target_seq(), Some(3));
         run_until(&mut v, 120.0, |v| v.mode() == 4);
         assert_eq!(reached_seqs(&mut v), vec![3]);
@@ -966,7 +1047,10 @@ mod tests {
                         assert_eq!(v.current(), 5);
                         v.handle(
                             GCS,
-                            &MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA { seq: 1, ..Default::default() }),
+                            &MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA {
+                                seq: 1,
+                                ..Default::default()
+                            }),
                             Instant::now(),
                         );
                     }
@@ -975,7 +1059,11 @@ mod tests {
         }
         // Every plan waypoint reached once, in order, at its place.
         for (i, north) in reached.iter().enumerate() {
-            assert!((north - wp(i as u32 + 1)).abs() < 3.0, "waypoint {} at {north}", i + 1);
+            assert!(
+                (north - wp(i as u32 + 1)).abs() < 3.0,
+                "waypoint {} at {north}",
+                i + 1
+            );
         }
     }
 
@@ -984,7 +1072,11 @@ mod tests {
         let mut v = rover();
         upload(&mut v, &[10.0, 20.0]);
         start_auto(&mut v);
-        v.handle(GCS, &MavMessage::MISSION_CLEAR_ALL(Default::default()), Instant::now());
+        v.handle(
+            GCS,
+            &MavMessage::MISSION_CLEAR_ALL(Default::default()),
+            Instant::now(),
+        );
         run_until(&mut v, 60.0, |v| v.mode() == 4);
         assert!((v.position().north - 10.0).abs() < 3.0);
         assert_eq!(reached_seqs(&mut v), vec![1]);
@@ -994,7 +1086,10 @@ mod tests {
     fn disarmed_rover_does_not_move() {
         let mut v = rover();
         upload(&mut v, &[10.0]);
-        assert_eq!(command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0), MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
         for _ in 0..500 {
             v.step(0.02);
         }
@@ -1017,7 +1112,11 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
-        let list = v.handle(GCS, &MavMessage::PARAM_REQUEST_LIST(Default::default()), Instant::now());
+        let list = v.handle(
+            GCS,
+            &MavMessage::PARAM_REQUEST_LIST(Default::default()),
+            Instant::now(),
+        );
         assert_eq!(list.len(), v.params.len());
     }
 
@@ -1029,8 +1128,12 @@ mod tests {
         match v.heartbeat() {
             MavMessage::HEARTBEAT(h) => {
                 assert_eq!(h.custom_mode, 4);
-                assert!(h.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED));
-                assert!(h.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED));
+                assert!(h
+                    .base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED));
+                assert!(h
+                    .base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED));
                 assert_eq!(h.mavtype, MavType::MAV_TYPE_GROUND_ROVER);
             }
             other => panic!("{other:?}"),

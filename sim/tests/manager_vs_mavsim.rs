@@ -4,7 +4,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::{HOME, Sim, Via, bounded, line_mission};
+use common::{bounded, line_mission, Sim, Via, HOME};
 use vas::mavlink_cm::dialect::{MavCmd, MavMissionResult, MavResult};
 use vas::mavlink_cm::{CommandError, MavEvent, MissionError, MissionItem, ParamError, Telemetry};
 
@@ -14,8 +14,12 @@ async fn mission_round_trips(via: Via) {
     let mgr = sim.manager().await;
 
     let items = line_mission(6, 15.0, 0.0);
-    bounded("upload", mgr.mission_upload(&items)).await.expect("upload");
-    let down = bounded("download", mgr.mission_download()).await.expect("download");
+    bounded("upload", mgr.mission_upload(&items))
+        .await
+        .expect("upload");
+    let down = bounded("download", mgr.mission_download())
+        .await
+        .expect("download");
     assert_eq!(down.len(), items.len());
     // Item 0 is the vehicle's home, whatever we sent there (ArduPilot behaviour).
     assert_eq!(down[1..], items[1..]);
@@ -23,26 +27,40 @@ async fn mission_round_trips(via: Via) {
 
     // Partial write of items 2..=3.
     let replacement = line_mission(2, 50.0, 30.0)[1..].to_vec();
-    bounded("partial", mgr.mission_write_partial(2, &replacement)).await.expect("partial write");
-    let down = bounded("download", mgr.mission_download()).await.expect("download");
+    bounded("partial", mgr.mission_write_partial(2, &replacement))
+        .await
+        .expect("partial write");
+    let down = bounded("download", mgr.mission_download())
+        .await
+        .expect("download");
     let mut expected = items.clone();
     expected[2..4].clone_from_slice(&replacement);
     assert_eq!(down[1..], expected[1..]);
     assert_eq!(mgr.mission_cached()[1..], expected[1..]);
 
     // A partial write cannot grow the mission.
-    let err = bounded("bad partial", mgr.mission_write_partial(6, &replacement)).await.unwrap_err();
-    assert_eq!(err, MissionError::Rejected(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE));
+    let err = bounded("bad partial", mgr.mission_write_partial(6, &replacement))
+        .await
+        .unwrap_err();
+    assert_eq!(
+        err,
+        MissionError::Rejected(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE)
+    );
 
     let uploads = sim.log_events("mission_uploaded");
     assert_eq!(uploads.len(), 1);
     assert_eq!(uploads[0]["count"], 7);
     let partials = sim.log_events("mission_partial_write");
     assert_eq!(partials.len(), 1);
-    assert_eq!((partials[0]["start"].as_u64(), partials[0]["end"].as_u64()), (Some(2), Some(3)));
+    assert_eq!(
+        (partials[0]["start"].as_u64(), partials[0]["end"].as_u64()),
+        (Some(2), Some(3))
+    );
 
     bounded("clear", mgr.mission_clear()).await.expect("clear");
-    let down = bounded("download", mgr.mission_download()).await.expect("download");
+    let down = bounded("download", mgr.mission_download())
+        .await
+        .expect("download");
     assert_eq!(down.len(), 1, "only home is left");
     mgr.shutdown().await;
     sim.stop().await;
@@ -63,10 +81,17 @@ async fn control_and_params(via: Via) {
             result: MavResult::MAV_RESULT_FAILED
         }
     );
-    assert!(matches!(mgr.set_mode("NO_SUCH_MODE").await, Err(CommandError::UnknownMode(_))));
+    assert!(matches!(
+        mgr.set_mode("NO_SUCH_MODE").await,
+        Err(CommandError::UnknownMode(_))
+    ));
 
-    bounded("upload", mgr.mission_upload(&line_mission(4, 200.0, 0.0))).await.expect("upload");
-    bounded("set current", mgr.mission_set_current(3)).await.expect("set current");
+    bounded("upload", mgr.mission_upload(&line_mission(4, 200.0, 0.0)))
+        .await
+        .expect("upload");
+    bounded("set current", mgr.mission_set_current(3))
+        .await
+        .expect("set current");
     assert_eq!(mgr.state().mission_current, Some(3));
 
     bounded("arm", mgr.arm(true)).await.expect("arm");
@@ -76,8 +101,12 @@ async fn control_and_params(via: Via) {
     assert_eq!(mgr.state().mode_name, Some("AUTO"));
     // Entering AUTO keeps the current index chosen before.
     assert_eq!(mgr.state().mission_current, Some(3));
-    bounded("set current in auto", mgr.mission_set_current(2)).await.expect("set current");
-    bounded("hold", mgr.set_mode(4u32)).await.expect("hold by number");
+    bounded("set current in auto", mgr.mission_set_current(2))
+        .await
+        .expect("set current");
+    bounded("hold", mgr.set_mode(4u32))
+        .await
+        .expect("hold by number");
     assert_eq!(mgr.state().mode_name, Some("HOLD"));
     bounded("disarm", mgr.arm(false)).await.expect("disarm");
     assert!(!mgr.state().armed);
@@ -94,20 +123,40 @@ async fn control_and_params(via: Via) {
     assert!(saw_auto);
 
     // Parameters.
-    let all = bounded("param list", mgr.params_list()).await.expect("list");
+    let all = bounded("param list", mgr.params_list())
+        .await
+        .expect("list");
     assert_eq!(all.get("WP_RADIUS"), Some(&2.0));
     assert_eq!(all.get("SYSID_THISMAV"), Some(&1.0));
     assert!(all.len() >= 10);
-    assert_eq!(bounded("set", mgr.param_set("CRUISE_SPEED", 3.5)).await.expect("set"), 3.5);
-    assert_eq!(bounded("get", mgr.param_get("CRUISE_SPEED")).await.expect("get"), 3.5);
+    assert_eq!(
+        bounded("set", mgr.param_set("CRUISE_SPEED", 3.5))
+            .await
+            .expect("set"),
+        3.5
+    );
+    assert_eq!(
+        bounded("get", mgr.param_get("CRUISE_SPEED"))
+            .await
+            .expect("get"),
+        3.5
+    );
     assert_eq!(mgr.param_cached("CRUISE_SPEED"), Some(3.5));
-    let err = bounded("unknown", mgr.param_get("NO_SUCH_PARAM")).await.unwrap_err();
-    assert!(matches!(err, ParamError::RetriesExhausted { .. }), "{err:?}");
+    let err = bounded("unknown", mgr.param_get("NO_SUCH_PARAM"))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(err, ParamError::RetriesExhausted { .. }),
+        "{err:?}"
+    );
 
     // Telemetry at a requested rate.
-    bounded("rates", mgr.request_telemetry(&[(Telemetry::Position, 10.0), (Telemetry::Attitude, 5.0)]))
-        .await
-        .expect("rates");
+    bounded(
+        "rates",
+        mgr.request_telemetry(&[(Telemetry::Position, 10.0), (Telemetry::Attitude, 5.0)]),
+    )
+    .await
+    .expect("rates");
     let pos = bounded("position", async {
         loop {
             if let Ok(MavEvent::Position(p)) = events.recv().await {
@@ -124,7 +173,11 @@ async fn control_and_params(via: Via) {
         .filter_map(|r| r["armed"].as_bool())
         .collect();
     assert_eq!(arming, [true, false]);
-    let modes: Vec<u64> = sim.log_events("mode_changed").iter().filter_map(|r| r["to"].as_u64()).collect();
+    let modes: Vec<u64> = sim
+        .log_events("mode_changed")
+        .iter()
+        .filter_map(|r| r["to"].as_u64())
+        .collect();
     assert_eq!(modes, [10, 4]);
     let currents: Vec<u64> = sim
         .log_events("current_changed")
@@ -164,7 +217,9 @@ async fn auto_mission_at_speedup_20() {
     let sim = Sim::start(Via::Udp, &["--speedup", "20"]).await;
     let mgr = sim.manager().await;
     let items = line_mission(5, 20.0, 5.0);
-    bounded("upload", mgr.mission_upload(&items)).await.expect("upload");
+    bounded("upload", mgr.mission_upload(&items))
+        .await
+        .expect("upload");
     let mut events = mgr.subscribe();
     bounded("arm", mgr.arm(true)).await.expect("arm");
     bounded("auto", mgr.set_mode("AUTO")).await.expect("auto");
@@ -187,7 +242,10 @@ async fn auto_mission_at_speedup_20() {
     assert_eq!(mgr.state().mode_name, Some("HOLD"));
 
     let log_reached = sim.log_events("item_reached");
-    let seqs: Vec<u64> = log_reached.iter().filter_map(|r| r["seq"].as_u64()).collect();
+    let seqs: Vec<u64> = log_reached
+        .iter()
+        .filter_map(|r| r["seq"].as_u64())
+        .collect();
     assert_eq!(seqs, [1, 2, 3, 4, 5]);
     for r in &log_reached {
         let seq = r["seq"].as_u64().unwrap() as usize;

@@ -79,7 +79,9 @@ impl Sim {
             request_timeout: Duration::from_millis(500),
             ..ManagerConfig::default()
         };
-        let mgr = MavlinkManager::open(&self.endpoint, cfg).await.expect("endpoint");
+        let mgr = MavlinkManager::open(&self.endpoint, cfg)
+            .await
+            .expect("endpoint");
         mgr.wait_connected(STEP).await.expect("mavsim heartbeat");
         mgr
     }
@@ -95,7 +97,10 @@ impl Sim {
 
     /// The log records of one event kind.
     pub fn log_events(&self, event: &str) -> Vec<serde_json::Value> {
-        self.log_records().into_iter().filter(|r| r["event"] == event).collect()
+        self.log_records()
+            .into_iter()
+            .filter(|r| r["event"] == event)
+            .collect()
     }
 
     /// Stops mavsim with SIGTERM-equivalent kill and waits.

@@ -38,7 +38,9 @@ pub enum EndpointParseError {
 
 fn host_port(full: &str, rest: &str) -> Result<String, EndpointParseError> {
     match rest.rsplit_once(':') {
-        Some((host, port)) if !host.is_empty() && port.parse::<u16>().is_ok() => Ok(rest.to_owned()),
+        Some((host, port)) if !host.is_empty() && port.parse::<u16>().is_ok() => {
+            Ok(rest.to_owned())
+        }
         _ => Err(EndpointParseError::MissingPort(full.to_owned())),
     }
 }
@@ -61,7 +63,9 @@ impl FromStr for Endpoint {
                 match rest.rsplit_once(':') {
                     Some((path, baud)) if !path.is_empty() => Ok(Self::Serial {
                         path: path.to_owned(),
-                        baud: baud.parse().map_err(|_| EndpointParseError::BadBaud(s.to_owned()))?,
+                        baud: baud
+                            .parse()
+                            .map_err(|_| EndpointParseError::BadBaud(s.to_owned()))?,
                     }),
                     _ => Ok(Self::Serial {
                         path: rest.to_owned(),
@@ -91,9 +95,18 @@ mod tests {
 
     #[test]
     fn parses_the_documented_forms() {
-        assert_eq!("udpout:127.0.0.1:14550".parse(), Ok(Endpoint::UdpOut("127.0.0.1:14550".into())));
-        assert_eq!("udpin:0.0.0.0:14550".parse(), Ok(Endpoint::UdpIn("0.0.0.0:14550".into())));
-        assert_eq!("tcpout:localhost:5760".parse(), Ok(Endpoint::TcpOut("localhost:5760".into())));
+        assert_eq!(
+            "udpout:127.0.0.1:14550".parse(),
+            Ok(Endpoint::UdpOut("127.0.0.1:14550".into()))
+        );
+        assert_eq!(
+            "udpin:0.0.0.0:14550".parse(),
+            Ok(Endpoint::UdpIn("0.0.0.0:14550".into()))
+        );
+        assert_eq!(
+            "tcpout:localhost:5760".parse(),
+            Ok(Endpoint::TcpOut("localhost:5760".into()))
+        );
         assert_eq!(
             "serial:/dev/ttyUSB0:57600".parse(),
             Ok(Endpoint::Serial {
@@ -114,10 +127,25 @@ mod tests {
 
     #[test]
     fn rejects_bad_strings() {
-        assert!(matches!("ftp:x:1".parse::<Endpoint>(), Err(EndpointParseError::UnknownScheme(_))));
-        assert!(matches!("udpout:127.0.0.1".parse::<Endpoint>(), Err(EndpointParseError::MissingPort(_))));
-        assert!(matches!("udpout::99".parse::<Endpoint>(), Err(EndpointParseError::MissingPort(_))));
-        assert!(matches!("serial:/dev/x:fast".parse::<Endpoint>(), Err(EndpointParseError::BadBaud(_))));
-        assert!(matches!("nothing".parse::<Endpoint>(), Err(EndpointParseError::UnknownScheme(_))));
+        assert!(matches!(
+            "ftp:x:1".parse::<Endpoint>(),
+            Err(EndpointParseError::UnknownScheme(_))
+        ));
+        assert!(matches!(
+            "udpout:127.0.0.1".parse::<Endpoint>(),
+            Err(EndpointParseError::MissingPort(_))
+        ));
+        assert!(matches!(
+            "udpout::99".parse::<Endpoint>(),
+            Err(EndpointParseError::MissingPort(_))
+        ));
+        assert!(matches!(
+            "serial:/dev/x:fast".parse::<Endpoint>(),
+            Err(EndpointParseError::BadBaud(_))
+        ));
+        assert!(matches!(
+            "nothing".parse::<Endpoint>(),
+            Err(EndpointParseError::UnknownScheme(_))
+        ));
     }
 }

@@ -15,17 +15,18 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, MutexGuard};
 use std::time::Duration;
 
-use mavlink::MavHeader;
 use mavlink::dialects::ardupilotmega::{
-    COMMAND_LONG_DATA, HEARTBEAT_DATA, MISSION_ACK_DATA, MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA,
-    MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
-    MavAutopilot, MavCmd, MavDataStream, MavMessage, MavMissionResult, MavModeFlag, MavParamType, MavResult, MavState,
-    MavType, PARAM_REQUEST_LIST_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, RC_CHANNELS_OVERRIDE_DATA,
+    MavAutopilot, MavCmd, MavDataStream, MavMessage, MavMissionResult, MavModeFlag, MavParamType,
+    MavResult, MavState, MavType, COMMAND_LONG_DATA, HEARTBEAT_DATA, MISSION_ACK_DATA,
+    MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA, MISSION_REQUEST_INT_DATA,
+    MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
+    PARAM_REQUEST_LIST_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, RC_CHANNELS_OVERRIDE_DATA,
     REQUEST_DATA_STREAM_DATA,
 };
+use mavlink::MavHeader;
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::task::JoinHandle;
-use tokio::time::{Instant, interval, sleep, timeout, timeout_at};
+use tokio::time::{interval, sleep, timeout, timeout_at, Instant};
 use tokio_util::sync::CancellationToken;
 
 use super::endpoint::Endpoint;
@@ -122,7 +123,9 @@ impl Telemetry {
             Self::Position => MavDataStream::MAV_DATA_STREAM_POSITION,
             Self::Attitude => MavDataStream::MAV_DATA_STREAM_EXTRA1,
             Self::VfrHud => MavDataStream::MAV_DATA_STREAM_EXTRA2,
-            Self::SysStatus | Self::MissionCurrent => MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS,
+            Self::SysStatus | Self::MissionCurrent => {
+                MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS
+            }
         }
     }
 }
@@ -232,7 +235,9 @@ impl MavlinkManager {
     /// [`LinkError::NotConnected`] after `wait`.
     pub async fn wait_connected(&self, wait: Duration) -> Result<VehicleState, LinkError> {
         let mut rx = self.inner.state_tx.subscribe();
-        let result = timeout(wait, rx.wait_for(|s| s.link_up)).await.map(|r| r.map(|s| s.clone()));
+        let result = timeout(wait, rx.wait_for(|s| s.link_up))
+            .await
+            .map(|r| r.map(|s| s.clone()));
         match result {
             Ok(Ok(s)) => Ok(s),
             Ok(Err(_)) => Err(LinkError::Closed),
@@ -246,7 +251,11 @@ impl MavlinkManager {
     ///
     /// # Errors
     /// No ACK after the retries, or an ACK other than ACCEPTED.
-    pub async fn command_long(&self, command: MavCmd, params: [f32; 7]) -> Result<(), CommandError> {
+    pub async fn command_long(
+        &self,
+        command: MavCmd,
+        params: [f32; 7],
+    ) -> Result<(), CommandError> {
         let target = self.inner.target().await?;
         let make = |attempt: u32| {
             MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
@@ -277,9 +286,15 @@ impl MavlinkManager {
         }
     }
 
-    async fn confirm(&self, what: String, f: impl Fn(&VehicleState) -> bool) -> Result<(), CommandError> {
+    async fn confirm(
+        &self,
+        what: String,
+        f: impl Fn(&VehicleState) -> bool,
+    ) -> Result<(), CommandError> {
         let mut rx = self.inner.state_tx.subscribe();
-        let result = timeout(self.inner.cfg.heartbeat_timeout, rx.wait_for(f)).await.map(|r| r.map(|_| ()));
+        let result = timeout(self.inner.cfg.heartbeat_timeout, rx.wait_for(f))
+            .await
+            .map(|r| r.map(|_| ()));
         match result {
             Ok(Ok(())) => Ok(()),
             Ok(Err(_)) => Err(LinkError::Closed.into()),
@@ -297,14 +312,21 @@ impl MavlinkManager {
         let number = match mode.into() {
             ModeSpec::Number(n) => n,
             ModeSpec::Name(name) => {
-                let vehicle = self.state().vehicle_type.unwrap_or(MavType::MAV_TYPE_GENERIC);
+                let vehicle = self
+                    .state()
+                    .vehicle_type
+                    .unwrap_or(MavType::MAV_TYPE_GENERIC);
                 modes::number(vehicle, &name).ok_or(CommandError::UnknownMode(name))?
             }
         };
         let custom = f32::from(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits());
-        self.command_long(MavCmd::MAV_CMD_DO_SET_MODE, [custom, number as f32, 0.0, 0.0, 0.0, 0.0, 0.0])
-            .await?;
-        self.confirm(format!("mode {number}"), |s| s.mode == Some(number)).await
+        self.command_long(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [custom, number as f32, 0.0, 0.0, 0.0, 0.0, 0.0],
+        )
+        .await?;
+        self.confirm(format!("mode {number}"), |s| s.mode == Some(number))
+            .await
     }
 
     /// Arms (`true`) or disarms, checks the ACK and waits for the heartbeat to agree.
@@ -313,9 +335,13 @@ impl MavlinkManager {
     /// Refusal, no answer, or no confirming heartbeat.
     pub async fn arm(&self, arm: bool) -> Result<(), CommandError> {
         let p1 = if arm { 1.0 } else { 0.0 };
-        self.command_long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [p1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-            .await?;
-        self.confirm(format!("armed={arm}"), |s| s.armed == arm).await
+        self.command_long(
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [p1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        )
+        .await?;
+        self.confirm(format!("armed={arm}"), |s| s.armed == arm)
+            .await
     }
 
     /// Overrides RC channels 1-8 (PWM µs; 0 releases a channel, 65535 leaves it
@@ -327,18 +353,20 @@ impl MavlinkManager {
         let target = self.inner.target().await?;
         let [c1, c2, c3, c4, c5, c6, c7, c8] = channels;
         self.inner
-            .send(MavMessage::RC_CHANNELS_OVERRIDE(RC_CHANNELS_OVERRIDE_DATA {
-                chan1_raw: c1,
-                chan2_raw: c2,
-                chan3_raw: c3,
-                chan4_raw: c4,
-                chan5_raw: c5,
-                chan6_raw: c6,
-                chan7_raw: c7,
-                chan8_raw: c8,
-                target_system: target.0,
-                target_component: target.1,
-            }))
+            .send(MavMessage::RC_CHANNELS_OVERRIDE(
+                RC_CHANNELS_OVERRIDE_DATA {
+                    chan1_raw: c1,
+                    chan2_raw: c2,
+                    chan3_raw: c3,
+                    chan4_raw: c4,
+                    chan5_raw: c5,
+                    chan6_raw: c6,
+                    chan7_raw: c7,
+                    chan8_raw: c8,
+                    target_system: target.0,
+                    target_component: target.1,
+                },
+            ))
             .await
     }
 
@@ -351,12 +379,25 @@ impl MavlinkManager {
     pub async fn request_telemetry(&self, rates: &[(Telemetry, f32)]) -> Result<(), CommandError> {
         for &(kind, hz) in rates {
             let interval_us = if hz > 0.0 { 1e6 / hz } else { -1.0 };
-            let params = [kind.message_id() as f32, interval_us, 0.0, 0.0, 0.0, 0.0, 0.0];
-            let via_stream = match self.command_long(MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, params).await {
+            let params = [
+                kind.message_id() as f32,
+                interval_us,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            ];
+            let via_stream = match self
+                .command_long(MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, params)
+                .await
+            {
                 Ok(()) => false,
                 Err(CommandError::Link(e)) => return Err(e.into()),
                 Err(e) => {
-                    tracing::debug!("SET_MESSAGE_INTERVAL for {kind:?} failed ({e}); using REQUEST_DATA_STREAM");
+                    tracing::debug!(
+                        "SET_MESSAGE_INTERVAL for {kind:?} failed ({e}); using REQUEST_DATA_STREAM"
+                    );
                     self.inner.request_stream(kind, hz).await?;
                     true
                 }
@@ -375,7 +416,11 @@ impl MavlinkManager {
 
     /// All cached parameters.
     pub fn params_cached(&self) -> BTreeMap<String, f32> {
-        lock(&self.inner.params).values.iter().map(|(k, v)| (k.clone(), v.0)).collect()
+        lock(&self.inner.params)
+            .values
+            .iter()
+            .map(|(k, v)| (k.clone(), v.0))
+            .collect()
     }
 
     /// Reads one parameter from the autopilot (and caches it).
@@ -436,15 +481,17 @@ impl MavlinkManager {
             MavMessage::PARAM_VALUE(v) if param_name(&v.param_id) == name => Some(v.param_value),
             _ => None,
         };
-        let actual = self
-            .inner
-            .transact(make, matcher)
-            .await?
-            .ok_or_else(|| ParamError::RetriesExhausted {
+        let actual = self.inner.transact(make, matcher).await?.ok_or_else(|| {
+            ParamError::RetriesExhausted {
                 name: name.to_owned(),
                 attempts: self.inner.cfg.retries,
-            })?;
-        let expected = if kind == MavParamType::MAV_PARAM_TYPE_REAL32 { value } else { value.round() };
+            }
+        })?;
+        let expected = if kind == MavParamType::MAV_PARAM_TYPE_REAL32 {
+            value
+        } else {
+            value.round()
+        };
         if (actual - expected).abs() > 1e-5 * expected.abs().max(1.0) {
             return Err(ParamError::NotApplied {
                 name: name.to_owned(),
@@ -467,7 +514,12 @@ impl MavlinkManager {
         let mut seen: BTreeMap<u16, (String, f32)> = BTreeMap::new();
         let mut count: Option<u16> = None;
         let collect = |m: &MavMessage| match m {
-            MavMessage::PARAM_VALUE(v) => Some((v.param_index, v.param_count, param_name(&v.param_id), v.param_value)),
+            MavMessage::PARAM_VALUE(v) => Some((
+                v.param_index,
+                v.param_count,
+                param_name(&v.param_id),
+                v.param_value,
+            )),
             _ => None,
         };
         for attempt in 0..self.inner.cfg.retries {
@@ -479,7 +531,9 @@ impl MavlinkManager {
                     }))
                     .await?;
             } else {
-                let missing = (0..count.unwrap_or(0)).filter(|i| !seen.contains_key(i)).collect::<Vec<_>>();
+                let missing = (0..count.unwrap_or(0))
+                    .filter(|i| !seen.contains_key(i))
+                    .collect::<Vec<_>>();
                 for index in missing {
                     self.inner
                         .send(MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
@@ -512,7 +566,11 @@ impl MavlinkManager {
             }
         }
         Err(ParamError::RetriesExhausted {
-            name: format!("{} of {:?} parameters", count.unwrap_or(0) as usize - seen.len(), count),
+            name: format!(
+                "{} of {:?} parameters",
+                count.unwrap_or(0) as usize - seen.len(),
+                count
+            ),
             attempts: self.inner.cfg.retries,
         })
     }
@@ -553,10 +611,17 @@ impl MavlinkManager {
     /// # Errors
     /// Empty list, refusal, or retries exhausted (an autopilot that ignores
     /// partial writes fails at [`MissionStage::Start`]).
-    pub async fn mission_write_partial(&self, start: u16, items: &[MissionItem]) -> Result<(), MissionError> {
+    pub async fn mission_write_partial(
+        &self,
+        start: u16,
+        items: &[MissionItem],
+    ) -> Result<(), MissionError> {
         let end = usize::from(start) + items.len();
         if items.is_empty() || start == 0 || end > i16::MAX as usize {
-            return Err(MissionError::Invalid(format!("partial write of {} items at {start}", items.len())));
+            return Err(MissionError::Invalid(format!(
+                "partial write of {} items at {start}",
+                items.len()
+            )));
         }
         let target = self.inner.target().await?;
         let _op = self.inner.ops.lock().await;
@@ -613,13 +678,17 @@ impl MavlinkManager {
                 MavMessage::MISSION_ITEM(i) if i.seq == seq => Some(MissionItem::from_float(i)),
                 _ => None,
             };
-            let item = self.inner.transact(make, matcher).await?.ok_or(MissionError::RetriesExhausted {
-                stage: MissionStage::Item(seq),
-                attempts: self.inner.cfg.retries,
-            })?;
+            let item = self.inner.transact(make, matcher).await?.ok_or(
+                MissionError::RetriesExhausted {
+                    stage: MissionStage::Item(seq),
+                    attempts: self.inner.cfg.retries,
+                },
+            )?;
             items.push(item);
         }
-        self.inner.send(mission_ack(target, MavMissionResult::MAV_MISSION_ACCEPTED)).await?;
+        self.inner
+            .send(mission_ack(target, MavMissionResult::MAV_MISSION_ACCEPTED))
+            .await?;
         *lock(&self.inner.mission) = items.clone();
         Ok(items)
     }
@@ -639,7 +708,9 @@ impl MavlinkManager {
             })
         };
         let matcher = |m: &MavMessage| match m {
-            MavMessage::MISSION_ACK(a) if a.target_system == self.inner.cfg.system_id || a.target_system == 0 => {
+            MavMessage::MISSION_ACK(a)
+                if a.target_system == self.inner.cfg.system_id || a.target_system == 0 =>
+            {
                 Some(a.mavtype)
             }
             _ => None,
@@ -682,7 +753,10 @@ impl MavlinkManager {
             return Ok(());
         }
         match self
-            .command_long(MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT, [f32::from(seq), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+            .command_long(
+                MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT,
+                [f32::from(seq), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            )
             .await
         {
             Ok(()) => Ok(()),
@@ -786,15 +860,27 @@ impl Inner {
 
     /// Answers the autopilot's item requests for `items` (numbered from
     /// `first`) after `start` (MISSION_COUNT or MISSION_WRITE_PARTIAL_LIST).
-    async fn upload(&self, target: (u8, u8), start: MavMessage, items: &[MissionItem], first: u16) -> Result<(), MissionError> {
+    async fn upload(
+        &self,
+        target: (u8, u8),
+        start: MavMessage,
+        items: &[MissionItem],
+        first: u16,
+    ) -> Result<(), MissionError> {
         let last = first + (items.len() as u16 - 1);
         let mut rx = self.raw_tx.subscribe();
         let me = self.cfg.system_id;
         #[allow(deprecated)] // Legacy autopilots request MISSION_ITEM with MISSION_REQUEST.
         let matcher = |m: &MavMessage| match m {
-            MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => Some(UploadStep::Request(r.seq, true)),
-            MavMessage::MISSION_REQUEST(r) if r.target_system == me => Some(UploadStep::Request(r.seq, false)),
-            MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => Some(UploadStep::Ack(a.mavtype)),
+            MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => {
+                Some(UploadStep::Request(r.seq, true))
+            }
+            MavMessage::MISSION_REQUEST(r) if r.target_system == me => {
+                Some(UploadStep::Request(r.seq, false))
+            }
+            MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
+                Some(UploadStep::Ack(a.mavtype))
+            }
             _ => None,
         };
         let mut stage = MissionStage::Start;
@@ -807,8 +893,11 @@ impl Inner {
                 None => {
                     // Silence: our last message or the autopilot's request was lost.
                     if attempts >= self.cfg.retries {
-                        self.send(mission_ack(target, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED))
-                            .await?;
+                        self.send(mission_ack(
+                            target,
+                            MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+                        ))
+                        .await?;
                         return Err(MissionError::RetriesExhausted { stage, attempts });
                     }
                     attempts += 1;
@@ -822,8 +911,11 @@ impl Inner {
                     if stage == MissionStage::Item(seq) {
                         attempts += 1;
                         if attempts > self.cfg.retries {
-                            self.send(mission_ack(target, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED))
-                                .await?;
+                            self.send(mission_ack(
+                                target,
+                                MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+                            ))
+                            .await?;
                             return Err(MissionError::RetriesExhausted { stage, attempts });
                         }
                     } else {
@@ -879,7 +971,8 @@ impl Inner {
         let known = self.state_tx.borrow().system_id;
         let mut came_up = false;
         if let MavMessage::HEARTBEAT(hb) = &msg {
-            let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID && hb.mavtype != MavType::MAV_TYPE_GCS;
+            let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+                && hb.mavtype != MavType::MAV_TYPE_GCS;
             if is_autopilot && (known.is_none() || known == Some(sys)) {
                 *last_hb = Some(Instant::now());
                 came_up = self.on_heartbeat(sys, comp, hb);
@@ -904,7 +997,8 @@ impl Inner {
             }
             MavMessage::MISSION_CURRENT(c) => {
                 let changed = self.state_tx.borrow().mission_current != Some(c.seq);
-                self.state_tx.send_modify(|s| s.mission_current = Some(c.seq));
+                self.state_tx
+                    .send_modify(|s| s.mission_current = Some(c.seq));
                 let reached = lock(&self.reach).on_mission_current(c.seq);
                 self.reached(reached, ReachSource::MissionCurrent);
                 if changed {
@@ -914,14 +1008,21 @@ impl Inner {
             MavMessage::PARAM_VALUE(v) => {
                 let mut cache = lock(&self.params);
                 cache.count = Some(v.param_count);
-                cache.values.insert(param_name(&v.param_id), (v.param_value, v.param_type, v.param_index));
+                cache.values.insert(
+                    param_name(&v.param_id),
+                    (v.param_value, v.param_type, v.param_index),
+                );
             }
             MavMessage::GLOBAL_POSITION_INT(p) => self.emit(MavEvent::Position(Position {
                 lat_deg: f64::from(p.lat) / 1e7,
                 lon_deg: f64::from(p.lon) / 1e7,
                 alt_msl_m: p.alt as f32 / 1000.0,
                 alt_rel_m: p.relative_alt as f32 / 1000.0,
-                vel_ned: [f32::from(p.vx) / 100.0, f32::from(p.vy) / 100.0, f32::from(p.vz) / 100.0],
+                vel_ned: [
+                    f32::from(p.vx) / 100.0,
+                    f32::from(p.vy) / 100.0,
+                    f32::from(p.vz) / 100.0,
+                ],
                 heading_deg: (p.hdg != u16::MAX).then(|| f32::from(p.hdg) / 100.0),
                 time_boot_ms: p.time_boot_ms,
             })),
@@ -944,7 +1045,8 @@ impl Inner {
                 current_a: (s.current_battery >= 0).then(|| f32::from(s.current_battery) / 100.0),
                 battery_pct: u8::try_from(s.battery_remaining).ok(),
                 load_pct: f32::from(s.load) / 10.0,
-                unhealthy_sensors: (s.onboard_control_sensors_present.bits() & !s.onboard_control_sensors_health.bits()),
+                unhealthy_sensors: (s.onboard_control_sensors_present.bits()
+                    & !s.onboard_control_sensors_health.bits()),
             })),
             _ => {}
         }
@@ -953,7 +1055,9 @@ impl Inner {
     }
 
     fn on_heartbeat(&self, sys: u8, comp: u8, hb: &HEARTBEAT_DATA) -> bool {
-        let armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+        let armed = hb
+            .base_mode
+            .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
         let name = modes::name(hb.mavtype, hb.custom_mode);
         let before = self.state_tx.borrow().clone();
         self.state_tx.send_modify(|s| {
@@ -1035,7 +1139,12 @@ fn gcs_heartbeat() -> MavMessage {
     })
 }
 
-async fn driver(inner: Arc<Inner>, endpoint: Endpoint, mut out_rx: mpsc::Receiver<MavMessage>, cancel: CancellationToken) {
+async fn driver(
+    inner: Arc<Inner>,
+    endpoint: Endpoint,
+    mut out_rx: mpsc::Receiver<MavMessage>,
+    cancel: CancellationToken,
+) {
     let mut header = MavHeader {
         system_id: u32::from(inner.cfg.system_id),
         component_id: inner.cfg.component_id,

@@ -31,8 +31,8 @@ mod types;
 
 pub use endpoint::{Endpoint, EndpointParseError};
 pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
-pub use modes::{ModeSpec, name as mode_name, number as mode_number};
-pub use reach::{ReachDetector, ReachSource, parse_reached_text};
+pub use modes::{name as mode_name, number as mode_number, ModeSpec};
+pub use reach::{parse_reached_text, ReachDetector, ReachSource};
 pub use types::*;
 
 /// The MAVLink dialect the manager speaks, re-exported for callers' convenience.

@@ -76,7 +76,10 @@ pub fn name(vehicle: MavType, number: u32) -> Option<&'static str> {
 
 /// Number of a mode name (case-insensitive).
 pub fn number(vehicle: MavType, name: &str) -> Option<u32> {
-    table(vehicle).iter().find(|m| m.1.eq_ignore_ascii_case(name)).map(|m| m.0)
+    table(vehicle)
+        .iter()
+        .find(|m| m.1.eq_ignore_ascii_case(name))
+        .map(|m| m.0)
 }
 
 /// A mode asked for by name or by number.

@@ -9,14 +9,14 @@
 
 use std::io;
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::MessageReadError;
 use mavlink::{AsyncMavlinkReader, MavHeader, MavlinkReader, MavlinkVersion};
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
-use tokio::net::{TcpStream, UdpSocket, lookup_host};
+use tokio::net::{lookup_host, TcpStream, UdpSocket};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tokio_serial::SerialPortBuilderExt;
@@ -56,7 +56,10 @@ async fn resolve(addr: &str) -> io::Result<SocketAddr> {
 
 impl Connection {
     /// Opens `endpoint`.
-    pub(crate) async fn open(endpoint: &Endpoint, parse_errors: Arc<AtomicU64>) -> io::Result<Self> {
+    pub(crate) async fn open(
+        endpoint: &Endpoint,
+        parse_errors: Arc<AtomicU64>,
+    ) -> io::Result<Self> {
         let (tx, rx) = mpsc::channel(DEPTH);
         let mut tasks = JoinSet::new();
         let writer = match endpoint {
@@ -75,7 +78,12 @@ impl Connection {
             Endpoint::UdpIn(addr) => {
                 let sock = Arc::new(UdpSocket::bind(resolve(addr).await?).await?);
                 let peer = Arc::new(std::sync::Mutex::new(None));
-                tasks.spawn(udp_reader(sock.clone(), Some(peer.clone()), tx, parse_errors));
+                tasks.spawn(udp_reader(
+                    sock.clone(),
+                    Some(peer.clone()),
+                    tx,
+                    parse_errors,
+                ));
                 Writer::Udp { sock, peer }
             }
             Endpoint::TcpOut(addr) => {
@@ -103,7 +111,8 @@ impl Connection {
     /// Sends one message; never waits (a congested link drops, like a radio).
     pub(crate) fn send(&mut self, header: MavHeader, msg: &MavMessage) -> io::Result<()> {
         let mut buf = Vec::with_capacity(64);
-        mavlink::write_versioned_msg(&mut buf, MavlinkVersion::V2, header, msg).map_err(io::Error::other)?;
+        mavlink::write_versioned_msg(&mut buf, MavlinkVersion::V2, header, msg)
+            .map_err(io::Error::other)?;
         match &self.writer {
             Writer::Udp { sock, peer } => {
                 let dest = *peer.lock().unwrap_or_else(|p| p.into_inner());
@@ -133,7 +142,9 @@ impl Drop for Connection {
 fn is_transient(e: &io::Error) -> bool {
     matches!(
         e.kind(),
-        io::ErrorKind::ConnectionRefused | io::ErrorKind::ConnectionReset | io::ErrorKind::Interrupted
+        io::ErrorKind::ConnectionRefused
+            | io::ErrorKind::ConnectionReset
+            | io::ErrorKind::Interrupted
     )
 }
 

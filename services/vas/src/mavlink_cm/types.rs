@@ -3,8 +3,8 @@
 use std::time::Duration;
 
 use mavlink::dialects::ardupilotmega::{
-    MISSION_ITEM_DATA, MISSION_ITEM_INT_DATA, MavCmd, MavFrame, MavMissionResult, MavResult, MavSeverity, MavState,
-    MavType,
+    MavCmd, MavFrame, MavMissionResult, MavResult, MavSeverity, MavState, MavType,
+    MISSION_ITEM_DATA, MISSION_ITEM_INT_DATA,
 };
 
 pub use super::reach::ReachSource;
@@ -168,7 +168,10 @@ pub struct MissionItem {
 fn is_global(frame: MavFrame) -> bool {
     !matches!(
         frame,
-        MavFrame::MAV_FRAME_LOCAL_NED | MavFrame::MAV_FRAME_LOCAL_ENU | MavFrame::MAV_FRAME_LOCAL_OFFSET_NED | MavFrame::MAV_FRAME_MISSION
+        MavFrame::MAV_FRAME_LOCAL_NED
+            | MavFrame::MAV_FRAME_LOCAL_ENU
+            | MavFrame::MAV_FRAME_LOCAL_OFFSET_NED
+            | MavFrame::MAV_FRAME_MISSION
     )
 }
 
