@@ -1,4 +1,21 @@
-//! FPMa: the USAL Flight Plan Manager library.
+//! FPMa: the USAL Flight Plan Manager library: XML flight plans → validated model → waypoint
+//! stream, and the executive that flies it and takes changes in flight. No I/O in here.
+//!
+//! Layers, each using only those above: `xml` → `expr`, `geo`, `vehicle` → `model` → `parse`,
+//! `polygon` → `expand` → `exec` → `qgc`. See `README.md` for the format and the API.
+//!
+//! ```
+//! use fpma::{exec::Executive, parse::parse_plan, vehicle::VehicleParams};
+//! let xml = r#"<flightPlan><fixes><fix id="A" lat="41.275" lon="1.987"/>
+//!   <fix id="B" lat="41.2754" lon="1.987"/></fixes>
+//!   <mission><leg type="IF" fix="A"/><leg type="TF" fix="B"/></mission></flightPlan>"#;
+//! let plan = parse_plan(xml, &VehicleParams::rover()).unwrap();
+//! let mut ex = Executive::new(plan, VehicleParams::rover());
+//! let next = ex.next_waypoints(2);
+//! assert_eq!(next.len(), 2);
+//! ex.waypoint_reached(next[0].version, next[0].seq).unwrap();
+//! assert_eq!(ex.next_waypoints(2)[0].leg, "mission.2");
+//! ```
 pub mod exec;
 pub mod expand;
 pub mod expr;
