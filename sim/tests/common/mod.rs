@@ -29,6 +29,8 @@ pub struct Sim {
 #[derive(Clone, Copy, Debug)]
 pub enum Via {
     Udp,
+    /// UDP on this local port (to restart a simulator at the same address).
+    UdpAt(u16),
     Pty,
 }
 
@@ -48,6 +50,7 @@ impl Sim {
             .kill_on_drop(true);
         match via {
             Via::Udp => cmd.args(["--udp", "127.0.0.1:0"]),
+            Via::UdpAt(port) => cmd.args(["--udp", &format!("127.0.0.1:{port}")]),
             Via::Pty => cmd.arg("--pty"),
         };
         let mut child = cmd.spawn().expect("spawn mavsim");
@@ -79,11 +82,16 @@ impl Sim {
             request_timeout: Duration::from_millis(500),
             ..ManagerConfig::default()
         };
-        let mgr = MavlinkManager::open(&self.endpoint, cfg)
-            .await
-            .expect("endpoint");
-        mgr.wait_connected(STEP).await.expect("mavsim heartbeat");
-        mgr
+        connect(&self.endpoint, cfg).await
+    }
+
+    /// The UDP port mavsim bound (UDP simulators only).
+    pub fn udp_port(&self) -> u16 {
+        self.endpoint
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse().ok())
+            .expect("a UDP endpoint")
     }
 
     /// The log lines so far, parsed.
@@ -108,6 +116,13 @@ impl Sim {
         let _ = self.child.start_kill();
         let _ = tokio::time::timeout(STEP, self.child.wait()).await;
     }
+}
+
+/// A manager on `endpoint` with `cfg`, once the autopilot's heartbeat is seen.
+pub async fn connect(endpoint: &str, cfg: ManagerConfig) -> MavlinkManager {
+    let mgr = MavlinkManager::open(endpoint, cfg).await.expect("endpoint");
+    mgr.wait_connected(STEP).await.expect("mavsim heartbeat");
+    mgr
 }
 
 /// Home item plus `n` waypoints every `spacing` metres north of home.
