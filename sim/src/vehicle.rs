@@ -949,6 +949,34 @@ mod tests {
     }
 
     #[test]
+    fn copter_and_plane_fly_the_mission_in_order() {
+        for (kind, spacing, auto, max_s) in [
+            (VehicleKind::Copter, 30.0, 3.0, 200.0),
+            (VehicleKind::Plane, 400.0, 10.0, 600.0),
+        ] {
+            let mut v = Vehicle::new(
+                VehicleConfig {
+                    kind,
+                    sysid: 1,
+                    home: HOME,
+                },
+                Instant::now(),
+            );
+            upload(&mut v, &[spacing, 2.0 * spacing, 3.0 * spacing]);
+            assert_eq!(
+                command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+                MavResult::MAV_RESULT_ACCEPTED
+            );
+            assert_eq!(
+                command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, auto),
+                MavResult::MAV_RESULT_ACCEPTED
+            );
+            run_until(&mut v, max_s, |v| v.target_seq().is_none());
+            assert_eq!(reached_seqs(&mut v), vec![1, 2, 3], "{kind:?}");
+        }
+    }
+
+    #[test]
     fn auto_needs_a_mission() {
         let mut v = rover();
         assert_eq!(
