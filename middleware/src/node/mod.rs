@@ -225,9 +225,8 @@ impl NodeInner {
             tracing::trace!(%from, "message from an unknown sender dropped");
             return;
         };
-        if let Some(mut p) = self.peers.get_mut(&node) {
-            p.last_seen = Instant::now();
-        }
+        // Leases are refreshed by discovery messages (heartbeats), not per data message: the
+        // peer table's write lock stays off the data path.
         match msg {
             Message::Var { id, payload } | Message::Event { id, payload } => {
                 self.deliver_remote(node, id, payload)
