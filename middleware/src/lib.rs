@@ -1,4 +1,69 @@
-//! marea: a MAREA-like middleware (work in progress).
+//! # marea
+//!
+//! A MAREA-like middleware: independent processes exchange **variables, events, remote
+//! invocations and files**, discovering each other over the links of their `network.xml`.
+//!
+//! ## Layers (each uses only those above it)
+//!
+//! | module | what |
+//! |---|---|
+//! | [`protocol`] | the wire messages (Hello, Heartbeat, declarations, Var, Event, Call, Reply, File*) |
+//! | [`codec`] | their bytes: postcard messages, the UDP datagram framing, varints |
+//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`] |
+//! | [`transport`] | the ARQ shared by links for the safe class |
+//! | `node` | discovery, declarations, routing by interest, dispatch, file reception |
+//! | [`api`] | [`Node`], the typed handles, [`IService`] |
+//! | [`config`] | `network.xml` → [`NetworkConfig`] |
+//!
+//! ## Concepts
+//!
+//! A process opens one [`Node`]; services declare items through a [`Service`]. Names are
+//! `namespace/service/item`; subscriptions may use `*` (one segment) and `**` (any number).
+//! Every declaration carries a type fingerprint: a subscriber expecting another type gets
+//! [`RecvError::TypeMismatch`], never garbage.
+//!
+//! ## One example per primitive
+//!
+//! Variables (best effort, newest value wins, late joiners served at once):
+//! ```no_run
+//! # async fn f() -> Result<(), Box<dyn std::error::Error>> {
+//! let node = marea::Node::open(&marea::NetworkConfig::ethernet_loopback("air")).await?;
+//! let vas = node.service("vas")?;
+//! let speed = vas.publish_variable::<f32>("speed")?;
+//! speed.set(&1.5)?;
+//! let sub = vas.subscribe_variable::<f32>("**/vas/speed")?;
+//! println!("{}", sub.recv().await?.value);
+//! # Ok(()) }
+//! ```
+//! Events (every subscriber, exactly once, in order; the report says who acknowledged):
+//! ```no_run
+//! # async fn f(vas: marea::Service) -> Result<(), Box<dyn std::error::Error>> {
+//! let alarm = vas.publish_event::<String>("alarm")?;
+//! let report = alarm.raise(&"battery low".to_owned()).await?;
+//! assert!(report.all_acknowledged());
+//! # Ok(()) }
+//! ```
+//! Functions (deadline; errors: no provider, timeout, remote error, link lost):
+//! ```no_run
+//! # async fn f(vas: marea::Service) -> Result<(), Box<dyn std::error::Error>> {
+//! let _p = vas.provide_function("double", |x: u64| async move { Ok::<u64, String>(2 * x) })?;
+//! let double = vas.function::<u64, u64>("vas/double")?;
+//! let four = double.call(&2, std::time::Duration::from_secs(1)).await?;
+//! # Ok(()) }
+//! ```
+//! Files (chunked, verified, atomic, resumable, with progress):
+//! ```no_run
+//! # async fn f(vas: marea::Service) -> Result<(), Box<dyn std::error::Error>> {
+//! let sink = vas.file_sink("plans", "/tmp/plans")?;
+//! let report = vas
+//!     .send_file("plan.xml", "vas/plans", marea::SendFileOptions::default())
+//!     .wait()
+//!     .await?;
+//! let received = sink.recv().await?;
+//! # Ok(()) }
+//! ```
+//! Runnable versions: `middleware/examples/` (`cargo run -p marea --example variable`, `event`,
+//! `function`, `file`, `list`, `demo`).
 #![warn(missing_docs)]
 
 pub mod api;

@@ -59,6 +59,8 @@ pub struct ServiceDescription {
 pub(crate) struct Declared {
     pub node: Weak<NodeInner>,
     pub id: u32,
+    /// The service an item belongs to stays declared while any of its items lives.
+    pub(crate) _owner: Option<Arc<ServiceInner>>,
 }
 
 impl Drop for Declared {
@@ -69,7 +71,7 @@ impl Drop for Declared {
     }
 }
 
-struct ServiceInner {
+pub(crate) struct ServiceInner {
     node: Arc<NodeInner>,
     name: Arc<str>,
     _declared: Declared,
@@ -77,7 +79,8 @@ struct ServiceInner {
 }
 
 /// A service's context: declares its items (`namespace/service/item`), spawns its tasks.
-/// Cloning is cheap; the service is withdrawn when the last clone is dropped.
+/// Cloning is cheap; the service is withdrawn when the last clone and the last of its items
+/// are dropped.
 #[derive(Clone)]
 pub struct Service {
     inner: Arc<ServiceInner>,
@@ -100,6 +103,7 @@ impl Service {
                 _declared: Declared {
                     node: Arc::downgrade(&node),
                     id,
+                    _owner: None,
                 },
                 node,
                 name: name.into(),
@@ -157,6 +161,7 @@ impl Service {
             Declared {
                 node: Arc::downgrade(node),
                 id,
+                _owner: Some(self.inner.clone()),
             },
         ))
     }
@@ -187,6 +192,7 @@ impl Service {
         Ok(Declared {
             node: Arc::downgrade(node),
             id,
+            _owner: Some(self.inner.clone()),
         })
     }
 

@@ -300,6 +300,20 @@ mod tests {
         assert_eq!(decode(&[0xA2, 1, 2]), Ok(Datagram::Discovery(&[1, 2])));
     }
 
+    /// DESIGN §8: a position sample (3×f64 + 2×f32 = 32 bytes of payload) costs at most 40
+    /// bytes of UDP payload. This is the datagram the link sends for one lone variable value.
+    #[test]
+    fn position_sample_is_38_bytes_of_udp_payload() {
+        let payload =
+            crate::codec::encode_payload(&(41.275f64, 1.987f64, 12.5f64, 90.0f32, 1.5f32))
+                .expect("plain tuple encodes");
+        assert_eq!(payload.len(), 32);
+        let msg = crate::codec::encode_message(&crate::protocol::Message::Var { id: 7, payload });
+        let mut w = DatagramWriter::new(1400);
+        assert!(w.push_fast(&msg));
+        assert_eq!(w.take().len(), 38);
+    }
+
     #[test]
     fn writer_respects_the_limit_but_takes_one_oversized_entry() {
         let mut w = DatagramWriter::new(10);
