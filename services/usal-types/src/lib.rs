@@ -1,0 +1,412 @@
+//! The USAL message types the flight services exchange: telemetry, flight states, waypoints,
+//! alarms, manual control and state-change requests.
+//!
+//! These are the payloads of the VAS's middleware items (see `services/vas/README.md` for the
+//! item names) and of the FPMa and the ground stations that talk to it. They are plain serde
+//! structs with no behaviour beyond naming, so any service can depend on this crate without
+//! pulling in another service.
+//!
+//! Units: degrees for angles and geographic coordinates, metres, metres per second, seconds.
+//!
+//! ```
+//! use usal_types::{FlightState, VehicleKind};
+//! let s: FlightState = "WAYPOINT_NAVIGATION".parse().unwrap();
+//! assert_eq!(s, FlightState::WaypointNavigation);
+//! assert!(s.applies_to(VehicleKind::Rover));
+//! assert!(!FlightState::TakeOff.applies_to(VehicleKind::Rover));
+//! ```
+
+#![warn(missing_docs)]
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+/// Where the vehicle is. 32 bytes of payload: the figure DESIGN §8 measures.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Position {
+    /// Latitude, degrees (WGS-84).
+    pub lat: f64,
+    /// Longitude, degrees (WGS-84).
+    pub lon: f64,
+    /// Altitude above mean sea level, metres.
+    pub alt: f64,
+    /// Heading over ground, degrees from north, 0..360.
+    pub heading: f32,
+    /// Ground speed, m/s.
+    pub speed: f32,
+}
+
+/// Body attitude, degrees (roll right, pitch up and yaw from north positive).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Attitude {
+    /// Roll, degrees.
+    pub roll: f32,
+    /// Pitch, degrees.
+    pub pitch: f32,
+    /// Yaw, degrees.
+    pub yaw: f32,
+}
+
+/// Speeds, m/s.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Speeds {
+    /// Speed over ground.
+    pub ground: f32,
+    /// Airspeed (a rover reports its ground speed here too).
+    pub air: f32,
+    /// Climb rate, positive up.
+    pub climb: f32,
+}
+
+/// The kind of vehicle, which decides the flight states and transitions available.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VehicleKind {
+    /// A ground vehicle (APM:Rover in 003).
+    #[default]
+    Rover,
+    /// A multicopter.
+    Copter,
+    /// A fixed-wing aircraft.
+    Plane,
+}
+
+impl fmt::Display for VehicleKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Rover => "rover",
+            Self::Copter => "copter",
+            Self::Plane => "plane",
+        })
+    }
+}
+
+impl FromStr for VehicleKind {
+    type Err = UnknownName;
+    fn from_str(s: &str) -> Result<Self, UnknownName> {
+        match s.to_ascii_lowercase().as_str() {
+            "rover" => Ok(Self::Rover),
+            "copter" => Ok(Self::Copter),
+            "plane" => Ok(Self::Plane),
+            _ => Err(UnknownName {
+                what: "vehicle kind",
+                name: s.to_owned(),
+            }),
+        }
+    }
+}
+
+/// A name that does not denote any value of its type.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UnknownName {
+    /// What was being parsed.
+    pub what: &'static str,
+    /// The offending text.
+    pub name: String,
+}
+
+impl fmt::Display for UnknownName {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "unknown {} {:?}", self.what, self.name)
+    }
+}
+
+impl std::error::Error for UnknownName {}
+
+/// The VAS flight states (003 §3.1, §3.3.1). The rover uses the first six; aircraft add
+/// take-off, landing and return-to-launch. Serialised as the seed's upper-case names.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum FlightState {
+    /// Connecting to and configuring the autopilot (ArduPilot "calibrating"/initialising).
+    ConfigureCheck,
+    /// Stopped and safe (rover HOLD; aircraft on the ground, disarmed).
+    Parking,
+    /// The RC pilot drives, no command from the ground (ArduPilot MANUAL for a rover).
+    Directed,
+    /// The ground station's joystick drives through RC override.
+    ManualNavigation,
+    /// Autonomous navigation through the waypoint queue (ArduPilot AUTO).
+    WaypointNavigation,
+    /// Failsafe: the RC transmitter has full control; no way back to navigation.
+    Manual,
+    /// Aircraft: climbing to the take-off altitude.
+    TakeOff,
+    /// Aircraft: landing.
+    Landing,
+    /// Aircraft: returning to the launch point.
+    ReturnToLaunch,
+}
+
+impl FlightState {
+    /// Every state, in declaration order.
+    pub const ALL: [FlightState; 9] = [
+        Self::ConfigureCheck,
+        Self::Parking,
+        Self::Directed,
+        Self::ManualNavigation,
+        Self::WaypointNavigation,
+        Self::Manual,
+        Self::TakeOff,
+        Self::Landing,
+        Self::ReturnToLaunch,
+    ];
+
+    /// The seed's name, e.g. `WAYPOINT_NAVIGATION`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::ConfigureCheck => "CONFIGURE_CHECK",
+            Self::Parking => "PARKING",
+            Self::Directed => "DIRECTED",
+            Self::ManualNavigation => "MANUAL_NAVIGATION",
+            Self::WaypointNavigation => "WAYPOINT_NAVIGATION",
+            Self::Manual => "MANUAL",
+            Self::TakeOff => "TAKE_OFF",
+            Self::Landing => "LANDING",
+            Self::ReturnToLaunch => "RETURN_TO_LAUNCH",
+        }
+    }
+
+    /// Whether a vehicle of `kind` has this state at all.
+    pub fn applies_to(self, kind: VehicleKind) -> bool {
+        match self {
+            Self::TakeOff | Self::Landing | Self::ReturnToLaunch => kind != VehicleKind::Rover,
+            _ => true,
+        }
+    }
+}
+
+impl fmt::Display for FlightState {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for FlightState {
+    type Err = UnknownName;
+    /// Accepts the seed's names in any case, with `_`, `-` or spaces.
+    fn from_str(s: &str) -> Result<Self, UnknownName> {
+        let norm: String = s
+            .trim()
+            .chars()
+            .map(|c| match c {
+                '-' | ' ' => '_',
+                c => c.to_ascii_uppercase(),
+            })
+            .collect();
+        Self::ALL
+            .into_iter()
+            .find(|st| st.name() == norm)
+            .ok_or_else(|| UnknownName {
+                what: "flight state",
+                name: s.to_owned(),
+            })
+    }
+}
+
+/// What the autopilot says about itself (from its heartbeat).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct AutopilotStatus {
+    /// Heartbeats are arriving.
+    pub connected: bool,
+    /// Motors armed.
+    pub armed: bool,
+    /// Autopilot mode name (e.g. ArduPilot `AUTO`), empty when unknown.
+    pub mode: String,
+    /// Autopilot mode number (ArduPilot custom mode).
+    pub mode_number: u32,
+    /// Autopilot system state (MAV_STATE without its prefix, e.g. `ACTIVE`).
+    pub system_status: String,
+}
+
+/// What a waypoint is for.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WaypointKind {
+    /// Plain navigation.
+    #[default]
+    Nav,
+    /// Take-off to `alt`.
+    Takeoff,
+    /// Land at the point.
+    Land,
+}
+
+/// One waypoint of the stream the FPMa feeds the VAS with.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Waypoint {
+    /// The FPMa's sequence number, unique and increasing within a plan; reported back in
+    /// [`WaypointReached`].
+    pub seq: u64,
+    /// Latitude, degrees.
+    pub lat: f64,
+    /// Longitude, degrees.
+    pub lon: f64,
+    /// Altitude above the home point, metres.
+    pub alt: f64,
+    /// Speed towards this waypoint, m/s (0: the autopilot's cruise speed).
+    pub speed: f64,
+    /// Pass over the point rather than turning before it.
+    pub fly_over: bool,
+    /// The flight-plan leg it belongs to.
+    pub leg: String,
+    /// Navigation, take-off or landing.
+    #[serde(default)]
+    pub kind: WaypointKind,
+}
+
+/// A waypoint of the queue was reached (event `waypoint_reached`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WaypointReached {
+    /// The waypoint's [`Waypoint::seq`].
+    pub seq: u64,
+    /// Its leg.
+    pub leg: String,
+    /// Its latitude, degrees.
+    pub lat: f64,
+    /// Its longitude, degrees.
+    pub lon: f64,
+    /// Waypoints still queued after it (on the autopilot or waiting).
+    pub remaining: u64,
+}
+
+/// Answer of `push_waypoints` and `clear_waypoints`: the queue after the call.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct QueueStatus {
+    /// Waypoints queued, including the one being navigated to.
+    pub queued: u64,
+    /// The waypoint being navigated to, if any.
+    pub target: Option<u64>,
+    /// The last waypoint reached, if any.
+    pub last_reached: Option<u64>,
+    /// `clear_waypoints` was called and no waypoint has been pushed since: the next push
+    /// replaces everything after the current target.
+    pub replacing: bool,
+}
+
+/// Alarm severity, as MAVLink's (and syslog's) levels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Severity {
+    /// The system is unusable.
+    Emergency,
+    /// Action must be taken at once.
+    Alert,
+    /// Critical condition.
+    Critical,
+    /// Error condition.
+    Error,
+    /// Warning condition.
+    Warning,
+    /// Normal but significant.
+    Notice,
+    /// Informational.
+    Info,
+    /// Debug.
+    Debug,
+}
+
+/// An alarm (event `alarm`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Alarm {
+    /// How bad.
+    pub severity: Severity,
+    /// What happened, for a human.
+    pub text: String,
+}
+
+/// Joystick values from the Flight Monitor (variable `manual_control`): newest wins.
+///
+/// Axes are in -1..1 (throttle too: -1 full reverse for a rover, 0 idle), 0 centred.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ManualControl {
+    /// Roll (aircraft) or steering (rover), right positive.
+    pub roll: f32,
+    /// Pitch, nose up positive.
+    pub pitch: f32,
+    /// Throttle.
+    pub throttle: f32,
+    /// Yaw, right positive.
+    pub yaw: f32,
+    /// Sender's time, ms since the Unix epoch; only orders samples, staleness is judged
+    /// on arrival so the two clocks need not agree.
+    pub timestamp_ms: u64,
+}
+
+/// Argument of the `change_state` function.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StateChangeRequest {
+    /// The state wanted.
+    pub to: FlightState,
+}
+
+/// Result of an accepted `change_state` call (a refusal is the call's error, with the reason).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StateChangeReply {
+    /// The state left.
+    pub from: FlightState,
+    /// The state now.
+    pub to: FlightState,
+}
+
+/// A flight-state change (event `state_changed`).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StateChanged {
+    /// The state left.
+    pub from: FlightState,
+    /// The state now.
+    pub to: FlightState,
+    /// Why: `request` (a `change_state` call), or what the VAS saw (`autopilot mode HOLD`,
+    /// `mission complete`, `link lost`...).
+    pub cause: String,
+}
+
+/// Time since the mission started (variable `mission_time`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MissionTime {
+    /// Seconds since the VAS first left PARKING for a navigation state (0 before).
+    pub elapsed: f64,
+    /// Seconds in the current flight state.
+    pub in_state: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn state_names_round_trip() {
+        for s in FlightState::ALL {
+            assert_eq!(s.name().parse::<FlightState>(), Ok(s));
+            let json = serde_json::to_string(&s).unwrap();
+            assert_eq!(json, format!("\"{}\"", s.name()));
+        }
+        assert_eq!(
+            "manual navigation".parse::<FlightState>(),
+            Ok(FlightState::ManualNavigation)
+        );
+        assert!("FLYING".parse::<FlightState>().is_err());
+    }
+
+    #[test]
+    fn rover_has_no_aircraft_states() {
+        let rover: Vec<_> = FlightState::ALL
+            .into_iter()
+            .filter(|s| s.applies_to(VehicleKind::Rover))
+            .collect();
+        assert_eq!(rover.len(), 6);
+        assert!(FlightState::Landing.applies_to(VehicleKind::Copter));
+    }
+
+    #[test]
+    fn waypoint_kind_defaults_to_nav() {
+        let w: Waypoint = serde_json::from_str(
+            r#"{"seq":3,"lat":1.0,"lon":2.0,"alt":0.0,"speed":0.0,"fly_over":false,"leg":"a"}"#,
+        )
+        .unwrap();
+        assert_eq!(w.kind, WaypointKind::Nav);
+        assert_eq!("COPTER".parse::<VehicleKind>(), Ok(VehicleKind::Copter));
+    }
+}
