@@ -10,12 +10,12 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 
-use super::errors::{PublishError, RecvError};
+use super::errors::PublishError;
 use super::service::Declared;
-use super::variable::{decode_delivery, wait_remote, Sample};
+use super::variable::wait_remote;
 use super::Payload;
 use crate::link::{LinkSendError, Outgoing};
-use crate::node::mailbox::{Delivery, Mailbox, RawSample};
+use crate::node::mailbox::{Delivery, RawSample};
 use crate::node::session::encode_data;
 use crate::node::{lock, LocalOffer, NodeInner};
 
@@ -182,49 +182,5 @@ impl<T: Payload> Event<T> {
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
         wait_remote(&self.node, &self.offer, n, timeout).await
-    }
-}
-
-/// Subscriber handle of events.
-pub struct EventSubscriber<T> {
-    mailbox: Arc<Mailbox>,
-    _declared: Declared,
-    _t: PhantomData<fn() -> T>,
-}
-
-impl<T: Payload> EventSubscriber<T> {
-    pub(crate) fn new(mailbox: Arc<Mailbox>, declared: Declared) -> Self {
-        EventSubscriber {
-            mailbox,
-            _declared: declared,
-            _t: PhantomData,
-        }
-    }
-
-    /// The next event, in publish order per publisher.
-    ///
-    /// # Errors
-    /// [`RecvError::TypeMismatch`], [`RecvError::Decode`], [`RecvError::Closed`].
-    pub async fn recv(&self) -> Result<Sample<T>, RecvError> {
-        match self.mailbox.pop().await {
-            Some(d) => decode_delivery(d),
-            None => Err(RecvError::Closed),
-        }
-    }
-
-    /// Like [`EventSubscriber::recv`] with a time limit.
-    ///
-    /// # Errors
-    /// As `recv`, plus [`RecvError::Timeout`].
-    pub async fn recv_timeout(&self, timeout: Duration) -> Result<Sample<T>, RecvError> {
-        match tokio::time::timeout(timeout, self.recv()).await {
-            Ok(r) => r,
-            Err(_) => Err(RecvError::Timeout(timeout)),
-        }
-    }
-
-    /// An event if one is waiting.
-    pub fn try_recv(&self) -> Option<Result<Sample<T>, RecvError>> {
-        self.mailbox.try_pop().map(decode_delivery)
     }
 }

@@ -6,15 +6,17 @@ mod file;
 mod function;
 mod node;
 mod service;
+mod subscription;
 mod variable;
 
 pub use errors::{CallError, DeclareError, FileSendError, NodeOpenError, PublishError, RecvError};
-pub use event::{Event, EventSubscriber, PendingRaise, RaiseReport};
+pub use event::{Event, PendingRaise, RaiseReport};
 pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
 pub use function::{Function, FunctionProvider};
 pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};
 pub use service::{IService, Service, ServiceDescription, ServiceError};
-pub use variable::{Sample, Variable, VariableSubscriber};
+pub use subscription::{EventSubscriber, Subscription, VariableSubscriber};
+pub use variable::{Sample, Variable};
 
 pub use crate::node::files::ReceivedFile;
 pub use crate::node::mailbox::TypeMismatch;

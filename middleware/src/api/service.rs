@@ -8,11 +8,12 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use super::errors::DeclareError;
-use super::event::{Event, EventSubscriber};
+use super::event::Event;
 use super::file::{FileSink, FileTransfer, SendFileOptions};
 use super::function::{Function, FunctionProvider};
 use super::node::ItemDescription;
-use super::variable::{Variable, VariableSubscriber};
+use super::subscription::{EventSubscriber, VariableSubscriber};
+use super::variable::Variable;
 use super::Payload;
 use crate::name;
 use crate::node::files::SinkMailbox;

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use super::errors::{PublishError, RecvError};
 use super::service::Declared;
 use super::Payload;
-use crate::node::mailbox::{Delivery, Mailbox, RawSample};
+use crate::node::mailbox::{Delivery, RawSample};
 use crate::node::{lock, LocalOffer, NodeInner};
 
 /// A received value with where it came from.
@@ -114,55 +114,5 @@ pub(crate) async fn wait_remote(
             Ok(Ok(())) => {}
             _ => return lock(&offer.remote).len() >= n,
         }
-    }
-}
-
-/// Subscriber handle of variables. Holds the newest undelivered value of each matching name.
-pub struct VariableSubscriber<T> {
-    mailbox: Arc<Mailbox>,
-    _declared: Declared,
-    _t: PhantomData<fn() -> T>,
-}
-
-impl<T: Payload> VariableSubscriber<T> {
-    pub(crate) fn new(mailbox: Arc<Mailbox>, declared: Declared) -> Self {
-        VariableSubscriber {
-            mailbox,
-            _declared: declared,
-            _t: PhantomData,
-        }
-    }
-
-    /// The next value (the newest of its name at the time it is taken).
-    ///
-    /// # Errors
-    /// [`RecvError::TypeMismatch`] when a matching publisher has another type,
-    /// [`RecvError::Decode`] for an undecodable value, [`RecvError::Closed`] at shutdown.
-    pub async fn recv(&self) -> Result<Sample<T>, RecvError> {
-        match self.mailbox.pop().await {
-            Some(d) => decode_delivery(d),
-            None => Err(RecvError::Closed),
-        }
-    }
-
-    /// Like [`VariableSubscriber::recv`] with a time limit.
-    ///
-    /// # Errors
-    /// As `recv`, plus [`RecvError::Timeout`].
-    pub async fn recv_timeout(&self, timeout: Duration) -> Result<Sample<T>, RecvError> {
-        match tokio::time::timeout(timeout, self.recv()).await {
-            Ok(r) => r,
-            Err(_) => Err(RecvError::Timeout(timeout)),
-        }
-    }
-
-    /// A value if one is waiting.
-    pub fn try_recv(&self) -> Option<Result<Sample<T>, RecvError>> {
-        self.mailbox.try_pop().map(decode_delivery)
-    }
-
-    /// Values waiting.
-    pub fn pending(&self) -> usize {
-        self.mailbox.len()
     }
 }
