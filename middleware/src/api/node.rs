@@ -394,8 +394,10 @@ impl Node {
         Catalog { nodes }
     }
 
-    /// Stops the hosted services, tells peers we leave, and waits for every task to end.
-    pub async fn shutdown(self) {
+    /// Stops the hosted services, tells peers we leave, and waits for every task the node owns
+    /// (links, discovery, transfers, service tasks) to end. Returns whether all ended within
+    /// 5 s; a task that did not is logged.
+    pub async fn shutdown(self) -> bool {
         let mut hosted = std::mem::take(&mut *self.hosted.lock().await);
         for s in hosted.iter_mut() {
             if let Err(e) = s.stop().await {
@@ -408,12 +410,16 @@ impl Node {
         });
         self.inner.cancel.cancel();
         self.inner.tasks.close();
-        if tokio::time::timeout(Duration::from_secs(5), self.inner.tasks.wait())
+        let clean = tokio::time::timeout(Duration::from_secs(5), self.inner.tasks.wait())
             .await
-            .is_err()
-        {
-            tracing::warn!("some node tasks did not stop within 5 s");
+            .is_ok();
+        if !clean {
+            tracing::warn!(
+                left = self.inner.tasks.len(),
+                "some node tasks did not stop within 5 s"
+            );
         }
+        clean
     }
 }
 

@@ -1,0 +1,92 @@
+//! A node shuts down cleanly: hosted services are stopped, peers are told at once, and no task
+//! is left behind, even with transfers, calls and subscriptions active.
+
+use std::net::{Ipv4Addr, SocketAddrV4};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use marea::config::{EthernetConfig, LinkConfig};
+use marea::{IService, NetworkConfig, Node, Service, ServiceError};
+
+fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
+    let mut c = NetworkConfig::ethernet_loopback(node);
+    c.domain = domain.into();
+    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
+        interface: Ipv4Addr::LOCALHOST,
+        bind: "127.0.0.1:0".parse().unwrap(),
+        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 3), port),
+        heartbeat: Duration::from_millis(200),
+        lease: Duration::from_secs(30),
+        ..EthernetConfig::default()
+    })];
+    c
+}
+
+struct Ticker {
+    stopped: Arc<AtomicBool>,
+}
+
+#[async_trait::async_trait]
+impl IService for Ticker {
+    fn name(&self) -> &str {
+        "ticker"
+    }
+
+    async fn start(&mut self, ctx: Service) -> Result<(), ServiceError> {
+        let var = ctx.publish_variable::<u64>("tick")?;
+        let c = ctx.clone();
+        ctx.spawn(async move {
+            let mut i = 0u64;
+            loop {
+                tokio::select! {
+                    _ = c.cancelled() => break,
+                    _ = tokio::time::sleep(Duration::from_millis(5)) => {}
+                }
+                i += 1;
+                let _ = var.set(&i);
+            }
+        });
+        Ok(())
+    }
+
+    async fn stop(&mut self) -> Result<(), ServiceError> {
+        self.stopped.store(true, Ordering::SeqCst);
+        Ok(())
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_stops_services_tells_peers_and_leaves_no_task() {
+    let domain = format!("lifecycle-{}", std::process::id());
+    let port = 22_000 + (std::process::id() % 20_000) as u16;
+    let a = Node::open(&cfg("a", &domain, port)).await.unwrap();
+    let b = Node::open(&cfg("b", &domain, port)).await.unwrap();
+    let stopped = Arc::new(AtomicBool::new(false));
+    a.add_service(Box::new(Ticker {
+        stopped: stopped.clone(),
+    }))
+    .await
+    .unwrap();
+    let sb = b.service("watch").unwrap();
+    let sub = sb.subscribe_variable::<u64>("ticker/tick").unwrap();
+    sub.recv_timeout(Duration::from_secs(10)).await.unwrap();
+    assert!(
+        b.wait_until(Duration::from_secs(5), |n| n.peers().len() == 1)
+            .await
+    );
+
+    assert!(a.shutdown().await, "tasks left behind");
+    assert!(
+        stopped.load(Ordering::SeqCst),
+        "IService::stop was not called"
+    );
+    // The peer learns of the departure from Bye, long before the 30 s lease.
+    assert!(
+        b.wait_until(Duration::from_secs(5), |n| n.peers().is_empty())
+            .await,
+        "peer still listed after Bye"
+    );
+    drop((sub, sb));
+    assert!(b.shutdown().await);
+}
