@@ -12,6 +12,9 @@ pub enum NodeOpenError {
     /// A link failed to open.
     #[error(transparent)]
     Link(#[from] crate::link::udp::LinkOpenError),
+    /// A serial link could not be opened.
+    #[error(transparent)]
+    Serial(#[from] crate::link::serial::SerialLinkOpenError),
     /// The configuration asks for a link kind this build does not support yet.
     #[error("link '{link}': {kind} links are not supported by this build")]
     Unsupported {

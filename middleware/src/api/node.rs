@@ -15,6 +15,9 @@ use tokio_util::task::TaskTracker;
 use super::errors::{DeclareError, NodeOpenError};
 use super::service::{IService, Service, ServiceError};
 use crate::config::{LinkConfig, NetworkConfig};
+use crate::link::serial::port::SerialPorts;
+use crate::link::serial::stp::StpConfig;
+use crate::link::serial::SerialLink;
 use crate::link::udp::{UdpLink, UdpLinkOptions};
 use crate::link::{Link, LinkStats};
 use crate::name;
@@ -91,6 +94,41 @@ fn arq_for_lan() -> ArqConfig {
     ArqConfig::lan()
 }
 
+/// The ports and engine tuning of a `<serial>` or `<serialduo>` link, if `lc` is one.
+fn serial_setup(lc: &LinkConfig) -> Option<(&str, SerialPorts, StpConfig)> {
+    match lc {
+        LinkConfig::SerialDuo(s) => Some((
+            &s.name,
+            SerialPorts::Duo {
+                tx_path: s.address_tx.clone(),
+                tx_baud: s.baud_rate_tx,
+                rx_path: s.address_rx.clone(),
+                rx_baud: s.baud_rate_rx,
+            },
+            StpConfig::new(
+                s.baud_rate_tx,
+                s.time_to_resend,
+                s.max_packet_size,
+                s.max_message_queue,
+            ),
+        )),
+        LinkConfig::Serial(s) => Some((
+            &s.name,
+            SerialPorts::Single {
+                path: s.address.clone(),
+                baud: s.baud_rate,
+            },
+            StpConfig::new(
+                s.baud_rate,
+                s.time_to_resend,
+                s.max_packet_size,
+                s.max_message_queue,
+            ),
+        )),
+        _ => None,
+    }
+}
+
 impl Node {
     /// Opens the links of `config`, announces the node and starts discovery.
     ///
@@ -101,7 +139,7 @@ impl Node {
         if let Some(ns) = &config.namespace {
             name::validate_name(ns)?;
         }
-        let (heartbeat, lease) = config
+        let link_timing: Vec<(Duration, Duration)> = config
             .links
             .iter()
             .map(|l| match l {
@@ -110,6 +148,10 @@ impl Node {
                 LinkConfig::Serial(s) => (s.heartbeat, s.lease),
                 LinkConfig::SerialDuo(s) => (s.heartbeat, s.lease),
             })
+            .collect();
+        let (heartbeat, lease) = link_timing
+            .iter()
+            .copied()
             .min()
             .unwrap_or((Duration::from_secs(1), Duration::from_millis(3500)));
         let (changed, _) = watch::channel(0u64);
@@ -122,6 +164,7 @@ impl Node {
                 domain_hash: domain_hash(&config.domain),
                 heartbeat,
                 lease,
+                link_timing,
             },
             links: OnceLock::new(),
             decls: Mutex::default(),
@@ -168,6 +211,27 @@ impl Node {
                         }
                     }
                 }
+                LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => {
+                    let Some((name, ports, stp)) = serial_setup(lc) else {
+                        continue;
+                    };
+                    let link = SerialLink::open(
+                        index,
+                        name,
+                        Arc::new(ports),
+                        stp,
+                        handler,
+                        &inner.tasks,
+                        inner.cancel.child_token(),
+                    );
+                    match link {
+                        Ok(l) => links.push(l),
+                        Err(e) => {
+                            inner.cancel.cancel();
+                            return Err(e.into());
+                        }
+                    }
+                }
                 other => {
                     inner.cancel.cancel();
                     return Err(NodeOpenError::Unsupported {
@@ -183,9 +247,11 @@ impl Node {
         }
         // Only this function sets the links, once, before any task can read them.
         let _ = inner.links.set(links);
-        let hb = inner.clone();
-        inner.tasks.spawn(hb.heartbeat_loop());
-        inner.announce(&inner.hello());
+        for link in 0..inner.links().len() {
+            let hb = inner.clone();
+            inner.tasks.spawn(hb.heartbeat_loop(link));
+        }
+        inner.announce_hello();
         tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), "node open");
         Ok(Node {
             inner,

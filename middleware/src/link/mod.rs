@@ -4,6 +4,7 @@
 //! A link knows nothing of declarations or names: it carries encoded [`crate::protocol::Message`]s
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
 
+pub mod serial;
 pub mod udp;
 
 use std::fmt;
@@ -39,6 +40,9 @@ pub enum LinkSendError {
     /// The link is shutting down.
     #[error("link shut down")]
     Shutdown,
+    /// The message exceeds what the link can carry (serial: 255 fragments).
+    #[error("message of {0} bytes is too large for this link")]
+    TooLarge(usize),
 }
 
 /// Completion of a safe message: resolved when the peer acknowledges it (after the peer's node

@@ -19,14 +19,22 @@ pub(crate) fn domain_hash(domain: &str) -> u32 {
 }
 
 impl NodeInner {
-    pub fn hello(&self) -> Message {
+    /// The Hello sent on `link` (it carries that link's lease).
+    pub fn hello(&self, link: usize) -> Message {
         Message::Hello {
             node_id: self.me.id,
             domain: self.me.domain.clone(),
             node: self.me.name.clone(),
             namespace: self.me.namespace.clone().unwrap_or_default(),
             counter: self.counter(),
-            lease_ms: u32::try_from(self.me.lease.as_millis()).unwrap_or(u32::MAX),
+            lease_ms: u32::try_from(self.me.timing(link).1.as_millis()).unwrap_or(u32::MAX),
+        }
+    }
+
+    /// Announces our Hello on every link.
+    pub fn announce_hello(&self) {
+        for (i, l) in self.links().iter().enumerate() {
+            l.announce(&encode_message(&self.hello(i)));
         }
     }
 
@@ -91,7 +99,7 @@ impl NodeInner {
                 self.addrs.insert((link, from), node_id);
                 // Our Hello is the first message of our session towards it, so it knows us
                 // before anything else we send; then ask for its declarations.
-                self.send_safe(link, from, &self.hello());
+                self.send_safe(link, from, &self.hello(link));
                 self.send_safe(link, from, &Message::DeclRequest { since: 0 });
                 self.bump();
             }
@@ -107,7 +115,7 @@ impl NodeInner {
                     self.seen(node_id, counter);
                 } else {
                     // We missed its Hello: introduce ourselves, it answers with its own.
-                    self.send_safe(link, from, &self.hello());
+                    self.send_safe(link, from, &self.hello(link));
                 }
             }
             Message::Bye { node_id } if self.peers.contains_key(&node_id) => {
@@ -124,9 +132,8 @@ impl NodeInner {
                 return;
             };
             p.last_seen = Instant::now();
-            let stale = p
-                .requested
-                .is_none_or(|t| t.elapsed() > self.me.heartbeat * 2);
+            let heartbeat = self.me.timing(p.link).0;
+            let stale = p.requested.is_none_or(|t| t.elapsed() > heartbeat * 2);
             if counter > p.known && stale {
                 p.requested = Some(Instant::now());
                 Some(p.known)
@@ -146,7 +153,7 @@ impl NodeInner {
         if let Some(node) = node {
             self.fail_calls_to(node, "session reset by the peer");
         }
-        self.send_safe(link, from, &self.hello());
+        self.send_safe(link, from, &self.hello(link));
     }
 
     fn fail_calls_to(&self, node: NodeId, reason: &str) {
@@ -186,21 +193,25 @@ impl NodeInner {
         self.recompute_routes();
     }
 
-    /// Sends heartbeats and expires leases until the node stops.
-    pub async fn heartbeat_loop(self: Arc<Self>) {
-        let mut tick = tokio::time::interval(self.me.heartbeat);
+    /// Sends heartbeats on `link` at that link's period and expires the leases of the peers
+    /// reached over it, until the node stops. Each link has its own loop, so a slow radio link
+    /// beats slowly while the LAN beats fast.
+    pub async fn heartbeat_loop(self: Arc<Self>, link: usize) {
+        let mut tick = tokio::time::interval(self.me.timing(link).0);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             tokio::select! {
                 _ = self.cancel.cancelled() => break,
                 _ = tick.tick() => {}
             }
-            self.announce(&self.heartbeat());
+            if let Some(l) = self.links().get(link) {
+                l.announce(&encode_message(&self.heartbeat()));
+            }
             let now = Instant::now();
             let expired: Vec<(NodeId, Duration)> = self
                 .peers
                 .iter()
-                .filter(|p| now.saturating_duration_since(p.last_seen) > p.lease)
+                .filter(|p| p.link == link && now.saturating_duration_since(p.last_seen) > p.lease)
                 .map(|p| (p.id, p.lease))
                 .collect();
             for (id, lease) in expired {

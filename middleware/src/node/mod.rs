@@ -128,6 +128,18 @@ pub(crate) struct Identity {
     pub domain_hash: u32,
     pub heartbeat: Duration,
     pub lease: Duration,
+    /// Heartbeat period and lease of each link, by link index.
+    pub link_timing: Vec<(Duration, Duration)>,
+}
+
+impl Identity {
+    /// Heartbeat period and lease on `link` (the node's defaults for an unknown index).
+    pub fn timing(&self, link: usize) -> (Duration, Duration) {
+        self.link_timing
+            .get(link)
+            .copied()
+            .unwrap_or((self.heartbeat, self.lease))
+    }
 }
 
 /// The shared state of a node.

@@ -25,6 +25,9 @@ pub struct ArqConfig {
     pub max_window: u32,
     /// Congestion window at start, in messages.
     pub initial_window: u32,
+    /// Smallest congestion window after a loss (a paced link such as serial cannot congest
+    /// itself, so it keeps enough in flight to fill the line).
+    pub min_window: u32,
 }
 
 impl ArqConfig {
@@ -36,6 +39,7 @@ impl ArqConfig {
             max_rto: Duration::from_secs(2),
             max_window: 4096,
             initial_window: 128,
+            min_window: 4,
         }
     }
 }
@@ -99,6 +103,7 @@ struct InFlight<T> {
     transmissions: u32,
     token: Option<T>,
     acked: bool,
+    nacked: bool,
 }
 
 /// Counters of a sender.
@@ -119,7 +124,9 @@ pub struct ArqSender<T> {
     session_acked: bool,
     next_seq: u32,
     in_flight: VecDeque<InFlight<T>>,
-    highest_acked: Option<u32>,
+    /// Latest send time among acknowledged messages (time-based loss detection: a message
+    /// sent before one that was acknowledged is lost once a round trip has passed).
+    latest_acked_sent: Option<Instant>,
     rto: RtoEstimator,
     cwnd: f64,
     ssthresh: f64,
@@ -139,7 +146,7 @@ impl<T> ArqSender<T> {
             session_acked: false,
             next_seq: 0,
             in_flight: VecDeque::new(),
-            highest_acked: None,
+            latest_acked_sent: None,
             rto: RtoEstimator::new(config.initial_rto, config.min_rto, config.max_rto),
             cwnd: f64::from(config.initial_window.min(config.max_window)),
             ssthresh: f64::from(config.max_window),
@@ -180,9 +187,57 @@ impl<T> ArqSender<T> {
             transmissions: 1,
             token,
             acked: false,
+            nacked: false,
         });
         self.stats.sent += 1;
         seq
+    }
+
+    /// The sequence number the next [`ArqSender::push`] assigns (links with narrow sequence
+    /// fields widen received acknowledgements around it).
+    pub fn next_seq(&self) -> u32 {
+        self.next_seq
+    }
+
+    /// A negative acknowledgement: the peer received `seq` corrupt. It is retransmitted by the
+    /// next [`ArqSender::due`] unless it was already resent within half a round trip (the NACK
+    /// then refers to an older copy). Corruption is not congestion: the window is kept.
+    /// Returns whether the NACK was taken.
+    pub fn on_nack(&mut self, now: Instant, seq: u32) -> bool {
+        let guard = self.rto.srtt().map_or(Duration::ZERO, |s| s / 2);
+        let Some(base) = self.in_flight.front().map(|f| f.seq) else {
+            return false;
+        };
+        let idx = seq.wrapping_sub(base) as usize;
+        match self.in_flight.get_mut(idx) {
+            Some(f)
+                if f.seq == seq
+                    && !f.acked
+                    && now.saturating_duration_since(f.sent_at) >= guard =>
+            {
+                f.nacked = true;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Restarts the timer of `seq` at `now`: a paced link calls it when a retransmission
+    /// returned by [`ArqSender::due`] actually leaves, which may be later than `due` ran.
+    pub fn mark_sent(&mut self, seq: u32, now: Instant) {
+        let Some(base) = self.in_flight.front().map(|f| f.seq) else {
+            return;
+        };
+        if let Some(f) = self.in_flight.get_mut(seq.wrapping_sub(base) as usize) {
+            if f.seq == seq {
+                f.sent_at = now;
+            }
+        }
+    }
+
+    /// Whether some message waits for retransmission because of a NACK.
+    pub fn nack_pending(&self) -> bool {
+        self.in_flight.iter().any(|f| f.nacked && !f.acked)
     }
 
     /// The bytes of an in-flight message.
@@ -225,8 +280,8 @@ impl<T> ArqSender<T> {
             if let Some(t) = f.token.take() {
                 done.push(t);
             }
-            if self.highest_acked.is_none_or(|h| after(f.seq, h)) {
-                self.highest_acked = Some(f.seq);
+            if self.latest_acked_sent.is_none_or(|t| f.sent_at > t) {
+                self.latest_acked_sent = Some(f.sent_at);
             }
         }
         while self.in_flight.front().is_some_and(|f| f.acked) {
@@ -252,24 +307,26 @@ impl<T> ArqSender<T> {
         let mut out = Vec::new();
         let srtt = self.rto.srtt();
         let mut timed_out = false;
-        let highest = self.highest_acked;
+        let mut congested = false;
+        let latest = self.latest_acked_sent;
         for i in 0..self.in_flight.len() {
             let f = &self.in_flight[i];
             if f.acked {
                 continue;
             }
             let expired = now >= self.deadline_of(f);
-            let hole = match (highest, srtt) {
-                (Some(h), Some(srtt)) => {
-                    after(h, f.seq)
-                        && f.transmissions == 1
-                        && now.saturating_duration_since(f.sent_at) >= srtt + srtt / 4
+            let hole = match (latest, srtt) {
+                (Some(t), Some(srtt)) => {
+                    t > f.sent_at && now.saturating_duration_since(f.sent_at) >= srtt + srtt / 4
                 }
                 _ => false,
             };
-            if expired || hole {
+            let nacked = f.nacked;
+            if expired || hole || nacked {
                 timed_out |= expired;
+                congested |= expired || hole;
                 let f = &mut self.in_flight[i];
+                f.nacked = false;
                 f.sent_at = now;
                 f.transmissions += 1;
                 out.push(f.seq);
@@ -277,9 +334,12 @@ impl<T> ArqSender<T> {
         }
         if !out.is_empty() {
             self.stats.retransmitted += out.len() as u64;
+        }
+        if congested {
             // Multiplicative decrease, once per loss episode.
-            self.ssthresh = (self.cwnd / 2.0).max(4.0);
-            self.cwnd = if timed_out { 4.0 } else { self.ssthresh };
+            let floor = f64::from(self.config.min_window.max(1));
+            self.ssthresh = (self.cwnd / 2.0).max(floor);
+            self.cwnd = if timed_out { floor } else { self.ssthresh };
         }
         out
     }
@@ -289,7 +349,13 @@ impl<T> ArqSender<T> {
         self.in_flight
             .iter()
             .filter(|f| !f.acked)
-            .map(|f| self.deadline_of(f))
+            .map(|f| {
+                if f.nacked {
+                    f.sent_at
+                } else {
+                    self.deadline_of(f)
+                }
+            })
             .min()
     }
 
@@ -380,6 +446,22 @@ impl ArqReceiver {
         }
     }
 
+    /// The next sequence number expected in order (links with narrow sequence fields widen
+    /// received numbers around it).
+    pub fn expected(&self) -> u32 {
+        self.next
+    }
+
+    /// Whether a session is established.
+    pub fn has_session(&self) -> bool {
+        self.session.is_some()
+    }
+
+    /// Whether `seq` was already received (delivered or buffered).
+    pub fn is_received(&self, seq: u32) -> bool {
+        ((seq.wrapping_sub(self.next)) as i32) < 0 || self.buffered.contains_key(&seq)
+    }
+
     /// Handles one safe message; calls `deliver` for every message now deliverable in order.
     pub fn on_safe(&mut self, seq: u32, msg: &[u8], mut deliver: impl FnMut(&[u8])) {
         if self.session.is_none() {
@@ -457,6 +539,7 @@ mod tests {
             max_rto: Duration::from_secs(1),
             max_window: 64,
             initial_window: 64,
+            min_window: 4,
         }
     }
 
@@ -525,6 +608,23 @@ mod tests {
             )
             .is_empty());
         assert_eq!(s.close(), vec![1]);
+    }
+
+    #[test]
+    fn nack_retransmits_at_once_without_shrinking_the_window() {
+        let t0 = Instant::now();
+        let mut s: ArqSender<u32> = ArqSender::new(1, cfg());
+        s.push(t0, b"a".to_vec(), None);
+        s.push(t0, b"b".to_vec(), None);
+        assert_eq!(s.next_seq(), 2);
+        assert!(s.on_nack(t0, 1));
+        assert!(!s.on_nack(t0, 5));
+        assert!(s.nack_pending());
+        assert_eq!(s.next_deadline(), Some(t0));
+        assert_eq!(s.due(t0), vec![1]);
+        assert!(!s.nack_pending());
+        assert!(s.can_push());
+        assert_eq!(s.stats().retransmitted, 1);
     }
 
     #[test]
