@@ -1,5 +1,74 @@
-//! VAS: the USAL Virtual Autopilot System (work in progress).
+//! VAS: the USAL Virtual Autopilot System (003 ch. 3), the only service that talks to the
+//! autopilot.
 //!
+//! Two layers, as the seed designed them (003 §3.1, figure 3.2):
+//! - [`val`]: the Virtual Autopilot Layer, the USAL side, fixed: flight-state machine with a
+//!   [transition table](val::transitions) per vehicle kind, telemetry variables, events, the
+//!   waypoint queue the FPMa feeds, manual control from the FMo. [`val::Vas`] is the
+//!   middleware service (`IService`).
+//! - [`apl`]: the Autopilot Layer, per autopilot family: the [`apl::IAutopilot`] trait and its
+//!   ArduPilot implementation [`apl::ardupilot::ArduPilot`], which keeps the autopilot fed
+//!   through the [rolling waypoint queue](apl::queue) (003 §3.3.2), built on
 //! - [`mavlink_cm`]: the MAVLink Communication Manager (003 §3.2.2), independent of USAL.
+//!
+//! [`run`] starts the whole service from a [`config::VasConfig`]; the `vas` binary is a thin
+//! shell over it. Item names and types are listed in `services/vas/README.md`.
 
+pub mod apl;
+pub mod config;
 pub mod mavlink_cm;
+pub mod val;
+
+use std::sync::Arc;
+
+use anyhow::Context;
+use tokio_util::sync::CancellationToken;
+
+use crate::apl::ardupilot::ArduPilot;
+use crate::apl::IAutopilot;
+use crate::config::{AutopilotKind, VasConfig};
+
+/// Runs the VAS until `shutdown` is cancelled: opens the middleware node and the autopilot
+/// link, hosts the `vas` service, then shuts everything down.
+///
+/// # Errors
+/// Bad configuration, unreadable network file, a node that cannot open.
+pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
+    config.validate()?;
+    let mut net = match &config.network {
+        Some(path) => marea::NetworkConfig::load(path)
+            .with_context(|| format!("loading {}", path.display()))?,
+        None => marea::NetworkConfig::ethernet_loopback("vas"),
+    };
+    if let Some(d) = &config.domain {
+        net.domain.clone_from(d);
+    }
+    if let Some(ns) = &config.namespace {
+        net.namespace = Some(ns.clone());
+    }
+    let apl: Arc<dyn IAutopilot> = match config.autopilot {
+        AutopilotKind::Ardupilot => Arc::new(
+            ArduPilot::open(&config.endpoint, config.ardupilot())
+                .await
+                .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
+        ),
+    };
+    let node = marea::Node::open(&net)
+        .await
+        .context("opening the middleware node")?;
+    node.add_service(Box::new(val::Vas::new(apl.clone(), config.val())))
+        .await
+        .context("starting the vas service")?;
+    tracing::info!(
+        "vas up: {} {} on {}",
+        config.vehicle,
+        match config.autopilot {
+            AutopilotKind::Ardupilot => "ardupilot",
+        },
+        config.endpoint
+    );
+    shutdown.cancelled().await;
+    node.shutdown().await;
+    apl.shutdown().await;
+    Ok(())
+}

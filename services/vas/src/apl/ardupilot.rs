@@ -1,0 +1,757 @@
+//! The ArduPilot autopilot layer (003 §3.3.3): USAL states to ArduPilot modes, telemetry and
+//! alarms from the MAVLink manager, and the rolling waypoint queue kept fed.
+//!
+//! One driver task owns the [`RollingQueue`]: it receives the VAL's commands and the
+//! manager's events in order, performs the queue's actions on the autopilot and retries them
+//! on a tick when they fail. Its duties follow the seed's objects: `AP_Navigation` (modes,
+//! queue), `AP_Reader` (telemetry, status texts, mode changes), `AP_Parameters` (read at
+//! start and after every reconnection).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use tokio::sync::{broadcast, mpsc, oneshot};
+use tokio::time::interval;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+use usal_types::{
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, Position, QueueStatus, Severity,
+    Speeds, VehicleKind, Waypoint, WaypointKind, WaypointReached,
+};
+
+use super::queue::{QueueAction, RollingQueue};
+use super::{ApEvent, AutopilotError, IAutopilot};
+use crate::mavlink_cm::dialect::{MavCmd, MavSeverity};
+use crate::mavlink_cm::{
+    ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError, MissionItem,
+    MissionStage, Telemetry,
+};
+
+/// Settings of the ArduPilot layer.
+#[derive(Clone, Debug)]
+pub struct ArduPilotConfig {
+    /// Vehicle kind (decides the mode table).
+    pub vehicle: VehicleKind,
+    /// Rolling-queue slots on the autopilot (after home), ≥ 3.
+    pub queue_slots: u16,
+    /// Position, attitude and speed telemetry rate, Hz.
+    pub telemetry_hz: f32,
+    /// SYS_STATUS and MISSION_CURRENT rate, Hz.
+    pub status_hz: f32,
+    /// The MAVLink manager's tuning.
+    pub manager: ManagerConfig,
+}
+
+impl Default for ArduPilotConfig {
+    fn default() -> Self {
+        Self {
+            vehicle: VehicleKind::Rover,
+            queue_slots: 5,
+            telemetry_hz: 4.0,
+            status_hz: 1.0,
+            manager: ManagerConfig::default(),
+        }
+    }
+}
+
+/// Errors opening the ArduPilot layer.
+#[derive(Debug, thiserror::Error)]
+pub enum ArduPilotOpenError {
+    /// Bad endpoint.
+    #[error(transparent)]
+    Manager(#[from] ManagerOpenError),
+    /// Bad queue size.
+    #[error(transparent)]
+    Queue(#[from] super::QueueCreateError),
+}
+
+/// Whether a state wants the motors armed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Arming {
+    Keep,
+    Arm,
+}
+
+/// The ArduPilot mode (and arming) of a flight state; `None`: no mode (CONFIGURE_CHECK, or a
+/// state the vehicle does not have).
+fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)> {
+    use Arming::*;
+    use FlightState::*;
+    Some(match (kind, state) {
+        (_, ConfigureCheck) => return None,
+        (VehicleKind::Rover, Parking) => ("HOLD", Keep),
+        (VehicleKind::Rover, Directed | Manual) => ("MANUAL", Keep),
+        (VehicleKind::Rover, ManualNavigation) => ("MANUAL", Arm),
+        (_, WaypointNavigation) => ("AUTO", Arm),
+        (VehicleKind::Rover, _) => return None,
+        (VehicleKind::Copter, Parking | Landing) => ("LAND", Keep),
+        (VehicleKind::Copter, TakeOff) => ("GUIDED", Arm),
+        (VehicleKind::Copter, Directed) => ("LOITER", Keep),
+        (VehicleKind::Copter, ManualNavigation) => ("ALT_HOLD", Arm),
+        (VehicleKind::Copter, ReturnToLaunch) => ("RTL", Keep),
+        (VehicleKind::Copter, Manual) => ("STABILIZE", Keep),
+        (VehicleKind::Plane, Parking | Manual) => ("MANUAL", Keep),
+        (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
+        (VehicleKind::Plane, Directed) => ("FBWA", Keep),
+        (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
+        (VehicleKind::Plane, Landing | ReturnToLaunch) => ("RTL", Keep),
+    })
+}
+
+/// The flight state an autopilot-chosen mode means (RC switch, failsafe, end of mission).
+fn state_for_mode(kind: VehicleKind, mode: &str) -> Option<FlightState> {
+    use FlightState::*;
+    Some(match (kind, mode) {
+        (_, "AUTO") => WaypointNavigation,
+        (VehicleKind::Rover, "HOLD" | "LOITER") => Parking,
+        (VehicleKind::Rover, "MANUAL" | "ACRO" | "STEERING") => Directed,
+        (VehicleKind::Copter, "LAND") => Landing,
+        (VehicleKind::Copter, "RTL" | "SMART_RTL") => ReturnToLaunch,
+        (VehicleKind::Copter, "LOITER" | "POSHOLD" | "BRAKE" | "GUIDED") => Directed,
+        (VehicleKind::Copter, "STABILIZE" | "ACRO" | "ALT_HOLD") => Manual,
+        (VehicleKind::Plane, "RTL") => ReturnToLaunch,
+        (VehicleKind::Plane, "LOITER" | "CIRCLE" | "FBWA" | "FBWB" | "CRUISE" | "GUIDED") => {
+            Directed
+        }
+        (VehicleKind::Plane, "MANUAL" | "STABILIZE" | "ACRO") => Manual,
+        _ => return None,
+    })
+}
+
+fn severity(s: MavSeverity) -> Severity {
+    match s {
+        MavSeverity::MAV_SEVERITY_EMERGENCY => Severity::Emergency,
+        MavSeverity::MAV_SEVERITY_ALERT => Severity::Alert,
+        MavSeverity::MAV_SEVERITY_CRITICAL => Severity::Critical,
+        MavSeverity::MAV_SEVERITY_ERROR => Severity::Error,
+        MavSeverity::MAV_SEVERITY_WARNING => Severity::Warning,
+        MavSeverity::MAV_SEVERITY_NOTICE => Severity::Notice,
+        MavSeverity::MAV_SEVERITY_INFO => Severity::Info,
+        MavSeverity::MAV_SEVERITY_DEBUG => Severity::Debug,
+    }
+}
+
+/// The mission item for a queued waypoint.
+fn mission_item(w: &Waypoint) -> MissionItem {
+    let mut item = MissionItem::waypoint(w.lat, w.lon, w.alt as f32);
+    item.command = match w.kind {
+        WaypointKind::Nav => MavCmd::MAV_CMD_NAV_WAYPOINT,
+        WaypointKind::Takeoff => MavCmd::MAV_CMD_NAV_TAKEOFF,
+        WaypointKind::Land => MavCmd::MAV_CMD_NAV_LAND,
+    };
+    item
+}
+
+fn same_item(a: &MissionItem, b: &MissionItem) -> bool {
+    a.command == b.command && a.x == b.x && a.y == b.y && (a.z - b.z).abs() < 0.01
+}
+
+/// Joystick to RC PWM (ch1 roll/steering, ch2 pitch, ch3 throttle, ch4 yaw); `None` releases.
+fn rc_channels(kind: VehicleKind, mc: Option<&ManualControl>) -> [u16; 8] {
+    let Some(mc) = mc else { return [0; 8] };
+    let axis = |v: f32| {
+        let v = if v.is_finite() {
+            v.clamp(-1.0, 1.0)
+        } else {
+            0.0
+        };
+        (1500.0 + v * 500.0).round() as u16
+    };
+    let throttle = match kind {
+        // A rover's throttle is centred (reverse below 1500), an aircraft's starts at 1000.
+        VehicleKind::Rover => axis(mc.throttle),
+        _ => axis(mc.throttle.clamp(-1.0, 1.0) * 2.0 - 1.0),
+    };
+    [
+        axis(mc.roll),
+        axis(-mc.pitch),
+        throttle,
+        axis(mc.yaw),
+        u16::MAX,
+        u16::MAX,
+        u16::MAX,
+        u16::MAX,
+    ]
+}
+
+enum Cmd {
+    ChangeState(FlightState, oneshot::Sender<Result<(), AutopilotError>>),
+    Push(Vec<Waypoint>, oneshot::Sender<QueueStatus>),
+    Clear(oneshot::Sender<QueueStatus>),
+    Status(oneshot::Sender<QueueStatus>),
+}
+
+/// The ArduPilot implementation of [`IAutopilot`] (Rover first; Copter and Plane modes mapped).
+pub struct ArduPilot {
+    mgr: Arc<MavlinkManager>,
+    cfg: ArduPilotConfig,
+    cmd_tx: mpsc::Sender<Cmd>,
+    events_tx: broadcast::Sender<ApEvent>,
+    cancel: CancellationToken,
+    tasks: TaskTracker,
+}
+
+impl ArduPilot {
+    /// Opens the MAVLink endpoint (`udpout:HOST:PORT`, `serial:PATH:BAUD`...) and starts the
+    /// layer's driver. Call [`IAutopilot::listen_ap`] next.
+    ///
+    /// # Errors
+    /// A malformed endpoint or queue size.
+    pub async fn open(endpoint: &str, cfg: ArduPilotConfig) -> Result<Self, ArduPilotOpenError> {
+        let queue = RollingQueue::new(cfg.queue_slots)?;
+        let mgr = Arc::new(MavlinkManager::open(endpoint, cfg.manager.clone()).await?);
+        let (cmd_tx, cmd_rx) = mpsc::channel(64);
+        let (events_tx, _) = broadcast::channel(1024);
+        let cancel = CancellationToken::new();
+        let tasks = TaskTracker::new();
+        let driver = Driver {
+            mgr: mgr.clone(),
+            kind: cfg.vehicle,
+            queue,
+            events: events_tx.clone(),
+            commanded: None,
+            last_mode: None,
+            last_reached: None,
+            home: None,
+            failing: false,
+        };
+        tasks.spawn(driver.run(cmd_rx, mgr.subscribe(), cancel.clone()));
+        tasks.close();
+        Ok(Self {
+            mgr,
+            cfg,
+            cmd_tx,
+            events_tx,
+            cancel,
+            tasks,
+        })
+    }
+
+    /// The MAVLink manager underneath (parameters, raw commands).
+    pub fn manager(&self) -> &MavlinkManager {
+        &self.mgr
+    }
+
+    async fn ask<T>(
+        &self,
+        make: impl FnOnce(oneshot::Sender<T>) -> Cmd,
+    ) -> Result<T, AutopilotError> {
+        let (tx, rx) = oneshot::channel();
+        self.cmd_tx
+            .send(make(tx))
+            .await
+            .map_err(|_| AutopilotError::Stopped)?;
+        rx.await.map_err(|_| AutopilotError::Stopped)
+    }
+}
+
+fn status_of(mgr: &MavlinkManager) -> AutopilotStatus {
+    let s = mgr.state();
+    AutopilotStatus {
+        connected: s.link_up,
+        armed: s.armed,
+        mode: s.mode_name.unwrap_or_default().to_owned(),
+        mode_number: s.mode.unwrap_or_default(),
+        system_status: s
+            .system_status
+            .map(|st| {
+                format!("{st:?}")
+                    .trim_start_matches("MAV_STATE_")
+                    .to_owned()
+            })
+            .unwrap_or_default(),
+    }
+}
+
+#[async_trait]
+impl IAutopilot for ArduPilot {
+    fn vehicle(&self) -> VehicleKind {
+        self.cfg.vehicle
+    }
+
+    fn events(&self) -> broadcast::Receiver<ApEvent> {
+        self.events_tx.subscribe()
+    }
+
+    fn status(&self) -> AutopilotStatus {
+        status_of(&self.mgr)
+    }
+
+    async fn listen_ap(&self) -> Result<(), AutopilotError> {
+        let wait = self.cfg.manager.connect_wait;
+        self.mgr
+            .wait_connected(wait)
+            .await
+            .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+        configure(&self.mgr, &self.cfg).await?;
+        let _ = self.events_tx.send(ApEvent::Configured);
+        Ok(())
+    }
+
+    async fn change_state(&self, to: FlightState) -> Result<(), AutopilotError> {
+        self.ask(|tx| Cmd::ChangeState(to, tx)).await?
+    }
+
+    async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError> {
+        self.ask(|tx| Cmd::Push(wps, tx)).await
+    }
+
+    async fn clear_waypoints(&self) -> Result<QueueStatus, AutopilotError> {
+        self.ask(Cmd::Clear).await
+    }
+
+    async fn queue_status(&self) -> Result<QueueStatus, AutopilotError> {
+        self.ask(Cmd::Status).await
+    }
+
+    async fn manual_navigation(&self, mc: Option<ManualControl>) -> Result<(), AutopilotError> {
+        self.mgr
+            .rc_override(rc_channels(self.cfg.vehicle, mc.as_ref()))
+            .await
+            .map_err(|e| AutopilotError::NotConnected(e.to_string()))
+    }
+
+    async fn shutdown(&self) {
+        self.cancel.cancel();
+        self.tasks.wait().await;
+    }
+}
+
+impl Drop for ArduPilot {
+    fn drop(&mut self) {
+        self.cancel.cancel();
+    }
+}
+
+/// Reads the parameters and sets the telemetry rates (`AP_Parameters`).
+async fn configure(mgr: &MavlinkManager, cfg: &ArduPilotConfig) -> Result<(), AutopilotError> {
+    match mgr.params_list().await {
+        Ok(p) => tracing::info!("autopilot has {} parameters", p.len()),
+        Err(e) => tracing::warn!("reading parameters: {e}"),
+    }
+    let t = cfg.telemetry_hz;
+    let s = cfg.status_hz;
+    mgr.request_telemetry(&[
+        (Telemetry::Position, t),
+        (Telemetry::Attitude, t),
+        (Telemetry::VfrHud, t),
+        (Telemetry::SysStatus, s),
+        (Telemetry::MissionCurrent, s),
+    ])
+    .await
+    .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+    Ok(())
+}
+
+/// Why a queue action failed.
+enum ExecError {
+    PartialUnsupported,
+    Other(String),
+}
+
+struct Driver {
+    mgr: Arc<MavlinkManager>,
+    kind: VehicleKind,
+    queue: RollingQueue<Waypoint>,
+    events: broadcast::Sender<ApEvent>,
+    /// The state the VAL last commanded (or the autopilot's own choice, once reported).
+    commanded: Option<FlightState>,
+    last_mode: Option<String>,
+    last_reached: Option<u64>,
+    home: Option<(f64, f64)>,
+    /// The last queue action failed: wait for the tick before retrying.
+    failing: bool,
+}
+
+impl Driver {
+    async fn run(
+        mut self,
+        mut cmds: mpsc::Receiver<Cmd>,
+        mut mav: broadcast::Receiver<MavEvent>,
+        cancel: CancellationToken,
+    ) {
+        let mut tick = interval(Duration::from_millis(250));
+        loop {
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                cmd = cmds.recv() => match cmd {
+                    Some(cmd) => self.on_cmd(cmd).await,
+                    None => break,
+                },
+                ev = mav.recv() => match ev {
+                    Ok(ev) => self.on_mav(ev).await,
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!("APL lagged {n} MAVLink events; resynchronising");
+                        self.resync().await;
+                    }
+                    Err(broadcast::error::RecvError::Closed) => break,
+                },
+                _ = tick.tick() => {
+                    self.failing = false;
+                    self.resync().await;
+                }
+            }
+        }
+    }
+
+    fn emit(&self, e: ApEvent) {
+        let _ = self.events.send(e);
+    }
+
+    fn alarm(&self, severity: Severity, text: impl Into<String>) {
+        self.emit(ApEvent::Alarm(Alarm {
+            severity,
+            text: text.into(),
+        }));
+    }
+
+    fn queue_status(&self) -> QueueStatus {
+        QueueStatus {
+            queued: self.queue.len() as u64,
+            target: self.queue.target().map(|w| w.seq),
+            last_reached: self.last_reached,
+            replacing: self.queue.is_replacing(),
+        }
+    }
+
+    async fn on_cmd(&mut self, cmd: Cmd) {
+        match cmd {
+            Cmd::ChangeState(to, reply) => {
+                let r = self.change_state(to).await;
+                let _ = reply.send(r);
+            }
+            Cmd::Push(wps, reply) => {
+                self.queue.push(wps);
+                let _ = reply.send(self.queue_status());
+                self.pump().await;
+            }
+            Cmd::Clear(reply) => {
+                self.queue.clear();
+                let _ = reply.send(self.queue_status());
+            }
+            Cmd::Status(reply) => {
+                let _ = reply.send(self.queue_status());
+            }
+        }
+    }
+
+    async fn change_state(&mut self, to: FlightState) -> Result<(), AutopilotError> {
+        let Some((mode, arming)) = mode_for(self.kind, to) else {
+            return Err(AutopilotError::Unsupported(format!(
+                "no autopilot mode for {to} on a {}",
+                self.kind
+            )));
+        };
+        let refused = |e: &dyn std::fmt::Display| AutopilotError::Refused(e.to_string());
+        let previous = self.commanded.replace(to);
+        if to == FlightState::WaypointNavigation {
+            if self.queue.is_empty() {
+                self.commanded = previous;
+                return Err(AutopilotError::Refused("no waypoints queued".into()));
+            }
+            self.queue.stop();
+            self.queue.start();
+            if let Err(e) = self.prime().await {
+                self.queue.stop();
+                self.commanded = previous;
+                return Err(AutopilotError::Refused(format!("priming the queue: {e}")));
+            }
+        } else {
+            self.queue.stop();
+        }
+        if arming == Arming::Arm && !self.mgr.state().armed {
+            if let Err(e) = self.mgr.arm(true).await {
+                self.commanded = previous;
+                return Err(refused(&e));
+            }
+        }
+        if let Err(e) = self.mgr.set_mode(mode).await {
+            self.queue.stop();
+            self.commanded = previous;
+            return Err(refused(&e));
+        }
+        if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
+            let alt = self.queue.target().map_or(10.0, |w| w.alt.max(2.0)) as f32;
+            let takeoff = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, alt];
+            if let Err(e) = self
+                .mgr
+                .command_long(MavCmd::MAV_CMD_NAV_TAKEOFF, takeoff)
+                .await
+            {
+                return Err(refused(&e));
+            }
+        }
+        if to != FlightState::ManualNavigation {
+            // Give the sticks back to the RC transmitter.
+            let _ = self.mgr.rc_override(rc_channels(self.kind, None)).await;
+        }
+        self.last_mode = Some(mode.to_owned());
+        Ok(())
+    }
+
+    /// Performs queue actions until the autopilot holds what it should.
+    async fn prime(&mut self) -> Result<(), String> {
+        for _ in 0..32 {
+            let Some(action) = self.queue.poll() else {
+                return Ok(());
+            };
+            match self.exec(&action).await {
+                Ok(()) => self.queue.done(&action),
+                Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
+                Err(ExecError::Other(e)) => return Err(e),
+            }
+        }
+        Err("the queue did not settle".into())
+    }
+
+    async fn pump(&mut self) {
+        if self.failing || !self.mgr.state().link_up {
+            return;
+        }
+        if let Err(e) = self.prime().await {
+            tracing::warn!("rolling queue: {e}; retrying");
+            self.failing = true;
+        }
+    }
+
+    async fn exec(&mut self, action: &QueueAction<Waypoint>) -> Result<(), ExecError> {
+        let other = |e: MissionError| ExecError::Other(e.to_string());
+        match action {
+            QueueAction::Upload(items) => {
+                let home = self
+                    .home
+                    .or_else(|| items.first().map(|w| (w.lat, w.lon)))
+                    .unwrap_or_default();
+                let mut mission = vec![MissionItem::waypoint(home.0, home.1, 0.0)];
+                mission.extend(items.iter().map(mission_item));
+                tracing::debug!("queue: upload {} slots", items.len());
+                self.mgr.mission_upload(&mission).await.map_err(other)
+            }
+            QueueAction::WritePartial { start, items } => {
+                let mission: Vec<MissionItem> = items.iter().map(mission_item).collect();
+                tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
+                match self.mgr.mission_write_partial(*start, &mission).await {
+                    Ok(()) => Ok(()),
+                    Err(MissionError::RetriesExhausted {
+                        stage: MissionStage::Start,
+                        ..
+                    }) => {
+                        tracing::warn!("partial mission writes unanswered: uploading whole windows from now on");
+                        Err(ExecError::PartialUnsupported)
+                    }
+                    Err(e) => Err(other(e)),
+                }
+            }
+            QueueAction::SetCurrent(seq) => {
+                tracing::debug!("queue: set current {seq}");
+                self.mgr.mission_set_current(*seq).await.map_err(other)
+            }
+        }
+    }
+
+    fn reached(&mut self, w: Waypoint) {
+        self.last_reached = Some(w.seq);
+        self.emit(ApEvent::WaypointReached(WaypointReached {
+            seq: w.seq,
+            leg: w.leg,
+            lat: w.lat,
+            lon: w.lon,
+            remaining: self.queue.len() as u64,
+        }));
+    }
+
+    /// Catches up with the autopilot from its latest state (after a lag, on every tick).
+    async fn resync(&mut self) {
+        if let Some(seq) = self.mgr.state().mission_current {
+            if let Some(w) = self.queue.on_current(seq) {
+                self.reached(w);
+            }
+        }
+        self.check_mode();
+        self.pump().await;
+    }
+
+    /// Reacts to the autopilot's latest mode when it is not the one commanded.
+    fn check_mode(&mut self) {
+        let s = self.mgr.state();
+        let Some(mode) = s.mode_name.filter(|_| s.link_up) else {
+            return;
+        };
+        if self.last_mode.as_deref() == Some(mode) {
+            return;
+        }
+        self.last_mode = Some(mode.to_owned());
+        if mode != "AUTO" && self.queue.is_running() {
+            self.queue.stop();
+        }
+        let expected = self.commanded.and_then(|st| mode_for(self.kind, st));
+        if expected.map(|m| m.0) != Some(mode) {
+            let state = state_for_mode(self.kind, mode);
+            if state.is_some() {
+                self.commanded = state;
+            }
+            self.emit(ApEvent::ModeChanged {
+                mode: mode.to_owned(),
+                state,
+            });
+        }
+    }
+
+    async fn on_mav(&mut self, ev: MavEvent) {
+        match ev {
+            MavEvent::WaypointReached { seq, .. } => {
+                if let Some(w) = self.queue.on_reached(seq) {
+                    self.reached(w);
+                }
+                self.pump().await;
+            }
+            MavEvent::MissionCurrent { seq } => {
+                if let Some(w) = self.queue.on_current(seq) {
+                    self.reached(w);
+                }
+                self.pump().await;
+            }
+            MavEvent::ModeChanged { .. } | MavEvent::ArmedChanged { .. } => {
+                self.check_mode();
+                self.emit(ApEvent::Status(status_of(&self.mgr)));
+            }
+            MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
+            MavEvent::StatusText {
+                severity: sev,
+                text,
+            } => {
+                let sev = severity(sev);
+                if sev <= Severity::Warning {
+                    self.alarm(sev, format!("autopilot: {text}"));
+                }
+            }
+            MavEvent::Position(p) => {
+                self.home.get_or_insert((p.lat_deg, p.lon_deg));
+                let speed = p.vel_ned[0].hypot(p.vel_ned[1]);
+                let heading = p.heading_deg.unwrap_or_else(|| {
+                    p.vel_ned[1]
+                        .atan2(p.vel_ned[0])
+                        .to_degrees()
+                        .rem_euclid(360.0)
+                });
+                self.emit(ApEvent::Position(Position {
+                    lat: p.lat_deg,
+                    lon: p.lon_deg,
+                    alt: f64::from(p.alt_msl_m),
+                    heading,
+                    speed,
+                }));
+            }
+            MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(Attitude {
+                roll: a.roll.to_degrees(),
+                pitch: a.pitch.to_degrees(),
+                yaw: a.yaw.to_degrees(),
+            })),
+            MavEvent::VfrHud(v) => self.emit(ApEvent::Speeds(Speeds {
+                ground: v.groundspeed,
+                air: v.airspeed,
+                climb: v.climb,
+            })),
+            MavEvent::LinkLost => {
+                self.alarm(Severity::Critical, "autopilot heartbeat lost");
+                self.emit(ApEvent::LinkLost);
+                self.emit(ApEvent::Status(status_of(&self.mgr)));
+            }
+            MavEvent::LinkRestored => self.on_restored().await,
+            MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
+        }
+    }
+
+    /// Heartbeats are back: re-read parameters and mission, and resume what was commanded.
+    async fn on_restored(&mut self) {
+        self.alarm(Severity::Notice, "autopilot heartbeat restored");
+        match self.mgr.params_list().await {
+            Ok(p) => tracing::info!("re-read {} parameters", p.len()),
+            Err(e) => tracing::warn!("re-reading parameters: {e}"),
+        }
+        let intact = match self.mgr.mission_download().await {
+            Ok(onboard) => {
+                let expected: Option<Vec<MissionItem>> = self
+                    .queue
+                    .onboard()
+                    .map(|v| v.iter().map(mission_item).collect());
+                matches!(expected, Some(e) if e.len() + 1 == onboard.len()
+                    && e.iter().zip(&onboard[1..]).all(|(a, b)| same_item(a, b)))
+            }
+            Err(e) => {
+                tracing::warn!("downloading the mission: {e}");
+                false
+            }
+        };
+        if !intact {
+            self.queue.forget_onboard();
+        }
+        let mode = self.mgr.state().mode_name;
+        if let Some(state) = self.commanded {
+            let wanted = mode_for(self.kind, state).map(|m| m.0);
+            let resume = state == FlightState::WaypointNavigation && (!intact || mode != wanted);
+            if resume || (wanted.is_some() && mode != wanted) {
+                self.last_mode = None;
+                tracing::info!("autopilot is in {mode:?}: resuming {state}");
+                match self.change_state(state).await {
+                    Ok(()) => self.alarm(Severity::Notice, format!("resumed {state}")),
+                    Err(e) => self.alarm(Severity::Error, format!("cannot resume {state}: {e}")),
+                }
+            }
+        }
+        self.emit(ApEvent::LinkRestored);
+        self.emit(ApEvent::Status(status_of(&self.mgr)));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_rover_state_but_configure_has_a_mode() {
+        for s in FlightState::ALL {
+            let has = mode_for(VehicleKind::Rover, s).is_some();
+            let expect = s.applies_to(VehicleKind::Rover) && s != FlightState::ConfigureCheck;
+            assert_eq!(has, expect, "{s}");
+        }
+        for kind in [VehicleKind::Copter, VehicleKind::Plane] {
+            for s in FlightState::ALL.into_iter().skip(1) {
+                assert!(mode_for(kind, s).is_some(), "{kind} {s}");
+            }
+        }
+    }
+
+    #[test]
+    fn modes_map_back_to_their_states() {
+        assert_eq!(
+            state_for_mode(VehicleKind::Rover, "HOLD"),
+            Some(FlightState::Parking)
+        );
+        assert_eq!(
+            state_for_mode(VehicleKind::Rover, "AUTO"),
+            Some(FlightState::WaypointNavigation)
+        );
+        assert_eq!(
+            state_for_mode(VehicleKind::Copter, "LAND"),
+            Some(FlightState::Landing)
+        );
+    }
+
+    #[test]
+    fn sticks_to_pwm() {
+        let mc = ManualControl {
+            roll: 1.0,
+            pitch: 0.0,
+            throttle: -1.0,
+            yaw: f32::NAN,
+            timestamp_ms: 0,
+        };
+        let ch = rc_channels(VehicleKind::Rover, Some(&mc));
+        assert_eq!(&ch[..4], &[2000, 1500, 1000, 1500]);
+        let ch = rc_channels(VehicleKind::Copter, Some(&mc));
+        assert_eq!(ch[2], 1000);
+        assert_eq!(rc_channels(VehicleKind::Rover, None), [0; 8]);
+    }
+}

@@ -1,0 +1,125 @@
+//! The Autopilot Layer (APL, 003 §3.3): the [`IAutopilot`] interface the VAL drives, and its
+//! implementation for ArduPilot ([`ardupilot::ArduPilot`]) on the MAVLink manager.
+//!
+//! The seed's interface had 14 procedures, of which a rover needs four (003 §3.3.1):
+//! `ListenAp` ([`IAutopilot::listen_ap`]), `ChangeState` ([`IAutopilot::change_state`]),
+//! `ClearAllWp` ([`IAutopilot::clear_waypoints`]) and `ManualNavigation`
+//! ([`IAutopilot::manual_navigation`]); pushing waypoints is how the VAL feeds the queue.
+//! What the autopilot reports comes back as [`ApEvent`]s.
+
+pub mod ardupilot;
+pub mod queue;
+
+use async_trait::async_trait;
+use tokio::sync::broadcast;
+use usal_types::{
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, Position, QueueStatus, Speeds,
+    VehicleKind, Waypoint, WaypointReached,
+};
+
+pub use queue::{QueueAction, QueueCreateError, RollingQueue};
+
+/// What an autopilot layer reports to the VAL.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ApEvent {
+    /// Position telemetry.
+    Position(Position),
+    /// Attitude telemetry.
+    Attitude(Attitude),
+    /// Speeds telemetry.
+    Speeds(Speeds),
+    /// Heartbeat-derived status (sent on every change and periodically).
+    Status(AutopilotStatus),
+    /// A waypoint of the queue was reached.
+    WaypointReached(WaypointReached),
+    /// Something the ground should know.
+    Alarm(Alarm),
+    /// The autopilot changed mode by itself (RC switch, failsafe, end of mission): the
+    /// flight state the VAL should now be in, with the mode name.
+    ModeChanged {
+        /// The autopilot's mode name.
+        mode: String,
+        /// The flight state that mode means for this vehicle.
+        state: Option<FlightState>,
+    },
+    /// The autopilot is configured and ready (CONFIGURE_CHECK is over).
+    Configured,
+    /// Heartbeats stopped.
+    LinkLost,
+    /// Heartbeats again; the layer re-read the parameters and the mission and resumed.
+    LinkRestored,
+}
+
+/// Errors of the autopilot layer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AutopilotError {
+    /// No autopilot answers.
+    #[error("autopilot not connected: {0}")]
+    NotConnected(String),
+    /// This autopilot cannot do it (e.g. a state with no mode for this vehicle).
+    #[error("not supported by this autopilot: {0}")]
+    Unsupported(String),
+    /// The autopilot refused or did not confirm.
+    #[error("autopilot refused: {0}")]
+    Refused(String),
+    /// The layer is shut down.
+    #[error("autopilot layer stopped")]
+    Stopped,
+}
+
+/// The APL interface (003 §3.3.1, figure 3.5), implemented per autopilot family.
+#[async_trait]
+pub trait IAutopilot: Send + Sync {
+    /// The vehicle kind this layer drives.
+    fn vehicle(&self) -> VehicleKind;
+
+    /// Every event from now on.
+    fn events(&self) -> broadcast::Receiver<ApEvent>;
+
+    /// The latest autopilot status.
+    fn status(&self) -> AutopilotStatus;
+
+    /// `ListenAp`: waits for the autopilot, reads its parameters, sets the telemetry rates and
+    /// configures it. [`ApEvent::Configured`] follows on success.
+    ///
+    /// # Errors
+    /// No autopilot within the connection wait.
+    async fn listen_ap(&self) -> Result<(), AutopilotError>;
+
+    /// `ChangeState`: puts the autopilot in the mode (and arming) of `to`. The VAL has
+    /// already checked the transition table. Entering WAYPOINT_NAVIGATION primes the rolling
+    /// queue on the autopilot before switching to automatic mode.
+    ///
+    /// # Errors
+    /// No mode for `to`, or the autopilot refused.
+    async fn change_state(&self, to: FlightState) -> Result<(), AutopilotError>;
+
+    /// Appends waypoints to the queue (after `clear_waypoints`, replaces what follows the
+    /// current target).
+    ///
+    /// # Errors
+    /// Only when the layer is stopped.
+    async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError>;
+
+    /// `ClearAllWp`: "a new queue follows" (003 §6.2.2); the autopilot keeps navigating.
+    ///
+    /// # Errors
+    /// Only when the layer is stopped.
+    async fn clear_waypoints(&self) -> Result<QueueStatus, AutopilotError>;
+
+    /// The queue as it is.
+    ///
+    /// # Errors
+    /// Only when the layer is stopped.
+    async fn queue_status(&self) -> Result<QueueStatus, AutopilotError>;
+
+    /// `ManualNavigation`: joystick values to the actuators; `None` gives control back to the
+    /// RC transmitter.
+    ///
+    /// # Errors
+    /// Not connected.
+    async fn manual_navigation(&self, mc: Option<ManualControl>) -> Result<(), AutopilotError>;
+
+    /// Stops the layer's tasks.
+    async fn shutdown(&self);
+}

@@ -1,0 +1,625 @@
+//! The rolling waypoint queue of 003 §3.3.2 as a pure state machine (no I/O, no clock).
+//!
+//! The autopilot holds a mission of `n` slots after home (slot 0). Slots `1..n-1` hold
+//! distinct upcoming waypoints; slot `n` is the *mirror* of slot 1: when the vehicle has
+//! reached slot `n-1` and drives to slot `n`, the driver sets the current item back to 1,
+//! which holds the same point, so the path is not affected and the mission never ends.
+//! Each slot the vehicle passes is free and is rewritten with the next waypoint of the plan
+//! (a one-item MISSION_WRITE_PARTIAL_LIST), so a plan may hold any number of waypoints.
+//!
+//! The machine is declarative: from the waypoints ahead and the slot the vehicle drives to it
+//! computes the mission the autopilot *should* hold, compares it with what it is known to
+//! hold, and [`RollingQueue::poll`] returns the one action that brings them closer (a partial
+//! write, a full upload, a set-current). The driver performs it and reports the outcome with
+//! [`RollingQueue::done`]; a failure leaves the knowledge unchanged, so the next poll retries.
+//! Hence the fallbacks: an autopilot that ignores partial writes gets the whole window
+//! uploaded instead ([`RollingQueue::partial_unsupported`]); a link that comes back with an
+//! unknown mission gets it re-uploaded ([`RollingQueue::forget_onboard`]); a missed reached
+//! message is made up from MISSION_CURRENT ([`RollingQueue::on_current`]).
+//!
+//! When fewer waypoints are known than the window holds, the mission is truncated after the
+//! last one (a full upload, which ArduPilot does without changing the current target), so
+//! the vehicle stops there instead of driving back to a stale slot.
+
+use std::collections::VecDeque;
+
+/// What the driver must do to the autopilot next.
+#[derive(Clone, Debug, PartialEq)]
+pub enum QueueAction<W> {
+    /// Upload the whole mission: home, then these items in slots `1..=items.len()`.
+    Upload(Vec<W>),
+    /// Replace slots `start .. start + items.len()` (MISSION_WRITE_PARTIAL_LIST).
+    WritePartial {
+        /// First slot (≥ 1).
+        start: u16,
+        /// New contents.
+        items: Vec<W>,
+    },
+    /// Make `seq` the current mission item (MISSION_SET_CURRENT).
+    SetCurrent(u16),
+}
+
+/// Errors building a queue.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum QueueCreateError {
+    /// Fewer than 3 slots cannot mirror slot 1 and still hold two distinct waypoints.
+    #[error("a rolling queue needs at least 3 slots, not {0}")]
+    TooFewSlots(u16),
+}
+
+/// The rolling waypoint queue. `W` is the waypoint (the VAS uses `usal_types::Waypoint`).
+#[derive(Clone, Debug)]
+pub struct RollingQueue<W> {
+    /// Slots after home (the seed's 5).
+    n: u16,
+    /// Waypoints from the one being driven to (`ahead[0]`) onwards.
+    ahead: VecDeque<W>,
+    /// Slot the vehicle drives to; `None` when not navigating.
+    cur: Option<u16>,
+    /// What the autopilot holds in slots `1..=have.len()`, `None` where unknown;
+    /// `have_known` false when even the length is unknown.
+    have: Vec<Option<W>>,
+    have_known: bool,
+    /// A set-current to `1` is owed after (re)starting.
+    owe_start: bool,
+    /// MISSION_WRITE_PARTIAL_LIST works on this autopilot (until shown otherwise).
+    partial_ok: bool,
+    /// `clear` was called: the next push replaces everything after the target.
+    replacing: bool,
+}
+
+impl<W: Clone + PartialEq> RollingQueue<W> {
+    /// An empty queue of `slots` autopilot slots (after home).
+    ///
+    /// # Errors
+    /// [`QueueCreateError::TooFewSlots`] below 3.
+    pub fn new(slots: u16) -> Result<Self, QueueCreateError> {
+        if slots < 3 {
+            return Err(QueueCreateError::TooFewSlots(slots));
+        }
+        Ok(Self {
+            n: slots,
+            ahead: VecDeque::new(),
+            cur: None,
+            have: Vec::new(),
+            have_known: false,
+            owe_start: false,
+            partial_ok: true,
+            replacing: false,
+        })
+    }
+
+    /// Slots after home.
+    pub fn slots(&self) -> u16 {
+        self.n
+    }
+
+    /// Waypoints queued, the target included.
+    pub fn len(&self) -> usize {
+        self.ahead.len()
+    }
+
+    /// No waypoint queued.
+    pub fn is_empty(&self) -> bool {
+        self.ahead.is_empty()
+    }
+
+    /// The waypoint being driven to (or next to drive to when not navigating).
+    pub fn target(&self) -> Option<&W> {
+        self.ahead.front()
+    }
+
+    /// The waypoints queued, target first.
+    pub fn queued(&self) -> impl Iterator<Item = &W> {
+        self.ahead.iter()
+    }
+
+    /// The slot the vehicle drives to, when navigating.
+    pub fn current_slot(&self) -> Option<u16> {
+        self.cur
+    }
+
+    /// Navigating through the queue.
+    pub fn is_running(&self) -> bool {
+        self.cur.is_some()
+    }
+
+    /// `clear` was called and no push has followed.
+    pub fn is_replacing(&self) -> bool {
+        self.replacing
+    }
+
+    /// Partial writes are still believed to work.
+    pub fn partial_supported(&self) -> bool {
+        self.partial_ok
+    }
+
+    /// Appends waypoints. After [`Self::clear`], they replace everything queued after the
+    /// target instead (the target stays: the vehicle is already on its way to it; a first
+    /// pushed waypoint equal to the target is not repeated).
+    pub fn push(&mut self, wps: impl IntoIterator<Item = W>) {
+        let mut wps = wps.into_iter().peekable();
+        if self.replacing {
+            self.replacing = false;
+            let keep = usize::from(self.is_running());
+            self.ahead.truncate(keep);
+            if wps.peek().is_some() && wps.peek() == self.ahead.front() {
+                wps.next();
+            }
+        }
+        self.ahead.extend(wps);
+    }
+
+    /// "A new queue follows" (003 §6.2.2): nothing changes on the autopilot now; the next
+    /// [`Self::push`] replaces what follows the target.
+    pub fn clear(&mut self) {
+        self.replacing = true;
+    }
+
+    /// Drops every waypoint at once (when leaving navigation for good, not on `clear`).
+    pub fn discard(&mut self) {
+        self.ahead.clear();
+        self.replacing = false;
+    }
+
+    /// Starts (or restarts) navigation: the window is laid out from slot 1 and the current
+    /// item set to 1 before the driver switches the autopilot to AUTO.
+    pub fn start(&mut self) {
+        self.cur = Some(1);
+        self.owe_start = true;
+    }
+
+    /// Stops navigating (the autopilot left AUTO). The waypoints stay queued.
+    pub fn stop(&mut self) {
+        self.cur = None;
+        self.owe_start = false;
+    }
+
+    /// The autopilot ignores MISSION_WRITE_PARTIAL_LIST: upload whole windows from now on.
+    pub fn partial_unsupported(&mut self) {
+        self.partial_ok = false;
+    }
+
+    /// What the autopilot holds is no longer known (link restored, autopilot restarted).
+    pub fn forget_onboard(&mut self) {
+        self.have.clear();
+        self.have_known = false;
+    }
+
+    /// What the autopilot holds, as downloaded (slot 1 first, home excluded).
+    pub fn set_onboard(&mut self, items: Vec<W>) {
+        self.have = items.into_iter().map(Some).collect();
+        self.have_known = true;
+    }
+
+    /// What the autopilot is believed to hold (slot 1 first), when fully known.
+    pub fn onboard(&self) -> Option<Vec<W>> {
+        if !self.have_known {
+            return None;
+        }
+        self.have.iter().cloned().collect()
+    }
+
+    /// Everything the autopilot reported is consistent with the plan and nothing is owed.
+    pub fn is_synced(&mut self) -> bool {
+        self.poll().is_none()
+    }
+
+    /// Slot of `ahead[i]` for a vehicle driving to slot `c` (≤ n-1), and whether slot 1
+    /// mirrors it; `None` past the window.
+    fn slot_of(&self, c: u16, i: usize) -> Option<(u16, bool)> {
+        let n = usize::from(self.n);
+        let m = n - 1;
+        let lin = usize::from(c) + i;
+        if lin < n {
+            Some((lin as u16, false))
+        } else if lin == n {
+            Some((self.n, c >= 2))
+        } else {
+            let slot = lin - m;
+            (slot < usize::from(c)).then_some((slot as u16, false))
+        }
+    }
+
+    /// The mission the autopilot should hold (slot 1 first), `None` entries meaning
+    /// "whatever is there", for a vehicle driving to `c` (1..=n-1).
+    fn wanted(&self, c: u16) -> Vec<Option<W>> {
+        let n = usize::from(self.n);
+        let last_lin = usize::from(c) + self.ahead.len().saturating_sub(1);
+        let count = if last_lin < n { last_lin } else { n };
+        let mut want: Vec<Option<W>> = (0..count)
+            .map(|k| self.have.get(k).cloned().flatten())
+            .collect();
+        let mut assigned = vec![false; count];
+        for (i, w) in self.ahead.iter().enumerate() {
+            let Some((slot, mirror)) = self.slot_of(c, i) else {
+                break;
+            };
+            let k = usize::from(slot) - 1;
+            if k >= count || assigned[k] {
+                break;
+            }
+            assigned[k] = true;
+            want[k] = Some(w.clone());
+            if mirror {
+                assigned[0] = true;
+                want[0] = Some(w.clone());
+            }
+        }
+        want
+    }
+
+    /// The next action needed, or `None` when the autopilot holds what it should.
+    pub fn poll(&mut self) -> Option<QueueAction<W>> {
+        let c = self.cur?;
+        let a0 = self.ahead.front()?.clone();
+        if c == self.n {
+            // Driving to the mirror slot: wrap to slot 1 unless this is the last waypoint.
+            if self.ahead.len() < 2 {
+                return None;
+            }
+            if self.have.first() != Some(&Some(a0.clone())) {
+                return Some(self.write(1, vec![a0]));
+            }
+            return Some(QueueAction::SetCurrent(1));
+        }
+        let want = self.wanted(c);
+        let filler = || a0.clone();
+        if !self.have_known
+            || self.have.len() != want.len()
+            || self.have.iter().any(Option::is_none)
+        {
+            let items = want.into_iter().map(|w| w.unwrap_or_else(filler)).collect();
+            return Some(QueueAction::Upload(items));
+        }
+        // First run of differing slots.
+        let differs = |k: usize| want[k].is_some() && want[k] != self.have[k];
+        if let Some(first) = (0..want.len()).find(|&k| differs(k)) {
+            let mut items = Vec::new();
+            let mut k = first;
+            while k < want.len() && differs(k) {
+                items.push(want[k].clone().unwrap_or_else(filler));
+                k += 1;
+            }
+            return Some(self.write(first as u16 + 1, items));
+        }
+        if self.owe_start {
+            return Some(QueueAction::SetCurrent(c));
+        }
+        None
+    }
+
+    fn write(&self, start: u16, items: Vec<W>) -> QueueAction<W> {
+        if self.partial_ok && self.have_known {
+            QueueAction::WritePartial { start, items }
+        } else {
+            let mut all: Vec<W> = self
+                .have
+                .iter()
+                .map(|w| w.clone().or_else(|| items.first().cloned()))
+                .collect::<Option<Vec<W>>>()
+                .unwrap_or_default();
+            let s = usize::from(start) - 1;
+            if all.len() < s + items.len() {
+                // Unknown contents: fall back to the computed window.
+                return QueueAction::Upload(items);
+            }
+            all[s..s + items.len()].clone_from_slice(&items);
+            QueueAction::Upload(all)
+        }
+    }
+
+    /// The driver performed `action` successfully.
+    pub fn done(&mut self, action: &QueueAction<W>) {
+        match action {
+            QueueAction::Upload(items) => {
+                self.have = items.iter().cloned().map(Some).collect();
+                self.have_known = true;
+            }
+            QueueAction::WritePartial { start, items } => {
+                let s = usize::from(*start) - 1;
+                for (k, w) in items.iter().enumerate() {
+                    if let Some(slot) = self.have.get_mut(s + k) {
+                        *slot = Some(w.clone());
+                    }
+                }
+            }
+            QueueAction::SetCurrent(seq) => {
+                if self.cur.is_some() {
+                    self.cur = Some(*seq);
+                }
+                self.owe_start = false;
+            }
+        }
+    }
+
+    /// The autopilot reports it reached mission item `slot`. Returns the waypoint reached,
+    /// if it is the target (duplicates and stale reports of passed slots return `None`).
+    pub fn on_reached(&mut self, slot: u16) -> Option<W> {
+        let c = self.cur?;
+        let is_target = slot == c || (c == self.n && slot == 1);
+        if !is_target || self.owe_start {
+            return None;
+        }
+        let w = self.ahead.pop_front()?;
+        if self.ahead.is_empty() || slot == self.n {
+            // Last waypoint, or the wrap was missed and the mission ended: the autopilot
+            // holds; navigation must be restarted.
+            self.cur = None;
+        } else {
+            self.cur = Some(slot + 1);
+        }
+        Some(w)
+    }
+
+    /// MISSION_CURRENT says the autopilot drives to `slot`. When that is the slot of the
+    /// waypoint after the target, the target's reached message was missed: it is returned
+    /// as reached.
+    pub fn on_current(&mut self, slot: u16) -> Option<W> {
+        let c = self.cur?;
+        if self.owe_start || c == self.n || self.ahead.len() < 2 {
+            return None;
+        }
+        match self.slot_of(c, 1) {
+            Some((s, _)) if s == slot => self.on_reached(c),
+            _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A simulated autopilot mission as 003 §2.5.4 describes APM:Rover: a target index that
+    /// uploads do not change, set-current does, HOLD after the last item.
+    struct Autopilot {
+        mission: Vec<u32>,
+        current: u16,
+        holding: bool,
+        reached: Vec<u32>,
+        partial_works: bool,
+    }
+
+    impl Autopilot {
+        fn new(partial_works: bool) -> Self {
+            Self {
+                mission: Vec::new(),
+                current: 1,
+                holding: false,
+                reached: Vec::new(),
+                partial_works,
+            }
+        }
+        fn apply(&mut self, a: &QueueAction<u32>) -> bool {
+            match a {
+                QueueAction::Upload(items) => self.mission = items.clone(),
+                QueueAction::WritePartial { start, items } => {
+                    if !self.partial_works {
+                        return false;
+                    }
+                    let s = usize::from(*start) - 1;
+                    assert!(s + items.len() <= self.mission.len(), "partial cannot grow");
+                    self.mission[s..s + items.len()].copy_from_slice(items);
+                }
+                QueueAction::SetCurrent(seq) => self.current = *seq,
+            }
+            true
+        }
+        /// Drives to the current item; returns the slot reached.
+        fn drive(&mut self) -> Option<u16> {
+            if self.holding {
+                return None;
+            }
+            let slot = self.current;
+            let wp = *self.mission.get(usize::from(slot) - 1)?;
+            self.reached.push(wp);
+            if usize::from(slot) == self.mission.len() {
+                self.holding = true;
+            } else {
+                self.current += 1;
+            }
+            Some(slot)
+        }
+    }
+
+    fn settle(q: &mut RollingQueue<u32>, ap: &mut Autopilot) {
+        for _ in 0..20 {
+            let Some(a) = q.poll() else { return };
+            if ap.apply(&a) {
+                q.done(&a);
+            } else {
+                q.partial_unsupported();
+            }
+        }
+        panic!("queue did not settle");
+    }
+
+    fn fly(slots: u16, plan: u32, partial_works: bool, feed_chunk: usize) -> Autopilot {
+        let mut q = RollingQueue::new(slots).unwrap();
+        let mut ap = Autopilot::new(partial_works);
+        let mut next = 0u32;
+        let mut feed = |q: &mut RollingQueue<u32>| {
+            let end = (next + feed_chunk as u32).min(plan);
+            q.push(next..end);
+            next = end;
+        };
+        feed(&mut q);
+        q.start();
+        settle(&mut q, &mut ap);
+        while let Some(slot) = ap.drive() {
+            if q.len() < 2 * usize::from(slots) {
+                feed(&mut q);
+            }
+            let w = q.on_reached(slot);
+            assert_eq!(w, ap.reached.last().copied(), "queue and autopilot agree");
+            settle(&mut q, &mut ap);
+        }
+        ap
+    }
+
+    #[test]
+    fn unlimited_waypoints_in_order_without_holding_early() {
+        for slots in [3u16, 4, 5, 8] {
+            for plan in [1u32, 2, 3, 4, 5, 6, 7, 9, 200] {
+                let ap = fly(slots, plan, true, 3);
+                assert_eq!(
+                    ap.reached,
+                    (0..plan).collect::<Vec<_>>(),
+                    "{slots} slots, {plan}"
+                );
+                assert!(ap.holding);
+            }
+        }
+    }
+
+    #[test]
+    fn falls_back_to_full_uploads_without_partial_writes() {
+        let ap = fly(5, 50, false, 7);
+        assert_eq!(ap.reached, (0..50).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn seed_layout_five_slots() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(10..20);
+        q.start();
+        // Slots 1-4 distinct, slot 5 already holds the waypoint slot 1 will get.
+        assert_eq!(
+            q.poll(),
+            Some(QueueAction::Upload(vec![10, 11, 12, 13, 14]))
+        );
+        q.done(&QueueAction::Upload(vec![10, 11, 12, 13, 14]));
+        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
+        q.done(&QueueAction::SetCurrent(1));
+        assert_eq!(q.poll(), None);
+        // Reached slot 1: it is rewritten (with what slot 5 holds), nothing else.
+        assert_eq!(q.on_reached(1), Some(10));
+        let a = q.poll().unwrap();
+        assert_eq!(
+            a,
+            QueueAction::WritePartial {
+                start: 1,
+                items: vec![14]
+            }
+        );
+        q.done(&a);
+        assert_eq!(q.poll(), None);
+        for (slot, wp, write) in [(2, 11, (2, 15)), (3, 12, (3, 16))] {
+            assert_eq!(q.on_reached(slot), Some(wp));
+            let a = q.poll().unwrap();
+            assert_eq!(
+                a,
+                QueueAction::WritePartial {
+                    start: write.0,
+                    items: vec![write.1]
+                }
+            );
+            q.done(&a);
+        }
+        // Reached slot 4: driving to 5, the mirror: wrap to 1 first, then refill 4.
+        assert_eq!(q.on_reached(4), Some(13));
+        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
+        q.done(&QueueAction::SetCurrent(1));
+        let a = q.poll().unwrap();
+        // Slot 5 gets its next waypoint in the same write: it is free again.
+        assert_eq!(
+            a,
+            QueueAction::WritePartial {
+                start: 4,
+                items: vec![17, 18]
+            }
+        );
+        q.done(&a);
+        assert_eq!(q.poll(), None);
+        assert_eq!(q.current_slot(), Some(1));
+        assert_eq!(q.target(), Some(&14));
+    }
+
+    #[test]
+    fn short_plan_truncates_and_grows_back() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push([1, 2]);
+        q.start();
+        assert_eq!(q.poll(), Some(QueueAction::Upload(vec![1, 2])));
+        q.done(&QueueAction::Upload(vec![1, 2]));
+        q.done(&QueueAction::SetCurrent(1));
+        assert_eq!(q.on_reached(1), Some(1));
+        // More arrive while driving to slot 2: the mission grows by a full upload (slot 1,
+        // behind the vehicle, already mirrors slot 5).
+        q.push([3, 4, 5, 6]);
+        assert_eq!(q.poll(), Some(QueueAction::Upload(vec![5, 2, 3, 4, 5])));
+    }
+
+    #[test]
+    fn clear_keeps_the_target_and_replaces_the_rest() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..10);
+        q.start();
+        let mut ap = Autopilot::new(true);
+        settle(&mut q, &mut ap);
+        let slot = ap.drive().unwrap();
+        q.on_reached(slot);
+        settle(&mut q, &mut ap);
+        q.clear();
+        assert!(q.is_replacing());
+        // Nothing changes on the autopilot until the new queue arrives.
+        assert_eq!(q.poll(), None);
+        q.push([1, 100, 101, 102, 103, 104]);
+        settle(&mut q, &mut ap);
+        while let Some(slot) = ap.drive() {
+            q.on_reached(slot);
+            settle(&mut q, &mut ap);
+        }
+        assert_eq!(ap.reached, [0, 1, 100, 101, 102, 103, 104]);
+    }
+
+    #[test]
+    fn missed_reach_is_inferred_from_mission_current() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..10);
+        q.start();
+        let mut ap = Autopilot::new(true);
+        settle(&mut q, &mut ap);
+        ap.drive();
+        // No reached message: MISSION_CURRENT = 2 reveals it.
+        assert_eq!(q.on_current(2), Some(0));
+        assert_eq!(q.on_current(2), None);
+        assert_eq!(q.on_reached(1), None, "a late duplicate is ignored");
+        settle(&mut q, &mut ap);
+        assert_eq!(q.current_slot(), Some(2));
+    }
+
+    #[test]
+    fn restart_after_the_autopilot_forgot_everything() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..20);
+        q.start();
+        let mut ap = Autopilot::new(true);
+        settle(&mut q, &mut ap);
+        for _ in 0..6 {
+            let s = ap.drive().unwrap();
+            q.on_reached(s);
+            settle(&mut q, &mut ap);
+        }
+        // Autopilot reboots: empty mission, current 1.
+        let mut ap2 = Autopilot::new(true);
+        q.forget_onboard();
+        q.stop();
+        q.start();
+        settle(&mut q, &mut ap2);
+        while let Some(s) = ap2.drive() {
+            q.on_reached(s);
+            settle(&mut q, &mut ap2);
+        }
+        assert_eq!(ap2.reached, (6..20).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn too_few_slots() {
+        assert_eq!(
+            RollingQueue::<u32>::new(2).unwrap_err(),
+            QueueCreateError::TooFewSlots(2)
+        );
+    }
+}

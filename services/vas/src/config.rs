@@ -1,0 +1,209 @@
+//! The VAS configuration: an XML file (`<vas .../>`, see `vas.example.xml`), overridden by
+//! command-line flags.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+use usal_types::VehicleKind;
+
+use crate::apl::ardupilot::ArduPilotConfig;
+use crate::mavlink_cm::ManagerConfig;
+use crate::val::ValConfig;
+
+/// The autopilot families the VAS has an APL for.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AutopilotKind {
+    /// ArduPilot (Rover, Copter, Plane) and mavsim, over MAVLink.
+    #[default]
+    Ardupilot,
+}
+
+/// Everything `vas` needs to run. Attribute names of the XML file in brackets.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VasConfig {
+    /// Autopilot family (`autopilot`).
+    #[serde(rename = "@autopilot")]
+    pub autopilot: AutopilotKind,
+    /// MAVLink endpoint (`endpoint`): `udpout:HOST:PORT`, `udpin:ADDR:PORT`,
+    /// `tcpout:HOST:PORT`, `serial:PATH:BAUD`.
+    #[serde(rename = "@endpoint")]
+    pub endpoint: String,
+    /// Vehicle kind (`vehicle`): rover, copter, plane.
+    #[serde(rename = "@vehicle")]
+    pub vehicle: VehicleKind,
+    /// Rolling-queue slots on the autopilot (`queueSize`), ≥ 3.
+    #[serde(rename = "@queueSize")]
+    pub queue_size: u16,
+    /// Position/attitude/speed telemetry rate in Hz (`telemetryHz`).
+    #[serde(rename = "@telemetryHz")]
+    pub telemetry_hz: f32,
+    /// Status and mission-progress rate in Hz (`statusHz`).
+    #[serde(rename = "@statusHz")]
+    pub status_hz: f32,
+    /// Autopilot heartbeat timeout before the link is declared lost, ms (`heartbeatTimeoutMs`).
+    #[serde(rename = "@heartbeatTimeoutMs")]
+    pub heartbeat_timeout_ms: u64,
+    /// The middleware's network.xml (`network`); none: Ethernet on loopback.
+    #[serde(rename = "@network")]
+    pub network: Option<PathBuf>,
+    /// Overrides the network file's domain (`domain`).
+    #[serde(rename = "@domain")]
+    pub domain: Option<String>,
+    /// Overrides the network file's namespace (`namespace`), e.g. `rover1`.
+    #[serde(rename = "@namespace")]
+    pub namespace: Option<String>,
+    /// Pattern of the FMo's manual-control variable (`manualControl`).
+    #[serde(rename = "@manualControl")]
+    pub manual_control: String,
+    /// Manual-control staleness timeout, ms (`manualTimeoutMs`).
+    #[serde(rename = "@manualTimeoutMs")]
+    pub manual_timeout_ms: u64,
+}
+
+impl Default for VasConfig {
+    fn default() -> Self {
+        let val = ValConfig::default();
+        Self {
+            autopilot: AutopilotKind::Ardupilot,
+            endpoint: "udpout:127.0.0.1:14560".into(),
+            vehicle: VehicleKind::Rover,
+            queue_size: 5,
+            telemetry_hz: 4.0,
+            status_hz: 1.0,
+            heartbeat_timeout_ms: 3000,
+            network: None,
+            domain: None,
+            namespace: None,
+            manual_control: val.manual_control,
+            manual_timeout_ms: val.manual_timeout.as_millis() as u64,
+        }
+    }
+}
+
+/// Errors loading the configuration file.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigLoadError {
+    /// The file cannot be read.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The XML is malformed or has unknown or ill-typed attributes.
+    #[error("{path}: {reason}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message.
+        reason: String,
+    },
+    /// A value is out of range.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl VasConfig {
+    /// Reads a `<vas .../>` file.
+    ///
+    /// # Errors
+    /// Unreadable file, malformed XML, unknown attribute, bad value.
+    pub fn load(path: &Path) -> Result<Self, ConfigLoadError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigLoadError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        let cfg: Self = quick_xml::de::from_str(&text).map_err(|e| ConfigLoadError::Parse {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks the ranges.
+    ///
+    /// # Errors
+    /// The first value out of range.
+    pub fn validate(&self) -> Result<(), ConfigLoadError> {
+        if self.queue_size < 3 {
+            return Err(ConfigLoadError::Invalid(format!(
+                "queueSize {} < 3: the rolling queue needs two slots plus the mirror slot",
+                self.queue_size
+            )));
+        }
+        for (name, hz) in [
+            ("telemetryHz", self.telemetry_hz),
+            ("statusHz", self.status_hz),
+        ] {
+            if !(hz.is_finite() && hz > 0.0 && hz <= 50.0) {
+                return Err(ConfigLoadError::Invalid(format!(
+                    "{name} {hz} not in (0, 50]"
+                )));
+            }
+        }
+        if self.heartbeat_timeout_ms < 500 {
+            return Err(ConfigLoadError::Invalid(
+                "heartbeatTimeoutMs below 500".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The APL's settings.
+    pub fn ardupilot(&self) -> ArduPilotConfig {
+        ArduPilotConfig {
+            vehicle: self.vehicle,
+            queue_slots: self.queue_size,
+            telemetry_hz: self.telemetry_hz,
+            status_hz: self.status_hz,
+            manager: ManagerConfig {
+                heartbeat_timeout: Duration::from_millis(self.heartbeat_timeout_ms),
+                ..ManagerConfig::default()
+            },
+        }
+    }
+
+    /// The VAL's settings.
+    pub fn val(&self) -> ValConfig {
+        ValConfig {
+            manual_control: self.manual_control.clone(),
+            manual_timeout: Duration::from_millis(self.manual_timeout_ms),
+            ..ValConfig::default()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn example_file_parses() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("vas.example.xml");
+        let cfg = VasConfig::load(&path).unwrap();
+        assert_eq!(cfg.vehicle, VehicleKind::Rover);
+        assert_eq!(cfg.queue_size, 5);
+        assert_eq!(cfg.endpoint, "udpout:127.0.0.1:14560");
+    }
+
+    #[test]
+    fn unknown_attributes_and_bad_values_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("vas.xml");
+        std::fs::write(&p, r#"<vas queueSise="5"/>"#).unwrap();
+        assert!(VasConfig::load(&p).is_err());
+        std::fs::write(&p, r#"<vas queueSize="2"/>"#).unwrap();
+        assert!(matches!(
+            VasConfig::load(&p),
+            Err(ConfigLoadError::Invalid(_))
+        ));
+        std::fs::write(&p, r#"<vas vehicle="copter" queueSize="8"/>"#).unwrap();
+        let cfg = VasConfig::load(&p).unwrap();
+        assert_eq!((cfg.vehicle, cfg.queue_size), (VehicleKind::Copter, 8));
+    }
+}

@@ -1,0 +1,118 @@
+//! `vas`: the Virtual Autopilot System service binary (parses arguments, starts tracing,
+//! loads the configuration and calls [`vas::run`]).
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use tokio_util::sync::CancellationToken;
+use usal_types::VehicleKind;
+use vas::config::VasConfig;
+
+/// USAL Virtual Autopilot System: the only service that talks to the autopilot.
+#[derive(Parser, Debug)]
+#[command(version)]
+struct Args {
+    /// Configuration file (`<vas .../>`, see services/vas/vas.example.xml).
+    #[arg(short, long)]
+    config: Option<PathBuf>,
+    /// MAVLink endpoint (udpout:HOST:PORT, udpin:ADDR:PORT, tcpout:HOST:PORT, serial:PATH:BAUD).
+    #[arg(long)]
+    endpoint: Option<String>,
+    /// Vehicle kind: rover, copter or plane.
+    #[arg(long)]
+    vehicle: Option<VehicleKind>,
+    /// Rolling-queue slots on the autopilot (≥ 3).
+    #[arg(long)]
+    queue_size: Option<u16>,
+    /// Telemetry rate, Hz.
+    #[arg(long)]
+    telemetry_hz: Option<f32>,
+    /// Status rate, Hz.
+    #[arg(long)]
+    status_hz: Option<f32>,
+    /// Autopilot heartbeat timeout, ms.
+    #[arg(long)]
+    heartbeat_timeout_ms: Option<u64>,
+    /// The middleware's network.xml.
+    #[arg(long)]
+    network: Option<PathBuf>,
+    /// Middleware domain (overrides the network file's).
+    #[arg(long)]
+    domain: Option<String>,
+    /// Namespace of the items, e.g. rover1 (overrides the network file's).
+    #[arg(long)]
+    namespace: Option<String>,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "vas=info,marea=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    let mut cfg = match &args.config {
+        Some(p) => VasConfig::load(p).with_context(|| format!("loading {}", p.display()))?,
+        None => VasConfig::default(),
+    };
+    if let Some(v) = args.endpoint {
+        cfg.endpoint = v;
+    }
+    if let Some(v) = args.vehicle {
+        cfg.vehicle = v;
+    }
+    if let Some(v) = args.queue_size {
+        cfg.queue_size = v;
+    }
+    if let Some(v) = args.telemetry_hz {
+        cfg.telemetry_hz = v;
+    }
+    if let Some(v) = args.status_hz {
+        cfg.status_hz = v;
+    }
+    if let Some(v) = args.heartbeat_timeout_ms {
+        cfg.heartbeat_timeout_ms = v;
+    }
+    if args.network.is_some() {
+        cfg.network = args.network;
+    }
+    if args.domain.is_some() {
+        cfg.domain = args.domain;
+    }
+    if args.namespace.is_some() {
+        cfg.namespace = args.namespace;
+    }
+    let shutdown = CancellationToken::new();
+    let stop = shutdown.clone();
+    tokio::spawn(async move {
+        wait_for_signal().await;
+        stop.cancel();
+    });
+    vas::run(cfg, shutdown).await
+}
+
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

@@ -1,0 +1,395 @@
+//! The Virtual Autopilot Layer (VAL, 003 §3.1): the USAL side of the VAS, fixed whatever the
+//! autopilot. It owns the flight state (with the [`transitions`] table per vehicle kind),
+//! publishes telemetry and raises events on the middleware, accepts the FPMa's waypoints and
+//! the FMo's manual control, and drives an [`IAutopilot`].
+//!
+//! Items (under `<namespace>/vas/`): see the crate README for the full list.
+
+pub mod transitions;
+
+use std::sync::{Arc, Mutex as StdMutex};
+use std::time::{Duration, Instant};
+
+use async_trait::async_trait;
+use marea::{Event, IService, Service, ServiceError, Variable};
+use tokio::sync::broadcast;
+use usal_types::{
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionTime, Position,
+    QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest, StateChanged, Waypoint,
+    WaypointReached,
+};
+
+use crate::apl::{ApEvent, IAutopilot};
+
+/// Settings of the VAL.
+#[derive(Clone, Debug)]
+pub struct ValConfig {
+    /// Pattern of the manual-control variable to follow (the FMo's).
+    pub manual_control: String,
+    /// Manual-control samples older than this are ignored, and the sticks are released when
+    /// no fresh sample came for this long.
+    pub manual_timeout: Duration,
+    /// Period of the `mission_time` variable.
+    pub mission_time_period: Duration,
+}
+
+impl Default for ValConfig {
+    fn default() -> Self {
+        Self {
+            manual_control: "**/fmo/manual_control".into(),
+            manual_timeout: Duration::from_millis(500),
+            mission_time_period: Duration::from_secs(1),
+        }
+    }
+}
+
+struct ValState {
+    state: FlightState,
+    since: Instant,
+    mission_start: Option<Instant>,
+}
+
+struct Items {
+    position: Variable<Position>,
+    attitude: Variable<Attitude>,
+    speeds: Variable<Speeds>,
+    autopilot: Variable<AutopilotStatus>,
+    flight_state: Variable<FlightState>,
+    mission_time: Variable<MissionTime>,
+    queue: Variable<QueueStatus>,
+    state_changed: Event<StateChanged>,
+    waypoint_reached: Event<WaypointReached>,
+    alarm: Event<Alarm>,
+}
+
+struct Core {
+    apl: Arc<dyn IAutopilot>,
+    cfg: ValConfig,
+    state: StdMutex<ValState>,
+    /// Serialises transitions (requests and the autopilot's own changes).
+    transition: tokio::sync::Mutex<()>,
+    items: Items,
+}
+
+fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Core {
+    fn state(&self) -> FlightState {
+        lock(&self.state).state
+    }
+
+    fn alarm(&self, severity: Severity, text: impl Into<String>) {
+        let a = Alarm {
+            severity,
+            text: text.into(),
+        };
+        tracing::warn!("alarm ({:?}): {}", a.severity, a.text);
+        if let Err(e) = self.items.alarm.raise_nowait(&a) {
+            tracing::warn!("raising alarm: {e}");
+        }
+    }
+
+    /// Records a new state and tells everyone.
+    fn enter(&self, to: FlightState, cause: &str) -> FlightState {
+        let from = {
+            let mut s = lock(&self.state);
+            let from = s.state;
+            s.state = to;
+            s.since = Instant::now();
+            let navigating = !matches!(
+                to,
+                FlightState::ConfigureCheck | FlightState::Parking | FlightState::Manual
+            );
+            if navigating && s.mission_start.is_none() {
+                s.mission_start = Some(Instant::now());
+            }
+            from
+        };
+        tracing::info!("flight state {from} -> {to} ({cause})");
+        let _ = self.items.flight_state.set(&to);
+        let ev = StateChanged {
+            from,
+            to,
+            cause: cause.to_owned(),
+        };
+        if let Err(e) = self.items.state_changed.raise_nowait(&ev) {
+            tracing::warn!("raising state_changed: {e}");
+        }
+        from
+    }
+
+    /// `change_state`: the command checker, then the autopilot.
+    async fn request(&self, to: FlightState) -> Result<StateChangeReply, String> {
+        let _t = self.transition.lock().await;
+        let from = self.state();
+        let kind = self.apl.vehicle();
+        transitions::check(kind, from, to)?;
+        if !self.apl.status().connected {
+            return Err(format!("cannot go to {to}: autopilot not connected"));
+        }
+        if from == FlightState::ConfigureCheck && to != FlightState::Manual {
+            return Err(format!(
+                "cannot go to {to}: the autopilot is still being configured"
+            ));
+        }
+        if to == FlightState::WaypointNavigation {
+            let q = self.apl.queue_status().await.map_err(|e| e.to_string())?;
+            if q.queued == 0 {
+                return Err(format!(
+                    "cannot go to {to}: no waypoints queued (push_waypoints first)"
+                ));
+            }
+        }
+        self.apl
+            .change_state(to)
+            .await
+            .map_err(|e| format!("{from} -> {to} failed: {e}"))?;
+        self.enter(to, "request");
+        Ok(StateChangeReply { from, to })
+    }
+
+    async fn publish_queue(&self) {
+        if let Ok(q) = self.apl.queue_status().await {
+            let _ = self.items.queue.set(&q);
+        }
+    }
+
+    async fn on_ap(&self, ev: ApEvent) {
+        match ev {
+            ApEvent::Position(p) => drop(self.items.position.set(&p)),
+            ApEvent::Attitude(a) => drop(self.items.attitude.set(&a)),
+            ApEvent::Speeds(s) => drop(self.items.speeds.set(&s)),
+            ApEvent::Status(s) => drop(self.items.autopilot.set(&s)),
+            ApEvent::WaypointReached(w) => {
+                if let Err(e) = self.items.waypoint_reached.raise_nowait(&w) {
+                    tracing::warn!("raising waypoint_reached: {e}");
+                }
+                self.publish_queue().await;
+            }
+            ApEvent::Alarm(a) => self.alarm(a.severity, a.text),
+            ApEvent::ModeChanged { mode, state } => {
+                let _t = self.transition.lock().await;
+                match state {
+                    Some(to) if to != self.state() => {
+                        self.enter(to, &format!("autopilot mode {mode}"));
+                    }
+                    Some(_) => {}
+                    None => self.alarm(
+                        Severity::Warning,
+                        format!(
+                            "autopilot switched to {mode}, which no {} state matches",
+                            self.state()
+                        ),
+                    ),
+                }
+            }
+            ApEvent::Configured => {
+                if self.state() == FlightState::ConfigureCheck {
+                    let _t = self.transition.lock().await;
+                    match self.apl.change_state(FlightState::Parking).await {
+                        Ok(()) => {
+                            self.enter(FlightState::Parking, "autopilot configured");
+                        }
+                        Err(e) => self.alarm(Severity::Error, format!("cannot park: {e}")),
+                    }
+                }
+            }
+            ApEvent::LinkLost | ApEvent::LinkRestored => {
+                let _ = self.items.autopilot.set(&self.apl.status());
+            }
+        }
+    }
+
+    fn mission_time(&self) -> MissionTime {
+        let s = lock(&self.state);
+        MissionTime {
+            elapsed: s.mission_start.map_or(0.0, |t| t.elapsed().as_secs_f64()),
+            in_state: s.since.elapsed().as_secs_f64(),
+        }
+    }
+}
+
+/// The VAS as a middleware service (`vas`): the VAL over an [`IAutopilot`].
+pub struct Vas {
+    apl: Arc<dyn IAutopilot>,
+    cfg: ValConfig,
+}
+
+impl Vas {
+    /// A VAS driving `apl`.
+    pub fn new(apl: Arc<dyn IAutopilot>, cfg: ValConfig) -> Self {
+        Self { apl, cfg }
+    }
+}
+
+#[async_trait]
+impl IService for Vas {
+    fn name(&self) -> &str {
+        "vas"
+    }
+
+    async fn start(&mut self, ctx: Service) -> Result<(), ServiceError> {
+        let items = Items {
+            position: ctx.publish_variable("position")?,
+            attitude: ctx.publish_variable("attitude")?,
+            speeds: ctx.publish_variable("speeds")?,
+            autopilot: ctx.publish_variable("autopilot")?,
+            flight_state: ctx.publish_variable("flight_state")?,
+            mission_time: ctx.publish_variable("mission_time")?,
+            queue: ctx.publish_variable("queue")?,
+            state_changed: ctx.publish_event("state_changed")?,
+            waypoint_reached: ctx.publish_event("waypoint_reached")?,
+            alarm: ctx.publish_event("alarm")?,
+        };
+        let core = Arc::new(Core {
+            apl: self.apl.clone(),
+            cfg: self.cfg.clone(),
+            state: StdMutex::new(ValState {
+                state: FlightState::ConfigureCheck,
+                since: Instant::now(),
+                mission_start: None,
+            }),
+            transition: tokio::sync::Mutex::new(()),
+            items,
+        });
+        let _ = core.items.flight_state.set(&FlightState::ConfigureCheck);
+        let _ = core.items.queue.set(&QueueStatus::default());
+
+        let c = core.clone();
+        let change = ctx.provide_function("change_state", move |req: StateChangeRequest| {
+            let c = c.clone();
+            async move { c.request(req.to).await }
+        })?;
+        let c = core.clone();
+        let allowed = ctx.provide_function("allowed_states", move |(): ()| {
+            let c = c.clone();
+            async move {
+                let kind = c.apl.vehicle();
+                let from = c.state();
+                Ok::<Vec<FlightState>, String>(transitions::allowed(kind, from).to_vec())
+            }
+        })?;
+        let c = core.clone();
+        let push = ctx.provide_function("push_waypoints", move |wps: Vec<Waypoint>| {
+            let c = c.clone();
+            async move {
+                let q = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string())?;
+                let _ = c.items.queue.set(&q);
+                Ok(q)
+            }
+        })?;
+        let c = core.clone();
+        let clear = ctx.provide_function("clear_waypoints", move |(): ()| {
+            let c = c.clone();
+            async move {
+                let q = c.apl.clear_waypoints().await.map_err(|e| e.to_string())?;
+                let _ = c.items.queue.set(&q);
+                Ok(q)
+            }
+        })?;
+        let manual = ctx.subscribe_variable::<ManualControl>(&core.cfg.manual_control)?;
+
+        // ListenAp, retried until the autopilot answers.
+        let c = core.clone();
+        let cx = ctx.clone();
+        ctx.spawn(async move {
+            loop {
+                let r = tokio::select! {
+                    _ = cx.cancelled() => return,
+                    r = c.apl.listen_ap() => r,
+                };
+                match r {
+                    Ok(()) => return,
+                    Err(e) => c.alarm(Severity::Error, format!("autopilot: {e}")),
+                }
+            }
+        });
+
+        // Autopilot events -> VAL.
+        let c = core.clone();
+        let cx = ctx.clone();
+        let mut events = core.apl.events();
+        ctx.spawn(async move {
+            loop {
+                tokio::select! {
+                    _ = cx.cancelled() => return,
+                    ev = events.recv() => match ev {
+                        Ok(ev) => c.on_ap(ev).await,
+                        Err(broadcast::error::RecvError::Lagged(n)) => {
+                            tracing::warn!("VAL lagged {n} autopilot events");
+                        }
+                        Err(broadcast::error::RecvError::Closed) => return,
+                    },
+                }
+            }
+        });
+
+        // Manual control: newest wins, stale samples ignored, sticks released on silence.
+        let c = core.clone();
+        let cx = ctx.clone();
+        ctx.spawn(async move {
+            let timeout = c.cfg.manual_timeout;
+            let mut last: Option<(u64, Instant)> = None;
+            let mut released = true;
+            let mut tick = tokio::time::interval((timeout / 2).max(Duration::from_millis(10)));
+            loop {
+                tokio::select! {
+                    _ = cx.cancelled() => return,
+                    s = manual.recv() => match s {
+                        Ok(s) => {
+                            let fresh = s.received.elapsed() <= timeout;
+                            let newer = last.is_none_or(|(ts, _)| s.value.timestamp_ms > ts);
+                            if !(fresh && newer) {
+                                continue;
+                            }
+                            last = Some((s.value.timestamp_ms, s.received));
+                            if c.state() == FlightState::ManualNavigation {
+                                released = false;
+                                if let Err(e) = c.apl.manual_navigation(Some(s.value)).await {
+                                    tracing::debug!("manual control: {e}");
+                                }
+                            }
+                        }
+                        Err(e) => {
+                            tracing::warn!("manual control: {e}");
+                            return;
+                        }
+                    },
+                    _ = tick.tick() => {
+                        let stale = last.is_none_or(|(_, at)| at.elapsed() > timeout);
+                        if stale && !released {
+                            released = true;
+                            let _ = c.apl.manual_navigation(None).await;
+                            if c.state() == FlightState::ManualNavigation {
+                                c.alarm(Severity::Warning, "manual control stale: sticks released");
+                            }
+                        }
+                    }
+                }
+            }
+        });
+
+        // Mission time; the function handles live as long as this task.
+        let c = core;
+        let cx = ctx.clone();
+        ctx.spawn(async move {
+            let _handles = (change, allowed, push, clear);
+            let mut tick =
+                tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
+            loop {
+                tokio::select! {
+                    _ = cx.cancelled() => return,
+                    _ = tick.tick() => drop(c.items.mission_time.set(&c.mission_time())),
+                }
+            }
+        });
+        Ok(())
+    }
+
+    async fn stop(&mut self) -> Result<(), ServiceError> {
+        self.apl.shutdown().await;
+        Ok(())
+    }
+}
