@@ -32,6 +32,20 @@ impl TypeInfo {
         }
     }
 
+    /// Matches any type: what type-agnostic tools (`usal echo`) subscribe with. They receive
+    /// raw bytes with the publisher's type name and decode what they know.
+    pub fn any() -> Self {
+        TypeInfo {
+            name: "*".to_owned(),
+            fingerprint: 0,
+        }
+    }
+
+    /// Whether an interest declared with `self` may receive an offer of type `offered`.
+    pub fn accepts(&self, offered: &TypeInfo) -> bool {
+        self.fingerprint == 0 || self == offered
+    }
+
     /// The info of a function's (arguments, result) pair.
     pub fn of_function<A: 'static, R: 'static>() -> Self {
         let a = Self::of::<A>();

@@ -15,6 +15,9 @@ pub enum NodeOpenError {
     /// A serial link could not be opened.
     #[error(transparent)]
     Serial(#[from] crate::link::serial::SerialLinkOpenError),
+    /// A shared-memory link could not be opened.
+    #[error(transparent)]
+    Shm(#[from] crate::link::shm::ShmLinkOpenError),
     /// The configuration asks for a link kind this build does not support yet.
     #[error("link '{link}': {kind} links are not supported by this build")]
     Unsupported {

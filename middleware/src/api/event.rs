@@ -140,6 +140,7 @@ impl<T: Payload> Event<T> {
                 m.push(Delivery::Sample(RawSample {
                     name: self.offer.name.clone(),
                     publisher: me.as_str().into(),
+                    type_name: self.offer.ty.name.as_str().into(),
                     payload: bytes.clone(),
                     received: Instant::now(),
                 }));

@@ -18,6 +18,7 @@ use crate::config::{LinkConfig, NetworkConfig};
 use crate::link::serial::port::SerialPorts;
 use crate::link::serial::stp::StpConfig;
 use crate::link::serial::SerialLink;
+use crate::link::shm::{ShmLink, ShmLinkOptions};
 use crate::link::udp::{UdpLink, UdpLinkOptions};
 use crate::link::{Link, LinkStats};
 use crate::name;
@@ -232,16 +233,26 @@ impl Node {
                         }
                     }
                 }
-                other => {
-                    inner.cancel.cancel();
-                    return Err(NodeOpenError::Unsupported {
-                        link: other.name().to_owned(),
-                        kind: match other {
-                            LinkConfig::Shm(_) => "shm",
-                            LinkConfig::Serial(_) => "serial",
-                            _ => "serialduo",
+                LinkConfig::Shm(s) => {
+                    let link = ShmLink::open(
+                        index,
+                        ShmLinkOptions {
+                            name: s.name.clone(),
+                            service: s.service.clone(),
+                            scan: s.heartbeat,
                         },
-                    });
+                        handler,
+                        &inner.tasks,
+                        inner.cancel.child_token(),
+                    )
+                    .await;
+                    match link {
+                        Ok(l) => links.push(l),
+                        Err(e) => {
+                            inner.cancel.cancel();
+                            return Err(e.into());
+                        }
+                    }
                 }
             }
         }

@@ -113,6 +113,10 @@ impl Service {
         })
     }
 
+    pub(super) fn node(&self) -> &Arc<NodeInner> {
+        &self.inner.node
+    }
+
     /// The service name.
     pub fn name(&self) -> &str {
         &self.inner.name
@@ -167,7 +171,7 @@ impl Service {
         ))
     }
 
-    fn interest(
+    pub(super) fn interest(
         &self,
         pattern: &str,
         kind: ItemKind,

@@ -31,6 +31,7 @@ pub(crate) fn decode_delivery<T: Payload>(d: Delivery) -> Result<Sample<T>, Recv
             publisher,
             payload,
             received,
+            ..
         }) => match crate::codec::decode_payload::<T>(&payload) {
             Ok(value) => Ok(Sample {
                 name: name.to_string(),

@@ -5,6 +5,7 @@
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
 
 pub mod serial;
+pub mod shm;
 pub mod udp;
 
 use std::fmt;

@@ -16,6 +16,8 @@ pub(crate) struct RawSample {
     pub name: Arc<str>,
     /// Name of the publishing node.
     pub publisher: Arc<str>,
+    /// The publisher's payload type name.
+    pub type_name: Arc<str>,
     /// postcard bytes.
     pub payload: Vec<u8>,
     /// When it arrived.

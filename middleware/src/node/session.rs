@@ -31,6 +31,8 @@ pub(crate) struct RemoteItem {
     /// Full name (offers) or pattern (interests).
     pub name: Arc<str>,
     pub ty: TypeInfo,
+    /// `ty.name`, shared with every sample delivered from this item.
+    pub type_name: Arc<str>,
 }
 
 /// Encodes `Message::Var`/`Message::Event` without first copying the payload into a `Message`;
@@ -156,7 +158,7 @@ impl NodeInner {
                 if !kinds_match(o.kind, i.kind) || !name::matches(&i.pattern, &o.name) {
                     continue;
                 }
-                if i.ty != o.ty {
+                if !i.ty.accepts(&o.ty) {
                     i.report_mismatch(&o.name, &self.me.name, &o.ty);
                     continue;
                 }
@@ -170,7 +172,7 @@ impl NodeInner {
                     if !kinds_match(o.kind, it.kind) || !name::matches(&it.name, &o.name) {
                         continue;
                     }
-                    if it.ty != o.ty {
+                    if !it.ty.accepts(&o.ty) {
                         if lock(&o.refused).insert((p.id, *iid)) {
                             refusals.push((
                                 p.link,
@@ -216,6 +218,7 @@ impl NodeInner {
                                 m.push(Delivery::Sample(RawSample {
                                     name: o.name.clone(),
                                     publisher: self.me.name.as_str().into(),
+                                    type_name: o.ty.name.as_str().into(),
                                     payload: v.clone(),
                                     received: Instant::now(),
                                 }));
@@ -248,7 +251,7 @@ impl NodeInner {
                         .filter(|i| {
                             kinds_match(item.kind, i.kind)
                                 && name::matches(&i.pattern, &item.name)
-                                && i.ty == item.ty
+                                && i.ty.accepts(&item.ty)
                         })
                         .cloned()
                         .collect();
@@ -330,6 +333,7 @@ impl NodeInner {
                                 service,
                                 kind,
                                 name: name.into(),
+                                type_name: ty.name.as_str().into(),
                                 ty,
                             },
                         );
@@ -347,6 +351,7 @@ impl NodeInner {
                                 service,
                                 kind,
                                 name: pattern.into(),
+                                type_name: ty.name.as_str().into(),
                                 ty,
                             },
                         );
@@ -377,10 +382,15 @@ impl NodeInner {
 
     /// Delivers a remote variable value or event to the local subscribers routed to it.
     pub fn deliver_remote(&self, node: NodeId, id: u32, payload: Vec<u8>) {
-        let Some((targets, name, publisher)) = self.peers.get(&node).and_then(|p| {
+        let Some((targets, name, type_name, publisher)) = self.peers.get(&node).and_then(|p| {
             let t = p.routes.get(&id)?.clone();
-            let name = p.offers.get(&id)?.name.clone();
-            Some((t, name, p.name.clone()))
+            let offer = p.offers.get(&id)?;
+            Some((
+                t,
+                offer.name.clone(),
+                offer.type_name.clone(),
+                p.name.clone(),
+            ))
         }) else {
             return;
         };
@@ -397,6 +407,7 @@ impl NodeInner {
             m.push(Delivery::Sample(RawSample {
                 name: name.clone(),
                 publisher: publisher.clone(),
+                type_name: type_name.clone(),
                 payload: bytes,
                 received,
             }));
@@ -426,6 +437,7 @@ impl NodeInner {
                 m.push(Delivery::Sample(RawSample {
                     name: offer.name.clone(),
                     publisher: self.me.name.as_str().into(),
+                    type_name: offer.ty.name.as_str().into(),
                     payload: bytes.clone(),
                     received: Instant::now(),
                 }));

@@ -1,0 +1,1537 @@
+//! The shared-memory link: nodes on one host exchange node messages through iceoryx2, without
+//! sockets on the data path.
+//!
+//! Each link owns an **inbox** made of three iceoryx2 services named after its random id:
+//! `marea/<service>/<id>/fast` (publish-subscribe, safe overflow: a reader that stops reading
+//! loses its oldest fast messages, the writer never waits), `.../safe` (publish-subscribe
+//! without overflow: a full buffer refuses the sample, so the writer keeps it and retries) and
+//! `.../wake` (an event the receiver sleeps on). Peers open a publisher on each and a notifier.
+//!
+//! - **Discovery without multicast**: the iceoryx2 node is named `marea/<service>/<id>`; listing
+//!   the host's iceoryx2 nodes finds every inbox of the same `service`. A link connects to them
+//!   all when it opens (so its Hello reaches them at once) and rescans every `scan` period, which
+//!   also removes the stale resources of nodes whose process died (SIGKILL).
+//! - **Fast** messages are written straight into the peer's fast buffer (newest wins on
+//!   overflow).
+//! - **Safe** messages carry a session and a sequence number and are fragmented to
+//!   [`FRAME_MAX`]; the receiver acknowledges cumulatively after each pass over its inbox, and an
+//!   acknowledgement both completes `done` and tells the writer that buffer space is free again.
+//!   A reader that stops reading therefore holds back only safe traffic towards itself.
+//!
+//! Threads: sending is inline in the caller (a loan, a copy, an atomic store and, only when the
+//! receiver sleeps, one datagram to wake it: iceoryx2's non-blocking calls). Everything that may
+//! wait (sleeping on the wake event, opening services, listing nodes, cleaning up dead ones) runs
+//! on one dedicated receive thread per link, never on a tokio worker.
+//!
+//! Payloads are copied once into the loaned shared-memory sample and read in place by the
+//! receiver (a message that fits one frame reaches the node as a slice of shared memory). Frames
+//! are bounded because iceoryx2's pool allocator gives every chunk of a publisher the size of
+//! its largest sample and zeroes the whole segment when it grows.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{mpsc, Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use iceoryx2::node::{Node as IoxNode, NodeBuilder, NodeState, NodeView};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::{
+    ipc_threadsafe, AllocationStrategy, BackpressureStrategy, CallbackProgression, LogLevel,
+    NodeName, ServiceName, SignalHandlingMode,
+};
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+
+use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
+
+type Ipc = ipc_threadsafe::Service;
+type Pub = Publisher<Ipc, [u8], ()>;
+type Sub = Subscriber<Ipc, [u8], ()>;
+
+/// Largest sample written to shared memory, header included. Longer safe messages are
+/// fragmented; longer fast messages travel on the safe path.
+pub const FRAME_MAX: usize = 8192;
+/// Frames a safe inbox buffers per writer before refusing more.
+const SAFE_BUFFER: usize = 128;
+/// Frames a fast inbox buffers per writer before overwriting the oldest.
+const FAST_BUFFER: usize = 64;
+/// Most peers (same-host links of the same `service`) one inbox accepts.
+const MAX_PEERS: usize = 64;
+/// Fast messages kept for a peer whose inbox is not open yet, or large fast messages queued on
+/// the safe path; beyond it the oldest is dropped.
+const MAX_FAST_BACKLOG: usize = 1024;
+/// A reassembled message larger than this is dropped as corrupt.
+const MAX_MESSAGE: usize = 256 << 20;
+/// How often the receive thread retries refused frames and acknowledgements.
+const RETRY: Duration = Duration::from_millis(1);
+/// Samples taken from one inbox buffer per pass, so acknowledgements flow during bursts.
+const PASS_BUDGET: usize = 512;
+
+/// How the shared-memory link is set up (taken from `<shm>` in network.xml).
+#[derive(Debug, Clone)]
+pub struct ShmLinkOptions {
+    /// Link name.
+    pub name: String,
+    /// Service-name prefix: links with the same prefix on this host find each other.
+    pub service: String,
+    /// Period of the scan for new and dead same-host nodes.
+    pub scan: Duration,
+}
+
+/// Why the shared-memory link could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum ShmLinkOpenError {
+    /// The iceoryx2 node could not be created.
+    #[error("link {link}: cannot create the iceoryx2 node: {reason}")]
+    Node {
+        /// Link name.
+        link: String,
+        /// What iceoryx2 said.
+        reason: String,
+    },
+    /// An inbox service or port could not be created.
+    #[error("link {link}: cannot create the shared-memory inbox {what}: {reason}")]
+    Inbox {
+        /// Link name.
+        link: String,
+        /// Which service or port.
+        what: String,
+        /// What iceoryx2 said.
+        reason: String,
+    },
+    /// The receive thread could not be started.
+    #[error("link {link}: cannot start the receive thread: {source}")]
+    Thread {
+        /// Link name.
+        link: String,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The setup task ended without a result (the runtime is shutting down).
+    #[error("link {link}: setup interrupted")]
+    Interrupted {
+        /// Link name.
+        link: String,
+    },
+}
+
+/// The frames written into an inbox; every frame starts with its kind and its sender's id.
+///
+/// ```text
+///  0      1                    9          13                   21
+///  +------+--------------------+----------+--------------------+------------+
+///  | kind | sender id (u64 LE) | session  | seq (u64 LE)       | body ...   |  Safe, SafeMore
+///  +------+--------------------+----------+--------------------+------------+
+///  | kind | sender id (u64 LE) | session  | seq (u64 LE)       |               Ack (cumulative)
+///  +------+--------------------+----------+--------------------+
+///  | kind | sender id (u64 LE) | body ...                      |               Announce, Fast
+///  +------+--------------------+-------------------------------+
+/// ```
+/// `SafeMore` is a fragment followed by more fragments of the same message; `Safe` ends one.
+mod frame {
+    pub const ANNOUNCE: u8 = 1;
+    pub const FAST: u8 = 2;
+    pub const SAFE: u8 = 3;
+    pub const SAFE_MORE: u8 = 4;
+    pub const ACK: u8 = 5;
+    /// Kind and sender.
+    pub const BASE: usize = 9;
+    /// Kind, sender, session and sequence number.
+    pub const SEQUENCED: usize = 21;
+
+    /// A parsed frame.
+    #[derive(Debug, PartialEq, Eq)]
+    pub enum Frame<'a> {
+        Announce(&'a [u8]),
+        Fast(&'a [u8]),
+        Safe {
+            session: u32,
+            seq: u64,
+            more: bool,
+            body: &'a [u8],
+        },
+        Ack {
+            session: u32,
+            seq: u64,
+        },
+    }
+
+    /// Why a frame was dropped.
+    #[derive(Debug, PartialEq, Eq, thiserror::Error)]
+    pub enum FrameDecodeError {
+        /// Shorter than its kind's header.
+        #[error("frame of {0} bytes is truncated")]
+        Truncated(usize),
+        /// Unknown kind byte.
+        #[error("unknown frame kind {0}")]
+        UnknownKind(u8),
+    }
+
+    /// Writes the header of a frame into `out` (which must hold [`header_len`] bytes).
+    pub fn write_header(out: &mut [u8], kind: u8, sender: u64, session: u32, seq: u64) {
+        out[0] = kind;
+        out[1..9].copy_from_slice(&sender.to_le_bytes());
+        if header_len(kind) == SEQUENCED {
+            out[9..13].copy_from_slice(&session.to_le_bytes());
+            out[13..21].copy_from_slice(&seq.to_le_bytes());
+        }
+    }
+
+    /// Header length of a frame kind.
+    pub fn header_len(kind: u8) -> usize {
+        match kind {
+            SAFE | SAFE_MORE | ACK => SEQUENCED,
+            _ => BASE,
+        }
+    }
+
+    /// Splits a frame into its sender and contents.
+    pub fn parse(b: &[u8]) -> Result<(u64, Frame<'_>), FrameDecodeError> {
+        if b.len() < BASE {
+            return Err(FrameDecodeError::Truncated(b.len()));
+        }
+        let mut id = [0u8; 8];
+        id.copy_from_slice(&b[1..9]);
+        let sender = u64::from_le_bytes(id);
+        let kind = b[0];
+        let sequenced = || {
+            if b.len() < SEQUENCED {
+                return Err(FrameDecodeError::Truncated(b.len()));
+            }
+            let mut s = [0u8; 4];
+            s.copy_from_slice(&b[9..13]);
+            let mut q = [0u8; 8];
+            q.copy_from_slice(&b[13..21]);
+            Ok((u32::from_le_bytes(s), u64::from_le_bytes(q)))
+        };
+        let f = match kind {
+            ANNOUNCE => Frame::Announce(&b[BASE..]),
+            FAST => Frame::Fast(&b[BASE..]),
+            SAFE | SAFE_MORE => {
+                let (session, seq) = sequenced()?;
+                Frame::Safe {
+                    session,
+                    seq,
+                    more: kind == SAFE_MORE,
+                    body: &b[SEQUENCED..],
+                }
+            }
+            ACK => {
+                let (session, seq) = sequenced()?;
+                Frame::Ack { session, seq }
+            }
+            k => return Err(FrameDecodeError::UnknownKind(k)),
+        };
+        Ok((sender, f))
+    }
+}
+
+/// The writing side of a peer's inbox.
+struct Conn {
+    fast: Pub,
+    safe: Pub,
+    wake: Notifier<Ipc>,
+}
+
+/// A safe message not yet wholly written into the peer's inbox.
+struct Pending {
+    msg: Vec<u8>,
+    /// Bytes already written (fragments accepted by the inbox).
+    sent: usize,
+    done: Option<SafeCompletion>,
+    /// A large fast message riding the safe path (dropped first when the backlog is long).
+    fast: bool,
+}
+
+/// What this link sends to one peer.
+struct PeerTx {
+    conn: Option<Conn>,
+    session: u32,
+    next_seq: u64,
+    /// Fast messages waiting for the inbox to be opened.
+    fast_backlog: VecDeque<(Option<u32>, Vec<u8>)>,
+    safe_backlog: VecDeque<Pending>,
+    /// Written, waiting for the peer's acknowledgement.
+    unacked: VecDeque<(u64, SafeCompletion)>,
+    /// The inbox refused a frame: wait for an acknowledgement (or the retry timer).
+    blocked: bool,
+}
+
+impl PeerTx {
+    fn new() -> Self {
+        PeerTx {
+            conn: None,
+            session: rand::random(),
+            next_seq: 0,
+            fast_backlog: VecDeque::new(),
+            safe_backlog: VecDeque::new(),
+            unacked: VecDeque::new(),
+            blocked: false,
+        }
+    }
+
+    fn fail_all(&mut self, err: &LinkSendError) {
+        for p in self.safe_backlog.drain(..) {
+            if let Some(d) = p.done {
+                let _ = d.send(Err(err.clone()));
+            }
+        }
+        for (_, d) in self.unacked.drain(..) {
+            let _ = d.send(Err(err.clone()));
+        }
+    }
+}
+
+/// What the receive thread knows of one sender's safe stream.
+struct RxState {
+    session: u32,
+    expected: u64,
+    /// Fragments of the message being reassembled.
+    partial: Vec<u8>,
+    /// Highest sequence number delivered and not yet acknowledged.
+    ack: Option<u64>,
+}
+
+/// Requests to the receive thread.
+enum Ctl {
+    /// Open the inbox of this peer.
+    Open(u64),
+    /// Forget the receive state of this peer (it was closed).
+    Forget(u64),
+}
+
+#[derive(Default)]
+struct Counters {
+    frames_out: AtomicU64,
+    frames_in: AtomicU64,
+    bytes_out: AtomicU64,
+    bytes_in: AtomicU64,
+    corrupt: AtomicU64,
+    retransmitted: AtomicU64,
+    duplicates: AtomicU64,
+    fast_dropped: AtomicU64,
+}
+
+/// The shared-memory link.
+pub struct ShmLink {
+    index: usize,
+    options: ShmLinkOptions,
+    id: u64,
+    peers: Mutex<HashMap<u64, Arc<Mutex<PeerTx>>>>,
+    ctl: Mutex<mpsc::Sender<Ctl>>,
+    /// Wakes our own receive thread (control requests, shutdown).
+    self_wake: Notifier<Ipc>,
+    stop: AtomicBool,
+    handler: Arc<dyn LinkHandler>,
+    counters: Counters,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A poisoned lock only means another thread panicked mid-update; the queues and maps it
+    // guards stay structurally valid.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn node_prefix(service: &str) -> String {
+    format!("marea/{service}/")
+}
+
+fn inbox_name(service: &str, id: u64, part: &str) -> String {
+    format!("marea/{service}/{id:016x}/{part}")
+}
+
+/// The receiving side, created before the link and moved into its thread.
+struct Inbox {
+    node: IoxNode<Ipc>,
+    safe: Sub,
+    fast: Sub,
+    listener: Listener<Ipc>,
+    self_wake: Notifier<Ipc>,
+}
+
+fn service_name(s: &str) -> Result<ServiceName, String> {
+    ServiceName::new(s).map_err(|e| format!("invalid service name {s}: {e:?}"))
+}
+
+impl Inbox {
+    fn create(options: &ShmLinkOptions, id: u64) -> Result<Inbox, ShmLinkOpenError> {
+        // iceoryx2 logs to stderr; keep it to errors unless the user asks for more.
+        iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
+        let link = options.name.clone();
+        let node_err = |reason: String| ShmLinkOpenError::Node {
+            link: link.clone(),
+            reason,
+        };
+        let name = NodeName::new(&format!("{}{id:016x}", node_prefix(&options.service)))
+            .map_err(|e| node_err(format!("{e:?}")))?;
+        let node = NodeBuilder::new()
+            .name(&name)
+            // The process owns its signals (tokio's ctrl_c); iceoryx2 must not take them.
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Ipc>()
+            .map_err(|e| node_err(format!("{e:?}")))?;
+        // A process killed earlier may have left services behind: remove them before anything
+        // reads them.
+        let cleaned = node.try_cleanup_dead_nodes();
+        if cleaned.cleanups > 0 {
+            tracing::info!(link = %options.name, dead = cleaned.cleanups, "removed resources of dead shared-memory nodes");
+        }
+        let inbox_err = |what: &str, reason: String| ShmLinkOpenError::Inbox {
+            link: options.name.clone(),
+            what: what.to_owned(),
+            reason,
+        };
+        let svc = &options.service;
+        let open_pubsub = |part: &str, overflow: bool, buffer: usize| {
+            let n = service_name(&inbox_name(svc, id, part)).map_err(|e| inbox_err(part, e))?;
+            let s = pubsub_builder(&node, &n, overflow, buffer)
+                .create()
+                .map_err(|e| inbox_err(part, format!("{e:?}")))?;
+            s.subscriber_builder()
+                .buffer_size(buffer)
+                .create()
+                .map_err(|e| inbox_err(part, format!("{e:?}")))
+        };
+        let safe = open_pubsub("safe", false, SAFE_BUFFER)?;
+        let fast = open_pubsub("fast", true, FAST_BUFFER)?;
+        let wn = service_name(&inbox_name(svc, id, "wake")).map_err(|e| inbox_err("wake", e))?;
+        let wake = event_builder(&node, &wn)
+            .create()
+            .map_err(|e| inbox_err("wake", format!("{e:?}")))?;
+        let listener = wake
+            .listener_builder()
+            .create()
+            .map_err(|e| inbox_err("wake listener", format!("{e:?}")))?;
+        let self_wake = wake
+            .notifier_builder()
+            .create()
+            .map_err(|e| inbox_err("wake notifier", format!("{e:?}")))?;
+        Ok(Inbox {
+            node,
+            safe,
+            fast,
+            listener,
+            self_wake,
+        })
+    }
+}
+
+fn pubsub_builder<'a>(
+    node: &'a IoxNode<Ipc>,
+    name: &'a ServiceName,
+    overflow: bool,
+    buffer: usize,
+) -> iceoryx2::service::builder::publish_subscribe::Builder<[u8], (), Ipc> {
+    node.service_builder(name)
+        .publish_subscribe::<[u8]>()
+        .enable_safe_overflow(overflow)
+        .subscriber_max_buffer_size(buffer)
+        .history_size(0)
+        .max_subscribers(1)
+        .max_publishers(MAX_PEERS + 1)
+        .max_nodes(MAX_PEERS + 1)
+}
+
+fn event_builder<'a>(
+    node: &'a IoxNode<Ipc>,
+    name: &'a ServiceName,
+) -> iceoryx2::service::builder::event::Builder<Ipc> {
+    node.service_builder(name)
+        .event()
+        .max_listeners(1)
+        .max_notifiers(MAX_PEERS + 2)
+        .max_nodes(MAX_PEERS + 1)
+}
+
+/// Opens the writing side of peer `id`'s inbox (it must exist).
+fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, String> {
+    let open_pub = |part: &str, overflow: bool, buffer: usize| -> Result<Pub, String> {
+        let n = service_name(&inbox_name(service, id, part))?;
+        let s = pubsub_builder(node, &n, overflow, buffer)
+            .open()
+            .map_err(|e| format!("{part}: {e:?}"))?;
+        s.publisher_builder()
+            .initial_max_slice_len(FRAME_MAX)
+            .allocation_strategy(AllocationStrategy::Static)
+            .max_loaned_samples(2)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| format!("{part} publisher: {e:?}"))
+    };
+    let safe = open_pub("safe", false, SAFE_BUFFER)?;
+    let fast = open_pub("fast", true, FAST_BUFFER)?;
+    let wn = service_name(&inbox_name(service, id, "wake"))?;
+    let wake = event_builder(node, &wn)
+        .open()
+        .map_err(|e| format!("wake: {e:?}"))?
+        .notifier_builder()
+        .create()
+        .map_err(|e| format!("wake notifier: {e:?}"))?;
+    Ok(Conn { fast, safe, wake })
+}
+
+/// Writes one frame into `publisher`. Returns whether the inbox took it (a non-overflowing
+/// inbox refuses frames while its buffer is full).
+fn put(publisher: &Pub, kind: u8, sender: u64, session: u32, seq: u64, body: &[u8]) -> bool {
+    let h = frame::header_len(kind);
+    let Ok(mut sample) = publisher.loan_slice(h + body.len()) else {
+        return false;
+    };
+    let out = sample.payload_mut();
+    frame::write_header(out, kind, sender, session, seq);
+    out[h..].copy_from_slice(body);
+    matches!(sample.send(), Ok(n) if n > 0)
+}
+
+impl ShmLink {
+    /// Creates this link's inbox, connects to the inboxes of the same-host nodes already there
+    /// and starts the receive thread, which stops on `cancel` (a task on `tasks` waits for it).
+    ///
+    /// # Errors
+    /// [`ShmLinkOpenError`] when iceoryx2 cannot create the node or the inbox.
+    pub async fn open(
+        index: usize,
+        options: ShmLinkOptions,
+        handler: Arc<dyn LinkHandler>,
+        tasks: &TaskTracker,
+        cancel: CancellationToken,
+    ) -> Result<Arc<Self>, ShmLinkOpenError> {
+        let id: u64 = rand::random();
+        let opts = options.clone();
+        // Creating files and shared memory may wait on the file system: off the workers.
+        let inbox = tokio::task::spawn_blocking(move || Inbox::create(&opts, id))
+            .await
+            .map_err(|_| ShmLinkOpenError::Interrupted {
+                link: options.name.clone(),
+            })??;
+        let Inbox {
+            node,
+            safe,
+            fast,
+            listener,
+            self_wake,
+        } = inbox;
+        let (ctl_tx, ctl_rx) = mpsc::channel();
+        let link = Arc::new(ShmLink {
+            index,
+            options,
+            id,
+            peers: Mutex::new(HashMap::new()),
+            ctl: Mutex::new(ctl_tx),
+            self_wake,
+            stop: AtomicBool::new(false),
+            handler,
+            counters: Counters::default(),
+        });
+        let mut rx = Receiver {
+            link: link.clone(),
+            node,
+            safe,
+            fast,
+            listener,
+            ctl: ctl_rx,
+            rx: HashMap::new(),
+            ack_due: HashSet::new(),
+            next_scan: Instant::now(),
+        };
+        // Connect to the nodes already here before the node announces itself.
+        let scan_link = link.clone();
+        rx = tokio::task::spawn_blocking(move || {
+            rx.scan();
+            rx.next_scan = Instant::now() + scan_link.options.scan;
+            rx
+        })
+        .await
+        .map_err(|_| ShmLinkOpenError::Interrupted {
+            link: link.options.name.clone(),
+        })?;
+        let (exited_tx, exited_rx) = tokio::sync::oneshot::channel::<()>();
+        let runtime = tokio::runtime::Handle::current();
+        std::thread::Builder::new()
+            .name(format!("marea-shm-{}", link.options.name))
+            .spawn(move || {
+                // The node's handlers spawn tasks and create timers.
+                let _rt = runtime.enter();
+                rx.run();
+                drop(exited_tx);
+            })
+            .map_err(|source| ShmLinkOpenError::Thread {
+                link: link.options.name.clone(),
+                source,
+            })?;
+        let l = link.clone();
+        tasks.spawn(async move {
+            cancel.cancelled().await;
+            l.stop.store(true, Ordering::SeqCst);
+            l.wake_self();
+            let _ = exited_rx.await;
+        });
+        Ok(link)
+    }
+
+    /// This link's shared-memory identity (what peers see as [`PeerAddr::Shm`]).
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    fn wake_self(&self) {
+        let _ = self.self_wake.notify();
+    }
+
+    fn request(&self, c: Ctl) {
+        let _ = lock(&self.ctl).send(c);
+        self.wake_self();
+    }
+
+    fn peer(&self, id: u64, create: bool) -> Option<Arc<Mutex<PeerTx>>> {
+        let mut peers = lock(&self.peers);
+        if let Some(p) = peers.get(&id) {
+            return Some(p.clone());
+        }
+        if !create || peers.len() >= MAX_PEERS || id == self.id {
+            return None;
+        }
+        let p = Arc::new(Mutex::new(PeerTx::new()));
+        peers.insert(id, p.clone());
+        Some(p)
+    }
+
+    fn count_out(&self, n: usize) {
+        self.counters.frames_out.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .bytes_out
+            .fetch_add(n as u64, Ordering::Relaxed);
+    }
+
+    /// Writes as much of the safe backlog as the peer's inbox takes. Returns whether anything
+    /// was written (the peer then needs waking).
+    fn flush_safe(&self, st: &mut PeerTx) -> bool {
+        let PeerTx {
+            conn,
+            session,
+            next_seq,
+            safe_backlog,
+            unacked,
+            blocked,
+            ..
+        } = st;
+        let Some(conn) = conn.as_ref() else {
+            return false;
+        };
+        let body_max = FRAME_MAX - frame::SEQUENCED;
+        let mut wrote = false;
+        while let Some(p) = safe_backlog.front_mut() {
+            let n = body_max.min(p.msg.len() - p.sent);
+            let more = p.sent + n < p.msg.len();
+            let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
+            let body = &p.msg[p.sent..p.sent + n];
+            if !put(&conn.safe, kind, self.id, *session, *next_seq, body) {
+                *blocked = true;
+                self.counters.retransmitted.fetch_add(1, Ordering::Relaxed);
+                break;
+            }
+            self.count_out(frame::SEQUENCED + n);
+            wrote = true;
+            p.sent += n;
+            if !more {
+                if let Some(done) = p.done.take() {
+                    unacked.push_back((*next_seq, done));
+                }
+                safe_backlog.pop_front();
+            }
+            *next_seq += 1;
+        }
+        wrote
+    }
+
+    /// Writes what waited for the inbox to open, then wakes the peer.
+    fn flush_opened(&self, st: &mut PeerTx) {
+        let Some(conn) = st.conn.as_ref() else {
+            return;
+        };
+        let mut wrote = false;
+        for (_, msg) in std::mem::take(&mut st.fast_backlog) {
+            if msg.len() + frame::BASE <= FRAME_MAX {
+                if put(&conn.fast, frame::FAST, self.id, 0, 0, &msg) {
+                    self.count_out(frame::BASE + msg.len());
+                    wrote = true;
+                }
+            } else {
+                st.safe_backlog.push_back(Pending {
+                    msg,
+                    sent: 0,
+                    done: None,
+                    fast: true,
+                });
+            }
+        }
+        st.blocked = false;
+        wrote |= self.flush_safe(st);
+        if wrote {
+            self.notify(st);
+        }
+    }
+
+    fn notify(&self, st: &PeerTx) {
+        if let Some(c) = &st.conn {
+            // Only a sleeping receiver costs a syscall; an error means it is gone, which the
+            // scan and the node's lease notice.
+            let _ = c.wake.notify();
+        }
+    }
+
+    fn fast_send(&self, st: &mut PeerTx, coalesce: Option<u32>, msg: Vec<u8>) {
+        if st.conn.is_none() {
+            let slot =
+                coalesce.and_then(|k| st.fast_backlog.iter_mut().find(|(c, _)| *c == Some(k)));
+            if let Some(slot) = slot {
+                slot.1 = msg;
+            } else {
+                if st.fast_backlog.len() >= MAX_FAST_BACKLOG {
+                    st.fast_backlog.pop_front();
+                    self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
+                }
+                st.fast_backlog.push_back((coalesce, msg));
+            }
+            return;
+        }
+        if msg.len() + frame::BASE <= FRAME_MAX {
+            let ok = st
+                .conn
+                .as_ref()
+                .is_some_and(|c| put(&c.fast, frame::FAST, self.id, 0, 0, &msg));
+            if ok {
+                self.count_out(frame::BASE + msg.len());
+                self.notify(st);
+            } else {
+                self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            return;
+        }
+        // Too large for one frame: ride the safe path, unless the reader is far behind.
+        let queued_fast = st.safe_backlog.iter().filter(|p| p.fast).count();
+        if queued_fast >= MAX_FAST_BACKLOG {
+            self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        st.safe_backlog.push_back(Pending {
+            msg,
+            sent: 0,
+            done: None,
+            fast: true,
+        });
+        if !st.blocked && self.flush_safe(st) {
+            self.notify(st);
+        }
+    }
+}
+
+impl Link for ShmLink {
+    fn name(&self) -> &str {
+        &self.options.name
+    }
+
+    fn local_addr(&self) -> String {
+        format!("shm://{}/{:016x}", self.options.service, self.id)
+    }
+
+    fn send(&self, to: PeerAddr, out: Outgoing) {
+        let PeerAddr::Shm(id) = to else {
+            if let Outgoing::Safe { done: Some(d), .. } = out {
+                let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
+            }
+            return;
+        };
+        let Some(p) = self.peer(id, true) else {
+            if let Outgoing::Safe { done: Some(d), .. } = out {
+                let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
+            }
+            return;
+        };
+        let mut st = lock(&p);
+        let unopened = st.conn.is_none();
+        match out {
+            Outgoing::Fast { coalesce, msg } => self.fast_send(&mut st, coalesce, msg),
+            Outgoing::Safe { msg, done } => {
+                st.safe_backlog.push_back(Pending {
+                    msg,
+                    sent: 0,
+                    done,
+                    fast: false,
+                });
+                if !st.blocked && self.flush_safe(&mut st) {
+                    self.notify(&st);
+                }
+            }
+        }
+        drop(st);
+        if unopened {
+            self.request(Ctl::Open(id));
+        }
+    }
+
+    fn announce(&self, msg: &[u8]) {
+        if msg.len() + frame::BASE > FRAME_MAX {
+            return;
+        }
+        let peers: Vec<Arc<Mutex<PeerTx>>> = lock(&self.peers).values().cloned().collect();
+        for p in peers {
+            let st = lock(&p);
+            if let Some(c) = &st.conn {
+                if put(&c.fast, frame::ANNOUNCE, self.id, 0, 0, msg) {
+                    self.count_out(frame::BASE + msg.len());
+                    let _ = c.wake.notify();
+                }
+            }
+        }
+    }
+
+    fn close_peer(&self, to: PeerAddr) {
+        let PeerAddr::Shm(id) = to else {
+            return;
+        };
+        let p = lock(&self.peers).remove(&id);
+        if let Some(p) = p {
+            lock(&p).fail_all(&LinkSendError::PeerClosed(to.to_string()));
+        }
+        self.request(Ctl::Forget(id));
+    }
+
+    fn stats(&self) -> LinkStats {
+        let c = &self.counters;
+        LinkStats {
+            frames_out: c.frames_out.load(Ordering::Relaxed),
+            frames_in: c.frames_in.load(Ordering::Relaxed),
+            bytes_out: c.bytes_out.load(Ordering::Relaxed),
+            bytes_in: c.bytes_in.load(Ordering::Relaxed),
+            corrupt: c.corrupt.load(Ordering::Relaxed),
+            retransmitted: c.retransmitted.load(Ordering::Relaxed),
+            duplicates: c.duplicates.load(Ordering::Relaxed),
+            fast_dropped: c.fast_dropped.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// The receive thread: owns the iceoryx2 node and the inbox.
+struct Receiver {
+    link: Arc<ShmLink>,
+    node: IoxNode<Ipc>,
+    safe: Sub,
+    fast: Sub,
+    listener: Listener<Ipc>,
+    ctl: mpsc::Receiver<Ctl>,
+    rx: HashMap<u64, RxState>,
+    ack_due: HashSet<u64>,
+    next_scan: Instant,
+}
+
+impl Receiver {
+    fn run(mut self) {
+        let mut next_retry = Instant::now() + RETRY;
+        while !self.link.stop.load(Ordering::SeqCst) {
+            while let Ok(c) = self.ctl.try_recv() {
+                match c {
+                    Ctl::Open(id) => self.connect(id),
+                    Ctl::Forget(id) => {
+                        self.rx.remove(&id);
+                        self.ack_due.remove(&id);
+                    }
+                }
+            }
+            let mut acked = Vec::new();
+            let busy_safe = self.drain_safe(&mut acked);
+            let busy_fast = self.drain_fast();
+            self.send_acks();
+            let now = Instant::now();
+            let retry = now >= next_retry;
+            if retry {
+                next_retry = now + RETRY;
+            }
+            let backlog = self.flush_backlogs(&acked, retry);
+            if now >= self.next_scan {
+                self.scan();
+                self.next_scan = Instant::now() + self.link.options.scan;
+            }
+            if busy_safe || busy_fast {
+                continue;
+            }
+            let timeout = if backlog || !self.ack_due.is_empty() {
+                RETRY
+            } else {
+                self.next_scan.saturating_duration_since(Instant::now())
+            };
+            if let Err(e) = self.listener.timed_wait(|_| {}, timeout) {
+                tracing::warn!(link = %self.link.options.name, error = ?e, "waiting on the shared-memory inbox failed");
+                std::thread::sleep(RETRY);
+            }
+        }
+        let peers: Vec<Arc<Mutex<PeerTx>>> =
+            lock(&self.link.peers).drain().map(|(_, p)| p).collect();
+        for p in peers {
+            lock(&p).fail_all(&LinkSendError::Shutdown);
+        }
+    }
+
+    /// Opens peer `id`'s inbox if it is not open yet, and writes what waited for it.
+    fn connect(&mut self, id: u64) {
+        let Some(p) = self.link.peer(id, true) else {
+            return;
+        };
+        let mut st = lock(&p);
+        if st.conn.is_some() {
+            return;
+        }
+        match open_conn(&self.node, &self.link.options.service, id) {
+            Ok(c) => {
+                st.conn = Some(c);
+                self.link.flush_opened(&mut st);
+            }
+            Err(e) => {
+                tracing::debug!(link = %self.link.options.name, peer = format_args!("{id:016x}"), error = %e, "peer inbox not open yet");
+            }
+        }
+    }
+
+    /// Lists the host's iceoryx2 nodes: connects to the inboxes of the same `service` and
+    /// removes what dead ones left behind.
+    fn scan(&mut self) {
+        let prefix = node_prefix(&self.link.options.service);
+        let mut alive = Vec::new();
+        let mut dead = Vec::new();
+        let listed = IoxNode::<Ipc>::list(self.node.config(), |state| {
+            let id_of = |details: &Option<iceoryx2::node::NodeDetails>| {
+                details
+                    .as_ref()
+                    .and_then(|d| d.name().as_str().strip_prefix(prefix.as_str()))
+                    .and_then(|hex| u64::from_str_radix(hex, 16).ok())
+            };
+            match state {
+                NodeState::Alive(v) => {
+                    if let Some(id) = id_of(v.details()) {
+                        alive.push(id);
+                    }
+                }
+                NodeState::Dead(v) => {
+                    if let Some(id) = id_of(v.details()) {
+                        dead.push((id, v));
+                    }
+                }
+                NodeState::Inaccessible(_) | NodeState::Undefined(_) => {}
+            }
+            CallbackProgression::Continue
+        });
+        if let Err(e) = listed {
+            tracing::warn!(link = %self.link.options.name, error = ?e, "listing shared-memory nodes failed");
+        }
+        for (id, view) in dead {
+            match view.try_remove_stale_resources() {
+                Ok(()) => {
+                    tracing::info!(link = %self.link.options.name, peer = format_args!("{id:016x}"), "removed resources of a dead shared-memory node")
+                }
+                Err(e) => {
+                    tracing::debug!(link = %self.link.options.name, error = ?e, "dead node cleanup failed")
+                }
+            }
+            let p = lock(&self.link.peers).remove(&id);
+            if let Some(p) = p {
+                lock(&p).fail_all(&LinkSendError::PeerClosed(PeerAddr::Shm(id).to_string()));
+            }
+        }
+        for id in alive {
+            if id != self.link.id {
+                self.connect(id);
+            }
+        }
+    }
+
+    fn count_in(&self, n: usize) {
+        let c = &self.link.counters;
+        c.frames_in.fetch_add(1, Ordering::Relaxed);
+        c.bytes_in.fetch_add(n as u64, Ordering::Relaxed);
+    }
+
+    /// Takes what the safe inbox holds. Returns whether the budget ran out (more may wait).
+    fn drain_safe(&mut self, acked: &mut Vec<u64>) -> bool {
+        let link = self.link.clone();
+        for _ in 0..PASS_BUDGET {
+            let sample = match self.safe.receive() {
+                Ok(Some(s)) => s,
+                Ok(None) => return false,
+                Err(e) => {
+                    tracing::warn!(link = %link.options.name, error = ?e, "receiving from the safe inbox failed");
+                    return false;
+                }
+            };
+            let bytes = sample.payload();
+            self.count_in(bytes.len());
+            match frame::parse(bytes) {
+                Ok((
+                    from,
+                    frame::Frame::Safe {
+                        session,
+                        seq,
+                        more,
+                        body,
+                    },
+                )) => self.on_safe(from, session, seq, more, body),
+                Ok((from, frame::Frame::Ack { session, seq })) => {
+                    if self.on_ack(from, session, seq) {
+                        acked.push(from);
+                    }
+                }
+                Ok((from, frame::Frame::Fast(body))) => {
+                    link.handler
+                        .on_message(link.index, PeerAddr::Shm(from), body)
+                }
+                Ok((from, frame::Frame::Announce(body))) => {
+                    link.handler
+                        .on_announce(link.index, PeerAddr::Shm(from), body)
+                }
+                Err(e) => {
+                    link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                    tracing::trace!(link = %link.options.name, error = %e, "corrupt frame dropped");
+                }
+            }
+        }
+        true
+    }
+
+    fn drain_fast(&mut self) -> bool {
+        let link = self.link.clone();
+        for _ in 0..PASS_BUDGET {
+            let sample = match self.fast.receive() {
+                Ok(Some(s)) => s,
+                Ok(None) => return false,
+                Err(e) => {
+                    tracing::warn!(link = %link.options.name, error = ?e, "receiving from the fast inbox failed");
+                    return false;
+                }
+            };
+            let bytes = sample.payload();
+            self.count_in(bytes.len());
+            match frame::parse(bytes) {
+                Ok((from, frame::Frame::Fast(body))) => {
+                    link.handler
+                        .on_message(link.index, PeerAddr::Shm(from), body)
+                }
+                Ok((from, frame::Frame::Announce(body))) => {
+                    link.handler
+                        .on_announce(link.index, PeerAddr::Shm(from), body)
+                }
+                Ok(_) | Err(_) => {
+                    // Safe frames never use the fast inbox.
+                    link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+        true
+    }
+
+    fn on_safe(&mut self, from: u64, session: u32, seq: u64, more: bool, body: &[u8]) {
+        let link = self.link.clone();
+        let peer = PeerAddr::Shm(from);
+        let reset = match self.rx.get_mut(&from) {
+            Some(st) if st.session == session => false,
+            Some(st) => {
+                // The sender closed us and started over: what it had in flight is gone.
+                *st = RxState {
+                    session,
+                    expected: seq,
+                    partial: Vec::new(),
+                    ack: None,
+                };
+                true
+            }
+            None => {
+                self.rx.insert(
+                    from,
+                    RxState {
+                        session,
+                        expected: seq,
+                        partial: Vec::new(),
+                        ack: None,
+                    },
+                );
+                false
+            }
+        };
+        if reset {
+            link.handler.on_peer_reset(link.index, peer);
+        }
+        let Some(st) = self.rx.get_mut(&from) else {
+            return;
+        };
+        if seq < st.expected {
+            link.counters.duplicates.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if seq > st.expected {
+            // Shared memory loses nothing; a gap means a torn message, which is dropped.
+            st.partial.clear();
+            link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+        }
+        st.expected = seq + 1;
+        st.ack = Some(seq);
+        self.ack_due.insert(from);
+        if more {
+            if st.partial.len() + body.len() > MAX_MESSAGE {
+                st.partial = Vec::new();
+                link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+            } else {
+                st.partial.extend_from_slice(body);
+            }
+            return;
+        }
+        if st.partial.is_empty() {
+            link.handler.on_message(link.index, peer, body);
+        } else {
+            st.partial.extend_from_slice(body);
+            let msg = std::mem::take(&mut st.partial);
+            link.handler.on_message(link.index, peer, &msg);
+        }
+    }
+
+    /// Completes what `from` acknowledged. Returns whether it refers to our current session.
+    fn on_ack(&mut self, from: u64, session: u32, seq: u64) -> bool {
+        let Some(p) = self.link.peer(from, false) else {
+            return false;
+        };
+        let done: Vec<SafeCompletion> = {
+            let mut st = lock(&p);
+            if st.session != session {
+                return false;
+            }
+            st.blocked = false;
+            let mut v = Vec::new();
+            while st.unacked.front().is_some_and(|(s, _)| *s <= seq) {
+                if let Some((_, d)) = st.unacked.pop_front() {
+                    v.push(d);
+                }
+            }
+            v
+        };
+        for d in done {
+            let _ = d.send(Ok(()));
+        }
+        true
+    }
+
+    fn send_acks(&mut self) {
+        let due: Vec<u64> = self.ack_due.iter().copied().collect();
+        for from in due {
+            let Some((session, seq)) = self
+                .rx
+                .get(&from)
+                .and_then(|st| st.ack.map(|a| (st.session, a)))
+            else {
+                self.ack_due.remove(&from);
+                continue;
+            };
+            if self
+                .link
+                .peer(from, false)
+                .is_none_or(|p| lock(&p).conn.is_none())
+            {
+                self.connect(from);
+            }
+            let Some(p) = self.link.peer(from, false) else {
+                self.ack_due.remove(&from);
+                continue;
+            };
+            let st = lock(&p);
+            let Some(c) = &st.conn else {
+                continue;
+            };
+            if put(&c.safe, frame::ACK, self.link.id, session, seq, &[]) {
+                self.link.count_out(frame::SEQUENCED);
+                let _ = c.wake.notify();
+                drop(st);
+                self.ack_due.remove(&from);
+                if let Some(r) = self.rx.get_mut(&from) {
+                    if r.ack == Some(seq) {
+                        r.ack = None;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Retries refused frames towards peers that acknowledged (their buffer has room) or, on
+    /// `retry`, towards every blocked peer. Returns whether some backlog remains.
+    fn flush_backlogs(&mut self, acked: &[u64], retry: bool) -> bool {
+        let peers: Vec<(u64, Arc<Mutex<PeerTx>>)> = lock(&self.link.peers)
+            .iter()
+            .map(|(id, p)| (*id, p.clone()))
+            .collect();
+        let mut remaining = false;
+        for (id, p) in peers {
+            let mut st = lock(&p);
+            if st.safe_backlog.is_empty() {
+                continue;
+            }
+            if acked.contains(&id) || retry {
+                st.blocked = false;
+                if self.link.flush_safe(&mut st) {
+                    self.link.notify(&st);
+                }
+            }
+            remaining |= !st.safe_backlog.is_empty() && st.conn.is_some();
+        }
+        remaining
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::frame::{self, Frame, FrameDecodeError};
+    use super::*;
+
+    #[test]
+    fn golden_safe_frame() {
+        let mut b = vec![0u8; frame::SEQUENCED + 2];
+        frame::write_header(
+            &mut b,
+            frame::SAFE_MORE,
+            0x0102_0304_0506_0708,
+            9,
+            0x1_0000_0002,
+        );
+        b[21..].copy_from_slice(b"hi");
+        assert_eq!(
+            b,
+            [
+                4, // kind: SafeMore
+                8, 7, 6, 5, 4, 3, 2, 1, // sender id, little endian
+                9, 0, 0, 0, // session
+                2, 0, 0, 0, 1, 0, 0, 0, // sequence number
+                b'h', b'i', // body
+            ]
+        );
+        assert_eq!(
+            frame::parse(&b),
+            Ok((
+                0x0102_0304_0506_0708,
+                Frame::Safe {
+                    session: 9,
+                    seq: 0x1_0000_0002,
+                    more: true,
+                    body: b"hi"
+                }
+            ))
+        );
+    }
+
+    #[test]
+    fn golden_fast_and_ack_frames() {
+        let mut f = vec![0u8; frame::BASE + 1];
+        frame::write_header(&mut f, frame::FAST, 1, 77, 77);
+        f[9] = 0xAA;
+        assert_eq!(f, [2, 1, 0, 0, 0, 0, 0, 0, 0, 0xAA]);
+        assert_eq!(frame::parse(&f), Ok((1, Frame::Fast(&[0xAA]))));
+        let mut a = vec![0u8; frame::SEQUENCED];
+        frame::write_header(&mut a, frame::ACK, 2, 3, 4);
+        assert_eq!(
+            a,
+            [5, 2, 0, 0, 0, 0, 0, 0, 0, 3, 0, 0, 0, 4, 0, 0, 0, 0, 0, 0, 0]
+        );
+        assert_eq!(frame::parse(&a), Ok((2, Frame::Ack { session: 3, seq: 4 })));
+    }
+
+    #[test]
+    fn malformed_frames_are_errors() {
+        assert_eq!(frame::parse(&[]), Err(FrameDecodeError::Truncated(0)));
+        assert_eq!(
+            frame::parse(&[3, 0, 0, 0, 0, 0, 0, 0, 0, 1]),
+            Err(FrameDecodeError::Truncated(10))
+        );
+        assert_eq!(
+            frame::parse(&[99, 0, 0, 0, 0, 0, 0, 0, 0]),
+            Err(FrameDecodeError::UnknownKind(99))
+        );
+        for len in 0..40 {
+            let b: Vec<u8> = (0..len).map(|i| (i * 37 % 251) as u8).collect();
+            let _ = frame::parse(&b);
+        }
+    }
+
+    /// What a link delivered, in order.
+    #[derive(Debug, Clone, PartialEq, Eq)]
+    enum Got {
+        Msg(PeerAddr, Vec<u8>),
+        Announce(PeerAddr, Vec<u8>),
+        Reset(PeerAddr),
+    }
+
+    struct Collect(mpsc::Sender<Got>);
+
+    impl LinkHandler for Collect {
+        fn on_message(&self, _: usize, from: PeerAddr, msg: &[u8]) {
+            let _ = self.0.send(Got::Msg(from, msg.to_vec()));
+        }
+        fn on_announce(&self, _: usize, from: PeerAddr, msg: &[u8]) {
+            let _ = self.0.send(Got::Announce(from, msg.to_vec()));
+        }
+        fn on_peer_reset(&self, _: usize, from: PeerAddr) {
+            let _ = self.0.send(Got::Reset(from));
+        }
+    }
+
+    fn unique_service(tag: &str) -> String {
+        format!("t{tag}{}x{:08x}", std::process::id(), rand::random::<u32>())
+    }
+
+    async fn open_link(
+        service: &str,
+        tasks: &TaskTracker,
+        cancel: &CancellationToken,
+    ) -> (Arc<ShmLink>, mpsc::Receiver<Got>) {
+        let (tx, rx) = mpsc::channel();
+        let link = ShmLink::open(
+            0,
+            ShmLinkOptions {
+                name: "shm0".into(),
+                service: service.into(),
+                scan: Duration::from_millis(200),
+            },
+            Arc::new(Collect(tx)),
+            tasks,
+            cancel.child_token(),
+        )
+        .await
+        .expect("shm link opens");
+        (link, rx)
+    }
+
+    /// Next delivery that is not an announcement, within 5 s.
+    fn next_msg(rx: &mpsc::Receiver<Got>) -> Got {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(left) {
+                Ok(Got::Announce(..)) => continue,
+                Ok(g) => return g,
+                Err(e) => panic!("nothing delivered: {e}"),
+            }
+        }
+    }
+
+    fn safe(
+        msg: Vec<u8>,
+    ) -> (
+        Outgoing,
+        tokio::sync::oneshot::Receiver<Result<(), LinkSendError>>,
+    ) {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        (
+            Outgoing::Safe {
+                msg,
+                done: Some(tx),
+            },
+            rx,
+        )
+    }
+
+    async fn stop(tasks: TaskTracker, cancel: CancellationToken) {
+        cancel.cancel();
+        tasks.close();
+        tokio::time::timeout(Duration::from_secs(5), tasks.wait())
+            .await
+            .expect("receive threads stop");
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn announce_reaches_a_node_started_earlier_and_later() {
+        let svc = unique_service("ann");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, arx) = open_link(&svc, &tasks, &cancel).await;
+        let (b, brx) = open_link(&svc, &tasks, &cancel).await;
+        // b connected to a when it opened; a connects to b when it first hears from it.
+        b.announce(b"hello from b");
+        let got = arx.recv_timeout(Duration::from_secs(5)).expect("a hears b");
+        assert_eq!(
+            got,
+            Got::Announce(PeerAddr::Shm(b.id()), b"hello from b".to_vec())
+        );
+        a.send(
+            PeerAddr::Shm(b.id()),
+            Outgoing::Fast {
+                coalesce: None,
+                msg: b"x".to_vec(),
+            },
+        );
+        assert_eq!(
+            next_msg(&brx),
+            Got::Msg(PeerAddr::Shm(a.id()), b"x".to_vec())
+        );
+        a.announce(b"hello from a");
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            match brx.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+                Ok(Got::Announce(from, m)) if m == b"hello from a" => {
+                    assert_eq!(from, PeerAddr::Shm(a.id()));
+                    break;
+                }
+                Ok(_) => continue,
+                Err(e) => panic!("b never heard a's announcement: {e}"),
+            }
+        }
+        stop(tasks, cancel).await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn safe_messages_arrive_once_in_order_and_are_acknowledged() {
+        let svc = unique_service("safe");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, _arx) = open_link(&svc, &tasks, &cancel).await;
+        let (b, brx) = open_link(&svc, &tasks, &cancel).await;
+        let n = 5000u32;
+        let mut acks = Vec::new();
+        for i in 0..n {
+            // Every 500th message spans several frames.
+            let len = if i % 500 == 0 { 3 * FRAME_MAX + 17 } else { 8 };
+            let mut m = vec![(i % 251) as u8; len];
+            m[..4].copy_from_slice(&i.to_le_bytes());
+            let (out, done) = safe(m);
+            a.send(PeerAddr::Shm(b.id()), out);
+            acks.push(done);
+        }
+        for i in 0..n {
+            let Got::Msg(from, m) = next_msg(&brx) else {
+                panic!("unexpected delivery");
+            };
+            assert_eq!(from, PeerAddr::Shm(a.id()));
+            assert_eq!(u32::from_le_bytes([m[0], m[1], m[2], m[3]]), i);
+            let len = if i % 500 == 0 { 3 * FRAME_MAX + 17 } else { 8 };
+            assert_eq!(m.len(), len);
+            assert!(m[4..].iter().all(|&x| x == (i % 251) as u8));
+        }
+        for d in acks {
+            let r = tokio::time::timeout(Duration::from_secs(5), d).await;
+            assert_eq!(
+                r.expect("acknowledged in time").expect("completion sent"),
+                Ok(())
+            );
+        }
+        assert_eq!(b.stats().duplicates, 0);
+        stop(tasks, cancel).await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_reader_that_stops_never_blocks_the_writer() {
+        let svc = unique_service("stall");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, _arx) = open_link(&svc, &tasks, &cancel).await;
+        // b's handler blocks until released: its receive thread stops reading.
+        let (gate_tx, gate_rx) = std::sync::mpsc::channel::<()>();
+        let (tx, brx) = mpsc::channel();
+        struct Stuck(Mutex<mpsc::Receiver<()>>, Collect);
+        impl LinkHandler for Stuck {
+            fn on_message(&self, l: usize, from: PeerAddr, msg: &[u8]) {
+                if msg == b"stall" {
+                    let _ = lock(&self.0).recv_timeout(Duration::from_secs(20));
+                }
+                self.1.on_message(l, from, msg);
+            }
+            fn on_announce(&self, _: usize, _: PeerAddr, _: &[u8]) {}
+            fn on_peer_reset(&self, l: usize, from: PeerAddr) {
+                self.1.on_peer_reset(l, from);
+            }
+        }
+        let b = ShmLink::open(
+            0,
+            ShmLinkOptions {
+                name: "shm0".into(),
+                service: svc.clone(),
+                scan: Duration::from_millis(200),
+            },
+            Arc::new(Stuck(Mutex::new(gate_rx), Collect(tx))),
+            &tasks,
+            cancel.child_token(),
+        )
+        .await
+        .expect("opens");
+        let to = PeerAddr::Shm(b.id());
+        a.send(
+            to,
+            Outgoing::Fast {
+                coalesce: None,
+                msg: b"stall".to_vec(),
+            },
+        );
+        let tagged = |tag: u8, i: u32| {
+            let mut m = vec![tag];
+            m.extend_from_slice(&i.to_le_bytes());
+            m
+        };
+        let started = Instant::now();
+        for i in 0..20_000u32 {
+            a.send(
+                to,
+                Outgoing::Fast {
+                    coalesce: Some(1),
+                    msg: tagged(b'f', i),
+                },
+            );
+        }
+        let mut acks = Vec::new();
+        for i in 0..1000u32 {
+            let (out, done) = safe(tagged(b's', i));
+            a.send(to, out);
+            acks.push(done);
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(5),
+            "sending blocked"
+        );
+        assert!(a.stats().retransmitted > 0, "the safe inbox filled up");
+        let _ = gate_tx.send(());
+        // Every safe message arrives once, in order; the newest fast value survives overflow.
+        let mut next_safe = 0u32;
+        let mut last_fast = 0u32;
+        while next_safe < 1000 || last_fast < 19_999 {
+            let Got::Msg(_, m) = next_msg(&brx) else {
+                continue;
+            };
+            if m == b"stall" {
+                continue;
+            }
+            let v = u32::from_le_bytes([m[1], m[2], m[3], m[4]]);
+            match m[0] {
+                b's' => {
+                    assert_eq!(v, next_safe);
+                    next_safe += 1;
+                }
+                _ => {
+                    assert!(v >= last_fast);
+                    last_fast = v;
+                }
+            }
+        }
+        for d in acks {
+            let r = tokio::time::timeout(Duration::from_secs(5), d).await;
+            assert_eq!(
+                r.expect("acknowledged in time").expect("completion sent"),
+                Ok(())
+            );
+        }
+        stop(tasks, cancel).await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn closing_a_peer_fails_what_it_did_not_acknowledge() {
+        let svc = unique_service("close");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, _arx) = open_link(&svc, &tasks, &cancel).await;
+        // A peer that never existed: the message waits for an inbox that never opens.
+        let ghost = PeerAddr::Shm(0x1234);
+        let (out, done) = safe(b"lost".to_vec());
+        a.send(ghost, out);
+        a.close_peer(ghost);
+        let r = tokio::time::timeout(Duration::from_secs(5), done).await;
+        assert!(matches!(r, Ok(Ok(Err(LinkSendError::PeerClosed(_))))));
+        stop(tasks, cancel).await;
+    }
+}
