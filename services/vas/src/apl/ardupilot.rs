@@ -582,6 +582,10 @@ impl Driver {
             return;
         }
         self.last_mode = Some(mode.to_owned());
+        if self.commanded.is_none() {
+            // Still in CONFIGURE_CHECK: the VAL has not taken the autopilot over yet.
+            return;
+        }
         if mode != "AUTO" && self.queue.is_running() {
             self.queue.stop();
         }

@@ -172,6 +172,8 @@ impl Core {
             ApEvent::ModeChanged { mode, state } => {
                 let _t = self.transition.lock().await;
                 match state {
+                    // Until configured, the autopilot's own mode means nothing to USAL.
+                    _ if self.state() == FlightState::ConfigureCheck => {}
                     Some(to) if to != self.state() => {
                         self.enter(to, &format!("autopilot mode {mode}"));
                     }

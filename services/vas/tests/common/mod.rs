@@ -1,0 +1,269 @@
+//! Test harness: the real `mavsim` and `vas` binaries as child processes, and a ground
+//! station (a marea node in the test process) that talks to the VAS over UDP.
+
+#![allow(dead_code)] // Each test file uses a different part of the harness.
+
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use marea::{EventSubscriber, Function, NetworkConfig, Node, Service, VariableSubscriber};
+use tokio::io::{AsyncBufReadExt, BufReader};
+use tokio::process::{Child, Command};
+use usal_types::{
+    Alarm, FlightState, QueueStatus, StateChangeReply, StateChangeRequest, StateChanged, Waypoint,
+    WaypointReached,
+};
+
+/// Bound on every single wait of the tests.
+pub const STEP: Duration = Duration::from_secs(20);
+/// Home of every simulated vehicle.
+pub const HOME: (f64, f64) = (41.2757, 1.9881);
+
+/// The `mavsim` binary, built once per test process into this test's own target directory.
+pub fn mavsim_bin() -> &'static Path {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        // <target>/debug/deps/<test binary>: the target directory is three levels up.
+        let exe = std::env::current_exe().expect("test binary path");
+        let target = exe
+            .ancestors()
+            .nth(3)
+            .expect("test binary inside <target>/<profile>/deps")
+            .to_owned();
+        let status = std::process::Command::new(env!("CARGO"))
+            .args(["build", "-p", "mavsim", "--bin", "mavsim"])
+            .env("CARGO_TARGET_DIR", &target)
+            .status()
+            .expect("running cargo build -p mavsim");
+        assert!(status.success(), "building mavsim failed");
+        let bin = target.join("debug").join("mavsim");
+        assert!(bin.exists(), "no mavsim at {}", bin.display());
+        bin
+    })
+}
+
+/// A running mavsim, killed on drop.
+pub struct Sim {
+    child: Child,
+    /// `127.0.0.1:PORT` it listens on.
+    pub addr: String,
+    /// Its `--log` file.
+    pub log: PathBuf,
+}
+
+impl Sim {
+    /// Starts mavsim on `bind` (`127.0.0.1:0` for any port) logging to `log`.
+    pub async fn start(bind: &str, speedup: f64, log: &Path) -> Sim {
+        let mut child = Command::new(mavsim_bin())
+            .args(["--udp", bind, "--speedup", &speedup.to_string()])
+            .arg("--home")
+            .arg(format!("{},{},10", HOME.0, HOME.1))
+            .arg("--log")
+            .arg(log)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("spawn mavsim");
+        let stdout = child.stdout.take().expect("piped stdout");
+        let line = tokio::time::timeout(STEP, BufReader::new(stdout).lines().next_line())
+            .await
+            .expect("mavsim printed no address in time")
+            .expect("reading mavsim stdout")
+            .expect("mavsim exited early");
+        let addr = line
+            .strip_prefix("MAVSIM_UDP=")
+            .unwrap_or_else(|| panic!("unexpected mavsim output {line:?}"))
+            .to_owned();
+        Sim {
+            child,
+            addr,
+            log: log.to_owned(),
+        }
+    }
+
+    /// The log records of one event kind.
+    pub fn log_events(&self, event: &str) -> Vec<serde_json::Value> {
+        log_events(&self.log, event)
+    }
+
+    /// Kills it and waits.
+    pub async fn kill(mut self) {
+        let _ = self.child.start_kill();
+        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+    }
+}
+
+/// The records of `event` in a mavsim log.
+pub fn log_events(log: &Path, event: &str) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|r| r["event"] == event)
+        .collect()
+}
+
+/// A running `vas`, killed on drop.
+pub struct VasProc {
+    child: Child,
+}
+
+impl VasProc {
+    /// Starts the `vas` binary on `endpoint` in middleware `domain`, namespace `rover1`.
+    pub fn start(endpoint: &str, domain: &str, extra: &[&str]) -> VasProc {
+        let child = Command::new(env!("CARGO_BIN_EXE_vas"))
+            .args(["--endpoint", endpoint, "--domain", domain])
+            .args(["--namespace", "rover1", "--telemetry-hz", "4"])
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("spawn vas");
+        VasProc { child }
+    }
+
+    /// Kills it and waits.
+    pub async fn kill(mut self) {
+        let _ = self.child.start_kill();
+        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+    }
+}
+
+/// A unique middleware domain, so parallel tests do not see each other's VAS.
+pub fn unique_domain(tag: &str) -> String {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static N: AtomicU32 = AtomicU32::new(0);
+    format!(
+        "vas-{tag}-{}-{}",
+        std::process::id(),
+        N.fetch_add(1, Ordering::Relaxed)
+    )
+}
+
+/// The ground side of a test: what the FPMa and the FMo use of the VAS.
+pub struct Ground {
+    pub node: Node,
+    pub svc: Service,
+    pub change_state: Function<StateChangeRequest, StateChangeReply>,
+    pub push: Function<Vec<Waypoint>, QueueStatus>,
+    pub clear: Function<(), QueueStatus>,
+    pub reached: EventSubscriber<WaypointReached>,
+    pub changes: EventSubscriber<StateChanged>,
+    pub alarms: EventSubscriber<Alarm>,
+    pub state: VariableSubscriber<FlightState>,
+}
+
+impl Ground {
+    /// Opens a node in `domain` and waits until the VAS answers.
+    pub async fn open(domain: &str) -> Ground {
+        let mut cfg = NetworkConfig::ethernet_loopback("ground");
+        cfg.domain = domain.to_owned();
+        let node = Node::open(&cfg).await.expect("ground node");
+        let svc = node.service("gcs").expect("service");
+        let g = Ground {
+            change_state: svc.function("rover1/vas/change_state").unwrap(),
+            push: svc.function("rover1/vas/push_waypoints").unwrap(),
+            clear: svc.function("rover1/vas/clear_waypoints").unwrap(),
+            reached: svc.subscribe_event("rover1/vas/waypoint_reached").unwrap(),
+            changes: svc.subscribe_event("rover1/vas/state_changed").unwrap(),
+            alarms: svc.subscribe_event("rover1/vas/alarm").unwrap(),
+            state: svc.subscribe_variable("rover1/vas/flight_state").unwrap(),
+            node,
+            svc,
+        };
+        assert!(
+            g.change_state.wait_provider(STEP).await,
+            "the VAS was not discovered"
+        );
+        g
+    }
+
+    /// Waits until the flight state is `want`.
+    pub async fn wait_state(&self, want: FlightState, within: Duration) {
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+            match self.state.recv_timeout(left).await {
+                Ok(s) if s.value == want => return,
+                Ok(_) => {}
+                Err(e) => panic!("flight state never became {want}: {e}"),
+            }
+        }
+    }
+
+    /// Asks for a state change.
+    pub async fn request(&self, to: FlightState) -> Result<StateChangeReply, String> {
+        self.change_state
+            .call(&StateChangeRequest { to }, STEP)
+            .await
+            .map_err(|e| e.to_string())
+    }
+
+    /// Pushes waypoints in chunks of 20.
+    pub async fn push_all(&self, wps: &[Waypoint]) {
+        for chunk in wps.chunks(20) {
+            self.push
+                .call(&chunk.to_vec(), STEP)
+                .await
+                .expect("push_waypoints");
+        }
+    }
+
+    /// Waits for an alarm whose text contains `needle`.
+    pub async fn wait_alarm(&self, needle: &str, within: Duration) -> Alarm {
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+            match self.alarms.recv_timeout(left).await {
+                Ok(a) if a.value.text.contains(needle) => return a.value,
+                Ok(_) => {}
+                Err(e) => panic!("no alarm containing {needle:?}: {e}"),
+            }
+        }
+    }
+}
+
+/// `n` waypoints zigzagging north of home, `spacing` metres apart, seq from 0.
+pub fn zigzag(n: usize, spacing: f64) -> Vec<Waypoint> {
+    let m_per_deg_lat = 111_319.49;
+    let m_per_deg_lon = m_per_deg_lat * HOME.0.to_radians().cos();
+    (0..n)
+        .map(|i| {
+            let north = spacing * (i + 1) as f64;
+            let east = if i % 2 == 0 { 0.0 } else { spacing / 2.0 };
+            Waypoint {
+                seq: i as u64,
+                lat: HOME.0 + north / m_per_deg_lat,
+                lon: HOME.1 + east / m_per_deg_lon,
+                alt: 0.0,
+                speed: 0.0,
+                fly_over: false,
+                leg: format!("leg{}", i / 50),
+                ..Waypoint::default()
+            }
+        })
+        .collect()
+}
+
+/// The (lat, lon) of `item_reached` records, for comparison with waypoints.
+pub fn reached_points(records: &[serde_json::Value]) -> Vec<(f64, f64)> {
+    records
+        .iter()
+        .map(|r| {
+            (
+                r["lat"].as_f64().expect("lat"),
+                r["lon"].as_f64().expect("lon"),
+            )
+        })
+        .collect()
+}
+
+/// Index of the waypoint at `p` (within 1e-6 degrees), if any.
+pub fn which(wps: &[Waypoint], p: (f64, f64)) -> Option<usize> {
+    wps.iter()
+        .position(|w| (w.lat - p.0).abs() < 1e-6 && (w.lon - p.1).abs() < 1e-6)
+}

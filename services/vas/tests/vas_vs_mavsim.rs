@@ -1,0 +1,187 @@
+//! The `vas` binary against the `mavsim` binary over real UDP MAVLink, driven from a ground
+//! node over the middleware: the rolling queue, the command checker, a simulator restart.
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+use usal_types::FlightState;
+
+/// 200 waypoints through a 5-slot rolling queue: all reached in order, none skipped or
+/// repeated (mavsim's own log), and no HOLD before the last one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_hundred_waypoints_through_five_slots() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 40.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("queue");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--queue-size", "5"],
+    );
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+
+    let wps = zigzag(200, 10.0);
+    g.push_all(&wps).await;
+    let reply = g.request(FlightState::WaypointNavigation).await;
+    assert!(reply.is_ok(), "{reply:?}");
+
+    let mut seen = Vec::new();
+    while seen.len() < wps.len() {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| panic!("stalled after {} waypoints", seen.len()))
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    assert_eq!(seen, (0..200).collect::<Vec<u64>>(), "VAS reports in order");
+    g.wait_state(FlightState::Parking, STEP).await;
+
+    let reached = sim.log_events("item_reached");
+    let order: Vec<Option<usize>> = reached_points(&reached)
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    assert_eq!(
+        order,
+        (0..200).map(Some).collect::<Vec<_>>(),
+        "mavsim reached every waypoint once, in order"
+    );
+    // HOLD (rover mode 4) only after the last item: the vehicle never stopped on the way.
+    let last_reach = reached.last().unwrap()["t_sim"].as_f64().unwrap();
+    for m in sim.log_events("mode_changed") {
+        if m["to"] == 4 && m["from"] == 10 {
+            assert!(
+                m["t_sim"].as_f64().unwrap() >= last_reach,
+                "HOLD early: {m}"
+            );
+        }
+    }
+    let auto_exits = sim
+        .log_events("mode_changed")
+        .into_iter()
+        .filter(|m| m["from"] == 10)
+        .count();
+    assert_eq!(auto_exits, 1, "left AUTO only once, at the end");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
+/// The command checker refuses with its reason; an accepted change reaches the autopilot.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn transitions_checked_and_applied() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 10.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("states");
+    let vas = VasProc::start(&format!("udpout:{}", sim.addr), &domain, &[]);
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+
+    let e = g.request(FlightState::TakeOff).await.unwrap_err();
+    assert!(e.contains("TAKE_OFF is not a state of a rover"), "{e}");
+    let e = g
+        .request(FlightState::WaypointNavigation)
+        .await
+        .unwrap_err();
+    assert!(e.contains("no waypoints queued"), "{e}");
+    let e = g.request(FlightState::Parking).await.unwrap_err();
+    assert!(e.contains("already in PARKING"), "{e}");
+
+    let reply = g.request(FlightState::Directed).await.expect("DIRECTED");
+    assert_eq!(
+        (reply.from, reply.to),
+        (FlightState::Parking, FlightState::Directed)
+    );
+    let changed = tokio::time::timeout(STEP, async {
+        loop {
+            let c = g.changes.recv().await.expect("state_changed");
+            if c.value.to == FlightState::Directed {
+                return c.value;
+            }
+        }
+    })
+    .await
+    .expect("state_changed event");
+    assert_eq!(changed.cause, "request");
+    // mavsim went HOLD (PARKING) then MANUAL (DIRECTED).
+    let modes: Vec<u64> = sim
+        .log_events("mode_changed")
+        .iter()
+        .filter_map(|m| m["to"].as_u64())
+        .collect();
+    assert!(modes.ends_with(&[4, 0]), "mavsim modes {modes:?}");
+
+    // MANUAL is the failsafe: no way back to navigation.
+    g.request(FlightState::Manual).await.expect("MANUAL");
+    let e = g
+        .request(FlightState::WaypointNavigation)
+        .await
+        .unwrap_err();
+    assert!(e.contains("failsafe"), "{e}");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
+/// mavsim dies mid-flight and comes back at the same address: the VAS raises an alarm,
+/// reconnects, re-uploads its window and finishes the plan.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn autopilot_restart_mid_flight() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 20.0, &dir.path().join("sim1.jsonl")).await;
+    let addr = sim.addr.clone();
+    let domain = unique_domain("restart");
+    let vas = VasProc::start(
+        &format!("udpout:{addr}"),
+        &domain,
+        &["--heartbeat-timeout-ms", "1000"],
+    );
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+    let wps = zigzag(30, 10.0);
+    g.push_all(&wps).await;
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigate");
+
+    let mut seen = Vec::new();
+    while seen.len() < 8 {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .expect("progress before the restart")
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    sim.kill().await;
+    g.wait_alarm("heartbeat lost", STEP).await;
+    let sim2 = Sim::start(&addr, 20.0, &dir.path().join("sim2.jsonl")).await;
+    g.wait_alarm("resumed WAYPOINT_NAVIGATION", STEP).await;
+
+    while seen.last() != Some(&29) {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| panic!("stalled after {seen:?}"))
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    // Every waypoint reported once, in order, across the restart.
+    let mut sorted = seen.clone();
+    sorted.dedup();
+    assert_eq!(seen, sorted, "no repeats");
+    assert_eq!(seen, (0..30).collect::<Vec<u64>>());
+    // The new autopilot flew the rest in order, starting where the old one stopped.
+    let order: Vec<usize> = reached_points(&sim2.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p).expect("a plan waypoint"))
+        .collect();
+    let first = *order.first().expect("the new mavsim reached waypoints");
+    assert!((7..=9).contains(&first), "resumed at {first}");
+    assert_eq!(order, (first..30).collect::<Vec<_>>());
+    vas.kill().await;
+    sim2.kill().await;
+    g.node.shutdown().await;
+    let _ = Duration::ZERO;
+}
