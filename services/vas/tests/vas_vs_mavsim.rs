@@ -3,8 +3,6 @@
 
 mod common;
 
-use std::time::Duration;
-
 use common::*;
 use usal_types::FlightState;
 
@@ -183,5 +181,4 @@ async fn autopilot_restart_mid_flight() {
     vas.kill().await;
     sim2.kill().await;
     g.node.shutdown().await;
-    let _ = Duration::ZERO;
 }
