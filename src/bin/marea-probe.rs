@@ -97,6 +97,9 @@ enum Cmd {
         pattern: String,
         #[arg(long)]
         count: u64,
+        /// Accept any first sequence number per publisher (a subscriber started mid-stream).
+        #[arg(long)]
+        from_any: bool,
     },
     /// Provide function ITEM: doubles its u64 argument after DELAY ms, or fails with FAIL.
     Provide {
@@ -209,7 +212,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
         } => {
             let var = svc.publish_variable::<Position>(item)?;
             out(json!({"ready": var.name()}));
+            let mut longest = Duration::ZERO;
             for i in 0..*count {
+                let t = Instant::now();
                 var.set(&Position {
                     lat: 41.275 + i as f64 * 1e-6,
                     lon: 1.987,
@@ -217,11 +222,12 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     heading: 90.0,
                     speed: 1.5,
                 })?;
+                longest = longest.max(t.elapsed());
                 if *interval_ms > 0 {
                     tokio::time::sleep(Duration::from_millis(*interval_ms)).await;
                 }
             }
-            out(json!({"published": count}));
+            out(json!({"published": count, "longest_set_us": longest.as_micros() as u64}));
             stopped().await;
         }
         Cmd::VarSub { pattern, count } => {
@@ -272,6 +278,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 bail!("only {:?} subscribed within 30 s", ev.remote_subscribers());
             }
             out(json!({"subscribers": ev.remote_subscribers()}));
+            out(json!({"peers": node.peers()}));
             let mut inflight = std::collections::VecDeque::new();
             let mut reported = std::collections::HashSet::new();
             let mut acked_all = 0u64;
@@ -308,7 +315,11 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             );
             stopped().await;
         }
-        Cmd::EvSub { pattern, count } => {
+        Cmd::EvSub {
+            pattern,
+            count,
+            from_any,
+        } => {
             let sub = svc.subscribe_event::<u64>(pattern)?;
             out(json!({"ready": pattern}));
             let mut next: std::collections::HashMap<String, u64> = Default::default();
@@ -318,7 +329,11 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     _ = stopped() => break,
                     s = sub.recv() => s?,
                 };
-                let expected = next.entry(s.publisher.clone()).or_insert(0);
+                let first = if *from_any { s.value } else { 0 };
+                if n == 0 {
+                    out(json!({"first": s.value}));
+                }
+                let expected = next.entry(s.publisher.clone()).or_insert(first);
                 if s.value != *expected {
                     in_order = false;
                     out(json!({"out_of_order": s.value, "expected": *expected}));
@@ -327,8 +342,15 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 n += 1;
             }
             out(json!({"received": n, "in_order": in_order}));
-            // Stay until stopped so the publisher sees our acknowledgements and lease.
-            stopped().await;
+            // Stay until stopped so the publisher sees our acknowledgements and lease; anything
+            // more that arrives is reported (a duplicate would show here).
+            loop {
+                let s = tokio::select! {
+                    _ = stopped() => break,
+                    s = sub.recv() => s?,
+                };
+                out(json!({"extra": s.value, "publisher": s.publisher}));
+            }
         }
         Cmd::Provide {
             item,
@@ -418,10 +440,11 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     }
                 }
             };
-            let r = tokio::select! {
-                r = t.wait() => r,
-                _ = progress => bail!("progress stream ended early"),
-            };
+            // The progress stream may end just before the result is ready: report progress
+            // beside the transfer and stop reporting once it finished.
+            let progress = tokio::spawn(progress);
+            let r = t.wait().await;
+            progress.abort();
             let r = r?;
             out(
                 json!({"done": r.size, "sent": r.sent, "resumed_from": r.resumed_from, "attempts": r.attempts, "ms": r.elapsed.as_millis() as u64}),

@@ -95,6 +95,13 @@ impl Proc {
         }
     }
 
+    /// Collects every line left once the process exited and its stdout closed.
+    pub fn drain(&mut self) {
+        while let Ok(v) = self.lines.recv_timeout(Duration::from_secs(5)) {
+            self.seen.push(v);
+        }
+    }
+
     pub fn kill9(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();

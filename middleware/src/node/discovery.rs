@@ -18,6 +18,16 @@ pub(crate) fn domain_hash(domain: &str) -> u32 {
     u32::from_le_bytes([b[0], b[1], b[2], b[3]])
 }
 
+/// Preference among the paths reaching one peer: shared memory (same host, no copies through
+/// the kernel) over the network, the network over a point-to-point radio.
+pub(crate) fn path_rank(addr: &PeerAddr) -> u8 {
+    match addr {
+        PeerAddr::Shm(_) => 2,
+        PeerAddr::Udp(_) => 1,
+        PeerAddr::PointToPoint => 0,
+    }
+}
+
 impl NodeInner {
     /// The Hello sent on `link` (it carries that link's lease).
     pub fn hello(&self, link: usize) -> Message {
@@ -69,6 +79,7 @@ impl NodeInner {
                 }
                 let lease = Duration::from_millis(u64::from(lease_ms.max(1)));
                 if self.peers.contains_key(&node_id) {
+                    self.also_reached(node_id, link, from);
                     self.seen(node_id, counter);
                     return;
                 }
@@ -112,6 +123,7 @@ impl NodeInner {
                     return;
                 }
                 if self.peers.contains_key(&node_id) {
+                    self.also_reached(node_id, link, from);
                     self.seen(node_id, counter);
                 } else {
                     // We missed its Hello: introduce ourselves, it answers with its own.
@@ -123,6 +135,32 @@ impl NodeInner {
             }
             _ => {}
         }
+    }
+
+    /// A known peer was heard on `link` at `from`, maybe not the path we use for it. We accept
+    /// its messages on every path it was heard on (it may still be sending on another one), but
+    /// send on one only: the best by [`path_rank`], so a same-host peer that also shares shared
+    /// memory is reached over it and never twice. Both ends apply the same rule, so they agree.
+    fn also_reached(&self, node: NodeId, link: usize, from: PeerAddr) {
+        if self.addrs.get(&(link, from)).is_none_or(|e| *e != node) {
+            self.addrs.insert((link, from), node);
+        }
+        {
+            let Some(mut p) = self.peers.get_mut(&node) else {
+                return;
+            };
+            if (p.link, p.addr) == (link, from) || path_rank(&from) <= path_rank(&p.addr) {
+                return;
+            }
+            tracing::info!(peer = %p.name, was = %p.addr, now = %from, "peer reached over a better link");
+            p.link = link;
+            p.addr = from;
+        }
+        // Our Hello opens the session on the new path, so the peer knows us there before
+        // anything else we send on it.
+        self.send_safe(link, from, &self.hello(link));
+        self.recompute_routes();
+        self.bump();
     }
 
     /// A peer is alive; ask for declarations if its counter is ahead of ours.
@@ -184,9 +222,18 @@ impl NodeInner {
         } else {
             tracing::warn!(peer = %p.name, reason, "peer dropped");
         }
-        self.addrs.remove(&(p.link, p.addr));
-        if let Some(l) = self.links().get(p.link) {
-            l.close_peer(p.addr);
+        // Every path it was heard on, the one we used among them.
+        let paths: Vec<(usize, PeerAddr)> = self
+            .addrs
+            .iter()
+            .filter(|e| *e.value() == node)
+            .map(|e| *e.key())
+            .collect();
+        for (link, addr) in paths {
+            self.addrs.remove(&(link, addr));
+            if let Some(l) = self.links().get(link) {
+                l.close_peer(addr);
+            }
         }
         self.fail_calls_to(node, reason);
         self.transfers.peer_lost(node, &p.name, reason);
