@@ -3,7 +3,7 @@
 //! next instant it needs attention. No I/O, no clock: the port driver feeds it, tests drive it
 //! on a simulated clock.
 //!
-//! Queues and priorities (003 §5.5): ACK/NACK first, then Safe (retransmissions before new
+//! Queues and priorities (003 §5.5): ACK/NACK first (then the rare discovery announce), then Safe (retransmissions before new
 //! frames), then Fast; a Fast message that has waited [`StpConfig::fast_max_wait`] may take every
 //! other frame from Safe, so a 20 Hz control variable stays fresh while bulk Safe traffic
 //! saturates the line. The Fast queue keeps one entry per coalescing key (newest value wins) and
@@ -531,6 +531,11 @@ impl<T> Stp<T> {
                 sack: ack.sack,
             });
         }
+        // Discovery is rare (one heartbeat per period) and keeps the peer's lease alive: it
+        // must not starve behind bulk Safe traffic.
+        if let Some(a) = self.announce.take() {
+            return Some(self.fast_frame(vec![a]));
+        }
         for seq in self.tx.due(now) {
             if !self.retx.contains(&seq) {
                 self.retx.push_back(seq);
@@ -570,9 +575,6 @@ impl<T> Stp<T> {
         self.last_was_safe = false;
         if let Some(f) = self.pending_fast_frames.pop_front() {
             return Some(f);
-        }
-        if let Some(a) = self.announce.take() {
-            return Some(self.fast_frame(vec![a]));
         }
         if self.fast.is_empty() {
             return None;

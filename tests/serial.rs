@@ -1,0 +1,371 @@
+//! Serial links end to end: nodes talk through real ptys joined by the `marea-radio` emulator
+//! (a separate process) at 57600 baud with byte loss and corruption, an outage, and a file.
+//! Some tests host both nodes in this process (so one test can mix all primitives and measure
+//! ages); the outage test runs both nodes as `marea-probe` child processes.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use marea::{NetworkConfig, Node, SendFileOptions};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+/// The radio emulator as a child process, killed on drop.
+struct Radio {
+    child: Child,
+    ground: String,
+    air: String,
+    lines: mpsc::Receiver<Value>,
+}
+
+impl Radio {
+    fn start(args: &[&str]) -> Radio {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_marea-radio"))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("start marea-radio");
+        let stdout = child.stdout.take().expect("piped");
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if let Ok(v) = serde_json::from_str::<Value>(&line) {
+                    if tx.send(v).is_err() {
+                        break;
+                    }
+                }
+            }
+        });
+        let first = rx
+            .recv_timeout(Duration::from_secs(10))
+            .expect("marea-radio prints its ports");
+        Radio {
+            child,
+            ground: first["ground"].as_str().expect("ground path").to_owned(),
+            air: first["air"].as_str().expect("air path").to_owned(),
+            lines: rx,
+        }
+    }
+
+    /// Stops the radio with SIGTERM and returns its exit counters.
+    fn stop(self) -> Value {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while let Ok(v) = self
+            .lines
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+        {
+            if v["event"] == "exit" {
+                return v;
+            }
+        }
+        Value::Null
+    }
+}
+
+impl Drop for Radio {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn serial_xml(node: &str, domain: &str, dev: &str, extra: &str) -> String {
+    format!(
+        r#"<network node="{node}" namespace="{node}" domain="{domain}">
+  <serial name="radio" address="{dev}" baudRate="57600" heartbeatMs="1000" {extra}/>
+</network>"#
+    )
+}
+
+fn serial_config(node: &str, domain: &str, dev: &str, extra: &str) -> NetworkConfig {
+    NetworkConfig::parse(&serial_xml(node, domain, dev, extra), None).expect("valid config")
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct Control {
+    sent_us: u64,
+    stick: [f32; 4],
+}
+
+/// 1 % of bytes lost or corrupted at 57600 baud, mixed traffic for 20 s: every event arrives
+/// exactly once and in order, every call returns a result or a timeout, and a 20 Hz control
+/// variable keeps flowing.
+#[test]
+fn mixed_traffic_over_a_radio_losing_one_percent_of_bytes() {
+    let radio = Radio::start(&["--loss", "0.005", "--corrupt", "0.005", "--seed", "11"]);
+    let domain = format!("serial-mixed-{}", std::process::id());
+    let extra = r#"MaxPacketSize="64" TimeToResend="1000""#;
+    let ground_cfg = serial_config("ground", &domain, &radio.ground, extra);
+    let air_cfg = serial_config("air", &domain, &radio.air, extra);
+    let rt = runtime();
+    let run = async move {
+        let epoch = Instant::now();
+        let air = Node::open(&air_cfg).await.expect("air node");
+        let ground = Node::open(&ground_cfg).await.expect("ground node");
+        let vas = air.service("vas").unwrap();
+        let alarms = vas.publish_event::<u64>("alarm").unwrap();
+        let _double = vas
+            .provide_function("double", |x: u64| async move { Ok::<u64, String>(x * 2) })
+            .unwrap();
+        let fmo = ground.service("fmo").unwrap();
+        let sub = fmo.subscribe_event::<u64>("air/vas/alarm").unwrap();
+        let control = fmo.publish_variable::<Control>("control").unwrap();
+        let ctl_sub = vas
+            .subscribe_variable::<Control>("ground/fmo/control")
+            .unwrap();
+        let double = fmo.function::<u64, u64>("air/vas/double").unwrap();
+        assert!(
+            alarms
+                .wait_remote_subscribers(1, Duration::from_secs(30))
+                .await,
+            "ground never subscribed over the radio"
+        );
+        assert!(double.wait_provider(Duration::from_secs(30)).await);
+
+        let test_len = Duration::from_secs(20);
+        let start = Instant::now();
+        // Air: an event every 50 ms.
+        let raiser = tokio::spawn(async move {
+            let mut n = 0u64;
+            let mut failures = 0;
+            while start.elapsed() < test_len {
+                let report = alarms.raise(&n).await.expect("raise");
+                if !report.all_acknowledged() {
+                    failures += 1;
+                }
+                n += 1;
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            (n, failures)
+        });
+        // Ground: the control stick at 20 Hz.
+        let stick = tokio::spawn(async move {
+            while start.elapsed() < test_len {
+                let sent_us = epoch.elapsed().as_micros() as u64;
+                control
+                    .set(&Control {
+                        sent_us,
+                        stick: [0.1, 0.2, 0.3, 0.4],
+                    })
+                    .expect("set");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        });
+        // Ground: a call every 300 ms, each bounded by its own timeout.
+        let caller = tokio::spawn(async move {
+            let (mut ok, mut timeouts) = (0u32, 0u32);
+            let mut i = 0u64;
+            while start.elapsed() < test_len {
+                let r = tokio::time::timeout(
+                    Duration::from_secs(10),
+                    double.call(&i, Duration::from_secs(5)),
+                )
+                .await
+                .expect("a call hung past its own timeout");
+                match r {
+                    Ok(v) => {
+                        assert_eq!(v, i * 2);
+                        ok += 1;
+                    }
+                    Err(marea::CallError::Timeout { .. }) => timeouts += 1,
+                    Err(e) => panic!("call failed: {e}"),
+                }
+                i += 1;
+                tokio::time::sleep(Duration::from_millis(300)).await;
+            }
+            (ok, timeouts)
+        });
+        // Air: control ages.
+        let ages = tokio::spawn(async move {
+            let mut ages = Vec::new();
+            while start.elapsed() < test_len + Duration::from_secs(1) {
+                if let Ok(Ok(s)) =
+                    tokio::time::timeout(Duration::from_millis(500), ctl_sub.recv()).await
+                {
+                    let now = epoch.elapsed().as_micros() as u64;
+                    ages.push(now.saturating_sub(s.value.sent_us));
+                }
+            }
+            ages
+        });
+        let (raised, raise_failures) = raiser.await.unwrap();
+        let mut got = Vec::new();
+        while (got.len() as u64) < raised {
+            match tokio::time::timeout(Duration::from_secs(20), sub.recv()).await {
+                Ok(Ok(s)) => got.push(s.value),
+                other => panic!("events stopped after {} of {raised}: {other:?}", got.len()),
+            }
+        }
+        assert_eq!(
+            got,
+            (0..raised).collect::<Vec<_>>(),
+            "exactly once, in order"
+        );
+        assert_eq!(raise_failures, 0);
+        stick.await.unwrap();
+        let (ok, timeouts) = caller.await.unwrap();
+        assert!(ok > 10, "calls ok {ok}, timeouts {timeouts}");
+        let mut ages = ages.await.unwrap();
+        ages.sort_unstable();
+        assert!(ages.len() > 50, "control samples {}", ages.len());
+        let p99 = ages[ages.len() * 99 / 100];
+        // Generous: the benchmark reports the real figure.
+        assert!(p99 < 2_000_000, "control age p99 {p99} us");
+        eprintln!(
+            "mixed: {raised} events, {ok} calls ok, {timeouts} timeouts, control p50 {} us p99 {p99} us, stats {:?}",
+            ages[ages.len() / 2],
+            ground.link_stats()
+        );
+        ground.shutdown().await;
+        air.shutdown().await;
+    };
+    rt.block_on(async {
+        tokio::time::timeout(Duration::from_secs(120), run)
+            .await
+            .expect("test took too long")
+    });
+    let counters = radio.stop();
+    assert!(
+        counters["ground_to_air"]["corrupted"].as_u64().unwrap_or(0) > 0,
+        "{counters}"
+    );
+}
+
+/// A 200 KB file crosses intact at 57600 baud with 0.5 % byte errors.
+#[test]
+fn a_200_kb_file_crosses_a_radio_with_half_a_percent_byte_errors() {
+    let radio = Radio::start(&["--loss", "0.0025", "--corrupt", "0.0025", "--seed", "5"]);
+    let domain = format!("serial-file-{}", std::process::id());
+    let extra = r#"MaxPacketSize="48""#;
+    let ground_cfg = serial_config("ground", &domain, &radio.ground, extra);
+    let air_cfg = serial_config("air", &domain, &radio.air, extra);
+    let dir = tempfile::tempdir().unwrap();
+    let src = dir.path().join("plan.bin");
+    let data: Vec<u8> = (0..200_000u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 11) as u8)
+        .collect();
+    std::fs::write(&src, &data).unwrap();
+    let inbox = dir.path().join("inbox");
+    let rt = runtime();
+    let inbox2 = inbox.clone();
+    rt.block_on(async move {
+        let run = async move {
+            let air = Node::open(&air_cfg).await.expect("air node");
+            let ground = Node::open(&ground_cfg).await.expect("ground node");
+            let sink = air
+                .service("vas")
+                .unwrap()
+                .file_sink("plans", &inbox2)
+                .unwrap();
+            let fpmo = ground.service("fpmo").unwrap();
+            let started = Instant::now();
+            let transfer = fpmo.send_file(&src, "air/vas/plans", SendFileOptions::default());
+            let got = sink
+                .recv_timeout(Duration::from_secs(150))
+                .await
+                .expect("file received");
+            assert_eq!(got.size, 200_000);
+            let report = transfer.wait().await.expect("transfer reported");
+            eprintln!(
+                "file: 200 KB in {:?} ({:.0} bit/s), {report:?}",
+                started.elapsed(),
+                1_600_000.0 / started.elapsed().as_secs_f64()
+            );
+            ground.shutdown().await;
+            air.shutdown().await;
+        };
+        tokio::time::timeout(Duration::from_secs(180), run)
+            .await
+            .expect("test took too long")
+    });
+    assert!(
+        std::fs::read(inbox.join("plan.bin")).unwrap() == data,
+        "file differs"
+    );
+    let _ = radio.stop();
+}
+
+/// A 10 s outage in the middle of an event stream between two node processes: afterwards the
+/// link recovers by itself and every event arrives once, in order, without restarting anything.
+#[test]
+fn the_link_recovers_by_itself_after_a_ten_second_outage() {
+    let radio = Radio::start(&["--outage", "4000:10000", "--seed", "3"]);
+    let domain = format!("serial-outage-{}", std::process::id());
+    let dir = tempfile::tempdir().unwrap();
+    let g = dir.path().join("ground.xml");
+    let a = dir.path().join("air.xml");
+    // The lease outlives the outage (as the serial defaults do: 5 s heartbeat, 20 s lease).
+    let lease = r#"leaseMs="20000""#;
+    std::fs::write(&g, serial_xml("ground", &domain, &radio.ground, lease)).unwrap();
+    std::fs::write(&a, serial_xml("air", &domain, &radio.air, lease)).unwrap();
+    let probe = env!("CARGO_BIN_EXE_marea-probe");
+    let arg = |p: &std::path::Path, cmd: &[&str]| -> Vec<String> {
+        let mut v = vec!["--config".to_owned(), p.to_str().unwrap().to_owned()];
+        v.extend(cmd.iter().map(|s| s.to_string()));
+        v
+    };
+    let mut sub = common::Proc::spawn(
+        "ground",
+        probe,
+        &arg(
+            &g,
+            &["ev-sub", "--pattern", "air/probe/alarm", "--count", "200"],
+        ),
+    );
+    let mut publ = common::Proc::spawn(
+        "air",
+        probe,
+        &arg(
+            &a,
+            &[
+                "ev-pub",
+                "--item",
+                "alarm",
+                "--count",
+                "200",
+                "--interval-ms",
+                "100",
+            ],
+        ),
+    );
+    let done = publ.expect_key(Duration::from_secs(60), "raised");
+    let got = sub.expect_key(Duration::from_secs(30), "received");
+    assert_eq!(got["received"], 200);
+    assert_eq!(got["in_order"], true);
+    assert!(
+        sub.seen.iter().all(|v| v.get("out_of_order").is_none()),
+        "{:?}",
+        sub.seen
+    );
+    assert_eq!(done["acknowledged_by_all"], 200, "{done}");
+    // The outage really cut the link while events were flowing.
+    let counters = radio.stop();
+    assert!(
+        counters["ground_to_air"]["outage_lost"]
+            .as_u64()
+            .unwrap_or(0)
+            + counters["air_to_ground"]["outage_lost"]
+                .as_u64()
+                .unwrap_or(0)
+            > 0,
+        "{counters}"
+    );
+}
