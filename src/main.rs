@@ -1,4 +1,410 @@
-//! `usal`: the USAL-rs launcher and command-line tools (work in progress).
-fn main() {
-    println!("usal: launcher not built yet");
+//! `usal`: the USAL-rs command-line tools. Introspection of a running system in the spirit of
+//! `ros2 topic list/echo`: `usal list`, `usal echo NAME`, `usal call NAME ARGS`,
+//! `usal send FILE --to SINK`.
+
+mod types;
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{anyhow, Context};
+use clap::{Args, Parser, Subcommand};
+use marea::config::{EthernetConfig, LinkConfig};
+use marea::protocol::ItemKind;
+use marea::{NetworkConfig, Node, SendFileOptions};
+
+#[derive(Parser)]
+#[command(name = "usal", about = "USAL-rs tools: list, echo, call, send")]
+struct Cli {
+    #[command(flatten)]
+    net: NetArgs,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Args)]
+struct NetArgs {
+    /// network.xml to join the system with (default: Ethernet on 127.0.0.1, domain "usal").
+    #[arg(long, global = true)]
+    config: Option<PathBuf>,
+    /// Discovery domain (when no --config).
+    #[arg(long, global = true, default_value = "usal")]
+    domain: String,
+    /// Multicast port for discovery (when no --config).
+    #[arg(long, global = true, default_value_t = 7477)]
+    mcast_port: u16,
+    /// How long to wait for discovery before answering, in ms.
+    #[arg(long, global = true, default_value_t = 1500)]
+    wait_ms: u64,
+    /// Print JSON lines instead of text.
+    #[arg(long, global = true)]
+    json: bool,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// List nodes, services and their items (published, subscribed, provided, called).
+    List,
+    /// Follow variables and events matching NAME (wildcards * and ** allowed), decoded.
+    Echo {
+        /// Full name or pattern, e.g. rover1/vas/position or */vas/*.
+        name: String,
+        /// Stop after this many values (0 = until Ctrl-C).
+        #[arg(long, default_value_t = 0)]
+        count: u64,
+    },
+    /// Call function NAME with ARGS given as JSON.
+    Call {
+        /// Full name, e.g. rover1/vas/change_state.
+        name: String,
+        /// Arguments as JSON, e.g. '{"to":"PARKING"}' or 21.
+        #[arg(default_value = "null")]
+        args: String,
+        /// Deadline for the answer, in ms.
+        #[arg(long, default_value_t = 5000)]
+        timeout_ms: u64,
+    },
+    /// Send FILE to the file sink TO (e.g. rover1/fpma/plans).
+    Send {
+        /// The file.
+        file: PathBuf,
+        /// Full name of the sink.
+        #[arg(long)]
+        to: String,
+        /// How long to keep trying to reach the sink, in s.
+        #[arg(long, default_value_t = 30)]
+        retry_secs: u64,
+    },
+}
+
+fn network(net: &NetArgs) -> anyhow::Result<NetworkConfig> {
+    let mut c = match &net.config {
+        Some(p) => NetworkConfig::load(p)?,
+        None => {
+            let mut c = NetworkConfig::ethernet_loopback("usal-cli");
+            c.domain = net.domain.clone();
+            c.links = vec![LinkConfig::Ethernet(EthernetConfig {
+                interface: std::net::Ipv4Addr::LOCALHOST,
+                multicast: std::net::SocketAddrV4::new(
+                    std::net::Ipv4Addr::new(239, 255, 77, 1),
+                    net.mcast_port,
+                ),
+                ..EthernetConfig::default()
+            })];
+            c
+        }
+    };
+    // The tool is its own node whatever the file says, so it never impersonates a service node.
+    c.node = format!("usal-cli-{}", std::process::id());
+    Ok(c)
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = e.print();
+            return if e.use_stderr() {
+                ExitCode::from(2)
+            } else {
+                ExitCode::SUCCESS
+            };
+        }
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("error")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let rt = match tokio::runtime::Runtime::new() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("usal: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match rt.block_on(run(cli)) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("usal: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    let cfg = network(&cli.net)?;
+    let node = Node::open(&cfg).await.context("joining the network")?;
+    let svc = node.service("usal")?;
+    let wait = Duration::from_millis(cli.net.wait_ms);
+    let code = match &cli.cmd {
+        Cmd::List => {
+            tokio::time::sleep(wait).await;
+            list(&node, cli.net.json)?;
+            ExitCode::SUCCESS
+        }
+        Cmd::Echo { name, count } => echo(&svc, name, *count, cli.net.json).await?,
+        Cmd::Call {
+            name,
+            args,
+            timeout_ms,
+        } => {
+            call(
+                &node,
+                &svc,
+                name,
+                args,
+                Duration::from_millis(*timeout_ms),
+                wait,
+                cli.net.json,
+            )
+            .await?
+        }
+        Cmd::Send {
+            file,
+            to,
+            retry_secs,
+        } => {
+            send(
+                &svc,
+                file,
+                to,
+                Duration::from_secs(*retry_secs),
+                cli.net.json,
+            )
+            .await?
+        }
+    };
+    drop(svc);
+    node.shutdown().await;
+    Ok(code)
+}
+
+fn list(node: &Node, json: bool) -> anyhow::Result<()> {
+    let catalog = node.catalog();
+    let remote: Vec<_> = catalog.nodes.into_iter().filter(|n| !n.local).collect();
+    if json {
+        for n in &remote {
+            println!("{}", serde_json::to_string(n)?);
+        }
+        return Ok(());
+    }
+    if remote.is_empty() {
+        println!("no nodes found (is a system running in this domain?)");
+    }
+    for n in remote {
+        let ns = if n.namespace.is_empty() {
+            String::new()
+        } else {
+            format!(" (namespace {})", n.namespace)
+        };
+        println!("node {}{ns}", n.name);
+        for s in n.services {
+            println!("  service {}", s.name);
+            for it in s.items {
+                let verb = match (it.role, it.kind) {
+                    (marea::ItemRole::Offer, ItemKind::Variable | ItemKind::Event) => "publishes",
+                    (marea::ItemRole::Offer, ItemKind::Function) => "provides",
+                    (marea::ItemRole::Offer, ItemKind::File) => "accepts files",
+                    (marea::ItemRole::Interest, ItemKind::Function) => "calls",
+                    (marea::ItemRole::Interest, _) => "subscribes",
+                };
+                println!(
+                    "    {verb:<13} {:<8} {:<36} {}",
+                    it.kind.as_str(),
+                    it.name,
+                    it.type_name
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+async fn echo(
+    svc: &marea::Service,
+    name: &str,
+    count: u64,
+    json: bool,
+) -> anyhow::Result<ExitCode> {
+    let vars = svc.subscribe_raw(ItemKind::Variable, name)?;
+    let events = svc.subscribe_raw(ItemKind::Event, name)?;
+    let mut n = 0u64;
+    loop {
+        let v = tokio::select! {
+            _ = tokio::signal::ctrl_c() => break,
+            v = vars.recv() => v?,
+            v = events.recv() => v?,
+        };
+        let decoded = types::to_json(&v.type_name, &v.payload);
+        if json {
+            let mut line =
+                serde_json::json!({"name": v.name, "publisher": v.publisher, "type": v.type_name});
+            match decoded {
+                Some(Ok(value)) => line["value"] = value,
+                Some(Err(e)) => line["error"] = e.into(),
+                None => {
+                    line["raw"] = hex(&v.payload).into();
+                    line["note"] = "type unknown to usal; shown raw".into();
+                }
+            }
+            println!("{line}");
+        } else {
+            match decoded {
+                Some(Ok(value)) => {
+                    println!("{} [{}] from {}: {value}", v.name, v.type_name, v.publisher)
+                }
+                Some(Err(e)) => println!(
+                    "{} [{}] from {}: cannot decode: {e}",
+                    v.name, v.type_name, v.publisher
+                ),
+                None => println!(
+                    "{} [{}] from {}: {} (type unknown to usal; shown raw)",
+                    v.name,
+                    v.type_name,
+                    v.publisher,
+                    hex(&v.payload)
+                ),
+            }
+        }
+        n += 1;
+        if count > 0 && n >= count {
+            break;
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn hex(b: &[u8]) -> String {
+    b.iter().map(|x| format!("{x:02x}")).collect()
+}
+
+async fn call(
+    node: &Node,
+    svc: &marea::Service,
+    name: &str,
+    args: &str,
+    timeout: Duration,
+    wait: Duration,
+    json: bool,
+) -> anyhow::Result<ExitCode> {
+    let args: serde_json::Value =
+        serde_json::from_str(args).with_context(|| format!("ARGS is not JSON: {args}"))?;
+    node.wait_until(wait, |n| n.is_offered(ItemKind::Function, name))
+        .await;
+    let Some(ty) = svc.function_type(name) else {
+        eprintln!("usal: no provider for function '{name}'");
+        return Ok(ExitCode::FAILURE);
+    };
+    let (a, r) =
+        types::split_fn(&ty.name).ok_or_else(|| anyhow!("unexpected function type {}", ty.name))?;
+    let bytes = match types::from_json(a, &args) {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("usal: {e}");
+            return Ok(ExitCode::from(2));
+        }
+    };
+    match svc.call_raw(name, bytes, timeout).await {
+        Ok(out) => {
+            let value = match types::to_json(r, &out) {
+                Some(Ok(v)) => v,
+                Some(Err(e)) => anyhow::bail!("cannot decode the result as {r}: {e}"),
+                None => {
+                    serde_json::json!({"raw": hex(&out), "note": format!("type {r} unknown to usal")})
+                }
+            };
+            if json {
+                println!("{}", serde_json::json!({"ok": value}));
+            } else {
+                println!("{value}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => {
+            if json {
+                println!("{}", serde_json::json!({"error": e.to_string()}));
+            } else {
+                eprintln!("usal: {e}");
+            }
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
+async fn send(
+    svc: &marea::Service,
+    file: &std::path::Path,
+    to: &str,
+    retry: Duration,
+    json: bool,
+) -> anyhow::Result<ExitCode> {
+    if !file.is_file() {
+        eprintln!("usal: {} is not a readable file", file.display());
+        return Ok(ExitCode::from(2));
+    }
+    let t = svc.send_file(
+        file,
+        to,
+        SendFileOptions {
+            retry_for: retry,
+            ..Default::default()
+        },
+    );
+    let mut watch = t.watch_progress();
+    let tty = std::io::stderr().is_terminal() && !json;
+    let progress = async move {
+        let mut last = u64::MAX;
+        while watch.changed().await.is_ok() {
+            let p = *watch.borrow();
+            let pct = (p.acknowledged * 100).checked_div(p.total).unwrap_or(0);
+            if tty {
+                let bar = "#".repeat((pct / 5) as usize);
+                eprint!(
+                    "\r[{bar:<20}] {pct:>3}%  {}/{} bytes",
+                    p.acknowledged, p.total
+                );
+            } else if pct / 10 != last / 10 {
+                eprintln!(
+                    "{pct}% ({} of {} bytes acknowledged)",
+                    p.acknowledged, p.total
+                );
+            }
+            last = pct;
+        }
+    };
+    let result = tokio::select! {
+        r = t.wait() => r,
+        _ = progress => Err(marea::FileSendError::Closed),
+    };
+    if tty {
+        eprintln!();
+    }
+    match result {
+        Ok(r) => {
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({"sent": r.size, "to": r.receiver, "resumed_from": r.resumed_from, "ms": r.elapsed.as_millis() as u64})
+                );
+            } else {
+                println!(
+                    "sent {} ({} bytes) to {} in {:.2?}",
+                    file.display(),
+                    r.size,
+                    r.receiver,
+                    r.elapsed
+                );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => {
+            eprintln!("usal: {e}");
+            Ok(ExitCode::FAILURE)
+        }
+    }
 }

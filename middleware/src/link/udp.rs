@@ -125,6 +125,10 @@ pub struct UdpLink {
     index: usize,
     options: UdpLinkOptions,
     socket: Arc<UdpSocket>,
+    /// The same socket as a plain non-blocking std socket, for sending: tokio's `try_send_to`
+    /// refuses to send until its reactor has seen the socket writable, which lost the first
+    /// Hello of every node.
+    sender: std::net::UdpSocket,
     local: SocketAddr,
     peers: Mutex<HashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
     wake: Notify,
@@ -174,6 +178,7 @@ impl UdpLink {
         data2.set_multicast_loop_v4(true).map_err(mcast_err)?;
         data2.set_multicast_ttl_v4(options.ttl).map_err(mcast_err)?;
         let data: std::net::UdpSocket = data2.into();
+        let sender = data.try_clone().map_err(bind_err)?;
         let socket = Arc::new(UdpSocket::from_std(data).map_err(bind_err)?);
         let mut local = socket.local_addr().map_err(bind_err)?;
         if local.ip().is_unspecified() && !options.interface.is_unspecified() {
@@ -197,6 +202,7 @@ impl UdpLink {
             index,
             options,
             socket,
+            sender,
             local,
             peers: Mutex::new(HashMap::new()),
             wake: Notify::new(),
@@ -236,7 +242,7 @@ impl UdpLink {
     /// datagrams of one peer leave in the order they were built.
     fn flush_locked(&self, addr: SocketAddr, st: &mut PeerState, now: Instant) {
         while let Some(d) = st.blocked.front() {
-            match self.socket.try_send_to(d, addr) {
+            match self.sender.send_to(d, addr) {
                 Ok(_) => {
                     self.count_out(d.len());
                     st.blocked.pop_front();
@@ -310,7 +316,7 @@ impl UdpLink {
                 st.blocked.push_back(d);
                 continue;
             }
-            match self.socket.try_send_to(&d, addr) {
+            match self.sender.send_to(&d, addr) {
                 Ok(_) => self.count_out(d.len()),
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => st.blocked.push_back(d),
                 Err(e) => {
@@ -353,7 +359,8 @@ impl UdpLink {
                 _ = cancel.cancelled() => break,
                 _ = self.wake.notified() => {}
                 _ = tokio::time::sleep_until(sleep_until.into()) => {}
-                r = self.socket.writable(), if blocked => { let _ = r; }
+                // The kernel's send buffer was full: retry shortly (rare; loopback drains fast).
+                _ = tokio::time::sleep(Duration::from_millis(1)), if blocked => {}
             }
         }
         let peers: Vec<Arc<Mutex<PeerState>>> = lock(&self.peers).drain().map(|(_, p)| p).collect();
@@ -596,7 +603,7 @@ impl Link for UdpLink {
         let targets = std::iter::once(SocketAddr::V4(self.options.multicast))
             .chain(self.options.peers.iter().copied());
         for t in targets {
-            match self.socket.try_send_to(&d, t) {
+            match self.sender.send_to(&d, t) {
                 Ok(_) => self.count_out(d.len()),
                 Err(e) => {
                     tracing::debug!(link = %self.options.name, to = %t, error = %e, "announce not sent")

@@ -1,0 +1,130 @@
+//! The payload types the `usal` tools can decode and encode by name: USAL's message types and
+//! the plain Rust types, keyed by `std::any::type_name` as declarations carry it.
+
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use serde_json::Value;
+
+/// Decodes postcard bytes of a known type into JSON.
+type Decode = fn(&[u8]) -> Result<Value, String>;
+/// Encodes JSON into postcard bytes of a known type.
+type Encode = fn(&Value) -> Result<Vec<u8>, String>;
+
+struct Known {
+    name: String,
+    decode: Decode,
+    encode: Encode,
+}
+
+fn decode<T: DeserializeOwned + Serialize>(b: &[u8]) -> Result<Value, String> {
+    let v: T = postcard::from_bytes(b).map_err(|e| e.to_string())?;
+    serde_json::to_value(v).map_err(|e| e.to_string())
+}
+
+fn encode<T: DeserializeOwned + Serialize>(v: &Value) -> Result<Vec<u8>, String> {
+    let t: T = serde_json::from_value(v.clone()).map_err(|e| e.to_string())?;
+    postcard::to_stdvec(&t).map_err(|e| e.to_string())
+}
+
+macro_rules! known {
+    ($($t:ty),* $(,)?) => {
+        vec![$(Known {
+            name: std::any::type_name::<$t>().to_owned(),
+            decode: decode::<$t>,
+            encode: encode::<$t>,
+        }),*]
+    };
+}
+
+fn registry() -> Vec<Known> {
+    use usal_types::*;
+    known![
+        Position,
+        Attitude,
+        Speeds,
+        VehicleKind,
+        FlightState,
+        AutopilotStatus,
+        WaypointKind,
+        Waypoint,
+        Vec<Waypoint>,
+        WaypointReached,
+        QueueStatus,
+        Severity,
+        Alarm,
+        ManualControl,
+        StateChangeRequest,
+        StateChangeReply,
+        StateChanged,
+        MissionTime,
+        (),
+        bool,
+        u8,
+        u16,
+        u32,
+        u64,
+        i8,
+        i16,
+        i32,
+        i64,
+        f32,
+        f64,
+        String,
+        Vec<u8>,
+        Vec<String>,
+    ]
+}
+
+fn find(type_name: &str) -> Option<Known> {
+    registry().into_iter().find(|k| k.name == type_name)
+}
+
+/// Decodes `bytes` of type `type_name` into JSON; `None` when the type is unknown to the tool.
+pub fn to_json(type_name: &str, bytes: &[u8]) -> Option<Result<Value, String>> {
+    find(type_name).map(|k| (k.decode)(bytes))
+}
+
+/// Encodes JSON as `type_name`.
+///
+/// # Errors
+/// The type is unknown to the tool, or the JSON does not fit it.
+pub fn from_json(type_name: &str, v: &Value) -> Result<Vec<u8>, String> {
+    let k = find(type_name).ok_or_else(|| format!("type {type_name} is not known to usal"))?;
+    (k.encode)(v).map_err(|e| format!("arguments do not fit {type_name}: {e}"))
+}
+
+/// Splits a function's declared type `fn(A) -> R` into `A` and `R`.
+pub fn split_fn(ty: &str) -> Option<(&str, &str)> {
+    let inner = ty.strip_prefix("fn(")?;
+    let (args, ret) = inner.rsplit_once(") -> ")?;
+    Some((args, ret))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn known_types_round_trip_and_unknown_ones_say_so() {
+        let p = usal_types::Position {
+            lat: 41.0,
+            lon: 1.9,
+            alt: 3.0,
+            heading: 90.0,
+            speed: 1.5,
+        };
+        let bytes = postcard::to_stdvec(&p).unwrap();
+        let json = to_json(std::any::type_name::<usal_types::Position>(), &bytes)
+            .unwrap()
+            .unwrap();
+        assert_eq!(json["lat"], 41.0);
+        let back = from_json(std::any::type_name::<usal_types::Position>(), &json).unwrap();
+        assert_eq!(back, bytes);
+        assert!(to_json("my::Secret", &bytes).is_none());
+        assert!(from_json("u64", &serde_json::json!("x")).is_err());
+        assert_eq!(
+            split_fn("fn(u64) -> alloc::string::String"),
+            Some(("u64", "alloc::string::String"))
+        );
+    }
+}
