@@ -143,7 +143,7 @@ pub enum CallError {
 }
 
 impl CallError {
-    pub(crate) fn from_remote(node: &str, f: RemoteFailure) -> Self {
+    pub(crate) fn from_remote(node: &str, name: &str, after: Duration, f: RemoteFailure) -> Self {
         let node = node.to_owned();
         match f {
             RemoteFailure::Handler(message) => CallError::Remote { node, message },
@@ -155,9 +155,10 @@ impl CallError {
                 node,
                 message: "function no longer provided".into(),
             },
-            RemoteFailure::DeadlineExpired => CallError::Remote {
+            RemoteFailure::DeadlineExpired => CallError::Timeout {
+                name: name.to_owned(),
                 node,
-                message: "deadline expired on the provider".into(),
+                after,
             },
         }
     }

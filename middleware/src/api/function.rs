@@ -183,7 +183,7 @@ pub(crate) async fn invoke(
 ) -> Result<Vec<u8>, CallError> {
     match provider {
         Provider::Local(handler, _) => match tokio::time::timeout(timeout, handler(args)).await {
-            Ok(r) => r.map_err(|f| CallError::from_remote(&node.me.name, f)),
+            Ok(r) => r.map_err(|f| CallError::from_remote(&node.me.name, name, timeout, f)),
             Err(_) => Err(CallError::Timeout {
                 name: name.to_owned(),
                 node: node.me.name.clone(),
@@ -203,6 +203,8 @@ pub(crate) async fn invoke(
                 PendingCall {
                     node: peer,
                     node_name: node_name.clone(),
+                    name: name.to_owned(),
+                    timeout,
                     reply: tx,
                 },
             );

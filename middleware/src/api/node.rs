@@ -182,6 +182,7 @@ impl Node {
             tasks: TaskTracker::new(),
             cancel: CancellationToken::new(),
             counters: Default::default(),
+            routing: Mutex::new(()),
         });
         let mut links: Vec<Arc<dyn Link>> = Vec::new();
         for (index, lc) in config.links.iter().enumerate() {

@@ -22,6 +22,7 @@ use tokio_util::task::TaskTracker;
 use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
 use crate::codec::datagram::{self, Datagram, DatagramWriter, Entry};
 use crate::transport::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use crate::transport::coalesce::CoalescingQueue;
 
 /// How the UDP link is set up (taken from `<ethernet>` in network.xml).
 #[derive(Debug, Clone)]
@@ -81,7 +82,7 @@ const BATCH_WINDOW: Duration = Duration::from_micros(20);
 struct PeerState {
     tx: ArqSender<SafeCompletion>,
     rx: ArqReceiver,
-    fast: VecDeque<(Option<u32>, Vec<u8>)>,
+    fast: CoalescingQueue<u32, Vec<u8>>,
     safe: VecDeque<(Vec<u8>, Option<SafeCompletion>)>,
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
@@ -93,7 +94,7 @@ impl PeerState {
         PeerState {
             tx: ArqSender::new(rand::random(), arq),
             rx: ArqReceiver::new(arq.max_window),
-            fast: VecDeque::new(),
+            fast: CoalescingQueue::new(),
             safe: VecDeque::new(),
             blocked: VecDeque::new(),
             last_write: None,
@@ -572,15 +573,9 @@ impl Link for UdpLink {
         let mut st = lock(&p);
         match out {
             Outgoing::Fast { coalesce, msg } => {
-                let slot = coalesce.and_then(|k| st.fast.iter_mut().find(|(c, _)| *c == Some(k)));
-                if let Some(slot) = slot {
-                    slot.1 = msg;
-                } else {
-                    if st.fast.len() >= MAX_FAST_QUEUE {
-                        st.fast.pop_front();
-                        self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
-                    }
-                    st.fast.push_back((coalesce, msg));
+                if !st.fast.push(coalesce, msg) && st.fast.len() > MAX_FAST_QUEUE {
+                    st.fast.pop_front();
+                    self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
                 }
             }
             Outgoing::Safe { msg, done } => st.safe.push_back((msg, done)),

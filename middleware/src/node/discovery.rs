@@ -109,8 +109,9 @@ impl NodeInner {
                 );
                 self.addrs.insert((link, from), node_id);
                 // Our Hello is the first message of our session towards it, so it knows us
-                // before anything else we send; then ask for its declarations.
+                // before anything else we send; then our declarations, then ask for its own.
                 self.send_safe(link, from, &self.hello(link));
+                self.send_declarations(link, from, 0);
                 self.send_safe(link, from, &Message::DeclRequest { since: 0 });
                 self.bump();
             }
@@ -191,7 +192,9 @@ impl NodeInner {
         if let Some(node) = node {
             self.fail_calls_to(node, "session reset by the peer");
         }
+        // It dropped us (and our declarations) before starting over.
         self.send_safe(link, from, &self.hello(link));
+        self.send_declarations(link, from, 0);
     }
 
     fn fail_calls_to(&self, node: NodeId, reason: &str) {

@@ -1,12 +1,12 @@
 //! Where a subscription's deliveries wait for the application: FIFO for events, newest value
 //! per name for variables.
 
-use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use tokio::sync::Notify;
 
+use crate::transport::coalesce::CoalescingQueue;
 use crate::typeinfo::TypeInfo;
 
 /// A received value, still encoded.
@@ -55,7 +55,8 @@ pub(crate) enum Delivery {
 
 #[derive(Debug, Default)]
 struct Inner {
-    queue: VecDeque<Delivery>,
+    /// Samples are keyed by name when the mailbox coalesces (variables); refusals never are.
+    queue: CoalescingQueue<Arc<str>, Delivery>,
     closed: bool,
 }
 
@@ -87,27 +88,17 @@ impl Mailbox {
             if g.closed {
                 return;
             }
-            if self.coalesce {
-                if let Delivery::Sample(s) = &d {
-                    let slot = g
-                        .queue
-                        .iter_mut()
-                        .find(|q| matches!(q, Delivery::Sample(old) if old.name == s.name));
-                    if let Some(slot) = slot {
-                        *slot = d;
-                        drop(g);
-                        self.notify.notify_one();
-                        return;
-                    }
-                }
-            }
-            g.queue.push_back(d);
+            let key = match &d {
+                Delivery::Sample(s) if self.coalesce => Some(s.name.clone()),
+                _ => None,
+            };
+            g.queue.push(key, d);
         }
         self.notify.notify_one();
     }
 
     pub fn try_pop(&self) -> Option<Delivery> {
-        self.lock().queue.pop_front()
+        self.lock().queue.pop_front().map(|(_, d)| d)
     }
 
     /// Waits for the next delivery; `None` once closed and drained.
@@ -115,7 +106,7 @@ impl Mailbox {
         loop {
             {
                 let mut g = self.lock();
-                if let Some(d) = g.queue.pop_front() {
+                if let Some((_, d)) = g.queue.pop_front() {
                     return Some(d);
                 }
                 if g.closed {

@@ -116,6 +116,9 @@ pub(crate) struct Peer {
 pub(crate) struct PendingCall {
     pub node: NodeId,
     pub node_name: Arc<str>,
+    /// Function name and the caller's deadline, for the errors.
+    pub name: String,
+    pub timeout: Duration,
     pub reply: oneshot::Sender<Result<Vec<u8>, crate::api::CallError>>,
 }
 
@@ -161,6 +164,9 @@ pub(crate) struct NodeInner {
     pub tasks: TaskTracker,
     pub cancel: CancellationToken,
     pub counters: NodeCounters,
+    /// Held for a whole route computation: two computations interleaving could write routes
+    /// from an older snapshot over newer ones (a subscriber would then miss a publisher).
+    pub routing: Mutex<()>,
 }
 
 /// Things a node counts (dropped input among them).
@@ -293,7 +299,10 @@ impl NodeInner {
             _ => None,
         });
         let inner = self.clone();
-        let deadline = Duration::from_millis(u64::from(deadline_ms));
+        // The caller times out by itself at its deadline; the provider only gives up a little
+        // later to free its resources, so the caller sees a timeout, not a remote error.
+        let deadline =
+            Duration::from_millis(u64::from(deadline_ms)) * 3 / 2 + Duration::from_millis(100);
         self.tasks.spawn(async move {
             let result = match handler {
                 None => Err(RemoteFailure::NotProvided),
@@ -311,7 +320,14 @@ impl NodeInner {
         let Some((_, pending)) = self.calls.remove_if(&call_id, |_, p| p.node == node) else {
             return;
         };
-        let r = result.map_err(|f| crate::api::CallError::from_remote(&pending.node_name, f));
+        let r = result.map_err(|f| {
+            crate::api::CallError::from_remote(
+                &pending.node_name,
+                &pending.name,
+                pending.timeout,
+                f,
+            )
+        });
         let _ = pending.reply.send(r);
     }
 }

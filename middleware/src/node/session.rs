@@ -126,6 +126,7 @@ impl NodeInner {
     /// Recomputes every route from scratch. Declarations change rarely (start-up, a service
     /// coming or going), so clarity beats incremental bookkeeping here.
     pub fn recompute_routes(&self) {
+        let _serialised = lock(&self.routing);
         let interests: Vec<Arc<LocalInterest>> =
             self.interests.iter().map(|e| e.value().clone()).collect();
         let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
@@ -263,20 +264,25 @@ impl NodeInner {
         for (link, addr, msg) in refusals {
             self.send_safe(link, addr, &msg);
         }
+        // A late joiner's first value goes on the safe class: it must arrive (the subscriber
+        // gets the last value at once) and after our declarations in the same ordered stream.
         for (link, addr, msg) in late_remote {
-            self.send_to(
-                link,
-                addr,
-                Outgoing::Fast {
-                    coalesce: None,
-                    msg,
-                },
-            );
+            self.send_to(link, addr, Outgoing::Safe { msg, done: None });
         }
         self.bump();
     }
 
     pub fn answer_decl_request(&self, node: NodeId, since: u32) {
+        if let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) {
+            self.send_declarations(link, addr, since);
+        }
+    }
+
+    /// Sends our declarations after `since` on the safe class (an empty batch when there are
+    /// none, so the asker knows it is up to date). A new peer gets them unasked, right after
+    /// our Hello: whatever we send it later (a late joiner's value, events, replies) then comes
+    /// after the declarations that give its ids a meaning.
+    pub fn send_declarations(&self, link: usize, addr: crate::link::PeerAddr, since: u32) {
         let entries: Vec<LoggedDeclaration> = lock(&self.decls)
             .entries
             .iter()
@@ -284,12 +290,13 @@ impl NodeInner {
             .cloned()
             .collect();
         if entries.is_empty() {
-            self.send_safe_to_node(node, &Message::DeclBatch { entries });
+            self.send_safe(link, addr, &Message::DeclBatch { entries });
             return;
         }
         for chunk in entries.chunks(BATCH_ENTRIES) {
-            self.send_safe_to_node(
-                node,
+            self.send_safe(
+                link,
+                addr,
                 &Message::DeclBatch {
                     entries: chunk.to_vec(),
                 },

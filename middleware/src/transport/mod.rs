@@ -2,3 +2,4 @@
 //! class, as pure state machines driven by `now` and input.
 
 pub mod arq;
+pub mod coalesce;
