@@ -471,6 +471,20 @@ impl Executive {
         flown / (flown + remaining)
     }
 
+    /// Metres flown in this plan version and metres left in the nominal continuation (what
+    /// [`Self::progress`] divides).
+    pub fn distances_m(&self) -> (f64, f64) {
+        self.distances()
+    }
+
+    /// Numbers the waypoints from `seq` on, when that is above the next sequence number. A
+    /// service calls it after handing waypoints to a queue it cannot take back (the VAS keeps
+    /// driving to its target after "clear"), so a late report for one of them is not taken
+    /// for the new waypoint with the same number. Nothing else changes.
+    pub fn skip_seqs_to(&mut self, seq: u64) {
+        self.next_seq = self.next_seq.max(seq);
+    }
+
     fn distances(&self) -> (f64, f64) {
         let mut sim = self.sim_copy();
         sim.nominal = true;

@@ -1,8 +1,11 @@
 //! FPMa: the USAL Flight Plan Manager library: XML flight plans → validated model → waypoint
-//! stream, and the executive that flies it and takes changes in flight. No I/O in here.
+//! stream, and the executive that flies it and takes changes in flight; and the networked
+//! `fpma` service around it.
 //!
 //! Layers, each using only those above: `xml` → `expr`, `geo`, `vehicle` → `model` → `parse`,
-//! `polygon` → `expand` → `exec` → `qgc`. See `README.md` for the format and the API.
+//! `polygon` → `expand` → `exec` → `qgc` → `api` → `service`. Everything up to `api` is pure
+//! (no I/O, no clock); `service` is the only module on the network ([`service::run`]). See
+//! `README.md` for the format, the API and the service's items.
 //!
 //! ```
 //! use fpma::{exec::Executive, parse::parse_plan, vehicle::VehicleParams};
@@ -16,6 +19,7 @@
 //! ex.waypoint_reached(next[0].version, next[0].seq).unwrap();
 //! assert_eq!(ex.next_waypoints(2)[0].leg, "mission.2");
 //! ```
+pub mod api;
 pub mod exec;
 pub mod expand;
 pub mod expr;
@@ -24,5 +28,8 @@ pub mod model;
 pub mod parse;
 pub mod polygon;
 pub mod qgc;
+pub mod service;
 pub mod vehicle;
 pub mod xml;
+
+pub use service::run;

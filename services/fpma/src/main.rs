@@ -1,14 +1,16 @@
-//! The `fpma` command-line tool: `fpma expand` previews a plan's waypoint stream. Subcommands are
-//! an enum so the networked service can join as `fpma run` without touching the others.
+//! The `fpma` command-line tool: `fpma run` is the networked service (arguments, tracing, config,
+//! then [`fpma::run`]); `fpma expand` previews a plan's waypoint stream.
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use fpma::exec::expand_nominal;
 use fpma::parse::parse_plan;
+use fpma::service::FpmaConfig;
 use fpma::vehicle::{VehicleKind, VehicleParams};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use tokio_util::sync::CancellationToken;
 
 #[derive(Parser)]
 #[command(name = "fpma", version, about = "USAL Flight Plan Manager")]
@@ -30,6 +32,43 @@ enum Command {
         #[arg(long, value_name = "OUT.plan")]
         qgc: Option<PathBuf>,
     },
+    /// Run the FPMa service: take plans, feed the VAS, accept changes in flight.
+    Run(RunArgs),
+}
+
+/// `fpma run` flags; each overrides the config file (`<fpma .../>`, see fpma.example.xml).
+#[derive(clap::Args)]
+struct RunArgs {
+    /// Configuration file.
+    #[arg(short, long)]
+    config: Option<PathBuf>,
+    /// The middleware's network.xml.
+    #[arg(long)]
+    network: Option<PathBuf>,
+    /// Middleware domain (overrides the network file's).
+    #[arg(long)]
+    domain: Option<String>,
+    /// Namespace of the items, e.g. rover1 (overrides the network file's).
+    #[arg(long)]
+    namespace: Option<String>,
+    /// The VAS to feed: a service name in the namespace (`vas`) or a full prefix (`rover1/vas`).
+    #[arg(long)]
+    vas: Option<String>,
+    /// Vehicle whose parameters shape the plans.
+    #[arg(long, value_enum)]
+    vehicle: Option<Vehicle>,
+    /// Waypoints kept in the VAS queue ahead of the vehicle.
+    #[arg(long)]
+    lookahead: Option<usize>,
+    /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts: true or false.
+    #[arg(long)]
+    start_navigation: Option<bool>,
+    /// Where plan files sent to fpma/plans are stored.
+    #[arg(long)]
+    plans_dir: Option<PathBuf>,
+    /// A plan to load at start.
+    #[arg(long)]
+    plan: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -53,6 +92,13 @@ const EXIT_BAD_PLAN: u8 = 2;
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
+        Command::Run(args) => match run_service(args) {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("fpma: {e:#}");
+                ExitCode::FAILURE
+            }
+        },
         Command::Expand { plan, vehicle, qgc } => {
             match expand(&plan, vehicle.into(), qgc.as_deref()) {
                 Ok(code) => code,
@@ -62,6 +108,81 @@ fn main() -> ExitCode {
                 }
             }
         }
+    }
+}
+
+fn run_service(args: RunArgs) -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "fpma=info,marea=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let mut cfg = match &args.config {
+        Some(p) => FpmaConfig::load(p).with_context(|| format!("loading {}", p.display()))?,
+        None => FpmaConfig::default(),
+    };
+    if args.network.is_some() {
+        cfg.network = args.network;
+    }
+    if args.domain.is_some() {
+        cfg.domain = args.domain;
+    }
+    if args.namespace.is_some() {
+        cfg.namespace = args.namespace;
+    }
+    if let Some(v) = args.vas {
+        cfg.vas = v;
+    }
+    if let Some(v) = args.vehicle {
+        cfg.vehicle = v.into();
+    }
+    if let Some(v) = args.lookahead {
+        cfg.lookahead = v;
+    }
+    if let Some(v) = args.start_navigation {
+        cfg.start_navigation = v;
+    }
+    if let Some(v) = args.plans_dir {
+        cfg.plans_dir = v;
+    }
+    if args.plan.is_some() {
+        cfg.plan = args.plan;
+    }
+    // The service's runtime: this binary's only async part.
+    let rt = tokio::runtime::Runtime::new().context("starting the tokio runtime")?;
+    rt.block_on(async {
+        let shutdown = CancellationToken::new();
+        let stop = shutdown.clone();
+        tokio::spawn(async move {
+            wait_for_signal().await;
+            stop.cancel();
+        });
+        fpma::run(cfg, shutdown).await
+    })
+}
+
+/// Ctrl-C or SIGTERM.
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
     }
 }
 

@@ -1,0 +1,873 @@
+//! The service's core: one executive and the VAS waypoint queue it feeds, driven by plans,
+//! commands, waypoint-reached reports and telemetry. The middleware stays outside: the VAS is
+//! reached through [`VasPort`], and what stations should see is collected for the caller to
+//! publish, so the core runs the same against the real VAS or a test double.
+//!
+//! Feeding: the VAS should hold the executive's next `lookahead` waypoints. After every input
+//! the core compares what it handed out (`pending`) with the executive's look-ahead; when the
+//! look-ahead merely extends it, only the new waypoints are pushed; otherwise (a command, a
+//! late variable change, a new version) the VAS queue is cleared ("a new queue follows",
+//! 003 §6.2.2) and refilled. The VAS keeps driving to its current target through a clear, so
+//! unless that target is still the executive's next waypoint, the new waypoints are numbered
+//! past everything handed out before, and the report of the abandoned target is ignored.
+
+use std::collections::VecDeque;
+use std::time::Instant;
+
+use async_trait::async_trait;
+use usal_types::{FlightState, Position, QueueStatus, StateChangeReply, WaypointKind};
+
+use crate::api::{CommandAck, PlanEvent, PlanEventKind, PlanLoaded, PlanState, Progress};
+use crate::exec::{Executive, HoldHere, RetaskMode, Telemetry};
+use crate::expand::{Waypoint, WaypointTag};
+use crate::expr::Value;
+use crate::geo::GeoPoint;
+use crate::model::{FlightPlan, Stage};
+use crate::vehicle::VehicleParams;
+
+/// What the core needs of the VAS (`<vas>/push_waypoints`, `clear_waypoints`, `change_state`).
+/// Errors are the reason as text, as the middleware's functions give it.
+#[async_trait]
+pub trait VasPort: Send + Sync {
+    /// Appends waypoints (after a clear: replaces what follows the target).
+    async fn push(&self, wps: Vec<usal_types::Waypoint>) -> Result<QueueStatus, String>;
+    /// "A new queue follows".
+    async fn clear(&self) -> Result<QueueStatus, String>;
+    /// Asks for a flight state.
+    async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String>;
+}
+
+/// Settings of the core.
+#[derive(Clone, Debug)]
+pub struct CoreConfig {
+    /// Vehicle parameters plans are validated and expanded for.
+    pub vehicle: VehicleParams,
+    /// Waypoints the VAS should hold ahead of the vehicle.
+    pub lookahead: usize,
+    /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts (or resumes).
+    pub start_navigation: bool,
+}
+
+/// An in-flight command (the service's functions, one variant each).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Command {
+    /// `skip_leg`.
+    SkipLeg,
+    /// `goto_leg`.
+    GotoLeg(String),
+    /// `goto_stage`.
+    GotoStage(Stage),
+    /// `set_var`.
+    SetVar(String, Value),
+    /// `hold_here`.
+    HoldHere(HoldHere),
+    /// `exit_hold` (`true`: at once, else at the next fix crossing).
+    ExitHold(bool),
+    /// `pause`.
+    Pause,
+    /// `resume`.
+    Resume,
+    /// `modify_leg`.
+    ModifyLeg(String, Vec<(String, String)>),
+    /// `retask`.
+    Retask(Vec<GeoPoint>, Option<f64>, RetaskMode),
+    /// `emergency` (a rule name, or the default reaction).
+    Emergency(Option<String>),
+}
+
+/// What the caller should publish after an input.
+#[derive(Clone, Debug, Default)]
+pub struct Outputs {
+    /// Events, oldest first.
+    pub events: Vec<PlanEvent>,
+    /// The new progress, when it changed.
+    pub progress: Option<Progress>,
+    /// The new state, when it changed.
+    pub state: Option<PlanState>,
+}
+
+/// The service's core. See the module docs.
+pub struct Core<V> {
+    cfg: CoreConfig,
+    vas: V,
+    exec: Option<Executive>,
+    /// Waypoints the VAS holds that belong to the executive's present look-ahead, target
+    /// first, with the plan version they were handed out under.
+    pending: VecDeque<(u64, usal_types::Waypoint)>,
+    /// Highest sequence number ever handed to the VAS.
+    max_pushed: Option<u64>,
+    /// The VAS queue must be cleared before the next push (a failed call left it unknown).
+    must_flush: bool,
+    /// A call to the VAS failed: [`Core::sync`] should be retried.
+    dirty: bool,
+    /// Ask for WAYPOINT_NAVIGATION once waypoints are queued.
+    engage: bool,
+    /// The last refusal of WAYPOINT_NAVIGATION, for the caller that caused the request.
+    refused: Option<String>,
+    vas_state: Option<FlightState>,
+    last_reached: Option<u64>,
+    started: Option<Instant>,
+    out: Outputs,
+}
+
+fn to_vas(w: &Waypoint) -> usal_types::Waypoint {
+    usal_types::Waypoint {
+        seq: w.seq,
+        lat: w.lat,
+        lon: w.lon,
+        alt: w.alt,
+        speed: w.speed,
+        fly_over: w.fly_over,
+        leg: w.leg.clone(),
+        kind: match w.tag {
+            WaypointTag::Nav => WaypointKind::Nav,
+            WaypointTag::Takeoff => WaypointKind::Takeoff,
+            WaypointTag::Land => WaypointKind::Land,
+        },
+    }
+}
+
+impl<V: VasPort> Core<V> {
+    /// A core with no plan yet.
+    pub fn new(cfg: CoreConfig, vas: V) -> Self {
+        Self {
+            cfg,
+            vas,
+            exec: None,
+            pending: VecDeque::new(),
+            max_pushed: None,
+            must_flush: false,
+            dirty: false,
+            engage: false,
+            refused: None,
+            vas_state: None,
+            last_reached: None,
+            started: None,
+            out: Outputs::default(),
+        }
+    }
+
+    /// The VAS port (for tests).
+    pub fn vas(&self) -> &V {
+        &self.vas
+    }
+
+    /// The executive, once a plan is loaded.
+    pub fn executive(&self) -> Option<&Executive> {
+        self.exec.as_ref()
+    }
+
+    /// A VAS call failed and [`Core::sync`] should be retried.
+    pub fn needs_retry(&self) -> bool {
+        self.dirty || self.must_flush
+    }
+
+    /// What to publish since the last call.
+    pub fn take_outputs(&mut self) -> Outputs {
+        std::mem::take(&mut self.out)
+    }
+
+    /// Parses and loads a plan (XML, or a QGroundControl `.plan` when `source` ends so): the
+    /// first one starts the executive, later ones replace the plan atomically (a new version).
+    /// `source` names the plan in errors: `source:line:col: what`.
+    ///
+    /// # Errors
+    /// The plan does not parse or validate; nothing changes then.
+    pub async fn load(&mut self, text: &str, source: &str) -> Result<PlanLoaded, String> {
+        let plan = self.parse(text, source)?;
+        self.start_plan(plan).await
+    }
+
+    /// Like [`Core::load`] but refused when no plan is loaded (the in-flight `replace_plan`).
+    ///
+    /// # Errors
+    /// No plan to replace, or the new plan is invalid.
+    pub async fn replace(&mut self, text: &str, source: &str) -> Result<PlanLoaded, String> {
+        if self.exec.is_none() {
+            return Err("no plan is loaded: nothing to replace (use load_plan)".into());
+        }
+        self.load(text, source).await
+    }
+
+    fn parse(&self, text: &str, source: &str) -> Result<FlightPlan, String> {
+        if source.ends_with(".plan") {
+            let stem = source.trim_end_matches(".plan");
+            return crate::qgc::import(text, stem, &self.cfg.vehicle)
+                .map(|(plan, _xml)| plan)
+                .map_err(|e| format!("{source}: {e}"));
+        }
+        crate::parse::parse_plan(text, &self.cfg.vehicle).map_err(|e| format!("{source}:{e}"))
+    }
+
+    async fn start_plan(&mut self, plan: FlightPlan) -> Result<PlanLoaded, String> {
+        let name = plan.name.clone();
+        match &mut self.exec {
+            Some(ex) => {
+                ex.replace_plan(plan).map_err(|e| e.to_string())?;
+            }
+            None => {
+                let ex = Executive::new(plan, self.cfg.vehicle.clone());
+                self.exec = Some(ex);
+            }
+        }
+        self.started = Some(Instant::now());
+        let version = self.exec.as_ref().map_or(0, Executive::version);
+        self.out.events.push(PlanEvent {
+            version,
+            kind: PlanEventKind::PlanLoaded { name: name.clone() },
+        });
+        tracing::info!("plan `{name}` loaded as version {version}");
+        self.engage = self.cfg.start_navigation;
+        self.refused = None;
+        // A new version: nothing handed out before belongs to it.
+        self.must_flush = true;
+        self.after_change().await;
+        Ok(PlanLoaded {
+            version,
+            name,
+            queued: self.pending.len() as u64,
+            navigation_refused: self.refused.take(),
+        })
+    }
+
+    /// Applies an in-flight command.
+    ///
+    /// # Errors
+    /// No plan loaded, or the executive refused (the reason; nothing changed then).
+    pub async fn command(&mut self, cmd: Command) -> Result<CommandAck, String> {
+        let ex = self
+            .exec
+            .as_mut()
+            .ok_or("no plan is loaded (load_plan first)")?;
+        let was_done = ex.state().completed || ex.state().paused;
+        let r = match cmd {
+            Command::SkipLeg => ex.skip_leg(),
+            Command::GotoLeg(id) => ex.goto_leg(&id),
+            Command::GotoStage(s) => ex.goto_stage(s),
+            Command::SetVar(n, v) => ex.set_var(&n, v),
+            Command::HoldHere(h) => ex.hold_here(&h),
+            Command::ExitHold(now) => ex.exit_hold(now),
+            Command::Pause => ex.pause(),
+            Command::Resume => ex.resume(),
+            Command::ModifyLeg(id, changes) => ex.modify_leg(&id, &changes).map(drop),
+            Command::Retask(points, alt, mode) => ex.retask(&points, alt, mode).map(drop),
+            Command::Emergency(rule) => ex.emergency(rule.as_deref()),
+        };
+        r.map_err(|e| e.to_string())?;
+        // The queue ran out (completed or paused) and now has waypoints again: drive on.
+        if was_done && self.cfg.start_navigation {
+            self.engage = true;
+        }
+        self.after_change().await;
+        self.refused = None;
+        Ok(self.ack())
+    }
+
+    fn ack(&self) -> CommandAck {
+        let st = self.exec.as_ref().map(Executive::state);
+        CommandAck {
+            version: st.as_ref().map_or(0, |s| s.version),
+            leg: st.as_ref().and_then(|s| s.leg.clone()),
+            next_seq: st.as_ref().map_or(0, |s| s.next_seq),
+        }
+    }
+
+    /// The VAS reports a waypoint reached. Reports for waypoints the executive no longer
+    /// expects (an abandoned target, another plan version) are ignored.
+    pub async fn on_reached(&mut self, seq: u64) {
+        if !self.apply_reached(seq) {
+            tracing::debug!("waypoint {seq} reached: not one of the present plan's, ignored");
+            return;
+        }
+        self.after_change().await;
+    }
+
+    /// Reports `seq` (and the pending ones before it) to the executive; false when `seq` is
+    /// not pending.
+    fn apply_reached(&mut self, seq: u64) -> bool {
+        let Some(i) = self.pending.iter().position(|(_, w)| w.seq == seq) else {
+            return false;
+        };
+        let Some(&(version, _)) = self.pending.get(i) else {
+            return false;
+        };
+        self.pending.drain(..=i);
+        self.last_reached = Some(seq);
+        if let Some(ex) = &mut self.exec {
+            if let Err(e) = ex.waypoint_reached(version, seq) {
+                // Cannot happen while `pending` mirrors the executive; say so if it does.
+                tracing::warn!("waypoint {seq}: {e}");
+                self.must_flush = true;
+            }
+        }
+        true
+    }
+
+    /// Telemetry from the VAS: the present position and the built-in variables.
+    pub async fn on_position(&mut self, p: &Position) {
+        let Some(ex) = &mut self.exec else { return };
+        ex.update_telemetry(Telemetry {
+            position: Some(GeoPoint::new(p.lat, p.lon)),
+            alt: Some(p.alt),
+            ground_speed: Some(f64::from(p.speed)),
+            battery: None,
+            elapsed_s: self.started.map(|t| t.elapsed().as_secs_f64()),
+        });
+        // Only an emergency rule firing changes anything here.
+        let events = ex.take_events();
+        if !events.is_empty() {
+            self.collect(events);
+            self.after_change().await;
+        }
+    }
+
+    /// The VAS's flight state changed.
+    pub async fn on_flight_state(&mut self, s: FlightState) {
+        self.vas_state = Some(s);
+        if self.engage {
+            self.sync().await;
+        }
+    }
+
+    /// Re-runs a failed synchronisation with the VAS.
+    pub async fn retry(&mut self) {
+        if self.needs_retry() {
+            self.sync().await;
+        }
+    }
+
+    async fn after_change(&mut self) {
+        self.sync().await;
+        if let Some(ex) = &mut self.exec {
+            let events = ex.take_events();
+            self.collect(events);
+        }
+        self.publish_state();
+    }
+
+    fn collect(&mut self, events: Vec<crate::exec::Event>) {
+        self.out
+            .events
+            .extend(events.into_iter().filter_map(PlanEvent::from_exec));
+    }
+
+    fn publish_state(&mut self) {
+        let Some(ex) = &self.exec else { return };
+        let st = ex.state();
+        let (flown, remaining) = ex.distances_m();
+        let planned = flown + remaining;
+        let fraction = if st.completed {
+            1.0
+        } else if planned > 0.0 {
+            flown / planned
+        } else {
+            0.0
+        };
+        self.out.progress = Some(Progress {
+            version: st.version,
+            plan: st.plan.clone(),
+            stage: st.stage,
+            leg: st.leg.clone(),
+            last_reached: self.last_reached,
+            next_seq: st.next_seq,
+            flown_m: flown,
+            planned_m: planned,
+            fraction,
+            paused: st.paused,
+            completed: st.completed,
+            holding: st.holding,
+        });
+        self.out.state = Some(PlanState {
+            version: st.version,
+            loops: st.loops,
+            vars: st.vars.into_iter().map(|(k, v)| (k, v.into())).collect(),
+            queued: self.pending.iter().map(|(_, w)| w.seq).collect(),
+        });
+    }
+
+    fn desired(&self) -> (u64, Vec<usal_types::Waypoint>) {
+        match &self.exec {
+            Some(ex) => (
+                ex.version(),
+                ex.next_waypoints(self.cfg.lookahead)
+                    .iter()
+                    .map(to_vas)
+                    .collect(),
+            ),
+            None => (0, Vec::new()),
+        }
+    }
+
+    /// Brings the VAS queue in line with the executive's look-ahead, then asks for
+    /// WAYPOINT_NAVIGATION when a plan (re)started.
+    pub async fn sync(&mut self) {
+        if self.exec.is_none() {
+            return;
+        }
+        self.dirty = false;
+        let (version, desired) = self.desired();
+        let extends = self.pending.len() <= desired.len()
+            && self
+                .pending
+                .iter()
+                .zip(&desired)
+                .all(|((v, p), d)| *v == version && p == d);
+        if extends && !self.must_flush {
+            let tail = desired[self.pending.len()..].to_vec();
+            if !tail.is_empty() {
+                self.push(version, tail).await;
+            }
+        } else {
+            self.flush().await;
+        }
+        self.maybe_engage().await;
+    }
+
+    async fn push(&mut self, version: u64, wps: Vec<usal_types::Waypoint>) -> bool {
+        match self.vas.push(wps.clone()).await {
+            Ok(_) => {
+                self.max_pushed = self.max_pushed.max(wps.last().map(|w| w.seq));
+                self.pending.extend(wps.into_iter().map(|w| (version, w)));
+                true
+            }
+            Err(e) => {
+                tracing::warn!("push_waypoints: {e}");
+                self.dirty = true;
+                false
+            }
+        }
+    }
+
+    /// Clears the VAS queue and refills it from the executive's present look-ahead.
+    async fn flush(&mut self) {
+        let status = match self.vas.clear().await {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::warn!("clear_waypoints: {e}");
+                self.must_flush = true;
+                self.dirty = true;
+                return;
+            }
+        };
+        // A report the VAS made that has not reached us yet: account for it first, so the
+        // executive knows where the vehicle is.
+        if let Some(seq) = status.last_reached {
+            self.apply_reached(seq);
+        }
+        let (version, mut desired) = self.desired();
+        let kept = match (status.target, self.pending.front(), desired.first()) {
+            (Some(t), Some((v, p)), Some(d)) => t == p.seq && *v == version && p == d,
+            _ => false,
+        };
+        if !kept {
+            // The VAS still drives to its target: number the new waypoints past it and all
+            // handed out before, so its report is not taken for a new waypoint.
+            if let (Some(max), Some(ex)) = (self.max_pushed, &mut self.exec) {
+                ex.skip_seqs_to(max + 1);
+            }
+            desired = self.desired().1;
+        }
+        self.pending.clear();
+        self.must_flush = false;
+        if !self.push(version, desired).await {
+            self.must_flush = true;
+        }
+    }
+
+    async fn maybe_engage(&mut self) {
+        if !self.engage || self.pending.is_empty() {
+            return;
+        }
+        match self.vas_state {
+            // Not configured yet: asked again when the state changes.
+            Some(FlightState::ConfigureCheck) => return,
+            Some(FlightState::WaypointNavigation) => {
+                self.engage = false;
+                return;
+            }
+            _ => {}
+        }
+        self.engage = false;
+        match self.vas.change_state(FlightState::WaypointNavigation).await {
+            Ok(_) => tracing::info!("VAS in WAYPOINT_NAVIGATION"),
+            Err(e) => {
+                tracing::warn!("WAYPOINT_NAVIGATION refused: {e}");
+                self.refused = Some(e);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::api::PlanEventKind as K;
+    use std::sync::Mutex;
+
+    /// The VAS queue as its README describes it: push appends; after clear, a push replaces
+    /// what follows the target (kept while navigating; a first pushed waypoint equal to it is
+    /// not repeated); WAYPOINT_NAVIGATION needs queued waypoints.
+    #[derive(Default)]
+    struct FakeVas {
+        st: Mutex<FakeState>,
+    }
+
+    #[derive(Default)]
+    struct FakeState {
+        queue: VecDeque<usal_types::Waypoint>,
+        running: bool,
+        replacing: bool,
+        last_reached: Option<u64>,
+        calls: Vec<String>,
+        refuse: Option<String>,
+    }
+
+    impl FakeVas {
+        fn st(&self) -> std::sync::MutexGuard<'_, FakeState> {
+            self.st.lock().unwrap()
+        }
+        fn status(s: &FakeState) -> QueueStatus {
+            QueueStatus {
+                queued: s.queue.len() as u64,
+                target: s.queue.front().map(|w| w.seq),
+                last_reached: s.last_reached,
+                replacing: s.replacing,
+            }
+        }
+        /// The vehicle reaches its target; returns it (the VAS then raises waypoint_reached).
+        fn reach(&self) -> Option<usal_types::Waypoint> {
+            let mut s = self.st();
+            if !s.running {
+                return None;
+            }
+            let w = s.queue.pop_front()?;
+            s.last_reached = Some(w.seq);
+            if s.queue.is_empty() {
+                // HOLD after the last item: PARKING.
+                s.running = false;
+            }
+            Some(w)
+        }
+        fn seqs(&self) -> Vec<u64> {
+            self.st().queue.iter().map(|w| w.seq).collect()
+        }
+        fn calls(&self) -> Vec<String> {
+            std::mem::take(&mut self.st().calls)
+        }
+    }
+
+    #[async_trait]
+    impl VasPort for FakeVas {
+        async fn push(&self, wps: Vec<usal_types::Waypoint>) -> Result<QueueStatus, String> {
+            let mut s = self.st();
+            s.calls.push(format!("push {}", wps.len()));
+            let mut wps = wps.into_iter().peekable();
+            if s.replacing {
+                s.replacing = false;
+                let keep = usize::from(s.running);
+                s.queue.truncate(keep);
+                if wps.peek().is_some() && wps.peek() == s.queue.front() {
+                    wps.next();
+                }
+            }
+            s.queue.extend(wps);
+            Ok(Self::status(&s))
+        }
+        async fn clear(&self) -> Result<QueueStatus, String> {
+            let mut s = self.st();
+            s.calls.push("clear".into());
+            s.replacing = true;
+            Ok(Self::status(&s))
+        }
+        async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String> {
+            let mut s = self.st();
+            s.calls.push(format!("state {to}"));
+            if let Some(r) = &s.refuse {
+                return Err(r.clone());
+            }
+            if s.queue.is_empty() {
+                return Err("no waypoints queued".into());
+            }
+            s.running = true;
+            Ok(StateChangeReply {
+                from: FlightState::Parking,
+                to,
+            })
+        }
+    }
+
+    const PLAN: &str = r#"<flightPlan name="t" defaultSpeed="2">
+  <fixes>
+    <fix id="A" lat="41.27500" lon="1.98700" alt="0"/>
+    <fix id="B" lat="41.27540" lon="1.98700" alt="0"/>
+    <fix id="C" lat="41.27540" lon="1.98750" alt="0"/>
+    <fix id="D" lat="41.27500" lon="1.98750" alt="0"/>
+    <fix id="E" lat="41.27470" lon="1.98720" alt="0"/>
+  </fixes>
+  <departure><leg type="IF" fix="A"/><leg id="b" type="TF" fix="B"/></departure>
+  <mission>
+    <leg id="c" type="TF" fix="C"/>
+    <scan id="area" spacing="6" sweepAngle="90">
+      <pt lat="41.27510" lon="1.98710"/> <pt lat="41.27535" lon="1.98710"/>
+      <pt lat="41.27535" lon="1.98740"/> <pt lat="41.27510" lon="1.98740"/>
+    </scan>
+    <leg id="d" type="TF" fix="D"/>
+  </mission>
+  <approach><leg id="app" type="TF" fix="E"/></approach>
+</flightPlan>"#;
+
+    fn core(lookahead: usize) -> Core<FakeVas> {
+        Core::new(
+            CoreConfig {
+                vehicle: VehicleParams::rover(),
+                lookahead,
+                start_navigation: true,
+            },
+            FakeVas::default(),
+        )
+    }
+
+    /// What the executive would stream with no changes, as the VAS sees it.
+    fn nominal() -> Vec<usal_types::Waypoint> {
+        let plan = crate::parse::parse_plan(PLAN, &VehicleParams::rover()).unwrap();
+        crate::exec::expand_nominal(plan, VehicleParams::rover())
+            .unwrap()
+            .iter()
+            .map(to_vas)
+            .collect()
+    }
+
+    /// Flies until the fake VAS runs out, reporting each reach; returns what was reached.
+    async fn fly(c: &mut Core<FakeVas>, at_most: usize) -> Vec<usal_types::Waypoint> {
+        let mut flown = Vec::new();
+        while flown.len() < at_most {
+            let Some(w) = c.vas().reach() else { break };
+            c.on_reached(w.seq).await;
+            flown.push(w);
+        }
+        flown
+    }
+
+    fn kinds(c: &mut Core<FakeVas>) -> Vec<K> {
+        c.take_outputs()
+            .events
+            .into_iter()
+            .map(|e| e.kind)
+            .collect()
+    }
+
+    #[tokio::test]
+    async fn a_loaded_plan_fills_the_queue_starts_navigation_and_flies_to_the_end() {
+        let mut c = core(4);
+        let loaded = c.load(PLAN, "t.xml").await.unwrap();
+        assert_eq!((loaded.version, loaded.queued), (1, 4));
+        assert_eq!(loaded.navigation_refused, None);
+        assert_eq!(
+            c.vas().calls(),
+            ["clear", "push 4", "state WAYPOINT_NAVIGATION"]
+        );
+        assert_eq!(c.vas().seqs(), [0, 1, 2, 3]);
+        let out = c.take_outputs();
+        assert!(matches!(&out.events[0].kind, K::PlanLoaded { name } if name == "t"));
+        assert_eq!(out.progress.as_ref().map(|p| p.fraction), Some(0.0));
+
+        let flown = fly(&mut c, 1000).await;
+        assert_eq!(flown, nominal(), "the nominal stream, in order, once");
+        // Refilled one at a time: the queue never held more than the look-ahead.
+        assert!(c.vas().calls().iter().all(|k| k == "push 1"));
+        let out = c.take_outputs();
+        assert!(out.events.iter().any(|e| e.kind == K::PlanCompleted));
+        let p = out.progress.unwrap();
+        assert!(p.completed && p.fraction == 1.0, "{p:?}");
+        assert!(p.flown_m > 100.0 && (p.planned_m - p.flown_m).abs() < 1e-6);
+    }
+
+    #[tokio::test]
+    async fn skip_leg_clears_the_queue_and_numbers_the_new_waypoints_past_the_old() {
+        let mut c = core(4);
+        c.load(PLAN, "t.xml").await.unwrap();
+        // A reached, on the way to B (the `b` leg); C and the scan are queued.
+        fly(&mut c, 1).await;
+        let _ = c.vas().calls();
+        let _ = c.take_outputs();
+        let before = c.vas().seqs();
+        let ack = c.command(Command::SkipLeg).await.unwrap();
+        assert_eq!((ack.version, ack.leg.as_deref()), (1, Some("c")));
+        assert_eq!(c.vas().calls(), ["clear", "push 4"]);
+        // The VAS keeps its target (B); then come the new waypoints, numbered past the old.
+        let after = c.vas().seqs();
+        assert_eq!(after[0], before[0]);
+        let max_before = *before.iter().max().unwrap();
+        assert!(
+            after[1..].iter().all(|&s| s > max_before),
+            "{before:?} {after:?}"
+        );
+        let evs = kinds(&mut c);
+        assert!(evs.contains(&K::LegCompleted {
+            leg: "b".into(),
+            skipped: true
+        }));
+        // B is flown (the VAS could not take it back) but not counted; C is next.
+        let flown = fly(&mut c, 2).await;
+        assert_eq!(flown[0].leg, "b");
+        assert_eq!(flown[1].leg, "c");
+        let ex = c.executive().unwrap();
+        assert_eq!(ex.state().leg.as_deref(), Some("area"));
+        let rest = fly(&mut c, 1000).await;
+        let nominal = nominal();
+        let tail: Vec<_> = nominal.iter().skip_while(|w| w.leg != "area").collect();
+        assert_eq!(rest.len(), tail.len());
+        assert!(rest
+            .iter()
+            .zip(tail)
+            .all(|(a, b)| a.lat == b.lat && a.lon == b.lon && a.leg == b.leg));
+    }
+
+    #[tokio::test]
+    async fn modify_leg_refills_from_the_new_version_only() {
+        let mut c = core(4);
+        c.load(PLAN, "t.xml").await.unwrap();
+        fly(&mut c, 3).await; // A, B, C: the scan is being flown.
+        assert_eq!(c.executive().unwrap().state().leg.as_deref(), Some("area"));
+        let _ = c.vas().calls();
+        let ack = c
+            .command(Command::ModifyLeg(
+                "area".into(),
+                vec![("spacing".into(), "10".into())],
+            ))
+            .await
+            .unwrap();
+        assert_eq!(ack.version, 2);
+        assert_eq!(c.vas().calls(), ["clear", "push 4"]);
+        assert!(kinds(&mut c).contains(&K::PlanModified { leg: "area".into() }));
+        // Everything pending is of version 2.
+        assert!(c.pending.iter().all(|(v, _)| *v == 2));
+        let rest = fly(&mut c, 1000).await;
+        let scan6 = nominal().iter().filter(|w| w.leg == "area").count();
+        // The abandoned target is flown once more, then the wider scan (fewer tracks).
+        let scan10 = rest.iter().skip(1).filter(|w| w.leg == "area").count();
+        assert!(scan10 < scan6, "{scan10} vs {scan6}");
+        assert_eq!(rest.last().unwrap().leg, "app");
+        assert!(c.executive().unwrap().state().completed);
+    }
+
+    #[tokio::test]
+    async fn refusals_come_back_with_the_reason_and_change_nothing() {
+        let mut c = core(4);
+        let e = c.command(Command::SkipLeg).await.unwrap_err();
+        assert!(e.contains("no plan is loaded"), "{e}");
+        let e = c.replace(PLAN, "plan").await.unwrap_err();
+        assert!(e.contains("nothing to replace"), "{e}");
+        let bad = PLAN.replace(r#"fix="D""#, r#"fix="Z""#);
+        let e = c.load(&bad, "plan").await.unwrap_err();
+        assert!(e.starts_with("plan:16:27:"), "names the line: {e}");
+        assert!(e.contains("unknown fix `Z`"), "{e}");
+        assert!(c.vas().calls().is_empty());
+
+        c.load(PLAN, "t.xml").await.unwrap();
+        let _ = c.vas().calls();
+        for (cmd, want) in [
+            (Command::GotoLeg("nope".into()), "unknown leg `nope`"),
+            (Command::ExitHold(false), "not a hold"),
+            (Command::Resume, "not paused"),
+            (
+                Command::SetVar("x".into(), Value::Bool(true)),
+                "unknown variable",
+            ),
+            (
+                Command::ModifyLeg("area".into(), vec![("spacing".into(), "0.5".into())]),
+                "invalid plan",
+            ),
+        ] {
+            let e = c.command(cmd).await.unwrap_err();
+            assert!(e.contains(want), "{e} / {want}");
+        }
+        assert!(
+            c.vas().calls().is_empty(),
+            "a refused command leaves the VAS alone"
+        );
+        assert_eq!(c.executive().unwrap().version(), 1);
+        let bad = PLAN.replace("spacing=\"6\"", "spacing=\"x\"");
+        let e = c.replace(&bad, "new.xml").await.unwrap_err();
+        assert!(e.starts_with("new.xml:"), "{e}");
+        assert_eq!(c.vas().seqs(), [0, 1, 2, 3], "the old plan flies on");
+    }
+
+    #[tokio::test]
+    async fn replace_plan_bumps_the_version_and_the_old_reports_are_ignored() {
+        let mut c = core(3);
+        c.load(PLAN, "t.xml").await.unwrap();
+        fly(&mut c, 2).await;
+        let other = PLAN.replace(r#"name="t""#, r#"name="u""#);
+        let loaded = c.replace(&other, "u.xml").await.unwrap();
+        assert_eq!((loaded.version, loaded.name.as_str()), (2, "u"));
+        // The old target stays at the VAS; what follows is version 2, numbered afresh.
+        let q = c.vas().seqs();
+        assert_eq!(q.len(), 4);
+        assert!(q[1..].iter().all(|&s| s > 4));
+        let old = c.vas().reach().unwrap();
+        c.on_reached(old.seq).await;
+        assert_eq!(c.executive().unwrap().state().next_seq, q[1]);
+        // The vehicle is at B: the new plan's IF A and TF B are behind it (the executive
+        // drops waypoints closer than the minimum distance), so it flies on from C.
+        let rest = fly(&mut c, 1000).await;
+        let legs: Vec<&str> = rest.iter().map(|w| w.leg.as_str()).collect();
+        let nominal = nominal();
+        let want: Vec<&str> = nominal.iter().skip(2).map(|w| w.leg.as_str()).collect();
+        assert_eq!(legs, want);
+    }
+
+    #[tokio::test]
+    async fn pause_lets_the_queue_run_out_and_resume_drives_on() {
+        let mut c = core(4);
+        c.load(PLAN, "t.xml").await.unwrap();
+        fly(&mut c, 1).await;
+        let _ = c.vas().calls();
+        c.command(Command::Pause).await.unwrap();
+        assert_eq!(c.vas().calls(), ["clear", "push 0"]);
+        assert_eq!(c.vas().seqs().len(), 1, "only the target is left");
+        let w = c.vas().reach().unwrap();
+        c.on_reached(w.seq).await;
+        assert!(c.vas().reach().is_none(), "stopped");
+        c.command(Command::Resume).await.unwrap();
+        assert_eq!(c.vas().calls(), ["push 4", "state WAYPOINT_NAVIGATION"]);
+        let rest = fly(&mut c, 1000).await;
+        assert_eq!(rest.last().unwrap().leg, "app");
+    }
+
+    #[tokio::test]
+    async fn a_report_still_in_flight_at_a_clear_is_accounted_for() {
+        let mut c = core(4);
+        c.load(PLAN, "t.xml").await.unwrap();
+        // The VAS reaches A and B but the reports are not delivered before the command.
+        let a = c.vas().reach().unwrap();
+        let b = c.vas().reach().unwrap();
+        c.command(Command::SkipLeg).await.unwrap();
+        // The clear's status said B was reached: the executive skipped `c`, not `b`.
+        let st = c.executive().unwrap().state();
+        assert_eq!(st.leg.as_deref(), Some("area"));
+        // The late reports change nothing.
+        c.on_reached(a.seq).await;
+        c.on_reached(b.seq).await;
+        assert_eq!(c.executive().unwrap().state().leg.as_deref(), Some("area"));
+    }
+
+    #[tokio::test]
+    async fn a_refused_navigation_is_reported_and_the_plan_stays_loaded() {
+        let mut c = core(4);
+        c.vas().st().refuse = Some("cannot go to WAYPOINT_NAVIGATION: MANUAL is a failsafe".into());
+        let loaded = c.load(PLAN, "t.xml").await.unwrap();
+        assert!(loaded.navigation_refused.unwrap().contains("failsafe"));
+        assert_eq!(c.vas().seqs().len(), 4);
+    }
+
+    #[tokio::test]
+    async fn navigation_waits_for_the_vas_to_be_configured() {
+        let mut c = core(4);
+        c.on_flight_state(FlightState::ConfigureCheck).await;
+        c.load(PLAN, "t.xml").await.unwrap();
+        assert_eq!(c.vas().calls(), ["clear", "push 4"]);
+        c.on_flight_state(FlightState::Parking).await;
+        assert_eq!(c.vas().calls(), ["state WAYPOINT_NAVIGATION"]);
+    }
+}

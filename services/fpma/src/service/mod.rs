@@ -1,0 +1,563 @@
+//! The networked `fpma` service (`fpma run`): hosts one [`Executive`](crate::exec::Executive) on a
+//! middleware node, takes plans as files or through a function, feeds the VAS's waypoint queue,
+//! follows its waypoint-reached events, and offers the in-flight commands as functions. Items
+//! and config keys are listed in `services/fpma/README.md`.
+//!
+//! One task owns the [`core::Core`]; function handlers, the file sink and the VAS subscriptions
+//! hand it requests over a channel, so inputs are applied one at a time, in arrival order.
+
+pub mod core;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::Context;
+use async_trait::async_trait;
+use marea::{Event, Function, IService, Service, ServiceError, Variable};
+use serde::Deserialize;
+use tokio::sync::{mpsc, oneshot};
+use tokio_util::sync::CancellationToken;
+use usal_types::{
+    FlightState, Position, QueueStatus, StateChangeReply, StateChangeRequest, Waypoint,
+    WaypointReached,
+};
+
+use self::core::{Command, Core, CoreConfig, VasPort};
+use crate::api::{
+    CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanLoaded, PlanRejected, PlanState, Progress,
+    Retask, SetVar,
+};
+use crate::geo::GeoPoint;
+use crate::model::Stage;
+use crate::vehicle::{VehicleKind, VehicleParams};
+
+/// Everything `fpma run` needs. Attribute names of the `<fpma .../>` file in brackets.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FpmaConfig {
+    /// The middleware's network.xml (`network`); none: Ethernet on loopback.
+    #[serde(rename = "@network")]
+    pub network: Option<PathBuf>,
+    /// Overrides the network file's domain (`domain`).
+    #[serde(rename = "@domain")]
+    pub domain: Option<String>,
+    /// Overrides the network file's namespace (`namespace`), e.g. `rover1`.
+    #[serde(rename = "@namespace")]
+    pub namespace: Option<String>,
+    /// The VAS to feed (`vas`): a service name in this namespace (`vas`) or a full prefix
+    /// (`rover1/vas`).
+    #[serde(rename = "@vas")]
+    pub vas: String,
+    /// Vehicle parameters plans are shaped by (`vehicle`): rover, aircraft.
+    #[serde(rename = "@vehicle")]
+    pub vehicle: VehicleKind,
+    /// Waypoints kept in the VAS queue ahead of the vehicle (`lookahead`), ≥ 1. More than the
+    /// VAS's rolling-queue slots keeps its window full.
+    #[serde(rename = "@lookahead")]
+    pub lookahead: usize,
+    /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts or resumes (`startNavigation`).
+    #[serde(rename = "@startNavigation")]
+    pub start_navigation: bool,
+    /// Where plan files sent to `fpma/plans` are stored (`plansDir`).
+    #[serde(rename = "@plansDir")]
+    pub plans_dir: PathBuf,
+    /// A plan to load at start (`plan`).
+    #[serde(rename = "@plan")]
+    pub plan: Option<PathBuf>,
+    /// Time limit of each call to the VAS, ms (`callTimeoutMs`).
+    #[serde(rename = "@callTimeoutMs")]
+    pub call_timeout_ms: u64,
+}
+
+impl Default for FpmaConfig {
+    fn default() -> Self {
+        Self {
+            network: None,
+            domain: None,
+            namespace: None,
+            vas: "vas".into(),
+            vehicle: VehicleKind::Rover,
+            lookahead: 8,
+            start_navigation: true,
+            plans_dir: std::env::temp_dir().join("fpma-plans"),
+            plan: None,
+            call_timeout_ms: 5000,
+        }
+    }
+}
+
+/// Errors loading the configuration file.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigLoadError {
+    /// The file cannot be read.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Malformed XML, unknown or ill-typed attributes.
+    #[error("{path}: {reason}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The parser's message.
+        reason: String,
+    },
+    /// A value out of range.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl FpmaConfig {
+    /// Reads a `<fpma .../>` file.
+    ///
+    /// # Errors
+    /// Unreadable file, malformed XML, unknown attribute, bad value.
+    pub fn load(path: &Path) -> Result<Self, ConfigLoadError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigLoadError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        let cfg: Self = quick_xml::de::from_str(&text).map_err(|e| ConfigLoadError::Parse {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks the ranges.
+    ///
+    /// # Errors
+    /// The first value out of range.
+    pub fn validate(&self) -> Result<(), ConfigLoadError> {
+        if self.lookahead == 0 {
+            return Err(ConfigLoadError::Invalid(
+                "lookahead must be at least 1".into(),
+            ));
+        }
+        if self.call_timeout_ms < 100 {
+            return Err(ConfigLoadError::Invalid("callTimeoutMs below 100".into()));
+        }
+        if self.vas.is_empty() {
+            return Err(ConfigLoadError::Invalid("vas is empty".into()));
+        }
+        Ok(())
+    }
+
+    /// The full prefix of the VAS's items, e.g. `rover1/vas`.
+    pub fn vas_prefix(&self, namespace: Option<&str>) -> String {
+        match namespace {
+            Some(ns) if !self.vas.contains('/') => format!("{ns}/{}", self.vas),
+            _ => self.vas.clone(),
+        }
+    }
+}
+
+/// Runs the service until `shutdown` is cancelled: opens the node, hosts `fpma`, then shuts
+/// everything down.
+///
+/// # Errors
+/// Bad configuration, unreadable network file or initial plan, a node that cannot open.
+pub async fn run(config: FpmaConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
+    config.validate()?;
+    let mut net = match &config.network {
+        Some(path) => marea::NetworkConfig::load(path)
+            .with_context(|| format!("loading {}", path.display()))?,
+        None => marea::NetworkConfig::ethernet_loopback("fpma"),
+    };
+    if let Some(d) = &config.domain {
+        net.domain.clone_from(d);
+    }
+    if let Some(ns) = &config.namespace {
+        net.namespace = Some(ns.clone());
+    }
+    let initial = match &config.plan {
+        Some(p) => Some((
+            std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
+            p.display().to_string(),
+        )),
+        None => None,
+    };
+    let node = marea::Node::open(&net)
+        .await
+        .context("opening the middleware node")?;
+    let vas = config.vas_prefix(net.namespace.as_deref());
+    node.add_service(Box::new(Fpma {
+        config: config.clone(),
+        vas: vas.clone(),
+        initial,
+    }))
+    .await
+    .context("starting the fpma service")?;
+    tracing::info!("fpma up, feeding {vas}");
+    shutdown.cancelled().await;
+    node.shutdown().await;
+    Ok(())
+}
+
+/// The VAS's functions over the middleware.
+struct MareaVas {
+    push: Function<Vec<Waypoint>, QueueStatus>,
+    clear: Function<(), QueueStatus>,
+    change_state: Function<StateChangeRequest, StateChangeReply>,
+    timeout: Duration,
+}
+
+#[async_trait]
+impl VasPort for MareaVas {
+    async fn push(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, String> {
+        self.push
+            .call(&wps, self.timeout)
+            .await
+            .map_err(|e| e.to_string())
+    }
+
+    async fn clear(&self) -> Result<QueueStatus, String> {
+        self.clear
+            .call(&(), self.timeout)
+            .await
+            .map_err(|e| e.to_string())
+    }
+
+    async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String> {
+        self.change_state
+            .call(&StateChangeRequest { to }, self.timeout)
+            .await
+            .map_err(|e| e.to_string())
+    }
+}
+
+/// A request to the core task.
+enum Request {
+    Load {
+        text: String,
+        source: String,
+        replace: bool,
+        reply: oneshot::Sender<Result<PlanLoaded, String>>,
+    },
+    Command(Command, oneshot::Sender<Result<CommandAck, String>>),
+}
+
+/// The `fpma` middleware service.
+pub struct Fpma {
+    config: FpmaConfig,
+    vas: String,
+    initial: Option<(String, String)>,
+}
+
+impl Fpma {
+    /// A service with `config`, feeding the VAS whose items are under `vas` (a full prefix).
+    pub fn new(config: FpmaConfig, vas: String) -> Self {
+        Self {
+            config,
+            vas,
+            initial: None,
+        }
+    }
+}
+
+/// Published items.
+struct Outlets {
+    progress: Variable<Progress>,
+    state: Variable<PlanState>,
+    plan_event: Event<PlanEvent>,
+}
+
+/// Sends `req` to the core and waits for its answer.
+async fn ask<T>(
+    tx: &mpsc::Sender<Request>,
+    make: impl FnOnce(oneshot::Sender<Result<T, String>>) -> Request,
+) -> Result<T, String> {
+    let (reply, rx) = oneshot::channel();
+    tx.send(make(reply))
+        .await
+        .map_err(|_| "the fpma service is stopping".to_string())?;
+    rx.await
+        .map_err(|_| "the fpma service is stopping".to_string())?
+}
+
+/// Declares a command function `name` whose argument `A` becomes a [`Command`].
+fn command_fn<A: marea::Payload>(
+    ctx: &Service,
+    tx: &mpsc::Sender<Request>,
+    name: &str,
+    to_cmd: fn(A) -> Result<Command, String>,
+) -> Result<marea::FunctionProvider, ServiceError> {
+    let tx = tx.clone();
+    Ok(ctx.provide_function(name, move |a: A| {
+        let tx = tx.clone();
+        async move {
+            let cmd = to_cmd(a)?;
+            ask(&tx, |r| Request::Command(cmd, r)).await
+        }
+    })?)
+}
+
+fn parse_stage(s: &str) -> Result<Stage, String> {
+    Stage::ALL
+        .into_iter()
+        .find(|st| st.to_string() == s.to_ascii_lowercase())
+        .ok_or_else(|| {
+            format!("unknown stage `{s}` (takeoff, departure, mission, approach, landing)")
+        })
+}
+
+#[async_trait]
+impl IService for Fpma {
+    fn name(&self) -> &str {
+        "fpma"
+    }
+
+    async fn start(&mut self, ctx: Service) -> Result<(), ServiceError> {
+        let outlets = Outlets {
+            progress: ctx.publish_variable("progress")?,
+            state: ctx.publish_variable("state")?,
+            plan_event: ctx.publish_event("plan_event")?,
+        };
+        let rejected: Event<PlanRejected> = ctx.publish_event("plan_rejected")?;
+        let _ = outlets.progress.set(&Progress::default());
+        let _ = outlets.state.set(&PlanState::default());
+        let vas = &self.vas;
+        let port = MareaVas {
+            push: ctx.function(&format!("{vas}/push_waypoints"))?,
+            clear: ctx.function(&format!("{vas}/clear_waypoints"))?,
+            change_state: ctx.function(&format!("{vas}/change_state"))?,
+            timeout: Duration::from_millis(self.config.call_timeout_ms),
+        };
+        let reached = ctx.subscribe_event::<WaypointReached>(&format!("{vas}/waypoint_reached"))?;
+        let position = ctx.subscribe_variable::<Position>(&format!("{vas}/position"))?;
+        let flight_state = ctx.subscribe_variable::<FlightState>(&format!("{vas}/flight_state"))?;
+        let sink = ctx.file_sink("plans", self.config.plans_dir.clone())?;
+
+        let (tx, mut rx) = mpsc::channel::<Request>(64);
+        let mut providers = Vec::new();
+        let t = tx.clone();
+        providers.push(ctx.provide_function("load_plan", move |xml: String| {
+            let t = t.clone();
+            async move {
+                ask(&t, |reply| Request::Load {
+                    text: xml,
+                    source: "plan".into(),
+                    replace: false,
+                    reply,
+                })
+                .await
+            }
+        })?);
+        let t = tx.clone();
+        providers.push(ctx.provide_function("replace_plan", move |xml: String| {
+            let t = t.clone();
+            async move {
+                ask(&t, |reply| Request::Load {
+                    text: xml,
+                    source: "plan".into(),
+                    replace: true,
+                    reply,
+                })
+                .await
+            }
+        })?);
+        providers.push(command_fn(&ctx, &tx, "skip_leg", |(): ()| {
+            Ok(Command::SkipLeg)
+        })?);
+        providers.push(command_fn(&ctx, &tx, "goto_leg", |leg: String| {
+            Ok(Command::GotoLeg(leg))
+        })?);
+        providers.push(command_fn(&ctx, &tx, "goto_stage", |s: String| {
+            parse_stage(&s).map(Command::GotoStage)
+        })?);
+        providers.push(command_fn(&ctx, &tx, "set_var", |a: SetVar| {
+            Ok(Command::SetVar(a.name, a.value.into()))
+        })?);
+        providers.push(command_fn(&ctx, &tx, "hold_here", |a: HoldHereArgs| {
+            Ok(Command::HoldHere((&a).into()))
+        })?);
+        providers.push(command_fn(&ctx, &tx, "exit_hold", |now: bool| {
+            Ok(Command::ExitHold(now))
+        })?);
+        providers.push(command_fn(&ctx, &tx, "pause", |(): ()| Ok(Command::Pause))?);
+        providers.push(command_fn(&ctx, &tx, "resume", |(): ()| {
+            Ok(Command::Resume)
+        })?);
+        providers.push(command_fn(&ctx, &tx, "modify_leg", |a: ModifyLeg| {
+            Ok(Command::ModifyLeg(a.leg, a.changes))
+        })?);
+        providers.push(command_fn(&ctx, &tx, "retask", |a: Retask| {
+            let points = a
+                .points
+                .iter()
+                .map(|&(lat, lon)| GeoPoint::new(lat, lon))
+                .collect();
+            Ok(Command::Retask(points, a.alt, a.when.into()))
+        })?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            "emergency",
+            |rule: Option<String>| Ok(Command::Emergency(rule)),
+        )?);
+
+        // Files: each one is loaded like `load_plan`; a refusal is raised as `plan_rejected`.
+        let t = tx.clone();
+        let cx = ctx.clone();
+        ctx.spawn(async move {
+            loop {
+                let f = tokio::select! {
+                    _ = cx.cancelled() => return,
+                    f = sink.recv() => match f {
+                        Ok(f) => f,
+                        Err(_) => return,
+                    },
+                };
+                let outcome = match tokio::fs::read_to_string(&f.path).await {
+                    Ok(text) => {
+                        ask(&t, |reply| Request::Load {
+                            text,
+                            source: f.name.clone(),
+                            replace: false,
+                            reply,
+                        })
+                        .await
+                    }
+                    Err(e) => Err(format!("{}: cannot read: {e}", f.name)),
+                };
+                if let Err(reason) = outcome {
+                    tracing::warn!("plan file from {} refused: {reason}", f.from);
+                    let _ = rejected.raise_nowait(&PlanRejected {
+                        file: f.name,
+                        from: f.from,
+                        reason,
+                    });
+                }
+            }
+        });
+
+        let core = Core::new(
+            CoreConfig {
+                vehicle: VehicleParams::for_kind(self.config.vehicle),
+                lookahead: self.config.lookahead,
+                start_navigation: self.config.start_navigation,
+            },
+            port,
+        );
+        let initial = self.initial.take();
+        let cx = ctx.clone();
+        ctx.spawn(async move {
+            // The function handles live as long as this task.
+            let _providers = providers;
+            let mut core = core;
+            if let Some((text, source)) = initial {
+                if let Err(e) = core.load(&text, &source).await {
+                    tracing::error!("initial plan: {e}");
+                }
+                publish(&mut core, &outlets);
+            }
+            let mut retry = tokio::time::interval(Duration::from_secs(1));
+            retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tokio::select! {
+                    _ = cx.cancelled() => return,
+                    req = rx.recv() => match req {
+                        Some(Request::Load { text, source, replace, reply }) => {
+                            let r = if replace {
+                                core.replace(&text, &source).await
+                            } else {
+                                core.load(&text, &source).await
+                            };
+                            let _ = reply.send(r);
+                        }
+                        Some(Request::Command(cmd, reply)) => {
+                            let r = core.command(cmd).await;
+                            let _ = reply.send(r);
+                        }
+                        None => return,
+                    },
+                    r = reached.recv() => match r {
+                        Ok(s) => core.on_reached(s.value.seq).await,
+                        Err(marea::RecvError::Closed) => return,
+                        Err(e) => tracing::warn!("waypoint_reached: {e}"),
+                    },
+                    p = position.recv() => match p {
+                        Ok(s) => core.on_position(&s.value).await,
+                        Err(marea::RecvError::Closed) => return,
+                        Err(e) => tracing::warn!("position: {e}"),
+                    },
+                    s = flight_state.recv() => match s {
+                        Ok(s) => core.on_flight_state(s.value).await,
+                        Err(marea::RecvError::Closed) => return,
+                        Err(e) => tracing::warn!("flight_state: {e}"),
+                    },
+                    _ = retry.tick() => core.retry().await,
+                }
+                publish(&mut core, &outlets);
+            }
+        });
+        Ok(())
+    }
+
+    async fn stop(&mut self) -> Result<(), ServiceError> {
+        Ok(())
+    }
+}
+
+fn publish<V: VasPort>(core: &mut Core<V>, out: &Outlets) {
+    let o = core.take_outputs();
+    for e in &o.events {
+        if let Err(err) = out.plan_event.raise_nowait(e) {
+            tracing::warn!("raising plan_event: {err}");
+        }
+    }
+    if let Some(p) = &o.progress {
+        let _ = out.progress.set(p);
+    }
+    if let Some(s) = &o.state {
+        let _ = out.state.set(s);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn example_file_parses() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fpma.example.xml");
+        let cfg = FpmaConfig::load(&path).unwrap();
+        assert_eq!(
+            cfg,
+            FpmaConfig {
+                plans_dir: "/tmp/fpma-plans".into(),
+                ..FpmaConfig::default()
+            }
+        );
+    }
+
+    #[test]
+    fn unknown_attributes_and_bad_values_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("fpma.xml");
+        std::fs::write(&p, r#"<fpma lookahed="5"/>"#).unwrap();
+        assert!(FpmaConfig::load(&p).is_err());
+        std::fs::write(&p, r#"<fpma lookahead="0"/>"#).unwrap();
+        let e = FpmaConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("lookahead"), "{e}");
+        std::fs::write(&p, r#"<fpma vehicle="aircraft" vas="rover1/vas"/>"#).unwrap();
+        let cfg = FpmaConfig::load(&p).unwrap();
+        assert_eq!(cfg.vehicle, VehicleKind::Aircraft);
+        assert_eq!(cfg.vas_prefix(Some("uav2")), "rover1/vas");
+        assert_eq!(
+            FpmaConfig::default().vas_prefix(Some("rover1")),
+            "rover1/vas"
+        );
+        assert_eq!(FpmaConfig::default().vas_prefix(None), "vas");
+    }
+
+    #[test]
+    fn stages_by_name() {
+        assert_eq!(parse_stage("Approach"), Ok(Stage::Approach));
+        assert!(parse_stage("cruise").unwrap_err().contains("unknown stage"));
+    }
+}
