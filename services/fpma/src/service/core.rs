@@ -862,6 +862,19 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn a_qgc_plan_is_loaded_by_its_extension() {
+        let rover = VehicleParams::rover();
+        let plan = crate::parse::parse_plan(PLAN, &rover).unwrap();
+        let doc = crate::qgc::export(&plan, &rover).unwrap();
+        let mut c = core(4);
+        let loaded = c.load(&doc.to_string(), "survey.plan").await.unwrap();
+        assert_eq!((loaded.version, loaded.queued), (1, 4));
+        let e = c.load("{}", "x.plan").await.unwrap_err();
+        assert!(e.starts_with("x.plan: "), "{e}");
+        assert_eq!(c.executive().unwrap().version(), 1);
+    }
+
+    #[tokio::test]
     async fn navigation_waits_for_the_vas_to_be_configured() {
         let mut c = core(4);
         c.on_flight_state(FlightState::ConfigureCheck).await;

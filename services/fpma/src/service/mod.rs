@@ -206,27 +206,31 @@ struct MareaVas {
     timeout: Duration,
 }
 
+/// Calls `f`, first waiting up to `timeout` for a provider when none is known (the VAS may
+/// not be discovered yet when the first plan arrives).
+async fn call_vas<A: marea::Payload, R: marea::Payload>(
+    f: &Function<A, R>,
+    args: &A,
+    timeout: Duration,
+) -> Result<R, String> {
+    if !f.has_provider() && !f.wait_provider(timeout).await {
+        return Err(format!("no VAS provides {}", f.name()));
+    }
+    f.call(args, timeout).await.map_err(|e| e.to_string())
+}
+
 #[async_trait]
 impl VasPort for MareaVas {
     async fn push(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, String> {
-        self.push
-            .call(&wps, self.timeout)
-            .await
-            .map_err(|e| e.to_string())
+        call_vas(&self.push, &wps, self.timeout).await
     }
 
     async fn clear(&self) -> Result<QueueStatus, String> {
-        self.clear
-            .call(&(), self.timeout)
-            .await
-            .map_err(|e| e.to_string())
+        call_vas(&self.clear, &(), self.timeout).await
     }
 
     async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String> {
-        self.change_state
-            .call(&StateChangeRequest { to }, self.timeout)
-            .await
-            .map_err(|e| e.to_string())
+        call_vas(&self.change_state, &StateChangeRequest { to }, self.timeout).await
     }
 }
 
