@@ -78,6 +78,9 @@ pub enum DatagramDecodeError {
 pub struct DatagramWriter {
     buf: Vec<u8>,
     max: usize,
+    /// Entries written other than SYN: a datagram holding only the header and a SYN still
+    /// takes one oversized entry (otherwise a large first safe message could never be sent).
+    entries: usize,
 }
 
 impl DatagramWriter {
@@ -85,7 +88,11 @@ impl DatagramWriter {
     pub fn new(max: usize) -> Self {
         let mut buf = Vec::with_capacity(max.min(65_536));
         buf.push(KIND_DATA);
-        DatagramWriter { buf, max }
+        DatagramWriter {
+            buf,
+            max,
+            entries: 0,
+        }
     }
 
     /// Bytes written so far.
@@ -109,8 +116,9 @@ impl DatagramWriter {
     }
 
     fn fits(&self, cost: usize) -> bool {
-        // An empty datagram accepts one oversized entry, so a large message still goes out.
-        self.buf.len() + cost <= self.max || self.is_empty()
+        // A datagram with no entry yet (a SYN aside) accepts one oversized entry, so a large
+        // message still goes out.
+        self.buf.len() + cost <= self.max || self.entries == 0
     }
 
     /// Appends a FAST entry; `false` (nothing written) when it does not fit.
@@ -121,6 +129,7 @@ impl DatagramWriter {
         self.buf.push(TAG_FAST);
         put_u64(&mut self.buf, msg.len() as u64);
         self.buf.extend_from_slice(msg);
+        self.entries += 1;
         true
     }
 
@@ -133,6 +142,7 @@ impl DatagramWriter {
         put_u64(&mut self.buf, u64::from(seq));
         put_u64(&mut self.buf, msg.len() as u64);
         self.buf.extend_from_slice(msg);
+        self.entries += 1;
         true
     }
 
@@ -156,6 +166,7 @@ impl DatagramWriter {
         self.buf.extend_from_slice(&ack.session.to_le_bytes());
         put_u64(&mut self.buf, u64::from(ack.next));
         put_u64(&mut self.buf, ack.sack);
+        self.entries += 1;
         true
     }
 
@@ -163,6 +174,7 @@ impl DatagramWriter {
     pub fn take(&mut self) -> Vec<u8> {
         let mut next = Vec::with_capacity(self.max.min(65_536));
         next.push(KIND_DATA);
+        self.entries = 0;
         std::mem::replace(&mut self.buf, next)
     }
 }
@@ -325,6 +337,23 @@ mod tests {
         let mut w = DatagramWriter::new(10);
         assert!(w.push_fast(&[0; 4]));
         assert!(!w.push_fast(&[0; 4]));
+    }
+
+    /// A large first safe message follows the SYN in the same datagram (an infinite loop
+    /// once: SYN, no room, new datagram, SYN again...).
+    #[test]
+    fn a_syn_leaves_room_for_one_oversized_entry() {
+        let mut w = DatagramWriter::new(100);
+        assert!(w.push_syn(1));
+        assert!(w.push_safe(0, &[0; 500]));
+        assert!(!w.push_safe(1, &[0; 10]));
+        assert_eq!(w.take().len(), 1 + 5 + 1 + 1 + 2 + 500);
+        assert!(w.push_ack(AckInfo {
+            session: 1,
+            next: 0,
+            sack: 0
+        }));
+        assert!(!w.push_safe(0, &[0; 500]), "an ack already takes the datagram's room");
     }
 
     #[test]
