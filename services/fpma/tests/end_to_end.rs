@@ -92,12 +92,6 @@ fn track_gaps(points: &[(f64, f64)]) -> Vec<f64> {
         .collect()
 }
 
-// Ignored until marea's UDP link stops looping on a Safe message larger than one datagram sent
-// before the session is acknowledged (`flush_locked`: SYN, message does not fit, SYN-only
-// datagram, again...). The fpma node's first declaration batch (~26 items) is such a message, so
-// the fpma node hangs, growing without bound, on most runs. Passes when the race is won:
-// `cargo test -p fpma --test end_to_end -- --ignored`.
-#[ignore = "marea: oversized Safe message before the session ack loops forever (see comment)"]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     let (vas_bin, sim_bin) = sibling_bins();
