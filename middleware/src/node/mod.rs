@@ -109,7 +109,8 @@ pub(crate) struct Peer {
     pub offers: HashMap<u32, session::RemoteItem>,
     pub interests: HashMap<u32, session::RemoteItem>,
     /// Local interests each remote offer is delivered to.
-    pub routes: HashMap<u32, Vec<Arc<LocalInterest>>>,
+    /// Shared so the data path takes a reference count, not a copy, per message.
+    pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
 }
 
 /// A call waiting for its reply.

@@ -247,7 +247,7 @@ impl NodeInner {
                 .offers
                 .iter()
                 .map(|(oid, item)| {
-                    let targets: Vec<Arc<LocalInterest>> = interests
+                    let targets: Arc<[Arc<LocalInterest>]> = interests
                         .iter()
                         .filter(|i| {
                             kinds_match(item.kind, i.kind)
