@@ -87,6 +87,9 @@ struct PeerState {
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
     last_write: Option<Instant>,
+    /// The transmit task was woken for this peer and has not flushed it yet: further messages
+    /// need no wake-up of their own (each one costs a syscall when the task sleeps elsewhere).
+    wake_pending: bool,
 }
 
 impl PeerState {
@@ -98,6 +101,7 @@ impl PeerState {
             safe: VecDeque::new(),
             blocked: VecDeque::new(),
             last_write: None,
+            wake_pending: false,
         }
     }
 
@@ -326,6 +330,7 @@ impl UdpLink {
             }
         }
         st.last_write = Some(now);
+        st.wake_pending = false;
     }
 
     fn count_out(&self, n: usize) {
@@ -587,7 +592,8 @@ impl Link for UdpLink {
                 .is_none_or(|t| now.saturating_duration_since(t) >= BATCH_WINDOW);
         if idle {
             self.flush_locked(addr, &mut st, now);
-        } else {
+        } else if !st.wake_pending {
+            st.wake_pending = true;
             drop(st);
             self.wake.notify_one();
         }
