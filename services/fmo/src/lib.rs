@@ -1,0 +1,377 @@
+//! The USAL Flight Monitor (FMo, 003 §1.2, §6.2.5): the pilot's ground station, served as one web
+//! page from the station's machine so any laptop or tablet browser is the screen.
+//!
+//! Layers: [`model`] is the station's picture of the fleet (pure, tested on a fake clock);
+//! [`web`] serves the page, its JSON API and its live channel (server-sent events); this file
+//! opens the middleware node, subscribes to what the page shows (and nothing else: 003 §6.2.4),
+//! calls the VAS's functions and publishes `fmo/manual_control` at 20 Hz while the dead-man is
+//! held. Items and options are listed in `services/fmo/README.md`.
+//!
+//! ```no_run
+//! # async fn f() -> anyhow::Result<()> {
+//! let shutdown = tokio_util::sync::CancellationToken::new();
+//! let config = fmo::FmoConfig { listen: "127.0.0.1:0".parse()?, ..Default::default() };
+//! fmo::run(config, shutdown).await // prints FMO_URL=http://127.0.0.1:PORT/
+//! # }
+//! ```
+
+pub mod model;
+pub mod web;
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use anyhow::Context;
+use marea::{Function, RecvError, Service, VariableSubscriber};
+use tokio::sync::Notify;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+use usal_types::{
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionTime, Position, Speeds,
+    StateChangeReply, StateChangeRequest, StateChanged,
+};
+
+use crate::model::{Item, ManualTick, Station};
+
+/// Everything the FMo needs.
+#[derive(Clone, Debug)]
+pub struct FmoConfig {
+    /// The middleware's network.xml; none: Ethernet on loopback.
+    pub network: Option<PathBuf>,
+    /// Overrides the network file's domain.
+    pub domain: Option<String>,
+    /// Overrides the network file's namespace (the station's own items' prefix).
+    pub namespace: Option<String>,
+    /// Node name when no network file is given.
+    pub node: String,
+    /// Where the HTTP server listens (`127.0.0.1:0`: any free port).
+    pub listen: SocketAddr,
+    /// The VASes followed: a pattern of their item prefix (`**/vas` for a fleet, `rover1/vas`
+    /// for one vehicle).
+    pub vas: String,
+    /// Values older than this are shown as stale.
+    pub stale_after: Duration,
+    /// Time limit of each VAS call.
+    pub call_timeout: Duration,
+}
+
+impl Default for FmoConfig {
+    fn default() -> Self {
+        Self {
+            network: None,
+            domain: None,
+            namespace: None,
+            node: "fmo".into(),
+            listen: SocketAddr::from(([127, 0, 0, 1], 8081)),
+            vas: "**/vas".into(),
+            stale_after: Duration::from_secs(2),
+            call_timeout: Duration::from_secs(5),
+        }
+    }
+}
+
+/// Manual-control publication rate (003 §6.2.5: the seed's joystick rate).
+const MANUAL_PERIOD: Duration = Duration::from_millis(50);
+/// How often the allowed transitions of the commanded vehicle are asked again while the last
+/// answer is missing, outdated or failed.
+const ALLOWED_RETRY: Duration = Duration::from_secs(2);
+
+type ChangeStateFn = Function<StateChangeRequest, StateChangeReply>;
+type AllowedFn = Function<(), Vec<FlightState>>;
+
+/// What the HTTP handlers and the middleware tasks share.
+pub struct Shared {
+    station: Mutex<Station>,
+    svc: Service,
+    /// Woken on every change the page should see at once.
+    pub changed: Notify,
+    /// Woken when the commanded vehicle's allowed transitions must be asked again.
+    refresh_allowed: Notify,
+    change_state: Mutex<HashMap<String, Arc<ChangeStateFn>>>,
+    allowed: Mutex<HashMap<String, Arc<AllowedFn>>>,
+    call_timeout: Duration,
+    tasks: TaskTracker,
+    cancel: CancellationToken,
+}
+
+impl Shared {
+    /// The station state. A panic while holding the lock cannot leave it inconsistent in a way
+    /// worth stopping the station for, so a poisoned lock is taken over.
+    pub fn station(&self) -> MutexGuard<'_, Station> {
+        self.station.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn function<A: marea::Payload, R: marea::Payload>(
+        &self,
+        cache: &Mutex<HashMap<String, Arc<Function<A, R>>>>,
+        name: String,
+    ) -> Result<Arc<Function<A, R>>, String> {
+        let mut map = cache.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(f) = map.get(&name) {
+            return Ok(f.clone());
+        }
+        let f = Arc::new(self.svc.function(&name).map_err(|e| e.to_string())?);
+        map.insert(name, f.clone());
+        Ok(f)
+    }
+
+    /// Asks `vehicle` (a VAS prefix) for `to` in the background; returns the command's id. The
+    /// command shows as pending until the VAS answers or the call fails.
+    pub fn request_state(self: &Arc<Self>, vehicle: &str, to: FlightState) -> u64 {
+        let id =
+            self.station()
+                .command_started(vehicle, &format!("change_state {to}"), Instant::now());
+        self.changed.notify_waiters();
+        let me = self.clone();
+        let vehicle = vehicle.to_owned();
+        self.tasks.spawn(async move {
+            let outcome = async {
+                let f = me.function(&me.change_state, format!("{vehicle}/change_state"))?;
+                let req = StateChangeRequest { to };
+                tokio::select! {
+                    r = f.call(&req, me.call_timeout) => r.map_err(call_error),
+                    _ = me.cancel.cancelled() => Err("station stopping".to_string()),
+                }
+            }
+            .await
+            .map(|r: StateChangeReply| format!("{} → {}", r.from, r.to));
+            me.station().command_finished(id, outcome, Instant::now());
+            me.refresh_allowed.notify_one();
+            me.changed.notify_waiters();
+        });
+        id
+    }
+
+    /// Asks for the commanded vehicle's allowed transitions again.
+    pub fn refresh_allowed(&self) {
+        self.refresh_allowed.notify_one();
+    }
+}
+
+/// A call error as the pilot reads it: the VAS's own reason when it refused.
+fn call_error(e: marea::CallError) -> String {
+    match e {
+        marea::CallError::Remote { message, .. } => message,
+        e => e.to_string(),
+    }
+}
+
+fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+        .unwrap_or(0)
+}
+
+/// Follows every VAS item `item` matching the configured pattern, feeding the station.
+fn follow<T: marea::Payload>(
+    shared: &Arc<Shared>,
+    sub: VariableSubscriber<T>,
+    item: &'static str,
+    to_item: fn(T) -> Item,
+) {
+    let me = shared.clone();
+    shared.tasks.spawn(async move {
+        let suffix = format!("/{item}");
+        loop {
+            let got = tokio::select! {
+                r = sub.recv() => r,
+                _ = me.cancel.cancelled() => return,
+            };
+            match got {
+                Ok(s) => {
+                    let Some(prefix) = s.name.strip_suffix(&suffix) else {
+                        continue;
+                    };
+                    let state_changed =
+                        me.station()
+                            .update(prefix, &s.publisher, to_item(s.value), Instant::now());
+                    if state_changed {
+                        me.refresh_allowed.notify_one();
+                        me.changed.notify_waiters();
+                    }
+                    if matches!(item, "alarm" | "state_changed") {
+                        me.changed.notify_waiters();
+                    }
+                }
+                Err(RecvError::Closed) => return,
+                Err(e) => tracing::warn!("{item}: {e}"),
+            }
+        }
+    });
+}
+
+/// Keeps the commanded vehicle's allowed transitions current.
+async fn allowed_loop(me: Arc<Shared>) {
+    loop {
+        tokio::select! {
+            _ = me.refresh_allowed.notified() => {}
+            _ = tokio::time::sleep(ALLOWED_RETRY) => {}
+            _ = me.cancel.cancelled() => return,
+        }
+        let (vehicle, state) = {
+            let st = me.station();
+            let Some(v) = st.selected().map(str::to_owned) else {
+                continue;
+            };
+            if !st.allowed_outdated(&v) {
+                continue;
+            }
+            let s = st.flight_state(&v);
+            (v, s)
+        };
+        let answer = match me.function(&me.allowed, format!("{vehicle}/allowed_states")) {
+            Ok(f) => tokio::select! {
+                r = f.call(&(), me.call_timeout) => r.map_err(call_error),
+                _ = me.cancel.cancelled() => return,
+            },
+            Err(e) => Err(e),
+        };
+        me.station()
+            .set_allowed(&vehicle, state, answer, Instant::now());
+        me.changed.notify_waiters();
+    }
+}
+
+/// Publishes the sticks at 20 Hz while the dead-man is held (then neutral briefly).
+async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualControl>) {
+    let mut tick = tokio::time::interval(MANUAL_PERIOD);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = me.cancel.cancelled() => return,
+        }
+        let t = me.station().manual_tick(Instant::now(), unix_ms());
+        if let ManualTick::Send(sample) = t {
+            if let Err(e) = var.set(&sample) {
+                tracing::warn!("manual_control: {e}");
+            }
+        }
+    }
+}
+
+/// Opens the middleware node described by the configuration.
+///
+/// # Errors
+/// Unreadable network file, a node that cannot open.
+pub async fn open_node(
+    network: Option<&std::path::Path>,
+    domain: Option<&str>,
+    namespace: Option<&str>,
+    node: &str,
+) -> anyhow::Result<marea::Node> {
+    let mut net = match network {
+        Some(path) => marea::NetworkConfig::load(path)
+            .with_context(|| format!("loading {}", path.display()))?,
+        None => marea::NetworkConfig::ethernet_loopback(node),
+    };
+    if let Some(d) = domain {
+        d.clone_into(&mut net.domain);
+    }
+    if let Some(ns) = namespace {
+        net.namespace = Some(ns.to_owned());
+    }
+    marea::Node::open(&net)
+        .await
+        .context("opening the middleware node")
+}
+
+/// Runs the FMo until `shutdown` is cancelled: binds the HTTP server, prints
+/// `FMO_URL=http://ADDR/` on stdout, opens the node, then serves.
+///
+/// # Errors
+/// The address cannot be bound, bad network file or pattern, a node that cannot open.
+pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
+    let listener = tokio::net::TcpListener::bind(config.listen)
+        .await
+        .with_context(|| format!("listening on {}", config.listen))?;
+    let addr = listener.local_addr().context("local address")?;
+    web::print_url("FMO_URL", addr);
+    let node = open_node(
+        config.network.as_deref(),
+        config.domain.as_deref(),
+        config.namespace.as_deref(),
+        &config.node,
+    )
+    .await?;
+    let svc = node.service("fmo").context("declaring the fmo service")?;
+    let cancel = shutdown.child_token();
+    let shared = Arc::new(Shared {
+        station: Mutex::new(Station::new(config.stale_after, Instant::now())),
+        svc: svc.clone(),
+        changed: Notify::new(),
+        refresh_allowed: Notify::new(),
+        change_state: Mutex::new(HashMap::new()),
+        allowed: Mutex::new(HashMap::new()),
+        call_timeout: config.call_timeout,
+        tasks: TaskTracker::new(),
+        cancel: cancel.clone(),
+    });
+    let vas = &config.vas;
+    let pat = |item: &str| format!("{vas}/{item}");
+    follow(
+        &shared,
+        svc.subscribe_variable::<Position>(&pat("position"))?,
+        "position",
+        Item::Position,
+    );
+    follow(
+        &shared,
+        svc.subscribe_variable::<Attitude>(&pat("attitude"))?,
+        "attitude",
+        Item::Attitude,
+    );
+    follow(
+        &shared,
+        svc.subscribe_variable::<Speeds>(&pat("speeds"))?,
+        "speeds",
+        Item::Speeds,
+    );
+    follow(
+        &shared,
+        svc.subscribe_variable::<AutopilotStatus>(&pat("autopilot"))?,
+        "autopilot",
+        Item::Autopilot,
+    );
+    follow(
+        &shared,
+        svc.subscribe_variable::<FlightState>(&pat("flight_state"))?,
+        "flight_state",
+        Item::FlightState,
+    );
+    follow(
+        &shared,
+        svc.subscribe_variable::<MissionTime>(&pat("mission_time"))?,
+        "mission_time",
+        Item::MissionTime,
+    );
+    follow(
+        &shared,
+        svc.subscribe_event::<StateChanged>(&pat("state_changed"))?,
+        "state_changed",
+        Item::StateChanged,
+    );
+    follow(
+        &shared,
+        svc.subscribe_event::<Alarm>(&pat("alarm"))?,
+        "alarm",
+        Item::Alarm,
+    );
+    let manual = svc.publish_variable::<ManualControl>("manual_control")?;
+    shared.tasks.spawn(allowed_loop(shared.clone()));
+    shared.tasks.spawn(manual_loop(shared.clone(), manual));
+    tracing::info!("fmo up on http://{addr}/, following {vas}");
+
+    let served = web::serve(listener, web::router(shared.clone()), cancel.clone()).await;
+    cancel.cancel();
+    shared.tasks.close();
+    shared.tasks.wait().await;
+    drop(shared);
+    drop(svc);
+    node.shutdown().await;
+    served
+}

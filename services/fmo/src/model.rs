@@ -1,0 +1,793 @@
+//! The station's picture of the fleet, with no I/O: what each vehicle last said and when, the
+//! alarms and their acknowledgements, the commands in flight, and the manual-control dead-man.
+//!
+//! The middleware tasks feed it, the HTTP handlers read [`Station::snapshot`] (the JSON the page
+//! renders) and [`Station::manual_tick`] decides what the 20 Hz manual-control loop publishes.
+//! Every method takes `now`, so the staleness and dead-man rules are tested without a clock.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use usal_types::{
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionTime, Position, Severity,
+    Speeds, StateChanged,
+};
+
+/// Alarms kept per vehicle (oldest dropped first).
+const MAX_ALARMS: usize = 50;
+/// Commands kept for display (oldest finished ones dropped first).
+const MAX_COMMANDS: usize = 30;
+/// The browser must repeat its stick input at least this often while the dead-man is held,
+/// else the sticks are released (a frozen tab, a closed laptop, a lost Wi-Fi).
+pub const MANUAL_INPUT_TIMEOUT: Duration = Duration::from_millis(300);
+/// After release, neutral is still published this long so the vehicle hears it over a lossy
+/// link; then publishing stops (the VAS releases the sticks on silence anyway).
+pub const MANUAL_NEUTRAL_TAIL: Duration = Duration::from_millis(1000);
+
+/// A value with its arrival time.
+#[derive(Clone, Debug)]
+struct Stamped<T> {
+    value: T,
+    at: Instant,
+}
+
+/// Which `allowed_states` answer the page may offer as buttons.
+#[derive(Clone, Debug, Default)]
+struct Allowed {
+    /// The last answer and the flight state it was computed in.
+    states: Option<(Vec<FlightState>, Option<FlightState>, Instant)>,
+    /// Why the last call failed, if it did.
+    error: Option<String>,
+}
+
+/// One alarm as shown.
+#[derive(Clone, Debug)]
+struct AlarmEntry {
+    id: u64,
+    alarm: Alarm,
+    at: Instant,
+    acked: bool,
+}
+
+/// What the station knows of one vehicle (one VAS), keyed by the VAS's item prefix.
+#[derive(Clone, Debug, Default)]
+struct Vehicle {
+    position: Option<Stamped<Position>>,
+    attitude: Option<Stamped<Attitude>>,
+    speeds: Option<Stamped<Speeds>>,
+    autopilot: Option<Stamped<AutopilotStatus>>,
+    flight_state: Option<Stamped<FlightState>>,
+    mission_time: Option<Stamped<MissionTime>>,
+    last_change: Option<Stamped<StateChanged>>,
+    alarms: VecDeque<AlarmEntry>,
+    allowed: Allowed,
+    heard: Option<Instant>,
+    publisher: String,
+}
+
+/// A command's outcome.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CommandStatus {
+    /// Sent, no answer yet.
+    Pending,
+    /// The vehicle accepted it.
+    Ok,
+    /// Refused or lost, with the reason.
+    Failed,
+}
+
+#[derive(Clone, Debug)]
+struct CommandEntry {
+    id: u64,
+    vehicle: String,
+    what: String,
+    status: CommandStatus,
+    detail: String,
+    started: Instant,
+    finished: Option<Instant>,
+}
+
+/// Stick input from the page.
+#[derive(Clone, Debug, Default, PartialEq, serde::Deserialize, Serialize)]
+pub struct StickInput {
+    /// Steering / roll, -1..1, right positive.
+    #[serde(default)]
+    pub roll: f32,
+    /// Pitch, -1..1.
+    #[serde(default)]
+    pub pitch: f32,
+    /// Throttle, -1..1.
+    #[serde(default)]
+    pub throttle: f32,
+    /// Yaw, -1..1.
+    #[serde(default)]
+    pub yaw: f32,
+    /// The dead-man is held: without it every axis is neutral.
+    #[serde(default)]
+    pub deadman: bool,
+    /// `keyboard` or `gamepad`, for display.
+    #[serde(default)]
+    pub source: String,
+}
+
+impl StickInput {
+    fn clamped(mut self) -> Self {
+        for v in [
+            &mut self.roll,
+            &mut self.pitch,
+            &mut self.throttle,
+            &mut self.yaw,
+        ] {
+            *v = if v.is_finite() {
+                v.clamp(-1.0, 1.0)
+            } else {
+                0.0
+            };
+        }
+        self
+    }
+}
+
+#[derive(Clone, Debug, Default)]
+struct Manual {
+    input: StickInput,
+    input_at: Option<Instant>,
+    released_at: Option<Instant>,
+    active: bool,
+    last_sent: Option<(ManualControl, Instant)>,
+    sent: u64,
+}
+
+/// The whole station state.
+#[derive(Debug)]
+pub struct Station {
+    vehicles: BTreeMap<String, Vehicle>,
+    selected: Option<String>,
+    commands: VecDeque<CommandEntry>,
+    next_id: u64,
+    manual: Manual,
+    stale_after: Duration,
+    epoch: Instant,
+}
+
+/// One telemetry item as received, for [`Station::update`].
+#[derive(Clone, Debug)]
+pub enum Item {
+    /// `position`.
+    Position(Position),
+    /// `attitude`.
+    Attitude(Attitude),
+    /// `speeds`.
+    Speeds(Speeds),
+    /// `autopilot`.
+    Autopilot(AutopilotStatus),
+    /// `flight_state`.
+    FlightState(FlightState),
+    /// `mission_time`.
+    MissionTime(MissionTime),
+    /// Event `state_changed`.
+    StateChanged(StateChanged),
+    /// Event `alarm`.
+    Alarm(Alarm),
+}
+
+/// What the manual-control loop does on one tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ManualTick {
+    /// Publish this sample.
+    Send(ManualControl),
+    /// Publish nothing.
+    Idle,
+}
+
+/// A value and its age, as the page gets it.
+#[derive(Serialize)]
+struct Aged<T> {
+    value: T,
+    age_ms: u64,
+    stale: bool,
+}
+
+/// The page's view of everything (`GET /api/state`, and each SSE `state` message).
+#[derive(Serialize)]
+pub struct Snapshot {
+    /// Milliseconds since the station started (to order snapshots).
+    pub now_ms: u64,
+    /// Values older than this are marked stale.
+    pub stale_after_ms: u64,
+    /// The vehicle commanded (its VAS prefix).
+    pub selected: Option<String>,
+    vehicles: Vec<VehicleView>,
+    commands: Vec<CommandView>,
+    manual: ManualView,
+}
+
+#[derive(Serialize)]
+struct VehicleView {
+    id: String,
+    label: String,
+    publisher: String,
+    link: &'static str,
+    heard_ago_ms: Option<u64>,
+    flight_state: Option<Aged<FlightState>>,
+    autopilot: Option<Aged<AutopilotStatus>>,
+    position: Option<Aged<Position>>,
+    attitude: Option<Aged<Attitude>>,
+    speeds: Option<Aged<Speeds>>,
+    mission_time: Option<Aged<MissionTime>>,
+    last_change: Option<Aged<StateChanged>>,
+    allowed: AllowedView,
+    alarms: Vec<AlarmView>,
+    unacked_alarms: usize,
+}
+
+#[derive(Serialize)]
+struct AllowedView {
+    /// States the VAS accepts now; empty when unknown or outdated.
+    states: Vec<FlightState>,
+    /// The answer is for the present flight state.
+    current: bool,
+    age_ms: Option<u64>,
+    error: Option<String>,
+}
+
+#[derive(Serialize)]
+struct AlarmView {
+    id: u64,
+    severity: Severity,
+    text: String,
+    age_ms: u64,
+    acked: bool,
+}
+
+#[derive(Serialize)]
+struct CommandView {
+    id: u64,
+    vehicle: String,
+    what: String,
+    status: CommandStatus,
+    detail: String,
+    age_ms: u64,
+    took_ms: Option<u64>,
+}
+
+#[derive(Serialize)]
+struct ManualView {
+    deadman: bool,
+    active: bool,
+    source: String,
+    input: StickInput,
+    input_age_ms: Option<u64>,
+    sent: u64,
+    last_sent: Option<ManualControl>,
+    /// Vehicles in MANUAL_NAVIGATION: they all obey the station's `manual_control`.
+    listening: Vec<String>,
+}
+
+fn ms(d: Duration) -> u64 {
+    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
+}
+
+/// The vehicle label shown for a VAS prefix: `rover1/vas` → `rover1`, `vas` → `(local)`.
+pub fn label_of(prefix: &str) -> String {
+    match prefix.strip_suffix("/vas") {
+        Some(ns) => ns.to_owned(),
+        None if prefix == "vas" => "(no namespace)".to_owned(),
+        None => prefix.to_owned(),
+    }
+}
+
+impl Station {
+    /// An empty station marking values stale after `stale_after`.
+    pub fn new(stale_after: Duration, now: Instant) -> Self {
+        Self {
+            vehicles: BTreeMap::new(),
+            selected: None,
+            commands: VecDeque::new(),
+            next_id: 1,
+            manual: Manual::default(),
+            stale_after,
+            epoch: now,
+        }
+    }
+
+    /// The vehicle commanded.
+    pub fn selected(&self) -> Option<&str> {
+        self.selected.as_deref()
+    }
+
+    /// Chooses the vehicle commanded; unknown prefixes are refused.
+    ///
+    /// # Errors
+    /// The vehicle has not been heard of.
+    pub fn select(&mut self, prefix: &str) -> Result<(), String> {
+        if !self.vehicles.contains_key(prefix) {
+            return Err(format!("unknown vehicle `{prefix}`"));
+        }
+        if self.selected.as_deref() != Some(prefix) {
+            // Sticks never carry over to another vehicle.
+            self.manual.input.deadman = false;
+            self.selected = Some(prefix.to_owned());
+        }
+        Ok(())
+    }
+
+    /// The current flight state of `prefix`, if known.
+    pub fn flight_state(&self, prefix: &str) -> Option<FlightState> {
+        self.vehicles
+            .get(prefix)?
+            .flight_state
+            .as_ref()
+            .map(|s| s.value)
+    }
+
+    /// Records an item from the VAS at `prefix` (published by node `publisher`). Returns true
+    /// when the flight state changed (the allowed transitions must be asked again).
+    pub fn update(&mut self, prefix: &str, publisher: &str, item: Item, now: Instant) -> bool {
+        let v = self.vehicles.entry(prefix.to_owned()).or_default();
+        v.heard = Some(now);
+        publisher.clone_into(&mut v.publisher);
+        fn st<T>(value: T, at: Instant) -> Option<Stamped<T>> {
+            Some(Stamped { value, at })
+        }
+        let mut state_changed = false;
+        match item {
+            Item::Position(p) => v.position = st(p, now),
+            Item::Attitude(a) => v.attitude = st(a, now),
+            Item::Speeds(s) => v.speeds = st(s, now),
+            Item::Autopilot(a) => v.autopilot = st(a, now),
+            Item::FlightState(s) => {
+                state_changed = v.flight_state.as_ref().map(|x| x.value) != Some(s);
+                v.flight_state = st(s, now);
+            }
+            Item::MissionTime(m) => v.mission_time = st(m, now),
+            Item::StateChanged(c) => v.last_change = st(c, now),
+            Item::Alarm(alarm) => {
+                let id = self.next_id;
+                self.next_id += 1;
+                v.alarms.push_back(AlarmEntry {
+                    id,
+                    alarm,
+                    at: now,
+                    acked: false,
+                });
+                while v.alarms.len() > MAX_ALARMS {
+                    v.alarms.pop_front();
+                }
+            }
+        }
+        if self.selected.is_none() {
+            self.selected = Some(prefix.to_owned());
+        }
+        state_changed
+    }
+
+    /// Stores an `allowed_states` answer for `prefix`, asked while it was in `asked_in`.
+    pub fn set_allowed(
+        &mut self,
+        prefix: &str,
+        asked_in: Option<FlightState>,
+        answer: Result<Vec<FlightState>, String>,
+        now: Instant,
+    ) {
+        let v = self.vehicles.entry(prefix.to_owned()).or_default();
+        match answer {
+            Ok(states) => {
+                v.allowed.states = Some((states, asked_in, now));
+                v.allowed.error = None;
+            }
+            Err(e) => v.allowed.error = Some(e),
+        }
+    }
+
+    /// Whether `prefix` needs its allowed transitions asked (none yet, outdated, or failed).
+    pub fn allowed_outdated(&self, prefix: &str) -> bool {
+        let Some(v) = self.vehicles.get(prefix) else {
+            return false;
+        };
+        let current = v.flight_state.as_ref().map(|s| s.value);
+        match &v.allowed.states {
+            None => true,
+            Some((_, asked_in, _)) => *asked_in != current || v.allowed.error.is_some(),
+        }
+    }
+
+    /// Acknowledges alarm `id` (of any vehicle), or all of `vehicle`'s when `id` is `None`.
+    ///
+    /// # Errors
+    /// No such alarm.
+    pub fn ack_alarm(&mut self, vehicle: Option<&str>, id: Option<u64>) -> Result<usize, String> {
+        let mut n = 0;
+        for (prefix, v) in self.vehicles.iter_mut() {
+            if vehicle.is_some_and(|w| w != prefix) {
+                continue;
+            }
+            for a in v.alarms.iter_mut() {
+                if id.is_none_or(|id| id == a.id) && !a.acked {
+                    a.acked = true;
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 && id.is_some() {
+            return Err("no such unacknowledged alarm".into());
+        }
+        Ok(n)
+    }
+
+    /// Registers a command sent to `vehicle`; returns its id.
+    pub fn command_started(&mut self, vehicle: &str, what: &str, now: Instant) -> u64 {
+        let id = self.next_id;
+        self.next_id += 1;
+        self.commands.push_back(CommandEntry {
+            id,
+            vehicle: vehicle.to_owned(),
+            what: what.to_owned(),
+            status: CommandStatus::Pending,
+            detail: String::new(),
+            started: now,
+            finished: None,
+        });
+        while self.commands.len() > MAX_COMMANDS {
+            match self
+                .commands
+                .iter()
+                .position(|c| c.status != CommandStatus::Pending)
+            {
+                Some(i) => {
+                    self.commands.remove(i);
+                }
+                None => break,
+            }
+        }
+        id
+    }
+
+    /// Records a command's outcome.
+    pub fn command_finished(&mut self, id: u64, outcome: Result<String, String>, now: Instant) {
+        if let Some(c) = self.commands.iter_mut().find(|c| c.id == id) {
+            (c.status, c.detail) = match outcome {
+                Ok(d) => (CommandStatus::Ok, d),
+                Err(e) => (CommandStatus::Failed, e),
+            };
+            c.finished = Some(now);
+        }
+    }
+
+    /// The status of command `id`.
+    pub fn command_status(&self, id: u64) -> Option<(CommandStatus, String)> {
+        self.commands
+            .iter()
+            .find(|c| c.id == id)
+            .map(|c| (c.status.clone(), c.detail.clone()))
+    }
+
+    /// Stick input from the page.
+    pub fn manual_input(&mut self, input: StickInput, now: Instant) {
+        self.manual.input = input.clamped();
+        self.manual.input_at = Some(now);
+    }
+
+    /// What to publish on this tick of the 20 Hz loop: the sticks while the dead-man is held
+    /// and the page keeps sending; neutral for [`MANUAL_NEUTRAL_TAIL`] after a release or a
+    /// silent page; nothing otherwise (so an idle station loads no link).
+    pub fn manual_tick(&mut self, now: Instant, timestamp_ms: u64) -> ManualTick {
+        let m = &mut self.manual;
+        let fresh = m
+            .input_at
+            .is_some_and(|t| now.saturating_duration_since(t) <= MANUAL_INPUT_TIMEOUT);
+        let held = m.input.deadman && fresh;
+        let sample = if held {
+            m.active = true;
+            m.released_at = None;
+            ManualControl {
+                roll: m.input.roll,
+                pitch: m.input.pitch,
+                throttle: m.input.throttle,
+                yaw: m.input.yaw,
+                timestamp_ms,
+            }
+        } else if m.active {
+            // Released by the page or by its silence: neutral for a while, then quiet.
+            let released = *m.released_at.get_or_insert(now);
+            if now.saturating_duration_since(released) > MANUAL_NEUTRAL_TAIL {
+                m.active = false;
+                return ManualTick::Idle;
+            }
+            ManualControl {
+                timestamp_ms,
+                ..ManualControl::default()
+            }
+        } else {
+            return ManualTick::Idle;
+        };
+        m.sent += 1;
+        m.last_sent = Some((sample, now));
+        ManualTick::Send(sample)
+    }
+
+    /// The page's view at `now`.
+    pub fn snapshot(&self, now: Instant) -> Snapshot {
+        let stale = self.stale_after;
+        // Items published on change only (flight state, autopilot status) are as fresh as the
+        // vehicle's link: they go stale with it.
+        let aged = |at: Instant, periodic: bool, link_ok: bool| {
+            let age = now.saturating_duration_since(at);
+            (ms(age), if periodic { age > stale } else { !link_ok })
+        };
+        let vehicles = self
+            .vehicles
+            .iter()
+            .map(|(id, v)| {
+                let heard = v.heard.map(|h| now.saturating_duration_since(h));
+                let link_ok = heard.is_some_and(|h| h <= stale);
+                macro_rules! view {
+                    ($f:expr, $periodic:expr) => {
+                        $f.as_ref().map(|s| {
+                            let (age_ms, is_stale) = aged(s.at, $periodic, link_ok);
+                            Aged {
+                                value: s.value.clone(),
+                                age_ms,
+                                stale: is_stale,
+                            }
+                        })
+                    };
+                }
+                let current = v.flight_state.as_ref().map(|s| s.value);
+                let (states, is_current, age_ms) = match &v.allowed.states {
+                    Some((s, asked_in, at)) => (
+                        s.clone(),
+                        *asked_in == current,
+                        Some(ms(now.saturating_duration_since(*at))),
+                    ),
+                    None => (Vec::new(), false, None),
+                };
+                VehicleView {
+                    id: id.clone(),
+                    label: label_of(id),
+                    publisher: v.publisher.clone(),
+                    link: match heard {
+                        None => "unknown",
+                        Some(_) if link_ok => "ok",
+                        Some(_) => "stale",
+                    },
+                    heard_ago_ms: heard.map(ms),
+                    flight_state: view!(v.flight_state, false),
+                    autopilot: view!(v.autopilot, false),
+                    position: view!(v.position, true),
+                    attitude: view!(v.attitude, true),
+                    speeds: view!(v.speeds, true),
+                    mission_time: view!(v.mission_time, true),
+                    last_change: view!(v.last_change, false),
+                    allowed: AllowedView {
+                        states: if is_current { states } else { Vec::new() },
+                        current: is_current,
+                        age_ms,
+                        error: v.allowed.error.clone(),
+                    },
+                    alarms: v
+                        .alarms
+                        .iter()
+                        .rev()
+                        .map(|a| AlarmView {
+                            id: a.id,
+                            severity: a.alarm.severity,
+                            text: a.alarm.text.clone(),
+                            age_ms: ms(now.saturating_duration_since(a.at)),
+                            acked: a.acked,
+                        })
+                        .collect(),
+                    unacked_alarms: v.alarms.iter().filter(|a| !a.acked).count(),
+                }
+            })
+            .collect();
+        let commands = self
+            .commands
+            .iter()
+            .rev()
+            .map(|c| CommandView {
+                id: c.id,
+                vehicle: label_of(&c.vehicle),
+                what: c.what.clone(),
+                status: c.status.clone(),
+                detail: c.detail.clone(),
+                age_ms: ms(now.saturating_duration_since(c.started)),
+                took_ms: c
+                    .finished
+                    .map(|f| ms(f.saturating_duration_since(c.started))),
+            })
+            .collect();
+        let m = &self.manual;
+        Snapshot {
+            now_ms: ms(now.saturating_duration_since(self.epoch)),
+            stale_after_ms: ms(stale),
+            selected: self.selected.clone(),
+            vehicles,
+            commands,
+            manual: ManualView {
+                deadman: m.input.deadman,
+                active: m.active,
+                source: m.input.source.clone(),
+                input: m.input.clone(),
+                input_age_ms: m.input_at.map(|t| ms(now.saturating_duration_since(t))),
+                sent: m.sent,
+                last_sent: m.last_sent.map(|(s, _)| s),
+                listening: self
+                    .vehicles
+                    .iter()
+                    .filter(|(_, v)| {
+                        v.flight_state.as_ref().map(|s| s.value)
+                            == Some(FlightState::ManualNavigation)
+                    })
+                    .map(|(id, _)| label_of(id))
+                    .collect(),
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t0() -> Instant {
+        Instant::now()
+    }
+
+    #[test]
+    fn stale_values_and_link() {
+        let t = t0();
+        let mut s = Station::new(Duration::from_secs(2), t);
+        s.update("rover1/vas", "n", Item::Position(Position::default()), t);
+        s.update(
+            "rover1/vas",
+            "n",
+            Item::FlightState(FlightState::Parking),
+            t,
+        );
+        let j = serde_json::to_value(s.snapshot(t + Duration::from_secs(1))).unwrap();
+        let v = &j["vehicles"][0];
+        assert_eq!(v["label"], "rover1");
+        assert_eq!(v["link"], "ok");
+        assert_eq!(v["position"]["stale"], false);
+        assert_eq!(v["flight_state"]["stale"], false);
+        assert_eq!(
+            j["selected"], "rover1/vas",
+            "first vehicle heard is selected"
+        );
+        let j = serde_json::to_value(s.snapshot(t + Duration::from_secs(3))).unwrap();
+        let v = &j["vehicles"][0];
+        assert_eq!(v["link"], "stale");
+        assert_eq!(v["position"]["stale"], true);
+        assert_eq!(v["flight_state"]["stale"], true, "goes stale with the link");
+    }
+
+    #[test]
+    fn allowed_states_follow_the_flight_state() {
+        let t = t0();
+        let mut s = Station::new(Duration::from_secs(2), t);
+        assert!(s.update("r/vas", "n", Item::FlightState(FlightState::Parking), t));
+        assert!(s.allowed_outdated("r/vas"));
+        s.set_allowed(
+            "r/vas",
+            Some(FlightState::Parking),
+            Ok(vec![FlightState::Directed]),
+            t,
+        );
+        assert!(!s.allowed_outdated("r/vas"));
+        let j = serde_json::to_value(s.snapshot(t)).unwrap();
+        assert_eq!(j["vehicles"][0]["allowed"]["states"][0], "DIRECTED");
+        // A new state makes the old answer unusable: no buttons until asked again.
+        assert!(!s.update("r/vas", "n", Item::FlightState(FlightState::Parking), t));
+        assert!(s.update("r/vas", "n", Item::FlightState(FlightState::Directed), t));
+        assert!(s.allowed_outdated("r/vas"));
+        let j = serde_json::to_value(s.snapshot(t)).unwrap();
+        assert_eq!(j["vehicles"][0]["allowed"]["states"], serde_json::json!([]));
+        assert_eq!(j["vehicles"][0]["allowed"]["current"], false);
+    }
+
+    #[test]
+    fn commands_pending_then_failed_with_reason() {
+        let t = t0();
+        let mut s = Station::new(Duration::from_secs(2), t);
+        let id = s.command_started("r/vas", "change_state MANUAL", t);
+        assert_eq!(s.command_status(id).unwrap().0, CommandStatus::Pending);
+        s.command_finished(id, Err("link lost".into()), t);
+        assert_eq!(
+            s.command_status(id),
+            Some((CommandStatus::Failed, "link lost".into()))
+        );
+        for _ in 0..100 {
+            let id = s.command_started("r/vas", "x", t);
+            s.command_finished(id, Ok(String::new()), t);
+        }
+        assert!(s.commands.len() <= MAX_COMMANDS);
+    }
+
+    #[test]
+    fn alarms_acknowledged() {
+        let t = t0();
+        let mut s = Station::new(Duration::from_secs(2), t);
+        let alarm = |text: &str| {
+            Item::Alarm(Alarm {
+                severity: Severity::Warning,
+                text: text.into(),
+            })
+        };
+        s.update("a/vas", "n", alarm("one"), t);
+        s.update("b/vas", "n", alarm("two"), t);
+        let j = serde_json::to_value(s.snapshot(t)).unwrap();
+        let id = j["vehicles"][0]["alarms"][0]["id"].as_u64().unwrap();
+        assert_eq!(s.ack_alarm(None, Some(id)), Ok(1));
+        assert!(s.ack_alarm(None, Some(id)).is_err());
+        assert_eq!(s.ack_alarm(Some("b/vas"), None), Ok(1));
+        let j = serde_json::to_value(s.snapshot(t)).unwrap();
+        assert_eq!(j["vehicles"][0]["unacked_alarms"], 0);
+        assert_eq!(j["vehicles"][1]["alarms"][0]["acked"], true);
+    }
+
+    #[test]
+    fn deadman_release_sends_neutral_then_nothing() {
+        let t = t0();
+        let ms = Duration::from_millis;
+        let mut s = Station::new(Duration::from_secs(2), t);
+        assert_eq!(s.manual_tick(t, 1), ManualTick::Idle, "idle sends nothing");
+        let held = StickInput {
+            throttle: 0.5,
+            roll: 7.0, // clamped
+            deadman: true,
+            ..Default::default()
+        };
+        s.manual_input(held.clone(), t);
+        let ManualTick::Send(c) = s.manual_tick(t + ms(10), 2) else {
+            panic!("held sticks are sent")
+        };
+        assert_eq!((c.throttle, c.roll, c.timestamp_ms), (0.5, 1.0, 2));
+        // Stick input without the dead-man is neutral.
+        s.manual_input(
+            StickInput {
+                deadman: false,
+                ..held.clone()
+            },
+            t + ms(50),
+        );
+        let ManualTick::Send(c) = s.manual_tick(t + ms(60), 3) else {
+            panic!("neutral tail")
+        };
+        assert_eq!(c.throttle, 0.0);
+        assert_eq!(s.manual_tick(t + ms(2000), 4), ManualTick::Idle);
+
+        // A page that falls silent while holding is released too.
+        s.manual_input(held, t + ms(3000));
+        assert!(matches!(
+            s.manual_tick(t + ms(3100), 5),
+            ManualTick::Send(c) if c.throttle == 0.5
+        ));
+        let ManualTick::Send(c) = s.manual_tick(t + ms(3500), 6) else {
+            panic!("neutral tail after silence")
+        };
+        assert_eq!(c.throttle, 0.0);
+        assert_eq!(s.manual_tick(t + ms(5000), 7), ManualTick::Idle);
+    }
+
+    #[test]
+    fn selecting_another_vehicle_drops_the_deadman() {
+        let t = t0();
+        let mut s = Station::new(Duration::from_secs(2), t);
+        s.update("a/vas", "n", Item::FlightState(FlightState::Parking), t);
+        s.update("b/vas", "n", Item::FlightState(FlightState::Parking), t);
+        s.manual_input(
+            StickInput {
+                deadman: true,
+                ..Default::default()
+            },
+            t,
+        );
+        assert!(s.select("nope").is_err());
+        s.select("b/vas").unwrap();
+        assert_eq!(s.selected(), Some("b/vas"));
+        assert!(!s.manual.input.deadman);
+    }
+}
