@@ -1427,10 +1427,12 @@ mod tests {
         // b's handler blocks until released: its receive thread stops reading.
         let (gate_tx, gate_rx) = std::sync::mpsc::channel::<()>();
         let (tx, brx) = mpsc::channel();
-        struct Stuck(Mutex<mpsc::Receiver<()>>, Collect);
+        let (stalled_tx, stalled_rx) = std::sync::mpsc::channel::<()>();
+        struct Stuck(Mutex<mpsc::Receiver<()>>, Collect, Mutex<mpsc::Sender<()>>);
         impl LinkHandler for Stuck {
             fn on_message(&self, l: usize, from: PeerAddr, msg: &[u8]) {
                 if msg == b"stall" {
+                    let _ = lock(&self.2).send(());
                     let _ = lock(&self.0).recv_timeout(Duration::from_secs(20));
                 }
                 self.1.on_message(l, from, msg);
@@ -1447,7 +1449,11 @@ mod tests {
                 service: svc.clone(),
                 scan: Duration::from_millis(200),
             },
-            Arc::new(Stuck(Mutex::new(gate_rx), Collect(tx))),
+            Arc::new(Stuck(
+                Mutex::new(gate_rx),
+                Collect(tx),
+                Mutex::new(stalled_tx),
+            )),
             &tasks,
             cancel.child_token(),
         )
@@ -1466,6 +1472,10 @@ mod tests {
             m.extend_from_slice(&i.to_le_bytes());
             m
         };
+        // Only once b's receive thread is really stuck does the burst test a stopped reader.
+        stalled_rx
+            .recv_timeout(Duration::from_secs(20))
+            .expect("b's reader reached the stall");
         let started = Instant::now();
         for i in 0..20_000u32 {
             a.send(

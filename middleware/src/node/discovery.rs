@@ -195,6 +195,11 @@ impl NodeInner {
         // It dropped us (and our declarations) before starting over.
         self.send_safe(link, from, &self.hello(link));
         self.send_declarations(link, from, 0);
+        // What we had in flight towards it is lost, a late joiner's value among them: serve the
+        // newest value of every variable it subscribes to again.
+        if let Some(node) = node {
+            self.resend_last_values(node, link, from);
+        }
     }
 
     fn fail_calls_to(&self, node: NodeId, reason: &str) {

@@ -85,8 +85,9 @@ impl NodeInner {
             ty: offer.ty.clone(),
         };
         self.offers.insert(offer.id, offer);
-        self.declare(decl);
+        // Routes first: once peers learn of the offer they may act on it at once.
         self.recompute_routes();
+        self.declare(decl);
     }
 
     pub fn add_interest(&self, interest: Arc<LocalInterest>) {
@@ -98,8 +99,10 @@ impl NodeInner {
             ty: interest.ty.clone(),
         };
         self.interests.insert(interest.id, interest);
-        self.declare(decl);
+        // Routes first: a publisher learning of this interest answers with its last value at
+        // once, and that value must find the interest routed when it arrives.
         self.recompute_routes();
+        self.declare(decl);
     }
 
     /// Withdraws a service, offer or interest.
@@ -270,6 +273,23 @@ impl NodeInner {
             self.send_to(link, addr, Outgoing::Safe { msg, done: None });
         }
         self.bump();
+    }
+
+    /// Sends `node` the newest value of every variable of ours it subscribes to (safe class).
+    pub fn resend_last_values(&self, node: NodeId, link: usize, addr: crate::link::PeerAddr) {
+        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|o| o.value().clone()).collect();
+        for o in offers {
+            let OfferRole::Variable { last } = &o.role else {
+                continue;
+            };
+            if !lock(&o.remote).iter().any(|r| r.node == node) {
+                continue;
+            }
+            if let Some(v) = lock(last).clone() {
+                let msg = encode_data(false, o.id, &v);
+                self.send_to(link, addr, Outgoing::Safe { msg, done: None });
+            }
+        }
     }
 
     pub fn answer_decl_request(&self, node: NodeId, since: u32) {
