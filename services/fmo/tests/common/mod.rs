@@ -218,3 +218,113 @@ pub fn vehicle<'a>(state: &'a serde_json::Value, label: &str) -> Option<&'a serd
         .iter()
         .find(|v| v["label"] == label)
 }
+
+/// A binary of another package of the workspace (`vas`, `mavsim`, `fpma`), built once per test
+/// process into this test's own target directory.
+pub fn workspace_bin(package: &str) -> std::path::PathBuf {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    static BUILT: OnceLock<Mutex<HashMap<String, std::path::PathBuf>>> = OnceLock::new();
+    let mut built = BUILT
+        .get_or_init(Default::default)
+        .lock()
+        .unwrap_or_else(|p| p.into_inner());
+    if let Some(p) = built.get(package) {
+        return p.clone();
+    }
+    // <target>/debug/deps/<test binary>: the target directory is three levels up.
+    let exe = std::env::current_exe().expect("test binary path");
+    let target = exe
+        .ancestors()
+        .nth(3)
+        .expect("test binary inside <target>/<profile>/deps")
+        .to_owned();
+    let status = std::process::Command::new(env!("CARGO"))
+        .args(["build", "-p", package, "--bin", package])
+        .env("CARGO_TARGET_DIR", &target)
+        .status()
+        .expect("running cargo build");
+    assert!(status.success(), "building {package} failed");
+    let bin = target.join("debug").join(package);
+    assert!(bin.exists(), "no {package} at {}", bin.display());
+    built.insert(package.to_owned(), bin.clone());
+    bin
+}
+
+/// A child process killed on drop.
+pub struct Proc {
+    child: Child,
+    /// The first stdout line, when asked for.
+    pub first_line: Option<String>,
+}
+
+impl Proc {
+    /// Spawns `bin args`; with `read_first_line`, waits for its first stdout line.
+    pub async fn start(bin: &std::path::Path, args: &[String], read_first_line: bool) -> Proc {
+        let mut child = Command::new(bin)
+            .args(args)
+            .stdout(if read_first_line {
+                Stdio::piped()
+            } else {
+                Stdio::null()
+            })
+            .stderr(Stdio::inherit())
+            .kill_on_drop(true)
+            .spawn()
+            .unwrap_or_else(|e| panic!("spawn {}: {e}", bin.display()));
+        let mut first_line = None;
+        if read_first_line {
+            let stdout = child.stdout.take().expect("piped stdout");
+            first_line = tokio::time::timeout(STEP, BufReader::new(stdout).lines().next_line())
+                .await
+                .expect("no first line in time")
+                .expect("reading stdout");
+        }
+        Proc { child, first_line }
+    }
+
+    /// Kills it and waits.
+    pub async fn kill(mut self) {
+        let _ = self.child.start_kill();
+        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+    }
+}
+
+/// Home of the simulated rover: the car park of `config/flightplans/rover-carpark.xml`.
+pub const HOME: (f64, f64) = (41.275, 1.987);
+
+/// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `rover1`.
+pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
+    let sim = Proc::start(
+        &workspace_bin("mavsim"),
+        &[
+            "--udp".into(),
+            "127.0.0.1:0".into(),
+            "--speedup".into(),
+            speedup.to_string(),
+            "--home".into(),
+            format!("{},{},0", HOME.0, HOME.1),
+        ],
+        true,
+    )
+    .await;
+    let line = sim.first_line.clone().unwrap_or_default();
+    let addr = line
+        .strip_prefix("MAVSIM_UDP=")
+        .unwrap_or_else(|| panic!("unexpected mavsim output {line:?}"))
+        .to_owned();
+    let vas = Proc::start(
+        &workspace_bin("vas"),
+        &[
+            "--endpoint".into(),
+            format!("udpout:{addr}"),
+            "--domain".into(),
+            domain.into(),
+            "--namespace".into(),
+            "rover1".into(),
+        ],
+        false,
+    )
+    .await;
+    (sim, vas)
+}

@@ -1,0 +1,223 @@
+//! The FPMo's HTTP side: the page, its JSON API and the SSE channel (shared with the FMo).
+//!
+//! | method | path | body | answer |
+//! |---|---|---|---|
+//! | GET | `/` | | the page |
+//! | GET | `/api/state` | | snapshot |
+//! | GET | `/api/events` | | SSE `state` events carrying snapshots |
+//! | GET | `/api/plan?vehicle=rover1` | | the station's copy: `{rev, file, name, legs, waypoints}` |
+//! | POST | `/api/select` | `{"vehicle"}` | 204 / 404 |
+//! | POST | `/api/upload` | `{"file", "xml", "vehicle"?}` | 202 `{id}` / 400 `{error}` (checked here first) |
+//! | POST | `/api/command` | `{"cmd": "skip_leg"\|"pause"\|"resume"\|"goto_leg", "leg"?, "vehicle"?}` | 202 `{id}` |
+//! | POST | `/api/modify_leg` | `{"leg", "changes": [["spacing", "10"]], "vehicle"?}` | 202 `{id}` |
+//! | POST | `/api/retask` | `{"points": [[lat, lon]], "when": "now"\|"after", "alt"?, "vehicle"?}` | 202 `{id}` |
+
+use std::sync::Arc;
+
+use axum::extract::{Query, State};
+use axum::http::{header, StatusCode};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use fpma::api::{CommandAck, Retask, RetaskWhen};
+use serde::Deserialize;
+
+use crate::Shared;
+
+const PAGE: &str = include_str!("page.html");
+
+/// The FPMo's routes.
+pub fn router(shared: Arc<Shared>) -> Router {
+    Router::new()
+        .route("/", get(page))
+        .route("/api/state", get(state))
+        .route("/api/events", get(events))
+        .route("/api/plan", get(plan))
+        .route("/api/select", post(select))
+        .route("/api/upload", post(upload))
+        .route("/api/command", post(command))
+        .route("/api/modify_leg", post(modify))
+        .route("/api/retask", post(retask))
+        .with_state(shared)
+}
+
+async fn page() -> Response {
+    ([(header::CACHE_CONTROL, "no-store")], Html(PAGE)).into_response()
+}
+
+fn snapshot_json(shared: &Shared) -> String {
+    shared.state().snapshot().to_string()
+}
+
+async fn state(State(shared): State<Arc<Shared>>) -> Response {
+    (
+        [(header::CONTENT_TYPE, "application/json")],
+        snapshot_json(&shared),
+    )
+        .into_response()
+}
+
+async fn events(State(shared): State<Arc<Shared>>) -> Response {
+    let cancel = shared.cancel.clone();
+    fmo::web::snapshot_stream(shared, |s| &s.changed, snapshot_json, cancel).into_response()
+}
+
+fn bad(status: StatusCode, msg: impl Into<String>) -> Response {
+    (status, Json(serde_json::json!({ "error": msg.into() }))).into_response()
+}
+
+fn accepted(id: u64) -> Response {
+    (StatusCode::ACCEPTED, Json(serde_json::json!({ "id": id }))).into_response()
+}
+
+#[derive(Deserialize)]
+struct PlanQuery {
+    vehicle: Option<String>,
+}
+
+async fn plan(State(shared): State<Arc<Shared>>, Query(q): Query<PlanQuery>) -> Response {
+    let label = match shared.target(q.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::NOT_FOUND, e),
+    };
+    match shared.state().plan_json(&label) {
+        Some(p) => Json(p).into_response(),
+        None => bad(
+            StatusCode::NOT_FOUND,
+            format!("no plan known for `{label}`"),
+        ),
+    }
+}
+
+#[derive(Deserialize)]
+struct Select {
+    vehicle: String,
+}
+
+async fn select(State(shared): State<Arc<Shared>>, Json(s): Json<Select>) -> Response {
+    match shared.select(&s.vehicle) {
+        Ok(()) => {
+            shared.changed.notify_waiters();
+            StatusCode::NO_CONTENT.into_response()
+        }
+        Err(e) => bad(StatusCode::NOT_FOUND, e),
+    }
+}
+
+#[derive(Deserialize)]
+struct Upload {
+    file: String,
+    xml: String,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+async fn upload(State(shared): State<Arc<Shared>>, Json(u): Json<Upload>) -> Response {
+    let label = match shared.target(u.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    match shared.upload(&label, &u.file, &u.xml) {
+        Ok(id) => accepted(id),
+        Err(e) => bad(StatusCode::BAD_REQUEST, e),
+    }
+}
+
+#[derive(Deserialize)]
+struct Command {
+    cmd: String,
+    #[serde(default)]
+    leg: Option<String>,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+fn ack_text(_: &mut crate::State, a: &CommandAck) -> String {
+    format!(
+        "version {}, leg {}",
+        a.version,
+        a.leg.as_deref().unwrap_or("none")
+    )
+}
+
+async fn command(State(shared): State<Arc<Shared>>, Json(c): Json<Command>) -> Response {
+    let label = match shared.target(c.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    let id = match (c.cmd.as_str(), c.leg) {
+        (name @ ("skip_leg" | "pause" | "resume"), _) => {
+            shared.command(&label, name, name.to_owned(), (), ack_text)
+        }
+        ("goto_leg", Some(leg)) => {
+            shared.command(&label, "goto_leg", format!("goto_leg {leg}"), leg, ack_text)
+        }
+        ("goto_leg", None) => return bad(StatusCode::BAD_REQUEST, "goto_leg needs `leg`"),
+        (other, _) => {
+            return bad(
+                StatusCode::BAD_REQUEST,
+                format!("unknown command `{other}`"),
+            )
+        }
+    };
+    accepted(id)
+}
+
+#[derive(Deserialize)]
+struct Modify {
+    leg: String,
+    changes: Vec<(String, String)>,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+async fn modify(State(shared): State<Arc<Shared>>, Json(m): Json<Modify>) -> Response {
+    let label = match shared.target(m.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    if m.changes.is_empty() {
+        return bad(StatusCode::BAD_REQUEST, "no change given");
+    }
+    accepted(crate::modify_leg(&shared, &label, m.leg, m.changes))
+}
+
+#[derive(Deserialize)]
+struct RetaskReq {
+    points: Vec<(f64, f64)>,
+    #[serde(default)]
+    when: Option<String>,
+    #[serde(default)]
+    alt: Option<f64>,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+async fn retask(State(shared): State<Arc<Shared>>, Json(r): Json<RetaskReq>) -> Response {
+    let label = match shared.target(r.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    if r.points.is_empty()
+        || r.points.iter().any(|(la, lo)| {
+            !(la.is_finite() && lo.is_finite() && la.abs() <= 90.0 && lo.abs() <= 180.0)
+        })
+    {
+        return bad(
+            StatusCode::BAD_REQUEST,
+            "points must be 1 or more valid (lat, lon)",
+        );
+    }
+    let when = match r.when.as_deref() {
+        None | Some("now") => RetaskWhen::Now,
+        Some("after") => RetaskWhen::AfterCurrentLeg,
+        Some(w) => return bad(StatusCode::BAD_REQUEST, format!("unknown `when` {w}")),
+    };
+    let what = format!("retask {} point(s) {:?}", r.points.len(), when);
+    let args = Retask {
+        points: r.points,
+        alt: r.alt,
+        when,
+    };
+    accepted(shared.command(&label, "retask", what, args, ack_text))
+}

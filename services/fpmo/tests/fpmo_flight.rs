@@ -1,0 +1,196 @@
+//! The `fpmo` binary over HTTP against real processes: `mavsim`, `vas` and `fpma run` (built
+//! with `cargo build` into this test's target directory). Upload the car-park plan through the
+//! station, see its legs and the progress advance, skip a leg, widen the scan, kill the FPMa
+//! (stale, command failed, station still answering) and bring it back (recovered, no reload).
+
+#[path = "../../fmo/tests/common/mod.rs"]
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+
+fn fpma_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
+    [
+        "run",
+        "--domain",
+        domain,
+        "--namespace",
+        "rover1",
+        "--vehicle",
+        "rover",
+        "--plans-dir",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain([plans.display().to_string()])
+    .collect()
+}
+
+fn progress(s: &serde_json::Value) -> &serde_json::Value {
+    &vehicle(s, "rover1").expect("rover1")["progress"]["value"]
+}
+
+fn command(s: &serde_json::Value, id: u64) -> Option<&serde_json::Value> {
+    s["commands"].as_array()?.iter().find(|c| c["id"] == id)
+}
+
+async fn wait_command(st: &Station, id: u64, want: &str) -> serde_json::Value {
+    let s = st
+        .wait_state(&format!("command {id} finished"), |s| {
+            command(s, id).is_some_and(|c| c["status"] != "pending")
+        })
+        .await;
+    let c = command(&s, id).unwrap().clone();
+    assert_eq!(c["status"], want, "{c:#}");
+    c
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fly_the_carpark_from_the_station() {
+    tokio::time::timeout(Duration::from_secs(300), scenario())
+        .await
+        .expect("scenario timed out");
+}
+
+async fn scenario() {
+    let dir = tempfile::tempdir().unwrap();
+    let domain = unique_domain("fpmo");
+    let fpma_bin = workspace_bin("fpma");
+    let (sim, vas) = rover(&domain, 10.0).await;
+    let fpma = Proc::start(&fpma_bin, &fpma_args(&domain, dir.path()), false).await;
+    let st = Station::start(
+        env!("CARGO_BIN_EXE_fpmo"),
+        "FPMO_URL",
+        &["--domain", &domain, "--call-timeout-ms", "2000"],
+    )
+    .await;
+    let (status, page) = st.get("/").await;
+    assert_eq!(status, 200);
+    assert!(page.contains("FPMo — Flight Plan Monitor"));
+    assert!(!page.contains("http://") && !page.contains("https://"));
+
+    st.wait_state("rover1 and its FPMa", |s| {
+        vehicle(s, "rover1").is_some_and(|v| v["fpma_reachable"] == true)
+    })
+    .await;
+
+    // A broken plan is refused by the station itself, with its line.
+    let (status, body) = st
+        .post(
+            "/api/upload",
+            serde_json::json!({"file": "bad.xml", "xml": "<flightPlan name='x'>\n<bogus/></flightPlan>"}),
+        )
+        .await;
+    assert_eq!(status, 400);
+    assert!(
+        body["error"].as_str().unwrap().starts_with("bad.xml:2:"),
+        "{body}"
+    );
+
+    // Upload the car-park plan as the page does: pending, then loaded by the FPMa.
+    let xml = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/flightplans/rover-carpark.xml"
+    ))
+    .unwrap();
+    let (status, body) = st
+        .post(
+            "/api/upload",
+            serde_json::json!({"file": "rover-carpark.xml", "xml": xml}),
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    let c = wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    assert!(c["detail"]
+        .as_str()
+        .unwrap()
+        .starts_with("loaded as version"));
+    let plan = st.get_json("/api/plan?vehicle=rover1").await;
+    let legs: Vec<&str> = plan["legs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["id"].as_str().unwrap())
+        .collect();
+    assert!(legs.contains(&"hold") && legs.contains(&"area"), "{legs:?}");
+
+    // The progress advances as mavsim drives.
+    let s = st
+        .wait_state("progress", |s| {
+            progress(s)["fraction"].as_f64().unwrap_or(0.0) > 0.0 && progress(s)["leg"].is_string()
+        })
+        .await;
+    assert_eq!(progress(&s)["plan"], "castelldefels-carpark");
+
+    // Skip legs until the hold is current, then skip it: the current leg changes.
+    let s = st
+        .wait_state("the hold", |s| progress(s)["leg"] == "hold")
+        .await;
+    let v = progress(&s)["version"].as_u64().unwrap();
+    let (_, body) = st
+        .post("/api/command", serde_json::json!({"cmd": "skip_leg"}))
+        .await;
+    wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    st.wait_state("the leg after the hold", |s| {
+        progress(s)["leg"] != "hold" && progress(s)["version"].as_u64() >= Some(v)
+    })
+    .await;
+
+    // Widen the scan: confirmed, and the station's copy is redrawn with fewer waypoints.
+    let count = |p: &serde_json::Value| {
+        p["waypoints"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|w| w["leg"] == "area")
+            .count()
+    };
+    let before = count(&plan);
+    let (_, body) = st
+        .post(
+            "/api/modify_leg",
+            serde_json::json!({"leg": "area", "changes": [["spacing", "12"]]}),
+        )
+        .await;
+    wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    let replanned = st.get_json("/api/plan?vehicle=rover1").await;
+    assert!(replanned["rev"].as_u64() > plan["rev"].as_u64());
+    assert!(
+        count(&replanned) < before,
+        "{} !< {before}",
+        count(&replanned)
+    );
+
+    // The FPMa dies: stale, a command fails with a reason, the station keeps answering.
+    fpma.kill().await;
+    st.wait_state("the FPMa unreachable", |s| {
+        vehicle(s, "rover1")
+            .is_some_and(|v| v["fpma_reachable"] == false && v["progress"]["stale"] == true)
+    })
+    .await;
+    let (_, body) = st
+        .post("/api/command", serde_json::json!({"cmd": "pause"}))
+        .await;
+    let c = wait_command(&st, body["id"].as_u64().unwrap(), "failed").await;
+    assert!(!c["detail"].as_str().unwrap().is_empty());
+    let mut sse = Sse::open(&st.addr, "/api/events").await;
+    let _ = sse.next("state").await;
+
+    // It comes back: the same stream shows it reachable again.
+    let fpma = Proc::start(&fpma_bin, &fpma_args(&domain, dir.path()), false).await;
+    let deadline = tokio::time::Instant::now() + STEP;
+    loop {
+        let s = sse.next("state").await;
+        if vehicle(&s, "rover1").is_some_and(|v| v["fpma_reachable"] == true) {
+            break;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "FPMa never back");
+    }
+
+    drop(sse);
+    st.kill().await;
+    fpma.kill().await;
+    vas.kill().await;
+    sim.kill().await;
+}
