@@ -1,7 +1,8 @@
 //! `usal`: the USAL-rs command-line tools. Introspection of a running system in the spirit of
 //! `ros2 topic list/echo`: `usal list`, `usal echo NAME`, `usal call NAME ARGS`,
-//! `usal send FILE --to SINK`.
+//! `usal send FILE --to SINK`; and `usal run MISSION.xml`, the launcher (see `run/`).
 
+mod run;
 mod types;
 
 use std::io::IsTerminal;
@@ -16,7 +17,10 @@ use marea::protocol::ItemKind;
 use marea::{NetworkConfig, Node, SendFileOptions};
 
 #[derive(Parser)]
-#[command(name = "usal", about = "USAL-rs tools: list, echo, call, send")]
+#[command(
+    name = "usal",
+    about = "USAL-rs tools: run a mission; list, echo, call, send"
+)]
 struct Cli {
     #[command(flatten)]
     net: NetArgs,
@@ -45,6 +49,8 @@ struct NetArgs {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// Start a mission's services (config/missions/*.xml), supervise them and follow the plan.
+    Run(run::RunArgs),
     /// List nodes, services and their items (published, subscribed, provided, called).
     List,
     /// Follow variables and events matching NAME (wildcards * and ** allowed), decoded.
@@ -120,6 +126,9 @@ fn main() -> ExitCode {
         )
         .with_writer(std::io::stderr)
         .init();
+    if let Cmd::Run(args) = &cli.cmd {
+        return run::main(args, cli.net.json);
+    }
     let rt = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
@@ -142,6 +151,8 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let svc = node.service("usal")?;
     let wait = Duration::from_millis(cli.net.wait_ms);
     let code = match &cli.cmd {
+        // Dispatched in main before the tool joins the network.
+        Cmd::Run(_) => ExitCode::from(2),
         Cmd::List => {
             tokio::time::sleep(wait).await;
             list(&node, cli.net.json)?;

@@ -1,0 +1,825 @@
+//! Mission composition files (`config/missions/*.xml`): which nodes exist, which services each
+//! runs and with which settings. Parsed into typed specs before anything starts; every error
+//! names the file, the line and column, and the element at fault.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use quick_xml::events::{BytesStart, Event};
+use quick_xml::Reader;
+
+/// Why a mission file could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum MissionLoadError {
+    /// The file could not be read.
+    #[error("{}: cannot read: {source}", file.display())]
+    Read {
+        /// The mission file.
+        file: PathBuf,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// The file is not well-formed XML or does not describe a valid mission.
+    #[error("{}:{line}:{column}: <{element}>: {message}", file.display())]
+    Invalid {
+        /// The mission file.
+        file: PathBuf,
+        /// 1-based line of the element (or of the syntax error).
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// The element at fault (the innermost open one for a syntax error).
+        element: String,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// A mission: nodes and the services each runs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mission {
+    /// The mission's name (also the stem of its discovery domain).
+    pub name: String,
+    /// A fixed discovery domain; default: a unique one per run.
+    pub domain: Option<String>,
+    /// Limit for `--until-complete`.
+    pub timeout: Option<Duration>,
+    /// A radio emulator joining some nodes, if any.
+    pub radio: Option<RadioSpec>,
+    /// The nodes, in file order (also the start order).
+    pub nodes: Vec<NodeSpec>,
+}
+
+/// One node: a machine's worth of services sharing a namespace and a network.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NodeSpec {
+    /// Node name, e.g. `air`.
+    pub name: String,
+    /// Namespace of its services' items, e.g. `rover1`.
+    pub namespace: Option<String>,
+    /// A network.xml for its processes (domain and namespace are overridden by the mission's).
+    pub network: Option<PathBuf>,
+    /// The services, in start order.
+    pub services: Vec<ServiceSpec>,
+}
+
+/// A service of a node.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ServiceSpec {
+    /// The MAVLink simulator.
+    Mavsim(MavsimSpec),
+    /// The Virtual Autopilot.
+    Vas(VasSpec),
+    /// The Flight Plan Manager.
+    Fpma(FpmaSpec),
+    /// The ground station (run inside the launcher).
+    Station(StationSpec),
+}
+
+impl ServiceSpec {
+    /// The service's short name, as in the mission file.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ServiceSpec::Mavsim(_) => "mavsim",
+            ServiceSpec::Vas(_) => "vas",
+            ServiceSpec::Fpma(_) => "fpma",
+            ServiceSpec::Station(_) => "station",
+        }
+    }
+}
+
+/// `<mavsim>` settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MavsimSpec {
+    /// rover, copter or plane.
+    pub vehicle: String,
+    /// `LAT,LON,ALT`.
+    pub home: Option<String>,
+    /// Time acceleration (overridden by `--speedup`).
+    pub speedup: Option<f64>,
+    /// JSON-lines event log.
+    pub log: Option<PathBuf>,
+}
+
+/// `<vas>` settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VasSpec {
+    /// rover, copter or plane.
+    pub vehicle: String,
+    /// MAVLink endpoint; default: the node's mavsim.
+    pub endpoint: Option<String>,
+    /// Rolling-queue slots.
+    pub queue_size: Option<u32>,
+    /// Telemetry rate.
+    pub telemetry_hz: Option<f64>,
+    /// A `vas -c` file.
+    pub config: Option<PathBuf>,
+}
+
+/// `<fpma>` settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FpmaSpec {
+    /// rover or aircraft.
+    pub vehicle: String,
+    /// Waypoints queued at the VAS.
+    pub lookahead: Option<u32>,
+    /// The VAS to feed (service name or full prefix).
+    pub vas: Option<String>,
+    /// A `fpma run -c` file.
+    pub config: Option<PathBuf>,
+}
+
+/// `<station>` settings: the launcher uploads `plan` and follows its progress.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StationSpec {
+    /// The flight plan to upload.
+    pub plan: PathBuf,
+    /// Prefix of the FPMa to fly it, e.g. `rover1/fpma`.
+    pub fpma: String,
+    /// Prefix of the VAS it feeds, e.g. `rover1/vas`.
+    pub vas: String,
+    /// rover or aircraft: how the plan is expanded for the summary.
+    pub vehicle: String,
+}
+
+/// `<radio>`: a `marea-radio` emulator between two nodes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RadioSpec {
+    /// The ground-side node.
+    pub ground: String,
+    /// The air-side node (its first service process is the gateway).
+    pub air: String,
+    /// Line speed.
+    pub baud: u32,
+    /// Byte loss probability.
+    pub loss: f64,
+    /// Byte corruption probability.
+    pub corrupt: f64,
+    /// Seed of the emulator's RNG.
+    pub seed: Option<u64>,
+}
+
+/// An XML element with its position, as read.
+#[derive(Debug)]
+struct Element {
+    name: String,
+    attrs: Vec<(String, String)>,
+    children: Vec<Element>,
+    line: usize,
+    column: usize,
+}
+
+/// A validation failure before the file name is attached.
+struct Fault {
+    line: usize,
+    column: usize,
+    element: String,
+    message: String,
+}
+
+impl Fault {
+    fn at(e: &Element, message: impl fmt::Display) -> Fault {
+        Fault {
+            line: e.line,
+            column: e.column,
+            element: e.name.clone(),
+            message: message.to_string(),
+        }
+    }
+}
+
+impl Mission {
+    /// Reads and validates a mission file. Relative paths in it are resolved against its
+    /// directory, and the files they name must exist.
+    ///
+    /// # Errors
+    /// [`MissionLoadError`] naming the line and element at fault.
+    pub fn load(path: &Path) -> Result<Mission, MissionLoadError> {
+        let src = std::fs::read_to_string(path).map_err(|source| MissionLoadError::Read {
+            file: path.to_owned(),
+            source,
+        })?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        Mission::parse(&src, base).map_err(|f| MissionLoadError::Invalid {
+            file: path.to_owned(),
+            line: f.line,
+            column: f.column,
+            element: f.element,
+            message: f.message,
+        })
+    }
+
+    fn parse(src: &str, base: &Path) -> Result<Mission, Fault> {
+        let root = parse_tree(src)?;
+        mission_from(&root, base)
+    }
+
+    /// The node named `name`.
+    pub fn node(&self, name: &str) -> Option<&NodeSpec> {
+        self.nodes.iter().find(|n| n.name == name)
+    }
+
+    /// The station, with its node.
+    pub fn station(&self) -> Option<(&NodeSpec, &StationSpec)> {
+        self.nodes.iter().find_map(|n| {
+            n.services.iter().find_map(|s| match s {
+                ServiceSpec::Station(st) => Some((n, st)),
+                _ => None,
+            })
+        })
+    }
+}
+
+fn line_column(src: &str, offset: usize) -> (usize, usize) {
+    let before = src.get(..offset.min(src.len())).unwrap_or(src);
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+    (line, column)
+}
+
+fn parse_tree(src: &str) -> Result<Element, Fault> {
+    let mut reader = Reader::from_str(src);
+    reader.config_mut().trim_text(true);
+    let mut stack: Vec<Element> = Vec::new();
+    let mut root: Option<Element> = None;
+    let innermost = |stack: &[Element]| {
+        stack
+            .last()
+            .map_or_else(|| "mission".to_owned(), |e| e.name.clone())
+    };
+    loop {
+        let before = usize::try_from(reader.buffer_position()).unwrap_or(usize::MAX);
+        let event = match reader.read_event() {
+            Ok(ev) => ev,
+            Err(e) => {
+                let at = usize::try_from(reader.error_position()).unwrap_or(usize::MAX);
+                let (line, column) = line_column(src, at);
+                return Err(Fault {
+                    line,
+                    column,
+                    element: innermost(&stack),
+                    message: format!("malformed XML: {e}"),
+                });
+            }
+        };
+        // The element starts at the first '<' after the previous event (whitespace trimmed).
+        let start = src
+            .get(before..)
+            .and_then(|s| s.find('<'))
+            .map_or(before, |i| before + i);
+        let (line, column) = line_column(src, start);
+        match event {
+            Event::Start(e) => {
+                let el = element(&e, line, column)?;
+                if root.is_some() && stack.is_empty() {
+                    return Err(Fault::at(&el, "a second root element"));
+                }
+                stack.push(el);
+            }
+            Event::Empty(e) => {
+                let el = element(&e, line, column)?;
+                match stack.last_mut() {
+                    Some(parent) => parent.children.push(el),
+                    None if root.is_none() => root = Some(el),
+                    None => return Err(Fault::at(&el, "a second root element")),
+                }
+            }
+            Event::End(_) => {
+                let Some(done) = stack.pop() else {
+                    return Err(Fault {
+                        line,
+                        column,
+                        element: "mission".into(),
+                        message: "closing tag without an open element".into(),
+                    });
+                };
+                match stack.last_mut() {
+                    Some(parent) => parent.children.push(done),
+                    None => root = Some(done),
+                }
+            }
+            Event::Text(t) => {
+                let text = String::from_utf8_lossy(&t);
+                if !text.trim().is_empty() {
+                    return Err(Fault {
+                        line,
+                        column,
+                        element: innermost(&stack),
+                        message: format!("unexpected text `{}`", text.trim()),
+                    });
+                }
+            }
+            Event::CData(_) => {
+                return Err(Fault {
+                    line,
+                    column,
+                    element: innermost(&stack),
+                    message: "unexpected CDATA".into(),
+                })
+            }
+            Event::Eof => break,
+            Event::Comment(_) | Event::Decl(_) | Event::PI(_) | Event::DocType(_) => {}
+            Event::GeneralRef(_) => {
+                return Err(Fault {
+                    line,
+                    column,
+                    element: innermost(&stack),
+                    message: "unexpected entity reference".into(),
+                })
+            }
+        }
+    }
+    if let Some(open) = stack.last() {
+        return Err(Fault::at(open, "not closed before the end of the file"));
+    }
+    root.ok_or(Fault {
+        line: 1,
+        column: 1,
+        element: "mission".into(),
+        message: "empty file: expected a <mission> element".into(),
+    })
+}
+
+fn element(e: &BytesStart<'_>, line: usize, column: usize) -> Result<Element, Fault> {
+    let name = String::from_utf8_lossy(e.name().as_ref()).into_owned();
+    let mut el = Element {
+        name,
+        attrs: Vec::new(),
+        children: Vec::new(),
+        line,
+        column,
+    };
+    for a in e.attributes() {
+        let a = a.map_err(|err| Fault::at(&el, format!("malformed attribute: {err}")))?;
+        let key = String::from_utf8_lossy(a.key.as_ref()).into_owned();
+        let value = a
+            .unescape_value()
+            .map_err(|err| Fault::at(&el, format!("attribute `{key}`: {err}")))?
+            .into_owned();
+        el.attrs.push((key, value));
+    }
+    Ok(el)
+}
+
+/// An element's attributes, taken one by one; those left over are errors.
+struct Attrs<'a> {
+    el: &'a Element,
+    left: Vec<(String, String)>,
+    known: &'static [&'static str],
+}
+
+impl<'a> Attrs<'a> {
+    fn new(el: &'a Element, known: &'static [&'static str]) -> Self {
+        Attrs {
+            el,
+            left: el.attrs.clone(),
+            known,
+        }
+    }
+
+    fn opt(&mut self, key: &str) -> Option<String> {
+        let i = self.left.iter().position(|(k, _)| k == key)?;
+        Some(self.left.remove(i).1)
+    }
+
+    fn req(&mut self, key: &str) -> Result<String, Fault> {
+        self.opt(key)
+            .ok_or_else(|| Fault::at(self.el, format!("missing attribute `{key}`")))
+    }
+
+    fn parsed<T: std::str::FromStr>(&mut self, key: &str, what: &str) -> Result<Option<T>, Fault> {
+        match self.opt(key) {
+            None => Ok(None),
+            Some(v) => {
+                v.trim().parse().map(Some).map_err(|_| {
+                    Fault::at(self.el, format!("attribute `{key}`: `{v}` is not {what}"))
+                })
+            }
+        }
+    }
+
+    fn one_of(&mut self, key: &str, allowed: &[&str], default: &str) -> Result<String, Fault> {
+        let v = self.opt(key).unwrap_or_else(|| default.to_owned());
+        if allowed.contains(&v.as_str()) {
+            Ok(v)
+        } else {
+            Err(Fault::at(
+                self.el,
+                format!(
+                    "attribute `{key}`: `{v}` is not one of {}",
+                    allowed.join(", ")
+                ),
+            ))
+        }
+    }
+
+    /// A path relative to the mission file that must exist.
+    fn file(&mut self, key: &str, base: &Path) -> Result<Option<PathBuf>, Fault> {
+        let Some(v) = self.opt(key) else {
+            return Ok(None);
+        };
+        let p = base.join(&v);
+        if p.is_file() {
+            Ok(Some(p))
+        } else {
+            Err(Fault::at(
+                self.el,
+                format!("attribute `{key}`: no file {}", p.display()),
+            ))
+        }
+    }
+
+    fn finish(self) -> Result<(), Fault> {
+        match self.left.first() {
+            None => Ok(()),
+            Some((k, _)) => Err(Fault::at(
+                self.el,
+                format!(
+                    "unknown attribute `{k}` (expected {})",
+                    if self.known.is_empty() {
+                        "none".to_owned()
+                    } else {
+                        self.known.join(", ")
+                    }
+                ),
+            )),
+        }
+    }
+}
+
+fn is_name(s: &str) -> bool {
+    !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
+    if root.name != "mission" {
+        return Err(Fault::at(root, "the root element must be <mission>"));
+    }
+    let mut a = Attrs::new(root, &["name", "domain", "timeoutS"]);
+    let name = a.req("name")?;
+    if !is_name(&name) {
+        return Err(Fault::at(
+            root,
+            format!("name `{name}`: use letters, digits, '_' and '-'"),
+        ));
+    }
+    let domain = a.opt("domain");
+    let timeout = a
+        .parsed::<f64>("timeoutS", "a number of seconds")?
+        .map(|s| {
+            if s.is_finite() && s > 0.0 {
+                Ok(Duration::from_secs_f64(s))
+            } else {
+                Err(Fault::at(root, "attribute `timeoutS` must be positive"))
+            }
+        })
+        .transpose()?;
+    a.finish()?;
+
+    let mut nodes: Vec<NodeSpec> = Vec::new();
+    let mut radio_el = None;
+    for child in &root.children {
+        match child.name.as_str() {
+            "node" => {
+                let n = node_from(child, base)?;
+                if nodes.iter().any(|m| m.name == n.name) {
+                    return Err(Fault::at(child, format!("duplicate node `{}`", n.name)));
+                }
+                nodes.push(n);
+            }
+            "radio" if radio_el.is_none() => radio_el = Some(child),
+            "radio" => return Err(Fault::at(child, "only one <radio> per mission")),
+            other => {
+                return Err(Fault::at(
+                    child,
+                    format!("unknown element <{other}> in <mission> (expected <node> or <radio>)"),
+                ))
+            }
+        }
+    }
+    if nodes.is_empty() {
+        return Err(Fault::at(root, "a mission needs at least one <node>"));
+    }
+    let mut mission = Mission {
+        name,
+        domain,
+        timeout,
+        radio: None,
+        nodes,
+    };
+    if let Some(el) = radio_el {
+        mission.radio = Some(radio_from(el, &mission)?);
+    }
+    resolve_station(root, &mut mission)?;
+    Ok(mission)
+}
+
+fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
+    let mut a = Attrs::new(el, &["name", "namespace", "network"]);
+    let name = a.req("name")?;
+    if !is_name(&name) {
+        return Err(Fault::at(
+            el,
+            format!("name `{name}`: use letters, digits, '_' and '-'"),
+        ));
+    }
+    let namespace = a.opt("namespace");
+    let network = a.file("network", base)?;
+    a.finish()?;
+    let mut services = Vec::new();
+    for s in &el.children {
+        let svc = match s.name.as_str() {
+            "mavsim" => {
+                let mut a = Attrs::new(s, &["vehicle", "home", "speedup", "log"]);
+                let spec = MavsimSpec {
+                    vehicle: a.one_of("vehicle", &["rover", "copter", "plane"], "rover")?,
+                    home: a.opt("home"),
+                    speedup: a.parsed("speedup", "a number")?,
+                    log: a.opt("log").map(|l| base.join(l)),
+                };
+                a.finish()?;
+                if let Some(h) = &spec.home {
+                    let ok = h.split(',').count() == 3
+                        && h.split(',').all(|x| x.trim().parse::<f64>().is_ok());
+                    if !ok {
+                        return Err(Fault::at(s, format!("home `{h}` is not LAT,LON,ALT")));
+                    }
+                }
+                if spec.speedup.is_some_and(|x| !(x >= 0.01 && x.is_finite())) {
+                    return Err(Fault::at(s, "speedup must be at least 0.01"));
+                }
+                ServiceSpec::Mavsim(spec)
+            }
+            "vas" => {
+                let mut a = Attrs::new(
+                    s,
+                    &["vehicle", "endpoint", "queueSize", "telemetryHz", "config"],
+                );
+                let spec = VasSpec {
+                    vehicle: a.one_of("vehicle", &["rover", "copter", "plane"], "rover")?,
+                    endpoint: a.opt("endpoint"),
+                    queue_size: a.parsed("queueSize", "a whole number")?,
+                    telemetry_hz: a.parsed("telemetryHz", "a number")?,
+                    config: a.file("config", base)?,
+                };
+                a.finish()?;
+                ServiceSpec::Vas(spec)
+            }
+            "fpma" => {
+                let mut a = Attrs::new(s, &["vehicle", "lookahead", "vas", "config"]);
+                let spec = FpmaSpec {
+                    vehicle: a.one_of("vehicle", &["rover", "aircraft"], "rover")?,
+                    lookahead: a.parsed("lookahead", "a whole number")?,
+                    vas: a.opt("vas"),
+                    config: a.file("config", base)?,
+                };
+                a.finish()?;
+                ServiceSpec::Fpma(spec)
+            }
+            "station" => {
+                let mut a = Attrs::new(s, &["plan", "fpma", "vas", "vehicle"]);
+                let plan = a.file("plan", base)?.ok_or_else(|| {
+                    Fault::at(s, "missing attribute `plan` (the flight plan to upload)")
+                })?;
+                let spec = StationSpec {
+                    plan,
+                    fpma: a.opt("fpma").unwrap_or_default(),
+                    vas: a.opt("vas").unwrap_or_default(),
+                    vehicle: a.one_of("vehicle", &["rover", "aircraft", ""], "")?,
+                };
+                a.finish()?;
+                ServiceSpec::Station(spec)
+            }
+            other => {
+                return Err(Fault::at(
+                    s,
+                    format!(
+                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma or station)"
+                ),
+                ))
+            }
+        };
+        if services
+            .iter()
+            .any(|x: &ServiceSpec| x.kind() == svc.kind())
+        {
+            return Err(Fault::at(
+                s,
+                format!("node `{name}` already runs a {}", svc.kind()),
+            ));
+        }
+        if let ServiceSpec::Vas(v) = &svc {
+            let has_sim = services.iter().any(|x| matches!(x, ServiceSpec::Mavsim(_)));
+            if v.endpoint.is_none() && v.config.is_none() && !has_sim {
+                return Err(Fault::at(
+                    s,
+                    "no `endpoint` and no <mavsim> before it in this node",
+                ));
+            }
+        }
+        services.push(svc);
+    }
+    Ok(NodeSpec {
+        name,
+        namespace,
+        network,
+        services,
+    })
+}
+
+fn radio_from(el: &Element, mission: &Mission) -> Result<RadioSpec, Fault> {
+    let mut a = Attrs::new(el, &["ground", "air", "baud", "loss", "corrupt", "seed"]);
+    let ground = a.req("ground")?;
+    let air = a.req("air")?;
+    let spec = RadioSpec {
+        baud: a.parsed("baud", "a whole number")?.unwrap_or(57_600),
+        loss: a.parsed("loss", "a probability")?.unwrap_or(0.0),
+        corrupt: a.parsed("corrupt", "a probability")?.unwrap_or(0.0),
+        seed: a.parsed("seed", "a whole number")?,
+        ground,
+        air,
+    };
+    a.finish()?;
+    for n in [&spec.ground, &spec.air] {
+        if mission.node(n).is_none() {
+            return Err(Fault::at(el, format!("no node `{n}`")));
+        }
+    }
+    if spec.ground == spec.air {
+        return Err(Fault::at(el, "`ground` and `air` must differ"));
+    }
+    for (k, p) in [("loss", spec.loss), ("corrupt", spec.corrupt)] {
+        if !(0.0..=1.0).contains(&p) {
+            return Err(Fault::at(el, format!("`{k}` must be within 0..1")));
+        }
+    }
+    Ok(spec)
+}
+
+/// Fills the station's defaults from the mission: the only FPMa and the VAS of its node.
+fn resolve_station(root: &Element, mission: &mut Mission) -> Result<(), Fault> {
+    let fpmas: Vec<(String, String)> = mission
+        .nodes
+        .iter()
+        .flat_map(|n| {
+            n.services.iter().filter_map(move |s| match s {
+                ServiceSpec::Fpma(f) => {
+                    let ns = n.namespace.clone().unwrap_or_default();
+                    let prefix = |svc: &str| {
+                        if ns.is_empty() {
+                            svc.to_owned()
+                        } else {
+                            format!("{ns}/{svc}")
+                        }
+                    };
+                    let vas = match &f.vas {
+                        Some(v) if v.contains('/') => v.clone(),
+                        Some(v) => prefix(v),
+                        None => prefix("vas"),
+                    };
+                    Some((prefix("fpma"), vas))
+                }
+                _ => None,
+            })
+        })
+        .collect();
+    let vehicle_of_fpma = mission.nodes.iter().find_map(|n| {
+        n.services.iter().find_map(|s| match s {
+            ServiceSpec::Fpma(f) => Some(f.vehicle.clone()),
+            _ => None,
+        })
+    });
+    let mut stations = 0;
+    for node in &mut mission.nodes {
+        for s in &mut node.services {
+            let ServiceSpec::Station(st) = s else {
+                continue;
+            };
+            stations += 1;
+            if st.fpma.is_empty() {
+                match fpmas.as_slice() {
+                    [(f, v)] => {
+                        st.fpma.clone_from(f);
+                        if st.vas.is_empty() {
+                            st.vas.clone_from(v);
+                        }
+                    }
+                    _ => {
+                        return Err(Fault::at(
+                            root,
+                            "the <station> needs `fpma` (which FPMa flies the plan): the mission has no single <fpma>",
+                        ))
+                    }
+                }
+            }
+            if st.vas.is_empty() {
+                let ns = st.fpma.rsplit_once('/').map_or("", |(ns, _)| ns);
+                st.vas = if ns.is_empty() {
+                    "vas".into()
+                } else {
+                    format!("{ns}/vas")
+                };
+            }
+            if st.vehicle.is_empty() {
+                st.vehicle = vehicle_of_fpma.clone().unwrap_or_else(|| "rover".into());
+            }
+        }
+    }
+    if stations > 1 {
+        return Err(Fault::at(root, "at most one <station> per mission"));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(src: &str) -> Result<Mission, String> {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
+        Mission::parse(src, &dir)
+            .map_err(|f| format!("{}:{}: <{}>: {}", f.line, f.column, f.element, f.message))
+    }
+
+    const GOOD: &str = r#"<?xml version="1.0"?>
+<mission name="m">
+  <!-- a comment -->
+  <node name="air" namespace="rover1">
+    <mavsim vehicle="rover" home="41.275,1.987,0" speedup="5"/>
+    <vas vehicle="rover" queueSize="5"/>
+    <fpma vehicle="rover" lookahead="8"/>
+  </node>
+  <node name="ground">
+    <station plan="../flightplans/rover-carpark.xml"/>
+  </node>
+</mission>"#;
+
+    #[test]
+    fn a_valid_mission_parses_and_the_station_finds_its_fpma() {
+        let m = parse(GOOD).unwrap();
+        assert_eq!(m.name, "m");
+        assert_eq!(m.nodes.len(), 2);
+        let kinds: Vec<_> = m.nodes[0].services.iter().map(|s| s.kind()).collect();
+        assert_eq!(kinds, ["mavsim", "vas", "fpma"]);
+        let (node, st) = m.station().unwrap();
+        assert_eq!(node.name, "ground");
+        assert_eq!(st.fpma, "rover1/fpma");
+        assert_eq!(st.vas, "rover1/vas");
+        assert_eq!(st.vehicle, "rover");
+    }
+
+    #[test]
+    fn errors_name_the_element_and_line() {
+        let e = parse(&GOOD.replace("queueSize=\"5\"", "queueSize=\"five\"")).unwrap_err();
+        assert!(e.starts_with("6:5: <vas>: attribute `queueSize`"), "{e}");
+        let e = parse(&GOOD.replace("<fpma ", "<fmpa ")).unwrap_err();
+        assert!(e.starts_with("7:5: <fmpa>: unknown service"), "{e}");
+        let e = parse(&GOOD.replace("lookahead=", "lookahaed=")).unwrap_err();
+        assert!(e.contains("<fpma>: unknown attribute `lookahaed`"), "{e}");
+        // An unclosed <node>: the syntax error names it and the line of the mismatch.
+        let e = parse(&GOOD.replace("  </node>\n</mission>", "</mission>")).unwrap_err();
+        assert!(
+            e.starts_with("11:") && e.contains("<node>: malformed XML"),
+            "{e}"
+        );
+        let e = parse(&GOOD.replace("rover-carpark", "missing")).unwrap_err();
+        assert!(
+            e.starts_with("10:5: <station>: attribute `plan`: no file"),
+            "{e}"
+        );
+        let e = parse(&GOOD.replace("<mavsim vehicle=\"rover\"", "<mavsim vehicle=\"boat\""))
+            .unwrap_err();
+        assert!(e.contains("<mavsim>") && e.contains("boat"), "{e}");
+        let e = parse(&GOOD.replace("<node name=\"ground\">", "<node name=\"air\">")).unwrap_err();
+        assert!(e.starts_with("9:3: <node>: duplicate node"), "{e}");
+        let e = parse("<mission name=\"x\"><node name=\"a\"><vas/></node></mission>").unwrap_err();
+        assert!(e.contains("<vas>: no `endpoint`"), "{e}");
+        let e = parse("").unwrap_err();
+        assert!(e.contains("empty file"), "{e}");
+        let e = parse("<mission name=\"x\">\n<node name=\"a\">\n</mission>").unwrap_err();
+        assert!(e.starts_with("3:") && e.contains("<node>"), "{e}");
+    }
+
+    #[test]
+    fn random_input_is_an_error_never_a_panic() {
+        let bytes = GOOD.as_bytes();
+        for cut in 0..bytes.len() {
+            let s = String::from_utf8_lossy(&bytes[..cut]);
+            let _ = parse(&s);
+        }
+    }
+
+    #[test]
+    fn the_shipped_missions_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let p = entry.unwrap().path();
+            if p.extension().is_some_and(|e| e == "xml") {
+                Mission::load(&p).unwrap_or_else(|e| panic!("{e}"));
+            }
+        }
+    }
+}

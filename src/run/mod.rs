@@ -1,0 +1,585 @@
+//! `usal run MISSION.xml`: starts the services a mission file selects as supervised child
+//! processes, runs the ground station in-process, shows the flight plan's progress and, with
+//! `--until-complete`, exits with the plan's outcome and a summary.
+
+pub mod mission;
+mod station;
+mod supervisor;
+mod ui;
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context};
+use serde_json::json;
+use tokio::sync::{broadcast, watch};
+use tokio_util::sync::CancellationToken;
+
+use mission::{Mission, ServiceSpec};
+use station::{Outcome, StationSetup};
+use supervisor::{Announce, ChildSpec, Notice, Supervisor};
+use ui::Ui;
+
+/// Exit status for a mission or plan file at fault, or bad arguments.
+const EXIT_USAGE: u8 = 2;
+/// Exit status when interrupted before the plan completed with `--until-complete`.
+const EXIT_INTERRUPTED: u8 = 130;
+/// Default limit for `--until-complete` when neither the mission nor the command sets one.
+const DEFAULT_TIMEOUT: Duration = Duration::from_secs(600);
+/// How long mavsim may take to print its address.
+const SIM_READY: Duration = Duration::from_secs(30);
+
+/// `usal run` arguments.
+#[derive(clap::Args)]
+pub struct RunArgs {
+    /// The mission file, e.g. config/missions/rover-demo.xml.
+    pub mission: PathBuf,
+    /// Exit when the flight plan completes (status 0, with a summary), or fails (non-zero).
+    #[arg(long)]
+    pub until_complete: bool,
+    /// Simulated time factor for every mavsim (overrides the mission's).
+    #[arg(long)]
+    pub speedup: Option<f64>,
+    /// Give up after this many seconds with --until-complete (default: the mission's timeoutS,
+    /// else 600).
+    #[arg(long)]
+    pub timeout_s: Option<f64>,
+}
+
+/// The service binaries a mission needs, found next to the running `usal`.
+struct Bins {
+    dir: PathBuf,
+}
+
+impl Bins {
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir
+            .join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
+    }
+}
+
+/// Runs `usal run`; `json` makes the launcher's notes JSON lines on stdout.
+pub fn main(args: &RunArgs, json: bool) -> ExitCode {
+    let mission = match Mission::load(&args.mission) {
+        Ok(m) => m,
+        Err(e) => {
+            eprintln!("usal: {e}");
+            return ExitCode::from(EXIT_USAGE);
+        }
+    };
+    if let Some(x) = args.speedup {
+        if !(x.is_finite() && x >= 0.01) {
+            eprintln!("usal: --speedup must be at least 0.01");
+            return ExitCode::from(EXIT_USAGE);
+        }
+    }
+    if args.timeout_s.is_some_and(|t| !(t.is_finite() && t > 0.0)) {
+        eprintln!("usal: --timeout-s must be positive");
+        return ExitCode::from(EXIT_USAGE);
+    }
+    let station = match mission.station() {
+        Some((node, st)) => match station_setup(&mission, node, st) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                eprintln!("usal: {e:#}");
+                return ExitCode::from(EXIT_USAGE);
+            }
+        },
+        None if args.until_complete => {
+            eprintln!(
+                "usal: --until-complete needs a <station> in {} to follow a plan",
+                args.mission.display()
+            );
+            return ExitCode::from(EXIT_USAGE);
+        }
+        None => None,
+    };
+    let ui = Arc::new(Ui::new(json));
+    let bins = match find_or_build_bins(&mission, &ui) {
+        Ok(b) => b,
+        Err(e) => {
+            eprintln!("usal: {e:#}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let rt = match tokio::runtime::Runtime::new() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("usal: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    rt.block_on(run(mission, station, bins, args, ui))
+}
+
+/// Reads and expands the station's plan, so a bad plan stops the launch before anything starts.
+fn station_setup(
+    mission: &Mission,
+    node: &mission::NodeSpec,
+    st: &mission::StationSpec,
+) -> anyhow::Result<StationSetup> {
+    use fpma::vehicle::{VehicleKind, VehicleParams};
+    let src = std::fs::read_to_string(&st.plan)
+        .with_context(|| format!("reading {}", st.plan.display()))?;
+    let kind = if st.vehicle == "aircraft" {
+        VehicleKind::Aircraft
+    } else {
+        VehicleKind::Rover
+    };
+    let params = VehicleParams::for_kind(kind);
+    let plan =
+        fpma::parse::parse_plan(&src, &params).map_err(|e| anyhow!("{}:{e}", st.plan.display()))?;
+    let name = plan.name.clone();
+    let wps = fpma::exec::expand_nominal(plan, params)
+        .map_err(|e| anyhow!("{}: {e}", st.plan.display()))?;
+    let nominal: Vec<(String, f64, f64)> =
+        wps.iter().map(|w| (w.leg.clone(), w.lat, w.lon)).collect();
+    let nominal_m = wps
+        .windows(2)
+        .map(|w| {
+            fpma::geo::distance(
+                fpma::geo::GeoPoint::new(w[0].lat, w[0].lon),
+                fpma::geo::GeoPoint::new(w[1].lat, w[1].lon),
+            )
+        })
+        .sum();
+    let _ = mission;
+    Ok(StationSetup {
+        node: node.name.clone(),
+        namespace: node.namespace.clone(),
+        network: node.network.clone(),
+        domain: String::new(),
+        plan_file: st.plan.clone(),
+        plan_name: name,
+        fpma: st.fpma.clone(),
+        vas: st.vas.clone(),
+        nominal,
+        nominal_m,
+    })
+}
+
+/// The service binaries sit next to `usal` in the same target directory; when some are
+/// missing and this is a source checkout with cargo at hand, they are built once, with the
+/// profile `usal` was built with.
+fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
+    let exe = std::env::current_exe().context("locating the usal executable")?;
+    let dir = exe
+        .parent()
+        .ok_or_else(|| anyhow!("usal has no parent directory"))?
+        .to_owned();
+    let bins = Bins { dir };
+    let mut needed: Vec<&str> = Vec::new();
+    for n in &mission.nodes {
+        for s in &n.services {
+            let name = match s {
+                ServiceSpec::Station(_) => continue,
+                other => other.kind(),
+            };
+            if !needed.contains(&name) {
+                needed.push(name);
+            }
+        }
+    }
+    let missing: Vec<&str> = needed
+        .iter()
+        .copied()
+        .filter(|b| !bins.path(b).is_file())
+        .collect();
+    if missing.is_empty() {
+        return Ok(bins);
+    }
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    // <target>/<profile>/usal: build into the same target directory and profile.
+    let profile = bins
+        .dir
+        .file_name()
+        .and_then(|p| p.to_str())
+        .unwrap_or("debug")
+        .to_owned();
+    let target = bins.dir.parent().map(Path::to_path_buf);
+    if !workspace.join("Cargo.toml").is_file() || target.is_none() {
+        bail!(
+            "{} not found next to {} (build them with `cargo build --release -p mavsim -p vas -p fpma`)",
+            missing.join(", "),
+            exe.display()
+        );
+    }
+    ui.note(
+        &format!(
+            "{} not built yet: building them once with cargo ({profile} profile)",
+            missing.join(", ")
+        ),
+        json!({"event": "building", "bins": missing, "profile": profile}),
+    );
+    let mut cmd = std::process::Command::new(cargo);
+    cmd.arg("build").current_dir(workspace);
+    match profile.as_str() {
+        "debug" => {}
+        "release" => {
+            cmd.arg("--release");
+        }
+        other => {
+            cmd.args(["--profile", other]);
+        }
+    }
+    for b in &needed {
+        cmd.args(["-p", b]);
+    }
+    if let Some(t) = target {
+        cmd.env("CARGO_TARGET_DIR", t);
+    }
+    // Cargo's own progress goes to our stderr: it is the user's build.
+    let status = cmd
+        .status()
+        .context("running cargo (is it installed?) to build the services")?;
+    if !status.success() {
+        bail!("building {} failed ({status})", needed.join(", "));
+    }
+    let still: Vec<&str> = needed
+        .iter()
+        .copied()
+        .filter(|b| !bins.path(b).is_file())
+        .collect();
+    if !still.is_empty() {
+        bail!(
+            "cargo built, but {} are not in {}",
+            still.join(", "),
+            bins.dir.display()
+        );
+    }
+    Ok(bins)
+}
+
+async fn run(
+    mission: Mission,
+    station: Option<StationSetup>,
+    bins: Bins,
+    args: &RunArgs,
+    ui: Arc<Ui>,
+) -> ExitCode {
+    let domain = mission
+        .domain
+        .clone()
+        .unwrap_or_else(|| format!("{}-{}", mission.name, std::process::id()));
+    ui.note(
+        &format!(
+            "mission {} from {}, discovery domain {domain} (look inside: usal list --domain {domain})",
+            mission.name,
+            args.mission.display()
+        ),
+        json!({"event": "mission", "name": mission.name, "domain": domain}),
+    );
+    let stop = CancellationToken::new();
+    let signals = tokio::spawn(wait_for_signal(stop.clone(), ui.clone()));
+    let scratch = std::env::temp_dir().join(format!("usal-run-{domain}"));
+    let mut sup = Supervisor::new(ui.clone());
+    let mut notices = sup.subscribe();
+    let station_notices = sup.subscribe();
+
+    let code = match start_services(
+        &mission,
+        &domain,
+        &bins,
+        args,
+        &scratch,
+        &mut sup,
+        &mut notices,
+        &stop,
+    )
+    .await
+    {
+        Err(e) => {
+            ui.clear_bar();
+            eprintln!("usal: {e:#}");
+            ExitCode::FAILURE
+        }
+        Ok(()) if stop.is_cancelled() => interrupted(args),
+        Ok(()) => {
+            supervise(
+                &mission,
+                station,
+                &domain,
+                args,
+                &ui,
+                notices,
+                station_notices,
+                &stop,
+            )
+            .await
+        }
+    };
+    ui.clear_bar();
+    sup.shutdown().await;
+    signals.abort();
+    let _ = std::fs::remove_dir_all(&scratch);
+    code
+}
+
+fn interrupted(args: &RunArgs) -> ExitCode {
+    if args.until_complete {
+        eprintln!("usal: interrupted before the plan completed");
+        ExitCode::from(EXIT_INTERRUPTED)
+    } else {
+        ExitCode::SUCCESS
+    }
+}
+
+/// Starts every child of the mission, in file order; a VAS waits for its node's mavsim to say
+/// where it listens.
+#[allow(clippy::too_many_arguments)]
+async fn start_services(
+    mission: &Mission,
+    domain: &str,
+    bins: &Bins,
+    args: &RunArgs,
+    scratch: &Path,
+    sup: &mut Supervisor,
+    notices: &mut broadcast::Receiver<Notice>,
+    stop: &CancellationToken,
+) -> anyhow::Result<()> {
+    for node in &mission.nodes {
+        let mut sim_addr: Option<watch::Receiver<Option<String>>> = None;
+        let common = |v: &mut Vec<String>| {
+            v.extend(["--domain".into(), domain.to_owned()]);
+            if let Some(ns) = &node.namespace {
+                v.extend(["--namespace".into(), ns.clone()]);
+            }
+            if let Some(n) = &node.network {
+                v.extend(["--network".into(), n.display().to_string()]);
+            }
+        };
+        for svc in &node.services {
+            let label = format!("{}/{}", node.name, svc.kind());
+            let mut a: Vec<String> = Vec::new();
+            let mut announce = None;
+            match svc {
+                ServiceSpec::Station(_) => continue,
+                ServiceSpec::Mavsim(m) => {
+                    let speedup = args.speedup.or(m.speedup).unwrap_or(1.0);
+                    a.extend([
+                        "--vehicle".into(),
+                        m.vehicle.clone(),
+                        "--udp".into(),
+                        "127.0.0.1:0".into(),
+                        "--speedup".into(),
+                        speedup.to_string(),
+                    ]);
+                    if let Some(h) = &m.home {
+                        a.extend(["--home".into(), h.clone()]);
+                    }
+                    if let Some(l) = &m.log {
+                        a.extend(["--log".into(), l.display().to_string()]);
+                    }
+                    let (tx, rx) = watch::channel(None);
+                    sim_addr = Some(rx);
+                    announce = Some(Announce {
+                        prefix: "MAVSIM_UDP=",
+                        rebind_flag: "--udp",
+                        tx,
+                    });
+                }
+                ServiceSpec::Vas(v) => {
+                    let endpoint = match (&v.endpoint, &mut sim_addr) {
+                        (Some(e), _) => Some(e.clone()),
+                        (None, Some(rx)) => {
+                            Some(format!("udpout:{}", wait_sim(rx, notices, stop).await?))
+                        }
+                        // A config file names the endpoint.
+                        (None, None) => None,
+                    };
+                    if stop.is_cancelled() {
+                        return Ok(());
+                    }
+                    if let Some(c) = &v.config {
+                        a.extend(["-c".into(), c.display().to_string()]);
+                    }
+                    if let Some(e) = endpoint {
+                        a.extend(["--endpoint".into(), e]);
+                    }
+                    a.extend(["--vehicle".into(), v.vehicle.clone()]);
+                    if let Some(q) = v.queue_size {
+                        a.extend(["--queue-size".into(), q.to_string()]);
+                    }
+                    if let Some(h) = v.telemetry_hz {
+                        a.extend(["--telemetry-hz".into(), h.to_string()]);
+                    }
+                    common(&mut a);
+                }
+                ServiceSpec::Fpma(f) => {
+                    a.push("run".into());
+                    if let Some(c) = &f.config {
+                        a.extend(["-c".into(), c.display().to_string()]);
+                    }
+                    a.extend(["--vehicle".into(), f.vehicle.clone()]);
+                    if let Some(l) = f.lookahead {
+                        a.extend(["--lookahead".into(), l.to_string()]);
+                    }
+                    if let Some(v) = &f.vas {
+                        a.extend(["--vas".into(), v.clone()]);
+                    }
+                    let plans = scratch.join(&node.name).join("plans");
+                    a.extend(["--plans-dir".into(), plans.display().to_string()]);
+                    common(&mut a);
+                }
+            }
+            sup.start(ChildSpec {
+                label,
+                kind: svc.kind(),
+                program: bins.path(svc.kind()),
+                args: a,
+                announce,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Waits for mavsim's `MAVSIM_UDP=` line.
+async fn wait_sim(
+    rx: &mut watch::Receiver<Option<String>>,
+    notices: &mut broadcast::Receiver<Notice>,
+    stop: &CancellationToken,
+) -> anyhow::Result<String> {
+    let deadline = tokio::time::sleep(SIM_READY);
+    tokio::pin!(deadline);
+    loop {
+        if let Some(a) = rx.borrow_and_update().clone() {
+            return Ok(a);
+        }
+        tokio::select! {
+            r = rx.changed() => if r.is_err() { bail!("mavsim's supervisor ended") },
+            n = notices.recv() => if let Ok(Notice::GaveUp { reason, .. }) = n { bail!(reason) },
+            () = stop.cancelled() => return Ok(String::new()),
+            () = &mut deadline => bail!("mavsim did not print MAVSIM_UDP= within {SIM_READY:?}"),
+        }
+    }
+}
+
+/// Runs until the plan completes (with `--until-complete`), a child cannot be kept running,
+/// the time limit, or a signal.
+#[allow(clippy::too_many_arguments)]
+async fn supervise(
+    mission: &Mission,
+    station: Option<StationSetup>,
+    domain: &str,
+    args: &RunArgs,
+    ui: &Arc<Ui>,
+    mut notices: broadcast::Receiver<Notice>,
+    station_notices: broadcast::Receiver<Notice>,
+    stop: &CancellationToken,
+) -> ExitCode {
+    let limit = args
+        .timeout_s
+        .map(Duration::from_secs_f64)
+        .or(mission.timeout)
+        .unwrap_or(DEFAULT_TIMEOUT);
+    let deadline = tokio::time::sleep(limit);
+    tokio::pin!(deadline);
+    let station_stop = stop.child_token();
+    let follow = async {
+        match station {
+            Some(mut s) => {
+                s.domain = domain.to_owned();
+                station::run(
+                    s,
+                    ui.clone(),
+                    station_notices,
+                    station_stop.clone(),
+                    args.until_complete,
+                )
+                .await
+            }
+            None => {
+                station_stop.cancelled().await;
+                Outcome::Failed(String::new())
+            }
+        }
+    };
+    tokio::pin!(follow);
+    let failure = loop {
+        tokio::select! {
+            out = &mut follow => {
+                return match out {
+                    Outcome::Completed(summary) => {
+                        ui.result(
+                            &summary.text(&mission.name),
+                            json!({"event": "summary", "summary": summary}),
+                        );
+                        if summary.in_order {
+                            ExitCode::SUCCESS
+                        } else {
+                            eprintln!("usal: the plan completed, but not as planned (see the summary)");
+                            ExitCode::FAILURE
+                        }
+                    }
+                    Outcome::Stopped(summary) => {
+                        if args.until_complete {
+                            ui.result(
+                                &summary.text(&mission.name),
+                                json!({"event": "summary", "summary": summary}),
+                            );
+                        }
+                        interrupted(args)
+                    }
+                    Outcome::Failed(reason) => {
+                        ui.clear_bar();
+                        eprintln!("usal: {reason}");
+                        ExitCode::FAILURE
+                    }
+                };
+            }
+            n = notices.recv() => {
+                if let Ok(Notice::GaveUp { reason, .. }) = n {
+                    break reason;
+                }
+            }
+            () = &mut deadline, if args.until_complete => {
+                break format!("the plan did not complete within {limit:?}");
+            }
+        }
+    };
+    // Let the station print what it has, then report the failure.
+    station_stop.cancel();
+    if let Outcome::Stopped(summary) = follow.await {
+        ui.result(
+            &summary.text(&mission.name),
+            json!({"event": "summary", "summary": summary}),
+        );
+    }
+    ui.clear_bar();
+    eprintln!("usal: {failure}");
+    ExitCode::FAILURE
+}
+
+/// Ctrl-C or SIGTERM: stop everything.
+async fn wait_for_signal(stop: CancellationToken, ui: Arc<Ui>) {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let mut term = signal(SignalKind::terminate()).ok();
+        let got_term = async {
+            match term.as_mut() {
+                Some(t) => {
+                    t.recv().await;
+                }
+                None => std::future::pending::<()>().await,
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            () = got_term => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+    ui.note(
+        "stopping: SIGTERM to every service, SIGKILL after 5 s",
+        json!({"event": "stopping"}),
+    );
+    stop.cancel();
+}

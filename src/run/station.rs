@@ -1,0 +1,621 @@
+//! The ground station run inside the launcher: it joins the mission's network, uploads the
+//! flight plan to the FPMa as a file, follows the plan's progress and the vehicle's state, has
+//! the FPMa re-send its queue when the VAS comes back after a restart, and sums the flight up.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use fpma::api::{CommandAck, PlanEvent, PlanEventKind, PlanRejected, Progress};
+use marea::{NetworkConfig, Node, SendFileOptions};
+use serde_json::json;
+use tokio::sync::broadcast;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use usal_types::{
+    FlightState, Position, StateChangeReply, StateChangeRequest, StateChanged, WaypointReached,
+};
+
+use super::supervisor::Notice;
+use super::ui::{self, Ui};
+
+/// How long the plan upload keeps looking for the FPMa.
+const SEND_RETRY: Duration = Duration::from_secs(120);
+/// Time limit of the calls the station makes.
+const CALL_TIMEOUT: Duration = Duration::from_secs(5);
+/// Least time between two attempts to bring a restarted VAS back into the plan.
+const RETRY: Duration = Duration::from_secs(1);
+/// Upload the plan after this long even if the VAS never reports a configured autopilot.
+const UPLOAD_ANYWAY: Duration = Duration::from_secs(30);
+/// A loaded plan whose vehicle stays parked this long gets WAYPOINT_NAVIGATION asked for.
+const KICK_AFTER: Duration = Duration::from_secs(3);
+/// How long completion waits for the last reports once the plan says it is done.
+const SETTLE: Duration = Duration::from_secs(2);
+
+/// What the station needs to know, resolved from the mission.
+pub struct StationSetup {
+    /// Its node name (the mission node hosting it).
+    pub node: String,
+    /// Its namespace.
+    pub namespace: Option<String>,
+    /// A network.xml to join with; default Ethernet on loopback.
+    pub network: Option<PathBuf>,
+    /// The mission's discovery domain.
+    pub domain: String,
+    /// The plan file to upload.
+    pub plan_file: PathBuf,
+    /// The plan's name (from the file).
+    pub plan_name: String,
+    /// Prefix of the FPMa, e.g. `rover1/fpma`.
+    pub fpma: String,
+    /// Prefix of the VAS, e.g. `rover1/vas`.
+    pub vas: String,
+    /// The plan's waypoints flown with no in-flight change: (leg, lat, lon).
+    pub nominal: Vec<(String, f64, f64)>,
+    /// Its nominal length, metres.
+    pub nominal_m: f64,
+}
+
+/// One waypoint the FPMa reported reached.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Reached {
+    /// Sequence number in the FPMa's stream.
+    pub seq: u64,
+    /// Its leg.
+    pub leg: String,
+    /// Where, as the VAS reported it (or from the plan when that report was lost).
+    pub lat: f64,
+    /// Longitude.
+    pub lon: f64,
+}
+
+/// The flight, summed up.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Summary {
+    /// Plan name.
+    pub plan: String,
+    /// Whether the FPMa said the plan was completed.
+    pub completed: bool,
+    /// Waypoints reached, in report order.
+    pub reached: Vec<Reached>,
+    /// Waypoints of the plan flown as planned.
+    pub planned: usize,
+    /// The reached waypoints are the plan's, each once, in order.
+    pub in_order: bool,
+    /// Metres flown, per the FPMa.
+    pub flown_m: f64,
+    /// Metres planned.
+    pub planned_m: f64,
+    /// From the plan's upload to its completion (or now), seconds.
+    pub elapsed_s: f64,
+    /// Times the VAS was restarted and the queue re-sent.
+    pub vas_recoveries: u32,
+}
+
+impl Summary {
+    /// The human-readable form.
+    pub fn text(&self, mission: &str) -> String {
+        let mut s = format!(
+            "mission {mission}: plan `{}` {} in {:.1} s\n",
+            self.plan,
+            if self.completed {
+                "completed"
+            } else {
+                "NOT completed"
+            },
+            self.elapsed_s
+        );
+        s += &format!(
+            "  waypoints: {} of {} planned reached{}\n",
+            self.reached.len(),
+            self.planned,
+            if self.in_order {
+                ", each once, in order"
+            } else {
+                " (not the plan's sequence)"
+            }
+        );
+        s += &format!(
+            "  distance: {:.1} m flown of {:.1} m planned\n",
+            self.flown_m, self.planned_m
+        );
+        if self.vas_recoveries > 0 {
+            s += &format!(
+                "  the VAS was restarted {} time(s); the FPMa re-sent its queue each time\n",
+                self.vas_recoveries
+            );
+        }
+        s += "  reached:";
+        for (i, r) in self.reached.iter().enumerate() {
+            if i % 4 == 0 {
+                s += "\n   ";
+            }
+            s += &format!(" #{} {} ({:.6},{:.6})", r.seq, r.leg, r.lat, r.lon);
+        }
+        s
+    }
+}
+
+/// How the station ended.
+pub enum Outcome {
+    /// The plan completed (with `--until-complete`, the station returns then).
+    Completed(Summary),
+    /// Asked to stop; the flight so far.
+    Stopped(Summary),
+    /// Something prevents the plan from being flown.
+    Failed(String),
+}
+
+/// Runs the station until the plan completes (`until_complete`) or `stop`.
+pub async fn run(
+    setup: StationSetup,
+    ui: Arc<Ui>,
+    notices: broadcast::Receiver<Notice>,
+    stop: CancellationToken,
+    until_complete: bool,
+) -> Outcome {
+    let node = match open(&setup).await {
+        Ok(n) => n,
+        Err(e) => return Outcome::Failed(format!("station: {e:#}")),
+    };
+    let out = match follow(&node, &setup, &ui, notices, &stop, until_complete).await {
+        Ok(o) => o,
+        Err(e) => Outcome::Failed(format!("station: {e:#}")),
+    };
+    node.shutdown().await;
+    out
+}
+
+async fn open(s: &StationSetup) -> anyhow::Result<Node> {
+    let mut cfg = match &s.network {
+        Some(p) => NetworkConfig::load(p).with_context(|| format!("loading {}", p.display()))?,
+        None => NetworkConfig::ethernet_loopback(&s.node),
+    };
+    cfg.node.clone_from(&s.node);
+    cfg.domain.clone_from(&s.domain);
+    if s.namespace.is_some() {
+        cfg.namespace.clone_from(&s.namespace);
+    }
+    Node::open(&cfg).await.context("joining the network")
+}
+
+/// The plan's upload in flight.
+type Upload = std::pin::Pin<
+    Box<dyn std::future::Future<Output = Result<marea::FileReport, marea::FileSendError>> + Send>,
+>;
+
+fn upload(svc: &marea::Service, s: &StationSetup, sink: &str) -> Upload {
+    let transfer = svc.send_file(
+        &s.plan_file,
+        sink,
+        SendFileOptions {
+            retry_for: SEND_RETRY,
+            ..SendFileOptions::default()
+        },
+    );
+    Box::pin(transfer.wait())
+}
+
+/// What the station knows of the flight.
+struct Tracker<'a> {
+    setup: &'a StationSetup,
+    progress: Option<Progress>,
+    state: Option<FlightState>,
+    speed: f32,
+    leg: Option<String>,
+    reached: Vec<(u64, String)>,
+    vas_points: BTreeMap<u64, (f64, f64)>,
+    started: Option<Instant>,
+    ended: Option<Instant>,
+    recoveries: u32,
+}
+
+impl Tracker<'_> {
+    fn fraction(&self) -> f64 {
+        self.progress.as_ref().map_or(0.0, |p| p.fraction)
+    }
+
+    fn distances(&self) -> (f64, f64) {
+        self.progress
+            .as_ref()
+            .map_or((0.0, self.setup.nominal_m), |p| (p.flown_m, p.planned_m))
+    }
+
+    fn elapsed(&self) -> Duration {
+        match (self.started, self.ended) {
+            (Some(s), Some(e)) => e - s,
+            (Some(s), None) => s.elapsed(),
+            _ => Duration::ZERO,
+        }
+    }
+
+    fn state_name(&self) -> String {
+        self.state.map_or_else(|| "-".into(), |s| s.to_string())
+    }
+
+    fn bar_line(&self) -> String {
+        let (flown, planned) = self.distances();
+        let t = self.elapsed().as_secs();
+        format!(
+            "{} {:>3.0}%  leg {}  wp {}/{}  {:.0}/{:.0} m  {}  {:.1} m/s  {}:{:02}",
+            ui::bar(self.fraction(), 24),
+            self.fraction() * 100.0,
+            self.leg.as_deref().unwrap_or("-"),
+            self.reached.len(),
+            self.setup.nominal.len(),
+            flown,
+            planned,
+            self.state_name(),
+            self.speed,
+            t / 60,
+            t % 60
+        )
+    }
+
+    fn summary(&self) -> Summary {
+        let nominal = &self.setup.nominal;
+        let legs_match = self.reached.len() == nominal.len()
+            && self
+                .reached
+                .iter()
+                .zip(nominal)
+                .all(|((_, leg), (nleg, _, _))| leg == nleg);
+        let increasing = self.reached.windows(2).all(|w| w[0].0 < w[1].0);
+        let reached = self
+            .reached
+            .iter()
+            .enumerate()
+            .map(|(i, (seq, leg))| {
+                let (lat, lon) = self.vas_points.get(seq).copied().unwrap_or_else(|| {
+                    nominal
+                        .get(i)
+                        .filter(|n| &n.0 == leg)
+                        .map_or((f64::NAN, f64::NAN), |n| (n.1, n.2))
+                });
+                Reached {
+                    seq: *seq,
+                    leg: leg.clone(),
+                    lat,
+                    lon,
+                }
+            })
+            .collect();
+        let (flown_m, planned_m) = self.distances();
+        Summary {
+            plan: self.setup.plan_name.clone(),
+            completed: self.progress.as_ref().is_some_and(|p| p.completed),
+            reached,
+            planned: nominal.len(),
+            in_order: legs_match && increasing,
+            flown_m,
+            planned_m,
+            elapsed_s: self.elapsed().as_secs_f64(),
+            vas_recoveries: self.recoveries,
+        }
+    }
+}
+
+/// Where the station is in bringing a restarted VAS back into the plan.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Recovery {
+    /// Nothing to do.
+    Idle,
+    /// The VAS went away or restarted: wait for the new one to finish configuring.
+    Waiting,
+    /// The new VAS is configured: have the FPMa re-send its queue.
+    Due,
+}
+
+async fn follow(
+    node: &Node,
+    s: &StationSetup,
+    ui: &Ui,
+    mut notices: broadcast::Receiver<Notice>,
+    stop: &CancellationToken,
+    until_complete: bool,
+) -> anyhow::Result<Outcome> {
+    let svc = node.service("station")?;
+    let fpma = |item: &str| format!("{}/{item}", s.fpma);
+    let vas = |item: &str| format!("{}/{item}", s.vas);
+    let progress = svc.subscribe_variable::<Progress>(&fpma("progress"))?;
+    let events = svc.subscribe_event::<PlanEvent>(&fpma("plan_event"))?;
+    let rejected = svc.subscribe_event::<PlanRejected>(&fpma("plan_rejected"))?;
+    let state = svc.subscribe_variable::<FlightState>(&vas("flight_state"))?;
+    let changes = svc.subscribe_event::<StateChanged>(&vas("state_changed"))?;
+    let vas_reached = svc.subscribe_event::<WaypointReached>(&vas("waypoint_reached"))?;
+    let position = svc.subscribe_variable::<Position>(&vas("position"))?;
+    let pause = svc.function::<(), CommandAck>(&fpma("pause"))?;
+    let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
+
+    let sink = fpma("plans");
+    ui.note(
+        &format!(
+            "station: uploading {} to {sink} ({} waypoints, {:.0} m planned)",
+            s.plan_file.display(),
+            s.nominal.len(),
+            s.nominal_m
+        ),
+        json!({"event": "uploading", "plan": s.plan_name, "to": sink, "waypoints": s.nominal.len(), "planned_m": s.nominal_m}),
+    );
+    // The plan goes once the VAS has configured its autopilot, so the FPMa's request for
+    // WAYPOINT_NAVIGATION cannot come too early and be refused (or after UPLOAD_ANYWAY).
+    let mut send: Option<Upload> = None;
+    let upload_anyway = tokio::time::sleep(UPLOAD_ANYWAY);
+    tokio::pin!(upload_anyway);
+    let mut kick_at: Option<Instant> = None;
+    let vas_state_fn =
+        svc.function::<StateChangeRequest, StateChangeReply>(&vas("change_state"))?;
+    let mut sent = false;
+    let mut t = Tracker {
+        setup: s,
+        progress: None,
+        state: None,
+        speed: 0.0,
+        leg: None,
+        reached: Vec::new(),
+        vas_points: BTreeMap::new(),
+        started: None,
+        ended: None,
+        recoveries: 0,
+    };
+    let mut navigated = false;
+    let mut recovery = Recovery::Idle;
+    let mut last_attempt: Option<Instant> = None;
+    let mut saw_configure = false;
+    let mut plan_completed_event = false;
+    let mut completing: Option<Instant> = None;
+    let mut reported = false;
+    let mut notices_open = true;
+    let mut unshown: std::collections::VecDeque<(u64, String, usize, Instant)> =
+        std::collections::VecDeque::new();
+    let mut tick = tokio::time::interval(Duration::from_millis(500));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+
+    loop {
+        let mut line: Option<String> = None;
+        let mut record: Option<serde_json::Value> = None;
+        tokio::select! {
+            () = stop.cancelled() => {
+                ui.clear_bar();
+                return Ok(Outcome::Stopped(t.summary()));
+            }
+            () = &mut upload_anyway, if send.is_none() => {
+                ui.note(
+                    &format!("station: the VAS is not configured after {UPLOAD_ANYWAY:?}; uploading the plan anyway"),
+                    json!({"event": "note", "text": "uploading before the VAS is configured"}),
+                );
+                send = Some(upload(&svc, s, &sink));
+            }
+            r = async { send.as_mut().expect("guarded by the precondition").await }, if send.is_some() && !sent => {
+                sent = true;
+                match r {
+                    Ok(rep) => {
+                        t.started = Some(Instant::now());
+                        ui.note(
+                            &format!("station: plan sent ({} bytes) to {}", rep.size, rep.receiver),
+                            json!({"event": "plan_sent", "bytes": rep.size, "receiver": rep.receiver}),
+                        );
+                    }
+                    Err(e) => return Ok(Outcome::Failed(format!("uploading the plan to {sink}: {e}"))),
+                }
+            }
+            p = progress.recv() => {
+                let p = p.context("following the plan's progress")?.value;
+                if p.version > 0 {
+                    if p.completed && completing.is_none() {
+                        completing = Some(Instant::now());
+                    }
+                    t.leg.clone_from(&p.leg);
+                    t.progress = Some(p);
+                }
+            }
+            e = events.recv() => {
+                let e = e.context("following the plan's events")?.value;
+                match e.kind {
+                    PlanEventKind::PlanLoaded { name } => {
+                        line = Some(format!("plan `{name}` loaded (version {})", e.version));
+                        record = Some(json!({"event": "plan_loaded", "name": name, "version": e.version}));
+                    }
+                    PlanEventKind::LegStarted { leg } => {
+                        t.leg = Some(leg.clone());
+                        line = Some(format!("leg {leg} started"));
+                        record = Some(json!({"event": "leg_started", "leg": leg}));
+                    }
+                    PlanEventKind::WaypointReached { seq, leg } => {
+                        t.reached.push((seq, leg.clone()));
+                        // Shown once the progress variable has caught up with it (it travels
+                        // apart from events), so the line carries the distance at that point.
+                        unshown.push_back((seq, leg, t.reached.len(), Instant::now()));
+                    }
+                    PlanEventKind::PlanCompleted => {
+                        plan_completed_event = true;
+                        completing.get_or_insert_with(Instant::now);
+                    }
+                    PlanEventKind::StageChanged { stage } => {
+                        line = Some(format!("stage {stage:?}"));
+                    }
+                    PlanEventKind::LegCompleted { leg, skipped } => {
+                        line = Some(format!("leg {leg} {}", if skipped { "skipped" } else { "completed" }));
+                    }
+                    PlanEventKind::IterationDone { leg, n } => {
+                        line = Some(format!("loop {leg}: pass {n} done"));
+                    }
+                    other => line = Some(format!("plan: {other:?}")),
+                }
+            }
+            r = rejected.recv() => {
+                let r = r.context("following plan rejections")?.value;
+                return Ok(Outcome::Failed(format!("the FPMa rejected the plan: {}", r.reason)));
+            }
+            st = state.recv() => {
+                let st = st.context("following the VAS state")?.value;
+                if t.state != Some(st) {
+                    line = Some(format!("vehicle state {st}"));
+                    record = Some(json!({"event": "state", "state": st.to_string()}));
+                }
+                t.state = Some(st);
+                if send.is_none() && st != FlightState::ConfigureCheck {
+                    send = Some(upload(&svc, s, &sink));
+                }
+                if st == FlightState::WaypointNavigation && t.started.is_some() {
+                    navigated = true;
+                }
+                let done = t.progress.as_ref().is_some_and(|p| p.completed);
+                if st == FlightState::ConfigureCheck {
+                    saw_configure = true;
+                    if navigated && !done && recovery == Recovery::Idle {
+                        recovery = Recovery::Waiting;
+                    }
+                } else if recovery == Recovery::Waiting && saw_configure {
+                    recovery = Recovery::Due;
+                }
+            }
+            c = changes.recv() => {
+                let c = c.context("following the VAS state changes")?.value;
+                if c.from == FlightState::ConfigureCheck && recovery == Recovery::Waiting {
+                    recovery = Recovery::Due;
+                }
+            }
+            w = vas_reached.recv() => {
+                let w = w.context("following the VAS's waypoints")?.value;
+                t.vas_points.insert(w.seq, (w.lat, w.lon));
+            }
+            p = position.recv() => {
+                t.speed = p.context("following the position")?.value.speed;
+            }
+            n = notices.recv(), if notices_open => match n {
+                Ok(Notice::Restarted { kind: "vas", label, pid }) => {
+                    line = Some(format!("{label} restarted (pid {pid}): waiting for it to configure"));
+                    if navigated && recovery == Recovery::Idle {
+                        recovery = Recovery::Waiting;
+                        saw_configure = false;
+                    }
+                }
+                Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => {}
+                Err(broadcast::error::RecvError::Closed) => notices_open = false,
+            },
+            _ = tick.tick() => {}
+        }
+
+        // Fallback for an FPMa that asked for navigation too early and was refused: once the
+        // plan is loaded and the VAS parks with waypoints queued, ask for it once ourselves.
+        let waiting = t.started.is_some()
+            && !navigated
+            && t.state == Some(FlightState::Parking)
+            && t.progress.as_ref().is_some_and(|p| !p.completed);
+        match (waiting, kick_at) {
+            (true, None) => kick_at = Some(Instant::now()),
+            (true, Some(at)) if at.elapsed() >= KICK_AFTER => {
+                kick_at = Some(Instant::now() + Duration::from_secs(3600));
+                let to = FlightState::WaypointNavigation;
+                match vas_state_fn.call(&StateChangeRequest { to }, CALL_TIMEOUT).await {
+                    Ok(_) => ui.note(
+                        "station: the plan was loaded but the vehicle stayed parked; asked the VAS for WAYPOINT_NAVIGATION",
+                        json!({"event": "navigation_kicked"}),
+                    ),
+                    Err(e) => ui.note(
+                        &format!("station: the vehicle stays parked and the VAS refused WAYPOINT_NAVIGATION: {e}"),
+                        json!({"event": "navigation_refused", "reason": e.to_string()}),
+                    ),
+                }
+            }
+            (false, _) => kick_at = None,
+            _ => {}
+        }
+
+        if recovery == Recovery::Due && last_attempt.is_none_or(|t| t.elapsed() >= RETRY) {
+            last_attempt = Some(Instant::now());
+            // The new VAS has an empty queue and the FPMa does not know it: a pause empties the
+            // FPMa's look-ahead at the VAS and a resume refills it and restarts navigation, from
+            // the first waypoint the FPMa has not seen reached.
+            // The FPMa may itself be rediscovered after the disturbance.
+            pause.wait_provider(CALL_TIMEOUT).await;
+            let paused = match pause.call(&(), CALL_TIMEOUT).await {
+                Ok(_) => Ok(()),
+                Err(e) if e.to_string().contains("already paused") => Ok(()),
+                Err(e) => Err(e),
+            };
+            let resumed = match paused {
+                Ok(()) => resume.call(&(), CALL_TIMEOUT).await.map(|_| ()),
+                Err(e) => Err(e),
+            };
+            match resumed {
+                Ok(()) => {
+                    recovery = Recovery::Idle;
+                    last_attempt = None;
+                    t.recoveries += 1;
+                    ui.note(
+                        "station: the VAS came back; the FPMa re-sent its queue (pause, resume)",
+                        json!({"event": "vas_recovered"}),
+                    );
+                }
+                // Tried again on the next input or tick.
+                Err(e) => ui.note(
+                    &format!("station: re-sending the queue to the restarted VAS failed: {e}"),
+                    json!({"event": "vas_recovery_failed", "reason": e.to_string()}),
+                ),
+            }
+        }
+
+        let mut out: Vec<(String, Option<serde_json::Value>)> =
+            line.map(|l| (l, record)).into_iter().collect();
+        let caught_up = t.progress.as_ref().and_then(|p| p.last_reached);
+        let flush_all = completing.is_some();
+        while let Some((seq, leg, n, at)) = unshown.front().cloned() {
+            if !(flush_all
+                || caught_up.is_some_and(|r| r >= seq)
+                || at.elapsed() >= Duration::from_millis(400))
+            {
+                break;
+            }
+            unshown.pop_front();
+            let (flown, planned) = t.distances();
+            out.push((
+                format!(
+                    "waypoint {n}/{} reached (#{seq}, leg {leg}); {flown:.0} of {planned:.0} m flown; {}",
+                    s.nominal.len(),
+                    t.state_name()
+                ),
+                Some(json!({"event": "waypoint", "n": n, "of": s.nominal.len(), "seq": seq,
+                    "leg": leg, "flown_m": flown, "planned_m": planned, "state": t.state_name()})),
+            ));
+        }
+        if out.is_empty() && !reported {
+            ui.progress(&t.bar_line(), None, None);
+        }
+        for (l, record) in out {
+            if reported {
+                ui.note(
+                    &l,
+                    record.unwrap_or_else(|| json!({"event": "note", "text": l})),
+                );
+            } else {
+                ui.progress(&t.bar_line(), Some(&l), record);
+            }
+        }
+        let settled = completing.is_some_and(|since| {
+            let progress_done = t.progress.as_ref().is_some_and(|p| p.completed);
+            (progress_done && plan_completed_event && t.reached.len() >= s.nominal.len())
+                || (progress_done && since.elapsed() >= SETTLE)
+        });
+        if settled && !reported {
+            reported = true;
+            t.ended = Some(Instant::now());
+            ui.clear_bar();
+            let summary = t.summary();
+            if until_complete {
+                return Ok(Outcome::Completed(summary));
+            }
+            ui.note(
+                &summary.text(&s.plan_name),
+                json!({"event": "summary", "summary": summary}),
+            );
+            ui.note(
+                "plan completed; the services keep running (Ctrl-C stops them)",
+                json!({"event": "completed"}),
+            );
+        }
+    }
+}

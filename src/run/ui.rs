@@ -1,0 +1,124 @@
+//! What `usal run` prints: children's log lines prefixed with their node and service, the
+//! launcher's own notes, and the live progress of the flight plan (a bar redrawn in place when
+//! stderr is a terminal, plain lines otherwise, JSON lines on stdout with `--json`).
+
+use std::io::{IsTerminal, Write};
+use std::sync::Mutex;
+
+use serde_json::Value;
+
+/// The launcher's output, shared by the supervisor's and the station's tasks.
+pub struct Ui {
+    json: bool,
+    tty: bool,
+    /// The progress bar now on screen (tty only), redrawn under every log line.
+    bar: Mutex<Option<String>>,
+}
+
+impl Ui {
+    /// Output for this process: a bar only when stderr is a terminal and JSON is off.
+    pub fn new(json: bool) -> Ui {
+        Ui {
+            json,
+            tty: !json && std::io::stderr().is_terminal(),
+            bar: Mutex::new(None),
+        }
+    }
+
+    /// Whether a progress bar is drawn (else progress comes as lines).
+    pub fn is_tty(&self) -> bool {
+        self.tty
+    }
+
+    /// Writes `text` as whole lines on stderr, keeping the bar below them.
+    fn stderr_lines(&self, text: &str) {
+        let bar = self.bar.lock().unwrap_or_else(|p| p.into_inner());
+        let mut err = std::io::stderr().lock();
+        if bar.is_some() {
+            let _ = write!(err, "\r\x1b[2K");
+        }
+        let _ = writeln!(err, "{text}");
+        if let Some(b) = bar.as_deref() {
+            let _ = write!(err, "{b}");
+        }
+        let _ = err.flush();
+    }
+
+    /// One log line of a child, as `[node/service] line`.
+    pub fn child_line(&self, label: &str, line: &str) {
+        self.stderr_lines(&format!("[{label}] {line}"));
+    }
+
+    /// A note of the launcher: `[usal] text` on stderr, or `json` on stdout with `--json`.
+    pub fn note(&self, text: &str, json: Value) {
+        if self.json {
+            println!("{json}");
+        } else {
+            self.stderr_lines(&format!("[usal] {text}"));
+        }
+    }
+
+    /// A progress update: the bar on a terminal; otherwise a line when `line` is given (the
+    /// caller decides which updates are worth a line) and the JSON record with `--json`.
+    pub fn progress(&self, bar: &str, line: Option<&str>, json: Option<Value>) {
+        if self.tty {
+            let mut b = self.bar.lock().unwrap_or_else(|p| p.into_inner());
+            let mut err = std::io::stderr().lock();
+            let _ = write!(err, "\r\x1b[2K{bar}");
+            let _ = err.flush();
+            *b = Some(bar.to_owned());
+        } else if self.json {
+            if let Some(j) = json {
+                println!("{j}");
+            }
+        } else if let Some(l) = line {
+            self.stderr_lines(&format!("[usal] {l}"));
+        }
+    }
+
+    /// Removes the bar (before the summary and at exit).
+    pub fn clear_bar(&self) {
+        let mut b = self.bar.lock().unwrap_or_else(|p| p.into_inner());
+        if b.take().is_some() {
+            let mut err = std::io::stderr().lock();
+            let _ = write!(err, "\r\x1b[2K");
+            let _ = err.flush();
+        }
+    }
+
+    /// The result of the run on stdout: `text` lines, or `json` with `--json`.
+    pub fn result(&self, text: &str, json: Value) {
+        self.clear_bar();
+        if self.json {
+            println!("{json}");
+        } else {
+            println!("{text}");
+        }
+    }
+}
+
+/// A text progress bar of `width` cells for `fraction` in [0, 1].
+pub fn bar(fraction: f64, width: usize) -> String {
+    let f = if fraction.is_finite() {
+        fraction.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    // Rounded down so a bar is full only at completion.
+    let full = ((f * width as f64) as usize).min(width);
+    format!("[{}{}]", "#".repeat(full), "-".repeat(width - full))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bars_are_full_only_at_one() {
+        assert_eq!(bar(0.0, 4), "[----]");
+        assert_eq!(bar(0.99, 4), "[###-]");
+        assert_eq!(bar(1.0, 4), "[####]");
+        assert_eq!(bar(f64::NAN, 2), "[--]");
+        assert_eq!(bar(7.0, 2), "[##]");
+    }
+}

@@ -1,0 +1,453 @@
+//! `usal run` end to end, with real child processes: the rover demo mission flies its plan to
+//! completion; a killed VAS is restarted and the plan still completes; SIGINT leaves no child
+//! behind; `usal list/echo/call` see a running mission; a malformed mission file starts nothing.
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+const USAL: &str = env!("CARGO_BIN_EXE_usal");
+/// Bound on a whole flight of the demo plan (about 10 s at --speedup 20 on an idle machine).
+const FLIGHT: Duration = Duration::from_secs(150);
+/// Bound on one step (a service starting, a tool answering).
+const STEP: Duration = Duration::from_secs(30);
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Builds mavsim, vas and fpma once into the directory holding `usal`, where it looks for them.
+fn build_services() {
+    static BUILT: OnceLock<()> = OnceLock::new();
+    BUILT.get_or_init(|| {
+        let usal = Path::new(USAL);
+        let target = usal
+            .parent()
+            .and_then(Path::parent)
+            .expect("usal inside <target>/<profile>");
+        let status = Command::new(env!("CARGO"))
+            .args(["build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "--bins"])
+            .current_dir(root())
+            .env("CARGO_TARGET_DIR", target)
+            .status()
+            .expect("running cargo build");
+        assert!(status.success(), "building mavsim, vas and fpma failed");
+    });
+}
+
+/// A `usal --json run ...` child: its JSON lines on a channel, stderr kept for failure reports,
+/// and every process it reported killed on drop so a failed test leaves nothing behind.
+struct Launcher {
+    child: Child,
+    lines: mpsc::Receiver<Value>,
+    seen: Vec<Value>,
+    stderr: std::sync::Arc<std::sync::Mutex<String>>,
+}
+
+impl Launcher {
+    fn start(args: &[&str]) -> Launcher {
+        build_services();
+        let mut child = Command::new(USAL)
+            .arg("--json")
+            .arg("run")
+            .args(args)
+            .current_dir(root())
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("starting usal run");
+        let (tx, rx) = mpsc::channel();
+        let out = child.stdout.take().expect("piped");
+        std::thread::spawn(move || {
+            for line in BufReader::new(out).lines() {
+                let Ok(line) = line else { break };
+                if let Ok(v) = serde_json::from_str::<Value>(&line) {
+                    if tx.send(v).is_err() {
+                        break;
+                    }
+                }
+            }
+        });
+        let stderr = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+        let keep = stderr.clone();
+        let mut err = child.stderr.take().expect("piped");
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while let Ok(n) = err.read(&mut buf) {
+                if n == 0 {
+                    break;
+                }
+                keep.lock()
+                    .unwrap()
+                    .push_str(&String::from_utf8_lossy(&buf[..n]));
+            }
+        });
+        Launcher {
+            child,
+            lines: rx,
+            seen: Vec::new(),
+            stderr,
+        }
+    }
+
+    fn stderr_tail(&self) -> String {
+        let s = self.stderr.lock().unwrap();
+        let start = s.len().saturating_sub(6000);
+        let start = (start..s.len())
+            .find(|i| s.is_char_boundary(*i))
+            .unwrap_or(s.len());
+        s[start..].to_owned()
+    }
+
+    /// The next JSON line satisfying `pred`, within `timeout`.
+    fn expect(&mut self, timeout: Duration, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(v) => {
+                    self.seen.push(v.clone());
+                    if pred(&v) {
+                        return v;
+                    }
+                }
+                Err(_) => panic!(
+                    "no {what} within {timeout:?}\nlines: {:?}\nstderr: {}",
+                    self.seen,
+                    self.stderr_tail()
+                ),
+            }
+        }
+    }
+
+    fn event(&mut self, timeout: Duration, name: &str) -> Value {
+        self.expect(timeout, name, |v| v["event"] == name)
+    }
+
+    fn wait_exit(&mut self, timeout: Duration) -> std::process::ExitStatus {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Ok(Some(s)) = self.child.try_wait() {
+                return s;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "usal run did not exit within {timeout:?}\nstderr: {}",
+                self.stderr_tail()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Every line left after exit.
+    fn drain(&mut self) {
+        while let Ok(v) = self.lines.recv_timeout(Duration::from_secs(5)) {
+            self.seen.push(v);
+        }
+    }
+
+    /// Pids the launcher reported starting, with their service labels.
+    fn pids(&self) -> Vec<(String, u32)> {
+        self.seen
+            .iter()
+            .filter(|v| v["event"] == "started")
+            .map(|v| {
+                (
+                    v["service"].as_str().unwrap_or_default().to_owned(),
+                    v["pid"].as_u64().unwrap_or(0) as u32,
+                )
+            })
+            .collect()
+    }
+
+    fn signal(&self, sig: &str) {
+        signal(self.child.id(), sig);
+    }
+}
+
+impl Drop for Launcher {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        for (_, pid) in self.pids() {
+            if alive(pid) {
+                signal(pid, "KILL");
+            }
+        }
+    }
+}
+
+fn signal(pid: u32, sig: &str) {
+    let _ = Command::new("kill")
+        .args([format!("-{sig}"), pid.to_string()])
+        .status();
+}
+
+/// Whether `pid` is a live process (a zombie counts as gone: it has exited).
+fn alive(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        Ok(stat) => stat
+            .rsplit_once(") ")
+            .is_some_and(|(_, rest)| !rest.starts_with('Z')),
+        Err(_) => false,
+    }
+}
+
+/// `fpma expand` of the demo plan: (leg, lat, lon) per waypoint.
+fn nominal(plan: &Path) -> Vec<(String, f64, f64)> {
+    let fpma = Path::new(USAL).with_file_name("fpma");
+    let out = Command::new(fpma)
+        .args(["expand", plan.to_str().unwrap(), "--vehicle", "rover"])
+        .output()
+        .expect("fpma expand");
+    assert!(out.status.success(), "{out:?}");
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| {
+            let v: Value = serde_json::from_str(l).unwrap();
+            (
+                v["leg"].as_str().unwrap().to_owned(),
+                v["lat"].as_f64().unwrap(),
+                v["lon"].as_f64().unwrap(),
+            )
+        })
+        .collect()
+}
+
+/// The summary's reached waypoints are the plan's, in order.
+fn check_summary(summary: &Value) {
+    let plan = nominal(&root().join("config/flightplans/rover-demo.xml"));
+    assert_eq!(summary["completed"], true, "{summary}");
+    assert_eq!(summary["in_order"], true, "{summary}");
+    let reached = summary["reached"].as_array().expect("reached");
+    assert_eq!(reached.len(), plan.len(), "{summary}");
+    assert_eq!(summary["planned"], plan.len());
+    let mut last_seq = None;
+    for (r, (leg, lat, lon)) in reached.iter().zip(&plan) {
+        assert_eq!(r["leg"].as_str(), Some(leg.as_str()), "{summary}");
+        let seq = r["seq"].as_u64().unwrap();
+        assert!(last_seq.is_none_or(|l| seq > l), "seqs increase: {summary}");
+        last_seq = Some(seq);
+        let (rlat, rlon) = (r["lat"].as_f64().unwrap(), r["lon"].as_f64().unwrap());
+        assert!(
+            (rlat - lat).abs() < 1e-6 && (rlon - lon).abs() < 1e-6,
+            "{r} vs {lat},{lon}"
+        );
+    }
+    let flown = summary["flown_m"].as_f64().unwrap();
+    let planned = summary["planned_m"].as_f64().unwrap();
+    assert!(flown > 300.0 && (flown - planned).abs() < 1.0, "{summary}");
+}
+
+fn assert_no_child_left(pids: &[(String, u32)]) {
+    assert!(pids.len() >= 3, "mavsim, vas and fpma reported: {pids:?}");
+    let left: Vec<_> = pids.iter().filter(|(_, p)| alive(*p)).collect();
+    assert!(left.is_empty(), "still running: {left:?}");
+}
+
+#[test]
+fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
+    let mut l = Launcher::start(&[
+        "config/missions/rover-demo.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    // Progress was shown waypoint by waypoint.
+    let n: Vec<u64> = l
+        .seen
+        .iter()
+        .filter(|v| v["event"] == "waypoint")
+        .filter_map(|v| v["n"].as_u64())
+        .collect();
+    assert_eq!(n, (1..=n.len() as u64).collect::<Vec<_>>());
+    assert_eq!(
+        n.len(),
+        summary["summary"]["planned"].as_u64().unwrap() as usize
+    );
+    let pids = l.pids();
+    assert_no_child_left(&pids);
+    // The merged log carries each child's prefix.
+    let err = l.stderr_tail();
+    assert!(
+        err.contains("[air/vas] ") && err.contains("[air/fpma] "),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
+    let mut l = Launcher::start(&[
+        "config/missions/rover-demo.xml",
+        "--until-complete",
+        "--speedup",
+        "10",
+    ]);
+    let vas = l.expect(STEP, "vas started", |v| {
+        v["event"] == "started" && v["service"] == "air/vas"
+    });
+    let pid = vas["pid"].as_u64().unwrap() as u32;
+    // In the middle of the scan.
+    l.expect(FLIGHT, "waypoint 5", |v| {
+        v["event"] == "waypoint" && v["n"].as_u64() >= Some(5)
+    });
+    signal(pid, "KILL");
+    let again = l.expect(STEP, "vas restarted", |v| {
+        v["event"] == "started" && v["service"] == "air/vas"
+    });
+    assert_ne!(again["pid"].as_u64(), Some(u64::from(pid)));
+    assert_eq!(again["restarts"], 1);
+    l.event(STEP, "vas_recovered");
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    assert_eq!(summary["summary"]["vas_recoveries"], 1);
+    // Each waypoint reported once, in order, the plan's legs; positions are those of the plan.
+    check_summary(&summary["summary"]);
+    assert_no_child_left(&l.pids());
+}
+
+fn tool(domain: &str, args: &[&str]) -> (bool, String) {
+    let mut child = Command::new(USAL)
+        .args(["--domain", domain])
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("usal tool");
+    let deadline = Instant::now() + STEP;
+    loop {
+        if let Ok(Some(_)) = child.try_wait() {
+            break;
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("usal {args:?} did not finish within {STEP:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = child.wait_with_output().expect("tool output");
+    (
+        out.status.success(),
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ),
+    )
+}
+
+#[test]
+fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
+    let mut l = Launcher::start(&["config/missions/rover-demo.xml", "--speedup", "2"]);
+    let domain = l.event(STEP, "mission")["domain"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+
+    let (ok, list) = tool(&domain, &["list"]);
+    assert!(ok, "{list}");
+    for needle in [
+        "service vas",
+        "service fpma",
+        "service station",
+        "rover1/vas/position",
+        "rover1/vas/change_state",
+        "rover1/vas/waypoint_reached",
+        "rover1/fpma/progress",
+        "rover1/fpma/plans",
+        "rover1/fpma/load_plan",
+    ] {
+        assert!(list.contains(needle), "`usal list` lacks {needle}:\n{list}");
+    }
+
+    let (ok, echo) = tool(&domain, &["echo", "rover1/vas/position", "--count", "2"]);
+    assert!(ok, "{echo}");
+    let samples: Vec<&str> = echo
+        .lines()
+        .filter(|l| l.starts_with("rover1/vas/position"))
+        .collect();
+    assert_eq!(samples.len(), 2, "{echo}");
+    assert!(
+        samples.iter().all(|s| s.contains("\"lat\":41.27")),
+        "{echo}"
+    );
+
+    let (ok, answer) = tool(
+        &domain,
+        &["call", "rover1/vas/change_state", r#"{"to":"PARKING"}"#],
+    );
+    assert!(ok, "{answer}");
+    assert!(
+        answer.contains(r#""from":"WAYPOINT_NAVIGATION""#) && answer.contains(r#""to":"PARKING""#),
+        "{answer}"
+    );
+    l.expect(STEP, "PARKING", |v| {
+        v["event"] == "state" && v["state"] == "PARKING"
+    });
+
+    // Ctrl-C: every child stopped, none left.
+    let pids = l.pids();
+    l.signal("INT");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}");
+    let stopped = l.seen.iter().filter(|v| v["event"] == "stopped").count();
+    assert_eq!(stopped, pids.len(), "{:?}", l.seen);
+    assert_no_child_left(&pids);
+}
+
+#[test]
+fn a_malformed_mission_file_names_element_and_line_and_starts_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.xml");
+    std::fs::write(
+        &bad,
+        "<mission name=\"bad\">\n  <node name=\"air\">\n    <mavsim vehicle=\"rover\"/>\n    <vas vehicle=\"rover\" queueSize=\"five\"/>\n  </node>\n</mission>\n",
+    )
+    .unwrap();
+    let out = Command::new(USAL)
+        .args(["run", bad.to_str().unwrap(), "--until-complete"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("bad.xml:4:5: <vas>:") && err.contains("queueSize"),
+        "{err}"
+    );
+    assert!(!err.contains("started"), "{err}");
+
+    std::fs::write(
+        &bad,
+        "<mission name=\"bad\">\n  <node name=\"air\">\n</mission>\n",
+    )
+    .unwrap();
+    let out = Command::new(USAL)
+        .args(["run", bad.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("bad.xml:3:") && err.contains("<node>"),
+        "{err}"
+    );
+}
