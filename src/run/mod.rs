@@ -69,6 +69,15 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
             return ExitCode::from(EXIT_USAGE);
         }
     };
+    if mission.radio.is_some() {
+        // Parsed and validated, but the launcher does not start marea-radio and the serial
+        // gateway yet: refuse rather than run the nodes joined some other way.
+        eprintln!(
+            "usal: {}: <radio> missions are not supported by `usal run` yet",
+            args.mission.display()
+        );
+        return ExitCode::from(EXIT_USAGE);
+    }
     if let Some(x) = args.speedup {
         if !(x.is_finite() && x >= 0.01) {
             eprintln!("usal: --speedup must be at least 0.01");
@@ -145,8 +154,8 @@ fn station_setup(
             )
         })
         .sum();
-    let _ = mission;
     Ok(StationSetup {
+        mission: mission.name.clone(),
         node: node.name.clone(),
         namespace: node.namespace.clone(),
         network: node.network.clone(),

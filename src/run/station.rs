@@ -36,6 +36,8 @@ const SETTLE: Duration = Duration::from_secs(2);
 
 /// What the station needs to know, resolved from the mission.
 pub struct StationSetup {
+    /// The mission's name.
+    pub mission: String,
     /// Its node name (the mission node hosting it).
     pub node: String,
     /// Its namespace.
@@ -609,7 +611,7 @@ async fn follow(
                 return Ok(Outcome::Completed(summary));
             }
             ui.note(
-                &summary.text(&s.plan_name),
+                &summary.text(&s.mission),
                 json!({"event": "summary", "summary": summary}),
             );
             ui.note(
