@@ -119,22 +119,39 @@ pub async fn request(addr: &str, method: &str, path: &str, body: Option<&str>) -
             body.len()
         );
         s.write_all(req.as_bytes()).await.expect("write");
-        let mut raw = Vec::new();
-        s.read_to_end(&mut raw).await.expect("read");
-        let text = String::from_utf8_lossy(&raw).into_owned();
-        let (head, rest) = text.split_once("\r\n\r\n").expect("HTTP head");
+        // Read the head, then exactly the body its length says (some servers, chromedriver
+        // among them, keep the connection open despite `Connection: close`).
+        let mut r = BufReader::new(s);
+        let mut head = String::new();
+        loop {
+            let mut line = String::new();
+            if r.read_line(&mut line).await.expect("read head") == 0 || line == "\r\n" {
+                break;
+            }
+            head.push_str(&line);
+        }
         let status: u16 = head
             .split_whitespace()
             .nth(1)
             .and_then(|c| c.parse().ok())
             .expect("status code");
-        let chunked = head
-            .to_ascii_lowercase()
-            .contains("transfer-encoding: chunked");
-        let body = if chunked {
-            dechunk(rest)
+        let lower = head.to_ascii_lowercase();
+        let length = lower
+            .lines()
+            .find_map(|l| l.strip_prefix("content-length:"))
+            .and_then(|n| n.trim().parse::<usize>().ok());
+        let mut raw = Vec::new();
+        if let Some(n) = length {
+            raw.resize(n, 0);
+            r.read_exact(&mut raw).await.expect("read body");
         } else {
-            rest.to_owned()
+            r.read_to_end(&mut raw).await.expect("read body");
+        }
+        let rest = String::from_utf8_lossy(&raw).into_owned();
+        let body = if lower.contains("transfer-encoding: chunked") {
+            dechunk(&rest)
+        } else {
+            rest
         };
         (status, body)
     })
@@ -327,4 +344,222 @@ pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
     )
     .await;
     (sim, vas)
+}
+
+/// A headless Chromium driven through chromedriver's WebDriver HTTP API (plain JSON over HTTP,
+/// spoken with [`request`]). `None` when chromedriver or chromium is not installed
+/// (`.ci/install-chromium` installs them).
+pub struct Browser {
+    driver: Proc,
+    addr: String,
+    session: String,
+}
+
+const ELEMENT_KEY: &str = "element-6066-11e4-a52e-4f735466cecf";
+
+impl Browser {
+    /// Starts chromedriver and a headless session, or `None` when they are missing.
+    pub async fn start() -> Option<Browser> {
+        let driver_bin = ["/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver"]
+            .into_iter()
+            .map(std::path::PathBuf::from)
+            .find(|p| p.exists())?;
+        let chromium = ["/usr/bin/chromium", "/usr/lib/chromium/chromium"]
+            .into_iter()
+            .find(|p| std::path::Path::new(p).exists())?;
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("free port")
+            .port();
+        let driver = Proc::start(&driver_bin, &[format!("--port={port}")], false).await;
+        let addr = format!("127.0.0.1:{port}");
+        // Its first line comes before it listens: wait until it accepts connections.
+        let deadline = tokio::time::Instant::now() + STEP;
+        while TcpStream::connect(&addr).await.is_err() {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "chromedriver never listened"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        let caps = serde_json::json!({"capabilities": {"alwaysMatch": {"goog:chromeOptions": {
+            "binary": chromium,
+            "args": ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                     "--window-size=1280,1000"],
+        }}}});
+        let (status, body) = request(&addr, "POST", "/session", Some(&caps.to_string())).await;
+        assert_eq!(status, 200, "new session: {body}");
+        let v: serde_json::Value = serde_json::from_str(&body).expect("session JSON");
+        let session = v["value"]["sessionId"]
+            .as_str()
+            .expect("sessionId")
+            .to_owned();
+        Some(Browser {
+            driver,
+            addr,
+            session,
+        })
+    }
+
+    async fn cmd(&self, method: &str, path: &str, body: serde_json::Value) -> serde_json::Value {
+        let path = format!("/session/{}{path}", self.session);
+        let b = body.to_string();
+        let (status, text) = request(
+            &self.addr,
+            method,
+            &path,
+            (method == "POST").then_some(b.as_str()),
+        )
+        .await;
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+        assert_eq!(status, 200, "{method} {path}: {text}");
+        v["value"].clone()
+    }
+
+    /// Opens `url`.
+    pub async fn goto(&self, url: &str) {
+        self.cmd("POST", "/url", serde_json::json!({ "url": url }))
+            .await;
+    }
+
+    /// Runs `script` (a function body) in the page and returns its value.
+    pub async fn eval(&self, script: &str) -> serde_json::Value {
+        self.cmd(
+            "POST",
+            "/execute/sync",
+            serde_json::json!({"script": script, "args": []}),
+        )
+        .await
+    }
+
+    /// Polls `script` until it returns something truthy (not null/false/""/0).
+    pub async fn wait_for(&self, what: &str, script: &str) -> serde_json::Value {
+        let deadline = tokio::time::Instant::now() + STEP;
+        loop {
+            let v = self.eval(script).await;
+            let truthy = match &v {
+                serde_json::Value::Null => false,
+                serde_json::Value::Bool(b) => *b,
+                serde_json::Value::String(s) => !s.is_empty(),
+                serde_json::Value::Number(n) => n.as_f64() != Some(0.0),
+                _ => true,
+            };
+            if truthy {
+                return v;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "page never showed {what}"
+            );
+            tokio::time::sleep(Duration::from_millis(150)).await;
+        }
+    }
+
+    /// The WebDriver id of the first element matching `css`.
+    pub async fn find(&self, css: &str) -> String {
+        let v = self
+            .cmd(
+                "POST",
+                "/element",
+                serde_json::json!({"using": "css selector", "value": css}),
+            )
+            .await;
+        v[ELEMENT_KEY].as_str().expect("element id").to_owned()
+    }
+
+    /// Clicks the first element matching `css`, as a user would.
+    pub async fn click(&self, css: &str) {
+        let id = self.find(css).await;
+        self.cmd(
+            "POST",
+            &format!("/element/{id}/click"),
+            serde_json::json!({}),
+        )
+        .await;
+    }
+
+    /// Types `text` into the element matching `css` (a file input takes a path).
+    pub async fn send_keys(&self, css: &str, text: &str) {
+        let id = self.find(css).await;
+        self.cmd(
+            "POST",
+            &format!("/element/{id}/value"),
+            serde_json::json!({ "text": text }),
+        )
+        .await;
+    }
+
+    /// Presses (`down`) or releases keys, WebDriver key values (`"\u{E00D}"` is Space).
+    pub async fn keys(&self, keys: &[&str], down: bool) {
+        let kind = if down { "keyDown" } else { "keyUp" };
+        let actions: Vec<_> = keys
+            .iter()
+            .map(|k| serde_json::json!({"type": kind, "value": k}))
+            .collect();
+        self.cmd(
+            "POST",
+            "/actions",
+            serde_json::json!({"actions": [{"type": "key", "id": "keyboard", "actions": actions}]}),
+        )
+        .await;
+    }
+
+    /// Saves a PNG screenshot to `path`.
+    pub async fn screenshot(&self, path: &std::path::Path) {
+        let v = self
+            .cmd("GET", "/screenshot", serde_json::Value::Null)
+            .await;
+        let png = base64_decode(v.as_str().expect("base64 screenshot"));
+        std::fs::write(path, png).expect("writing the screenshot");
+    }
+
+    /// Ends the session (Chromium exits) and chromedriver.
+    pub async fn close(self) {
+        drop(self);
+    }
+}
+
+impl Drop for Browser {
+    /// Ends the session even when a test panics, so no Chromium outlives the test: a blocking
+    /// DELETE with a short time limit (async is not available in `drop`), then chromedriver is
+    /// killed with its `Proc`.
+    fn drop(&mut self) {
+        use std::io::{Read, Write};
+        let Ok(mut s) = std::net::TcpStream::connect(&self.addr) else {
+            return;
+        };
+        let _ = s.set_read_timeout(Some(Duration::from_secs(5)));
+        let req = format!(
+            "DELETE /session/{} HTTP/1.1\r\nHost: {}\r\nContent-Length: 0\r\n\r\n",
+            self.session, self.addr
+        );
+        if s.write_all(req.as_bytes()).is_ok() {
+            // The answer comes once the browser has quit.
+            let mut buf = [0u8; 512];
+            let _ = s.read(&mut buf);
+        }
+    }
+}
+
+fn base64_decode(s: &str) -> Vec<u8> {
+    let val = |c: u8| match c {
+        b'A'..=b'Z' => Some(c - b'A'),
+        b'a'..=b'z' => Some(c - b'a' + 26),
+        b'0'..=b'9' => Some(c - b'0' + 52),
+        b'+' => Some(62),
+        b'/' => Some(63),
+        _ => None,
+    };
+    let mut out = Vec::with_capacity(s.len() * 3 / 4);
+    let (mut acc, mut bits) = (0u32, 0);
+    for v in s.bytes().filter_map(val) {
+        acc = (acc << 6) | u32::from(v);
+        bits += 6;
+        if bits >= 8 {
+            bits -= 8;
+            out.push((acc >> bits) as u8);
+            acc &= (1 << bits) - 1;
+        }
+    }
+    out
 }
