@@ -1,0 +1,128 @@
+//! The FPMo page in headless Chromium against `mavsim`, `vas` and `fpma run`: the car-park plan
+//! chosen in the page's file input is uploaded and loaded, its legs listed with the current one
+//! highlighted, the progress advances, "skip leg" changes the current leg, and the units change
+//! what the page shows; a screenshot is saved to `<target>/tmp/fpmo-page.png`. Skips (passing)
+//! without chromium and chromedriver (`.ci/install-chromium`).
+
+#[path = "../../fmo/tests/common/mod.rs"]
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operator_uploads_and_skips_from_the_page() {
+    tokio::time::timeout(Duration::from_secs(240), scenario())
+        .await
+        .expect("scenario timed out");
+}
+
+async fn scenario() {
+    let Some(browser) = Browser::start().await else {
+        eprintln!("skipped: chromium/chromedriver not installed (run .ci/install-chromium)");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let domain = unique_domain("fpmo-browser");
+    let (sim, vas) = rover(&domain, 5.0).await;
+    let fpma_args: Vec<String> = [
+        "run",
+        "--domain",
+        &domain,
+        "--namespace",
+        "rover1",
+        "--vehicle",
+        "rover",
+        "--plans-dir",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain([dir.path().display().to_string()])
+    .collect();
+    let fpma = Proc::start(&workspace_bin("fpma"), &fpma_args, false).await;
+    let st = Station::start(
+        env!("CARGO_BIN_EXE_fpmo"),
+        "FPMO_URL",
+        &["--domain", &domain],
+    )
+    .await;
+    browser.goto(&format!("http://{}/", st.addr)).await;
+    browser
+        .wait_for(
+            "the FPMa reachable",
+            "return document.getElementById('fpma').textContent === 'reachable';",
+        )
+        .await;
+
+    // Choose the plan file in the page: it is uploaded and loaded.
+    let plan = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/flightplans/rover-carpark.xml"
+    );
+    let plan = std::fs::canonicalize(plan).expect("rover-carpark.xml");
+    browser
+        .send_keys("#file", &plan.display().to_string())
+        .await;
+    browser
+        .wait_for(
+            "the upload confirmed",
+            "const c = document.querySelector('#commands li'); \
+             return c && c.dataset.status === 'ok' && c.textContent.includes('loaded as version');",
+        )
+        .await;
+    browser
+        .wait_for(
+            "the legs, the current one highlighted",
+            "return !!document.querySelector('#legs tr[data-leg=area]') && \
+             !!document.querySelector('#legs tr.current');",
+        )
+        .await;
+    browser
+        .wait_for(
+            "progress",
+            "return parseFloat(document.getElementById('pbar').style.width) > 0;",
+        )
+        .await;
+
+    // Skip the current leg from the page: confirmed, and another leg becomes current.
+    let cur = browser
+        .eval("return document.querySelector('#legs tr.current').dataset.leg;")
+        .await;
+    browser.click("#skip").await;
+    browser
+        .wait_for(
+            "skip confirmed",
+            "const c = document.querySelector('#commands li'); \
+             return c && c.textContent.includes('skip_leg') && c.dataset.status === 'ok';",
+        )
+        .await;
+    browser
+        .wait_for(
+            "another current leg",
+            &format!(
+                "const r = document.querySelector('#legs tr.current'); return r && r.dataset.leg !== {cur};"
+            ),
+        )
+        .await;
+
+    // Units: feet change the figures shown.
+    browser
+        .eval("const u = document.getElementById('units'); u.value = 'ft'; u.dispatchEvent(new Event('change')); return true;")
+        .await;
+    browser
+        .wait_for(
+            "distances in feet",
+            "return document.getElementById('progress').textContent.includes(' ft');",
+        )
+        .await;
+    let shot = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("fpmo-page.png");
+    browser.screenshot(&shot).await;
+    eprintln!("screenshot: {}", shot.display());
+
+    browser.close().await;
+    st.kill().await;
+    fpma.kill().await;
+    vas.kill().await;
+    sim.kill().await;
+}
