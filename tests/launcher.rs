@@ -21,7 +21,7 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// Builds mavsim, vas and fpma once into the directory holding `usal`, where it looks for them.
+/// Builds mavsim, vas, fpma, fmo and fpmo once into the directory holding `usal`, where it looks for them.
 fn build_services() {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
@@ -31,12 +31,15 @@ fn build_services() {
             .and_then(Path::parent)
             .expect("usal inside <target>/<profile>");
         let status = Command::new(env!("CARGO"))
-            .args(["build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "--bins"])
+            .args([
+                "build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "-p", "fmo", "-p", "fpmo",
+                "--bins",
+            ])
             .current_dir(root())
             .env("CARGO_TARGET_DIR", target)
             .status()
             .expect("running cargo build");
-        assert!(status.success(), "building mavsim, vas and fpma failed");
+        assert!(status.success(), "building the service binaries failed");
     });
 }
 

@@ -75,6 +75,16 @@ pub enum ServiceSpec {
     Fpma(FpmaSpec),
     /// The ground station (run inside the launcher).
     Station(StationSpec),
+    /// The Flight Monitor web station (`fmo`); `listen` is its HTTP address.
+    Fmo {
+        /// HTTP address (port 0: any free port).
+        listen: String,
+    },
+    /// The Flight Plan Monitor web station (`fpmo`).
+    Fpmo {
+        /// HTTP address (port 0: any free port).
+        listen: String,
+    },
 }
 
 impl ServiceSpec {
@@ -85,6 +95,8 @@ impl ServiceSpec {
             ServiceSpec::Vas(_) => "vas",
             ServiceSpec::Fpma(_) => "fpma",
             ServiceSpec::Station(_) => "station",
+            ServiceSpec::Fmo { .. } => "fmo",
+            ServiceSpec::Fpmo { .. } => "fpmo",
         }
     }
 }
@@ -593,11 +605,27 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 a.finish()?;
                 ServiceSpec::Station(spec)
             }
+            kind @ ("fmo" | "fpmo") => {
+                let mut a = Attrs::new(s, &["listen"]);
+                let listen = a.opt("listen").unwrap_or_else(|| "127.0.0.1:0".into());
+                a.finish()?;
+                if listen.parse::<std::net::SocketAddr>().is_err() {
+                    return Err(Fault::at(
+                        s,
+                        format!("listen `{listen}` is not an address such as 127.0.0.1:8081"),
+                    ));
+                }
+                if kind == "fmo" {
+                    ServiceSpec::Fmo { listen }
+                } else {
+                    ServiceSpec::Fpmo { listen }
+                }
+            }
             other => {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma or station)"
+                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma, station, fmo or fpmo)"
                 ),
                 ))
             }

@@ -433,6 +433,16 @@ async fn start_services(
                     a.extend(["--plans-dir".into(), plans.display().to_string()]);
                     common(&mut a);
                 }
+                // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.
+                ServiceSpec::Fmo { listen } | ServiceSpec::Fpmo { listen } => {
+                    a.extend([
+                        "--listen".into(),
+                        listen.clone(),
+                        "--node".into(),
+                        format!("{}-{}", node.name, svc.kind()),
+                    ]);
+                    common(&mut a);
+                }
             }
             sup.start(ChildSpec {
                 label,

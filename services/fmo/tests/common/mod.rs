@@ -401,7 +401,12 @@ impl Browser {
         })
     }
 
-    async fn cmd(&self, method: &str, path: &str, body: serde_json::Value) -> serde_json::Value {
+    async fn try_cmd(
+        &self,
+        method: &str,
+        path: &str,
+        body: serde_json::Value,
+    ) -> (u16, serde_json::Value, String) {
         let path = format!("/session/{}{path}", self.session);
         let b = body.to_string();
         let (status, text) = request(
@@ -412,6 +417,11 @@ impl Browser {
         )
         .await;
         let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+        (status, v, text)
+    }
+
+    async fn cmd(&self, method: &str, path: &str, body: serde_json::Value) -> serde_json::Value {
+        let (status, v, text) = self.try_cmd(method, path, body).await;
         assert_eq!(status, 200, "{method} {path}: {text}");
         v["value"].clone()
     }
@@ -469,13 +479,25 @@ impl Browser {
 
     /// Clicks the first element matching `css`, as a user would.
     pub async fn click(&self, css: &str) {
-        let id = self.find(css).await;
-        self.cmd(
-            "POST",
-            &format!("/element/{id}/click"),
-            serde_json::json!({}),
-        )
-        .await;
+        // The page redraws its buttons on every update, so an element found a moment ago may be
+        // replaced before the click lands ("stale element reference"): find it again, a bounded
+        // number of times.
+        for attempt in 0..20 {
+            let id = self.find(css).await;
+            let (status, v, text) = self
+                .try_cmd(
+                    "POST",
+                    &format!("/element/{id}/click"),
+                    serde_json::json!({}),
+                )
+                .await;
+            if status == 200 {
+                return;
+            }
+            let stale = v["value"]["error"] == "stale element reference";
+            assert!(stale && attempt < 19, "click {css}: {text}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
     }
 
     /// Types `text` into the element matching `css` (a file input takes a path).
