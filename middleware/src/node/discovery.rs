@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::{NodeInner, Peer};
+use super::{lock, NodeInner, Peer};
 use crate::api::CallError;
 use crate::codec::encode_message;
 use crate::link::PeerAddr;
@@ -31,12 +31,17 @@ pub(crate) fn path_rank(addr: &PeerAddr) -> u8 {
 impl NodeInner {
     /// The Hello sent on `link` (it carries that link's lease).
     pub fn hello(&self, link: usize) -> Message {
+        self.hello_at(link, self.counter())
+    }
+
+    /// The Hello for `link` with a given declaration counter (when the log is already locked).
+    pub fn hello_at(&self, link: usize, counter: u32) -> Message {
         Message::Hello {
             node_id: self.me.id,
             domain: self.me.domain.clone(),
             node: self.me.name.clone(),
             namespace: self.me.namespace.clone().unwrap_or_default(),
-            counter: self.counter(),
+            counter,
             lease_ms: u32::try_from(self.me.timing(link).1.as_millis()).unwrap_or(u32::MAX),
         }
     }
@@ -89,6 +94,11 @@ impl NodeInner {
                     }
                 }
                 tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
+                // Registering the peer and sending it our Hello and declarations happen under the
+                // declaration log's lock, as `declare` pushes its deltas under it too: a delta
+                // can then neither overtake our Hello (the peer would drop it, not knowing us)
+                // nor fall between the snapshot and the push.
+                let log = lock(&self.decls);
                 self.peers.insert(
                     node_id,
                     Peer {
@@ -108,10 +118,8 @@ impl NodeInner {
                     },
                 );
                 self.addrs.insert((link, from), node_id);
-                // Our Hello is the first message of our session towards it, so it knows us
-                // before anything else we send; then our declarations, then ask for its own.
-                self.send_safe(link, from, &self.hello(link));
-                self.send_declarations(link, from, 0);
+                self.introduce_locked(&log, link, from);
+                drop(log);
                 self.send_safe(link, from, &Message::DeclRequest { since: 0 });
                 self.bump();
             }
@@ -193,8 +201,9 @@ impl NodeInner {
             self.fail_calls_to(node, "session reset by the peer");
         }
         // It dropped us (and our declarations) before starting over.
-        self.send_safe(link, from, &self.hello(link));
-        self.send_declarations(link, from, 0);
+        let log = lock(&self.decls);
+        self.introduce_locked(&log, link, from);
+        drop(log);
         // What we had in flight towards it is lost, a late joiner's value among them: serve the
         // newest value of every variable it subscribes to again.
         if let Some(node) = node {

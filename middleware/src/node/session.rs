@@ -53,22 +53,44 @@ fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
 impl NodeInner {
     /// Appends a declaration to the log and pushes it to every known peer.
     pub fn declare(&self, decl: Declaration) {
-        let entry = {
-            let mut log = lock(&self.decls);
-            log.counter += 1;
-            let entry = LoggedDeclaration {
-                counter: log.counter,
-                decl,
-            };
-            log.entries.push(entry.clone());
-            entry
+        // The log stays locked while the delta is pushed: see `introduce_locked`.
+        let mut log = lock(&self.decls);
+        log.counter += 1;
+        let entry = LoggedDeclaration {
+            counter: log.counter,
+            decl,
         };
+        log.entries.push(entry.clone());
         let msg = Message::DeclBatch {
             entries: vec![entry],
         };
         let targets: Vec<_> = self.peers.iter().map(|p| (p.link, p.addr)).collect();
         for (link, addr) in targets {
             self.send_safe(link, addr, &msg);
+        }
+    }
+
+    /// Sends a peer our Hello, then every declaration we have, with the log locked by the
+    /// caller (who registered the peer under the same lock).
+    pub fn introduce_locked(&self, log: &DeclarationLog, link: usize, addr: crate::link::PeerAddr) {
+        self.send_safe(link, addr, &self.hello_at(link, log.counter));
+        if log.entries.is_empty() {
+            self.send_safe(
+                link,
+                addr,
+                &Message::DeclBatch {
+                    entries: Vec::new(),
+                },
+            );
+        }
+        for chunk in log.entries.chunks(BATCH_ENTRIES) {
+            self.send_safe(
+                link,
+                addr,
+                &Message::DeclBatch {
+                    entries: chunk.to_vec(),
+                },
+            );
         }
     }
 
@@ -270,6 +292,7 @@ impl NodeInner {
         // A late joiner's first value goes on the safe class: it must arrive (the subscriber
         // gets the last value at once) and after our declarations in the same ordered stream.
         for (link, addr, msg) in late_remote {
+            tracing::debug!(%addr, "late joiner served the last value");
             self.send_to(link, addr, Outgoing::Safe { msg, done: None });
         }
         self.bump();
@@ -399,6 +422,7 @@ impl NodeInner {
                 p.requested = None;
             }
         }
+        tracing::debug!(peer = format_args!("{node:016x}"), changed, gap_request = ?request, "declarations applied");
         if let Some(since) = request {
             self.send_safe_to_node(node, &Message::DeclRequest { since });
         }
@@ -419,6 +443,11 @@ impl NodeInner {
                 p.name.clone(),
             ))
         }) else {
+            tracing::debug!(
+                peer = format_args!("{node:016x}"),
+                id,
+                "data for an unknown or unrouted offer dropped"
+            );
             return;
         };
         let received = Instant::now();
