@@ -353,7 +353,10 @@ mod tests {
             next: 0,
             sack: 0
         }));
-        assert!(!w.push_safe(0, &[0; 500]), "an ack already takes the datagram's room");
+        assert!(
+            !w.push_safe(0, &[0; 500]),
+            "an ack already takes the datagram's room"
+        );
     }
 
     #[test]
