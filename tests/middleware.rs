@@ -117,7 +117,8 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
         ],
     );
     publ.expect_key(T, "subscribers");
-    std::thread::sleep(Duration::from_millis(300));
+    // Kill the victim mid-stream: once it has received events and more are in flight.
+    victim.expect_key(T, "first");
     victim.kill9();
     let killed_at = std::time::Instant::now();
     let failed = publ.expect_key(T, "failed");
@@ -248,7 +249,8 @@ fn provider_killed_mid_call_yields_link_lost() {
             "5000",
         ],
     );
-    std::thread::sleep(Duration::from_millis(500));
+    // Kill the provider while the call is in its handler.
+    slow.expect_key(T, "called");
     slow.kill9();
     let r = c.expect_key(T, "error");
     assert_eq!(r["error"], "link_lost", "{r}");

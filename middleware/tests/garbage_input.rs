@@ -93,18 +93,14 @@ fn hostile_datagrams_are_dropped_and_the_node_keeps_serving() {
         })
         .unwrap();
     rt.block_on(async {
-        // Still serving: a new value reaches the subscriber.
-        for i in 0..50u64 {
-            var.set(&(1000 + i)).unwrap();
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
+        // Still serving: a value published after the garbage reaches the subscriber (older
+        // values may still be queued ahead of it; the subscription keeps the newest).
+        var.set(&1000).unwrap();
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
         let mut last = 0;
-        while let Some(s) = sub.try_recv() {
-            last = s.unwrap().value;
-        }
-        if last < 1000 {
+        while last < 1000 && tokio::time::Instant::now() < deadline {
             last = sub
-                .recv_timeout(Duration::from_secs(5))
+                .recv_timeout(Duration::from_secs(10))
                 .await
                 .unwrap()
                 .value;

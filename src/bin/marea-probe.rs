@@ -362,6 +362,8 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let _f = svc.provide_function(item, move |x: u64| {
                 let fail = fail.clone();
                 async move {
+                    // Tests wait for this line to know a call is in flight.
+                    out(json!({"called": x}));
                     tokio::time::sleep(delay).await;
                     match fail {
                         Some(m) => Err(m),
