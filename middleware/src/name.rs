@@ -5,8 +5,6 @@
 //! ground station can follow a fleet with `*/vas/position` or everything of one vehicle with
 //! `rover1/**`.
 
-use std::fmt;
-
 /// Why a name or pattern was refused.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum NameParseError {
@@ -98,20 +96,6 @@ fn match_segments(p: &[&str], n: &[&str]) -> bool {
             Some(&first) if seg == "*" || seg == first => match_segments(&p[1..], &n[1..]),
             _ => false,
         },
-    }
-}
-
-/// Whether a pattern contains wildcards.
-pub fn is_pattern(s: &str) -> bool {
-    s.split('/').any(|seg| seg == "*" || seg == "**")
-}
-
-/// A displayable wrapper used in messages.
-pub struct Quoted<'a>(pub &'a str);
-
-impl fmt::Display for Quoted<'_> {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "'{}'", self.0)
     }
 }
 

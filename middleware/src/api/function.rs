@@ -93,17 +93,7 @@ impl<A: Payload, R: Payload> Function<A, R> {
 
     /// Waits until a provider is known; returns whether one appeared within `timeout`.
     pub async fn wait_provider(&self, timeout: Duration) -> bool {
-        let mut rx = self.node.changed.subscribe();
-        let deadline = tokio::time::Instant::now() + timeout;
-        loop {
-            if self.has_provider() {
-                return true;
-            }
-            match tokio::time::timeout_at(deadline, rx.changed()).await {
-                Ok(Ok(())) => {}
-                _ => return self.has_provider(),
-            }
-        }
+        self.node.wait_for(timeout, || self.has_provider()).await
     }
 
     /// Calls the function and waits at most `timeout` for the answer.

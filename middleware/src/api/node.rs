@@ -91,10 +91,6 @@ pub struct Catalog {
     pub nodes: Vec<NodeDescription>,
 }
 
-fn arq_for_lan() -> ArqConfig {
-    ArqConfig::lan()
-}
-
 /// The ports and engine tuning of a `<serial>` or `<serialduo>` link, if `lc` is one.
 fn serial_setup(lc: &LinkConfig) -> Option<(&str, SerialPorts, StpConfig)> {
     match lc {
@@ -199,7 +195,7 @@ impl Node {
                             ttl: e.ttl,
                             peers: e.peers.clone(),
                             mtu: 1400,
-                            arq: arq_for_lan(),
+                            arq: ArqConfig::lan(),
                         },
                         handler,
                         &inner.tasks,
@@ -326,17 +322,7 @@ impl Node {
     /// Waits until `pred` holds on this node's view of the network, re-checking whenever the
     /// peer table or the routes change. Returns whether it held within `timeout`.
     pub async fn wait_until(&self, timeout: Duration, mut pred: impl FnMut(&Node) -> bool) -> bool {
-        let mut rx = self.inner.changed.subscribe();
-        let deadline = tokio::time::Instant::now() + timeout;
-        loop {
-            if pred(self) {
-                return true;
-            }
-            match tokio::time::timeout_at(deadline, rx.changed()).await {
-                Ok(Ok(())) => continue,
-                _ => return pred(self),
-            }
-        }
+        self.inner.wait_for(timeout, || pred(self)).await
     }
 
     /// Whether some peer offers an item of `kind` whose name matches `pattern`.

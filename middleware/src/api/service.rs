@@ -3,7 +3,6 @@
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, Weak};
-use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
@@ -406,7 +405,4 @@ impl Service {
             items,
         }
     }
-
-    /// Default deadline for calls made through this service.
-    pub const DEFAULT_CALL_TIMEOUT: Duration = Duration::from_secs(5);
 }

@@ -105,15 +105,6 @@ pub(crate) async fn wait_remote(
     n: usize,
     timeout: Duration,
 ) -> bool {
-    let mut rx = node.changed.subscribe();
-    let deadline = tokio::time::Instant::now() + timeout;
-    loop {
-        if lock(&offer.remote).len() >= n {
-            return true;
-        }
-        match tokio::time::timeout_at(deadline, rx.changed()).await {
-            Ok(Ok(())) => {}
-            _ => return lock(&offer.remote).len() >= n,
-        }
-    }
+    node.wait_for(timeout, || lock(&offer.remote).len() >= n)
+        .await
 }

@@ -182,6 +182,22 @@ impl NodeInner {
         self.links.get().map(|v| v.as_slice()).unwrap_or(&[])
     }
 
+    /// Waits until `pred` holds, re-checking whenever the peer table or the routes change;
+    /// returns whether it held within `timeout`.
+    pub async fn wait_for(&self, timeout: Duration, mut pred: impl FnMut() -> bool) -> bool {
+        let mut rx = self.changed.subscribe();
+        let deadline = tokio::time::Instant::now() + timeout;
+        while !pred() {
+            if !matches!(
+                tokio::time::timeout_at(deadline, rx.changed()).await,
+                Ok(Ok(()))
+            ) {
+                return pred();
+            }
+        }
+        true
+    }
+
     pub fn bump(&self) {
         self.changed.send_modify(|v| *v += 1);
     }

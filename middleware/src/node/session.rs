@@ -71,10 +71,22 @@ impl NodeInner {
     }
 
     /// Sends a peer our Hello, then every declaration we have, with the log locked by the
-    /// caller (who registered the peer under the same lock).
+    /// caller (who registered the peer under the same lock). Whatever we send it later (a late
+    /// joiner's value, events, replies) comes after the declarations that give its ids a meaning.
     pub fn introduce_locked(&self, log: &DeclarationLog, link: usize, addr: crate::link::PeerAddr) {
         self.send_safe(link, addr, &self.hello_at(link, log.counter));
-        if log.entries.is_empty() {
+        self.send_batches(link, addr, &log.entries);
+    }
+
+    /// Sends declarations in batches of [`BATCH_ENTRIES`], or one empty batch when there are
+    /// none, so the peer knows it is up to date.
+    fn send_batches(
+        &self,
+        link: usize,
+        addr: crate::link::PeerAddr,
+        entries: &[LoggedDeclaration],
+    ) {
+        if entries.is_empty() {
             self.send_safe(
                 link,
                 addr,
@@ -83,7 +95,7 @@ impl NodeInner {
                 },
             );
         }
-        for chunk in log.entries.chunks(BATCH_ENTRIES) {
+        for chunk in entries.chunks(BATCH_ENTRIES) {
             self.send_safe(
                 link,
                 addr,
@@ -315,36 +327,19 @@ impl NodeInner {
         }
     }
 
+    /// Answers a peer's request with our declarations after `since` (an empty batch when
+    /// there are none, so it knows it is up to date).
     pub fn answer_decl_request(&self, node: NodeId, since: u32) {
-        if let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) {
-            self.send_declarations(link, addr, since);
-        }
-    }
-
-    /// Sends our declarations after `since` on the safe class (an empty batch when there are
-    /// none, so the asker knows it is up to date). A new peer gets them unasked, right after
-    /// our Hello: whatever we send it later (a late joiner's value, events, replies) then comes
-    /// after the declarations that give its ids a meaning.
-    pub fn send_declarations(&self, link: usize, addr: crate::link::PeerAddr, since: u32) {
+        let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
+            return;
+        };
         let entries: Vec<LoggedDeclaration> = lock(&self.decls)
             .entries
             .iter()
             .filter(|e| e.counter > since)
             .cloned()
             .collect();
-        if entries.is_empty() {
-            self.send_safe(link, addr, &Message::DeclBatch { entries });
-            return;
-        }
-        for chunk in entries.chunks(BATCH_ENTRIES) {
-            self.send_safe(
-                link,
-                addr,
-                &Message::DeclBatch {
-                    entries: chunk.to_vec(),
-                },
-            );
-        }
+        self.send_batches(link, addr, &entries);
     }
 
     pub fn apply_decl_batch(&self, node: NodeId, mut entries: Vec<LoggedDeclaration>) {
