@@ -53,6 +53,7 @@ fn registry() -> Vec<Known> {
         Severity,
         Alarm,
         ManualControl,
+        ManualCommand,
         StateChangeRequest,
         StateChangeReply,
         StateChanged,

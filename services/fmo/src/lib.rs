@@ -4,8 +4,8 @@
 //! Layers: [`model`] is the station's picture of the fleet (pure, tested on a fake clock);
 //! [`web`] serves the page, its JSON API and its live channel (server-sent events); this file
 //! opens the middleware node, subscribes to what the page shows (and nothing else: 003 §6.2.4),
-//! calls the VAS's functions and publishes `fmo/manual_control` at 20 Hz while the dead-man is
-//! held. Items and options are listed in `services/fmo/README.md`.
+//! calls the VAS's functions and publishes `fmo/manual_control` (addressed to the commanded
+//! vehicle only) at 20 Hz while the dead-man is held. Items and options are listed in `services/fmo/README.md`.
 //!
 //! ```no_run
 //! # async fn f() -> anyhow::Result<()> {
@@ -30,7 +30,7 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionTime, Position, Speeds,
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionTime, Position, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged,
 };
 
@@ -237,7 +237,7 @@ async fn allowed_loop(me: Arc<Shared>) {
 }
 
 /// Publishes the sticks at 20 Hz while the dead-man is held (then neutral briefly).
-async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualControl>) {
+async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
     let mut tick = tokio::time::interval(MANUAL_PERIOD);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
@@ -361,7 +361,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         "alarm",
         Item::Alarm,
     );
-    let manual = svc.publish_variable::<ManualControl>("manual_control")?;
+    let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
     shared.tasks.spawn(allowed_loop(shared.clone()));
     shared.tasks.spawn(manual_loop(shared.clone(), manual));
     tracing::info!("fmo up on http://{addr}/, following {vas}");

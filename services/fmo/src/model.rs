@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionTime, Position, Severity,
-    Speeds, StateChanged,
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, ManualControl, MissionTime,
+    Position, Severity, Speeds, StateChanged,
 };
 
 /// Alarms kept per vehicle (oldest dropped first).
@@ -136,7 +136,13 @@ struct Manual {
     input_at: Option<Instant>,
     released_at: Option<Instant>,
     active: bool,
-    last_sent: Option<(ManualControl, Instant)>,
+    /// The vehicle the sticks go to: the commanded one while the dead-man is held, kept after a
+    /// release so the neutral tail reaches the vehicle that was driven.
+    target: Option<String>,
+    /// The commanded vehicle changed while the dead-man was held: it must be released once
+    /// before the sticks drive the new one (a held key never jumps from vehicle to vehicle).
+    rearm: bool,
+    last_sent: Option<(ManualCommand, Instant)>,
     sent: u64,
 }
 
@@ -174,10 +180,10 @@ pub enum Item {
 }
 
 /// What the manual-control loop does on one tick.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum ManualTick {
     /// Publish this sample.
-    Send(ManualControl),
+    Send(ManualCommand),
     /// Publish nothing.
     Idle,
 }
@@ -261,8 +267,12 @@ struct ManualView {
     input: StickInput,
     input_age_ms: Option<u64>,
     sent: u64,
-    last_sent: Option<ManualControl>,
-    /// Vehicles in MANUAL_NAVIGATION: they all obey the station's `manual_control`.
+    last_sent: Option<ManualCommand>,
+    /// The vehicle the sticks go to (label), if any.
+    target: Option<String>,
+    /// The dead-man must be released before the sticks drive the newly commanded vehicle.
+    rearm: bool,
+    /// Vehicles in MANUAL_NAVIGATION (each obeys only the samples addressed to it).
     listening: Vec<String>,
 }
 
@@ -307,7 +317,11 @@ impl Station {
             return Err(format!("unknown vehicle `{prefix}`"));
         }
         if self.selected.as_deref() != Some(prefix) {
-            // Sticks never carry over to another vehicle.
+            // Sticks never carry over to another vehicle: the one driven gets its neutral tail,
+            // the new one nothing until the dead-man is released and held again.
+            if self.manual.input.deadman || self.manual.active {
+                self.manual.rearm = true;
+            }
             self.manual.input.deadman = false;
             self.selected = Some(prefix.to_owned());
         }
@@ -466,22 +480,27 @@ impl Station {
 
     /// Stick input from the page.
     pub fn manual_input(&mut self, input: StickInput, now: Instant) {
+        if !input.deadman {
+            self.manual.rearm = false;
+        }
         self.manual.input = input.clamped();
         self.manual.input_at = Some(now);
     }
 
-    /// What to publish on this tick of the 20 Hz loop: the sticks while the dead-man is held
-    /// and the page keeps sending; neutral for [`MANUAL_NEUTRAL_TAIL`] after a release or a
-    /// silent page; nothing otherwise (so an idle station loads no link).
+    /// What to publish on this tick of the 20 Hz loop, addressed to the commanded vehicle:
+    /// the sticks while the dead-man is held and the page keeps sending; neutral for
+    /// [`MANUAL_NEUTRAL_TAIL`] after a release, a silent page or a change of vehicle (to the
+    /// vehicle that was driven); nothing otherwise (so an idle station loads no link).
     pub fn manual_tick(&mut self, now: Instant, timestamp_ms: u64) -> ManualTick {
         let m = &mut self.manual;
         let fresh = m
             .input_at
             .is_some_and(|t| now.saturating_duration_since(t) <= MANUAL_INPUT_TIMEOUT);
-        let held = m.input.deadman && fresh;
-        let sample = if held {
+        let held = m.input.deadman && fresh && !m.rearm && self.selected.is_some();
+        let sticks = if held {
             m.active = true;
             m.released_at = None;
+            m.target.clone_from(&self.selected);
             ManualControl {
                 roll: m.input.roll,
                 pitch: m.input.pitch,
@@ -503,8 +522,12 @@ impl Station {
         } else {
             return ManualTick::Idle;
         };
+        let Some(target) = m.target.clone() else {
+            return ManualTick::Idle;
+        };
+        let sample = ManualCommand { target, sticks };
         m.sent += 1;
-        m.last_sent = Some((sample, now));
+        m.last_sent = Some((sample.clone(), now));
         ManualTick::Send(sample)
     }
 
@@ -613,7 +636,9 @@ impl Station {
                 input: m.input.clone(),
                 input_age_ms: m.input_at.map(|t| ms(now.saturating_duration_since(t))),
                 sent: m.sent,
-                last_sent: m.last_sent.map(|(s, _)| s),
+                last_sent: m.last_sent.as_ref().map(|(s, _)| s.clone()),
+                target: m.target.as_deref().map(label_of),
+                rearm: m.rearm,
                 listening: self
                     .vehicles
                     .iter()
@@ -733,7 +758,6 @@ mod tests {
         let t = t0();
         let ms = Duration::from_millis;
         let mut s = Station::new(Duration::from_secs(2), t);
-        assert_eq!(s.manual_tick(t, 1), ManualTick::Idle, "idle sends nothing");
         let held = StickInput {
             throttle: 0.5,
             roll: 7.0, // clamped
@@ -741,10 +765,21 @@ mod tests {
             ..Default::default()
         };
         s.manual_input(held.clone(), t);
+        assert_eq!(
+            s.manual_tick(t, 1),
+            ManualTick::Idle,
+            "no vehicle to address: nothing sent"
+        );
+        s.update("r/vas", "n", Item::FlightState(FlightState::Parking), t);
+        s.manual_input(StickInput::default(), t);
+        assert_eq!(s.manual_tick(t, 1), ManualTick::Idle, "idle sends nothing");
+        s.manual_input(held.clone(), t);
         let ManualTick::Send(c) = s.manual_tick(t + ms(10), 2) else {
             panic!("held sticks are sent")
         };
-        assert_eq!((c.throttle, c.roll, c.timestamp_ms), (0.5, 1.0, 2));
+        assert_eq!(c.target, "r/vas", "addressed to the commanded vehicle");
+        let k = c.sticks;
+        assert_eq!((k.throttle, k.roll, k.timestamp_ms), (0.5, 1.0, 2));
         // Stick input without the dead-man is neutral.
         s.manual_input(
             StickInput {
@@ -756,38 +791,54 @@ mod tests {
         let ManualTick::Send(c) = s.manual_tick(t + ms(60), 3) else {
             panic!("neutral tail")
         };
-        assert_eq!(c.throttle, 0.0);
+        assert_eq!((c.target.as_str(), c.sticks.throttle), ("r/vas", 0.0));
         assert_eq!(s.manual_tick(t + ms(2000), 4), ManualTick::Idle);
 
         // A page that falls silent while holding is released too.
         s.manual_input(held, t + ms(3000));
         assert!(matches!(
             s.manual_tick(t + ms(3100), 5),
-            ManualTick::Send(c) if c.throttle == 0.5
+            ManualTick::Send(c) if c.sticks.throttle == 0.5
         ));
         let ManualTick::Send(c) = s.manual_tick(t + ms(3500), 6) else {
             panic!("neutral tail after silence")
         };
-        assert_eq!(c.throttle, 0.0);
+        assert_eq!(c.sticks.throttle, 0.0);
         assert_eq!(s.manual_tick(t + ms(5000), 7), ManualTick::Idle);
     }
 
     #[test]
-    fn selecting_another_vehicle_drops_the_deadman() {
+    fn switching_vehicle_releases_the_first_and_rearms_before_the_second() {
         let t = t0();
+        let ms = Duration::from_millis;
         let mut s = Station::new(Duration::from_secs(2), t);
         s.update("a/vas", "n", Item::FlightState(FlightState::Parking), t);
         s.update("b/vas", "n", Item::FlightState(FlightState::Parking), t);
-        s.manual_input(
-            StickInput {
-                deadman: true,
-                ..Default::default()
-            },
-            t,
-        );
+        let held = StickInput {
+            throttle: 0.5,
+            deadman: true,
+            ..Default::default()
+        };
+        s.manual_input(held.clone(), t);
+        assert!(matches!(s.manual_tick(t, 1), ManualTick::Send(c) if c.target == "a/vas"));
         assert!(s.select("nope").is_err());
         s.select("b/vas").unwrap();
         assert_eq!(s.selected(), Some("b/vas"));
         assert!(!s.manual.input.deadman);
+        // The page keeps posting the held key: the old vehicle gets neutral, the new nothing.
+        s.manual_input(held.clone(), t + ms(20));
+        let ManualTick::Send(c) = s.manual_tick(t + ms(50), 2) else {
+            panic!("neutral tail to the vehicle driven")
+        };
+        assert_eq!((c.target.as_str(), c.sticks.throttle), ("a/vas", 0.0));
+        let j = serde_json::to_value(s.snapshot(t + ms(50))).unwrap();
+        assert_eq!(j["manual"]["rearm"], true);
+        // Released, then held again: now the new vehicle is driven.
+        s.manual_input(StickInput::default(), t + ms(60));
+        s.manual_input(held, t + ms(70));
+        let ManualTick::Send(c) = s.manual_tick(t + ms(100), 3) else {
+            panic!("sticks for the new vehicle")
+        };
+        assert_eq!((c.target.as_str(), c.sticks.throttle), ("b/vas", 0.5));
     }
 }

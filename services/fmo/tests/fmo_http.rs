@@ -10,7 +10,7 @@ use std::time::Duration;
 use common::*;
 use marea::{NetworkConfig, Node};
 use usal_types::{
-    Alarm, AutopilotStatus, FlightState, ManualControl, Position, Severity, StateChangeReply,
+    Alarm, AutopilotStatus, FlightState, ManualCommand, Position, Severity, StateChangeReply,
     StateChangeRequest,
 };
 
@@ -128,7 +128,7 @@ async fn scenario() {
     // The vehicles' side of manual control.
     let ground = n1.service("probe").unwrap();
     let sticks = ground
-        .subscribe_variable::<ManualControl>("**/fmo/manual_control")
+        .subscribe_variable::<ManualCommand>("**/fmo/manual_control")
         .unwrap();
 
     let fmo = Station::start(
@@ -302,12 +302,17 @@ async fn scenario() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     assert!(
-        got.iter().any(|c| c.throttle == 0.5 && c.roll == -0.25),
+        got.iter()
+            .any(|c| c.sticks.throttle == 0.5 && c.sticks.roll == -0.25),
         "held sticks reach the vehicle: {got:?}"
     );
     assert!(
+        got.iter().all(|c| c.target == "rover1/vas"),
+        "addressed to the commanded vehicle only: {got:?}"
+    );
+    assert!(
         got.windows(2)
-            .all(|w| w[0].timestamp_ms <= w[1].timestamp_ms),
+            .all(|w| w[0].sticks.timestamp_ms <= w[1].sticks.timestamp_ms),
         "timestamps increase"
     );
     fmo.post(
@@ -318,7 +323,7 @@ async fn scenario() {
     let deadline = tokio::time::Instant::now() + STEP;
     loop {
         let s = sticks.recv_timeout(STEP).await.expect("manual_control");
-        if s.value.throttle == 0.0 && s.value.roll == 0.0 {
+        if s.value.sticks.throttle == 0.0 && s.value.sticks.roll == 0.0 {
             break;
         }
         assert!(tokio::time::Instant::now() < deadline, "never neutral");

@@ -317,7 +317,8 @@ pub struct Alarm {
     pub text: String,
 }
 
-/// Joystick values from the Flight Monitor (variable `manual_control`): newest wins.
+/// Joystick values from the Flight Monitor, as the autopilot layer applies them; they travel
+/// addressed to one vehicle inside a [`ManualCommand`].
 ///
 /// Axes are in -1..1 (throttle too: -1 full reverse for a rover, 0 idle), 0 centred.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -333,6 +334,28 @@ pub struct ManualControl {
     /// Sender's time, ms since the Unix epoch; only orders samples, staleness is judged
     /// on arrival so the two clocks need not agree.
     pub timestamp_ms: u64,
+}
+
+/// Manual control for one vehicle (the FMo's variable `manual_control`): newest wins.
+///
+/// One station follows a whole fleet but drives one vehicle at a time, so every sample names
+/// the VAS that must obey it and every other VAS ignores it. A VAS that stops receiving
+/// samples addressed to it releases its sticks (its `manualTimeoutMs`), so switching the
+/// commanded vehicle never leaves the previous one driving.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ManualCommand {
+    /// The VAS that obeys, by its item prefix: `namespace/vas` (e.g. `rover1/vas`), or `vas`
+    /// for a node without namespace. Exact match: no wildcards, no broadcast.
+    pub target: String,
+    /// The sticks.
+    pub sticks: ManualControl,
+}
+
+impl ManualCommand {
+    /// Whether the VAS whose items are prefixed `vas_prefix` must obey this sample.
+    pub fn is_for(&self, vas_prefix: &str) -> bool {
+        self.target == vas_prefix
+    }
 }
 
 /// Argument of the `change_state` function.
@@ -398,6 +421,25 @@ mod tests {
             .collect();
         assert_eq!(rover.len(), 6);
         assert!(FlightState::Landing.applies_to(VehicleKind::Copter));
+    }
+
+    #[test]
+    fn manual_command_is_for_one_vehicle_only() {
+        let c = ManualCommand {
+            target: "rover1/vas".into(),
+            sticks: ManualControl::default(),
+        };
+        assert!(c.is_for("rover1/vas"));
+        for other in [
+            "rover2/vas",
+            "vas",
+            "",
+            "rover1",
+            "fleet/rover1/vas",
+            "*/vas",
+        ] {
+            assert!(!c.is_for(other), "{other}");
+        }
     }
 
     #[test]

@@ -312,6 +312,11 @@ pub const HOME: (f64, f64) = (41.275, 1.987);
 
 /// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `rover1`.
 pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
+    rover_named(domain, speedup, "rover1").await
+}
+
+/// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `ns`.
+pub async fn rover_named(domain: &str, speedup: f64, ns: &str) -> (Proc, Proc) {
     let sim = Proc::start(
         &workspace_bin("mavsim"),
         &[
@@ -338,7 +343,7 @@ pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
             "--domain".into(),
             domain.into(),
             "--namespace".into(),
-            "rover1".into(),
+            ns.into(),
         ],
         false,
     )

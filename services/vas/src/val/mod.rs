@@ -14,7 +14,7 @@ use async_trait::async_trait;
 use marea::{Event, IService, Service, ServiceError, Variable};
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionTime, Position,
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionTime, Position,
     QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest, StateChanged, Waypoint,
     WaypointReached,
 };
@@ -24,7 +24,8 @@ use crate::apl::{ApEvent, IAutopilot};
 /// Settings of the VAL.
 #[derive(Clone, Debug)]
 pub struct ValConfig {
-    /// Pattern of the manual-control variable to follow (the FMo's).
+    /// Pattern of the manual-control variable to follow (the FMo's). Only the samples
+    /// addressed to this VAS (its item prefix, e.g. `rover1/vas`) are obeyed.
     pub manual_control: String,
     /// Manual-control samples older than this are ignored, and the sticks are released when
     /// no fresh sample came for this long.
@@ -291,7 +292,9 @@ impl IService for Vas {
                 Ok(q)
             }
         })?;
-        let manual = ctx.subscribe_variable::<ManualControl>(&core.cfg.manual_control)?;
+        let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
+        // This VAS's item prefix, the address a manual command must carry to be obeyed.
+        let me = ctx.full_name("").trim_end_matches('/').to_owned();
 
         // ListenAp, retried until the autopilot answers.
         let c = core.clone();
@@ -328,7 +331,8 @@ impl IService for Vas {
             }
         });
 
-        // Manual control: newest wins, stale samples ignored, sticks released on silence.
+        // Manual control: only what is addressed to this vehicle; newest wins, stale samples
+        // ignored, sticks released on silence (also when the station drives another vehicle).
         let c = core.clone();
         let cx = ctx.clone();
         ctx.spawn(async move {
@@ -341,15 +345,21 @@ impl IService for Vas {
                     _ = cx.cancelled() => return,
                     s = manual.recv() => match s {
                         Ok(s) => {
+                            // Another vehicle's sticks: not ours to obey, and their timestamps
+                            // must not order ours (another station's clock may be ahead).
+                            if !s.value.is_for(&me) {
+                                continue;
+                            }
                             let fresh = s.received.elapsed() <= timeout;
-                            let newer = last.is_none_or(|(ts, _)| s.value.timestamp_ms > ts);
+                            let sticks = s.value.sticks;
+                            let newer = last.is_none_or(|(ts, _)| sticks.timestamp_ms > ts);
                             if !(fresh && newer) {
                                 continue;
                             }
-                            last = Some((s.value.timestamp_ms, s.received));
+                            last = Some((sticks.timestamp_ms, s.received));
                             if c.state() == FlightState::ManualNavigation {
                                 released = false;
-                                if let Err(e) = c.apl.manual_navigation(Some(s.value)).await {
+                                if let Err(e) = c.apl.manual_navigation(Some(sticks)).await {
                                     tracing::debug!("manual control: {e}");
                                 }
                             }
