@@ -5,79 +5,12 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use common::Radio;
+
 use std::time::{Duration, Instant};
 
 use marea::{NetworkConfig, Node, SendFileOptions};
 use serde::{Deserialize, Serialize};
-use serde_json::Value;
-
-/// The radio emulator as a child process, killed on drop.
-struct Radio {
-    child: Child,
-    ground: String,
-    air: String,
-    lines: mpsc::Receiver<Value>,
-}
-
-impl Radio {
-    fn start(args: &[&str]) -> Radio {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_marea-radio"))
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("start marea-radio");
-        let stdout = child.stdout.take().expect("piped");
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if let Ok(v) = serde_json::from_str::<Value>(&line) {
-                    if tx.send(v).is_err() {
-                        break;
-                    }
-                }
-            }
-        });
-        let first = rx
-            .recv_timeout(Duration::from_secs(10))
-            .expect("marea-radio prints its ports");
-        Radio {
-            child,
-            ground: first["ground"].as_str().expect("ground path").to_owned(),
-            air: first["air"].as_str().expect("air path").to_owned(),
-            lines: rx,
-        }
-    }
-
-    /// Stops the radio with SIGTERM and returns its exit counters.
-    fn stop(self) -> Value {
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while let Ok(v) = self
-            .lines
-            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
-        {
-            if v["event"] == "exit" {
-                return v;
-            }
-        }
-        Value::Null
-    }
-}
-
-impl Drop for Radio {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 fn serial_xml(node: &str, domain: &str, dev: &str, extra: &str) -> String {
     format!(

@@ -51,6 +51,9 @@ pub struct NetworkConfig {
     pub domain: String,
     /// The enabled links, in file order. Links with `enabled="false"` are left out.
     pub links: Vec<LinkConfig>,
+    /// Whether the node forwards between its links (`gateway` attribute). `None` (the
+    /// default) forwards when a serial link sits beside another link: the radio gateway.
+    pub gateway: Option<bool>,
     /// The file this configuration was read from, if any.
     pub source: Option<PathBuf>,
 }
@@ -258,6 +261,7 @@ impl NetworkConfig {
                 interface: Ipv4Addr::LOCALHOST,
                 ..EthernetConfig::default()
             })],
+            gateway: None,
             source: None,
         }
     }
@@ -664,7 +668,7 @@ const LINK_ELEMENTS: &[&str] = &["ethernet", "shm", "serial", "serialduo"];
 const PEER_ELEMENTS: &[&str] = &["peer"];
 const NO_ELEMENTS: &[&str] = &[];
 
-const NETWORK_ATTRS: &[&str] = &["node", "namespace", "domain"];
+const NETWORK_ATTRS: &[&str] = &["node", "namespace", "domain", "gateway"];
 const ETHERNET_ATTRS: &[&str] = &[
     "name",
     "enabled",
@@ -1117,6 +1121,7 @@ impl<'a> Parser<'a> {
         let domain = self
             .value(&attrs, "domain", |s| parse_name(s, NAME_SYNTAX))?
             .unwrap_or_else(|| DEFAULT_DOMAIN.to_owned());
+        let gateway = self.value(&attrs, "gateway", parse_bool)?;
 
         let mut links = Vec::new();
         let mut names: Vec<(String, Location)> = Vec::new();
@@ -1170,6 +1175,7 @@ impl<'a> Parser<'a> {
             namespace,
             domain,
             links,
+            gateway,
             source: self.source.map(Path::to_path_buf),
         })
     }
@@ -1597,6 +1603,7 @@ mod tests {
                     lease: ms(20000),
                 }),
             ],
+            gateway: None,
             source: None,
         };
         assert_eq!(config, expected);
@@ -1908,7 +1915,7 @@ mod tests {
         assert_eq!((line, column), (1, 19));
         assert_eq!(
             text,
-            "config/network.xml:1:19: <network>: unknown attribute color; expected one of node, namespace, domain"
+            "config/network.xml:1:19: <network>: unknown attribute color; expected one of node, namespace, domain, gateway"
         );
     }
 

@@ -78,3 +78,4 @@ pub mod typeinfo;
 
 pub use api::*;
 pub use config::NetworkConfig;
+pub use node::health::LinkHealth;

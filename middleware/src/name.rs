@@ -81,6 +81,11 @@ pub fn join(namespace: Option<&str>, service: &str, item: &str) -> String {
     }
 }
 
+/// Whether `pattern` has a wildcard segment (`*` or `**`).
+pub fn is_wildcard(pattern: &str) -> bool {
+    pattern.split('/').any(|seg| seg == "*" || seg == "**")
+}
+
 /// Whether `pattern` (with `*` and `**`) matches the concrete `name`.
 pub fn matches(pattern: &str, name: &str) -> bool {
     let p: Vec<&str> = pattern.split('/').collect();

@@ -138,6 +138,9 @@ enum Cmd {
         #[arg(long, default_value_t = 60)]
         retry_secs: u64,
     },
+    /// Run the node only (a gateway when its network.xml makes it one) and print what it
+    /// forwards whenever that changes.
+    Gateway,
     /// List what the network offers after WAIT ms.
     List {
         #[arg(long, default_value_t = 1500)]
@@ -451,6 +454,27 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             out(
                 json!({"done": r.size, "sent": r.sent, "resumed_from": r.resumed_from, "attempts": r.attempts, "ms": r.elapsed.as_millis() as u64}),
             );
+        }
+        Cmd::Gateway => {
+            out(json!({"ready": node.name(), "gateway": node.is_gateway()}));
+            let mut shown = serde_json::Value::Null;
+            let mut tick = tokio::time::interval(Duration::from_millis(100));
+            loop {
+                tokio::select! {
+                    _ = stopped() => break,
+                    _ = tick.tick() => {}
+                }
+                let items: Vec<serde_json::Value> = node
+                    .forwarded()
+                    .into_iter()
+                    .map(|f| json!({"name": f.name, "kind": f.kind.as_str(), "origin": f.origin, "cached": f.cached}))
+                    .collect();
+                let now = serde_json::Value::from(items);
+                if now != shown {
+                    out(json!({"forwarded": now}));
+                    shown = now;
+                }
+            }
         }
         Cmd::List { wait_ms } => {
             tokio::time::sleep(Duration::from_millis(*wait_ms)).await;

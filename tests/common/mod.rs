@@ -177,3 +177,82 @@ impl Net {
 }
 
 pub const T: Duration = Duration::from_secs(20);
+
+/// The radio emulator as a child process, killed on drop.
+pub struct Radio {
+    child: Child,
+    pub ground: String,
+    pub air: String,
+    lines: mpsc::Receiver<Value>,
+}
+
+impl Radio {
+    pub fn start(args: &[&str]) -> Radio {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_marea-radio"))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("start marea-radio");
+        let stdout = child.stdout.take().expect("piped");
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if let Ok(v) = serde_json::from_str::<Value>(&line) {
+                    if tx.send(v).is_err() {
+                        break;
+                    }
+                }
+            }
+        });
+        let first = rx
+            .recv_timeout(Duration::from_secs(10))
+            .expect("marea-radio prints its ports");
+        Radio {
+            child,
+            ground: first["ground"].as_str().expect("ground path").to_owned(),
+            air: first["air"].as_str().expect("air path").to_owned(),
+            lines: rx,
+        }
+    }
+
+    /// Freezes the radio (SIGSTOP): not a byte crosses until [`Radio::resume`].
+    pub fn freeze(&self) {
+        let _ = Command::new("kill")
+            .args(["-STOP", &self.child.id().to_string()])
+            .status();
+    }
+
+    /// Lets a frozen radio carry bytes again (SIGCONT).
+    pub fn resume(&self) {
+        let _ = Command::new("kill")
+            .args(["-CONT", &self.child.id().to_string()])
+            .status();
+    }
+
+    /// Stops the radio with SIGTERM and returns its exit counters.
+    pub fn stop(self) -> Value {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while let Ok(v) = self
+            .lines
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+        {
+            if v["event"] == "exit" {
+                return v;
+            }
+        }
+        Value::Null
+    }
+}
+
+impl Drop for Radio {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -193,7 +193,9 @@ impl Sender {
         self.node.peers.iter().find_map(|p| {
             p.offers
                 .iter()
-                .find(|(_, o)| o.kind == ItemKind::File && *o.name == *self.to)
+                .find(|(id, o)| {
+                    o.kind == ItemKind::File && *o.name == *self.to && !p.shadowed.contains(id)
+                })
                 .map(|(id, _)| (p.id, p.name.to_string(), *id))
         })
     }
@@ -339,12 +341,25 @@ impl Sender {
         if let Err(e) = file.seek(std::io::SeekFrom::Start(offset)).await {
             return Attempt::Done(Err(self.io(e)));
         }
+        // The window moves on the receiver's own progress acknowledgements (end to end, also
+        // through gateways); the first hop's acknowledgements only reveal a broken link early.
+        let window_bytes = (self.options.window.max(1) * CHUNK) as u64;
+        // How long without progress before the attempt is abandoned (and resumed): generous
+        // enough for the receiver to hash a large file once everything arrived.
+        let stall = Duration::from_secs(30) + Duration::from_millis(size / 50_000);
+        let mut deadline = tokio::time::Instant::now() + stall;
+        let mut acked = offset;
         let mut pos = offset;
-        let mut inflight: VecDeque<(u64, oneshot::Receiver<Result<(), LinkSendError>>)> =
-            VecDeque::new();
+        let mut inflight: VecDeque<oneshot::Receiver<Result<(), LinkSendError>>> = VecDeque::new();
         let mut buf = vec![0u8; CHUNK];
+        enum Heard {
+            Cancelled,
+            Link(Result<Result<(), LinkSendError>, oneshot::error::RecvError>),
+            Receiver(Option<Control>),
+            Stalled,
+        }
         loop {
-            while inflight.len() < self.options.window && pos < size {
+            while pos < size && pos - acked < window_bytes {
                 let want = CHUNK.min((size - pos) as usize);
                 if let Err(e) = file.read_exact(&mut buf[..want]).await {
                     return Attempt::Done(Err(self.io(e)));
@@ -364,55 +379,57 @@ impl Sender {
                     },
                 );
                 pos += want as u64;
-                inflight.push_back((pos, rx));
+                inflight.push_back(rx);
                 self.progress.send_modify(|p| p.sent += want as u64);
             }
-            let Some((end, rx)) = inflight.front_mut() else {
-                break;
+            let heard = tokio::select! {
+                _ = self.node.cancel.cancelled() => Heard::Cancelled,
+                r = async {
+                    match inflight.front_mut() {
+                        Some(rx) => rx.await,
+                        None => std::future::pending().await,
+                    }
+                } => Heard::Link(r),
+                c = ctl.recv() => Heard::Receiver(c),
+                _ = tokio::time::sleep_until(deadline) => Heard::Stalled,
             };
-            let end = *end;
-            tokio::select! {
-                _ = self.node.cancel.cancelled() => return Attempt::Done(Err(FileSendError::Closed)),
-                r = rx => {
+            match heard {
+                Heard::Cancelled => return Attempt::Done(Err(FileSendError::Closed)),
+                Heard::Link(r) => {
                     inflight.pop_front();
                     match r {
-                        Ok(Ok(())) => self.progress.send_modify(|p| p.acknowledged = end),
+                        Ok(Ok(())) => {}
                         Ok(Err(e)) => return Attempt::Retry(format!("node '{peer_name}': {e}")),
-                        Err(_) => return Attempt::Retry(format!("node '{peer_name}': link closed")),
+                        Err(_) => {
+                            return Attempt::Retry(format!("node '{peer_name}': link closed"))
+                        }
                     }
                 }
-                c = ctl.recv() => match c {
-                    Some(Control::Done(FileVerdict::Failed(reason))) => {
-                        return Attempt::Done(Err(FileSendError::Rejected { node: peer_name.to_owned(), reason }))
+                Heard::Receiver(Some(Control::Accept(o))) => {
+                    if o > acked && o <= size {
+                        acked = o;
+                        deadline = tokio::time::Instant::now() + stall;
+                        self.progress.send_modify(|p| p.acknowledged = o);
                     }
-                    Some(Control::PeerLost(why)) => return Attempt::Retry(why),
-                    Some(Control::Done(FileVerdict::Stored)) => {
-                        let p = *self.progress.borrow();
-                        return Attempt::Done(Ok(report(p.sent, offset, p.attempts)));
-                    }
-                    Some(Control::Accept(_)) => {}
-                    None => return Attempt::Done(Err(FileSendError::Closed)),
-                },
-            }
-        }
-        // Everything acknowledged: wait for the receiver's verdict (hash check, rename).
-        let verdict_wait = Duration::from_secs(30) + Duration::from_millis(size / 50_000);
-        loop {
-            match tokio::time::timeout(verdict_wait, ctl.recv()).await {
-                Ok(Some(Control::Done(FileVerdict::Stored))) => {
+                }
+                Heard::Receiver(Some(Control::Done(FileVerdict::Stored))) => {
+                    self.progress.send_modify(|p| p.acknowledged = size);
                     let p = *self.progress.borrow();
                     return Attempt::Done(Ok(report(p.sent, offset, p.attempts)));
                 }
-                Ok(Some(Control::Done(FileVerdict::Failed(reason)))) => {
+                Heard::Receiver(Some(Control::Done(FileVerdict::Failed(reason)))) => {
                     return Attempt::Done(Err(FileSendError::Rejected {
                         node: peer_name.to_owned(),
                         reason,
                     }))
                 }
-                Ok(Some(Control::Accept(_))) => continue,
-                Ok(Some(Control::PeerLost(why))) => return Attempt::Retry(why),
-                Ok(None) => return Attempt::Done(Err(FileSendError::Closed)),
-                Err(_) => return Attempt::Retry(format!("node '{peer_name}' gave no verdict")),
+                Heard::Receiver(Some(Control::PeerLost(why))) => return Attempt::Retry(why),
+                Heard::Receiver(None) => return Attempt::Done(Err(FileSendError::Closed)),
+                Heard::Stalled => {
+                    return Attempt::Retry(format!(
+                        "node '{peer_name}' acknowledged nothing for {stall:?}"
+                    ))
+                }
             }
         }
     }

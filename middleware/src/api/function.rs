@@ -138,6 +138,9 @@ pub(crate) fn find_provider(
     }
     for p in node.peers.iter() {
         for (id, o) in &p.offers {
+            if p.shadowed.contains(id) {
+                continue;
+            }
             if o.kind == ItemKind::Function && *o.name == *name {
                 if fits(&o.ty) {
                     return Ok(Provider::Remote {

@@ -3,7 +3,7 @@
 mod errors;
 mod event;
 mod file;
-mod function;
+pub(crate) mod function;
 mod node;
 mod raw;
 mod service;
@@ -21,6 +21,7 @@ pub use subscription::{EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 
 pub use crate::node::files::ReceivedFile;
+pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;
 
 /// Payload types: anything serde can encode, shared between processes.

@@ -152,6 +152,13 @@ impl Node {
             .min()
             .unwrap_or((Duration::from_secs(1), Duration::from_millis(3500)));
         let (changed, _) = watch::channel(0u64);
+        let has_serial = config
+            .links
+            .iter()
+            .any(|l| matches!(l, LinkConfig::Serial(_) | LinkConfig::SerialDuo(_)));
+        let forwards = config
+            .gateway
+            .unwrap_or(has_serial && config.links.len() > 1);
         let inner = Arc::new(NodeInner {
             me: Identity {
                 id: rand::random(),
@@ -179,7 +186,23 @@ impl Node {
             cancel: CancellationToken::new(),
             counters: Default::default(),
             routing: Mutex::new(()),
+            // The pseudo-service id is the first id handed out (ids start at 1).
+            gateway: forwards.then(|| crate::node::gateway::Gateway::new(1)),
         });
+        if let Some(gw) = &inner.gateway {
+            let id = inner.fresh_id();
+            debug_assert_eq!(id, gw.service);
+            inner
+                .services
+                .insert(id, crate::node::gateway::SERVICE_NAME.into());
+            inner.declare(
+                crate::protocol::Declaration::Service {
+                    id,
+                    name: crate::node::gateway::SERVICE_NAME.into(),
+                },
+                None,
+            );
+        }
         let mut links: Vec<Arc<dyn Link>> = Vec::new();
         for (index, lc) in config.links.iter().enumerate() {
             let handler = Arc::new(Handler(Arc::downgrade(&inner)));
@@ -259,6 +282,7 @@ impl Node {
             let hb = inner.clone();
             inner.tasks.spawn(hb.heartbeat_loop(link));
         }
+        inner.start_link_health();
         inner.announce_hello();
         tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), "node open");
         Ok(Node {
@@ -345,6 +369,17 @@ impl Node {
             .iter()
             .map(|l| (l.name().to_owned(), l.stats()))
             .collect()
+    }
+
+    /// What this node forwards as a gateway (empty when it is not one), with the age of the
+    /// newest value or event that passed through each item.
+    pub fn forwarded(&self) -> Vec<crate::api::ForwardedItem> {
+        self.inner.forwarded_items()
+    }
+
+    /// Whether this node forwards between its links.
+    pub fn is_gateway(&self) -> bool {
+        self.inner.gateway.is_some()
     }
 
     /// Local addresses of the links (for logs).

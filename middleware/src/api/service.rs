@@ -94,10 +94,13 @@ impl Service {
         }
         let id = node.fresh_id();
         node.services.insert(id, name.into());
-        node.declare(Declaration::Service {
-            id,
-            name: name.to_owned(),
-        });
+        node.declare(
+            Declaration::Service {
+                id,
+                name: name.to_owned(),
+            },
+            None,
+        );
         Ok(Service {
             inner: Arc::new(ServiceInner {
                 _declared: Declared {
@@ -158,6 +161,8 @@ impl Service {
             remote: Mutex::default(),
             local: Mutex::default(),
             refused: Mutex::default(),
+            origin: None,
+            hidden_on: None,
         });
         node.add_offer(offer.clone());
         Ok((
@@ -192,6 +197,7 @@ impl Service {
             ty,
             mailbox,
             reported: Mutex::default(),
+            hidden_on: None,
         }));
         Ok(Declared {
             node: Arc::downgrade(node),

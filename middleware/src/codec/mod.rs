@@ -111,6 +111,7 @@ mod tests {
                                 kind: ItemKind::Variable,
                                 name: "s/v".into(),
                                 ty: ti(),
+                                origin: None,
                             },
                         },
                         LoggedDeclaration {
@@ -132,7 +133,8 @@ mod tests {
                 vec![
                     3, 4, // tag, 4 entries
                     1, 0, 1, 1, b's', // counter 1, Service{1,"s"}
-                    2, 1, 2, 1, 0, 3, b's', b'/', b'v', 1, b'T', 0x82, 0x02, // Offer
+                    2, 1, 2, 1, 0, 3, b's', b'/', b'v', 1, b'T', 0x82, 0x02,
+                    0, // Offer, no origin
                     3, 2, 3, 1, 1, 1, b'*', 1, b'T', 0x82, 0x02, // Interest
                     4, 3, 2, // Withdraw{2}
                 ],

@@ -79,7 +79,7 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn on_peer_reset(&self, link: usize, from: PeerAddr);
 }
 
-/// Counters of a link, published as link health.
+/// Counters and gauges of a link (published as [`crate::LinkHealth`] totals).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct LinkStats {
     /// Datagrams or frames sent.
@@ -98,6 +98,13 @@ pub struct LinkStats {
     pub duplicates: u64,
     /// Fast messages dropped because a queue was full.
     pub fast_dropped: u64,
+    /// Smoothed round trip of safe messages in microseconds, the worst over the link's peers
+    /// (0 before the first measurement).
+    pub rtt_us: u64,
+    /// Safe messages waiting to be sent or acknowledged now.
+    pub safe_queued: u64,
+    /// Fast messages waiting to be sent now.
+    pub fast_queued: u64,
 }
 
 /// A medium carrying node messages.

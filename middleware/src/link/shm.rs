@@ -811,6 +811,8 @@ impl Link for ShmLink {
             retransmitted: c.retransmitted.load(Ordering::Relaxed),
             duplicates: c.duplicates.load(Ordering::Relaxed),
             fast_dropped: c.fast_dropped.load(Ordering::Relaxed),
+            // Shared memory has no acknowledgements to time and hands messages over at once.
+            ..LinkStats::default()
         }
     }
 }

@@ -148,6 +148,20 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl UdpLink {
+    /// Round trip and queue depths over the peers, for link health.
+    fn gauges(&self) -> LinkStats {
+        let peers: Vec<Arc<Mutex<PeerState>>> = lock(&self.peers).values().cloned().collect();
+        let mut g = LinkStats::default();
+        for p in peers {
+            let p = lock(&p);
+            let rtt = p.tx.rto().srtt().map_or(0, |d| d.as_micros() as u64);
+            g.rtt_us = g.rtt_us.max(rtt);
+            g.safe_queued += (p.safe.len() + p.tx.in_flight()) as u64;
+            g.fast_queued += p.fast.len() as u64;
+        }
+        g
+    }
+
     /// Opens the sockets and starts the receive and transmit tasks on `tasks`, stopping on
     /// `cancel`.
     ///
@@ -634,6 +648,7 @@ impl Link for UdpLink {
             retransmitted: c.retransmitted.load(Ordering::Relaxed),
             duplicates: c.duplicates.load(Ordering::Relaxed),
             fast_dropped: c.fast_dropped.load(Ordering::Relaxed),
+            ..self.gauges()
         }
     }
 }

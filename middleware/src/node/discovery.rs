@@ -114,6 +114,7 @@ impl NodeInner {
                         services: HashMap::new(),
                         offers: HashMap::new(),
                         interests: HashMap::new(),
+                        shadowed: Default::default(),
                         routes: HashMap::new(),
                     },
                 );
@@ -169,6 +170,7 @@ impl NodeInner {
         // anything else we send on it.
         self.send_safe(link, from, &self.hello(link));
         self.recompute_routes();
+        self.recompute_forwarding();
         self.bump();
     }
 
@@ -254,7 +256,9 @@ impl NodeInner {
         }
         self.fail_calls_to(node, reason);
         self.transfers.peer_lost(node, &p.name, reason);
+        self.gateway_peer_lost(node);
         self.recompute_routes();
+        self.recompute_forwarding();
     }
 
     /// Sends heartbeats on `link` at that link's period and expires the leases of the peers

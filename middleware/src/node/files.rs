@@ -12,6 +12,10 @@ use tokio::sync::{mpsc, Notify};
 use super::{lock, NodeInner, OfferRole};
 use crate::protocol::{FileVerdict, Message, NodeId};
 
+/// Chunks between two progress acknowledgements of a receiver (`FileAccept` with the bytes
+/// written so far). Well below the sender's default window, so it never stalls on them.
+const PROGRESS_EVERY: u32 = 16;
+
 /// What a sending task hears from the receiver (or about it).
 #[derive(Debug)]
 pub(crate) enum Control {
@@ -145,6 +149,21 @@ impl NodeInner {
         size: u64,
         hash: [u8; 32],
     ) {
+        let relay = self.offers.get(&sink).and_then(|o| match o.role {
+            OfferRole::Relay { origin, remote_id } => Some((origin, remote_id)),
+            _ => None,
+        });
+        if let Some((receiver, remote_sink)) = relay {
+            let offer = Message::FileOffer {
+                transfer,
+                sink,
+                name,
+                size,
+                hash,
+            };
+            self.relay_file_offer(node, receiver, remote_sink, transfer, offer);
+            return;
+        }
         let Some((dir, mailbox)) = self.offers.get(&sink).and_then(|o| match &o.role {
             OfferRole::File { dir, mailbox } => Some((dir.clone(), mailbox.clone())),
             _ => None,
@@ -194,6 +213,7 @@ impl NodeInner {
                     .map_err(|e| format!("cannot open {}: {e}", part.display()))?;
                 let mut w = tokio::io::BufWriter::with_capacity(1 << 18, file);
                 let mut expected = offset;
+                let mut unacknowledged = 0u32;
                 while expected < size {
                     let next = tokio::select! {
                         _ = inner.cancel.cancelled() => None,
@@ -211,6 +231,19 @@ impl NodeInner {
                         .await
                         .map_err(|e| format!("cannot write {}: {e}", part.display()))?;
                     expected += data.len() as u64;
+                    // End-to-end progress: the sender's window moves on what we wrote, not on
+                    // what the first hop (maybe a gateway) acknowledged.
+                    unacknowledged += 1;
+                    if unacknowledged >= PROGRESS_EVERY || expected == size {
+                        unacknowledged = 0;
+                        inner.send_safe_to_node(
+                            node,
+                            &Message::FileAccept {
+                                transfer,
+                                offset: expected,
+                            },
+                        );
+                    }
                 }
                 w.flush()
                     .await

@@ -6,6 +6,8 @@
 
 pub(crate) mod discovery;
 pub(crate) mod files;
+pub(crate) mod gateway;
+pub(crate) mod health;
 pub(crate) mod mailbox;
 pub(crate) mod session;
 
@@ -21,7 +23,7 @@ use tokio_util::task::TaskTracker;
 
 use crate::codec::{decode_message, encode_message};
 use crate::link::{Link, LinkHandler, Outgoing, PeerAddr};
-use crate::protocol::{ItemKind, Message, NodeId, RemoteFailure};
+use crate::protocol::{ItemKind, Message, NodeId, Origin, RemoteFailure};
 use crate::typeinfo::TypeInfo;
 use mailbox::Mailbox;
 
@@ -50,6 +52,9 @@ pub(crate) enum OfferRole {
         dir: std::path::PathBuf,
         mailbox: Arc<files::SinkMailbox>,
     },
+    /// A gateway's stand-in for a function or file sink of a node behind another link: calls
+    /// and transfers are relayed to offer `remote_id` of node `origin`.
+    Relay { origin: NodeId, remote_id: u32 },
 }
 
 /// Something this node offers (publishes, provides, accepts).
@@ -66,6 +71,10 @@ pub(crate) struct LocalOffer {
     pub local: Mutex<Vec<Arc<LocalInterest>>>,
     /// (node, interest) pairs already told that the types differ.
     pub refused: Mutex<std::collections::HashSet<(NodeId, u32)>>,
+    /// For an offer a gateway forwards: the node that really offers it.
+    pub origin: Option<Origin>,
+    /// A forwarded offer is not declared on the link it came from.
+    pub hidden_on: Option<usize>,
 }
 
 /// A remote node subscribed to an offer.
@@ -90,6 +99,8 @@ pub(crate) struct LocalInterest {
     pub mailbox: Option<Arc<Mailbox>>,
     /// Type mismatches already reported to the subscriber.
     pub reported: Mutex<session::ReportedSet>,
+    /// A gateway's forwarded interest is not declared on the link it came from.
+    pub hidden_on: Option<usize>,
 }
 
 /// What this node knows of a remote node.
@@ -108,6 +119,9 @@ pub(crate) struct Peer {
     pub services: HashMap<u32, String>,
     pub offers: HashMap<u32, session::RemoteItem>,
     pub interests: HashMap<u32, session::RemoteItem>,
+    /// Offers of this peer ignored because the same item is reached by a shorter path (a
+    /// gateway's copy of an offer we also get directly, or our own offer forwarded back).
+    pub shadowed: std::collections::HashSet<u32>,
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
     pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
@@ -165,6 +179,8 @@ pub(crate) struct NodeInner {
     pub tasks: TaskTracker,
     pub cancel: CancellationToken,
     pub counters: NodeCounters,
+    /// Forwarding between links, when this node is a gateway.
+    pub gateway: Option<gateway::Gateway>,
     /// Held for a whole route computation: two computations interleaving could write routes
     /// from an older snapshot over newer ones (a subscriber would then miss a publisher).
     pub routing: Mutex<()>,
@@ -287,6 +303,11 @@ impl NodeInner {
                 size,
                 hash,
             } => self.on_file_offer(node, transfer, sink, name, size, hash),
+            Message::FileChunk { transfer, .. }
+            | Message::FileAccept { transfer, .. }
+            | Message::FileDone { transfer, .. }
+            | Message::FileCancel { transfer }
+                if self.relay_file_message(node, transfer, &msg) => {}
             Message::FileChunk {
                 transfer,
                 offset,
@@ -311,6 +332,13 @@ impl NodeInner {
         deadline_ms: u32,
         args: Vec<u8>,
     ) {
+        if let Some(o) = self.offers.get(&id).map(|o| o.clone()) {
+            if matches!(o.role, OfferRole::Relay { .. }) {
+                let deadline = Duration::from_millis(u64::from(deadline_ms));
+                self.relay_call(node, call_id, &o, deadline, args);
+                return;
+            }
+        }
         let handler = self.offers.get(&id).and_then(|o| match &o.role {
             OfferRole::Function { handler } => Some(handler.clone()),
             _ => None,

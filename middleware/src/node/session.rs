@@ -1,7 +1,7 @@
 //! Declarations and matching: the node's own declaration log, applying peers' declarations, and
 //! computing routes (which remote nodes and local subscribers each offer goes to).
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -20,7 +20,45 @@ const BATCH_ENTRIES: usize = 64;
 #[derive(Default)]
 pub(crate) struct DeclarationLog {
     pub counter: u32,
-    pub entries: Vec<LoggedDeclaration>,
+    /// Each declaration with the link it is hidden on (a gateway's forwarded items are not
+    /// declared back on the link they came from).
+    entries: Vec<(LoggedDeclaration, Option<usize>)>,
+}
+
+impl DeclarationLog {
+    fn push(&mut self, decl: Declaration, hidden_on: Option<usize>) -> LoggedDeclaration {
+        self.counter += 1;
+        let entry = LoggedDeclaration {
+            counter: self.counter,
+            decl,
+        };
+        self.entries.push((entry.clone(), hidden_on));
+        entry
+    }
+
+    /// The declarations after `since` as a peer on `link` sees them.
+    pub fn view(&self, link: usize, since: u32) -> Vec<LoggedDeclaration> {
+        self.entries
+            .iter()
+            .filter(|(e, _)| e.counter > since)
+            .map(|(e, hidden)| seen_on(e, *hidden, link))
+            .collect()
+    }
+}
+
+/// `entry` as sent on `link`: a declaration hidden there becomes a withdrawal of its own id,
+/// which the peer ignores (it never saw the id) while its counter stays without a gap.
+fn seen_on(entry: &LoggedDeclaration, hidden_on: Option<usize>, link: usize) -> LoggedDeclaration {
+    if hidden_on == Some(link) {
+        LoggedDeclaration {
+            counter: entry.counter,
+            decl: Declaration::Withdraw {
+                id: entry.decl.id(),
+            },
+        }
+    } else {
+        entry.clone()
+    }
 }
 
 /// A remote offer or interest.
@@ -33,6 +71,18 @@ pub(crate) struct RemoteItem {
     pub ty: TypeInfo,
     /// `ty.name`, shared with every sample delivered from this item.
     pub type_name: Arc<str>,
+    /// For an offer forwarded by a gateway: the node that really offers it.
+    pub origin: Option<crate::protocol::Origin>,
+    /// The origin's name, shared with every sample delivered from this item.
+    pub origin_name: Option<Arc<str>>,
+}
+
+impl RemoteItem {
+    /// The node really offering this item when declared by `peer`, and how many gateways lie
+    /// between (0 when `peer` offers it itself).
+    pub fn source(&self, peer: NodeId) -> (NodeId, u8) {
+        self.origin.as_ref().map_or((peer, 0), |o| (o.node, o.hops))
+    }
 }
 
 /// Encodes `Message::Var`/`Message::Event` without first copying the payload into a `Message`;
@@ -51,21 +101,17 @@ fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
 }
 
 impl NodeInner {
-    /// Appends a declaration to the log and pushes it to every known peer.
-    pub fn declare(&self, decl: Declaration) {
+    /// Appends a declaration to the log and pushes it to every known peer (as a no-op to the
+    /// peers on `hidden_on`).
+    pub fn declare(&self, decl: Declaration, hidden_on: Option<usize>) {
         // The log stays locked while the delta is pushed: see `introduce_locked`.
         let mut log = lock(&self.decls);
-        log.counter += 1;
-        let entry = LoggedDeclaration {
-            counter: log.counter,
-            decl,
-        };
-        log.entries.push(entry.clone());
-        let msg = Message::DeclBatch {
-            entries: vec![entry],
-        };
+        let entry = log.push(decl, hidden_on);
         let targets: Vec<_> = self.peers.iter().map(|p| (p.link, p.addr)).collect();
         for (link, addr) in targets {
+            let msg = Message::DeclBatch {
+                entries: vec![seen_on(&entry, hidden_on, link)],
+            };
             self.send_safe(link, addr, &msg);
         }
     }
@@ -75,7 +121,7 @@ impl NodeInner {
     /// joiner's value, events, replies) comes after the declarations that give its ids a meaning.
     pub fn introduce_locked(&self, log: &DeclarationLog, link: usize, addr: crate::link::PeerAddr) {
         self.send_safe(link, addr, &self.hello_at(link, log.counter));
-        self.send_batches(link, addr, &log.entries);
+        self.send_batches(link, addr, &log.view(link, 0));
     }
 
     /// Sends declarations in batches of [`BATCH_ENTRIES`], or one empty batch when there are
@@ -117,11 +163,13 @@ impl NodeInner {
             kind: offer.kind,
             name: offer.name.to_string(),
             ty: offer.ty.clone(),
+            origin: offer.origin.clone(),
         };
+        let hidden_on = offer.hidden_on;
         self.offers.insert(offer.id, offer);
         // Routes first: once peers learn of the offer they may act on it at once.
         self.recompute_routes();
-        self.declare(decl);
+        self.declare(decl, hidden_on);
     }
 
     pub fn add_interest(&self, interest: Arc<LocalInterest>) {
@@ -132,11 +180,12 @@ impl NodeInner {
             pattern: interest.pattern.clone(),
             ty: interest.ty.clone(),
         };
+        let hidden_on = interest.hidden_on;
         self.interests.insert(interest.id, interest);
         // Routes first: a publisher learning of this interest answers with its last value at
         // once, and that value must find the interest routed when it arrives.
         self.recompute_routes();
-        self.declare(decl);
+        self.declare(decl, hidden_on);
     }
 
     /// Withdraws a service, offer or interest.
@@ -155,7 +204,7 @@ impl NodeInner {
             any = true;
         }
         if any && !self.cancel.is_cancelled() {
-            self.declare(Declaration::Withdraw { id });
+            self.declare(Declaration::Withdraw { id }, None);
             self.recompute_routes();
         }
     }
@@ -190,14 +239,22 @@ impl NodeInner {
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
         let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
         for o in &offers {
-            // Local subscribers.
+            // Local subscribers. A gateway's forwarded offers and forwarded interests only
+            // carry traffic between links: they never meet a local item.
             let mut local = Vec::new();
             for i in &interests {
+                if o.origin.is_some() || i.hidden_on.is_some() {
+                    continue;
+                }
                 if !kinds_match(o.kind, i.kind) || !name::matches(&i.pattern, &o.name) {
                     continue;
                 }
                 if !i.ty.accepts(&o.ty) {
-                    i.report_mismatch(&o.name, &self.me.name, &o.ty);
+                    // A pattern takes the items of its type among those it matches; only an
+                    // exact name can be "the wrong type".
+                    if !name::is_wildcard(&i.pattern) {
+                        i.report_mismatch(&o.name, &self.me.name, &o.ty);
+                    }
                     continue;
                 }
                 local.push(i.clone());
@@ -205,13 +262,16 @@ impl NodeInner {
             // Remote subscribers.
             let mut remote = Vec::new();
             for p in &peers {
+                if o.hidden_on == Some(p.link) {
+                    continue;
+                }
                 let mut services = Vec::new();
                 for (iid, it) in &p.interests {
                     if !kinds_match(o.kind, it.kind) || !name::matches(&it.name, &o.name) {
                         continue;
                     }
                     if !it.ty.accepts(&o.ty) {
-                        if lock(&o.refused).insert((p.id, *iid)) {
+                        if !name::is_wildcard(&it.name) && lock(&o.refused).insert((p.id, *iid)) {
                             refusals.push((
                                 p.link,
                                 p.addr,
@@ -278,11 +338,14 @@ impl NodeInner {
                 *cur = remote;
             }
         }
-        // Routes for what peers offer.
+        // Routes for what peers offer, each item from its shortest path only.
+        let shadowed = self.shadowed_offers();
         for mut p in self.peers.iter_mut() {
+            let hidden = shadowed.get(&p.id).cloned().unwrap_or_default();
             let routes = p
                 .offers
                 .iter()
+                .filter(|(oid, _)| !hidden.contains(oid))
                 .map(|(oid, item)| {
                     let targets: Arc<[Arc<LocalInterest>]> = interests
                         .iter()
@@ -297,6 +360,7 @@ impl NodeInner {
                 })
                 .collect();
             p.routes = routes;
+            p.shadowed = hidden;
         }
         for (link, addr, msg) in refusals {
             self.send_safe(link, addr, &msg);
@@ -308,6 +372,40 @@ impl NodeInner {
             self.send_to(link, addr, Outgoing::Safe { msg, done: None });
         }
         self.bump();
+    }
+
+    /// The offers of each peer to ignore: where one item (same source node, kind and name) is
+    /// declared by several peers (directly and through gateways), only the path with the
+    /// fewest gateways counts (ties: the lowest peer id); our own items forwarded back to us
+    /// are ignored altogether.
+    pub fn shadowed_offers(&self) -> HashMap<NodeId, HashSet<u32>> {
+        type Key = (NodeId, ItemKind, Arc<str>);
+        let mut best: HashMap<Key, (u8, NodeId, u32)> = HashMap::new();
+        let mut out: HashMap<NodeId, HashSet<u32>> = HashMap::new();
+        for p in self.peers.iter() {
+            for (oid, item) in &p.offers {
+                let (source, hops) = item.source(p.id);
+                if source == self.me.id {
+                    out.entry(p.id).or_default().insert(*oid);
+                    continue;
+                }
+                let key = (source, item.kind, item.name.clone());
+                let cand = (hops, p.id, *oid);
+                match best.get(&key) {
+                    Some(cur) if *cur <= cand => {
+                        out.entry(p.id).or_default().insert(*oid);
+                    }
+                    Some(cur) => {
+                        out.entry(cur.1).or_default().insert(cur.2);
+                        best.insert(key, cand);
+                    }
+                    None => {
+                        best.insert(key, cand);
+                    }
+                }
+            }
+        }
+        out
     }
 
     /// Sends `node` the newest value of every variable of ours it subscribes to (safe class).
@@ -333,12 +431,7 @@ impl NodeInner {
         let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
             return;
         };
-        let entries: Vec<LoggedDeclaration> = lock(&self.decls)
-            .entries
-            .iter()
-            .filter(|e| e.counter > since)
-            .cloned()
-            .collect();
+        let entries = lock(&self.decls).view(link, since);
         self.send_batches(link, addr, &entries);
     }
 
@@ -371,6 +464,7 @@ impl NodeInner {
                         kind,
                         name,
                         ty,
+                        origin,
                     } => {
                         p.offers.insert(
                             id,
@@ -380,6 +474,8 @@ impl NodeInner {
                                 name: name.into(),
                                 type_name: ty.name.as_str().into(),
                                 ty,
+                                origin_name: origin.as_ref().map(|o| o.name.as_str().into()),
+                                origin,
                             },
                         );
                     }
@@ -398,6 +494,8 @@ impl NodeInner {
                                 name: pattern.into(),
                                 type_name: ty.name.as_str().into(),
                                 ty,
+                                origin: None,
+                                origin_name: None,
                             },
                         );
                     }
@@ -423,11 +521,15 @@ impl NodeInner {
         }
         if changed {
             self.recompute_routes();
+            self.recompute_forwarding();
         }
     }
 
     /// Delivers a remote variable value or event to the local subscribers routed to it.
     pub fn deliver_remote(&self, node: NodeId, id: u32, payload: Vec<u8>) {
+        if self.gateway.is_some() {
+            self.forward_data(node, id, &payload);
+        }
         let Some((targets, name, type_name, publisher)) = self.peers.get(&node).and_then(|p| {
             let t = p.routes.get(&id)?.clone();
             let offer = p.offers.get(&id)?;
@@ -435,7 +537,7 @@ impl NodeInner {
                 t,
                 offer.name.clone(),
                 offer.type_name.clone(),
-                p.name.clone(),
+                offer.origin_name.clone().unwrap_or_else(|| p.name.clone()),
             ))
         }) else {
             tracing::debug!(
@@ -466,10 +568,18 @@ impl NodeInner {
     }
 
     pub fn on_refused(&self, node: NodeId, interest: u32, name: String, offered: TypeInfo) {
+        // Through a gateway, the publisher is the node behind it.
         let publisher = self
             .peers
             .get(&node)
-            .map(|p| p.name.to_string())
+            .map(|p| {
+                p.offers
+                    .values()
+                    .find(|o| *o.name == *name)
+                    .and_then(|o| o.origin_name.clone())
+                    .unwrap_or_else(|| p.name.clone())
+                    .to_string()
+            })
             .unwrap_or_else(|| format!("{node:016x}"));
         if let Some(i) = self.interests.get(&interest) {
             i.report_mismatch(&name, &publisher, &offered);

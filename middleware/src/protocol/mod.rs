@@ -67,6 +67,9 @@ pub enum Declaration {
         name: String,
         /// Payload type.
         ty: TypeInfo,
+        /// Set when a gateway declares, on its other links, an item it forwards: the node that
+        /// really offers it. Receivers that reach that node by a shorter path ignore this copy.
+        origin: Option<Origin>,
     },
     /// Interest in items: subscribing to variables/events, or calling functions.
     Interest {
@@ -98,6 +101,17 @@ impl Declaration {
             | Declaration::Withdraw { id } => *id,
         }
     }
+}
+
+/// Where a forwarded offer really comes from.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Origin {
+    /// The offering node.
+    pub node: NodeId,
+    /// Its name (for listings and reports).
+    pub name: String,
+    /// Gateways crossed so far (1 for an offer forwarded once).
+    pub hops: u8,
 }
 
 /// A declaration with its position in the node's declaration log.

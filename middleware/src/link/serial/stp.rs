@@ -712,6 +712,9 @@ impl<T> Stp<T> {
         s.safe_queued = (self.safe_q.len() + self.units.len()) as u64;
         s.fast_queued = self.fast.len() as u64;
         s.srtt_us = self.tx.rto().srtt().map_or(0, |d| d.as_micros() as u64);
+        s.link.rtt_us = s.srtt_us;
+        s.link.safe_queued = s.safe_queued + s.in_flight;
+        s.link.fast_queued = s.fast_queued;
         s
     }
 

@@ -1,0 +1,515 @@
+//! Forwarding between links: what makes a node with several links a gateway.
+//!
+//! The gateway re-declares, on its other links, what the peers of one link want and offer,
+//! as items of its own (a pseudo-service named `gateway`):
+//! - every interest (subscription) of a peer becomes a forwarded interest declared on the
+//!   other links, so publishers there send to the gateway;
+//! - a peer's variable or event becomes a forwarded offer on the other links only while a peer
+//!   on another link subscribes to it (interest-based: nothing crosses a radio unasked); the
+//!   data the gateway receives for it is published again from the forwarded offer, and a
+//!   forwarded variable keeps its last value, so a late subscriber is served by the nearest
+//!   gateway without crossing the radio again;
+//! - functions and file sinks are always forwarded (they are few and callers must find them):
+//!   calls are relayed with the caller's deadline, file transfers chunk by chunk with the
+//!   receiver's acknowledgements relayed back, so both stay end to end.
+//!
+//! A forwarded item is never declared on the link it came from, and a forwarded offer names
+//! its origin node and the gateways crossed, so a node reaching the same item by several paths
+//! keeps the shortest (`NodeInner::shadowed_offers`) and nothing is delivered twice.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use dashmap::DashMap;
+
+use super::session::encode_data;
+use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
+use crate::api::CallError;
+use crate::link::Outgoing;
+use crate::name;
+use crate::protocol::{Declaration, ItemKind, Message, NodeId, Origin, RemoteFailure};
+use crate::typeinfo::TypeInfo;
+
+/// Gateways an offer may cross; stops forwarding loops in meshes of gateways.
+const MAX_HOPS: u8 = 8;
+
+/// Name of the pseudo-service owning the forwarded items.
+pub(crate) const SERVICE_NAME: &str = "gateway";
+
+/// An offer of a peer forwarded on our other links.
+pub(crate) struct Forwarded {
+    pub offer: Arc<LocalOffer>,
+    /// When the last value or event passed through.
+    pub updated: Mutex<Option<Instant>>,
+}
+
+/// A forwarded interest, by where it came from and what it asks for.
+#[derive(Clone, PartialEq, Eq, Hash)]
+struct InterestKey {
+    link: usize,
+    kind: ItemKind,
+    pattern: String,
+    ty: TypeInfo,
+}
+
+/// A file transfer relayed through this node.
+#[derive(Clone, Copy)]
+pub(crate) struct FileRelay {
+    /// The sending node (behind one link).
+    pub sender: NodeId,
+    /// The receiving node (behind another).
+    pub receiver: NodeId,
+}
+
+/// A gateway's state.
+pub(crate) struct Gateway {
+    /// Id of the `gateway` pseudo-service.
+    pub service: u32,
+    /// (peer, its offer id) -> our forwarded copy; read on the data path.
+    pub offers: DashMap<(NodeId, u32), Arc<Forwarded>>,
+    /// Forwarded interests -> our interest id.
+    interests: Mutex<HashMap<InterestKey, u32>>,
+    /// Serialises recomputations.
+    recompute: Mutex<()>,
+    /// File transfers in progress through this node, by transfer id.
+    pub files: DashMap<u64, FileRelay>,
+}
+
+impl Gateway {
+    pub fn new(service: u32) -> Self {
+        Gateway {
+            service,
+            offers: DashMap::new(),
+            interests: Mutex::default(),
+            recompute: Mutex::new(()),
+            files: DashMap::new(),
+        }
+    }
+}
+
+/// A forwarded offer wanted now.
+struct WantedOffer {
+    kind: ItemKind,
+    name: Arc<str>,
+    ty: TypeInfo,
+    origin: Origin,
+    from_link: usize,
+}
+
+/// A forwarded item currently cached, for listings.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ForwardedItem {
+    /// Full name.
+    pub name: String,
+    /// Kind of item.
+    pub kind: ItemKind,
+    /// The node really offering it.
+    pub origin: String,
+    /// Age of the newest value or event that passed through (`None` before the first).
+    pub age: Option<Duration>,
+    /// Whether a last value is cached for late subscribers.
+    pub cached: bool,
+}
+
+impl NodeInner {
+    /// Brings the forwarded items in line with what the peers declare now. Called whenever a
+    /// peer's declarations, or the peer table, change.
+    pub fn recompute_forwarding(&self) {
+        let Some(gw) = &self.gateway else { return };
+        let _serialised = lock(&gw.recompute);
+        let links = self.links().len();
+        let shadowed = self.shadowed_offers();
+
+        // Interests wanted: every subscription of every peer, forwarded onto the other links.
+        let mut wanted_interests: HashMap<InterestKey, ()> = HashMap::new();
+        // Interests by link, for the offers' interest test below.
+        let mut interests_by_link: Vec<(usize, ItemKind, Arc<str>, TypeInfo)> = Vec::new();
+        let mut wanted_offers: HashMap<(NodeId, u32), WantedOffer> = HashMap::new();
+        for p in self.peers.iter() {
+            for it in p.interests.values() {
+                if !matches!(it.kind, ItemKind::Variable | ItemKind::Event) {
+                    continue;
+                }
+                interests_by_link.push((p.link, it.kind, it.name.clone(), it.ty.clone()));
+                if links > 1 {
+                    wanted_interests.insert(
+                        InterestKey {
+                            link: p.link,
+                            kind: it.kind,
+                            pattern: it.name.to_string(),
+                            ty: it.ty.clone(),
+                        },
+                        (),
+                    );
+                }
+            }
+        }
+        for p in self.peers.iter() {
+            let hidden = shadowed.get(&p.id);
+            for (oid, item) in &p.offers {
+                if hidden.is_some_and(|h| h.contains(oid)) {
+                    continue;
+                }
+                let (source, hops) = item.source(p.id);
+                if source == self.me.id || hops >= MAX_HOPS {
+                    continue;
+                }
+                let wanted = match item.kind {
+                    ItemKind::Function | ItemKind::File => links > 1,
+                    ItemKind::Variable | ItemKind::Event => {
+                        // A pattern wants the items of its type; an exact name of another
+                        // type is forwarded anyway, so the refusal reaches the subscriber.
+                        interests_by_link.iter().any(|(link, kind, pattern, ty)| {
+                            *link != p.link
+                                && *kind == item.kind
+                                && name::matches(pattern, &item.name)
+                                && (ty.accepts(&item.ty) || !name::is_wildcard(pattern))
+                        })
+                    }
+                };
+                if !wanted {
+                    continue;
+                }
+                let origin_name = item
+                    .origin
+                    .as_ref()
+                    .map_or_else(|| p.name.to_string(), |o| o.name.clone());
+                wanted_offers.insert(
+                    (p.id, *oid),
+                    WantedOffer {
+                        kind: item.kind,
+                        name: item.name.clone(),
+                        ty: item.ty.clone(),
+                        origin: Origin {
+                            node: source,
+                            name: origin_name,
+                            hops: hops + 1,
+                        },
+                        from_link: p.link,
+                    },
+                );
+            }
+        }
+
+        // Withdraw what is no longer wanted (or changed shape).
+        let mut withdrawn = Vec::new();
+        gw.offers.retain(|key, f| {
+            let keep = wanted_offers.get(key).is_some_and(|w| {
+                w.kind == f.offer.kind
+                    && w.name == f.offer.name
+                    && w.ty == f.offer.ty
+                    && Some(&w.origin) == f.offer.origin.as_ref()
+                    && Some(w.from_link) == f.offer.hidden_on
+            });
+            if !keep {
+                withdrawn.push(f.offer.id);
+            }
+            keep
+        });
+        {
+            let mut cur = lock(&gw.interests);
+            cur.retain(|key, id| {
+                let keep = wanted_interests.contains_key(key);
+                if !keep {
+                    withdrawn.push(*id);
+                }
+                keep
+            });
+        }
+
+        // Add what is new: every item into the tables first, routes once, then declarations
+        // (routes before declarations, as for local items).
+        let mut added: Vec<(Declaration, Option<usize>)> = Vec::new();
+        for (key, w) in wanted_offers {
+            if gw.offers.contains_key(&key) {
+                continue;
+            }
+            let id = self.fresh_id();
+            let role = match w.kind {
+                ItemKind::Variable => OfferRole::Variable {
+                    last: Mutex::new(None),
+                },
+                ItemKind::Event => OfferRole::Event,
+                ItemKind::Function | ItemKind::File => OfferRole::Relay {
+                    origin: key.0,
+                    remote_id: key.1,
+                },
+            };
+            let offer = Arc::new(LocalOffer {
+                id,
+                service: gw.service,
+                kind: w.kind,
+                name: w.name.clone(),
+                ty: w.ty.clone(),
+                role,
+                remote: Mutex::default(),
+                local: Mutex::default(),
+                refused: Mutex::default(),
+                origin: Some(w.origin.clone()),
+                hidden_on: Some(w.from_link),
+            });
+            added.push((
+                Declaration::Offer {
+                    id,
+                    service: gw.service,
+                    kind: w.kind,
+                    name: w.name.to_string(),
+                    ty: w.ty,
+                    origin: Some(w.origin),
+                },
+                Some(w.from_link),
+            ));
+            self.offers.insert(id, offer.clone());
+            gw.offers.insert(
+                key,
+                Arc::new(Forwarded {
+                    offer,
+                    updated: Mutex::new(None),
+                }),
+            );
+        }
+        {
+            let mut cur = lock(&gw.interests);
+            for key in wanted_interests.into_keys() {
+                if cur.contains_key(&key) {
+                    continue;
+                }
+                let id = self.fresh_id();
+                self.interests.insert(
+                    id,
+                    Arc::new(LocalInterest {
+                        id,
+                        service: gw.service,
+                        service_name: SERVICE_NAME.into(),
+                        kind: key.kind,
+                        pattern: key.pattern.clone(),
+                        ty: key.ty.clone(),
+                        mailbox: None,
+                        reported: Mutex::default(),
+                        hidden_on: Some(key.link),
+                    }),
+                );
+                added.push((
+                    Declaration::Interest {
+                        id,
+                        service: gw.service,
+                        kind: key.kind,
+                        pattern: key.pattern.clone(),
+                        ty: key.ty.clone(),
+                    },
+                    Some(key.link),
+                ));
+                cur.insert(key, id);
+            }
+        }
+        for id in &withdrawn {
+            self.offers.remove(id);
+            self.interests.remove(id);
+        }
+        if added.is_empty() && withdrawn.is_empty() {
+            return;
+        }
+        tracing::debug!(
+            added = added.len(),
+            withdrawn = withdrawn.len(),
+            "gateway forwarding updated"
+        );
+        self.recompute_routes();
+        for id in withdrawn {
+            self.declare(Declaration::Withdraw { id }, None);
+        }
+        for (decl, hidden_on) in added {
+            self.declare(decl, hidden_on);
+        }
+    }
+
+    /// Publishes again, on our other links, a value or event that `node` sent for its offer
+    /// `id`, if we forward that offer.
+    pub fn forward_data(&self, node: NodeId, id: u32, payload: &[u8]) {
+        let Some(gw) = &self.gateway else { return };
+        let Some(f) = gw.offers.get(&(node, id)).map(|f| f.clone()) else {
+            return;
+        };
+        *lock(&f.updated) = Some(Instant::now());
+        match f.offer.kind {
+            ItemKind::Variable => self.publish_variable(&f.offer, payload.to_vec()),
+            ItemKind::Event => {
+                let remote = lock(&f.offer.remote).clone();
+                if remote.is_empty() {
+                    return;
+                }
+                let msg = encode_data(true, f.offer.id, payload);
+                for r in remote {
+                    self.send_to(
+                        r.link,
+                        r.addr,
+                        Outgoing::Safe {
+                            msg: msg.clone(),
+                            done: None,
+                        },
+                    );
+                }
+            }
+            ItemKind::Function | ItemKind::File => {}
+        }
+    }
+
+    /// Relays a call made on our stand-in `offer` for a function behind another link, with the
+    /// caller's deadline, and sends the answer back to `caller`.
+    pub fn relay_call(
+        self: &Arc<Self>,
+        caller: NodeId,
+        call_id: u64,
+        offer: &LocalOffer,
+        deadline: Duration,
+        args: Vec<u8>,
+    ) {
+        let OfferRole::Relay { origin, remote_id } = offer.role else {
+            return;
+        };
+        let inner = self.clone();
+        let name = offer.name.to_string();
+        let ty = offer.ty.clone();
+        self.tasks.spawn(async move {
+            let node_name = inner
+                .peers
+                .get(&origin)
+                .map(|p| p.name.clone())
+                .unwrap_or_else(|| format!("{origin:016x}").into());
+            let provider = crate::api::function::Provider::Remote {
+                node: origin,
+                node_name,
+                id: remote_id,
+                ty,
+            };
+            let result = tokio::select! {
+                r = crate::api::function::invoke(&inner, &name, provider, args, deadline) => r,
+                _ = inner.cancel.cancelled() => Err(CallError::LinkLost {
+                    node: inner.me.name.clone(),
+                    reason: "gateway shutting down".into(),
+                }),
+            };
+            let result = result.map_err(|e| match e {
+                CallError::NoProvider { .. } => RemoteFailure::NotProvided,
+                CallError::Timeout { .. } => RemoteFailure::DeadlineExpired,
+                CallError::Remote { node, message } => {
+                    RemoteFailure::Handler(format!("{message} (from node '{node}')"))
+                }
+                other => {
+                    RemoteFailure::Handler(format!("through gateway '{}': {other}", inner.me.name))
+                }
+            });
+            inner.send_safe_to_node(caller, &Message::Reply { call_id, result });
+        });
+    }
+
+    /// Starts relaying a file offered by `sender` to our stand-in for a sink of `receiver`.
+    pub fn relay_file_offer(
+        &self,
+        sender: NodeId,
+        receiver: NodeId,
+        remote_sink: u32,
+        transfer: u64,
+        msg: Message,
+    ) {
+        let Some(gw) = &self.gateway else { return };
+        let Message::FileOffer {
+            name, size, hash, ..
+        } = msg
+        else {
+            return;
+        };
+        gw.files.insert(transfer, FileRelay { sender, receiver });
+        if !self.send_safe_to_node(
+            receiver,
+            &Message::FileOffer {
+                transfer,
+                sink: remote_sink,
+                name,
+                size,
+                hash,
+            },
+        ) {
+            gw.files.remove(&transfer);
+            self.send_safe_to_node(
+                sender,
+                &Message::FileDone {
+                    transfer,
+                    verdict: crate::protocol::FileVerdict::Failed(
+                        "the receiving node is no longer reachable through the gateway".into(),
+                    ),
+                },
+            );
+        }
+    }
+
+    /// Relays a file-transfer message of a relayed transfer to the other end; returns whether
+    /// it was one. The sender's messages (chunks, cancel) go to the receiver; the receiver's
+    /// (accept/progress, verdict) to the sender.
+    pub fn relay_file_message(&self, from: NodeId, transfer: u64, msg: &Message) -> bool {
+        let Some(gw) = &self.gateway else {
+            return false;
+        };
+        let Some(r) = gw.files.get(&transfer).map(|r| *r) else {
+            return false;
+        };
+        let to = if from == r.sender {
+            r.receiver
+        } else if from == r.receiver {
+            r.sender
+        } else {
+            return false;
+        };
+        if matches!(msg, Message::FileDone { .. } | Message::FileCancel { .. }) {
+            gw.files.remove(&transfer);
+        }
+        self.send_safe_to_node(to, msg);
+        true
+    }
+
+    /// A peer is gone: relayed transfers through it end; a receiver still waiting for chunks
+    /// from a lost sender is told the transfer was cancelled (it keeps what it has, for a
+    /// resume).
+    pub fn gateway_peer_lost(&self, node: NodeId) {
+        let Some(gw) = &self.gateway else { return };
+        let mut lost = Vec::new();
+        gw.files.retain(|transfer, r| {
+            let keep = r.sender != node && r.receiver != node;
+            if !keep {
+                lost.push((*transfer, *r));
+            }
+            keep
+        });
+        for (transfer, r) in lost {
+            if r.sender == node {
+                self.send_safe_to_node(r.receiver, &Message::FileCancel { transfer });
+            }
+        }
+    }
+
+    /// The items this gateway forwards, with the age of what last passed through.
+    pub fn forwarded_items(&self) -> Vec<ForwardedItem> {
+        let Some(gw) = &self.gateway else {
+            return Vec::new();
+        };
+        let mut v: Vec<ForwardedItem> = gw
+            .offers
+            .iter()
+            .map(|f| ForwardedItem {
+                name: f.offer.name.to_string(),
+                kind: f.offer.kind,
+                origin: f
+                    .offer
+                    .origin
+                    .as_ref()
+                    .map(|o| o.name.clone())
+                    .unwrap_or_default(),
+                age: lock(&f.updated).map(|t| t.elapsed()),
+                cached: matches!(&f.offer.role, OfferRole::Variable { last } if lock(last).is_some()),
+            })
+            .collect();
+        v.sort_by(|a, b| a.name.cmp(&b.name));
+        v
+    }
+}

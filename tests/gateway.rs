@@ -1,0 +1,251 @@
+//! Gateways: a ground LAN and an air LAN, each with its own discovery group, joined over a
+//! serial radio (`marea-radio`, real ptys) by one gateway node on each side. Every node is a
+//! separate process. The two LANs must behave as one system for all four primitives, and the
+//! ground gateway must serve a late subscriber the last value it forwarded without the radio.
+
+mod common;
+
+use std::path::Path;
+use std::time::Duration;
+
+use common::{Proc, Radio};
+use serde_json::Value;
+
+/// Generous bound for anything that crosses the radio (declarations, then data).
+const RADIO: Duration = Duration::from_secs(60);
+
+/// One LAN's discovery settings for the probes (their built-in loopback Ethernet config).
+struct Lan {
+    domain: String,
+    port: u16,
+}
+
+impl Lan {
+    fn probe(&self, node: &str, namespace: &str, cmd: &[&str]) -> Proc {
+        let mut args: Vec<String> = [
+            "--node",
+            node,
+            "--namespace",
+            namespace,
+            "--domain",
+            &self.domain,
+            "--mcast-port",
+            &self.port.to_string(),
+            "--heartbeat-ms",
+            "200",
+            "--lease-ms",
+            "1500",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(cmd.iter().map(|s| s.to_string()));
+        Proc::spawn(node, env!("CARGO_BIN_EXE_marea-probe"), &args)
+    }
+
+    /// A gateway: this LAN plus the radio, from a network.xml written into `dir`.
+    fn gateway(&self, dir: &Path, node: &str, namespace: &str, tty: &str) -> Proc {
+        let xml = format!(
+            r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
+  <ethernet name="lan" bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"
+            heartbeatMs="200" leaseMs="1500"/>
+  <serial name="radio" address="{tty}" baudRate="57600" heartbeatMs="1000" leaseMs="15000"/>
+</network>"#,
+            domain = self.domain,
+            port = self.port,
+        );
+        let path = dir.join(format!("{node}.xml"));
+        std::fs::write(&path, xml).expect("write network.xml");
+        let args = vec![
+            "--config".to_owned(),
+            path.display().to_string(),
+            "gateway".to_owned(),
+        ];
+        Proc::spawn(node, env!("CARGO_BIN_EXE_marea-probe"), &args)
+    }
+}
+
+fn forwarded(v: &Value, name: &str, cached: bool) -> bool {
+    v["forwarded"].as_array().is_some_and(|items| {
+        items
+            .iter()
+            .any(|i| i["name"] == name && (!cached || i["cached"] == true))
+    })
+}
+
+#[test]
+fn two_lans_joined_by_a_radio_behave_as_one_system() {
+    let pid = std::process::id();
+    let domain = format!("gateway-{pid}");
+    // Two LANs on this host: same domain, different discovery groups, so only the gateways
+    // join them.
+    let base = 20_000 + (pid % 20_000) as u16;
+    let ground = Lan {
+        domain: domain.clone(),
+        port: base,
+    };
+    let air = Lan {
+        domain: domain.clone(),
+        port: base + 1,
+    };
+    let dir = tempfile::tempdir().expect("temp dir");
+    let radio = Radio::start(&["--loss", "0.001", "--corrupt", "0.001", "--seed", "21"]);
+
+    let mut air_gw = air.gateway(dir.path(), "air-gw", "rover1", &radio.air);
+    let mut ground_gw = ground.gateway(dir.path(), "ground-gw", "ground", &radio.ground);
+    for gw in [&mut air_gw, &mut ground_gw] {
+        let v = gw.expect_key(RADIO, "ready");
+        assert_eq!(
+            v["gateway"], true,
+            "{}: a LAN + radio node forwards",
+            gw.name
+        );
+    }
+
+    // Air LAN: two services (a vehicle publishing and providing; a payload accepting files).
+    let sink_dir = dir.path().join("received");
+    std::fs::create_dir_all(&sink_dir).expect("sink dir");
+    let mut vehicle = air.probe("vehicle", "rover1", &["provide", "--item", "double"]);
+    vehicle.expect_key(RADIO, "ready");
+    let mut position = air.probe(
+        "position",
+        "rover1",
+        &["var-pub", "--item", "position", "--count", "1"],
+    );
+    position.expect_key(RADIO, "published");
+    let sink_arg = sink_dir.display().to_string();
+    let mut payload = air.probe(
+        "payload",
+        "rover1",
+        &["sink", "--item", "plans", "--dir", &sink_arg],
+    );
+    payload.expect_key(RADIO, "ready");
+
+    // Ground LAN: two services following and commanding the vehicle.
+    let mut monitor = ground.probe(
+        "monitor",
+        "ground",
+        // Stays subscribed (count 0): the gateways forward, and cache, while someone listens.
+        &["var-sub", "--pattern", "rover1/**", "--count", "0"],
+    );
+    monitor.expect_key(RADIO, "ready");
+    let v = monitor.expect_key(RADIO, "seq");
+    assert_eq!(v["name"], "rover1/probe/position", "{v}");
+    assert_eq!(
+        v["publisher"], "position",
+        "the sample names its real publisher: {v}"
+    );
+
+    // Events, air -> ground, exactly once and in order, end to end through both gateways.
+    let mut alarms_sub = ground.probe(
+        "alarms-sub",
+        "ground",
+        &[
+            "ev-sub",
+            "--pattern",
+            "rover1/probe/alarm",
+            "--count",
+            "200",
+        ],
+    );
+    alarms_sub.expect_key(RADIO, "ready");
+    let mut alarms = air.probe(
+        "alarms",
+        "rover1",
+        &["ev-pub", "--item", "alarm", "--count", "200", "--subs", "1"],
+    );
+    let done = alarms_sub.expect_key(RADIO, "received");
+    assert_eq!(done["received"], 200, "{done}");
+    assert_eq!(done["in_order"], true, "{done}");
+    let raised = alarms.expect_key(RADIO, "raised");
+    assert_eq!(raised["acknowledged_by_all"], 200, "{raised}");
+
+    // A call ground -> air through both gateways, and its answer back.
+    let mut caller = ground.probe(
+        "caller",
+        "ground",
+        &[
+            "call",
+            "--name",
+            "rover1/probe/double",
+            "--arg",
+            "21",
+            "--timeout-ms",
+            "20000",
+            "--wait-ms",
+            "60000",
+        ],
+    );
+    let v = caller.expect(RADIO, "ok or error", |v| {
+        v.get("ok").is_some() || v.get("error").is_some()
+    });
+    assert_eq!(v["ok"], 42, "{v}");
+    vehicle.expect(RADIO, "the call", |v| v["called"] == 21);
+
+    // A file ground -> air: chunks relayed by both gateways, acknowledged end to end.
+    let content: Vec<u8> = (0..60_000u32).map(|i| (i * 7 % 251) as u8).collect();
+    let plan = dir.path().join("plan.bin");
+    std::fs::write(&plan, &content).expect("write file");
+    let plan_arg = plan.display().to_string();
+    let mut sender = ground.probe(
+        "sender",
+        "ground",
+        &["send", "--file", &plan_arg, "--to", "rover1/probe/plans"],
+    );
+    let v = sender.expect(RADIO, "done or an error", |v| {
+        v.get("done").is_some() || v.get("error").is_some()
+    });
+    assert_eq!(v["done"], 60_000, "{v}");
+    let got = payload.expect_key(RADIO, "received");
+    let path = got["received"].as_str().expect("path");
+    assert_eq!(
+        std::fs::read(path).expect("read"),
+        content,
+        "file bit-identical"
+    );
+
+    // The ground gateway keeps the position it forwarded: with the radio frozen, a new
+    // subscriber on the ground LAN still gets it at once, from the gateway's cache.
+    ground_gw.expect(RADIO, "the cached position", |v| {
+        forwarded(v, "rover1/probe/position", true)
+    });
+    radio.freeze();
+    let mut late = ground.probe(
+        "late",
+        "ground",
+        &[
+            "var-sub",
+            "--pattern",
+            "rover1/probe/position",
+            "--count",
+            "1",
+        ],
+    );
+    let v = late.expect_key(Duration::from_secs(10), "seq");
+    radio.resume();
+    assert_eq!(v["name"], "rover1/probe/position", "{v}");
+    assert_eq!(v["publisher"], "position", "{v}");
+
+    for p in [
+        &mut late,
+        &mut sender,
+        &mut caller,
+        &mut alarms,
+        &mut alarms_sub,
+        &mut monitor,
+        &mut payload,
+        &mut position,
+        &mut vehicle,
+        &mut ground_gw,
+        &mut air_gw,
+    ] {
+        p.terminate();
+    }
+    // Nothing was delivered twice: the event subscriber reports any extra event it gets.
+    alarms_sub.drain();
+    assert!(
+        !alarms_sub.seen.iter().any(|v| v.get("extra").is_some()),
+        "duplicate events: {:?}",
+        alarms_sub.seen
+    );
+}
