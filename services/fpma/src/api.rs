@@ -7,9 +7,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::exec::{Event, EventKind, HoldHere, RetaskMode};
+use crate::exec::{expand_nominal, Event, EventKind, HoldHere, RetaskMode};
 use crate::expr::Value;
-use crate::model::Stage;
+use crate::geo::{GeoPoint, LocalFrame, Xy};
+use crate::model::{FlightPlan, Node, NodeKind, Stage};
+use crate::vehicle::VehicleParams;
 
 /// A plan variable's value.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -320,6 +322,206 @@ impl PlanEvent {
     }
 }
 
+/// Most waypoints a [`PlanGeometry`] carries: longer plans are thinned evenly (the last point
+/// kept), so the value stays a few kilobytes, seconds on a 57600-baud radio.
+pub const GEOMETRY_MAX_POINTS: usize = 1000;
+/// Most legs a [`PlanGeometry`] lists; the rest are left out (`legs_truncated`).
+pub const GEOMETRY_MAX_LEGS: usize = 400;
+
+/// The plan being flown, as a station draws it (variable `plan`): its legs and its nominal
+/// waypoints. Published when a plan is loaded or changed (a new version), never periodically,
+/// and also answered by the function `plan_geometry`, so a station started later, or one that
+/// lost the value on a radio, can draw a plan it did not upload.
+///
+/// Compact on purpose: waypoints are decimetre offsets from `origin` (postcard varints: a few
+/// bytes each) naming their leg by index; the car-park plan takes about 600 bytes.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PlanGeometry {
+    /// Plan version (0: no plan loaded).
+    pub version: u64,
+    /// Plan name.
+    pub name: String,
+    /// Where the plan came from: the file name as uploaded, or `plan` for `load_plan`.
+    pub source: String,
+    /// Legs and constructs in document order, stage by stage.
+    pub legs: Vec<LegGeometry>,
+    /// Some legs were left out ([`GEOMETRY_MAX_LEGS`]).
+    pub legs_truncated: bool,
+    /// Origin of the waypoint offsets, `(lat, lon)` in degrees.
+    pub origin: (f64, f64),
+    /// The nominal waypoints in flying order (holds and loops that wait once, marked), thinned
+    /// to at most [`GEOMETRY_MAX_POINTS`].
+    pub points: Vec<PlanPoint>,
+    /// Waypoints of the nominal expansion before thinning.
+    pub total_points: u32,
+}
+
+/// One leg (or construct) of a [`PlanGeometry`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LegGeometry {
+    /// Leg id: what `goto_leg` and `modify_leg` take.
+    pub id: String,
+    /// Its stage.
+    pub stage: Stage,
+    /// Nesting depth inside loops and alternatives.
+    pub depth: u8,
+    /// `TF`, `hold HF`, `scan`, `iterative`...
+    pub kind: String,
+    /// The numeric parameters `modify_leg` can change, under their XML attribute names, with
+    /// defaults resolved (metres, degrees, m/s): `spacing`, `length`, `width`, `alt`...
+    pub params: Vec<(String, f32)>,
+}
+
+/// One nominal waypoint of a [`PlanGeometry`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PlanPoint {
+    /// Decimetres east of the origin (azimuthal equidistant: [`LocalFrame`]).
+    pub east_dm: i32,
+    /// Decimetres north of the origin.
+    pub north_dm: i32,
+    /// Index of its leg in [`PlanGeometry::legs`] (`u16::MAX`: a leg left out).
+    pub leg: u16,
+    /// Part of a hold or loop that waits for a command or a condition (drawn once).
+    pub waits: bool,
+}
+
+/// The name a station shows for a node's kind.
+pub fn leg_kind_name(k: &NodeKind) -> String {
+    match k {
+        NodeKind::Path(p) => format!("{:?}", p.kind),
+        NodeKind::Hold(h) => format!("hold {:?}", h.kind),
+        NodeKind::Scan(_) => "scan".into(),
+        NodeKind::Perimeter(_) => "perimeter".into(),
+        NodeKind::Takeoff(_) => "takeoff".into(),
+        NodeKind::Landing(_) => "landing".into(),
+        NodeKind::Iterative(_) => "iterative".into(),
+        NodeKind::Alternative(_) => "alternative".into(),
+    }
+}
+
+/// The parameters of a leg a station may show and change (see [`LegGeometry::params`]).
+fn leg_params(k: &NodeKind) -> Vec<(String, f32)> {
+    let mut out: Vec<(&str, Option<f64>)> = Vec::new();
+    let common = match k {
+        NodeKind::Path(p) => Some(&p.common),
+        NodeKind::Hold(h) => {
+            out.extend([
+                ("inboundCourse", Some(h.inbound_course)),
+                ("length", h.length),
+                ("time", h.time),
+                ("width", h.width),
+            ]);
+            Some(&h.common)
+        }
+        NodeKind::Scan(sc) => {
+            out.extend([
+                ("spacing", Some(sc.spacing)),
+                ("sweepAngle", sc.sweep_angle),
+            ]);
+            Some(&sc.common)
+        }
+        NodeKind::Perimeter(pe) => {
+            out.extend([
+                ("spacing", Some(pe.spacing)),
+                ("rings", Some(f64::from(pe.rings))),
+            ]);
+            Some(&pe.common)
+        }
+        _ => None,
+    };
+    if let Some(c) = common {
+        out.extend([("alt", c.alt), ("speed", c.speed)]);
+    }
+    out.into_iter()
+        .filter_map(|(n, v)| v.map(|v| (n.to_owned(), v as f32)))
+        .collect()
+}
+
+/// Decimetres, saturating (a plan spans far less than the ±214 000 km an `i32` holds).
+fn dm(metres: f64) -> i32 {
+    (metres * 10.0).round() as i32
+}
+
+impl PlanGeometry {
+    /// The geometry of `plan` flown as `version` by `vehicle`. A plan whose nominal expansion
+    /// does not end (it cannot be loaded anyway) gets its legs and no points.
+    pub fn of(plan: &FlightPlan, vehicle: &VehicleParams, version: u64, source: &str) -> Self {
+        let mut legs = Vec::new();
+        fn walk(nodes: &[Node], stage: Stage, depth: u8, out: &mut Vec<LegGeometry>) {
+            for n in nodes {
+                out.push(LegGeometry {
+                    id: n.id.clone(),
+                    stage,
+                    depth,
+                    kind: leg_kind_name(&n.kind),
+                    params: leg_params(&n.kind),
+                });
+                for b in n.kind.bodies() {
+                    walk(b, stage, depth.saturating_add(1), out);
+                }
+            }
+        }
+        for s in Stage::ALL {
+            walk(plan.stage(s), s, 0, &mut legs);
+        }
+        let legs_truncated = legs.len() > GEOMETRY_MAX_LEGS;
+        legs.truncate(GEOMETRY_MAX_LEGS);
+
+        let wps = expand_nominal(plan.clone(), vehicle.clone()).unwrap_or_default();
+        let total_points = u32::try_from(wps.len()).unwrap_or(u32::MAX);
+        let origin = wps.first().map_or((0.0, 0.0), |w| (w.lat, w.lon));
+        let frame = LocalFrame::new(GeoPoint::new(origin.0, origin.1));
+        // Every `stride`-th point and the last: at most GEOMETRY_MAX_POINTS, evenly spread.
+        let stride = wps.len().div_ceil(GEOMETRY_MAX_POINTS - 1).max(1);
+        let last = wps.len().saturating_sub(1);
+        let leg_index = |id: &str| {
+            legs.iter()
+                .position(|l| l.id == id)
+                .and_then(|i| u16::try_from(i).ok())
+                .unwrap_or(u16::MAX)
+        };
+        let points: Vec<PlanPoint> = wps
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| i % stride == 0 || i == last)
+            .map(|(_, w)| {
+                let xy = frame.to_local(GeoPoint::new(w.lat, w.lon));
+                PlanPoint {
+                    east_dm: dm(xy.e),
+                    north_dm: dm(xy.n),
+                    leg: leg_index(&w.leg),
+                    waits: w.waits,
+                }
+            })
+            .collect();
+        PlanGeometry {
+            version,
+            name: plan.name.clone(),
+            source: source.to_owned(),
+            legs,
+            legs_truncated,
+            origin,
+            points,
+            total_points,
+        }
+    }
+
+    /// Where `p` is, `(lat, lon)` in degrees.
+    pub fn lat_lon(&self, p: &PlanPoint) -> (f64, f64) {
+        let frame = LocalFrame::new(GeoPoint::new(self.origin.0, self.origin.1));
+        let g = frame.to_geo(Xy::new(
+            f64::from(p.east_dm) / 10.0,
+            f64::from(p.north_dm) / 10.0,
+        ));
+        (g.lat, g.lon)
+    }
+
+    /// The leg `p` belongs to, when listed.
+    pub fn leg_of(&self, p: &PlanPoint) -> Option<&LegGeometry> {
+        self.legs.get(usize::from(p.leg))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -400,5 +602,75 @@ mod tests {
             from: "gcs".into(),
             reason: "3:1: x".into(),
         });
+        rt(PlanGeometry::of(
+            &carpark(),
+            &VehicleParams::rover(),
+            2,
+            "rover-carpark.xml",
+        ));
+        rt(PlanGeometry::default());
+    }
+
+    fn carpark() -> FlightPlan {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../config/flightplans/rover-carpark.xml"
+        );
+        let xml = std::fs::read_to_string(path).expect("rover-carpark.xml");
+        crate::parse::parse_plan(&xml, &VehicleParams::rover()).expect("valid plan")
+    }
+
+    #[test]
+    fn geometry_of_the_carpark_plan_is_small_and_faithful() {
+        let v = VehicleParams::rover();
+        let plan = carpark();
+        let g = PlanGeometry::of(&plan, &v, 3, "rover-carpark.xml");
+        assert_eq!((g.version, g.name.as_str()), (3, "castelldefels-carpark"));
+        let ids: Vec<&str> = g.legs.iter().map(|l| l.id.as_str()).collect();
+        assert!(ids.contains(&"hold") && ids.contains(&"area"), "{ids:?}");
+        let area = g.legs.iter().find(|l| l.id == "area").unwrap();
+        assert_eq!(area.kind, "scan");
+        assert!(area.params.contains(&("spacing".into(), 6.0)), "{area:?}");
+        let laps = g.legs.iter().position(|l| l.id == "laps").unwrap();
+        assert_eq!(g.legs[laps + 1].depth, 1, "loop bodies are nested");
+
+        // Every nominal waypoint, in order, within a decimetre, on its leg.
+        let wps = expand_nominal(plan, v).unwrap();
+        assert_eq!(g.points.len(), wps.len());
+        assert_eq!(g.total_points as usize, wps.len());
+        for (p, w) in g.points.iter().zip(&wps) {
+            let (lat, lon) = g.lat_lon(p);
+            let off = crate::geo::distance(GeoPoint::new(lat, lon), GeoPoint::new(w.lat, w.lon));
+            assert!(off < 0.1, "{off} m off at {w:?}");
+            assert_eq!(g.leg_of(p).map(|l| l.id.as_str()), Some(w.leg.as_str()));
+            assert_eq!(p.waits, w.waits);
+        }
+        assert!(g.points.iter().any(|p| p.waits), "the HM hold waits");
+
+        // Compact enough for a radio.
+        let bytes = postcard::to_stdvec(&g).unwrap().len();
+        assert!(bytes < 1000, "{bytes} bytes");
+    }
+
+    #[test]
+    fn long_plans_are_thinned_keeping_the_end() {
+        let xml = r#"<flightPlan name="laps"><fixes>
+            <fix id="A" lat="41.2750" lon="1.9870"/><fix id="B" lat="41.2755" lon="1.9870"/>
+            <fix id="C" lat="41.2755" lon="1.9876"/></fixes>
+            <mission><leg type="IF" fix="A"/>
+              <iterative id="loop" count="700"><leg id="ab" type="TF" fix="B"/>
+                <leg id="ba" type="TF" fix="A"/></iterative>
+              <leg id="end" type="TF" fix="C"/></mission></flightPlan>"#;
+        let v = VehicleParams::rover();
+        let plan = crate::parse::parse_plan(xml, &v).unwrap();
+        let g = PlanGeometry::of(&plan, &v, 1, "plan");
+        assert!(
+            g.total_points as usize > GEOMETRY_MAX_POINTS,
+            "{}",
+            g.total_points
+        );
+        assert!(g.points.len() <= GEOMETRY_MAX_POINTS, "{}", g.points.len());
+        assert_eq!(g.leg_of(g.points.last().unwrap()).unwrap().id, "end");
+        assert!(postcard::to_stdvec(&g).unwrap().len() < 16 * 1024);
     }
 }

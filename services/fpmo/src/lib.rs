@@ -3,10 +3,12 @@
 //! progress on a map drawn to scale, skip / go to a leg, pause / resume, change a leg's
 //! parameters, re-task by clicking the map.
 //!
-//! Unlike the seed's FPMo it subscribes only to what it shows (the FPMa's `progress`,
+//! Unlike the seed's FPMo it subscribes only to what it shows (the FPMa's `progress`, `plan`,
 //! `plan_event`, `plan_rejected` and the VAS's `position`), measures in the units the user picks,
-//! zooms to metres, and shows every command as pending until the FPMa answers. The plan's
-//! geometry comes from the station's own copy ([`plan`]). Items and options: `README.md`.
+//! zooms to metres, and shows every command as pending until the FPMa answers. The plan drawn is
+//! the FPMa's own (its `plan` variable, asked again with `plan_geometry` when the drawing lags
+//! the progress), so any station draws any plan, whoever uploaded it ([`plan`]). Items and
+//! options: `README.md`.
 
 pub mod plan;
 pub mod web;
@@ -19,16 +21,15 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use fmo::model::CommandStatus;
-use fpma::api::{CommandAck, PlanEvent, PlanEventKind, PlanRejected, Progress};
+use fpma::api::{CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, Progress};
 use fpma::vehicle::VehicleParams;
 use marea::{Function, RecvError, Service};
-use serde::Serialize;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::Position;
 
-use crate::plan::{distance_m, LocalPlan};
+use crate::plan::{distance_m, CheckedPlan, PlanView};
 
 /// Everything the FPMo needs.
 #[derive(Clone, Debug)]
@@ -46,7 +47,7 @@ pub struct FpmoConfig {
     /// Namespace pattern of the vehicles followed: `*` (a fleet, each `<ns>/fpma` and
     /// `<ns>/vas`), or one namespace such as `rover1`.
     pub vehicles: String,
-    /// Vehicle parameters plans are shaped by (as the FPMa's `vehicle`).
+    /// Vehicle parameters uploads are checked with (as the FPMa's `vehicle`).
     pub vehicle: VehicleParams,
     /// Values older than this are shown as stale.
     pub stale_after: Duration,
@@ -76,6 +77,13 @@ const MAX_TRACK: usize = 2000;
 const TRACK_STEP_M: f64 = 0.5;
 /// How long an uploaded plan may take to be loaded or refused after delivery.
 const LOAD_TIMEOUT: Duration = Duration::from_secs(30);
+/// How often the drawings are compared with the progress' plan version.
+const GEOMETRY_CHECK: Duration = Duration::from_secs(1);
+/// A drawing older than the progress for this long is asked for (`plan_geometry`): the `plan`
+/// variable was lost (a lossy radio) or is still on its way (it usually is, briefly).
+const GEOMETRY_LAG: Duration = Duration::from_secs(3);
+/// Least time between two `plan_geometry` calls to one FPMa.
+const GEOMETRY_RETRY: Duration = Duration::from_secs(5);
 
 #[derive(Clone, Debug)]
 struct Stamped<T> {
@@ -88,8 +96,14 @@ struct Vehicle {
     progress: Option<Stamped<Progress>>,
     position: Option<Stamped<Position>>,
     track: VecDeque<(f64, f64)>,
-    plan: Option<LocalPlan>,
+    /// The FPMa's plan as it last said (version 0: none loaded).
+    geometry: Option<PlanGeometry>,
+    /// Grows with every new drawing, so the page knows to fetch it.
     plan_rev: u64,
+    /// Since when the drawing lags the progress' version.
+    geometry_lags_since: Option<Instant>,
+    /// When `plan_geometry` was last called.
+    geometry_asked: Option<Instant>,
     events: VecDeque<(Instant, String)>,
     probe: Option<Arc<Function<(), CommandAck>>>,
 }
@@ -103,7 +117,7 @@ struct Cmd {
     started: Instant,
     finished: Option<Instant>,
     /// An upload waiting for `PlanLoaded { name }` / `plan_rejected { file }`.
-    upload: Option<LocalPlan>,
+    upload: Option<CheckedPlan>,
 }
 
 /// The station's state.
@@ -142,7 +156,7 @@ impl State {
         self.vehicles.entry(label.to_owned()).or_default()
     }
 
-    fn start(&mut self, vehicle: &str, what: String, upload: Option<LocalPlan>) -> u64 {
+    fn start(&mut self, vehicle: &str, what: String, upload: Option<CheckedPlan>) -> u64 {
         let id = self.next_id;
         self.next_id += 1;
         self.commands.push_back(Cmd {
@@ -187,16 +201,46 @@ impl State {
         }
     }
 
-    fn install_plan(&mut self, label: &str, plan: LocalPlan) {
+    /// The FPMa's plan geometry (variable `plan` or an answer of `plan_geometry`).
+    fn geometry(&mut self, label: &str, g: PlanGeometry) {
         let v = self.vehicle(label);
-        v.plan = Some(plan);
-        v.plan_rev += 1;
+        if v.geometry.as_ref() != Some(&g) {
+            v.geometry = Some(g);
+            v.plan_rev += 1;
+        }
+    }
+
+    /// Vehicles whose drawing has lagged their progress long enough to ask for it again,
+    /// among those whose FPMa is `reachable`.
+    fn geometry_lagging(
+        &mut self,
+        now: Instant,
+        reachable: impl Fn(&Vehicle) -> bool,
+    ) -> Vec<String> {
+        let mut ask = Vec::new();
+        for (label, v) in &mut self.vehicles {
+            let wanted = v.progress.as_ref().map_or(0, |p| p.value.version);
+            let drawn = v.geometry.as_ref().map_or(0, |g| g.version);
+            if wanted == drawn || !reachable(v) {
+                v.geometry_lags_since = None;
+                continue;
+            }
+            let since = *v.geometry_lags_since.get_or_insert(now);
+            let asked_long_ago = v
+                .geometry_asked
+                .is_none_or(|t| now.saturating_duration_since(t) >= GEOMETRY_RETRY);
+            if now.saturating_duration_since(since) >= GEOMETRY_LAG && asked_long_ago {
+                v.geometry_asked = Some(now);
+                ask.push(label.clone());
+            }
+        }
+        ask
     }
 
     fn plan_event(&mut self, label: &str, ev: PlanEvent) {
         let text = match &ev.kind {
             PlanEventKind::PlanLoaded { name } => {
-                // The upload that sent this plan is confirmed; its geometry becomes the map's.
+                // The upload that sent this plan is confirmed (the map follows the FPMa's `plan`).
                 let hit = self.commands.iter_mut().find(|c| {
                     c.vehicle == label
                         && c.status == CommandStatus::Pending
@@ -206,9 +250,7 @@ impl State {
                     c.status = CommandStatus::Ok;
                     c.detail = format!("loaded as version {}", ev.version);
                     c.finished = Some(Instant::now());
-                    if let Some(p) = c.upload.take() {
-                        self.install_plan(label, p);
-                    }
+                    c.upload = None;
                 }
                 format!("plan `{name}` loaded (version {})", ev.version)
             }
@@ -286,7 +328,8 @@ impl State {
                     })),
                     "track": v.track,
                     "plan_rev": v.plan_rev,
-                    "plan_name": v.plan.as_ref().map(|p| p.plan.name.clone()),
+                    "plan_name": v.geometry.as_ref().filter(|g| g.version > 0).map(|g| g.name.clone()),
+                    "plan_version": v.geometry.as_ref().map(|g| g.version),
                     "events": v.events.iter().rev().take(12).map(|(t, e)| serde_json::json!({
                         "age_ms": ms(now.saturating_duration_since(*t)), "text": e,
                     })).collect::<Vec<_>>(),
@@ -314,26 +357,11 @@ impl State {
         })
     }
 
-    /// The plan of `label` for the map and the legs table.
-    pub fn plan_json(&self, label: &str) -> Option<serde_json::Value> {
+    /// The plan of `label` for the map and the legs table, as its FPMa flies it.
+    pub fn plan_view(&self, label: &str) -> Option<PlanView> {
         let v = self.vehicles.get(label)?;
-        let p = v.plan.as_ref()?;
-        #[derive(Serialize)]
-        struct View<'a> {
-            rev: u64,
-            file: &'a str,
-            name: &'a str,
-            legs: &'a [plan::LegInfo],
-            waypoints: &'a [plan::MapPoint],
-        }
-        serde_json::to_value(View {
-            rev: v.plan_rev,
-            file: &p.file,
-            name: &p.plan.name,
-            legs: &p.legs,
-            waypoints: &p.waypoints,
-        })
-        .ok()
+        let g = v.geometry.as_ref().filter(|g| g.version > 0)?;
+        Some(PlanView::of(g, v.plan_rev))
     }
 }
 
@@ -445,7 +473,7 @@ impl Shared {
         } else {
             file
         };
-        let local = LocalPlan::load(&file, xml, &self.vehicle)?;
+        let local = CheckedPlan::check(&file, xml, &self.vehicle)?;
         let dir = self
             .uploads
             .path()
@@ -453,7 +481,7 @@ impl Shared {
         std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
         let path = dir.join(&file);
         std::fs::write(&path, xml).map_err(|e| e.to_string())?;
-        let what = format!("upload {file} ({} legs)", local.legs.len());
+        let what = format!("upload {file} ({} legs)", local.legs);
         let id = self.state().start(label, what, Some(local));
         self.changed.notify_waiters();
         let sink = format!("{}/plans", fpma_prefix(label));
@@ -512,19 +540,22 @@ impl Shared {
         Ok(id)
     }
 
-    /// Applies a confirmed leg change to the station's copy of the plan.
-    fn apply_modify(&self, st: &mut State, label: &str, leg: &str, changes: &[(String, String)]) {
-        let Some(v) = st.vehicles.get_mut(label) else {
-            return;
+    /// Asks the FPMa of `label` for its plan geometry and draws the answer.
+    async fn fetch_geometry(&self, label: &str) {
+        let full = format!("{}/plan_geometry", fpma_prefix(label));
+        let answer = match self.svc.function::<(), PlanGeometry>(&full) {
+            Ok(f) => tokio::select! {
+                r = f.call(&(), self.call_timeout) => r.map_err(call_error),
+                _ = self.cancel.cancelled() => return,
+            },
+            Err(e) => Err(e.to_string()),
         };
-        if let Some(p) = &v.plan {
-            match p.modified(leg, changes, &self.vehicle) {
-                Ok(p) => {
-                    v.plan = Some(p);
-                    v.plan_rev += 1;
-                }
-                Err(e) => tracing::warn!("cannot redraw {leg}: {e}"),
+        match answer {
+            Ok(g) => {
+                self.state().geometry(label, g);
+                self.changed.notify_waiters();
             }
+            Err(e) => tracing::debug!("{full}: {e}"),
         }
     }
 
@@ -545,7 +576,8 @@ impl Shared {
     }
 }
 
-/// Modifies leg `leg` with `changes` (attributes as in the XML, metres), redrawing on success.
+/// Modifies leg `leg` with `changes` (attributes as in the XML, metres); the map is redrawn
+/// when the FPMa publishes the new version's geometry.
 pub fn modify_leg(
     shared: &Arc<Shared>,
     label: &str,
@@ -560,22 +592,10 @@ pub fn modify_leg(
             .collect::<Vec<_>>()
             .join(", ")
     );
-    let me = shared.clone();
-    let l = label.to_owned();
-    let args = fpma::api::ModifyLeg {
-        leg: leg.clone(),
-        changes: changes.clone(),
-    };
-    shared.command(
-        label,
-        "modify_leg",
-        what,
-        args,
-        move |st, ack: &CommandAck| {
-            me.apply_modify(st, &l, &leg, &changes);
-            format!("version {}", ack.version)
-        },
-    )
+    let args = fpma::api::ModifyLeg { leg, changes };
+    shared.command(label, "modify_leg", what, args, |_, ack: &CommandAck| {
+        format!("version {}", ack.version)
+    })
 }
 
 fn spawn_sub<T: marea::Payload>(
@@ -609,6 +629,24 @@ fn spawn_sub<T: marea::Payload>(
             }
         }
     });
+}
+
+/// Asks an FPMa for its plan when the drawing lags its progress (see [`GEOMETRY_LAG`]).
+async fn geometry_loop(me: Arc<Shared>) {
+    let mut tick = tokio::time::interval(GEOMETRY_CHECK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = me.cancel.cancelled() => return,
+        }
+        let lagging = me.state().geometry_lagging(Instant::now(), |v| {
+            v.probe.as_ref().is_some_and(|f| f.has_provider())
+        });
+        for label in lagging {
+            me.fetch_geometry(&label).await;
+        }
+    }
 }
 
 /// Runs the FPMo until `shutdown`: binds, prints `FPMO_URL=http://ADDR/`, opens the node,
@@ -667,6 +705,12 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
     );
     spawn_sub(
         &shared,
+        svc.subscribe_variable::<PlanGeometry>(&format!("{ns}/fpma/plan"))?,
+        "fpma",
+        State::geometry,
+    );
+    spawn_sub(
+        &shared,
         svc.subscribe_event::<PlanEvent>(&format!("{ns}/fpma/plan_event"))?,
         "fpma",
         State::plan_event,
@@ -683,6 +727,7 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         "vas",
         State::position,
     );
+    shared.tasks.spawn(geometry_loop(shared.clone()));
     tracing::info!("fpmo up on http://{addr}/, following {ns}");
     let served = fmo::web::serve(listener, web::router(shared.clone()), cancel.clone()).await;
     cancel.cancel();
@@ -708,5 +753,63 @@ mod tests {
         assert_eq!(label_of("fpma/progress", "fpma").as_deref(), Some(""));
         assert_eq!(fpma_prefix(""), "fpma");
         assert_eq!(fpma_prefix("rover1"), "rover1/fpma");
+    }
+
+    #[test]
+    fn a_drawing_lagging_the_progress_is_asked_for_after_a_while_and_not_too_often() {
+        let mut st = State {
+            vehicles: BTreeMap::new(),
+            selected: None,
+            commands: VecDeque::new(),
+            next_id: 1,
+            stale_after: Duration::from_secs(2),
+        };
+        let t = Instant::now();
+        let progress = |version| Progress {
+            version,
+            ..Progress::default()
+        };
+        let geometry = |version| PlanGeometry {
+            version,
+            ..PlanGeometry::default()
+        };
+        st.vehicle("r").progress = Some(Stamped {
+            value: progress(2),
+            at: t,
+        });
+        st.geometry("r", geometry(2));
+        assert_eq!(st.vehicles["r"].plan_rev, 1);
+        st.geometry("r", geometry(2));
+        assert_eq!(
+            st.vehicles["r"].plan_rev, 1,
+            "the same drawing is not redrawn"
+        );
+        assert!(st.geometry_lagging(t, |_| true).is_empty(), "up to date");
+
+        // Progress says version 3; the drawing is still 2 (the `plan` value lost or late).
+        st.vehicle("r").progress = Some(Stamped {
+            value: progress(3),
+            at: t,
+        });
+        assert!(st.geometry_lagging(t, |_| true).is_empty(), "give it time");
+        assert!(
+            st.geometry_lagging(t + GEOMETRY_LAG, |_| false).is_empty(),
+            "an unreachable FPMa is not asked"
+        );
+        assert!(
+            st.geometry_lagging(t + GEOMETRY_LAG, |_| true).is_empty(),
+            "lag restarts"
+        );
+        let later = t + GEOMETRY_LAG * 2;
+        assert_eq!(st.geometry_lagging(later, |_| true), ["r"]);
+        assert!(st
+            .geometry_lagging(later + Duration::from_secs(1), |_| true)
+            .is_empty());
+        assert_eq!(st.geometry_lagging(later + GEOMETRY_RETRY, |_| true), ["r"]);
+        st.geometry("r", geometry(3));
+        assert!(st
+            .geometry_lagging(later + GEOMETRY_RETRY * 2, |_| true)
+            .is_empty());
+        assert_eq!(st.plan_view("r").map(|p| p.rev), Some(2));
     }
 }

@@ -32,7 +32,7 @@ struct Cli {
     /// Vehicles followed, as a namespace pattern: `*` (a fleet) or one namespace (`rover1`).
     #[arg(long, default_value = "*")]
     vehicles: String,
-    /// Vehicle parameters plans are checked and drawn with (as the FPMa's --vehicle).
+    /// Vehicle parameters uploads are checked with before sending (as the FPMa's --vehicle).
     #[arg(long, value_enum, default_value_t = Vehicle::Rover)]
     vehicle: Vehicle,
     /// Values older than this many milliseconds are shown as stale.

@@ -1,14 +1,49 @@
-//! The station's own copy of a flight plan: parsed and expanded here with the FPMa's library, so
-//! the page can list the legs and draw the generated waypoints without asking the vehicle for
-//! them (the FPMa publishes progress, not geometry, and the radio has no bandwidth to spare).
-//! A leg change confirmed by the FPMa is applied to this copy the same way
-//! ([`fpma::parse::modify_node`]), so the map is redrawn with the new waypoints.
+//! Flight plans at the station: an upload is checked here with the FPMa's own parser before it
+//! is sent (a broken file is refused with its line at once, without loading the radio), and the
+//! plan drawn is the one the FPMa says it flies, its `plan` variable ([`PlanGeometry`]), so the
+//! page shows plans another station uploaded, and a plan changed in flight is redrawn from the
+//! vehicle's copy, not from a guess of the station's.
 
+use fpma::api::PlanGeometry;
 use fpma::exec::expand_nominal;
-use fpma::model::{FlightPlan, Node, NodeKind, Stage};
-use fpma::parse::{modify_node, parse_plan};
+use fpma::model::{FlightPlan, Node, Stage};
+use fpma::parse::parse_plan;
 use fpma::vehicle::VehicleParams;
 use serde::Serialize;
+
+/// A plan file checked for upload.
+#[derive(Clone, Debug)]
+pub struct CheckedPlan {
+    /// File name it is sent as.
+    pub file: String,
+    /// Parsed.
+    pub plan: FlightPlan,
+    /// Legs and constructs in it.
+    pub legs: usize,
+}
+
+impl CheckedPlan {
+    /// Parses `xml` for `vehicle` and checks that it ends, as the FPMa will.
+    ///
+    /// # Errors
+    /// `file:line:col: what` for a plan the FPMa would refuse too; a plan that never ends.
+    pub fn check(file: &str, xml: &str, vehicle: &VehicleParams) -> Result<Self, String> {
+        let plan = parse_plan(xml, vehicle).map_err(|e| format!("{file}:{e}"))?;
+        expand_nominal(plan.clone(), vehicle.clone()).map_err(|e| format!("{file}: {e}"))?;
+        fn count(nodes: &[Node]) -> usize {
+            nodes
+                .iter()
+                .map(|n| 1 + n.kind.bodies().iter().map(|b| count(b)).sum::<usize>())
+                .sum()
+        }
+        let legs = Stage::ALL.into_iter().map(|s| count(plan.stage(s))).sum();
+        Ok(Self {
+            file: file.to_owned(),
+            plan,
+            legs,
+        })
+    }
+}
 
 /// One row of the legs table.
 #[derive(Clone, Debug, Serialize)]
@@ -18,54 +53,47 @@ pub struct LegInfo {
     /// Stage name.
     pub stage: &'static str,
     /// Nesting depth inside loops and alternatives.
-    pub depth: usize,
-    /// `TF`, `hold`, `scan`, `iterative`...
+    pub depth: u8,
+    /// `TF`, `hold HF`, `scan`, `iterative`...
     pub kind: String,
-    /// The leg's parameters as the model has them (metres, degrees, m/s), for display and editing.
-    pub params: serde_json::Value,
-    /// Nominal length of the leg's waypoints, metres (0 for constructs).
+    /// Parameters `modify_leg` can change (XML attribute names; metres, degrees, m/s).
+    pub params: serde_json::Map<String, serde_json::Value>,
+    /// Length of the leg's drawn waypoints, metres (0 for constructs).
     pub length_m: f64,
 }
 
-/// One generated waypoint, for the map.
+/// One waypoint on the map.
 #[derive(Clone, Debug, Serialize)]
 pub struct MapPoint {
     /// Latitude, degrees.
     pub lat: f64,
     /// Longitude, degrees.
     pub lon: f64,
-    /// Leg id.
+    /// Leg id (empty for a leg the FPMa left out).
     pub leg: String,
     /// Part of a hold or loop shown once.
     pub waits: bool,
 }
 
-/// A plan as the station holds it.
-#[derive(Clone, Debug)]
-pub struct LocalPlan {
-    /// File name it was loaded from.
+/// The page's view of a plan (`GET /api/plan`).
+#[derive(Clone, Debug, Serialize)]
+pub struct PlanView {
+    /// The station's revision of the drawing (grows with every geometry received).
+    pub rev: u64,
+    /// Plan version at the FPMa.
+    pub version: u64,
+    /// Where the FPMa got it from (the uploaded file name).
     pub file: String,
-    /// The XML as uploaded.
-    pub xml: String,
-    /// Parsed.
-    pub plan: FlightPlan,
+    /// Plan name.
+    pub name: String,
     /// Legs in document order.
     pub legs: Vec<LegInfo>,
-    /// Nominal waypoints.
+    /// Nominal waypoints, possibly thinned by the FPMa.
     pub waypoints: Vec<MapPoint>,
-}
-
-fn kind_name(k: &NodeKind) -> String {
-    match k {
-        NodeKind::Path(p) => format!("{:?}", p.kind),
-        NodeKind::Hold(h) => format!("hold {:?}", h.kind),
-        NodeKind::Scan(_) => "scan".into(),
-        NodeKind::Perimeter(_) => "perimeter".into(),
-        NodeKind::Takeoff(_) => "takeoff".into(),
-        NodeKind::Landing(_) => "landing".into(),
-        NodeKind::Iterative(_) => "iterative".into(),
-        NodeKind::Alternative(_) => "alternative".into(),
-    }
+    /// Waypoints of the plan before thinning.
+    pub total_points: u32,
+    /// The FPMa left some legs out.
+    pub legs_truncated: bool,
 }
 
 /// Distance between two points, metres (haversine: display only).
@@ -78,119 +106,55 @@ pub fn distance_m(a: (f64, f64), b: (f64, f64)) -> f64 {
     2.0 * r * h.sqrt().min(1.0).asin()
 }
 
-impl LocalPlan {
-    /// Parses and expands `xml` for `vehicle`.
-    ///
-    /// # Errors
-    /// `file:line:col: what` for a plan the FPMa would refuse too; a plan that never ends.
-    pub fn load(file: &str, xml: &str, vehicle: &VehicleParams) -> Result<Self, String> {
-        let plan = parse_plan(xml, vehicle).map_err(|e| format!("{file}:{e}"))?;
-        Self::build(file, xml, plan, vehicle)
-    }
-
-    fn build(
-        file: &str,
-        xml: &str,
-        plan: FlightPlan,
-        vehicle: &VehicleParams,
-    ) -> Result<Self, String> {
-        let wps = expand_nominal(plan.clone(), vehicle.clone()).map_err(|e| e.to_string())?;
-        let waypoints: Vec<MapPoint> = wps
+impl PlanView {
+    /// What the page draws of `g`, as the station's revision `rev`.
+    pub fn of(g: &PlanGeometry, rev: u64) -> Self {
+        let waypoints: Vec<MapPoint> = g
+            .points
             .iter()
-            .map(|w| MapPoint {
-                lat: w.lat,
-                lon: w.lon,
-                leg: w.leg.clone(),
-                waits: w.waits,
+            .map(|p| {
+                let (lat, lon) = g.lat_lon(p);
+                MapPoint {
+                    lat,
+                    lon,
+                    leg: g.leg_of(p).map(|l| l.id.clone()).unwrap_or_default(),
+                    waits: p.waits,
+                }
             })
             .collect();
-        let mut legs = Vec::new();
-        fn walk(nodes: &[Node], stage: Stage, depth: usize, out: &mut Vec<LegInfo>) {
-            for n in nodes {
-                let params = if n.kind.is_leaf() {
-                    serde_json::to_value(&n.kind).unwrap_or_default()
-                } else {
-                    serde_json::Value::Null
-                };
-                out.push(LegInfo {
-                    id: n.id.clone(),
-                    stage: stage.name(),
-                    depth,
-                    kind: kind_name(&n.kind),
-                    params,
-                    length_m: 0.0,
-                });
-                for b in n.kind.bodies() {
-                    walk(b, stage, depth + 1, out);
+        let legs = g
+            .legs
+            .iter()
+            .map(|l| {
+                let pts: Vec<(f64, f64)> = waypoints
+                    .iter()
+                    .filter(|w| w.leg == l.id)
+                    .map(|w| (w.lat, w.lon))
+                    .collect();
+                LegInfo {
+                    id: l.id.clone(),
+                    stage: l.stage.name(),
+                    depth: l.depth,
+                    kind: l.kind.clone(),
+                    params: l
+                        .params
+                        .iter()
+                        .map(|(k, v)| (k.clone(), serde_json::json!(v)))
+                        .collect(),
+                    length_m: pts.windows(2).map(|p| distance_m(p[0], p[1])).sum(),
                 }
-            }
-        }
-        for s in Stage::ALL {
-            walk(plan.stage(s), s, 0, &mut legs);
-        }
-        for l in &mut legs {
-            let pts: Vec<(f64, f64)> = waypoints
-                .iter()
-                .filter(|w| w.leg == l.id)
-                .map(|w| (w.lat, w.lon))
-                .collect();
-            l.length_m = pts.windows(2).map(|p| distance_m(p[0], p[1])).sum();
-        }
-        Ok(Self {
-            file: file.to_owned(),
-            xml: xml.to_owned(),
-            plan,
+            })
+            .collect();
+        Self {
+            rev,
+            version: g.version,
+            file: g.source.clone(),
+            name: g.name.clone(),
             legs,
             waypoints,
-        })
-    }
-
-    /// This plan with leg `id` changed as the FPMa changed it.
-    ///
-    /// # Errors
-    /// Unknown leg, or a change the parser refuses.
-    pub fn modified(
-        &self,
-        id: &str,
-        changes: &[(String, String)],
-        vehicle: &VehicleParams,
-    ) -> Result<Self, String> {
-        let node = self
-            .plan
-            .find(id)
-            .ok_or_else(|| format!("unknown leg `{id}`"))?;
-        let new = modify_node(node, changes, &self.plan, vehicle).map_err(|e| e.to_string())?;
-        let mut plan = self.plan.clone();
-        fn replace(nodes: &mut [Node], new: &Node) -> bool {
-            for n in nodes.iter_mut() {
-                if n.id == new.id {
-                    *n = new.clone();
-                    return true;
-                }
-                let found = match &mut n.kind {
-                    NodeKind::Iterative(it) => replace(&mut it.body, new),
-                    NodeKind::Alternative(a) => {
-                        a.branches.iter_mut().any(|b| replace(&mut b.body, new))
-                    }
-                    _ => false,
-                };
-                if found {
-                    return true;
-                }
-            }
-            false
+            total_points: g.total_points,
+            legs_truncated: g.legs_truncated,
         }
-        let mut done = false;
-        for s in Stage::ALL {
-            if replace(plan.stage_mut(s), &new) {
-                done = true;
-                break;
-            }
-        }
-        if !done {
-            return Err(format!("leg `{id}` not found"));
-        }
-        Self::build(&self.file, &self.xml, plan, vehicle)
     }
 }
 
@@ -207,37 +171,28 @@ mod tests {
     }
 
     #[test]
-    fn legs_and_waypoints_of_the_carpark_plan() {
+    fn view_of_the_fpma_geometry() {
         let v = VehicleParams::rover();
-        let p = LocalPlan::load("carpark.xml", &carpark(), &v).unwrap();
-        assert!(p.legs.iter().any(|l| l.kind == "scan"), "{:?}", p.legs);
-        assert!(p.waypoints.len() > 10);
-        let scan = p.legs.iter().find(|l| l.kind == "scan").unwrap();
-        assert!(scan.params["spacing"].as_f64().unwrap() > 0.0);
+        let c = CheckedPlan::check("carpark.xml", &carpark(), &v).unwrap();
+        let g = PlanGeometry::of(&c.plan, &v, 2, "carpark.xml");
+        assert_eq!(c.legs, g.legs.len());
+        let view = PlanView::of(&g, 7);
+        assert_eq!(
+            (view.rev, view.version, view.file.as_str()),
+            (7, 2, "carpark.xml")
+        );
+        assert!(view.waypoints.len() > 10);
+        let scan = view.legs.iter().find(|l| l.kind == "scan").unwrap();
+        assert_eq!(scan.params["spacing"], 6.0);
         assert!(scan.length_m > 10.0);
-    }
-
-    #[test]
-    fn wider_spacing_fewer_scan_waypoints() {
-        let v = VehicleParams::rover();
-        let p = LocalPlan::load("carpark.xml", &carpark(), &v).unwrap();
-        let scan = p.legs.iter().find(|l| l.kind == "scan").unwrap().clone();
-        let count = |p: &LocalPlan| p.waypoints.iter().filter(|w| w.leg == scan.id).count();
-        let spacing = scan.params["spacing"].as_f64().unwrap();
-        let q = p
-            .modified(
-                &scan.id,
-                &[("spacing".into(), (spacing * 2.0).to_string())],
-                &v,
-            )
-            .unwrap();
-        assert!(count(&q) < count(&p), "{} !< {}", count(&q), count(&p));
-        assert!(p.modified("nope", &[], &v).is_err());
+        assert!(view.waypoints.iter().any(|w| w.leg == scan.id));
+        let j = serde_json::to_value(&view).unwrap();
+        assert!(j["waypoints"][0]["lat"].as_f64().unwrap() > 41.0);
     }
 
     #[test]
     fn broken_plan_names_its_line() {
-        let e = LocalPlan::load(
+        let e = CheckedPlan::check(
             "x.xml",
             "<flightPlan name='x'><bogus/></flightPlan>",
             &VehicleParams::rover(),

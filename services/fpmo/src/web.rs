@@ -5,7 +5,7 @@
 //! | GET | `/` | | the page |
 //! | GET | `/api/state` | | snapshot |
 //! | GET | `/api/events` | | SSE `state` events carrying snapshots |
-//! | GET | `/api/plan?vehicle=rover1` | | the station's copy: `{rev, file, name, legs, waypoints}` |
+//! | GET | `/api/plan?vehicle=rover1` | | the FPMa's plan: `{rev, version, file, name, legs, waypoints, total_points, legs_truncated}` / 404 |
 //! | POST | `/api/select` | `{"vehicle"}` | 204 / 404 |
 //! | POST | `/api/upload` | `{"file", "xml", "vehicle"?}` | 202 `{id}` / 400 `{error}` (checked here first) |
 //! | POST | `/api/command` | `{"cmd": "skip_leg"\|"pause"\|"resume"\|"goto_leg", "leg"?, "vehicle"?}` | 202 `{id}` |
@@ -80,7 +80,7 @@ async fn plan(State(shared): State<Arc<Shared>>, Query(q): Query<PlanQuery>) -> 
         Ok(l) => l,
         Err(e) => return bad(StatusCode::NOT_FOUND, e),
     };
-    match shared.state().plan_json(&label) {
+    match shared.state().plan_view(&label) {
         Some(p) => Json(p).into_response(),
         None => bad(
             StatusCode::NOT_FOUND,

@@ -1,7 +1,9 @@
 //! The `fpmo` binary over HTTP against real processes: `mavsim`, `vas` and `fpma run` (built
 //! with `cargo build` into this test's target directory). Upload the car-park plan through the
-//! station, see its legs and the progress advance, skip a leg, widen the scan, kill the FPMa
-//! (stale, command failed, station still answering) and bring it back (recovered, no reload).
+//! station, see its legs and the progress advance; a second station started after the upload
+//! draws the plan it did not upload (the FPMa's `plan` variable); skip a leg, widen the scan and
+//! see both stations redraw it; kill the FPMa (stale, command failed, station still answering)
+//! and bring it back (recovered, no reload).
 
 #[path = "../../fmo/tests/common/mod.rs"]
 mod common;
@@ -44,6 +46,29 @@ async fn wait_command(st: &Station, id: u64, want: &str) -> serde_json::Value {
     let c = command(&s, id).unwrap().clone();
     assert_eq!(c["status"], want, "{c:#}");
     c
+}
+
+/// Polls `GET /api/plan` until the plan satisfies `pred`.
+async fn wait_plan(
+    st: &Station,
+    what: &str,
+    mut pred: impl FnMut(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let deadline = tokio::time::Instant::now() + STEP;
+    loop {
+        let (status, body) = st.get("/api/plan?vehicle=rover1").await;
+        if status == 200 {
+            let p: serde_json::Value = serde_json::from_str(&body).expect("plan JSON");
+            if pred(&p) {
+                return p;
+            }
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "never saw {what}; last answer {status} {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -106,7 +131,10 @@ async fn scenario() {
         .as_str()
         .unwrap()
         .starts_with("loaded as version"));
-    let plan = st.get_json("/api/plan?vehicle=rover1").await;
+    let plan = wait_plan(&st, "the uploaded plan drawn", |p| {
+        p["version"].as_u64() >= Some(1)
+    })
+    .await;
     let legs: Vec<&str> = plan["legs"]
         .as_array()
         .unwrap()
@@ -114,6 +142,39 @@ async fn scenario() {
         .map(|l| l["id"].as_str().unwrap())
         .collect();
     assert!(legs.contains(&"hold") && legs.contains(&"area"), "{legs:?}");
+    assert_eq!(plan["file"], "rover-carpark.xml");
+
+    // A second station, started after the upload, draws the same plan: it never saw the file.
+    let late = Station::start(
+        env!("CARGO_BIN_EXE_fpmo"),
+        "FPMO_URL",
+        &["--domain", &domain, "--node", "fpmo-late"],
+    )
+    .await;
+    let late_plan = wait_plan(
+        &late,
+        "the plan drawn by a station that did not upload it",
+        |p| p["version"] == plan["version"],
+    )
+    .await;
+    assert_eq!(late_plan["legs"], plan["legs"]);
+    assert_eq!(late_plan["waypoints"], plan["waypoints"]);
+
+    // The same geometry on request: what a station asks for when the `plan` value was lost.
+    let mut cfg = marea::NetworkConfig::ethernet_loopback("probe");
+    cfg.domain.clone_from(&domain);
+    let probe = marea::Node::open(&cfg).await.expect("probe node");
+    let svc = probe.service("probe").unwrap();
+    let f = svc
+        .function::<(), fpma::api::PlanGeometry>("rover1/fpma/plan_geometry")
+        .unwrap();
+    assert!(f.wait_provider(STEP).await, "no plan_geometry provider");
+    let g = f.call(&(), STEP).await.expect("plan_geometry");
+    assert_eq!(Some(g.version), plan["version"].as_u64());
+    assert_eq!(g.name, "castelldefels-carpark");
+    assert_eq!(g.points.len(), plan["waypoints"].as_array().unwrap().len());
+    drop((f, svc));
+    probe.shutdown().await;
 
     // The progress advances as mavsim drives.
     let s = st
@@ -154,13 +215,23 @@ async fn scenario() {
         )
         .await;
     wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
-    let replanned = st.get_json("/api/plan?vehicle=rover1").await;
-    assert!(replanned["rev"].as_u64() > plan["rev"].as_u64());
-    assert!(
-        count(&replanned) < before,
-        "{} !< {before}",
-        count(&replanned)
-    );
+    for station in [&st, &late] {
+        let replanned = wait_plan(station, "the scan redrawn", |p| {
+            p["version"].as_u64() > plan["version"].as_u64()
+        })
+        .await;
+        assert!(
+            count(&replanned) < before,
+            "{} !< {before}",
+            count(&replanned)
+        );
+        assert!(replanned["legs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|l| l["id"] == "area" && l["params"]["spacing"] == 12.0));
+    }
+    late.kill().await;
 
     // The FPMa dies: stale, a command fails with a reason, the station keeps answering.
     fpma.kill().await;

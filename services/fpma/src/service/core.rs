@@ -17,7 +17,9 @@ use std::time::Instant;
 use async_trait::async_trait;
 use usal_types::{FlightState, Position, QueueStatus, StateChangeReply, WaypointKind};
 
-use crate::api::{CommandAck, PlanEvent, PlanEventKind, PlanLoaded, PlanState, Progress};
+use crate::api::{
+    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanLoaded, PlanState, Progress,
+};
 use crate::exec::{Executive, HoldHere, RetaskMode, Telemetry};
 use crate::expand::{Waypoint, WaypointTag};
 use crate::expr::Value;
@@ -84,6 +86,8 @@ pub struct Outputs {
     pub progress: Option<Progress>,
     /// The new state, when it changed.
     pub state: Option<PlanState>,
+    /// The plan's geometry, when the plan changed (a new version).
+    pub geometry: Option<PlanGeometry>,
 }
 
 /// The service's core. See the module docs.
@@ -107,6 +111,10 @@ pub struct Core<V> {
     vas_state: Option<FlightState>,
     last_reached: Option<u64>,
     started: Option<Instant>,
+    /// Where the plan came from (`source` of [`Core::load`]).
+    source: String,
+    /// The geometry of the plan version being flown (version 0 before any plan).
+    geometry: PlanGeometry,
     out: Outputs,
 }
 
@@ -143,6 +151,8 @@ impl<V: VasPort> Core<V> {
             vas_state: None,
             last_reached: None,
             started: None,
+            source: String::new(),
+            geometry: PlanGeometry::default(),
             out: Outputs::default(),
         }
     }
@@ -155,6 +165,11 @@ impl<V: VasPort> Core<V> {
     /// The executive, once a plan is loaded.
     pub fn executive(&self) -> Option<&Executive> {
         self.exec.as_ref()
+    }
+
+    /// The geometry of the plan version being flown (version 0 before any plan).
+    pub fn geometry(&self) -> &PlanGeometry {
+        &self.geometry
     }
 
     /// A VAS call failed and [`Core::sync`] should be retried.
@@ -175,7 +190,7 @@ impl<V: VasPort> Core<V> {
     /// The plan does not parse or validate; nothing changes then.
     pub async fn load(&mut self, text: &str, source: &str) -> Result<PlanLoaded, String> {
         let plan = self.parse(text, source)?;
-        self.start_plan(plan).await
+        self.start_plan(plan, source).await
     }
 
     /// Like [`Core::load`] but refused when no plan is loaded (the in-flight `replace_plan`).
@@ -199,7 +214,7 @@ impl<V: VasPort> Core<V> {
         crate::parse::parse_plan(text, &self.cfg.vehicle).map_err(|e| format!("{source}:{e}"))
     }
 
-    async fn start_plan(&mut self, plan: FlightPlan) -> Result<PlanLoaded, String> {
+    async fn start_plan(&mut self, plan: FlightPlan, source: &str) -> Result<PlanLoaded, String> {
         let name = plan.name.clone();
         match &mut self.exec {
             Some(ex) => {
@@ -211,6 +226,7 @@ impl<V: VasPort> Core<V> {
             }
         }
         self.started = Some(Instant::now());
+        source.clone_into(&mut self.source);
         let version = self.exec.as_ref().map_or(0, Executive::version);
         self.out.events.push(PlanEvent {
             version,
@@ -353,6 +369,13 @@ impl<V: VasPort> Core<V> {
 
     fn publish_state(&mut self) {
         let Some(ex) = &self.exec else { return };
+        // Geometry only when the plan itself changed: it is the largest value the FPMa
+        // publishes, and a skip or a reached waypoint leaves it as it was.
+        if ex.version() != self.geometry.version {
+            self.geometry =
+                PlanGeometry::of(ex.plan(), &self.cfg.vehicle, ex.version(), &self.source);
+            self.out.geometry = Some(self.geometry.clone());
+        }
         let st = ex.state();
         let (flown, remaining) = ex.distances_m();
         let planned = flown + remaining;
@@ -680,6 +703,52 @@ mod tests {
         let p = out.progress.unwrap();
         assert!(p.completed && p.fraction == 1.0, "{p:?}");
         assert!(p.flown_m > 100.0 && (p.planned_m - p.flown_m).abs() < 1e-6);
+    }
+
+    #[tokio::test]
+    async fn geometry_is_published_when_the_plan_changes_only() {
+        let mut c = core(4);
+        assert_eq!(c.geometry().version, 0);
+        c.load(PLAN, "t.xml").await.unwrap();
+        let g = c
+            .take_outputs()
+            .geometry
+            .expect("geometry of the loaded plan");
+        assert_eq!(
+            (g.version, g.name.as_str(), g.source.as_str()),
+            (1, "t", "t.xml")
+        );
+        assert_eq!(g.points.len(), nominal().len());
+        assert_eq!(c.geometry(), &g);
+        let scan_points = |g: &PlanGeometry| {
+            g.points
+                .iter()
+                .filter(|p| g.leg_of(p).is_some_and(|l| l.id == "area"))
+                .count()
+        };
+        // Flying and skipping change progress, not the plan: no geometry.
+        fly(&mut c, 2).await;
+        c.command(Command::SkipLeg).await.unwrap();
+        let out = c.take_outputs();
+        assert!(out.progress.is_some() && out.geometry.is_none());
+        // A modified leg is a new version: new geometry, with the scan redrawn.
+        c.command(Command::ModifyLeg(
+            "area".into(),
+            vec![("spacing".into(), "12".into())],
+        ))
+        .await
+        .unwrap();
+        let g2 = c
+            .take_outputs()
+            .geometry
+            .expect("geometry of the new version");
+        assert_eq!(g2.version, 2);
+        assert!(
+            scan_points(&g2) < scan_points(&g),
+            "wider spacing, fewer points"
+        );
+        let area = g2.legs.iter().find(|l| l.id == "area").unwrap();
+        assert!(area.params.contains(&("spacing".into(), 12.0)));
     }
 
     #[tokio::test]

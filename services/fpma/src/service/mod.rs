@@ -24,8 +24,8 @@ use usal_types::{
 
 use self::core::{Command, Core, CoreConfig, VasPort};
 use crate::api::{
-    CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanLoaded, PlanRejected, PlanState, Progress,
-    Retask, SetVar,
+    CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanGeometry, PlanLoaded, PlanRejected,
+    PlanState, Progress, Retask, SetVar,
 };
 use crate::geo::GeoPoint;
 use crate::model::Stage;
@@ -243,6 +243,7 @@ enum Request {
         reply: oneshot::Sender<Result<PlanLoaded, String>>,
     },
     Command(Command, oneshot::Sender<Result<CommandAck, String>>),
+    Geometry(oneshot::Sender<Result<PlanGeometry, String>>),
 }
 
 /// The `fpma` middleware service.
@@ -267,6 +268,7 @@ impl Fpma {
 struct Outlets {
     progress: Variable<Progress>,
     state: Variable<PlanState>,
+    plan: Variable<PlanGeometry>,
     plan_event: Event<PlanEvent>,
 }
 
@@ -319,11 +321,13 @@ impl IService for Fpma {
         let outlets = Outlets {
             progress: ctx.publish_variable("progress")?,
             state: ctx.publish_variable("state")?,
+            plan: ctx.publish_variable("plan")?,
             plan_event: ctx.publish_event("plan_event")?,
         };
         let rejected: Event<PlanRejected> = ctx.publish_event("plan_rejected")?;
         let _ = outlets.progress.set(&Progress::default());
         let _ = outlets.state.set(&PlanState::default());
+        let _ = outlets.plan.set(&PlanGeometry::default());
         let vas = &self.vas;
         let port = MareaVas {
             push: ctx.function(&format!("{vas}/push_waypoints"))?,
@@ -363,6 +367,11 @@ impl IService for Fpma {
                 })
                 .await
             }
+        })?);
+        let t = tx.clone();
+        providers.push(ctx.provide_function("plan_geometry", move |(): ()| {
+            let t = t.clone();
+            async move { ask(&t, Request::Geometry).await }
         })?);
         providers.push(command_fn(&ctx, &tx, "skip_leg", |(): ()| {
             Ok(Command::SkipLeg)
@@ -477,6 +486,9 @@ impl IService for Fpma {
                             let r = core.command(cmd).await;
                             let _ = reply.send(r);
                         }
+                        Some(Request::Geometry(reply)) => {
+                            let _ = reply.send(Ok(core.geometry().clone()));
+                        }
                         None => return,
                     },
                     r = reached.recv() => match r {
@@ -519,6 +531,11 @@ fn publish<V: VasPort>(core: &mut Core<V>, out: &Outlets) {
     }
     if let Some(s) = &o.state {
         let _ = out.state.set(s);
+    }
+    if let Some(g) = &o.geometry {
+        if let Err(e) = out.plan.set(g) {
+            tracing::warn!("publishing plan: {e}");
+        }
     }
 }
 
