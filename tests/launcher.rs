@@ -289,6 +289,37 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
     );
 }
 
+/// The same mission with the ground on the far side of an emulated 57600-baud radio with byte
+/// errors: gateways on both sides carry the plan upload, the commands and the telemetry.
+#[test]
+fn the_rover_radio_mission_completes_over_a_lossy_radio() {
+    let mut l = Launcher::start(&[
+        "config/missions/rover-radio.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let radio = l.event(STEP, "radio");
+    assert!(
+        radio["ground"]
+            .as_str()
+            .is_some_and(|p| p.starts_with("/dev/")),
+        "{radio}"
+    );
+    let summary = l.event(FLIGHT * 2, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    let pids = l.pids();
+    assert_no_child_left(&pids);
+    let err = l.stderr_tail();
+    assert!(
+        err.contains("[air/gateway] ") && err.contains("[ground/gateway] "),
+        "{err}"
+    );
+}
+
 #[test]
 fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
     let mut l = Launcher::start(&[

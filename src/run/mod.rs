@@ -3,6 +3,7 @@
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
 pub mod mission;
+mod radio;
 mod station;
 mod supervisor;
 mod ui;
@@ -69,15 +70,6 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
             return ExitCode::from(EXIT_USAGE);
         }
     };
-    if mission.radio.is_some() {
-        // Parsed and validated, but the launcher does not start marea-radio and the serial
-        // gateway yet: refuse rather than run the nodes joined some other way.
-        eprintln!(
-            "usal: {}: <radio> missions are not supported by `usal run` yet",
-            args.mission.display()
-        );
-        return ExitCode::from(EXIT_USAGE);
-    }
     if let Some(x) = args.speedup {
         if !(x.is_finite() && x >= 0.01) {
             eprintln!("usal: --speedup must be at least 0.01");
@@ -191,8 +183,15 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
             }
         }
     }
+    // A radio needs the emulator and the gateway node, binaries of this package.
+    let own: &[&str] = if mission.radio.is_some() {
+        &["marea-radio", "marea-probe"]
+    } else {
+        &[]
+    };
     let missing: Vec<&str> = needed
         .iter()
+        .chain(own)
         .copied()
         .filter(|b| !bins.path(b).is_file())
         .collect();
@@ -223,32 +222,48 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
         ),
         json!({"event": "building", "bins": missing, "profile": profile}),
     );
-    let mut cmd = std::process::Command::new(cargo);
-    cmd.arg("build").current_dir(workspace);
-    match profile.as_str() {
-        "debug" => {}
-        "release" => {
-            cmd.arg("--release");
+    // Service crates by package; this package's own binaries by name.
+    let mut selections: Vec<Vec<String>> = Vec::new();
+    if !needed.is_empty() {
+        selections.push(
+            needed
+                .iter()
+                .flat_map(|b| ["-p".into(), b.to_string()])
+                .collect(),
+        );
+    }
+    if !own.is_empty() {
+        let mut v = vec!["-p".to_owned(), "usal".to_owned()];
+        v.extend(own.iter().flat_map(|b| ["--bin".into(), b.to_string()]));
+        selections.push(v);
+    }
+    for selection in selections {
+        let mut cmd = std::process::Command::new(&cargo);
+        cmd.arg("build").current_dir(workspace);
+        match profile.as_str() {
+            "debug" => {}
+            "release" => {
+                cmd.arg("--release");
+            }
+            other => {
+                cmd.args(["--profile", other]);
+            }
         }
-        other => {
-            cmd.args(["--profile", other]);
+        cmd.args(&selection);
+        if let Some(t) = &target {
+            cmd.env("CARGO_TARGET_DIR", t);
         }
-    }
-    for b in &needed {
-        cmd.args(["-p", b]);
-    }
-    if let Some(t) = target {
-        cmd.env("CARGO_TARGET_DIR", t);
-    }
-    // Cargo's own progress goes to our stderr: it is the user's build.
-    let status = cmd
-        .status()
-        .context("running cargo (is it installed?) to build the services")?;
-    if !status.success() {
-        bail!("building {} failed ({status})", needed.join(", "));
+        // Cargo's own progress goes to our stderr: it is the user's build.
+        let status = cmd
+            .status()
+            .context("running cargo (is it installed?) to build the services")?;
+        if !status.success() {
+            bail!("building {} failed ({status})", missing.join(", "));
+        }
     }
     let still: Vec<&str> = needed
         .iter()
+        .chain(own)
         .copied()
         .filter(|b| !bins.path(b).is_file())
         .collect();
@@ -263,8 +278,8 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
 }
 
 async fn run(
-    mission: Mission,
-    station: Option<StationSetup>,
+    mut mission: Mission,
+    mut station: Option<StationSetup>,
     bins: Bins,
     args: &RunArgs,
     ui: Arc<Ui>,
@@ -288,6 +303,29 @@ async fn run(
     let mut notices = sup.subscribe();
     let station_notices = sup.subscribe();
 
+    // A radio first: it gives the nodes it joins their networks.
+    let radio = match mission.radio.clone() {
+        None => Ok(None),
+        Some(spec) => radio::start(&mut mission, &spec, &domain, &bins, &scratch, &mut sup, &ui)
+            .await
+            .map(Some),
+    };
+    let _radio = match radio {
+        Ok(r) => r,
+        Err(e) => {
+            ui.clear_bar();
+            eprintln!("usal: {e:#}");
+            sup.shutdown().await;
+            signals.abort();
+            let _ = std::fs::remove_dir_all(&scratch);
+            return ExitCode::FAILURE;
+        }
+    };
+    if let Some(st) = &mut station {
+        if let Some(node) = mission.node(&st.node) {
+            st.network = node.network.clone();
+        }
+    }
     let code = match start_services(
         &mission,
         &domain,

@@ -196,7 +196,11 @@ impl Sender {
                 .find(|(id, o)| {
                     o.kind == ItemKind::File && *o.name == *self.to && !p.shadowed.contains(id)
                 })
-                .map(|(id, _)| (p.id, p.name.to_string(), *id))
+                // Through a gateway, the receiver is the node behind it.
+                .map(|(id, o)| {
+                    let name = o.origin_name.as_ref().unwrap_or(&p.name);
+                    (p.id, name.to_string(), *id)
+                })
         })
     }
 
