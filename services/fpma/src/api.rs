@@ -354,6 +354,8 @@ pub struct PlanGeometry {
     pub points: Vec<PlanPoint>,
     /// Waypoints of the nominal expansion before thinning.
     pub total_points: u32,
+    /// Names of the plan's emergency rules, in priority order (what `emergency` takes).
+    pub rules: Vec<String>,
 }
 
 /// One leg (or construct) of a [`PlanGeometry`].
@@ -503,6 +505,7 @@ impl PlanGeometry {
             origin,
             points,
             total_points,
+            rules: plan.emergencies.iter().map(|r| r.name.clone()).collect(),
         }
     }
 
@@ -646,6 +649,7 @@ mod tests {
             assert_eq!(p.waits, w.waits);
         }
         assert!(g.points.iter().any(|p| p.waits), "the HM hold waits");
+        assert_eq!(g.rules, ["low-battery"]);
 
         // Compact enough for a radio.
         let bytes = postcard::to_stdvec(&g).unwrap().len();

@@ -1,10 +1,11 @@
 //! The USAL Flight Plan Monitor (FPMo, 003 §1.2, §6.2.4): the flight-plan ground station, served
 //! as one web page. Upload a plan (file transfer to the FPMa's `plans` sink), follow its legs and
 //! progress on a map drawn to scale, skip / go to a leg, pause / resume, change a leg's
-//! parameters, re-task by clicking the map.
+//! parameters, re-task by clicking the map, hold here / exit the hold, go to a stage, set a plan
+//! variable, fire an emergency rule.
 //!
 //! Unlike the seed's FPMo it subscribes only to what it shows (the FPMa's `progress`, `plan`,
-//! `plan_event`, `plan_rejected` and the VAS's `position`), measures in the units the user picks,
+//! `state`, `plan_event`, `plan_rejected` and the VAS's `position`), measures in the units the user picks,
 //! zooms to metres, and shows every command as pending until the FPMa answers. The plan drawn is
 //! the FPMa's own (its `plan` variable, asked again with `plan_geometry` when the drawing lags
 //! the progress), so any station draws any plan, whoever uploaded it ([`plan`]). Items and
@@ -21,7 +22,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use fmo::model::CommandStatus;
-use fpma::api::{CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, Progress};
+use fpma::api::{
+    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, PlanState, Progress, VarValue,
+};
 use fpma::vehicle::VehicleParams;
 use marea::{Function, RecvError, Service};
 use tokio::sync::Notify;
@@ -94,6 +97,8 @@ struct Stamped<T> {
 #[derive(Default)]
 struct Vehicle {
     progress: Option<Stamped<Progress>>,
+    /// The executive's variables and loop passes (the FPMa's `state`).
+    plan_state: Option<Stamped<PlanState>>,
     position: Option<Stamped<Position>>,
     track: VecDeque<(f64, f64)>,
     /// The FPMa's plan as it last said (version 0: none loaded).
@@ -327,6 +332,14 @@ impl State {
                         "stale": pos_age.is_none_or(|a| a > self.stale_after),
                     })),
                     "track": v.track,
+                    "vars": v.plan_state.as_ref().map(|s| s.value.vars.iter().map(|(name, val)| {
+                        let value = match val {
+                            VarValue::Bool(b) => serde_json::json!(b),
+                            VarValue::Number(n) => serde_json::json!(n),
+                        };
+                        serde_json::json!({"name": name, "value": value})
+                    }).collect::<Vec<_>>()).unwrap_or_default(),
+                    "loops": v.plan_state.as_ref().map(|s| s.value.loops.clone()).unwrap_or_default(),
                     "plan_rev": v.plan_rev,
                     "plan_name": v.geometry.as_ref().filter(|g| g.version > 0).map(|g| g.name.clone()),
                     "plan_version": v.geometry.as_ref().map(|g| g.version),
@@ -698,6 +711,17 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         "fpma",
         |st, l, p| {
             st.vehicle(l).progress = Some(Stamped {
+                value: p,
+                at: Instant::now(),
+            })
+        },
+    );
+    spawn_sub(
+        &shared,
+        svc.subscribe_variable::<PlanState>(&format!("{ns}/fpma/state"))?,
+        "fpma",
+        |st, l, p| {
+            st.vehicle(l).plan_state = Some(Stamped {
                 value: p,
                 at: Instant::now(),
             })

@@ -94,6 +94,10 @@ pub struct PlanView {
     pub total_points: u32,
     /// The FPMa left some legs out.
     pub legs_truncated: bool,
+    /// Stages the plan has, in flying order (what `goto_stage` accepts).
+    pub stages: Vec<&'static str>,
+    /// Emergency rules by name (what `emergency` accepts).
+    pub rules: Vec<String>,
 }
 
 /// Distance between two points, metres (haversine: display only).
@@ -121,6 +125,11 @@ impl PlanView {
                     waits: p.waits,
                 }
             })
+            .collect();
+        let stages = Stage::ALL
+            .into_iter()
+            .filter(|s| g.legs.iter().any(|l| l.stage == *s))
+            .map(Stage::name)
             .collect();
         let legs = g
             .legs
@@ -154,6 +163,8 @@ impl PlanView {
             waypoints,
             total_points: g.total_points,
             legs_truncated: g.legs_truncated,
+            stages,
+            rules: g.rules.clone(),
         }
     }
 }
@@ -186,6 +197,8 @@ mod tests {
         assert_eq!(scan.params["spacing"], 6.0);
         assert!(scan.length_m > 10.0);
         assert!(view.waypoints.iter().any(|w| w.leg == scan.id));
+        assert_eq!(view.stages, ["departure", "mission", "approach"]);
+        assert_eq!(view.rules, ["low-battery"]);
         let j = serde_json::to_value(&view).unwrap();
         assert!(j["waypoints"][0]["lat"].as_f64().unwrap() > 41.0);
     }

@@ -8,7 +8,7 @@
 //! | GET | `/api/plan?vehicle=rover1` | | the FPMa's plan: `{rev, version, file, name, legs, waypoints, total_points, legs_truncated}` / 404 |
 //! | POST | `/api/select` | `{"vehicle"}` | 204 / 404 |
 //! | POST | `/api/upload` | `{"file", "xml", "vehicle"?}` | 202 `{id}` / 400 `{error}` (checked here first) |
-//! | POST | `/api/command` | `{"cmd": "skip_leg"\|"pause"\|"resume"\|"goto_leg", "leg"?, "vehicle"?}` | 202 `{id}` |
+//! | POST | `/api/command` | `{"cmd", ..., "vehicle"?}`: `skip_leg`, `pause`, `resume`, `goto_leg {leg}`, `goto_stage {stage}`, `set_var {name, value}`, `hold_here {length?, width?, turn?}`, `exit_hold {now}`, `emergency {rule?}` | 202 `{id}` / 400 `{error}` |
 //! | POST | `/api/modify_leg` | `{"leg", "changes": [["spacing", "10"]], "vehicle"?}` | 202 `{id}` |
 //! | POST | `/api/retask` | `{"points": [[lat, lon]], "when": "now"\|"after", "alt"?, "vehicle"?}` | 202 `{id}` |
 
@@ -19,7 +19,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use fpma::api::{CommandAck, Retask, RetaskWhen};
+use fpma::api::{CommandAck, HoldHereArgs, HoldTurn, Retask, RetaskWhen, SetVar, VarValue};
 use serde::Deserialize;
 
 use crate::Shared;
@@ -123,11 +123,35 @@ async fn upload(State(shared): State<Arc<Shared>>, Json(u): Json<Upload>) -> Res
     }
 }
 
+/// `POST /api/command`: one of the FPMa's run-time commands and its arguments.
 #[derive(Deserialize)]
 struct Command {
     cmd: String,
+    /// `goto_leg`.
     #[serde(default)]
     leg: Option<String>,
+    /// `goto_stage`: `takeoff`, `departure`, `mission`, `approach`, `landing`.
+    #[serde(default)]
+    stage: Option<String>,
+    /// `set_var`: the variable.
+    #[serde(default)]
+    name: Option<String>,
+    /// `set_var`: a boolean or a number.
+    #[serde(default)]
+    value: Option<serde_json::Value>,
+    /// `exit_hold`: at once (else at the next fix crossing).
+    #[serde(default)]
+    now: bool,
+    /// `hold_here`: straight-leg length and width, metres; turn `L` or `R`.
+    #[serde(default)]
+    length: Option<f64>,
+    #[serde(default)]
+    width: Option<f64>,
+    #[serde(default)]
+    turn: Option<String>,
+    /// `emergency`: the rule (none: the default reaction).
+    #[serde(default)]
+    rule: Option<String>,
     #[serde(default)]
     vehicle: Option<String>,
 }
@@ -140,27 +164,91 @@ fn ack_text(_: &mut crate::State, a: &CommandAck) -> String {
     )
 }
 
+/// A positive finite length in metres, if given.
+fn metres(what: &str, v: Option<f64>) -> Result<Option<f64>, String> {
+    match v {
+        Some(m) if !(m.is_finite() && m > 0.0) => Err(format!("{what} must be a positive length")),
+        v => Ok(v),
+    }
+}
+
 async fn command(State(shared): State<Arc<Shared>>, Json(c): Json<Command>) -> Response {
-    let label = match shared.target(c.vehicle) {
+    let label = match shared.target(c.vehicle.clone()) {
         Ok(l) => l,
         Err(e) => return bad(StatusCode::CONFLICT, e),
     };
-    let id = match (c.cmd.as_str(), c.leg) {
-        (name @ ("skip_leg" | "pause" | "resume"), _) => {
-            shared.command(&label, name, name.to_owned(), (), ack_text)
+    match start_command(&shared, &label, c) {
+        Ok(id) => accepted(id),
+        Err(e) => bad(StatusCode::BAD_REQUEST, e),
+    }
+}
+
+/// Checks the arguments of `c` and starts it (pending until the FPMa answers).
+fn start_command(shared: &Arc<Shared>, label: &str, c: Command) -> Result<u64, String> {
+    let id = match c.cmd.as_str() {
+        name @ ("skip_leg" | "pause" | "resume") => {
+            shared.command(label, name, name.to_owned(), (), ack_text)
         }
-        ("goto_leg", Some(leg)) => {
-            shared.command(&label, "goto_leg", format!("goto_leg {leg}"), leg, ack_text)
+        "goto_leg" => {
+            let leg = c.leg.ok_or("goto_leg needs `leg`")?;
+            shared.command(label, "goto_leg", format!("goto_leg {leg}"), leg, ack_text)
         }
-        ("goto_leg", None) => return bad(StatusCode::BAD_REQUEST, "goto_leg needs `leg`"),
-        (other, _) => {
-            return bad(
-                StatusCode::BAD_REQUEST,
-                format!("unknown command `{other}`"),
-            )
+        "goto_stage" => {
+            let stage = c.stage.ok_or("goto_stage needs `stage`")?;
+            let what = format!("goto_stage {stage}");
+            shared.command(label, "goto_stage", what, stage, ack_text)
         }
+        "set_var" => {
+            let name = c
+                .name
+                .filter(|n| !n.is_empty())
+                .ok_or("set_var needs `name`")?;
+            let value = match c.value {
+                Some(serde_json::Value::Bool(b)) => VarValue::Bool(b),
+                Some(serde_json::Value::Number(n)) => match n.as_f64() {
+                    Some(x) if x.is_finite() => VarValue::Number(x),
+                    _ => return Err("set_var: the number is out of range".into()),
+                },
+                _ => return Err("set_var needs a boolean or numeric `value`".into()),
+            };
+            let what = match value {
+                VarValue::Bool(b) => format!("set_var {name} = {b}"),
+                VarValue::Number(x) => format!("set_var {name} = {x}"),
+            };
+            shared.command(label, "set_var", what, SetVar { name, value }, ack_text)
+        }
+        "hold_here" => {
+            let turn = match c.turn.as_deref() {
+                None | Some("R" | "r") => HoldTurn::Right,
+                Some("L" | "l") => HoldTurn::Left,
+                Some(t) => return Err(format!("hold_here: unknown turn `{t}` (L or R)")),
+            };
+            let args = HoldHereArgs {
+                length: metres("length", c.length)?,
+                width: metres("width", c.width)?,
+                turn,
+                ..HoldHereArgs::default()
+            };
+            shared.command(label, "hold_here", "hold_here".into(), args, ack_text)
+        }
+        "exit_hold" => {
+            let what = if c.now {
+                "exit_hold now"
+            } else {
+                "exit_hold at the fix"
+            };
+            shared.command(label, "exit_hold", what.into(), c.now, ack_text)
+        }
+        "emergency" => {
+            let what = match &c.rule {
+                Some(r) => format!("emergency {r}"),
+                None => "emergency (default reaction)".into(),
+            };
+            shared.command(label, "emergency", what, c.rule, ack_text)
+        }
+        other => return Err(format!("unknown command `{other}`")),
     };
-    accepted(id)
+    Ok(id)
 }
 
 #[derive(Deserialize)]

@@ -1,7 +1,8 @@
 //! The FPMo page in headless Chromium against `mavsim`, `vas` and `fpma run`: the car-park plan
 //! chosen in the page's file input is uploaded and loaded, its legs listed with the current one
-//! highlighted, the progress advances, "skip leg" changes the current leg, and the units change
-//! what the page shows; a screenshot is saved to `<target>/tmp/fpmo-page.png`. Skips (passing)
+//! highlighted, the progress advances, "skip leg" changes the current leg, "hold here" and
+//! "exit hold now" interrupt and resume the plan, a plan variable is set from its row, and the
+//! units change what the page shows; a screenshot is saved to `<target>/tmp/fpmo-page.png`. Skips (passing)
 //! without chromium and chromedriver (`.ci/install-chromium`).
 
 #[path = "../../fmo/tests/common/mod.rs"]
@@ -103,6 +104,48 @@ async fn scenario() {
             &format!(
                 "const r = document.querySelector('#legs tr.current'); return r && r.dataset.leg !== {cur};"
             ),
+        )
+        .await;
+
+    // Hold here from the page: confirmed, and the current leg is the commanded hold; exit it
+    // at once: confirmed, and the interrupted leg is current again.
+    browser.click("#holdhere").await;
+    browser
+        .wait_for(
+            "hold here confirmed",
+            "const c = document.querySelector('#commands li'); \
+             return c && c.textContent.includes('hold_here') && c.dataset.status === 'ok';",
+        )
+        .await;
+    browser
+        .wait_for(
+            "the commanded hold current",
+            "const l = document.getElementById('curleg'); return l && l.textContent.startsWith('hold-here');",
+        )
+        .await;
+    browser.click("#exitholdnow").await;
+    browser
+        .wait_for(
+            "exit hold confirmed",
+            "const c = document.querySelector('#commands li'); \
+             return c && c.textContent.includes('exit_hold now') && c.dataset.status === 'ok';",
+        )
+        .await;
+    browser
+        .wait_for(
+            "the plan's leg current again",
+            "const l = document.getElementById('curleg'); return l && !l.textContent.startsWith('hold-here');",
+        )
+        .await;
+
+    // A plan variable set from its row: confirmed and shown.
+    browser
+        .click("#vars tr[data-var=inspect] button.setvar")
+        .await;
+    browser
+        .wait_for(
+            "inspect shown true",
+            "const r = document.querySelector('#vars tr[data-var=inspect] .val'); return r && r.textContent === 'true';",
         )
         .await;
 

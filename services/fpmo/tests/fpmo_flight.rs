@@ -2,7 +2,7 @@
 //! with `cargo build` into this test's target directory). Upload the car-park plan through the
 //! station, see its legs and the progress advance; a second station started after the upload
 //! draws the plan it did not upload (the FPMa's `plan` variable); skip a leg, widen the scan and
-//! see both stations redraw it; kill the FPMa (stale, command failed, station still answering)
+//! see both stations redraw it; set a plan variable, go to the approach stage; kill the FPMa (stale, command failed, station still answering)
 //! and bring it back (recovered, no reload).
 
 #[path = "../../fmo/tests/common/mod.rs"]
@@ -232,6 +232,59 @@ async fn scenario() {
             .any(|l| l["id"] == "area" && l["params"]["spacing"] == 12.0));
     }
     late.kill().await;
+
+    // The executive's other commands: a plan variable set and shown with its new value; an
+    // unknown one fails with the FPMa's reason; a malformed one is refused by the station; a
+    // jump to the approach stage.
+    let rover1_var = |s: &serde_json::Value, name: &str| {
+        vehicle(s, "rover1").and_then(|v| {
+            v["vars"]
+                .as_array()?
+                .iter()
+                .find(|x| x["name"] == name)
+                .map(|x| x["value"].clone())
+        })
+    };
+    st.wait_state("the plan variables", |s| {
+        rover1_var(s, "inspect") == Some(serde_json::json!(false))
+    })
+    .await;
+    let (status, body) = st
+        .post(
+            "/api/command",
+            serde_json::json!({"cmd": "set_var", "name": "inspect", "value": true}),
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    st.wait_state("inspect set", |s| {
+        rover1_var(s, "inspect") == Some(serde_json::json!(true))
+    })
+    .await;
+    let (_, body) = st
+        .post(
+            "/api/command",
+            serde_json::json!({"cmd": "set_var", "name": "nope", "value": 1}),
+        )
+        .await;
+    let c = wait_command(&st, body["id"].as_u64().unwrap(), "failed").await;
+    assert!(c["detail"].as_str().unwrap().contains("nope"), "{c:#}");
+    let (status, _) = st
+        .post(
+            "/api/command",
+            serde_json::json!({"cmd": "set_var", "name": "inspect", "value": "yes"}),
+        )
+        .await;
+    assert_eq!(status, 400);
+    let (_, body) = st
+        .post(
+            "/api/command",
+            serde_json::json!({"cmd": "goto_stage", "stage": "approach"}),
+        )
+        .await;
+    wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    st.wait_state("the approach stage", |s| progress(s)["stage"] == "approach")
+        .await;
 
     // The FPMa dies: stale, a command fails with a reason, the station keeps answering.
     fpma.kill().await;
