@@ -11,6 +11,7 @@
 //! the progress), so any station draws any plan, whoever uploaded it ([`plan`]). Items and
 //! options: `README.md`.
 
+pub mod background;
 pub mod plan;
 pub mod web;
 
@@ -32,6 +33,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::Position;
 
+use crate::background::{Background, BackgroundSource};
 use crate::plan::{distance_m, CheckedPlan, PlanView};
 
 /// Everything the FPMo needs.
@@ -56,6 +58,8 @@ pub struct FpmoConfig {
     pub stale_after: Duration,
     /// Time limit of each FPMa call.
     pub call_timeout: Duration,
+    /// A georeferenced image drawn under the map.
+    pub background: Option<Background>,
 }
 
 impl Default for FpmoConfig {
@@ -70,6 +74,7 @@ impl Default for FpmoConfig {
             vehicle: VehicleParams::rover(),
             stale_after: Duration::from_secs(2),
             call_timeout: Duration::from_secs(5),
+            background: None,
         }
     }
 }
@@ -390,6 +395,8 @@ pub struct Shared {
     tasks: TaskTracker,
     cancel: CancellationToken,
     probes: Mutex<HashMap<String, ()>>,
+    /// The map's background image, if any.
+    pub background: Option<Background>,
 }
 
 /// A call error as the operator reads it: the FPMa's own reason when it refused.
@@ -668,6 +675,19 @@ async fn geometry_loop(me: Arc<Shared>) {
 /// # Errors
 /// The address cannot be bound, a bad network file or pattern, a node that cannot open.
 pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
+    if let Some(Background {
+        source: BackgroundSource::File(path),
+        ..
+    }) = &config.background
+    {
+        let meta = std::fs::metadata(path)
+            .with_context(|| format!("background image {}", path.display()))?;
+        anyhow::ensure!(
+            meta.is_file(),
+            "background image {} is not a file",
+            path.display()
+        );
+    }
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .with_context(|| format!("listening on {}", config.listen))?;
@@ -698,6 +718,7 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         tasks: TaskTracker::new(),
         cancel: cancel.clone(),
         probes: Mutex::new(HashMap::new()),
+        background: config.background.clone(),
     });
     // `*` also matches nothing, so a vehicle without namespace is followed too.
     let ns = if config.vehicles == "*" {

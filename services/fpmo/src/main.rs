@@ -41,6 +41,13 @@ struct Cli {
     /// Time limit of each call to the FPMa, milliseconds.
     #[arg(long, default_value_t = 5000)]
     call_timeout_ms: u64,
+    /// A georeferenced image drawn under the map: a file the station serves, or an
+    /// http(s):// URL the browser loads. North up; give its edges with --background-bounds.
+    #[arg(long, requires = "background_bounds")]
+    background: Option<String>,
+    /// The background image's edges, degrees: NORTH,WEST,SOUTH,EAST.
+    #[arg(long, requires = "background", allow_hyphen_values = true)]
+    background_bounds: Option<String>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -52,6 +59,12 @@ enum Vehicle {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    let background = match (&cli.background, &cli.background_bounds) {
+        (Some(image), Some(bounds)) => {
+            Some(fpmo::background::Background::parse(image, bounds).map_err(anyhow::Error::msg)?)
+        }
+        _ => None,
+    };
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -72,6 +85,7 @@ async fn main() -> anyhow::Result<()> {
         },
         stale_after: Duration::from_millis(cli.stale_ms.max(100)),
         call_timeout: Duration::from_millis(cli.call_timeout_ms.max(100)),
+        background,
     };
     let shutdown = CancellationToken::new();
     let stop = shutdown.clone();

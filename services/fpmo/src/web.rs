@@ -5,6 +5,8 @@
 //! | GET | `/` | | the page |
 //! | GET | `/api/state` | | snapshot |
 //! | GET | `/api/events` | | SSE `state` events carrying snapshots |
+//! | GET | `/api/config` | | `{background: null \| {url, north, west, south, east}}` |
+//! | GET | `/api/background` | | the background image file / 404 |
 //! | GET | `/api/plan?vehicle=rover1` | | the FPMa's plan: `{rev, version, file, name, legs, waypoints, total_points, legs_truncated}` / 404 |
 //! | POST | `/api/select` | `{"vehicle"}` | 204 / 404 |
 //! | POST | `/api/upload` | `{"file", "xml", "vehicle"?}` | 202 `{id}` / 400 `{error}` (checked here first) |
@@ -33,6 +35,8 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/state", get(state))
         .route("/api/events", get(events))
         .route("/api/plan", get(plan))
+        .route("/api/config", get(config))
+        .route("/api/background", get(background))
         .route("/api/select", post(select))
         .route("/api/upload", post(upload))
         .route("/api/command", post(command))
@@ -68,6 +72,35 @@ fn bad(status: StatusCode, msg: impl Into<String>) -> Response {
 
 fn accepted(id: u64) -> Response {
     (StatusCode::ACCEPTED, Json(serde_json::json!({ "id": id }))).into_response()
+}
+
+async fn config(State(shared): State<Arc<Shared>>) -> Response {
+    let bg = shared.background.as_ref().map(|b| b.view());
+    Json(serde_json::json!({ "background": bg })).into_response()
+}
+
+async fn background(State(shared): State<Arc<Shared>>) -> Response {
+    let Some(crate::background::Background {
+        source: crate::background::BackgroundSource::File(path),
+        ..
+    }) = &shared.background
+    else {
+        return bad(StatusCode::NOT_FOUND, "no background image file");
+    };
+    match tokio::fs::read(path).await {
+        Ok(bytes) => (
+            [
+                (header::CONTENT_TYPE, crate::background::content_type(path)),
+                (header::CACHE_CONTROL, "no-cache"),
+            ],
+            bytes,
+        )
+            .into_response(),
+        Err(e) => {
+            tracing::warn!("background image {}: {e}", path.display());
+            bad(StatusCode::NOT_FOUND, format!("background image: {e}"))
+        }
+    }
 }
 
 #[derive(Deserialize)]
