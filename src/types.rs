@@ -58,6 +58,7 @@ fn registry() -> Vec<Known> {
         StateChangeReply,
         StateChanged,
         MissionTime,
+        marea::LinkHealth,
         (),
         bool,
         u8,
