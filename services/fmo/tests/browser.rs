@@ -14,6 +14,7 @@ const SPACE: &str = "\u{E00D}";
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn pilot_drives_from_the_page() {
+    build_flight_bins();
     tokio::time::timeout(Duration::from_secs(240), scenario())
         .await
         .expect("scenario timed out");

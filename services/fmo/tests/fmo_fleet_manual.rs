@@ -39,6 +39,7 @@ async fn drive(fmo: &Station, how_long: Duration) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn manual_control_drives_the_commanded_vehicle_only() {
+    build_flight_bins();
     tokio::time::timeout(Duration::from_secs(240), scenario())
         .await
         .expect("scenario timed out");

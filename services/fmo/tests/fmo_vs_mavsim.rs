@@ -33,6 +33,7 @@ fn ne(a: (f64, f64), b: (f64, f64)) -> (f64, f64) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn transitions_and_manual_control_on_mavsim() {
+    build_flight_bins();
     tokio::time::timeout(Duration::from_secs(240), scenario())
         .await
         .expect("scenario timed out");

@@ -73,6 +73,7 @@ async fn wait_plan(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fly_the_carpark_from_the_station() {
+    build_flight_bins();
     tokio::time::timeout(Duration::from_secs(300), scenario())
         .await
         .expect("scenario timed out");

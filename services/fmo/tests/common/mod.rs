@@ -236,6 +236,14 @@ pub fn vehicle<'a>(state: &'a serde_json::Value, label: &str) -> Option<&'a serd
         .find(|v| v["label"] == label)
 }
 
+/// Builds the flight binaries the scenarios start (mavsim, vas, fpma) before a scenario's own
+/// time bound starts: a cold build can take minutes on a shared machine.
+pub fn build_flight_bins() {
+    for p in ["mavsim", "vas", "fpma"] {
+        workspace_bin(p);
+    }
+}
+
 /// A binary of another package of the workspace (`vas`, `mavsim`, `fpma`), built once per test
 /// process into this test's own target directory.
 pub fn workspace_bin(package: &str) -> std::path::PathBuf {
