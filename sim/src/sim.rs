@@ -1,7 +1,10 @@
 //! The async driver: runs a [`Vehicle`] on a [`Link`] in accelerated time.
 //!
 //! Time model: the vehicle is integrated at a fixed simulated step; every wall
-//! tick runs as many steps as `speedup × wall elapsed` requires. Heartbeats and
+//! tick runs as many steps as `speedup × wall elapsed` requires. A tick that comes
+//! late (a loaded machine descheduled the process) counts for at most
+//! [`MAX_WALL_PER_TICK`]: simulated time pauses during a stall instead of jumping
+//! ahead, so a ground station that was waiting on us is not left behind the vehicle. Heartbeats and
 //! telemetry streams are paced in *wall* time (a rate of 4 Hz is 4 messages per
 //! real second whatever the speed-up), so a ground station neither times out nor
 //! drowns; MISSION_ITEM_REACHED, STATUSTEXT and MISSION_CURRENT changes are sent
@@ -23,6 +26,8 @@ pub const STEP_S: f64 = 0.02;
 const TICK: Duration = Duration::from_millis(10);
 /// Bound on steps per tick so a stalled machine degrades to slower time instead of freezing.
 const MAX_STEPS_PER_TICK: u32 = 20_000;
+/// Wall time one tick may account for, however late it comes.
+const MAX_WALL_PER_TICK: Duration = Duration::from_millis(50);
 
 /// Everything needed to start a simulator.
 #[derive(Clone, Debug)]
@@ -129,7 +134,8 @@ impl Simulator {
 
     async fn run_loop(&mut self, shutdown: &CancellationToken) -> Result<(), SimError> {
         let speedup = self.cfg.speedup.max(0.01);
-        let start = Instant::now();
+        let mut last_tick = Instant::now();
+        let mut target = 0.0;
         let mut tick = tokio::time::interval(TICK);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         self.flush_log()?;
@@ -151,7 +157,9 @@ impl Simulator {
                 }
                 _ = tick.tick() => {
                     let now = Instant::now();
-                    let target = now.duration_since(start).as_secs_f64() * speedup;
+                    let wall = now.duration_since(last_tick).min(MAX_WALL_PER_TICK);
+                    last_tick = now;
+                    target += wall.as_secs_f64() * speedup;
                     let mut steps = 0;
                     while self.vehicle.sim_time() + STEP_S / 2.0 < target && steps < MAX_STEPS_PER_TICK {
                         for msg in self.vehicle.step(STEP_S) {
@@ -159,6 +167,8 @@ impl Simulator {
                         }
                         steps += 1;
                     }
+                    // Too slow to keep up: time runs slower rather than owing a burst.
+                    target = target.min(self.vehicle.sim_time() + STEP_S);
                     for msg in self.vehicle.poll(now) {
                         self.link.send(&msg);
                     }

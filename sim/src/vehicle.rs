@@ -345,6 +345,12 @@ impl Vehicle {
         if seq == 0 {
             return false;
         }
+        let driving = self.behaviour() == Behaviour::Auto;
+        if seq == self.current && (!driving || self.target_seq() == Some(seq)) {
+            // Already there (a ground station resending over a lossy link): nothing changes.
+            out.push(self.mission_current());
+            return true;
+        }
         if self.behaviour() == Behaviour::Auto {
             self.go_to_index(seq, "set_current", out);
         } else {
