@@ -46,6 +46,15 @@ pub struct VasConfig {
     /// Autopilot heartbeat timeout before the link is declared lost, ms (`heartbeatTimeoutMs`).
     #[serde(rename = "@heartbeatTimeoutMs")]
     pub heartbeat_timeout_ms: u64,
+    /// How long one attempt of a MAVLink request (a command, one mission item) waits for its
+    /// answer, ms (`requestTimeoutMs`). A few round trips of the link: lower it on a fast lossy
+    /// radio so a lost frame costs little, raise it on a slow one.
+    #[serde(rename = "@requestTimeoutMs")]
+    pub request_timeout_ms: u64,
+    /// Attempts per MAVLink request and per mission item before the transfer is cancelled
+    /// (`retries`).
+    #[serde(rename = "@retries")]
+    pub retries: u32,
     /// The middleware's network.xml (`network`); none: Ethernet on loopback.
     #[serde(rename = "@network")]
     pub network: Option<PathBuf>,
@@ -66,6 +75,7 @@ pub struct VasConfig {
 impl Default for VasConfig {
     fn default() -> Self {
         let val = ValConfig::default();
+        let manager = ManagerConfig::default();
         Self {
             autopilot: AutopilotKind::Ardupilot,
             endpoint: "udpout:127.0.0.1:14560".into(),
@@ -74,6 +84,8 @@ impl Default for VasConfig {
             telemetry_hz: 4.0,
             status_hz: 1.0,
             heartbeat_timeout_ms: 3000,
+            request_timeout_ms: manager.request_timeout.as_millis() as u64,
+            retries: manager.retries,
             network: None,
             domain: None,
             namespace: None,
@@ -151,6 +163,18 @@ impl VasConfig {
                 "heartbeatTimeoutMs below 500".into(),
             ));
         }
+        if !(10..=60_000).contains(&self.request_timeout_ms) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "requestTimeoutMs {} not in [10, 60000]",
+                self.request_timeout_ms
+            )));
+        }
+        if !(1..=100).contains(&self.retries) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "retries {} not in [1, 100]",
+                self.retries
+            )));
+        }
         Ok(())
     }
 
@@ -163,6 +187,8 @@ impl VasConfig {
             status_hz: self.status_hz,
             manager: ManagerConfig {
                 heartbeat_timeout: Duration::from_millis(self.heartbeat_timeout_ms),
+                request_timeout: Duration::from_millis(self.request_timeout_ms),
+                retries: self.retries,
                 ..ManagerConfig::default()
             },
         }
@@ -205,5 +231,16 @@ mod tests {
         std::fs::write(&p, r#"<vas vehicle="copter" queueSize="8"/>"#).unwrap();
         let cfg = VasConfig::load(&p).unwrap();
         assert_eq!((cfg.vehicle, cfg.queue_size), (VehicleKind::Copter, 8));
+        std::fs::write(&p, r#"<vas retries="0"/>"#).unwrap();
+        assert!(matches!(
+            VasConfig::load(&p),
+            Err(ConfigLoadError::Invalid(_))
+        ));
+        std::fs::write(&p, r#"<vas requestTimeoutMs="150" retries="12"/>"#).unwrap();
+        let mgr = VasConfig::load(&p).unwrap().ardupilot().manager;
+        assert_eq!(
+            (mgr.request_timeout, mgr.retries),
+            (Duration::from_millis(150), 12)
+        );
     }
 }

@@ -34,6 +34,12 @@ struct Args {
     /// Autopilot heartbeat timeout, ms.
     #[arg(long)]
     heartbeat_timeout_ms: Option<u64>,
+    /// How long one attempt of a MAVLink request or mission item waits for its answer, ms.
+    #[arg(long)]
+    request_timeout_ms: Option<u64>,
+    /// Attempts per MAVLink request and per mission item.
+    #[arg(long)]
+    retries: Option<u32>,
     /// The middleware's network.xml.
     #[arg(long)]
     network: Option<PathBuf>,
@@ -76,6 +82,12 @@ async fn main() -> anyhow::Result<()> {
     }
     if let Some(v) = args.heartbeat_timeout_ms {
         cfg.heartbeat_timeout_ms = v;
+    }
+    if let Some(v) = args.request_timeout_ms {
+        cfg.request_timeout_ms = v;
+    }
+    if let Some(v) = args.retries {
+        cfg.retries = v;
     }
     if args.network.is_some() {
         cfg.network = args.network;

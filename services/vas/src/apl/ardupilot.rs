@@ -7,6 +7,7 @@
 //! queue), `AP_Reader` (telemetry, status texts, mode changes), `AP_Parameters` (read at
 //! start and after every reconnection).
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -215,8 +216,10 @@ impl ArduPilot {
             last_reached: None,
             home: None,
             failing: false,
+            mav: mgr.subscribe(),
+            deferred: VecDeque::new(),
         };
-        tasks.spawn(driver.run(cmd_rx, mgr.subscribe(), cancel.clone()));
+        tasks.spawn(driver.run(cmd_rx, cancel.clone()));
         tasks.close();
         Ok(Self {
             mgr,
@@ -350,6 +353,47 @@ enum ExecError {
     Other(String),
 }
 
+/// Performs one queue action on the autopilot.
+async fn exec(
+    mgr: &MavlinkManager,
+    home: Option<(f64, f64)>,
+    action: &QueueAction<Waypoint>,
+) -> Result<(), ExecError> {
+    let other = |e: MissionError| ExecError::Other(e.to_string());
+    match action {
+        QueueAction::Upload(items) => {
+            let home = home
+                .or_else(|| items.first().map(|w| (w.lat, w.lon)))
+                .unwrap_or_default();
+            let mut mission = vec![MissionItem::waypoint(home.0, home.1, 0.0)];
+            mission.extend(items.iter().map(mission_item));
+            tracing::debug!("queue: upload {} slots", items.len());
+            mgr.mission_upload(&mission).await.map_err(other)
+        }
+        QueueAction::WritePartial { start, items } => {
+            let mission: Vec<MissionItem> = items.iter().map(mission_item).collect();
+            tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
+            match mgr.mission_write_partial(*start, &mission).await {
+                Ok(()) => Ok(()),
+                Err(MissionError::RetriesExhausted {
+                    stage: MissionStage::Start,
+                    ..
+                }) => {
+                    tracing::warn!(
+                        "partial mission writes unanswered: uploading whole windows from now on"
+                    );
+                    Err(ExecError::PartialUnsupported)
+                }
+                Err(e) => Err(other(e)),
+            }
+        }
+        QueueAction::SetCurrent(seq) => {
+            tracing::debug!("queue: set current {seq}");
+            mgr.mission_set_current(*seq).await.map_err(other)
+        }
+    }
+}
+
 struct Driver {
     mgr: Arc<MavlinkManager>,
     kind: VehicleKind,
@@ -362,24 +406,26 @@ struct Driver {
     home: Option<(f64, f64)>,
     /// The last queue action failed: wait for the tick before retrying.
     failing: bool,
+    /// The manager's events.
+    mav: broadcast::Receiver<MavEvent>,
+    /// Events taken from `mav` while a queue action ran that need more than bookkeeping.
+    deferred: VecDeque<MavEvent>,
 }
 
 impl Driver {
-    async fn run(
-        mut self,
-        mut cmds: mpsc::Receiver<Cmd>,
-        mut mav: broadcast::Receiver<MavEvent>,
-        cancel: CancellationToken,
-    ) {
+    async fn run(mut self, mut cmds: mpsc::Receiver<Cmd>, cancel: CancellationToken) {
         let mut tick = interval(Duration::from_millis(250));
         loop {
+            while let Some(ev) = self.deferred.pop_front() {
+                self.on_mav(ev).await;
+            }
             tokio::select! {
                 _ = cancel.cancelled() => break,
                 cmd = cmds.recv() => match cmd {
                     Some(cmd) => self.on_cmd(cmd).await,
                     None => break,
                 },
-                ev = mav.recv() => match ev {
+                ev = self.mav.recv() => match ev {
                     Ok(ev) => self.on_mav(ev).await,
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         tracing::warn!("APL lagged {n} MAVLink events; resynchronising");
@@ -493,16 +539,59 @@ impl Driver {
     /// Performs queue actions until the autopilot holds what it should.
     async fn prime(&mut self) -> Result<(), String> {
         for _ in 0..32 {
+            // Progress reported while the last action ran changes what is most urgent (the
+            // wrap to slot 1 has one leg of slack): take it into account first.
+            self.absorb_progress();
             let Some(action) = self.queue.poll() else {
                 return Ok(());
             };
-            match self.exec(&action).await {
+            let began = std::time::Instant::now();
+            let Some(result) = self.exec_unless_wrap_due(&action).await else {
+                // Dropped mid-transfer: the autopilot commits a transfer only when it is
+                // complete, so the abandoned write is simply redone after the wrap.
+                tracing::debug!(
+                    "queue: wrap due; action interrupted after {:?}",
+                    began.elapsed()
+                );
+                continue;
+            };
+            tracing::debug!("queue: action took {:?}", began.elapsed());
+            match result {
                 Ok(()) => self.queue.done(&action),
                 Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
                 Err(ExecError::Other(e)) => return Err(e),
             }
         }
         Err("the queue did not settle".into())
+    }
+
+    /// Performs `action` while following the vehicle's progress; gives up on it (`None`) when
+    /// that progress makes the wrap to slot 1 due, which cannot wait for a slow transfer.
+    async fn exec_unless_wrap_due(
+        &mut self,
+        action: &QueueAction<Waypoint>,
+    ) -> Option<Result<(), ExecError>> {
+        let mgr = Arc::clone(&self.mgr);
+        let exec = exec(&mgr, self.home, action);
+        tokio::pin!(exec);
+        let mut listening = !matches!(action, QueueAction::SetCurrent(_));
+        loop {
+            tokio::select! {
+                r = &mut exec => return Some(r),
+                ev = self.mav.recv(), if listening => {
+                    match ev {
+                        Ok(ev) => self.absorb(ev),
+                        Err(broadcast::error::RecvError::Lagged(n)) => {
+                            tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
+                        }
+                        Err(broadcast::error::RecvError::Closed) => listening = false,
+                    }
+                    if matches!(self.queue.poll(), Some(QueueAction::SetCurrent(_))) {
+                        return None;
+                    }
+                }
+            }
+        }
     }
 
     async fn pump(&mut self) {
@@ -515,41 +604,6 @@ impl Driver {
         }
     }
 
-    async fn exec(&mut self, action: &QueueAction<Waypoint>) -> Result<(), ExecError> {
-        let other = |e: MissionError| ExecError::Other(e.to_string());
-        match action {
-            QueueAction::Upload(items) => {
-                let home = self
-                    .home
-                    .or_else(|| items.first().map(|w| (w.lat, w.lon)))
-                    .unwrap_or_default();
-                let mut mission = vec![MissionItem::waypoint(home.0, home.1, 0.0)];
-                mission.extend(items.iter().map(mission_item));
-                tracing::debug!("queue: upload {} slots", items.len());
-                self.mgr.mission_upload(&mission).await.map_err(other)
-            }
-            QueueAction::WritePartial { start, items } => {
-                let mission: Vec<MissionItem> = items.iter().map(mission_item).collect();
-                tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
-                match self.mgr.mission_write_partial(*start, &mission).await {
-                    Ok(()) => Ok(()),
-                    Err(MissionError::RetriesExhausted {
-                        stage: MissionStage::Start,
-                        ..
-                    }) => {
-                        tracing::warn!("partial mission writes unanswered: uploading whole windows from now on");
-                        Err(ExecError::PartialUnsupported)
-                    }
-                    Err(e) => Err(other(e)),
-                }
-            }
-            QueueAction::SetCurrent(seq) => {
-                tracing::debug!("queue: set current {seq}");
-                self.mgr.mission_set_current(*seq).await.map_err(other)
-            }
-        }
-    }
-
     fn reached(&mut self, w: Waypoint) {
         self.last_reached = Some(w.seq);
         self.emit(ApEvent::WaypointReached(WaypointReached {
@@ -559,6 +613,37 @@ impl Driver {
             lon: w.lon,
             remaining: self.queue.len() as u64,
         }));
+    }
+
+    /// Takes the waypoint progress the manager reported so far into the queue, without
+    /// acting on the autopilot; other events wait in `deferred` for the driver loop.
+    fn absorb_progress(&mut self) {
+        loop {
+            match self.mav.try_recv() {
+                Ok(ev) => self.absorb(ev),
+                Err(broadcast::error::TryRecvError::Lagged(n)) => {
+                    tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
+                }
+                Err(_) => return,
+            }
+        }
+    }
+
+    /// Waypoint progress goes into the queue at once; anything else waits in `deferred`.
+    fn absorb(&mut self, ev: MavEvent) {
+        match ev {
+            MavEvent::WaypointReached { seq, .. } => {
+                if let Some(w) = self.queue.on_reached(seq) {
+                    self.reached(w);
+                }
+            }
+            MavEvent::MissionCurrent { seq } => {
+                if let Some(w) = self.queue.on_current(seq) {
+                    self.reached(w);
+                }
+            }
+            ev => self.deferred.push_back(ev),
+        }
     }
 
     /// Catches up with the autopilot from its latest state (after a lag, on every tick).

@@ -749,7 +749,14 @@ impl MavlinkManager {
             MavMessage::MISSION_CURRENT(c) if c.seq == seq => Some(()),
             _ => None,
         };
-        if self.inner.transact(make, matcher).await?.is_some() {
+        // Sent twice per attempt: the rolling queue's wrap has one leg of slack, and setting
+        // the same current item twice within milliseconds changes nothing.
+        if self
+            .inner
+            .transact_copies(2, make, matcher)
+            .await?
+            .is_some()
+        {
             return Ok(());
         }
         match self
@@ -832,11 +839,24 @@ impl Inner {
     async fn transact<T>(
         &self,
         make: impl Fn(u32) -> MavMessage,
+        matcher: impl FnMut(&MavMessage) -> Option<T>,
+    ) -> Result<Option<T>, LinkError> {
+        self.transact_copies(1, make, matcher).await
+    }
+
+    /// [`Self::transact`] sending each attempt `copies` times back to back: for idempotent,
+    /// time-critical requests, where a duplicate costs a few bytes and a loss a whole timeout.
+    async fn transact_copies<T>(
+        &self,
+        copies: u32,
+        make: impl Fn(u32) -> MavMessage,
         mut matcher: impl FnMut(&MavMessage) -> Option<T>,
     ) -> Result<Option<T>, LinkError> {
         let mut rx = self.raw_tx.subscribe();
         for attempt in 0..self.cfg.retries {
-            self.send(make(attempt)).await?;
+            for _ in 0..copies.max(1) {
+                self.send(make(attempt)).await?;
+            }
             let deadline = Instant::now() + self.cfg.request_timeout;
             if let Some(t) = wait_for(&mut rx, deadline, &mut matcher).await? {
                 return Ok(Some(t));
@@ -887,8 +907,10 @@ impl Inner {
         let mut attempts = 1;
         let mut last_sent = start.clone();
         self.send(start).await?;
+        // Per attempt, not per message received: stale requests and acknowledgements of
+        // earlier transfers must not keep postponing the resend.
+        let mut deadline = Instant::now() + self.cfg.request_timeout;
         loop {
-            let deadline = Instant::now() + self.cfg.request_timeout;
             match wait_for(&mut rx, deadline, matcher).await? {
                 None => {
                     // Silence: our last message or the autopilot's request was lost.
@@ -901,7 +923,9 @@ impl Inner {
                         return Err(MissionError::RetriesExhausted { stage, attempts });
                     }
                     attempts += 1;
+                    tracing::debug!("mission transfer: silence at {stage:?}, attempt {attempts}");
                     self.send(last_sent.clone()).await?;
+                    deadline = Instant::now() + self.cfg.request_timeout;
                 }
                 Some(UploadStep::Request(seq, int)) => {
                     if seq < first || seq > last {
@@ -931,6 +955,7 @@ impl Inner {
                     };
                     last_sent = msg.clone();
                     self.send(msg).await?;
+                    deadline = Instant::now() + self.cfg.request_timeout;
                 }
                 Some(UploadStep::Ack(MavMissionResult::MAV_MISSION_ACCEPTED)) => {
                     if stage == MissionStage::Item(last) {

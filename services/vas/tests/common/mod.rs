@@ -24,30 +24,107 @@ pub const HOME: (f64, f64) = (41.2757, 1.9881);
 /// The `mavsim` binary, built once per test process into this test's own target directory.
 pub fn mavsim_bin() -> &'static Path {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
-    BIN.get_or_init(|| {
-        // <target>/debug/deps/<test binary>: the target directory is three levels up.
-        let exe = std::env::current_exe().expect("test binary path");
-        let target = exe
-            .ancestors()
-            .nth(3)
-            .expect("test binary inside <target>/<profile>/deps")
-            .to_owned();
-        let status = std::process::Command::new(env!("CARGO"))
-            .args(["build", "-p", "mavsim", "--bin", "mavsim"])
-            .env("CARGO_TARGET_DIR", &target)
-            .status()
-            .expect("running cargo build -p mavsim");
-        assert!(status.success(), "building mavsim failed");
-        let bin = target.join("debug").join("mavsim");
-        assert!(bin.exists(), "no mavsim at {}", bin.display());
-        bin
-    })
+    BIN.get_or_init(|| build_bin("mavsim", "mavsim"))
+}
+
+/// The `marea-radio` radio emulator (a bin of the root package `usal`), built like mavsim.
+pub fn marea_radio_bin() -> &'static Path {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| build_bin("usal", "marea-radio"))
+}
+
+/// Builds `bin` of `package` into the target directory of the running test binary.
+fn build_bin(package: &str, bin: &str) -> PathBuf {
+    // <target>/debug/deps/<test binary>: the target directory is three levels up.
+    let exe = std::env::current_exe().expect("test binary path");
+    let target = exe
+        .ancestors()
+        .nth(3)
+        .expect("test binary inside <target>/<profile>/deps")
+        .to_owned();
+    let status = std::process::Command::new(env!("CARGO"))
+        .args(["build", "-p", package, "--bin", bin])
+        .env("CARGO_TARGET_DIR", &target)
+        .status()
+        .unwrap_or_else(|e| panic!("running cargo build -p {package}: {e}"));
+    assert!(status.success(), "building {bin} failed");
+    let path = target.join("debug").join(bin);
+    assert!(path.exists(), "no {bin} at {}", path.display());
+    path
+}
+
+/// A running `marea-radio`: two pty pairs joined by an emulated 3DR radio link. Killed on
+/// drop.
+pub struct Radio {
+    child: Child,
+    /// The latest counters it printed (`--stats-ms`).
+    stats: std::sync::Arc<std::sync::Mutex<Option<serde_json::Value>>>,
+    /// The ground side's device (the VAS opens it).
+    pub ground: String,
+    /// The air side's device (mavsim opens it).
+    pub air: String,
+}
+
+impl Radio {
+    /// Starts the emulator with these extra arguments (`--loss`, `--corrupt`, `--seed`...).
+    pub async fn start(args: &[&str]) -> Radio {
+        let mut child = Command::new(marea_radio_bin())
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("spawn marea-radio");
+        let stdout = child.stdout.take().expect("piped stdout");
+        let mut lines = BufReader::new(stdout).lines();
+        let line = tokio::time::timeout(STEP, lines.next_line())
+            .await
+            .expect("marea-radio printed no devices in time")
+            .expect("reading marea-radio stdout")
+            .expect("marea-radio exited early");
+        let ports: serde_json::Value =
+            serde_json::from_str(&line).unwrap_or_else(|e| panic!("{line:?}: {e}"));
+        let dev = |side: &str| {
+            ports[side]
+                .as_str()
+                .unwrap_or_else(|| panic!("no {side} device in {line:?}"))
+                .to_owned()
+        };
+        let stats: std::sync::Arc<std::sync::Mutex<Option<serde_json::Value>>> =
+            std::sync::Arc::default();
+        let latest = std::sync::Arc::clone(&stats);
+        // Ends with the child's stdout.
+        tokio::spawn(async move {
+            while let Ok(Some(line)) = lines.next_line().await {
+                if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+                    *latest.lock().unwrap_or_else(|p| p.into_inner()) = Some(v);
+                }
+            }
+        });
+        Radio {
+            ground: dev("ground"),
+            air: dev("air"),
+            child,
+            stats,
+        }
+    }
+
+    /// The latest counters printed (run it with `--stats-ms`).
+    pub fn stats(&self) -> Option<serde_json::Value> {
+        self.stats.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Kills it and waits.
+    pub async fn kill(mut self) {
+        let _ = self.child.start_kill();
+        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+    }
 }
 
 /// A running mavsim, killed on drop.
 pub struct Sim {
     child: Child,
-    /// `127.0.0.1:PORT` it listens on.
+    /// `127.0.0.1:PORT` it listens on, or its serial device.
     pub addr: String,
     /// Its `--log` file.
     pub log: PathBuf,
@@ -56,8 +133,18 @@ pub struct Sim {
 impl Sim {
     /// Starts mavsim on `bind` (`127.0.0.1:0` for any port) logging to `log`.
     pub async fn start(bind: &str, speedup: f64, log: &Path) -> Sim {
+        Sim::spawn(&["--udp", bind], "MAVSIM_UDP=", speedup, log).await
+    }
+
+    /// Starts mavsim on the serial device (or pty slave) `path`; `addr` is the path.
+    pub async fn start_serial(path: &str, speedup: f64, log: &Path) -> Sim {
+        Sim::spawn(&["--serial", path], "MAVSIM_SERIAL=", speedup, log).await
+    }
+
+    async fn spawn(link: &[&str], prefix: &str, speedup: f64, log: &Path) -> Sim {
         let mut child = Command::new(mavsim_bin())
-            .args(["--udp", bind, "--speedup", &speedup.to_string()])
+            .args(link)
+            .args(["--speedup", &speedup.to_string()])
             .arg("--home")
             .arg(format!("{},{},10", HOME.0, HOME.1))
             .arg("--log")
@@ -74,7 +161,7 @@ impl Sim {
             .expect("reading mavsim stdout")
             .expect("mavsim exited early");
         let addr = line
-            .strip_prefix("MAVSIM_UDP=")
+            .strip_prefix(prefix)
             .unwrap_or_else(|| panic!("unexpected mavsim output {line:?}"))
             .to_owned();
         Sim {
