@@ -43,6 +43,10 @@ struct Control {
 /// variable keeps flowing.
 #[test]
 fn mixed_traffic_over_a_radio_losing_one_percent_of_bytes() {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_test_writer()
+        .try_init();
     let radio = Radio::start(&["--loss", "0.005", "--corrupt", "0.005", "--seed", "11"]);
     let domain = format!("serial-mixed-{}", std::process::id());
     let extra = r#"MaxPacketSize="64" TimeToResend="1000""#;

@@ -4,7 +4,7 @@
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU32, AtomicU64};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use dashmap::DashMap;
 use serde::{Deserialize, Serialize};
@@ -169,6 +169,7 @@ impl Node {
                 heartbeat,
                 lease,
                 link_timing,
+                epoch: Instant::now(),
             },
             links: OnceLock::new(),
             decls: Mutex::default(),
@@ -336,7 +337,7 @@ impl Node {
                     .map(|l| l.name().to_owned())
                     .unwrap_or_default(),
                 addr: p.addr.to_string(),
-                last_seen_ms: p.last_seen.elapsed().as_millis() as u64,
+                last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));

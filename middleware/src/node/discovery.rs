@@ -108,6 +108,7 @@ impl NodeInner {
                         link,
                         addr: from,
                         last_seen: Instant::now(),
+                        heard_ms: Default::default(),
                         lease,
                         known: 0,
                         requested: Some(Instant::now()),
@@ -279,7 +280,10 @@ impl NodeInner {
             let expired: Vec<(NodeId, Duration)> = self
                 .peers
                 .iter()
-                .filter(|p| p.link == link && now.saturating_duration_since(p.last_seen) > p.lease)
+                .filter(|p| {
+                    p.link == link
+                        && now.saturating_duration_since(p.last_heard(self.me.epoch)) > p.lease
+                })
                 .map(|p| (p.id, p.lease))
                 .collect();
             for (id, lease) in expired {

@@ -110,7 +110,12 @@ pub(crate) struct Peer {
     pub namespace: String,
     pub link: usize,
     pub addr: PeerAddr,
+    /// When its last heartbeat or Hello arrived.
     pub last_seen: Instant,
+    /// When anything last arrived from it, in ms since the node's epoch (updated on the data
+    /// path without the peer table's write lock): a peer whose heartbeats are lost on a busy,
+    /// lossy radio is still alive while its data comes through.
+    pub heard_ms: AtomicU64,
     pub lease: Duration,
     /// Declarations applied up to this counter.
     pub known: u32,
@@ -125,6 +130,14 @@ pub(crate) struct Peer {
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
     pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
+}
+
+impl Peer {
+    /// When it was last heard from at all.
+    pub fn last_heard(&self, epoch: Instant) -> Instant {
+        let data = epoch + Duration::from_millis(self.heard_ms.load(Ordering::Relaxed));
+        self.last_seen.max(data)
+    }
 }
 
 /// A call waiting for its reply.
@@ -148,6 +161,8 @@ pub(crate) struct Identity {
     pub lease: Duration,
     /// Heartbeat period and lease of each link, by link index.
     pub link_timing: Vec<(Duration, Duration)>,
+    /// When the node opened (the origin of `Peer::heard_ms`).
+    pub epoch: Instant,
 }
 
 impl Identity {
@@ -276,8 +291,12 @@ impl NodeInner {
             tracing::trace!(%from, "message from an unknown sender dropped");
             return;
         };
-        // Leases are refreshed by discovery messages (heartbeats), not per data message: the
-        // peer table's write lock stays off the data path.
+        // Anything from a peer shows it alive (its heartbeats may be lost on a busy radio);
+        // an atomic under the peer table's read lock keeps this cheap on the data path.
+        if let Some(p) = self.peers.get(&node) {
+            let now = self.me.epoch.elapsed().as_millis() as u64;
+            p.heard_ms.store(now, Ordering::Relaxed);
+        }
         match msg {
             Message::Var { id, payload } | Message::Event { id, payload } => {
                 self.deliver_remote(node, id, payload)

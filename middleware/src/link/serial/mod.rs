@@ -277,13 +277,17 @@ impl SerialLink {
                         let _ = d.send(Err(err.clone()));
                     }
                 }
-                StpEvent::PeerReset => self.handler.on_peer_reset(self.index, peer),
+                StpEvent::PeerReset => {
+                    tracing::warn!(link = %self.name, "the peer started a new session: what was in flight to it is lost");
+                    self.handler.on_peer_reset(self.index, peer)
+                }
             }
         }
     }
 
     fn fail_all(&self, err: LinkSendError) {
-        let mut events = lock(&self.stp).reset_sender(fresh_session(), err);
+        tracing::debug!(link = %self.name, error = %err, "peer forgotten: new sessions");
+        let mut events = lock(&self.stp).reset_peer(fresh_session(), err);
         self.handle(&mut events);
     }
 }

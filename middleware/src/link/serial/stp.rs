@@ -244,6 +244,17 @@ impl<T> Stp<T> {
         self.announce = Some(msg);
     }
 
+    /// Forgets the peer on both sides, as a restart would: every unacknowledged and queued
+    /// Safe message fails, a new sender session (`session`) starts, and the receiver waits for
+    /// the peer's next session. Because our receiver forgets the peer's session too, the
+    /// peer's answering new session is taken as fresh: one round, not an endless exchange of
+    /// resets.
+    pub fn reset_peer(&mut self, session: u16, err: LinkSendError) -> Vec<StpEvent<T>> {
+        self.rx = ArqReceiver::new(self.cfg.arq().max_window);
+        self.safe_reasm.reset();
+        self.reset_sender(session, err)
+    }
+
     /// Fails every unacknowledged and queued Safe message and starts a new sender session
     /// (`session`); the receiving side is kept, so the peer's session goes on.
     pub fn reset_sender(&mut self, session: u16, err: LinkSendError) -> Vec<StpEvent<T>> {
@@ -933,6 +944,49 @@ mod tests {
         );
         assert_eq!(resets, 1);
         assert_eq!(got, vec![b"hi".to_vec()]);
+    }
+
+    /// A side that forgets its peer (a lease expired on a busy radio) starts over once: the
+    /// peer answers with one new session, and the two do not keep resetting each other.
+    #[test]
+    fn forgetting_the_peer_resets_once_and_traffic_resumes() {
+        let mut p = SimPair::new(cfg(115_200, 300), Faults::default(), 5, Duration::ZERO);
+        p.a.push_safe(b"before".to_vec(), None);
+        p.b.push_safe(b"before".to_vec(), None);
+        let until = p.now + Duration::from_millis(300);
+        p.run(until, Duration::from_millis(5), |_| {}, |_, _, _| {});
+        let _ =
+            p.a.reset_peer(0x4444, LinkSendError::PeerClosed("lease expired".into()));
+        let mut resets = (0, 0);
+        let mut got = (Vec::new(), Vec::new());
+        // Both keep talking for a while after the reset.
+        for round in 0..20u8 {
+            p.a.push_safe(vec![b'a', round], None);
+            p.b.push_safe(vec![b'b', round], None);
+            let until = p.now + Duration::from_millis(100);
+            p.run(
+                until,
+                Duration::from_millis(5),
+                |_| {},
+                |s, _, e| match (s, e) {
+                    (Side::A, StpEvent::PeerReset) => resets.0 += 1,
+                    (Side::B, StpEvent::PeerReset) => resets.1 += 1,
+                    (Side::A, StpEvent::Message(m)) => got.0.push(m),
+                    (Side::B, StpEvent::Message(m)) => got.1.push(m),
+                    _ => {}
+                },
+            );
+        }
+        assert_eq!(
+            resets,
+            (0, 1),
+            "B sees A's new session once; A's answer is fresh to it"
+        );
+        let expect = |c: u8| (0..20u8).map(|r| vec![c, r]).collect::<Vec<_>>();
+        // Everything A sent after the reset reaches B; B's stream to A resumes from its own
+        // new session (what was in flight when A forgot it failed on B's side).
+        assert_eq!(got.1, expect(b'a'));
+        assert!(got.0.ends_with(&expect(b'b')[5..]), "{:?}", got.0);
     }
 
     #[test]
