@@ -38,6 +38,27 @@ struct Control {
     stick: [f32; 4],
 }
 
+/// Sets the control stick at 20 Hz until `until`, each value stamped with its send time (µs
+/// since `epoch`) so the receiver can measure its age.
+fn spawn_stick(
+    control: marea::Variable<Control>,
+    epoch: Instant,
+    until: Instant,
+) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        while Instant::now() < until {
+            let sent_us = epoch.elapsed().as_micros() as u64;
+            control
+                .set(&Control {
+                    sent_us,
+                    stick: [0.1, 0.2, 0.3, 0.4],
+                })
+                .expect("set");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+}
+
 /// 1 % of bytes lost or corrupted at 57600 baud, mixed traffic for 60 s: every event arrives
 /// exactly once and in order, every call returns a result or a timeout, and a 20 Hz control
 /// variable keeps flowing.
@@ -94,18 +115,7 @@ fn mixed_traffic_over_a_radio_losing_one_percent_of_bytes() {
             (n, failures)
         });
         // Ground: the control stick at 20 Hz.
-        let stick = tokio::spawn(async move {
-            while start.elapsed() < test_len {
-                let sent_us = epoch.elapsed().as_micros() as u64;
-                control
-                    .set(&Control {
-                        sent_us,
-                        stick: [0.1, 0.2, 0.3, 0.4],
-                    })
-                    .expect("set");
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-        });
+        let stick = spawn_stick(control, epoch, start + test_len);
         // Ground: a call every 300 ms, each bounded by its own timeout.
         let caller = tokio::spawn(async move {
             let (mut ok, mut timeouts) = (0u32, 0u32);
@@ -230,18 +240,7 @@ fn manual_control_stays_fresh_while_safe_traffic_saturates_the_radio() {
             }
             raised
         });
-        let stick = tokio::spawn(async move {
-            while start.elapsed() < test_len {
-                let sent_us = epoch.elapsed().as_micros() as u64;
-                control
-                    .set(&Control {
-                        sent_us,
-                        stick: [0.0, 0.5, 0.0, 0.0],
-                    })
-                    .expect("set");
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-        });
+        let stick = spawn_stick(control, epoch, start + test_len);
         let drain = tokio::spawn(async move {
             let mut n = 0u64;
             while let Ok(Ok(_)) =
