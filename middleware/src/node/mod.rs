@@ -133,6 +133,12 @@ pub(crate) struct Peer {
 }
 
 impl Peer {
+    /// Records that something arrived from this peer now.
+    pub fn heard(&self, epoch: Instant) {
+        let now = epoch.elapsed().as_millis() as u64;
+        self.heard_ms.store(now, Ordering::Relaxed);
+    }
+
     /// When it was last heard from at all.
     pub fn last_heard(&self, epoch: Instant) -> Instant {
         let data = epoch + Duration::from_millis(self.heard_ms.load(Ordering::Relaxed));
@@ -291,11 +297,13 @@ impl NodeInner {
             tracing::trace!(%from, "message from an unknown sender dropped");
             return;
         };
-        // Anything from a peer shows it alive (its heartbeats may be lost on a busy radio);
-        // an atomic under the peer table's read lock keeps this cheap on the data path.
-        if let Some(p) = self.peers.get(&node) {
-            let now = self.me.epoch.elapsed().as_millis() as u64;
-            p.heard_ms.store(now, Ordering::Relaxed);
+        // Anything from a peer shows it alive (its heartbeats may be lost on a busy radio):
+        // an atomic under the peer table's read lock, taken once per message (the data path
+        // refreshes it in its own lookup).
+        if !matches!(msg, Message::Var { .. } | Message::Event { .. }) {
+            if let Some(p) = self.peers.get(&node) {
+                p.heard(self.me.epoch);
+            }
         }
         match msg {
             Message::Var { id, payload } | Message::Event { id, payload } => {

@@ -531,6 +531,7 @@ impl NodeInner {
             self.forward_data(node, id, &payload);
         }
         let Some((targets, name, type_name, publisher)) = self.peers.get(&node).and_then(|p| {
+            p.heard(self.me.epoch);
             let t = p.routes.get(&id)?.clone();
             let offer = p.offers.get(&id)?;
             Some((
