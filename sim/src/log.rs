@@ -73,6 +73,16 @@ pub enum LogEvent {
         /// New state.
         armed: bool,
     },
+    /// The speed changed (DO_CHANGE_SPEED, or back to the default on a mode change).
+    SpeedChanged {
+        /// New speed, m/s; 0 for the vehicle's default.
+        speed: f64,
+    },
+    /// A GUIDED take-off reached its altitude.
+    TakeoffComplete {
+        /// Metres above home.
+        alt: f64,
+    },
 }
 
 /// A log line: simulated time plus the event.

@@ -53,6 +53,10 @@ struct Args {
     /// Write JSON lines of mission/mode/arming events to this file.
     #[arg(long)]
     log: Option<PathBuf>,
+    /// Report no mission progress (no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT
+    /// only in answer to a set-current), like autopilots whose ground station must infer it.
+    #[arg(long)]
+    quiet_progress: bool,
 }
 
 fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
@@ -122,6 +126,7 @@ async fn main() -> anyhow::Result<()> {
         link,
         speedup: args.speedup,
         log: args.log,
+        quiet_progress: args.quiet_progress,
     };
     let sim = Simulator::open(cfg).await.context("starting mavsim")?;
     // One machine-readable line on stdout so scripts and tests find the endpoint.

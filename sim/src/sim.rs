@@ -40,6 +40,8 @@ pub struct SimConfig {
     pub speedup: f64,
     /// JSON-lines event log, if wanted.
     pub log: Option<PathBuf>,
+    /// Report no mission progress (see [`Vehicle::set_quiet_progress`]).
+    pub quiet_progress: bool,
 }
 
 /// Errors of the simulator.
@@ -85,7 +87,8 @@ impl Simulator {
         };
         let cancel_link = CancellationToken::new();
         let link = Link::open(&cfg.link, cfg.vehicle.sysid, cancel_link.clone()).await?;
-        let vehicle = Vehicle::new(cfg.vehicle, Instant::now());
+        let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
+        vehicle.set_quiet_progress(cfg.quiet_progress);
         Ok(Self {
             cfg,
             vehicle,

@@ -59,6 +59,8 @@ struct Target {
     pos: Ned,
     lat: f64,
     lon: f64,
+    /// The item's own acceptance radius (NAV_WAYPOINT param2), else WP_RADIUS.
+    radius: Option<f64>,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -79,6 +81,13 @@ pub struct Vehicle {
     current: u16,
     target: Option<Target>,
     hold_point: Ned,
+    /// Where a GUIDED take-off climbs to (MAV_CMD_NAV_TAKEOFF).
+    takeoff_to: Option<Ned>,
+    /// Speed set by DO_CHANGE_SPEED (mission item or command) until the mode changes, m/s.
+    speed_override: Option<f64>,
+    /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
+    /// in answer to a set-current (autopilots that leave progress to be inferred).
+    quiet_progress: bool,
     sticks: Option<(Sticks, Instant)>,
     sim_time: f64,
     streams: BTreeMap<u32, (Duration, Instant)>,
@@ -134,6 +143,9 @@ impl Vehicle {
             current: 0,
             target: None,
             hold_point: Ned::default(),
+            takeoff_to: None,
+            speed_override: None,
+            quiet_progress: false,
             sticks: None,
             sim_time: 0.0,
             streams: BTreeMap::new(),
@@ -159,6 +171,12 @@ impl Vehicle {
             home_lon: cfg.home.lon_deg,
         });
         v
+    }
+
+    /// Stops (or resumes) reporting mission progress: no MISSION_ITEM_REACHED, no "Reached"
+    /// STATUSTEXT, no MISSION_CURRENT stream or change; set-currents are still answered.
+    pub fn set_quiet_progress(&mut self, quiet: bool) {
+        self.quiet_progress = quiet;
     }
 
     /// Current custom mode number.
@@ -207,23 +225,24 @@ impl Vehicle {
 
     fn limits(&self) -> Limits {
         let p = |name, default| f64::from(self.params.get_or(name, default));
+        let speed = |default: f64| self.speed_override.unwrap_or(default).max(0.1);
         match self.cfg.kind {
             VehicleKind::Rover => Limits {
-                cruise_speed: p("CRUISE_SPEED", 2.0).max(0.1),
+                cruise_speed: speed(p("CRUISE_SPEED", 2.0)),
                 max_yaw_rate: p("ATC_STR_RAT_MAX", 120.0).max(1.0).to_radians(),
                 max_accel: p("ATC_ACCEL_MAX", 2.0).max(0.1),
                 max_climb: 0.0,
                 loiter_radius: 2.0,
             },
             VehicleKind::Copter => Limits {
-                cruise_speed: (p("WPNAV_SPEED", 500.0) / 100.0).max(0.1),
+                cruise_speed: speed(p("WPNAV_SPEED", 500.0) / 100.0),
                 max_yaw_rate: p("ATC_RATE_Y_MAX", 90.0).max(1.0).to_radians(),
                 max_accel: (p("WPNAV_ACCEL", 250.0) / 100.0).max(0.1),
                 max_climb: (p("WPNAV_SPEED_UP", 250.0) / 100.0).max(0.1),
                 loiter_radius: 0.0,
             },
             VehicleKind::Plane => {
-                let speed = p("AIRSPEED_CRUISE", 15.0).max(1.0);
+                let speed = speed(p("AIRSPEED_CRUISE", 15.0)).max(1.0);
                 let bank = p("ROLL_LIMIT_DEG", 45.0).clamp(5.0, 80.0).to_radians();
                 Limits {
                     cruise_speed: speed,
@@ -277,7 +296,48 @@ impl Vehicle {
         if item.command == MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH {
             pos = Ned::default();
         }
-        Some(Target { seq, pos, lat, lon })
+        if item.command == MavCmd::MAV_CMD_NAV_TAKEOFF {
+            // ArduCopter climbs straight up where it stands, whatever lat/lon say.
+            pos.north = self.state.pos.north;
+            pos.east = self.state.pos.east;
+        }
+        let radius = (item.command == MavCmd::MAV_CMD_NAV_WAYPOINT
+            && item.param2.is_finite()
+            && item.param2 > 0.0)
+            .then(|| f64::from(item.param2));
+        Some(Target {
+            seq,
+            pos,
+            lat,
+            lon,
+            radius,
+        })
+    }
+
+    /// Executes a DO_ item the mission passes over.
+    fn do_item(&mut self, item: &Item) {
+        if item.command == MavCmd::MAV_CMD_DO_CHANGE_SPEED {
+            self.change_speed(item.param2);
+        }
+    }
+
+    /// DO_CHANGE_SPEED's speed parameter: positive sets it, -2 returns to the default
+    /// (CRUISE_SPEED, WPNAV_SPEED, AIRSPEED_CRUISE), anything else changes nothing.
+    fn change_speed(&mut self, speed: f32) -> bool {
+        let new = if speed.is_finite() && speed > 0.0 {
+            Some(f64::from(speed))
+        } else if speed == -2.0 {
+            None
+        } else {
+            return false;
+        };
+        if new != self.speed_override {
+            self.speed_override = new;
+            self.record(LogEvent::SpeedChanged {
+                speed: new.unwrap_or(0.0),
+            });
+        }
+        true
     }
 
     /// Makes `seq` (or the first navigation item from it) the current item and
@@ -286,6 +346,8 @@ impl Vehicle {
         let count = self.mission.count();
         let mut next = seq.max(1);
         while next < count && !is_nav(self.mission.items()[usize::from(next)].command) {
+            let item = self.mission.items()[usize::from(next)].clone();
+            self.do_item(&item);
             next += 1;
         }
         if next >= count {
@@ -294,7 +356,9 @@ impl Vehicle {
         }
         self.current = next;
         self.target = self.target_of(next);
-        out.push(self.mission_current());
+        if !(self.quiet_progress && cause == "advance") {
+            out.push(self.mission_current());
+        }
         self.record(LogEvent::CurrentChanged {
             seq: next,
             cause: cause.to_owned(),
@@ -316,16 +380,20 @@ impl Vehicle {
     }
 
     fn reached(&mut self, t: Target, out: &mut Vec<MavMessage>) {
-        out.push(MavMessage::MISSION_ITEM_REACHED(
-            MISSION_ITEM_REACHED_DATA { seq: t.seq },
-        ));
-        let dist = self.state.pos.horizontal_distance(&t.pos);
-        let text = match self.cfg.kind {
-            VehicleKind::Rover => format!("Reached waypoint #{}", t.seq),
-            VehicleKind::Copter => format!("Reached command #{}", t.seq),
-            VehicleKind::Plane => format!("Reached waypoint #{} dist {}m", t.seq, dist.round()),
-        };
-        out.push(statustext(MavSeverity::MAV_SEVERITY_INFO, &text));
+        if !self.quiet_progress {
+            out.push(MavMessage::MISSION_ITEM_REACHED(
+                MISSION_ITEM_REACHED_DATA { seq: t.seq },
+            ));
+            let dist = self.state.pos.horizontal_distance(&t.pos);
+            let text = match self.cfg.kind {
+                VehicleKind::Rover => format!("Reached waypoint #{}", t.seq),
+                VehicleKind::Copter => format!("Reached command #{}", t.seq),
+                VehicleKind::Plane => {
+                    format!("Reached waypoint #{} dist {}m", t.seq, dist.round())
+                }
+            };
+            out.push(statustext(MavSeverity::MAV_SEVERITY_INFO, &text));
+        }
         self.record(LogEvent::ItemReached {
             seq: t.seq,
             lat: t.lat,
@@ -382,6 +450,10 @@ impl Vehicle {
         let from = self.mode;
         self.mode = mode;
         self.hold_point = self.state.pos;
+        self.takeoff_to = None;
+        if self.speed_override.take().is_some() {
+            self.record(LogEvent::SpeedChanged { speed: 0.0 });
+        }
         self.record(LogEvent::ModeChanged {
             from,
             to: mode,
@@ -461,20 +533,39 @@ impl Vehicle {
                     Command::GoTo(home)
                 }
             }
-            Behaviour::Hold | Behaviour::Guided => Command::Hold(self.hold_point),
+            Behaviour::Guided => match self.takeoff_to {
+                Some(t) => Command::GoTo(t),
+                None => Command::Hold(self.hold_point),
+            },
+            Behaviour::Hold => Command::Hold(self.hold_point),
         };
         self.state.step(self.cfg.kind, command, &limits, dt);
         if self.behaviour() == Behaviour::Auto {
             if let Some(t) = self.target {
-                let close = self.state.pos.horizontal_distance(&t.pos) <= self.wp_radius()
-                    && (self.cfg.kind != VehicleKind::Copter
-                        || (self.state.pos.up - t.pos.up).abs() <= self.wp_radius());
-                if close {
+                if self.within(&t.pos, t.radius.unwrap_or_else(|| self.wp_radius())) {
                     self.reached(t, &mut out);
                 }
             }
         }
+        if let Some(t) = self
+            .takeoff_to
+            .filter(|_| self.behaviour() == Behaviour::Guided)
+        {
+            if (self.state.pos.up - t.up).abs() <= 0.5 {
+                self.takeoff_to = None;
+                self.hold_point = self.state.pos;
+                self.record(LogEvent::TakeoffComplete {
+                    alt: self.state.pos.up,
+                });
+            }
+        }
         out
+    }
+
+    /// Within `radius` of `p` (and, for a copter, of its altitude).
+    fn within(&self, p: &Ned, radius: f64) -> bool {
+        self.state.pos.horizontal_distance(p) <= radius
+            && (self.cfg.kind != VehicleKind::Copter || (self.state.pos.up - p.up).abs() <= radius)
     }
 
     /// Wall-clock duties: heartbeat, telemetry streams, mission request retries,
@@ -610,7 +701,7 @@ impl Vehicle {
                     ..SYS_STATUS_DATA::default()
                 })
             }
-            MISSION_CURRENT_ID => self.mission_current(),
+            MISSION_CURRENT_ID if !self.quiet_progress => self.mission_current(),
             _ => return None,
         })
     }
@@ -735,6 +826,25 @@ impl Vehicle {
         out
     }
 
+    /// MAV_CMD_NAV_TAKEOFF as a command: as ArduCopter, only armed, in GUIDED, on the ground;
+    /// climbs straight up to `alt` metres above home, then holds there.
+    fn takeoff(&mut self, alt: f32) -> MavResult {
+        if self.cfg.kind != VehicleKind::Copter {
+            return MavResult::MAV_RESULT_UNSUPPORTED;
+        }
+        if !alt.is_finite() || alt <= 0.0 {
+            return MavResult::MAV_RESULT_DENIED;
+        }
+        if !self.armed || self.behaviour() != Behaviour::Guided || self.state.pos.up > 1.0 {
+            return MavResult::MAV_RESULT_FAILED;
+        }
+        self.takeoff_to = Some(Ned {
+            up: f64::from(alt),
+            ..self.state.pos
+        });
+        MavResult::MAV_RESULT_ACCEPTED
+    }
+
     fn mission_item(
         &mut self,
         from: (u8, u8),
@@ -808,6 +918,14 @@ impl Vehicle {
                 };
                 self.set_rate(id, hz, now);
                 MavResult::MAV_RESULT_ACCEPTED
+            }
+            MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
+            MavCmd::MAV_CMD_DO_CHANGE_SPEED => {
+                if self.change_speed(c.param2) {
+                    MavResult::MAV_RESULT_ACCEPTED
+                } else {
+                    MavResult::MAV_RESULT_DENIED
+                }
             }
             MavCmd::MAV_CMD_REQUEST_MESSAGE => match c.param1 as u32 {
                 0 => {
@@ -980,6 +1098,224 @@ mod tests {
             run_until(&mut v, max_s, |v| v.target_seq().is_none());
             assert_eq!(reached_seqs(&mut v), vec![1, 2, 3], "{kind:?}");
         }
+    }
+
+    fn copter() -> Vehicle {
+        Vehicle::new(
+            VehicleConfig {
+                kind: VehicleKind::Copter,
+                sysid: 1,
+                home: HOME,
+            },
+            Instant::now(),
+        )
+    }
+
+    fn upload_items(v: &mut Vehicle, items: &[Item]) {
+        let now = Instant::now();
+        let count = items.len() as u16 + 1;
+        v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count,
+                ..Default::default()
+            }),
+            now,
+        );
+        let home = item_at(v, 0, 0.0);
+        v.handle(GCS, &MavMessage::MISSION_ITEM_INT(home), now);
+        for (i, item) in items.iter().enumerate() {
+            let item = Item {
+                seq: i as u16 + 1,
+                ..item.clone()
+            };
+            v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item), now);
+        }
+        assert_eq!(v.mission().len(), usize::from(count));
+    }
+
+    fn takeoff_command(v: &mut Vehicle, alt: f32) -> MavResult {
+        let out = v.handle(
+            GCS,
+            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_NAV_TAKEOFF,
+                param7: alt,
+                ..Default::default()
+            }),
+            Instant::now(),
+        );
+        out.iter()
+            .find_map(|m| match m {
+                MavMessage::COMMAND_ACK(a) => Some(a.result),
+                _ => None,
+            })
+            .unwrap()
+    }
+
+    #[test]
+    fn copter_takes_off_in_guided_then_holds() {
+        let mut v = copter();
+        // Disarmed, or not in GUIDED: refused, as ArduCopter does.
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0);
+        assert_eq!(takeoff_command(&mut v, 10.0), MavResult::MAV_RESULT_FAILED);
+        command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0);
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 0.0);
+        assert_eq!(takeoff_command(&mut v, 10.0), MavResult::MAV_RESULT_FAILED);
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0);
+        assert_eq!(
+            takeoff_command(&mut v, f32::NAN),
+            MavResult::MAV_RESULT_DENIED
+        );
+        assert_eq!(
+            takeoff_command(&mut v, 10.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        run_until(&mut v, 30.0, |v| (v.position().up - 10.0).abs() < 0.5);
+        let done = v.take_log().into_iter().any(
+            |(_, e)| matches!(e, LogEvent::TakeoffComplete { alt } if (alt - 10.0).abs() < 0.5),
+        );
+        assert!(done, "take-off logged");
+        // Straight up, and it stays there.
+        for _ in 0..500 {
+            v.step(0.02);
+        }
+        let p = v.position();
+        assert!(
+            p.north.hypot(p.east) < 0.1 && (p.up - 10.0).abs() < 0.5,
+            "{p:?}"
+        );
+        // Airborne: a second take-off is refused.
+        assert_eq!(takeoff_command(&mut v, 20.0), MavResult::MAV_RESULT_FAILED);
+    }
+
+    #[test]
+    fn takeoff_item_climbs_where_the_copter_stands() {
+        let mut v = copter();
+        // A NAV_TAKEOFF whose lat/lon point 50 m north: ArduCopter ignores them.
+        let takeoff = Item {
+            command: MavCmd::MAV_CMD_NAV_TAKEOFF,
+            z: 15.0,
+            ..item_at(&v, 1, 50.0)
+        };
+        let wp = Item {
+            z: 15.0,
+            ..item_at(&v, 2, 30.0)
+        };
+        upload_items(&mut v, &[takeoff, wp]);
+        command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0);
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 3.0);
+        run_until(&mut v, 60.0, |v| v.current() == 2);
+        let p = v.position();
+        assert!(p.north.hypot(p.east) < 1.0, "climbed in place: {p:?}");
+        assert!((p.up - 15.0).abs() <= 2.0, "{p:?}");
+        run_until(&mut v, 120.0, |v| v.target_seq().is_none());
+        assert_eq!(reached_seqs(&mut v), vec![1, 2]);
+    }
+
+    #[test]
+    fn do_change_speed_item_and_command() {
+        let mut v = rover();
+        let speed = Item {
+            command: MavCmd::MAV_CMD_DO_CHANGE_SPEED,
+            param1: 1.0,
+            param2: 4.0,
+            param3: -1.0,
+            x: 0,
+            y: 0,
+            ..Item::default()
+        };
+        let items = [
+            item_at(&v, 1, 20.0),
+            speed,
+            item_at(&v, 3, 120.0),
+            item_at(&v, 4, 220.0),
+        ];
+        upload_items(&mut v, &items);
+        start_auto(&mut v);
+        let mut fastest_before = 0.0f64;
+        run_until(&mut v, 60.0, |v| {
+            fastest_before = fastest_before.max(v.state.speed);
+            v.current() == 3
+        });
+        assert!(fastest_before <= 2.01, "cruise before: {fastest_before}");
+        run_until(&mut v, 60.0, |v| v.state.speed > 3.9);
+        // The command works too; -2 goes back to CRUISE_SPEED.
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_DO_CHANGE_SPEED, 1.0, 1.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        run_until(&mut v, 30.0, |v| v.state.speed < 1.01);
+        command(&mut v, MavCmd::MAV_CMD_DO_CHANGE_SPEED, 1.0, -2.0);
+        run_until(&mut v, 30.0, |v| v.state.speed > 1.99);
+        let speeds: Vec<f64> = v
+            .take_log()
+            .into_iter()
+            .filter_map(|(_, e)| match e {
+                LogEvent::SpeedChanged { speed } => Some(speed),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(speeds, [4.0, 1.0, 0.0]);
+    }
+
+    #[test]
+    fn acceptance_radius_per_item() {
+        // Fly-by with a wide radius turns early; the default WP_RADIUS passes almost over it.
+        for (radius, reached_at) in [(0.0f32, 18.0), (8.0, 12.0)] {
+            let mut v = rover();
+            let wp = Item {
+                param2: radius,
+                ..item_at(&v, 1, 20.0)
+            };
+            let next = item_at(&v, 2, 60.0);
+            upload_items(&mut v, &[wp, next]);
+            start_auto(&mut v);
+            run_until(&mut v, 60.0, |v| v.current() == 2);
+            let north = v.position().north;
+            assert!(
+                (north - reached_at).abs() < 0.5,
+                "radius {radius}: reached at {north}"
+            );
+        }
+    }
+
+    #[test]
+    fn quiet_progress_reports_nothing_but_set_current() {
+        let mut v = rover();
+        v.set_quiet_progress(true);
+        upload(&mut v, &[10.0, 20.0, 30.0]);
+        start_auto(&mut v);
+        let mut told = Vec::new();
+        let mut t = 0.0;
+        while v.mode() != 4 {
+            told.extend(v.step(0.02));
+            t += 0.02;
+            assert!(t < 120.0, "mission not flown");
+        }
+        told.extend(v.poll(Instant::now() + Duration::from_secs(5)));
+        assert!(told.len() > 3, "{told:?}");
+        assert!(
+            !told.iter().any(|m| matches!(
+                m,
+                MavMessage::MISSION_ITEM_REACHED(_)
+                    | MavMessage::MISSION_CURRENT(_)
+                    | MavMessage::STATUSTEXT(_)
+            ) && !matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap_or("") == "Mission Complete")),
+            "{told:?}"
+        );
+        // The vehicle still flew the mission, and a set-current is still answered.
+        assert_eq!(reached_seqs(&mut v), vec![1, 2, 3]);
+        let out = v.handle(
+            GCS,
+            &MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA {
+                seq: 2,
+                ..Default::default()
+            }),
+            Instant::now(),
+        );
+        assert!(out
+            .iter()
+            .any(|m| matches!(m, MavMessage::MISSION_CURRENT(c) if c.seq == 2)));
     }
 
     #[test]
