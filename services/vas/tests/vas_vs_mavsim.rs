@@ -182,3 +182,122 @@ async fn autopilot_restart_mid_flight() {
     sim2.kill().await;
     g.node.shutdown().await;
 }
+
+/// An autopilot that reports no progress at all (no MISSION_ITEM_REACHED, no "Reached" text,
+/// MISSION_CURRENT only in answer to a set-current): the VAS follows the vehicle's position
+/// instead, and the rolling queue still delivers every waypoint once, in order, without a stop.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn progress_from_position_when_the_autopilot_reports_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("sim.jsonl");
+    let sim = Sim::start_with("127.0.0.1:0", 10.0, &log, &["--quiet-progress"]).await;
+    let domain = unique_domain("quiet");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--queue-size", "5", "--telemetry-hz", "10"],
+    );
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+    let wps = zigzag(30, 10.0);
+    g.push_all(&wps).await;
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigate");
+    let mut seen = Vec::new();
+    while seen.len() < wps.len() {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| panic!("stalled after {seen:?}"))
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    assert_eq!(seen, (0..30).collect::<Vec<u64>>());
+    g.wait_state(FlightState::Parking, STEP).await;
+    let order: Vec<Option<usize>> = reached_points(&sim.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    assert_eq!(order, (0..30).map(Some).collect::<Vec<_>>());
+    let auto_exits = sim
+        .log_events("mode_changed")
+        .into_iter()
+        .filter(|m| m["from"] == 10)
+        .count();
+    assert_eq!(auto_exits, 1, "left AUTO only once, at the end");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
+/// A copter: TAKE_OFF climbs straight up (GUIDED + MAV_CMD_NAV_TAKEOFF), then the waypoints
+/// are flown with the speeds they ask for (DO_CHANGE_SPEED when each becomes the target, back
+/// to WPNAV_SPEED for one that asks for none).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn copter_takes_off_and_flies_the_waypoint_speeds() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("sim.jsonl");
+    let sim = Sim::start_with("127.0.0.1:0", 10.0, &log, &["--vehicle", "copter"]).await;
+    let domain = unique_domain("copter");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--vehicle", "copter", "--telemetry-hz", "10"],
+    );
+    let g = Ground::open(&domain).await;
+    let position = g
+        .svc
+        .subscribe_variable::<usal_types::Position>("rover1/vas/position")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+    let mut wps = zigzag(5, 30.0);
+    for (w, speed) in wps.iter_mut().zip([0.0, 0.0, 8.0, 8.0, 0.0]) {
+        w.alt = 12.0;
+        w.speed = speed;
+    }
+    wps[1].fly_over = true;
+    g.push_all(&wps).await;
+    g.request(FlightState::TakeOff).await.expect("TAKE_OFF");
+    // Home is at 10 m AMSL: wait for 12 m above it, where it was sent.
+    let climbed = tokio::time::timeout(STEP, async {
+        loop {
+            let p = position.recv().await.expect("position").value;
+            if p.alt >= 10.0 + 11.5 {
+                return p;
+            }
+        }
+    })
+    .await
+    .expect("the copter climbed");
+    let north = (climbed.lat - HOME.0) * 111_319.49;
+    assert!(north.abs() < 1.0, "climbed where it stood: {climbed:?}");
+    assert_eq!(sim.log_events("takeoff_complete").len(), 1);
+
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigate");
+    let mut seen = Vec::new();
+    while seen.len() < wps.len() {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| panic!("stalled after {seen:?}"))
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    assert_eq!(seen, (0..5).collect::<Vec<u64>>());
+    let speeds: Vec<f64> = sim
+        .log_events("speed_changed")
+        .iter()
+        .filter_map(|r| r["speed"].as_f64())
+        .collect();
+    // 8 m/s towards waypoints 2 and 3, then WPNAV_SPEED (5 m/s) again towards 4.
+    assert_eq!(speeds, [8.0, 5.0]);
+    let order: Vec<Option<usize>> = reached_points(&sim.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    assert_eq!(order, (0..5).map(Some).collect::<Vec<_>>());
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}

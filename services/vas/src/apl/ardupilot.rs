@@ -133,6 +133,11 @@ fn severity(s: MavSeverity) -> Severity {
     }
 }
 
+/// Acceptance radius of a fly-over waypoint (NAV_WAYPOINT param2), metres: the vehicle
+/// passes (nearly) over the point before turning. A fly-by waypoint leaves param2 at 0, so
+/// the autopilot turns early by its own WP_RADIUS.
+pub const FLY_OVER_RADIUS_M: f32 = 1.0;
+
 /// The mission item for a queued waypoint.
 fn mission_item(w: &Waypoint) -> MissionItem {
     let mut item = MissionItem::waypoint(w.lat, w.lon, w.alt as f32);
@@ -141,7 +146,45 @@ fn mission_item(w: &Waypoint) -> MissionItem {
         WaypointKind::Takeoff => MavCmd::MAV_CMD_NAV_TAKEOFF,
         WaypointKind::Land => MavCmd::MAV_CMD_NAV_LAND,
     };
+    if w.fly_over && w.kind == WaypointKind::Nav {
+        item.params[1] = FLY_OVER_RADIUS_M;
+    }
     item
+}
+
+/// The speed a waypoint asks for, m/s; 0 for the autopilot's cruise speed.
+fn wanted_speed(w: &Waypoint) -> f64 {
+    if w.speed.is_finite() && w.speed > 0.0 {
+        w.speed
+    } else {
+        0.0
+    }
+}
+
+/// Whether a vehicle at `pos` has reached `target` on the leg from `from`: within `radius`
+/// of it, or past the line across the leg `radius` before it (the autopilot may switch there
+/// without coming within the radius, and position samples arrive far apart at a speed-up).
+fn passed(from: (f64, f64), target: (f64, f64), pos: (f64, f64), radius: f64) -> bool {
+    let m_per_deg = 111_319.49;
+    let cos_lat = target.0.to_radians().cos();
+    let local = |p: (f64, f64)| {
+        (
+            (p.0 - target.0) * m_per_deg,
+            (p.1 - target.1) * m_per_deg * cos_lat,
+        )
+    };
+    let (pn, pe) = local(pos);
+    if pn.hypot(pe) <= radius {
+        return true;
+    }
+    let (an, ae) = local(from);
+    let leg = an.hypot(ae);
+    if leg < 0.1 {
+        return false;
+    }
+    // Distance still to go along the leg (negative once past the target).
+    let to_go = (an * pn + ae * pe) / leg;
+    to_go <= radius
 }
 
 fn same_item(a: &MissionItem, b: &MissionItem) -> bool {
@@ -218,6 +261,12 @@ impl ArduPilot {
             failing: false,
             mav: mgr.subscribe(),
             deferred: VecDeque::new(),
+            speed_sent: None,
+            reports_progress: false,
+            position: None,
+            leg_start: None,
+            passing: None,
+            last_pending: None,
         };
         tasks.spawn(driver.run(cmd_rx, cancel.clone()));
         tasks.close();
@@ -410,6 +459,23 @@ struct Driver {
     mav: broadcast::Receiver<MavEvent>,
     /// Events taken from `mav` while a queue action ran that need more than bookkeeping.
     deferred: VecDeque<MavEvent>,
+    /// The speed last commanded with DO_CHANGE_SPEED (0: the autopilot's default).
+    speed_sent: Option<f64>,
+    /// The autopilot reported a waypoint reached since (re)connecting; until it does, progress
+    /// is inferred from its position.
+    reports_progress: bool,
+    /// Latest position (lat, lon).
+    position: Option<(f64, f64)>,
+    /// Where the leg to the target starts: the last waypoint reached, or where navigation
+    /// started.
+    leg_start: Option<(f64, f64)>,
+    /// The slot whose waypoint the last position sample showed passed (a second sample must
+    /// agree before it counts).
+    passing: Option<u16>,
+    /// The last waypoint and its slot, when the autopilot left AUTO on the way to it (most
+    /// likely the mission ended there and its report is late or was never sent): a late
+    /// report of that slot, or the position when progress is not reported, still counts it.
+    last_pending: Option<(u16, Waypoint)>,
 }
 
 impl Driver {
@@ -426,7 +492,11 @@ impl Driver {
                     None => break,
                 },
                 ev = self.mav.recv() => match ev {
-                    Ok(ev) => self.on_mav(ev).await,
+                    Ok(ev) => {
+                        if self.absorb(ev) {
+                            self.pump().await;
+                        }
+                    }
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         tracing::warn!("APL lagged {n} MAVLink events; resynchronising");
                         self.resync().await;
@@ -517,6 +587,13 @@ impl Driver {
             self.commanded = previous;
             return Err(refused(&e));
         }
+        if to == FlightState::WaypointNavigation {
+            // Entering AUTO puts the autopilot back to its default speed.
+            self.speed_sent = Some(0.0);
+            self.leg_start = self.position;
+            self.passing = None;
+            self.last_pending = None;
+        }
         if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
             let alt = self.queue.target().map_or(10.0, |w| w.alt.max(2.0)) as f32;
             let takeoff = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, alt];
@@ -580,7 +657,9 @@ impl Driver {
                 r = &mut exec => return Some(r),
                 ev = self.mav.recv(), if listening => {
                     match ev {
-                        Ok(ev) => self.absorb(ev),
+                        Ok(ev) => {
+                            self.absorb(ev);
+                        }
                         Err(broadcast::error::RecvError::Lagged(n)) => {
                             tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
                         }
@@ -601,11 +680,14 @@ impl Driver {
         if let Err(e) = self.prime().await {
             tracing::warn!("rolling queue: {e}; retrying");
             self.failing = true;
+            return;
         }
+        self.sync_speed().await;
     }
 
     fn reached(&mut self, w: Waypoint) {
         self.last_reached = Some(w.seq);
+        self.leg_start = Some((w.lat, w.lon));
         self.emit(ApEvent::WaypointReached(WaypointReached {
             seq: w.seq,
             leg: w.leg,
@@ -620,7 +702,9 @@ impl Driver {
     fn absorb_progress(&mut self) {
         loop {
             match self.mav.try_recv() {
-                Ok(ev) => self.absorb(ev),
+                Ok(ev) => {
+                    self.absorb(ev);
+                }
                 Err(broadcast::error::TryRecvError::Lagged(n)) => {
                     tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
                 }
@@ -630,19 +714,141 @@ impl Driver {
     }
 
     /// Waypoint progress goes into the queue at once; anything else waits in `deferred`.
-    fn absorb(&mut self, ev: MavEvent) {
+    /// Returns whether the queue should be pumped (progress or a new current item).
+    fn absorb(&mut self, ev: MavEvent) -> bool {
         match ev {
             MavEvent::WaypointReached { seq, .. } => {
+                self.reports_progress = true;
                 if let Some(w) = self.queue.on_reached(seq) {
                     self.reached(w);
+                } else if self.last_pending.as_ref().is_some_and(|(s, _)| *s == seq) {
+                    if let Some((_, w)) = self.last_pending.take() {
+                        self.queue.discard();
+                        self.reached(w);
+                    }
                 }
+                true
             }
             MavEvent::MissionCurrent { seq } => {
                 if let Some(w) = self.queue.on_current(seq) {
                     self.reached(w);
                 }
+                true
             }
-            ev => self.deferred.push_back(ev),
+            MavEvent::Position(p) => {
+                let progressed = self.progress_from_position(p.lat_deg, p.lon_deg);
+                self.deferred.push_back(MavEvent::Position(p));
+                progressed
+            }
+            ev => {
+                self.deferred.push_back(ev);
+                false
+            }
+        }
+    }
+
+    /// The fallback for autopilots that report no progress (neither MISSION_ITEM_REACHED,
+    /// nor a "Reached" text, nor MISSION_CURRENT changes): the target counts as reached once
+    /// two position samples in a row show it passed.
+    fn progress_from_position(&mut self, lat: f64, lon: f64) -> bool {
+        self.position = Some((lat, lon));
+        if let Some((slot, w)) = self.last_pending.take() {
+            let from = self.leg_start.unwrap_or((lat, lon));
+            if !self.reports_progress
+                && passed(from, (w.lat, w.lon), (lat, lon), self.radius_of(&w))
+            {
+                tracing::debug!("last waypoint {} reached (from position)", w.seq);
+                self.queue.discard();
+                self.reached(w);
+                return true;
+            }
+            self.last_pending = Some((slot, w));
+        }
+        let (Some(slot), Some(w)) = (self.queue.current_slot(), self.queue.target()) else {
+            self.passing = None;
+            return false;
+        };
+        if self.reports_progress {
+            return false;
+        }
+        let radius = self.radius_of(w);
+        let from = *self.leg_start.get_or_insert((lat, lon));
+        if !passed(from, (w.lat, w.lon), (lat, lon), radius) {
+            self.passing = None;
+            return false;
+        }
+        if self.passing.replace(slot) != Some(slot) {
+            return false;
+        }
+        self.passing = None;
+        match self.queue.on_reached(slot) {
+            Some(w) => {
+                tracing::debug!("waypoint {} reached (from position)", w.seq);
+                self.reached(w);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// The acceptance radius of `w` on the autopilot, metres.
+    fn radius_of(&self, w: &Waypoint) -> f64 {
+        if w.fly_over {
+            f64::from(FLY_OVER_RADIUS_M)
+        } else {
+            self.wp_radius()
+        }
+    }
+
+    /// The autopilot's waypoint acceptance radius, metres (WP_RADIUS; Copter: WPNAV_RADIUS).
+    fn wp_radius(&self) -> f64 {
+        let r = match self.kind {
+            VehicleKind::Copter => self.mgr.param_cached("WPNAV_RADIUS").map(|cm| cm / 100.0),
+            _ => self.mgr.param_cached("WP_RADIUS"),
+        };
+        r.filter(|r| r.is_finite() && *r > 0.0)
+            .map_or(2.0, f64::from)
+    }
+
+    /// The autopilot's default speed, for DO_CHANGE_SPEED back to it; -2 (MAVLink's "return
+    /// to default") when the parameter is not known.
+    fn default_speed(&self) -> f32 {
+        let speed = match self.kind {
+            VehicleKind::Rover => self.mgr.param_cached("CRUISE_SPEED"),
+            VehicleKind::Copter => self.mgr.param_cached("WPNAV_SPEED").map(|cm| cm / 100.0),
+            VehicleKind::Plane => self.mgr.param_cached("AIRSPEED_CRUISE"),
+        };
+        speed.filter(|s| s.is_finite() && *s > 0.0).unwrap_or(-2.0)
+    }
+
+    /// Commands the target waypoint's speed when it differs from the last one commanded.
+    async fn sync_speed(&mut self) {
+        let Some(w) = self.queue.target().filter(|_| self.queue.is_running()) else {
+            return;
+        };
+        let want = wanted_speed(w);
+        if self.speed_sent == Some(want) {
+            return;
+        }
+        let speed = if want > 0.0 {
+            want as f32
+        } else {
+            self.default_speed()
+        };
+        // Speed type: airspeed for a plane, ground speed otherwise; throttle unchanged.
+        let kind = if self.kind == VehicleKind::Plane {
+            0.0
+        } else {
+            1.0
+        };
+        let params = [kind, speed, -1.0, 0.0, 0.0, 0.0, 0.0];
+        match self
+            .mgr
+            .command_long(MavCmd::MAV_CMD_DO_CHANGE_SPEED, params)
+            .await
+        {
+            Ok(()) => self.speed_sent = Some(want),
+            Err(e) => tracing::warn!("setting speed {want} m/s: {e}; retrying"),
         }
     }
 
@@ -672,6 +878,13 @@ impl Driver {
             return;
         }
         if mode != "AUTO" && self.queue.is_running() {
+            if let (1, Some(slot), Some(w)) = (
+                self.queue.len(),
+                self.queue.current_slot(),
+                self.queue.target(),
+            ) {
+                self.last_pending = Some((slot, w.clone()));
+            }
             self.queue.stop();
         }
         let expected = self.commanded.and_then(|st| mode_for(self.kind, st));
@@ -689,16 +902,8 @@ impl Driver {
 
     async fn on_mav(&mut self, ev: MavEvent) {
         match ev {
-            MavEvent::WaypointReached { seq, .. } => {
-                if let Some(w) = self.queue.on_reached(seq) {
-                    self.reached(w);
-                }
-                self.pump().await;
-            }
-            MavEvent::MissionCurrent { seq } => {
-                if let Some(w) = self.queue.on_current(seq) {
-                    self.reached(w);
-                }
+            ev @ (MavEvent::WaypointReached { .. } | MavEvent::MissionCurrent { .. }) => {
+                self.absorb(ev);
                 self.pump().await;
             }
             MavEvent::ModeChanged { .. } | MavEvent::ArmedChanged { .. } => {
@@ -716,6 +921,7 @@ impl Driver {
                 }
             }
             MavEvent::Position(p) => {
+                // Progress from it was taken when it was absorbed.
                 self.home.get_or_insert((p.lat_deg, p.lon_deg));
                 let speed = p.vel_ned[0].hypot(p.vel_ned[1]);
                 let heading = p.heading_deg.unwrap_or_else(|| {
@@ -755,6 +961,8 @@ impl Driver {
     /// Heartbeats are back: re-read parameters and mission, and resume what was commanded.
     async fn on_restored(&mut self) {
         self.alarm(Severity::Notice, "autopilot heartbeat restored");
+        // Perhaps another autopilot, or the same rebooted: learn again what it reports.
+        self.reports_progress = false;
         match self.mgr.params_list().await {
             Ok(p) => tracing::info!("re-read {} parameters", p.len()),
             Err(e) => tracing::warn!("re-reading parameters: {e}"),
@@ -826,6 +1034,54 @@ mod tests {
             state_for_mode(VehicleKind::Copter, "LAND"),
             Some(FlightState::Landing)
         );
+    }
+
+    #[test]
+    fn fly_over_tightens_the_acceptance_radius() {
+        let mut w = Waypoint {
+            lat: 41.0,
+            lon: 2.0,
+            ..Waypoint::default()
+        };
+        assert_eq!(
+            mission_item(&w).params[1],
+            0.0,
+            "fly-by: the autopilot's WP_RADIUS"
+        );
+        w.fly_over = true;
+        assert_eq!(mission_item(&w).params[1], FLY_OVER_RADIUS_M);
+        w.kind = WaypointKind::Takeoff;
+        assert_eq!(mission_item(&w).params[1], 0.0);
+        assert_eq!(
+            wanted_speed(&Waypoint {
+                speed: f64::NAN,
+                ..w.clone()
+            }),
+            0.0
+        );
+        assert_eq!(wanted_speed(&Waypoint { speed: 3.5, ..w }), 3.5);
+    }
+
+    #[test]
+    fn a_waypoint_is_passed_inside_its_radius_or_past_its_finish_line() {
+        let m = 1.0 / 111_319.49;
+        let (from, target) = ((41.0, 2.0), (41.0 + 100.0 * m, 2.0));
+        let at =
+            |north: f64, east: f64| (41.0 + north * m, 2.0 + east * m / 41f64.to_radians().cos());
+        assert!(!passed(from, target, at(50.0, 0.0), 2.0));
+        assert!(!passed(from, target, at(97.0, 0.5), 2.0));
+        assert!(
+            passed(from, target, at(98.5, 0.5), 2.0),
+            "inside the radius"
+        );
+        // Already turned away towards the next waypoint, 5 m aside, never within 2 m.
+        assert!(
+            passed(from, target, at(99.0, 5.0), 2.0),
+            "past the finish line"
+        );
+        assert!(!passed(from, target, at(90.0, 5.0), 2.0));
+        // No leg (navigation started on the waypoint): only the radius counts.
+        assert!(!passed(target, target, at(103.0, 0.0), 2.0));
     }
 
     #[test]

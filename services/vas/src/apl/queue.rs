@@ -265,15 +265,26 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         }
         let want = self.wanted(c);
         let filler = || a0.clone();
-        if !self.have_known
-            || self.have.len() != want.len()
-            || self.have.iter().any(Option::is_none)
-        {
+        let known = self.have_known && self.have.iter().all(Option::is_some);
+        let differs = |k: usize| want[k].is_some() && want[k] != self.have[k];
+        // Cutting the mission short takes a full upload, a long transfer on a lossy link:
+        // slots the vehicle will drive to first get their waypoints by partial writes before
+        // it, so they are not waiting on it.
+        let shrinking = known && self.partial_ok && self.have.len() > want.len();
+        if let Some(first) = (0..want.len()).find(|&k| shrinking && differs(k)) {
+            let mut items = Vec::new();
+            let mut k = first;
+            while k < want.len() && differs(k) {
+                items.push(want[k].clone().unwrap_or_else(filler));
+                k += 1;
+            }
+            return Some(self.write(first as u16 + 1, items));
+        }
+        if !known || self.have.len() != want.len() {
             let items = want.into_iter().map(|w| w.unwrap_or_else(filler)).collect();
             return Some(QueueAction::Upload(items));
         }
         // First run of differing slots.
-        let differs = |k: usize| want[k].is_some() && want[k] != self.have[k];
         if let Some(first) = (0..want.len()).find(|&k| differs(k)) {
             let mut items = Vec::new();
             let mut k = first;
@@ -534,6 +545,42 @@ mod tests {
         assert_eq!(q.poll(), None);
         assert_eq!(q.current_slot(), Some(1));
         assert_eq!(q.target(), Some(&14));
+    }
+
+    #[test]
+    fn cutting_the_mission_short_writes_the_next_slot_first() {
+        let mut q = RollingQueue::new(5).unwrap();
+        let mut ap = Autopilot::new(true);
+        q.push(0..20);
+        q.start();
+        settle(&mut q, &mut ap);
+        let slot = ap.drive().unwrap();
+        q.on_reached(slot);
+        settle(&mut q, &mut ap);
+        // A new, short queue: the target (1) stays, 100 follows, and the mission must end.
+        q.clear();
+        q.push([1, 100]);
+        let mut actions = Vec::new();
+        while let Some(a) = q.poll() {
+            assert!(ap.apply(&a));
+            q.done(&a);
+            actions.push(a);
+            assert!(actions.len() < 10, "{actions:?}");
+        }
+        // The slot after the target first, by a partial write; then the cut, a full upload.
+        assert_eq!(
+            actions[0],
+            QueueAction::WritePartial {
+                start: 3,
+                items: vec![100]
+            }
+        );
+        assert!(matches!(actions.last(), Some(QueueAction::Upload(items)) if items.len() == 3));
+        while let Some(slot) = ap.drive() {
+            q.on_reached(slot);
+            settle(&mut q, &mut ap);
+        }
+        assert_eq!(ap.reached, [0, 1, 100]);
     }
 
     #[test]

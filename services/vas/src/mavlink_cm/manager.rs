@@ -138,7 +138,7 @@ struct ParamCache {
 
 struct Inner {
     cfg: ManagerConfig,
-    out_tx: mpsc::Sender<MavMessage>,
+    out_tx: mpsc::Sender<Outbound>,
     raw_tx: broadcast::Sender<Arc<MavMessage>>,
     events_tx: broadcast::Sender<MavEvent>,
     state_tx: watch::Sender<VehicleState>,
@@ -810,6 +810,18 @@ async fn wait_for<T>(
     }
 }
 
+/// What the driver puts on the wire for the requests.
+enum Outbound {
+    /// A MAVLink message.
+    Message(MavMessage),
+    /// Filler bytes for a byte-stream link. A MAVLink parser that read a corrupted length
+    /// field waits for that many bytes (up to 280) before the CRC tells it the frame is bad
+    /// and it rescans; on a quiet uplink that takes seconds, and every resend in between is
+    /// swallowed. Zero bytes complete the bogus frame and are skipped while looking for the
+    /// next start marker.
+    Resync,
+}
+
 enum UploadStep {
     Request(u16, bool),
     Ack(MavMissionResult),
@@ -817,7 +829,19 @@ enum UploadStep {
 
 impl Inner {
     async fn send(&self, msg: MavMessage) -> Result<(), LinkError> {
-        self.out_tx.send(msg).await.map_err(|_| LinkError::Closed)
+        self.out_tx
+            .send(Outbound::Message(msg))
+            .await
+            .map_err(|_| LinkError::Closed)
+    }
+
+    /// Before a resend: lets a stream receiver stuck on a corrupted length field give up on
+    /// it (see [`Outbound::Resync`]).
+    async fn resync(&self) -> Result<(), LinkError> {
+        self.out_tx
+            .send(Outbound::Resync)
+            .await
+            .map_err(|_| LinkError::Closed)
     }
 
     /// The autopilot's (system, component), waiting up to `connect_wait` for its first heartbeat.
@@ -854,6 +878,9 @@ impl Inner {
     ) -> Result<Option<T>, LinkError> {
         let mut rx = self.raw_tx.subscribe();
         for attempt in 0..self.cfg.retries {
+            if attempt > 0 {
+                self.resync().await?;
+            }
             for _ in 0..copies.max(1) {
                 self.send(make(attempt)).await?;
             }
@@ -924,6 +951,7 @@ impl Inner {
                     }
                     attempts += 1;
                     tracing::debug!("mission transfer: silence at {stage:?}, attempt {attempts}");
+                    self.resync().await?;
                     self.send(last_sent.clone()).await?;
                     deadline = Instant::now() + self.cfg.request_timeout;
                 }
@@ -1167,7 +1195,7 @@ fn gcs_heartbeat() -> MavMessage {
 async fn driver(
     inner: Arc<Inner>,
     endpoint: Endpoint,
-    mut out_rx: mpsc::Receiver<MavMessage>,
+    mut out_rx: mpsc::Receiver<Outbound>,
     cancel: CancellationToken,
 ) {
     let mut header = MavHeader {
@@ -1221,8 +1249,9 @@ async fn driver(
                     Some(Err(e)) => break e,
                     None => break io::ErrorKind::BrokenPipe.into(),
                 },
-                msg = out_rx.recv() => match msg {
-                    Some(msg) => if let Err(e) = send(&mut conn, &msg) { break e },
+                out = out_rx.recv() => match out {
+                    Some(Outbound::Message(msg)) => if let Err(e) = send(&mut conn, &msg) { break e },
+                    Some(Outbound::Resync) => if let Err(e) = conn.resync() { break e },
                     None => return,
                 },
                 _ = gcs_hb.tick() => if let Err(e) = send(&mut conn, &gcs_heartbeat()) { break e },

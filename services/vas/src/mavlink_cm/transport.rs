@@ -133,6 +133,24 @@ impl Connection {
     }
 }
 
+impl Connection {
+    /// Writes [`RESYNC_BYTES`] zero bytes on a byte stream (nothing on UDP, where every
+    /// datagram starts a fresh parse): a receiver waiting for the rest of a frame whose length
+    /// byte was corrupted completes it, fails its CRC and looks for the next start marker.
+    pub(crate) fn resync(&mut self) -> io::Result<()> {
+        match &self.writer {
+            Writer::Udp { .. } => Ok(()),
+            Writer::Stream(tx) => match tx.try_send(vec![0; RESYNC_BYTES]) {
+                Ok(()) | Err(mpsc::error::TrySendError::Full(_)) => Ok(()),
+                Err(mpsc::error::TrySendError::Closed(_)) => Err(io::ErrorKind::BrokenPipe.into()),
+            },
+        }
+    }
+}
+
+/// The longest MAVLink 2 frame: 10 header + 255 payload + 2 CRC + 13 signature bytes.
+const RESYNC_BYTES: usize = 280;
+
 impl Drop for Connection {
     fn drop(&mut self) {
         self.tasks.abort_all();

@@ -133,7 +133,13 @@ pub struct Sim {
 impl Sim {
     /// Starts mavsim on `bind` (`127.0.0.1:0` for any port) logging to `log`.
     pub async fn start(bind: &str, speedup: f64, log: &Path) -> Sim {
-        Sim::spawn(&["--udp", bind], "MAVSIM_UDP=", speedup, log).await
+        Sim::start_with(bind, speedup, log, &[]).await
+    }
+
+    /// [`Sim::start`] with extra mavsim arguments (`--vehicle copter`, `--quiet-progress`).
+    pub async fn start_with(bind: &str, speedup: f64, log: &Path, extra: &[&str]) -> Sim {
+        let args: Vec<&str> = ["--udp", bind].iter().chain(extra).copied().collect();
+        Sim::spawn(&args, "MAVSIM_UDP=", speedup, log).await
     }
 
     /// Starts mavsim on the serial device (or pty slave) `path`; `addr` is the path.
@@ -199,11 +205,18 @@ pub struct VasProc {
 }
 
 impl VasProc {
-    /// Starts the `vas` binary on `endpoint` in middleware `domain`, namespace `rover1`.
+    /// Starts the `vas` binary on `endpoint` in middleware `domain`, namespace `rover1`
+    /// (telemetry at 4 Hz unless `extra` says otherwise).
     pub fn start(endpoint: &str, domain: &str, extra: &[&str]) -> VasProc {
+        let rate: &[&str] = if extra.contains(&"--telemetry-hz") {
+            &[]
+        } else {
+            &["--telemetry-hz", "4"]
+        };
         let child = Command::new(env!("CARGO_BIN_EXE_vas"))
             .args(["--endpoint", endpoint, "--domain", domain])
-            .args(["--namespace", "rover1", "--telemetry-hz", "4"])
+            .args(["--namespace", "rover1"])
+            .args(rate)
             .args(extra)
             .stdout(Stdio::null())
             .stderr(Stdio::inherit())
