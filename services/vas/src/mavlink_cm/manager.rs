@@ -811,6 +811,9 @@ async fn wait_for<T>(
 }
 
 /// What the driver puts on the wire for the requests.
+// Messages travel by value as before; boxing them would cost an allocation per message to
+// shrink a variant that is sent only before a resend.
+#[allow(clippy::large_enum_variant)]
 enum Outbound {
     /// A MAVLink message.
     Message(MavMessage),
