@@ -333,7 +333,38 @@ impl NodeInner {
         };
         *lock(&f.updated) = Some(Instant::now());
         match f.offer.kind {
-            ItemKind::Variable => self.publish_variable(&f.offer, payload.to_vec()),
+            ItemKind::Variable => {
+                let OfferRole::Variable { last } = &f.offer.role else {
+                    return;
+                };
+                let first = {
+                    let mut last = lock(last);
+                    let first = last.is_none();
+                    if first {
+                        *last = Some(payload.to_vec());
+                    }
+                    first
+                };
+                if !first {
+                    self.publish_variable(&f.offer, payload.to_vec());
+                    return;
+                }
+                // The first value through goes on the safe class, as a late joiner's does: it
+                // must arrive, and after our declaration of the forwarded offer (a fast value
+                // can overtake it on a radio and be dropped as unknown). A variable published
+                // once would otherwise never cross.
+                let msg = encode_data(false, f.offer.id, payload);
+                for r in lock(&f.offer.remote).clone() {
+                    self.send_to(
+                        r.link,
+                        r.addr,
+                        Outgoing::Safe {
+                            msg: msg.clone(),
+                            done: None,
+                        },
+                    );
+                }
+            }
             ItemKind::Event => {
                 let remote = lock(&f.offer.remote).clone();
                 if remote.is_empty() {
