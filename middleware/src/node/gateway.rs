@@ -353,36 +353,29 @@ impl NodeInner {
                 // must arrive, and after our declaration of the forwarded offer (a fast value
                 // can overtake it on a radio and be dropped as unknown). A variable published
                 // once would otherwise never cross.
-                let msg = encode_data(false, f.offer.id, payload);
-                for r in lock(&f.offer.remote).clone() {
-                    self.send_to(
-                        r.link,
-                        r.addr,
-                        Outgoing::Safe {
-                            msg: msg.clone(),
-                            done: None,
-                        },
-                    );
-                }
+                self.send_safe_to_subscribers(&f.offer, false, payload);
             }
-            ItemKind::Event => {
-                let remote = lock(&f.offer.remote).clone();
-                if remote.is_empty() {
-                    return;
-                }
-                let msg = encode_data(true, f.offer.id, payload);
-                for r in remote {
-                    self.send_to(
-                        r.link,
-                        r.addr,
-                        Outgoing::Safe {
-                            msg: msg.clone(),
-                            done: None,
-                        },
-                    );
-                }
-            }
+            ItemKind::Event => self.send_safe_to_subscribers(&f.offer, true, payload),
             ItemKind::Function | ItemKind::File => {}
+        }
+    }
+
+    /// Sends a value or event of `offer` to each of its remote subscribers on the safe class.
+    fn send_safe_to_subscribers(&self, offer: &LocalOffer, event: bool, payload: &[u8]) {
+        let remote = lock(&offer.remote).clone();
+        if remote.is_empty() {
+            return;
+        }
+        let msg = encode_data(event, offer.id, payload);
+        for r in remote {
+            self.send_to(
+                r.link,
+                r.addr,
+                Outgoing::Safe {
+                    msg: msg.clone(),
+                    done: None,
+                },
+            );
         }
     }
 
