@@ -312,12 +312,11 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
     assert!(status.success(), "{status}\n{}", l.stderr_tail());
     check_summary(&summary["summary"]);
     let pids = l.pids();
+    // A gateway ran on each side of the radio.
+    for gw in ["air/gateway", "ground/gateway"] {
+        assert!(pids.iter().any(|(s, _)| s == gw), "{gw} not started: {pids:?}");
+    }
     assert_no_child_left(&pids);
-    let err = l.stderr_tail();
-    assert!(
-        err.contains("[air/gateway] ") && err.contains("[ground/gateway] "),
-        "{err}"
-    );
 }
 
 #[test]
