@@ -314,7 +314,10 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
     let pids = l.pids();
     // A gateway ran on each side of the radio.
     for gw in ["air/gateway", "ground/gateway"] {
-        assert!(pids.iter().any(|(s, _)| s == gw), "{gw} not started: {pids:?}");
+        assert!(
+            pids.iter().any(|(s, _)| s == gw),
+            "{gw} not started: {pids:?}"
+        );
     }
     assert_no_child_left(&pids);
 }
