@@ -212,6 +212,9 @@ struct Tracker<'a> {
     started: Option<Instant>,
     ended: Option<Instant>,
     recoveries: u32,
+    /// The FPMa's PlanCompleted event arrived (reliable, unlike the progress variable's last
+    /// value, which a lossy radio may drop).
+    completed_event: bool,
 }
 
 impl Tracker<'_> {
@@ -287,7 +290,7 @@ impl Tracker<'_> {
         let (flown_m, planned_m) = self.distances();
         Summary {
             plan: self.setup.plan_name.clone(),
-            completed: self.progress.as_ref().is_some_and(|p| p.completed),
+            completed: self.completed_event || self.progress.as_ref().is_some_and(|p| p.completed),
             reached,
             planned: nominal.len(),
             in_order: legs_match && increasing,
@@ -361,12 +364,12 @@ async fn follow(
         started: None,
         ended: None,
         recoveries: 0,
+        completed_event: false,
     };
     let mut navigated = false;
     let mut recovery = Recovery::Idle;
     let mut last_attempt: Option<Instant> = None;
     let mut saw_configure = false;
-    let mut plan_completed_event = false;
     let mut completing: Option<Instant> = None;
     let mut reported = false;
     let mut notices_open = true;
@@ -432,7 +435,7 @@ async fn follow(
                         unshown.push_back((seq, leg, t.reached.len(), Instant::now()));
                     }
                     PlanEventKind::PlanCompleted => {
-                        plan_completed_event = true;
+                        t.completed_event = true;
                         completing.get_or_insert_with(Instant::now);
                     }
                     PlanEventKind::StageChanged { stage } => {
@@ -597,10 +600,13 @@ async fn follow(
                 ui.progress(&t.bar_line(), Some(&l), record);
             }
         }
+        // Settled when both the progress variable and the event say so and every waypoint
+        // was seen, or a moment after either said so: over a lossy radio the variable's last
+        // value may be lost (it is best effort and sent on change only), the event is not.
         let settled = completing.is_some_and(|since| {
             let progress_done = t.progress.as_ref().is_some_and(|p| p.completed);
-            (progress_done && plan_completed_event && t.reached.len() >= s.nominal.len())
-                || (progress_done && since.elapsed() >= SETTLE)
+            (progress_done && t.completed_event && t.reached.len() >= s.nominal.len())
+                || ((progress_done || t.completed_event) && since.elapsed() >= SETTLE)
         });
         if settled && !reported {
             reported = true;

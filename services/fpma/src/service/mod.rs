@@ -468,6 +468,7 @@ impl IService for Fpma {
                 }
                 publish(&mut core, &outlets);
             }
+            let mut last_progress: Option<(Progress, tokio::time::Instant)> = None;
             let mut retry = tokio::time::interval(Duration::from_secs(1));
             retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             loop {
@@ -506,9 +507,19 @@ impl IService for Fpma {
                         Err(marea::RecvError::Closed) => return,
                         Err(e) => tracing::warn!("flight_state: {e}"),
                     },
-                    _ = retry.tick() => core.retry().await,
+                    _ = retry.tick() => {
+                        core.retry().await;
+                        if let Some((p, at)) = &mut last_progress {
+                            if at.elapsed() >= PROGRESS_REFRESH {
+                                let _ = outlets.progress.set(p);
+                                *at = tokio::time::Instant::now();
+                            }
+                        }
+                    }
                 }
-                publish(&mut core, &outlets);
+                if let Some(p) = publish(&mut core, &outlets) {
+                    last_progress = Some((p, tokio::time::Instant::now()));
+                }
             }
         });
         Ok(())
@@ -519,7 +530,12 @@ impl IService for Fpma {
     }
 }
 
-fn publish<V: VasPort>(core: &mut Core<V>, out: &Outlets) {
+/// How often an unchanged progress is published again: it is a best-effort variable, and the
+/// last value before a quiet spell (a completed plan, a hold) may be lost on a radio.
+const PROGRESS_REFRESH: Duration = Duration::from_secs(2);
+
+/// Publishes what the core produced; returns the progress published, if any.
+fn publish<V: VasPort>(core: &mut Core<V>, out: &Outlets) -> Option<Progress> {
     let o = core.take_outputs();
     for e in &o.events {
         if let Err(err) = out.plan_event.raise_nowait(e) {
@@ -537,6 +553,7 @@ fn publish<V: VasPort>(core: &mut Core<V>, out: &Outlets) {
             tracing::warn!("publishing plan: {e}");
         }
     }
+    o.progress
 }
 
 #[cfg(test)]
