@@ -33,6 +33,9 @@ const UPLOAD_ANYWAY: Duration = Duration::from_secs(30);
 const KICK_AFTER: Duration = Duration::from_secs(3);
 /// How long completion waits for the last reports once the plan says it is done.
 const SETTLE: Duration = Duration::from_secs(2);
+/// How long to wait for the progress variable to confirm a completion the FPMa's event
+/// announced (the FPMa repeats an unchanged progress every 2 s).
+const SETTLE_ON_EVENT: Duration = Duration::from_secs(10);
 
 /// What the station needs to know, resolved from the mission.
 pub struct StationSetup {
@@ -601,12 +604,15 @@ async fn follow(
             }
         }
         // Settled when both the progress variable and the event say so and every waypoint
-        // was seen, or a moment after either said so: over a lossy radio the variable's last
-        // value may be lost (it is best effort and sent on change only), the event is not.
+        // was seen, or a moment after the variable said so. Over a lossy radio the variable's
+        // last value may be lost (it is best effort; the FPMa repeats it every 2 s), the event
+        // is not: on the event alone, wait long enough for a repeat to bring the final
+        // distance, then settle anyway.
         let settled = completing.is_some_and(|since| {
             let progress_done = t.progress.as_ref().is_some_and(|p| p.completed);
             (progress_done && t.completed_event && t.reached.len() >= s.nominal.len())
-                || ((progress_done || t.completed_event) && since.elapsed() >= SETTLE)
+                || (progress_done && since.elapsed() >= SETTLE)
+                || (t.completed_event && since.elapsed() >= SETTLE_ON_EVENT)
         });
         if settled && !reported {
             reported = true;
