@@ -473,8 +473,8 @@ struct Driver {
     /// agree before it counts).
     passing: Option<u16>,
     /// The last waypoint and its slot, when the autopilot left AUTO on the way to it (most
-    /// likely the mission ended there and its report is late or was never sent): a late
-    /// report of that slot, or the position when progress is not reported, still counts it.
+    /// likely the mission ended there and its report is late, lost or never sent): a late
+    /// report of that slot, or a position at or past it, still counts it.
     last_pending: Option<(u16, Waypoint)>,
 }
 
@@ -754,9 +754,9 @@ impl Driver {
         self.position = Some((lat, lon));
         if let Some((slot, w)) = self.last_pending.take() {
             let from = self.leg_start.unwrap_or((lat, lon));
-            if !self.reports_progress
-                && passed(from, (w.lat, w.lon), (lat, lon), self.radius_of(&w))
-            {
+            // Also when the autopilot reports progress: it ended the mission at the last
+            // waypoint (which is why it left AUTO), and its report may be lost on a radio.
+            if passed(from, (w.lat, w.lon), (lat, lon), self.radius_of(&w)) {
                 tracing::debug!("last waypoint {} reached (from position)", w.seq);
                 self.queue.discard();
                 self.reached(w);
