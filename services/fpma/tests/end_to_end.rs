@@ -192,7 +192,14 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     let state = gcs
         .subscribe_variable::<FlightState>("rover1/vas/flight_state")
         .unwrap();
+    // The FPMa declares its items one by one: wait for each function used below.
     assert!(load.wait_provider(STEP).await, "fpma not discovered");
+    assert!(skip.wait_provider(STEP).await, "skip_leg not discovered");
+    assert!(
+        modify.wait_provider(STEP).await,
+        "modify_leg not discovered"
+    );
+    assert!(set_var.wait_provider(STEP).await, "set_var not discovered");
     let wait_state = |want: FlightState| {
         let state = &state;
         async move {
