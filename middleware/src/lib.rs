@@ -72,6 +72,7 @@ pub mod config;
 pub mod link;
 pub mod name;
 pub(crate) mod node;
+pub mod process;
 pub mod protocol;
 pub mod transport;
 pub mod typeinfo;

@@ -155,17 +155,6 @@ fn out(v: serde_json::Value) {
     let _ = s.flush();
 }
 
-async fn stopped() {
-    let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-        Ok(t) => t,
-        Err(_) => return std::future::pending().await,
-    };
-    tokio::select! {
-        _ = tokio::signal::ctrl_c() => {}
-        _ = term.recv() => {}
-    }
-}
-
 fn config(args: &Args) -> anyhow::Result<NetworkConfig> {
     if let Some(path) = &args.config {
         return Ok(NetworkConfig::load(path)?);
@@ -231,7 +220,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 }
             }
             out(json!({"published": count, "longest_set_us": longest.as_micros() as u64}));
-            stopped().await;
+            marea::process::terminated().await;
         }
         Cmd::VarSub { pattern, count } => {
             let sub = svc.subscribe_variable::<Position>(pattern)?;
@@ -239,7 +228,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let mut n = 0;
             loop {
                 let s = tokio::select! {
-                    _ = stopped() => break,
+                    _ = marea::process::terminated() => break,
                     s = sub.recv() => s,
                 };
                 match s {
@@ -258,7 +247,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let sub = svc.subscribe_variable::<String>(pattern)?;
             out(json!({"ready": pattern}));
             tokio::select! {
-                _ = stopped() => {}
+                _ = marea::process::terminated() => {}
                 s = sub.recv() => match s {
                     Ok(s) => out(json!({"value": s.value})),
                     Err(e) => out(json!({"error": e.to_string()})),
@@ -316,7 +305,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             out(
                 json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64}),
             );
-            stopped().await;
+            marea::process::terminated().await;
         }
         Cmd::EvSub {
             pattern,
@@ -329,7 +318,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let (mut n, mut in_order) = (0u64, true);
             while n < *count {
                 let s = tokio::select! {
-                    _ = stopped() => break,
+                    _ = marea::process::terminated() => break,
                     s = sub.recv() => s?,
                 };
                 let first = if *from_any { s.value } else { 0 };
@@ -349,7 +338,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             // more that arrives is reported (a duplicate would show here).
             loop {
                 let s = tokio::select! {
-                    _ = stopped() => break,
+                    _ = marea::process::terminated() => break,
                     s = sub.recv() => s?,
                 };
                 out(json!({"extra": s.value, "publisher": s.publisher}));
@@ -375,7 +364,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 }
             })?;
             out(json!({"ready": svc.full_name(item)}));
-            stopped().await;
+            marea::process::terminated().await;
         }
         Cmd::Call {
             name,
@@ -410,7 +399,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             out(json!({"ready": sink.name()}));
             loop {
                 let f = tokio::select! {
-                    _ = stopped() => break,
+                    _ = marea::process::terminated() => break,
                     f = sink.recv() => f?,
                 };
                 out(
@@ -461,7 +450,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let mut tick = tokio::time::interval(Duration::from_millis(100));
             loop {
                 tokio::select! {
-                    _ = stopped() => break,
+                    _ = marea::process::terminated() => break,
                     _ = tick.tick() => {}
                 }
                 let items: Vec<serde_json::Value> = node

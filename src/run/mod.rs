@@ -613,27 +613,7 @@ async fn supervise(
 
 /// Ctrl-C or SIGTERM: stop everything.
 async fn wait_for_signal(stop: CancellationToken, ui: Arc<Ui>) {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        let mut term = signal(SignalKind::terminate()).ok();
-        let got_term = async {
-            match term.as_mut() {
-                Some(t) => {
-                    t.recv().await;
-                }
-                None => std::future::pending::<()>().await,
-            }
-        };
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => {}
-            () = got_term => {}
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-    }
+    marea::process::terminated().await;
     ui.note(
         "stopping: SIGTERM to every service, SIGKILL after 5 s",
         json!({"event": "stopping"}),

@@ -6,7 +6,6 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
-use tokio_util::sync::CancellationToken;
 
 /// USAL Flight Monitor: the pilot's station as a web page (state, telemetry, alarms, state
 /// changes, manual control). Prints FMO_URL=http://ADDR/ when listening.
@@ -60,27 +59,6 @@ async fn main() -> anyhow::Result<()> {
         stale_after: Duration::from_millis(cli.stale_ms.max(100)),
         call_timeout: Duration::from_millis(cli.call_timeout_ms.max(100)),
     };
-    let shutdown = CancellationToken::new();
-    let stop = shutdown.clone();
-    tokio::spawn(async move {
-        wait_for_signal().await;
-        stop.cancel();
-    });
+    let shutdown = marea::process::cancelled_on_signal();
     fmo::run(config, shutdown).await.context("fmo")
-}
-
-/// Ctrl-C or SIGTERM.
-async fn wait_for_signal() {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        if let Ok(mut term) = signal(SignalKind::terminate()) {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-            }
-            return;
-        }
-    }
-    let _ = tokio::signal::ctrl_c().await;
 }

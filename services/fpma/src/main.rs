@@ -10,7 +10,6 @@ use fpma::vehicle::{VehicleKind, VehicleParams};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use tokio_util::sync::CancellationToken;
 
 #[derive(Parser)]
 #[command(name = "fpma", version, about = "USAL Flight Plan Manager")]
@@ -153,37 +152,9 @@ fn run_service(args: RunArgs) -> anyhow::Result<()> {
     // The service's runtime: this binary's only async part.
     let rt = tokio::runtime::Runtime::new().context("starting the tokio runtime")?;
     rt.block_on(async {
-        let shutdown = CancellationToken::new();
-        let stop = shutdown.clone();
-        tokio::spawn(async move {
-            wait_for_signal().await;
-            stop.cancel();
-        });
+        let shutdown = marea::process::cancelled_on_signal();
         fpma::run(cfg, shutdown).await
     })
-}
-
-/// Ctrl-C or SIGTERM.
-async fn wait_for_signal() {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        match signal(SignalKind::terminate()) {
-            Ok(mut term) => {
-                tokio::select! {
-                    _ = tokio::signal::ctrl_c() => {}
-                    _ = term.recv() => {}
-                }
-            }
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
-            }
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-    }
 }
 
 fn expand(

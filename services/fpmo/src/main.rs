@@ -7,7 +7,6 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
 use fpma::vehicle::VehicleParams;
-use tokio_util::sync::CancellationToken;
 
 /// USAL Flight Plan Monitor: the flight-plan station as a web page (upload, legs, progress,
 /// map, skip / go to / pause / resume / modify / re-task). Prints FPMO_URL=http://ADDR/.
@@ -87,27 +86,6 @@ async fn main() -> anyhow::Result<()> {
         call_timeout: Duration::from_millis(cli.call_timeout_ms.max(100)),
         background,
     };
-    let shutdown = CancellationToken::new();
-    let stop = shutdown.clone();
-    tokio::spawn(async move {
-        wait_for_signal().await;
-        stop.cancel();
-    });
+    let shutdown = marea::process::cancelled_on_signal();
     fpmo::run(config, shutdown).await.context("fpmo")
-}
-
-/// Ctrl-C or SIGTERM.
-async fn wait_for_signal() {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        if let Ok(mut term) = signal(SignalKind::terminate()) {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-            }
-            return;
-        }
-    }
-    let _ = tokio::signal::ctrl_c().await;
 }
