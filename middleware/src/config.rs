@@ -250,6 +250,31 @@ impl NetworkConfig {
         Parser::new(text, source).document()
     }
 
+    /// What a service process runs with: the file `network` when given, else
+    /// [`NetworkConfig::ethernet_loopback`] for `node`; then `domain` and `namespace`, when
+    /// given, override the file's (a launcher keeps one file per node and one domain per run).
+    ///
+    /// # Errors
+    /// The file's [`ConfigLoadError`].
+    pub fn for_service(
+        network: Option<&Path>,
+        node: &str,
+        domain: Option<&str>,
+        namespace: Option<&str>,
+    ) -> Result<Self, ConfigLoadError> {
+        let mut config = match network {
+            Some(path) => Self::load(path)?,
+            None => Self::ethernet_loopback(node),
+        };
+        if let Some(d) = domain {
+            d.clone_into(&mut config.domain);
+        }
+        if let Some(ns) = namespace {
+            config.namespace = Some(ns.to_owned());
+        }
+        Ok(config)
+    }
+
     /// A configuration for `node` with one Ethernet link on the loopback interface (127.0.0.1)
     /// and defaults otherwise: handy for tests and single-host demos. `node` is not validated.
     pub fn ethernet_loopback(node: &str) -> Self {
@@ -1554,6 +1579,21 @@ mod tests {
     /// Wraps link elements in a valid root on line 1, so the links start on line 2.
     fn net(links: &str) -> String {
         format!("<network node=\"n\">\n{links}\n</network>")
+    }
+
+    #[test]
+    fn a_service_config_takes_the_launcher_overrides() {
+        let c = NetworkConfig::for_service(None, "vas", Some("run-7"), Some("rover1")).unwrap();
+        assert_eq!(c.node, "vas");
+        assert_eq!(c.domain, "run-7");
+        assert_eq!(c.namespace.as_deref(), Some("rover1"));
+        let c = NetworkConfig::for_service(None, "vas", None, None).unwrap();
+        assert_eq!((c.domain.as_str(), c.namespace), (DEFAULT_DOMAIN, None));
+        let e =
+            NetworkConfig::for_service(Some(Path::new("/nonexistent/n.xml")), "vas", None, None)
+                .unwrap_err()
+                .to_string();
+        assert!(e.starts_with("/nonexistent/n.xml: cannot read"), "{e}");
     }
 
     #[test]

@@ -174,15 +174,14 @@ pub async fn run(
 }
 
 async fn open(s: &StationSetup) -> anyhow::Result<Node> {
-    let mut cfg = match &s.network {
-        Some(p) => NetworkConfig::load(p).with_context(|| format!("loading {}", p.display()))?,
-        None => NetworkConfig::ethernet_loopback(&s.node),
-    };
+    let mut cfg = NetworkConfig::for_service(
+        s.network.as_deref(),
+        &s.node,
+        Some(&s.domain),
+        s.namespace.as_deref(),
+    )
+    .context("loading the network configuration")?;
     cfg.node.clone_from(&s.node);
-    cfg.domain.clone_from(&s.domain);
-    if s.namespace.is_some() {
-        cfg.namespace.clone_from(&s.namespace);
-    }
     Node::open(&cfg).await.context("joining the network")
 }
 

@@ -264,17 +264,8 @@ pub async fn open_node(
     namespace: Option<&str>,
     node: &str,
 ) -> anyhow::Result<marea::Node> {
-    let mut net = match network {
-        Some(path) => marea::NetworkConfig::load(path)
-            .with_context(|| format!("loading {}", path.display()))?,
-        None => marea::NetworkConfig::ethernet_loopback(node),
-    };
-    if let Some(d) = domain {
-        d.clone_into(&mut net.domain);
-    }
-    if let Some(ns) = namespace {
-        net.namespace = Some(ns.to_owned());
-    }
+    let net = marea::NetworkConfig::for_service(network, node, domain, namespace)
+        .context("loading the network configuration")?;
     marea::Node::open(&net)
         .await
         .context("opening the middleware node")

@@ -35,17 +35,13 @@ use crate::config::{AutopilotKind, VasConfig};
 /// Bad configuration, unreadable network file, a node that cannot open.
 pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
     config.validate()?;
-    let mut net = match &config.network {
-        Some(path) => marea::NetworkConfig::load(path)
-            .with_context(|| format!("loading {}", path.display()))?,
-        None => marea::NetworkConfig::ethernet_loopback("vas"),
-    };
-    if let Some(d) = &config.domain {
-        net.domain.clone_from(d);
-    }
-    if let Some(ns) = &config.namespace {
-        net.namespace = Some(ns.clone());
-    }
+    let net = marea::NetworkConfig::for_service(
+        config.network.as_deref(),
+        "vas",
+        config.domain.as_deref(),
+        config.namespace.as_deref(),
+    )
+    .context("loading the network configuration")?;
     let apl: Arc<dyn IAutopilot> = match config.autopilot {
         AutopilotKind::Ardupilot => Arc::new(
             ArduPilot::open(&config.endpoint, config.ardupilot())

@@ -163,17 +163,13 @@ impl FpmaConfig {
 /// Bad configuration, unreadable network file or initial plan, a node that cannot open.
 pub async fn run(config: FpmaConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
     config.validate()?;
-    let mut net = match &config.network {
-        Some(path) => marea::NetworkConfig::load(path)
-            .with_context(|| format!("loading {}", path.display()))?,
-        None => marea::NetworkConfig::ethernet_loopback("fpma"),
-    };
-    if let Some(d) = &config.domain {
-        net.domain.clone_from(d);
-    }
-    if let Some(ns) = &config.namespace {
-        net.namespace = Some(ns.clone());
-    }
+    let net = marea::NetworkConfig::for_service(
+        config.network.as_deref(),
+        "fpma",
+        config.domain.as_deref(),
+        config.namespace.as_deref(),
+    )
+    .context("loading the network configuration")?;
     let initial = match &config.plan {
         Some(p) => Some((
             std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
