@@ -156,12 +156,12 @@ impl NodeInner {
         if let Some((receiver, remote_sink)) = relay {
             let offer = Message::FileOffer {
                 transfer,
-                sink,
+                sink: remote_sink,
                 name,
                 size,
                 hash,
             };
-            self.relay_file_offer(node, receiver, remote_sink, transfer, offer);
+            self.relay_file_offer(node, receiver, transfer, &offer);
             return;
         }
         let Some((dir, mailbox)) = self.offers.get(&sink).and_then(|o| match &o.role {

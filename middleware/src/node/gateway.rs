@@ -17,7 +17,7 @@
 //! its origin node and the gateways crossed, so a node reaching the same item by several paths
 //! keeps the shortest (`NodeInner::shadowed_offers`) and nothing is delivered twice.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -122,7 +122,7 @@ impl NodeInner {
         let shadowed = self.shadowed_offers();
 
         // Interests wanted: every subscription of every peer, forwarded onto the other links.
-        let mut wanted_interests: HashMap<InterestKey, ()> = HashMap::new();
+        let mut wanted_interests: HashSet<InterestKey> = HashSet::new();
         // Interests by link, for the offers' interest test below.
         let mut interests_by_link: Vec<(usize, ItemKind, Arc<str>, TypeInfo)> = Vec::new();
         let mut wanted_offers: HashMap<(NodeId, u32), WantedOffer> = HashMap::new();
@@ -133,15 +133,12 @@ impl NodeInner {
                 }
                 interests_by_link.push((p.link, it.kind, it.name.clone(), it.ty.clone()));
                 if links > 1 {
-                    wanted_interests.insert(
-                        InterestKey {
-                            link: p.link,
-                            kind: it.kind,
-                            pattern: it.name.to_string(),
-                            ty: it.ty.clone(),
-                        },
-                        (),
-                    );
+                    wanted_interests.insert(InterestKey {
+                        link: p.link,
+                        kind: it.kind,
+                        pattern: it.name.to_string(),
+                        ty: it.ty.clone(),
+                    });
                 }
             }
         }
@@ -210,7 +207,7 @@ impl NodeInner {
         {
             let mut cur = lock(&gw.interests);
             cur.retain(|key, id| {
-                let keep = wanted_interests.contains_key(key);
+                let keep = wanted_interests.contains(key);
                 if !keep {
                     withdrawn.push(*id);
                 }
@@ -271,7 +268,7 @@ impl NodeInner {
         }
         {
             let mut cur = lock(&gw.interests);
-            for key in wanted_interests.into_keys() {
+            for key in wanted_interests {
                 if cur.contains_key(&key) {
                     continue;
                 }
@@ -428,33 +425,18 @@ impl NodeInner {
         });
     }
 
-    /// Starts relaying a file offered by `sender` to our stand-in for a sink of `receiver`.
+    /// Starts relaying a file offered by `sender` to `receiver`: `offer` is the sender's
+    /// FileOffer with the sink rewritten to the receiver's.
     pub fn relay_file_offer(
         &self,
         sender: NodeId,
         receiver: NodeId,
-        remote_sink: u32,
         transfer: u64,
-        msg: Message,
+        offer: &Message,
     ) {
         let Some(gw) = &self.gateway else { return };
-        let Message::FileOffer {
-            name, size, hash, ..
-        } = msg
-        else {
-            return;
-        };
         gw.files.insert(transfer, FileRelay { sender, receiver });
-        if !self.send_safe_to_node(
-            receiver,
-            &Message::FileOffer {
-                transfer,
-                sink: remote_sink,
-                name,
-                size,
-                hash,
-            },
-        ) {
+        if !self.send_safe_to_node(receiver, offer) {
             gw.files.remove(&transfer);
             self.send_safe_to_node(
                 sender,
