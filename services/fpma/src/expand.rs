@@ -4,7 +4,8 @@
 use crate::geo::{self, GeoPoint, LocalFrame, Xy};
 use crate::model::*;
 use crate::parse::hold_width;
-use crate::polygon::{inset, polygon_frame, signed_area};
+pub use crate::polygon::auto_sweep;
+use crate::polygon::{inset, left_of, polygon_frame, signed_area};
 use crate::vehicle::VehicleParams;
 use serde::{Deserialize, Serialize};
 
@@ -279,35 +280,6 @@ pub fn expand_scan(s: &Scan, id: &str, ctx: &Ctx<'_>) -> Vec<Waypoint> {
         .flat_map(|(a, b)| [a, b])
         .map(|p| wp(frame.to_geo(p), alt, speed, true, id))
         .collect()
-}
-
-/// The bearing whose perpendicular width of the polygon is smallest, tried along each edge.
-pub fn auto_sweep(pts: &[Xy]) -> f64 {
-    let n = pts.len();
-    let mut best = (f64::INFINITY, 0.0);
-    for i in 0..n {
-        let e = pts[(i + 1) % n].minus(pts[i]);
-        if e.norm() < 1e-9 {
-            continue;
-        }
-        let b = e.bearing() % 180.0;
-        let left = left_of(b);
-        let (lo, hi) = pts
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-                let v = p.dot(left);
-                (lo.min(v), hi.max(v))
-            });
-        if hi - lo < best.0 - 1e-9 {
-            best = (hi - lo, b);
-        }
-    }
-    best.1
-}
-
-fn left_of(bearing: f64) -> Xy {
-    let d = Xy::unit(bearing);
-    Xy::new(-d.n, d.e)
 }
 
 /// Crossings of the line `v = const` (in the rotated frame) with the polygon, paired even/odd.

@@ -3,6 +3,7 @@
 
 use crate::expr::{Condition, Value, ValueType};
 use crate::geo::GeoPoint;
+use crate::vehicle::VehicleKind;
 use crate::xml::Element;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -20,6 +21,10 @@ pub struct FlightPlan {
     pub alt_ref: String,
     /// `defaultSpeed`, m/s.
     pub default_speed: Option<f64>,
+    /// `vehicle`: the kind of vehicle the plan is written for, when it says; a plan is refused
+    /// for another kind (and `fpma expand` uses it when no `--vehicle` is given).
+    #[serde(default)]
+    pub vehicle: Option<VehicleKind>,
     /// Declared variables.
     pub variables: Vec<VarDecl>,
     /// Named fixes.

@@ -4,8 +4,8 @@
 use crate::expr::{Condition, ExprError, Value, ValueType};
 use crate::geo::GeoPoint;
 use crate::model::*;
-use crate::polygon::{polygon_frame, self_intersection};
-use crate::vehicle::VehicleParams;
+use crate::polygon::{auto_sweep, polygon_frame, self_intersection, width_across, MAX_VERTICES};
+use crate::vehicle::{VehicleKind, VehicleParams};
 use crate::xml::{parse_document, parse_elements, Attr, Element, Pos, XmlError};
 use std::collections::{BTreeMap, BTreeSet};
 use thiserror::Error;
@@ -130,6 +130,24 @@ pub enum PlanErrorKind {
     /// An emergency rule naming a leg that does not exist.
     #[error("unknown leg `{0}`")]
     UnknownLeg(String),
+    /// The plan says it is for another kind of vehicle.
+    #[error("the plan is written for vehicle `{plan}`, but this vehicle is `{vehicle}`")]
+    WrongVehicle {
+        /// The plan's `vehicle`.
+        plan: VehicleKind,
+        /// The vehicle it is loaded for.
+        vehicle: VehicleKind,
+    },
+    /// A pattern bigger than the FPMa generates (the work and the memory grow with it).
+    #[error("{what}: {value} is more than the {max} allowed")]
+    TooLarge {
+        /// What is counted.
+        what: &'static str,
+        /// How many the plan asks for.
+        value: u64,
+        /// The most allowed.
+        max: u64,
+    },
 }
 
 impl PlanError {
@@ -150,6 +168,11 @@ impl From<XmlError> for PlanError {
 
 type Result<T> = std::result::Result<T, PlanError>;
 
+/// Most tracks one scan may have.
+pub const MAX_SCAN_TRACKS: u64 = 10_000;
+/// Most rings one perimeter may have.
+pub const MAX_RINGS: u32 = 1000;
+
 /// Parses and validates a plan for `vehicle`.
 ///
 /// # Errors
@@ -157,8 +180,27 @@ type Result<T> = std::result::Result<T, PlanError>;
 pub fn parse_plan(src: &str, vehicle: &VehicleParams) -> Result<FlightPlan> {
     let root = parse_document(src)?;
     let plan = plan_from_element(&root)?;
+    if let (Some(kind), Some(a)) = (plan.vehicle, root.attr("vehicle")) {
+        if kind != vehicle.kind {
+            return Err(PlanError::at(
+                a.pos,
+                PlanErrorKind::WrongVehicle {
+                    plan: kind,
+                    vehicle: vehicle.kind,
+                },
+            ));
+        }
+    }
     check_vehicle(&plan, vehicle)?;
     Ok(plan)
+}
+
+/// The vehicle kind a plan says it is written for (`<flightPlan vehicle="rover">`), read
+/// without validating the rest; `None` when it says nothing or does not parse (then
+/// [`parse_plan`] reports why).
+pub fn declared_vehicle(src: &str) -> Option<VehicleKind> {
+    let root = parse_document(src).ok()?;
+    VehicleKind::from_name(&root.attr("vehicle")?.value)
 }
 
 fn plan_from_element(root: &Element) -> Result<FlightPlan> {
@@ -173,8 +215,22 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
     }
     allow(
         root,
-        &["name", "version", "altRef", "defaultSpeed", "xmlns"],
+        &[
+            "name",
+            "version",
+            "altRef",
+            "defaultSpeed",
+            "vehicle",
+            "xmlns",
+        ],
     )?;
+    let vehicle = match root.attr("vehicle") {
+        None => None,
+        Some(a) => Some(
+            VehicleKind::from_name(&a.value)
+                .ok_or_else(|| bad_value(a, &a.value, "must be `rover` or `aircraft`"))?,
+        ),
+    };
     let mut plan = FlightPlan {
         name: root
             .attr("name")
@@ -185,6 +241,7 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
             .attr("altRef")
             .map_or_else(|| "MSL".to_string(), |a| a.value.clone()),
         default_speed: opt_pos_num(root, "defaultSpeed")?,
+        vehicle,
         variables: Vec::new(),
         fixes: BTreeMap::new(),
         takeoff: Vec::new(),
@@ -603,10 +660,18 @@ fn leaf(el: &Element, plan: &FlightPlan) -> Result<NodeKind> {
         "perimeter" => {
             allow(el, &["id", "alt", "speed", "spacing", "rings", "turn"])?;
             let rings = opt_u32(el, "rings")?.unwrap_or(1);
+            let rings_pos = el.attr("rings").map_or(el.pos, |a| a.pos);
             if rings == 0 {
+                return Err(PlanError::at(rings_pos, PlanErrorKind::ZeroIterations));
+            }
+            if rings > MAX_RINGS {
                 return Err(PlanError::at(
-                    el.attr("rings").map_or(el.pos, |a| a.pos),
-                    PlanErrorKind::ZeroIterations,
+                    rings_pos,
+                    PlanErrorKind::TooLarge {
+                        what: "perimeter rings",
+                        value: u64::from(rings),
+                        max: u64::from(MAX_RINGS),
+                    },
                 ));
             }
             Ok(NodeKind::Perimeter(Perimeter {
@@ -766,6 +831,17 @@ fn leaf(el: &Element, plan: &FlightPlan) -> Result<NodeKind> {
 /// # Errors
 /// The first node that the vehicle cannot fly, with its position.
 pub fn check_vehicle(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<()> {
+    if let Some(kind) = plan.vehicle.filter(|k| *k != vehicle.kind) {
+        // A plan built in code (parse_plan names the attribute's position itself).
+        return Err(PlanError {
+            line: 0,
+            col: 0,
+            kind: PlanErrorKind::WrongVehicle {
+                plan: kind,
+                vehicle: vehicle.kind,
+            },
+        });
+    }
     fn walk(nodes: &[Node], v: &VehicleParams) -> Result<()> {
         for n in nodes {
             check_node(n, v)?;
@@ -789,6 +865,17 @@ fn check_node(n: &Node, v: &VehicleParams) -> Result<()> {
     let err = |kind| Err(PlanError::at(pos, kind));
     match &n.kind {
         NodeKind::Scan(s) => {
+            let frame = polygon_frame(&s.polygon);
+            let local: Vec<_> = s.polygon.iter().map(|p| frame.to_local(*p)).collect();
+            let bearing = s.sweep_angle.unwrap_or_else(|| auto_sweep(&local));
+            let tracks = (width_across(&local, bearing) / s.spacing).ceil();
+            if tracks > MAX_SCAN_TRACKS as f64 {
+                return err(PlanErrorKind::TooLarge {
+                    what: "scan tracks (the area's width / spacing)",
+                    value: tracks as u64,
+                    max: MAX_SCAN_TRACKS,
+                });
+            }
             if s.spacing < 2.0 * v.turn_radius {
                 return err(PlanErrorKind::SpacingBelowTurnLimit {
                     spacing: s.spacing,
@@ -1070,6 +1157,16 @@ fn polygon(el: &Element) -> Result<Vec<GeoPoint>> {
         allow(c, &["lat", "lon"])?;
         pts.push(point(c)?);
     }
+    if pts.len() > MAX_VERTICES {
+        return Err(PlanError::at(
+            el.pos,
+            PlanErrorKind::TooLarge {
+                what: "polygon vertices",
+                value: pts.len() as u64,
+                max: MAX_VERTICES as u64,
+            },
+        ));
+    }
     if pts.len() < 3 {
         return Err(PlanError::at(
             el.pos,
@@ -1279,6 +1376,78 @@ mod tests {
         )
         .unwrap_err();
         assert!(matches!(e.kind, PlanErrorKind::BadNumber { .. }));
+    }
+
+    /// Every kind of refusal names the line of the element (or attribute) at fault and says
+    /// what is wrong. The body goes on line 9 of the plan.
+    #[test]
+    fn every_validation_error_names_its_line_and_what() {
+        const TRI: &str = r#"<pt lat="41.27" lon="1.98"/><pt lat="41.28" lon="1.98"/><pt lat="41.28" lon="1.99"/>"#;
+        let aircraft = VehicleParams::aircraft();
+        let rover = VehicleParams::rover();
+        let many: String = (0..1001)
+            .map(|i| {
+                let a = f64::from(i) / 1001.0 * std::f64::consts::TAU;
+                format!(
+                    r#"<pt lat="{}" lon="{}"/>"#,
+                    41.0 + 0.01 * a.sin(),
+                    2.0 + 0.01 * a.cos()
+                )
+            })
+            .collect();
+        let cases: Vec<(String, &VehicleParams, &str)> = vec![
+            (r#"<leg type="TF" fix="NOPE"/>"#.into(), &rover, "unknown fix `NOPE`"),
+            (r#"<leg type="XX" fix="A"/>"#.into(), &rover, "is not a leg type"),
+            (r#"<leg type="CF" fix="A"/>"#.into(), &rover, "needs attribute `course`"),
+            (r#"<leg type="RF" fix="A" turn="R"/>"#.into(), &rover, "needs attribute `center`"),
+            (r#"<leg type="HF" fix="A" inboundCourse="0"/>"#.into(), &rover, "`length` or `time`"),
+            (r#"<leg type="HA" fix="B" inboundCourse="0" length="20"/>"#.into(), &rover, "targetAlt"),
+            (r#"<leg type="HF" fix="A" inboundCourse="0" length="200" width="50"/>"#.into(), &aircraft, "hold width 50 m is below the vehicle's turn limit"),
+            (r#"<leg type="HF" fix="A" inboundCourse="0" length="2" width="10"/>"#.into(), &rover, "hold length 2 m is below the vehicle's minimum waypoint distance"),
+            (r#"<leg type="HF" fix="A" inboundCourse="0" length="20" circuits="0"/>"#.into(), &rover, "at least 1"),
+            (r#"<leg type="HF" fix="A" inboundCourse="0" length="20" until="n &gt; 1"/>"#.into(), &rover, "only allowed on an HM"),
+            (r#"<iterative count="0"><leg type="TF" fix="A"/></iterative>"#.into(), &rover, "iteration count must be at least 1"),
+            (r#"<iterative count="2" until="go"><leg type="TF" fix="A"/></iterative>"#.into(), &rover, "exactly one of"),
+            ("<iterative count=\"2\"></iterative>".into(), &rover, "has no legs"),
+            (r#"<alternative><otherwise/><when cond="go"/></alternative>"#.into(), &rover, "must be the last"),
+            (r#"<iterative until="n +"><leg type="TF" fix="A"/></iterative>"#.into(), &rover, "condition"),
+            (format!(r#"<scan spacing="100">{TRI}</scan>"#), &aircraft, "spacing 100 m is below the vehicle's turn limit of 120 m"),
+            (format!(r#"<scan spacing="3">{TRI}</scan>"#), &rover, "below the vehicle's minimum waypoint distance"),
+            (r#"<scan spacing="5"><pt lat="41.27" lon="1.98"/><pt lat="41.28" lon="1.98"/></scan>"#.into(), &rover, "at least 3 <pt>"),
+            (r#"<scan spacing="5"><pt lat="41.27" lon="1.98"/><pt lat="41.28" lon="1.99"/><pt lat="41.27" lon="1.99"/><pt lat="41.28" lon="1.98"/></scan>"#.into(), &rover, "self-intersects"),
+            (format!(r#"<scan spacing="5">{many}</scan>"#), &rover, "polygon vertices: 1001 is more than the 1000 allowed"),
+            (r#"<scan spacing="5"><pt lat="41" lon="2"/><pt lat="42" lon="2"/><pt lat="42" lon="3"/><pt lat="41" lon="3"/></scan>"#.into(), &rover, "scan tracks (the area's width / spacing): 16"),
+            (format!(r#"<perimeter spacing="5" rings="5000">{TRI}</perimeter>"#), &rover, "perimeter rings: 5000"),
+            (r#"<leg type="TF" fix="A" speed="-1"/>"#.into(), &rover, "greater than zero"),
+        ];
+        for (body, vehicle, want) in cases {
+            let e = parse_plan(&with_mission(&body), vehicle).expect_err(&body);
+            assert_eq!(e.line, 9, "{body}: {e}");
+            assert!(e.col > 0, "{body}: {e}");
+            assert!(e.to_string().contains(want), "{body}: `{e}` lacks `{want}`");
+        }
+    }
+
+    #[test]
+    fn a_plan_for_another_vehicle_is_refused_at_its_attribute() {
+        let src = GOOD.replace(
+            "<flightPlan name=\"t\"",
+            "<flightPlan vehicle=\"aircraft\" name=\"t\"",
+        );
+        let e = err_of(&src);
+        assert_eq!((e.line, e.col), (2, 13), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "2:13: the plan is written for vehicle `aircraft`, but this vehicle is `rover`"
+        );
+        assert_eq!(declared_vehicle(&src), Some(VehicleKind::Aircraft));
+        let e = err_of(&GOOD.replace("<flightPlan ", "<flightPlan vehicle=\"boat\" "));
+        assert!(
+            e.to_string().contains("must be `rover` or `aircraft`"),
+            "{e}"
+        );
+        let ok = parse(&GOOD.replace("<flightPlan ", "<flightPlan vehicle=\"rover\" ")).unwrap();
+        assert_eq!(ok.vehicle, Some(VehicleKind::Rover));
     }
 
     proptest! {

@@ -11,6 +11,48 @@ pub fn polygon_frame(poly: &[GeoPoint]) -> LocalFrame {
     LocalFrame::new(GeoPoint::new(lat, lon))
 }
 
+/// Most vertices a polygon may have: validation and pattern generation compare every edge with
+/// every other, so the work grows with the square of this.
+pub const MAX_VERTICES: usize = 1000;
+
+/// The unit vector left of `bearing` (degrees true).
+pub fn left_of(bearing: f64) -> Xy {
+    let d = Xy::unit(bearing);
+    Xy::new(-d.n, d.e)
+}
+
+/// The polygon's extent across tracks flown along `bearing`: the distance between the two
+/// outermost tracks' borders.
+pub fn width_across(pts: &[Xy], bearing: f64) -> f64 {
+    let left = left_of(bearing);
+    let (lo, hi) = pts
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            let v = p.dot(left);
+            (lo.min(v), hi.max(v))
+        });
+    hi - lo
+}
+
+/// The bearing whose perpendicular width of the polygon is smallest, tried along each edge
+/// (for a convex polygon the optimum is parallel to an edge).
+pub fn auto_sweep(pts: &[Xy]) -> f64 {
+    let n = pts.len();
+    let mut best = (f64::INFINITY, 0.0);
+    for i in 0..n {
+        let e = pts[(i + 1) % n].minus(pts[i]);
+        if e.norm() < 1e-9 {
+            continue;
+        }
+        let b = e.bearing() % 180.0;
+        let w = width_across(pts, b);
+        if w < best.0 - 1e-9 {
+            best = (w, b);
+        }
+    }
+    best.1
+}
+
 /// Signed area (positive anticlockwise, i.e. east→north).
 pub fn signed_area(pts: &[Xy]) -> f64 {
     let n = pts.len();

@@ -13,6 +13,28 @@ pub enum VehicleKind {
     Aircraft,
 }
 
+impl VehicleKind {
+    /// The name used in plans and config files.
+    pub fn name(self) -> &'static str {
+        match self {
+            VehicleKind::Rover => "rover",
+            VehicleKind::Aircraft => "aircraft",
+        }
+    }
+    /// The kind named `s` (`rover`, `aircraft`).
+    pub fn from_name(s: &str) -> Option<Self> {
+        [VehicleKind::Rover, VehicleKind::Aircraft]
+            .into_iter()
+            .find(|k| k.name() == s)
+    }
+}
+
+impl std::fmt::Display for VehicleKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Parameters of the vehicle a plan is flown by.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct VehicleParams {
