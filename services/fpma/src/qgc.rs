@@ -492,6 +492,16 @@ pub fn import(
                                 why: "DO_JUMP repeating forever (-1) has no plan equivalent".into(),
                             });
                         }
+                        // A pass count must be a whole number an `<iterative count>` holds.
+                        if repeat.fract() != 0.0 || repeat >= f64::from(u32::MAX) {
+                            return Err(QgcImportError::Item {
+                                index,
+                                why: format!(
+                                    "DO_JUMP repeat count {repeat} is not a whole number below {}",
+                                    u32::MAX
+                                ),
+                            });
+                        }
                         let body: Vec<String> = nodes.drain(start..).map(|(_, x)| x).collect();
                         nodes.push((
                             target,
@@ -669,6 +679,38 @@ mod tests {
         );
         let e = export(&parse_plan(&src, &v).unwrap(), &v).unwrap_err();
         assert!(e.to_string().contains("`w`"), "{e}");
+    }
+
+    #[test]
+    fn import_refuses_impossible_jump_counts_without_panicking() {
+        let v = VehicleParams::rover();
+        for repeat in ["1e30", "1.5", "4294967295"] {
+            let doc = format!(
+                r#"{{"fileType": "Plan", "mission": {{"items": [
+                {{"type": "SimpleItem", "command": 16, "doJumpId": 1, "frame": 3, "params": [0, 0, 0, null, 41.0, 2.0, 10]}},
+                {{"type": "SimpleItem", "command": 177, "doJumpId": 2, "frame": 3, "params": [1, {repeat}, 0, 0, 0, 0, 0]}}
+            ]}}}}"#
+            );
+            let e = import(&doc, "x", &v).unwrap_err();
+            assert!(
+                matches!(&e, QgcImportError::Item { index: 1, why } if why.contains("repeat count")),
+                "{repeat}: {e}"
+            );
+        }
+    }
+
+    proptest::proptest! {
+        /// A damaged `.plan` file is refused, never a panic.
+        #[test]
+        fn import_never_panics_on_mangled_files(cut in 0usize..6000, junk in "[\\[\\]{}:,\"0-9a-zA-Z .-]{0,8}") {
+            let v = VehicleParams::rover();
+            let doc = export(&parse_plan(PLAN, &v).unwrap(), &v).unwrap().to_string();
+            let mut s = doc.clone();
+            let at = cut.min(s.len());
+            s.insert_str(at, &junk);
+            let _ = import(&s, "x", &v);
+            let _ = import(&doc[..at], "x", &v);
+        }
     }
 
     #[test]
