@@ -13,7 +13,7 @@ use crate::expr::Value;
 use crate::geo::{self, GeoPoint};
 use crate::model::*;
 use crate::parse::{check_vehicle, modify_node, PlanError};
-use crate::vehicle::VehicleParams;
+use crate::vehicle::{VehicleKind, VehicleParams};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -82,6 +82,37 @@ pub enum CommandError {
     /// Re-task with no points.
     #[error("re-task needs at least one point")]
     NoPoints,
+    /// A command argument out of range (a NaN, a negative length, a latitude of 91...).
+    #[error("{what}: {why}")]
+    BadArgument {
+        /// The argument.
+        what: String,
+        /// What is expected.
+        why: String,
+    },
+}
+
+fn bad_arg(what: impl Into<String>, why: &str) -> CommandError {
+    CommandError::BadArgument {
+        what: what.into(),
+        why: why.into(),
+    }
+}
+
+fn check_point(what: &str, p: GeoPoint) -> Result<(), CommandError> {
+    if !(p.lat.is_finite() && (-90.0..=90.0).contains(&p.lat)) {
+        return Err(bad_arg(
+            what,
+            &format!("latitude {} is not in -90..90", p.lat),
+        ));
+    }
+    if !(p.lon.is_finite() && (-180.0..=180.0).contains(&p.lon)) {
+        return Err(bad_arg(
+            what,
+            &format!("longitude {} is not in -180..180", p.lon),
+        ));
+    }
+    Ok(())
 }
 
 /// An event for stations, tagged with the plan version it belongs to.
@@ -290,6 +321,9 @@ pub struct Executive {
     next_seq: u64,
     last: Option<Origin>,
     present: Option<GeoPoint>,
+    /// The altitude telemetry last reported (an HA hold ends on it, not on its own waypoints'
+    /// altitude, which the `alt` variable takes as each waypoint is reached).
+    measured_alt: Option<f64>,
     paused: bool,
     completed: bool,
     nominal: bool,
@@ -352,6 +386,7 @@ impl Executive {
             next_seq: 0,
             last: None,
             present: None,
+            measured_alt: None,
             paused: false,
             completed: false,
             nominal: false,
@@ -539,8 +574,9 @@ impl Executive {
     }
 
     /// Telemetry: present position and built-in variables. Emergency rules are checked.
+    /// Values that are not finite numbers (and positions off the globe) are ignored.
     pub fn update_telemetry(&mut self, t: Telemetry) {
-        if let Some(p) = t.position {
+        if let Some(p) = t.position.filter(|p| check_point("position", *p).is_ok()) {
             self.present = Some(p);
         }
         for (name, v) in [
@@ -549,7 +585,10 @@ impl Executive {
             ("battery", t.battery),
             ("elapsed_s", t.elapsed_s),
         ] {
-            if let Some(v) = v {
+            if let Some(v) = v.filter(|v| v.is_finite()) {
+                if name == "alt" {
+                    self.measured_alt = Some(v);
+                }
                 self.vars.insert(name.into(), Value::Number(v));
             }
         }
@@ -686,6 +725,14 @@ impl Executive {
                 expected: ty,
             });
         }
+        if let Value::Number(n) = value {
+            if !n.is_finite() {
+                return Err(bad_arg(name, "must be a finite number"));
+            }
+            if name == "alt" {
+                self.measured_alt = Some(n);
+            }
+        }
         self.vars.insert(name.into(), value);
         self.check_rules();
         Ok(())
@@ -696,7 +743,41 @@ impl Executive {
     ///
     /// # Errors
     /// [`CommandError::NoPosition`] before any position is known.
+    /// Lengths, widths and courses out of range are refused as [`CommandError::BadArgument`].
     pub fn hold_here(&mut self, p: &HoldHere) -> Result<(), CommandError> {
+        let min = self.vehicle.min_wp_distance;
+        for (what, v) in [("length", p.length), ("width", p.width)] {
+            if let Some(v) = v {
+                if !v.is_finite() || v < min {
+                    return Err(bad_arg(
+                        format!("hold {what} {v}"),
+                        &format!("must be at least the minimum waypoint distance, {min} m"),
+                    ));
+                }
+            }
+        }
+        let shape = p
+            .shape
+            .unwrap_or(if self.vehicle.kind == VehicleKind::Rover {
+                HoldShape::Rectangle
+            } else {
+                HoldShape::Racetrack
+            });
+        if let Some(w) = p.width {
+            let turn = 2.0 * self.vehicle.turn_radius;
+            if shape == HoldShape::Racetrack && w < turn {
+                return Err(bad_arg(
+                    format!("hold width {w}"),
+                    &format!("is below the vehicle's turn limit of {turn} m"),
+                ));
+            }
+        }
+        if let Some(c) = p.inbound_course.filter(|c| !c.is_finite()) {
+            return Err(bad_arg(
+                format!("inbound course {c}"),
+                "must be a number of degrees",
+            ));
+        }
         let pos = self
             .present
             .or(self.last.map(|o| o.pos))
@@ -709,7 +790,6 @@ impl Executive {
                 }
                 _ => 0.0,
             });
-        let rover = self.vehicle.kind == crate::vehicle::VehicleKind::Rover;
         let hold = Hold {
             kind: HoldKind::HM,
             fix: Fix {
@@ -722,11 +802,7 @@ impl Executive {
             length: Some(p.length.unwrap_or(5.0 * self.vehicle.min_wp_distance)),
             time: None,
             width: p.width,
-            shape: p.shape.unwrap_or(if rover {
-                HoldShape::Rectangle
-            } else {
-                HoldShape::Racetrack
-            }),
+            shape,
             circuits: None,
             until: None,
             target_alt: None,
@@ -808,6 +884,15 @@ impl Executive {
     ) -> Result<u64, CommandError> {
         if points.is_empty() {
             return Err(CommandError::NoPoints);
+        }
+        for (k, p) in points.iter().enumerate() {
+            check_point(&format!("point {}", k + 1), *p)?;
+        }
+        if let Some(a) = alt.filter(|a| !a.is_finite()) {
+            return Err(bad_arg(
+                format!("altitude {a}"),
+                "must be a number of metres",
+            ));
         }
         let here = self.present.or(self.last.map(|o| o.pos));
         // Points visited after the current leg are ordered from where that leg ends.
@@ -893,6 +978,25 @@ impl Executive {
         Ok(self.version)
     }
 
+    /// Inserts legs written in the plan's XML (`<leg .../>`, `<scan>`, `<iterative>`...) right
+    /// after the current leg: a new plan version. They may use the plan's fixes and variables;
+    /// those without an `id` are named `insert.v<version>.<n>`. Returns the version.
+    ///
+    /// # Errors
+    /// [`CommandError::InvalidPlan`] naming the line of the fragment that is wrong (an unknown
+    /// fix, an id already used...), or [`CommandError::NothingToSkip`] when the plan is completed.
+    pub fn insert_legs(&mut self, xml: &str) -> Result<u64, CommandError> {
+        if self.frames.is_empty() {
+            return Err(CommandError::NothingToSkip);
+        }
+        let prefix = format!("insert.v{}", self.version + 1);
+        let nodes = crate::parse::parse_fragment(xml, &self.plan, &self.vehicle, &prefix)?;
+        if nodes.is_empty() {
+            return Err(bad_arg("legs", "the fragment has no legs"));
+        }
+        self.insert_after_current(nodes)
+    }
+
     /// Inserts nodes right after the current leg (a new plan version). Returns the version.
     ///
     /// # Errors
@@ -904,7 +1008,9 @@ impl Executive {
         let first = nodes.first().map(|n| n.id.clone()).unwrap_or_default();
         let frames = self.frames.clone();
         let plan = Arc::make_mut(&mut self.plan);
-        let list = list_mut(plan, &frames);
+        let Some(list) = list_mut(plan, &frames) else {
+            return Err(CommandError::NothingToSkip);
+        };
         let at = frames.last().map_or(0, |f| f.index + 1).min(list.len());
         for (k, n) in nodes.into_iter().enumerate() {
             list.insert(at + k, n);
@@ -1298,9 +1404,14 @@ impl Executive {
         let wps = match &node.kind {
             NodeKind::Path(l) => expand_path(l, id, &ctx),
             NodeKind::Hold(h) => {
-                let waits = h.kind == HoldKind::HM
-                    && h.circuits.is_none()
-                    && !h.until.as_ref().is_some_and(|c| self.holds(c));
+                // An HM waits for its condition or a command, an HA for its altitude: a nominal
+                // run shows one circuit of either, marked.
+                let waits = h.circuits.is_none()
+                    && match h.kind {
+                        HoldKind::HM => !h.until.as_ref().is_some_and(|c| self.holds(c)),
+                        HoldKind::HA => true,
+                        HoldKind::HF => false,
+                    };
                 hold = Some(HoldState {
                     hold: h.clone(),
                     entered: false,
@@ -1357,11 +1468,13 @@ impl Executive {
 
     /// At a hold's fix: decide whether to exit, else append the next circuit.
     fn hold_crossing(&mut self) {
-        let alt = match self.var("alt") {
-            Some(Value::Number(a)) => a,
-            _ => 0.0,
-        };
         let nominal = self.nominal;
+        // A nominal run assumes the altitude is reached during the first circuit.
+        let alt = match (nominal, self.measured_alt, self.var("alt")) {
+            (false, Some(a), _) => Some(a),
+            (_, _, Some(Value::Number(a))) => Some(a),
+            _ => None,
+        };
         let until = self
             .active
             .as_ref()
@@ -1393,7 +1506,9 @@ impl Executive {
                 HoldKind::HF => hs.circuits >= h.circuits.unwrap_or(1),
                 HoldKind::HA => {
                     let target = hold_alt(h, &ctx);
-                    limit || (hs.circuits >= 1 && (alt - target).abs() <= h.alt_tolerance)
+                    let reached =
+                        nominal || alt.is_some_and(|a| (a - target).abs() <= h.alt_tolerance);
+                    limit || (hs.circuits >= 1 && reached)
                 }
                 HoldKind::HM => limit || until || (nominal && hs.waits && hs.circuits >= 1),
             };
@@ -1472,23 +1587,22 @@ fn list_of<'a>(plan: &'a FlightPlan, frames: &[Frame]) -> &'a [Node] {
     list
 }
 
-fn list_mut<'a>(plan: &'a mut FlightPlan, frames: &[Frame]) -> &'a mut Vec<Node> {
-    let stage = match frames.first().map(|f| &f.kind) {
-        Some(FrameKind::Stage(s)) => *s,
-        _ => Stage::Mission,
+/// The node list the innermost frame indexes, mutable; `None` if the cursor does not match the
+/// plan (it always does: the cursor is built over this plan and only leaves are replaced).
+fn list_mut<'a>(plan: &'a mut FlightPlan, frames: &[Frame]) -> Option<&'a mut Vec<Node>> {
+    let Some(FrameKind::Stage(stage)) = frames.first().map(|f| &f.kind) else {
+        return None;
     };
-    let mut list = plan.stage_mut(stage);
+    let mut list = plan.stage_mut(*stage);
     for w in frames.windows(2) {
-        let idx = w[0].index;
-        // The cursor path always names constructs that exist (it was built over this plan).
-        let node = &mut list[idx];
+        let node = list.get_mut(w[0].index)?;
         list = match (&mut node.kind, &w[1].kind) {
             (NodeKind::Iterative(it), FrameKind::Loop { .. }) => &mut it.body,
-            (NodeKind::Alternative(a), FrameKind::Branch(b)) => &mut a.branches[*b].body,
-            _ => unreachable!("cursor frames match the plan's constructs"),
+            (NodeKind::Alternative(a), FrameKind::Branch(b)) => &mut a.branches.get_mut(*b)?.body,
+            _ => return None,
         };
     }
-    list
+    Some(list)
 }
 
 fn node_mut<'a>(plan: &'a mut FlightPlan, id: &str) -> Option<&'a mut Node> {

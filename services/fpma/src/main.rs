@@ -4,9 +4,9 @@
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
 use fpma::exec::expand_nominal;
-use fpma::parse::parse_plan;
+use fpma::parse::{declared_vehicle, parse_plan};
 use fpma::service::FpmaConfig;
-use fpma::vehicle::{VehicleKind, VehicleParams};
+use fpma::vehicle::VehicleKind;
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -24,9 +24,12 @@ enum Command {
     Expand {
         /// The XML flight plan.
         plan: PathBuf,
-        /// Vehicle whose parameters shape the waypoints.
-        #[arg(long, value_enum, default_value_t = Vehicle::Aircraft)]
-        vehicle: Vehicle,
+        /// Vehicle whose parameters shape the waypoints [default: the plan's `vehicle`
+        /// attribute, else aircraft].
+        #[arg(long, value_enum)]
+        vehicle: Option<Vehicle>,
+        #[command(flatten)]
+        params: VehicleArgs,
         /// Also write the plan as a QGroundControl `.plan` file.
         #[arg(long, value_name = "OUT.plan")]
         qgc: Option<PathBuf>,
@@ -56,6 +59,8 @@ struct RunArgs {
     /// Vehicle whose parameters shape the plans.
     #[arg(long, value_enum)]
     vehicle: Option<Vehicle>,
+    #[command(flatten)]
+    params: VehicleArgs,
     /// Waypoints kept in the VAS queue ahead of the vehicle.
     #[arg(long)]
     lookahead: Option<usize>,
@@ -68,6 +73,30 @@ struct RunArgs {
     /// A plan to load at start.
     #[arg(long)]
     plan: Option<PathBuf>,
+}
+
+/// Overrides of the vehicle's parameters (config `minWaypointDistance`, `defaultSpeed`,
+/// `turnRadius`).
+#[derive(clap::Args)]
+struct VehicleArgs {
+    /// Minimum distance between waypoints, metres (rover 4.5, aircraft 100).
+    #[arg(long, value_name = "M")]
+    min_wp_distance: Option<f64>,
+    /// Speed when neither the leg nor the plan gives one, m/s.
+    #[arg(long, value_name = "M/S")]
+    default_speed: Option<f64>,
+    /// Minimum turn radius, metres.
+    #[arg(long, value_name = "M")]
+    turn_radius: Option<f64>,
+}
+
+impl VehicleArgs {
+    /// Puts the overrides given into `cfg`.
+    fn apply(&self, cfg: &mut FpmaConfig) {
+        cfg.min_wp_distance = self.min_wp_distance.or(cfg.min_wp_distance);
+        cfg.default_speed = self.default_speed.or(cfg.default_speed);
+        cfg.turn_radius = self.turn_radius.or(cfg.turn_radius);
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -98,15 +127,18 @@ fn main() -> ExitCode {
                 ExitCode::FAILURE
             }
         },
-        Command::Expand { plan, vehicle, qgc } => {
-            match expand(&plan, vehicle.into(), qgc.as_deref()) {
-                Ok(code) => code,
-                Err(e) => {
-                    eprintln!("fpma: {e:#}");
-                    ExitCode::FAILURE
-                }
+        Command::Expand {
+            plan,
+            vehicle,
+            params,
+            qgc,
+        } => match expand(&plan, vehicle.map(Into::into), &params, qgc.as_deref()) {
+            Ok(code) => code,
+            Err(e) => {
+                eprintln!("fpma: {e:#}");
+                ExitCode::FAILURE
             }
-        }
+        },
     }
 }
 
@@ -137,6 +169,7 @@ fn run_service(args: RunArgs) -> anyhow::Result<()> {
     if let Some(v) = args.vehicle {
         cfg.vehicle = v.into();
     }
+    args.params.apply(&mut cfg);
     if let Some(v) = args.lookahead {
         cfg.lookahead = v;
     }
@@ -159,12 +192,20 @@ fn run_service(args: RunArgs) -> anyhow::Result<()> {
 
 fn expand(
     path: &std::path::Path,
-    kind: VehicleKind,
+    kind: Option<VehicleKind>,
+    params: &VehicleArgs,
     qgc: Option<&std::path::Path>,
 ) -> anyhow::Result<ExitCode> {
     let src =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let vehicle = VehicleParams::for_kind(kind);
+    let mut cfg = FpmaConfig {
+        vehicle: kind
+            .or_else(|| declared_vehicle(&src))
+            .unwrap_or(VehicleKind::Aircraft),
+        ..FpmaConfig::default()
+    };
+    params.apply(&mut cfg);
+    let vehicle = cfg.vehicle_params()?;
     let plan = match parse_plan(&src, &vehicle) {
         Ok(p) => p,
         Err(e) => {

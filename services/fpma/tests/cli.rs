@@ -14,7 +14,8 @@ const ROVER: &str = concat!(
 #[test]
 fn expand_prints_one_json_waypoint_per_line() {
     let out = fpma()
-        .args(["expand", ROVER, "--vehicle", "rover"])
+        // No --vehicle: the plan says it is for a rover.
+        .args(["expand", ROVER])
         .output()
         .unwrap();
     assert!(
@@ -68,4 +69,137 @@ fn malformed_plan_exits_2_naming_the_line() {
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains("bad.xml:4:"), "{err}");
+}
+
+#[test]
+fn a_plan_for_another_vehicle_or_bad_overrides_are_refused() {
+    let out = fpma()
+        .args(["expand", ROVER, "--vehicle", "aircraft"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("rover-carpark.xml:6:") && err.contains("written for vehicle `rover`"),
+        "{err}"
+    );
+    let out = fpma()
+        .args(["expand", ROVER, "--min-wp-distance=-3"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("minWaypointDistance must be a positive"),
+        "{err}"
+    );
+}
+
+#[test]
+fn vehicle_overrides_shape_the_stream() {
+    // Fixes north of A at 0, 3.3, 10, 16.7 and 26.7 m; no speeds anywhere.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("line.xml");
+    let fixes: String = [0, 3, 9, 15, 24]
+        .iter()
+        .map(|k| {
+            format!(
+                r#"<fix id="F{k}" lat="{}" lon="2"/>"#,
+                41.0 + f64::from(*k) * 1e-5
+            )
+        })
+        .collect();
+    let legs: String = [0, 3, 9, 15, 24]
+        .iter()
+        .map(|k| format!(r#"<leg type="TF" fix="F{k}"/>"#))
+        .collect();
+    std::fs::write(
+        &path,
+        format!(r#"<flightPlan vehicle="rover"><fixes>{fixes}</fixes><mission>{legs}</mission></flightPlan>"#),
+    )
+    .unwrap();
+    let stream = |extra: &[&str]| -> Vec<serde_json::Value> {
+        let out = fpma()
+            .arg("expand")
+            .arg(&path)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8(out.stdout)
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let lat = |ws: &[serde_json::Value]| -> Vec<i64> {
+        ws.iter()
+            .map(|w| ((w["lat"].as_f64().unwrap() - 41.0) * 1e5).round() as i64)
+            .collect()
+    };
+    // The rover's 4.5 m drops the point 3.3 m on; 8 m also drops the one 6.7 m after 10 m.
+    let normal = stream(&[]);
+    assert_eq!(lat(&normal), [0, 9, 15, 24]);
+    assert!(
+        normal.iter().all(|w| w["speed"] == 2.0),
+        "the rover's default speed"
+    );
+    let sparse = stream(&["--min-wp-distance", "8", "--default-speed", "0.5"]);
+    assert_eq!(lat(&sparse), [0, 9, 24]);
+    assert!(sparse.iter().all(|w| w["speed"] == 0.5));
+}
+
+#[test]
+fn qgc_export_writes_a_plan_file_and_refusals_give_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let demo = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/flightplans/rover-demo.xml"
+    );
+    let out_plan = dir.path().join("demo.plan");
+    let out = fpma()
+        .args(["expand", demo, "--qgc"])
+        .arg(&out_plan)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let printed = String::from_utf8(out.stdout).unwrap().lines().count();
+    let text = std::fs::read_to_string(&out_plan).unwrap();
+    let doc: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(doc["fileType"], "Plan");
+    let items = doc["mission"]["items"].as_array().unwrap();
+    assert!(items.iter().any(|i| i["complexItemType"] == "survey"));
+    assert!(
+        items.iter().any(|i| i["command"] == 177),
+        "the laps loop is a DO_JUMP"
+    );
+    // Read back, it flies the same stream the preview printed.
+    let v = fpma::vehicle::VehicleParams::rover();
+    let (plan, _) = fpma::qgc::import(&text, "demo", &v).unwrap();
+    assert_eq!(fpma::exec::expand_nominal(plan, v).unwrap().len(), printed);
+
+    // The car-park plan waits for a variable and has an emergency rule: refused, with why.
+    let refused = dir.path().join("carpark.plan");
+    let out = fpma()
+        .args(["expand", ROVER, "--qgc"])
+        .arg(&refused)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("`low-battery` cannot be exported to QGroundControl")
+            && err.contains("emergency rules react to conditions"),
+        "{err}"
+    );
+    assert!(!refused.exists(), "nothing written when refused");
+    assert!(out.stdout.is_empty());
 }

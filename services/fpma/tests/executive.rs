@@ -2,10 +2,10 @@
 //! mid-run and every in-flight command, checking the exact waypoints that come next.
 
 use fpma::exec::*;
-use fpma::expand::Waypoint;
+use fpma::expand::{enforce_min_distance, expand_scan, Ctx, Origin, Waypoint};
 use fpma::expr::Value;
 use fpma::geo::{distance, GeoPoint};
-use fpma::model::Stage;
+use fpma::model::{NodeKind, Stage};
 use fpma::parse::parse_plan;
 use fpma::vehicle::VehicleParams;
 
@@ -570,6 +570,381 @@ fn example_plans_parse_and_expand() {
                     "{file}: waypoints {d} m apart"
                 );
             }
+        }
+    }
+}
+
+/// Local east/north of a waypoint around fix `f`, rounded to centimetres for exact comparison.
+fn enu(f: &str, w: &Waypoint) -> (f64, f64) {
+    let p = fpma::geo::LocalFrame::new(fix(f)).to_local(w.pos());
+    ((p.e * 100.0).round() / 100.0, (p.n * 100.0).round() / 100.0)
+}
+
+/// A 20 m × 10 m rectangle hold at B, inbound north, turning right: its corners around B.
+const RECT: [(f64, f64); 4] = [(10.0, 0.0), (10.0, -20.0), (0.0, -20.0), (0.0, 0.0)];
+
+#[test]
+fn hf_hold_flies_its_circuit_count_then_exits() {
+    let ex = exec(
+        "",
+        r#"<leg id="h" type="HF" fix="B" inboundCourse="0" turn="R" length="20" width="10" shape="rectangle" circuits="2"/>
+           <leg type="TF" fix="D"/>"#,
+    );
+    let ahead = ex.next_waypoints(20);
+    // A, the entry at B, two circuits of four corners, then D and the approach.
+    assert_eq!(
+        legs(&ahead),
+        [&["departure.1"][..], &["h"; 9], &["mission.2", "app"]].concat()
+    );
+    let hold: Vec<(f64, f64)> = ahead[1..10].iter().map(|w| enu("B", w)).collect();
+    let want: Vec<(f64, f64)> = [&[(0.0, 0.0)][..], &RECT, &RECT].concat();
+    assert_eq!(hold, want);
+    assert!(ahead[1..10].iter().all(|w| w.fly_over && !w.waits));
+    // Without a count an HF flies one circuit.
+    let one = exec(
+        "",
+        r#"<leg id="h" type="HF" fix="B" inboundCourse="0" turn="L" length="20" width="10" shape="rectangle"/>"#,
+    );
+    let ahead = one.next_waypoints(10);
+    assert_eq!(
+        legs(&ahead),
+        [&["departure.1"][..], &["h"; 5], &["app"]].concat()
+    );
+    // Turning left mirrors the rectangle to the west of the inbound course.
+    let left: Vec<(f64, f64)> = ahead[2..6].iter().map(|w| enu("B", w)).collect();
+    assert_eq!(
+        left,
+        [(-10.0, 0.0), (-10.0, -20.0), (0.0, -20.0), (0.0, 0.0)]
+    );
+}
+
+#[test]
+fn hm_hold_with_a_circuit_count_exits_at_the_count_or_its_condition() {
+    let body = r#"<leg id="h" type="HM" fix="B" inboundCourse="0" turn="R" length="20" width="10" shape="rectangle" circuits="3" until="seen"/>
+           <leg type="TF" fix="D"/>"#;
+    let vars = r#"<var name="seen" type="bool"/>"#;
+    let ex = exec(vars, body);
+    let ahead = ex.next_waypoints(20);
+    // A bound, not a wait: the entry, three circuits, then on.
+    assert_eq!(
+        legs(&ahead),
+        [&["departure.1"][..], &["h"; 13], &["mission.2", "app"]].concat()
+    );
+    assert!(ahead.iter().all(|w| !w.waits));
+    let mut ex = exec(vars, body);
+    for _ in 0..3 {
+        reach(&mut ex); // A, the entry at B, the first corner
+    }
+    ex.set_var("seen", Value::Bool(true)).unwrap();
+    let ahead = ex.next_waypoints(5);
+    assert_eq!(legs(&ahead), ["h", "h", "h", "mission.2", "app"]);
+    assert_eq!(enu("B", &ahead[2]), (0.0, 0.0), "exits at the fix");
+}
+
+#[test]
+fn ha_hold_circles_until_telemetry_reports_its_altitude() {
+    let mut ex = exec(
+        "",
+        r#"<leg id="h" type="HA" fix="B" inboundCourse="0" turn="R" length="20" width="10" shape="rectangle" targetAlt="30" altTolerance="2"/>
+           <leg type="TF" fix="D"/>"#,
+    );
+    // Nominally (no telemetry yet) one circuit at the target altitude, marked as waiting.
+    let nominal = expand_nominal(ex.plan().clone(), VehicleParams::rover()).unwrap();
+    assert_eq!(
+        legs(&nominal),
+        [&["departure.1"][..], &["h"; 5], &["mission.2", "app"]].concat()
+    );
+    assert!(nominal[1..6].iter().all(|w| w.waits && w.alt == 30.0));
+    reach(&mut ex); // A
+    ex.update_telemetry(Telemetry {
+        alt: Some(12.0),
+        ..Telemetry::default()
+    });
+    for _ in 0..5 {
+        reach(&mut ex); // the entry and one circuit: still climbing
+    }
+    assert_eq!(ex.state().leg.as_deref(), Some("h"));
+    let ahead = ex.next_waypoints(6);
+    assert_eq!(legs(&ahead), ["h"; 6], "another circuit, and another");
+    let corners: Vec<(f64, f64)> = ahead[..4].iter().map(|w| enu("B", w)).collect();
+    assert_eq!(corners, RECT);
+    ex.update_telemetry(Telemetry {
+        alt: Some(29.0),
+        ..Telemetry::default()
+    });
+    // Within the tolerance: the circuit under way ends at the fix, then the plan goes on.
+    let ahead = ex.next_waypoints(6);
+    assert_eq!(legs(&ahead), ["h", "h", "h", "h", "mission.2", "app"]);
+    assert_eq!(enu("B", &ahead[3]), (0.0, 0.0));
+}
+
+#[test]
+fn modified_scan_hands_out_exactly_the_new_geometry() {
+    let mut ex = exec(
+        "",
+        &format!(r#"<leg type="TF" fix="B"/>{SCAN}<leg type="TF" fix="D"/>"#),
+    );
+    reach(&mut ex); // A; next is B, then the scan
+    ex.modify_leg("s", &[("spacing".into(), "12".into())])
+        .unwrap();
+    // What the same plan written with spacing 12 expands to, point for point.
+    let written = parse_plan(
+        &plan(
+            "",
+            &format!(
+                r#"<leg type="TF" fix="B"/>{}<leg type="TF" fix="D"/>"#,
+                SCAN.replace(r#"spacing="6""#, r#"spacing="12""#)
+            ),
+        ),
+        &VehicleParams::rover(),
+    )
+    .unwrap();
+    let want = expand_nominal(written, VehicleParams::rover()).unwrap();
+    let got = ex.next_waypoints(100);
+    assert_eq!(got.len(), want.len() - 1, "all but A, already reached");
+    for (g, w) in got.iter().zip(&want[1..]) {
+        assert!(distance(g.pos(), w.pos()) < 0.001, "{g:?} vs {w:?}");
+        assert_eq!((g.leg.as_str(), g.fly_over), (w.leg.as_str(), w.fly_over));
+    }
+    // Mid-scan: the new tracks start from where the vehicle is.
+    reach(&mut ex); // B
+    reach(&mut ex); // the scan's first point
+    let here = ex.next_waypoints(0);
+    assert!(here.is_empty());
+    ex.modify_leg("s", &[("spacing".into(), "16".into())])
+        .unwrap();
+    let got: Vec<Waypoint> = ex
+        .next_waypoints(100)
+        .into_iter()
+        .filter(|w| w.leg == "s")
+        .collect();
+    let NodeKind::Scan(scan) = &ex.plan().find("s").unwrap().kind else {
+        panic!("s is a scan")
+    };
+    let prev = want[2].pos(); // the scan's first point, where the vehicle is
+    let v = VehicleParams::rover();
+    let ctx = Ctx {
+        vehicle: &v,
+        prev: Some(Origin {
+            pos: prev,
+            alt: 0.0,
+            speed: 2.0,
+        }),
+        plan_speed: Some(2.0),
+    };
+    let fresh = enforce_min_distance(Some(prev), expand_scan(scan, "s", &ctx), v.min_wp_distance);
+    assert_eq!(got.len(), fresh.len());
+    for (g, w) in got.iter().zip(&fresh) {
+        assert!(distance(g.pos(), w.pos()) < 0.001, "{g:?} vs {w:?}");
+    }
+}
+
+#[test]
+fn insert_legs_flies_them_after_the_current_leg() {
+    let mut ex = exec(
+        "",
+        r#"<leg id="b" type="TF" fix="B"/><leg id="d" type="TF" fix="D"/>"#,
+    );
+    reach(&mut ex); // A; flying b
+    let v = ex
+        .insert_legs(r#"<leg type="TF" fix="H"/><leg id="c" type="TF" fix="C" flyOver="true"/>"#)
+        .unwrap();
+    assert_eq!(v, 2);
+    assert_eq!(next_fixes(&ex, 6), ["B", "H", "C", "D", "E"]);
+    let ahead = ex.next_waypoints(3);
+    assert_eq!(legs(&ahead), ["b", "insert.v2.1", "c"]);
+    assert!(ahead.iter().all(|w| w.version == 2));
+    assert!(events(&mut ex).contains(&EventKind::PlanModified {
+        leg: "insert.v2.1".into()
+    }));
+    // Refusals name the fragment's line and change nothing.
+    let e = ex
+        .insert_legs("<leg type=\"TF\" fix=\"B\"/>\n<leg type=\"TF\" fix=\"Q\"/>")
+        .unwrap_err();
+    assert!(
+        e.to_string().contains("2:") && e.to_string().contains("unknown fix `Q`"),
+        "{e}"
+    );
+    let e = ex
+        .insert_legs(r#"<leg id="d" type="TF" fix="B"/>"#)
+        .unwrap_err();
+    assert!(e.to_string().contains("`d` is used twice"), "{e}");
+    assert!(ex.insert_legs("").is_err());
+    assert_eq!(ex.version(), 2);
+    assert_eq!(next_fixes(&ex, 6), ["B", "H", "C", "D", "E"]);
+}
+
+#[test]
+fn out_of_range_arguments_are_refused_and_change_nothing() {
+    let mut ex = exec(
+        r#"<var name="n" type="number"/>"#,
+        r#"<leg type="TF" fix="B"/><leg type="TF" fix="C"/>"#,
+    );
+    reach(&mut ex);
+    let before = ex.next_waypoints(5);
+    for h in [
+        HoldHere {
+            length: Some(f64::NAN),
+            ..HoldHere::default()
+        },
+        HoldHere {
+            length: Some(-20.0),
+            ..HoldHere::default()
+        },
+        HoldHere {
+            width: Some(1.0),
+            ..HoldHere::default()
+        },
+        HoldHere {
+            inbound_course: Some(f64::INFINITY),
+            ..HoldHere::default()
+        },
+    ] {
+        let e = ex.hold_here(&h).unwrap_err();
+        assert!(matches!(e, CommandError::BadArgument { .. }), "{e}");
+    }
+    let e = ex
+        .retask(&[GeoPoint::new(91.0, 2.0)], None, RetaskMode::Now)
+        .unwrap_err();
+    assert!(e.to_string().contains("latitude 91"), "{e}");
+    assert!(ex
+        .retask(&[GeoPoint::new(41.0, f64::NAN)], None, RetaskMode::Now)
+        .is_err());
+    assert!(ex
+        .retask(&[fix("H")], Some(f64::NAN), RetaskMode::AfterCurrentLeg)
+        .is_err());
+    assert!(ex.set_var("n", Value::Number(f64::INFINITY)).is_err());
+    // Telemetry that is not a number is ignored.
+    ex.update_telemetry(Telemetry {
+        position: Some(GeoPoint::new(f64::NAN, 0.0)),
+        alt: Some(f64::NAN),
+        battery: Some(f64::NAN),
+        ..Telemetry::default()
+    });
+    assert_eq!(ex.next_waypoints(5), before);
+    assert_eq!(ex.version(), 1);
+    assert!(!ex.state().holding);
+}
+
+/// One in-flight input, with arguments that may be nonsense.
+#[derive(Clone, Debug)]
+enum Input {
+    Reach(u8),
+    Skip,
+    Goto(u8),
+    Stage(u8),
+    SetVar(u8, f64),
+    HoldHere(f64, f64, f64),
+    ExitHold(bool),
+    Pause,
+    Resume,
+    Modify(u8, u8, f64),
+    Retask(f64, f64, bool),
+    Insert(u8),
+    Emergency(bool),
+    Telemetry(f64, f64, f64),
+    Replace,
+}
+
+fn any_f64() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        -200.0..200.0f64,
+        Just(f64::NAN),
+        Just(f64::INFINITY),
+        Just(0.0),
+        Just(1e300)
+    ]
+}
+
+fn input() -> impl Strategy<Value = Input> {
+    prop_oneof![
+        4 => (0u8..4).prop_map(Input::Reach),
+        1 => any::<u8>().prop_map(|_| Input::Skip),
+        1 => any::<u8>().prop_map(Input::Goto),
+        1 => any::<u8>().prop_map(Input::Stage),
+        1 => (any::<u8>(), any_f64()).prop_map(|(k, v)| Input::SetVar(k, v)),
+        1 => (any_f64(), any_f64(), any_f64()).prop_map(|(a, b, c)| Input::HoldHere(a, b, c)),
+        1 => any::<bool>().prop_map(Input::ExitHold),
+        1 => Just(Input::Pause),
+        1 => Just(Input::Resume),
+        1 => (any::<u8>(), any::<u8>(), any_f64()).prop_map(|(a, b, v)| Input::Modify(a, b, v)),
+        1 => (any_f64(), any_f64(), any::<bool>()).prop_map(|(a, b, c)| Input::Retask(a, b, c)),
+        1 => any::<u8>().prop_map(Input::Insert),
+        1 => any::<bool>().prop_map(Input::Emergency),
+        1 => (any_f64(), any_f64(), any_f64()).prop_map(|(a, b, c)| Input::Telemetry(a, b, c)),
+        1 => Just(Input::Replace),
+    ]
+}
+
+use proptest::prelude::*;
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    /// Whatever a station sends, in whatever order, the executive answers (accepts or refuses)
+    /// and never panics; what it hands out is always a finite position.
+    #[test]
+    fn the_executive_never_panics_on_commands(inputs in proptest::collection::vec(input(), 1..40)) {
+        let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../config/flightplans/");
+        let src = std::fs::read_to_string(format!("{root}rover-carpark.xml")).unwrap();
+        let plan = parse_plan(&src, &VehicleParams::rover()).unwrap();
+        let ids: Vec<String> = ["hold", "area", "laps", "laps.1", "check", "wait", "departure.2", "nope"]
+            .iter().map(|s| s.to_string()).collect();
+        let attrs = ["spacing", "length", "width", "speed", "alt", "sweepAngle", "fix", "type"];
+        let vars = ["inspect", "laps", "battery", "alt", "iteration", "ghost"];
+        let mut ex = Executive::new(plan.clone(), VehicleParams::rover());
+        for i in inputs {
+            let _ = match i {
+                Input::Reach(k) => {
+                    let next = ex.next_waypoints(usize::from(k) + 1);
+                    match next.last() {
+                        Some(w) => ex.waypoint_reached(w.version, w.seq),
+                        None => ex.waypoint_reached(ex.version(), u64::from(k)),
+                    }
+                }
+                Input::Skip => ex.skip_leg(),
+                Input::Goto(k) => ex.goto_leg(&ids[usize::from(k) % ids.len()]),
+                Input::Stage(k) => ex.goto_stage(Stage::ALL[usize::from(k) % 5]),
+                Input::SetVar(k, v) => {
+                    let name = vars[usize::from(k) % vars.len()];
+                    let value = if name == "inspect" { Value::Bool(v > 0.0) } else { Value::Number(v) };
+                    ex.set_var(name, value)
+                }
+                Input::HoldHere(l, w, c) => ex.hold_here(&HoldHere {
+                    length: Some(l), width: Some(w), inbound_course: Some(c), ..HoldHere::default()
+                }),
+                Input::ExitHold(now) => ex.exit_hold(now),
+                Input::Pause => ex.pause(),
+                Input::Resume => ex.resume(),
+                Input::Modify(a, b, v) => ex
+                    .modify_leg(&ids[usize::from(a) % ids.len()], &[(attrs[usize::from(b) % attrs.len()].into(), v.to_string())])
+                    .map(drop),
+                Input::Retask(a, b, now) => {
+                    let p = GeoPoint::new(41.275 + a / 1e4, 1.987 + b / 1e4);
+                    let mode = if now { RetaskMode::Now } else { RetaskMode::AfterCurrentLeg };
+                    ex.retask(&[p, fix("H")], None, mode).map(drop)
+                }
+                Input::Insert(k) => ex
+                    .insert_legs(["<leg type=\"TF\" fix=\"P2\"/>", "<leg type=\"TF\" fix=\"X\"/>", "<leg", ""][usize::from(k) % 4])
+                    .map(drop),
+                Input::Emergency(named) => ex.emergency(named.then_some("low-battery")),
+                Input::Telemetry(a, b, c) => {
+                    ex.update_telemetry(Telemetry {
+                        position: Some(GeoPoint::new(41.275 + a / 1e4, 1.987 + b / 1e4)),
+                        alt: Some(c),
+                        battery: Some(c),
+                        ..Telemetry::default()
+                    });
+                    Ok(())
+                }
+                Input::Replace => ex.replace_plan(plan.clone()).map(drop),
+            };
+            for w in ex.next_waypoints(8) {
+                prop_assert!(w.lat.is_finite() && w.lon.is_finite() && w.alt.is_finite() && w.speed.is_finite(), "{w:?}");
+            }
+            let p = ex.progress();
+            prop_assert!((0.0..=1.0).contains(&p), "progress {p}");
+            ex.take_events();
         }
     }
 }

@@ -73,6 +73,8 @@ pub enum Command {
     ModifyLeg(String, Vec<(String, String)>),
     /// `retask`.
     Retask(Vec<GeoPoint>, Option<f64>, RetaskMode),
+    /// `insert_legs`: legs in the plan's XML, flown after the current one.
+    InsertLegs(String),
     /// `emergency` (a rule name, or the default reaction).
     Emergency(Option<String>),
 }
@@ -267,6 +269,7 @@ impl<V: VasPort> Core<V> {
             Command::Resume => ex.resume(),
             Command::ModifyLeg(id, changes) => ex.modify_leg(&id, &changes).map(drop),
             Command::Retask(points, alt, mode) => ex.retask(&points, alt, mode).map(drop),
+            Command::InsertLegs(xml) => ex.insert_legs(&xml).map(drop),
             Command::Emergency(rule) => ex.emergency(rule.as_deref()),
         };
         r.map_err(|e| e.to_string())?;
@@ -818,6 +821,34 @@ mod tests {
         assert!(scan10 < scan6, "{scan10} vs {scan6}");
         assert_eq!(rest.last().unwrap().leg, "app");
         assert!(c.executive().unwrap().state().completed);
+    }
+
+    #[tokio::test]
+    async fn insert_legs_refills_the_queue_with_the_inserted_legs() {
+        let mut c = core(3);
+        c.load(PLAN, "t.xml").await.unwrap();
+        let before = c.executive().unwrap().next_waypoints(1)[0].leg.clone();
+        let e = c
+            .command(Command::InsertLegs(r#"<leg type="TF" fix="NOPE"/>"#.into()))
+            .await
+            .unwrap_err();
+        assert!(e.contains("1:") && e.contains("unknown fix `NOPE`"), "{e}");
+        let _ = c.vas().calls();
+        let ack = c
+            .command(Command::InsertLegs(
+                r#"<leg id="x" type="TF" fix="D"/>"#.into(),
+            ))
+            .await
+            .unwrap();
+        assert_eq!(ack.version, 2);
+        assert!(c.vas().calls().contains(&"clear".to_string()));
+        // Behind the target the VAS keeps, the new look-ahead: A, then the inserted leg.
+        let queued: Vec<String> = c.vas().st().queue.iter().map(|w| w.leg.clone()).collect();
+        assert_eq!(
+            queued[queued.len() - 3..],
+            [before, "x".to_string(), "b".to_string()],
+            "{queued:?}"
+        );
     }
 
     #[tokio::test]

@@ -51,6 +51,16 @@ pub struct FpmaConfig {
     /// Vehicle parameters plans are shaped by (`vehicle`): rover, aircraft.
     #[serde(rename = "@vehicle")]
     pub vehicle: VehicleKind,
+    /// Overrides the vehicle's minimum distance between waypoints, metres
+    /// (`minWaypointDistance`; 003 §6.2.3: 4-5 m for a rover, 100 m for an aircraft).
+    #[serde(rename = "@minWaypointDistance")]
+    pub min_wp_distance: Option<f64>,
+    /// Overrides the vehicle's default speed, m/s (`defaultSpeed`).
+    #[serde(rename = "@defaultSpeed")]
+    pub default_speed: Option<f64>,
+    /// Overrides the vehicle's minimum turn radius, metres (`turnRadius`).
+    #[serde(rename = "@turnRadius")]
+    pub turn_radius: Option<f64>,
     /// Waypoints kept in the VAS queue ahead of the vehicle (`lookahead`), ≥ 1. More than the
     /// VAS's rolling-queue slots keeps its window full.
     #[serde(rename = "@lookahead")]
@@ -77,6 +87,9 @@ impl Default for FpmaConfig {
             namespace: None,
             vas: "vas".into(),
             vehicle: VehicleKind::Rover,
+            min_wp_distance: None,
+            default_speed: None,
+            turn_radius: None,
             lookahead: 8,
             start_navigation: true,
             plans_dir: std::env::temp_dir().join("fpma-plans"),
@@ -144,7 +157,46 @@ impl FpmaConfig {
         if self.vas.is_empty() {
             return Err(ConfigLoadError::Invalid("vas is empty".into()));
         }
+        self.vehicle_params()?;
         Ok(())
+    }
+
+    /// The parameters of `vehicle` with the overrides applied.
+    ///
+    /// # Errors
+    /// An override that is not a positive number (a turn radius may be 0).
+    pub fn vehicle_params(&self) -> Result<VehicleParams, ConfigLoadError> {
+        let mut v = VehicleParams::for_kind(self.vehicle);
+        for (name, value, slot, zero_ok) in [
+            (
+                "minWaypointDistance",
+                self.min_wp_distance,
+                &mut v.min_wp_distance,
+                false,
+            ),
+            (
+                "defaultSpeed",
+                self.default_speed,
+                &mut v.default_speed,
+                false,
+            ),
+            ("turnRadius", self.turn_radius, &mut v.turn_radius, true),
+        ] {
+            if let Some(x) = value {
+                if !x.is_finite() || x < 0.0 || (x == 0.0 && !zero_ok) {
+                    return Err(ConfigLoadError::Invalid(format!(
+                        "{name} must be a positive number of {}, not {x}",
+                        if name == "defaultSpeed" {
+                            "m/s"
+                        } else {
+                            "metres"
+                        }
+                    )));
+                }
+                *slot = x;
+            }
+        }
+        Ok(v)
     }
 
     /// The full prefix of the VAS's items, e.g. `rover1/vas`.
@@ -314,6 +366,10 @@ impl IService for Fpma {
     }
 
     async fn start(&mut self, ctx: Service) -> Result<(), ServiceError> {
+        let vehicle = self
+            .config
+            .vehicle_params()
+            .map_err(|e| ServiceError::Failed(e.to_string()))?;
         let outlets = Outlets {
             progress: ctx.publish_variable("progress")?,
             state: ctx.publish_variable("state")?,
@@ -402,6 +458,9 @@ impl IService for Fpma {
                 .collect();
             Ok(Command::Retask(points, a.alt, a.when.into()))
         })?);
+        providers.push(command_fn(&ctx, &tx, "insert_legs", |xml: String| {
+            Ok(Command::InsertLegs(xml))
+        })?);
         providers.push(command_fn(
             &ctx,
             &tx,
@@ -446,7 +505,7 @@ impl IService for Fpma {
 
         let core = Core::new(
             CoreConfig {
-                vehicle: VehicleParams::for_kind(self.config.vehicle),
+                vehicle,
                 lookahead: self.config.lookahead,
                 start_navigation: self.config.start_navigation,
             },
@@ -587,6 +646,34 @@ mod tests {
             "rover1/vas"
         );
         assert_eq!(FpmaConfig::default().vas_prefix(None), "vas");
+    }
+
+    #[test]
+    fn vehicle_parameters_come_from_the_config() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("fpma.xml");
+        std::fs::write(
+            &p,
+            r#"<fpma vehicle="rover" minWaypointDistance="5" defaultSpeed="1.2" turnRadius="0"/>"#,
+        )
+        .unwrap();
+        let v = FpmaConfig::load(&p).unwrap().vehicle_params().unwrap();
+        assert_eq!(
+            (v.min_wp_distance, v.default_speed, v.turn_radius),
+            (5.0, 1.2, 0.0)
+        );
+        assert_eq!(v.kind, VehicleKind::Rover);
+        let v = FpmaConfig::default().vehicle_params().unwrap();
+        assert_eq!(v, VehicleParams::rover());
+        for bad in [
+            r#"<fpma minWaypointDistance="0"/>"#,
+            r#"<fpma defaultSpeed="-2"/>"#,
+            r#"<fpma turnRadius="NaN"/>"#,
+        ] {
+            std::fs::write(&p, bad).unwrap();
+            let e = FpmaConfig::load(&p).unwrap_err().to_string();
+            assert!(e.contains("must be a positive number"), "{bad}: {e}");
+        }
     }
 
     #[test]
