@@ -42,6 +42,9 @@ pub enum CommandError {
         /// Its type.
         expected: crate::expr::ValueType,
     },
+    /// The changed plan's nominal expansion would not end (a huge count, circuit number...).
+    #[error("{0}")]
+    Endless(#[from] ExpandError),
     /// Nothing is being flown.
     #[error("the plan is completed: nothing to skip")]
     NothingToSkip,
@@ -344,6 +347,28 @@ pub enum ExpandError {
     Endless(usize),
 }
 
+/// The number of waypoints [`expand_nominal`] gives, without keeping them: a plan is flown
+/// only if this ends, so a mistyped count cannot make every look-ahead and progress computation
+/// walk a million waypoints.
+///
+/// # Errors
+/// [`ExpandError::Endless`] for a plan that does not end within the limit.
+pub fn nominal_len(plan: FlightPlan, vehicle: VehicleParams) -> Result<usize, ExpandError> {
+    let mut ex = Executive::new(plan, vehicle);
+    ex.nominal = true;
+    ex.simulating = true;
+    ex.settle();
+    let mut n = 0;
+    while ex.head().is_some() {
+        if n >= SIM_LIMIT {
+            return Err(ExpandError::Endless(SIM_LIMIT));
+        }
+        n += 1;
+        ex.reach_head();
+    }
+    Ok(n)
+}
+
 /// The waypoint stream the executive produces with no in-flight changes: holds and loops that
 /// wait for a command or a condition are flown once and their waypoints marked `waits`.
 ///
@@ -604,6 +629,7 @@ impl Executive {
     /// [`CommandError::InvalidPlan`] when the plan does not suit the vehicle.
     pub fn replace_plan(&mut self, plan: FlightPlan) -> Result<u64, CommandError> {
         check_vehicle(&plan, &self.vehicle)?;
+        nominal_len(plan.clone(), self.vehicle.clone())?;
         if let Some(a) = self.active.take() {
             self.emit(EventKind::LegCompleted {
                 leg: a.id,
@@ -633,10 +659,12 @@ impl Executive {
             .find(id)
             .ok_or_else(|| CommandError::UnknownLeg(id.into()))?;
         let new = modify_node(node, changes, &self.plan, &self.vehicle)?;
-        let plan = Arc::make_mut(&mut self.plan);
-        if let Some(slot) = node_mut(plan, id) {
+        let mut changed = (*self.plan).clone();
+        if let Some(slot) = node_mut(&mut changed, id) {
             *slot = new;
         }
+        nominal_len(changed.clone(), self.vehicle.clone())?;
+        self.plan = Arc::new(changed);
         self.version += 1;
         self.emit(EventKind::PlanModified { leg: id.into() });
         let current = self
@@ -1007,14 +1035,16 @@ impl Executive {
         }
         let first = nodes.first().map(|n| n.id.clone()).unwrap_or_default();
         let frames = self.frames.clone();
-        let plan = Arc::make_mut(&mut self.plan);
-        let Some(list) = list_mut(plan, &frames) else {
+        let mut changed = (*self.plan).clone();
+        let Some(list) = list_mut(&mut changed, &frames) else {
             return Err(CommandError::NothingToSkip);
         };
         let at = frames.last().map_or(0, |f| f.index + 1).min(list.len());
         for (k, n) in nodes.into_iter().enumerate() {
             list.insert(at + k, n);
         }
+        nominal_len(changed.clone(), self.vehicle.clone())?;
+        self.plan = Arc::new(changed);
         self.version += 1;
         self.emit(EventKind::PlanModified { leg: first });
         self.settle();

@@ -1,7 +1,9 @@
 //! End to end, in separate processes: `fpma run` + `vas` + `mavsim` fly the rover example plan
 //! (`config/flightplans/rover-carpark.xml`), sent as a file. Mid-flight the test skips the hold,
 //! widens the scan's spacing (`modify_leg`) and sets the variable that ends the waiting hold;
-//! mavsim's log must show the waypoints the VAS was given, in order, and the plan completes.
+//! mavsim's log must show the waypoints the VAS was given, in order; those must be, in order,
+//! the waypoints an executive of the test's own produces for the same plan and commands; and the
+//! plan completes.
 
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -255,6 +257,9 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     let mut acks = Vec::new();
     let (mut skipped, mut modified, mut released) = (false, false, false);
     let mut loaded = false;
+    // How many waypoints the executive had reached when it applied the skip and the change
+    // (its events come in order, so this is exact even if a command arrived a waypoint late).
+    let (mut skip_at, mut modify_at) = (None, None);
     let deadline = Instant::now() + FLIGHT;
     loop {
         let left = deadline.saturating_duration_since(Instant::now());
@@ -291,6 +296,12 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
                     };
                     acks.push(set_var.call(&v, STEP).await.expect("set_var"));
                 }
+            }
+            PlanEventKind::LegCompleted { leg, skipped: true } if leg == "hold" => {
+                skip_at = Some(reached.len());
+            }
+            PlanEventKind::PlanModified { leg } if leg == "area" => {
+                modify_at = Some(reached.len());
             }
             PlanEventKind::PlanCompleted => break,
             _ => {}
@@ -383,6 +394,49 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     );
     // Starts at HOME, ends at HOME, via the fixes of the plan.
     assert!(close(flown[0], HOME) && close(*flown.last().unwrap(), HOME));
+
+    // The expected waypoints: the plan flown by an executive of our own, given the same
+    // commands after the same waypoints. Every waypoint the FPMa's executive counted as
+    // reached is, in order, where that one says it should be (mavsim flew exactly these, above,
+    // plus at most one abandoned target per change).
+    let plan = fpma::parse::parse_plan(&src, &fpma::vehicle::VehicleParams::rover()).unwrap();
+    let mut twin = fpma::exec::Executive::new(plan, fpma::vehicle::VehicleParams::rover());
+    let (skip_at, modify_at) = (skip_at.expect("skip seen"), modify_at.expect("modify seen"));
+    let mut released_twin = false;
+    for (i, (version, seq, leg)) in reached.iter().enumerate() {
+        if i == skip_at {
+            twin.skip_leg().unwrap();
+        }
+        if i == modify_at {
+            twin.modify_leg("area", &[("spacing".into(), "10".into())])
+                .unwrap();
+        }
+        let want = twin
+            .next_waypoints(1)
+            .pop()
+            .expect("the twin has a waypoint");
+        let got = vas_seen
+            .iter()
+            .find(|w| w.seq == *seq)
+            .expect("the VAS reported it");
+        assert!(
+            close((got.lat, got.lon), (want.lat, want.lon)) && *leg == want.leg,
+            "waypoint {i} (seq {seq}, v{version}): flown {got:?}, expected {want:?}"
+        );
+        assert_eq!(*version, want.version, "waypoint {i}");
+        twin.waypoint_reached(want.version, want.seq).unwrap();
+        // `inspect` was set on the hold's first waypoint; it ends the hold at its next fix
+        // crossing, three corners on, however late it arrived within the circuit.
+        if leg == "wait" && !released_twin {
+            released_twin = true;
+            twin.set_var("inspect", fpma::expr::Value::Bool(true))
+                .unwrap();
+        }
+    }
+    assert!(
+        twin.state().completed,
+        "the twin's plan ends where the FPMa's did"
+    );
 
     // The scan: 6 m between tracks before the change, 10 m after.
     let scan = |version: u64| -> Vec<(f64, f64)> {

@@ -948,3 +948,27 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn changes_that_would_never_end_are_refused() {
+    let body = r#"<leg id="h" type="HF" fix="B" inboundCourse="0" turn="R" length="20" width="10" shape="rectangle"/>
+                  <leg type="TF" fix="D"/>"#;
+    let mut ex = exec("", body);
+    reach(&mut ex);
+    let before = ex.next_waypoints(8);
+    // Four billion circuits: the plan would not end within the million-waypoint limit.
+    let e = ex
+        .modify_leg("h", &[("circuits".into(), "4000000000".into())])
+        .unwrap_err();
+    assert!(
+        matches!(e, CommandError::Endless(ExpandError::Endless(_))),
+        "{e}"
+    );
+    assert!(e.to_string().contains("without ending"), "{e}");
+    let e = ex
+        .insert_legs(r#"<iterative count="4000000000"><leg type="TF" fix="C"/><leg type="TF" fix="H"/></iterative>"#)
+        .unwrap_err();
+    assert!(e.to_string().contains("without ending"), "{e}");
+    assert_eq!(ex.version(), 1);
+    assert_eq!(ex.next_waypoints(8), before);
+}

@@ -207,13 +207,19 @@ impl<V: VasPort> Core<V> {
     }
 
     fn parse(&self, text: &str, source: &str) -> Result<FlightPlan, String> {
-        if source.ends_with(".plan") {
+        let plan = if source.ends_with(".plan") {
             let stem = source.trim_end_matches(".plan");
-            return crate::qgc::import(text, stem, &self.cfg.vehicle)
+            crate::qgc::import(text, stem, &self.cfg.vehicle)
                 .map(|(plan, _xml)| plan)
-                .map_err(|e| format!("{source}: {e}"));
-        }
-        crate::parse::parse_plan(text, &self.cfg.vehicle).map_err(|e| format!("{source}:{e}"))
+                .map_err(|e| format!("{source}: {e}"))?
+        } else {
+            crate::parse::parse_plan(text, &self.cfg.vehicle)
+                .map_err(|e| format!("{source}:{e}"))?
+        };
+        // A plan that does not end would make every look-ahead walk a million waypoints.
+        crate::exec::nominal_len(plan.clone(), self.cfg.vehicle.clone())
+            .map_err(|e| format!("{source}: {e}"))?;
+        Ok(plan)
     }
 
     async fn start_plan(&mut self, plan: FlightPlan, source: &str) -> Result<PlanLoaded, String> {
@@ -821,6 +827,21 @@ mod tests {
         assert!(scan10 < scan6, "{scan10} vs {scan6}");
         assert_eq!(rest.last().unwrap().leg, "app");
         assert!(c.executive().unwrap().state().completed);
+    }
+
+    #[tokio::test]
+    async fn a_plan_that_never_ends_is_refused() {
+        let mut c = core(3);
+        let endless = PLAN.replace(
+            r#"<leg id="d" type="TF" fix="D"/>"#,
+            r#"<iterative count="4000000000"><leg id="d" type="TF" fix="D"/><leg type="TF" fix="C"/></iterative>"#,
+        );
+        let e = c.load(&endless, "loop.xml").await.unwrap_err();
+        assert!(
+            e.starts_with("loop.xml: ") && e.contains("without ending"),
+            "{e}"
+        );
+        assert!(c.executive().is_none() && c.vas().calls().is_empty());
     }
 
     #[tokio::test]
