@@ -972,3 +972,39 @@ fn changes_that_would_never_end_are_refused() {
     assert_eq!(ex.version(), 1);
     assert_eq!(ex.next_waypoints(8), before);
 }
+
+#[test]
+fn nominal_expansion_shows_a_waiting_loop_once_marked() {
+    let ex = exec(
+        r#"<var name="done" type="bool"/>"#,
+        r#"<iterative id="l" until="done"><leg type="TF" fix="B"/><leg type="TF" fix="C"/></iterative>
+           <iterative id="n" while="iteration &lt; 2"><leg type="TF" fix="D"/><leg type="TF" fix="H"/></iterative>"#,
+    );
+    let ws = expand_nominal(ex.plan().clone(), VehicleParams::rover()).unwrap();
+    let at: Vec<(String, bool)> = ws
+        .iter()
+        .map(|w| {
+            let f = ["A", "B", "C", "D", "E", "H"]
+                .into_iter()
+                .find(|f| distance(fix(f), w.pos()) < 0.01)
+                .unwrap_or("?");
+            (f.to_string(), w.waits)
+        })
+        .collect();
+    let want: Vec<(String, bool)> = [
+        ("A", false),
+        ("B", true),
+        ("C", true),
+        ("D", false),
+        ("H", false),
+        ("D", false),
+        ("H", false),
+        ("E", false),
+    ]
+    .iter()
+    .map(|(f, w)| (f.to_string(), *w))
+    .collect();
+    // The `until done` loop waits for a variable: one pass, marked. The `while iteration < 2`
+    // loop ends by itself: both passes, unmarked.
+    assert_eq!(at, want);
+}
