@@ -480,7 +480,8 @@ impl Executive {
             return Vec::new();
         }
         let mut sim = self.sim_copy();
-        let mut out = Vec::with_capacity(n);
+        // `n` may be far more than the plan holds: grow as waypoints come.
+        let mut out = Vec::with_capacity(n.min(64));
         for k in 0..n {
             let Some(w) = sim.head() else { break };
             let mut w = w.clone();

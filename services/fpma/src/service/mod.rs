@@ -99,6 +99,10 @@ impl Default for FpmaConfig {
     }
 }
 
+/// Most waypoints the FPMa keeps queued at the VAS: a look-ahead is recomputed after every
+/// input, and the point of it is to be short (late changes take effect).
+pub const MAX_LOOKAHEAD: usize = 1000;
+
 /// Errors loading the configuration file.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigLoadError {
@@ -146,10 +150,11 @@ impl FpmaConfig {
     /// # Errors
     /// The first value out of range.
     pub fn validate(&self) -> Result<(), ConfigLoadError> {
-        if self.lookahead == 0 {
-            return Err(ConfigLoadError::Invalid(
-                "lookahead must be at least 1".into(),
-            ));
+        if !(1..=MAX_LOOKAHEAD).contains(&self.lookahead) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "lookahead must be between 1 and {MAX_LOOKAHEAD}, not {}",
+                self.lookahead
+            )));
         }
         if self.call_timeout_ms < 100 {
             return Err(ConfigLoadError::Invalid("callTimeoutMs below 100".into()));
@@ -634,9 +639,11 @@ mod tests {
         let p = dir.path().join("fpma.xml");
         std::fs::write(&p, r#"<fpma lookahed="5"/>"#).unwrap();
         assert!(FpmaConfig::load(&p).is_err());
-        std::fs::write(&p, r#"<fpma lookahead="0"/>"#).unwrap();
-        let e = FpmaConfig::load(&p).unwrap_err().to_string();
-        assert!(e.contains("lookahead"), "{e}");
+        for bad in ["0", "1000000000"] {
+            std::fs::write(&p, format!(r#"<fpma lookahead="{bad}"/>"#)).unwrap();
+            let e = FpmaConfig::load(&p).unwrap_err().to_string();
+            assert!(e.contains("lookahead must be between 1 and 1000"), "{e}");
+        }
         std::fs::write(&p, r#"<fpma vehicle="aircraft" vas="rover1/vas"/>"#).unwrap();
         let cfg = FpmaConfig::load(&p).unwrap();
         assert_eq!(cfg.vehicle, VehicleKind::Aircraft);
