@@ -1,15 +1,18 @@
 //! `cargo bench --bench shm`: the shared-memory link's figures as JSON lines
 //! `{"metric": ..., "value": ..., "unit": ...}`, with a raw iceoryx2 publish-subscribe
 //! ping-pong measured in the same run as the baseline. The baseline waits the way the link
-//! waits: an iceoryx2 event per message, the receiver sleeping on its listener.
+//! waits: by default an iceoryx2 event per message, the receiver sleeping on its listener
+//! (`shm.var64.*` against `shm.raw_iceoryx2_64.*`); with `wait="spin"` nobody notifies and the
+//! receiver busy-polls its subscriber (`shm.var64.spin.*` against
+//! `shm.raw_iceoryx2_64.spin.*`).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use iceoryx2::prelude::*;
-use marea::config::{LinkConfig, ShmConfig};
-use marea::{NetworkConfig, Node, SendFileOptions};
+use marea::config::{LinkConfig, ShmConfig, ShmWait};
+use marea::{NetworkConfig, Node, SendFileOptions, Service};
 
 type Payload64 = [u64; 8];
 type Ipc = ipc_threadsafe::Service;
@@ -21,11 +24,12 @@ fn metric(name: &str, value: f64, unit: &str) {
     );
 }
 
-fn cfg(node: &str, service: &str) -> NetworkConfig {
+fn cfg(node: &str, service: &str, wait: ShmWait) -> NetworkConfig {
     let mut c = NetworkConfig::ethernet_loopback(node);
-    c.domain = format!("bench-{}", std::process::id());
+    c.domain = format!("bench-{}-{}", std::process::id(), wait.as_str());
     c.links = vec![LinkConfig::Shm(ShmConfig {
         service: service.into(),
+        wait,
         ..ShmConfig::default()
     })];
     c
@@ -42,10 +46,10 @@ type BoxError = Box<dyn std::error::Error + Send + Sync>;
 /// on `tx`. The initiator sends first and times each round trip.
 fn raw_side(
     prefix: &str,
-    rx: &str,
-    tx: &str,
+    (rx, tx): (&str, &str),
     n: usize,
     initiator: bool,
+    wait: ShmWait,
 ) -> Result<Vec<f64>, BoxError> {
     let node = NodeBuilder::new()
         .signal_handling_mode(SignalHandlingMode::Disabled)
@@ -76,10 +80,13 @@ fn raw_side(
     }
     let msg = [7u8; 64];
     let mut out = Vec::with_capacity(n);
+    let spin = wait == ShmWait::Spin;
     let send = || -> Result<(), BoxError> {
         let s = publisher.loan_slice_uninit(64)?.write_from_slice(&msg);
         s.send()?;
-        notifier.notify()?;
+        if !spin {
+            notifier.notify()?;
+        }
         Ok(())
     };
     for _ in 0..n {
@@ -87,11 +94,19 @@ fn raw_side(
         if initiator {
             send()?;
         }
+        let give_up = t + Duration::from_secs(5);
         loop {
             if sub.receive()?.is_some() {
                 break;
             }
-            listener.timed_wait(|_| {}, Duration::from_secs(5))?;
+            if spin {
+                if Instant::now() > give_up {
+                    return Err("no answer within 5 s".into());
+                }
+                std::hint::spin_loop();
+            } else {
+                listener.timed_wait(|_| {}, Duration::from_secs(5))?;
+            }
         }
         if !initiator {
             send()?;
@@ -101,11 +116,11 @@ fn raw_side(
     Ok(out)
 }
 
-fn raw_ping_pong(n: usize) -> Result<Vec<f64>, BoxError> {
-    let prefix = format!("bench-raw-{}", std::process::id());
+fn raw_ping_pong(n: usize, wait: ShmWait) -> Result<Vec<f64>, BoxError> {
+    let prefix = format!("bench-raw-{}-{}", std::process::id(), wait.as_str());
     let p2 = prefix.clone();
-    let echo = std::thread::spawn(move || raw_side(&p2, "ping", "pong", n, false));
-    let mut rtts = raw_side(&prefix, "pong", "ping", n, true)?;
+    let echo = std::thread::spawn(move || raw_side(&p2, ("ping", "pong"), n, false, wait));
+    let mut rtts = raw_side(&prefix, ("pong", "ping"), n, true, wait)?;
     echo.join().map_err(|_| "echo thread panicked")??;
     rtts.sort_by(f64::total_cmp);
     Ok(rtts)
@@ -117,15 +132,9 @@ fn rss_kb(pid: u32) -> Option<u64> {
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
-#[tokio::main]
-async fn main() -> Result<(), BoxError> {
-    let service = format!("bench{}", std::process::id());
-    let a = Node::open(&cfg("bench-a", &service)).await?;
-    let b = Node::open(&cfg("bench-b", &service)).await?;
-    let sa = a.service("a")?;
-    let sb = b.service("b")?;
-
-    // Variable round trip: a publishes ping, b answers pong with the same value.
+/// Variable round trips: `sa` publishes ping, `sb` answers pong with the same value; `n` timed
+/// after 1000 to warm up. Sorted, in microseconds.
+async fn var_rtts(sa: &Service, sb: &Service, n: usize) -> Result<Vec<f64>, BoxError> {
     let ping = sa.publish_variable::<Payload64>("ping")?;
     let pongs = sa.subscribe_variable::<Payload64>("b/pong")?;
     let pong = sb.publish_variable::<Payload64>("pong")?;
@@ -141,7 +150,6 @@ async fn main() -> Result<(), BoxError> {
             }
         }
     });
-    let n = 20_000;
     let mut rtts = Vec::with_capacity(n);
     for i in 0..(n + 1000) {
         let v: Payload64 = [i as u64; 8];
@@ -159,7 +167,34 @@ async fn main() -> Result<(), BoxError> {
     }
     echo.abort();
     rtts.sort_by(f64::total_cmp);
-    let raw = tokio::task::spawn_blocking(move || raw_ping_pong(n)).await??;
+    Ok(rtts)
+}
+
+#[tokio::main]
+async fn main() -> Result<(), BoxError> {
+    let n = 20_000;
+    // Busy-polling first, on nodes of their own that are closed before anything else runs (two
+    // spinning receive threads would take the cores from the rest).
+    let spin_rtts = {
+        let service = format!("bench{}spin", std::process::id());
+        let c = Node::open(&cfg("bench-c", &service, ShmWait::Spin)).await?;
+        let d = Node::open(&cfg("bench-d", &service, ShmWait::Spin)).await?;
+        let (sc, sd) = (c.service("a")?, d.service("b")?);
+        let rtts = var_rtts(&sc, &sd, n).await?;
+        drop((sc, sd));
+        c.shutdown().await;
+        d.shutdown().await;
+        rtts
+    };
+    let raw_spin = tokio::task::spawn_blocking(move || raw_ping_pong(n, ShmWait::Spin)).await??;
+
+    let service = format!("bench{}", std::process::id());
+    let a = Node::open(&cfg("bench-a", &service, ShmWait::Event)).await?;
+    let b = Node::open(&cfg("bench-b", &service, ShmWait::Event)).await?;
+    let sa = a.service("a")?;
+    let sb = b.service("b")?;
+    let rtts = var_rtts(&sa, &sb, n).await?;
+    let raw = tokio::task::spawn_blocking(move || raw_ping_pong(n, ShmWait::Event)).await??;
     metric("shm.var64.rtt_p50_us", percentile(&rtts, 0.5), "us");
     metric("shm.var64.rtt_p99_us", percentile(&rtts, 0.99), "us");
     metric(
@@ -175,6 +210,31 @@ async fn main() -> Result<(), BoxError> {
     metric(
         "shm.var64.rtt_ratio_to_raw",
         percentile(&rtts, 0.5) / percentile(&raw, 0.5),
+        "ratio",
+    );
+    metric(
+        "shm.var64.spin.rtt_p50_us",
+        percentile(&spin_rtts, 0.5),
+        "us",
+    );
+    metric(
+        "shm.var64.spin.rtt_p99_us",
+        percentile(&spin_rtts, 0.99),
+        "us",
+    );
+    metric(
+        "shm.raw_iceoryx2_64.spin.rtt_p50_us",
+        percentile(&raw_spin, 0.5),
+        "us",
+    );
+    metric(
+        "shm.raw_iceoryx2_64.spin.rtt_p99_us",
+        percentile(&raw_spin, 0.99),
+        "us",
+    );
+    metric(
+        "shm.var64.spin.rtt_ratio_to_raw",
+        percentile(&spin_rtts, 0.5) / percentile(&raw_spin, 0.5),
         "ratio",
     );
 
@@ -264,7 +324,7 @@ async fn main() -> Result<(), BoxError> {
         report.size as f64 / 1e6 / secs,
         "MB/s",
     );
-    drop((vars, ev, ping, pongs, sink));
+    drop((vars, ev, sink));
     drop((sa, sb));
     a.shutdown().await;
     b.shutdown().await;

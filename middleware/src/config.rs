@@ -9,7 +9,7 @@
 //!             heartbeatMs="1000" leaseMs="3500" ttl="1">
 //!     <peer address="192.0.2.10:7400"/>
 //!   </ethernet>
-//!   <shm name="local" service="usal"/>
+//!   <shm name="local" service="usal" wait="event"/>
 //!   <serial name="radio" address="/dev/ttyUSB0" baudRate="57600" TimeToResend="1500"
 //!           MaxPacketSize="300" MaxMessageQueue="20" heartbeatMs="5000" leaseMs="20000"/>
 //!   <serialduo name="duo" addressTx="/dev/ttyUSB0" baudRateTx="115200" addressRx="/dev/ttyUSB1"
@@ -34,6 +34,8 @@ use quick_xml::errors::IllFormedError;
 use quick_xml::events::attributes::AttrError;
 use quick_xml::events::{BytesStart, Event};
 use quick_xml::Reader;
+
+pub use crate::link::shm::ShmWait;
 
 /// The discovery domain used when `<network>` has no `domain` attribute.
 pub const DEFAULT_DOMAIN: &str = "usal";
@@ -130,6 +132,9 @@ pub struct ShmConfig {
     pub heartbeat: Duration,
     /// A peer silent this long is gone (`leaseMs`), default 3.5 × heartbeat.
     pub lease: Duration,
+    /// How the link's receive thread waits for messages (`wait`: `event`, the default, sleeps
+    /// until a writer wakes it; `spin` busy-polls, so writers never make a system call).
+    pub wait: ShmWait,
 }
 
 impl Default for ShmConfig {
@@ -139,6 +144,7 @@ impl Default for ShmConfig {
             service: "usal".to_owned(),
             heartbeat: Duration::from_millis(SHM_HEARTBEAT_MS),
             lease: Duration::from_millis(lease_ms(SHM_HEARTBEAT_MS, SHM_LEASE)),
+            wait: ShmWait::Event,
         }
     }
 }
@@ -688,6 +694,7 @@ const INTERFACE_SYNTAX: &str = "an IPv4 address like 127.0.0.1";
 const PEER_SYNTAX: &str =
     "a socket address with a specific IP and non-zero port like 192.0.2.10:7400";
 const PORT_SYNTAX: &str = "a serial port path like /dev/ttyUSB0 or COM3";
+const WAIT_SYNTAX: &str = "event or spin";
 
 const LINK_ELEMENTS: &[&str] = &["ethernet", "shm", "serial", "serialduo"];
 const PEER_ELEMENTS: &[&str] = &["peer"];
@@ -705,7 +712,14 @@ const ETHERNET_ATTRS: &[&str] = &[
     "ttl",
 ];
 const PEER_ATTRS: &[&str] = &["address"];
-const SHM_ATTRS: &[&str] = &["name", "enabled", "service", "heartbeatMs", "leaseMs"];
+const SHM_ATTRS: &[&str] = &[
+    "name",
+    "enabled",
+    "service",
+    "heartbeatMs",
+    "leaseMs",
+    "wait",
+];
 const SERIAL_ATTRS: &[&str] = &[
     "name",
     "enabled",
@@ -1264,6 +1278,7 @@ impl<'a> Parser<'a> {
             .value(&attrs, "service", |s| parse_name(s, NAME_SYNTAX))?
             .unwrap_or_else(|| ShmConfig::default().service);
         let (heartbeat, lease) = self.timing(&attrs, SHM_HEARTBEAT_MS, SHM_LEASE)?;
+        let wait = self.value(&attrs, "wait", parse_wait)?.unwrap_or_default();
         self.no_children("shm", element)?;
         Ok(ParsedLink {
             link: LinkConfig::Shm(ShmConfig {
@@ -1271,6 +1286,7 @@ impl<'a> Parser<'a> {
                 service,
                 heartbeat,
                 lease,
+                wait,
             }),
             enabled,
             name_at,
@@ -1441,6 +1457,14 @@ fn parse_peer(s: &str) -> Result<SocketAddr, Invalid> {
     }
 }
 
+fn parse_wait(s: &str) -> Result<ShmWait, Invalid> {
+    match s.trim() {
+        "event" => Ok(ShmWait::Event),
+        "spin" => Ok(ShmWait::Spin),
+        _ => Err(Invalid::Syntax(WAIT_SYNTAX)),
+    }
+}
+
 fn parse_port(s: &str) -> Result<String, Invalid> {
     let s = s.trim();
     if s.is_empty() || s.chars().any(char::is_control) {
@@ -1547,7 +1571,7 @@ mod tests {
   <ethernet name="lan" bind="0.0.0.0:0" multicast="239.255.77.1:7477" interface="127.0.0.1" heartbeatMs="1000" leaseMs="3500" ttl="1">
     <peer address="192.0.2.10:7400"/>
   </ethernet>
-  <shm name="local" service="usal"/>
+  <shm name="local" service="usal" wait="spin"/>
   <serial name="radio" address="/dev/ttyUSB0" baudRate="57600" TimeToResend="1500" MaxPacketSize="300" MaxMessageQueue="20" heartbeatMs="5000" leaseMs="20000"/>
   <serialduo name="duo" addressTx="/dev/ttyUSB2" baudRateTx="115200" addressRx="/dev/ttyUSB1" baudRateRx="115200" TimeToResend="1500" MaxPacketSize="300" MaxMessageQueue="20"/>
 </network>
@@ -1619,6 +1643,7 @@ mod tests {
                     service: "usal".into(),
                     heartbeat: ms(1000),
                     lease: ms(3500),
+                    wait: ShmWait::Spin,
                 }),
                 LinkConfig::Serial(SerialConfig {
                     name: "radio".into(),
@@ -1682,6 +1707,7 @@ mod tests {
                     service: "usal".into(),
                     heartbeat: ms(1000),
                     lease: ms(3500),
+                    wait: ShmWait::Event,
                 }),
                 LinkConfig::Serial(SerialConfig {
                     name: "serial0".into(),
@@ -2011,6 +2037,7 @@ mod tests {
             (r#"<shm enabled="yes"/>"#, "attribute enabled: expected true or false, found \"yes\""),
             (r#"<shm name="my link"/>"#, "attribute name: expected a name of letters, digits, '_' or '-', found \"my link\""),
             (r#"<shm service=""/>"#, "attribute service: expected a name of letters, digits, '_' or '-', found \"\""),
+            (r#"<shm wait="poll"/>"#, "attribute wait: expected event or spin, found \"poll\""),
             (r#"<serial address="  "/>"#, "attribute address: expected a serial port path like /dev/ttyUSB0 or COM3, found \"  \""),
             (r#"<serial address="a" baudRate="fast"/>"#, "attribute baudRate: expected a positive integer in bits per second, found \"fast\""),
             (r#"<serial address="a" MaxPacketSize="1.5"/>"#, "attribute MaxPacketSize: expected a positive integer in bytes, found \"1.5\""),

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use marea::link::serial::stp::StpConfig;
 use marea::link::serial::SerialLink;
-use marea::link::shm::{ShmLink, ShmLinkOptions};
+use marea::link::shm::{ShmLink, ShmLinkOptions, ShmWait};
 use marea::link::udp::{UdpLink, UdpLinkOptions};
 use marea::link::{Link, LinkHandler, LinkSendError, Outgoing, PeerAddr};
 use marea::transport::arq::ArqConfig;
@@ -177,6 +177,7 @@ async fn shm_pair() -> Pair {
         name: name.into(),
         service: service.clone(),
         scan: Duration::from_millis(100),
+        wait: ShmWait::Event,
     };
     let (ra, rb) = (Arc::new(Recorder::default()), Arc::new(Recorder::default()));
     let a = ShmLink::open(0, opts("a"), ra.clone(), &tasks, cancel.child_token())

@@ -12,13 +12,14 @@ use tokio::sync::{oneshot, watch};
 use super::errors::{FileSendError, RecvError};
 use super::service::Declared;
 use crate::codec::encode_message;
-use crate::link::{LinkSendError, Outgoing};
+use crate::link::{LinkSendError, Outgoing, DEFAULT_FILE_CHUNK};
 use crate::node::files::{hash_file, Control, ReceivedFile, SinkMailbox};
 use crate::node::{LocalOffer, NodeInner};
 use crate::protocol::{FileVerdict, ItemKind, Message, NodeId};
 
-/// Content bytes per chunk: a chunk and its headers fit one Ethernet-sized datagram.
-const CHUNK: usize = 1300;
+/// Most bytes in flight of one transfer, whatever its window in chunks: with the large chunks of
+/// shared memory, 128 chunks would be 32 MiB read ahead of the receiver.
+const MAX_WINDOW_BYTES: usize = 16 << 20;
 
 /// A sink accepting files; dropping it withdraws the sink.
 pub struct FileSink {
@@ -70,7 +71,7 @@ impl FileSink {
 pub struct SendFileOptions {
     /// How long to keep looking for the sink and retrying after the receiver disappears.
     pub retry_for: Duration,
-    /// Chunks in flight.
+    /// Chunks in flight (at most 16 MiB).
     pub window: usize,
 }
 
@@ -189,7 +190,9 @@ impl Sender {
         }
     }
 
-    fn find_sink(&self) -> Option<(NodeId, String, u32)> {
+    /// The peer to send to, the receiving node's name, the sink's id there, and whether the
+    /// receiver is that peer itself (not a node behind a gateway).
+    fn find_sink(&self) -> Option<(NodeId, String, u32, bool)> {
         self.node.peers.iter().find_map(|p| {
             p.offers
                 .iter()
@@ -199,7 +202,7 @@ impl Sender {
                 // Through a gateway, the receiver is the node behind it.
                 .map(|(id, o)| {
                     let name = o.origin_name.as_ref().unwrap_or(&p.name);
-                    (p.id, name.to_string(), *id)
+                    (p.id, name.to_string(), *id, o.origin.is_none())
                 })
         })
     }
@@ -230,7 +233,7 @@ impl Sender {
         let mut changed = self.node.changed.subscribe();
         let mut last = String::new();
         loop {
-            let Some((peer, peer_name, sink)) = self.find_sink() else {
+            let Some((peer, peer_name, sink, direct)) = self.find_sink() else {
                 let wait = tokio::select! {
                     _ = self.node.cancel.cancelled() => return Err(FileSendError::Closed),
                     r = tokio::time::timeout_at(give_up, changed.changed()) => r,
@@ -253,7 +256,14 @@ impl Sender {
             };
             self.progress.send_modify(|p| p.attempts += 1);
             let attempt = self
-                .attempt(peer, &peer_name, sink, transfer, &name, size, hash, started)
+                .attempt(
+                    (peer, &peer_name, sink, direct),
+                    transfer,
+                    &name,
+                    size,
+                    hash,
+                    started,
+                )
                 .await;
             self.node.transfers.unregister_sender(transfer);
             match attempt {
@@ -275,12 +285,9 @@ impl Sender {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
     async fn attempt(
         &self,
-        peer: NodeId,
-        peer_name: &str,
-        sink: u32,
+        (peer, peer_name, sink, direct): (NodeId, &str, u32, bool),
         transfer: u64,
         name: &str,
         size: u64,
@@ -345,9 +352,17 @@ impl Sender {
         if let Err(e) = file.seek(std::io::SeekFrom::Start(offset)).await {
             return Attempt::Done(Err(self.io(e)));
         }
+        // Chunks as large as the link to the receiver carries best. Through a gateway the chunks
+        // are relayed as they are onto links we cannot see (a radio), so they keep the size
+        // every link carries.
+        let chunk = match self.node.links().get(link) {
+            Some(l) if direct => l.file_chunk().max(1),
+            _ => DEFAULT_FILE_CHUNK,
+        };
         // The window moves on the receiver's own progress acknowledgements (end to end, also
         // through gateways); the first hop's acknowledgements only reveal a broken link early.
-        let window_bytes = (self.options.window.max(1) * CHUNK) as u64;
+        let window_bytes =
+            (self.options.window.max(1) * chunk).min(MAX_WINDOW_BYTES.max(chunk)) as u64;
         // How long without progress before the attempt is abandoned (and resumed): generous
         // enough for the receiver to hash a large file once everything arrived.
         let stall = Duration::from_secs(30) + Duration::from_millis(size / 50_000);
@@ -355,7 +370,6 @@ impl Sender {
         let mut acked = offset;
         let mut pos = offset;
         let mut inflight: VecDeque<oneshot::Receiver<Result<(), LinkSendError>>> = VecDeque::new();
-        let mut buf = vec![0u8; CHUNK];
         enum Heard {
             Cancelled,
             Link(Result<Result<(), LinkSendError>, oneshot::error::RecvError>),
@@ -364,15 +378,16 @@ impl Sender {
         }
         loop {
             while pos < size && pos - acked < window_bytes {
-                let want = CHUNK.min((size - pos) as usize);
-                if let Err(e) = file.read_exact(&mut buf[..want]).await {
+                let want = chunk.min((size - pos) as usize);
+                let mut data = vec![0u8; want];
+                if let Err(e) = file.read_exact(&mut data).await {
                     return Attempt::Done(Err(self.io(e)));
                 }
                 let (tx, rx) = oneshot::channel();
                 let msg = encode_message(&Message::FileChunk {
                     transfer,
                     offset: pos,
-                    data: buf[..want].to_vec(),
+                    data,
                 });
                 self.node.send_to(
                     link,

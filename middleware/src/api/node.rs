@@ -261,6 +261,7 @@ impl Node {
                             name: s.name.clone(),
                             service: s.service.clone(),
                             scan: s.heartbeat,
+                            wait: s.wait,
                         },
                         handler,
                         &inner.tasks,

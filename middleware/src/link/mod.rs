@@ -107,6 +107,10 @@ pub struct LinkStats {
     pub fast_queued: u64,
 }
 
+/// Content bytes per file chunk on links that do not say otherwise: a chunk and its headers fit
+/// one Ethernet-sized datagram, and a serial link fragments it into a few packets.
+pub const DEFAULT_FILE_CHUNK: usize = 1300;
+
 /// A medium carrying node messages.
 pub trait Link: Send + Sync + 'static {
     /// The link's name from network.xml.
@@ -122,4 +126,10 @@ pub trait Link: Send + Sync + 'static {
     fn close_peer(&self, to: PeerAddr);
     /// Counters.
     fn stats(&self) -> LinkStats;
+    /// Content bytes per chunk of a file sent to a peer reached directly on this link (one
+    /// chunk and its headers should travel as one unit of the medium). A transfer through a
+    /// gateway uses [`DEFAULT_FILE_CHUNK`], which every link carries.
+    fn file_chunk(&self) -> usize {
+        DEFAULT_FILE_CHUNK
+    }
 }

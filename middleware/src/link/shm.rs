@@ -39,9 +39,11 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::{
-    ipc_threadsafe, AllocationStrategy, BackpressureStrategy, CallbackProgression, LogLevel,
-    NodeName, ServiceName, SignalHandlingMode,
+    ipc_threadsafe, AllocationStrategy, AttributeSpecifier, BackpressureStrategy,
+    CallbackProgression, LogLevel, NodeName, ServiceName, SignalHandlingMode,
 };
+use iceoryx2::service::attribute::{AttributeKey, AttributeValue};
+use iceoryx2::service::port_factory::PortFactory;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
@@ -51,11 +53,20 @@ type Ipc = ipc_threadsafe::Service;
 type Pub = Publisher<Ipc, [u8], ()>;
 type Sub = Subscriber<Ipc, [u8], ()>;
 
-/// Largest sample written to shared memory, header included. Longer safe messages are
-/// fragmented; longer fast messages travel on the safe path.
+/// Largest sample written to the fast and safe inboxes, header included. Longer messages go
+/// through the bulk inbox (fast ones riding the safe path).
 pub const FRAME_MAX: usize = 8192;
+/// Largest sample written to a bulk inbox, header included; longer messages are cut into pieces
+/// of this size.
+pub const BULK_MAX: usize = 256 << 10;
+/// Content bytes of a file chunk sent to a peer on this link: one chunk, its message header and
+/// the frame header fit one bulk sample.
+pub const FILE_CHUNK: usize = BULK_MAX - 1024;
 /// Frames a safe inbox buffers per writer before refusing more.
 const SAFE_BUFFER: usize = 128;
+/// Samples a bulk inbox buffers per writer before refusing more. With [`BULK_MAX`] this bounds a
+/// writer's bulk segment to a few MiB, created only once it first sends something large.
+const BULK_BUFFER: usize = 8;
 /// Frames a fast inbox buffers per writer before overwriting the oldest.
 const FAST_BUFFER: usize = 64;
 /// Most peers (same-host links of the same `service`) one inbox accepts.
@@ -69,6 +80,39 @@ const MAX_MESSAGE: usize = 256 << 20;
 const RETRY: Duration = Duration::from_millis(1);
 /// Samples taken from one inbox buffer per pass, so acknowledgements flow during bursts.
 const PASS_BUDGET: usize = 512;
+/// `wait="spin"`: after the last frame, poll without pause this long, ...
+const SPIN_FOR: Duration = Duration::from_millis(1);
+/// ... then poll yielding the CPU between passes until this long, ...
+const YIELD_UNTIL: Duration = Duration::from_millis(10);
+/// ... then poll once per this period (a sleep on the wake event) until the next frame.
+const PARK: Duration = Duration::from_millis(1);
+/// The wake event's attribute telling writers how the inbox's reader waits.
+const WAIT_ATTRIBUTE: &str = "marea.wait";
+
+/// How a link's receive thread waits for frames (`wait` on `<shm>`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum ShmWait {
+    /// Sleep on the inbox's wake event: idle costs nothing, and every message costs its writer
+    /// one notification (a datagram to the sleeping reader) and the reader one wake-up.
+    #[default]
+    Event,
+    /// Busy-poll the inbox: writers never notify, so sending is a loan, a copy and an atomic
+    /// store, and the reader sees a message as soon as it is written. After the last frame the
+    /// reader spins for 1 ms, then yields the CPU between polls until 10 ms, then polls once per
+    /// millisecond (a message arriving into an idle inbox may wait up to 1 ms). It keeps one
+    /// core busy while traffic flows: for the lowest latency where a core can be spared.
+    Spin,
+}
+
+impl ShmWait {
+    /// The attribute value naming this mode.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ShmWait::Event => "event",
+            ShmWait::Spin => "spin",
+        }
+    }
+}
 
 /// How the shared-memory link is set up (taken from `<shm>` in network.xml).
 #[derive(Debug, Clone)]
@@ -79,6 +123,8 @@ pub struct ShmLinkOptions {
     pub service: String,
     /// Period of the scan for new and dead same-host nodes.
     pub scan: Duration,
+    /// How the receive thread waits for frames.
+    pub wait: ShmWait,
 }
 
 /// Why the shared-memory link could not be opened.
@@ -125,18 +171,26 @@ pub enum ShmLinkOpenError {
 ///  +------+--------------------+----------+--------------------+------------+
 ///  | kind | sender id (u64 LE) | session  | seq (u64 LE)       | body ...   |  Safe, SafeMore
 ///  +------+--------------------+----------+--------------------+------------+
-///  | kind | sender id (u64 LE) | session  | seq (u64 LE)       |               Ack (cumulative)
-///  +------+--------------------+----------+--------------------+
+///  | kind | sender id (u64 LE) | session  | seq (u64 LE)       |               Ack (cumulative),
+///  +------+--------------------+----------+--------------------+               Bulk, BulkMore
+///  | kind | sender id (u64 LE) | session  | seq (u64 LE)       | body ...   |  BulkData
+///  +------+--------------------+----------+--------------------+------------+
 ///  | kind | sender id (u64 LE) | body ...                      |               Announce, Fast
 ///  +------+--------------------+-------------------------------+
 /// ```
 /// `SafeMore` is a fragment followed by more fragments of the same message; `Safe` ends one.
+/// `Bulk` and `BulkMore` are the same in the safe inbox for a fragment whose body travels in the
+/// bulk inbox as the `BulkData` sample with the same sender, session and sequence number,
+/// written just before them.
 mod frame {
     pub const ANNOUNCE: u8 = 1;
     pub const FAST: u8 = 2;
     pub const SAFE: u8 = 3;
     pub const SAFE_MORE: u8 = 4;
     pub const ACK: u8 = 5;
+    pub const BULK: u8 = 6;
+    pub const BULK_MORE: u8 = 7;
+    pub const BULK_DATA: u8 = 8;
     /// Kind and sender.
     pub const BASE: usize = 9;
     /// Kind, sender, session and sequence number.
@@ -156,6 +210,18 @@ mod frame {
         Ack {
             session: u32,
             seq: u64,
+        },
+        /// A fragment whose body is in the bulk inbox.
+        Bulk {
+            session: u32,
+            seq: u64,
+            more: bool,
+        },
+        /// The body of a `Bulk` fragment.
+        BulkData {
+            session: u32,
+            seq: u64,
+            body: &'a [u8],
         },
     }
 
@@ -183,7 +249,7 @@ mod frame {
     /// Header length of a frame kind.
     pub fn header_len(kind: u8) -> usize {
         match kind {
-            SAFE | SAFE_MORE | ACK => SEQUENCED,
+            SAFE | SAFE_MORE | ACK | BULK | BULK_MORE | BULK_DATA => SEQUENCED,
             _ => BASE,
         }
     }
@@ -223,6 +289,22 @@ mod frame {
                 let (session, seq) = sequenced()?;
                 Frame::Ack { session, seq }
             }
+            BULK | BULK_MORE => {
+                let (session, seq) = sequenced()?;
+                Frame::Bulk {
+                    session,
+                    seq,
+                    more: kind == BULK_MORE,
+                }
+            }
+            BULK_DATA => {
+                let (session, seq) = sequenced()?;
+                Frame::BulkData {
+                    session,
+                    seq,
+                    body: &b[SEQUENCED..],
+                }
+            }
             k => return Err(FrameDecodeError::UnknownKind(k)),
         };
         Ok((sender, f))
@@ -234,6 +316,30 @@ struct Conn {
     fast: Pub,
     safe: Pub,
     wake: Notifier<Ipc>,
+    /// The peer busy-polls its inbox (`wait="spin"`): never notify it.
+    spins: bool,
+}
+
+impl Conn {
+    /// Wakes the peer's receive thread if it sleeps on its wake event. An error means the peer
+    /// is gone, which the scan and the node's lease notice.
+    fn wake(&self) {
+        if !self.spins {
+            let _ = self.wake.notify();
+        }
+    }
+}
+
+/// The writing side of a peer's bulk inbox, opened when the first large message is sent (its
+/// shared-memory segment is several MiB, so peers that only exchange small messages never pay
+/// for it).
+enum Bulk {
+    Closed,
+    /// The receive thread was asked to open it.
+    Opening,
+    Open(Pub),
+    /// Opening failed: large messages are fragmented into the safe inbox instead.
+    Unavailable,
 }
 
 /// A safe message not yet wholly written into the peer's inbox.
@@ -244,11 +350,28 @@ struct Pending {
     done: Option<SafeCompletion>,
     /// A large fast message riding the safe path (dropped first when the backlog is long).
     fast: bool,
+    /// The body of the fragment at `sent` is in the bulk inbox; its `Bulk` frame is not yet.
+    bulk_written: bool,
+}
+
+impl Pending {
+    fn new(msg: Vec<u8>, done: Option<SafeCompletion>, fast: bool) -> Self {
+        Pending {
+            msg,
+            sent: 0,
+            done,
+            fast,
+            bulk_written: false,
+        }
+    }
 }
 
 /// What this link sends to one peer.
 struct PeerTx {
+    /// The peer's shared-memory identity.
+    id: u64,
     conn: Option<Conn>,
+    bulk: Bulk,
     session: u32,
     next_seq: u64,
     /// Fast messages waiting for the inbox to be opened.
@@ -261,9 +384,11 @@ struct PeerTx {
 }
 
 impl PeerTx {
-    fn new() -> Self {
+    fn new(id: u64) -> Self {
         PeerTx {
+            id,
             conn: None,
+            bulk: Bulk::Closed,
             session: rand::random(),
             next_seq: 0,
             fast_backlog: VecDeque::new(),
@@ -293,12 +418,28 @@ struct RxState {
     partial: Vec<u8>,
     /// Highest sequence number delivered and not yet acknowledged.
     ack: Option<u64>,
+    /// A fragment of the message being reassembled went missing: drop the message at its end.
+    torn: bool,
+}
+
+impl RxState {
+    fn new(session: u32, expected: u64) -> Self {
+        RxState {
+            session,
+            expected,
+            partial: Vec::new(),
+            ack: None,
+            torn: false,
+        }
+    }
 }
 
 /// Requests to the receive thread.
 enum Ctl {
     /// Open the inbox of this peer.
     Open(u64),
+    /// Open the bulk inbox of this peer.
+    OpenBulk(u64),
     /// Forget the receive state of this peer (it was closed).
     Forget(u64),
 }
@@ -324,6 +465,7 @@ pub struct ShmLink {
     ctl: Mutex<mpsc::Sender<Ctl>>,
     /// Wakes our own receive thread (control requests, shutdown).
     self_wake: Notifier<Ipc>,
+    wait: ShmWait,
     stop: AtomicBool,
     handler: Arc<dyn LinkHandler>,
     counters: Counters,
@@ -348,6 +490,7 @@ struct Inbox {
     node: IoxNode<Ipc>,
     safe: Sub,
     fast: Sub,
+    bulk: Sub,
     listener: Listener<Ipc>,
     self_wake: Notifier<Ipc>,
 }
@@ -387,6 +530,8 @@ impl Inbox {
         let svc = &options.service;
         let open_pubsub = |part: &str, overflow: bool, buffer: usize| {
             let n = service_name(&inbox_name(svc, id, part)).map_err(|e| inbox_err(part, e))?;
+            // The service only records its settings; the memory is the writers', allocated
+            // when each opens a publisher.
             let s = pubsub_builder(&node, &n, overflow, buffer)
                 .create()
                 .map_err(|e| inbox_err(part, format!("{e:?}")))?;
@@ -397,9 +542,13 @@ impl Inbox {
         };
         let safe = open_pubsub("safe", false, SAFE_BUFFER)?;
         let fast = open_pubsub("fast", true, FAST_BUFFER)?;
+        let bulk = open_pubsub("bulk", false, BULK_BUFFER)?;
         let wn = service_name(&inbox_name(svc, id, "wake")).map_err(|e| inbox_err("wake", e))?;
+        // Writers read how this inbox's reader waits from the wake event's attributes.
+        let attributes =
+            wait_attribute(options.wait).map_err(|e| inbox_err("wake attribute", e))?;
         let wake = event_builder(&node, &wn)
-            .create()
+            .create_with_attributes(&attributes)
             .map_err(|e| inbox_err("wake", format!("{e:?}")))?;
         let listener = wake
             .listener_builder()
@@ -413,6 +562,7 @@ impl Inbox {
             node,
             safe,
             fast,
+            bulk,
             listener,
             self_wake,
         })
@@ -435,6 +585,17 @@ fn pubsub_builder<'a>(
         .max_nodes(MAX_PEERS + 1)
 }
 
+fn wait_key() -> Result<AttributeKey, String> {
+    AttributeKey::try_from(WAIT_ATTRIBUTE).map_err(|e| format!("{e:?}"))
+}
+
+fn wait_attribute(wait: ShmWait) -> Result<AttributeSpecifier, String> {
+    let value = AttributeValue::try_from(wait.as_str()).map_err(|e| format!("{e:?}"))?;
+    AttributeSpecifier::new()
+        .define(&wait_key()?, &value)
+        .map_err(|e| format!("{e:?}"))
+}
+
 fn event_builder<'a>(
     node: &'a IoxNode<Ipc>,
     name: &'a ServiceName,
@@ -446,31 +607,49 @@ fn event_builder<'a>(
         .max_nodes(MAX_PEERS + 1)
 }
 
+/// Opens a publisher on part `part` of peer `id`'s inbox, its samples up to `max` bytes.
+fn open_pub(
+    node: &IoxNode<Ipc>,
+    service: &str,
+    id: u64,
+    (part, overflow, buffer, max): (&str, bool, usize, usize),
+) -> Result<Pub, String> {
+    let n = service_name(&inbox_name(service, id, part))?;
+    let s = pubsub_builder(node, &n, overflow, buffer)
+        .open()
+        .map_err(|e| format!("{part}: {e:?}"))?;
+    s.publisher_builder()
+        .initial_max_slice_len(max)
+        .allocation_strategy(AllocationStrategy::Static)
+        .max_loaned_samples(2)
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .create()
+        .map_err(|e| format!("{part} publisher: {e:?}"))
+}
+
 /// Opens the writing side of peer `id`'s inbox (it must exist).
 fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, String> {
-    let open_pub = |part: &str, overflow: bool, buffer: usize| -> Result<Pub, String> {
-        let n = service_name(&inbox_name(service, id, part))?;
-        let s = pubsub_builder(node, &n, overflow, buffer)
-            .open()
-            .map_err(|e| format!("{part}: {e:?}"))?;
-        s.publisher_builder()
-            .initial_max_slice_len(FRAME_MAX)
-            .allocation_strategy(AllocationStrategy::Static)
-            .max_loaned_samples(2)
-            .backpressure_strategy(BackpressureStrategy::DiscardData)
-            .create()
-            .map_err(|e| format!("{part} publisher: {e:?}"))
-    };
-    let safe = open_pub("safe", false, SAFE_BUFFER)?;
-    let fast = open_pub("fast", true, FAST_BUFFER)?;
+    let safe = open_pub(node, service, id, ("safe", false, SAFE_BUFFER, FRAME_MAX))?;
+    let fast = open_pub(node, service, id, ("fast", true, FAST_BUFFER, FRAME_MAX))?;
     let wn = service_name(&inbox_name(service, id, "wake"))?;
     let wake = event_builder(node, &wn)
         .open()
-        .map_err(|e| format!("wake: {e:?}"))?
+        .map_err(|e| format!("wake: {e:?}"))?;
+    // An inbox without the attribute (or with a mode we do not know) is woken on every send.
+    let spins = wake
+        .attributes()
+        .key_value(&wait_key()?, 0)
+        .is_some_and(|v| v.to_string() == ShmWait::Spin.as_str());
+    let wake = wake
         .notifier_builder()
         .create()
         .map_err(|e| format!("wake notifier: {e:?}"))?;
-    Ok(Conn { fast, safe, wake })
+    Ok(Conn {
+        fast,
+        safe,
+        wake,
+        spins,
+    })
 }
 
 /// Writes one frame into `publisher`. Returns whether the inbox took it (a non-overflowing
@@ -511,10 +690,12 @@ impl ShmLink {
             node,
             safe,
             fast,
+            bulk,
             listener,
             self_wake,
         } = inbox;
         let (ctl_tx, ctl_rx) = mpsc::channel();
+        let opts_wait = options.wait;
         let link = Arc::new(ShmLink {
             index,
             options,
@@ -522,6 +703,7 @@ impl ShmLink {
             peers: Mutex::new(HashMap::new()),
             ctl: Mutex::new(ctl_tx),
             self_wake,
+            wait: opts_wait,
             stop: AtomicBool::new(false),
             handler,
             counters: Counters::default(),
@@ -531,6 +713,8 @@ impl ShmLink {
             node,
             safe,
             fast,
+            bulk,
+            stash: HashMap::new(),
             listener,
             ctl: ctl_rx,
             rx: HashMap::new(),
@@ -583,7 +767,10 @@ impl ShmLink {
 
     fn request(&self, c: Ctl) {
         let _ = lock(&self.ctl).send(c);
-        self.wake_self();
+        // A spinning receive thread polls its requests on every pass.
+        if self.wait == ShmWait::Event {
+            self.wake_self();
+        }
     }
 
     fn peer(&self, id: u64, create: bool) -> Option<Arc<Mutex<PeerTx>>> {
@@ -594,7 +781,7 @@ impl ShmLink {
         if !create || peers.len() >= MAX_PEERS || id == self.id {
             return None;
         }
-        let p = Arc::new(Mutex::new(PeerTx::new()));
+        let p = Arc::new(Mutex::new(PeerTx::new(id)));
         peers.insert(id, p.clone());
         Some(p)
     }
@@ -608,9 +795,15 @@ impl ShmLink {
 
     /// Writes as much of the safe backlog as the peer's inbox takes. Returns whether anything
     /// was written (the peer then needs waking).
+    ///
+    /// A fragment longer than a safe frame carries its body in the bulk inbox: the body first
+    /// (a `BulkData` sample), then its `Bulk` frame in the safe inbox, so the reader, meeting
+    /// the frame in order, finds the body already there.
     fn flush_safe(&self, st: &mut PeerTx) -> bool {
         let PeerTx {
+            id,
             conn,
+            bulk,
             session,
             next_seq,
             safe_backlog,
@@ -621,21 +814,62 @@ impl ShmLink {
         let Some(conn) = conn.as_ref() else {
             return false;
         };
-        let body_max = FRAME_MAX - frame::SEQUENCED;
+        let inline_max = FRAME_MAX - frame::SEQUENCED;
+        let bulk_max = BULK_MAX - frame::SEQUENCED;
         let mut wrote = false;
         while let Some(p) = safe_backlog.front_mut() {
-            let n = body_max.min(p.msg.len() - p.sent);
+            let left = p.msg.len() - p.sent;
+            let bulk_pub = if left > inline_max {
+                match bulk {
+                    Bulk::Open(b) => Some(&*b),
+                    Bulk::Unavailable => None,
+                    Bulk::Opening => break,
+                    Bulk::Closed => {
+                        *bulk = Bulk::Opening;
+                        self.request(Ctl::OpenBulk(*id));
+                        break;
+                    }
+                }
+            } else {
+                None
+            };
+            let n = left.min(if bulk_pub.is_some() {
+                bulk_max
+            } else {
+                inline_max
+            });
             let more = p.sent + n < p.msg.len();
-            let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
             let body = &p.msg[p.sent..p.sent + n];
-            if !put(&conn.safe, kind, self.id, *session, *next_seq, body) {
+            let written = match bulk_pub {
+                Some(b) => {
+                    if !p.bulk_written {
+                        if !put(b, frame::BULK_DATA, self.id, *session, *next_seq, body) {
+                            *blocked = true;
+                            self.counters.retransmitted.fetch_add(1, Ordering::Relaxed);
+                            break;
+                        }
+                        self.count_out(frame::SEQUENCED + n);
+                        p.bulk_written = true;
+                    }
+                    let kind = if more { frame::BULK_MORE } else { frame::BULK };
+                    put(&conn.safe, kind, self.id, *session, *next_seq, &[])
+                        .then_some(frame::SEQUENCED)
+                }
+                None => {
+                    let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
+                    put(&conn.safe, kind, self.id, *session, *next_seq, body)
+                        .then_some(frame::SEQUENCED + n)
+                }
+            };
+            let Some(bytes) = written else {
                 *blocked = true;
                 self.counters.retransmitted.fetch_add(1, Ordering::Relaxed);
                 break;
-            }
-            self.count_out(frame::SEQUENCED + n);
+            };
+            self.count_out(bytes);
             wrote = true;
             p.sent += n;
+            p.bulk_written = false;
             if !more {
                 if let Some(done) = p.done.take() {
                     unacked.push_back((*next_seq, done));
@@ -660,12 +894,7 @@ impl ShmLink {
                     wrote = true;
                 }
             } else {
-                st.safe_backlog.push_back(Pending {
-                    msg,
-                    sent: 0,
-                    done: None,
-                    fast: true,
-                });
+                st.safe_backlog.push_back(Pending::new(msg, None, true));
             }
         }
         st.blocked = false;
@@ -677,9 +906,7 @@ impl ShmLink {
 
     fn notify(&self, st: &PeerTx) {
         if let Some(c) = &st.conn {
-            // Only a sleeping receiver costs a syscall; an error means it is gone, which the
-            // scan and the node's lease notice.
-            let _ = c.wake.notify();
+            c.wake();
         }
     }
 
@@ -717,12 +944,7 @@ impl ShmLink {
             self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
             return;
         }
-        st.safe_backlog.push_back(Pending {
-            msg,
-            sent: 0,
-            done: None,
-            fast: true,
-        });
+        st.safe_backlog.push_back(Pending::new(msg, None, true));
         if !st.blocked && self.flush_safe(st) {
             self.notify(st);
         }
@@ -756,12 +978,7 @@ impl Link for ShmLink {
         match out {
             Outgoing::Fast { coalesce, msg } => self.fast_send(&mut st, coalesce, msg),
             Outgoing::Safe { msg, done } => {
-                st.safe_backlog.push_back(Pending {
-                    msg,
-                    sent: 0,
-                    done,
-                    fast: false,
-                });
+                st.safe_backlog.push_back(Pending::new(msg, done, false));
                 if !st.blocked && self.flush_safe(&mut st) {
                     self.notify(&st);
                 }
@@ -783,7 +1000,7 @@ impl Link for ShmLink {
             if let Some(c) = &st.conn {
                 if put(&c.fast, frame::ANNOUNCE, self.id, 0, 0, msg) {
                     self.count_out(frame::BASE + msg.len());
-                    let _ = c.wake.notify();
+                    c.wake();
                 }
             }
         }
@@ -815,6 +1032,29 @@ impl Link for ShmLink {
             ..LinkStats::default()
         }
     }
+
+    fn file_chunk(&self) -> usize {
+        FILE_CHUNK
+    }
+}
+
+/// A bulk body found for a `Bulk` frame.
+enum BulkBody {
+    /// Still in shared memory.
+    Sample(iceoryx2::sample::Sample<Ipc, [u8], ()>),
+    /// Copied out of it earlier (stashed while looking for another writer's).
+    Copy(Vec<u8>),
+}
+
+/// How a bulk sample relates to the one looked for.
+enum BulkMatch {
+    Match,
+    /// Of a closed session, or before the one looked for: never wanted again.
+    Stale,
+    /// After the one looked for, which is then missing.
+    Later,
+    /// Another writer's.
+    Other(u64),
 }
 
 /// The receive thread: owns the iceoryx2 node and the inbox.
@@ -823,6 +1063,10 @@ struct Receiver {
     node: IoxNode<Ipc>,
     safe: Sub,
     fast: Sub,
+    bulk: Sub,
+    /// Bulk samples of one writer met while looking for another's (copied, so the writer gets
+    /// its memory back), in the order written.
+    stash: HashMap<u64, VecDeque<Vec<u8>>>,
     listener: Listener<Ipc>,
     ctl: mpsc::Receiver<Ctl>,
     rx: HashMap<u64, RxState>,
@@ -832,39 +1076,65 @@ struct Receiver {
 
 impl Receiver {
     fn run(mut self) {
+        let spin = self.link.wait == ShmWait::Spin;
         let mut next_retry = Instant::now() + RETRY;
+        let mut last_frame = Instant::now();
+        let mut backlog = false;
         while !self.link.stop.load(Ordering::SeqCst) {
             while let Ok(c) = self.ctl.try_recv() {
                 match c {
                     Ctl::Open(id) => self.connect(id),
+                    Ctl::OpenBulk(id) => self.open_bulk(id),
                     Ctl::Forget(id) => {
                         self.rx.remove(&id);
                         self.ack_due.remove(&id);
+                        self.stash.remove(&id);
                     }
                 }
             }
             let mut acked = Vec::new();
-            let busy_safe = self.drain_safe(&mut acked);
-            let busy_fast = self.drain_fast();
-            self.send_acks();
+            let taken_safe = self.drain_safe(&mut acked);
+            let taken_fast = self.drain_fast();
+            if !self.ack_due.is_empty() {
+                self.send_acks();
+            }
             let now = Instant::now();
             let retry = now >= next_retry;
             if retry {
                 next_retry = now + RETRY;
             }
-            let backlog = self.flush_backlogs(&acked, retry);
+            // Polling, the backlogs are looked at when something was acknowledged or the retry
+            // timer fired, not on every pass (that would contend with the writers' locks).
+            if !spin || retry || !acked.is_empty() {
+                backlog = self.flush_backlogs(&acked, retry);
+            }
             if now >= self.next_scan {
                 self.scan();
                 self.next_scan = Instant::now() + self.link.options.scan;
             }
-            if busy_safe || busy_fast {
+            if taken_safe == PASS_BUDGET || taken_fast == PASS_BUDGET {
                 continue;
+            }
+            if taken_safe + taken_fast > 0 {
+                last_frame = now;
             }
             let timeout = if backlog || !self.ack_due.is_empty() {
                 RETRY
             } else {
                 self.next_scan.saturating_duration_since(Instant::now())
             };
+            if spin {
+                let idle = now.saturating_duration_since(last_frame);
+                if idle < SPIN_FOR {
+                    std::hint::spin_loop();
+                    continue;
+                }
+                if idle < YIELD_UNTIL {
+                    std::thread::yield_now();
+                    continue;
+                }
+            }
+            let timeout = if spin { timeout.min(PARK) } else { timeout };
             if let Err(e) = self.listener.timed_wait(|_| {}, timeout) {
                 tracing::warn!(link = %self.link.options.name, error = ?e, "waiting on the shared-memory inbox failed");
                 std::thread::sleep(RETRY);
@@ -874,6 +1144,33 @@ impl Receiver {
             lock(&self.link.peers).drain().map(|(_, p)| p).collect();
         for p in peers {
             lock(&p).fail_all(&LinkSendError::Shutdown);
+        }
+    }
+
+    /// Opens the bulk inbox of peer `id` (asked for by its first large message) and writes
+    /// what waited for it; if it cannot be opened, large messages go fragmented into the safe
+    /// inbox.
+    fn open_bulk(&mut self, id: u64) {
+        let Some(p) = self.link.peer(id, false) else {
+            return;
+        };
+        let opened = open_pub(
+            &self.node,
+            &self.link.options.service,
+            id,
+            ("bulk", false, BULK_BUFFER, BULK_MAX),
+        );
+        let mut st = lock(&p);
+        st.bulk = match opened {
+            Ok(b) => Bulk::Open(b),
+            Err(e) => {
+                tracing::warn!(link = %self.link.options.name, peer = format_args!("{id:016x}"), error = %e, "cannot open the peer's bulk inbox; large messages go fragmented");
+                Bulk::Unavailable
+            }
+        };
+        st.blocked = false;
+        if self.link.flush_safe(&mut st) {
+            self.link.notify(&st);
         }
     }
 
@@ -955,16 +1252,16 @@ impl Receiver {
         c.bytes_in.fetch_add(n as u64, Ordering::Relaxed);
     }
 
-    /// Takes what the safe inbox holds. Returns whether the budget ran out (more may wait).
-    fn drain_safe(&mut self, acked: &mut Vec<u64>) -> bool {
+    /// Takes what the safe inbox holds, up to [`PASS_BUDGET`] frames. Returns how many it took.
+    fn drain_safe(&mut self, acked: &mut Vec<u64>) -> usize {
         let link = self.link.clone();
-        for _ in 0..PASS_BUDGET {
+        for taken in 0..PASS_BUDGET {
             let sample = match self.safe.receive() {
                 Ok(Some(s)) => s,
-                Ok(None) => return false,
+                Ok(None) => return taken,
                 Err(e) => {
                     tracing::warn!(link = %link.options.name, error = ?e, "receiving from the safe inbox failed");
-                    return false;
+                    return taken;
                 }
             };
             let bytes = sample.payload();
@@ -978,11 +1275,14 @@ impl Receiver {
                         more,
                         body,
                     },
-                )) => self.on_safe(from, session, seq, more, body),
+                )) => self.on_safe(from, session, seq, more, Some(body)),
                 Ok((from, frame::Frame::Ack { session, seq })) => {
                     if self.on_ack(from, session, seq) {
                         acked.push(from);
                     }
+                }
+                Ok((from, frame::Frame::Bulk { session, seq, more })) => {
+                    self.on_bulk(from, session, seq, more)
                 }
                 Ok((from, frame::Frame::Fast(body))) => {
                     link.handler
@@ -992,24 +1292,29 @@ impl Receiver {
                     link.handler
                         .on_announce(link.index, PeerAddr::Shm(from), body)
                 }
+                Ok((_, frame::Frame::BulkData { .. })) => {
+                    // Bulk bodies never use the safe inbox.
+                    link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                }
                 Err(e) => {
                     link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
                     tracing::trace!(link = %link.options.name, error = %e, "corrupt frame dropped");
                 }
             }
         }
-        true
+        PASS_BUDGET
     }
 
-    fn drain_fast(&mut self) -> bool {
+    /// Takes what the fast inbox holds, up to [`PASS_BUDGET`] frames. Returns how many it took.
+    fn drain_fast(&mut self) -> usize {
         let link = self.link.clone();
-        for _ in 0..PASS_BUDGET {
+        for taken in 0..PASS_BUDGET {
             let sample = match self.fast.receive() {
                 Ok(Some(s)) => s,
-                Ok(None) => return false,
+                Ok(None) => return taken,
                 Err(e) => {
                     tracing::warn!(link = %link.options.name, error = ?e, "receiving from the fast inbox failed");
-                    return false;
+                    return taken;
                 }
             };
             let bytes = sample.payload();
@@ -1029,34 +1334,115 @@ impl Receiver {
                 }
             }
         }
-        true
+        PASS_BUDGET
     }
 
-    fn on_safe(&mut self, from: u64, session: u32, seq: u64, more: bool, body: &[u8]) {
+    /// A `Bulk` frame: its body is the next bulk sample of `from` (read in place when the
+    /// message is that one fragment).
+    fn on_bulk(&mut self, from: u64, session: u32, seq: u64, more: bool) {
+        match self.take_bulk(from, session, seq) {
+            Some(BulkBody::Sample(sample)) => {
+                let body = &sample.payload()[frame::SEQUENCED..];
+                self.count_in(body.len());
+                self.on_safe(from, session, seq, more, Some(body));
+            }
+            Some(BulkBody::Copy(frame)) => {
+                let body = &frame[frame::SEQUENCED..];
+                self.count_in(body.len());
+                self.on_safe(from, session, seq, more, Some(body));
+            }
+            None => {
+                self.link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                self.on_safe(from, session, seq, more, None);
+            }
+        }
+    }
+
+    /// Finds the body written for `from`'s fragment `(session, seq)`: in the stash, or next in
+    /// the bulk inbox. Bodies of other writers met on the way are stashed, older ones of `from`
+    /// (a closed session's) dropped.
+    fn take_bulk(&mut self, from: u64, session: u32, seq: u64) -> Option<BulkBody> {
+        let wanted = |b: &[u8]| -> BulkMatch {
+            match frame::parse(b) {
+                Ok((
+                    s,
+                    frame::Frame::BulkData {
+                        session: ss,
+                        seq: q,
+                        ..
+                    },
+                )) if s == from => {
+                    if ss == session && q == seq {
+                        BulkMatch::Match
+                    } else if ss != session || q < seq {
+                        BulkMatch::Stale
+                    } else {
+                        BulkMatch::Later
+                    }
+                }
+                Ok((s, frame::Frame::BulkData { .. })) => BulkMatch::Other(s),
+                _ => BulkMatch::Stale,
+            }
+        };
+        if let Some(q) = self.stash.get_mut(&from) {
+            while let Some(b) = q.pop_front() {
+                match wanted(&b) {
+                    BulkMatch::Match => return Some(BulkBody::Copy(b)),
+                    BulkMatch::Later => {
+                        q.push_front(b);
+                        return None;
+                    }
+                    BulkMatch::Stale | BulkMatch::Other(_) => {}
+                }
+            }
+        }
+        loop {
+            let sample = match self.bulk.receive() {
+                Ok(Some(s)) => s,
+                Ok(None) => return None,
+                Err(e) => {
+                    tracing::warn!(link = %self.link.options.name, error = ?e, "receiving from the bulk inbox failed");
+                    return None;
+                }
+            };
+            match wanted(sample.payload()) {
+                BulkMatch::Match => return Some(BulkBody::Sample(sample)),
+                BulkMatch::Stale => {}
+                BulkMatch::Later => {
+                    self.stash
+                        .entry(from)
+                        .or_default()
+                        .push_front(sample.payload().to_vec());
+                    return None;
+                }
+                BulkMatch::Other(writer) => {
+                    // A writer's bodies in the stash never outnumber its frames the safe inbox
+                    // can hold plus what it may write before them; more is corrupt input.
+                    let q = self.stash.entry(writer).or_default();
+                    if q.len() > SAFE_BUFFER + BULK_BUFFER {
+                        q.pop_front();
+                        self.link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                    }
+                    q.push_back(sample.payload().to_vec());
+                }
+            }
+        }
+    }
+
+    /// A fragment of a safe message; `body` is `None` when it went missing (a bulk body that
+    /// is not there), which tears the message.
+    fn on_safe(&mut self, from: u64, session: u32, seq: u64, more: bool, body: Option<&[u8]>) {
         let link = self.link.clone();
         let peer = PeerAddr::Shm(from);
         let reset = match self.rx.get_mut(&from) {
             Some(st) if st.session == session => false,
             Some(st) => {
                 // The sender closed us and started over: what it had in flight is gone.
-                *st = RxState {
-                    session,
-                    expected: seq,
-                    partial: Vec::new(),
-                    ack: None,
-                };
+                *st = RxState::new(session, seq);
                 true
             }
             None => {
-                self.rx.insert(
-                    from,
-                    RxState {
-                        session,
-                        expected: seq,
-                        partial: Vec::new(),
-                        ack: None,
-                    },
-                );
+                self.rx.insert(from, RxState::new(session, seq));
                 false
             }
         };
@@ -1072,15 +1458,21 @@ impl Receiver {
         }
         if seq > st.expected {
             // Shared memory loses nothing; a gap means a torn message, which is dropped.
-            st.partial.clear();
+            st.torn = true;
             link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
         }
         st.expected = seq + 1;
         st.ack = Some(seq);
         self.ack_due.insert(from);
+        let Some(body) = body.filter(|_| !st.torn) else {
+            st.torn = more;
+            st.partial = Vec::new();
+            return;
+        };
         if more {
             if st.partial.len() + body.len() > MAX_MESSAGE {
                 st.partial = Vec::new();
+                st.torn = true;
                 link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
             } else {
                 st.partial.extend_from_slice(body);
@@ -1149,7 +1541,7 @@ impl Receiver {
             };
             if put(&c.safe, frame::ACK, self.link.id, session, seq, &[]) {
                 self.link.count_out(frame::SEQUENCED);
-                let _ = c.wake.notify();
+                c.wake();
                 drop(st);
                 self.ack_due.remove(&from);
                 if let Some(r) = self.rx.get_mut(&from) {
@@ -1243,6 +1635,63 @@ mod tests {
     }
 
     #[test]
+    fn golden_bulk_frames() {
+        let mut d = vec![0u8; frame::SEQUENCED];
+        frame::write_header(&mut d, frame::BULK_MORE, 1, 2, 3);
+        assert_eq!(
+            d,
+            [
+                7, // kind: BulkMore (the body is in the bulk inbox, more fragments follow)
+                1, 0, 0, 0, 0, 0, 0, 0, // sender id
+                2, 0, 0, 0, // session
+                3, 0, 0, 0, 0, 0, 0, 0, // sequence number
+            ]
+        );
+        assert_eq!(
+            frame::parse(&d),
+            Ok((
+                1,
+                Frame::Bulk {
+                    session: 2,
+                    seq: 3,
+                    more: true
+                }
+            ))
+        );
+        d[0] = frame::BULK;
+        assert_eq!(
+            frame::parse(&d),
+            Ok((
+                1,
+                Frame::Bulk {
+                    session: 2,
+                    seq: 3,
+                    more: false
+                }
+            ))
+        );
+        let mut b = vec![0u8; frame::SEQUENCED + 1];
+        frame::write_header(&mut b, frame::BULK_DATA, 1, 2, 3);
+        b[21] = 0xEE;
+        assert_eq!(
+            b,
+            [8, 1, 0, 0, 0, 0, 0, 0, 0, 2, 0, 0, 0, 3, 0, 0, 0, 0, 0, 0, 0, 0xEE]
+        );
+        assert_eq!(
+            frame::parse(&b),
+            Ok((
+                1,
+                Frame::BulkData {
+                    session: 2,
+                    seq: 3,
+                    body: &[0xEE]
+                }
+            ))
+        );
+        assert_eq!(frame::parse(&b[..20]), Err(FrameDecodeError::Truncated(20)));
+    }
+
+    #[test]
     fn malformed_frames_are_errors() {
         assert_eq!(frame::parse(&[]), Err(FrameDecodeError::Truncated(0)));
         assert_eq!(
@@ -1290,6 +1739,15 @@ mod tests {
         tasks: &TaskTracker,
         cancel: &CancellationToken,
     ) -> (Arc<ShmLink>, mpsc::Receiver<Got>) {
+        open_link_waiting(service, ShmWait::Event, tasks, cancel).await
+    }
+
+    async fn open_link_waiting(
+        service: &str,
+        wait: ShmWait,
+        tasks: &TaskTracker,
+        cancel: &CancellationToken,
+    ) -> (Arc<ShmLink>, mpsc::Receiver<Got>) {
         let (tx, rx) = mpsc::channel();
         let link = ShmLink::open(
             0,
@@ -1297,6 +1755,7 @@ mod tests {
                 name: "shm0".into(),
                 service: service.into(),
                 scan: Duration::from_millis(200),
+                wait,
             },
             Arc::new(Collect(tx)),
             tasks,
@@ -1421,6 +1880,132 @@ mod tests {
         stop(tasks, cancel).await;
     }
 
+    /// A message of `len` bytes tagged with the writer and its index.
+    fn tagged_message(writer: u8, i: u32, len: usize) -> Vec<u8> {
+        let mut m: Vec<u8> = (0..len)
+            .map(|k| (k as u32).wrapping_mul(31).wrapping_add(i) as u8)
+            .collect();
+        m[0] = writer;
+        m[1..5].copy_from_slice(&i.to_le_bytes());
+        m
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn large_messages_of_two_writers_cross_the_bulk_inbox_whole_and_in_order() {
+        let svc = unique_service("bulk");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, _arx) = open_link(&svc, &tasks, &cancel).await;
+        let (c, _crx) = open_link(&svc, &tasks, &cancel).await;
+        let (b, brx) = open_link(&svc, &tasks, &cancel).await;
+        let to = PeerAddr::Shm(b.id());
+        // Sizes around every boundary: inline, one bulk sample, several, small again.
+        let sizes = [
+            10,
+            FRAME_MAX - frame::SEQUENCED,
+            FRAME_MAX - frame::SEQUENCED + 1,
+            BULK_MAX - frame::SEQUENCED,
+            BULK_MAX - frame::SEQUENCED + 1,
+            3 * BULK_MAX + 5,
+            FILE_CHUNK + 40,
+            7,
+        ];
+        let n = 40u32;
+        let mut acks = Vec::new();
+        // Both writers at once, so the reader meets one writer's bodies while looking for the
+        // other's.
+        for i in 0..n {
+            let len = sizes[i as usize % sizes.len()];
+            for (tag, w) in [(b'a', &a), (b'c', &c)] {
+                let (out, done) = safe(tagged_message(tag, i, len));
+                w.send(to, out);
+                acks.push(done);
+            }
+            if i % 3 == 0 {
+                // Fast messages too large for a frame ride the same path.
+                a.send(
+                    to,
+                    Outgoing::Fast {
+                        coalesce: None,
+                        msg: tagged_message(b'f', i, 2 * BULK_MAX),
+                    },
+                );
+            }
+        }
+        let mut next = HashMap::from([(b'a', 0u32), (b'c', 0u32), (b'f', 0u32)]);
+        while next[&b'a'] < n || next[&b'c'] < n {
+            let Got::Msg(_, m) = next_msg(&brx) else {
+                panic!("unexpected delivery");
+            };
+            let i = u32::from_le_bytes([m[1], m[2], m[3], m[4]]);
+            let expected = next.get_mut(&m[0]).expect("a known writer");
+            assert!(i >= *expected, "writer {} went back to {i}", m[0] as char);
+            if m[0] != b'f' {
+                assert_eq!(i, *expected, "writer {} skipped", m[0] as char);
+                assert_eq!(m.len(), sizes[i as usize % sizes.len()]);
+            }
+            assert_eq!(m, tagged_message(m[0], i, m.len()), "content of {i}");
+            *expected = i + 1;
+        }
+        for d in acks {
+            let r = tokio::time::timeout(Duration::from_secs(10), d).await;
+            assert_eq!(
+                r.expect("acknowledged in time").expect("completion sent"),
+                Ok(())
+            );
+        }
+        assert_eq!(b.stats().corrupt, 0);
+        assert_eq!(b.stats().duplicates, 0);
+        stop(tasks, cancel).await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_polling_reader_is_never_notified_and_still_gets_everything() {
+        let svc = unique_service("spin");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, arx) = open_link(&svc, &tasks, &cancel).await;
+        let (b, brx) = open_link_waiting(&svc, ShmWait::Spin, &tasks, &cancel).await;
+        let (to_b, to_a) = (PeerAddr::Shm(b.id()), PeerAddr::Shm(a.id()));
+        let (out, done) = safe(b"first".to_vec());
+        a.send(to_b, out);
+        assert_eq!(next_msg(&brx), Got::Msg(to_a, b"first".to_vec()));
+        let r = tokio::time::timeout(Duration::from_secs(5), done).await;
+        assert_eq!(r.expect("acknowledged").expect("completion sent"), Ok(()));
+        // a learnt from b's inbox that b polls, and b that a sleeps.
+        let spins = |from: &ShmLink, to: u64| {
+            from.peer(to, false)
+                .and_then(|p| lock(&p).conn.as_ref().map(|c| c.spins))
+        };
+        assert_eq!(spins(&a, b.id()), Some(true));
+        b.send(
+            to_a,
+            Outgoing::Fast {
+                coalesce: None,
+                msg: b"back".to_vec(),
+            },
+        );
+        assert_eq!(next_msg(&arx), Got::Msg(to_b, b"back".to_vec()));
+        assert_eq!(spins(&b, a.id()), Some(false));
+        // After an idle period (no event marks it: the reader just stops seeing frames) the
+        // reader parks between polls, and still picks messages up.
+        tokio::time::sleep(YIELD_UNTIL * 3).await;
+        for i in 0..200u32 {
+            let (out, _) = safe(i.to_le_bytes().to_vec());
+            a.send(to_b, out);
+        }
+        a.send(
+            to_b,
+            Outgoing::Fast {
+                coalesce: None,
+                msg: vec![9; 3 * BULK_MAX],
+            },
+        );
+        for i in 0..200u32 {
+            assert_eq!(next_msg(&brx), Got::Msg(to_a, i.to_le_bytes().to_vec()));
+        }
+        assert_eq!(next_msg(&brx), Got::Msg(to_a, vec![9; 3 * BULK_MAX]));
+        stop(tasks, cancel).await;
+    }
+
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_reader_that_stops_never_blocks_the_writer() {
         let svc = unique_service("stall");
@@ -1450,6 +2035,7 @@ mod tests {
                 name: "shm0".into(),
                 service: svc.clone(),
                 scan: Duration::from_millis(200),
+                wait: ShmWait::Event,
             },
             Arc::new(Stuck(
                 Mutex::new(gate_rx),

@@ -15,6 +15,9 @@ use crate::protocol::{FileVerdict, Message, NodeId};
 /// Chunks between two progress acknowledgements of a receiver (`FileAccept` with the bytes
 /// written so far). Well below the sender's default window, so it never stalls on them.
 const PROGRESS_EVERY: u32 = 16;
+/// Bytes after which a receiver acknowledges progress even before [`PROGRESS_EVERY`] chunks:
+/// large chunks (shared memory) would otherwise move the sender's window in big steps.
+const PROGRESS_BYTES: u64 = 1 << 20;
 
 /// What a sending task hears from the receiver (or about it).
 #[derive(Debug)]
@@ -213,6 +216,7 @@ impl NodeInner {
                     .map_err(|e| format!("cannot open {}: {e}", part.display()))?;
                 let mut w = tokio::io::BufWriter::with_capacity(1 << 18, file);
                 let mut expected = offset;
+                let mut acknowledged = offset;
                 let mut unacknowledged = 0u32;
                 while expected < size {
                     let next = tokio::select! {
@@ -234,8 +238,12 @@ impl NodeInner {
                     // End-to-end progress: the sender's window moves on what we wrote, not on
                     // what the first hop (maybe a gateway) acknowledged.
                     unacknowledged += 1;
-                    if unacknowledged >= PROGRESS_EVERY || expected == size {
+                    if unacknowledged >= PROGRESS_EVERY
+                        || expected - acknowledged >= PROGRESS_BYTES
+                        || expected == size
+                    {
                         unacknowledged = 0;
+                        acknowledged = expected;
                         inner.send_safe_to_node(
                             node,
                             &Message::FileAccept {
