@@ -2,7 +2,6 @@
 //! `{"metric": ..., "value": ..., "unit": ...}`, each middleware figure next to a raw UDP
 //! baseline measured in the same run on the same machine.
 
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -63,31 +62,127 @@ async fn raw_echo_rtt(n: usize) -> Vec<f64> {
     out
 }
 
-async fn raw_rate(secs: f64) -> f64 {
-    let rx = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
-    let tx = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
-    let addr = rx.local_addr().expect("addr");
-    let count = Arc::new(AtomicU64::new(0));
-    let c = count.clone();
-    let recv = tokio::spawn(async move {
-        let mut buf = [0u8; 2048];
-        while rx.recv_from(&mut buf).await.is_ok() {
-            c.fetch_add(1, Ordering::Relaxed);
-        }
-    });
-    let msg = [7u8; 64];
-    let start = Instant::now();
-    let begin = count.load(Ordering::Relaxed);
-    while start.elapsed().as_secs_f64() < secs {
-        let _ = tx.send_to(&msg, addr).await;
+/// The receiving end of a throughput measurement, in a child process (this bench binary
+/// started again with `SINK_ROLE` set): it counts what arrives and reports the rate between its
+/// first and last arrival.
+struct Sink {
+    child: std::process::Child,
+    lines: std::io::Lines<std::io::BufReader<std::process::ChildStdout>>,
+    /// Where a raw sink listens.
+    addr: std::net::SocketAddr,
+}
+
+const SINK_ROLE: &str = "ETHERNET_BENCH_SINK";
+
+impl Sink {
+    fn start(kind: &str, domain: &str, port: u16) -> Result<Sink, Box<dyn std::error::Error>> {
+        use std::io::BufRead;
+        let mut child = std::process::Command::new(std::env::current_exe()?)
+            .env(SINK_ROLE, format!("{kind} {domain} {port}"))
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()?;
+        let stdout = child.stdout.take().ok_or("sink without stdout")?;
+        let mut lines = std::io::BufReader::new(stdout).lines();
+        let ready = lines.next().ok_or("sink ended before it was ready")??;
+        let addr = ready
+            .strip_prefix("ready ")
+            .ok_or_else(|| format!("sink said {ready:?}"))?
+            .parse()?;
+        Ok(Sink { child, lines, addr })
     }
-    let got = count.load(Ordering::Relaxed) - begin;
-    recv.abort();
-    got as f64 / start.elapsed().as_secs_f64()
+
+    /// Stops the sink; returns messages per second between its first and last arrival.
+    fn finish(mut self) -> Result<f64, Box<dyn std::error::Error>> {
+        use std::io::Write;
+        if let Some(mut stdin) = self.child.stdin.take() {
+            writeln!(stdin, "stop")?;
+        }
+        let report = self.lines.next().ok_or("sink ended without a report")??;
+        let _ = self.child.wait();
+        let mut it = report.split_whitespace().map(str::parse::<f64>);
+        match (it.next(), it.next()) {
+            (Some(Ok(count)), Some(Ok(span))) if span > 0.0 => Ok(count / span),
+            _ => Err(format!("sink reported {report:?}").into()),
+        }
+    }
+}
+
+/// Counts arrivals: how many, and the first and last instant.
+#[derive(Default)]
+struct Arrivals {
+    count: u64,
+    first: Option<Instant>,
+    last: Option<Instant>,
+}
+
+impl Arrivals {
+    fn add(&mut self) {
+        let now = Instant::now();
+        self.count += 1;
+        self.first.get_or_insert(now);
+        self.last = Some(now);
+    }
+
+    fn report(&self) -> String {
+        let span = match (self.first, self.last) {
+            (Some(a), Some(b)) => b.duration_since(a).as_secs_f64(),
+            _ => 0.0,
+        };
+        format!("{} {span}", self.count)
+    }
+}
+
+/// The child-process side of [`Sink`].
+async fn run_sink(role: &str) -> Result<(), Box<dyn std::error::Error>> {
+    let mut words = role.split_whitespace();
+    let (Some(kind), Some(domain), Some(port)) = (words.next(), words.next(), words.next()) else {
+        return Err(format!("{SINK_ROLE}={role:?}: expected KIND DOMAIN PORT").into());
+    };
+    let arrivals = Arc::new(std::sync::Mutex::new(Arrivals::default()));
+    let a = arrivals.clone();
+    let mut node = None;
+    let counter = match kind {
+        "raw" => {
+            let rx = UdpSocket::bind("127.0.0.1:0").await?;
+            println!("ready {}", rx.local_addr()?);
+            tokio::spawn(async move {
+                let mut buf = [0u8; 2048];
+                while rx.recv_from(&mut buf).await.is_ok() {
+                    a.lock().expect("counter lock").add();
+                }
+            })
+        }
+        "var" => {
+            let n = Node::open(&cfg("bench-sink", domain, port.parse()?)).await?;
+            let sub = n
+                .service("sink")?
+                .subscribe_variable::<Payload64>("a/tm/*")?;
+            node = Some(n);
+            println!("ready 127.0.0.1:0");
+            tokio::spawn(async move {
+                while sub.recv().await.is_ok() {
+                    a.lock().expect("counter lock").add();
+                }
+            })
+        }
+        other => return Err(format!("unknown sink kind {other:?}").into()),
+    };
+    let mut line = String::new();
+    tokio::task::spawn_blocking(move || std::io::stdin().read_line(&mut line)).await??;
+    println!("{}", arrivals.lock().expect("counter lock").report());
+    counter.abort();
+    if let Some(n) = node {
+        n.shutdown().await;
+    }
+    Ok(())
 }
 
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
+    if let Ok(role) = std::env::var(SINK_ROLE) {
+        return run_sink(&role).await;
+    }
     let domain = format!("bench-{}", std::process::id());
     let port = 30_000 + (std::process::id() % 20_000) as u16;
 
@@ -152,24 +247,17 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         "ratio",
     );
 
-    // Variable throughput: 100 telemetry variables published round robin.
+    // Variable throughput: 100 telemetry variables published round robin, received and counted
+    // by another process (as in a deployment: the receive path gets its own process).
     let vars: Vec<_> = (0..100)
         .map(|i| sa.publish_variable::<Payload64>(&format!("tm/v{i}")))
         .collect::<Result<_, _>>()?;
-    let sub = sb.subscribe_variable::<Payload64>("a/tm/*")?;
+    let secs = 3.0;
+    let sink = Sink::start("var", &domain, port)?;
     for v in &vars {
         v.wait_remote_subscribers(1, Duration::from_secs(10)).await;
     }
-    let received = Arc::new(AtomicU64::new(0));
-    let r = received.clone();
-    let counter = tokio::spawn(async move {
-        while sub.recv().await.is_ok() {
-            r.fetch_add(1, Ordering::Relaxed);
-        }
-    });
-    let secs = 3.0;
     let start = Instant::now();
-    let begin = received.load(Ordering::Relaxed);
     let mut i = 0u64;
     while start.elapsed().as_secs_f64() < secs {
         for _ in 0..64 {
@@ -178,12 +266,19 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         tokio::task::yield_now().await;
     }
-    tokio::time::sleep(Duration::from_millis(100)).await;
-    let var_rate =
-        (received.load(Ordering::Relaxed) - begin) as f64 / start.elapsed().as_secs_f64();
-    counter.abort();
-    let raw_rate = raw_rate(secs).await;
-    metric("udp.var64.sets_per_s", i as f64 / secs, "msgs/s");
+    let sets = i as f64 / start.elapsed().as_secs_f64();
+    let var_rate = sink.finish()?;
+    let sink = Sink::start("raw", &domain, port)?;
+    let raw_rate = {
+        let tx = UdpSocket::bind("127.0.0.1:0").await?;
+        let msg = [7u8; 64];
+        let start = Instant::now();
+        while start.elapsed().as_secs_f64() < secs {
+            let _ = tx.send_to(&msg, sink.addr).await;
+        }
+        sink.finish()?
+    };
+    metric("udp.var64.sets_per_s", sets, "msgs/s");
     metric("udp.var64.msgs_per_s", var_rate, "msgs/s");
     metric("udp.raw64.msgs_per_s", raw_rate, "msgs/s");
     metric("udp.var64.rate_ratio_to_raw", var_rate / raw_rate, "ratio");

@@ -7,13 +7,14 @@
 //! can be written (highest throughput: many messages share one datagram). Either way a peer's
 //! datagrams are written under that peer's lock, so fast messages are never reordered.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
 use std::io;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use rustc_hash::FxHashMap;
 use tokio::net::UdpSocket;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
@@ -83,6 +84,8 @@ struct PeerState {
     tx: ArqSender<SafeCompletion>,
     rx: ArqReceiver,
     fast: CoalescingQueue<u32, Vec<u8>>,
+    /// Datagram bytes the queued fast messages take.
+    fast_bytes: usize,
     safe: VecDeque<(Vec<u8>, Option<SafeCompletion>)>,
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
@@ -98,6 +101,7 @@ impl PeerState {
             tx: ArqSender::new(rand::random(), arq),
             rx: ArqReceiver::new(arq.max_window),
             fast: CoalescingQueue::new(),
+            fast_bytes: 0,
             safe: VecDeque::new(),
             blocked: VecDeque::new(),
             last_write: None,
@@ -135,7 +139,8 @@ pub struct UdpLink {
     /// Hello of every node.
     sender: std::net::UdpSocket,
     local: SocketAddr,
-    peers: Mutex<HashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
+    /// (Fx hashing: looked up on every send; at most [`MAX_PEERS`] entries.)
+    peers: Mutex<FxHashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
     counters: Counters,
@@ -223,7 +228,7 @@ impl UdpLink {
             socket,
             sender,
             local,
-            peers: Mutex::new(HashMap::new()),
+            peers: Mutex::new(FxHashMap::default()),
             wake: Notify::new(),
             handler,
             counters: Counters::default(),
@@ -329,6 +334,7 @@ impl UdpLink {
                 w.push_fast(&msg);
             }
         }
+        st.fast_bytes = 0;
         finish(&mut w, &mut out, &mut carries_safe);
         for d in out {
             if !st.blocked.is_empty() {
@@ -400,8 +406,12 @@ impl UdpLink {
                 Ok((n, from)) => {
                     let mut touched = Vec::new();
                     self.handle_datagram(&buf[..n], from, &mut touched);
-                    // Drain what else is waiting so acknowledgements are batched.
+                    // Drain what else is waiting so acknowledgements are batched. Between
+                    // datagrams, let the tasks just woken on this worker run: a subscriber
+                    // would otherwise wait for the whole drain and find most of its variables'
+                    // values replaced by newer ones.
                     for _ in 0..64 {
+                        tokio::task::yield_now().await;
                         match self.socket.try_recv_from(&mut buf) {
                             Ok((n, from)) => self.handle_datagram(&buf[..n], from, &mut touched),
                             Err(_) => break,
@@ -590,16 +600,36 @@ impl Link for UdpLink {
             return;
         };
         let mut st = lock(&p);
+        let now = Instant::now();
         match out {
             Outgoing::Fast { coalesce, msg } => {
-                if !st.fast.push(coalesce, msg) && st.fast.len() > MAX_FAST_QUEUE {
-                    st.fast.pop_front();
-                    self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
+                let cost = DatagramWriter::fast_cost(msg.len());
+                // A message that would overflow the datagram being gathered sends that datagram
+                // first: a publisher faster than the transmit task fills whole datagrams itself
+                // instead of having its values coalesced away while the task waits for a core.
+                if 1 + st.fast_bytes + cost > self.options.mtu && st.blocked.is_empty() {
+                    self.flush_locked(addr, &mut st, now);
                 }
+                match st.fast.push(coalesce, msg) {
+                    Some(old) => {
+                        st.fast_bytes = st
+                            .fast_bytes
+                            .saturating_sub(DatagramWriter::fast_cost(old.len()))
+                    }
+                    None if st.fast.len() > MAX_FAST_QUEUE => {
+                        if let Some((_, dropped)) = st.fast.pop_front() {
+                            st.fast_bytes = st
+                                .fast_bytes
+                                .saturating_sub(DatagramWriter::fast_cost(dropped.len()));
+                        }
+                        self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
+                    }
+                    None => {}
+                }
+                st.fast_bytes += cost;
             }
             Outgoing::Safe { msg, done } => st.safe.push_back((msg, done)),
         }
-        let now = Instant::now();
         let idle = st.blocked.is_empty()
             && st
                 .last_write

@@ -83,7 +83,7 @@ impl Mailbox {
     }
 
     pub fn push(&self, d: Delivery) {
-        {
+        let was_empty = {
             let mut g = self.lock();
             if g.closed {
                 return;
@@ -92,9 +92,15 @@ impl Mailbox {
                 Delivery::Sample(s) if self.coalesce => Some(s.name.clone()),
                 _ => None,
             };
+            let was_empty = g.queue.is_empty();
             g.queue.push(key, d);
+            was_empty
+        };
+        // The reader waits only on an empty queue (checked under the lock), so only the push
+        // that ends the emptiness needs to wake it: one wake-up per burst, not one per value.
+        if was_empty {
+            self.notify.notify_one();
         }
-        self.notify.notify_one();
     }
 
     pub fn try_pop(&self) -> Option<Delivery> {
@@ -107,6 +113,11 @@ impl Mailbox {
             {
                 let mut g = self.lock();
                 if let Some((_, d)) = g.queue.pop_front() {
+                    if !g.queue.is_empty() {
+                        // Pushes onto a non-empty queue wake nobody: pass the wake-up on in
+                        // case another task waits on this mailbox too.
+                        self.notify.notify_one();
+                    }
                     return Some(d);
                 }
                 if g.closed {

@@ -591,7 +591,15 @@ impl NodeInner {
     /// remote subscriber on the fast class (coalesced per variable while unsent).
     pub fn publish_variable(&self, offer: &LocalOffer, bytes: Vec<u8>) {
         if let OfferRole::Variable { last } = &offer.role {
-            *lock(last) = Some(bytes.clone());
+            // Into the previous value's buffer: no allocation per publish.
+            let mut last = lock(last);
+            match last.as_mut() {
+                Some(v) => {
+                    v.clear();
+                    v.extend_from_slice(&bytes);
+                }
+                None => *last = Some(bytes.clone()),
+            }
         }
         let local = lock(&offer.local).clone();
         for i in &local {
@@ -609,14 +617,20 @@ impl NodeInner {
         if remote.is_empty() {
             return;
         }
-        let msg = encode_data(false, offer.id, &bytes);
-        for r in remote.iter() {
+        let mut msg = Some(encode_data(false, offer.id, &bytes));
+        let n = remote.len();
+        for (k, r) in remote.iter().enumerate() {
+            let msg = if k + 1 == n {
+                msg.take().unwrap_or_default()
+            } else {
+                msg.clone().unwrap_or_default()
+            };
             self.send_to(
                 r.link,
                 r.addr,
                 Outgoing::Fast {
                     coalesce: Some(offer.id),
-                    msg: msg.clone(),
+                    msg,
                 },
             );
         }

@@ -2,15 +2,19 @@
 //! place (newest value wins, position kept), in constant time: the send queues of variables and
 //! the mailboxes of variable subscriptions.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
 use std::hash::Hash;
+
+use rustc_hash::FxHashMap;
 
 /// FIFO with per-key replacement.
 #[derive(Debug)]
 pub struct CoalescingQueue<K, V> {
     queue: VecDeque<(Option<K>, V)>,
     /// Absolute position (`popped` + offset) of the queued entry of each key.
-    at: HashMap<K, u64>,
+    /// (Fx hashing: keys are offer ids and item names this node declared or accepted, and the
+    /// lookup is on every publish.)
+    at: FxHashMap<K, u64>,
     popped: u64,
 }
 
@@ -18,7 +22,7 @@ impl<K, V> Default for CoalescingQueue<K, V> {
     fn default() -> Self {
         CoalescingQueue {
             queue: VecDeque::new(),
-            at: HashMap::new(),
+            at: FxHashMap::default(),
             popped: 0,
         }
     }
@@ -30,8 +34,9 @@ impl<K: Eq + Hash + Clone, V> CoalescingQueue<K, V> {
         Self::default()
     }
 
-    /// Queues `value`; with a key already queued, replaces that entry instead and returns `true`.
-    pub fn push(&mut self, key: Option<K>, value: V) -> bool {
+    /// Queues `value`; with a key already queued, replaces that entry instead and returns the
+    /// value it replaced.
+    pub fn push(&mut self, key: Option<K>, value: V) -> Option<V> {
         if let Some(k) = &key {
             if let Some(&abs) = self.at.get(k) {
                 if let Some(slot) = abs
@@ -39,8 +44,7 @@ impl<K: Eq + Hash + Clone, V> CoalescingQueue<K, V> {
                     .and_then(|i| self.queue.get_mut(i as usize))
                 {
                     if slot.0.as_ref() == Some(k) {
-                        slot.1 = value;
-                        return true;
+                        return Some(std::mem::replace(&mut slot.1, value));
                     }
                 }
             }
@@ -48,7 +52,7 @@ impl<K: Eq + Hash + Clone, V> CoalescingQueue<K, V> {
                 .insert(k.clone(), self.popped + self.queue.len() as u64);
         }
         self.queue.push_back((key, value));
-        false
+        None
     }
 
     /// Takes the oldest entry.
@@ -89,13 +93,13 @@ mod tests {
     #[test]
     fn newest_value_replaces_in_place() {
         let mut q = CoalescingQueue::new();
-        assert!(!q.push(Some(1), "a1"));
-        assert!(!q.push(None, "x"));
-        assert!(!q.push(Some(2), "b1"));
-        assert!(q.push(Some(1), "a2"));
+        assert_eq!(q.push(Some(1), "a1"), None);
+        assert_eq!(q.push(None, "x"), None);
+        assert_eq!(q.push(Some(2), "b1"), None);
+        assert_eq!(q.push(Some(1), "a2"), Some("a1"));
         assert_eq!(q.len(), 3);
         assert_eq!(q.pop_front(), Some((Some(1), "a2")));
-        assert!(!q.push(Some(1), "a3"), "popped key is queued anew");
+        assert_eq!(q.push(Some(1), "a3"), None, "popped key is queued anew");
         assert_eq!(q.pop_front(), Some((None, "x")));
         assert_eq!(q.pop_front(), Some((Some(2), "b1")));
         assert_eq!(q.pop_front(), Some((Some(1), "a3")));
@@ -114,7 +118,7 @@ mod tests {
                 } else {
                     let key = if k == 5 { None } else { Some(k) };
                     let slot = key.and_then(|key| model.iter_mut().find(|(c, _)| *c == Some(key)));
-                    let replaced = if let Some(s) = slot { s.1 = v; true } else { model.push_back((key, v)); false };
+                    let replaced = if let Some(s) = slot { Some(std::mem::replace(&mut s.1, v)) } else { model.push_back((key, v)); None };
                     prop_assert_eq!(q.push(key, v), replaced);
                 }
                 prop_assert_eq!(q.len(), model.len());
