@@ -132,8 +132,9 @@ pub struct ShmConfig {
     pub heartbeat: Duration,
     /// A peer silent this long is gone (`leaseMs`), default 3.5 × heartbeat.
     pub lease: Duration,
-    /// How the link's receive thread waits for messages (`wait`: `event`, the default, sleeps
-    /// until a writer wakes it; `spin` busy-polls, so writers never make a system call).
+    /// How the link waits for messages (`wait`: `event`, the default, sleeps until a writer
+    /// wakes it; `spin` busy-polls from a thread of its own, so writers never make a system
+    /// call).
     pub wait: ShmWait,
 }
 

@@ -1,11 +1,13 @@
 //! The shared-memory link: nodes on one host exchange node messages through iceoryx2, without
 //! sockets on the data path.
 //!
-//! Each link owns an **inbox** made of three iceoryx2 services named after its random id:
+//! Each link owns an **inbox** made of four iceoryx2 services named after its random id:
 //! `marea/<service>/<id>/fast` (publish-subscribe, safe overflow: a reader that stops reading
 //! loses its oldest fast messages, the writer never waits), `.../safe` (publish-subscribe
-//! without overflow: a full buffer refuses the sample, so the writer keeps it and retries) and
-//! `.../wake` (an event the receiver sleeps on). Peers open a publisher on each and a notifier.
+//! without overflow: a full buffer refuses the sample, so the writer keeps it and retries),
+//! `.../bulk` (like `safe`, with samples of up to [`BULK_MAX`] for large messages) and
+//! `.../wake` (an event the receiver waits on; its attribute `marea.wait` says how). Peers open
+//! a publisher on each and a notifier.
 //!
 //! - **Discovery without multicast**: the iceoryx2 node is named `marea/<service>/<id>`; listing
 //!   the host's iceoryx2 nodes finds every inbox of the same `service`. A link connects to them
@@ -13,20 +15,32 @@
 //!   also removes the stale resources of nodes whose process died (SIGKILL).
 //! - **Fast** messages are written straight into the peer's fast buffer (newest wins on
 //!   overflow).
-//! - **Safe** messages carry a session and a sequence number and are fragmented to
-//!   [`FRAME_MAX`]; the receiver acknowledges cumulatively after each pass over its inbox, and an
-//!   acknowledgement both completes `done` and tells the writer that buffer space is free again.
-//!   A reader that stops reading therefore holds back only safe traffic towards itself.
+//! - **Safe** messages carry a session and a sequence number; the receiver acknowledges
+//!   cumulatively after each pass over its inbox, and an acknowledgement both completes `done`
+//!   and tells the writer that buffer space is free again. A reader that stops reading
+//!   therefore holds back only safe traffic towards itself.
+//! - **Large** messages (over [`FRAME_MAX`]; fast ones ride the safe path) go in pieces of up to
+//!   [`BULK_MAX`] into the bulk inbox, each followed by a small `Bulk` frame in the safe inbox
+//!   that keeps it in order. A writer opens a peer's bulk inbox with its first large message:
+//!   iceoryx2 gives every chunk of a publisher the size of its largest sample and zeroes the
+//!   whole segment when it creates it, so small and large samples live in separate segments,
+//!   and peers that never send anything large never pay for the large one.
 //!
-//! Threads: sending is inline in the caller (a loan, a copy, an atomic store and, only when the
-//! receiver sleeps, one datagram to wake it: iceoryx2's non-blocking calls). Everything that may
-//! wait (sleeping on the wake event, opening services, listing nodes, cleaning up dead ones) runs
-//! on one dedicated receive thread per link, never on a tokio worker.
+//! Waiting (`wait` in [`ShmLinkOptions`]): by default the receiver sleeps until a writer
+//! notifies the wake event (iceoryx2 sends one datagram per wake-up; further notifications
+//! before the reader wakes cost an atomic operation). The socket is watched by tokio's reactor,
+//! so the pass over the inbox runs on the tokio worker that woke, the same one the delivered
+//! message then wakes: one thread switch per message, as in plain iceoryx2. With
+//! [`ShmWait::Spin`] a dedicated thread polls the inbox and writers never notify.
+//!
+//! Threads: sending is inline in the caller (a loan, a copy, an atomic store and maybe the
+//! notification: iceoryx2's non-blocking calls); receiving never blocks. Everything that may
+//! wait on the file system (opening services, listing nodes, cleaning up dead ones) runs on one
+//! control thread per link, never on a tokio worker.
 //!
 //! Payloads are copied once into the loaned shared-memory sample and read in place by the
-//! receiver (a message that fits one frame reaches the node as a slice of shared memory). Frames
-//! are bounded because iceoryx2's pool allocator gives every chunk of a publisher the size of
-//! its largest sample and zeroes the whole segment when it grows.
+//! receiver (a message that fits one frame or bulk sample reaches the node as a slice of shared
+//! memory).
 
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -80,27 +94,29 @@ const MAX_MESSAGE: usize = 256 << 20;
 const RETRY: Duration = Duration::from_millis(1);
 /// Samples taken from one inbox buffer per pass, so acknowledgements flow during bursts.
 const PASS_BUDGET: usize = 512;
-/// `wait="spin"`: after the last frame, poll without pause this long, ...
-const SPIN_FOR: Duration = Duration::from_millis(1);
-/// ... then poll yielding the CPU between passes until this long, ...
+/// `wait="spin"`: after the last frame, poll without pause (yielding the processor between
+/// passes) for this long, ...
 const YIELD_UNTIL: Duration = Duration::from_millis(10);
 /// ... then poll once per this period (a sleep on the wake event) until the next frame.
 const PARK: Duration = Duration::from_millis(1);
+/// How often the receiver asks again to open the inbox of a peer it must acknowledge.
+const REOPEN: Duration = Duration::from_millis(100);
 /// The wake event's attribute telling writers how the inbox's reader waits.
 const WAIT_ATTRIBUTE: &str = "marea.wait";
 
 /// How a link's receive thread waits for frames (`wait` on `<shm>`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum ShmWait {
-    /// Sleep on the inbox's wake event: idle costs nothing, and every message costs its writer
-    /// one notification (a datagram to the sleeping reader) and the reader one wake-up.
+    /// Sleep on the inbox's wake event (watched by tokio's reactor): idle costs nothing, and
+    /// a writer notifies a sleeping reader (one datagram; an atomic operation while the reader
+    /// has not woken yet).
     #[default]
     Event,
-    /// Busy-poll the inbox: writers never notify, so sending is a loan, a copy and an atomic
-    /// store, and the reader sees a message as soon as it is written. After the last frame the
-    /// reader spins for 1 ms, then yields the CPU between polls until 10 ms, then polls once per
-    /// millisecond (a message arriving into an idle inbox may wait up to 1 ms). It keeps one
-    /// core busy while traffic flows: for the lowest latency where a core can be spared.
+    /// Busy-poll the inbox from a thread of its own: writers never notify, so sending is a
+    /// loan, a copy and an atomic store. While frames flow the thread polls without pause,
+    /// yielding the processor between polls (so on a busy host the node's own tasks still
+    /// run); after 10 ms without a frame it polls once per millisecond, so a message reaching an
+    /// idle inbox may wait up to 1 ms. It keeps a core busy while traffic flows.
     Spin,
 }
 
@@ -440,8 +456,8 @@ enum Ctl {
     Open(u64),
     /// Open the bulk inbox of this peer.
     OpenBulk(u64),
-    /// Forget the receive state of this peer (it was closed).
-    Forget(u64),
+    /// The link shuts down.
+    Stop,
 }
 
 #[derive(Default)]
@@ -462,10 +478,13 @@ pub struct ShmLink {
     options: ShmLinkOptions,
     id: u64,
     peers: Mutex<HashMap<u64, Arc<Mutex<PeerTx>>>>,
+    /// Requests to the control thread.
     ctl: Mutex<mpsc::Sender<Ctl>>,
+    /// Peers whose receive state the receiver must forget (they were closed), taken at the
+    /// start of its next pass, before any later frame of theirs.
+    forget: Mutex<mpsc::Sender<u64>>,
     /// Wakes our own receive thread (control requests, shutdown).
     self_wake: Notifier<Ipc>,
-    wait: ShmWait,
     stop: AtomicBool,
     handler: Arc<dyn LinkHandler>,
     counters: Counters,
@@ -695,63 +714,97 @@ impl ShmLink {
             self_wake,
         } = inbox;
         let (ctl_tx, ctl_rx) = mpsc::channel();
-        let opts_wait = options.wait;
+        let (forget_tx, forget_rx) = mpsc::channel();
+        let wait = options.wait;
         let link = Arc::new(ShmLink {
             index,
             options,
             id,
             peers: Mutex::new(HashMap::new()),
             ctl: Mutex::new(ctl_tx),
+            forget: Mutex::new(forget_tx),
             self_wake,
-            wait: opts_wait,
             stop: AtomicBool::new(false),
             handler,
             counters: Counters::default(),
         });
-        let mut rx = Receiver {
+        let name = link.options.name.clone();
+        let thread_err = |source| ShmLinkOpenError::Thread {
+            link: name.clone(),
+            source,
+        };
+        let mut control = Control {
             link: link.clone(),
             node,
+            ctl: ctl_rx,
+            next_scan: Instant::now(),
+        };
+        // Connect to the nodes already here before the node announces itself.
+        control = tokio::task::spawn_blocking(move || {
+            control.scan();
+            control
+        })
+        .await
+        .map_err(|_| ShmLinkOpenError::Interrupted { link: name.clone() })?;
+        let (control_tx, control_rx) = tokio::sync::oneshot::channel::<()>();
+        std::thread::Builder::new()
+            .name(format!("marea-shm-ctl-{name}"))
+            .spawn(move || {
+                control.run();
+                drop(control_tx);
+            })
+            .map_err(thread_err)?;
+        let rx = Receiver {
+            link: link.clone(),
             safe,
             fast,
             bulk,
             stash: HashMap::new(),
-            listener,
-            ctl: ctl_rx,
+            forget: forget_rx,
             rx: HashMap::new(),
             ack_due: HashSet::new(),
-            next_scan: Instant::now(),
+            open_requested: HashMap::new(),
+            next_retry: Instant::now(),
+            backlog: false,
         };
-        // Connect to the nodes already here before the node announces itself.
-        let scan_link = link.clone();
-        rx = tokio::task::spawn_blocking(move || {
-            rx.scan();
-            rx.next_scan = Instant::now() + scan_link.options.scan;
-            rx
-        })
-        .await
-        .map_err(|_| ShmLinkOpenError::Interrupted {
-            link: link.options.name.clone(),
-        })?;
-        let (exited_tx, exited_rx) = tokio::sync::oneshot::channel::<()>();
-        let runtime = tokio::runtime::Handle::current();
-        std::thread::Builder::new()
-            .name(format!("marea-shm-{}", link.options.name))
-            .spawn(move || {
-                // The node's handlers spawn tasks and create timers.
-                let _rt = runtime.enter();
-                rx.run();
-                drop(exited_tx);
-            })
-            .map_err(|source| ShmLinkOpenError::Thread {
-                link: link.options.name.clone(),
-                source,
-            })?;
+        let (receiver_tx, receiver_rx) = tokio::sync::oneshot::channel::<()>();
+        match wait {
+            ShmWait::Event => {
+                // Readiness of the wake event's socket, seen by tokio's reactor: the receive
+                // pass then runs on the worker that woke, which is also the one the delivered
+                // message wakes next (one thread switch per message, as in plain iceoryx2).
+                let fd = WakeFd::watch(listener).map_err(thread_err)?;
+                let cancel = cancel.clone();
+                tasks.spawn(async move {
+                    rx.drive_events(fd, cancel).await;
+                    drop(receiver_tx);
+                });
+            }
+            ShmWait::Spin => {
+                let runtime = tokio::runtime::Handle::current();
+                std::thread::Builder::new()
+                    .name(format!("marea-shm-{name}"))
+                    .spawn(move || {
+                        // The node's handlers spawn tasks and create timers.
+                        let _rt = runtime.enter();
+                        rx.drive_polling(listener);
+                        drop(receiver_tx);
+                    })
+                    .map_err(thread_err)?;
+            }
+        }
         let l = link.clone();
         tasks.spawn(async move {
             cancel.cancelled().await;
             l.stop.store(true, Ordering::SeqCst);
             l.wake_self();
-            let _ = exited_rx.await;
+            l.request(Ctl::Stop);
+            let _ = receiver_rx.await;
+            let _ = control_rx.await;
+            let peers: Vec<Arc<Mutex<PeerTx>>> = lock(&l.peers).drain().map(|(_, p)| p).collect();
+            for p in peers {
+                lock(&p).fail_all(&LinkSendError::Shutdown);
+            }
         });
         Ok(link)
     }
@@ -767,10 +820,6 @@ impl ShmLink {
 
     fn request(&self, c: Ctl) {
         let _ = lock(&self.ctl).send(c);
-        // A spinning receive thread polls its requests on every pass.
-        if self.wait == ShmWait::Event {
-            self.wake_self();
-        }
     }
 
     fn peer(&self, id: u64, create: bool) -> Option<Arc<Mutex<PeerTx>>> {
@@ -1014,7 +1063,7 @@ impl Link for ShmLink {
         if let Some(p) = p {
             lock(&p).fail_all(&LinkSendError::PeerClosed(to.to_string()));
         }
-        self.request(Ctl::Forget(id));
+        let _ = lock(&self.forget).send(id);
     }
 
     fn stats(&self) -> LinkStats {
@@ -1057,93 +1106,66 @@ enum BulkMatch {
     Other(u64),
 }
 
-/// The receive thread: owns the iceoryx2 node and the inbox.
-struct Receiver {
+/// The wake listener as tokio's reactor sees it: its socket turns readable when a writer
+/// notifies.
+///
+/// The only `unsafe` of the crate (the workspace denies it elsewhere): iceoryx2 hands out the
+/// listener's descriptor and tokio registers one only through `unsafe` functions, because
+/// neither can check that a raw descriptor stays open. Here it does: the listener that owns it
+/// lives inside this wrapper, which the `AsyncFd` owns until it deregisters the descriptor.
+struct WakeFd(Listener<Ipc>);
+
+impl WakeFd {
+    /// Registers `listener`'s socket with the current tokio reactor for readability.
+    #[allow(unsafe_code)]
+    fn watch(listener: Listener<Ipc>) -> std::io::Result<tokio::io::unix::AsyncFd<WakeFd>> {
+        // SAFETY: see the type's documentation; `as_raw_fd` returns the same descriptor, open
+        // for as long as the wrapper (and so the AsyncFd) exists.
+        unsafe {
+            tokio::io::unix::AsyncFd::register_with_interest(
+                WakeFd(listener),
+                tokio::io::Interest::READABLE,
+            )
+        }
+        .map_err(std::io::Error::from)
+    }
+}
+
+impl std::os::fd::AsRawFd for WakeFd {
+    #[allow(unsafe_code)]
+    fn as_raw_fd(&self) -> std::os::fd::RawFd {
+        use iceoryx2::prelude::FileDescriptorBased;
+        // SAFETY: iceoryx2 asks only that the descriptor is neither closed by hand nor used
+        // past the listener's life; it is only polled for readiness while the listener lives.
+        unsafe { self.0.file_descriptor().native_handle() }
+    }
+}
+
+/// The control thread: owns the iceoryx2 node and does what may wait on the file system
+/// (opening peers' inboxes, listing nodes, removing dead ones' resources).
+struct Control {
     link: Arc<ShmLink>,
     node: IoxNode<Ipc>,
-    safe: Sub,
-    fast: Sub,
-    bulk: Sub,
-    /// Bulk samples of one writer met while looking for another's (copied, so the writer gets
-    /// its memory back), in the order written.
-    stash: HashMap<u64, VecDeque<Vec<u8>>>,
-    listener: Listener<Ipc>,
     ctl: mpsc::Receiver<Ctl>,
-    rx: HashMap<u64, RxState>,
-    ack_due: HashSet<u64>,
     next_scan: Instant,
 }
 
-impl Receiver {
+impl Control {
     fn run(mut self) {
-        let spin = self.link.wait == ShmWait::Spin;
-        let mut next_retry = Instant::now() + RETRY;
-        let mut last_frame = Instant::now();
-        let mut backlog = false;
-        while !self.link.stop.load(Ordering::SeqCst) {
-            while let Ok(c) = self.ctl.try_recv() {
-                match c {
-                    Ctl::Open(id) => self.connect(id),
-                    Ctl::OpenBulk(id) => self.open_bulk(id),
-                    Ctl::Forget(id) => {
-                        self.rx.remove(&id);
-                        self.ack_due.remove(&id);
-                        self.stash.remove(&id);
-                    }
-                }
+        loop {
+            let timeout = self.next_scan.saturating_duration_since(Instant::now());
+            match self.ctl.recv_timeout(timeout) {
+                Ok(Ctl::Open(id)) => self.connect(id),
+                Ok(Ctl::OpenBulk(id)) => self.open_bulk(id),
+                Ok(Ctl::Stop) | Err(mpsc::RecvTimeoutError::Disconnected) => break,
+                Err(mpsc::RecvTimeoutError::Timeout) => {}
             }
-            let mut acked = Vec::new();
-            let taken_safe = self.drain_safe(&mut acked);
-            let taken_fast = self.drain_fast();
-            if !self.ack_due.is_empty() {
-                self.send_acks();
+            if self.link.stop.load(Ordering::SeqCst) {
+                break;
             }
-            let now = Instant::now();
-            let retry = now >= next_retry;
-            if retry {
-                next_retry = now + RETRY;
-            }
-            // Polling, the backlogs are looked at when something was acknowledged or the retry
-            // timer fired, not on every pass (that would contend with the writers' locks).
-            if !spin || retry || !acked.is_empty() {
-                backlog = self.flush_backlogs(&acked, retry);
-            }
-            if now >= self.next_scan {
+            if Instant::now() >= self.next_scan {
                 self.scan();
-                self.next_scan = Instant::now() + self.link.options.scan;
             }
-            if taken_safe == PASS_BUDGET || taken_fast == PASS_BUDGET {
-                continue;
-            }
-            if taken_safe + taken_fast > 0 {
-                last_frame = now;
-            }
-            let timeout = if backlog || !self.ack_due.is_empty() {
-                RETRY
-            } else {
-                self.next_scan.saturating_duration_since(Instant::now())
-            };
-            if spin {
-                let idle = now.saturating_duration_since(last_frame);
-                if idle < SPIN_FOR {
-                    std::hint::spin_loop();
-                    continue;
-                }
-                if idle < YIELD_UNTIL {
-                    std::thread::yield_now();
-                    continue;
-                }
-            }
-            let timeout = if spin { timeout.min(PARK) } else { timeout };
-            if let Err(e) = self.listener.timed_wait(|_| {}, timeout) {
-                tracing::warn!(link = %self.link.options.name, error = ?e, "waiting on the shared-memory inbox failed");
-                std::thread::sleep(RETRY);
-            }
-        }
-        let peers: Vec<Arc<Mutex<PeerTx>>> =
-            lock(&self.link.peers).drain().map(|(_, p)| p).collect();
-        for p in peers {
-            lock(&p).fail_all(&LinkSendError::Shutdown);
         }
     }
 
@@ -1242,6 +1264,128 @@ impl Receiver {
         for id in alive {
             if id != self.link.id {
                 self.connect(id);
+            }
+        }
+        self.next_scan = Instant::now() + self.link.options.scan;
+    }
+}
+
+/// The receiving side of the inbox: drains it, delivers, acknowledges and retries what peers'
+/// full inboxes refused. Driven by a tokio task woken through the wake event (`wait="event"`)
+/// or by a polling thread (`wait="spin"`); never blocks.
+struct Receiver {
+    link: Arc<ShmLink>,
+    safe: Sub,
+    fast: Sub,
+    bulk: Sub,
+    /// Bulk samples of one writer met while looking for another's (copied, so the writer gets
+    /// its memory back), in the order written.
+    stash: HashMap<u64, VecDeque<Vec<u8>>>,
+    forget: mpsc::Receiver<u64>,
+    rx: HashMap<u64, RxState>,
+    ack_due: HashSet<u64>,
+    /// When the receiver may ask again to open a peer's inbox.
+    open_requested: HashMap<u64, Instant>,
+    next_retry: Instant,
+    /// Some peer's inbox refused frames at the last look.
+    backlog: bool,
+}
+
+impl Receiver {
+    /// One pass over the inbox. Returns how many frames it took and whether either buffer had
+    /// more than its budget (another pass should follow at once).
+    fn pass(&mut self, look_at_backlogs: bool) -> (usize, bool) {
+        while let Ok(id) = self.forget.try_recv() {
+            self.rx.remove(&id);
+            self.ack_due.remove(&id);
+            self.stash.remove(&id);
+            self.open_requested.remove(&id);
+        }
+        let mut acked = Vec::new();
+        let taken_safe = self.drain_safe(&mut acked);
+        let taken_fast = self.drain_fast();
+        if !self.ack_due.is_empty() {
+            self.send_acks();
+        }
+        let now = Instant::now();
+        let retry = now >= self.next_retry;
+        if retry {
+            self.next_retry = now + RETRY;
+        }
+        if look_at_backlogs || retry || !acked.is_empty() {
+            self.backlog = self.flush_backlogs(&acked, retry);
+        }
+        (
+            taken_safe + taken_fast,
+            taken_safe == PASS_BUDGET || taken_fast == PASS_BUDGET,
+        )
+    }
+
+    /// Whether something must be retried soon even if no writer wakes us.
+    fn retry_due(&self) -> bool {
+        self.backlog || !self.ack_due.is_empty()
+    }
+
+    /// `wait="event"`: a pass whenever a writer notifies (or a retry is due), on a tokio worker.
+    async fn drive_events(
+        mut self,
+        fd: tokio::io::unix::AsyncFd<WakeFd>,
+        cancel: CancellationToken,
+    ) {
+        loop {
+            let (_, more) = self.pass(true);
+            if more {
+                // Let the node's tasks take what was delivered before the next batch.
+                tokio::task::yield_now().await;
+                if cancel.is_cancelled() {
+                    break;
+                }
+                continue;
+            }
+            let retry = self.retry_due();
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                ready = fd.readable() => match ready {
+                    Ok(mut guard) => {
+                        // Cleared before the notifications are consumed, so one arriving after
+                        // the pass below has begun makes the socket readable again.
+                        guard.clear_ready();
+                        if let Err(e) = guard.get_inner().0.try_wait(|_| {}) {
+                            tracing::warn!(link = %self.link.options.name, error = ?e, "reading the shared-memory wake event failed");
+                        }
+                    }
+                    Err(e) => {
+                        tracing::warn!(link = %self.link.options.name, error = %e, "waiting on the shared-memory inbox failed");
+                        tokio::time::sleep(RETRY).await;
+                    }
+                },
+                _ = tokio::time::sleep(RETRY), if retry => {}
+            }
+        }
+    }
+
+    /// `wait="spin"`: passes without pause while frames flow, yielding the processor between
+    /// them, then, idle, one per [`PARK`] (a sleep on the wake event, which shutdown notifies).
+    fn drive_polling(mut self, listener: Listener<Ipc>) {
+        let mut last_frame = Instant::now();
+        while !self.link.stop.load(Ordering::SeqCst) {
+            // Backlogs are looked at on acknowledgements and the retry timer only: on every
+            // pass they would contend with the writers' locks.
+            let (taken, more) = self.pass(false);
+            if more {
+                continue;
+            }
+            let now = Instant::now();
+            if taken > 0 {
+                last_frame = now;
+            }
+            if now.saturating_duration_since(last_frame) < YIELD_UNTIL {
+                std::thread::yield_now();
+                continue;
+            }
+            if let Err(e) = listener.timed_wait(|_| {}, PARK) {
+                tracing::warn!(link = %self.link.options.name, error = ?e, "waiting on the shared-memory inbox failed");
+                std::thread::sleep(PARK);
             }
         }
     }
@@ -1524,19 +1668,19 @@ impl Receiver {
                 self.ack_due.remove(&from);
                 continue;
             };
-            if self
-                .link
-                .peer(from, false)
-                .is_none_or(|p| lock(&p).conn.is_none())
-            {
-                self.connect(from);
-            }
-            let Some(p) = self.link.peer(from, false) else {
+            let Some(p) = self.link.peer(from, true) else {
                 self.ack_due.remove(&from);
                 continue;
             };
             let st = lock(&p);
             let Some(c) = &st.conn else {
+                // A peer that wrote before our scan found it: the control thread opens its
+                // inbox, the retry timer brings us back.
+                let now = Instant::now();
+                if self.open_requested.get(&from).is_none_or(|t| *t <= now) {
+                    self.open_requested.insert(from, now + REOPEN);
+                    self.link.request(Ctl::Open(from));
+                }
                 continue;
             };
             if put(&c.safe, frame::ACK, self.link.id, session, seq, &[]) {
