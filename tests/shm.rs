@@ -379,3 +379,144 @@ fn shm_and_ethernet_node_uses_shm_for_local_peers_and_udp_for_others() {
         assert!(extra.is_empty(), "{} got duplicates: {extra:?}", s.name);
     }
 }
+
+/// Sends `sig` (`STOP`, `CONT`) to a probe.
+fn signal(p: &Proc, sig: &str) {
+    let status = std::process::Command::new("kill")
+        .args([&format!("-{sig}"), &p.pid().to_string()])
+        .status()
+        .expect("run kill");
+    assert!(status.success(), "kill -{sig} {} failed", p.name);
+}
+
+#[test]
+fn a_stopped_subscriber_never_blocks_a_variable_publisher() {
+    let net = ShmNet::new("shm_sigstop");
+    // A lease far longer than the test: the publisher keeps the stopped subscriber as a peer
+    // and keeps writing into its full inbox, rather than forgetting it.
+    let links = format!(
+        r#"<shm service="{}" heartbeatMs="200" leaseMs="600000"/>"#,
+        net.service
+    );
+    let mut vs = net.probe_with("vsub", &links, &["var-sub", "--pattern", "probe/position"]);
+    vs.expect_key(T, "ready");
+    let mut vp = net.probe_with(
+        "vpub",
+        &links,
+        &[
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "3000",
+            "--interval-ms",
+            "1",
+        ],
+    );
+    vs.expect(T, "seq >= 50", |v| {
+        v["seq"].as_u64().is_some_and(|s| s >= 50)
+    });
+    // The subscriber's process stops: nothing reads its inbox any more.
+    signal(&vs, "STOP");
+    // All 3000 sets complete while it is stopped: had a set waited for the reader, the
+    // publisher could not finish before the reader resumes below.
+    let p = vp.expect_key(T, "published");
+    assert_eq!(p["published"], 3000, "{p}");
+    signal(&vs, "CONT");
+    // Reading again, the subscriber gets the newest value (older ones were overwritten).
+    vs.expect(T, "seq == 2999", |v| v["seq"] == 2999);
+}
+
+/// Alive and dead iceoryx2 nodes of the shm links of `service` on this host.
+fn shm_nodes(service: &str) -> (usize, usize) {
+    use iceoryx2::node::NodeView;
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
+    use iceoryx2::prelude::{ipc_threadsafe, CallbackProgression, Node, NodeState};
+    let prefix = format!("marea/{service}/");
+    let ours = |d: &Option<iceoryx2::node::NodeDetails>| {
+        d.as_ref()
+            .is_some_and(|d| d.name().as_str().starts_with(&prefix))
+    };
+    let (mut alive, mut dead) = (0, 0);
+    Node::<ipc_threadsafe::Service>::list(iceoryx2::config::Config::global_config(), |state| {
+        match state {
+            NodeState::Alive(v) if ours(v.details()) => alive += 1,
+            NodeState::Dead(v) if ours(v.details()) => dead += 1,
+            _ => {}
+        }
+        CallbackProgression::Continue
+    })
+    .expect("list the host's iceoryx2 nodes");
+    (alive, dead)
+}
+
+#[test]
+fn nodes_started_after_every_node_was_sigkilled_work_and_clear_what_was_left() {
+    let net = ShmNet::new("shm_killall");
+    let start = |net: &ShmNet| {
+        let mut vp = net.probe("vpub", &["var-pub", "--item", "position", "--count", "1"]);
+        vp.expect_key(T, "published");
+        // Running until stopped, so both nodes are alive when counted.
+        let mut vs = net.probe("vsub", &["var-sub", "--pattern", "probe/position"]);
+        let v = vs.expect_key(T, "seq");
+        assert_eq!(v["publisher"], "vpub", "{v}");
+        (vp, vs)
+    };
+    let (mut vp, mut vs) = start(&net);
+    assert_eq!(shm_nodes(&net.service), (2, 0));
+    // Nobody is left to clean up after them.
+    vp.kill9();
+    vs.kill9();
+    assert_eq!(
+        shm_nodes(&net.service),
+        (0, 2),
+        "the killed nodes left their resources (what the next start must cope with)"
+    );
+    // The next start works, and removed what the killed nodes left.
+    let (_vp, _vs) = start(&net);
+    assert_eq!(shm_nodes(&net.service), (2, 0));
+}
+
+#[test]
+fn a_file_from_shared_memory_crosses_a_gateway_onto_a_radio() {
+    let net = ShmNet::new("shm_radio_file");
+    // A fast radio so the file crosses in seconds; the serial link still cuts messages into
+    // 300-byte packets, at most 255 per message.
+    let radio = common::Radio::start(&["--air-rate", "1000000", "--full-duplex", "--seed", "23"]);
+    let serial = |tty: &str| {
+        format!(r#"<serial address="{tty}" baudRate="921600" heartbeatMs="500" leaseMs="5000"/>"#)
+    };
+    let inbox = net.path("inbox");
+    let mut sink = net.probe_with(
+        "sink",
+        &serial(&radio.ground),
+        &["sink", "--item", "files", "--dir", inbox.to_str().unwrap()],
+    );
+    sink.expect_key(T, "ready");
+    let mut gw = net.probe_with(
+        "gw",
+        &format!("{}\n  {}", net.shm_xml(), serial(&radio.air)),
+        &["gateway"],
+    );
+    let g = gw.expect_key(T, "ready");
+    assert_eq!(g["gateway"], true, "{g}");
+    // Larger than one shared-memory chunk may be on the radio (255 x 300 bytes): sent in
+    // shared-memory-sized chunks, it could not be relayed.
+    let src = net.path("plan.bin");
+    let data = pattern_file(&src, 120_000);
+    let mut send = net.probe(
+        "send",
+        &[
+            "send",
+            "--file",
+            src.to_str().unwrap(),
+            "--to",
+            "probe/files",
+        ],
+    );
+    let got = sink.expect_key(Duration::from_secs(60), "received");
+    assert_eq!(got["size"], 120_000, "{got}");
+    let done = send.expect_key(T, "done");
+    assert_eq!(done["attempts"], 1, "{done}");
+    assert!(std::fs::read(inbox.join("plan.bin")).unwrap() == data);
+}
