@@ -1342,18 +1342,25 @@ impl Receiver {
                 }
                 continue;
             }
+            // Sleep only with the event idle. While a notification is pending iceoryx2 sends no
+            // datagram for the next ones, and reading the socket may swallow the datagram of a
+            // notification it leaves pending: the socket would then never turn readable again.
+            // Consuming the notifications here resets that state; any notification consumed
+            // (its frames may have arrived after the pass) means another pass first.
+            match fd.get_ref().0.try_wait(|_| {}) {
+                Ok(0) => {}
+                Ok(_) => continue,
+                Err(e) => {
+                    tracing::warn!(link = %self.link.options.name, error = ?e, "reading the shared-memory wake event failed");
+                }
+            }
             let retry = self.retry_due();
             tokio::select! {
                 _ = cancel.cancelled() => break,
                 ready = fd.readable() => match ready {
-                    Ok(mut guard) => {
-                        // Cleared before the notifications are consumed, so one arriving after
-                        // the pass below has begun makes the socket readable again.
-                        guard.clear_ready();
-                        if let Err(e) = guard.get_inner().0.try_wait(|_| {}) {
-                            tracing::warn!(link = %self.link.options.name, error = ?e, "reading the shared-memory wake event failed");
-                        }
-                    }
+                    // The datagram is read after the next pass; one arriving after this point
+                    // makes the socket readable again.
+                    Ok(mut guard) => guard.clear_ready(),
                     Err(e) => {
                         tracing::warn!(link = %self.link.options.name, error = %e, "waiting on the shared-memory inbox failed");
                         tokio::time::sleep(RETRY).await;
@@ -2099,6 +2106,38 @@ mod tests {
         }
         assert_eq!(b.stats().corrupt, 0);
         assert_eq!(b.stats().duplicates, 0);
+        stop(tasks, cancel).await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_sleeping_reader_never_misses_a_wake_up() {
+        let svc = unique_service("wake");
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (a, _arx) = open_link(&svc, &tasks, &cancel).await;
+        let (c, _crx) = open_link(&svc, &tasks, &cancel).await;
+        let (b, _brx) = open_link(&svc, &tasks, &cancel).await;
+        let to = PeerAddr::Shm(b.id());
+        // Two writers, one message at a time each: the reader falls asleep between most
+        // messages and the writers' notifications race with its waking. A wake-up lost for
+        // good would leave a message unacknowledged.
+        let writer = |w: Arc<ShmLink>| async move {
+            for i in 0..3000u32 {
+                let (out, done) = safe(i.to_le_bytes().to_vec());
+                w.send(to, out);
+                let r = tokio::time::timeout(Duration::from_secs(5), done).await;
+                assert_eq!(
+                    r.unwrap_or_else(|_| panic!("message {i} never acknowledged"))
+                        .expect("completion sent"),
+                    Ok(())
+                );
+            }
+        };
+        let (ra, rc) = tokio::join!(
+            tokio::spawn(writer(a.clone())),
+            tokio::spawn(writer(c.clone()))
+        );
+        ra.expect("writer a");
+        rc.expect("writer c");
         stop(tasks, cancel).await;
     }
 
