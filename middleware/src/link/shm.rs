@@ -658,7 +658,7 @@ fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, String
     let spins = wake
         .attributes()
         .key_value(&wait_key()?, 0)
-        .is_some_and(|v| v.to_string() == ShmWait::Spin.as_str());
+        .is_some_and(|v| v == ShmWait::Spin.as_str());
     let wake = wake
         .notifier_builder()
         .create()
