@@ -57,6 +57,34 @@ fn wildcard_subscription_follows_a_fleet() {
 }
 
 #[test]
+fn link_health_is_published_as_variables_a_station_can_follow() {
+    let net = Net::new("link_health");
+    let mut rover = net.probe_ns(
+        "r1",
+        "rover1",
+        &["var-pub", "--item", "position", "--count", "1"],
+    );
+    rover.expect_key(T, "published");
+    // A typed wildcard over everything: the rover's position (another type) must be skipped
+    // silently, and the rover's link health must arrive with its peer and its traffic counted.
+    let mut station = net.probe("gs", &["health", "--pattern", "**", "--count", "6"]);
+    let mut rover_link = None;
+    for _ in 0..6 {
+        let v = station.expect(T, "a value or an error", |v| {
+            v.get("name").is_some() || v.get("error").is_some()
+        });
+        assert!(v.get("error").is_none(), "typed wildcard reported {v}");
+        if v["name"] == "rover1/link/ethernet0/stats" && v["out_bps"].as_f64() > Some(0.0) {
+            rover_link = Some(v);
+        }
+    }
+    let v = rover_link.expect("the rover's link health with traffic within six values");
+    assert_eq!(v["publisher"], "r1");
+    assert_eq!(v["link"], "ethernet0");
+    assert!(v["peers"].as_u64() >= Some(1), "{v}");
+}
+
+#[test]
 fn ten_thousand_events_reach_three_subscribers_exactly_once_in_order() {
     let net = Net::new("events_3x10k");
     let mut subs: Vec<_> = (1..=3)

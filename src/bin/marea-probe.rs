@@ -71,6 +71,13 @@ enum Cmd {
         #[arg(long, default_value_t = 0)]
         count: u64,
     },
+    /// Print link-health values (`marea::LinkHealth`) matching PATTERN; exit after COUNT.
+    Health {
+        #[arg(long)]
+        pattern: String,
+        #[arg(long, default_value_t = 1)]
+        count: u64,
+    },
     /// Subscribe to PATTERN expecting strings, to show a type refusal.
     VarSubString {
         #[arg(long)]
@@ -240,6 +247,27 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 n += 1;
                 if *count > 0 && n >= *count {
                     break;
+                }
+            }
+        }
+        Cmd::Health { pattern, count } => {
+            let sub = svc.subscribe_variable::<marea::LinkHealth>(pattern)?;
+            out(json!({"ready": pattern}));
+            for _ in 0..*count {
+                let s = tokio::select! {
+                    _ = marea::process::terminated() => break,
+                    s = sub.recv() => s,
+                };
+                match s {
+                    Ok(s) => out(json!({
+                        "name": s.name,
+                        "publisher": s.publisher,
+                        "link": s.value.link,
+                        "peers": s.value.peers,
+                        "in_bps": s.value.in_bps,
+                        "out_bps": s.value.out_bps,
+                    })),
+                    Err(e) => out(json!({"error": e.to_string()})),
                 }
             }
         }
