@@ -418,16 +418,23 @@ impl UdpLink {
                         }
                     }
                     let now = Instant::now();
+                    let mut timers_changed = false;
                     for addr in touched {
                         if let Some(p) = self.peer(addr, false) {
                             let mut st = lock(&p);
+                            // Acks may have opened the window for queued safe messages.
                             if st.has_work() {
                                 self.flush_locked(addr, &mut st, now);
                             }
+                            timers_changed |=
+                                st.tx.next_deadline().is_some() || !st.blocked.is_empty();
                         }
                     }
-                    // Acks may have opened the window for queued safe messages.
-                    self.wake.notify_one();
+                    // The transmit task only keeps retransmission timers and blocked sends:
+                    // waking it for every datagram of fast traffic cost a thread hop each.
+                    if timers_changed {
+                        self.wake.notify_one();
+                    }
                 }
                 Err(e) if is_transient(&e) => continue,
                 Err(e) => {
