@@ -406,14 +406,18 @@ impl UdpLink {
                 Ok((n, from)) => {
                     let mut touched = Vec::new();
                     self.handle_datagram(&buf[..n], from, &mut touched);
-                    // Drain what else is waiting so acknowledgements are batched. Between
-                    // datagrams, let the tasks just woken on this worker run: a subscriber
-                    // would otherwise wait for the whole drain and find most of its variables'
-                    // values replaced by newer ones.
+                    // Drain what else is waiting so acknowledgements are batched. In such a
+                    // burst, let the tasks the previous datagram woke on this worker run first:
+                    // a subscriber would otherwise wait for the whole drain and find most of
+                    // its variables' values replaced by newer ones. (A lone datagram yields
+                    // nothing: the woken task runs as soon as this loop waits again, which
+                    // keeps the round trip short.)
                     for _ in 0..64 {
-                        tokio::task::yield_now().await;
                         match self.socket.try_recv_from(&mut buf) {
-                            Ok((n, from)) => self.handle_datagram(&buf[..n], from, &mut touched),
+                            Ok((n, from)) => {
+                                tokio::task::yield_now().await;
+                                self.handle_datagram(&buf[..n], from, &mut touched);
+                            }
                             Err(_) => break,
                         }
                     }
