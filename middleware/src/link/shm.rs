@@ -94,6 +94,9 @@ const MAX_MESSAGE: usize = 256 << 20;
 const RETRY: Duration = Duration::from_millis(1);
 /// Samples taken from one inbox buffer per pass, so acknowledgements flow during bursts.
 const PASS_BUDGET: usize = 512;
+/// Bulk bytes delivered per pass: a pass runs on a tokio worker, which it should not hold for
+/// long copying large messages out.
+const PASS_BULK_BYTES: usize = 4 << 20;
 /// `wait="spin"`: after the last frame, poll without pause (yielding the processor between
 /// passes) for this long, ...
 const YIELD_UNTIL: Duration = Duration::from_millis(10);
@@ -765,6 +768,7 @@ impl ShmLink {
             ack_due: HashSet::new(),
             open_requested: HashMap::new(),
             next_retry: Instant::now(),
+            pass_bulk_bytes: 0,
             backlog: false,
         };
         let (receiver_tx, receiver_rx) = tokio::sync::oneshot::channel::<()>();
@@ -1287,6 +1291,8 @@ struct Receiver {
     /// When the receiver may ask again to open a peer's inbox.
     open_requested: HashMap<u64, Instant>,
     next_retry: Instant,
+    /// Bulk bytes delivered in the current pass.
+    pass_bulk_bytes: usize,
     /// Some peer's inbox refused frames at the last look.
     backlog: bool,
 }
@@ -1403,10 +1409,15 @@ impl Receiver {
         c.bytes_in.fetch_add(n as u64, Ordering::Relaxed);
     }
 
-    /// Takes what the safe inbox holds, up to [`PASS_BUDGET`] frames. Returns how many it took.
+    /// Takes what the safe inbox holds, up to [`PASS_BUDGET`] frames or [`PASS_BULK_BYTES`]
+    /// of bulk bodies. Returns how many frames it took ([`PASS_BUDGET`] when a budget ran out).
     fn drain_safe(&mut self, acked: &mut Vec<u64>) -> usize {
         let link = self.link.clone();
+        self.pass_bulk_bytes = 0;
         for taken in 0..PASS_BUDGET {
+            if self.pass_bulk_bytes >= PASS_BULK_BYTES {
+                return PASS_BUDGET;
+            }
             let sample = match self.safe.receive() {
                 Ok(Some(s)) => s,
                 Ok(None) => return taken,
@@ -1495,10 +1506,12 @@ impl Receiver {
             Some(BulkBody::Sample(sample)) => {
                 let body = &sample.payload()[frame::SEQUENCED..];
                 self.count_in(body.len());
+                self.pass_bulk_bytes += body.len();
                 self.on_safe(from, session, seq, more, Some(body));
             }
             Some(BulkBody::Copy(frame)) => {
                 let body = &frame[frame::SEQUENCED..];
+                self.pass_bulk_bytes += body.len();
                 self.count_in(body.len());
                 self.on_safe(from, session, seq, more, Some(body));
             }
