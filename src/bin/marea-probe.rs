@@ -331,7 +331,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 handle(p.await, &mut reported);
             }
             out(
-                json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64}),
+                json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64, "peers": node.peers()}),
             );
             marea::process::terminated().await;
         }
