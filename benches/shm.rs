@@ -180,8 +180,14 @@ async fn main() -> Result<(), BoxError> {
         let c = Node::open(&cfg("bench-c", &service, ShmWait::Spin)).await?;
         let d = Node::open(&cfg("bench-d", &service, ShmWait::Spin)).await?;
         let (sc, sd) = (c.service("a")?, d.service("b")?);
-        let rtts = var_rtts(&sc, &sd, n).await?;
-        drop((sc, sd));
+        // The pinging side is a task too, as a subscriber of a busy-polled link would be: its
+        // worker then never parks, so a wake-up is a queue push rather than a thread switch.
+        let rtts = tokio::spawn(async move {
+            let r = var_rtts(&sc, &sd, n).await.map_err(|e| e.to_string());
+            drop((sc, sd));
+            r
+        })
+        .await??;
         c.shutdown().await;
         d.shutdown().await;
         rtts

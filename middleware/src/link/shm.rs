@@ -94,6 +94,10 @@ const MAX_MESSAGE: usize = 256 << 20;
 const RETRY: Duration = Duration::from_millis(1);
 /// Samples taken from one inbox buffer per pass, so acknowledgements flow during bursts.
 const PASS_BUDGET: usize = 512;
+/// Fast samples taken per pass. Between passes the tasks the pass woke on this worker run: a
+/// subscriber would otherwise find most of its variables' values replaced by newer ones when it
+/// finally runs (one variable value per sample: about a UDP datagram's worth).
+const FAST_PASS_BUDGET: usize = 16;
 /// Bulk bytes delivered per pass: a pass runs on a tokio worker, which it should not hold for
 /// long copying large messages out.
 const PASS_BULK_BYTES: usize = 4 << 20;
@@ -785,16 +789,14 @@ impl ShmLink {
                 });
             }
             ShmWait::Spin => {
-                let runtime = tokio::runtime::Handle::current();
-                std::thread::Builder::new()
-                    .name(format!("marea-shm-{name}"))
-                    .spawn(move || {
-                        // The node's handlers spawn tasks and create timers.
-                        let _rt = runtime.enter();
-                        rx.drive_polling(listener);
-                        drop(receiver_tx);
-                    })
-                    .map_err(thread_err)?;
+                // A task that polls and yields, so the worker running it never parks: waking
+                // the task a message is for is a push onto a run queue, not a thread wake-up.
+                drop(listener);
+                let cancel = cancel.clone();
+                tasks.spawn(async move {
+                    rx.drive_polling(cancel).await;
+                    drop(receiver_tx);
+                });
             }
         }
         let l = link.clone();
@@ -1323,7 +1325,7 @@ impl Receiver {
         }
         (
             taken_safe + taken_fast,
-            taken_safe == PASS_BUDGET || taken_fast == PASS_BUDGET,
+            taken_safe == PASS_BUDGET || taken_fast == FAST_PASS_BUDGET,
         )
     }
 
@@ -1377,28 +1379,25 @@ impl Receiver {
         }
     }
 
-    /// `wait="spin"`: passes without pause while frames flow, yielding the processor between
-    /// them, then, idle, one per [`PARK`] (a sleep on the wake event, which shutdown notifies).
-    fn drive_polling(mut self, listener: Listener<Ipc>) {
+    /// `wait="spin"`: passes without pause while frames flow, yielding the worker between them
+    /// (the tasks the pass woke run then), and, idle, one per [`PARK`].
+    async fn drive_polling(mut self, cancel: CancellationToken) {
         let mut last_frame = Instant::now();
-        while !self.link.stop.load(Ordering::SeqCst) {
+        while !cancel.is_cancelled() {
             // Backlogs are looked at on acknowledgements and the retry timer only: on every
             // pass they would contend with the writers' locks.
             let (taken, more) = self.pass(false);
-            if more {
-                continue;
-            }
             let now = Instant::now();
             if taken > 0 {
                 last_frame = now;
             }
-            if now.saturating_duration_since(last_frame) < YIELD_UNTIL {
-                std::thread::yield_now();
+            if more || now.saturating_duration_since(last_frame) < YIELD_UNTIL {
+                tokio::task::yield_now().await;
                 continue;
             }
-            if let Err(e) = listener.timed_wait(|_| {}, PARK) {
-                tracing::warn!(link = %self.link.options.name, error = ?e, "waiting on the shared-memory inbox failed");
-                std::thread::sleep(PARK);
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                _ = tokio::time::sleep(PARK) => {}
             }
         }
     }
@@ -1467,10 +1466,11 @@ impl Receiver {
         PASS_BUDGET
     }
 
-    /// Takes what the fast inbox holds, up to [`PASS_BUDGET`] frames. Returns how many it took.
+    /// Takes what the fast inbox holds, up to [`FAST_PASS_BUDGET`] frames. Returns how many it
+    /// took.
     fn drain_fast(&mut self) -> usize {
         let link = self.link.clone();
-        for taken in 0..PASS_BUDGET {
+        for taken in 0..FAST_PASS_BUDGET {
             let sample = match self.fast.receive() {
                 Ok(Some(s)) => s,
                 Ok(None) => return taken,
@@ -1496,7 +1496,7 @@ impl Receiver {
                 }
             }
         }
-        PASS_BUDGET
+        FAST_PASS_BUDGET
     }
 
     /// A `Bulk` frame: its body is the next bulk sample of `from` (read in place when the
