@@ -1207,11 +1207,18 @@ impl Control {
         let Some(p) = self.link.peer(id, true) else {
             return;
         };
+        if lock(&p).conn.is_some() {
+            return;
+        }
+        // Opening may wait (iceoryx2 retries a service still being created, e.g. by a peer
+        // starting up): not under the peer's lock, which every send to it takes. A publisher
+        // blocked 3 s in `set` while a restarted subscriber's inbox was being opened.
+        let opened = open_conn(&self.node, &self.link.options.service, id);
         let mut st = lock(&p);
         if st.conn.is_some() {
             return;
         }
-        match open_conn(&self.node, &self.link.options.service, id) {
+        match opened {
             Ok(c) => {
                 st.conn = Some(c);
                 self.link.flush_opened(&mut st);
