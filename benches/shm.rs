@@ -134,6 +134,28 @@ fn rss_kb(pid: u32) -> Option<u64> {
 
 /// Variable round trips: `sa` publishes ping, `sb` answers pong with the same value; `n` timed
 /// after 1000 to warm up. Sorted, in microseconds.
+/// The figures of one round-trip pair: `<var><mode>.rtt_p50_us`/`_p99_us`, the same for the raw
+/// baseline, and `<var><mode>.rtt_ratio_to_raw` (p50), from sorted samples.
+fn rtt_pair(var: &str, raw_name: &str, mode: &str, var_rtts: &[f64], raw_rtts: &[f64]) {
+    for (name, rtts) in [(var, var_rtts), (raw_name, raw_rtts)] {
+        metric(
+            &format!("{name}{mode}.rtt_p50_us"),
+            percentile(rtts, 0.5),
+            "us",
+        );
+        metric(
+            &format!("{name}{mode}.rtt_p99_us"),
+            percentile(rtts, 0.99),
+            "us",
+        );
+    }
+    metric(
+        &format!("{var}{mode}.rtt_ratio_to_raw"),
+        percentile(var_rtts, 0.5) / percentile(raw_rtts, 0.5),
+        "ratio",
+    );
+}
+
 async fn var_rtts(sa: &Service, sb: &Service, n: usize) -> Result<Vec<f64>, BoxError> {
     let ping = sa.publish_variable::<Payload64>("ping")?;
     let pongs = sa.subscribe_variable::<Payload64>("b/pong")?;
@@ -201,47 +223,13 @@ async fn main() -> Result<(), BoxError> {
     let sb = b.service("b")?;
     let rtts = var_rtts(&sa, &sb, n).await?;
     let raw = tokio::task::spawn_blocking(move || raw_ping_pong(n, ShmWait::Event)).await??;
-    metric("shm.var64.rtt_p50_us", percentile(&rtts, 0.5), "us");
-    metric("shm.var64.rtt_p99_us", percentile(&rtts, 0.99), "us");
-    metric(
-        "shm.raw_iceoryx2_64.rtt_p50_us",
-        percentile(&raw, 0.5),
-        "us",
-    );
-    metric(
-        "shm.raw_iceoryx2_64.rtt_p99_us",
-        percentile(&raw, 0.99),
-        "us",
-    );
-    metric(
-        "shm.var64.rtt_ratio_to_raw",
-        percentile(&rtts, 0.5) / percentile(&raw, 0.5),
-        "ratio",
-    );
-    metric(
-        "shm.var64.spin.rtt_p50_us",
-        percentile(&spin_rtts, 0.5),
-        "us",
-    );
-    metric(
-        "shm.var64.spin.rtt_p99_us",
-        percentile(&spin_rtts, 0.99),
-        "us",
-    );
-    metric(
-        "shm.raw_iceoryx2_64.spin.rtt_p50_us",
-        percentile(&raw_spin, 0.5),
-        "us",
-    );
-    metric(
-        "shm.raw_iceoryx2_64.spin.rtt_p99_us",
-        percentile(&raw_spin, 0.99),
-        "us",
-    );
-    metric(
-        "shm.var64.spin.rtt_ratio_to_raw",
-        percentile(&spin_rtts, 0.5) / percentile(&raw_spin, 0.5),
-        "ratio",
+    rtt_pair("shm.var64", "shm.raw_iceoryx2_64", "", &rtts, &raw);
+    rtt_pair(
+        "shm.var64",
+        "shm.raw_iceoryx2_64",
+        ".spin",
+        &spin_rtts,
+        &raw_spin,
     );
 
     // Variable throughput: 100 telemetry variables published round robin.
