@@ -1023,16 +1023,20 @@ mod tests {
     }
 
     fn command(v: &mut Vehicle, command: MavCmd, p1: f32, p2: f32) -> MavResult {
-        let out = v.handle(
-            GCS,
-            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        command_long(
+            v,
+            COMMAND_LONG_DATA {
                 command,
                 param1: p1,
                 param2: p2,
                 ..Default::default()
-            }),
-            Instant::now(),
-        );
+            },
+        )
+    }
+
+    /// Sends `cmd` and returns the result its COMMAND_ACK carries.
+    fn command_long(v: &mut Vehicle, cmd: COMMAND_LONG_DATA) -> MavResult {
+        let out = v.handle(GCS, &MavMessage::COMMAND_LONG(cmd), Instant::now());
         out.iter()
             .find_map(|m| match m {
                 MavMessage::COMMAND_ACK(a) => Some(a.result),
@@ -1135,21 +1139,14 @@ mod tests {
     }
 
     fn takeoff_command(v: &mut Vehicle, alt: f32) -> MavResult {
-        let out = v.handle(
-            GCS,
-            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        command_long(
+            v,
+            COMMAND_LONG_DATA {
                 command: MavCmd::MAV_CMD_NAV_TAKEOFF,
                 param7: alt,
                 ..Default::default()
-            }),
-            Instant::now(),
-        );
-        out.iter()
-            .find_map(|m| match m {
-                MavMessage::COMMAND_ACK(a) => Some(a.result),
-                _ => None,
-            })
-            .unwrap()
+            },
+        )
     }
 
     #[test]

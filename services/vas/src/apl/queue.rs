@@ -267,32 +267,33 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         let filler = || a0.clone();
         let known = self.have_known && self.have.iter().all(Option::is_some);
         let differs = |k: usize| want[k].is_some() && want[k] != self.have[k];
+        // The partial write of the first run of differing slots.
+        let first_run = || {
+            let first = (0..want.len()).find(|&k| differs(k))?;
+            let items = (first..want.len())
+                .take_while(|&k| differs(k))
+                .map(|k| want[k].clone().unwrap_or_else(filler))
+                .collect();
+            Some(self.write(first as u16 + 1, items))
+        };
         // Cutting the mission short takes a full upload, a long transfer on a lossy link:
         // slots the vehicle will drive to first get their waypoints by partial writes before
         // it, so they are not waiting on it.
         let shrinking = known && self.partial_ok && self.have.len() > want.len();
-        if let Some(first) = (0..want.len()).find(|&k| shrinking && differs(k)) {
-            let mut items = Vec::new();
-            let mut k = first;
-            while k < want.len() && differs(k) {
-                items.push(want[k].clone().unwrap_or_else(filler));
-                k += 1;
+        if shrinking {
+            if let Some(write) = first_run() {
+                return Some(write);
             }
-            return Some(self.write(first as u16 + 1, items));
         }
         if !known || self.have.len() != want.len() {
-            let items = want.into_iter().map(|w| w.unwrap_or_else(filler)).collect();
+            let items = want
+                .iter()
+                .map(|w| w.clone().unwrap_or_else(filler))
+                .collect();
             return Some(QueueAction::Upload(items));
         }
-        // First run of differing slots.
-        if let Some(first) = (0..want.len()).find(|&k| differs(k)) {
-            let mut items = Vec::new();
-            let mut k = first;
-            while k < want.len() && differs(k) {
-                items.push(want[k].clone().unwrap_or_else(filler));
-                k += 1;
-            }
-            return Some(self.write(first as u16 + 1, items));
+        if let Some(write) = first_run() {
+            return Some(write);
         }
         if self.owe_start {
             return Some(QueueAction::SetCurrent(c));
