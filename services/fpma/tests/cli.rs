@@ -1,9 +1,21 @@
 //! `fpma expand` run as a child process, on the example plan and on a malformed one.
 
+use std::ffi::{OsStr, OsString};
 use std::process::Command;
 
 fn fpma() -> Command {
     Command::new(env!("CARGO_BIN_EXE_fpma"))
+}
+
+/// Runs `fpma` with `args`, which must succeed; returns its standard output.
+fn fpma_ok<S: AsRef<OsStr>>(args: &[S]) -> String {
+    let out = fpma().args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap()
 }
 
 const ROVER: &str = concat!(
@@ -13,17 +25,8 @@ const ROVER: &str = concat!(
 
 #[test]
 fn expand_prints_one_json_waypoint_per_line() {
-    let out = fpma()
-        // No --vehicle: the plan says it is for a rover.
-        .args(["expand", ROVER])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let text = String::from_utf8(out.stdout).unwrap();
+    // No --vehicle: the plan says it is for a rover.
+    let text = fpma_ok(&["expand", ROVER]);
     let lines: Vec<serde_json::Value> = text
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
@@ -119,19 +122,9 @@ fn vehicle_overrides_shape_the_stream() {
     )
     .unwrap();
     let stream = |extra: &[&str]| -> Vec<serde_json::Value> {
-        let out = fpma()
-            .arg("expand")
-            .arg(&path)
-            .args(extra)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        String::from_utf8(out.stdout)
-            .unwrap()
+        let mut args = vec![OsString::from("expand"), path.clone().into()];
+        args.extend(extra.iter().map(Into::into));
+        fpma_ok(&args)
             .lines()
             .map(|l| serde_json::from_str(l).unwrap())
             .collect()
@@ -161,17 +154,14 @@ fn qgc_export_writes_a_plan_file_and_refusals_give_the_reason() {
         "/../../config/flightplans/rover-demo.xml"
     );
     let out_plan = dir.path().join("demo.plan");
-    let out = fpma()
-        .args(["expand", demo, "--qgc"])
-        .arg(&out_plan)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let printed = String::from_utf8(out.stdout).unwrap().lines().count();
+    let printed = fpma_ok(&[
+        OsStr::new("expand"),
+        OsStr::new(demo),
+        OsStr::new("--qgc"),
+        out_plan.as_os_str(),
+    ])
+    .lines()
+    .count();
     let text = std::fs::read_to_string(&out_plan).unwrap();
     let doc: serde_json::Value = serde_json::from_str(&text).unwrap();
     assert_eq!(doc["fileType"], "Plan");
