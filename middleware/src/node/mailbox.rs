@@ -138,3 +138,37 @@ impl Mailbox {
         self.lock().queue.len()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn sample(name: &str) -> Delivery {
+        Delivery::Sample(RawSample {
+            name: name.into(),
+            publisher: "p".into(),
+            type_name: "u8".into(),
+            payload: vec![1],
+            received: Instant::now(),
+        })
+    }
+
+    /// Only the push onto an empty queue wakes a reader; with two readers waiting, the one
+    /// woken passes the wake-up on when it leaves items behind.
+    #[tokio::test(flavor = "current_thread")]
+    async fn two_waiting_readers_both_get_a_delivery() {
+        let m = Arc::new(Mailbox::new(false));
+        let reader = |m: Arc<Mailbox>| tokio::spawn(async move { m.pop().await.is_some() });
+        let (a, b) = (reader(m.clone()), reader(m.clone()));
+        // On this single-threaded runtime both readers run up to their wait here.
+        tokio::task::yield_now().await;
+        m.push(sample("x"));
+        m.push(sample("y"));
+        let both = tokio::time::timeout(Duration::from_secs(5), async {
+            (a.await.unwrap(), b.await.unwrap())
+        })
+        .await;
+        assert_eq!(both, Ok((true, true)), "a reader was left waiting");
+    }
+}
