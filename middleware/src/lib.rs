@@ -74,6 +74,7 @@ pub mod name;
 pub(crate) mod node;
 pub mod process;
 pub mod protocol;
+pub mod sync;
 pub mod transport;
 pub mod typeinfo;
 

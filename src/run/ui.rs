@@ -32,7 +32,7 @@ impl Ui {
 
     /// Writes `text` as whole lines on stderr, keeping the bar below them.
     fn stderr_lines(&self, text: &str) {
-        let bar = self.bar.lock().unwrap_or_else(|p| p.into_inner());
+        let bar = marea::sync::lock(&self.bar);
         let mut err = std::io::stderr().lock();
         if bar.is_some() {
             let _ = write!(err, "\r\x1b[2K");
@@ -62,7 +62,7 @@ impl Ui {
     /// caller decides which updates are worth a line) and the JSON record with `--json`.
     pub fn progress(&self, bar: &str, line: Option<&str>, json: Option<Value>) {
         if self.tty {
-            let mut b = self.bar.lock().unwrap_or_else(|p| p.into_inner());
+            let mut b = marea::sync::lock(&self.bar);
             let mut err = std::io::stderr().lock();
             let _ = write!(err, "\r\x1b[2K{bar}");
             let _ = err.flush();
@@ -78,7 +78,7 @@ impl Ui {
 
     /// Removes the bar (before the summary and at exit).
     pub fn clear_bar(&self) {
-        let mut b = self.bar.lock().unwrap_or_else(|p| p.into_inner());
+        let mut b = marea::sync::lock(&self.bar);
         if b.take().is_some() {
             let mut err = std::io::stderr().lock();
             let _ = write!(err, "\r\x1b[2K");

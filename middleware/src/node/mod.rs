@@ -27,11 +27,7 @@ use crate::protocol::{ItemKind, Message, NodeId, Origin, RemoteFailure};
 use crate::typeinfo::TypeInfo;
 use mailbox::Mailbox;
 
-/// Locks a std mutex, ignoring poisoning: every structure guarded here stays valid if a holder
-/// panicked (queues, maps, plain values), so one panic must not cascade into every task.
-pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
+pub(crate) use crate::sync::lock;
 
 /// A boxed future returned by function handlers.
 pub(crate) type BoxFuture<T> = std::pin::Pin<Box<dyn std::future::Future<Output = T> + Send>>;

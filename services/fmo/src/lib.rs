@@ -101,7 +101,7 @@ impl Shared {
     /// The station state. A panic while holding the lock cannot leave it inconsistent in a way
     /// worth stopping the station for, so a poisoned lock is taken over.
     pub fn station(&self) -> MutexGuard<'_, Station> {
-        self.station.lock().unwrap_or_else(|p| p.into_inner())
+        marea::sync::lock(&self.station)
     }
 
     fn function<A: marea::Payload, R: marea::Payload>(
@@ -109,7 +109,7 @@ impl Shared {
         cache: &Mutex<HashMap<String, Arc<Function<A, R>>>>,
         name: String,
     ) -> Result<Arc<Function<A, R>>, String> {
-        let mut map = cache.lock().unwrap_or_else(|p| p.into_inner());
+        let mut map = marea::sync::lock(cache);
         if let Some(f) = map.get(&name) {
             return Ok(f.clone());
         }

@@ -411,7 +411,7 @@ impl Shared {
     /// The state; a poisoned lock is taken over (nothing in it can be left half-updated in a
     /// way worth stopping the station for).
     pub fn state(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        marea::sync::lock(&self.state)
     }
 
     /// The commanded vehicle, or the one named.
@@ -582,7 +582,7 @@ impl Shared {
     /// A probe of the FPMa of `label`, whose provider's presence tells whether it is reachable
     /// (progress is published on change only, so its age says nothing).
     fn ensure_probe(&self, label: &str) {
-        let mut probes = self.probes.lock().unwrap_or_else(|p| p.into_inner());
+        let mut probes = marea::sync::lock(&self.probes);
         if probes.contains_key(label) {
             return;
         }

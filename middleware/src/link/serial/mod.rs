@@ -16,7 +16,7 @@ pub mod stp;
 
 use std::io;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -54,10 +54,7 @@ pub struct SerialLink {
     reopens: AtomicU64,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    // Poisoning only means a holder panicked; the engine's state is still consistent queues.
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
+use crate::sync::lock;
 
 impl SerialLink {
     /// Opens the ports of `opener` and starts the link's tasks on `tasks`, stopping on `cancel`.

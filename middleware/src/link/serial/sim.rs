@@ -183,11 +183,7 @@ impl AsyncWrite for PipeWriter {
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
         if !self.down.load(Ordering::Relaxed) {
-            let bytes = self
-                .faults
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .apply(buf);
+            let bytes = crate::sync::lock(&self.faults).apply(buf);
             if self.tx.send(bytes).is_err() {
                 return Poll::Ready(Err(io::ErrorKind::BrokenPipe.into()));
             }

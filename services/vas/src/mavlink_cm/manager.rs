@@ -12,7 +12,7 @@
 use std::collections::BTreeMap;
 use std::io;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex as StdMutex, MutexGuard};
+use std::sync::{Arc, Mutex as StdMutex};
 use std::time::Duration;
 
 use mavlink::dialects::ardupilotmega::{
@@ -151,10 +151,7 @@ struct Inner {
     parse_errors: Arc<AtomicU64>,
 }
 
-/// Locks a std mutex, ignoring poisoning (the data are plain caches).
-fn lock<T>(m: &StdMutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
+use marea::sync::lock;
 
 fn param_name(id: &mavlink::types::CharArray<16>) -> String {
     id.to_str().unwrap_or("").to_owned()

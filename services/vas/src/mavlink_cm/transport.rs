@@ -115,7 +115,7 @@ impl Connection {
             .map_err(io::Error::other)?;
         match &self.writer {
             Writer::Udp { sock, peer } => {
-                let dest = *peer.lock().unwrap_or_else(|p| p.into_inner());
+                let dest = *marea::sync::lock(peer);
                 if let Some(dest) = dest {
                     match sock.try_send_to(&buf, dest) {
                         Ok(_) => {}
@@ -184,7 +184,7 @@ async fn udp_reader(
             }
         };
         if let Some(peer) = &learn_peer {
-            *peer.lock().unwrap_or_else(|p| p.into_inner()) = Some(from);
+            *marea::sync::lock(peer) = Some(from);
         }
         let mut reader = MavlinkReader::new(&buf[..n]);
         loop {

@@ -72,9 +72,7 @@ struct Core {
     items: Items,
 }
 
-fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
+use marea::sync::lock;
 
 impl Core {
     fn state(&self) -> FlightState {
