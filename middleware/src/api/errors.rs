@@ -4,7 +4,6 @@ use std::time::Duration;
 
 use crate::name::NameParseError;
 use crate::node::mailbox::TypeMismatch;
-use crate::protocol::RemoteFailure;
 
 /// Why a node could not be opened.
 #[derive(Debug, thiserror::Error)]
@@ -85,83 +84,6 @@ pub enum RecvError {
     /// Nothing arrived in time.
     #[error("nothing received within {0:?}")]
     Timeout(Duration),
-}
-
-/// Why a remote invocation failed. Each cause is distinct, as callers react differently.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum CallError {
-    /// No node provides the function (right now).
-    #[error("no provider for function '{name}'")]
-    NoProvider {
-        /// Function name.
-        name: String,
-    },
-    /// The provider did not answer within the deadline.
-    #[error("call to '{name}' on node '{node}' timed out after {after:?}")]
-    Timeout {
-        /// Function name.
-        name: String,
-        /// Provider node.
-        node: String,
-        /// The deadline.
-        after: Duration,
-    },
-    /// The provider's handler returned an error.
-    #[error("node '{node}' answered with an error: {message}")]
-    Remote {
-        /// Provider node.
-        node: String,
-        /// The handler's message.
-        message: String,
-    },
-    /// The provider went away before answering (lease expired, node left, session reset).
-    #[error("link to node '{node}' lost before it answered: {reason}")]
-    LinkLost {
-        /// Provider node.
-        node: String,
-        /// What happened.
-        reason: String,
-    },
-    /// The provider declares other argument or result types.
-    #[error("function '{name}' is provided as {offered} but called as {expected}")]
-    TypeMismatch {
-        /// Function name.
-        name: String,
-        /// Provider's signature.
-        offered: String,
-        /// Caller's signature.
-        expected: String,
-    },
-    /// Arguments could not be encoded, or the result decoded.
-    #[error("codec error calling '{name}': {reason}")]
-    Codec {
-        /// Function name.
-        name: String,
-        /// What failed.
-        reason: String,
-    },
-}
-
-impl CallError {
-    pub(crate) fn from_remote(node: &str, name: &str, after: Duration, f: RemoteFailure) -> Self {
-        let node = node.to_owned();
-        match f {
-            RemoteFailure::Handler(message) => CallError::Remote { node, message },
-            RemoteFailure::BadArguments(m) => CallError::Remote {
-                node,
-                message: format!("bad arguments: {m}"),
-            },
-            RemoteFailure::NotProvided => CallError::Remote {
-                node,
-                message: "function no longer provided".into(),
-            },
-            RemoteFailure::DeadlineExpired => CallError::Timeout {
-                name: name.to_owned(),
-                node,
-                after,
-            },
-        }
-    }
 }
 
 /// Why a file could not be sent.

@@ -3,14 +3,14 @@
 mod errors;
 mod event;
 mod file;
-pub(crate) mod function;
+mod function;
 mod node;
 mod raw;
 mod service;
 mod subscription;
 mod variable;
 
-pub use errors::{CallError, DeclareError, FileSendError, NodeOpenError, PublishError, RecvError};
+pub use errors::{DeclareError, FileSendError, NodeOpenError, PublishError, RecvError};
 pub use event::{Event, PendingRaise, RaiseReport};
 pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
 pub use function::{Function, FunctionProvider};
@@ -20,6 +20,7 @@ pub use service::{IService, Service, ServiceDescription, ServiceError};
 pub use subscription::{EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 
+pub use crate::node::call::CallError;
 pub use crate::node::files::ReceivedFile;
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;

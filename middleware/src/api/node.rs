@@ -2,7 +2,7 @@
 //! what the network offers.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU32, AtomicU64};
+use std::sync::atomic::AtomicU32;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -179,8 +179,7 @@ impl Node {
             interests: DashMap::new(),
             peers: DashMap::new(),
             addrs: DashMap::new(),
-            calls: DashMap::new(),
-            next_call: AtomicU64::new(1),
+            calls: Default::default(),
             transfers: Default::default(),
             changed,
             tasks: TaskTracker::new(),

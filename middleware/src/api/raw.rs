@@ -4,9 +4,9 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::errors::{CallError, DeclareError, RecvError};
-use super::function::{find_provider, invoke};
+use super::errors::{DeclareError, RecvError};
 use super::service::{Declared, Service};
+use crate::node::call::CallError;
 use crate::node::mailbox::{Delivery, Mailbox};
 use crate::protocol::ItemKind;
 use crate::typeinfo::TypeInfo;
@@ -88,7 +88,8 @@ impl Service {
 
     /// The declared type (`fn(A) -> R`) of the provider of function `name`, if one is known.
     pub fn function_type(&self, name: &str) -> Option<TypeInfo> {
-        find_provider(self.node(), name, None)
+        self.node()
+            .find_provider(name, None)
             .ok()
             .map(|p| p.ty().clone())
     }
@@ -104,7 +105,6 @@ impl Service {
         args: Vec<u8>,
         timeout: Duration,
     ) -> Result<Vec<u8>, CallError> {
-        let provider = find_provider(self.node(), name, None)?;
-        invoke(self.node(), name, provider, args, timeout).await
+        self.node().call(name, None, args, timeout).await
     }
 }

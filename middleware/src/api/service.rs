@@ -286,7 +286,7 @@ impl Service {
         Fut: std::future::Future<Output = Result<R, String>> + Send + 'static,
     {
         let handler = Arc::new(handler);
-        let raw: crate::node::RawHandler = Arc::new(move |args: Vec<u8>| {
+        let raw: crate::node::call::RawHandler = Arc::new(move |args: Vec<u8>| {
             let handler = handler.clone();
             let fut: BoxFuture<Result<Vec<u8>, crate::protocol::RemoteFailure>> =
                 Box::pin(async move {

@@ -6,7 +6,6 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::{lock, NodeInner, Peer};
-use crate::api::CallError;
 use crate::codec::encode_message;
 use crate::link::PeerAddr;
 use crate::protocol::{Message, NodeId};
@@ -201,7 +200,7 @@ impl NodeInner {
     pub fn on_peer_reset(&self, link: usize, from: PeerAddr) {
         let node = self.addrs.get(&(link, from)).map(|e| *e);
         if let Some(node) = node {
-            self.fail_calls_to(node, "session reset by the peer");
+            self.calls.fail_to(node, "session reset by the peer");
         }
         // It dropped us (and our declarations) before starting over.
         let log = lock(&self.decls);
@@ -211,23 +210,6 @@ impl NodeInner {
         // newest value of every variable it subscribes to again.
         if let Some(node) = node {
             self.resend_last_values(node, link, from);
-        }
-    }
-
-    fn fail_calls_to(&self, node: NodeId, reason: &str) {
-        let ids: Vec<u64> = self
-            .calls
-            .iter()
-            .filter(|c| c.node == node)
-            .map(|c| *c.key())
-            .collect();
-        for id in ids {
-            if let Some((_, c)) = self.calls.remove(&id) {
-                let _ = c.reply.send(Err(CallError::LinkLost {
-                    node: c.node_name.to_string(),
-                    reason: reason.to_owned(),
-                }));
-            }
         }
     }
 
@@ -255,7 +237,7 @@ impl NodeInner {
                 l.close_peer(addr);
             }
         }
-        self.fail_calls_to(node, reason);
+        self.calls.fail_to(node, reason);
         self.transfers.peer_lost(node, &p.name, reason);
         self.gateway_peer_lost(node);
         self.recompute_routes();

@@ -25,10 +25,9 @@ use dashmap::DashMap;
 
 use super::session::encode_data;
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
-use crate::api::CallError;
 use crate::link::Outgoing;
 use crate::name;
-use crate::protocol::{Declaration, ItemKind, Message, NodeId, Origin, RemoteFailure};
+use crate::protocol::{Declaration, ItemKind, Message, NodeId, Origin};
 use crate::typeinfo::TypeInfo;
 
 /// Gateways an offer may cross; stops forwarding loops in meshes of gateways.
@@ -374,55 +373,6 @@ impl NodeInner {
                 },
             );
         }
-    }
-
-    /// Relays a call made on our stand-in `offer` for a function behind another link, with the
-    /// caller's deadline, and sends the answer back to `caller`.
-    pub fn relay_call(
-        self: &Arc<Self>,
-        caller: NodeId,
-        call_id: u64,
-        offer: &LocalOffer,
-        deadline: Duration,
-        args: Vec<u8>,
-    ) {
-        let OfferRole::Relay { origin, remote_id } = offer.role else {
-            return;
-        };
-        let inner = self.clone();
-        let name = offer.name.to_string();
-        let ty = offer.ty.clone();
-        self.tasks.spawn(async move {
-            let node_name = inner
-                .peers
-                .get(&origin)
-                .map(|p| p.name.clone())
-                .unwrap_or_else(|| format!("{origin:016x}").into());
-            let provider = crate::api::function::Provider::Remote {
-                node: origin,
-                node_name,
-                id: remote_id,
-                ty,
-            };
-            let result = tokio::select! {
-                r = crate::api::function::invoke(&inner, &name, provider, args, deadline) => r,
-                _ = inner.cancel.cancelled() => Err(CallError::LinkLost {
-                    node: inner.me.name.clone(),
-                    reason: "gateway shutting down".into(),
-                }),
-            };
-            let result = result.map_err(|e| match e {
-                CallError::NoProvider { .. } => RemoteFailure::NotProvided,
-                CallError::Timeout { .. } => RemoteFailure::DeadlineExpired,
-                CallError::Remote { node, message } => {
-                    RemoteFailure::Handler(format!("{message} (from node '{node}')"))
-                }
-                other => {
-                    RemoteFailure::Handler(format!("through gateway '{}': {other}", inner.me.name))
-                }
-            });
-            inner.send_safe_to_node(caller, &Message::Reply { call_id, result });
-        });
     }
 
     /// Starts relaying a file offered by `sender` to `receiver`: `offer` is the sender's

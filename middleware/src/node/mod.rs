@@ -4,6 +4,7 @@
 //! Local deliveries go straight into the local subscribers' mailboxes; a message goes to a link
 //! only where a remote node declared a matching interest (interest-based routing).
 
+pub(crate) mod call;
 pub(crate) mod discovery;
 pub(crate) mod files;
 pub(crate) mod gateway;
@@ -17,13 +18,13 @@ use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::{Duration, Instant};
 
 use dashmap::DashMap;
-use tokio::sync::{oneshot, watch};
+use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use crate::codec::{decode_message, encode_message};
 use crate::link::{Link, LinkHandler, Outgoing, PeerAddr};
-use crate::protocol::{ItemKind, Message, NodeId, Origin, RemoteFailure};
+use crate::protocol::{ItemKind, Message, NodeId, Origin};
 use crate::typeinfo::TypeInfo;
 use mailbox::Mailbox;
 
@@ -31,9 +32,6 @@ pub(crate) use crate::sync::lock;
 
 /// A boxed future returned by function handlers.
 pub(crate) type BoxFuture<T> = std::pin::Pin<Box<dyn std::future::Future<Output = T> + Send>>;
-/// A type-erased function handler: encoded arguments in, encoded result out.
-pub(crate) type RawHandler =
-    Arc<dyn Fn(Vec<u8>) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
 
 /// What an offer does with what it is given.
 pub(crate) enum OfferRole {
@@ -42,7 +40,7 @@ pub(crate) enum OfferRole {
     /// An event publisher.
     Event,
     /// A function provider.
-    Function { handler: RawHandler },
+    Function { handler: call::RawHandler },
     /// A file sink writing into `dir`.
     File {
         dir: std::path::PathBuf,
@@ -142,16 +140,6 @@ impl Peer {
     }
 }
 
-/// A call waiting for its reply.
-pub(crate) struct PendingCall {
-    pub node: NodeId,
-    pub node_name: Arc<str>,
-    /// Function name and the caller's deadline, for the errors.
-    pub name: String,
-    pub timeout: Duration,
-    pub reply: oneshot::Sender<Result<Vec<u8>, crate::api::CallError>>,
-}
-
 /// Static facts about this node.
 pub(crate) struct Identity {
     pub id: NodeId,
@@ -188,8 +176,7 @@ pub(crate) struct NodeInner {
     pub interests: DashMap<u32, Arc<LocalInterest>>,
     pub peers: DashMap<NodeId, Peer>,
     pub addrs: DashMap<(usize, PeerAddr), NodeId>,
-    pub calls: DashMap<u64, PendingCall>,
-    pub next_call: AtomicU64,
+    pub calls: call::PendingCalls,
     pub transfers: files::Transfers,
     /// Bumped whenever routes or the peer table change, so waiters can re-check.
     pub changed: watch::Sender<u64>,
@@ -345,58 +332,6 @@ impl NodeInner {
             Message::FileCancel { transfer } => self.on_file_cancel(node, transfer),
             Message::Hello { .. } | Message::Heartbeat { .. } | Message::Bye { .. } => {}
         }
-    }
-
-    fn on_call(
-        self: &Arc<Self>,
-        node: NodeId,
-        call_id: u64,
-        id: u32,
-        deadline_ms: u32,
-        args: Vec<u8>,
-    ) {
-        if let Some(o) = self.offers.get(&id).map(|o| o.clone()) {
-            if matches!(o.role, OfferRole::Relay { .. }) {
-                let deadline = Duration::from_millis(u64::from(deadline_ms));
-                self.relay_call(node, call_id, &o, deadline, args);
-                return;
-            }
-        }
-        let handler = self.offers.get(&id).and_then(|o| match &o.role {
-            OfferRole::Function { handler } => Some(handler.clone()),
-            _ => None,
-        });
-        let inner = self.clone();
-        // The caller times out by itself at its deadline; the provider only gives up a little
-        // later to free its resources, so the caller sees a timeout, not a remote error.
-        let deadline =
-            Duration::from_millis(u64::from(deadline_ms)) * 3 / 2 + Duration::from_millis(100);
-        self.tasks.spawn(async move {
-            let result = match handler {
-                None => Err(RemoteFailure::NotProvided),
-                Some(h) => tokio::select! {
-                    r = h(args) => r,
-                    _ = tokio::time::sleep(deadline) => Err(RemoteFailure::DeadlineExpired),
-                    _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
-                },
-            };
-            inner.send_safe_to_node(node, &Message::Reply { call_id, result });
-        });
-    }
-
-    fn on_reply(&self, node: NodeId, call_id: u64, result: Result<Vec<u8>, RemoteFailure>) {
-        let Some((_, pending)) = self.calls.remove_if(&call_id, |_, p| p.node == node) else {
-            return;
-        };
-        let r = result.map_err(|f| {
-            crate::api::CallError::from_remote(
-                &pending.node_name,
-                &pending.name,
-                pending.timeout,
-                f,
-            )
-        });
-        let _ = pending.reply.send(r);
     }
 }
 

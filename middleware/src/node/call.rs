@@ -1,0 +1,542 @@
+//! The call protocol of remote invocations, both ends of it: finding the provider of a function
+//! (local first, then remote), invoking it (the handler directly, or a `Call` message), the
+//! calls waiting for their `Reply`, answering a peer's `Call`, and failing what is pending on a
+//! peer that goes away. The typed handles over it are in `api::function`.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use dashmap::DashMap;
+use tokio::sync::oneshot;
+
+use super::{BoxFuture, NodeInner, OfferRole};
+use crate::protocol::{ItemKind, Message, NodeId, RemoteFailure};
+use crate::typeinfo::TypeInfo;
+
+/// Why a remote invocation failed. Each cause is distinct, as callers react differently.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CallError {
+    /// No node provides the function (right now).
+    #[error("no provider for function '{name}'")]
+    NoProvider {
+        /// Function name.
+        name: String,
+    },
+    /// The provider did not answer within the deadline.
+    #[error("call to '{name}' on node '{node}' timed out after {after:?}")]
+    Timeout {
+        /// Function name.
+        name: String,
+        /// Provider node.
+        node: String,
+        /// The deadline.
+        after: Duration,
+    },
+    /// The provider's handler returned an error.
+    #[error("node '{node}' answered with an error: {message}")]
+    Remote {
+        /// Provider node.
+        node: String,
+        /// The handler's message.
+        message: String,
+    },
+    /// The provider went away before answering (lease expired, node left, session reset).
+    #[error("link to node '{node}' lost before it answered: {reason}")]
+    LinkLost {
+        /// Provider node.
+        node: String,
+        /// What happened.
+        reason: String,
+    },
+    /// The provider declares other argument or result types.
+    #[error("function '{name}' is provided as {offered} but called as {expected}")]
+    TypeMismatch {
+        /// Function name.
+        name: String,
+        /// Provider's signature.
+        offered: String,
+        /// Caller's signature.
+        expected: String,
+    },
+    /// Arguments could not be encoded, or the result decoded.
+    #[error("codec error calling '{name}': {reason}")]
+    Codec {
+        /// Function name.
+        name: String,
+        /// What failed.
+        reason: String,
+    },
+}
+
+impl CallError {
+    /// The caller's view of a failure reported by provider `node` of `name`.
+    pub(crate) fn from_remote(node: &str, name: &str, after: Duration, f: RemoteFailure) -> Self {
+        let node = node.to_owned();
+        match f {
+            RemoteFailure::Handler(message) => CallError::Remote { node, message },
+            RemoteFailure::BadArguments(m) => CallError::Remote {
+                node,
+                message: format!("bad arguments: {m}"),
+            },
+            RemoteFailure::NotProvided => CallError::Remote {
+                node,
+                message: "function no longer provided".into(),
+            },
+            RemoteFailure::DeadlineExpired => CallError::Timeout {
+                name: name.to_owned(),
+                node,
+                after,
+            },
+        }
+    }
+
+    /// What `gateway` answers its own caller when the call it relayed failed this way (the
+    /// wire way back of [`CallError::from_remote`]).
+    fn relayed(self, gateway: &str) -> RemoteFailure {
+        match self {
+            CallError::NoProvider { .. } => RemoteFailure::NotProvided,
+            CallError::Timeout { .. } => RemoteFailure::DeadlineExpired,
+            CallError::Remote { node, message } => {
+                RemoteFailure::Handler(format!("{message} (from node '{node}')"))
+            }
+            other => RemoteFailure::Handler(format!("through gateway '{gateway}': {other}")),
+        }
+    }
+}
+
+/// A type-erased function handler: encoded arguments in, encoded result out.
+pub(crate) type RawHandler =
+    Arc<dyn Fn(Vec<u8>) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
+
+/// Who answers a call, with the type it declared.
+pub(crate) enum Provider {
+    Local(RawHandler, TypeInfo),
+    Remote {
+        node: NodeId,
+        node_name: Arc<str>,
+        id: u32,
+        ty: TypeInfo,
+    },
+}
+
+impl Provider {
+    /// The provider's declared `fn(A) -> R` type.
+    pub(crate) fn ty(&self) -> &TypeInfo {
+        match self {
+            Provider::Local(_, ty) | Provider::Remote { ty, .. } => ty,
+        }
+    }
+}
+
+/// A call waiting for its reply.
+struct PendingCall {
+    node: NodeId,
+    node_name: Arc<str>,
+    /// Function name and the caller's deadline, for the errors.
+    name: String,
+    timeout: Duration,
+    reply: oneshot::Sender<Result<Vec<u8>, CallError>>,
+}
+
+/// The calls of this node waiting for a reply, by call id.
+pub(crate) struct PendingCalls {
+    next: AtomicU64,
+    waiting: DashMap<u64, PendingCall>,
+}
+
+impl Default for PendingCalls {
+    fn default() -> Self {
+        PendingCalls {
+            // Call ids start at 1.
+            next: AtomicU64::new(1),
+            waiting: DashMap::new(),
+        }
+    }
+}
+
+impl PendingCalls {
+    /// Registers a call of `name` on `node`; returns its id and where its outcome arrives.
+    fn register(
+        &self,
+        node: NodeId,
+        node_name: Arc<str>,
+        name: &str,
+        timeout: Duration,
+    ) -> (u64, oneshot::Receiver<Result<Vec<u8>, CallError>>) {
+        let call_id = self.next.fetch_add(1, Ordering::Relaxed);
+        let (reply, rx) = oneshot::channel();
+        self.waiting.insert(
+            call_id,
+            PendingCall {
+                node,
+                node_name,
+                name: name.to_owned(),
+                timeout,
+                reply,
+            },
+        );
+        (call_id, rx)
+    }
+
+    /// Forgets a call nobody waits for any more.
+    fn forget(&self, call_id: u64) {
+        self.waiting.remove(&call_id);
+    }
+
+    /// Completes call `call_id` with the reply `node` sent; a reply from another node than the
+    /// one called, or to a call no longer waiting, is ignored.
+    fn complete(&self, node: NodeId, call_id: u64, result: Result<Vec<u8>, RemoteFailure>) {
+        let Some((_, pending)) = self.waiting.remove_if(&call_id, |_, p| p.node == node) else {
+            return;
+        };
+        let r = result.map_err(|f| {
+            CallError::from_remote(&pending.node_name, &pending.name, pending.timeout, f)
+        });
+        let _ = pending.reply.send(r);
+    }
+
+    /// Fails every call waiting on `node` with [`CallError::LinkLost`] for `reason`.
+    pub fn fail_to(&self, node: NodeId, reason: &str) {
+        let ids: Vec<u64> = self
+            .waiting
+            .iter()
+            .filter(|c| c.node == node)
+            .map(|c| *c.key())
+            .collect();
+        for id in ids {
+            if let Some((_, c)) = self.waiting.remove(&id) {
+                let _ = c.reply.send(Err(CallError::LinkLost {
+                    node: c.node_name.to_string(),
+                    reason: reason.to_owned(),
+                }));
+            }
+        }
+    }
+}
+
+impl NodeInner {
+    /// The provider of `name`: local first, then remote. With `expected`, a provider of another
+    /// type is refused (and reported if no matching one exists); without, any type is taken.
+    pub fn find_provider(
+        &self,
+        name: &str,
+        expected: Option<&TypeInfo>,
+    ) -> Result<Provider, CallError> {
+        let fits = |ty: &TypeInfo| expected.is_none_or(|e| e == ty);
+        let mut mismatch: Option<TypeInfo> = None;
+        for o in self.offers.iter() {
+            if o.kind == ItemKind::Function && *o.name == *name {
+                if fits(&o.ty) {
+                    if let OfferRole::Function { handler } = &o.role {
+                        return Ok(Provider::Local(handler.clone(), o.ty.clone()));
+                    }
+                } else {
+                    mismatch = Some(o.ty.clone());
+                }
+            }
+        }
+        for p in self.peers.iter() {
+            for (id, o) in &p.offers {
+                if p.shadowed.contains(id) {
+                    continue;
+                }
+                if o.kind == ItemKind::Function && *o.name == *name {
+                    if fits(&o.ty) {
+                        return Ok(Provider::Remote {
+                            node: p.id,
+                            node_name: p.name.clone(),
+                            id: *id,
+                            ty: o.ty.clone(),
+                        });
+                    }
+                    mismatch = Some(o.ty.clone());
+                }
+            }
+        }
+        match (mismatch, expected) {
+            (Some(offered), Some(expected)) => Err(CallError::TypeMismatch {
+                name: name.to_owned(),
+                offered: offered.name,
+                expected: expected.name.clone(),
+            }),
+            _ => Err(CallError::NoProvider {
+                name: name.to_owned(),
+            }),
+        }
+    }
+
+    /// Calls function `name` with encoded arguments: finds its provider (of type `expected`,
+    /// or of any type without) and invokes it.
+    pub async fn call(
+        &self,
+        name: &str,
+        expected: Option<&TypeInfo>,
+        args: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, CallError> {
+        let provider = self.find_provider(name, expected)?;
+        self.invoke(name, provider, args, timeout).await
+    }
+
+    /// Invokes a provider with encoded arguments and returns the encoded result.
+    pub async fn invoke(
+        &self,
+        name: &str,
+        provider: Provider,
+        args: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, CallError> {
+        match provider {
+            Provider::Local(handler, _) => match tokio::time::timeout(timeout, handler(args)).await
+            {
+                Ok(r) => r.map_err(|f| CallError::from_remote(&self.me.name, name, timeout, f)),
+                Err(_) => Err(CallError::Timeout {
+                    name: name.to_owned(),
+                    node: self.me.name.clone(),
+                    after: timeout,
+                }),
+            },
+            Provider::Remote {
+                node: peer,
+                node_name,
+                id,
+                ..
+            } => {
+                let (call_id, rx) = self.calls.register(peer, node_name.clone(), name, timeout);
+                let deadline_ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
+                let sent = self.send_safe_to_node(
+                    peer,
+                    &Message::Call {
+                        call_id,
+                        id,
+                        deadline_ms,
+                        args,
+                    },
+                );
+                if !sent {
+                    self.calls.forget(call_id);
+                    return Err(CallError::LinkLost {
+                        node: node_name.to_string(),
+                        reason: "peer no longer known".into(),
+                    });
+                }
+                match tokio::time::timeout(timeout, rx).await {
+                    Ok(Ok(r)) => r,
+                    Ok(Err(_)) => Err(CallError::LinkLost {
+                        node: node_name.to_string(),
+                        reason: "node shutting down".into(),
+                    }),
+                    Err(_) => {
+                        self.calls.forget(call_id);
+                        Err(CallError::Timeout {
+                            name: name.to_owned(),
+                            node: node_name.to_string(),
+                            after: timeout,
+                        })
+                    }
+                }
+            }
+        }
+    }
+
+    /// Answers a peer's call of our offer `id`: runs its handler (or relays it, for a gateway's
+    /// stand-in) and sends the Reply.
+    pub(super) fn on_call(
+        self: &Arc<Self>,
+        node: NodeId,
+        call_id: u64,
+        id: u32,
+        deadline_ms: u32,
+        args: Vec<u8>,
+    ) {
+        if let Some(o) = self.offers.get(&id).map(|o| o.clone()) {
+            if let OfferRole::Relay { origin, remote_id } = o.role {
+                let deadline = Duration::from_millis(u64::from(deadline_ms));
+                let provider = Provider::Remote {
+                    node: origin,
+                    node_name: self.peer_name(origin),
+                    id: remote_id,
+                    ty: o.ty.clone(),
+                };
+                self.relay_call(node, call_id, o.name.to_string(), provider, deadline, args);
+                return;
+            }
+        }
+        let handler = self.offers.get(&id).and_then(|o| match &o.role {
+            OfferRole::Function { handler } => Some(handler.clone()),
+            _ => None,
+        });
+        let inner = self.clone();
+        // The caller times out by itself at its deadline; the provider only gives up a little
+        // later to free its resources, so the caller sees a timeout, not a remote error.
+        let deadline =
+            Duration::from_millis(u64::from(deadline_ms)) * 3 / 2 + Duration::from_millis(100);
+        self.tasks.spawn(async move {
+            let result = match handler {
+                None => Err(RemoteFailure::NotProvided),
+                Some(h) => tokio::select! {
+                    r = h(args) => r,
+                    _ = tokio::time::sleep(deadline) => Err(RemoteFailure::DeadlineExpired),
+                    _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
+                },
+            };
+            inner.send_safe_to_node(node, &Message::Reply { call_id, result });
+        });
+    }
+
+    /// Relays `caller`'s call `call_id` to `provider` behind another link, with the caller's
+    /// deadline, and sends the answer back to `caller`.
+    fn relay_call(
+        self: &Arc<Self>,
+        caller: NodeId,
+        call_id: u64,
+        name: String,
+        provider: Provider,
+        deadline: Duration,
+        args: Vec<u8>,
+    ) {
+        let inner = self.clone();
+        self.tasks.spawn(async move {
+            let result = tokio::select! {
+                r = inner.invoke(&name, provider, args, deadline) => r,
+                _ = inner.cancel.cancelled() => Err(CallError::LinkLost {
+                    node: inner.me.name.clone(),
+                    reason: "gateway shutting down".into(),
+                }),
+            };
+            let result = result.map_err(|e| e.relayed(&inner.me.name));
+            inner.send_safe_to_node(caller, &Message::Reply { call_id, result });
+        });
+    }
+
+    /// A peer's name, or its id in hex when it is no longer known.
+    fn peer_name(&self, node: NodeId) -> Arc<str> {
+        self.peers
+            .get(&node)
+            .map(|p| p.name.clone())
+            .unwrap_or_else(|| format!("{node:016x}").into())
+    }
+
+    /// Handles the Reply `node` sent to our call `call_id`.
+    pub(super) fn on_reply(
+        &self,
+        node: NodeId,
+        call_id: u64,
+        result: Result<Vec<u8>, RemoteFailure>,
+    ) {
+        self.calls.complete(node, call_id, result);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const PROVIDER: NodeId = 7;
+
+    fn waiting(calls: &PendingCalls) -> (u64, oneshot::Receiver<Result<Vec<u8>, CallError>>) {
+        calls.register(PROVIDER, "air".into(), "vas/double", Duration::from_secs(1))
+    }
+
+    #[test]
+    fn a_reply_completes_the_call_it_answers() {
+        let calls = PendingCalls::default();
+        let (id, mut rx) = waiting(&calls);
+        calls.complete(PROVIDER, id, Ok(vec![4]));
+        assert_eq!(rx.try_recv(), Ok(Ok(vec![4])));
+        assert!(calls.waiting.is_empty());
+    }
+
+    #[test]
+    fn a_reply_from_another_node_is_ignored() {
+        let calls = PendingCalls::default();
+        let (id, mut rx) = waiting(&calls);
+        calls.complete(PROVIDER + 1, id, Ok(vec![4]));
+        assert!(rx.try_recv().is_err(), "nothing delivered yet");
+        assert_eq!(
+            calls.waiting.len(),
+            1,
+            "the call still waits for its provider"
+        );
+    }
+
+    #[test]
+    fn a_remote_deadline_is_a_timeout_and_a_handler_error_is_remote() {
+        let calls = PendingCalls::default();
+        let (late, mut late_rx) = waiting(&calls);
+        let (failed, mut failed_rx) = waiting(&calls);
+        assert_ne!(late, failed);
+        calls.complete(PROVIDER, late, Err(RemoteFailure::DeadlineExpired));
+        calls.complete(PROVIDER, failed, Err(RemoteFailure::Handler("odd".into())));
+        assert_eq!(
+            late_rx.try_recv(),
+            Ok(Err(CallError::Timeout {
+                name: "vas/double".into(),
+                node: "air".into(),
+                after: Duration::from_secs(1),
+            }))
+        );
+        assert_eq!(
+            failed_rx.try_recv(),
+            Ok(Err(CallError::Remote {
+                node: "air".into(),
+                message: "odd".into(),
+            }))
+        );
+    }
+
+    #[test]
+    fn failing_a_node_fails_only_its_calls() {
+        let calls = PendingCalls::default();
+        let (_, mut gone) = waiting(&calls);
+        let (other, mut kept) = calls.register(
+            PROVIDER + 1,
+            "ground".into(),
+            "gs/ping",
+            Duration::from_secs(1),
+        );
+        calls.fail_to(PROVIDER, "lease expired");
+        assert_eq!(
+            gone.try_recv(),
+            Ok(Err(CallError::LinkLost {
+                node: "air".into(),
+                reason: "lease expired".into(),
+            }))
+        );
+        assert!(kept.try_recv().is_err());
+        calls.complete(PROVIDER + 1, other, Ok(vec![]));
+        assert_eq!(kept.try_recv(), Ok(Ok(vec![])));
+    }
+
+    #[test]
+    fn a_relayed_failure_reads_back_as_the_same_cause() {
+        let after = Duration::from_secs(2);
+        let relay = |e: CallError| CallError::from_remote("gw", "f", after, e.relayed("gw"));
+        assert!(matches!(
+            relay(CallError::Timeout {
+                name: "f".into(),
+                node: "far".into(),
+                after,
+            }),
+            CallError::Timeout { .. }
+        ));
+        assert_eq!(
+            relay(CallError::Remote {
+                node: "far".into(),
+                message: "odd".into(),
+            }),
+            CallError::Remote {
+                node: "gw".into(),
+                message: "odd (from node 'far')".into(),
+            }
+        );
+        assert_eq!(
+            relay(CallError::NoProvider { name: "f".into() }),
+            CallError::Remote {
+                node: "gw".into(),
+                message: "function no longer provided".into(),
+            }
+        );
+    }
+}
