@@ -3,17 +3,20 @@
 //! A MAREA-like middleware: independent processes exchange **variables, events, remote
 //! invocations and files**, discovering each other over the links of their `network.xml`.
 //!
-//! ## Layers (each uses only those above it)
+//! ## Layers, bottom to top
 //!
-//! | module | what |
+//! A module uses (`use crate::…`, paths in code) only modules of its own row or of the rows
+//! above it; `tests/layering.rs` checks this, with the same table.
+//!
+//! | layer | what |
 //! |---|---|
+//! | [`sync`], [`name`], [`typeinfo`], [`process`] | utilities: the poison-ignoring lock, names and patterns, type fingerprints, the process's shutdown signal |
 //! | [`protocol`] | the wire messages (Hello, Heartbeat, declarations, Var, Event, Call, Reply, File*) |
-//! | [`codec`] | their bytes: postcard messages, the UDP datagram framing, varints |
-//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`] |
-//! | [`transport`] | the ARQ shared by links for the safe class |
-//! | `node` | discovery, declarations, routing by interest, dispatch, file reception |
-//! | [`api`] | [`Node`], the typed handles, [`IService`] |
-//! | [`config`] | `network.xml` → [`NetworkConfig`] |
+//! | [`codec`] | their bytes: postcard messages, varints |
+//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`] (with its datagram framing), `link::serial`, `link::shm`, and the ARQ (`link::arq`) and coalescing queue (`link::coalesce`) the links share |
+//! | [`config`] | `network.xml` → [`NetworkConfig`] (names link options) |
+//! | `node` | discovery, declarations, routing by interest, dispatch, the call protocol (`node::call`), file reception, gateway forwarding |
+//! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |
 //!
 //! ## Concepts
 //!
