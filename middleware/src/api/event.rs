@@ -4,20 +4,18 @@
 use std::future::Future;
 use std::marker::PhantomData;
 use std::pin::Pin;
-use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 
 use super::errors::PublishError;
-use super::service::Declared;
-use super::variable::wait_remote;
+use super::publisher::Publisher;
 use super::Payload;
 use crate::link::{LinkSendError, Outgoing};
+use crate::node::lock;
 use crate::node::mailbox::{Delivery, RawSample};
 use crate::node::session::encode_data;
-use crate::node::{lock, LocalOffer, NodeInner};
 
 /// Who got an event.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -92,25 +90,21 @@ impl Future for PendingRaise {
 
 /// Publisher handle of an event. Dropping it withdraws the event.
 pub struct Event<T> {
-    node: Arc<NodeInner>,
-    offer: Arc<LocalOffer>,
-    _declared: Declared,
+    publisher: Publisher,
     _t: PhantomData<fn(T)>,
 }
 
 impl<T: Payload> Event<T> {
-    pub(crate) fn new(node: Arc<NodeInner>, offer: Arc<LocalOffer>, declared: Declared) -> Self {
+    pub(crate) fn new(publisher: Publisher) -> Self {
         Event {
-            node,
-            offer,
-            _declared: declared,
+            publisher,
             _t: PhantomData,
         }
     }
 
     /// Full name.
     pub fn name(&self) -> &str {
-        &self.offer.name
+        &self.publisher.offer.name
     }
 
     /// Raises an event and waits until every matched subscriber acknowledged it end to end (or
@@ -128,32 +122,30 @@ impl<T: Payload> Event<T> {
     /// # Errors
     /// [`PublishError::Encode`] when the value cannot be serialised.
     pub fn raise_nowait(&self, value: &T) -> Result<PendingRaise, PublishError> {
-        let bytes = crate::codec::encode_payload(value).map_err(|source| PublishError::Encode {
-            name: self.offer.name.to_string(),
-            source,
-        })?;
+        let bytes = self.publisher.encode(value)?;
+        let Publisher { node, offer, .. } = &self.publisher;
         let mut report = RaiseReport::default();
-        let local = lock(&self.offer.local).clone();
-        let me = &self.node.me.name;
+        let local = lock(&offer.local).clone();
+        let me = &node.me.name;
         for i in &local {
             if let Some(m) = &i.mailbox {
                 m.push(Delivery::Sample(RawSample {
-                    name: self.offer.name.clone(),
+                    name: offer.name.clone(),
                     publisher: me.as_str().into(),
-                    type_name: self.offer.ty.name.as_str().into(),
+                    type_name: offer.ty.name.as_str().into(),
                     payload: bytes.clone(),
                     received: Instant::now(),
                 }));
                 report.acknowledged.push(format!("{me}/{}", i.service_name));
             }
         }
-        let remote = lock(&self.offer.remote).clone();
+        let remote = lock(&offer.remote).clone();
         let mut waiting = Vec::with_capacity(remote.len());
         if !remote.is_empty() {
-            let msg = encode_data(true, self.offer.id, &bytes);
+            let msg = encode_data(true, offer.id, &bytes);
             for r in remote {
                 let (tx, rx) = oneshot::channel();
-                self.node.send_to(
+                node.send_to(
                     r.link,
                     r.addr,
                     Outgoing::Safe {
@@ -174,14 +166,11 @@ impl<T: Payload> Event<T> {
 
     /// Names of the remote nodes currently subscribed.
     pub fn remote_subscribers(&self) -> Vec<String> {
-        lock(&self.offer.remote)
-            .iter()
-            .map(|r| r.node_name.to_string())
-            .collect()
+        self.publisher.remote_subscribers()
     }
 
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
-        wait_remote(&self.node, &self.offer, n, timeout).await
+        self.publisher.wait_remote_subscribers(n, timeout).await
     }
 }

@@ -5,6 +5,7 @@ mod event;
 mod file;
 mod function;
 mod node;
+mod publisher;
 mod raw;
 mod service;
 mod subscription;

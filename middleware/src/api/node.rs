@@ -206,37 +206,30 @@ impl Node {
         let mut links: Vec<Arc<dyn Link>> = Vec::new();
         for (index, lc) in config.links.iter().enumerate() {
             let handler = Arc::new(Handler(Arc::downgrade(&inner)));
-            match lc {
-                LinkConfig::Ethernet(e) => {
-                    let link = UdpLink::open(
-                        index,
-                        UdpLinkOptions {
-                            name: e.name.clone(),
-                            bind: e.bind,
-                            multicast: e.multicast,
-                            interface: e.interface,
-                            ttl: e.ttl,
-                            peers: e.peers.clone(),
-                            mtu: 1400,
-                            arq: ArqConfig::lan(),
-                        },
-                        handler,
-                        &inner.tasks,
-                        inner.cancel.child_token(),
-                    );
-                    match link {
-                        Ok(l) => links.push(l),
-                        Err(e) => {
-                            inner.cancel.cancel();
-                            return Err(e.into());
-                        }
-                    }
-                }
+            let opened: Result<Arc<dyn Link>, NodeOpenError> = match lc {
+                LinkConfig::Ethernet(e) => UdpLink::open(
+                    index,
+                    UdpLinkOptions {
+                        name: e.name.clone(),
+                        bind: e.bind,
+                        multicast: e.multicast,
+                        interface: e.interface,
+                        ttl: e.ttl,
+                        peers: e.peers.clone(),
+                        mtu: 1400,
+                        arq: ArqConfig::lan(),
+                    },
+                    handler,
+                    &inner.tasks,
+                    inner.cancel.child_token(),
+                )
+                .map(|l| l as Arc<dyn Link>)
+                .map_err(Into::into),
                 LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => {
                     let Some((name, ports, stp)) = serial_setup(lc) else {
                         continue;
                     };
-                    let link = SerialLink::open(
+                    SerialLink::open(
                         index,
                         name,
                         Arc::new(ports),
@@ -244,36 +237,32 @@ impl Node {
                         handler,
                         &inner.tasks,
                         inner.cancel.child_token(),
-                    );
-                    match link {
-                        Ok(l) => links.push(l),
-                        Err(e) => {
-                            inner.cancel.cancel();
-                            return Err(e.into());
-                        }
-                    }
-                }
-                LinkConfig::Shm(s) => {
-                    let link = ShmLink::open(
-                        index,
-                        ShmLinkOptions {
-                            name: s.name.clone(),
-                            service: s.service.clone(),
-                            scan: s.heartbeat,
-                            wait: s.wait,
-                        },
-                        handler,
-                        &inner.tasks,
-                        inner.cancel.child_token(),
                     )
-                    .await;
-                    match link {
-                        Ok(l) => links.push(l),
-                        Err(e) => {
-                            inner.cancel.cancel();
-                            return Err(e.into());
-                        }
-                    }
+                    .map(|l| l as Arc<dyn Link>)
+                    .map_err(Into::into)
+                }
+                LinkConfig::Shm(s) => ShmLink::open(
+                    index,
+                    ShmLinkOptions {
+                        name: s.name.clone(),
+                        service: s.service.clone(),
+                        scan: s.heartbeat,
+                        wait: s.wait,
+                    },
+                    handler,
+                    &inner.tasks,
+                    inner.cancel.child_token(),
+                )
+                .await
+                .map(|l| l as Arc<dyn Link>)
+                .map_err(Into::into),
+            };
+            match opened {
+                Ok(l) => links.push(l),
+                Err(e) => {
+                    // The links opened so far stop with the node's token.
+                    inner.cancel.cancel();
+                    return Err(e);
                 }
             }
         }

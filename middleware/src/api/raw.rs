@@ -78,8 +78,7 @@ impl Service {
         kind: ItemKind,
         pattern: &str,
     ) -> Result<RawSubscription, DeclareError> {
-        let mailbox = Arc::new(Mailbox::new(kind == ItemKind::Variable));
-        let declared = self.interest(pattern, kind, TypeInfo::any(), Some(mailbox.clone()))?;
+        let (mailbox, declared) = self.mailbox_interest(pattern, kind, TypeInfo::any())?;
         Ok(RawSubscription {
             mailbox,
             _declared: declared,

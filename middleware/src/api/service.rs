@@ -11,6 +11,7 @@ use super::event::Event;
 use super::file::{FileSink, FileTransfer, SendFileOptions};
 use super::function::{Function, FunctionProvider};
 use super::node::ItemDescription;
+use super::publisher::Publisher;
 use super::subscription::{EventSubscriber, VariableSubscriber};
 use super::variable::Variable;
 use super::Payload;
@@ -206,12 +207,37 @@ impl Service {
         })
     }
 
+    /// Declares an interest delivered into a mailbox of its own, which keeps only the newest
+    /// value per name for variables and every event in order for events.
+    pub(super) fn mailbox_interest(
+        &self,
+        pattern: &str,
+        kind: ItemKind,
+        ty: TypeInfo,
+    ) -> Result<(Arc<Mailbox>, Declared), DeclareError> {
+        let mailbox = Arc::new(Mailbox::new(kind == ItemKind::Variable));
+        let declared = self.interest(pattern, kind, ty, Some(mailbox.clone()))?;
+        Ok((mailbox, declared))
+    }
+
+    /// Declares an offer of a variable or an event and the handle keeping it declared.
+    fn publisher(
+        &self,
+        item: &str,
+        kind: ItemKind,
+        ty: TypeInfo,
+        role: OfferRole,
+    ) -> Result<Publisher, DeclareError> {
+        let (offer, declared) = self.offer(item, kind, ty, role)?;
+        Ok(Publisher::new(self.inner.node.clone(), offer, declared))
+    }
+
     /// Publishes a variable `item` of type `T`.
     ///
     /// # Errors
     /// [`DeclareError`] for an invalid name or a stopping node.
     pub fn publish_variable<T: Payload>(&self, item: &str) -> Result<Variable<T>, DeclareError> {
-        let (offer, declared) = self.offer(
+        let publisher = self.publisher(
             item,
             ItemKind::Variable,
             TypeInfo::of::<T>(),
@@ -219,7 +245,7 @@ impl Service {
                 last: Mutex::new(None),
             },
         )?;
-        Ok(Variable::new(self.inner.node.clone(), offer, declared))
+        Ok(Variable::new(publisher))
     }
 
     /// Subscribes to variables matching `pattern` (full names, wildcards allowed). The last
@@ -231,13 +257,8 @@ impl Service {
         &self,
         pattern: &str,
     ) -> Result<VariableSubscriber<T>, DeclareError> {
-        let mailbox = Arc::new(Mailbox::new(true));
-        let declared = self.interest(
-            pattern,
-            ItemKind::Variable,
-            TypeInfo::of::<T>(),
-            Some(mailbox.clone()),
-        )?;
+        let (mailbox, declared) =
+            self.mailbox_interest(pattern, ItemKind::Variable, TypeInfo::of::<T>())?;
         Ok(VariableSubscriber::new(mailbox, declared))
     }
 
@@ -246,9 +267,9 @@ impl Service {
     /// # Errors
     /// [`DeclareError`] for an invalid name or a stopping node.
     pub fn publish_event<T: Payload>(&self, item: &str) -> Result<Event<T>, DeclareError> {
-        let (offer, declared) =
-            self.offer(item, ItemKind::Event, TypeInfo::of::<T>(), OfferRole::Event)?;
-        Ok(Event::new(self.inner.node.clone(), offer, declared))
+        let publisher =
+            self.publisher(item, ItemKind::Event, TypeInfo::of::<T>(), OfferRole::Event)?;
+        Ok(Event::new(publisher))
     }
 
     /// Subscribes to events matching `pattern`.
@@ -259,13 +280,8 @@ impl Service {
         &self,
         pattern: &str,
     ) -> Result<EventSubscriber<T>, DeclareError> {
-        let mailbox = Arc::new(Mailbox::new(false));
-        let declared = self.interest(
-            pattern,
-            ItemKind::Event,
-            TypeInfo::of::<T>(),
-            Some(mailbox.clone()),
-        )?;
+        let (mailbox, declared) =
+            self.mailbox_interest(pattern, ItemKind::Event, TypeInfo::of::<T>())?;
         Ok(EventSubscriber::new(mailbox, declared))
     }
 

@@ -1,14 +1,12 @@
 //! Variables: best effort, latest value, late joiners served at once.
 
 use std::marker::PhantomData;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::errors::{PublishError, RecvError};
-use super::service::Declared;
+use super::publisher::Publisher;
 use super::Payload;
 use crate::node::mailbox::{Delivery, RawSample};
-use crate::node::{lock, LocalOffer, NodeInner};
 
 /// A received value with where it came from.
 #[derive(Debug, Clone, PartialEq)]
@@ -50,25 +48,21 @@ pub(crate) fn decode_delivery<T: Payload>(d: Delivery) -> Result<Sample<T>, Recv
 
 /// Publisher handle of a variable. Dropping it withdraws the variable.
 pub struct Variable<T> {
-    node: Arc<NodeInner>,
-    offer: Arc<LocalOffer>,
-    _declared: Declared,
+    publisher: Publisher,
     _t: PhantomData<fn(T)>,
 }
 
 impl<T: Payload> Variable<T> {
-    pub(crate) fn new(node: Arc<NodeInner>, offer: Arc<LocalOffer>, declared: Declared) -> Self {
+    pub(crate) fn new(publisher: Publisher) -> Self {
         Variable {
-            node,
-            offer,
-            _declared: declared,
+            publisher,
             _t: PhantomData,
         }
     }
 
     /// Full name.
     pub fn name(&self) -> &str {
-        &self.offer.name
+        &self.publisher.offer.name
     }
 
     /// Publishes a new value. Never blocks: if a previous value for this variable is still
@@ -77,34 +71,19 @@ impl<T: Payload> Variable<T> {
     /// # Errors
     /// [`PublishError::Encode`] when the value cannot be serialised.
     pub fn set(&self, value: &T) -> Result<(), PublishError> {
-        let bytes = crate::codec::encode_payload(value).map_err(|source| PublishError::Encode {
-            name: self.offer.name.to_string(),
-            source,
-        })?;
-        self.node.publish_variable(&self.offer, bytes);
+        let bytes = self.publisher.encode(value)?;
+        let Publisher { node, offer, .. } = &self.publisher;
+        node.publish_variable(offer, bytes);
         Ok(())
     }
 
     /// Names of the remote nodes currently subscribed.
     pub fn remote_subscribers(&self) -> Vec<String> {
-        lock(&self.offer.remote)
-            .iter()
-            .map(|r| r.node_name.to_string())
-            .collect()
+        self.publisher.remote_subscribers()
     }
 
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
-        wait_remote(&self.node, &self.offer, n, timeout).await
+        self.publisher.wait_remote_subscribers(n, timeout).await
     }
-}
-
-pub(crate) async fn wait_remote(
-    node: &Arc<NodeInner>,
-    offer: &Arc<LocalOffer>,
-    n: usize,
-    timeout: Duration,
-) -> bool {
-    node.wait_for(timeout, || lock(&offer.remote).len() >= n)
-        .await
 }

@@ -1,0 +1,50 @@
+//! What the publisher handles of variables and events share: the offer and its declaration,
+//! encoding a value, and the remote subscribers.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::errors::PublishError;
+use super::service::Declared;
+use super::Payload;
+use crate::node::{lock, LocalOffer, NodeInner};
+
+/// An offer a publisher handle keeps declared; dropping it withdraws the offer.
+pub(crate) struct Publisher {
+    pub node: Arc<NodeInner>,
+    pub offer: Arc<LocalOffer>,
+    _declared: Declared,
+}
+
+impl Publisher {
+    pub fn new(node: Arc<NodeInner>, offer: Arc<LocalOffer>, declared: Declared) -> Self {
+        Publisher {
+            node,
+            offer,
+            _declared: declared,
+        }
+    }
+
+    /// `value` encoded for the offer.
+    pub fn encode<T: Payload>(&self, value: &T) -> Result<Vec<u8>, PublishError> {
+        crate::codec::encode_payload(value).map_err(|source| PublishError::Encode {
+            name: self.offer.name.to_string(),
+            source,
+        })
+    }
+
+    /// Names of the remote nodes currently subscribed.
+    pub fn remote_subscribers(&self) -> Vec<String> {
+        lock(&self.offer.remote)
+            .iter()
+            .map(|r| r.node_name.to_string())
+            .collect()
+    }
+
+    /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
+    pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
+        self.node
+            .wait_for(timeout, || lock(&self.offer.remote).len() >= n)
+            .await
+    }
+}
