@@ -10,8 +10,9 @@
 //!   forwarded variable keeps its last value, so a late subscriber is served by the nearest
 //!   gateway without crossing the radio again;
 //! - functions and file sinks are always forwarded (they are few and callers must find them):
-//!   calls are relayed with the caller's deadline, file transfers chunk by chunk with the
-//!   receiver's acknowledgements relayed back, so both stay end to end.
+//!   calls are relayed with the caller's deadline (by the call protocol, `node::call`), file
+//!   transfers chunk by chunk with the receiver's acknowledgements relayed back, so both stay
+//!   end to end.
 //!
 //! A forwarded item is never declared on the link it came from, and a forwarded offer names
 //! its origin node and the gateways crossed, so a node reaching the same item by several paths
