@@ -393,32 +393,41 @@ fn check(path: &str, source: &str) -> Vec<String> {
     violations(LIB, &[(PathBuf::from(path), source.to_owned())])
 }
 
+/// Asserts that `found` holds one report per entry of `expected`, in order, each containing it.
+fn assert_reports(found: &[String], expected: &[&str]) {
+    assert_eq!(found.len(), expected.len(), "{found:?}");
+    for (report, wanted) in found.iter().zip(expected) {
+        assert!(report.contains(wanted), "{report}\ndoes not say: {wanted}");
+    }
+}
+
+/// The crate-root paths of `source` as (line, first segment).
+fn roots(source: &str, depth: usize) -> Vec<(usize, String)> {
+    references(source, depth)
+        .into_iter()
+        .map(|r| (r.line, r.target))
+        .collect()
+}
+
 #[test]
 fn an_upward_use_is_reported_with_file_line_and_modules() {
     let found = check(
         "node/gateway.rs",
         "use std::sync::Arc;\nuse crate::api::CallError;\n",
     );
-    assert_eq!(found.len(), 1, "{found:?}");
-    assert!(
-        found[0].starts_with("src/node/gateway.rs:2: `node` -> `api`: uses a higher layer"),
-        "{}",
-        found[0]
+    assert_reports(
+        &found,
+        &["src/node/gateway.rs:2: `node` -> `api`: uses a higher layer"],
     );
 }
 
 #[test]
 fn a_grouped_use_over_several_lines_is_read_branch_by_branch() {
     let source = "use crate::{\n    sync::lock,\n    api::{Node, CallError},\n};\n";
-    let refs = references(source, 2);
-    let targets: Vec<(usize, &str)> = refs.iter().map(|r| (r.line, r.target.as_str())).collect();
-    assert_eq!(targets, [(2, "sync"), (3, "api")]);
-    let found = check("node/mod.rs", source);
-    assert_eq!(found.len(), 1, "{found:?}");
-    assert!(
-        found[0].starts_with("src/node/mod.rs:3: `node` -> `api`"),
-        "{}",
-        found[0]
+    assert_eq!(roots(source, 2), [(2, "sync".into()), (3, "api".into())]);
+    assert_reports(
+        &check("node/mod.rs", source),
+        &["src/node/mod.rs:3: `node` -> `api`"],
     );
 }
 
@@ -426,38 +435,24 @@ fn a_grouped_use_over_several_lines_is_read_branch_by_branch() {
 fn a_path_in_code_and_a_root_reexport_are_reported() {
     let source = "fn f() {\n    let p = crate::api::function::Provider::Local;\n}\n\
                   fn g(n: &crate::Node) {}\n";
-    let found = check("sync.rs", source);
-    assert_eq!(found.len(), 2, "{found:?}");
-    assert!(
-        found[0].starts_with("src/sync.rs:2: `sync` -> `api`"),
-        "{}",
-        found[0]
-    );
-    assert!(
-        found[1].starts_with("src/sync.rs:4: `sync` -> `the crate root`"),
-        "{}",
-        found[1]
+    assert_reports(
+        &check("sync.rs", source),
+        &[
+            "src/sync.rs:2: `sync` -> `api`",
+            "src/sync.rs:4: `sync` -> `the crate root`",
+        ],
     );
 }
 
 #[test]
 fn super_chains_that_climb_to_the_root_are_followed() {
-    assert_eq!(
-        references("use super::super::api::X;\n", 2),
-        [Reference {
-            line: 1,
-            target: "api".into()
-        }]
-    );
+    assert_eq!(roots("use super::super::api::X;\n", 2), [(1, "api".into())]);
     // Within the module: neither `super::x` in a sub-module nor a test module's `super::*`.
     assert!(references("use super::files::X;\n", 2).is_empty());
     assert!(references("#[cfg(test)]\nmod tests {\n    use super::*;\n}\n", 1).is_empty());
     assert_eq!(
-        references("mod tests {\n    use super::*;\n}\nuse super::api;\n", 1),
-        [Reference {
-            line: 4,
-            target: "api".into()
-        }]
+        roots("mod tests {\n    use super::*;\n}\nuse super::api;\n", 1),
+        [(4, "api".into())]
     );
 }
 
@@ -471,11 +466,8 @@ fn comments_strings_and_macro_crate_paths_are_not_uses() {
     // What follows a char literal holding a quote is still read.
     for quote in ["'\"'", "'\\''"] {
         assert_eq!(
-            references(&format!("let c = {quote}; use crate::api;\n"), 1),
-            [Reference {
-                line: 1,
-                target: "api".into()
-            }],
+            roots(&format!("let c = {quote}; use crate::api;\n"), 1),
+            [(1, "api".into())],
             "after {quote}"
         );
     }
@@ -501,16 +493,12 @@ fn a_module_missing_from_the_table_fails_with_what_to_do() {
             "use crate::sync::lock;\n".into(),
         )],
     );
-    assert_eq!(found.len(), 2, "{found:?}");
-    assert!(
-        found[0].contains("`xml` is not in the layer table: add it to LAYERS"),
-        "{}",
-        found[0]
-    );
-    assert!(
-        found[1].starts_with("src/xml/mod.rs:1: `xml` -> `sync`"),
-        "{}",
-        found[1]
+    assert_reports(
+        &found,
+        &[
+            "src/lib.rs: module `xml` is not in the layer table: add it to LAYERS",
+            "src/xml/mod.rs:1: `xml` -> `sync`",
+        ],
     );
     assert_eq!(declared_modules(LIB), ["api", "node", "sync"]);
 }
