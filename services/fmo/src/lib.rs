@@ -26,11 +26,10 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
-use marea::{Function, RecvError, Service, VariableSubscriber};
-use station_web::{call_error, StationConfig};
+use marea::{Function, Service, VariableSubscriber};
+use station_web::{call_error, Live, StationConfig};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
-use tokio_util::task::TaskTracker;
 use usal_types::{
     Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionTime, Position, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged,
@@ -70,15 +69,13 @@ type AllowedFn = Function<(), Vec<FlightState>>;
 pub struct Shared {
     station: Mutex<Station>,
     svc: Service,
-    /// Woken on every change the page should see at once.
-    pub changed: Notify,
+    /// Change notification, cancellation and tasks.
+    pub live: Live,
     /// Woken when the commanded vehicle's allowed transitions must be asked again.
     refresh_allowed: Notify,
     change_state: Mutex<HashMap<String, Arc<ChangeStateFn>>>,
     allowed: Mutex<HashMap<String, Arc<AllowedFn>>>,
     call_timeout: Duration,
-    tasks: TaskTracker,
-    cancel: CancellationToken,
 }
 
 impl Shared {
@@ -108,23 +105,23 @@ impl Shared {
         let id =
             self.station()
                 .command_started(vehicle, &format!("change_state {to}"), Instant::now());
-        self.changed.notify_waiters();
+        self.live.changed.notify_waiters();
         let me = self.clone();
         let vehicle = vehicle.to_owned();
-        self.tasks.spawn(async move {
+        self.live.tasks.spawn(async move {
             let outcome = async {
                 let f = me.function(&me.change_state, format!("{vehicle}/change_state"))?;
                 let req = StateChangeRequest { to };
                 tokio::select! {
                     r = f.call(&req, me.call_timeout) => r.map_err(call_error),
-                    _ = me.cancel.cancelled() => Err("station stopping".to_string()),
+                    _ = me.live.cancel.cancelled() => Err("station stopping".to_string()),
                 }
             }
             .await
             .map(|r: StateChangeReply| format!("{} → {}", r.from, r.to));
             me.station().command_finished(id, outcome, Instant::now());
             me.refresh_allowed.notify_one();
-            me.changed.notify_waiters();
+            me.live.changed.notify_waiters();
         });
         id
     }
@@ -150,32 +147,20 @@ fn follow<T: marea::Payload>(
     to_item: fn(T) -> Item,
 ) {
     let me = shared.clone();
-    shared.tasks.spawn(async move {
-        let suffix = format!("/{item}");
-        loop {
-            let got = tokio::select! {
-                r = sub.recv() => r,
-                _ = me.cancel.cancelled() => return,
-            };
-            match got {
-                Ok(s) => {
-                    let Some(prefix) = s.name.strip_suffix(&suffix) else {
-                        continue;
-                    };
-                    let state_changed =
-                        me.station()
-                            .update(prefix, &s.publisher, to_item(s.value), Instant::now());
-                    if state_changed {
-                        me.refresh_allowed.notify_one();
-                        me.changed.notify_waiters();
-                    }
-                    if matches!(item, "alarm" | "state_changed") {
-                        me.changed.notify_waiters();
-                    }
-                }
-                Err(RecvError::Closed) => return,
-                Err(e) => tracing::warn!("{item}: {e}"),
-            }
+    let suffix = format!("/{item}");
+    shared.live.follow(sub, item, move |s| {
+        let Some(prefix) = s.name.strip_suffix(&suffix) else {
+            return;
+        };
+        let state_changed =
+            me.station()
+                .update(prefix, &s.publisher, to_item(s.value), Instant::now());
+        if state_changed {
+            me.refresh_allowed.notify_one();
+            me.live.changed.notify_waiters();
+        }
+        if matches!(item, "alarm" | "state_changed") {
+            me.live.changed.notify_waiters();
         }
     });
 }
@@ -186,7 +171,7 @@ async fn allowed_loop(me: Arc<Shared>) {
         tokio::select! {
             _ = me.refresh_allowed.notified() => {}
             _ = tokio::time::sleep(ALLOWED_RETRY) => {}
-            _ = me.cancel.cancelled() => return,
+            _ = me.live.cancel.cancelled() => return,
         }
         let (vehicle, state) = {
             let st = me.station();
@@ -202,13 +187,13 @@ async fn allowed_loop(me: Arc<Shared>) {
         let answer = match me.function(&me.allowed, format!("{vehicle}/allowed_states")) {
             Ok(f) => tokio::select! {
                 r = f.call(&(), me.call_timeout) => r.map_err(call_error),
-                _ = me.cancel.cancelled() => return,
+                _ = me.live.cancel.cancelled() => return,
             },
             Err(e) => Err(e),
         };
         me.station()
             .set_allowed(&vehicle, state, answer, Instant::now());
-        me.changed.notify_waiters();
+        me.live.changed.notify_waiters();
     }
 }
 
@@ -219,7 +204,7 @@ async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = me.cancel.cancelled() => return,
+            _ = me.live.cancel.cancelled() => return,
         }
         let t = me.station().manual_tick(Instant::now(), unix_ms());
         if let ManualTick::Send(sample) = t {
@@ -243,13 +228,11 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
     let shared = Arc::new(Shared {
         station: Mutex::new(Station::new(config.station.stale_after, Instant::now())),
         svc: svc.clone(),
-        changed: Notify::new(),
         refresh_allowed: Notify::new(),
         change_state: Mutex::new(HashMap::new()),
         allowed: Mutex::new(HashMap::new()),
         call_timeout: config.station.call_timeout,
-        tasks: TaskTracker::new(),
-        cancel: cancel.clone(),
+        live: Live::new(cancel.clone()),
     });
     let vas = &config.vas;
     let pat = |item: &str| format!("{vas}/{item}");
@@ -302,11 +285,11 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         Item::Alarm,
     );
     let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
-    shared.tasks.spawn(allowed_loop(shared.clone()));
-    shared.tasks.spawn(manual_loop(shared.clone(), manual));
+    shared.live.tasks.spawn(allowed_loop(shared.clone()));
+    shared.live.tasks.spawn(manual_loop(shared.clone(), manual));
     tracing::info!("fmo up on http://{addr}/, following {vas}");
 
     let router = web::router(shared.clone());
-    let tasks = shared.tasks.clone();
+    let tasks = shared.live.tasks.clone();
     station_web::serve_and_shut_down(listener, router, cancel, tasks, (shared, svc), node).await
 }

@@ -35,12 +35,8 @@ impl station_web::Station for Shared {
         serde_json::to_string(&snap).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"))
     }
 
-    fn changed(&self) -> &tokio::sync::Notify {
-        &self.changed
-    }
-
-    fn cancel(&self) -> &tokio_util::sync::CancellationToken {
-        &self.cancel
+    fn live(&self) -> &station_web::Live {
+        &self.live
     }
 }
 
@@ -64,7 +60,7 @@ async fn select(State(shared): State<Arc<Shared>>, Json(s): Json<Select>) -> Res
     match r {
         Ok(()) => {
             shared.refresh_allowed();
-            shared.changed.notify_waiters();
+            shared.live.changed.notify_waiters();
             StatusCode::NO_CONTENT.into_response()
         }
         Err(e) => bad(StatusCode::NOT_FOUND, e),
@@ -105,7 +101,7 @@ async fn ack(State(shared): State<Arc<Shared>>, Json(a): Json<Ack>) -> Response 
     let r = shared.station().ack_alarm(a.vehicle.as_deref(), a.id);
     match r {
         Ok(n) => {
-            shared.changed.notify_waiters();
+            shared.live.changed.notify_waiters();
             Json(serde_json::json!({ "acked": n })).into_response()
         }
         Err(e) => bad(StatusCode::NOT_FOUND, e),

@@ -29,11 +29,9 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use fpma::api::{CommandAck, PlanEvent, PlanGeometry, PlanRejected, PlanState, Progress};
 use fpma::vehicle::VehicleParams;
-use marea::{RecvError, Service};
-use station_web::{call_error, CommandStatus, StationConfig};
-use tokio::sync::Notify;
+use marea::Service;
+use station_web::{call_error, CommandStatus, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
-use tokio_util::task::TaskTracker;
 use usal_types::Position;
 
 use crate::background::{Background, BackgroundSource};
@@ -75,13 +73,11 @@ const GEOMETRY_CHECK: Duration = Duration::from_secs(1);
 pub struct Shared {
     state: Mutex<State>,
     svc: Service,
-    /// Woken when the page should get a snapshot at once.
-    pub changed: Notify,
+    /// Change notification, cancellation and tasks.
+    pub live: Live,
     vehicle: VehicleParams,
     call_timeout: Duration,
     uploads: tempfile::TempDir,
-    tasks: TaskTracker,
-    cancel: CancellationToken,
     probes: Mutex<HashMap<String, ()>>,
     /// The map's background image, if any.
     pub background: Option<Background>,
@@ -127,10 +123,10 @@ impl Shared {
         then: impl FnOnce(&mut State, &R) -> String + Send + 'static,
     ) -> u64 {
         let id = self.state().start(label, what, None);
-        self.changed.notify_waiters();
+        self.live.changed.notify_waiters();
         let me = self.clone();
         let full = format!("{}/{name}", fpma_prefix(label));
-        self.tasks.spawn(async move {
+        self.live.tasks.spawn(async move {
             let outcome = async {
                 let f = me.svc.function::<A, R>(&full).map_err(|e| e.to_string())?;
                 if !f.has_provider() && !f.wait_provider(me.call_timeout).await {
@@ -138,7 +134,7 @@ impl Shared {
                 }
                 tokio::select! {
                     r = f.call(&args, me.call_timeout) => r.map_err(call_error),
-                    _ = me.cancel.cancelled() => Err("station stopping".into()),
+                    _ = me.live.cancel.cancelled() => Err("station stopping".into()),
                 }
             }
             .await;
@@ -147,7 +143,7 @@ impl Shared {
                 let outcome = outcome.map(|r| then(&mut st, &r));
                 st.finish(id, outcome);
             }
-            me.changed.notify_waiters();
+            me.live.changed.notify_waiters();
         });
         id
     }
@@ -183,7 +179,7 @@ impl Shared {
         std::fs::write(&path, xml).map_err(|e| e.to_string())?;
         let what = format!("upload {file} ({} legs)", local.legs);
         let id = self.state().start(label, what, Some(local));
-        self.changed.notify_waiters();
+        self.live.changed.notify_waiters();
         let sink = format!("{}/plans", fpma_prefix(label));
         let transfer = self.svc.send_file(
             &path,
@@ -194,7 +190,7 @@ impl Shared {
             },
         );
         let me = self.clone();
-        self.tasks.spawn(async move {
+        self.live.tasks.spawn(async move {
             let mut progress = transfer.watch_progress();
             let result = {
                 let wait = transfer.wait();
@@ -208,10 +204,10 @@ impl Shared {
                                 if let Some(c) = me.state().commands.get_mut(id) {
                                     c.detail = format!("sending {}/{} bytes", p.acknowledged, p.total);
                                 }
-                                me.changed.notify_waiters();
+                                me.live.changed.notify_waiters();
                             }
                         }
-                        _ = me.cancel.cancelled() => return,
+                        _ = me.live.cancel.cancelled() => return,
                     }
                 }
             };
@@ -225,17 +221,17 @@ impl Shared {
                             );
                         }
                     }
-                    me.changed.notify_waiters();
+                    me.live.changed.notify_waiters();
                     tokio::select! {
                         _ = tokio::time::sleep(LOAD_TIMEOUT) => {}
-                        _ = me.cancel.cancelled() => return,
+                        _ = me.live.cancel.cancelled() => return,
                     }
                     me.state()
                         .finish(id, Err("the FPMa neither loaded nor refused the plan".into()));
                 }
                 Err(e) => me.state().finish(id, Err(e.to_string())),
             }
-            me.changed.notify_waiters();
+            me.live.changed.notify_waiters();
         });
         Ok(id)
     }
@@ -246,14 +242,14 @@ impl Shared {
         let answer = match self.svc.function::<(), PlanGeometry>(&full) {
             Ok(f) => tokio::select! {
                 r = f.call(&(), self.call_timeout) => r.map_err(call_error),
-                _ = self.cancel.cancelled() => return,
+                _ = self.live.cancel.cancelled() => return,
             },
             Err(e) => Err(e.to_string()),
         };
         match answer {
             Ok(g) => {
                 self.state().geometry(label, g);
-                self.changed.notify_waiters();
+                self.live.changed.notify_waiters();
             }
             Err(e) => tracing::debug!("{full}: {e}"),
         }
@@ -305,28 +301,16 @@ fn spawn_sub<T: marea::Payload>(
     apply: fn(&mut State, &str, T),
 ) {
     let me = shared.clone();
-    shared.tasks.spawn(async move {
-        loop {
-            let got = tokio::select! {
-                r = sub.recv() => r,
-                _ = me.cancel.cancelled() => return,
-            };
-            match got {
-                Ok(s) => {
-                    let Some(label) = label_of(&s.name, service) else {
-                        continue;
-                    };
-                    if service == "fpma" {
-                        me.ensure_probe(&label);
-                    }
-                    apply(&mut me.state(), &label, s.value);
-                    if service == "fpma" {
-                        me.changed.notify_waiters();
-                    }
-                }
-                Err(RecvError::Closed) => return,
-                Err(e) => tracing::warn!("{service}: {e}"),
-            }
+    shared.live.follow(sub, service, move |s| {
+        let Some(label) = label_of(&s.name, service) else {
+            return;
+        };
+        if service == "fpma" {
+            me.ensure_probe(&label);
+        }
+        apply(&mut me.state(), &label, s.value);
+        if service == "fpma" {
+            me.live.changed.notify_waiters();
         }
     });
 }
@@ -338,7 +322,7 @@ async fn geometry_loop(me: Arc<Shared>) {
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = me.cancel.cancelled() => return,
+            _ = me.live.cancel.cancelled() => return,
         }
         let lagging = me.state().geometry_lagging(Instant::now(), |v| {
             v.probe.as_ref().is_some_and(|f| f.has_provider())
@@ -375,12 +359,10 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
     let shared = Arc::new(Shared {
         state: Mutex::new(State::new(config.station.stale_after)),
         svc: svc.clone(),
-        changed: Notify::new(),
         vehicle: config.vehicle.clone(),
         call_timeout: config.station.call_timeout,
         uploads: tempfile::tempdir().context("staging directory for uploads")?,
-        tasks: TaskTracker::new(),
-        cancel: cancel.clone(),
+        live: Live::new(cancel.clone()),
         probes: Mutex::new(HashMap::new()),
         background: config.background.clone(),
     });
@@ -426,9 +408,9 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         "vas",
         State::position,
     );
-    shared.tasks.spawn(geometry_loop(shared.clone()));
+    shared.live.tasks.spawn(geometry_loop(shared.clone()));
     tracing::info!("fpmo up on http://{addr}/, following {ns}");
     let router = web::router(shared.clone());
-    let tasks = shared.tasks.clone();
+    let tasks = shared.live.tasks.clone();
     station_web::serve_and_shut_down(listener, router, cancel, tasks, (shared, svc), node).await
 }

@@ -35,12 +35,8 @@ impl station_web::Station for Shared {
         self.state().snapshot().to_string()
     }
 
-    fn changed(&self) -> &tokio::sync::Notify {
-        &self.changed
-    }
-
-    fn cancel(&self) -> &tokio_util::sync::CancellationToken {
-        &self.cancel
+    fn live(&self) -> &station_web::Live {
+        &self.live
     }
 }
 
@@ -114,7 +110,7 @@ struct Select {
 async fn select(State(shared): State<Arc<Shared>>, Json(s): Json<Select>) -> Response {
     match shared.select(&s.vehicle) {
         Ok(()) => {
-            shared.changed.notify_waiters();
+            shared.live.changed.notify_waiters();
             StatusCode::NO_CONTENT.into_response()
         }
         Err(e) => bad(StatusCode::NOT_FOUND, e),

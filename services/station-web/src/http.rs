@@ -19,8 +19,9 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use futures_util::stream::Stream;
-use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
+
+use crate::Live;
 
 /// Longest interval between two snapshots on the live channel, so the page can tell a silent
 /// station from a quiet vehicle.
@@ -34,10 +35,8 @@ pub trait Station: Send + Sync + 'static {
     const PAGE: &'static str;
     /// The page's view of everything, as JSON (`GET /api/state` and each `state` event).
     fn snapshot_json(&self) -> String;
-    /// Woken on every change the page should see at once.
-    fn changed(&self) -> &Notify;
-    /// Cancelled when the station stops (ends the live channels).
-    fn cancel(&self) -> &CancellationToken;
+    /// Its change notification (wakes the live channels) and cancellation (ends them).
+    fn live(&self) -> &Live;
 }
 
 /// The routes every station serves (`/`, `/api/state`, `/api/events`); the station adds its own
@@ -65,7 +64,7 @@ async fn events<S: Station>(State(shared): State<Arc<S>>) -> Response {
     snapshot_stream(shared).into_response()
 }
 
-/// An SSE stream of `state` events: a snapshot at once, then on every [`Station::changed`]
+/// An SSE stream of `state` events: a snapshot at once, then on every [`Live::changed`]
 /// wake-up (at most every [`SNAPSHOT_MIN_GAP`]) and at least every [`SNAPSHOT_PERIOD`]; ends
 /// when the station is cancelled.
 pub fn snapshot_stream<S: Station>(
@@ -78,9 +77,9 @@ pub fn snapshot_stream<S: Station>(
 fn snapshots<S: Station>(shared: Arc<S>) -> impl Stream<Item = Result<Event, Infallible>> {
     futures_util::stream::unfold((shared, true), |(shared, first)| async move {
         if !first {
-            let cancel = shared.cancel();
+            let cancel = &shared.live().cancel;
             tokio::select! {
-                _ = shared.changed().notified() => {}
+                _ = shared.live().changed.notified() => {}
                 _ = tokio::time::sleep(SNAPSHOT_PERIOD) => {}
                 _ = cancel.cancelled() => return None,
             }
@@ -128,8 +127,7 @@ mod tests {
     use futures_util::StreamExt;
 
     struct Fake {
-        changed: Notify,
-        cancel: CancellationToken,
+        live: Live,
         n: std::sync::atomic::AtomicU32,
     }
 
@@ -139,18 +137,14 @@ mod tests {
             let n = self.n.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
             format!("{{\"n\":{n}}}")
         }
-        fn changed(&self) -> &Notify {
-            &self.changed
-        }
-        fn cancel(&self) -> &CancellationToken {
-            &self.cancel
+        fn live(&self) -> &Live {
+            &self.live
         }
     }
 
     fn fake() -> Arc<Fake> {
         Arc::new(Fake {
-            changed: Notify::new(),
-            cancel: CancellationToken::new(),
+            live: Live::default(),
             n: 0.into(),
         })
     }
@@ -159,7 +153,7 @@ mod tests {
     async fn served(shared: Arc<Fake>) -> std::net::SocketAddr {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
-        let cancel = shared.cancel.clone();
+        let cancel = shared.live.cancel.clone();
         let router = routes::<Fake>().with_state(shared);
         tokio::spawn(serve(listener, router, cancel));
         addr
@@ -191,7 +185,7 @@ mod tests {
             .unwrap();
         assert!(state.contains("content-type: application/json"), "{state}");
         assert!(state.ends_with("{\"n\":0}"), "{state}");
-        shared.cancel.cancel();
+        shared.live.cancel.cancel();
     }
 
     #[tokio::test]
@@ -218,7 +212,7 @@ mod tests {
         );
         assert_eq!(shared.n.load(SeqCst), 2);
 
-        shared.cancel.cancel();
+        shared.live.cancel.cancel();
         let end = tokio::time::timeout(limit, s.next()).await.unwrap();
         assert!(end.is_none(), "ends on cancel");
         assert_eq!(shared.n.load(SeqCst), 2, "no snapshot after the cancel");
