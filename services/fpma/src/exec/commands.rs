@@ -336,25 +336,7 @@ impl Executive {
                 let ctx = self.ctx();
                 let wps: Vec<Waypoint> = order
                     .iter()
-                    .flat_map(|p| {
-                        let leg = PathLeg {
-                            kind: PathKind::TF,
-                            fix: Fix {
-                                id: "poi".into(),
-                                pos: *p,
-                                alt,
-                            },
-                            course: None,
-                            length: None,
-                            center: None,
-                            turn: None,
-                            common: LegCommon {
-                                fly_over: Some(true),
-                                ..LegCommon::default()
-                            },
-                        };
-                        expand_path(&leg, &id, &ctx)
-                    })
+                    .flat_map(|p| expand_path(&poi_leg("poi".into(), *p, alt), &id, &ctx))
                     .collect();
                 let wps = enforce_min_distance(Some(from), wps, self.vehicle.min_wp_distance);
                 self.interrupt_with(Active {
@@ -375,22 +357,7 @@ impl Executive {
                         id: format!("{base}.{}", k + 1),
                         line: 0,
                         col: 0,
-                        kind: NodeKind::Path(PathLeg {
-                            kind: PathKind::TF,
-                            fix: Fix {
-                                id: format!("poi{}", k + 1),
-                                pos: *p,
-                                alt,
-                            },
-                            course: None,
-                            length: None,
-                            center: None,
-                            turn: None,
-                            common: LegCommon {
-                                fly_over: Some(true),
-                                ..LegCommon::default()
-                            },
-                        }),
+                        kind: NodeKind::Path(poi_leg(format!("poi{}", k + 1), *p, alt)),
                         source: None,
                     })
                     .collect();
@@ -465,6 +432,26 @@ impl Executive {
         };
         self.emit(EventKind::EmergencyFired { rule });
         self.apply(&action)
+    }
+}
+
+/// A re-tasked point of interest as a leg: straight to it and over it (a TF to fix `fix_id`).
+fn poi_leg(fix_id: String, pos: GeoPoint, alt: Option<f64>) -> PathLeg {
+    PathLeg {
+        kind: PathKind::TF,
+        fix: Fix {
+            id: fix_id,
+            pos,
+            alt,
+        },
+        course: None,
+        length: None,
+        center: None,
+        turn: None,
+        common: LegCommon {
+            fly_over: Some(true),
+            ..LegCommon::default()
+        },
     }
 }
 

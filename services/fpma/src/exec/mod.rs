@@ -22,6 +22,7 @@ mod types;
 
 pub use commands::nearest_neighbour;
 pub use nominal::{expand_nominal, nominal_len};
+pub(crate) use types::flight_events;
 pub use types::{
     CommandError, Event, EventKind, ExecState, ExpandError, HoldHere, RetaskMode, Telemetry,
 };

@@ -117,75 +117,105 @@ pub struct Event {
     pub kind: EventKind,
 }
 
-/// What happened.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "event", rename_all = "kebab-case")]
-pub enum EventKind {
-    /// A leg became the current one.
-    LegStarted {
-        /// Leg id.
-        leg: String,
-    },
-    /// A leg ended (`skipped` when by command).
-    LegCompleted {
-        /// Leg id.
-        leg: String,
-        /// Ended by a command rather than flown to its end.
-        skipped: bool,
-    },
-    /// A waypoint was reached.
-    WaypointReached {
-        /// Its sequence number.
-        seq: u64,
-        /// Its leg.
-        leg: String,
-    },
-    /// A loop finished pass `n` (from 1).
-    IterationDone {
-        /// Loop id.
-        leg: String,
-        /// Passes done.
-        n: u32,
-    },
-    /// An alternative chose a branch (0-based; `otherwise` is the last).
-    BranchTaken {
-        /// Alternative id.
-        leg: String,
-        /// Branch index.
-        branch: usize,
-    },
-    /// A new stage began.
-    StageChanged {
-        /// The stage.
-        stage: Stage,
-    },
-    /// Nothing is left to fly.
-    PlanCompleted,
-    /// Progress by distance (seed 000): flown / (flown + remaining planned).
-    Progress {
-        /// In [0, 1].
-        fraction: f64,
-        /// Metres flown in this plan version.
-        flown_m: f64,
-        /// Metres left in the nominal continuation.
-        remaining_m: f64,
-    },
-    /// A new plan replaced the old one.
-    PlanReplaced,
-    /// The plan was changed in place (modified or inserted legs).
-    PlanModified {
-        /// The leg changed or the first inserted.
-        leg: String,
-    },
-    /// An emergency rule fired or the command was given.
-    EmergencyFired {
-        /// Rule name.
-        rule: String,
-    },
-    /// Paused.
-    Paused,
-    /// Resumed.
-    Resumed,
+/// Declares an enum of the flight events (legs, waypoints, loops, branches, stages, in-place
+/// changes, emergencies, pause) with variants of its own before and after them, and the integer
+/// type of a branch index.
+///
+/// Why a macro: the executive's [`EventKind`] (JSON, internally tagged by name, with progress
+/// and replacement notices) and the wire's [`crate::api::PlanEventKind`] (postcard, tagged by
+/// position, so its variants' order is its encoding; a `u32` branch) carry the same events but
+/// must keep their own encodings; one list of variants serves both.
+macro_rules! flight_events {
+    (
+        $(#[$meta:meta])*
+        $vis:vis enum $name:ident (branch: $branch:ty) {
+            $($first:tt)*
+        }
+        then {
+            $($last:tt)*
+        }
+    ) => {
+        $(#[$meta])*
+        $vis enum $name {
+            $($first)*
+            /// A leg became the current one.
+            LegStarted {
+                /// Leg id.
+                leg: String,
+            },
+            /// A leg ended (`skipped` when by command).
+            LegCompleted {
+                /// Leg id.
+                leg: String,
+                /// Ended by a command rather than flown to its end.
+                skipped: bool,
+            },
+            /// A waypoint was reached.
+            WaypointReached {
+                /// Its sequence number.
+                seq: u64,
+                /// Its leg.
+                leg: String,
+            },
+            /// A loop finished pass `n` (from 1).
+            IterationDone {
+                /// Loop id.
+                leg: String,
+                /// Passes done.
+                n: u32,
+            },
+            /// An alternative chose a branch (0-based; `otherwise` is the last).
+            BranchTaken {
+                /// Alternative id.
+                leg: String,
+                /// Branch index.
+                branch: $branch,
+            },
+            /// A new stage began.
+            StageChanged {
+                /// The stage.
+                stage: Stage,
+            },
+            /// Nothing is left to fly.
+            PlanCompleted,
+            /// The plan was changed in place (modified or inserted legs).
+            PlanModified {
+                /// The leg changed or the first inserted.
+                leg: String,
+            },
+            /// An emergency rule fired or the command was given.
+            EmergencyFired {
+                /// Rule name (`default` for the command without one).
+                rule: String,
+            },
+            /// Paused.
+            Paused,
+            /// Resumed.
+            Resumed,
+            $($last)*
+        }
+    };
+}
+pub(crate) use flight_events;
+
+flight_events! {
+    /// What happened.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    #[serde(tag = "event", rename_all = "kebab-case")]
+    pub enum EventKind (branch: usize) {}
+    then {
+        /// Progress by distance (seed 000): flown / (flown + remaining planned).
+        Progress {
+            /// In [0, 1].
+            fraction: f64,
+            /// Metres flown in this plan version.
+            flown_m: f64,
+            /// Metres left in the nominal continuation.
+            remaining_m: f64,
+        },
+        /// A new plan replaced the old one.
+        PlanReplaced,
+    }
 }
 
 /// Dimensions of a hold commanded in flight at the present position.
