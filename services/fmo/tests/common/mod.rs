@@ -323,6 +323,25 @@ pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
     rover_named(domain, speedup, "rover1").await
 }
 
+/// The arguments of `fpma run` for the rover in `domain`, namespace `rover1`, taking plans
+/// into `plans`.
+pub fn fpma_rover1_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
+    [
+        "run",
+        "--domain",
+        domain,
+        "--namespace",
+        "rover1",
+        "--vehicle",
+        "rover",
+        "--plans-dir",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain([plans.display().to_string()])
+    .collect()
+}
+
 /// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `ns`.
 pub async fn rover_named(domain: &str, speedup: f64, ns: &str) -> (Proc, Proc) {
     let sim = Proc::start(
