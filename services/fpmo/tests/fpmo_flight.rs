@@ -16,10 +16,6 @@ fn progress(s: &serde_json::Value) -> &serde_json::Value {
     &vehicle(s, "rover1").expect("rover1")["progress"]["value"]
 }
 
-fn command(s: &serde_json::Value, id: u64) -> Option<&serde_json::Value> {
-    s["commands"].as_array()?.iter().find(|c| c["id"] == id)
-}
-
 async fn wait_command(st: &Station, id: u64, want: &str) -> serde_json::Value {
     let s = st
         .wait_state(&format!("command {id} finished"), |s| {

@@ -228,6 +228,11 @@ impl Sse {
     }
 }
 
+/// Command `id` in a snapshot.
+pub fn command(state: &serde_json::Value, id: u64) -> Option<&serde_json::Value> {
+    state["commands"].as_array()?.iter().find(|c| c["id"] == id)
+}
+
 /// The vehicle `label` (e.g. `rover1`) in a snapshot.
 pub fn vehicle<'a>(state: &'a serde_json::Value, label: &str) -> Option<&'a serde_json::Value> {
     state["vehicles"]
