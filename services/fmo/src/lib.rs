@@ -2,7 +2,9 @@
 //! page from the station's machine so any laptop or tablet browser is the screen.
 //!
 //! Layers: [`model`] is the station's picture of the fleet (pure, tested on a fake clock);
-//! [`web`] serves the page, its JSON API and its live channel (server-sent events); this file
+//! [`web`] serves the page, its JSON API and its live channel (server-sent events), on the
+//! plumbing every station shares (`station_web`: options, startup, the common routes, the live
+//! channel, the command log); this file
 //! opens the middleware node, subscribes to what the page shows (and nothing else: 003 §6.2.4),
 //! calls the VAS's functions and publishes `fmo/manual_control` (addressed to the commanded
 //! vehicle only) at 20 Hz while the dead-man is held. Items and options are listed in `services/fmo/README.md`.
@@ -10,7 +12,8 @@
 //! ```no_run
 //! # async fn f() -> anyhow::Result<()> {
 //! let shutdown = tokio_util::sync::CancellationToken::new();
-//! let config = fmo::FmoConfig { listen: "127.0.0.1:0".parse()?, ..Default::default() };
+//! let mut config = fmo::FmoConfig::default();
+//! config.station.listen = "127.0.0.1:0".parse()?;
 //! fmo::run(config, shutdown).await // prints FMO_URL=http://127.0.0.1:PORT/
 //! # }
 //! ```
@@ -19,16 +22,14 @@ pub mod model;
 pub mod web;
 
 use std::collections::HashMap;
-use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
-use marea::{Function, RecvError, Service, VariableSubscriber};
+use marea::{Function, Service, VariableSubscriber};
+use station_web::{call_error, Live, StationConfig};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
-use tokio_util::task::TaskTracker;
 use usal_types::{
     Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionTime, Position, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged,
@@ -39,36 +40,18 @@ use crate::model::{Item, ManualTick, Station};
 /// Everything the FMo needs.
 #[derive(Clone, Debug)]
 pub struct FmoConfig {
-    /// The middleware's network.xml; none: Ethernet on loopback.
-    pub network: Option<PathBuf>,
-    /// Overrides the network file's domain.
-    pub domain: Option<String>,
-    /// Overrides the network file's namespace (the station's own items' prefix).
-    pub namespace: Option<String>,
-    /// Node name when no network file is given.
-    pub node: String,
-    /// Where the HTTP server listens (`127.0.0.1:0`: any free port).
-    pub listen: SocketAddr,
+    /// What every station needs: network, node, HTTP address, staleness, call time limit.
+    pub station: StationConfig,
     /// The VASes followed: a pattern of their item prefix (`**/vas` for a fleet, `rover1/vas`
     /// for one vehicle).
     pub vas: String,
-    /// Values older than this are shown as stale.
-    pub stale_after: Duration,
-    /// Time limit of each VAS call.
-    pub call_timeout: Duration,
 }
 
 impl Default for FmoConfig {
     fn default() -> Self {
         Self {
-            network: None,
-            domain: None,
-            namespace: None,
-            node: "fmo".into(),
-            listen: SocketAddr::from(([127, 0, 0, 1], 8081)),
+            station: StationConfig::new("fmo", 8081),
             vas: "**/vas".into(),
-            stale_after: Duration::from_secs(2),
-            call_timeout: Duration::from_secs(5),
         }
     }
 }
@@ -86,15 +69,13 @@ type AllowedFn = Function<(), Vec<FlightState>>;
 pub struct Shared {
     station: Mutex<Station>,
     svc: Service,
-    /// Woken on every change the page should see at once.
-    pub changed: Notify,
+    /// Change notification, cancellation and tasks.
+    pub live: Live,
     /// Woken when the commanded vehicle's allowed transitions must be asked again.
     refresh_allowed: Notify,
     change_state: Mutex<HashMap<String, Arc<ChangeStateFn>>>,
     allowed: Mutex<HashMap<String, Arc<AllowedFn>>>,
     call_timeout: Duration,
-    tasks: TaskTracker,
-    cancel: CancellationToken,
 }
 
 impl Shared {
@@ -124,23 +105,23 @@ impl Shared {
         let id =
             self.station()
                 .command_started(vehicle, &format!("change_state {to}"), Instant::now());
-        self.changed.notify_waiters();
+        self.live.changed.notify_waiters();
         let me = self.clone();
         let vehicle = vehicle.to_owned();
-        self.tasks.spawn(async move {
+        self.live.tasks.spawn(async move {
             let outcome = async {
                 let f = me.function(&me.change_state, format!("{vehicle}/change_state"))?;
                 let req = StateChangeRequest { to };
                 tokio::select! {
                     r = f.call(&req, me.call_timeout) => r.map_err(call_error),
-                    _ = me.cancel.cancelled() => Err("station stopping".to_string()),
+                    _ = me.live.cancel.cancelled() => Err("station stopping".to_string()),
                 }
             }
             .await
             .map(|r: StateChangeReply| format!("{} → {}", r.from, r.to));
             me.station().command_finished(id, outcome, Instant::now());
             me.refresh_allowed.notify_one();
-            me.changed.notify_waiters();
+            me.live.changed.notify_waiters();
         });
         id
     }
@@ -148,14 +129,6 @@ impl Shared {
     /// Asks for the commanded vehicle's allowed transitions again.
     pub fn refresh_allowed(&self) {
         self.refresh_allowed.notify_one();
-    }
-}
-
-/// A call error as the pilot reads it: the VAS's own reason when it refused.
-fn call_error(e: marea::CallError) -> String {
-    match e {
-        marea::CallError::Remote { message, .. } => message,
-        e => e.to_string(),
     }
 }
 
@@ -174,32 +147,20 @@ fn follow<T: marea::Payload>(
     to_item: fn(T) -> Item,
 ) {
     let me = shared.clone();
-    shared.tasks.spawn(async move {
-        let suffix = format!("/{item}");
-        loop {
-            let got = tokio::select! {
-                r = sub.recv() => r,
-                _ = me.cancel.cancelled() => return,
-            };
-            match got {
-                Ok(s) => {
-                    let Some(prefix) = s.name.strip_suffix(&suffix) else {
-                        continue;
-                    };
-                    let state_changed =
-                        me.station()
-                            .update(prefix, &s.publisher, to_item(s.value), Instant::now());
-                    if state_changed {
-                        me.refresh_allowed.notify_one();
-                        me.changed.notify_waiters();
-                    }
-                    if matches!(item, "alarm" | "state_changed") {
-                        me.changed.notify_waiters();
-                    }
-                }
-                Err(RecvError::Closed) => return,
-                Err(e) => tracing::warn!("{item}: {e}"),
-            }
+    let suffix = format!("/{item}");
+    shared.live.follow(sub, item, move |s| {
+        let Some(prefix) = s.name.strip_suffix(&suffix) else {
+            return;
+        };
+        let state_changed =
+            me.station()
+                .update(prefix, &s.publisher, to_item(s.value), Instant::now());
+        if state_changed {
+            me.refresh_allowed.notify_one();
+            me.live.changed.notify_waiters();
+        }
+        if matches!(item, "alarm" | "state_changed") {
+            me.live.changed.notify_waiters();
         }
     });
 }
@@ -210,7 +171,7 @@ async fn allowed_loop(me: Arc<Shared>) {
         tokio::select! {
             _ = me.refresh_allowed.notified() => {}
             _ = tokio::time::sleep(ALLOWED_RETRY) => {}
-            _ = me.cancel.cancelled() => return,
+            _ = me.live.cancel.cancelled() => return,
         }
         let (vehicle, state) = {
             let st = me.station();
@@ -226,13 +187,13 @@ async fn allowed_loop(me: Arc<Shared>) {
         let answer = match me.function(&me.allowed, format!("{vehicle}/allowed_states")) {
             Ok(f) => tokio::select! {
                 r = f.call(&(), me.call_timeout) => r.map_err(call_error),
-                _ = me.cancel.cancelled() => return,
+                _ = me.live.cancel.cancelled() => return,
             },
             Err(e) => Err(e),
         };
         me.station()
             .set_allowed(&vehicle, state, answer, Instant::now());
-        me.changed.notify_waiters();
+        me.live.changed.notify_waiters();
     }
 }
 
@@ -243,7 +204,7 @@ async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = me.cancel.cancelled() => return,
+            _ = me.live.cancel.cancelled() => return,
         }
         let t = me.station().manual_tick(Instant::now(), unix_ms());
         if let ManualTick::Send(sample) = t {
@@ -254,53 +215,24 @@ async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
     }
 }
 
-/// Opens the middleware node described by the configuration.
-///
-/// # Errors
-/// Unreadable network file, a node that cannot open.
-pub async fn open_node(
-    network: Option<&std::path::Path>,
-    domain: Option<&str>,
-    namespace: Option<&str>,
-    node: &str,
-) -> anyhow::Result<marea::Node> {
-    let net = marea::NetworkConfig::for_service(network, node, domain, namespace)
-        .context("loading the network configuration")?;
-    marea::Node::open(&net)
-        .await
-        .context("opening the middleware node")
-}
-
 /// Runs the FMo until `shutdown` is cancelled: binds the HTTP server, prints
 /// `FMO_URL=http://ADDR/` on stdout, opens the node, then serves.
 ///
 /// # Errors
 /// The address cannot be bound, bad network file or pattern, a node that cannot open.
 pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
-    let listener = tokio::net::TcpListener::bind(config.listen)
-        .await
-        .with_context(|| format!("listening on {}", config.listen))?;
-    let addr = listener.local_addr().context("local address")?;
-    web::print_url("FMO_URL", addr);
-    let node = open_node(
-        config.network.as_deref(),
-        config.domain.as_deref(),
-        config.namespace.as_deref(),
-        &config.node,
-    )
-    .await?;
+    let (listener, addr) = station_web::bind(config.station.listen, "FMO_URL").await?;
+    let node = station_web::open_node(&config.station).await?;
     let svc = node.service("fmo").context("declaring the fmo service")?;
     let cancel = shutdown.child_token();
     let shared = Arc::new(Shared {
-        station: Mutex::new(Station::new(config.stale_after, Instant::now())),
+        station: Mutex::new(Station::new(config.station.stale_after, Instant::now())),
         svc: svc.clone(),
-        changed: Notify::new(),
         refresh_allowed: Notify::new(),
         change_state: Mutex::new(HashMap::new()),
         allowed: Mutex::new(HashMap::new()),
-        call_timeout: config.call_timeout,
-        tasks: TaskTracker::new(),
-        cancel: cancel.clone(),
+        call_timeout: config.station.call_timeout,
+        live: Live::new(cancel.clone()),
     });
     let vas = &config.vas;
     let pat = |item: &str| format!("{vas}/{item}");
@@ -353,16 +285,11 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         Item::Alarm,
     );
     let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
-    shared.tasks.spawn(allowed_loop(shared.clone()));
-    shared.tasks.spawn(manual_loop(shared.clone(), manual));
+    shared.live.tasks.spawn(allowed_loop(shared.clone()));
+    shared.live.tasks.spawn(manual_loop(shared.clone(), manual));
     tracing::info!("fmo up on http://{addr}/, following {vas}");
 
-    let served = web::serve(listener, web::router(shared.clone()), cancel.clone()).await;
-    cancel.cancel();
-    shared.tasks.close();
-    shared.tasks.wait().await;
-    drop(shared);
-    drop(svc);
-    node.shutdown().await;
-    served
+    let router = web::router(shared.clone());
+    let tasks = shared.live.tasks.clone();
+    station_web::serve_and_shut_down(listener, router, cancel, tasks, (shared, svc), node).await
 }

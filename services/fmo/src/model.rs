@@ -9,6 +9,8 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
+pub use station_web::CommandStatus;
+use station_web::{ms, CommandLog, CommandView};
 use usal_types::{
     Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, ManualControl, MissionTime,
     Position, Severity, Speeds, StateChanged,
@@ -16,8 +18,6 @@ use usal_types::{
 
 /// Alarms kept per vehicle (oldest dropped first).
 const MAX_ALARMS: usize = 50;
-/// Commands kept for display (oldest finished ones dropped first).
-const MAX_COMMANDS: usize = 30;
 /// The browser must repeat its stick input at least this often while the dead-man is held,
 /// else the sticks are released (a frozen tab, a closed laptop, a lost Wi-Fi).
 pub const MANUAL_INPUT_TIMEOUT: Duration = Duration::from_millis(300);
@@ -64,29 +64,6 @@ struct Vehicle {
     allowed: Allowed,
     heard: Option<Instant>,
     publisher: String,
-}
-
-/// A command's outcome.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum CommandStatus {
-    /// Sent, no answer yet.
-    Pending,
-    /// The vehicle accepted it.
-    Ok,
-    /// Refused or lost, with the reason.
-    Failed,
-}
-
-#[derive(Clone, Debug)]
-struct CommandEntry {
-    id: u64,
-    vehicle: String,
-    what: String,
-    status: CommandStatus,
-    detail: String,
-    started: Instant,
-    finished: Option<Instant>,
 }
 
 /// Stick input from the page.
@@ -151,7 +128,7 @@ struct Manual {
 pub struct Station {
     vehicles: BTreeMap<String, Vehicle>,
     selected: Option<String>,
-    commands: VecDeque<CommandEntry>,
+    commands: CommandLog,
     next_id: u64,
     manual: Manual,
     stale_after: Duration,
@@ -249,17 +226,6 @@ struct AlarmView {
 }
 
 #[derive(Serialize)]
-struct CommandView {
-    id: u64,
-    vehicle: String,
-    what: String,
-    status: CommandStatus,
-    detail: String,
-    age_ms: u64,
-    took_ms: Option<u64>,
-}
-
-#[derive(Serialize)]
 struct ManualView {
     deadman: bool,
     active: bool,
@@ -274,10 +240,6 @@ struct ManualView {
     rearm: bool,
     /// Vehicles in MANUAL_NAVIGATION (each obeys only the samples addressed to it).
     listening: Vec<String>,
-}
-
-fn ms(d: Duration) -> u64 {
-    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
 }
 
 /// The vehicle label shown for a VAS prefix: `rover1/vas` → `rover1`, `vas` → `(local)`.
@@ -295,7 +257,7 @@ impl Station {
         Self {
             vehicles: BTreeMap::new(),
             selected: None,
-            commands: VecDeque::new(),
+            commands: CommandLog::default(),
             next_id: 1,
             manual: Manual::default(),
             stale_after,
@@ -435,46 +397,19 @@ impl Station {
     pub fn command_started(&mut self, vehicle: &str, what: &str, now: Instant) -> u64 {
         let id = self.next_id;
         self.next_id += 1;
-        self.commands.push_back(CommandEntry {
-            id,
-            vehicle: vehicle.to_owned(),
-            what: what.to_owned(),
-            status: CommandStatus::Pending,
-            detail: String::new(),
-            started: now,
-            finished: None,
-        });
-        while self.commands.len() > MAX_COMMANDS {
-            match self
-                .commands
-                .iter()
-                .position(|c| c.status != CommandStatus::Pending)
-            {
-                Some(i) => {
-                    self.commands.remove(i);
-                }
-                None => break,
-            }
-        }
+        self.commands.start(id, vehicle, what.to_owned(), now, ());
         id
     }
 
     /// Records a command's outcome.
     pub fn command_finished(&mut self, id: u64, outcome: Result<String, String>, now: Instant) {
-        if let Some(c) = self.commands.iter_mut().find(|c| c.id == id) {
-            (c.status, c.detail) = match outcome {
-                Ok(d) => (CommandStatus::Ok, d),
-                Err(e) => (CommandStatus::Failed, e),
-            };
-            c.finished = Some(now);
-        }
+        self.commands.finish(id, outcome, now);
     }
 
     /// The status of command `id`.
     pub fn command_status(&self, id: u64) -> Option<(CommandStatus, String)> {
         self.commands
-            .iter()
-            .find(|c| c.id == id)
+            .get(id)
             .map(|c| (c.status.clone(), c.detail.clone()))
     }
 
@@ -606,22 +541,7 @@ impl Station {
                 }
             })
             .collect();
-        let commands = self
-            .commands
-            .iter()
-            .rev()
-            .map(|c| CommandView {
-                id: c.id,
-                vehicle: label_of(&c.vehicle),
-                what: c.what.clone(),
-                status: c.status.clone(),
-                detail: c.detail.clone(),
-                age_ms: ms(now.saturating_duration_since(c.started)),
-                took_ms: c
-                    .finished
-                    .map(|f| ms(f.saturating_duration_since(c.started))),
-            })
-            .collect();
+        let commands = self.commands.view(now, label_of);
         let m = &self.manual;
         Snapshot {
             now_ms: ms(now.saturating_duration_since(self.epoch)),
@@ -728,7 +648,7 @@ mod tests {
             let id = s.command_started("r/vas", "x", t);
             s.command_finished(id, Ok(String::new()), t);
         }
-        assert!(s.commands.len() <= MAX_COMMANDS);
+        assert!(s.commands.len() <= CommandLog::<()>::KEPT);
     }
 
     #[test]

@@ -215,19 +215,10 @@ async fn scenario() {
     let id = body["id"].as_u64().unwrap();
     let s = fmo
         .wait_state("the refusal", |s| {
-            s["commands"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .any(|c| c["id"] == id && c["status"] != "pending")
+            command(s, id).is_some_and(|c| c["status"] != "pending")
         })
         .await;
-    let c = s["commands"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["id"] == id)
-        .unwrap();
+    let c = command(&s, id).expect("the command is listed");
     assert_eq!(c["status"], "failed");
     assert_eq!(c["detail"], "MANUAL_NAVIGATION is not allowed from PARKING");
 
@@ -238,11 +229,7 @@ async fn scenario() {
     assert_eq!(status, 202);
     let id = body["id"].as_u64().unwrap();
     fmo.wait_state("the confirmation", |s| {
-        s["commands"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|c| c["id"] == id && c["status"] == "ok" && c["detail"] == "PARKING → DIRECTED")
+        command(s, id).is_some_and(|c| c["status"] == "ok" && c["detail"] == "PARKING → DIRECTED")
     })
     .await;
     v1.flight_state.set(&FlightState::Directed).unwrap();
@@ -351,11 +338,7 @@ async fn scenario() {
         .await;
     let id = body["id"].as_u64().unwrap();
     fmo.wait_state("rover2 confirmed", |s| {
-        s["commands"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|c| c["id"] == id && c["status"] == "ok" && c["vehicle"] == "rover2")
+        command(s, id).is_some_and(|c| c["status"] == "ok" && c["vehicle"] == "rover2")
     })
     .await;
     assert_eq!(*v2.state.lock().unwrap(), FlightState::Directed);
@@ -382,11 +365,7 @@ async fn scenario() {
     );
     let s = fmo
         .wait_state("the command to the lost vehicle failed", |s| {
-            s["commands"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .any(|c| c["id"] == id && c["status"] == "failed")
+            command(s, id).is_some_and(|c| c["status"] == "failed")
         })
         .await;
     assert!(vehicle(&s, "rover1").is_some());

@@ -86,21 +86,12 @@ async fn scenario() {
     let id = body["id"].as_u64().unwrap();
     let s = fmo
         .wait_state("MANUAL_NAVIGATION confirmed and current", |s| {
-            let done = s["commands"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .any(|c| c["id"] == id && c["status"] != "pending");
+            let done = command(s, id).is_some_and(|c| c["status"] != "pending");
             done && rover1(s)["flight_state"]["value"] == "MANUAL_NAVIGATION"
                 && rover1(s)["allowed"]["current"] == true
         })
         .await;
-    let c = s["commands"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["id"] == id)
-        .unwrap();
+    let c = command(&s, id).expect("the command is listed");
     assert_eq!(c["status"], "ok", "{c:#}");
     assert!(rover1(&s)["allowed"]["states"]
         .as_array()

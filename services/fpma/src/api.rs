@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::exec::{expand_nominal, Event, EventKind, HoldHere, RetaskMode};
+use crate::exec::{expand_nominal, flight_events, Event, EventKind, HoldHere, RetaskMode};
 use crate::expr::Value;
 use crate::geo::{GeoPoint, LocalFrame, Xy};
 use crate::model::{FlightPlan, Node, NodeKind, Stage};
@@ -228,68 +228,18 @@ pub struct PlanEvent {
     pub kind: PlanEventKind,
 }
 
-/// What happened (the executive's events; progress is the `progress` variable instead).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum PlanEventKind {
-    /// A plan was loaded (the first one, or one replacing the previous).
-    PlanLoaded {
-        /// Its name.
-        name: String,
-    },
-    /// A leg became the current one.
-    LegStarted {
-        /// Leg id.
-        leg: String,
-    },
-    /// A leg ended.
-    LegCompleted {
-        /// Leg id.
-        leg: String,
-        /// Ended by a command.
-        skipped: bool,
-    },
-    /// A waypoint was reached.
-    WaypointReached {
-        /// Sequence number.
-        seq: u64,
-        /// Its leg.
-        leg: String,
-    },
-    /// A loop finished pass `n`.
-    IterationDone {
-        /// Loop id.
-        leg: String,
-        /// Passes done.
-        n: u32,
-    },
-    /// An alternative chose a branch (0-based; `otherwise` last).
-    BranchTaken {
-        /// Alternative id.
-        leg: String,
-        /// Branch index.
-        branch: u32,
-    },
-    /// A new stage began.
-    StageChanged {
-        /// The stage.
-        stage: Stage,
-    },
-    /// Nothing is left to fly.
-    PlanCompleted,
-    /// The plan was changed in place (a modified leg, inserted legs).
-    PlanModified {
-        /// The leg changed or the first inserted.
-        leg: String,
-    },
-    /// An emergency rule fired or the command was given.
-    EmergencyFired {
-        /// Rule name (`default` for the command without one).
-        rule: String,
-    },
-    /// Paused.
-    Paused,
-    /// Resumed.
-    Resumed,
+flight_events! {
+    /// What happened (the executive's events; progress is the `progress` variable instead).
+    /// Postcard tags variants by position: keep their order.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub enum PlanEventKind (branch: u32) {
+        /// A plan was loaded (the first one, or one replacing the previous).
+        PlanLoaded {
+            /// Its name.
+            name: String,
+        },
+    }
+    then {}
 }
 
 impl PlanEvent {

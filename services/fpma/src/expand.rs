@@ -1,5 +1,9 @@
 //! Leg → waypoints: the geometry of every leg and pattern (FLIGHTPLAN §3.2-3.4), computed in a
 //! local east/north frame per pattern and converted back with WGS-84 geodesics. Pure functions.
+//!
+//! One file of ~900 lines on purpose: under 500 are code (one short function per leg kind, all
+//! sharing the `Ctx` / `wp` helpers and the local-frame conventions), the rest its tests, kept at
+//! the bottom of the file they test; splitting by leg kind would scatter those conventions.
 
 use crate::geo::{self, GeoPoint, LocalFrame, Xy};
 use crate::model::*;

@@ -10,54 +10,45 @@
 //! the FPMa's own (its `plan` variable, asked again with `plan_geometry` when the drawing lags
 //! the progress), so any station draws any plan, whoever uploaded it ([`plan`]). Items and
 //! options: `README.md`.
+//!
+//! Layers: [`state`] is the station's picture of the vehicles (no I/O); [`plan`] checks uploads
+//! and draws plans; [`web`] the page's own routes; [`background`] the map's image; this file
+//! opens the node, feeds the state from the subscriptions and calls the FPMa. What every station
+//! shares (options, startup, the page / snapshot / live-channel routes, the command log) is
+//! `station_web`'s.
 
 pub mod background;
 pub mod plan;
+pub mod state;
 pub mod web;
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fmo::model::CommandStatus;
-use fpma::api::{
-    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, PlanState, Progress, VarValue,
-};
+use fpma::api::{CommandAck, PlanEvent, PlanGeometry, PlanRejected, PlanState, Progress};
 use fpma::vehicle::VehicleParams;
-use marea::{Function, RecvError, Service};
-use tokio::sync::Notify;
+use marea::Service;
+use station_web::{call_error, CommandStatus, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
-use tokio_util::task::TaskTracker;
 use usal_types::Position;
 
 use crate::background::{Background, BackgroundSource};
-use crate::plan::{distance_m, CheckedPlan, PlanView};
+use crate::plan::CheckedPlan;
+pub use crate::state::{fpma_prefix, State};
+use crate::state::{label_of, Stamped};
 
 /// Everything the FPMo needs.
 #[derive(Clone, Debug)]
 pub struct FpmoConfig {
-    /// The middleware's network.xml; none: Ethernet on loopback.
-    pub network: Option<PathBuf>,
-    /// Overrides the network file's domain.
-    pub domain: Option<String>,
-    /// Overrides the network file's namespace.
-    pub namespace: Option<String>,
-    /// Node name when no network file is given.
-    pub node: String,
-    /// HTTP address.
-    pub listen: SocketAddr,
+    /// What every station needs: network, node, HTTP address, staleness, call time limit.
+    pub station: StationConfig,
     /// Namespace pattern of the vehicles followed: `*` (a fleet, each `<ns>/fpma` and
     /// `<ns>/vas`), or one namespace such as `rover1`.
     pub vehicles: String,
     /// Vehicle parameters uploads are checked with (as the FPMa's `vehicle`).
     pub vehicle: VehicleParams,
-    /// Values older than this are shown as stale.
-    pub stale_after: Duration,
-    /// Time limit of each FPMa call.
-    pub call_timeout: Duration,
     /// A georeferenced image drawn under the map.
     pub background: Option<Background>,
 }
@@ -65,346 +56,31 @@ pub struct FpmoConfig {
 impl Default for FpmoConfig {
     fn default() -> Self {
         Self {
-            network: None,
-            domain: None,
-            namespace: None,
-            node: "fpmo".into(),
-            listen: SocketAddr::from(([127, 0, 0, 1], 8082)),
+            station: StationConfig::new("fpmo", 8082),
             vehicles: "*".into(),
             vehicle: VehicleParams::rover(),
-            stale_after: Duration::from_secs(2),
-            call_timeout: Duration::from_secs(5),
             background: None,
         }
     }
 }
 
-/// Track points kept per vehicle.
-const MAX_TRACK: usize = 2000;
-/// A new track point when the vehicle moved at least this far.
-const TRACK_STEP_M: f64 = 0.5;
 /// How long an uploaded plan may take to be loaded or refused after delivery.
 const LOAD_TIMEOUT: Duration = Duration::from_secs(30);
 /// How often the drawings are compared with the progress' plan version.
 const GEOMETRY_CHECK: Duration = Duration::from_secs(1);
-/// A drawing older than the progress for this long is asked for (`plan_geometry`): the `plan`
-/// variable was lost (a lossy radio) or is still on its way (it usually is, briefly).
-const GEOMETRY_LAG: Duration = Duration::from_secs(3);
-/// Least time between two `plan_geometry` calls to one FPMa.
-const GEOMETRY_RETRY: Duration = Duration::from_secs(5);
-
-#[derive(Clone, Debug)]
-struct Stamped<T> {
-    value: T,
-    at: Instant,
-}
-
-#[derive(Default)]
-struct Vehicle {
-    progress: Option<Stamped<Progress>>,
-    /// The executive's variables and loop passes (the FPMa's `state`).
-    plan_state: Option<Stamped<PlanState>>,
-    position: Option<Stamped<Position>>,
-    track: VecDeque<(f64, f64)>,
-    /// The FPMa's plan as it last said (version 0: none loaded).
-    geometry: Option<PlanGeometry>,
-    /// Grows with every new drawing, so the page knows to fetch it.
-    plan_rev: u64,
-    /// Since when the drawing lags the progress' version.
-    geometry_lags_since: Option<Instant>,
-    /// When `plan_geometry` was last called.
-    geometry_asked: Option<Instant>,
-    events: VecDeque<(Instant, String)>,
-    probe: Option<Arc<Function<(), CommandAck>>>,
-}
-
-struct Cmd {
-    id: u64,
-    vehicle: String,
-    what: String,
-    status: CommandStatus,
-    detail: String,
-    started: Instant,
-    finished: Option<Instant>,
-    /// An upload waiting for `PlanLoaded { name }` / `plan_rejected { file }`.
-    upload: Option<CheckedPlan>,
-}
-
-/// The station's state.
-pub struct State {
-    vehicles: BTreeMap<String, Vehicle>,
-    selected: Option<String>,
-    commands: VecDeque<Cmd>,
-    next_id: u64,
-    stale_after: Duration,
-}
-
-fn ms(d: Duration) -> u64 {
-    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
-}
-
-/// The `fpma` prefix of a vehicle label (`rover1` → `rover1/fpma`, `` → `fpma`).
-pub fn fpma_prefix(label: &str) -> String {
-    if label.is_empty() {
-        "fpma".into()
-    } else {
-        format!("{label}/fpma")
-    }
-}
-
-/// The vehicle label of an item name: what precedes `/<service>/<item>`.
-fn label_of(name: &str, service: &str) -> Option<String> {
-    let cut = name.rfind(&format!("{service}/"))?;
-    Some(name[..cut].trim_end_matches('/').to_owned())
-}
-
-impl State {
-    fn vehicle(&mut self, label: &str) -> &mut Vehicle {
-        if self.selected.is_none() {
-            self.selected = Some(label.to_owned());
-        }
-        self.vehicles.entry(label.to_owned()).or_default()
-    }
-
-    fn start(&mut self, vehicle: &str, what: String, upload: Option<CheckedPlan>) -> u64 {
-        let id = self.next_id;
-        self.next_id += 1;
-        self.commands.push_back(Cmd {
-            id,
-            vehicle: vehicle.to_owned(),
-            what,
-            status: CommandStatus::Pending,
-            detail: String::new(),
-            started: Instant::now(),
-            finished: None,
-            upload,
-        });
-        while self.commands.len() > 30 {
-            match self
-                .commands
-                .iter()
-                .position(|c| c.status != CommandStatus::Pending)
-            {
-                Some(i) => {
-                    self.commands.remove(i);
-                }
-                None => break,
-            }
-        }
-        id
-    }
-
-    fn cmd(&mut self, id: u64) -> Option<&mut Cmd> {
-        self.commands.iter_mut().find(|c| c.id == id)
-    }
-
-    fn finish(&mut self, id: u64, outcome: Result<String, String>) {
-        if let Some(c) = self.cmd(id) {
-            if c.status != CommandStatus::Pending {
-                return;
-            }
-            (c.status, c.detail) = match outcome {
-                Ok(d) => (CommandStatus::Ok, d),
-                Err(e) => (CommandStatus::Failed, e),
-            };
-            c.finished = Some(Instant::now());
-        }
-    }
-
-    /// The FPMa's plan geometry (variable `plan` or an answer of `plan_geometry`).
-    fn geometry(&mut self, label: &str, g: PlanGeometry) {
-        let v = self.vehicle(label);
-        if v.geometry.as_ref() != Some(&g) {
-            v.geometry = Some(g);
-            v.plan_rev += 1;
-        }
-    }
-
-    /// Vehicles whose drawing has lagged their progress long enough to ask for it again,
-    /// among those whose FPMa is `reachable`.
-    fn geometry_lagging(
-        &mut self,
-        now: Instant,
-        reachable: impl Fn(&Vehicle) -> bool,
-    ) -> Vec<String> {
-        let mut ask = Vec::new();
-        for (label, v) in &mut self.vehicles {
-            let wanted = v.progress.as_ref().map_or(0, |p| p.value.version);
-            let drawn = v.geometry.as_ref().map_or(0, |g| g.version);
-            if wanted == drawn || !reachable(v) {
-                v.geometry_lags_since = None;
-                continue;
-            }
-            let since = *v.geometry_lags_since.get_or_insert(now);
-            let asked_long_ago = v
-                .geometry_asked
-                .is_none_or(|t| now.saturating_duration_since(t) >= GEOMETRY_RETRY);
-            if now.saturating_duration_since(since) >= GEOMETRY_LAG && asked_long_ago {
-                v.geometry_asked = Some(now);
-                ask.push(label.clone());
-            }
-        }
-        ask
-    }
-
-    fn plan_event(&mut self, label: &str, ev: PlanEvent) {
-        let text = match &ev.kind {
-            PlanEventKind::PlanLoaded { name } => {
-                // The upload that sent this plan is confirmed (the map follows the FPMa's `plan`).
-                let hit = self.commands.iter_mut().find(|c| {
-                    c.vehicle == label
-                        && c.status == CommandStatus::Pending
-                        && c.upload.as_ref().is_some_and(|p| p.plan.name == *name)
-                });
-                if let Some(c) = hit {
-                    c.status = CommandStatus::Ok;
-                    c.detail = format!("loaded as version {}", ev.version);
-                    c.finished = Some(Instant::now());
-                    c.upload = None;
-                }
-                format!("plan `{name}` loaded (version {})", ev.version)
-            }
-            k => format!("{k:?}"),
-        };
-        let v = self.vehicle(label);
-        v.events
-            .push_back((Instant::now(), format!("v{}: {text}", ev.version)));
-        while v.events.len() > 30 {
-            v.events.pop_front();
-        }
-    }
-
-    fn plan_rejected(&mut self, label: &str, r: PlanRejected) {
-        let hit = self.commands.iter_mut().find(|c| {
-            c.vehicle == label
-                && c.status == CommandStatus::Pending
-                && c.upload.as_ref().is_some_and(|p| p.file == r.file)
-        });
-        if let Some(c) = hit {
-            c.status = CommandStatus::Failed;
-            c.detail = r.reason.clone();
-            c.finished = Some(Instant::now());
-            c.upload = None;
-        }
-        let v = self.vehicle(label);
-        v.events
-            .push_back((Instant::now(), format!("rejected {}: {}", r.file, r.reason)));
-    }
-
-    fn position(&mut self, label: &str, p: Position) {
-        let v = self.vehicle(label);
-        let pt = (p.lat, p.lon);
-        if v.track
-            .back()
-            .is_none_or(|&last| distance_m(last, pt) >= TRACK_STEP_M)
-        {
-            v.track.push_back(pt);
-            while v.track.len() > MAX_TRACK {
-                v.track.pop_front();
-            }
-        }
-        v.position = Some(Stamped {
-            value: p,
-            at: Instant::now(),
-        });
-    }
-
-    /// The page's view.
-    pub fn snapshot(&self) -> serde_json::Value {
-        let now = Instant::now();
-        let vehicles: Vec<_> = self
-            .vehicles
-            .iter()
-            .map(|(label, v)| {
-                let reachable = v.probe.as_ref().map(|f| f.has_provider());
-                let fpma_ok = reachable.unwrap_or(false);
-                let pos_age = v
-                    .position
-                    .as_ref()
-                    .map(|p| now.saturating_duration_since(p.at));
-                serde_json::json!({
-                    "label": label,
-                    "fpma": fpma_prefix(label),
-                    "fpma_reachable": fpma_ok,
-                    "progress": v.progress.as_ref().map(|p| serde_json::json!({
-                        "value": p.value,
-                        "age_ms": ms(now.saturating_duration_since(p.at)),
-                        "stale": !fpma_ok,
-                    })),
-                    "position": v.position.as_ref().map(|p| serde_json::json!({
-                        "value": p.value,
-                        "age_ms": pos_age.map(ms),
-                        "stale": pos_age.is_none_or(|a| a > self.stale_after),
-                    })),
-                    "track": v.track,
-                    "vars": v.plan_state.as_ref().map(|s| s.value.vars.iter().map(|(name, val)| {
-                        let value = match val {
-                            VarValue::Bool(b) => serde_json::json!(b),
-                            VarValue::Number(n) => serde_json::json!(n),
-                        };
-                        serde_json::json!({"name": name, "value": value})
-                    }).collect::<Vec<_>>()).unwrap_or_default(),
-                    "loops": v.plan_state.as_ref().map(|s| s.value.loops.clone()).unwrap_or_default(),
-                    "plan_rev": v.plan_rev,
-                    "plan_name": v.geometry.as_ref().filter(|g| g.version > 0).map(|g| g.name.clone()),
-                    "plan_version": v.geometry.as_ref().map(|g| g.version),
-                    "events": v.events.iter().rev().take(12).map(|(t, e)| serde_json::json!({
-                        "age_ms": ms(now.saturating_duration_since(*t)), "text": e,
-                    })).collect::<Vec<_>>(),
-                })
-            })
-            .collect();
-        let commands: Vec<_> = self
-            .commands
-            .iter()
-            .rev()
-            .map(|c| {
-                serde_json::json!({
-                    "id": c.id, "vehicle": c.vehicle, "what": c.what, "status": c.status,
-                    "detail": c.detail,
-                    "age_ms": ms(now.saturating_duration_since(c.started)),
-                    "took_ms": c.finished.map(|f| ms(f.saturating_duration_since(c.started))),
-                })
-            })
-            .collect();
-        serde_json::json!({
-            "selected": self.selected,
-            "stale_after_ms": ms(self.stale_after),
-            "vehicles": vehicles,
-            "commands": commands,
-        })
-    }
-
-    /// The plan of `label` for the map and the legs table, as its FPMa flies it.
-    pub fn plan_view(&self, label: &str) -> Option<PlanView> {
-        let v = self.vehicles.get(label)?;
-        let g = v.geometry.as_ref().filter(|g| g.version > 0)?;
-        Some(PlanView::of(g, v.plan_rev))
-    }
-}
 
 /// What the handlers and the middleware tasks share.
 pub struct Shared {
     state: Mutex<State>,
     svc: Service,
-    /// Woken when the page should get a snapshot at once.
-    pub changed: Notify,
+    /// Change notification, cancellation and tasks.
+    pub live: Live,
     vehicle: VehicleParams,
     call_timeout: Duration,
     uploads: tempfile::TempDir,
-    tasks: TaskTracker,
-    cancel: CancellationToken,
     probes: Mutex<HashMap<String, ()>>,
     /// The map's background image, if any.
     pub background: Option<Background>,
-}
-
-/// A call error as the operator reads it: the FPMa's own reason when it refused.
-fn call_error(e: marea::CallError) -> String {
-    match e {
-        marea::CallError::Remote { message, .. } => message,
-        e => e.to_string(),
-    }
 }
 
 impl Shared {
@@ -447,10 +123,10 @@ impl Shared {
         then: impl FnOnce(&mut State, &R) -> String + Send + 'static,
     ) -> u64 {
         let id = self.state().start(label, what, None);
-        self.changed.notify_waiters();
+        self.live.changed.notify_waiters();
         let me = self.clone();
         let full = format!("{}/{name}", fpma_prefix(label));
-        self.tasks.spawn(async move {
+        self.live.tasks.spawn(async move {
             let outcome = async {
                 let f = me.svc.function::<A, R>(&full).map_err(|e| e.to_string())?;
                 if !f.has_provider() && !f.wait_provider(me.call_timeout).await {
@@ -458,7 +134,7 @@ impl Shared {
                 }
                 tokio::select! {
                     r = f.call(&args, me.call_timeout) => r.map_err(call_error),
-                    _ = me.cancel.cancelled() => Err("station stopping".into()),
+                    _ = me.live.cancel.cancelled() => Err("station stopping".into()),
                 }
             }
             .await;
@@ -467,7 +143,7 @@ impl Shared {
                 let outcome = outcome.map(|r| then(&mut st, &r));
                 st.finish(id, outcome);
             }
-            me.changed.notify_waiters();
+            me.live.changed.notify_waiters();
         });
         id
     }
@@ -503,7 +179,7 @@ impl Shared {
         std::fs::write(&path, xml).map_err(|e| e.to_string())?;
         let what = format!("upload {file} ({} legs)", local.legs);
         let id = self.state().start(label, what, Some(local));
-        self.changed.notify_waiters();
+        self.live.changed.notify_waiters();
         let sink = format!("{}/plans", fpma_prefix(label));
         let transfer = self.svc.send_file(
             &path,
@@ -514,7 +190,7 @@ impl Shared {
             },
         );
         let me = self.clone();
-        self.tasks.spawn(async move {
+        self.live.tasks.spawn(async move {
             let mut progress = transfer.watch_progress();
             let result = {
                 let wait = transfer.wait();
@@ -525,19 +201,19 @@ impl Shared {
                         c = progress.changed() => {
                             if c.is_ok() {
                                 let p = *progress.borrow();
-                                if let Some(c) = me.state().cmd(id) {
+                                if let Some(c) = me.state().commands.get_mut(id) {
                                     c.detail = format!("sending {}/{} bytes", p.acknowledged, p.total);
                                 }
-                                me.changed.notify_waiters();
+                                me.live.changed.notify_waiters();
                             }
                         }
-                        _ = me.cancel.cancelled() => return,
+                        _ = me.live.cancel.cancelled() => return,
                     }
                 }
             };
             match result {
                 Ok(r) => {
-                    if let Some(c) = me.state().cmd(id) {
+                    if let Some(c) = me.state().commands.get_mut(id) {
                         if c.status == CommandStatus::Pending {
                             c.detail = format!(
                                 "delivered {} bytes to {}, waiting for the FPMa to load it",
@@ -545,17 +221,17 @@ impl Shared {
                             );
                         }
                     }
-                    me.changed.notify_waiters();
+                    me.live.changed.notify_waiters();
                     tokio::select! {
                         _ = tokio::time::sleep(LOAD_TIMEOUT) => {}
-                        _ = me.cancel.cancelled() => return,
+                        _ = me.live.cancel.cancelled() => return,
                     }
                     me.state()
                         .finish(id, Err("the FPMa neither loaded nor refused the plan".into()));
                 }
                 Err(e) => me.state().finish(id, Err(e.to_string())),
             }
-            me.changed.notify_waiters();
+            me.live.changed.notify_waiters();
         });
         Ok(id)
     }
@@ -566,14 +242,14 @@ impl Shared {
         let answer = match self.svc.function::<(), PlanGeometry>(&full) {
             Ok(f) => tokio::select! {
                 r = f.call(&(), self.call_timeout) => r.map_err(call_error),
-                _ = self.cancel.cancelled() => return,
+                _ = self.live.cancel.cancelled() => return,
             },
             Err(e) => Err(e.to_string()),
         };
         match answer {
             Ok(g) => {
                 self.state().geometry(label, g);
-                self.changed.notify_waiters();
+                self.live.changed.notify_waiters();
             }
             Err(e) => tracing::debug!("{full}: {e}"),
         }
@@ -625,28 +301,16 @@ fn spawn_sub<T: marea::Payload>(
     apply: fn(&mut State, &str, T),
 ) {
     let me = shared.clone();
-    shared.tasks.spawn(async move {
-        loop {
-            let got = tokio::select! {
-                r = sub.recv() => r,
-                _ = me.cancel.cancelled() => return,
-            };
-            match got {
-                Ok(s) => {
-                    let Some(label) = label_of(&s.name, service) else {
-                        continue;
-                    };
-                    if service == "fpma" {
-                        me.ensure_probe(&label);
-                    }
-                    apply(&mut me.state(), &label, s.value);
-                    if service == "fpma" {
-                        me.changed.notify_waiters();
-                    }
-                }
-                Err(RecvError::Closed) => return,
-                Err(e) => tracing::warn!("{service}: {e}"),
-            }
+    shared.live.follow(sub, service, move |s| {
+        let Some(label) = label_of(&s.name, service) else {
+            return;
+        };
+        if service == "fpma" {
+            me.ensure_probe(&label);
+        }
+        apply(&mut me.state(), &label, s.value);
+        if service == "fpma" {
+            me.live.changed.notify_waiters();
         }
     });
 }
@@ -658,7 +322,7 @@ async fn geometry_loop(me: Arc<Shared>) {
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = me.cancel.cancelled() => return,
+            _ = me.live.cancel.cancelled() => return,
         }
         let lagging = me.state().geometry_lagging(Instant::now(), |v| {
             v.probe.as_ref().is_some_and(|f| f.has_provider())
@@ -688,35 +352,17 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
             path.display()
         );
     }
-    let listener = tokio::net::TcpListener::bind(config.listen)
-        .await
-        .with_context(|| format!("listening on {}", config.listen))?;
-    let addr = listener.local_addr().context("local address")?;
-    fmo::web::print_url("FPMO_URL", addr);
-    let node = fmo::open_node(
-        config.network.as_deref(),
-        config.domain.as_deref(),
-        config.namespace.as_deref(),
-        &config.node,
-    )
-    .await?;
+    let (listener, addr) = station_web::bind(config.station.listen, "FPMO_URL").await?;
+    let node = station_web::open_node(&config.station).await?;
     let svc = node.service("fpmo").context("declaring the fpmo service")?;
     let cancel = shutdown.child_token();
     let shared = Arc::new(Shared {
-        state: Mutex::new(State {
-            vehicles: BTreeMap::new(),
-            selected: None,
-            commands: VecDeque::new(),
-            next_id: 1,
-            stale_after: config.stale_after,
-        }),
+        state: Mutex::new(State::new(config.station.stale_after)),
         svc: svc.clone(),
-        changed: Notify::new(),
         vehicle: config.vehicle.clone(),
-        call_timeout: config.call_timeout,
+        call_timeout: config.station.call_timeout,
         uploads: tempfile::tempdir().context("staging directory for uploads")?,
-        tasks: TaskTracker::new(),
-        cancel: cancel.clone(),
+        live: Live::new(cancel.clone()),
         probes: Mutex::new(HashMap::new()),
         background: config.background.clone(),
     });
@@ -730,23 +376,13 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         &shared,
         svc.subscribe_variable::<Progress>(&format!("{ns}/fpma/progress"))?,
         "fpma",
-        |st, l, p| {
-            st.vehicle(l).progress = Some(Stamped {
-                value: p,
-                at: Instant::now(),
-            })
-        },
+        |st, l, p| st.vehicle(l).progress = Some(Stamped::now(p)),
     );
     spawn_sub(
         &shared,
         svc.subscribe_variable::<PlanState>(&format!("{ns}/fpma/state"))?,
         "fpma",
-        |st, l, p| {
-            st.vehicle(l).plan_state = Some(Stamped {
-                value: p,
-                at: Instant::now(),
-            })
-        },
+        |st, l, p| st.vehicle(l).plan_state = Some(Stamped::now(p)),
     );
     spawn_sub(
         &shared,
@@ -772,89 +408,9 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         "vas",
         State::position,
     );
-    shared.tasks.spawn(geometry_loop(shared.clone()));
+    shared.live.tasks.spawn(geometry_loop(shared.clone()));
     tracing::info!("fpmo up on http://{addr}/, following {ns}");
-    let served = fmo::web::serve(listener, web::router(shared.clone()), cancel.clone()).await;
-    cancel.cancel();
-    shared.tasks.close();
-    shared.tasks.wait().await;
-    drop(shared);
-    drop(svc);
-    node.shutdown().await;
-    served
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn labels_of_item_names() {
-        assert_eq!(
-            label_of("rover1/fpma/progress", "fpma").as_deref(),
-            Some("rover1")
-        );
-        assert_eq!(label_of("a/b/vas/position", "vas").as_deref(), Some("a/b"));
-        assert_eq!(label_of("fpma/progress", "fpma").as_deref(), Some(""));
-        assert_eq!(fpma_prefix(""), "fpma");
-        assert_eq!(fpma_prefix("rover1"), "rover1/fpma");
-    }
-
-    #[test]
-    fn a_drawing_lagging_the_progress_is_asked_for_after_a_while_and_not_too_often() {
-        let mut st = State {
-            vehicles: BTreeMap::new(),
-            selected: None,
-            commands: VecDeque::new(),
-            next_id: 1,
-            stale_after: Duration::from_secs(2),
-        };
-        let t = Instant::now();
-        let progress = |version| Progress {
-            version,
-            ..Progress::default()
-        };
-        let geometry = |version| PlanGeometry {
-            version,
-            ..PlanGeometry::default()
-        };
-        st.vehicle("r").progress = Some(Stamped {
-            value: progress(2),
-            at: t,
-        });
-        st.geometry("r", geometry(2));
-        assert_eq!(st.vehicles["r"].plan_rev, 1);
-        st.geometry("r", geometry(2));
-        assert_eq!(
-            st.vehicles["r"].plan_rev, 1,
-            "the same drawing is not redrawn"
-        );
-        assert!(st.geometry_lagging(t, |_| true).is_empty(), "up to date");
-
-        // Progress says version 3; the drawing is still 2 (the `plan` value lost or late).
-        st.vehicle("r").progress = Some(Stamped {
-            value: progress(3),
-            at: t,
-        });
-        assert!(st.geometry_lagging(t, |_| true).is_empty(), "give it time");
-        assert!(
-            st.geometry_lagging(t + GEOMETRY_LAG, |_| false).is_empty(),
-            "an unreachable FPMa is not asked"
-        );
-        assert!(
-            st.geometry_lagging(t + GEOMETRY_LAG, |_| true).is_empty(),
-            "lag restarts"
-        );
-        let later = t + GEOMETRY_LAG * 2;
-        assert_eq!(st.geometry_lagging(later, |_| true), ["r"]);
-        assert!(st
-            .geometry_lagging(later + Duration::from_secs(1), |_| true)
-            .is_empty());
-        assert_eq!(st.geometry_lagging(later + GEOMETRY_RETRY, |_| true), ["r"]);
-        st.geometry("r", geometry(3));
-        assert!(st
-            .geometry_lagging(later + GEOMETRY_RETRY * 2, |_| true)
-            .is_empty());
-        assert_eq!(st.plan_view("r").map(|p| p.rev), Some(2));
-    }
+    let router = web::router(shared.clone());
+    let tasks = shared.live.tasks.clone();
+    station_web::serve_and_shut_down(listener, router, cancel, tasks, (shared, svc), node).await
 }

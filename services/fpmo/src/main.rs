@@ -1,8 +1,6 @@
 //! The `fpmo` binary: arguments, tracing, then [`fpmo::run`] until Ctrl-C or SIGTERM.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
-use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
@@ -16,15 +14,6 @@ struct Cli {
     /// Address of the HTTP server (port 0: any free port).
     #[arg(long, default_value = "127.0.0.1:8082")]
     listen: SocketAddr,
-    /// The middleware's network.xml (default: Ethernet on loopback).
-    #[arg(long)]
-    network: Option<PathBuf>,
-    /// Middleware domain (overrides the network file's).
-    #[arg(long)]
-    domain: Option<String>,
-    /// Namespace of the station's own items (overrides the network file's).
-    #[arg(long)]
-    namespace: Option<String>,
     /// Node name when no network file is given.
     #[arg(long, default_value = "fpmo")]
     node: String,
@@ -34,12 +23,9 @@ struct Cli {
     /// Vehicle parameters uploads are checked with before sending (as the FPMa's --vehicle).
     #[arg(long, value_enum, default_value_t = Vehicle::Rover)]
     vehicle: Vehicle,
-    /// Values older than this many milliseconds are shown as stale.
-    #[arg(long, default_value_t = 2000)]
-    stale_ms: u64,
-    /// Time limit of each call to the FPMa, milliseconds.
-    #[arg(long, default_value_t = 5000)]
-    call_timeout_ms: u64,
+    /// Network, staleness and call options every station takes.
+    #[command(flatten)]
+    station: station_web::StationArgs,
     /// A georeferenced image drawn under the map: a file the station serves, or an
     /// http(s):// URL the browser loads. North up; give its edges with --background-bounds.
     #[arg(long, requires = "background_bounds")]
@@ -64,26 +50,14 @@ async fn main() -> anyhow::Result<()> {
         }
         _ => None,
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "fpmo=info,marea=warn".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    station_web::init_tracing("fpmo=info,marea=warn");
     let config = fpmo::FpmoConfig {
-        network: cli.network,
-        domain: cli.domain,
-        namespace: cli.namespace,
-        node: cli.node,
-        listen: cli.listen,
+        station: cli.station.config(cli.listen, cli.node),
         vehicles: cli.vehicles,
         vehicle: match cli.vehicle {
             Vehicle::Rover => VehicleParams::rover(),
             Vehicle::Aircraft => VehicleParams::aircraft(),
         },
-        stale_after: Duration::from_millis(cli.stale_ms.max(100)),
-        call_timeout: Duration::from_millis(cli.call_timeout_ms.max(100)),
         background,
     };
     let shutdown = marea::process::cancelled_on_signal();

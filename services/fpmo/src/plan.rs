@@ -6,6 +6,7 @@
 
 use fpma::api::PlanGeometry;
 use fpma::exec::expand_nominal;
+use fpma::geo::{self, GeoPoint};
 use fpma::model::{FlightPlan, Node, Stage};
 use fpma::parse::parse_plan;
 use fpma::vehicle::VehicleParams;
@@ -100,14 +101,10 @@ pub struct PlanView {
     pub rules: Vec<String>,
 }
 
-/// Distance between two points, metres (haversine: display only).
+/// Distance between two `(lat, lon)` points, metres: the FPMa's own geodesy, so the station
+/// measures legs as the vehicle flies them.
 pub fn distance_m(a: (f64, f64), b: (f64, f64)) -> f64 {
-    let r = 6_371_008.8;
-    let (la1, la2) = (a.0.to_radians(), b.0.to_radians());
-    let dla = la2 - la1;
-    let dlo = (b.1 - a.1).to_radians();
-    let h = (dla / 2.0).sin().powi(2) + la1.cos() * la2.cos() * (dlo / 2.0).sin().powi(2);
-    2.0 * r * h.sqrt().min(1.0).asin()
+    geo::distance(GeoPoint::new(a.0, a.1), GeoPoint::new(b.0, b.1))
 }
 
 impl PlanView {

@@ -1,4 +1,5 @@
-//! The FPMo's HTTP side: the page, its JSON API and the SSE channel (shared with the FMo).
+//! The FPMo's HTTP side: the page, its JSON API and the SSE channel (the page, the snapshot and
+//! the channel are served by `station_web`, as for every station; the rest are the FPMo's own).
 //!
 //! | method | path | body | answer |
 //! |---|---|---|---|
@@ -18,22 +19,30 @@ use std::sync::Arc;
 
 use axum::extract::{Query, State};
 use axum::http::{header, StatusCode};
-use axum::response::{Html, IntoResponse, Response};
+use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use fpma::api::{CommandAck, HoldHereArgs, HoldTurn, Retask, RetaskWhen, SetVar, VarValue};
 use serde::Deserialize;
+use station_web::{accepted, error as bad};
 
 use crate::Shared;
 
-const PAGE: &str = include_str!("page.html");
+impl station_web::Station for Shared {
+    const PAGE: &'static str = include_str!("page.html");
+
+    fn snapshot_json(&self) -> String {
+        self.state().snapshot().to_string()
+    }
+
+    fn live(&self) -> &station_web::Live {
+        &self.live
+    }
+}
 
 /// The FPMo's routes.
 pub fn router(shared: Arc<Shared>) -> Router {
-    Router::new()
-        .route("/", get(page))
-        .route("/api/state", get(state))
-        .route("/api/events", get(events))
+    station_web::routes::<Shared>()
         .route("/api/plan", get(plan))
         .route("/api/config", get(config))
         .route("/api/background", get(background))
@@ -43,35 +52,6 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/modify_leg", post(modify))
         .route("/api/retask", post(retask))
         .with_state(shared)
-}
-
-async fn page() -> Response {
-    ([(header::CACHE_CONTROL, "no-store")], Html(PAGE)).into_response()
-}
-
-fn snapshot_json(shared: &Shared) -> String {
-    shared.state().snapshot().to_string()
-}
-
-async fn state(State(shared): State<Arc<Shared>>) -> Response {
-    (
-        [(header::CONTENT_TYPE, "application/json")],
-        snapshot_json(&shared),
-    )
-        .into_response()
-}
-
-async fn events(State(shared): State<Arc<Shared>>) -> Response {
-    let cancel = shared.cancel.clone();
-    fmo::web::snapshot_stream(shared, |s| &s.changed, snapshot_json, cancel).into_response()
-}
-
-fn bad(status: StatusCode, msg: impl Into<String>) -> Response {
-    (status, Json(serde_json::json!({ "error": msg.into() }))).into_response()
-}
-
-fn accepted(id: u64) -> Response {
-    (StatusCode::ACCEPTED, Json(serde_json::json!({ "id": id }))).into_response()
 }
 
 async fn config(State(shared): State<Arc<Shared>>) -> Response {
@@ -130,7 +110,7 @@ struct Select {
 async fn select(State(shared): State<Arc<Shared>>, Json(s): Json<Select>) -> Response {
     match shared.select(&s.vehicle) {
         Ok(()) => {
-            shared.changed.notify_waiters();
+            shared.live.changed.notify_waiters();
             StatusCode::NO_CONTENT.into_response()
         }
         Err(e) => bad(StatusCode::NOT_FOUND, e),

@@ -28,20 +28,7 @@ async fn scenario() {
     let dir = tempfile::tempdir().unwrap();
     let domain = unique_domain("fpmo-browser");
     let (sim, vas) = rover(&domain, 5.0).await;
-    let fpma_args: Vec<String> = [
-        "run",
-        "--domain",
-        &domain,
-        "--namespace",
-        "rover1",
-        "--vehicle",
-        "rover",
-        "--plans-dir",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .chain([dir.path().display().to_string()])
-    .collect();
+    let fpma_args = fpma_rover1_args(&domain, dir.path());
     let fpma = Proc::start(&workspace_bin("fpma"), &fpma_args, false).await;
     let st = Station::start(
         env!("CARGO_BIN_EXE_fpmo"),

@@ -12,29 +12,8 @@ use std::time::Duration;
 
 use common::*;
 
-fn fpma_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
-    [
-        "run",
-        "--domain",
-        domain,
-        "--namespace",
-        "rover1",
-        "--vehicle",
-        "rover",
-        "--plans-dir",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .chain([plans.display().to_string()])
-    .collect()
-}
-
 fn progress(s: &serde_json::Value) -> &serde_json::Value {
     &vehicle(s, "rover1").expect("rover1")["progress"]["value"]
-}
-
-fn command(s: &serde_json::Value, id: u64) -> Option<&serde_json::Value> {
-    s["commands"].as_array()?.iter().find(|c| c["id"] == id)
 }
 
 async fn wait_command(st: &Station, id: u64, want: &str) -> serde_json::Value {
@@ -84,7 +63,7 @@ async fn scenario() {
     let domain = unique_domain("fpmo");
     let fpma_bin = workspace_bin("fpma");
     let (sim, vas) = rover(&domain, 10.0).await;
-    let fpma = Proc::start(&fpma_bin, &fpma_args(&domain, dir.path()), false).await;
+    let fpma = Proc::start(&fpma_bin, &fpma_rover1_args(&domain, dir.path()), false).await;
     let st = Station::start(
         env!("CARGO_BIN_EXE_fpmo"),
         "FPMO_URL",
@@ -303,7 +282,7 @@ async fn scenario() {
     let _ = sse.next("state").await;
 
     // It comes back: the same stream shows it reachable again.
-    let fpma = Proc::start(&fpma_bin, &fpma_args(&domain, dir.path()), false).await;
+    let fpma = Proc::start(&fpma_bin, &fpma_rover1_args(&domain, dir.path()), false).await;
     let deadline = tokio::time::Instant::now() + STEP;
     loop {
         let s = sse.next("state").await;

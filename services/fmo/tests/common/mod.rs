@@ -228,6 +228,11 @@ impl Sse {
     }
 }
 
+/// Command `id` in a snapshot.
+pub fn command(state: &serde_json::Value, id: u64) -> Option<&serde_json::Value> {
+    state["commands"].as_array()?.iter().find(|c| c["id"] == id)
+}
+
 /// The vehicle `label` (e.g. `rover1`) in a snapshot.
 pub fn vehicle<'a>(state: &'a serde_json::Value, label: &str) -> Option<&'a serde_json::Value> {
     state["vehicles"]
@@ -321,6 +326,25 @@ pub const HOME: (f64, f64) = (41.275, 1.987);
 /// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `rover1`.
 pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
     rover_named(domain, speedup, "rover1").await
+}
+
+/// The arguments of `fpma run` for the rover in `domain`, namespace `rover1`, taking plans
+/// into `plans`.
+pub fn fpma_rover1_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
+    [
+        "run",
+        "--domain",
+        domain,
+        "--namespace",
+        "rover1",
+        "--vehicle",
+        "rover",
+        "--plans-dir",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain([plans.display().to_string()])
+    .collect()
 }
 
 /// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `ns`.

@@ -10,6 +10,10 @@
 //! 003 §6.2.2) and refilled. The VAS keeps driving to its current target through a clear, so
 //! unless that target is still the executive's next waypoint, the new waypoints are numbered
 //! past everything handed out before, and the report of the abandoned target is ignored.
+//!
+//! One file of ~1,000 lines on purpose: about 530 are the core, one state machine whose feeding
+//! rule above is read as a whole; the rest are its tests and their VAS double, at the bottom of
+//! the file they test.
 
 use std::collections::VecDeque;
 use std::time::Instant;
