@@ -15,6 +15,10 @@
 //! | [`api`] | [`Node`], the typed handles, [`IService`] |
 //! | [`config`] | `network.xml` → [`NetworkConfig`] |
 //!
+//! Utilities below them all, using nothing else of the crate: [`sync`], [`name`], [`typeinfo`],
+//! [`xml`] (reading XML with line and column positions, for `network.xml` and the services'
+//! files).
+//!
 //! ## Concepts
 //!
 //! A process opens one [`Node`]; services declare items through a [`Service`]. Names are
@@ -77,6 +81,7 @@ pub mod protocol;
 pub mod sync;
 pub mod transport;
 pub mod typeinfo;
+pub mod xml;
 
 pub use api::*;
 pub use config::NetworkConfig;
