@@ -348,7 +348,10 @@ fn large_plan(bytes: usize) -> String {
         let col = if row % 2 == 0 { col } else { 99 - col };
         let lat = HOME.0 + row as f64 * 9.0e-5;
         let lon = HOME.1 + col as f64 * 1.2e-4;
-        let _ = writeln!(fixes, r#"    <fix id="W{i}" lat="{lat:.6}" lon="{lon:.6}" alt="0"/>"#);
+        let _ = writeln!(
+            fixes,
+            r#"    <fix id="W{i}" lat="{lat:.6}" lon="{lon:.6}" alt="0"/>"#
+        );
         let kind = if i == 0 { "IF" } else { "TF" };
         let _ = writeln!(legs, r#"    <leg type="{kind}" fix="W{i}"/>"#);
     }
@@ -368,7 +371,10 @@ fn parse_run() -> anyhow::Result<()> {
         let plan = fpma::parse::parse_plan(&src, &vehicle)
             .map_err(|e| anyhow::anyhow!("the generated plan is refused: {e}"))?;
         best = best.min(t0.elapsed());
-        anyhow::ensure!(plan.mission.len() > 10_000, "the generated plan is too small");
+        anyhow::ensure!(
+            plan.mission.len() > 10_000,
+            "the generated plan is too small"
+        );
     }
     metric("fpma.parse_1mb_ms", best.as_secs_f64() * 1000.0, "ms");
     Ok(())

@@ -361,13 +361,14 @@ impl<'a> Reader<'a> {
     /// [`XmlReadErrorKind::Syntax`] where quick-xml finds the text malformed,
     /// [`XmlReadErrorKind::Unclosed`] at the innermost open element when the input ends, and
     /// [`XmlReadErrorKind::TooDeep`] at a start tag beyond [`MAX_DEPTH`].
-    pub fn next(&mut self) -> Result<XmlEvent<'a>, XmlReadError> {
+    pub fn read_event(&mut self) -> Result<XmlEvent<'a>, XmlReadError> {
         loop {
             let before = to_usize(self.inner.buffer_position()).saturating_add(self.bom);
             let event = match self.inner.read_event() {
                 Ok(event) => event,
                 Err(source) => {
-                    let at = self.pos(to_usize(self.inner.error_position()).saturating_add(self.bom));
+                    let at =
+                        self.pos(to_usize(self.inner.error_position()).saturating_add(self.bom));
                     return Err(self.error(at, XmlReadErrorKind::Syntax(source)));
                 }
             };
@@ -502,7 +503,7 @@ impl Element {
 /// Parses a whole document: exactly one root element, no text outside or inside elements.
 ///
 /// # Errors
-/// Whatever [`Reader::next`] reports, [`XmlReadErrorKind::Attribute`] (a repeated attribute is
+/// Whatever [`Reader::read_event`] reports, [`XmlReadErrorKind::Attribute`] (a repeated attribute is
 /// [`AttrError::Duplicated`]), [`XmlReadErrorKind::AttributeValue`],
 /// [`XmlReadErrorKind::Text`], [`XmlReadErrorKind::SecondRoot`] at the second root's start tag,
 /// and [`XmlReadErrorKind::NoRoot`] at the end of the text.
@@ -530,7 +531,7 @@ fn build(text: &str, index: &LineIndex, one_root: bool) -> Result<Vec<Element>, 
     let mut stack: Vec<Element> = Vec::new();
     let mut roots = Vec::new();
     loop {
-        match reader.next()? {
+        match reader.read_event()? {
             XmlEvent::Start(tag) => {
                 if one_root && stack.is_empty() && !roots.is_empty() {
                     return Err(XmlReadError {
@@ -720,7 +721,7 @@ mod tests {
         let mut r = Reader::new(text, &index);
         let mut seen = Vec::new();
         loop {
-            match r.next().unwrap() {
+            match r.read_event().unwrap() {
                 XmlEvent::Start(tag) => {
                     let attrs: Vec<_> = tag
                         .attributes()
