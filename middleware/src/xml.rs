@@ -326,7 +326,7 @@ impl<'a> Reader<'a> {
         let config = inner.config_mut();
         config.trim_text(false);
         config.check_end_names = true;
-        config.check_comments = true;
+        config.check_comments = false;
         config.expand_empty_elements = false;
         Self {
             text,
@@ -335,6 +335,13 @@ impl<'a> Reader<'a> {
             open: Vec::new(),
             bom: if text.starts_with('\u{feff}') { 3 } else { 0 },
         }
+    }
+
+    /// Refuses comments that contain `--` (as XML does; off by default, since hand-written
+    /// files often have them and nothing is lost by reading them).
+    pub fn check_comments(&mut self, check: bool) -> &mut Self {
+        self.inner.config_mut().check_comments = check;
+        self
     }
 
     /// Line and column of byte `offset` of the text.

@@ -61,10 +61,12 @@ pub(super) struct Parser<'a> {
 impl<'a> Parser<'a> {
     /// A parser of `text`; `index` is `LineIndex::new(text)`.
     pub(super) fn new(text: &'a str, index: &'a LineIndex, source: Option<&'a Path>) -> Self {
+        let mut reader = Reader::new(text, index);
+        reader.check_comments(true);
         Self {
             text,
             source,
-            reader: Reader::new(text, index),
+            reader,
         }
     }
 
