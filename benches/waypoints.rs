@@ -13,6 +13,13 @@
 //! - `vas.cpu_percent`: CPU time of the `vas` process (from `/proc/<pid>/stat`) over
 //!   [`CPU_WINDOW`] of real-time flight (no speed-up) with 10 Hz telemetry, in percent of
 //!   one core.
+//! - `fpma.parse_1mb_ms`: wall time of [`fpma::parse::parse_plan`] (what `fpma expand` parses
+//!   with) on a generated valid plan of about 1 MB (a fix and a TF leg per waypoint), best of
+//!   [`PARSE_RUNS`]. In process, nothing to build or start.
+//!
+//! Arguments that do not start with `--` select figures by substring, e.g.
+//! `cargo bench --bench waypoints -- fpma.parse` runs only the parse figure (seconds), while
+//! the VAS figures build release binaries and fly for a minute or more.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -35,6 +42,10 @@ const SPEEDUP: f64 = 200.0;
 const CPU_WINDOW: Duration = Duration::from_secs(10);
 /// Home of the simulated rover.
 const HOME: (f64, f64) = (41.2757, 1.9881);
+/// Size of the generated plan for `fpma.parse_1mb_ms`.
+const PARSE_BYTES: usize = 1 << 20;
+/// Parses timed for `fpma.parse_1mb_ms` (the best one is reported).
+const PARSE_RUNS: usize = 3;
 /// Bound on each wait for a process or the middleware.
 const STEP: Duration = Duration::from_secs(30);
 
@@ -325,12 +336,71 @@ async fn cpu_run(bins: &Path, dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A valid rover plan of at least `bytes` bytes: waypoints on a lawn-mower grid 10 m apart,
+/// each a `<fix>` and a TF `<leg>` to it.
+fn large_plan(bytes: usize) -> String {
+    use std::fmt::Write;
+    // Each waypoint costs about 60 bytes of fix and 35 of leg.
+    let n = bytes / 95 + 1;
+    let (mut fixes, mut legs) = (String::new(), String::new());
+    for i in 0..n {
+        let (row, col) = (i / 100, i % 100);
+        let col = if row % 2 == 0 { col } else { 99 - col };
+        let lat = HOME.0 + row as f64 * 9.0e-5;
+        let lon = HOME.1 + col as f64 * 1.2e-4;
+        let _ = writeln!(
+            fixes,
+            r#"    <fix id="W{i}" lat="{lat:.6}" lon="{lon:.6}" alt="0"/>"#
+        );
+        let kind = if i == 0 { "IF" } else { "TF" };
+        let _ = writeln!(legs, r#"    <leg type="{kind}" fix="W{i}"/>"#);
+    }
+    format!(
+        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n\
+         <flightPlan name=\"bench\" version=\"1\" vehicle=\"rover\" defaultSpeed=\"2\">\n\
+         \x20 <fixes>\n{fixes}  </fixes>\n  <mission>\n{legs}  </mission>\n</flightPlan>\n"
+    )
+}
+
+fn parse_run() -> anyhow::Result<()> {
+    let src = large_plan(PARSE_BYTES);
+    let vehicle = fpma::vehicle::VehicleParams::rover();
+    let mut best = Duration::MAX;
+    for _ in 0..PARSE_RUNS {
+        let t0 = Instant::now();
+        let plan = fpma::parse::parse_plan(&src, &vehicle)
+            .map_err(|e| anyhow::anyhow!("the generated plan is refused: {e}"))?;
+        best = best.min(t0.elapsed());
+        anyhow::ensure!(
+            plan.mission.len() > 10_000,
+            "the generated plan is too small"
+        );
+    }
+    metric("fpma.parse_1mb_ms", best.as_secs_f64() * 1000.0, "ms");
+    Ok(())
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    // `cargo bench` passes `--bench`; anything else is ignored.
-    let bins = build_bins()?;
-    let dir = tempfile::tempdir()?;
-    long_run(&bins, dir.path()).await?;
-    cpu_run(&bins, dir.path()).await?;
+    // `cargo bench` passes `--bench`; other arguments select figures by substring.
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let wanted = |figure: &str| filters.is_empty() || filters.iter().any(|f| figure.contains(f));
+    if wanted("fpma.parse_1mb_ms") {
+        parse_run()?;
+    }
+    let (queue, cpu) = (wanted("vas.rolling_queue"), wanted("vas.cpu_percent"));
+    if queue || cpu {
+        let bins = build_bins()?;
+        let dir = tempfile::tempdir()?;
+        if queue {
+            long_run(&bins, dir.path()).await?;
+        }
+        if cpu {
+            cpu_run(&bins, dir.path()).await?;
+        }
+    }
     Ok(())
 }

@@ -18,6 +18,10 @@
 //! | `node` | discovery, declarations, routing by interest, dispatch, the call protocol (`node::call`), file reception, gateway forwarding |
 //! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |
 //!
+//! Utilities below them all, using nothing else of the crate: [`sync`], [`name`], [`typeinfo`],
+//! [`xml`] (reading XML with line and column positions, for `network.xml` and the services'
+//! files).
+//!
 //! ## Concepts
 //!
 //! A process opens one [`Node`]; services declare items through a [`Service`]. Names are
@@ -80,6 +84,7 @@ pub mod protocol;
 pub mod sync;
 pub mod transport;
 pub mod typeinfo;
+pub mod xml;
 
 pub use api::*;
 pub use config::NetworkConfig;

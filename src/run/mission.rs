@@ -6,8 +6,7 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use quick_xml::events::{BytesStart, Event};
-use quick_xml::Reader;
+use marea::xml::{Element, TextKind, XmlReadError, XmlReadErrorKind};
 
 /// Why a mission file could not be loaded.
 #[derive(Debug, thiserror::Error)]
@@ -172,16 +171,6 @@ pub struct RadioSpec {
     pub seed: Option<u64>,
 }
 
-/// An XML element with its position, as read.
-#[derive(Debug)]
-struct Element {
-    name: String,
-    attrs: Vec<(String, String)>,
-    children: Vec<Element>,
-    line: usize,
-    column: usize,
-}
-
 /// A validation failure before the file name is attached.
 struct Fault {
     line: usize,
@@ -193,10 +182,54 @@ struct Fault {
 impl Fault {
     fn at(e: &Element, message: impl fmt::Display) -> Fault {
         Fault {
-            line: e.line,
-            column: e.column,
+            line: e.pos.line as usize,
+            column: e.pos.col as usize,
             element: e.name.clone(),
             message: message.to_string(),
+        }
+    }
+}
+
+impl From<XmlReadError> for Fault {
+    fn from(e: XmlReadError) -> Fault {
+        use XmlReadErrorKind as K;
+        // The element at fault: the tag for attribute errors, else the innermost open one.
+        let (element, element_pos) = e
+            .element
+            .map_or_else(|| ("mission".to_owned(), e.pos), |el| (el.name, el.pos));
+        let (pos, element, message) = match e.kind {
+            K::Syntax(err) => (e.pos, element, format!("malformed XML: {err}")),
+            K::Attribute(err) => (element_pos, element, format!("malformed attribute: {err}")),
+            K::AttributeValue { name, source } => (
+                element_pos,
+                element,
+                format!("attribute `{name}`: {source}"),
+            ),
+            K::Unclosed(name) => (e.pos, name, "not closed before the end of the file".into()),
+            K::TooDeep => (e.pos, element, "elements nested too deeply".into()),
+            K::Text(t) => {
+                let what = match t.kind {
+                    TextKind::Chars => format!("unexpected text `{}`", t.content.trim()),
+                    TextKind::CData => "unexpected CDATA".into(),
+                    TextKind::Reference => "unexpected entity reference".into(),
+                };
+                (e.pos, element, what)
+            }
+            K::NoRoot => {
+                return Fault {
+                    line: 1,
+                    column: 1,
+                    element: "mission".into(),
+                    message: "empty file: expected a <mission> element".into(),
+                }
+            }
+            K::SecondRoot(name) => (e.pos, name, "a second root element".into()),
+        };
+        Fault {
+            line: pos.line as usize,
+            column: pos.col as usize,
+            element,
+            message,
         }
     }
 }
@@ -223,7 +256,7 @@ impl Mission {
     }
 
     fn parse(src: &str, base: &Path) -> Result<Mission, Fault> {
-        let root = parse_tree(src)?;
+        let root = marea::xml::parse_document(src)?;
         mission_from(&root, base)
     }
 
@@ -243,137 +276,6 @@ impl Mission {
     }
 }
 
-fn line_column(src: &str, offset: usize) -> (usize, usize) {
-    let before = src.get(..offset.min(src.len())).unwrap_or(src);
-    let line = before.matches('\n').count() + 1;
-    let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
-    (line, column)
-}
-
-fn parse_tree(src: &str) -> Result<Element, Fault> {
-    let mut reader = Reader::from_str(src);
-    reader.config_mut().trim_text(true);
-    let mut stack: Vec<Element> = Vec::new();
-    let mut root: Option<Element> = None;
-    let innermost = |stack: &[Element]| {
-        stack
-            .last()
-            .map_or_else(|| "mission".to_owned(), |e| e.name.clone())
-    };
-    loop {
-        let before = usize::try_from(reader.buffer_position()).unwrap_or(usize::MAX);
-        let event = match reader.read_event() {
-            Ok(ev) => ev,
-            Err(e) => {
-                let at = usize::try_from(reader.error_position()).unwrap_or(usize::MAX);
-                let (line, column) = line_column(src, at);
-                return Err(Fault {
-                    line,
-                    column,
-                    element: innermost(&stack),
-                    message: format!("malformed XML: {e}"),
-                });
-            }
-        };
-        // The element starts at the first '<' after the previous event (whitespace trimmed).
-        let start = src
-            .get(before..)
-            .and_then(|s| s.find('<'))
-            .map_or(before, |i| before + i);
-        let (line, column) = line_column(src, start);
-        match event {
-            Event::Start(e) => {
-                let el = element(&e, line, column)?;
-                if root.is_some() && stack.is_empty() {
-                    return Err(Fault::at(&el, "a second root element"));
-                }
-                stack.push(el);
-            }
-            Event::Empty(e) => {
-                let el = element(&e, line, column)?;
-                match stack.last_mut() {
-                    Some(parent) => parent.children.push(el),
-                    None if root.is_none() => root = Some(el),
-                    None => return Err(Fault::at(&el, "a second root element")),
-                }
-            }
-            Event::End(_) => {
-                let Some(done) = stack.pop() else {
-                    return Err(Fault {
-                        line,
-                        column,
-                        element: "mission".into(),
-                        message: "closing tag without an open element".into(),
-                    });
-                };
-                match stack.last_mut() {
-                    Some(parent) => parent.children.push(done),
-                    None => root = Some(done),
-                }
-            }
-            Event::Text(t) => {
-                let text = String::from_utf8_lossy(&t);
-                if !text.trim().is_empty() {
-                    return Err(Fault {
-                        line,
-                        column,
-                        element: innermost(&stack),
-                        message: format!("unexpected text `{}`", text.trim()),
-                    });
-                }
-            }
-            Event::CData(_) => {
-                return Err(Fault {
-                    line,
-                    column,
-                    element: innermost(&stack),
-                    message: "unexpected CDATA".into(),
-                })
-            }
-            Event::Eof => break,
-            Event::Comment(_) | Event::Decl(_) | Event::PI(_) | Event::DocType(_) => {}
-            Event::GeneralRef(_) => {
-                return Err(Fault {
-                    line,
-                    column,
-                    element: innermost(&stack),
-                    message: "unexpected entity reference".into(),
-                })
-            }
-        }
-    }
-    if let Some(open) = stack.last() {
-        return Err(Fault::at(open, "not closed before the end of the file"));
-    }
-    root.ok_or(Fault {
-        line: 1,
-        column: 1,
-        element: "mission".into(),
-        message: "empty file: expected a <mission> element".into(),
-    })
-}
-
-fn element(e: &BytesStart<'_>, line: usize, column: usize) -> Result<Element, Fault> {
-    let name = String::from_utf8_lossy(e.name().as_ref()).into_owned();
-    let mut el = Element {
-        name,
-        attrs: Vec::new(),
-        children: Vec::new(),
-        line,
-        column,
-    };
-    for a in e.attributes() {
-        let a = a.map_err(|err| Fault::at(&el, format!("malformed attribute: {err}")))?;
-        let key = String::from_utf8_lossy(a.key.as_ref()).into_owned();
-        let value = a
-            .unescape_value()
-            .map_err(|err| Fault::at(&el, format!("attribute `{key}`: {err}")))?
-            .into_owned();
-        el.attrs.push((key, value));
-    }
-    Ok(el)
-}
-
 /// An element's attributes, taken one by one; those left over are errors.
 struct Attrs<'a> {
     el: &'a Element,
@@ -385,7 +287,11 @@ impl<'a> Attrs<'a> {
     fn new(el: &'a Element, known: &'static [&'static str]) -> Self {
         Attrs {
             el,
-            left: el.attrs.clone(),
+            left: el
+                .attrs
+                .iter()
+                .map(|a| (a.name.clone(), a.value.clone()))
+                .collect(),
             known,
         }
     }

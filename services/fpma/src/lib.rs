@@ -2,10 +2,11 @@
 //! stream, and the executive that flies it and takes changes in flight; and the networked
 //! `fpma` service around it.
 //!
-//! Layers, each using only those above: `xml` → `expr`, `geo`, `vehicle` → `model` → `parse`,
-//! `polygon` → `expand` → `exec` → `qgc` → `api` → `service`. Everything up to `api` is pure
-//! (no I/O, no clock); `service` is the only module on the network ([`service::run`]). See
-//! `README.md` for the format, the API and the service's items.
+//! Layers, each using only those above: `xml` (plan wording over `marea::xml`) → `expr`, `geo`,
+//! `vehicle` → `model` → `parse` (`parse/{error,attrs,legs,validate}`), `polygon` → `expand` →
+//! `exec` → `qgc` → `api` → `service`. Everything up to `api` is pure (no I/O, no clock);
+//! `service` is the only module on the network ([`service::run`]). See `README.md` for the
+//! format, the API and the service's items.
 //!
 //! ```
 //! use fpma::{exec::Executive, parse::parse_plan, vehicle::VehicleParams};
