@@ -8,9 +8,8 @@
 //! | module | what |
 //! |---|---|
 //! | [`protocol`] | the wire messages (Hello, Heartbeat, declarations, Var, Event, Call, Reply, File*) |
-//! | [`codec`] | their bytes: postcard messages, the UDP datagram framing, varints |
-//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`] |
-//! | [`transport`] | the ARQ shared by links for the safe class |
+//! | [`codec`] | their bytes: postcard messages, varints |
+//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`], [`link::serial`], [`link::shm`], each with its own framing; the ARQ ([`link::arq`]) and the bounded newest-wins queue ([`link::coalesce`]) they share |
 //! | `node` | discovery, declarations, routing by interest, dispatch, file reception |
 //! | [`api`] | [`Node`], the typed handles, [`IService`] |
 //! | [`config`] | `network.xml` → [`NetworkConfig`] |
@@ -75,7 +74,6 @@ pub(crate) mod node;
 pub mod process;
 pub mod protocol;
 pub mod sync;
-pub mod transport;
 pub mod typeinfo;
 
 pub use api::*;

@@ -4,6 +4,8 @@
 //! A link knows nothing of declarations or names: it carries encoded [`crate::protocol::Message`]s
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
 
+pub mod arq;
+pub mod coalesce;
 pub mod serial;
 pub mod shm;
 pub mod udp;

@@ -11,7 +11,7 @@
 //! (a batch); a large one is fragmented by `MaxPacketSize`.
 //!
 //! Safe frames each carry their own sequence number in the ARQ of
-//! [`crate::transport::arq`] (16 bits on the wire, widened back), so a lost fragment is resent
+//! [`crate::link::arq`] (16 bits on the wire, widened back), so a lost fragment is resent
 //! alone; Fast fragments share one sequence number as in the thesis.
 
 use std::collections::VecDeque;
@@ -21,9 +21,8 @@ use bytes::BytesMut;
 
 use super::fragment::{self, FastReassembler, SafeReassembler};
 use super::frame::{Frame, FrameDecodeError, FrameDecoder};
-use crate::codec::datagram::AckInfo;
+use crate::link::arq::{AckInfo, ArqConfig, ArqReceiver, ArqSender, SynOutcome};
 use crate::link::{LinkSendError, LinkStats};
-use crate::transport::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
 
 /// Tuning of one line.
 #[derive(Debug, Clone, Copy)]

@@ -1,11 +1,13 @@
 //! The Ethernet link: UDP multicast for discovery (Hello, Heartbeat, Bye), UDP unicast for data,
-//! with the ARQ of [`crate::transport::arq`] for the safe class and batching of small messages
+//! with the ARQ of [`crate::link::arq`] for the safe class and batching of small messages
 //! into shared datagrams.
 //!
 //! Sending is inline when the link is idle (lowest latency: the caller's task writes the
 //! datagram) and batched by the link's transmit task when messages arrive faster than datagrams
 //! can be written (highest throughput: many messages share one datagram). Either way a peer's
 //! datagrams are written under that peer's lock, so fast messages are never reordered.
+
+pub mod datagram;
 
 use std::collections::VecDeque;
 use std::io;
@@ -20,10 +22,10 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
+use super::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use super::coalesce::CoalescingQueue;
 use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
-use crate::codec::datagram::{self, Datagram, DatagramWriter, Entry};
-use crate::transport::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
-use crate::transport::coalesce::CoalescingQueue;
+use datagram::{Datagram, DatagramWriter, Entry};
 
 /// How the UDP link is set up (taken from `<ethernet>` in network.xml).
 #[derive(Debug, Clone)]
