@@ -22,6 +22,7 @@ use bytes::BytesMut;
 use super::fragment::{self, FastReassembler, SafeReassembler};
 use super::frame::{Frame, FrameDecodeError, FrameDecoder};
 use crate::link::arq::{AckInfo, ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::link::{LinkSendError, LinkStats};
 
 /// Tuning of one line.
@@ -134,7 +135,6 @@ pub struct StpStats {
 }
 
 struct FastItem {
-    key: Option<u32>,
     msg: Vec<u8>,
     queued: Instant,
 }
@@ -151,7 +151,7 @@ pub struct Stp<T> {
     safe_q: VecDeque<(Vec<u8>, Option<T>)>,
     units: VecDeque<Unit<T>>,
     retx: VecDeque<u32>,
-    fast: VecDeque<FastItem>,
+    fast: CoalescingQueue<u32, FastItem>,
     announce: Option<Vec<u8>>,
     pending_fast_frames: VecDeque<Frame>,
     nacks: VecDeque<(u16, u16)>,
@@ -186,7 +186,7 @@ impl<T> Stp<T> {
             safe_q: VecDeque::new(),
             units: VecDeque::new(),
             retx: VecDeque::new(),
-            fast: VecDeque::new(),
+            fast: CoalescingQueue::new(cfg.max_message_queue),
             announce: None,
             pending_fast_frames: VecDeque::new(),
             nacks: VecDeque::new(),
@@ -211,21 +211,14 @@ impl<T> Stp<T> {
     /// Queues a best-effort message. With a `key`, it replaces a queued message of the same key
     /// in place (keeping its age and position); otherwise the oldest is dropped when full.
     pub fn push_fast(&mut self, now: Instant, key: Option<u32>, msg: Vec<u8>) {
-        if let Some(k) = key {
-            if let Some(item) = self.fast.iter_mut().find(|i| i.key == Some(k)) {
-                item.msg = msg;
-                return;
-            }
+        if let Some(item) = key.and_then(|k| self.fast.get_mut(&k)) {
+            item.msg = msg;
+            return;
         }
-        if self.fast.len() >= self.cfg.max_message_queue {
-            self.fast.pop_front();
+        let item = FastItem { msg, queued: now };
+        if let Pushed::DroppedOldest(_) = self.fast.push(key, item) {
             self.stats.link.fast_dropped += 1;
         }
-        self.fast.push_back(FastItem {
-            key,
-            msg,
-            queued: now,
-        });
     }
 
     /// Queues a reliable message; `done` comes back in [`StpEvent::Acked`] or
@@ -592,7 +585,7 @@ impl<T> Stp<T> {
         let mps = self.cfg.max_packet_size;
         let mut size = 0;
         let mut n = 0;
-        for f in &self.fast {
+        for f in self.fast.iter() {
             let c = fragment::batch_cost(f.msg.len());
             if size + c > mps {
                 break;
@@ -600,7 +593,10 @@ impl<T> Stp<T> {
             size += c;
             n += 1;
         }
-        let msgs: Vec<Vec<u8>> = self.fast.drain(..n.max(1)).map(|f| f.msg).collect();
+        let msgs: Vec<Vec<u8>> = (0..n.max(1))
+            .map_while(|_| self.fast.pop_front())
+            .map(|(_, f)| f.msg)
+            .collect();
         Some(self.fast_frame(msgs))
     }
 

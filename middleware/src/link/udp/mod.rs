@@ -23,7 +23,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use super::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
-use super::coalesce::CoalescingQueue;
+use super::coalesce::{CoalescingQueue, Pushed};
 use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
 use datagram::{Datagram, DatagramWriter, Entry};
 
@@ -102,7 +102,7 @@ impl PeerState {
         PeerState {
             tx: ArqSender::new(rand::random(), arq),
             rx: ArqReceiver::new(arq.max_window),
-            fast: CoalescingQueue::new(),
+            fast: CoalescingQueue::new(MAX_FAST_QUEUE),
             fast_bytes: 0,
             safe: VecDeque::new(),
             blocked: VecDeque::new(),
@@ -620,20 +620,18 @@ impl Link for UdpLink {
                     self.flush_locked(addr, &mut st, now);
                 }
                 match st.fast.push(coalesce, msg) {
-                    Some(old) => {
+                    Pushed::Replaced(old) => {
                         st.fast_bytes = st
                             .fast_bytes
                             .saturating_sub(DatagramWriter::fast_cost(old.len()))
                     }
-                    None if st.fast.len() > MAX_FAST_QUEUE => {
-                        if let Some((_, dropped)) = st.fast.pop_front() {
-                            st.fast_bytes = st
-                                .fast_bytes
-                                .saturating_sub(DatagramWriter::fast_cost(dropped.len()));
-                        }
+                    Pushed::DroppedOldest(dropped) => {
+                        st.fast_bytes = st
+                            .fast_bytes
+                            .saturating_sub(DatagramWriter::fast_cost(dropped.len()));
                         self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
                     }
-                    None => {}
+                    Pushed::Queued => {}
                 }
                 st.fast_bytes += cost;
             }
