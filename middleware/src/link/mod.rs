@@ -12,6 +12,7 @@ pub mod udp;
 
 use std::fmt;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Where a peer is reached on a link.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -107,6 +108,48 @@ pub struct LinkStats {
     pub safe_queued: u64,
     /// Fast messages waiting to be sent now.
     pub fast_queued: u64,
+}
+
+/// The counters of [`LinkStats`] as a link updates them from several tasks at once.
+#[derive(Debug, Default)]
+pub(crate) struct LinkCounters {
+    pub(crate) frames_out: AtomicU64,
+    pub(crate) frames_in: AtomicU64,
+    pub(crate) bytes_out: AtomicU64,
+    pub(crate) bytes_in: AtomicU64,
+    pub(crate) corrupt: AtomicU64,
+    pub(crate) retransmitted: AtomicU64,
+    pub(crate) duplicates: AtomicU64,
+    pub(crate) fast_dropped: AtomicU64,
+}
+
+impl LinkCounters {
+    /// One frame (datagram, sample) of `bytes` sent.
+    pub(crate) fn count_out(&self, bytes: usize) {
+        self.frames_out.fetch_add(1, Ordering::Relaxed);
+        self.bytes_out.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    /// One frame of `bytes` received.
+    pub(crate) fn count_in(&self, bytes: usize) {
+        self.frames_in.fetch_add(1, Ordering::Relaxed);
+        self.bytes_in.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    /// The counters, with the gauges (round trip, queue depths) taken from `gauges`.
+    pub(crate) fn stats(&self, gauges: LinkStats) -> LinkStats {
+        LinkStats {
+            frames_out: self.frames_out.load(Ordering::Relaxed),
+            frames_in: self.frames_in.load(Ordering::Relaxed),
+            bytes_out: self.bytes_out.load(Ordering::Relaxed),
+            bytes_in: self.bytes_in.load(Ordering::Relaxed),
+            corrupt: self.corrupt.load(Ordering::Relaxed),
+            retransmitted: self.retransmitted.load(Ordering::Relaxed),
+            duplicates: self.duplicates.load(Ordering::Relaxed),
+            fast_dropped: self.fast_dropped.load(Ordering::Relaxed),
+            ..gauges
+        }
+    }
 }
 
 /// Content bytes per file chunk on links that do not say otherwise: a chunk and its headers fit

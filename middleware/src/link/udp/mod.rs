@@ -12,7 +12,7 @@ pub mod datagram;
 use std::collections::VecDeque;
 use std::io;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -24,7 +24,9 @@ use tokio_util::task::TaskTracker;
 
 use super::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
 use super::coalesce::{CoalescingQueue, Pushed};
-use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
+use super::{
+    Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
+};
 use datagram::{Datagram, DatagramWriter, Entry};
 
 /// How the UDP link is set up (taken from `<ethernet>` in network.xml).
@@ -119,18 +121,6 @@ impl PeerState {
     }
 }
 
-#[derive(Default)]
-struct Counters {
-    frames_out: AtomicU64,
-    frames_in: AtomicU64,
-    bytes_out: AtomicU64,
-    bytes_in: AtomicU64,
-    corrupt: AtomicU64,
-    retransmitted: AtomicU64,
-    duplicates: AtomicU64,
-    fast_dropped: AtomicU64,
-}
-
 /// The UDP link.
 pub struct UdpLink {
     index: usize,
@@ -145,7 +135,7 @@ pub struct UdpLink {
     peers: Mutex<FxHashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
-    counters: Counters,
+    counters: LinkCounters,
 }
 
 use crate::sync::lock;
@@ -229,7 +219,7 @@ impl UdpLink {
             peers: Mutex::new(FxHashMap::default()),
             wake: Notify::new(),
             handler,
-            counters: Counters::default(),
+            counters: LinkCounters::default(),
         });
         let l = link.clone();
         let c = cancel.clone();
@@ -352,10 +342,7 @@ impl UdpLink {
     }
 
     fn count_out(&self, n: usize) {
-        self.counters.frames_out.fetch_add(1, Ordering::Relaxed);
-        self.counters
-            .bytes_out
-            .fetch_add(n as u64, Ordering::Relaxed);
+        self.counters.count_out(n);
     }
 
     async fn transmit_loop(self: Arc<Self>, cancel: CancellationToken) {
@@ -459,10 +446,7 @@ impl UdpLink {
             };
             match r {
                 Ok((n, from)) => {
-                    self.counters.frames_in.fetch_add(1, Ordering::Relaxed);
-                    self.counters
-                        .bytes_in
-                        .fetch_add(n as u64, Ordering::Relaxed);
+                    self.counters.count_in(n);
                     match datagram::decode(&buf[..n]) {
                         Ok(Datagram::Discovery(msg)) => {
                             self.handler
@@ -486,10 +470,7 @@ impl UdpLink {
     }
 
     fn handle_datagram(&self, bytes: &[u8], from: SocketAddr, touched: &mut Vec<SocketAddr>) {
-        self.counters.frames_in.fetch_add(1, Ordering::Relaxed);
-        self.counters
-            .bytes_in
-            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        self.counters.count_in(bytes.len());
         let entries = match datagram::decode(bytes) {
             Ok(Datagram::Data(e)) => e,
             Ok(Datagram::Discovery(msg)) => {
@@ -675,17 +656,6 @@ impl Link for UdpLink {
     }
 
     fn stats(&self) -> LinkStats {
-        let c = &self.counters;
-        LinkStats {
-            frames_out: c.frames_out.load(Ordering::Relaxed),
-            frames_in: c.frames_in.load(Ordering::Relaxed),
-            bytes_out: c.bytes_out.load(Ordering::Relaxed),
-            bytes_in: c.bytes_in.load(Ordering::Relaxed),
-            corrupt: c.corrupt.load(Ordering::Relaxed),
-            retransmitted: c.retransmitted.load(Ordering::Relaxed),
-            duplicates: c.duplicates.load(Ordering::Relaxed),
-            fast_dropped: c.fast_dropped.load(Ordering::Relaxed),
-            ..self.gauges()
-        }
+        self.counters.stats(self.gauges())
     }
 }
