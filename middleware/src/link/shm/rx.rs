@@ -441,3 +441,181 @@ fn drain_fast(io: &mut impl RxIo, c: &LinkCounters) -> usize {
     }
     FAST_PASS_BUDGET
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::sim::{acked, header, SimHost};
+    use super::super::{BULK_MAX, FRAME_MAX};
+    use super::*;
+
+    const A: u64 = 0xA;
+    const B: u64 = 0xB;
+    const C: u64 = 0xC;
+
+    fn tagged(writer: u8, i: u32, len: usize) -> Vec<u8> {
+        let mut m: Vec<u8> = (0..len)
+            .map(|k| (k as u32).wrapping_mul(31).wrapping_add(i) as u8)
+            .collect();
+        m[0] = writer;
+        m[1..5].copy_from_slice(&i.to_le_bytes());
+        m
+    }
+
+    fn count(h: &SimHost, at: u64, c: fn(&LinkCounters) -> &std::sync::atomic::AtomicU64) -> u64 {
+        c(&h.nodes[&at].counters).load(Ordering::Relaxed)
+    }
+
+    #[test]
+    fn a_lost_safe_fragment_drops_only_its_message() {
+        let mut h = SimHost::standard(&[A, B]);
+        // No bulk inbox: the large message goes as inline fragments into the safe inbox.
+        h.bulk_available = false;
+        let big = tagged(b'a', 0, 3 * FRAME_MAX);
+        let mut d1 = h.send_safe(A, B, big);
+        // A learns the bulk inbox is unavailable and writes inline.
+        h.open_bulk_inboxes();
+        let mut d2 = h.send_safe(A, B, b"after".to_vec());
+        let frames = h.inboxes[&B].safe.q.len();
+        assert!(frames >= 4, "three inline fragments and the small message");
+        // The second fragment of the large message is lost.
+        let lost = h.inboxes.get_mut(&B).and_then(|i| {
+            i.safe.remove_first(|b| {
+                header(b).is_some_and(|(k, _, _, seq)| k == frame::SAFE_MORE && seq == 1)
+            })
+        });
+        assert!(lost.is_some(), "a middle fragment was there to lose");
+        h.run(50);
+        // The torn message is not delivered with a hole; the stream goes on after it.
+        assert_eq!(h.messages(B), vec![(A, b"after".to_vec())]);
+        assert_eq!(count(&h, B, |c| &c.corrupt), 1);
+        // The acknowledgement is cumulative: the writer is not held back by the torn message.
+        assert!(acked(&mut d1) && acked(&mut d2));
+    }
+
+    #[test]
+    fn large_messages_of_two_writers_reassemble_through_the_bulk_inbox() {
+        // A safe buffer of two frames per writer: a writer's third body is in the bulk inbox
+        // when its frame is refused, so the other writer's bodies land behind it, and B meets
+        // bodies of one writer while looking for the other's (and stashes them). Ten bulk
+        // samples each are more than a writer's bulk buffer too.
+        let mut h = SimHost::new(&[A, B, C], 2);
+        let sizes = [10 * BULK_MAX, 7, FRAME_MAX + 1, 2 * BULK_MAX + 5];
+        let mut dones = Vec::new();
+        for (i, &len) in sizes.iter().enumerate() {
+            dones.push(h.send_safe(A, B, tagged(b'a', i as u32, len)));
+            dones.push(h.send_safe(C, B, tagged(b'c', i as u32, len)));
+        }
+        h.run(500);
+        let got = h.messages(B);
+        for (tag, from) in [(b'a', A), (b'c', C)] {
+            let mine: Vec<Vec<u8>> = got
+                .iter()
+                .filter(|(f, _)| *f == from)
+                .map(|(_, m)| m.clone())
+                .collect();
+            let expected: Vec<Vec<u8>> = sizes
+                .iter()
+                .enumerate()
+                .map(|(i, &len)| tagged(tag, i as u32, len))
+                .collect();
+            assert!(
+                mine == expected,
+                "writer {} whole and in order",
+                tag as char
+            );
+        }
+        assert!(dones.iter_mut().all(acked), "all acknowledged");
+        assert_eq!(count(&h, B, |c| &c.corrupt), 0);
+        assert_eq!(count(&h, B, |c| &c.duplicates), 0);
+        assert!(h.inboxes[&B].bulk.q.is_empty(), "no body left behind");
+    }
+
+    #[test]
+    fn a_restarted_sender_is_reported_once_and_its_new_session_delivers() {
+        let mut h = SimHost::standard(&[A, B]);
+        let mut d1 = h.send_safe(A, B, b"one".to_vec());
+        h.run(20);
+        assert!(acked(&mut d1));
+        // A closes B and starts over: a new session, sequence numbers from 0 again.
+        h.restart_sender(A, B);
+        let mut d2 = h.send_safe(A, B, b"two".to_vec());
+        h.run(20);
+        assert_eq!(
+            h.messages(B),
+            vec![(A, b"one".to_vec()), (A, b"two".to_vec())]
+        );
+        assert_eq!(h.resets(B, A), 1, "the new session is reported once");
+        assert!(acked(&mut d2));
+        // Another message in the new session is no reset.
+        let mut d3 = h.send_safe(A, B, b"three".to_vec());
+        h.run(20);
+        assert_eq!(h.resets(B, A), 1);
+        assert!(acked(&mut d3));
+        assert_eq!(count(&h, B, |c| &c.duplicates), 0);
+    }
+
+    #[test]
+    fn a_stale_acknowledgement_completes_nothing() {
+        let mut h = SimHost::standard(&[A, B]);
+        let mut d1 = h.send_safe(A, B, b"one".to_vec());
+        let old = header(&h.inboxes[&B].safe.q[0].1).expect("a frame").2;
+        h.run(20);
+        assert!(acked(&mut d1));
+        h.restart_sender(A, B);
+        let mut d2 = h.send_safe(A, B, b"two".to_vec());
+        // B's frame is held back; an acknowledgement of A's old session for sequence number 0
+        // (which the new message also has) arrives at A.
+        let held = h.inboxes.get_mut(&B).and_then(|i| i.safe.q.pop_front());
+        let mut ack = vec![0u8; frame::SEQUENCED];
+        frame::write_header(&mut ack, frame::ACK, B, old, 0);
+        h.inboxes
+            .get_mut(&A)
+            .expect("A's inbox")
+            .safe
+            .q
+            .push_back((B, ack));
+        h.step();
+        assert!(
+            !acked(&mut d2),
+            "a stale session's acknowledgement completed a new message"
+        );
+        if let Some(f) = held {
+            h.inboxes
+                .get_mut(&B)
+                .expect("B's inbox")
+                .safe
+                .q
+                .push_front(f);
+        }
+        h.run(20);
+        assert!(acked(&mut d2));
+    }
+
+    #[test]
+    fn a_dead_senders_leftover_bulk_body_is_skipped() {
+        let mut h = SimHost::standard(&[A, B]);
+        let old = tagged(b'o', 0, 2 * BULK_MAX);
+        let _lost = h.send_safe(A, B, old.clone());
+        // The bulk inbox opens: A writes the bodies and their frames.
+        h.open_bulk_inboxes();
+        assert!(!h.inboxes[&B].bulk.q.is_empty());
+        // A's frames vanish (it died between writing the bodies and the frames, or B forgot
+        // it): the bodies of its old session stay in B's bulk inbox.
+        let inbox = h.inboxes.get_mut(&B).expect("B's inbox");
+        inbox.safe.q.clear();
+        let stale = inbox.bulk.q.len();
+        assert!(stale >= 2);
+        h.restart_sender(A, B);
+        let new = tagged(b'n', 1, 2 * BULK_MAX + 3);
+        let mut done = h.send_safe(A, B, new.clone());
+        h.run(50);
+        // B skips the stale bodies and delivers the new message whole.
+        assert_eq!(h.messages(B), vec![(A, new)]);
+        assert!(acked(&mut done));
+        assert_eq!(count(&h, B, |c| &c.corrupt), 0);
+        assert!(
+            h.inboxes[&B].bulk.q.is_empty(),
+            "the stale bodies were dropped"
+        );
+    }
+}
