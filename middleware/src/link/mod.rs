@@ -72,6 +72,16 @@ pub enum Outgoing {
     },
 }
 
+impl Outgoing {
+    /// Drops a message that cannot be sent to `to` (no such peer, too many peers): a safe
+    /// message's completion is told [`LinkSendError::PeerClosed`].
+    pub(crate) fn refuse(self, to: impl fmt::Display) {
+        if let Outgoing::Safe { done: Some(d), .. } = self {
+            let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
+        }
+    }
+}
+
 /// Receives what a link delivers. Called from the link's receive task: must not block.
 pub trait LinkHandler: Send + Sync + 'static {
     /// A fast or (in order) safe message from `from`.

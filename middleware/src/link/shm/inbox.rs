@@ -32,34 +32,14 @@ const WAIT_ATTRIBUTE: &str = "marea.wait";
 
 /// The writing side of a peer's inbox.
 pub(super) struct Conn {
-    fast: Pub,
-    safe: Pub,
+    pub(super) fast: Pub,
+    pub(super) safe: Pub,
     wake: Notifier<Ipc>,
     /// The peer busy-polls its inbox (`wait="spin"`): never notify it.
     pub(super) spins: bool,
 }
 
 impl Conn {
-    /// Writes one frame into the fast or safe part (see [`put`]); never into the bulk part,
-    /// whose publisher is opened apart.
-    pub(super) fn put(
-        &self,
-        part: Part,
-        kind: u8,
-        sender: u64,
-        session: u32,
-        seq: u64,
-        body: &[u8],
-    ) -> bool {
-        match part {
-            Part::Fast => put(&self.fast, kind, sender, session, seq, body),
-            Part::Safe => put(&self.safe, kind, sender, session, seq, body),
-            Part::Bulk => false,
-        }
-    }
-
-    /// Wakes the peer's receive thread if it sleeps on its wake event. An error means the peer
-    /// is gone, which the scan and the node's lease notice.
     pub(super) fn wake(&self) {
         if !self.spins {
             let _ = self.wake.notify();

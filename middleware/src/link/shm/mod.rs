@@ -213,11 +213,12 @@ impl InboxWriter for PeerWriter<'_> {
     }
 
     fn put(&mut self, part: Part, kind: u8, session: u32, seq: u64, body: &[u8]) -> bool {
-        match (part, self.conn, self.bulk) {
-            (Part::Bulk, _, Some(b)) => inbox::put(b, kind, self.link.id, session, seq, body),
-            (Part::Bulk, _, None) | (_, None, _) => false,
-            (_, Some(c), _) => c.put(part, kind, self.link.id, session, seq, body),
-        }
+        let publisher = match part {
+            Part::Bulk => self.bulk,
+            Part::Fast => self.conn.map(|c| &c.fast),
+            Part::Safe => self.conn.map(|c| &c.safe),
+        };
+        publisher.is_some_and(|p| inbox::put(p, kind, self.link.id, session, seq, body))
     }
 
     fn wake(&mut self) {
@@ -422,16 +423,10 @@ impl Link for ShmLink {
 
     fn send(&self, to: PeerAddr, out: Outgoing) {
         let PeerAddr::Shm(id) = to else {
-            if let Outgoing::Safe { done: Some(d), .. } = out {
-                let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
-            }
-            return;
+            return out.refuse(to);
         };
         let Some(p) = self.peer(id, true) else {
-            if let Outgoing::Safe { done: Some(d), .. } = out {
-                let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
-            }
-            return;
+            return out.refuse(to);
         };
         let mut st = lock(&p);
         let unopened = st.conn.is_none();
@@ -453,7 +448,7 @@ impl Link for ShmLink {
         for p in peers {
             let st = lock(&p);
             if let Some(c) = &st.conn {
-                if c.put(Part::Fast, frame::ANNOUNCE, self.id, 0, 0, msg) {
+                if inbox::put(&c.fast, frame::ANNOUNCE, self.id, 0, 0, msg) {
                     self.counters.count_out(frame::BASE + msg.len());
                     c.wake();
                 }
@@ -535,7 +530,7 @@ impl RxIo for LinkRx<'_> {
         let Some(c) = &st.conn else {
             return AckSent::NotOpen;
         };
-        if c.put(Part::Safe, frame::ACK, self.link.id, session, seq, &[]) {
+        if inbox::put(&c.safe, frame::ACK, self.link.id, session, seq, &[]) {
             c.wake();
             AckSent::Taken
         } else {

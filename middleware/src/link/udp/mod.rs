@@ -584,10 +584,7 @@ impl Link for UdpLink {
             return;
         };
         let Some(p) = self.peer(addr, true) else {
-            if let Outgoing::Safe { done: Some(d), .. } = out {
-                let _ = d.send(Err(LinkSendError::PeerClosed(addr.to_string())));
-            }
-            return;
+            return out.refuse(addr);
         };
         let mut st = lock(&p);
         let now = Instant::now();
