@@ -3,16 +3,24 @@
 //! next instant it needs attention. No I/O, no clock: the port driver feeds it, tests drive it
 //! on a simulated clock.
 //!
-//! Queues and priorities (003 §5.5): ACK/NACK first (then the rare discovery announce), then Safe (retransmissions before new
-//! frames), then Fast; a Fast message that has waited [`StpConfig::fast_max_wait`] may take every
-//! other frame from Safe, so a 20 Hz control variable stays fresh while bulk Safe traffic
-//! saturates the line. The Fast queue keeps one entry per coalescing key (newest value wins) and
-//! at most `MaxMessageQueue` entries (oldest dropped). Small messages of one class share a frame
-//! (a batch); a large one is fragmented by `MaxPacketSize`.
+//! Queues and priorities (003 §5.5): ACK/NACK first (then the rare discovery announce), then
+//! Safe (retransmissions before new frames), then Fast; a Fast message that has waited
+//! [`StpConfig::fast_max_wait`] may take every other frame from Safe, so a 20 Hz control
+//! variable stays fresh while bulk Safe traffic saturates the line. The Fast queue is a
+//! [`CoalescingQueue`] bounded by `MaxMessageQueue` (newest value per key wins, oldest dropped).
+//! Small messages of one class share a frame (a batch); a large one is fragmented by
+//! `MaxPacketSize`.
 //!
 //! Safe frames each carry their own sequence number in the ARQ of
 //! [`crate::link::arq`] (16 bits on the wire, widened back), so a lost fragment is resent
 //! alone; Fast fragments share one sequence number as in the thesis.
+//!
+//! One file: the engine is one state machine (about 730 lines, the rest is its tests) whose
+//! send and receive paths share the ARQ halves, the queues, the NACK list and the counters:
+//! receiving an ACK or NACK changes what is sent next, sending decides what is acknowledged.
+//! The parts that stand alone already live beside it (`frame`, `fragment`, `crc`,
+//! [`crate::link::arq`], [`crate::link::coalesce`]); splitting the engine's `impl` across files
+//! would only scatter one struct's invariants.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
