@@ -92,7 +92,7 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn on_peer_reset(&self, link: usize, from: PeerAddr);
 }
 
-/// Counters and gauges of a link (published as [`crate::LinkHealth`] totals).
+/// Counters and gauges of a link (the node publishes them as `LinkHealth` totals).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct LinkStats {
     /// Datagrams or frames sent.

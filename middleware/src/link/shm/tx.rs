@@ -299,6 +299,7 @@ impl PeerTx {
 #[cfg(test)]
 mod tests {
     use super::super::sim::{acked, SimHost};
+    use super::super::FAST_BUFFER;
     use std::sync::atomic::Ordering;
 
     const A: u64 = 0xA;
@@ -335,7 +336,7 @@ mod tests {
     #[test]
     fn fast_messages_overflow_the_oldest_and_large_ones_ride_the_safe_path() {
         let mut h = SimHost::standard(&[A, B]);
-        for i in 0..(super::super::FAST_BUFFER as u32 + 10) {
+        for i in 0..(FAST_BUFFER as u32 + 10) {
             h.send_fast(A, B, Some(1), i.to_le_bytes().to_vec());
         }
         let big = vec![7u8; super::FRAME_MAX * 2];
@@ -343,11 +344,9 @@ mod tests {
         h.run(50);
         let got = h.messages(B);
         // The fast buffer kept the newest frames; the large one arrived whole.
-        assert_eq!(got.len(), super::super::FAST_BUFFER + 1);
+        assert_eq!(got.len(), FAST_BUFFER + 1);
         assert!(got.contains(&(A, big)));
-        let last = (super::super::FAST_BUFFER as u32 + 9)
-            .to_le_bytes()
-            .to_vec();
+        let last = (FAST_BUFFER as u32 + 9).to_le_bytes().to_vec();
         assert!(got.contains(&(A, last)), "the newest fast value survives");
     }
 }
