@@ -3,6 +3,12 @@
 //!
 //! A link knows nothing of declarations or names: it carries encoded [`crate::protocol::Message`]s
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
+//!
+//! Each medium's framing lives with its link: [`udp`] (and its [`udp::datagram`] batching),
+//! [`serial`] (the Serial Transport Protocol), [`shm`] (iceoryx2 inboxes). What they share is
+//! here too: the ARQ of the safe class over lossy media ([`arq`], used by UDP and serial; shared
+//! memory loses nothing and only needs flow control, see `shm`), the bounded newest-wins queue
+//! of fast messages ([`coalesce`]), and the counters behind [`LinkStats`].
 
 pub mod arq;
 pub mod coalesce;
