@@ -10,17 +10,13 @@
 //!
 //! | layer | what |
 //! |---|---|
-//! | [`sync`], [`name`], [`typeinfo`], [`process`] | utilities: the poison-ignoring lock, names and patterns, type fingerprints, the process's shutdown signal |
+//! | [`sync`], [`name`], [`typeinfo`], [`process`], [`xml`] | utilities: the poison-ignoring lock, names and patterns, type fingerprints, the process's shutdown signal, reading XML with line and column positions (for `network.xml` and the services' files) |
 //! | [`protocol`] | the wire messages (Hello, Heartbeat, declarations, Var, Event, Call, Reply, File*) |
 //! | [`codec`] | their bytes: postcard messages, varints |
-//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`] (with its datagram framing), `link::serial`, `link::shm`, and the ARQ (`link::arq`) and coalescing queue (`link::coalesce`) the links share |
+//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`], [`link::serial`], [`link::shm`], each with its own framing; the ARQ ([`link::arq`]) and the bounded newest-wins queue ([`link::coalesce`]) they share |
 //! | [`config`] | `network.xml` → [`NetworkConfig`] (names link options) |
 //! | `node` | discovery, declarations, routing by interest, dispatch, the call protocol (`node::call`), file reception, gateway forwarding |
 //! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |
-//!
-//! Utilities below them all, using nothing else of the crate: [`sync`], [`name`], [`typeinfo`],
-//! [`xml`] (reading XML with line and column positions, for `network.xml` and the services'
-//! files).
 //!
 //! ## Concepts
 //!
@@ -82,7 +78,6 @@ pub(crate) mod node;
 pub mod process;
 pub mod protocol;
 pub mod sync;
-pub mod transport;
 pub mod typeinfo;
 pub mod xml;
 

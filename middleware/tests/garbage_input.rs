@@ -4,8 +4,8 @@
 use std::net::{Ipv4Addr, SocketAddrV4, UdpSocket};
 use std::time::Duration;
 
-use marea::codec::datagram::DatagramWriter;
 use marea::config::{EthernetConfig, LinkConfig};
+use marea::link::udp::datagram::DatagramWriter;
 use marea::{NetworkConfig, Node};
 use proptest::prelude::*;
 

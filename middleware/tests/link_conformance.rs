@@ -5,12 +5,12 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use marea::link::arq::ArqConfig;
 use marea::link::serial::stp::StpConfig;
 use marea::link::serial::SerialLink;
 use marea::link::shm::{ShmLink, ShmLinkOptions, ShmWait};
 use marea::link::udp::{UdpLink, UdpLinkOptions};
 use marea::link::{Link, LinkHandler, LinkSendError, Outgoing, PeerAddr};
-use marea::transport::arq::ArqConfig;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;

@@ -15,6 +15,7 @@ use tokio_util::task::TaskTracker;
 use super::errors::{DeclareError, NodeOpenError};
 use super::service::{IService, Service, ServiceError};
 use crate::config::{LinkConfig, NetworkConfig};
+use crate::link::arq::ArqConfig;
 use crate::link::serial::port::SerialPorts;
 use crate::link::serial::stp::StpConfig;
 use crate::link::serial::SerialLink;
@@ -25,7 +26,6 @@ use crate::name;
 use crate::node::discovery::domain_hash;
 use crate::node::{Handler, Identity, NodeInner};
 use crate::protocol::{ItemKind, Message};
-use crate::transport::arq::ArqConfig;
 
 /// A middleware node. Dropping it without [`Node::shutdown`] stops its tasks too, but without
 /// telling peers (they notice when the lease expires).

@@ -1,7 +1,6 @@
 //! Encoding and decoding of protocol types: synchronous, no I/O, no allocation sized by
 //! untrusted lengths.
 
-pub mod datagram;
 pub mod varint;
 
 use crate::protocol::Message;

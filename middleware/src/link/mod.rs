@@ -3,13 +3,22 @@
 //!
 //! A link knows nothing of declarations or names: it carries encoded [`crate::protocol::Message`]s
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
+//!
+//! Each medium's framing lives with its link: [`udp`] (and its [`udp::datagram`] batching),
+//! [`serial`] (the Serial Transport Protocol), [`shm`] (iceoryx2 inboxes). What they share is
+//! here too: the ARQ of the safe class over lossy media ([`arq`], used by UDP and serial; shared
+//! memory loses nothing and only needs flow control, see `shm`), the bounded newest-wins queue
+//! of fast messages ([`coalesce`]), and the counters behind [`LinkStats`].
 
+pub mod arq;
+pub mod coalesce;
 pub mod serial;
 pub mod shm;
 pub mod udp;
 
 use std::fmt;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Where a peer is reached on a link.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -69,6 +78,16 @@ pub enum Outgoing {
     },
 }
 
+impl Outgoing {
+    /// Drops a message that cannot be sent to `to` (no such peer, too many peers): a safe
+    /// message's completion is told [`LinkSendError::PeerClosed`].
+    pub(crate) fn refuse(self, to: impl fmt::Display) {
+        if let Outgoing::Safe { done: Some(d), .. } = self {
+            let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
+        }
+    }
+}
+
 /// Receives what a link delivers. Called from the link's receive task: must not block.
 pub trait LinkHandler: Send + Sync + 'static {
     /// A fast or (in order) safe message from `from`.
@@ -79,7 +98,7 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn on_peer_reset(&self, link: usize, from: PeerAddr);
 }
 
-/// Counters and gauges of a link (published as [`crate::LinkHealth`] totals).
+/// Counters and gauges of a link (the node publishes them as `LinkHealth` totals).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct LinkStats {
     /// Datagrams or frames sent.
@@ -105,6 +124,48 @@ pub struct LinkStats {
     pub safe_queued: u64,
     /// Fast messages waiting to be sent now.
     pub fast_queued: u64,
+}
+
+/// The counters of [`LinkStats`] as a link updates them from several tasks at once.
+#[derive(Debug, Default)]
+pub(crate) struct LinkCounters {
+    pub(crate) frames_out: AtomicU64,
+    pub(crate) frames_in: AtomicU64,
+    pub(crate) bytes_out: AtomicU64,
+    pub(crate) bytes_in: AtomicU64,
+    pub(crate) corrupt: AtomicU64,
+    pub(crate) retransmitted: AtomicU64,
+    pub(crate) duplicates: AtomicU64,
+    pub(crate) fast_dropped: AtomicU64,
+}
+
+impl LinkCounters {
+    /// One frame (datagram, sample) of `bytes` sent.
+    pub(crate) fn count_out(&self, bytes: usize) {
+        self.frames_out.fetch_add(1, Ordering::Relaxed);
+        self.bytes_out.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    /// One frame of `bytes` received.
+    pub(crate) fn count_in(&self, bytes: usize) {
+        self.frames_in.fetch_add(1, Ordering::Relaxed);
+        self.bytes_in.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    /// The counters, with the gauges (round trip, queue depths) taken from `gauges`.
+    pub(crate) fn stats(&self, gauges: LinkStats) -> LinkStats {
+        LinkStats {
+            frames_out: self.frames_out.load(Ordering::Relaxed),
+            frames_in: self.frames_in.load(Ordering::Relaxed),
+            bytes_out: self.bytes_out.load(Ordering::Relaxed),
+            bytes_in: self.bytes_in.load(Ordering::Relaxed),
+            corrupt: self.corrupt.load(Ordering::Relaxed),
+            retransmitted: self.retransmitted.load(Ordering::Relaxed),
+            duplicates: self.duplicates.load(Ordering::Relaxed),
+            fast_dropped: self.fast_dropped.load(Ordering::Relaxed),
+            ..gauges
+        }
+    }
 }
 
 /// Content bytes per file chunk on links that do not say otherwise: a chunk and its headers fit

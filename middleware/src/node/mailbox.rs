@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use tokio::sync::Notify;
 
-use crate::transport::coalesce::CoalescingQueue;
+use crate::link::coalesce::CoalescingQueue;
 use crate::typeinfo::TypeInfo;
 
 /// A received value, still encoded.

@@ -304,10 +304,7 @@ impl Link for SerialLink {
 
     fn send(&self, to: PeerAddr, out: Outgoing) {
         if to != PeerAddr::PointToPoint {
-            if let Outgoing::Safe { done: Some(d), .. } = out {
-                let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
-            }
-            return;
+            return out.refuse(to);
         }
         match out {
             Outgoing::Fast { coalesce, msg } => {

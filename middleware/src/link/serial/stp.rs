@@ -3,16 +3,24 @@
 //! next instant it needs attention. No I/O, no clock: the port driver feeds it, tests drive it
 //! on a simulated clock.
 //!
-//! Queues and priorities (003 §5.5): ACK/NACK first (then the rare discovery announce), then Safe (retransmissions before new
-//! frames), then Fast; a Fast message that has waited [`StpConfig::fast_max_wait`] may take every
-//! other frame from Safe, so a 20 Hz control variable stays fresh while bulk Safe traffic
-//! saturates the line. The Fast queue keeps one entry per coalescing key (newest value wins) and
-//! at most `MaxMessageQueue` entries (oldest dropped). Small messages of one class share a frame
-//! (a batch); a large one is fragmented by `MaxPacketSize`.
+//! Queues and priorities (003 §5.5): ACK/NACK first (then the rare discovery announce), then
+//! Safe (retransmissions before new frames), then Fast; a Fast message that has waited
+//! [`StpConfig::fast_max_wait`] may take every other frame from Safe, so a 20 Hz control
+//! variable stays fresh while bulk Safe traffic saturates the line. The Fast queue is a
+//! [`CoalescingQueue`] bounded by `MaxMessageQueue` (newest value per key wins, oldest dropped).
+//! Small messages of one class share a frame (a batch); a large one is fragmented by
+//! `MaxPacketSize`.
 //!
 //! Safe frames each carry their own sequence number in the ARQ of
-//! [`crate::transport::arq`] (16 bits on the wire, widened back), so a lost fragment is resent
+//! [`crate::link::arq`] (16 bits on the wire, widened back), so a lost fragment is resent
 //! alone; Fast fragments share one sequence number as in the thesis.
+//!
+//! One file: the engine is one state machine (about 730 lines, the rest is its tests) whose
+//! send and receive paths share the ARQ halves, the queues, the NACK list and the counters:
+//! receiving an ACK or NACK changes what is sent next, sending decides what is acknowledged.
+//! The parts that stand alone already live beside it (`frame`, `fragment`, `crc`,
+//! [`crate::link::arq`], [`crate::link::coalesce`]); splitting the engine's `impl` across files
+//! would only scatter one struct's invariants.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -21,9 +29,9 @@ use bytes::BytesMut;
 
 use super::fragment::{self, FastReassembler, SafeReassembler};
 use super::frame::{Frame, FrameDecodeError, FrameDecoder};
-use crate::codec::datagram::AckInfo;
+use crate::link::arq::{AckInfo, ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::link::{LinkSendError, LinkStats};
-use crate::transport::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
 
 /// Tuning of one line.
 #[derive(Debug, Clone, Copy)]
@@ -135,7 +143,6 @@ pub struct StpStats {
 }
 
 struct FastItem {
-    key: Option<u32>,
     msg: Vec<u8>,
     queued: Instant,
 }
@@ -152,7 +159,7 @@ pub struct Stp<T> {
     safe_q: VecDeque<(Vec<u8>, Option<T>)>,
     units: VecDeque<Unit<T>>,
     retx: VecDeque<u32>,
-    fast: VecDeque<FastItem>,
+    fast: CoalescingQueue<u32, FastItem>,
     announce: Option<Vec<u8>>,
     pending_fast_frames: VecDeque<Frame>,
     nacks: VecDeque<(u16, u16)>,
@@ -187,7 +194,7 @@ impl<T> Stp<T> {
             safe_q: VecDeque::new(),
             units: VecDeque::new(),
             retx: VecDeque::new(),
-            fast: VecDeque::new(),
+            fast: CoalescingQueue::new(cfg.max_message_queue),
             announce: None,
             pending_fast_frames: VecDeque::new(),
             nacks: VecDeque::new(),
@@ -212,21 +219,14 @@ impl<T> Stp<T> {
     /// Queues a best-effort message. With a `key`, it replaces a queued message of the same key
     /// in place (keeping its age and position); otherwise the oldest is dropped when full.
     pub fn push_fast(&mut self, now: Instant, key: Option<u32>, msg: Vec<u8>) {
-        if let Some(k) = key {
-            if let Some(item) = self.fast.iter_mut().find(|i| i.key == Some(k)) {
-                item.msg = msg;
-                return;
-            }
+        if let Some(item) = key.and_then(|k| self.fast.get_mut(&k)) {
+            item.msg = msg;
+            return;
         }
-        if self.fast.len() >= self.cfg.max_message_queue {
-            self.fast.pop_front();
+        let item = FastItem { msg, queued: now };
+        if let Pushed::DroppedOldest(_) = self.fast.push(key, item) {
             self.stats.link.fast_dropped += 1;
         }
-        self.fast.push_back(FastItem {
-            key,
-            msg,
-            queued: now,
-        });
     }
 
     /// Queues a reliable message; `done` comes back in [`StpEvent::Acked`] or
@@ -593,7 +593,7 @@ impl<T> Stp<T> {
         let mps = self.cfg.max_packet_size;
         let mut size = 0;
         let mut n = 0;
-        for f in &self.fast {
+        for f in self.fast.iter() {
             let c = fragment::batch_cost(f.msg.len());
             if size + c > mps {
                 break;
@@ -601,7 +601,10 @@ impl<T> Stp<T> {
             size += c;
             n += 1;
         }
-        let msgs: Vec<Vec<u8>> = self.fast.drain(..n.max(1)).map(|f| f.msg).collect();
+        let msgs: Vec<Vec<u8>> = (0..n.max(1))
+            .map_while(|_| self.fast.pop_front())
+            .map(|(_, f)| f.msg)
+            .collect();
         Some(self.fast_frame(msgs))
     }
 

@@ -13,7 +13,8 @@
 //! ```
 //! A 32-byte position sample costs 1 (kind) + 1 (FAST) + 1 (len) + 35 (message) = 38 bytes.
 
-use super::varint::{len_u64, put_u64, take_u64};
+use crate::codec::varint::{len_u64, put_u64, take_u64};
+use crate::link::arq::AckInfo;
 
 /// First byte of a data datagram.
 pub const KIND_DATA: u8 = 0xA1;
@@ -23,17 +24,6 @@ const TAG_FAST: u8 = 0x01;
 const TAG_SAFE: u8 = 0x02;
 const TAG_SYN: u8 = 0x03;
 const TAG_ACK: u8 = 0x04;
-
-/// An acknowledgement of a receiver's state for one sender session.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct AckInfo {
-    /// The sender session acknowledged.
-    pub session: u32,
-    /// Every seq below this was received.
-    pub next: u32,
-    /// Bit i set: seq `next + 1 + i` was received as well.
-    pub sack: u64,
-}
 
 /// One entry of a data datagram, borrowing from the datagram.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

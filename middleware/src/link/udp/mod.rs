@@ -1,5 +1,5 @@
 //! The Ethernet link: UDP multicast for discovery (Hello, Heartbeat, Bye), UDP unicast for data,
-//! with the ARQ of [`crate::transport::arq`] for the safe class and batching of small messages
+//! with the ARQ of [`crate::link::arq`] for the safe class and batching of small messages
 //! into shared datagrams.
 //!
 //! Sending is inline when the link is idle (lowest latency: the caller's task writes the
@@ -7,10 +7,12 @@
 //! can be written (highest throughput: many messages share one datagram). Either way a peer's
 //! datagrams are written under that peer's lock, so fast messages are never reordered.
 
+pub mod datagram;
+
 use std::collections::VecDeque;
 use std::io;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -20,10 +22,12 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
-use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
-use crate::codec::datagram::{self, Datagram, DatagramWriter, Entry};
-use crate::transport::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
-use crate::transport::coalesce::CoalescingQueue;
+use super::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use super::coalesce::{CoalescingQueue, Pushed};
+use super::{
+    Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
+};
+use datagram::{Datagram, DatagramWriter, Entry};
 
 /// How the UDP link is set up (taken from `<ethernet>` in network.xml).
 #[derive(Debug, Clone)]
@@ -100,7 +104,7 @@ impl PeerState {
         PeerState {
             tx: ArqSender::new(rand::random(), arq),
             rx: ArqReceiver::new(arq.max_window),
-            fast: CoalescingQueue::new(),
+            fast: CoalescingQueue::new(MAX_FAST_QUEUE),
             fast_bytes: 0,
             safe: VecDeque::new(),
             blocked: VecDeque::new(),
@@ -117,18 +121,6 @@ impl PeerState {
     }
 }
 
-#[derive(Default)]
-struct Counters {
-    frames_out: AtomicU64,
-    frames_in: AtomicU64,
-    bytes_out: AtomicU64,
-    bytes_in: AtomicU64,
-    corrupt: AtomicU64,
-    retransmitted: AtomicU64,
-    duplicates: AtomicU64,
-    fast_dropped: AtomicU64,
-}
-
 /// The UDP link.
 pub struct UdpLink {
     index: usize,
@@ -143,7 +135,7 @@ pub struct UdpLink {
     peers: Mutex<FxHashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
-    counters: Counters,
+    counters: LinkCounters,
 }
 
 use crate::sync::lock;
@@ -227,7 +219,7 @@ impl UdpLink {
             peers: Mutex::new(FxHashMap::default()),
             wake: Notify::new(),
             handler,
-            counters: Counters::default(),
+            counters: LinkCounters::default(),
         });
         let l = link.clone();
         let c = cancel.clone();
@@ -350,10 +342,7 @@ impl UdpLink {
     }
 
     fn count_out(&self, n: usize) {
-        self.counters.frames_out.fetch_add(1, Ordering::Relaxed);
-        self.counters
-            .bytes_out
-            .fetch_add(n as u64, Ordering::Relaxed);
+        self.counters.count_out(n);
     }
 
     async fn transmit_loop(self: Arc<Self>, cancel: CancellationToken) {
@@ -457,10 +446,7 @@ impl UdpLink {
             };
             match r {
                 Ok((n, from)) => {
-                    self.counters.frames_in.fetch_add(1, Ordering::Relaxed);
-                    self.counters
-                        .bytes_in
-                        .fetch_add(n as u64, Ordering::Relaxed);
+                    self.counters.count_in(n);
                     match datagram::decode(&buf[..n]) {
                         Ok(Datagram::Discovery(msg)) => {
                             self.handler
@@ -484,10 +470,7 @@ impl UdpLink {
     }
 
     fn handle_datagram(&self, bytes: &[u8], from: SocketAddr, touched: &mut Vec<SocketAddr>) {
-        self.counters.frames_in.fetch_add(1, Ordering::Relaxed);
-        self.counters
-            .bytes_in
-            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        self.counters.count_in(bytes.len());
         let entries = match datagram::decode(bytes) {
             Ok(Datagram::Data(e)) => e,
             Ok(Datagram::Discovery(msg)) => {
@@ -601,10 +584,7 @@ impl Link for UdpLink {
             return;
         };
         let Some(p) = self.peer(addr, true) else {
-            if let Outgoing::Safe { done: Some(d), .. } = out {
-                let _ = d.send(Err(LinkSendError::PeerClosed(addr.to_string())));
-            }
-            return;
+            return out.refuse(addr);
         };
         let mut st = lock(&p);
         let now = Instant::now();
@@ -618,20 +598,18 @@ impl Link for UdpLink {
                     self.flush_locked(addr, &mut st, now);
                 }
                 match st.fast.push(coalesce, msg) {
-                    Some(old) => {
+                    Pushed::Replaced(old) => {
                         st.fast_bytes = st
                             .fast_bytes
                             .saturating_sub(DatagramWriter::fast_cost(old.len()))
                     }
-                    None if st.fast.len() > MAX_FAST_QUEUE => {
-                        if let Some((_, dropped)) = st.fast.pop_front() {
-                            st.fast_bytes = st
-                                .fast_bytes
-                                .saturating_sub(DatagramWriter::fast_cost(dropped.len()));
-                        }
+                    Pushed::DroppedOldest(dropped) => {
+                        st.fast_bytes = st
+                            .fast_bytes
+                            .saturating_sub(DatagramWriter::fast_cost(dropped.len()));
                         self.counters.fast_dropped.fetch_add(1, Ordering::Relaxed);
                     }
-                    None => {}
+                    Pushed::Queued => {}
                 }
                 st.fast_bytes += cost;
             }
@@ -675,17 +653,6 @@ impl Link for UdpLink {
     }
 
     fn stats(&self) -> LinkStats {
-        let c = &self.counters;
-        LinkStats {
-            frames_out: c.frames_out.load(Ordering::Relaxed),
-            frames_in: c.frames_in.load(Ordering::Relaxed),
-            bytes_out: c.bytes_out.load(Ordering::Relaxed),
-            bytes_in: c.bytes_in.load(Ordering::Relaxed),
-            corrupt: c.corrupt.load(Ordering::Relaxed),
-            retransmitted: c.retransmitted.load(Ordering::Relaxed),
-            duplicates: c.duplicates.load(Ordering::Relaxed),
-            fast_dropped: c.fast_dropped.load(Ordering::Relaxed),
-            ..self.gauges()
-        }
+        self.counters.stats(self.gauges())
     }
 }

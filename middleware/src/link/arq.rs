@@ -10,7 +10,16 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use crate::codec::datagram::AckInfo;
+/// An acknowledgement of a receiver's state for one sender session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AckInfo {
+    /// The sender session acknowledged.
+    pub session: u32,
+    /// Every seq below this was received.
+    pub next: u32,
+    /// Bit i set: seq `next + 1 + i` was received as well.
+    pub sack: u64,
+}
 
 /// Tuning of one ARQ session.
 #[derive(Debug, Clone, Copy)]

@@ -1,0 +1,132 @@
+//! The control thread of a shared-memory link: owns the iceoryx2 node and does what may wait
+//! on the file system (opening peers' inboxes, listing the host's nodes, removing dead ones'
+//! resources), never on a tokio worker.
+
+use std::sync::atomic::Ordering;
+use std::sync::{mpsc, Arc};
+use std::time::Instant;
+
+use super::inbox::{self, Node};
+use super::ShmLink;
+use crate::link::{LinkSendError, PeerAddr};
+use crate::sync::lock;
+
+/// Requests to the control thread.
+pub(super) enum Ctl {
+    /// Open the inbox of this peer.
+    Open(u64),
+    /// Open the bulk inbox of this peer.
+    OpenBulk(u64),
+    /// The link shuts down.
+    Stop,
+}
+
+/// The control thread's state.
+pub(super) struct Control {
+    pub(super) link: Arc<ShmLink>,
+    pub(super) node: Node,
+    pub(super) ctl: mpsc::Receiver<Ctl>,
+    pub(super) next_scan: Instant,
+}
+
+impl Control {
+    /// Serves requests and rescans until the link stops.
+    pub(super) fn run(mut self) {
+        loop {
+            let timeout = self.next_scan.saturating_duration_since(Instant::now());
+            match self.ctl.recv_timeout(timeout) {
+                Ok(Ctl::Open(id)) => self.connect(id),
+                Ok(Ctl::OpenBulk(id)) => self.open_bulk(id),
+                Ok(Ctl::Stop) | Err(mpsc::RecvTimeoutError::Disconnected) => break,
+                Err(mpsc::RecvTimeoutError::Timeout) => {}
+            }
+            if self.link.stop.load(Ordering::SeqCst) {
+                break;
+            }
+            if Instant::now() >= self.next_scan {
+                self.scan();
+            }
+        }
+    }
+
+    /// Opens the bulk inbox of peer `id` (asked for by its first large message) and writes
+    /// what waited for it; if it cannot be opened, large messages go fragmented into the safe
+    /// inbox.
+    fn open_bulk(&mut self, id: u64) {
+        let Some(p) = self.link.peer(id, false) else {
+            return;
+        };
+        let opened = inbox::open_bulk(&self.node, &self.link.options.service, id);
+        let mut st = lock(&p);
+        let ok = match opened {
+            Ok(b) => {
+                st.bulk = Some(b);
+                true
+            }
+            Err(e) => {
+                tracing::warn!(link = %self.link.options.name, peer = format_args!("{id:016x}"), error = %e, "cannot open the peer's bulk inbox; large messages go fragmented");
+                false
+            }
+        };
+        self.link
+            .with_tx(&mut st, |tx, w, c| tx.bulk_opened(ok, w, c));
+    }
+
+    /// Opens peer `id`'s inbox if it is not open yet, and writes what waited for it.
+    fn connect(&mut self, id: u64) {
+        let Some(p) = self.link.peer(id, true) else {
+            return;
+        };
+        if lock(&p).conn.is_some() {
+            return;
+        }
+        // Opening may wait (iceoryx2 retries a service still being created, e.g. by a peer
+        // starting up): not under the peer's lock, which every send to it takes. A publisher
+        // blocked 3 s in `set` while a restarted subscriber's inbox was being opened.
+        let opened = inbox::open_conn(&self.node, &self.link.options.service, id);
+        let mut st = lock(&p);
+        if st.conn.is_some() {
+            return;
+        }
+        match opened {
+            Ok(c) => {
+                st.conn = Some(c);
+                self.link.with_tx(&mut st, |tx, w, c| tx.opened(w, c));
+            }
+            Err(e) => {
+                tracing::debug!(link = %self.link.options.name, peer = format_args!("{id:016x}"), error = %e, "peer inbox not open yet");
+            }
+        }
+    }
+
+    /// Lists the host's iceoryx2 nodes: connects to the inboxes of the same `service` and
+    /// removes what dead ones left behind.
+    pub(super) fn scan(&mut self) {
+        let listing = inbox::list_nodes(&self.node, &self.link.options.service);
+        if let Some(e) = listing.error {
+            tracing::warn!(link = %self.link.options.name, error = %e, "listing shared-memory nodes failed");
+        }
+        for (id, dead) in listing.dead {
+            match dead.remove_stale() {
+                Ok(()) => {
+                    tracing::info!(link = %self.link.options.name, peer = format_args!("{id:016x}"), "removed resources of a dead shared-memory node")
+                }
+                Err(e) => {
+                    tracing::debug!(link = %self.link.options.name, error = %e, "dead node cleanup failed")
+                }
+            }
+            let p = lock(&self.link.peers).remove(&id);
+            if let Some(p) = p {
+                lock(&p)
+                    .tx
+                    .fail_all(&LinkSendError::PeerClosed(PeerAddr::Shm(id).to_string()));
+            }
+        }
+        for id in listing.alive {
+            if id != self.link.id {
+                self.connect(id);
+            }
+        }
+        self.next_scan = Instant::now() + self.link.options.scan;
+    }
+}

@@ -1,0 +1,391 @@
+//! Everything that touches iceoryx2: creating this link's inbox (its node, the fast, safe and
+//! bulk publish-subscribe services and the wake event), opening peers' inboxes for writing,
+//! reading samples, listing the host's nodes and watching the wake event from tokio. The
+//! machines in [`super::tx`] and [`super::rx`] see it only through their writer and I/O traits.
+
+use iceoryx2::node::{Node as IoxNode, NodeBuilder, NodeState, NodeView};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::{
+    ipc_threadsafe, AllocationStrategy, AttributeSpecifier, BackpressureStrategy,
+    CallbackProgression, LogLevel, NodeName, ServiceName, SignalHandlingMode,
+};
+use iceoryx2::service::attribute::{AttributeKey, AttributeValue};
+use iceoryx2::service::port_factory::PortFactory;
+
+use super::frame::{self, Part};
+use super::{
+    ShmLinkOpenError, ShmLinkOptions, ShmWait, BULK_BUFFER, BULK_MAX, FAST_BUFFER, FRAME_MAX,
+    MAX_PEERS, SAFE_BUFFER,
+};
+
+pub(super) type Ipc = ipc_threadsafe::Service;
+pub(super) type Pub = Publisher<Ipc, [u8], ()>;
+type Sub = Subscriber<Ipc, [u8], ()>;
+/// The iceoryx2 node of a link.
+pub(super) type Node = IoxNode<Ipc>;
+
+/// The wake event's attribute telling writers how the inbox's reader waits.
+const WAIT_ATTRIBUTE: &str = "marea.wait";
+
+/// The writing side of a peer's inbox.
+pub(super) struct Conn {
+    pub(super) fast: Pub,
+    pub(super) safe: Pub,
+    wake: Notifier<Ipc>,
+    /// The peer busy-polls its inbox (`wait="spin"`): never notify it.
+    pub(super) spins: bool,
+}
+
+impl Conn {
+    pub(super) fn wake(&self) {
+        if !self.spins {
+            let _ = self.wake.notify();
+        }
+    }
+}
+
+pub(super) fn node_prefix(service: &str) -> String {
+    format!("marea/{service}/")
+}
+
+fn inbox_name(service: &str, id: u64, part: &str) -> String {
+    format!("marea/{service}/{id:016x}/{part}")
+}
+
+/// The receiving side, created before the link: the node goes to the control thread, the
+/// reader and the listener to the receive task.
+pub(super) struct Inbox {
+    pub(super) node: Node,
+    pub(super) reader: InboxReader,
+    pub(super) listener: Listener<Ipc>,
+    /// Wakes our own receiver (control requests, shutdown).
+    pub(super) self_wake: Notifier<Ipc>,
+}
+
+/// A notifier of our own wake event.
+pub(super) type SelfWake = Notifier<Ipc>;
+
+/// The subscribers of this link's inbox.
+pub(super) struct InboxReader {
+    safe: Sub,
+    fast: Sub,
+    bulk: Sub,
+    /// Link name, for the log.
+    link: String,
+}
+
+/// A sample read in place from the inbox.
+pub(super) struct InboxSample(iceoryx2::sample::Sample<Ipc, [u8], ()>);
+
+impl AsRef<[u8]> for InboxSample {
+    fn as_ref(&self) -> &[u8] {
+        self.0.payload()
+    }
+}
+
+impl InboxReader {
+    /// Takes the oldest sample of `part`. A failure to read is logged and reads as empty.
+    pub(super) fn take(&mut self, part: Part) -> Option<InboxSample> {
+        let sub = match part {
+            Part::Safe => &self.safe,
+            Part::Fast => &self.fast,
+            Part::Bulk => &self.bulk,
+        };
+        match sub.receive() {
+            Ok(s) => s.map(InboxSample),
+            Err(e) => {
+                tracing::warn!(link = %self.link, part = ?part, error = ?e, "receiving from the shared-memory inbox failed");
+                None
+            }
+        }
+    }
+}
+
+fn service_name(s: &str) -> Result<ServiceName, String> {
+    ServiceName::new(s).map_err(|e| format!("invalid service name {s}: {e:?}"))
+}
+
+impl Inbox {
+    /// Creates the iceoryx2 node and the inbox of link `id`.
+    pub(super) fn create(options: &ShmLinkOptions, id: u64) -> Result<Inbox, ShmLinkOpenError> {
+        // iceoryx2 logs to stderr; keep it to errors unless the user asks for more.
+        iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
+        let link = options.name.clone();
+        let node_err = |reason: String| ShmLinkOpenError::Node {
+            link: link.clone(),
+            reason,
+        };
+        let name = NodeName::new(&format!("{}{id:016x}", node_prefix(&options.service)))
+            .map_err(|e| node_err(format!("{e:?}")))?;
+        let node = NodeBuilder::new()
+            .name(&name)
+            // The process owns its signals (tokio's ctrl_c); iceoryx2 must not take them.
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Ipc>()
+            .map_err(|e| node_err(format!("{e:?}")))?;
+        // A process killed earlier may have left services behind: remove them before anything
+        // reads them.
+        let cleaned = node.try_cleanup_dead_nodes();
+        if cleaned.cleanups > 0 {
+            tracing::info!(link = %options.name, dead = cleaned.cleanups, "removed resources of dead shared-memory nodes");
+        }
+        let inbox_err = |what: &str, reason: String| ShmLinkOpenError::Inbox {
+            link: options.name.clone(),
+            what: what.to_owned(),
+            reason,
+        };
+        let svc = &options.service;
+        let open_pubsub = |part: &str, overflow: bool, buffer: usize| {
+            let n = service_name(&inbox_name(svc, id, part)).map_err(|e| inbox_err(part, e))?;
+            // The service only records its settings; the memory is the writers', allocated
+            // when each opens a publisher.
+            let s = pubsub_builder(&node, &n, overflow, buffer)
+                .create()
+                .map_err(|e| inbox_err(part, format!("{e:?}")))?;
+            s.subscriber_builder()
+                .buffer_size(buffer)
+                .create()
+                .map_err(|e| inbox_err(part, format!("{e:?}")))
+        };
+        let safe = open_pubsub("safe", false, SAFE_BUFFER)?;
+        let fast = open_pubsub("fast", true, FAST_BUFFER)?;
+        let bulk = open_pubsub("bulk", false, BULK_BUFFER)?;
+        let wn = service_name(&inbox_name(svc, id, "wake")).map_err(|e| inbox_err("wake", e))?;
+        // Writers read how this inbox's reader waits from the wake event's attributes.
+        let attributes =
+            wait_attribute(options.wait).map_err(|e| inbox_err("wake attribute", e))?;
+        let wake = event_builder(&node, &wn)
+            .create_with_attributes(&attributes)
+            .map_err(|e| inbox_err("wake", format!("{e:?}")))?;
+        let listener = wake
+            .listener_builder()
+            .create()
+            .map_err(|e| inbox_err("wake listener", format!("{e:?}")))?;
+        let self_wake = wake
+            .notifier_builder()
+            .create()
+            .map_err(|e| inbox_err("wake notifier", format!("{e:?}")))?;
+        Ok(Inbox {
+            node,
+            reader: InboxReader {
+                safe,
+                fast,
+                bulk,
+                link: options.name.clone(),
+            },
+            listener,
+            self_wake,
+        })
+    }
+}
+
+fn pubsub_builder<'a>(
+    node: &'a IoxNode<Ipc>,
+    name: &'a ServiceName,
+    overflow: bool,
+    buffer: usize,
+) -> iceoryx2::service::builder::publish_subscribe::Builder<[u8], (), Ipc> {
+    node.service_builder(name)
+        .publish_subscribe::<[u8]>()
+        .enable_safe_overflow(overflow)
+        .subscriber_max_buffer_size(buffer)
+        .history_size(0)
+        .max_subscribers(1)
+        .max_publishers(MAX_PEERS + 1)
+        .max_nodes(MAX_PEERS + 1)
+}
+
+fn wait_key() -> Result<AttributeKey, String> {
+    AttributeKey::try_from(WAIT_ATTRIBUTE).map_err(|e| format!("{e:?}"))
+}
+
+fn wait_attribute(wait: ShmWait) -> Result<AttributeSpecifier, String> {
+    let value = AttributeValue::try_from(wait.as_str()).map_err(|e| format!("{e:?}"))?;
+    AttributeSpecifier::new()
+        .define(&wait_key()?, &value)
+        .map_err(|e| format!("{e:?}"))
+}
+
+fn event_builder<'a>(
+    node: &'a IoxNode<Ipc>,
+    name: &'a ServiceName,
+) -> iceoryx2::service::builder::event::Builder<Ipc> {
+    node.service_builder(name)
+        .event()
+        .max_listeners(1)
+        .max_notifiers(MAX_PEERS + 2)
+        .max_nodes(MAX_PEERS + 1)
+}
+
+/// Opens a publisher on part `part` of peer `id`'s inbox, its samples up to `max` bytes.
+fn open_pub(
+    node: &IoxNode<Ipc>,
+    service: &str,
+    id: u64,
+    (part, overflow, buffer, max): (&str, bool, usize, usize),
+) -> Result<Pub, String> {
+    let n = service_name(&inbox_name(service, id, part))?;
+    let s = pubsub_builder(node, &n, overflow, buffer)
+        .open()
+        .map_err(|e| format!("{part}: {e:?}"))?;
+    s.publisher_builder()
+        .initial_max_slice_len(max)
+        .allocation_strategy(AllocationStrategy::Static)
+        .max_loaned_samples(2)
+        .backpressure_strategy(BackpressureStrategy::DiscardData)
+        .create()
+        .map_err(|e| format!("{part} publisher: {e:?}"))
+}
+
+/// Opens the writing side of peer `id`'s bulk inbox.
+pub(super) fn open_bulk(node: &Node, service: &str, id: u64) -> Result<Pub, String> {
+    open_pub(node, service, id, ("bulk", false, BULK_BUFFER, BULK_MAX))
+}
+
+/// Opens the writing side of peer `id`'s inbox (it must exist).
+pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, String> {
+    let safe = open_pub(node, service, id, ("safe", false, SAFE_BUFFER, FRAME_MAX))?;
+    let fast = open_pub(node, service, id, ("fast", true, FAST_BUFFER, FRAME_MAX))?;
+    let wn = service_name(&inbox_name(service, id, "wake"))?;
+    let wake = event_builder(node, &wn)
+        .open()
+        .map_err(|e| format!("wake: {e:?}"))?;
+    // An inbox without the attribute (or with a mode we do not know) is woken on every send.
+    let spins = wake
+        .attributes()
+        .key_value(&wait_key()?, 0)
+        .is_some_and(|v| v == ShmWait::Spin.as_str());
+    let wake = wake
+        .notifier_builder()
+        .create()
+        .map_err(|e| format!("wake notifier: {e:?}"))?;
+    Ok(Conn {
+        fast,
+        safe,
+        wake,
+        spins,
+    })
+}
+
+/// Writes one frame into `publisher`. Returns whether the inbox took it (a non-overflowing
+/// inbox refuses frames while its buffer is full).
+pub(super) fn put(
+    publisher: &Pub,
+    kind: u8,
+    sender: u64,
+    session: u32,
+    seq: u64,
+    body: &[u8],
+) -> bool {
+    let h = frame::header_len(kind);
+    let Ok(mut sample) = publisher.loan_slice(h + body.len()) else {
+        return false;
+    };
+    let out = sample.payload_mut();
+    frame::write_header(out, kind, sender, session, seq);
+    out[h..].copy_from_slice(body);
+    matches!(sample.send(), Ok(n) if n > 0)
+}
+
+/// The wake listener as tokio's reactor sees it: its socket turns readable when a writer
+/// notifies.
+///
+/// The only `unsafe` of the crate (the workspace denies it elsewhere): iceoryx2 hands out the
+/// listener's descriptor and tokio registers one only through `unsafe` functions, because
+/// neither can check that a raw descriptor stays open. Here it does: the listener that owns it
+/// lives inside this wrapper, which the `AsyncFd` owns until it deregisters the descriptor.
+pub(super) struct WakeFd(Listener<Ipc>);
+
+impl WakeFd {
+    /// Registers `listener`'s socket with the current tokio reactor for readability.
+    #[allow(unsafe_code)]
+    pub(super) fn watch(
+        listener: Listener<Ipc>,
+    ) -> std::io::Result<tokio::io::unix::AsyncFd<WakeFd>> {
+        // SAFETY: see the type's documentation; `as_raw_fd` returns the same descriptor, open
+        // for as long as the wrapper (and so the AsyncFd) exists.
+        unsafe {
+            tokio::io::unix::AsyncFd::register_with_interest(
+                WakeFd(listener),
+                tokio::io::Interest::READABLE,
+            )
+        }
+        .map_err(std::io::Error::from)
+    }
+}
+
+impl WakeFd {
+    /// Consumes the pending notifications; returns how many there were.
+    pub(super) fn consume(&self) -> Result<u64, String> {
+        self.0.try_wait(|_| {}).map_err(|e| format!("{e:?}"))
+    }
+}
+
+impl std::os::fd::AsRawFd for WakeFd {
+    #[allow(unsafe_code)]
+    fn as_raw_fd(&self) -> std::os::fd::RawFd {
+        use iceoryx2::prelude::FileDescriptorBased;
+        // SAFETY: iceoryx2 asks only that the descriptor is neither closed by hand nor used
+        // past the listener's life; it is only polled for readiness while the listener lives.
+        unsafe { self.0.file_descriptor().native_handle() }
+    }
+}
+
+/// A dead node's leftovers, found by [`list_nodes`].
+pub(super) struct DeadNode(iceoryx2::node::DeadNodeView<Ipc>);
+
+impl DeadNode {
+    /// Removes what the dead node left behind.
+    pub(super) fn remove_stale(self) -> Result<(), String> {
+        self.0
+            .try_remove_stale_resources()
+            .map_err(|e| format!("{e:?}"))
+    }
+}
+
+/// The host's iceoryx2 nodes of one service.
+pub(super) struct Listing {
+    /// Ids of live inboxes (ours included).
+    pub(super) alive: Vec<u64>,
+    /// Dead nodes and their ids.
+    pub(super) dead: Vec<(u64, DeadNode)>,
+    /// Listing stopped early: what is listed is what was seen before.
+    pub(super) error: Option<String>,
+}
+
+/// Lists the host's iceoryx2 nodes of `service`.
+pub(super) fn list_nodes(node: &Node, service: &str) -> Listing {
+    let prefix = node_prefix(service);
+    let mut alive = Vec::new();
+    let mut dead = Vec::new();
+    let listed = IoxNode::<Ipc>::list(node.config(), |state| {
+        let id_of = |details: &Option<iceoryx2::node::NodeDetails>| {
+            details
+                .as_ref()
+                .and_then(|d| d.name().as_str().strip_prefix(prefix.as_str()))
+                .and_then(|hex| u64::from_str_radix(hex, 16).ok())
+        };
+        match state {
+            NodeState::Alive(v) => {
+                if let Some(id) = id_of(v.details()) {
+                    alive.push(id);
+                }
+            }
+            NodeState::Dead(v) => {
+                if let Some(id) = id_of(v.details()) {
+                    dead.push((id, DeadNode(v)));
+                }
+            }
+            NodeState::Inaccessible(_) | NodeState::Undefined(_) => {}
+        }
+        CallbackProgression::Continue
+    });
+    Listing {
+        alive,
+        dead,
+        error: listed.err().map(|e| format!("{e:?}")),
+    }
+}

@@ -1,0 +1,352 @@
+//! The sending side towards one peer, as a pure state machine over an [`InboxWriter`]: safe
+//! messages get a session and sequence numbers, are cut into frames (bodies of large ones
+//! going to the bulk inbox), wait while the peer's safe inbox is full, and complete when the
+//! peer acknowledges them; fast messages wait in a bounded newest-wins queue until the inbox
+//! is open.
+//!
+//! Why not [`crate::link::arq`]: shared memory loses nothing once a sample is accepted, so
+//! there is no retransmission timer, no window and no selective acknowledgement. The only
+//! failure is a full buffer, which refuses the frame: the writer keeps it and retries when the
+//! peer acknowledges (its buffer has room again) or on the receiver's retry timer. What the two
+//! share is the cumulative acknowledgement completing `done`, a few lines each.
+
+use std::collections::VecDeque;
+
+use super::frame::{self, Part};
+use super::{BULK_MAX, FRAME_MAX, MAX_FAST_BACKLOG};
+use crate::link::coalesce::{CoalescingQueue, Pushed};
+use crate::link::{LinkCounters, LinkSendError, SafeCompletion};
+use std::sync::atomic::Ordering;
+
+/// The writing side of one peer's inbox, as the sending machine sees it.
+pub(crate) trait InboxWriter {
+    /// Whether the peer's inbox (fast and safe parts) is open for writing.
+    fn is_open(&self) -> bool;
+    /// Writes one frame (from us) into `part` of the peer's inbox. Returns whether the inbox took it (a
+    /// full safe or bulk buffer refuses it; a part not open refuses everything).
+    fn put(&mut self, part: Part, kind: u8, session: u32, seq: u64, body: &[u8]) -> bool;
+    /// Wakes the peer's reader (if it sleeps on its wake event).
+    fn wake(&mut self);
+    /// Asks for the peer's bulk inbox to be opened; [`PeerTx::bulk_opened`] follows.
+    fn open_bulk(&mut self);
+}
+
+/// Whether large fragments can go to the peer's bulk inbox.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum BulkState {
+    /// Not asked for yet: the peer never received anything large.
+    Closed,
+    /// Asked for; large fragments wait.
+    Opening,
+    Open,
+    /// Opening failed: large messages are fragmented into the safe inbox instead.
+    Unavailable,
+}
+
+/// A safe message not yet wholly written into the peer's inbox.
+struct Pending {
+    msg: Vec<u8>,
+    /// Bytes already written (fragments accepted by the inbox).
+    sent: usize,
+    done: Option<SafeCompletion>,
+    /// A large fast message riding the safe path (dropped first when the backlog is long).
+    fast: bool,
+    /// The body of the fragment at `sent` is in the bulk inbox; its `Bulk` frame is not yet.
+    bulk_written: bool,
+}
+
+impl Pending {
+    fn new(msg: Vec<u8>, done: Option<SafeCompletion>, fast: bool) -> Self {
+        Pending {
+            msg,
+            sent: 0,
+            done,
+            fast,
+            bulk_written: false,
+        }
+    }
+}
+
+/// What this link sends to one peer.
+pub(crate) struct PeerTx {
+    session: u32,
+    next_seq: u64,
+    bulk: BulkState,
+    /// Fast messages waiting for the inbox to be opened.
+    fast_backlog: CoalescingQueue<u32, Vec<u8>>,
+    safe_backlog: VecDeque<Pending>,
+    /// Written, waiting for the peer's acknowledgement.
+    unacked: VecDeque<(u64, SafeCompletion)>,
+    /// The inbox refused a frame: wait for an acknowledgement (or the retry timer).
+    blocked: bool,
+}
+
+impl PeerTx {
+    /// A fresh sending side in session `session` (random in use, so a restarted sender is
+    /// told apart).
+    pub(crate) fn new(session: u32) -> Self {
+        PeerTx {
+            session,
+            next_seq: 0,
+            bulk: BulkState::Closed,
+            fast_backlog: CoalescingQueue::new(MAX_FAST_BACKLOG),
+            safe_backlog: VecDeque::new(),
+            unacked: VecDeque::new(),
+            blocked: false,
+        }
+    }
+
+    /// Whether safe frames wait to be written.
+    pub(crate) fn has_backlog(&self) -> bool {
+        !self.safe_backlog.is_empty()
+    }
+
+    /// Sends a best-effort message: straight into the fast inbox, or queued (newest per key
+    /// wins) until the inbox opens, or (too large for a frame) on the safe path.
+    pub(crate) fn send_fast(
+        &mut self,
+        w: &mut impl InboxWriter,
+        c: &LinkCounters,
+        coalesce: Option<u32>,
+        msg: Vec<u8>,
+    ) {
+        if !w.is_open() {
+            if let Pushed::DroppedOldest(_) = self.fast_backlog.push(coalesce, msg) {
+                c.fast_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            return;
+        }
+        if msg.len() + frame::BASE <= FRAME_MAX {
+            if w.put(Part::Fast, frame::FAST, 0, 0, &msg) {
+                c.count_out(frame::BASE + msg.len());
+                w.wake();
+            } else {
+                c.fast_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            return;
+        }
+        // Too large for one frame: ride the safe path, unless the reader is far behind.
+        let queued_fast = self.safe_backlog.iter().filter(|p| p.fast).count();
+        if queued_fast >= MAX_FAST_BACKLOG {
+            c.fast_dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        self.safe_backlog.push_back(Pending::new(msg, None, true));
+        if !self.blocked && self.flush_safe(w, c) {
+            w.wake();
+        }
+    }
+
+    /// Sends a reliable message; `done` completes when the peer acknowledges it.
+    pub(crate) fn send_safe(
+        &mut self,
+        w: &mut impl InboxWriter,
+        c: &LinkCounters,
+        msg: Vec<u8>,
+        done: Option<SafeCompletion>,
+    ) {
+        self.safe_backlog.push_back(Pending::new(msg, done, false));
+        if !self.blocked && self.flush_safe(w, c) {
+            w.wake();
+        }
+    }
+
+    /// The peer's inbox was just opened: writes what waited for it, then wakes the peer.
+    pub(crate) fn opened(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) {
+        if !w.is_open() {
+            return;
+        }
+        let mut wrote = false;
+        while let Some((_, msg)) = self.fast_backlog.pop_front() {
+            if msg.len() + frame::BASE <= FRAME_MAX {
+                if w.put(Part::Fast, frame::FAST, 0, 0, &msg) {
+                    c.count_out(frame::BASE + msg.len());
+                    wrote = true;
+                }
+            } else {
+                self.safe_backlog.push_back(Pending::new(msg, None, true));
+            }
+        }
+        self.blocked = false;
+        wrote |= self.flush_safe(w, c);
+        if wrote {
+            w.wake();
+        }
+    }
+
+    /// The bulk inbox asked for by [`InboxWriter::open_bulk`] is open (`ok`) or cannot be
+    /// (large messages then go fragmented into the safe inbox); writes what waited for it.
+    pub(crate) fn bulk_opened(&mut self, ok: bool, w: &mut impl InboxWriter, c: &LinkCounters) {
+        self.bulk = if ok {
+            BulkState::Open
+        } else {
+            BulkState::Unavailable
+        };
+        self.retry(w, c);
+    }
+
+    /// Tries again to write what the peer's inbox refused (it acknowledged, so it has room, or
+    /// the retry timer ran out).
+    pub(crate) fn retry(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) {
+        self.blocked = false;
+        if self.flush_safe(w, c) {
+            w.wake();
+        }
+    }
+
+    /// Writes as much of the safe backlog as the peer's inbox takes. Returns whether anything
+    /// was written (the peer then needs waking).
+    ///
+    /// A fragment longer than a safe frame carries its body in the bulk inbox: the body first
+    /// (a `BulkData` sample), then its `Bulk` frame in the safe inbox, so the reader, meeting
+    /// the frame in order, finds the body already there.
+    fn flush_safe(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> bool {
+        if !w.is_open() {
+            return false;
+        }
+        let inline_max = FRAME_MAX - frame::SEQUENCED;
+        let bulk_max = BULK_MAX - frame::SEQUENCED;
+        let session = self.session;
+        let mut wrote = false;
+        while let Some(p) = self.safe_backlog.front_mut() {
+            let left = p.msg.len() - p.sent;
+            let use_bulk = if left > inline_max {
+                match self.bulk {
+                    BulkState::Open => true,
+                    BulkState::Unavailable => false,
+                    BulkState::Opening => break,
+                    BulkState::Closed => {
+                        self.bulk = BulkState::Opening;
+                        w.open_bulk();
+                        break;
+                    }
+                }
+            } else {
+                false
+            };
+            let n = left.min(if use_bulk { bulk_max } else { inline_max });
+            let more = p.sent + n < p.msg.len();
+            let body = &p.msg[p.sent..p.sent + n];
+            let seq = self.next_seq;
+            let written = if use_bulk {
+                if !p.bulk_written {
+                    if !w.put(Part::Bulk, frame::BULK_DATA, session, seq, body) {
+                        self.blocked = true;
+                        c.retransmitted.fetch_add(1, Ordering::Relaxed);
+                        break;
+                    }
+                    c.count_out(frame::SEQUENCED + n);
+                    p.bulk_written = true;
+                }
+                let kind = if more { frame::BULK_MORE } else { frame::BULK };
+                w.put(Part::Safe, kind, session, seq, &[])
+                    .then_some(frame::SEQUENCED)
+            } else {
+                let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
+                w.put(Part::Safe, kind, session, seq, body)
+                    .then_some(frame::SEQUENCED + n)
+            };
+            let Some(bytes) = written else {
+                self.blocked = true;
+                c.retransmitted.fetch_add(1, Ordering::Relaxed);
+                break;
+            };
+            c.count_out(bytes);
+            wrote = true;
+            p.sent += n;
+            p.bulk_written = false;
+            if !more {
+                if let Some(done) = p.done.take() {
+                    self.unacked.push_back((seq, done));
+                }
+                self.safe_backlog.pop_front();
+            }
+            self.next_seq += 1;
+        }
+        wrote
+    }
+
+    /// The peer acknowledged everything up to `seq` of `session`: unblocks the writer and
+    /// returns the completions now due, or `None` when the acknowledgement is of another
+    /// session (a stale one, from before a restart of ours).
+    pub(crate) fn on_ack(&mut self, session: u32, seq: u64) -> Option<Vec<SafeCompletion>> {
+        if self.session != session {
+            return None;
+        }
+        self.blocked = false;
+        let mut done = Vec::new();
+        while self.unacked.front().is_some_and(|(s, _)| *s <= seq) {
+            if let Some((_, d)) = self.unacked.pop_front() {
+                done.push(d);
+            }
+        }
+        Some(done)
+    }
+
+    /// Fails everything queued or unacknowledged with `err`.
+    pub(crate) fn fail_all(&mut self, err: &LinkSendError) {
+        for p in self.safe_backlog.drain(..) {
+            if let Some(d) = p.done {
+                let _ = d.send(Err(err.clone()));
+            }
+        }
+        for (_, d) in self.unacked.drain(..) {
+            let _ = d.send(Err(err.clone()));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::sim::{acked, SimHost};
+    use super::super::FAST_BUFFER;
+    use std::sync::atomic::Ordering;
+
+    const A: u64 = 0xA;
+    const B: u64 = 0xB;
+
+    #[test]
+    fn a_full_safe_buffer_holds_the_writer_back_until_acknowledged() {
+        // B's safe inbox buffers 4 frames per writer.
+        let mut h = SimHost::new(&[A, B], 4);
+        let mut dones: Vec<_> = (0..20u8).map(|i| h.send_safe(A, B, vec![i; 3])).collect();
+        // Only what the buffer takes is written; the rest waits, and the refusal is counted.
+        assert_eq!(h.inboxes[&B].safe.q.len(), 4);
+        let refused = h.nodes[&A].counters.retransmitted.load(Ordering::Relaxed);
+        assert!(refused >= 1, "the refusal is counted");
+        assert!(
+            dones.iter_mut().all(|d| !acked(d)),
+            "nothing acknowledged yet"
+        );
+        // A does not retry on its own before B acknowledges or the retry timer runs out.
+        h.send_safe(A, B, vec![99]);
+        assert_eq!(h.inboxes[&B].safe.q.len(), 4, "a blocked writer waits");
+        h.run(200);
+        let got = h.messages(B);
+        let expected: Vec<(u64, Vec<u8>)> = (0..20u8)
+            .map(|i| (A, vec![i; 3]))
+            .chain(std::iter::once((A, vec![99])))
+            .collect();
+        assert_eq!(got, expected, "every message once, in order");
+        assert!(dones.iter_mut().all(acked), "every message acknowledged");
+        assert_eq!(h.nodes[&B].counters.duplicates.load(Ordering::Relaxed), 0);
+        assert_eq!(h.nodes[&B].counters.corrupt.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn fast_messages_overflow_the_oldest_and_large_ones_ride_the_safe_path() {
+        let mut h = SimHost::standard(&[A, B]);
+        for i in 0..(FAST_BUFFER as u32 + 10) {
+            h.send_fast(A, B, Some(1), i.to_le_bytes().to_vec());
+        }
+        let big = vec![7u8; super::FRAME_MAX * 2];
+        h.send_fast(A, B, None, big.clone());
+        h.run(50);
+        let got = h.messages(B);
+        // The fast buffer kept the newest frames; the large one arrived whole.
+        assert_eq!(got.len(), FAST_BUFFER + 1);
+        assert!(got.contains(&(A, big)));
+        let last = (FAST_BUFFER as u32 + 9).to_le_bytes().to_vec();
+        assert!(got.contains(&(A, last)), "the newest fast value survives");
+    }
+}
