@@ -185,6 +185,7 @@ impl Node {
             tasks: TaskTracker::new(),
             cancel: CancellationToken::new(),
             counters: Default::default(),
+            path_switches: Default::default(),
             routing: Mutex::new(()),
             // The pseudo-service id is the first id handed out (ids start at 1).
             gateway: forwards.then(|| crate::node::gateway::Gateway::new(1)),

@@ -68,7 +68,7 @@ impl NodeInner {
     }
 
     /// Handles Hello, Heartbeat and Bye, whether multicast or inside a session.
-    pub fn on_discovery(&self, link: usize, from: PeerAddr, msg: Message) {
+    pub fn on_discovery(self: &Arc<Self>, link: usize, from: PeerAddr, msg: Message) {
         match msg {
             Message::Hello {
                 node_id,
@@ -151,27 +151,24 @@ impl NodeInner {
     /// its messages on every path it was heard on (it may still be sending on another one), but
     /// send on one only: the best by [`path_rank`], so a same-host peer that also shares shared
     /// memory is reached over it and never twice. Both ends apply the same rule, so they agree.
-    fn also_reached(&self, node: NodeId, link: usize, from: PeerAddr) {
+    ///
+    /// The move itself waits for what is in flight on the old path (`path_switch`): our Hello
+    /// then opens the session on the new path, so the peer knows us there before anything
+    /// else we send on it, and the safe messages sent meanwhile follow it, in order.
+    fn also_reached(self: &Arc<Self>, node: NodeId, link: usize, from: PeerAddr) {
         if self.addrs.get(&(link, from)).is_none_or(|e| *e != node) {
             self.addrs.insert((link, from), node);
         }
-        {
-            let Some(mut p) = self.peers.get_mut(&node) else {
+        let (old, lease) = {
+            let Some(p) = self.peers.get(&node) else {
                 return;
             };
             if (p.link, p.addr) == (link, from) || path_rank(&from) <= path_rank(&p.addr) {
                 return;
             }
-            tracing::info!(peer = %p.name, was = %p.addr, now = %from, "peer reached over a better link");
-            p.link = link;
-            p.addr = from;
-        }
-        // Our Hello opens the session on the new path, so the peer knows us there before
-        // anything else we send on it.
-        self.send_safe(link, from, &self.hello(link));
-        self.recompute_routes();
-        self.recompute_forwarding();
-        self.bump();
+            ((p.link, p.addr), p.lease)
+        };
+        self.switch_path(node, old, (link, from), lease);
     }
 
     /// A peer is alive; ask for declarations if its counter is ahead of ours.
@@ -237,6 +234,7 @@ impl NodeInner {
                 l.close_peer(addr);
             }
         }
+        self.path_switches.forget(node);
         self.calls.fail_to(node, reason);
         self.transfers.peer_lost(node, &p.name, reason);
         self.gateway_peer_lost(node);

@@ -10,6 +10,7 @@ pub(crate) mod files;
 pub(crate) mod gateway;
 pub(crate) mod health;
 pub(crate) mod mailbox;
+pub(crate) mod path_switch;
 pub(crate) mod session;
 
 use std::collections::HashMap;
@@ -188,6 +189,8 @@ pub(crate) struct NodeInner {
     /// Held for a whole route computation: two computations interleaving could write routes
     /// from an older snapshot over newer ones (a subscriber would then miss a publisher).
     pub routing: Mutex<()>,
+    /// Peers being moved to a better path, whose safe messages wait for the old one to drain.
+    pub path_switches: path_switch::PathSwitches,
 }
 
 /// Things a node counts (dropped input among them).
@@ -228,9 +231,7 @@ impl NodeInner {
 
     /// Sends a message to a peer on its link.
     pub fn send_to(&self, link: usize, addr: PeerAddr, out: Outgoing) {
-        if let Some(l) = self.links().get(link) {
-            l.send(addr, out);
-        }
+        self.path_switches.send(self.links(), (link, addr), out);
     }
 
     /// Sends a safe message and forgets about its acknowledgement.

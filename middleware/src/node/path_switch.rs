@@ -1,0 +1,282 @@
+//! Moving a peer to a better path without reordering its safe messages.
+//!
+//! A peer first heard over UDP may later be heard over shared memory too, and is then reached
+//! over shared memory only (see `discovery::path_rank`). Each link keeps its own safe stream in
+//! order, but two links are two streams: an event still in flight on the old path would arrive
+//! after the events sent next on the new one. So a switch drains the old path first: from the
+//! moment it starts, safe messages for the old path are held, in order; a marker goes out on the
+//! old path, and once the peer acknowledged it (everything sent before it arrived) or its lease
+//! ran out, the switch is made, the peer's Hello opens the new path and the held messages follow
+//! on it. Messages that still name the old path afterwards (a route copied just before the
+//! switch) are redirected to the new one.
+//!
+//! Fast messages are best effort, without an order between them to keep: they are never held
+//! (and go where their route says; routes are recomputed when the switch is made).
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
+
+use super::NodeInner;
+use crate::codec::encode_message;
+use crate::link::{Link, Outgoing, PeerAddr};
+use crate::protocol::NodeId;
+use crate::sync::lock;
+
+/// A path: a link and the peer's address on it.
+pub(crate) type Path = (usize, PeerAddr);
+
+/// A path being left, or left.
+struct Switch {
+    node: NodeId,
+    to: Path,
+    /// Safe messages for the old path while it drains; `None` once the switch is made.
+    held: Mutex<Option<Vec<Outgoing>>>,
+}
+
+/// The switches of one node, keyed by the path left.
+#[derive(Default)]
+pub(crate) struct PathSwitches {
+    /// Read for every safe send (held across the link's `send`), written to start or make a
+    /// switch: a safe message is then either sent before the marker or held. A switch made
+    /// stays (redirecting) until its peer is forgotten.
+    map: RwLock<HashMap<Path, Switch>>,
+}
+
+impl PathSwitches {
+    /// Sends `out` to `path` on `links`, holding or redirecting it while that path is left.
+    pub(crate) fn send(&self, links: &[Arc<dyn Link>], path: Path, out: Outgoing) {
+        if matches!(out, Outgoing::Fast { .. }) {
+            return send_on(links, path, out);
+        }
+        let map = self.map.read().unwrap_or_else(|e| e.into_inner());
+        let Some(s) = map.get(&path) else {
+            return send_on(links, path, out);
+        };
+        if let Some(held) = lock(&s.held).as_mut() {
+            held.push(out);
+            return;
+        }
+        send_on(links, s.to, out);
+    }
+
+    /// Starts leaving `from` for `to` (both reaching `node`). Returns `false` when `from` is
+    /// being left already.
+    fn start(&self, node: NodeId, from: Path, to: Path) -> bool {
+        let mut map = self.map.write().unwrap_or_else(|e| e.into_inner());
+        if map.contains_key(&from) {
+            return false;
+        }
+        map.insert(
+            from,
+            Switch {
+                node,
+                to,
+                held: Mutex::new(Some(Vec::new())),
+            },
+        );
+        true
+    }
+
+    /// Forgets the switches of `node` (it is gone); what they held is refused.
+    pub(crate) fn forget(&self, node: NodeId) {
+        let mut map = self.map.write().unwrap_or_else(|e| e.into_inner());
+        let gone: Vec<Path> = map
+            .iter()
+            .filter(|(_, s)| s.node == node)
+            .map(|(p, _)| *p)
+            .collect();
+        for path in gone {
+            if let Some(s) = map.remove(&path) {
+                for out in lock(&s.held).take().unwrap_or_default() {
+                    out.refuse(path.1);
+                }
+            }
+        }
+    }
+}
+
+fn send_on(links: &[Arc<dyn Link>], (link, addr): Path, out: Outgoing) {
+    if let Some(l) = links.get(link) {
+        l.send(addr, out);
+    }
+}
+
+impl NodeInner {
+    /// Moves `node` from the path `from` to the better path `to`, keeping its safe messages in
+    /// order (see the module doc).
+    pub(crate) fn switch_path(
+        self: &Arc<Self>,
+        node: NodeId,
+        from: Path,
+        to: Path,
+        lease: Duration,
+    ) {
+        if !self.path_switches.start(node, from, to) {
+            return;
+        }
+        let (marker, acknowledged) = tokio::sync::oneshot::channel();
+        send_on(
+            self.links(),
+            from,
+            Outgoing::Safe {
+                msg: encode_message(&self.heartbeat()),
+                done: Some(marker),
+            },
+        );
+        let me = self.clone();
+        self.tasks.spawn(async move {
+            tokio::select! {
+                _ = me.cancel.cancelled() => return,
+                // Acknowledged, failed (the path is gone) or never answered within the lease:
+                // in every case nothing more is to be waited for on the old path.
+                _ = tokio::time::timeout(lease, acknowledged) => {}
+            }
+            me.finish_switch(node, from);
+        });
+    }
+
+    /// Makes the switch started by [`NodeInner::switch_path`]: the peer is reached over the new
+    /// path from now on, introduced there by our Hello, followed by what was held.
+    fn finish_switch(&self, node: NodeId, from: Path) {
+        let map = self
+            .path_switches
+            .map
+            .write()
+            .unwrap_or_else(|e| e.into_inner());
+        let Some(s) = map.get(&from) else {
+            return; // the peer was dropped meanwhile
+        };
+        let to = s.to;
+        let held = lock(&s.held).take().unwrap_or_default();
+        match self.peers.get_mut(&node) {
+            Some(mut p) => {
+                tracing::info!(peer = %p.name, was = %from.1, now = %to.1, "peer reached over a better link");
+                p.link = to.0;
+                p.addr = to.1;
+            }
+            None => {
+                drop(map);
+                return self.path_switches.forget(node);
+            }
+        }
+        // Under the write lock, so no other safe message can pass the Hello and the held ones.
+        send_on(
+            self.links(),
+            to,
+            Outgoing::Safe {
+                msg: encode_message(&self.hello(to.0)),
+                done: None,
+            },
+        );
+        for out in held {
+            send_on(self.links(), to, out);
+        }
+        drop(map);
+        self.recompute_routes();
+        self.recompute_forwarding();
+        self.bump();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::link::{LinkSendError, LinkStats};
+
+    /// A link that records what it is asked to send.
+    #[derive(Default)]
+    struct Recorder(Mutex<Vec<(PeerAddr, Vec<u8>)>>);
+
+    impl Link for Recorder {
+        fn name(&self) -> &str {
+            "recorder"
+        }
+        fn local_addr(&self) -> String {
+            String::new()
+        }
+        fn send(&self, to: PeerAddr, out: Outgoing) {
+            let (Outgoing::Fast { msg, .. } | Outgoing::Safe { msg, .. }) = out;
+            lock(&self.0).push((to, msg));
+        }
+        fn announce(&self, _: &[u8]) {}
+        fn close_peer(&self, _: PeerAddr) {}
+        fn stats(&self) -> LinkStats {
+            LinkStats::default()
+        }
+    }
+
+    fn safe(b: u8) -> Outgoing {
+        Outgoing::Safe {
+            msg: vec![b],
+            done: None,
+        }
+    }
+
+    #[test]
+    fn safe_messages_for_a_path_being_left_are_held_in_order_and_fast_ones_are_not() {
+        let rec = Arc::new(Recorder::default());
+        let links: Vec<Arc<dyn Link>> = vec![rec.clone()];
+        let old: Path = (0, PeerAddr::Udp("127.0.0.1:1".parse().unwrap()));
+        let new: Path = (0, PeerAddr::Shm(7));
+        let s = PathSwitches::default();
+        s.send(&links, old, safe(1));
+        assert!(s.start(9, old, new));
+        assert!(!s.start(9, old, new), "one switch per path");
+        s.send(&links, old, safe(2));
+        s.send(&links, old, safe(3));
+        s.send(
+            &links,
+            old,
+            Outgoing::Fast {
+                coalesce: None,
+                msg: vec![4],
+            },
+        );
+        assert_eq!(
+            *lock(&rec.0),
+            [(old.1, vec![1]), (old.1, vec![4])],
+            "safe messages after the start wait; fast ones go"
+        );
+        let held = lock(&s.map.read().unwrap()[&old].held).take().unwrap();
+        let held: Vec<Vec<u8>> = held
+            .into_iter()
+            .map(|o| match o {
+                Outgoing::Safe { msg, .. } | Outgoing::Fast { msg, .. } => msg,
+            })
+            .collect();
+        assert_eq!(held, [vec![2], vec![3]], "held in the order sent");
+        // Made: whatever still names the old path goes to the new one.
+        s.send(&links, old, safe(5));
+        assert_eq!(lock(&rec.0).last(), Some(&(new.1, vec![5])));
+    }
+
+    #[test]
+    fn forgetting_a_peer_refuses_what_its_switch_held() {
+        let rec = Arc::new(Recorder::default());
+        let links: Vec<Arc<dyn Link>> = vec![rec.clone()];
+        let old: Path = (0, PeerAddr::Udp("127.0.0.1:1".parse().unwrap()));
+        let s = PathSwitches::default();
+        assert!(s.start(9, old, (0, PeerAddr::Shm(7))));
+        let (tx, mut rx) = tokio::sync::oneshot::channel();
+        s.send(
+            &links,
+            old,
+            Outgoing::Safe {
+                msg: vec![1],
+                done: Some(tx),
+            },
+        );
+        s.forget(9);
+        assert!(matches!(
+            rx.try_recv(),
+            Ok(Err(LinkSendError::PeerClosed(_)))
+        ));
+        s.send(&links, old, safe(2));
+        assert_eq!(
+            *lock(&rec.0),
+            [(old.1, vec![2])],
+            "the old path is used again"
+        );
+    }
+}
