@@ -11,10 +11,10 @@
 
 use std::collections::BTreeMap;
 use std::io;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
 use std::time::Duration;
 
+use mavconn::{Connection, Counters, Endpoint, Frame, OpenOptions};
 use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavDataStream, MavMessage, MavMissionResult, MavModeFlag, MavParamType,
     MavResult, MavState, MavType, COMMAND_LONG_DATA, HEARTBEAT_DATA, MISSION_ACK_DATA,
@@ -29,10 +29,8 @@ use tokio::task::JoinHandle;
 use tokio::time::{interval, sleep, timeout, timeout_at, Instant};
 use tokio_util::sync::CancellationToken;
 
-use super::endpoint::Endpoint;
 use super::modes::{self, ModeSpec};
 use super::reach::{ReachDetector, ReachSource};
-use super::transport::{Connection, Frame};
 use super::types::*;
 
 /// Tuning of the manager.
@@ -148,7 +146,8 @@ struct Inner {
     /// Requested rates, re-applied after the link comes back: (telemetry, Hz, via REQUEST_DATA_STREAM).
     rates: StdMutex<BTreeMap<Telemetry, (f32, bool)>>,
     ops: tokio::sync::Mutex<()>,
-    parse_errors: Arc<AtomicU64>,
+    /// Parse errors and drops, summed over every reopening of the connection.
+    counters: Arc<Counters>,
 }
 
 use marea::sync::lock;
@@ -187,7 +186,7 @@ impl MavlinkManager {
             reach: StdMutex::default(),
             rates: StdMutex::default(),
             ops: tokio::sync::Mutex::new(()),
-            parse_errors: Arc::default(),
+            counters: Arc::default(),
         });
         let cancel = CancellationToken::new();
         let driver = tokio::spawn(driver(inner.clone(), endpoint, out_rx, cancel.clone()));
@@ -223,7 +222,7 @@ impl MavlinkManager {
 
     /// Frames that passed the CRC but could not be decoded.
     pub fn parse_errors(&self) -> u64 {
-        self.inner.parse_errors.load(Ordering::Relaxed)
+        self.inner.counters.parse_errors()
     }
 
     /// Waits for the link to be up (an autopilot heartbeat).
@@ -1019,7 +1018,7 @@ impl Inner {
 
     /// Handles one frame; returns true when the link just came (back) up.
     fn on_frame(&self, frame: Frame, last_hb: &mut Option<Instant>) -> bool {
-        let Frame { header, msg } = frame;
+        let Frame { header, msg, .. } = frame;
         let (sys, comp) = (header.system_id as u8, header.component_id);
         let known = self.state_tx.borrow().system_id;
         let mut came_up = false;
@@ -1205,10 +1204,14 @@ async fn driver(
     };
     let mut last_hb: Option<Instant> = None;
     let backoff = inner.cfg.reconnect_backoff;
+    let opts = OpenOptions {
+        counters: inner.counters.clone(),
+        ..OpenOptions::default()
+    };
     loop {
         let opened = tokio::select! {
             _ = cancel.cancelled() => return,
-            c = Connection::open(&endpoint, inner.parse_errors.clone()) => c,
+            c = Connection::open(&endpoint, opts.clone()) => c,
         };
         let mut conn = match opened {
             Ok(c) => c,
@@ -1222,7 +1225,7 @@ async fn driver(
         };
         tracing::debug!("opened {endpoint}");
         let mut send = |conn: &mut Connection, msg: &MavMessage| -> io::Result<()> {
-            let r = conn.send(header, msg);
+            let r = conn.send(header, msg).map_err(io::Error::from);
             header.sequence = header.sequence.wrapping_add(1);
             r
         };
@@ -1251,7 +1254,7 @@ async fn driver(
                 },
                 out = out_rx.recv() => match out {
                     Some(Outbound::Message(msg)) => if let Err(e) = send(&mut conn, &msg) { break e },
-                    Some(Outbound::Resync) => if let Err(e) = conn.resync() { break e },
+                    Some(Outbound::Resync) => if let Err(e) = conn.resync() { break e.into() },
                     None => return,
                 },
                 _ = gcs_hb.tick() => if let Err(e) = send(&mut conn, &gcs_heartbeat()) { break e },

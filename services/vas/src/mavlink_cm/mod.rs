@@ -22,15 +22,13 @@
 // MISSION_SET_CURRENT, REQUEST_DATA_STREAM); the manager must understand them.
 #![allow(deprecated)]
 
-mod endpoint;
 mod manager;
 mod modes;
 mod reach;
-mod transport;
 mod types;
 
-pub use endpoint::{Endpoint, EndpointParseError};
 pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
+pub use mavconn::{Endpoint, EndpointParseError};
 pub use modes::{name as mode_name, number as mode_number, ModeSpec};
 pub use reach::{parse_reached_text, ReachDetector, ReachSource};
 pub use types::*;
