@@ -22,8 +22,13 @@
 // MISSION_SET_CURRENT, REQUEST_DATA_STREAM); the manager must understand them.
 #![allow(deprecated)]
 
+mod driver;
 mod manager;
+mod mission;
+mod mission_upload;
 mod modes;
+mod outbound;
+mod param;
 mod reach;
 mod types;
 
