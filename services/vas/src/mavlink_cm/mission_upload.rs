@@ -283,17 +283,46 @@ mod tests {
                 && (a.target_system, a.target_component) == TARGET)
     }
 
+    /// A whole-mission upload of `list` started at `t0`, its MISSION_COUNT already taken out.
+    fn begin(
+        retries: u32,
+        list: &[MissionItem],
+        t0: Instant,
+    ) -> (MissionUpload<'_>, Vec<Outbound>) {
+        let mut out = Vec::new();
+        let n = u16::try_from(list.len()).expect("test lists are short");
+        let up = MissionUpload::start(cfg(retries), count(n), list, 0, t0, &mut out)
+            .expect("a valid upload");
+        assert!(
+            matches!(out.as_slice(), [Outbound::Message(MavMessage::MISSION_COUNT(c))] if c.count == n)
+        );
+        out.clear();
+        (up, out)
+    }
+
+    /// The upload gave up at `stage` after `attempts`, cancelling it on the autopilot.
+    fn assert_gave_up(
+        done: Option<Result<(), MissionError>>,
+        out: &[Outbound],
+        stage: MissionStage,
+        attempts: u32,
+    ) {
+        assert_eq!(
+            done,
+            Some(Err(MissionError::RetriesExhausted { stage, attempts }))
+        );
+        assert!(
+            matches!(out, [o] if is_cancel(o)),
+            "expected one cancel, got {out:?}"
+        );
+    }
+
     #[test]
     fn normal_upload_answers_each_request_and_ends_on_accept() {
         let t0 = Instant::now();
         let list = items(3);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(5), count(3), &list, 0, t0, &mut out).unwrap();
-        assert!(
-            matches!(out.as_slice(), [Outbound::Message(MavMessage::MISSION_COUNT(c))] if c.count == 3)
-        );
+        let (mut up, mut out) = begin(5, &list, t0);
         assert_eq!(up.poll_at(), t0 + TIMEOUT);
-        out.clear();
         for seq in 0..3 {
             let now = t0 + Duration::from_millis(100 * u64::from(seq + 1));
             assert_eq!(up.handle(&request_int(seq), now, &mut out), None);
@@ -313,9 +342,7 @@ mod tests {
     fn the_item_sent_carries_its_coordinates_and_target() {
         let t0 = Instant::now();
         let list = items(2);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(5), count(2), &list, 0, t0, &mut out).unwrap();
-        out.clear();
+        let (mut up, mut out) = begin(5, &list, t0);
         up.handle(&request_int(1), t0, &mut out);
         match out.as_slice() {
             [Outbound::Message(MavMessage::MISSION_ITEM_INT(i))] => {
@@ -338,9 +365,7 @@ mod tests {
     fn a_lost_request_is_answered_by_a_resend_at_the_deadline() {
         let t0 = Instant::now();
         let list = items(2);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(5), count(2), &list, 0, t0, &mut out).unwrap();
-        out.clear();
+        let (mut up, mut out) = begin(5, &list, t0);
         // Before the deadline nothing happens.
         assert_eq!(
             up.poll(t0 + TIMEOUT - Duration::from_millis(1), &mut out),
@@ -378,9 +403,7 @@ mod tests {
     fn silence_through_every_attempt_cancels_and_fails() {
         let t0 = Instant::now();
         let list = items(2);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(3), count(2), &list, 0, t0, &mut out).unwrap();
-        out.clear();
+        let (mut up, mut out) = begin(3, &list, t0);
         for _ in 0..2 {
             let now = up.poll_at();
             assert_eq!(up.poll(now, &mut out), None);
@@ -390,45 +413,28 @@ mod tests {
         let now = up.poll_at();
         assert_eq!(now, t0 + TIMEOUT * 3);
         let done = up.poll(now, &mut out);
-        assert_eq!(
-            done,
-            Some(Err(MissionError::RetriesExhausted {
-                stage: MissionStage::Start,
-                attempts: 3
-            }))
-        );
-        assert!(matches!(out.as_slice(), [o] if is_cancel(o)));
+        assert_gave_up(done, &out, MissionStage::Start, 3);
     }
 
     #[test]
     fn silence_after_an_item_fails_at_that_item() {
         let t0 = Instant::now();
         let list = items(3);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(2), count(3), &list, 0, t0, &mut out).unwrap();
+        let (mut up, mut out) = begin(2, &list, t0);
         up.handle(&request_int(0), t0, &mut out);
         up.handle(&request_int(1), t0, &mut out);
         out.clear();
         assert_eq!(up.poll(up.poll_at(), &mut out), None);
         out.clear();
         let done = up.poll(up.poll_at(), &mut out);
-        assert_eq!(
-            done,
-            Some(Err(MissionError::RetriesExhausted {
-                stage: MissionStage::Item(1),
-                attempts: 2
-            }))
-        );
-        assert!(matches!(out.as_slice(), [o] if is_cancel(o)));
+        assert_gave_up(done, &out, MissionStage::Item(1), 2);
     }
 
     #[test]
     fn a_nack_ends_the_transfer_with_its_result() {
         let t0 = Instant::now();
         let list = items(2);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(5), count(2), &list, 0, t0, &mut out).unwrap();
-        out.clear();
+        let (mut up, mut out) = begin(5, &list, t0);
         up.handle(&request_int(0), t0, &mut out);
         out.clear();
         let done = up.handle(&ack(MavMissionResult::MAV_MISSION_NO_SPACE), t0, &mut out);
@@ -445,31 +451,20 @@ mod tests {
     fn duplicate_requests_resend_until_the_retries_run_out() {
         let t0 = Instant::now();
         let list = items(2);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(3), count(2), &list, 0, t0, &mut out).unwrap();
-        out.clear();
+        let (mut up, mut out) = begin(3, &list, t0);
         for _ in 0..3 {
             assert_eq!(up.handle(&request_int(0), t0, &mut out), None);
             assert_eq!(sent_item(&mut out), 0);
         }
         let done = up.handle(&request_int(0), t0, &mut out);
-        assert_eq!(
-            done,
-            Some(Err(MissionError::RetriesExhausted {
-                stage: MissionStage::Item(0),
-                attempts: 4
-            }))
-        );
-        assert!(matches!(out.as_slice(), [o] if is_cancel(o)));
+        assert_gave_up(done, &out, MissionStage::Item(0), 4);
     }
 
     #[test]
     fn out_of_order_and_stale_messages_are_handled_as_before() {
         let t0 = Instant::now();
         let list = items(3);
-        let mut out = Vec::new();
-        let mut up = MissionUpload::start(cfg(5), count(3), &list, 0, t0, &mut out).unwrap();
-        out.clear();
+        let (mut up, mut out) = begin(5, &list, t0);
         // An ACCEPTED before the last item belongs to an earlier transfer.
         assert_eq!(
             up.handle(&ack(MavMissionResult::MAV_MISSION_ACCEPTED), t0, &mut out),
