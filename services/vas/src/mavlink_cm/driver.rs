@@ -69,20 +69,15 @@ impl Inner {
         self.out_tx.send(out).await.map_err(|_| LinkError::Closed)
     }
 
+    /// Hands one message to the driver.
     pub(crate) async fn send(&self, msg: MavMessage) -> Result<(), LinkError> {
-        self.out_tx
-            .send(Outbound::Message(msg))
-            .await
-            .map_err(|_| LinkError::Closed)
+        self.put(Outbound::Message(msg)).await
     }
 
     /// Before a resend: lets a stream receiver stuck on a corrupted length field give up on
     /// it (see [`Outbound::Resync`]).
     pub(crate) async fn resync(&self) -> Result<(), LinkError> {
-        self.out_tx
-            .send(Outbound::Resync)
-            .await
-            .map_err(|_| LinkError::Closed)
+        self.put(Outbound::Resync).await
     }
 
     /// The autopilot's (system, component), waiting up to `connect_wait` for its first heartbeat.
