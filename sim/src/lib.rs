@@ -5,7 +5,8 @@
 //! - [`mission`]: the vehicle side of the mission protocol (pure state machine);
 //! - [`params`], [`modes`]: ArduPilot parameter and mode tables;
 //! - [`vehicle`]: the simulated autopilot (message handling, navigation, telemetry), pure;
-//! - [`link`]: UDP / serial / pty byte transports and MAVLink framing;
+//! - [`link`]: which transport (UDP, serial, pty) and the vehicle's frame header, over a
+//!   [`mavconn::Connection`] (shared with the VAS);
 //! - [`sim`]: the async driver tying a [`vehicle::Vehicle`] to a link at a speed-up factor;
 //! - [`log`]: the JSON-lines event log.
 

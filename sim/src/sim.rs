@@ -69,7 +69,6 @@ pub struct Simulator {
     vehicle: Vehicle,
     link: Link,
     log: Option<LogWriter>,
-    cancel_link: CancellationToken,
 }
 
 impl Simulator {
@@ -85,8 +84,7 @@ impl Simulator {
             })?),
             None => None,
         };
-        let cancel_link = CancellationToken::new();
-        let link = Link::open(&cfg.link, cfg.vehicle.sysid, cancel_link.clone()).await?;
+        let link = Link::open(&cfg.link, cfg.vehicle.sysid).await?;
         let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
         vehicle.set_quiet_progress(cfg.quiet_progress);
         Ok(Self {
@@ -94,7 +92,6 @@ impl Simulator {
             vehicle,
             link,
             log,
-            cancel_link,
         })
     }
 
@@ -124,7 +121,6 @@ impl Simulator {
     /// When the link fails or the log cannot be written.
     pub async fn run(mut self, shutdown: CancellationToken) -> Result<(), SimError> {
         let result = self.run_loop(&shutdown).await;
-        self.cancel_link.cancel();
         tracing::info!(
             parse_errors = self.link.parse_errors(),
             dropped = self.link.dropped(),

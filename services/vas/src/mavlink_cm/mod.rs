@@ -1,6 +1,14 @@
 //! The MAVLink Communication Manager (003 §3.2.2): everything the VAS needs from
 //! a MAVLink autopilot, over serial, UDP or TCP, knowing nothing of USAL.
 //!
+//! - `manager`: [`MavlinkManager`], its configuration, state, events and commands;
+//! - `driver`: the task that owns the [`mavconn::Connection`] (shared with mavsim), decodes
+//!   frames into state and events, and carries the requests' messages;
+//! - `param`, `mission`: the parameter and mission protocols on the manager;
+//! - `mission_upload`: the mission upload as a pure state machine (`now` and messages in,
+//!   messages and the next deadline out), tested on a simulated clock;
+//! - `modes`, `reach`, `types`: ArduPilot mode tables, waypoint-reached detection, public types.
+//!
 //! ```no_run
 //! # async fn demo() -> Result<(), Box<dyn std::error::Error>> {
 //! use vas::mavlink_cm::{ManagerConfig, MavlinkManager, MissionItem, Telemetry};
@@ -22,15 +30,18 @@
 // MISSION_SET_CURRENT, REQUEST_DATA_STREAM); the manager must understand them.
 #![allow(deprecated)]
 
-mod endpoint;
+mod driver;
 mod manager;
+mod mission;
+mod mission_upload;
 mod modes;
+mod outbound;
+mod param;
 mod reach;
-mod transport;
 mod types;
 
-pub use endpoint::{Endpoint, EndpointParseError};
 pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
+pub use mavconn::{Endpoint, EndpointParseError};
 pub use modes::{name as mode_name, number as mode_number, ModeSpec};
 pub use reach::{parse_reached_text, ReachDetector, ReachSource};
 pub use types::*;

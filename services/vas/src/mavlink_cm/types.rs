@@ -269,7 +269,7 @@ impl MissionItem {
 pub enum ManagerOpenError {
     /// The endpoint string is malformed.
     #[error(transparent)]
-    Endpoint(#[from] super::endpoint::EndpointParseError),
+    Endpoint(#[from] mavconn::EndpointParseError),
 }
 
 /// Errors shared by every request to the autopilot.

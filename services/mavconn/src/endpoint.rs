@@ -3,11 +3,12 @@
 use std::fmt;
 use std::str::FromStr;
 
-/// Where the manager finds the autopilot.
+/// Where a MAVLink connection goes: the `vas --endpoint` syntax.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Endpoint {
     /// Send to `HOST:PORT` from an ephemeral port (`udpout:HOST:PORT`); the
     /// autopilot answers to whoever sent last, as ArduPilot SITL and mavsim do.
+    /// The destination stays fixed whoever answers.
     UdpOut(String),
     /// Listen on `ADDR:PORT` (`udpin:ADDR:PORT`, also `udp:`); reply to the last sender.
     UdpIn(String),

@@ -1,0 +1,661 @@
+//! The ArduPilot layer's driver task: owns the [`RollingQueue`], applies the VAL's commands
+//! and the manager's events in order, performs the queue's actions on the autopilot (retrying
+//! on a tick) and infers waypoint progress when the autopilot does not report it.
+
+use super::*;
+
+/// Reads the parameters and sets the telemetry rates (`AP_Parameters`).
+pub(super) async fn configure(
+    mgr: &MavlinkManager,
+    cfg: &ArduPilotConfig,
+) -> Result<(), AutopilotError> {
+    match mgr.params_list().await {
+        Ok(p) => tracing::info!("autopilot has {} parameters", p.len()),
+        Err(e) => tracing::warn!("reading parameters: {e}"),
+    }
+    let t = cfg.telemetry_hz;
+    let s = cfg.status_hz;
+    mgr.request_telemetry(&[
+        (Telemetry::Position, t),
+        (Telemetry::Attitude, t),
+        (Telemetry::VfrHud, t),
+        (Telemetry::SysStatus, s),
+        (Telemetry::MissionCurrent, s),
+    ])
+    .await
+    .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+    Ok(())
+}
+
+/// Why a queue action failed.
+enum ExecError {
+    PartialUnsupported,
+    Other(String),
+}
+
+/// Performs one queue action on the autopilot.
+async fn exec(
+    mgr: &MavlinkManager,
+    home: Option<(f64, f64)>,
+    action: &QueueAction<Waypoint>,
+) -> Result<(), ExecError> {
+    let other = |e: MissionError| ExecError::Other(e.to_string());
+    match action {
+        QueueAction::Upload(items) => {
+            let home = home
+                .or_else(|| items.first().map(|w| (w.lat, w.lon)))
+                .unwrap_or_default();
+            let mut mission = vec![MissionItem::waypoint(home.0, home.1, 0.0)];
+            mission.extend(items.iter().map(mission_item));
+            tracing::debug!("queue: upload {} slots", items.len());
+            mgr.mission_upload(&mission).await.map_err(other)
+        }
+        QueueAction::WritePartial { start, items } => {
+            let mission: Vec<MissionItem> = items.iter().map(mission_item).collect();
+            tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
+            match mgr.mission_write_partial(*start, &mission).await {
+                Ok(()) => Ok(()),
+                Err(MissionError::RetriesExhausted {
+                    stage: MissionStage::Start,
+                    ..
+                }) => {
+                    tracing::warn!(
+                        "partial mission writes unanswered: uploading whole windows from now on"
+                    );
+                    Err(ExecError::PartialUnsupported)
+                }
+                Err(e) => Err(other(e)),
+            }
+        }
+        QueueAction::SetCurrent(seq) => {
+            tracing::debug!("queue: set current {seq}");
+            mgr.mission_set_current(*seq).await.map_err(other)
+        }
+    }
+}
+
+pub(super) struct Driver {
+    mgr: Arc<MavlinkManager>,
+    kind: VehicleKind,
+    queue: RollingQueue<Waypoint>,
+    events: broadcast::Sender<ApEvent>,
+    /// The state the VAL last commanded (or the autopilot's own choice, once reported).
+    commanded: Option<FlightState>,
+    last_mode: Option<String>,
+    last_reached: Option<u64>,
+    home: Option<(f64, f64)>,
+    /// The last queue action failed: wait for the tick before retrying.
+    failing: bool,
+    /// The manager's events.
+    mav: broadcast::Receiver<MavEvent>,
+    /// Events taken from `mav` while a queue action ran that need more than bookkeeping.
+    deferred: VecDeque<MavEvent>,
+    /// The speed last commanded with DO_CHANGE_SPEED (0: the autopilot's default).
+    speed_sent: Option<f64>,
+    /// The autopilot reported a waypoint reached since (re)connecting; until it does, progress
+    /// is inferred from its position.
+    reports_progress: bool,
+    /// Latest position (lat, lon).
+    position: Option<(f64, f64)>,
+    /// Where the leg to the target starts: the last waypoint reached, or where navigation
+    /// started.
+    leg_start: Option<(f64, f64)>,
+    /// The slot whose waypoint the last position sample showed passed (a second sample must
+    /// agree before it counts).
+    passing: Option<u16>,
+    /// The last waypoint and its slot, when the autopilot left AUTO on the way to it (most
+    /// likely the mission ended there and its report is late, lost or never sent): a late
+    /// report of that slot, or a position at or past it, still counts it.
+    last_pending: Option<(u16, Waypoint)>,
+}
+
+impl Driver {
+    pub(super) fn new(
+        mgr: Arc<MavlinkManager>,
+        kind: VehicleKind,
+        queue: RollingQueue<Waypoint>,
+        events: broadcast::Sender<ApEvent>,
+    ) -> Self {
+        Self {
+            mav: mgr.subscribe(),
+            mgr,
+            kind,
+            queue,
+            events,
+            commanded: None,
+            last_mode: None,
+            last_reached: None,
+            home: None,
+            failing: false,
+            deferred: VecDeque::new(),
+            speed_sent: None,
+            reports_progress: false,
+            position: None,
+            leg_start: None,
+            passing: None,
+            last_pending: None,
+        }
+    }
+
+    pub(super) async fn run(mut self, mut cmds: mpsc::Receiver<Cmd>, cancel: CancellationToken) {
+        let mut tick = interval(Duration::from_millis(250));
+        loop {
+            while let Some(ev) = self.deferred.pop_front() {
+                self.on_mav(ev).await;
+            }
+            tokio::select! {
+                _ = cancel.cancelled() => break,
+                cmd = cmds.recv() => match cmd {
+                    Some(cmd) => self.on_cmd(cmd).await,
+                    None => break,
+                },
+                ev = self.mav.recv() => match ev {
+                    Ok(ev) => {
+                        if self.absorb(ev) {
+                            self.pump().await;
+                        }
+                    }
+                    Err(broadcast::error::RecvError::Lagged(n)) => {
+                        tracing::warn!("APL lagged {n} MAVLink events; resynchronising");
+                        self.resync().await;
+                    }
+                    Err(broadcast::error::RecvError::Closed) => break,
+                },
+                _ = tick.tick() => {
+                    self.failing = false;
+                    self.resync().await;
+                }
+            }
+        }
+    }
+
+    fn emit(&self, e: ApEvent) {
+        let _ = self.events.send(e);
+    }
+
+    fn alarm(&self, severity: Severity, text: impl Into<String>) {
+        self.emit(ApEvent::Alarm(Alarm {
+            severity,
+            text: text.into(),
+        }));
+    }
+
+    fn queue_status(&self) -> QueueStatus {
+        QueueStatus {
+            queued: self.queue.len() as u64,
+            target: self.queue.target().map(|w| w.seq),
+            last_reached: self.last_reached,
+            replacing: self.queue.is_replacing(),
+        }
+    }
+
+    async fn on_cmd(&mut self, cmd: Cmd) {
+        match cmd {
+            Cmd::ChangeState(to, reply) => {
+                let r = self.change_state(to).await;
+                let _ = reply.send(r);
+            }
+            Cmd::Push(wps, reply) => {
+                self.queue.push(wps);
+                let _ = reply.send(self.queue_status());
+                self.pump().await;
+            }
+            Cmd::Clear(reply) => {
+                self.queue.clear();
+                let _ = reply.send(self.queue_status());
+            }
+            Cmd::Status(reply) => {
+                let _ = reply.send(self.queue_status());
+            }
+        }
+    }
+
+    async fn change_state(&mut self, to: FlightState) -> Result<(), AutopilotError> {
+        let Some((mode, arming)) = mode_for(self.kind, to) else {
+            return Err(AutopilotError::Unsupported(format!(
+                "no autopilot mode for {to} on a {}",
+                self.kind
+            )));
+        };
+        let refused = |e: &dyn std::fmt::Display| AutopilotError::Refused(e.to_string());
+        let previous = self.commanded.replace(to);
+        if to == FlightState::WaypointNavigation {
+            if self.queue.is_empty() {
+                self.commanded = previous;
+                return Err(AutopilotError::Refused("no waypoints queued".into()));
+            }
+            self.queue.stop();
+            self.queue.start();
+            if let Err(e) = self.prime().await {
+                self.queue.stop();
+                self.commanded = previous;
+                return Err(AutopilotError::Refused(format!("priming the queue: {e}")));
+            }
+        } else {
+            self.queue.stop();
+        }
+        if arming == Arming::Arm && !self.mgr.state().armed {
+            if let Err(e) = self.mgr.arm(true).await {
+                self.commanded = previous;
+                return Err(refused(&e));
+            }
+        }
+        if let Err(e) = self.mgr.set_mode(mode).await {
+            self.queue.stop();
+            self.commanded = previous;
+            return Err(refused(&e));
+        }
+        if to == FlightState::WaypointNavigation {
+            // Entering AUTO puts the autopilot back to its default speed.
+            self.speed_sent = Some(0.0);
+            self.leg_start = self.position;
+            self.passing = None;
+            self.last_pending = None;
+        }
+        if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
+            let alt = self.queue.target().map_or(10.0, |w| w.alt.max(2.0)) as f32;
+            let takeoff = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, alt];
+            if let Err(e) = self
+                .mgr
+                .command_long(MavCmd::MAV_CMD_NAV_TAKEOFF, takeoff)
+                .await
+            {
+                return Err(refused(&e));
+            }
+        }
+        if to != FlightState::ManualNavigation {
+            // Give the sticks back to the RC transmitter.
+            let _ = self.mgr.rc_override(rc_channels(self.kind, None)).await;
+        }
+        self.last_mode = Some(mode.to_owned());
+        Ok(())
+    }
+
+    /// Performs queue actions until the autopilot holds what it should.
+    async fn prime(&mut self) -> Result<(), String> {
+        for _ in 0..32 {
+            // Progress reported while the last action ran changes what is most urgent (the
+            // wrap to slot 1 has one leg of slack): take it into account first.
+            self.absorb_progress();
+            let Some(action) = self.queue.poll() else {
+                return Ok(());
+            };
+            let began = std::time::Instant::now();
+            let Some(result) = self.exec_unless_wrap_due(&action).await else {
+                // Dropped mid-transfer: the autopilot commits a transfer only when it is
+                // complete, so the abandoned write is simply redone after the wrap.
+                tracing::debug!(
+                    "queue: wrap due; action interrupted after {:?}",
+                    began.elapsed()
+                );
+                continue;
+            };
+            tracing::debug!("queue: action took {:?}", began.elapsed());
+            match result {
+                Ok(()) => self.queue.done(&action),
+                Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
+                Err(ExecError::Other(e)) => return Err(e),
+            }
+        }
+        Err("the queue did not settle".into())
+    }
+
+    /// Performs `action` while following the vehicle's progress; gives up on it (`None`) when
+    /// that progress makes the wrap to slot 1 due, which cannot wait for a slow transfer.
+    async fn exec_unless_wrap_due(
+        &mut self,
+        action: &QueueAction<Waypoint>,
+    ) -> Option<Result<(), ExecError>> {
+        let mgr = Arc::clone(&self.mgr);
+        let exec = exec(&mgr, self.home, action);
+        tokio::pin!(exec);
+        let mut listening = !matches!(action, QueueAction::SetCurrent(_));
+        loop {
+            tokio::select! {
+                r = &mut exec => return Some(r),
+                ev = self.mav.recv(), if listening => {
+                    match ev {
+                        Ok(ev) => {
+                            self.absorb(ev);
+                        }
+                        Err(broadcast::error::RecvError::Lagged(n)) => {
+                            tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
+                        }
+                        Err(broadcast::error::RecvError::Closed) => listening = false,
+                    }
+                    if matches!(self.queue.poll(), Some(QueueAction::SetCurrent(_))) {
+                        return None;
+                    }
+                }
+            }
+        }
+    }
+
+    async fn pump(&mut self) {
+        if self.failing || !self.mgr.state().link_up {
+            return;
+        }
+        if let Err(e) = self.prime().await {
+            tracing::warn!("rolling queue: {e}; retrying");
+            self.failing = true;
+            return;
+        }
+        self.sync_speed().await;
+    }
+
+    fn reached(&mut self, w: Waypoint) {
+        self.last_reached = Some(w.seq);
+        self.leg_start = Some((w.lat, w.lon));
+        self.emit(ApEvent::WaypointReached(WaypointReached {
+            seq: w.seq,
+            leg: w.leg,
+            lat: w.lat,
+            lon: w.lon,
+            remaining: self.queue.len() as u64,
+        }));
+    }
+
+    /// Takes the waypoint progress the manager reported so far into the queue, without
+    /// acting on the autopilot; other events wait in `deferred` for the driver loop.
+    fn absorb_progress(&mut self) {
+        loop {
+            match self.mav.try_recv() {
+                Ok(ev) => {
+                    self.absorb(ev);
+                }
+                Err(broadcast::error::TryRecvError::Lagged(n)) => {
+                    tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
+                }
+                Err(_) => return,
+            }
+        }
+    }
+
+    /// Waypoint progress goes into the queue at once; anything else waits in `deferred`.
+    /// Returns whether the queue should be pumped (progress or a new current item).
+    fn absorb(&mut self, ev: MavEvent) -> bool {
+        match ev {
+            MavEvent::WaypointReached { seq, .. } => {
+                self.reports_progress = true;
+                if let Some(w) = self.queue.on_reached(seq) {
+                    self.reached(w);
+                } else if self.last_pending.as_ref().is_some_and(|(s, _)| *s == seq) {
+                    if let Some((_, w)) = self.last_pending.take() {
+                        self.queue.discard();
+                        self.reached(w);
+                    }
+                }
+                true
+            }
+            MavEvent::MissionCurrent { seq } => {
+                if let Some(w) = self.queue.on_current(seq) {
+                    self.reached(w);
+                }
+                true
+            }
+            MavEvent::Position(p) => {
+                let progressed = self.progress_from_position(p.lat_deg, p.lon_deg);
+                self.deferred.push_back(MavEvent::Position(p));
+                progressed
+            }
+            ev => {
+                self.deferred.push_back(ev);
+                false
+            }
+        }
+    }
+
+    /// The fallback for autopilots that report no progress (neither MISSION_ITEM_REACHED,
+    /// nor a "Reached" text, nor MISSION_CURRENT changes): the target counts as reached once
+    /// two position samples in a row show it passed.
+    fn progress_from_position(&mut self, lat: f64, lon: f64) -> bool {
+        self.position = Some((lat, lon));
+        if let Some((slot, w)) = self.last_pending.take() {
+            let from = self.leg_start.unwrap_or((lat, lon));
+            // Also when the autopilot reports progress: it ended the mission at the last
+            // waypoint (which is why it left AUTO), and its report may be lost on a radio.
+            if passed(from, (w.lat, w.lon), (lat, lon), self.radius_of(&w)) {
+                tracing::debug!("last waypoint {} reached (from position)", w.seq);
+                self.queue.discard();
+                self.reached(w);
+                return true;
+            }
+            self.last_pending = Some((slot, w));
+        }
+        let (Some(slot), Some(w)) = (self.queue.current_slot(), self.queue.target()) else {
+            self.passing = None;
+            return false;
+        };
+        if self.reports_progress {
+            return false;
+        }
+        let radius = self.radius_of(w);
+        let from = *self.leg_start.get_or_insert((lat, lon));
+        if !passed(from, (w.lat, w.lon), (lat, lon), radius) {
+            self.passing = None;
+            return false;
+        }
+        if self.passing.replace(slot) != Some(slot) {
+            return false;
+        }
+        self.passing = None;
+        match self.queue.on_reached(slot) {
+            Some(w) => {
+                tracing::debug!("waypoint {} reached (from position)", w.seq);
+                self.reached(w);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// The acceptance radius of `w` on the autopilot, metres.
+    fn radius_of(&self, w: &Waypoint) -> f64 {
+        if w.fly_over {
+            f64::from(FLY_OVER_RADIUS_M)
+        } else {
+            self.wp_radius()
+        }
+    }
+
+    /// The autopilot's waypoint acceptance radius, metres (WP_RADIUS; Copter: WPNAV_RADIUS).
+    fn wp_radius(&self) -> f64 {
+        let r = match self.kind {
+            VehicleKind::Copter => self.mgr.param_cached("WPNAV_RADIUS").map(|cm| cm / 100.0),
+            _ => self.mgr.param_cached("WP_RADIUS"),
+        };
+        r.filter(|r| r.is_finite() && *r > 0.0)
+            .map_or(2.0, f64::from)
+    }
+
+    /// The autopilot's default speed, for DO_CHANGE_SPEED back to it; -2 (MAVLink's "return
+    /// to default") when the parameter is not known.
+    fn default_speed(&self) -> f32 {
+        let speed = match self.kind {
+            VehicleKind::Rover => self.mgr.param_cached("CRUISE_SPEED"),
+            VehicleKind::Copter => self.mgr.param_cached("WPNAV_SPEED").map(|cm| cm / 100.0),
+            VehicleKind::Plane => self.mgr.param_cached("AIRSPEED_CRUISE"),
+        };
+        speed.filter(|s| s.is_finite() && *s > 0.0).unwrap_or(-2.0)
+    }
+
+    /// Commands the target waypoint's speed when it differs from the last one commanded.
+    async fn sync_speed(&mut self) {
+        let Some(w) = self.queue.target().filter(|_| self.queue.is_running()) else {
+            return;
+        };
+        let want = wanted_speed(w);
+        if self.speed_sent == Some(want) {
+            return;
+        }
+        let speed = if want > 0.0 {
+            want as f32
+        } else {
+            self.default_speed()
+        };
+        // Speed type: airspeed for a plane, ground speed otherwise; throttle unchanged.
+        let kind = if self.kind == VehicleKind::Plane {
+            0.0
+        } else {
+            1.0
+        };
+        let params = [kind, speed, -1.0, 0.0, 0.0, 0.0, 0.0];
+        match self
+            .mgr
+            .command_long(MavCmd::MAV_CMD_DO_CHANGE_SPEED, params)
+            .await
+        {
+            Ok(()) => self.speed_sent = Some(want),
+            Err(e) => tracing::warn!("setting speed {want} m/s: {e}; retrying"),
+        }
+    }
+
+    /// Catches up with the autopilot from its latest state (after a lag, on every tick).
+    async fn resync(&mut self) {
+        if let Some(seq) = self.mgr.state().mission_current {
+            if let Some(w) = self.queue.on_current(seq) {
+                self.reached(w);
+            }
+        }
+        self.check_mode();
+        self.pump().await;
+    }
+
+    /// Reacts to the autopilot's latest mode when it is not the one commanded.
+    fn check_mode(&mut self) {
+        let s = self.mgr.state();
+        let Some(mode) = s.mode_name.filter(|_| s.link_up) else {
+            return;
+        };
+        if self.last_mode.as_deref() == Some(mode) {
+            return;
+        }
+        self.last_mode = Some(mode.to_owned());
+        if self.commanded.is_none() {
+            // Still in CONFIGURE_CHECK: the VAL has not taken the autopilot over yet.
+            return;
+        }
+        if mode != "AUTO" && self.queue.is_running() {
+            if let (1, Some(slot), Some(w)) = (
+                self.queue.len(),
+                self.queue.current_slot(),
+                self.queue.target(),
+            ) {
+                self.last_pending = Some((slot, w.clone()));
+            }
+            self.queue.stop();
+        }
+        let expected = self.commanded.and_then(|st| mode_for(self.kind, st));
+        if expected.map(|m| m.0) != Some(mode) {
+            let state = state_for_mode(self.kind, mode);
+            if state.is_some() {
+                self.commanded = state;
+            }
+            self.emit(ApEvent::ModeChanged {
+                mode: mode.to_owned(),
+                state,
+            });
+        }
+    }
+
+    async fn on_mav(&mut self, ev: MavEvent) {
+        match ev {
+            ev @ (MavEvent::WaypointReached { .. } | MavEvent::MissionCurrent { .. }) => {
+                self.absorb(ev);
+                self.pump().await;
+            }
+            MavEvent::ModeChanged { .. } | MavEvent::ArmedChanged { .. } => {
+                self.check_mode();
+                self.emit(ApEvent::Status(status_of(&self.mgr)));
+            }
+            MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
+            MavEvent::StatusText {
+                severity: sev,
+                text,
+            } => {
+                let sev = severity(sev);
+                if sev <= Severity::Warning {
+                    self.alarm(sev, format!("autopilot: {text}"));
+                }
+            }
+            MavEvent::Position(p) => {
+                // Progress from it was taken when it was absorbed.
+                self.home.get_or_insert((p.lat_deg, p.lon_deg));
+                let speed = p.vel_ned[0].hypot(p.vel_ned[1]);
+                let heading = p.heading_deg.unwrap_or_else(|| {
+                    p.vel_ned[1]
+                        .atan2(p.vel_ned[0])
+                        .to_degrees()
+                        .rem_euclid(360.0)
+                });
+                self.emit(ApEvent::Position(Position {
+                    lat: p.lat_deg,
+                    lon: p.lon_deg,
+                    alt: f64::from(p.alt_msl_m),
+                    heading,
+                    speed,
+                }));
+            }
+            MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(Attitude {
+                roll: a.roll.to_degrees(),
+                pitch: a.pitch.to_degrees(),
+                yaw: a.yaw.to_degrees(),
+            })),
+            MavEvent::VfrHud(v) => self.emit(ApEvent::Speeds(Speeds {
+                ground: v.groundspeed,
+                air: v.airspeed,
+                climb: v.climb,
+            })),
+            MavEvent::LinkLost => {
+                self.alarm(Severity::Critical, "autopilot heartbeat lost");
+                self.emit(ApEvent::LinkLost);
+                self.emit(ApEvent::Status(status_of(&self.mgr)));
+            }
+            MavEvent::LinkRestored => self.on_restored().await,
+            MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
+        }
+    }
+
+    /// Heartbeats are back: re-read parameters and mission, and resume what was commanded.
+    async fn on_restored(&mut self) {
+        self.alarm(Severity::Notice, "autopilot heartbeat restored");
+        // Perhaps another autopilot, or the same rebooted: learn again what it reports.
+        self.reports_progress = false;
+        match self.mgr.params_list().await {
+            Ok(p) => tracing::info!("re-read {} parameters", p.len()),
+            Err(e) => tracing::warn!("re-reading parameters: {e}"),
+        }
+        let intact = match self.mgr.mission_download().await {
+            Ok(onboard) => {
+                let expected: Option<Vec<MissionItem>> = self
+                    .queue
+                    .onboard()
+                    .map(|v| v.iter().map(mission_item).collect());
+                matches!(expected, Some(e) if e.len() + 1 == onboard.len()
+                    && e.iter().zip(&onboard[1..]).all(|(a, b)| same_item(a, b)))
+            }
+            Err(e) => {
+                tracing::warn!("downloading the mission: {e}");
+                false
+            }
+        };
+        if !intact {
+            self.queue.forget_onboard();
+        }
+        let mode = self.mgr.state().mode_name;
+        if let Some(state) = self.commanded {
+            let wanted = mode_for(self.kind, state).map(|m| m.0);
+            let resume = state == FlightState::WaypointNavigation && (!intact || mode != wanted);
+            if resume || (wanted.is_some() && mode != wanted) {
+                self.last_mode = None;
+                tracing::info!("autopilot is in {mode:?}: resuming {state}");
+                match self.change_state(state).await {
+                    Ok(()) => self.alarm(Severity::Notice, format!("resumed {state}")),
+                    Err(e) => self.alarm(Severity::Error, format!("cannot resume {state}: {e}")),
+                }
+            }
+        }
+        self.emit(ApEvent::LinkRestored);
+        self.emit(ApEvent::Status(status_of(&self.mgr)));
+    }
+}

@@ -1,0 +1,256 @@
+//! USAL to ArduPilot translation, pure: flight states to modes and back, severities, waypoints
+//! to mission items, the fly-over radius, when a waypoint counts as passed, sticks to RC PWM.
+
+use super::*;
+
+/// Whether a state wants the motors armed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Arming {
+    Keep,
+    Arm,
+}
+
+/// The ArduPilot mode (and arming) of a flight state; `None`: no mode (CONFIGURE_CHECK, or a
+/// state the vehicle does not have).
+pub(super) fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)> {
+    use Arming::*;
+    use FlightState::*;
+    Some(match (kind, state) {
+        (_, ConfigureCheck) => return None,
+        (VehicleKind::Rover, Parking) => ("HOLD", Keep),
+        (VehicleKind::Rover, Directed | Manual) => ("MANUAL", Keep),
+        (VehicleKind::Rover, ManualNavigation) => ("MANUAL", Arm),
+        (_, WaypointNavigation) => ("AUTO", Arm),
+        (VehicleKind::Rover, _) => return None,
+        (VehicleKind::Copter, Parking | Landing) => ("LAND", Keep),
+        (VehicleKind::Copter, TakeOff) => ("GUIDED", Arm),
+        (VehicleKind::Copter, Directed) => ("LOITER", Keep),
+        (VehicleKind::Copter, ManualNavigation) => ("ALT_HOLD", Arm),
+        (VehicleKind::Copter, ReturnToLaunch) => ("RTL", Keep),
+        (VehicleKind::Copter, Manual) => ("STABILIZE", Keep),
+        (VehicleKind::Plane, Parking | Manual) => ("MANUAL", Keep),
+        (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
+        (VehicleKind::Plane, Directed) => ("FBWA", Keep),
+        (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
+        (VehicleKind::Plane, Landing | ReturnToLaunch) => ("RTL", Keep),
+    })
+}
+
+/// The flight state an autopilot-chosen mode means (RC switch, failsafe, end of mission).
+pub(super) fn state_for_mode(kind: VehicleKind, mode: &str) -> Option<FlightState> {
+    use FlightState::*;
+    Some(match (kind, mode) {
+        (_, "AUTO") => WaypointNavigation,
+        (VehicleKind::Rover, "HOLD" | "LOITER") => Parking,
+        (VehicleKind::Rover, "MANUAL" | "ACRO" | "STEERING") => Directed,
+        (VehicleKind::Copter, "LAND") => Landing,
+        (VehicleKind::Copter, "RTL" | "SMART_RTL") => ReturnToLaunch,
+        (VehicleKind::Copter, "LOITER" | "POSHOLD" | "BRAKE" | "GUIDED") => Directed,
+        (VehicleKind::Copter, "STABILIZE" | "ACRO" | "ALT_HOLD") => Manual,
+        (VehicleKind::Plane, "RTL") => ReturnToLaunch,
+        (VehicleKind::Plane, "LOITER" | "CIRCLE" | "FBWA" | "FBWB" | "CRUISE" | "GUIDED") => {
+            Directed
+        }
+        (VehicleKind::Plane, "MANUAL" | "STABILIZE" | "ACRO") => Manual,
+        _ => return None,
+    })
+}
+
+pub(super) fn severity(s: MavSeverity) -> Severity {
+    match s {
+        MavSeverity::MAV_SEVERITY_EMERGENCY => Severity::Emergency,
+        MavSeverity::MAV_SEVERITY_ALERT => Severity::Alert,
+        MavSeverity::MAV_SEVERITY_CRITICAL => Severity::Critical,
+        MavSeverity::MAV_SEVERITY_ERROR => Severity::Error,
+        MavSeverity::MAV_SEVERITY_WARNING => Severity::Warning,
+        MavSeverity::MAV_SEVERITY_NOTICE => Severity::Notice,
+        MavSeverity::MAV_SEVERITY_INFO => Severity::Info,
+        MavSeverity::MAV_SEVERITY_DEBUG => Severity::Debug,
+    }
+}
+
+/// Acceptance radius of a fly-over waypoint (NAV_WAYPOINT param2), metres: the vehicle
+/// passes (nearly) over the point before turning. A fly-by waypoint leaves param2 at 0, so
+/// the autopilot turns early by its own WP_RADIUS.
+pub const FLY_OVER_RADIUS_M: f32 = 1.0;
+
+/// The mission item for a queued waypoint.
+pub(super) fn mission_item(w: &Waypoint) -> MissionItem {
+    let mut item = MissionItem::waypoint(w.lat, w.lon, w.alt as f32);
+    item.command = match w.kind {
+        WaypointKind::Nav => MavCmd::MAV_CMD_NAV_WAYPOINT,
+        WaypointKind::Takeoff => MavCmd::MAV_CMD_NAV_TAKEOFF,
+        WaypointKind::Land => MavCmd::MAV_CMD_NAV_LAND,
+    };
+    if w.fly_over && w.kind == WaypointKind::Nav {
+        item.params[1] = FLY_OVER_RADIUS_M;
+    }
+    item
+}
+
+/// The speed a waypoint asks for, m/s; 0 for the autopilot's cruise speed.
+pub(super) fn wanted_speed(w: &Waypoint) -> f64 {
+    if w.speed.is_finite() && w.speed > 0.0 {
+        w.speed
+    } else {
+        0.0
+    }
+}
+
+/// Whether a vehicle at `pos` has reached `target` on the leg from `from`: within `radius`
+/// of it, or past the line across the leg `radius` before it (the autopilot may switch there
+/// without coming within the radius, and position samples arrive far apart at a speed-up).
+pub(super) fn passed(from: (f64, f64), target: (f64, f64), pos: (f64, f64), radius: f64) -> bool {
+    let m_per_deg = 111_319.49;
+    let cos_lat = target.0.to_radians().cos();
+    let local = |p: (f64, f64)| {
+        (
+            (p.0 - target.0) * m_per_deg,
+            (p.1 - target.1) * m_per_deg * cos_lat,
+        )
+    };
+    let (pn, pe) = local(pos);
+    if pn.hypot(pe) <= radius {
+        return true;
+    }
+    let (an, ae) = local(from);
+    let leg = an.hypot(ae);
+    if leg < 0.1 {
+        return false;
+    }
+    // Distance still to go along the leg (negative once past the target).
+    let to_go = (an * pn + ae * pe) / leg;
+    to_go <= radius
+}
+
+pub(super) fn same_item(a: &MissionItem, b: &MissionItem) -> bool {
+    a.command == b.command && a.x == b.x && a.y == b.y && (a.z - b.z).abs() < 0.01
+}
+
+/// Joystick to RC PWM (ch1 roll/steering, ch2 pitch, ch3 throttle, ch4 yaw); `None` releases.
+pub(super) fn rc_channels(kind: VehicleKind, mc: Option<&ManualControl>) -> [u16; 8] {
+    let Some(mc) = mc else { return [0; 8] };
+    let axis = |v: f32| {
+        let v = if v.is_finite() {
+            v.clamp(-1.0, 1.0)
+        } else {
+            0.0
+        };
+        (1500.0 + v * 500.0).round() as u16
+    };
+    let throttle = match kind {
+        // A rover's throttle is centred (reverse below 1500), an aircraft's starts at 1000.
+        VehicleKind::Rover => axis(mc.throttle),
+        _ => axis(mc.throttle.clamp(-1.0, 1.0) * 2.0 - 1.0),
+    };
+    [
+        axis(mc.roll),
+        axis(-mc.pitch),
+        throttle,
+        axis(mc.yaw),
+        u16::MAX,
+        u16::MAX,
+        u16::MAX,
+        u16::MAX,
+    ]
+}
+
+#[cfg(test)]
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_rover_state_but_configure_has_a_mode() {
+        for s in FlightState::ALL {
+            let has = mode_for(VehicleKind::Rover, s).is_some();
+            let expect = s.applies_to(VehicleKind::Rover) && s != FlightState::ConfigureCheck;
+            assert_eq!(has, expect, "{s}");
+        }
+        for kind in [VehicleKind::Copter, VehicleKind::Plane] {
+            for s in FlightState::ALL.into_iter().skip(1) {
+                assert!(mode_for(kind, s).is_some(), "{kind} {s}");
+            }
+        }
+    }
+
+    #[test]
+    fn modes_map_back_to_their_states() {
+        assert_eq!(
+            state_for_mode(VehicleKind::Rover, "HOLD"),
+            Some(FlightState::Parking)
+        );
+        assert_eq!(
+            state_for_mode(VehicleKind::Rover, "AUTO"),
+            Some(FlightState::WaypointNavigation)
+        );
+        assert_eq!(
+            state_for_mode(VehicleKind::Copter, "LAND"),
+            Some(FlightState::Landing)
+        );
+    }
+
+    #[test]
+    fn fly_over_tightens_the_acceptance_radius() {
+        let mut w = Waypoint {
+            lat: 41.0,
+            lon: 2.0,
+            ..Waypoint::default()
+        };
+        assert_eq!(
+            mission_item(&w).params[1],
+            0.0,
+            "fly-by: the autopilot's WP_RADIUS"
+        );
+        w.fly_over = true;
+        assert_eq!(mission_item(&w).params[1], FLY_OVER_RADIUS_M);
+        w.kind = WaypointKind::Takeoff;
+        assert_eq!(mission_item(&w).params[1], 0.0);
+        assert_eq!(
+            wanted_speed(&Waypoint {
+                speed: f64::NAN,
+                ..w.clone()
+            }),
+            0.0
+        );
+        assert_eq!(wanted_speed(&Waypoint { speed: 3.5, ..w }), 3.5);
+    }
+
+    #[test]
+    fn a_waypoint_is_passed_inside_its_radius_or_past_its_finish_line() {
+        let m = 1.0 / 111_319.49;
+        let (from, target) = ((41.0, 2.0), (41.0 + 100.0 * m, 2.0));
+        let at =
+            |north: f64, east: f64| (41.0 + north * m, 2.0 + east * m / 41f64.to_radians().cos());
+        assert!(!passed(from, target, at(50.0, 0.0), 2.0));
+        assert!(!passed(from, target, at(97.0, 0.5), 2.0));
+        assert!(
+            passed(from, target, at(98.5, 0.5), 2.0),
+            "inside the radius"
+        );
+        // Already turned away towards the next waypoint, 5 m aside, never within 2 m.
+        assert!(
+            passed(from, target, at(99.0, 5.0), 2.0),
+            "past the finish line"
+        );
+        assert!(!passed(from, target, at(90.0, 5.0), 2.0));
+        // No leg (navigation started on the waypoint): only the radius counts.
+        assert!(!passed(target, target, at(103.0, 0.0), 2.0));
+    }
+
+    #[test]
+    fn sticks_to_pwm() {
+        let mc = ManualControl {
+            roll: 1.0,
+            pitch: 0.0,
+            throttle: -1.0,
+            yaw: f32::NAN,
+            timestamp_ms: 0,
+        };
+        let ch = rc_channels(VehicleKind::Rover, Some(&mc));
+        assert_eq!(&ch[..4], &[2000, 1500, 1000, 1500]);
+        let ch = rc_channels(VehicleKind::Copter, Some(&mc));
+        assert_eq!(ch[2], 1000);
+        assert_eq!(rc_channels(VehicleKind::Rover, None), [0; 8]);
+    }
+}

@@ -1,0 +1,267 @@
+//! The mission protocol on [`MavlinkManager`]: upload (full or partial, through the pure
+//! [`MissionUpload`] machine), download, clear and set-current.
+
+use marea::sync::lock;
+use mavlink::dialects::ardupilotmega::{
+    MavCmd, MavMessage, MavMissionResult, MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA,
+    MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA,
+    MISSION_WRITE_PARTIAL_LIST_DATA,
+};
+use tokio::sync::broadcast;
+use tokio::time::{timeout_at, Instant};
+
+use super::driver::Inner;
+use super::manager::MavlinkManager;
+use super::mission_upload::{mission_ack, MissionUpload, UploadConfig};
+use super::types::*;
+
+impl MavlinkManager {
+    pub fn mission_cached(&self) -> Vec<MissionItem> {
+        lock(&self.inner.mission).clone()
+    }
+
+    /// Uploads a whole mission. `items[0]` is the home slot on ArduPilot (the
+    /// autopilot keeps its own home there). The autopilot stages or overwrites
+    /// as it sees fit; on any failure the transfer is cancelled with a
+    /// MISSION_ACK so it does not wait for the rest.
+    ///
+    /// # Errors
+    /// Empty list, refusal, or retries exhausted at some item.
+    pub async fn mission_upload(&self, items: &[MissionItem]) -> Result<(), MissionError> {
+        if items.is_empty() || items.len() > usize::from(u16::MAX) {
+            return Err(MissionError::Invalid(format!("{} items", items.len())));
+        }
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        let start = MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+            count: items.len() as u16,
+            target_system: target.0,
+            target_component: target.1,
+        });
+        self.inner.upload(target, start, items, 0).await?;
+        *lock(&self.inner.mission) = items.to_vec();
+        Ok(())
+    }
+
+    /// Replaces items `start .. start + items.len()` with MISSION_WRITE_PARTIAL_LIST
+    /// (ArduPilot only replaces existing items; it cannot grow the mission).
+    ///
+    /// # Errors
+    /// Empty list, refusal, or retries exhausted (an autopilot that ignores
+    /// partial writes fails at [`MissionStage::Start`]).
+    pub async fn mission_write_partial(
+        &self,
+        start: u16,
+        items: &[MissionItem],
+    ) -> Result<(), MissionError> {
+        let end = usize::from(start) + items.len();
+        if items.is_empty() || start == 0 || end > i16::MAX as usize {
+            return Err(MissionError::Invalid(format!(
+                "partial write of {} items at {start}",
+                items.len()
+            )));
+        }
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        let msg = MavMessage::MISSION_WRITE_PARTIAL_LIST(MISSION_WRITE_PARTIAL_LIST_DATA {
+            start_index: start as i16,
+            end_index: (end - 1) as i16,
+            target_system: target.0,
+            target_component: target.1,
+        });
+        self.inner.upload(target, msg, items, start).await?;
+        let mut cache = lock(&self.inner.mission);
+        if cache.len() >= end {
+            cache[usize::from(start)..end].clone_from_slice(items);
+        }
+        Ok(())
+    }
+
+    /// Downloads the whole mission (home first).
+    ///
+    /// # Errors
+    /// Retries exhausted at the count or at some item.
+    pub async fn mission_download(&self) -> Result<Vec<MissionItem>, MissionError> {
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        let make = |_| {
+            MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+                target_system: target.0,
+                target_component: target.1,
+            })
+        };
+        let count = self
+            .inner
+            .transact(make, |m| match m {
+                MavMessage::MISSION_COUNT(c) => Some(c.count),
+                _ => None,
+            })
+            .await?
+            .ok_or(MissionError::RetriesExhausted {
+                stage: MissionStage::Count,
+                attempts: self.inner.cfg.retries,
+            })?;
+        let mut items = Vec::with_capacity(usize::from(count));
+        for seq in 0..count {
+            let make = |_| {
+                MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                    seq,
+                    target_system: target.0,
+                    target_component: target.1,
+                })
+            };
+            #[allow(deprecated)] // Legacy autopilots answer with MISSION_ITEM.
+            let matcher = |m: &MavMessage| match m {
+                MavMessage::MISSION_ITEM_INT(i) if i.seq == seq => Some(MissionItem::from_int(i)),
+                MavMessage::MISSION_ITEM(i) if i.seq == seq => Some(MissionItem::from_float(i)),
+                _ => None,
+            };
+            let item = self.inner.transact(make, matcher).await?.ok_or(
+                MissionError::RetriesExhausted {
+                    stage: MissionStage::Item(seq),
+                    attempts: self.inner.cfg.retries,
+                },
+            )?;
+            items.push(item);
+        }
+        self.inner
+            .send(mission_ack(target, MavMissionResult::MAV_MISSION_ACCEPTED))
+            .await?;
+        *lock(&self.inner.mission) = items.clone();
+        Ok(items)
+    }
+
+    /// Clears the mission (ArduPilot keeps home). A rover in AUTO still drives
+    /// to the item it had memorised, then holds (003 §2.5.4).
+    ///
+    /// # Errors
+    /// Refusal or no answer.
+    pub async fn mission_clear(&self) -> Result<(), MissionError> {
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        let make = |_| {
+            MavMessage::MISSION_CLEAR_ALL(MISSION_CLEAR_ALL_DATA {
+                target_system: target.0,
+                target_component: target.1,
+            })
+        };
+        let matcher = |m: &MavMessage| match m {
+            MavMessage::MISSION_ACK(a)
+                if a.target_system == self.inner.cfg.system_id || a.target_system == 0 =>
+            {
+                Some(a.mavtype)
+            }
+            _ => None,
+        };
+        match self.inner.transact(make, matcher).await? {
+            Some(MavMissionResult::MAV_MISSION_ACCEPTED) => {
+                lock(&self.inner.mission).clear();
+                Ok(())
+            }
+            Some(other) => Err(MissionError::Rejected(other)),
+            None => Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Ack,
+                attempts: self.inner.cfg.retries,
+            }),
+        }
+    }
+
+    /// Makes `seq` the current item (the vehicle turns to it at once in AUTO),
+    /// confirmed by MISSION_CURRENT; falls back to MAV_CMD_DO_SET_MISSION_CURRENT.
+    /// The jump is not reported as a waypoint reached.
+    ///
+    /// # Errors
+    /// No confirmation by either method.
+    pub async fn mission_set_current(&self, seq: u16) -> Result<(), MissionError> {
+        let target = self.inner.target().await?;
+        lock(&self.inner.reach).expect_jump(seq);
+        #[allow(deprecated)] // MISSION_SET_CURRENT is what ArduPilot of every age understands.
+        let make = |_| {
+            MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA {
+                seq,
+                target_system: target.0,
+                target_component: target.1,
+            })
+        };
+        let matcher = |m: &MavMessage| match m {
+            MavMessage::MISSION_CURRENT(c) if c.seq == seq => Some(()),
+            _ => None,
+        };
+        // Sent twice per attempt: the rolling queue's wrap has one leg of slack, and setting
+        // the same current item twice within milliseconds changes nothing.
+        if self
+            .inner
+            .transact_copies(2, make, matcher)
+            .await?
+            .is_some()
+        {
+            return Ok(());
+        }
+        match self
+            .command_long(
+                MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT,
+                [f32::from(seq), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            )
+            .await
+        {
+            Ok(()) => Ok(()),
+            Err(CommandError::Link(e)) => Err(e.into()),
+            Err(_) => Err(MissionError::RetriesExhausted {
+                stage: MissionStage::SetCurrent,
+                attempts: self.inner.cfg.retries * 2,
+            }),
+        }
+    }
+}
+
+impl Inner {
+    /// Runs a [`MissionUpload`] of `items` (numbered from `first`) after `start`
+    /// (MISSION_COUNT or MISSION_WRITE_PARTIAL_LIST): moves its messages to the wire and the
+    /// autopilot's to it, and sleeps until its deadline.
+    async fn upload(
+        &self,
+        target: (u8, u8),
+        start: MavMessage,
+        items: &[MissionItem],
+        first: u16,
+    ) -> Result<(), MissionError> {
+        // Subscribed before the start goes out, so no early answer is missed.
+        let mut rx = self.raw_tx.subscribe();
+        let cfg = UploadConfig {
+            me: self.cfg.system_id,
+            target,
+            retries: self.cfg.retries,
+            timeout: self.cfg.request_timeout,
+        };
+        let mut out = Vec::new();
+        let mut upload = MissionUpload::start(
+            cfg,
+            start,
+            items,
+            first,
+            Instant::now().into_std(),
+            &mut out,
+        )?;
+        loop {
+            for o in out.drain(..) {
+                self.put(o).await?;
+            }
+            let deadline = Instant::from_std(upload.poll_at());
+            let done = match timeout_at(deadline, rx.recv()).await {
+                // The timer fired, so the deadline has passed whatever the clock says.
+                Err(_) => upload.poll(Instant::now().into_std().max(upload.poll_at()), &mut out),
+                Ok(Ok(msg)) => upload.handle(&msg, Instant::now().into_std(), &mut out),
+                Ok(Err(broadcast::error::RecvError::Lagged(_))) => None,
+                Ok(Err(broadcast::error::RecvError::Closed)) => {
+                    return Err(LinkError::Closed.into())
+                }
+            };
+            if let Some(result) = done {
+                for o in out.drain(..) {
+                    self.put(o).await?;
+                }
+                return result;
+            }
+        }
+    }
+}

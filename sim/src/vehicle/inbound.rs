@@ -1,0 +1,233 @@
+//! The simulated vehicle's incoming side: one handler per MAVLink message it understands, commands, takeoff
+//! and mission items.
+
+use super::*;
+
+impl Vehicle {
+    // ---------------------------------------------------------------- messages in
+
+    /// Handles one message from `from` (system, component); returns the replies.
+    pub fn handle(&mut self, from: (u8, u8), msg: &MavMessage, now: Instant) -> Vec<MavMessage> {
+        let mut out = Vec::new();
+        match msg {
+            MavMessage::COMMAND_LONG(c) if self.for_us(c.target_system) => {
+                let result = self.command(c, now, &mut out);
+                out.push(command_ack(c.command, result));
+            }
+            MavMessage::SET_MODE(m) if self.for_us(m.target_system) => {
+                let result = self.change_mode(m.custom_mode, &mut out);
+                out.push(command_ack(MavCmd::MAV_CMD_DO_SET_MODE, result));
+            }
+            MavMessage::REQUEST_DATA_STREAM(r) if self.for_us(r.target_system) => {
+                let ids: &[u32] = match r.req_stream_id {
+                    MavDataStream::MAV_DATA_STREAM_ALL => &STREAMABLE,
+                    MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS => {
+                        &[SYS_STATUS_ID, MISSION_CURRENT_ID]
+                    }
+                    MavDataStream::MAV_DATA_STREAM_POSITION => &[GLOBAL_POSITION_INT_ID],
+                    MavDataStream::MAV_DATA_STREAM_EXTRA1 => &[ATTITUDE_ID],
+                    MavDataStream::MAV_DATA_STREAM_EXTRA2 => &[VFR_HUD_ID],
+                    _ => &[],
+                };
+                let hz = if r.start_stop == 0 {
+                    0.0
+                } else {
+                    f64::from(r.req_message_rate)
+                };
+                for &id in ids {
+                    self.set_rate(id, hz, now);
+                }
+            }
+            MavMessage::RC_CHANNELS_OVERRIDE(rc) if self.for_us(rc.target_system) => {
+                let prev = self.sticks.map(|(s, _)| s).unwrap_or_default();
+                let steer = pwm_to_unit(rc.chan1_raw).unwrap_or(prev.steer);
+                let throttle = pwm_to_unit(rc.chan3_raw).unwrap_or(prev.throttle);
+                self.sticks = Some((Sticks { steer, throttle }, now));
+            }
+            MavMessage::PARAM_REQUEST_LIST(r) if self.for_us(r.target_system) => {
+                out.extend((0..self.params.len()).filter_map(|i| self.param_value(i)));
+            }
+            MavMessage::PARAM_REQUEST_READ(r) if self.for_us(r.target_system) => {
+                let index = if r.param_index >= 0 {
+                    Some(r.param_index as usize)
+                } else {
+                    r.param_id
+                        .to_str()
+                        .ok()
+                        .and_then(|name| self.params.by_name(name).map(|(i, _)| i))
+                };
+                out.extend(index.and_then(|i| self.param_value(i)));
+            }
+            MavMessage::PARAM_SET(s) if self.for_us(s.target_system) => {
+                // Unknown names get no answer, as in ArduPilot.
+                if let Some(index) = s
+                    .param_id
+                    .to_str()
+                    .ok()
+                    .and_then(|n| self.params.set(n, s.param_value))
+                {
+                    out.extend(self.param_value(index));
+                }
+            }
+            MavMessage::MISSION_COUNT(c) if self.for_us(c.target_system) => {
+                out.extend(self.mission.on_count(from, c.count, now));
+            }
+            MavMessage::MISSION_WRITE_PARTIAL_LIST(p) if self.for_us(p.target_system) => {
+                out.extend(
+                    self.mission
+                        .on_partial(from, p.start_index, p.end_index, now),
+                );
+            }
+            MavMessage::MISSION_ITEM_INT(item) if self.for_us(item.target_system) => {
+                self.mission_item(from, item.clone(), now, &mut out);
+            }
+            MavMessage::MISSION_ITEM(item) if self.for_us(item.target_system) => {
+                self.mission_item(from, mission::item_from_float(item), now, &mut out);
+            }
+            MavMessage::MISSION_REQUEST_LIST(r) if self.for_us(r.target_system) => {
+                out.push(self.mission.on_request_list(from));
+            }
+            MavMessage::MISSION_REQUEST_INT(r) if self.for_us(r.target_system) => {
+                out.push(self.mission.on_request(from, r.seq, true));
+            }
+            MavMessage::MISSION_REQUEST(r) if self.for_us(r.target_system) => {
+                out.push(self.mission.on_request(from, r.seq, false));
+            }
+            MavMessage::MISSION_ACK(a) if self.for_us(a.target_system) => {
+                self.mission.on_ack(from);
+            }
+            MavMessage::MISSION_CLEAR_ALL(c) if self.for_us(c.target_system) => {
+                let (replies, change) = self.mission.on_clear(from);
+                out.extend(replies);
+                self.mission_changed(change);
+            }
+            MavMessage::MISSION_SET_CURRENT(s) if self.for_us(s.target_system) => {
+                let changed = self.set_current(s.seq, &mut out);
+                if !changed {
+                    // Refused: tell the client what is current instead.
+                    out.push(self.mission_current());
+                }
+            }
+            _ => {}
+        }
+        out
+    }
+
+    /// MAV_CMD_NAV_TAKEOFF as a command: as ArduCopter, only armed, in GUIDED, on the ground;
+    /// climbs straight up to `alt` metres above home, then holds there.
+    fn takeoff(&mut self, alt: f32) -> MavResult {
+        if self.cfg.kind != VehicleKind::Copter {
+            return MavResult::MAV_RESULT_UNSUPPORTED;
+        }
+        if !alt.is_finite() || alt <= 0.0 {
+            return MavResult::MAV_RESULT_DENIED;
+        }
+        if !self.armed || self.behaviour() != Behaviour::Guided || self.state.pos.up > 1.0 {
+            return MavResult::MAV_RESULT_FAILED;
+        }
+        self.takeoff_to = Some(Ned {
+            up: f64::from(alt),
+            ..self.state.pos
+        });
+        MavResult::MAV_RESULT_ACCEPTED
+    }
+
+    fn mission_item(
+        &mut self,
+        from: (u8, u8),
+        item: Item,
+        now: Instant,
+        out: &mut Vec<MavMessage>,
+    ) {
+        let (replies, change) = self.mission.on_item(from, item, self.cfg.home, now);
+        out.extend(replies);
+        if let Some(change) = change {
+            self.mission_changed(change);
+        }
+    }
+
+    /// A committed mission change never moves the memorised target (003 §2.5.4).
+    fn mission_changed(&mut self, change: Change) {
+        let event = match change {
+            Change::Uploaded { count } => LogEvent::MissionUploaded { count },
+            Change::PartialWrite { start, end } => LogEvent::MissionPartialWrite { start, end },
+            Change::Cleared => LogEvent::MissionCleared,
+        };
+        self.record(event);
+    }
+
+    fn command(
+        &mut self,
+        c: &COMMAND_LONG_DATA,
+        now: Instant,
+        out: &mut Vec<MavMessage>,
+    ) -> MavResult {
+        match c.command {
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
+                if c.param1 == 1.0 {
+                    self.set_armed(true, out);
+                } else if c.param1 == 0.0 {
+                    self.set_armed(false, out);
+                } else {
+                    return MavResult::MAV_RESULT_DENIED;
+                }
+                MavResult::MAV_RESULT_ACCEPTED
+            }
+            MavCmd::MAV_CMD_DO_SET_MODE => {
+                if c.param2 < 0.0 || !c.param2.is_finite() {
+                    return MavResult::MAV_RESULT_DENIED;
+                }
+                self.change_mode(c.param2 as u32, out)
+            }
+            MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT => {
+                if c.param1 < 0.0 || !c.param1.is_finite() || c.param1 > f32::from(u16::MAX) {
+                    return MavResult::MAV_RESULT_DENIED;
+                }
+                if self.set_current(c.param1 as u16, out) {
+                    MavResult::MAV_RESULT_ACCEPTED
+                } else {
+                    MavResult::MAV_RESULT_DENIED
+                }
+            }
+            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
+                let id = c.param1 as u32;
+                if id == 0 {
+                    // HEARTBEAT stays at 1 Hz.
+                    return MavResult::MAV_RESULT_ACCEPTED;
+                }
+                if !STREAMABLE.contains(&id) {
+                    return MavResult::MAV_RESULT_DENIED;
+                }
+                let hz = match c.param2 {
+                    x if x < 0.0 => 0.0,
+                    0.0 => 1.0,
+                    us => 1e6 / f64::from(us),
+                };
+                self.set_rate(id, hz, now);
+                MavResult::MAV_RESULT_ACCEPTED
+            }
+            MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
+            MavCmd::MAV_CMD_DO_CHANGE_SPEED => {
+                if self.change_speed(c.param2) {
+                    MavResult::MAV_RESULT_ACCEPTED
+                } else {
+                    MavResult::MAV_RESULT_DENIED
+                }
+            }
+            MavCmd::MAV_CMD_REQUEST_MESSAGE => match c.param1 as u32 {
+                0 => {
+                    out.push(self.heartbeat());
+                    MavResult::MAV_RESULT_ACCEPTED
+                }
+                id => match self.telemetry(id) {
+                    Some(m) => {
+                        out.push(m);
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
+                    None => MavResult::MAV_RESULT_UNSUPPORTED,
+                },
+            },
+            _ => MavResult::MAV_RESULT_UNSUPPORTED,
+        }
+    }
+}
