@@ -507,6 +507,20 @@ impl<'a> Parser<'a> {
         ))
     }
 
+    /// A serial port and its baud rate (`address`/`baudRate`, or the Tx or Rx pair of a
+    /// `serialduo`), with where the port was named.
+    fn port(
+        &self,
+        attrs: &Attrs,
+        (address_key, baud_key): (&'static str, &'static str),
+    ) -> Result<(String, u32, Location), ConfigLoadError> {
+        let address = self.required(attrs, address_key, PORT_SYNTAX, parse_port)?;
+        let baud_rate = self
+            .int(attrs, baud_key, &BAUD_RATE)?
+            .map_or(SERIAL_BAUD_RATE, saturate_u32);
+        Ok((address, baud_rate, self.at(attrs.pos_of(address_key))))
+    }
+
     fn serial(
         &mut self,
         element: &Element<'a>,
@@ -514,11 +528,7 @@ impl<'a> Parser<'a> {
     ) -> Result<ParsedLink, ConfigLoadError> {
         let attrs = self.attributes("serial", element, SERIAL_ATTRS)?;
         let (enabled, name, name_at) = self.link_common(&attrs, index)?;
-        let address = self.required(&attrs, "address", PORT_SYNTAX, parse_port)?;
-        let address_at = self.at(attrs.pos_of("address"));
-        let baud_rate = self
-            .int(&attrs, "baudRate", &BAUD_RATE)?
-            .map_or(SERIAL_BAUD_RATE, saturate_u32);
+        let (address, baud_rate, address_at) = self.port(&attrs, ("address", "baudRate"))?;
         let (time_to_resend, max_packet_size, max_message_queue) = self.serial_protocol(&attrs)?;
         let (heartbeat, lease) = self.timing(&attrs, SERIAL_HEARTBEAT_MS, SERIAL_LEASE)?;
         self.no_children("serial", element)?;
@@ -546,16 +556,8 @@ impl<'a> Parser<'a> {
     ) -> Result<ParsedLink, ConfigLoadError> {
         let attrs = self.attributes("serialduo", element, SERIALDUO_ATTRS)?;
         let (enabled, name, name_at) = self.link_common(&attrs, index)?;
-        let address_tx = self.required(&attrs, "addressTx", PORT_SYNTAX, parse_port)?;
-        let baud_rate_tx = self
-            .int(&attrs, "baudRateTx", &BAUD_RATE)?
-            .map_or(SERIAL_BAUD_RATE, saturate_u32);
-        let address_rx = self.required(&attrs, "addressRx", PORT_SYNTAX, parse_port)?;
-        let baud_rate_rx = self
-            .int(&attrs, "baudRateRx", &BAUD_RATE)?
-            .map_or(SERIAL_BAUD_RATE, saturate_u32);
-        let tx_at = self.at(attrs.pos_of("addressTx"));
-        let rx_at = self.at(attrs.pos_of("addressRx"));
+        let (address_tx, baud_rate_tx, tx_at) = self.port(&attrs, ("addressTx", "baudRateTx"))?;
+        let (address_rx, baud_rate_rx, rx_at) = self.port(&attrs, ("addressRx", "baudRateRx"))?;
         if address_tx == address_rx {
             return Err(ConfigLoadError::SerialDuoSamePort {
                 at: rx_at,
