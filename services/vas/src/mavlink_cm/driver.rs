@@ -267,6 +267,9 @@ impl Inner {
             s.mode_name = name;
             s.armed = armed;
             s.system_status = Some(hb.system_status);
+            if before.system_id.is_some() && !before.link_up {
+                s.restorations = s.restorations.wrapping_add(1);
+            }
         });
         if before.system_id.is_none() {
             self.emit(MavEvent::Connected {

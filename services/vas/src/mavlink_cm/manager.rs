@@ -79,6 +79,10 @@ pub struct VehicleState {
     pub system_status: Option<MavState>,
     /// Last MISSION_CURRENT.
     pub mission_current: Option<u16>,
+    /// How many times heartbeats came back after being lost (each time a
+    /// [`MavEvent::LinkRestored`](super::MavEvent::LinkRestored) follows): a reader of this
+    /// state can tell that a restoration it has not handled yet is already reflected here.
+    pub restorations: u32,
 }
 
 /// A telemetry message the manager can request at a rate.

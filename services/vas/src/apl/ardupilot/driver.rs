@@ -82,6 +82,8 @@ pub(super) struct Driver {
     /// The state the VAL last commanded (or the autopilot's own choice, once reported).
     commanded: Option<FlightState>,
     last_mode: Option<String>,
+    /// The manager's [`VehicleState::restorations`] as of the last link restoration handled.
+    restorations_seen: u32,
     last_reached: Option<u64>,
     home: Option<(f64, f64)>,
     /// The last queue action failed: wait for the tick before retrying.
@@ -124,6 +126,7 @@ impl Driver {
             events,
             commanded: None,
             last_mode: None,
+            restorations_seen: 0,
             last_reached: None,
             home: None,
             failing: false,
@@ -157,6 +160,7 @@ impl Driver {
                     }
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         tracing::warn!("APL lagged {n} MAVLink events; resynchronising");
+                        self.restorations_seen = self.mgr.state().restorations;
                         self.resync().await;
                     }
                     Err(broadcast::error::RecvError::Closed) => break,
@@ -320,6 +324,7 @@ impl Driver {
                         }
                         Err(broadcast::error::RecvError::Lagged(n)) => {
                             tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
+                            self.restorations_seen = self.mgr.state().restorations;
                         }
                         Err(broadcast::error::RecvError::Closed) => listening = false,
                     }
@@ -332,7 +337,8 @@ impl Driver {
     }
 
     async fn pump(&mut self) {
-        if self.failing || !self.mgr.state().link_up {
+        let s = self.mgr.state();
+        if self.failing || !s.link_up || s.restorations != self.restorations_seen {
             return;
         }
         if let Err(e) = self.prime().await {
@@ -365,6 +371,7 @@ impl Driver {
                 }
                 Err(broadcast::error::TryRecvError::Lagged(n)) => {
                     tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
+                    self.restorations_seen = self.mgr.state().restorations;
                 }
                 Err(_) => return,
             }
@@ -527,6 +534,13 @@ impl Driver {
         let Some(mode) = s.mode_name.filter(|_| s.link_up) else {
             return;
         };
+        if s.restorations != self.restorations_seen {
+            // The state already shows an autopilot that came back (a restarted one starts in
+            // its default mode) while the loss and the restoration still wait in our queue:
+            // handling the restoration (re-reading, resuming what was commanded) comes first,
+            // or its boot mode would read as a pilot's choice.
+            return;
+        }
         if self.last_mode.as_deref() == Some(mode) {
             return;
         }
@@ -611,7 +625,10 @@ impl Driver {
                 self.emit(ApEvent::LinkLost);
                 self.emit(ApEvent::Status(status_of(&self.mgr)));
             }
-            MavEvent::LinkRestored => self.on_restored().await,
+            MavEvent::LinkRestored => {
+                self.restorations_seen = self.mgr.state().restorations;
+                self.on_restored().await
+            }
             MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
         }
     }
