@@ -22,14 +22,24 @@ pub enum NameParseError {
         /// The first offending character.
         ch: char,
     },
+    /// Longer than [`MAX_NAME_LEN`] bytes.
+    #[error("name of {0} bytes is longer than {MAX_NAME_LEN}")]
+    TooLong(usize),
     /// A wildcard was used where only a plain name is allowed (publications, functions).
     #[error("name {0:?} contains a wildcard; only subscriptions may use * and **")]
     WildcardNotAllowed(String),
 }
 
+/// The longest name or pattern accepted, in bytes: far above any real one, and a bound on what
+/// a peer's declaration can make the node store and match against.
+pub const MAX_NAME_LEN: usize = 1024;
+
 fn check(name: &str, allow_wildcards: bool) -> Result<(), NameParseError> {
     if name.is_empty() {
         return Err(NameParseError::Empty);
+    }
+    if name.len() > MAX_NAME_LEN {
+        return Err(NameParseError::TooLong(name.len()));
     }
     for seg in name.split('/') {
         if seg.is_empty() {
@@ -87,21 +97,40 @@ pub fn is_wildcard(pattern: &str) -> bool {
 }
 
 /// Whether `pattern` (with `*` and `**`) matches the concrete `name`.
+///
+/// Linear in the common case and never worse than (pattern segments × name segments): a `**`
+/// is tried against growing runs of the name only from the last `**` met, never by recursion
+/// over every `**` (a peer's pattern of two thousand `**` once pinned a core for 37 s).
 pub fn matches(pattern: &str, name: &str) -> bool {
     let p: Vec<&str> = pattern.split('/').collect();
     let n: Vec<&str> = name.split('/').collect();
-    match_segments(&p, &n)
-}
-
-fn match_segments(p: &[&str], n: &[&str]) -> bool {
-    match p.first() {
-        None => n.is_empty(),
-        Some(&"**") => (0..=n.len()).any(|skip| match_segments(&p[1..], &n[skip..])),
-        Some(&seg) => match n.first() {
-            Some(&first) if seg == "*" || seg == first => match_segments(&p[1..], &n[1..]),
-            _ => false,
-        },
+    let (mut pi, mut ni) = (0, 0);
+    // After the last `**` met: where the pattern resumes, and the name segment from which
+    // that `**` stops swallowing.
+    let mut resume: Option<(usize, usize)> = None;
+    while ni < n.len() {
+        match p.get(pi) {
+            Some(&"**") => {
+                pi += 1;
+                resume = Some((pi, ni));
+            }
+            Some(&seg) if seg == "*" || seg == n[ni] => {
+                pi += 1;
+                ni += 1;
+            }
+            _ => match resume {
+                // The last `**` swallows one more segment and the rest is tried again. An
+                // earlier `**` never needs to: whatever it could swallow, the later one can.
+                Some((rp, rn)) => {
+                    resume = Some((rp, rn + 1));
+                    pi = rp;
+                    ni = rn + 1;
+                }
+                None => return false,
+            },
+        }
     }
+    p[pi..].iter().all(|seg| *seg == "**")
 }
 
 #[cfg(test)]
@@ -120,6 +149,49 @@ mod tests {
         assert!(matches("a/b", "a/b"));
         assert!(!matches("a/b", "a/b/c"));
         assert!(!matches("a/*", "a/b/c"));
+    }
+
+    /// The matcher as it was written first: obviously right, exponential in the `**` count.
+    fn reference(p: &[&str], n: &[&str]) -> bool {
+        match p.first() {
+            None => n.is_empty(),
+            Some(&"**") => (0..=n.len()).any(|skip| reference(&p[1..], &n[skip..])),
+            Some(&seg) => match n.first() {
+                Some(&first) if seg == "*" || seg == first => reference(&p[1..], &n[1..]),
+                _ => false,
+            },
+        }
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn agrees_with_the_reference_matcher(
+            p in proptest::collection::vec(proptest::sample::select(vec!["**", "*", "a", "b"]), 1..8),
+            n in proptest::collection::vec(proptest::sample::select(vec!["a", "b", "c"]), 1..8),
+        ) {
+            let (pattern, name) = (p.join("/"), n.join("/"));
+            proptest::prop_assert_eq!(matches(&pattern, &name), reference(&p, &n), "{} ~ {}", pattern, name);
+        }
+    }
+
+    #[test]
+    fn a_pattern_of_thousands_of_double_wildcards_is_answered() {
+        // The attacker's declaration: 2,000 `**` then a segment the name does not end with.
+        // The recursive matcher would never finish; the bound only keeps a regression from
+        // hanging the suite.
+        let pattern = format!("{}zz", "**/".repeat(2000));
+        let name = vec!["a"; 200].join("/");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send((
+                matches(&pattern, &name),
+                matches(&pattern, &format!("{name}/zz")),
+            ));
+        });
+        let answers = rx
+            .recv_timeout(std::time::Duration::from_secs(30))
+            .expect("matching finished");
+        assert_eq!(answers, (false, true));
     }
 
     #[test]

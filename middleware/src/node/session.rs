@@ -100,6 +100,18 @@ fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
     offer == interest && matches!(offer, ItemKind::Variable | ItemKind::Event)
 }
 
+/// Checks the name a peer declares as the API checks ours: a plain name for a service or an
+/// offer, a pattern for an interest, each at most [`name::MAX_NAME_LEN`] bytes.
+fn check_declared_name(decl: &Declaration) -> Result<(), name::NameParseError> {
+    match decl {
+        Declaration::Service { name, .. } | Declaration::Offer { name, .. } => {
+            name::validate_name(name)
+        }
+        Declaration::Interest { pattern, .. } => name::validate_pattern(pattern),
+        Declaration::Withdraw { .. } => Ok(()),
+    }
+}
+
 impl NodeInner {
     /// Appends a declaration to the log and pushes it to every known peer (as a no-op to the
     /// peers on `hidden_on`).
@@ -454,6 +466,12 @@ impl NodeInner {
                 }
                 p.known = e.counter;
                 changed = true;
+                // A peer's names are checked as ours are: a malformed or oversized one is
+                // skipped (its counter still counts, so no gap is asked for again).
+                if let Err(err) = check_declared_name(&e.decl) {
+                    tracing::debug!(peer = %p.name, error = %err, "declaration with a bad name skipped");
+                    continue;
+                }
                 match e.decl {
                     Declaration::Service { id, name } => {
                         p.services.insert(id, name);
@@ -662,6 +680,43 @@ pub(crate) type ReportedSet = HashSet<String>;
 mod tests {
     use super::*;
     use crate::codec::encode_message;
+
+    #[test]
+    fn a_peers_declared_names_are_checked_like_ours() {
+        let interest = |pattern: &str| Declaration::Interest {
+            id: 1,
+            service: 1,
+            kind: ItemKind::Event,
+            pattern: pattern.into(),
+            ty: TypeInfo::of::<u8>(),
+        };
+        let offer = |name: &str| Declaration::Offer {
+            id: 1,
+            service: 1,
+            kind: ItemKind::Event,
+            name: name.into(),
+            ty: TypeInfo::of::<u8>(),
+            origin: None,
+        };
+        assert!(check_declared_name(&interest("*/vas/**")).is_ok());
+        assert!(check_declared_name(&offer("rover1/vas/position")).is_ok());
+        // The attacker's pattern: 2,001 segments, 6 KB.
+        let huge = format!("{}zz", "**/".repeat(2000));
+        assert!(matches!(
+            check_declared_name(&interest(&huge)),
+            Err(name::NameParseError::TooLong(_))
+        ));
+        assert!(
+            check_declared_name(&offer("rover1/vas/*")).is_err(),
+            "no wildcard offer"
+        );
+        assert!(check_declared_name(&interest("a//b")).is_err());
+        assert!(check_declared_name(&Declaration::Service {
+            id: 1,
+            name: "bad name".into()
+        })
+        .is_err());
+    }
 
     #[test]
     fn fast_data_encoding_equals_postcard() {
