@@ -348,10 +348,9 @@ impl IService for Vas {
                             if !s.value.is_for(&me) {
                                 continue;
                             }
-                            let fresh = s.received.elapsed() <= timeout;
                             let sticks = s.value.sticks;
-                            let newer = last.is_none_or(|(ts, _)| sticks.timestamp_ms > ts);
-                            if !(fresh && newer) {
+                            if !takes_manual_sample(last, sticks.timestamp_ms, s.received, timeout)
+                            {
                                 continue;
                             }
                             last = Some((sticks.timestamp_ms, s.received));
@@ -401,5 +400,65 @@ impl IService for Vas {
     async fn stop(&mut self) -> Result<(), ServiceError> {
         self.apl.shutdown().await;
         Ok(())
+    }
+}
+
+/// Whether a manual-control sample that arrived at `received`, stamped `timestamp_ms` by its
+/// station, is obeyed after the last one obeyed (`last`: its stamp and arrival).
+///
+/// Newest wins, but only among live samples: once the last one is older than `timeout` any
+/// fresh sample is taken whatever its stamp. A sample stamped far in the future (a station
+/// whose clock jumped, or a forged `u64::MAX`) would otherwise refuse every later one until
+/// the VAS restarted.
+fn takes_manual_sample(
+    last: Option<(u64, Instant)>,
+    timestamp_ms: u64,
+    received: Instant,
+    timeout: Duration,
+) -> bool {
+    let fresh = received.elapsed() <= timeout;
+    let newer = last.is_none_or(|(ts, at)| {
+        timestamp_ms > ts || received.saturating_duration_since(at) > timeout
+    });
+    fresh && newer
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_sample_stamped_in_the_far_future_orders_the_others_only_while_it_is_live() {
+        let timeout = Duration::from_millis(500);
+        let t0 = Instant::now();
+        let forged = Some((u64::MAX, t0));
+        assert!(!takes_manual_sample(
+            forged,
+            1_000,
+            t0 + Duration::from_millis(100),
+            timeout
+        ));
+        // Once the forged one is stale, the real station is obeyed again.
+        assert!(takes_manual_sample(
+            forged,
+            1_000,
+            t0 + Duration::from_millis(600),
+            timeout
+        ));
+        // Among live samples, newest wins.
+        let live = Some((2_000, t0));
+        assert!(!takes_manual_sample(
+            live,
+            1_999,
+            t0 + Duration::from_millis(10),
+            timeout
+        ));
+        assert!(takes_manual_sample(
+            live,
+            2_001,
+            t0 + Duration::from_millis(10),
+            timeout
+        ));
+        assert!(takes_manual_sample(None, 0, Instant::now(), timeout));
     }
 }
