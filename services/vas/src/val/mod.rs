@@ -349,8 +349,11 @@ impl IService for Vas {
                                 continue;
                             }
                             let sticks = s.value.sticks;
-                            if !takes_manual_sample(last, sticks.timestamp_ms, s.received, timeout)
-                            {
+                            let before = last.map(|(ts, at)| {
+                                (ts, s.received.saturating_duration_since(at))
+                            });
+                            let age = s.received.elapsed();
+                            if !takes_manual_sample(before, sticks.timestamp_ms, age, timeout) {
                                 continue;
                             }
                             last = Some((sticks.timestamp_ms, s.received));
@@ -403,24 +406,22 @@ impl IService for Vas {
     }
 }
 
-/// Whether a manual-control sample that arrived at `received`, stamped `timestamp_ms` by its
-/// station, is obeyed after the last one obeyed (`last`: its stamp and arrival).
+/// Whether a manual-control sample stamped `timestamp_ms` by its station, which arrived
+/// `age` ago, is obeyed after the last one obeyed (`last`: its stamp and how long before this
+/// one it arrived).
 ///
 /// Newest wins, but only among live samples: once the last one is older than `timeout` any
 /// fresh sample is taken whatever its stamp. A sample stamped far in the future (a station
 /// whose clock jumped, or a forged `u64::MAX`) would otherwise refuse every later one until
 /// the VAS restarted.
 fn takes_manual_sample(
-    last: Option<(u64, Instant)>,
+    last: Option<(u64, Duration)>,
     timestamp_ms: u64,
-    received: Instant,
+    age: Duration,
     timeout: Duration,
 ) -> bool {
-    let fresh = received.elapsed() <= timeout;
-    let newer = last.is_none_or(|(ts, at)| {
-        timestamp_ms > ts || received.saturating_duration_since(at) > timeout
-    });
-    fresh && newer
+    let newer = last.is_none_or(|(ts, before)| timestamp_ms > ts || before > timeout);
+    age <= timeout && newer
 }
 
 #[cfg(test)]
@@ -429,36 +430,20 @@ mod tests {
 
     #[test]
     fn a_sample_stamped_in_the_far_future_orders_the_others_only_while_it_is_live() {
-        let timeout = Duration::from_millis(500);
-        let t0 = Instant::now();
-        let forged = Some((u64::MAX, t0));
-        assert!(!takes_manual_sample(
-            forged,
-            1_000,
-            t0 + Duration::from_millis(100),
-            timeout
-        ));
-        // Once the forged one is stale, the real station is obeyed again.
-        assert!(takes_manual_sample(
-            forged,
-            1_000,
-            t0 + Duration::from_millis(600),
-            timeout
-        ));
+        let ms = Duration::from_millis;
+        let timeout = ms(500);
+        let take = |last, stamp, age, before| {
+            takes_manual_sample(Some((last, before)), stamp, age, timeout)
+        };
+        // A forged stamp refuses older ones while it is live...
+        assert!(!take(u64::MAX, 1_000, ms(0), ms(100)));
+        // ...and once it is stale, the real station is obeyed again.
+        assert!(take(u64::MAX, 1_000, ms(0), ms(600)));
         // Among live samples, newest wins.
-        let live = Some((2_000, t0));
-        assert!(!takes_manual_sample(
-            live,
-            1_999,
-            t0 + Duration::from_millis(10),
-            timeout
-        ));
-        assert!(takes_manual_sample(
-            live,
-            2_001,
-            t0 + Duration::from_millis(10),
-            timeout
-        ));
-        assert!(takes_manual_sample(None, 0, Instant::now(), timeout));
+        assert!(!take(2_000, 1_999, ms(0), ms(10)));
+        assert!(take(2_000, 2_001, ms(0), ms(10)));
+        // A sample that waited longer than the timeout is stale whatever its stamp.
+        assert!(!take(2_000, 2_001, ms(501), ms(10)));
+        assert!(takes_manual_sample(None, 0, ms(0), timeout));
     }
 }
