@@ -78,6 +78,34 @@ impl PathSwitches {
         true
     }
 
+    /// Makes the switch away from `from`. Under the write lock, so no safe message can pass:
+    /// `make` moves the peer it names to the new path and returns the message that introduces
+    /// us there (or `None`: the peer is gone, and what was held is refused); that message, then
+    /// the held ones, go out on the new path. Returns the new path when the switch was made.
+    pub(crate) fn finish(
+        &self,
+        links: &[Arc<dyn Link>],
+        from: Path,
+        make: impl FnOnce(NodeId, Path) -> Option<Outgoing>,
+    ) -> Option<Path> {
+        let mut map = self.map.write().unwrap_or_else(|e| e.into_inner());
+        let s = map.get(&from)?;
+        let (node, to) = (s.node, s.to);
+        let held = lock(&s.held).take().unwrap_or_default();
+        let Some(introduction) = make(node, to) else {
+            map.remove(&from);
+            for out in held {
+                out.refuse(from.1);
+            }
+            return None;
+        };
+        send_on(links, to, introduction);
+        for out in held {
+            send_on(links, to, out);
+        }
+        Some(to)
+    }
+
     /// Forgets the switches of `node` (it is gone); what they held is refused.
     pub(crate) fn forget(&self, node: NodeId) {
         let mut map = self.map.write().unwrap_or_else(|e| e.into_inner());
@@ -132,50 +160,28 @@ impl NodeInner {
                 // in every case nothing more is to be waited for on the old path.
                 _ = tokio::time::timeout(lease, acknowledged) => {}
             }
-            me.finish_switch(node, from);
+            me.finish_switch(from);
         });
     }
 
     /// Makes the switch started by [`NodeInner::switch_path`]: the peer is reached over the new
     /// path from now on, introduced there by our Hello, followed by what was held.
-    fn finish_switch(&self, node: NodeId, from: Path) {
-        let map = self
-            .path_switches
-            .map
-            .write()
-            .unwrap_or_else(|e| e.into_inner());
-        let Some(s) = map.get(&from) else {
-            return; // the peer was dropped meanwhile
-        };
-        let to = s.to;
-        let held = lock(&s.held).take().unwrap_or_default();
-        match self.peers.get_mut(&node) {
-            Some(mut p) => {
-                tracing::info!(peer = %p.name, was = %from.1, now = %to.1, "peer reached over a better link");
-                p.link = to.0;
-                p.addr = to.1;
-            }
-            None => {
-                drop(map);
-                return self.path_switches.forget(node);
-            }
-        }
-        // Under the write lock, so no other safe message can pass the Hello and the held ones.
-        send_on(
-            self.links(),
-            to,
-            Outgoing::Safe {
+    fn finish_switch(&self, from: Path) {
+        let made = self.path_switches.finish(self.links(), from, |node, to| {
+            let mut p = self.peers.get_mut(&node)?;
+            tracing::info!(peer = %p.name, was = %from.1, now = %to.1, "peer reached over a better link");
+            p.link = to.0;
+            p.addr = to.1;
+            Some(Outgoing::Safe {
                 msg: encode_message(&self.hello(to.0)),
                 done: None,
-            },
-        );
-        for out in held {
-            send_on(self.links(), to, out);
+            })
+        });
+        if made.is_some() {
+            self.recompute_routes();
+            self.recompute_forwarding();
+            self.bump();
         }
-        drop(map);
-        self.recompute_routes();
-        self.recompute_forwarding();
-        self.bump();
     }
 }
 
@@ -238,17 +244,37 @@ mod tests {
             [(old.1, vec![1]), (old.1, vec![4])],
             "safe messages after the start wait; fast ones go"
         );
-        let held = lock(&s.map.read().unwrap()[&old].held).take().unwrap();
-        let held: Vec<Vec<u8>> = held
-            .into_iter()
-            .map(|o| match o {
-                Outgoing::Safe { msg, .. } | Outgoing::Fast { msg, .. } => msg,
-            })
-            .collect();
-        assert_eq!(held, [vec![2], vec![3]], "held in the order sent");
-        // Made: whatever still names the old path goes to the new one.
+        // Made: our introduction, then what was held, in order, on the new path.
+        assert_eq!(s.finish(&links, old, |_, _| Some(safe(0))), Some(new));
+        assert_eq!(
+            lock(&rec.0)[2..],
+            [(new.1, vec![0]), (new.1, vec![2]), (new.1, vec![3])]
+        );
+        // Whatever still names the old path goes to the new one.
         s.send(&links, old, safe(5));
         assert_eq!(lock(&rec.0).last(), Some(&(new.1, vec![5])));
+    }
+
+    #[test]
+    fn a_switch_whose_peer_is_gone_refuses_what_it_held() {
+        let links: Vec<Arc<dyn Link>> = vec![Arc::new(Recorder::default())];
+        let old: Path = (0, PeerAddr::Udp("127.0.0.1:1".parse().unwrap()));
+        let s = PathSwitches::default();
+        assert!(s.start(9, old, (0, PeerAddr::Shm(7))));
+        let (tx, mut rx) = tokio::sync::oneshot::channel();
+        s.send(
+            &links,
+            old,
+            Outgoing::Safe {
+                msg: vec![1],
+                done: Some(tx),
+            },
+        );
+        assert_eq!(s.finish(&links, old, |_, _| None), None);
+        assert!(matches!(
+            rx.try_recv(),
+            Ok(Err(LinkSendError::PeerClosed(_)))
+        ));
     }
 
     #[test]
@@ -272,6 +298,11 @@ mod tests {
             rx.try_recv(),
             Ok(Err(LinkSendError::PeerClosed(_)))
         ));
+        assert_eq!(
+            s.finish(&links, old, |_, _| Some(safe(0))),
+            None,
+            "nothing left to make"
+        );
         s.send(&links, old, safe(2));
         assert_eq!(
             *lock(&rec.0),
