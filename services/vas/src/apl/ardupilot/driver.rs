@@ -160,7 +160,7 @@ impl Driver {
                     }
                     Err(broadcast::error::RecvError::Lagged(n)) => {
                         tracing::warn!("APL lagged {n} MAVLink events; resynchronising");
-                        self.restorations_seen = self.mgr.state().restorations;
+                        self.restorations_handled();
                         self.resync().await;
                     }
                     Err(broadcast::error::RecvError::Closed) => break,
@@ -324,7 +324,7 @@ impl Driver {
                         }
                         Err(broadcast::error::RecvError::Lagged(n)) => {
                             tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
-                            self.restorations_seen = self.mgr.state().restorations;
+                            self.restorations_handled();
                         }
                         Err(broadcast::error::RecvError::Closed) => listening = false,
                     }
@@ -371,7 +371,7 @@ impl Driver {
                 }
                 Err(broadcast::error::TryRecvError::Lagged(n)) => {
                     tracing::warn!("APL lagged {n} MAVLink events; the tick resynchronises");
-                    self.restorations_seen = self.mgr.state().restorations;
+                    self.restorations_handled();
                 }
                 Err(_) => return,
             }
@@ -528,6 +528,12 @@ impl Driver {
         self.pump().await;
     }
 
+    /// Takes every link restoration the manager has seen as handled (the one just handled, or
+    /// those lost when the event queue lagged: the tick resynchronises).
+    fn restorations_handled(&mut self) {
+        self.restorations_seen = self.mgr.state().restorations;
+    }
+
     /// Reacts to the autopilot's latest mode when it is not the one commanded.
     fn check_mode(&mut self) {
         let s = self.mgr.state();
@@ -626,7 +632,7 @@ impl Driver {
                 self.emit(ApEvent::Status(status_of(&self.mgr)));
             }
             MavEvent::LinkRestored => {
-                self.restorations_seen = self.mgr.state().restorations;
+                self.restorations_handled();
                 self.on_restored().await
             }
             MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
