@@ -51,12 +51,25 @@ pub fn parse_plan(src: &str, vehicle: &VehicleParams) -> Result<FlightPlan> {
     Ok(plan)
 }
 
-/// The vehicle kind a plan says it is written for (`<flightPlan vehicle="rover">`), read
-/// without validating the rest; `None` when it says nothing or does not parse (then
-/// [`parse_plan`] reports why).
+/// The vehicle kind a plan says it is written for (`<flightPlan vehicle="rover">`), read from
+/// the root's start tag alone (the plan is parsed once, by [`parse_plan`]); `None` when it
+/// says nothing or the tag does not read (then [`parse_plan`] reports why).
 pub fn declared_vehicle(src: &str) -> Option<VehicleKind> {
-    let root = parse_document(src).ok()?;
-    VehicleKind::from_name(&root.attr("vehicle")?.value)
+    let index = marea::xml::LineIndex::new(src);
+    let mut reader = marea::xml::Reader::new(src, &index);
+    loop {
+        match reader.read_event().ok()? {
+            marea::xml::XmlEvent::Start(root) => {
+                let vehicle = root
+                    .attributes()
+                    .filter_map(|a| a.ok())
+                    .find(|a| a.name == "vehicle")?;
+                return VehicleKind::from_name(&vehicle.value().ok()?);
+            }
+            marea::xml::XmlEvent::Eof => return None,
+            _ => {}
+        }
+    }
 }
 
 fn plan_from_element(root: &Element) -> Result<FlightPlan> {
