@@ -113,6 +113,15 @@ pub enum FileSendError {
         /// Its reason.
         reason: String,
     },
+    /// The receiver's access rules (`<access>` in its network.xml) do not let this node send
+    /// to that sink.
+    #[error("node '{node}' denied the file: {reason}")]
+    Denied {
+        /// Receiving node.
+        node: String,
+        /// Its reason (names the sink and the sender).
+        reason: String,
+    },
     /// The receiver kept disappearing until the retry time ran out.
     #[error("gave up sending to '{to}': {last}")]
     GaveUp {

@@ -335,6 +335,12 @@ impl Sender {
                     reason,
                 }))
             }
+            Ok(Some(Control::Done(FileVerdict::Denied(reason)))) => {
+                return Attempt::Done(Err(FileSendError::Denied {
+                    node: peer_name.to_owned(),
+                    reason,
+                }))
+            }
             Ok(Some(Control::PeerLost(why))) => return Attempt::Retry(why),
             Ok(None) => return Attempt::Done(Err(FileSendError::Closed)),
             Err(_) => {
@@ -438,6 +444,12 @@ impl Sender {
                 }
                 Heard::Receiver(Some(Control::Done(FileVerdict::Failed(reason)))) => {
                     return Attempt::Done(Err(FileSendError::Rejected {
+                        node: peer_name.to_owned(),
+                        reason,
+                    }))
+                }
+                Heard::Receiver(Some(Control::Done(FileVerdict::Denied(reason)))) => {
+                    return Attempt::Done(Err(FileSendError::Denied {
                         node: peer_name.to_owned(),
                         reason,
                     }))

@@ -187,6 +187,8 @@ impl Node {
             counters: Default::default(),
             path_switches: Default::default(),
             routing: Mutex::new(()),
+            policy: crate::node::policy::Policy::new(config.access.clone(), config.links.len()),
+            lanes: Default::default(),
             // The pseudo-service id is the first id handed out (ids start at 1).
             gateway: forwards.then(|| crate::node::gateway::Gateway::new(1)),
         });

@@ -79,9 +79,10 @@ mod tests {
                     namespace: "".into(),
                     counter: 3,
                     lease_ms: 300,
+                    gateway: true,
                 },
-                // tag 0, node_id 1, "d", "n", "", counter 3, lease 300 = 0xAC 0x02
-                vec![0, 1, 1, b'd', 1, b'n', 0, 3, 0xAC, 0x02],
+                // tag 0, node_id 1, "d", "n", "", counter 3, lease 300 = 0xAC 0x02, gateway
+                vec![0, 1, 1, b'd', 1, b'n', 0, 3, 0xAC, 0x02, 1],
             ),
             (
                 Message::Heartbeat {
@@ -94,6 +95,9 @@ mod tests {
             (Message::DeclRequest { since: 4 }, vec![2, 4]),
             (
                 Message::DeclBatch {
+                    after: 0,
+                    upto: 5,
+                    reset: true,
                     entries: vec![
                         LoggedDeclaration {
                             counter: 1,
@@ -130,7 +134,7 @@ mod tests {
                     ],
                 },
                 vec![
-                    3, 4, // tag, 4 entries
+                    3, 0, 5, 1, 4, // tag, after 0, upto 5, reset, 4 entries
                     1, 0, 1, 1, b's', // counter 1, Service{1,"s"}
                     2, 1, 2, 1, 0, 3, b's', b'/', b'v', 1, b'T', 0x82, 0x02,
                     0, // Offer, no origin
@@ -164,10 +168,18 @@ mod tests {
                 Message::Call {
                     call_id: 1,
                     id: 2,
-                    deadline_ms: 1000,
+                    remaining_ms: 1000,
                     args: vec![7],
                 },
                 vec![7, 1, 2, 0xE8, 0x07, 1, 7],
+            ),
+            (
+                Message::Reply {
+                    call_id: 1,
+                    result: Err(RemoteFailure::Denied),
+                },
+                // Err, RemoteFailure variant 4
+                vec![8, 1, 1, 4],
             ),
             (
                 Message::Reply {
@@ -225,6 +237,13 @@ mod tests {
                     verdict: FileVerdict::Failed("h".into()),
                 },
                 vec![12, 1, 1, 1, b'h'],
+            ),
+            (
+                Message::FileDone {
+                    transfer: 1,
+                    verdict: FileVerdict::Denied("d".into()),
+                },
+                vec![12, 1, 2, 1, b'd'],
             ),
             (Message::FileCancel { transfer: 3 }, vec![13, 3]),
             (Message::Bye { node_id: 4 }, vec![14, 4]),

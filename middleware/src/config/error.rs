@@ -204,6 +204,14 @@ pub enum ConfigLoadError {
         /// Where the first link with this name is.
         first: Location,
     },
+    /// An element that may appear once appears again (`<access>`).
+    #[error("{at}: <{element}> may appear only once")]
+    DuplicateElement {
+        /// Where (the second one).
+        at: Location,
+        /// The element.
+        element: &'static str,
+    },
     /// A `<serialduo>` whose `addressTx` and `addressRx` are the same port.
     #[error(
         "{at}: <serialduo>: addressTx and addressRx are both {address:?}; a serialduo needs two different ports (use <serial> for one)"
@@ -249,6 +257,7 @@ impl ConfigLoadError {
             | E::TrailingContent { at, .. }
             | E::NoLinks { at }
             | E::DuplicateLinkName { at, .. }
+            | E::DuplicateElement { at, .. }
             | E::SerialDuoSamePort { at, .. }
             | E::SerialPortReused { at, .. } => Some(at),
         }

@@ -34,11 +34,13 @@ use std::path::Path;
 
 use crate::xml::LineIndex;
 
+pub mod access;
 mod error;
 mod model;
 mod parser;
 mod values;
 
+pub use access::{AccessConfig, AccessKind, AccessRule};
 pub use error::{ConfigLoadError, Location};
 pub use model::*;
 
@@ -111,6 +113,7 @@ impl NetworkConfig {
             })],
             gateway: None,
             source: None,
+            access: None,
         }
     }
 

@@ -26,6 +26,8 @@ pub struct NetworkConfig {
     pub gateway: Option<bool>,
     /// The file this configuration was read from, if any.
     pub source: Option<PathBuf>,
+    /// The `<access>` rules; `None` (no element) leaves everything open.
+    pub access: Option<super::access::AccessConfig>,
 }
 
 /// One link of a node, by medium.

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use quick_xml::errors::IllFormedError;
 
+use super::access::{AccessConfig, AccessKind, AccessRule};
 use super::error::{ConfigLoadError, Location};
 use super::model::*;
 use super::values::*;
@@ -363,8 +364,19 @@ impl<'a> Parser<'a> {
         // Kinds of the link elements so far, for default names (`<kind><index>`). Disabled
         // links count too, so that switching one off does not rename the others.
         let mut kinds: Vec<String> = Vec::new();
+        let mut access: Option<AccessConfig> = None;
         while let Some(child) = self.child("network", root)? {
             let kind = child.name().to_owned();
+            if kind == "access" {
+                if access.is_some() {
+                    return Err(ConfigLoadError::DuplicateElement {
+                        at: self.at(child.pos()),
+                        element: "access",
+                    });
+                }
+                access = Some(self.access(&child)?);
+                continue;
+            }
             let index = kinds.iter().filter(|&k| *k == kind).count();
             let parsed = match kind.as_str() {
                 "ethernet" => self.ethernet(&child, index)?,
@@ -411,6 +423,7 @@ impl<'a> Parser<'a> {
             links,
             gateway,
             source: self.source.map(Path::to_path_buf),
+            access,
         })
     }
 
@@ -584,5 +597,44 @@ impl<'a> Parser<'a> {
             enabled,
             name_at,
         })
+    }
+}
+
+/// `<access>` (see `config::access`): kept apart from the links' parsing.
+impl<'a> Parser<'a> {
+    fn access(&mut self, element: &Element<'a>) -> Result<AccessConfig, ConfigLoadError> {
+        self.attributes("access", element, NO_ATTRS)?;
+        let mut config = AccessConfig::default();
+        while let Some(child) = self.child("access", element)? {
+            let rule = match child.name() {
+                "allow" => "allow",
+                "deny" => "deny",
+                _ => return Err(self.unknown_element("access", &child, ACCESS_ELEMENTS)),
+            };
+            let attrs = if rule == "allow" {
+                self.attributes("allow", &child, ALLOW_ATTRS)?
+            } else {
+                self.attributes("deny", &child, DENY_ATTRS)?
+            };
+            let kind = self.required(&attrs, "kind", ACCESS_KIND_SYNTAX, |s| {
+                AccessKind::parse(s.trim()).ok_or(Invalid::Syntax(ACCESS_KIND_SYNTAX))
+            })?;
+            if rule == "deny" {
+                config.closed.push(kind);
+            } else {
+                let pattern = |s: &str| {
+                    crate::name::validate_pattern(s.trim())
+                        .map(|()| s.trim().to_owned())
+                        .map_err(|_| Invalid::Syntax(ACCESS_PATTERN_SYNTAX))
+                };
+                let item = self
+                    .value(&attrs, "item", pattern)?
+                    .unwrap_or_else(|| "**".to_owned());
+                let from = self.required(&attrs, "from", ACCESS_PATTERN_SYNTAX, pattern)?;
+                config.rules.push(AccessRule { kind, item, from });
+            }
+            self.no_children(rule, &child)?;
+        }
+        Ok(config)
     }
 }

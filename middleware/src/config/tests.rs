@@ -111,6 +111,7 @@ fn example_parses_into_the_exact_config() {
         ],
         gateway: None,
         source: None,
+        access: None,
     };
     assert_eq!(config, expected);
     let names: Vec<&str> = config.links.iter().map(LinkConfig::name).collect();
@@ -788,4 +789,63 @@ proptest! {
             }
         }
     }
+}
+
+#[test]
+fn access_rules_are_parsed_in_order() {
+    let c = parse(&net(r#"<ethernet/>
+<access>
+  <allow kind="call" item="rover1/vas/*" from="ground/*"/>
+  <allow kind="publish" item="rover1/vas/manual_control" from="ground/fmo"/>
+  <allow kind="gateway" from="relay"/>
+  <deny kind="file"/>
+</access>"#))
+    .unwrap();
+    let a = c.access.expect("access parsed");
+    assert_eq!(
+        a.rules,
+        vec![
+            AccessRule {
+                kind: AccessKind::Call,
+                item: "rover1/vas/*".into(),
+                from: "ground/*".into(),
+            },
+            AccessRule {
+                kind: AccessKind::Publish,
+                item: "rover1/vas/manual_control".into(),
+                from: "ground/fmo".into(),
+            },
+            AccessRule {
+                kind: AccessKind::Gateway,
+                item: "**".into(),
+                from: "relay".into(),
+            },
+        ]
+    );
+    assert_eq!(a.closed, vec![AccessKind::File]);
+    assert!(!a.allows(AccessKind::File, "rover1/fpma/plans", "ground/fpmo"));
+    assert!(parse(&net("<ethernet/>")).unwrap().access.is_none());
+}
+
+#[test]
+fn access_errors_name_line_and_column() {
+    let (msg, line, column) = message(&net(
+        "<ethernet/>\n<access>\n  <allow kind=\"cal\" from=\"x\"/>\n</access>",
+    ));
+    assert_eq!((line, column), (4, 10), "{msg}");
+    assert!(msg.contains("one of call, file, publish, gateway"), "{msg}");
+    let (msg, line, column) = message(&net(
+        "<ethernet/>\n<access>\n  <allow kind=\"call\" item=\"a//b\" from=\"x\"/>\n</access>",
+    ));
+    assert_eq!((line, column), (4, 22), "{msg}");
+    assert!(msg.contains("name pattern"), "{msg}");
+    let (msg, line, _) = message(&net("<ethernet/>\n<access>\n  <allow kind=\"call\"/>\n</access>"));
+    assert_eq!(line, 4, "{msg}");
+    assert!(msg.contains("from"), "{msg}");
+    let (msg, line, column) = message(&net("<ethernet/>\n<access/>\n<access/>"));
+    assert_eq!((line, column), (4, 1), "{msg}");
+    assert!(msg.contains("only once"), "{msg}");
+    let (msg, line, _) = message(&net("<ethernet/>\n<access>\n  <permit kind=\"call\"/>\n</access>"));
+    assert_eq!(line, 4, "{msg}");
+    assert!(msg.contains("permit"), "{msg}");
 }

@@ -108,6 +108,13 @@ pub(super) const WAIT_SYNTAX: &str = "event or spin";
 pub(super) const LINK_ELEMENTS: &[&str] = &["ethernet", "shm", "serial", "serialduo"];
 pub(super) const PEER_ELEMENTS: &[&str] = &["peer"];
 pub(super) const NO_ELEMENTS: &[&str] = &[];
+pub(super) const ACCESS_ELEMENTS: &[&str] = &["allow", "deny"];
+pub(super) const NO_ATTRS: &[&str] = &[];
+pub(super) const ALLOW_ATTRS: &[&str] = &["kind", "item", "from"];
+pub(super) const DENY_ATTRS: &[&str] = &["kind"];
+pub(super) const ACCESS_KIND_SYNTAX: &str = "one of call, file, publish, gateway";
+pub(super) const ACCESS_PATTERN_SYNTAX: &str =
+    "a name pattern: segments of letters, digits, _ - . separated by /, or * and **";
 
 pub(super) const NETWORK_ATTRS: &[&str] = &["node", "namespace", "domain", "gateway"];
 pub(super) const ETHERNET_ATTRS: &[&str] = &[

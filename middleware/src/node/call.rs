@@ -3,14 +3,17 @@
 //! calls waiting for their `Reply`, answering a peer's `Call`, and failing what is pending on a
 //! peer that goes away. The typed handles over it are in `api::function`.
 
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use dashmap::DashMap;
 use tokio::sync::oneshot;
 
-use super::{BoxFuture, NodeInner, OfferRole};
+use super::policy::{Refusal, MAX_CALLS_PER_PEER, MAX_CALLS_TOTAL, MAX_CALL_TIME};
+use super::{lock, BoxFuture, NodeInner, OfferRole};
+use crate::config::AccessKind;
 use crate::protocol::{ItemKind, Message, NodeId, RemoteFailure};
 use crate::typeinfo::TypeInfo;
 
@@ -59,6 +62,32 @@ pub enum CallError {
         /// Caller's signature.
         expected: String,
     },
+    /// The provider's access rules (`<access>` in its network.xml) do not let this node call
+    /// the function.
+    #[error("node '{node}' denied the call to '{name}'")]
+    Denied {
+        /// Function name.
+        name: String,
+        /// Provider node.
+        node: String,
+    },
+    /// The provider runs as many calls as it accepts from this node (or in all); retry later.
+    #[error("node '{node}' is busy: too many calls in progress, '{name}' not run")]
+    Busy {
+        /// Function name.
+        name: String,
+        /// Provider node.
+        node: String,
+    },
+    /// A newer call of the same function from this node arrived at the provider before this
+    /// one started: the newest command wins, this one was not run.
+    #[error("call to '{name}' on node '{node}' superseded by a newer call before it ran")]
+    Superseded {
+        /// Function name.
+        name: String,
+        /// Provider node.
+        node: String,
+    },
     /// Arguments could not be encoded, or the result decoded.
     #[error("codec error calling '{name}': {reason}")]
     Codec {
@@ -88,6 +117,18 @@ impl CallError {
                 node,
                 after,
             },
+            RemoteFailure::Denied => CallError::Denied {
+                name: name.to_owned(),
+                node,
+            },
+            RemoteFailure::Busy => CallError::Busy {
+                name: name.to_owned(),
+                node,
+            },
+            RemoteFailure::Superseded => CallError::Superseded {
+                name: name.to_owned(),
+                node,
+            },
         }
     }
 
@@ -97,6 +138,9 @@ impl CallError {
         match self {
             CallError::NoProvider { .. } => RemoteFailure::NotProvided,
             CallError::Timeout { .. } => RemoteFailure::DeadlineExpired,
+            CallError::Denied { .. } => RemoteFailure::Denied,
+            CallError::Busy { .. } => RemoteFailure::Busy,
+            CallError::Superseded { .. } => RemoteFailure::Superseded,
             CallError::Remote { node, message } => {
                 RemoteFailure::Handler(format!("{message} (from node '{node}')"))
             }
@@ -215,6 +259,77 @@ impl PendingCalls {
     }
 }
 
+/// Runs one call of a lane: the arguments and how long the handler may take.
+type LaneRun = Arc<dyn Fn(Vec<u8>, Duration) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
+
+/// A peer's call accepted but not started.
+struct QueuedCall {
+    call_id: u64,
+    args: Vec<u8>,
+    /// When the caller's remaining time runs out, counted from arrival.
+    expires: Instant,
+}
+
+/// What became of a call offered to its lane.
+enum Admission {
+    /// The lane was idle: run it now.
+    Run(QueuedCall),
+    /// The lane is busy: it waits, replacing the call that waited (if any).
+    Queued { superseded: Option<u64> },
+    /// Too many lanes of this peer, or in all.
+    Busy,
+}
+
+#[derive(Default)]
+struct LaneTable {
+    /// Running lanes, each with the call waiting behind the one running.
+    lanes: HashMap<(NodeId, u32), Option<QueuedCall>>,
+    per_peer: HashMap<NodeId, usize>,
+    total: usize,
+}
+
+impl LaneTable {
+    fn admit(&mut self, key: (NodeId, u32), call: QueuedCall) -> Admission {
+        if let Some(waiting) = self.lanes.get_mut(&key) {
+            let old = waiting.replace(call);
+            return Admission::Queued {
+                superseded: old.map(|c| c.call_id),
+            };
+        }
+        let peer = self.per_peer.get(&key.0).copied().unwrap_or(0);
+        if peer >= MAX_CALLS_PER_PEER || self.total >= MAX_CALLS_TOTAL {
+            return Admission::Busy;
+        }
+        self.lanes.insert(key, None);
+        *self.per_peer.entry(key.0).or_default() += 1;
+        self.total += 1;
+        Admission::Run(call)
+    }
+
+    /// The call waiting in lane `key`, or `None` and the lane closes.
+    fn next(&mut self, key: (NodeId, u32)) -> Option<QueuedCall> {
+        if let Some(c) = self.lanes.get_mut(&key).and_then(Option::take) {
+            return Some(c);
+        }
+        if self.lanes.remove(&key).is_some() {
+            self.total = self.total.saturating_sub(1);
+            if let Some(n) = self.per_peer.get_mut(&key.0) {
+                *n = n.saturating_sub(1);
+                if *n == 0 {
+                    self.per_peer.remove(&key.0);
+                }
+            }
+        }
+        None
+    }
+}
+
+/// The (caller, function) lanes of the calls peers make to this node.
+#[derive(Default)]
+pub(crate) struct Lanes {
+    inner: Mutex<LaneTable>,
+}
+
 impl NodeInner {
     /// The provider of `name`: local first, then remote. With `expected`, a provider of another
     /// type is refused (and reported if no matching one exists); without, any type is taken.
@@ -304,13 +419,13 @@ impl NodeInner {
                 ..
             } => {
                 let (call_id, rx) = self.calls.register(peer, node_name.clone(), name, timeout);
-                let deadline_ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
+                let remaining_ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
                 let sent = self.send_safe_to_node(
                     peer,
                     &Message::Call {
                         call_id,
                         id,
-                        deadline_ms,
+                        remaining_ms,
                         args,
                     },
                 );
@@ -340,74 +455,161 @@ impl NodeInner {
         }
     }
 
-    /// Answers a peer's call of our offer `id`: runs its handler (or relays it, for a gateway's
-    /// stand-in) and sends the Reply.
+    /// Answers a peer's call of our offer `id`: checks the caller may call it, then runs its
+    /// handler (or relays it, for a gateway's stand-in) in the (caller, function) lane and
+    /// sends the Reply.
+    ///
+    /// A lane runs one call at a time; a call arriving while one runs waits, and a newer one
+    /// replaces it (answered [`RemoteFailure::Superseded`]): the newest command wins. A call
+    /// whose caller's remaining time ran out before it could start is dropped unexecuted and
+    /// unanswered (the caller already timed out). Lanes are capped per caller and in all
+    /// ([`RemoteFailure::Busy`] beyond), so a peer cannot make us spawn without bound.
     pub(super) fn on_call(
         self: &Arc<Self>,
         node: NodeId,
         call_id: u64,
         id: u32,
-        deadline_ms: u32,
+        remaining_ms: u32,
         args: Vec<u8>,
     ) {
-        if let Some(o) = self.offers.get(&id).map(|o| o.clone()) {
-            if let OfferRole::Relay { origin, remote_id } = o.role {
-                let deadline = Duration::from_millis(u64::from(deadline_ms));
-                let provider = Provider::Remote {
-                    node: origin,
-                    node_name: self.peer_name(origin),
-                    id: remote_id,
-                    ty: o.ty.clone(),
-                };
-                self.relay_call(node, call_id, o.name.to_string(), provider, deadline, args);
+        let remaining = Duration::from_millis(u64::from(remaining_ms)).min(MAX_CALL_TIME);
+        let Some(offer) = self.offers.get(&id).map(|o| o.clone()) else {
+            self.send_safe_to_node(
+                node,
+                &Message::Reply {
+                    call_id,
+                    result: Err(RemoteFailure::NotProvided),
+                },
+            );
+            return;
+        };
+        let run: LaneRun = match &offer.role {
+            OfferRole::Function { handler } => {
+                let handler = handler.clone();
+                Arc::new(move |args, limit| {
+                    let call = handler(args);
+                    Box::pin(async move {
+                        tokio::time::timeout(limit, call)
+                            .await
+                            .unwrap_or(Err(RemoteFailure::DeadlineExpired))
+                    })
+                })
+            }
+            OfferRole::Relay { origin, remote_id } => {
+                let (origin, remote_id) = (*origin, *remote_id);
+                let inner = self.clone();
+                let name = offer.name.to_string();
+                let ty = offer.ty.clone();
+                Arc::new(move |args, limit| {
+                    let provider = Provider::Remote {
+                        node: origin,
+                        node_name: inner.peer_name(origin),
+                        id: remote_id,
+                        ty: ty.clone(),
+                    };
+                    let (inner, name) = (inner.clone(), name.clone());
+                    Box::pin(async move {
+                        inner
+                            .invoke(&name, provider, args, limit)
+                            .await
+                            .map_err(|e| e.relayed(&inner.me.name))
+                    })
+                })
+            }
+            _ => {
+                self.send_safe_to_node(
+                    node,
+                    &Message::Reply {
+                        call_id,
+                        result: Err(RemoteFailure::NotProvided),
+                    },
+                );
                 return;
             }
-        }
-        let handler = self.offers.get(&id).and_then(|o| match &o.role {
-            OfferRole::Function { handler } => Some(handler.clone()),
-            _ => None,
-        });
-        let inner = self.clone();
-        // The caller times out by itself at its deadline; the provider only gives up a little
-        // later to free its resources, so the caller sees a timeout, not a remote error.
-        let deadline =
-            Duration::from_millis(u64::from(deadline_ms)) * 3 / 2 + Duration::from_millis(100);
-        self.tasks.spawn(async move {
-            let result = match handler {
-                None => Err(RemoteFailure::NotProvided),
-                Some(h) => tokio::select! {
-                    r = h(args) => r,
-                    _ = tokio::time::sleep(deadline) => Err(RemoteFailure::DeadlineExpired),
-                    _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
+        };
+        if !self.permitted(node, AccessKind::Call, &offer.name) {
+            self.send_safe_to_node(
+                node,
+                &Message::Reply {
+                    call_id,
+                    result: Err(RemoteFailure::Denied),
                 },
-            };
-            inner.send_safe_to_node(node, &Message::Reply { call_id, result });
+            );
+            return;
+        }
+        let key = (node, id);
+        let queued = QueuedCall {
+            call_id,
+            args,
+            expires: Instant::now() + remaining,
+        };
+        let first = match lock(&self.lanes.inner).admit(key, queued) {
+            Admission::Run(call) => call,
+            Admission::Queued { superseded } => {
+                if let Some(old) = superseded {
+                    self.send_safe_to_node(
+                        node,
+                        &Message::Reply {
+                            call_id: old,
+                            result: Err(RemoteFailure::Superseded),
+                        },
+                    );
+                }
+                return;
+            }
+            Admission::Busy => {
+                let peer = self.peer_name(node);
+                self.policy
+                    .refuse(self.peer_link(node), node, &peer, &offer.name, Refusal::Busy);
+                self.send_safe_to_node(
+                    node,
+                    &Message::Reply {
+                        call_id,
+                        result: Err(RemoteFailure::Busy),
+                    },
+                );
+                return;
+            }
+        };
+        let inner = self.clone();
+        let name = offer.name.clone();
+        self.tasks.spawn(async move {
+            let mut call = first;
+            loop {
+                let now = Instant::now();
+                if now >= call.expires {
+                    tracing::debug!(function = %name, call_id = call.call_id, "call expired before it ran: dropped unexecuted");
+                } else {
+                    // The caller gives up when its time runs out; the handler is given a
+                    // little more, so the caller sees its own timeout, not a remote error.
+                    let left = call.expires - now;
+                    let limit = left * 3 / 2 + Duration::from_millis(100);
+                    let result = tokio::select! {
+                        r = run(call.args, limit) => r,
+                        _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
+                    };
+                    inner.send_safe_to_node(
+                        node,
+                        &Message::Reply {
+                            call_id: call.call_id,
+                            result,
+                        },
+                    );
+                }
+                if inner.cancel.is_cancelled() {
+                    break;
+                }
+                match lock(&inner.lanes.inner).next(key) {
+                    Some(c) => call = c,
+                    None => break,
+                }
+            }
         });
     }
 
-    /// Relays `caller`'s call `call_id` to `provider` behind another link, with the caller's
-    /// deadline, and sends the answer back to `caller`.
-    fn relay_call(
-        self: &Arc<Self>,
-        caller: NodeId,
-        call_id: u64,
-        name: String,
-        provider: Provider,
-        deadline: Duration,
-        args: Vec<u8>,
-    ) {
-        let inner = self.clone();
-        self.tasks.spawn(async move {
-            let result = tokio::select! {
-                r = inner.invoke(&name, provider, args, deadline) => r,
-                _ = inner.cancel.cancelled() => Err(CallError::LinkLost {
-                    node: inner.me.name.clone(),
-                    reason: "gateway shutting down".into(),
-                }),
-            };
-            let result = result.map_err(|e| e.relayed(&inner.me.name));
-            inner.send_safe_to_node(caller, &Message::Reply { call_id, result });
-        });
+    /// The link a peer is reached on (0 when it is no longer known).
+    fn peer_link(&self, node: NodeId) -> usize {
+        self.peers.get(&node).map_or(0, |p| p.link)
     }
 
     /// A peer's name, or its id in hex when it is no longer known.

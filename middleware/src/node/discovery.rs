@@ -42,6 +42,7 @@ impl NodeInner {
             namespace: self.me.namespace.clone().unwrap_or_default(),
             counter,
             lease_ms: u32::try_from(self.me.timing(link).1.as_millis()).unwrap_or(u32::MAX),
+            gateway: self.gateway.is_some(),
         }
     }
 
@@ -77,14 +78,16 @@ impl NodeInner {
                 namespace,
                 counter,
                 lease_ms,
+                gateway,
             } => {
                 if node_id == self.me.id || domain != self.me.domain {
                     return;
                 }
                 let lease = Duration::from_millis(u64::from(lease_ms.max(1)));
                 if self.peers.contains_key(&node_id) {
-                    self.also_reached(node_id, link, from);
-                    self.seen(node_id, counter);
+                    if self.also_reached(node_id, link, from) {
+                        self.seen(node_id, counter);
+                    }
                     return;
                 }
                 if let Some(old) = self.addrs.get(&(link, from)).map(|e| *e) {
@@ -93,6 +96,14 @@ impl NodeInner {
                     }
                 }
                 tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
+                // Only a gateway speaks for other nodes; our `<access>` may narrow who is one.
+                let gateway = gateway
+                    && self.policy.allows(
+                        crate::config::AccessKind::Gateway,
+                        "",
+                        &namespace,
+                        &node,
+                    );
                 // Registering the peer and sending it our Hello and declarations happen under the
                 // declaration log's lock, as `declare` pushes its deltas under it too: a delta
                 // can then neither overtake our Hello (the peer would drop it, not knowing us)
@@ -104,6 +115,7 @@ impl NodeInner {
                         id: node_id,
                         name: node.as_str().into(),
                         namespace,
+                        gateway,
                         link,
                         addr: from,
                         last_seen: Instant::now(),
@@ -133,15 +145,28 @@ impl NodeInner {
                     return;
                 }
                 if self.peers.contains_key(&node_id) {
-                    self.also_reached(node_id, link, from);
-                    self.seen(node_id, counter);
+                    if self.also_reached(node_id, link, from) {
+                        self.seen(node_id, counter);
+                    }
                 } else {
                     // We missed its Hello: introduce ourselves, it answers with its own.
                     self.send_safe(link, from, &self.hello(link));
                 }
             }
             Message::Bye { node_id } if self.peers.contains_key(&node_id) => {
-                self.drop_peer(node_id, "left");
+                // Only the node itself says it leaves: from an address it was heard at.
+                if self.addrs.get(&(link, from)).is_some_and(|e| *e == node_id) {
+                    self.drop_peer(node_id, "left");
+                } else {
+                    let name = self.peers.get(&node_id).map(|p| p.name.to_string());
+                    self.policy.refuse(
+                        link,
+                        node_id,
+                        name.as_deref().unwrap_or("?"),
+                        &format!("Bye from {from}"),
+                        super::policy::Refusal::ForgedBye,
+                    );
+                }
             }
             _ => {}
         }
@@ -155,20 +180,41 @@ impl NodeInner {
     /// The move itself waits for what is in flight on the old path (`path_switch`): our Hello
     /// then opens the session on the new path, so the peer knows us there before anything
     /// else we send on it, and the safe messages sent meanwhile follow it, in order.
-    fn also_reached(self: &Arc<Self>, node: NodeId, link: usize, from: PeerAddr) {
+    ///
+    /// A node has one address per link: a known node "heard" at a second address on a link it
+    /// already has one on is somebody else using its id, and is not mapped (it could otherwise
+    /// say Bye for it, or take its traffic).
+    /// Returns whether `from` is (now) a path of `node`.
+    fn also_reached(self: &Arc<Self>, node: NodeId, link: usize, from: PeerAddr) -> bool {
         if self.addrs.get(&(link, from)).is_none_or(|e| *e != node) {
+            let other = self
+                .addrs
+                .iter()
+                .any(|e| e.key().0 == link && e.key().1 != from && *e.value() == node);
+            if other {
+                let name = self.peers.get(&node).map(|p| p.name.to_string());
+                self.policy.refuse(
+                    link,
+                    node,
+                    name.as_deref().unwrap_or("?"),
+                    &format!("address {from}"),
+                    super::policy::Refusal::SecondAddress,
+                );
+                return false;
+            }
             self.addrs.insert((link, from), node);
         }
         let (old, lease) = {
             let Some(p) = self.peers.get(&node) else {
-                return;
+                return true;
             };
             if (p.link, p.addr) == (link, from) || path_rank(&from) <= path_rank(&p.addr) {
-                return;
+                return true;
             }
             ((p.link, p.addr), p.lease)
         };
         self.switch_path(node, old, (link, from), lease);
+        true
     }
 
     /// A peer is alive; ask for declarations if its counter is ahead of ours.

@@ -152,6 +152,16 @@ impl NodeInner {
         size: u64,
         hash: [u8; 32],
     ) {
+        let sink_name = self.offers.get(&sink).map(|o| o.name.clone());
+        if let Some(sink_name) = sink_name {
+            if !self.permitted(node, crate::config::AccessKind::File, &sink_name) {
+                let verdict = FileVerdict::Denied(format!(
+                    "sending to '{sink_name}' is not allowed for this node by <access>"
+                ));
+                self.reply_file(node, transfer, verdict);
+                return;
+            }
+        }
         let relay = self.offers.get(&sink).and_then(|o| match o.role {
             OfferRole::Relay { origin, remote_id } => Some((origin, remote_id)),
             _ => None,

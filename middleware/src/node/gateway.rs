@@ -168,10 +168,14 @@ impl NodeInner {
                 if !wanted {
                     continue;
                 }
-                let origin_name = item
-                    .origin
-                    .as_ref()
-                    .map_or_else(|| p.name.to_string(), |o| o.name.clone());
+                // Never forwarded: what our own `<access>` refuses to deliver.
+                if item.denied {
+                    continue;
+                }
+                let (origin_name, origin_namespace) = item.origin.as_ref().map_or_else(
+                    || (p.name.to_string(), p.namespace.clone()),
+                    |o| (o.name.clone(), o.namespace.clone()),
+                );
                 wanted_offers.insert(
                     (p.id, *oid),
                     WantedOffer {
@@ -182,6 +186,7 @@ impl NodeInner {
                             node: source,
                             name: origin_name,
                             hops: hops + 1,
+                            namespace: origin_namespace,
                         },
                         from_link: p.link,
                     },

@@ -41,6 +41,12 @@ pub struct LinkHealth {
     pub fast_queued: u64,
     /// Counters since the link opened.
     pub totals: LinkStats,
+    /// What peers on this link were refused by our `<access>` rules since the node opened
+    /// (calls, files, publications, gateways).
+    pub denied: u64,
+    /// What peers on this link were refused otherwise since the node opened: offers outside
+    /// their namespace, origins from non-gateways, forged Byes, caps reached.
+    pub rejected: u64,
 }
 
 impl LinkHealth {
@@ -69,6 +75,8 @@ impl LinkHealth {
             safe_queued: new.safe_queued,
             fast_queued: new.fast_queued,
             totals: *new,
+            denied: 0,
+            rejected: 0,
         }
     }
 }
@@ -137,7 +145,9 @@ impl NodeInner {
                     let stats = link.stats();
                     let peers = inner.peers.iter().filter(|p| p.link == index).count() as u32;
                     let (old, at) = &last[index];
-                    let health = LinkHealth::between(link.name(), peers, old, &stats, now - *at);
+                    let mut health =
+                        LinkHealth::between(link.name(), peers, old, &stats, now - *at);
+                    (health.denied, health.rejected) = inner.policy.counts(index);
                     last[index] = (stats, now);
                     match crate::codec::encode_payload(&health) {
                         Ok(bytes) => inner.publish_variable(offer, bytes),

@@ -1,12 +1,17 @@
 //! Where a subscription's deliveries wait for the application: FIFO for events, newest value
 //! per name for variables.
+//!
+//! Bounded: a mailbox holds at most [`MAILBOX_CAP`] deliveries. A subscriber that stops
+//! reading while a publisher keeps raising events would otherwise grow it without limit; at the
+//! bound the oldest delivery is dropped (the newest ones matter most to a vehicle), counted
+//! ([`Mailbox::dropped`]) and logged (at the first drop and then at each power of two).
 
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use tokio::sync::Notify;
 
-use crate::link::coalesce::CoalescingQueue;
+use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::typeinfo::TypeInfo;
 
 /// A received value, still encoded.
@@ -53,7 +58,11 @@ pub(crate) enum Delivery {
     Refused(TypeMismatch),
 }
 
-#[derive(Debug, Default)]
+/// Deliveries a mailbox holds before dropping the oldest: far more than a reader that keeps up
+/// ever has waiting (ten thousand events in a burst fit).
+pub(crate) const MAILBOX_CAP: usize = 65_536;
+
+#[derive(Debug)]
 struct Inner {
     /// Samples are keyed by name when the mailbox coalesces (variables); refusals never are.
     queue: CoalescingQueue<Arc<str>, Delivery>,
@@ -72,7 +81,10 @@ pub(crate) struct Mailbox {
 impl Mailbox {
     pub fn new(coalesce: bool) -> Self {
         Mailbox {
-            inner: Mutex::new(Inner::default()),
+            inner: Mutex::new(Inner {
+                queue: CoalescingQueue::new(MAILBOX_CAP),
+                closed: false,
+            }),
             notify: Notify::new(),
             coalesce,
         }
@@ -93,7 +105,16 @@ impl Mailbox {
                 _ => None,
             };
             let was_empty = g.queue.is_empty();
-            g.queue.push(key, d);
+            if let Pushed::DroppedOldest(old) = g.queue.push(key, d) {
+                let dropped = g.queue.dropped();
+                if dropped.is_power_of_two() {
+                    let name = match &old {
+                        Delivery::Sample(s) => s.name.to_string(),
+                        Delivery::Refused(r) => r.name.clone(),
+                    };
+                    tracing::warn!(item = %name, dropped, cap = MAILBOX_CAP, "subscriber not reading: its mailbox is full, oldest deliveries dropped");
+                }
+            }
             was_empty
         };
         // The reader waits only on an empty queue (checked under the lock), so only the push
@@ -137,6 +158,12 @@ impl Mailbox {
     pub fn len(&self) -> usize {
         self.lock().queue.len()
     }
+
+    /// Deliveries dropped at the bound so far.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub fn dropped(&self) -> u64 {
+        self.lock().queue.dropped()
+    }
 }
 
 #[cfg(test)]
@@ -152,6 +179,20 @@ mod tests {
             payload: vec![1],
             received: Instant::now(),
         })
+    }
+
+    #[test]
+    fn a_mailbox_nobody_reads_keeps_the_newest_deliveries_up_to_its_cap() {
+        let m = Mailbox::new(false);
+        for i in 0..MAILBOX_CAP + 10 {
+            m.push(sample(&format!("e{i}")));
+        }
+        assert_eq!(m.len(), MAILBOX_CAP);
+        assert_eq!(m.dropped(), 10);
+        match m.try_pop() {
+            Some(Delivery::Sample(s)) => assert_eq!(&*s.name, "e10", "the oldest went first"),
+            other => panic!("expected a sample, got {other:?}"),
+        }
     }
 
     /// Only the push onto an empty queue wakes a reader; with two readers waiting, the one

@@ -11,6 +11,7 @@ pub(crate) mod gateway;
 pub(crate) mod health;
 pub(crate) mod mailbox;
 pub(crate) mod path_switch;
+pub(crate) mod policy;
 pub(crate) mod session;
 
 use std::collections::HashMap;
@@ -103,6 +104,9 @@ pub(crate) struct Peer {
     pub id: NodeId,
     pub name: Arc<str>,
     pub namespace: String,
+    /// Whether it may declare offers of other nodes (`origin`): its Hello says it forwards and
+    /// our `<access>` rules let it.
+    pub gateway: bool,
     pub link: usize,
     pub addr: PeerAddr,
     /// When its last heartbeat or Hello arrived.
@@ -128,6 +132,11 @@ pub(crate) struct Peer {
 }
 
 impl Peer {
+    /// Declarations stored for it (services, offers, interests).
+    pub fn declarations(&self) -> usize {
+        self.services.len() + self.offers.len() + self.interests.len()
+    }
+
     /// Records that something arrived from this peer now.
     pub fn heard(&self, epoch: Instant) {
         let now = epoch.elapsed().as_millis() as u64;
@@ -191,6 +200,10 @@ pub(crate) struct NodeInner {
     pub routing: Mutex<()>,
     /// Peers being moved to a better path, whose safe messages wait for the old one to drain.
     pub path_switches: path_switch::PathSwitches,
+    /// What this node accepts from peers, and the refusals counted.
+    pub policy: policy::Policy,
+    /// Peers' calls running or waiting, by (caller, function id).
+    pub lanes: call::Lanes,
 }
 
 /// Things a node counts (dropped input among them).
@@ -294,7 +307,12 @@ impl NodeInner {
                 self.deliver_remote(node, id, payload)
             }
             Message::DeclRequest { since } => self.answer_decl_request(node, since),
-            Message::DeclBatch { entries } => self.apply_decl_batch(node, entries),
+            Message::DeclBatch {
+                after,
+                upto,
+                reset,
+                entries,
+            } => self.apply_decl_batch(node, after, upto, reset, entries),
             Message::Refused {
                 interest,
                 name,
@@ -303,9 +321,9 @@ impl NodeInner {
             Message::Call {
                 call_id,
                 id,
-                deadline_ms,
+                remaining_ms,
                 args,
-            } => self.on_call(node, call_id, id, deadline_ms, args),
+            } => self.on_call(node, call_id, id, remaining_ms, args),
             Message::Reply { call_id, result } => self.on_reply(node, call_id, result),
             Message::FileOffer {
                 transfer,

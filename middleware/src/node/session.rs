@@ -6,6 +6,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::mailbox::{Delivery, RawSample, TypeMismatch};
+use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
+use crate::config::AccessKind;
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole, RemoteSubscriber};
 use crate::codec::varint;
 use crate::link::Outgoing;
@@ -17,12 +19,28 @@ use crate::typeinfo::TypeInfo;
 const BATCH_ENTRIES: usize = 64;
 
 /// The node's own declarations, in order; a peer asks for those after the counter it knows.
+///
+/// Compacted: a withdrawal removes the declaration it withdraws and is not stored itself, so
+/// the log holds what is declared now, whatever the churn before. A peer that knows a counter
+/// from before the last withdrawal gets the whole log instead of what follows it (a reset
+/// batch), as it could otherwise miss a withdrawal.
 #[derive(Default)]
 pub(crate) struct DeclarationLog {
     pub counter: u32,
-    /// Each declaration with the link it is hidden on (a gateway's forwarded items are not
-    /// declared back on the link they came from).
+    /// Each live declaration with the link it is hidden on (a gateway's forwarded items are
+    /// not declared back on the link they came from).
     entries: Vec<(LoggedDeclaration, Option<usize>)>,
+    /// Counter of the newest withdrawal.
+    last_withdrawal: u32,
+}
+
+/// What a peer is sent to bring it up to date: the entries after `after`, or everything with
+/// `reset`.
+pub(crate) struct LogView {
+    pub after: u32,
+    pub upto: u32,
+    pub reset: bool,
+    pub entries: Vec<LoggedDeclaration>,
 }
 
 impl DeclarationLog {
@@ -32,17 +50,36 @@ impl DeclarationLog {
             counter: self.counter,
             decl,
         };
-        self.entries.push((entry.clone(), hidden_on));
+        if let Declaration::Withdraw { id } = entry.decl {
+            self.entries.retain(|(e, _)| e.decl.id() != id);
+            self.last_withdrawal = self.counter;
+        } else {
+            self.entries.push((entry.clone(), hidden_on));
+        }
         entry
     }
 
-    /// The declarations after `since` as a peer on `link` sees them.
-    pub fn view(&self, link: usize, since: u32) -> Vec<LoggedDeclaration> {
-        self.entries
-            .iter()
-            .filter(|(e, _)| e.counter > since)
-            .map(|(e, hidden)| seen_on(e, *hidden, link))
-            .collect()
+    /// Live declarations held.
+    #[cfg(test)]
+    fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// What a peer on `link` that knows our declarations up to `since` is sent.
+    pub fn view(&self, link: usize, since: u32) -> LogView {
+        let reset = since < self.last_withdrawal || since > self.counter;
+        let after = if reset { 0 } else { since };
+        LogView {
+            after,
+            upto: self.counter,
+            reset,
+            entries: self
+                .entries
+                .iter()
+                .filter(|(e, _)| e.counter > after)
+                .map(|(e, hidden)| seen_on(e, *hidden, link))
+                .collect(),
+        }
     }
 }
 
@@ -75,6 +112,9 @@ pub(crate) struct RemoteItem {
     pub origin: Option<crate::protocol::Origin>,
     /// The origin's name, shared with every sample delivered from this item.
     pub origin_name: Option<Arc<str>>,
+    /// A variable or event whose publisher our `<access>` rules do not let publish it: never
+    /// routed to a subscriber.
+    pub denied: bool,
 }
 
 impl RemoteItem {
@@ -122,6 +162,9 @@ impl NodeInner {
         let targets: Vec<_> = self.peers.iter().map(|p| (p.link, p.addr)).collect();
         for (link, addr) in targets {
             let msg = Message::DeclBatch {
+                after: entry.counter - 1,
+                upto: entry.counter,
+                reset: false,
                 entries: vec![seen_on(&entry, hidden_on, link)],
             };
             self.send_safe(link, addr, &msg);
@@ -133,34 +176,39 @@ impl NodeInner {
     /// joiner's value, events, replies) comes after the declarations that give its ids a meaning.
     pub fn introduce_locked(&self, log: &DeclarationLog, link: usize, addr: crate::link::PeerAddr) {
         self.send_safe(link, addr, &self.hello_at(link, log.counter));
-        self.send_batches(link, addr, &log.view(link, 0));
+        self.send_batches(link, addr, log.view(link, 0));
     }
 
     /// Sends declarations in batches of [`BATCH_ENTRIES`], or one empty batch when there are
-    /// none, so the peer knows it is up to date.
-    fn send_batches(
-        &self,
-        link: usize,
-        addr: crate::link::PeerAddr,
-        entries: &[LoggedDeclaration],
-    ) {
-        if entries.is_empty() {
+    /// none, so the peer knows it is up to date. Each batch continues where the previous one
+    /// ended; the last one covers up to the log's counter.
+    fn send_batches(&self, link: usize, addr: crate::link::PeerAddr, view: LogView) {
+        let mut after = view.after;
+        let mut reset = view.reset;
+        let chunks: Vec<&[LoggedDeclaration]> = if view.entries.is_empty() {
+            vec![&[]]
+        } else {
+            view.entries.chunks(BATCH_ENTRIES).collect()
+        };
+        let last = chunks.len() - 1;
+        for (k, chunk) in chunks.into_iter().enumerate() {
+            let upto = if k == last {
+                view.upto
+            } else {
+                chunk.last().map_or(after, |e| e.counter)
+            };
             self.send_safe(
                 link,
                 addr,
                 &Message::DeclBatch {
-                    entries: Vec::new(),
-                },
-            );
-        }
-        for chunk in entries.chunks(BATCH_ENTRIES) {
-            self.send_safe(
-                link,
-                addr,
-                &Message::DeclBatch {
+                    after,
+                    upto,
+                    reset,
                     entries: chunk.to_vec(),
                 },
             );
+            after = upto;
+            reset = false;
         }
     }
 
@@ -357,7 +405,7 @@ impl NodeInner {
             let routes = p
                 .offers
                 .iter()
-                .filter(|(oid, _)| !hidden.contains(oid))
+                .filter(|(oid, item)| !hidden.contains(oid) && !item.denied)
                 .map(|(oid, item)| {
                     let targets: Arc<[Arc<LocalInterest>]> = interests
                         .iter()
@@ -443,86 +491,166 @@ impl NodeInner {
         let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
             return;
         };
-        let entries = lock(&self.decls).view(link, since);
-        self.send_batches(link, addr, &entries);
+        // Under the log's lock, as `declare` pushes its deltas: none can overtake the answer.
+        let log = lock(&self.decls);
+        self.send_batches(link, addr, log.view(link, since));
     }
 
-    pub fn apply_decl_batch(&self, node: NodeId, mut entries: Vec<LoggedDeclaration>) {
+    /// Applies a peer's declarations: checks each against our policy (names well formed and
+    /// owned, origins only from gateways, caps), and recomputes routes when anything changed.
+    pub fn apply_decl_batch(
+        &self,
+        node: NodeId,
+        after: u32,
+        upto: u32,
+        reset: bool,
+        mut entries: Vec<LoggedDeclaration>,
+    ) {
         entries.sort_by_key(|e| e.counter);
+        // Facts about the other peers, gathered before this peer's entry is locked (the
+        // peer table must not be read while one of its entries is held for writing).
+        let mut namespaces: Vec<String> = self.me.namespace.iter().cloned().collect();
+        let mut direct: HashMap<NodeId, String> = HashMap::new();
+        let mut total = 0usize;
+        for p in self.peers.iter() {
+            if p.id != node {
+                namespaces.push(p.namespace.clone());
+                direct.insert(p.id, p.namespace.clone());
+                total += p.declarations();
+            }
+        }
         let mut changed = false;
         let mut request = None;
+        let mut refusals: Vec<(usize, String, Refusal)> = Vec::new();
+        let (peer_name, peer_link);
         {
             let Some(mut p) = self.peers.get_mut(&node) else {
                 return;
             };
-            let mut gap = false;
-            for e in entries {
-                if e.counter <= p.known {
-                    continue;
-                }
-                if e.counter != p.known + 1 {
-                    gap = true;
-                    break;
-                }
-                p.known = e.counter;
+            peer_name = p.name.clone();
+            peer_link = p.link;
+            if reset && after == 0 {
+                p.services.clear();
+                p.offers.clear();
+                p.interests.clear();
+                p.routes.clear();
+                p.known = 0;
                 changed = true;
-                // A peer's names are checked as ours are: a malformed or oversized one is
-                // skipped (its counter still counts, so no gap is asked for again).
-                if let Err(err) = check_declared_name(&e.decl) {
-                    tracing::debug!(peer = %p.name, error = %err, "declaration with a bad name skipped");
-                    continue;
+            }
+            let gap = after > p.known;
+            if !gap {
+                for e in entries {
+                    if e.counter <= p.known || e.counter > upto {
+                        continue;
+                    }
+                    p.known = e.counter;
+                    changed = true;
+                    // A peer's names are checked as ours are: a malformed or oversized one is
+                    // skipped (its counter still counts, so no gap is asked for again).
+                    if let Err(err) = check_declared_name(&e.decl) {
+                        tracing::debug!(peer = %p.name, error = %err, "declaration with a bad name skipped");
+                        continue;
+                    }
+                    let id = e.decl.id();
+                    let adds = !matches!(e.decl, Declaration::Withdraw { .. })
+                        && !p.services.contains_key(&id)
+                        && !p.offers.contains_key(&id)
+                        && !p.interests.contains_key(&id);
+                    if adds
+                        && (p.declarations() >= MAX_DECLS_PER_PEER
+                            || total + p.declarations() >= MAX_DECLS_TOTAL)
+                    {
+                        refusals.push((
+                            p.link,
+                            format!("declaration {id}"),
+                            Refusal::TooManyDeclarations,
+                        ));
+                        continue;
+                    }
+                    match e.decl {
+                        Declaration::Service { id, name } => {
+                            p.services.insert(id, name);
+                        }
+                        Declaration::Offer {
+                            id,
+                            service,
+                            kind,
+                            name,
+                            ty,
+                            origin,
+                        } => {
+                            if let Err(why) =
+                                self.offer_acceptable(&p, &name, origin.as_ref(), &namespaces, &direct)
+                            {
+                                refusals.push((p.link, name, why));
+                                continue;
+                            }
+                            let (pub_ns, pub_node) = origin
+                                .as_ref()
+                                .map_or((p.namespace.as_str(), &*p.name), |o| {
+                                    (o.namespace.as_str(), o.name.as_str())
+                                });
+                            let denied = matches!(kind, ItemKind::Variable | ItemKind::Event)
+                                && !self.policy.allows(
+                                    AccessKind::Publish,
+                                    &name,
+                                    pub_ns,
+                                    pub_node,
+                                );
+                            if denied {
+                                refusals.push((
+                                    p.link,
+                                    name.clone(),
+                                    Refusal::Denied(AccessKind::Publish),
+                                ));
+                            }
+                            p.offers.insert(
+                                id,
+                                RemoteItem {
+                                    service,
+                                    kind,
+                                    name: name.into(),
+                                    type_name: ty.name.as_str().into(),
+                                    ty,
+                                    origin_name: origin.as_ref().map(|o| o.name.as_str().into()),
+                                    origin,
+                                    denied,
+                                },
+                            );
+                        }
+                        Declaration::Interest {
+                            id,
+                            service,
+                            kind,
+                            pattern,
+                            ty,
+                        } => {
+                            p.interests.insert(
+                                id,
+                                RemoteItem {
+                                    service,
+                                    kind,
+                                    name: pattern.into(),
+                                    type_name: ty.name.as_str().into(),
+                                    ty,
+                                    origin: None,
+                                    origin_name: None,
+                                    denied: false,
+                                },
+                            );
+                        }
+                        Declaration::Withdraw { id } => {
+                            p.services.remove(&id);
+                            p.offers.remove(&id);
+                            p.interests.remove(&id);
+                            p.routes.remove(&id);
+                        }
+                    }
                 }
-                match e.decl {
-                    Declaration::Service { id, name } => {
-                        p.services.insert(id, name);
-                    }
-                    Declaration::Offer {
-                        id,
-                        service,
-                        kind,
-                        name,
-                        ty,
-                        origin,
-                    } => {
-                        p.offers.insert(
-                            id,
-                            RemoteItem {
-                                service,
-                                kind,
-                                name: name.into(),
-                                type_name: ty.name.as_str().into(),
-                                ty,
-                                origin_name: origin.as_ref().map(|o| o.name.as_str().into()),
-                                origin,
-                            },
-                        );
-                    }
-                    Declaration::Interest {
-                        id,
-                        service,
-                        kind,
-                        pattern,
-                        ty,
-                    } => {
-                        p.interests.insert(
-                            id,
-                            RemoteItem {
-                                service,
-                                kind,
-                                name: pattern.into(),
-                                type_name: ty.name.as_str().into(),
-                                ty,
-                                origin: None,
-                                origin_name: None,
-                            },
-                        );
-                    }
-                    Declaration::Withdraw { id } => {
-                        p.services.remove(&id);
-                        p.offers.remove(&id);
-                        p.interests.remove(&id);
-                        p.routes.remove(&id);
-                    }
+                // Counters up to `upto` that no entry carried were compacted away.
+                if upto > p.known {
+                    p.known = upto;
+                    changed = true;
                 }
             }
             let stale = p.requested.is_none_or(|t| t.elapsed() > self.me.heartbeat);
@@ -533,6 +661,10 @@ impl NodeInner {
                 p.requested = None;
             }
         }
+        for (link, item, why) in refusals {
+            self.policy.refuse(link, node, &peer_name, &item, why);
+        }
+        let _ = peer_link;
         tracing::debug!(peer = format_args!("{node:016x}"), changed, gap_request = ?request, "declarations applied");
         if let Some(since) = request {
             self.send_safe_to_node(node, &Message::DeclRequest { since });
@@ -540,6 +672,40 @@ impl NodeInner {
         if changed {
             self.recompute_routes();
             self.recompute_forwarding();
+        }
+    }
+
+    /// Whether peer `p` may offer `name`: a plain offer only under its own namespace; an offer
+    /// on behalf of another node (`origin`) only from a gateway, at least one hop away, and
+    /// under the origin's namespace (the one we know when we reach the origin directly too).
+    fn offer_acceptable(
+        &self,
+        p: &super::Peer,
+        name: &str,
+        origin: Option<&crate::protocol::Origin>,
+        namespaces: &[String],
+        direct: &HashMap<NodeId, String>,
+    ) -> Result<(), Refusal> {
+        let Some(o) = origin else {
+            return if policy::owns(&p.namespace, name, namespaces) {
+                Ok(())
+            } else {
+                Err(Refusal::NotOwned)
+            };
+        };
+        if !p.gateway || o.hops == 0 || o.node == p.id {
+            return Err(Refusal::ForeignOrigin);
+        }
+        if o.node == self.me.id {
+            // Our own item forwarded back: kept (and ignored by the shadowing rule).
+            return Ok(());
+        }
+        let ns = direct.get(&o.node).unwrap_or(&o.namespace);
+        let others: Vec<String> = namespaces.iter().filter(|n| *n != ns).cloned().collect();
+        if policy::owns(ns, name, &others) {
+            Ok(())
+        } else {
+            Err(Refusal::NotOwned)
         }
     }
 
@@ -559,11 +725,24 @@ impl NodeInner {
                 offer.origin_name.clone().unwrap_or_else(|| p.name.clone()),
             ))
         }) else {
-            tracing::debug!(
-                peer = format_args!("{node:016x}"),
-                id,
-                "data for an unknown or unrouted offer dropped"
-            );
+            let denied = self.peers.get(&node).and_then(|p| {
+                let o = p.offers.get(&id).filter(|o| o.denied)?;
+                Some((p.link, p.name.clone(), o.name.clone()))
+            });
+            match denied {
+                Some((link, peer, name)) => self.policy.refuse(
+                    link,
+                    node,
+                    &peer,
+                    &name,
+                    Refusal::Denied(AccessKind::Publish),
+                ),
+                None => tracing::debug!(
+                    peer = format_args!("{node:016x}"),
+                    id,
+                    "data for an unknown or unrouted offer dropped"
+                ),
+            }
             return;
         };
         let received = Instant::now();

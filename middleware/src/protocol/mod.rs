@@ -112,6 +112,9 @@ pub struct Origin {
     pub name: String,
     /// Gateways crossed so far (1 for an offer forwarded once).
     pub hops: u8,
+    /// The offering node's namespace (what its names must start with, and what access rules
+    /// match it by).
+    pub namespace: String,
 }
 
 /// A declaration with its position in the node's declaration log.
@@ -134,6 +137,14 @@ pub enum RemoteFailure {
     NotProvided,
     /// The deadline passed before the provider ran the handler.
     DeadlineExpired,
+    /// The provider's access rules (`<access>` in its network.xml) do not let the caller call
+    /// this function.
+    Denied,
+    /// The provider runs as many calls as it accepts (from this caller, or in all); retry later.
+    Busy,
+    /// A newer call of the same function from the same caller arrived before this one started:
+    /// the newest command wins, this one was dropped unexecuted.
+    Superseded,
 }
 
 /// Outcome of a file offer, sent by the receiver.
@@ -143,6 +154,9 @@ pub enum FileVerdict {
     Stored,
     /// Refused or failed, with the reason.
     Failed(String),
+    /// The receiver's access rules (`<access>` in its network.xml) do not let the sender send
+    /// to this sink; the reason names the sink and the sender.
+    Denied(String),
 }
 
 /// Every message exchanged between nodes.
@@ -162,6 +176,9 @@ pub enum Message {
         counter: u32,
         /// How long the sender may stay silent before being declared gone, in ms.
         lease_ms: u32,
+        /// Whether the sender forwards between links (a gateway): only a gateway's offers may
+        /// name another node as their `origin`.
+        gateway: bool,
     },
     /// The small periodic liveness message (multicast / point to point).
     Heartbeat {
@@ -177,8 +194,19 @@ pub enum Message {
         /// Highest counter already known.
         since: u32,
     },
-    /// Declarations answering a request, in counter order.
+    /// Declarations, in counter order: a delta as it happens, or the answer to a request.
+    ///
+    /// The sender's log is compacted (a withdrawn declaration is not replayed), so counters in
+    /// `entries` may skip: the batch covers every counter in `after + 1 ..= upto`, and those
+    /// missing were compacted away.
     DeclBatch {
+        /// The batch continues from this counter (the receiver must know up to it).
+        after: u32,
+        /// The batch covers counters up to this one.
+        upto: u32,
+        /// The receiver first forgets every declaration of the sender: the batch (with those
+        /// following it) is the sender's whole current state, from `after` = 0.
+        reset: bool,
         /// The entries.
         entries: Vec<LoggedDeclaration>,
     },
@@ -213,8 +241,9 @@ pub enum Message {
         call_id: u64,
         /// Offer id of the function on the provider.
         id: u32,
-        /// Milliseconds the caller will wait.
-        deadline_ms: u32,
+        /// Milliseconds the caller still waits, counted when the message is made; the provider
+        /// clamps it and drops the call unexecuted once it has run out.
+        remaining_ms: u32,
         /// postcard-encoded arguments.
         #[serde(with = "serde_bytes_compat")]
         args: Vec<u8>,

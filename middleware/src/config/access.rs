@@ -1,0 +1,153 @@
+//! The `<access>` element of `network.xml`: which peers may call this node's functions, send
+//! to its file sinks, publish what its subscribers receive, and forward other nodes' offers
+//! (act as gateways towards it).
+//!
+//! ```xml
+//! <access>
+//!   <allow kind="call"    item="rover1/vas/*"              from="ground/*"/>
+//!   <allow kind="file"    item="rover1/fpma/plans"         from="ground/fpmo"/>
+//!   <allow kind="publish" item="rover1/vas/manual_control" from="ground/fmo"/>
+//!   <allow kind="gateway"                                  from="relay"/>
+//! </access>
+//! ```
+//!
+//! Without `<access>` everything is open (the zero-configuration demo). With it, each kind the
+//! element mentions is **default-deny**: only what an `<allow>` of that kind names passes; the
+//! kinds it does not mention stay open. `item` is a name pattern (`*`, `**`) matched against the
+//! item's full name (`**` when absent); `from` is a name pattern matched against the peer's
+//! `namespace/node` (just `node` for a node without namespace): `ground/*` is every node of
+//! namespace `ground`, `**/fmo` every node named `fmo`. A call or file relayed by a gateway
+//! comes from the gateway.
+
+use crate::name;
+
+/// What an access rule governs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum AccessKind {
+    /// Calling a function this node provides (`call`).
+    Call,
+    /// Sending a file to a sink of this node (`file`).
+    File,
+    /// Publishing a variable or event that this node's subscribers receive (`publish`).
+    Publish,
+    /// Declaring offers on behalf of other nodes, as a gateway does (`gateway`); `item` is
+    /// ignored.
+    Gateway,
+}
+
+impl AccessKind {
+    /// The `kind` attribute's value.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AccessKind::Call => "call",
+            AccessKind::File => "file",
+            AccessKind::Publish => "publish",
+            AccessKind::Gateway => "gateway",
+        }
+    }
+
+    /// Parses the `kind` attribute.
+    pub fn parse(s: &str) -> Option<AccessKind> {
+        Some(match s {
+            "call" => AccessKind::Call,
+            "file" => AccessKind::File,
+            "publish" => AccessKind::Publish,
+            "gateway" => AccessKind::Gateway,
+            _ => return None,
+        })
+    }
+}
+
+/// One `<allow kind=".." item=".." from=".."/>`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AccessRule {
+    /// What it allows.
+    pub kind: AccessKind,
+    /// Pattern of the item names it covers (`**` when absent).
+    pub item: String,
+    /// Pattern of the peers (`namespace/node`) it lets through.
+    pub from: String,
+}
+
+/// The `<access>` element: its rules, in file order.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct AccessConfig {
+    /// The `<allow>` rules.
+    pub rules: Vec<AccessRule>,
+    /// Kinds that are default-deny although no rule allows anything of them
+    /// (`<deny kind="..."/>`): a node that accepts no calls at all, say.
+    pub closed: Vec<AccessKind>,
+}
+
+impl AccessConfig {
+    /// Whether the element says anything about `kind` (then it is default-deny).
+    pub fn governs(&self, kind: AccessKind) -> bool {
+        self.closed.contains(&kind) || self.rules.iter().any(|r| r.kind == kind)
+    }
+
+    /// Whether peer `from` (`namespace/node`, or `node`) may do `kind` on item `item`.
+    pub fn allows(&self, kind: AccessKind, item: &str, from: &str) -> bool {
+        if !self.governs(kind) {
+            return true;
+        }
+        self.rules.iter().any(|r| {
+            r.kind == kind
+                && (kind == AccessKind::Gateway || name::matches(&r.item, item))
+                && name::matches(&r.from, from)
+        })
+    }
+}
+
+/// The name access rules match a peer by: `namespace/node`, or `node` without a namespace.
+pub fn peer_path(namespace: &str, node: &str) -> String {
+    if namespace.is_empty() {
+        node.to_owned()
+    } else {
+        format!("{namespace}/{node}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rule(kind: AccessKind, item: &str, from: &str) -> AccessRule {
+        AccessRule {
+            kind,
+            item: item.into(),
+            from: from.into(),
+        }
+    }
+
+    #[test]
+    fn a_mentioned_kind_is_default_deny_and_the_others_stay_open() {
+        let a = AccessConfig {
+            rules: vec![
+                rule(AccessKind::Call, "rover1/vas/*", "ground/*"),
+                rule(AccessKind::Call, "rover1/vas/emergency", "**"),
+            ],
+            closed: vec![],
+        };
+        assert!(a.allows(AccessKind::Call, "rover1/vas/retask", "ground/fmo"));
+        assert!(!a.allows(AccessKind::Call, "rover1/vas/retask", "evil/fmo"));
+        assert!(!a.allows(AccessKind::Call, "rover1/vas/retask", "fmo"));
+        assert!(a.allows(AccessKind::Call, "rover1/vas/emergency", "anyone"));
+        assert!(!a.allows(AccessKind::Call, "rover1/fpma/skip", "ground/fmo"));
+        // Not mentioned: open.
+        assert!(a.allows(AccessKind::File, "rover1/fpma/plans", "evil/x"));
+        assert!(a.allows(AccessKind::Publish, "rover1/vas/manual_control", "evil/x"));
+        // Closed without a rule.
+        let closed = AccessConfig {
+            rules: vec![],
+            closed: vec![AccessKind::Gateway],
+        };
+        assert!(!closed.allows(AccessKind::Gateway, "", "relay"));
+        assert!(AccessConfig::default().allows(AccessKind::Gateway, "", "relay"));
+    }
+
+    #[test]
+    fn peers_are_named_namespace_slash_node() {
+        assert_eq!(peer_path("ground", "fmo"), "ground/fmo");
+        assert_eq!(peer_path("", "fmo"), "fmo");
+    }
+}
