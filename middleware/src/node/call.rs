@@ -641,6 +641,160 @@ mod tests {
         calls.register(PROVIDER, "air".into(), "vas/double", Duration::from_secs(1))
     }
 
+    fn queued(call_id: u64) -> QueuedCall {
+        QueuedCall {
+            call_id,
+            args: vec![],
+            expires: Instant::now() + Duration::from_secs(1),
+        }
+    }
+
+    #[test]
+    fn a_lane_runs_one_call_and_the_newest_waiting_one_wins() {
+        let mut t = LaneTable::default();
+        let key = (PROVIDER, 3);
+        assert!(matches!(t.admit(key, queued(1)), Admission::Run(c) if c.call_id == 1));
+        assert!(matches!(
+            t.admit(key, queued(2)),
+            Admission::Queued { superseded: None }
+        ));
+        assert!(matches!(
+            t.admit(key, queued(3)),
+            Admission::Queued { superseded: Some(2) }
+        ));
+        // Call 1 done: call 3 runs next, then the lane closes.
+        assert_eq!(t.next(key).map(|c| c.call_id), Some(3));
+        assert!(t.next(key).is_none());
+        assert_eq!((t.total, t.per_peer.len(), t.lanes.len()), (0, 0, 0));
+    }
+
+    #[test]
+    fn lanes_are_capped_per_caller_and_in_all() {
+        let mut t = LaneTable::default();
+        for f in 0..MAX_CALLS_PER_PEER as u32 {
+            assert!(matches!(t.admit((PROVIDER, f), queued(1)), Admission::Run(_)));
+        }
+        assert!(matches!(
+            t.admit((PROVIDER, 9999), queued(1)),
+            Admission::Busy
+        ));
+        // Another caller still gets in, up to the total.
+        let mut other = PROVIDER + 1;
+        let mut admitted = MAX_CALLS_PER_PEER;
+        while admitted < MAX_CALLS_TOTAL {
+            for f in 0..MAX_CALLS_PER_PEER as u32 {
+                if admitted == MAX_CALLS_TOTAL {
+                    break;
+                }
+                assert!(matches!(t.admit((other, f), queued(1)), Admission::Run(_)));
+                admitted += 1;
+            }
+            other += 1;
+        }
+        assert!(matches!(t.admit((other, 0), queued(1)), Admission::Busy));
+        // A lane closing frees its place.
+        assert!(t.next((PROVIDER, 0)).is_none());
+        assert!(matches!(t.admit((other, 0), queued(1)), Admission::Run(_)));
+    }
+
+    /// A node without links with one function reporting each run (its argument) and then
+    /// waiting for a permit of `gate`; callers are made up.
+    async fn provider_node() -> (
+        crate::Node,
+        crate::Service,
+        u32,
+        tokio::sync::mpsc::UnboundedReceiver<u64>,
+        Arc<tokio::sync::Semaphore>,
+    ) {
+        let mut c = crate::NetworkConfig::ethernet_loopback("provider");
+        c.namespace = Some("rover1".into());
+        c.links.clear();
+        c.access = Some(crate::config::AccessConfig {
+            rules: vec![crate::config::AccessRule {
+                kind: AccessKind::Call,
+                item: "rover1/vas/*".into(),
+                from: "ground/*".into(),
+            }],
+            closed: vec![],
+        });
+        let node = crate::Node::open(&c).await.expect("node");
+        let vas = node.service("vas").expect("service");
+        let (tx, ran) = tokio::sync::mpsc::unbounded_channel();
+        let gate = Arc::new(tokio::sync::Semaphore::new(0));
+        let g = gate.clone();
+        let f = vas
+            .provide_function("retask", move |x: u64| {
+                let (tx, g) = (tx.clone(), g.clone());
+                async move {
+                    let _ = tx.send(x);
+                    let _ = g.acquire().await.map(|p| p.forget());
+                    Ok::<u64, String>(x)
+                }
+            })
+            .expect("provide");
+        // Provided for the node's whole life (the test ends with its shutdown).
+        std::mem::forget(f);
+        let id = node
+            .inner
+            .offers
+            .iter()
+            .find(|o| &*o.name == "rover1/vas/retask")
+            .map(|o| o.id)
+            .expect("offered");
+        for (peer, ns) in [(1, "ground"), (2, "evil")] {
+            node.inner.on_discovery(
+                0,
+                crate::link::PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], peer))),
+                Message::Hello {
+                    node_id: u64::from(peer),
+                    domain: crate::config::DEFAULT_DOMAIN.into(),
+                    node: "station".into(),
+                    namespace: ns.into(),
+                    counter: 0,
+                    lease_ms: 60_000,
+                    gateway: false,
+                },
+            );
+        }
+        (node, vas, id, ran, gate)
+    }
+
+    async fn next(ran: &mut tokio::sync::mpsc::UnboundedReceiver<u64>) -> Option<u64> {
+        tokio::time::timeout(Duration::from_secs(5), ran.recv())
+            .await
+            .expect("a call ran in time")
+    }
+
+    fn arg(x: u64) -> Vec<u8> {
+        crate::codec::encode_payload(&x).expect("u64 encodes")
+    }
+
+    #[tokio::test]
+    async fn expired_denied_and_superseded_calls_never_run() {
+        let (node, vas, id, mut ran, gate) = provider_node().await;
+        let inner = node.inner.clone();
+        // Out of time on arrival: dropped unexecuted.
+        inner.on_call(1, 1, id, 0, arg(1));
+        // Not allowed by <access>.
+        inner.on_call(2, 2, id, 5000, arg(2));
+        // Call 3 runs and blocks; 4 waits; 5 replaces 4 (newest wins).
+        inner.on_call(1, 3, id, 5000, arg(3));
+        assert_eq!(next(&mut ran).await, Some(3));
+        inner.on_call(1, 4, id, 5000, arg(4));
+        inner.on_call(1, 5, id, 5000, arg(5));
+        gate.add_permits(1);
+        assert_eq!(next(&mut ran).await, Some(5));
+        gate.add_permits(1);
+        // The lane is free again: a later call runs.
+        inner.on_call(1, 6, id, 5000, arg(6));
+        assert_eq!(next(&mut ran).await, Some(6));
+        gate.add_permits(1);
+        assert!(ran.try_recv().is_err(), "nothing else ran");
+        assert_eq!(inner.policy.counts(0), (1, 0), "the denied call counted");
+        drop(vas);
+        node.shutdown().await;
+    }
+
     #[test]
     fn a_reply_completes_the_call_it_answers() {
         let calls = PendingCalls::default();

@@ -88,7 +88,10 @@ impl Policy {
     pub fn new(access: Option<AccessConfig>, links: usize) -> Self {
         Policy {
             access,
-            counters: (0..links).map(|_| RefusalCounters::default()).collect(),
+            // At least one, so a node without links (tests) still counts.
+            counters: (0..links.max(1))
+                .map(|_| RefusalCounters::default())
+                .collect(),
             logged: Mutex::default(),
         }
     }
@@ -227,6 +230,257 @@ mod tests {
         p.refuse(7, 9, "x", "i", Refusal::NotOwned);
         assert_eq!(p.counts(1), (1, 2));
         assert_eq!(p.counts(0), (0, 0));
+    }
+
+    use crate::config::{AccessConfig, AccessRule, NetworkConfig};
+    use crate::link::PeerAddr;
+    use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, Origin};
+    use crate::typeinfo::TypeInfo;
+    use std::sync::Arc;
+
+    /// A node without links: peers are made up by feeding it their messages directly.
+    async fn bare(namespace: Option<&str>, access: Option<AccessConfig>) -> crate::Node {
+        let mut c = NetworkConfig::ethernet_loopback("me");
+        c.namespace = namespace.map(str::to_owned);
+        c.links.clear();
+        c.access = access;
+        crate::Node::open(&c).await.expect("a node without links opens")
+    }
+
+    fn addr(port: u16) -> PeerAddr {
+        PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], port)))
+    }
+
+    fn hello(id: NodeId, node: &str, namespace: &str, gateway: bool) -> Message {
+        Message::Hello {
+            node_id: id,
+            domain: crate::config::DEFAULT_DOMAIN.into(),
+            node: node.into(),
+            namespace: namespace.into(),
+            counter: 0,
+            lease_ms: 60_000,
+            gateway,
+        }
+    }
+
+    fn offer(id: u32, kind: ItemKind, name: &str, origin: Option<Origin>) -> Declaration {
+        Declaration::Offer {
+            id,
+            service: 1,
+            kind,
+            name: name.into(),
+            ty: TypeInfo::of::<u64>(),
+            origin,
+        }
+    }
+
+    /// Applies `decls` as peer `id`'s next declarations.
+    fn declare(inner: &Arc<super::super::NodeInner>, id: NodeId, decls: Vec<Declaration>) {
+        let known = inner.peers.get(&id).map_or(0, |p| p.known);
+        let entries: Vec<LoggedDeclaration> = decls
+            .into_iter()
+            .enumerate()
+            .map(|(k, decl)| LoggedDeclaration {
+                counter: known + 1 + k as u32,
+                decl,
+            })
+            .collect();
+        let upto = known + entries.len() as u32;
+        inner.apply_decl_batch(id, known, upto, false, entries);
+    }
+
+    fn offered(inner: &super::super::NodeInner, id: NodeId) -> Vec<String> {
+        let mut v: Vec<String> = inner
+            .peers
+            .get(&id)
+            .map(|p| p.offers.values().map(|o| o.name.to_string()).collect())
+            .unwrap_or_default();
+        v.sort();
+        v
+    }
+
+    #[tokio::test]
+    async fn a_node_offers_only_under_its_own_namespace() {
+        let node = bare(Some("ground"), None).await;
+        let inner = node.inner.clone();
+        inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
+        inner.on_discovery(0, addr(2), hello(2, "evil", "evil", false));
+        inner.on_discovery(0, addr(3), hello(3, "plain", "", false));
+        declare(&inner, 1, vec![offer(10, ItemKind::Variable, "rover1/vas/position", None)]);
+        declare(
+            &inner,
+            2,
+            vec![
+                offer(10, ItemKind::Variable, "rover1/vas/position", None),
+                offer(11, ItemKind::Function, "rover1/vas/push_waypoints", None),
+                offer(12, ItemKind::Variable, "evil/x/y", None),
+            ],
+        );
+        declare(
+            &inner,
+            3,
+            vec![
+                offer(10, ItemKind::Variable, "rover1/vas/position", None),
+                offer(11, ItemKind::Variable, "ground/fmo/manual_control", None),
+                offer(12, ItemKind::Variable, "probe/position", None),
+            ],
+        );
+        assert_eq!(offered(&inner, 1), ["rover1/vas/position"]);
+        assert_eq!(offered(&inner, 2), ["evil/x/y"]);
+        assert_eq!(offered(&inner, 3), ["probe/position"]);
+        assert_eq!(inner.policy.counts(0), (0, 4));
+        // The refused offers left no gap: a later declaration still applies.
+        declare(&inner, 2, vec![offer(13, ItemKind::Event, "evil/x/z", None)]);
+        assert_eq!(offered(&inner, 2), ["evil/x/y", "evil/x/z"]);
+        node.shutdown().await;
+    }
+
+    #[tokio::test]
+    async fn only_a_gateway_speaks_for_another_node_and_never_as_the_node_itself() {
+        let node = bare(Some("ground"), None).await;
+        let inner = node.inner.clone();
+        inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
+        inner.on_discovery(0, addr(2), hello(2, "evil", "evil", false));
+        inner.on_discovery(0, addr(3), hello(3, "relay", "relay", true));
+        let from_air = |hops| Origin {
+            node: 1,
+            name: "air".into(),
+            hops,
+            namespace: "rover1".into(),
+        };
+        // The forged origin of the issue: another node's id, 0 hops, from a non-gateway.
+        declare(
+            &inner,
+            2,
+            vec![
+                offer(10, ItemKind::Variable, "rover1/vas/position", Some(from_air(0))),
+                offer(11, ItemKind::Variable, "rover1/vas/attitude", Some(from_air(1))),
+            ],
+        );
+        assert!(offered(&inner, 2).is_empty());
+        // A gateway: at least one hop, and only names the origin owns.
+        declare(
+            &inner,
+            3,
+            vec![
+                offer(10, ItemKind::Variable, "rover1/vas/position", Some(from_air(0))),
+                offer(11, ItemKind::Variable, "rover1/vas/attitude", Some(from_air(1))),
+                offer(12, ItemKind::Variable, "ground/fmo/x", Some(from_air(1))),
+            ],
+        );
+        assert_eq!(offered(&inner, 3), ["rover1/vas/attitude"]);
+        assert_eq!(inner.policy.counts(0), (0, 4));
+        // A gateway our <access> does not name is no gateway.
+        let gated = bare(
+            Some("ground"),
+            Some(AccessConfig {
+                rules: vec![AccessRule {
+                    kind: AccessKind::Gateway,
+                    item: "**".into(),
+                    from: "trusted/*".into(),
+                }],
+                closed: vec![],
+            }),
+        )
+        .await;
+        let g = gated.inner.clone();
+        g.on_discovery(0, addr(3), hello(3, "relay", "relay", true));
+        g.on_discovery(0, addr(4), hello(4, "relay", "trusted", true));
+        for peer in [3, 4] {
+            declare(
+                &g,
+                peer,
+                vec![offer(11, ItemKind::Variable, "rover1/vas/attitude", Some(from_air(1)))],
+            );
+        }
+        assert!(offered(&g, 3).is_empty());
+        assert_eq!(offered(&g, 4), ["rover1/vas/attitude"]);
+        node.shutdown().await;
+        gated.shutdown().await;
+    }
+
+    #[tokio::test]
+    async fn bye_and_a_second_address_count_only_from_the_node_itself() {
+        let node = bare(None, None).await;
+        let inner = node.inner.clone();
+        inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
+        // A forged Bye from another address: ignored, counted.
+        inner.on_discovery(0, addr(9), Message::Bye { node_id: 1 });
+        assert!(inner.peers.contains_key(&1), "a forged Bye evicted the peer");
+        // Heard at a second address on the same link: not mapped, so its Bye is no better.
+        inner.on_discovery(0, addr(9), hello(1, "air", "rover1", false));
+        assert!(inner.addrs.get(&(0, addr(9))).is_none());
+        inner.on_discovery(0, addr(9), Message::Bye { node_id: 1 });
+        assert!(inner.peers.contains_key(&1));
+        assert_eq!(inner.policy.counts(0), (0, 3));
+        // The node's own Bye.
+        inner.on_discovery(0, addr(1), Message::Bye { node_id: 1 });
+        assert!(!inner.peers.contains_key(&1));
+        node.shutdown().await;
+    }
+
+    #[tokio::test]
+    async fn declarations_per_peer_are_capped_and_a_reset_replaces_them() {
+        let node = bare(None, None).await;
+        let inner = node.inner.clone();
+        inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
+        let many: Vec<Declaration> = (0..MAX_DECLS_PER_PEER as u32 + 10)
+            .map(|i| offer(i + 10, ItemKind::Variable, &format!("rover1/s/v{i}"), None))
+            .collect();
+        declare(&inner, 1, many);
+        let stored = inner.peers.get(&1).map(|p| p.declarations());
+        assert_eq!(stored, Some(MAX_DECLS_PER_PEER));
+        assert_eq!(inner.policy.counts(0), (0, 10));
+        // A reset batch: the peer's whole state, replacing what we held.
+        let known = inner.peers.get(&1).map_or(0, |p| p.known);
+        inner.apply_decl_batch(
+            1,
+            0,
+            known + 5,
+            true,
+            vec![LoggedDeclaration {
+                counter: known + 3,
+                decl: offer(1, ItemKind::Variable, "rover1/s/only", None),
+            }],
+        );
+        assert_eq!(offered(&inner, 1), ["rover1/s/only"]);
+        assert_eq!(inner.peers.get(&1).map(|p| p.known), Some(known + 5));
+        node.shutdown().await;
+    }
+
+    #[tokio::test]
+    async fn a_publisher_access_does_not_allow_is_never_routed() {
+        let access = AccessConfig {
+            rules: vec![AccessRule {
+                kind: AccessKind::Publish,
+                item: "**/manual_control".into(),
+                from: "ground/fmo".into(),
+            }],
+            closed: vec![],
+        };
+        let node = bare(Some("rover1"), Some(access)).await;
+        let inner = node.inner.clone();
+        let vas = node.service("vas").expect("service");
+        let _sub = vas
+            .subscribe_variable::<u64>("*/fmo/manual_control")
+            .expect("subscribe");
+        inner.on_discovery(0, addr(1), hello(1, "fmo", "ground", false));
+        inner.on_discovery(0, addr(2), hello(2, "fmo", "evil", false));
+        declare(&inner, 1, vec![offer(10, ItemKind::Variable, "ground/fmo/manual_control", None)]);
+        declare(&inner, 2, vec![offer(10, ItemKind::Variable, "evil/fmo/manual_control", None)]);
+        let routed = |id: NodeId| {
+            inner
+                .peers
+                .get(&id)
+                .and_then(|p| p.routes.get(&10).map(|r| r.len()))
+                .unwrap_or(0)
+        };
+        assert_eq!(routed(1), 1, "the allowed station is routed");
+        assert_eq!(routed(2), 0, "the other one is not");
+        inner.deliver_remote(2, 10, vec![1]);
+        assert_eq!(inner.policy.counts(0), (2, 0), "declaration and sample denied");
+        drop(vas);
+        node.shutdown().await;
     }
 
     #[test]

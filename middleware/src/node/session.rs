@@ -898,6 +898,41 @@ mod tests {
     }
 
     #[test]
+    fn the_log_holds_only_what_is_declared_and_replays_it_with_a_reset_after_a_withdrawal() {
+        let mut log = DeclarationLog::default();
+        let svc = |id| Declaration::Service {
+            id,
+            name: format!("s{id}"),
+        };
+        // A service coming and going a thousand times leaves nothing behind.
+        for id in 1..=1000 {
+            log.push(svc(id), None);
+            log.push(Declaration::Withdraw { id }, None);
+        }
+        log.push(svc(5000), None);
+        assert_eq!((log.len(), log.counter), (1, 2001));
+        // A new peer: the whole (one-entry) log, as a reset.
+        let v = log.view(0, 0);
+        assert!(v.reset);
+        assert_eq!((v.after, v.upto, v.entries.len()), (0, 2001, 1));
+        // A peer up to date but for the last declaration: just that one.
+        let v = log.view(0, 2000);
+        assert!(!v.reset);
+        assert_eq!((v.after, v.upto), (2000, 2001));
+        assert_eq!(v.entries[0].decl.id(), 5000);
+        // A peer from before the last withdrawal could miss it: a reset.
+        let v = log.view(0, 1500);
+        assert!(v.reset);
+        // A counter from the future (a confused peer): a reset too.
+        assert!(log.view(0, 9999).reset);
+        // Hidden on link 1: a withdrawal of its own id there, the declaration elsewhere.
+        log.push(svc(6000), Some(1));
+        let on1 = log.view(1, 2001);
+        assert_eq!(on1.entries[0].decl, Declaration::Withdraw { id: 6000 });
+        assert_eq!(log.view(0, 2001).entries[0].decl, svc(6000));
+    }
+
+    #[test]
     fn fast_data_encoding_equals_postcard() {
         for event in [false, true] {
             let payload: Vec<u8> = (0..200u8).collect();
