@@ -415,6 +415,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                         marea::CallError::LinkLost { .. } => "link_lost",
                         marea::CallError::TypeMismatch { .. } => "type_mismatch",
                         marea::CallError::Codec { .. } => "codec",
+                        marea::CallError::Denied { .. } => "denied",
+                        marea::CallError::Busy { .. } => "busy",
+                        marea::CallError::Superseded { .. } => "superseded",
                     };
                     out(
                         json!({"error": kind, "message": e.to_string(), "ms": started.elapsed().as_millis() as u64}),
@@ -467,7 +470,18 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let progress = tokio::spawn(progress);
             let r = t.wait().await;
             progress.abort();
-            let r = r?;
+            let r = match r {
+                Ok(r) => r,
+                Err(e) => {
+                    let kind = match &e {
+                        marea::FileSendError::Denied { .. } => "denied",
+                        marea::FileSendError::Rejected { .. } => "rejected",
+                        _ => "failed",
+                    };
+                    out(json!({"error": kind, "message": e.to_string()}));
+                    return Err(e.into());
+                }
+            };
             out(
                 json!({"done": r.size, "sent": r.sent, "resumed_from": r.resumed_from, "attempts": r.attempts, "ms": r.elapsed.as_millis() as u64}),
             );

@@ -389,6 +389,15 @@ impl Node {
         )
     }
 
+    /// What peers were refused so far, summed over the links: (by the `<access>` rules,
+    /// otherwise: offers outside their namespace, origins from non-gateways, forged Byes,
+    /// caps). Per link, the same counts are in [`LinkHealth`](crate::LinkHealth).
+    pub fn refusals(&self) -> (u64, u64) {
+        (0..self.inner.links().len().max(1))
+            .map(|l| self.inner.policy.counts(l))
+            .fold((0, 0), |(d, r), (d2, r2)| (d + d2, r + r2))
+    }
+
     /// Everything this node knows: itself and every peer, with services and items.
     pub fn catalog(&self) -> Catalog {
         use super::node::{ItemDescription as I, ItemRole as R};
