@@ -699,50 +699,52 @@ mod tests {
 
     /// A node without links with one function reporting each run (its argument) and then
     /// waiting for a permit of `gate`; callers are made up.
-    async fn provider_node() -> (
-        crate::Node,
-        crate::Service,
+    fn provider_node() -> (
+        Arc<NodeInner>,
         u32,
         tokio::sync::mpsc::UnboundedReceiver<u64>,
         Arc<tokio::sync::Semaphore>,
     ) {
-        let mut c = crate::NetworkConfig::ethernet_loopback("provider");
-        c.namespace = Some("rover1".into());
-        c.links.clear();
-        c.access = Some(crate::config::AccessConfig {
-            rules: vec![crate::config::AccessRule {
-                kind: AccessKind::Call,
-                item: "rover1/vas/*".into(),
-                from: "ground/*".into(),
-            }],
-            closed: vec![],
-        });
-        let node = crate::Node::open(&c).await.expect("node");
-        let vas = node.service("vas").expect("service");
+        let inner = super::super::bare_node(
+            Some("rover1"),
+            Some(crate::config::AccessConfig {
+                rules: vec![crate::config::AccessRule {
+                    kind: AccessKind::Call,
+                    item: "rover1/vas/*".into(),
+                    from: "ground/*".into(),
+                }],
+                closed: vec![],
+            }),
+        );
         let (tx, ran) = tokio::sync::mpsc::unbounded_channel();
         let gate = Arc::new(tokio::sync::Semaphore::new(0));
         let g = gate.clone();
-        let f = vas
-            .provide_function("retask", move |x: u64| {
-                let (tx, g) = (tx.clone(), g.clone());
-                async move {
-                    let _ = tx.send(x);
-                    let _ = g.acquire().await.map(|p| p.forget());
-                    Ok::<u64, String>(x)
-                }
+        let handler: RawHandler = Arc::new(move |args: Vec<u8>| {
+            let (tx, g) = (tx.clone(), g.clone());
+            Box::pin(async move {
+                let x: u64 = crate::codec::decode_payload(&args)
+                    .map_err(|e| RemoteFailure::BadArguments(e.to_string()))?;
+                let _ = tx.send(x);
+                let _ = g.acquire().await.map(|p| p.forget());
+                Ok(args)
             })
-            .expect("provide");
-        // Provided for the node's whole life (the test ends with its shutdown).
-        std::mem::forget(f);
-        let id = node
-            .inner
-            .offers
-            .iter()
-            .find(|o| &*o.name == "rover1/vas/retask")
-            .map(|o| o.id)
-            .expect("offered");
+        });
+        let id = inner.fresh_id();
+        inner.add_offer(Arc::new(super::super::LocalOffer {
+            id,
+            service: 0,
+            kind: ItemKind::Function,
+            name: "rover1/vas/retask".into(),
+            ty: TypeInfo::of::<fn(u64) -> u64>(),
+            role: OfferRole::Function { handler },
+            remote: Default::default(),
+            local: Default::default(),
+            refused: Default::default(),
+            origin: None,
+            hidden_on: None,
+        }));
         for (peer, ns) in [(1, "ground"), (2, "evil")] {
-            node.inner.on_discovery(
+            inner.on_discovery(
                 0,
                 crate::link::PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], peer))),
                 Message::Hello {
@@ -756,7 +758,7 @@ mod tests {
                 },
             );
         }
-        (node, vas, id, ran, gate)
+        (inner, id, ran, gate)
     }
 
     async fn next(ran: &mut tokio::sync::mpsc::UnboundedReceiver<u64>) -> Option<u64> {
@@ -771,8 +773,7 @@ mod tests {
 
     #[tokio::test]
     async fn expired_denied_and_superseded_calls_never_run() {
-        let (node, vas, id, mut ran, gate) = provider_node().await;
-        let inner = node.inner.clone();
+        let (inner, id, mut ran, gate) = provider_node();
         // Out of time on arrival: dropped unexecuted.
         inner.on_call(1, 1, id, 0, arg(1));
         // Not allowed by <access>.
@@ -791,8 +792,7 @@ mod tests {
         gate.add_permits(1);
         assert!(ran.try_recv().is_err(), "nothing else ran");
         assert_eq!(inner.policy.counts(0), (1, 0), "the denied call counted");
-        drop(vas);
-        node.shutdown().await;
+        inner.cancel.cancel();
     }
 
     #[test]

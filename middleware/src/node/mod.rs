@@ -380,3 +380,48 @@ impl LinkHandler for Handler {
         }
     }
 }
+
+/// A node without links for the node modules' unit tests: peers are made up by feeding it
+/// their messages directly (what it sends goes nowhere).
+#[cfg(test)]
+pub(crate) fn bare_node(
+    namespace: Option<&str>,
+    access: Option<crate::config::AccessConfig>,
+) -> Arc<NodeInner> {
+    let domain = crate::config::DEFAULT_DOMAIN;
+    let (changed, _) = watch::channel(0u64);
+    let inner = Arc::new(NodeInner {
+        me: Identity {
+            id: rand::random(),
+            name: "me".into(),
+            namespace: namespace.map(str::to_owned),
+            domain: domain.into(),
+            domain_hash: discovery::domain_hash(domain),
+            heartbeat: Duration::from_secs(1),
+            lease: Duration::from_millis(3500),
+            link_timing: Vec::new(),
+            epoch: Instant::now(),
+        },
+        links: OnceLock::new(),
+        decls: Mutex::default(),
+        next_id: AtomicU32::new(1),
+        services: DashMap::new(),
+        offers: DashMap::new(),
+        interests: DashMap::new(),
+        peers: DashMap::new(),
+        addrs: DashMap::new(),
+        calls: Default::default(),
+        transfers: Default::default(),
+        changed,
+        tasks: TaskTracker::new(),
+        cancel: CancellationToken::new(),
+        counters: Default::default(),
+        gateway: None,
+        routing: Mutex::new(()),
+        path_switches: Default::default(),
+        policy: policy::Policy::new(access, 1),
+        lanes: Default::default(),
+    });
+    let _ = inner.links.set(Vec::new());
+    inner
+}

@@ -232,20 +232,12 @@ mod tests {
         assert_eq!(p.counts(0), (0, 0));
     }
 
-    use crate::config::{AccessConfig, AccessRule, NetworkConfig};
+    use super::super::{bare_node as bare, LocalInterest, NodeInner};
+    use crate::config::{AccessConfig, AccessRule};
     use crate::link::PeerAddr;
     use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, Origin};
     use crate::typeinfo::TypeInfo;
     use std::sync::Arc;
-
-    /// A node without links: peers are made up by feeding it their messages directly.
-    async fn bare(namespace: Option<&str>, access: Option<AccessConfig>) -> crate::Node {
-        let mut c = NetworkConfig::ethernet_loopback("me");
-        c.namespace = namespace.map(str::to_owned);
-        c.links.clear();
-        c.access = access;
-        crate::Node::open(&c).await.expect("a node without links opens")
-    }
 
     fn addr(port: u16) -> PeerAddr {
         PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], port)))
@@ -275,7 +267,7 @@ mod tests {
     }
 
     /// Applies `decls` as peer `id`'s next declarations.
-    fn declare(inner: &Arc<super::super::NodeInner>, id: NodeId, decls: Vec<Declaration>) {
+    fn declare(inner: &Arc<NodeInner>, id: NodeId, decls: Vec<Declaration>) {
         let known = inner.peers.get(&id).map_or(0, |p| p.known);
         let entries: Vec<LoggedDeclaration> = decls
             .into_iter()
@@ -289,7 +281,7 @@ mod tests {
         inner.apply_decl_batch(id, known, upto, false, entries);
     }
 
-    fn offered(inner: &super::super::NodeInner, id: NodeId) -> Vec<String> {
+    fn offered(inner: &NodeInner, id: NodeId) -> Vec<String> {
         let mut v: Vec<String> = inner
             .peers
             .get(&id)
@@ -301,8 +293,7 @@ mod tests {
 
     #[tokio::test]
     async fn a_node_offers_only_under_its_own_namespace() {
-        let node = bare(Some("ground"), None).await;
-        let inner = node.inner.clone();
+        let inner = bare(Some("ground"), None);
         inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
         inner.on_discovery(0, addr(2), hello(2, "evil", "evil", false));
         inner.on_discovery(0, addr(3), hello(3, "plain", "", false));
@@ -332,13 +323,12 @@ mod tests {
         // The refused offers left no gap: a later declaration still applies.
         declare(&inner, 2, vec![offer(13, ItemKind::Event, "evil/x/z", None)]);
         assert_eq!(offered(&inner, 2), ["evil/x/y", "evil/x/z"]);
-        node.shutdown().await;
+        inner.cancel.cancel();
     }
 
     #[tokio::test]
     async fn only_a_gateway_speaks_for_another_node_and_never_as_the_node_itself() {
-        let node = bare(Some("ground"), None).await;
-        let inner = node.inner.clone();
+        let inner = bare(Some("ground"), None);
         inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
         inner.on_discovery(0, addr(2), hello(2, "evil", "evil", false));
         inner.on_discovery(0, addr(3), hello(3, "relay", "relay", true));
@@ -371,7 +361,7 @@ mod tests {
         assert_eq!(offered(&inner, 3), ["rover1/vas/attitude"]);
         assert_eq!(inner.policy.counts(0), (0, 4));
         // A gateway our <access> does not name is no gateway.
-        let gated = bare(
+        let g = bare(
             Some("ground"),
             Some(AccessConfig {
                 rules: vec![AccessRule {
@@ -381,9 +371,7 @@ mod tests {
                 }],
                 closed: vec![],
             }),
-        )
-        .await;
-        let g = gated.inner.clone();
+        );
         g.on_discovery(0, addr(3), hello(3, "relay", "relay", true));
         g.on_discovery(0, addr(4), hello(4, "relay", "trusted", true));
         for peer in [3, 4] {
@@ -395,14 +383,13 @@ mod tests {
         }
         assert!(offered(&g, 3).is_empty());
         assert_eq!(offered(&g, 4), ["rover1/vas/attitude"]);
-        node.shutdown().await;
-        gated.shutdown().await;
+        inner.cancel.cancel();
+        g.cancel.cancel();
     }
 
     #[tokio::test]
     async fn bye_and_a_second_address_count_only_from_the_node_itself() {
-        let node = bare(None, None).await;
-        let inner = node.inner.clone();
+        let inner = bare(None, None);
         inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
         // A forged Bye from another address: ignored, counted.
         inner.on_discovery(0, addr(9), Message::Bye { node_id: 1 });
@@ -416,13 +403,12 @@ mod tests {
         // The node's own Bye.
         inner.on_discovery(0, addr(1), Message::Bye { node_id: 1 });
         assert!(!inner.peers.contains_key(&1));
-        node.shutdown().await;
+        inner.cancel.cancel();
     }
 
     #[tokio::test]
     async fn declarations_per_peer_are_capped_and_a_reset_replaces_them() {
-        let node = bare(None, None).await;
-        let inner = node.inner.clone();
+        let inner = bare(None, None);
         inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
         let many: Vec<Declaration> = (0..MAX_DECLS_PER_PEER as u32 + 10)
             .map(|i| offer(i + 10, ItemKind::Variable, &format!("rover1/s/v{i}"), None))
@@ -445,7 +431,7 @@ mod tests {
         );
         assert_eq!(offered(&inner, 1), ["rover1/s/only"]);
         assert_eq!(inner.peers.get(&1).map(|p| p.known), Some(known + 5));
-        node.shutdown().await;
+        inner.cancel.cancel();
     }
 
     #[tokio::test]
@@ -458,12 +444,18 @@ mod tests {
             }],
             closed: vec![],
         };
-        let node = bare(Some("rover1"), Some(access)).await;
-        let inner = node.inner.clone();
-        let vas = node.service("vas").expect("service");
-        let _sub = vas
-            .subscribe_variable::<u64>("*/fmo/manual_control")
-            .expect("subscribe");
+        let inner = bare(Some("rover1"), Some(access));
+        inner.add_interest(Arc::new(LocalInterest {
+            id: inner.fresh_id(),
+            service: 0,
+            service_name: "vas".into(),
+            kind: ItemKind::Variable,
+            pattern: "*/fmo/manual_control".into(),
+            ty: TypeInfo::of::<u64>(),
+            mailbox: Some(Arc::new(super::super::mailbox::Mailbox::new(true))),
+            reported: Default::default(),
+            hidden_on: None,
+        }));
         inner.on_discovery(0, addr(1), hello(1, "fmo", "ground", false));
         inner.on_discovery(0, addr(2), hello(2, "fmo", "evil", false));
         declare(&inner, 1, vec![offer(10, ItemKind::Variable, "ground/fmo/manual_control", None)]);
@@ -479,8 +471,7 @@ mod tests {
         assert_eq!(routed(2), 0, "the other one is not");
         inner.deliver_remote(2, 10, vec![1]);
         assert_eq!(inner.policy.counts(0), (2, 0), "declaration and sample denied");
-        drop(vas);
-        node.shutdown().await;
+        inner.cancel.cancel();
     }
 
     #[test]
