@@ -27,10 +27,7 @@ fn cfg(net: &Net, node: &str, namespace: &str) -> NetworkConfig {
     c.links = vec![LinkConfig::Ethernet(EthernetConfig {
         interface: std::net::Ipv4Addr::LOCALHOST,
         bind: "127.0.0.1:0".parse().expect("literal"),
-        multicast: std::net::SocketAddrV4::new(
-            std::net::Ipv4Addr::new(239, 255, 77, 1),
-            net.port,
-        ),
+        multicast: std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 1), net.port),
         heartbeat: Duration::from_millis(net.heartbeat_ms),
         lease: Duration::from_millis(net.lease_ms),
         ..EthernetConfig::default()
@@ -402,7 +399,13 @@ fn access_denies_a_file_with_the_denied_verdict() {
         "fpma",
         &config,
         "fpma",
-        &["sink", "--item", "plans", "--dir", &inbox.display().to_string()],
+        &[
+            "sink",
+            "--item",
+            "plans",
+            "--dir",
+            &inbox.display().to_string(),
+        ],
     );
     fpma.expect_key(T, "ready");
     let plan = dir.path().join("plan.xml");
@@ -460,7 +463,13 @@ fn a_disallowed_publishers_manual_control_is_not_delivered() {
         "vas",
         &config,
         "vas",
-        &["var-sub", "--pattern", "*/fmo/manual_control", "--count", "60"],
+        &[
+            "var-sub",
+            "--pattern",
+            "*/fmo/manual_control",
+            "--count",
+            "60",
+        ],
     );
     let mut names = Vec::new();
     while names.len() < 60 {

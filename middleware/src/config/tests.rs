@@ -839,13 +839,17 @@ fn access_errors_name_line_and_column() {
     ));
     assert_eq!((line, column), (4, 22), "{msg}");
     assert!(msg.contains("name pattern"), "{msg}");
-    let (msg, line, _) = message(&net("<ethernet/>\n<access>\n  <allow kind=\"call\"/>\n</access>"));
+    let (msg, line, _) = message(&net(
+        "<ethernet/>\n<access>\n  <allow kind=\"call\"/>\n</access>",
+    ));
     assert_eq!(line, 4, "{msg}");
     assert!(msg.contains("from"), "{msg}");
     let (msg, line, column) = message(&net("<ethernet/>\n<access/>\n<access/>"));
     assert_eq!((line, column), (4, 1), "{msg}");
     assert!(msg.contains("only once"), "{msg}");
-    let (msg, line, _) = message(&net("<ethernet/>\n<access>\n  <permit kind=\"call\"/>\n</access>"));
+    let (msg, line, _) = message(&net(
+        "<ethernet/>\n<access>\n  <permit kind=\"call\"/>\n</access>",
+    ));
     assert_eq!(line, 4, "{msg}");
     assert!(msg.contains("permit"), "{msg}");
 }

@@ -260,7 +260,8 @@ impl PendingCalls {
 }
 
 /// Runs one call of a lane: the arguments and how long the handler may take.
-type LaneRun = Arc<dyn Fn(Vec<u8>, Duration) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
+type LaneRun =
+    Arc<dyn Fn(Vec<u8>, Duration) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
 
 /// A peer's call accepted but not started.
 struct QueuedCall {
@@ -559,8 +560,13 @@ impl NodeInner {
             }
             Admission::Busy => {
                 let peer = self.peer_name(node);
-                self.policy
-                    .refuse(self.peer_link(node), node, &peer, &offer.name, Refusal::Busy);
+                self.policy.refuse(
+                    self.peer_link(node),
+                    node,
+                    &peer,
+                    &offer.name,
+                    Refusal::Busy,
+                );
                 self.send_safe_to_node(
                     node,
                     &Message::Reply {
@@ -660,7 +666,9 @@ mod tests {
         ));
         assert!(matches!(
             t.admit(key, queued(3)),
-            Admission::Queued { superseded: Some(2) }
+            Admission::Queued {
+                superseded: Some(2)
+            }
         ));
         // Call 1 done: call 3 runs next, then the lane closes.
         assert_eq!(t.next(key).map(|c| c.call_id), Some(3));
@@ -672,7 +680,10 @@ mod tests {
     fn lanes_are_capped_per_caller_and_in_all() {
         let mut t = LaneTable::default();
         for f in 0..MAX_CALLS_PER_PEER as u32 {
-            assert!(matches!(t.admit((PROVIDER, f), queued(1)), Admission::Run(_)));
+            assert!(matches!(
+                t.admit((PROVIDER, f), queued(1)),
+                Admission::Run(_)
+            ));
         }
         assert!(matches!(
             t.admit((PROVIDER, 9999), queued(1)),

@@ -163,7 +163,7 @@ impl NodeInner {
                         link,
                         node_id,
                         name.as_deref().unwrap_or("?"),
-                        &format!("Bye from {from}"),
+                        "Bye",
                         super::policy::Refusal::ForgedBye,
                     );
                 }
@@ -197,7 +197,7 @@ impl NodeInner {
                     link,
                     node,
                     name.as_deref().unwrap_or("?"),
-                    &format!("address {from}"),
+                    "second address",
                     super::policy::Refusal::SecondAddress,
                 );
                 return false;

@@ -29,6 +29,9 @@ const LOG_EVERY: Duration = Duration::from_secs(60);
 /// Refusals remembered for rate-limiting the log; past it, the oldest minute is forgotten and,
 /// if still full, refusals are counted but not logged.
 const LOG_MEMORY: usize = 4096;
+/// Refusal lines logged per minute in all: an attacker varying item names cannot flood the
+/// log either (the counters still count everything).
+const LOG_LINES_PER_MINUTE: u32 = 120;
 
 /// Why something from a peer was refused.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -81,7 +84,15 @@ pub(crate) struct Policy {
     pub access: Option<AccessConfig>,
     /// By link index.
     counters: Vec<RefusalCounters>,
-    logged: Mutex<HashMap<(NodeId, String), Instant>>,
+    logged: Mutex<LogMemory>,
+}
+
+/// What was logged lately.
+#[derive(Default)]
+struct LogMemory {
+    last: HashMap<(NodeId, String), Instant>,
+    /// Start of the current minute and lines logged in it.
+    window: Option<(Instant, u32)>,
 }
 
 impl Policy {
@@ -134,20 +145,30 @@ impl Policy {
     }
 
     fn first_in_a_minute(&self, peer: NodeId, item: &str, now: Instant) -> bool {
-        let mut logged = lock(&self.logged);
+        let mut memory = lock(&self.logged);
+        let m = &mut *memory;
         let key = (peer, item.to_owned());
-        if let Some(at) = logged.get(&key) {
+        if let Some(at) = m.last.get(&key) {
             if now.saturating_duration_since(*at) < LOG_EVERY {
                 return false;
             }
         }
-        if logged.len() >= LOG_MEMORY && !logged.contains_key(&key) {
-            logged.retain(|_, at| now.saturating_duration_since(*at) < LOG_EVERY);
-            if logged.len() >= LOG_MEMORY {
+        if m.last.len() >= LOG_MEMORY && !m.last.contains_key(&key) {
+            m.last
+                .retain(|_, at| now.saturating_duration_since(*at) < LOG_EVERY);
+            if m.last.len() >= LOG_MEMORY {
                 return false;
             }
         }
-        logged.insert(key, now);
+        let (start, lines) = m.window.get_or_insert((now, 0));
+        if now.saturating_duration_since(*start) >= LOG_EVERY {
+            (*start, *lines) = (now, 0);
+        }
+        if *lines >= LOG_LINES_PER_MINUTE {
+            return false;
+        }
+        *lines += 1;
+        m.last.insert(key, now);
         true
     }
 }
@@ -164,11 +185,7 @@ impl super::NodeInner {
             .get(&node)
             .map(|p| (p.link, p.namespace.clone(), p.name.clone()))
         else {
-            return !self
-                .policy
-                .access
-                .as_ref()
-                .is_some_and(|a| a.governs(kind));
+            return !self.policy.access.as_ref().is_some_and(|a| a.governs(kind));
         };
         if self.policy.allows(kind, item, &namespace, &name) {
             return true;
@@ -297,7 +314,11 @@ mod tests {
         inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
         inner.on_discovery(0, addr(2), hello(2, "evil", "evil", false));
         inner.on_discovery(0, addr(3), hello(3, "plain", "", false));
-        declare(&inner, 1, vec![offer(10, ItemKind::Variable, "rover1/vas/position", None)]);
+        declare(
+            &inner,
+            1,
+            vec![offer(10, ItemKind::Variable, "rover1/vas/position", None)],
+        );
         declare(
             &inner,
             2,
@@ -321,7 +342,11 @@ mod tests {
         assert_eq!(offered(&inner, 3), ["probe/position"]);
         assert_eq!(inner.policy.counts(0), (0, 4));
         // The refused offers left no gap: a later declaration still applies.
-        declare(&inner, 2, vec![offer(13, ItemKind::Event, "evil/x/z", None)]);
+        declare(
+            &inner,
+            2,
+            vec![offer(13, ItemKind::Event, "evil/x/z", None)],
+        );
         assert_eq!(offered(&inner, 2), ["evil/x/y", "evil/x/z"]);
         inner.cancel.cancel();
     }
@@ -343,8 +368,18 @@ mod tests {
             &inner,
             2,
             vec![
-                offer(10, ItemKind::Variable, "rover1/vas/position", Some(from_air(0))),
-                offer(11, ItemKind::Variable, "rover1/vas/attitude", Some(from_air(1))),
+                offer(
+                    10,
+                    ItemKind::Variable,
+                    "rover1/vas/position",
+                    Some(from_air(0)),
+                ),
+                offer(
+                    11,
+                    ItemKind::Variable,
+                    "rover1/vas/attitude",
+                    Some(from_air(1)),
+                ),
             ],
         );
         assert!(offered(&inner, 2).is_empty());
@@ -353,8 +388,18 @@ mod tests {
             &inner,
             3,
             vec![
-                offer(10, ItemKind::Variable, "rover1/vas/position", Some(from_air(0))),
-                offer(11, ItemKind::Variable, "rover1/vas/attitude", Some(from_air(1))),
+                offer(
+                    10,
+                    ItemKind::Variable,
+                    "rover1/vas/position",
+                    Some(from_air(0)),
+                ),
+                offer(
+                    11,
+                    ItemKind::Variable,
+                    "rover1/vas/attitude",
+                    Some(from_air(1)),
+                ),
                 offer(12, ItemKind::Variable, "ground/fmo/x", Some(from_air(1))),
             ],
         );
@@ -378,7 +423,12 @@ mod tests {
             declare(
                 &g,
                 peer,
-                vec![offer(11, ItemKind::Variable, "rover1/vas/attitude", Some(from_air(1)))],
+                vec![offer(
+                    11,
+                    ItemKind::Variable,
+                    "rover1/vas/attitude",
+                    Some(from_air(1)),
+                )],
             );
         }
         assert!(offered(&g, 3).is_empty());
@@ -393,7 +443,10 @@ mod tests {
         inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
         // A forged Bye from another address: ignored, counted.
         inner.on_discovery(0, addr(9), Message::Bye { node_id: 1 });
-        assert!(inner.peers.contains_key(&1), "a forged Bye evicted the peer");
+        assert!(
+            inner.peers.contains_key(&1),
+            "a forged Bye evicted the peer"
+        );
         // Heard at a second address on the same link: not mapped, so its Bye is no better.
         inner.on_discovery(0, addr(9), hello(1, "air", "rover1", false));
         assert!(inner.addrs.get(&(0, addr(9))).is_none());
@@ -458,8 +511,26 @@ mod tests {
         }));
         inner.on_discovery(0, addr(1), hello(1, "fmo", "ground", false));
         inner.on_discovery(0, addr(2), hello(2, "fmo", "evil", false));
-        declare(&inner, 1, vec![offer(10, ItemKind::Variable, "ground/fmo/manual_control", None)]);
-        declare(&inner, 2, vec![offer(10, ItemKind::Variable, "evil/fmo/manual_control", None)]);
+        declare(
+            &inner,
+            1,
+            vec![offer(
+                10,
+                ItemKind::Variable,
+                "ground/fmo/manual_control",
+                None,
+            )],
+        );
+        declare(
+            &inner,
+            2,
+            vec![offer(
+                10,
+                ItemKind::Variable,
+                "evil/fmo/manual_control",
+                None,
+            )],
+        );
         let routed = |id: NodeId| {
             inner
                 .peers
@@ -470,19 +541,40 @@ mod tests {
         assert_eq!(routed(1), 1, "the allowed station is routed");
         assert_eq!(routed(2), 0, "the other one is not");
         inner.deliver_remote(2, 10, vec![1]);
-        assert_eq!(inner.policy.counts(0), (2, 0), "declaration and sample denied");
+        assert_eq!(
+            inner.policy.counts(0),
+            (2, 0),
+            "declaration and sample denied"
+        );
         inner.cancel.cancel();
     }
 
     #[test]
-    fn the_log_memory_is_bounded() {
+    fn the_log_is_bounded_in_lines_and_memory() {
         let p = Policy::new(None, 1);
         let t0 = Instant::now();
-        for i in 0..LOG_MEMORY as u64 {
+        for i in 0..LOG_LINES_PER_MINUTE as u64 {
             assert!(p.first_in_a_minute(i, "a", t0));
         }
-        assert!(!p.first_in_a_minute(u64::MAX, "a", t0), "full: not logged");
-        assert!(p.first_in_a_minute(u64::MAX, "a", t0 + LOG_EVERY * 2));
-        assert_eq!(lock(&p.logged).len(), 1, "the old minute was forgotten");
+        assert!(
+            !p.first_in_a_minute(u64::MAX, "a", t0),
+            "over the minute's budget"
+        );
+        let t1 = t0 + LOG_EVERY;
+        assert!(p.first_in_a_minute(u64::MAX, "a", t1), "a new minute");
+        // Memory: keys older than a minute are forgotten when it fills.
+        {
+            let mut m = lock(&p.logged);
+            for i in 0..LOG_MEMORY as u64 {
+                m.last.insert((i, "b".into()), t0);
+            }
+        }
+        let t2 = t1 + LOG_EVERY;
+        assert!(p.first_in_a_minute(7, "c", t2));
+        assert_eq!(
+            lock(&p.logged).last.len(),
+            1,
+            "the old minute was forgotten"
+        );
     }
 }

@@ -7,9 +7,9 @@ use std::time::Instant;
 
 use super::mailbox::{Delivery, RawSample, TypeMismatch};
 use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
-use crate::config::AccessKind;
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole, RemoteSubscriber};
 use crate::codec::varint;
+use crate::config::AccessKind;
 use crate::link::Outgoing;
 use crate::name;
 use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId};
@@ -22,8 +22,8 @@ const BATCH_ENTRIES: usize = 64;
 ///
 /// Compacted: a withdrawal removes the declaration it withdraws and is not stored itself, so
 /// the log holds what is declared now, whatever the churn before. A peer that knows a counter
-/// from before the last withdrawal gets the whole log instead of what follows it (a reset
-/// batch), as it could otherwise miss a withdrawal.
+/// from before the last withdrawal (but not 0: it then holds nothing) gets the whole log
+/// instead of what follows it (a reset batch), as it could otherwise miss a withdrawal.
 #[derive(Default)]
 pub(crate) struct DeclarationLog {
     pub counter: u32,
@@ -67,7 +67,8 @@ impl DeclarationLog {
 
     /// What a peer on `link` that knows our declarations up to `since` is sent.
     pub fn view(&self, link: usize, since: u32) -> LogView {
-        let reset = since < self.last_withdrawal || since > self.counter;
+        // A peer that knows nothing yet (0) holds nothing a withdrawal could leave behind.
+        let reset = since > 0 && (since < self.last_withdrawal || since > self.counter);
         let after = if reset { 0 } else { since };
         LogView {
             after,
@@ -562,7 +563,7 @@ impl NodeInner {
                     {
                         refusals.push((
                             p.link,
-                            format!("declaration {id}"),
+                            "declarations".to_owned(),
                             Refusal::TooManyDeclarations,
                         ));
                         continue;
@@ -579,9 +580,13 @@ impl NodeInner {
                             ty,
                             origin,
                         } => {
-                            if let Err(why) =
-                                self.offer_acceptable(&p, &name, origin.as_ref(), &namespaces, &direct)
-                            {
+                            if let Err(why) = self.offer_acceptable(
+                                &p,
+                                &name,
+                                origin.as_ref(),
+                                &namespaces,
+                                &direct,
+                            ) {
                                 refusals.push((p.link, name, why));
                                 continue;
                             }
@@ -911,9 +916,9 @@ mod tests {
         }
         log.push(svc(5000), None);
         assert_eq!((log.len(), log.counter), (1, 2001));
-        // A new peer: the whole (one-entry) log, as a reset.
+        // A new peer: the whole (one-entry) log; it holds nothing to reset.
         let v = log.view(0, 0);
-        assert!(v.reset);
+        assert!(!v.reset);
         assert_eq!((v.after, v.upto, v.entries.len()), (0, 2001, 1));
         // A peer up to date but for the last declaration: just that one.
         let v = log.view(0, 2000);
