@@ -500,3 +500,61 @@ fn publish_manual(net: &Net, namespace: &str) -> Proc {
         ],
     )
 }
+
+#[test]
+fn a_call_expired_while_waiting_never_runs_and_a_newer_one_supersedes_a_waiting_one() {
+    let net = Net::new("access-lanes");
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    rt.block_on(async {
+        let gs = Node::open(&cfg(&net, "gs", "ground")).await.expect("gs");
+        let air = Node::open(&cfg(&net, "air", "rover1")).await.expect("air");
+        let vas = air.service("vas").expect("vas");
+        let (tx, mut ran) = tokio::sync::mpsc::unbounded_channel::<u64>();
+        let _retask = vas
+            .provide_function("retask", move |x: u64| {
+                let tx = tx.clone();
+                async move {
+                    let _ = tx.send(x);
+                    tokio::time::sleep(Duration::from_millis(600)).await;
+                    Ok::<u64, String>(x)
+                }
+            })
+            .expect("provide");
+        let station = gs.service("fmo").expect("fmo");
+        let retask = station
+            .function::<u64, u64>("rover1/vas/retask")
+            .expect("function");
+        assert!(retask.wait_provider(T).await);
+        let long = Duration::from_secs(10);
+        // Each call is sent when first polled, and `join!` polls in order: they arrive in order.
+        // Call 2 waits behind call 1 and its caller gives up after 300 ms: it must never run.
+        let (one, two) = tokio::join!(
+            retask.call(&1, long),
+            retask.call(&2, Duration::from_millis(300))
+        );
+        assert_eq!(one, Ok(1));
+        assert!(
+            matches!(two, Err(marea::CallError::Timeout { .. })),
+            "{two:?}"
+        );
+        // Call 4 waits behind call 3; call 5 arrives and replaces it: the newest wins.
+        let (three, four, five) = tokio::join!(
+            retask.call(&3, long),
+            retask.call(&4, long),
+            retask.call(&5, long)
+        );
+        assert_eq!((three, five), (Ok(3), Ok(5)));
+        assert!(
+            matches!(four, Err(marea::CallError::Superseded { .. })),
+            "{four:?}"
+        );
+        let mut executed = Vec::new();
+        while let Ok(x) = ran.try_recv() {
+            executed.push(x);
+        }
+        assert_eq!(executed, [1, 3, 5]);
+        drop((retask, station, vas));
+        gs.shutdown().await;
+        air.shutdown().await;
+    });
+}

@@ -259,7 +259,7 @@ impl PendingCalls {
     }
 }
 
-/// Runs one call of a lane: the arguments and how long the handler may take.
+/// Runs one call of a lane, given the arguments and the caller's remaining time.
 type LaneRun =
     Arc<dyn Fn(Vec<u8>, Duration) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
 
@@ -487,8 +487,11 @@ impl NodeInner {
         let run: LaneRun = match &offer.role {
             OfferRole::Function { handler } => {
                 let handler = handler.clone();
-                Arc::new(move |args, limit| {
+                Arc::new(move |args, left: Duration| {
                     let call = handler(args);
+                    // The caller gives up when its time runs out; the handler is given a
+                    // little more, so the caller sees its own timeout, not a remote error.
+                    let limit = left * 3 / 2 + Duration::from_millis(100);
                     Box::pin(async move {
                         tokio::time::timeout(limit, call)
                             .await
@@ -501,7 +504,8 @@ impl NodeInner {
                 let inner = self.clone();
                 let name = offer.name.to_string();
                 let ty = offer.ty.clone();
-                Arc::new(move |args, limit| {
+                // Relayed with the caller's remaining time as it is now, never more.
+                Arc::new(move |args, left| {
                     let provider = Provider::Remote {
                         node: origin,
                         node_name: inner.peer_name(origin),
@@ -511,7 +515,7 @@ impl NodeInner {
                     let (inner, name) = (inner.clone(), name.clone());
                     Box::pin(async move {
                         inner
-                            .invoke(&name, provider, args, limit)
+                            .invoke(&name, provider, args, left)
                             .await
                             .map_err(|e| e.relayed(&inner.me.name))
                     })
@@ -586,12 +590,8 @@ impl NodeInner {
                 if now >= call.expires {
                     tracing::debug!(function = %name, call_id = call.call_id, "call expired before it ran: dropped unexecuted");
                 } else {
-                    // The caller gives up when its time runs out; the handler is given a
-                    // little more, so the caller sees its own timeout, not a remote error.
-                    let left = call.expires - now;
-                    let limit = left * 3 / 2 + Duration::from_millis(100);
                     let result = tokio::select! {
-                        r = run(call.args, limit) => r,
+                        r = run(call.args, call.expires - now) => r,
                         _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
                     };
                     inner.send_safe_to_node(
