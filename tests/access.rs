@@ -251,7 +251,22 @@ fn a_node_of_another_namespace_cannot_offer_rover1_names() {
             .map(|i| i.name.clone())
             .collect();
         assert!(evil_items.is_empty(), "listed: {evil_items:?}");
-        drop((sub, station, position, vas));
+        // The refusals show in the link's health, as any station following it sees them.
+        let health = station
+            .subscribe_variable::<marea::LinkHealth>("ground/link/*/stats")
+            .expect("subscribe to health");
+        let counted = tokio::time::timeout(T, async {
+            loop {
+                let h = health.recv().await.expect("health");
+                if h.value.rejected >= 2 {
+                    break h.value;
+                }
+            }
+        })
+        .await
+        .expect("the link health counted the refusals");
+        assert_eq!(counted.denied, 0);
+        drop((sub, health, station, position, vas));
         gs.shutdown().await;
         air.shutdown().await;
     });
