@@ -2,18 +2,19 @@
 //! side restarts, with observable progress.
 
 use std::collections::VecDeque;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio::sync::{oneshot, watch};
+use tokio_util::sync::{CancellationToken, DropGuard};
 
 use super::errors::{FileSendError, RecvError};
 use super::service::Declared;
 use crate::codec::encode_message;
 use crate::link::{LinkSendError, Outgoing, DEFAULT_FILE_CHUNK};
-use crate::node::files::{hash_file, Control, ReceivedFile, SinkMailbox};
+use crate::node::files::{hash_file, Control, FileSinkStats, ReceivedFile, SinkMailbox, SinkState};
 use crate::node::{LocalOffer, NodeInner};
 use crate::protocol::{FileVerdict, ItemKind, Message, NodeId};
 
@@ -25,7 +26,10 @@ const MAX_WINDOW_BYTES: usize = 16 << 20;
 pub struct FileSink {
     offer: Arc<LocalOffer>,
     mailbox: Arc<SinkMailbox>,
+    state: Arc<SinkState>,
     _declared: Declared,
+    /// Stops the periodic removal of stale partial files with the sink.
+    _sweeping: DropGuard,
 }
 
 impl FileSink {
@@ -33,17 +37,36 @@ impl FileSink {
         offer: Arc<LocalOffer>,
         mailbox: Arc<SinkMailbox>,
         declared: Declared,
+        state: Arc<SinkState>,
+        sweeping: CancellationToken,
     ) -> Self {
         FileSink {
             offer,
             mailbox,
+            state,
             _declared: declared,
+            _sweeping: sweeping.drop_guard(),
         }
     }
 
     /// Full name senders use.
     pub fn name(&self) -> &str {
         &self.offer.name
+    }
+
+    /// The directory files are stored in.
+    pub fn dir(&self) -> &Path {
+        &self.state.dir
+    }
+
+    /// What the sink stored and refused since it opened.
+    pub fn stats(&self) -> FileSinkStats {
+        self.state.stats()
+    }
+
+    /// Removes the stale partial files now (it also happens periodically); returns how many.
+    pub fn remove_stale_parts(&self) -> usize {
+        self.state.remove_stale_parts()
     }
 
     /// The next file stored (hash verified, renamed into place).
@@ -166,6 +189,25 @@ impl FileTransfer {
     /// [`FileSendError`] naming what failed.
     pub async fn wait(self) -> Result<FileReport, FileSendError> {
         self.result.await.unwrap_or(Err(FileSendError::Closed))
+    }
+}
+
+/// The error a sender reports for a receiver's verdict other than `Stored`.
+fn refusal(node: &str, verdict: FileVerdict) -> FileSendError {
+    let node = node.to_owned();
+    match verdict {
+        FileVerdict::TooLarge { size, max } => FileSendError::TooLarge { node, size, max },
+        FileVerdict::QuotaExceeded { needed, quota } => FileSendError::QuotaExceeded {
+            node,
+            needed,
+            quota,
+        },
+        FileVerdict::Busy { max } => FileSendError::Busy { node, max },
+        FileVerdict::Failed(reason) => FileSendError::Rejected { node, reason },
+        FileVerdict::Stored => FileSendError::Rejected {
+            node,
+            reason: "stored (unexpected here)".into(),
+        },
     }
 }
 
@@ -329,11 +371,8 @@ impl Sender {
                 let p = *self.progress.borrow();
                 return Attempt::Done(Ok(report(p.sent, size, p.attempts)));
             }
-            Ok(Some(Control::Done(FileVerdict::Failed(reason)))) => {
-                return Attempt::Done(Err(FileSendError::Rejected {
-                    node: peer_name.to_owned(),
-                    reason,
-                }))
+            Ok(Some(Control::Done(verdict))) => {
+                return Attempt::Done(Err(refusal(peer_name, verdict)))
             }
             Ok(Some(Control::PeerLost(why))) => return Attempt::Retry(why),
             Ok(None) => return Attempt::Done(Err(FileSendError::Closed)),
@@ -436,11 +475,8 @@ impl Sender {
                     let p = *self.progress.borrow();
                     return Attempt::Done(Ok(report(p.sent, offset, p.attempts)));
                 }
-                Heard::Receiver(Some(Control::Done(FileVerdict::Failed(reason)))) => {
-                    return Attempt::Done(Err(FileSendError::Rejected {
-                        node: peer_name.to_owned(),
-                        reason,
-                    }))
+                Heard::Receiver(Some(Control::Done(verdict))) => {
+                    return Attempt::Done(Err(refusal(peer_name, verdict)))
                 }
                 Heard::Receiver(Some(Control::PeerLost(why))) => return Attempt::Retry(why),
                 Heard::Receiver(None) => return Attempt::Done(Err(FileSendError::Closed)),
