@@ -122,6 +122,25 @@ pub struct Core<V> {
     /// The geometry of the plan version being flown (version 0 before any plan).
     geometry: PlanGeometry,
     out: Outputs,
+    /// Counts the inputs that may have changed what [`Core::snapshot`] returns.
+    changes: u64,
+}
+
+/// What the core keeps across a restart of the service: the executive (plan, cursor,
+/// variables, version, sequence numbers) and what the VAS was handed, so a restarted FPMa goes
+/// on where it was instead of flying the plan again from its start.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct Persisted {
+    /// Where the plan came from.
+    pub source: String,
+    /// The executive.
+    pub exec: Executive,
+    /// Waypoints handed to the VAS and not reached yet, with their plan version.
+    pub pending: Vec<(u64, usal_types::Waypoint)>,
+    /// Highest sequence number ever handed to the VAS.
+    pub max_pushed: Option<u64>,
+    /// The last waypoint reached.
+    pub last_reached: Option<u64>,
 }
 
 fn to_vas(w: &Waypoint) -> usal_types::Waypoint {
@@ -160,7 +179,50 @@ impl<V: VasPort> Core<V> {
             source: String::new(),
             geometry: PlanGeometry::default(),
             out: Outputs::default(),
+            changes: 0,
         }
+    }
+
+    /// Grows whenever something [`Core::snapshot`] returns may have changed.
+    pub fn changes(&self) -> u64 {
+        self.changes
+    }
+
+    /// The state to persist; `None` before any plan.
+    pub fn snapshot(&self) -> Option<Persisted> {
+        Some(Persisted {
+            source: self.source.clone(),
+            exec: self.exec.clone()?,
+            pending: self.pending.iter().cloned().collect(),
+            max_pushed: self.max_pushed,
+            last_reached: self.last_reached,
+        })
+    }
+
+    /// Goes on from a persisted state (after a restart): the plan and its position are taken
+    /// as they were; the VAS queue, which may have moved on meanwhile, is cleared and refilled
+    /// ("a new queue follows"), first accounting for a waypoint it reports reached. The
+    /// vehicle's flight state is left as it is: resuming never asks for WAYPOINT_NAVIGATION
+    /// by itself (the pilot in command decides), whatever `start_navigation` says.
+    pub async fn resume(&mut self, p: Persisted) {
+        let st = p.exec.state();
+        tracing::info!(
+            plan = %st.plan,
+            version = st.version,
+            next_seq = st.next_seq,
+            last_reached = ?p.last_reached,
+            "resuming the persisted plan where it was"
+        );
+        self.exec = Some(p.exec);
+        self.source = p.source;
+        self.pending = p.pending.into();
+        self.max_pushed = p.max_pushed;
+        self.last_reached = p.last_reached;
+        self.started = Some(Instant::now());
+        self.engage = false;
+        self.refused = None;
+        self.must_flush = true;
+        self.after_change().await;
     }
 
     /// The VAS port (for tests).
@@ -366,6 +428,7 @@ impl<V: VasPort> Core<V> {
     }
 
     async fn after_change(&mut self) {
+        self.changes += 1;
         self.sync().await;
         if let Some(ex) = &mut self.exec {
             let events = ex.take_events();
@@ -440,6 +503,7 @@ impl<V: VasPort> Core<V> {
         if self.exec.is_none() {
             return;
         }
+        self.changes += 1;
         self.dirty = false;
         let (version, desired) = self.desired();
         let extends = self.pending.len() <= desired.len()
