@@ -756,6 +756,96 @@ mod tests {
             .collect()
     }
 
+    /// A core on `vas` (the VAS a previous core fed: it went on without it).
+    fn core_on(vas: FakeVas) -> Core<FakeVas> {
+        Core::new(
+            CoreConfig {
+                vehicle: VehicleParams::rover(),
+                lookahead: 4,
+                start_navigation: true,
+            },
+            vas,
+        )
+    }
+
+    /// The state as it comes back from disk.
+    fn saved(c: &Core<FakeVas>) -> Persisted {
+        let json = serde_json::to_string(&c.snapshot().expect("a plan")).unwrap();
+        serde_json::from_str(&json).unwrap()
+    }
+
+    #[tokio::test]
+    async fn a_resumed_core_goes_on_where_it_was_without_asking_to_navigate() {
+        let mut c = core_on(FakeVas::default());
+        assert!(c.snapshot().is_none(), "nothing to persist before a plan");
+        c.load(PLAN, "plan").await.unwrap();
+        let mut flown = fly(&mut c, 3).await;
+        let state = saved(&c);
+        // While the FPMa is down the VAS goes on: one more waypoint reached unheard.
+        flown.extend(c.vas().reach());
+        let vas = std::mem::take(&mut c.vas);
+        vas.calls();
+        let mut r = core_on(vas);
+        r.resume(state).await;
+        let calls = r.vas().calls();
+        assert_eq!(
+            calls.first().map(String::as_str),
+            Some("clear"),
+            "{calls:?}"
+        );
+        assert!(
+            !calls.iter().any(|c| c.starts_with("state")),
+            "resuming asked for a flight state: {calls:?}"
+        );
+        flown.extend(fly(&mut r, 100).await);
+        assert!(r.executive().unwrap().state().completed);
+        // Each waypoint of the plan once, in order.
+        let got: Vec<(f64, f64)> = flown.iter().map(|w| (w.lat, w.lon)).collect();
+        let want: Vec<(f64, f64)> = nominal().iter().map(|w| (w.lat, w.lon)).collect();
+        assert_eq!(got, want);
+    }
+
+    #[tokio::test]
+    async fn the_persisted_state_keeps_in_flight_changes() {
+        let mut c = core_on(FakeVas::default());
+        c.load(PLAN, "plan").await.unwrap();
+        fly(&mut c, 2).await;
+        c.command(Command::SkipLeg).await.unwrap();
+        c.command(Command::ModifyLeg(
+            "area".into(),
+            vec![("spacing".into(), "10".into())],
+        ))
+        .await
+        .unwrap();
+        let state = saved(&c);
+        let before = c.executive().unwrap();
+        assert_eq!(state.exec.next_waypoints(50), before.next_waypoints(50));
+        assert_eq!(state.exec.state(), before.state());
+        assert_eq!(state.exec.version(), 2, "modify_leg made a version 2");
+    }
+
+    #[tokio::test]
+    async fn resuming_leaves_a_parked_vehicle_parked() {
+        let mut c = core_on(FakeVas::default());
+        c.load(PLAN, "plan").await.unwrap();
+        fly(&mut c, 2).await;
+        let state = saved(&c);
+        // The operator parked the vehicle while the FPMa was down.
+        let vas = std::mem::take(&mut c.vas);
+        vas.st().running = false;
+        vas.calls();
+        let mut r = core_on(vas);
+        r.resume(state).await;
+        r.on_flight_state(FlightState::Parking).await;
+        let calls = r.vas().calls();
+        assert!(
+            !calls.iter().any(|c| c.starts_with("state")),
+            "resuming asked for a flight state: {calls:?}"
+        );
+        assert_eq!(r.executive().unwrap().state().next_seq, 2);
+        assert!(!r.vas().seqs().is_empty(), "the queue was refilled");
+    }
+
     #[tokio::test]
     async fn a_loaded_plan_fills_the_queue_starts_navigation_and_flies_to_the_end() {
         let mut c = core(4);
