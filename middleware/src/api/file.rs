@@ -498,9 +498,10 @@ mod tests {
     use std::os::unix::fs::PermissionsExt;
 
     use super::*;
+    use crate::api::Node;
+    use crate::config::NetworkConfig;
     use crate::config::{EthernetConfig, LinkConfig};
     use crate::node::files::{part_path, FileSinkOptions, PARTIAL_DIR};
-    use crate::{NetworkConfig, Node};
 
     const T: Duration = Duration::from_secs(20);
 
