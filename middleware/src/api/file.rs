@@ -848,6 +848,15 @@ mod tests {
             .unwrap()
             .set_modified(std::time::SystemTime::now() - Duration::from_secs(7_200))
             .unwrap();
+        // A partial file an earlier version left beside the stored files.
+        let legacy = dir.join(".plan.xml.0000000000000003.part");
+        std::fs::write(&legacy, b"legacy").unwrap();
+        std::fs::File::options()
+            .write(true)
+            .open(&legacy)
+            .unwrap()
+            .set_modified(std::time::SystemTime::now() - Duration::from_secs(7_200))
+            .unwrap();
         let svc = rx.service("fpma").unwrap();
         let sink = svc
             .file_sink_with(
@@ -859,8 +868,12 @@ mod tests {
             )
             .unwrap();
         assert!(!old.exists(), "stale part kept at open");
+        assert!(
+            !legacy.exists(),
+            "stale part of an earlier version kept at open"
+        );
         assert!(fresh.exists(), "a part within the age was removed");
-        assert_eq!(sink.stats().stale_parts_removed, 1);
+        assert_eq!(sink.stats().stale_parts_removed, 2);
         drop(sink);
         // A short age: the periodic sweep removes a part once it gets that old.
         let sink = svc

@@ -310,12 +310,25 @@ impl SinkState {
     /// private directory that is not a regular file), except those of transfers in progress.
     /// Returns how many were removed.
     pub fn remove_stale_parts(&self) -> usize {
-        let Ok(entries) = std::fs::read_dir(&self.partial) else {
-            return 0;
-        };
+        // Also the partial files earlier versions kept beside the stored ones
+        // (`<dir>/.<name>.<transfer>.part`): never resumed now, they only take room.
+        let legacy = std::fs::read_dir(&self.dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter(|e| {
+                let n = e.file_name();
+                let n = n.to_string_lossy();
+                n.starts_with('.') && n.ends_with(".part")
+            });
+        let entries = std::fs::read_dir(&self.partial)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .chain(legacy);
         let now = SystemTime::now();
         let mut removed = 0;
-        for e in entries.flatten() {
+        for e in entries {
             let path = e.path();
             if lock(&self.active).values().any(|a| a.part == path) {
                 continue;
