@@ -15,7 +15,7 @@ use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use dashmap::DashMap;
 use tokio::io::AsyncWriteExt;
@@ -209,7 +209,13 @@ pub(crate) struct SinkState {
     options: FileSinkOptions,
     active: Mutex<HashMap<u64, Active>>,
     counters: SinkCounters,
+    /// When each sender's refusals of each kind were last logged.
+    logged: Mutex<HashMap<(NodeId, std::mem::Discriminant<FileVerdict>), Instant>>,
 }
+
+/// Least time between two log lines for the same sender's refusals of the same kind: a
+/// sender retrying in a loop is counted every time but logged once a minute.
+const LOG_EVERY: Duration = Duration::from_secs(60);
 
 /// The user's state directory for USAL: `$XDG_STATE_HOME/usal` when that is an absolute path,
 /// else `$HOME/.local/state/usal`; `None` when neither is set.
@@ -282,6 +288,7 @@ impl SinkState {
             options,
             active: Mutex::default(),
             counters: SinkCounters::default(),
+            logged: Mutex::default(),
         };
         state.remove_stale_parts();
         Ok(state)
@@ -392,6 +399,20 @@ impl SinkState {
             .filter_map(|e| regular(&e))
             .sum();
         stored.saturating_add(partial).saturating_add(reserved)
+    }
+
+    /// Whether a refusal of `verdict`'s kind from `node` should be logged now.
+    fn should_log(&self, node: NodeId, verdict: &FileVerdict) -> bool {
+        let now = Instant::now();
+        let mut logged = lock(&self.logged);
+        // Bounded by the number of senders seen within a minute.
+        logged.retain(|_, at| now.duration_since(*at) < LOG_EVERY);
+        let key = (node, std::mem::discriminant(verdict));
+        if logged.contains_key(&key) {
+            return false;
+        }
+        logged.insert(key, now);
+        true
     }
 
     fn count(&self, verdict: &FileVerdict) {
@@ -513,7 +534,9 @@ impl NodeInner {
             .get(&node)
             .map(|p| p.name.to_string())
             .unwrap_or_default();
-        tracing::warn!(sink = %sink.name, %from, %verdict, "incoming file refused");
+        if sink.should_log(node, &verdict) {
+            tracing::warn!(sink = %sink.name, %from, %verdict, "incoming file refused (logged once a minute per sender and kind; all counted)");
+        }
         sink.count(&verdict);
         self.reply_file(node, transfer, verdict);
     }
@@ -816,6 +839,26 @@ mod tests {
         let (_, offset) = open_part(&part, 2).unwrap();
         assert_eq!(offset, 0);
         assert_eq!(std::fs::metadata(&part).unwrap().len(), 0);
+    }
+
+    #[test]
+    fn refusals_are_logged_once_a_minute_per_sender_and_kind() {
+        let t = tempfile::tempdir().unwrap();
+        let sink = SinkState::open(
+            "ns/svc/files".into(),
+            FileSinkOptions {
+                dir: Some(t.path().to_owned()),
+                ..FileSinkOptions::default()
+            },
+        )
+        .unwrap();
+        let busy = FileVerdict::Busy { max: 1 };
+        let big = FileVerdict::TooLarge { size: 2, max: 1 };
+        assert!(sink.should_log(7, &busy));
+        assert!(!sink.should_log(7, &busy), "logged twice within a minute");
+        assert!(!sink.should_log(7, &FileVerdict::Busy { max: 9 }));
+        assert!(sink.should_log(7, &big), "another kind is logged");
+        assert!(sink.should_log(8, &busy), "another sender is logged");
     }
 
     #[test]
