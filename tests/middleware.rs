@@ -348,11 +348,19 @@ fn twenty_mb_file_arrives_identical_and_resumes_after_receiver_restart() {
     assert_eq!(done["attempts"], 2);
     let out = std::fs::read(inbox.join("payload.bin")).unwrap();
     assert!(out == data, "file differs");
-    // No temp file left behind.
-    let leftovers: Vec<_> = std::fs::read_dir(&inbox)
+    // No temp file left behind: the inbox holds the file and the sink's private directory of
+    // partial files, which is empty.
+    let mut leftovers: Vec<_> = std::fs::read_dir(&inbox)
         .unwrap()
         .flatten()
         .map(|e| e.file_name())
         .collect();
-    assert_eq!(leftovers.len(), 1, "{leftovers:?}");
+    leftovers.sort();
+    assert_eq!(leftovers, [".partial", "payload.bin"], "{leftovers:?}");
+    let parts: Vec<_> = std::fs::read_dir(inbox.join(".partial"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name())
+        .collect();
+    assert!(parts.is_empty(), "{parts:?}");
 }

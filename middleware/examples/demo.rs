@@ -77,8 +77,9 @@ async fn air() -> Result<(), Box<dyn std::error::Error>> {
             Err(format!("no transition to {to} from PARKING"))
         }
     })?;
-    let dir = std::env::temp_dir().join(format!("marea-demo-{}", std::process::id()));
-    let plans = vas.file_sink("plans", &dir)?;
+    // A private directory of a random name (0700), not a guessable path in /tmp.
+    let dir = tempfile::tempdir()?;
+    let plans = vas.file_sink("plans", dir.path())?;
     println!("[air]    publishing rover1/vas/position, raising rover1/vas/alarm, providing rover1/vas/change_state, accepting files on rover1/vas/plans");
     position
         .wait_remote_subscribers(1, Duration::from_secs(10))
@@ -107,7 +108,7 @@ async fn air() -> Result<(), Box<dyn std::error::Error>> {
             );
         }
     }
-    let _ = std::fs::remove_dir_all(&dir);
+    drop(dir);
     node.shutdown().await;
     Ok(())
 }

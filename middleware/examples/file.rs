@@ -10,7 +10,11 @@ use marea::{NetworkConfig, Node, SendFileOptions};
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let vehicle = Node::open(&NetworkConfig::ethernet_loopback("vehicle")).await?;
     let station = Node::open(&NetworkConfig::ethernet_loopback("station")).await?;
-    let dir = std::env::temp_dir().join(format!("marea-file-example-{}", std::process::id()));
+    // A private directory of a random name (0700), not a guessable path in /tmp. Without a
+    // directory, `file_sink_with(.., FileSinkOptions::default())` stores under the user's
+    // state directory.
+    let tmp = tempfile::tempdir()?;
+    let dir = tmp.path();
 
     let fpma = vehicle.service("fpma")?;
     let plans = fpma.file_sink("plans", dir.join("inbox"))?;
@@ -48,6 +52,6 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     drop((plans, fpma, fpmo));
     vehicle.shutdown().await;
     station.shutdown().await;
-    std::fs::remove_dir_all(&dir)?;
+    drop(tmp);
     Ok(())
 }

@@ -57,7 +57,9 @@
 //! Files (chunked, verified, atomic, resumable, with progress):
 //! ```no_run
 //! # async fn f(vas: marea::Service) -> Result<(), Box<dyn std::error::Error>> {
-//! let sink = vas.file_sink("plans", "/tmp/plans")?;
+//! // Stored under the user's state directory (`$XDG_STATE_HOME/usal/sinks/<name>`), with the
+//! // default caps; `file_sink("plans", dir)` names the directory instead.
+//! let sink = vas.file_sink_with("plans", marea::FileSinkOptions::default())?;
 //! let report = vas
 //!     .send_file("plan.xml", "vas/plans", marea::SendFileOptions::default())
 //!     .wait()

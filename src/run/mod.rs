@@ -469,6 +469,9 @@ async fn start_services(
                     }
                     let plans = scratch.join(&node.name).join("plans");
                     a.extend(["--plans-dir".into(), plans.display().to_string()]);
+                    // Per run: a supervised restart resumes the plan, a new run starts clean.
+                    let state = scratch.join(&node.name).join("fpma-state");
+                    a.extend(["--state-dir".into(), state.display().to_string()]);
                     common(&mut a);
                 }
                 // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.

@@ -133,4 +133,33 @@ pub enum FileSendError {
     /// The node shut down.
     #[error("node is shutting down")]
     Closed,
+    /// The receiver refused the file as larger than its sink accepts (announced, or sent
+    /// beyond the announcement).
+    #[error("node '{node}' refused the file as too large: {size} bytes, at most {max}")]
+    TooLarge {
+        /// Receiving node.
+        node: String,
+        /// Bytes announced or reached.
+        size: u64,
+        /// The sink's limit.
+        max: u64,
+    },
+    /// The receiver's sink has no room left under its quota.
+    #[error("node '{node}' refused the file: the sink would hold {needed} bytes, quota {quota}")]
+    QuotaExceeded {
+        /// Receiving node.
+        node: String,
+        /// Bytes the sink would hold with this file.
+        needed: u64,
+        /// The sink's quota.
+        quota: u64,
+    },
+    /// The receiver's sink already receives its maximum of files at once; try again later.
+    #[error("node '{node}' is busy: its sink receives {max} files at once already")]
+    Busy {
+        /// Receiving node.
+        node: String,
+        /// Concurrent transfers the sink allows.
+        max: u32,
+    },
 }

@@ -22,7 +22,7 @@ pub use subscription::{EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 
 pub use crate::node::call::CallError;
-pub use crate::node::files::ReceivedFile;
+pub use crate::node::files::{state_dir, FileSinkOptions, FileSinkStats, ReceivedFile};
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;
 

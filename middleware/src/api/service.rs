@@ -16,7 +16,7 @@ use super::subscription::{EventSubscriber, VariableSubscriber};
 use super::variable::Variable;
 use super::Payload;
 use crate::name;
-use crate::node::files::SinkMailbox;
+use crate::node::files::{FileSinkOptions, SinkMailbox, SinkState};
 use crate::node::mailbox::Mailbox;
 use crate::node::{BoxFuture, LocalInterest, LocalOffer, NodeInner, OfferRole};
 use crate::protocol::{Declaration, ItemKind};
@@ -347,27 +347,67 @@ impl Service {
         ))
     }
 
-    /// Accepts files sent to `item` into directory `dir` (created if missing).
+    /// Accepts files sent to `item` into directory `dir` (created if missing), with the default
+    /// limits of [`FileSinkOptions`].
     ///
     /// # Errors
     /// [`DeclareError`] for an invalid name, an unusable directory or a stopping node.
     pub fn file_sink(&self, item: &str, dir: impl Into<PathBuf>) -> Result<FileSink, DeclareError> {
-        let dir: PathBuf = dir.into();
-        std::fs::create_dir_all(&dir).map_err(|e| DeclareError::SinkDir {
-            dir: dir.display().to_string(),
-            reason: e.to_string(),
-        })?;
+        self.file_sink_with(
+            item,
+            FileSinkOptions {
+                dir: Some(dir.into()),
+                ..FileSinkOptions::default()
+            },
+        )
+    }
+
+    /// Accepts files sent to `item` with the given directory and limits (the directory, when
+    /// not given, is under the user's state directory: [`crate::state_dir`]). Stale partial
+    /// files are removed now and then periodically while the sink lives.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name, an unusable directory (or one whose private
+    /// subdirectory of partial files belongs to someone else) or a stopping node.
+    pub fn file_sink_with(
+        &self,
+        item: &str,
+        options: FileSinkOptions,
+    ) -> Result<FileSink, DeclareError> {
+        name::validate_name(item)?;
+        let state =
+            SinkState::open(self.full_name(item).into(), options).map_err(|(dir, reason)| {
+                DeclareError::SinkDir {
+                    dir: dir.display().to_string(),
+                    reason,
+                }
+            })?;
+        let state = Arc::new(state);
         let mailbox = Arc::new(SinkMailbox::default());
         let (offer, declared) = self.offer(
             item,
             ItemKind::File,
             TypeInfo::of::<FileSink>(),
             OfferRole::File {
-                dir,
+                state: state.clone(),
                 mailbox: mailbox.clone(),
             },
         )?;
-        Ok(FileSink::new(offer, mailbox, declared))
+        let sweeping = self.inner.node.cancel.child_token();
+        let stop = sweeping.clone();
+        let sweeper = state.clone();
+        self.inner.node.tasks.spawn(async move {
+            let period = sweeper.sweep_period();
+            loop {
+                tokio::select! {
+                    _ = stop.cancelled() => break,
+                    _ = tokio::time::sleep(period) => {}
+                }
+                let s = sweeper.clone();
+                let _ = tokio::task::spawn_blocking(move || s.remove_stale_parts()).await;
+            }
+        });
+        Ok(FileSink::new(offer, mailbox, declared, state, sweeping))
     }
 
     /// Sends a file to the sink named `to` (a full name), in the background. The returned handle

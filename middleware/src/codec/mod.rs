@@ -238,12 +238,39 @@ mod tests {
                 },
                 vec![12, 1, 1, 1, b'h'],
             ),
+            // tag 12, transfer 1, verdict TooLarge (2): size 5, max 3
+            (
+                Message::FileDone {
+                    transfer: 1,
+                    verdict: FileVerdict::TooLarge { size: 5, max: 3 },
+                },
+                vec![12, 1, 2, 5, 3],
+            ),
+            // verdict QuotaExceeded (3): needed 300 (varint 0xac 0x02), quota 3
+            (
+                Message::FileDone {
+                    transfer: 1,
+                    verdict: FileVerdict::QuotaExceeded {
+                        needed: 300,
+                        quota: 3,
+                    },
+                },
+                vec![12, 1, 3, 0xac, 0x02, 3],
+            ),
+            // verdict Busy (4): max 4
+            (
+                Message::FileDone {
+                    transfer: 1,
+                    verdict: FileVerdict::Busy { max: 4 },
+                },
+                vec![12, 1, 4, 4],
+            ),
             (
                 Message::FileDone {
                     transfer: 1,
                     verdict: FileVerdict::Denied("d".into()),
                 },
-                vec![12, 1, 2, 1, b'd'],
+                vec![12, 1, 5, 1, b'd'],
             ),
             (Message::FileCancel { transfer: 3 }, vec![13, 3]),
             (Message::Bye { node_id: 4 }, vec![14, 4]),

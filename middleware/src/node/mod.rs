@@ -43,9 +43,9 @@ pub(crate) enum OfferRole {
     Event,
     /// A function provider.
     Function { handler: call::RawHandler },
-    /// A file sink writing into `dir`.
+    /// A file sink: its directory, limits and counters, and the files stored.
     File {
-        dir: std::path::PathBuf,
+        state: Arc<files::SinkState>,
         mailbox: Arc<files::SinkMailbox>,
     },
     /// A gateway's stand-in for a function or file sink of a node behind another link: calls

@@ -154,9 +154,51 @@ pub enum FileVerdict {
     Stored,
     /// Refused or failed, with the reason.
     Failed(String),
+    /// Refused: the announced size (at the offer), or the bytes actually sent (during the
+    /// transfer), exceed what the sink accepts. `size` is what was announced or reached.
+    TooLarge {
+        /// Bytes announced, or reached when the sender went past its announcement.
+        size: u64,
+        /// The most this transfer may hold.
+        max: u64,
+    },
+    /// Refused: storing the file would take the sink's directory past its quota of bytes.
+    QuotaExceeded {
+        /// Bytes the sink would hold with this file (stored files, partial files, transfers in
+        /// progress).
+        needed: u64,
+        /// The sink's quota.
+        quota: u64,
+    },
+    /// Refused for now: the sink already receives its maximum number of files at once.
+    Busy {
+        /// Concurrent incoming transfers the sink allows.
+        max: u32,
+    },
     /// The receiver's access rules (`<access>` in its network.xml) do not let the sender send
     /// to this sink; the reason names the sink and the sender.
     Denied(String),
+}
+
+impl std::fmt::Display for FileVerdict {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FileVerdict::Stored => write!(f, "stored"),
+            FileVerdict::Failed(reason) => write!(f, "{reason}"),
+            FileVerdict::TooLarge { size, max } => {
+                write!(f, "too large: {size} bytes, the sink accepts at most {max}")
+            }
+            FileVerdict::QuotaExceeded { needed, quota } => write!(
+                f,
+                "quota exceeded: the sink would hold {needed} bytes, its quota is {quota}"
+            ),
+            FileVerdict::Denied(reason) => write!(f, "denied: {reason}"),
+            FileVerdict::Busy { max } => write!(
+                f,
+                "busy: the sink already receives {max} files at once; try again later"
+            ),
+        }
+    }
 }
 
 /// Every message exchanged between nodes.

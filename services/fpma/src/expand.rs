@@ -70,7 +70,7 @@ impl Waypoint {
 }
 
 /// Where the vehicle is (or will be) when a leg starts, and what it inherits.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Origin {
     /// Position.
     pub pos: GeoPoint,

@@ -33,7 +33,7 @@ impl GeoPoint {
 }
 
 /// The answer to the inverse problem.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Inverse {
     /// Ellipsoidal distance, metres.
     pub distance: f64,
@@ -209,7 +209,7 @@ pub fn distance(p1: GeoPoint, p2: GeoPoint) -> f64 {
 }
 
 /// A point in a local frame: metres east and north of the frame's origin.
-#[derive(Clone, Copy, Debug, PartialEq, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct Xy {
     /// Metres east.
     pub e: f64,
@@ -260,7 +260,7 @@ impl Xy {
 /// A local east/north frame around an origin: the azimuthal equidistant projection built on the
 /// geodesic, so distances and bearings from the origin are exact and the distortion within the few
 /// kilometres of a pattern is negligible.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LocalFrame {
     /// The frame's origin.
     pub origin: GeoPoint,

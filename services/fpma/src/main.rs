@@ -73,6 +73,9 @@ struct RunArgs {
     /// A plan to load at start.
     #[arg(long)]
     plan: Option<PathBuf>,
+    /// Where the plan and progress are persisted (default: the user's state directory).
+    #[arg(long)]
+    state_dir: Option<PathBuf>,
 }
 
 /// Overrides of the vehicle's parameters (config `minWaypointDistance`, `defaultSpeed`,
@@ -176,8 +179,11 @@ fn run_service(args: RunArgs) -> anyhow::Result<()> {
     if let Some(v) = args.start_navigation {
         cfg.start_navigation = v;
     }
-    if let Some(v) = args.plans_dir {
-        cfg.plans_dir = v;
+    if args.plans_dir.is_some() {
+        cfg.plans_dir = args.plans_dir;
+    }
+    if args.state_dir.is_some() {
+        cfg.state_dir = args.state_dir;
     }
     if args.plan.is_some() {
         cfg.plan = args.plan;

@@ -144,6 +144,7 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
         Stdio::null(),
     );
     let plans = dir.path().join("plans");
+    let state = dir.path().join("state");
     let fpma = spawn(
         Path::new(env!("CARGO_BIN_EXE_fpma")),
         &[
@@ -158,6 +159,9 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
             "8",
             "--plans-dir",
             plans.to_str().unwrap(),
+            // Not the user's state directory: this test must start without a plan.
+            "--state-dir",
+            state.to_str().unwrap(),
         ],
         Stdio::null(),
     );

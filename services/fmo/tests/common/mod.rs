@@ -329,7 +329,8 @@ pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
 }
 
 /// The arguments of `fpma run` for the rover in `domain`, namespace `rover1`, taking plans
-/// into `plans`.
+/// into `plans` and persisting its state in `plans/fpma-state` (not the user's state
+/// directory: a test must not resume another run's plan).
 pub fn fpma_rover1_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
     [
         "run",
@@ -344,6 +345,8 @@ pub fn fpma_rover1_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
     .iter()
     .map(|s| s.to_string())
     .chain([plans.display().to_string()])
+    .chain(["--state-dir".to_string()])
+    .chain([plans.join("fpma-state").display().to_string()])
     .collect()
 }
 

@@ -12,13 +12,13 @@ use crate::geo;
 use crate::model::*;
 use std::sync::Arc;
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub(super) struct Frame {
     pub(super) index: usize,
     pub(super) kind: FrameKind,
 }
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub(super) enum FrameKind {
     Stage(Stage),
     Loop {
@@ -29,7 +29,7 @@ pub(super) enum FrameKind {
     Branch(usize),
 }
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub(super) struct HoldState {
     pub(super) hold: Hold,
     pub(super) entered: bool,
@@ -38,7 +38,7 @@ pub(super) struct HoldState {
     pub(super) waits: bool,
 }
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub(super) struct Active {
     pub(super) id: String,
     pub(super) wps: Vec<Waypoint>,

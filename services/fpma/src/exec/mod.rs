@@ -39,8 +39,9 @@ use std::sync::Arc;
 use types::*;
 
 /// The run-time executive. See the module docs.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Executive {
+    #[serde(with = "shared_plan")]
     plan: Arc<FlightPlan>,
     vehicle: VehicleParams,
     version: u64,
@@ -61,6 +62,20 @@ pub struct Executive {
     flown: f64,
     rule_state: Vec<bool>,
     events: Vec<Event>,
+}
+
+/// The plan is shared with look-ahead copies; persisted (see `service::persist`) as itself.
+mod shared_plan {
+    use super::{Arc, FlightPlan};
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(p: &Arc<FlightPlan>, s: S) -> Result<S::Ok, S::Error> {
+        p.as_ref().serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Arc<FlightPlan>, D::Error> {
+        FlightPlan::deserialize(d).map(Arc::new)
+    }
 }
 
 impl Executive {

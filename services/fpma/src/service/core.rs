@@ -122,6 +122,25 @@ pub struct Core<V> {
     /// The geometry of the plan version being flown (version 0 before any plan).
     geometry: PlanGeometry,
     out: Outputs,
+    /// Counts the inputs that may have changed what [`Core::snapshot`] returns.
+    changes: u64,
+}
+
+/// What the core keeps across a restart of the service: the executive (plan, cursor,
+/// variables, version, sequence numbers) and what the VAS was handed, so a restarted FPMa goes
+/// on where it was instead of flying the plan again from its start.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct Persisted {
+    /// Where the plan came from.
+    pub source: String,
+    /// The executive.
+    pub exec: Executive,
+    /// Waypoints handed to the VAS and not reached yet, with their plan version.
+    pub pending: Vec<(u64, usal_types::Waypoint)>,
+    /// Highest sequence number ever handed to the VAS.
+    pub max_pushed: Option<u64>,
+    /// The last waypoint reached.
+    pub last_reached: Option<u64>,
 }
 
 fn to_vas(w: &Waypoint) -> usal_types::Waypoint {
@@ -160,7 +179,50 @@ impl<V: VasPort> Core<V> {
             source: String::new(),
             geometry: PlanGeometry::default(),
             out: Outputs::default(),
+            changes: 0,
         }
+    }
+
+    /// Grows whenever something [`Core::snapshot`] returns may have changed.
+    pub fn changes(&self) -> u64 {
+        self.changes
+    }
+
+    /// The state to persist; `None` before any plan.
+    pub fn snapshot(&self) -> Option<Persisted> {
+        Some(Persisted {
+            source: self.source.clone(),
+            exec: self.exec.clone()?,
+            pending: self.pending.iter().cloned().collect(),
+            max_pushed: self.max_pushed,
+            last_reached: self.last_reached,
+        })
+    }
+
+    /// Goes on from a persisted state (after a restart): the plan and its position are taken
+    /// as they were; the VAS queue, which may have moved on meanwhile, is cleared and refilled
+    /// ("a new queue follows"), first accounting for a waypoint it reports reached. The
+    /// vehicle's flight state is left as it is: resuming never asks for WAYPOINT_NAVIGATION
+    /// by itself (the pilot in command decides), whatever `start_navigation` says.
+    pub async fn resume(&mut self, p: Persisted) {
+        let st = p.exec.state();
+        tracing::info!(
+            plan = %st.plan,
+            version = st.version,
+            next_seq = st.next_seq,
+            last_reached = ?p.last_reached,
+            "resuming the persisted plan where it was"
+        );
+        self.exec = Some(p.exec);
+        self.source = p.source;
+        self.pending = p.pending.into();
+        self.max_pushed = p.max_pushed;
+        self.last_reached = p.last_reached;
+        self.started = Some(Instant::now());
+        self.engage = false;
+        self.refused = None;
+        self.must_flush = true;
+        self.after_change().await;
     }
 
     /// The VAS port (for tests).
@@ -366,6 +428,7 @@ impl<V: VasPort> Core<V> {
     }
 
     async fn after_change(&mut self) {
+        self.changes += 1;
         self.sync().await;
         if let Some(ex) = &mut self.exec {
             let events = ex.take_events();
@@ -440,6 +503,7 @@ impl<V: VasPort> Core<V> {
         if self.exec.is_none() {
             return;
         }
+        self.changes += 1;
         self.dirty = false;
         let (version, desired) = self.desired();
         let extends = self.pending.len() <= desired.len()
@@ -690,6 +754,96 @@ mod tests {
             .into_iter()
             .map(|e| e.kind)
             .collect()
+    }
+
+    /// A core on `vas` (the VAS a previous core fed: it went on without it).
+    fn core_on(vas: FakeVas) -> Core<FakeVas> {
+        Core::new(
+            CoreConfig {
+                vehicle: VehicleParams::rover(),
+                lookahead: 4,
+                start_navigation: true,
+            },
+            vas,
+        )
+    }
+
+    /// The state as it comes back from disk.
+    fn saved(c: &Core<FakeVas>) -> Persisted {
+        let json = serde_json::to_string(&c.snapshot().expect("a plan")).unwrap();
+        serde_json::from_str(&json).unwrap()
+    }
+
+    #[tokio::test]
+    async fn a_resumed_core_goes_on_where_it_was_without_asking_to_navigate() {
+        let mut c = core_on(FakeVas::default());
+        assert!(c.snapshot().is_none(), "nothing to persist before a plan");
+        c.load(PLAN, "plan").await.unwrap();
+        let mut flown = fly(&mut c, 3).await;
+        let state = saved(&c);
+        // While the FPMa is down the VAS goes on: one more waypoint reached unheard.
+        flown.extend(c.vas().reach());
+        let vas = std::mem::take(&mut c.vas);
+        vas.calls();
+        let mut r = core_on(vas);
+        r.resume(state).await;
+        let calls = r.vas().calls();
+        assert_eq!(
+            calls.first().map(String::as_str),
+            Some("clear"),
+            "{calls:?}"
+        );
+        assert!(
+            !calls.iter().any(|c| c.starts_with("state")),
+            "resuming asked for a flight state: {calls:?}"
+        );
+        flown.extend(fly(&mut r, 100).await);
+        assert!(r.executive().unwrap().state().completed);
+        // Each waypoint of the plan once, in order.
+        let got: Vec<(f64, f64)> = flown.iter().map(|w| (w.lat, w.lon)).collect();
+        let want: Vec<(f64, f64)> = nominal().iter().map(|w| (w.lat, w.lon)).collect();
+        assert_eq!(got, want);
+    }
+
+    #[tokio::test]
+    async fn the_persisted_state_keeps_in_flight_changes() {
+        let mut c = core_on(FakeVas::default());
+        c.load(PLAN, "plan").await.unwrap();
+        fly(&mut c, 2).await;
+        c.command(Command::SkipLeg).await.unwrap();
+        c.command(Command::ModifyLeg(
+            "area".into(),
+            vec![("spacing".into(), "10".into())],
+        ))
+        .await
+        .unwrap();
+        let state = saved(&c);
+        let before = c.executive().unwrap();
+        assert_eq!(state.exec.next_waypoints(50), before.next_waypoints(50));
+        assert_eq!(state.exec.state(), before.state());
+        assert_eq!(state.exec.version(), 2, "modify_leg made a version 2");
+    }
+
+    #[tokio::test]
+    async fn resuming_leaves_a_parked_vehicle_parked() {
+        let mut c = core_on(FakeVas::default());
+        c.load(PLAN, "plan").await.unwrap();
+        fly(&mut c, 2).await;
+        let state = saved(&c);
+        // The operator parked the vehicle while the FPMa was down.
+        let vas = std::mem::take(&mut c.vas);
+        vas.st().running = false;
+        vas.calls();
+        let mut r = core_on(vas);
+        r.resume(state).await;
+        r.on_flight_state(FlightState::Parking).await;
+        let calls = r.vas().calls();
+        assert!(
+            !calls.iter().any(|c| c.starts_with("state")),
+            "resuming asked for a flight state: {calls:?}"
+        );
+        assert_eq!(r.executive().unwrap().state().next_seq, 2);
+        assert!(!r.vas().seqs().is_empty(), "the queue was refilled");
     }
 
     #[tokio::test]

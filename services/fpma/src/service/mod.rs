@@ -7,6 +7,7 @@
 //! hand it requests over a channel, so inputs are applied one at a time, in arrival order.
 
 pub mod core;
+pub mod persist;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -68,9 +69,14 @@ pub struct FpmaConfig {
     /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts or resumes (`startNavigation`).
     #[serde(rename = "@startNavigation")]
     pub start_navigation: bool,
-    /// Where plan files sent to `fpma/plans` are stored (`plansDir`).
+    /// Where plan files sent to `fpma/plans` are stored (`plansDir`); none: under the user's
+    /// state directory (`$XDG_STATE_HOME/usal/sinks/<namespace>_fpma_plans`).
     #[serde(rename = "@plansDir")]
-    pub plans_dir: PathBuf,
+    pub plans_dir: Option<PathBuf>,
+    /// Where the plan and progress are persisted (`stateDir`); none: the user's state
+    /// directory, `$XDG_STATE_HOME/usal/<namespace>/fpma` (else `~/.local/state/usal/...`).
+    #[serde(rename = "@stateDir")]
+    pub state_dir: Option<PathBuf>,
     /// A plan to load at start (`plan`).
     #[serde(rename = "@plan")]
     pub plan: Option<PathBuf>,
@@ -92,7 +98,8 @@ impl Default for FpmaConfig {
             turn_radius: None,
             lookahead: 8,
             start_navigation: true,
-            plans_dir: std::env::temp_dir().join("fpma-plans"),
+            plans_dir: None,
+            state_dir: None,
             plan: None,
             call_timeout_ms: 5000,
         }
@@ -204,6 +211,15 @@ impl FpmaConfig {
         Ok(v)
     }
 
+    /// The directory the plan and progress are persisted in: `stateDir`, else
+    /// `<user state dir>/<namespace or "default">/fpma`; `None` when there is no state
+    /// directory at all (no `XDG_STATE_HOME`, no `HOME`).
+    pub fn state_dir_for(&self, namespace: Option<&str>) -> Option<PathBuf> {
+        self.state_dir.clone().or_else(|| {
+            marea::state_dir().map(|d| d.join(namespace.unwrap_or("default")).join("fpma"))
+        })
+    }
+
     /// The full prefix of the VAS's items, e.g. `rover1/vas`.
     pub fn vas_prefix(&self, namespace: Option<&str>) -> String {
         match namespace {
@@ -238,10 +254,18 @@ pub async fn run(config: FpmaConfig, shutdown: CancellationToken) -> anyhow::Res
         .await
         .context("opening the middleware node")?;
     let vas = config.vas_prefix(net.namespace.as_deref());
+    let state = config.state_dir_for(net.namespace.as_deref());
+    match &state {
+        Some(d) => tracing::info!("plan and progress persisted in {}", d.display()),
+        None => tracing::warn!(
+            "no state directory (set stateDir, XDG_STATE_HOME or HOME): a restart starts clean"
+        ),
+    }
     node.add_service(Box::new(Fpma {
         config: config.clone(),
         vas: vas.clone(),
         initial,
+        state: state.map(|d| persist::StateFile::new(&d)),
     }))
     .await
     .context("starting the fpma service")?;
@@ -304,6 +328,7 @@ pub struct Fpma {
     config: FpmaConfig,
     vas: String,
     initial: Option<(String, String)>,
+    state: Option<persist::StateFile>,
 }
 
 impl Fpma {
@@ -313,7 +338,14 @@ impl Fpma {
             config,
             vas,
             initial: None,
+            state: None,
         }
+    }
+
+    /// Persists the plan and progress in `file` and resumes them at start.
+    pub fn with_state(mut self, file: persist::StateFile) -> Self {
+        self.state = Some(file);
+        self
     }
 }
 
@@ -395,7 +427,13 @@ impl IService for Fpma {
         let reached = ctx.subscribe_event::<WaypointReached>(&format!("{vas}/waypoint_reached"))?;
         let position = ctx.subscribe_variable::<Position>(&format!("{vas}/position"))?;
         let flight_state = ctx.subscribe_variable::<FlightState>(&format!("{vas}/flight_state"))?;
-        let sink = ctx.file_sink("plans", self.config.plans_dir.clone())?;
+        let sink = ctx.file_sink_with(
+            "plans",
+            marea::FileSinkOptions {
+                dir: self.config.plans_dir.clone(),
+                ..marea::FileSinkOptions::default()
+            },
+        )?;
 
         let (tx, mut rx) = mpsc::channel::<Request>(64);
         let mut providers = Vec::new();
@@ -516,18 +554,30 @@ impl IService for Fpma {
             },
             port,
         );
-        let initial = self.initial.take();
+        let mut initial = self.initial.take();
+        let state_file = self.state.clone();
         let cx = ctx.clone();
         ctx.spawn(async move {
             // The function handles live as long as this task.
             let _providers = providers;
             let mut core = core;
+            let persisted = state_file
+                .as_ref()
+                .and_then(|f| load_state(f, initial.as_ref()));
+            if let Some(p) = persisted {
+                // The initial plan is the one being resumed: not loaded again from its start.
+                initial = None;
+                core.resume(p).await;
+                publish(&mut core, &outlets);
+            }
             if let Some((text, source)) = initial {
                 if let Err(e) = core.load(&text, &source).await {
                     tracing::error!("initial plan: {e}");
                 }
                 publish(&mut core, &outlets);
             }
+            let mut saved = 0;
+            save_state(state_file.as_ref(), &core, &mut saved).await;
             let mut last_progress: Option<(Progress, tokio::time::Instant)> = None;
             let mut retry = tokio::time::interval(Duration::from_secs(1));
             retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -580,6 +630,7 @@ impl IService for Fpma {
                 if let Some(p) = publish(&mut core, &outlets) {
                     last_progress = Some((p, tokio::time::Instant::now()));
                 }
+                save_state(state_file.as_ref(), &core, &mut saved).await;
             }
         });
         Ok(())
@@ -587,6 +638,56 @@ impl IService for Fpma {
 
     async fn stop(&mut self) -> Result<(), ServiceError> {
         Ok(())
+    }
+}
+
+/// The persisted state to resume, if any: none when there is no file, when the initial plan
+/// of the configuration is another one than the persisted plan (a new mission), or when the
+/// file is unusable (logged, set aside: a clean start).
+fn load_state(
+    file: &persist::StateFile,
+    initial: Option<&(String, String)>,
+) -> Option<core::Persisted> {
+    match file.load() {
+        Ok(Some(p)) => match initial {
+            Some((_, source)) if *source != p.source => {
+                tracing::info!(
+                    "the configured plan {source} is not the persisted one ({}): starting it",
+                    p.source
+                );
+                None
+            }
+            _ => Some(p),
+        },
+        Ok(None) => None,
+        Err(e) => {
+            tracing::error!("cannot resume the persisted plan, starting clean: {e:#}");
+            file.set_aside();
+            None
+        }
+    }
+}
+
+/// Persists the core's state when it changed since the last save.
+async fn save_state<V: VasPort>(
+    file: Option<&persist::StateFile>,
+    core: &Core<V>,
+    saved: &mut u64,
+) {
+    let Some(file) = file else { return };
+    if core.changes() == *saved {
+        return;
+    }
+    *saved = core.changes();
+    let Some(snapshot) = core.snapshot() else {
+        return;
+    };
+    let file = file.clone();
+    let r = tokio::task::spawn_blocking(move || file.save(&snapshot)).await;
+    match r {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::error!("persisting the plan and progress: {e:#}"),
+        Err(e) => tracing::error!("persisting the plan and progress: {e}"),
     }
 }
 
@@ -624,13 +725,7 @@ mod tests {
     fn example_file_parses() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fpma.example.xml");
         let cfg = FpmaConfig::load(&path).unwrap();
-        assert_eq!(
-            cfg,
-            FpmaConfig {
-                plans_dir: "/tmp/fpma-plans".into(),
-                ..FpmaConfig::default()
-            }
-        );
+        assert_eq!(cfg, FpmaConfig::default());
     }
 
     #[test]
