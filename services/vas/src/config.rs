@@ -70,6 +70,15 @@ pub struct VasConfig {
     /// Manual-control staleness timeout, ms (`manualTimeoutMs`).
     #[serde(rename = "@manualTimeoutMs")]
     pub manual_timeout_ms: u64,
+    /// Largest |altitude| above home a pushed waypoint may have, metres (`maxAltitudeM`).
+    #[serde(rename = "@maxAltitudeM")]
+    pub max_altitude_m: f64,
+    /// Most waypoints in one `push_waypoints` call (`maxWaypointsPerCall`).
+    #[serde(rename = "@maxWaypointsPerCall")]
+    pub max_waypoints_per_call: usize,
+    /// Most waypoints queued at once (`maxQueuedWaypoints`).
+    #[serde(rename = "@maxQueuedWaypoints")]
+    pub max_queued_waypoints: u64,
     /// MAVLink 2 signing toward the autopilot (`<signing keyFile=".." linkId="1"/>`).
     #[serde(rename = "signing")]
     pub signing: Option<SigningSettings>,
@@ -117,6 +126,9 @@ impl Default for VasConfig {
             namespace: None,
             manual_control: val.manual_control,
             manual_timeout_ms: val.manual_timeout.as_millis() as u64,
+            max_altitude_m: val.waypoints.max_alt_m,
+            max_waypoints_per_call: val.waypoints.max_per_call,
+            max_queued_waypoints: val.waypoints.max_queued,
             signing: None,
             pin_autopilot: true,
             autopilot_sysid: None,
@@ -208,6 +220,17 @@ impl VasConfig {
                 self.retries
             )));
         }
+        if !(self.max_altitude_m.is_finite() && self.max_altitude_m > 0.0) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "maxAltitudeM {} is not a positive number",
+                self.max_altitude_m
+            )));
+        }
+        if self.max_waypoints_per_call == 0 || self.max_queued_waypoints == 0 {
+            return Err(ConfigLoadError::Invalid(
+                "maxWaypointsPerCall and maxQueuedWaypoints must be at least 1".into(),
+            ));
+        }
         Ok(())
     }
 
@@ -255,6 +278,12 @@ impl VasConfig {
         ValConfig {
             manual_control: self.manual_control.clone(),
             manual_timeout: Duration::from_millis(self.manual_timeout_ms),
+            waypoints: crate::val::limits::WaypointLimits {
+                max_alt_m: self.max_altitude_m,
+                max_per_call: self.max_waypoints_per_call,
+                max_queued: self.max_queued_waypoints,
+                ..Default::default()
+            },
             ..ValConfig::default()
         }
     }

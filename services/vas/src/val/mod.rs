@@ -5,6 +5,7 @@
 //!
 //! Items (under `<namespace>/vas/`): see the crate README for the full list.
 
+pub mod limits;
 pub mod transitions;
 
 use std::sync::{Arc, Mutex as StdMutex};
@@ -32,6 +33,8 @@ pub struct ValConfig {
     pub manual_timeout: Duration,
     /// Period of the `mission_time` variable.
     pub mission_time_period: Duration,
+    /// What `push_waypoints` accepts (issue 13).
+    pub waypoints: limits::WaypointLimits,
 }
 
 impl Default for ValConfig {
@@ -40,6 +43,7 @@ impl Default for ValConfig {
             manual_control: "**/fmo/manual_control".into(),
             manual_timeout: Duration::from_millis(500),
             mission_time_period: Duration::from_secs(1),
+            waypoints: limits::WaypointLimits::default(),
         }
     }
 }
@@ -276,6 +280,9 @@ impl IService for Vas {
         let push = ctx.provide_function("push_waypoints", move |wps: Vec<Waypoint>| {
             let c = c.clone();
             async move {
+                // Checked before anything reaches the autopilot; refused whole.
+                let queued = c.apl.queue_status().await.map_err(|e| e.to_string())?;
+                c.cfg.waypoints.check(&wps, queued.queued)?;
                 let q = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string())?;
                 let _ = c.items.queue.set(&q);
                 Ok(q)
