@@ -163,7 +163,8 @@ async fn scenario() {
         fmo.token
     );
     let body = r#"{"to": "DIRECTED"}"#;
-    let (status, _) = request_with(&fmo.addr, "POST", "/api/change_state", Some(body), &cross).await;
+    let (status, _) =
+        request_with(&fmo.addr, "POST", "/api/change_state", Some(body), &cross).await;
     assert_eq!(status, 403, "cross-origin POST");
     assert!(
         !page.contains("http://") && !page.contains("https://"),

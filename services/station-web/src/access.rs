@@ -225,14 +225,20 @@ mod tests {
         assert_eq!(status(addr, &get("/", "")).await.0, 200);
         assert_eq!(status(addr, &get("/api/state", "")).await.0, 401);
         assert_eq!(status(addr, &get("/api/state?token=nope", "")).await.0, 403);
-        assert_eq!(status(addr, &get("/api/state?token=s3cret", "")).await.0, 200);
+        assert_eq!(
+            status(addr, &get("/api/state?token=s3cret", "")).await.0,
+            200
+        );
         let header = "\r\nX-Station-Token: s3cret";
         assert_eq!(status(addr, &get("/api/state", header)).await.0, 200);
         let bearer = "\r\nAuthorization: Bearer s3cret";
         assert_eq!(status(addr, &get("/api/state", bearer)).await.0, 200);
         // The event stream likewise.
         assert_eq!(status(addr, &get("/api/events", "")).await, (401, false));
-        assert_eq!(status(addr, &get("/api/events?token=s3cret", "")).await, (200, true));
+        assert_eq!(
+            status(addr, &get("/api/events?token=s3cret", "")).await,
+            (200, true)
+        );
         // A rebound name, or none at all: refused even with the token.
         let rebound = "GET /api/state?token=s3cret HTTP/1.1\r\nHost: evil.example";
         assert_eq!(status(addr, rebound).await.0, 403);
@@ -242,7 +248,12 @@ mod tests {
         let poke = |origin: &str| {
             format!("POST /api/poke HTTP/1.1\r\n{host}\r\nX-Station-Token: s3cret{origin}")
         };
-        assert_eq!(status(addr, &poke("\r\nOrigin: http://evil.example")).await.0, 403);
+        assert_eq!(
+            status(addr, &poke("\r\nOrigin: http://evil.example"))
+                .await
+                .0,
+            403
+        );
         assert_eq!(status(addr, &poke("\r\nOrigin: null")).await.0, 403);
         let same = format!("\r\nOrigin: http://{addr}");
         assert_eq!(status(addr, &poke(&same)).await.0, 204);
@@ -255,10 +266,22 @@ mod tests {
     #[test]
     fn hosts_allowed_are_loopback_names_and_the_bound_address() {
         let a = access([127, 0, 0, 1]);
-        for ok in ["127.0.0.1:8081", "localhost:1", "LOCALHOST", "[::1]:80", "127.0.0.1"] {
+        for ok in [
+            "127.0.0.1:8081",
+            "localhost:1",
+            "LOCALHOST",
+            "[::1]:80",
+            "127.0.0.1",
+        ] {
             assert!(a.host_allowed(ok), "{ok}");
         }
-        for bad in ["evil.example:8081", "10.0.0.5:8081", "localhost.evil:1", "", "[::2]:1"] {
+        for bad in [
+            "evil.example:8081",
+            "10.0.0.5:8081",
+            "localhost.evil:1",
+            "",
+            "[::2]:1",
+        ] {
             assert!(!a.host_allowed(bad), "{bad}");
         }
         let lan = access([10, 0, 0, 5]);
@@ -277,7 +300,10 @@ mod tests {
         assert!(a.token_matches(a.token()));
         assert!(!a.token_matches(&a.token()[..31]) && !a.token_matches(""));
         let addr: SocketAddr = "127.0.0.1:9".parse().unwrap();
-        assert_eq!(a.url(addr), format!("http://127.0.0.1:9/?token={}", a.token()));
+        assert_eq!(
+            a.url(addr),
+            format!("http://127.0.0.1:9/?token={}", a.token())
+        );
     }
 
     #[test]

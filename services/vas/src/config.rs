@@ -70,6 +70,15 @@ pub struct VasConfig {
     /// Manual-control staleness timeout, ms (`manualTimeoutMs`).
     #[serde(rename = "@manualTimeoutMs")]
     pub manual_timeout_ms: u64,
+    /// The stations whose manual control is obeyed (`manualStations`), comma-separated: each a
+    /// publishing node's name or a prefix of the sample's item name (`ground-fmo`,
+    /// `ground/fmo`). Unset: any station (the launcher sets the mission's FMo stations).
+    #[serde(rename = "@manualStations")]
+    pub manual_stations: Option<String>,
+    /// Manual-control samples stamped further ahead of our clock are refused, ms
+    /// (`manualSkewMs`).
+    #[serde(rename = "@manualSkewMs")]
+    pub manual_skew_ms: u64,
     /// Largest |altitude| above home a pushed waypoint may have, metres (`maxAltitudeM`).
     #[serde(rename = "@maxAltitudeM")]
     pub max_altitude_m: f64,
@@ -126,6 +135,8 @@ impl Default for VasConfig {
             namespace: None,
             manual_control: val.manual_control,
             manual_timeout_ms: val.manual_timeout.as_millis() as u64,
+            manual_stations: None,
+            manual_skew_ms: val.manual_skew.as_millis() as u64,
             max_altitude_m: val.waypoints.max_alt_m,
             max_waypoints_per_call: val.waypoints.max_per_call,
             max_queued_waypoints: val.waypoints.max_queued,
@@ -278,6 +289,14 @@ impl VasConfig {
         ValConfig {
             manual_control: self.manual_control.clone(),
             manual_timeout: Duration::from_millis(self.manual_timeout_ms),
+            manual_stations: self.manual_stations.as_deref().map(|list| {
+                list.split(',')
+                    .map(str::trim)
+                    .filter(|s| !s.is_empty())
+                    .map(str::to_owned)
+                    .collect()
+            }),
+            manual_skew: Duration::from_millis(self.manual_skew_ms),
             waypoints: crate::val::limits::WaypointLimits {
                 max_alt_m: self.max_altitude_m,
                 max_per_call: self.max_waypoints_per_call,
@@ -362,5 +381,17 @@ mod tests {
         std::fs::write(&p, r#"<vas pinAutopilot="false"/>"#).unwrap();
         let cfg = VasConfig::load(&p).unwrap();
         assert!(cfg.ardupilot().manager.pin.is_none() && cfg.signing().unwrap().is_none());
+        assert_eq!(cfg.val().manual_stations, None, "any station by default");
+        std::fs::write(
+            &p,
+            r#"<vas manualStations="ground-fmo, base/fmo" manualSkewMs="500"/>"#,
+        )
+        .unwrap();
+        let val = VasConfig::load(&p).unwrap().val();
+        assert_eq!(
+            val.manual_stations,
+            Some(vec!["ground-fmo".to_owned(), "base/fmo".to_owned()])
+        );
+        assert_eq!(val.manual_skew, Duration::from_millis(500));
     }
 }

@@ -54,6 +54,9 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
             .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
         ),
     };
+    if config.manual_stations.is_none() {
+        tracing::warn!("manualStations not set: manual control is obeyed from any station");
+    }
     let node = marea::Node::open(&net)
         .await
         .context("opening the middleware node")?;

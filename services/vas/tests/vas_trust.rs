@@ -118,3 +118,114 @@ async fn bad_waypoints_are_refused_naming_the_index_and_field() {
     sim.kill().await;
     g.node.shutdown().await;
 }
+
+/// A node that publishes `fmo/manual_control` as the FMo does.
+struct Sticks {
+    node: marea::Node,
+    var: marea::Variable<usal_types::ManualCommand>,
+}
+
+impl Sticks {
+    async fn open(domain: &str, name: &str) -> Sticks {
+        let mut cfg = marea::NetworkConfig::ethernet_loopback(name);
+        cfg.domain = domain.to_owned();
+        let node = marea::Node::open(&cfg).await.expect("node");
+        let svc = node.service("fmo").expect("service");
+        let var = svc.publish_variable("manual_control").expect("publish");
+        Sticks { node, var }
+    }
+
+    /// Full throttle for rover1 at 20 Hz for `how_long`, stamped `ahead_ms` into the future.
+    async fn drive(&self, how_long: std::time::Duration, ahead_ms: u64) {
+        let end = tokio::time::Instant::now() + how_long;
+        let mut tick = tokio::time::interval(std::time::Duration::from_millis(50));
+        while tokio::time::Instant::now() < end {
+            tick.tick().await;
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+                .as_millis() as u64;
+            let cmd = usal_types::ManualCommand {
+                target: "rover1/vas".into(),
+                sticks: usal_types::ManualControl {
+                    throttle: 0.8,
+                    timestamp_ms: now + ahead_ms,
+                    ..Default::default()
+                },
+            };
+            self.var.set(&cmd).expect("set");
+        }
+    }
+}
+
+/// Metres between two positions (flat earth, short distances).
+fn metres(a: &usal_types::Position, b: &usal_types::Position) -> f64 {
+    let dn = (a.lat - b.lat) * 111_319.5;
+    let de = (a.lon - b.lon) * 111_319.5 * a.lat.to_radians().cos();
+    (dn * dn + de * de).sqrt()
+}
+
+/// Manual control is obeyed only from the configured station, and not when stamped beyond the
+/// skew into the future; the refusals are raised as alarms naming the node.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn manual_control_only_from_the_configured_station() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 2.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("manual");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--manual-stations", "station-ok"],
+    );
+    let g = Ground::open(&domain).await;
+    let position = g
+        .svc
+        .subscribe_variable::<usal_types::Position>("rover1/vas/position")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+    g.request(FlightState::ManualNavigation)
+        .await
+        .expect("MANUAL_NAVIGATION");
+    let here = || async {
+        tokio::time::timeout(STEP, position.recv())
+            .await
+            .expect("position in time")
+            .expect("position")
+            .value
+    };
+
+    let intruder = Sticks::open(&domain, "intruder").await;
+    let p0 = here().await;
+    let drive = intruder.drive(std::time::Duration::from_secs(3), 0);
+    let (_, alarm) = tokio::join!(drive, g.wait_alarm("node intruder", STEP));
+    assert!(
+        alarm.text.contains("not a configured station"),
+        "{}",
+        alarm.text
+    );
+    let p1 = here().await;
+    assert!(metres(&p0, &p1) < 0.3, "the intruder drove the rover");
+
+    let station = Sticks::open(&domain, "station-ok").await;
+    let drive = station.drive(std::time::Duration::from_secs(2), 60_000);
+    let (_, alarm) = tokio::join!(drive, g.wait_alarm("ahead of our clock", STEP));
+    assert!(alarm.text.contains("node station-ok"), "{}", alarm.text);
+    let p2 = here().await;
+    assert!(
+        metres(&p1, &p2) < 0.3,
+        "a sample from the future drove the rover"
+    );
+
+    station.drive(std::time::Duration::from_secs(3), 0).await;
+    let p3 = here().await;
+    assert!(
+        metres(&p2, &p3) > 1.0,
+        "the configured station did not drive the rover"
+    );
+
+    intruder.node.shutdown().await;
+    station.node.shutdown().await;
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
