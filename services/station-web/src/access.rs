@@ -207,7 +207,7 @@ mod tests {
                 if l.is_empty() {
                     break;
                 }
-                sse |= l.to_ascii_lowercase() == "content-type: text/event-stream";
+                sse |= l.eq_ignore_ascii_case("content-type: text/event-stream");
             }
             (code, sse)
         };

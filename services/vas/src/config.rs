@@ -261,7 +261,7 @@ impl VasConfig {
 
     /// How the autopilot is pinned (`None` with `pinAutopilot="false"`).
     pub fn pin(&self) -> Option<mavconn::Pin> {
-        self.pin_autopilot.then(|| mavconn::Pin {
+        self.pin_autopilot.then_some(mavconn::Pin {
             system_id: self.autopilot_sysid,
             peer: self.autopilot_peer,
         })
