@@ -194,7 +194,16 @@ enum Writer {
 struct Guard {
     signing: Option<mavlink::SigningData>,
     pin: Option<Pin>,
-    pinned: Mutex<Option<Pinned>>,
+    /// What is pinned and when it was last heard.
+    pinned: Mutex<Option<(Pinned, std::time::Instant)>>,
+}
+
+/// Logs the 1st, 10th, 100th... refusal of a kind: visible, but a flood does not flood the log.
+fn note_refusal(counter: &AtomicU64, what: &str, from: Option<SocketAddr>, sys: u32) {
+    let n = counter.fetch_add(1, Ordering::Relaxed) + 1;
+    if n.checked_ilog10().is_some_and(|e| 10u64.pow(e) == n) {
+        tracing::warn!("MAVLink frame refused ({what}) from system {sys} at {from:?}: {n} so far");
+    }
 }
 
 impl Guard {
@@ -207,7 +216,10 @@ impl Guard {
     }
 
     fn pinned(&self) -> Option<Pinned> {
-        *self.pinned.lock().unwrap_or_else(PoisonError::into_inner)
+        self.pinned
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .map(|(p, _)| p)
     }
 
     /// Checks the signature of `raw` (when signing), decodes it and checks it against the
@@ -226,7 +238,8 @@ impl Guard {
                 MAVLinkMessageRaw::V2(v2) => signing.verify_signature(v2),
             };
             if !ok {
-                counters.rejected_signatures.fetch_add(1, Ordering::Relaxed);
+                let what = "unsigned, wrongly signed or replayed";
+                note_refusal(&counters.rejected_signatures, what, from, raw.system_id());
                 return None;
             }
         }
@@ -247,11 +260,22 @@ impl Guard {
             return Some((header, msg));
         };
         let mut pinned = self.pinned.lock().unwrap_or_else(PoisonError::into_inner);
-        let admitted = match *pinned {
-            Some(p) => {
-                p.system_id == header.system_id
+        let now = std::time::Instant::now();
+        // A pin whose peer stayed silent past `release_after` is open again (an autopilot
+        // restarted from another port); until then nobody else is listened to.
+        let current = pinned.filter(|(_, seen)| {
+            pin.release_after
+                .is_none_or(|d| now.saturating_duration_since(*seen) <= d)
+        });
+        let admitted = match current {
+            Some((p, _)) => {
+                let ok = p.system_id == header.system_id
                     && p.component_id == header.component_id
-                    && p.addr == from
+                    && p.addr == from;
+                if ok {
+                    *pinned = Some((p, now));
+                }
+                ok
             }
             None => {
                 let fits = matches!(msg, MavMessage::HEARTBEAT(_))
@@ -260,11 +284,12 @@ impl Guard {
                         .is_none_or(|s| u32::from(s) == header.system_id)
                     && (pin.peer.is_none() || pin.peer == from);
                 if fits {
-                    *pinned = Some(Pinned {
+                    let p = Pinned {
                         system_id: header.system_id,
                         component_id: header.component_id,
                         addr: from,
-                    });
+                    };
+                    *pinned = Some((p, now));
                     if let (Some(slot), Some(from)) = (learn, from) {
                         set_peer(slot, from);
                     }
@@ -278,7 +303,8 @@ impl Guard {
             }
         };
         if !admitted {
-            counters.foreign.fetch_add(1, Ordering::Relaxed);
+            let what = "not the pinned peer";
+            note_refusal(&counters.foreign, what, from, header.system_id);
             return None;
         }
         Some((header, msg))
@@ -956,6 +982,7 @@ mod tests {
             pin: Some(Pin {
                 system_id: Some(1),
                 peer: None,
+                release_after: None,
             }),
             ..OpenOptions::default()
         };
@@ -1001,6 +1028,53 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn a_silent_pinned_peer_is_released_for_the_next_heartbeat() {
+        let release = Duration::from_millis(300);
+        let opts = OpenOptions {
+            pin: Some(Pin {
+                system_id: Some(1),
+                peer: None,
+                release_after: Some(release),
+            }),
+            ..OpenOptions::default()
+        };
+        let mut server = Connection::open(&"udpin:127.0.0.1:0".parse().expect("valid"), opts)
+            .await
+            .expect("bind");
+        let addr = server.local_addr().expect("bound");
+        let old = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        let new = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        within(old.send_to(&frame_bytes(1), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 1);
+        // While the pinned peer is live, another port is ignored.
+        within(new.send_to(&frame_bytes(2), addr))
+            .await
+            .expect("send");
+        within(old.send_to(&frame_bytes(3), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 3);
+        // Silent past the release time (a lower bound: the point of the test is the silence):
+        // the restarted autopilot's heartbeat from its new port pins again.
+        tokio::time::sleep(release + Duration::from_millis(100)).await;
+        within(new.send_to(&frame_bytes(4), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 4);
+        assert_eq!(server.pinned().and_then(|p| p.addr), new.local_addr().ok());
+        within(old.send_to(&frame_bytes(5), addr))
+            .await
+            .expect("send");
+        within(new.send_to(&frame_bytes(6), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 6);
+        assert_eq!(server.counters().foreign(), 2);
+    }
+
+    #[tokio::test]
     async fn a_configured_peer_is_answered_at_once_and_others_ignored() {
         let real = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
         let spoof = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
@@ -1008,6 +1082,7 @@ mod tests {
             pin: Some(Pin {
                 system_id: None,
                 peer: real.local_addr().ok(),
+                release_after: None,
             }),
             ..OpenOptions::default()
         };

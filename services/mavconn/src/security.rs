@@ -136,6 +136,9 @@ pub struct Pin {
     /// The UDP address to pin to (`peer="ip:port"`); `None`: the first heartbeat's sender.
     /// A `udpin` connection answers it from the start.
     pub peer: Option<SocketAddr>,
+    /// A pinned peer silent for longer than this is released: the next matching heartbeat
+    /// pins again (an autopilot restarted from another port). `None`: pinned for good.
+    pub release_after: Option<std::time::Duration>,
 }
 
 /// What was pinned.

@@ -261,9 +261,12 @@ impl VasConfig {
 
     /// How the autopilot is pinned (`None` with `pinAutopilot="false"`).
     pub fn pin(&self) -> Option<mavconn::Pin> {
+        // Released once the link is declared lost anyway, so a restarted autopilot is
+        // followed; a spoofer must first silence the real one for that long.
         self.pin_autopilot.then_some(mavconn::Pin {
             system_id: self.autopilot_sysid,
             peer: self.autopilot_peer,
+            release_after: Some(Duration::from_millis(self.heartbeat_timeout_ms)),
         })
     }
 
