@@ -363,7 +363,11 @@ impl IService for Vas {
                             if !s.value.is_for(&me) {
                                 continue;
                             }
-                            if let Err(why) = c.cfg.manual_admits(&s.publisher, &s.name, s.value.sticks.timestamp_ms, unix_ms()) {
+                            // Only from a configured station, never from the far future.
+                            let stamp = s.value.sticks.timestamp_ms;
+                            let admitted =
+                                c.cfg.manual_admits(&s.publisher, &s.name, stamp, unix_ms());
+                            if let Err(why) = admitted {
                                 refused.refuse(&c, &s.publisher, &why);
                                 continue;
                             }
