@@ -287,6 +287,23 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
         err.contains("[air/vas] ") && err.contains("[air/fpma] "),
         "{err}"
     );
+    // Issue 13: the stations' URLs carry their token; the VAS knows the mission's FMo.
+    let all = l.stderr.lock().unwrap().clone();
+    for line in [
+        "[ground/fmo] FMO_URL=http://127.0.0.1:",
+        "[ground/fpmo] FPMO_URL=http://127.0.0.1:",
+    ] {
+        let url = all
+            .lines()
+            .find(|l| l.contains(line))
+            .unwrap_or_else(|| panic!("no {line} in the merged log"));
+        let token = url.split_once("/?token=").map(|(_, t)| t.trim());
+        assert!(token.is_some_and(|t| t.len() == 32), "{url}");
+    }
+    assert!(
+        !all.contains("manualStations not set"),
+        "the demo VAS obeys any station"
+    );
 }
 
 /// The same mission with the ground on the far side of an emulated 57600-baud radio with byte

@@ -7,7 +7,7 @@
 use std::io;
 use std::net::SocketAddr;
 
-use mavconn::{Connection, Endpoint, OpenOptions, SendError};
+use mavconn::{Connection, Endpoint, OpenOptions, SendError, Signing};
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::MavHeader;
 
@@ -65,8 +65,22 @@ impl Link {
     /// # Errors
     /// When the socket, device or pty cannot be opened.
     pub async fn open(cfg: &LinkConfig, sysid: u8) -> Result<Self, LinkOpenError> {
+        Self::open_signed(cfg, sysid, None).await
+    }
+
+    /// [`Link::open`] with MAVLink 2 signing: every frame sent is signed and only correctly
+    /// signed frames are accepted (the others are counted, see [`Link::rejected_signatures`]).
+    ///
+    /// # Errors
+    /// When the socket, device or pty cannot be opened.
+    pub async fn open_signed(
+        cfg: &LinkConfig,
+        sysid: u8,
+        signing: Option<Signing>,
+    ) -> Result<Self, LinkOpenError> {
         let opts = OpenOptions {
             queue_depth: CHANNEL_DEPTH,
+            signing,
             ..OpenOptions::default()
         };
         let (info, conn) = match cfg {
@@ -112,6 +126,11 @@ impl Link {
     /// Frames that passed the CRC but could not be parsed.
     pub fn parse_errors(&self) -> u64 {
         self.conn.counters().parse_errors()
+    }
+
+    /// Frames refused for a missing, wrong or replayed signature (with signing only).
+    pub fn rejected_signatures(&self) -> u64 {
+        self.conn.counters().rejected_signatures()
     }
 
     /// Frames dropped because the output was congested or refused them.

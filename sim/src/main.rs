@@ -57,6 +57,13 @@ struct Args {
     /// only in answer to a set-current), like autopilots whose ground station must infer it.
     #[arg(long)]
     quiet_progress: bool,
+    /// MAVLink 2 signing key file (64 hex digits, mode 600): sign every frame and accept only
+    /// frames signed with this key.
+    #[arg(long)]
+    signing_key: Option<PathBuf>,
+    /// Link id put in our signatures (with --signing-key).
+    #[arg(long, default_value_t = 0)]
+    signing_link_id: u8,
 }
 
 fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
@@ -127,6 +134,17 @@ async fn main() -> anyhow::Result<()> {
         speedup: args.speedup,
         log: args.log,
         quiet_progress: args.quiet_progress,
+        signing: args
+            .signing_key
+            .as_deref()
+            .map(|path| -> anyhow::Result<mavconn::Signing> {
+                Ok(mavconn::Signing {
+                    key: mavconn::SigningKey::load(path)?,
+                    link_id: args.signing_link_id,
+                })
+            })
+            .transpose()
+            .context("--signing-key")?,
     };
     let sim = Simulator::open(cfg).await.context("starting mavsim")?;
     // One machine-readable line on stdout so scripts and tests find the endpoint.

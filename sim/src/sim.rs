@@ -42,6 +42,8 @@ pub struct SimConfig {
     pub log: Option<PathBuf>,
     /// Report no mission progress (see [`Vehicle::set_quiet_progress`]).
     pub quiet_progress: bool,
+    /// MAVLink 2 signing: sign everything, accept only correctly signed frames.
+    pub signing: Option<mavconn::Signing>,
 }
 
 /// Errors of the simulator.
@@ -84,7 +86,7 @@ impl Simulator {
             })?),
             None => None,
         };
-        let link = Link::open(&cfg.link, cfg.vehicle.sysid).await?;
+        let link = Link::open_signed(&cfg.link, cfg.vehicle.sysid, cfg.signing.clone()).await?;
         let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
         vehicle.set_quiet_progress(cfg.quiet_progress);
         Ok(Self {
@@ -124,6 +126,7 @@ impl Simulator {
         tracing::info!(
             parse_errors = self.link.parse_errors(),
             dropped = self.link.dropped(),
+            rejected_signatures = self.link.rejected_signatures(),
             sim_time = self.vehicle.sim_time(),
             "mavsim stopped"
         );

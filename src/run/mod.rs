@@ -387,6 +387,7 @@ async fn start_services(
     notices: &mut broadcast::Receiver<Notice>,
     stop: &CancellationToken,
 ) -> anyhow::Result<()> {
+    let manual_stations = manual_stations(mission);
     for node in &mission.nodes {
         let mut sim_addr: Option<watch::Receiver<Option<String>>> = None;
         let common = |v: &mut Vec<String>| {
@@ -453,6 +454,9 @@ async fn start_services(
                     if let Some(h) = v.telemetry_hz {
                         a.extend(["--telemetry-hz".into(), h.to_string()]);
                     }
+                    if !manual_stations.is_empty() {
+                        a.extend(["--manual-stations".into(), manual_stations.clone()]);
+                    }
                     common(&mut a);
                 }
                 ServiceSpec::Fpma(f) => {
@@ -495,6 +499,24 @@ async fn start_services(
         }
     }
     Ok(())
+}
+
+/// The mission's FMo stations as the VAS's `--manual-stations` list (issue 13: manual control
+/// only from them): each FMo's node name (`NODE-fmo`, as started below) and, with a
+/// namespace, its item prefix (`NS/fmo`). Empty without an FMo.
+fn manual_stations(mission: &Mission) -> String {
+    let mut out: Vec<String> = Vec::new();
+    for node in &mission.nodes {
+        for svc in &node.services {
+            if matches!(svc, ServiceSpec::Fmo { .. }) {
+                out.push(format!("{}-{}", node.name, svc.kind()));
+                if let Some(ns) = &node.namespace {
+                    out.push(format!("{ns}/fmo"));
+                }
+            }
+        }
+    }
+    out.join(",")
 }
 
 /// Waits for mavsim's `MAVSIM_UDP=` line.
@@ -622,4 +644,16 @@ async fn wait_for_signal(stop: CancellationToken, ui: Arc<Ui>) {
         json!({"event": "stopping"}),
     );
     stop.cancel();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_demo_vas_obeys_manual_control_only_from_the_demo_fmo() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions/rover-demo.xml");
+        let mission = Mission::load(&path).expect("the demo mission parses");
+        assert_eq!(manual_stations(&mission), "ground-fmo,gcs/fmo");
+    }
 }

@@ -14,7 +14,7 @@
 //! let shutdown = tokio_util::sync::CancellationToken::new();
 //! let mut config = fmo::FmoConfig::default();
 //! config.station.listen = "127.0.0.1:0".parse()?;
-//! fmo::run(config, shutdown).await // prints FMO_URL=http://127.0.0.1:PORT/
+//! fmo::run(config, shutdown).await // prints FMO_URL=http://127.0.0.1:PORT/?token=TOKEN
 //! # }
 //! ```
 
@@ -216,7 +216,7 @@ async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
 }
 
 /// Runs the FMo until `shutdown` is cancelled: binds the HTTP server, prints
-/// `FMO_URL=http://ADDR/` on stdout, opens the node, then serves.
+/// `FMO_URL=http://ADDR/?token=TOKEN` on stdout, opens the node, then serves.
 ///
 /// # Errors
 /// The address cannot be bound, bad network file or pattern, a node that cannot open.

@@ -6,7 +6,7 @@ use anyhow::Context;
 use clap::Parser;
 
 /// USAL Flight Monitor: the pilot's station as a web page (state, telemetry, alarms, state
-/// changes, manual control). Prints FMO_URL=http://ADDR/ when listening.
+/// changes, manual control). Prints FMO_URL=http://ADDR/?token=TOKEN when listening.
 #[derive(Parser)]
 #[command(name = "fmo", version)]
 struct Cli {

@@ -34,7 +34,7 @@ async fn scenario() {
     let domain = unique_domain("fmo-browser");
     let (sim, vas) = rover(&domain, 2.0).await;
     let fmo = Station::start(env!("CARGO_BIN_EXE_fmo"), "FMO_URL", &["--domain", &domain]).await;
-    browser.goto(&format!("http://{}/", fmo.addr)).await;
+    browser.goto(&fmo.url).await;
 
     // PARKING, with MANUAL_NAVIGATION offered and nothing a rover cannot do.
     browser

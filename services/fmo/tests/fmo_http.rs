@@ -149,7 +149,23 @@ async fn scenario() {
     let (status, page) = fmo.get("/").await;
     assert_eq!(status, 200);
     assert!(page.contains("FMo — Flight Monitor"));
-    assert!(page.contains("EventSource(\"/api/events\")"));
+    assert!(page.contains("EventSource(withToken(\"/api/events\"))"));
+
+    // The real binary guards its API: no token, a wrong one, a cross-origin POST refused.
+    let (status, _) = request(&fmo.addr, "GET", "/api/state", None).await;
+    assert_eq!(status, 401, "no token");
+    let (status, _) = request(&fmo.addr, "GET", "/api/state?token=0", None).await;
+    assert_eq!(status, 403, "wrong token");
+    let (status, _) = request(&fmo.addr, "GET", &fmo.with_token("/api/state"), None).await;
+    assert_eq!(status, 200, "token in the query");
+    let cross = format!(
+        "Origin: http://evil.example\r\nX-Station-Token: {}\r\n",
+        fmo.token
+    );
+    let body = r#"{"to": "DIRECTED"}"#;
+    let (status, _) =
+        request_with(&fmo.addr, "POST", "/api/change_state", Some(body), &cross).await;
+    assert_eq!(status, 403, "cross-origin POST");
     assert!(
         !page.contains("http://") && !page.contains("https://"),
         "no internet resources"
@@ -200,7 +216,7 @@ async fn scenario() {
     let _ = sel;
 
     // The live channel carries the same snapshots.
-    let mut sse = Sse::open(&fmo.addr, "/api/events").await;
+    let mut sse = Sse::open(&fmo.addr, &fmo.with_token("/api/events")).await;
     let ev = sse.next("state").await;
     assert!(vehicle(&ev, "rover1").is_some(), "{ev:#}");
 

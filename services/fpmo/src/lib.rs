@@ -333,7 +333,7 @@ async fn geometry_loop(me: Arc<Shared>) {
     }
 }
 
-/// Runs the FPMo until `shutdown`: binds, prints `FPMO_URL=http://ADDR/`, opens the node,
+/// Runs the FPMo until `shutdown`: binds, prints `FPMO_URL=http://ADDR/?token=TOKEN`, opens the node,
 /// serves.
 ///
 /// # Errors

@@ -7,7 +7,7 @@ use clap::{Parser, ValueEnum};
 use fpma::vehicle::VehicleParams;
 
 /// USAL Flight Plan Monitor: the flight-plan station as a web page (upload, legs, progress,
-/// map, skip / go to / pause / resume / modify / re-task). Prints FPMO_URL=http://ADDR/.
+/// map, skip / go to / pause / resume / modify / re-task). Prints FPMO_URL=http://ADDR/?token=TOKEN.
 #[derive(Parser)]
 #[command(name = "fpmo", version)]
 struct Cli {

@@ -36,7 +36,7 @@ async fn scenario() {
         &["--domain", &domain],
     )
     .await;
-    browser.goto(&format!("http://{}/", st.addr)).await;
+    browser.goto(&st.url).await;
     browser
         .wait_for(
             "the FPMa reachable",

@@ -91,7 +91,7 @@ async fn scenario() {
     assert_eq!(st.get("/api/background").await, (200, SVG.to_owned()));
 
     if let Some(browser) = Browser::start().await {
-        browser.goto(&format!("http://{}/", st.addr)).await;
+        browser.goto(&st.url).await;
         browser
             .wait_for(
                 "the background drawn",

@@ -278,7 +278,7 @@ async fn scenario() {
         .await;
     let c = wait_command(&st, body["id"].as_u64().unwrap(), "failed").await;
     assert!(!c["detail"].as_str().unwrap().is_empty());
-    let mut sse = Sse::open(&st.addr, "/api/events").await;
+    let mut sse = Sse::open(&st.addr, &st.with_token("/api/events")).await;
     let _ = sse.next("state").await;
 
     // It comes back: the same stream shows it reachable again.

@@ -16,7 +16,9 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::{MessageReadError, MessageWriteError};
-use mavlink::{AsyncMavlinkReader, MavHeader, MavlinkReader, MavlinkVersion};
+use mavlink::{
+    AsyncMavlinkReader, MAVLinkMessageRaw, MavHeader, MavlinkReader, MavlinkVersion, Message,
+};
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
 use tokio::net::{lookup_host, TcpStream, UdpSocket};
 use tokio::sync::mpsc;
@@ -25,6 +27,7 @@ use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 use tokio_util::sync::CancellationToken;
 
 use crate::endpoint::Endpoint;
+use crate::security::{Pin, Pinned, Signing};
 
 /// The longest MAVLink 2 frame: 10 header + 255 payload + 2 CRC + 13 signature bytes.
 pub const RESYNC_BYTES: usize = 280;
@@ -45,6 +48,8 @@ pub struct Frame {
 pub struct Counters {
     parse_errors: AtomicU64,
     dropped: AtomicU64,
+    rejected_signatures: AtomicU64,
+    foreign: AtomicU64,
 }
 
 impl Counters {
@@ -58,6 +63,18 @@ impl Counters {
     pub fn dropped(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
     }
+
+    /// Frames refused by signing: unsigned, MAVLink 1, a wrong signature or a replayed
+    /// timestamp (only with [`OpenOptions::signing`]).
+    pub fn rejected_signatures(&self) -> u64 {
+        self.rejected_signatures.load(Ordering::Relaxed)
+    }
+
+    /// Frames dropped by pinning: from another system, component or address than the pinned
+    /// one, or anything but the pinning heartbeat before it (only with [`OpenOptions::pin`]).
+    pub fn foreign(&self) -> u64 {
+        self.foreign.load(Ordering::Relaxed)
+    }
 }
 
 /// How to open a connection beyond its [`Endpoint`].
@@ -70,6 +87,10 @@ pub struct OpenOptions {
     pub queue_depth: usize,
     /// Where to count parse errors and drops.
     pub counters: Arc<Counters>,
+    /// MAVLink 2 signing: sign every frame, accept only correctly signed ones.
+    pub signing: Option<Signing>,
+    /// Pin the other end (system, component, UDP address) at its first heartbeat.
+    pub pin: Option<Pin>,
 }
 
 impl Default for OpenOptions {
@@ -78,6 +99,8 @@ impl Default for OpenOptions {
             also_send_to: None,
             queue_depth: 512,
             counters: Arc::default(),
+            signing: None,
+            pin: None,
         }
     }
 }
@@ -167,6 +190,127 @@ enum Writer {
     Stream(mpsc::Sender<Vec<u8>>),
 }
 
+/// Signing and pinning of one connection, shared by its reader and its sender.
+struct Guard {
+    signing: Option<mavlink::SigningData>,
+    pin: Option<Pin>,
+    /// What is pinned and when it was last heard.
+    pinned: Mutex<Option<(Pinned, std::time::Instant)>>,
+}
+
+/// Logs the 1st, 10th, 100th... refusal of a kind: visible, but a flood does not flood the log.
+fn note_refusal(counter: &AtomicU64, what: &str, from: Option<SocketAddr>, sys: u32) {
+    let n = counter.fetch_add(1, Ordering::Relaxed) + 1;
+    if n.checked_ilog10().is_some_and(|e| 10u64.pow(e) == n) {
+        tracing::warn!("MAVLink frame refused ({what}) from system {sys} at {from:?}: {n} so far");
+    }
+}
+
+impl Guard {
+    fn new(opts: &OpenOptions) -> Self {
+        Self {
+            signing: opts.signing.as_ref().map(Signing::data),
+            pin: opts.pin.clone(),
+            pinned: Mutex::new(None),
+        }
+    }
+
+    fn pinned(&self) -> Option<Pinned> {
+        self.pinned
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .map(|(p, _)| p)
+    }
+
+    /// Checks the signature of `raw` (when signing), decodes it and checks it against the
+    /// pin (when pinning; the first matching heartbeat pins and, on `udpin`, sets `learn`).
+    /// `None` when refused or unparsable, counted.
+    fn admit(
+        &self,
+        raw: &MAVLinkMessageRaw,
+        from: Option<SocketAddr>,
+        learn: Option<&PeerSlot>,
+        counters: &Counters,
+    ) -> Option<(MavHeader, MavMessage)> {
+        if let Some(signing) = &self.signing {
+            let ok = match raw {
+                MAVLinkMessageRaw::V1(_) => false,
+                MAVLinkMessageRaw::V2(v2) => signing.verify_signature(v2),
+            };
+            if !ok {
+                let what = "unsigned, wrongly signed or replayed";
+                note_refusal(&counters.rejected_signatures, what, from, raw.system_id());
+                return None;
+            }
+        }
+        let Ok(msg) = MavMessage::parse(raw.version(), raw.message_id(), raw.payload()) else {
+            counters.parse_errors.fetch_add(1, Ordering::Relaxed);
+            return None;
+        };
+        let header = MavHeader {
+            system_id: raw.system_id(),
+            component_id: raw.component_id(),
+            sequence: raw.sequence(),
+        };
+        let Some(pin) = &self.pin else {
+            if let (Some(slot), Some(from)) = (learn, from) {
+                // Learnt before the frame is handed on, so an answer goes back to its sender.
+                set_peer(slot, from);
+            }
+            return Some((header, msg));
+        };
+        let mut pinned = self.pinned.lock().unwrap_or_else(PoisonError::into_inner);
+        let now = std::time::Instant::now();
+        // A pin whose peer stayed silent past `release_after` is open again (an autopilot
+        // restarted from another port); until then nobody else is listened to.
+        let current = pinned.filter(|(_, seen)| {
+            pin.release_after
+                .is_none_or(|d| now.saturating_duration_since(*seen) <= d)
+        });
+        let admitted = match current {
+            Some((p, _)) => {
+                let ok = p.system_id == header.system_id
+                    && p.component_id == header.component_id
+                    && p.addr == from;
+                if ok {
+                    *pinned = Some((p, now));
+                }
+                ok
+            }
+            None => {
+                let fits = matches!(msg, MavMessage::HEARTBEAT(_))
+                    && pin
+                        .system_id
+                        .is_none_or(|s| u32::from(s) == header.system_id)
+                    && (pin.peer.is_none() || pin.peer == from);
+                if fits {
+                    let p = Pinned {
+                        system_id: header.system_id,
+                        component_id: header.component_id,
+                        addr: from,
+                    };
+                    *pinned = Some((p, now));
+                    if let (Some(slot), Some(from)) = (learn, from) {
+                        set_peer(slot, from);
+                    }
+                    tracing::info!(
+                        "MAVLink peer pinned: system {} component {} at {from:?}",
+                        header.system_id,
+                        header.component_id
+                    );
+                }
+                fits
+            }
+        };
+        if !admitted {
+            let what = "not the pinned peer";
+            note_refusal(&counters.foreign, what, from, header.system_id);
+            return None;
+        }
+        Some((header, msg))
+    }
+}
+
 /// An open connection: decoded frames in, frames out. Dropping it stops its tasks;
 /// [`Connection::close`] also waits for them.
 pub struct Connection {
@@ -174,6 +318,7 @@ pub struct Connection {
     writer: Writer,
     local_addr: Option<SocketAddr>,
     counters: Arc<Counters>,
+    guard: Arc<Guard>,
     cancel: CancellationToken,
     tasks: JoinSet<()>,
     // Keeps a created pty's slave open so the master never sees EIO/HUP while no client has
@@ -277,6 +422,7 @@ impl Connection {
             writer: Writer::Stream(idle),
             local_addr: None,
             counters: opts.counters.clone(),
+            guard: Arc::new(Guard::new(opts)),
             cancel: CancellationToken::new(),
             tasks: JoinSet::new(),
             _pty_slave: None,
@@ -292,12 +438,15 @@ impl Connection {
     ) {
         let (tx, rx) = mpsc::channel(opts.queue_depth.max(1));
         let sock = Arc::new(sock);
-        let peer: PeerSlot = Arc::new(Mutex::new(dest));
+        // A configured peer is answered from the start, before its first heartbeat.
+        let configured = opts.pin.as_ref().and_then(|p| p.peer);
+        let peer: PeerSlot = Arc::new(Mutex::new(dest.or(configured)));
         self.tasks.spawn(udp_reader(
             sock.clone(),
             learn_peer.then(|| peer.clone()),
             tx,
             self.counters.clone(),
+            self.guard.clone(),
             self.cancel.clone(),
         ));
         self.rx = rx;
@@ -321,6 +470,7 @@ impl Connection {
             rd,
             tx,
             self.counters.clone(),
+            self.guard.clone(),
             self.cancel.clone(),
         ));
         self.tasks
@@ -355,8 +505,14 @@ impl Connection {
     /// than congestion.
     pub fn send(&mut self, header: MavHeader, msg: &MavMessage) -> Result<(), SendError> {
         let mut buf = Vec::with_capacity(64);
-        mavlink::write_versioned_msg(&mut buf, MavlinkVersion::V2, header, msg)
-            .map_err(SendError::Encode)?;
+        mavlink::write_versioned_msg_signed(
+            &mut buf,
+            MavlinkVersion::V2,
+            header,
+            msg,
+            self.guard.signing.as_ref(),
+        )
+        .map_err(SendError::Encode)?;
         self.send_bytes(buf)
     }
 
@@ -403,6 +559,12 @@ impl Connection {
         }
     }
 
+    /// What the pin fixed (see [`OpenOptions::pin`]); `None` before the first matching
+    /// heartbeat or without pinning.
+    pub fn pinned(&self) -> Option<Pinned> {
+        self.guard.pinned()
+    }
+
     /// Stops the reader and writer tasks and waits for them.
     pub async fn close(mut self) {
         self.cancel.cancel();
@@ -432,6 +594,7 @@ async fn udp_reader(
     learn_peer: Option<PeerSlot>,
     tx: mpsc::Sender<io::Result<Frame>>,
     counters: Arc<Counters>,
+    guard: Arc<Guard>,
     cancel: CancellationToken,
 ) {
     let mut buf = vec![0u8; 65_536];
@@ -450,7 +613,7 @@ async fn udp_reader(
         };
         let mut reader = MavlinkReader::new(&buf[..n]);
         loop {
-            let (header, msg) = match reader.read_any_message::<MavMessage>() {
+            let raw = match reader.read_any_raw_message::<MavMessage>() {
                 Ok(x) => x,
                 Err(MessageReadError::Parse(_)) => {
                     counters.parse_errors.fetch_add(1, Ordering::Relaxed);
@@ -458,10 +621,10 @@ async fn udp_reader(
                 }
                 Err(MessageReadError::Io(_)) => break,
             };
-            // Learnt before the frame is handed on, so an answer goes back to its sender.
-            if let Some(slot) = &learn_peer {
-                set_peer(slot, from);
-            }
+            let Some((header, msg)) = guard.admit(&raw, Some(from), learn_peer.as_ref(), &counters)
+            else {
+                continue;
+            };
             let frame = Frame {
                 header,
                 msg,
@@ -478,6 +641,7 @@ async fn stream_reader<R: AsyncRead + Unpin>(
     rd: R,
     tx: mpsc::Sender<io::Result<Frame>>,
     counters: Arc<Counters>,
+    guard: Arc<Guard>,
     cancel: CancellationToken,
 ) {
     let mut reader = AsyncMavlinkReader::new(rd);
@@ -485,10 +649,13 @@ async fn stream_reader<R: AsyncRead + Unpin>(
         // The reader keeps partial frames buffered when this select drops the read.
         let r = tokio::select! {
             _ = cancel.cancelled() => return,
-            r = reader.read_any_message::<MavMessage>() => r,
+            r = reader.read_any_raw_message::<MavMessage>() => r,
         };
         match r {
-            Ok((header, msg)) => {
+            Ok(raw) => {
+                let Some((header, msg)) = guard.admit(&raw, None, None, &counters) else {
+                    continue;
+                };
                 let frame = Frame {
                     header,
                     msg,
@@ -750,6 +917,192 @@ mod tests {
         stream.write_all(&bytes).await.expect("write");
         assert_eq!(mark_of(&next(&mut client).await), 11);
         assert_eq!(counters.parse_errors(), 1);
+    }
+
+    fn signing(key: u8, link_id: u8) -> Option<Signing> {
+        Some(Signing {
+            key: crate::SigningKey::from_bytes([key; 32]),
+            link_id,
+        })
+    }
+
+    #[tokio::test]
+    async fn signed_ends_talk_and_unsigned_or_wrongly_signed_frames_are_refused() {
+        let opts = |key| OpenOptions {
+            signing: signing(key, 1),
+            ..OpenOptions::default()
+        };
+        let mut server = Connection::open(&"udpin:127.0.0.1:0".parse().expect("valid"), opts(9))
+            .await
+            .expect("bind");
+        let addr = server.local_addr().expect("bound");
+        // Unsigned (a plain socket), then signed with another key: both refused, counted.
+        let sock = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        within(sock.send_to(&frame_bytes(1), addr))
+            .await
+            .expect("send");
+        let mut wrong = Connection::open(&Endpoint::UdpOut(addr.to_string()), opts(8))
+            .await
+            .expect("open");
+        wrong.send(header(255), &heartbeat(2)).expect("send");
+        let mut client = Connection::open(&Endpoint::UdpOut(addr.to_string()), opts(9))
+            .await
+            .expect("open");
+        client.send(header(255), &heartbeat(3)).expect("send");
+        // Datagrams on loopback arrive in order: the first delivered is the signed one.
+        let got = next(&mut server).await;
+        assert_eq!(mark_of(&got), 3);
+        assert_eq!(server.counters().rejected_signatures(), 2);
+        // The answer is signed too: the client accepts it.
+        server.send(header(1), &heartbeat(4)).expect("send");
+        assert_eq!(mark_of(&next(&mut client).await), 4);
+        assert_eq!(client.counters().rejected_signatures(), 0);
+        // A replay of a signed frame (same timestamp) is refused.
+        let mut signed = Vec::new();
+        let data = signing(9, 1).expect("some").data();
+        mavlink::write_versioned_msg_signed(
+            &mut signed,
+            MavlinkVersion::V2,
+            header(255),
+            &heartbeat(5),
+            Some(&data),
+        )
+        .expect("encode");
+        within(sock.send_to(&signed, addr)).await.expect("send");
+        within(sock.send_to(&signed, addr)).await.expect("send");
+        client.send(header(255), &heartbeat(6)).expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 5);
+        assert_eq!(mark_of(&next(&mut server).await), 6);
+        assert_eq!(server.counters().rejected_signatures(), 3);
+    }
+
+    #[tokio::test]
+    async fn udpin_pins_the_first_heartbeat_and_ignores_spoofers() {
+        let opts = OpenOptions {
+            pin: Some(Pin {
+                system_id: Some(1),
+                peer: None,
+                release_after: None,
+            }),
+            ..OpenOptions::default()
+        };
+        let mut server = Connection::open(&"udpin:127.0.0.1:0".parse().expect("valid"), opts)
+            .await
+            .expect("bind");
+        let addr = server.local_addr().expect("bound");
+        let real = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        let spoof = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        // A heartbeat of another system does not pin; the expected one does.
+        let mut other = Vec::new();
+        mavlink::write_versioned_msg(&mut other, MavlinkVersion::V2, header(7), &heartbeat(1))
+            .expect("encode");
+        within(spoof.send_to(&other, addr)).await.expect("send");
+        within(real.send_to(&frame_bytes(2), addr))
+            .await
+            .expect("send");
+        let got = next(&mut server).await;
+        assert_eq!(mark_of(&got), 2);
+        let pinned = server.pinned().expect("pinned");
+        assert_eq!(pinned.system_id, 1);
+        assert_eq!(pinned.addr, real.local_addr().ok());
+        // The same system id from another port: dropped, counted, not followed.
+        within(spoof.send_to(&frame_bytes(3), addr))
+            .await
+            .expect("send");
+        within(real.send_to(&frame_bytes(4), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 4);
+        assert_eq!(server.counters().foreign(), 2);
+        server.send(header(255), &heartbeat(5)).expect("send");
+        let mut buf = [0u8; 512];
+        let (n, from) = within(real.recv_from(&mut buf)).await.expect("recv");
+        assert_eq!(from, addr);
+        let (_, msg) = MavlinkReader::new(&buf[..n])
+            .read_any_message::<MavMessage>()
+            .expect("a valid frame");
+        assert!(matches!(msg, MavMessage::HEARTBEAT(hb) if hb.custom_mode == 5));
+        // The spoofer never got an answer.
+        let nothing = tokio::time::timeout(Duration::from_millis(200), spoof.recv(&mut buf)).await;
+        assert!(nothing.is_err(), "the spoofer got a datagram");
+    }
+
+    #[tokio::test]
+    async fn a_silent_pinned_peer_is_released_for_the_next_heartbeat() {
+        let release = Duration::from_millis(300);
+        let opts = OpenOptions {
+            pin: Some(Pin {
+                system_id: Some(1),
+                peer: None,
+                release_after: Some(release),
+            }),
+            ..OpenOptions::default()
+        };
+        let mut server = Connection::open(&"udpin:127.0.0.1:0".parse().expect("valid"), opts)
+            .await
+            .expect("bind");
+        let addr = server.local_addr().expect("bound");
+        let old = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        let new = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        within(old.send_to(&frame_bytes(1), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 1);
+        // While the pinned peer is live, another port is ignored.
+        within(new.send_to(&frame_bytes(2), addr))
+            .await
+            .expect("send");
+        within(old.send_to(&frame_bytes(3), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 3);
+        // Silent past the release time (a lower bound: the point of the test is the silence):
+        // the restarted autopilot's heartbeat from its new port pins again.
+        tokio::time::sleep(release + Duration::from_millis(100)).await;
+        within(new.send_to(&frame_bytes(4), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 4);
+        assert_eq!(server.pinned().and_then(|p| p.addr), new.local_addr().ok());
+        within(old.send_to(&frame_bytes(5), addr))
+            .await
+            .expect("send");
+        within(new.send_to(&frame_bytes(6), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 6);
+        assert_eq!(server.counters().foreign(), 2);
+    }
+
+    #[tokio::test]
+    async fn a_configured_peer_is_answered_at_once_and_others_ignored() {
+        let real = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        let spoof = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
+        let opts = OpenOptions {
+            pin: Some(Pin {
+                system_id: None,
+                peer: real.local_addr().ok(),
+                release_after: None,
+            }),
+            ..OpenOptions::default()
+        };
+        let mut server = Connection::open(&"udpin:127.0.0.1:0".parse().expect("valid"), opts)
+            .await
+            .expect("bind");
+        let addr = server.local_addr().expect("bound");
+        server.send(header(255), &heartbeat(1)).expect("send");
+        let mut buf = [0u8; 512];
+        within(real.recv(&mut buf))
+            .await
+            .expect("answered before any heartbeat");
+        within(spoof.send_to(&frame_bytes(2), addr))
+            .await
+            .expect("send");
+        within(real.send_to(&frame_bytes(3), addr))
+            .await
+            .expect("send");
+        assert_eq!(mark_of(&next(&mut server).await), 3);
+        assert_eq!(server.counters().foreign(), 1);
     }
 
     #[tokio::test]

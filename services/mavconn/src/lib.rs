@@ -10,6 +10,8 @@
 //!   waits (a congested output drops and counts, like a radio). UDP-in answers the last
 //!   sender and can copy everything to an extra address; frames that pass the CRC but do not
 //!   parse are counted.
+//! - [`security`]: MAVLink 2 signing ([`Signing`]) and pinning of the other end ([`Pin`]),
+//!   both optional in [`OpenOptions`]; refused frames are counted, never delivered.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), Box<dyn std::error::Error>> {
@@ -28,8 +30,10 @@
 
 pub mod connection;
 pub mod endpoint;
+pub mod security;
 
 pub use connection::{
     Connection, ConnectionOpenError, Counters, Frame, OpenOptions, SendError, RESYNC_BYTES,
 };
 pub use endpoint::{Endpoint, EndpointParseError};
+pub use security::{Pin, Pinned, Signing, SigningKey, SigningKeyLoadError};

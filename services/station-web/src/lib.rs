@@ -2,14 +2,16 @@
 //! but their model and their own routes.
 //!
 //! - [`startup`]: the command-line options both take ([`StationArgs`]), their configuration
-//!   ([`StationConfig`]), tracing, binding the HTTP listener and printing the `NAME=http://ADDR/`
-//!   line tests and the launcher read, opening the station's middleware node, and serving until
+//!   ([`StationConfig`]), tracing, binding the HTTP listener and printing the
+//!   `NAME=http://ADDR/?token=TOKEN` line tests and the launcher read, opening the station's middleware node, and serving until
 //!   cancelled then stopping in order ([`serve_and_shut_down`]).
 //! - [`http`]: the [`Station`] trait a station's shared state implements, and the routes it gets
 //!   from it: the page (`GET /`), its snapshot (`GET /api/state`) and the live channel
 //!   (`GET /api/events`, server-sent `state` events); the JSON error and `202 {id}` answers.
 //! - [`live`]: what the station's tasks and pages share ([`Live`]): the change notification,
 //!   the cancellation, the tasks, and the loop feeding the station from a subscription.
+//! - [`access`]: who may use a station ([`Access`]): the random token of its URL, required on
+//!   every `/api/*` call, the `Host` allowlist and the `Origin` check.
 //! - [`commands`]: the commands a station has sent, pending until the vehicle answers
 //!   ([`CommandLog`]), and how the page sees them.
 //!
@@ -29,16 +31,19 @@
 //! # }
 //! ```
 
+pub mod access;
 pub mod commands;
 pub mod http;
 pub mod live;
 pub mod startup;
 
+pub use access::Access;
 pub use commands::{CommandLog, CommandStatus, CommandView};
 pub use http::{accepted, error, routes, serve, snapshot_stream, Station};
 pub use live::Live;
 pub use startup::{
-    bind, call_error, init_tracing, open_node, serve_and_shut_down, StationArgs, StationConfig,
+    bind, call_error, init_tracing, open_node, serve_and_shut_down, Listener, StationArgs,
+    StationConfig,
 };
 
 /// A duration in whole milliseconds, as the pages show ages (saturating).

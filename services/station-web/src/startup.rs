@@ -3,12 +3,15 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
 use axum::Router;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
+
+use crate::access::Access;
 
 /// The command-line options every station takes (flattened into each binary's own; the
 /// listening address and node name stay there, their defaults differ).
@@ -92,28 +95,36 @@ pub fn init_tracing(default_filter: &str) {
         .init();
 }
 
-/// Binds the station's HTTP listener and prints `url_var=http://ADDR/` on stdout (the line tests
-/// and the launcher read, with the port actually bound).
+/// A bound station listener and the access rules (token, allowed hosts) it will serve with.
+#[derive(Debug)]
+pub struct Listener {
+    /// The bound socket.
+    pub tcp: tokio::net::TcpListener,
+    /// What [`serve_and_shut_down`] requires of every request.
+    pub access: Arc<Access>,
+}
+
+/// Binds the station's HTTP listener, makes its random token and prints
+/// `url_var=http://ADDR/?token=TOKEN` on stdout (the line tests and the launcher read, with the
+/// port actually bound).
 ///
 /// # Errors
 /// The address cannot be bound.
-pub async fn bind(
-    listen: SocketAddr,
-    url_var: &str,
-) -> anyhow::Result<(tokio::net::TcpListener, SocketAddr)> {
-    let listener = tokio::net::TcpListener::bind(listen)
+pub async fn bind(listen: SocketAddr, url_var: &str) -> anyhow::Result<(Listener, SocketAddr)> {
+    let tcp = tokio::net::TcpListener::bind(listen)
         .await
         .with_context(|| format!("listening on {listen}"))?;
-    let addr = listener.local_addr().context("local address")?;
-    print_url(url_var, addr);
-    Ok((listener, addr))
+    let addr = tcp.local_addr().context("local address")?;
+    let access = Arc::new(Access::generate(addr.ip()));
+    print_url(url_var, &access.url(addr));
+    Ok((Listener { tcp, access }, addr))
 }
 
-/// Prints `NAME=http://ADDR/` on stdout.
-fn print_url(name: &str, addr: SocketAddr) {
+/// Prints `NAME=URL` on stdout.
+fn print_url(name: &str, url: &str) {
     use std::io::Write;
     let mut out = std::io::stdout().lock();
-    let _ = writeln!(out, "{name}=http://{addr}/");
+    let _ = writeln!(out, "{name}={url}");
     let _ = out.flush();
 }
 
@@ -142,21 +153,23 @@ pub fn call_error(e: marea::CallError) -> String {
     }
 }
 
-/// Serves `router` on `listener` until `cancel`, then stops the station in order: cancels its
+/// Serves `router` on `listener` until `cancel`, every request checked by the listener's
+/// [`Access`] first, then stops the station in order: cancels its
 /// tasks and waits for them, drops `state` (what holds the node's handles) and shuts `node`
 /// down. Returns how serving ended.
 ///
 /// # Errors
 /// The server failed (accepting connections).
 pub async fn serve_and_shut_down<S>(
-    listener: tokio::net::TcpListener,
+    listener: Listener,
     router: Router,
     cancel: CancellationToken,
     tasks: TaskTracker,
     state: S,
     node: marea::Node,
 ) -> anyhow::Result<()> {
-    let served = crate::http::serve(listener, router, cancel.clone()).await;
+    let router = listener.access.clone().guard(router);
+    let served = crate::http::serve(listener.tcp, router, cancel.clone()).await;
     cancel.cancel();
     tasks.close();
     tasks.wait().await;

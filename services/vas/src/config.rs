@@ -70,6 +70,50 @@ pub struct VasConfig {
     /// Manual-control staleness timeout, ms (`manualTimeoutMs`).
     #[serde(rename = "@manualTimeoutMs")]
     pub manual_timeout_ms: u64,
+    /// The stations whose manual control is obeyed (`manualStations`), comma-separated: each a
+    /// publishing node's name or a prefix of the sample's item name (`ground-fmo`,
+    /// `ground/fmo`). Unset: any station (the launcher sets the mission's FMo stations).
+    #[serde(rename = "@manualStations")]
+    pub manual_stations: Option<String>,
+    /// Manual-control samples stamped further ahead of our clock are refused, ms
+    /// (`manualSkewMs`).
+    #[serde(rename = "@manualSkewMs")]
+    pub manual_skew_ms: u64,
+    /// Largest |altitude| above home a pushed waypoint may have, metres (`maxAltitudeM`).
+    #[serde(rename = "@maxAltitudeM")]
+    pub max_altitude_m: f64,
+    /// Most waypoints in one `push_waypoints` call (`maxWaypointsPerCall`).
+    #[serde(rename = "@maxWaypointsPerCall")]
+    pub max_waypoints_per_call: usize,
+    /// Most waypoints queued at once (`maxQueuedWaypoints`).
+    #[serde(rename = "@maxQueuedWaypoints")]
+    pub max_queued_waypoints: u64,
+    /// MAVLink 2 signing toward the autopilot (`<signing keyFile=".." linkId="1"/>`).
+    #[serde(rename = "signing")]
+    pub signing: Option<SigningSettings>,
+    /// Pin the autopilot at its first heartbeat (`pinAutopilot`, default true): afterwards
+    /// frames from another system, component or UDP address are dropped and counted.
+    #[serde(rename = "@pinAutopilot")]
+    pub pin_autopilot: bool,
+    /// The autopilot's system id to pin (`autopilotSysid`); none: the first heartbeat's.
+    #[serde(rename = "@autopilotSysid")]
+    pub autopilot_sysid: Option<u8>,
+    /// The autopilot's UDP address (`autopilotPeer="ip:port"`): a `udpin` endpoint answers it
+    /// from the start and listens to nobody else.
+    #[serde(rename = "@autopilotPeer")]
+    pub autopilot_peer: Option<std::net::SocketAddr>,
+}
+
+/// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SigningSettings {
+    /// The 32-byte secret as 64 hex digits; refused if group/world-readable (`keyFile`).
+    #[serde(rename = "@keyFile")]
+    pub key_file: PathBuf,
+    /// Link id put in our signatures (`linkId`, default 0).
+    #[serde(rename = "@linkId", default)]
+    pub link_id: u8,
 }
 
 impl Default for VasConfig {
@@ -91,6 +135,15 @@ impl Default for VasConfig {
             namespace: None,
             manual_control: val.manual_control,
             manual_timeout_ms: val.manual_timeout.as_millis() as u64,
+            manual_stations: None,
+            manual_skew_ms: val.manual_skew.as_millis() as u64,
+            max_altitude_m: val.waypoints.max_alt_m,
+            max_waypoints_per_call: val.waypoints.max_per_call,
+            max_queued_waypoints: val.waypoints.max_queued,
+            signing: None,
+            pin_autopilot: true,
+            autopilot_sysid: None,
+            autopilot_peer: None,
         }
     }
 }
@@ -117,6 +170,9 @@ pub enum ConfigLoadError {
     /// A value is out of range.
     #[error("{0}")]
     Invalid(String),
+    /// The signing key file cannot be used.
+    #[error(transparent)]
+    SigningKey(#[from] mavconn::SigningKeyLoadError),
 }
 
 impl VasConfig {
@@ -175,10 +231,46 @@ impl VasConfig {
                 self.retries
             )));
         }
+        if !(self.max_altitude_m.is_finite() && self.max_altitude_m > 0.0) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "maxAltitudeM {} is not a positive number",
+                self.max_altitude_m
+            )));
+        }
+        if self.max_waypoints_per_call == 0 || self.max_queued_waypoints == 0 {
+            return Err(ConfigLoadError::Invalid(
+                "maxWaypointsPerCall and maxQueuedWaypoints must be at least 1".into(),
+            ));
+        }
         Ok(())
     }
 
-    /// The APL's settings.
+    /// The MAVLink signing the configuration asks for, its key read from its file.
+    ///
+    /// # Errors
+    /// The key file is unreadable, malformed or readable by group/world.
+    pub fn signing(&self) -> Result<Option<mavconn::Signing>, ConfigLoadError> {
+        let Some(s) = &self.signing else {
+            return Ok(None);
+        };
+        Ok(Some(mavconn::Signing {
+            key: mavconn::SigningKey::load(&s.key_file)?,
+            link_id: s.link_id,
+        }))
+    }
+
+    /// How the autopilot is pinned (`None` with `pinAutopilot="false"`).
+    pub fn pin(&self) -> Option<mavconn::Pin> {
+        // Released once the link is declared lost anyway, so a restarted autopilot is
+        // followed; a spoofer must first silence the real one for that long.
+        self.pin_autopilot.then_some(mavconn::Pin {
+            system_id: self.autopilot_sysid,
+            peer: self.autopilot_peer,
+            release_after: Some(Duration::from_millis(self.heartbeat_timeout_ms)),
+        })
+    }
+
+    /// The APL's settings (without the signing key, see [`VasConfig::signing`]).
     pub fn ardupilot(&self) -> ArduPilotConfig {
         ArduPilotConfig {
             vehicle: self.vehicle,
@@ -189,6 +281,7 @@ impl VasConfig {
                 heartbeat_timeout: Duration::from_millis(self.heartbeat_timeout_ms),
                 request_timeout: Duration::from_millis(self.request_timeout_ms),
                 retries: self.retries,
+                pin: self.pin(),
                 ..ManagerConfig::default()
             },
         }
@@ -199,6 +292,20 @@ impl VasConfig {
         ValConfig {
             manual_control: self.manual_control.clone(),
             manual_timeout: Duration::from_millis(self.manual_timeout_ms),
+            manual_stations: self.manual_stations.as_deref().map(|list| {
+                list.split(',')
+                    .map(str::trim)
+                    .filter(|s| !s.is_empty())
+                    .map(str::to_owned)
+                    .collect()
+            }),
+            manual_skew: Duration::from_millis(self.manual_skew_ms),
+            waypoints: crate::val::limits::WaypointLimits {
+                max_alt_m: self.max_altitude_m,
+                max_per_call: self.max_waypoints_per_call,
+                max_queued: self.max_queued_waypoints,
+                ..Default::default()
+            },
             ..ValConfig::default()
         }
     }
@@ -242,5 +349,52 @@ mod tests {
             (mgr.request_timeout, mgr.retries),
             (Duration::from_millis(150), 12)
         );
+    }
+
+    #[test]
+    fn signing_and_pinning_keys_parse_and_a_readable_key_is_refused() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let key = dir.path().join("mav.key");
+        std::fs::write(&key, "11".repeat(32)).unwrap();
+        std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
+        let p = dir.path().join("vas.xml");
+        std::fs::write(
+            &p,
+            format!(
+                r#"<vas autopilotSysid="3" autopilotPeer="127.0.0.1:14551">
+                     <signing keyFile="{}" linkId="2"/></vas>"#,
+                key.display()
+            ),
+        )
+        .unwrap();
+        let cfg = VasConfig::load(&p).unwrap();
+        let signing = cfg.signing().unwrap().expect("configured");
+        assert_eq!((signing.key.bytes(), signing.link_id), (&[0x11; 32], 2));
+        let pin = cfg.ardupilot().manager.pin.expect("pinned by default");
+        assert_eq!(pin.system_id, Some(3));
+        assert_eq!(pin.peer, "127.0.0.1:14551".parse().ok());
+        std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o644)).unwrap();
+        assert!(matches!(
+            cfg.signing(),
+            Err(ConfigLoadError::SigningKey(
+                mavconn::SigningKeyLoadError::TooOpen { .. }
+            ))
+        ));
+        std::fs::write(&p, r#"<vas pinAutopilot="false"/>"#).unwrap();
+        let cfg = VasConfig::load(&p).unwrap();
+        assert!(cfg.ardupilot().manager.pin.is_none() && cfg.signing().unwrap().is_none());
+        assert_eq!(cfg.val().manual_stations, None, "any station by default");
+        std::fs::write(
+            &p,
+            r#"<vas manualStations="ground-fmo, base/fmo" manualSkewMs="500"/>"#,
+        )
+        .unwrap();
+        let val = VasConfig::load(&p).unwrap().val();
+        assert_eq!(
+            val.manual_stations,
+            Some(vec!["ground-fmo".to_owned(), "base/fmo".to_owned()])
+        );
+        assert_eq!(val.manual_skew, Duration::from_millis(500));
     }
 }

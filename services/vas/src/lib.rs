@@ -42,13 +42,21 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
         config.namespace.as_deref(),
     )
     .context("loading the network configuration")?;
+    let signing = config.signing().context("MAVLink signing")?;
     let apl: Arc<dyn IAutopilot> = match config.autopilot {
         AutopilotKind::Ardupilot => Arc::new(
-            ArduPilot::open(&config.endpoint, config.ardupilot())
-                .await
-                .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
+            ArduPilot::open(&config.endpoint, {
+                let mut ap = config.ardupilot();
+                ap.manager.signing = signing;
+                ap
+            })
+            .await
+            .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
         ),
     };
+    if config.manual_stations.is_none() {
+        tracing::warn!("manualStations not set: manual control is obeyed from any station");
+    }
     let node = marea::Node::open(&net)
         .await
         .context("opening the middleware node")?;

@@ -48,6 +48,10 @@ struct Args {
     /// Namespace of the items, e.g. rover1 (overrides the network file's).
     #[arg(long)]
     namespace: Option<String>,
+    /// The stations whose manual control is obeyed, comma-separated node names or item
+    /// prefixes (`ground-fmo,base/fmo`); default: any.
+    #[arg(long)]
+    manual_stations: Option<String>,
 }
 
 #[tokio::main]
@@ -96,6 +100,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.namespace.is_some() {
         cfg.namespace = args.namespace;
+    }
+    if args.manual_stations.is_some() {
+        cfg.manual_stations = args.manual_stations;
     }
     let shutdown = marea::process::cancelled_on_signal();
     vas::run(cfg, shutdown).await

@@ -29,6 +29,10 @@ pub struct Station {
     child: Child,
     /// `127.0.0.1:PORT`.
     pub addr: String,
+    /// The URL it printed, `http://127.0.0.1:PORT/?token=TOKEN`.
+    pub url: String,
+    /// Its token, required on every `/api/*` call.
+    pub token: String,
 }
 
 impl Station {
@@ -51,16 +55,32 @@ impl Station {
         let url = line
             .strip_prefix(&format!("{url_var}="))
             .unwrap_or_else(|| panic!("unexpected station output {line:?}"));
-        let addr = url
-            .trim_start_matches("http://")
-            .trim_end_matches('/')
-            .to_owned();
-        Station { child, addr }
+        let (base, token) = url
+            .split_once("/?token=")
+            .unwrap_or_else(|| panic!("no token in the station's URL {url:?}"));
+        let addr = base.trim_start_matches("http://").to_owned();
+        Station {
+            child,
+            addr,
+            url: url.to_owned(),
+            token: token.to_owned(),
+        }
     }
 
-    /// GET `path`: status and body.
+    /// `path` with the station's token as a query parameter.
+    pub fn with_token(&self, path: &str) -> String {
+        let sep = if path.contains('?') { '&' } else { '?' };
+        format!("{path}{sep}token={}", self.token)
+    }
+
+    /// The token as a header line for [`request_with`].
+    fn token_header(&self) -> String {
+        format!("X-Station-Token: {}\r\n", self.token)
+    }
+
+    /// GET `path` (with the token): status and body.
     pub async fn get(&self, path: &str) -> (u16, String) {
-        request(&self.addr, "GET", path, None).await
+        request_with(&self.addr, "GET", path, None, &self.token_header()).await
     }
 
     /// GET `path` as JSON (asserting 200).
@@ -72,7 +92,14 @@ impl Station {
 
     /// POST `body` as JSON to `path`: status and body as JSON (null when empty).
     pub async fn post(&self, path: &str, body: serde_json::Value) -> (u16, serde_json::Value) {
-        let (status, text) = request(&self.addr, "POST", path, Some(&body.to_string())).await;
+        let (status, text) = request_with(
+            &self.addr,
+            "POST",
+            path,
+            Some(&body.to_string()),
+            &self.token_header(),
+        )
+        .await;
         let v = if text.is_empty() {
             serde_json::Value::Null
         } else {
@@ -110,11 +137,22 @@ impl Station {
 
 /// One HTTP/1.1 request with `Connection: close`; decodes a chunked body.
 pub async fn request(addr: &str, method: &str, path: &str, body: Option<&str>) -> (u16, String) {
+    request_with(addr, method, path, body, "").await
+}
+
+/// [`request`] with `extra` header lines (each ending in `\r\n`).
+pub async fn request_with(
+    addr: &str,
+    method: &str,
+    path: &str,
+    body: Option<&str>,
+    extra: &str,
+) -> (u16, String) {
     tokio::time::timeout(STEP, async {
         let mut s = TcpStream::connect(addr).await.expect("connect");
         let body = body.unwrap_or("");
         let req = format!(
-            "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\
+            "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{extra}\
              Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
             body.len()
         );

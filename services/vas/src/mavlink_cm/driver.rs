@@ -356,6 +356,8 @@ pub(crate) async fn driver(
     let backoff = inner.cfg.reconnect_backoff;
     let opts = OpenOptions {
         counters: inner.counters.clone(),
+        signing: inner.cfg.signing.clone(),
+        pin: inner.cfg.pin.clone(),
         ..OpenOptions::default()
     };
     loop {

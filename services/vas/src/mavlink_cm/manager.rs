@@ -42,6 +42,11 @@ pub struct ManagerConfig {
     pub reconnect_backoff: Duration,
     /// How long a request waits for the first heartbeat before failing.
     pub connect_wait: Duration,
+    /// MAVLink 2 signing toward the autopilot (issue 13): sign everything, accept only
+    /// correctly signed frames.
+    pub signing: Option<mavconn::Signing>,
+    /// Pin the autopilot (system, component, UDP address) at its first heartbeat.
+    pub pin: Option<mavconn::Pin>,
 }
 
 impl Default for ManagerConfig {
@@ -54,6 +59,8 @@ impl Default for ManagerConfig {
             retries: 5,
             reconnect_backoff: Duration::from_millis(500),
             connect_wait: Duration::from_secs(10),
+            signing: None,
+            pin: None,
         }
     }
 }
@@ -191,6 +198,12 @@ impl MavlinkManager {
     /// Frames that passed the CRC but could not be decoded.
     pub fn parse_errors(&self) -> u64 {
         self.inner.counters.parse_errors()
+    }
+
+    /// The link's counters, summed over reopenings: parse errors, drops, frames refused by
+    /// signing and by pinning.
+    pub fn counters(&self) -> &mavconn::Counters {
+        &self.inner.counters
     }
 
     /// Waits for the link to be up (an autopilot heartbeat).

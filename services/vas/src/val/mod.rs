@@ -5,6 +5,7 @@
 //!
 //! Items (under `<namespace>/vas/`): see the crate README for the full list.
 
+pub mod limits;
 pub mod transitions;
 
 use std::sync::{Arc, Mutex as StdMutex};
@@ -32,6 +33,13 @@ pub struct ValConfig {
     pub manual_timeout: Duration,
     /// Period of the `mission_time` variable.
     pub mission_time_period: Duration,
+    /// What `push_waypoints` accepts (issue 13).
+    pub waypoints: limits::WaypointLimits,
+    /// The stations whose manual control is obeyed: each entry is a publishing node's name
+    /// or a prefix of the sample's item name (`ground` or `ground/fmo`); `None`: any station.
+    pub manual_stations: Option<Vec<String>>,
+    /// Manual-control samples stamped further than this ahead of our clock are refused.
+    pub manual_skew: Duration,
 }
 
 impl Default for ValConfig {
@@ -40,6 +48,9 @@ impl Default for ValConfig {
             manual_control: "**/fmo/manual_control".into(),
             manual_timeout: Duration::from_millis(500),
             mission_time_period: Duration::from_secs(1),
+            waypoints: limits::WaypointLimits::default(),
+            manual_stations: None,
+            manual_skew: Duration::from_secs(2),
         }
     }
 }
@@ -276,6 +287,9 @@ impl IService for Vas {
         let push = ctx.provide_function("push_waypoints", move |wps: Vec<Waypoint>| {
             let c = c.clone();
             async move {
+                // Checked before anything reaches the autopilot; refused whole.
+                let queued = c.apl.queue_status().await.map_err(|e| e.to_string())?;
+                c.cfg.waypoints.check(&wps, queued.queued)?;
                 let q = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string())?;
                 let _ = c.items.queue.set(&q);
                 Ok(q)
@@ -337,6 +351,7 @@ impl IService for Vas {
             let timeout = c.cfg.manual_timeout;
             let mut last: Option<(u64, Instant)> = None;
             let mut released = true;
+            let mut refused = ManualRefusals::default();
             let mut tick = tokio::time::interval((timeout / 2).max(Duration::from_millis(10)));
             loop {
                 tokio::select! {
@@ -346,6 +361,14 @@ impl IService for Vas {
                             // Another vehicle's sticks: not ours to obey, and their timestamps
                             // must not order ours (another station's clock may be ahead).
                             if !s.value.is_for(&me) {
+                                continue;
+                            }
+                            // Only from a configured station, never from the far future.
+                            let stamp = s.value.sticks.timestamp_ms;
+                            let admitted =
+                                c.cfg.manual_admits(&s.publisher, &s.name, stamp, unix_ms());
+                            if let Err(why) = admitted {
+                                refused.refuse(&c, &s.publisher, &why);
                                 continue;
                             }
                             let sticks = s.value.sticks;
@@ -406,6 +429,80 @@ impl IService for Vas {
     }
 }
 
+impl ValConfig {
+    /// Whether a manual-control sample published by node `publisher` as item `name`, stamped
+    /// `timestamp_ms` (our clock reading `now_ms`), comes from a configured station and not
+    /// from the far future.
+    ///
+    /// # Errors
+    /// Why it is refused.
+    pub fn manual_admits(
+        &self,
+        publisher: &str,
+        name: &str,
+        timestamp_ms: u64,
+        now_ms: u64,
+    ) -> Result<(), String> {
+        if let Some(allowed) = &self.manual_stations {
+            let ok = allowed.iter().any(|a| {
+                a == publisher
+                    || name
+                        .strip_prefix(a.as_str())
+                        .is_some_and(|rest| rest.starts_with('/'))
+            });
+            if !ok {
+                return Err(format!(
+                    "manual control from node {publisher} ({name}) refused: not a configured station"
+                ));
+            }
+        }
+        let skew = u64::try_from(self.manual_skew.as_millis()).unwrap_or(u64::MAX);
+        if timestamp_ms > now_ms.saturating_add(skew) {
+            return Err(format!(
+                "manual control from node {publisher} refused: stamped {} ms ahead of our clock",
+                timestamp_ms - now_ms
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Our clock as the stations stamp their samples: ms since the Unix epoch.
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX))
+}
+
+/// Refused manual-control samples: counted, logged and raised as an alarm at most once a
+/// minute per publishing node, so a flood does not flood the alarms.
+#[derive(Default)]
+struct ManualRefusals {
+    count: u64,
+    last_told: std::collections::HashMap<String, Instant>,
+}
+
+impl ManualRefusals {
+    const QUIET: Duration = Duration::from_secs(60);
+
+    fn refuse(&mut self, core: &Core, publisher: &str, why: &str) {
+        self.count += 1;
+        let due = self
+            .last_told
+            .get(publisher)
+            .is_none_or(|t| t.elapsed() >= Self::QUIET);
+        // Bounded: a forger inventing node names cannot grow the map past this.
+        if due && (self.last_told.len() < 256 || self.last_told.contains_key(publisher)) {
+            self.last_told.insert(publisher.to_owned(), Instant::now());
+            tracing::warn!("{why} ({} refused so far)", self.count);
+            core.alarm(
+                Severity::Warning,
+                format!("{why} ({} refused so far)", self.count),
+            );
+        }
+    }
+}
+
 /// Whether a manual-control sample stamped `timestamp_ms` by its station, which arrived
 /// `age` ago, is obeyed after the last one obeyed (`last`: its stamp and how long before this
 /// one it arrived).
@@ -445,5 +542,45 @@ mod tests {
         // A sample that waited longer than the timeout is stale whatever its stamp.
         assert!(!take(2_000, 2_001, ms(501), ms(10)));
         assert!(takes_manual_sample(None, 0, ms(0), timeout));
+    }
+
+    #[test]
+    fn manual_control_only_from_configured_stations_and_not_from_the_future() {
+        let open = ValConfig::default();
+        let now = 1_000_000;
+        assert!(open
+            .manual_admits("x", "x/fmo/manual_control", now, now)
+            .is_ok());
+        let cfg = ValConfig {
+            manual_stations: Some(vec!["ground-fmo".into(), "base/fmo".into()]),
+            ..ValConfig::default()
+        };
+        // By node name, or by the item's prefix.
+        assert!(cfg
+            .manual_admits("ground-fmo", "fmo/manual_control", now, now)
+            .is_ok());
+        assert!(cfg
+            .manual_admits("other", "base/fmo/manual_control", now, now)
+            .is_ok());
+        let e = cfg
+            .manual_admits("intruder", "evil/fmo/manual_control", now, now)
+            .unwrap_err();
+        assert!(
+            e.contains("node intruder") && e.contains("not a configured station"),
+            "{e}"
+        );
+        // A prefix must end at a segment boundary.
+        assert!(cfg
+            .manual_admits("x", "base/fmox/manual_control", now, now)
+            .is_err());
+        // Within the skew is fine, beyond it (u64::MAX included) refused.
+        assert!(cfg
+            .manual_admits("ground-fmo", "f", now + 2_000, now)
+            .is_ok());
+        let e = cfg
+            .manual_admits("ground-fmo", "f", now + 2_001, now)
+            .unwrap_err();
+        assert!(e.contains("2001 ms ahead"), "{e}");
+        assert!(cfg.manual_admits("ground-fmo", "f", u64::MAX, now).is_err());
     }
 }

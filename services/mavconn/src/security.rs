@@ -1,0 +1,193 @@
+//! What a [`crate::Connection`] may be told to trust: MAVLink 2 signing ([`Signing`], the
+//! `mavlink` crate's implementation of the MAVLink signing protocol with a 32-byte secret key
+//! read from a private file) and pinning ([`Pin`]: only one system, component and, on UDP, one
+//! address is listened to once it has been seen).
+//!
+//! Both are checked in the connection's reader, before a frame reaches the owner; what they
+//! refuse is counted ([`crate::Counters::rejected_signatures`], [`crate::Counters::foreign`]),
+//! never delivered.
+
+use std::fmt;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+/// The MAVLink 2 secret key: 32 bytes.
+#[derive(Clone, PartialEq, Eq)]
+pub struct SigningKey([u8; 32]);
+
+impl fmt::Debug for SigningKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        // Never print the secret, not even in a debug dump of a configuration.
+        f.write_str("SigningKey(..)")
+    }
+}
+
+/// Errors loading a signing key file.
+#[derive(Debug, thiserror::Error)]
+pub enum SigningKeyLoadError {
+    /// The file cannot be read (or its metadata cannot).
+    #[error("cannot read signing key file {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Group or others may read or write the file: the key may already be known.
+    #[error(
+        "signing key file {path} has mode {mode:03o}: group/world may access it (chmod 600 it)"
+    )]
+    TooOpen {
+        /// The file.
+        path: PathBuf,
+        /// Its permission bits.
+        mode: u32,
+    },
+    /// The content is neither 64 hex digits nor 32 raw bytes.
+    #[error("signing key file {path}: expected 64 hex digits (or 32 raw bytes), got {len} bytes")]
+    BadFormat {
+        /// The file.
+        path: PathBuf,
+        /// Its length after trimming.
+        len: usize,
+    },
+}
+
+impl SigningKey {
+    /// A key from its bytes.
+    pub fn from_bytes(bytes: [u8; 32]) -> Self {
+        Self(bytes)
+    }
+
+    /// The key's bytes.
+    pub fn bytes(&self) -> &[u8; 32] {
+        &self.0
+    }
+
+    /// Reads a key file: 64 hex digits (surrounding whitespace ignored) or exactly 32 raw
+    /// bytes. The file must not be accessible to group or others.
+    ///
+    /// # Errors
+    /// Unreadable file, group/world permissions, bad content.
+    pub fn load(path: &Path) -> Result<Self, SigningKeyLoadError> {
+        let read_err = |source| SigningKeyLoadError::Read {
+            path: path.to_owned(),
+            source,
+        };
+        let meta = std::fs::metadata(path).map_err(read_err)?;
+        let mode = std::os::unix::fs::PermissionsExt::mode(&meta.permissions()) & 0o777;
+        if mode & 0o077 != 0 {
+            return Err(SigningKeyLoadError::TooOpen {
+                path: path.to_owned(),
+                mode,
+            });
+        }
+        let raw = std::fs::read(path).map_err(read_err)?;
+        Self::parse(&raw).ok_or_else(|| SigningKeyLoadError::BadFormat {
+            path: path.to_owned(),
+            len: raw.trim_ascii().len(),
+        })
+    }
+
+    fn parse(raw: &[u8]) -> Option<Self> {
+        let text = raw.trim_ascii();
+        if text.len() == 64 && text.iter().all(u8::is_ascii_hexdigit) {
+            let mut key = [0u8; 32];
+            for (i, pair) in text.chunks_exact(2).enumerate() {
+                let s = std::str::from_utf8(pair).ok()?;
+                key[i] = u8::from_str_radix(s, 16).ok()?;
+            }
+            return Some(Self(key));
+        }
+        <[u8; 32]>::try_from(raw).ok().map(Self)
+    }
+}
+
+/// MAVLink 2 signing of a connection: every frame sent is signed, only correctly signed
+/// frames with a fresh timestamp are accepted (unsigned and MAVLink 1 frames are refused).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Signing {
+    /// The shared secret.
+    pub key: SigningKey,
+    /// The link id put in our signatures (one per link of a system, 0-255).
+    pub link_id: u8,
+}
+
+impl Signing {
+    pub(crate) fn data(&self) -> mavlink::SigningData {
+        mavlink::SigningData::from_config(mavlink::SigningConfig::new(
+            *self.key.bytes(),
+            self.link_id,
+            true,
+            false,
+        ))
+    }
+}
+
+/// Pinning of the other end: the first HEARTBEAT that matches (system id, and on UDP the
+/// configured address if any) fixes the system id, component id and (UDP) source address;
+/// afterwards frames from any other system, component or address are dropped and counted, and
+/// a `udpin` connection keeps answering the pinned address, not the last sender. Until then
+/// nothing but that heartbeat is delivered.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Pin {
+    /// The system id to pin to; `None`: the first heartbeat's.
+    pub system_id: Option<u8>,
+    /// The UDP address to pin to (`peer="ip:port"`); `None`: the first heartbeat's sender.
+    /// A `udpin` connection answers it from the start.
+    pub peer: Option<SocketAddr>,
+    /// A pinned peer silent for longer than this is released: the next matching heartbeat
+    /// pins again (an autopilot restarted from another port). `None`: pinned for good.
+    pub release_after: Option<std::time::Duration>,
+}
+
+/// What was pinned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Pinned {
+    /// System id of the other end.
+    pub system_id: u32,
+    /// Component id of the other end.
+    pub component_id: u8,
+    /// Its UDP address (`None` on byte streams).
+    pub addr: Option<SocketAddr>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::PermissionsExt;
+
+    #[test]
+    fn key_files_parse_as_hex_or_raw_and_must_be_private() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("key");
+        std::fs::write(&p, format!("{}\n", "0a".repeat(32))).unwrap();
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o600)).unwrap();
+        assert_eq!(SigningKey::load(&p).unwrap().bytes(), &[0x0a; 32]);
+
+        std::fs::write(&p, [7u8; 32]).unwrap();
+        assert_eq!(SigningKey::load(&p).unwrap().bytes(), &[7; 32]);
+
+        std::fs::write(&p, "abc").unwrap();
+        assert!(matches!(
+            SigningKey::load(&p),
+            Err(SigningKeyLoadError::BadFormat { len: 3, .. })
+        ));
+
+        std::fs::write(&p, "0a".repeat(32)).unwrap();
+        for mode in [0o640, 0o604, 0o660] {
+            std::fs::set_permissions(&p, std::fs::Permissions::from_mode(mode)).unwrap();
+            let e = SigningKey::load(&p).unwrap_err();
+            assert!(matches!(e, SigningKeyLoadError::TooOpen { .. }), "{e}");
+            assert!(e.to_string().contains("chmod 600"), "{e}");
+        }
+        assert!(matches!(
+            SigningKey::load(&dir.path().join("none")),
+            Err(SigningKeyLoadError::Read { .. })
+        ));
+        assert_eq!(
+            format!("{:?}", SigningKey::from_bytes([1; 32])),
+            "SigningKey(..)"
+        );
+    }
+}
