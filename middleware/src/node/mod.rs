@@ -114,6 +114,11 @@ pub(crate) struct Peer {
     pub lease: Duration,
     /// Declarations applied up to this counter.
     pub known: u32,
+    /// When its Hello made it a peer.
+    pub since: Instant,
+    /// It sent something in a session (beyond Hello and heartbeats): a node really running
+    /// the protocol at its address, never pushed out of a full peer table.
+    pub confirmed: std::sync::atomic::AtomicBool,
     /// When declarations were last requested, if an answer is outstanding.
     pub requested: Option<Instant>,
     pub services: HashMap<u32, String>,
@@ -198,6 +203,12 @@ pub(crate) struct NodeInner {
 pub(crate) struct NodeCounters {
     pub undecodable: AtomicU64,
     pub unknown_sender: AtomicU64,
+    /// Peers' declarations ignored for a malformed or oversized name or pattern.
+    pub bad_declarations: AtomicU64,
+    /// Hellos of new peers ignored because the peer table was full of confirmed peers.
+    pub peers_refused: AtomicU64,
+    /// Unconfirmed peers forgotten to make room for a new one.
+    pub peers_evicted: AtomicU64,
 }
 
 impl NodeInner {
@@ -287,6 +298,7 @@ impl NodeInner {
         if !matches!(msg, Message::Var { .. } | Message::Event { .. }) {
             if let Some(p) = self.peers.get(&node) {
                 p.heard(self.me.epoch);
+                p.confirmed.store(true, Ordering::Relaxed);
             }
         }
         match msg {
@@ -359,6 +371,12 @@ impl LinkHandler for Handler {
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.0.upgrade() {
             n.on_peer_reset(link, from);
+        }
+    }
+
+    fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
+        if let Some(n) = self.0.upgrade() {
+            n.on_peer_unreachable(link, from);
         }
     }
 }
