@@ -390,7 +390,7 @@ impl Node {
     /// Input from peers this node refused or let go since it opened (malformed messages,
     /// unknown senders, bad declarations, peers beyond the table's bound). Links count their
     /// own refusals in [`Node::link_stats`].
-    pub fn refused_input(&self) -> crate::RefusedInput {
+    pub fn refused_input(&self) -> crate::node::RefusedInput {
         self.inner.counters.refused()
     }
 
