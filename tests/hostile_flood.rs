@@ -218,3 +218,39 @@ async fn a_peer_that_never_acknowledges_is_let_go_after_the_retry_limit() {
     .await
     .expect("test finished in time");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heartbeats_of_an_unknown_node_queue_a_bounded_number_of_answers() {
+    tokio::time::timeout(Duration::from_secs(30), async {
+        let (domain, port) = net(4);
+        let victim = Node::open(&cfg("victim", &domain, port)).await.unwrap();
+        let target = attacker::unicast_of(&victim);
+        let base = link_stats(&victim).frames_in;
+        // 2,000 heartbeats of one invented node from one socket that never answers: each
+        // used to queue another Hello for it, kept until acknowledged (never).
+        let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let hb = attacker::heartbeat(0x0bad_4000_0000, attacker::domain_hash(&domain));
+        tokio::task::block_in_place(|| {
+            for i in 0..2_000u64 {
+                sock.send_to(&hb, target).unwrap();
+                if i % 200 == 199 {
+                    attacker::wait_frames_in(&victim, base + i + 1, Duration::from_secs(2));
+                }
+            }
+        });
+        assert!(attacker::wait_frames_in(
+            &victim,
+            base + 2_000,
+            Duration::from_secs(5)
+        ));
+        let queued = link_stats(&victim).safe_queued;
+        assert!(
+            queued <= 8,
+            "{queued} safe messages queued for an unknown address"
+        );
+        assert!(victim.peers().is_empty());
+        assert!(victim.shutdown().await);
+    })
+    .await
+    .expect("test finished in time");
+}

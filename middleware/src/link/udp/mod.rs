@@ -87,6 +87,10 @@ const MAX_UNBOUND: usize = 256;
 /// How long a session with an address no node is known at lives: a real node's Hello binds
 /// it within a round trip.
 const UNBOUND_TTL: Duration = Duration::from_secs(5);
+/// Safe messages queued for an address no node is known at (our Hellos answering its
+/// heartbeats): beyond it, more are refused, so heartbeats from one address cannot make the
+/// node queue a Hello each for the life of the session.
+const MAX_UNBOUND_SAFE: usize = 8;
 /// Fast messages queued per peer before the oldest is dropped.
 const MAX_FAST_QUEUE: usize = 4096;
 /// A send within this long of the previous datagram is left to the transmit task to batch.
@@ -105,6 +109,8 @@ struct PeerState {
     /// The transmit task was woken for this peer and has not flushed it yet: further messages
     /// need no wake-up of their own (each one costs a syscall when the task sleeps elsewhere).
     wake_pending: bool,
+    /// The node knows who is at this address (see [`sessions`]).
+    bound: bool,
 }
 
 impl PeerState {
@@ -118,6 +124,7 @@ impl PeerState {
             blocked: VecDeque::new(),
             last_write: None,
             wake_pending: false,
+            bound: false,
         }
     }
 
@@ -696,7 +703,13 @@ impl Link for UdpLink {
                 }
                 st.fast_bytes += cost;
             }
-            Outgoing::Safe { msg, done } => st.safe.push_back((msg, done)),
+            Outgoing::Safe { msg, done } => {
+                if !st.bound && st.safe.len() + st.tx.in_flight() >= MAX_UNBOUND_SAFE {
+                    drop(st);
+                    return Outgoing::Safe { msg, done }.refuse(addr);
+                }
+                st.safe.push_back((msg, done))
+            }
         }
         let idle = st.blocked.is_empty()
             && st
@@ -727,7 +740,11 @@ impl Link for UdpLink {
 
     fn confirm_peer(&self, to: PeerAddr) {
         if let PeerAddr::Udp(addr) = to {
-            if self.session(addr, false, true).is_none() {
+            if let Some(p) = self.session(addr, false, true) {
+                if lock(&self.peers).is_bound(&addr) {
+                    lock(&p).bound = true;
+                }
+            } else {
                 tracing::warn!(link = %self.options.name, %addr, "no room for a session with a new peer ({MAX_PEERS} bound)");
             }
         }

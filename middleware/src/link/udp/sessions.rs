@@ -72,7 +72,6 @@ impl<V: Clone> SessionTable<V> {
     }
 
     /// Whether the session with `addr` is bound.
-    #[cfg(test)]
     pub(crate) fn is_bound(&self, addr: &SocketAddr) -> bool {
         self.slots
             .get(addr)
