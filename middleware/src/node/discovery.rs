@@ -233,7 +233,8 @@ impl NodeInner {
             }
             None => {
                 let n = self.counters.peers_refused.fetch_add(1, Ordering::Relaxed);
-                if n.is_power_of_two() {
+                // Logged at the 1st, 2nd, 4th, 8th... refusal: a flood is seen, not echoed.
+                if (n + 1).is_power_of_two() {
                     tracing::warn!(peer = %name, refused = n + 1, "peer table full of confirmed peers ({MAX_PEERS}); new peer ignored");
                 }
                 false
