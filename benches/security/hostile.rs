@@ -1,6 +1,139 @@
-//! Adversarial-input figures (`hostile.*`). Filled in by the bounded-resources work.
+//! Adversarial-input figures (`hostile.*`):
+//! - `hostile.pattern.worst_match_us`: the slowest of a set of adversarial shapes of 256-byte
+//!   patterns (chains of `**`, of `*`, of both, with a last segment that never matches) against
+//!   256-byte names, in microseconds per match. Shapes the validation of a peer's patterns
+//!   refuses (repeated `**`, more than 64 segments) are measured too: the matcher must not
+//!   depend on that validation.
+//! - `hostile.flood.discovery_after_ms`: real sockets on loopback. A victim node runs; an
+//!   attacker sends it 10,000 heartbeats of invented node ids, each from its own socket (paced
+//!   to what the victim reads, so the kernel drops none); then a fresh node starts, and the
+//!   figure is the time until it has discovered the victim.
+//!
+//! `hostile.rejected_ratio` belongs to the hostile suite (an attacker process trying every
+//! attack); it is not printed here rather than printed without those attacks behind it.
 
-#[allow(unused_imports)]
+use std::net::{Ipv4Addr, SocketAddrV4};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use marea::config::{EthernetConfig, LinkConfig};
+use marea::{NetworkConfig, Node};
+
 use super::metric::metric;
 
-pub fn run() {}
+#[path = "../../tests/common/attacker.rs"]
+mod attacker;
+
+pub fn run() {
+    metric("hostile.pattern.worst_match_us", worst_match_us(), "us");
+    match flood_discovery_ms() {
+        Ok(ms) => metric("hostile.flood.discovery_after_ms", ms, "ms"),
+        Err(e) => eprintln!("hostile.flood.discovery_after_ms: {e}"),
+    }
+}
+
+/// A 256-byte string of `unit` repeated, cut at a segment boundary and ended by `last`.
+fn shaped(unit: &str, last: &str) -> String {
+    let mut s = String::new();
+    while s.len() + unit.len() + last.len() <= 256 {
+        s.push_str(unit);
+    }
+    s.push_str(last);
+    s
+}
+
+fn worst_match_us() -> f64 {
+    let patterns = [
+        shaped("**/a/", "zz"),
+        shaped("a/**/", "zz"),
+        shaped("**/", "zz"),
+        shaped("*/", "zz"),
+        shaped("**/*/", "zz"),
+        shaped("a/a/**/", "zz"),
+        shaped("**/a/a/a/a/a/a/a/", "zz"),
+        format!("{}/**/zz", shaped("*/", "*")),
+        format!("**/{}", shaped("a/", "zz")),
+    ];
+    let names = [
+        shaped("a/", "a"),
+        shaped("a/", "zz"),
+        shaped("aaaaaaa/", "a"),
+        format!("{}/zz", "a".repeat(252)),
+    ];
+    let mut worst: f64 = 0.0;
+    for p in &patterns {
+        for n in &names {
+            // At least 20 ms of matching per pair, the mean per match.
+            let started = Instant::now();
+            let mut runs = 0u64;
+            let mut hits = 0u64;
+            while started.elapsed() < Duration::from_millis(20) || runs < 10 {
+                for _ in 0..10 {
+                    hits += u64::from(marea::name::matches(
+                        std::hint::black_box(p),
+                        std::hint::black_box(n),
+                    ));
+                }
+                runs += 10;
+            }
+            std::hint::black_box(hits);
+            let us = started.elapsed().as_secs_f64() * 1e6 / runs as f64;
+            worst = worst.max(us);
+        }
+    }
+    worst
+}
+
+fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
+    let mut c = NetworkConfig::ethernet_loopback(node);
+    c.domain = domain.into();
+    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
+        interface: Ipv4Addr::LOCALHOST,
+        bind: "127.0.0.1:0".parse().expect("a literal address"),
+        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 14), port),
+        ..EthernetConfig::default()
+    })];
+    c
+}
+
+fn flood_discovery_ms() -> Result<f64, Box<dyn std::error::Error>> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    rt.block_on(async {
+        let pid = std::process::id();
+        let domain = format!("bench-hostile-{pid}");
+        let port = 40_000 + (pid % 20_000) as u16;
+        let victim = Arc::new(Node::open(&cfg("victim", &domain, port)).await?);
+        let target = attacker::unicast_of(&victim);
+        let base = victim.link_stats().first().map_or(0, |(_, s)| s.frames_in);
+        let v = victim.clone();
+        let d = domain.clone();
+        let sent = tokio::task::spawn_blocking(move || {
+            attacker::flood_heartbeats(target, &d, 10_000, 500, 0x0bad_0000_0000, |n| {
+                attacker::wait_frames_in(&v, base + n as u64, Duration::from_secs(2));
+            })
+        })
+        .await??;
+        if sent != 10_000 {
+            return Err(format!("only {sent} forged heartbeats sent").into());
+        }
+        let started = Instant::now();
+        let fresh = Node::open(&cfg("fresh", &domain, port)).await?;
+        let found = fresh
+            .wait_until(Duration::from_secs(30), |n| {
+                n.peers().iter().any(|p| p.name == "victim")
+            })
+            .await;
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        fresh.shutdown().await;
+        if let Ok(v) = Arc::try_unwrap(victim) {
+            v.shutdown().await;
+        }
+        if !found {
+            return Err("the fresh node never discovered the victim within 30 s".into());
+        }
+        Ok(ms)
+    })
+}

@@ -28,11 +28,22 @@ pub enum NameParseError {
     /// A wildcard was used where only a plain name is allowed (publications, functions).
     #[error("name {0:?} contains a wildcard; only subscriptions may use * and **")]
     WildcardNotAllowed(String),
+    /// More than [`MAX_SEGMENTS`] segments.
+    #[error("name of {0} segments has more than {MAX_SEGMENTS}")]
+    TooManySegments(usize),
+    /// Two `**` in a row (`a/**/**/b`): they match exactly what one does, and a pattern of
+    /// thousands of them is only ever an attempt to make matching slow.
+    #[error("pattern {0:?} repeats ** (one ** already matches any number of segments)")]
+    RepeatedDoubleWildcard(String),
 }
 
 /// The longest name or pattern accepted, in bytes: far above any real one, and a bound on what
 /// a peer's declaration can make the node store and match against.
 pub const MAX_NAME_LEN: usize = 1024;
+
+/// The most segments a name or pattern may have: real names have three or four, and a bound
+/// on segments bounds the work of matching a peer's pattern (segments × segments at worst).
+pub const MAX_SEGMENTS: usize = 64;
 
 fn check(name: &str, allow_wildcards: bool) -> Result<(), NameParseError> {
     if name.is_empty() {
@@ -41,6 +52,11 @@ fn check(name: &str, allow_wildcards: bool) -> Result<(), NameParseError> {
     if name.len() > MAX_NAME_LEN {
         return Err(NameParseError::TooLong(name.len()));
     }
+    let segments = name.split('/').count();
+    if segments > MAX_SEGMENTS {
+        return Err(NameParseError::TooManySegments(segments));
+    }
+    let mut previous = "";
     for seg in name.split('/') {
         if seg.is_empty() {
             return Err(NameParseError::EmptySegment(name.to_owned()));
@@ -49,8 +65,13 @@ fn check(name: &str, allow_wildcards: bool) -> Result<(), NameParseError> {
             if !allow_wildcards {
                 return Err(NameParseError::WildcardNotAllowed(name.to_owned()));
             }
+            if seg == "**" && previous == "**" {
+                return Err(NameParseError::RepeatedDoubleWildcard(name.to_owned()));
+            }
+            previous = seg;
             continue;
         }
+        previous = seg;
         if let Some(ch) = seg
             .chars()
             .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.')))
@@ -195,6 +216,44 @@ mod tests {
     }
 
     #[test]
+    fn patterns_are_bounded_in_segments_bytes_and_double_wildcards() {
+        let at_cap = vec!["a"; MAX_SEGMENTS].join("/");
+        assert!(validate_name(&at_cap).is_ok());
+        assert!(validate_pattern(&at_cap).is_ok());
+        let over = vec!["a"; MAX_SEGMENTS + 1].join("/");
+        assert_eq!(
+            validate_pattern(&over),
+            Err(NameParseError::TooManySegments(MAX_SEGMENTS + 1))
+        );
+        assert_eq!(
+            validate_name(&over),
+            Err(NameParseError::TooManySegments(MAX_SEGMENTS + 1))
+        );
+        // Few segments but too many bytes.
+        let long = format!("{}/b", "a".repeat(MAX_NAME_LEN));
+        assert_eq!(
+            validate_pattern(&long),
+            Err(NameParseError::TooLong(MAX_NAME_LEN + 2))
+        );
+        // `**` twice in a row, anywhere, is refused, and said so.
+        for p in ["**/**", "a/**/**/b", "**/**/**/zz", "a/**/**"] {
+            assert_eq!(
+                validate_pattern(p),
+                Err(NameParseError::RepeatedDoubleWildcard(p.to_owned())),
+                "{p}"
+            );
+        }
+        let err = validate_pattern("a/**/**/b").unwrap_err().to_string();
+        assert!(err.contains("repeats **"), "{err}");
+        // The attacker's shape within the byte bound: refused for its segments.
+        let many = format!("{}zz", "*/".repeat(100));
+        assert_eq!(
+            validate_pattern(&many),
+            Err(NameParseError::TooManySegments(101))
+        );
+    }
+
+    #[test]
     fn names_are_validated() {
         assert_eq!(validate_name(""), Err(NameParseError::Empty));
         assert!(matches!(
@@ -210,6 +269,8 @@ mod tests {
             Err(NameParseError::InvalidChar { ch: ' ', .. })
         ));
         assert!(validate_pattern("*/vas/**").is_ok());
+        assert!(validate_pattern("**/vas/**").is_ok());
+        assert!(validate_pattern("**/*/**").is_ok());
         assert!(validate_name("rover-1/vas/position_2.x").is_ok());
         assert_eq!(
             join(Some("rover1"), "vas", "position"),

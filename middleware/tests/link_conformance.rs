@@ -97,6 +97,10 @@ impl Pair {
         let b_at_a = self.ra.announced_by_peer(b"from-b").await;
         let a_at_b = self.rb.announced_by_peer(b"from-a").await;
         announcing.cancel();
+        // As a node does once a peer's Hello arrived: the addresses are known peers, whose
+        // sessions are bound (a session with an unknown address holds only a few messages).
+        self.a.confirm_peer(b_at_a);
+        self.b.confirm_peer(a_at_b);
         (b_at_a, a_at_b)
     }
 

@@ -398,6 +398,13 @@ impl Node {
             .fold((0, 0), |(d, r), (d2, r2)| (d + d2, r + r2))
     }
 
+    /// Input from peers this node refused or let go since it opened (malformed messages,
+    /// unknown senders, bad declarations, peers beyond the table's bound). Links count their
+    /// own refusals in [`Node::link_stats`].
+    pub fn refused_input(&self) -> crate::node::RefusedInput {
+        self.inner.counters.refused()
+    }
+
     /// Everything this node knows: itself and every peer, with services and items.
     pub fn catalog(&self) -> Catalog {
         use super::node::{ItemDescription as I, ItemRole as R};

@@ -39,6 +39,33 @@ pub struct ArqConfig {
     pub min_window: u32,
 }
 
+/// When retransmission gives up: a message still unacknowledged after both this many
+/// transmissions and this long since it was first sent means the peer is gone, or was never
+/// there (a spoofed address), and the session is closed rather than kept forever.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RetryLimit {
+    /// Transmissions of one message (the first included).
+    pub transmissions: u32,
+    /// Time since its first transmission.
+    pub after: Duration,
+}
+
+impl RetryLimit {
+    /// Defaults for a LAN: well past any lease a LAN peer has (it would have been dropped
+    /// for silence first), and many round trips with backoff.
+    pub fn lan() -> Self {
+        RetryLimit {
+            transmissions: 8,
+            after: Duration::from_secs(10),
+        }
+    }
+}
+
+/// Default bound on the bytes a receiver holds out of order for one sender: beyond it, a
+/// message ahead of a gap is dropped and counted (the sender retransmits it), so a peer that
+/// never fills its gap cannot make the node hold its whole window of large messages.
+pub const MAX_REORDER_BYTES: usize = 4 << 20;
+
 impl ArqConfig {
     /// Defaults for a LAN.
     pub fn lan() -> Self {
@@ -109,6 +136,8 @@ struct InFlight<T> {
     seq: u32,
     msg: Vec<u8>,
     sent_at: Instant,
+    /// When it was first sent (`sent_at` moves with each retransmission).
+    first_sent: Instant,
     transmissions: u32,
     token: Option<T>,
     acked: bool,
@@ -193,6 +222,7 @@ impl<T> ArqSender<T> {
             seq,
             msg,
             sent_at: now,
+            first_sent: now,
             transmissions: 1,
             token,
             acked: false,
@@ -368,6 +398,15 @@ impl<T> ArqSender<T> {
             .min()
     }
 
+    /// Whether the oldest unacknowledged message has reached `limit` at `now`: the caller
+    /// closes the session (failing what is in flight with [`ArqSender::close`]).
+    pub fn exhausted(&self, now: Instant, limit: RetryLimit) -> bool {
+        self.in_flight.iter().find(|f| !f.acked).is_some_and(|f| {
+            f.transmissions >= limit.transmissions
+                && now.saturating_duration_since(f.first_sent) >= limit.after
+        })
+    }
+
     /// Ends the session; returns the tokens of everything never acknowledged.
     pub fn close(self) -> Vec<T> {
         self.in_flight.into_iter().filter_map(|f| f.token).collect()
@@ -411,6 +450,8 @@ pub struct ArqReceiverStats {
     pub out_of_window: u64,
     /// Safe messages dropped because no session was started.
     pub without_session: u64,
+    /// Messages ahead of a gap dropped because the reorder buffer held its byte bound.
+    pub over_budget: u64,
 }
 
 /// The receiving half of a session.
@@ -419,22 +460,39 @@ pub struct ArqReceiver {
     session: Option<u32>,
     next: u32,
     buffered: BTreeMap<u32, Vec<u8>>,
+    /// Bytes of the messages in `buffered`.
+    buffered_bytes: usize,
+    max_buffered_bytes: usize,
     max_window: u32,
     ack_pending: bool,
     stats: ArqReceiverStats,
 }
 
 impl ArqReceiver {
-    /// A receiver with a reorder buffer of `max_window` messages.
+    /// A receiver with a reorder buffer of `max_window` messages and at most
+    /// [`MAX_REORDER_BYTES`].
     pub fn new(max_window: u32) -> Self {
         ArqReceiver {
             session: None,
             next: 0,
             buffered: BTreeMap::new(),
+            buffered_bytes: 0,
+            max_buffered_bytes: MAX_REORDER_BYTES,
             max_window,
             ack_pending: false,
             stats: ArqReceiverStats::default(),
         }
+    }
+
+    /// The same receiver holding at most `bytes` out of order.
+    pub fn with_max_buffered_bytes(mut self, bytes: usize) -> Self {
+        self.max_buffered_bytes = bytes;
+        self
+    }
+
+    /// Bytes held out of order now.
+    pub fn buffered_bytes(&self) -> usize {
+        self.buffered_bytes
     }
 
     /// Handles a SYN (the sender's session id).
@@ -446,6 +504,7 @@ impl ArqReceiver {
                 self.session = Some(session);
                 self.next = 0;
                 self.buffered.clear();
+                self.buffered_bytes = 0;
                 if prev.is_some() {
                     SynOutcome::Reset
                 } else {
@@ -484,6 +543,7 @@ impl ArqReceiver {
             self.stats.delivered += 1;
             self.next = self.next.wrapping_add(1);
             while let Some(m) = self.buffered.remove(&self.next) {
+                self.buffered_bytes -= m.len();
                 deliver(&m);
                 self.stats.delivered += 1;
                 self.next = self.next.wrapping_add(1);
@@ -491,8 +551,15 @@ impl ArqReceiver {
         } else if (ahead as i32) < 0 {
             self.stats.duplicates += 1;
         } else if ahead < self.max_window {
-            if self.buffered.insert(seq, msg.to_vec()).is_some() {
+            if self.buffered.contains_key(&seq) {
                 self.stats.duplicates += 1;
+            } else if self.buffered_bytes + msg.len() > self.max_buffered_bytes {
+                // Not acknowledged, so the sender sends it again; the message the gap waits
+                // for is never buffered (it is delivered at once), so this cannot stall.
+                self.stats.over_budget += 1;
+            } else {
+                self.buffered_bytes += msg.len();
+                self.buffered.insert(seq, msg.to_vec());
             }
         } else {
             self.stats.out_of_window += 1;
@@ -634,6 +701,90 @@ mod tests {
         assert!(!s.nack_pending());
         assert!(s.can_push());
         assert_eq!(s.stats().retransmitted, 1);
+    }
+
+    #[test]
+    fn retransmission_gives_up_after_the_limit_and_close_fails_the_rest() {
+        let t0 = Instant::now();
+        let limit = RetryLimit {
+            transmissions: 4,
+            after: Duration::from_secs(2),
+        };
+        let mut s: ArqSender<u32> = ArqSender::new(1, cfg());
+        s.push(t0, b"x".to_vec(), Some(1));
+        s.push(t0, b"y".to_vec(), Some(2));
+        let mut now = t0;
+        let mut rounds = 0;
+        // A peer that never acknowledges: retransmitted with backoff until the limit.
+        while !s.exhausted(now, limit) {
+            rounds += 1;
+            assert!(rounds < 1000, "never gave up");
+            now = s.next_deadline().expect("something in flight");
+            s.due(now);
+        }
+        assert!(
+            now.duration_since(t0) >= limit.after,
+            "not before the time bound"
+        );
+        assert!(s.stats().retransmitted >= 2 * u64::from(limit.transmissions - 1));
+        assert_eq!(s.close(), vec![1, 2], "everything in flight fails");
+
+        // Acknowledged in time: never exhausted, however late it is asked.
+        let mut s: ArqSender<u32> = ArqSender::new(1, cfg());
+        s.push(t0, b"x".to_vec(), Some(1));
+        for _ in 0..5 {
+            let d = s.next_deadline().expect("in flight");
+            s.due(d);
+        }
+        s.on_ack(
+            t0 + Duration::from_secs(3),
+            AckInfo {
+                session: 1,
+                next: 1,
+                sack: 0,
+            },
+        );
+        assert!(!s.exhausted(t0 + Duration::from_secs(3600), limit));
+        // Many transmissions alone, within the time bound, are not enough either.
+        let mut s: ArqSender<u32> = ArqSender::new(1, cfg());
+        s.push(t0, b"x".to_vec(), None);
+        s.on_nack(t0, 0);
+        for i in 0..10 {
+            s.on_nack(t0 + Duration::from_millis(i), 0);
+            s.due(t0 + Duration::from_millis(i));
+        }
+        assert!(!s.exhausted(t0 + Duration::from_millis(10), limit));
+    }
+
+    #[test]
+    fn the_reorder_buffer_is_bounded_in_bytes_and_the_stream_still_completes() {
+        let mut r = ArqReceiver::new(4096).with_max_buffered_bytes(10_000);
+        r.on_syn(3);
+        let mut got: Vec<u32> = Vec::new();
+        let msg = |i: u32| {
+            let mut m = vec![0u8; 1000];
+            m[..4].copy_from_slice(&i.to_le_bytes());
+            m
+        };
+        let id = |m: &[u8]| u32::from_le_bytes([m[0], m[1], m[2], m[3]]);
+        // Seq 0 is missing; a peer sends 3,000 large messages ahead of the gap.
+        for i in 1..3000 {
+            r.on_safe(i, &msg(i), |m| got.push(id(m)));
+        }
+        assert!(got.is_empty());
+        assert!(r.buffered_bytes() <= 10_000, "{}", r.buffered_bytes());
+        assert_eq!(r.stats().over_budget, 2999 - 10);
+        // What was dropped is not acknowledged (the sender will resend it).
+        let ack = r.take_ack().expect("ack owed");
+        assert_eq!((ack.next, ack.sack), (0, (1 << 10) - 1));
+        // The gap fills: what was held is delivered, and the resent rest goes through.
+        r.on_safe(0, &msg(0), |m| got.push(id(m)));
+        assert_eq!(got, (0..11).collect::<Vec<_>>());
+        assert_eq!(r.buffered_bytes(), 0);
+        for i in 11..3000 {
+            r.on_safe(i, &msg(i), |m| got.push(id(m)));
+        }
+        assert_eq!(got, (0..3000).collect::<Vec<_>>());
     }
 
     #[test]

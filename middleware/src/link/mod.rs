@@ -50,6 +50,10 @@ pub enum LinkSendError {
     /// The link is shutting down.
     #[error("link shut down")]
     Shutdown,
+    /// The peer acknowledged nothing for the retry limit ([`arq::RetryLimit`]): the session
+    /// was closed and the peer forgotten.
+    #[error("peer {0} acknowledged nothing within the retry limit; session closed")]
+    RetriesExhausted(String),
     /// The message exceeds what the link can carry (serial: 255 fragments).
     #[error("message of {0} bytes is too large for this link")]
     TooLarge(usize),
@@ -96,6 +100,11 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]);
     /// `from` started a new safe session while one was running: it restarted or reset us.
     fn on_peer_reset(&self, link: usize, from: PeerAddr);
+    /// The link closed its session with `from`: it acknowledged nothing within the retry
+    /// limit. What was in flight failed with [`LinkSendError::RetriesExhausted`].
+    fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
+        let _ = (link, from);
+    }
 }
 
 /// Counters and gauges of a link (the node publishes them as `LinkHealth` totals).
@@ -124,6 +133,13 @@ pub struct LinkStats {
     pub safe_queued: u64,
     /// Fast messages waiting to be sent now.
     pub fast_queued: u64,
+    /// Sessions with addresses no node was known at, closed unused (expired, or pushed out
+    /// by newer ones).
+    pub sessions_expired: u64,
+    /// Sessions closed because the peer acknowledged nothing within the retry limit.
+    pub sessions_given_up: u64,
+    /// Safe messages ahead of a gap dropped because the sender's reorder buffer was full.
+    pub reorder_dropped: u64,
 }
 
 /// The counters of [`LinkStats`] as a link updates them from several tasks at once.
@@ -137,6 +153,9 @@ pub(crate) struct LinkCounters {
     pub(crate) retransmitted: AtomicU64,
     pub(crate) duplicates: AtomicU64,
     pub(crate) fast_dropped: AtomicU64,
+    pub(crate) sessions_expired: AtomicU64,
+    pub(crate) sessions_given_up: AtomicU64,
+    pub(crate) reorder_dropped: AtomicU64,
 }
 
 impl LinkCounters {
@@ -163,6 +182,9 @@ impl LinkCounters {
             retransmitted: self.retransmitted.load(Ordering::Relaxed),
             duplicates: self.duplicates.load(Ordering::Relaxed),
             fast_dropped: self.fast_dropped.load(Ordering::Relaxed),
+            sessions_expired: self.sessions_expired.load(Ordering::Relaxed),
+            sessions_given_up: self.sessions_given_up.load(Ordering::Relaxed),
+            reorder_dropped: self.reorder_dropped.load(Ordering::Relaxed),
             ..gauges
         }
     }
@@ -182,6 +204,12 @@ pub trait Link: Send + Sync + 'static {
     fn send(&self, to: PeerAddr, out: Outgoing);
     /// Sends a discovery message to everyone reachable (multicast, point to point).
     fn announce(&self, msg: &[u8]);
+    /// The node knows who is at `to` (its Hello arrived): the link keeps its session among
+    /// the bound ones, which sessions with unknown addresses never push out. Links with one
+    /// peer per medium (serial) or a bounded set of identities (shared memory) ignore it.
+    fn confirm_peer(&self, to: PeerAddr) {
+        let _ = to;
+    }
     /// Forgets a peer: its unacknowledged safe messages complete with
     /// [`LinkSendError::PeerClosed`]; a later message starts a fresh session.
     fn close_peer(&self, to: PeerAddr);

@@ -2,6 +2,7 @@
 //! declaration counter, declaration requests when a counter is ahead, and leases.
 
 use std::collections::HashMap;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -9,6 +10,37 @@ use super::{lock, NodeInner, Peer};
 use crate::codec::encode_message;
 use crate::link::PeerAddr;
 use crate::protocol::{Message, NodeId};
+
+/// Most peers a node keeps. A Hello beyond it pushes out the oldest peer that never confirmed
+/// (sent anything in a session), or is ignored when every peer has: a flood of forged Hellos
+/// never costs the node a live peer.
+pub(crate) const MAX_PEERS: usize = 1024;
+
+/// The shortest lease a peer may ask for: shorter would have it dropped and found again on
+/// every heartbeat of ours, each time recomputing routes.
+pub(crate) const MIN_LEASE: Duration = Duration::from_millis(100);
+
+/// The longest lease a peer may ask for unless ours on the same link is longer: a node gone
+/// without its Bye is forgotten within this (a peer-chosen lease once reached 49 days).
+pub(crate) const MAX_LEASE: Duration = Duration::from_secs(60);
+
+/// The lease a peer asked for (`lease_ms` in its Hello), clamped to
+/// [[`MIN_LEASE`], max([`MAX_LEASE`], `own`)] where `own` is our lease on that link (a
+/// deployment that configured long leases keeps them).
+pub(crate) fn clamp_lease(lease_ms: u32, own: Duration) -> Duration {
+    Duration::from_millis(u64::from(lease_ms)).clamp(MIN_LEASE, MAX_LEASE.max(own))
+}
+
+/// Which peer a full table lets go for a newcomer: the one that became a peer first among
+/// those never confirmed; none when all are confirmed. Takes (id, confirmed, since).
+pub(crate) fn eviction_candidate(
+    peers: impl Iterator<Item = (NodeId, bool, Instant)>,
+) -> Option<NodeId> {
+    peers
+        .filter(|(_, confirmed, _)| !confirmed)
+        .min_by_key(|(_, _, since)| *since)
+        .map(|(id, _, _)| id)
+}
 
 /// The 32-bit hash of a domain name carried in heartbeats.
 pub(crate) fn domain_hash(domain: &str) -> u32 {
@@ -83,11 +115,14 @@ impl NodeInner {
                 if node_id == self.me.id || domain != self.me.domain {
                     return;
                 }
-                let lease = Duration::from_millis(u64::from(lease_ms.max(1)));
+                let lease = clamp_lease(lease_ms, self.me.timing(link).1);
                 if self.peers.contains_key(&node_id) {
                     if self.also_reached(node_id, link, from) {
                         self.seen(node_id, counter);
                     }
+                    return;
+                }
+                if !self.make_room_for_peer(&node) {
                     return;
                 }
                 if let Some(old) = self.addrs.get(&(link, from)).map(|e| *e) {
@@ -122,6 +157,8 @@ impl NodeInner {
                         heard_ms: Default::default(),
                         lease,
                         known: 0,
+                        since: Instant::now(),
+                        confirmed: Default::default(),
                         requested: Some(Instant::now()),
                         services: HashMap::new(),
                         offers: HashMap::new(),
@@ -131,6 +168,9 @@ impl NodeInner {
                     },
                 );
                 self.addrs.insert((link, from), node_id);
+                if let Some(l) = self.links().get(link) {
+                    l.confirm_peer(from);
+                }
                 self.introduce_locked(&log, link, from);
                 drop(log);
                 self.send_safe(link, from, &Message::DeclRequest { since: 0 });
@@ -203,6 +243,9 @@ impl NodeInner {
                 return false;
             }
             self.addrs.insert((link, from), node);
+            if let Some(l) = self.links().get(link) {
+                l.confirm_peer(from);
+            }
         }
         let (old, lease) = {
             let Some(p) = self.peers.get(&node) else {
@@ -215,6 +258,49 @@ impl NodeInner {
         };
         self.switch_path(node, old, (link, from), lease);
         true
+    }
+
+    /// Makes room in a full peer table for a new peer (`name`, for the log): pushes out the
+    /// oldest unconfirmed peer, or returns false (counted) when every peer is confirmed.
+    fn make_room_for_peer(&self, name: &str) -> bool {
+        if self.peers.len() < MAX_PEERS {
+            return true;
+        }
+        let candidate = eviction_candidate(
+            self.peers
+                .iter()
+                .map(|p| (p.id, p.confirmed.load(Ordering::Relaxed), p.since)),
+        );
+        match candidate {
+            Some(old) => {
+                self.counters.peers_evicted.fetch_add(1, Ordering::Relaxed);
+                self.drop_peer(old, "pushed out of a full peer table, never confirmed");
+                true
+            }
+            None => {
+                let n = self.counters.peers_refused.fetch_add(1, Ordering::Relaxed);
+                // Logged at the 1st, 2nd, 4th, 8th... refusal: a flood is seen, not echoed.
+                if (n + 1).is_power_of_two() {
+                    tracing::warn!(peer = %name, refused = n + 1, "peer table full of confirmed peers ({MAX_PEERS}); new peer ignored");
+                }
+                false
+            }
+        }
+    }
+
+    /// The link closed its session with `from` after its retry limit: a peer reached there
+    /// (and nowhere better) is gone, or was never there.
+    pub fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
+        let Some(node) = self.addrs.get(&(link, from)).map(|e| *e) else {
+            return;
+        };
+        let current = self
+            .peers
+            .get(&node)
+            .is_some_and(|p| (p.link, p.addr) == (link, from));
+        if current {
+            self.drop_peer(node, "acknowledged nothing within the retry limit");
+        }
     }
 
     /// A peer is alive; ask for declarations if its counter is ahead of ours.
@@ -316,5 +402,40 @@ impl NodeInner {
                 self.drop_peer(id, &format!("lease of {} ms expired", lease.as_millis()));
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_peers_lease_is_clamped_on_receipt() {
+        let own = Duration::from_millis(3500);
+        // 49 days asked: a minute granted.
+        assert_eq!(clamp_lease(u32::MAX, own), MAX_LEASE);
+        assert_eq!(clamp_lease(0, own), MIN_LEASE);
+        assert_eq!(clamp_lease(1, own), MIN_LEASE);
+        assert_eq!(clamp_lease(3500, own), own);
+        // A deployment whose own lease is longer keeps its peers that long.
+        let long = Duration::from_secs(600);
+        assert_eq!(clamp_lease(600_000, long), long);
+        assert_eq!(clamp_lease(u32::MAX, long), long);
+    }
+
+    #[test]
+    fn a_full_peer_table_lets_go_the_oldest_unconfirmed_and_never_a_confirmed_one() {
+        let t0 = Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let peers = [
+            (1, true, at(0)),
+            (2, false, at(5)),
+            (3, false, at(3)),
+            (4, true, at(1)),
+        ];
+        assert_eq!(eviction_candidate(peers.into_iter()), Some(3));
+        let all_confirmed = [(1, true, at(0)), (4, true, at(1))];
+        assert_eq!(eviction_candidate(all_confirmed.into_iter()), None);
+        assert_eq!(eviction_candidate(std::iter::empty()), None);
     }
 }

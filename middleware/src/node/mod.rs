@@ -118,6 +118,11 @@ pub(crate) struct Peer {
     pub lease: Duration,
     /// Declarations applied up to this counter.
     pub known: u32,
+    /// When its Hello made it a peer.
+    pub since: Instant,
+    /// It sent something in a session (beyond Hello and heartbeats): a node really running
+    /// the protocol at its address, never pushed out of a full peer table.
+    pub confirmed: std::sync::atomic::AtomicBool,
     /// When declarations were last requested, if an answer is outstanding.
     pub requested: Option<Instant>,
     pub services: HashMap<u32, String>,
@@ -211,6 +216,42 @@ pub(crate) struct NodeInner {
 pub(crate) struct NodeCounters {
     pub undecodable: AtomicU64,
     pub unknown_sender: AtomicU64,
+    /// Peers' declarations ignored for a malformed or oversized name or pattern.
+    pub bad_declarations: AtomicU64,
+    /// Hellos of new peers ignored because the peer table was full of confirmed peers.
+    pub peers_refused: AtomicU64,
+    /// Unconfirmed peers forgotten to make room for a new one.
+    pub peers_evicted: AtomicU64,
+}
+
+/// Input from peers a node refused or let go since it opened (see
+/// [`crate::Node::refused_input`]); each count is a thing dropped, never acted on.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RefusedInput {
+    /// Messages that could not be decoded.
+    pub undecodable: u64,
+    /// Messages from an address no peer is known at.
+    pub unknown_sender: u64,
+    /// Peers' declarations ignored for a malformed or oversized name or pattern.
+    pub bad_declarations: u64,
+    /// New peers ignored because the peer table was full of confirmed peers.
+    pub peers_refused: u64,
+    /// Unconfirmed peers forgotten to make room for new ones.
+    pub peers_evicted: u64,
+}
+
+impl NodeCounters {
+    /// The counters now.
+    pub fn refused(&self) -> RefusedInput {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        RefusedInput {
+            undecodable: get(&self.undecodable),
+            unknown_sender: get(&self.unknown_sender),
+            bad_declarations: get(&self.bad_declarations),
+            peers_refused: get(&self.peers_refused),
+            peers_evicted: get(&self.peers_evicted),
+        }
+    }
 }
 
 impl NodeInner {
@@ -300,6 +341,7 @@ impl NodeInner {
         if !matches!(msg, Message::Var { .. } | Message::Event { .. }) {
             if let Some(p) = self.peers.get(&node) {
                 p.heard(self.me.epoch);
+                p.confirmed.store(true, Ordering::Relaxed);
             }
         }
         match msg {
@@ -377,6 +419,12 @@ impl LinkHandler for Handler {
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.0.upgrade() {
             n.on_peer_reset(link, from);
+        }
+    }
+
+    fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
+        if let Some(n) = self.0.upgrade() {
+            n.on_peer_unreachable(link, from);
         }
     }
 }

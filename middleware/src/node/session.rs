@@ -549,6 +549,9 @@ impl NodeInner {
                     // A peer's names are checked as ours are: a malformed or oversized one is
                     // skipped (its counter still counts, so no gap is asked for again).
                     if let Err(err) = check_declared_name(&e.decl) {
+                        self.counters
+                            .bad_declarations
+                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         tracing::debug!(peer = %p.name, error = %err, "declaration with a bad name skipped");
                         continue;
                     }

@@ -13,10 +13,19 @@ use std::time::Instant;
 
 use super::frame::{self, Frame, Part};
 use super::{
-    BULK_BUFFER, FAST_PASS_BUDGET, MAX_MESSAGE, PASS_BUDGET, PASS_BULK_BYTES, REOPEN, RETRY,
-    SAFE_BUFFER,
+    BULK_BUFFER, FAST_PASS_BUDGET, MAX_MESSAGE, MAX_PEERS, PASS_BUDGET, PASS_BULK_BYTES, REOPEN,
+    RETRY, SAFE_BUFFER,
 };
 use crate::link::LinkCounters;
+
+/// Most writers whose streams a receiver tracks (writer ids are whatever a frame says, so a
+/// process on the host could invent any number): a new one beyond it pushes out the writer
+/// heard from longest ago.
+const MAX_WRITERS: usize = 2 * MAX_PEERS;
+
+/// Most bytes of partly reassembled messages held over all writers (each writer also holds at
+/// most [`MAX_MESSAGE`]): beyond it, the message being extended is dropped as torn.
+const MAX_REASSEMBLY_BYTES: usize = 2 * MAX_MESSAGE;
 
 /// What the receiving machine reads from and acts on.
 pub(crate) trait RxIo {
@@ -66,16 +75,20 @@ struct RxState {
     ack: Option<u64>,
     /// A fragment of the message being reassembled went missing: drop the message at its end.
     torn: bool,
+    /// The receiver's frame count at its last frame (the least recent writer is pushed out
+    /// first).
+    last: u64,
 }
 
 impl RxState {
-    fn new(session: u32, expected: u64) -> Self {
+    fn new(session: u32, expected: u64, now: u64) -> Self {
         RxState {
             session,
             expected,
             partial: Vec::new(),
             ack: None,
             torn: false,
+            last: now,
         }
     }
 }
@@ -122,6 +135,13 @@ pub(crate) struct Receiver {
     pass_bulk_bytes: usize,
     /// Some peer's inbox refused frames at the last look.
     backlog: bool,
+    /// Bytes held in every writer's `partial`.
+    partial_bytes: usize,
+    /// Safe fragments seen (a clock ordering writers by their last one).
+    fragments: u64,
+    /// [`MAX_WRITERS`] and [`MAX_REASSEMBLY_BYTES`] (lower in tests).
+    max_writers: usize,
+    max_reassembly: usize,
 }
 
 impl Receiver {
@@ -135,12 +155,18 @@ impl Receiver {
             next_retry: now,
             pass_bulk_bytes: 0,
             backlog: false,
+            partial_bytes: 0,
+            fragments: 0,
+            max_writers: MAX_WRITERS,
+            max_reassembly: MAX_REASSEMBLY_BYTES,
         }
     }
 
     /// Forgets sender `id` (it was closed): its next frame starts a fresh stream.
     pub(crate) fn forget(&mut self, id: u64) {
-        self.rx.remove(&id);
+        if let Some(st) = self.rx.remove(&id) {
+            self.partial_bytes -= st.partial.len();
+        }
         self.ack_due.remove(&id);
         self.stash.remove(&id);
         self.open_requested.remove(&id);
@@ -306,6 +332,11 @@ impl Receiver {
                     return None;
                 }
                 BulkMatch::Other(writer) => {
+                    if !self.stash.contains_key(&writer) && self.stash.len() >= self.max_writers {
+                        // More writers than any host runs: an invented id.
+                        c.corrupt.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    }
                     // A writer's bodies in the stash never outnumber its frames the safe inbox
                     // can hold plus what it may write before them; more is corrupt input.
                     let q = self.stash.entry(writer).or_default();
@@ -329,15 +360,24 @@ impl Receiver {
         (session, seq, more): (u32, u64, bool),
         body: Option<&[u8]>,
     ) {
+        self.fragments += 1;
+        let now = self.fragments;
         let reset = match self.rx.get_mut(&from) {
-            Some(st) if st.session == session => false,
+            Some(st) if st.session == session => {
+                st.last = now;
+                false
+            }
             Some(st) => {
                 // The sender closed us and started over: what it had in flight is gone.
-                *st = RxState::new(session, seq);
+                self.partial_bytes -= st.partial.len();
+                *st = RxState::new(session, seq, now);
                 true
             }
             None => {
-                self.rx.insert(from, RxState::new(session, seq));
+                if self.rx.len() >= self.max_writers {
+                    self.push_out_least_recent_writer(c);
+                }
+                self.rx.insert(from, RxState::new(session, seq, now));
                 false
             }
         };
@@ -351,6 +391,15 @@ impl Receiver {
             c.duplicates.fetch_add(1, Ordering::Relaxed);
             return;
         }
+        if more && body.is_some_and(|b| self.partial_bytes + b.len() > self.max_reassembly) {
+            // Room is made by tearing the messages other writers stopped extending longest
+            // ago: a writer still sending is the most recent, never the one torn.
+            let needed = body.map_or(0, |b| b.len());
+            self.tear_least_recent_partials(from, needed, c);
+        }
+        let Some(st) = self.rx.get_mut(&from) else {
+            return;
+        };
         if seq > st.expected {
             // Shared memory loses nothing; a gap means a torn message, which is dropped.
             st.torn = true;
@@ -361,16 +410,20 @@ impl Receiver {
         self.ack_due.insert(from);
         let Some(body) = body.filter(|_| !st.torn) else {
             st.torn = more;
-            st.partial = Vec::new();
+            self.partial_bytes -= std::mem::take(&mut st.partial).len();
             return;
         };
         if more {
-            if st.partial.len() + body.len() > MAX_MESSAGE {
-                st.partial = Vec::new();
+            if st.partial.len() + body.len() > MAX_MESSAGE
+                || self.partial_bytes + body.len() > self.max_reassembly
+            {
+                // Over its own bound, or alone over the total.
+                self.partial_bytes -= std::mem::take(&mut st.partial).len();
                 st.torn = true;
                 c.corrupt.fetch_add(1, Ordering::Relaxed);
             } else {
                 st.partial.extend_from_slice(body);
+                self.partial_bytes += body.len();
             }
             return;
         }
@@ -379,8 +432,49 @@ impl Receiver {
         } else {
             st.partial.extend_from_slice(body);
             let msg = std::mem::take(&mut st.partial);
+            self.partial_bytes -= msg.len() - body.len();
             io.deliver(from, &msg);
         }
+    }
+
+    /// Tears the partly reassembled messages of writers other than `from`, least recent
+    /// first, until `needed` more bytes fit the total bound (or none is left to tear).
+    fn tear_least_recent_partials(&mut self, from: u64, needed: usize, c: &LinkCounters) {
+        while self.partial_bytes + needed > self.max_reassembly {
+            let victim = self
+                .rx
+                .iter()
+                .filter(|(id, st)| **id != from && !st.partial.is_empty())
+                .min_by_key(|(_, st)| st.last)
+                .map(|(id, _)| *id);
+            let Some(st) = victim.and_then(|id| self.rx.get_mut(&id)) else {
+                return;
+            };
+            self.partial_bytes -= std::mem::take(&mut st.partial).len();
+            st.torn = true;
+            c.corrupt.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Forgets the writer heard from longest ago (counted as a session pushed out), to make
+    /// room for a new one.
+    fn push_out_least_recent_writer(&mut self, c: &LinkCounters) {
+        let Some(oldest) = self
+            .rx
+            .iter()
+            .min_by_key(|(_, st)| st.last)
+            .map(|(id, _)| *id)
+        else {
+            return;
+        };
+        self.forget(oldest);
+        c.sessions_expired.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Writers tracked now, and the bytes of their partly reassembled messages.
+    #[cfg(test)]
+    fn held(&self) -> (usize, usize) {
+        (self.rx.len(), self.partial_bytes)
     }
 
     fn send_acks(&mut self, now: Instant, io: &mut impl RxIo, c: &LinkCounters) {
@@ -463,6 +557,97 @@ mod tests {
 
     fn count(h: &SimHost, at: u64, c: fn(&LinkCounters) -> &std::sync::atomic::AtomicU64) -> u64 {
         c(&h.nodes[&at].counters).load(Ordering::Relaxed)
+    }
+
+    /// An inbox holding only safe frames, recording what is delivered.
+    #[derive(Default)]
+    struct Inbox {
+        safe: VecDeque<Vec<u8>>,
+        delivered: Vec<(u64, Vec<u8>)>,
+    }
+
+    impl RxIo for Inbox {
+        type Sample = Vec<u8>;
+        fn take(&mut self, part: Part) -> Option<Vec<u8>> {
+            match part {
+                Part::Safe => self.safe.pop_front(),
+                _ => None,
+            }
+        }
+        fn deliver(&mut self, from: u64, msg: &[u8]) {
+            self.delivered.push((from, msg.to_vec()));
+        }
+        fn announce(&mut self, _: u64, _: &[u8]) {}
+        fn peer_reset(&mut self, _: u64) {}
+        fn acked(&mut self, _: u64, _: u32, _: u64) -> bool {
+            false
+        }
+        fn send_ack(&mut self, _: u64, _: u32, _: u64) -> AckSent {
+            AckSent::Taken
+        }
+        fn request_open(&mut self, _: u64) {}
+        fn retry_backlogs(&mut self, _: &[u64], _: bool) -> bool {
+            false
+        }
+    }
+
+    fn safe_frame(from: u64, seq: u64, more: bool, body: &[u8]) -> Vec<u8> {
+        let mut b = vec![0u8; frame::SEQUENCED + body.len()];
+        let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
+        frame::write_header(&mut b, kind, from, 1, seq);
+        b[frame::SEQUENCED..].copy_from_slice(body);
+        b
+    }
+
+    fn drain(r: &mut Receiver, io: &mut Inbox, c: &LinkCounters) {
+        while !io.safe.is_empty() {
+            r.pass(Instant::now(), false, io, c);
+        }
+    }
+
+    #[test]
+    fn invented_writers_are_bounded_in_count_and_bytes_and_a_live_writer_keeps_its_stream() {
+        let c = LinkCounters::default();
+        let mut r = Receiver::new(Instant::now());
+        r.max_reassembly = 64 * 1000;
+        let mut io = Inbox::default();
+        let mut seq = 0;
+        // 10,000 invented writer ids, each starting a message it never finishes; between
+        // them a real writer (A) sends a message in two fragments now and then.
+        for i in 0..10_000u64 {
+            io.safe
+                .push_back(safe_frame(0x1_0000 + i, 0, true, &[7u8; 1000]));
+            if i % 50 == 0 {
+                io.safe.push_back(safe_frame(A, seq, true, b"hel"));
+                io.safe.push_back(safe_frame(A, seq + 1, false, b"lo"));
+                seq += 2;
+            }
+            if io.safe.len() >= 256 {
+                drain(&mut r, &mut io, &c);
+                let (writers, bytes) = r.held();
+                assert!(writers <= MAX_WRITERS, "{writers} writers tracked");
+                assert!(bytes <= 64 * 1000, "{bytes} bytes held");
+            }
+        }
+        drain(&mut r, &mut io, &c);
+        let from_a: Vec<&Vec<u8>> = io
+            .delivered
+            .iter()
+            .filter(|(f, _)| *f == A)
+            .map(|(_, m)| m)
+            .collect();
+        assert_eq!(from_a.len(), 200, "every message of the live writer");
+        assert!(from_a.iter().all(|m| m.as_slice() == b"hello"));
+        assert_eq!(io.delivered.len(), 200, "nothing of the invented writers");
+        // Pushed out and counted: all but the writers still tracked.
+        let pushed = c.sessions_expired.load(Ordering::Relaxed);
+        assert!(pushed >= 10_000 - MAX_WRITERS as u64, "{pushed}");
+        // The byte bound tore the messages that would have passed it, and counted them.
+        assert!(c.corrupt.load(Ordering::Relaxed) > 0);
+        // A forgotten writer's bytes are given back.
+        let before = r.held();
+        r.forget(0x1_0000 + 9_999);
+        assert!(r.held().0 == before.0 - 1 && r.held().1 < before.1);
     }
 
     #[test]

@@ -8,6 +8,7 @@
 //! datagrams are written under that peer's lock, so fast messages are never reordered.
 
 pub mod datagram;
+mod sessions;
 
 use std::collections::VecDeque;
 use std::io;
@@ -16,18 +17,18 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use rustc_hash::FxHashMap;
 use tokio::net::UdpSocket;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
-use super::arq::{ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use super::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
 use super::coalesce::{CoalescingQueue, Pushed};
 use super::{
     Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
 };
 use datagram::{Datagram, DatagramWriter, Entry};
+use sessions::{Lookup, SessionLimits, SessionTable};
 
 /// How the UDP link is set up (taken from `<ethernet>` in network.xml).
 #[derive(Debug, Clone)]
@@ -77,8 +78,19 @@ pub enum LinkOpenError {
     },
 }
 
-/// Most peer sessions a link keeps; beyond it, SYNs from new addresses are ignored.
+/// Most sessions with addresses bound to a node (see [`sessions`]); beyond it, new nodes'
+/// addresses get no session of their own.
 const MAX_PEERS: usize = 4096;
+/// Most sessions with addresses no node is known at (answered heartbeats, sessions opened
+/// before their Hello): newer ones push out the oldest, and never a bound one.
+const MAX_UNBOUND: usize = 256;
+/// How long a session with an address no node is known at lives: a real node's Hello binds
+/// it within a round trip.
+const UNBOUND_TTL: Duration = Duration::from_secs(5);
+/// Safe messages queued for an address no node is known at (our Hellos answering its
+/// heartbeats): beyond it, more are refused, so heartbeats from one address cannot make the
+/// node queue a Hello each for the life of the session.
+const MAX_UNBOUND_SAFE: usize = 8;
 /// Fast messages queued per peer before the oldest is dropped.
 const MAX_FAST_QUEUE: usize = 4096;
 /// A send within this long of the previous datagram is left to the transmit task to batch.
@@ -97,6 +109,8 @@ struct PeerState {
     /// The transmit task was woken for this peer and has not flushed it yet: further messages
     /// need no wake-up of their own (each one costs a syscall when the task sleeps elsewhere).
     wake_pending: bool,
+    /// The node knows who is at this address (see [`sessions`]).
+    bound: bool,
 }
 
 impl PeerState {
@@ -110,6 +124,7 @@ impl PeerState {
             blocked: VecDeque::new(),
             last_write: None,
             wake_pending: false,
+            bound: false,
         }
     }
 
@@ -131,8 +146,10 @@ pub struct UdpLink {
     /// Hello of every node.
     sender: std::net::UdpSocket,
     local: SocketAddr,
-    /// (Fx hashing: looked up on every send; at most [`MAX_PEERS`] entries.)
-    peers: Mutex<FxHashMap<SocketAddr, Arc<Mutex<PeerState>>>>,
+    /// (Fx hashing: looked up on every send; at most [`MAX_PEERS`] + [`MAX_UNBOUND`] entries.)
+    peers: Mutex<SessionTable<Arc<Mutex<PeerState>>>>,
+    /// When retransmission gives up on a session.
+    retry_limit: RetryLimit,
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
     counters: LinkCounters,
@@ -216,7 +233,12 @@ impl UdpLink {
             socket,
             sender,
             local,
-            peers: Mutex::new(FxHashMap::default()),
+            peers: Mutex::new(SessionTable::new(SessionLimits {
+                max_bound: MAX_PEERS,
+                max_unbound: MAX_UNBOUND,
+                unbound_ttl: UNBOUND_TTL,
+            })),
+            retry_limit: RetryLimit::lan(),
             wake: Notify::new(),
             handler,
             counters: LinkCounters::default(),
@@ -237,17 +259,68 @@ impl UdpLink {
         self.local
     }
 
+    /// The session with `addr`; made (unbound, see [`sessions`]) if there is none and
+    /// `create` is set, or made or bound if `bind` is set.
+    fn session(&self, addr: SocketAddr, create: bool, bind: bool) -> Option<Arc<Mutex<PeerState>>> {
+        let found = {
+            let mut peers = lock(&self.peers);
+            if let Some(p) = peers.get(&addr).filter(|_| !bind) {
+                return Some(p.clone());
+            }
+            let arq = self.options.arq;
+            peers.get_or_insert(addr, Instant::now(), create, bind, || {
+                Arc::new(Mutex::new(PeerState::new(arq)))
+            })
+        };
+        match found {
+            Lookup::Found(p, pushed_out) => {
+                if let Some((old, q)) = pushed_out {
+                    self.counters
+                        .sessions_expired
+                        .fetch_add(1, Ordering::Relaxed);
+                    fail_all(&mut lock(&q), LinkSendError::PeerClosed(old.to_string()));
+                }
+                Some(p)
+            }
+            Lookup::Refused => None,
+        }
+    }
+
     fn peer(&self, addr: SocketAddr, create: bool) -> Option<Arc<Mutex<PeerState>>> {
-        let mut peers = lock(&self.peers);
-        if let Some(p) = peers.get(&addr) {
-            return Some(p.clone());
+        self.session(addr, create, false)
+    }
+
+    /// Closes the sessions with unknown addresses that outlived [`UNBOUND_TTL`] and those
+    /// whose peer acknowledged nothing within the retry limit (`gave_up`), then tells the
+    /// node of the latter.
+    fn close_stale(&self, now: Instant, gave_up: Vec<(SocketAddr, Arc<Mutex<PeerState>>)>) {
+        let expired = lock(&self.peers).expire(now);
+        for (addr, p) in expired {
+            self.counters
+                .sessions_expired
+                .fetch_add(1, Ordering::Relaxed);
+            fail_all(&mut lock(&p), LinkSendError::PeerClosed(addr.to_string()));
         }
-        if !create || peers.len() >= MAX_PEERS {
-            return None;
+        for (addr, p) in gave_up {
+            {
+                let mut peers = lock(&self.peers);
+                // Only if it is still that session (the node may have closed it meanwhile).
+                if !peers.get(&addr).is_some_and(|q| Arc::ptr_eq(q, &p)) {
+                    continue;
+                }
+                peers.remove(&addr);
+            }
+            self.counters
+                .sessions_given_up
+                .fetch_add(1, Ordering::Relaxed);
+            tracing::debug!(link = %self.options.name, %addr, "retransmission gave up; session closed");
+            fail_all(
+                &mut lock(&p),
+                LinkSendError::RetriesExhausted(addr.to_string()),
+            );
+            self.handler
+                .on_peer_unreachable(self.index, PeerAddr::Udp(addr));
         }
-        let p = Arc::new(Mutex::new(PeerState::new(self.options.arq)));
-        peers.insert(addr, p.clone());
-        Some(p)
     }
 
     /// Builds and writes every datagram `state` has ready. Called with the peer locked, so the
@@ -350,12 +423,20 @@ impl UdpLink {
             let now = Instant::now();
             let mut deadline: Option<Instant> = None;
             let mut blocked = false;
+            let mut gave_up = Vec::new();
             let peers: Vec<(SocketAddr, Arc<Mutex<PeerState>>)> = lock(&self.peers)
                 .iter()
                 .map(|(a, p)| (*a, p.clone()))
                 .collect();
             for (addr, p) in peers {
                 let mut st = lock(&p);
+                // Checked whatever woke us: a peer sending us datagrams has its session
+                // flushed (and retransmitted) by the receive task too.
+                if st.tx.exhausted(now, self.retry_limit) {
+                    drop(st);
+                    gave_up.push((addr, p));
+                    continue;
+                }
                 let retransmit_due = st.tx.next_deadline().is_some_and(|d| d <= now);
                 if st.has_work() || retransmit_due {
                     self.flush_locked(addr, &mut st, now);
@@ -364,6 +445,10 @@ impl UdpLink {
                 if let Some(d) = st.tx.next_deadline() {
                     deadline = Some(deadline.map_or(d, |x: Instant| x.min(d)));
                 }
+            }
+            self.close_stale(now, gave_up);
+            if let Some(d) = lock(&self.peers).next_expiry() {
+                deadline = Some(deadline.map_or(d, |x: Instant| x.min(d)));
             }
             let sleep_until = deadline.unwrap_or(now + Duration::from_secs(3600));
             tokio::select! {
@@ -503,6 +588,7 @@ impl UdpLink {
             let mut st = lock(&p);
             let now = Instant::now();
             let dups_before = st.rx.stats().duplicates;
+            let over_before = st.rx.stats().over_budget;
             for e in &entries {
                 match *e {
                     Entry::Syn(session) => {
@@ -522,6 +608,10 @@ impl UdpLink {
             }
             let dups = st.rx.stats().duplicates - dups_before;
             self.counters.duplicates.fetch_add(dups, Ordering::Relaxed);
+            let over = st.rx.stats().over_budget - over_before;
+            self.counters
+                .reorder_dropped
+                .fetch_add(over, Ordering::Relaxed);
         }
         if !touched.contains(&from) {
             touched.push(from);
@@ -613,7 +703,13 @@ impl Link for UdpLink {
                 }
                 st.fast_bytes += cost;
             }
-            Outgoing::Safe { msg, done } => st.safe.push_back((msg, done)),
+            Outgoing::Safe { msg, done } => {
+                if !st.bound && st.safe.len() + st.tx.in_flight() >= MAX_UNBOUND_SAFE {
+                    drop(st);
+                    return Outgoing::Safe { msg, done }.refuse(addr);
+                }
+                st.safe.push_back((msg, done))
+            }
         }
         let idle = st.blocked.is_empty()
             && st
@@ -638,6 +734,18 @@ impl Link for UdpLink {
                 Err(e) => {
                     tracing::debug!(link = %self.options.name, to = %t, error = %e, "announce not sent")
                 }
+            }
+        }
+    }
+
+    fn confirm_peer(&self, to: PeerAddr) {
+        if let PeerAddr::Udp(addr) = to {
+            if let Some(p) = self.session(addr, false, true) {
+                if lock(&self.peers).is_bound(&addr) {
+                    lock(&p).bound = true;
+                }
+            } else {
+                tracing::warn!(link = %self.options.name, %addr, "no room for a session with a new peer ({MAX_PEERS} bound)");
             }
         }
     }
