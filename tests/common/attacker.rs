@@ -39,6 +39,7 @@ pub fn hello(node_id: NodeId, domain: &str, name: &str, lease_ms: u32) -> Vec<u8
         namespace: String::new(),
         counter: 1,
         lease_ms,
+        gateway: false,
     }))
 }
 
@@ -46,6 +47,9 @@ pub fn hello(node_id: NodeId, domain: &str, name: &str, lease_ms: u32) -> Vec<u8
 /// whose only entry is an interest in `pattern`.
 pub fn interest_batch(session: u32, pattern: &str) -> Vec<u8> {
     let msg = encode_message(&Message::DeclBatch {
+        after: 0,
+        upto: 1,
+        reset: false,
         entries: vec![LoggedDeclaration {
             counter: 1,
             decl: Declaration::Interest {
