@@ -461,7 +461,10 @@ fn access_denies_a_file_with_the_denied_verdict() {
         .into_iter()
         .filter(|n| n != ".partial")
         .collect();
-    assert!(stored.is_empty(), "a denied file reached the sink: {stored:?}");
+    assert!(
+        stored.is_empty(),
+        "a denied file reached the sink: {stored:?}"
+    );
     let partial = entries(&inbox.join(".partial"));
     assert!(partial.is_empty(), "a denied file left a part: {partial:?}");
     let mut fpmo = send("ground");
