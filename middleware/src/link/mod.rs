@@ -11,6 +11,7 @@
 //! of fast messages ([`coalesce`]), and the counters behind [`LinkStats`].
 
 pub mod arq;
+pub mod auth;
 pub mod coalesce;
 pub mod serial;
 pub mod shm;
@@ -124,6 +125,11 @@ pub struct LinkStats {
     pub safe_queued: u64,
     /// Fast messages waiting to be sent now.
     pub fast_queued: u64,
+    /// Received frames dropped because their seal did not verify (no key, another key,
+    /// tampering); see [`auth`].
+    pub auth_rejected: u64,
+    /// Received frames dropped as replays (counter seen before or older than the window).
+    pub replay_rejected: u64,
 }
 
 /// The counters of [`LinkStats`] as a link updates them from several tasks at once.
@@ -137,6 +143,8 @@ pub(crate) struct LinkCounters {
     pub(crate) retransmitted: AtomicU64,
     pub(crate) duplicates: AtomicU64,
     pub(crate) fast_dropped: AtomicU64,
+    pub(crate) auth_rejected: AtomicU64,
+    pub(crate) replay_rejected: AtomicU64,
 }
 
 impl LinkCounters {
@@ -152,6 +160,17 @@ impl LinkCounters {
         self.bytes_in.fetch_add(bytes as u64, Ordering::Relaxed);
     }
 
+    /// One received frame dropped by [`auth::Opener::open`]; returns the new count of its
+    /// kind (for [`auth::log_reject`]).
+    pub(crate) fn count_reject(&self, why: auth::AuthReject) -> u64 {
+        let c = if why.is_replay() {
+            &self.replay_rejected
+        } else {
+            &self.auth_rejected
+        };
+        c.fetch_add(1, Ordering::Relaxed) + 1
+    }
+
     /// The counters, with the gauges (round trip, queue depths) taken from `gauges`.
     pub(crate) fn stats(&self, gauges: LinkStats) -> LinkStats {
         LinkStats {
@@ -163,6 +182,8 @@ impl LinkCounters {
             retransmitted: self.retransmitted.load(Ordering::Relaxed),
             duplicates: self.duplicates.load(Ordering::Relaxed),
             fast_dropped: self.fast_dropped.load(Ordering::Relaxed),
+            auth_rejected: self.auth_rejected.load(Ordering::Relaxed),
+            replay_rejected: self.replay_rejected.load(Ordering::Relaxed),
             ..gauges
         }
     }
