@@ -25,6 +25,9 @@ pub enum NodeOpenError {
         /// Kind of link.
         kind: &'static str,
     },
+    /// The domain key named by `<security keyFile=..>` cannot be used.
+    #[error(transparent)]
+    Key(#[from] crate::link::auth::KeyFileError),
     /// A name in the configuration is invalid.
     #[error("invalid node name or namespace: {0}")]
     Name(#[from] NameParseError),

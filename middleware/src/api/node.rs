@@ -136,6 +136,13 @@ impl Node {
         if let Some(ns) = &config.namespace {
             name::validate_name(ns)?;
         }
+        let security = match &config.security {
+            Some(s) => Some(crate::link::auth::LinkSecurity {
+                key: crate::link::auth::DomainKey::load(&s.key_file)?,
+                encrypt_radio: s.encrypt_radio,
+            }),
+            None => None,
+        };
         let link_timing: Vec<(Duration, Duration)> = config
             .links
             .iter()
@@ -219,6 +226,7 @@ impl Node {
                         peers: e.peers.clone(),
                         mtu: 1400,
                         arq: ArqConfig::lan(),
+                        security: security.clone(),
                     },
                     handler,
                     &inner.tasks,
@@ -275,7 +283,7 @@ impl Node {
         }
         inner.start_link_health();
         inner.announce_hello();
-        tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), "node open");
+        tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), authenticated = security.is_some(), "node open");
         Ok(Node {
             inner,
             hosted: tokio::sync::Mutex::new(Vec::new()),

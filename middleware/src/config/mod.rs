@@ -111,6 +111,7 @@ impl NetworkConfig {
             })],
             gateway: None,
             source: None,
+            security: None,
         }
     }
 

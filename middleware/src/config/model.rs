@@ -26,6 +26,21 @@ pub struct NetworkConfig {
     pub gateway: Option<bool>,
     /// The file this configuration was read from, if any.
     pub source: Option<PathBuf>,
+    /// Link authentication (`<security>`): `None` keeps the links open to anyone (the
+    /// zero-config demo).
+    pub security: Option<SecurityConfig>,
+}
+
+/// `<security keyFile="..." encrypt="radio"/>`: the domain key every link seals its frames
+/// with (see [`crate::link::auth`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SecurityConfig {
+    /// The key file (`keyFile`), made by `usal keygen`; a relative path in the file is taken
+    /// relative to the file's directory.
+    pub key_file: PathBuf,
+    /// Whether serial (radio) links also encrypt their data (`encrypt="radio"`; default
+    /// `none`: authenticated only).
+    pub encrypt_radio: bool,
 }
 
 /// One link of a node, by medium.

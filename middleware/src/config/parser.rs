@@ -363,15 +363,27 @@ impl<'a> Parser<'a> {
         // Kinds of the link elements so far, for default names (`<kind><index>`). Disabled
         // links count too, so that switching one off does not rename the others.
         let mut kinds: Vec<String> = Vec::new();
+        let mut security: Option<(SecurityConfig, Location)> = None;
         while let Some(child) = self.child("network", root)? {
             let kind = child.name().to_owned();
+            if kind == "security" {
+                let at = self.at(child.pos());
+                if let Some((_, first)) = &security {
+                    return Err(ConfigLoadError::DuplicateSecurity {
+                        at,
+                        first: first.clone(),
+                    });
+                }
+                security = Some((self.security(&child)?, at));
+                continue;
+            }
             let index = kinds.iter().filter(|&k| *k == kind).count();
             let parsed = match kind.as_str() {
                 "ethernet" => self.ethernet(&child, index)?,
                 "shm" => self.shm(&child, index)?,
                 "serial" => self.serial(&child, index)?,
                 "serialduo" => self.serialduo(&child, index)?,
-                _ => return Err(self.unknown_element("network", &child, LINK_ELEMENTS)),
+                _ => return Err(self.unknown_element("network", &child, NETWORK_ELEMENTS)),
             };
             kinds.push(kind);
             let name = parsed.link.name().to_owned();
@@ -411,6 +423,33 @@ impl<'a> Parser<'a> {
             links,
             gateway,
             source: self.source.map(Path::to_path_buf),
+            security: security.map(|(s, _)| s),
+        })
+    }
+
+    /// `<security keyFile=".." encrypt="none|radio"/>`; the key file itself is read when the
+    /// node opens.
+    fn security(&mut self, element: &Element<'a>) -> Result<SecurityConfig, ConfigLoadError> {
+        let attrs = self.attributes("security", element, SECURITY_ATTRS)?;
+        let key_file = self.required(&attrs, "keyFile", KEY_FILE_SYNTAX, |s| {
+            let s = s.trim();
+            if s.is_empty() {
+                Err(Invalid::Syntax(KEY_FILE_SYNTAX))
+            } else {
+                Ok(std::path::PathBuf::from(s))
+            }
+        })?;
+        let key_file = match self.source.and_then(Path::parent) {
+            Some(dir) if key_file.is_relative() => dir.join(key_file),
+            _ => key_file,
+        };
+        let encrypt_radio = self
+            .value(&attrs, "encrypt", parse_encrypt)?
+            .unwrap_or(false);
+        self.no_children("security", element)?;
+        Ok(SecurityConfig {
+            key_file,
+            encrypt_radio,
         })
     }
 

@@ -432,8 +432,8 @@ impl Sealer {
 /// Why a received frame was dropped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 pub enum AuthReject {
-    /// Too short to carry a seal (an unkeyed sender, or garbage).
-    #[error("no seal (frame too short)")]
+    /// Not sealed: sent by a node without a key, or too short to carry a seal.
+    #[error("not sealed (sent without a key, or truncated)")]
     Unsealed,
     /// The tag does not verify: another key, no key, or tampering.
     #[error("bad authentication tag")]

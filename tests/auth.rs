@@ -1,0 +1,391 @@
+//! Link authentication (issue 13, item 1) through the real path: `usal keygen` makes the key,
+//! `marea-probe` child processes carry it (as `<security keyFile=..>` would), and what crosses
+//! UDP, a pty pair or shared memory is sealed; nodes without the key, or with another, are
+//! neither discovered nor delivered, and the keyed nodes' link health counts the rejections.
+
+mod common;
+
+use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use common::{Net, Proc, T};
+use serde_json::Value;
+
+/// Makes a key with the real CLI, checking what it promises.
+fn keygen(dir: &Path, name: &str) -> PathBuf {
+    let path = dir.join(name);
+    let out = Command::new(env!("CARGO_BIN_EXE_usal"))
+        .args(["keygen", path.to_str().expect("utf-8 temp path")])
+        .output()
+        .expect("run usal keygen");
+    assert!(out.status.success(), "{out:?}");
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+    assert_eq!(mode, 0o600);
+    path
+}
+
+/// `net.probe` with `--key-file`.
+fn keyed(net: &Net, node: &str, ns: &str, key: &Path, cmd: &[&str]) -> Proc {
+    let mut args = vec!["--key-file", key.to_str().unwrap(), "--namespace", ns];
+    args.extend_from_slice(cmd);
+    net.probe(node, &args)
+}
+
+/// Reads link-health lines from `station` until one satisfies `pred`.
+fn health_until(station: &mut Proc, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    station.expect(T, what, |v| v.get("link").is_some() && pred(v))
+}
+
+#[test]
+fn keygen_refuses_to_overwrite_and_nodes_refuse_a_readable_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let again = Command::new(env!("CARGO_BIN_EXE_usal"))
+        .args(["keygen", key.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!again.status.success());
+    let err = String::from_utf8_lossy(&again.stderr);
+    assert!(
+        err.contains("already exists") && err.contains("domain.key"),
+        "{err}"
+    );
+
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o644)).unwrap();
+    let net = Net::new("auth_readable_key");
+    let mut p = keyed(&net, "p", "rover1", &key, &["list", "--wait-ms", "0"]);
+    let status = p.wait_exit(T);
+    assert!(
+        !status.success(),
+        "a node must not start with a world-readable key"
+    );
+}
+
+/// Variables, events and calls between two nodes with the same key over UDP.
+#[test]
+fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let net = Net::new("auth_udp_ok");
+    let mut publ = keyed(
+        &net,
+        "pub",
+        "rover1",
+        &key,
+        &["var-pub", "--item", "position", "--count", "3"],
+    );
+    publ.expect_key(T, "published");
+    let mut sub = keyed(
+        &net,
+        "sub",
+        "gs",
+        &key,
+        &[
+            "var-sub",
+            "--pattern",
+            "rover1/probe/position",
+            "--count",
+            "1",
+        ],
+    );
+    assert_eq!(sub.expect_key(T, "seq")["seq"], 2);
+
+    let mut evsub = keyed(
+        &net,
+        "evsub",
+        "gs",
+        &key,
+        &["ev-sub", "--pattern", "rover1/probe/alarm", "--count", "50"],
+    );
+    evsub.expect_key(T, "ready");
+    let mut evpub = keyed(
+        &net,
+        "evpub",
+        "rover1",
+        &key,
+        &["ev-pub", "--item", "alarm", "--count", "50"],
+    );
+    let done = evpub.expect_key(T, "raised");
+    assert_eq!(done["acknowledged_by_all"], 50, "{done}");
+    let r = evsub.expect_key(T, "received");
+    assert_eq!(r["received"], 50);
+    assert_eq!(r["in_order"], true);
+
+    let mut prov = keyed(
+        &net,
+        "prov",
+        "rover1",
+        &key,
+        &["provide", "--item", "double"],
+    );
+    prov.expect_key(T, "ready");
+    let mut call = keyed(
+        &net,
+        "call",
+        "gs",
+        &key,
+        &[
+            "call",
+            "--name",
+            "rover1/probe/double",
+            "--arg",
+            "21",
+            "--wait-ms",
+            "10000",
+        ],
+    );
+    let v = call.expect(T, "a call result", |v| {
+        v.get("ok").is_some() || v.get("error").is_some()
+    });
+    assert_eq!(v["ok"], 42, "{v}");
+}
+
+/// A node with another key, and one with none, see nothing of the keyed nodes and deliver
+/// nothing to them; the keyed nodes count what they dropped.
+#[test]
+fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let other = keygen(dir.path(), "other.key");
+    let net = Net::new("auth_udp_intruders");
+    let mut publ = keyed(
+        &net,
+        "pub",
+        "rover1",
+        &key,
+        &[
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "20",
+        ],
+    );
+    publ.expect_key(T, "ready");
+    // The intruders publish the same name: a keyed subscriber must only ever see the keyed one.
+    let mut wrong = keyed(
+        &net,
+        "wrongkey",
+        "rover1",
+        &other,
+        &[
+            "var-pub",
+            "--item",
+            "intruder",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "20",
+        ],
+    );
+    let mut none = net.probe_ns(
+        "nokey",
+        "rover1",
+        &[
+            "var-pub",
+            "--item",
+            "intruder",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "20",
+        ],
+    );
+    wrong.expect_key(T, "ready");
+    none.expect_key(T, "ready");
+    let mut wrong_sub = keyed(
+        &net,
+        "wrongsub",
+        "gs",
+        &other,
+        &[
+            "var-sub",
+            "--pattern",
+            "rover1/probe/position",
+            "--count",
+            "1",
+        ],
+    );
+    let mut none_sub = net.probe_ns(
+        "nonesub",
+        "gs",
+        &[
+            "var-sub",
+            "--pattern",
+            "rover1/probe/position",
+            "--count",
+            "1",
+        ],
+    );
+    wrong_sub.expect_key(T, "ready");
+    none_sub.expect_key(T, "ready");
+
+    // The keyed station: it gets the keyed publisher's values, and its own link health shows
+    // the intruders' datagrams dropped as unauthenticated.
+    let mut station = keyed(
+        &net,
+        "station",
+        "gs",
+        &key,
+        &["var-sub", "--pattern", "rover1/probe/*", "--count", "20"],
+    );
+    for _ in 0..20 {
+        let v = station.expect_key(T, "seq");
+        assert_eq!(v["name"], "rover1/probe/position", "{v}");
+        assert_eq!(v["publisher"], "pub");
+    }
+    let mut health = keyed(
+        &net,
+        "health",
+        "gs",
+        &key,
+        &["health", "--pattern", "gs/link/**", "--count", "1000"],
+    );
+    let v = health_until(&mut health, "auth rejections counted", |v| {
+        v["auth_rejected"].as_u64() > Some(0)
+    });
+    assert!(v["publisher"].is_string(), "{v}");
+    // By now the intruders' subscribers have had many of the keyed publisher's values on the
+    // wire (50 a second): none may have been delivered.
+    assert!(
+        wrong_sub
+            .try_expect(Duration::from_secs(2), |v| v.get("seq").is_some())
+            .is_none(),
+        "a node with another key got a value: {:?}",
+        wrong_sub.seen
+    );
+    assert!(
+        none_sub
+            .try_expect(Duration::from_millis(200), |v| v.get("seq").is_some())
+            .is_none(),
+        "a node without key got a value: {:?}",
+        none_sub.seen
+    );
+    // And they discovered nobody keyed.
+    for (name, k) in [("wrong-list", Some(&other)), ("none-list", None)] {
+        let mut list = match k {
+            Some(k) => keyed(&net, name, "gs", k, &["list", "--wait-ms", "1500"]),
+            None => net.probe_ns(name, "gs", &["list", "--wait-ms", "1500"]),
+        };
+        let v = list.expect_key(T, "nodes");
+        let names: Vec<&str> = v["nodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|n| n["name"].as_str())
+            .collect();
+        for keyed_node in ["pub", "station", "health"] {
+            assert!(
+                !names.contains(&keyed_node),
+                "{name} discovered {keyed_node}: {names:?}"
+            );
+        }
+    }
+}
+
+/// A socket in the discovery group, as an eavesdropper on the LAN.
+fn eavesdropper(port: u16) -> UdpSocket {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let group = Ipv4Addr::new(239, 255, 77, 1);
+    let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).unwrap();
+    s.set_reuse_address(true).unwrap();
+    s.bind(&SocketAddr::V4(SocketAddrV4::new(group, port)).into())
+        .unwrap();
+    s.join_multicast_v4(&group, &Ipv4Addr::LOCALHOST).unwrap();
+    s.set_multicast_if_v4(&Ipv4Addr::LOCALHOST).unwrap();
+    s.set_multicast_loop_v4(true).unwrap();
+    let s: UdpSocket = s.into();
+    s.set_read_timeout(Some(Duration::from_millis(200)))
+        .unwrap();
+    s
+}
+
+/// A datagram captured on the wire and sent again is dropped as a replay (counted), while the
+/// legitimate traffic goes on.
+#[test]
+fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let net = Net::new("auth_udp_replay");
+    let spy = eavesdropper(net.port);
+    let mut publ = keyed(
+        &net,
+        "pub",
+        "rover1",
+        &key,
+        &[
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "20",
+        ],
+    );
+    publ.expect_key(T, "ready");
+    let mut health = keyed(
+        &net,
+        "victim",
+        "gs",
+        &key,
+        &["health", "--pattern", "gs/link/**", "--count", "1000"],
+    );
+    health.expect_key(T, "ready");
+    let mut sub = keyed(
+        &net,
+        "sub",
+        "gs",
+        &key,
+        &[
+            "var-sub",
+            "--pattern",
+            "rover1/probe/position",
+            "--count",
+            "0",
+        ],
+    );
+    sub.expect_key(T, "seq");
+
+    // Capture what the nodes multicast (hellos and heartbeats, sealed), and who sends it.
+    let mut captured: Vec<(Vec<u8>, SocketAddr)> = Vec::new();
+    let deadline = Instant::now() + T;
+    let mut buf = [0u8; 65536];
+    while captured.len() < 12 && Instant::now() < deadline {
+        if let Ok((n, from)) = spy.recv_from(&mut buf) {
+            assert_eq!(buf[0], 0xA4, "a keyed node's discovery datagram is sealed");
+            captured.push((buf[..n].to_vec(), from));
+        }
+    }
+    assert!(captured.len() >= 12, "captured only {}", captured.len());
+    let senders: Vec<SocketAddr> = {
+        let mut s: Vec<SocketAddr> = captured.iter().map(|(_, f)| *f).collect();
+        s.sort();
+        s.dedup();
+        s
+    };
+    // Replay each, to the group and to every node's own address.
+    let group = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 1), net.port));
+    for _ in 0..3 {
+        for (d, _) in &captured {
+            spy.send_to(d, group).unwrap();
+            for s in &senders {
+                spy.send_to(d, s).unwrap();
+            }
+        }
+    }
+    let v = health_until(&mut health, "replays counted", |v| {
+        v["replay_rejected"].as_u64() > Some(0)
+    });
+    assert_eq!(v["auth_rejected"], 0, "nothing here was forged: {v}");
+    // Legitimate traffic still flows after the replays.
+    let last = sub.expect_key(T, "seq")["seq"].as_u64().unwrap();
+    let later = sub.expect(T, "newer values", |v| v["seq"].as_u64() > Some(last + 10));
+    assert_eq!(later["publisher"], "pub");
+}
