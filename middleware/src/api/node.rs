@@ -243,6 +243,7 @@ impl Node {
                         name,
                         Arc::new(ports),
                         stp,
+                        security.as_ref(),
                         handler,
                         &inner.tasks,
                         inner.cancel.child_token(),
