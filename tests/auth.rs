@@ -389,3 +389,196 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
     let later = sub.expect(T, "newer values", |v| v["seq"].as_u64() > Some(last + 10));
     assert_eq!(later["publisher"], "pub");
 }
+
+// ---- serial (pty pairs through the radio emulator) -----------------------------------------
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
+/// A node on one end of the radio; `security` is a `<security ../>` element or empty.
+fn radio_config(node: &str, domain: &str, dev: &str, security: &str) -> marea::NetworkConfig {
+    let xml = format!(
+        r#"<network node="{node}" namespace="{node}" domain="{domain}">
+  <serial name="radio" address="{dev}" baudRate="115200" heartbeatMs="300" leaseMs="3000" TimeToResend="500"/>
+  {security}
+</network>"#
+    );
+    marea::NetworkConfig::parse(&xml, None).expect("valid config")
+}
+
+fn security_element(key: &Path, encrypt: bool) -> String {
+    format!(
+        r#"<security keyFile="{}" encrypt="{}"/>"#,
+        key.display(),
+        if encrypt { "radio" } else { "none" }
+    )
+}
+
+/// Polls `pred` (link counters have no change notification) until it holds or `timeout`.
+async fn poll(timeout: Duration, mut pred: impl FnMut() -> bool) -> bool {
+    let deadline = Instant::now() + timeout;
+    while !pred() {
+        if Instant::now() >= deadline {
+            return false;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    true
+}
+
+fn radio_link(node: &marea::Node) -> marea::link::LinkStats {
+    node.link_stats()
+        .into_iter()
+        .find(|(n, _)| n == "radio")
+        .map(|(_, s)| s)
+        .expect("the radio link")
+}
+
+/// Variables, events and calls across a real pty pair with the same key on both ends.
+fn same_key_over_a_radio(encrypt: bool) {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let radio = common::Radio::start(&["--seed", "5"]);
+    let domain = format!("auth-radio-{encrypt}-{}", std::process::id());
+    let sec = security_element(&key, encrypt);
+    let air_cfg = radio_config("air", &domain, &radio.air, &sec);
+    let ground_cfg = radio_config("ground", &domain, &radio.ground, &sec);
+    runtime().block_on(async move {
+        tokio::time::timeout(Duration::from_secs(90), async move {
+            let air = marea::Node::open(&air_cfg).await.expect("air node");
+            let ground = marea::Node::open(&ground_cfg).await.expect("ground node");
+            let vas = air.service("vas").unwrap();
+            let position = vas
+                .publish_variable::<(f64, f64, f64, f32, f32)>("position")
+                .unwrap();
+            let alarms = vas.publish_event::<u64>("alarm").unwrap();
+            let _double = vas
+                .provide_function("double", |x: u64| async move { Ok::<u64, String>(x * 2) })
+                .unwrap();
+            let fmo = ground.service("fmo").unwrap();
+            let pos_sub = fmo
+                .subscribe_variable::<(f64, f64, f64, f32, f32)>("air/vas/position")
+                .unwrap();
+            let ev_sub = fmo.subscribe_event::<u64>("air/vas/alarm").unwrap();
+            let double = fmo.function::<u64, u64>("air/vas/double").unwrap();
+            assert!(
+                alarms
+                    .wait_remote_subscribers(1, Duration::from_secs(30))
+                    .await
+            );
+            assert!(double.wait_provider(Duration::from_secs(30)).await);
+            position.set(&(41.2, 1.9, 12.5, 90.0, 1.5)).unwrap();
+            let p = tokio::time::timeout(Duration::from_secs(10), pos_sub.recv())
+                .await
+                .expect("a position within 10 s")
+                .unwrap();
+            assert_eq!(p.value, (41.2, 1.9, 12.5, 90.0, 1.5));
+            for i in 0..20u64 {
+                assert!(alarms.raise(&i).await.unwrap().all_acknowledged());
+            }
+            for i in 0..20u64 {
+                let e = tokio::time::timeout(Duration::from_secs(10), ev_sub.recv())
+                    .await
+                    .expect("events keep coming")
+                    .unwrap();
+                assert_eq!(e.value, i);
+            }
+            assert_eq!(double.call(&21, Duration::from_secs(10)).await.unwrap(), 42);
+            let s = radio_link(&ground);
+            assert_eq!((s.auth_rejected, s.replay_rejected), (0, 0), "{s:?}");
+            ground.shutdown().await;
+            air.shutdown().await;
+        })
+        .await
+        .expect("test took too long")
+    });
+}
+
+#[test]
+fn same_key_nodes_exchange_variables_events_and_calls_over_a_radio() {
+    same_key_over_a_radio(false);
+}
+
+#[test]
+fn same_key_nodes_exchange_over_an_encrypted_radio() {
+    same_key_over_a_radio(true);
+}
+
+/// A keyed node and a node without the key (then one with another key) on the two ends of a
+/// radio: neither discovers the other, nothing is delivered, the keyed node counts rejections.
+#[test]
+fn no_key_or_another_key_on_the_radio_is_neither_discovered_nor_delivered() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let other = keygen(dir.path(), "other.key");
+    for (case, intruder_sec) in [
+        ("none", String::new()),
+        ("other", security_element(&other, false)),
+    ] {
+        let radio = common::Radio::start(&["--seed", "6"]);
+        let domain = format!("auth-radio-intruder-{case}-{}", std::process::id());
+        let air_cfg = radio_config("air", &domain, &radio.air, &security_element(&key, false));
+        let intruder_cfg = radio_config("ground", &domain, &radio.ground, &intruder_sec);
+        runtime().block_on(async move {
+            tokio::time::timeout(Duration::from_secs(60), async move {
+                let air = marea::Node::open(&air_cfg).await.expect("air node");
+                let intruder = marea::Node::open(&intruder_cfg).await.expect("intruder");
+                let vas = air.service("vas").unwrap();
+                let position = vas.publish_variable::<u64>("position").unwrap();
+                let got = intruder
+                    .service("fmo")
+                    .unwrap()
+                    .subscribe_variable::<u64>("air/vas/position")
+                    .unwrap();
+                let _theirs = intruder
+                    .service("fmo")
+                    .unwrap()
+                    .publish_variable::<u64>("command")
+                    .unwrap();
+                // The intruder's hellos and heartbeats reach the keyed node and are dropped.
+                assert!(
+                    poll(Duration::from_secs(20), || radio_link(&air).auth_rejected
+                        >= 3)
+                    .await,
+                    "{case}: {:?}",
+                    radio_link(&air)
+                );
+                // Meanwhile the keyed node's hellos and heartbeats (and values) reached the
+                // intruder, which discovered nothing and got nothing.
+                for i in 0..5 {
+                    position.set(&i).unwrap();
+                }
+                assert!(
+                    poll(Duration::from_secs(5), || {
+                        let s = radio_link(&intruder);
+                        s.corrupt + s.auth_rejected >= 3
+                    })
+                    .await,
+                    "{case}: the intruder saw none of the keyed frames: {:?}",
+                    radio_link(&intruder)
+                );
+                assert!(air.peers().is_empty(), "{case}: {:?}", air.peers());
+                assert!(
+                    intruder.peers().is_empty(),
+                    "{case}: {:?}",
+                    intruder.peers()
+                );
+                assert!(
+                    tokio::time::timeout(Duration::from_millis(500), got.recv())
+                        .await
+                        .is_err(),
+                    "{case}: the intruder got a value"
+                );
+                intruder.shutdown().await;
+                air.shutdown().await;
+            })
+            .await
+            .expect("test took too long")
+        });
+    }
+}
