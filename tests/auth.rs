@@ -582,3 +582,105 @@ fn no_key_or_another_key_on_the_radio_is_neither_discovered_nor_delivered() {
         });
     }
 }
+
+// ---- shared memory --------------------------------------------------------------------------
+
+fn shm_config(node: &str, service: &str, security: &str) -> marea::NetworkConfig {
+    let xml = format!(
+        r#"<network node="{node}" namespace="{node}">
+  <shm name="local" service="{service}" heartbeatMs="200" leaseMs="1500"/>
+  {security}
+</network>"#
+    );
+    marea::NetworkConfig::parse(&xml, None).expect("valid config")
+}
+
+fn shm_link(node: &marea::Node) -> marea::link::LinkStats {
+    node.link_stats()
+        .into_iter()
+        .find(|(n, _)| n == "local")
+        .map(|(_, s)| s)
+        .expect("the shm link")
+}
+
+/// Same key over shared memory: variables, events (small and large enough for the bulk inbox)
+/// and calls; a node with another key on the same service is neither discovered nor delivered,
+/// and the keyed nodes count what they dropped.
+#[test]
+fn shared_memory_with_a_key_delivers_and_refuses_another_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let other = keygen(dir.path(), "other.key");
+    let service = format!("auth{}", std::process::id());
+    let sec = security_element(&key, false);
+    let a_cfg = shm_config("vehicle", &service, &sec);
+    let b_cfg = shm_config("station", &service, &sec);
+    let x_cfg = shm_config("intruder", &service, &security_element(&other, false));
+    runtime().block_on(async move {
+        tokio::time::timeout(Duration::from_secs(60), async move {
+            let a = marea::Node::open(&a_cfg).await.expect("vehicle");
+            let b = marea::Node::open(&b_cfg).await.expect("station");
+            let x = marea::Node::open(&x_cfg).await.expect("intruder");
+            let vas = a.service("vas").unwrap();
+            let position = vas.publish_variable::<u64>("position").unwrap();
+            let blobs = vas.publish_event::<Vec<u8>>("blob").unwrap();
+            let _double = vas
+                .provide_function("double", |x: u64| async move { Ok::<u64, String>(x * 2) })
+                .unwrap();
+            let fmo = b.service("fmo").unwrap();
+            let pos = fmo
+                .subscribe_variable::<u64>("vehicle/vas/position")
+                .unwrap();
+            let blob_sub = fmo.subscribe_event::<Vec<u8>>("vehicle/vas/blob").unwrap();
+            let double = fmo.function::<u64, u64>("vehicle/vas/double").unwrap();
+            let spy = x.service("fmo").unwrap();
+            let spied = spy
+                .subscribe_variable::<u64>("vehicle/vas/position")
+                .unwrap();
+            assert!(
+                blobs
+                    .wait_remote_subscribers(1, Duration::from_secs(20))
+                    .await
+            );
+            assert!(double.wait_provider(Duration::from_secs(20)).await);
+            position.set(&7).unwrap();
+            let v = tokio::time::timeout(Duration::from_secs(10), pos.recv())
+                .await
+                .expect("a value")
+                .unwrap();
+            assert_eq!(v.value, 7);
+            let big: Vec<u8> = (0..600_000u32).map(|i| (i * 7) as u8).collect();
+            for blob in [vec![1u8, 2, 3], big.clone()] {
+                assert!(blobs.raise(&blob).await.unwrap().all_acknowledged());
+                let e = tokio::time::timeout(Duration::from_secs(10), blob_sub.recv())
+                    .await
+                    .expect("an event")
+                    .unwrap();
+                assert_eq!(e.value, blob);
+            }
+            assert_eq!(double.call(&21, Duration::from_secs(5)).await.unwrap(), 42);
+            // The intruder's announcements reached the keyed nodes and were dropped.
+            assert!(
+                poll(Duration::from_secs(10), || shm_link(&a).auth_rejected > 0).await,
+                "{:?}",
+                shm_link(&a)
+            );
+            let names = |n: &marea::Node| -> Vec<String> {
+                n.peers().into_iter().map(|p| p.name).collect()
+            };
+            assert_eq!(names(&a), vec!["station".to_owned()]);
+            assert!(names(&x).is_empty(), "{:?}", names(&x));
+            assert!(
+                tokio::time::timeout(Duration::from_millis(300), spied.recv())
+                    .await
+                    .is_err(),
+                "the intruder got a value"
+            );
+            x.shutdown().await;
+            b.shutdown().await;
+            a.shutdown().await;
+        })
+        .await
+        .expect("test took too long")
+    });
+}

@@ -182,15 +182,20 @@ async fn serial_pair(security: Option<LinkSecurity>) -> Pair {
     }
 }
 
-async fn shm_pair() -> Pair {
+async fn shm_pair(security: Option<LinkSecurity>) -> Pair {
     let tasks = TaskTracker::new();
     let cancel = CancellationToken::new();
-    let service = format!("conformance-{}", std::process::id());
+    let service = format!(
+        "conformance-{}-{}",
+        std::process::id(),
+        if security.is_some() { "keyed" } else { "plain" }
+    );
     let opts = |name: &str| ShmLinkOptions {
         name: name.into(),
         service: service.clone(),
         scan: Duration::from_millis(100),
         wait: ShmWait::Event,
+        security: security.clone(),
     };
     let (ra, rb) = (Arc::new(Recorder::default()), Arc::new(Recorder::default()));
     let a = ShmLink::open(0, opts("a"), ra.clone(), &tasks, cancel.child_token())
@@ -339,5 +344,10 @@ async fn serial_link_conforms() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shm_link_conforms() {
-    conformance(shm_pair().await).await;
+    conformance(shm_pair(None).await).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shm_link_with_a_key_conforms() {
+    conformance(shm_pair(security(false)).await).await;
 }

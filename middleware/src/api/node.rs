@@ -258,6 +258,7 @@ impl Node {
                         service: s.service.clone(),
                         scan: s.heartbeat,
                         wait: s.wait,
+                        security: security.clone(),
                     },
                     handler,
                     &inner.tasks,

@@ -392,19 +392,38 @@ impl Sealer {
         self.keys.profile.overhead()
     }
 
+    /// Seals in place: `buf` holds a frame of `body_len` bytes followed by room for exactly
+    /// [`Sealer::overhead`] bytes, which are filled with epoch, counter and tag. Only for
+    /// profiles that do not encrypt (shared memory writes into a loaned sample).
+    pub fn seal_slice(&self, buf: &mut [u8], body_len: usize) {
+        let p = self.keys.profile;
+        debug_assert!(!p.encrypt && buf.len() == body_len + p.overhead());
+        let (epoch, counter) = self.next();
+        let header_end = body_len + p.epoch_len + p.counter_len;
+        buf[body_len..body_len + p.epoch_len].copy_from_slice(&epoch.to_le_bytes()[..p.epoch_len]);
+        buf[body_len + p.epoch_len..header_end]
+            .copy_from_slice(&counter.to_le_bytes()[..p.counter_len]);
+        let tag = self.keys.mac(&buf[..header_end]);
+        buf[header_end..].copy_from_slice(&tag.as_bytes()[..p.tag_len]);
+    }
+
+    /// The epoch and counter of the next frame.
+    fn next(&self) -> (u64, u64) {
+        let p = self.keys.profile;
+        let mut st = lock(&self.state);
+        if st.1 > p.max_counter() {
+            *st = (p.fresh_epoch(), 0);
+        }
+        let taken = *st;
+        st.1 += 1;
+        taken
+    }
+
     /// Appends epoch, counter and tag to `frame`. With encryption, `frame[aad_len..]` is
     /// encrypted in place (the first `aad_len` bytes stay in clear, authenticated).
     pub fn seal(&self, frame: &mut Vec<u8>, aad_len: usize) {
         let p = self.keys.profile;
-        let (epoch, counter) = {
-            let mut st = lock(&self.state);
-            if st.1 > p.max_counter() {
-                *st = (p.fresh_epoch(), 0);
-            }
-            let taken = *st;
-            st.1 += 1;
-            taken
-        };
+        let (epoch, counter) = self.next();
         let body_len = frame.len();
         put_le(frame, epoch, p.epoch_len);
         put_le(frame, counter, p.counter_len);
@@ -574,30 +593,10 @@ impl Opener {
         frame: &mut [u8],
         aad_len: usize,
     ) -> Result<usize, AuthReject> {
-        let p = self.keys.profile;
-        let Some(body_len) = frame.len().checked_sub(p.overhead()) else {
-            return Err(AuthReject::Unsealed);
-        };
-        let header_end = body_len + p.epoch_len + p.counter_len;
-        let epoch = get_le(&frame[body_len..body_len + p.epoch_len]);
-        let counter = get_le(&frame[body_len + p.epoch_len..header_end]);
-        let id = (stream, epoch);
-        if let Some(w) = self.windows.get(&id) {
-            w.check(counter)?;
-        }
+        let (body_len, header_end, epoch, counter) = self.parse(frame)?;
         let (covered, tag) = frame.split_at_mut(header_end);
         match &self.keys.cipher {
-            None => {
-                let want = self.keys.mac(covered);
-                // Constant time: the comparison does not stop at the first differing byte.
-                let diff = want.as_bytes()[..p.tag_len]
-                    .iter()
-                    .zip(tag.iter())
-                    .fold(0u8, |acc, (a, b)| acc | (a ^ b));
-                if diff != 0 {
-                    return Err(AuthReject::BadTag);
-                }
-            }
+            None => self.check_mac(covered, tag)?,
             Some(cipher) => {
                 let clear = aad_len.min(body_len);
                 let (head, rest) = covered.split_at_mut(clear);
@@ -610,27 +609,76 @@ impl Opener {
                     .map_err(|_| AuthReject::BadTag)?;
             }
         }
+        self.record((stream, epoch), counter)?;
+        Ok(body_len)
+    }
+
+    /// [`Opener::open`] for a frame that cannot be changed (read in place from shared
+    /// memory). Profiles that encrypt refuse everything here.
+    ///
+    /// # Errors
+    /// [`AuthReject`]: the frame must be dropped.
+    pub fn verify(&mut self, stream: u64, frame: &[u8]) -> Result<usize, AuthReject> {
+        if self.keys.cipher.is_some() {
+            return Err(AuthReject::BadTag);
+        }
+        let (body_len, header_end, epoch, counter) = self.parse(frame)?;
+        let (covered, tag) = frame.split_at(header_end);
+        self.check_mac(covered, tag)?;
+        self.record((stream, epoch), counter)?;
+        Ok(body_len)
+    }
+
+    /// Body length, end of epoch and counter, epoch, counter.
+    fn parse(&self, frame: &[u8]) -> Result<(usize, usize, u64, u64), AuthReject> {
+        let p = self.keys.profile;
+        let Some(body_len) = frame.len().checked_sub(p.overhead()) else {
+            return Err(AuthReject::Unsealed);
+        };
+        let header_end = body_len + p.epoch_len + p.counter_len;
+        let epoch = get_le(&frame[body_len..body_len + p.epoch_len]);
+        let counter = get_le(&frame[body_len + p.epoch_len..header_end]);
+        Ok((body_len, header_end, epoch, counter))
+    }
+
+    fn check_mac(&self, covered: &[u8], tag: &[u8]) -> Result<(), AuthReject> {
+        let want = self.keys.mac(covered);
+        // Constant time: the comparison does not stop at the first differing byte.
+        let diff = want.as_bytes()[..self.keys.profile.tag_len]
+            .iter()
+            .zip(tag.iter())
+            .fold(0u8, |acc, (a, b)| acc | (a ^ b));
+        if diff == 0 {
+            Ok(())
+        } else {
+            Err(AuthReject::BadTag)
+        }
+    }
+
+    /// Records an authentic frame's counter in its window (created, evicting the least
+    /// recently used, for a new sender epoch).
+    fn record(&mut self, id: (u64, u64), counter: u64) -> Result<(), AuthReject> {
         self.tick += 1;
         let tick = self.tick;
         if let Some(w) = self.windows.get_mut(&id) {
             w.accept(counter)?;
             w.last_used = tick;
-        } else {
-            if self.windows.len() >= self.max_windows {
-                if let Some(oldest) = self
-                    .windows
-                    .iter()
-                    .min_by_key(|(_, w)| w.last_used)
-                    .map(|(k, _)| *k)
-                {
-                    self.windows.remove(&oldest);
-                }
-            }
-            let mut w = ReplayWindow::new(counter);
-            w.last_used = tick;
-            self.windows.insert(id, w);
+            return Ok(());
         }
-        Ok(body_len)
+        if self.windows.len() >= self.max_windows {
+            if let Some(oldest) = self
+                .windows
+                .iter()
+                .min_by_key(|(_, w)| w.last_used)
+                .map(|(k, _)| *k)
+            {
+                self.windows.remove(&oldest);
+            }
+        }
+        let mut w = ReplayWindow::new(counter);
+        w.last_used = tick;
+        self.windows.insert(id, w);
+        Ok(())
     }
 }
 
@@ -793,6 +841,25 @@ mod tests {
         assert_eq!(get_le(&b[7..10]), 0, "counter restarts");
         assert!(o.open(0, &mut a.clone(), 0).is_ok());
         assert!(o.open(0, &mut b.clone(), 0).is_ok());
+    }
+
+    #[test]
+    fn sealing_in_place_and_verifying_in_place() {
+        let k = key(8);
+        let s = Sealer::new(&k, Profile::SHM);
+        let mut o = Opener::new(&k, Profile::SHM, 4);
+        let mut buf = vec![0u8; 10 + Profile::SHM.overhead()];
+        buf[..10].copy_from_slice(b"0123456789");
+        s.seal_slice(&mut buf, 10);
+        assert_eq!(o.verify(5, &buf), Ok(10));
+        assert_eq!(o.verify(5, &buf), Err(AuthReject::Replayed));
+        let mut v = b"0123456789".to_vec();
+        s.seal(&mut v, 0);
+        assert_eq!(o.open(5, &mut v.clone(), 0), Ok(10));
+        v[3] ^= 1;
+        assert_eq!(o.verify(5, &v), Err(AuthReject::BadTag));
+        let mut enc = Opener::new(&k, Profile::SERIAL_ENCRYPTED, 4);
+        assert!(enc.verify(0, &buf).is_err());
     }
 
     #[test]
