@@ -89,9 +89,15 @@ enum Cmd {
     },
     /// Write a fresh random domain key to PATH (mode 0600; an existing file is never
     /// overwritten). Name it in network.xml with <security keyFile="PATH"/> on every node.
+    /// With --identity: write a node identity key pair instead, the secret to PATH (0600) and
+    /// the public key to PATH.pub, for <security identityFile="PATH"/> and the domain's
+    /// identities.xml.
     Keygen {
         /// Where to write the key.
         path: PathBuf,
+        /// Make a per-node identity key pair (Ed25519) instead of a domain key.
+        #[arg(long)]
+        identity: bool,
     },
 }
 
@@ -118,6 +124,8 @@ fn network(net: &NetArgs) -> anyhow::Result<NetworkConfig> {
         c.security = Some(marea::config::SecurityConfig {
             key_file: key_file.clone(),
             encrypt_radio: c.security.as_ref().is_some_and(|s| s.encrypt_radio),
+            identity_file: c.security.as_ref().and_then(|s| s.identity_file.clone()),
+            identities: c.security.as_ref().and_then(|s| s.identities.clone()),
         });
     }
     Ok(c)
@@ -145,7 +153,29 @@ fn main() -> ExitCode {
     if let Cmd::Run(args) = &cli.cmd {
         return run::main(args, cli.net.json);
     }
-    if let Cmd::Keygen { path } = &cli.cmd {
+    if let Cmd::Keygen {
+        path,
+        identity: true,
+    } = &cli.cmd
+    {
+        return match marea::identity::IdentityKey::create_files(path) {
+            Ok(key) => {
+                let public: String = key.public().iter().map(|b| format!("{b:02x}")).collect();
+                println!(
+                    "wrote an identity key to {} (mode 0600) and its public key to {}; list it in the domain's identities.xml as\n  <identity key=\"{public}\" namespaces=\"...\"/>\nand give the node <security keyFile=\"..\" identityFile=\"{}\" identities=\"identities.xml\"/>",
+                    path.display(),
+                    marea::identity::IdentityKey::public_path(path).display(),
+                    path.display()
+                );
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("usal keygen: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    if let Cmd::Keygen { path, .. } = &cli.cmd {
         return match marea::link::auth::DomainKey::create_file(path) {
             Ok(_) => {
                 println!(

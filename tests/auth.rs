@@ -684,3 +684,138 @@ fn shared_memory_with_a_key_delivers_and_refuses_another_key() {
         .expect("test took too long")
     });
 }
+
+// ---- stage 2: per-node identity keys -------------------------------------------------------
+
+/// `usal keygen --identity`: the secret (0600) and the public key file.
+fn identity_keygen(dir: &Path, name: &str) -> (PathBuf, String) {
+    let path = dir.join(name);
+    let out = Command::new(env!("CARGO_BIN_EXE_usal"))
+        .args(["keygen", "--identity", path.to_str().unwrap()])
+        .output()
+        .expect("run usal keygen --identity");
+    assert!(out.status.success(), "{out:?}");
+    let public = std::fs::read_to_string(dir.join(format!("{name}.pub"))).unwrap();
+    (path, public.trim().to_owned())
+}
+
+/// With a roster, a peer's declarations count only once its identity key proved to be listed
+/// for its namespace: an impostor claiming `rover1` with a key listed for `rover2`, and a node
+/// without identity, are heard but nothing they declare is taken; the peer record says which
+/// namespaces each peer is authenticated for.
+#[test]
+fn identity_keys_bind_namespaces() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let (vehicle_id, vehicle_pub) = identity_keygen(dir.path(), "vehicle.id");
+    let (station_id, station_pub) = identity_keygen(dir.path(), "station.id");
+    let (impostor_id, impostor_pub) = identity_keygen(dir.path(), "impostor.id");
+    let roster = dir.path().join("identities.xml");
+    std::fs::write(
+        &roster,
+        format!(
+            r#"<identities>
+  <identity key="{vehicle_pub}" namespaces="rover1"/>
+  <identity key="{station_pub}" namespaces="*"/>
+  <identity key="{impostor_pub}" namespaces="rover2"/>
+</identities>"#
+        ),
+    )
+    .unwrap();
+    let net = Net::new("auth_identities");
+    let cfg = |node: &str, ns: &str, id: Option<&Path>| {
+        let identity = id
+            .map(|p| format!(r#"identityFile="{}""#, p.display()))
+            .unwrap_or_default();
+        let xml = format!(
+            r#"<network node="{node}" namespace="{ns}" domain="{}">
+  <ethernet bind="127.0.0.1:0" interface="127.0.0.1" multicast="239.255.77.1:{}" heartbeatMs="200" leaseMs="1200"/>
+  <security keyFile="{}" {identity} identities="{}"/>
+</network>"#,
+            net.domain,
+            net.port,
+            key.display(),
+            roster.display()
+        );
+        marea::NetworkConfig::parse(&xml, None).expect("valid config")
+    };
+    let vehicle_cfg = cfg("vehicle", "rover1", Some(&vehicle_id));
+    let station_cfg = cfg("station", "gs", Some(&station_id));
+    let impostor_cfg = cfg("impostor", "rover1", Some(&impostor_id));
+    let anonymous_cfg = cfg("anonymous", "rover1", None);
+    runtime().block_on(async move {
+        tokio::time::timeout(Duration::from_secs(60), async move {
+            let vehicle = marea::Node::open(&vehicle_cfg).await.expect("vehicle");
+            let impostor = marea::Node::open(&impostor_cfg).await.expect("impostor");
+            let anonymous = marea::Node::open(&anonymous_cfg).await.expect("anonymous");
+            let _real = vehicle
+                .service("vas")
+                .unwrap()
+                .publish_variable::<u64>("position")
+                .unwrap();
+            let _fake = impostor
+                .service("vas")
+                .unwrap()
+                .publish_variable::<u64>("shadow")
+                .unwrap();
+            let _anon = anonymous
+                .service("vas")
+                .unwrap()
+                .publish_variable::<u64>("ghost")
+                .unwrap();
+            let station = marea::Node::open(&station_cfg).await.expect("station");
+            let authenticated = |n: &marea::Node, peer: &str| {
+                n.peers()
+                    .into_iter()
+                    .find(|p| p.name == peer)
+                    .and_then(|p| p.authenticated_namespaces)
+            };
+            assert!(
+                station
+                    .wait_until(Duration::from_secs(20), |n| {
+                        n.is_offered(marea::protocol::ItemKind::Variable, "rover1/vas/position")
+                            && authenticated(n, "impostor").is_some_and(|a| !a.is_empty())
+                            && n.peers().iter().any(|p| p.name == "anonymous")
+                    })
+                    .await,
+                "{:?}",
+                station.peers()
+            );
+            assert_eq!(
+                authenticated(&station, "vehicle"),
+                Some(vec!["rover1".to_owned()])
+            );
+            assert_eq!(
+                authenticated(&station, "impostor"),
+                Some(vec!["rover2".to_owned()])
+            );
+            assert_eq!(authenticated(&station, "anonymous"), Some(vec![]));
+            // The vehicle's declarations (which came after its proof) are taken; nothing the
+            // impostor or the anonymous node declared is.
+            let offered = |n: &marea::Node, name: &str| {
+                n.is_offered(marea::protocol::ItemKind::Variable, name)
+            };
+            // (A negative: bounded, after five of their heartbeats have come and gone.)
+            assert!(
+                !station
+                    .wait_until(Duration::from_secs(1), |n| offered(n, "rover1/vas/shadow")
+                        || offered(n, "rover1/vas/ghost"))
+                    .await,
+                "an unauthenticated declaration was taken"
+            );
+            // The vehicle sees the station authenticated for any namespace.
+            assert!(
+                vehicle
+                    .wait_until(Duration::from_secs(10), |n| {
+                        authenticated(n, "station") == Some(vec!["*".to_owned()])
+                    })
+                    .await
+            );
+            for n in [station, anonymous, impostor, vehicle] {
+                n.shutdown().await;
+            }
+        })
+        .await
+        .expect("test took too long")
+    });
+}

@@ -81,6 +81,8 @@ fn config(
     c.security = key_file.map(|k| SecurityConfig {
         key_file: k.to_path_buf(),
         encrypt_radio: false,
+        identity_file: None,
+        identities: None,
     });
     c
 }

@@ -72,6 +72,7 @@
 pub mod api;
 pub mod codec;
 pub mod config;
+pub mod identity;
 pub mod link;
 pub mod name;
 pub(crate) mod node;

@@ -55,6 +55,12 @@ struct Args {
     /// With --key-file: encrypt serial links too (as encrypt="radio").
     #[arg(long)]
     encrypt_radio: bool,
+    /// With --key-file: this node's identity key (as identityFile="..").
+    #[arg(long)]
+    identity_file: Option<PathBuf>,
+    /// With --key-file: the domain's identities.xml (as identities="..").
+    #[arg(long)]
+    identities: Option<PathBuf>,
     #[command(subcommand)]
     cmd: Cmd,
 }
@@ -174,6 +180,8 @@ fn config(args: &Args) -> anyhow::Result<NetworkConfig> {
         c.security = Some(marea::config::SecurityConfig {
             key_file: key_file.clone(),
             encrypt_radio: args.encrypt_radio,
+            identity_file: args.identity_file.clone(),
+            identities: args.identities.clone(),
         });
     }
     Ok(c)

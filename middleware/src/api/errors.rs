@@ -28,6 +28,9 @@ pub enum NodeOpenError {
     /// The domain key named by `<security keyFile=..>` cannot be used.
     #[error(transparent)]
     Key(#[from] crate::link::auth::KeyFileError),
+    /// The domain's identities file (`<security identities=..>`) cannot be used.
+    #[error(transparent)]
+    Roster(#[from] crate::identity::RosterLoadError),
     /// A name in the configuration is invalid.
     #[error("invalid node name or namespace: {0}")]
     Name(#[from] NameParseError),

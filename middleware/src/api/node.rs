@@ -47,6 +47,9 @@ pub struct PeerInfo {
     pub addr: String,
     /// Milliseconds since it was last heard.
     pub last_seen_ms: u64,
+    /// The namespaces its identity key is authenticated for (`<security identities=..>`):
+    /// `None` when this node checks no identities, empty until the peer proved a listed key.
+    pub authenticated_namespaces: Option<Vec<String>>,
 }
 
 /// Whether an item is offered or wanted.
@@ -143,6 +146,31 @@ impl Node {
             }),
             None => None,
         };
+        let id: crate::protocol::NodeId = rand::random();
+        let identity = match &config.security {
+            Some(s) if s.identity_file.is_some() || s.identities.is_some() => {
+                let proof = match &s.identity_file {
+                    Some(f) => {
+                        let key = crate::identity::IdentityKey::load(f)?;
+                        let namespace = config.namespace.clone().unwrap_or_default();
+                        let signature = key.prove(&config.domain, id, &config.node, &namespace);
+                        Some(crate::codec::encode_message(
+                            &crate::protocol::Message::Identity {
+                                public_key: key.public(),
+                                signature: signature.to_vec(),
+                            },
+                        ))
+                    }
+                    None => None,
+                };
+                let roster = match &s.identities {
+                    Some(f) => Some(crate::identity::Roster::load(f)?),
+                    None => None,
+                };
+                Some(crate::node::IdentityLayer { proof, roster })
+            }
+            _ => None,
+        };
         let link_timing: Vec<(Duration, Duration)> = config
             .links
             .iter()
@@ -168,7 +196,7 @@ impl Node {
             .unwrap_or(has_serial && config.links.len() > 1);
         let inner = Arc::new(NodeInner {
             me: Identity {
-                id: rand::random(),
+                id,
                 name: config.node.clone(),
                 namespace: config.namespace.clone().filter(|n| !n.is_empty()),
                 domain: config.domain.clone(),
@@ -193,6 +221,7 @@ impl Node {
             cancel: CancellationToken::new(),
             counters: Default::default(),
             path_switches: Default::default(),
+            identity,
             routing: Mutex::new(()),
             // The pseudo-service id is the first id handed out (ids start at 1).
             gateway: forwards.then(|| crate::node::gateway::Gateway::new(1)),
@@ -338,6 +367,7 @@ impl Node {
                     .unwrap_or_default(),
                 addr: p.addr.to_string(),
                 last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
+                authenticated_namespaces: p.authenticated.clone(),
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));

@@ -41,6 +41,13 @@ pub struct SecurityConfig {
     /// Whether serial (radio) links also encrypt their data (`encrypt="radio"`; default
     /// `none`: authenticated only).
     pub encrypt_radio: bool,
+    /// This node's identity key (`identityFile`, made by `usal keygen --identity`): the node
+    /// proves it to its peers after each Hello.
+    pub identity_file: Option<PathBuf>,
+    /// The domain's roster (`identities`, an `identities.xml`): which identity key may own
+    /// which namespaces. With it, a peer's declarations are taken only once its key is
+    /// authenticated for its namespace.
+    pub identities: Option<PathBuf>,
 }
 
 /// One link of a node, by medium.

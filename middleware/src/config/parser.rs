@@ -431,25 +431,32 @@ impl<'a> Parser<'a> {
     /// node opens.
     fn security(&mut self, element: &Element<'a>) -> Result<SecurityConfig, ConfigLoadError> {
         let attrs = self.attributes("security", element, SECURITY_ATTRS)?;
-        let key_file = self.required(&attrs, "keyFile", KEY_FILE_SYNTAX, |s| {
+        let source = self.source;
+        let path = |s: &str| -> Result<std::path::PathBuf, Invalid> {
             let s = s.trim();
             if s.is_empty() {
-                Err(Invalid::Syntax(KEY_FILE_SYNTAX))
-            } else {
-                Ok(std::path::PathBuf::from(s))
+                return Err(Invalid::Syntax(PATH_SYNTAX));
             }
-        })?;
-        let key_file = match self.source.and_then(Path::parent) {
-            Some(dir) if key_file.is_relative() => dir.join(key_file),
-            _ => key_file,
+            let p = std::path::PathBuf::from(s);
+            Ok(match source.and_then(Path::parent) {
+                Some(dir) if p.is_relative() => dir.join(p),
+                _ => p,
+            })
         };
+        let key_file = self.required(&attrs, "keyFile", KEY_FILE_SYNTAX, |s| {
+            path(s).map_err(|_| Invalid::Syntax(KEY_FILE_SYNTAX))
+        })?;
         let encrypt_radio = self
             .value(&attrs, "encrypt", parse_encrypt)?
             .unwrap_or(false);
+        let identity_file = self.value(&attrs, "identityFile", path)?;
+        let identities = self.value(&attrs, "identities", path)?;
         self.no_children("security", element)?;
         Ok(SecurityConfig {
             key_file,
             encrypt_radio,
+            identity_file,
+            identities,
         })
     }
 

@@ -802,8 +802,20 @@ fn security_key_file_is_relative_to_the_xml_file() {
         Some(SecurityConfig {
             key_file: "/etc/usal/keys/domain.key".into(),
             encrypt_radio: false,
+            identity_file: None,
+            identities: None,
         })
     );
+    let text = net(
+        r#"<security keyFile="d.key" identityFile="vas.id" identities="/r/ids.xml"/><ethernet/>"#,
+    );
+    let c = NetworkConfig::parse(&text, Some(Path::new("/etc/usal/network.xml"))).unwrap();
+    let s = c.security.unwrap();
+    assert_eq!(
+        s.identity_file.as_deref(),
+        Some(Path::new("/etc/usal/vas.id"))
+    );
+    assert_eq!(s.identities.as_deref(), Some(Path::new("/r/ids.xml")));
     let text = net(r#"<ethernet/><security keyFile="/k/d.key" encrypt="radio"/>"#);
     let c = NetworkConfig::parse(&text, Some(Path::new("network.xml"))).unwrap();
     let s = c.security.unwrap();

@@ -110,8 +110,9 @@ pub(super) const NO_ELEMENTS: &[&str] = &[];
 /// What `<network>` may hold: the links, and the elements that are not links.
 pub(super) const NETWORK_ELEMENTS: &[&str] =
     &["ethernet", "shm", "serial", "serialduo", "security"];
-pub(super) const SECURITY_ATTRS: &[&str] = &["keyFile", "encrypt"];
+pub(super) const SECURITY_ATTRS: &[&str] = &["keyFile", "encrypt", "identityFile", "identities"];
 pub(super) const ENCRYPT_SYNTAX: &str = "`none` or `radio`";
+pub(super) const PATH_SYNTAX: &str = "a file path";
 pub(super) const KEY_FILE_SYNTAX: &str = "the path of a key file made by `usal keygen`";
 
 pub(super) const NETWORK_ATTRS: &[&str] = &["node", "namespace", "domain", "gateway"];

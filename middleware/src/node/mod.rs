@@ -9,6 +9,7 @@ pub(crate) mod discovery;
 pub(crate) mod files;
 pub(crate) mod gateway;
 pub(crate) mod health;
+pub(crate) mod identity_check;
 pub(crate) mod mailbox;
 pub(crate) mod path_switch;
 pub(crate) mod session;
@@ -125,6 +126,9 @@ pub(crate) struct Peer {
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
     pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
+    /// Namespaces its identity key is authenticated for: `None` when this node checks no
+    /// identities, empty until a valid proof listed in the roster arrives.
+    pub authenticated: Option<Vec<String>>,
 }
 
 impl Peer {
@@ -191,6 +195,16 @@ pub(crate) struct NodeInner {
     pub routing: Mutex<()>,
     /// Peers being moved to a better path, whose safe messages wait for the old one to drain.
     pub path_switches: path_switch::PathSwitches,
+    /// Per-node identity keys, when configured (`<security identityFile=.. identities=..>`).
+    pub identity: Option<IdentityLayer>,
+}
+
+/// This node's identity proof and the domain's roster (see [`crate::identity`]).
+pub(crate) struct IdentityLayer {
+    /// Our proof for this run (an encoded `Message::Identity`), sent after each safe Hello.
+    pub proof: Option<Vec<u8>>,
+    /// Which key may own which namespaces; `None`: peers are not checked.
+    pub roster: Option<crate::identity::Roster>,
 }
 
 /// Things a node counts (dropped input among them).
@@ -234,7 +248,8 @@ impl NodeInner {
         self.path_switches.send(self.links(), (link, addr), out);
     }
 
-    /// Sends a safe message and forgets about its acknowledgement.
+    /// Sends a safe message and forgets about its acknowledgement. A Hello is followed by our
+    /// identity proof, if we have one, so it precedes every declaration we send after it.
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
         self.send_to(
             link,
@@ -244,6 +259,17 @@ impl NodeInner {
                 done: None,
             },
         );
+        let proof = self.identity.as_ref().and_then(|i| i.proof.as_ref());
+        if let (Message::Hello { .. }, Some(proof)) = (msg, proof) {
+            self.send_to(
+                link,
+                addr,
+                Outgoing::Safe {
+                    msg: proof.clone(),
+                    done: None,
+                },
+            );
+        }
     }
 
     /// Sends a safe message to a known peer.
@@ -294,7 +320,15 @@ impl NodeInner {
                 self.deliver_remote(node, id, payload)
             }
             Message::DeclRequest { since } => self.answer_decl_request(node, since),
-            Message::DeclBatch { entries } => self.apply_decl_batch(node, entries),
+            Message::DeclBatch { entries } => {
+                if self.identity_allows(node) {
+                    self.apply_decl_batch(node, entries)
+                }
+            }
+            Message::Identity {
+                public_key,
+                signature,
+            } => self.on_identity(node, public_key, &signature),
             Message::Refused {
                 interest,
                 name,
