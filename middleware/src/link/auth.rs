@@ -1,7 +1,8 @@
 //! Link authentication: the domain key, the seal every frame carries when a node has a key,
 //! and the per-sender replay window. Pure (no I/O but reading and writing the key file); each
 //! link calls [`Sealer::seal`] where it writes a frame and [`Opener::open`] where it reads one,
-//! before anything is decoded.
+//! before anything is decoded (shared memory, which writes into and reads from samples in place,
+//! uses [`Sealer::seal_slice`] and [`Opener::verify`]).
 //!
 //! ```text
 //! sealed frame := frame | epoch (E bytes LE) | counter (C bytes LE) | tag (T bytes)
@@ -25,12 +26,13 @@
 //! verified, so nobody without the key can fill the table; at most `max_windows` are kept, the
 //! least recently used evicted.
 //!
-//! **Forgery bound.** A forger without the key succeeds with probability 2^-T·8 per frame it
+//! **Forgery bound.** A forger without the key succeeds with probability 2^-(8·T) per frame it
 //! sends: 2^-64 on UDP and shared memory, 2^-40 on serial (at 1,000 frames a second, one forged
 //! frame expected in ~35 years of continuous trying, every failure counted in link health), 2^-128
 //! with encryption. Epochs are random: two senders (or a restarted one) drawing the same epoch
 //! have probability 2^-32 (UDP, shm) or 2^-24 (serial) per pair; the cost is the later one's first
-//! frames being taken as replays until its counter passes the other's, never a forgery. A
+//! frames being taken as replays until its counter passes the other's, never a forgery. With
+//! encryption the epoch is 64 bits because a shared epoch would also reuse nonces (2^-64). A
 //! receiver that restarts (or evicts an epoch) forgets what it saw of it: traffic recorded
 //! before can then be replayed once. That is the limit of a group key without a handshake.
 
