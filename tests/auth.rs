@@ -819,3 +819,65 @@ fn identity_keys_bind_namespaces() {
         .expect("test took too long")
     });
 }
+
+/// Two keyed LANs joined over an encrypted radio by keyed gateways (every node a process): a
+/// value published on the air LAN reaches a subscriber on the ground LAN through both
+/// gateways, every hop sealed.
+#[test]
+fn keyed_gateways_join_two_lans_over_an_encrypted_radio() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let ground = Net::new("auth_gateways");
+    let air = Net {
+        domain: ground.domain.clone(),
+        port: ground.port.wrapping_add(1),
+        heartbeat_ms: ground.heartbeat_ms,
+        lease_ms: ground.lease_ms,
+    };
+    let radio = common::Radio::start(&["--seed", "9"]);
+    let gateway = |net: &Net, node: &str, ns: &str, tty: &str| {
+        let xml = format!(
+            r#"<network node="{node}" namespace="{ns}" domain="{}">
+  <ethernet name="lan" bind="127.0.0.1:0" multicast="239.255.77.1:{}" interface="127.0.0.1"
+            heartbeatMs="200" leaseMs="1500"/>
+  <serial name="radio" address="{tty}" baudRate="115200" heartbeatMs="500" leaseMs="5000"/>
+  <security keyFile="domain.key" encrypt="radio"/>
+</network>"#,
+            net.domain, net.port
+        );
+        // keyFile is relative: resolved against this file's directory.
+        let path = dir.path().join(format!("{node}.xml"));
+        std::fs::write(&path, xml).unwrap();
+        Proc::spawn(
+            node,
+            env!("CARGO_BIN_EXE_marea-probe"),
+            &[
+                "--config".to_owned(),
+                path.display().to_string(),
+                "gateway".to_owned(),
+            ],
+        )
+    };
+    let mut air_gw = gateway(&air, "air-gw", "rover1", &radio.air);
+    let mut ground_gw = gateway(&ground, "ground-gw", "ground", &radio.ground);
+    air_gw.expect_key(T, "ready");
+    ground_gw.expect_key(T, "ready");
+    let mut publ = keyed(
+        &air,
+        "position",
+        "rover1",
+        &key,
+        &["var-pub", "--item", "position", "--count", "1"],
+    );
+    publ.expect_key(T, "published");
+    let mut monitor = keyed(
+        &ground,
+        "monitor",
+        "ground",
+        &key,
+        &["var-sub", "--pattern", "rover1/**", "--count", "1"],
+    );
+    let v = monitor.expect_key(Duration::from_secs(60), "seq");
+    assert_eq!(v["name"], "rover1/probe/position", "{v}");
+    assert_eq!(v["publisher"], "position");
+}
