@@ -604,10 +604,10 @@ fn shm_link(node: &marea::Node) -> marea::link::LinkStats {
 }
 
 /// Same key over shared memory: variables, events (small and large enough for the bulk inbox)
-/// and calls; a node with another key on the same service is neither discovered nor delivered,
-/// and the keyed nodes count what they dropped.
+/// and calls; a node with another key, and one without a key, on the same service are neither
+/// discovered nor delivered, and the nodes count what they dropped.
 #[test]
-fn shared_memory_with_a_key_delivers_and_refuses_another_key() {
+fn shared_memory_with_a_key_delivers_and_refuses_another_key_or_none() {
     let dir = tempfile::tempdir().unwrap();
     let key = keygen(dir.path(), "domain.key");
     let other = keygen(dir.path(), "other.key");
@@ -616,11 +616,18 @@ fn shared_memory_with_a_key_delivers_and_refuses_another_key() {
     let a_cfg = shm_config("vehicle", &service, &sec);
     let b_cfg = shm_config("station", &service, &sec);
     let x_cfg = shm_config("intruder", &service, &security_element(&other, false));
+    let y_cfg = shm_config("nokey", &service, "");
     runtime().block_on(async move {
         tokio::time::timeout(Duration::from_secs(60), async move {
             let a = marea::Node::open(&a_cfg).await.expect("vehicle");
             let b = marea::Node::open(&b_cfg).await.expect("station");
             let x = marea::Node::open(&x_cfg).await.expect("intruder");
+            let y = marea::Node::open(&y_cfg).await.expect("node without key");
+            let y_spied = y
+                .service("fmo")
+                .unwrap()
+                .subscribe_variable::<u64>("vehicle/vas/position")
+                .unwrap();
             let vas = a.service("vas").unwrap();
             let position = vas.publish_variable::<u64>("position").unwrap();
             let blobs = vas.publish_event::<Vec<u8>>("blob").unwrap();
@@ -668,14 +675,38 @@ fn shared_memory_with_a_key_delivers_and_refuses_another_key() {
             let names = |n: &marea::Node| -> Vec<String> {
                 n.peers().into_iter().map(|p| p.name).collect()
             };
+            // Both intruders' announcements were dropped: the one without a key as unsealed.
+            assert!(
+                poll(Duration::from_secs(10), || shm_link(&a).auth_rejected >= 2).await,
+                "{:?}",
+                shm_link(&a)
+            );
+            // And the node without a key drops the keyed frames as unreadable.
+            assert!(
+                poll(Duration::from_secs(10), || shm_link(&y).corrupt > 0).await,
+                "{:?}",
+                shm_link(&y)
+            );
             assert_eq!(names(&a), vec!["station".to_owned()]);
             assert!(names(&x).is_empty(), "{:?}", names(&x));
+            assert!(
+                names(&y).is_empty(),
+                "the node without a key discovered a keyed node: {:?}",
+                names(&y)
+            );
             assert!(
                 tokio::time::timeout(Duration::from_millis(300), spied.recv())
                     .await
                     .is_err(),
                 "the intruder got a value"
             );
+            assert!(
+                tokio::time::timeout(Duration::from_millis(100), y_spied.recv())
+                    .await
+                    .is_err(),
+                "the node without a key got a value"
+            );
+            y.shutdown().await;
             x.shutdown().await;
             b.shutdown().await;
             a.shutdown().await;

@@ -291,6 +291,7 @@ pub(super) fn put(
     frame::write_header(out, kind, sender, session, seq);
     out[h..h + body.len()].copy_from_slice(body);
     if let Some(s) = sealer {
+        out[0] |= frame::SEALED_KIND;
         s.seal_slice(out, h + body.len());
     }
     matches!(sample.send(), Ok(n) if n > 0)

@@ -535,14 +535,21 @@ impl RxIo for LinkRx<'_> {
     fn take(&mut self, part: Part) -> Option<Opened> {
         loop {
             let sample = self.reader.take(part)?;
+            let bytes = sample.as_ref();
+            let sealed = bytes.first().is_some_and(|k| k & frame::SEALED_KIND != 0);
             let Some(opener) = &self.link.opener else {
-                let len = sample.as_ref().len();
+                if sealed {
+                    // A keyed node's frame: nothing here can check or read it.
+                    self.link.counters.count_in(bytes.len());
+                    self.link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+                let len = bytes.len();
                 return Some(Opened(sample, len));
             };
-            let bytes = sample.as_ref();
             // The writer's id (inside what the tag covers) and the inbox part tell the
             // streams apart: each is written in order.
-            let verified = match bytes.get(1..frame::BASE) {
+            let verified = match bytes.get(1..frame::BASE).filter(|_| sealed) {
                 Some(id) => {
                     let mut b = [0u8; 8];
                     b.copy_from_slice(id);
