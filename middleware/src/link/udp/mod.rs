@@ -140,8 +140,11 @@ pub struct UdpLink {
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
     counters: LinkCounters,
-    /// Seals outgoing datagrams when the node has a key.
-    sealer: Option<Sealer>,
+    /// Seals outgoing datagrams when the node has a key: data, and discovery (announces) with
+    /// an epoch of their own. Announces arrive through the multicast socket's task, which may
+    /// lag the unicast one by more than the replay window under heavy traffic; in their own
+    /// epoch they are never "too old" for that reason.
+    sealer: Option<(Sealer, Sealer)>,
     /// Checks incoming datagrams when the node has a key (both receive tasks use it).
     opener: Option<Mutex<Opener>>,
 }
@@ -221,10 +224,12 @@ impl UdpLink {
             UdpSocket::from_std(s.into()).map_err(mcast_err)?
         };
 
-        let sealer = options
-            .security
-            .as_ref()
-            .map(|s| Sealer::new(&s.key, Profile::UDP));
+        let sealer = options.security.as_ref().map(|s| {
+            (
+                Sealer::new(&s.key, Profile::UDP),
+                Sealer::new(&s.key, Profile::UDP),
+            )
+        });
         let opener = options
             .security
             .as_ref()
@@ -287,7 +292,7 @@ impl UdpLink {
         self.counters
             .retransmitted
             .fetch_add(due.len() as u64, Ordering::Relaxed);
-        let seal = self.sealer.as_ref().map_or(0, Sealer::overhead);
+        let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
         let mut w = DatagramWriter::new(self.options.mtu.saturating_sub(seal));
         let mut out: Vec<Vec<u8>> = Vec::new();
         let mut carries_safe = false;
@@ -371,10 +376,13 @@ impl UdpLink {
     /// With a key, seals a datagram built by [`datagram`] (its kind byte becoming the sealed
     /// kind); without, returns it as it is.
     fn seal(&self, mut d: Vec<u8>) -> Vec<u8> {
-        if let Some(s) = &self.sealer {
-            if let Some(kind) = d.first_mut() {
-                *kind = datagram::sealed_kind(*kind);
-            }
+        if let (Some((data, announce)), Some(kind)) = (&self.sealer, d.first_mut()) {
+            let s = if *kind == datagram::KIND_DISCOVERY {
+                announce
+            } else {
+                data
+            };
+            *kind = datagram::sealed_kind(*kind);
             s.seal(&mut d, usize::MAX);
         }
         d
