@@ -176,6 +176,8 @@ pub struct Stp<T> {
     stats: StpStats,
     /// Seals every frame written when the link has a key (the decoder checks them).
     sealer: Option<Sealer>,
+    /// The link's name, for the log of rejected frames.
+    name: String,
 }
 
 /// Widens a 16-bit wire sequence number to the 32-bit one nearest `reference`.
@@ -212,7 +214,14 @@ impl<T> Stp<T> {
             fast_reasm: FastReassembler::new(8, cfg.fragment_expiry, cfg.max_message()),
             stats: StpStats::default(),
             sealer: None,
+            name: "serial".to_owned(),
         }
+    }
+
+    /// The same engine naming its link `name` in the log.
+    pub fn named(mut self, name: &str) -> Self {
+        name.clone_into(&mut self.name);
+        self
     }
 
     /// The same engine sealing every frame it writes and accepting only sealed frames, when
@@ -318,7 +327,7 @@ impl<T> Stp<T> {
                         &mut self.stats.link.auth_rejected
                     };
                     *total += 1;
-                    auth::log_reject("serial", "point-to-point", why, *total);
+                    auth::log_reject(&self.name, "point-to-point", why, *total);
                 }
                 Err(_) => self.stats.link.corrupt += 1,
             }
