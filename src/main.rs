@@ -45,6 +45,10 @@ struct NetArgs {
     /// Print JSON lines instead of text.
     #[arg(long, global = true)]
     json: bool,
+    /// Domain key file (from `usal keygen`) to join an authenticated system with, when the
+    /// --config file has no <security> element.
+    #[arg(long, global = true)]
+    key_file: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -83,6 +87,18 @@ enum Cmd {
         #[arg(long, default_value_t = 30)]
         retry_secs: u64,
     },
+    /// Write a fresh random domain key to PATH (mode 0600; an existing file is never
+    /// overwritten). Name it in network.xml with <security keyFile="PATH"/> on every node.
+    /// With --identity: write a node identity key pair instead, the secret to PATH (0600) and
+    /// the public key to PATH.pub, for <security identityFile="PATH"/> and the domain's
+    /// identities.xml.
+    Keygen {
+        /// Where to write the key.
+        path: PathBuf,
+        /// Make a per-node identity key pair (Ed25519) instead of a domain key.
+        #[arg(long)]
+        identity: bool,
+    },
 }
 
 fn network(net: &NetArgs) -> anyhow::Result<NetworkConfig> {
@@ -104,6 +120,14 @@ fn network(net: &NetArgs) -> anyhow::Result<NetworkConfig> {
     };
     // The tool is its own node whatever the file says, so it never impersonates a service node.
     c.node = format!("usal-cli-{}", std::process::id());
+    if let Some(key_file) = &net.key_file {
+        c.security = Some(marea::config::SecurityConfig {
+            key_file: key_file.clone(),
+            encrypt_radio: c.security.as_ref().is_some_and(|s| s.encrypt_radio),
+            identity_file: c.security.as_ref().and_then(|s| s.identity_file.clone()),
+            identities: c.security.as_ref().and_then(|s| s.identities.clone()),
+        });
+    }
     Ok(c)
 }
 
@@ -129,6 +153,44 @@ fn main() -> ExitCode {
     if let Cmd::Run(args) = &cli.cmd {
         return run::main(args, cli.net.json);
     }
+    if let Cmd::Keygen {
+        path,
+        identity: true,
+    } = &cli.cmd
+    {
+        return match marea::identity::IdentityKey::create_files(path) {
+            Ok(key) => {
+                let public: String = key.public().iter().map(|b| format!("{b:02x}")).collect();
+                println!(
+                    "wrote an identity key to {} (mode 0600) and its public key to {}; list it in the domain's identities.xml as\n  <identity key=\"{public}\" namespaces=\"...\"/>\nand give the node <security keyFile=\"..\" identityFile=\"{}\" identities=\"identities.xml\"/>",
+                    path.display(),
+                    marea::identity::IdentityKey::public_path(path).display(),
+                    path.display()
+                );
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("usal keygen: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    if let Cmd::Keygen { path, .. } = &cli.cmd {
+        return match marea::link::auth::DomainKey::create_file(path) {
+            Ok(_) => {
+                println!(
+                    "wrote a new domain key to {} (mode 0600); copy it to every node of the domain and add <security keyFile=\"{}\"/> to their network.xml",
+                    path.display(),
+                    path.display()
+                );
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("usal keygen: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
     let rt = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
@@ -152,7 +214,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let wait = Duration::from_millis(cli.net.wait_ms);
     let code = match &cli.cmd {
         // Dispatched in main before the tool joins the network.
-        Cmd::Run(_) => ExitCode::from(2),
+        Cmd::Run(_) | Cmd::Keygen { .. } => ExitCode::from(2),
         Cmd::List => {
             tokio::time::sleep(wait).await;
             list(&node, cli.net.json)?;

@@ -11,7 +11,7 @@ const LAYERS: &[&[&str]] = &[
     &["protocol"],
     &["codec"],
     &["link"],
-    &["config"],
+    &["config", "identity"],
     &["node"],
     &["api"],
 ];

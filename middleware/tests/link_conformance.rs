@@ -6,6 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use marea::link::arq::ArqConfig;
+use marea::link::auth::{DomainKey, LinkSecurity};
 use marea::link::serial::stp::StpConfig;
 use marea::link::serial::SerialLink;
 use marea::link::shm::{ShmLink, ShmLinkOptions, ShmWait};
@@ -111,10 +112,19 @@ impl Pair {
     }
 }
 
-async fn udp_pair() -> Pair {
+/// A domain key for the keyed instances of the suite.
+fn security(encrypt_radio: bool) -> Option<LinkSecurity> {
+    Some(LinkSecurity {
+        key: DomainKey::from_bytes([0x5A; 32]),
+        encrypt_radio,
+    })
+}
+
+async fn udp_pair(security: Option<LinkSecurity>) -> Pair {
     let tasks = TaskTracker::new();
     let cancel = CancellationToken::new();
-    let port = 24_000 + (std::process::id() % 20_000) as u16;
+    // The keyed pair uses its own group port: the tests of this file run in parallel.
+    let port = 24_000 + (std::process::id() % 20_000) as u16 + u16::from(security.is_some());
     let opts = |name: &str| UdpLinkOptions {
         name: name.into(),
         bind: "127.0.0.1:0".parse().unwrap(),
@@ -124,6 +134,7 @@ async fn udp_pair() -> Pair {
         peers: vec![],
         mtu: 1400,
         arq: ArqConfig::lan(),
+        security: security.clone(),
     };
     let (ra, rb) = (Arc::new(Recorder::default()), Arc::new(Recorder::default()));
     let a = UdpLink::open(0, opts("a"), ra.clone(), &tasks, cancel.child_token()).unwrap();
@@ -138,27 +149,29 @@ async fn udp_pair() -> Pair {
     }
 }
 
-async fn serial_pair() -> Pair {
+async fn serial_pair(security: Option<LinkSecurity>) -> Pair {
     let tasks = TaskTracker::new();
     let cancel = CancellationToken::new();
     let cfg = StpConfig::new(1_000_000, Duration::from_millis(200), 300, 64);
     let (a_to_b_w, a_to_b_r) = tokio::io::duplex(1 << 16);
     let (b_to_a_w, b_to_a_r) = tokio::io::duplex(1 << 16);
     let (ra, rb) = (Arc::new(Recorder::default()), Arc::new(Recorder::default()));
-    let a = SerialLink::with_streams(
+    let a = SerialLink::with_streams_secured(
         0,
         "a",
         (Box::new(b_to_a_r), Box::new(a_to_b_w)),
         cfg,
+        security.as_ref(),
         ra.clone(),
         &tasks,
         cancel.child_token(),
     );
-    let b = SerialLink::with_streams(
+    let b = SerialLink::with_streams_secured(
         0,
         "b",
         (Box::new(a_to_b_r), Box::new(b_to_a_w)),
         cfg,
+        security.as_ref(),
         rb.clone(),
         &tasks,
         cancel.child_token(),
@@ -173,15 +186,20 @@ async fn serial_pair() -> Pair {
     }
 }
 
-async fn shm_pair() -> Pair {
+async fn shm_pair(security: Option<LinkSecurity>) -> Pair {
     let tasks = TaskTracker::new();
     let cancel = CancellationToken::new();
-    let service = format!("conformance-{}", std::process::id());
+    let service = format!(
+        "conformance-{}-{}",
+        std::process::id(),
+        if security.is_some() { "keyed" } else { "plain" }
+    );
     let opts = |name: &str| ShmLinkOptions {
         name: name.into(),
         service: service.clone(),
         scan: Duration::from_millis(100),
         wait: ShmWait::Event,
+        security: security.clone(),
     };
     let (ra, rb) = (Arc::new(Recorder::default()), Arc::new(Recorder::default()));
     let a = ShmLink::open(0, opts("a"), ra.clone(), &tasks, cancel.child_token())
@@ -305,15 +323,35 @@ async fn conformance(pair: Pair) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn udp_link_conforms() {
-    conformance(udp_pair().await).await;
+    conformance(udp_pair(None).await).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn udp_link_with_a_key_conforms() {
+    conformance(udp_pair(security(false)).await).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serial_link_with_a_key_conforms() {
+    conformance(serial_pair(security(false)).await).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serial_link_with_encryption_conforms() {
+    conformance(serial_pair(security(true)).await).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serial_link_conforms() {
-    conformance(serial_pair().await).await;
+    conformance(serial_pair(None).await).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shm_link_conforms() {
-    conformance(shm_pair().await).await;
+    conformance(shm_pair(None).await).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shm_link_with_a_key_conforms() {
+    conformance(shm_pair(security(false)).await).await;
 }

@@ -49,6 +49,18 @@ struct Args {
     /// Service name for this probe's items.
     #[arg(long, default_value = "probe")]
     service: String,
+    /// Domain key file: authenticate every link with it (as <security keyFile=".."/>).
+    #[arg(long)]
+    key_file: Option<PathBuf>,
+    /// With --key-file: encrypt serial links too (as encrypt="radio").
+    #[arg(long)]
+    encrypt_radio: bool,
+    /// With --key-file: this node's identity key (as identityFile="..").
+    #[arg(long)]
+    identity_file: Option<PathBuf>,
+    /// With --key-file: the domain's identities.xml (as identities="..").
+    #[arg(long)]
+    identities: Option<PathBuf>,
     #[command(subcommand)]
     cmd: Cmd,
 }
@@ -163,6 +175,19 @@ fn out(v: serde_json::Value) {
 }
 
 fn config(args: &Args) -> anyhow::Result<NetworkConfig> {
+    let mut c = base_config(args)?;
+    if let Some(key_file) = &args.key_file {
+        c.security = Some(marea::config::SecurityConfig {
+            key_file: key_file.clone(),
+            encrypt_radio: args.encrypt_radio,
+            identity_file: args.identity_file.clone(),
+            identities: args.identities.clone(),
+        });
+    }
+    Ok(c)
+}
+
+fn base_config(args: &Args) -> anyhow::Result<NetworkConfig> {
     if let Some(path) = &args.config {
         return Ok(NetworkConfig::load(path)?);
     }
@@ -266,6 +291,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                         "peers": s.value.peers,
                         "in_bps": s.value.in_bps,
                         "out_bps": s.value.out_bps,
+                        "auth_rejected": s.value.totals.auth_rejected,
+                        "replay_rejected": s.value.totals.replay_rejected,
+                        "corrupt": s.value.totals.corrupt,
                     })),
                     Err(e) => out(json!({"error": e.to_string()})),
                 }

@@ -76,6 +76,28 @@ impl Proc {
         }
     }
 
+    /// Waits up to `timeout` for a line satisfying `pred`; `None` when none came (the lines
+    /// that did come are kept in `seen`).
+    pub fn try_expect(
+        &mut self,
+        timeout: Duration,
+        pred: impl Fn(&Value) -> bool,
+    ) -> Option<Value> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(v) => {
+                    self.seen.push(v.clone());
+                    if pred(&v) {
+                        return Some(v);
+                    }
+                }
+                Err(_) => return None,
+            }
+        }
+    }
+
     /// Waits for a line having key `key`.
     pub fn expect_key(&mut self, timeout: Duration, key: &str) -> Value {
         self.expect(timeout, key, |v| v.get(key).is_some())

@@ -25,6 +25,12 @@ pub enum NodeOpenError {
         /// Kind of link.
         kind: &'static str,
     },
+    /// The domain key named by `<security keyFile=..>` cannot be used.
+    #[error(transparent)]
+    Key(#[from] crate::link::auth::KeyFileError),
+    /// The domain's identities file (`<security identities=..>`) cannot be used.
+    #[error(transparent)]
+    Roster(#[from] crate::identity::RosterLoadError),
     /// A name in the configuration is invalid.
     #[error("invalid node name or namespace: {0}")]
     Name(#[from] NameParseError),

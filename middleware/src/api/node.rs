@@ -47,6 +47,9 @@ pub struct PeerInfo {
     pub addr: String,
     /// Milliseconds since it was last heard.
     pub last_seen_ms: u64,
+    /// The namespaces its identity key is authenticated for (`<security identities=..>`):
+    /// `None` when this node checks no identities, empty until the peer proved a listed key.
+    pub authenticated_namespaces: Option<Vec<String>>,
 }
 
 /// Whether an item is offered or wanted.
@@ -136,6 +139,38 @@ impl Node {
         if let Some(ns) = &config.namespace {
             name::validate_name(ns)?;
         }
+        let security = match &config.security {
+            Some(s) => Some(crate::link::auth::LinkSecurity {
+                key: crate::link::auth::DomainKey::load(&s.key_file)?,
+                encrypt_radio: s.encrypt_radio,
+            }),
+            None => None,
+        };
+        let id: crate::protocol::NodeId = rand::random();
+        let identity = match &config.security {
+            Some(s) if s.identity_file.is_some() || s.identities.is_some() => {
+                let proof = match &s.identity_file {
+                    Some(f) => {
+                        let key = crate::identity::IdentityKey::load(f)?;
+                        let namespace = config.namespace.clone().unwrap_or_default();
+                        let signature = key.prove(&config.domain, id, &config.node, &namespace);
+                        Some(crate::codec::encode_message(
+                            &crate::protocol::Message::Identity {
+                                public_key: key.public(),
+                                signature: signature.to_vec(),
+                            },
+                        ))
+                    }
+                    None => None,
+                };
+                let roster = match &s.identities {
+                    Some(f) => Some(crate::identity::Roster::load(f)?),
+                    None => None,
+                };
+                Some(crate::node::IdentityLayer { proof, roster })
+            }
+            _ => None,
+        };
         let link_timing: Vec<(Duration, Duration)> = config
             .links
             .iter()
@@ -161,7 +196,7 @@ impl Node {
             .unwrap_or(has_serial && config.links.len() > 1);
         let inner = Arc::new(NodeInner {
             me: Identity {
-                id: rand::random(),
+                id,
                 name: config.node.clone(),
                 namespace: config.namespace.clone().filter(|n| !n.is_empty()),
                 domain: config.domain.clone(),
@@ -186,6 +221,7 @@ impl Node {
             cancel: CancellationToken::new(),
             counters: Default::default(),
             path_switches: Default::default(),
+            identity,
             routing: Mutex::new(()),
             policy: crate::node::policy::Policy::new(config.access.clone(), config.links.len()),
             lanes: Default::default(),
@@ -221,6 +257,7 @@ impl Node {
                         peers: e.peers.clone(),
                         mtu: 1400,
                         arq: ArqConfig::lan(),
+                        security: security.clone(),
                     },
                     handler,
                     &inner.tasks,
@@ -237,6 +274,7 @@ impl Node {
                         name,
                         Arc::new(ports),
                         stp,
+                        security.as_ref(),
                         handler,
                         &inner.tasks,
                         inner.cancel.child_token(),
@@ -251,6 +289,7 @@ impl Node {
                         service: s.service.clone(),
                         scan: s.heartbeat,
                         wait: s.wait,
+                        security: security.clone(),
                     },
                     handler,
                     &inner.tasks,
@@ -277,7 +316,7 @@ impl Node {
         }
         inner.start_link_health();
         inner.announce_hello();
-        tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), "node open");
+        tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), authenticated = security.is_some(), "node open");
         Ok(Node {
             inner,
             hosted: tokio::sync::Mutex::new(Vec::new()),
@@ -330,6 +369,7 @@ impl Node {
                     .unwrap_or_default(),
                 addr: p.addr.to_string(),
                 last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
+                authenticated_namespaces: p.authenticated.clone(),
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));

@@ -212,6 +212,14 @@ pub enum ConfigLoadError {
         /// The element.
         element: &'static str,
     },
+    /// A second `<security>` element.
+    #[error("{at}: <network>: a second <security> element (the first is at line {}, column {})", first.line, first.column)]
+    DuplicateSecurity {
+        /// Where (the second element).
+        at: Location,
+        /// Where the first is.
+        first: Location,
+    },
     /// A `<serialduo>` whose `addressTx` and `addressRx` are the same port.
     #[error(
         "{at}: <serialduo>: addressTx and addressRx are both {address:?}; a serialduo needs two different ports (use <serial> for one)"
@@ -259,7 +267,8 @@ impl ConfigLoadError {
             | E::DuplicateLinkName { at, .. }
             | E::DuplicateElement { at, .. }
             | E::SerialDuoSamePort { at, .. }
-            | E::SerialPortReused { at, .. } => Some(at),
+            | E::SerialPortReused { at, .. }
+            | E::DuplicateSecurity { at, .. } => Some(at),
         }
     }
 

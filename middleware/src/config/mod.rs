@@ -114,6 +114,7 @@ impl NetworkConfig {
             gateway: None,
             source: None,
             access: None,
+            security: None,
         }
     }
 

@@ -28,6 +28,28 @@ pub struct NetworkConfig {
     pub source: Option<PathBuf>,
     /// The `<access>` rules; `None` (no element) leaves everything open.
     pub access: Option<super::access::AccessConfig>,
+    /// Link authentication (`<security>`): `None` keeps the links open to anyone (the
+    /// zero-config demo).
+    pub security: Option<SecurityConfig>,
+}
+
+/// `<security keyFile="..." encrypt="radio"/>`: the domain key every link seals its frames
+/// with (see [`crate::link::auth`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SecurityConfig {
+    /// The key file (`keyFile`), made by `usal keygen`; a relative path in the file is taken
+    /// relative to the file's directory.
+    pub key_file: PathBuf,
+    /// Whether serial (radio) links also encrypt their data (`encrypt="radio"`; default
+    /// `none`: authenticated only).
+    pub encrypt_radio: bool,
+    /// This node's identity key (`identityFile`, made by `usal keygen --identity`): the node
+    /// proves it to its peers after each Hello.
+    pub identity_file: Option<PathBuf>,
+    /// The domain's roster (`identities`, an `identities.xml`): which identity key may own
+    /// which namespaces. With it, a peer's declarations are taken only once its key is
+    /// authenticated for its namespace.
+    pub identities: Option<PathBuf>,
 }
 
 /// One link of a node, by medium.

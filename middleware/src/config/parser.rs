@@ -365,6 +365,7 @@ impl<'a> Parser<'a> {
         // links count too, so that switching one off does not rename the others.
         let mut kinds: Vec<String> = Vec::new();
         let mut access: Option<AccessConfig> = None;
+        let mut security: Option<(SecurityConfig, Location)> = None;
         while let Some(child) = self.child("network", root)? {
             let kind = child.name().to_owned();
             if kind == "access" {
@@ -377,13 +378,24 @@ impl<'a> Parser<'a> {
                 access = Some(self.access(&child)?);
                 continue;
             }
+            if kind == "security" {
+                let at = self.at(child.pos());
+                if let Some((_, first)) = &security {
+                    return Err(ConfigLoadError::DuplicateSecurity {
+                        at,
+                        first: first.clone(),
+                    });
+                }
+                security = Some((self.security(&child)?, at));
+                continue;
+            }
             let index = kinds.iter().filter(|&k| *k == kind).count();
             let parsed = match kind.as_str() {
                 "ethernet" => self.ethernet(&child, index)?,
                 "shm" => self.shm(&child, index)?,
                 "serial" => self.serial(&child, index)?,
                 "serialduo" => self.serialduo(&child, index)?,
-                _ => return Err(self.unknown_element("network", &child, LINK_ELEMENTS)),
+                _ => return Err(self.unknown_element("network", &child, NETWORK_ELEMENTS)),
             };
             kinds.push(kind);
             let name = parsed.link.name().to_owned();
@@ -424,6 +436,40 @@ impl<'a> Parser<'a> {
             gateway,
             source: self.source.map(Path::to_path_buf),
             access,
+            security: security.map(|(s, _)| s),
+        })
+    }
+
+    /// `<security keyFile=".." encrypt="none|radio"/>`; the key file itself is read when the
+    /// node opens.
+    fn security(&mut self, element: &Element<'a>) -> Result<SecurityConfig, ConfigLoadError> {
+        let attrs = self.attributes("security", element, SECURITY_ATTRS)?;
+        let source = self.source;
+        let path = |s: &str| -> Result<std::path::PathBuf, Invalid> {
+            let s = s.trim();
+            if s.is_empty() {
+                return Err(Invalid::Syntax(PATH_SYNTAX));
+            }
+            let p = std::path::PathBuf::from(s);
+            Ok(match source.and_then(Path::parent) {
+                Some(dir) if p.is_relative() => dir.join(p),
+                _ => p,
+            })
+        };
+        let key_file = self.required(&attrs, "keyFile", KEY_FILE_SYNTAX, |s| {
+            path(s).map_err(|_| Invalid::Syntax(KEY_FILE_SYNTAX))
+        })?;
+        let encrypt_radio = self
+            .value(&attrs, "encrypt", parse_encrypt)?
+            .unwrap_or(false);
+        let identity_file = self.value(&attrs, "identityFile", path)?;
+        let identities = self.value(&attrs, "identities", path)?;
+        self.no_children("security", element)?;
+        Ok(SecurityConfig {
+            key_file,
+            encrypt_radio,
+            identity_file,
+            identities,
         })
     }
 

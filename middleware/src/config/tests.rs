@@ -112,6 +112,7 @@ fn example_parses_into_the_exact_config() {
         gateway: None,
         source: None,
         access: None,
+        security: None,
     };
     assert_eq!(config, expected);
     let names: Vec<&str> = config.links.iter().map(LinkConfig::name).collect();
@@ -390,7 +391,7 @@ fn unknown_element() {
     let (text, ..) = message(&net("<radio/>"));
     assert_eq!(
             text,
-            "config/network.xml:2:1: <network>: unknown element <radio>; expected <ethernet>, <shm>, <serial>, <serialduo>"
+            "config/network.xml:2:1: <network>: unknown element <radio>; expected <ethernet>, <shm>, <serial>, <serialduo>, <security>, <access>"
         );
     let (text, line, column) = message(&net("<shm>\n    <peer/>\n</shm>"));
     assert_eq!((line, column), (3, 5));
@@ -852,4 +853,79 @@ fn access_errors_name_line_and_column() {
     ));
     assert_eq!(line, 4, "{msg}");
     assert!(msg.contains("permit"), "{msg}");
+}
+
+// ---- <security> (link authentication) -----------------------------------------------------
+
+#[test]
+fn security_key_file_is_relative_to_the_xml_file() {
+    let text = net(r#"<security keyFile="keys/domain.key"/><ethernet/>"#);
+    let c = NetworkConfig::parse(&text, Some(Path::new("/etc/usal/network.xml"))).unwrap();
+    assert_eq!(
+        c.security,
+        Some(SecurityConfig {
+            key_file: "/etc/usal/keys/domain.key".into(),
+            encrypt_radio: false,
+            identity_file: None,
+            identities: None,
+        })
+    );
+    let text = net(
+        r#"<security keyFile="d.key" identityFile="vas.id" identities="/r/ids.xml"/><ethernet/>"#,
+    );
+    let c = NetworkConfig::parse(&text, Some(Path::new("/etc/usal/network.xml"))).unwrap();
+    let s = c.security.unwrap();
+    assert_eq!(
+        s.identity_file.as_deref(),
+        Some(Path::new("/etc/usal/vas.id"))
+    );
+    assert_eq!(s.identities.as_deref(), Some(Path::new("/r/ids.xml")));
+    let text = net(r#"<ethernet/><security keyFile="/k/d.key" encrypt="radio"/>"#);
+    let c = NetworkConfig::parse(&text, Some(Path::new("network.xml"))).unwrap();
+    let s = c.security.unwrap();
+    assert_eq!(s.key_file, Path::new("/k/d.key"));
+    assert!(s.encrypt_radio);
+    assert_eq!(c.links.len(), 1, "<security> is not a link");
+    let c = parse(&net(
+        r#"<ethernet/><security keyFile="d.key" encrypt="none"/>"#,
+    ))
+    .unwrap();
+    assert_eq!(c.security.unwrap().key_file, Path::new("d.key"));
+    assert_eq!(parse(&net("<ethernet/>")).unwrap().security, None);
+}
+
+#[test]
+fn security_errors_have_line_and_column() {
+    let (text, line, column) = message(&net("<ethernet/>\n  <security/>"));
+    assert_eq!((line, column), (3, 3));
+    assert!(
+        text.contains("<security>") && text.contains("keyFile"),
+        "{text}"
+    );
+    let (text, line, column) = message(&net(r#"<security keyFile="k" encrypt="all"/><ethernet/>"#));
+    assert_eq!((line, column), (2, 23));
+    assert!(
+        text.contains("encrypt") && text.contains("`radio`"),
+        "{text}"
+    );
+    let (text, line, column) = message(&net(r#"<security keyFile=" "/><ethernet/>"#));
+    assert_eq!((line, column), (2, 11));
+    assert!(text.contains("usal keygen"), "{text}");
+    let (text, line, column) = message(&net(r#"<security keyfile="k"/><ethernet/>"#));
+    assert_eq!((line, column), (2, 11));
+    assert!(text.contains("keyFile"), "{text}");
+    let (text, line, column) = message(&net(
+        "<security keyFile=\"a\"/>\n<security keyFile=\"b\"/><ethernet/>",
+    ));
+    assert_eq!((line, column), (3, 1));
+    assert!(
+        text.contains("second <security>") && text.contains("line 2, column 1"),
+        "{text}"
+    );
+    let (text, ..) = message(&net(
+        r#"<security keyFile="k"><peer/></security><ethernet/>"#,
+    ));
+    assert!(text.contains("no child elements"), "{text}");
+    let (text, ..) = message(&net(r#"<securty keyFile="k"/><ethernet/>"#));
+    assert!(text.contains("did you mean <security>"), "{text}");
 }

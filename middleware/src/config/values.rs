@@ -105,7 +105,6 @@ pub(super) const PEER_SYNTAX: &str =
 pub(super) const PORT_SYNTAX: &str = "a serial port path like /dev/ttyUSB0 or COM3";
 pub(super) const WAIT_SYNTAX: &str = "event or spin";
 
-pub(super) const LINK_ELEMENTS: &[&str] = &["ethernet", "shm", "serial", "serialduo"];
 pub(super) const PEER_ELEMENTS: &[&str] = &["peer"];
 pub(super) const NO_ELEMENTS: &[&str] = &[];
 pub(super) const ACCESS_ELEMENTS: &[&str] = &["allow", "deny"];
@@ -115,6 +114,19 @@ pub(super) const DENY_ATTRS: &[&str] = &["kind"];
 pub(super) const ACCESS_KIND_SYNTAX: &str = "one of call, file, publish, gateway";
 pub(super) const ACCESS_PATTERN_SYNTAX: &str =
     "a name pattern: segments of letters, digits, _ - . separated by /, or * and **";
+/// What `<network>` may hold: the links, and the elements that are not links.
+pub(super) const NETWORK_ELEMENTS: &[&str] = &[
+    "ethernet",
+    "shm",
+    "serial",
+    "serialduo",
+    "security",
+    "access",
+];
+pub(super) const SECURITY_ATTRS: &[&str] = &["keyFile", "encrypt", "identityFile", "identities"];
+pub(super) const ENCRYPT_SYNTAX: &str = "`none` or `radio`";
+pub(super) const PATH_SYNTAX: &str = "a file path";
+pub(super) const KEY_FILE_SYNTAX: &str = "the path of a key file made by `usal keygen`";
 
 pub(super) const NETWORK_ATTRS: &[&str] = &["node", "namespace", "domain", "gateway"];
 pub(super) const ETHERNET_ATTRS: &[&str] = &[
@@ -173,6 +185,14 @@ pub(super) fn parse_int(s: &str, spec: &'static IntSpec) -> Result<u64, Invalid>
     match s.parse::<u64>() {
         Ok(v) if (spec.min..=spec.max).contains(&v) => Ok(v),
         _ => Err(Invalid::Range(spec)),
+    }
+}
+
+pub(super) fn parse_encrypt(s: &str) -> Result<bool, Invalid> {
+    match s.trim() {
+        "none" => Ok(false),
+        "radio" => Ok(true),
+        _ => Err(Invalid::Syntax(ENCRYPT_SYNTAX)),
     }
 }
 

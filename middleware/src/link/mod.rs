@@ -11,6 +11,7 @@
 //! of fast messages ([`coalesce`]), and the counters behind [`LinkStats`].
 
 pub mod arq;
+pub mod auth;
 pub mod coalesce;
 pub mod serial;
 pub mod shm;
@@ -140,6 +141,11 @@ pub struct LinkStats {
     pub sessions_given_up: u64,
     /// Safe messages ahead of a gap dropped because the sender's reorder buffer was full.
     pub reorder_dropped: u64,
+    /// Received frames dropped because their seal did not verify (no key, another key,
+    /// tampering); see [`auth`].
+    pub auth_rejected: u64,
+    /// Received frames dropped as replays (counter seen before or older than the window).
+    pub replay_rejected: u64,
 }
 
 /// The counters of [`LinkStats`] as a link updates them from several tasks at once.
@@ -156,6 +162,8 @@ pub(crate) struct LinkCounters {
     pub(crate) sessions_expired: AtomicU64,
     pub(crate) sessions_given_up: AtomicU64,
     pub(crate) reorder_dropped: AtomicU64,
+    pub(crate) auth_rejected: AtomicU64,
+    pub(crate) replay_rejected: AtomicU64,
 }
 
 impl LinkCounters {
@@ -169,6 +177,17 @@ impl LinkCounters {
     pub(crate) fn count_in(&self, bytes: usize) {
         self.frames_in.fetch_add(1, Ordering::Relaxed);
         self.bytes_in.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    /// One received frame dropped by [`auth::Opener::open`]; returns the new count of its
+    /// kind (for [`auth::log_reject`]).
+    pub(crate) fn count_reject(&self, why: auth::AuthReject) -> u64 {
+        let c = if why.is_replay() {
+            &self.replay_rejected
+        } else {
+            &self.auth_rejected
+        };
+        c.fetch_add(1, Ordering::Relaxed) + 1
     }
 
     /// The counters, with the gauges (round trip, queue depths) taken from `gauges`.
@@ -185,6 +204,8 @@ impl LinkCounters {
             sessions_expired: self.sessions_expired.load(Ordering::Relaxed),
             sessions_given_up: self.sessions_given_up.load(Ordering::Relaxed),
             reorder_dropped: self.reorder_dropped.load(Ordering::Relaxed),
+            auth_rejected: self.auth_rejected.load(Ordering::Relaxed),
+            replay_rejected: self.replay_rejected.load(Ordering::Relaxed),
             ..gauges
         }
     }

@@ -165,6 +165,11 @@ impl NodeInner {
                         interests: HashMap::new(),
                         shadowed: Default::default(),
                         routes: HashMap::new(),
+                        authenticated: self
+                            .identity
+                            .as_ref()
+                            .and_then(|i| i.roster.as_ref())
+                            .map(|_| Vec::new()),
                     },
                 );
                 self.addrs.insert((link, from), node_id);

@@ -9,6 +9,7 @@ pub(crate) mod discovery;
 pub(crate) mod files;
 pub(crate) mod gateway;
 pub(crate) mod health;
+pub(crate) mod identity_check;
 pub(crate) mod mailbox;
 pub(crate) mod path_switch;
 pub(crate) mod policy;
@@ -134,6 +135,9 @@ pub(crate) struct Peer {
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
     pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
+    /// Namespaces its identity key is authenticated for: `None` when this node checks no
+    /// identities, empty until a valid proof listed in the roster arrives.
+    pub authenticated: Option<Vec<String>>,
 }
 
 impl Peer {
@@ -209,6 +213,16 @@ pub(crate) struct NodeInner {
     pub policy: policy::Policy,
     /// Peers' calls running or waiting, by (caller, function id).
     pub lanes: call::Lanes,
+    /// Per-node identity keys, when configured (`<security identityFile=.. identities=..>`).
+    pub identity: Option<IdentityLayer>,
+}
+
+/// This node's identity proof and the domain's roster (see [`crate::identity`]).
+pub(crate) struct IdentityLayer {
+    /// Our proof for this run (an encoded `Message::Identity`), sent after each safe Hello.
+    pub proof: Option<Vec<u8>>,
+    /// Which key may own which namespaces; `None`: peers are not checked.
+    pub roster: Option<crate::identity::Roster>,
 }
 
 /// Things a node counts (dropped input among them).
@@ -288,7 +302,8 @@ impl NodeInner {
         self.path_switches.send(self.links(), (link, addr), out);
     }
 
-    /// Sends a safe message and forgets about its acknowledgement.
+    /// Sends a safe message and forgets about its acknowledgement. A Hello is followed by our
+    /// identity proof, if we have one, so it precedes every declaration we send after it.
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
         self.send_to(
             link,
@@ -298,6 +313,17 @@ impl NodeInner {
                 done: None,
             },
         );
+        let proof = self.identity.as_ref().and_then(|i| i.proof.as_ref());
+        if let (Message::Hello { .. }, Some(proof)) = (msg, proof) {
+            self.send_to(
+                link,
+                addr,
+                Outgoing::Safe {
+                    msg: proof.clone(),
+                    done: None,
+                },
+            );
+        }
     }
 
     /// Sends a safe message to a known peer.
@@ -354,7 +380,15 @@ impl NodeInner {
                 upto,
                 reset,
                 entries,
-            } => self.apply_decl_batch(node, after, upto, reset, entries),
+            } => {
+                if self.identity_allows(node) {
+                    self.apply_decl_batch(node, after, upto, reset, entries)
+                }
+            }
+            Message::Identity {
+                public_key,
+                signature,
+            } => self.on_identity(node, public_key, &signature),
             Message::Refused {
                 interest,
                 name,
@@ -469,6 +503,7 @@ pub(crate) fn bare_node(
         path_switches: Default::default(),
         policy: policy::Policy::new(access, 1),
         lanes: Default::default(),
+        identity: None,
     });
     let _ = inner.links.set(Vec::new());
     inner

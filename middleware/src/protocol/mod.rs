@@ -344,6 +344,15 @@ pub enum Message {
         /// Sender's identity.
         node_id: NodeId,
     },
+    /// Proof of the sender's identity key for this run, sent right after each Hello it sends
+    /// a peer (only by nodes with an identity key; see [`crate::identity`]).
+    Identity {
+        /// Ed25519 public key.
+        public_key: [u8; 32],
+        /// Signature over domain, node id, node name and namespace (64 bytes).
+        #[serde(with = "serde_bytes_compat")]
+        signature: Vec<u8>,
+    },
 }
 
 /// postcard already encodes `Vec<u8>` as length + bytes; this module only makes that explicit

@@ -19,12 +19,19 @@
 //! body (SYN 83):  type | session u16 | CRC32   (our extension: starts a Safe session, so a
 //!   restarted peer is told apart from a retransmission)
 //! ```
+//! With a domain key (see [`crate::link::auth`]) every frame is sealed: its type byte is XORed
+//! with [`SEALED`] (so a node without the key drops it as an unknown type) and the seal
+//! (epoch 3 B, counter 3 B, tag 5 B; 28 B when encrypted) follows the body, before the CRC. The
+//! data-frame header (type, seq, fragment index and total) stays in clear so a corrupt Safe frame
+//! can still be NACKed; with `encrypt="radio"` the data after it is encrypted.
+//!
 //! The CRC covers the body before stuffing. Type bytes are never DLE or ETX, so a DLE followed by
 //! anything but DLE or ETX is always the start of a frame: the decoder resynchronises there.
 
 use bytes::{Buf, BytesMut};
 
 use super::crc::crc32;
+use crate::link::auth::{AuthReject, Opener, Sealer};
 
 /// Data Link Escape.
 pub const DLE: u8 = 0x10;
@@ -40,6 +47,25 @@ pub const TYPE_ACK: u8 = 35;
 pub const TYPE_NACK: u8 = 36;
 /// Session start.
 pub const TYPE_SYN: u8 = 83;
+/// XORed into the type byte of a sealed frame (171, 18, 35, 36, 83 become 235, 82, 99, 100,
+/// 19: still never DLE or ETX).
+pub const SEALED: u8 = 0x40;
+/// Bytes of a data frame's header (type, seq, fragment index and total), kept in clear.
+const DATA_HEADER: usize = 5;
+
+/// Whether `ty` is a frame type (plain).
+fn known_type(ty: u8) -> bool {
+    matches!(ty, TYPE_FAST | TYPE_SAFE | TYPE_ACK | TYPE_NACK | TYPE_SYN)
+}
+
+/// How much of a body stays in clear under encryption: a data frame's header, or all of a
+/// control frame.
+fn clear_len(ty: u8) -> usize {
+    match ty & !SEALED {
+        TYPE_FAST | TYPE_SAFE => DATA_HEADER,
+        _ => usize::MAX,
+    }
+}
 
 /// Bytes a data frame adds to its data before stuffing: type, seq, fragment index and total,
 /// CRC32 (the thesis' 9), plus DLE at the start and DLE ETX at the end.
@@ -136,7 +162,17 @@ impl Frame {
 
     /// The frame as it goes on the wire: CRC appended, DLEs doubled, delimited.
     pub fn encode(&self) -> Vec<u8> {
+        self.encode_sealed(None)
+    }
+
+    /// [`Frame::encode`], sealed by `sealer` when there is one.
+    pub fn encode_sealed(&self, sealer: Option<&Sealer>) -> Vec<u8> {
         let mut body = self.body();
+        if let Some(s) = sealer {
+            body[0] ^= SEALED;
+            let clear = clear_len(body[0]);
+            s.seal(&mut body, clear);
+        }
         let crc = crc32(&body);
         body.extend_from_slice(&crc.to_be_bytes());
         stuff(&body)
@@ -235,6 +271,10 @@ pub enum FrameDecodeError {
     /// The byte stream under a framed reader failed (only through the `Decoder` trait).
     #[error("I/O error: {0:?}")]
     Io(std::io::ErrorKind),
+    /// The seal did not verify (no key, another key, tampering) or the frame is a replay;
+    /// the frame is dropped before it is parsed.
+    #[error("authentication: {0}")]
+    Auth(AuthReject),
     /// Fragment index not below the fragment count.
     #[error("fragment {frag} of {total}")]
     BadFragment {
@@ -268,6 +308,8 @@ pub struct FrameDecoder {
     overflowed: bool,
     dropped: u64,
     noise: u64,
+    /// Checks every frame's seal when the link has a key.
+    opener: Option<Opener>,
 }
 
 impl FrameDecoder {
@@ -280,7 +322,16 @@ impl FrameDecoder {
             overflowed: false,
             dropped: 0,
             noise: 0,
+            opener: None,
         }
+    }
+
+    /// The same decoder accepting only frames sealed for `opener` (bodies may be that much
+    /// longer).
+    pub fn with_opener(mut self, opener: Opener) -> Self {
+        self.max_body += opener.overhead();
+        self.opener = Some(opener);
+        self
     }
 
     /// Frames dropped as corrupt so far.
@@ -315,14 +366,31 @@ impl FrameDecoder {
         if self.body.len() < 5 {
             return Err(FrameDecodeError::Truncated);
         }
-        let (body, crc) = self.body.split_at(self.body.len() - 4);
+        let len = self.body.len() - 4;
+        let (body, crc) = self.body.split_at_mut(len);
         let crc = u32::from_be_bytes([crc[0], crc[1], crc[2], crc[3]]);
         if crc32(body) != crc {
-            let safe_seq = (body.len() >= 5 && body[0] == TYPE_SAFE)
+            let safe_type = if self.opener.is_some() {
+                TYPE_SAFE ^ SEALED
+            } else {
+                TYPE_SAFE
+            };
+            let safe_seq = (body.len() >= 5 && body[0] == safe_type)
                 .then(|| u16::from_be_bytes([body[1], body[2]]));
             return Err(FrameDecodeError::CrcMismatch { safe_seq });
         }
-        Frame::parse(body)
+        let Some(opener) = &mut self.opener else {
+            return Frame::parse(body);
+        };
+        let ty = body[0] ^ SEALED;
+        if !known_type(ty) {
+            return Err(FrameDecodeError::Auth(AuthReject::Unsealed));
+        }
+        let n = opener
+            .open(0, body, clear_len(ty))
+            .map_err(FrameDecodeError::Auth)?;
+        body[0] = ty;
+        Frame::parse(&body[..n])
     }
 
     /// Consumes bytes from `src` up to the end of the next frame.
@@ -516,6 +584,55 @@ mod tests {
             data: vec![0x42; 35],
         };
         assert_eq!(f.encode().len(), 35 + DATA_OVERHEAD);
+    }
+
+    /// Issue 13: authenticated, the position sample's frame stays within 60 bytes; a node
+    /// without the key drops it as an unknown type; a keyed one refuses unsealed frames.
+    #[test]
+    fn sealed_position_sample_frame_is_at_most_60_bytes() {
+        use crate::link::auth::{DomainKey, Profile};
+        let f = Frame::Data {
+            safe: false,
+            seq: 1,
+            frag: 0,
+            total: 1,
+            data: vec![0x42; 35],
+        };
+        let key = DomainKey::from_bytes([3; 32]);
+        let sealer = Sealer::new(&key, Profile::SERIAL);
+        let mut keyed = FrameDecoder::new(1024).with_opener(Opener::new(&key, Profile::SERIAL, 4));
+        let mut plain = FrameDecoder::new(1024);
+        for _ in 0..100 {
+            let wire = f.encode_sealed(Some(&sealer));
+            // 58 bytes, one more for each DLE the seal happens to contain.
+            assert!(wire.len() <= 60, "{}", wire.len());
+            let mut b = BytesMut::from(&wire[..]);
+            assert_eq!(keyed.decode_bytes(&mut b), Ok(Some(f.clone())));
+            let mut b = BytesMut::from(&wire[..]);
+            assert!(matches!(
+                plain.decode_bytes(&mut b),
+                Err(FrameDecodeError::UnknownType(_))
+            ));
+        }
+        let mut b = BytesMut::from(&f.encode()[..]);
+        assert_eq!(
+            keyed.decode_bytes(&mut b),
+            Err(FrameDecodeError::Auth(AuthReject::Unsealed))
+        );
+        // Encrypted: the data is not in clear, and the frame decodes back.
+        let sealer = Sealer::new(&key, Profile::SERIAL_ENCRYPTED);
+        let mut dec =
+            FrameDecoder::new(1024).with_opener(Opener::new(&key, Profile::SERIAL_ENCRYPTED, 4));
+        let wire = f.encode_sealed(Some(&sealer));
+        assert!(!wire.windows(8).any(|w| w == [0x42; 8]), "data in clear");
+        let mut b = BytesMut::from(&wire[..]);
+        assert_eq!(dec.decode_bytes(&mut b), Ok(Some(f.clone())));
+        // Replayed: refused.
+        let mut b = BytesMut::from(&wire[..]);
+        assert_eq!(
+            dec.decode_bytes(&mut b),
+            Err(FrameDecodeError::Auth(AuthReject::Replayed))
+        );
     }
 
     #[test]

@@ -24,6 +24,7 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
+use super::auth::LinkSecurity;
 use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
 use port::{BoxRead, BoxWrite, PortOpener};
 use stp::{Stp, StpConfig, StpEvent, StpStats};
@@ -58,15 +59,18 @@ use crate::sync::lock;
 
 impl SerialLink {
     /// Opens the ports of `opener` and starts the link's tasks on `tasks`, stopping on `cancel`.
-    /// If the ports vanish later they are reopened with backoff.
+    /// If the ports vanish later they are reopened with backoff. With `security`, every frame
+    /// is sealed with the domain key and only sealed frames are taken.
     ///
     /// # Errors
     /// [`SerialLinkOpenError`] when the ports cannot be opened now.
+    #[allow(clippy::too_many_arguments)]
     pub fn open(
         index: usize,
         name: &str,
         opener: Arc<dyn PortOpener>,
         cfg: StpConfig,
+        security: Option<&LinkSecurity>,
         handler: Arc<dyn LinkHandler>,
         tasks: &TaskTracker,
         cancel: CancellationToken,
@@ -80,7 +84,7 @@ impl SerialLink {
             index,
             name: name.to_owned(),
             describe: opener.describe(),
-            stp: Mutex::new(Stp::new(cfg, fresh_session())),
+            stp: Mutex::new(Stp::new(cfg, fresh_session()).named(name).secured(security)),
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
@@ -101,11 +105,26 @@ impl SerialLink {
         tasks: &TaskTracker,
         cancel: CancellationToken,
     ) -> Arc<Self> {
+        Self::with_streams_secured(index, name, streams, cfg, None, handler, tasks, cancel)
+    }
+
+    /// [`SerialLink::with_streams`] sealing its frames with `security`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_streams_secured(
+        index: usize,
+        name: &str,
+        streams: (BoxRead, BoxWrite),
+        cfg: StpConfig,
+        security: Option<&LinkSecurity>,
+        handler: Arc<dyn LinkHandler>,
+        tasks: &TaskTracker,
+        cancel: CancellationToken,
+    ) -> Arc<Self> {
         let link = Arc::new(SerialLink {
             index,
             name: name.to_owned(),
             describe: "in-memory".to_owned(),
-            stp: Mutex::new(Stp::new(cfg, fresh_session())),
+            stp: Mutex::new(Stp::new(cfg, fresh_session()).named(name).secured(security)),
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),

@@ -30,6 +30,7 @@ use bytes::BytesMut;
 use super::fragment::{self, FastReassembler, SafeReassembler};
 use super::frame::{Frame, FrameDecodeError, FrameDecoder};
 use crate::link::arq::{AckInfo, ArqConfig, ArqReceiver, ArqSender, SynOutcome};
+use crate::link::auth::{self, LinkSecurity, Opener, Profile, Sealer};
 use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::link::{LinkSendError, LinkStats};
 
@@ -173,6 +174,10 @@ pub struct Stp<T> {
     safe_reasm: SafeReassembler,
     fast_reasm: FastReassembler,
     stats: StpStats,
+    /// Seals every frame written when the link has a key (the decoder checks them).
+    sealer: Option<Sealer>,
+    /// The link's name, for the log of rejected frames.
+    name: String,
 }
 
 /// Widens a 16-bit wire sequence number to the 32-bit one nearest `reference`.
@@ -208,7 +213,32 @@ impl<T> Stp<T> {
             safe_reasm: SafeReassembler::new(cfg.max_message()),
             fast_reasm: FastReassembler::new(8, cfg.fragment_expiry, cfg.max_message()),
             stats: StpStats::default(),
+            sealer: None,
+            name: "serial".to_owned(),
         }
+    }
+
+    /// The same engine naming its link `name` in the log.
+    pub fn named(mut self, name: &str) -> Self {
+        name.clone_into(&mut self.name);
+        self
+    }
+
+    /// The same engine sealing every frame it writes and accepting only sealed frames, when
+    /// `security` is given (see [`crate::link::auth`]); `encrypt_radio` encrypts the data too.
+    pub fn secured(mut self, security: Option<&LinkSecurity>) -> Self {
+        if let Some(sec) = security {
+            let profile = if sec.encrypt_radio {
+                Profile::SERIAL_ENCRYPTED
+            } else {
+                Profile::SERIAL
+            };
+            self.sealer = Some(Sealer::new(&sec.key, profile));
+            // One peer, but it may restart (a new epoch each time): a few windows suffice.
+            let decoder = std::mem::replace(&mut self.decoder, FrameDecoder::new(0));
+            self.decoder = decoder.with_opener(Opener::new(&sec.key, profile, 16));
+        }
+        self
     }
 
     /// The configuration.
@@ -289,6 +319,15 @@ impl<T> Stp<T> {
                 Err(FrameDecodeError::CrcMismatch { safe_seq: Some(s) }) => {
                     self.stats.link.corrupt += 1;
                     self.maybe_nack(s);
+                }
+                Err(FrameDecodeError::Auth(why)) => {
+                    let total = if why.is_replay() {
+                        &mut self.stats.link.replay_rejected
+                    } else {
+                        &mut self.stats.link.auth_rejected
+                    };
+                    *total += 1;
+                    auth::log_reject(&self.name, "point-to-point", why, *total);
                 }
                 Err(_) => self.stats.link.corrupt += 1,
             }
@@ -675,7 +714,7 @@ impl<T> Stp<T> {
             return None;
         }
         let frame = self.next_frame(now)?;
-        let wire = frame.encode();
+        let wire = frame.encode_sealed(self.sealer.as_ref());
         let start = self.line_free_at.map_or(now, |t| t.max(now));
         self.line_free_at = Some(start + self.cfg.line_time(wire.len()));
         self.stats.link.frames_out += 1;

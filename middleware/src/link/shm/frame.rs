@@ -37,6 +37,10 @@ pub const ACK: u8 = 5;
 pub const BULK: u8 = 6;
 pub const BULK_MORE: u8 = 7;
 pub const BULK_DATA: u8 = 8;
+/// Set in the kind byte of a frame sealed with the domain key (see [`crate::link::auth`]): the
+/// seal follows the frame. A link without a key drops such frames (and a keyed link any other)
+/// before [`parse`], which ignores the bit.
+pub const SEALED_KIND: u8 = 0x80;
 /// Kind and sender.
 pub const BASE: usize = 9;
 /// Kind, sender, session and sequence number.
@@ -108,7 +112,7 @@ pub fn parse(b: &[u8]) -> Result<(u64, Frame<'_>), FrameDecodeError> {
     let mut id = [0u8; 8];
     id.copy_from_slice(&b[1..9]);
     let sender = u64::from_le_bytes(id);
-    let kind = b[0];
+    let kind = b[0] & !SEALED_KIND;
     let sequenced = || {
         if b.len() < SEQUENCED {
             return Err(FrameDecodeError::Truncated(b.len()));

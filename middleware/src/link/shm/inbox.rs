@@ -20,6 +20,7 @@ use super::{
     ShmLinkOpenError, ShmLinkOptions, ShmWait, BULK_BUFFER, BULK_MAX, FAST_BUFFER, FRAME_MAX,
     MAX_PEERS, SAFE_BUFFER,
 };
+use crate::link::auth::{Profile, Sealer};
 
 pub(super) type Ipc = ipc_threadsafe::Service;
 pub(super) type Pub = Publisher<Ipc, [u8], ()>;
@@ -232,7 +233,9 @@ fn open_pub(
         .open()
         .map_err(|e| format!("{part}: {e:?}"))?;
     s.publisher_builder()
-        .initial_max_slice_len(max)
+        // Room for a seal whether or not this node has a key (a sealed frame is that much
+        // longer than the limits the senders split messages by).
+        .initial_max_slice_len(max + Profile::SHM.overhead())
         .allocation_strategy(AllocationStrategy::Static)
         .max_loaned_samples(2)
         .backpressure_strategy(BackpressureStrategy::DiscardData)
@@ -272,21 +275,25 @@ pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<C
 
 /// Writes one frame into `publisher`. Returns whether the inbox took it (a non-overflowing
 /// inbox refuses frames while its buffer is full).
+/// With a `sealer`, the frame is sealed in place (see [`crate::link::auth`]).
 pub(super) fn put(
     publisher: &Pub,
-    kind: u8,
-    sender: u64,
-    session: u32,
-    seq: u64,
+    (kind, sender, session, seq): (u8, u64, u32, u64),
     body: &[u8],
+    sealer: Option<&Sealer>,
 ) -> bool {
     let h = frame::header_len(kind);
-    let Ok(mut sample) = publisher.loan_slice(h + body.len()) else {
+    let seal = sealer.map_or(0, Sealer::overhead);
+    let Ok(mut sample) = publisher.loan_slice(h + body.len() + seal) else {
         return false;
     };
     let out = sample.payload_mut();
     frame::write_header(out, kind, sender, session, seq);
-    out[h..].copy_from_slice(body);
+    out[h..h + body.len()].copy_from_slice(body);
+    if let Some(s) = sealer {
+        out[0] |= frame::SEALED_KIND;
+        s.seal_slice(out, h + body.len());
+    }
     matches!(sample.send(), Ok(n) if n > 0)
 }
 

@@ -56,6 +56,7 @@ use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
+use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
 use super::{Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr};
 use crate::sync::lock;
 use control::{Control, Ctl};
@@ -151,6 +152,9 @@ pub struct ShmLinkOptions {
     pub scan: Duration,
     /// How the receive thread waits for frames.
     pub wait: ShmWait,
+    /// The domain key: when set, every frame is sealed and only sealed ones are taken (see
+    /// [`crate::link::auth`]).
+    pub security: Option<LinkSecurity>,
 }
 
 /// Why the shared-memory link could not be opened.
@@ -218,7 +222,14 @@ impl InboxWriter for PeerWriter<'_> {
             Part::Fast => self.conn.map(|c| &c.fast),
             Part::Safe => self.conn.map(|c| &c.safe),
         };
-        publisher.is_some_and(|p| inbox::put(p, kind, self.link.id, session, seq, body))
+        publisher.is_some_and(|p| {
+            inbox::put(
+                p,
+                (kind, self.link.id, session, seq),
+                body,
+                self.link.sealer.as_ref(),
+            )
+        })
     }
 
     fn wake(&mut self) {
@@ -248,7 +259,15 @@ pub struct ShmLink {
     stop: AtomicBool,
     handler: Arc<dyn LinkHandler>,
     counters: LinkCounters,
+    /// Seals every frame written when the node has a key.
+    sealer: Option<Sealer>,
+    /// Checks every frame read when the node has a key (the receive thread's alone).
+    opener: Option<Mutex<Opener>>,
 }
+
+/// Sender streams (a writer's fast, safe and bulk parts) a shared-memory link remembers for
+/// replay detection.
+const MAX_REPLAY_WINDOWS: usize = 1024;
 
 impl ShmLink {
     /// Creates this link's inbox, connects to the inboxes of the same-host nodes already there
@@ -280,7 +299,17 @@ impl ShmLink {
         let (ctl_tx, ctl_rx) = mpsc::channel();
         let (forget_tx, forget_rx) = mpsc::channel();
         let wait = options.wait;
+        let sealer = options
+            .security
+            .as_ref()
+            .map(|s| Sealer::new(&s.key, Profile::SHM));
+        let opener = options
+            .security
+            .as_ref()
+            .map(|s| Mutex::new(Opener::new(&s.key, Profile::SHM, MAX_REPLAY_WINDOWS)));
         let link = Arc::new(ShmLink {
+            sealer,
+            opener,
             index,
             options,
             id,
@@ -448,7 +477,12 @@ impl Link for ShmLink {
         for p in peers {
             let st = lock(&p);
             if let Some(c) = &st.conn {
-                if inbox::put(&c.fast, frame::ANNOUNCE, self.id, 0, 0, msg) {
+                if inbox::put(
+                    &c.fast,
+                    (frame::ANNOUNCE, self.id, 0, 0),
+                    msg,
+                    self.sealer.as_ref(),
+                ) {
                     self.counters.count_out(frame::BASE + msg.len());
                     c.wake();
                 }
@@ -486,11 +520,54 @@ struct LinkRx<'a> {
     reader: &'a mut InboxReader,
 }
 
-impl RxIo for LinkRx<'_> {
-    type Sample = InboxSample;
+/// A sample whose seal (if the link has a key) was checked: it reads as the frame without it.
+struct Opened(InboxSample, usize);
 
-    fn take(&mut self, part: Part) -> Option<InboxSample> {
-        self.reader.take(part)
+impl AsRef<[u8]> for Opened {
+    fn as_ref(&self) -> &[u8] {
+        &self.0.as_ref()[..self.1]
+    }
+}
+
+impl RxIo for LinkRx<'_> {
+    type Sample = Opened;
+
+    fn take(&mut self, part: Part) -> Option<Opened> {
+        loop {
+            let sample = self.reader.take(part)?;
+            let bytes = sample.as_ref();
+            let sealed = bytes.first().is_some_and(|k| k & frame::SEALED_KIND != 0);
+            let Some(opener) = &self.link.opener else {
+                if sealed {
+                    // A keyed node's frame: nothing here can check or read it.
+                    self.link.counters.count_in(bytes.len());
+                    self.link.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+                let len = bytes.len();
+                return Some(Opened(sample, len));
+            };
+            // The writer's id (inside what the tag covers) and the inbox part tell the
+            // streams apart: each is written in order.
+            let verified = match bytes.get(1..frame::BASE).filter(|_| sealed) {
+                Some(id) => {
+                    let mut b = [0u8; 8];
+                    b.copy_from_slice(id);
+                    let stream = u64::from_le_bytes(b).wrapping_mul(4) ^ part as u64;
+                    lock(opener).verify(stream, bytes)
+                }
+                None => Err(AuthReject::Unsealed),
+            };
+            match verified {
+                Ok(len) => return Some(Opened(sample, len)),
+                Err(why) => {
+                    let l = self.link;
+                    l.counters.count_in(bytes.len());
+                    let total = l.counters.count_reject(why);
+                    auth::log_reject(&l.options.name, "shared memory", why, total);
+                }
+            }
+        }
     }
 
     fn deliver(&mut self, from: u64, msg: &[u8]) {
@@ -530,7 +607,12 @@ impl RxIo for LinkRx<'_> {
         let Some(c) = &st.conn else {
             return AckSent::NotOpen;
         };
-        if inbox::put(&c.safe, frame::ACK, self.link.id, session, seq, &[]) {
+        if inbox::put(
+            &c.safe,
+            (frame::ACK, self.link.id, session, seq),
+            &[],
+            self.link.sealer.as_ref(),
+        ) {
             c.wake();
             AckSent::Taken
         } else {

@@ -51,6 +51,7 @@ async fn open_link_waiting(
             service: service.into(),
             scan: Duration::from_millis(200),
             wait,
+            security: None,
         },
         Arc::new(Collect(tx)),
         tasks,
@@ -363,6 +364,7 @@ async fn a_reader_that_stops_never_blocks_the_writer() {
             service: svc.clone(),
             scan: Duration::from_millis(200),
             wait: ShmWait::Event,
+            security: None,
         },
         Arc::new(Stuck(
             Mutex::new(gate_rx),

@@ -12,6 +12,10 @@
 //!                                                     = seq next+1+i received too
 //! ```
 //! A 32-byte position sample costs 1 (kind) + 1 (FAST) + 1 (len) + 35 (message) = 38 bytes.
+//!
+//! With a domain key the kind is 0xA3 (data) or 0xA4 (discovery) and the datagram ends with
+//! the seal of [`crate::link::auth`] (epoch, counter, tag: 16 bytes), so a position sample
+//! costs 54 bytes; a node without the key sees an unknown kind and drops the datagram.
 
 use crate::codec::varint::{len_u64, put_u64, take_u64};
 use crate::link::arq::AckInfo;
@@ -20,7 +24,28 @@ use crate::link::arq::AckInfo;
 pub const KIND_DATA: u8 = 0xA1;
 /// First byte of a discovery datagram.
 pub const KIND_DISCOVERY: u8 = 0xA2;
+/// First byte of a sealed data datagram (a data datagram with the seal appended).
+pub const KIND_SEALED_DATA: u8 = 0xA3;
+/// First byte of a sealed discovery datagram.
+pub const KIND_SEALED_DISCOVERY: u8 = 0xA4;
 const TAG_FAST: u8 = 0x01;
+
+/// The kind a datagram of `kind` takes once sealed.
+pub fn sealed_kind(kind: u8) -> u8 {
+    match kind {
+        KIND_DISCOVERY => KIND_SEALED_DISCOVERY,
+        _ => KIND_SEALED_DATA,
+    }
+}
+
+/// The plain kind of a sealed datagram kind; `None` for a kind that is not sealed.
+pub fn unsealed_kind(kind: u8) -> Option<u8> {
+    match kind {
+        KIND_SEALED_DATA => Some(KIND_DATA),
+        KIND_SEALED_DISCOVERY => Some(KIND_DISCOVERY),
+        _ => None,
+    }
+}
 const TAG_SAFE: u8 = 0x02;
 const TAG_SYN: u8 = 0x03;
 const TAG_ACK: u8 = 0x04;
@@ -314,6 +339,34 @@ mod tests {
         let mut w = DatagramWriter::new(1400);
         assert!(w.push_fast(&msg));
         assert_eq!(w.take().len(), 38);
+    }
+
+    /// Issue 13: sealed with a domain key, the same sample costs at most 54 bytes.
+    #[test]
+    fn sealed_position_sample_is_54_bytes_of_udp_payload() {
+        use crate::link::auth::{DomainKey, Opener, Profile, Sealer};
+        let payload =
+            crate::codec::encode_payload(&(41.275f64, 1.987f64, 12.5f64, 90.0f32, 1.5f32))
+                .expect("plain tuple encodes");
+        let msg = crate::codec::encode_message(&crate::protocol::Message::Var { id: 7, payload });
+        let mut w = DatagramWriter::new(1400);
+        assert!(w.push_fast(&msg));
+        let mut d = w.take();
+        d[0] = sealed_kind(d[0]);
+        let key = DomainKey::from_bytes([7; 32]);
+        Sealer::new(&key, Profile::UDP).seal(&mut d, usize::MAX);
+        assert_eq!(d.len(), 54);
+        assert_eq!(d[0], KIND_SEALED_DATA);
+        // A node without the key: an unknown kind, an error, no panic.
+        assert_eq!(decode(&d), Err(DatagramDecodeError::UnknownKind(0xA3)));
+        let n = Opener::new(&key, Profile::UDP, 4)
+            .open(0, &mut d, usize::MAX)
+            .unwrap();
+        assert_eq!(unsealed_kind(d[0]), Some(KIND_DATA));
+        d[0] = KIND_DATA;
+        assert_eq!(decode(&d[..n]), Ok(Datagram::Data(vec![Entry::Fast(&msg)])));
+        assert_eq!(sealed_kind(KIND_DISCOVERY), KIND_SEALED_DISCOVERY);
+        assert_eq!(unsealed_kind(KIND_DATA), None);
     }
 
     #[test]

@@ -23,6 +23,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use super::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
+use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
 use super::coalesce::{CoalescingQueue, Pushed};
 use super::{
     Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
@@ -49,6 +50,9 @@ pub struct UdpLinkOptions {
     pub mtu: usize,
     /// ARQ tuning.
     pub arq: ArqConfig,
+    /// The domain key: when set, every datagram is sealed and only sealed ones are taken
+    /// (see [`crate::link::auth`]).
+    pub security: Option<LinkSecurity>,
 }
 
 /// Why the UDP link could not be opened.
@@ -153,7 +157,17 @@ pub struct UdpLink {
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
     counters: LinkCounters,
+    /// Seals outgoing datagrams when the node has a key: data, and discovery (announces) with
+    /// an epoch of their own. Announces arrive through the multicast socket's task, which may
+    /// lag the unicast one by more than the replay window under heavy traffic; in their own
+    /// epoch they are never "too old" for that reason.
+    sealer: Option<(Sealer, Sealer)>,
+    /// Checks incoming datagrams when the node has a key (both receive tasks use it).
+    opener: Option<Mutex<Opener>>,
 }
+
+/// Sender epochs a UDP link remembers for replay detection.
+const MAX_REPLAY_WINDOWS: usize = 4096;
 
 use crate::sync::lock;
 
@@ -227,9 +241,21 @@ impl UdpLink {
             UdpSocket::from_std(s.into()).map_err(mcast_err)?
         };
 
+        let sealer = options.security.as_ref().map(|s| {
+            (
+                Sealer::new(&s.key, Profile::UDP),
+                Sealer::new(&s.key, Profile::UDP),
+            )
+        });
+        let opener = options
+            .security
+            .as_ref()
+            .map(|s| Mutex::new(Opener::new(&s.key, Profile::UDP, MAX_REPLAY_WINDOWS)));
         let link = Arc::new(UdpLink {
             index,
             options,
+            sealer,
+            opener,
             socket,
             sender,
             local,
@@ -339,7 +365,8 @@ impl UdpLink {
         self.counters
             .retransmitted
             .fetch_add(due.len() as u64, Ordering::Relaxed);
-        let mut w = DatagramWriter::new(self.options.mtu);
+        let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
+        let mut w = DatagramWriter::new(self.options.mtu.saturating_sub(seal));
         let mut out: Vec<Vec<u8>> = Vec::new();
         let mut carries_safe = false;
         let syn = st.tx.session();
@@ -398,6 +425,7 @@ impl UdpLink {
         st.fast_bytes = 0;
         finish(&mut w, &mut out, &mut carries_safe);
         for d in out {
+            let d = self.seal(d);
             if !st.blocked.is_empty() {
                 st.blocked.push_back(d);
                 continue;
@@ -416,6 +444,45 @@ impl UdpLink {
 
     fn count_out(&self, n: usize) {
         self.counters.count_out(n);
+    }
+
+    /// With a key, seals a datagram built by [`datagram`] (its kind byte becoming the sealed
+    /// kind); without, returns it as it is.
+    fn seal(&self, mut d: Vec<u8>) -> Vec<u8> {
+        if let (Some((data, announce)), Some(kind)) = (&self.sealer, d.first_mut()) {
+            let s = if *kind == datagram::KIND_DISCOVERY {
+                announce
+            } else {
+                data
+            };
+            *kind = datagram::sealed_kind(*kind);
+            s.seal(&mut d, usize::MAX);
+        }
+        d
+    }
+
+    /// The datagram `buf` received from `from` as [`datagram::decode`] takes it: with a key,
+    /// its seal checked and removed, or `None` (dropped and counted) when it fails.
+    fn unseal<'a>(&self, buf: &'a mut [u8], from: SocketAddr) -> Option<&'a [u8]> {
+        let Some(opener) = &self.opener else {
+            return Some(buf);
+        };
+        let opened = match buf.first().copied().and_then(datagram::unsealed_kind) {
+            Some(kind) => lock(opener).open(0, buf, usize::MAX).map(|n| (kind, n)),
+            None => Err(AuthReject::Unsealed),
+        };
+        match opened {
+            Ok((kind, n)) => {
+                buf[0] = kind;
+                Some(&buf[..n])
+            }
+            Err(why) => {
+                self.counters.count_in(buf.len());
+                let total = self.counters.count_reject(why);
+                auth::log_reject(&self.options.name, from, why, total);
+                None
+            }
+        }
     }
 
     async fn transmit_loop(self: Arc<Self>, cancel: CancellationToken) {
@@ -475,7 +542,9 @@ impl UdpLink {
             match r {
                 Ok((n, from)) => {
                     let mut touched = Vec::new();
-                    self.handle_datagram(&buf[..n], from, &mut touched);
+                    if let Some(d) = self.unseal(&mut buf[..n], from) {
+                        self.handle_datagram(d, from, &mut touched);
+                    }
                     // Drain what else is waiting so acknowledgements are batched. In such a
                     // burst, let the tasks the previous datagram woke on this worker run first:
                     // a subscriber would otherwise wait for the whole drain and find most of
@@ -486,7 +555,9 @@ impl UdpLink {
                         match self.socket.try_recv_from(&mut buf) {
                             Ok((n, from)) => {
                                 tokio::task::yield_now().await;
-                                self.handle_datagram(&buf[..n], from, &mut touched);
+                                if let Some(d) = self.unseal(&mut buf[..n], from) {
+                                    self.handle_datagram(d, from, &mut touched);
+                                }
                             }
                             Err(_) => break,
                         }
@@ -531,8 +602,11 @@ impl UdpLink {
             };
             match r {
                 Ok((n, from)) => {
+                    let Some(d) = self.unseal(&mut buf[..n], from) else {
+                        continue;
+                    };
                     self.counters.count_in(n);
-                    match datagram::decode(&buf[..n]) {
+                    match datagram::decode(d) {
                         Ok(Datagram::Discovery(msg)) => {
                             self.handler
                                 .on_announce(self.index, PeerAddr::Udp(from), msg)
@@ -725,10 +799,12 @@ impl Link for UdpLink {
     }
 
     fn announce(&self, msg: &[u8]) {
-        let d = datagram::discovery_datagram(msg);
         let targets = std::iter::once(SocketAddr::V4(self.options.multicast))
             .chain(self.options.peers.iter().copied());
         for t in targets {
+            // Sealed once per target: a node reached both ways sees two datagrams, not a
+            // replay.
+            let d = self.seal(datagram::discovery_datagram(msg));
             match self.sender.send_to(&d, t) {
                 Ok(_) => self.count_out(d.len()),
                 Err(e) => {

@@ -1,0 +1,338 @@
+//! Per-node identity keys (Ed25519), on top of the domain key of [`crate::link::auth`]: a node
+//! proves which key it holds, and the domain's roster (`identities.xml`) says which namespaces
+//! that key may own. Pure: key files, the roster, and signing and checking a proof.
+//!
+//! ```xml
+//! <identities>
+//!   <identity key="64 hex digits of the public key" namespaces="rover1 rover1/fpma"/>
+//!   <identity key="..." namespaces="*"/>            <!-- a station allowed any namespace -->
+//! </identities>
+//! ```
+//! The proof a node sends (as [`crate::protocol::Message::Identity`], right after each Hello it
+//! sends a peer, so before any of its declarations) is a signature over the domain, its node id
+//! (random at every start, so the proof is bound to this run), its name and its namespace.
+
+use std::path::{Path, PathBuf};
+
+use ed25519_dalek::{Signature, Signer, SigningKey, Verifier, VerifyingKey};
+
+use crate::link::auth::{hex, parse_hex, read_private, write_private_new, KeyFileError};
+use crate::xml::{LineIndex, Reader, XmlEvent};
+
+/// What the signature covers, before the fields.
+const CONTEXT: &[u8] = b"usal-rs marea node identity v1\0";
+
+/// A node's identity key pair. Its `Debug` shows only the public half.
+pub struct IdentityKey(SigningKey);
+
+impl std::fmt::Debug for IdentityKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "IdentityKey({})", hex(&self.public()))
+    }
+}
+
+/// The bytes a node signs for one run.
+fn statement(domain: &str, node_id: u64, node: &str, namespace: &str) -> Vec<u8> {
+    let mut m =
+        Vec::with_capacity(CONTEXT.len() + domain.len() + node.len() + namespace.len() + 11);
+    m.extend_from_slice(CONTEXT);
+    m.extend_from_slice(domain.as_bytes());
+    m.push(0);
+    m.extend_from_slice(&node_id.to_le_bytes());
+    m.extend_from_slice(node.as_bytes());
+    m.push(0);
+    m.extend_from_slice(namespace.as_bytes());
+    m
+}
+
+impl IdentityKey {
+    /// A key from its 32 secret bytes (tests).
+    pub fn from_bytes(secret: [u8; 32]) -> Self {
+        IdentityKey(SigningKey::from_bytes(&secret))
+    }
+
+    /// Writes a fresh key pair: the secret to `path` (mode 0600, must not exist) and the public
+    /// key to `path.pub` (what goes in the domain's `identities.xml`).
+    ///
+    /// # Errors
+    /// As [`crate::link::auth::DomainKey::create_file`].
+    pub fn create_files(path: &Path) -> Result<Self, KeyFileError> {
+        use rand::TryRngCore;
+        let mut secret = [0u8; 32];
+        rand::rngs::OsRng
+            .try_fill_bytes(&mut secret)
+            .map_err(|e| KeyFileError::Random {
+                path: path.to_path_buf(),
+                reason: e.to_string(),
+            })?;
+        let key = IdentityKey::from_bytes(secret);
+        let public = Self::public_path(path);
+        if public.exists() {
+            return Err(KeyFileError::Exists { path: public });
+        }
+        write_private_new(path, format!("{}\n", hex(&secret)).as_bytes())?;
+        std::fs::write(&public, format!("{}\n", hex(&key.public()))).map_err(|source| {
+            KeyFileError::Write {
+                path: public.clone(),
+                source,
+            }
+        })?;
+        Ok(key)
+    }
+
+    /// Where [`IdentityKey::create_files`] puts the public key of `path`.
+    pub fn public_path(path: &Path) -> PathBuf {
+        let mut p = path.as_os_str().to_owned();
+        p.push(".pub");
+        PathBuf::from(p)
+    }
+
+    /// Reads a secret key file, refusing one group or others may access.
+    ///
+    /// # Errors
+    /// [`KeyFileError`] naming the file and what is wrong.
+    pub fn load(path: &Path) -> Result<Self, KeyFileError> {
+        let text = read_private(path)?;
+        let secret = parse_hex::<32>(text.trim()).map_err(|reason| KeyFileError::Malformed {
+            path: path.to_path_buf(),
+            reason,
+        })?;
+        Ok(IdentityKey::from_bytes(secret))
+    }
+
+    /// The public key.
+    pub fn public(&self) -> [u8; 32] {
+        self.0.verifying_key().to_bytes()
+    }
+
+    /// The proof for this run: a signature over domain, node id, name and namespace.
+    pub fn prove(&self, domain: &str, node_id: u64, node: &str, namespace: &str) -> [u8; 64] {
+        self.0
+            .sign(&statement(domain, node_id, node, namespace))
+            .to_bytes()
+    }
+}
+
+/// Whether `signature` by `public` proves `node_id`'s run as `node` in `namespace`.
+pub fn check_proof(
+    public: &[u8; 32],
+    signature: &[u8],
+    (domain, node_id, node, namespace): (&str, u64, &str, &str),
+) -> bool {
+    let Ok(key) = VerifyingKey::from_bytes(public) else {
+        return false;
+    };
+    let Ok(sig) = Signature::from_slice(signature) else {
+        return false;
+    };
+    key.verify(&statement(domain, node_id, node, namespace), &sig)
+        .is_ok()
+}
+
+/// The domain's roster: which public key may own which namespaces.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Roster {
+    entries: Vec<([u8; 32], Vec<String>)>,
+}
+
+/// Why a roster could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum RosterLoadError {
+    /// The file could not be read.
+    #[error("identities file {path}: cannot read: {source}")]
+    Unreadable {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The content is wrong, at `line`:`column`.
+    #[error("{path}:{line}:{column}: {reason}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// Line, from 1.
+        line: u32,
+        /// Column, from 1.
+        column: u32,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+impl Roster {
+    /// Reads an `identities.xml`.
+    ///
+    /// # Errors
+    /// [`RosterLoadError`] with the file, line and column.
+    pub fn load(path: &Path) -> Result<Self, RosterLoadError> {
+        let text = std::fs::read_to_string(path).map_err(|source| RosterLoadError::Unreadable {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parses the text of an `identities.xml`; `path` names it in errors.
+    ///
+    /// # Errors
+    /// [`RosterLoadError::Invalid`].
+    pub fn parse(text: &str, path: &Path) -> Result<Self, RosterLoadError> {
+        let index = LineIndex::new(text);
+        let mut reader = Reader::new(text, &index);
+        let invalid = |pos: crate::xml::Pos, reason: String| RosterLoadError::Invalid {
+            path: path.to_path_buf(),
+            line: pos.line,
+            column: pos.col,
+            reason,
+        };
+        let mut roster = Roster::default();
+        let mut depth = 0;
+        loop {
+            let event = reader
+                .read_event()
+                .map_err(|e| invalid(e.pos, e.kind.to_string()))?;
+            match event {
+                XmlEvent::Eof => break,
+                XmlEvent::End => depth -= 1,
+                XmlEvent::Text(t) => {
+                    return Err(invalid(t.pos, "unexpected text".into()));
+                }
+                XmlEvent::Start(tag) => {
+                    match (depth, tag.name()) {
+                        (0, "identities") => {}
+                        (1, "identity") => {
+                            let (mut key, mut namespaces) = (None, None);
+                            for a in tag.attributes() {
+                                let a = a.map_err(|e| invalid(e.pos, e.kind.to_string()))?;
+                                let v = a.value().map_err(|e| invalid(e.pos, e.kind.to_string()))?;
+                                match a.name.as_str() {
+                                    "key" => {
+                                        key = Some(parse_hex::<32>(v.trim()).map_err(|r| {
+                                            invalid(a.pos, format!("attribute key: {r}"))
+                                        })?)
+                                    }
+                                    "namespaces" => {
+                                        namespaces = Some(
+                                            v.split_whitespace()
+                                                .map(str::to_owned)
+                                                .collect::<Vec<_>>(),
+                                        )
+                                    }
+                                    other => {
+                                        return Err(invalid(
+                                            a.pos,
+                                            format!("unknown attribute {other}; expected key, namespaces"),
+                                        ))
+                                    }
+                                }
+                            }
+                            let key = key.ok_or_else(|| {
+                                invalid(tag.pos(), "<identity> needs key=\"64 hex digits\"".into())
+                            })?;
+                            let namespaces = namespaces.filter(|n| !n.is_empty()).ok_or_else(|| {
+                                invalid(tag.pos(), "<identity> needs namespaces=\"ns1 ns2\"".into())
+                            })?;
+                            roster.entries.push((key, namespaces));
+                        }
+                        (_, other) => {
+                            return Err(invalid(
+                                tag.pos(),
+                                format!("unexpected element <{other}>; expected <identities> holding <identity key=.. namespaces=../>"),
+                            ))
+                        }
+                    }
+                    if !tag.is_empty() {
+                        depth += 1;
+                    }
+                }
+            }
+        }
+        Ok(roster)
+    }
+
+    /// The namespaces `public` may own (empty when it is not listed).
+    pub fn namespaces(&self, public: &[u8; 32]) -> Vec<String> {
+        self.entries
+            .iter()
+            .filter(|(k, _)| k == public)
+            .flat_map(|(_, n)| n.iter().cloned())
+            .collect()
+    }
+}
+
+/// Whether a list of authenticated namespaces covers `namespace` (`*` covers any).
+pub fn allows(authenticated: &[String], namespace: &str) -> bool {
+    authenticated.iter().any(|n| n == "*" || n == namespace)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn proofs_bind_domain_node_id_name_and_namespace() {
+        let k = IdentityKey::from_bytes([1; 32]);
+        let p = k.public();
+        let sig = k.prove("d", 7, "vas", "rover1");
+        assert!(check_proof(&p, &sig, ("d", 7, "vas", "rover1")));
+        for other in [
+            ("e", 7, "vas", "rover1"),
+            ("d", 8, "vas", "rover1"),
+            ("d", 7, "vax", "rover1"),
+            ("d", 7, "vas", "rover2"),
+        ] {
+            assert!(!check_proof(&p, &sig, other), "{other:?}");
+        }
+        let q = IdentityKey::from_bytes([2; 32]).public();
+        assert!(!check_proof(&q, &sig, ("d", 7, "vas", "rover1")));
+        assert!(!check_proof(&p, &sig[..63], ("d", 7, "vas", "rover1")));
+        assert!(!check_proof(&[0xFF; 32], &sig, ("d", 7, "vas", "rover1")));
+    }
+
+    #[test]
+    fn key_files_and_roster() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("vas.id");
+        let k = IdentityKey::create_files(&path).unwrap();
+        assert_eq!(IdentityKey::load(&path).unwrap().public(), k.public());
+        let public = std::fs::read_to_string(IdentityKey::public_path(&path)).unwrap();
+        assert_eq!(public.trim(), hex(&k.public()));
+        assert!(matches!(
+            IdentityKey::create_files(&path),
+            Err(KeyFileError::Exists { .. })
+        ));
+        let text = format!(
+            "<identities>\n  <identity key=\"{}\" namespaces=\"rover1 rover1/x\"/>\n  <identity key=\"{}\" namespaces=\"*\"/>\n</identities>",
+            public.trim(),
+            hex(&[9; 32])
+        );
+        let r = Roster::parse(&text, Path::new("identities.xml")).unwrap();
+        assert_eq!(r.namespaces(&k.public()), vec!["rover1", "rover1/x"]);
+        assert!(allows(&r.namespaces(&[9; 32]), "anything"));
+        assert!(r.namespaces(&[8; 32]).is_empty());
+        assert!(!allows(&r.namespaces(&k.public()), "rover2"));
+
+        let e = Roster::parse(
+            "<identities>\n  <identity key=\"12\" namespaces=\"a\"/>\n</identities>",
+            Path::new("ids.xml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.starts_with("ids.xml:2:13:") && e.contains("64"), "{e}");
+        let e = Roster::parse("<identities><who/></identities>", Path::new("ids.xml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("ids.xml:1:13:"), "{e}");
+        let e = Roster::parse(
+            &format!(
+                "<identities><identity key=\"{}\"/></identities>",
+                hex(&[1; 32])
+            ),
+            Path::new("ids.xml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("namespaces"), "{e}");
+    }
+}
