@@ -284,6 +284,10 @@ pub struct QueueStatus {
     /// `clear_waypoints` was called and no waypoint has been pushed since: the next push
     /// replaces everything after the current target.
     pub replacing: bool,
+    /// Times the autopilot's current item went back to a waypoint already passed while
+    /// navigating (0 on a healthy run).
+    #[serde(default)]
+    pub backtracks: u64,
 }
 
 /// Alarm severity, as MAVLink's (and syslog's) levels.

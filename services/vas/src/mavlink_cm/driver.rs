@@ -19,6 +19,7 @@ use tokio::sync::{broadcast, mpsc, watch};
 use tokio::time::{interval, sleep, timeout, timeout_at, Instant};
 use tokio_util::sync::CancellationToken;
 
+use super::family::AutopilotFamily;
 use super::manager::{ManagerConfig, Telemetry, VehicleState};
 use super::modes;
 use super::outbound::Outbound;
@@ -41,6 +42,9 @@ pub(crate) struct Inner {
     pub(crate) ops: tokio::sync::Mutex<()>,
     /// Parse errors and drops, summed over every reopening of the connection.
     pub(crate) counters: Arc<Counters>,
+    /// MISSION_WRITE_PARTIAL_LIST works on this connection: `None` until probed; forgotten
+    /// when the link comes back (perhaps another autopilot, or the same one updated).
+    pub(crate) partial: StdMutex<Option<bool>>,
 }
 
 /// Waits until `matcher` accepts a message or `deadline` passes (`Ok(None)`).
@@ -256,10 +260,23 @@ impl Inner {
         let armed = hb
             .base_mode
             .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
-        let name = modes::name(hb.mavtype, hb.custom_mode);
+        let family = self
+            .cfg
+            .family
+            .unwrap_or_else(|| AutopilotFamily::from_heartbeat(hb.autopilot));
+        let name = if family.px4_modes() {
+            modes::px4_name(hb.custom_mode)
+        } else {
+            modes::name(hb.mavtype, hb.custom_mode)
+        };
         let before = self.state_tx.borrow().clone();
+        if !before.link_up {
+            *lock(&self.partial) = None;
+        }
         self.state_tx.send_modify(|s| {
             s.link_up = true;
+            s.autopilot = Some(hb.autopilot);
+            s.family = family;
             s.system_id = Some(sys);
             s.component_id = Some(comp);
             s.vehicle_type = Some(hb.mavtype);

@@ -13,7 +13,7 @@ use std::time::Duration;
 use marea::sync::lock;
 use mavconn::Endpoint;
 use mavlink::dialects::ardupilotmega::{
-    MavCmd, MavDataStream, MavMessage, MavModeFlag, MavResult, MavState, MavType,
+    MavAutopilot, MavCmd, MavDataStream, MavMessage, MavModeFlag, MavResult, MavState, MavType,
     COMMAND_LONG_DATA, RC_CHANNELS_OVERRIDE_DATA,
 };
 use tokio::sync::{broadcast, mpsc, watch};
@@ -22,6 +22,7 @@ use tokio::time::timeout;
 use tokio_util::sync::CancellationToken;
 
 use super::driver::{driver, Inner};
+use super::family::AutopilotFamily;
 use super::modes::{self, ModeSpec};
 use super::types::*;
 
@@ -42,6 +43,8 @@ pub struct ManagerConfig {
     pub reconnect_backoff: Duration,
     /// How long a request waits for the first heartbeat before failing.
     pub connect_wait: Duration,
+    /// The autopilot family; `None`: from the heartbeat's `autopilot` field.
+    pub family: Option<AutopilotFamily>,
 }
 
 impl Default for ManagerConfig {
@@ -54,6 +57,7 @@ impl Default for ManagerConfig {
             retries: 5,
             reconnect_backoff: Duration::from_millis(500),
             connect_wait: Duration::from_secs(10),
+            family: None,
         }
     }
 }
@@ -69,7 +73,11 @@ pub struct VehicleState {
     pub component_id: Option<u8>,
     /// Vehicle type, once seen.
     pub vehicle_type: Option<MavType>,
-    /// Custom (ArduPilot) mode.
+    /// The heartbeat's autopilot field, once seen.
+    pub autopilot: Option<MavAutopilot>,
+    /// The family whose conventions apply (configured, or from `autopilot`).
+    pub family: AutopilotFamily,
+    /// Custom mode (ArduPilot number, or PX4's `main << 16 | sub << 24`).
     pub mode: Option<u32>,
     /// Its ArduPilot name.
     pub mode_name: Option<&'static str>,
@@ -155,6 +163,7 @@ impl MavlinkManager {
             rates: StdMutex::default(),
             ops: tokio::sync::Mutex::new(()),
             counters: Arc::default(),
+            partial: StdMutex::default(),
         });
         let cancel = CancellationToken::new();
         let driver = tokio::spawn(driver(inner.clone(), endpoint, out_rx, cancel.clone()));
@@ -176,6 +185,17 @@ impl MavlinkManager {
     /// Every event from now on. A slow receiver loses the oldest events (`Lagged`).
     pub fn subscribe(&self) -> broadcast::Receiver<MavEvent> {
         self.inner.events_tx.subscribe()
+    }
+
+    /// The autopilot family whose conventions apply (configured, or from the heartbeat).
+    pub fn family(&self) -> AutopilotFamily {
+        self.inner.state_tx.borrow().family
+    }
+
+    /// Whether the autopilot answers MISSION_WRITE_PARTIAL_LIST on this connection: `None`
+    /// until the first partial write probed it.
+    pub fn partial_writes(&self) -> Option<bool> {
+        *lock(&self.inner.partial)
     }
 
     /// The latest vehicle state.
@@ -273,8 +293,12 @@ impl MavlinkManager {
     /// Unknown name, refusal, no answer, or no confirming heartbeat.
     pub async fn set_mode(&self, mode: impl Into<ModeSpec>) -> Result<(), CommandError> {
         self.inner.target().await?;
+        let px4 = self.state().family.px4_modes();
         let number = match mode.into() {
             ModeSpec::Number(n) => n,
+            ModeSpec::Name(name) if px4 => {
+                modes::px4_number(&name).ok_or(CommandError::UnknownMode(name))?
+            }
             ModeSpec::Name(name) => {
                 let vehicle = self
                     .state()
@@ -284,9 +308,16 @@ impl MavlinkManager {
             }
         };
         let custom = f32::from(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits());
+        // PX4 takes the main and sub mode in param2 and param3; ArduPilot the number in param2.
+        let (p2, p3) = if px4 {
+            let (main, sub) = modes::px4_main_sub(number);
+            (f32::from(main), f32::from(sub))
+        } else {
+            (number as f32, 0.0)
+        };
         self.command_long(
             MavCmd::MAV_CMD_DO_SET_MODE,
-            [custom, number as f32, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [custom, p2, p3, 0.0, 0.0, 0.0, 0.0],
         )
         .await?;
         self.confirm(format!("mode {number}"), |s| s.mode == Some(number))

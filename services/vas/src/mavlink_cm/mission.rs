@@ -46,9 +46,15 @@ impl MavlinkManager {
     /// Replaces items `start .. start + items.len()` with MISSION_WRITE_PARTIAL_LIST
     /// (ArduPilot only replaces existing items; it cannot grow the mission).
     ///
+    /// The first partial write on a connection is a probe: one short attempt at the start
+    /// (one request timeout). Its answer is remembered
+    /// ([`MavlinkManager::partial_writes`]) until the link is lost: an autopilot without
+    /// partial writes costs one timeout per connection, not the retries of every write.
+    ///
     /// # Errors
-    /// Empty list, refusal, or retries exhausted (an autopilot that ignores
-    /// partial writes fails at [`MissionStage::Start`]).
+    /// [`MissionError::PartialUnsupported`] when the probe went unanswered or was refused (or
+    /// an earlier one on this connection did); otherwise empty list, refusal, or retries
+    /// exhausted.
     pub async fn mission_write_partial(
         &self,
         start: u16,
@@ -63,13 +69,54 @@ impl MavlinkManager {
         }
         let target = self.inner.target().await?;
         let _op = self.inner.ops.lock().await;
+        let known = *lock(&self.inner.partial);
+        if known == Some(false) {
+            return Err(MissionError::PartialUnsupported);
+        }
         let msg = MavMessage::MISSION_WRITE_PARTIAL_LIST(MISSION_WRITE_PARTIAL_LIST_DATA {
             start_index: start as i16,
             end_index: (end - 1) as i16,
             target_system: target.0,
             target_component: target.1,
         });
-        self.inner.upload(target, msg, items, start).await?;
+        let probing = known.is_none();
+        let start_retries = if probing { 1 } else { self.inner.cfg.retries };
+        let began = std::time::Instant::now();
+        let result = self
+            .inner
+            .upload_with(target, msg, items, start, start_retries)
+            .await;
+        let answered = match &result {
+            Err(MissionError::PartialUnsupported) => Some(false),
+            Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Start,
+                ..
+            }) if probing => Some(false),
+            // Any request (or any other end) means it speaks the protocol.
+            Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Start,
+                ..
+            })
+            | Err(MissionError::Link(_)) => None,
+            _ => Some(true),
+        };
+        if probing {
+            if let Some(ok) = answered {
+                *lock(&self.inner.partial) = Some(ok);
+                tracing::info!(
+                    "partial mission writes {} (probe took {} ms)",
+                    if ok { "supported" } else { "not supported" },
+                    began.elapsed().as_millis()
+                );
+            }
+        }
+        match result {
+            Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Start,
+                ..
+            }) if probing => return Err(MissionError::PartialUnsupported),
+            r => r?,
+        }
         let mut cache = lock(&self.inner.mission);
         if cache.len() >= end {
             cache[usize::from(start)..end].clone_from_slice(items);
@@ -188,13 +235,29 @@ impl MavlinkManager {
             _ => None,
         };
         // Sent twice per attempt: the rolling queue's wrap has one leg of slack, and setting
-        // the same current item twice within milliseconds changes nothing.
-        if self
-            .inner
-            .transact_copies(2, make, matcher)
-            .await?
-            .is_some()
-        {
+        // the same current item twice within milliseconds changes nothing. An autopilot that
+        // sends MISSION_CURRENT only on change says nothing when `seq` already was current:
+        // after a silent attempt, the last MISSION_CURRENT it reported verifies it.
+        let mut rx = self.inner.raw_tx.subscribe();
+        for attempt in 0..self.inner.cfg.retries {
+            if attempt > 0 {
+                if self.inner.state_tx.borrow().mission_current == Some(seq) {
+                    return Ok(());
+                }
+                self.inner.resync().await?;
+            }
+            for _ in 0..2 {
+                self.inner.send(make(attempt)).await?;
+            }
+            let deadline = Instant::now() + self.inner.cfg.request_timeout;
+            if super::driver::wait_for(&mut rx, deadline, matcher)
+                .await?
+                .is_some()
+            {
+                return Ok(());
+            }
+        }
+        if self.inner.state_tx.borrow().mission_current == Some(seq) {
             return Ok(());
         }
         match self
@@ -225,6 +288,19 @@ impl Inner {
         items: &[MissionItem],
         first: u16,
     ) -> Result<(), MissionError> {
+        self.upload_with(target, start, items, first, self.cfg.retries)
+            .await
+    }
+
+    /// [`Self::upload`] with `start_retries` attempts at the start message.
+    async fn upload_with(
+        &self,
+        target: (u8, u8),
+        start: MavMessage,
+        items: &[MissionItem],
+        first: u16,
+        start_retries: u32,
+    ) -> Result<(), MissionError> {
         // Subscribed before the start goes out, so no early answer is missed.
         let mut rx = self.raw_tx.subscribe();
         let cfg = UploadConfig {
@@ -232,6 +308,7 @@ impl Inner {
             target,
             retries: self.cfg.retries,
             timeout: self.cfg.request_timeout,
+            start_retries,
         };
         let mut out = Vec::new();
         let mut upload = MissionUpload::start(

@@ -377,4 +377,8 @@ pub enum MissionError {
     /// The request does not make sense (empty list, range past the end...).
     #[error("invalid mission request: {0}")]
     Invalid(String),
+    /// The autopilot does not answer or refuses MISSION_WRITE_PARTIAL_LIST (found out once per
+    /// connection by a short probe): upload whole missions instead.
+    #[error("the autopilot has no partial mission writes")]
+    PartialUnsupported,
 }

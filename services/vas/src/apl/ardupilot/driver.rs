@@ -33,10 +33,13 @@ enum ExecError {
     Other(String),
 }
 
-/// Performs one queue action on the autopilot.
+/// Performs one queue action on the autopilot. `item0` is what a whole upload puts in item 0
+/// where item 0 is an ordinary item (not ArduPilot's home): the target, so an autopilot that
+/// falls back to item 0 after the upload keeps driving where it was going.
 async fn exec(
     mgr: &MavlinkManager,
     home: Option<(f64, f64)>,
+    item0: Option<&Waypoint>,
     action: &QueueAction<Waypoint>,
 ) -> Result<(), ExecError> {
     let other = |e: MissionError| ExecError::Other(e.to_string());
@@ -45,7 +48,11 @@ async fn exec(
             let home = home
                 .or_else(|| items.first().map(|w| (w.lat, w.lon)))
                 .unwrap_or_default();
-            let mut mission = vec![MissionItem::waypoint(home.0, home.1, 0.0)];
+            let first = match item0 {
+                Some(w) if !mgr.family().item0_is_home() => mission_item(w),
+                _ => MissionItem::waypoint(home.0, home.1, 0.0),
+            };
+            let mut mission = vec![first];
             mission.extend(items.iter().map(mission_item));
             tracing::debug!("queue: upload {} slots", items.len());
             mgr.mission_upload(&mission).await.map_err(other)
@@ -55,6 +62,12 @@ async fn exec(
             tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
             match mgr.mission_write_partial(*start, &mission).await {
                 Ok(()) => Ok(()),
+                Err(MissionError::PartialUnsupported) => {
+                    tracing::warn!(
+                        "partial mission writes unsupported on this autopilot: uploading whole windows"
+                    );
+                    Err(ExecError::PartialUnsupported)
+                }
                 Err(MissionError::RetriesExhausted {
                     stage: MissionStage::Start,
                     ..
@@ -109,6 +122,11 @@ pub(super) struct Driver {
     /// likely the mission ended there and its report is late, lost or never sent): a late
     /// report of that slot, or a position at or past it, still counts it.
     last_pending: Option<(u16, Waypoint)>,
+    /// What the last whole upload put in item 0 where it is an ordinary item.
+    item0: Option<Waypoint>,
+    /// Times the vehicle's reported current item went back to an item already passed while
+    /// navigating (issue 14: each is a drive back toward a passed waypoint).
+    backtracks: u64,
 }
 
 impl Driver {
@@ -137,6 +155,8 @@ impl Driver {
             leg_start: None,
             passing: None,
             last_pending: None,
+            item0: None,
+            backtracks: 0,
         }
     }
 
@@ -190,6 +210,7 @@ impl Driver {
             target: self.queue.target().map(|w| w.seq),
             last_reached: self.last_reached,
             replacing: self.queue.is_replacing(),
+            backtracks: self.backtracks,
         }
     }
 
@@ -296,7 +317,12 @@ impl Driver {
             };
             tracing::debug!("queue: action took {:?}", began.elapsed());
             match result {
-                Ok(()) => self.queue.done(&action),
+                Ok(()) => {
+                    self.queue.done(&action);
+                    if matches!(action, QueueAction::Upload(_)) {
+                        self.after_upload();
+                    }
+                }
                 Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
                 Err(ExecError::Other(e)) => return Err(e),
             }
@@ -311,7 +337,11 @@ impl Driver {
         action: &QueueAction<Waypoint>,
     ) -> Option<Result<(), ExecError>> {
         let mgr = Arc::clone(&self.mgr);
-        let exec = exec(&mgr, self.home, action);
+        let item0 = self.queue.target().cloned();
+        if matches!(action, QueueAction::Upload(_)) {
+            self.item0 = item0.clone();
+        }
+        let exec = exec(&mgr, self.home, item0.as_ref(), action);
         tokio::pin!(exec);
         let mut listening = !matches!(action, QueueAction::SetCurrent(_));
         loop {
@@ -333,6 +363,52 @@ impl Driver {
                     }
                 }
             }
+        }
+    }
+
+    /// After a whole upload: the current item is restored next, unless the autopilot is one
+    /// that keeps it and it still reports the slot being driven to.
+    fn after_upload(&mut self) {
+        let s = self.mgr.state();
+        if s.family.keeps_current_on_upload()
+            && s.mission_current.is_some()
+            && s.mission_current == self.queue.current_slot()
+        {
+            self.queue.current_kept();
+        }
+    }
+
+    /// The vehicle reports it drives to item `seq`: when that item holds a waypoint already
+    /// passed (or home), while in AUTO, it is driving back. Counted and logged.
+    fn check_backtrack(&mut self, seq: u16) {
+        let s = self.mgr.state();
+        if s.mode_name != Some("AUTO") || !self.queue.is_running() {
+            return;
+        }
+        let Some(target) = self.queue.target() else {
+            return;
+        };
+        let held = if seq == 0 {
+            if s.family.item0_is_home() {
+                None
+            } else {
+                self.item0.as_ref()
+            }
+        } else {
+            self.queue.onboard_slot(seq)
+        };
+        let back = match held {
+            None => seq == 0,
+            Some(w) => w.seq < target.seq,
+        };
+        if back {
+            self.backtracks += 1;
+            tracing::warn!(
+                "backtrack #{}: the autopilot drives to item {seq} ({}), behind waypoint {}",
+                self.backtracks,
+                held.map_or("home".to_owned(), |w| format!("waypoint {}", w.seq)),
+                target.seq
+            );
         }
     }
 
@@ -395,6 +471,7 @@ impl Driver {
                 true
             }
             MavEvent::MissionCurrent { seq } => {
+                self.check_backtrack(seq);
                 if let Some(w) = self.queue.on_current(seq) {
                     self.reached(w);
                 }
