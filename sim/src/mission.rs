@@ -63,6 +63,8 @@ pub struct MissionStore {
     /// Index and partner of the last committed transfer's final item, so a
     /// client that lost our MISSION_ACK and resends that item gets it again.
     last_commit: Option<(u16, (u8, u8))>,
+    /// Item 0 is home (replaced by ours on upload).
+    item0_is_home: bool,
 }
 
 fn is_global(frame: MavFrame) -> bool {
@@ -155,7 +157,14 @@ impl MissionStore {
             items: vec![home_item(home)],
             receiving: None,
             last_commit: None,
+            item0_is_home: true,
         }
+    }
+
+    /// Whether item 0 is home, replaced by ours on every upload (ArduPilot), or an ordinary
+    /// item kept as uploaded (PX4, generic).
+    pub fn set_item0_is_home(&mut self, home: bool) {
+        self.item0_is_home = home;
     }
 
     /// The items on board, home first.
@@ -287,7 +296,9 @@ impl MissionStore {
             }
         };
         self.items = rx.staged;
-        self.items[0] = home_item(home);
+        if self.item0_is_home {
+            self.items[0] = home_item(home);
+        }
         self.last_commit = Some((rx.end, partner));
         (
             vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)],

@@ -42,6 +42,8 @@ pub struct SimConfig {
     pub log: Option<PathBuf>,
     /// Report no mission progress (see [`Vehicle::set_quiet_progress`]).
     pub quiet_progress: bool,
+    /// Which autopilot's conventions to follow (see [`crate::profile`]).
+    pub autopilot: crate::profile::Profile,
 }
 
 /// Errors of the simulator.
@@ -87,6 +89,7 @@ impl Simulator {
         let link = Link::open(&cfg.link, cfg.vehicle.sysid).await?;
         let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
         vehicle.set_quiet_progress(cfg.quiet_progress);
+        vehicle.set_profile(cfg.autopilot);
         Ok(Self {
             cfg,
             vehicle,

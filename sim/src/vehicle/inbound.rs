@@ -15,7 +15,10 @@ impl Vehicle {
                 out.push(command_ack(c.command, result));
             }
             MavMessage::SET_MODE(m) if self.for_us(m.target_system) => {
-                let result = self.change_mode(m.custom_mode, &mut out);
+                let result = match self.profile.decode_mode(self.cfg.kind, m.custom_mode) {
+                    Some(mode) => self.change_mode(mode, &mut out),
+                    None => MavResult::MAV_RESULT_DENIED,
+                };
                 out.push(command_ack(MavCmd::MAV_CMD_DO_SET_MODE, result));
             }
             MavMessage::REQUEST_DATA_STREAM(r) if self.for_us(r.target_system) => {
@@ -72,7 +75,10 @@ impl Vehicle {
             MavMessage::MISSION_COUNT(c) if self.for_us(c.target_system) => {
                 out.extend(self.mission.on_count(from, c.count, now));
             }
-            MavMessage::MISSION_WRITE_PARTIAL_LIST(p) if self.for_us(p.target_system) => {
+            // Without partial writes (PX4, generic): unanswered, as the autopilots that lack it.
+            MavMessage::MISSION_WRITE_PARTIAL_LIST(p)
+                if self.for_us(p.target_system) && self.profile.partial_writes() =>
+            {
                 out.extend(
                     self.mission
                         .on_partial(from, p.start_index, p.end_index, now),
@@ -99,7 +105,7 @@ impl Vehicle {
             MavMessage::MISSION_CLEAR_ALL(c) if self.for_us(c.target_system) => {
                 let (replies, change) = self.mission.on_clear(from);
                 out.extend(replies);
-                self.mission_changed(change);
+                self.mission_changed(change, &mut out);
             }
             MavMessage::MISSION_SET_CURRENT(s) if self.for_us(s.target_system) => {
                 let changed = self.set_current(s.seq, &mut out);
@@ -142,18 +148,34 @@ impl Vehicle {
         let (replies, change) = self.mission.on_item(from, item, self.cfg.home, now);
         out.extend(replies);
         if let Some(change) = change {
-            self.mission_changed(change);
+            self.mission_changed(change, out);
         }
     }
 
-    /// A committed mission change never moves the memorised target (003 §2.5.4).
-    fn mission_changed(&mut self, change: Change) {
+    /// On ArduPilot a committed mission change never moves the memorised target (003
+    /// §2.5.4); PX4 and generic autopilots reset the current item to 0 after a whole upload
+    /// (and drive to it in a mission).
+    fn mission_changed(&mut self, change: Change, out: &mut Vec<MavMessage>) {
+        let uploaded = matches!(change, Change::Uploaded { .. });
         let event = match change {
             Change::Uploaded { count } => LogEvent::MissionUploaded { count },
             Change::PartialWrite { start, end } => LogEvent::MissionPartialWrite { start, end },
             Change::Cleared => LogEvent::MissionCleared,
         };
         self.record(event);
+        if uploaded && self.profile.resets_current_on_upload() {
+            if self.behaviour() == Behaviour::Auto {
+                self.target = None;
+                self.go_to_index(0, "upload_reset", out);
+            } else if self.current != 0 {
+                self.current = 0;
+                out.push(self.mission_current());
+                self.record(LogEvent::CurrentChanged {
+                    seq: 0,
+                    cause: "upload_reset".to_owned(),
+                });
+            }
+        }
     }
 
     fn command(
@@ -177,7 +199,21 @@ impl Vehicle {
                 if c.param2 < 0.0 || !c.param2.is_finite() {
                     return MavResult::MAV_RESULT_DENIED;
                 }
-                self.change_mode(c.param2 as u32, out)
+                // PX4 takes (main, sub) in param2 and param3.
+                let custom = if self.profile == Profile::Px4 {
+                    let sub = if c.param3.is_finite() && c.param3 >= 0.0 {
+                        c.param3 as u32
+                    } else {
+                        0
+                    };
+                    (c.param2 as u32) << 16 | sub << 24
+                } else {
+                    c.param2 as u32
+                };
+                match self.profile.decode_mode(self.cfg.kind, custom) {
+                    Some(mode) => self.change_mode(mode, out),
+                    None => MavResult::MAV_RESULT_DENIED,
+                }
             }
             MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT => {
                 if c.param1 < 0.0 || !c.param1.is_finite() || c.param1 > f32::from(u16::MAX) {

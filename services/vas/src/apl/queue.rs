@@ -745,7 +745,10 @@ mod tests {
                         assert!(ap.apply(&a));
                         q.done(&a);
                         assert!(q.owes_restore());
-                        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(q.current_slot().unwrap())));
+                        assert_eq!(
+                            q.poll(),
+                            Some(QueueAction::SetCurrent(q.current_slot().unwrap()))
+                        );
                         continue;
                     }
                     if ap.apply(&a) {

@@ -682,7 +682,10 @@ mod tests {
     fn every_mission_ack_result_has_its_meaning() {
         use MavMissionResult::*;
         assert_eq!(ack_meaning(MAV_MISSION_ACCEPTED), AckMeaning::Accepted);
-        assert_eq!(ack_meaning(MAV_MISSION_INVALID_SEQUENCE), AckMeaning::KeepGoing);
+        assert_eq!(
+            ack_meaning(MAV_MISSION_INVALID_SEQUENCE),
+            AckMeaning::KeepGoing
+        );
         for r in [
             MAV_MISSION_ERROR,
             MAV_MISSION_UNSUPPORTED_FRAME,

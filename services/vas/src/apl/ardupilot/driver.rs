@@ -382,7 +382,12 @@ impl Driver {
     /// passed (or home), while in AUTO, it is driving back. Counted and logged.
     fn check_backtrack(&mut self, seq: u16) {
         let s = self.mgr.state();
-        if s.mode_name != Some("AUTO") || !self.queue.is_running() {
+        if s.mode_name != Some("AUTO")
+            || !self.queue.is_running()
+            || !s.link_up
+            || s.restorations != self.restorations_seen
+        {
+            // Not driving a mission of ours, or a restarted autopilot not yet handled.
             return;
         }
         let Some(target) = self.queue.target() else {
