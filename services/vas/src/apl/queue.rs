@@ -206,6 +206,12 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         self.partial_ok = false;
     }
 
+    /// The autopilot answers partial writes again (another autopilot, or the same updated,
+    /// after the link came back).
+    pub fn partial_supported_again(&mut self) {
+        self.partial_ok = true;
+    }
+
     /// What the autopilot holds is no longer known (link restored, autopilot restarted).
     pub fn forget_onboard(&mut self) {
         self.have.clear();

@@ -124,6 +124,80 @@ impl MavlinkManager {
         Ok(())
     }
 
+    /// Finds out whether the autopilot answers MISSION_WRITE_PARTIAL_LIST, with one short
+    /// attempt (one request timeout), and remembers it for this connection
+    /// ([`Self::partial_writes`]). Done before flying (the VAS probes while configuring the
+    /// autopilot), so an autopilot without partial writes costs one timeout on the ground,
+    /// not a stall in flight. The probe writes item 1 onto itself and cancels at once: an
+    /// autopilot commits a transfer only when complete, so nothing on board changes. Any
+    /// answer but UNSUPPORTED or DENIED (a request, or an ACK such as INVALID_SEQUENCE for
+    /// an empty mission) means the autopilot speaks it.
+    ///
+    /// # Errors
+    /// Not connected, or shut down.
+    pub async fn probe_partial_writes(&self) -> Result<bool, LinkError> {
+        if let Some(known) = *lock(&self.inner.partial) {
+            return Ok(known);
+        }
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        let me = self.inner.cfg.system_id;
+        let mut rx = self.inner.raw_tx.subscribe();
+        let began = Instant::now();
+        self.inner
+            .send(MavMessage::MISSION_WRITE_PARTIAL_LIST(
+                MISSION_WRITE_PARTIAL_LIST_DATA {
+                    start_index: 1,
+                    end_index: 1,
+                    target_system: target.0,
+                    target_component: target.1,
+                },
+            ))
+            .await?;
+        #[allow(deprecated)]
+        let answer = super::driver::wait_for(
+            &mut rx,
+            began + self.inner.cfg.request_timeout,
+            |m| match m {
+                MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => Some(None),
+                MavMessage::MISSION_REQUEST(r) if r.target_system == me => Some(None),
+                MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
+                    Some(Some(a.mavtype))
+                }
+                _ => None,
+            },
+        )
+        .await?;
+        let supported = match answer {
+            Some(None) => {
+                // It asked for the item: cancel, nothing is committed.
+                self.inner
+                    .send(mission_ack(
+                        target,
+                        MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+                    ))
+                    .await?;
+                true
+            }
+            Some(Some(
+                MavMissionResult::MAV_MISSION_UNSUPPORTED | MavMissionResult::MAV_MISSION_DENIED,
+            ))
+            | None => false,
+            Some(Some(_)) => true,
+        };
+        *lock(&self.inner.partial) = Some(supported);
+        tracing::info!(
+            "partial mission writes {} (probe took {} ms)",
+            if supported {
+                "supported"
+            } else {
+                "not supported"
+            },
+            began.elapsed().as_millis()
+        );
+        Ok(supported)
+    }
+
     /// Downloads the whole mission (home first).
     ///
     /// # Errors

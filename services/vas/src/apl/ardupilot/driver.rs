@@ -24,7 +24,17 @@ pub(super) async fn configure(
     ])
     .await
     .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+    probe_partial(mgr).await;
     Ok(())
+}
+
+/// Finds out on the ground, once per connection, whether the autopilot has partial mission
+/// writes (a short probe), so the rolling queue does not find out in flight.
+pub(super) async fn probe_partial(mgr: &MavlinkManager) {
+    tracing::info!("autopilot family: {}", mgr.family().name());
+    if let Err(e) = mgr.probe_partial_writes().await {
+        tracing::warn!("probing partial mission writes: {e}");
+    }
 }
 
 /// Why a queue action failed.
@@ -298,6 +308,10 @@ impl Driver {
 
     /// Performs queue actions until the autopilot holds what it should.
     async fn prime(&mut self) -> Result<(), String> {
+        if self.mgr.partial_writes() == Some(false) && self.queue.partial_supported() {
+            // The probe found none: whole windows from the start, no partial write tried.
+            self.queue.partial_unsupported();
+        }
         for _ in 0..32 {
             // Progress reported while the last action ran changes what is most urgent (the
             // wrap to slot 1 has one leg of slack): take it into account first.
@@ -729,6 +743,10 @@ impl Driver {
         match self.mgr.params_list().await {
             Ok(p) => tracing::info!("re-read {} parameters", p.len()),
             Err(e) => tracing::warn!("re-reading parameters: {e}"),
+        }
+        probe_partial(&self.mgr).await;
+        if self.mgr.partial_writes() == Some(true) {
+            self.queue.partial_supported_again();
         }
         let intact = match self.mgr.mission_download().await {
             Ok(onboard) => {
