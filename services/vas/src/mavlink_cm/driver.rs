@@ -264,7 +264,12 @@ impl Inner {
             .cfg
             .family
             .unwrap_or_else(|| AutopilotFamily::from_heartbeat(hb.autopilot));
-        let name = if family.px4_modes() {
+        // A generic autopilot tells its encoding by the number: ArduPilot's are below 256,
+        // PX4's main mode sits in the third byte.
+        let before_px4 = self.state_tx.borrow().px4_modes;
+        let px4_modes = family.px4_modes()
+            || (family == AutopilotFamily::Generic && (before_px4 || hb.custom_mode > 0xFFFF));
+        let name = if px4_modes {
             modes::px4_name(hb.custom_mode)
         } else {
             modes::name(hb.mavtype, hb.custom_mode)
@@ -277,6 +282,7 @@ impl Inner {
             s.link_up = true;
             s.autopilot = Some(hb.autopilot);
             s.family = family;
+            s.px4_modes = px4_modes;
             s.system_id = Some(sys);
             s.component_id = Some(comp);
             s.vehicle_type = Some(hb.mavtype);

@@ -77,6 +77,9 @@ pub struct VehicleState {
     pub autopilot: Option<MavAutopilot>,
     /// The family whose conventions apply (configured, or from `autopilot`).
     pub family: AutopilotFamily,
+    /// Custom modes are PX4's `main << 16 | sub << 24` (the PX4 family, or a generic
+    /// autopilot whose heartbeat shows that encoding, as MAVSDK's server does).
+    pub px4_modes: bool,
     /// Custom mode (ArduPilot number, or PX4's `main << 16 | sub << 24`).
     pub mode: Option<u32>,
     /// Its ArduPilot name.
@@ -293,7 +296,7 @@ impl MavlinkManager {
     /// Unknown name, refusal, no answer, or no confirming heartbeat.
     pub async fn set_mode(&self, mode: impl Into<ModeSpec>) -> Result<(), CommandError> {
         self.inner.target().await?;
-        let px4 = self.state().family.px4_modes();
+        let px4 = self.state().px4_modes;
         let number = match mode.into() {
             ModeSpec::Number(n) => n,
             ModeSpec::Name(name) if px4 => {
@@ -307,6 +310,11 @@ impl MavlinkManager {
                 modes::number(vehicle, &name).ok_or(CommandError::UnknownMode(name))?
             }
         };
+        if self.state().mode == Some(number) {
+            // Already there: nothing to ask (some autopilots, MAVSDK's server among them,
+            // refuse a change to a mode they only enter by themselves, such as HOLD).
+            return Ok(());
+        }
         let custom = f32::from(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits());
         // PX4 takes the main and sub mode in param2 and param3; ArduPilot the number in param2.
         let (p2, p3) = if px4 {
