@@ -8,16 +8,45 @@ use serde::Deserialize;
 use usal_types::VehicleKind;
 
 use crate::apl::ardupilot::ArduPilotConfig;
-use crate::mavlink_cm::ManagerConfig;
+use crate::mavlink_cm::{AutopilotFamily, ManagerConfig};
 use crate::val::ValConfig;
 
 /// The autopilot families the VAS has an APL for.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AutopilotKind {
-    /// ArduPilot (Rover, Copter, Plane) and mavsim, over MAVLink.
+    /// The family the autopilot's heartbeat names (its `autopilot` field).
     #[default]
+    Auto,
+    /// ArduPilot (Rover, Copter, Plane) and mavsim, over MAVLink.
     Ardupilot,
+    /// PX4: PX4 custom modes, item 0 ordinary, uploads reset the current item.
+    Px4,
+    /// Another MAVLink autopilot (MAVSDK's server...): item 0 ordinary, the current item
+    /// restored after every upload.
+    Generic,
+}
+
+impl AutopilotKind {
+    /// The family the configuration names, `None` for the heartbeat's.
+    pub fn family(self) -> Option<AutopilotFamily> {
+        match self {
+            Self::Auto => None,
+            Self::Ardupilot => Some(AutopilotFamily::ArduPilot),
+            Self::Px4 => Some(AutopilotFamily::Px4),
+            Self::Generic => Some(AutopilotFamily::Generic),
+        }
+    }
+
+    /// The name in the configuration.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Ardupilot => "ardupilot",
+            Self::Px4 => "px4",
+            Self::Generic => "generic",
+        }
+    }
 }
 
 /// Everything `vas` needs to run. Attribute names of the XML file in brackets.
@@ -77,7 +106,7 @@ impl Default for VasConfig {
         let val = ValConfig::default();
         let manager = ManagerConfig::default();
         Self {
-            autopilot: AutopilotKind::Ardupilot,
+            autopilot: AutopilotKind::Auto,
             endpoint: "udpout:127.0.0.1:14560".into(),
             vehicle: VehicleKind::Rover,
             queue_size: 5,
@@ -189,6 +218,7 @@ impl VasConfig {
                 heartbeat_timeout: Duration::from_millis(self.heartbeat_timeout_ms),
                 request_timeout: Duration::from_millis(self.request_timeout_ms),
                 retries: self.retries,
+                family: self.autopilot.family(),
                 ..ManagerConfig::default()
             },
         }

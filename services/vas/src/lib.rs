@@ -42,8 +42,13 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
         config.namespace.as_deref(),
     )
     .context("loading the network configuration")?;
+    // One APL for every family: the manager applies the family's conventions (modes, item 0,
+    // the current item after an upload), chosen from the heartbeat unless configured.
     let apl: Arc<dyn IAutopilot> = match config.autopilot {
-        AutopilotKind::Ardupilot => Arc::new(
+        AutopilotKind::Auto
+        | AutopilotKind::Ardupilot
+        | AutopilotKind::Px4
+        | AutopilotKind::Generic => Arc::new(
             ArduPilot::open(&config.endpoint, config.ardupilot())
                 .await
                 .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
@@ -58,9 +63,7 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
     tracing::info!(
         "vas up: {} {} on {}",
         config.vehicle,
-        match config.autopilot {
-            AutopilotKind::Ardupilot => "ardupilot",
-        },
+        config.autopilot.name(),
         config.endpoint
     );
     shutdown.cancelled().await;
