@@ -290,6 +290,17 @@ pub struct QueueStatus {
     pub backtracks: u64,
 }
 
+/// Another ground station changed the autopilot's mission (event `mission_changed` of the VAS):
+/// the VAS stopped feeding its queue and follows what the autopilot now holds.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MissionChanged {
+    /// Who changed it, e.g. `"MAVLink system 250 component 190"`.
+    pub by: String,
+    /// The mission now on board (item 0 first; `seq` is the item index), as far as it could be
+    /// read back; empty when it could not.
+    pub waypoints: Vec<Waypoint>,
+}
+
 /// Alarm severity, as MAVLink's (and syslog's) levels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

@@ -99,6 +99,20 @@ pub struct VasConfig {
     /// Manual-control staleness timeout, ms (`manualTimeoutMs`).
     #[serde(rename = "@manualTimeoutMs")]
     pub manual_timeout_ms: u64,
+    /// Extra endpoints MAVLink is forwarded to and from, like mavlink-router
+    /// (`<forward endpoint="udpout:127.0.0.1:14550"/>` child elements): another ground station
+    /// watches, and can take over, the vehicle.
+    #[serde(rename = "forward")]
+    pub forward: Vec<ForwardConfig>,
+}
+
+/// One `<forward endpoint="..."/>` element.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ForwardConfig {
+    /// `udpout:HOST:PORT`, `udpin:ADDR:PORT`, `tcpout:HOST:PORT`, `serial:PATH:BAUD`.
+    #[serde(rename = "@endpoint")]
+    pub endpoint: String,
 }
 
 impl Default for VasConfig {
@@ -120,6 +134,7 @@ impl Default for VasConfig {
             namespace: None,
             manual_control: val.manual_control,
             manual_timeout_ms: val.manual_timeout.as_millis() as u64,
+            forward: Vec::new(),
         }
     }
 }
@@ -171,6 +186,14 @@ impl VasConfig {
     /// # Errors
     /// The first value out of range.
     pub fn validate(&self) -> Result<(), ConfigLoadError> {
+        for f in &self.forward {
+            if let Err(e) = f.endpoint.parse::<crate::mavlink_cm::Endpoint>() {
+                return Err(ConfigLoadError::Invalid(format!(
+                    "<forward endpoint=\"{}\">: {e}",
+                    f.endpoint
+                )));
+            }
+        }
         if self.queue_size < 3 {
             return Err(ConfigLoadError::Invalid(format!(
                 "queueSize {} < 3: the rolling queue needs two slots plus the mirror slot",
@@ -219,6 +242,7 @@ impl VasConfig {
                 request_timeout: Duration::from_millis(self.request_timeout_ms),
                 retries: self.retries,
                 family: self.autopilot.family(),
+                forward: self.forward.iter().map(|f| f.endpoint.clone()).collect(),
                 ..ManagerConfig::default()
             },
         }
@@ -237,6 +261,30 @@ impl VasConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn forward_elements_name_endpoints() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("vas.xml");
+        std::fs::write(
+            &p,
+            r#"<vas autopilot="px4"><forward endpoint="udpout:127.0.0.1:14550"/>
+               <forward endpoint="udpin:0.0.0.0:14551"/></vas>"#,
+        )
+        .unwrap();
+        let cfg = VasConfig::load(&p).unwrap();
+        let mgr = cfg.ardupilot().manager;
+        assert_eq!(
+            mgr.forward,
+            ["udpout:127.0.0.1:14550", "udpin:0.0.0.0:14551"]
+        );
+        assert_eq!(mgr.family, Some(AutopilotFamily::Px4));
+        std::fs::write(&p, r#"<vas><forward endpoint="nowhere"/></vas>"#).unwrap();
+        assert!(matches!(
+            VasConfig::load(&p),
+            Err(ConfigLoadError::Invalid(_))
+        ));
+    }
 
     #[test]
     fn example_file_parses() {

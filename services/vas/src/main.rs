@@ -48,6 +48,10 @@ struct Args {
     /// Namespace of the items, e.g. rover1 (overrides the network file's).
     #[arg(long)]
     namespace: Option<String>,
+    /// Also forward MAVLink to and from this endpoint (another ground station, like
+    /// mavlink-router); repeatable; added to the file's `<forward>` elements.
+    #[arg(long)]
+    forward: Vec<String>,
 }
 
 #[tokio::main]
@@ -97,6 +101,11 @@ async fn main() -> anyhow::Result<()> {
     if args.namespace.is_some() {
         cfg.namespace = args.namespace;
     }
+    cfg.forward.extend(
+        args.forward
+            .into_iter()
+            .map(|endpoint| vas::config::ForwardConfig { endpoint }),
+    );
     let shutdown = marea::process::cancelled_on_signal();
     vas::run(cfg, shutdown).await
 }

@@ -11,8 +11,8 @@ use std::time::Duration;
 use marea::sync::lock;
 use mavconn::{Connection, Counters, Endpoint, Frame, OpenOptions};
 use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavState, MavType, COMMAND_LONG_DATA,
-    HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
+    MavAutopilot, MavCmd, MavMessage, MavMissionResult, MavModeFlag, MavState, MavType,
+    COMMAND_LONG_DATA, HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
 };
 use mavlink::MavHeader;
 use tokio::sync::{broadcast, mpsc, watch};
@@ -45,6 +45,8 @@ pub(crate) struct Inner {
     /// MISSION_WRITE_PARTIAL_LIST works on this connection: `None` until probed; forgotten
     /// when the link comes back (perhaps another autopilot, or the same one updated).
     pub(crate) partial: StdMutex<Option<bool>>,
+    /// Every autopilot frame with its header, for the forward endpoints.
+    pub(crate) frames_tx: broadcast::Sender<Arc<(MavHeader, MavMessage)>>,
 }
 
 /// Waits until `matcher` accepts a message or `deadline` passes (`Ok(None)`).
@@ -169,6 +171,9 @@ impl Inner {
     /// Handles one frame; returns true when the link just came (back) up.
     pub(crate) fn on_frame(&self, frame: Frame, last_hb: &mut Option<Instant>) -> bool {
         let Frame { header, msg, .. } = frame;
+        if self.frames_tx.receiver_count() > 0 {
+            let _ = self.frames_tx.send(Arc::new((header, msg.clone())));
+        }
         let (sys, comp) = (header.system_id as u8, header.component_id);
         let known = self.state_tx.borrow().system_id;
         let mut came_up = false;
@@ -192,6 +197,17 @@ impl Inner {
                     text,
                 });
                 self.reached(reached, ReachSource::StatusText);
+            }
+            MavMessage::MISSION_ACK(a)
+                if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED
+                    && a.target_system != 0
+                    && a.target_system != self.cfg.system_id =>
+            {
+                // The autopilot accepted a mission transfer of another ground station.
+                self.emit(MavEvent::MissionChangedElsewhere {
+                    system_id: a.target_system,
+                    component_id: a.target_component,
+                });
             }
             MavMessage::MISSION_ITEM_REACHED(r) => {
                 let reached = lock(&self.reach).on_item_reached(r.seq);
@@ -428,6 +444,7 @@ pub(crate) async fn driver(
                 out = out_rx.recv() => match out {
                     Some(Outbound::Message(msg)) => if let Err(e) = send(&mut conn, &msg) { break e },
                     Some(Outbound::Resync) => if let Err(e) = conn.resync() { break e.into() },
+                    Some(Outbound::Raw(h, msg)) => if let Err(e) = conn.send(h, &msg) { break e.into() },
                     None => return,
                 },
                 _ = gcs_hb.tick() => if let Err(e) = send(&mut conn, &gcs_heartbeat()) { break e },

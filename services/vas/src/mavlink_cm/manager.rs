@@ -23,6 +23,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::driver::{driver, Inner};
 use super::family::AutopilotFamily;
+use super::forward::forwarder;
 use super::modes::{self, ModeSpec};
 use super::types::*;
 
@@ -45,6 +46,9 @@ pub struct ManagerConfig {
     pub connect_wait: Duration,
     /// The autopilot family; `None`: from the heartbeat's `autopilot` field.
     pub family: Option<AutopilotFamily>,
+    /// Extra endpoints MAVLink is forwarded to and from (another ground station), as
+    /// `udpout:HOST:PORT` and the like.
+    pub forward: Vec<String>,
 }
 
 impl Default for ManagerConfig {
@@ -58,6 +62,7 @@ impl Default for ManagerConfig {
             reconnect_backoff: Duration::from_millis(500),
             connect_wait: Duration::from_secs(10),
             family: None,
+            forward: Vec::new(),
         }
     }
 }
@@ -140,6 +145,7 @@ pub struct MavlinkManager {
     pub(super) inner: Arc<Inner>,
     cancel: CancellationToken,
     driver: Option<JoinHandle<()>>,
+    forwarders: Vec<JoinHandle<()>>,
 }
 
 impl MavlinkManager {
@@ -151,6 +157,11 @@ impl MavlinkManager {
     /// When the endpoint string is malformed.
     pub async fn open(endpoint: &str, cfg: ManagerConfig) -> Result<Self, ManagerOpenError> {
         let endpoint: Endpoint = endpoint.parse()?;
+        let forwards = cfg
+            .forward
+            .iter()
+            .map(|f| f.parse::<Endpoint>())
+            .collect::<Result<Vec<_>, _>>()?;
         let (out_tx, out_rx) = mpsc::channel(256);
         let (raw_tx, _) = broadcast::channel(1024);
         let (events_tx, _) = broadcast::channel(1024);
@@ -167,13 +178,19 @@ impl MavlinkManager {
             ops: tokio::sync::Mutex::new(()),
             counters: Arc::default(),
             partial: StdMutex::default(),
+            frames_tx: broadcast::channel(1024).0,
         });
         let cancel = CancellationToken::new();
         let driver = tokio::spawn(driver(inner.clone(), endpoint, out_rx, cancel.clone()));
+        let forwarders = forwards
+            .into_iter()
+            .map(|f| tokio::spawn(forwarder(inner.clone(), f, cancel.clone())))
+            .collect();
         Ok(Self {
             inner,
             cancel,
             driver: Some(driver),
+            forwarders,
         })
     }
 
@@ -182,6 +199,9 @@ impl MavlinkManager {
         self.cancel.cancel();
         if let Some(driver) = self.driver.take() {
             let _ = driver.await;
+        }
+        for f in self.forwarders.drain(..) {
+            let _ = f.await;
         }
     }
 

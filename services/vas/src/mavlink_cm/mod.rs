@@ -32,6 +32,7 @@
 
 mod driver;
 mod family;
+mod forward;
 mod manager;
 mod mission;
 mod mission_upload;

@@ -137,6 +137,14 @@ pub enum MavEvent {
         /// The message that revealed it.
         source: ReachSource,
     },
+    /// The autopilot accepted a mission write (upload, partial write, clear) from another
+    /// ground station: what it holds is no longer what we uploaded.
+    MissionChangedElsewhere {
+        /// That station's system id.
+        system_id: u8,
+        /// Its component id.
+        component_id: u8,
+    },
     /// No heartbeat for the configured timeout (or the transport failed).
     LinkLost,
     /// Heartbeats again after a loss.

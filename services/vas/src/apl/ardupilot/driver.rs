@@ -731,8 +731,48 @@ impl Driver {
                 self.restorations_handled();
                 self.on_restored().await
             }
+            MavEvent::MissionChangedElsewhere {
+                system_id,
+                component_id,
+            } => self.on_mission_changed(system_id, component_id).await,
             MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
         }
+    }
+
+    /// Another ground station wrote the mission: do not fight it. The queue stops feeding the
+    /// autopilot (and forgets what it held), the mission is read back and reported.
+    async fn on_mission_changed(&mut self, system_id: u8, component_id: u8) {
+        let by = format!("MAVLink system {system_id} component {component_id}");
+        self.queue.stop();
+        self.queue.forget_onboard();
+        self.last_pending = None;
+        self.alarm(
+            Severity::Warning,
+            format!(
+                "mission changed by another ground station ({by}): following it, the queue stopped"
+            ),
+        );
+        let waypoints = match self.mgr.mission_download().await {
+            Ok(items) => items
+                .iter()
+                .enumerate()
+                .map(|(i, m)| Waypoint {
+                    seq: i as u64,
+                    lat: m.lat_deg(),
+                    lon: m.lon_deg(),
+                    alt: f64::from(m.z),
+                    leg: "external".into(),
+                    ..Waypoint::default()
+                })
+                .collect(),
+            Err(e) => {
+                tracing::warn!("reading back the mission another station wrote: {e}");
+                Vec::new()
+            }
+        };
+        tracing::info!("mission changed by {by}: {} items", waypoints.len());
+        self.emit(ApEvent::MissionChanged(MissionChanged { by, waypoints }));
+        self.emit(ApEvent::Status(status_of(&self.mgr)));
     }
 
     /// Heartbeats are back: re-read parameters and mission, and resume what was commanded.
