@@ -16,10 +16,11 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavResult, MavSeverity,
-    MavState, MavSysStatusSensor, MavType, ATTITUDE_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA,
-    GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA,
-    PARAM_VALUE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
+    MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavProtocolCapability,
+    MavResult, MavSeverity, MavState, MavSysStatusSensor, MavType, ATTITUDE_DATA,
+    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, GLOBAL_POSITION_INT_DATA,
+    HEARTBEAT_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA, PARAM_VALUE_DATA,
+    STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
 };
 
 use crate::kinematics::{Command, GeoPoint, Limits, LocalFrame, Ned, State, VehicleKind};
@@ -50,6 +51,8 @@ const ATTITUDE_ID: u32 = 30;
 const GLOBAL_POSITION_INT_ID: u32 = 33;
 const MISSION_CURRENT_ID: u32 = 42;
 const VFR_HUD_ID: u32 = 74;
+/// Answered to MAV_CMD_REQUEST_MESSAGE (and REQUEST_AUTOPILOT_CAPABILITIES), never streamed.
+const AUTOPILOT_VERSION_ID: u32 = 148;
 
 /// Static configuration of a simulated vehicle.
 #[derive(Clone, Copy, Debug)]

@@ -104,6 +104,10 @@ pub struct VasConfig {
     /// watches, and can take over, the vehicle.
     #[serde(rename = "forward")]
     pub forward: Vec<ForwardConfig>,
+    /// The autopilot's MAVLink system id where several vehicles share one link
+    /// (`targetSystem`); none: the first autopilot heard.
+    #[serde(rename = "@targetSystem")]
+    pub target_system: Option<u8>,
 }
 
 /// One `<forward endpoint="..."/>` element.
@@ -134,6 +138,7 @@ impl Default for VasConfig {
             namespace: None,
             manual_control: val.manual_control,
             manual_timeout_ms: val.manual_timeout.as_millis() as u64,
+            target_system: None,
             forward: Vec::new(),
         }
     }
@@ -243,6 +248,7 @@ impl VasConfig {
                 retries: self.retries,
                 family: self.autopilot.family(),
                 forward: self.forward.iter().map(|f| f.endpoint.clone()).collect(),
+                target_system: self.target_system,
                 ..ManagerConfig::default()
             },
         }

@@ -52,6 +52,9 @@ struct Args {
     /// mavlink-router); repeatable; added to the file's `<forward>` elements.
     #[arg(long)]
     forward: Vec<String>,
+    /// The autopilot's MAVLink system id, where several vehicles share one link.
+    #[arg(long)]
+    target_system: Option<u8>,
 }
 
 #[tokio::main]
@@ -100,6 +103,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.namespace.is_some() {
         cfg.namespace = args.namespace;
+    }
+    if args.target_system.is_some() {
+        cfg.target_system = args.target_system;
     }
     cfg.forward.extend(
         args.forward

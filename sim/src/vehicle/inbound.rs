@@ -243,6 +243,10 @@ impl Vehicle {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
+            MavCmd::MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES => {
+                out.extend(self.telemetry(AUTOPILOT_VERSION_ID));
+                MavResult::MAV_RESULT_ACCEPTED
+            }
             MavCmd::MAV_CMD_DO_CHANGE_SPEED => {
                 if self.change_speed(c.param2) {
                     MavResult::MAV_RESULT_ACCEPTED

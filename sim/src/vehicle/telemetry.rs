@@ -141,6 +141,13 @@ impl Vehicle {
                     ..SYS_STATUS_DATA::default()
                 })
             }
+            AUTOPILOT_VERSION_ID => MavMessage::AUTOPILOT_VERSION(AUTOPILOT_VERSION_DATA {
+                capabilities: MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+                    | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                    | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                    | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MAVLINK2,
+                ..AUTOPILOT_VERSION_DATA::default()
+            }),
             MISSION_CURRENT_ID
                 if !self.quiet_progress && !self.profile.mission_current_on_change_only() =>
             {

@@ -180,7 +180,9 @@ impl Inner {
         if let MavMessage::HEARTBEAT(hb) = &msg {
             let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
                 && hb.mavtype != MavType::MAV_TYPE_GCS;
-            if is_autopilot && (known.is_none() || known == Some(sys)) {
+            // Several vehicles may share the link: the configured one, else the first heard.
+            let wanted = self.cfg.target_system.is_none_or(|t| t == sys);
+            if is_autopilot && wanted && (known.is_none() || known == Some(sys)) {
                 *last_hb = Some(Instant::now());
                 came_up = self.on_heartbeat(sys, comp, hb);
             }
@@ -208,6 +210,10 @@ impl Inner {
                     system_id: a.target_system,
                     component_id: a.target_component,
                 });
+            }
+            MavMessage::AUTOPILOT_VERSION(v) => {
+                let bits = v.capabilities.bits();
+                self.state_tx.send_modify(|s| s.capabilities = Some(bits));
             }
             MavMessage::MISSION_ITEM_REACHED(r) => {
                 let reached = lock(&self.reach).on_item_reached(r.seq);

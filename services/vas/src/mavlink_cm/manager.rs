@@ -46,6 +46,9 @@ pub struct ManagerConfig {
     pub connect_wait: Duration,
     /// The autopilot family; `None`: from the heartbeat's `autopilot` field.
     pub family: Option<AutopilotFamily>,
+    /// The autopilot's system id, where several vehicles share one link; `None`: the first
+    /// autopilot heard.
+    pub target_system: Option<u8>,
     /// Extra endpoints MAVLink is forwarded to and from (another ground station), as
     /// `udpout:HOST:PORT` and the like.
     pub forward: Vec<String>,
@@ -62,6 +65,7 @@ impl Default for ManagerConfig {
             reconnect_backoff: Duration::from_millis(500),
             connect_wait: Duration::from_secs(10),
             family: None,
+            target_system: None,
             forward: Vec::new(),
         }
     }
@@ -95,6 +99,8 @@ pub struct VehicleState {
     pub system_status: Option<MavState>,
     /// Last MISSION_CURRENT.
     pub mission_current: Option<u16>,
+    /// AUTOPILOT_VERSION's capability bits (MAV_PROTOCOL_CAPABILITY), once reported.
+    pub capabilities: Option<u64>,
     /// How many times heartbeats came back after being lost (each time a
     /// [`MavEvent::LinkRestored`](super::MavEvent::LinkRestored) follows): a reader of this
     /// state can tell that a restoration it has not handled yet is already reflected here.
@@ -208,6 +214,53 @@ impl MavlinkManager {
     /// Every event from now on. A slow receiver loses the oldest events (`Lagged`).
     pub fn subscribe(&self) -> broadcast::Receiver<MavEvent> {
         self.inner.events_tx.subscribe()
+    }
+
+    /// Asks for AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE, else the older
+    /// MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES) and waits up to one request timeout for its
+    /// capabilities ([`VehicleState::capabilities`]).
+    ///
+    /// # Errors
+    /// Not connected; `Ok(None)` when the autopilot does not tell.
+    pub async fn request_capabilities(&self) -> Result<Option<u64>, LinkError> {
+        if let Some(c) = self.state().capabilities {
+            return Ok(Some(c));
+        }
+        let mut rx = self.inner.state_tx.subscribe();
+        let asked = match self
+            .command_long(
+                MavCmd::MAV_CMD_REQUEST_MESSAGE,
+                [148.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            )
+            .await
+        {
+            Err(CommandError::Link(e)) => return Err(e),
+            Ok(()) => true,
+            Err(_) => false,
+        };
+        if !asked {
+            match self
+                .command_long(
+                    MavCmd::MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                    [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                )
+                .await
+            {
+                Err(CommandError::Link(e)) => return Err(e),
+                Ok(()) => {}
+                // Neither request understood: it will not tell (unless it already did).
+                Err(_) => return Ok(self.state().capabilities),
+            }
+        }
+        let got = timeout(
+            self.inner.cfg.request_timeout,
+            rx.wait_for(|s| s.capabilities.is_some()),
+        )
+        .await;
+        Ok(match got {
+            Ok(Ok(s)) => s.capabilities,
+            _ => None,
+        })
     }
 
     /// The autopilot family whose conventions apply (configured, or from the heartbeat).

@@ -3,9 +3,9 @@
 
 use marea::sync::lock;
 use mavlink::dialects::ardupilotmega::{
-    MavCmd, MavMessage, MavMissionResult, MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA,
-    MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA,
-    MISSION_WRITE_PARTIAL_LIST_DATA,
+    MavCmd, MavMessage, MavMissionResult, MavProtocolCapability, MISSION_CLEAR_ALL_DATA,
+    MISSION_COUNT_DATA, MISSION_REQUEST_DATA, MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA,
+    MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
 };
 use tokio::sync::broadcast;
 use tokio::time::{timeout_at, Instant};
@@ -223,13 +223,26 @@ impl MavlinkManager {
                 attempts: self.inner.cfg.retries,
             })?;
         let mut items = Vec::with_capacity(usize::from(count));
+        // MISSION_REQUEST_INT unless AUTOPILOT_VERSION said the autopilot lacks MISSION_INT.
+        let int = self.state().capabilities.is_none_or(|c| {
+            c & MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_INT.bits() != 0
+        });
         for seq in 0..count {
+            #[allow(deprecated)] // The float request, for autopilots without MISSION_INT.
             let make = |_| {
-                MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
-                    seq,
-                    target_system: target.0,
-                    target_component: target.1,
-                })
+                if int {
+                    MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                        seq,
+                        target_system: target.0,
+                        target_component: target.1,
+                    })
+                } else {
+                    MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA {
+                        seq,
+                        target_system: target.0,
+                        target_component: target.1,
+                    })
+                }
             };
             #[allow(deprecated)] // Legacy autopilots answer with MISSION_ITEM.
             let matcher = |m: &MavMessage| match m {

@@ -24,6 +24,11 @@ pub(super) async fn configure(
     ])
     .await
     .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+    match mgr.request_capabilities().await {
+        Ok(Some(c)) => tracing::info!("autopilot capabilities {c:#x}"),
+        Ok(None) => tracing::info!("autopilot did not report its capabilities"),
+        Err(e) => tracing::warn!("asking for AUTOPILOT_VERSION: {e}"),
+    }
     probe_partial(mgr).await;
     Ok(())
 }
