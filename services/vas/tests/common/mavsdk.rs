@@ -10,7 +10,6 @@
 
 #![allow(dead_code)]
 
-use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::Duration;
@@ -70,11 +69,7 @@ pub fn python() -> Option<PathBuf> {
         return None;
     }
     // One creator at a time; the others wait, then find it made.
-    let lock_path = root.join(".venv-test.lock");
-    let lock = File::create(&lock_path)
-        .unwrap_or_else(|e| panic!("creating {}: {e}", lock_path.display()));
-    lock.lock()
-        .unwrap_or_else(|e| panic!("locking {}: {e}", lock_path.display()));
+    let lock = DirLock::acquire(&root.join(".venv-test.lock"));
     if !runs(&py, IMPORTS) {
         eprintln!(
             "creating {} from tests/python/requirements.txt",
@@ -96,6 +91,49 @@ pub fn python() -> Option<PathBuf> {
     drop(lock);
     assert!(runs(&py, IMPORTS), "{} cannot import mavsdk", py.display());
     Some(py)
+}
+
+/// A lock between processes: a directory, created atomically by its holder and removed on
+/// drop. One left by a creator that died (older than [`DirLock::STALE`]) is taken over.
+struct DirLock(PathBuf);
+
+impl DirLock {
+    /// A venv install takes a minute or two on a slow machine.
+    const STALE: Duration = Duration::from_secs(15 * 60);
+
+    fn acquire(path: &Path) -> DirLock {
+        let deadline = std::time::Instant::now() + Self::STALE + Duration::from_secs(60);
+        loop {
+            match std::fs::create_dir(path) {
+                Ok(()) => return DirLock(path.to_owned()),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let stale = std::fs::metadata(path)
+                        .and_then(|m| m.modified())
+                        .ok()
+                        .and_then(|t| t.elapsed().ok())
+                        .is_some_and(|age| age > Self::STALE);
+                    if stale {
+                        let _ = std::fs::remove_dir(path);
+                        continue;
+                    }
+                    assert!(
+                        std::time::Instant::now() < deadline,
+                        "{} held too long",
+                        path.display()
+                    );
+                    // No signal to wait on between processes: poll.
+                    std::thread::sleep(Duration::from_millis(200));
+                }
+                Err(e) => panic!("creating the lock {}: {e}", path.display()),
+            }
+        }
+    }
+}
+
+impl Drop for DirLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir(&self.0);
+    }
 }
 
 /// A free UDP port on 127.0.0.1 (bound then released: the vehicle binds it next).
