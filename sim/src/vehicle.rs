@@ -1263,6 +1263,29 @@ mod tests {
     }
 
     #[test]
+    fn px4_profile_starts_the_mission_with_mission_start() {
+        let mut v = rover();
+        v.set_profile(Profile::Px4);
+        upload(&mut v, &[10.0, 20.0, 30.0]);
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_MISSION_START, 2.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(v.behaviour(), Behaviour::Auto);
+        assert_eq!(v.target_seq(), Some(2));
+        // Not an ArduPilot command in mavsim.
+        let mut a = rover();
+        assert_eq!(
+            command(&mut a, MavCmd::MAV_CMD_MISSION_START, 0.0, 0.0),
+            MavResult::MAV_RESULT_UNSUPPORTED
+        );
+    }
+
+    #[test]
     fn generic_profile_keeps_ardupilot_modes_and_px4_missions() {
         let mut v = rover();
         v.set_profile(Profile::Generic);

@@ -243,6 +243,20 @@ impl Vehicle {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
+            // PX4: into the mission (AUTO.MISSION), from item param1 when given.
+            MavCmd::MAV_CMD_MISSION_START if self.profile == Profile::Px4 => {
+                let Some(auto) = modes::table(self.cfg.kind)
+                    .iter()
+                    .find(|m| m.2 == Behaviour::Auto)
+                    .map(|m| m.0)
+                else {
+                    return MavResult::MAV_RESULT_UNSUPPORTED;
+                };
+                if c.param1.is_finite() && c.param1 >= 1.0 && c.param1 < f32::from(u16::MAX) {
+                    self.current = c.param1 as u16;
+                }
+                self.change_mode(auto, out)
+            }
             MavCmd::MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES => {
                 out.extend(self.telemetry(AUTOPILOT_VERSION_ID));
                 MavResult::MAV_RESULT_ACCEPTED

@@ -405,6 +405,21 @@ impl MavlinkManager {
             .await
     }
 
+    /// Starts the mission with MAV_CMD_MISSION_START from item `first` (PX4's way into
+    /// AUTO.MISSION where a mode change is refused), waiting for a heartbeat in AUTO.
+    ///
+    /// # Errors
+    /// Refusal, no answer, or no confirming heartbeat.
+    pub async fn mission_start(&self, first: u16) -> Result<(), CommandError> {
+        self.command_long(
+            MavCmd::MAV_CMD_MISSION_START,
+            [f32::from(first), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        )
+        .await?;
+        self.confirm("mode AUTO".to_owned(), |s| s.mode_name == Some("AUTO"))
+            .await
+    }
+
     /// Arms (`true`) or disarms, checks the ACK and waits for the heartbeat to agree.
     ///
     /// # Errors

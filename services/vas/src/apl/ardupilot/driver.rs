@@ -281,9 +281,19 @@ impl Driver {
             }
         }
         if let Err(e) = self.mgr.set_mode(mode).await {
-            self.queue.stop();
-            self.commanded = previous;
-            return Err(refused(&e));
+            // PX4 also enters its mission with MAV_CMD_MISSION_START.
+            let started = to == FlightState::WaypointNavigation
+                && self.mgr.state().px4_modes
+                && self
+                    .mgr
+                    .mission_start(self.queue.current_slot().unwrap_or(1))
+                    .await
+                    .is_ok();
+            if !started {
+                self.queue.stop();
+                self.commanded = previous;
+                return Err(refused(&e));
+            }
         }
         if to == FlightState::WaypointNavigation {
             // Entering AUTO puts the autopilot back to its default speed.
