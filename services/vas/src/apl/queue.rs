@@ -195,6 +195,28 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         self.owe_restore
     }
 
+    /// The autopilot reports it drives to mission item `slot`: is that back toward a waypoint
+    /// already passed? Item 0 holds `item0` (what the last whole upload put there where item 0
+    /// is flown) or, when `None`, home. A slot holding a waypoint no longer queued (passed) or
+    /// home is a backtrack; an unknown slot, or any report when not navigating, is not.
+    pub fn heads_back(&self, slot: u16, item0: Option<&W>) -> bool {
+        if self.cur.is_none() || self.ahead.is_empty() {
+            return false;
+        }
+        let held = if slot == 0 {
+            match item0 {
+                Some(w) => w,
+                None => return true,
+            }
+        } else {
+            match self.onboard_slot(slot) {
+                Some(w) => w,
+                None => return false,
+            }
+        };
+        !self.ahead.contains(held)
+    }
+
     /// What the autopilot is believed to hold in `slot` (≥ 1), when known.
     pub fn onboard_slot(&self, slot: u16) -> Option<&W> {
         let k = usize::from(slot).checked_sub(1)?;
@@ -791,5 +813,36 @@ mod tests {
         q.stop();
         q.done(&QueueAction::Upload(vec![1, 2, 3]));
         assert!(!q.owes_restore());
+    }
+
+    #[test]
+    fn heading_back_is_toward_a_passed_waypoint_or_home() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..10);
+        // Not navigating: nothing counts.
+        assert!(!q.heads_back(0, None));
+        q.start();
+        let mut ap = Autopilot::new(true);
+        settle(&mut q, &mut ap);
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        settle(&mut q, &mut ap);
+        // The second reach, before its slot is rewritten.
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        // Driving to slot 3 (waypoint 2); slot 1 was rewritten with waypoint 4 (ahead), slot
+        // 2 still holds waypoint 1 (passed).
+        assert_eq!(q.current_slot(), Some(3));
+        assert!(!q.heads_back(3, None), "the target");
+        assert!(!q.heads_back(4, None), "further ahead");
+        assert!(q.heads_back(2, None), "waypoint 1, passed");
+        assert!(!q.heads_back(1, None), "rewritten with a waypoint ahead");
+        // Item 0: home where it is home; the target's copy where it is flown.
+        assert!(q.heads_back(0, None));
+        assert!(!q.heads_back(0, Some(&2)));
+        assert!(q.heads_back(0, Some(&0)));
+        // Unknown contents are not counted.
+        q.forget_onboard();
+        assert!(!q.heads_back(2, None));
     }
 }

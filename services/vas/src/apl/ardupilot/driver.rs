@@ -419,29 +419,21 @@ impl Driver {
             // Not driving a mission of ours, or a restarted autopilot not yet handled.
             return;
         }
-        let Some(target) = self.queue.target() else {
+        let Some(target) = self.queue.target().map(|w| w.seq) else {
             return;
         };
-        let held = if seq == 0 {
-            if s.family.item0_is_home() {
-                None
-            } else {
-                self.item0.as_ref()
-            }
+        let item0 = if s.family.item0_is_home() {
+            None
         } else {
-            self.queue.onboard_slot(seq)
+            self.item0.as_ref()
         };
-        let back = match held {
-            None => seq == 0,
-            Some(w) => w.seq < target.seq,
-        };
+        let back = self.queue.heads_back(seq, item0);
         if back {
             self.backtracks += 1;
             tracing::warn!(
-                "backtrack #{}: the autopilot drives to item {seq} ({}), behind waypoint {}",
-                self.backtracks,
-                held.map_or("home".to_owned(), |w| format!("waypoint {}", w.seq)),
-                target.seq
+                "backtrack #{}: the autopilot drives to item {seq}, which holds home or a \
+                 waypoint already passed (target: waypoint {target})",
+                self.backtracks
             );
         }
     }
