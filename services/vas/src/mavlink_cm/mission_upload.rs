@@ -15,9 +15,10 @@
 //! ([`UploadConfig::start_retries`]): a partial-write probe is one short attempt.
 //!
 //! Every MISSION_ACK result has its meaning ([`ack_meaning`]): ACCEPTED ends the transfer once
-//! the last item went out (earlier, it belongs to an earlier transfer); INVALID_SEQUENCE says
-//! the autopilot got an item it did not ask for and still waits for the one it wants (an
-//! attempt, not an end); every other result ends it with that result
+//! the last item went out (earlier, it belongs to an earlier transfer); INVALID_SEQUENCE once
+//! items flow says the autopilot got an item it did not ask for and still waits for the one it
+//! wants (an attempt, not an end), before any item that the start was refused (a partial write
+//! past the end); every other result ends it with that result
 //! ([`MissionError::Rejected`]), and at the start of a partial write UNSUPPORTED or DENIED
 //! mean the autopilot has no partial writes ([`MissionError::PartialUnsupported`]).
 
@@ -195,6 +196,10 @@ impl<'a> MissionUpload<'a> {
                 // An ACK before the last item was sent belongs to an earlier transfer.
                 AckMeaning::Accepted => {
                     (self.stage == MissionStage::Item(self.last)).then_some(Ok(()))
+                }
+                // Before any item: the start itself was refused (a range past the end).
+                AckMeaning::KeepGoing if self.stage == MissionStage::Start => {
+                    Some(Err(MissionError::Rejected(result)))
                 }
                 AckMeaning::KeepGoing => {
                     // It got an item it did not ask for (a stale resend): its next request
@@ -727,6 +732,14 @@ mod tests {
         assert_eq!(
             up.handle(&ack(MavMissionResult::MAV_MISSION_ACCEPTED), t0, &mut out),
             Some(Ok(()))
+        );
+        // Before any item it refuses the start (a partial write past the end).
+        let (mut up, mut out) = begin(2, &list, t0);
+        assert_eq!(
+            up.handle(&nak, t0, &mut out),
+            Some(Err(MissionError::Rejected(
+                MavMissionResult::MAV_MISSION_INVALID_SEQUENCE
+            )))
         );
         // A loop of them ends at the retries.
         let (mut up, mut out) = begin(2, &list, t0);
