@@ -46,10 +46,10 @@ impl MavlinkManager {
     /// Replaces items `start .. start + items.len()` with MISSION_WRITE_PARTIAL_LIST
     /// (ArduPilot only replaces existing items; it cannot grow the mission).
     ///
-    /// The first partial write on a connection is a probe: one short attempt at the start
-    /// (one request timeout). Its answer is remembered
-    /// ([`MavlinkManager::partial_writes`]) until the link is lost: an autopilot without
-    /// partial writes costs one timeout per connection, not the retries of every write.
+    /// Whether the autopilot has partial writes is remembered per connection
+    /// ([`MavlinkManager::partial_writes`]; the VAS finds out on the ground with
+    /// [`Self::probe_partial_writes`]): once known to lack them, this fails at once. Not yet
+    /// known, a write whose start goes unanswered through every retry records the lack.
     ///
     /// # Errors
     /// [`MissionError::PartialUnsupported`] when the probe went unanswered or was refused (or
@@ -80,11 +80,10 @@ impl MavlinkManager {
             target_component: target.1,
         });
         let probing = known.is_none();
-        let start_retries = if probing { 1 } else { self.inner.cfg.retries };
         let began = std::time::Instant::now();
         let result = self
             .inner
-            .upload_with(target, msg, items, start, start_retries)
+            .upload_with(target, msg, items, start, self.inner.cfg.retries)
             .await;
         let answered = match &result {
             Err(MissionError::PartialUnsupported) => Some(false),
@@ -125,7 +124,8 @@ impl MavlinkManager {
     }
 
     /// Finds out whether the autopilot answers MISSION_WRITE_PARTIAL_LIST, with one short
-    /// attempt (one request timeout), and remembers it for this connection
+    /// attempt (one request timeout; the start sent twice, so one lost frame on a lossy link
+    /// does not decide it), and remembers it for this connection
     /// ([`Self::partial_writes`]). Done before flying (the VAS probes while configuring the
     /// autopilot), so an autopilot without partial writes costs one timeout on the ground,
     /// not a stall in flight. The probe writes item 1 onto itself and cancels at once: an
@@ -144,16 +144,18 @@ impl MavlinkManager {
         let me = self.inner.cfg.system_id;
         let mut rx = self.inner.raw_tx.subscribe();
         let began = Instant::now();
-        self.inner
-            .send(MavMessage::MISSION_WRITE_PARTIAL_LIST(
-                MISSION_WRITE_PARTIAL_LIST_DATA {
-                    start_index: 1,
-                    end_index: 1,
-                    target_system: target.0,
-                    target_component: target.1,
-                },
-            ))
-            .await?;
+        for _ in 0..2 {
+            self.inner
+                .send(MavMessage::MISSION_WRITE_PARTIAL_LIST(
+                    MISSION_WRITE_PARTIAL_LIST_DATA {
+                        start_index: 1,
+                        end_index: 1,
+                        target_system: target.0,
+                        target_component: target.1,
+                    },
+                ))
+                .await?;
+        }
         #[allow(deprecated)]
         let answer = super::driver::wait_for(
             &mut rx,
