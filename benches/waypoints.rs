@@ -445,7 +445,7 @@ async fn mavsdk_run(bins: &Path) -> anyhow::Result<()> {
         eprintln!("vas.conformance.mavsdk: skipped, python3 not found");
         return Ok(());
     };
-    let mut vehicle = mavsdk_vehicle::MavsdkVehicle::start(&py, 5.0, STEP).await;
+    let mut vehicle = mavsdk_vehicle::MavsdkVehicle::start(&py, 2.0, STEP).await;
     let addr = format!("127.0.0.1:{}", vehicle.port);
     conformance_flight(bins, &addr, "mavsdk").await?;
     let plan: Vec<(f64, f64)> = zigzag(CONFORMANCE_WAYPOINTS)
