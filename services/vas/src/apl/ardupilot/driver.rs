@@ -486,6 +486,20 @@ impl Driver {
         match ev {
             MavEvent::WaypointReached { seq, .. } => {
                 self.reports_progress = true;
+                // Item 0 holds the target where item 0 is flown: an autopilot that reset its
+                // current item by an upload and got there before the restoration reached the
+                // target itself. Counted as such, the restoration then goes to the next slot,
+                // not back to the target.
+                let seq = match (self.queue.current_slot(), self.queue.target()) {
+                    (Some(slot), Some(t))
+                        if seq == 0
+                            && !self.mgr.family().item0_is_home()
+                            && self.item0.as_ref() == Some(t) =>
+                    {
+                        slot
+                    }
+                    _ => seq,
+                };
                 if let Some(w) = self.queue.on_reached(seq) {
                     self.reached(w);
                 } else if self.last_pending.as_ref().is_some_and(|(s, _)| *s == seq) {
