@@ -7,6 +7,8 @@ use mavlink::dialects::ardupilotmega::{
     MISSION_COUNT_DATA, MISSION_REQUEST_DATA, MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA,
     MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
 };
+use std::time::Duration;
+
 use tokio::sync::broadcast;
 use tokio::time::{timeout_at, Instant};
 
@@ -124,7 +126,7 @@ impl MavlinkManager {
     }
 
     /// Finds out whether the autopilot answers MISSION_WRITE_PARTIAL_LIST, with one short
-    /// attempt (one request timeout; the start sent twice, so one lost frame on a lossy link
+    /// attempt (one request timeout, at least a second; the start sent twice, so one lost frame on a lossy link
     /// does not decide it), and remembers it for this connection
     /// ([`Self::partial_writes`]). Done before flying (the VAS probes while configuring the
     /// autopilot), so an autopilot without partial writes costs one timeout on the ground,
@@ -156,19 +158,18 @@ impl MavlinkManager {
                 ))
                 .await?;
         }
+        // At least a second: a request timeout tuned to a fast radio's round trip is too
+        // short a verdict on a whole protocol feature.
+        let wait = self.inner.cfg.request_timeout.max(Duration::from_secs(1));
         #[allow(deprecated)]
-        let answer = super::driver::wait_for(
-            &mut rx,
-            began + self.inner.cfg.request_timeout,
-            |m| match m {
-                MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => Some(None),
-                MavMessage::MISSION_REQUEST(r) if r.target_system == me => Some(None),
-                MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
-                    Some(Some(a.mavtype))
-                }
-                _ => None,
-            },
-        )
+        let answer = super::driver::wait_for(&mut rx, began + wait, |m| match m {
+            MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => Some(None),
+            MavMessage::MISSION_REQUEST(r) if r.target_system == me => Some(None),
+            MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
+                Some(Some(a.mavtype))
+            }
+            _ => None,
+        })
         .await?;
         let supported = match answer {
             Some(None) => {

@@ -396,13 +396,12 @@ impl Driver {
     }
 
     /// After a whole upload: the current item is restored next, unless the autopilot is one
-    /// that keeps it and it still reports the slot being driven to.
+    /// that keeps it (ArduPilot) and does not report item 0. A set-current there would only
+    /// risk sending it back to a target it reached while the report was on its way (a slow
+    /// radio), which is the very backtrack to avoid.
     fn after_upload(&mut self) {
         let s = self.mgr.state();
-        if s.family.keeps_current_on_upload()
-            && s.mission_current.is_some()
-            && s.mission_current == self.queue.current_slot()
-        {
+        if s.family.keeps_current_on_upload() && s.mission_current != Some(0) {
             self.queue.current_kept();
         }
     }
