@@ -185,7 +185,6 @@ def main():
     sim_t = 0.0
     last_pub = 0.0
     last_reported = None
-    ended = False
     while not stop.is_set():
         time.sleep(tick)
         dt = tick * args.speedup
@@ -205,7 +204,6 @@ def main():
                         rover.mode = FlightMode.HOLD
                     action.set_flight_mode(FlightMode.HOLD)
                     emit(event="mission_end")
-                    ended = True
                 else:
                     mission.set_current_item_complete()
         now = time.monotonic()
@@ -219,7 +217,6 @@ def main():
                 telemetry.publish_position(pos, vel, hdg)
             except Exception as e:  # a refusal must not stop the vehicle
                 emit(event="error", what=f"publish_position: {e}")
-    _ = ended
     mavsdk.destroy()
     return 0
 
