@@ -48,6 +48,12 @@ enum ExecError {
     Other(String),
 }
 
+/// The autopilot refused a mission transfer (a MISSION_ACK result such as NO_SPACE or DENIED):
+/// unlike a lost frame, worth telling the ground.
+fn is_refusal(e: &MissionError) -> bool {
+    matches!(e, MissionError::Rejected(_))
+}
+
 /// Performs one queue action on the autopilot. `item0` is what a whole upload puts in item 0
 /// where item 0 is an ordinary item (not ArduPilot's home): the target, so an autopilot that
 /// falls back to item 0 after the upload keeps driving where it was going.
@@ -57,7 +63,10 @@ async fn exec(
     item0: Option<&Waypoint>,
     action: &QueueAction<Waypoint>,
 ) -> Result<(), ExecError> {
-    let other = |e: MissionError| ExecError::Other(e.to_string());
+    let other = |e: MissionError| {
+        let refused = if is_refusal(&e) { "refused: " } else { "" };
+        ExecError::Other(format!("{refused}{e}"))
+    };
     match action {
         QueueAction::Upload(items) => {
             let home = home
@@ -142,6 +151,9 @@ pub(super) struct Driver {
     /// Times the vehicle's reported current item went back to an item already passed while
     /// navigating (issue 14: each is a drive back toward a passed waypoint).
     backtracks: u64,
+    /// The last queue failure raised as an alarm (a refusal such as NO_SPACE or DENIED repeats
+    /// on every retry; the ground hears it once until it changes or the queue recovers).
+    queue_error: Option<String>,
 }
 
 impl Driver {
@@ -172,6 +184,7 @@ impl Driver {
             last_pending: None,
             item0: None,
             backtracks: 0,
+            queue_error: None,
         }
     }
 
@@ -444,9 +457,14 @@ impl Driver {
         }
         if let Err(e) = self.prime().await {
             tracing::warn!("rolling queue: {e}; retrying");
+            if e.starts_with("refused: ") && self.queue_error.as_deref() != Some(e.as_str()) {
+                self.alarm(Severity::Warning, format!("rolling queue: {e}; retrying"));
+                self.queue_error = Some(e);
+            }
             self.failing = true;
             return;
         }
+        self.queue_error = None;
         self.sync_speed().await;
     }
 
