@@ -97,6 +97,7 @@ pub fn item_from_float(m: &MISSION_ITEM_DATA) -> Item {
         frame: m.frame,
         current: m.current,
         autocontinue: m.autocontinue,
+        ..Default::default()
     }
 }
 
@@ -118,6 +119,7 @@ pub fn item_to_float(m: &Item) -> MISSION_ITEM_DATA {
         frame: m.frame,
         current: m.current,
         autocontinue: m.autocontinue,
+        ..Default::default()
     }
 }
 
@@ -139,6 +141,7 @@ fn ack(partner: (u8, u8), result: MavMissionResult) -> MavMessage {
         target_system: partner.0,
         target_component: partner.1,
         mavtype: result,
+        ..Default::default()
     })
 }
 
@@ -147,6 +150,7 @@ fn request(partner: (u8, u8), seq: u16) -> MavMessage {
         seq,
         target_system: partner.0,
         target_component: partner.1,
+        ..Default::default()
     })
 }
 
@@ -333,6 +337,7 @@ impl MissionStore {
             count: self.count(),
             target_system: partner.0,
             target_component: partner.1,
+            ..Default::default()
         })
     }
 

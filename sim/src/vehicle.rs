@@ -127,11 +127,16 @@ fn statustext(severity: MavSeverity, text: &str) -> MavMessage {
     MavMessage::STATUSTEXT(STATUSTEXT_DATA {
         severity,
         text: text.into(),
+        ..Default::default()
     })
 }
 
 fn command_ack(command: MavCmd, result: MavResult) -> MavMessage {
-    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result })
+    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+        command,
+        result,
+        ..Default::default()
+    })
 }
 
 /// Maps an RC PWM value to -1..1 around 1500; 0 and 65535 mean "no override".
@@ -1283,6 +1288,26 @@ mod tests {
             command(&mut a, MavCmd::MAV_CMD_MISSION_START, 0.0, 0.0),
             MavResult::MAV_RESULT_UNSUPPORTED
         );
+    }
+
+    #[test]
+    fn fences_and_rally_points_are_refused_not_taken_for_the_mission() {
+        use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
+        let mut v = rover();
+        upload(&mut v, &[10.0, 20.0]);
+        let out = v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 5,
+                mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+                ..Default::default()
+            }),
+            Instant::now(),
+        );
+        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
+            if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED
+                && a.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE));
+        assert_eq!(v.mission().len(), 3, "the mission is untouched");
     }
 
     #[test]

@@ -1,6 +1,11 @@
 //! The simulated vehicle's incoming side: one handler per MAVLink message it understands, commands, takeoff
 //! and mission items.
 
+use mavlink::dialects::ardupilotmega::{
+    MavMissionResult, MavMissionType, MISSION_ACK_DATA, MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA,
+    MISSION_REQUEST_LIST_DATA,
+};
+
 use super::*;
 
 impl Vehicle {
@@ -71,6 +76,33 @@ impl Vehicle {
                 {
                     out.extend(self.param_value(index));
                 }
+            }
+            // Fences and rally points are not simulated: refused, so a ground station does not
+            // take them for the mission.
+            MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                target_system,
+                mission_type,
+                ..
+            })
+            | MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+                target_system,
+                mission_type,
+                ..
+            })
+            | MavMessage::MISSION_CLEAR_ALL(MISSION_CLEAR_ALL_DATA {
+                target_system,
+                mission_type,
+                ..
+            }) if self.for_us(*target_system)
+                && *mission_type != MavMissionType::MAV_MISSION_TYPE_MISSION =>
+            {
+                out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+                    target_system: from.0,
+                    target_component: from.1,
+                    mavtype: MavMissionResult::MAV_MISSION_UNSUPPORTED,
+                    mission_type: *mission_type,
+                    ..Default::default()
+                }));
             }
             MavMessage::MISSION_COUNT(c) if self.for_us(c.target_system) => {
                 out.extend(self.mission.on_count(from, c.count, now));

@@ -85,7 +85,10 @@ impl Vehicle {
     }
 
     pub(super) fn mission_current(&self) -> MavMessage {
-        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current })
+        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA {
+            seq: self.current,
+            ..Default::default()
+        })
     }
 
     pub(super) fn telemetry(&self, id: u32) -> Option<MavMessage> {

@@ -11,8 +11,8 @@ use std::time::Duration;
 use marea::sync::lock;
 use mavconn::{Connection, Counters, Endpoint, Frame, OpenOptions};
 use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavMessage, MavMissionResult, MavModeFlag, MavState, MavType,
-    COMMAND_LONG_DATA, HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
+    MavAutopilot, MavCmd, MavMessage, MavMissionResult, MavMissionType, MavModeFlag, MavState,
+    MavType, COMMAND_LONG_DATA, HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
 };
 use mavlink::MavHeader;
 use tokio::sync::{broadcast, mpsc, watch};
@@ -202,6 +202,7 @@ impl Inner {
             }
             MavMessage::MISSION_ACK(a)
                 if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED
+                    && a.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION
                     && a.target_system != 0
                     && a.target_system != self.cfg.system_id =>
             {

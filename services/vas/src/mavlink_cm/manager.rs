@@ -456,6 +456,7 @@ impl MavlinkManager {
                     chan8_raw: c8,
                     target_system: target.0,
                     target_component: target.1,
+                    ..Default::default()
                 },
             ))
             .await

@@ -3,9 +3,9 @@
 
 use marea::sync::lock;
 use mavlink::dialects::ardupilotmega::{
-    MavCmd, MavMessage, MavMissionResult, MavProtocolCapability, MISSION_CLEAR_ALL_DATA,
-    MISSION_COUNT_DATA, MISSION_REQUEST_DATA, MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA,
-    MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
+    MavCmd, MavMessage, MavMissionResult, MavMissionType, MavProtocolCapability,
+    MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA, MISSION_REQUEST_DATA, MISSION_REQUEST_INT_DATA,
+    MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
 };
 use std::time::Duration;
 
@@ -39,6 +39,7 @@ impl MavlinkManager {
             count: items.len() as u16,
             target_system: target.0,
             target_component: target.1,
+            ..Default::default()
         });
         self.inner.upload(target, start, items, 0).await?;
         *lock(&self.inner.mission) = items.to_vec();
@@ -80,6 +81,7 @@ impl MavlinkManager {
             end_index: (end - 1) as i16,
             target_system: target.0,
             target_component: target.1,
+            ..Default::default()
         });
         let probing = known.is_none();
         let began = std::time::Instant::now();
@@ -154,6 +156,7 @@ impl MavlinkManager {
                         end_index: 1,
                         target_system: target.0,
                         target_component: target.1,
+                        ..Default::default()
                     },
                 ))
                 .await?;
@@ -212,12 +215,17 @@ impl MavlinkManager {
             MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
                 target_system: target.0,
                 target_component: target.1,
+                ..Default::default()
             })
         };
         let count = self
             .inner
             .transact(make, |m| match m {
-                MavMessage::MISSION_COUNT(c) => Some(c.count),
+                MavMessage::MISSION_COUNT(c)
+                    if c.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+                {
+                    Some(c.count)
+                }
                 _ => None,
             })
             .await?
@@ -238,19 +246,31 @@ impl MavlinkManager {
                         seq,
                         target_system: target.0,
                         target_component: target.1,
+                        ..Default::default()
                     })
                 } else {
                     MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA {
                         seq,
                         target_system: target.0,
                         target_component: target.1,
+                        ..Default::default()
                     })
                 }
             };
             #[allow(deprecated)] // Legacy autopilots answer with MISSION_ITEM.
             let matcher = |m: &MavMessage| match m {
-                MavMessage::MISSION_ITEM_INT(i) if i.seq == seq => Some(MissionItem::from_int(i)),
-                MavMessage::MISSION_ITEM(i) if i.seq == seq => Some(MissionItem::from_float(i)),
+                MavMessage::MISSION_ITEM_INT(i)
+                    if i.seq == seq
+                        && i.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+                {
+                    Some(MissionItem::from_int(i))
+                }
+                MavMessage::MISSION_ITEM(i)
+                    if i.seq == seq
+                        && i.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+                {
+                    Some(MissionItem::from_float(i))
+                }
                 _ => None,
             };
             let item = self.inner.transact(make, matcher).await?.ok_or(
@@ -280,6 +300,7 @@ impl MavlinkManager {
             MavMessage::MISSION_CLEAR_ALL(MISSION_CLEAR_ALL_DATA {
                 target_system: target.0,
                 target_component: target.1,
+                ..Default::default()
             })
         };
         let matcher = |m: &MavMessage| match m {

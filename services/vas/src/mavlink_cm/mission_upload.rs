@@ -24,7 +24,9 @@
 
 use std::time::{Duration, Instant};
 
-use mavlink::dialects::ardupilotmega::{MavMessage, MavMissionResult, MISSION_ACK_DATA};
+use mavlink::dialects::ardupilotmega::{
+    MavMessage, MavMissionResult, MavMissionType, MISSION_ACK_DATA,
+};
 
 use super::outbound::Outbound;
 use super::types::{MissionError, MissionItem, MissionStage};
@@ -106,6 +108,7 @@ pub(crate) fn mission_ack(target: (u8, u8), result: MavMissionResult) -> MavMess
         target_system: target.0,
         target_component: target.1,
         mavtype: result,
+        ..Default::default()
     })
 }
 
@@ -226,14 +229,22 @@ impl<'a> MissionUpload<'a> {
     #[allow(deprecated)] // Legacy autopilots request MISSION_ITEM with MISSION_REQUEST.
     fn classify(&self, msg: &MavMessage) -> Option<Step> {
         let me = self.cfg.me;
+        // Only the mission itself: fence and rally transfers are someone else's.
+        let mission = MavMissionType::MAV_MISSION_TYPE_MISSION;
         match msg {
-            MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => {
+            MavMessage::MISSION_REQUEST_INT(r)
+                if r.target_system == me && r.mission_type == mission =>
+            {
                 Some(Step::Request(r.seq, true))
             }
-            MavMessage::MISSION_REQUEST(r) if r.target_system == me => {
+            MavMessage::MISSION_REQUEST(r)
+                if r.target_system == me && r.mission_type == mission =>
+            {
                 Some(Step::Request(r.seq, false))
             }
-            MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
+            MavMessage::MISSION_ACK(a)
+                if (a.target_system == me || a.target_system == 0) && a.mission_type == mission =>
+            {
                 Some(Step::Ack(a.mavtype))
             }
             _ => None,
@@ -322,6 +333,7 @@ mod tests {
             count: n,
             target_system: TARGET.0,
             target_component: TARGET.1,
+            ..Default::default()
         })
     }
 
@@ -330,6 +342,7 @@ mod tests {
             seq,
             target_system: ME,
             target_component: 190,
+            ..Default::default()
         })
     }
 
@@ -338,6 +351,7 @@ mod tests {
             seq,
             target_system: ME,
             target_component: 190,
+            ..Default::default()
         })
     }
 
@@ -558,6 +572,7 @@ mod tests {
             seq: 0,
             target_system: 42,
             target_component: 190,
+            ..Default::default()
         });
         assert_eq!(up.handle(&other, later, &mut out), None);
         assert!(out.is_empty());
@@ -598,6 +613,7 @@ mod tests {
             end_index: 4,
             target_system: TARGET.0,
             target_component: TARGET.1,
+            ..Default::default()
         });
         let mut out = Vec::new();
         let mut up = MissionUpload::start(cfg(5), start, &list, 3, t0, &mut out).unwrap();
@@ -648,6 +664,7 @@ mod tests {
             end_index: end as i16,
             target_system: TARGET.0,
             target_component: TARGET.1,
+            ..Default::default()
         })
     }
 
@@ -775,5 +792,33 @@ mod tests {
                 MavMissionResult::MAV_MISSION_DENIED
             )))
         );
+    }
+
+    #[test]
+    fn requests_and_acks_of_another_mission_type_are_not_ours() {
+        let t0 = Instant::now();
+        let list = items(2);
+        let (mut up, mut out) = begin(5, &list, t0);
+        let fence = MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+            seq: 0,
+            target_system: ME,
+            target_component: 190,
+            mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+        });
+        assert_eq!(up.handle(&fence, t0, &mut out), None);
+        assert!(
+            out.is_empty(),
+            "a fence request is not answered with a mission item"
+        );
+        let rally_nak = MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+            target_system: ME,
+            target_component: 190,
+            mavtype: MavMissionResult::MAV_MISSION_DENIED,
+            mission_type: MavMissionType::MAV_MISSION_TYPE_RALLY,
+            ..Default::default()
+        });
+        assert_eq!(up.handle(&rally_nak, t0, &mut out), None);
+        up.handle(&request_int(0), t0, &mut out);
+        assert_eq!(sent_item(&mut out), 0);
     }
 }

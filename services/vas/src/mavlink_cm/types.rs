@@ -223,6 +223,7 @@ impl MissionItem {
             frame: self.frame,
             current: 0,
             autocontinue: u8::from(self.autocontinue),
+            ..Default::default()
         }
     }
 
@@ -243,6 +244,7 @@ impl MissionItem {
             frame: self.frame,
             current: 0,
             autocontinue: u8::from(self.autocontinue),
+            ..Default::default()
         }
     }
 
