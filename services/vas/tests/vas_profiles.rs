@@ -94,21 +94,21 @@ async fn fly_on(profile: &str, n: usize) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forty_waypoints_on_the_ardupilot_profile() {
-    tokio::time::timeout(STEP * 6, fly_on("ardupilot", 40))
+    tokio::time::timeout(STEP * 12, fly_on("ardupilot", 40))
         .await
         .expect("ardupilot profile flight bounded");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forty_waypoints_on_the_px4_profile() {
-    tokio::time::timeout(STEP * 6, fly_on("px4", 40))
+    tokio::time::timeout(STEP * 12, fly_on("px4", 40))
         .await
         .expect("px4 profile flight bounded");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forty_waypoints_on_the_generic_profile() {
-    tokio::time::timeout(STEP * 6, fly_on("generic", 40))
+    tokio::time::timeout(STEP * 12, fly_on("generic", 40))
         .await
         .expect("generic profile flight bounded");
 }
