@@ -17,6 +17,18 @@
 //!   with) on a generated valid plan of about 1 MB (a fix and a TF leg per waypoint), best of
 //!   [`PARSE_RUNS`]. In process, nothing to build or start.
 //!
+//! - `vas.conformance.mavsdk.waypoints_50.{skipped,repeated,backtracks}`: 50 waypoints 10 m
+//!   apart flown by the `vas` binary on a rover built from MAVSDK's server plugins
+//!   (`tests/python/mavsdk_vehicle.py`, in the venv the tests use), counted from what the
+//!   vehicle reports (reached items, current-item changes); all must be 0. Skipped, saying so,
+//!   where `python3` is absent.
+//! - `vas.conformance.px4_profile.waypoints_50.backtracks`: the same plan on mavsim
+//!   `--autopilot px4` (current item reset by every upload, no partial writes): reaches of a
+//!   point before one already reached, or of a point not in the plan, plus those the VAS
+//!   counted (its `queue` variable); must be 0.
+//! - `vas.partial_write_probe_ms`: time the VAS's manager takes to find out that an autopilot
+//!   (mavsim `--autopilot px4`) has no partial mission writes (≤ 1500 ms).
+//!
 //! Arguments that do not start with `--` select figures by substring, e.g.
 //! `cargo bench --bench waypoints -- fpma.parse` runs only the parse figure (seconds), while
 //! the VAS figures build release binaries and fly for a minute or more.
@@ -88,9 +100,20 @@ impl Drop for Proc {
 
 /// Starts mavsim on a free UDP port; returns it and its address.
 fn start_sim(bins: &Path, speedup: f64, log: &Path) -> anyhow::Result<(Proc, String)> {
+    start_sim_with(bins, speedup, log, &[])
+}
+
+/// [`start_sim`] with extra mavsim arguments (`--autopilot px4`).
+fn start_sim_with(
+    bins: &Path,
+    speedup: f64,
+    log: &Path,
+    extra: &[&str],
+) -> anyhow::Result<(Proc, String)> {
     use std::io::BufRead;
     let mut child = Command::new(bins.join("mavsim"))
         .args(["--udp", "127.0.0.1:0", "--speedup", &speedup.to_string()])
+        .args(extra)
         .arg("--home")
         .arg(format!("{},{},10", HOME.0, HOME.1))
         .arg("--log")
@@ -380,6 +403,125 @@ fn parse_run() -> anyhow::Result<()> {
     Ok(())
 }
 
+#[path = "../services/vas/tests/common/mavsdk.rs"]
+mod mavsdk_vehicle;
+
+/// Waypoints of the conformance flights.
+const CONFORMANCE_WAYPOINTS: usize = 50;
+
+/// Flies [`CONFORMANCE_WAYPOINTS`] with the VAS at `endpoint`; returns the VAS's own backtrack
+/// count (from its `queue` variable) once all are reported reached.
+async fn conformance_flight(bins: &Path, addr: &str, tag: &str) -> anyhow::Result<u64> {
+    let domain = format!("bench-{tag}-{}", std::process::id());
+    let _vas = start_vas(bins, addr, &domain)?;
+    let g = Ground::open(&domain).await?;
+    let queue: VariableSubscriber<QueueStatus> = g
+        .node
+        .service("bench-queue")?
+        .subscribe_variable("bench1/vas/queue")?;
+    let wps = zigzag(CONFORMANCE_WAYPOINTS);
+    g.fly(&wps).await?;
+    let mut seen = 0usize;
+    while seen < wps.len() {
+        match g.reached.recv_timeout(STEP).await {
+            Ok(_) => seen += 1,
+            Err(e) => {
+                eprintln!("{tag}: no progress after {seen} reached ({e})");
+                break;
+            }
+        }
+    }
+    let _ = g.wait_state(FlightState::Parking).await;
+    let mut backtracks = 0;
+    while let Some(Ok(s)) = queue.try_recv() {
+        backtracks = s.value.backtracks;
+    }
+    g.node.shutdown().await;
+    Ok(backtracks)
+}
+
+async fn mavsdk_run(bins: &Path) -> anyhow::Result<()> {
+    let Some(py) = tokio::task::spawn_blocking(mavsdk_vehicle::python).await? else {
+        eprintln!("vas.conformance.mavsdk: skipped, python3 not found");
+        return Ok(());
+    };
+    let mut vehicle = mavsdk_vehicle::MavsdkVehicle::start(&py, 2.0, STEP).await;
+    let addr = format!("127.0.0.1:{}", vehicle.port);
+    conformance_flight(bins, &addr, "mavsdk").await?;
+    let plan: Vec<(f64, f64)> = zigzag(CONFORMANCE_WAYPOINTS)
+        .iter()
+        .map(|w| (w.lat, w.lon))
+        .collect();
+    let flown = mavsdk_vehicle::score(&vehicle.drain(), &plan);
+    let name = format!("vas.conformance.mavsdk.waypoints_{CONFORMANCE_WAYPOINTS}");
+    metric(
+        &format!("{name}.skipped"),
+        flown.skipped as f64,
+        "waypoints",
+    );
+    metric(
+        &format!("{name}.repeated"),
+        flown.repeated as f64,
+        "waypoints",
+    );
+    metric(
+        &format!("{name}.backtracks"),
+        flown.backtracks as f64,
+        "backtracks",
+    );
+    vehicle.kill().await;
+    Ok(())
+}
+
+async fn px4_profile_run(bins: &Path, dir: &Path) -> anyhow::Result<()> {
+    let log = dir.join("px4.jsonl");
+    let (_sim, addr) = start_sim_with(bins, 20.0, &log, &["--autopilot", "px4"])?;
+    let vas_backtracks = conformance_flight(bins, &addr, "px4").await?;
+    // mavsim's reached items as the vehicle's reports.
+    let reached: Vec<serde_json::Value> = log_events(&log, "item_reached")
+        .into_iter()
+        .map(|r| serde_json::json!({"event": "reached", "lat": r["lat"], "lon": r["lon"]}))
+        .collect();
+    let plan: Vec<(f64, f64)> = zigzag(CONFORMANCE_WAYPOINTS)
+        .iter()
+        .map(|w| (w.lat, w.lon))
+        .collect();
+    let flown = mavsdk_vehicle::score(&reached, &plan);
+    let mut before = 0;
+    let regressions = flown
+        .reached
+        .iter()
+        .filter(|&&i| {
+            let back = i < before;
+            before = before.max(i);
+            back
+        })
+        .count();
+    metric(
+        &format!("vas.conformance.px4_profile.waypoints_{CONFORMANCE_WAYPOINTS}.backtracks"),
+        (flown.backtracks + regressions) as f64 + vas_backtracks as f64,
+        "backtracks",
+    );
+    Ok(())
+}
+
+async fn probe_run(bins: &Path, dir: &Path) -> anyhow::Result<()> {
+    use vas::mavlink_cm::{ManagerConfig, MavlinkManager};
+    let (_sim, addr) =
+        start_sim_with(bins, 1.0, &dir.join("probe.jsonl"), &["--autopilot", "px4"])?;
+    let mgr = MavlinkManager::open(&format!("udpout:{addr}"), ManagerConfig::default())
+        .await
+        .context("opening the manager")?;
+    mgr.wait_connected(STEP).await.context("mavsim px4")?;
+    let t0 = Instant::now();
+    let supported = mgr.probe_partial_writes().await.context("probing")?;
+    let ms = t0.elapsed().as_secs_f64() * 1000.0;
+    anyhow::ensure!(!supported, "the px4 profile answered a partial write");
+    metric("vas.partial_write_probe_ms", ms, "ms");
+    mgr.shutdown().await;
+    Ok(())
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     // `cargo bench` passes `--bench`; other arguments select figures by substring.
@@ -400,6 +542,24 @@ async fn main() -> anyhow::Result<()> {
         }
         if cpu {
             cpu_run(&bins, dir.path()).await?;
+        }
+    }
+    let (mavsdk, px4, probe) = (
+        wanted("vas.conformance.mavsdk"),
+        wanted("vas.conformance.px4_profile"),
+        wanted("vas.partial_write_probe_ms"),
+    );
+    if mavsdk || px4 || probe {
+        let bins = build_bins()?;
+        let dir = tempfile::tempdir()?;
+        if mavsdk {
+            mavsdk_run(&bins).await?;
+        }
+        if px4 {
+            px4_profile_run(&bins, dir.path()).await?;
+        }
+        if probe {
+            probe_run(&bins, dir.path()).await?;
         }
     }
     Ok(())

@@ -4,6 +4,7 @@
 //! - [`kinematics`]: local tangent plane and rover / copter / plane motion;
 //! - [`mission`]: the vehicle side of the mission protocol (pure state machine);
 //! - [`params`], [`modes`]: ArduPilot parameter and mode tables;
+//! - [`profile`]: ArduPilot, PX4 or generic autopilot conventions (`--autopilot`);
 //! - [`vehicle`]: the simulated autopilot (message handling, navigation, telemetry), pure;
 //! - [`link`]: which transport (UDP, serial, pty) and the vehicle's frame header, over a
 //!   [`mavconn::Connection`] (shared with the VAS);
@@ -20,5 +21,6 @@ pub mod log;
 pub mod mission;
 pub mod modes;
 pub mod params;
+pub mod profile;
 pub mod sim;
 pub mod vehicle;

@@ -8,6 +8,7 @@ use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
 use mavsim::kinematics::{GeoPoint, VehicleKind};
 use mavsim::link::{LinkConfig, LinkInfo};
+use mavsim::profile::Profile;
 use mavsim::sim::{SimConfig, Simulator};
 use mavsim::vehicle::VehicleConfig;
 use tokio_util::sync::CancellationToken;
@@ -64,6 +65,18 @@ struct Args {
     /// Link id put in our signatures (with --signing-key).
     #[arg(long, default_value_t = 0)]
     signing_link_id: u8,
+    /// Whose conventions to follow: ArduPilot's (default), PX4's (PX4 custom modes, item 0
+    /// ordinary, no partial writes, current item reset to 0 by an upload, MISSION_CURRENT only
+    /// on change) or a generic autopilot's (ArduPilot modes, PX4's mission conventions).
+    #[arg(long, value_enum, default_value = "ardupilot")]
+    autopilot: AutopilotArg,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum AutopilotArg {
+    Ardupilot,
+    Px4,
+    Generic,
 }
 
 fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
@@ -145,6 +158,11 @@ async fn main() -> anyhow::Result<()> {
             })
             .transpose()
             .context("--signing-key")?,
+        autopilot: match args.autopilot {
+            AutopilotArg::Ardupilot => Profile::ArduPilot,
+            AutopilotArg::Px4 => Profile::Px4,
+            AutopilotArg::Generic => Profile::Generic,
+        },
     };
     let sim = Simulator::open(cfg).await.context("starting mavsim")?;
     // One machine-readable line on stdout so scripts and tests find the endpoint.

@@ -63,6 +63,8 @@ pub struct MissionStore {
     /// Index and partner of the last committed transfer's final item, so a
     /// client that lost our MISSION_ACK and resends that item gets it again.
     last_commit: Option<(u16, (u8, u8))>,
+    /// Item 0 is home (replaced by ours on upload).
+    item0_is_home: bool,
 }
 
 fn is_global(frame: MavFrame) -> bool {
@@ -95,6 +97,7 @@ pub fn item_from_float(m: &MISSION_ITEM_DATA) -> Item {
         frame: m.frame,
         current: m.current,
         autocontinue: m.autocontinue,
+        ..Default::default()
     }
 }
 
@@ -116,6 +119,7 @@ pub fn item_to_float(m: &Item) -> MISSION_ITEM_DATA {
         frame: m.frame,
         current: m.current,
         autocontinue: m.autocontinue,
+        ..Default::default()
     }
 }
 
@@ -137,6 +141,7 @@ fn ack(partner: (u8, u8), result: MavMissionResult) -> MavMessage {
         target_system: partner.0,
         target_component: partner.1,
         mavtype: result,
+        ..Default::default()
     })
 }
 
@@ -145,6 +150,7 @@ fn request(partner: (u8, u8), seq: u16) -> MavMessage {
         seq,
         target_system: partner.0,
         target_component: partner.1,
+        ..Default::default()
     })
 }
 
@@ -155,7 +161,14 @@ impl MissionStore {
             items: vec![home_item(home)],
             receiving: None,
             last_commit: None,
+            item0_is_home: true,
         }
+    }
+
+    /// Whether item 0 is home, replaced by ours on every upload (ArduPilot), or an ordinary
+    /// item kept as uploaded (PX4, generic).
+    pub fn set_item0_is_home(&mut self, home: bool) {
+        self.item0_is_home = home;
     }
 
     /// The items on board, home first.
@@ -287,7 +300,9 @@ impl MissionStore {
             }
         };
         self.items = rx.staged;
-        self.items[0] = home_item(home);
+        if self.item0_is_home {
+            self.items[0] = home_item(home);
+        }
         self.last_commit = Some((rx.end, partner));
         (
             vec![ack(partner, MavMissionResult::MAV_MISSION_ACCEPTED)],
@@ -322,6 +337,7 @@ impl MissionStore {
             count: self.count(),
             target_system: partner.0,
             target_component: partner.1,
+            ..Default::default()
         })
     }
 

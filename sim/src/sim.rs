@@ -44,6 +44,8 @@ pub struct SimConfig {
     pub quiet_progress: bool,
     /// MAVLink 2 signing: sign everything, accept only correctly signed frames.
     pub signing: Option<mavconn::Signing>,
+    /// Which autopilot's conventions to follow (see [`crate::profile`]).
+    pub autopilot: crate::profile::Profile,
 }
 
 /// Errors of the simulator.
@@ -89,6 +91,7 @@ impl Simulator {
         let link = Link::open_signed(&cfg.link, cfg.vehicle.sysid, cfg.signing.clone()).await?;
         let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
         vehicle.set_quiet_progress(cfg.quiet_progress);
+        vehicle.set_profile(cfg.autopilot);
         Ok(Self {
             cfg,
             vehicle,

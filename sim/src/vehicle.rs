@@ -16,10 +16,11 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavResult, MavSeverity,
-    MavState, MavSysStatusSensor, MavType, ATTITUDE_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA,
-    GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA,
-    PARAM_VALUE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
+    MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavProtocolCapability,
+    MavResult, MavSeverity, MavState, MavSysStatusSensor, MavType, ATTITUDE_DATA,
+    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, GLOBAL_POSITION_INT_DATA,
+    HEARTBEAT_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA, PARAM_VALUE_DATA,
+    STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
 };
 
 use crate::kinematics::{Command, GeoPoint, Limits, LocalFrame, Ned, State, VehicleKind};
@@ -27,6 +28,7 @@ use crate::log::LogEvent;
 use crate::mission::{self, Change, Item, MissionStore};
 use crate::modes::{self, Behaviour};
 use crate::params::Params;
+use crate::profile::Profile;
 
 mod inbound;
 mod telemetry;
@@ -49,6 +51,8 @@ const ATTITUDE_ID: u32 = 30;
 const GLOBAL_POSITION_INT_ID: u32 = 33;
 const MISSION_CURRENT_ID: u32 = 42;
 const VFR_HUD_ID: u32 = 74;
+/// Answered to MAV_CMD_REQUEST_MESSAGE (and REQUEST_AUTOPILOT_CAPABILITIES), never streamed.
+const AUTOPILOT_VERSION_ID: u32 = 148;
 
 /// Static configuration of a simulated vehicle.
 #[derive(Clone, Copy, Debug)]
@@ -96,6 +100,8 @@ pub struct Vehicle {
     /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
     /// in answer to a set-current (autopilots that leave progress to be inferred).
     quiet_progress: bool,
+    /// Which autopilot's conventions to follow.
+    profile: Profile,
     sticks: Option<(Sticks, Instant)>,
     sim_time: f64,
     streams: BTreeMap<u32, (Duration, Instant)>,
@@ -121,11 +127,16 @@ fn statustext(severity: MavSeverity, text: &str) -> MavMessage {
     MavMessage::STATUSTEXT(STATUSTEXT_DATA {
         severity,
         text: text.into(),
+        ..Default::default()
     })
 }
 
 fn command_ack(command: MavCmd, result: MavResult) -> MavMessage {
-    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result })
+    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+        command,
+        result,
+        ..Default::default()
+    })
 }
 
 /// Maps an RC PWM value to -1..1 around 1500; 0 and 65535 mean "no override".
@@ -154,6 +165,7 @@ impl Vehicle {
             takeoff_to: None,
             speed_override: None,
             quiet_progress: false,
+            profile: Profile::ArduPilot,
             sticks: None,
             sim_time: 0.0,
             streams: BTreeMap::new(),
@@ -185,6 +197,18 @@ impl Vehicle {
     /// STATUSTEXT, no MISSION_CURRENT stream or change; set-currents are still answered.
     pub fn set_quiet_progress(&mut self, quiet: bool) {
         self.quiet_progress = quiet;
+    }
+
+    /// Follows `profile`'s conventions (heartbeat, modes, item 0, partial writes, current item
+    /// after an upload, MISSION_CURRENT); see [`crate::profile`].
+    pub fn set_profile(&mut self, profile: Profile) {
+        self.profile = profile;
+        self.mission.set_item0_is_home(profile.item0_is_home());
+    }
+
+    /// The autopilot profile followed.
+    pub fn profile(&self) -> Profile {
+        self.profile
     }
 
     /// Current custom mode number.
@@ -352,7 +376,11 @@ impl Vehicle {
     /// memorises its position; ends the mission when there is none.
     fn go_to_index(&mut self, seq: u16, cause: &str, out: &mut Vec<MavMessage>) {
         let count = self.mission.count();
-        let mut next = seq.max(1);
+        let mut next = if self.profile.item0_is_home() {
+            seq.max(1)
+        } else {
+            seq
+        };
         while next < count && !is_nav(self.mission.items()[usize::from(next)].command) {
             let item = self.mission.items()[usize::from(next)].clone();
             self.do_item(&item);
@@ -417,14 +445,18 @@ impl Vehicle {
         if seq >= self.mission.count() {
             return false;
         }
-        let seq = seq.max(1).min(self.mission.count().saturating_sub(1));
-        if seq == 0 {
+        let first = u16::from(self.profile.item0_is_home());
+        let seq = seq.max(first).min(self.mission.count().saturating_sub(1));
+        if seq == 0 && first == 1 {
             return false;
         }
         let driving = self.behaviour() == Behaviour::Auto;
         if seq == self.current && (!driving || self.target_seq() == Some(seq)) {
-            // Already there (a ground station resending over a lossy link): nothing changes.
-            out.push(self.mission_current());
+            // Already there (a ground station resending over a lossy link): nothing changes,
+            // and an autopilot that reports only changes says nothing.
+            if !self.profile.mission_current_on_change_only() {
+                out.push(self.mission_current());
+            }
             return true;
         }
         if self.behaviour() == Behaviour::Auto {
@@ -468,8 +500,9 @@ impl Vehicle {
             name: name.to_owned(),
         });
         if behaviour == Behaviour::Auto {
-            let start = if self.current == 0 || self.current >= self.mission.count() {
-                1
+            let first = u16::from(self.profile.item0_is_home());
+            let start = if self.current < first || self.current >= self.mission.count() {
+                first
             } else {
                 self.current
             };
@@ -1137,5 +1170,160 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn px4_profile_follows_px4_conventions() {
+        let mut v = rover();
+        v.set_profile(Profile::Px4);
+        let hb = |v: &Vehicle| match v.heartbeat() {
+            MavMessage::HEARTBEAT(h) => (h.autopilot, h.custom_mode),
+            _ => unreachable!(),
+        };
+        assert_eq!(hb(&v).0, MavAutopilot::MAV_AUTOPILOT_PX4);
+        // Item 0 is an ordinary item, kept as uploaded.
+        let items: Vec<Item> = [10.0, 20.0, 30.0]
+            .iter()
+            .enumerate()
+            .map(|(i, &n)| item_at(&v, i as u16, n))
+            .collect();
+        let now = Instant::now();
+        v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 3,
+                ..Default::default()
+            }),
+            now,
+        );
+        for item in &items {
+            v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item.clone()), now);
+        }
+        assert_eq!(v.mission().len(), 3);
+        assert_eq!(v.mission()[0].x, items[0].x);
+        // No partial writes: unanswered.
+        let msg = MavMessage::MISSION_WRITE_PARTIAL_LIST(
+            mavlink::dialects::ardupilotmega::MISSION_WRITE_PARTIAL_LIST_DATA {
+                start_index: 1,
+                end_index: 1,
+                ..Default::default()
+            },
+        );
+        assert!(v.handle(GCS, &msg, Instant::now()).is_empty());
+        // AUTO.MISSION as PX4 names it: main 4, sub 4; the mission starts at item 0.
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        let auto = command_long(
+            &mut v,
+            COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_DO_SET_MODE,
+                param1: 1.0,
+                param2: 4.0,
+                param3: 4.0,
+                ..Default::default()
+            },
+        );
+        assert_eq!(auto, MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(hb(&v).1, 4 << 16 | 4 << 24);
+        assert_eq!(v.target_seq(), Some(0));
+        run_until(&mut v, 60.0, |v| v.target_seq() == Some(2));
+        assert_eq!(reached_seqs(&mut v), vec![0, 1]);
+        // MISSION_CURRENT only on change: none streamed, none for a set-current to itself.
+        assert!(v.telemetry(MISSION_CURRENT_ID).is_none());
+        let same = MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA {
+            seq: 2,
+            ..Default::default()
+        });
+        assert!(v.handle(GCS, &same, Instant::now()).is_empty());
+        // A whole upload resets the current item to 0, and the rover turns to it.
+        let mut out = Vec::new();
+        let now = Instant::now();
+        out.extend(v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 3,
+                ..Default::default()
+            }),
+            now,
+        ));
+        for item in &items {
+            out.extend(v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item.clone()), now));
+        }
+        assert!(out
+            .iter()
+            .any(|m| matches!(m, MavMessage::MISSION_CURRENT(c) if c.seq == 0)));
+        assert_eq!(v.target_seq(), Some(0));
+        // Set-current brings it back, with a MISSION_CURRENT (a change).
+        let back = MavMessage::MISSION_SET_CURRENT(MISSION_SET_CURRENT_DATA {
+            seq: 2,
+            ..Default::default()
+        });
+        let out = v.handle(GCS, &back, Instant::now());
+        assert!(out
+            .iter()
+            .any(|m| matches!(m, MavMessage::MISSION_CURRENT(c) if c.seq == 2)));
+        assert_eq!(v.target_seq(), Some(2));
+    }
+
+    #[test]
+    fn px4_profile_starts_the_mission_with_mission_start() {
+        let mut v = rover();
+        v.set_profile(Profile::Px4);
+        upload(&mut v, &[10.0, 20.0, 30.0]);
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_MISSION_START, 2.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(v.behaviour(), Behaviour::Auto);
+        assert_eq!(v.target_seq(), Some(2));
+        // Not an ArduPilot command in mavsim.
+        let mut a = rover();
+        assert_eq!(
+            command(&mut a, MavCmd::MAV_CMD_MISSION_START, 0.0, 0.0),
+            MavResult::MAV_RESULT_UNSUPPORTED
+        );
+    }
+
+    #[test]
+    fn fences_and_rally_points_are_refused_not_taken_for_the_mission() {
+        use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
+        let mut v = rover();
+        upload(&mut v, &[10.0, 20.0]);
+        let out = v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 5,
+                mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+                ..Default::default()
+            }),
+            Instant::now(),
+        );
+        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
+            if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED
+                && a.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE));
+        assert_eq!(v.mission().len(), 3, "the mission is untouched");
+    }
+
+    #[test]
+    fn generic_profile_keeps_ardupilot_modes_and_px4_missions() {
+        let mut v = rover();
+        v.set_profile(Profile::Generic);
+        match v.heartbeat() {
+            MavMessage::HEARTBEAT(h) => {
+                assert_eq!(h.autopilot, MavAutopilot::MAV_AUTOPILOT_GENERIC);
+                assert_eq!(h.custom_mode, v.mode());
+            }
+            _ => unreachable!(),
+        }
+        upload(&mut v, &[10.0, 20.0]);
+        start_auto(&mut v);
+        assert_eq!(v.target_seq(), Some(0), "item 0 is ordinary");
+        assert!(v.telemetry(MISSION_CURRENT_ID).is_some(), "streamed");
     }
 }

@@ -257,3 +257,55 @@ async fn auto_mission_at_speedup_20() {
     mgr.shutdown().await;
     sim.stop().await;
 }
+
+/// The manager as a good ground-station citizen (issue 14): it listens only to the configured
+/// system on a shared link, reads AUTOPILOT_VERSION's capabilities, and knows the PX4
+/// profile's conventions (family from the heartbeat, PX4 modes, no partial writes found out
+/// by one short probe; its time is `vas.partial_write_probe_ms` in the waypoint benchmark).
+#[tokio::test]
+async fn routing_capabilities_and_the_px4_profile() {
+    use common::connect;
+    use vas::mavlink_cm::{AutopilotFamily, LinkError, ManagerConfig, MavlinkManager};
+    let sim = Sim::start(Via::Udp, &["--sysid", "7", "--autopilot", "px4"]).await;
+    // Another vehicle's id: nothing is heard.
+    let other = ManagerConfig {
+        target_system: Some(3),
+        ..ManagerConfig::default()
+    };
+    let mgr = MavlinkManager::open(&sim.endpoint, other).await.unwrap();
+    let heard = mgr.wait_connected(std::time::Duration::from_secs(3)).await;
+    assert!(
+        matches!(heard, Err(LinkError::NotConnected(_))),
+        "{heard:?}"
+    );
+    mgr.shutdown().await;
+    // Its own id: connected, a PX4 by its heartbeat.
+    let mine = ManagerConfig {
+        target_system: Some(7),
+        ..ManagerConfig::default()
+    };
+    let mgr = connect(&sim.endpoint, mine).await;
+    assert_eq!(mgr.family(), AutopilotFamily::Px4);
+    assert!(mgr.state().px4_modes);
+    let caps = bounded("capabilities", mgr.request_capabilities())
+        .await
+        .expect("capabilities")
+        .expect("mavsim reports AUTOPILOT_VERSION");
+    assert_ne!(caps & 4, 0, "MISSION_INT");
+    let partial = bounded("probe", mgr.probe_partial_writes())
+        .await
+        .expect("probe");
+    assert!(!partial, "the px4 profile has no partial writes");
+    assert_eq!(mgr.partial_writes(), Some(false));
+    // PX4 modes: AUTO.LOITER by name, confirmed by the heartbeat.
+    let items = line_mission(3, 15.0, 0.0);
+    bounded("upload", mgr.mission_upload(&items))
+        .await
+        .expect("upload");
+    bounded("arm", mgr.arm(true)).await.expect("arm");
+    bounded("AUTO", mgr.set_mode("AUTO")).await.expect("AUTO");
+    assert_eq!(mgr.state().mode, Some(4 << 16 | 4 << 24));
+    assert_eq!(mgr.state().mode_name, Some("AUTO"));
+    mgr.shutdown().await;
+    sim.stop().await;
+}

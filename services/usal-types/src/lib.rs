@@ -284,6 +284,21 @@ pub struct QueueStatus {
     /// `clear_waypoints` was called and no waypoint has been pushed since: the next push
     /// replaces everything after the current target.
     pub replacing: bool,
+    /// Times the autopilot's current item went back to a waypoint already passed while
+    /// navigating (0 on a healthy run).
+    #[serde(default)]
+    pub backtracks: u64,
+}
+
+/// Another ground station changed the autopilot's mission (event `mission_changed` of the VAS):
+/// the VAS stopped feeding its queue and follows what the autopilot now holds.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MissionChanged {
+    /// Who changed it, e.g. `"MAVLink system 250 component 190"`.
+    pub by: String,
+    /// The mission now on board (item 0 first; `seq` is the item index), as far as it could be
+    /// read back; empty when it could not.
+    pub waypoints: Vec<Waypoint>,
 }
 
 /// Alarm severity, as MAVLink's (and syslog's) levels.

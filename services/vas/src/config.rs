@@ -8,16 +8,45 @@ use serde::Deserialize;
 use usal_types::VehicleKind;
 
 use crate::apl::ardupilot::ArduPilotConfig;
-use crate::mavlink_cm::ManagerConfig;
+use crate::mavlink_cm::{AutopilotFamily, ManagerConfig};
 use crate::val::ValConfig;
 
 /// The autopilot families the VAS has an APL for.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AutopilotKind {
-    /// ArduPilot (Rover, Copter, Plane) and mavsim, over MAVLink.
+    /// The family the autopilot's heartbeat names (its `autopilot` field).
     #[default]
+    Auto,
+    /// ArduPilot (Rover, Copter, Plane) and mavsim, over MAVLink.
     Ardupilot,
+    /// PX4: PX4 custom modes, item 0 ordinary, uploads reset the current item.
+    Px4,
+    /// Another MAVLink autopilot (MAVSDK's server...): item 0 ordinary, the current item
+    /// restored after every upload.
+    Generic,
+}
+
+impl AutopilotKind {
+    /// The family the configuration names, `None` for the heartbeat's.
+    pub fn family(self) -> Option<AutopilotFamily> {
+        match self {
+            Self::Auto => None,
+            Self::Ardupilot => Some(AutopilotFamily::ArduPilot),
+            Self::Px4 => Some(AutopilotFamily::Px4),
+            Self::Generic => Some(AutopilotFamily::Generic),
+        }
+    }
+
+    /// The name in the configuration.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Ardupilot => "ardupilot",
+            Self::Px4 => "px4",
+            Self::Generic => "generic",
+        }
+    }
 }
 
 /// Everything `vas` needs to run. Attribute names of the XML file in brackets.
@@ -102,6 +131,15 @@ pub struct VasConfig {
     /// from the start and listens to nobody else.
     #[serde(rename = "@autopilotPeer")]
     pub autopilot_peer: Option<std::net::SocketAddr>,
+    /// Extra endpoints MAVLink is forwarded to and from, like mavlink-router
+    /// (`<forward endpoint="udpout:127.0.0.1:14550"/>` child elements): another ground station
+    /// watches, and can take over, the vehicle.
+    #[serde(rename = "forward")]
+    pub forward: Vec<ForwardConfig>,
+    /// The autopilot's MAVLink system id where several vehicles share one link
+    /// (`targetSystem`); none: the first autopilot heard.
+    #[serde(rename = "@targetSystem")]
+    pub target_system: Option<u8>,
 }
 
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
@@ -116,12 +154,21 @@ pub struct SigningSettings {
     pub link_id: u8,
 }
 
+/// One `<forward endpoint="..."/>` element.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ForwardConfig {
+    /// `udpout:HOST:PORT`, `udpin:ADDR:PORT`, `tcpout:HOST:PORT`, `serial:PATH:BAUD`.
+    #[serde(rename = "@endpoint")]
+    pub endpoint: String,
+}
+
 impl Default for VasConfig {
     fn default() -> Self {
         let val = ValConfig::default();
         let manager = ManagerConfig::default();
         Self {
-            autopilot: AutopilotKind::Ardupilot,
+            autopilot: AutopilotKind::Auto,
             endpoint: "udpout:127.0.0.1:14560".into(),
             vehicle: VehicleKind::Rover,
             queue_size: 5,
@@ -144,6 +191,8 @@ impl Default for VasConfig {
             pin_autopilot: true,
             autopilot_sysid: None,
             autopilot_peer: None,
+            target_system: None,
+            forward: Vec::new(),
         }
     }
 }
@@ -198,6 +247,14 @@ impl VasConfig {
     /// # Errors
     /// The first value out of range.
     pub fn validate(&self) -> Result<(), ConfigLoadError> {
+        for f in &self.forward {
+            if let Err(e) = f.endpoint.parse::<crate::mavlink_cm::Endpoint>() {
+                return Err(ConfigLoadError::Invalid(format!(
+                    "<forward endpoint=\"{}\">: {e}",
+                    f.endpoint
+                )));
+            }
+        }
         if self.queue_size < 3 {
             return Err(ConfigLoadError::Invalid(format!(
                 "queueSize {} < 3: the rolling queue needs two slots plus the mirror slot",
@@ -282,6 +339,9 @@ impl VasConfig {
                 request_timeout: Duration::from_millis(self.request_timeout_ms),
                 retries: self.retries,
                 pin: self.pin(),
+                family: self.autopilot.family(),
+                forward: self.forward.iter().map(|f| f.endpoint.clone()).collect(),
+                target_system: self.target_system,
                 ..ManagerConfig::default()
             },
         }
@@ -314,6 +374,30 @@ impl VasConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn forward_elements_name_endpoints() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("vas.xml");
+        std::fs::write(
+            &p,
+            r#"<vas autopilot="px4"><forward endpoint="udpout:127.0.0.1:14550"/>
+               <forward endpoint="udpin:0.0.0.0:14551"/></vas>"#,
+        )
+        .unwrap();
+        let cfg = VasConfig::load(&p).unwrap();
+        let mgr = cfg.ardupilot().manager;
+        assert_eq!(
+            mgr.forward,
+            ["udpout:127.0.0.1:14550", "udpin:0.0.0.0:14551"]
+        );
+        assert_eq!(mgr.family, Some(AutopilotFamily::Px4));
+        std::fs::write(&p, r#"<vas><forward endpoint="nowhere"/></vas>"#).unwrap();
+        assert!(matches!(
+            VasConfig::load(&p),
+            Err(ConfigLoadError::Invalid(_))
+        ));
+    }
 
     #[test]
     fn example_file_parses() {

@@ -43,8 +43,13 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
     )
     .context("loading the network configuration")?;
     let signing = config.signing().context("MAVLink signing")?;
+    // One APL for every family: the manager applies the family's conventions (modes, item 0,
+    // the current item after an upload), chosen from the heartbeat unless configured.
     let apl: Arc<dyn IAutopilot> = match config.autopilot {
-        AutopilotKind::Ardupilot => Arc::new(
+        AutopilotKind::Auto
+        | AutopilotKind::Ardupilot
+        | AutopilotKind::Px4
+        | AutopilotKind::Generic => Arc::new(
             ArduPilot::open(&config.endpoint, {
                 let mut ap = config.ardupilot();
                 ap.manager.signing = signing;
@@ -66,9 +71,7 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
     tracing::info!(
         "vas up: {} {} on {}",
         config.vehicle,
-        match config.autopilot {
-            AutopilotKind::Ardupilot => "ardupilot",
-        },
+        config.autopilot.name(),
         config.endpoint
     );
     shutdown.cancelled().await;

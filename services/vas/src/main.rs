@@ -52,6 +52,13 @@ struct Args {
     /// prefixes (`ground-fmo,base/fmo`); default: any.
     #[arg(long)]
     manual_stations: Option<String>,
+    /// Also forward MAVLink to and from this endpoint (another ground station, like
+    /// mavlink-router); repeatable; added to the file's `<forward>` elements.
+    #[arg(long)]
+    forward: Vec<String>,
+    /// The autopilot's MAVLink system id, where several vehicles share one link.
+    #[arg(long)]
+    target_system: Option<u8>,
 }
 
 #[tokio::main]
@@ -104,6 +111,14 @@ async fn main() -> anyhow::Result<()> {
     if args.manual_stations.is_some() {
         cfg.manual_stations = args.manual_stations;
     }
+    if args.target_system.is_some() {
+        cfg.target_system = args.target_system;
+    }
+    cfg.forward.extend(
+        args.forward
+            .into_iter()
+            .map(|endpoint| vas::config::ForwardConfig { endpoint }),
+    );
     let shutdown = marea::process::cancelled_on_signal();
     vas::run(cfg, shutdown).await
 }

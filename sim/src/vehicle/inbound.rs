@@ -1,6 +1,11 @@
 //! The simulated vehicle's incoming side: one handler per MAVLink message it understands, commands, takeoff
 //! and mission items.
 
+use mavlink::dialects::ardupilotmega::{
+    MavMissionResult, MavMissionType, MISSION_ACK_DATA, MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA,
+    MISSION_REQUEST_LIST_DATA,
+};
+
 use super::*;
 
 impl Vehicle {
@@ -15,7 +20,10 @@ impl Vehicle {
                 out.push(command_ack(c.command, result));
             }
             MavMessage::SET_MODE(m) if self.for_us(m.target_system) => {
-                let result = self.change_mode(m.custom_mode, &mut out);
+                let result = match self.profile.decode_mode(self.cfg.kind, m.custom_mode) {
+                    Some(mode) => self.change_mode(mode, &mut out),
+                    None => MavResult::MAV_RESULT_DENIED,
+                };
                 out.push(command_ack(MavCmd::MAV_CMD_DO_SET_MODE, result));
             }
             MavMessage::REQUEST_DATA_STREAM(r) if self.for_us(r.target_system) => {
@@ -69,10 +77,40 @@ impl Vehicle {
                     out.extend(self.param_value(index));
                 }
             }
+            // Fences and rally points are not simulated: refused, so a ground station does not
+            // take them for the mission.
+            MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                target_system,
+                mission_type,
+                ..
+            })
+            | MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+                target_system,
+                mission_type,
+                ..
+            })
+            | MavMessage::MISSION_CLEAR_ALL(MISSION_CLEAR_ALL_DATA {
+                target_system,
+                mission_type,
+                ..
+            }) if self.for_us(*target_system)
+                && *mission_type != MavMissionType::MAV_MISSION_TYPE_MISSION =>
+            {
+                out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+                    target_system: from.0,
+                    target_component: from.1,
+                    mavtype: MavMissionResult::MAV_MISSION_UNSUPPORTED,
+                    mission_type: *mission_type,
+                    ..Default::default()
+                }));
+            }
             MavMessage::MISSION_COUNT(c) if self.for_us(c.target_system) => {
                 out.extend(self.mission.on_count(from, c.count, now));
             }
-            MavMessage::MISSION_WRITE_PARTIAL_LIST(p) if self.for_us(p.target_system) => {
+            // Without partial writes (PX4, generic): unanswered, as the autopilots that lack it.
+            MavMessage::MISSION_WRITE_PARTIAL_LIST(p)
+                if self.for_us(p.target_system) && self.profile.partial_writes() =>
+            {
                 out.extend(
                     self.mission
                         .on_partial(from, p.start_index, p.end_index, now),
@@ -99,7 +137,7 @@ impl Vehicle {
             MavMessage::MISSION_CLEAR_ALL(c) if self.for_us(c.target_system) => {
                 let (replies, change) = self.mission.on_clear(from);
                 out.extend(replies);
-                self.mission_changed(change);
+                self.mission_changed(change, &mut out);
             }
             MavMessage::MISSION_SET_CURRENT(s) if self.for_us(s.target_system) => {
                 let changed = self.set_current(s.seq, &mut out);
@@ -142,18 +180,34 @@ impl Vehicle {
         let (replies, change) = self.mission.on_item(from, item, self.cfg.home, now);
         out.extend(replies);
         if let Some(change) = change {
-            self.mission_changed(change);
+            self.mission_changed(change, out);
         }
     }
 
-    /// A committed mission change never moves the memorised target (003 §2.5.4).
-    fn mission_changed(&mut self, change: Change) {
+    /// On ArduPilot a committed mission change never moves the memorised target (003
+    /// §2.5.4); PX4 and generic autopilots reset the current item to 0 after a whole upload
+    /// (and drive to it in a mission).
+    fn mission_changed(&mut self, change: Change, out: &mut Vec<MavMessage>) {
+        let uploaded = matches!(change, Change::Uploaded { .. });
         let event = match change {
             Change::Uploaded { count } => LogEvent::MissionUploaded { count },
             Change::PartialWrite { start, end } => LogEvent::MissionPartialWrite { start, end },
             Change::Cleared => LogEvent::MissionCleared,
         };
         self.record(event);
+        if uploaded && self.profile.resets_current_on_upload() {
+            if self.behaviour() == Behaviour::Auto {
+                self.target = None;
+                self.go_to_index(0, "upload_reset", out);
+            } else if self.current != 0 {
+                self.current = 0;
+                out.push(self.mission_current());
+                self.record(LogEvent::CurrentChanged {
+                    seq: 0,
+                    cause: "upload_reset".to_owned(),
+                });
+            }
+        }
     }
 
     fn command(
@@ -177,7 +231,21 @@ impl Vehicle {
                 if c.param2 < 0.0 || !c.param2.is_finite() {
                     return MavResult::MAV_RESULT_DENIED;
                 }
-                self.change_mode(c.param2 as u32, out)
+                // PX4 takes (main, sub) in param2 and param3.
+                let custom = if self.profile == Profile::Px4 {
+                    let sub = if c.param3.is_finite() && c.param3 >= 0.0 {
+                        c.param3 as u32
+                    } else {
+                        0
+                    };
+                    (c.param2 as u32) << 16 | sub << 24
+                } else {
+                    c.param2 as u32
+                };
+                match self.profile.decode_mode(self.cfg.kind, custom) {
+                    Some(mode) => self.change_mode(mode, out),
+                    None => MavResult::MAV_RESULT_DENIED,
+                }
             }
             MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT => {
                 if c.param1 < 0.0 || !c.param1.is_finite() || c.param1 > f32::from(u16::MAX) {
@@ -207,6 +275,24 @@ impl Vehicle {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
+            // PX4: into the mission (AUTO.MISSION), from item param1 when given.
+            MavCmd::MAV_CMD_MISSION_START if self.profile == Profile::Px4 => {
+                let Some(auto) = modes::table(self.cfg.kind)
+                    .iter()
+                    .find(|m| m.2 == Behaviour::Auto)
+                    .map(|m| m.0)
+                else {
+                    return MavResult::MAV_RESULT_UNSUPPORTED;
+                };
+                if c.param1.is_finite() && c.param1 >= 1.0 && c.param1 < f32::from(u16::MAX) {
+                    self.current = c.param1 as u16;
+                }
+                self.change_mode(auto, out)
+            }
+            MavCmd::MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES => {
+                out.extend(self.telemetry(AUTOPILOT_VERSION_ID));
+                MavResult::MAV_RESULT_ACCEPTED
+            }
             MavCmd::MAV_CMD_DO_CHANGE_SPEED => {
                 if self.change_speed(c.param2) {
                     MavResult::MAV_RESULT_ACCEPTED

@@ -63,13 +63,17 @@ impl Vehicle {
             base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
         }
         MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-            custom_mode: self.mode,
+            custom_mode: self.profile.encode_mode(self.cfg.kind, self.mode),
             mavtype: match self.cfg.kind {
                 VehicleKind::Rover => MavType::MAV_TYPE_GROUND_ROVER,
                 VehicleKind::Copter => MavType::MAV_TYPE_QUADROTOR,
                 VehicleKind::Plane => MavType::MAV_TYPE_FIXED_WING,
             },
-            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            autopilot: match self.profile {
+                Profile::ArduPilot => MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                Profile::Px4 => MavAutopilot::MAV_AUTOPILOT_PX4,
+                Profile::Generic => MavAutopilot::MAV_AUTOPILOT_GENERIC,
+            },
             base_mode: base,
             system_status: if self.armed {
                 MavState::MAV_STATE_ACTIVE
@@ -81,7 +85,10 @@ impl Vehicle {
     }
 
     pub(super) fn mission_current(&self) -> MavMessage {
-        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current })
+        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA {
+            seq: self.current,
+            ..Default::default()
+        })
     }
 
     pub(super) fn telemetry(&self, id: u32) -> Option<MavMessage> {
@@ -137,7 +144,18 @@ impl Vehicle {
                     ..SYS_STATUS_DATA::default()
                 })
             }
-            MISSION_CURRENT_ID if !self.quiet_progress => self.mission_current(),
+            AUTOPILOT_VERSION_ID => MavMessage::AUTOPILOT_VERSION(AUTOPILOT_VERSION_DATA {
+                capabilities: MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+                    | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                    | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                    | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MAVLINK2,
+                ..AUTOPILOT_VERSION_DATA::default()
+            }),
+            MISSION_CURRENT_ID
+                if !self.quiet_progress && !self.profile.mission_current_on_change_only() =>
+            {
+                self.mission_current()
+            }
             _ => return None,
         })
     }

@@ -632,6 +632,7 @@ mod tests {
                 target: s.queue.front().map(|w| w.seq),
                 last_reached: s.last_reached,
                 replacing: s.replacing,
+                ..Default::default()
             }
         }
         /// The vehicle reaches its target; returns it (the VAS then raises waypoint_reached).

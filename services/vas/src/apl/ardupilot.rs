@@ -20,8 +20,8 @@ use tokio::time::interval;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, Position, QueueStatus, Severity,
-    Speeds, VehicleKind, Waypoint, WaypointKind, WaypointReached,
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionChanged, Position,
+    QueueStatus, Severity, Speeds, VehicleKind, Waypoint, WaypointKind, WaypointReached,
 };
 
 use super::queue::{QueueAction, RollingQueue};

@@ -13,8 +13,8 @@ pub mod queue;
 use async_trait::async_trait;
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, Position, QueueStatus, Speeds,
-    VehicleKind, Waypoint, WaypointReached,
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionChanged, Position,
+    QueueStatus, Speeds, VehicleKind, Waypoint, WaypointReached,
 };
 
 pub use queue::{QueueAction, QueueCreateError, RollingQueue};
@@ -44,6 +44,9 @@ pub enum ApEvent {
     },
     /// The autopilot is configured and ready (CONFIGURE_CHECK is over).
     Configured,
+    /// Another ground station changed the mission on the autopilot: the queue stopped
+    /// feeding it (what was queued stays queued for a later WAYPOINT_NAVIGATION).
+    MissionChanged(MissionChanged),
     /// Heartbeats stopped.
     LinkLost,
     /// Heartbeats again; the layer re-read the parameters and the mission and resumed.

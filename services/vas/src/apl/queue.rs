@@ -17,6 +17,11 @@
 //! unknown mission gets it re-uploaded ([`RollingQueue::forget_onboard`]); a missed reached
 //! message is made up from MISSION_CURRENT ([`RollingQueue::on_current`]).
 //!
+//! Many autopilots (PX4, MAVSDK's server) reset the current item to 0 when a whole mission
+//! is uploaded: after every whole upload while navigating, a set-current to the slot being
+//! driven to is owed ([`RollingQueue::current_kept`] waives it where the autopilot is known to
+//! have kept it), so the vehicle never turns back toward an item it has passed.
+//!
 //! When fewer waypoints are known than the window holds, the mission is truncated after the
 //! last one (a full upload, which ArduPilot does without changing the current target), so
 //! the vehicle stops there instead of driving back to a stale slot.
@@ -62,6 +67,8 @@ pub struct RollingQueue<W> {
     have_known: bool,
     /// A set-current to `1` is owed after (re)starting.
     owe_start: bool,
+    /// A set-current to the slot driven to is owed after a whole upload while navigating.
+    owe_restore: bool,
     /// MISSION_WRITE_PARTIAL_LIST works on this autopilot (until shown otherwise).
     partial_ok: bool,
     /// `clear` was called: the next push replaces everything after the target.
@@ -84,6 +91,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             have: Vec::new(),
             have_known: false,
             owe_start: false,
+            owe_restore: false,
             partial_ok: true,
             replacing: false,
         })
@@ -173,11 +181,57 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     pub fn stop(&mut self) {
         self.cur = None;
         self.owe_start = false;
+        self.owe_restore = false;
+    }
+
+    /// The autopilot is known to have kept its current item through the last whole upload
+    /// (it reported it since): the restoring set-current is not needed.
+    pub fn current_kept(&mut self) {
+        self.owe_restore = false;
+    }
+
+    /// A set-current is owed to restore the current item after a whole upload.
+    pub fn owes_restore(&self) -> bool {
+        self.owe_restore
+    }
+
+    /// The autopilot reports it drives to mission item `slot`: is that back toward a waypoint
+    /// already passed? Item 0 holds `item0` (what the last whole upload put there where item 0
+    /// is flown) or, when `None`, home. A slot holding a waypoint no longer queued (passed) or
+    /// home is a backtrack; an unknown slot, or any report when not navigating, is not.
+    pub fn heads_back(&self, slot: u16, item0: Option<&W>) -> bool {
+        if self.cur.is_none() || self.ahead.is_empty() {
+            return false;
+        }
+        let held = if slot == 0 {
+            match item0 {
+                Some(w) => w,
+                None => return true,
+            }
+        } else {
+            match self.onboard_slot(slot) {
+                Some(w) => w,
+                None => return false,
+            }
+        };
+        !self.ahead.contains(held)
+    }
+
+    /// What the autopilot is believed to hold in `slot` (≥ 1), when known.
+    pub fn onboard_slot(&self, slot: u16) -> Option<&W> {
+        let k = usize::from(slot).checked_sub(1)?;
+        self.have.get(k)?.as_ref()
     }
 
     /// The autopilot ignores MISSION_WRITE_PARTIAL_LIST: upload whole windows from now on.
     pub fn partial_unsupported(&mut self) {
         self.partial_ok = false;
+    }
+
+    /// The autopilot answers partial writes again (another autopilot, or the same updated,
+    /// after the link came back).
+    pub fn partial_supported_again(&mut self) {
+        self.partial_ok = true;
     }
 
     /// What the autopilot holds is no longer known (link restored, autopilot restarted).
@@ -256,7 +310,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         if c == self.n {
             // Driving to the mirror slot: wrap to slot 1 unless this is the last waypoint.
             if self.ahead.len() < 2 {
-                return None;
+                return self.owe_restore.then_some(QueueAction::SetCurrent(c));
             }
             if self.have.first() != Some(&Some(a0.clone())) {
                 return Some(self.write(1, vec![a0]));
@@ -295,7 +349,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         if let Some(write) = first_run() {
             return Some(write);
         }
-        if self.owe_start {
+        if self.owe_start || self.owe_restore {
             return Some(QueueAction::SetCurrent(c));
         }
         None
@@ -327,6 +381,8 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             QueueAction::Upload(items) => {
                 self.have = items.iter().cloned().map(Some).collect();
                 self.have_known = true;
+                // The autopilot may have reset its current item: it is restored next.
+                self.owe_restore = self.cur.is_some();
             }
             QueueAction::WritePartial { start, items } => {
                 let s = usize::from(*start) - 1;
@@ -341,6 +397,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
                     self.cur = Some(*seq);
                 }
                 self.owe_start = false;
+                self.owe_restore = false;
             }
         }
     }
@@ -391,7 +448,14 @@ mod tests {
         holding: bool,
         reached: Vec<u32>,
         partial_works: bool,
+        /// Resets its current item to 0 (an ordinary item: here `HOME`) on every upload, as
+        /// PX4 and MAVSDK do.
+        resets_current: bool,
+        /// Times it drove toward item 0 after an upload.
+        backtracks: u32,
     }
+
+    const HOME: u32 = u32::MAX;
 
     impl Autopilot {
         fn new(partial_works: bool) -> Self {
@@ -401,11 +465,19 @@ mod tests {
                 holding: false,
                 reached: Vec::new(),
                 partial_works,
+                resets_current: false,
+                backtracks: 0,
             }
         }
         fn apply(&mut self, a: &QueueAction<u32>) -> bool {
             match a {
-                QueueAction::Upload(items) => self.mission = items.clone(),
+                QueueAction::Upload(items) => {
+                    self.mission = items.clone();
+                    if self.resets_current {
+                        self.current = 0;
+                        self.holding = false;
+                    }
+                }
                 QueueAction::WritePartial { start, items } => {
                     if !self.partial_works {
                         return false;
@@ -424,6 +496,12 @@ mod tests {
                 return None;
             }
             let slot = self.current;
+            if slot == 0 {
+                self.backtracks += 1;
+                self.reached.push(HOME);
+                self.current = 1;
+                return Some(0);
+            }
             let wp = *self.mission.get(usize::from(slot) - 1)?;
             self.reached.push(wp);
             if usize::from(slot) == self.mission.len() {
@@ -576,7 +654,10 @@ mod tests {
                 items: vec![100]
             }
         );
-        assert!(matches!(actions.last(), Some(QueueAction::Upload(items)) if items.len() == 3));
+        // ... and the current item restored after it (an autopilot may have reset it).
+        let n = actions.len();
+        assert!(matches!(&actions[n - 2], QueueAction::Upload(items) if items.len() == 3));
+        assert_eq!(actions[n - 1], QueueAction::SetCurrent(2));
         while let Some(slot) = ap.drive() {
             q.on_reached(slot);
             settle(&mut q, &mut ap);
@@ -669,5 +750,99 @@ mod tests {
             RollingQueue::<u32>::new(2).unwrap_err(),
             QueueCreateError::TooFewSlots(2)
         );
+    }
+
+    #[test]
+    fn the_current_item_is_restored_after_every_whole_upload() {
+        // No partial writes and a current item reset by every upload: without restoring,
+        // the vehicle would turn back to item 0 after each one (issue 14).
+        for slots in [3u16, 5] {
+            let mut q = RollingQueue::new(slots).unwrap();
+            let mut ap = Autopilot::new(false);
+            ap.resets_current = true;
+            q.push(0..50);
+            q.start();
+            settle(&mut q, &mut ap);
+            let mut uploads = 0;
+            while let Some(slot) = ap.drive() {
+                let w = q.on_reached(slot);
+                assert_eq!(w, ap.reached.last().copied());
+                while let Some(a) = q.poll() {
+                    if let QueueAction::Upload(_) = a {
+                        uploads += 1;
+                        assert!(ap.apply(&a));
+                        q.done(&a);
+                        assert!(q.owes_restore());
+                        assert_eq!(
+                            q.poll(),
+                            Some(QueueAction::SetCurrent(q.current_slot().unwrap()))
+                        );
+                        continue;
+                    }
+                    if ap.apply(&a) {
+                        q.done(&a);
+                    } else {
+                        q.partial_unsupported();
+                    }
+                }
+            }
+            assert!(uploads > 10, "{uploads} uploads");
+            assert_eq!(ap.backtracks, 0);
+            assert_eq!(ap.reached, (0..50).collect::<Vec<_>>(), "{slots} slots");
+        }
+    }
+
+    #[test]
+    fn a_kept_current_item_needs_no_restoring() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..10);
+        q.start();
+        let mut ap = Autopilot::new(false);
+        q.partial_unsupported();
+        settle(&mut q, &mut ap);
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        let a = q.poll().unwrap();
+        assert!(matches!(a, QueueAction::Upload(_)), "{a:?}");
+        ap.apply(&a);
+        q.done(&a);
+        assert!(q.owes_restore());
+        q.current_kept();
+        assert_eq!(q.poll(), None);
+        // Not navigating: nothing to restore.
+        q.stop();
+        q.done(&QueueAction::Upload(vec![1, 2, 3]));
+        assert!(!q.owes_restore());
+    }
+
+    #[test]
+    fn heading_back_is_toward_a_passed_waypoint_or_home() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..10);
+        // Not navigating: nothing counts.
+        assert!(!q.heads_back(0, None));
+        q.start();
+        let mut ap = Autopilot::new(true);
+        settle(&mut q, &mut ap);
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        settle(&mut q, &mut ap);
+        // The second reach, before its slot is rewritten.
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        // Driving to slot 3 (waypoint 2); slot 1 was rewritten with waypoint 4 (ahead), slot
+        // 2 still holds waypoint 1 (passed).
+        assert_eq!(q.current_slot(), Some(3));
+        assert!(!q.heads_back(3, None), "the target");
+        assert!(!q.heads_back(4, None), "further ahead");
+        assert!(q.heads_back(2, None), "waypoint 1, passed");
+        assert!(!q.heads_back(1, None), "rewritten with a waypoint ahead");
+        // Item 0: home where it is home; the target's copy where it is flown.
+        assert!(q.heads_back(0, None));
+        assert!(!q.heads_back(0, Some(&2)));
+        assert!(q.heads_back(0, Some(&0)));
+        // Unknown contents are not counted.
+        q.forget_onboard();
+        assert!(!q.heads_back(2, None));
     }
 }

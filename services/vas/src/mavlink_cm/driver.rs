@@ -11,14 +11,15 @@ use std::time::Duration;
 use marea::sync::lock;
 use mavconn::{Connection, Counters, Endpoint, Frame, OpenOptions};
 use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavState, MavType, COMMAND_LONG_DATA,
-    HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
+    MavAutopilot, MavCmd, MavMessage, MavMissionResult, MavMissionType, MavModeFlag, MavState,
+    MavType, COMMAND_LONG_DATA, HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
 };
 use mavlink::MavHeader;
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::time::{interval, sleep, timeout, timeout_at, Instant};
 use tokio_util::sync::CancellationToken;
 
+use super::family::AutopilotFamily;
 use super::manager::{ManagerConfig, Telemetry, VehicleState};
 use super::modes;
 use super::outbound::Outbound;
@@ -41,6 +42,11 @@ pub(crate) struct Inner {
     pub(crate) ops: tokio::sync::Mutex<()>,
     /// Parse errors and drops, summed over every reopening of the connection.
     pub(crate) counters: Arc<Counters>,
+    /// MISSION_WRITE_PARTIAL_LIST works on this connection: `None` until probed; forgotten
+    /// when the link comes back (perhaps another autopilot, or the same one updated).
+    pub(crate) partial: StdMutex<Option<bool>>,
+    /// Every autopilot frame with its header, for the forward endpoints.
+    pub(crate) frames_tx: broadcast::Sender<Arc<(MavHeader, MavMessage)>>,
 }
 
 /// Waits until `matcher` accepts a message or `deadline` passes (`Ok(None)`).
@@ -165,13 +171,18 @@ impl Inner {
     /// Handles one frame; returns true when the link just came (back) up.
     pub(crate) fn on_frame(&self, frame: Frame, last_hb: &mut Option<Instant>) -> bool {
         let Frame { header, msg, .. } = frame;
+        if self.frames_tx.receiver_count() > 0 {
+            let _ = self.frames_tx.send(Arc::new((header, msg.clone())));
+        }
         let (sys, comp) = (header.system_id as u8, header.component_id);
         let known = self.state_tx.borrow().system_id;
         let mut came_up = false;
         if let MavMessage::HEARTBEAT(hb) = &msg {
             let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
                 && hb.mavtype != MavType::MAV_TYPE_GCS;
-            if is_autopilot && (known.is_none() || known == Some(sys)) {
+            // Several vehicles may share the link: the configured one, else the first heard.
+            let wanted = self.cfg.target_system.is_none_or(|t| t == sys);
+            if is_autopilot && wanted && (known.is_none() || known == Some(sys)) {
                 *last_hb = Some(Instant::now());
                 came_up = self.on_heartbeat(sys, comp, hb);
             }
@@ -188,6 +199,22 @@ impl Inner {
                     text,
                 });
                 self.reached(reached, ReachSource::StatusText);
+            }
+            MavMessage::MISSION_ACK(a)
+                if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED
+                    && a.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION
+                    && a.target_system != 0
+                    && a.target_system != self.cfg.system_id =>
+            {
+                // The autopilot accepted a mission transfer of another ground station.
+                self.emit(MavEvent::MissionChangedElsewhere {
+                    system_id: a.target_system,
+                    component_id: a.target_component,
+                });
+            }
+            MavMessage::AUTOPILOT_VERSION(v) => {
+                let bits = v.capabilities.bits();
+                self.state_tx.send_modify(|s| s.capabilities = Some(bits));
             }
             MavMessage::MISSION_ITEM_REACHED(r) => {
                 let reached = lock(&self.reach).on_item_reached(r.seq);
@@ -256,10 +283,29 @@ impl Inner {
         let armed = hb
             .base_mode
             .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
-        let name = modes::name(hb.mavtype, hb.custom_mode);
+        let family = self
+            .cfg
+            .family
+            .unwrap_or_else(|| AutopilotFamily::from_heartbeat(hb.autopilot));
+        // A generic autopilot tells its encoding by the number: ArduPilot's are below 256,
+        // PX4's main mode sits in the third byte.
+        let before_px4 = self.state_tx.borrow().px4_modes;
+        let px4_modes = family.px4_modes()
+            || (family == AutopilotFamily::Generic && (before_px4 || hb.custom_mode > 0xFFFF));
+        let name = if px4_modes {
+            modes::px4_name(hb.custom_mode)
+        } else {
+            modes::name(hb.mavtype, hb.custom_mode)
+        };
         let before = self.state_tx.borrow().clone();
+        if !before.link_up {
+            *lock(&self.partial) = None;
+        }
         self.state_tx.send_modify(|s| {
             s.link_up = true;
+            s.autopilot = Some(hb.autopilot);
+            s.family = family;
+            s.px4_modes = px4_modes;
             s.system_id = Some(sys);
             s.component_id = Some(comp);
             s.vehicle_type = Some(hb.mavtype);
@@ -407,6 +453,7 @@ pub(crate) async fn driver(
                 out = out_rx.recv() => match out {
                     Some(Outbound::Message(msg)) => if let Err(e) = send(&mut conn, &msg) { break e },
                     Some(Outbound::Resync) => if let Err(e) = conn.resync() { break e.into() },
+                    Some(Outbound::Raw(h, msg)) => if let Err(e) = conn.send(h, &msg) { break e.into() },
                     None => return,
                 },
                 _ = gcs_hb.tick() => if let Err(e) = send(&mut conn, &gcs_heartbeat()) { break e },

@@ -13,7 +13,7 @@ use std::time::Duration;
 use marea::sync::lock;
 use mavconn::Endpoint;
 use mavlink::dialects::ardupilotmega::{
-    MavCmd, MavDataStream, MavMessage, MavModeFlag, MavResult, MavState, MavType,
+    MavAutopilot, MavCmd, MavDataStream, MavMessage, MavModeFlag, MavResult, MavState, MavType,
     COMMAND_LONG_DATA, RC_CHANNELS_OVERRIDE_DATA,
 };
 use tokio::sync::{broadcast, mpsc, watch};
@@ -22,6 +22,8 @@ use tokio::time::timeout;
 use tokio_util::sync::CancellationToken;
 
 use super::driver::{driver, Inner};
+use super::family::AutopilotFamily;
+use super::forward::forwarder;
 use super::modes::{self, ModeSpec};
 use super::types::*;
 
@@ -47,6 +49,14 @@ pub struct ManagerConfig {
     pub signing: Option<mavconn::Signing>,
     /// Pin the autopilot (system, component, UDP address) at its first heartbeat.
     pub pin: Option<mavconn::Pin>,
+    /// The autopilot family; `None`: from the heartbeat's `autopilot` field.
+    pub family: Option<AutopilotFamily>,
+    /// The autopilot's system id, where several vehicles share one link; `None`: the first
+    /// autopilot heard.
+    pub target_system: Option<u8>,
+    /// Extra endpoints MAVLink is forwarded to and from (another ground station), as
+    /// `udpout:HOST:PORT` and the like.
+    pub forward: Vec<String>,
 }
 
 impl Default for ManagerConfig {
@@ -61,6 +71,9 @@ impl Default for ManagerConfig {
             connect_wait: Duration::from_secs(10),
             signing: None,
             pin: None,
+            family: None,
+            target_system: None,
+            forward: Vec::new(),
         }
     }
 }
@@ -76,7 +89,14 @@ pub struct VehicleState {
     pub component_id: Option<u8>,
     /// Vehicle type, once seen.
     pub vehicle_type: Option<MavType>,
-    /// Custom (ArduPilot) mode.
+    /// The heartbeat's autopilot field, once seen.
+    pub autopilot: Option<MavAutopilot>,
+    /// The family whose conventions apply (configured, or from `autopilot`).
+    pub family: AutopilotFamily,
+    /// Custom modes are PX4's `main << 16 | sub << 24` (the PX4 family, or a generic
+    /// autopilot whose heartbeat shows that encoding, as MAVSDK's server does).
+    pub px4_modes: bool,
+    /// Custom mode (ArduPilot number, or PX4's `main << 16 | sub << 24`).
     pub mode: Option<u32>,
     /// Its ArduPilot name.
     pub mode_name: Option<&'static str>,
@@ -86,6 +106,8 @@ pub struct VehicleState {
     pub system_status: Option<MavState>,
     /// Last MISSION_CURRENT.
     pub mission_current: Option<u16>,
+    /// AUTOPILOT_VERSION's capability bits (MAV_PROTOCOL_CAPABILITY), once reported.
+    pub capabilities: Option<u64>,
     /// How many times heartbeats came back after being lost (each time a
     /// [`MavEvent::LinkRestored`](super::MavEvent::LinkRestored) follows): a reader of this
     /// state can tell that a restoration it has not handled yet is already reflected here.
@@ -136,6 +158,7 @@ pub struct MavlinkManager {
     pub(super) inner: Arc<Inner>,
     cancel: CancellationToken,
     driver: Option<JoinHandle<()>>,
+    forwarders: Vec<JoinHandle<()>>,
 }
 
 impl MavlinkManager {
@@ -147,6 +170,11 @@ impl MavlinkManager {
     /// When the endpoint string is malformed.
     pub async fn open(endpoint: &str, cfg: ManagerConfig) -> Result<Self, ManagerOpenError> {
         let endpoint: Endpoint = endpoint.parse()?;
+        let forwards = cfg
+            .forward
+            .iter()
+            .map(|f| f.parse::<Endpoint>())
+            .collect::<Result<Vec<_>, _>>()?;
         let (out_tx, out_rx) = mpsc::channel(256);
         let (raw_tx, _) = broadcast::channel(1024);
         let (events_tx, _) = broadcast::channel(1024);
@@ -162,13 +190,20 @@ impl MavlinkManager {
             rates: StdMutex::default(),
             ops: tokio::sync::Mutex::new(()),
             counters: Arc::default(),
+            partial: StdMutex::default(),
+            frames_tx: broadcast::channel(1024).0,
         });
         let cancel = CancellationToken::new();
         let driver = tokio::spawn(driver(inner.clone(), endpoint, out_rx, cancel.clone()));
+        let forwarders = forwards
+            .into_iter()
+            .map(|f| tokio::spawn(forwarder(inner.clone(), f, cancel.clone())))
+            .collect();
         Ok(Self {
             inner,
             cancel,
             driver: Some(driver),
+            forwarders,
         })
     }
 
@@ -178,11 +213,72 @@ impl MavlinkManager {
         if let Some(driver) = self.driver.take() {
             let _ = driver.await;
         }
+        for f in self.forwarders.drain(..) {
+            let _ = f.await;
+        }
     }
 
     /// Every event from now on. A slow receiver loses the oldest events (`Lagged`).
     pub fn subscribe(&self) -> broadcast::Receiver<MavEvent> {
         self.inner.events_tx.subscribe()
+    }
+
+    /// Asks for AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE, else the older
+    /// MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES) and waits up to one request timeout for its
+    /// capabilities ([`VehicleState::capabilities`]).
+    ///
+    /// # Errors
+    /// Not connected; `Ok(None)` when the autopilot does not tell.
+    pub async fn request_capabilities(&self) -> Result<Option<u64>, LinkError> {
+        if let Some(c) = self.state().capabilities {
+            return Ok(Some(c));
+        }
+        let mut rx = self.inner.state_tx.subscribe();
+        let asked = match self
+            .command_long(
+                MavCmd::MAV_CMD_REQUEST_MESSAGE,
+                [148.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            )
+            .await
+        {
+            Err(CommandError::Link(e)) => return Err(e),
+            Ok(()) => true,
+            Err(_) => false,
+        };
+        if !asked {
+            match self
+                .command_long(
+                    MavCmd::MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+                    [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                )
+                .await
+            {
+                Err(CommandError::Link(e)) => return Err(e),
+                Ok(()) => {}
+                // Neither request understood: it will not tell (unless it already did).
+                Err(_) => return Ok(self.state().capabilities),
+            }
+        }
+        let got = timeout(
+            self.inner.cfg.request_timeout,
+            rx.wait_for(|s| s.capabilities.is_some()),
+        )
+        .await;
+        Ok(match got {
+            Ok(Ok(s)) => s.capabilities,
+            _ => None,
+        })
+    }
+
+    /// The autopilot family whose conventions apply (configured, or from the heartbeat).
+    pub fn family(&self) -> AutopilotFamily {
+        self.inner.state_tx.borrow().family
+    }
+
+    /// Whether the autopilot answers MISSION_WRITE_PARTIAL_LIST on this connection: `None`
+    /// until the first partial write probed it.
+    pub fn partial_writes(&self) -> Option<bool> {
+        *lock(&self.inner.partial)
     }
 
     /// The latest vehicle state.
@@ -286,8 +382,12 @@ impl MavlinkManager {
     /// Unknown name, refusal, no answer, or no confirming heartbeat.
     pub async fn set_mode(&self, mode: impl Into<ModeSpec>) -> Result<(), CommandError> {
         self.inner.target().await?;
+        let px4 = self.state().px4_modes;
         let number = match mode.into() {
             ModeSpec::Number(n) => n,
+            ModeSpec::Name(name) if px4 => {
+                modes::px4_number(&name).ok_or(CommandError::UnknownMode(name))?
+            }
             ModeSpec::Name(name) => {
                 let vehicle = self
                     .state()
@@ -296,13 +396,40 @@ impl MavlinkManager {
                 modes::number(vehicle, &name).ok_or(CommandError::UnknownMode(name))?
             }
         };
+        if self.state().mode == Some(number) {
+            // Already there: nothing to ask (some autopilots, MAVSDK's server among them,
+            // refuse a change to a mode they only enter by themselves, such as HOLD).
+            return Ok(());
+        }
         let custom = f32::from(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits());
+        // PX4 takes the main and sub mode in param2 and param3; ArduPilot the number in param2.
+        let (p2, p3) = if px4 {
+            let (main, sub) = modes::px4_main_sub(number);
+            (f32::from(main), f32::from(sub))
+        } else {
+            (number as f32, 0.0)
+        };
         self.command_long(
             MavCmd::MAV_CMD_DO_SET_MODE,
-            [custom, number as f32, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [custom, p2, p3, 0.0, 0.0, 0.0, 0.0],
         )
         .await?;
         self.confirm(format!("mode {number}"), |s| s.mode == Some(number))
+            .await
+    }
+
+    /// Starts the mission with MAV_CMD_MISSION_START from item `first` (PX4's way into
+    /// AUTO.MISSION where a mode change is refused), waiting for a heartbeat in AUTO.
+    ///
+    /// # Errors
+    /// Refusal, no answer, or no confirming heartbeat.
+    pub async fn mission_start(&self, first: u16) -> Result<(), CommandError> {
+        self.command_long(
+            MavCmd::MAV_CMD_MISSION_START,
+            [f32::from(first), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        )
+        .await?;
+        self.confirm("mode AUTO".to_owned(), |s| s.mode_name == Some("AUTO"))
             .await
     }
 
@@ -342,6 +469,7 @@ impl MavlinkManager {
                     chan8_raw: c8,
                     target_system: target.0,
                     target_component: target.1,
+                    ..Default::default()
                 },
             ))
             .await

@@ -3,10 +3,12 @@
 
 use marea::sync::lock;
 use mavlink::dialects::ardupilotmega::{
-    MavCmd, MavMessage, MavMissionResult, MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA,
-    MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA,
-    MISSION_WRITE_PARTIAL_LIST_DATA,
+    MavCmd, MavMessage, MavMissionResult, MavMissionType, MavProtocolCapability,
+    MISSION_CLEAR_ALL_DATA, MISSION_COUNT_DATA, MISSION_REQUEST_DATA, MISSION_REQUEST_INT_DATA,
+    MISSION_REQUEST_LIST_DATA, MISSION_SET_CURRENT_DATA, MISSION_WRITE_PARTIAL_LIST_DATA,
 };
+use std::time::Duration;
+
 use tokio::sync::broadcast;
 use tokio::time::{timeout_at, Instant};
 
@@ -37,6 +39,7 @@ impl MavlinkManager {
             count: items.len() as u16,
             target_system: target.0,
             target_component: target.1,
+            ..Default::default()
         });
         self.inner.upload(target, start, items, 0).await?;
         *lock(&self.inner.mission) = items.to_vec();
@@ -46,9 +49,15 @@ impl MavlinkManager {
     /// Replaces items `start .. start + items.len()` with MISSION_WRITE_PARTIAL_LIST
     /// (ArduPilot only replaces existing items; it cannot grow the mission).
     ///
+    /// Whether the autopilot has partial writes is remembered per connection
+    /// ([`MavlinkManager::partial_writes`]; the VAS finds out on the ground with
+    /// [`Self::probe_partial_writes`]): once known to lack them, this fails at once. Not yet
+    /// known, a write whose start goes unanswered through every retry records the lack.
+    ///
     /// # Errors
-    /// Empty list, refusal, or retries exhausted (an autopilot that ignores
-    /// partial writes fails at [`MissionStage::Start`]).
+    /// [`MissionError::PartialUnsupported`] when the probe went unanswered or was refused (or
+    /// an earlier one on this connection did); otherwise empty list, refusal, or retries
+    /// exhausted.
     pub async fn mission_write_partial(
         &self,
         start: u16,
@@ -63,18 +72,136 @@ impl MavlinkManager {
         }
         let target = self.inner.target().await?;
         let _op = self.inner.ops.lock().await;
+        let known = *lock(&self.inner.partial);
+        if known == Some(false) {
+            return Err(MissionError::PartialUnsupported);
+        }
         let msg = MavMessage::MISSION_WRITE_PARTIAL_LIST(MISSION_WRITE_PARTIAL_LIST_DATA {
             start_index: start as i16,
             end_index: (end - 1) as i16,
             target_system: target.0,
             target_component: target.1,
+            ..Default::default()
         });
-        self.inner.upload(target, msg, items, start).await?;
+        let probing = known.is_none();
+        let began = std::time::Instant::now();
+        let result = self
+            .inner
+            .upload_with(target, msg, items, start, self.inner.cfg.retries)
+            .await;
+        let answered = match &result {
+            Err(MissionError::PartialUnsupported) => Some(false),
+            Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Start,
+                ..
+            }) if probing => Some(false),
+            // Any request (or any other end) means it speaks the protocol.
+            Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Start,
+                ..
+            })
+            | Err(MissionError::Link(_)) => None,
+            _ => Some(true),
+        };
+        if probing {
+            if let Some(ok) = answered {
+                *lock(&self.inner.partial) = Some(ok);
+                tracing::info!(
+                    "partial mission writes {} (probe took {} ms)",
+                    if ok { "supported" } else { "not supported" },
+                    began.elapsed().as_millis()
+                );
+            }
+        }
+        match result {
+            Err(MissionError::RetriesExhausted {
+                stage: MissionStage::Start,
+                ..
+            }) if probing => return Err(MissionError::PartialUnsupported),
+            r => r?,
+        }
         let mut cache = lock(&self.inner.mission);
         if cache.len() >= end {
             cache[usize::from(start)..end].clone_from_slice(items);
         }
         Ok(())
+    }
+
+    /// Finds out whether the autopilot answers MISSION_WRITE_PARTIAL_LIST, with one short
+    /// attempt (one request timeout, at least a second; the start sent twice, so one lost frame on a lossy link
+    /// does not decide it), and remembers it for this connection
+    /// ([`Self::partial_writes`]). Done before flying (the VAS probes while configuring the
+    /// autopilot), so an autopilot without partial writes costs one timeout on the ground,
+    /// not a stall in flight. The probe writes item 1 onto itself and cancels at once: an
+    /// autopilot commits a transfer only when complete, so nothing on board changes. Any
+    /// answer but UNSUPPORTED or DENIED (a request, or an ACK such as INVALID_SEQUENCE for
+    /// an empty mission) means the autopilot speaks it.
+    ///
+    /// # Errors
+    /// Not connected, or shut down.
+    pub async fn probe_partial_writes(&self) -> Result<bool, LinkError> {
+        if let Some(known) = *lock(&self.inner.partial) {
+            return Ok(known);
+        }
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        let me = self.inner.cfg.system_id;
+        let mut rx = self.inner.raw_tx.subscribe();
+        let began = Instant::now();
+        for _ in 0..2 {
+            self.inner
+                .send(MavMessage::MISSION_WRITE_PARTIAL_LIST(
+                    MISSION_WRITE_PARTIAL_LIST_DATA {
+                        start_index: 1,
+                        end_index: 1,
+                        target_system: target.0,
+                        target_component: target.1,
+                        ..Default::default()
+                    },
+                ))
+                .await?;
+        }
+        // At least a second: a request timeout tuned to a fast radio's round trip is too
+        // short a verdict on a whole protocol feature.
+        let wait = self.inner.cfg.request_timeout.max(Duration::from_secs(1));
+        #[allow(deprecated)]
+        let answer = super::driver::wait_for(&mut rx, began + wait, |m| match m {
+            MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => Some(None),
+            MavMessage::MISSION_REQUEST(r) if r.target_system == me => Some(None),
+            MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
+                Some(Some(a.mavtype))
+            }
+            _ => None,
+        })
+        .await?;
+        let supported = match answer {
+            Some(None) => {
+                // It asked for the item: cancel, nothing is committed.
+                self.inner
+                    .send(mission_ack(
+                        target,
+                        MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+                    ))
+                    .await?;
+                true
+            }
+            Some(Some(
+                MavMissionResult::MAV_MISSION_UNSUPPORTED | MavMissionResult::MAV_MISSION_DENIED,
+            ))
+            | None => false,
+            Some(Some(_)) => true,
+        };
+        *lock(&self.inner.partial) = Some(supported);
+        tracing::info!(
+            "partial mission writes {} (probe took {} ms)",
+            if supported {
+                "supported"
+            } else {
+                "not supported"
+            },
+            began.elapsed().as_millis()
+        );
+        Ok(supported)
     }
 
     /// Downloads the whole mission (home first).
@@ -88,12 +215,17 @@ impl MavlinkManager {
             MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
                 target_system: target.0,
                 target_component: target.1,
+                ..Default::default()
             })
         };
         let count = self
             .inner
             .transact(make, |m| match m {
-                MavMessage::MISSION_COUNT(c) => Some(c.count),
+                MavMessage::MISSION_COUNT(c)
+                    if c.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+                {
+                    Some(c.count)
+                }
                 _ => None,
             })
             .await?
@@ -102,18 +234,43 @@ impl MavlinkManager {
                 attempts: self.inner.cfg.retries,
             })?;
         let mut items = Vec::with_capacity(usize::from(count));
+        // MISSION_REQUEST_INT unless AUTOPILOT_VERSION said the autopilot lacks MISSION_INT.
+        let int = self.state().capabilities.is_none_or(|c| {
+            c & MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_INT.bits() != 0
+        });
         for seq in 0..count {
+            #[allow(deprecated)] // The float request, for autopilots without MISSION_INT.
             let make = |_| {
-                MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
-                    seq,
-                    target_system: target.0,
-                    target_component: target.1,
-                })
+                if int {
+                    MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                        seq,
+                        target_system: target.0,
+                        target_component: target.1,
+                        ..Default::default()
+                    })
+                } else {
+                    MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA {
+                        seq,
+                        target_system: target.0,
+                        target_component: target.1,
+                        ..Default::default()
+                    })
+                }
             };
             #[allow(deprecated)] // Legacy autopilots answer with MISSION_ITEM.
             let matcher = |m: &MavMessage| match m {
-                MavMessage::MISSION_ITEM_INT(i) if i.seq == seq => Some(MissionItem::from_int(i)),
-                MavMessage::MISSION_ITEM(i) if i.seq == seq => Some(MissionItem::from_float(i)),
+                MavMessage::MISSION_ITEM_INT(i)
+                    if i.seq == seq
+                        && i.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+                {
+                    Some(MissionItem::from_int(i))
+                }
+                MavMessage::MISSION_ITEM(i)
+                    if i.seq == seq
+                        && i.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+                {
+                    Some(MissionItem::from_float(i))
+                }
                 _ => None,
             };
             let item = self.inner.transact(make, matcher).await?.ok_or(
@@ -143,6 +300,7 @@ impl MavlinkManager {
             MavMessage::MISSION_CLEAR_ALL(MISSION_CLEAR_ALL_DATA {
                 target_system: target.0,
                 target_component: target.1,
+                ..Default::default()
             })
         };
         let matcher = |m: &MavMessage| match m {
@@ -188,13 +346,29 @@ impl MavlinkManager {
             _ => None,
         };
         // Sent twice per attempt: the rolling queue's wrap has one leg of slack, and setting
-        // the same current item twice within milliseconds changes nothing.
-        if self
-            .inner
-            .transact_copies(2, make, matcher)
-            .await?
-            .is_some()
-        {
+        // the same current item twice within milliseconds changes nothing. An autopilot that
+        // sends MISSION_CURRENT only on change says nothing when `seq` already was current:
+        // after a silent attempt, the last MISSION_CURRENT it reported verifies it.
+        let mut rx = self.inner.raw_tx.subscribe();
+        for attempt in 0..self.inner.cfg.retries {
+            if attempt > 0 {
+                if self.inner.state_tx.borrow().mission_current == Some(seq) {
+                    return Ok(());
+                }
+                self.inner.resync().await?;
+            }
+            for _ in 0..2 {
+                self.inner.send(make(attempt)).await?;
+            }
+            let deadline = Instant::now() + self.inner.cfg.request_timeout;
+            if super::driver::wait_for(&mut rx, deadline, matcher)
+                .await?
+                .is_some()
+            {
+                return Ok(());
+            }
+        }
+        if self.inner.state_tx.borrow().mission_current == Some(seq) {
             return Ok(());
         }
         match self
@@ -225,6 +399,19 @@ impl Inner {
         items: &[MissionItem],
         first: u16,
     ) -> Result<(), MissionError> {
+        self.upload_with(target, start, items, first, self.cfg.retries)
+            .await
+    }
+
+    /// [`Self::upload`] with `start_retries` attempts at the start message.
+    async fn upload_with(
+        &self,
+        target: (u8, u8),
+        start: MavMessage,
+        items: &[MissionItem],
+        first: u16,
+        start_retries: u32,
+    ) -> Result<(), MissionError> {
         // Subscribed before the start goes out, so no early answer is missed.
         let mut rx = self.raw_tx.subscribe();
         let cfg = UploadConfig {
@@ -232,6 +419,7 @@ impl Inner {
             target,
             retries: self.cfg.retries,
             timeout: self.cfg.request_timeout,
+            start_retries,
         };
         let mut out = Vec::new();
         let mut upload = MissionUpload::start(

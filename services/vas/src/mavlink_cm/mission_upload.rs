@@ -11,11 +11,22 @@
 //! bytes on a byte stream), a repeated request for the same item counts as another attempt,
 //! and past `retries` attempts the transfer is cancelled with a MISSION_ACK. The deadline is
 //! per attempt, not per message received, so stale requests and acknowledgements of earlier
-//! transfers cannot postpone a resend.
+//! transfers cannot postpone a resend. The start may have fewer attempts of its own
+//! ([`UploadConfig::start_retries`]): a partial-write probe is one short attempt.
+//!
+//! Every MISSION_ACK result has its meaning ([`ack_meaning`]): ACCEPTED ends the transfer once
+//! the last item went out (earlier, it belongs to an earlier transfer); INVALID_SEQUENCE once
+//! items flow says the autopilot got an item it did not ask for and still waits for the one it
+//! wants (an attempt, not an end), before any item that the start was refused (a partial write
+//! past the end); every other result ends it with that result
+//! ([`MissionError::Rejected`]), and at the start of a partial write UNSUPPORTED or DENIED
+//! mean the autopilot has no partial writes ([`MissionError::PartialUnsupported`]).
 
 use std::time::{Duration, Instant};
 
-use mavlink::dialects::ardupilotmega::{MavMessage, MavMissionResult, MISSION_ACK_DATA};
+use mavlink::dialects::ardupilotmega::{
+    MavMessage, MavMissionResult, MavMissionType, MISSION_ACK_DATA,
+};
 
 use super::outbound::Outbound;
 use super::types::{MissionError, MissionItem, MissionStage};
@@ -31,6 +42,42 @@ pub(crate) struct UploadConfig {
     pub retries: u32,
     /// How long one attempt waits.
     pub timeout: Duration,
+    /// Attempts at the start message before giving up (a probe: 1).
+    pub start_retries: u32,
+}
+
+/// What a MISSION_ACK result means to the transfer in progress.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum AckMeaning {
+    /// MAV_MISSION_ACCEPTED: done (when the last item went out).
+    Accepted,
+    /// MAV_MISSION_INVALID_SEQUENCE: the autopilot still waits for the item it asked for.
+    KeepGoing,
+    /// Every other result: the autopilot ended the transfer.
+    Ended,
+}
+
+/// The meaning of each MISSION_ACK result to an upload.
+pub(crate) fn ack_meaning(result: MavMissionResult) -> AckMeaning {
+    use MavMissionResult::*;
+    match result {
+        MAV_MISSION_ACCEPTED => AckMeaning::Accepted,
+        MAV_MISSION_INVALID_SEQUENCE => AckMeaning::KeepGoing,
+        MAV_MISSION_ERROR
+        | MAV_MISSION_UNSUPPORTED_FRAME
+        | MAV_MISSION_UNSUPPORTED
+        | MAV_MISSION_NO_SPACE
+        | MAV_MISSION_INVALID
+        | MAV_MISSION_INVALID_PARAM1
+        | MAV_MISSION_INVALID_PARAM2
+        | MAV_MISSION_INVALID_PARAM3
+        | MAV_MISSION_INVALID_PARAM4
+        | MAV_MISSION_INVALID_PARAM5_X
+        | MAV_MISSION_INVALID_PARAM6_Y
+        | MAV_MISSION_INVALID_PARAM7
+        | MAV_MISSION_DENIED
+        | MAV_MISSION_OPERATION_CANCELLED => AckMeaning::Ended,
+    }
 }
 
 /// One upload in progress: `items` numbered from `first`.
@@ -43,6 +90,8 @@ pub(crate) struct MissionUpload<'a> {
     attempts: u32,
     last_sent: MavMessage,
     deadline: Instant,
+    /// The start message is MISSION_WRITE_PARTIAL_LIST.
+    partial: bool,
 }
 
 /// What an incoming message means to the upload.
@@ -59,6 +108,7 @@ pub(crate) fn mission_ack(target: (u8, u8), result: MavMissionResult) -> MavMess
         target_system: target.0,
         target_component: target.1,
         mavtype: result,
+        ..Default::default()
     })
 }
 
@@ -84,8 +134,10 @@ impl<'a> MissionUpload<'a> {
             .ok_or_else(|| {
                 MissionError::Invalid(format!("upload of {} items at {first}", items.len()))
             })?;
+        let partial = matches!(start, MavMessage::MISSION_WRITE_PARTIAL_LIST(_));
         out.push(Outbound::Message(start.clone()));
         Ok(Self {
+            partial,
             cfg,
             items,
             first,
@@ -113,7 +165,12 @@ impl<'a> MissionUpload<'a> {
             return None;
         }
         // Silence: our last message or the autopilot's request was lost.
-        if self.attempts >= self.cfg.retries {
+        let limit = if self.stage == MissionStage::Start {
+            self.cfg.start_retries.min(self.cfg.retries).max(1)
+        } else {
+            self.cfg.retries
+        };
+        if self.attempts >= limit {
             return Some(self.give_up(out));
         }
         self.attempts += 1;
@@ -138,25 +195,56 @@ impl<'a> MissionUpload<'a> {
     ) -> Option<Result<(), MissionError>> {
         match self.classify(msg)? {
             Step::Request(seq, int) => self.on_request(seq, int, now, out),
-            Step::Ack(MavMissionResult::MAV_MISSION_ACCEPTED) => {
+            Step::Ack(result) => match ack_meaning(result) {
                 // An ACK before the last item was sent belongs to an earlier transfer.
-                (self.stage == MissionStage::Item(self.last)).then_some(Ok(()))
-            }
-            Step::Ack(result) => Some(Err(MissionError::Rejected(result))),
+                AckMeaning::Accepted => {
+                    (self.stage == MissionStage::Item(self.last)).then_some(Ok(()))
+                }
+                // Before any item: the start itself was refused (a range past the end).
+                AckMeaning::KeepGoing if self.stage == MissionStage::Start => {
+                    Some(Err(MissionError::Rejected(result)))
+                }
+                AckMeaning::KeepGoing => {
+                    // It got an item it did not ask for (a stale resend): its next request
+                    // or our resend at the deadline carries on; a loop of these still ends.
+                    self.attempts += 1;
+                    (self.attempts > self.cfg.retries).then(|| self.give_up(out))
+                }
+                AckMeaning::Ended
+                    if self.partial
+                        && self.stage == MissionStage::Start
+                        && matches!(
+                            result,
+                            MavMissionResult::MAV_MISSION_UNSUPPORTED
+                                | MavMissionResult::MAV_MISSION_DENIED
+                        ) =>
+                {
+                    Some(Err(MissionError::PartialUnsupported))
+                }
+                AckMeaning::Ended => Some(Err(MissionError::Rejected(result))),
+            },
         }
     }
 
     #[allow(deprecated)] // Legacy autopilots request MISSION_ITEM with MISSION_REQUEST.
     fn classify(&self, msg: &MavMessage) -> Option<Step> {
         let me = self.cfg.me;
+        // Only the mission itself: fence and rally transfers are someone else's.
+        let mission = MavMissionType::MAV_MISSION_TYPE_MISSION;
         match msg {
-            MavMessage::MISSION_REQUEST_INT(r) if r.target_system == me => {
+            MavMessage::MISSION_REQUEST_INT(r)
+                if r.target_system == me && r.mission_type == mission =>
+            {
                 Some(Step::Request(r.seq, true))
             }
-            MavMessage::MISSION_REQUEST(r) if r.target_system == me => {
+            MavMessage::MISSION_REQUEST(r)
+                if r.target_system == me && r.mission_type == mission =>
+            {
                 Some(Step::Request(r.seq, false))
             }
-            MavMessage::MISSION_ACK(a) if a.target_system == me || a.target_system == 0 => {
+            MavMessage::MISSION_ACK(a)
+                if (a.target_system == me || a.target_system == 0) && a.mission_type == mission =>
+            {
                 Some(Step::Ack(a.mavtype))
             }
             _ => None,
@@ -230,6 +318,7 @@ mod tests {
             target: TARGET,
             retries,
             timeout: TIMEOUT,
+            start_retries: retries,
         }
     }
 
@@ -244,6 +333,7 @@ mod tests {
             count: n,
             target_system: TARGET.0,
             target_component: TARGET.1,
+            ..Default::default()
         })
     }
 
@@ -252,6 +342,7 @@ mod tests {
             seq,
             target_system: ME,
             target_component: 190,
+            ..Default::default()
         })
     }
 
@@ -260,6 +351,7 @@ mod tests {
             seq,
             target_system: ME,
             target_component: 190,
+            ..Default::default()
         })
     }
 
@@ -480,6 +572,7 @@ mod tests {
             seq: 0,
             target_system: 42,
             target_component: 190,
+            ..Default::default()
         });
         assert_eq!(up.handle(&other, later, &mut out), None);
         assert!(out.is_empty());
@@ -520,6 +613,7 @@ mod tests {
             end_index: 4,
             target_system: TARGET.0,
             target_component: TARGET.1,
+            ..Default::default()
         });
         let mut out = Vec::new();
         let mut up = MissionUpload::start(cfg(5), start, &list, 3, t0, &mut out).unwrap();
@@ -562,5 +656,169 @@ mod tests {
             Err(MissionError::Invalid(_))
         ));
         assert!(out.is_empty());
+    }
+
+    fn partial_start(start: u16, end: u16) -> MavMessage {
+        MavMessage::MISSION_WRITE_PARTIAL_LIST(MISSION_WRITE_PARTIAL_LIST_DATA {
+            start_index: start as i16,
+            end_index: end as i16,
+            target_system: TARGET.0,
+            target_component: TARGET.1,
+            ..Default::default()
+        })
+    }
+
+    #[test]
+    fn a_probe_is_one_short_attempt_at_the_start_then_normal_retries() {
+        let t0 = Instant::now();
+        let list = items(2);
+        let probe = UploadConfig {
+            start_retries: 1,
+            ..cfg(5)
+        };
+        let mut out = Vec::new();
+        let mut up =
+            MissionUpload::start(probe, partial_start(2, 3), &list, 2, t0, &mut out).unwrap();
+        out.clear();
+        // Unanswered: one attempt only, then the cancel, within one timeout.
+        let done = up.poll(t0 + TIMEOUT, &mut out);
+        assert_gave_up(done, &out, MissionStage::Start, 1);
+
+        // Answered: the items get the full retries.
+        let mut out = Vec::new();
+        let mut up =
+            MissionUpload::start(probe, partial_start(2, 3), &list, 2, t0, &mut out).unwrap();
+        out.clear();
+        up.handle(&request_int(2), t0, &mut out);
+        assert_eq!(sent_item(&mut out), 2);
+        for k in 1..5 {
+            let now = up.poll_at();
+            assert_eq!(up.poll(now, &mut out), None, "item resend {k}");
+            out.clear();
+        }
+        let done = up.poll(up.poll_at(), &mut out);
+        assert_gave_up(done, &out, MissionStage::Item(2), 5);
+    }
+
+    #[test]
+    fn every_mission_ack_result_has_its_meaning() {
+        use MavMissionResult::*;
+        assert_eq!(ack_meaning(MAV_MISSION_ACCEPTED), AckMeaning::Accepted);
+        assert_eq!(
+            ack_meaning(MAV_MISSION_INVALID_SEQUENCE),
+            AckMeaning::KeepGoing
+        );
+        for r in [
+            MAV_MISSION_ERROR,
+            MAV_MISSION_UNSUPPORTED_FRAME,
+            MAV_MISSION_UNSUPPORTED,
+            MAV_MISSION_NO_SPACE,
+            MAV_MISSION_INVALID,
+            MAV_MISSION_INVALID_PARAM1,
+            MAV_MISSION_INVALID_PARAM7,
+            MAV_MISSION_DENIED,
+            MAV_MISSION_OPERATION_CANCELLED,
+        ] {
+            assert_eq!(ack_meaning(r), AckMeaning::Ended, "{r:?}");
+            // Each ends a whole upload with that very result, without a cancel of ours.
+            let t0 = Instant::now();
+            let list = items(2);
+            let (mut up, mut out) = begin(5, &list, t0);
+            up.handle(&request_int(0), t0, &mut out);
+            out.clear();
+            assert_eq!(
+                up.handle(&ack(r), t0, &mut out),
+                Some(Err(MissionError::Rejected(r)))
+            );
+            assert!(out.is_empty());
+        }
+    }
+
+    #[test]
+    fn invalid_sequence_is_an_attempt_not_an_end() {
+        let t0 = Instant::now();
+        let list = items(2);
+        let (mut up, mut out) = begin(2, &list, t0);
+        up.handle(&request_int(0), t0, &mut out);
+        out.clear();
+        let nak = ack(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE);
+        assert_eq!(up.handle(&nak, t0, &mut out), None);
+        // The autopilot asks again for what it wants: the transfer carries on.
+        up.handle(&request_int(1), t0, &mut out);
+        assert_eq!(sent_item(&mut out), 1);
+        assert_eq!(
+            up.handle(&ack(MavMissionResult::MAV_MISSION_ACCEPTED), t0, &mut out),
+            Some(Ok(()))
+        );
+        // Before any item it refuses the start (a partial write past the end).
+        let (mut up, mut out) = begin(2, &list, t0);
+        assert_eq!(
+            up.handle(&nak, t0, &mut out),
+            Some(Err(MissionError::Rejected(
+                MavMissionResult::MAV_MISSION_INVALID_SEQUENCE
+            )))
+        );
+        // A loop of them ends at the retries.
+        let (mut up, mut out) = begin(2, &list, t0);
+        up.handle(&request_int(0), t0, &mut out);
+        out.clear();
+        assert_eq!(up.handle(&nak, t0, &mut out), None);
+        let done = up.handle(&nak, t0, &mut out);
+        assert_gave_up(done, &out, MissionStage::Item(0), 3);
+    }
+
+    #[test]
+    fn a_partial_write_refused_at_the_start_means_no_partial_writes() {
+        let t0 = Instant::now();
+        let list = items(1);
+        for r in [
+            MavMissionResult::MAV_MISSION_UNSUPPORTED,
+            MavMissionResult::MAV_MISSION_DENIED,
+        ] {
+            let mut out = Vec::new();
+            let mut up =
+                MissionUpload::start(cfg(5), partial_start(1, 1), &list, 1, t0, &mut out).unwrap();
+            out.clear();
+            assert_eq!(
+                up.handle(&ack(r), t0, &mut out),
+                Some(Err(MissionError::PartialUnsupported))
+            );
+        }
+        // The same refusal of a whole upload is just a refusal.
+        let (mut up, mut out) = begin(5, &list, t0);
+        assert_eq!(
+            up.handle(&ack(MavMissionResult::MAV_MISSION_DENIED), t0, &mut out),
+            Some(Err(MissionError::Rejected(
+                MavMissionResult::MAV_MISSION_DENIED
+            )))
+        );
+    }
+
+    #[test]
+    fn requests_and_acks_of_another_mission_type_are_not_ours() {
+        let t0 = Instant::now();
+        let list = items(2);
+        let (mut up, mut out) = begin(5, &list, t0);
+        let fence = MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+            seq: 0,
+            target_system: ME,
+            target_component: 190,
+            mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+        });
+        assert_eq!(up.handle(&fence, t0, &mut out), None);
+        assert!(
+            out.is_empty(),
+            "a fence request is not answered with a mission item"
+        );
+        let rally_nak = MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+            target_system: ME,
+            target_component: 190,
+            mavtype: MavMissionResult::MAV_MISSION_DENIED,
+            mission_type: MavMissionType::MAV_MISSION_TYPE_RALLY,
+            ..Default::default()
+        });
+        assert_eq!(up.handle(&rally_nak, t0, &mut out), None);
+        up.handle(&request_int(0), t0, &mut out);
+        assert_eq!(sent_item(&mut out), 0);
     }
 }

@@ -31,6 +31,8 @@
 #![allow(deprecated)]
 
 mod driver;
+mod family;
+mod forward;
 mod manager;
 mod mission;
 mod mission_upload;
@@ -40,9 +42,12 @@ mod param;
 mod reach;
 mod types;
 
+pub use family::AutopilotFamily;
 pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
 pub use mavconn::{Endpoint, EndpointParseError};
-pub use modes::{name as mode_name, number as mode_number, ModeSpec};
+pub use modes::{
+    name as mode_name, number as mode_number, px4_main_sub, px4_name, px4_number, ModeSpec,
+};
 pub use reach::{parse_reached_text, ReachDetector, ReachSource};
 pub use types::*;
 

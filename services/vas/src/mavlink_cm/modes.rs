@@ -82,6 +82,45 @@ pub fn number(vehicle: MavType, name: &str) -> Option<u32> {
         .map(|m| m.0)
 }
 
+/// PX4's custom modes as `main << 16 | sub << 24`, named like the ArduPilot modes the APL asks
+/// for (AUTO = AUTO.MISSION, HOLD = AUTO.LOITER), PX4's own name second.
+const PX4: &[(u32, &str)] = &[
+    (1 << 16, "MANUAL"),
+    (2 << 16, "ALTCTL"),
+    (3 << 16, "POSCTL"),
+    (4 << 16 | 4 << 24, "AUTO"),
+    (4 << 16 | 3 << 24, "HOLD"),
+    (4 << 16 | 5 << 24, "RTL"),
+    (4 << 16 | 2 << 24, "TAKEOFF"),
+    (4 << 16 | 6 << 24, "LAND"),
+    (4 << 16 | 1 << 24, "READY"),
+    (5 << 16, "ACRO"),
+    (6 << 16, "OFFBOARD"),
+    (7 << 16, "STABILIZED"),
+];
+
+/// Name of a PX4 custom mode.
+pub fn px4_name(custom: u32) -> Option<&'static str> {
+    PX4.iter().find(|m| m.0 == custom).map(|m| m.1)
+}
+
+/// PX4 custom mode of a name (case-insensitive; `LOITER` is `HOLD`, AUTO.LOITER).
+pub fn px4_number(name: &str) -> Option<u32> {
+    let name = if name.eq_ignore_ascii_case("LOITER") {
+        "HOLD"
+    } else {
+        name
+    };
+    PX4.iter()
+        .find(|m| m.1.eq_ignore_ascii_case(name))
+        .map(|m| m.0)
+}
+
+/// PX4's (main, sub) of a custom mode, as MAV_CMD_DO_SET_MODE's param2 and param3.
+pub fn px4_main_sub(custom: u32) -> (u8, u8) {
+    (((custom >> 16) & 0xff) as u8, ((custom >> 24) & 0xff) as u8)
+}
+
 /// A mode asked for by name or by number.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum ModeSpec {
@@ -120,5 +159,16 @@ mod tests {
         assert_eq!(name(MavType::MAV_TYPE_GROUND_ROVER, 2), None);
         assert_eq!(ModeSpec::from("10"), ModeSpec::Number(10));
         assert_eq!(ModeSpec::from("HOLD"), ModeSpec::Name("HOLD".into()));
+    }
+
+    #[test]
+    fn px4_modes_encode_main_and_sub() {
+        let auto = px4_number("auto").unwrap();
+        assert_eq!(auto, 0x0404_0000);
+        assert_eq!(px4_main_sub(auto), (4, 4));
+        assert_eq!(px4_name(auto), Some("AUTO"));
+        assert_eq!(px4_number("LOITER"), px4_number("HOLD"));
+        assert_eq!(px4_main_sub(px4_number("MANUAL").unwrap()), (1, 0));
+        assert_eq!(px4_name(0x0909_0000), None);
     }
 }

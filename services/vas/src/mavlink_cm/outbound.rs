@@ -16,4 +16,6 @@ pub(crate) enum Outbound {
     /// swallowed. Zero bytes complete the bogus frame and are skipped while looking for the
     /// next start marker.
     Resync,
+    /// A frame from another ground station (a forward endpoint), sent with its own header.
+    Raw(mavlink::MavHeader, MavMessage),
 }

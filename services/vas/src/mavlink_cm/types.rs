@@ -137,6 +137,14 @@ pub enum MavEvent {
         /// The message that revealed it.
         source: ReachSource,
     },
+    /// The autopilot accepted a mission write (upload, partial write, clear) from another
+    /// ground station: what it holds is no longer what we uploaded.
+    MissionChangedElsewhere {
+        /// That station's system id.
+        system_id: u8,
+        /// Its component id.
+        component_id: u8,
+    },
     /// No heartbeat for the configured timeout (or the transport failed).
     LinkLost,
     /// Heartbeats again after a loss.
@@ -215,6 +223,7 @@ impl MissionItem {
             frame: self.frame,
             current: 0,
             autocontinue: u8::from(self.autocontinue),
+            ..Default::default()
         }
     }
 
@@ -235,6 +244,7 @@ impl MissionItem {
             frame: self.frame,
             current: 0,
             autocontinue: u8::from(self.autocontinue),
+            ..Default::default()
         }
     }
 
@@ -377,4 +387,8 @@ pub enum MissionError {
     /// The request does not make sense (empty list, range past the end...).
     #[error("invalid mission request: {0}")]
     Invalid(String),
+    /// The autopilot does not answer or refuses MISSION_WRITE_PARTIAL_LIST (found out once per
+    /// connection by a short probe): upload whole missions instead.
+    #[error("the autopilot has no partial mission writes")]
+    PartialUnsupported,
 }

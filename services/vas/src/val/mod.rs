@@ -15,9 +15,9 @@ use async_trait::async_trait;
 use marea::{Event, IService, Service, ServiceError, Variable};
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionTime, Position,
-    QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest, StateChanged, Waypoint,
-    WaypointReached,
+    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionChanged, MissionTime,
+    Position, QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest, StateChanged,
+    Waypoint, WaypointReached,
 };
 
 use crate::apl::{ApEvent, IAutopilot};
@@ -72,6 +72,7 @@ struct Items {
     state_changed: Event<StateChanged>,
     waypoint_reached: Event<WaypointReached>,
     alarm: Event<Alarm>,
+    mission_changed: Event<MissionChanged>,
 }
 
 struct Core {
@@ -208,6 +209,12 @@ impl Core {
                     }
                 }
             }
+            ApEvent::MissionChanged(m) => {
+                if let Err(e) = self.items.mission_changed.raise_nowait(&m) {
+                    tracing::warn!("raising mission_changed: {e}");
+                }
+                self.publish_queue().await;
+            }
             ApEvent::LinkLost | ApEvent::LinkRestored => {
                 let _ = self.items.autopilot.set(&self.apl.status());
             }
@@ -254,6 +261,7 @@ impl IService for Vas {
             state_changed: ctx.publish_event("state_changed")?,
             waypoint_reached: ctx.publish_event("waypoint_reached")?,
             alarm: ctx.publish_event("alarm")?,
+            mission_changed: ctx.publish_event("mission_changed")?,
         };
         let core = Arc::new(Core {
             apl: self.apl.clone(),

@@ -24,7 +24,22 @@ pub(super) async fn configure(
     ])
     .await
     .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+    match mgr.request_capabilities().await {
+        Ok(Some(c)) => tracing::info!("autopilot capabilities {c:#x}"),
+        Ok(None) => tracing::info!("autopilot did not report its capabilities"),
+        Err(e) => tracing::warn!("asking for AUTOPILOT_VERSION: {e}"),
+    }
+    probe_partial(mgr).await;
     Ok(())
+}
+
+/// Finds out on the ground, once per connection, whether the autopilot has partial mission
+/// writes (a short probe), so the rolling queue does not find out in flight.
+pub(super) async fn probe_partial(mgr: &MavlinkManager) {
+    tracing::info!("autopilot family: {}", mgr.family().name());
+    if let Err(e) = mgr.probe_partial_writes().await {
+        tracing::warn!("probing partial mission writes: {e}");
+    }
 }
 
 /// Why a queue action failed.
@@ -33,19 +48,35 @@ enum ExecError {
     Other(String),
 }
 
-/// Performs one queue action on the autopilot.
+/// The autopilot refused a mission transfer (a MISSION_ACK result such as NO_SPACE or DENIED):
+/// unlike a lost frame, worth telling the ground.
+fn is_refusal(e: &MissionError) -> bool {
+    matches!(e, MissionError::Rejected(_))
+}
+
+/// Performs one queue action on the autopilot. `item0` is what a whole upload puts in item 0
+/// where item 0 is an ordinary item (not ArduPilot's home): the target, so an autopilot that
+/// falls back to item 0 after the upload keeps driving where it was going.
 async fn exec(
     mgr: &MavlinkManager,
     home: Option<(f64, f64)>,
+    item0: Option<&Waypoint>,
     action: &QueueAction<Waypoint>,
 ) -> Result<(), ExecError> {
-    let other = |e: MissionError| ExecError::Other(e.to_string());
+    let other = |e: MissionError| {
+        let refused = if is_refusal(&e) { "refused: " } else { "" };
+        ExecError::Other(format!("{refused}{e}"))
+    };
     match action {
         QueueAction::Upload(items) => {
             let home = home
                 .or_else(|| items.first().map(|w| (w.lat, w.lon)))
                 .unwrap_or_default();
-            let mut mission = vec![MissionItem::waypoint(home.0, home.1, 0.0)];
+            let first = match item0 {
+                Some(w) if !mgr.family().item0_is_home() => mission_item(w),
+                _ => MissionItem::waypoint(home.0, home.1, 0.0),
+            };
+            let mut mission = vec![first];
             mission.extend(items.iter().map(mission_item));
             tracing::debug!("queue: upload {} slots", items.len());
             mgr.mission_upload(&mission).await.map_err(other)
@@ -55,6 +86,12 @@ async fn exec(
             tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
             match mgr.mission_write_partial(*start, &mission).await {
                 Ok(()) => Ok(()),
+                Err(MissionError::PartialUnsupported) => {
+                    tracing::warn!(
+                        "partial mission writes unsupported on this autopilot: uploading whole windows"
+                    );
+                    Err(ExecError::PartialUnsupported)
+                }
                 Err(MissionError::RetriesExhausted {
                     stage: MissionStage::Start,
                     ..
@@ -109,6 +146,14 @@ pub(super) struct Driver {
     /// likely the mission ended there and its report is late, lost or never sent): a late
     /// report of that slot, or a position at or past it, still counts it.
     last_pending: Option<(u16, Waypoint)>,
+    /// What the last whole upload put in item 0 where it is an ordinary item.
+    item0: Option<Waypoint>,
+    /// Times the vehicle's reported current item went back to an item already passed while
+    /// navigating (issue 14: each is a drive back toward a passed waypoint).
+    backtracks: u64,
+    /// The last queue failure raised as an alarm (a refusal such as NO_SPACE or DENIED repeats
+    /// on every retry; the ground hears it once until it changes or the queue recovers).
+    queue_error: Option<String>,
 }
 
 impl Driver {
@@ -137,6 +182,9 @@ impl Driver {
             leg_start: None,
             passing: None,
             last_pending: None,
+            item0: None,
+            backtracks: 0,
+            queue_error: None,
         }
     }
 
@@ -190,6 +238,7 @@ impl Driver {
             target: self.queue.target().map(|w| w.seq),
             last_reached: self.last_reached,
             replacing: self.queue.is_replacing(),
+            backtracks: self.backtracks,
         }
     }
 
@@ -245,9 +294,19 @@ impl Driver {
             }
         }
         if let Err(e) = self.mgr.set_mode(mode).await {
-            self.queue.stop();
-            self.commanded = previous;
-            return Err(refused(&e));
+            // PX4 also enters its mission with MAV_CMD_MISSION_START.
+            let started = to == FlightState::WaypointNavigation
+                && self.mgr.state().px4_modes
+                && self
+                    .mgr
+                    .mission_start(self.queue.current_slot().unwrap_or(1))
+                    .await
+                    .is_ok();
+            if !started {
+                self.queue.stop();
+                self.commanded = previous;
+                return Err(refused(&e));
+            }
         }
         if to == FlightState::WaypointNavigation {
             // Entering AUTO puts the autopilot back to its default speed.
@@ -277,6 +336,10 @@ impl Driver {
 
     /// Performs queue actions until the autopilot holds what it should.
     async fn prime(&mut self) -> Result<(), String> {
+        if self.mgr.partial_writes() == Some(false) && self.queue.partial_supported() {
+            // The probe found none: whole windows from the start, no partial write tried.
+            self.queue.partial_unsupported();
+        }
         for _ in 0..32 {
             // Progress reported while the last action ran changes what is most urgent (the
             // wrap to slot 1 has one leg of slack): take it into account first.
@@ -296,7 +359,12 @@ impl Driver {
             };
             tracing::debug!("queue: action took {:?}", began.elapsed());
             match result {
-                Ok(()) => self.queue.done(&action),
+                Ok(()) => {
+                    self.queue.done(&action);
+                    if matches!(action, QueueAction::Upload(_)) {
+                        self.after_upload();
+                    }
+                }
                 Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
                 Err(ExecError::Other(e)) => return Err(e),
             }
@@ -311,7 +379,11 @@ impl Driver {
         action: &QueueAction<Waypoint>,
     ) -> Option<Result<(), ExecError>> {
         let mgr = Arc::clone(&self.mgr);
-        let exec = exec(&mgr, self.home, action);
+        let item0 = self.queue.target().cloned();
+        if matches!(action, QueueAction::Upload(_)) {
+            self.item0 = item0.clone();
+        }
+        let exec = exec(&mgr, self.home, item0.as_ref(), action);
         tokio::pin!(exec);
         let mut listening = !matches!(action, QueueAction::SetCurrent(_));
         loop {
@@ -336,6 +408,48 @@ impl Driver {
         }
     }
 
+    /// After a whole upload: the current item is restored next, unless the autopilot is one
+    /// that keeps it (ArduPilot) and does not report item 0. A set-current there would only
+    /// risk sending it back to a target it reached while the report was on its way (a slow
+    /// radio), which is the very backtrack to avoid.
+    fn after_upload(&mut self) {
+        let s = self.mgr.state();
+        if s.family.keeps_current_on_upload() && s.mission_current != Some(0) {
+            self.queue.current_kept();
+        }
+    }
+
+    /// The vehicle reports it drives to item `seq`: when that item holds a waypoint already
+    /// passed (or home), while in AUTO, it is driving back. Counted and logged.
+    fn check_backtrack(&mut self, seq: u16) {
+        let s = self.mgr.state();
+        if s.mode_name != Some("AUTO")
+            || !self.queue.is_running()
+            || !s.link_up
+            || s.restorations != self.restorations_seen
+        {
+            // Not driving a mission of ours, or a restarted autopilot not yet handled.
+            return;
+        }
+        let Some(target) = self.queue.target().map(|w| w.seq) else {
+            return;
+        };
+        let item0 = if s.family.item0_is_home() {
+            None
+        } else {
+            self.item0.as_ref()
+        };
+        let back = self.queue.heads_back(seq, item0);
+        if back {
+            self.backtracks += 1;
+            tracing::warn!(
+                "backtrack #{}: the autopilot drives to item {seq}, which holds home or a \
+                 waypoint already passed (target: waypoint {target})",
+                self.backtracks
+            );
+        }
+    }
+
     async fn pump(&mut self) {
         let s = self.mgr.state();
         if self.failing || !s.link_up || s.restorations != self.restorations_seen {
@@ -343,9 +457,14 @@ impl Driver {
         }
         if let Err(e) = self.prime().await {
             tracing::warn!("rolling queue: {e}; retrying");
+            if e.starts_with("refused: ") && self.queue_error.as_deref() != Some(e.as_str()) {
+                self.alarm(Severity::Warning, format!("rolling queue: {e}; retrying"));
+                self.queue_error = Some(e);
+            }
             self.failing = true;
             return;
         }
+        self.queue_error = None;
         self.sync_speed().await;
     }
 
@@ -384,6 +503,20 @@ impl Driver {
         match ev {
             MavEvent::WaypointReached { seq, .. } => {
                 self.reports_progress = true;
+                // Item 0 holds the target where item 0 is flown: an autopilot that reset its
+                // current item by an upload and got there before the restoration reached the
+                // target itself. Counted as such, the restoration then goes to the next slot,
+                // not back to the target.
+                let seq = match (self.queue.current_slot(), self.queue.target()) {
+                    (Some(slot), Some(t))
+                        if seq == 0
+                            && !self.mgr.family().item0_is_home()
+                            && self.item0.as_ref() == Some(t) =>
+                    {
+                        slot
+                    }
+                    _ => seq,
+                };
                 if let Some(w) = self.queue.on_reached(seq) {
                     self.reached(w);
                 } else if self.last_pending.as_ref().is_some_and(|(s, _)| *s == seq) {
@@ -395,6 +528,7 @@ impl Driver {
                 true
             }
             MavEvent::MissionCurrent { seq } => {
+                self.check_backtrack(seq);
                 if let Some(w) = self.queue.on_current(seq) {
                     self.reached(w);
                 }
@@ -635,8 +769,48 @@ impl Driver {
                 self.restorations_handled();
                 self.on_restored().await
             }
+            MavEvent::MissionChangedElsewhere {
+                system_id,
+                component_id,
+            } => self.on_mission_changed(system_id, component_id).await,
             MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
         }
+    }
+
+    /// Another ground station wrote the mission: do not fight it. The queue stops feeding the
+    /// autopilot (and forgets what it held), the mission is read back and reported.
+    async fn on_mission_changed(&mut self, system_id: u8, component_id: u8) {
+        let by = format!("MAVLink system {system_id} component {component_id}");
+        self.queue.stop();
+        self.queue.forget_onboard();
+        self.last_pending = None;
+        self.alarm(
+            Severity::Warning,
+            format!(
+                "mission changed by another ground station ({by}): following it, the queue stopped"
+            ),
+        );
+        let waypoints = match self.mgr.mission_download().await {
+            Ok(items) => items
+                .iter()
+                .enumerate()
+                .map(|(i, m)| Waypoint {
+                    seq: i as u64,
+                    lat: m.lat_deg(),
+                    lon: m.lon_deg(),
+                    alt: f64::from(m.z),
+                    leg: "external".into(),
+                    ..Waypoint::default()
+                })
+                .collect(),
+            Err(e) => {
+                tracing::warn!("reading back the mission another station wrote: {e}");
+                Vec::new()
+            }
+        };
+        tracing::info!("mission changed by {by}: {} items", waypoints.len());
+        self.emit(ApEvent::MissionChanged(MissionChanged { by, waypoints }));
+        self.emit(ApEvent::Status(status_of(&self.mgr)));
     }
 
     /// Heartbeats are back: re-read parameters and mission, and resume what was commanded.
@@ -647,6 +821,10 @@ impl Driver {
         match self.mgr.params_list().await {
             Ok(p) => tracing::info!("re-read {} parameters", p.len()),
             Err(e) => tracing::warn!("re-reading parameters: {e}"),
+        }
+        probe_partial(&self.mgr).await;
+        if self.mgr.partial_writes() == Some(true) {
+            self.queue.partial_supported_again();
         }
         let intact = match self.mgr.mission_download().await {
             Ok(onboard) => {

@@ -1,0 +1,114 @@
+//! The same plan flown by the `vas` binary on each of mavsim's autopilot profiles (issue 14):
+//! ArduPilot (item 0 home, partial writes, current item kept by uploads), PX4 (PX4 custom
+//! modes, item 0 ordinary, no partial writes, current item reset to 0 by every upload,
+//! MISSION_CURRENT only on change) and generic (ArduPilot modes, PX4's mission conventions).
+//! Every waypoint is reached once, in order, and the vehicle never turns back.
+
+mod common;
+
+use common::*;
+use usal_types::{FlightState, QueueStatus};
+
+/// Flies `n` waypoints on mavsim `--autopilot profile`; returns after checking them.
+async fn fly_on(profile: &str, n: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        30.0,
+        &dir.path().join("sim.jsonl"),
+        &["--autopilot", profile],
+    )
+    .await;
+    let domain = unique_domain(&format!("profile-{profile}"));
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--queue-size", "5"],
+    );
+    let g = Ground::open(&domain).await;
+    let queue = g
+        .svc
+        .subscribe_variable::<QueueStatus>("rover1/vas/queue")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+
+    let wps = zigzag(n, 10.0);
+    g.push_all(&wps).await;
+    let reply = g.request(FlightState::WaypointNavigation).await;
+    assert!(reply.is_ok(), "{profile}: {reply:?}");
+
+    let mut seen = Vec::new();
+    while seen.len() < wps.len() {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| panic!("{profile}: stalled after {} waypoints", seen.len()))
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    assert_eq!(
+        seen,
+        (0..n as u64).collect::<Vec<_>>(),
+        "{profile}: VAS order"
+    );
+    g.wait_state(FlightState::Parking, STEP).await;
+
+    // What the vehicle did: every waypoint reached once, in order; item 0 (home on
+    // ArduPilot, the target's copy elsewhere) never reached as anything else.
+    let order: Vec<Option<usize>> = reached_points(&sim.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    let mut dedup = order.clone();
+    dedup.dedup();
+    assert_eq!(
+        dedup,
+        (0..n).map(Some).collect::<Vec<_>>(),
+        "{profile}: mavsim reached every waypoint in order, nothing else"
+    );
+    let repeated = order.len() - dedup.len();
+    assert!(
+        repeated == 0,
+        "{profile}: {repeated} waypoints reached twice in a row"
+    );
+    if profile != "ardupilot" {
+        // The profile's conventions were met: uploads reset the current item, and it was
+        // restored each time.
+        let resets = sim
+            .log_events("current_changed")
+            .iter()
+            .filter(|e| e["cause"] == "upload_reset")
+            .count();
+        assert!(resets > 0, "{profile}: no upload reset the current item");
+    }
+    // The VAS saw no backtrack either.
+    let mut last = None;
+    while let Some(Ok(s)) = queue.try_recv() {
+        last = Some(s.value);
+    }
+    let last = last.expect("queue status published");
+    assert_eq!(last.backtracks, 0, "{profile}: {last:?}");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn forty_waypoints_on_the_ardupilot_profile() {
+    tokio::time::timeout(STEP * 12, fly_on("ardupilot", 40))
+        .await
+        .expect("ardupilot profile flight bounded");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn forty_waypoints_on_the_px4_profile() {
+    tokio::time::timeout(STEP * 12, fly_on("px4", 40))
+        .await
+        .expect("px4 profile flight bounded");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn forty_waypoints_on_the_generic_profile() {
+    tokio::time::timeout(STEP * 12, fly_on("generic", 40))
+        .await
+        .expect("generic profile flight bounded");
+}
