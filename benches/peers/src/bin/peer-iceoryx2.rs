@@ -113,8 +113,16 @@ fn rtt_side(args: &Args, control: &Control, (rx, tx): (&str, &str), initiator: b
         .notifier_builder()
         .create()
         .map_err(|e| anyhow!("notifier: {e:?}"))?;
+    if !initiator {
+        // The ping's subscriber appears once the ping starts, which waits for this.
+        ready("");
+    }
     let (publisher, _) = ports.publisher(&format!("{k}/{tx}"), args.size)?;
-    ready("");
+    if initiator {
+        // The pong's subscriber existed before it said ready, so the first ping reaches it;
+        // the pong answers once its publisher sees this side's subscriber.
+        ready("");
+    }
     let wait_one = |deadline: Duration| -> anyhow::Result<Option<Vec<u8>>> {
         let end = Instant::now() + deadline;
         loop {
@@ -125,7 +133,7 @@ fn rtt_side(args: &Args, control: &Control, (rx, tx): (&str, &str), initiator: b
                 return Ok(None);
             }
             listener
-                .timed_wait_all(|_| {}, Duration::from_millis(100))
+                .timed_wait(|_| {}, Duration::from_millis(100))
                 .map_err(|e| anyhow!("wait: {e:?}"))?;
         }
     };
@@ -187,6 +195,11 @@ fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 }
             }
             println!("result {sent} {}", start.elapsed().as_secs_f64());
+            // Samples still in the subscriber's buffer go with a publisher that leaves: stay
+            // until the runner has the subscriber's count.
+            while !control.closed() {
+                std::thread::sleep(Duration::from_millis(5));
+            }
             Ok(())
         }
         "idle" => {

@@ -76,9 +76,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             "pong" => {
                 let pings = svc.subscribe_variable::<Vec<u8>>("ping/v")?;
                 let pong = svc.publish_variable::<Vec<u8>>("v")?;
-                if !pong.wait_remote_subscribers(1, MATCH).await {
-                    anyhow::bail!("pong: no subscriber within {MATCH:?}");
-                }
+                // The ping starts once this is ready; it makes sure both directions match.
                 ready("");
                 while !control.closed() {
                     if let Ok(s) = pings.recv_timeout(Duration::from_millis(200)).await {
@@ -91,6 +89,20 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 let ping = svc.publish_variable::<Vec<u8>>("v")?;
                 if !ping.wait_remote_subscribers(1, MATCH).await {
                     anyhow::bail!("ping: no subscriber within {MATCH:?}");
+                }
+                // Both directions matched: a pong came back (values sent before the pong's
+                // publisher knew of this subscriber are lost, so ask again until one comes).
+                let end = Instant::now() + MATCH;
+                'hello: loop {
+                    if Instant::now() > end {
+                        anyhow::bail!("ping: no pong within {MATCH:?}");
+                    }
+                    ping.set(&payload(args.size, u64::MAX))?;
+                    while let Ok(s) = pongs.recv_timeout(Duration::from_millis(50)).await {
+                        if seq(&s.value) == Some(u64::MAX) {
+                            break 'hello;
+                        }
+                    }
                 }
                 ready("");
                 let mut rtts = Rtts::new(args.param as usize);
