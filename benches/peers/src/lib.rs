@@ -259,7 +259,11 @@ pub fn seq(bytes: &[u8]) -> Option<u64> {
 }
 
 /// Waits (polling, bounded) until `cond` holds.
-pub fn wait_until(what: &str, timeout: Duration, mut cond: impl FnMut() -> bool) -> anyhow::Result<()> {
+pub fn wait_until(
+    what: &str,
+    timeout: Duration,
+    mut cond: impl FnMut() -> bool,
+) -> anyhow::Result<()> {
     let end = Instant::now() + timeout;
     while !cond() {
         if Instant::now() > end {

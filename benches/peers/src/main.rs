@@ -110,8 +110,16 @@ fn cases(o: &Opts) -> Vec<Case> {
             base(fig, "raw_udp", Kind::Rtt, "peer-udp", 64, n_rtt),
             base(fig, "zenoh_tcp", Kind::Rtt, "peer-zenoh", 64, n_rtt),
             base(fig, "iceoryx2", Kind::Rtt, "peer-iceoryx2", 64, n_rtt),
-            marea(base(fig, "marea_udp", Kind::Rtt, "peer-marea", 64, n_rtt), "udp", ""),
-            marea(base(fig, "marea_shm", Kind::Rtt, "peer-marea", 64, n_rtt), "shm", ""),
+            marea(
+                base(fig, "marea_udp", Kind::Rtt, "peer-marea", 64, n_rtt),
+                "udp",
+                "",
+            ),
+            marea(
+                base(fig, "marea_shm", Kind::Rtt, "peer-marea", 64, n_rtt),
+                "shm",
+                "",
+            ),
         ];
         for c in &mut row {
             c.pinned = pinned;
@@ -123,9 +131,21 @@ fn cases(o: &Opts) -> Vec<Case> {
             base(fig, "raw_udp", Kind::Rate, "peer-udp", size, secs),
             base(fig, "zenoh_tcp", Kind::Rate, "peer-zenoh", size, secs),
             base(fig, "iceoryx2", Kind::Rate, "peer-iceoryx2", size, secs),
-            marea(base(fig, "marea_udp", Kind::Rate, "peer-marea", size, secs), "udp", "-event"),
-            marea(base(fig, "marea_shm", Kind::Rate, "peer-marea", size, secs), "shm", "-event"),
-            marea(base(fig, "marea_udp_var", Kind::Rate, "peer-marea", size, secs), "udp", "-var"),
+            marea(
+                base(fig, "marea_udp", Kind::Rate, "peer-marea", size, secs),
+                "udp",
+                "-event",
+            ),
+            marea(
+                base(fig, "marea_shm", Kind::Rate, "peer-marea", size, secs),
+                "shm",
+                "-event",
+            ),
+            marea(
+                base(fig, "marea_udp_var", Kind::Rate, "peer-marea", size, secs),
+                "udp",
+                "-var",
+            ),
         ]);
     }
     let fig = "idle_rss_kib";
@@ -133,19 +153,41 @@ fn cases(o: &Opts) -> Vec<Case> {
         base(fig, "raw_udp", Kind::Idle, "peer-udp", 64, idle),
         base(fig, "zenoh_tcp", Kind::Idle, "peer-zenoh", 64, idle),
         base(fig, "iceoryx2", Kind::Idle, "peer-iceoryx2", 64, idle),
-        marea(base(fig, "marea_udp", Kind::Idle, "peer-marea", 64, idle), "udp", ""),
-        marea(base(fig, "marea_shm", Kind::Idle, "peer-marea", 64, idle), "shm", ""),
+        marea(
+            base(fig, "marea_udp", Kind::Idle, "peer-marea", 64, idle),
+            "udp",
+            "",
+        ),
+        marea(
+            base(fig, "marea_shm", Kind::Idle, "peer-marea", 64, idle),
+            "shm",
+            "",
+        ),
     ]);
     let b = o.baud;
     let serial_rtt = if o.quick { 30.0 } else { 100.0 };
     v.extend([
         marea(
-            base(&format!("rtt64_serial{b}"), "marea_serial", Kind::Rtt, "peer-marea", 64, serial_rtt),
+            base(
+                &format!("rtt64_serial{b}"),
+                "marea_serial",
+                Kind::Rtt,
+                "peer-marea",
+                64,
+                serial_rtt,
+            ),
             "serial",
             "",
         ),
         marea(
-            base(&format!("event64_serial{b}"), "marea_serial", Kind::Rate, "peer-marea", 64, secs.max(2.0)),
+            base(
+                &format!("event64_serial{b}"),
+                "marea_serial",
+                Kind::Rate,
+                "peer-marea",
+                64,
+                secs.max(2.0),
+            ),
             "serial",
             "-event",
         ),
@@ -246,14 +288,21 @@ impl Peer {
 
 fn bin_dir() -> anyhow::Result<PathBuf> {
     let exe = std::env::current_exe()?;
-    Ok(exe.parent().context("runner has no directory")?.to_path_buf())
+    Ok(exe
+        .parent()
+        .context("runner has no directory")?
+        .to_path_buf())
 }
 
 fn free_port(udp: bool) -> anyhow::Result<u16> {
     Ok(if udp {
-        std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port()
+        std::net::UdpSocket::bind("127.0.0.1:0")?
+            .local_addr()?
+            .port()
     } else {
-        std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port()
+        std::net::TcpListener::bind("127.0.0.1:0")?
+            .local_addr()?
+            .port()
     })
 }
 
@@ -436,7 +485,9 @@ fn median(v: &[f64]) -> f64 {
 fn spread_pct(v: &[f64]) -> f64 {
     let (lo, hi) = v
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        });
     (hi - lo) / median(v) * 100.0
 }
 
@@ -473,7 +524,12 @@ async fn main() -> anyhow::Result<()> {
             let s = match run_case(c, &key, o.baud).await {
                 Ok(s) => Some(s),
                 Err(e) => {
-                    eprintln!("peers: {}.{} round {} failed: {e:#}", c.figure, c.imp, round + 1);
+                    eprintln!(
+                        "peers: {}.{} round {} failed: {e:#}",
+                        c.figure,
+                        c.imp,
+                        round + 1
+                    );
                     None
                 }
             };
@@ -500,15 +556,60 @@ async fn main() -> anyhow::Result<()> {
     }
     // Same-run ratios: within each round, then the median over rounds.
     let ratios = [
-        ("event64", "marea_udp", "zenoh_tcp", "peers.event64.marea_udp_to_zenoh_tcp"),
-        ("event1k", "marea_udp", "zenoh_tcp", "peers.event1k.marea_udp_to_zenoh_tcp"),
-        ("event64", "marea_shm", "iceoryx2", "peers.event64.marea_shm_to_iceoryx2"),
-        ("event1k", "marea_shm", "iceoryx2", "peers.event1k.marea_shm_to_iceoryx2"),
-        ("rtt64_pinned", "marea_udp", "raw_udp", "peers.rtt64_pinned.marea_udp_to_raw"),
-        ("rtt64_pinned", "marea_shm", "iceoryx2", "peers.rtt64_pinned.marea_shm_to_iceoryx2"),
-        ("rtt64", "marea_udp", "zenoh_tcp", "peers.rtt64.marea_udp_to_zenoh_tcp"),
-        ("rtt64", "marea_udp", "raw_udp", "peers.rtt64.marea_udp_to_raw"),
-        ("rtt64", "marea_shm", "iceoryx2", "peers.rtt64.marea_shm_to_iceoryx2"),
+        (
+            "event64",
+            "marea_udp",
+            "zenoh_tcp",
+            "peers.event64.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "event1k",
+            "marea_udp",
+            "zenoh_tcp",
+            "peers.event1k.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "event64",
+            "marea_shm",
+            "iceoryx2",
+            "peers.event64.marea_shm_to_iceoryx2",
+        ),
+        (
+            "event1k",
+            "marea_shm",
+            "iceoryx2",
+            "peers.event1k.marea_shm_to_iceoryx2",
+        ),
+        (
+            "rtt64_pinned",
+            "marea_udp",
+            "raw_udp",
+            "peers.rtt64_pinned.marea_udp_to_raw",
+        ),
+        (
+            "rtt64_pinned",
+            "marea_shm",
+            "iceoryx2",
+            "peers.rtt64_pinned.marea_shm_to_iceoryx2",
+        ),
+        (
+            "rtt64",
+            "marea_udp",
+            "zenoh_tcp",
+            "peers.rtt64.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "rtt64",
+            "marea_udp",
+            "raw_udp",
+            "peers.rtt64.marea_udp_to_raw",
+        ),
+        (
+            "rtt64",
+            "marea_shm",
+            "iceoryx2",
+            "peers.rtt64.marea_shm_to_iceoryx2",
+        ),
     ];
     for (fig, a, b, name) in ratios {
         let (Some(ra), Some(rb)) = (got.get(&(fig.to_owned(), a)), got.get(&(fig.to_owned(), b)))

@@ -36,8 +36,9 @@ impl Ports {
     fn service(
         &self,
         name: &str,
-    ) -> anyhow::Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], ()>>
-    {
+    ) -> anyhow::Result<
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], ()>,
+    > {
         self.node
             .service_builder(&ServiceName::new(name).map_err(|e| anyhow!("name {name}: {e:?}"))?)
             .publish_subscribe::<[u8]>()
@@ -100,7 +101,12 @@ fn main() -> anyhow::Result<()> {
 }
 
 /// One side of a round trip: receives on `rx`, sends on `tx`, each message with a wake-up.
-fn rtt_side(args: &Args, control: &Control, (rx, tx): (&str, &str), initiator: bool) -> anyhow::Result<()> {
+fn rtt_side(
+    args: &Args,
+    control: &Control,
+    (rx, tx): (&str, &str),
+    initiator: bool,
+) -> anyhow::Result<()> {
     let ports = Ports::new()?;
     let k = &args.key;
     let sub = ports.subscriber(&format!("{k}/{rx}"))?;

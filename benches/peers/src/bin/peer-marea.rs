@@ -65,12 +65,10 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         base
     };
     let domain = args.key.trim_end_matches("/partner").to_owned();
-    let node = Node::open(&config(&node_name, &domain, &link)?)
+    let node = Node::open(&config(node_name, &domain, &link)?)
         .await
         .map_err(|e| anyhow!("open node {node_name} on {link}: {e}"))?;
-    let svc = node
-        .service(base)
-        .map_err(|e| anyhow!("service: {e}"))?;
+    let svc = node.service(base).map_err(|e| anyhow!("service: {e}"))?;
     let result = async {
         match args.role.as_str() {
             "pong" => {
@@ -173,7 +171,10 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                         p.await;
                     }
                 };
-                if tokio::time::timeout(Duration::from_secs(30), drain).await.is_err() {
+                if tokio::time::timeout(Duration::from_secs(30), drain)
+                    .await
+                    .is_err()
+                {
                     eprintln!("peer-marea: raises still pending 30 s after the last one");
                 }
                 println!("result {sent} {secs}");

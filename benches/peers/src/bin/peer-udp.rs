@@ -29,7 +29,10 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             }
         }
         "ping" => {
-            let to: std::net::SocketAddr = args.key.parse().context("ping: KEY is the pong's address")?;
+            let to: std::net::SocketAddr = args
+                .key
+                .parse()
+                .context("ping: KEY is the pong's address")?;
             ready("");
             let mut rtts = Rtts::new(args.param as usize);
             let mut i = 0u64;
@@ -38,16 +41,13 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 let t = Instant::now();
                 sock.send_to(&msg, to).await.context("ping send")?;
                 // A lost datagram (rare on loopback) is sent again under a new number.
-                loop {
-                    match tokio::time::timeout(Duration::from_secs(1), sock.recv_from(&mut buf)).await {
-                        Ok(r) => {
-                            let (len, _) = r.context("ping recv")?;
-                            if seq(&buf[..len]) == Some(i) {
-                                rtts.push(t);
-                                break;
-                            }
-                        }
-                        Err(_) => break,
+                while let Ok(r) =
+                    tokio::time::timeout(Duration::from_secs(1), sock.recv_from(&mut buf)).await
+                {
+                    let (len, _) = r.context("ping recv")?;
+                    if seq(&buf[..len]) == Some(i) {
+                        rtts.push(t);
+                        break;
                     }
                 }
                 i += 1;
@@ -69,7 +69,8 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             Ok(())
         }
         "pub" => {
-            let to: std::net::SocketAddr = args.key.parse().context("pub: KEY is the sub's address")?;
+            let to: std::net::SocketAddr =
+                args.key.parse().context("pub: KEY is the sub's address")?;
             ready("");
             let msg = payload(args.size, 0);
             let start = Instant::now();

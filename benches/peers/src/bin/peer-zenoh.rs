@@ -20,7 +20,8 @@ fn main() -> anyhow::Result<()> {
 async fn session(port: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
     let mut c = zenoh::Config::default();
     let set = |c: &mut zenoh::Config, k: &str, v: &str| {
-        c.insert_json5(k, v).map_err(|e| anyhow!("zenoh config {k}={v}: {e}"))
+        c.insert_json5(k, v)
+            .map_err(|e| anyhow!("zenoh config {k}={v}: {e}"))
     };
     set(&mut c, "mode", r#""peer""#)?;
     set(&mut c, "scouting/multicast/enabled", "false")?;
@@ -69,7 +70,8 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         .key
         .split_once(':')
         .ok_or_else(|| anyhow!("KEY {:?}: expected PORT:NAME", args.key))?;
-    let listen = matches!(args.role.as_str(), "pong" | "sub" | "idle") && !name.ends_with("/partner");
+    let listen =
+        matches!(args.role.as_str(), "pong" | "sub" | "idle") && !name.ends_with("/partner");
     let s = session(port, listen).await?;
     match args.role.as_str() {
         "pong" => {
