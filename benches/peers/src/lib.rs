@@ -273,3 +273,46 @@ pub fn wait_until(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn payload_carries_its_sequence_number_and_size() {
+        let p = payload(64, 42);
+        assert_eq!(p.len(), 64);
+        assert_eq!(seq(&p), Some(42));
+        assert_eq!(payload(1024, u64::MAX).len(), 1024);
+        assert_eq!(seq(&[1, 2, 3]), None);
+    }
+
+    #[test]
+    fn percentile_of_sorted_samples() {
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(percentile(&v, 0.5), 51.0);
+        assert_eq!(percentile(&v, 0.99), 99.0);
+        assert!(percentile(&[], 0.5).is_nan());
+    }
+
+    #[test]
+    fn arrivals_count_and_span() {
+        let a = Arrivals::default();
+        assert_eq!((a.count(), a.span()), (0, 0.0));
+        a.add();
+        std::thread::sleep(Duration::from_millis(2));
+        a.add();
+        assert_eq!(a.count(), 2);
+        assert!(a.span() >= 0.002, "span {}", a.span());
+    }
+
+    #[test]
+    fn rtts_skip_the_warmup() {
+        let mut r = Rtts::new(100);
+        assert_eq!(r.total(), 110);
+        for _ in 0..r.total() {
+            r.push(Instant::now());
+        }
+        assert_eq!(r.us.len(), 100);
+    }
+}
