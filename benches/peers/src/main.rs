@@ -7,7 +7,7 @@
 //!
 //! - `peers.<figure>.<impl>`: the median over the rounds (round trip p50 in µs, one-way
 //!   messages/s received, peak RSS in KiB), with `.p99` (round trips), `.delivered` (share of
-//!   sent messages received) and `.spread_pct` ((max − min) / median of the rounds);
+//!   sent messages received), `.spread_pct` ((max − min) / median of the rounds) and `.runs`;
 //! - the same-run ratios of the issue (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed
 //!   within each round, median over the rounds, with their own `.spread_pct`.
 //!
