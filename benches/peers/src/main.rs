@@ -1,5 +1,5 @@
 //! The runner: `cargo run --release --manifest-path benches/peers/Cargo.toml [-- --quick]
-//! [--rounds N] [--baud B] [--only SUBSTRING]`.
+//! [--rounds N] [--baud B] [--only SUBSTRING] [--no-build]`.
 //!
 //! Runs every case of [`cases`] as two processes of the same peer binary (responder first, then
 //! initiator), round after round so each middleware sees the same machine state, and prints
@@ -52,6 +52,7 @@ struct Case {
 }
 
 struct Opts {
+    no_build: bool,
     rounds: usize,
     quick: bool,
     baud: u32,
@@ -60,6 +61,7 @@ struct Opts {
 
 fn opts() -> anyhow::Result<Opts> {
     let mut o = Opts {
+        no_build: false,
         rounds: 3,
         quick: false,
         baud: 115_200,
@@ -70,11 +72,14 @@ fn opts() -> anyhow::Result<Opts> {
     while let Some(a) = it.next() {
         match a.as_str() {
             "--quick" => o.quick = true,
+            "--no-build" => o.no_build = true,
             "--rounds" => rounds = Some(it.next().context("--rounds N")?.parse()?),
             "--baud" => o.baud = it.next().context("--baud B")?.parse()?,
             "--only" => o.only = Some(it.next().context("--only SUBSTRING")?),
             "--bench" => {} // cargo bench passes this
-            other => bail!("unknown argument {other:?} (--quick, --rounds N, --baud B, --only S)"),
+            other => bail!(
+                "unknown argument {other:?} (--quick, --rounds N, --baud B, --only S, --no-build)"
+            ),
         }
     }
     o.rounds = rounds.unwrap_or(if o.quick { 1 } else { 3 });
@@ -196,6 +201,26 @@ fn cases(o: &Opts) -> Vec<Case> {
         v.retain(|c| format!("{}.{}", c.figure, c.imp).contains(only.as_str()));
     }
     v
+}
+
+/// `cargo run` builds only the runner: build the peer binaries beside it (same profile), so a
+/// run never measures stale ones. `--no-build` skips this.
+fn build_peers(o: &Opts) -> anyhow::Result<()> {
+    if o.no_build {
+        return Ok(());
+    }
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let manifest = concat!(env!("CARGO_MANIFEST_DIR"), "/Cargo.toml");
+    let mut cmd = std::process::Command::new(cargo);
+    cmd.args(["build", "--bins", "--manifest-path", manifest]);
+    if !cfg!(debug_assertions) {
+        cmd.arg("--release");
+    }
+    let status = cmd.status().context("cargo build of the peer binaries")?;
+    if !status.success() {
+        bail!("cargo build of the peer binaries failed ({status})");
+    }
+    Ok(())
 }
 
 /// One child process and its stdout lines.
@@ -504,6 +529,7 @@ fn unit(figure: &str) -> &'static str {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let o = opts()?;
+    build_peers(&o)?;
     let cases = cases(&o);
     for c in &cases {
         let exe = bin_dir()?.join(c.bin);
