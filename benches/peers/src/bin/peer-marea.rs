@@ -1,0 +1,214 @@
+//! marea as a user would use it: `Variable<Vec<u8>>` for round trips and the lossy rate,
+//! `Event<Vec<u8>>` with up to 4,096 `raise_nowait` in flight for the reliable rate. LINK is
+//! `udp:PORT` (loopback, discovery multicast on PORT), `shm` (iceoryx2, `wait="event"`) or
+//! `serial:DEV:BAUD` (one end of a pty pair the runner bridges). KEY is the domain (and the shm
+//! service name). Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Context};
+use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
+use marea::{NetworkConfig, Node};
+use peers::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+
+/// Raises in flight at most, as the issue's user does.
+const IN_FLIGHT: usize = 4096;
+
+fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
+    if let Some(rest) = link.strip_prefix("serial:") {
+        let (dev, baud) = rest
+            .rsplit_once(':')
+            .ok_or_else(|| anyhow!("LINK {link:?}: expected serial:DEV:BAUD"))?;
+        let xml = format!(
+            r#"<network node="{node}" domain="{key}"><serial name="radio" address="{dev}" baudRate="{baud}" heartbeatMs="1000"/></network>"#
+        );
+        return NetworkConfig::parse(&xml, None).map_err(|e| anyhow!("serial config: {e}"));
+    }
+    let mut c = NetworkConfig::ethernet_loopback(node);
+    c.domain = key.to_owned();
+    if let Some(port) = link.strip_prefix("udp:") {
+        let port: u16 = port.parse().with_context(|| format!("LINK {link:?}"))?;
+        c.links = vec![LinkConfig::Ethernet(EthernetConfig {
+            interface: std::net::Ipv4Addr::LOCALHOST,
+            bind: "127.0.0.1:0".parse().expect("literal address"),
+            multicast: std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 17), port),
+            ..EthernetConfig::default()
+        })];
+    } else if link == "shm" {
+        c.links = vec![LinkConfig::Shm(ShmConfig {
+            service: key.to_owned(),
+            ..ShmConfig::default()
+        })];
+    } else {
+        anyhow::bail!("LINK {link:?}: expected udp:PORT, shm or serial:DEV:BAUD");
+    }
+    Ok(c)
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse()?;
+    let control = Control::start(false);
+    let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
+    rt.block_on(run(args, control))
+}
+
+const MATCH: Duration = Duration::from_secs(20);
+
+async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
+    let link = args.link.clone().context("LINK missing")?;
+    let base = args.role.split('-').next().unwrap_or("x");
+    let node_name = if args.role == "idle" && args.key.ends_with("/partner") {
+        "partner"
+    } else {
+        base
+    };
+    let domain = args.key.trim_end_matches("/partner").to_owned();
+    let node = Node::open(&config(node_name, &domain, &link)?)
+        .await
+        .map_err(|e| anyhow!("open node {node_name} on {link}: {e}"))?;
+    let svc = node.service(base).map_err(|e| anyhow!("service: {e}"))?;
+    let result = async {
+        match args.role.as_str() {
+            "pong" => {
+                let pings = svc.subscribe_variable::<Vec<u8>>("ping/v")?;
+                let pong = svc.publish_variable::<Vec<u8>>("v")?;
+                // The ping starts once this is ready; it makes sure both directions match.
+                ready("");
+                while !control.closed() {
+                    if let Ok(s) = pings.recv_timeout(Duration::from_millis(200)).await {
+                        pong.set(&s.value)?;
+                    }
+                }
+            }
+            "ping" => {
+                let pongs = svc.subscribe_variable::<Vec<u8>>("pong/v")?;
+                let ping = svc.publish_variable::<Vec<u8>>("v")?;
+                if !ping.wait_remote_subscribers(1, MATCH).await {
+                    anyhow::bail!("ping: no subscriber within {MATCH:?}");
+                }
+                // Both directions matched: a pong came back (values sent before the pong's
+                // publisher knew of this subscriber are lost, so ask again until one comes).
+                let end = Instant::now() + MATCH;
+                'hello: loop {
+                    if Instant::now() > end {
+                        anyhow::bail!("ping: no pong within {MATCH:?}");
+                    }
+                    ping.set(&payload(args.size, u64::MAX))?;
+                    while let Ok(s) = pongs.recv_timeout(Duration::from_millis(50)).await {
+                        if seq(&s.value) == Some(u64::MAX) {
+                            break 'hello;
+                        }
+                    }
+                }
+                ready("");
+                let mut rtts = Rtts::new(args.param as usize);
+                for i in 0..rtts.total() as u64 {
+                    let t = Instant::now();
+                    ping.set(&payload(args.size, i))?;
+                    // Best effort: a lost value (rare) times out and the next one goes.
+                    let end = t + Duration::from_secs(2);
+                    loop {
+                        let left = end.saturating_duration_since(Instant::now());
+                        match pongs.recv_timeout(left).await {
+                            Ok(s) if seq(&s.value) == Some(i) => {
+                                rtts.push(t);
+                                break;
+                            }
+                            Ok(_) => {}
+                            Err(_) => break,
+                        }
+                    }
+                }
+                rtts.finish();
+            }
+            "sub-event" | "sub-var" => {
+                let arrivals = Arc::new(Arrivals::default());
+                let a = arrivals.clone();
+                let task = if args.role == "sub-event" {
+                    let sub = svc.subscribe_event::<Vec<u8>>("pub/d")?;
+                    tokio::spawn(async move {
+                        while sub.recv().await.is_ok() {
+                            a.add();
+                        }
+                    })
+                } else {
+                    let sub = svc.subscribe_variable::<Vec<u8>>("pub/d")?;
+                    tokio::spawn(async move {
+                        while sub.recv().await.is_ok() {
+                            a.add();
+                        }
+                    })
+                };
+                ready("");
+                let c = control.clone();
+                tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
+                task.abort();
+            }
+            "pub-event" => {
+                let ev = svc.publish_event::<Vec<u8>>("d")?;
+                if !ev.wait_remote_subscribers(1, MATCH).await {
+                    anyhow::bail!("pub: no subscriber within {MATCH:?}");
+                }
+                ready("");
+                let msg = payload(args.size, 0);
+                let start = Instant::now();
+                let mut sent = 0u64;
+                let mut inflight = VecDeque::with_capacity(IN_FLIGHT);
+                while start.elapsed().as_secs_f64() < args.param {
+                    inflight.push_back(ev.raise_nowait(&msg)?);
+                    sent += 1;
+                    if inflight.len() >= IN_FLIGHT {
+                        if let Some(p) = inflight.pop_front() {
+                            p.await;
+                        }
+                    }
+                }
+                let secs = start.elapsed().as_secs_f64();
+                let drain = async {
+                    while let Some(p) = inflight.pop_front() {
+                        p.await;
+                    }
+                };
+                if tokio::time::timeout(Duration::from_secs(30), drain)
+                    .await
+                    .is_err()
+                {
+                    eprintln!("peer-marea: raises still pending 30 s after the last one");
+                }
+                println!("result {sent} {secs}");
+            }
+            "pub-var" => {
+                let var = svc.publish_variable::<Vec<u8>>("d")?;
+                if !var.wait_remote_subscribers(1, MATCH).await {
+                    anyhow::bail!("pub: no subscriber within {MATCH:?}");
+                }
+                ready("");
+                let msg = payload(args.size, 0);
+                let start = Instant::now();
+                let mut sent = 0u64;
+                while start.elapsed().as_secs_f64() < args.param {
+                    for _ in 0..64 {
+                        var.set(&msg)?;
+                        sent += 1;
+                    }
+                    tokio::task::yield_now().await;
+                }
+                println!("result {sent} {}", start.elapsed().as_secs_f64());
+            }
+            "idle" => {
+                ready("");
+                while !control.closed() {
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+            }
+            other => anyhow::bail!("unknown role {other:?}"),
+        }
+        Ok(())
+    }
+    .await;
+    drop(svc);
+    let _ = tokio::time::timeout(Duration::from_secs(5), node.shutdown()).await;
+    result
+}

@@ -1,0 +1,152 @@
+//! Zenoh 1.x in peer mode over TCP on loopback: the responder (`pong`, `sub`, the first `idle`)
+//! listens, the initiator connects; multicast scouting is off so only the two talk. Reliable
+//! with `CongestionControl::Block` (a full queue holds the publisher up, nothing is dropped);
+//! everything else is Zenoh's default, as a user would have it. KEY is `PORT:NAME`.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Context};
+use peers::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+use zenoh::qos::CongestionControl;
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse()?;
+    let control = Control::start(true);
+    let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
+    rt.block_on(run(args, control))
+}
+
+async fn session(port: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
+    let mut c = zenoh::Config::default();
+    let set = |c: &mut zenoh::Config, k: &str, v: &str| {
+        c.insert_json5(k, v)
+            .map_err(|e| anyhow!("zenoh config {k}={v}: {e}"))
+    };
+    set(&mut c, "mode", r#""peer""#)?;
+    set(&mut c, "scouting/multicast/enabled", "false")?;
+    let ep = format!(r#"["tcp/127.0.0.1:{port}"]"#);
+    if listen {
+        set(&mut c, "listen/endpoints", &ep)?;
+    } else {
+        set(&mut c, "listen/endpoints", "[]")?;
+        set(&mut c, "connect/endpoints", &ep)?;
+    }
+    zenoh::open(c).await.map_err(|e| anyhow!("zenoh open: {e}"))
+}
+
+async fn publisher<'a>(
+    s: &'a zenoh::Session,
+    key: String,
+) -> anyhow::Result<zenoh::pubsub::Publisher<'a>> {
+    let p = s
+        .declare_publisher(key.clone())
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| anyhow!("declare publisher {key}: {e}"))?;
+    Ok(p)
+}
+
+/// Waits until the publisher has a subscriber (the other process).
+async fn matched(p: &zenoh::pubsub::Publisher<'_>) -> anyhow::Result<()> {
+    let end = Instant::now() + Duration::from_secs(15);
+    loop {
+        let m = p
+            .matching_status()
+            .await
+            .map_err(|e| anyhow!("matching status: {e}"))?;
+        if m.matching() {
+            return Ok(());
+        }
+        if Instant::now() > end {
+            anyhow::bail!("no zenoh subscriber matched within 15 s");
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
+    let (port, name) = args
+        .key
+        .split_once(':')
+        .ok_or_else(|| anyhow!("KEY {:?}: expected PORT:NAME", args.key))?;
+    let listen =
+        matches!(args.role.as_str(), "pong" | "sub" | "idle") && !name.ends_with("/partner");
+    let s = session(port, listen).await?;
+    match args.role.as_str() {
+        "pong" => {
+            let sub = s
+                .declare_subscriber(format!("{name}/ping"))
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            let p = publisher(&s, format!("{name}/pong")).await?;
+            ready("");
+            while let Ok(sample) = sub.recv_async().await {
+                let bytes = sample.payload().to_bytes().into_owned();
+                p.put(bytes).await.map_err(|e| anyhow!("pong put: {e}"))?;
+            }
+            Ok(())
+        }
+        "ping" => {
+            let sub = s
+                .declare_subscriber(format!("{name}/pong"))
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            let p = publisher(&s, format!("{name}/ping")).await?;
+            matched(&p).await?;
+            ready("");
+            let mut rtts = Rtts::new(args.param as usize);
+            for i in 0..rtts.total() as u64 {
+                let t = Instant::now();
+                p.put(payload(args.size, i))
+                    .await
+                    .map_err(|e| anyhow!("ping put: {e}"))?;
+                loop {
+                    let sample = tokio::time::timeout(Duration::from_secs(5), sub.recv_async())
+                        .await
+                        .context("no pong within 5 s")?
+                        .map_err(|e| anyhow!("ping recv: {e}"))?;
+                    if seq(&sample.payload().to_bytes()) == Some(i) {
+                        break;
+                    }
+                }
+                rtts.push(t);
+            }
+            rtts.finish();
+            Ok(())
+        }
+        "sub" => {
+            let arrivals = Arc::new(Arrivals::default());
+            let a = arrivals.clone();
+            let _sub = s
+                .declare_subscriber(format!("{name}/data"))
+                .callback(move |_sample| a.add())
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            ready("");
+            tokio::task::spawn_blocking(move || finish_sub(&arrivals, &control)).await?;
+            Ok(())
+        }
+        "pub" => {
+            let p = publisher(&s, format!("{name}/data")).await?;
+            matched(&p).await?;
+            ready("");
+            let msg = payload(args.size, 0);
+            let start = Instant::now();
+            let mut sent = 0u64;
+            while start.elapsed().as_secs_f64() < args.param {
+                for _ in 0..64 {
+                    p.put(msg.clone()).await.map_err(|e| anyhow!("put: {e}"))?;
+                    sent += 1;
+                }
+            }
+            println!("result {sent} {}", start.elapsed().as_secs_f64());
+            Ok(())
+        }
+        "idle" => {
+            ready("");
+            std::future::pending().await
+        }
+        other => anyhow::bail!("unknown role {other:?}"),
+    }
+}
