@@ -109,6 +109,8 @@ pub(super) struct Driver {
     /// likely the mission ended there and its report is late, lost or never sent): a late
     /// report of that slot, or a position at or past it, still counts it.
     last_pending: Option<(u16, Waypoint)>,
+    /// Home's altitude above mean sea level, from the last position (MSL minus relative).
+    home_alt_msl: Option<f64>,
 }
 
 impl Driver {
@@ -137,6 +139,7 @@ impl Driver {
             leg_start: None,
             passing: None,
             last_pending: None,
+            home_alt_msl: None,
         }
     }
 
@@ -257,7 +260,12 @@ impl Driver {
             self.last_pending = None;
         }
         if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
-            let alt = self.queue.target().map_or(10.0, |w| w.alt.max(2.0)) as f32;
+            // NAV_TAKEOFF climbs to an altitude above home.
+            let above_home = |w: &Waypoint| match w.alt_ref {
+                AltRef::Msl => w.alt - self.home_alt_msl.unwrap_or(0.0),
+                AltRef::Relative | AltRef::Terrain => w.alt,
+            };
+            let alt = self.queue.target().map_or(10.0, |w| above_home(w).max(2.0)) as f32;
             let takeoff = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, alt];
             if let Err(e) = self
                 .mgr
@@ -608,12 +616,14 @@ impl Driver {
                         .to_degrees()
                         .rem_euclid(360.0)
                 });
+                self.home_alt_msl = Some(f64::from(p.alt_msl_m) - f64::from(p.alt_rel_m));
                 self.emit(ApEvent::Position(Position {
                     lat: p.lat_deg,
                     lon: p.lon_deg,
                     alt: f64::from(p.alt_msl_m),
                     heading,
                     speed,
+                    alt_rel: f64::from(p.alt_rel_m),
                 }));
             }
             MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(Attitude {
@@ -635,7 +645,12 @@ impl Driver {
                 self.restorations_handled();
                 self.on_restored().await
             }
-            MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
+            MavEvent::SysStatus(s) => self.emit(ApEvent::Battery(Battery {
+                voltage: s.voltage_v,
+                current: s.current_a,
+                remaining: s.battery_pct.map(f32::from),
+            })),
+            MavEvent::Connected { .. } => {}
         }
     }
 
