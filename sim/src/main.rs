@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
+use mavsim::battery::BatteryConfig;
 use mavsim::kinematics::{GeoPoint, VehicleKind};
 use mavsim::link::{LinkConfig, LinkInfo};
 use mavsim::sim::{SimConfig, Simulator};
@@ -57,6 +58,15 @@ struct Args {
     /// only in answer to a set-current), like autopilots whose ground station must infer it.
     #[arg(long)]
     quiet_progress: bool,
+    /// Battery capacity, mAh.
+    #[arg(long, default_value_t = 5000.0)]
+    battery_capacity_mah: f64,
+    /// Battery energy spent per kilometre covered, Wh/km.
+    #[arg(long, default_value_t = 5.0)]
+    battery_wh_per_km: f64,
+    /// Battery current drawn while armed, moving or not, A.
+    #[arg(long, default_value_t = 0.5)]
+    battery_idle_a: f64,
 }
 
 fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
@@ -113,6 +123,13 @@ async fn main() -> anyhow::Result<()> {
             out: args.out.as_deref().map(parse_out).transpose()?,
         }
     };
+    let battery = BatteryConfig {
+        capacity_mah: args.battery_capacity_mah,
+        wh_per_km: args.battery_wh_per_km,
+        idle_a: args.battery_idle_a,
+        ..BatteryConfig::default()
+    };
+    battery.validate().context("--battery-*")?;
     let cfg = SimConfig {
         vehicle: VehicleConfig {
             kind: match args.vehicle {
@@ -127,6 +144,7 @@ async fn main() -> anyhow::Result<()> {
         speedup: args.speedup,
         log: args.log,
         quiet_progress: args.quiet_progress,
+        battery,
     };
     let sim = Simulator::open(cfg).await.context("starting mavsim")?;
     // One machine-readable line on stdout so scripts and tests find the endpoint.

@@ -42,6 +42,8 @@ pub struct SimConfig {
     pub log: Option<PathBuf>,
     /// Report no mission progress (see [`Vehicle::set_quiet_progress`]).
     pub quiet_progress: bool,
+    /// The battery (see [`Vehicle::set_battery`]).
+    pub battery: crate::battery::BatteryConfig,
 }
 
 /// Errors of the simulator.
@@ -87,6 +89,7 @@ impl Simulator {
         let link = Link::open(&cfg.link, cfg.vehicle.sysid).await?;
         let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
         vehicle.set_quiet_progress(cfg.quiet_progress);
+        vehicle.set_battery(cfg.battery);
         Ok(Self {
             cfg,
             vehicle,

@@ -22,6 +22,7 @@ use mavlink::dialects::ardupilotmega::{
     PARAM_VALUE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
 };
 
+use crate::battery::{Battery, BatteryConfig};
 use crate::kinematics::{Command, GeoPoint, Limits, LocalFrame, Ned, State, VehicleKind};
 use crate::log::LogEvent;
 use crate::mission::{self, Change, Item, MissionStore};
@@ -98,6 +99,8 @@ pub struct Vehicle {
     quiet_progress: bool,
     sticks: Option<(Sticks, Instant)>,
     sim_time: f64,
+    /// Drained while armed, by time and distance; reported in SYS_STATUS.
+    battery: Battery,
     streams: BTreeMap<u32, (Duration, Instant)>,
     next_heartbeat: Instant,
     log: Vec<(f64, LogEvent)>,
@@ -156,6 +159,7 @@ impl Vehicle {
             quiet_progress: false,
             sticks: None,
             sim_time: 0.0,
+            battery: Battery::new(BatteryConfig::default()),
             streams: BTreeMap::new(),
             next_heartbeat: now,
             log: Vec::new(),
@@ -185,6 +189,16 @@ impl Vehicle {
     /// STATUSTEXT, no MISSION_CURRENT stream or change; set-currents are still answered.
     pub fn set_quiet_progress(&mut self, quiet: bool) {
         self.quiet_progress = quiet;
+    }
+
+    /// Replaces the battery with a full one of this size.
+    pub fn set_battery(&mut self, cfg: BatteryConfig) {
+        self.battery = Battery::new(cfg);
+    }
+
+    /// The battery.
+    pub fn battery(&self) -> &Battery {
+        &self.battery
     }
 
     /// Current custom mode number.
@@ -502,6 +516,7 @@ impl Vehicle {
         let mut out = Vec::new();
         self.sim_time += dt;
         if !self.armed {
+            self.battery.drain(dt, 0.0, false);
             self.state.speed = 0.0;
             self.state.vel_north = 0.0;
             self.state.vel_east = 0.0;
@@ -547,7 +562,11 @@ impl Vehicle {
             },
             Behaviour::Hold => Command::Hold(self.hold_point),
         };
+        let before = self.state.pos;
         self.state.step(self.cfg.kind, command, &limits, dt);
+        let moved =
+            before.horizontal_distance(&self.state.pos) + (self.state.pos.up - before.up).abs();
+        self.battery.drain(dt, moved, true);
         if self.behaviour() == Behaviour::Auto {
             if let Some(t) = self.target {
                 if self.within(&t.pos, t.radius.unwrap_or_else(|| self.wp_radius())) {
