@@ -272,16 +272,23 @@ fn copter_plan(alt_ref: &str, alt: f64) -> String {
     <leg type="TF" fix="B"/>
   </mission>
 </flightPlan>"#,
-        a = HOME.0 + 0.0004,
-        b = HOME.0 + 0.0008,
+        // 111 m apart: aircraft waypoints closer than the FPMa's minimum distance are merged.
+        a = HOME.0 + 0.001,
+        b = HOME.0 + 0.002,
         lon = HOME.1,
     )
 }
 
 /// Flies `plan` on a copter whose home is at [`HOME_ALT`]; returns the VAS's position as each
-/// waypoint is reported reached, and the values the FPMa's `alt` took after the flight until
+/// waypoint is reported reached (after a take-off that must reach `climb_to` above home), and
+/// the values the FPMa's `alt` took after the flight until
 /// it came within 2 m of `want_fpma_alt`.
-async fn fly_copter(name: &str, plan: &str, want_fpma_alt: f64) -> (Vec<Position>, Vec<f64>) {
+async fn fly_copter(
+    name: &str,
+    plan: &str,
+    climb_to: f64,
+    want_fpma_alt: f64,
+) -> (Vec<Position>, Vec<f64>) {
     let home = format!("{},{},{HOME_ALT}", HOME.0, HOME.1);
     let f = Flight::start(
         name,
@@ -342,27 +349,31 @@ async fn fly_copter(name: &str, plan: &str, want_fpma_alt: f64) -> (Vec<Position
         .call(&to(FlightState::TakeOff), STEP)
         .await
         .expect("TAKE_OFF");
-    // The copter climbs while it flies to the first waypoint; a waypoint counts as reached
-    // only at its height (mavsim checks a copter's altitude too).
-    let mut out = Vec::new();
-    let nav = timeout(STEP, async {
+    // TAKE_OFF climbs to the first waypoint's height above home (an MSL altitude less home's).
+    let climbed = timeout(STEP, async {
         loop {
-            match change
-                .call(&to(FlightState::WaypointNavigation), STEP)
-                .await
-            {
-                Ok(_) => return,
-                Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
+            let p = position.recv().await.expect("position").value;
+            if p.alt_rel >= climb_to - 0.5 {
+                return p;
             }
         }
     })
     .await;
-    assert!(nav.is_ok(), "WAYPOINT_NAVIGATION refused");
+    assert!(
+        climbed.is_ok(),
+        "the copter did not climb to {climb_to} m above home"
+    );
+    let mut out = Vec::new();
+    change
+        .call(&to(FlightState::WaypointNavigation), STEP)
+        .await
+        .expect("WAYPOINT_NAVIGATION");
     while out.len() < 2 {
-        let _ = timeout(STEP, reached.recv())
+        let r = timeout(STEP, reached.recv())
             .await
-            .expect("a waypoint reached")
+            .unwrap_or_else(|_| panic!("no waypoint reached after {out:?}"))
             .expect("waypoint_reached");
+        assert_eq!(r.value.seq, out.len() as u64, "{:?}", r.value);
         let p = position.recv_timeout(STEP).await.expect("position").value;
         out.push(p);
     }
@@ -387,7 +398,7 @@ async fn fly_copter(name: &str, plan: &str, want_fpma_alt: f64) -> (Vec<Position
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn msl_and_relative_plans_reach_their_heights_with_home_at_584_m() {
     // 634 m above the sea is 50 m above this home.
-    let (reached, alts) = fly_copter("msl", &copter_plan("MSL", 634.0), 634.0).await;
+    let (reached, alts) = fly_copter("msl", &copter_plan("MSL", 634.0), 50.0, 634.0).await;
     for p in reached {
         assert!((p.alt - 634.0).abs() < 1.5, "MSL plan: {p:?}");
         assert!((p.alt_rel - 50.0).abs() < 1.5, "MSL plan: {p:?}");
@@ -397,7 +408,7 @@ async fn msl_and_relative_plans_reach_their_heights_with_home_at_584_m() {
         "the FPMa's alt is MSL: {alts:?}"
     );
     // 30 m above home is 614 m above the sea.
-    let (reached, alts) = fly_copter("rel", &copter_plan("REL", 30.0), 30.0).await;
+    let (reached, alts) = fly_copter("rel", &copter_plan("REL", 30.0), 30.0, 30.0).await;
     for p in reached {
         assert!((p.alt_rel - 30.0).abs() < 1.5, "relative plan: {p:?}");
         assert!(
