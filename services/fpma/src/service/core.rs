@@ -18,6 +18,7 @@
 use std::collections::VecDeque;
 use std::time::Instant;
 
+use crate::eta::EtaEstimator;
 use async_trait::async_trait;
 use usal_types::{
     AltRef, Battery, FlightState, Position, QueueStatus, StateChangeReply, WaypointKind,
@@ -119,6 +120,8 @@ pub struct Core<V> {
     vas_state: Option<FlightState>,
     last_reached: Option<u64>,
     started: Option<Instant>,
+    /// The speed flown, for the ETAs in the progress.
+    eta: EtaEstimator,
     /// Where the plan came from (`source` of [`Core::load`]).
     source: String,
     /// The geometry of the plan version being flown (version 0 before any plan).
@@ -179,6 +182,7 @@ impl<V: VasPort> Core<V> {
             vas_state: None,
             last_reached: None,
             started: None,
+            eta: EtaEstimator::new(),
             source: String::new(),
             geometry: PlanGeometry::default(),
             out: Outputs::default(),
@@ -399,6 +403,7 @@ impl<V: VasPort> Core<V> {
 
     /// Telemetry from the VAS: the present position and the built-in variables.
     pub async fn on_position(&mut self, p: &Position) {
+        self.eta.observe(f64::from(p.speed));
         let Some(ex) = &mut self.exec else { return };
         // `alt` is compared with the plan's altitudes, so it is measured from the same
         // reference. The VAS knows no terrain height: above home stands in for above terrain.
@@ -483,6 +488,7 @@ impl<V: VasPort> Core<V> {
         let st = ex.state();
         let (flown, remaining) = ex.distances_m();
         let planned = flown + remaining;
+        let (plan_left, leg_left) = ex.remaining_m();
         let fraction = if st.completed {
             1.0
         } else if planned > 0.0 {
@@ -503,6 +509,8 @@ impl<V: VasPort> Core<V> {
             paused: st.paused,
             completed: st.completed,
             holding: st.holding,
+            eta_s: self.eta.eta_s(plan_left).filter(|_| !st.completed),
+            leg_eta_s: self.eta.eta_s(leg_left).filter(|_| !st.completed),
         });
         self.out.state = Some(PlanState {
             version: st.version,
