@@ -650,7 +650,17 @@ impl Driver {
                 current: s.current_a,
                 remaining: s.battery_pct.map(f32::from),
             })),
-            MavEvent::Connected { .. } => {}
+            // The first battery only: the one SYS_STATUS describes too.
+            MavEvent::BatteryStatus(b) if b.id == 0 => {
+                if let Some(voltage) = b.voltage_v {
+                    self.emit(ApEvent::Battery(Battery {
+                        voltage,
+                        current: b.current_a,
+                        remaining: b.battery_pct.map(f32::from),
+                    }));
+                }
+            }
+            MavEvent::Connected { .. } | MavEvent::BatteryStatus(_) => {}
         }
     }
 
