@@ -100,7 +100,7 @@ impl Battery {
     /// One step of `dt` seconds in which the vehicle covered `distance_m`, armed or not
     /// (a disarmed vehicle draws nothing).
     pub fn drain(&mut self, dt: f64, distance_m: f64, armed: bool) {
-        if !armed || !(dt.is_finite() && dt > 0.0) {
+        if !(armed && dt.is_finite() && dt > 0.0) {
             self.current_a = 0.0;
             return;
         }

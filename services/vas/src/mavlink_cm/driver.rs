@@ -238,7 +238,7 @@ impl Inner {
                 heading_deg: v.heading,
                 throttle_pct: v.throttle,
             })),
-            MavMessage::BATTERY_STATUS(b) => self.emit(MavEvent::BatteryStatus(battery_status(&b))),
+            MavMessage::BATTERY_STATUS(b) => self.emit(MavEvent::BatteryStatus(battery_status(b))),
             MavMessage::SYS_STATUS(s) => self.emit(MavEvent::SysStatus(SysStatus {
                 voltage_v: f32::from(s.voltage_battery) / 1000.0,
                 current_a: (s.current_battery >= 0).then(|| f32::from(s.current_battery) / 100.0),
