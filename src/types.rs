@@ -58,6 +58,8 @@ fn registry() -> Vec<Known> {
         StateChangeReply,
         StateChanged,
         MissionTime,
+        Battery,
+        AltRef,
         marea::LinkHealth,
         fpma::api::Progress,
         fpma::api::PlanState,
@@ -121,6 +123,7 @@ mod tests {
             alt: 3.0,
             heading: 90.0,
             speed: 1.5,
+            alt_rel: 2.0,
         };
         let bytes = postcard::to_stdvec(&p).unwrap();
         let json = to_json(std::any::type_name::<usal_types::Position>(), &bytes)

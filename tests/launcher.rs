@@ -279,6 +279,16 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
         n.len(),
         summary["summary"]["planned"].as_u64().unwrap() as usize
     );
+    // With an ETA from the speeds flown (issue 15 item 6), shrinking as the plan goes on.
+    let etas: Vec<f64> = l
+        .seen
+        .iter()
+        .filter(|v| v["event"] == "waypoint")
+        .filter_map(|v| v["eta_s"].as_f64())
+        .collect();
+    assert!(etas.len() >= 2, "no ETA shown: {etas:?}");
+    assert!(etas.iter().all(|e| *e >= 0.0), "{etas:?}");
+    assert!(etas[0] > *etas.last().unwrap(), "{etas:?}");
     let pids = l.pids();
     assert_no_child_left(&pids);
     // The merged log carries each child's prefix.

@@ -2,6 +2,7 @@
 //!
 //! Layers, bottom-up:
 //! - [`kinematics`]: local tangent plane and rover / copter / plane motion;
+//! - [`battery`]: the battery drained by time armed and distance covered;
 //! - [`mission`]: the vehicle side of the mission protocol (pure state machine);
 //! - [`params`], [`modes`]: ArduPilot parameter and mode tables;
 //! - [`profile`]: ArduPilot, PX4 or generic autopilot conventions (`--autopilot`);
@@ -15,6 +16,7 @@
 // SET_MODE, REQUEST_DATA_STREAM, MISSION_SET_CURRENT) and so must its simulator.
 #![allow(deprecated)]
 
+pub mod battery;
 pub mod kinematics;
 pub mod link;
 pub mod log;

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
+use mavsim::battery::BatteryConfig;
 use mavsim::kinematics::{GeoPoint, VehicleKind};
 use mavsim::link::{LinkConfig, LinkInfo};
 use mavsim::profile::Profile;
@@ -70,6 +71,15 @@ struct Args {
     /// on change) or a generic autopilot's (ArduPilot modes, PX4's mission conventions).
     #[arg(long, value_enum, default_value = "ardupilot")]
     autopilot: AutopilotArg,
+    /// Battery capacity, mAh.
+    #[arg(long, default_value_t = 5000.0)]
+    battery_capacity_mah: f64,
+    /// Battery energy spent per kilometre covered, Wh/km.
+    #[arg(long, default_value_t = 5.0)]
+    battery_wh_per_km: f64,
+    /// Battery current drawn while armed, moving or not, A.
+    #[arg(long, default_value_t = 0.5)]
+    battery_idle_a: f64,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -133,6 +143,13 @@ async fn main() -> anyhow::Result<()> {
             out: args.out.as_deref().map(parse_out).transpose()?,
         }
     };
+    let battery = BatteryConfig {
+        capacity_mah: args.battery_capacity_mah,
+        wh_per_km: args.battery_wh_per_km,
+        idle_a: args.battery_idle_a,
+        ..BatteryConfig::default()
+    };
+    battery.validate().context("--battery-*")?;
     let cfg = SimConfig {
         vehicle: VehicleConfig {
             kind: match args.vehicle {
@@ -163,6 +180,7 @@ async fn main() -> anyhow::Result<()> {
             AutopilotArg::Px4 => Profile::Px4,
             AutopilotArg::Generic => Profile::Generic,
         },
+        battery,
     };
     let sim = Simulator::open(cfg).await.context("starting mavsim")?;
     // One machine-readable line on stdout so scripts and tests find the endpoint.

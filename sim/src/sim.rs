@@ -46,6 +46,8 @@ pub struct SimConfig {
     pub signing: Option<mavconn::Signing>,
     /// Which autopilot's conventions to follow (see [`crate::profile`]).
     pub autopilot: crate::profile::Profile,
+    /// The battery (see [`Vehicle::set_battery`]).
+    pub battery: crate::battery::BatteryConfig,
 }
 
 /// Errors of the simulator.
@@ -92,6 +94,7 @@ impl Simulator {
         let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
         vehicle.set_quiet_progress(cfg.quiet_progress);
         vehicle.set_profile(cfg.autopilot);
+        vehicle.set_battery(cfg.battery);
         Ok(Self {
             cfg,
             vehicle,

@@ -23,6 +23,7 @@ use mavlink::dialects::ardupilotmega::{
     STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
 };
 
+use crate::battery::{Battery, BatteryConfig};
 use crate::kinematics::{Command, GeoPoint, Limits, LocalFrame, Ned, State, VehicleKind};
 use crate::log::LogEvent;
 use crate::mission::{self, Change, Item, MissionStore};
@@ -104,6 +105,8 @@ pub struct Vehicle {
     profile: Profile,
     sticks: Option<(Sticks, Instant)>,
     sim_time: f64,
+    /// Drained while armed, by time and distance; reported in SYS_STATUS.
+    battery: Battery,
     streams: BTreeMap<u32, (Duration, Instant)>,
     next_heartbeat: Instant,
     log: Vec<(f64, LogEvent)>,
@@ -168,6 +171,7 @@ impl Vehicle {
             profile: Profile::ArduPilot,
             sticks: None,
             sim_time: 0.0,
+            battery: Battery::new(BatteryConfig::default()),
             streams: BTreeMap::new(),
             next_heartbeat: now,
             log: Vec::new(),
@@ -209,6 +213,16 @@ impl Vehicle {
     /// The autopilot profile followed.
     pub fn profile(&self) -> Profile {
         self.profile
+    }
+
+    /// Replaces the battery with a full one of this size.
+    pub fn set_battery(&mut self, cfg: BatteryConfig) {
+        self.battery = Battery::new(cfg);
+    }
+
+    /// The battery.
+    pub fn battery(&self) -> &Battery {
+        &self.battery
     }
 
     /// Current custom mode number.
@@ -535,6 +549,7 @@ impl Vehicle {
         let mut out = Vec::new();
         self.sim_time += dt;
         if !self.armed {
+            self.battery.drain(dt, 0.0, false);
             self.state.speed = 0.0;
             self.state.vel_north = 0.0;
             self.state.vel_east = 0.0;
@@ -580,7 +595,11 @@ impl Vehicle {
             },
             Behaviour::Hold => Command::Hold(self.hold_point),
         };
+        let before = self.state.pos;
         self.state.step(self.cfg.kind, command, &limits, dt);
+        let moved =
+            before.horizontal_distance(&self.state.pos) + (self.state.pos.up - before.up).abs();
+        self.battery.drain(dt, moved, true);
         if self.behaviour() == Behaviour::Auto {
             if let Some(t) = self.target {
                 if self.within(&t.pos, t.radius.unwrap_or_else(|| self.wp_radius())) {

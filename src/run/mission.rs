@@ -111,6 +111,10 @@ pub struct MavsimSpec {
     pub speedup: Option<f64>,
     /// JSON-lines event log.
     pub log: Option<PathBuf>,
+    /// Battery capacity, mAh (mavsim `--battery-capacity-mah`).
+    pub battery_capacity_mah: Option<f64>,
+    /// Battery energy per kilometre, Wh/km (mavsim `--battery-wh-per-km`).
+    pub battery_wh_per_km: Option<f64>,
 }
 
 /// `<vas>` settings.
@@ -451,13 +455,33 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
     for s in &el.children {
         let svc = match s.name.as_str() {
             "mavsim" => {
-                let mut a = Attrs::new(s, &["vehicle", "home", "speedup", "log"]);
+                let mut a = Attrs::new(
+                    s,
+                    &[
+                        "vehicle",
+                        "home",
+                        "speedup",
+                        "log",
+                        "batteryCapacityMah",
+                        "batteryWhPerKm",
+                    ],
+                );
                 let spec = MavsimSpec {
                     vehicle: a.one_of("vehicle", &["rover", "copter", "plane"], "rover")?,
                     home: a.opt("home"),
                     speedup: a.parsed("speedup", "a number")?,
                     log: a.opt("log").map(|l| base.join(l)),
+                    battery_capacity_mah: a.parsed("batteryCapacityMah", "a number")?,
+                    battery_wh_per_km: a.parsed("batteryWhPerKm", "a number")?,
                 };
+                if spec.battery_capacity_mah.is_some_and(|x| !(x > 0.0 && x.is_finite()))
+                    || spec.battery_wh_per_km.is_some_and(|x| !(x >= 0.0 && x.is_finite()))
+                {
+                    return Err(Fault::at(
+                        s,
+                        "batteryCapacityMah must be above 0 and batteryWhPerKm at least 0",
+                    ));
+                }
                 a.finish()?;
                 if let Some(h) = &spec.home {
                     let ok = h.split(',').count() == 3
@@ -735,6 +759,28 @@ mod tests {
         assert!(e.contains("empty file"), "{e}");
         let e = parse("<mission name=\"x\">\n<node name=\"a\">\n</mission>").unwrap_err();
         assert!(e.starts_with("3:") && e.contains("<node>"), "{e}");
+    }
+
+    #[test]
+    fn the_mavsim_battery_is_configured_and_checked() {
+        let with = |attrs: &str| {
+            parse(&GOOD.replace("speedup=\"5\"/>", &format!("speedup=\"5\" {attrs}/>")))
+        };
+        let m = with(r#"batteryCapacityMah="60" batteryWhPerKm="2""#).unwrap();
+        let ServiceSpec::Mavsim(sim) = &m.nodes[0].services[0] else {
+            panic!("mavsim first");
+        };
+        assert_eq!(
+            (sim.battery_capacity_mah, sim.battery_wh_per_km),
+            (Some(60.0), Some(2.0))
+        );
+        let e = with(r#"batteryCapacityMah="0""#).unwrap_err();
+        assert!(
+            e.contains("<mavsim>") && e.contains("batteryCapacityMah"),
+            "{e}"
+        );
+        let e = with(r#"batteryWhPerKm="lots""#).unwrap_err();
+        assert!(e.contains("batteryWhPerKm"), "{e}");
     }
 
     #[test]

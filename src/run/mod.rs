@@ -421,6 +421,12 @@ async fn start_services(
                     if let Some(l) = &m.log {
                         a.extend(["--log".into(), l.display().to_string()]);
                     }
+                    if let Some(c) = m.battery_capacity_mah {
+                        a.extend(["--battery-capacity-mah".into(), c.to_string()]);
+                    }
+                    if let Some(w) = m.battery_wh_per_km {
+                        a.extend(["--battery-wh-per-km".into(), w.to_string()]);
+                    }
                     let (tx, rx) = watch::channel(None);
                     sim_addr = Some(rx);
                     announce = Some(Announce {

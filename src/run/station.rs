@@ -230,6 +230,27 @@ impl Tracker<'_> {
             .map_or((0.0, self.setup.nominal_m), |p| (p.flown_m, p.planned_m))
     }
 
+    /// The FPMa's ETAs, `(plan, leg)`, seconds of vehicle time (simulated seconds under a
+    /// speed-up).
+    fn etas(&self) -> (Option<f64>, Option<f64>) {
+        self.progress
+            .as_ref()
+            .map_or((None, None), |p| (p.eta_s, p.leg_eta_s))
+    }
+
+    /// `ETA m:ss (leg m:ss)`, or `ETA -` before the vehicle has moved.
+    fn eta_text(&self) -> String {
+        let (plan, leg) = self.etas();
+        match plan {
+            None => "ETA -".into(),
+            Some(p) => format!(
+                "ETA {} (leg {})",
+                ui_mmss(p),
+                leg.map_or_else(|| "-".into(), ui_mmss)
+            ),
+        }
+    }
+
     fn elapsed(&self) -> Duration {
         match (self.started, self.ended) {
             (Some(s), Some(e)) => e - s,
@@ -246,7 +267,7 @@ impl Tracker<'_> {
         let (flown, planned) = self.distances();
         let t = self.elapsed().as_secs();
         format!(
-            "{} {:>3.0}%  leg {}  wp {}/{}  {:.0}/{:.0} m  {}  {:.1} m/s  {}:{:02}",
+            "{} {:>3.0}%  leg {}  wp {}/{}  {:.0}/{:.0} m  {}  {:.1} m/s  {}:{:02}  {}",
             ui::bar(self.fraction(), 24),
             self.fraction() * 100.0,
             self.leg.as_deref().unwrap_or("-"),
@@ -257,7 +278,8 @@ impl Tracker<'_> {
             self.state_name(),
             self.speed,
             t / 60,
-            t % 60
+            t % 60,
+            self.eta_text()
         )
     }
 
@@ -579,14 +601,17 @@ async fn follow(
             }
             unshown.pop_front();
             let (flown, planned) = t.distances();
+            let (eta_s, leg_eta_s) = t.etas();
             out.push((
                 format!(
-                    "waypoint {n}/{} reached (#{seq}, leg {leg}); {flown:.0} of {planned:.0} m flown; {}",
+                    "waypoint {n}/{} reached (#{seq}, leg {leg}); {flown:.0} of {planned:.0} m flown; {}; {}",
                     s.nominal.len(),
-                    t.state_name()
+                    t.state_name(),
+                    t.eta_text()
                 ),
                 Some(json!({"event": "waypoint", "n": n, "of": s.nominal.len(), "seq": seq,
-                    "leg": leg, "flown_m": flown, "planned_m": planned, "state": t.state_name()})),
+                    "leg": leg, "flown_m": flown, "planned_m": planned, "state": t.state_name(),
+                    "eta_s": eta_s, "leg_eta_s": leg_eta_s})),
             ));
         }
         if out.is_empty() && !reported {
@@ -631,4 +656,14 @@ async fn follow(
             );
         }
     }
+}
+
+/// Seconds as `m:ss` (whole seconds, rounded).
+fn ui_mmss(s: f64) -> String {
+    let s = if s.is_finite() {
+        s.max(0.0).round() as u64
+    } else {
+        0
+    };
+    format!("{}:{:02}", s / 60, s % 60)
 }

@@ -204,6 +204,13 @@ pub struct Progress {
     pub completed: bool,
     /// The current leg is a hold.
     pub holding: bool,
+    /// Seconds to the end of the plan at the speed flown so far (MAUVET's ETA, vehicle
+    /// time); `None` until the vehicle has moved.
+    #[serde(default)]
+    pub eta_s: Option<f64>,
+    /// Seconds to the end of the current leg (the target waypoint's), likewise.
+    #[serde(default)]
+    pub leg_eta_s: Option<f64>,
 }
 
 /// The executive's variables and loops (variable `state`), for stations.

@@ -21,6 +21,7 @@
 //! assert_eq!(ex.next_waypoints(2)[0].leg, "mission.2");
 //! ```
 pub mod api;
+pub mod eta;
 pub mod exec;
 pub mod expand;
 pub mod expr;

@@ -96,6 +96,12 @@ impl fmt::Display for Stage {
 }
 
 impl FlightPlan {
+    /// What the plan's altitudes are measured from (`altRef`, validated when parsed; `MSL`
+    /// when absent or, for a plan built in code, unknown).
+    pub fn altitude_reference(&self) -> usal_types::AltRef {
+        self.alt_ref.parse().unwrap_or(usal_types::AltRef::Msl)
+    }
+
     /// The nodes of stage `s`.
     pub fn stage(&self, s: Stage) -> &[Node] {
         match s {

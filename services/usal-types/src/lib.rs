@@ -23,7 +23,8 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
-/// Where the vehicle is. 32 bytes of payload: the figure DESIGN §8 measures.
+/// Where the vehicle is. 32 bytes of payload before `alt_rel` (the figure DESIGN §8
+/// measures), 40 with it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Position {
     /// Latitude, degrees (WGS-84).
@@ -36,6 +37,62 @@ pub struct Position {
     pub heading: f32,
     /// Ground speed, m/s.
     pub speed: f32,
+    /// Altitude above the home point, metres (the autopilot's relative altitude).
+    #[serde(default)]
+    pub alt_rel: f64,
+}
+
+/// What a waypoint's altitude is measured from (a plan's `altRef`), which decides the
+/// MAVLink frame of its mission item.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AltRef {
+    /// Above mean sea level (MAV_FRAME_GLOBAL_INT).
+    Msl,
+    /// Above the home point (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT).
+    #[default]
+    Relative,
+    /// Above the terrain below the vehicle (MAV_FRAME_GLOBAL_TERRAIN_ALT_INT), where the
+    /// autopilot has terrain data.
+    Terrain,
+}
+
+impl fmt::Display for AltRef {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::Msl => "MSL",
+            Self::Relative => "REL",
+            Self::Terrain => "AGL",
+        })
+    }
+}
+
+impl FromStr for AltRef {
+    type Err = UnknownName;
+    /// Accepts a plan's `altRef` values in any case: `MSL`/`AMSL`; `REL`/`RELATIVE`/`HOME`;
+    /// `AGL`/`TERRAIN`.
+    fn from_str(s: &str) -> Result<Self, UnknownName> {
+        match s.trim().to_ascii_uppercase().as_str() {
+            "MSL" | "AMSL" => Ok(Self::Msl),
+            "REL" | "RELATIVE" | "HOME" => Ok(Self::Relative),
+            "AGL" | "TERRAIN" => Ok(Self::Terrain),
+            _ => Err(UnknownName {
+                what: "altitude reference",
+                name: s.to_owned(),
+            }),
+        }
+    }
+}
+
+/// Battery state (variable `battery`), from the autopilot's SYS_STATUS or BATTERY_STATUS.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Battery {
+    /// Voltage, volts.
+    pub voltage: f32,
+    /// Current drawn, amps (`None` when the autopilot does not measure it).
+    pub current: Option<f32>,
+    /// Charge remaining, percent 0..100 (`None` when the autopilot does not estimate it).
+    pub remaining: Option<f32>,
 }
 
 /// Body attitude, degrees (roll right, pitch up and yaw from north positive).
@@ -244,7 +301,7 @@ pub struct Waypoint {
     pub lat: f64,
     /// Longitude, degrees.
     pub lon: f64,
-    /// Altitude above the home point, metres.
+    /// Altitude, metres, measured from `alt_ref`.
     pub alt: f64,
     /// Speed towards this waypoint, m/s (0: the autopilot's cruise speed).
     pub speed: f64,
@@ -255,6 +312,9 @@ pub struct Waypoint {
     /// Navigation, take-off or landing.
     #[serde(default)]
     pub kind: WaypointKind,
+    /// What `alt` is measured from (default: the home point).
+    #[serde(default)]
+    pub alt_ref: AltRef,
 }
 
 /// A waypoint of the queue was reached (event `waypoint_reached`).
@@ -464,6 +524,16 @@ mod tests {
         )
         .unwrap();
         assert_eq!(w.kind, WaypointKind::Nav);
+        assert_eq!(w.alt_ref, AltRef::Relative);
+        for (text, r) in [
+            ("MSL", AltRef::Msl),
+            ("rel", AltRef::Relative),
+            ("AGL", AltRef::Terrain),
+        ] {
+            assert_eq!(text.parse::<AltRef>(), Ok(r));
+            assert_eq!(r.to_string().parse::<AltRef>(), Ok(r));
+        }
+        assert!("QNH".parse::<AltRef>().is_err());
         assert_eq!("COPTER".parse::<VehicleKind>(), Ok(VehicleKind::Copter));
     }
 }

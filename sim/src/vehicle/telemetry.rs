@@ -138,9 +138,12 @@ impl Vehicle {
                     onboard_control_sensors_enabled: sensors,
                     onboard_control_sensors_health: sensors,
                     load: 120,
-                    voltage_battery: 12_600,
-                    current_battery: if self.armed { 500 } else { 50 },
-                    battery_remaining: 100,
+                    voltage_battery: (self.battery.voltage() * 1000.0).round() as u16,
+                    // cA, at least the avionics' 0.5 A (a disarmed vehicle still draws that).
+                    current_battery: (self.battery.current().max(0.5) * 100.0)
+                        .round()
+                        .min(f64::from(i16::MAX)) as i16,
+                    battery_remaining: self.battery.remaining_pct(),
                     ..SYS_STATUS_DATA::default()
                 })
             }

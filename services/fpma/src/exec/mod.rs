@@ -220,6 +220,40 @@ impl Executive {
         self.distances()
     }
 
+    /// Metres left to fly nominally, `(plan, current leg)`, from the present position when
+    /// it is known (the part of the way to the target already covered is taken off); the
+    /// current leg is the target waypoint's. What an ETA divides by a speed.
+    pub fn remaining_m(&self) -> (f64, f64) {
+        let mut sim = self.sim_copy();
+        sim.nominal = true;
+        sim.paused = false;
+        let Some(leg) = sim.head().map(|w| w.leg.clone()) else {
+            return (0.0, 0.0);
+        };
+        let covered = match (self.present, self.last, sim.head()) {
+            (Some(p), Some(l), Some(h)) => {
+                (crate::geo::distance(l.pos, h.pos()) - crate::geo::distance(p, h.pos())).max(0.0)
+            }
+            _ => 0.0,
+        };
+        let start = sim.flown;
+        let mut leg_m = None;
+        let mut steps = 0;
+        while let Some(h) = sim.head() {
+            if steps >= SIM_LIMIT {
+                break;
+            }
+            if leg_m.is_none() && h.leg != leg {
+                leg_m = Some(sim.flown - start);
+            }
+            sim.reach_head();
+            steps += 1;
+        }
+        let plan_m = sim.flown - start;
+        let leg_m = leg_m.unwrap_or(plan_m);
+        ((plan_m - covered).max(0.0), (leg_m - covered).max(0.0))
+    }
+
     /// Numbers the waypoints from `seq` on, when that is above the next sequence number. A
     /// service calls it after handing waypoints to a queue it cannot take back (the VAS keeps
     /// driving to its target after "clear"), so a late report for one of them is not taken

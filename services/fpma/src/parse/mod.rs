@@ -106,9 +106,16 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
             .map(|a| a.value.clone())
             .unwrap_or_default(),
         revision: opt_u32(root, "version")?,
-        alt_ref: root
-            .attr("altRef")
-            .map_or_else(|| "MSL".to_string(), |a| a.value.clone()),
+        alt_ref: match root.attr("altRef") {
+            None => "MSL".to_string(),
+            Some(a) => {
+                // Refused here rather than flown against the wrong reference.
+                a.value.parse::<usal_types::AltRef>().map_err(|_| {
+                    bad_value(a, &a.value, "must be `MSL`, `REL` (above home) or `AGL`")
+                })?;
+                a.value.clone()
+            }
+        },
         default_speed: opt_pos_num(root, "defaultSpeed")?,
         vehicle,
         variables: Vec::new(),

@@ -18,8 +18,11 @@
 use std::collections::VecDeque;
 use std::time::Instant;
 
+use crate::eta::EtaEstimator;
 use async_trait::async_trait;
-use usal_types::{FlightState, Position, QueueStatus, StateChangeReply, WaypointKind};
+use usal_types::{
+    AltRef, Battery, FlightState, Position, QueueStatus, StateChangeReply, WaypointKind,
+};
 
 use crate::api::{
     CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanLoaded, PlanState, Progress,
@@ -117,6 +120,8 @@ pub struct Core<V> {
     vas_state: Option<FlightState>,
     last_reached: Option<u64>,
     started: Option<Instant>,
+    /// The speed flown, for the ETAs in the progress.
+    eta: EtaEstimator,
     /// Where the plan came from (`source` of [`Core::load`]).
     source: String,
     /// The geometry of the plan version being flown (version 0 before any plan).
@@ -143,7 +148,7 @@ pub struct Persisted {
     pub last_reached: Option<u64>,
 }
 
-fn to_vas(w: &Waypoint) -> usal_types::Waypoint {
+fn to_vas(w: &Waypoint, alt_ref: AltRef) -> usal_types::Waypoint {
     usal_types::Waypoint {
         seq: w.seq,
         lat: w.lat,
@@ -157,6 +162,7 @@ fn to_vas(w: &Waypoint) -> usal_types::Waypoint {
             WaypointTag::Takeoff => WaypointKind::Takeoff,
             WaypointTag::Land => WaypointKind::Land,
         },
+        alt_ref,
     }
 }
 
@@ -176,6 +182,7 @@ impl<V: VasPort> Core<V> {
             vas_state: None,
             last_reached: None,
             started: None,
+            eta: EtaEstimator::new(),
             source: String::new(),
             geometry: PlanGeometry::default(),
             out: Outputs::default(),
@@ -396,14 +403,40 @@ impl<V: VasPort> Core<V> {
 
     /// Telemetry from the VAS: the present position and the built-in variables.
     pub async fn on_position(&mut self, p: &Position) {
+        self.eta.observe(f64::from(p.speed));
         let Some(ex) = &mut self.exec else { return };
+        // `alt` is compared with the plan's altitudes, so it is measured from the same
+        // reference. The VAS knows no terrain height: above home stands in for above terrain.
+        let alt = match ex.plan().altitude_reference() {
+            AltRef::Msl => p.alt,
+            AltRef::Relative | AltRef::Terrain => p.alt_rel,
+        };
         ex.update_telemetry(Telemetry {
             position: Some(GeoPoint::new(p.lat, p.lon)),
-            alt: Some(p.alt),
+            alt: Some(alt),
             ground_speed: Some(f64::from(p.speed)),
             battery: None,
             elapsed_s: self.started.map(|t| t.elapsed().as_secs_f64()),
         });
+        self.after_telemetry().await;
+    }
+
+    /// Battery state from the VAS: the built-in `battery` (percent remaining) follows it.
+    pub async fn on_battery(&mut self, b: &Battery) {
+        let Some(ex) = &mut self.exec else { return };
+        let Some(remaining) = b.remaining.map(f64::from).filter(|r| r.is_finite()) else {
+            return;
+        };
+        ex.update_telemetry(Telemetry {
+            battery: Some(remaining),
+            elapsed_s: self.started.map(|t| t.elapsed().as_secs_f64()),
+            ..Telemetry::default()
+        });
+        self.after_telemetry().await;
+    }
+
+    async fn after_telemetry(&mut self) {
+        let Some(ex) = &mut self.exec else { return };
         // Only an emergency rule firing changes anything here.
         let events = ex.take_events();
         if !events.is_empty() {
@@ -455,6 +488,7 @@ impl<V: VasPort> Core<V> {
         let st = ex.state();
         let (flown, remaining) = ex.distances_m();
         let planned = flown + remaining;
+        let (plan_left, leg_left) = ex.remaining_m();
         let fraction = if st.completed {
             1.0
         } else if planned > 0.0 {
@@ -475,6 +509,8 @@ impl<V: VasPort> Core<V> {
             paused: st.paused,
             completed: st.completed,
             holding: st.holding,
+            eta_s: self.eta.eta_s(plan_left).filter(|_| !st.completed),
+            leg_eta_s: self.eta.eta_s(leg_left).filter(|_| !st.completed),
         });
         self.out.state = Some(PlanState {
             version: st.version,
@@ -490,7 +526,7 @@ impl<V: VasPort> Core<V> {
                 ex.version(),
                 ex.next_waypoints(self.cfg.lookahead)
                     .iter()
-                    .map(to_vas)
+                    .map(|w| to_vas(w, ex.plan().altitude_reference()))
                     .collect(),
             ),
             None => (0, Vec::new()),
@@ -731,10 +767,11 @@ mod tests {
     /// What the executive would stream with no changes, as the VAS sees it.
     fn nominal() -> Vec<usal_types::Waypoint> {
         let plan = crate::parse::parse_plan(PLAN, &VehicleParams::rover()).unwrap();
+        let alt_ref = plan.altitude_reference();
         crate::exec::expand_nominal(plan, VehicleParams::rover())
             .unwrap()
             .iter()
-            .map(to_vas)
+            .map(|w| to_vas(w, alt_ref))
             .collect()
     }
 

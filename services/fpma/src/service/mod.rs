@@ -19,7 +19,7 @@ use serde::Deserialize;
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use usal_types::{
-    FlightState, Position, QueueStatus, StateChangeReply, StateChangeRequest, Waypoint,
+    Battery, FlightState, Position, QueueStatus, StateChangeReply, StateChangeRequest, Waypoint,
     WaypointReached,
 };
 
@@ -426,6 +426,7 @@ impl IService for Fpma {
         };
         let reached = ctx.subscribe_event::<WaypointReached>(&format!("{vas}/waypoint_reached"))?;
         let position = ctx.subscribe_variable::<Position>(&format!("{vas}/position"))?;
+        let battery = ctx.subscribe_variable::<Battery>(&format!("{vas}/battery"))?;
         let flight_state = ctx.subscribe_variable::<FlightState>(&format!("{vas}/flight_state"))?;
         let sink = ctx.file_sink_with(
             "plans",
@@ -611,6 +612,11 @@ impl IService for Fpma {
                         Ok(s) => core.on_position(&s.value).await,
                         Err(marea::RecvError::Closed) => return,
                         Err(e) => tracing::warn!("position: {e}"),
+                    },
+                    b = battery.recv() => match b {
+                        Ok(s) => core.on_battery(&s.value).await,
+                        Err(marea::RecvError::Closed) => return,
+                        Err(e) => tracing::warn!("battery: {e}"),
                     },
                     s = flight_state.recv() => match s {
                         Ok(s) => core.on_flight_state(s.value).await,

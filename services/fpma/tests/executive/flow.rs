@@ -245,3 +245,31 @@ fn nominal_expansion_shows_a_waiting_loop_once_marked() {
     // loop ends by itself: both passes, unmarked.
     assert_eq!(at, want);
 }
+
+#[test]
+fn the_distance_left_for_the_eta_covers_the_plan_and_the_target_leg() {
+    let mut ex = exec(
+        "",
+        r#"<leg id="b" type="TF" fix="B"/><leg id="c" type="TF" fix="C"/>"#,
+    );
+    let (ab, bc, ce) = (
+        distance(fix("A"), fix("B")),
+        distance(fix("B"), fix("C")),
+        distance(fix("C"), fix("E")),
+    );
+    reach(&mut ex); // A: heading for B
+    let (plan_m, leg_m) = ex.remaining_m();
+    assert!((plan_m - (ab + bc + ce)).abs() < 0.5, "{plan_m}");
+    assert!((leg_m - ab).abs() < 0.5, "{leg_m}");
+    // Half way to B, by telemetry: half of that leg is left.
+    let half = GeoPoint::new(41.2752, 1.987);
+    ex.update_telemetry(Telemetry {
+        position: Some(half),
+        ..Telemetry::default()
+    });
+    let (plan_m, leg_m) = ex.remaining_m();
+    assert!((leg_m - ab / 2.0).abs() < 0.5, "{leg_m}");
+    assert!((plan_m - (ab / 2.0 + bc + ce)).abs() < 0.5, "{plan_m}");
+    reach(&mut ex); // B: heading for C
+    assert!((ex.remaining_m().1 - bc).abs() < 0.5);
+}

@@ -20,13 +20,13 @@ use tokio::time::interval;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionChanged, Position,
-    QueueStatus, Severity, Speeds, VehicleKind, Waypoint, WaypointKind, WaypointReached,
+    Alarm, AltRef, Attitude, AutopilotStatus, Battery, FlightState, ManualControl, MissionChanged,
+    Position, QueueStatus, Severity, Speeds, VehicleKind, Waypoint, WaypointKind, WaypointReached,
 };
 
 use super::queue::{QueueAction, RollingQueue};
 use super::{ApEvent, AutopilotError, IAutopilot};
-use crate::mavlink_cm::dialect::{MavCmd, MavSeverity};
+use crate::mavlink_cm::dialect::{MavCmd, MavFrame, MavSeverity};
 use crate::mavlink_cm::{
     ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError, MissionItem,
     MissionStage, Telemetry,
@@ -186,6 +186,10 @@ impl IAutopilot for ArduPilot {
     }
 
     async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError> {
+        let terrain = self.mgr.param_cached("TERRAIN_ENABLE");
+        if let Some(why) = altitude_refusal(self.cfg.vehicle, terrain, &wps) {
+            return Err(AutopilotError::Unsupported(why));
+        }
         self.ask(|tx| Cmd::Push(wps, tx)).await
     }
 

@@ -13,8 +13,8 @@ pub mod queue;
 use async_trait::async_trait;
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualControl, MissionChanged, Position,
-    QueueStatus, Speeds, VehicleKind, Waypoint, WaypointReached,
+    Alarm, Attitude, AutopilotStatus, Battery, FlightState, ManualControl, MissionChanged,
+    Position, QueueStatus, Speeds, VehicleKind, Waypoint, WaypointReached,
 };
 
 pub use queue::{QueueAction, QueueCreateError, RollingQueue};
@@ -28,6 +28,8 @@ pub enum ApEvent {
     Attitude(Attitude),
     /// Speeds telemetry.
     Speeds(Speeds),
+    /// Battery state.
+    Battery(Battery),
     /// Heartbeat-derived status (sent on every change and periodically).
     Status(AutopilotStatus),
     /// A waypoint of the queue was reached.

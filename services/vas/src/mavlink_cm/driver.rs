@@ -12,7 +12,7 @@ use marea::sync::lock;
 use mavconn::{Connection, Counters, Endpoint, Frame, OpenOptions};
 use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavMessage, MavMissionResult, MavMissionType, MavModeFlag, MavState,
-    MavType, COMMAND_LONG_DATA, HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
+    MavType, BATTERY_STATUS_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA, REQUEST_DATA_STREAM_DATA,
 };
 use mavlink::MavHeader;
 use tokio::sync::{broadcast, mpsc, watch};
@@ -265,6 +265,7 @@ impl Inner {
                 heading_deg: v.heading,
                 throttle_pct: v.throttle,
             })),
+            MavMessage::BATTERY_STATUS(b) => self.emit(MavEvent::BatteryStatus(battery_status(b))),
             MavMessage::SYS_STATUS(s) => self.emit(MavEvent::SysStatus(SysStatus {
                 voltage_v: f32::from(s.voltage_battery) / 1000.0,
                 current_a: (s.current_battery >= 0).then(|| f32::from(s.current_battery) / 100.0),
@@ -471,5 +472,52 @@ pub(crate) async fn driver(
             _ = cancel.cancelled() => return,
             _ = sleep(backoff) => {}
         }
+    }
+}
+
+/// BATTERY_STATUS in SI units: cells marked absent (`u16::MAX`) are left out of the voltage.
+pub(crate) fn battery_status(b: &BATTERY_STATUS_DATA) -> BatteryStatus {
+    let cells: Vec<f32> = b
+        .voltages
+        .iter()
+        .filter(|&&mv| mv != u16::MAX)
+        .map(|&mv| f32::from(mv) / 1000.0)
+        .collect();
+    BatteryStatus {
+        id: b.id,
+        voltage_v: (!cells.is_empty()).then(|| cells.iter().sum()),
+        current_a: (b.current_battery >= 0).then(|| f32::from(b.current_battery) / 100.0),
+        battery_pct: u8::try_from(b.battery_remaining).ok(),
+    }
+}
+
+#[cfg(test)]
+mod battery_tests {
+    use super::*;
+
+    #[test]
+    fn battery_status_sums_the_cells_present_and_says_what_is_unknown() {
+        let mut voltages = [u16::MAX; 10];
+        voltages[..3].copy_from_slice(&[4100, 4150, 4200]);
+        let b = battery_status(&BATTERY_STATUS_DATA {
+            voltages,
+            current_battery: 1250,
+            battery_remaining: 76,
+            ..BATTERY_STATUS_DATA::DEFAULT
+        });
+        assert_eq!(b.id, 0);
+        assert!((b.voltage_v.unwrap() - 12.45).abs() < 1e-4, "{b:?}");
+        assert_eq!(b.current_a, Some(12.5));
+        assert_eq!(b.battery_pct, Some(76));
+        let unknown = battery_status(&BATTERY_STATUS_DATA {
+            voltages: [u16::MAX; 10],
+            current_battery: -1,
+            battery_remaining: -1,
+            ..BATTERY_STATUS_DATA::DEFAULT
+        });
+        assert_eq!(
+            (unknown.voltage_v, unknown.current_a, unknown.battery_pct),
+            (None, None, None)
+        );
     }
 }

@@ -73,6 +73,19 @@ pub struct SysStatus {
     pub unhealthy_sensors: u32,
 }
 
+/// BATTERY_STATUS, the parts a VAS publishes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BatteryStatus {
+    /// Which battery (0 the first).
+    pub id: u8,
+    /// Voltage, volts: the sum of the cells reported (`None` when no cell is).
+    pub voltage_v: Option<f32>,
+    /// Current, amps (`None` when not measured).
+    pub current_a: Option<f32>,
+    /// Remaining, percent (`None` when not estimated).
+    pub battery_pct: Option<u8>,
+}
+
 /// What the manager reports, in arrival order, on [`super::MavlinkManager::subscribe`].
 #[derive(Clone, Debug, PartialEq)]
 pub enum MavEvent {
@@ -125,6 +138,8 @@ pub enum MavEvent {
     VfrHud(VfrHud),
     /// SYS_STATUS.
     SysStatus(SysStatus),
+    /// BATTERY_STATUS.
+    BatteryStatus(BatteryStatus),
     /// MISSION_CURRENT changed.
     MissionCurrent {
         /// New current index.

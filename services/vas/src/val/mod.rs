@@ -15,9 +15,9 @@ use async_trait::async_trait;
 use marea::{Event, IService, Service, ServiceError, Variable};
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionChanged, MissionTime,
-    Position, QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest, StateChanged,
-    Waypoint, WaypointReached,
+    Alarm, Attitude, AutopilotStatus, Battery, FlightState, ManualCommand, MissionChanged,
+    MissionTime, Position, QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest,
+    StateChanged, Waypoint, WaypointReached,
 };
 
 use crate::apl::{ApEvent, IAutopilot};
@@ -65,6 +65,7 @@ struct Items {
     position: Variable<Position>,
     attitude: Variable<Attitude>,
     speeds: Variable<Speeds>,
+    battery: Variable<Battery>,
     autopilot: Variable<AutopilotStatus>,
     flight_state: Variable<FlightState>,
     mission_time: Variable<MissionTime>,
@@ -172,6 +173,7 @@ impl Core {
             ApEvent::Position(p) => drop(self.items.position.set(&p)),
             ApEvent::Attitude(a) => drop(self.items.attitude.set(&a)),
             ApEvent::Speeds(s) => drop(self.items.speeds.set(&s)),
+            ApEvent::Battery(b) => drop(self.items.battery.set(&b)),
             ApEvent::Status(s) => drop(self.items.autopilot.set(&s)),
             ApEvent::WaypointReached(w) => {
                 if let Err(e) = self.items.waypoint_reached.raise_nowait(&w) {
@@ -254,6 +256,7 @@ impl IService for Vas {
             position: ctx.publish_variable("position")?,
             attitude: ctx.publish_variable("attitude")?,
             speeds: ctx.publish_variable("speeds")?,
+            battery: ctx.publish_variable("battery")?,
             autopilot: ctx.publish_variable("autopilot")?,
             flight_state: ctx.publish_variable("flight_state")?,
             mission_time: ctx.publish_variable("mission_time")?,

@@ -154,6 +154,8 @@ pub(super) struct Driver {
     /// The last queue failure raised as an alarm (a refusal such as NO_SPACE or DENIED repeats
     /// on every retry; the ground hears it once until it changes or the queue recovers).
     queue_error: Option<String>,
+    /// Home's altitude above mean sea level, from the last position (MSL minus relative).
+    home_alt_msl: Option<f64>,
 }
 
 impl Driver {
@@ -185,6 +187,7 @@ impl Driver {
             item0: None,
             backtracks: 0,
             queue_error: None,
+            home_alt_msl: None,
         }
     }
 
@@ -316,7 +319,12 @@ impl Driver {
             self.last_pending = None;
         }
         if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
-            let alt = self.queue.target().map_or(10.0, |w| w.alt.max(2.0)) as f32;
+            // NAV_TAKEOFF climbs to an altitude above home.
+            let above_home = |w: &Waypoint| match w.alt_ref {
+                AltRef::Msl => w.alt - self.home_alt_msl.unwrap_or(0.0),
+                AltRef::Relative | AltRef::Terrain => w.alt,
+            };
+            let alt = self.queue.target().map_or(10.0, |w| above_home(w).max(2.0)) as f32;
             let takeoff = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, alt];
             if let Err(e) = self
                 .mgr
@@ -742,12 +750,14 @@ impl Driver {
                         .to_degrees()
                         .rem_euclid(360.0)
                 });
+                self.home_alt_msl = Some(f64::from(p.alt_msl_m) - f64::from(p.alt_rel_m));
                 self.emit(ApEvent::Position(Position {
                     lat: p.lat_deg,
                     lon: p.lon_deg,
                     alt: f64::from(p.alt_msl_m),
                     heading,
                     speed,
+                    alt_rel: f64::from(p.alt_rel_m),
                 }));
             }
             MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(Attitude {
@@ -773,7 +783,22 @@ impl Driver {
                 system_id,
                 component_id,
             } => self.on_mission_changed(system_id, component_id).await,
-            MavEvent::Connected { .. } | MavEvent::SysStatus(_) => {}
+            MavEvent::SysStatus(s) => self.emit(ApEvent::Battery(Battery {
+                voltage: s.voltage_v,
+                current: s.current_a,
+                remaining: s.battery_pct.map(f32::from),
+            })),
+            // The first battery only: the one SYS_STATUS describes too.
+            MavEvent::BatteryStatus(b) if b.id == 0 => {
+                if let Some(voltage) = b.voltage_v {
+                    self.emit(ApEvent::Battery(Battery {
+                        voltage,
+                        current: b.current_a,
+                        remaining: b.battery_pct.map(f32::from),
+                    }));
+                }
+            }
+            MavEvent::Connected { .. } | MavEvent::BatteryStatus(_) => {}
         }
     }
 

@@ -77,6 +77,7 @@ pub const FLY_OVER_RADIUS_M: f32 = 1.0;
 /// The mission item for a queued waypoint.
 pub(super) fn mission_item(w: &Waypoint) -> MissionItem {
     let mut item = MissionItem::waypoint(w.lat, w.lon, w.alt as f32);
+    item.frame = frame_of(w.alt_ref);
     item.command = match w.kind {
         WaypointKind::Nav => MavCmd::MAV_CMD_NAV_WAYPOINT,
         WaypointKind::Takeoff => MavCmd::MAV_CMD_NAV_TAKEOFF,
@@ -86,6 +87,37 @@ pub(super) fn mission_item(w: &Waypoint) -> MissionItem {
         item.params[1] = FLY_OVER_RADIUS_M;
     }
     item
+}
+
+/// The global frame a waypoint's altitude reference means. (The `_INT` names of these frames
+/// are their deprecated synonyms for MISSION_ITEM_INT; ArduPilot reads both alike.)
+pub(super) fn frame_of(r: AltRef) -> MavFrame {
+    match r {
+        AltRef::Msl => MavFrame::MAV_FRAME_GLOBAL,
+        AltRef::Relative => MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT,
+        AltRef::Terrain => MavFrame::MAV_FRAME_GLOBAL_TERRAIN_ALT,
+    }
+}
+
+/// Why this autopilot cannot fly `wps` as written, if it cannot: altitudes above terrain
+/// need terrain data (ArduPilot `TERRAIN_ENABLE`), which a rover, flying no altitude, never
+/// needs. `terrain_enable` is the parameter's cached value.
+pub(super) fn altitude_refusal(
+    kind: VehicleKind,
+    terrain_enable: Option<f32>,
+    wps: &[Waypoint],
+) -> Option<String> {
+    let w = wps.iter().find(|w| w.alt_ref == AltRef::Terrain)?;
+    if kind == VehicleKind::Rover || terrain_enable.is_some_and(|v| v > 0.0) {
+        return None;
+    }
+    Some(format!(
+        "waypoint {} ({}): altitude above terrain, but the autopilot has no terrain data \
+         (TERRAIN_ENABLE is {}); fly the plan with altRef MSL or REL",
+        w.seq,
+        w.leg,
+        terrain_enable.map_or_else(|| "absent".to_owned(), |v| v.to_string())
+    ))
 }
 
 /// The speed a waypoint asks for, m/s; 0 for the autopilot's cruise speed.
@@ -188,6 +220,36 @@ mod tests {
             state_for_mode(VehicleKind::Copter, "LAND"),
             Some(FlightState::Landing)
         );
+    }
+
+    #[test]
+    fn the_altitude_reference_chooses_the_frame_and_terrain_needs_terrain_data() {
+        let mut w = Waypoint {
+            lat: 41.0,
+            lon: 2.0,
+            alt: 634.0,
+            alt_ref: AltRef::Msl,
+            ..Waypoint::default()
+        };
+        let item = mission_item(&w);
+        assert_eq!(item.frame, MavFrame::MAV_FRAME_GLOBAL);
+        assert_eq!(item.z, 634.0);
+        w.alt_ref = AltRef::Relative;
+        assert_eq!(
+            mission_item(&w).frame,
+            MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT
+        );
+        w.alt_ref = AltRef::Terrain;
+        assert_eq!(
+            mission_item(&w).frame,
+            MavFrame::MAV_FRAME_GLOBAL_TERRAIN_ALT
+        );
+        let wps = [w];
+        let why = altitude_refusal(VehicleKind::Copter, None, &wps).expect("refused");
+        assert!(why.contains("TERRAIN_ENABLE"), "{why}");
+        assert!(altitude_refusal(VehicleKind::Plane, Some(0.0), &wps).is_some());
+        assert_eq!(altitude_refusal(VehicleKind::Plane, Some(1.0), &wps), None);
+        assert_eq!(altitude_refusal(VehicleKind::Rover, None, &wps), None);
     }
 
     #[test]
