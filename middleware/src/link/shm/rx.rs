@@ -351,12 +351,18 @@ impl Receiver {
             c.duplicates.fetch_add(1, Ordering::Relaxed);
             return;
         }
+        // No session reaches the last sequence number; a frame claiming it is corrupt (the
+        // structured fuzzer found that `seq + 1` overflowed on it).
+        let Some(next) = seq.checked_add(1) else {
+            c.corrupt.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
         if seq > st.expected {
             // Shared memory loses nothing; a gap means a torn message, which is dropped.
             st.torn = true;
             c.corrupt.fetch_add(1, Ordering::Relaxed);
         }
-        st.expected = seq + 1;
+        st.expected = next;
         st.ack = Some(seq);
         self.ack_due.insert(from);
         let Some(body) = body.filter(|_| !st.torn) else {
