@@ -31,6 +31,8 @@
 #![allow(deprecated)]
 
 mod driver;
+#[cfg(feature = "fuzzing")]
+mod fuzz;
 mod manager;
 mod mission;
 mod mission_upload;
@@ -39,6 +41,13 @@ mod outbound;
 mod param;
 mod reach;
 mod types;
+
+/// The mission upload machine under structure-aware fuzzing (feature `fuzzing`): see the
+/// `fuzz` module's docs for what is generated and checked. Panics when a property fails.
+#[cfg(feature = "fuzzing")]
+pub fn fuzz_mission_upload(data: &[u8]) {
+    let _ = fuzz::run(data);
+}
 
 pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
 pub use mavconn::{Endpoint, EndpointParseError};
