@@ -84,3 +84,8 @@ fn reference_matcher_is_right_on_known_cases() {
     assert!(m("**/**/b", "a/a/b"));
     assert!(!m("**/**/zz", "a/a/b"));
 }
+
+#[test]
+fn structured_fuzz_node_decls() {
+    run("node_decls", marea::fuzzing::node_decls);
+}

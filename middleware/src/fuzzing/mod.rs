@@ -16,6 +16,7 @@
 //! | [`decl_batch`] | declaration batches (offers with and without origin, interests with `*`/`**`) | round trip; the pattern matcher agrees with a quadratic reference, within the name caps |
 //! | [`udp_datagrams`] | datagrams from [`DatagramWriter`], dropped/duplicated/reordered/cut/flipped, into the decoder and the ARQ receiver | writer → decoder round trip; safe messages arrive as a prefix of those sent, in order, exactly once |
 //! | [`stp_frames`] | two serial engines over a line that drops, duplicates, reorders, splits, joins and corrupts frames | safe messages in order exactly once and all of them once the line heals; nothing longer than the message limit |
+//! | [`node_decls`] | Hellos, heartbeats, declaration batches (own names, foreign names, origins, floods past the caps) and Byes of four peers into a node | declarations per peer and in all within the caps; stored offers owned by their peer (or from a gateway with an origin); stored patterns valid |
 //! | [`shm_frames`] | shared-memory frames of up to three writers (inline and bulk fragments) | safe messages whole and in order per writer; nothing invented |
 
 pub mod gen;
@@ -497,6 +498,12 @@ fn stp_case(u: &mut Unstructured<'_>) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Hellos, heartbeats, declaration batches and Byes of up to four peers into a node's
+/// declaration table; the caps and ownership invariants hold after every step.
+pub fn node_decls(data: &[u8]) {
+    let _ = crate::node::fuzz::run(data);
 }
 
 /// Shared-memory frames of up to three writers into the receiving machine.
