@@ -77,27 +77,27 @@ fn mission(u: &mut Unstructured<'_>) -> Result<String> {
         for _ in 0..u.int_in_range(0u8..=4)? {
             match u.int_in_range(0u8..=6)? {
                 0 => {
-                    let _ = write!(
+                    let _ = writeln!(
                         s,
-                        "    <mavsim vehicle=\"{}\" home=\"{}\" speedup=\"{}\"/>\n",
+                        "    <mavsim vehicle=\"{}\" home=\"{}\" speedup=\"{}\"/>",
                         value(u, &["rover", "copter", "plane"], bent)?,
                         value(u, &["41.27500,1.98700,0", "0,0,0"], bent)?,
                         value(u, &["5", "1", "20"], bent)?
                     );
                 }
                 1 => {
-                    let _ = write!(
+                    let _ = writeln!(
                         s,
-                        "    <vas vehicle=\"{}\" queueSize=\"{}\" telemetryHz=\"{}\"/>\n",
+                        "    <vas vehicle=\"{}\" queueSize=\"{}\" telemetryHz=\"{}\"/>",
                         value(u, &["rover", "copter", "plane"], bent)?,
                         value(u, &["5", "1", "50"], bent)?,
                         value(u, &["4", "10", "0.5"], bent)?
                     );
                 }
                 2 => {
-                    let _ = write!(
+                    let _ = writeln!(
                         s,
-                        "    <fpma vehicle=\"{}\" lookahead=\"{}\"/>\n",
+                        "    <fpma vehicle=\"{}\" lookahead=\"{}\"/>",
                         value(u, &["rover", "aircraft"], bent)?,
                         value(u, &["8", "1", "100"], bent)?
                     );
@@ -106,9 +106,9 @@ fn mission(u: &mut Unstructured<'_>) -> Result<String> {
                 4 => s.push_str("    <fpmo listen=\"127.0.0.1:0\"/>\n"),
                 5 if stations == 0 || bent => {
                     stations += 1;
-                    let _ = write!(
+                    let _ = writeln!(
                         s,
-                        "    <station plan=\"{}\"/>\n",
+                        "    <station plan=\"{}\"/>",
                         value(
                             u,
                             &[
@@ -125,9 +125,9 @@ fn mission(u: &mut Unstructured<'_>) -> Result<String> {
         s.push_str("  </node>\n");
     }
     if nodes >= 2 && u.ratio(1u8, 3)? {
-        let _ = write!(
+        let _ = writeln!(
             s,
-            "  <radio ground=\"{}\" air=\"{}\" baud=\"{}\" loss=\"{}\" corrupt=\"{}\"/>\n",
+            "  <radio ground=\"{}\" air=\"{}\" baud=\"{}\" loss=\"{}\" corrupt=\"{}\"/>",
             names[1],
             names[0],
             value(u, &["57600", "9600"], bent)?,
