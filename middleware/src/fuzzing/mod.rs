@@ -19,7 +19,7 @@
 //! | [`node_decls`] | Hellos, heartbeats, declaration batches (own names, foreign names, origins, floods past the caps) and Byes of four peers into a node | declarations per peer and in all within the caps; stored offers owned by their peer (or from a gateway with an origin); stored patterns valid |
 //! | [`shm_frames`] | shared-memory frames of up to three writers (inline and bulk fragments) | safe messages whole and in order per writer; nothing invented |
 
-pub mod gen;
+pub use crate::protocol::gen;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};

@@ -13,8 +13,8 @@ use arbitrary::{Result, Unstructured};
 
 use super::policy::{MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
 use super::{bare_node, NodeInner};
-use crate::fuzzing::gen;
 use crate::link::PeerAddr;
+use crate::protocol::gen;
 use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message};
 use crate::typeinfo::TypeInfo;
 

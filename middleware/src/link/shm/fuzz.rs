@@ -203,7 +203,7 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
                 }
                 3 => {
                     let (Out::Safe(b) | Out::Fast(b) | Out::Bulk(b)) = &mut frames[i];
-                    crate::fuzzing::gen::mutate(u, b)?;
+                    crate::protocol::gen::mutate(u, b)?;
                     fed += 16;
                 }
                 4 => {
@@ -218,7 +218,7 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
                 _ => {
                     // Raw bytes of a frame kind with a lying header.
                     let kind = u.int_in_range(0u8..=9)?;
-                    let body = crate::fuzzing::gen::bytes(u, 64)?;
+                    let body = crate::protocol::gen::bytes(u, 64)?;
                     fed += body.len();
                     let mut b = encode(
                         kind.clamp(1, 8),

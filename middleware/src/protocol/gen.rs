@@ -1,3 +1,6 @@
+//! (Feature `fuzzing`; the structured fuzz harnesses' shared generators, kept in the `protocol`
+//! layer so harnesses of every layer can use them.)
+//!
 //! Generators of valid-shaped inputs from an [`Unstructured`]: names and patterns as services
 //! use them, whole [`Message`]s of every kind, declaration batches. Most of what they make is
 //! what a real peer would send; a small share is bent (a bad character, an empty segment, a
@@ -5,7 +8,7 @@
 
 use arbitrary::{Result, Unstructured};
 
-use crate::protocol::{
+use super::{
     Declaration, FileVerdict, ItemKind, LoggedDeclaration, Message, Origin, RemoteFailure,
 };
 use crate::typeinfo::TypeInfo;
