@@ -129,46 +129,44 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
     let mut u = Unstructured::new(data);
     let u = &mut u;
     let inner = bare_node(Some("me"), None);
-    let result = (|| -> Result<()> {
-        u.arbitrary_loop(Some(1), Some(60), |u| {
-            let id = u.int_in_range(1u64..=4)?;
-            let ns = NAMESPACES[(id as usize - 1) % NAMESPACES.len()];
-            let port = u.int_in_range(1u16..=6)?;
-            match u.int_in_range(0u8..=9)? {
-                0 | 1 => inner.on_discovery(
-                    0,
-                    addr(port),
-                    Message::Hello {
-                        node_id: id,
-                        domain: crate::config::DEFAULT_DOMAIN.into(),
-                        node: format!("n{id}"),
-                        namespace: if u.ratio(1u8, 8)? {
-                            (*u.choose(NAMESPACES)?).into()
-                        } else {
-                            ns.into()
-                        },
-                        counter: u.int_in_range(0u32..=200)?,
-                        lease_ms: u.arbitrary()?,
-                        gateway: u.ratio(1u8, 4)?,
+    let result = u.arbitrary_loop(Some(1), Some(60), |u| {
+        let id = u.int_in_range(1u64..=4)?;
+        let ns = NAMESPACES[(id as usize - 1) % NAMESPACES.len()];
+        let port = u.int_in_range(1u16..=6)?;
+        match u.int_in_range(0u8..=9)? {
+            0 | 1 => inner.on_discovery(
+                0,
+                addr(port),
+                Message::Hello {
+                    node_id: id,
+                    domain: crate::config::DEFAULT_DOMAIN.into(),
+                    node: format!("n{id}"),
+                    namespace: if u.ratio(1u8, 8)? {
+                        (*u.choose(NAMESPACES)?).into()
+                    } else {
+                        ns.into()
                     },
-                ),
-                2 => inner.on_discovery(0, addr(port), inner.heartbeat()),
-                3 => inner.on_discovery(
-                    0,
-                    addr(port),
-                    Message::Heartbeat {
-                        node_id: id,
-                        domain_hash: super::discovery::domain_hash(crate::config::DEFAULT_DOMAIN),
-                        counter: u.int_in_range(0u32..=300)?,
-                    },
-                ),
-                4..=8 => batch(u, &inner, id, ns)?,
-                _ => inner.on_discovery(0, addr(port), Message::Bye { node_id: id }),
-            }
-            check(&inner);
-            Ok(std::ops::ControlFlow::Continue(()))
-        })
-    })();
+                    counter: u.int_in_range(0u32..=200)?,
+                    lease_ms: u.arbitrary()?,
+                    gateway: u.ratio(1u8, 4)?,
+                },
+            ),
+            2 => inner.on_discovery(0, addr(port), inner.heartbeat()),
+            3 => inner.on_discovery(
+                0,
+                addr(port),
+                Message::Heartbeat {
+                    node_id: id,
+                    domain_hash: super::discovery::domain_hash(crate::config::DEFAULT_DOMAIN),
+                    counter: u.int_in_range(0u32..=300)?,
+                },
+            ),
+            4..=8 => batch(u, &inner, id, ns)?,
+            _ => inner.on_discovery(0, addr(port), Message::Bye { node_id: id }),
+        }
+        check(&inner);
+        Ok(std::ops::ControlFlow::Continue(()))
+    });
     inner.cancel.cancel();
     result
 }
