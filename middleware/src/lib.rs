@@ -17,6 +17,7 @@
 //! | [`config`], [`identity`] | `network.xml` → [`NetworkConfig`] (names link options); per-node identity keys and the domain's roster of which key owns which namespaces |
 //! | `node` | discovery, declarations, routing by interest, dispatch, the call protocol (`node::call`), file reception, gateway forwarding |
 //! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |
+//! | `fuzzing` | (feature `fuzzing` only) structure-aware input generators and harnesses for `middleware/fuzz/` and `tests/structured_fuzz.rs` |
 //!
 //! ## Concepts
 //!
@@ -74,6 +75,8 @@
 pub mod api;
 pub mod codec;
 pub mod config;
+#[cfg(feature = "fuzzing")]
+pub mod fuzzing;
 pub mod identity;
 pub mod link;
 pub mod name;

@@ -14,6 +14,7 @@ const LAYERS: &[&[&str]] = &[
     &["config", "identity"],
     &["node"],
     &["api"],
+    &["fuzzing"],
 ];
 
 /// Pseudo-module for items of the crate root itself (`crate::Node`, the re-exports of

@@ -392,10 +392,14 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
     let timeout = a
         .parsed::<f64>("timeoutS", "a number of seconds")?
         .map(|s| {
-            if s.is_finite() && s > 0.0 {
-                Ok(Duration::from_secs_f64(s))
-            } else {
-                Err(Fault::at(root, "attribute `timeoutS` must be positive"))
+            // `try_`: a value past Duration's range (`1e30`) is an error, not a panic (found
+            // by the structured fuzz test of mission files).
+            match Duration::try_from_secs_f64(s) {
+                Ok(d) if s > 0.0 => Ok(d),
+                _ => Err(Fault::at(
+                    root,
+                    "attribute `timeoutS` must be a positive number of seconds",
+                )),
             }
         })
         .transpose()?;
@@ -691,6 +695,12 @@ fn resolve_station(root: &Element, mission: &mut Mission) -> Result<(), Fault> {
     }
     Ok(())
 }
+
+/// Structure-aware fuzzing of mission files on stable (the launcher is a binary crate, so no
+/// cargo-fuzz target reaches it).
+#[cfg(test)]
+#[path = "mission_fuzz.rs"]
+mod fuzz;
 
 #[cfg(test)]
 mod tests {

@@ -7,6 +7,8 @@
 pub(crate) mod call;
 pub(crate) mod discovery;
 pub(crate) mod files;
+#[cfg(feature = "fuzzing")]
+pub(crate) mod fuzz;
 pub(crate) mod gateway;
 pub(crate) mod health;
 pub(crate) mod identity_check;
@@ -464,8 +466,8 @@ impl LinkHandler for Handler {
 }
 
 /// A node without links for the node modules' unit tests: peers are made up by feeding it
-/// their messages directly (what it sends goes nowhere).
-#[cfg(test)]
+/// their messages directly (what it sends goes nowhere); also the structured fuzzer's.
+#[cfg(any(test, feature = "fuzzing"))]
 pub(crate) fn bare_node(
     namespace: Option<&str>,
     access: Option<crate::config::AccessConfig>,

@@ -459,6 +459,29 @@ mod tests {
         inner.cancel.cancel();
     }
 
+    /// Found by the structured fuzzer: ids already used by one kind of declaration, declared
+    /// again as another kind, were not counted against the cap, so a peer could store more.
+    #[tokio::test]
+    async fn reusing_ids_across_kinds_does_not_pass_the_cap() {
+        let inner = bare(None, None);
+        inner.on_discovery(0, addr(1), hello(1, "air", "rover1", false));
+        let n = MAX_DECLS_PER_PEER as u32;
+        let offers: Vec<Declaration> = (0..n)
+            .map(|i| offer(i, ItemKind::Variable, &format!("rover1/s/v{i}"), None))
+            .collect();
+        declare(&inner, 1, offers);
+        let services: Vec<Declaration> = (0..10)
+            .map(|i| Declaration::Service {
+                id: i,
+                name: format!("s{i}"),
+            })
+            .collect();
+        declare(&inner, 1, services);
+        let stored = inner.peers.get(&1).map(|p| p.declarations());
+        assert_eq!(stored, Some(MAX_DECLS_PER_PEER));
+        inner.cancel.cancel();
+    }
+
     #[tokio::test]
     async fn declarations_per_peer_are_capped_and_a_reset_replaces_them() {
         let inner = bare(None, None);

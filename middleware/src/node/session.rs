@@ -556,10 +556,16 @@ impl NodeInner {
                         continue;
                     }
                     let id = e.decl.id();
-                    let adds = !matches!(e.decl, Declaration::Withdraw { .. })
-                        && !p.services.contains_key(&id)
-                        && !p.offers.contains_key(&id)
-                        && !p.interests.contains_key(&id);
+                    // Whether it adds an entry to the map it goes into: an id already held in
+                    // another map (a service id reused for an offer) still adds one, so it
+                    // counts against the cap (the structured fuzzer found a peer going past
+                    // the cap that way).
+                    let adds = match &e.decl {
+                        Declaration::Service { .. } => !p.services.contains_key(&id),
+                        Declaration::Offer { .. } => !p.offers.contains_key(&id),
+                        Declaration::Interest { .. } => !p.interests.contains_key(&id),
+                        Declaration::Withdraw { .. } => false,
+                    };
                     if adds
                         && (p.declarations() >= MAX_DECLS_PER_PEER
                             || total + p.declarations() >= MAX_DECLS_TOTAL)

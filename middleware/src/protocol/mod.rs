@@ -16,6 +16,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::typeinfo::TypeInfo;
 
+#[cfg(feature = "fuzzing")]
+pub mod gen;
+
 /// A node's random identity, fresh at every start.
 pub type NodeId = u64;
 

@@ -25,6 +25,8 @@ pub mod eta;
 pub mod exec;
 pub mod expand;
 pub mod expr;
+#[cfg(feature = "fuzzing")]
+pub mod fuzzing;
 pub mod geo;
 pub mod model;
 pub mod parse;

@@ -67,6 +67,8 @@ use tx::{InboxWriter, PeerTx};
 
 mod control;
 mod frame;
+#[cfg(feature = "fuzzing")]
+pub(crate) mod fuzz;
 mod inbox;
 mod rx;
 #[cfg(test)]

@@ -391,6 +391,12 @@ impl Receiver {
             c.duplicates.fetch_add(1, Ordering::Relaxed);
             return;
         }
+        // No session reaches the last sequence number; a frame claiming it is corrupt (the
+        // structured fuzzer found that `seq + 1` overflowed on it).
+        let Some(next) = seq.checked_add(1) else {
+            c.corrupt.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
         if more && body.is_some_and(|b| self.partial_bytes + b.len() > self.max_reassembly) {
             // Room is made by tearing the messages other writers stopped extending longest
             // ago: a writer still sending is the most recent, never the one torn.
@@ -405,7 +411,7 @@ impl Receiver {
             st.torn = true;
             c.corrupt.fetch_add(1, Ordering::Relaxed);
         }
-        st.expected = seq + 1;
+        st.expected = next;
         st.ack = Some(seq);
         self.ack_due.insert(from);
         let Some(body) = body.filter(|_| !st.torn) else {

@@ -33,6 +33,8 @@
 mod driver;
 mod family;
 mod forward;
+#[cfg(feature = "fuzzing")]
+mod fuzz;
 mod manager;
 mod mission;
 mod mission_upload;
@@ -43,6 +45,13 @@ mod reach;
 mod types;
 
 pub use family::AutopilotFamily;
+/// The mission upload machine under structure-aware fuzzing (feature `fuzzing`): see the
+/// `fuzz` module's docs for what is generated and checked. Panics when a property fails.
+#[cfg(feature = "fuzzing")]
+pub fn fuzz_mission_upload(data: &[u8]) {
+    let _ = fuzz::run(data);
+}
+
 pub use manager::{ManagerConfig, MavlinkManager, Telemetry, VehicleState};
 pub use mavconn::{Endpoint, EndpointParseError};
 pub use modes::{
