@@ -785,6 +785,69 @@ mod tests {
         assert!(e.starts_with("3:") && e.contains("<node>"), "{e}");
     }
 
+    const FLEET: &str = r#"<mission name="f">
+  <node name="air1" namespace="rover1">
+    <mavsim/><vas/><fpma/>
+  </node>
+  <node name="air2" namespace="rover2">
+    <mavsim/><vas/><fpma vehicle="aircraft"/>
+  </node>
+  <node name="ground">
+    <station plan="../flightplans/rover-demo.xml" fpma="rover1/fpma"/>
+    <station plan="../flightplans/rover-carpark.xml" fpma="rover2/fpma"/>
+  </node>
+</mission>"#;
+
+    #[test]
+    fn a_fleet_has_one_station_per_vehicle_each_with_its_vas_and_vehicle() {
+        let m = parse(FLEET).unwrap();
+        let st: Vec<_> = m
+            .stations()
+            .iter()
+            .map(|(n, s)| {
+                (
+                    n.name.as_str(),
+                    s.fpma.as_str(),
+                    s.vas.as_str(),
+                    s.vehicle.as_str(),
+                )
+            })
+            .collect();
+        assert_eq!(
+            st,
+            [
+                ("ground", "rover1/fpma", "rover1/vas", "rover"),
+                ("ground", "rover2/fpma", "rover2/vas", "aircraft")
+            ]
+        );
+    }
+
+    #[test]
+    fn fleet_errors_name_the_station_and_its_line() {
+        let e = parse(&FLEET.replace(" fpma=\"rover2/fpma\"", "")).unwrap_err();
+        assert!(
+            e.starts_with("10:5: <station>: the <station> needs `fpma`")
+                && e.contains("rover1/fpma, rover2/fpma"),
+            "{e}"
+        );
+        let e = parse(&FLEET.replace("fpma=\"rover2/fpma\"", "fpma=\"rover1/fpma\"")).unwrap_err();
+        assert!(
+            e.starts_with(
+                "10:5: <station>: `rover1/fpma` already flies the plan of the <station> at line 9"
+            ),
+            "{e}"
+        );
+        let e = parse(&FLEET.replace("fpma=\"rover2/fpma\"", "fpma=\"rover3/fpma\"")).unwrap_err();
+        assert!(
+            e.starts_with("10:5: <station>: fpma `rover3/fpma` is none of the mission's FPMas"),
+            "{e}"
+        );
+        // Other services stay one per node.
+        let e = parse(&FLEET.replace("<mavsim/><vas/><fpma/>", "<mavsim/><vas/><fpma/><fpma/>"))
+            .unwrap_err();
+        assert!(e.contains("node `air1` already runs a fpma"), "{e}");
+    }
+
     #[test]
     fn random_input_is_an_error_never_a_panic() {
         let bytes = GOOD.as_bytes();

@@ -663,10 +663,7 @@ fn conclude(mission: &Mission, args: &RunArgs, ui: &Ui, outs: Vec<Outcome>) -> E
             _ => None,
         })
         .collect();
-    let all_completed = !outs.is_empty()
-        && outs
-            .iter()
-            .all(|o| matches!(o, Outcome::Completed(_)));
+    let all_completed = !outs.is_empty() && outs.iter().all(|o| matches!(o, Outcome::Completed(_)));
     for out in &outs {
         match out {
             Outcome::Completed(summary) => show_summary(mission, ui, summary),

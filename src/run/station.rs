@@ -363,7 +363,9 @@ async fn follow(
     let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
 
     let sink = fpma("plans");
-    note(ui, s,
+    note(
+        ui,
+        s,
         &format!(
             "station: uploading {} to {sink} ({} waypoints, {:.0} m planned)",
             s.plan_file.display(),
@@ -581,13 +583,17 @@ async fn follow(
                     recovery = Recovery::Idle;
                     last_attempt = None;
                     t.recoveries += 1;
-                    note(ui, s,
+                    note(
+                        ui,
+                        s,
                         "station: the VAS came back; the FPMa re-sent its queue (pause, resume)",
                         json!({"event": "vas_recovered"}),
                     );
                 }
                 // Tried again on the next input or tick.
-                Err(e) => note(ui, s,
+                Err(e) => note(
+                    ui,
+                    s,
                     &format!("station: re-sending the queue to the restarted VAS failed: {e}"),
                     json!({"event": "vas_recovery_failed", "reason": e.to_string()}),
                 ),
@@ -622,7 +628,9 @@ async fn follow(
         }
         for (l, record) in out {
             if reported {
-                note(ui, s,
+                note(
+                    ui,
+                    s,
                     &l,
                     record.unwrap_or_else(|| json!({"event": "note", "text": l})),
                 );
@@ -649,11 +657,15 @@ async fn follow(
             if until_complete {
                 return Ok(Outcome::Completed(summary));
             }
-            note(ui, s,
+            note(
+                ui,
+                s,
                 &summary.text(&s.mission),
                 json!({"event": "summary", "summary": summary}),
             );
-            note(ui, s,
+            note(
+                ui,
+                s,
                 "plan completed; the services keep running (Ctrl-C stops them)",
                 json!({"event": "completed"}),
             );
