@@ -131,9 +131,7 @@ impl Drop for Sniffer {
 
 /// Writes the fleet's network file and mission into `dir`; returns the mission's path.
 fn write_mission(dir: &Path, port: u16) -> anyhow::Result<PathBuf> {
-    let mut mission = String::from(
-        "<?xml version=\"1.0\"?>\n<mission name=\"fleet-bench\">\n",
-    );
+    let mut mission = String::from("<?xml version=\"1.0\"?>\n<mission name=\"fleet-bench\">\n");
     for i in 1..=VEHICLES {
         let net = dir.join(format!("air{i}.xml"));
         std::fs::write(
