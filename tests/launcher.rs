@@ -223,9 +223,15 @@ fn nominal(plan: &Path) -> Vec<(String, f64, f64)> {
         .collect()
 }
 
-/// The summary's reached waypoints are the plan's, in order.
+/// The summary's reached waypoints are the demo plan's, in order.
 fn check_summary(summary: &Value) {
-    let plan = nominal(&root().join("config/flightplans/rover-demo.xml"));
+    check_summary_of(summary, "config/flightplans/rover-demo.xml", 300.0);
+}
+
+/// The summary's reached waypoints are those of `plan`, in order, and it flew more than
+/// `min_m` metres, as planned.
+fn check_summary_of(summary: &Value, plan: &str, min_m: f64) {
+    let plan = nominal(&root().join(plan));
     assert_eq!(summary["completed"], true, "{summary}");
     assert_eq!(summary["in_order"], true, "{summary}");
     let reached = summary["reached"].as_array().expect("reached");
@@ -245,7 +251,7 @@ fn check_summary(summary: &Value) {
     }
     let flown = summary["flown_m"].as_f64().unwrap();
     let planned = summary["planned_m"].as_f64().unwrap();
-    assert!(flown > 300.0 && (flown - planned).abs() < 1.0, "{summary}");
+    assert!(flown > min_m && (flown - planned).abs() < 1.0, "{summary}");
 }
 
 fn assert_no_child_left(pids: &[(String, u32)]) {
@@ -344,6 +350,64 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
         assert!(
             pids.iter().any(|(s, _)| s == gw),
             "{gw} not started: {pids:?}"
+        );
+    }
+    assert_no_child_left(&pids);
+}
+
+/// Issue 16 item 1: two rovers in one mission, each its namespace, simulator, VAS, FPMa and
+/// plan; `--until-complete` waits for both, and each gets its own progress and summary.
+#[test]
+fn two_rovers_in_one_mission_each_complete_their_own_plan() {
+    let mut l = Launcher::start(&[
+        "config/missions/two-rovers.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let fleet = l.event(FLIGHT * 2, "fleet_summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    assert_eq!(fleet["vehicles"], 2, "{fleet}");
+    assert_eq!(fleet["completed"], serde_json::json!(["rover1", "rover2"]));
+    let summaries: Vec<&Value> = l
+        .seen
+        .iter()
+        .filter(|v| v["event"] == "summary")
+        .map(|v| &v["summary"])
+        .collect();
+    assert_eq!(summaries.len(), 2, "{summaries:?}");
+    for (vehicle, plan, min_m) in [
+        ("rover1", "config/flightplans/rover-demo.xml", 300.0),
+        ("rover2", "config/flightplans/rover-east.xml", 200.0),
+    ] {
+        let s = summaries
+            .iter()
+            .find(|s| s["vehicle"] == vehicle)
+            .unwrap_or_else(|| panic!("no summary of {vehicle}: {summaries:?}"));
+        check_summary_of(s, plan, min_m);
+        // Each vehicle's progress came waypoint by waypoint, named after it.
+        let n: Vec<u64> = l
+            .seen
+            .iter()
+            .filter(|v| v["event"] == "waypoint" && v["vehicle"] == vehicle)
+            .filter_map(|v| v["n"].as_u64())
+            .collect();
+        assert_eq!(n, (1..=s["planned"].as_u64().unwrap()).collect::<Vec<_>>());
+    }
+    let pids = l.pids();
+    for svc in [
+        "air1/mavsim",
+        "air1/vas",
+        "air1/fpma",
+        "air2/mavsim",
+        "air2/vas",
+        "air2/fpma",
+    ] {
+        assert!(
+            pids.iter().any(|(s, _)| s == svc),
+            "{svc} not started: {pids:?}"
         );
     }
     assert_no_child_left(&pids);

@@ -269,14 +269,18 @@ impl Mission {
         self.nodes.iter().find(|n| n.name == name)
     }
 
-    /// The station, with its node.
-    pub fn station(&self) -> Option<(&NodeSpec, &StationSpec)> {
-        self.nodes.iter().find_map(|n| {
-            n.services.iter().find_map(|s| match s {
-                ServiceSpec::Station(st) => Some((n, st)),
-                _ => None,
+    /// Every station (one per vehicle whose plan the launcher flies), with its node, in file
+    /// order.
+    pub fn stations(&self) -> Vec<(&NodeSpec, &StationSpec)> {
+        self.nodes
+            .iter()
+            .flat_map(|n| {
+                n.services.iter().filter_map(move |s| match s {
+                    ServiceSpec::Station(st) => Some((n, st)),
+                    _ => None,
+                })
             })
-        })
+            .collect()
     }
 }
 
@@ -564,9 +568,11 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 ))
             }
         };
-        if services
-            .iter()
-            .any(|x: &ServiceSpec| x.kind() == svc.kind())
+        // Several <station>s may share a node: one per vehicle of a fleet mission.
+        if !matches!(svc, ServiceSpec::Station(_))
+            && services
+                .iter()
+                .any(|x: &ServiceSpec| x.kind() == svc.kind())
         {
             return Err(Fault::at(
                 s,
@@ -621,9 +627,11 @@ fn radio_from(el: &Element, mission: &Mission) -> Result<RadioSpec, Fault> {
     Ok(spec)
 }
 
-/// Fills the station's defaults from the mission: the only FPMa and the VAS of its node.
+/// Fills each station's defaults from the mission (the only FPMa, the VAS it feeds, its
+/// vehicle) and checks that a fleet's stations name distinct FPMas.
 fn resolve_station(root: &Element, mission: &mut Mission) -> Result<(), Fault> {
-    let fpmas: Vec<(String, String)> = mission
+    // (fpma prefix, vas prefix, vehicle) of every FPMa of the mission.
+    let fpmas: Vec<(String, String, String)> = mission
         .nodes
         .iter()
         .flat_map(|n| {
@@ -642,56 +650,96 @@ fn resolve_station(root: &Element, mission: &mut Mission) -> Result<(), Fault> {
                         Some(v) => prefix(v),
                         None => prefix("vas"),
                     };
-                    Some((prefix("fpma"), vas))
+                    Some((prefix("fpma"), vas, f.vehicle.clone()))
                 }
                 _ => None,
             })
         })
         .collect();
-    let vehicle_of_fpma = mission.nodes.iter().find_map(|n| {
-        n.services.iter().find_map(|s| match s {
-            ServiceSpec::Fpma(f) => Some(f.vehicle.clone()),
-            _ => None,
-        })
-    });
-    let mut stations = 0;
+    // The <station> elements, in the order of the parsed stations, for error positions.
+    let station_els: Vec<&Element> = root
+        .children
+        .iter()
+        .filter(|c| c.name == "node")
+        .flat_map(|n| n.children.iter().filter(|c| c.name == "station"))
+        .collect();
+    let mut flown: Vec<(String, usize)> = Vec::new();
+    let mut i = 0;
     for node in &mut mission.nodes {
         for s in &mut node.services {
             let ServiceSpec::Station(st) = s else {
                 continue;
             };
-            stations += 1;
+            let el = station_els.get(i).copied().unwrap_or(root);
+            i += 1;
             if st.fpma.is_empty() {
                 match fpmas.as_slice() {
-                    [(f, v)] => {
-                        st.fpma.clone_from(f);
-                        if st.vas.is_empty() {
-                            st.vas.clone_from(v);
-                        }
-                    }
-                    _ => {
+                    [(f, _, _)] => st.fpma.clone_from(f),
+                    [] => {
                         return Err(Fault::at(
-                            root,
-                            "the <station> needs `fpma` (which FPMa flies the plan): the mission has no single <fpma>",
+                            el,
+                            "the <station> needs `fpma` (which FPMa flies the plan): the mission has no <fpma>",
                         ))
+                    }
+                    many => {
+                        let names: Vec<&str> = many.iter().map(|f| f.0.as_str()).collect();
+                        return Err(Fault::at(
+                            el,
+                            format!(
+                                "the <station> needs `fpma` (which FPMa flies the plan): the mission has {} ({})",
+                                many.len(),
+                                names.join(", ")
+                            ),
+                        ));
                     }
                 }
             }
+            let known = fpmas.iter().find(|f| f.0 == st.fpma);
             if st.vas.is_empty() {
-                let ns = st.fpma.rsplit_once('/').map_or("", |(ns, _)| ns);
-                st.vas = if ns.is_empty() {
-                    "vas".into()
-                } else {
-                    format!("{ns}/vas")
+                st.vas = match known {
+                    Some(f) => f.1.clone(),
+                    None => {
+                        let ns = st.fpma.rsplit_once('/').map_or("", |(ns, _)| ns);
+                        if ns.is_empty() {
+                            "vas".into()
+                        } else {
+                            format!("{ns}/vas")
+                        }
+                    }
                 };
             }
             if st.vehicle.is_empty() {
-                st.vehicle = vehicle_of_fpma.clone().unwrap_or_else(|| "rover".into());
+                st.vehicle = known
+                    .or(fpmas.first())
+                    .map_or_else(|| "rover".into(), |f| f.2.clone());
             }
+            if let Some((_, line)) = flown.iter().find(|(f, _)| *f == st.fpma) {
+                return Err(Fault::at(
+                    el,
+                    format!(
+                        "`{}` already flies the plan of the <station> at line {line}",
+                        st.fpma
+                    ),
+                ));
+            }
+            flown.push((st.fpma.clone(), el.pos.line as usize));
         }
     }
-    if stations > 1 {
-        return Err(Fault::at(root, "at most one <station> per mission"));
+    if flown.len() > 1 {
+        // A fleet: every station's FPMa must be one of the mission's, so none waits forever.
+        for (k, (f, _)) in flown.iter().enumerate() {
+            if !fpmas.iter().any(|x| x.0 == *f) {
+                let el = station_els.get(k).copied().unwrap_or(root);
+                let names: Vec<&str> = fpmas.iter().map(|f| f.0.as_str()).collect();
+                return Err(Fault::at(
+                    el,
+                    format!(
+                        "fpma `{f}` is none of the mission's FPMas ({})",
+                        names.join(", ")
+                    ),
+                ));
+            }
+        }
     }
     Ok(())
 }
@@ -732,7 +780,7 @@ mod tests {
         assert_eq!(m.nodes.len(), 2);
         let kinds: Vec<_> = m.nodes[0].services.iter().map(|s| s.kind()).collect();
         assert_eq!(kinds, ["mavsim", "vas", "fpma"]);
-        let (node, st) = m.station().unwrap();
+        let (node, st) = m.stations()[0];
         assert_eq!(node.name, "ground");
         assert_eq!(st.fpma, "rover1/fpma");
         assert_eq!(st.vas, "rover1/vas");
@@ -769,6 +817,69 @@ mod tests {
         assert!(e.contains("empty file"), "{e}");
         let e = parse("<mission name=\"x\">\n<node name=\"a\">\n</mission>").unwrap_err();
         assert!(e.starts_with("3:") && e.contains("<node>"), "{e}");
+    }
+
+    const FLEET: &str = r#"<mission name="f">
+  <node name="air1" namespace="rover1">
+    <mavsim/><vas/><fpma/>
+  </node>
+  <node name="air2" namespace="rover2">
+    <mavsim/><vas/><fpma vehicle="aircraft"/>
+  </node>
+  <node name="ground">
+    <station plan="../flightplans/rover-demo.xml" fpma="rover1/fpma"/>
+    <station plan="../flightplans/rover-carpark.xml" fpma="rover2/fpma"/>
+  </node>
+</mission>"#;
+
+    #[test]
+    fn a_fleet_has_one_station_per_vehicle_each_with_its_vas_and_vehicle() {
+        let m = parse(FLEET).unwrap();
+        let st: Vec<_> = m
+            .stations()
+            .iter()
+            .map(|(n, s)| {
+                (
+                    n.name.as_str(),
+                    s.fpma.as_str(),
+                    s.vas.as_str(),
+                    s.vehicle.as_str(),
+                )
+            })
+            .collect();
+        assert_eq!(
+            st,
+            [
+                ("ground", "rover1/fpma", "rover1/vas", "rover"),
+                ("ground", "rover2/fpma", "rover2/vas", "aircraft")
+            ]
+        );
+    }
+
+    #[test]
+    fn fleet_errors_name_the_station_and_its_line() {
+        let e = parse(&FLEET.replace(" fpma=\"rover2/fpma\"", "")).unwrap_err();
+        assert!(
+            e.starts_with("10:5: <station>: the <station> needs `fpma`")
+                && e.contains("rover1/fpma, rover2/fpma"),
+            "{e}"
+        );
+        let e = parse(&FLEET.replace("fpma=\"rover2/fpma\"", "fpma=\"rover1/fpma\"")).unwrap_err();
+        assert!(
+            e.starts_with(
+                "10:5: <station>: `rover1/fpma` already flies the plan of the <station> at line 9"
+            ),
+            "{e}"
+        );
+        let e = parse(&FLEET.replace("fpma=\"rover2/fpma\"", "fpma=\"rover3/fpma\"")).unwrap_err();
+        assert!(
+            e.starts_with("10:5: <station>: fpma `rover3/fpma` is none of the mission's FPMas"),
+            "{e}"
+        );
+        // Other services stay one per node.
+        let e = parse(&FLEET.replace("<mavsim/><vas/><fpma/>", "<mavsim/><vas/><fpma/><fpma/>"))
+            .unwrap_err();
+        assert!(e.contains("node `air1` already runs a fpma"), "{e}");
     }
 
     #[test]

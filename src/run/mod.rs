@@ -80,23 +80,24 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
         eprintln!("usal: --timeout-s must be positive");
         return ExitCode::from(EXIT_USAGE);
     }
-    let station = match mission.station() {
-        Some((node, st)) => match station_setup(&mission, node, st) {
-            Ok(s) => Some(s),
+    let fleet = mission.stations().len() > 1;
+    let mut stations = Vec::new();
+    for (node, st) in mission.stations() {
+        match station_setup(&mission, node, st, fleet) {
+            Ok(s) => stations.push(s),
             Err(e) => {
                 eprintln!("usal: {e:#}");
                 return ExitCode::from(EXIT_USAGE);
             }
-        },
-        None if args.until_complete => {
-            eprintln!(
-                "usal: --until-complete needs a <station> in {} to follow a plan",
-                args.mission.display()
-            );
-            return ExitCode::from(EXIT_USAGE);
         }
-        None => None,
-    };
+    }
+    if stations.is_empty() && args.until_complete {
+        eprintln!(
+            "usal: --until-complete needs a <station> in {} to follow a plan",
+            args.mission.display()
+        );
+        return ExitCode::from(EXIT_USAGE);
+    }
     let ui = Arc::new(Ui::new(json));
     let bins = match find_or_build_bins(&mission, &ui) {
         Ok(b) => b,
@@ -112,14 +113,16 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    rt.block_on(run(mission, station, bins, args, ui))
+    rt.block_on(run(mission, stations, bins, args, ui))
 }
 
 /// Reads and expands the station's plan, so a bad plan stops the launch before anything starts.
+/// In a `fleet` (several stations), the station is named after its vehicle.
 fn station_setup(
     mission: &Mission,
     node: &mission::NodeSpec,
     st: &mission::StationSpec,
+    fleet: bool,
 ) -> anyhow::Result<StationSetup> {
     use fpma::vehicle::{VehicleKind, VehicleParams};
     let src = std::fs::read_to_string(&st.plan)
@@ -146,9 +149,37 @@ fn station_setup(
             )
         })
         .sum();
+    // The vehicle: the FPMa's namespace (its whole prefix when it has none).
+    let ns = st.fpma.rsplit_once('/').map_or("", |(ns, _)| ns);
+    let vehicle = if ns.is_empty() {
+        st.fpma.clone()
+    } else {
+        ns.replace('/', "-")
+    };
+    // The node running the VAS it follows, for that VAS's restarts.
+    let vas_ns = st.vas.rsplit_once('/').map(|(ns, _)| ns);
+    let vas_label = mission
+        .nodes
+        .iter()
+        .find(|n| {
+            n.namespace.as_deref() == vas_ns
+                && n.services.iter().any(|s| matches!(s, ServiceSpec::Vas(_)))
+        })
+        .map(|n| format!("{}/vas", n.name));
     Ok(StationSetup {
         mission: mission.name.clone(),
-        node: node.name.clone(),
+        node: if fleet {
+            format!("{}-{vehicle}", node.name)
+        } else {
+            node.name.clone()
+        },
+        service: if fleet {
+            format!("station-{vehicle}")
+        } else {
+            "station".into()
+        },
+        vehicle: fleet.then_some(vehicle),
+        vas_label,
         namespace: node.namespace.clone(),
         network: node.network.clone(),
         domain: String::new(),
@@ -279,7 +310,7 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
 
 async fn run(
     mut mission: Mission,
-    mut station: Option<StationSetup>,
+    mut stations: Vec<StationSetup>,
     bins: Bins,
     args: &RunArgs,
     ui: Arc<Ui>,
@@ -301,7 +332,7 @@ async fn run(
     let scratch = std::env::temp_dir().join(format!("usal-run-{domain}"));
     let mut sup = Supervisor::new(ui.clone());
     let mut notices = sup.subscribe();
-    let station_notices = sup.subscribe();
+    let station_notices: Vec<_> = stations.iter().map(|_| sup.subscribe()).collect();
 
     // A radio first: it gives the nodes it joins their networks.
     let radio = match mission.radio.clone() {
@@ -321,10 +352,8 @@ async fn run(
             return ExitCode::FAILURE;
         }
     };
-    if let Some(st) = &mut station {
-        if let Some(node) = mission.node(&st.node) {
-            st.network = node.network.clone();
-        }
+    for (st, (node, _)) in stations.iter_mut().zip(mission.stations()) {
+        st.network = node.network.clone();
     }
     let code = match start_services(
         &mission,
@@ -347,7 +376,7 @@ async fn run(
         Ok(()) => {
             supervise(
                 &mission,
-                station,
+                stations,
                 &domain,
                 args,
                 &ui,
@@ -546,17 +575,17 @@ async fn wait_sim(
     }
 }
 
-/// Runs until the plan completes (with `--until-complete`), a child cannot be kept running,
-/// the time limit, or a signal.
+/// Runs until every station's plan completes (with `--until-complete`), a station fails, a
+/// child cannot be kept running, the time limit, or a signal.
 #[allow(clippy::too_many_arguments)]
 async fn supervise(
     mission: &Mission,
-    station: Option<StationSetup>,
+    stations: Vec<StationSetup>,
     domain: &str,
     args: &RunArgs,
     ui: &Arc<Ui>,
     mut notices: broadcast::Receiver<Notice>,
-    station_notices: broadcast::Receiver<Notice>,
+    station_notices: Vec<broadcast::Receiver<Notice>>,
     stop: &CancellationToken,
 ) -> ExitCode {
     let limit = args
@@ -567,58 +596,42 @@ async fn supervise(
     let deadline = tokio::time::sleep(limit);
     tokio::pin!(deadline);
     let station_stop = stop.child_token();
+    // Every station at once; one failing stops the others (they report how far they got).
     let follow = async {
-        match station {
-            Some(mut s) => {
-                s.domain = domain.to_owned();
-                station::run(
-                    s,
-                    ui.clone(),
-                    station_notices,
-                    station_stop.clone(),
-                    args.until_complete,
-                )
-                .await
-            }
-            None => {
-                station_stop.cancelled().await;
-                Outcome::Failed(String::new())
+        if stations.is_empty() {
+            station_stop.cancelled().await;
+            return Vec::new();
+        }
+        let mut set = tokio::task::JoinSet::new();
+        for (i, (mut s, n)) in stations.into_iter().zip(station_notices).enumerate() {
+            s.domain = domain.to_owned();
+            let (ui, stop) = (ui.clone(), station_stop.clone());
+            let until_complete = args.until_complete;
+            set.spawn(async move {
+                let out = station::run(s, ui, n, stop.clone(), until_complete).await;
+                if matches!(out, Outcome::Failed(_)) {
+                    stop.cancel();
+                }
+                (i, out)
+            });
+        }
+        let mut outs: Vec<(usize, Outcome)> = Vec::new();
+        while let Some(r) = set.join_next().await {
+            match r {
+                Ok(o) => outs.push(o),
+                Err(e) => {
+                    station_stop.cancel();
+                    outs.push((usize::MAX, Outcome::Failed(format!("station task: {e}"))));
+                }
             }
         }
+        outs.sort_by_key(|(i, _)| *i);
+        outs.into_iter().map(|(_, o)| o).collect::<Vec<Outcome>>()
     };
     tokio::pin!(follow);
     let failure = loop {
         tokio::select! {
-            out = &mut follow => {
-                return match out {
-                    Outcome::Completed(summary) => {
-                        ui.result(
-                            &summary.text(&mission.name),
-                            json!({"event": "summary", "summary": summary}),
-                        );
-                        if summary.in_order {
-                            ExitCode::SUCCESS
-                        } else {
-                            eprintln!("usal: the plan completed, but not as planned (see the summary)");
-                            ExitCode::FAILURE
-                        }
-                    }
-                    Outcome::Stopped(summary) => {
-                        if args.until_complete {
-                            ui.result(
-                                &summary.text(&mission.name),
-                                json!({"event": "summary", "summary": summary}),
-                            );
-                        }
-                        interrupted(args)
-                    }
-                    Outcome::Failed(reason) => {
-                        ui.clear_bar();
-                        eprintln!("usal: {reason}");
-                        ExitCode::FAILURE
-                    }
-                };
-            }
+            outs = &mut follow => return conclude(mission, args, ui, outs),
             n = notices.recv() => {
                 if let Ok(Notice::GaveUp { reason, .. }) = n {
                     break reason;
@@ -629,17 +642,104 @@ async fn supervise(
             }
         }
     };
-    // Let the station print what it has, then report the failure.
+    // Let the stations print what they have, then report the failure.
     station_stop.cancel();
-    if let Outcome::Stopped(summary) = follow.await {
-        ui.result(
-            &summary.text(&mission.name),
-            json!({"event": "summary", "summary": summary}),
-        );
+    let outs = follow.await;
+    let fleet = outs.len() > 1;
+    for out in &outs {
+        if let Outcome::Stopped(summary) | Outcome::Completed(summary) = out {
+            show_summary(mission, ui, summary);
+        }
+    }
+    if fleet {
+        show_fleet(mission, ui, &outs);
     }
     ui.clear_bar();
     eprintln!("usal: {failure}");
     ExitCode::FAILURE
+}
+
+/// The exit status and summaries once every station has returned.
+fn conclude(mission: &Mission, args: &RunArgs, ui: &Ui, outs: Vec<Outcome>) -> ExitCode {
+    let fleet = outs.len() > 1;
+    let failures: Vec<&str> = outs
+        .iter()
+        .filter_map(|o| match o {
+            Outcome::Failed(r) => Some(r.as_str()),
+            _ => None,
+        })
+        .collect();
+    let all_completed = !outs.is_empty() && outs.iter().all(|o| matches!(o, Outcome::Completed(_)));
+    for out in &outs {
+        match out {
+            Outcome::Completed(summary) => show_summary(mission, ui, summary),
+            Outcome::Stopped(summary) if args.until_complete => {
+                show_summary(mission, ui, summary);
+            }
+            _ => {}
+        }
+    }
+    if fleet && (args.until_complete || !failures.is_empty()) {
+        show_fleet(mission, ui, &outs);
+    }
+    if !failures.is_empty() {
+        ui.clear_bar();
+        for reason in failures {
+            eprintln!("usal: {reason}");
+        }
+        return ExitCode::FAILURE;
+    }
+    if !all_completed {
+        return interrupted(args);
+    }
+    let off_plan: Vec<String> = outs
+        .iter()
+        .filter_map(|o| match o {
+            Outcome::Completed(s) if !s.in_order => {
+                Some(s.vehicle.clone().unwrap_or_else(|| "the vehicle".into()))
+            }
+            _ => None,
+        })
+        .collect();
+    if off_plan.is_empty() {
+        ExitCode::SUCCESS
+    } else if fleet {
+        eprintln!(
+            "usal: the plans completed, but not as planned for {} (see the summaries)",
+            off_plan.join(", ")
+        );
+        ExitCode::FAILURE
+    } else {
+        eprintln!("usal: the plan completed, but not as planned (see the summary)");
+        ExitCode::FAILURE
+    }
+}
+
+fn show_summary(mission: &Mission, ui: &Ui, summary: &station::Summary) {
+    ui.result(
+        &summary.text(&mission.name),
+        json!({"event": "summary", "summary": summary}),
+    );
+}
+
+/// The fleet's line: how many vehicles completed their plans.
+fn show_fleet(mission: &Mission, ui: &Ui, outs: &[Outcome]) {
+    let completed: Vec<&str> = outs
+        .iter()
+        .filter_map(|o| match o {
+            Outcome::Completed(s) => Some(s.vehicle.as_deref().unwrap_or("-")),
+            _ => None,
+        })
+        .collect();
+    ui.result(
+        &format!(
+            "mission {}: {} of {} vehicles completed their plans",
+            mission.name,
+            completed.len(),
+            outs.len()
+        ),
+        json!({"event": "fleet_summary", "vehicles": outs.len(), "completed": completed}),
+    );
 }
 
 /// Ctrl-C or SIGTERM: stop everything.

@@ -41,8 +41,15 @@ const SETTLE_ON_EVENT: Duration = Duration::from_secs(10);
 pub struct StationSetup {
     /// The mission's name.
     pub mission: String,
-    /// Its node name (the mission node hosting it).
+    /// Its node name (the mission node hosting it; with several vehicles, `NODE-VEHICLE`).
     pub node: String,
+    /// Its service name (`station`; with several vehicles, `station-VEHICLE`).
+    pub service: String,
+    /// The vehicle it follows, named in its lines, bar and summary when the mission has
+    /// several (the FPMa's namespace, e.g. `rover2`); `None` in a one-vehicle mission.
+    pub vehicle: Option<String>,
+    /// The supervisor label of that vehicle's VAS (`air2/vas`), so only its restarts count.
+    pub vas_label: Option<String>,
     /// Its namespace.
     pub namespace: Option<String>,
     /// A network.xml to join with; default Ethernet on loopback.
@@ -79,6 +86,9 @@ pub struct Reached {
 /// The flight, summed up.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct Summary {
+    /// The vehicle, in a mission of several.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vehicle: Option<String>,
     /// Plan name.
     pub plan: String,
     /// Whether the FPMa said the plan was completed.
@@ -102,8 +112,12 @@ pub struct Summary {
 impl Summary {
     /// The human-readable form.
     pub fn text(&self, mission: &str) -> String {
+        let who = match &self.vehicle {
+            Some(v) => format!("mission {mission}, vehicle {v}"),
+            None => format!("mission {mission}"),
+        };
         let mut s = format!(
-            "mission {mission}: plan `{}` {} in {:.1} s\n",
+            "{who}: plan `{}` {} in {:.1} s\n",
             self.plan,
             if self.completed {
                 "completed"
@@ -266,6 +280,17 @@ impl Tracker<'_> {
     fn bar_line(&self) -> String {
         let (flown, planned) = self.distances();
         let t = self.elapsed().as_secs();
+        if self.setup.vehicle.is_some() {
+            // One of several vehicles on one line: the short form.
+            return format!(
+                "{} {:>3.0}% wp {}/{} {}",
+                ui::bar(self.fraction(), 10),
+                self.fraction() * 100.0,
+                self.reached.len(),
+                self.setup.nominal.len(),
+                self.state_name(),
+            );
+        }
         format!(
             "{} {:>3.0}%  leg {}  wp {}/{}  {:.0}/{:.0} m  {}  {:.1} m/s  {}:{:02}  {}",
             ui::bar(self.fraction(), 24),
@@ -313,6 +338,7 @@ impl Tracker<'_> {
             .collect();
         let (flown_m, planned_m) = self.distances();
         Summary {
+            vehicle: self.setup.vehicle.clone(),
             plan: self.setup.plan_name.clone(),
             completed: self.completed_event || self.progress.as_ref().is_some_and(|p| p.completed),
             reached,
@@ -345,7 +371,7 @@ async fn follow(
     stop: &CancellationToken,
     until_complete: bool,
 ) -> anyhow::Result<Outcome> {
-    let svc = node.service("station")?;
+    let svc = node.service(&s.service)?;
     let fpma = |item: &str| format!("{}/{item}", s.fpma);
     let vas = |item: &str| format!("{}/{item}", s.vas);
     let progress = svc.subscribe_variable::<Progress>(&fpma("progress"))?;
@@ -359,7 +385,9 @@ async fn follow(
     let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
 
     let sink = fpma("plans");
-    ui.note(
+    note(
+        ui,
+        s,
         &format!(
             "station: uploading {} to {sink} ({} waypoints, {:.0} m planned)",
             s.plan_file.display(),
@@ -411,7 +439,7 @@ async fn follow(
                 return Ok(Outcome::Stopped(t.summary()));
             }
             () = &mut upload_anyway, if send.is_none() => {
-                ui.note(
+                note(ui, s,
                     &format!("station: the VAS is not configured after {UPLOAD_ANYWAY:?}; uploading the plan anyway"),
                     json!({"event": "note", "text": "uploading before the VAS is configured"}),
                 );
@@ -422,7 +450,7 @@ async fn follow(
                 match r {
                     Ok(rep) => {
                         t.started = Some(Instant::now());
-                        ui.note(
+                        note(ui, s,
                             &format!("station: plan sent ({} bytes) to {}", rep.size, rep.receiver),
                             json!({"event": "plan_sent", "bytes": rep.size, "receiver": rep.receiver}),
                         );
@@ -515,7 +543,9 @@ async fn follow(
                 t.speed = p.context("following the position")?.value.speed;
             }
             n = notices.recv(), if notices_open => match n {
-                Ok(Notice::Restarted { kind: "vas", label, pid }) => {
+                Ok(Notice::Restarted { kind: "vas", label, pid })
+                    if s.vas_label.as_deref().is_none_or(|l| l == label) =>
+                {
                     line = Some(format!("{label} restarted (pid {pid}): waiting for it to configure"));
                     if navigated && recovery == Recovery::Idle {
                         recovery = Recovery::Waiting;
@@ -540,11 +570,11 @@ async fn follow(
                 kick_at = Some(Instant::now() + Duration::from_secs(3600));
                 let to = FlightState::WaypointNavigation;
                 match vas_state_fn.call(&StateChangeRequest { to }, CALL_TIMEOUT).await {
-                    Ok(_) => ui.note(
+                    Ok(_) => note(ui, s,
                         "station: the plan was loaded but the vehicle stayed parked; asked the VAS for WAYPOINT_NAVIGATION",
                         json!({"event": "navigation_kicked"}),
                     ),
-                    Err(e) => ui.note(
+                    Err(e) => note(ui, s,
                         &format!("station: the vehicle stays parked and the VAS refused WAYPOINT_NAVIGATION: {e}"),
                         json!({"event": "navigation_refused", "reason": e.to_string()}),
                     ),
@@ -575,13 +605,17 @@ async fn follow(
                     recovery = Recovery::Idle;
                     last_attempt = None;
                     t.recoveries += 1;
-                    ui.note(
+                    note(
+                        ui,
+                        s,
                         "station: the VAS came back; the FPMa re-sent its queue (pause, resume)",
                         json!({"event": "vas_recovered"}),
                     );
                 }
                 // Tried again on the next input or tick.
-                Err(e) => ui.note(
+                Err(e) => note(
+                    ui,
+                    s,
                     &format!("station: re-sending the queue to the restarted VAS failed: {e}"),
                     json!({"event": "vas_recovery_failed", "reason": e.to_string()}),
                 ),
@@ -615,16 +649,18 @@ async fn follow(
             ));
         }
         if out.is_empty() && !reported {
-            ui.progress(&t.bar_line(), None, None);
+            ui.progress_of(s.vehicle.as_deref(), &t.bar_line(), None, None);
         }
         for (l, record) in out {
             if reported {
-                ui.note(
+                note(
+                    ui,
+                    s,
                     &l,
                     record.unwrap_or_else(|| json!({"event": "note", "text": l})),
                 );
             } else {
-                ui.progress(&t.bar_line(), Some(&l), record);
+                ui.progress_of(s.vehicle.as_deref(), &t.bar_line(), Some(&l), record);
             }
         }
         // Settled when both the progress variable and the event say so and every waypoint
@@ -646,11 +682,15 @@ async fn follow(
             if until_complete {
                 return Ok(Outcome::Completed(summary));
             }
-            ui.note(
+            note(
+                ui,
+                s,
                 &summary.text(&s.mission),
                 json!({"event": "summary", "summary": summary}),
             );
-            ui.note(
+            note(
+                ui,
+                s,
                 "plan completed; the services keep running (Ctrl-C stops them)",
                 json!({"event": "completed"}),
             );
@@ -666,4 +706,17 @@ fn ui_mmss(s: f64) -> String {
         0
     };
     format!("{}:{:02}", s / 60, s % 60)
+}
+
+/// A note of this station: named after its vehicle in a mission of several.
+fn note(ui: &Ui, s: &StationSetup, text: &str, mut record: serde_json::Value) {
+    match &s.vehicle {
+        None => ui.note(text, record),
+        Some(v) => {
+            if let Some(o) = record.as_object_mut() {
+                o.insert("vehicle".into(), v.clone().into());
+            }
+            ui.note(&format!("{v}: {text}"), record);
+        }
+    }
 }

@@ -13,6 +13,8 @@ pub struct Ui {
     tty: bool,
     /// The progress bar now on screen (tty only), redrawn under every log line.
     bar: Mutex<Option<String>>,
+    /// In a mission of several vehicles: each vehicle's part of the bar, in first-seen order.
+    parts: Mutex<Vec<(String, String)>>,
 }
 
 impl Ui {
@@ -22,6 +24,7 @@ impl Ui {
             json,
             tty: !json && std::io::stderr().is_terminal(),
             bar: Mutex::new(None),
+            parts: Mutex::new(Vec::new()),
         }
     }
 
@@ -76,6 +79,37 @@ impl Ui {
         }
     }
 
+    /// A progress update of one vehicle of several (`vehicle` set): the bar shows every
+    /// vehicle's part side by side, the line is prefixed with the vehicle and the JSON record
+    /// names it. Without a vehicle, [`Ui::progress`].
+    pub fn progress_of(
+        &self,
+        vehicle: Option<&str>,
+        bar: &str,
+        line: Option<&str>,
+        json: Option<Value>,
+    ) {
+        let Some(v) = vehicle else {
+            return self.progress(bar, line, json);
+        };
+        let joined = {
+            let mut parts = marea::sync::lock(&self.parts);
+            match parts.iter_mut().find(|(k, _)| k == v) {
+                Some(p) => bar.clone_into(&mut p.1),
+                None => parts.push((v.to_owned(), bar.to_owned())),
+            }
+            join_parts(&parts)
+        };
+        let line = line.map(|l| format!("{v}: {l}"));
+        let json = json.map(|mut j| {
+            if let Some(o) = j.as_object_mut() {
+                o.insert("vehicle".into(), v.into());
+            }
+            j
+        });
+        self.progress(&joined, line.as_deref(), json);
+    }
+
     /// Removes the bar (before the summary and at exit).
     pub fn clear_bar(&self) {
         let mut b = marea::sync::lock(&self.bar);
@@ -95,6 +129,15 @@ impl Ui {
             println!("{text}");
         }
     }
+}
+
+/// Vehicles' bars on one line: `rover1 [###-] 30% ... | rover2 ...`.
+fn join_parts(parts: &[(String, String)]) -> String {
+    parts
+        .iter()
+        .map(|(k, b)| format!("{k} {b}"))
+        .collect::<Vec<_>>()
+        .join(" | ")
 }
 
 /// A text progress bar of `width` cells for `fraction` in [0, 1].
@@ -120,5 +163,15 @@ mod tests {
         assert_eq!(bar(1.0, 4), "[####]");
         assert_eq!(bar(f64::NAN, 2), "[--]");
         assert_eq!(bar(7.0, 2), "[##]");
+    }
+
+    #[test]
+    fn a_fleet_bar_shows_every_vehicle_in_first_seen_order() {
+        let ui = Ui::new(false);
+        ui.progress_of(Some("rover1"), "[#-] 50%", None, None);
+        ui.progress_of(Some("rover2"), "[--] 0%", None, None);
+        ui.progress_of(Some("rover1"), "[##] 100%", None, None);
+        let parts = marea::sync::lock(&ui.parts);
+        assert_eq!(join_parts(&parts), "rover1 [##] 100% | rover2 [--] 0%");
     }
 }
