@@ -421,6 +421,27 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         Some(w)
     }
 
+    /// MISSION_CURRENT says the autopilot drives to `slot`, the slot after the target, while
+    /// the target's slot is `just_set` (ours, made current a moment ago, no reach reported):
+    /// the autopilot's own advance raced our set-current and skipped the target. The target
+    /// stays, and it is made current again (returns true); [`Self::on_current`] must not take
+    /// the jump for a reach.
+    pub fn jumped_past(&mut self, slot: u16, just_set: Option<u16>) -> bool {
+        let Some(c) = self.cur else {
+            return false;
+        };
+        if self.owe_start || just_set != Some(c) || self.ahead.len() < 2 {
+            return false;
+        }
+        match self.slot_of(c, 1) {
+            Some((s, _)) if s == slot => {
+                self.owe_restore = true;
+                true
+            }
+            _ => false,
+        }
+    }
+
     /// MISSION_CURRENT says the autopilot drives to `slot`. When that is the slot of the
     /// waypoint after the target, the target's reached message was missed: it is returned
     /// as reached.
@@ -567,6 +588,26 @@ mod tests {
     fn falls_back_to_full_uploads_without_partial_writes() {
         let ap = fly(5, 50, false, 7);
         assert_eq!(ap.reached, (0..50).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn a_jump_right_after_our_set_current_is_not_a_reach_and_the_target_is_made_current_again() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(10..20);
+        q.start();
+        let up = q.poll().unwrap();
+        q.done(&up);
+        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
+        q.done(&QueueAction::SetCurrent(1));
+        // The autopilot reports slot 2 at once: its own advance raced our set-current.
+        assert!(q.jumped_past(2, Some(1)));
+        assert_eq!(q.target(), Some(&10), "the target stays");
+        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
+        // Without a set-current of that slot a moment ago, the jump is a lost reach report.
+        q.done(&QueueAction::SetCurrent(1));
+        assert!(!q.jumped_past(2, None));
+        assert_eq!(q.on_current(2), Some(10));
+        assert_eq!(q.target(), Some(&11));
     }
 
     #[test]

@@ -111,6 +111,11 @@ async fn exec(
     }
 }
 
+/// How soon after our MISSION_SET_CURRENT is confirmed a further jump of the current item is
+/// taken for a race with the autopilot's own advance rather than a lost reach report (a leg
+/// takes far longer, even at a simulator's speed-up).
+const JUMP_AFTER_SET_CURRENT: std::time::Duration = std::time::Duration::from_millis(100);
+
 pub(super) struct Driver {
     mgr: Arc<MavlinkManager>,
     kind: VehicleKind,
@@ -148,6 +153,8 @@ pub(super) struct Driver {
     last_pending: Option<(u16, Waypoint)>,
     /// What the last whole upload put in item 0 where it is an ordinary item.
     item0: Option<Waypoint>,
+    /// The slot our last MISSION_SET_CURRENT made current, and when it was confirmed.
+    set_current_at: Option<(u16, std::time::Instant)>,
     /// Times the vehicle's reported current item went back to an item already passed while
     /// navigating (issue 14: each is a drive back toward a passed waypoint).
     backtracks: u64,
@@ -185,6 +192,7 @@ impl Driver {
             passing: None,
             last_pending: None,
             item0: None,
+            set_current_at: None,
             backtracks: 0,
             queue_error: None,
             home_alt_msl: None,
@@ -369,6 +377,9 @@ impl Driver {
             match result {
                 Ok(()) => {
                     self.queue.done(&action);
+                    if let QueueAction::SetCurrent(slot) = action {
+                        self.set_current_at = Some((slot, std::time::Instant::now()));
+                    }
                     if matches!(action, QueueAction::Upload(_)) {
                         self.after_upload();
                     }
@@ -537,7 +548,19 @@ impl Driver {
             }
             MavEvent::MissionCurrent { seq } => {
                 self.check_backtrack(seq);
-                if let Some(w) = self.queue.on_current(seq) {
+                // A jump past the slot we made current a moment ago is no proof it was
+                // reached: an autopilot whose "reached, advance" step raced our set-current
+                // (MAVSDK's server does) advanced from our slot instead of its own.
+                let just_set = self
+                    .set_current_at
+                    .filter(|(_, at)| at.elapsed() < JUMP_AFTER_SET_CURRENT)
+                    .map(|(slot, _)| slot);
+                if self.queue.jumped_past(seq, just_set) {
+                    tracing::warn!(
+                        "the autopilot moved on to slot {seq} right after we made the target's \
+                         slot current, with no reach reported: making the target current again"
+                    );
+                } else if let Some(w) = self.queue.on_current(seq) {
                     self.reached(w);
                 }
                 true
