@@ -76,8 +76,8 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
             return ExitCode::from(EXIT_USAGE);
         }
     }
-    if args.timeout_s.is_some_and(|t| !(t.is_finite() && t > 0.0)) {
-        eprintln!("usal: --timeout-s must be positive");
+    if args.timeout_s.is_some_and(|t| run_limit(t).is_none()) {
+        eprintln!("usal: --timeout-s must be a positive number of seconds a run can last");
         return ExitCode::from(EXIT_USAGE);
     }
     let fleet = mission.stations().len() > 1;
@@ -577,6 +577,14 @@ async fn wait_sim(
 
 /// Runs until every station's plan completes (with `--until-complete`), a station fails, a
 /// child cannot be kept running, the time limit, or a signal.
+/// `--timeout-s` as a duration: positive and representable (a huge value made
+/// `Duration::from_secs_f64` panic), else `None`.
+fn run_limit(seconds: f64) -> Option<Duration> {
+    (seconds > 0.0)
+        .then(|| Duration::try_from_secs_f64(seconds).ok())
+        .flatten()
+}
+
 #[allow(clippy::too_many_arguments)]
 async fn supervise(
     mission: &Mission,
@@ -590,7 +598,7 @@ async fn supervise(
 ) -> ExitCode {
     let limit = args
         .timeout_s
-        .map(Duration::from_secs_f64)
+        .and_then(run_limit)
         .or(mission.timeout)
         .unwrap_or(DEFAULT_TIMEOUT);
     let deadline = tokio::time::sleep(limit);
@@ -761,5 +769,13 @@ mod tests {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions/rover-demo.xml");
         let mission = Mission::load(&path).expect("the demo mission parses");
         assert_eq!(manual_stations(&mission), "ground-fmo,gcs/fmo");
+    }
+
+    #[test]
+    fn a_timeout_must_be_positive_and_representable() {
+        assert_eq!(run_limit(1.5), Some(Duration::from_millis(1500)));
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e30] {
+            assert_eq!(run_limit(bad), None, "{bad}");
+        }
     }
 }
