@@ -321,7 +321,8 @@ impl VasConfig {
         // Released once the link is declared lost anyway, so a restarted autopilot is
         // followed; a spoofer must first silence the real one for that long.
         self.pin_autopilot.then_some(mavconn::Pin {
-            system_id: self.autopilot_sysid,
+            // `targetSystem` names the same autopilot for routing: pin that one too.
+            system_id: self.autopilot_sysid.or(self.target_system),
             peer: self.autopilot_peer,
             release_after: Some(Duration::from_millis(self.heartbeat_timeout_ms)),
         })
@@ -374,6 +375,17 @@ impl VasConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_routed_system_is_the_pinned_one_unless_pinning_names_another() {
+        let mut cfg = VasConfig {
+            target_system: Some(7),
+            ..VasConfig::default()
+        };
+        assert_eq!(cfg.pin().and_then(|p| p.system_id), Some(7));
+        cfg.autopilot_sysid = Some(3);
+        assert_eq!(cfg.pin().and_then(|p| p.system_id), Some(3));
+    }
 
     #[test]
     fn forward_elements_name_endpoints() {
