@@ -11,74 +11,23 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
-use std::sync::OnceLock;
 use std::time::Duration;
 
 use fpma::api::{CommandAck, PlanLoaded, Progress};
 use marea::{NetworkConfig, Node};
 use tokio::io::{AsyncBufReadExt, BufReader};
-use tokio::process::{Child, Command};
+use tokio::process::Child;
 use tokio::time::{timeout, Instant};
 use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
+
+mod common;
+use common::{close, kill, sibling_bins, sim_reached, spawn};
 
 /// Bound on each single wait.
 const STEP: Duration = Duration::from_secs(20);
 /// Bound on the whole flight.
 const FLIGHT: Duration = Duration::from_secs(120);
 const HOME: (f64, f64) = (41.275, 1.987);
-
-/// `vas` and `mavsim`, built once into this test's target directory.
-fn sibling_bins() -> &'static (PathBuf, PathBuf) {
-    static BINS: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
-    BINS.get_or_init(|| {
-        let exe = std::env::current_exe().expect("test binary path");
-        let target = exe
-            .ancestors()
-            .nth(3)
-            .expect("test binary inside <target>/<profile>/deps")
-            .to_owned();
-        let status = std::process::Command::new(env!("CARGO"))
-            .args(["build", "-p", "vas", "-p", "mavsim", "--bins"])
-            .env("CARGO_TARGET_DIR", &target)
-            .status()
-            .expect("running cargo build -p vas -p mavsim");
-        assert!(status.success(), "building vas and mavsim failed");
-        (
-            target.join("debug").join("vas"),
-            target.join("debug").join("mavsim"),
-        )
-    })
-}
-
-fn spawn(bin: &Path, args: &[&str], stdout: Stdio) -> Child {
-    Command::new(bin)
-        .args(args)
-        .stdout(stdout)
-        .stderr(Stdio::inherit())
-        .kill_on_drop(true)
-        .spawn()
-        .unwrap_or_else(|e| panic!("spawn {}: {e}", bin.display()))
-}
-
-async fn kill(mut c: Child) {
-    let _ = c.start_kill();
-    let _ = timeout(STEP, c.wait()).await;
-}
-
-/// mavsim's `item_reached` records as (lat, lon).
-fn sim_reached(log: &Path) -> Vec<(f64, f64)> {
-    std::fs::read_to_string(log)
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .filter(|r| r["event"] == "item_reached")
-        .filter_map(|r| Some((r["lat"].as_f64()?, r["lon"].as_f64()?)))
-        .collect()
-}
-
-fn close(a: (f64, f64), b: (f64, f64)) -> bool {
-    (a.0 - b.0).abs() < 1e-6 && (a.1 - b.1).abs() < 1e-6
-}
 
 fn plan_path() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/flightplans/rover-demo.xml")
