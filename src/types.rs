@@ -42,9 +42,7 @@ fn make_replayer<T: marea::Payload>(
     let value = |b: &[u8]| postcard::from_bytes::<T>(b).map_err(|e| e.to_string());
     match kind {
         ItemKind::Variable => {
-            let v = svc
-                .publish_variable::<T>(item)
-                .map_err(|e| e.to_string())?;
+            let v = svc.publish_variable::<T>(item).map_err(|e| e.to_string())?;
             Ok(Box::new(move |b| {
                 v.set(&value(b)?).map_err(|e| e.to_string())
             }))

@@ -483,7 +483,9 @@ impl LogReader {
             .next_value()?
             .ok_or_else(|| FlightLogReadError::Empty(path.to_owned()))?;
         if header.get("format").and_then(Value::as_str) != Some(FORMAT) {
-            return Err(r.bad(format!("not a flight log header (no \"format\":\"{FORMAT}\")")));
+            return Err(r.bad(format!(
+                "not a flight log header (no \"format\":\"{FORMAT}\")"
+            )));
         }
         match header.get("version").and_then(Value::as_u64) {
             Some(v) if v > VERSION => {
@@ -510,14 +512,13 @@ impl LogReader {
     fn next_value(&mut self) -> Result<Option<Value>, FlightLogReadError> {
         loop {
             self.buf.clear();
-            let n = self
-                .lines
-                .read_line(&mut self.buf)
-                .map_err(|source| FlightLogReadError::Truncated {
+            let n = self.lines.read_line(&mut self.buf).map_err(|source| {
+                FlightLogReadError::Truncated {
                     path: self.path.clone(),
                     line: self.line,
                     source,
-                })?;
+                }
+            })?;
             if n == 0 {
                 return Ok(None);
             }
@@ -535,8 +536,8 @@ impl LogReader {
             if self.buf.trim().is_empty() {
                 continue;
             }
-            let v: Value = serde_json::from_str(&self.buf)
-                .map_err(|e| self.bad(format!("not JSON: {e}")))?;
+            let v: Value =
+                serde_json::from_str(&self.buf).map_err(|e| self.bad(format!("not JSON: {e}")))?;
             if !v.is_object() {
                 return Err(self.bad("not a JSON object".into()));
             }
@@ -598,11 +599,26 @@ mod tests {
 
     #[test]
     fn kinds_follow_name_and_type() {
-        assert_eq!(kind_of("rover1/vas/position", "usal_types::Position"), "telemetry");
-        assert_eq!(kind_of("rover1/vas/flight_state", "usal_types::FlightState"), "state");
-        assert_eq!(kind_of("rover1/fpma/progress", "fpma::api::Progress"), "plan");
-        assert_eq!(kind_of("gcs/link/radio/stats", "marea::node::health::LinkHealth"), "link");
-        assert_eq!(kind_of("gcs/fmo/manual_control", "usal_types::ManualCommand"), "command");
+        assert_eq!(
+            kind_of("rover1/vas/position", "usal_types::Position"),
+            "telemetry"
+        );
+        assert_eq!(
+            kind_of("rover1/vas/flight_state", "usal_types::FlightState"),
+            "state"
+        );
+        assert_eq!(
+            kind_of("rover1/fpma/progress", "fpma::api::Progress"),
+            "plan"
+        );
+        assert_eq!(
+            kind_of("gcs/link/radio/stats", "marea::node::health::LinkHealth"),
+            "link"
+        );
+        assert_eq!(
+            kind_of("gcs/fmo/manual_control", "usal_types::ManualCommand"),
+            "command"
+        );
     }
 
     #[test]
@@ -611,7 +627,10 @@ mod tests {
         let path = dir.path().join("a/b.jsonl.gz");
         let log = FlightLog::create(&path, "m", Path::new("m.xml"), "d").unwrap();
         for i in 0..200 {
-            log.record("telemetry", json!({"name": "x/vas/n", "i": i, "pad": "y".repeat(50)}));
+            log.record(
+                "telemetry",
+                json!({"name": "x/vas/n", "i": i, "pad": "y".repeat(50)}),
+            );
         }
         assert_eq!(log.finish().unwrap(), 201);
         assert!(matches!(
@@ -644,7 +663,10 @@ mod tests {
 
     #[test]
     fn hex_round_trips_and_refuses_junk() {
-        assert_eq!(unhex(&hex(&[0, 1, 0xab, 0xff])), Some(vec![0, 1, 0xab, 0xff]));
+        assert_eq!(
+            unhex(&hex(&[0, 1, 0xab, 0xff])),
+            Some(vec![0, 1, 0xab, 0xff])
+        );
         assert_eq!(unhex("abc"), None);
         assert_eq!(unhex("zz"), None);
     }

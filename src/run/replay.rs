@@ -45,7 +45,10 @@ struct Scan {
 }
 
 /// A record that went over the middleware: (name, is_event, type, raw bytes).
-fn published(r: &Record, reader: &LogReader) -> Result<Option<(String, bool, String, Vec<u8>)>, FlightLogReadError> {
+fn published(
+    r: &Record,
+    reader: &LogReader,
+) -> Result<Option<(String, bool, String, Vec<u8>)>, FlightLogReadError> {
     let f = &r.fields;
     let (Some(name), Some(raw)) = (f.get("name").and_then(Value::as_str), f.get("raw")) else {
         return Ok(None);
@@ -132,7 +135,10 @@ pub async fn run(
             eprintln!("usal replay: {e} (--partial replays what comes before)");
             return Ok(ExitCode::FAILURE);
         }
-        eprintln!("usal replay: {e}; replaying the {} records before it", scan.records);
+        eprintln!(
+            "usal replay: {e}; replaying the {} records before it",
+            scan.records
+        );
     }
     // One publisher per recorded item, declared before playing so stations discover them
     // all during `wait` and no early event goes unheard.
@@ -167,7 +173,10 @@ pub async fn run(
         }
     }
     let mission = scan.header["mission"].as_str().unwrap_or("?").to_owned();
-    let started = scan.header["started_utc"].as_str().unwrap_or("?").to_owned();
+    let started = scan.header["started_utc"]
+        .as_str()
+        .unwrap_or("?")
+        .to_owned();
     if json_out {
         println!(
             "{}",
@@ -271,16 +280,28 @@ fn show(r: &Record, last_state: &mut String, json_out: bool) {
             last_state.clone_from(&s);
             format!("state {s}")
         }
-        "plan" if f["item"] == "event" => format!("{}: {}", f["name"].as_str().unwrap_or("?"), f["value"]),
+        "plan" if f["item"] == "event" => {
+            format!("{}: {}", f["name"].as_str().unwrap_or("?"), f["value"])
+        }
         "alarm" => format!("alarm {}", f["value"]),
         "command" if f["item"].is_null() => {
-            let answer = f.get("answer").or_else(|| f.get("error")).unwrap_or(&Value::Null);
-            format!("command {} {} -> {answer}", f["name"].as_str().unwrap_or("?"), f["args"])
+            let answer = f
+                .get("answer")
+                .or_else(|| f.get("error"))
+                .unwrap_or(&Value::Null);
+            format!(
+                "command {} {} -> {answer}",
+                f["name"].as_str().unwrap_or("?"),
+                f["args"]
+            )
         }
         _ => return,
     };
     if json_out {
-        println!("{}", json!({"event": "record", "t": r.t, "kind": r.kind, "text": text}));
+        println!(
+            "{}",
+            json!({"event": "record", "t": r.t, "kind": r.kind, "text": text})
+        );
     } else {
         println!("[{:>7.1} s] {text}", r.t);
     }

@@ -573,9 +573,18 @@ async fn follow(
             (true, Some(at)) if at.elapsed() >= KICK_AFTER => {
                 kick_at = Some(Instant::now() + Duration::from_secs(3600));
                 let to = FlightState::WaypointNavigation;
-                let answer = vas_state_fn.call(&StateChangeRequest { to }, CALL_TIMEOUT).await;
-                command(s, &vas("change_state"), json!({"to": to.to_string()}),
-                    answer.as_ref().map(|a| serde_json::to_value(a).unwrap_or_default()).map_err(ToString::to_string));
+                let answer = vas_state_fn
+                    .call(&StateChangeRequest { to }, CALL_TIMEOUT)
+                    .await;
+                command(
+                    s,
+                    &vas("change_state"),
+                    json!({"to": to.to_string()}),
+                    answer
+                        .as_ref()
+                        .map(|a| serde_json::to_value(a).unwrap_or_default())
+                        .map_err(ToString::to_string),
+                );
                 match answer {
                     Ok(_) => note(ui, s,
                         "station: the plan was loaded but the vehicle stayed parked; asked the VAS for WAYPOINT_NAVIGATION",
@@ -599,7 +608,15 @@ async fn follow(
             // The FPMa may itself be rediscovered after the disturbance.
             pause.wait_provider(CALL_TIMEOUT).await;
             let answer = pause.call(&(), CALL_TIMEOUT).await;
-            command(s, &fpma("pause"), json!(null), answer.as_ref().map(|a| serde_json::to_value(a).unwrap_or_default()).map_err(ToString::to_string));
+            command(
+                s,
+                &fpma("pause"),
+                json!(null),
+                answer
+                    .as_ref()
+                    .map(|a| serde_json::to_value(a).unwrap_or_default())
+                    .map_err(ToString::to_string),
+            );
             let paused = match answer {
                 Ok(_) => Ok(()),
                 Err(e) if e.to_string().contains("already paused") => Ok(()),
@@ -608,7 +625,15 @@ async fn follow(
             let resumed = match paused {
                 Ok(()) => {
                     let answer = resume.call(&(), CALL_TIMEOUT).await;
-                    command(s, &fpma("resume"), json!(null), answer.as_ref().map(|a| serde_json::to_value(a).unwrap_or_default()).map_err(ToString::to_string));
+                    command(
+                        s,
+                        &fpma("resume"),
+                        json!(null),
+                        answer
+                            .as_ref()
+                            .map(|a| serde_json::to_value(a).unwrap_or_default())
+                            .map_err(ToString::to_string),
+                    );
                     answer.map(|_| ())
                 }
                 Err(e) => Err(e),
@@ -735,7 +760,12 @@ fn note(ui: &Ui, s: &StationSetup, text: &str, mut record: serde_json::Value) {
 }
 
 /// Records one of the station's commands and its answer in the flight log.
-fn command(s: &StationSetup, name: &str, args: serde_json::Value, answer: Result<serde_json::Value, String>) {
+fn command(
+    s: &StationSetup,
+    name: &str,
+    args: serde_json::Value,
+    answer: Result<serde_json::Value, String>,
+) {
     let Some(log) = &s.log else { return };
     let mut r = json!({"name": name, "args": args});
     match answer {
