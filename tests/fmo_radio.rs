@@ -6,7 +6,6 @@
 //! the dead-man is released.
 
 #[path = "../services/fmo/tests/common/mod.rs"]
-#[allow(dead_code, unused_imports)]
 mod common;
 
 use std::path::Path;

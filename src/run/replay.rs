@@ -45,10 +45,9 @@ struct Scan {
 }
 
 /// A record that went over the middleware: (name, is_event, type, raw bytes).
-fn published(
-    r: &Record,
-    reader: &LogReader,
-) -> Result<Option<(String, bool, String, Vec<u8>)>, FlightLogReadError> {
+type Published = (String, bool, String, Vec<u8>);
+
+fn published(r: &Record, reader: &LogReader) -> Result<Option<Published>, FlightLogReadError> {
     let f = &r.fields;
     let (Some(name), Some(raw)) = (f.get("name").and_then(Value::as_str), f.get("raw")) else {
         return Ok(None);
