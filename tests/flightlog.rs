@@ -1,6 +1,10 @@
 //! Issue 15 item 8, end to end with real processes: `usal run` of the rover demo writes a
 //! flight log holding every record kind; `usal replay` of that log is seen by a marea
-//! subscriber joined to the replay's domain; a corrupt or cut log is refused naming its line.
+//! subscriber and by an FPMo station joined to the replay's domain; a corrupt or cut log is
+//! refused naming its line.
+
+#[path = "../services/fmo/tests/common/mod.rs"]
+mod common;
 
 use std::io::Write;
 use std::path::Path;
@@ -148,7 +152,8 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
 
     // Replay into a fresh domain; a subscriber there sees the flight again.
     let domain = format!("replay-{}", std::process::id());
-    let port = free_port();
+    // The stations' default discovery port, so the FPMo below finds the replay too.
+    let port = 7477;
     let node = Node::open(&net("replay-watcher", &domain, port))
         .await
         .expect("node");
@@ -159,6 +164,9 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
     let events = svc
         .subscribe_event::<PlanEvent>("rover1/fpma/plan_event")
         .expect("subscribe");
+    // And a flight-plan station, as a pilot reviewing the flight would open one.
+    let fpmo_bin = Path::new(USAL).with_file_name("fpmo").display().to_string();
+    let fpmo = common::Station::start(&fpmo_bin, "FPMO_URL", &["--domain", &domain]).await;
     let mut replay = Command::new(USAL)
         .args(["--domain", &domain, "--mcast-port", &port.to_string()])
         .args(["replay", "--speed", "5"])
@@ -201,6 +209,17 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
         .expect("usal replay ends")
         .expect("status");
     assert!(status.success(), "{status}");
+    // The FPMo drew the replayed flight: the plan, the track, its completion.
+    let s = fpmo
+        .wait_state("the replayed plan completed in the FPMo", |s| {
+            common::vehicle(s, "rover1").is_some_and(|v| {
+                v["plan_name"] == "rover-demo" && v["progress"]["value"]["completed"] == true
+            })
+        })
+        .await;
+    let v = common::vehicle(&s, "rover1").expect("rover1");
+    assert!(v["track"].as_array().is_some_and(|t| t.len() > 5), "{v:#}");
+    fpmo.kill().await;
     node.shutdown().await;
 }
 
