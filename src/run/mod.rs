@@ -626,13 +626,16 @@ async fn start_services(
                     common(&mut a);
                 }
                 // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.
-                ServiceSpec::Fmo { listen } | ServiceSpec::Fpmo { listen } => {
+                ServiceSpec::Fmo { listen } | ServiceSpec::Fpmo { listen, .. } => {
                     a.extend([
                         "--listen".into(),
                         listen.clone(),
                         "--node".into(),
                         format!("{}-{}", node.name, svc.kind()),
                     ]);
+                    if let ServiceSpec::Fpmo { tiles: Some(t), .. } = svc {
+                        a.extend(["--tiles".into(), t.clone()]);
+                    }
                     common(&mut a);
                 }
             }
