@@ -3,7 +3,7 @@
 //! errors, a gateway on each side) without its plan-following station; from the ground FMo's
 //! HTTP API the pilot takes MANUAL_NAVIGATION and drives with the throttle as the page posts it:
 //! mavsim's rover moves forward (its position, telemetry back over the radio), and stops when
-//! the dead-man is released.
+//! the dead-man is released. The run's flight log holds the manual control and the state.
 
 #[path = "../services/fmo/tests/common/mod.rs"]
 mod common;
@@ -148,7 +148,8 @@ async fn fmo_manual_control_drives_mavsim_over_the_radio() {
     let mut run = Command::new(USAL)
         .arg("run")
         .arg(&file)
-        .args(["--speedup", "2", "--no-log"])
+        .args(["--speedup", "2", "--log"])
+        .arg(dir.path().join("flight.jsonl.gz"))
         .current_dir(root())
         .stdin(Stdio::null())
         .stdout(Stdio::null())
@@ -254,6 +255,29 @@ async fn fmo_manual_control_drives_mavsim_over_the_radio() {
         .expect("status");
     assert!(status.success(), "{status}");
     reader.abort();
+
+    // The flight log (issue 15 item 8) holds the pilot's manual control and the state taken.
+    let file = std::fs::File::open(dir.path().join("flight.jsonl.gz")).expect("the log");
+    let text = std::io::read_to_string(flate2::read::GzDecoder::new(file)).expect("gzip");
+    let records: Vec<Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("JSON"))
+        .collect();
+    assert!(
+        records.iter().any(|r| r["kind"] == "command"
+            && r["name"] == "gcs/fmo/manual_control"
+            && r["value"]["sticks"]["throttle"]
+                .as_f64()
+                .is_some_and(|t| t > 0.5)),
+        "no manual control in the log"
+    );
+    assert!(records.iter().any(|r| r["kind"] == "state"
+        && r["name"] == "rover1/vas/state_changed"
+        && r["value"]["to"] == "MANUAL_NAVIGATION"));
+    assert!(records
+        .iter()
+        .any(|r| r["name"] == "rover1/link/radio/stats"));
+    assert_eq!(records.last().unwrap()["kind"], "end");
 }
 
 /// SIGTERM to `pid`, through the `kill` command (the crate denies unsafe code).

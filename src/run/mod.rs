@@ -459,20 +459,35 @@ fn start_recorder(
         || format!("usal-flightlog-{}", std::process::id()),
         |s| format!("{}-flightlog", s.node),
     );
-    let config = marea::NetworkConfig::for_service(
-        first.and_then(|s| s.network.as_deref()),
-        &node,
-        Some(domain),
-        first.and_then(|s| s.namespace.as_deref()),
-    )
-    .map(|mut c| {
-        c.node.clone_from(&node);
-        c
-    });
-    let prefixes: Vec<String> = stations
+    // Without a station: the ground side of a radio, where a station would be.
+    let ground = mission.radio.as_ref().and_then(|r| mission.node(&r.ground));
+    let (network, namespace) = match (first, ground) {
+        (Some(s), _) => (s.network.as_deref(), s.namespace.as_deref()),
+        (None, Some(g)) => (g.network.as_deref(), g.namespace.as_deref()),
+        (None, None) => (None, None),
+    };
+    let config =
+        marea::NetworkConfig::for_service(network, &node, Some(domain), namespace).map(|mut c| {
+            c.node.clone_from(&node);
+            c
+        });
+    let mut prefixes: Vec<String> = stations
         .iter()
         .flat_map(|s| [s.vas.clone(), s.fpma.clone()])
         .collect();
+    if prefixes.is_empty() {
+        // No station: every VAS and FPMa of the mission.
+        for n in &mission.nodes {
+            for svc in &n.services {
+                if matches!(svc, ServiceSpec::Vas(_) | ServiceSpec::Fpma(_)) {
+                    prefixes.push(match &n.namespace {
+                        Some(ns) => format!("{ns}/{}", svc.kind()),
+                        None => svc.kind().to_owned(),
+                    });
+                }
+            }
+        }
+    }
     let interests = flightlog::interests(&prefixes, mission.radio.is_some());
     match config {
         Ok(c) => tokio::spawn(flightlog::record_items(
