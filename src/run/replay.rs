@@ -16,6 +16,15 @@ use tokio::time::Instant;
 
 use super::flightlog::{unhex, FlightLogReadError, LogReader, Record};
 
+/// Prints a line on stdout; a closed stdout (`usal replay LOG | head`) is not an error worth
+/// a panic: the replay goes on publishing for the stations.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout().lock(), $($arg)*);
+    }};
+}
+
 /// `usal replay` arguments.
 #[derive(clap::Args)]
 pub struct ReplayArgs {
@@ -177,14 +186,14 @@ pub async fn run(
         .unwrap_or("?")
         .to_owned();
     if json_out {
-        println!(
+        say!(
             "{}",
             json!({"event": "replaying", "log": path.display().to_string(), "mission": mission,
                 "flown_utc": started, "records": scan.records, "duration_s": scan.duration,
                 "items": publishers.len(), "speed": args.speed, "skipped": skipped})
         );
     } else {
-        println!(
+        say!(
             "replaying {} (mission {mission}, flown {started}): {} records over {:.1} s, {} items, at {}x",
             path.display(),
             scan.records,
@@ -193,7 +202,7 @@ pub async fn run(
             args.speed,
         );
         for s in &skipped {
-            println!("  not replayed: {s}");
+            say!("  not replayed: {s}");
         }
     }
     tokio::time::sleep(wait).await;
@@ -234,13 +243,13 @@ pub async fn run(
     // Let the last values leave before the node goes.
     tokio::time::sleep(Duration::from_millis(300)).await;
     if json_out {
-        println!(
+        say!(
             "{}",
             json!({"event": "replayed", "published": sent, "errors": errors,
                 "elapsed_s": start.elapsed().as_secs_f64()})
         );
     } else {
-        println!(
+        say!(
             "replayed {sent} values and events of {} in {:.1} s{}",
             path.display(),
             start.elapsed().as_secs_f64(),
@@ -264,24 +273,26 @@ fn show(r: &Record, last_state: &mut String, json_out: bool) {
     let f = &r.fields;
     let text = match r.kind.as_str() {
         "state" => {
+            // The state_changed events say it all (from, to, why); the flight_state variable
+            // only for the state before the first change.
             let v = &f["value"];
-            let s = v
-                .as_str()
-                .map(str::to_owned)
-                .or_else(|| {
-                    let to = v.get("to")?.as_str()?;
-                    Some(format!("{to} ({})", v["cause"].as_str().unwrap_or("-")))
-                })
-                .unwrap_or_default();
-            if s.is_empty() || *last_state == s {
-                return;
+            match (v.as_str(), v.get("to").and_then(Value::as_str)) {
+                (Some(state), _) if last_state.is_empty() => {
+                    state.clone_into(last_state);
+                    format!("state {state}")
+                }
+                (_, Some(to)) => {
+                    let from = v["from"].as_str().unwrap_or("?");
+                    to.clone_into(last_state);
+                    format!(
+                        "state {from} -> {to} ({})",
+                        v["cause"].as_str().unwrap_or("-")
+                    )
+                }
+                _ => return,
             }
-            last_state.clone_from(&s);
-            format!("state {s}")
         }
-        "plan" if f["item"] == "event" => {
-            format!("{}: {}", f["name"].as_str().unwrap_or("?"), f["value"])
-        }
+        "plan" if f["item"] == "event" => plan_event(f),
         "alarm" => format!("alarm {}", f["value"]),
         "command" if f["item"].is_null() => {
             let answer = f
@@ -297,11 +308,39 @@ fn show(r: &Record, last_state: &mut String, json_out: bool) {
         _ => return,
     };
     if json_out {
-        println!(
+        say!(
             "{}",
             json!({"event": "record", "t": r.t, "kind": r.kind, "text": text})
         );
     } else {
-        println!("[{:>7.1} s] {text}", r.t);
+        say!("[{:>7.1} s] {text}", r.t);
     }
+}
+
+/// A plan event as a line: `plan_event WaypointReached leg=area seq=2` (the raw JSON for an
+/// unexpected shape).
+fn plan_event(f: &Value) -> String {
+    let name = f["name"].as_str().unwrap_or("?");
+    let item = name.rsplit('/').next().unwrap_or(name);
+    let kind = &f["value"]["kind"];
+    let text = match kind {
+        Value::String(k) => k.clone(),
+        Value::Object(o) if o.len() == 1 => {
+            let (k, v) = o.iter().next().expect("one entry");
+            let args: Vec<String> = match v {
+                Value::Object(a) => a
+                    .iter()
+                    .map(|(n, x)| match x {
+                        Value::String(t) => format!("{n}={t}"),
+                        other => format!("{n}={other}"),
+                    })
+                    .collect(),
+                Value::Null => Vec::new(),
+                other => vec![other.to_string()],
+            };
+            format!("{k} {}", args.join(" ")).trim_end().to_owned()
+        }
+        _ => f["value"].to_string(),
+    };
+    format!("{item} {text}")
 }
