@@ -279,22 +279,36 @@ fn is_gz(path: &Path) -> bool {
     path.extension().is_some_and(|e| e == "gz")
 }
 
-/// The default log of a run: `logs/<mission>-<UTC>.jsonl.gz` under the current directory,
-/// with a `-2`, `-3`... suffix when that second already has a log.
-pub fn default_path(mission: &str) -> PathBuf {
+/// The default log of a run: `<dir>/<mission>-<UTC>.jsonl.gz` (`usal run` gives `logs`, under
+/// the current directory),
+/// with a `-2`, `-3`... suffix when that second already has a log (runs of one mission started
+/// in the same second, as parallel tests do, each get their own).
+///
+/// # Errors
+/// As [`FlightLog::create`], but for a name taken: the next suffix is tried then.
+pub fn create_default(
+    dir: &Path,
+    mission: &str,
+    mission_file: &Path,
+    domain: &str,
+) -> Result<Arc<FlightLog>, FlightLogCreateError> {
     let now = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .unwrap_or_default()
         .as_secs();
     let stem = format!("{mission}-{}", utc_text(now, false));
-    let dir = Path::new("logs");
-    let mut p = dir.join(format!("{stem}.jsonl.gz"));
-    let mut n = 2;
-    while p.exists() {
-        p = dir.join(format!("{stem}-{n}.jsonl.gz"));
-        n += 1;
+    let mut n = 1;
+    loop {
+        let name = if n == 1 {
+            format!("{stem}.jsonl.gz")
+        } else {
+            format!("{stem}-{n}.jsonl.gz")
+        };
+        match FlightLog::create(&dir.join(name), mission, mission_file, domain) {
+            Err(FlightLogCreateError::Exists(_)) if n < 1000 => n += 1,
+            other => return other,
+        }
     }
-    p
 }
 
 /// UTC time of `secs` since the epoch: `2026-11-23T22:22:53Z` (`pretty`) or `20261123T222253Z`
@@ -659,6 +673,20 @@ mod tests {
         };
         assert!(matches!(err, FlightLogReadError::Truncated { .. }), "{err}");
         assert!(err.to_string().contains("after line"), "{err}");
+    }
+
+    #[test]
+    fn default_logs_of_one_second_get_their_own_names() {
+        let dir = tempfile::tempdir().unwrap();
+        let logs = dir.path().join("logs");
+        let a = create_default(&logs, "m", Path::new("m.xml"), "d").unwrap();
+        let b = create_default(&logs, "m", Path::new("m.xml"), "d").unwrap();
+        assert_ne!(a.path(), b.path());
+        let name = a.path().file_name().unwrap().to_str().unwrap().to_owned();
+        assert!(
+            name.starts_with("m-") && name.ends_with("Z.jsonl.gz"),
+            "{name}"
+        );
     }
 
     #[test]

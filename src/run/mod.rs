@@ -340,12 +340,15 @@ async fn run(
     let log = if args.no_log {
         None
     } else {
-        let path = args
-            .log
-            .clone()
-            .unwrap_or_else(|| flightlog::default_path(&mission.name));
-        match flightlog::FlightLog::create(&path, &mission.name, &args.mission, &domain) {
+        let created = match &args.log {
+            Some(path) => flightlog::FlightLog::create(path, &mission.name, &args.mission, &domain),
+            None => {
+                flightlog::create_default(Path::new("logs"), &mission.name, &args.mission, &domain)
+            }
+        };
+        match created {
             Ok(l) => {
+                let path = l.path().to_owned();
                 ui.set_log(l.clone());
                 ui.note(
                     &format!("flight log: {}", path.display()),
