@@ -128,6 +128,10 @@ async fn scenario() {
             )
             .await;
         assert_eq!(drawn, "z3:1");
+        let credit = browser
+            .eval("return document.getElementById('attribution').textContent;")
+            .await;
+        assert_eq!(credit, "map tiles: made by the test");
         browser
             .eval("document.getElementById('tilesshow').click(); return true;")
             .await;
