@@ -20,7 +20,7 @@ use marea::{NetworkConfig, Node, SendFileOptions};
 #[derive(Parser)]
 #[command(
     name = "usal",
-    about = "USAL-rs tools: run a mission; list, echo, call, send"
+    about = "USAL-rs tools: run a mission, replay its flight log; list, echo, call, send"
 )]
 struct Cli {
     #[command(flatten)]
