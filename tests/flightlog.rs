@@ -139,12 +139,13 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
     // The plan upload is a command with its answer.
     assert!(named("rover1/fpma/plans")
         .any(|r| r["kind"] == "command" && r["answer"]["receiver"].is_string()));
-    // Times never go back by more than the interleaving of the recording tasks.
+    // Times never go back down the file, whichever task wrote a record.
     let ts: Vec<f64> = records[1..]
         .iter()
         .filter_map(|r| r["t"].as_f64())
         .collect();
-    assert!(ts.windows(2).all(|w| w[1] >= w[0] - 0.05), "{ts:?}");
+    assert_eq!(ts.len(), records.len() - 1, "a record without t");
+    assert!(ts.windows(2).all(|w| w[1] >= w[0]), "{ts:?}");
     let reached_in_log = named("rover1/fpma/plan_event")
         .filter(|r| r["value"]["kind"]["WaypointReached"].is_object())
         .count();

@@ -15,7 +15,8 @@
 //!  "domain":"rover-demo-4242","started_utc":"2026-11-23T22:22:53Z","started_unix_ms":1795472573000}
 //! ```
 //! Every following line is a record with at least
-//! - `t`: seconds since the run started (monotonic clock), non-decreasing;
+//! - `t`: seconds since the run started (monotonic clock, millisecond resolution), never
+//!   decreasing down the file;
 //! - `kind`: `telemetry` | `state` | `plan` | `alarm` | `link` | `command` | `note` | `end`.
 //!
 //! Records of what travelled on the middleware (every kind but `note` and `end`, and
@@ -201,7 +202,6 @@ impl FlightLog {
     /// Appends a record of `kind` with `fields` (an object; `t` and `kind` are added).
     pub fn record(&self, kind: &str, fields: Value) {
         let mut rec = serde_json::Map::new();
-        rec.insert("t".into(), json!(round_ms(self.start.elapsed())));
         rec.insert("kind".into(), kind.into());
         match fields {
             Value::Object(o) => rec.extend(o),
@@ -210,9 +210,11 @@ impl FlightLog {
                 rec.insert("value".into(), other);
             }
         }
-        let line = Value::Object(rec).to_string();
         let mut out = marea::sync::lock(&self.out);
         let Some(w) = out.as_mut() else { return };
+        // Stamped under the lock, so `t` never decreases down the file whichever task writes.
+        rec.insert("t".into(), json!(round_ms(self.start.elapsed())));
+        let line = Value::Object(rec).to_string();
         let written = writeln!(w, "{line}").and_then(|()| {
             let mut last = marea::sync::lock(&self.last_flush);
             if last.elapsed() >= FLUSH_EVERY {
@@ -559,8 +561,7 @@ impl LogReader {
         }
     }
 
-    /// The next record, checked to have `t` (a number not below the previous one's is not
-    /// required: records from several tasks may interleave by a millisecond) and `kind`.
+    /// The next record, checked to have `t` (seconds, 0 or more) and `kind`.
     ///
     /// # Errors
     /// A truncated or corrupt file, or a line that is not a record; both name the line.
