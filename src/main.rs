@@ -1,6 +1,7 @@
 //! `usal`: the USAL-rs command-line tools. Introspection of a running system in the spirit of
 //! `ros2 topic list/echo`: `usal list`, `usal echo NAME`, `usal call NAME ARGS`,
-//! `usal send FILE --to SINK`; and `usal run MISSION.xml`, the launcher (see `run/`).
+//! `usal send FILE --to SINK`; `usal run MISSION.xml`, the launcher (see `run/`); and
+//! `usal replay LOG`, which plays a run's flight log back (see `run/replay.rs`).
 
 mod run;
 mod types;
@@ -19,7 +20,7 @@ use marea::{NetworkConfig, Node, SendFileOptions};
 #[derive(Parser)]
 #[command(
     name = "usal",
-    about = "USAL-rs tools: run a mission; list, echo, call, send"
+    about = "USAL-rs tools: run a mission, replay its flight log; list, echo, call, send"
 )]
 struct Cli {
     #[command(flatten)]
@@ -55,6 +56,8 @@ struct NetArgs {
 enum Cmd {
     /// Start a mission's services (config/missions/*.xml), supervise them and follow the plan.
     Run(run::RunArgs),
+    /// Play a flight log of `usal run` back into the system (for an FMo/FPMo to show).
+    Replay(run::replay::ReplayArgs),
     /// List nodes, services and their items (published, subscribed, provided, called).
     List,
     /// Follow variables and events matching NAME (wildcards * and ** allowed), decoded.
@@ -215,6 +218,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let code = match &cli.cmd {
         // Dispatched in main before the tool joins the network.
         Cmd::Run(_) | Cmd::Keygen { .. } => ExitCode::from(2),
+        Cmd::Replay(a) => run::replay::run(&node, a, wait, cli.net.json).await?,
         Cmd::List => {
             tokio::time::sleep(wait).await;
             list(&node, cli.net.json)?;
