@@ -318,7 +318,7 @@ async fn echo(
             v = events.recv() => v?,
         };
         let decoded = types::to_json(&v.type_name, &v.payload);
-        if json {
+        let text = if json {
             let mut line =
                 serde_json::json!({"name": v.name, "publisher": v.publisher, "type": v.type_name});
             match decoded {
@@ -329,17 +329,17 @@ async fn echo(
                     line["note"] = "type unknown to usal; shown raw".into();
                 }
             }
-            println!("{line}");
+            line.to_string()
         } else {
             match decoded {
                 Some(Ok(value)) => {
-                    println!("{} [{}] from {}: {value}", v.name, v.type_name, v.publisher)
+                    format!("{} [{}] from {}: {value}", v.name, v.type_name, v.publisher)
                 }
-                Some(Err(e)) => println!(
+                Some(Err(e)) => format!(
                     "{} [{}] from {}: cannot decode: {e}",
                     v.name, v.type_name, v.publisher
                 ),
-                None => println!(
+                None => format!(
                     "{} [{}] from {}: {} (type unknown to usal; shown raw)",
                     v.name,
                     v.type_name,
@@ -347,6 +347,10 @@ async fn echo(
                     hex(&v.payload)
                 ),
             }
+        };
+        if !print_line(&text)? {
+            // The reader went away (`usal echo … | head`): that ends the echo, not an error.
+            break;
         }
         n += 1;
         if count > 0 && n >= count {
@@ -354,6 +358,18 @@ async fn echo(
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Writes one line to stdout; `false` when stdout's reader has gone (a closed pipe), which
+/// `println!` would turn into a panic.
+fn print_line(text: &str) -> std::io::Result<bool> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match writeln!(out, "{text}").and_then(|()| out.flush()) {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(false),
+        Err(e) => Err(e),
+    }
 }
 
 fn hex(b: &[u8]) -> String {
