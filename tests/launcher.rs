@@ -59,6 +59,9 @@ impl Launcher {
             .arg("--json")
             .arg("run")
             .args(args)
+            // The flight log has its own test (tests/flightlog.rs); these runs leave no log in
+            // the checkout.
+            .arg("--no-log")
             .current_dir(root())
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
