@@ -429,20 +429,24 @@ impl Node {
         )
     }
 
-    /// What peers were refused so far, summed over the links: (by the `<access>` rules,
-    /// otherwise: offers outside their namespace, origins from non-gateways, forged Byes,
-    /// caps). Per link, the same counts are in [`LinkHealth`](crate::LinkHealth).
-    pub fn refusals(&self) -> (u64, u64) {
-        (0..self.inner.links().len().max(1))
-            .map(|l| self.inner.policy.counts(l))
-            .fold((0, 0), |(d, r), (d2, r2)| (d + d2, r + r2))
-    }
-
-    /// Input from peers this node refused or let go since it opened (malformed messages,
-    /// unknown senders, bad declarations, peers beyond the table's bound). Links count their
-    /// own refusals in [`Node::link_stats`].
-    pub fn refused_input(&self) -> crate::node::RefusedInput {
-        self.inner.counters.refused()
+    /// Everything this node refused from peers since it opened: by the `<access>` rules, by
+    /// its own rules (owned names, origins, forged Byes, caps), at the links' seals (no key,
+    /// replays), and as malformed or unbounded input. Summed over the links; per link, see
+    /// [`LinkHealth`](crate::LinkHealth) and [`Node::link_stats`].
+    pub fn refusals(&self) -> crate::RefusalReport {
+        let mut r = crate::RefusalReport::default();
+        for l in 0..self.inner.links().len().max(1) {
+            let (denied, rejected) = self.inner.policy.counts(l);
+            r.denied += denied;
+            r.rejected += rejected;
+        }
+        for l in self.inner.links() {
+            let s = l.stats();
+            r.auth_rejected += s.auth_rejected;
+            r.replay_rejected += s.replay_rejected;
+        }
+        self.inner.counters.add_to(&mut r);
+        r
     }
 
     /// Everything this node knows: itself and every peer, with services and items.

@@ -240,33 +240,15 @@ pub(crate) struct NodeCounters {
     pub peers_evicted: AtomicU64,
 }
 
-/// Input from peers a node refused or let go since it opened (see
-/// [`crate::Node::refused_input`]); each count is a thing dropped, never acted on.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct RefusedInput {
-    /// Messages that could not be decoded.
-    pub undecodable: u64,
-    /// Messages from an address no peer is known at.
-    pub unknown_sender: u64,
-    /// Peers' declarations ignored for a malformed or oversized name or pattern.
-    pub bad_declarations: u64,
-    /// New peers ignored because the peer table was full of confirmed peers.
-    pub peers_refused: u64,
-    /// Unconfirmed peers forgotten to make room for new ones.
-    pub peers_evicted: u64,
-}
-
 impl NodeCounters {
-    /// The counters now.
-    pub fn refused(&self) -> RefusedInput {
+    /// Adds the counters now to `report`.
+    pub fn add_to(&self, report: &mut policy::RefusalReport) {
         let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
-        RefusedInput {
-            undecodable: get(&self.undecodable),
-            unknown_sender: get(&self.unknown_sender),
-            bad_declarations: get(&self.bad_declarations),
-            peers_refused: get(&self.peers_refused),
-            peers_evicted: get(&self.peers_evicted),
-        }
+        report.undecodable += get(&self.undecodable);
+        report.unknown_sender += get(&self.unknown_sender);
+        report.bad_declarations += get(&self.bad_declarations);
+        report.peers_refused += get(&self.peers_refused);
+        report.peers_evicted += get(&self.peers_evicted);
     }
 }
 

@@ -79,6 +79,47 @@ pub(crate) struct RefusalCounters {
     pub rejected: AtomicU64,
 }
 
+/// Everything a node refused from its peers since it opened, in one place (see
+/// [`crate::Node::refusals`]): each count is a thing dropped, never delivered or acted on.
+/// Per link, `denied`/`rejected` and the seal counts are also in [`crate::LinkHealth`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RefusalReport {
+    /// Refused by the `<access>` rules (calls, files, publications, gateways).
+    pub denied: u64,
+    /// Refused by the node's own rules: offers outside their namespace, origins from
+    /// non-gateways, forged Byes, a known node at a second address, caps reached.
+    pub rejected: u64,
+    /// Frames whose seal did not verify (no key, another key, tampering).
+    pub auth_rejected: u64,
+    /// Frames refused as replays.
+    pub replay_rejected: u64,
+    /// Messages that could not be decoded.
+    pub undecodable: u64,
+    /// Messages from an address no peer is known at.
+    pub unknown_sender: u64,
+    /// Peers' declarations ignored for a malformed or oversized name or pattern.
+    pub bad_declarations: u64,
+    /// New peers ignored because the peer table was full of confirmed peers.
+    pub peers_refused: u64,
+    /// Unconfirmed peers forgotten to make room for new ones.
+    pub peers_evicted: u64,
+}
+
+impl RefusalReport {
+    /// Every refusal counted, whatever the reason.
+    pub fn total(&self) -> u64 {
+        self.denied
+            + self.rejected
+            + self.auth_rejected
+            + self.replay_rejected
+            + self.undecodable
+            + self.unknown_sender
+            + self.bad_declarations
+            + self.peers_refused
+            + self.peers_evicted
+    }
+}
+
 /// A node's acceptance policy and what it refused.
 pub(crate) struct Policy {
     pub access: Option<AccessConfig>,
