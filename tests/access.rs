@@ -309,7 +309,10 @@ fn a_forged_bye_from_another_address_does_not_evict() {
         };
         assert_eq!(result, Ok(7), "the call failed: air was evicted");
         assert!(gs.peers().iter().any(|p| p.name == "air"));
-        assert!(gs.refusals().rejected > 0, "the forged Byes were not counted");
+        assert!(
+            gs.refusals().rejected > 0,
+            "the forged Byes were not counted"
+        );
         drop((slow, station, vas));
         gs.shutdown().await;
         air.shutdown().await;

@@ -10,29 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{Net, Proc, T};
+use common::{keygen, outcome, Net, Proc, T};
 use serde_json::Value;
-
-/// Makes a key with the real CLI, checking what it promises.
-fn keygen(dir: &Path, name: &str) -> PathBuf {
-    let path = dir.join(name);
-    let out = Command::new(env!("CARGO_BIN_EXE_usal"))
-        .args(["keygen", path.to_str().expect("utf-8 temp path")])
-        .output()
-        .expect("run usal keygen");
-    assert!(out.status.success(), "{out:?}");
-    use std::os::unix::fs::PermissionsExt;
-    let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
-    assert_eq!(mode, 0o600);
-    path
-}
-
-/// `net.probe` with `--key-file`.
-fn keyed(net: &Net, node: &str, ns: &str, key: &Path, cmd: &[&str]) -> Proc {
-    let mut args = vec!["--key-file", key.to_str().unwrap(), "--namespace", ns];
-    args.extend_from_slice(cmd);
-    net.probe(node, &args)
-}
 
 /// Reads link-health lines from `station` until one satisfies `pred`.
 fn health_until(station: &mut Proc, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
@@ -57,7 +36,7 @@ fn keygen_refuses_to_overwrite_and_nodes_refuse_a_readable_key() {
     use std::os::unix::fs::PermissionsExt;
     std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o644)).unwrap();
     let net = Net::new("auth_readable_key");
-    let mut p = keyed(&net, "p", "rover1", &key, &["list", "--wait-ms", "0"]);
+    let mut p = net.keyed("p", "rover1", &key, &["list", "--wait-ms", "0"]);
     let status = p.wait_exit(T);
     assert!(
         !status.success(),
@@ -71,16 +50,14 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
     let dir = tempfile::tempdir().unwrap();
     let key = keygen(dir.path(), "domain.key");
     let net = Net::new("auth_udp_ok");
-    let mut publ = keyed(
-        &net,
+    let mut publ = net.keyed(
         "pub",
         "rover1",
         &key,
         &["var-pub", "--item", "position", "--count", "3"],
     );
     publ.expect_key(T, "published");
-    let mut sub = keyed(
-        &net,
+    let mut sub = net.keyed(
         "sub",
         "gs",
         &key,
@@ -94,16 +71,14 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
     );
     assert_eq!(sub.expect_key(T, "seq")["seq"], 2);
 
-    let mut evsub = keyed(
-        &net,
+    let mut evsub = net.keyed(
         "evsub",
         "gs",
         &key,
         &["ev-sub", "--pattern", "rover1/probe/alarm", "--count", "50"],
     );
     evsub.expect_key(T, "ready");
-    let mut evpub = keyed(
-        &net,
+    let mut evpub = net.keyed(
         "evpub",
         "rover1",
         &key,
@@ -115,16 +90,9 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
     assert_eq!(r["received"], 50);
     assert_eq!(r["in_order"], true);
 
-    let mut prov = keyed(
-        &net,
-        "prov",
-        "rover1",
-        &key,
-        &["provide", "--item", "double"],
-    );
+    let mut prov = net.keyed("prov", "rover1", &key, &["provide", "--item", "double"]);
     prov.expect_key(T, "ready");
-    let mut call = keyed(
-        &net,
+    let mut call = net.keyed(
         "call",
         "gs",
         &key,
@@ -138,9 +106,7 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
             "10000",
         ],
     );
-    let v = call.expect(T, "a call result", |v| {
-        v.get("ok").is_some() || v.get("error").is_some()
-    });
+    let v = outcome(&mut call);
     assert_eq!(v["ok"], 42, "{v}");
 }
 
@@ -152,8 +118,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     let key = keygen(dir.path(), "domain.key");
     let other = keygen(dir.path(), "other.key");
     let net = Net::new("auth_udp_intruders");
-    let mut publ = keyed(
-        &net,
+    let mut publ = net.keyed(
         "pub",
         "rover1",
         &key,
@@ -169,8 +134,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     );
     publ.expect_key(T, "ready");
     // The intruders publish the same name: a keyed subscriber must only ever see the keyed one.
-    let mut wrong = keyed(
-        &net,
+    let mut wrong = net.keyed(
         "wrongkey",
         "rover1",
         &other,
@@ -199,8 +163,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     );
     wrong.expect_key(T, "ready");
     none.expect_key(T, "ready");
-    let mut wrong_sub = keyed(
-        &net,
+    let mut wrong_sub = net.keyed(
         "wrongsub",
         "gs",
         &other,
@@ -228,8 +191,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
 
     // The keyed station: it gets the keyed publisher's values, and its own link health shows
     // the intruders' datagrams dropped as unauthenticated.
-    let mut station = keyed(
-        &net,
+    let mut station = net.keyed(
         "station",
         "gs",
         &key,
@@ -240,8 +202,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
         assert_eq!(v["name"], "rover1/probe/position", "{v}");
         assert_eq!(v["publisher"], "pub");
     }
-    let mut health = keyed(
-        &net,
+    let mut health = net.keyed(
         "health",
         "gs",
         &key,
@@ -270,7 +231,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     // And they discovered nobody keyed.
     for (name, k) in [("wrong-list", Some(&other)), ("none-list", None)] {
         let mut list = match k {
-            Some(k) => keyed(&net, name, "gs", k, &["list", "--wait-ms", "1500"]),
+            Some(k) => net.keyed(name, "gs", k, &["list", "--wait-ms", "1500"]),
             None => net.probe_ns(name, "gs", &["list", "--wait-ms", "1500"]),
         };
         let v = list.expect_key(T, "nodes");
@@ -314,8 +275,7 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
     let key = keygen(dir.path(), "domain.key");
     let net = Net::new("auth_udp_replay");
     let spy = eavesdropper(net.port);
-    let mut publ = keyed(
-        &net,
+    let mut publ = net.keyed(
         "pub",
         "rover1",
         &key,
@@ -330,16 +290,14 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
         ],
     );
     publ.expect_key(T, "ready");
-    let mut health = keyed(
-        &net,
+    let mut health = net.keyed(
         "victim",
         "gs",
         &key,
         &["health", "--pattern", "gs/link/**", "--count", "1000"],
     );
     health.expect_key(T, "ready");
-    let mut sub = keyed(
-        &net,
+    let mut sub = net.keyed(
         "sub",
         "gs",
         &key,
@@ -893,16 +851,14 @@ fn keyed_gateways_join_two_lans_over_an_encrypted_radio() {
     let mut ground_gw = gateway(&ground, "ground-gw", "ground", &radio.ground);
     air_gw.expect_key(T, "ready");
     ground_gw.expect_key(T, "ready");
-    let mut publ = keyed(
-        &air,
+    let mut publ = air.keyed(
         "position",
         "rover1",
         &key,
         &["var-pub", "--item", "position", "--count", "1"],
     );
     publ.expect_key(T, "published");
-    let mut monitor = keyed(
-        &ground,
+    let mut monitor = ground.keyed(
         "monitor",
         "ground",
         &key,

@@ -124,9 +124,7 @@ async fn forged_hellos_never_push_out_a_confirmed_peer() {
             socks.push(sock);
         }
         let refused = victim
-            .wait_until(Duration::from_secs(10), |n| {
-                n.refusals().peers_evicted > 0
-            })
+            .wait_until(Duration::from_secs(10), |n| n.refusals().peers_evicted > 0)
             .await;
         assert!(refused, "{:?}", victim.refusals());
         assert!(victim.peers().len() <= 1024, "{}", victim.peers().len());
