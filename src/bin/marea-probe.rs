@@ -635,6 +635,7 @@ async fn victim(
                 "files": d.files,
                 "peers": peers,
                 "peer_addrs": peer_addrs,
+                "frames_in": node.link_stats().iter().map(|(_, s)| s.frames_in).sum::<u64>(),
                 "refusals": {
                     "denied": r.denied, "rejected": r.rejected,
                     "auth_rejected": r.auth_rejected, "replay_rejected": r.replay_rejected,
