@@ -868,3 +868,183 @@ fn keyed_gateways_join_two_lans_over_an_encrypted_radio() {
     assert_eq!(v["name"], "rover1/probe/position", "{v}");
     assert_eq!(v["publisher"], "position");
 }
+
+/// A proof is an answer to one challenge: a domain-key holder that obtains a genuine proof of
+/// the station (by challenging it itself) and replays it to a vehicle, under the station's id
+/// once the station left, is not authenticated; the refusal is counted, and nothing it declares
+/// is taken.
+#[test]
+fn a_replayed_identity_proof_is_refused() {
+    use common::attacker::{Forger, Sniffer};
+    use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message};
+
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let (station_id, station_pub) = identity_keygen(dir.path(), "station.id");
+    let roster = dir.path().join("identities.xml");
+    std::fs::write(
+        &roster,
+        format!(r#"<identities><identity key="{station_pub}" namespaces="ground"/></identities>"#),
+    )
+    .unwrap();
+    let net = Net::new("auth_identity_replay");
+    let inbox = dir.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let (key_s, roster_s) = (key.to_str().unwrap(), roster.to_str().unwrap());
+    let mut vehicle = net.probe(
+        "vas",
+        &[
+            "--key-file",
+            key_s,
+            "--identities",
+            roster_s,
+            "--namespace",
+            "rover1",
+            "victim",
+            "--call",
+            "retask",
+            "--sink",
+            "plans",
+            "--dir",
+            inbox.to_str().unwrap(),
+            "--pattern",
+            "**/position",
+        ],
+    );
+    let sniffer = Sniffer::join(net.group()).expect("join the group");
+    let ready = vehicle.expect_key(T, "ready");
+    let target: SocketAddr = ready["addrs"][0]
+        .as_str()
+        .unwrap()
+        .trim_start_matches("udp://")
+        .parse()
+        .unwrap();
+    let mut station = net.probe(
+        "gs",
+        &[
+            "--key-file",
+            key_s,
+            "--identity-file",
+            station_id.to_str().unwrap(),
+            "--namespace",
+            "ground",
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "100000000",
+            "--interval-ms",
+            "20",
+        ],
+    );
+    station.expect_key(T, "ready");
+    let report = |p: &mut Proc, what: &str, pred: &dyn Fn(&Value) -> bool| -> Value {
+        let v = p.expect(T, what, |v| v.get("report").is_some_and(pred));
+        p.seen.clear();
+        v["report"].clone()
+    };
+    // The station proved its key: its positions are delivered.
+    let r = report(&mut vehicle, "the station authenticated", &|r| {
+        r["authenticated"] == serde_json::json!(["ground/gs"])
+            && r["samples"]["gs ground/probe/position"].as_u64() > Some(2)
+    });
+    let station_addr: SocketAddr = r["peer_addrs"]["ground/gs"]
+        .as_str()
+        .unwrap()
+        .trim_start_matches("udp://")
+        .parse()
+        .unwrap();
+    let (station_node_id, _) = sniffer
+        .capture_from(station_addr, T)
+        .expect("the station's heartbeat");
+    let rejected_before = r["refusals"]["rejected"].as_u64().unwrap();
+
+    // The spy holds the domain key: it says Hello to the station and challenges it; the
+    // station answers with a genuine proof (for the spy's nonce).
+    let domain_key = marea::link::auth::DomainKey::load(&key).unwrap();
+    let mut spy = Forger::new(Some(&domain_key)).unwrap();
+    spy.discovery(
+        station_addr,
+        &Message::Hello {
+            node_id: 0x5b1_0000_0001,
+            domain: net.domain.clone(),
+            node: "spy".into(),
+            namespace: "evil".into(),
+            counter: 0,
+            lease_ms: 60_000,
+            gateway: false,
+        },
+    )
+    .unwrap();
+    spy.safe(station_addr, &[Message::Challenge { nonce: [7; 16] }])
+        .unwrap();
+    let proof = spy
+        .recv_message(station_addr, T, |m| matches!(m, Message::Identity { .. }))
+        .expect("the station answers a challenge");
+
+    // The station leaves; the spy comes back to the vehicle as the station, with the proof.
+    station.terminate();
+    station.wait_exit(T);
+    report(&mut vehicle, "the station gone", &|r| {
+        r["peers"].get("ground/gs").is_none()
+    });
+    let mut impostor = Forger::new(Some(&domain_key)).unwrap();
+    impostor
+        .discovery(
+            target,
+            &Message::Hello {
+                node_id: station_node_id,
+                domain: net.domain.clone(),
+                node: "gs".into(),
+                namespace: "ground".into(),
+                counter: 2,
+                lease_ms: 60_000,
+                gateway: false,
+            },
+        )
+        .unwrap();
+    report(&mut vehicle, "the impostor heard", &|r| {
+        r["peers"]["ground/gs"] == 1
+    });
+    impostor
+        .safe(
+            target,
+            &[
+                proof,
+                Message::DeclBatch {
+                    after: 0,
+                    upto: 2,
+                    reset: false,
+                    entries: vec![
+                        LoggedDeclaration {
+                            counter: 1,
+                            decl: Declaration::Service {
+                                id: 1,
+                                name: "probe".into(),
+                            },
+                        },
+                        LoggedDeclaration {
+                            counter: 2,
+                            decl: Declaration::Offer {
+                                id: 2,
+                                service: 1,
+                                kind: ItemKind::Function,
+                                name: "ground/probe/fake".into(),
+                                ty: marea::typeinfo::TypeInfo::of::<fn(u64) -> u64>(),
+                                origin: None,
+                            },
+                        },
+                    ],
+                },
+            ],
+        )
+        .unwrap();
+    let r = report(&mut vehicle, "the replayed proof refused", &|r| {
+        r["refusals"]["rejected"].as_u64() > Some(rejected_before)
+    });
+    assert_eq!(
+        r["authenticated"],
+        serde_json::json!([]),
+        "the impostor was authenticated: {r}"
+    );
+}

@@ -623,7 +623,14 @@ async fn victim(
             // By name (a flood of invented peers may share one): how many, and an address.
             let mut peers = std::collections::BTreeMap::<String, u64>::new();
             let mut peer_addrs = std::collections::BTreeMap::<String, String>::new();
+            let mut authenticated = Vec::new();
             for p in node.peers() {
+                if p.authenticated_namespaces
+                    .as_ref()
+                    .is_some_and(|n| !n.is_empty())
+                {
+                    authenticated.push(format!("{}/{}", p.namespace, p.name));
+                }
                 *peers
                     .entry(format!("{}/{}", p.namespace, p.name))
                     .or_default() += 1;
@@ -635,6 +642,7 @@ async fn victim(
                 "files": d.files,
                 "peers": peers,
                 "peer_addrs": peer_addrs,
+                "authenticated": authenticated,
                 "frames_in": node.link_stats().iter().map(|(_, s)| s.frames_in).sum::<u64>(),
                 "refusals": {
                     "denied": r.denied, "rejected": r.rejected,

@@ -205,6 +205,58 @@ impl Forger {
     }
 }
 
+impl Forger {
+    /// Waits (at most `within`) for a message from `from` satisfying `pred`, reading the
+    /// datagrams sent to this forger (sealed or not: a seal is a trailer, and this forger is
+    /// not the one checking it).
+    pub fn recv_message(
+        &self,
+        from: SocketAddr,
+        within: Duration,
+        pred: impl Fn(&Message) -> bool,
+    ) -> Option<Message> {
+        use marea::link::udp::datagram::{self, Datagram, Entry};
+        let deadline = Instant::now() + within;
+        let trailer = marea::link::auth::Profile::UDP.overhead();
+        let mut buf = vec![0u8; 65_536];
+        while Instant::now() < deadline {
+            let Ok((n, src)) = self.sock.recv_from(&mut buf) else {
+                continue;
+            };
+            if src != from || n == 0 {
+                continue;
+            }
+            let mut d = buf[..n].to_vec();
+            if let Some(kind) = datagram::unsealed_kind(d[0]) {
+                if d.len() <= trailer {
+                    continue;
+                }
+                d.truncate(d.len() - trailer);
+                d[0] = kind;
+            }
+            let msgs: Vec<Vec<u8>> = match datagram::decode(&d) {
+                Ok(Datagram::Discovery(m)) => vec![m.to_vec()],
+                Ok(Datagram::Data(entries)) => entries
+                    .into_iter()
+                    .filter_map(|e| match e {
+                        Entry::Safe { msg, .. } | Entry::Fast(msg) => Some(msg.to_vec()),
+                        _ => None,
+                    })
+                    .collect(),
+                Err(_) => vec![],
+            };
+            for m in msgs {
+                if let Ok(m) = marea::codec::decode_message(&m) {
+                    if pred(&m) {
+                        return Some(m);
+                    }
+                }
+            }
+        }
+        None
+    }
+}
+
 /// A listener on a domain's multicast group, as anyone on the LAN can open: it captures the
 /// sealed discovery datagrams the nodes announce (to replay them) and reads their node ids (a
 /// seal authenticates, it does not hide).

@@ -149,25 +149,15 @@ impl Node {
         let id: crate::protocol::NodeId = rand::random();
         let identity = match &config.security {
             Some(s) if s.identity_file.is_some() || s.identities.is_some() => {
-                let proof = match &s.identity_file {
-                    Some(f) => {
-                        let key = crate::identity::IdentityKey::load(f)?;
-                        let namespace = config.namespace.clone().unwrap_or_default();
-                        let signature = key.prove(&config.domain, id, &config.node, &namespace);
-                        Some(crate::codec::encode_message(
-                            &crate::protocol::Message::Identity {
-                                public_key: key.public(),
-                                signature: signature.to_vec(),
-                            },
-                        ))
-                    }
+                let key = match &s.identity_file {
+                    Some(f) => Some(crate::identity::IdentityKey::load(f)?),
                     None => None,
                 };
                 let roster = match &s.identities {
                     Some(f) => Some(crate::identity::Roster::load(f)?),
                     None => None,
                 };
-                Some(crate::node::IdentityLayer { proof, roster })
+                Some(crate::node::IdentityLayer { key, roster })
             }
             _ => None,
         };

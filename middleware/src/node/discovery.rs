@@ -170,6 +170,11 @@ impl NodeInner {
                             .as_ref()
                             .and_then(|i| i.roster.as_ref())
                             .map(|_| Vec::new()),
+                        challenge: self
+                            .identity
+                            .as_ref()
+                            .and_then(|i| i.roster.as_ref())
+                            .map(|_| rand::random()),
                     },
                 );
                 self.addrs.insert((link, from), node_id);

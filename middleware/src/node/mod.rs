@@ -140,6 +140,9 @@ pub(crate) struct Peer {
     /// Namespaces its identity key is authenticated for: `None` when this node checks no
     /// identities, empty until a valid proof listed in the roster arrives.
     pub authenticated: Option<Vec<String>>,
+    /// The nonce of our identity challenge to it, until a proof answers it (`None` when this
+    /// node checks no identities, or once answered).
+    pub challenge: Option<[u8; 16]>,
 }
 
 impl Peer {
@@ -221,8 +224,8 @@ pub(crate) struct NodeInner {
 
 /// This node's identity proof and the domain's roster (see [`crate::identity`]).
 pub(crate) struct IdentityLayer {
-    /// Our proof for this run (an encoded `Message::Identity`), sent after each safe Hello.
-    pub proof: Option<Vec<u8>>,
+    /// Our identity key, to answer peers' challenges.
+    pub key: Option<crate::identity::IdentityKey>,
     /// Which key may own which namespaces; `None`: peers are not checked.
     pub roster: Option<crate::identity::Roster>,
 }
@@ -286,8 +289,9 @@ impl NodeInner {
         self.path_switches.send(self.links(), (link, addr), out);
     }
 
-    /// Sends a safe message and forgets about its acknowledgement. A Hello is followed by our
-    /// identity proof, if we have one, so it precedes every declaration we send after it.
+    /// Sends a safe message and forgets about its acknowledgement. A Hello to a peer whose
+    /// identity we still wait for is followed by our challenge, so the peer answers it before
+    /// the declarations we ask for after it.
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
         self.send_to(
             link,
@@ -297,16 +301,17 @@ impl NodeInner {
                 done: None,
             },
         );
-        let proof = self.identity.as_ref().and_then(|i| i.proof.as_ref());
-        if let (Message::Hello { .. }, Some(proof)) = (msg, proof) {
-            self.send_to(
-                link,
-                addr,
-                Outgoing::Safe {
-                    msg: proof.clone(),
-                    done: None,
-                },
-            );
+        if matches!(msg, Message::Hello { .. }) {
+            if let Some(nonce) = self.pending_challenge(link, addr) {
+                self.send_to(
+                    link,
+                    addr,
+                    Outgoing::Safe {
+                        msg: encode_message(&Message::Challenge { nonce }),
+                        done: None,
+                    },
+                );
+            }
         }
     }
 
@@ -373,6 +378,7 @@ impl NodeInner {
                 public_key,
                 signature,
             } => self.on_identity(node, public_key, &signature),
+            Message::Challenge { nonce } => self.on_challenge(node, nonce),
             Message::Refused {
                 interest,
                 name,

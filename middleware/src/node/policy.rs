@@ -51,6 +51,9 @@ pub(crate) enum Refusal {
     TooManyDeclarations,
     /// The per-peer or total concurrent-call cap is reached.
     Busy,
+    /// An identity proof that answers no challenge of ours (replayed, made for another nonce
+    /// or node, or by another key).
+    IdentityUnproven,
 }
 
 impl Refusal {
@@ -66,6 +69,7 @@ impl Refusal {
             Refusal::SecondAddress => "known node at a second address on the same link",
             Refusal::TooManyDeclarations => "declaration cap reached",
             Refusal::Busy => "concurrent-call cap reached",
+            Refusal::IdentityUnproven => "identity proof answering no challenge of ours",
         }
     }
 }
