@@ -15,6 +15,7 @@ pub(crate) mod identity_check;
 pub(crate) mod mailbox;
 pub(crate) mod path_switch;
 pub(crate) mod policy;
+pub(crate) mod reassembly;
 pub(crate) mod session;
 
 use std::collections::HashMap;
