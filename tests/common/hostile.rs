@@ -594,14 +594,6 @@ pub fn insider(scene: &mut Scene) -> Tally {
         "the legitimate peer was evicted or doubled: {r2}"
     );
 
-    // Samples on the offers it tried, and calls, files and samples on guessed ids.
-    for m in forged_session_traffic() {
-        forger.fast(target, &m).expect("send");
-    }
-    forger
-        .safe(target, &forged_session_traffic())
-        .expect("send");
-
     // A declaration flood: past the per-peer cap, refused and counted.
     let flood: Vec<Declaration> = (0..4200u32)
         .map(|i| {
@@ -624,6 +616,14 @@ pub fn insider(scene: &mut Scene) -> Tally {
     scene.report_until("the declaration flood capped", |r| {
         refusals(r, "rejected") >= refusals(&r2, "rejected") + 100
     });
+
+    // Samples on the offers it tried, and calls, files and samples on guessed ids.
+    for m in forged_session_traffic() {
+        forger.fast(target, &m).expect("send");
+    }
+    forger
+        .safe(target, &forged_session_traffic())
+        .expect("send");
 
     // A peer flood: sealed Hellos of 1,100 invented nodes, each from its own port.
     let evicted0 = refusals(&scene.last, "peers_evicted");

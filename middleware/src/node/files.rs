@@ -521,13 +521,17 @@ impl NodeInner {
         self.send_safe_to_node(node, &Message::FileDone { transfer, verdict });
     }
 
-    /// Tells the sender a sink refused its file, logs it and counts it.
+    /// Tells the sender a sink refused its file, logs it and counts it (in the sink's stats
+    /// and in the health of the sender's link).
     fn refuse_file(&self, sink: &SinkState, node: NodeId, transfer: u64, verdict: FileVerdict) {
-        let from = self
+        let (from, link) = self
             .peers
             .get(&node)
-            .map(|p| p.name.to_string())
+            .map(|p| (p.name.to_string(), Some(p.link)))
             .unwrap_or_default();
+        if let Some(link) = link {
+            self.policy.count(link, super::policy::Refusal::File);
+        }
         if sink.should_log(node, &verdict) {
             tracing::warn!(sink = %sink.name, %from, %verdict, "incoming file refused (logged once a minute per sender and kind; all counted)");
         }
@@ -573,6 +577,10 @@ impl NodeInner {
             OfferRole::File { state, mailbox } => Some((state.clone(), mailbox.clone())),
             _ => None,
         }) else {
+            if let Some((link, name)) = self.peers.get(&node).map(|p| (p.link, p.name.clone())) {
+                self.policy
+                    .refuse(link, node, &name, "file sink", super::policy::Refusal::File);
+            }
             self.reply_file(
                 node,
                 transfer,

@@ -54,6 +54,9 @@ pub(crate) enum Refusal {
     /// An identity proof that answers no challenge of ours (replayed, made for another nonce
     /// or node, or by another key).
     IdentityUnproven,
+    /// A file a sink refused (bad name, too large, past its announced size, over the quota,
+    /// too many at once, wrong content, no such sink).
+    File,
 }
 
 impl Refusal {
@@ -70,6 +73,7 @@ impl Refusal {
             Refusal::TooManyDeclarations => "declaration cap reached",
             Refusal::Busy => "concurrent-call cap reached",
             Refusal::IdentityUnproven => "identity proof answering no challenge of ours",
+            Refusal::File => "file refused by the sink",
         }
     }
 }
@@ -91,7 +95,8 @@ pub struct RefusalReport {
     /// Refused by the `<access>` rules (calls, files, publications, gateways).
     pub denied: u64,
     /// Refused by the node's own rules: offers outside their namespace, origins from
-    /// non-gateways, forged Byes, a known node at a second address, caps reached.
+    /// non-gateways, forged Byes, a known node at a second address, caps reached, identity
+    /// proofs answering no challenge, files a sink refused.
     pub rejected: u64,
     /// Frames whose seal did not verify (no key, another key, tampering).
     pub auth_rejected: u64,
@@ -169,15 +174,20 @@ impl Policy {
         })
     }
 
-    /// Counts a refusal on `link` and logs it unless the same (peer, item) was logged within
-    /// the last minute.
-    pub fn refuse(&self, link: usize, peer: NodeId, peer_name: &str, item: &str, why: Refusal) {
+    /// Counts a refusal on `link` without logging it (the caller logs its own way).
+    pub fn count(&self, link: usize, why: Refusal) {
         if let Some(c) = self.counters.get(link) {
             match why {
                 Refusal::Denied(_) => c.denied.fetch_add(1, Ordering::Relaxed),
                 _ => c.rejected.fetch_add(1, Ordering::Relaxed),
             };
         }
+    }
+
+    /// Counts a refusal on `link` and logs it unless the same (peer, item) was logged within
+    /// the last minute.
+    pub fn refuse(&self, link: usize, peer: NodeId, peer_name: &str, item: &str, why: Refusal) {
+        self.count(link, why);
         if self.first_in_a_minute(peer, item, Instant::now()) {
             tracing::warn!(
                 peer = %peer_name,
