@@ -5,12 +5,13 @@
 
 mod common;
 
-use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{keygen, outcome, Net, Proc, T};
+use common::attacker::Sniffer;
+use common::{keygen, outcome, publishing, Net, Proc, T};
 use serde_json::Value;
 
 /// Reads link-health lines from `station` until one satisfies `pred`.
@@ -118,49 +119,11 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     let key = keygen(dir.path(), "domain.key");
     let other = keygen(dir.path(), "other.key");
     let net = Net::new("auth_udp_intruders");
-    let mut publ = net.keyed(
-        "pub",
-        "rover1",
-        &key,
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let mut publ = net.keyed("pub", "rover1", &key, &publishing("position"));
     publ.expect_key(T, "ready");
     // The intruders publish the same name: a keyed subscriber must only ever see the keyed one.
-    let mut wrong = net.keyed(
-        "wrongkey",
-        "rover1",
-        &other,
-        &[
-            "var-pub",
-            "--item",
-            "intruder",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
-    let mut none = net.probe_ns(
-        "nokey",
-        "rover1",
-        &[
-            "var-pub",
-            "--item",
-            "intruder",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let mut wrong = net.keyed("wrongkey", "rover1", &other, &publishing("intruder"));
+    let mut none = net.probe_ns("nokey", "rover1", &publishing("intruder"));
     wrong.expect_key(T, "ready");
     none.expect_key(T, "ready");
     let mut wrong_sub = net.keyed(
@@ -250,23 +213,6 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     }
 }
 
-/// A socket in the discovery group, as an eavesdropper on the LAN.
-fn eavesdropper(port: u16) -> UdpSocket {
-    use socket2::{Domain, Protocol, Socket, Type};
-    let group = Ipv4Addr::new(239, 255, 77, 1);
-    let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).unwrap();
-    s.set_reuse_address(true).unwrap();
-    s.bind(&SocketAddr::V4(SocketAddrV4::new(group, port)).into())
-        .unwrap();
-    s.join_multicast_v4(&group, &Ipv4Addr::LOCALHOST).unwrap();
-    s.set_multicast_if_v4(&Ipv4Addr::LOCALHOST).unwrap();
-    s.set_multicast_loop_v4(true).unwrap();
-    let s: UdpSocket = s.into();
-    s.set_read_timeout(Some(Duration::from_millis(200)))
-        .unwrap();
-    s
-}
-
 /// A datagram captured on the wire and sent again is dropped as a replay (counted), while the
 /// legitimate traffic goes on.
 #[test]
@@ -274,21 +220,8 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
     let dir = tempfile::tempdir().unwrap();
     let key = keygen(dir.path(), "domain.key");
     let net = Net::new("auth_udp_replay");
-    let spy = eavesdropper(net.port);
-    let mut publ = net.keyed(
-        "pub",
-        "rover1",
-        &key,
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let spy = Sniffer::join(net.group()).expect("join the group");
+    let mut publ = net.keyed("pub", "rover1", &key, &publishing("position"));
     publ.expect_key(T, "ready");
     let mut health = net.keyed(
         "victim",
@@ -314,11 +247,10 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
     // Capture what the nodes multicast (hellos and heartbeats, sealed), and who sends it.
     let mut captured: Vec<(Vec<u8>, SocketAddr)> = Vec::new();
     let deadline = Instant::now() + T;
-    let mut buf = [0u8; 65536];
     while captured.len() < 12 && Instant::now() < deadline {
-        if let Ok((n, from)) = spy.recv_from(&mut buf) {
-            assert_eq!(buf[0], 0xA4, "a keyed node's discovery datagram is sealed");
-            captured.push((buf[..n].to_vec(), from));
+        if let Some((d, from)) = spy.recv() {
+            assert_eq!(d[0], 0xA4, "a keyed node's discovery datagram is sealed");
+            captured.push((d, from));
         }
     }
     assert!(captured.len() >= 12, "captured only {}", captured.len());
@@ -329,12 +261,12 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
         s
     };
     // Replay each, to the group and to every node's own address.
-    let group = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 1), net.port));
+    let group = SocketAddr::V4(net.group());
     for _ in 0..3 {
         for (d, _) in &captured {
             spy.send_to(d, group).unwrap();
             for s in &senders {
-                spy.send_to(d, s).unwrap();
+                spy.send_to(d, *s).unwrap();
             }
         }
     }
@@ -875,7 +807,7 @@ fn keyed_gateways_join_two_lans_over_an_encrypted_radio() {
 /// is taken.
 #[test]
 fn a_replayed_identity_proof_is_refused() {
-    use common::attacker::{Forger, Sniffer};
+    use common::attacker::Forger;
     use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message};
 
     let dir = tempfile::tempdir().unwrap();

@@ -277,6 +277,19 @@ impl Sniffer {
         Ok(Sniffer { sock })
     }
 
+    /// One datagram heard on the group (waiting at most 100 ms) and who sent it.
+    pub fn recv(&self) -> Option<(Vec<u8>, SocketAddr)> {
+        let mut buf = vec![0u8; 65_536];
+        let (n, from) = self.sock.recv_from(&mut buf).ok()?;
+        buf.truncate(n);
+        Some((buf, from))
+    }
+
+    /// Sends `d` to `to` from the listener's socket (a replay).
+    pub fn send_to(&self, d: &[u8], to: SocketAddr) -> io::Result<()> {
+        self.sock.send_to(d, to).map(|_| ())
+    }
+
     /// Waits (at most `within`) for a sealed discovery datagram from `from`: its node id and
     /// the datagram as it was on the wire.
     pub fn capture_from(&self, from: SocketAddr, within: Duration) -> Option<(NodeId, Vec<u8>)> {

@@ -114,20 +114,7 @@ impl Scene {
         );
         let ready = victim.expect_key(T, "ready");
         let target = udp(ready["addrs"][0].as_str().expect("the victim's address"));
-        let legit = net.keyed(
-            "gs",
-            "ground",
-            &key,
-            &[
-                "var-pub",
-                "--item",
-                "position",
-                "--count",
-                "100000000",
-                "--interval-ms",
-                "20",
-            ],
-        );
+        let legit = net.keyed("gs", "ground", &key, &super::publishing("position"));
         let mut scene = Scene {
             net,
             dir,
@@ -663,20 +650,9 @@ pub fn insider(scene: &mut Scene) -> Tally {
 
     // A publisher of its own namespace, which `<access>` does not let publish to us.
     let denied = refusals(&scene.last, "denied");
-    let _imp = scene.net.keyed(
-        "imp",
-        "evil",
-        &scene.key,
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "100000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let _imp = scene
+        .net
+        .keyed("imp", "evil", &scene.key, &super::publishing("position"));
     scene.report_until("the impostor's publication denied", |r| {
         refusals(r, "denied") > denied
     });

@@ -272,6 +272,19 @@ pub fn keygen(dir: &Path, name: &str) -> PathBuf {
     path
 }
 
+/// `marea-probe` arguments publishing positions on `item` at 50 Hz until stopped.
+pub fn publishing(item: &str) -> [&str; 7] {
+    [
+        "var-pub",
+        "--item",
+        item,
+        "--count",
+        "100000000",
+        "--interval-ms",
+        "20",
+    ]
+}
+
 /// The outcome line of a `call` (`ok` or `error`) or a `send` (`done` or `error`).
 pub fn outcome(p: &mut Proc) -> Value {
     p.expect(T, "an outcome", |v| {
