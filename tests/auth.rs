@@ -980,3 +980,84 @@ fn a_replayed_identity_proof_is_refused() {
         "the impostor was authenticated: {r}"
     );
 }
+
+/// With a roster, `<access>` matches a peer by the namespace its identity key proved, not the
+/// one it claims: a domain-key holder claiming the station's namespace without a key listed for
+/// it is denied the call the station may make, and the provider never runs it.
+#[test]
+fn access_rules_trust_only_an_authenticated_namespace() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let (station_id, station_pub) = identity_keygen(dir.path(), "station.id");
+    let (evil_id, evil_pub) = identity_keygen(dir.path(), "evil.id");
+    let roster = dir.path().join("identities.xml");
+    std::fs::write(
+        &roster,
+        format!(
+            r#"<identities>
+  <identity key="{station_pub}" namespaces="ground"/>
+  <identity key="{evil_pub}" namespaces="evil"/>
+</identities>"#
+        ),
+    )
+    .unwrap();
+    let net = Net::new("auth_identity_access");
+    let inbox = dir.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let config = net.network_xml(
+        dir.path(),
+        "vas",
+        "rover1",
+        r#"<access><allow kind="call" item="rover1/vas/*" from="ground/*"/></access>"#,
+    );
+    let (key_s, roster_s) = (key.to_str().unwrap(), roster.to_str().unwrap());
+    let mut vehicle = common::probe_with_config(
+        "vas",
+        &config,
+        "vas",
+        &["--key-file", key_s, "--identities", roster_s],
+        &[
+            "victim",
+            "--call",
+            "retask",
+            "--sink",
+            "plans",
+            "--dir",
+            inbox.to_str().unwrap(),
+            "--pattern",
+            "**/position",
+        ],
+    );
+    vehicle.expect_key(T, "ready");
+    let call = |node: &str, identity: Option<&Path>, arg: &str| {
+        let mut args = vec!["--key-file", key_s, "--namespace", "ground"];
+        if let Some(id) = identity {
+            args.extend(["--identity-file", id.to_str().unwrap()]);
+        }
+        args.extend([
+            "call",
+            "--name",
+            "rover1/vas/retask",
+            "--arg",
+            arg,
+            "--wait-ms",
+            "10000",
+        ]);
+        net.probe(node, &args)
+    };
+    // Claiming `ground` with no identity, then with a key listed for `evil` only.
+    for (node, identity) in [("fmo", None), ("fmo2", Some(evil_id.as_path()))] {
+        let mut impostor = call(node, identity, "666");
+        let r = outcome(&mut impostor);
+        assert_eq!(r["error"], "denied", "{node}: {r}");
+    }
+    let mut station = call("fmo3", Some(station_id.as_path()), "21");
+    let r = outcome(&mut station);
+    assert_eq!(r["ok"], 42, "{r}");
+    let v = vehicle.expect(T, "the station's call run", |v| {
+        v["report"]["called"]
+            .as_array()
+            .is_some_and(|c| !c.is_empty())
+    });
+    assert_eq!(v["report"]["called"], serde_json::json!([21]), "{v}");
+}

@@ -230,19 +230,24 @@ impl Policy {
 
 impl super::NodeInner {
     /// Whether peer `node` may do `kind` on our item `item`; a refusal is counted and logged.
-    /// An unknown peer is refused when a rule governs `kind`.
+    /// An unknown peer is refused when a rule governs `kind`. When this node checks identities,
+    /// the rules see a peer's namespace only once its identity key proved it: until then (or
+    /// when its key is not listed for it) the peer is refused whatever a rule governs.
     pub fn permitted(&self, node: NodeId, kind: AccessKind, item: &str) -> bool {
-        if self.policy.access.is_none() {
+        let Some(access) = self.policy.access.as_ref() else {
             return true;
-        }
+        };
+        let governs = access.governs(kind);
         let Some((link, namespace, name)) = self
             .peers
             .get(&node)
             .map(|p| (p.link, p.namespace.clone(), p.name.clone()))
         else {
-            return !self.policy.access.as_ref().is_some_and(|a| a.governs(kind));
+            return !governs;
         };
-        if self.policy.allows(kind, item, &namespace, &name) {
+        // A claimed namespace is no credential where identities are checked.
+        let proven = self.identity_allows(node);
+        if (proven || !governs) && self.policy.allows(kind, item, &namespace, &name) {
             return true;
         }
         self.policy
