@@ -423,8 +423,8 @@ impl Node {
     /// its own rules (owned names, origins, forged Byes, caps), at the links' seals (no key,
     /// replays), and as malformed or unbounded input. Summed over the links; per link, see
     /// [`LinkHealth`](crate::LinkHealth) and [`Node::link_stats`].
-    pub fn refusals(&self) -> crate::RefusalReport {
-        let mut r = crate::RefusalReport::default();
+    pub fn refusals(&self) -> crate::node::policy::RefusalReport {
+        let mut r = crate::node::policy::RefusalReport::default();
         for l in 0..self.inner.links().len().max(1) {
             let (denied, rejected) = self.inner.policy.counts(l);
             r.denied += denied;
