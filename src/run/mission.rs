@@ -84,6 +84,11 @@ pub enum ServiceSpec {
         /// HTTP address (port 0: any free port).
         listen: String,
     },
+    /// The fleet mission layer (`fleet`, issue 16): runs a fleet plan over the vehicles.
+    Fleet {
+        /// The fleet plan file.
+        plan: PathBuf,
+    },
 }
 
 impl ServiceSpec {
@@ -96,6 +101,7 @@ impl ServiceSpec {
             ServiceSpec::Station(_) => "station",
             ServiceSpec::Fmo { .. } => "fmo",
             ServiceSpec::Fpmo { .. } => "fpmo",
+            ServiceSpec::Fleet { .. } => "fleet",
         }
     }
 }
@@ -115,6 +121,10 @@ pub struct MavsimSpec {
     pub battery_capacity_mah: Option<f64>,
     /// Battery energy per kilometre, Wh/km (mavsim `--battery-wh-per-km`).
     pub battery_wh_per_km: Option<f64>,
+    /// Points of interest its detector reports (mavsim `--poi-file`).
+    pub poi_file: Option<PathBuf>,
+    /// The detector's footprint radius, metres (mavsim `--sensor-radius`).
+    pub sensor_radius: Option<f64>,
 }
 
 /// `<vas>` settings.
@@ -262,6 +272,16 @@ impl Mission {
     fn parse(src: &str, base: &Path) -> Result<Mission, Fault> {
         let root = marea::xml::parse_document(src)?;
         mission_from(&root, base)
+    }
+
+    /// The `<fleet>` service, with its node, if the mission has one.
+    pub fn fleet(&self) -> Option<(&NodeSpec, &Path)> {
+        self.nodes.iter().find_map(|n| {
+            n.services.iter().find_map(|s| match s {
+                ServiceSpec::Fleet { plan } => Some((n, plan.as_path())),
+                _ => None,
+            })
+        })
     }
 
     /// The node named `name`.
@@ -472,6 +492,8 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                         "log",
                         "batteryCapacityMah",
                         "batteryWhPerKm",
+                        "poiFile",
+                        "sensorRadius",
                     ],
                 );
                 let spec = MavsimSpec {
@@ -481,7 +503,12 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     log: a.opt("log").map(|l| base.join(l)),
                     battery_capacity_mah: a.parsed("batteryCapacityMah", "a number")?,
                     battery_wh_per_km: a.parsed("batteryWhPerKm", "a number")?,
+                    poi_file: a.file("poiFile", base)?,
+                    sensor_radius: a.parsed("sensorRadius", "a number")?,
                 };
+                if spec.sensor_radius.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
+                    return Err(Fault::at(s, "sensorRadius must be above 0 metres"));
+                }
                 if spec.battery_capacity_mah.is_some_and(|x| !(x > 0.0 && x.is_finite()))
                     || spec.battery_wh_per_km.is_some_and(|x| !(x >= 0.0 && x.is_finite()))
                 {
@@ -559,11 +586,23 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     ServiceSpec::Fpmo { listen }
                 }
             }
+            "fleet" => {
+                let mut a = Attrs::new(s, &["plan"]);
+                let plan = a.file("plan", base)?.ok_or_else(|| {
+                    Fault::at(s, "missing attribute `plan` (the fleet plan to run)")
+                })?;
+                a.finish()?;
+                // Checked now, so a bad fleet plan stops the launch before anything starts.
+                if let Err(e) = fleet::plan::load(&plan) {
+                    return Err(Fault::at(s, format!("fleet plan {e}")));
+                }
+                ServiceSpec::Fleet { plan }
+            }
             other => {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma, station, fmo or fpmo)"
+                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma, station, fmo, fpmo or fleet)"
                 ),
                 ))
             }

@@ -2,6 +2,7 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+mod fleet;
 pub mod mission;
 mod radio;
 mod station;
@@ -28,7 +29,7 @@ const EXIT_USAGE: u8 = 2;
 /// Exit status when interrupted before the plan completed with `--until-complete`.
 const EXIT_INTERRUPTED: u8 = 130;
 /// Default limit for `--until-complete` when neither the mission nor the command sets one.
-const DEFAULT_TIMEOUT: Duration = Duration::from_secs(600);
+pub(crate) const DEFAULT_TIMEOUT: Duration = Duration::from_secs(600);
 /// How long mavsim may take to print its address.
 const SIM_READY: Duration = Duration::from_secs(30);
 
@@ -91,7 +92,7 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
             }
         }
     }
-    if stations.is_empty() && args.until_complete {
+    if stations.is_empty() && args.until_complete && mission.fleet().is_none() {
         eprintln!(
             "usal: --until-complete needs a <station> in {} to follow a plan",
             args.mission.display()
@@ -373,6 +374,10 @@ async fn run(
             ExitCode::FAILURE
         }
         Ok(()) if stop.is_cancelled() => interrupted(args),
+        // A fleet mission without stations: the fleet layer's status is followed instead.
+        Ok(()) if stations.is_empty() && mission.fleet().is_some() => {
+            fleet::supervise(&mission, &domain, args, &ui, notices, &stop).await
+        }
         Ok(()) => {
             supervise(
                 &mission,
@@ -394,7 +399,7 @@ async fn run(
     code
 }
 
-fn interrupted(args: &RunArgs) -> ExitCode {
+pub(crate) fn interrupted(args: &RunArgs) -> ExitCode {
     if args.until_complete {
         eprintln!("usal: interrupted before the plan completed");
         ExitCode::from(EXIT_INTERRUPTED)
@@ -456,6 +461,12 @@ async fn start_services(
                     if let Some(w) = m.battery_wh_per_km {
                         a.extend(["--battery-wh-per-km".into(), w.to_string()]);
                     }
+                    if let Some(p) = &m.poi_file {
+                        a.extend(["--poi-file".into(), p.display().to_string()]);
+                    }
+                    if let Some(r) = m.sensor_radius {
+                        a.extend(["--sensor-radius".into(), r.to_string()]);
+                    }
                     let (tx, rx) = watch::channel(None);
                     sim_addr = Some(rx);
                     announce = Some(Announce {
@@ -511,6 +522,16 @@ async fn start_services(
                     // Per run: a supervised restart resumes the plan, a new run starts clean.
                     let state = scratch.join(&node.name).join("fpma-state");
                     a.extend(["--state-dir".into(), state.display().to_string()]);
+                    common(&mut a);
+                }
+                // The fleet layer: a service of the ground node (issue 16).
+                ServiceSpec::Fleet { plan } => {
+                    a.extend([
+                        "--plan".into(),
+                        plan.display().to_string(),
+                        "--node".into(),
+                        format!("{}-fleet", node.name),
+                    ]);
                     common(&mut a);
                 }
                 // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.
@@ -579,7 +600,7 @@ async fn wait_sim(
 /// child cannot be kept running, the time limit, or a signal.
 /// `--timeout-s` as a duration: positive and representable (a huge value made
 /// `Duration::from_secs_f64` panic), else `None`.
-fn run_limit(seconds: f64) -> Option<Duration> {
+pub(crate) fn run_limit(seconds: f64) -> Option<Duration> {
     (seconds > 0.0)
         .then(|| Duration::try_from_secs_f64(seconds).ok())
         .flatten()

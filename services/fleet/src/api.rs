@@ -89,18 +89,30 @@ impl FleetStatus {
         if self.detections.is_empty() {
             1.0
         } else {
-            let v = self.detections.iter().filter(|d| d.visited.is_some()).count();
+            let v = self
+                .detections
+                .iter()
+                .filter(|d| d.visited.is_some())
+                .count();
             v as f64 / self.detections.len() as f64
         }
     }
 
     /// The human-readable summary the launcher prints at the end.
     pub fn text(&self, mission: &str) -> String {
-        let visited = self.detections.iter().filter(|d| d.visited.is_some()).count();
+        let visited = self
+            .detections
+            .iter()
+            .filter(|d| d.visited.is_some())
+            .count();
         let mut s = format!(
             "mission {mission}: fleet plan `{}` {} in {:.1} s\n",
             self.plan,
-            if self.done { "completed" } else { "NOT completed" },
+            if self.done {
+                "completed"
+            } else {
+                "NOT completed"
+            },
             self.elapsed_s
         );
         let order: Vec<String> = self.visit_order.iter().map(|i| format!("#{i}")).collect();
@@ -108,7 +120,11 @@ impl FleetStatus {
             "  detections: {} reported, {visited} visited (ratio {:.2}), in the order {}\n",
             self.detections.len(),
             self.visited_ratio(),
-            if order.is_empty() { "-".into() } else { order.join(" ") }
+            if order.is_empty() {
+                "-".into()
+            } else {
+                order.join(" ")
+            }
         );
         let sep = &self.separation;
         s += &format!(

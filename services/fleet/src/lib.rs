@@ -369,9 +369,13 @@ impl Fleet {
     async fn set_state(&self, i: usize, to: FlightState) -> anyhow::Result<()> {
         let who = &self.plan.vehicles[i].id;
         let req = StateChangeRequest { to };
-        self.call(&self.vehicles[i].change_state, &req, &format!("{who}: change_state {to}"))
-            .await
-            .map(|_| ())
+        self.call(
+            &self.vehicles[i].change_state,
+            &req,
+            &format!("{who}: change_state {to}"),
+        )
+        .await
+        .map(|_| ())
     }
 
     /// Puts the vehicle in WAYPOINT_NAVIGATION unless it is held or paused (the release does
@@ -419,9 +423,17 @@ impl Fleet {
     async fn fly(&self, i: usize, xml: &str, wait: bool) -> anyhow::Result<()> {
         let who = self.plan.vehicles[i].id.clone();
         let loaded = self
-            .call(&self.vehicles[i].load_plan, &xml.to_owned(), &format!("{who}: load_plan"))
+            .call(
+                &self.vehicles[i].load_plan,
+                &xml.to_owned(),
+                &format!("{who}: load_plan"),
+            )
             .await?;
-        tracing::info!("{who}: plan `{}` loaded as version {}", loaded.name, loaded.version);
+        tracing::info!(
+            "{who}: plan `{}` loaded as version {}",
+            loaded.name,
+            loaded.version
+        );
         {
             let mut st = self.state();
             let v = &mut st.vs[i];
@@ -506,7 +518,8 @@ impl Fleet {
                 self.plan.vehicles[i].id
             );
             let r = if far > VISIT_RADIUS_M {
-                self.fly(i, &visit_plan(id, here, target, speed), true).await
+                self.fly(i, &visit_plan(id, here, target, speed), true)
+                    .await
             } else {
                 Ok(())
             };
@@ -528,7 +541,10 @@ impl Fleet {
             let label = format!("{}:{} {}", b.line, b.col, describe(&self.plan, &b.kind));
             let leaf = !matches!(
                 b.kind,
-                BlockKind::Seq(_) | BlockKind::Par(_) | BlockKind::Repeat { .. } | BlockKind::If { .. }
+                BlockKind::Seq(_)
+                    | BlockKind::Par(_)
+                    | BlockKind::Repeat { .. }
+                    | BlockKind::If { .. }
             );
             if leaf {
                 self.state().doing.push(label.clone());
@@ -562,8 +578,12 @@ impl Fleet {
             } => self.fly(*vehicle, xml, *wait).await?,
             BlockKind::Goto { vehicle, leg } => {
                 let who = &self.plan.vehicles[*vehicle].id;
-                self.call(&self.vehicles[*vehicle].goto_leg, leg, &format!("{who}: goto_leg {leg}"))
-                    .await?;
+                self.call(
+                    &self.vehicles[*vehicle].goto_leg,
+                    leg,
+                    &format!("{who}: goto_leg {leg}"),
+                )
+                .await?;
                 self.state().vs[*vehicle].wants_nav = true;
                 self.navigate(*vehicle).await?;
             }
@@ -589,9 +609,7 @@ impl Fleet {
                             .iter()
                             .filter(|d| vehicle.is_none_or(|v| d.by == self.plan.vehicles[v].id))
                             .count() as u64,
-                        WaitEvent::Completed => {
-                            vehicle.map_or(0, |v| st.vs[v].completions)
-                        }
+                        WaitEvent::Completed => vehicle.map_or(0, |v| st.vs[v].completions),
                     }
                 };
                 let before = count(&self.state());
@@ -917,7 +935,8 @@ fn describe(plan: &FleetPlan, k: &BlockKind) -> String {
         BlockKind::Fly { vehicle, file, .. } => format!(
             "fly {} {}",
             v(vehicle),
-            file.file_name().map_or_else(String::new, |f| f.to_string_lossy().into_owned())
+            file.file_name()
+                .map_or_else(String::new, |f| f.to_string_lossy().into_owned())
         ),
         BlockKind::Goto { vehicle, leg } => format!("goto {} {leg}", v(vehicle)),
         BlockKind::Pause { vehicle } => format!("pause {}", v(vehicle)),

@@ -51,7 +51,11 @@ async fn main() -> ExitCode {
         }
     };
     if cli.check {
-        println!("{}: fleet plan `{}` is valid", cli.plan.display(), plan.name);
+        println!(
+            "{}: fleet plan `{}` is valid",
+            cli.plan.display(),
+            plan.name
+        );
         return ExitCode::SUCCESS;
     }
     let mut config = fleet::FleetConfig::new(plan);

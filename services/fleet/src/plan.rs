@@ -249,7 +249,11 @@ pub fn parse(src: &str, base: &Path) -> Result<FleetPlan, FleetPlanError> {
     let root = marea::xml::parse_document(src).map_err(|e| FleetPlanError {
         line: e.pos.line,
         col: e.pos.col,
-        element: e.element.as_ref().map_or("fleetPlan", |el| &el.name).to_owned(),
+        element: e
+            .element
+            .as_ref()
+            .map_or("fleetPlan", |el| &el.name)
+            .to_owned(),
         message: e.kind.to_string(),
     })?;
     if root.name != "fleetPlan" {
@@ -320,9 +324,9 @@ fn count_syncs(e: &Element, out: &mut HashMap<String, usize>) {
 
 fn separation_rule(e: &Element) -> Result<SeparationRule, FleetPlanError> {
     let mut a = Attrs::new(e, &["minDistance", "holdDistance", "clearDistance"]);
-    let min_m = a.number("minDistance")?.ok_or_else(|| {
-        FleetPlanError::at(e, "missing attribute `minDistance` (metres)")
-    })?;
+    let min_m = a
+        .number("minDistance")?
+        .ok_or_else(|| FleetPlanError::at(e, "missing attribute `minDistance` (metres)"))?;
     let hold_m = a.number("holdDistance")?.unwrap_or(2.0 * min_m);
     let clear_m = a.number("clearDistance")?.unwrap_or(hold_m + min_m / 2.0);
     a.finish()?;
@@ -354,7 +358,10 @@ impl Parser<'_> {
         let priority = match a.opt("priority") {
             None => 0,
             Some(v) => v.trim().parse().map_err(|_| {
-                FleetPlanError::at(e, format!("attribute `priority`: `{v}` is not a whole number"))
+                FleetPlanError::at(
+                    e,
+                    format!("attribute `priority`: `{v}` is not a whole number"),
+                )
             })?,
         };
         let kind = match a.opt("vehicle").as_deref() {
@@ -437,7 +444,10 @@ impl Parser<'_> {
                 ));
             }
             if self.vars.iter().any(|(n, _)| *n == name) {
-                return Err(FleetPlanError::at(v, format!("duplicate variable `{name}`")));
+                return Err(FleetPlanError::at(
+                    v,
+                    format!("duplicate variable `{name}`"),
+                ));
             }
             self.vars.push((name, value));
         }
@@ -446,9 +456,15 @@ impl Parser<'_> {
 
     fn vehicle_ref(&self, e: &Element, a: &mut Attrs) -> Result<usize, FleetPlanError> {
         let id = a.req("vehicle")?;
-        self.vehicles.iter().position(|v| v.id == id).ok_or_else(|| {
-            FleetPlanError::at(e, format!("unknown vehicle `{id}` (declare it with <vehicle>)"))
-        })
+        self.vehicles
+            .iter()
+            .position(|v| v.id == id)
+            .ok_or_else(|| {
+                FleetPlanError::at(
+                    e,
+                    format!("unknown vehicle `{id}` (declare it with <vehicle>)"),
+                )
+            })
     }
 
     fn cond(&self, e: &Element, key: &str, src: &str) -> Result<Condition, FleetPlanError> {
@@ -904,31 +920,93 @@ mod tests {
         assert_eq!((first[1].line, first[1].col), (9, 7));
         assert!(matches!(
             &first[0].kind,
-            BlockKind::Fly { vehicle: 0, wait: true, .. }
+            BlockKind::Fly {
+                vehicle: 0,
+                wait: true,
+                ..
+            }
         ));
     }
 
     #[test]
     fn errors_name_line_column_and_element() {
         let cases: &[(&str, &str, &str)] = &[
-            (r#"vehicle="b" plan="../flightplans/search-investigator-start.xml""#,
-             r#"vehicle="c" plan="../flightplans/search-investigator-start.xml""#,
-             "13:7: <fly>: unknown vehicle `c`"),
+            (
+                r#"vehicle="b" plan="../flightplans/search-investigator-start.xml""#,
+                r#"vehicle="c" plan="../flightplans/search-investigator-start.xml""#,
+                "13:7: <fly>: unknown vehicle `c`",
+            ),
             ("search-area.xml", "nope.xml", "10:7: <fly>: plan `"),
-            (r#"until="a.done and pending == 0""#, r#"until="a.gone""#, "15:7: <investigate>: attribute `until`"),
-            (r#"until="a.done and pending == 0""#, r#"until="pending""#, "15:7: <investigate>: attribute `until`: `pending` is not a condition"),
-            ("<repeat count=\"2\">", "<repeat count=\"0\">", "17:5: <repeat>: attribute `count`"),
-            ("<set var=\"n\"", "<set var=\"m\"", "17:23: <set>: unknown variable `m`"),
-            ("<if cond=\"n >= 2\"><then>", "<if cond=\"n >= 2\"><else/><then>", "18:23: <else>: an <if> holds one <then>"),
-            ("timeoutS=\"5\"", "timeoutS=\"-5\"", "18:59: <wait>: timeoutS must be"),
-            ("<wait event=\"completed\" vehicle=\"a\"/>", "<wait event=\"completed\"/>", "19:5: <wait>: event `completed` needs `vehicle`"),
-            ("<wait event=\"completed\" vehicle=\"a\"/>", "<wait event=\"landed\" vehicle=\"a\"/>", "19:5: <wait>: attribute `event`"),
-            ("<log text=\"two\"/>", "<log text=\"two\" colour=\"red\"/>", "18:29: <log>: unknown attribute `colour`"),
-            ("<sync name=\"start\"/>\n      <investigate", "<sync name=\"go\"/>\n      <investigate", "9:7: <sync>: sync point `start` is the only one"),
-            ("<vehicle id=\"b\" prefix=\"rover2\"/>", "<vehicle id=\"a\" prefix=\"rover3\"/>", "3:3: <vehicle>: duplicate vehicle `a`"),
-            ("minDistance=\"5\"", "minDistance=\"50\"", "5:3: <separation>: distances must be"),
-            ("<wait until", "<whait until", "18:59: <whait>: unknown statement"),
-            ("</par>", "</seq>", "20:3: <par>: ill-formed document: expected `</par>`"),
+            (
+                r#"until="a.done and pending == 0""#,
+                r#"until="a.gone""#,
+                "15:7: <investigate>: attribute `until`",
+            ),
+            (
+                r#"until="a.done and pending == 0""#,
+                r#"until="pending""#,
+                "15:7: <investigate>: attribute `until`: `pending` is not a condition",
+            ),
+            (
+                "<repeat count=\"2\">",
+                "<repeat count=\"0\">",
+                "17:5: <repeat>: attribute `count`",
+            ),
+            (
+                "<set var=\"n\"",
+                "<set var=\"m\"",
+                "17:23: <set>: unknown variable `m`",
+            ),
+            (
+                "<if cond=\"n >= 2\"><then>",
+                "<if cond=\"n >= 2\"><else/><then>",
+                "18:23: <else>: an <if> holds one <then>",
+            ),
+            (
+                "timeoutS=\"5\"",
+                "timeoutS=\"-5\"",
+                "18:59: <wait>: timeoutS must be",
+            ),
+            (
+                "<wait event=\"completed\" vehicle=\"a\"/>",
+                "<wait event=\"completed\"/>",
+                "19:5: <wait>: event `completed` needs `vehicle`",
+            ),
+            (
+                "<wait event=\"completed\" vehicle=\"a\"/>",
+                "<wait event=\"landed\" vehicle=\"a\"/>",
+                "19:5: <wait>: attribute `event`",
+            ),
+            (
+                "<log text=\"two\"/>",
+                "<log text=\"two\" colour=\"red\"/>",
+                "18:29: <log>: unknown attribute `colour`",
+            ),
+            (
+                "<sync name=\"start\"/>\n      <investigate",
+                "<sync name=\"go\"/>\n      <investigate",
+                "9:7: <sync>: sync point `start` is the only one",
+            ),
+            (
+                "<vehicle id=\"b\" prefix=\"rover2\"/>",
+                "<vehicle id=\"a\" prefix=\"rover3\"/>",
+                "3:3: <vehicle>: duplicate vehicle `a`",
+            ),
+            (
+                "minDistance=\"5\"",
+                "minDistance=\"50\"",
+                "5:3: <separation>: distances must be",
+            ),
+            (
+                "<wait until",
+                "<whait until",
+                "18:59: <whait>: unknown statement",
+            ),
+            (
+                "</par>",
+                "</seq>",
+                "20:3: <par>: ill-formed document: expected `</par>`",
+            ),
         ];
         for (from, to, want) in cases {
             assert!(GOOD.contains(from), "{from}");

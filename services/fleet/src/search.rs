@@ -17,7 +17,11 @@ pub fn next_target(
     pending
         .iter()
         .enumerate()
-        .filter(|(_, p)| others.iter().all(|o| distance(at(**p), at(*o)) >= keep_off_m))
+        .filter(|(_, p)| {
+            others
+                .iter()
+                .all(|o| distance(at(**p), at(*o)) >= keep_off_m)
+        })
         .map(|(i, p)| (i, distance(at(here), at(*p))))
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map(|(i, _)| i)
@@ -48,7 +52,12 @@ mod tests {
     #[test]
     fn the_tour_goes_to_the_nearest_point_each_time() {
         // Along a line east of the start: 1 m, 3 m... apart in longitude degrees' terms.
-        let pts = [(41.0, 1.0004), (41.0, 1.0001), (41.0, 1.0009), (41.0, 1.0002)];
+        let pts = [
+            (41.0, 1.0004),
+            (41.0, 1.0001),
+            (41.0, 1.0009),
+            (41.0, 1.0002),
+        ];
         assert_eq!(tour((41.0, 1.0), &pts), [1, 3, 0, 2]);
         // From the far end the order reverses.
         assert_eq!(tour((41.0, 1.001), &pts), [2, 0, 3, 1]);
@@ -59,7 +68,10 @@ mod tests {
     fn points_near_another_vehicle_wait() {
         let pts = [(41.0, 1.0001), (41.0, 1.0005)];
         // The nearer point is 2 m from the other vehicle: the farther one is chosen.
-        assert_eq!(next_target((41.0, 1.0), &pts, &[(41.0, 1.000_12)], 15.0), Some(1));
+        assert_eq!(
+            next_target((41.0, 1.0), &pts, &[(41.0, 1.000_12)], 15.0),
+            Some(1)
+        );
         // Both near it: none.
         assert_eq!(
             next_target((41.0, 1.0), &pts, &[(41.0, 1.0003)], 40.0),
