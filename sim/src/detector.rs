@@ -173,8 +173,11 @@ pub fn parse_detection(text: &str) -> Option<Poi> {
     let id = it.next()?.parse().ok()?;
     let lat: f64 = it.next()?.parse().ok()?;
     let lon: f64 = it.next()?.parse().ok()?;
-    ((-90.0..=90.0).contains(&lat) && (-180.0..=180.0).contains(&lon))
-        .then_some(Poi { id, lat, lon })
+    ((-90.0..=90.0).contains(&lat) && (-180.0..=180.0).contains(&lon)).then_some(Poi {
+        id,
+        lat,
+        lon,
+    })
 }
 
 #[cfg(test)]
@@ -189,8 +192,11 @@ mod tests {
 
     #[test]
     fn a_point_is_detected_once_within_the_footprint_only() {
-        let pois = parse_pois("# two points\n41.2751,1.987\n\n41.2760, 1.9880 # far\n", "p")
-            .unwrap();
+        let pois = parse_pois(
+            "# two points\n41.2751,1.987\n\n41.2760, 1.9880 # far\n",
+            "p",
+        )
+        .unwrap();
         assert_eq!(pois.len(), 2);
         assert_eq!((pois[0].id, pois[1].id), (1, 2));
         let mut d = Detector::new(HOME, &pois, 12.0).unwrap();
