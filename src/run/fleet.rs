@@ -2,7 +2,7 @@
 //! flies the vehicles; the launcher follows its `status` variable from the fleet's node (so
 //! over a radio it listens on the ground side like any station), shows progress, and with
 //! `--until-complete` exits 0 once the fleet plan is done, with the fleet summary
-//! (`FleetStatus::text`, JSON record `fleet_summary` with `--json`).
+//! (`FleetStatus::text`, JSON record `fleet_plan_summary` with `--json`).
 
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -172,6 +172,6 @@ async fn follow(
 fn show(mission: &Mission, ui: &Ui, s: &FleetStatus) {
     ui.result(
         s.text(&mission.name).trim_end(),
-        json!({"event": "fleet_summary", "summary": s, "visited_ratio": s.visited_ratio()}),
+        json!({"event": "fleet_plan_summary", "summary": s, "visited_ratio": s.visited_ratio()}),
     );
 }
