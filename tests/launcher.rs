@@ -501,6 +501,37 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
     assert_no_child_left(&pids);
 }
 
+/// Issue 16 item 3: the same search over the radio arrangement (an air LAN per rover, one
+/// ground LAN, a lossy marea-radio per rover): the fleet layer commands both rovers across.
+#[test]
+fn the_search_over_a_radio_per_rover_visits_every_detection() {
+    let mut l = Launcher::start(&[
+        "config/missions/search-radio.xml",
+        "--until-complete",
+        "--speedup",
+        "5",
+    ]);
+    let end = l.event(FLIGHT * 3, "fleet_plan_summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{end}\n{}", l.stderr_tail());
+    let s = &end["summary"];
+    assert_eq!(s["done"], true, "{end}");
+    assert_eq!(end["visited_ratio"], 1.0, "{end}");
+    assert_eq!(s["detections"].as_array().unwrap().len(), 5, "{end}");
+    assert_eq!(s["separation"]["violations"], 0, "{end}");
+    let pids = l.pids();
+    for svc in [
+        "air1/gateway",
+        "air2/gateway",
+        "ground/gateway",
+        "ground/gateway-air2",
+    ] {
+        assert!(pids.iter().any(|(p, _)| p == svc), "{svc}: {pids:?}");
+    }
+    assert_no_child_left(&pids);
+}
+
 #[test]
 fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
     let mut l = Launcher::start(&[

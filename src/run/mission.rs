@@ -46,6 +46,9 @@ pub struct Mission {
     pub timeout: Option<Duration>,
     /// A radio emulator joining some nodes, if any.
     pub radio: Option<RadioSpec>,
+    /// Further radios (a fleet over radios: one per vehicle's air node, each to the same
+    /// ground node), after `radio`, in file order.
+    pub extra_radios: Vec<RadioSpec>,
     /// The nodes, in file order (also the start order).
     pub nodes: Vec<NodeSpec>,
 }
@@ -431,6 +434,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
 
     let mut nodes: Vec<NodeSpec> = Vec::new();
     let mut radio_el = None;
+    let mut extra_radio_els = Vec::new();
     for child in &root.children {
         match child.name.as_str() {
             "node" => {
@@ -441,7 +445,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
                 nodes.push(n);
             }
             "radio" if radio_el.is_none() => radio_el = Some(child),
-            "radio" => return Err(Fault::at(child, "only one <radio> per mission")),
+            "radio" => extra_radio_els.push(child),
             other => {
                 return Err(Fault::at(
                     child,
@@ -458,10 +462,35 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
         domain,
         timeout,
         radio: None,
+        extra_radios: Vec::new(),
         nodes,
     };
     if let Some(el) = radio_el {
         mission.radio = Some(radio_from(el, &mission)?);
+    }
+    // Several radios: each joins its own air node to the one ground node (a LAN per vehicle).
+    for el in extra_radio_els {
+        let spec = radio_from(el, &mission)?;
+        let first = mission.radio.as_ref().expect("set before the extra ones");
+        if spec.ground != first.ground {
+            return Err(Fault::at(
+                el,
+                format!(
+                    "every <radio> must join the same ground node (`{}`)",
+                    first.ground
+                ),
+            ));
+        }
+        let airs = std::iter::once(first)
+            .chain(&mission.extra_radios)
+            .map(|r| r.air.as_str());
+        if airs.clone().any(|a| a == spec.air) || spec.air == first.ground {
+            return Err(Fault::at(
+                el,
+                format!("node `{}` already has a radio", spec.air),
+            ));
+        }
+        mission.extra_radios.push(spec);
     }
     resolve_station(root, &mut mission)?;
     Ok(mission)
@@ -919,6 +948,53 @@ mod tests {
         let e = parse(&FLEET.replace("<mavsim/><vas/><fpma/>", "<mavsim/><vas/><fpma/><fpma/>"))
             .unwrap_err();
         assert!(e.contains("node `air1` already runs a fpma"), "{e}");
+    }
+
+    #[test]
+    fn a_fleet_over_radios_has_one_radio_per_air_node_to_one_ground_node() {
+        let radios = |r: &str| parse(&FLEET.replace("</mission>", &format!("{r}\n</mission>")));
+        let m = radios(
+            r#"<radio ground="ground" air="air1"/><radio ground="ground" air="air2" seed="3"/>"#,
+        )
+        .unwrap();
+        assert_eq!(m.radio.as_ref().unwrap().air, "air1");
+        assert_eq!(m.extra_radios.len(), 1);
+        assert_eq!(
+            (m.extra_radios[0].air.as_str(), m.extra_radios[0].seed),
+            ("air2", Some(3))
+        );
+        let e = radios(r#"<radio ground="ground" air="air1"/><radio ground="air2" air="air1"/>"#)
+            .unwrap_err();
+        assert!(
+            e.starts_with("12:") && e.contains("must join the same ground node (`ground`)"),
+            "{e}"
+        );
+        let e = radios(r#"<radio ground="ground" air="air1"/><radio ground="ground" air="air1"/>"#)
+            .unwrap_err();
+        assert!(e.contains("node `air1` already has a radio"), "{e}");
+    }
+
+    #[test]
+    fn a_fleet_service_names_a_valid_fleet_plan() {
+        let with = |fleet: &str| {
+            parse(&FLEET.replace(
+                "<node name=\"ground\">",
+                &format!("<node name=\"ground\">{fleet}"),
+            ))
+        };
+        let m = with(r#"<fleet plan="../fleetplans/search.xml"/>"#).unwrap();
+        let (node, plan) = m.fleet().unwrap();
+        assert_eq!(node.name, "ground");
+        assert!(plan.ends_with("fleetplans/search.xml"));
+        let e = with(r#"<fleet plan="../fleetplans/nope.xml"/>"#).unwrap_err();
+        assert!(
+            e.starts_with("8:23: <fleet>: attribute `plan`: no file"),
+            "{e}"
+        );
+        let e = with(r#"<fleet/>"#).unwrap_err();
+        assert!(e.contains("<fleet>: missing attribute `plan`"), "{e}");
+        let e = with(r#"<mavsim poiFile="../search/pois.txt" sensorRadius="-1"/>"#).unwrap_err();
+        assert!(e.contains("<mavsim>: sensorRadius must be above 0"), "{e}");
     }
 
     #[test]

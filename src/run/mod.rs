@@ -336,12 +336,41 @@ async fn run(
     let station_notices: Vec<_> = stations.iter().map(|_| sup.subscribe()).collect();
 
     // A radio first: it gives the nodes it joins their networks.
-    let radio = match mission.radio.clone() {
+    let mut lans = std::collections::HashMap::new();
+    let mut radio = match mission.radio.clone() {
         None => Ok(None),
-        Some(spec) => radio::start(&mut mission, &spec, &domain, &bins, &scratch, &mut sup, &ui)
-            .await
-            .map(Some),
+        Some(spec) => radio::start(
+            &mut mission,
+            &spec,
+            &domain,
+            &bins,
+            &scratch,
+            &mut sup,
+            &ui,
+            &mut lans,
+        )
+        .await
+        .map(|r| Some(vec![r])),
     };
+    // A fleet's further radios, one per vehicle, to the same ground LAN.
+    for spec in mission.extra_radios.clone() {
+        let Ok(Some(links)) = &mut radio else { break };
+        match radio::start(
+            &mut mission,
+            &spec,
+            &domain,
+            &bins,
+            &scratch,
+            &mut sup,
+            &ui,
+            &mut lans,
+        )
+        .await
+        {
+            Ok(r) => links.push(r),
+            Err(e) => radio = Err(e),
+        }
+    }
     let _radio = match radio {
         Ok(r) => r,
         Err(e) => {
