@@ -124,8 +124,15 @@ async fn follow(
                 break format!("the fleet plan did not complete within {limit:?}");
             }
             s = sub.recv() => {
-                let Ok(s) = s else { break "the fleet status subscription ended".into() };
-                let s = s.value;
+                let s = match s {
+                    Ok(s) => s.value,
+                    Err(marea::RecvError::Closed) => break "the fleet status subscription ended".into(),
+                    // A sample that does not decode (or of another type) is skipped, as stations do.
+                    Err(e) => {
+                        ui.note(&format!("fleet status: {e}"), json!({"event": "note", "text": e.to_string()}));
+                        continue;
+                    }
+                };
                 let visited = s.detections.iter().filter(|d| d.visited.is_some()).count();
                 let now = (s.detections.len(), visited, s.separation.holds, s.doing.clone());
                 let bar = format!(

@@ -27,6 +27,22 @@ pub struct VehicleStatus {
     pub holding: bool,
     /// Paused by a command or the fleet plan.
     pub paused: bool,
+    /// The nominal waypoints of the plan it was last given, (lat, lon), at most
+    /// [`ROUTE_POINTS`], for a station's map.
+    pub route: Vec<(f64, f64)>,
+}
+
+/// Most points of a [`VehicleStatus::route`] (a longer plan is thinned evenly, ends kept).
+pub const ROUTE_POINTS: usize = 300;
+
+/// `points` thinned to at most `max` (>= 2), first and last kept.
+pub fn thin(points: &[(f64, f64)], max: usize) -> Vec<(f64, f64)> {
+    let max = max.max(2);
+    if points.len() <= max {
+        return points.to_vec();
+    }
+    let last = points.len() - 1;
+    (0..max).map(|k| points[k * last / (max - 1)]).collect()
 }
 
 /// A point of interest a vehicle's detector reported.

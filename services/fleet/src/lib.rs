@@ -204,6 +204,8 @@ struct VehState {
     wants_nav: bool,
     held: bool,
     paused: bool,
+    /// The nominal waypoints of its plan, for the stations' maps.
+    route: Vec<(f64, f64)>,
 }
 
 #[derive(Default)]
@@ -439,6 +441,7 @@ impl Fleet {
             let v = &mut st.vs[i];
             v.version = Some(loaded.version);
             v.plan = Some(loaded.name.clone());
+            v.route = route_of(xml, self.plan.vehicles[i].kind);
             v.done = false;
             v.progress = 0.0;
             v.wants_nav = true;
@@ -768,7 +771,11 @@ impl Fleet {
                     tokio::select! {
                         () = stop.cancelled() => return,
                         p = position.recv() => {
-                            let Ok(p) = p else { return };
+                            let p = match p {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
                             let actions = {
                                 let mut st = me.state();
                                 st.vs[i].position = Some((p.value.lat, p.value.lon));
@@ -783,12 +790,20 @@ impl Fleet {
                             }
                         }
                         s = state.recv() => {
-                            let Ok(s) = s else { return };
+                            let s = match s {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
                             me.state().vs[i].flight_state = Some(s.value);
                             me.bump();
                         }
                         p = progress.recv() => {
-                            let Ok(p) = p else { return };
+                            let p = match p {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
                             let p = p.value;
                             let mut st = me.state();
                             let v = &mut st.vs[i];
@@ -804,7 +819,11 @@ impl Fleet {
                             me.bump();
                         }
                         a = alarms.recv() => {
-                            let Ok(a) = a else { return };
+                            let a = match a {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
                             if let Some((pid, lat, lon)) = parse_detection(&a.value.text) {
                                 let mut st = me.state();
                                 if !st.detections.iter().any(|d| d.id == pid && d.by == id) {
@@ -849,6 +868,7 @@ impl Fleet {
                     done: v.done,
                     holding: v.held,
                     paused: v.paused,
+                    route: v.route.clone(),
                 })
                 .collect(),
             detections: st.detections.clone(),
@@ -880,6 +900,20 @@ impl Fleet {
             }
         }
     }
+}
+
+/// The nominal waypoints of a flight plan (already checked when the fleet plan was loaded, or
+/// generated), thinned for the status; empty if it cannot be expanded.
+fn route_of(xml: &str, kind: fpma::vehicle::VehicleKind) -> Vec<(f64, f64)> {
+    let params = fpma::vehicle::VehicleParams::for_kind(kind);
+    let Ok(plan) = fpma::parse::parse_plan(xml, &params) else {
+        return Vec::new();
+    };
+    let Ok(wps) = fpma::exec::expand_nominal(plan, params) else {
+        return Vec::new();
+    };
+    let pts: Vec<(f64, f64)> = wps.iter().map(|w| (w.lat, w.lon)).collect();
+    api::thin(&pts, api::ROUTE_POINTS)
 }
 
 /// A detection in a VAS alarm's text: `autopilot: POI <id> <lat> <lon>` (the mavsim detector's
@@ -962,6 +996,21 @@ mod tests {
         let last = wps.last().unwrap();
         assert!((last.lat - 41.2756).abs() < 1e-7 && (last.lon - 1.9872).abs() < 1e-7);
         assert!(last.fly_over);
+    }
+
+    #[test]
+    fn routes_are_thinned_with_their_ends_kept() {
+        let pts: Vec<(f64, f64)> = (0..1000).map(|i| (f64::from(i), 0.0)).collect();
+        let t = api::thin(&pts, 300);
+        assert_eq!(t.len(), 300);
+        assert_eq!((t[0].0, t[299].0), (0.0, 999.0));
+        assert_eq!(api::thin(&pts[..5], 300).len(), 5);
+        let r = route_of(
+            &visit_plan(1, (41.2752, 1.9875), (41.2756, 1.9872), 3.0),
+            fpma::vehicle::VehicleKind::Rover,
+        );
+        assert_eq!(r.len(), 2);
+        assert!(route_of("<nope/>", fpma::vehicle::VehicleKind::Rover).is_empty());
     }
 
     #[test]
