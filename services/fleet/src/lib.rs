@@ -371,13 +371,19 @@ impl Fleet {
     async fn set_state(&self, i: usize, to: FlightState) -> anyhow::Result<()> {
         let who = &self.plan.vehicles[i].id;
         let req = StateChangeRequest { to };
-        self.call(
-            &self.vehicles[i].change_state,
-            &req,
-            &format!("{who}: change_state {to}"),
-        )
-        .await
-        .map(|_| ())
+        match self
+            .call(
+                &self.vehicles[i].change_state,
+                &req,
+                &format!("{who}: change_state {to}"),
+            )
+            .await
+        {
+            Ok(_) => Ok(()),
+            // The FPMa (or the autopilot) got there first: what was wanted.
+            Err(e) if e.to_string().contains(&format!("already in {to}")) => Ok(()),
+            Err(e) => Err(e),
+        }
     }
 
     /// Puts the vehicle in WAYPOINT_NAVIGATION unless it is held or paused (the release does
