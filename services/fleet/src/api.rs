@@ -97,6 +97,8 @@ pub struct FleetStatus {
     pub visit_order: Vec<u32>,
     /// Separation.
     pub separation: SeparationStatus,
+    /// The fleet plan's variables and their values now, in declaration order.
+    pub vars: Vec<(String, fpma::api::VarValue)>,
 }
 
 impl FleetStatus {

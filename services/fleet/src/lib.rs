@@ -330,7 +330,7 @@ impl Fleet {
             match deadline {
                 Some(d) => {
                     if tokio::time::timeout_at(d, rx.changed()).await.is_err() {
-                        bail!("{what}: not within {:.0} s", timeout.unwrap_or_default());
+                        bail!("{what}: not within {} s", timeout.unwrap_or_default());
                     }
                 }
                 None => {
@@ -884,6 +884,12 @@ impl Fleet {
                 .as_ref()
                 .map(|m| m.status().clone())
                 .unwrap_or_default(),
+            vars: self
+                .plan
+                .vars
+                .iter()
+                .filter_map(|(n, _)| st.vars.get(n).map(|v| (n.clone(), (*v).into())))
+                .collect(),
         }
     }
 
