@@ -10,8 +10,13 @@ use fleet::api::FleetStatus;
 use fpma::api::VarValue;
 use tokio_util::sync::CancellationToken;
 
-/// Runs `plan` (the statements inside a `<seq>`) and returns its final status.
+/// Runs `plan` (the statements inside a `<seq>`) and returns its final status. With `alarm`,
+/// vehicle `a`'s VAS is played by this test: it raises that `alarm` text every 200 ms.
 async fn run_plan(tag: &str, vars: &str, body: &str) -> FleetStatus {
+    run_plan_with(tag, vars, body, None).await
+}
+
+async fn run_plan_with(tag: &str, vars: &str, body: &str, alarm: Option<&str>) -> FleetStatus {
     let src = format!(
         "<fleetPlan name=\"{tag}\">\n<vehicle id=\"a\" prefix=\"nobody-{tag}\"/>\n<variables>{vars}</variables>\n<seq>\n{body}\n</seq>\n</fleetPlan>"
     );
@@ -31,9 +36,41 @@ async fn run_plan(tag: &str, vars: &str, body: &str) -> FleetStatus {
         .unwrap()
         .subscribe_variable::<FleetStatus>("gcs/fleet/status")
         .unwrap();
+    // The vehicle's VAS, as far as alarms go: a node in its namespace.
+    let vas_net = marea::NetworkConfig::for_service(
+        None,
+        "vas",
+        Some(&domain),
+        Some(&format!("nobody-{tag}")),
+    )
+    .unwrap();
+    let vas_node = marea::Node::open(&vas_net).await.unwrap();
+    let alarms = vas_node
+        .service("vas")
+        .unwrap()
+        .publish_event::<usal_types::Alarm>("alarm")
+        .unwrap();
+    let alarms = std::sync::Arc::new(alarms);
+    // Raised once the plan waits for an event, so the wait cannot miss it.
+    let mut raising = None;
     let end = tokio::time::timeout(Duration::from_secs(30), async {
         loop {
             let s = sub.recv().await.expect("status").value;
+            if let Some(text) = alarm.filter(|_| raising.is_none()) {
+                if s.doing.iter().any(|d| d.contains("wait for")) {
+                    let alarm = usal_types::Alarm {
+                        severity: usal_types::Severity::Warning,
+                        text: text.to_owned(),
+                    };
+                    let alarms = alarms.clone();
+                    raising = Some(tokio::spawn(async move {
+                        loop {
+                            let _ = alarms.raise(&alarm).await;
+                            tokio::time::sleep(Duration::from_millis(200)).await;
+                        }
+                    }));
+                }
+            }
             if s.done || s.failed.is_some() {
                 return s;
             }
@@ -41,6 +78,9 @@ async fn run_plan(tag: &str, vars: &str, body: &str) -> FleetStatus {
     })
     .await
     .expect("the plan did not end within 30 s");
+    if let Some(r) = raising {
+        r.abort();
+    }
     stop.cancel();
     tokio::time::timeout(Duration::from_secs(10), service)
         .await
@@ -48,6 +88,7 @@ async fn run_plan(tag: &str, vars: &str, body: &str) -> FleetStatus {
         .expect("service task")
         .expect("service");
     node.shutdown().await;
+    vas_node.shutdown().await;
     end
 }
 
@@ -107,4 +148,24 @@ async fn a_wait_past_its_time_fails_the_plan_naming_the_statement() {
         VarValue::Number(1.0),
         "nothing after the failure ran"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_detection_in_a_vas_alarm_ends_a_wait_for_detections_once() {
+    let s = run_plan_with(
+        "detect",
+        r#"<var name="seen" type="bool" init="false"/>"#,
+        r#"<wait event="detection" vehicle="a" timeoutS="20"/>
+<wait until="detections == 1 and pending == 1 and visited == 0" timeoutS="5"/>
+<set var="seen" value="true"/>"#,
+        Some("autopilot: POI 3 41.2751234 1.9871234"),
+    )
+    .await;
+    assert!(s.done, "{s:?}");
+    assert_eq!(var(&s, "seen"), VarValue::Bool(true));
+    // Raised again and again, kept once.
+    assert_eq!(s.detections.len(), 1, "{:?}", s.detections);
+    let d = &s.detections[0];
+    assert_eq!((d.id, d.by.as_str(), d.visited.is_none()), (3, "a", true));
+    assert!((d.lat - 41.275_123_4).abs() < 1e-9 && (d.lon - 1.987_123_4).abs() < 1e-9);
 }
