@@ -17,6 +17,16 @@
 //!   `usal` and every process below it, over the window's real time, in percent of one core.
 //!
 //! The per-program split of the CPU time goes to stderr, to show where the cost is.
+//!
+//! The two-vehicle search (issue 16 items 3-4): `usal run config/missions/search.xml
+//! --until-complete --speedup 10` with the release binaries, read from its `fleet_plan_summary`:
+//!
+//! - `fleet.search.detections_visited_ratio`: detections visited over the points of interest
+//!   the mission placed (`config/search/pois.txt`), so a point never detected counts as
+//!   missed (1.0 wanted);
+//! - `fleet.search.completed`: 1 when the run ended 0 with the fleet plan done;
+//! - `fleet.separation.violations`: times the two rovers came closer than the minimum
+//!   distance (0 wanted).
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::BufRead;
@@ -54,6 +64,10 @@ struct Launcher(Child);
 
 impl Drop for Launcher {
     fn drop(&mut self) {
+        // Already exited (and waited for): nothing to stop.
+        if let Ok(Some(_)) = self.0.try_wait() {
+            return;
+        }
         let pid = self.0.id().to_string();
         let _ = Command::new("kill").args(["-TERM", &pid]).status();
         let deadline = Instant::now() + Duration::from_secs(15);
@@ -289,21 +303,107 @@ fn run() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The search mission, once; prints its three figures.
+fn run_search() -> anyhow::Result<()> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let placed = std::fs::read_to_string(root.join("config/search/pois.txt"))
+        .context("reading config/search/pois.txt")?
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
+        .count();
+    let dir = tempfile::tempdir().context("temporary directory")?;
+    let log = std::fs::File::create(dir.path().join("usal.log")).context("usal log")?;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_usal"))
+        .args([
+            "--json",
+            "run",
+            "config/missions/search.xml",
+            "--until-complete",
+        ])
+        .args(["--speedup", "10", "--timeout-s", "600"])
+        .current_dir(root)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(log)
+        .spawn()
+        .context("starting usal run")?;
+    let out = child.stdout.take().context("usal stdout")?;
+    let mut launcher = Launcher(child);
+    let mut summary = None;
+    for line in std::io::BufReader::new(out).lines() {
+        let Ok(line) = line else { break };
+        if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+            if v["event"] == "fleet_plan_summary" {
+                summary = Some(v);
+            }
+        }
+    }
+    // stdout closed: usal is exiting (its --timeout-s bounds the run).
+    let status = launcher.0.wait().context("waiting for usal")?;
+    let Some(v) = summary else {
+        let log = std::fs::read_to_string(dir.path().join("usal.log")).unwrap_or_default();
+        let tail = &log[log.len().saturating_sub(3000)..];
+        bail!("the search mission printed no summary ({status})\nusal's log ends with:\n{tail}");
+    };
+    let s = &v["summary"];
+    let visited = s["detections"]
+        .as_array()
+        .map_or(0, |d| d.iter().filter(|d| d["visited"].is_array()).count());
+    metric(
+        "fleet.search.detections_visited_ratio",
+        visited as f64 / placed.max(1) as f64,
+        "ratio",
+    );
+    let completed = status.success() && s["done"] == true;
+    metric(
+        "fleet.search.completed",
+        f64::from(u8::from(completed)),
+        "bool",
+    );
+    metric(
+        "fleet.separation.violations",
+        s["separation"]["violations"].as_f64().unwrap_or(f64::NAN),
+        "count",
+    );
+    eprintln!(
+        "fleet search: {visited} of {placed} points visited in {:.1} s, {} separation holds, closest {:.1} m",
+        s["elapsed_s"].as_f64().unwrap_or(f64::NAN),
+        s["separation"]["holds"],
+        s["separation"]["closest_m"].as_f64().unwrap_or(f64::NAN)
+    );
+    Ok(())
+}
+
 fn main() {
     // `cargo bench` passes `--bench`; other arguments select figures by substring.
     let filters: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| !a.starts_with("--"))
         .collect();
-    let names = [
+    let wanted = |names: &[&str]| {
+        filters.is_empty() || names.iter().any(|n| filters.iter().any(|f| n.contains(f)))
+    };
+    let mut failed = false;
+    if wanted(&[
+        "fleet.search.detections_visited_ratio",
+        "fleet.search.completed",
+        "fleet.separation.violations",
+    ]) {
+        if let Err(e) = run_search() {
+            eprintln!("fleet bench (search): {e:#}");
+            failed = true;
+        }
+    }
+    if wanted(&[
         "fleet.ten_vehicles.discovery_bytes_per_s",
         "fleet.ten_vehicles.cpu_percent",
-    ];
-    if !filters.is_empty() && !names.iter().any(|n| filters.iter().any(|f| n.contains(f))) {
-        return;
+    ]) {
+        if let Err(e) = run() {
+            eprintln!("fleet bench: {e:#}");
+            failed = true;
+        }
     }
-    if let Err(e) = run() {
-        eprintln!("fleet bench: {e:#}");
+    if failed {
         std::process::exit(1);
     }
 }

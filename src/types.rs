@@ -103,6 +103,7 @@ fn registry() -> Vec<Known> {
         fpma::api::PlanLoaded,
         fpma::api::PlanRejected,
         fpma::api::CommandAck,
+        fleet::api::FleetStatus,
         (),
         bool,
         u8,

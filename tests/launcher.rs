@@ -33,7 +33,7 @@ fn build_services() {
         let status = Command::new(env!("CARGO"))
             .args([
                 "build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "-p", "fmo", "-p", "fpmo",
-                "--bins",
+                "-p", "fleet", "--bins",
             ])
             .current_dir(root())
             .env("CARGO_TARGET_DIR", target)
@@ -416,6 +416,125 @@ fn two_rovers_in_one_mission_each_complete_their_own_plan() {
     assert_no_child_left(&pids);
 }
 
+/// Issue 16 items 2-4: the Broz search through real processes. The surveyor's mavsim detects
+/// the mission's points of interest, the fleet service re-tasks the investigator to each, the
+/// surveyor is paused and resumed by a call to the fleet service meanwhile, and the run ends 0
+/// once the area is covered and every detection visited, with no separation violation.
+#[test]
+fn the_search_mission_visits_every_detection_with_no_separation_violation() {
+    let pois = std::fs::read_to_string(root().join("config/search/pois.txt")).unwrap();
+    let placed = pois
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
+        .count();
+    let mut l = Launcher::start(&[
+        "config/missions/search.xml",
+        "--until-complete",
+        "--speedup",
+        "10",
+    ]);
+    let domain = l.event(STEP, "mission")["domain"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    // Once the surveyor has found something (it is then scanning), pause it and resume it.
+    l.expect(FLIGHT, "a detection", |v| {
+        v["event"] == "fleet_progress" && v["detections"].as_u64().is_some_and(|d| d >= 1)
+    });
+    let (ok, answer) = tool(&domain, &["call", "gcs/fleet/pause", r#""surveyor""#]);
+    assert!(ok && answer.contains("surveyor paused"), "{answer}");
+    // The status shows it paused and stopped (it is published within 250 ms of a change).
+    let surveyor = |echo: &str| -> Value {
+        let json = echo.find('{').map_or("null", |i| echo[i..].trim());
+        let v: Value = serde_json::from_str(json).unwrap_or(Value::Null);
+        v["vehicles"][0].clone()
+    };
+    let deadline = Instant::now() + STEP;
+    loop {
+        let (ok, echo) = tool(&domain, &["echo", "gcs/fleet/status", "--count", "1"]);
+        assert!(ok, "{echo}");
+        let v = surveyor(&echo);
+        if v["paused"] == true && v["state"] == "PARKING" {
+            assert_eq!(
+                (&v["id"], v["priority"].as_i64()),
+                (&Value::from("surveyor"), Some(2))
+            );
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the surveyor is not shown paused: {echo}"
+        );
+    }
+    let (ok, answer) = tool(&domain, &["call", "gcs/fleet/resume", r#""surveyor""#]);
+    assert!(ok && answer.contains("surveyor resumed"), "{answer}");
+    let (ok, answer) = tool(&domain, &["call", "gcs/fleet/pause", r#""nobody""#]);
+    assert!(!ok && answer.contains("no vehicle `nobody`"), "{answer}");
+
+    let end = l.event(FLIGHT * 2, "fleet_plan_summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let s = &end["summary"];
+    assert_eq!(s["done"], true, "{end}");
+    let detections = s["detections"].as_array().unwrap();
+    assert_eq!(detections.len(), placed, "every point found: {end}");
+    assert!(
+        detections.iter().all(|d| d["visited"].is_array()),
+        "every detection visited: {end}"
+    );
+    let mut order: Vec<u64> = s["visit_order"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_u64)
+        .collect();
+    order.sort_unstable();
+    assert_eq!(order, (1..=placed as u64).collect::<Vec<_>>(), "{end}");
+    assert_eq!(end["visited_ratio"], 1.0);
+    assert_eq!(s["separation"]["violations"], 0, "{end}");
+    assert!(
+        s["separation"]["closest_m"].as_f64().unwrap() >= 5.0,
+        "{end}"
+    );
+    let pids = l.pids();
+    for svc in ["air1/mavsim", "air2/mavsim", "ground/fleet"] {
+        assert!(pids.iter().any(|(p, _)| p == svc), "{svc}: {pids:?}");
+    }
+    assert_no_child_left(&pids);
+}
+
+/// Issue 16 item 3: the same search over the radio arrangement (an air LAN per rover, one
+/// ground LAN, a lossy marea-radio per rover): the fleet layer commands both rovers across.
+#[test]
+fn the_search_over_a_radio_per_rover_visits_every_detection() {
+    let mut l = Launcher::start(&[
+        "config/missions/search-radio.xml",
+        "--until-complete",
+        "--speedup",
+        "5",
+    ]);
+    let end = l.event(FLIGHT * 3, "fleet_plan_summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{end}\n{}", l.stderr_tail());
+    let s = &end["summary"];
+    assert_eq!(s["done"], true, "{end}");
+    assert_eq!(end["visited_ratio"], 1.0, "{end}");
+    assert_eq!(s["detections"].as_array().unwrap().len(), 5, "{end}");
+    assert_eq!(s["separation"]["violations"], 0, "{end}");
+    let pids = l.pids();
+    for svc in [
+        "air1/gateway",
+        "air2/gateway",
+        "ground/gateway",
+        "ground/gateway-air2",
+    ] {
+        assert!(pids.iter().any(|(p, _)| p == svc), "{svc}: {pids:?}");
+    }
+    assert_no_child_left(&pids);
+}
+
 #[test]
 fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
     let mut l = Launcher::start(&[
@@ -551,7 +670,10 @@ fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
         .expect("piped stderr")
         .read_to_string(&mut err)
         .expect("echo stderr");
-    assert!(status.success() && !err.contains("panicked"), "{status}: {err}");
+    assert!(
+        status.success() && !err.contains("panicked"),
+        "{status}: {err}"
+    );
 
     let (ok, answer) = tool(
         &domain,

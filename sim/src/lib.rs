@@ -10,13 +10,15 @@
 //! - [`link`]: which transport (UDP, serial, pty) and the vehicle's frame header, over a
 //!   [`mavconn::Connection`] (shared with the VAS);
 //! - [`sim`]: the async driver tying a [`vehicle::Vehicle`] to a link at a speed-up factor;
-//! - [`log`]: the JSON-lines event log.
+//! - [`log`]: the JSON-lines event log;
+//! - [`detector`]: points of interest reported when the vehicle passes them (`--poi-file`).
 
 // ArduPilot still speaks the superseded messages (MISSION_ITEM, MISSION_REQUEST,
 // SET_MODE, REQUEST_DATA_STREAM, MISSION_SET_CURRENT) and so must its simulator.
 #![allow(deprecated)]
 
 pub mod battery;
+pub mod detector;
 pub mod kinematics;
 pub mod link;
 pub mod log;

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
 use mavsim::battery::BatteryConfig;
+use mavsim::detector::Detector;
 use mavsim::kinematics::{GeoPoint, VehicleKind};
 use mavsim::link::{LinkConfig, LinkInfo};
 use mavsim::profile::Profile;
@@ -80,6 +81,13 @@ struct Args {
     /// Battery current drawn while armed, moving or not, A.
     #[arg(long, default_value_t = 0.5)]
     battery_idle_a: f64,
+    /// Points of interest (one `LAT,LON` a line, `#` comments) this vehicle's detector reports,
+    /// each once, as a STATUSTEXT `POI <id> <lat> <lon>` when it comes within --sensor-radius.
+    #[arg(long)]
+    poi_file: Option<PathBuf>,
+    /// Sensor footprint radius of the detector, metres (with --poi-file).
+    #[arg(long, default_value_t = 10.0)]
+    sensor_radius: f64,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -182,7 +190,19 @@ async fn main() -> anyhow::Result<()> {
         },
         battery,
     };
-    let sim = Simulator::open(cfg).await.context("starting mavsim")?;
+    let detector = args
+        .poi_file
+        .as_deref()
+        .map(|path| -> anyhow::Result<Detector> {
+            let pois = mavsim::detector::load_pois(path)?;
+            Ok(Detector::new(cfg.vehicle.home, &pois, args.sensor_radius)?)
+        })
+        .transpose()
+        .context("--poi-file")?;
+    let mut sim = Simulator::open(cfg).await.context("starting mavsim")?;
+    if let Some(d) = detector {
+        sim.set_detector(d);
+    }
     // One machine-readable line on stdout so scripts and tests find the endpoint.
     let line = match sim.link_info() {
         LinkInfo::Udp(addr) => format!("MAVSIM_UDP={addr}"),

@@ -75,6 +75,8 @@ pub struct Simulator {
     vehicle: Vehicle,
     link: Link,
     log: Option<LogWriter>,
+    /// Points of interest the vehicle reports when it passes them (issue 16).
+    detector: Option<crate::detector::Detector>,
 }
 
 impl Simulator {
@@ -100,7 +102,25 @@ impl Simulator {
             vehicle,
             link,
             log,
+            detector: None,
         })
+    }
+
+    /// Carries `detector`: each point it newly sees after a step goes out as a STATUSTEXT
+    /// (see [`crate::detector`]).
+    pub fn set_detector(&mut self, detector: crate::detector::Detector) {
+        self.detector = Some(detector);
+    }
+
+    fn detect(&mut self) {
+        let Some(d) = self.detector.as_mut() else {
+            return;
+        };
+        for poi in d.check(self.vehicle.position()) {
+            let text = crate::detector::detection_text(&poi);
+            tracing::info!(poi = poi.id, "detected: {text}");
+            self.link.send(&crate::detector::statustext(&text));
+        }
     }
 
     /// What the link opened (bound UDP address, pty slave path...).
@@ -174,6 +194,7 @@ impl Simulator {
                             self.link.send(&msg);
                         }
                         steps += 1;
+                        self.detect();
                     }
                     // Too slow to keep up: time runs slower rather than owing a burst.
                     target = target.min(self.vehicle.sim_time() + STEP_S);

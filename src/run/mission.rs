@@ -46,6 +46,9 @@ pub struct Mission {
     pub timeout: Option<Duration>,
     /// A radio emulator joining some nodes, if any.
     pub radio: Option<RadioSpec>,
+    /// Further radios (a fleet over radios: one per vehicle's air node, each to the same
+    /// ground node), after `radio`, in file order.
+    pub extra_radios: Vec<RadioSpec>,
     /// The nodes, in file order (also the start order).
     pub nodes: Vec<NodeSpec>,
 }
@@ -87,6 +90,11 @@ pub enum ServiceSpec {
         /// local paths resolved against the mission file.
         tiles: Option<String>,
     },
+    /// The fleet mission layer (`fleet`, issue 16): runs a fleet plan over the vehicles.
+    Fleet {
+        /// The fleet plan file.
+        plan: PathBuf,
+    },
 }
 
 impl ServiceSpec {
@@ -99,6 +107,7 @@ impl ServiceSpec {
             ServiceSpec::Station(_) => "station",
             ServiceSpec::Fmo { .. } => "fmo",
             ServiceSpec::Fpmo { .. } => "fpmo",
+            ServiceSpec::Fleet { .. } => "fleet",
         }
     }
 }
@@ -118,6 +127,10 @@ pub struct MavsimSpec {
     pub battery_capacity_mah: Option<f64>,
     /// Battery energy per kilometre, Wh/km (mavsim `--battery-wh-per-km`).
     pub battery_wh_per_km: Option<f64>,
+    /// Points of interest its detector reports (mavsim `--poi-file`).
+    pub poi_file: Option<PathBuf>,
+    /// The detector's footprint radius, metres (mavsim `--sensor-radius`).
+    pub sensor_radius: Option<f64>,
 }
 
 /// `<vas>` settings.
@@ -267,6 +280,16 @@ impl Mission {
         mission_from(&root, base)
     }
 
+    /// The `<fleet>` service, with its node, if the mission has one.
+    pub fn fleet(&self) -> Option<(&NodeSpec, &Path)> {
+        self.nodes.iter().find_map(|n| {
+            n.services.iter().find_map(|s| match s {
+                ServiceSpec::Fleet { plan } => Some((n, plan.as_path())),
+                _ => None,
+            })
+        })
+    }
+
     /// The node named `name`.
     pub fn node(&self, name: &str) -> Option<&NodeSpec> {
         self.nodes.iter().find(|n| n.name == name)
@@ -414,6 +437,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
 
     let mut nodes: Vec<NodeSpec> = Vec::new();
     let mut radio_el = None;
+    let mut extra_radio_els = Vec::new();
     for child in &root.children {
         match child.name.as_str() {
             "node" => {
@@ -424,7 +448,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
                 nodes.push(n);
             }
             "radio" if radio_el.is_none() => radio_el = Some(child),
-            "radio" => return Err(Fault::at(child, "only one <radio> per mission")),
+            "radio" => extra_radio_els.push(child),
             other => {
                 return Err(Fault::at(
                     child,
@@ -441,10 +465,35 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
         domain,
         timeout,
         radio: None,
+        extra_radios: Vec::new(),
         nodes,
     };
     if let Some(el) = radio_el {
         mission.radio = Some(radio_from(el, &mission)?);
+    }
+    // Several radios: each joins its own air node to the one ground node (a LAN per vehicle).
+    for el in extra_radio_els {
+        let spec = radio_from(el, &mission)?;
+        let first = mission.radio.as_ref().expect("set before the extra ones");
+        if spec.ground != first.ground {
+            return Err(Fault::at(
+                el,
+                format!(
+                    "every <radio> must join the same ground node (`{}`)",
+                    first.ground
+                ),
+            ));
+        }
+        let airs = std::iter::once(first)
+            .chain(&mission.extra_radios)
+            .map(|r| r.air.as_str());
+        if airs.clone().any(|a| a == spec.air) || spec.air == first.ground {
+            return Err(Fault::at(
+                el,
+                format!("node `{}` already has a radio", spec.air),
+            ));
+        }
+        mission.extra_radios.push(spec);
     }
     resolve_station(root, &mut mission)?;
     Ok(mission)
@@ -475,6 +524,8 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                         "log",
                         "batteryCapacityMah",
                         "batteryWhPerKm",
+                        "poiFile",
+                        "sensorRadius",
                     ],
                 );
                 let spec = MavsimSpec {
@@ -484,7 +535,12 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     log: a.opt("log").map(|l| base.join(l)),
                     battery_capacity_mah: a.parsed("batteryCapacityMah", "a number")?,
                     battery_wh_per_km: a.parsed("batteryWhPerKm", "a number")?,
+                    poi_file: a.file("poiFile", base)?,
+                    sensor_radius: a.parsed("sensorRadius", "a number")?,
                 };
+                if spec.sensor_radius.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
+                    return Err(Fault::at(s, "sensorRadius must be above 0 metres"));
+                }
                 if spec.battery_capacity_mah.is_some_and(|x| !(x > 0.0 && x.is_finite()))
                     || spec.battery_wh_per_km.is_some_and(|x| !(x >= 0.0 && x.is_finite()))
                 {
@@ -574,11 +630,23 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     ServiceSpec::Fpmo { listen, tiles }
                 }
             }
+            "fleet" => {
+                let mut a = Attrs::new(s, &["plan"]);
+                let plan = a.file("plan", base)?.ok_or_else(|| {
+                    Fault::at(s, "missing attribute `plan` (the fleet plan to run)")
+                })?;
+                a.finish()?;
+                // Checked now, so a bad fleet plan stops the launch before anything starts.
+                if let Err(e) = fleet::plan::load(&plan) {
+                    return Err(Fault::at(s, format!("fleet plan {e}")));
+                }
+                ServiceSpec::Fleet { plan }
+            }
             other => {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma, station, fmo or fpmo)"
+                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma, station, fmo, fpmo or fleet)"
                 ),
                 ))
             }
@@ -917,6 +985,53 @@ mod tests {
         let e = parse(&FLEET.replace("<mavsim/><vas/><fpma/>", "<mavsim/><vas/><fpma/><fpma/>"))
             .unwrap_err();
         assert!(e.contains("node `air1` already runs a fpma"), "{e}");
+    }
+
+    #[test]
+    fn a_fleet_over_radios_has_one_radio_per_air_node_to_one_ground_node() {
+        let radios = |r: &str| parse(&FLEET.replace("</mission>", &format!("{r}\n</mission>")));
+        let m = radios(
+            r#"<radio ground="ground" air="air1"/><radio ground="ground" air="air2" seed="3"/>"#,
+        )
+        .unwrap();
+        assert_eq!(m.radio.as_ref().unwrap().air, "air1");
+        assert_eq!(m.extra_radios.len(), 1);
+        assert_eq!(
+            (m.extra_radios[0].air.as_str(), m.extra_radios[0].seed),
+            ("air2", Some(3))
+        );
+        let e = radios(r#"<radio ground="ground" air="air1"/><radio ground="air2" air="air1"/>"#)
+            .unwrap_err();
+        assert!(
+            e.starts_with("12:") && e.contains("must join the same ground node (`ground`)"),
+            "{e}"
+        );
+        let e = radios(r#"<radio ground="ground" air="air1"/><radio ground="ground" air="air1"/>"#)
+            .unwrap_err();
+        assert!(e.contains("node `air1` already has a radio"), "{e}");
+    }
+
+    #[test]
+    fn a_fleet_service_names_a_valid_fleet_plan() {
+        let with = |fleet: &str| {
+            parse(&FLEET.replace(
+                "<node name=\"ground\">",
+                &format!("<node name=\"ground\">{fleet}"),
+            ))
+        };
+        let m = with(r#"<fleet plan="../fleetplans/search.xml"/>"#).unwrap();
+        let (node, plan) = m.fleet().unwrap();
+        assert_eq!(node.name, "ground");
+        assert!(plan.ends_with("fleetplans/search.xml"));
+        let e = with(r#"<fleet plan="../fleetplans/nope.xml"/>"#).unwrap_err();
+        assert!(
+            e.starts_with("8:23: <fleet>: attribute `plan`: no file"),
+            "{e}"
+        );
+        let e = with(r#"<fleet/>"#).unwrap_err();
+        assert!(e.contains("<fleet>: missing attribute `plan`"), "{e}");
+        let e = with(r#"<mavsim poiFile="../search/pois.txt" sensorRadius="-1"/>"#).unwrap_err();
+        assert!(e.contains("<mavsim>: sensorRadius must be above 0"), "{e}");
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+mod fleet;
 pub mod flightlog;
 pub mod mission;
 mod radio;
@@ -30,7 +31,7 @@ const EXIT_USAGE: u8 = 2;
 /// Exit status when interrupted before the plan completed with `--until-complete`.
 const EXIT_INTERRUPTED: u8 = 130;
 /// Default limit for `--until-complete` when neither the mission nor the command sets one.
-const DEFAULT_TIMEOUT: Duration = Duration::from_secs(600);
+pub(crate) const DEFAULT_TIMEOUT: Duration = Duration::from_secs(600);
 /// How long mavsim may take to print its address.
 const SIM_READY: Duration = Duration::from_secs(30);
 
@@ -100,7 +101,7 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
             }
         }
     }
-    if stations.is_empty() && args.until_complete {
+    if stations.is_empty() && args.until_complete && mission.fleet().is_none() {
         eprintln!(
             "usal: --until-complete needs a <station> in {} to follow a plan",
             args.mission.display()
@@ -370,12 +371,41 @@ async fn run(
     let station_notices: Vec<_> = stations.iter().map(|_| sup.subscribe()).collect();
 
     // A radio first: it gives the nodes it joins their networks.
-    let radio = match mission.radio.clone() {
+    let mut lans = std::collections::HashMap::new();
+    let mut radio = match mission.radio.clone() {
         None => Ok(None),
-        Some(spec) => radio::start(&mut mission, &spec, &domain, &bins, &scratch, &mut sup, &ui)
-            .await
-            .map(Some),
+        Some(spec) => radio::start(
+            &mut mission,
+            &spec,
+            &domain,
+            &bins,
+            &scratch,
+            &mut sup,
+            &ui,
+            &mut lans,
+        )
+        .await
+        .map(|r| Some(vec![r])),
     };
+    // A fleet's further radios, one per vehicle, to the same ground LAN.
+    for spec in mission.extra_radios.clone() {
+        let Ok(Some(links)) = &mut radio else { break };
+        match radio::start(
+            &mut mission,
+            &spec,
+            &domain,
+            &bins,
+            &scratch,
+            &mut sup,
+            &ui,
+            &mut lans,
+        )
+        .await
+        {
+            Ok(r) => links.push(r),
+            Err(e) => radio = Err(e),
+        }
+    }
     let _radio = match radio {
         Ok(r) => r,
         Err(e) => {
@@ -413,6 +443,10 @@ async fn run(
             ExitCode::FAILURE
         }
         Ok(()) if stop.is_cancelled() => interrupted(args),
+        // A fleet mission without stations: the fleet layer's status is followed instead.
+        Ok(()) if stations.is_empty() && mission.fleet().is_some() => {
+            fleet::supervise(&mission, &domain, args, &ui, notices, &stop).await
+        }
         Ok(()) => {
             supervise(
                 &mission,
@@ -524,7 +558,7 @@ fn finish_log(log: &flightlog::FlightLog, ui: &Ui) {
     }
 }
 
-fn interrupted(args: &RunArgs) -> ExitCode {
+pub(crate) fn interrupted(args: &RunArgs) -> ExitCode {
     if args.until_complete {
         eprintln!("usal: interrupted before the plan completed");
         ExitCode::from(EXIT_INTERRUPTED)
@@ -586,6 +620,12 @@ async fn start_services(
                     if let Some(w) = m.battery_wh_per_km {
                         a.extend(["--battery-wh-per-km".into(), w.to_string()]);
                     }
+                    if let Some(p) = &m.poi_file {
+                        a.extend(["--poi-file".into(), p.display().to_string()]);
+                    }
+                    if let Some(r) = m.sensor_radius {
+                        a.extend(["--sensor-radius".into(), r.to_string()]);
+                    }
                     let (tx, rx) = watch::channel(None);
                     sim_addr = Some(rx);
                     announce = Some(Announce {
@@ -641,6 +681,16 @@ async fn start_services(
                     // Per run: a supervised restart resumes the plan, a new run starts clean.
                     let state = scratch.join(&node.name).join("fpma-state");
                     a.extend(["--state-dir".into(), state.display().to_string()]);
+                    common(&mut a);
+                }
+                // The fleet layer: a service of the ground node (issue 16).
+                ServiceSpec::Fleet { plan } => {
+                    a.extend([
+                        "--plan".into(),
+                        plan.display().to_string(),
+                        "--node".into(),
+                        format!("{}-fleet", node.name),
+                    ]);
                     common(&mut a);
                 }
                 // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.
@@ -712,7 +762,7 @@ async fn wait_sim(
 /// child cannot be kept running, the time limit, or a signal.
 /// `--timeout-s` as a duration: positive and representable (a huge value made
 /// `Duration::from_secs_f64` panic), else `None`.
-fn run_limit(seconds: f64) -> Option<Duration> {
+pub(crate) fn run_limit(seconds: f64) -> Option<Duration> {
     (seconds > 0.0)
         .then(|| Duration::try_from_secs_f64(seconds).ok())
         .flatten()

@@ -2,6 +2,10 @@
 //! this host, so they cannot meet directly), a `marea-radio` emulator carries a serial line
 //! between them, and a gateway process on each side (`marea-probe gateway`, a node with the
 //! LAN and the serial link) forwards between LAN and radio by interest.
+//!
+//! A fleet over radios has several `<radio>`s, each joining one vehicle's air node to the same
+//! ground node: the ground node keeps one LAN (`lans` remembers it between calls) and gets one
+//! gateway per radio (`<ground>/gateway` for the first, `<ground>/gateway-<air>` for the others).
 
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -47,7 +51,7 @@ fn lan_xml(node: &str, domain: &str, port: u16) -> String {
     )
 }
 
-/// network.xml of a node's gateway: its LAN and its end of the radio.
+/// network.xml of a node's gateway (node `<gateway>-gateway`): its LAN and its end of the radio.
 fn gateway_xml(
     node: &str,
     namespace: &str,
@@ -68,7 +72,9 @@ fn gateway_xml(
 }
 
 /// Starts the emulator and both gateways, and points every process of the two nodes (and the
-/// station, through the returned map) at its node's LAN.
+/// station, through the returned map) at its node's LAN. `lans`: the LAN port of every node
+/// an earlier radio of this mission already gave one (the shared ground node).
+#[allow(clippy::too_many_arguments)]
 pub async fn start(
     mission: &mut Mission,
     spec: &RadioSpec,
@@ -77,12 +83,14 @@ pub async fn start(
     scratch: &Path,
     sup: &mut Supervisor,
     ui: &Arc<Ui>,
+    lans: &mut std::collections::HashMap<String, u16>,
 ) -> anyhow::Result<RadioLink> {
     for name in [&spec.ground, &spec.air] {
-        if mission
-            .node(name)
-            .and_then(|n| n.network.as_ref())
-            .is_some()
+        if !lans.contains_key(name.as_str())
+            && mission
+                .node(name)
+                .and_then(|n| n.network.as_ref())
+                .is_some()
         {
             bail!(
                 "node `{name}` is joined by the <radio>: the launcher gives it its own LAN, so it must not name a network file"
@@ -146,22 +154,34 @@ pub async fn start(
     let dir = scratch.join("network");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     for (name, tty) in [(&spec.ground, &ground_tty), (&spec.air, &air_tty)] {
-        let port = free_port()?;
         let node = mission
             .nodes
             .iter_mut()
             .find(|n| n.name == *name)
             .ok_or_else(|| anyhow!("no node `{name}`"))?;
-        let lan = write(&dir, &format!("{name}.xml"), &lan_xml(name, domain, port))?;
-        node.network = Some(lan);
+        // A node an earlier radio joined keeps its LAN and gets a further gateway.
+        let (port, gw_name, label) = match lans.get(name.as_str()) {
+            Some(&port) => (
+                port,
+                format!("{name}-{}", spec.air),
+                format!("{name}/gateway-{}", spec.air),
+            ),
+            None => {
+                let port = free_port()?;
+                let lan = write(&dir, &format!("{name}.xml"), &lan_xml(name, domain, port))?;
+                node.network = Some(lan);
+                lans.insert(name.clone(), port);
+                (port, name.clone(), format!("{name}/gateway"))
+            }
+        };
         let namespace = node.namespace.clone().unwrap_or_default();
         let gw = write(
             &dir,
-            &format!("{name}-gateway.xml"),
-            &gateway_xml(name, &namespace, domain, port, tty, spec.baud),
+            &format!("{gw_name}-gateway.xml"),
+            &gateway_xml(&gw_name, &namespace, domain, port, tty, spec.baud),
         )?;
         sup.start(ChildSpec {
-            label: format!("{name}/gateway"),
+            label,
             kind: "gateway",
             program: bins.path("marea-probe"),
             args: vec![

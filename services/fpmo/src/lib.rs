@@ -421,7 +421,10 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
     );
     shared.live.tasks.spawn(geometry_loop(shared.clone()));
     tracing::info!("fpmo up on http://{addr}/, following {ns}");
-    let router = web::router(shared.clone());
+    // The fleet view (issue 16): every vehicle of a fleet mission on one map, `/fleet`.
+    let fleet_view =
+        station_web::fleet::FleetView::start(&svc, &shared.live, config.station.call_timeout)?;
+    let router = web::router(shared.clone()).merge(station_web::fleet::router(fleet_view));
     let tasks = shared.live.tasks.clone();
     station_web::serve_and_shut_down(listener, router, cancel, tasks, (shared, svc), node).await
 }

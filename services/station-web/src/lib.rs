@@ -14,6 +14,8 @@
 //!   every `/api/*` call, the `Host` allowlist and the `Origin` check.
 //! - [`commands`]: the commands a station has sent, pending until the vehicle answers
 //!   ([`CommandLog`]), and how the page sees them.
+//! - [`fleet`]: the fleet view (`/fleet`, `/api/fleet`): every vehicle of a fleet mission on
+//!   one map with its plan, state and detections, from the fleet layer's status.
 //!
 //! ```no_run
 //! # use std::sync::Arc;
@@ -33,6 +35,7 @@
 
 pub mod access;
 pub mod commands;
+pub mod fleet;
 pub mod http;
 pub mod live;
 pub mod startup;

@@ -1,0 +1,169 @@
+//! The fleet service's wire types (`<namespace>/fleet/...`), shared with the launcher and the
+//! stations. Plain structs and externally tagged enums only: the middleware encodes with
+//! postcard, which is not self-describing.
+
+use serde::{Deserialize, Serialize};
+
+/// One vehicle as the fleet layer sees it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct VehicleStatus {
+    /// Its name in the fleet plan (`surveyor`).
+    pub id: String,
+    /// Its services' prefix (`rover1`).
+    pub prefix: String,
+    /// Separation priority (higher wins).
+    pub priority: i32,
+    /// The VAS's flight state, as text (`WAYPOINT_NAVIGATION`), once known.
+    pub state: Option<String>,
+    /// Last position: (lat, lon), degrees.
+    pub position: Option<(f64, f64)>,
+    /// The flight plan it was last given (its name).
+    pub plan: Option<String>,
+    /// That plan's progress, 0..1.
+    pub progress: f64,
+    /// Its last plan completed (or its investigation ended).
+    pub done: bool,
+    /// Held for separation.
+    pub holding: bool,
+    /// Paused by a command or the fleet plan.
+    pub paused: bool,
+    /// The nominal waypoints of the plan it was last given, (lat, lon), at most
+    /// [`ROUTE_POINTS`], for a station's map.
+    pub route: Vec<(f64, f64)>,
+}
+
+/// Most points of a [`VehicleStatus::route`] (a longer plan is thinned evenly, ends kept).
+pub const ROUTE_POINTS: usize = 300;
+
+/// `points` thinned to at most `max` (>= 2), first and last kept.
+pub fn thin(points: &[(f64, f64)], max: usize) -> Vec<(f64, f64)> {
+    let max = max.max(2);
+    if points.len() <= max {
+        return points.to_vec();
+    }
+    let last = points.len() - 1;
+    (0..max).map(|k| points[k * last / (max - 1)]).collect()
+}
+
+/// A point of interest a vehicle's detector reported.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Detection {
+    /// The detector's number for it.
+    pub id: u32,
+    /// The vehicle that reported it.
+    pub by: String,
+    /// Latitude, degrees.
+    pub lat: f64,
+    /// Longitude, degrees.
+    pub lon: f64,
+    /// Seconds into the fleet plan when it was reported.
+    pub at_s: f64,
+    /// Visited by an investigator (which, and when).
+    pub visited: Option<(String, f64)>,
+}
+
+/// Separation figures.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SeparationStatus {
+    /// The rule's minimum distance (0: no rule).
+    pub min_m: f64,
+    /// Times a vehicle was held on a conflict.
+    pub holds: u32,
+    /// Times two vehicles came closer than the minimum.
+    pub violations: u32,
+    /// The closest two vehicles came, metres (`None` before two positions are known).
+    pub closest_m: Option<f64>,
+}
+
+/// Variable `<namespace>/fleet/status`: the whole fleet, published on every change (at most
+/// 4 times a second) and every 2 s.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FleetStatus {
+    /// The fleet plan's name.
+    pub plan: String,
+    /// Seconds since the fleet plan started.
+    pub elapsed_s: f64,
+    /// The fleet plan has ended successfully.
+    pub done: bool,
+    /// Why it failed, if it did.
+    pub failed: Option<String>,
+    /// The statement being run (innermost), as `line:col <element>`.
+    pub doing: Vec<String>,
+    /// The vehicles, in plan order.
+    pub vehicles: Vec<VehicleStatus>,
+    /// The detections, in report order.
+    pub detections: Vec<Detection>,
+    /// Ids of the detections in the order they were visited.
+    pub visit_order: Vec<u32>,
+    /// Separation.
+    pub separation: SeparationStatus,
+    /// The fleet plan's variables and their values now, in declaration order.
+    pub vars: Vec<(String, fpma::api::VarValue)>,
+}
+
+impl FleetStatus {
+    /// Visited detections over reported ones (1 when none was reported).
+    pub fn visited_ratio(&self) -> f64 {
+        if self.detections.is_empty() {
+            1.0
+        } else {
+            let v = self
+                .detections
+                .iter()
+                .filter(|d| d.visited.is_some())
+                .count();
+            v as f64 / self.detections.len() as f64
+        }
+    }
+
+    /// The human-readable summary the launcher prints at the end.
+    pub fn text(&self, mission: &str) -> String {
+        let visited = self
+            .detections
+            .iter()
+            .filter(|d| d.visited.is_some())
+            .count();
+        let mut s = format!(
+            "mission {mission}: fleet plan `{}` {} in {:.1} s\n",
+            self.plan,
+            if self.done {
+                "completed"
+            } else {
+                "NOT completed"
+            },
+            self.elapsed_s
+        );
+        let order: Vec<String> = self.visit_order.iter().map(|i| format!("#{i}")).collect();
+        s += &format!(
+            "  detections: {} reported, {visited} visited (ratio {:.2}), in the order {}\n",
+            self.detections.len(),
+            self.visited_ratio(),
+            if order.is_empty() {
+                "-".into()
+            } else {
+                order.join(" ")
+            }
+        );
+        let sep = &self.separation;
+        s += &format!(
+            "  separation: minimum {:.1} m, {} holds, {} violations, closest {}\n",
+            sep.min_m,
+            sep.holds,
+            sep.violations,
+            sep.closest_m.map_or("-".into(), |d| format!("{d:.1} m"))
+        );
+        for v in &self.vehicles {
+            s += &format!(
+                "  {} ({}): {} {}\n",
+                v.id,
+                v.prefix,
+                v.plan.as_deref().unwrap_or("no plan"),
+                if v.done { "done" } else { "not done" }
+            );
+        }
+        if let Some(f) = &self.failed {
+            s += &format!("  failed: {f}\n");
+        }
+        s
+    }
+}

@@ -1,0 +1,1038 @@
+//! The fleet mission layer (issue 16 items 2–4; seeds 001 EAMOS and 002 Broz): runs a *fleet
+//! plan* (`plan`, format in `services/fleet/README.md`) of EAMOS-style statements — `seq`,
+//! `par`, `wait` for an event or a condition on variables, `repeat`, `if`/`else`, `sync`
+//! points, the Broz `investigate` — over the flight plans of several vehicles, and keeps them
+//! apart (`separation`).
+//!
+//! **Why a service of its own** (and not part of the launcher's station): the fleet layer is
+//! flight logic that must go on whatever watches it. As a process on the ground node it is
+//! started, restarted and stopped by `usal run` like every other service (it is started when
+//! the mission has a `<fleet>`), it reaches the vehicles only through their public marea items
+//! (the FPMa's `load_plan`/`goto_leg`/`progress`, the VAS's `change_state`/`position`/
+//! `flight_state`/`alarm`), so it works across the radio gateway like any station, and what it
+//! knows is one variable (`<ns>/fleet/status`) that the launcher, the FMo and the FPMo all read
+//! — the launcher stays a supervisor and a reporter.
+//!
+//! Layers: [`plan`] parses and checks a fleet plan (line and column in every error);
+//! [`search`] is the investigator's nearest-neighbour choice and [`separation`] the distance
+//! monitor, both pure; [`api`] the wire types; this file the executor on a middleware node.
+//!
+//! Detections come from the vehicles' detectors as the VAS's `alarm` event (a mavsim detector
+//! sends `POI <id> <lat> <lon>` as a STATUSTEXT of severity WARNING, see `sim/src/detector.rs`).
+//! Holds (separation, `pause`) put the vehicle's VAS in PARKING (the autopilot's HOLD: the
+//! vehicle stops where it is, its waypoint queue kept) and release it with
+//! WAYPOINT_NAVIGATION; every plan started is followed by an explicit WAYPOINT_NAVIGATION, so
+//! the layer does not rely on the FPMa starting a loaded plan by itself.
+//!
+//! ```no_run
+//! # async fn f() -> anyhow::Result<()> {
+//! let plan = fleet::plan::load(std::path::Path::new("config/fleetplans/search.xml"))
+//!     .map_err(anyhow::Error::msg)?;
+//! let config = fleet::FleetConfig::new(plan);
+//! fleet::run(config, tokio_util::sync::CancellationToken::new()).await
+//! # }
+//! ```
+
+pub mod api;
+pub mod plan;
+pub mod search;
+pub mod separation;
+
+use std::collections::{HashMap, HashSet};
+use std::future::Future;
+use std::path::PathBuf;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context};
+use fpma::api::{CommandAck, PlanLoaded, Progress};
+use fpma::expr::Value;
+use marea::{CallError, Function, NetworkConfig, Node, Service};
+use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+use usal_types::{Alarm, FlightState, Position, StateChangeReply, StateChangeRequest};
+
+use crate::api::{Detection, FleetStatus, VehicleStatus};
+use crate::plan::{Block, BlockKind, FleetPlan, WaitEvent};
+use crate::separation::{Action, Monitor};
+
+/// Everything the service needs.
+#[derive(Clone, Debug)]
+pub struct FleetConfig {
+    /// The fleet plan.
+    pub plan: FleetPlan,
+    /// A network.xml; default Ethernet on loopback.
+    pub network: Option<PathBuf>,
+    /// Node name.
+    pub node: String,
+    /// Discovery domain (overrides the network file's).
+    pub domain: Option<String>,
+    /// Namespace of the service's items (`gcs` → `gcs/fleet/status`).
+    pub namespace: Option<String>,
+    /// Time limit of each call to a vehicle.
+    pub call_timeout: Duration,
+    /// How long a vehicle's services may take to appear before the plan fails.
+    pub discovery_timeout: Duration,
+}
+
+impl FleetConfig {
+    /// Defaults around `plan`.
+    pub fn new(plan: FleetPlan) -> Self {
+        Self {
+            plan,
+            network: None,
+            node: "fleet".into(),
+            domain: None,
+            namespace: None,
+            call_timeout: Duration::from_secs(5),
+            discovery_timeout: Duration::from_secs(90),
+        }
+    }
+}
+
+/// Status publication: at most this often on changes...
+const STATUS_MIN_PERIOD: Duration = Duration::from_millis(250);
+/// ...and at least this often.
+const STATUS_PERIOD: Duration = Duration::from_secs(2);
+/// A refused WAYPOINT_NAVIGATION is asked again this often (the VAS refuses while its queue is
+/// still being filled or the autopilot is configuring).
+const NAV_RETRY: Duration = Duration::from_millis(500);
+/// ...this many times.
+const NAV_ATTEMPTS: u32 = 20;
+/// A detection nearer than this to the investigator counts as visited without a plan (the
+/// FPMa drops waypoints closer than a rover's minimum waypoint distance).
+const VISIT_RADIUS_M: f64 = 4.0;
+
+/// Runs the fleet plan until it ends, then keeps publishing the final status until
+/// `shutdown`; prints `FLEET_DONE=<status as JSON>` (or `FLEET_FAILED=`) on stdout when the
+/// plan ends.
+///
+/// # Errors
+/// When the node cannot be opened or items declared. A plan that fails is not an error of
+/// the service: it is reported in the status (`failed`), and the service keeps running.
+pub async fn run(config: FleetConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
+    let mut net = NetworkConfig::for_service(
+        config.network.as_deref(),
+        &config.node,
+        config.domain.as_deref(),
+        config.namespace.as_deref(),
+    )
+    .context("loading the network configuration")?;
+    net.node.clone_from(&config.node);
+    let node = Node::open(&net).await.context("joining the network")?;
+    let svc = node.service("fleet")?;
+    let fleet = Arc::new(Fleet::new(svc.clone(), &config)?);
+    let tasks = TaskTracker::new();
+    fleet.watch_vehicles(&tasks, &shutdown)?;
+    let status_var = svc.publish_variable::<FleetStatus>("status")?;
+    {
+        let fleet = fleet.clone();
+        let stop = shutdown.clone();
+        tasks.spawn(async move { fleet.publish_status(status_var, stop).await });
+    }
+    let _pause = {
+        let f = fleet.clone();
+        svc.provide_function("pause", move |id: String| {
+            let f = f.clone();
+            async move { f.command_pause(&id, true).await }
+        })?
+    };
+    let _resume = {
+        let f = fleet.clone();
+        svc.provide_function("resume", move |id: String| {
+            let f = f.clone();
+            async move { f.command_pause(&id, false).await }
+        })?
+    };
+    tracing::info!(plan = %config.plan.name, "fleet plan started");
+    let outcome = tokio::select! {
+        r = fleet.exec(&config.plan.body) => Some(r),
+        () = shutdown.cancelled() => None,
+    };
+    if let Some(r) = outcome {
+        {
+            let mut st = fleet.state();
+            st.ended = Some(fleet.started.elapsed().as_secs_f64());
+            match &r {
+                Ok(()) => st.done = true,
+                Err(e) => st.failed = Some(format!("{e:#}")),
+            }
+            st.doing.clear();
+        }
+        fleet.bump();
+        let status = fleet.status();
+        let line = serde_json::to_string(&status).unwrap_or_default();
+        match r {
+            Ok(()) => {
+                tracing::info!("fleet plan `{}` completed", status.plan);
+                println!("FLEET_DONE={line}");
+            }
+            Err(e) => {
+                tracing::error!("fleet plan `{}` failed: {e:#}", status.plan);
+                println!("FLEET_FAILED={line}");
+            }
+        }
+        shutdown.cancelled().await;
+    }
+    tasks.close();
+    tasks.wait().await;
+    node.shutdown().await;
+    Ok(())
+}
+
+/// One vehicle's functions.
+struct Vehicle {
+    load_plan: Function<String, PlanLoaded>,
+    goto_leg: Function<String, CommandAck>,
+    change_state: Function<StateChangeRequest, StateChangeReply>,
+}
+
+/// What the fleet layer knows of one vehicle.
+#[derive(Default)]
+struct VehState {
+    flight_state: Option<FlightState>,
+    position: Option<(f64, f64)>,
+    plan: Option<String>,
+    /// The version of the plan last loaded by us.
+    version: Option<u64>,
+    progress: f64,
+    done: bool,
+    completions: u64,
+    /// We asked for navigation and the plan has not completed: a release restarts it.
+    wants_nav: bool,
+    held: bool,
+    paused: bool,
+    /// The nominal waypoints of its plan, for the stations' maps.
+    route: Vec<(f64, f64)>,
+}
+
+#[derive(Default)]
+struct State {
+    vars: HashMap<String, Value>,
+    vs: Vec<VehState>,
+    detections: Vec<Detection>,
+    /// Detections an investigator is on its way to.
+    claimed: HashSet<usize>,
+    visit_order: Vec<u32>,
+    monitor: Option<Monitor>,
+    barriers: HashMap<String, (usize, u64)>,
+    doing: Vec<String>,
+    done: bool,
+    failed: Option<String>,
+    ended: Option<f64>,
+}
+
+type Exec<'a> = Pin<Box<dyn Future<Output = anyhow::Result<()>> + Send + 'a>>;
+
+struct Fleet {
+    plan: FleetPlan,
+    vehicles: Vec<Vehicle>,
+    st: Mutex<State>,
+    changed: watch::Sender<u64>,
+    started: Instant,
+    svc: Service,
+    call_timeout: Duration,
+    discovery_timeout: Duration,
+}
+
+impl Fleet {
+    fn new(svc: Service, config: &FleetConfig) -> anyhow::Result<Self> {
+        let plan = config.plan.clone();
+        let mut vehicles = Vec::new();
+        for v in &plan.vehicles {
+            vehicles.push(Vehicle {
+                load_plan: svc.function(&format!("{}/fpma/load_plan", v.prefix))?,
+                goto_leg: svc.function(&format!("{}/fpma/goto_leg", v.prefix))?,
+                change_state: svc.function(&format!("{}/vas/change_state", v.prefix))?,
+            });
+        }
+        let st = State {
+            vars: plan.vars.iter().cloned().collect(),
+            vs: plan.vehicles.iter().map(|_| VehState::default()).collect(),
+            monitor: plan
+                .separation
+                .map(|r| Monitor::new(r, plan.vehicles.iter().map(|v| v.priority).collect())),
+            ..State::default()
+        };
+        Ok(Self {
+            plan,
+            vehicles,
+            st: Mutex::new(st),
+            changed: watch::channel(0).0,
+            started: Instant::now(),
+            svc,
+            call_timeout: config.call_timeout,
+            discovery_timeout: config.discovery_timeout,
+        })
+    }
+
+    /// The shared state; a panic elsewhere while holding it leaves nothing worth stopping for.
+    fn state(&self) -> MutexGuard<'_, State> {
+        marea::sync::lock(&self.st)
+    }
+
+    /// Something changed: wake the waiters and the status publisher.
+    fn bump(&self) {
+        self.changed.send_modify(|n| *n = n.wrapping_add(1));
+    }
+
+    fn elapsed(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+
+    /// The value of a name in a condition.
+    fn var(&self, st: &State, name: &str) -> Option<Value> {
+        if let Some(v) = st.vars.get(name) {
+            return Some(*v);
+        }
+        let visited = st.detections.iter().filter(|d| d.visited.is_some()).count();
+        let n = |x: usize| Some(Value::Number(x as f64));
+        match name {
+            "detections" => return n(st.detections.len()),
+            "visited" => return n(visited),
+            "pending" => return n(st.detections.len() - visited),
+            "elapsed_s" => return Some(Value::Number(self.elapsed())),
+            _ => {}
+        }
+        let (veh, field) = name.split_once('.')?;
+        let i = self.plan.vehicle(veh)?;
+        let v = &st.vs[i];
+        match field {
+            "done" => Some(Value::Bool(v.done)),
+            "holding" => Some(Value::Bool(v.held)),
+            "paused" => Some(Value::Bool(v.paused)),
+            "progress" => Some(Value::Number(v.progress)),
+            _ => None,
+        }
+    }
+
+    fn holds(&self, cond: &fpma::expr::Condition) -> bool {
+        let st = self.state();
+        cond.holds(&|n| self.var(&st, n))
+    }
+
+    /// Waits until `pred` holds on the state (or `timeout`).
+    async fn wait_for(
+        &self,
+        timeout: Option<f64>,
+        what: &str,
+        pred: impl Fn(&State) -> bool,
+    ) -> anyhow::Result<()> {
+        let mut rx = self.changed.subscribe();
+        let deadline = timeout.map(|t| tokio::time::Instant::now() + Duration::from_secs_f64(t));
+        loop {
+            rx.borrow_and_update();
+            if pred(&self.state()) {
+                return Ok(());
+            }
+            match deadline {
+                Some(d) => {
+                    if tokio::time::timeout_at(d, rx.changed()).await.is_err() {
+                        bail!("{what}: not within {} s", timeout.unwrap_or_default());
+                    }
+                }
+                None => {
+                    let _ = rx.changed().await;
+                }
+            }
+        }
+    }
+
+    /// A call to a vehicle: waits for the provider (it may not be up yet), then calls;
+    /// retries a lost or timed-out call, not a refusal.
+    async fn call<A: marea::Payload, R: marea::Payload>(
+        &self,
+        f: &Function<A, R>,
+        args: &A,
+        what: &str,
+    ) -> anyhow::Result<R> {
+        let mut attempts = 0;
+        loop {
+            if !f.wait_provider(self.discovery_timeout).await {
+                bail!("{what}: no provider within {:?}", self.discovery_timeout);
+            }
+            match f.call(args, self.call_timeout).await {
+                Ok(r) => return Ok(r),
+                Err(e @ (CallError::Remote { .. } | CallError::TypeMismatch { .. })) => {
+                    return Err(anyhow!("{what}: {e}"))
+                }
+                Err(e) if attempts >= 5 => return Err(anyhow!("{what}: {e}")),
+                Err(e) => {
+                    tracing::warn!("{what}: {e}; trying again");
+                    attempts += 1;
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                }
+            }
+        }
+    }
+
+    async fn set_state(&self, i: usize, to: FlightState) -> anyhow::Result<()> {
+        let who = &self.plan.vehicles[i].id;
+        let req = StateChangeRequest { to };
+        match self
+            .call(
+                &self.vehicles[i].change_state,
+                &req,
+                &format!("{who}: change_state {to}"),
+            )
+            .await
+        {
+            Ok(_) => Ok(()),
+            // The FPMa (or the autopilot) got there first: what was wanted.
+            Err(e) if e.to_string().contains(&format!("already in {to}")) => Ok(()),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Puts the vehicle in WAYPOINT_NAVIGATION unless it is held or paused (the release does
+    /// it then). A refusal is asked again a few times: the VAS refuses while the FPMa is
+    /// still filling its queue.
+    async fn navigate(&self, i: usize) -> anyhow::Result<()> {
+        let mut attempt = 0;
+        loop {
+            {
+                let st = self.state();
+                let v = &st.vs[i];
+                if v.held || v.paused || !v.wants_nav {
+                    return Ok(());
+                }
+                if v.flight_state == Some(FlightState::WaypointNavigation) && attempt > 0 {
+                    return Ok(());
+                }
+            }
+            match self.set_state(i, FlightState::WaypointNavigation).await {
+                Ok(()) => return Ok(()),
+                Err(e) if attempt + 1 >= NAV_ATTEMPTS => return Err(e),
+                Err(e) => {
+                    tracing::debug!("{e:#}; asking again");
+                    attempt += 1;
+                    tokio::time::sleep(NAV_RETRY).await;
+                }
+            }
+        }
+    }
+
+    /// Stops the vehicle where it is (the VAS's PARKING: the autopilot's HOLD).
+    async fn stop(&self, i: usize) -> anyhow::Result<()> {
+        let moving = matches!(
+            self.state().vs[i].flight_state,
+            Some(FlightState::WaypointNavigation) | None
+        );
+        if moving {
+            self.set_state(i, FlightState::Parking).await?;
+        }
+        Ok(())
+    }
+
+    /// Loads `xml` into vehicle `i`'s FPMa, starts it, and with `wait` waits for it to
+    /// complete.
+    async fn fly(&self, i: usize, xml: &str, wait: bool) -> anyhow::Result<()> {
+        let who = self.plan.vehicles[i].id.clone();
+        let loaded = self
+            .call(
+                &self.vehicles[i].load_plan,
+                &xml.to_owned(),
+                &format!("{who}: load_plan"),
+            )
+            .await?;
+        tracing::info!(
+            "{who}: plan `{}` loaded as version {}",
+            loaded.name,
+            loaded.version
+        );
+        {
+            let mut st = self.state();
+            let v = &mut st.vs[i];
+            v.version = Some(loaded.version);
+            v.plan = Some(loaded.name.clone());
+            v.route = route_of(xml, self.plan.vehicles[i].kind);
+            v.done = false;
+            v.progress = 0.0;
+            v.wants_nav = true;
+        }
+        self.bump();
+        self.navigate(i).await?;
+        if wait {
+            let version = loaded.version;
+            self.wait_for(None, "", move |st| {
+                st.vs[i].done && st.vs[i].version == Some(version)
+            })
+            .await?;
+            tracing::info!("{who}: plan `{}` completed", loaded.name);
+        }
+        Ok(())
+    }
+
+    /// The Broz investigator: visits detections nearest first until `until` holds and none
+    /// is left.
+    async fn investigate(
+        &self,
+        i: usize,
+        until: &fpma::expr::Condition,
+        speed: f64,
+    ) -> anyhow::Result<()> {
+        let keep_off = self.plan.separation.map_or(0.0, |s| s.hold_m);
+        let mut rx = self.changed.subscribe();
+        loop {
+            rx.borrow_and_update();
+            let choice = {
+                let mut st = self.state();
+                let pending: Vec<usize> = (0..st.detections.len())
+                    .filter(|k| st.detections[*k].visited.is_none() && !st.claimed.contains(k))
+                    .collect();
+                match st.vs[i].position {
+                    None => None,
+                    Some(here) => {
+                        let pts: Vec<(f64, f64)> = pending
+                            .iter()
+                            .map(|&k| (st.detections[k].lat, st.detections[k].lon))
+                            .collect();
+                        let others: Vec<(f64, f64)> = (0..st.vs.len())
+                            .filter(|&o| o != i)
+                            .filter_map(|o| st.vs[o].position)
+                            .collect();
+                        search::next_target(here, &pts, &others, keep_off).map(|j| {
+                            let k = pending[j];
+                            st.claimed.insert(k);
+                            (k, here, pts[j])
+                        })
+                    }
+                }
+            };
+            let Some((k, here, target)) = choice else {
+                let finished = {
+                    let st = self.state();
+                    st.detections.iter().all(|d| d.visited.is_some())
+                        && until.holds(&|n| self.var(&st, n))
+                };
+                if finished {
+                    let mut st = self.state();
+                    st.vs[i].done = true;
+                    drop(st);
+                    self.bump();
+                    return Ok(());
+                }
+                let _ = rx.changed().await;
+                continue;
+            };
+            let id = self.state().detections[k].id;
+            let far = fpma::geo::distance(
+                fpma::geo::GeoPoint::new(here.0, here.1),
+                fpma::geo::GeoPoint::new(target.0, target.1),
+            );
+            tracing::info!(
+                "{}: visiting detection #{id} ({far:.0} m away)",
+                self.plan.vehicles[i].id
+            );
+            let r = if far > VISIT_RADIUS_M {
+                self.fly(i, &visit_plan(id, here, target, speed), true)
+                    .await
+            } else {
+                Ok(())
+            };
+            let mut st = self.state();
+            st.claimed.remove(&k);
+            if r.is_ok() {
+                let at = self.elapsed();
+                st.detections[k].visited = Some((self.plan.vehicles[i].id.clone(), at));
+                st.visit_order.push(id);
+            }
+            drop(st);
+            self.bump();
+            r?;
+        }
+    }
+
+    fn exec<'a>(&'a self, b: &'a Block) -> Exec<'a> {
+        Box::pin(async move {
+            let label = format!("{}:{} {}", b.line, b.col, describe(&self.plan, &b.kind));
+            let leaf = !matches!(
+                b.kind,
+                BlockKind::Seq(_)
+                    | BlockKind::Par(_)
+                    | BlockKind::Repeat { .. }
+                    | BlockKind::If { .. }
+            );
+            if leaf {
+                self.state().doing.push(label.clone());
+                self.bump();
+            }
+            let r = self.exec_inner(b).await;
+            if leaf {
+                let mut st = self.state();
+                if let Some(p) = st.doing.iter().position(|d| *d == label) {
+                    st.doing.remove(p);
+                }
+                drop(st);
+                self.bump();
+            }
+            r.with_context(|| format!("line {}:{} <{}>", b.line, b.col, tag(&b.kind)))
+        })
+    }
+
+    async fn exec_inner(&self, b: &Block) -> anyhow::Result<()> {
+        match &b.kind {
+            BlockKind::Seq(body) => {
+                for c in body {
+                    self.exec(c).await?;
+                }
+            }
+            BlockKind::Par(body) => {
+                futures_util::future::try_join_all(body.iter().map(|c| self.exec(c))).await?;
+            }
+            BlockKind::Fly {
+                vehicle, xml, wait, ..
+            } => self.fly(*vehicle, xml, *wait).await?,
+            BlockKind::Goto { vehicle, leg } => {
+                let who = &self.plan.vehicles[*vehicle].id;
+                self.call(
+                    &self.vehicles[*vehicle].goto_leg,
+                    leg,
+                    &format!("{who}: goto_leg {leg}"),
+                )
+                .await?;
+                self.state().vs[*vehicle].wants_nav = true;
+                self.navigate(*vehicle).await?;
+            }
+            BlockKind::Pause { vehicle } => {
+                self.command_pause(&self.plan.vehicles[*vehicle].id, true)
+                    .await
+                    .map_err(anyhow::Error::msg)?;
+            }
+            BlockKind::Resume { vehicle } => {
+                self.command_pause(&self.plan.vehicles[*vehicle].id, false)
+                    .await
+                    .map_err(anyhow::Error::msg)?;
+            }
+            BlockKind::WaitEvent {
+                event,
+                vehicle,
+                timeout_s,
+            } => {
+                let count = |st: &State| -> u64 {
+                    match event {
+                        WaitEvent::Detection => st
+                            .detections
+                            .iter()
+                            .filter(|d| vehicle.is_none_or(|v| d.by == self.plan.vehicles[v].id))
+                            .count() as u64,
+                        WaitEvent::Completed => vehicle.map_or(0, |v| st.vs[v].completions),
+                    }
+                };
+                let before = count(&self.state());
+                self.wait_for(*timeout_s, "the event", |st| count(st) > before)
+                    .await?;
+            }
+            BlockKind::WaitUntil { cond, timeout_s } => {
+                let what = format!("`{}`", cond.src);
+                self.wait_for(*timeout_s, &what, |st| cond.holds(&|n| self.var(st, n)))
+                    .await?;
+            }
+            BlockKind::Repeat {
+                count,
+                while_,
+                until,
+                body,
+            } => {
+                let mut n = 0u32;
+                loop {
+                    if count.is_some_and(|c| n >= c) {
+                        break;
+                    }
+                    if while_.as_ref().is_some_and(|w| !self.holds(w)) {
+                        break;
+                    }
+                    for c in body {
+                        self.exec(c).await?;
+                    }
+                    n += 1;
+                    if until.as_ref().is_some_and(|u| self.holds(u)) {
+                        break;
+                    }
+                    // A loop whose body never waits must not starve the runtime.
+                    tokio::task::yield_now().await;
+                }
+            }
+            BlockKind::If { cond, then, else_ } => {
+                let body = if self.holds(cond) { then } else { else_ };
+                for c in body {
+                    self.exec(c).await?;
+                }
+            }
+            BlockKind::Sync { name, parties } => {
+                let gen = {
+                    let mut st = self.state();
+                    let e = st.barriers.entry(name.clone()).or_default();
+                    e.0 += 1;
+                    if e.0 >= *parties {
+                        e.0 = 0;
+                        e.1 += 1;
+                        None
+                    } else {
+                        Some(e.1)
+                    }
+                };
+                match gen {
+                    None => {
+                        tracing::info!("sync point `{name}`: all {parties} there, going on");
+                        self.bump();
+                    }
+                    Some(g) => {
+                        self.wait_for(None, "", |st| {
+                            st.barriers.get(name).is_some_and(|e| e.1 != g)
+                        })
+                        .await?;
+                    }
+                }
+            }
+            BlockKind::Set { var, expr, add } => {
+                let mut st = self.state();
+                let v = match (expr, add) {
+                    (Some(expr), _) => expr.eval(&|n| self.var(&st, n)),
+                    (None, Some(x)) => match st.vars.get(var) {
+                        Some(Value::Number(n)) => Value::Number(n + x),
+                        _ => bail!("`{var}` is not a number"),
+                    },
+                    (None, None) => bail!("nothing to set `{var}` to"),
+                };
+                st.vars.insert(var.clone(), v);
+                drop(st);
+                self.bump();
+            }
+            BlockKind::Investigate {
+                vehicle,
+                until,
+                speed,
+            } => self.investigate(*vehicle, until, *speed).await?,
+            BlockKind::Log { text } => tracing::info!("{text}"),
+        }
+        Ok(())
+    }
+
+    /// `pause` / `resume` of a vehicle, by command or by the plan.
+    async fn command_pause(&self, id: &str, pause: bool) -> Result<String, String> {
+        let i = self
+            .plan
+            .vehicle(id)
+            .ok_or_else(|| format!("no vehicle `{id}` in the fleet plan"))?;
+        self.state().vs[i].paused = pause;
+        self.bump();
+        if pause {
+            self.stop(i).await.map_err(|e| format!("{e:#}"))?;
+            Ok(format!("{id} paused"))
+        } else {
+            self.navigate(i).await.map_err(|e| format!("{e:#}"))?;
+            Ok(format!("{id} resumed"))
+        }
+    }
+
+    /// Separation actions, carried out in order.
+    async fn separate(&self, actions: Vec<Action>) {
+        for a in actions {
+            let r = match a {
+                Action::Hold(i) => {
+                    tracing::warn!("separation: {} holds", self.plan.vehicles[i].id);
+                    self.state().vs[i].held = true;
+                    self.stop(i).await
+                }
+                Action::Release(i) => {
+                    tracing::info!("separation: {} clear, going on", self.plan.vehicles[i].id);
+                    self.state().vs[i].held = false;
+                    self.navigate(i).await
+                }
+            };
+            self.bump();
+            if let Err(e) = r {
+                tracing::error!("separation: {e:#}");
+            }
+        }
+    }
+
+    /// The subscriptions to every vehicle's position, state, progress and alarms.
+    fn watch_vehicles(
+        self: &Arc<Self>,
+        tasks: &TaskTracker,
+        stop: &CancellationToken,
+    ) -> anyhow::Result<()> {
+        for (i, v) in self.plan.vehicles.iter().enumerate() {
+            let position = self
+                .svc
+                .subscribe_variable::<Position>(&format!("{}/vas/position", v.prefix))?;
+            let state = self
+                .svc
+                .subscribe_variable::<FlightState>(&format!("{}/vas/flight_state", v.prefix))?;
+            let progress = self
+                .svc
+                .subscribe_variable::<Progress>(&format!("{}/fpma/progress", v.prefix))?;
+            let alarms = self
+                .svc
+                .subscribe_event::<Alarm>(&format!("{}/vas/alarm", v.prefix))?;
+            let me = self.clone();
+            let stop = stop.clone();
+            let id = v.id.clone();
+            tasks.spawn(async move {
+                loop {
+                    tokio::select! {
+                        () = stop.cancelled() => return,
+                        p = position.recv() => {
+                            let p = match p {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            let actions = {
+                                let mut st = me.state();
+                                st.vs[i].position = Some((p.value.lat, p.value.lon));
+                                st.monitor
+                                    .as_mut()
+                                    .map(|m| m.update(i, p.value.lat, p.value.lon))
+                                    .unwrap_or_default()
+                            };
+                            me.bump();
+                            if !actions.is_empty() {
+                                me.separate(actions).await;
+                            }
+                        }
+                        s = state.recv() => {
+                            let s = match s {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            me.state().vs[i].flight_state = Some(s.value);
+                            me.bump();
+                        }
+                        p = progress.recv() => {
+                            let p = match p {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            let p = p.value;
+                            let mut st = me.state();
+                            let v = &mut st.vs[i];
+                            if v.version == Some(p.version) {
+                                v.progress = p.fraction;
+                                if p.completed && !v.done {
+                                    v.done = true;
+                                    v.wants_nav = false;
+                                    v.completions += 1;
+                                }
+                            }
+                            drop(st);
+                            me.bump();
+                        }
+                        a = alarms.recv() => {
+                            let a = match a {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            if let Some((pid, lat, lon)) = parse_detection(&a.value.text) {
+                                let mut st = me.state();
+                                if !st.detections.iter().any(|d| d.id == pid && d.by == id) {
+                                    tracing::info!("{id} detected #{pid} at {lat:.7},{lon:.7}");
+                                    let at_s = me.elapsed();
+                                    st.detections.push(Detection {
+                                        id: pid, by: id.clone(), lat, lon, at_s, visited: None,
+                                    });
+                                }
+                                drop(st);
+                                me.bump();
+                            }
+                        }
+                    }
+                }
+            });
+        }
+        Ok(())
+    }
+
+    fn status(&self) -> FleetStatus {
+        let st = self.state();
+        FleetStatus {
+            plan: self.plan.name.clone(),
+            elapsed_s: st.ended.unwrap_or_else(|| self.elapsed()),
+            done: st.done,
+            failed: st.failed.clone(),
+            doing: st.doing.clone(),
+            vehicles: self
+                .plan
+                .vehicles
+                .iter()
+                .zip(&st.vs)
+                .map(|(d, v)| VehicleStatus {
+                    id: d.id.clone(),
+                    prefix: d.prefix.clone(),
+                    priority: d.priority,
+                    state: v.flight_state.map(|s| s.to_string()),
+                    position: v.position,
+                    plan: v.plan.clone(),
+                    progress: v.progress,
+                    done: v.done,
+                    holding: v.held,
+                    paused: v.paused,
+                    route: v.route.clone(),
+                })
+                .collect(),
+            detections: st.detections.clone(),
+            visit_order: st.visit_order.clone(),
+            separation: st
+                .monitor
+                .as_ref()
+                .map(|m| m.status().clone())
+                .unwrap_or_default(),
+            vars: self
+                .plan
+                .vars
+                .iter()
+                .filter_map(|(n, _)| st.vars.get(n).map(|v| (n.clone(), (*v).into())))
+                .collect(),
+        }
+    }
+
+    async fn publish_status(&self, var: marea::Variable<FleetStatus>, stop: CancellationToken) {
+        let mut rx = self.changed.subscribe();
+        loop {
+            if let Err(e) = var.set(&self.status()) {
+                tracing::warn!("publishing the status: {e}");
+            }
+            tokio::select! {
+                () = stop.cancelled() => return,
+                _ = tokio::time::sleep(STATUS_PERIOD) => {}
+                r = rx.changed() => {
+                    if r.is_err() { return }
+                    tokio::select! {
+                        () = stop.cancelled() => return,
+                        () = tokio::time::sleep(STATUS_MIN_PERIOD) => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The nominal waypoints of a flight plan (already checked when the fleet plan was loaded, or
+/// generated), thinned for the status; empty if it cannot be expanded.
+fn route_of(xml: &str, kind: fpma::vehicle::VehicleKind) -> Vec<(f64, f64)> {
+    let params = fpma::vehicle::VehicleParams::for_kind(kind);
+    let Ok(plan) = fpma::parse::parse_plan(xml, &params) else {
+        return Vec::new();
+    };
+    let Ok(wps) = fpma::exec::expand_nominal(plan, params) else {
+        return Vec::new();
+    };
+    let pts: Vec<(f64, f64)> = wps.iter().map(|w| (w.lat, w.lon)).collect();
+    api::thin(&pts, api::ROUTE_POINTS)
+}
+
+/// A detection in a VAS alarm's text: `autopilot: POI <id> <lat> <lon>` (the mavsim detector's
+/// STATUSTEXT, `sim/src/detector.rs`).
+pub fn parse_detection(text: &str) -> Option<(u32, f64, f64)> {
+    let at = text.find("POI ")?;
+    let mut it = text[at + 4..].split_whitespace();
+    let id = it.next()?.parse().ok()?;
+    let lat: f64 = it.next()?.parse().ok()?;
+    let lon: f64 = it.next()?.parse().ok()?;
+    ((-90.0..=90.0).contains(&lat) && (-180.0..=180.0).contains(&lon)).then_some((id, lat, lon))
+}
+
+/// The flight plan of one visit: from where the vehicle is to the detection, fly-over.
+pub fn visit_plan(id: u32, from: (f64, f64), to: (f64, f64), speed: f64) -> String {
+    format!(
+        r#"<flightPlan name="visit-{id}" version="1" altRef="REL" defaultSpeed="{speed}">
+  <fixes>
+    <fix id="HERE" lat="{:.8}" lon="{:.8}" alt="0"/>
+    <fix id="POI" lat="{:.8}" lon="{:.8}" alt="0"/>
+  </fixes>
+  <mission>
+    <leg type="IF" fix="HERE"/>
+    <leg type="TF" fix="POI" flyOver="true"/>
+  </mission>
+</flightPlan>"#,
+        from.0, from.1, to.0, to.1
+    )
+}
+
+fn tag(k: &BlockKind) -> &'static str {
+    match k {
+        BlockKind::Seq(_) => "seq",
+        BlockKind::Par(_) => "par",
+        BlockKind::Fly { .. } => "fly",
+        BlockKind::Goto { .. } => "goto",
+        BlockKind::Pause { .. } => "pause",
+        BlockKind::Resume { .. } => "resume",
+        BlockKind::WaitEvent { .. } | BlockKind::WaitUntil { .. } => "wait",
+        BlockKind::Repeat { .. } => "repeat",
+        BlockKind::If { .. } => "if",
+        BlockKind::Sync { .. } => "sync",
+        BlockKind::Set { .. } => "set",
+        BlockKind::Investigate { .. } => "investigate",
+        BlockKind::Log { .. } => "log",
+    }
+}
+
+/// A statement in a few words, for the status's `doing`.
+fn describe(plan: &FleetPlan, k: &BlockKind) -> String {
+    let v = |i: &usize| plan.vehicles[*i].id.as_str();
+    match k {
+        BlockKind::Fly { vehicle, file, .. } => format!(
+            "fly {} {}",
+            v(vehicle),
+            file.file_name()
+                .map_or_else(String::new, |f| f.to_string_lossy().into_owned())
+        ),
+        BlockKind::Goto { vehicle, leg } => format!("goto {} {leg}", v(vehicle)),
+        BlockKind::Pause { vehicle } => format!("pause {}", v(vehicle)),
+        BlockKind::Resume { vehicle } => format!("resume {}", v(vehicle)),
+        BlockKind::WaitUntil { cond, .. } => format!("wait until {}", cond.src),
+        BlockKind::WaitEvent { event, .. } => format!("wait for {event:?}"),
+        BlockKind::Sync { name, .. } => format!("sync {name}"),
+        BlockKind::Investigate { vehicle, .. } => format!("investigate {}", v(vehicle)),
+        other => tag(other).to_owned(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_visit_plan_is_a_valid_rover_plan_to_the_point() {
+        let xml = visit_plan(3, (41.2752, 1.9875), (41.2756, 1.9872), 3.0);
+        let params = fpma::vehicle::VehicleParams::rover();
+        let plan = fpma::parse::parse_plan(&xml, &params).unwrap();
+        let wps = fpma::exec::expand_nominal(plan, params).unwrap();
+        let last = wps.last().unwrap();
+        assert!((last.lat - 41.2756).abs() < 1e-7 && (last.lon - 1.9872).abs() < 1e-7);
+        assert!(last.fly_over);
+    }
+
+    #[test]
+    fn routes_are_thinned_with_their_ends_kept() {
+        let pts: Vec<(f64, f64)> = (0..1000).map(|i| (f64::from(i), 0.0)).collect();
+        let t = api::thin(&pts, 300);
+        assert_eq!(t.len(), 300);
+        assert_eq!((t[0].0, t[299].0), (0.0, 999.0));
+        assert_eq!(api::thin(&pts[..5], 300).len(), 5);
+        let r = route_of(
+            &visit_plan(1, (41.2752, 1.9875), (41.2756, 1.9872), 3.0),
+            fpma::vehicle::VehicleKind::Rover,
+        );
+        assert_eq!(r.len(), 2);
+        assert!(route_of("<nope/>", fpma::vehicle::VehicleKind::Rover).is_empty());
+    }
+
+    #[test]
+    fn detections_are_read_from_the_vas_alarm_text_only() {
+        assert_eq!(
+            parse_detection("autopilot: POI 3 41.2751234 1.9871234"),
+            Some((3, 41.275_123_4, 1.987_123_4))
+        );
+        assert_eq!(parse_detection("autopilot: Reached waypoint #3"), None);
+        assert_eq!(parse_detection("autopilot: POI 3 91 1"), None);
+        assert_eq!(parse_detection("POI -1 1 1"), None);
+    }
+}

@@ -1,0 +1,153 @@
+//! The stations' fleet view (issue 16 item 5) through the HTTP API the page uses, on real
+//! processes: two rovers (`mavsim` + `vas`, `rover1` and `rover2`), a `fleet` service running a
+//! fleet plan over both, and an `fmo` and an `fpmo` following them. Both stations show both
+//! vehicles with their state and position; a vehicle selected on the FMo is paused and resumed
+//! through the fleet service; bad commands are refused with the reason.
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_stations_show_the_whole_fleet_and_command_a_selected_vehicle() {
+    build_flight_bins();
+    tokio::time::timeout(Duration::from_secs(240), scenario())
+        .await
+        .expect("scenario timed out");
+}
+
+/// Polls `GET /api/fleet` until the first fleet's status satisfies `pred`.
+async fn wait_fleet(
+    station: &Station,
+    what: &str,
+    pred: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let deadline = tokio::time::Instant::now() + STEP * 3;
+    loop {
+        let j = station.get_json("/api/fleet").await;
+        let status = &j["fleets"][0]["status"];
+        if pred(status) {
+            return j;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "never saw {what}; last {j:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+async fn scenario() {
+    let domain = unique_domain("fleet-view");
+    let (_sim1, _vas1) = rover_named(&domain, 2.0, "rover1").await;
+    let (_sim2, _vas2) = rover_named(&domain, 2.0, "rover2").await;
+    let dir = tempfile::tempdir().unwrap();
+    let plan = dir.path().join("fleet.xml");
+    // A plan that only waits: the vehicles stay where they are while the stations look.
+    std::fs::write(
+        &plan,
+        r#"<fleetPlan name="view">
+  <vehicle id="scout" prefix="rover1" priority="2"/>
+  <vehicle id="helper" prefix="rover2"/>
+  <seq><wait event="detection"/></seq>
+</fleetPlan>"#,
+    )
+    .unwrap();
+    let _fleet = Proc::start(
+        &workspace_bin("fleet"),
+        &[
+            "--plan".into(),
+            plan.display().to_string(),
+            "--domain".into(),
+            domain.clone(),
+            "--namespace".into(),
+            "gcs".into(),
+        ],
+        false,
+    )
+    .await;
+    let fmo = Station::start(env!("CARGO_BIN_EXE_fmo"), "FMO_URL", &["--domain", &domain]).await;
+    let fpmo = Station::start(
+        workspace_bin("fpmo").to_str().unwrap(),
+        "FPMO_URL",
+        &["--domain", &domain],
+    )
+    .await;
+
+    // Every vehicle, with its state and position, on both stations.
+    for station in [&fmo, &fpmo] {
+        let j = wait_fleet(station, "both vehicles placed", |s| {
+            s["vehicles"].as_array().is_some_and(|v| {
+                v.len() == 2
+                    && v.iter()
+                        .all(|v| v["position"].is_array() && v["state"].is_string())
+            })
+        })
+        .await;
+        assert_eq!(j["fleets"][0]["service"], "gcs/fleet", "{j}");
+        let s = &j["fleets"][0]["status"];
+        assert_eq!(s["plan"], "view");
+        assert_eq!(s["vehicles"][0]["id"], "scout");
+        assert_eq!(s["vehicles"][1]["prefix"], "rover2");
+        let lat = s["vehicles"][0]["position"][0].as_f64().unwrap();
+        assert!((lat - HOME.0).abs() < 0.001, "{s}");
+        let (status, page) = station.get("/fleet").await;
+        assert_eq!(status, 200);
+        assert!(page.contains("USAL fleet") && page.contains("/api/fleet"));
+        // The token guards the fleet API like the rest.
+        let (status, _) = request(&station.addr, "GET", "/api/fleet", None).await;
+        assert!(status == 401 || status == 403, "{status}");
+    }
+
+    // The selected vehicle, paused and resumed from the FMo.
+    let (status, answer) = fmo
+        .post(
+            "/api/fleet/command",
+            serde_json::json!({"vehicle": "scout", "action": "pause"}),
+        )
+        .await;
+    assert_eq!((status, &answer["answer"]), (200, &"scout paused".into()));
+    // Seen by the other station too.
+    wait_fleet(&fpmo, "scout paused", |s| {
+        s["vehicles"][0]["paused"] == true
+    })
+    .await;
+    let (status, answer) = fmo
+        .post(
+            "/api/fleet/command",
+            serde_json::json!({"vehicle": "scout", "action": "resume", "fleet": "gcs/fleet"}),
+        )
+        .await;
+    assert_eq!((status, &answer["answer"]), (200, &"scout resumed".into()));
+    wait_fleet(&fmo, "scout resumed", |s| {
+        s["vehicles"][0]["paused"] == false
+    })
+    .await;
+
+    let (status, answer) = fmo
+        .post(
+            "/api/fleet/command",
+            serde_json::json!({"vehicle": "nobody", "action": "pause"}),
+        )
+        .await;
+    assert_eq!(status, 404, "{answer}");
+    assert!(answer["error"].as_str().unwrap().contains("nobody"));
+    let (status, answer) = fmo
+        .post(
+            "/api/fleet/command",
+            serde_json::json!({"vehicle": "scout", "action": "jump"}),
+        )
+        .await;
+    assert_eq!(status, 400, "{answer}");
+    let (status, _) = fmo
+        .post(
+            "/api/fleet/command",
+            serde_json::json!({"vehicle": "scout", "action": "pause", "fleet": "elsewhere/fleet"}),
+        )
+        .await;
+    assert_eq!(status, 404);
+    fmo.kill().await;
+    fpmo.kill().await;
+}
