@@ -33,6 +33,7 @@ use crate::mavlink_cm::{
 };
 
 mod driver;
+mod fence;
 mod mapping;
 
 use driver::{configure, Driver};
@@ -211,6 +212,15 @@ impl IAutopilot for ArduPilot {
     async fn shutdown(&self) {
         self.cancel.cancel();
         self.tasks.wait().await;
+    }
+
+    async fn upload_fence(&self, f: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {
+        let wait = self.cfg.manager.connect_wait;
+        self.mgr
+            .wait_connected(wait)
+            .await
+            .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+        fence::upload(&self.mgr, f).await
     }
 }
 
