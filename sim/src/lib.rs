@@ -17,6 +17,7 @@
 #![allow(deprecated)]
 
 pub mod battery;
+pub mod fence;
 pub mod kinematics;
 pub mod link;
 pub mod log;
