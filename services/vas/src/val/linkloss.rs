@@ -126,7 +126,8 @@ pub enum Decision {
     },
     /// The link is back after `outage`.
     Restored {
-        /// How long it was lost.
+        /// How long the ground was silent (from its last heartbeat, or from when the radio
+        /// was declared dead).
         outage: Duration,
     },
 }
@@ -196,7 +197,8 @@ impl LinkWatch {
                     if let Some((l, _)) = self.radio_down.iter().find(|(_, s)| s.is_some()) {
                         why += &format!(" (radio link `{l}` reaches no peer)");
                     }
-                    self.lost_since = Some(last + self.timeout);
+                    // The silence began with the last heartbeat.
+                    self.lost_since = Some(last);
                     Some(Decision::Lost { why })
                 } else if let Some((l, d)) = radio_dead {
                     let why = format!(
@@ -211,7 +213,7 @@ impl LinkWatch {
             }
             Some(since) => {
                 // Back when a heartbeat came after the loss and no radio is down.
-                let fresh = last >= since && silent < self.timeout;
+                let fresh = last > since && silent < self.timeout;
                 let radio_up = self.radio_down.values().all(Option::is_none);
                 if fresh && radio_up {
                     self.lost_since = None;
@@ -249,7 +251,7 @@ mod tests {
         w.heartbeat(t0 + s(10));
         assert_eq!(
             w.poll(t0 + s(10)),
-            Some(Decision::Restored { outage: s(7) })
+            Some(Decision::Restored { outage: s(10) })
         );
         assert!(!w.is_lost());
     }

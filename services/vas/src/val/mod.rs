@@ -257,7 +257,7 @@ impl Core {
     /// The ground link is back after `outage`; `taken` is what [`Core::link_lost`] did.
     async fn link_restored(&self, outage: Duration, taken: Option<(FlightState, FlightState)>) {
         let mut text = format!(
-            "ground link restored after {:.1} s",
+            "ground link restored after {:.1} s of silence",
             outage.as_secs_f64()
         );
         let mut action = "none";
