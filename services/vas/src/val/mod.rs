@@ -333,7 +333,15 @@ impl Core {
                 }
                 self.publish_queue().await;
             }
-            ApEvent::Alarm(a) => self.alarm(a.severity, a.text),
+            ApEvent::Alarm(a) => {
+                // The autopilot's own fence breach (ArduPilot "... fence breached", mavsim
+                // "Fence breached: ..."): a failsafe the stations list.
+                let lower = a.text.to_ascii_lowercase();
+                if lower.contains("fence") && lower.contains("breach") {
+                    self.failsafe(FailsafeKind::Fence, "autopilot", &a.text);
+                }
+                self.alarm(a.severity, a.text);
+            }
             ApEvent::ModeChanged { mode, state } => {
                 let _t = self.transition.lock().await;
                 match state {
