@@ -115,7 +115,10 @@ impl FenceStore {
         }
         if item.command != MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION {
             self.pending = None;
-            return (vec![ack(from, MavMissionResult::MAV_MISSION_UNSUPPORTED)], None);
+            return (
+                vec![ack(from, MavMissionResult::MAV_MISSION_UNSUPPORTED)],
+                None,
+            );
         }
         p.items.push(item);
         if p.items.len() < usize::from(p.count) {
@@ -155,7 +158,11 @@ impl FenceStore {
 
     /// Checks `pos` (local, from home): `Some(reason)` when it has just left the fence.
     pub fn breach(&mut self, p: &FenceParams, pos: &Ned) -> Option<String> {
-        let why = if p.enabled { self.outside(p, pos) } else { None };
+        let why = if p.enabled {
+            self.outside(p, pos)
+        } else {
+            None
+        };
         match (why, self.breached) {
             (Some(why), false) => {
                 self.breached = true;
@@ -172,10 +179,16 @@ impl FenceStore {
     fn outside(&self, p: &FenceParams, pos: &Ned) -> Option<String> {
         let d = pos.north.hypot(pos.east);
         if p.kinds & 2 != 0 && p.radius_m > 0.0 && d > p.radius_m {
-            return Some(format!("circle ({d:.0} m from home, radius {:.0} m)", p.radius_m));
+            return Some(format!(
+                "circle ({d:.0} m from home, radius {:.0} m)",
+                p.radius_m
+            ));
         }
         if p.kinds & 1 != 0 && p.alt_max_m > 0.0 && pos.up > p.alt_max_m {
-            return Some(format!("ceiling ({:.0} m, max {:.0} m)", pos.up, p.alt_max_m));
+            return Some(format!(
+                "ceiling ({:.0} m, max {:.0} m)",
+                pos.up, p.alt_max_m
+            ));
         }
         if p.kinds & 4 != 0 && self.polygon.len() >= 3 && !self.inside(pos) {
             return Some("polygon".into());
@@ -236,13 +249,17 @@ mod tests {
         let f = frame();
         let mut s = FenceStore::default();
         let out = s.on_count(GCS, 4);
-        assert!(matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == 0 && r.mission_type == FENCE));
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == 0 && r.mission_type == FENCE)
+        );
         let corners = [(-50.0, -50.0), (-50.0, 50.0), (50.0, 50.0), (50.0, -50.0)];
         for (i, (n, e)) in corners.iter().enumerate() {
             // A stale resend is answered with the request for the wanted item.
             if i == 2 {
                 let (out, _) = s.on_item(GCS, vertex(&f, 0, -50.0, -50.0), &f);
-                assert!(matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == 2));
+                assert!(
+                    matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == 2)
+                );
             }
             let (out, done) = s.on_item(GCS, vertex(&f, i as u16, *n, *e), &f);
             if i == 3 {
@@ -259,10 +276,20 @@ mod tests {
         };
         let at = |north, east, up| Ned { north, east, up };
         assert_eq!(s.breach(&p, &at(10.0, 10.0, 0.0)), None);
-        assert_eq!(s.breach(&p, &at(60.0, 0.0, 0.0)).as_deref(), Some("polygon"));
-        assert_eq!(s.breach(&p, &at(70.0, 0.0, 0.0)), None, "once per excursion");
+        assert_eq!(
+            s.breach(&p, &at(60.0, 0.0, 0.0)).as_deref(),
+            Some("polygon")
+        );
+        assert_eq!(
+            s.breach(&p, &at(70.0, 0.0, 0.0)),
+            None,
+            "once per excursion"
+        );
         assert_eq!(s.breach(&p, &at(0.0, 0.0, 0.0)), None);
-        assert!(s.breach(&p, &at(0.0, 0.0, 31.0)).unwrap().starts_with("ceiling"));
+        assert!(s
+            .breach(&p, &at(0.0, 0.0, 31.0))
+            .unwrap()
+            .starts_with("ceiling"));
         let off = FenceParams {
             enabled: false,
             ..p
@@ -274,7 +301,10 @@ mod tests {
             radius_m: 80.0,
             alt_max_m: 0.0,
         };
-        assert!(s.breach(&circle, &at(100.0, 0.0, 0.0)).unwrap().starts_with("circle (100 m"));
+        assert!(s
+            .breach(&circle, &at(100.0, 0.0, 0.0))
+            .unwrap()
+            .starts_with("circle (100 m"));
         assert!(s.on_clear(GCS).len() == 1 && s.vertices() == 0);
     }
 
@@ -286,12 +316,16 @@ mod tests {
             [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_NO_SPACE));
         // An item with no transfer.
         let (out, _) = s.on_item(GCS, vertex(&f, 0, 0.0, 0.0), &f);
-        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_DENIED));
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_DENIED)
+        );
         // Not a polygon vertex (circles are parameters here).
         s.on_count(GCS, 1);
         let mut item = vertex(&f, 0, 0.0, 0.0);
         item.command = MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION;
         let (out, _) = s.on_item(GCS, item, &f);
-        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED));
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED)
+        );
     }
 }

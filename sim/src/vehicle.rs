@@ -1393,12 +1393,18 @@ mod tests {
             }),
             now,
         );
-        assert!(matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.mission_type == fence));
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.mission_type == fence)
+        );
         for (i, (n, e)) in [(-40.0, -40.0), (-40.0, 40.0), (40.0, 40.0), (40.0, -40.0)]
             .into_iter()
             .enumerate()
         {
-            let g = v.frame.to_geo(Ned { north: n, east: e, up: 0.0 });
+            let g = v.frame.to_geo(Ned {
+                north: n,
+                east: e,
+                up: 0.0,
+            });
             let item = Item {
                 seq: i as u16,
                 command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
@@ -1416,19 +1422,25 @@ mod tests {
             }
         }
         assert_eq!(v.mission().len(), 3, "the mission is untouched");
-        for (name, value) in [("FENCE_TYPE", 4.0), ("FENCE_ACTION", 2.0), ("FENCE_ENABLE", 1.0)] {
+        for (name, value) in [
+            ("FENCE_TYPE", 4.0),
+            ("FENCE_ACTION", 2.0),
+            ("FENCE_ENABLE", 1.0),
+        ] {
             v.params.set(name, value);
         }
         start_auto(&mut v);
         run_until(&mut v, 120.0, |v| v.behaviour() == Behaviour::Hold);
         assert_eq!(v.behaviour(), Behaviour::Hold, "held at the breach");
         let north = v.position().north;
-        assert!((40.0..50.0).contains(&north), "stopped near the fence: {north}");
-        assert!(v
-            .take_log()
-            .iter()
-            .any(|(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
-                if fence == "polygon" && action == "hold")));
+        assert!(
+            (40.0..50.0).contains(&north),
+            "stopped near the fence: {north}"
+        );
+        assert!(v.take_log().iter().any(
+            |(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
+                if fence == "polygon" && action == "hold")
+        ));
     }
 
     #[test]

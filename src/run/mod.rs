@@ -2,6 +2,7 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+mod failsafe;
 pub mod mission;
 mod radio;
 mod station;
@@ -189,6 +190,7 @@ fn station_setup(
         vas: st.vas.clone(),
         nominal,
         nominal_m,
+        refused_plan: st.refused_plan.clone(),
     })
 }
 
@@ -703,7 +705,7 @@ fn conclude(mission: &Mission, args: &RunArgs, ui: &Ui, outs: Vec<Outcome>) -> E
     let off_plan: Vec<String> = outs
         .iter()
         .filter_map(|o| match o {
-            Outcome::Completed(s) if !s.in_order => {
+            Outcome::Completed(s) if !s.as_planned() => {
                 Some(s.vehicle.clone().unwrap_or_else(|| "the vehicle".into()))
             }
             _ => None,

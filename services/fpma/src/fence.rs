@@ -145,8 +145,14 @@ mod tests {
         for (fence, what) in [
             ("<fence/>", "set maxDistance"),
             (r#"<fence maxDistance="-3"/>"#, "maxDistance"),
-            (r#"<fence maxDistance="50" homeLat="41"/>"#, "both homeLat and homeLon"),
-            (r#"<fence maxDistance="50" action="land"/>"#, "`report`, `rtl` or `hold`"),
+            (
+                r#"<fence maxDistance="50" homeLat="41"/>"#,
+                "both homeLat and homeLon",
+            ),
+            (
+                r#"<fence maxDistance="50" action="land"/>"#,
+                "`report`, `rtl` or `hold`",
+            ),
             (
                 r#"<fence><pt lat="41.2749" lon="1.9869"/><pt lat="41.2760" lon="1.9869"/></fence>"#,
                 "at least 3",

@@ -146,7 +146,9 @@ async fn run() {
     );
 
     // Without it, the plan loads and its fence reaches the autopilot.
-    load.call(&plan(false), STEP).await.expect("the fenced plan loads");
+    load.call(&plan(false), STEP)
+        .await
+        .expect("the fenced plan loads");
     let deadline = Instant::now() + STEP;
     let uploaded = loop {
         let up: Vec<serde_json::Value> = std::fs::read_to_string(&log)

@@ -196,12 +196,7 @@ impl Fence {
     /// Where it leaves, e.g. `the track 41.27,1.98 -> 41.28,1.99 crosses the fence polygon`.
     pub fn check_segment(&self, a: (f64, f64), b: (f64, f64)) -> Result<(), String> {
         let (pa, pb) = (self.local(a), self.local(b));
-        let track = || {
-            format!(
-                "the track {:.6},{:.6} -> {:.6},{:.6}",
-                a.0, a.1, b.0, b.1
-            )
-        };
+        let track = || format!("the track {:.6},{:.6} -> {:.6},{:.6}", a.0, a.1, b.0, b.1);
         // The circle is convex: a track leaves it only if an end does, and the ends were
         // checked as points.
         if self.polygon.len() >= 3 {
@@ -372,7 +367,10 @@ mod tests {
         let mut f = fence();
         f.polygon[0].0 = 91.0;
         assert!(f.validate().is_err());
-        assert_eq!("RTL".parse::<FenceAction>(), Ok(FenceAction::ReturnToLaunch));
+        assert_eq!(
+            "RTL".parse::<FenceAction>(),
+            Ok(FenceAction::ReturnToLaunch)
+        );
         assert!("land".parse::<FenceAction>().is_err());
         for a in [
             FenceAction::Report,

@@ -15,7 +15,10 @@ use usal_types::{Failsafe, FailsafeKind, Fence, FenceAction, FlightState, Waypoi
 fn at(north: f64, east: f64) -> (f64, f64) {
     let m_per_deg_lat = 111_319.49;
     let m_per_deg_lon = m_per_deg_lat * HOME.0.to_radians().cos();
-    (HOME.0 + north / m_per_deg_lat, HOME.1 + east / m_per_deg_lon)
+    (
+        HOME.0 + north / m_per_deg_lat,
+        HOME.1 + east / m_per_deg_lon,
+    )
 }
 
 fn fence(max_distance_m: f64) -> Fence {
@@ -49,10 +52,17 @@ async fn run() {
         .unwrap();
     g.wait_state(FlightState::Parking, STEP).await;
 
-    let reply = set_fence.call(&Some(fence(120.0)), STEP).await.expect("set_fence");
+    let reply = set_fence
+        .call(&Some(fence(120.0)), STEP)
+        .await
+        .expect("set_fence");
     assert!(reply.contains("uploaded to the autopilot"), "{reply}");
     let up = sim.log_events("fence_uploaded");
-    assert_eq!(up.last().map(|r| r["vertices"].clone()), Some(4.into()), "{up:?}");
+    assert_eq!(
+        up.last().map(|r| r["vertices"].clone()),
+        Some(4.into()),
+        "{up:?}"
+    );
 
     // Outside the circle: refused whole, naming the waypoint; mavsim never gets it.
     let mut wps = zigzag(3, 10.0);
@@ -73,19 +83,31 @@ async fn run() {
     // A bad fence is refused as a whole.
     let mut bad = fence(120.0);
     bad.polygon.truncate(2);
-    let e = set_fence.call(&Some(bad), STEP).await.unwrap_err().to_string();
+    let e = set_fence
+        .call(&Some(bad), STEP)
+        .await
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("at least 3"), "{e}");
 
     // Inside: flown. Then the fence shrinks to 40 m under the moving rover: mavsim holds it.
     let wps: Vec<Waypoint> = zigzag(10, 10.0);
     g.push_all(&wps).await;
-    g.request(FlightState::WaypointNavigation).await.expect("navigation");
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigation");
     let deadline = tokio::time::Instant::now() + STEP;
     while sim.log_events("item_reached").len() < 5 {
-        assert!(tokio::time::Instant::now() < deadline, "the rover does not drive");
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the rover does not drive"
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let reply = set_fence.call(&Some(fence(40.0)), STEP).await.expect("tighter fence");
+    let reply = set_fence
+        .call(&Some(fence(40.0)), STEP)
+        .await
+        .expect("tighter fence");
     assert!(reply.contains("uploaded"), "{reply}");
     let breach = loop {
         let f = tokio::time::timeout(STEP, failsafes.recv())

@@ -153,9 +153,7 @@ async fn outage_mid_mission(recovery: &str) {
         .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
         .unwrap();
     let push = gsvc
-        .function::<Vec<usal_types::Waypoint>, usal_types::QueueStatus>(
-            "rover1/vas/push_waypoints",
-        )
+        .function::<Vec<usal_types::Waypoint>, usal_types::QueueStatus>("rover1/vas/push_waypoints")
         .unwrap();
     assert!(
         change.wait_provider(RADIO).await,
@@ -218,7 +216,10 @@ async fn outage_mid_mission(recovery: &str) {
             // And it drives on: another waypoint is reached.
             let deadline = Instant::now() + STEP;
             while sim.log_events("item_reached").len() <= reached_before {
-                assert!(Instant::now() < deadline, "no waypoint reached after resuming");
+                assert!(
+                    Instant::now() < deadline,
+                    "no waypoint reached after resuming"
+                );
                 tokio::time::sleep(Duration::from_millis(200)).await;
             }
         }

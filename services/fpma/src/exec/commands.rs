@@ -312,12 +312,16 @@ impl Executive {
         for (k, p) in points.iter().enumerate() {
             check_point(&format!("point {}", k + 1), *p)?;
             if let Some(pf) = &self.plan.fence {
-                let height = alt.filter(|_| {
-                    !matches!(self.plan.altitude_reference(), usal_types::AltRef::Msl)
-                });
+                let height = alt
+                    .filter(|_| !matches!(self.plan.altitude_reference(), usal_types::AltRef::Msl));
                 pf.fence
                     .check_point((p.lat, p.lon), height)
-                    .map_err(|why| bad_arg(format!("point {}", k + 1), &format!("is outside the fence: {why}")))?;
+                    .map_err(|why| {
+                        bad_arg(
+                            format!("point {}", k + 1),
+                            &format!("is outside the fence: {why}"),
+                        )
+                    })?;
             }
         }
         if let Some(a) = alt.filter(|a| !a.is_finite()) {

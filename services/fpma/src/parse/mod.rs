@@ -271,7 +271,9 @@ fn fence_from(f: &Element) -> Result<PlanFence> {
         _ => {
             return Err(PlanError::at(
                 f.pos,
-                PlanErrorKind::Structure("<fence> needs both homeLat and homeLon, or neither".into()),
+                PlanErrorKind::Structure(
+                    "<fence> needs both homeLat and homeLon, or neither".into(),
+                ),
             ))
         }
     };

@@ -53,7 +53,10 @@ impl MavlinkManager {
     /// Refusal (an autopilot without fences answers UNSUPPORTED), or retries exhausted.
     pub async fn fence_upload(&self, items: &[MissionItem]) -> Result<(), MissionError> {
         if items.len() > usize::from(u16::MAX) {
-            return Err(MissionError::Invalid(format!("{} fence items", items.len())));
+            return Err(MissionError::Invalid(format!(
+                "{} fence items",
+                items.len()
+            )));
         }
         let target = self.inner.target().await?;
         let _op = self.inner.ops.lock().await;
@@ -64,7 +67,9 @@ impl MavlinkManager {
                 target_component: target.1,
                 mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
             });
-            self.inner.put(super::outbound::Outbound::Message(clear)).await?;
+            self.inner
+                .put(super::outbound::Outbound::Message(clear))
+                .await?;
             // Best effort: the ack is awaited briefly, a missing one is not an error.
             let until = Instant::now() + self.inner.cfg.request_timeout;
             while let Ok(Ok(m)) = timeout_at(until, rx.recv()).await {

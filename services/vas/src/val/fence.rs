@@ -65,7 +65,10 @@ mod tests {
         assert!(check_waypoints(&f, &[inside.clone()]).is_ok());
         let far = wp(2, 41.2770, 1.9870, 5.0);
         let e = check_waypoints(&f, &[inside.clone(), far]).unwrap_err();
-        assert!(e.starts_with("waypoint 1 (seq 2) outside the fence:"), "{e}");
+        assert!(
+            e.starts_with("waypoint 1 (seq 2) outside the fence:"),
+            "{e}"
+        );
         assert!(e.contains("m from home (fence: 100 m)"), "{e}");
         let high = wp(3, 41.2755, 1.9875, 25.0);
         let e = check_waypoints(&f, &[high]).unwrap_err();

@@ -190,10 +190,7 @@ impl LinkWatch {
         match self.lost_since {
             None => {
                 if silent >= self.timeout {
-                    let mut why = format!(
-                        "no station heartbeat for {:.1} s",
-                        silent.as_secs_f64()
-                    );
+                    let mut why = format!("no station heartbeat for {:.1} s", silent.as_secs_f64());
                     if let Some((l, _)) = self.radio_down.iter().find(|(_, s)| s.is_some()) {
                         why += &format!(" (radio link `{l}` reaches no peer)");
                     }
@@ -274,10 +271,7 @@ mod tests {
         assert_eq!(w.poll(t0 + s(4)), None);
         w.radio(t0 + s(5), "radio", 1);
         w.heartbeat(t0 + s(5));
-        assert!(matches!(
-            w.poll(t0 + s(5)),
-            Some(Decision::Restored { .. })
-        ));
+        assert!(matches!(w.poll(t0 + s(5)), Some(Decision::Restored { .. })));
     }
 
     #[test]

@@ -232,7 +232,11 @@ impl Core {
             match self.apl.change_state(to).await {
                 Ok(()) => {
                     self.enter(to, "ground link lost");
-                    let name = if to == FlightState::ReturnToLaunch { "rtl" } else { "hold" };
+                    let name = if to == FlightState::ReturnToLaunch {
+                        "rtl"
+                    } else {
+                        "hold"
+                    };
                     let mut text = format!("ground link lost: {why}; {from} -> {to}");
                     for f in &failures {
                         text += &format!(" ({f})");
@@ -270,7 +274,9 @@ impl Core {
                 }
                 linkloss::LinkRecovery::Wait => {
                     action = "wait";
-                    text += &format!("; staying in {now} until the operator decides (linkRecovery wait)");
+                    text += &format!(
+                        "; staying in {now} until the operator decides (linkRecovery wait)"
+                    );
                 }
                 linkloss::LinkRecovery::Resume => match self.apl.change_state(before).await {
                     Ok(()) => {
@@ -307,7 +313,8 @@ impl Core {
                 None => "fence cleared".to_owned(),
             }),
             Err(e) => {
-                let text = format!("fence kept by the VAS only: the autopilot did not take it: {e}");
+                let text =
+                    format!("fence kept by the VAS only: the autopilot did not take it: {e}");
                 self.alarm(Severity::Warning, &text);
                 Ok(text)
             }
@@ -600,7 +607,8 @@ impl IService for Vas {
         });
 
         // Lost ground link: the station's heartbeat and the radio's health.
-        let heartbeat = ctx.subscribe_variable::<StationHeartbeat>(&core.cfg.link_loss.heartbeat)?;
+        let heartbeat =
+            ctx.subscribe_variable::<StationHeartbeat>(&core.cfg.link_loss.heartbeat)?;
         let radio = match &core.cfg.link_loss.radio_link {
             Some(link) => {
                 let me = ctx.full_name("");
