@@ -69,8 +69,12 @@ pub fn summary_text(notes: &[FailsafeNote]) -> String {
     if notes.is_empty() {
         return String::new();
     }
-    let mut kinds: Vec<&str> = notes.iter().map(|n| n.kind.as_str()).collect();
-    kinds.dedup();
+    let mut kinds: Vec<&str> = Vec::new();
+    for n in notes {
+        if !kinds.contains(&n.kind.as_str()) {
+            kinds.push(&n.kind);
+        }
+    }
     let mut s = format!("  failsafes fired: {}\n", kinds.join(", "));
     for n in notes {
         s += &format!(
@@ -145,5 +149,36 @@ pub async fn rehearse_refusal(
             })
         }
         Err(e) => Err(format!("offering refusedPlan {name}: {e}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_summary_names_each_kind_once_then_lists_every_failsafe() {
+        let lost = Failsafe {
+            kind: FailsafeKind::LinkLost,
+            action: "hold".into(),
+            text: "ground link lost".into(),
+        };
+        let notes = vec![
+            FailsafeNote::from_event(&lost, 40.0),
+            FailsafeNote::from_rule("low-battery", 80.0),
+            FailsafeNote::from_event(&lost, 90.0),
+        ];
+        let text = summary_text(&notes);
+        assert!(
+            text.starts_with("  failsafes fired: link-lost, battery\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("80.0 s  battery (rule low-battery)"),
+            "{text}"
+        );
+        assert_eq!(text.lines().count(), 4, "{text}");
+        assert!(summary_text(&[]).is_empty());
+        assert!(notes[1].changes_route() && !notes[0].changes_route());
     }
 }

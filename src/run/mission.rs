@@ -947,6 +947,28 @@ mod tests {
     }
 
     #[test]
+    fn the_failsafe_mission_names_its_outages_and_refused_plan() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
+        let m = Mission::load(&dir.join("rover-failsafe.xml")).unwrap();
+        assert_eq!(
+            m.radio.as_ref().map(|r| r.outages.clone()),
+            Some(vec![(45_000, 12_000)])
+        );
+        let (_, st) = m.stations()[0];
+        assert!(st
+            .refused_plan
+            .as_ref()
+            .is_some_and(|p| p.ends_with("rover-failsafe-outside.xml")));
+        assert_eq!(
+            parse_outages("1:2, 30000:500"),
+            Ok(vec![(1, 2), (30_000, 500)])
+        );
+        for bad in ["", "5", "a:1", "1:-2"] {
+            assert!(parse_outages(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
     fn the_shipped_missions_parse() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
         for entry in std::fs::read_dir(&dir).unwrap() {
