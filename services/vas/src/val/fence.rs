@@ -62,7 +62,7 @@ mod tests {
             action: FenceAction::Hold,
         };
         let inside = wp(1, 41.2755, 1.9875, 5.0);
-        assert!(check_waypoints(&f, &[inside.clone()]).is_ok());
+        assert!(check_waypoints(&f, std::slice::from_ref(&inside)).is_ok());
         let far = wp(2, 41.2770, 1.9870, 5.0);
         let e = check_waypoints(&f, &[inside.clone(), far]).unwrap_err();
         assert!(
