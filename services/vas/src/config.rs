@@ -475,6 +475,32 @@ mod tests {
     }
 
     #[test]
+    fn link_loss_keys_are_read_and_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("vas.xml");
+        std::fs::write(
+            &p,
+            r#"<vas linkLossTimeoutMs="3000" linkLossAction="hold" linkRecovery="wait" radioLink=""/>"#,
+        )
+        .unwrap();
+        let ll = VasConfig::load(&p).unwrap().val().link_loss;
+        use crate::val::linkloss::{LinkLossAction, LinkRecovery};
+        assert_eq!(ll.timeout, Duration::from_secs(3));
+        assert_eq!(ll.action, LinkLossAction::Hold);
+        assert_eq!(ll.recovery, LinkRecovery::Wait);
+        assert_eq!(ll.radio_link, None);
+        for bad in [
+            r#"<vas linkLossAction="land"/>"#,
+            r#"<vas linkRecovery="later"/>"#,
+            r#"<vas linkLossTimeoutMs="5"/>"#,
+        ] {
+            std::fs::write(&p, bad).unwrap();
+            let e = VasConfig::load(&p).unwrap_err().to_string();
+            assert!(e.contains("linkLoss") || e.contains("linkRecovery"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
     fn unknown_attributes_and_bad_values_are_refused() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("vas.xml");
