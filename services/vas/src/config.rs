@@ -496,7 +496,10 @@ mod tests {
         ] {
             std::fs::write(&p, bad).unwrap();
             let e = VasConfig::load(&p).unwrap_err().to_string();
-            assert!(e.contains("linkLoss") || e.contains("linkRecovery"), "{bad}: {e}");
+            assert!(
+                e.contains("linkLoss") || e.contains("linkRecovery"),
+                "{bad}: {e}"
+            );
         }
     }
 

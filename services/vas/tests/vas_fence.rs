@@ -2,7 +2,7 @@
 //! `set_fence` uploads it to the autopilot (mavsim logs the polygon it received), waypoints
 //! outside it are refused naming the waypoint, and when the fence is tightened under a moving
 //! rover, mavsim's enforcement holds it (its `FENCE_ACTION`) and the VAS raises the breach as a
-//! `failsafe` event.
+//! `failsafe` event. A restarted autopilot gets the fence again.
 
 mod common;
 
@@ -123,6 +123,21 @@ async fn run() {
     let log = sim.log_events("fence_breached");
     assert_eq!(log.len(), 1, "{log:?}");
     assert_eq!(log[0]["action"], "hold");
+
+    // The autopilot restarts (same port, a new log): the VAS uploads the fence again.
+    let addr = sim.addr.clone();
+    sim.kill().await;
+    g.wait_alarm("heartbeat lost", STEP).await;
+    let sim = Sim::start(&addr, 5.0, &dir.path().join("sim2.jsonl")).await;
+    let deadline = tokio::time::Instant::now() + STEP * 2;
+    while sim.log_events("fence_uploaded").is_empty() {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the fence was not uploaded to the restarted autopilot"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert_eq!(sim.log_events("fence_uploaded")[0]["vertices"], 4);
 
     vas.kill().await;
     sim.kill().await;

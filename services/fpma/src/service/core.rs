@@ -228,6 +228,16 @@ impl<V: VasPort> Core<V> {
         );
         self.exec = Some(p.exec);
         self.source = p.source;
+        // The VAS may have restarted too and forgotten the plan's fence.
+        let fence = self
+            .exec
+            .as_ref()
+            .and_then(|ex| ex.plan().fence.as_ref().map(|f| f.fence.clone()));
+        if fence.is_some() {
+            if let Err(e) = self.vas.set_fence(fence).await {
+                tracing::warn!("the VAS did not take the resumed plan's fence: {e}");
+            }
+        }
         self.pending = p.pending.into();
         self.max_pushed = p.max_pushed;
         self.last_reached = p.last_reached;

@@ -45,8 +45,9 @@ pub struct ValConfig {
     pub manual_skew: Duration,
     /// The lost-ground-link watch (issue 15).
     pub link_loss: linkloss::LinkLossConfig,
-    /// A fence from the VAS's own configuration, kept whatever plan comes (issue 15); a plan's
-    /// fence (`set_fence`) replaces it.
+    /// A fence of the VAS's own (issue 15; library users): checked from the start, uploaded
+    /// once the autopilot is configured; a plan's fence (`set_fence`) replaces it, and
+    /// `set_fence(None)` restores it.
     pub fence: Option<Fence>,
 }
 
@@ -295,6 +296,19 @@ impl Core {
         self.failsafe(FailsafeKind::LinkRestored, action, &text);
     }
 
+    /// Uploads the fence in force again (after the autopilot reconnected).
+    async fn reupload_fence(&self) {
+        let f = lock(&self.fence).clone();
+        if let Err(e) = self.apl.upload_fence(f.as_ref()).await {
+            self.alarm(
+                Severity::Warning,
+                format!(
+                    "fence kept by the VAS only: the reconnected autopilot did not take it: {e}"
+                ),
+            );
+        }
+    }
+
     /// `set_fence`: checks a plan's fence, uploads it to the autopilot where it takes one, and
     /// keeps it for the waypoint checks. `None` restores the configured fence.
     async fn set_fence(&self, f: Option<Fence>) -> Result<String, String> {
@@ -495,15 +509,6 @@ impl IService for Vas {
             let c = c.clone();
             async move { c.set_fence(f).await }
         })?;
-        if self.cfg.fence.is_some() {
-            let c = core.clone();
-            ctx.spawn(async move {
-                // Uploaded once the autopilot is there; the APL waits for its connection.
-                if let Err(e) = c.set_fence(None).await {
-                    c.alarm(Severity::Warning, e);
-                }
-            });
-        }
         let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
         // This VAS's item prefix, the address a manual command must carry to be obeyed.
         let me = ctx.full_name("").trim_end_matches('/').to_owned();
@@ -533,6 +538,22 @@ impl IService for Vas {
                 tokio::select! {
                     _ = cx.cancelled() => return,
                     ev = events.recv() => match ev {
+                        Ok(ev @ (ApEvent::Configured | ApEvent::LinkRestored)) => {
+                            c.on_ap(ev).await;
+                            // A restarted (reconnected) autopilot may have lost the fence:
+                            // upload it again, beside the event loop (a few parameters and a
+                            // transfer).
+                            if lock(&c.fence).is_some() {
+                                let c2 = c.clone();
+                                let cx2 = cx.clone();
+                                cx.spawn(async move {
+                                    tokio::select! {
+                                        () = cx2.cancelled() => {}
+                                        () = c2.reupload_fence() => {}
+                                    }
+                                });
+                            }
+                        }
                         Ok(ev) => c.on_ap(ev).await,
                         Err(broadcast::error::RecvError::Lagged(n)) => {
                             tracing::warn!("VAL lagged {n} autopilot events");
