@@ -220,6 +220,14 @@ impl IAutopilot for ArduPilot {
             .wait_connected(wait)
             .await
             .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+        // Only ArduPilot keeps its fence as FENCE_* parameters; another family would leave
+        // each unknown parameter unanswered through every retry.
+        if self.mgr.family() != crate::mavlink_cm::AutopilotFamily::ArduPilot {
+            return Err(AutopilotError::Unsupported(format!(
+                "fences are uploaded to ArduPilot only, this autopilot is {:?}",
+                self.mgr.family()
+            )));
+        }
         fence::upload(&self.mgr, f).await
     }
 }

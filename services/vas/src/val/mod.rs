@@ -648,6 +648,7 @@ impl IService for Vas {
             let cfg = &c.cfg.link_loss;
             let mut watch = linkloss::LinkWatch::new(cfg.timeout);
             let mut taken = None;
+            let mut heard = false;
             let mut tick = tokio::time::interval((cfg.timeout / 10).max(Duration::from_millis(50)));
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             let mut radio = radio;
@@ -656,8 +657,13 @@ impl IService for Vas {
                     _ = cx.cancelled() => return,
                     h = heartbeat.recv() => match h {
                         Ok(h) => {
-                            if !watch.is_lost() && taken.is_none() && h.value.seq == 0 {
-                                tracing::info!("following station {} ({})", h.value.station, h.publisher);
+                            if !heard {
+                                heard = true;
+                                tracing::info!(
+                                    "ground link watch armed: heartbeat of {} ({})",
+                                    h.value.station,
+                                    h.publisher
+                                );
                             }
                             watch.heartbeat(h.received);
                         }
