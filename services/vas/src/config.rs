@@ -148,8 +148,8 @@ pub struct VasConfig {
     /// `hold`, `rtl`.
     #[serde(rename = "@linkLossAction")]
     pub link_loss_action: String,
-    /// What the VAS does when the link returns (`linkRecovery`): `resume` the state the loss
-    /// interrupted (default) or `wait` for the operator.
+    /// What the VAS does when the link returns (`linkRecovery`): `wait` for the operator
+    /// (default) or `resume` the state the loss interrupted.
     #[serde(rename = "@linkRecovery")]
     pub link_recovery: String,
     /// Pattern of the station heartbeat variable followed (`stationHeartbeat`, default

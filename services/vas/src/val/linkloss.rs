@@ -60,9 +60,10 @@ impl std::str::FromStr for LinkLossAction {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum LinkRecovery {
     /// Go back to the state the loss interrupted (if nobody changed it meanwhile).
-    #[default]
     Resume,
-    /// Stay as the action left it until the operator decides.
+    /// Stay as the action left it until the operator decides: the default, as the pilot in
+    /// command decides when a held vehicle moves again (issue 15 item 4).
+    #[default]
     Wait,
 }
 
@@ -111,7 +112,7 @@ impl Default for LinkLossConfig {
             radio_link: Some("radio".into()),
             timeout: Duration::from_secs(5),
             action: LinkLossAction::Continue,
-            recovery: LinkRecovery::Resume,
+            recovery: LinkRecovery::Wait,
         }
     }
 }
