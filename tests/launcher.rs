@@ -736,3 +736,50 @@ fn a_malformed_mission_file_names_element_and_line_and_starts_nothing() {
         "{err}"
     );
 }
+
+/// Issue 15: the failsafe rehearsal. Over a lossy radio the station first offers a plan that
+/// leaves the field's geofence (refused), the radio goes silent mid-mission (the VAS holds,
+/// then resumes) and the battery runs low (the plan's rule sends the rover to the approach);
+/// the run ends with status 0 and a summary naming each failsafe that fired.
+#[test]
+fn the_rover_failsafe_mission_names_each_failsafe_that_fired() {
+    let mut l = Launcher::start(&[
+        "config/missions/rover-failsafe.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let summary = l.event(FLIGHT * 2, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let s = &summary["summary"];
+    assert_eq!(s["completed"], true, "{s}");
+    let fired: Vec<(String, String)> = s["failsafes"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no failsafes in {s}"))
+        .iter()
+        .map(|f| {
+            (
+                f["kind"].as_str().unwrap_or_default().to_owned(),
+                f["action"].as_str().unwrap_or_default().to_owned(),
+            )
+        })
+        .collect();
+    let action = |kind: &str| {
+        fired
+            .iter()
+            .find(|(k, _)| k == kind)
+            .map(|(_, a)| a.as_str())
+            .unwrap_or_else(|| panic!("no {kind} failsafe in {fired:?}"))
+    };
+    assert_eq!(action("fence"), "refused");
+    assert_eq!(action("battery"), "rule low-battery");
+    // Held if the rover was already driving when the radio went silent (on a machine slow
+    // enough for the outage to come first, the VAS only reports it), resumed when it returned.
+    match action("link-lost") {
+        "hold" => assert_eq!(action("link-restored"), "resume", "{fired:?}"),
+        other => assert_eq!(other, "continue", "{fired:?}"),
+    }
+    assert_no_child_left(&l.pids());
+}

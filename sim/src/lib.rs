@@ -19,6 +19,7 @@
 
 pub mod battery;
 pub mod detector;
+pub mod fence;
 pub mod kinematics;
 pub mod link;
 pub mod log;

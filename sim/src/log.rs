@@ -83,6 +83,22 @@ pub enum LogEvent {
         /// Metres above home.
         alt: f64,
     },
+    /// A fence polygon was uploaded (issue 15).
+    FenceUploaded {
+        /// Its vertices (0: cleared).
+        vertices: usize,
+    },
+    /// The vehicle left the fence (issue 15).
+    FenceBreached {
+        /// Which part: `circle (..)`, `ceiling (..)`, `polygon`.
+        fence: String,
+        /// What was done: `report`, `rtl`, `hold`.
+        action: String,
+        /// Where, latitude.
+        lat: f64,
+        /// Where, longitude.
+        lon: f64,
+    },
 }
 
 /// A log line: simulated time plus the event.

@@ -45,6 +45,12 @@ impl Params {
             p("MIS_RESTART", 0.0, I8),
             p("FS_ACTION", 2.0, I8),
             p("INITIAL_MODE", 0.0, I8),
+            // The geofence (issue 15, `fence.rs`): off until a ground station sets it.
+            p("FENCE_ENABLE", 0.0, I8),
+            p("FENCE_TYPE", 7.0, I8),
+            p("FENCE_ACTION", 1.0, I8),
+            p("FENCE_RADIUS", 300.0, F32),
+            p("FENCE_ALT_MAX", 100.0, F32),
         ];
         match kind {
             VehicleKind::Rover => list.extend([

@@ -24,6 +24,7 @@ use mavlink::dialects::ardupilotmega::{
 };
 
 use crate::battery::{Battery, BatteryConfig};
+use crate::fence::{FenceParams, FenceStore};
 use crate::kinematics::{Command, GeoPoint, Limits, LocalFrame, Ned, State, VehicleKind};
 use crate::log::LogEvent;
 use crate::mission::{self, Change, Item, MissionStore};
@@ -108,6 +109,8 @@ pub struct Vehicle {
     /// Drained while armed, by time and distance; reported in SYS_STATUS.
     battery: Battery,
     streams: BTreeMap<u32, (Duration, Instant)>,
+    /// The geofence on board (issue 15).
+    fence: FenceStore,
     next_heartbeat: Instant,
     log: Vec<(f64, LogEvent)>,
 }
@@ -173,6 +176,7 @@ impl Vehicle {
             sim_time: 0.0,
             battery: Battery::new(BatteryConfig::default()),
             streams: BTreeMap::new(),
+            fence: FenceStore::default(),
             next_heartbeat: now,
             log: Vec::new(),
             params,
@@ -600,6 +604,7 @@ impl Vehicle {
         let moved =
             before.horizontal_distance(&self.state.pos) + (self.state.pos.up - before.up).abs();
         self.battery.drain(dt, moved, true);
+        self.check_fence(&mut out);
         if self.behaviour() == Behaviour::Auto {
             if let Some(t) = self.target {
                 if self.within(&t.pos, t.radius.unwrap_or_else(|| self.wp_radius())) {
@@ -620,6 +625,49 @@ impl Vehicle {
             }
         }
         out
+    }
+
+    /// Enforces the fence: on a breach, a STATUSTEXT, a log record and `FENCE_ACTION`
+    /// (rover: 0 report, 1 RTL, 2 hold; ArduPilot's numbering).
+    fn check_fence(&mut self, out: &mut Vec<MavMessage>) {
+        let p = FenceParams {
+            enabled: self.params.get_or("FENCE_ENABLE", 0.0) >= 1.0,
+            kinds: self.params.get_or("FENCE_TYPE", 0.0).clamp(0.0, 255.0) as u8,
+            radius_m: f64::from(self.params.get_or("FENCE_RADIUS", 0.0)),
+            alt_max_m: f64::from(self.params.get_or("FENCE_ALT_MAX", 0.0)),
+        };
+        let Some(why) = self.fence.breach(&p, &self.state.pos) else {
+            return;
+        };
+        let wanted = match self.params.get_or("FENCE_ACTION", 1.0).round() as i64 {
+            0 => None,
+            2 => Some(Behaviour::Hold),
+            _ => Some(Behaviour::Rtl),
+        };
+        let mode = wanted.and_then(|b| {
+            modes::table(self.cfg.kind)
+                .iter()
+                .find(|m| m.2 == b)
+                .map(|m| (m.0, m.1))
+        });
+        let action = match mode {
+            None => "report".to_owned(),
+            Some((_, name)) => name.to_ascii_lowercase(),
+        };
+        let here = self.frame.to_geo(self.state.pos);
+        out.push(statustext(
+            MavSeverity::MAV_SEVERITY_CRITICAL,
+            &format!("Fence breached: {why}; {action}"),
+        ));
+        self.record(LogEvent::FenceBreached {
+            fence: why,
+            action,
+            lat: here.lat_deg,
+            lon: here.lon_deg,
+        });
+        if let Some((number, _)) = mode {
+            self.change_mode(number, out);
+        }
     }
 
     /// Within `radius` of `p` (and, for a copter, of its altitude).
@@ -1310,7 +1358,7 @@ mod tests {
     }
 
     #[test]
-    fn fences_and_rally_points_are_refused_not_taken_for_the_mission() {
+    fn rally_points_are_refused_not_taken_for_the_mission() {
         use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
         let mut v = rover();
         upload(&mut v, &[10.0, 20.0]);
@@ -1318,15 +1366,81 @@ mod tests {
             GCS,
             &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
                 count: 5,
-                mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+                mission_type: MavMissionType::MAV_MISSION_TYPE_RALLY,
                 ..Default::default()
             }),
             Instant::now(),
         );
         assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
             if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED
-                && a.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE));
+                && a.mission_type == MavMissionType::MAV_MISSION_TYPE_RALLY));
         assert_eq!(v.mission().len(), 3, "the mission is untouched");
+    }
+
+    #[test]
+    fn a_fence_upload_is_kept_apart_from_the_mission_and_a_breach_triggers_fence_action() {
+        use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
+        let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
+        let mut v = rover();
+        upload(&mut v, &[10.0, 80.0]);
+        let now = Instant::now();
+        let out = v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 4,
+                mission_type: fence,
+                ..Default::default()
+            }),
+            now,
+        );
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.mission_type == fence)
+        );
+        for (i, (n, e)) in [(-40.0, -40.0), (-40.0, 40.0), (40.0, 40.0), (40.0, -40.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let g = v.frame.to_geo(Ned {
+                north: n,
+                east: e,
+                up: 0.0,
+            });
+            let item = Item {
+                seq: i as u16,
+                command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+                param1: 4.0,
+                x: (g.lat_deg * 1e7).round() as i32,
+                y: (g.lon_deg * 1e7).round() as i32,
+                mission_type: fence,
+                target_system: 1,
+                ..Default::default()
+            };
+            let out = v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item), now);
+            if i == 3 {
+                assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
+                    if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED && a.mission_type == fence));
+            }
+        }
+        assert_eq!(v.mission().len(), 3, "the mission is untouched");
+        for (name, value) in [
+            ("FENCE_TYPE", 4.0),
+            ("FENCE_ACTION", 2.0),
+            ("FENCE_ENABLE", 1.0),
+        ] {
+            v.params.set(name, value);
+        }
+        start_auto(&mut v);
+        run_until(&mut v, 120.0, |v| v.behaviour() == Behaviour::Hold);
+        assert_eq!(v.behaviour(), Behaviour::Hold, "held at the breach");
+        let north = v.position().north;
+        assert!(
+            (40.0..50.0).contains(&north),
+            "stopped near the fence: {north}"
+        );
+        assert!(v.take_log().iter().any(
+            |(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
+                if fence == "polygon" && action == "hold")
+        ));
     }
 
     #[test]

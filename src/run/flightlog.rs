@@ -342,7 +342,7 @@ pub fn kind_of(name: &str, type_name: &str) -> &'static str {
     match ty {
         "LinkHealth" => "link",
         "FlightState" | "StateChanged" => "state",
-        "Alarm" => "alarm",
+        "Alarm" | "Failsafe" => "alarm",
         "ManualCommand" | "ManualControl" => "command",
         _ if type_name.starts_with("fpma::") || name.split('/').any(|s| s == "fpma") => "plan",
         _ => "telemetry",

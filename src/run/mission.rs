@@ -172,6 +172,9 @@ pub struct StationSpec {
     pub vas: String,
     /// rover or aircraft: how the plan is expanded for the summary.
     pub vehicle: String,
+    /// A plan the FPMa must refuse (`refusedPlan`), offered before `plan`: rehearses a
+    /// plan check such as the geofence (issue 15); accepted, it fails the run.
+    pub refused_plan: Option<PathBuf>,
 }
 
 /// `<radio>`: a `marea-radio` emulator between two nodes.
@@ -189,6 +192,9 @@ pub struct RadioSpec {
     pub corrupt: f64,
     /// Seed of the emulator's RNG.
     pub seed: Option<u64>,
+    /// Scheduled outages (`outage="START_MS:DURATION_MS,..."`), from the radio's start: the
+    /// lost-link rehearsal (issue 15).
+    pub outages: Vec<(u64, u64)>,
 }
 
 /// A validation failure before the file name is attached.
@@ -589,7 +595,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 ServiceSpec::Fpma(spec)
             }
             "station" => {
-                let mut a = Attrs::new(s, &["plan", "fpma", "vas", "vehicle"]);
+                let mut a = Attrs::new(s, &["plan", "fpma", "vas", "vehicle", "refusedPlan"]);
                 let plan = a.file("plan", base)?.ok_or_else(|| {
                     Fault::at(s, "missing attribute `plan` (the flight plan to upload)")
                 })?;
@@ -598,6 +604,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     fpma: a.opt("fpma").unwrap_or_default(),
                     vas: a.opt("vas").unwrap_or_default(),
                     vehicle: a.one_of("vehicle", &["rover", "aircraft", ""], "")?,
+                    refused_plan: a.file("refusedPlan", base)?,
                 };
                 a.finish()?;
                 ServiceSpec::Station(spec)
@@ -682,7 +689,14 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
 }
 
 fn radio_from(el: &Element, mission: &Mission) -> Result<RadioSpec, Fault> {
-    let mut a = Attrs::new(el, &["ground", "air", "baud", "loss", "corrupt", "seed"]);
+    let mut a = Attrs::new(
+        el,
+        &["ground", "air", "baud", "loss", "corrupt", "seed", "outage"],
+    );
+    let outages = match a.opt("outage") {
+        None => Vec::new(),
+        Some(text) => parse_outages(&text).map_err(|e| Fault::at(el, e))?,
+    };
     let ground = a.req("ground")?;
     let air = a.req("air")?;
     let spec = RadioSpec {
@@ -692,6 +706,7 @@ fn radio_from(el: &Element, mission: &Mission) -> Result<RadioSpec, Fault> {
         seed: a.parsed("seed", "a whole number")?,
         ground,
         air,
+        outages,
     };
     a.finish()?;
     for n in [&spec.ground, &spec.air] {
@@ -708,6 +723,24 @@ fn radio_from(el: &Element, mission: &Mission) -> Result<RadioSpec, Fault> {
         }
     }
     Ok(spec)
+}
+
+/// `START_MS:DURATION_MS[,START_MS:DURATION_MS...]`.
+fn parse_outages(text: &str) -> Result<Vec<(u64, u64)>, String> {
+    text.split(',')
+        .map(|one| {
+            let (a, b) = one
+                .trim()
+                .split_once(':')
+                .ok_or_else(|| format!("outage `{one}` is not START_MS:DURATION_MS"))?;
+            let ms = |x: &str| {
+                x.trim()
+                    .parse::<u64>()
+                    .map_err(|_| format!("outage `{one}`: `{x}` is not a whole number of ms"))
+            };
+            Ok((ms(a)?, ms(b)?))
+        })
+        .collect()
 }
 
 /// Fills each station's defaults from the mission (the only FPMa, the VAS it feeds, its
@@ -1062,6 +1095,28 @@ mod tests {
         for cut in 0..bytes.len() {
             let s = String::from_utf8_lossy(&bytes[..cut]);
             let _ = parse(&s);
+        }
+    }
+
+    #[test]
+    fn the_failsafe_mission_names_its_outages_and_refused_plan() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
+        let m = Mission::load(&dir.join("rover-failsafe.xml")).unwrap();
+        assert_eq!(
+            m.radio.as_ref().map(|r| r.outages.clone()),
+            Some(vec![(45_000, 12_000)])
+        );
+        let (_, st) = m.stations()[0];
+        assert!(st
+            .refused_plan
+            .as_ref()
+            .is_some_and(|p| p.ends_with("rover-failsafe-outside.xml")));
+        assert_eq!(
+            parse_outages("1:2, 30000:500"),
+            Ok(vec![(1, 2), (30_000, 500)])
+        );
+        for bad in ["", "5", "a:1", "1:-2"] {
+            assert!(parse_outages(bad).is_err(), "{bad}");
         }
     }
 

@@ -2,6 +2,7 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+mod failsafe;
 mod fleet;
 pub mod flightlog;
 pub mod mission;
@@ -199,6 +200,7 @@ fn station_setup(
         vas: st.vas.clone(),
         nominal,
         nominal_m,
+        refused_plan: st.refused_plan.clone(),
         log: None,
     })
 }
@@ -886,7 +888,7 @@ fn conclude(mission: &Mission, args: &RunArgs, ui: &Ui, outs: Vec<Outcome>) -> E
     let off_plan: Vec<String> = outs
         .iter()
         .filter_map(|o| match o {
-            Outcome::Completed(s) if !s.in_order => {
+            Outcome::Completed(s) if !s.as_planned() => {
                 Some(s.vehicle.clone().unwrap_or_else(|| "the vehicle".into()))
             }
             _ => None,

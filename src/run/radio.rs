@@ -106,6 +106,9 @@ pub async fn start(
     if let Some(seed) = spec.seed {
         args.extend(["--seed".to_owned(), seed.to_string()]);
     }
+    for (start, duration) in &spec.outages {
+        args.extend(["--outage".to_owned(), format!("{start}:{duration}")]);
+    }
     let program = bins.path("marea-radio");
     let mut child = Command::new(&program)
         .args(&args)

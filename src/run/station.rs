@@ -18,6 +18,8 @@ use usal_types::{
     FlightState, Position, StateChangeReply, StateChangeRequest, StateChanged, WaypointReached,
 };
 
+use super::failsafe::{self, FailsafeNote};
+
 use super::supervisor::Notice;
 use super::ui::{self, Ui};
 
@@ -68,6 +70,8 @@ pub struct StationSetup {
     pub nominal: Vec<(String, f64, f64)>,
     /// Its nominal length, metres.
     pub nominal_m: f64,
+    /// A plan the FPMa must refuse, offered first (`<station refusedPlan>`, issue 15).
+    pub refused_plan: Option<PathBuf>,
     /// The run's flight log, where the station's commands and their answers go.
     pub log: Option<Arc<super::flightlog::FlightLog>>,
 }
@@ -109,6 +113,8 @@ pub struct Summary {
     pub elapsed_s: f64,
     /// Times the VAS was restarted and the queue re-sent.
     pub vas_recoveries: u32,
+    /// The failsafes that fired, in order (issue 15).
+    pub failsafes: Vec<FailsafeNote>,
 }
 
 impl Summary {
@@ -134,6 +140,8 @@ impl Summary {
             self.planned,
             if self.in_order {
                 ", each once, in order"
+            } else if self.as_planned() {
+                " (the route an emergency rule chose)"
             } else {
                 " (not the plan's sequence)"
             }
@@ -148,6 +156,7 @@ impl Summary {
                 self.vas_recoveries
             );
         }
+        s += &failsafe::summary_text(&self.failsafes);
         s += "  reached:";
         for (i, r) in self.reached.iter().enumerate() {
             if i % 4 == 0 {
@@ -156,6 +165,14 @@ impl Summary {
             s += &format!(" #{} {} ({:.6},{:.6})", r.seq, r.leg, r.lat, r.lon);
         }
         s
+    }
+}
+
+impl Summary {
+    /// Flown as planned: the plan's waypoints in order, or another route an emergency rule
+    /// chose by design (a battery rule sending the vehicle to the approach).
+    pub fn as_planned(&self) -> bool {
+        self.in_order || self.failsafes.iter().any(FailsafeNote::changes_route)
     }
 }
 
@@ -230,6 +247,8 @@ struct Tracker<'a> {
     started: Option<Instant>,
     ended: Option<Instant>,
     recoveries: u32,
+    /// The failsafes that fired.
+    failsafes: Vec<FailsafeNote>,
     /// The FPMa's PlanCompleted event arrived (reliable, unlike the progress variable's last
     /// value, which a lossy radio may drop).
     completed_event: bool,
@@ -350,6 +369,7 @@ impl Tracker<'_> {
             planned_m,
             elapsed_s: self.elapsed().as_secs_f64(),
             vas_recoveries: self.recoveries,
+            failsafes: self.failsafes.clone(),
         }
     }
 }
@@ -383,6 +403,9 @@ async fn follow(
     let changes = svc.subscribe_event::<StateChanged>(&vas("state_changed"))?;
     let vas_reached = svc.subscribe_event::<WaypointReached>(&vas("waypoint_reached"))?;
     let position = svc.subscribe_variable::<Position>(&vas("position"))?;
+    let failsafes = svc.subscribe_event::<usal_types::Failsafe>(&vas("failsafe"))?;
+    failsafe::start_heartbeat(&svc, &s.service)?;
+    let opened = Instant::now();
     let pause = svc.function::<(), CommandAck>(&fpma("pause"))?;
     let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
 
@@ -418,6 +441,7 @@ async fn follow(
         started: None,
         ended: None,
         recoveries: 0,
+        failsafes: Vec::new(),
         completed_event: false,
     };
     let mut navigated = false;
@@ -445,6 +469,9 @@ async fn follow(
                     &format!("station: the VAS is not configured after {UPLOAD_ANYWAY:?}; uploading the plan anyway"),
                     json!({"event": "note", "text": "uploading before the VAS is configured"}),
                 );
+                if let Err(e) = rehearse(&svc, s, ui, &mut t, opened).await {
+                    return Ok(Outcome::Failed(e));
+                }
                 send = Some(upload(&svc, s, &sink));
             }
             r = async { send.as_mut().expect("guarded by the precondition").await }, if send.is_some() && !sent => {
@@ -503,6 +530,12 @@ async fn follow(
                     PlanEventKind::IterationDone { leg, n } => {
                         line = Some(format!("loop {leg}: pass {n} done"));
                     }
+                    PlanEventKind::EmergencyFired { rule } => {
+                        let n = FailsafeNote::from_rule(&rule, opened.elapsed().as_secs_f64());
+                        line = Some(n.line());
+                        record = Some(json!({"event": "failsafe", "failsafe": n}));
+                        t.failsafes.push(n);
+                    }
                     other => line = Some(format!("plan: {other:?}")),
                 }
             }
@@ -518,6 +551,9 @@ async fn follow(
                 }
                 t.state = Some(st);
                 if send.is_none() && st != FlightState::ConfigureCheck {
+                    if let Err(e) = rehearse(&svc, s, ui, &mut t, opened).await {
+                        return Ok(Outcome::Failed(e));
+                    }
                     send = Some(upload(&svc, s, &sink));
                 }
                 if st == FlightState::WaypointNavigation && t.started.is_some() {
@@ -538,6 +574,13 @@ async fn follow(
                 if c.from == FlightState::ConfigureCheck && recovery == Recovery::Waiting {
                     recovery = Recovery::Due;
                 }
+            }
+            f = failsafes.recv() => {
+                let f = f.context("following the VAS's failsafes")?.value;
+                let n = FailsafeNote::from_event(&f, opened.elapsed().as_secs_f64());
+                line = Some(n.line());
+                record = Some(json!({"event": "failsafe", "failsafe": n}));
+                t.failsafes.push(n);
             }
             w = vas_reached.recv() => {
                 let w = w.context("following the VAS's waypoints")?.value;
@@ -737,6 +780,37 @@ async fn follow(
 }
 
 /// Seconds as `m:ss` (whole seconds, rounded).
+/// Offers the mission's `refusedPlan`, if any, before the plan itself (issue 15).
+async fn rehearse(
+    svc: &marea::Service,
+    s: &StationSetup,
+    ui: &Ui,
+    t: &mut Tracker<'_>,
+    opened: Instant,
+) -> Result<(), String> {
+    let Some(path) = &s.refused_plan else {
+        return Ok(());
+    };
+    let at = opened.elapsed().as_secs_f64();
+    let n = failsafe::rehearse_refusal(
+        svc,
+        &s.fpma,
+        path,
+        at,
+        SEND_RETRY.min(Duration::from_secs(20)),
+    )
+    .await
+    .map_err(|e| format!("station: {e}"))?;
+    note(
+        ui,
+        s,
+        &n.line(),
+        json!({"event": "failsafe", "failsafe": n}),
+    );
+    t.failsafes.push(n);
+    Ok(())
+}
+
 fn ui_mmss(s: f64) -> String {
     let s = if s.is_finite() {
         s.max(0.0).round() as u64

@@ -285,6 +285,22 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         Item::Alarm,
     );
     let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
+    // Issue 15: the VAS knows its ground station is there by this heartbeat (lost ground link,
+    // `vas` `linkLossAction`); the FMo is the pilot's station.
+    let beat = svc.publish_variable::<usal_types::StationHeartbeat>("heartbeat")?;
+    let station = svc.full_name("").trim_end_matches('/').to_owned();
+    let stop = cancel.clone();
+    shared.live.tasks.spawn(async move {
+        let mut tick = tokio::time::interval(std::time::Duration::from_millis(250));
+        for seq in 0.. {
+            tokio::select! {
+                () = stop.cancelled() => return,
+                _ = tick.tick() => {
+                    let _ = beat.set(&usal_types::StationHeartbeat { station: station.clone(), seq });
+                }
+            }
+        }
+    });
     shared.live.tasks.spawn(allowed_loop(shared.clone()));
     shared.live.tasks.spawn(manual_loop(shared.clone(), manual));
     tracing::info!("fmo up on http://{addr}/, following {vas}");

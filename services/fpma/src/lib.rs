@@ -25,6 +25,7 @@ pub mod eta;
 pub mod exec;
 pub mod expand;
 pub mod expr;
+pub mod fence;
 #[cfg(feature = "fuzzing")]
 pub mod fuzzing;
 pub mod geo;

@@ -41,6 +41,23 @@ pub struct FlightPlan {
     pub landing: Vec<Node>,
     /// `<emergency>` rules in priority order.
     pub emergencies: Vec<EmergencyRule>,
+    /// `<fence>`: where the vehicle must stay (issue 15, `crate::fence`).
+    #[serde(default)]
+    pub fence: Option<PlanFence>,
+}
+
+/// A plan's `<fence>`: the fence (its home resolved: the element's, else the plan's first
+/// waypoint) and where it is written.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlanFence {
+    /// The fence, as the VAS and the autopilot get it.
+    pub fence: usal_types::Fence,
+    /// Whether `homeLat`/`homeLon` were given (else the home is the first waypoint's).
+    pub home_given: bool,
+    /// Line of the `<fence>` element.
+    pub line: u32,
+    /// Column.
+    pub col: u32,
 }
 
 /// The stages of a plan, flown in this order.

@@ -23,6 +23,9 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
+pub mod safety;
+pub use safety::{Failsafe, FailsafeKind, Fence, FenceAction, StationHeartbeat};
+
 /// Where the vehicle is. 32 bytes of payload before `alt_rel` (the figure DESIGN §8
 /// measures), 40 with it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]

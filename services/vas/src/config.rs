@@ -140,6 +140,26 @@ pub struct VasConfig {
     /// (`targetSystem`); none: the first autopilot heard.
     #[serde(rename = "@targetSystem")]
     pub target_system: Option<u8>,
+    /// Silence of the ground station (its heartbeat, or the radio reaching no peer) after
+    /// which the ground link is lost, ms (`linkLossTimeoutMs`, default 5000).
+    #[serde(rename = "@linkLossTimeoutMs")]
+    pub link_loss_timeout_ms: u64,
+    /// What the VAS does then (`linkLossAction`): `continue` (alarm only, the default),
+    /// `hold`, `rtl`.
+    #[serde(rename = "@linkLossAction")]
+    pub link_loss_action: String,
+    /// What the VAS does when the link returns (`linkRecovery`): `wait` for the operator
+    /// (default) or `resume` the state the loss interrupted.
+    #[serde(rename = "@linkRecovery")]
+    pub link_recovery: String,
+    /// Pattern of the station heartbeat variable followed (`stationHeartbeat`, default
+    /// `**/heartbeat`).
+    #[serde(rename = "@stationHeartbeat")]
+    pub station_heartbeat: String,
+    /// The radio link whose health is followed (`radioLink`, default `radio`; empty: none):
+    /// `<namespace>/link/<radioLink>/stats`.
+    #[serde(rename = "@radioLink")]
+    pub radio_link: String,
 }
 
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
@@ -193,6 +213,11 @@ impl Default for VasConfig {
             autopilot_peer: None,
             target_system: None,
             forward: Vec::new(),
+            link_loss_timeout_ms: val.link_loss.timeout.as_millis() as u64,
+            link_loss_action: val.link_loss.action.name().into(),
+            link_recovery: val.link_loss.recovery.name().into(),
+            station_heartbeat: val.link_loss.heartbeat.clone(),
+            radio_link: val.link_loss.radio_link.clone().unwrap_or_default(),
         }
     }
 }
@@ -294,6 +319,13 @@ impl VasConfig {
                 self.max_altitude_m
             )));
         }
+        if !(100..=3_600_000).contains(&self.link_loss_timeout_ms) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "linkLossTimeoutMs {} not in [100, 3600000]",
+                self.link_loss_timeout_ms
+            )));
+        }
+        self.link_loss()?;
         if self.max_waypoints_per_call == 0 || self.max_queued_waypoints == 0 {
             return Err(ConfigLoadError::Invalid(
                 "maxWaypointsPerCall and maxQueuedWaypoints must be at least 1".into(),
@@ -348,9 +380,31 @@ impl VasConfig {
         }
     }
 
+    /// The lost-link settings.
+    ///
+    /// # Errors
+    /// An unknown action or recovery.
+    pub fn link_loss(&self) -> Result<crate::val::linkloss::LinkLossConfig, ConfigLoadError> {
+        let bad = |k: &str, e: String| ConfigLoadError::Invalid(format!("{k} {e}"));
+        Ok(crate::val::linkloss::LinkLossConfig {
+            heartbeat: self.station_heartbeat.clone(),
+            radio_link: Some(self.radio_link.clone()).filter(|l| !l.is_empty()),
+            timeout: Duration::from_millis(self.link_loss_timeout_ms),
+            action: self
+                .link_loss_action
+                .parse()
+                .map_err(|e| bad("linkLossAction", e))?,
+            recovery: self
+                .link_recovery
+                .parse()
+                .map_err(|e| bad("linkRecovery", e))?,
+        })
+    }
+
     /// The VAL's settings.
     pub fn val(&self) -> ValConfig {
         ValConfig {
+            link_loss: self.link_loss().unwrap_or_default(),
             manual_control: self.manual_control.clone(),
             manual_timeout: Duration::from_millis(self.manual_timeout_ms),
             manual_stations: self.manual_stations.as_deref().map(|list| {
@@ -418,6 +472,35 @@ mod tests {
         assert_eq!(cfg.vehicle, VehicleKind::Rover);
         assert_eq!(cfg.queue_size, 5);
         assert_eq!(cfg.endpoint, "udpout:127.0.0.1:14560");
+    }
+
+    #[test]
+    fn link_loss_keys_are_read_and_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("vas.xml");
+        std::fs::write(
+            &p,
+            r#"<vas linkLossTimeoutMs="3000" linkLossAction="hold" linkRecovery="wait" radioLink=""/>"#,
+        )
+        .unwrap();
+        let ll = VasConfig::load(&p).unwrap().val().link_loss;
+        use crate::val::linkloss::{LinkLossAction, LinkRecovery};
+        assert_eq!(ll.timeout, Duration::from_secs(3));
+        assert_eq!(ll.action, LinkLossAction::Hold);
+        assert_eq!(ll.recovery, LinkRecovery::Wait);
+        assert_eq!(ll.radio_link, None);
+        for bad in [
+            r#"<vas linkLossAction="land"/>"#,
+            r#"<vas linkRecovery="later"/>"#,
+            r#"<vas linkLossTimeoutMs="5"/>"#,
+        ] {
+            std::fs::write(&p, bad).unwrap();
+            let e = VasConfig::load(&p).unwrap_err().to_string();
+            assert!(
+                e.contains("linkLoss") || e.contains("linkRecovery"),
+                "{bad}: {e}"
+            );
+        }
     }
 
     #[test]

@@ -77,8 +77,41 @@ impl Vehicle {
                     out.extend(self.param_value(index));
                 }
             }
-            // Fences and rally points are not simulated: refused, so a ground station does not
-            // take them for the mission.
+            // The fence (issue 15, `fence.rs`): its own transfer, beside the mission.
+            MavMessage::MISSION_COUNT(c)
+                if self.for_us(c.target_system)
+                    && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE =>
+            {
+                out.extend(self.fence.on_count(from, c.count));
+                if c.count == 0 {
+                    self.record(LogEvent::FenceUploaded { vertices: 0 });
+                }
+            }
+            MavMessage::MISSION_ITEM_INT(item)
+                if self.for_us(item.target_system)
+                    && item.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE =>
+            {
+                let (replies, done) = self.fence.on_item(from, item.clone(), &self.frame);
+                out.extend(replies);
+                if let Some(vertices) = done {
+                    self.record(LogEvent::FenceUploaded { vertices });
+                }
+            }
+            MavMessage::MISSION_CLEAR_ALL(c)
+                if self.for_us(c.target_system)
+                    && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE =>
+            {
+                out.extend(self.fence.on_clear(from));
+                self.record(LogEvent::FenceUploaded { vertices: 0 });
+            }
+            MavMessage::MISSION_ACK(a)
+                if self.for_us(a.target_system)
+                    && a.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE =>
+            {
+                self.fence.on_ack();
+            }
+            // Rally points (and fence downloads) are not simulated: refused, so a ground
+            // station does not take them for the mission.
             MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
                 target_system,
                 mission_type,
@@ -116,10 +149,16 @@ impl Vehicle {
                         .on_partial(from, p.start_index, p.end_index, now),
                 );
             }
-            MavMessage::MISSION_ITEM_INT(item) if self.for_us(item.target_system) => {
+            MavMessage::MISSION_ITEM_INT(item)
+                if self.for_us(item.target_system)
+                    && item.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+            {
                 self.mission_item(from, item.clone(), now, &mut out);
             }
-            MavMessage::MISSION_ITEM(item) if self.for_us(item.target_system) => {
+            MavMessage::MISSION_ITEM(item)
+                if self.for_us(item.target_system)
+                    && item.mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION =>
+            {
                 self.mission_item(from, mission::item_from_float(item), now, &mut out);
             }
             MavMessage::MISSION_REQUEST_LIST(r) if self.for_us(r.target_system) => {

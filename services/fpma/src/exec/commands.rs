@@ -24,6 +24,7 @@ impl Executive {
     pub fn replace_plan(&mut self, plan: FlightPlan) -> Result<u64, CommandError> {
         check_vehicle(&plan, &self.vehicle)?;
         nominal_len(plan.clone(), self.vehicle.clone())?;
+        crate::fence::check_plan(&plan, &self.vehicle)?;
         if let Some(a) = self.active.take() {
             self.emit(EventKind::LegCompleted {
                 leg: a.id,
@@ -58,6 +59,7 @@ impl Executive {
             *slot = new;
         }
         nominal_len(changed.clone(), self.vehicle.clone())?;
+        crate::fence::check_plan(&changed, &self.vehicle)?;
         self.plan = Arc::new(changed);
         self.version += 1;
         self.emit(EventKind::PlanModified { leg: id.into() });
@@ -309,6 +311,18 @@ impl Executive {
         }
         for (k, p) in points.iter().enumerate() {
             check_point(&format!("point {}", k + 1), *p)?;
+            if let Some(pf) = &self.plan.fence {
+                let height = alt
+                    .filter(|_| !matches!(self.plan.altitude_reference(), usal_types::AltRef::Msl));
+                pf.fence
+                    .check_point((p.lat, p.lon), height)
+                    .map_err(|why| {
+                        bad_arg(
+                            format!("point {}", k + 1),
+                            &format!("is outside the fence: {why}"),
+                        )
+                    })?;
+            }
         }
         if let Some(a) = alt.filter(|a| !a.is_finite()) {
             return Err(bad_arg(
@@ -405,6 +419,7 @@ impl Executive {
             list.insert(at + k, n);
         }
         nominal_len(changed.clone(), self.vehicle.clone())?;
+        crate::fence::check_plan(&changed, &self.vehicle)?;
         self.plan = Arc::new(changed);
         self.version += 1;
         self.emit(EventKind::PlanModified { leg: first });

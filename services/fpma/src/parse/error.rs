@@ -143,9 +143,25 @@ pub enum PlanErrorKind {
         /// The most allowed.
         max: u64,
     },
+    /// A waypoint, or the track to it, outside the plan's `<fence>` (issue 15).
+    #[error("leg `{leg}` leaves the fence: {why}")]
+    OutsideFence {
+        /// The leg.
+        leg: String,
+        /// Which limit, where.
+        why: String,
+    },
+    /// The `<fence>` itself is unusable.
+    #[error("fence: {0}")]
+    BadFence(String),
 }
 
 impl PlanError {
+    /// An error at `line`:`col` (for checks made after parsing, by node position).
+    pub fn at_line(line: u32, col: u32, kind: PlanErrorKind) -> Self {
+        Self { line, col, kind }
+    }
+
     pub(super) fn at(pos: Pos, kind: PlanErrorKind) -> Self {
         Self {
             line: pos.line,

@@ -48,6 +48,8 @@ pub fn parse_plan(src: &str, vehicle: &VehicleParams) -> Result<FlightPlan> {
         }
     }
     check_vehicle(&plan, vehicle)?;
+    let mut plan = plan;
+    crate::fence::resolve_and_check(&mut plan, vehicle)?;
     Ok(plan)
 }
 
@@ -126,8 +128,10 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
         approach: Vec::new(),
         landing: Vec::new(),
         emergencies: Vec::new(),
+        fence: None,
     };
-    const KNOWN: [&str; 9] = [
+    const KNOWN: [&str; 10] = [
+        "fence",
         "variables",
         "fixes",
         "takeoff",
@@ -246,7 +250,98 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
         let rule = emergency_rule(e, i, &plan)?;
         plan.emergencies.push(rule);
     }
+    if let Some(f) = root.children.iter().find(|c| c.name == "fence") {
+        plan.fence = Some(fence_from(f)?);
+    }
     Ok(plan)
+}
+
+/// `<fence maxDistance maxHeight homeLat homeLon action><pt lat lon/>...</fence>`.
+fn fence_from(f: &Element) -> Result<PlanFence> {
+    allow(
+        f,
+        &["maxDistance", "maxHeight", "homeLat", "homeLon", "action"],
+    )?;
+    let home = match (f.attr("homeLat"), f.attr("homeLon")) {
+        (None, None) => None,
+        (Some(_), Some(_)) => {
+            let p = lat_lon(f, "homeLat", "homeLon")?;
+            Some((p.lat, p.lon))
+        }
+        _ => {
+            return Err(PlanError::at(
+                f.pos,
+                PlanErrorKind::Structure(
+                    "<fence> needs both homeLat and homeLon, or neither".into(),
+                ),
+            ))
+        }
+    };
+    let action = match f.attr("action") {
+        None => usal_types::FenceAction::default(),
+        Some(a) => a
+            .value
+            .parse()
+            .map_err(|_| bad_value(a, &a.value, "must be `report`, `rtl` or `hold`"))?,
+    };
+    let mut polygon = Vec::new();
+    for c in &f.children {
+        if c.name != "pt" {
+            return Err(unknown_element(c, f));
+        }
+        allow(c, &["lat", "lon"])?;
+        let p = point(c)?;
+        polygon.push((p.lat, p.lon));
+    }
+    let fence = usal_types::Fence {
+        home: home.unwrap_or_default(),
+        max_distance_m: opt_pos_num(f, "maxDistance")?,
+        max_height_m: opt_pos_num(f, "maxHeight")?,
+        polygon,
+        action,
+    };
+    if fence.is_empty() {
+        return Err(PlanError::at(
+            f.pos,
+            PlanErrorKind::BadFence(
+                "set maxDistance, maxHeight or at least 3 <pt> vertices".into(),
+            ),
+        ));
+    }
+    if fence.polygon.len() > crate::polygon::MAX_VERTICES {
+        return Err(PlanError::at(
+            f.pos,
+            PlanErrorKind::TooLarge {
+                what: "fence vertices",
+                value: fence.polygon.len() as u64,
+                max: crate::polygon::MAX_VERTICES as u64,
+            },
+        ));
+    }
+    if fence.polygon.len() >= 3 {
+        let pts: Vec<crate::geo::GeoPoint> = fence
+            .polygon
+            .iter()
+            .map(|&(lat, lon)| crate::geo::GeoPoint { lat, lon })
+            .collect();
+        let frame = crate::polygon::polygon_frame(&pts);
+        let local: Vec<_> = pts.iter().map(|p| frame.to_local(*p)).collect();
+        if let Some((a, b)) = crate::polygon::self_intersection(&local) {
+            return Err(PlanError::at(
+                f.pos,
+                PlanErrorKind::SelfIntersecting(a + 1, b + 1),
+            ));
+        }
+    }
+    fence
+        .validate()
+        .map_err(|e| PlanError::at(f.pos, PlanErrorKind::BadFence(e)))?;
+    Ok(PlanFence {
+        fence,
+        home_given: home.is_some(),
+        line: f.pos.line,
+        col: f.pos.col,
+    })
 }
 
 fn emergency_rule(e: &Element, i: usize, plan: &FlightPlan) -> Result<EmergencyRule> {

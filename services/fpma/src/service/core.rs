@@ -44,6 +44,12 @@ pub trait VasPort: Send + Sync {
     async fn clear(&self) -> Result<QueueStatus, String>;
     /// Asks for a flight state.
     async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String>;
+    /// Hands the plan's fence to the VAS (`None`: the plan has none), issue 15. The default
+    /// does nothing (a VAS that checks no fence).
+    async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, String> {
+        let _ = fence;
+        Ok("no fence on this VAS".into())
+    }
 }
 
 /// Settings of the core.
@@ -222,6 +228,16 @@ impl<V: VasPort> Core<V> {
         );
         self.exec = Some(p.exec);
         self.source = p.source;
+        // The VAS may have restarted too and forgotten the plan's fence.
+        let fence = self
+            .exec
+            .as_ref()
+            .and_then(|ex| ex.plan().fence.as_ref().map(|f| f.fence.clone()));
+        if fence.is_some() {
+            if let Err(e) = self.vas.set_fence(fence).await {
+                tracing::warn!("the VAS did not take the resumed plan's fence: {e}");
+            }
+        }
         self.pending = p.pending.into();
         self.max_pushed = p.max_pushed;
         self.last_reached = p.last_reached;
@@ -297,6 +313,11 @@ impl<V: VasPort> Core<V> {
 
     async fn start_plan(&mut self, plan: FlightPlan, source: &str) -> Result<PlanLoaded, String> {
         let name = plan.name.clone();
+        let fence = plan.fence.as_ref().map(|f| f.fence.clone());
+        let had_fence = self
+            .exec
+            .as_ref()
+            .is_some_and(|ex| ex.plan().fence.is_some());
         match &mut self.exec {
             Some(ex) => {
                 ex.replace_plan(plan).map_err(|e| e.to_string())?;
@@ -304,6 +325,15 @@ impl<V: VasPort> Core<V> {
             None => {
                 let ex = Executive::new(plan, self.cfg.vehicle.clone());
                 self.exec = Some(ex);
+            }
+        }
+        // Before any waypoint of the plan goes out, so the VAS checks them against it.
+        if fence.is_some() || had_fence {
+            match self.vas.set_fence(fence).await {
+                Ok(m) => tracing::info!("fence of plan `{name}`: {m}"),
+                Err(e) => tracing::warn!(
+                    "the VAS did not take the fence of plan `{name}` (the FPMa checked the plan against it): {e}"
+                ),
             }
         }
         self.started = Some(Instant::now());

@@ -280,6 +280,7 @@ struct MareaVas {
     push: Function<Vec<Waypoint>, QueueStatus>,
     clear: Function<(), QueueStatus>,
     change_state: Function<StateChangeRequest, StateChangeReply>,
+    set_fence: Function<Option<usal_types::Fence>, String>,
     timeout: Duration,
 }
 
@@ -308,6 +309,10 @@ impl VasPort for MareaVas {
 
     async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String> {
         call_vas(&self.change_state, &StateChangeRequest { to }, self.timeout).await
+    }
+
+    async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, String> {
+        call_vas(&self.set_fence, &fence, self.timeout).await
     }
 }
 
@@ -422,6 +427,7 @@ impl IService for Fpma {
             push: ctx.function(&format!("{vas}/push_waypoints"))?,
             clear: ctx.function(&format!("{vas}/clear_waypoints"))?,
             change_state: ctx.function(&format!("{vas}/change_state"))?,
+            set_fence: ctx.function(&format!("{vas}/set_fence"))?,
             timeout: Duration::from_millis(self.config.call_timeout_ms),
         };
         let reached = ctx.subscribe_event::<WaypointReached>(&format!("{vas}/waypoint_reached"))?;

@@ -33,6 +33,7 @@ use crate::mavlink_cm::{
 };
 
 mod driver;
+mod fence;
 mod mapping;
 
 use driver::{configure, Driver};
@@ -211,6 +212,23 @@ impl IAutopilot for ArduPilot {
     async fn shutdown(&self) {
         self.cancel.cancel();
         self.tasks.wait().await;
+    }
+
+    async fn upload_fence(&self, f: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {
+        let wait = self.cfg.manager.connect_wait;
+        self.mgr
+            .wait_connected(wait)
+            .await
+            .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
+        // Only ArduPilot keeps its fence as FENCE_* parameters; another family would leave
+        // each unknown parameter unanswered through every retry.
+        if self.mgr.family() != crate::mavlink_cm::AutopilotFamily::ArduPilot {
+            return Err(AutopilotError::Unsupported(format!(
+                "fences are uploaded to ArduPilot only, this autopilot is {:?}",
+                self.mgr.family()
+            )));
+        }
+        fence::upload(&self.mgr, f).await
     }
 }
 

@@ -127,4 +127,17 @@ pub trait IAutopilot: Send + Sync {
 
     /// Stops the layer's tasks.
     async fn shutdown(&self);
+
+    /// Uploads `fence` to the autopilot (`None` clears it) so the vehicle enforces it itself
+    /// (issue 15). Layers that cannot upload one answer `Unsupported`; the VAS then keeps
+    /// checking waypoints against it alone.
+    ///
+    /// # Errors
+    /// Unsupported, not connected, or the autopilot refused.
+    async fn upload_fence(&self, fence: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {
+        let _ = fence;
+        Err(AutopilotError::Unsupported(
+            "this autopilot layer uploads no fence".into(),
+        ))
+    }
 }

@@ -46,6 +46,51 @@ impl MavlinkManager {
         Ok(())
     }
 
+    /// Uploads the fence (`mission_type` FENCE, issue 15): polygon vertices and circles as
+    /// MAV_CMD_NAV_FENCE_* items, numbered from 0 (no home slot). An empty list clears it.
+    ///
+    /// # Errors
+    /// Refusal (an autopilot without fences answers UNSUPPORTED), or retries exhausted.
+    pub async fn fence_upload(&self, items: &[MissionItem]) -> Result<(), MissionError> {
+        if items.len() > usize::from(u16::MAX) {
+            return Err(MissionError::Invalid(format!(
+                "{} fence items",
+                items.len()
+            )));
+        }
+        let target = self.inner.target().await?;
+        let _op = self.inner.ops.lock().await;
+        if items.is_empty() {
+            let mut rx = self.inner.raw_tx.subscribe();
+            let clear = MavMessage::MISSION_CLEAR_ALL(MISSION_CLEAR_ALL_DATA {
+                target_system: target.0,
+                target_component: target.1,
+                mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+            });
+            self.inner
+                .put(super::outbound::Outbound::Message(clear))
+                .await?;
+            // Best effort: the ack is awaited briefly, a missing one is not an error.
+            let until = Instant::now() + self.inner.cfg.request_timeout;
+            while let Ok(Ok(m)) = timeout_at(until, rx.recv()).await {
+                if let MavMessage::MISSION_ACK(a) = &*m {
+                    if a.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE {
+                        break;
+                    }
+                }
+            }
+            return Ok(());
+        }
+        let start = MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+            count: items.len() as u16,
+            target_system: target.0,
+            target_component: target.1,
+            mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+            ..Default::default()
+        });
+        self.inner.upload(target, start, items, 0).await
+    }
+
     /// Replaces items `start .. start + items.len()` with MISSION_WRITE_PARTIAL_LIST
     /// (ArduPilot only replaces existing items; it cannot grow the mission).
     ///

@@ -92,6 +92,9 @@ pub(crate) struct MissionUpload<'a> {
     deadline: Instant,
     /// The start message is MISSION_WRITE_PARTIAL_LIST.
     partial: bool,
+    /// What is transferred (the start message's `mission_type`): the mission, or the fence
+    /// (issue 15); requests and acknowledgements of other types are someone else's.
+    mission_type: MavMissionType,
 }
 
 /// What an incoming message means to the upload.
@@ -135,6 +138,11 @@ impl<'a> MissionUpload<'a> {
                 MissionError::Invalid(format!("upload of {} items at {first}", items.len()))
             })?;
         let partial = matches!(start, MavMessage::MISSION_WRITE_PARTIAL_LIST(_));
+        let mission_type = match &start {
+            MavMessage::MISSION_COUNT(c) => c.mission_type,
+            MavMessage::MISSION_WRITE_PARTIAL_LIST(p) => p.mission_type,
+            _ => MavMissionType::MAV_MISSION_TYPE_MISSION,
+        };
         out.push(Outbound::Message(start.clone()));
         Ok(Self {
             partial,
@@ -146,6 +154,7 @@ impl<'a> MissionUpload<'a> {
             attempts: 1,
             last_sent: start,
             deadline: now + cfg.timeout,
+            mission_type,
         })
     }
 
@@ -229,8 +238,9 @@ impl<'a> MissionUpload<'a> {
     #[allow(deprecated)] // Legacy autopilots request MISSION_ITEM with MISSION_REQUEST.
     fn classify(&self, msg: &MavMessage) -> Option<Step> {
         let me = self.cfg.me;
-        // Only the mission itself: fence and rally transfers are someone else's.
-        let mission = MavMissionType::MAV_MISSION_TYPE_MISSION;
+        // Only our type (the mission itself, or the fence being uploaded): other transfers
+        // are someone else's.
+        let mission = self.mission_type;
         match msg {
             MavMessage::MISSION_REQUEST_INT(r)
                 if r.target_system == me && r.mission_type == mission =>
@@ -275,9 +285,13 @@ impl<'a> MissionUpload<'a> {
         let item = &self.items[usize::from(seq - self.first)];
         #[allow(deprecated)]
         let msg = if int {
-            MavMessage::MISSION_ITEM_INT(item.to_int(seq, self.cfg.target))
+            let mut m = item.to_int(seq, self.cfg.target);
+            m.mission_type = self.mission_type;
+            MavMessage::MISSION_ITEM_INT(m)
         } else {
-            MavMessage::MISSION_ITEM(item.to_float(seq, self.cfg.target))
+            let mut m = item.to_float(seq, self.cfg.target);
+            m.mission_type = self.mission_type;
+            MavMessage::MISSION_ITEM(m)
         };
         self.last_sent = msg.clone();
         out.push(Outbound::Message(msg));
@@ -287,10 +301,14 @@ impl<'a> MissionUpload<'a> {
 
     /// Cancels the transfer on the autopilot so it does not wait for the rest.
     fn give_up(&self, out: &mut Vec<Outbound>) -> Result<(), MissionError> {
-        out.push(Outbound::Message(mission_ack(
+        let mut ack = mission_ack(
             self.cfg.target,
             MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
-        )));
+        );
+        if let MavMessage::MISSION_ACK(a) = &mut ack {
+            a.mission_type = self.mission_type;
+        }
+        out.push(Outbound::Message(ack));
         Err(MissionError::RetriesExhausted {
             stage: self.stage,
             attempts: self.attempts,

@@ -5,7 +5,9 @@
 //!
 //! Items (under `<namespace>/vas/`): see the crate README for the full list.
 
+pub mod fence;
 pub mod limits;
+pub mod linkloss;
 pub mod transitions;
 
 use std::sync::{Arc, Mutex as StdMutex};
@@ -19,6 +21,7 @@ use usal_types::{
     MissionTime, Position, QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest,
     StateChanged, Waypoint, WaypointReached,
 };
+use usal_types::{Failsafe, FailsafeKind, Fence, StationHeartbeat};
 
 use crate::apl::{ApEvent, IAutopilot};
 
@@ -40,6 +43,12 @@ pub struct ValConfig {
     pub manual_stations: Option<Vec<String>>,
     /// Manual-control samples stamped further than this ahead of our clock are refused.
     pub manual_skew: Duration,
+    /// The lost-ground-link watch (issue 15).
+    pub link_loss: linkloss::LinkLossConfig,
+    /// A fence of the VAS's own (issue 15; library users): checked from the start, uploaded
+    /// once the autopilot is configured; a plan's fence (`set_fence`) replaces it, and
+    /// `set_fence(None)` restores it.
+    pub fence: Option<Fence>,
 }
 
 impl Default for ValConfig {
@@ -51,6 +60,8 @@ impl Default for ValConfig {
             waypoints: limits::WaypointLimits::default(),
             manual_stations: None,
             manual_skew: Duration::from_secs(2),
+            link_loss: linkloss::LinkLossConfig::default(),
+            fence: None,
         }
     }
 }
@@ -74,6 +85,7 @@ struct Items {
     waypoint_reached: Event<WaypointReached>,
     alarm: Event<Alarm>,
     mission_changed: Event<MissionChanged>,
+    failsafe: Event<Failsafe>,
 }
 
 struct Core {
@@ -83,6 +95,8 @@ struct Core {
     /// Serialises transitions (requests and the autopilot's own changes).
     transition: tokio::sync::Mutex<()>,
     items: Items,
+    /// The fence waypoints are checked against (issue 15).
+    fence: StdMutex<Option<Fence>>,
 }
 
 use marea::sync::lock;
@@ -162,6 +176,165 @@ impl Core {
         Ok(StateChangeReply { from, to })
     }
 
+    /// Raises the `failsafe` event (and logs it).
+    fn failsafe(&self, kind: FailsafeKind, action: &str, text: &str) {
+        tracing::warn!("failsafe {}: {action}: {text}", kind.name());
+        let ev = Failsafe {
+            kind,
+            action: action.to_owned(),
+            text: text.to_owned(),
+        };
+        if let Err(e) = self.items.failsafe.raise_nowait(&ev) {
+            tracing::warn!("raising failsafe: {e}");
+        }
+    }
+
+    /// The ground link was lost: applies the configured action. Returns the state it left and
+    /// the state it entered when it changed the state.
+    async fn link_lost(&self, why: &str) -> Option<(FlightState, FlightState)> {
+        use linkloss::LinkLossAction as A;
+        let action = self.cfg.link_loss.action;
+        let _t = self.transition.lock().await;
+        let from = self.state();
+        let moving = matches!(
+            from,
+            FlightState::WaypointNavigation
+                | FlightState::ManualNavigation
+                | FlightState::Directed
+                | FlightState::TakeOff
+        );
+        if action == A::Continue || !moving {
+            let what = if moving {
+                "continuing (linkLossAction continue)"
+            } else {
+                "not navigating: nothing to do"
+            };
+            let text = format!("ground link lost: {why}; {what}");
+            self.alarm(Severity::Error, &text);
+            self.failsafe(FailsafeKind::LinkLost, "continue", &text);
+            return None;
+        }
+        // A rover holds by parking (HOLD); aircraft have no hold state in the table (003
+        // §3.3.1), so they return to launch. Return to launch falls back to the hold where the
+        // autopilot cannot do it.
+        let hold = match self.apl.vehicle() {
+            usal_types::VehicleKind::Rover => FlightState::Parking,
+            _ => FlightState::ReturnToLaunch,
+        };
+        let targets = match action {
+            A::Hold => vec![hold],
+            _ => vec![FlightState::ReturnToLaunch, hold],
+        };
+        let mut failures = Vec::new();
+        for to in targets {
+            if to == from {
+                continue;
+            }
+            match self.apl.change_state(to).await {
+                Ok(()) => {
+                    self.enter(to, "ground link lost");
+                    let name = if to == FlightState::ReturnToLaunch {
+                        "rtl"
+                    } else {
+                        "hold"
+                    };
+                    let mut text = format!("ground link lost: {why}; {from} -> {to}");
+                    for f in &failures {
+                        text += &format!(" ({f})");
+                    }
+                    self.alarm(Severity::Error, &text);
+                    self.failsafe(FailsafeKind::LinkLost, name, &text);
+                    return Some((from, to));
+                }
+                Err(e) => failures.push(format!("{to} refused: {e}")),
+            }
+        }
+        let text = format!(
+            "ground link lost: {why}; the {} action failed: {}",
+            action.name(),
+            failures.join("; ")
+        );
+        self.alarm(Severity::Critical, &text);
+        self.failsafe(FailsafeKind::LinkLost, "failed", &text);
+        None
+    }
+
+    /// The ground link is back after `outage`; `taken` is what [`Core::link_lost`] did.
+    async fn link_restored(&self, outage: Duration, taken: Option<(FlightState, FlightState)>) {
+        let mut text = format!(
+            "ground link restored after {:.1} s of silence",
+            outage.as_secs_f64()
+        );
+        let mut action = "none";
+        if let Some((before, set)) = taken {
+            let _t = self.transition.lock().await;
+            let now = self.state();
+            match self.cfg.link_loss.recovery {
+                _ if now != set => {
+                    text += &format!("; the state changed meanwhile ({now}): left as it is");
+                }
+                linkloss::LinkRecovery::Wait => {
+                    action = "wait";
+                    text += &format!(
+                        "; staying in {now} until the operator decides (linkRecovery wait)"
+                    );
+                }
+                linkloss::LinkRecovery::Resume => match self.apl.change_state(before).await {
+                    Ok(()) => {
+                        action = "resume";
+                        self.enter(before, "ground link restored");
+                        text += &format!("; resuming {before}");
+                    }
+                    Err(e) => {
+                        action = "failed";
+                        text += &format!("; cannot resume {before}: {e}");
+                    }
+                },
+            }
+        }
+        self.alarm(Severity::Info, &text);
+        self.failsafe(FailsafeKind::LinkRestored, action, &text);
+    }
+
+    /// Uploads the fence in force again (after the autopilot reconnected).
+    async fn reupload_fence(&self) {
+        let f = lock(&self.fence).clone();
+        if let Err(e) = self.apl.upload_fence(f.as_ref()).await {
+            self.alarm(
+                Severity::Warning,
+                format!(
+                    "fence kept by the VAS only: the reconnected autopilot did not take it: {e}"
+                ),
+            );
+        }
+    }
+
+    /// `set_fence`: checks a plan's fence, uploads it to the autopilot where it takes one, and
+    /// keeps it for the waypoint checks. `None` restores the configured fence.
+    async fn set_fence(&self, f: Option<Fence>) -> Result<String, String> {
+        let f = match f {
+            Some(f) if f.is_empty() => None,
+            Some(f) => {
+                f.validate().map_err(|e| format!("fence refused: {e}"))?;
+                Some(f)
+            }
+            None => self.cfg.fence.clone(),
+        };
+        *lock(&self.fence) = f.clone();
+        match self.apl.upload_fence(f.as_ref()).await {
+            Ok(()) => Ok(match &f {
+                Some(_) => "fence set and uploaded to the autopilot".to_owned(),
+                None => "fence cleared".to_owned(),
+            }),
+            Err(e) => {
+                let text =
+                    format!("fence kept by the VAS only: the autopilot did not take it: {e}");
+                self.alarm(Severity::Warning, &text);
+                Ok(text)
+            }
+        }
+    }
+
     async fn publish_queue(&self) {
         if let Ok(q) = self.apl.queue_status().await {
             let _ = self.items.queue.set(&q);
@@ -181,7 +354,15 @@ impl Core {
                 }
                 self.publish_queue().await;
             }
-            ApEvent::Alarm(a) => self.alarm(a.severity, a.text),
+            ApEvent::Alarm(a) => {
+                // The autopilot's own fence breach (ArduPilot "... fence breached", mavsim
+                // "Fence breached: ..."): a failsafe the stations list.
+                let lower = a.text.to_ascii_lowercase();
+                if lower.contains("fence") && lower.contains("breach") {
+                    self.failsafe(FailsafeKind::Fence, "autopilot", &a.text);
+                }
+                self.alarm(a.severity, a.text);
+            }
             ApEvent::ModeChanged { mode, state } => {
                 let _t = self.transition.lock().await;
                 match state {
@@ -265,6 +446,7 @@ impl IService for Vas {
             waypoint_reached: ctx.publish_event("waypoint_reached")?,
             alarm: ctx.publish_event("alarm")?,
             mission_changed: ctx.publish_event("mission_changed")?,
+            failsafe: ctx.publish_event("failsafe")?,
         };
         let core = Arc::new(Core {
             apl: self.apl.clone(),
@@ -276,6 +458,7 @@ impl IService for Vas {
             }),
             transition: tokio::sync::Mutex::new(()),
             items,
+            fence: StdMutex::new(self.cfg.fence.clone()),
         });
         let _ = core.items.flight_state.set(&FlightState::ConfigureCheck);
         let _ = core.items.queue.set(&QueueStatus::default());
@@ -301,6 +484,12 @@ impl IService for Vas {
                 // Checked before anything reaches the autopilot; refused whole.
                 let queued = c.apl.queue_status().await.map_err(|e| e.to_string())?;
                 c.cfg.waypoints.check(&wps, queued.queued)?;
+                if let Some(f) = lock(&c.fence).as_ref() {
+                    if let Err(e) = fence::check_waypoints(f, &wps) {
+                        c.failsafe(FailsafeKind::Fence, "refused", &e);
+                        return Err(e);
+                    }
+                }
                 let q = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string())?;
                 let _ = c.items.queue.set(&q);
                 Ok(q)
@@ -314,6 +503,11 @@ impl IService for Vas {
                 let _ = c.items.queue.set(&q);
                 Ok(q)
             }
+        })?;
+        let c = core.clone();
+        let set_fence = ctx.provide_function("set_fence", move |f: Option<Fence>| {
+            let c = c.clone();
+            async move { c.set_fence(f).await }
         })?;
         let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
         // This VAS's item prefix, the address a manual command must carry to be obeyed.
@@ -344,6 +538,22 @@ impl IService for Vas {
                 tokio::select! {
                     _ = cx.cancelled() => return,
                     ev = events.recv() => match ev {
+                        Ok(ev @ (ApEvent::Configured | ApEvent::LinkRestored)) => {
+                            c.on_ap(ev).await;
+                            // A restarted (reconnected) autopilot may have lost the fence:
+                            // upload it again, beside the event loop (a few parameters and a
+                            // transfer).
+                            if lock(&c.fence).is_some() {
+                                let c2 = c.clone();
+                                let cx2 = cx.clone();
+                                cx.spawn(async move {
+                                    tokio::select! {
+                                        () = cx2.cancelled() => {}
+                                        () = c2.reupload_fence() => {}
+                                    }
+                                });
+                            }
+                        }
                         Ok(ev) => c.on_ap(ev).await,
                         Err(broadcast::error::RecvError::Lagged(n)) => {
                             tracing::warn!("VAL lagged {n} autopilot events");
@@ -417,11 +627,75 @@ impl IService for Vas {
             }
         });
 
+        // Lost ground link: the station's heartbeat and the radio's health.
+        let heartbeat =
+            ctx.subscribe_variable::<StationHeartbeat>(&core.cfg.link_loss.heartbeat)?;
+        let radio = match &core.cfg.link_loss.radio_link {
+            Some(link) => {
+                let me = ctx.full_name("");
+                let ns = me.trim_end_matches('/').rsplit_once('/').map(|(ns, _)| ns);
+                let name = match ns {
+                    Some(ns) => format!("{ns}/link/{link}/stats"),
+                    None => format!("link/{link}/stats"),
+                };
+                Some(ctx.subscribe_variable::<marea::LinkHealth>(&name)?)
+            }
+            None => None,
+        };
+        let c = core.clone();
+        let cx = ctx.clone();
+        ctx.spawn(async move {
+            let cfg = &c.cfg.link_loss;
+            let mut watch = linkloss::LinkWatch::new(cfg.timeout);
+            let mut taken = None;
+            let mut heard = false;
+            let mut tick = tokio::time::interval((cfg.timeout / 10).max(Duration::from_millis(50)));
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            let mut radio = radio;
+            loop {
+                tokio::select! {
+                    _ = cx.cancelled() => return,
+                    h = heartbeat.recv() => match h {
+                        Ok(h) => {
+                            if !heard {
+                                heard = true;
+                                tracing::info!(
+                                    "ground link watch armed: heartbeat of {} ({})",
+                                    h.value.station,
+                                    h.publisher
+                                );
+                            }
+                            watch.heartbeat(h.received);
+                        }
+                        Err(e) => {
+                            tracing::warn!("station heartbeat: {e}");
+                            return;
+                        }
+                    },
+                    r = async { radio.as_mut().expect("guarded").recv().await }, if radio.is_some() => match r {
+                        Ok(r) => watch.radio(r.received, &r.value.link, r.value.peers),
+                        Err(e) => {
+                            tracing::warn!("radio health: {e}");
+                            radio = None;
+                        }
+                    },
+                    _ = tick.tick() => {}
+                }
+                match watch.poll(Instant::now()) {
+                    Some(linkloss::Decision::Lost { why }) => taken = c.link_lost(&why).await,
+                    Some(linkloss::Decision::Restored { outage }) => {
+                        c.link_restored(outage, taken.take()).await;
+                    }
+                    None => {}
+                }
+            }
+        });
+
         // Mission time; the function handles live as long as this task.
         let c = core;
         let cx = ctx.clone();
         ctx.spawn(async move {
-            let _handles = (change, allowed, push, clear);
+            let _handles = (change, allowed, push, clear, set_fence);
             let mut tick =
                 tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
             loop {

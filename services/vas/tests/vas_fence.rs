@@ -1,0 +1,152 @@
+//! The geofence on the VAS (issue 15 item 5), with the `vas` and `mavsim` binaries over UDP:
+//! `set_fence` uploads it to the autopilot (mavsim logs the polygon it received), waypoints
+//! outside it are refused naming the waypoint, and when the fence is tightened under a moving
+//! rover, mavsim's enforcement holds it (its `FENCE_ACTION`) and the VAS raises the breach as a
+//! `failsafe` event. A restarted autopilot gets the fence again.
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+use usal_types::{Failsafe, FailsafeKind, Fence, FenceAction, FlightState, Waypoint};
+
+/// A point `north`, `east` metres from home.
+fn at(north: f64, east: f64) -> (f64, f64) {
+    let m_per_deg_lat = 111_319.49;
+    let m_per_deg_lon = m_per_deg_lat * HOME.0.to_radians().cos();
+    (
+        HOME.0 + north / m_per_deg_lat,
+        HOME.1 + east / m_per_deg_lon,
+    )
+}
+
+fn fence(max_distance_m: f64) -> Fence {
+    Fence {
+        home: HOME,
+        max_distance_m: Some(max_distance_m),
+        max_height_m: Some(50.0),
+        polygon: vec![
+            at(-150.0, -150.0),
+            at(-150.0, 150.0),
+            at(150.0, 150.0),
+            at(150.0, -150.0),
+        ],
+        action: FenceAction::Hold,
+    }
+}
+
+async fn run() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 5.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("fence");
+    let vas = VasProc::start(&format!("udpout:{}", sim.addr), &domain, &[]);
+    let g = Ground::open(&domain).await;
+    let set_fence = g
+        .svc
+        .function::<Option<Fence>, String>("rover1/vas/set_fence")
+        .unwrap();
+    let failsafes = g
+        .svc
+        .subscribe_event::<Failsafe>("rover1/vas/failsafe")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+
+    let reply = set_fence
+        .call(&Some(fence(120.0)), STEP)
+        .await
+        .expect("set_fence");
+    assert!(reply.contains("uploaded to the autopilot"), "{reply}");
+    let up = sim.log_events("fence_uploaded");
+    assert_eq!(
+        up.last().map(|r| r["vertices"].clone()),
+        Some(4.into()),
+        "{up:?}"
+    );
+
+    // Outside the circle: refused whole, naming the waypoint; mavsim never gets it.
+    let mut wps = zigzag(3, 10.0);
+    let far = at(200.0, 0.0);
+    wps[2].lat = far.0;
+    wps[2].lon = far.1;
+    let e = g.push.call(&wps, STEP).await.unwrap_err().to_string();
+    assert!(
+        e.contains("waypoint 2 (seq 2) outside the fence") && e.contains("(fence: 120 m)"),
+        "{e}"
+    );
+    let refused = tokio::time::timeout(STEP, failsafes.recv())
+        .await
+        .expect("a failsafe event")
+        .expect("failsafe");
+    assert_eq!(refused.value.kind, FailsafeKind::Fence);
+    assert_eq!(refused.value.action, "refused");
+    // A bad fence is refused as a whole.
+    let mut bad = fence(120.0);
+    bad.polygon.truncate(2);
+    let e = set_fence
+        .call(&Some(bad), STEP)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("at least 3"), "{e}");
+
+    // Inside: flown. Then the fence shrinks to 40 m under the moving rover: mavsim holds it.
+    let wps: Vec<Waypoint> = zigzag(10, 10.0);
+    g.push_all(&wps).await;
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigation");
+    let deadline = tokio::time::Instant::now() + STEP;
+    while sim.log_events("item_reached").len() < 5 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the rover does not drive"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let reply = set_fence
+        .call(&Some(fence(40.0)), STEP)
+        .await
+        .expect("tighter fence");
+    assert!(reply.contains("uploaded"), "{reply}");
+    let breach = loop {
+        let f = tokio::time::timeout(STEP, failsafes.recv())
+            .await
+            .expect("a breach failsafe")
+            .expect("failsafe");
+        if f.value.kind == FailsafeKind::Fence && f.value.action == "autopilot" {
+            break f.value;
+        }
+    };
+    assert!(breach.text.contains("Fence breached: circle"), "{breach:?}");
+    g.wait_state(FlightState::Parking, STEP).await;
+    let log = sim.log_events("fence_breached");
+    assert_eq!(log.len(), 1, "{log:?}");
+    assert_eq!(log[0]["action"], "hold");
+
+    // The autopilot restarts (same port, a new log): the VAS uploads the fence again.
+    let addr = sim.addr.clone();
+    sim.kill().await;
+    g.wait_alarm("heartbeat lost", STEP).await;
+    let sim = Sim::start(&addr, 5.0, &dir.path().join("sim2.jsonl")).await;
+    let deadline = tokio::time::Instant::now() + STEP * 2;
+    while sim.log_events("fence_uploaded").is_empty() {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the fence was not uploaded to the restarted autopilot"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert_eq!(sim.log_events("fence_uploaded")[0]["vertices"], 4);
+
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fence_uploaded_enforced_and_waypoints_outside_refused() {
+    tokio::time::timeout(Duration::from_secs(180), run())
+        .await
+        .expect("the test took too long");
+}

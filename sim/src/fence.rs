@@ -1,0 +1,331 @@
+//! The geofence of the simulated autopilot (issue 15), as ArduPilot keeps it: the circle
+//! around home and the ceiling are parameters (`FENCE_RADIUS`, `FENCE_ALT_MAX`), which parts
+//! are enforced is `FENCE_TYPE` (bits: 1 ceiling, 2 circle, 4 polygon), the breach action is
+//! `FENCE_ACTION` (rover: 0 report, 1 RTL, 2 hold) and the whole is on with `FENCE_ENABLE`.
+//! The inclusion polygon arrives as a fence transfer (`mission_type` FENCE) of
+//! MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION items.
+//!
+//! [`FenceStore`] is the receiving side of that transfer (requests each item, acknowledges
+//! the whole; a new count restarts it) and [`FenceStore::breach`] the pure check the
+//! simulation step runs: one breach is reported per excursion, again only after the vehicle
+//! came back inside.
+
+use mavlink::dialects::ardupilotmega::{
+    MavCmd, MavMessage, MavMissionResult, MavMissionType, MISSION_ACK_DATA,
+    MISSION_REQUEST_INT_DATA,
+};
+
+use crate::kinematics::{GeoPoint, LocalFrame, Ned};
+use crate::mission::Item;
+
+const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
+
+/// Most polygon vertices accepted (ArduPilot keeps a few hundred).
+pub const MAX_VERTICES: u16 = 500;
+
+/// The fence parameters as the step reads them.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FenceParams {
+    /// `FENCE_ENABLE` ≥ 1.
+    pub enabled: bool,
+    /// `FENCE_TYPE` bits.
+    pub kinds: u8,
+    /// `FENCE_RADIUS`, metres.
+    pub radius_m: f64,
+    /// `FENCE_ALT_MAX`, metres above home.
+    pub alt_max_m: f64,
+}
+
+/// A transfer in progress.
+#[derive(Debug)]
+struct Pending {
+    from: (u8, u8),
+    count: u16,
+    items: Vec<Item>,
+}
+
+/// The fence on board and the transfer that may be replacing it.
+#[derive(Debug, Default)]
+pub struct FenceStore {
+    /// Inclusion polygon, local metres (north, east) from home.
+    polygon: Vec<(f64, f64)>,
+    pending: Option<Pending>,
+    /// Outside now (a breach was reported and the vehicle has not come back).
+    breached: bool,
+}
+
+fn ack(to: (u8, u8), result: MavMissionResult) -> MavMessage {
+    MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+        target_system: to.0,
+        target_component: to.1,
+        mavtype: result,
+        mission_type: FENCE,
+        ..Default::default()
+    })
+}
+
+fn request(to: (u8, u8), seq: u16) -> MavMessage {
+    MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+        target_system: to.0,
+        target_component: to.1,
+        seq,
+        mission_type: FENCE,
+    })
+}
+
+impl FenceStore {
+    /// Vertices of the polygon on board.
+    pub fn vertices(&self) -> usize {
+        self.polygon.len()
+    }
+
+    /// MISSION_COUNT for the fence: starts a transfer (0 clears).
+    pub fn on_count(&mut self, from: (u8, u8), count: u16) -> Vec<MavMessage> {
+        if count == 0 {
+            self.polygon.clear();
+            self.pending = None;
+            return vec![ack(from, MavMissionResult::MAV_MISSION_ACCEPTED)];
+        }
+        if count > MAX_VERTICES {
+            return vec![ack(from, MavMissionResult::MAV_MISSION_NO_SPACE)];
+        }
+        self.pending = Some(Pending {
+            from,
+            count,
+            items: Vec::new(),
+        });
+        vec![request(from, 0)]
+    }
+
+    /// A fence item. Returns the replies and, when the transfer completed, the new
+    /// polygon's vertex count.
+    pub fn on_item(
+        &mut self,
+        from: (u8, u8),
+        item: Item,
+        frame: &LocalFrame,
+    ) -> (Vec<MavMessage>, Option<usize>) {
+        let Some(p) = self.pending.as_mut().filter(|p| p.from == from) else {
+            return (vec![ack(from, MavMissionResult::MAV_MISSION_DENIED)], None);
+        };
+        let expected = p.items.len() as u16;
+        if item.seq != expected {
+            // A stale resend: ask again for the one we want.
+            return (vec![request(from, expected)], None);
+        }
+        if item.command != MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION {
+            self.pending = None;
+            return (
+                vec![ack(from, MavMissionResult::MAV_MISSION_UNSUPPORTED)],
+                None,
+            );
+        }
+        p.items.push(item);
+        if p.items.len() < usize::from(p.count) {
+            return (vec![request(from, expected + 1)], None);
+        }
+        let done = self.pending.take().map(|p| p.items).unwrap_or_default();
+        self.polygon = done
+            .iter()
+            .map(|i| {
+                let n = frame.to_local(GeoPoint {
+                    lat_deg: f64::from(i.x) / 1e7,
+                    lon_deg: f64::from(i.y) / 1e7,
+                    alt_m: frame.home().alt_m,
+                });
+                (n.north, n.east)
+            })
+            .collect();
+        self.breached = false;
+        (
+            vec![ack(from, MavMissionResult::MAV_MISSION_ACCEPTED)],
+            Some(self.polygon.len()),
+        )
+    }
+
+    /// MISSION_CLEAR_ALL for the fence.
+    pub fn on_clear(&mut self, from: (u8, u8)) -> Vec<MavMessage> {
+        self.polygon.clear();
+        self.pending = None;
+        self.breached = false;
+        vec![ack(from, MavMissionResult::MAV_MISSION_ACCEPTED)]
+    }
+
+    /// The ground station cancelled the transfer.
+    pub fn on_ack(&mut self) {
+        self.pending = None;
+    }
+
+    /// Checks `pos` (local, from home): `Some(reason)` when it has just left the fence.
+    pub fn breach(&mut self, p: &FenceParams, pos: &Ned) -> Option<String> {
+        let why = if p.enabled {
+            self.outside(p, pos)
+        } else {
+            None
+        };
+        match (why, self.breached) {
+            (Some(why), false) => {
+                self.breached = true;
+                Some(why)
+            }
+            (None, _) => {
+                self.breached = false;
+                None
+            }
+            _ => None,
+        }
+    }
+
+    fn outside(&self, p: &FenceParams, pos: &Ned) -> Option<String> {
+        let d = pos.north.hypot(pos.east);
+        if p.kinds & 2 != 0 && p.radius_m > 0.0 && d > p.radius_m {
+            return Some(format!(
+                "circle ({d:.0} m from home, radius {:.0} m)",
+                p.radius_m
+            ));
+        }
+        if p.kinds & 1 != 0 && p.alt_max_m > 0.0 && pos.up > p.alt_max_m {
+            return Some(format!(
+                "ceiling ({:.0} m, max {:.0} m)",
+                pos.up, p.alt_max_m
+            ));
+        }
+        if p.kinds & 4 != 0 && self.polygon.len() >= 3 && !self.inside(pos) {
+            return Some("polygon".into());
+        }
+        None
+    }
+
+    fn inside(&self, pos: &Ned) -> bool {
+        let (y, x) = (pos.north, pos.east);
+        let poly = &self.polygon;
+        let mut inside = false;
+        let mut j = poly.len() - 1;
+        for i in 0..poly.len() {
+            let (yi, xi) = poly[i];
+            let (yj, xj) = poly[j];
+            if (yi > y) != (yj > y) && x < (xj - xi) * (y - yi) / (yj - yi) + xi {
+                inside = !inside;
+            }
+            j = i;
+        }
+        inside
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GCS: (u8, u8) = (255, 190);
+
+    fn frame() -> LocalFrame {
+        LocalFrame::new(GeoPoint {
+            lat_deg: 41.275,
+            lon_deg: 1.987,
+            alt_m: 584.0,
+        })
+    }
+
+    fn vertex(f: &LocalFrame, seq: u16, north: f64, east: f64) -> Item {
+        let g = f.to_geo(Ned {
+            north,
+            east,
+            up: 0.0,
+        });
+        Item {
+            seq,
+            command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+            param1: 4.0,
+            x: (g.lat_deg * 1e7).round() as i32,
+            y: (g.lon_deg * 1e7).round() as i32,
+            mission_type: FENCE,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_polygon_is_received_and_breaches_are_reported_once_per_excursion() {
+        let f = frame();
+        let mut s = FenceStore::default();
+        let out = s.on_count(GCS, 4);
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == 0 && r.mission_type == FENCE)
+        );
+        let corners = [(-50.0, -50.0), (-50.0, 50.0), (50.0, 50.0), (50.0, -50.0)];
+        for (i, (n, e)) in corners.iter().enumerate() {
+            // A stale resend is answered with the request for the wanted item.
+            if i == 2 {
+                let (out, _) = s.on_item(GCS, vertex(&f, 0, -50.0, -50.0), &f);
+                assert!(
+                    matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == 2)
+                );
+            }
+            let (out, done) = s.on_item(GCS, vertex(&f, i as u16, *n, *e), &f);
+            if i == 3 {
+                assert_eq!(done, Some(4));
+                assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
+                    if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED && a.mission_type == FENCE));
+            }
+        }
+        let p = FenceParams {
+            enabled: true,
+            kinds: 4 | 1,
+            radius_m: 0.0,
+            alt_max_m: 30.0,
+        };
+        let at = |north, east, up| Ned { north, east, up };
+        assert_eq!(s.breach(&p, &at(10.0, 10.0, 0.0)), None);
+        assert_eq!(
+            s.breach(&p, &at(60.0, 0.0, 0.0)).as_deref(),
+            Some("polygon")
+        );
+        assert_eq!(
+            s.breach(&p, &at(70.0, 0.0, 0.0)),
+            None,
+            "once per excursion"
+        );
+        assert_eq!(s.breach(&p, &at(0.0, 0.0, 0.0)), None);
+        assert!(s
+            .breach(&p, &at(0.0, 0.0, 31.0))
+            .unwrap()
+            .starts_with("ceiling"));
+        let off = FenceParams {
+            enabled: false,
+            ..p
+        };
+        assert_eq!(s.breach(&off, &at(100.0, 0.0, 0.0)), None);
+        let circle = FenceParams {
+            enabled: true,
+            kinds: 2,
+            radius_m: 80.0,
+            alt_max_m: 0.0,
+        };
+        assert!(s
+            .breach(&circle, &at(100.0, 0.0, 0.0))
+            .unwrap()
+            .starts_with("circle (100 m"));
+        assert!(s.on_clear(GCS).len() == 1 && s.vertices() == 0);
+    }
+
+    #[test]
+    fn odd_transfers_are_refused() {
+        let f = frame();
+        let mut s = FenceStore::default();
+        assert!(matches!(s.on_count(GCS, MAX_VERTICES + 1).as_slice(),
+            [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_NO_SPACE));
+        // An item with no transfer.
+        let (out, _) = s.on_item(GCS, vertex(&f, 0, 0.0, 0.0), &f);
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_DENIED)
+        );
+        // Not a polygon vertex (circles are parameters here).
+        s.on_count(GCS, 1);
+        let mut item = vertex(&f, 0, 0.0, 0.0);
+        item.command = MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION;
+        let (out, _) = s.on_item(GCS, item, &f);
+        assert!(
+            matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED)
+        );
+    }
+}
