@@ -140,6 +140,12 @@ pub struct VasConfig {
     /// (`targetSystem`); none: the first autopilot heard.
     #[serde(rename = "@targetSystem")]
     pub target_system: Option<u8>,
+    /// After an autopilot reboot (it comes back in another mode than commanded), put it
+    /// back in the commanded state, re-arming it, and raise an alarm saying so
+    /// (`resumeAfterReboot`, default false: the VAS follows the state the autopilot reports
+    /// and an alarm asks the operator to restart).
+    #[serde(rename = "@resumeAfterReboot")]
+    pub resume_after_reboot: bool,
 }
 
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
@@ -193,6 +199,7 @@ impl Default for VasConfig {
             autopilot_peer: None,
             target_system: None,
             forward: Vec::new(),
+            resume_after_reboot: false,
         }
     }
 }
@@ -345,6 +352,7 @@ impl VasConfig {
                 target_system: self.target_system,
                 ..ManagerConfig::default()
             },
+            resume_after_reboot: self.resume_after_reboot,
         }
     }
 
