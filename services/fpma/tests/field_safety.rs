@@ -157,6 +157,12 @@ async fn the_carpark_low_battery_rule_fires_as_mavsim_drains_its_battery() {
     let battery = gcs
         .subscribe_variable::<Battery>("rover1/vas/battery")
         .unwrap();
+    let ready = gcs
+        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .unwrap();
+    let change = gcs
+        .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
+        .unwrap();
     let flight_state = gcs
         .subscribe_variable::<FlightState>("rover1/vas/flight_state")
         .unwrap();
@@ -178,6 +184,9 @@ async fn the_carpark_low_battery_rule_fires_as_mavsim_drains_its_battery() {
     load.call(&src, STEP)
         .await
         .expect("the car-park plan loads");
+    // The operator starts it once the FPMa says it is ready.
+    let from = common::start_when_ready(&ready, &change, STEP).await;
+    assert_eq!(from, FlightState::Parking);
 
     let mut fired_at = None;
     let mut stages = Vec::new();
@@ -329,17 +338,25 @@ async fn fly_copter(
         "the copter did not climb to {climb_to} m above home"
     );
     let mut out = Vec::new();
-    // The FPMa asks for WAYPOINT_NAVIGATION by itself once the copter is airborne (the
-    // pilot-in-command behaviour issue 15 item 4 removes), so the VAS may already be there.
-    match change
+    // The FPMa never changes the flight state by itself (issue 15 item 4): airborne with the
+    // plan queued, the copter is still in TAKE_OFF, until the operator starts navigating.
+    let mut seen = Vec::new();
+    while let Some(s) = flight_state.try_recv() {
+        seen.push(s.expect("flight_state").value);
+    }
+    assert!(
+        !seen.contains(&FlightState::WaypointNavigation),
+        "the VAS went to WAYPOINT_NAVIGATION without the operator: {seen:?}"
+    );
+    let reply = change
         .call(&to(FlightState::WaypointNavigation), STEP)
         .await
-    {
-        Ok(_) => {}
-        Err(marea::CallError::Remote { message, .. })
-            if message == "already in WAYPOINT_NAVIGATION" => {}
-        Err(e) => panic!("WAYPOINT_NAVIGATION: {e:?}"),
-    }
+        .expect("the operator's WAYPOINT_NAVIGATION");
+    assert_eq!(
+        reply.from,
+        FlightState::TakeOff,
+        "the FPMa switched the VAS by itself"
+    );
     while out.len() < 2 {
         let r = timeout(STEP, reached.recv())
             .await

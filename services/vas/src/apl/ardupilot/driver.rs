@@ -356,7 +356,10 @@ impl Driver {
         } else {
             self.queue.stop();
         }
-        if arming == Arming::Arm && !self.mgr.state().armed {
+        // A parked copter sits in LAND, where ArduCopter refuses to arm: a take-off enters
+        // its mode (GUIDED) first and arms there; navigation arms before switching to AUTO.
+        let arm_first = to != FlightState::TakeOff;
+        if arm_first && arming == Arming::Arm && !self.mgr.state().armed {
             if let Err(e) = self.mgr.arm(true).await {
                 self.commanded = previous;
                 return Err(refused(&e));
@@ -373,6 +376,17 @@ impl Driver {
                     .is_ok();
             if !started {
                 self.queue.stop();
+                self.commanded = previous;
+                return Err(refused(&e));
+            }
+        }
+        if !arm_first && arming == Arming::Arm && !self.mgr.state().armed {
+            if let Err(e) = self.mgr.arm(true).await {
+                // Back to where it was, so the refusal changes no state.
+                if let Some((m, _)) = previous.and_then(|p| mode_for(self.kind, p)) {
+                    let _ = self.mgr.set_mode(m).await;
+                    self.last_mode = Some(m.to_owned());
+                }
                 self.commanded = previous;
                 return Err(refused(&e));
             }
