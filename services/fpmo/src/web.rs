@@ -14,6 +14,7 @@
 //! | POST | `/api/command` | `{"cmd", ..., "vehicle"?}`: `skip_leg`, `pause`, `resume`, `goto_leg {leg}`, `goto_stage {stage}`, `set_var {name, value}`, `hold_here {length?, width?, turn?}`, `exit_hold {now}`, `emergency {rule?}` | 202 `{id}` / 400 `{error}` |
 //! | POST | `/api/modify_leg` | `{"leg", "changes": [["spacing", "10"]], "vehicle"?}` | 202 `{id}` |
 //! | POST | `/api/retask` | `{"points": [[lat, lon]], "when": "now"\|"after", "alt"?, "vehicle"?}` | 202 `{id}` |
+//! | POST | `/api/change_state` | `{"to": "WAYPOINT_NAVIGATION", "vehicle"?}`: one of the vehicle's `offers` | 202 `{id}` / 409 `{error}` (not offered from its state) |
 
 use std::sync::Arc;
 
@@ -51,6 +52,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/command", post(command))
         .route("/api/modify_leg", post(modify))
         .route("/api/retask", post(retask))
+        .route("/api/change_state", post(change_state))
         .with_state(shared)
 }
 
@@ -321,4 +323,28 @@ async fn retask(State(shared): State<Arc<Shared>>, Json(r): Json<RetaskReq>) -> 
         when,
     };
     accepted(shared.command(&label, "retask", what, args, ack_text))
+}
+
+#[derive(Deserialize)]
+struct ChangeState {
+    to: String,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+/// `POST /api/change_state`: a flight-state change the VAS offers (the `Start` button is
+/// WAYPOINT_NAVIGATION with a plan ready).
+async fn change_state(State(shared): State<Arc<Shared>>, Json(c): Json<ChangeState>) -> Response {
+    let label = match shared.target(c.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    let to: usal_types::FlightState = match c.to.parse() {
+        Ok(s) => s,
+        Err(e) => return bad(StatusCode::BAD_REQUEST, e.to_string()),
+    };
+    match shared.change_state(&label, to) {
+        Ok(id) => accepted(id),
+        Err(e) => bad(StatusCode::CONFLICT, e),
+    }
 }
