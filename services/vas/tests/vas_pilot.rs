@@ -324,3 +324,78 @@ async fn copter_takes_off_flies_a_bearing_and_lands() {
     sim.kill().await;
     g.node.shutdown().await;
 }
+
+/// A plane takes off in ArduPlane's TAKEOFF mode, flies DIRECTED on a bearing, then returns
+/// to launch and circles over home.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn plane_takes_off_flies_a_bearing_and_returns_to_launch() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        20.0,
+        &dir.path().join("sim.jsonl"),
+        &["--vehicle", "plane"],
+    )
+    .await;
+    let domain = unique_domain("plane");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--vehicle", "plane"],
+    );
+    let g = Ground::open(&domain).await;
+    let cmd = command_fn(&g);
+    let position = g
+        .svc
+        .subscribe_variable::<Position>("rover1/vas/position")
+        .unwrap();
+    assert!(cmd.wait_provider(STEP).await, "command not discovered");
+    g.wait_state(FlightState::Parking, STEP).await;
+    g.request(FlightState::TakeOff).await.expect("TAKE_OFF");
+    assert!(
+        sim.log_events("mode_changed")
+            .iter()
+            .any(|m| m["name"] == "TAKEOFF"),
+        "mavsim not in TAKEOFF"
+    );
+    wait_position(&position, "climbed to 45 m", Duration::from_secs(60), |p| {
+        p.alt_rel > 45.0
+    })
+    .await;
+    let target = DirectedTarget {
+        alt: 60.0,
+        speed: 20.0,
+        bearing: 180.0,
+    };
+    let r = command(&cmd, VehicleCommand::Directed(target))
+        .await
+        .expect("DIRECTED");
+    assert_eq!(r.state, FlightState::Directed);
+    // South of home, 60 m up.
+    let p = wait_position(
+        &position,
+        "flew south at 60 m",
+        Duration::from_secs(60),
+        |p| metres_from_home(p).0 < -600.0 && (p.alt_rel - 60.0).abs() < 3.0,
+    )
+    .await;
+    assert!(p.heading > 90.0 && p.heading < 270.0, "{p:?}");
+    let r = g
+        .request(FlightState::ReturnToLaunch)
+        .await
+        .expect("RETURN_TO_LAUNCH");
+    assert_eq!(r.from, FlightState::Directed);
+    wait_position(
+        &position,
+        "came back over home",
+        Duration::from_secs(90),
+        |p| {
+            let (n, e) = metres_from_home(p);
+            n.hypot(e) < 150.0
+        },
+    )
+    .await;
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}

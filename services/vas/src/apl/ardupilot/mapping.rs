@@ -52,6 +52,7 @@ pub(super) fn state_for_mode(kind: VehicleKind, mode: &str) -> Option<FlightStat
         (VehicleKind::Copter, "LOITER" | "POSHOLD" | "BRAKE" | "GUIDED") => Directed,
         (VehicleKind::Copter, "STABILIZE" | "ACRO" | "ALT_HOLD") => Manual,
         (VehicleKind::Plane, "RTL") => ReturnToLaunch,
+        (VehicleKind::Plane, "TAKEOFF") => TakeOff,
         (VehicleKind::Plane, "LOITER" | "CIRCLE" | "FBWA" | "FBWB" | "CRUISE" | "GUIDED") => {
             Directed
         }
