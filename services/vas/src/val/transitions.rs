@@ -187,6 +187,12 @@ pub fn check_command(
                 };
                 return Err(format!("{cmd} refused in {from} for a {kind}: {why}"));
             }
+            if arm && kind == VehicleKind::Copter {
+                return Err(format!(
+                    "{cmd} refused in {from} for a copter: it arms as it takes off (TAKE_OFF); \
+                     parked it is in LAND, where ArduCopter does not arm"
+                ));
+            }
             if armed == arm {
                 let already = if arm { "armed" } else { "disarmed" };
                 return Err(format!("{cmd} refused in {from}: already {already}"));
@@ -343,6 +349,10 @@ mod tests {
         assert!(e.contains("failsafe"), "{e}");
         assert_eq!(allowed_commands(r, Parking, false), ["ARM"]);
         assert_eq!(allowed_commands(c, Parking, true), ["DISARM"]);
+        let e = check_command(c, Parking, false, &VehicleCommand::Arm).unwrap_err();
+        assert!(e.contains("TAKE_OFF"), "{e}");
+        let p = VehicleKind::Plane;
+        assert_eq!(allowed_commands(p, Parking, false), ["ARM"]);
         assert!(allowed_commands(r, WaypointNavigation, true).is_empty());
     }
 
