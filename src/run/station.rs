@@ -573,7 +573,7 @@ async fn follow(
                 let to = FlightState::WaypointNavigation;
                 match vas_state_fn.call(&StateChangeRequest { to }, CALL_TIMEOUT).await {
                     Ok(_) => note(ui, s,
-                        "station: the plan was loaded but the vehicle stayed parked; asked the VAS for WAYPOINT_NAVIGATION",
+                        "station: plan ready and the vehicle parked; started it (WAYPOINT_NAVIGATION), as the operator",
                         json!({"event": "navigation_kicked"}),
                     ),
                     Err(e) => {
