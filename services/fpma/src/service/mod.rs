@@ -633,6 +633,8 @@ impl IService for Fpma {
                         if let Some((p, at)) = &mut last_progress {
                             if at.elapsed() >= PROGRESS_REFRESH {
                                 let _ = outlets.progress.set(p);
+                                // "Press Start" must not be lost on a lossy link either.
+                                let _ = outlets.ready.set(&core.readiness());
                                 *at = tokio::time::Instant::now();
                             }
                         }
