@@ -34,7 +34,10 @@ use fpma::vehicle::VehicleParams;
 use marea::Service;
 use station_web::{call_error, CommandStatus, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
-use usal_types::{AllowedChanges, FlightState, Position, StateChangeReply, StateChangeRequest};
+use usal_types::{
+    AllowedChanges, CommandReply, FlightState, Position, StateChangeReply, StateChangeRequest,
+    VehicleCommand,
+};
 
 use crate::background::{Background, BackgroundSource};
 use crate::plan::CheckedPlan;
@@ -170,6 +173,47 @@ impl Shared {
             StateChangeRequest { to },
             |_, r: &StateChangeReply| format!("{} -> {}", r.from, r.to),
         ))
+    }
+
+    /// Sends `label`'s VAS the command `name` (`ARM`, `DISARM`) as a command of the log;
+    /// refused here unless the VAS offers it from the state it is in.
+    ///
+    /// # Errors
+    /// Not offered (the reason names what is).
+    pub fn vehicle_command(self: &Arc<Self>, label: &str, name: &str) -> Result<u64, String> {
+        let cmd = match name {
+            "ARM" => VehicleCommand::Arm,
+            "DISARM" => VehicleCommand::Disarm,
+            other => return Err(format!("unknown vehicle command `{other}` (ARM, DISARM)")),
+        };
+        {
+            let st = self.state();
+            let v = st
+                .vehicles
+                .get(label)
+                .ok_or_else(|| format!("unknown vehicle `{label}`"))?;
+            let offered = v.command_offers();
+            if !offered.iter().any(|c| c == name) {
+                let from = v
+                    .flight_state
+                    .as_ref()
+                    .map_or_else(|| "an unknown state".to_owned(), |s| s.value.to_string());
+                return Err(format!(
+                    "{name} is not offered in {from} (offered: {})",
+                    if offered.is_empty() {
+                        "none".to_owned()
+                    } else {
+                        offered.join(", ")
+                    }
+                ));
+            }
+        }
+        let full = format!("{}/command", vas_prefix(label));
+        Ok(
+            self.call_as_command(label, full, name.to_owned(), cmd, |_, r: &CommandReply| {
+                format!("{} in {}", r.command, r.state)
+            }),
+        )
     }
 
     /// Calls the function `full` in the background as command `what` of `label`.

@@ -107,6 +107,24 @@ impl Vehicle {
             })
             .collect()
     }
+
+    /// The commands (ARM, DISARM) the VAS accepts from the state it is in; DIRECTED, which
+    /// needs a bearing, altitude and speed, is the FMo's.
+    pub(crate) fn command_offers(&self) -> Vec<String> {
+        let (Some(state), Some(allowed)) = (&self.flight_state, &self.allowed) else {
+            return Vec::new();
+        };
+        if allowed.value.from != Some(state.value) {
+            return Vec::new();
+        }
+        allowed
+            .value
+            .commands
+            .iter()
+            .filter(|c| matches!(c.as_str(), "ARM" | "DISARM"))
+            .cloned()
+            .collect()
+    }
 }
 
 /// The station's state.
@@ -306,6 +324,7 @@ impl State {
                     })),
                     "armed": v.allowed.as_ref().map(|a| a.value.armed),
                     "offers": v.offers(),
+                    "command_offers": v.command_offers(),
                     "ready": v.readiness.as_ref().map(|r| serde_json::json!({
                         "ready": r.value.ready,
                         "text": r.value.text,
@@ -364,9 +383,12 @@ mod tests {
         }));
         assert_eq!(names(&v), ["DIRECTED", "Start", "RETURN_TO_LAUNCH"]);
         assert_eq!(v.offers()[1].to, WaypointNavigation);
+        v.allowed.as_mut().unwrap().value.commands = vec!["ARM".into(), "DIRECTED".into()];
+        assert_eq!(v.command_offers(), ["ARM"]);
         // The state moved on and the VAS's answer for it is still on its way: offer nothing.
         v.flight_state = Some(Stamped::now(WaypointNavigation));
         assert!(v.offers().is_empty());
+        assert!(v.command_offers().is_empty());
     }
 
     #[test]

@@ -14,6 +14,7 @@
 //! | POST | `/api/command` | `{"cmd", ..., "vehicle"?}`: `skip_leg`, `pause`, `resume`, `goto_leg {leg}`, `goto_stage {stage}`, `set_var {name, value}`, `hold_here {length?, width?, turn?}`, `exit_hold {now}`, `emergency {rule?}` | 202 `{id}` / 400 `{error}` |
 //! | POST | `/api/modify_leg` | `{"leg", "changes": [["spacing", "10"]], "vehicle"?}` | 202 `{id}` |
 //! | POST | `/api/retask` | `{"points": [[lat, lon]], "when": "now"\|"after", "alt"?, "vehicle"?}` | 202 `{id}` |
+//! | POST | `/api/vehicle_command` | `{"command": "ARM"\|"DISARM", "vehicle"?}`: one of the vehicle's `command_offers` | 202 `{id}` / 409 `{error}` |
 //! | POST | `/api/change_state` | `{"to": "WAYPOINT_NAVIGATION", "vehicle"?}`: one of the vehicle's `offers` | 202 `{id}` / 409 `{error}` (not offered from its state) |
 
 use std::sync::Arc;
@@ -53,6 +54,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/modify_leg", post(modify))
         .route("/api/retask", post(retask))
         .route("/api/change_state", post(change_state))
+        .route("/api/vehicle_command", post(vehicle_command))
         .with_state(shared)
 }
 
@@ -344,6 +346,28 @@ async fn change_state(State(shared): State<Arc<Shared>>, Json(c): Json<ChangeSta
         Err(e) => return bad(StatusCode::BAD_REQUEST, e.to_string()),
     };
     match shared.change_state(&label, to) {
+        Ok(id) => accepted(id),
+        Err(e) => bad(StatusCode::CONFLICT, e),
+    }
+}
+
+#[derive(Deserialize)]
+struct VehicleCommandReq {
+    command: String,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+/// `POST /api/vehicle_command`: ARM or DISARM, when the VAS offers it.
+async fn vehicle_command(
+    State(shared): State<Arc<Shared>>,
+    Json(c): Json<VehicleCommandReq>,
+) -> Response {
+    let label = match shared.target(c.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    match shared.vehicle_command(&label, &c.command) {
         Ok(id) => accepted(id),
         Err(e) => bad(StatusCode::CONFLICT, e),
     }

@@ -193,6 +193,28 @@ async fn scenario() {
             "MANUAL"
         ]
     );
+    // Parked and disarmed: ARM is offered, DISARM is not.
+    assert_eq!(v["command_offers"], serde_json::json!(["ARM"]), "{v:#}");
+    let (status, body) = st
+        .post(
+            "/api/vehicle_command",
+            serde_json::json!({"command": "DISARM"}),
+        )
+        .await;
+    assert_eq!(status, 409, "{body}");
+    let (status, body) = st
+        .post(
+            "/api/vehicle_command",
+            serde_json::json!({"command": "ARM"}),
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    st.wait_state("armed, DISARM offered", |s| {
+        let v = vehicle(s, "rover1").unwrap();
+        v["armed"] == true && v["command_offers"] == serde_json::json!(["DISARM"])
+    })
+    .await;
     // What is not offered is refused by the station itself, naming what is.
     let (status, body) = st
         .post("/api/change_state", serde_json::json!({"to": "LANDING"}))
