@@ -22,6 +22,9 @@ use usal_types::{
 
 use crate::apl::{ApEvent, IAutopilot};
 
+/// How often the flight state and `allowed_changes` are published again though unchanged.
+const STATE_REFRESH: Duration = Duration::from_secs(2);
+
 /// Settings of the VAL.
 #[derive(Clone, Debug)]
 pub struct ValConfig {
@@ -484,10 +487,18 @@ impl IService for Vas {
             let _handles = (change, command, allowed, push, clear);
             let mut tick =
                 tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
+            // The flight state and what may be asked from it are published on change only; a
+            // change lost on a lossy radio would leave a station showing an old state (and
+            // offering the wrong buttons) until the next one: repeat them now and then.
+            let mut refresh = tokio::time::interval(STATE_REFRESH);
             loop {
                 tokio::select! {
                     _ = cx.cancelled() => return,
                     _ = tick.tick() => drop(c.items.mission_time.set(&c.mission_time())),
+                    _ = refresh.tick() => {
+                        let _ = c.items.flight_state.set(&c.state());
+                        c.publish_allowed();
+                    }
                 }
             }
         });
