@@ -3,10 +3,13 @@
 //! - `auth`: the price of link authentication (wire bytes, round trip and rate with a key
 //!   against the same run without one).
 //! - `hostile`: how the node holds under adversarial input (worst pattern match, discovery
-//!   during a heartbeat flood).
+//!   during a heartbeat flood, share of the hostile suite's attacks refused).
 
 #[path = "security/auth.rs"]
 mod auth;
+// The cross-process helpers and the hostile suite of the tests (`tests/common`).
+#[path = "../tests/common/mod.rs"]
+mod common;
 #[path = "security/hostile.rs"]
 mod hostile;
 #[path = "security/metric.rs"]

@@ -1,6 +1,7 @@
 //! `usal`: the USAL-rs command-line tools. Introspection of a running system in the spirit of
 //! `ros2 topic list/echo`: `usal list`, `usal echo NAME`, `usal call NAME ARGS`,
-//! `usal send FILE --to SINK`; and `usal run MISSION.xml`, the launcher (see `run/`).
+//! `usal send FILE --to SINK`; `usal run MISSION.xml`, the launcher (see `run/`); and
+//! `usal replay LOG`, which plays a run's flight log back (see `run/replay.rs`).
 
 mod run;
 mod types;
@@ -19,7 +20,7 @@ use marea::{NetworkConfig, Node, SendFileOptions};
 #[derive(Parser)]
 #[command(
     name = "usal",
-    about = "USAL-rs tools: run a mission; list, echo, call, send"
+    about = "USAL-rs tools: run a mission, replay its flight log; list, echo, call, send"
 )]
 struct Cli {
     #[command(flatten)]
@@ -55,6 +56,8 @@ struct NetArgs {
 enum Cmd {
     /// Start a mission's services (config/missions/*.xml), supervise them and follow the plan.
     Run(run::RunArgs),
+    /// Play a flight log of `usal run` back into the system (for an FMo/FPMo to show).
+    Replay(run::replay::ReplayArgs),
     /// List nodes, services and their items (published, subscribed, provided, called).
     List,
     /// Follow variables and events matching NAME (wildcards * and ** allowed), decoded.
@@ -215,6 +218,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let code = match &cli.cmd {
         // Dispatched in main before the tool joins the network.
         Cmd::Run(_) | Cmd::Keygen { .. } => ExitCode::from(2),
+        Cmd::Replay(a) => run::replay::run(&node, a, wait, cli.net.json).await?,
         Cmd::List => {
             tokio::time::sleep(wait).await;
             list(&node, cli.net.json)?;
@@ -314,7 +318,7 @@ async fn echo(
             v = events.recv() => v?,
         };
         let decoded = types::to_json(&v.type_name, &v.payload);
-        if json {
+        let text = if json {
             let mut line =
                 serde_json::json!({"name": v.name, "publisher": v.publisher, "type": v.type_name});
             match decoded {
@@ -325,17 +329,17 @@ async fn echo(
                     line["note"] = "type unknown to usal; shown raw".into();
                 }
             }
-            println!("{line}");
+            line.to_string()
         } else {
             match decoded {
                 Some(Ok(value)) => {
-                    println!("{} [{}] from {}: {value}", v.name, v.type_name, v.publisher)
+                    format!("{} [{}] from {}: {value}", v.name, v.type_name, v.publisher)
                 }
-                Some(Err(e)) => println!(
+                Some(Err(e)) => format!(
                     "{} [{}] from {}: cannot decode: {e}",
                     v.name, v.type_name, v.publisher
                 ),
-                None => println!(
+                None => format!(
                     "{} [{}] from {}: {} (type unknown to usal; shown raw)",
                     v.name,
                     v.type_name,
@@ -343,6 +347,10 @@ async fn echo(
                     hex(&v.payload)
                 ),
             }
+        };
+        if !print_line(&text)? {
+            // The reader went away (`usal echo … | head`): that ends the echo, not an error.
+            break;
         }
         n += 1;
         if count > 0 && n >= count {
@@ -350,6 +358,18 @@ async fn echo(
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Writes one line to stdout; `false` when stdout's reader has gone (a closed pipe), which
+/// `println!` would turn into a panic.
+fn print_line(text: &str) -> std::io::Result<bool> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match writeln!(out, "{text}").and_then(|()| out.flush()) {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(false),
+        Err(e) => Err(e),
+    }
 }
 
 fn hex(b: &[u8]) -> String {

@@ -1,6 +1,7 @@
 //! The payload types the `usal` tools can decode and encode by name: USAL's message types and
 //! the plain Rust types, keyed by `std::any::type_name` as declarations carry it.
 
+use marea::protocol::ItemKind;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use serde_json::Value;
@@ -10,10 +11,17 @@ type Decode = fn(&[u8]) -> Result<Value, String>;
 /// Encodes JSON into postcard bytes of a known type.
 type Encode = fn(&Value) -> Result<Vec<u8>, String>;
 
+/// Declares a publisher of a known type on a service (for `usal replay`).
+type MakeReplayer = fn(&marea::Service, ItemKind, &str) -> Result<Replayer, String>;
+
+/// Publishes postcard bytes of a known type as the variable or event it was declared as.
+pub type Replayer = Box<dyn Fn(&[u8]) -> Result<(), String> + Send + Sync>;
+
 struct Known {
     name: String,
     decode: Decode,
     encode: Encode,
+    replayer: MakeReplayer,
 }
 
 fn decode<T: DeserializeOwned + Serialize>(b: &[u8]) -> Result<Value, String> {
@@ -26,12 +34,39 @@ fn encode<T: DeserializeOwned + Serialize>(v: &Value) -> Result<Vec<u8>, String>
     postcard::to_stdvec(&t).map_err(|e| e.to_string())
 }
 
+fn make_replayer<T: marea::Payload>(
+    svc: &marea::Service,
+    kind: ItemKind,
+    item: &str,
+) -> Result<Replayer, String> {
+    let value = |b: &[u8]| postcard::from_bytes::<T>(b).map_err(|e| e.to_string());
+    match kind {
+        ItemKind::Variable => {
+            let v = svc.publish_variable::<T>(item).map_err(|e| e.to_string())?;
+            Ok(Box::new(move |b| {
+                v.set(&value(b)?).map_err(|e| e.to_string())
+            }))
+        }
+        ItemKind::Event => {
+            let e = svc.publish_event::<T>(item).map_err(|e| e.to_string())?;
+            // Raised in order without waiting for acknowledgements: a replay keeps its pace.
+            Ok(Box::new(move |b| {
+                e.raise_nowait(&value(b)?)
+                    .map(drop)
+                    .map_err(|e| e.to_string())
+            }))
+        }
+        other => Err(format!("cannot replay a {}", other.as_str())),
+    }
+}
+
 macro_rules! known {
     ($($t:ty),* $(,)?) => {
         vec![$(Known {
             name: std::any::type_name::<$t>().to_owned(),
             decode: decode::<$t>,
             encode: encode::<$t>,
+            replayer: make_replayer::<$t>,
         }),*]
     };
 }
@@ -107,6 +142,20 @@ pub fn to_json(type_name: &str, bytes: &[u8]) -> Option<Result<Value, String>> {
 pub fn from_json(type_name: &str, v: &Value) -> Result<Vec<u8>, String> {
     let k = find(type_name).ok_or_else(|| format!("type {type_name} is not known to usal"))?;
     (k.encode)(v).map_err(|e| format!("arguments do not fit {type_name}: {e}"))
+}
+
+/// A publisher of `item` on `svc` for values of `type_name` (postcard bytes), as a `kind`.
+///
+/// # Errors
+/// The type is unknown to the tool, or the item cannot be declared.
+pub fn replayer(
+    type_name: &str,
+    svc: &marea::Service,
+    kind: ItemKind,
+    item: &str,
+) -> Result<Replayer, String> {
+    let k = find(type_name).ok_or_else(|| format!("type {type_name} is not known to usal"))?;
+    (k.replayer)(svc, kind, item)
 }
 
 /// Splits a function's declared type `fn(A) -> R` into `A` and `R`.

@@ -207,7 +207,7 @@ fn a_node_of_another_namespace_cannot_offer_rover1_names() {
             }],
         );
         assert!(
-            gs.wait_until(T, |n| n.refusals().1 >= 2).await,
+            gs.wait_until(T, |n| n.refusals().rejected >= 2).await,
             "the impostor's offers were not refused: {:?}",
             gs.refusals()
         );
@@ -309,7 +309,10 @@ fn a_forged_bye_from_another_address_does_not_evict() {
         };
         assert_eq!(result, Ok(7), "the call failed: air was evicted");
         assert!(gs.peers().iter().any(|p| p.name == "air"));
-        assert!(gs.refusals().1 > 0, "the forged Byes were not counted");
+        assert!(
+            gs.refusals().rejected > 0,
+            "the forged Byes were not counted"
+        );
         drop((slow, station, vas));
         gs.shutdown().await;
         air.shutdown().await;

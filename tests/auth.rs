@@ -5,34 +5,14 @@
 
 mod common;
 
-use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket};
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{Net, Proc, T};
+use common::attacker::Sniffer;
+use common::{keygen, outcome, publishing, Net, Proc, T};
 use serde_json::Value;
-
-/// Makes a key with the real CLI, checking what it promises.
-fn keygen(dir: &Path, name: &str) -> PathBuf {
-    let path = dir.join(name);
-    let out = Command::new(env!("CARGO_BIN_EXE_usal"))
-        .args(["keygen", path.to_str().expect("utf-8 temp path")])
-        .output()
-        .expect("run usal keygen");
-    assert!(out.status.success(), "{out:?}");
-    use std::os::unix::fs::PermissionsExt;
-    let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
-    assert_eq!(mode, 0o600);
-    path
-}
-
-/// `net.probe` with `--key-file`.
-fn keyed(net: &Net, node: &str, ns: &str, key: &Path, cmd: &[&str]) -> Proc {
-    let mut args = vec!["--key-file", key.to_str().unwrap(), "--namespace", ns];
-    args.extend_from_slice(cmd);
-    net.probe(node, &args)
-}
 
 /// Reads link-health lines from `station` until one satisfies `pred`.
 fn health_until(station: &mut Proc, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
@@ -57,7 +37,7 @@ fn keygen_refuses_to_overwrite_and_nodes_refuse_a_readable_key() {
     use std::os::unix::fs::PermissionsExt;
     std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o644)).unwrap();
     let net = Net::new("auth_readable_key");
-    let mut p = keyed(&net, "p", "rover1", &key, &["list", "--wait-ms", "0"]);
+    let mut p = net.keyed("p", "rover1", &key, &["list", "--wait-ms", "0"]);
     let status = p.wait_exit(T);
     assert!(
         !status.success(),
@@ -71,16 +51,14 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
     let dir = tempfile::tempdir().unwrap();
     let key = keygen(dir.path(), "domain.key");
     let net = Net::new("auth_udp_ok");
-    let mut publ = keyed(
-        &net,
+    let mut publ = net.keyed(
         "pub",
         "rover1",
         &key,
         &["var-pub", "--item", "position", "--count", "3"],
     );
     publ.expect_key(T, "published");
-    let mut sub = keyed(
-        &net,
+    let mut sub = net.keyed(
         "sub",
         "gs",
         &key,
@@ -94,16 +72,14 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
     );
     assert_eq!(sub.expect_key(T, "seq")["seq"], 2);
 
-    let mut evsub = keyed(
-        &net,
+    let mut evsub = net.keyed(
         "evsub",
         "gs",
         &key,
         &["ev-sub", "--pattern", "rover1/probe/alarm", "--count", "50"],
     );
     evsub.expect_key(T, "ready");
-    let mut evpub = keyed(
-        &net,
+    let mut evpub = net.keyed(
         "evpub",
         "rover1",
         &key,
@@ -115,16 +91,9 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
     assert_eq!(r["received"], 50);
     assert_eq!(r["in_order"], true);
 
-    let mut prov = keyed(
-        &net,
-        "prov",
-        "rover1",
-        &key,
-        &["provide", "--item", "double"],
-    );
+    let mut prov = net.keyed("prov", "rover1", &key, &["provide", "--item", "double"]);
     prov.expect_key(T, "ready");
-    let mut call = keyed(
-        &net,
+    let mut call = net.keyed(
         "call",
         "gs",
         &key,
@@ -138,9 +107,7 @@ fn same_key_nodes_exchange_variables_events_and_calls_over_udp() {
             "10000",
         ],
     );
-    let v = call.expect(T, "a call result", |v| {
-        v.get("ok").is_some() || v.get("error").is_some()
-    });
+    let v = outcome(&mut call);
     assert_eq!(v["ok"], 42, "{v}");
 }
 
@@ -152,55 +119,14 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     let key = keygen(dir.path(), "domain.key");
     let other = keygen(dir.path(), "other.key");
     let net = Net::new("auth_udp_intruders");
-    let mut publ = keyed(
-        &net,
-        "pub",
-        "rover1",
-        &key,
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let mut publ = net.keyed("pub", "rover1", &key, &publishing("position"));
     publ.expect_key(T, "ready");
     // The intruders publish the same name: a keyed subscriber must only ever see the keyed one.
-    let mut wrong = keyed(
-        &net,
-        "wrongkey",
-        "rover1",
-        &other,
-        &[
-            "var-pub",
-            "--item",
-            "intruder",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
-    let mut none = net.probe_ns(
-        "nokey",
-        "rover1",
-        &[
-            "var-pub",
-            "--item",
-            "intruder",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let mut wrong = net.keyed("wrongkey", "rover1", &other, &publishing("intruder"));
+    let mut none = net.probe_ns("nokey", "rover1", &publishing("intruder"));
     wrong.expect_key(T, "ready");
     none.expect_key(T, "ready");
-    let mut wrong_sub = keyed(
-        &net,
+    let mut wrong_sub = net.keyed(
         "wrongsub",
         "gs",
         &other,
@@ -228,8 +154,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
 
     // The keyed station: it gets the keyed publisher's values, and its own link health shows
     // the intruders' datagrams dropped as unauthenticated.
-    let mut station = keyed(
-        &net,
+    let mut station = net.keyed(
         "station",
         "gs",
         &key,
@@ -240,8 +165,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
         assert_eq!(v["name"], "rover1/probe/position", "{v}");
         assert_eq!(v["publisher"], "pub");
     }
-    let mut health = keyed(
-        &net,
+    let mut health = net.keyed(
         "health",
         "gs",
         &key,
@@ -270,7 +194,7 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     // And they discovered nobody keyed.
     for (name, k) in [("wrong-list", Some(&other)), ("none-list", None)] {
         let mut list = match k {
-            Some(k) => keyed(&net, name, "gs", k, &["list", "--wait-ms", "1500"]),
+            Some(k) => net.keyed(name, "gs", k, &["list", "--wait-ms", "1500"]),
             None => net.probe_ns(name, "gs", &["list", "--wait-ms", "1500"]),
         };
         let v = list.expect_key(T, "nodes");
@@ -289,23 +213,6 @@ fn other_key_or_no_key_is_neither_discovered_nor_delivered() {
     }
 }
 
-/// A socket in the discovery group, as an eavesdropper on the LAN.
-fn eavesdropper(port: u16) -> UdpSocket {
-    use socket2::{Domain, Protocol, Socket, Type};
-    let group = Ipv4Addr::new(239, 255, 77, 1);
-    let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).unwrap();
-    s.set_reuse_address(true).unwrap();
-    s.bind(&SocketAddr::V4(SocketAddrV4::new(group, port)).into())
-        .unwrap();
-    s.join_multicast_v4(&group, &Ipv4Addr::LOCALHOST).unwrap();
-    s.set_multicast_if_v4(&Ipv4Addr::LOCALHOST).unwrap();
-    s.set_multicast_loop_v4(true).unwrap();
-    let s: UdpSocket = s.into();
-    s.set_read_timeout(Some(Duration::from_millis(200)))
-        .unwrap();
-    s
-}
-
 /// A datagram captured on the wire and sent again is dropped as a replay (counted), while the
 /// legitimate traffic goes on.
 #[test]
@@ -313,33 +220,17 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
     let dir = tempfile::tempdir().unwrap();
     let key = keygen(dir.path(), "domain.key");
     let net = Net::new("auth_udp_replay");
-    let spy = eavesdropper(net.port);
-    let mut publ = keyed(
-        &net,
-        "pub",
-        "rover1",
-        &key,
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "20",
-        ],
-    );
+    let spy = Sniffer::join(net.group()).expect("join the group");
+    let mut publ = net.keyed("pub", "rover1", &key, &publishing("position"));
     publ.expect_key(T, "ready");
-    let mut health = keyed(
-        &net,
+    let mut health = net.keyed(
         "victim",
         "gs",
         &key,
         &["health", "--pattern", "gs/link/**", "--count", "1000"],
     );
     health.expect_key(T, "ready");
-    let mut sub = keyed(
-        &net,
+    let mut sub = net.keyed(
         "sub",
         "gs",
         &key,
@@ -356,11 +247,10 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
     // Capture what the nodes multicast (hellos and heartbeats, sealed), and who sends it.
     let mut captured: Vec<(Vec<u8>, SocketAddr)> = Vec::new();
     let deadline = Instant::now() + T;
-    let mut buf = [0u8; 65536];
     while captured.len() < 12 && Instant::now() < deadline {
-        if let Ok((n, from)) = spy.recv_from(&mut buf) {
-            assert_eq!(buf[0], 0xA4, "a keyed node's discovery datagram is sealed");
-            captured.push((buf[..n].to_vec(), from));
+        if let Some((d, from)) = spy.recv() {
+            assert_eq!(d[0], 0xA4, "a keyed node's discovery datagram is sealed");
+            captured.push((d, from));
         }
     }
     assert!(captured.len() >= 12, "captured only {}", captured.len());
@@ -371,12 +261,12 @@ fn a_replayed_datagram_is_rejected_and_counted_while_traffic_flows() {
         s
     };
     // Replay each, to the group and to every node's own address.
-    let group = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 1), net.port));
+    let group = SocketAddr::V4(net.group());
     for _ in 0..3 {
         for (d, _) in &captured {
             spy.send_to(d, group).unwrap();
             for s in &senders {
-                spy.send_to(d, s).unwrap();
+                spy.send_to(d, *s).unwrap();
             }
         }
     }
@@ -893,16 +783,14 @@ fn keyed_gateways_join_two_lans_over_an_encrypted_radio() {
     let mut ground_gw = gateway(&ground, "ground-gw", "ground", &radio.ground);
     air_gw.expect_key(T, "ready");
     ground_gw.expect_key(T, "ready");
-    let mut publ = keyed(
-        &air,
+    let mut publ = air.keyed(
         "position",
         "rover1",
         &key,
         &["var-pub", "--item", "position", "--count", "1"],
     );
     publ.expect_key(T, "published");
-    let mut monitor = keyed(
-        &ground,
+    let mut monitor = ground.keyed(
         "monitor",
         "ground",
         &key,
@@ -911,4 +799,265 @@ fn keyed_gateways_join_two_lans_over_an_encrypted_radio() {
     let v = monitor.expect_key(Duration::from_secs(60), "seq");
     assert_eq!(v["name"], "rover1/probe/position", "{v}");
     assert_eq!(v["publisher"], "position");
+}
+
+/// A proof is an answer to one challenge: a domain-key holder that obtains a genuine proof of
+/// the station (by challenging it itself) and replays it to a vehicle, under the station's id
+/// once the station left, is not authenticated; the refusal is counted, and nothing it declares
+/// is taken.
+#[test]
+fn a_replayed_identity_proof_is_refused() {
+    use common::attacker::Forger;
+    use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message};
+
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let (station_id, station_pub) = identity_keygen(dir.path(), "station.id");
+    let roster = dir.path().join("identities.xml");
+    std::fs::write(
+        &roster,
+        format!(r#"<identities><identity key="{station_pub}" namespaces="ground"/></identities>"#),
+    )
+    .unwrap();
+    let net = Net::new("auth_identity_replay");
+    let inbox = dir.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let (key_s, roster_s) = (key.to_str().unwrap(), roster.to_str().unwrap());
+    let mut vehicle = net.probe(
+        "vas",
+        &[
+            "--key-file",
+            key_s,
+            "--identities",
+            roster_s,
+            "--namespace",
+            "rover1",
+            "victim",
+            "--call",
+            "retask",
+            "--sink",
+            "plans",
+            "--dir",
+            inbox.to_str().unwrap(),
+            "--pattern",
+            "**/position",
+        ],
+    );
+    let sniffer = Sniffer::join(net.group()).expect("join the group");
+    let ready = vehicle.expect_key(T, "ready");
+    let target: SocketAddr = ready["addrs"][0]
+        .as_str()
+        .unwrap()
+        .trim_start_matches("udp://")
+        .parse()
+        .unwrap();
+    let mut station = net.probe(
+        "gs",
+        &[
+            "--key-file",
+            key_s,
+            "--identity-file",
+            station_id.to_str().unwrap(),
+            "--namespace",
+            "ground",
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "100000000",
+            "--interval-ms",
+            "20",
+        ],
+    );
+    station.expect_key(T, "ready");
+    let report = |p: &mut Proc, what: &str, pred: &dyn Fn(&Value) -> bool| -> Value {
+        let v = p.expect(T, what, |v| v.get("report").is_some_and(pred));
+        p.seen.clear();
+        v["report"].clone()
+    };
+    // The station proved its key: its positions are delivered.
+    let r = report(&mut vehicle, "the station authenticated", &|r| {
+        r["authenticated"] == serde_json::json!(["ground/gs"])
+            && r["samples"]["gs ground/probe/position"].as_u64() > Some(2)
+    });
+    let station_addr: SocketAddr = r["peer_addrs"]["ground/gs"]
+        .as_str()
+        .unwrap()
+        .trim_start_matches("udp://")
+        .parse()
+        .unwrap();
+    let (station_node_id, _) = sniffer
+        .capture_from(station_addr, T)
+        .expect("the station's heartbeat");
+    let rejected_before = r["refusals"]["rejected"].as_u64().unwrap();
+
+    // The spy holds the domain key: it says Hello to the station and challenges it; the
+    // station answers with a genuine proof (for the spy's nonce).
+    let domain_key = marea::link::auth::DomainKey::load(&key).unwrap();
+    let mut spy = Forger::new(Some(&domain_key)).unwrap();
+    spy.discovery(
+        station_addr,
+        &Message::Hello {
+            node_id: 0x5b1_0000_0001,
+            domain: net.domain.clone(),
+            node: "spy".into(),
+            namespace: "evil".into(),
+            counter: 0,
+            lease_ms: 60_000,
+            gateway: false,
+        },
+    )
+    .unwrap();
+    spy.safe(station_addr, &[Message::Challenge { nonce: [7; 16] }])
+        .unwrap();
+    let proof = spy
+        .recv_message(station_addr, T, |m| matches!(m, Message::Identity { .. }))
+        .expect("the station answers a challenge");
+
+    // The station leaves; the spy comes back to the vehicle as the station, with the proof.
+    station.terminate();
+    station.wait_exit(T);
+    report(&mut vehicle, "the station gone", &|r| {
+        r["peers"].get("ground/gs").is_none()
+    });
+    let mut impostor = Forger::new(Some(&domain_key)).unwrap();
+    impostor
+        .discovery(
+            target,
+            &Message::Hello {
+                node_id: station_node_id,
+                domain: net.domain.clone(),
+                node: "gs".into(),
+                namespace: "ground".into(),
+                counter: 2,
+                lease_ms: 60_000,
+                gateway: false,
+            },
+        )
+        .unwrap();
+    report(&mut vehicle, "the impostor heard", &|r| {
+        r["peers"]["ground/gs"] == 1
+    });
+    impostor
+        .safe(
+            target,
+            &[
+                proof,
+                Message::DeclBatch {
+                    after: 0,
+                    upto: 2,
+                    reset: false,
+                    entries: vec![
+                        LoggedDeclaration {
+                            counter: 1,
+                            decl: Declaration::Service {
+                                id: 1,
+                                name: "probe".into(),
+                            },
+                        },
+                        LoggedDeclaration {
+                            counter: 2,
+                            decl: Declaration::Offer {
+                                id: 2,
+                                service: 1,
+                                kind: ItemKind::Function,
+                                name: "ground/probe/fake".into(),
+                                ty: marea::typeinfo::TypeInfo::of::<fn(u64) -> u64>(),
+                                origin: None,
+                            },
+                        },
+                    ],
+                },
+            ],
+        )
+        .unwrap();
+    let r = report(&mut vehicle, "the replayed proof refused", &|r| {
+        r["refusals"]["rejected"].as_u64() > Some(rejected_before)
+    });
+    assert_eq!(
+        r["authenticated"],
+        serde_json::json!([]),
+        "the impostor was authenticated: {r}"
+    );
+}
+
+/// With a roster, `<access>` matches a peer by the namespace its identity key proved, not the
+/// one it claims: a domain-key holder claiming the station's namespace without a key listed for
+/// it is denied the call the station may make, and the provider never runs it.
+#[test]
+fn access_rules_trust_only_an_authenticated_namespace() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = keygen(dir.path(), "domain.key");
+    let (station_id, station_pub) = identity_keygen(dir.path(), "station.id");
+    let (evil_id, evil_pub) = identity_keygen(dir.path(), "evil.id");
+    let roster = dir.path().join("identities.xml");
+    std::fs::write(
+        &roster,
+        format!(
+            r#"<identities>
+  <identity key="{station_pub}" namespaces="ground"/>
+  <identity key="{evil_pub}" namespaces="evil"/>
+</identities>"#
+        ),
+    )
+    .unwrap();
+    let net = Net::new("auth_identity_access");
+    let inbox = dir.path().join("inbox");
+    std::fs::create_dir_all(&inbox).unwrap();
+    let config = net.network_xml(
+        dir.path(),
+        "vas",
+        "rover1",
+        r#"<access><allow kind="call" item="rover1/vas/*" from="ground/*"/></access>"#,
+    );
+    let (key_s, roster_s) = (key.to_str().unwrap(), roster.to_str().unwrap());
+    let mut vehicle = common::probe_with_config(
+        "vas",
+        &config,
+        "vas",
+        &["--key-file", key_s, "--identities", roster_s],
+        &[
+            "victim",
+            "--call",
+            "retask",
+            "--sink",
+            "plans",
+            "--dir",
+            inbox.to_str().unwrap(),
+            "--pattern",
+            "**/position",
+        ],
+    );
+    vehicle.expect_key(T, "ready");
+    let call = |node: &str, identity: Option<&Path>, arg: &str| {
+        let mut args = vec!["--key-file", key_s, "--namespace", "ground"];
+        if let Some(id) = identity {
+            args.extend(["--identity-file", id.to_str().unwrap()]);
+        }
+        args.extend([
+            "call",
+            "--name",
+            "rover1/vas/retask",
+            "--arg",
+            arg,
+            "--wait-ms",
+            "10000",
+        ]);
+        net.probe(node, &args)
+    };
+    // Claiming `ground` with no identity, then with a key listed for `evil` only.
+    for (node, identity) in [("fmo", None), ("fmo2", Some(evil_id.as_path()))] {
+        let mut impostor = call(node, identity, "666");
+        let r = outcome(&mut impostor);
+        assert_eq!(r["error"], "denied", "{node}: {r}");
+    }
+    let mut station = call("fmo3", Some(station_id.as_path()), "21");
+    let r = outcome(&mut station);
+    assert_eq!(r["ok"], 42, "{r}");
+    let v = vehicle.expect(T, "the station's call run", |v| {
+        v["report"]["called"]
+            .as_array()
+            .is_some_and(|c| !c.is_empty())
+    });
+    assert_eq!(v["report"]["called"], serde_json::json!([21]), "{v}");
 }

@@ -124,11 +124,9 @@ async fn forged_hellos_never_push_out_a_confirmed_peer() {
             socks.push(sock);
         }
         let refused = victim
-            .wait_until(Duration::from_secs(10), |n| {
-                n.refused_input().peers_evicted > 0
-            })
+            .wait_until(Duration::from_secs(10), |n| n.refusals().peers_evicted > 0)
             .await;
-        assert!(refused, "{:?}", victim.refused_input());
+        assert!(refused, "{:?}", victim.refusals());
         assert!(victim.peers().len() <= 1024, "{}", victim.peers().len());
         // The friend had confirmed (it answered in a session): it stays, both ways.
         assert!(knows(&victim, "friend") && knows(&friend, "victim"));
@@ -169,10 +167,10 @@ async fn a_declared_pattern_of_repeated_double_wildcards_is_counted_and_the_peer
             .unwrap();
         let counted = victim
             .wait_until(Duration::from_secs(5), |n| {
-                n.refused_input().bad_declarations == 1
+                n.refusals().bad_declarations == 1
             })
             .await;
-        assert!(counted, "{:?}", victim.refused_input());
+        assert!(counted, "{:?}", victim.refusals());
         assert!(knows(&victim, "mallory"), "the peer is kept");
         assert!(victim.shutdown().await);
     })

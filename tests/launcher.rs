@@ -59,6 +59,9 @@ impl Launcher {
             .arg("--json")
             .arg("run")
             .args(args)
+            // The flight log has its own test (tests/flightlog.rs); these runs leave no log in
+            // the checkout.
+            .arg("--no-log")
             .current_dir(root())
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -516,6 +519,39 @@ fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
         samples.iter().all(|s| s.contains("\"lat\":41.27")),
         "{echo}"
     );
+
+    // `usal echo … | head -1`: the reader closes the pipe after one line; echo ends quietly.
+    let mut echo = Command::new(USAL)
+        .args(["--domain", &domain, "echo", "rover1/vas/position"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("usal echo");
+    let mut first = String::new();
+    BufReader::new(echo.stdout.take().expect("piped stdout"))
+        .read_line(&mut first)
+        .expect("one echoed line");
+    assert!(first.starts_with("rover1/vas/position"), "{first}");
+    let deadline = Instant::now() + STEP;
+    let status = loop {
+        if let Ok(Some(status)) = echo.try_wait() {
+            break status;
+        }
+        if Instant::now() >= deadline {
+            let _ = echo.kill();
+            let _ = echo.wait();
+            panic!("usal echo kept running after its reader closed the pipe");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut err = String::new();
+    echo.stderr
+        .take()
+        .expect("piped stderr")
+        .read_to_string(&mut err)
+        .expect("echo stderr");
+    assert!(status.success() && !err.contains("panicked"), "{status}: {err}");
 
     let (ok, answer) = tool(
         &domain,

@@ -8,9 +8,12 @@
 //!   attacker sends it 10,000 heartbeats of invented node ids, each from its own socket (paced
 //!   to what the victim reads, so the kernel drops none); then a fresh node starts, and the
 //!   figure is the time until it has discovered the victim.
-//!
-//! `hostile.rejected_ratio` belongs to the hostile suite (an attacker process trying every
-//! attack); it is not printed here rather than printed without those attacks behind it.
+//! - `hostile.rejected_ratio`: the attacks of the hostile suite (`tests/common/hostile.rs`,
+//!   the same as `tests/hostile.rs`: real processes, an outsider without the key then an
+//!   insider with the key in another namespace), refused / sent. An outsider's datagram counts
+//!   as refused when the victim's seal rejected it (`auth_rejected`, `replay_rejected`); an
+//!   insider's message when the counter its attack must raise rose for it (`denied`,
+//!   `rejected`, `bad_declarations`), each counted at most once. Expected 1.0.
 
 use std::net::{Ipv4Addr, SocketAddrV4};
 use std::sync::Arc;
@@ -21,8 +24,7 @@ use marea::{NetworkConfig, Node};
 
 use super::metric::metric;
 
-#[path = "../../tests/common/attacker.rs"]
-mod attacker;
+use crate::common::{attacker, hostile as suite};
 
 pub fn run() {
     metric("hostile.pattern.worst_match_us", worst_match_us(), "us");
@@ -30,6 +32,26 @@ pub fn run() {
         Ok(ms) => metric("hostile.flood.discovery_after_ms", ms, "ms"),
         Err(e) => eprintln!("hostile.flood.discovery_after_ms: {e}"),
     }
+    // The suite asserts as it goes (a victim that never reports, an attack not refused the
+    // way it must be): such a failure is reported instead of a figure.
+    match std::panic::catch_unwind(rejected_ratio) {
+        Ok(ratio) => metric("hostile.rejected_ratio", ratio, "ratio"),
+        Err(_) => eprintln!("hostile.rejected_ratio: the hostile suite failed (see above)"),
+    }
+}
+
+/// Refused / sent over both attackers of the hostile suite, against one victim.
+fn rejected_ratio() -> f64 {
+    let mut scene = suite::Scene::start("bench-hostile-suite");
+    let outsider = suite::outsider(&mut scene);
+    let insider = suite::insider(&mut scene);
+    scene.assert_nothing_from_attackers();
+    let (refused, sent) = (
+        outsider.refused + insider.refused,
+        outsider.sent + insider.sent,
+    );
+    eprintln!("hostile.rejected_ratio: outsider {outsider:?}, insider {insider:?}");
+    refused as f64 / sent as f64
 }
 
 /// A 256-byte string of `unit` repeated, cut at a segment boundary and ended by `last`.

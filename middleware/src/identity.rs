@@ -8,9 +8,13 @@
 //!   <identity key="..." namespaces="*"/>            <!-- a station allowed any namespace -->
 //! </identities>
 //! ```
-//! The proof a node sends (as [`crate::protocol::Message::Identity`], right after each Hello it
-//! sends a peer, so before any of its declarations) is a signature over the domain, its node id
-//! (random at every start, so the proof is bound to this run), its name and its namespace.
+//! The proof is challenge-response: a node checking identities sends each peer it registers a
+//! [`crate::protocol::Message::Challenge`] with a fresh random nonce (after its Hello, before
+//! asking for the peer's declarations); the peer answers with a
+//! [`crate::protocol::Message::Identity`], a signature over the domain, its node id (random at
+//! every start), its name and namespace, **and the challenger's node id and nonce**. The nonce
+//! is used once: a proof recorded on the LAN and replayed, to this node or another, under the
+//! prover's id or any other, does not verify.
 
 use std::path::{Path, PathBuf};
 
@@ -31,10 +35,25 @@ impl std::fmt::Debug for IdentityKey {
     }
 }
 
-/// The bytes a node signs for one run.
-fn statement(domain: &str, node_id: u64, node: &str, namespace: &str) -> Vec<u8> {
+/// What a proof answers: who asked, and the nonce it sent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Challenge {
+    /// The challenger's node id.
+    pub verifier: u64,
+    /// The nonce it sent.
+    pub nonce: [u8; 16],
+}
+
+/// The bytes a node signs to answer `challenge`.
+fn statement(
+    domain: &str,
+    node_id: u64,
+    node: &str,
+    namespace: &str,
+    challenge: &Challenge,
+) -> Vec<u8> {
     let mut m =
-        Vec::with_capacity(CONTEXT.len() + domain.len() + node.len() + namespace.len() + 11);
+        Vec::with_capacity(CONTEXT.len() + domain.len() + node.len() + namespace.len() + 35);
     m.extend_from_slice(CONTEXT);
     m.extend_from_slice(domain.as_bytes());
     m.push(0);
@@ -42,6 +61,9 @@ fn statement(domain: &str, node_id: u64, node: &str, namespace: &str) -> Vec<u8>
     m.extend_from_slice(node.as_bytes());
     m.push(0);
     m.extend_from_slice(namespace.as_bytes());
+    m.push(0);
+    m.extend_from_slice(&challenge.verifier.to_le_bytes());
+    m.extend_from_slice(&challenge.nonce);
     m
 }
 
@@ -105,19 +127,26 @@ impl IdentityKey {
         self.0.verifying_key().to_bytes()
     }
 
-    /// The proof for this run: a signature over domain, node id, name and namespace.
-    pub fn prove(&self, domain: &str, node_id: u64, node: &str, namespace: &str) -> [u8; 64] {
+    /// The answer to `challenge`: a signature over domain, node id, name and namespace, and
+    /// the challenger's id and nonce.
+    pub fn prove(
+        &self,
+        (domain, node_id, node, namespace): (&str, u64, &str, &str),
+        challenge: &Challenge,
+    ) -> [u8; 64] {
         self.0
-            .sign(&statement(domain, node_id, node, namespace))
+            .sign(&statement(domain, node_id, node, namespace, challenge))
             .to_bytes()
     }
 }
 
-/// Whether `signature` by `public` proves `node_id`'s run as `node` in `namespace`.
+/// Whether `signature` by `public` proves `node_id`'s run as `node` in `namespace`, in answer
+/// to `challenge`.
 pub fn check_proof(
     public: &[u8; 32],
     signature: &[u8],
     (domain, node_id, node, namespace): (&str, u64, &str, &str),
+    challenge: &Challenge,
 ) -> bool {
     let Ok(key) = VerifyingKey::from_bytes(public) else {
         return false;
@@ -125,8 +154,11 @@ pub fn check_proof(
     let Ok(sig) = Signature::from_slice(signature) else {
         return false;
     };
-    key.verify(&statement(domain, node_id, node, namespace), &sig)
-        .is_ok()
+    key.verify(
+        &statement(domain, node_id, node, namespace, challenge),
+        &sig,
+    )
+    .is_ok()
 }
 
 /// The domain's roster: which public key may own which namespaces.
@@ -270,24 +302,49 @@ pub fn allows(authenticated: &[String], namespace: &str) -> bool {
 mod tests {
     use super::*;
 
+    const C: Challenge = Challenge {
+        verifier: 99,
+        nonce: [5; 16],
+    };
+
     #[test]
     fn proofs_bind_domain_node_id_name_and_namespace() {
         let k = IdentityKey::from_bytes([1; 32]);
         let p = k.public();
-        let sig = k.prove("d", 7, "vas", "rover1");
-        assert!(check_proof(&p, &sig, ("d", 7, "vas", "rover1")));
+        let sig = k.prove(("d", 7, "vas", "rover1"), &C);
+        assert!(check_proof(&p, &sig, ("d", 7, "vas", "rover1"), &C));
         for other in [
             ("e", 7, "vas", "rover1"),
             ("d", 8, "vas", "rover1"),
             ("d", 7, "vax", "rover1"),
             ("d", 7, "vas", "rover2"),
         ] {
-            assert!(!check_proof(&p, &sig, other), "{other:?}");
+            assert!(!check_proof(&p, &sig, other, &C), "{other:?}");
         }
         let q = IdentityKey::from_bytes([2; 32]).public();
-        assert!(!check_proof(&q, &sig, ("d", 7, "vas", "rover1")));
-        assert!(!check_proof(&p, &sig[..63], ("d", 7, "vas", "rover1")));
-        assert!(!check_proof(&[0xFF; 32], &sig, ("d", 7, "vas", "rover1")));
+        assert!(!check_proof(&q, &sig, ("d", 7, "vas", "rover1"), &C));
+        assert!(!check_proof(&p, &sig[..63], ("d", 7, "vas", "rover1"), &C));
+        assert!(!check_proof(
+            &[0xFF; 32],
+            &sig,
+            ("d", 7, "vas", "rover1"),
+            &C
+        ));
+    }
+
+    #[test]
+    fn a_proof_answers_one_challenge_only() {
+        let k = IdentityKey::from_bytes([1; 32]);
+        let who = ("d", 7, "vas", "rover1");
+        let sig = k.prove(who, &C);
+        // Replayed to another challenger, or to the same one after it sent a new nonce.
+        let elsewhere = Challenge { verifier: 100, ..C };
+        let later = Challenge {
+            nonce: [6; 16],
+            ..C
+        };
+        assert!(!check_proof(&k.public(), &sig, who, &elsewhere));
+        assert!(!check_proof(&k.public(), &sig, who, &later));
     }
 
     #[test]

@@ -75,6 +75,11 @@ fn structured_fuzz_shm_frames() {
 }
 
 #[test]
+fn structured_fuzz_file_chunks() {
+    run("file_chunks", marea::fuzzing::file_chunks);
+}
+
+#[test]
 fn reference_matcher_is_right_on_known_cases() {
     use marea::fuzzing::reference_match as m;
     assert!(m("*/vas/position", "rover1/vas/position"));

@@ -160,6 +160,19 @@ enum Cmd {
     /// Run the node only (a gateway when its network.xml makes it one) and print what it
     /// forwards whenever that changes.
     Gateway,
+    /// The target of the hostile tests: provides function CALL (doubles its u64 argument),
+    /// accepts files on SINK into DIR, subscribes to positions matching PATTERN, and prints a
+    /// `report` line whenever what it delivered, executed, knows or refused changes.
+    Victim {
+        #[arg(long)]
+        call: String,
+        #[arg(long)]
+        sink: String,
+        #[arg(long)]
+        dir: PathBuf,
+        #[arg(long)]
+        pattern: String,
+    },
     /// List what the network offers after WAIT ms.
     List {
         #[arg(long, default_value_t = 1500)]
@@ -535,9 +548,115 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 }
             }
         }
+        Cmd::Victim {
+            call,
+            sink,
+            dir,
+            pattern,
+        } => victim(node, svc, call, sink, dir, pattern).await?,
         Cmd::List { wait_ms } => {
             tokio::time::sleep(Duration::from_millis(*wait_ms)).await;
             out(serde_json::to_value(node.catalog())?);
+        }
+    }
+    Ok(())
+}
+
+/// What a victim delivered and executed, for [`Cmd::Victim`]'s reports.
+#[derive(Default)]
+struct Delivered {
+    /// Calls executed, by argument.
+    called: Vec<u64>,
+    /// Samples delivered, by "publisher name".
+    samples: std::collections::BTreeMap<String, u64>,
+    /// Files stored: (sender, size).
+    files: Vec<(String, u64)>,
+}
+
+async fn victim(
+    node: &Node,
+    svc: &marea::Service,
+    call: &str,
+    sink: &str,
+    dir: &std::path::Path,
+    pattern: &str,
+) -> anyhow::Result<()> {
+    use std::sync::{Arc, Mutex};
+    let delivered = Arc::new(Mutex::new(Delivered::default()));
+    let d = delivered.clone();
+    let _f = svc.provide_function(call, move |x: u64| {
+        let d = d.clone();
+        async move {
+            if let Ok(mut d) = d.lock() {
+                d.called.push(x);
+            }
+            Ok::<u64, String>(x.wrapping_mul(2))
+        }
+    })?;
+    let files = svc.file_sink(sink, dir)?;
+    let positions = svc.subscribe_variable::<Position>(pattern)?;
+    out(json!({"ready": svc.full_name(call), "addrs": node.link_addrs()}));
+    let mut tick = tokio::time::interval(Duration::from_millis(50));
+    let mut shown = serde_json::Value::Null;
+    loop {
+        tokio::select! {
+            _ = marea::process::terminated() => break,
+            _ = tick.tick() => {}
+            s = positions.recv() => {
+                if let (Ok(s), Ok(mut d)) = (s, delivered.lock()) {
+                    *d.samples.entry(format!("{} {}", s.publisher, s.name)).or_default() += 1;
+                }
+                continue;
+            }
+            f = files.recv() => {
+                let f = f?;
+                if let Ok(mut d) = delivered.lock() {
+                    d.files.push((f.from, f.size));
+                }
+            }
+        }
+        let report = {
+            let d = delivered
+                .lock()
+                .map_err(|_| anyhow::anyhow!("report lock poisoned"))?;
+            let r = node.refusals();
+            // By name (a flood of invented peers may share one): how many, and an address.
+            let mut peers = std::collections::BTreeMap::<String, u64>::new();
+            let mut peer_addrs = std::collections::BTreeMap::<String, String>::new();
+            let mut authenticated = Vec::new();
+            for p in node.peers() {
+                if p.authenticated_namespaces
+                    .as_ref()
+                    .is_some_and(|n| !n.is_empty())
+                {
+                    authenticated.push(format!("{}/{}", p.namespace, p.name));
+                }
+                *peers
+                    .entry(format!("{}/{}", p.namespace, p.name))
+                    .or_default() += 1;
+                peer_addrs.insert(format!("{}/{}", p.namespace, p.name), p.addr);
+            }
+            json!({
+                "called": d.called,
+                "samples": d.samples,
+                "files": d.files,
+                "peers": peers,
+                "peer_addrs": peer_addrs,
+                "authenticated": authenticated,
+                "frames_in": node.link_stats().iter().map(|(_, s)| s.frames_in).sum::<u64>(),
+                "refusals": {
+                    "denied": r.denied, "rejected": r.rejected,
+                    "auth_rejected": r.auth_rejected, "replay_rejected": r.replay_rejected,
+                    "undecodable": r.undecodable, "unknown_sender": r.unknown_sender,
+                    "bad_declarations": r.bad_declarations, "peers_refused": r.peers_refused,
+                    "peers_evicted": r.peers_evicted, "total": r.total(),
+                },
+            })
+        };
+        // Sample counts change 50 times a second: report at the tick, whatever changed.
+        if report != shown {
+            out(json!({"report": report}));
+            shown = report;
         }
     }
     Ok(())

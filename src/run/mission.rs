@@ -83,6 +83,9 @@ pub enum ServiceSpec {
     Fpmo {
         /// HTTP address (port 0: any free port).
         listen: String,
+        /// Map tiles for its map (`fpmo --tiles`): an MBTiles file or a `{z}/{x}/{y}` template,
+        /// local paths resolved against the mission file.
+        tiles: Option<String>,
     },
 }
 
@@ -544,8 +547,20 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 ServiceSpec::Station(spec)
             }
             kind @ ("fmo" | "fpmo") => {
-                let mut a = Attrs::new(s, &["listen"]);
+                let known: &[&str] = if kind == "fpmo" {
+                    &["listen", "tiles"]
+                } else {
+                    &["listen"]
+                };
+                let mut a = Attrs::new(s, known);
                 let listen = a.opt("listen").unwrap_or_else(|| "127.0.0.1:0".into());
+                let tiles = (kind == "fpmo").then(|| a.opt("tiles")).flatten().map(|t| {
+                    if t.starts_with("http://") || t.starts_with("https://") {
+                        t
+                    } else {
+                        base.join(t).display().to_string()
+                    }
+                });
                 a.finish()?;
                 if listen.parse::<std::net::SocketAddr>().is_err() {
                     return Err(Fault::at(
@@ -556,7 +571,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 if kind == "fmo" {
                     ServiceSpec::Fmo { listen }
                 } else {
-                    ServiceSpec::Fpmo { listen }
+                    ServiceSpec::Fpmo { listen, tiles }
                 }
             }
             other => {
@@ -772,6 +787,28 @@ mod tests {
     <station plan="../flightplans/rover-carpark.xml"/>
   </node>
 </mission>"#;
+
+    #[test]
+    fn fpmo_tiles_resolve_against_the_mission_file_and_urls_stay() {
+        let with = |fpmo: &str| {
+            parse(&GOOD.replace(
+                "    <station plan",
+                &format!("    {fpmo}\n    <station plan"),
+            ))
+        };
+        let m = with(r#"<fpmo tiles="../maps/field.mbtiles"/>"#).unwrap();
+        let Some(ServiceSpec::Fpmo { tiles: Some(t), .. }) = m.nodes[1].services.first() else {
+            panic!("no fpmo with tiles: {:?}", m.nodes[1].services.len());
+        };
+        assert!(t.ends_with("config/missions/../maps/field.mbtiles"), "{t}");
+        let m = with(r#"<fpmo tiles="https://tiles.example/{z}/{x}/{y}.png"/>"#).unwrap();
+        let Some(ServiceSpec::Fpmo { tiles: Some(t), .. }) = m.nodes[1].services.first() else {
+            panic!("no fpmo with tiles");
+        };
+        assert_eq!(t, "https://tiles.example/{z}/{x}/{y}.png");
+        let e = with(r#"<fmo tiles="a.mbtiles"/>"#).unwrap_err();
+        assert!(e.contains("tiles"), "{e}");
+    }
 
     #[test]
     fn a_valid_mission_parses_and_the_station_finds_its_fpma() {

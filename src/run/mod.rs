@@ -2,8 +2,10 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+pub mod flightlog;
 pub mod mission;
 mod radio;
+pub mod replay;
 mod station;
 mod supervisor;
 mod ui;
@@ -47,6 +49,13 @@ pub struct RunArgs {
     /// else 600).
     #[arg(long)]
     pub timeout_s: Option<f64>,
+    /// Write the flight log here (default: logs/<mission>-<UTC>.jsonl.gz; gzip when the name
+    /// ends in .gz). Replay it with `usal replay LOG`.
+    #[arg(long, conflicts_with = "no_log")]
+    pub log: Option<PathBuf>,
+    /// Write no flight log.
+    #[arg(long)]
+    pub no_log: bool,
 }
 
 /// The service binaries a mission needs, found next to the running `usal`.
@@ -189,6 +198,7 @@ fn station_setup(
         vas: st.vas.clone(),
         nominal,
         nominal_m,
+        log: None,
     })
 }
 
@@ -327,6 +337,31 @@ async fn run(
         ),
         json!({"event": "mission", "name": mission.name, "domain": domain}),
     );
+    let log = if args.no_log {
+        None
+    } else {
+        let created = match &args.log {
+            Some(path) => flightlog::FlightLog::create(path, &mission.name, &args.mission, &domain),
+            None => {
+                flightlog::create_default(Path::new("logs"), &mission.name, &args.mission, &domain)
+            }
+        };
+        match created {
+            Ok(l) => {
+                let path = l.path().to_owned();
+                ui.set_log(l.clone());
+                ui.note(
+                    &format!("flight log: {}", path.display()),
+                    json!({"event": "flight_log", "path": path.display().to_string()}),
+                );
+                Some(l)
+            }
+            Err(e) => {
+                eprintln!("usal: {e}");
+                return ExitCode::from(EXIT_USAGE);
+            }
+        }
+    };
     let stop = CancellationToken::new();
     let signals = tokio::spawn(wait_for_signal(stop.clone(), ui.clone()));
     let scratch = std::env::temp_dir().join(format!("usal-run-{domain}"));
@@ -354,7 +389,12 @@ async fn run(
     };
     for (st, (node, _)) in stations.iter_mut().zip(mission.stations()) {
         st.network = node.network.clone();
+        st.log.clone_from(&log);
     }
+    let log_stop = CancellationToken::new();
+    let recorder = log
+        .as_ref()
+        .map(|l| start_recorder(l, &stations, &mission, &domain, &log_stop, &ui));
     let code = match start_services(
         &mission,
         &domain,
@@ -388,10 +428,100 @@ async fn run(
         }
     };
     ui.clear_bar();
+    log_stop.cancel();
+    if let Some(Ok(Err(e))) = match recorder {
+        Some(r) => Some(r.await),
+        None => None,
+    } {
+        ui.note(
+            &format!("{e:#}"),
+            json!({"event": "flight_log_error", "error": format!("{e:#}")}),
+        );
+    }
+    if let Some(l) = &log {
+        finish_log(l, &ui);
+    }
     sup.shutdown().await;
     signals.abort();
     let _ = std::fs::remove_dir_all(&scratch);
     code
+}
+
+/// Starts recording what the stations follow into the flight log, from a node of its own on
+/// the first station's network (the ground side of a radio).
+fn start_recorder(
+    log: &Arc<flightlog::FlightLog>,
+    stations: &[StationSetup],
+    mission: &Mission,
+    domain: &str,
+    stop: &CancellationToken,
+    ui: &Ui,
+) -> tokio::task::JoinHandle<anyhow::Result<()>> {
+    let first = stations.first();
+    let node = first.map_or_else(
+        || format!("usal-flightlog-{}", std::process::id()),
+        |s| format!("{}-flightlog", s.node),
+    );
+    // Without a station: the ground side of a radio, where a station would be.
+    let ground = mission.radio.as_ref().and_then(|r| mission.node(&r.ground));
+    let (network, namespace) = match (first, ground) {
+        (Some(s), _) => (s.network.as_deref(), s.namespace.as_deref()),
+        (None, Some(g)) => (g.network.as_deref(), g.namespace.as_deref()),
+        (None, None) => (None, None),
+    };
+    let config =
+        marea::NetworkConfig::for_service(network, &node, Some(domain), namespace).map(|mut c| {
+            c.node.clone_from(&node);
+            c
+        });
+    let mut prefixes: Vec<String> = stations
+        .iter()
+        .flat_map(|s| [s.vas.clone(), s.fpma.clone()])
+        .collect();
+    if prefixes.is_empty() {
+        // No station: every VAS and FPMa of the mission.
+        for n in &mission.nodes {
+            for svc in &n.services {
+                if matches!(svc, ServiceSpec::Vas(_) | ServiceSpec::Fpma(_)) {
+                    prefixes.push(match &n.namespace {
+                        Some(ns) => format!("{ns}/{}", svc.kind()),
+                        None => svc.kind().to_owned(),
+                    });
+                }
+            }
+        }
+    }
+    let interests = flightlog::interests(&prefixes, mission.radio.is_some());
+    match config {
+        Ok(c) => tokio::spawn(flightlog::record_items(
+            log.clone(),
+            c,
+            interests,
+            stop.clone(),
+        )),
+        Err(e) => {
+            ui.note(
+                &format!("flight log: no telemetry recorded: {e}"),
+                json!({"event": "flight_log_error", "error": e.to_string()}),
+            );
+            tokio::spawn(async { Ok(()) })
+        }
+    }
+}
+
+/// Closes the flight log and says where it is, after the summary.
+fn finish_log(log: &flightlog::FlightLog, ui: &Ui) {
+    let path = log.path().display().to_string();
+    match log.finish() {
+        Ok(n) => ui.result(
+            &format!("flight log: {path} ({n} records; review it with `usal replay {path}`)"),
+            json!({"event": "flight_log_written", "path": path, "records": n}),
+        ),
+        Err(e) => ui.result(
+            &format!("flight log: {e}"),
+            json!({"event": "flight_log_error", "path": path, "error": e}),
+        ),
+    }
 }
 
 fn interrupted(args: &RunArgs) -> ExitCode {
@@ -514,13 +644,16 @@ async fn start_services(
                     common(&mut a);
                 }
                 // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.
-                ServiceSpec::Fmo { listen } | ServiceSpec::Fpmo { listen } => {
+                ServiceSpec::Fmo { listen } | ServiceSpec::Fpmo { listen, .. } => {
                     a.extend([
                         "--listen".into(),
                         listen.clone(),
                         "--node".into(),
                         format!("{}-{}", node.name, svc.kind()),
                     ]);
+                    if let ServiceSpec::Fpmo { tiles: Some(t), .. } = svc {
+                        a.extend(["--tiles".into(), t.clone()]);
+                    }
                     common(&mut a);
                 }
             }

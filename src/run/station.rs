@@ -70,6 +70,8 @@ pub struct StationSetup {
     pub nominal: Vec<(String, f64, f64)>,
     /// Its nominal length, metres.
     pub nominal_m: f64,
+    /// The run's flight log, where the station's commands and their answers go.
+    pub log: Option<Arc<super::flightlog::FlightLog>>,
 }
 
 /// One waypoint the FPMa reported reached.
@@ -449,6 +451,8 @@ async fn follow(
             }
             r = async { send.as_mut().expect("guarded by the precondition").await }, if send.is_some() && !sent => {
                 sent = true;
+                command(s, &sink, json!({"file": s.plan_file.display().to_string()}),
+                    r.as_ref().map(|rep| json!({"bytes": rep.size, "receiver": rep.receiver})).map_err(ToString::to_string));
                 match r {
                     Ok(rep) => {
                         t.started = Some(Instant::now());
@@ -571,7 +575,19 @@ async fn follow(
             (true, Some(at)) if at.elapsed() >= KICK_AFTER => {
                 kick_at = Some(Instant::now() + Duration::from_secs(3600));
                 let to = FlightState::WaypointNavigation;
-                match vas_state_fn.call(&StateChangeRequest { to }, CALL_TIMEOUT).await {
+                let answer = vas_state_fn
+                    .call(&StateChangeRequest { to }, CALL_TIMEOUT)
+                    .await;
+                command(
+                    s,
+                    &vas("change_state"),
+                    json!({"to": to.to_string()}),
+                    answer
+                        .as_ref()
+                        .map(|a| serde_json::to_value(a).unwrap_or_default())
+                        .map_err(ToString::to_string),
+                );
+                match answer {
                     Ok(_) => note(ui, s,
                         "station: plan ready and the vehicle parked; started it (WAYPOINT_NAVIGATION), as the operator",
                         json!({"event": "navigation_kicked"}),
@@ -597,13 +613,35 @@ async fn follow(
             // the first waypoint the FPMa has not seen reached.
             // The FPMa may itself be rediscovered after the disturbance.
             pause.wait_provider(CALL_TIMEOUT).await;
-            let paused = match pause.call(&(), CALL_TIMEOUT).await {
+            let answer = pause.call(&(), CALL_TIMEOUT).await;
+            command(
+                s,
+                &fpma("pause"),
+                json!(null),
+                answer
+                    .as_ref()
+                    .map(|a| serde_json::to_value(a).unwrap_or_default())
+                    .map_err(ToString::to_string),
+            );
+            let paused = match answer {
                 Ok(_) => Ok(()),
                 Err(e) if e.to_string().contains("already paused") => Ok(()),
                 Err(e) => Err(e),
             };
             let resumed = match paused {
-                Ok(()) => resume.call(&(), CALL_TIMEOUT).await.map(|_| ()),
+                Ok(()) => {
+                    let answer = resume.call(&(), CALL_TIMEOUT).await;
+                    command(
+                        s,
+                        &fpma("resume"),
+                        json!(null),
+                        answer
+                            .as_ref()
+                            .map(|a| serde_json::to_value(a).unwrap_or_default())
+                            .map_err(ToString::to_string),
+                    );
+                    answer.map(|_| ())
+                }
                 Err(e) => Err(e),
             };
             match resumed {
@@ -728,4 +766,20 @@ fn note(ui: &Ui, s: &StationSetup, text: &str, mut record: serde_json::Value) {
             ui.note(&format!("{v}: {text}"), record);
         }
     }
+}
+
+/// Records one of the station's commands and its answer in the flight log.
+fn command(
+    s: &StationSetup,
+    name: &str,
+    args: serde_json::Value,
+    answer: Result<serde_json::Value, String>,
+) {
+    let Some(log) = &s.log else { return };
+    let mut r = json!({"name": name, "args": args});
+    match answer {
+        Ok(a) => r["answer"] = a,
+        Err(e) => r["error"] = e.into(),
+    }
+    log.record("command", r);
 }

@@ -15,6 +15,8 @@ pub struct Ui {
     bar: Mutex<Option<String>>,
     /// In a mission of several vehicles: each vehicle's part of the bar, in first-seen order.
     parts: Mutex<Vec<(String, String)>>,
+    /// The run's flight log, which gets every note and progress record as a `note`.
+    log: std::sync::OnceLock<std::sync::Arc<super::flightlog::FlightLog>>,
 }
 
 impl Ui {
@@ -25,6 +27,18 @@ impl Ui {
             tty: !json && std::io::stderr().is_terminal(),
             bar: Mutex::new(None),
             parts: Mutex::new(Vec::new()),
+            log: std::sync::OnceLock::new(),
+        }
+    }
+
+    /// Copies every note, progress record and result into `log` from now on.
+    pub fn set_log(&self, log: std::sync::Arc<super::flightlog::FlightLog>) {
+        let _ = self.log.set(log);
+    }
+
+    fn tee(&self, json: &Value) {
+        if let Some(l) = self.log.get() {
+            l.record("note", serde_json::json!({ "record": json }));
         }
     }
 
@@ -54,6 +68,7 @@ impl Ui {
 
     /// A note of the launcher: `[usal] text` on stderr, or `json` on stdout with `--json`.
     pub fn note(&self, text: &str, json: Value) {
+        self.tee(&json);
         if self.json {
             println!("{json}");
         } else {
@@ -64,6 +79,9 @@ impl Ui {
     /// A progress update: the bar on a terminal; otherwise a line when `line` is given (the
     /// caller decides which updates are worth a line) and the JSON record with `--json`.
     pub fn progress(&self, bar: &str, line: Option<&str>, json: Option<Value>) {
+        if let Some(j) = &json {
+            self.tee(j);
+        }
         if self.tty {
             let mut b = marea::sync::lock(&self.bar);
             let mut err = std::io::stderr().lock();
@@ -122,6 +140,7 @@ impl Ui {
 
     /// The result of the run on stdout: `text` lines, or `json` with `--json`.
     pub fn result(&self, text: &str, json: Value) {
+        self.tee(&json);
         self.clear_bar();
         if self.json {
             println!("{json}");

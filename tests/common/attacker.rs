@@ -125,3 +125,207 @@ pub fn wait_frames_in(node: &marea::Node, frames: u64, within: Duration) -> bool
         std::thread::sleep(Duration::from_millis(2));
     }
 }
+
+/// A hand-made node on a UDP socket of its own: it says what it likes, sealed with a domain key
+/// when it has one (an insider of another namespace) or in clear (an outsider). Counts the
+/// datagrams it sent.
+pub struct Forger {
+    sock: UdpSocket,
+    sealer: Option<marea::link::auth::Sealer>,
+    seq: u32,
+    /// Datagrams sent so far.
+    pub sent: u64,
+}
+
+impl Forger {
+    /// A forger on a fresh loopback socket, sealing with `key` when given.
+    pub fn new(key: Option<&marea::link::auth::DomainKey>) -> io::Result<Forger> {
+        let sock = UdpSocket::bind("127.0.0.1:0")?;
+        sock.set_read_timeout(Some(Duration::from_millis(50)))?;
+        Ok(Forger {
+            sock,
+            sealer: key.map(|k| marea::link::auth::Sealer::new(k, marea::link::auth::Profile::UDP)),
+            seq: 0,
+            sent: 0,
+        })
+    }
+
+    /// Its source address.
+    pub fn addr(&self) -> SocketAddr {
+        self.sock
+            .local_addr()
+            .expect("a bound socket has an address")
+    }
+
+    /// Sends datagram `d` (built by `marea::link::udp::datagram`), sealed if it has a key.
+    pub fn send(&mut self, to: SocketAddr, mut d: Vec<u8>) -> io::Result<()> {
+        if let (Some(s), Some(kind)) = (&self.sealer, d.first_mut()) {
+            *kind = marea::link::udp::datagram::sealed_kind(*kind);
+            s.seal(&mut d, usize::MAX);
+        }
+        self.raw(to, &d)
+    }
+
+    /// Sends `d` exactly as given (a replay).
+    pub fn raw(&mut self, to: SocketAddr, d: &[u8]) -> io::Result<()> {
+        self.sock.send_to(d, to)?;
+        self.sent += 1;
+        Ok(())
+    }
+
+    /// A discovery message (Hello, Heartbeat, Bye).
+    pub fn discovery(&mut self, to: SocketAddr, msg: &Message) -> io::Result<()> {
+        self.send(to, discovery_datagram(&encode_message(msg)))
+    }
+
+    /// Safe messages in a session of its own (opened by a SYN before the first), one
+    /// datagram per message.
+    pub fn safe(&mut self, to: SocketAddr, msgs: &[Message]) -> io::Result<()> {
+        for m in msgs {
+            let mut w = DatagramWriter::new(65_000);
+            if self.seq == 0 {
+                w.push_syn(0x5eed);
+            }
+            if !w.push_safe(self.seq, &encode_message(m)) {
+                return Err(io::Error::other("a safe message larger than a datagram"));
+            }
+            self.seq += 1;
+            self.send(to, w.take())?;
+        }
+        Ok(())
+    }
+
+    /// A fast (best-effort) message.
+    pub fn fast(&mut self, to: SocketAddr, msg: &Message) -> io::Result<()> {
+        let mut w = DatagramWriter::new(65_000);
+        if !w.push_fast(&encode_message(msg)) {
+            return Err(io::Error::other("a fast message larger than a datagram"));
+        }
+        self.send(to, w.take())
+    }
+}
+
+impl Forger {
+    /// Waits (at most `within`) for a message from `from` satisfying `pred`, reading the
+    /// datagrams sent to this forger (sealed or not: a seal is a trailer, and this forger is
+    /// not the one checking it).
+    pub fn recv_message(
+        &self,
+        from: SocketAddr,
+        within: Duration,
+        pred: impl Fn(&Message) -> bool,
+    ) -> Option<Message> {
+        use marea::link::udp::datagram::{self, Datagram, Entry};
+        let deadline = Instant::now() + within;
+        let trailer = marea::link::auth::Profile::UDP.overhead();
+        let mut buf = vec![0u8; 65_536];
+        while Instant::now() < deadline {
+            let Ok((n, src)) = self.sock.recv_from(&mut buf) else {
+                continue;
+            };
+            if src != from || n == 0 {
+                continue;
+            }
+            let mut d = buf[..n].to_vec();
+            if let Some(kind) = datagram::unsealed_kind(d[0]) {
+                if d.len() <= trailer {
+                    continue;
+                }
+                d.truncate(d.len() - trailer);
+                d[0] = kind;
+            }
+            let msgs: Vec<Vec<u8>> = match datagram::decode(&d) {
+                Ok(Datagram::Discovery(m)) => vec![m.to_vec()],
+                Ok(Datagram::Data(entries)) => entries
+                    .into_iter()
+                    .filter_map(|e| match e {
+                        Entry::Safe { msg, .. } | Entry::Fast(msg) => Some(msg.to_vec()),
+                        _ => None,
+                    })
+                    .collect(),
+                Err(_) => vec![],
+            };
+            for m in msgs {
+                if let Ok(m) = marea::codec::decode_message(&m) {
+                    if pred(&m) {
+                        return Some(m);
+                    }
+                }
+            }
+        }
+        None
+    }
+}
+
+/// A listener on a domain's multicast group, as anyone on the LAN can open: it captures the
+/// sealed discovery datagrams the nodes announce (to replay them) and reads their node ids (a
+/// seal authenticates, it does not hide).
+pub struct Sniffer {
+    sock: UdpSocket,
+}
+
+impl Sniffer {
+    /// Joins `group` on the loopback interface.
+    pub fn join(group: std::net::SocketAddrV4) -> io::Result<Sniffer> {
+        use socket2::{Domain, Protocol, Socket, Type};
+        let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+        s.set_reuse_address(true)?;
+        s.bind(&SocketAddr::V4(group).into())?;
+        s.join_multicast_v4(group.ip(), &std::net::Ipv4Addr::LOCALHOST)?;
+        let sock: UdpSocket = s.into();
+        sock.set_read_timeout(Some(Duration::from_millis(100)))?;
+        Ok(Sniffer { sock })
+    }
+
+    /// One datagram heard on the group (waiting at most 100 ms) and who sent it.
+    pub fn recv(&self) -> Option<(Vec<u8>, SocketAddr)> {
+        let mut buf = vec![0u8; 65_536];
+        let (n, from) = self.sock.recv_from(&mut buf).ok()?;
+        buf.truncate(n);
+        Some((buf, from))
+    }
+
+    /// Sends `d` to `to` from the listener's socket (a replay).
+    pub fn send_to(&self, d: &[u8], to: SocketAddr) -> io::Result<()> {
+        self.sock.send_to(d, to).map(|_| ())
+    }
+
+    /// Waits (at most `within`) for a sealed discovery datagram from `from`: its node id and
+    /// the datagram as it was on the wire.
+    pub fn capture_from(&self, from: SocketAddr, within: Duration) -> Option<(NodeId, Vec<u8>)> {
+        let deadline = Instant::now() + within;
+        let mut buf = vec![0u8; 65_536];
+        while Instant::now() < deadline {
+            let Ok((n, src)) = self.sock.recv_from(&mut buf) else {
+                continue;
+            };
+            if src != from {
+                continue;
+            }
+            if let Some(id) = sealed_discovery_sender(&buf[..n]) {
+                return Some((id, buf[..n].to_vec()));
+            }
+        }
+        None
+    }
+}
+
+/// The node id in a sealed Hello or Heartbeat, read without the key: the seal is a trailer.
+fn sealed_discovery_sender(d: &[u8]) -> Option<NodeId> {
+    use marea::link::udp::datagram::{self, Datagram, KIND_DISCOVERY, KIND_SEALED_DISCOVERY};
+    let trailer = marea::link::auth::Profile::UDP.overhead();
+    if d.first() != Some(&KIND_SEALED_DISCOVERY) || d.len() <= 1 + trailer {
+        return None;
+    }
+    let mut plain = d[..d.len() - trailer].to_vec();
+    plain[0] = KIND_DISCOVERY;
+    let Ok(Datagram::Discovery(m)) = datagram::decode(&plain) else {
+        return None;
+    };
+    match marea::codec::decode_message(m) {
+        Ok(Message::Heartbeat { node_id, .. }) | Ok(Message::Hello { node_id, .. }) => {
+            Some(node_id)
+        }
+        _ => None,
+    }
+}

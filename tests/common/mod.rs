@@ -3,7 +3,11 @@
 
 #![allow(dead_code)]
 
+pub mod attacker;
+pub mod hostile;
+
 use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -179,6 +183,37 @@ impl Net {
         self.probe_args(node, &["--namespace", namespace], cmd)
     }
 
+    /// A probe carrying the domain key `key` (as `<security keyFile=..>`), in `namespace`.
+    pub fn keyed(&self, node: &str, namespace: &str, key: &Path, cmd: &[&str]) -> Proc {
+        let key = key.to_str().expect("a UTF-8 key path");
+        self.probe_args(node, &["--key-file", key, "--namespace", namespace], cmd)
+    }
+
+    /// A `network.xml` for node `node` of `namespace` in this test's domain, holding `inner`
+    /// (`<access>`, `<security>`...) inside `<network>`; written into `dir`.
+    pub fn network_xml(&self, dir: &Path, node: &str, namespace: &str, inner: &str) -> PathBuf {
+        let xml = format!(
+            r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
+  <ethernet bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"
+            heartbeatMs="{hb}" leaseMs="{lease}"/>
+  {inner}
+</network>
+"#,
+            domain = self.domain,
+            port = self.port,
+            hb = self.heartbeat_ms,
+            lease = self.lease_ms,
+        );
+        let path = dir.join(format!("{node}.xml"));
+        std::fs::write(&path, xml).expect("write network.xml");
+        path
+    }
+
+    /// The multicast group the probes of this test announce on.
+    pub fn group(&self) -> std::net::SocketAddrV4 {
+        std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 1), self.port)
+    }
+
     fn probe_args(&self, node: &str, extra: &[&str], cmd: &[&str]) -> Proc {
         let mut args: Vec<String> = vec![
             "--node".into(),
@@ -199,6 +234,63 @@ impl Net {
 }
 
 pub const T: Duration = Duration::from_secs(20);
+
+/// A probe started from a `network.xml` (`extra` before the command: `--key-file ..`).
+pub fn probe_with_config(
+    name: &str,
+    config: &Path,
+    service: &str,
+    extra: &[&str],
+    cmd: &[&str],
+) -> Proc {
+    let mut args: Vec<String> = vec![
+        "--config".into(),
+        config.display().to_string(),
+        "--service".into(),
+        service.into(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    args.extend(cmd.iter().map(|s| s.to_string()));
+    Proc::spawn(name, env!("CARGO_BIN_EXE_marea-probe"), &args)
+}
+
+/// Makes a domain key with the real CLI (`usal keygen`), checking what it promises: mode 0600.
+pub fn keygen(dir: &Path, name: &str) -> PathBuf {
+    let path = dir.join(name);
+    let out = Command::new(env!("CARGO_BIN_EXE_usal"))
+        .args(["keygen", path.to_str().expect("utf-8 temp path")])
+        .output()
+        .expect("run usal keygen");
+    assert!(out.status.success(), "{out:?}");
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(&path)
+        .expect("the key file exists")
+        .permissions()
+        .mode()
+        & 0o777;
+    assert_eq!(mode, 0o600);
+    path
+}
+
+/// `marea-probe` arguments publishing positions on `item` at 50 Hz until stopped.
+pub fn publishing(item: &str) -> [&str; 7] {
+    [
+        "var-pub",
+        "--item",
+        item,
+        "--count",
+        "100000000",
+        "--interval-ms",
+        "20",
+    ]
+}
+
+/// The outcome line of a `call` (`ok` or `error`) or a `send` (`done` or `error`).
+pub fn outcome(p: &mut Proc) -> Value {
+    p.expect(T, "an outcome", |v| {
+        v.get("ok").is_some() || v.get("done").is_some() || v.get("error").is_some()
+    })
+}
 
 /// The radio emulator as a child process, killed on drop.
 pub struct Radio {

@@ -650,6 +650,8 @@ mod tests {
             other => panic!("expected TooLarge, got {other:?}"),
         }
         assert_eq!(sink.stats().too_large, 1);
+        // Counted in the sender's link health too.
+        assert_eq!(rx.refusals().rejected, 1);
         assert!(!dir.join("big.xml").exists());
         rx.shutdown().await;
         tx.shutdown().await;
@@ -702,6 +704,7 @@ mod tests {
             }
         }
         assert_eq!(sink.stats().too_large, 1);
+        assert_eq!(rx.refusals().rejected, 1);
         let part = part_path(&dir.join(PARTIAL_DIR), "liar.bin", transfer);
         assert!(
             std::fs::symlink_metadata(&part).is_err(),

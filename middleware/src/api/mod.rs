@@ -25,7 +25,7 @@ pub use crate::node::call::CallError;
 pub use crate::node::files::{state_dir, FileSinkOptions, FileSinkStats, ReceivedFile};
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;
-pub use crate::node::RefusedInput;
+pub use crate::node::policy::RefusalReport;
 
 /// Payload types: anything serde can encode, shared between processes.
 pub trait Payload: serde::Serialize + serde::de::DeserializeOwned + Send + Sync + 'static {}

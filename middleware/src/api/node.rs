@@ -149,25 +149,15 @@ impl Node {
         let id: crate::protocol::NodeId = rand::random();
         let identity = match &config.security {
             Some(s) if s.identity_file.is_some() || s.identities.is_some() => {
-                let proof = match &s.identity_file {
-                    Some(f) => {
-                        let key = crate::identity::IdentityKey::load(f)?;
-                        let namespace = config.namespace.clone().unwrap_or_default();
-                        let signature = key.prove(&config.domain, id, &config.node, &namespace);
-                        Some(crate::codec::encode_message(
-                            &crate::protocol::Message::Identity {
-                                public_key: key.public(),
-                                signature: signature.to_vec(),
-                            },
-                        ))
-                    }
+                let key = match &s.identity_file {
+                    Some(f) => Some(crate::identity::IdentityKey::load(f)?),
                     None => None,
                 };
                 let roster = match &s.identities {
                     Some(f) => Some(crate::identity::Roster::load(f)?),
                     None => None,
                 };
-                Some(crate::node::IdentityLayer { proof, roster })
+                Some(crate::node::IdentityLayer { key, roster })
             }
             _ => None,
         };
@@ -429,20 +419,24 @@ impl Node {
         )
     }
 
-    /// What peers were refused so far, summed over the links: (by the `<access>` rules,
-    /// otherwise: offers outside their namespace, origins from non-gateways, forged Byes,
-    /// caps). Per link, the same counts are in [`LinkHealth`](crate::LinkHealth).
-    pub fn refusals(&self) -> (u64, u64) {
-        (0..self.inner.links().len().max(1))
-            .map(|l| self.inner.policy.counts(l))
-            .fold((0, 0), |(d, r), (d2, r2)| (d + d2, r + r2))
-    }
-
-    /// Input from peers this node refused or let go since it opened (malformed messages,
-    /// unknown senders, bad declarations, peers beyond the table's bound). Links count their
-    /// own refusals in [`Node::link_stats`].
-    pub fn refused_input(&self) -> crate::node::RefusedInput {
-        self.inner.counters.refused()
+    /// Everything this node refused from peers since it opened: by the `<access>` rules, by
+    /// its own rules (owned names, origins, forged Byes, caps), at the links' seals (no key,
+    /// replays), and as malformed or unbounded input. Summed over the links; per link, see
+    /// [`LinkHealth`](crate::LinkHealth) and [`Node::link_stats`].
+    pub fn refusals(&self) -> crate::node::policy::RefusalReport {
+        let mut r = crate::node::policy::RefusalReport::default();
+        for l in 0..self.inner.links().len().max(1) {
+            let (denied, rejected) = self.inner.policy.counts(l);
+            r.denied += denied;
+            r.rejected += rejected;
+        }
+        for l in self.inner.links() {
+            let s = l.stats();
+            r.auth_rejected += s.auth_rejected;
+            r.replay_rejected += s.replay_rejected;
+        }
+        self.inner.counters.add_to(&mut r);
+        r
     }
 
     /// Everything this node knows: itself and every peer, with services and items.

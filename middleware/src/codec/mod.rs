@@ -274,6 +274,11 @@ mod tests {
             ),
             (Message::FileCancel { transfer: 3 }, vec![13, 3]),
             (Message::Bye { node_id: 4 }, vec![14, 4]),
+            // Challenge (16): the 16 nonce bytes as they are (a fixed-size array)
+            (
+                Message::Challenge { nonce: [5; 16] },
+                [&[16u8][..], &[5; 16]].concat(),
+            ),
         ];
         for (msg, bytes) in cases {
             assert_eq!(encode_message(&msg), bytes, "encoding of {msg:?}");

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 /// A place in a `network.xml`: 1-based line and column (in characters).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Location {
-    /// The file, or `None` for text given to [`NetworkConfig::parse`] without a source.
+    /// The file, or `None` for text given to [`NetworkConfig::parse`](super::NetworkConfig::parse) without a source.
     // Boxed rather than a `PathBuf` to keep `ConfigLoadError` small (clippy::result_large_err).
     pub file: Option<Box<Path>>,
     /// Line number, from 1.

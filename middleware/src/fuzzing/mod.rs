@@ -18,6 +18,7 @@
 //! | [`stp_frames`] | two serial engines over a line that drops, duplicates, reorders, splits, joins and corrupts frames | safe messages in order exactly once and all of them once the line heals; nothing longer than the message limit |
 //! | [`node_decls`] | Hellos, heartbeats, declaration batches (own names, foreign names, origins, floods past the caps) and Byes of four peers into a node | declarations per peer and in all within the caps; stored offers owned by their peer (or from a gateway with an origin); stored patterns valid |
 //! | [`shm_frames`] | shared-memory frames of up to three writers (inline and bulk fragments) | safe messages whole and in order per writer; nothing invented |
+//! | [`file_chunks`] | a file's chunks (resumed or not) over a line that drops, duplicates, reorders, goes back to the last acknowledgement, and forges chunks (any offset and length, empty, wrong bytes) into the receiver's reassembly machine | what is written is contiguous and never past the announced size; genuine chunks only ⇒ the original bytes; acknowledgements rise, never pass what is written, come at least every 16 chunks and at the end; once the line heals the file completes |
 
 pub use crate::protocol::gen;
 
@@ -509,4 +510,196 @@ pub fn node_decls(data: &[u8]) {
 /// Shared-memory frames of up to three writers into the receiving machine.
 pub fn shm_frames(data: &[u8]) {
     let _ = crate::link::shm::fuzz::run(data);
+}
+
+/// A file's chunks over a hostile line into the receiver's reassembly machine
+/// (`node::reassembly`), with a model of the part file.
+pub fn file_chunks(data: &[u8]) {
+    let mut u = Unstructured::new(data);
+    let _ = file_chunks_case(&mut u);
+}
+
+/// The receiver of [`file_chunks`]: the machine and a model of the part file it writes.
+struct ChunkReceiver<'a> {
+    machine: crate::node::reassembly::Reassembly,
+    original: &'a [u8],
+    file: Vec<u8>,
+    /// Whether a forged chunk with bytes other than the original's was written.
+    forged_written: bool,
+    last_ack: u64,
+    writes_since_ack: u32,
+}
+
+impl ChunkReceiver<'_> {
+    /// Feeds one chunk, checking the machine's answer; `false` once the transfer is over.
+    fn feed(&mut self, at: u64, bytes: &[u8], forged: bool) -> bool {
+        use crate::node::reassembly::{ChunkStep, PROGRESS_EVERY};
+        let size = self.original.len() as u64;
+        let before = self.machine.expected();
+        match self.machine.on_chunk(at, bytes.len()) {
+            ChunkStep::Skip => {
+                assert_eq!(
+                    self.machine.expected(),
+                    before,
+                    "a skipped chunk moved the file"
+                );
+                true
+            }
+            ChunkStep::Overrun { reached } => {
+                assert!(reached > size, "overrun at {reached} within {size} bytes");
+                assert_eq!(at, before, "an overrun not at the end of the file");
+                assert!(self.machine.is_overrun() && !self.machine.is_complete());
+                false
+            }
+            ChunkStep::Write { ack } => {
+                assert_eq!(
+                    at,
+                    self.file.len() as u64,
+                    "a chunk written away from the end"
+                );
+                self.file.extend_from_slice(bytes);
+                let end = self.file.len();
+                assert!(end as u64 <= size, "written past the announced size");
+                assert_eq!(self.machine.expected(), end as u64);
+                self.forged_written |= forged && bytes != &self.original[at as usize..end];
+                self.writes_since_ack += 1;
+                match ack {
+                    Some(a) => {
+                        assert!(a >= self.last_ack, "acknowledgement went back");
+                        assert_eq!(a, end as u64, "acknowledged what is not written");
+                        self.last_ack = a;
+                        self.writes_since_ack = 0;
+                    }
+                    None => {
+                        assert!(
+                            self.writes_since_ack < PROGRESS_EVERY,
+                            "no acknowledgement in {PROGRESS_EVERY} chunks"
+                        );
+                        assert!((end as u64) < size, "the last chunk not acknowledged");
+                    }
+                }
+                true
+            }
+        }
+    }
+}
+
+fn file_chunks_case(u: &mut Unstructured<'_>) -> Result<()> {
+    use crate::node::reassembly::{ChunkStep, Reassembly};
+
+    let size = u.int_in_range(0u64..=4096)?;
+    // The original bytes: a pattern, so a chunk carrying other bytes shows in the result.
+    let original: Vec<u8> = (0..size)
+        .map(|i| (i.wrapping_mul(31) ^ (i >> 8)) as u8)
+        .collect();
+    let on_disk = if u.arbitrary()? {
+        u.int_in_range(0..=size)?
+    } else {
+        0
+    };
+    let chunk = u.int_in_range(1u64..=600)?;
+    let mut rx = ChunkReceiver {
+        machine: Reassembly::new(size, on_disk),
+        original: &original,
+        file: original[..on_disk as usize].to_vec(),
+        forged_written: false,
+        last_ack: on_disk,
+        writes_since_ack: 0,
+    };
+    // The sender: where it sends from next, and the chunks it sent (for duplicates).
+    let mut next = on_disk;
+    let mut sent: Vec<(u64, Vec<u8>)> = Vec::new();
+    let genuine = |at: u64| -> (u64, Vec<u8>) {
+        let end = at.saturating_add(chunk).min(size);
+        (at, original[at as usize..end as usize].to_vec())
+    };
+
+    let steps = u.int_in_range(0u16..=400)?;
+    for _ in 0..steps {
+        if rx.machine.is_complete() || rx.machine.is_overrun() {
+            break;
+        }
+        let going = match u.int_in_range(0u8..=9)? {
+            // The next chunk, in order.
+            0..=3 if next < size => {
+                let (at, bytes) = genuine(next);
+                next += bytes.len() as u64;
+                sent.push((at, bytes.clone()));
+                rx.feed(at, &bytes, false)
+            }
+            // A chunk sent before, again.
+            4 if !sent.is_empty() => {
+                let (at, bytes) = sent[u.choose_index(sent.len())?].clone();
+                rx.feed(at, &bytes, false)
+            }
+            // A chunk lost: the sender moves on.
+            5 if next < size => {
+                next = next.saturating_add(chunk).min(size);
+                true
+            }
+            // The sender goes back to the last acknowledgement (its timer).
+            6 => {
+                next = rx.last_ack;
+                true
+            }
+            // A later chunk first.
+            7 if next < size => {
+                let skip = u.int_in_range(1u64..=4)?.saturating_mul(chunk);
+                let (at, bytes) = genuine(next.saturating_add(skip).min(size));
+                rx.feed(at, &bytes, false)
+            }
+            // A forged chunk: at the end of the file or anywhere near it, any length, any
+            // bytes.
+            8 => {
+                let at = if u.arbitrary()? {
+                    rx.machine.expected()
+                } else {
+                    u.int_in_range(0..=size.saturating_add(64))?
+                };
+                let len = u.int_in_range(0usize..=700)?;
+                let bytes = u.bytes(len.min(u.len()))?.to_vec();
+                rx.feed(at, &bytes, true)
+            }
+            // A huge claimed length (the machine sees only lengths).
+            _ => {
+                let at = rx.machine.expected();
+                match rx.machine.on_chunk(at, usize::MAX) {
+                    ChunkStep::Overrun { .. } => false,
+                    other => panic!("a chunk of usize::MAX bytes taken: {other:?}"),
+                }
+            }
+        };
+        if !going {
+            break;
+        }
+    }
+    if rx.machine.is_overrun() {
+        return Ok(());
+    }
+    if !rx.forged_written {
+        assert_eq!(
+            rx.file,
+            &original[..rx.file.len()],
+            "genuine chunks made other bytes"
+        );
+    }
+    // The line heals: the sender resends from the last acknowledgement, in order.
+    let mut at = rx.last_ack;
+    let mut rounds = 0;
+    while !rx.machine.is_complete() {
+        let (from, bytes) = genuine(at);
+        assert!(rx.feed(from, &bytes, false), "a genuine chunk overran");
+        at = rx.machine.expected();
+        rounds += 1;
+        assert!(
+            rounds <= size / chunk + 2,
+            "the file never completes once the line heals"
+        );
+    }
+    assert_eq!(rx.file.len() as u64, size);
+    assert_eq!(rx.last_ack, size, "completion not acknowledged");
+    if !rx.forged_written {
+        assert_eq!(rx.file, original, "genuine chunks made another file");
+    }
+    Ok(())
 }

@@ -170,6 +170,11 @@ impl NodeInner {
                             .as_ref()
                             .and_then(|i| i.roster.as_ref())
                             .map(|_| Vec::new()),
+                        challenge: self
+                            .identity
+                            .as_ref()
+                            .and_then(|i| i.roster.as_ref())
+                            .map(|_| rand::random()),
                     },
                 );
                 self.addrs.insert((link, from), node_id);
@@ -278,7 +283,10 @@ impl NodeInner {
         );
         match candidate {
             Some(old) => {
-                self.counters.peers_evicted.fetch_add(1, Ordering::Relaxed);
+                let n = self.counters.peers_evicted.fetch_add(1, Ordering::Relaxed);
+                if (n + 1).is_power_of_two() {
+                    tracing::warn!(peer = %name, evicted = n + 1, "peer table full ({MAX_PEERS}): an unconfirmed peer pushed out for a new one");
+                }
                 self.drop_peer(old, "pushed out of a full peer table, never confirmed");
                 true
             }
@@ -355,8 +363,12 @@ impl NodeInner {
         };
         if reason == "left" {
             tracing::info!(peer = %p.name, "peer left");
-        } else {
+        } else if p.confirmed.load(Ordering::Relaxed) {
             tracing::warn!(peer = %p.name, reason, "peer dropped");
+        } else {
+            // Never confirmed: a flood of forged Hellos would otherwise be a flood of lines
+            // (evictions are counted in `Node::refusals` and logged at powers of two).
+            tracing::debug!(peer = %p.name, reason, "unconfirmed peer dropped");
         }
         // Every path it was heard on, the one we used among them.
         let paths: Vec<(usize, PeerAddr)> = self

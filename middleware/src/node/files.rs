@@ -21,19 +21,13 @@ use dashmap::DashMap;
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{mpsc, Notify};
 
+use super::reassembly::{ChunkStep, Reassembly};
 use super::{lock, NodeInner, OfferRole};
 use crate::protocol::{FileVerdict, Message, NodeId};
 
 /// Name of a sink's private directory of partial files (hidden: no sent file name may start
 /// with a dot, so no transfer can target it).
 pub(crate) const PARTIAL_DIR: &str = ".partial";
-
-/// Chunks between two progress acknowledgements of a receiver (`FileAccept` with the bytes
-/// written so far). Well below the sender's default window, so it never stalls on them.
-const PROGRESS_EVERY: u32 = 16;
-/// Bytes after which a receiver acknowledges progress even before [`PROGRESS_EVERY`] chunks:
-/// large chunks (shared memory) would otherwise move the sender's window in big steps.
-const PROGRESS_BYTES: u64 = 1 << 20;
 
 /// What a sending task hears from the receiver (or about it).
 #[derive(Debug)]
@@ -527,13 +521,17 @@ impl NodeInner {
         self.send_safe_to_node(node, &Message::FileDone { transfer, verdict });
     }
 
-    /// Tells the sender a sink refused its file, logs it and counts it.
+    /// Tells the sender a sink refused its file, logs it and counts it (in the sink's stats
+    /// and in the health of the sender's link).
     fn refuse_file(&self, sink: &SinkState, node: NodeId, transfer: u64, verdict: FileVerdict) {
-        let from = self
+        let (from, link) = self
             .peers
             .get(&node)
-            .map(|p| p.name.to_string())
+            .map(|p| (p.name.to_string(), Some(p.link)))
             .unwrap_or_default();
+        if let Some(link) = link {
+            self.policy.count(link, super::policy::Refusal::File);
+        }
         if sink.should_log(node, &verdict) {
             tracing::warn!(sink = %sink.name, %from, %verdict, "incoming file refused (logged once a minute per sender and kind; all counted)");
         }
@@ -579,6 +577,10 @@ impl NodeInner {
             OfferRole::File { state, mailbox } => Some((state.clone(), mailbox.clone())),
             _ => None,
         }) else {
+            if let Some((link, name)) = self.peers.get(&node).map(|p| (p.link, p.name.clone())) {
+                self.policy
+                    .refuse(link, node, &name, "file sink", super::policy::Refusal::File);
+            }
             self.reply_file(
                 node,
                 transfer,
@@ -663,10 +665,10 @@ impl NodeInner {
                 inner.send_safe_to_node(node, &Message::FileAccept { transfer, offset });
                 let mut w =
                     tokio::io::BufWriter::with_capacity(1 << 18, tokio::fs::File::from_std(file));
-                let mut expected = offset;
-                let mut acknowledged = offset;
-                let mut unacknowledged = 0u32;
-                while expected < size {
+                // What to write and acknowledge is decided by the pure machine; this loop only
+                // does the I/O.
+                let mut reassembly = Reassembly::new(size, offset);
+                while !reassembly.is_complete() {
                     let next = tokio::select! {
                         _ = inner.cancel.cancelled() => None,
                         c = rx.recv() => c,
@@ -676,39 +678,30 @@ impl NodeInner {
                         let _ = w.flush().await;
                         return Err(Stop::Quiet);
                     };
-                    if at != expected {
-                        continue;
-                    }
-                    let reached = at.saturating_add(data.len() as u64);
-                    if reached > size {
-                        // Past its own announcement: cut off, nothing of it is kept.
-                        drop(w);
-                        let _ = tokio::fs::remove_file(&part).await;
-                        return Err(Stop::Verdict(FileVerdict::TooLarge {
-                            size: reached,
-                            max: size,
-                        }));
-                    }
-                    w.write_all(&data)
-                        .await
-                        .map_err(|e| format!("cannot write {}: {e}", part.display()))?;
-                    expected = reached;
-                    // End-to-end progress: the sender's window moves on what we wrote, not on
-                    // what the first hop (maybe a gateway) acknowledged.
-                    unacknowledged += 1;
-                    if unacknowledged >= PROGRESS_EVERY
-                        || expected - acknowledged >= PROGRESS_BYTES
-                        || expected == size
-                    {
-                        unacknowledged = 0;
-                        acknowledged = expected;
-                        inner.send_safe_to_node(
-                            node,
-                            &Message::FileAccept {
-                                transfer,
-                                offset: expected,
-                            },
-                        );
+                    match reassembly.on_chunk(at, data.len()) {
+                        ChunkStep::Skip => continue,
+                        ChunkStep::Overrun { reached } => {
+                            // Past its own announcement: cut off, nothing of it is kept.
+                            drop(w);
+                            let _ = tokio::fs::remove_file(&part).await;
+                            return Err(Stop::Verdict(FileVerdict::TooLarge {
+                                size: reached,
+                                max: size,
+                            }));
+                        }
+                        ChunkStep::Write { ack } => {
+                            w.write_all(&data)
+                                .await
+                                .map_err(|e| format!("cannot write {}: {e}", part.display()))?;
+                            // End-to-end progress: the sender's window moves on what we wrote,
+                            // not on what the first hop (maybe a gateway) acknowledged.
+                            if let Some(offset) = ack {
+                                inner.send_safe_to_node(
+                                    node,
+                                    &Message::FileAccept { transfer, offset },
+                                );
+                            }
+                        }
                     }
                 }
                 w.flush()

@@ -45,7 +45,8 @@ pub struct LinkHealth {
     /// (calls, files, publications, gateways).
     pub denied: u64,
     /// What peers on this link were refused otherwise since the node opened: offers outside
-    /// their namespace, origins from non-gateways, forged Byes, caps reached.
+    /// their namespace, origins from non-gateways, forged Byes, caps reached, identity proofs
+    /// answering no challenge, files a sink refused.
     pub rejected: u64,
 }
 

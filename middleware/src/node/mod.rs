@@ -15,6 +15,7 @@ pub(crate) mod identity_check;
 pub(crate) mod mailbox;
 pub(crate) mod path_switch;
 pub(crate) mod policy;
+pub(crate) mod reassembly;
 pub(crate) mod session;
 
 use std::collections::HashMap;
@@ -140,6 +141,9 @@ pub(crate) struct Peer {
     /// Namespaces its identity key is authenticated for: `None` when this node checks no
     /// identities, empty until a valid proof listed in the roster arrives.
     pub authenticated: Option<Vec<String>>,
+    /// The nonce of our identity challenge to it, until a proof answers it (`None` when this
+    /// node checks no identities, or once answered).
+    pub challenge: Option<[u8; 16]>,
 }
 
 impl Peer {
@@ -221,8 +225,8 @@ pub(crate) struct NodeInner {
 
 /// This node's identity proof and the domain's roster (see [`crate::identity`]).
 pub(crate) struct IdentityLayer {
-    /// Our proof for this run (an encoded `Message::Identity`), sent after each safe Hello.
-    pub proof: Option<Vec<u8>>,
+    /// Our identity key, to answer peers' challenges.
+    pub key: Option<crate::identity::IdentityKey>,
     /// Which key may own which namespaces; `None`: peers are not checked.
     pub roster: Option<crate::identity::Roster>,
 }
@@ -240,33 +244,15 @@ pub(crate) struct NodeCounters {
     pub peers_evicted: AtomicU64,
 }
 
-/// Input from peers a node refused or let go since it opened (see
-/// [`crate::Node::refused_input`]); each count is a thing dropped, never acted on.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct RefusedInput {
-    /// Messages that could not be decoded.
-    pub undecodable: u64,
-    /// Messages from an address no peer is known at.
-    pub unknown_sender: u64,
-    /// Peers' declarations ignored for a malformed or oversized name or pattern.
-    pub bad_declarations: u64,
-    /// New peers ignored because the peer table was full of confirmed peers.
-    pub peers_refused: u64,
-    /// Unconfirmed peers forgotten to make room for new ones.
-    pub peers_evicted: u64,
-}
-
 impl NodeCounters {
-    /// The counters now.
-    pub fn refused(&self) -> RefusedInput {
+    /// Adds the counters now to `report`.
+    pub fn add_to(&self, report: &mut policy::RefusalReport) {
         let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
-        RefusedInput {
-            undecodable: get(&self.undecodable),
-            unknown_sender: get(&self.unknown_sender),
-            bad_declarations: get(&self.bad_declarations),
-            peers_refused: get(&self.peers_refused),
-            peers_evicted: get(&self.peers_evicted),
-        }
+        report.undecodable += get(&self.undecodable);
+        report.unknown_sender += get(&self.unknown_sender);
+        report.bad_declarations += get(&self.bad_declarations);
+        report.peers_refused += get(&self.peers_refused);
+        report.peers_evicted += get(&self.peers_evicted);
     }
 }
 
@@ -304,8 +290,9 @@ impl NodeInner {
         self.path_switches.send(self.links(), (link, addr), out);
     }
 
-    /// Sends a safe message and forgets about its acknowledgement. A Hello is followed by our
-    /// identity proof, if we have one, so it precedes every declaration we send after it.
+    /// Sends a safe message and forgets about its acknowledgement. A Hello to a peer whose
+    /// identity we still wait for is followed by our challenge, so the peer answers it before
+    /// the declarations we ask for after it.
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
         self.send_to(
             link,
@@ -315,16 +302,17 @@ impl NodeInner {
                 done: None,
             },
         );
-        let proof = self.identity.as_ref().and_then(|i| i.proof.as_ref());
-        if let (Message::Hello { .. }, Some(proof)) = (msg, proof) {
-            self.send_to(
-                link,
-                addr,
-                Outgoing::Safe {
-                    msg: proof.clone(),
-                    done: None,
-                },
-            );
+        if matches!(msg, Message::Hello { .. }) {
+            if let Some(nonce) = self.pending_challenge(link, addr) {
+                self.send_to(
+                    link,
+                    addr,
+                    Outgoing::Safe {
+                        msg: encode_message(&Message::Challenge { nonce }),
+                        done: None,
+                    },
+                );
+            }
         }
     }
 
@@ -391,6 +379,7 @@ impl NodeInner {
                 public_key,
                 signature,
             } => self.on_identity(node, public_key, &signature),
+            Message::Challenge { nonce } => self.on_challenge(node, nonce),
             Message::Refused {
                 interest,
                 name,

@@ -51,6 +51,12 @@ pub(crate) enum Refusal {
     TooManyDeclarations,
     /// The per-peer or total concurrent-call cap is reached.
     Busy,
+    /// An identity proof that answers no challenge of ours (replayed, made for another nonce
+    /// or node, or by another key).
+    IdentityUnproven,
+    /// A file a sink refused (bad name, too large, past its announced size, over the quota,
+    /// too many at once, wrong content, no such sink).
+    File,
 }
 
 impl Refusal {
@@ -66,6 +72,8 @@ impl Refusal {
             Refusal::SecondAddress => "known node at a second address on the same link",
             Refusal::TooManyDeclarations => "declaration cap reached",
             Refusal::Busy => "concurrent-call cap reached",
+            Refusal::IdentityUnproven => "identity proof answering no challenge of ours",
+            Refusal::File => "file refused by the sink",
         }
     }
 }
@@ -77,6 +85,48 @@ pub(crate) struct RefusalCounters {
     pub denied: AtomicU64,
     /// Refused otherwise (owned names, origins, forged Bye, caps).
     pub rejected: AtomicU64,
+}
+
+/// Everything a node refused from its peers since it opened, in one place (see
+/// [`crate::Node::refusals`]): each count is a thing dropped, never delivered or acted on.
+/// Per link, `denied`/`rejected` and the seal counts are also in [`crate::LinkHealth`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RefusalReport {
+    /// Refused by the `<access>` rules (calls, files, publications, gateways).
+    pub denied: u64,
+    /// Refused by the node's own rules: offers outside their namespace, origins from
+    /// non-gateways, forged Byes, a known node at a second address, caps reached, identity
+    /// proofs answering no challenge, files a sink refused.
+    pub rejected: u64,
+    /// Frames whose seal did not verify (no key, another key, tampering).
+    pub auth_rejected: u64,
+    /// Frames refused as replays.
+    pub replay_rejected: u64,
+    /// Messages that could not be decoded.
+    pub undecodable: u64,
+    /// Messages from an address no peer is known at.
+    pub unknown_sender: u64,
+    /// Peers' declarations ignored for a malformed or oversized name or pattern.
+    pub bad_declarations: u64,
+    /// New peers ignored because the peer table was full of confirmed peers.
+    pub peers_refused: u64,
+    /// Unconfirmed peers forgotten to make room for new ones.
+    pub peers_evicted: u64,
+}
+
+impl RefusalReport {
+    /// Every refusal counted, whatever the reason.
+    pub fn total(&self) -> u64 {
+        self.denied
+            + self.rejected
+            + self.auth_rejected
+            + self.replay_rejected
+            + self.undecodable
+            + self.unknown_sender
+            + self.bad_declarations
+            + self.peers_refused
+            + self.peers_evicted
+    }
 }
 
 /// A node's acceptance policy and what it refused.
@@ -124,15 +174,20 @@ impl Policy {
         })
     }
 
-    /// Counts a refusal on `link` and logs it unless the same (peer, item) was logged within
-    /// the last minute.
-    pub fn refuse(&self, link: usize, peer: NodeId, peer_name: &str, item: &str, why: Refusal) {
+    /// Counts a refusal on `link` without logging it (the caller logs its own way).
+    pub fn count(&self, link: usize, why: Refusal) {
         if let Some(c) = self.counters.get(link) {
             match why {
                 Refusal::Denied(_) => c.denied.fetch_add(1, Ordering::Relaxed),
                 _ => c.rejected.fetch_add(1, Ordering::Relaxed),
             };
         }
+    }
+
+    /// Counts a refusal on `link` and logs it unless the same (peer, item) was logged within
+    /// the last minute.
+    pub fn refuse(&self, link: usize, peer: NodeId, peer_name: &str, item: &str, why: Refusal) {
+        self.count(link, why);
         if self.first_in_a_minute(peer, item, Instant::now()) {
             tracing::warn!(
                 peer = %peer_name,
@@ -175,19 +230,24 @@ impl Policy {
 
 impl super::NodeInner {
     /// Whether peer `node` may do `kind` on our item `item`; a refusal is counted and logged.
-    /// An unknown peer is refused when a rule governs `kind`.
+    /// An unknown peer is refused when a rule governs `kind`. When this node checks identities,
+    /// the rules see a peer's namespace only once its identity key proved it: until then (or
+    /// when its key is not listed for it) the peer is refused whatever a rule governs.
     pub fn permitted(&self, node: NodeId, kind: AccessKind, item: &str) -> bool {
-        if self.policy.access.is_none() {
+        let Some(access) = self.policy.access.as_ref() else {
             return true;
-        }
+        };
+        let governs = access.governs(kind);
         let Some((link, namespace, name)) = self
             .peers
             .get(&node)
             .map(|p| (p.link, p.namespace.clone(), p.name.clone()))
         else {
-            return !self.policy.access.as_ref().is_some_and(|a| a.governs(kind));
+            return !governs;
         };
-        if self.policy.allows(kind, item, &namespace, &name) {
+        // A claimed namespace is no credential where identities are checked.
+        let proven = self.identity_allows(node);
+        if (proven || !governs) && self.policy.allows(kind, item, &namespace, &name) {
             return true;
         }
         self.policy

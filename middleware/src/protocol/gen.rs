@@ -38,7 +38,7 @@ const WORDS: &[&str] = &[
 /// One name segment: usually a known word, sometimes random characters of the allowed set,
 /// rarely a character outside it.
 pub fn segment(u: &mut Unstructured<'_>) -> Result<String> {
-    Ok(match u.int_in_range(0u8..=15)? {
+    Ok(match u.int_in_range(0u8..=17)? {
         0..=10 => (*u.choose(WORDS)?).to_owned(),
         11..=14 => {
             const SET: &[u8] = b"abcdefghijklmnopqrstuvwxyzABCXYZ0123456789_-.";
@@ -290,6 +290,13 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
         },
         14 => Message::FileCancel {
             transfer: u.arbitrary()?,
+        },
+        15 => Message::Identity {
+            public_key: u.arbitrary()?,
+            signature: bytes(u, 64)?,
+        },
+        16 => Message::Challenge {
+            nonce: u.arbitrary()?,
         },
         _ => Message::Bye {
             node_id: node_id(u)?,

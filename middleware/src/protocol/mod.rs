@@ -347,14 +347,22 @@ pub enum Message {
         /// Sender's identity.
         node_id: NodeId,
     },
-    /// Proof of the sender's identity key for this run, sent right after each Hello it sends
-    /// a peer (only by nodes with an identity key; see [`crate::identity`]).
+    /// Proof of the sender's identity key, the answer to a peer's [`Message::Challenge`]
+    /// (only by nodes with an identity key; see [`crate::identity`]).
     Identity {
         /// Ed25519 public key.
         public_key: [u8; 32],
-        /// Signature over domain, node id, node name and namespace (64 bytes).
+        /// Signature over domain, node id, node name and namespace, and the challenger's node
+        /// id and nonce (64 bytes).
         #[serde(with = "serde_bytes_compat")]
         signature: Vec<u8>,
+    },
+    /// Asks a peer to prove its identity key over a fresh nonce (sent after our Hello by a
+    /// node checking identities, once per peer it registers): a proof made for another nonce
+    /// or another challenger, a recorded one, does not verify.
+    Challenge {
+        /// Random, new for each peer registered.
+        nonce: [u8; 16],
     },
 }
 

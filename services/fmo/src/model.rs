@@ -319,7 +319,14 @@ impl Station {
                 v.flight_state = st(s, now);
             }
             Item::MissionTime(m) => v.mission_time = st(m, now),
-            Item::StateChanged(c) => v.last_change = st(c, now),
+            Item::StateChanged(c) => {
+                // The event is reliable and ordered; the `flight_state` variable is best effort
+                // and published only on a change, so over a lossy radio its last value may never
+                // arrive (issue 15 item 7: the FMo showed CONFIGURE_CHECK long after PARKING).
+                state_changed = v.flight_state.as_ref().map(|x| x.value) != Some(c.to);
+                v.flight_state = st(c.to, now);
+                v.last_change = st(c, now);
+            }
             Item::Alarm(alarm) => {
                 let id = self.next_id;
                 self.next_id += 1;
@@ -607,6 +614,29 @@ mod tests {
         assert_eq!(v["link"], "stale");
         assert_eq!(v["position"]["stale"], true);
         assert_eq!(v["flight_state"]["stale"], true, "goes stale with the link");
+    }
+
+    #[test]
+    fn a_state_change_event_stands_for_a_lost_state_value() {
+        let t = t0();
+        let mut s = Station::new(Duration::from_secs(2), t);
+        s.update(
+            "r/vas",
+            "n",
+            Item::FlightState(FlightState::ConfigureCheck),
+            t,
+        );
+        // The PARKING value was lost on the radio; the reliable event says it.
+        let change = StateChanged {
+            from: FlightState::ConfigureCheck,
+            to: FlightState::Parking,
+            cause: "autopilot configured".into(),
+        };
+        assert!(s.update("r/vas", "n", Item::StateChanged(change.clone()), t));
+        assert_eq!(s.flight_state("r/vas"), Some(FlightState::Parking));
+        // The value arriving after all changes nothing.
+        assert!(!s.update("r/vas", "n", Item::FlightState(FlightState::Parking), t));
+        assert!(!s.update("r/vas", "n", Item::StateChanged(change), t));
     }
 
     #[test]

@@ -56,6 +56,9 @@ pub struct FpmoConfig {
     pub vehicle: VehicleParams,
     /// A georeferenced image drawn under the map.
     pub background: Option<Background>,
+    /// Map tiles drawn under the map (and the image): an `.mbtiles` file or a `{z}/{x}/{y}`
+    /// template, as [`background::Tiles::open`] takes it.
+    pub tiles: Option<String>,
 }
 
 impl Default for FpmoConfig {
@@ -65,6 +68,7 @@ impl Default for FpmoConfig {
             vehicles: "*".into(),
             vehicle: VehicleParams::rover(),
             background: None,
+            tiles: None,
         }
     }
 }
@@ -86,6 +90,8 @@ pub struct Shared {
     probes: Mutex<HashMap<String, ()>>,
     /// The map's background image, if any.
     pub background: Option<Background>,
+    /// The map's tiles, if any.
+    pub tiles: Option<Arc<background::Tiles>>,
 }
 
 impl Shared {
@@ -479,6 +485,10 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
             path.display()
         );
     }
+    let tiles = match &config.tiles {
+        Some(spec) => Some(Arc::new(background::Tiles::open(spec)?)),
+        None => None,
+    };
     let (listener, addr) = station_web::bind(config.station.listen, "FPMO_URL").await?;
     let node = station_web::open_node(&config.station).await?;
     let svc = node.service("fpmo").context("declaring the fpmo service")?;
@@ -492,6 +502,7 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         live: Live::new(cancel.clone()),
         probes: Mutex::new(HashMap::new()),
         background: config.background.clone(),
+        tiles,
     });
     // `*` also matches nothing, so a vehicle without namespace is followed too.
     let ns = if config.vehicles == "*" {

@@ -1,0 +1,4 @@
+//! `marea::fuzzing::file_chunks`: see that module for what is generated and what is checked.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| marea::fuzzing::file_chunks(data));

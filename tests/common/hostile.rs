@@ -1,0 +1,660 @@
+//! The hostile suite (issue 13, item 9), shared by `tests/hostile.rs` and
+//! `benches/security/hostile.rs`: a victim node process (`marea-probe victim`, keyed, with
+//! `<access>` rules) and a legitimate peer process publishing positions to it, then the attacks
+//! of an outsider without the domain key and of an insider with the key but another
+//! namespace. Each attack function returns what it sent and how much of it the victim's
+//! counters show refused; the tests assert on the victim's observable outputs.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use marea::codec::encode_payload;
+use marea::link::auth::DomainKey;
+use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId, Origin};
+use marea::typeinfo::TypeInfo;
+use serde_json::Value;
+
+use super::attacker::{self, Forger, Sniffer};
+use super::{keygen, outcome, probe_with_config, Net, Proc, T};
+
+/// The legitimate peer's position samples as the victim keys them ("publisher name").
+pub const LEGIT_SAMPLES: &str = "gs ground/probe/position";
+/// The argument attackers' calls carry (the legitimate ones carry 21).
+pub const EVIL_ARG: u64 = 666;
+
+/// Attack messages sent and how many of them the victim's counters show refused (each
+/// counted at most once: a refusal counted twice cannot hide one not counted).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Tally {
+    pub sent: u64,
+    pub refused: u64,
+}
+
+impl Tally {
+    fn add(&mut self, sent: u64, counted: u64) {
+        self.sent += sent;
+        self.refused += counted.min(sent);
+    }
+
+    /// Refused / sent (1.0 when nothing got through).
+    pub fn ratio(&self) -> f64 {
+        if self.sent == 0 {
+            return 1.0;
+        }
+        self.refused as f64 / self.sent as f64
+    }
+}
+
+/// The victim, its legitimate peer, and what both share.
+pub struct Scene {
+    pub net: Net,
+    pub dir: tempfile::TempDir,
+    pub key: PathBuf,
+    pub inbox: PathBuf,
+    pub victim: Proc,
+    /// The victim's unicast address.
+    pub target: SocketAddr,
+    pub legit: Proc,
+    /// The victim's latest report.
+    pub last: Value,
+}
+
+/// A counter of a report's `refusals`.
+pub fn refusals(report: &Value, what: &str) -> u64 {
+    report["refusals"][what].as_u64().unwrap_or(0)
+}
+
+/// The legitimate peer's samples the victim delivered so far.
+pub fn legit_samples(report: &Value) -> u64 {
+    report["samples"][LEGIT_SAMPLES].as_u64().unwrap_or(0)
+}
+
+fn udp(addr: &str) -> SocketAddr {
+    addr.trim_start_matches("udp://")
+        .parse()
+        .unwrap_or_else(|e| panic!("{addr}: not a UDP address: {e}"))
+}
+
+impl Scene {
+    /// Starts the victim (`rover1/vas`, calls, files and publications allowed from `ground/*`
+    /// only) and the legitimate peer (`ground/gs`, positions at 50 Hz), and waits until the
+    /// victim delivers the peer's positions.
+    pub fn start(test: &str) -> Scene {
+        let net = Net::new(test);
+        let dir = tempfile::tempdir().expect("tempdir");
+        let key = keygen(dir.path(), "domain.key");
+        let inbox = dir.path().join("inbox");
+        std::fs::create_dir_all(&inbox).expect("inbox");
+        let config = net.network_xml(
+            dir.path(),
+            "vas",
+            "rover1",
+            r#"<access>
+    <allow kind="call" item="rover1/vas/*" from="ground/*"/>
+    <allow kind="file" item="rover1/vas/*" from="ground/*"/>
+    <allow kind="publish" item="**" from="ground/*"/>
+  </access>"#,
+        );
+        let mut victim = probe_with_config(
+            "victim",
+            &config,
+            "vas",
+            &["--key-file", key.to_str().expect("utf-8 path")],
+            &[
+                "victim",
+                "--call",
+                "retask",
+                "--sink",
+                "plans",
+                "--dir",
+                inbox.to_str().expect("utf-8 path"),
+                "--pattern",
+                "**/position",
+            ],
+        );
+        let ready = victim.expect_key(T, "ready");
+        let target = udp(ready["addrs"][0].as_str().expect("the victim's address"));
+        let legit = net.keyed("gs", "ground", &key, &super::publishing("position"));
+        let mut scene = Scene {
+            net,
+            dir,
+            key,
+            inbox,
+            victim,
+            target,
+            legit,
+            last: Value::Null,
+        };
+        scene.report_until("the legitimate peer's positions", |r| {
+            legit_samples(r) >= 5 && r["peers"]["ground/gs"] == 1
+        });
+        scene
+    }
+
+    /// Waits for a victim report satisfying `pred` (failing the test after [`T`]).
+    pub fn report_until(&mut self, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+        if self.last.is_object() && pred(&self.last) {
+            return self.last.clone();
+        }
+        let v = self
+            .victim
+            .expect(T, what, |v| v.get("report").is_some_and(&pred));
+        self.last = v["report"].clone();
+        // `seen` would keep every report of a long run: only the last one matters.
+        self.victim.seen.clear();
+        self.last.clone()
+    }
+
+    /// The legitimate peer's address as the victim knows it.
+    pub fn legit_addr(&mut self) -> SocketAddr {
+        let r = self.report_until("the legitimate peer's address", |r| {
+            r["peer_addrs"]["ground/gs"].is_string()
+        });
+        udp(r["peer_addrs"]["ground/gs"].as_str().unwrap_or_default())
+    }
+
+    /// The legitimate peer's node id and `replays` of its sealed announcements, read off the
+    /// multicast group as any listener on the LAN can.
+    pub fn sniff_legit(&mut self, replays: usize) -> (NodeId, Vec<Vec<u8>>) {
+        let sniffer = Sniffer::join(self.net.group()).expect("join the multicast group");
+        let from = self.legit_addr();
+        let mut id = None;
+        let mut captured = Vec::new();
+        while captured.len() < replays.max(1) {
+            let (i, d) = sniffer
+                .capture_from(from, T)
+                .unwrap_or_else(|| panic!("no announcement of the legitimate peer at {from}"));
+            id = Some(i);
+            captured.push(d);
+        }
+        (id.expect("captured at least one"), captured)
+    }
+
+    /// Asserts that nothing an attacker sent was delivered or executed: every call the
+    /// victim ran carried the legitimate argument, every sample came from the legitimate
+    /// peer, every file from a `ground` node.
+    pub fn assert_nothing_from_attackers(&mut self) {
+        let r = self.last.clone();
+        let called = r["called"].as_array().cloned().unwrap_or_default();
+        assert!(
+            called.iter().all(|c| c.as_u64() == Some(21)),
+            "the victim executed an attacker's call: {called:?}"
+        );
+        let samples = r["samples"].as_object().cloned().unwrap_or_default();
+        assert!(
+            samples.keys().all(|k| k == LEGIT_SAMPLES),
+            "the victim delivered an attacker's samples: {samples:?}"
+        );
+        let files = r["files"].as_array().cloned().unwrap_or_default();
+        assert!(
+            files.iter().all(|f| f[0] == "fpmo" && f[1] == 7),
+            "the victim stored an attacker's file: {files:?}"
+        );
+        let stored: Vec<String> = std::fs::read_dir(&self.inbox)
+            .map(|rd| {
+                rd.filter_map(Result::ok)
+                    .map(|e| e.file_name().to_string_lossy().into_owned())
+                    .filter(|n| n != ".partial" && n != "legit.xml")
+                    .collect()
+            })
+            .unwrap_or_default();
+        assert!(stored.is_empty(), "attacker files in the sink: {stored:?}");
+    }
+
+    /// The legitimate traffic still flows: `more` new positions from the legitimate peer, the
+    /// peer still known (once), and a call and a file from `ground` nodes served.
+    pub fn assert_legit_served(&mut self, more: u64) {
+        let before = legit_samples(&self.last);
+        self.report_until("more positions from the legitimate peer", |r| {
+            legit_samples(r) >= before + more && r["peers"]["ground/gs"] == 1
+        });
+        let mut call = self.net.keyed(
+            "fmo",
+            "ground",
+            &self.key,
+            &[
+                "call",
+                "--name",
+                "rover1/vas/retask",
+                "--arg",
+                "21",
+                "--wait-ms",
+                "10000",
+            ],
+        );
+        let r = outcome(&mut call);
+        assert_eq!(r["ok"], 42, "the legitimate call failed: {r}");
+        let plan = self.dir.path().join("legit.xml");
+        std::fs::write(&plan, b"<plan/>").expect("write the plan");
+        let mut send = self.net.keyed(
+            "fpmo",
+            "ground",
+            &self.key,
+            &[
+                "send",
+                "--file",
+                plan.to_str().expect("utf-8 path"),
+                "--to",
+                "rover1/vas/plans",
+                "--retry-secs",
+                "20",
+            ],
+        );
+        let r = outcome(&mut send);
+        assert_eq!(r["done"], 7, "the legitimate file failed: {r}");
+        self.report_until("the legitimate call and file", |r| {
+            r["called"].as_array().is_some_and(|c| c.len() == 1)
+                && r["files"].as_array().is_some_and(|f| f.len() == 1)
+        });
+    }
+}
+
+/// A declaration batch from a peer whose log starts at `first`.
+fn batch(first: u32, decls: Vec<Declaration>) -> Message {
+    let n = decls.len() as u32;
+    Message::DeclBatch {
+        after: first - 1,
+        upto: first - 1 + n,
+        reset: false,
+        entries: decls
+            .into_iter()
+            .zip(first..)
+            .map(|(decl, counter)| LoggedDeclaration { counter, decl })
+            .collect(),
+    }
+}
+
+fn offer(id: u32, kind: ItemKind, name: &str, ty: TypeInfo, origin: Option<Origin>) -> Declaration {
+    Declaration::Offer {
+        id,
+        service: 1,
+        kind,
+        name: name.into(),
+        ty,
+        origin,
+    }
+}
+
+/// What the victim would run or store if it took an attacker's word: a call of every id a
+/// node of a few dozen items may use, a file offer to each, a sample on each.
+fn forged_session_traffic() -> Vec<Message> {
+    let args = encode_payload(&EVIL_ARG).expect("a u64 encodes");
+    let position = encode_payload(&[0u8; 32]).expect("bytes encode");
+    let mut msgs = Vec::new();
+    for id in 1..=24u32 {
+        msgs.push(Message::Call {
+            call_id: u64::from(id),
+            id,
+            remaining_ms: 5_000,
+            args: args.clone(),
+        });
+        msgs.push(Message::FileOffer {
+            transfer: u64::from(id),
+            sink: id,
+            name: "evil.xml".into(),
+            size: 7,
+            hash: [0; 32],
+        });
+        msgs.push(Message::Var {
+            id,
+            payload: position.clone(),
+        });
+    }
+    msgs
+}
+
+/// The outsider: no key. Every datagram it sends, forged or replayed, must be dropped at the
+/// seal (counted as `auth_rejected` or `replay_rejected`).
+pub fn outsider(scene: &mut Scene) -> Tally {
+    let (legit_id, captured) = scene.sniff_legit(10);
+    let at_seal = |r: &Value| refusals(r, "auth_rejected") + refusals(r, "replay_rejected");
+    let base = at_seal(&scene.last);
+    let target = scene.target;
+    let domain = scene.net.domain.clone();
+    let mut forger = Forger::new(None).expect("a socket");
+    let mut tally = Tally::default();
+
+    // Peers: heartbeats of invented nodes from a thousand source ports, paced on what the
+    // victim counted (so the kernel drops none of them).
+    let flooded = {
+        let mut pace = |n: usize| {
+            scene.report_until("the flood counted", |r| at_seal(r) >= base + n as u64);
+        };
+        attacker::flood_heartbeats(target, &domain, 1000, 100, 0x0bad_0000_0000, &mut pace)
+            .expect("flood")
+    } as u64;
+
+    // Spoofed names and identity replacement: a Hello as the legitimate peer's name, one
+    // with its id, one with an endless lease.
+    forger
+        .send(target, attacker::hello(0x0bad_0001, &domain, "gs", 60_000))
+        .expect("send");
+    forger
+        .send(target, attacker::hello(legit_id, &domain, "gs", 60_000))
+        .expect("send");
+    forger
+        .send(
+            target,
+            attacker::hello(0x0bad_0002, &domain, "evil", u32::MAX),
+        )
+        .expect("send");
+    // Bye spoofing.
+    for _ in 0..20 {
+        forger
+            .discovery(target, &Message::Bye { node_id: legit_id })
+            .expect("send");
+    }
+    // A pattern bomb.
+    forger
+        .send(
+            target,
+            attacker::interest_batch(7, &format!("{}zz", "**/".repeat(2000))),
+        )
+        .expect("send");
+    // Owned names and origins: the victim's own names, offered for the legitimate peer.
+    forger
+        .safe(
+            target,
+            &[batch(
+                1,
+                vec![
+                    Declaration::Service {
+                        id: 1,
+                        name: "vas".into(),
+                    },
+                    offer(
+                        2,
+                        ItemKind::Function,
+                        "rover1/vas/retask",
+                        TypeInfo::of::<fn(u64) -> u64>(),
+                        None,
+                    ),
+                    offer(
+                        3,
+                        ItemKind::Variable,
+                        "ground/probe/position",
+                        TypeInfo::of::<u64>(),
+                        Some(Origin {
+                            node: legit_id,
+                            name: "gs".into(),
+                            hops: 0,
+                            namespace: "ground".into(),
+                        }),
+                    ),
+                ],
+            )],
+        )
+        .expect("send");
+    // Calls, files, samples.
+    forger
+        .safe(target, &forged_session_traffic())
+        .expect("send");
+    for m in forged_session_traffic() {
+        forger.fast(target, &m).expect("send");
+    }
+    // Replays of the legitimate peer's sealed announcements, five times each.
+    for d in &captured {
+        for _ in 0..5 {
+            forger.raw(target, d).expect("send");
+        }
+    }
+    let sent = flooded + forger.sent;
+    let r = scene.report_until("every datagram of the outsider counted", |r| {
+        at_seal(r) >= base + sent
+    });
+    assert!(
+        refusals(&r, "replay_rejected") >= 5 * captured.len() as u64,
+        "replays not counted as such: {r}"
+    );
+    tally.add(sent, at_seal(&r) - base);
+    tally
+}
+
+/// The insider: it has the domain key but the namespace `evil`, which `<access>` allows
+/// nothing. Returns the tally of the attacks each refused once by a counter (owned names,
+/// origins, forged Byes, second addresses, bad patterns, denied calls and files); the floods
+/// (peers, declarations) and the denied publications are asserted on directly.
+pub fn insider(scene: &mut Scene) -> Tally {
+    let key = DomainKey::load(&scene.key).expect("the domain key");
+    let (legit_id, _) = scene.sniff_legit(1);
+    let target = scene.target;
+    let domain = scene.net.domain.clone();
+    let mut tally = Tally::default();
+    let r0 = scene.last.clone();
+
+    // The real API first: a call and a file the `<access>` rules deny.
+    let mut call = scene.net.keyed(
+        "fmo",
+        "evil",
+        &scene.key,
+        &[
+            "call",
+            "--name",
+            "rover1/vas/retask",
+            "--arg",
+            &EVIL_ARG.to_string(),
+            "--wait-ms",
+            "10000",
+        ],
+    );
+    let r = outcome(&mut call);
+    assert_eq!(r["error"], "denied", "{r}");
+    let evil_plan = scene.dir.path().join("evil.xml");
+    std::fs::write(&evil_plan, b"<evil/>").expect("write");
+    let mut send = scene.net.keyed(
+        "fpmo",
+        "evil",
+        &scene.key,
+        &[
+            "send",
+            "--file",
+            evil_plan.to_str().expect("utf-8 path"),
+            "--to",
+            "rover1/vas/plans",
+            "--retry-secs",
+            "20",
+        ],
+    );
+    let r = outcome(&mut send);
+    assert_eq!(r["error"], "denied", "{r}");
+    let r1 = scene.report_until("the denied call and file counted", |r| {
+        refusals(r, "denied") >= refusals(&r0, "denied") + 2
+    });
+    tally.add(2, refusals(&r1, "denied") - refusals(&r0, "denied"));
+
+    // By hand, sealed: a node `evil` of namespace `evil`.
+    let mut forger = Forger::new(Some(&key)).expect("a socket");
+    let evil_id: NodeId = 0x0e71_0000_0000_0001;
+    forger
+        .discovery(
+            target,
+            &Message::Hello {
+                node_id: evil_id,
+                domain: domain.clone(),
+                node: "evil".into(),
+                namespace: "evil".into(),
+                counter: 5,
+                lease_ms: 60_000,
+                gateway: false,
+            },
+        )
+        .expect("send");
+    let r1 = scene.report_until("the insider known as a peer", |r| {
+        r["peers"]["evil/evil"] == 1
+    });
+    // Names it does not own, an origin it may not claim, two bad names.
+    forger
+        .safe(
+            target,
+            &[batch(
+                1,
+                vec![
+                    Declaration::Service {
+                        id: 1,
+                        name: "vas".into(),
+                    },
+                    offer(
+                        2,
+                        ItemKind::Variable,
+                        "rover1/vas/position",
+                        TypeInfo::of::<[u8; 32]>(),
+                        None,
+                    ),
+                    offer(
+                        3,
+                        ItemKind::Function,
+                        "rover1/vas/retask",
+                        TypeInfo::of::<fn(u64) -> u64>(),
+                        None,
+                    ),
+                    offer(
+                        4,
+                        ItemKind::Variable,
+                        "evil/x/position",
+                        TypeInfo::of::<[u8; 32]>(),
+                        Some(Origin {
+                            node: legit_id,
+                            name: "gs".into(),
+                            hops: 0,
+                            namespace: "ground".into(),
+                        }),
+                    ),
+                    Declaration::Interest {
+                        id: 5,
+                        service: 1,
+                        kind: ItemKind::Event,
+                        pattern: format!("{}zz", "**/".repeat(2000)),
+                        ty: TypeInfo::of::<u8>(),
+                    },
+                ],
+            )],
+        )
+        .expect("send");
+    // Bye spoofing and the legitimate peer's id from the insider's address.
+    for _ in 0..10 {
+        forger
+            .discovery(target, &Message::Bye { node_id: legit_id })
+            .expect("send");
+    }
+    for _ in 0..3 {
+        forger
+            .discovery(
+                target,
+                &Message::Hello {
+                    node_id: legit_id,
+                    domain: domain.clone(),
+                    node: "gs".into(),
+                    namespace: "ground".into(),
+                    counter: 1,
+                    lease_ms: 60_000,
+                    gateway: false,
+                },
+            )
+            .expect("send");
+        forger
+            .discovery(
+                target,
+                &Message::Heartbeat {
+                    node_id: legit_id,
+                    domain_hash: attacker::domain_hash(&domain),
+                    counter: 99,
+                },
+            )
+            .expect("send");
+    }
+    // 3 offers refused, 10 Byes, 6 at a second address; 1 bad pattern.
+    let rejected = 3 + 10 + 6;
+    let r2 = scene.report_until("the insider's forgeries counted", |r| {
+        refusals(r, "rejected") >= refusals(&r1, "rejected") + rejected
+            && refusals(r, "bad_declarations") > refusals(&r1, "bad_declarations")
+    });
+    tally.add(
+        rejected,
+        refusals(&r2, "rejected") - refusals(&r1, "rejected"),
+    );
+    tally.add(
+        1,
+        refusals(&r2, "bad_declarations") - refusals(&r1, "bad_declarations"),
+    );
+    assert_eq!(
+        r2["peers"]["ground/gs"], 1,
+        "the legitimate peer was evicted or doubled: {r2}"
+    );
+
+    // A declaration flood: past the per-peer cap, refused and counted.
+    let flood: Vec<Declaration> = (0..4200u32)
+        .map(|i| {
+            offer(
+                100 + i,
+                ItemKind::Variable,
+                &format!("evil/flood/item{i}"),
+                TypeInfo::of::<u64>(),
+                None,
+            )
+        })
+        .collect();
+    let mut first = 6;
+    for chunk in flood.chunks(600) {
+        forger
+            .safe(target, &[batch(first, chunk.to_vec())])
+            .expect("send");
+        first += chunk.len() as u32;
+    }
+    scene.report_until("the declaration flood capped", |r| {
+        refusals(r, "rejected") >= refusals(&r2, "rejected") + 100
+    });
+
+    // Samples on the offers it tried, and calls, files and samples on guessed ids.
+    for m in forged_session_traffic() {
+        forger.fast(target, &m).expect("send");
+    }
+    forger
+        .safe(target, &forged_session_traffic())
+        .expect("send");
+
+    // A peer flood: sealed Hellos of 1,100 invented nodes, each from its own port.
+    let evicted0 = refusals(&scene.last, "peers_evicted");
+    let frames0 = scene.last["frames_in"].as_u64().unwrap_or(0);
+    let mut n = 0u64;
+    while n < 1100 {
+        let mut sockets = Vec::new();
+        for _ in 0..100 {
+            let mut f = Forger::new(Some(&key)).expect("a socket");
+            f.discovery(
+                target,
+                &Message::Hello {
+                    node_id: 0x0f10_0d00_0000_0000 + n,
+                    domain: domain.clone(),
+                    node: "flood".into(),
+                    namespace: "evil".into(),
+                    counter: 0,
+                    lease_ms: u32::MAX,
+                    gateway: false,
+                },
+            )
+            .expect("send");
+            sockets.push(f);
+            n += 1;
+        }
+        scene.report_until("the peer flood read", |r| {
+            r["frames_in"].as_u64().unwrap_or(0) >= frames0 + n
+        });
+    }
+    let r3 = scene.report_until("peers pushed out of the full table", |r| {
+        refusals(r, "peers_evicted") > evicted0
+    });
+    assert_eq!(
+        r3["peers"]["ground/gs"], 1,
+        "the legitimate peer was pushed out: {r3}"
+    );
+
+    // A publisher of its own namespace, which `<access>` does not let publish to us.
+    let denied = refusals(&scene.last, "denied");
+    let _imp = scene
+        .net
+        .keyed("imp", "evil", &scene.key, &super::publishing("position"));
+    scene.report_until("the impostor's publication denied", |r| {
+        refusals(r, "denied") > denied
+    });
+    tally
+}

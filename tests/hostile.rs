@@ -1,0 +1,49 @@
+//! Hostile tests (issue 13, item 9), all real processes: a victim node (`marea-probe victim`,
+//! keyed, `<access>` rules allowing only `ground/*`), a legitimate peer publishing positions to
+//! it, and an attacker trying every attack of the issue: an outsider without the key, then an
+//! insider with the key but another namespace. Nothing from the attacker is delivered or
+//! executed (the victim's report of what it ran, delivered and stored), the legitimate traffic
+//! keeps flowing (counts), and the victim's counters show every rejection. The attacks are in
+//! `tests/common/hostile.rs`, shared with the `hostile.rejected_ratio` benchmark.
+
+mod common;
+
+use common::hostile::{self, legit_samples, refusals, Scene};
+
+#[test]
+fn an_outsider_without_the_key_gets_nothing_through_and_every_datagram_is_counted() {
+    let mut scene = Scene::start("hostile-outsider");
+    let before = legit_samples(&scene.last);
+    let tally = hostile::outsider(&mut scene);
+    assert_eq!(tally.ratio(), 1.0, "{tally:?}");
+    assert!(tally.sent > 1000, "{tally:?}");
+    let r = scene.last.clone();
+    assert!(
+        legit_samples(&r) > before,
+        "no legitimate positions during the attack: {r}"
+    );
+    // Nothing unauthenticated reached discovery: the only peer is the legitimate one.
+    let peers = r["peers"].as_object().cloned().unwrap_or_default();
+    assert_eq!(peers.len(), 1, "{peers:?}");
+    assert_eq!(refusals(&r, "rejected"), 0, "refused past the seal: {r}");
+    scene.assert_nothing_from_attackers();
+    scene.assert_legit_served(25);
+    scene.assert_nothing_from_attackers();
+}
+
+#[test]
+fn an_insider_of_another_namespace_gets_nothing_through_and_every_refusal_is_counted() {
+    let mut scene = Scene::start("hostile-insider");
+    let before = legit_samples(&scene.last);
+    let tally = hostile::insider(&mut scene);
+    assert_eq!(tally.ratio(), 1.0, "{tally:?}");
+    let r = scene.last.clone();
+    assert!(
+        legit_samples(&r) > before,
+        "no legitimate positions during the attack: {r}"
+    );
+    assert_eq!(r["peers"]["ground/gs"], 1, "{r}");
+    scene.assert_nothing_from_attackers();
+    scene.assert_legit_served(25);
+    scene.assert_nothing_from_attackers();
+}
