@@ -95,6 +95,11 @@ fn registry() -> Vec<Known> {
         MissionTime,
         Battery,
         AltRef,
+        VehicleCommand,
+        DirectedTarget,
+        CommandReply,
+        AllowedChanges,
+        fpma::api::Readiness,
         marea::LinkHealth,
         fpma::api::Progress,
         fpma::api::PlanState,
@@ -184,6 +189,17 @@ mod tests {
         assert_eq!(back, bytes);
         assert!(to_json("my::Secret", &bytes).is_none());
         assert!(from_json("u64", &serde_json::json!("x")).is_err());
+        // The VAS's commands as `usal call rover1/vas/command '"ARM"'` writes them.
+        let name = std::any::type_name::<usal_types::VehicleCommand>();
+        let arm = from_json(name, &serde_json::json!("ARM")).unwrap();
+        assert_eq!(
+            postcard::from_bytes::<usal_types::VehicleCommand>(&arm).unwrap(),
+            usal_types::VehicleCommand::Arm
+        );
+        let directed =
+            serde_json::json!({"DIRECTED": {"alt": 30.0, "speed": 5.0, "bearing": 90.0}});
+        let bytes = from_json(name, &directed).unwrap();
+        assert_eq!(to_json(name, &bytes).unwrap().unwrap(), directed);
         assert_eq!(
             split_fn("fn(u64) -> alloc::string::String"),
             Some(("u64", "alloc::string::String"))

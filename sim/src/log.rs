@@ -99,6 +99,17 @@ pub enum LogEvent {
         /// Where, longitude.
         lon: f64,
     },
+    /// A guided target (MAV_CMD_DO_REPOSITION) was accepted.
+    Repositioned {
+        /// Target latitude, degrees.
+        lat: f64,
+        /// Target longitude, degrees.
+        lon: f64,
+        /// Target altitude above home, metres.
+        alt: f64,
+    },
+    /// A LAND reached the ground.
+    Landed,
 }
 
 /// A log line: simulated time plus the event.

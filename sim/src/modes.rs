@@ -13,8 +13,13 @@ pub enum Behaviour {
     Auto,
     /// Go home, then hold.
     Rtl,
-    /// Hold position until a guided target is given (targets are not simulated).
+    /// Hold position until a guided target is given (a take-off, or MAV_CMD_DO_REPOSITION),
+    /// then go there and hold.
     Guided,
+    /// Descend where it is and disarm on the ground (copter LAND).
+    Land,
+    /// Climb ahead to TKOFF_ALT, then loiter (plane TAKEOFF).
+    Takeoff,
 }
 
 /// One ArduPilot mode: number, name, behaviour.
@@ -43,7 +48,7 @@ const COPTER: &[ModeEntry] = &[
     (4, "GUIDED", Guided),
     (5, "LOITER", Hold),
     (6, "RTL", Rtl),
-    (9, "LAND", Hold),
+    (9, "LAND", Land),
     (16, "POSHOLD", Hold),
     (17, "BRAKE", Hold),
     (21, "SMART_RTL", Rtl),
@@ -59,6 +64,7 @@ const PLANE: &[ModeEntry] = &[
     (10, "AUTO", Auto),
     (11, "RTL", Rtl),
     (12, "LOITER", Hold),
+    (13, "TAKEOFF", Takeoff),
     (15, "GUIDED", Guided),
     (16, "INITIALISING", Hold),
 ];

@@ -95,8 +95,10 @@ pub struct Vehicle {
     current: u16,
     target: Option<Target>,
     hold_point: Ned,
-    /// Where a GUIDED take-off climbs to (MAV_CMD_NAV_TAKEOFF).
+    /// Where a GUIDED take-off climbs to (MAV_CMD_NAV_TAKEOFF), or a plane's TAKEOFF mode.
     takeoff_to: Option<Ned>,
+    /// Where GUIDED flies to (MAV_CMD_DO_REPOSITION) until it holds there.
+    guided_to: Option<Ned>,
     /// Speed set by DO_CHANGE_SPEED (mission item or command) until the mode changes, m/s.
     speed_override: Option<f64>,
     /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
@@ -169,6 +171,7 @@ impl Vehicle {
             target: None,
             hold_point: Ned::default(),
             takeoff_to: None,
+            guided_to: None,
             speed_override: None,
             quiet_progress: false,
             profile: Profile::ArduPilot,
@@ -509,6 +512,17 @@ impl Vehicle {
         self.mode = mode;
         self.hold_point = self.state.pos;
         self.takeoff_to = None;
+        self.guided_to = None;
+        if behaviour == Behaviour::Takeoff {
+            // ArduPlane's TAKEOFF mode: climb ahead on the present heading to TKOFF_ALT.
+            let alt = f64::from(self.params.get_or("TKOFF_ALT", 50.0));
+            let ahead = 10_000.0;
+            self.takeoff_to = Some(Ned {
+                north: self.state.pos.north + ahead * self.state.yaw.cos(),
+                east: self.state.pos.east + ahead * self.state.yaw.sin(),
+                up: alt,
+            });
+        }
         if self.speed_override.take().is_some() {
             self.record(LogEvent::SpeedChanged { speed: 0.0 });
         }
@@ -593,10 +607,14 @@ impl Vehicle {
                     Command::GoTo(home)
                 }
             }
-            Behaviour::Guided => match self.takeoff_to {
+            Behaviour::Guided | Behaviour::Takeoff => match self.takeoff_to.or(self.guided_to) {
                 Some(t) => Command::GoTo(t),
                 None => Command::Hold(self.hold_point),
             },
+            Behaviour::Land => Command::GoTo(Ned {
+                up: 0.0,
+                ..self.hold_point
+            }),
             Behaviour::Hold => Command::Hold(self.hold_point),
         };
         let before = self.state.pos;
@@ -612,9 +630,23 @@ impl Vehicle {
                 }
             }
         }
+        if self.behaviour() == Behaviour::Land && self.state.pos.up <= 0.05 {
+            // ArduCopter disarms once LAND touches down.
+            self.record(LogEvent::Landed);
+            self.set_armed(false, &mut out);
+        }
+        if let Some(t) = self
+            .guided_to
+            .filter(|_| self.behaviour() == Behaviour::Guided)
+        {
+            if self.within(&t, self.wp_radius()) {
+                self.guided_to = None;
+                self.hold_point = t;
+            }
+        }
         if let Some(t) = self
             .takeoff_to
-            .filter(|_| self.behaviour() == Behaviour::Guided)
+            .filter(|_| matches!(self.behaviour(), Behaviour::Guided | Behaviour::Takeoff))
         {
             if (self.state.pos.up - t.up).abs() <= 0.5 {
                 self.takeoff_to = None;
@@ -915,6 +947,81 @@ mod tests {
         );
         // Airborne: a second take-off is refused.
         assert_eq!(takeoff_command(&mut v, 20.0), MavResult::MAV_RESULT_FAILED);
+    }
+
+    #[test]
+    fn guided_flies_to_a_repositioned_point_then_land_descends_and_disarms() {
+        let mut v = copter();
+        command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0);
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0);
+        assert_eq!(
+            takeoff_command(&mut v, 10.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        run_until(&mut v, 30.0, |v| (v.position().up - 10.0).abs() < 0.5);
+        // 100 m east at 30 m above home (the altitude is MSL: home is 10 m).
+        let east = v.frame.to_geo(Ned {
+            north: 0.0,
+            east: 100.0,
+            up: 0.0,
+        });
+        let reposition = |lat: f64| COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_DO_REPOSITION,
+            param1: 5.0,
+            param5: lat as f32,
+            param6: east.lon_deg as f32,
+            param7: 40.0,
+            ..Default::default()
+        };
+        assert_eq!(
+            command_long(&mut v, reposition(f64::NAN)),
+            MavResult::MAV_RESULT_DENIED
+        );
+        assert_eq!(
+            command_long(&mut v, reposition(east.lat_deg)),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        run_until(&mut v, 60.0, |v| {
+            let p = v.position();
+            (p.east - 100.0).abs() < 2.0 && (p.up - 30.0).abs() < 2.0
+        });
+        // LAND: straight down where it is, disarmed on the ground; no arming in LAND.
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 9.0);
+        run_until(&mut v, 60.0, |v| !v.armed());
+        let p = v.position();
+        assert!(p.up < 0.1 && (p.east - 100.0).abs() < 5.0, "{p:?}");
+        assert!(v.take_log().iter().any(|(_, e)| *e == LogEvent::Landed));
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_FAILED
+        );
+        // Outside GUIDED a reposition is refused.
+        assert_eq!(
+            command_long(&mut v, reposition(east.lat_deg)),
+            MavResult::MAV_RESULT_FAILED
+        );
+    }
+
+    #[test]
+    fn plane_takeoff_mode_climbs_to_tkoff_alt() {
+        let mut v = Vehicle::new(
+            VehicleConfig {
+                kind: VehicleKind::Plane,
+                sysid: 1,
+                home: HOME,
+            },
+            Instant::now(),
+        );
+        command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0);
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 13.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        run_until(&mut v, 300.0, |v| (v.position().up - 50.0).abs() < 0.5);
+        assert!(v
+            .take_log()
+            .iter()
+            .any(|(_, e)| matches!(e, LogEvent::TakeoffComplete { .. })));
     }
 
     #[test]

@@ -31,8 +31,10 @@ const CALL_TIMEOUT: Duration = Duration::from_secs(5);
 const RETRY: Duration = Duration::from_secs(1);
 /// Upload the plan after this long even if the VAS never reports a configured autopilot.
 const UPLOAD_ANYWAY: Duration = Duration::from_secs(30);
-/// A loaded plan whose vehicle stays parked this long gets WAYPOINT_NAVIGATION asked for.
-const KICK_AFTER: Duration = Duration::from_secs(3);
+/// A loaded plan whose vehicle stays parked this long gets WAYPOINT_NAVIGATION asked for:
+/// `usal run` is the operator who presses Start (the FPMa never changes the flight state,
+/// issue 15); asked again this long after a refusal.
+const KICK_AFTER: Duration = Duration::from_secs(1);
 /// How long completion waits for the last reports once the plan says it is done.
 const SETTLE: Duration = Duration::from_secs(2);
 /// How long to wait for the progress variable to confirm a completion the FPMa's event
@@ -605,8 +607,8 @@ async fn follow(
             _ = tick.tick() => {}
         }
 
-        // Fallback for an FPMa that asked for navigation too early and was refused: once the
-        // plan is loaded and the VAS parks with waypoints queued, ask for it once ourselves.
+        // The operator's Start: once the plan is loaded and the VAS parks with waypoints
+        // queued, ask for WAYPOINT_NAVIGATION (the FPMa never does, issue 15).
         let waiting = t.started.is_some()
             && !navigated
             && t.state == Some(FlightState::Parking)
@@ -630,13 +632,17 @@ async fn follow(
                 );
                 match answer {
                     Ok(_) => note(ui, s,
-                        "station: the plan was loaded but the vehicle stayed parked; asked the VAS for WAYPOINT_NAVIGATION",
+                        "station: plan ready and the vehicle parked; started it (WAYPOINT_NAVIGATION), as the operator",
                         json!({"event": "navigation_kicked"}),
                     ),
-                    Err(e) => note(ui, s,
-                        &format!("station: the vehicle stays parked and the VAS refused WAYPOINT_NAVIGATION: {e}"),
-                        json!({"event": "navigation_refused", "reason": e.to_string()}),
-                    ),
+                    Err(e) => {
+                        // Asked again a little later (the queue may still be on its way).
+                        kick_at = Some(Instant::now());
+                        note(ui, s,
+                            &format!("station: the vehicle stays parked and the VAS refused WAYPOINT_NAVIGATION: {e}"),
+                            json!({"event": "navigation_refused", "reason": e.to_string()}),
+                        )
+                    }
                 }
             }
             (false, _) => kick_at = None,
@@ -685,6 +691,9 @@ async fn follow(
                 Ok(()) => {
                     recovery = Recovery::Idle;
                     last_attempt = None;
+                    // The new VAS parks with the queue refilled: the operator (this station)
+                    // starts it again, as after the upload.
+                    navigated = false;
                     t.recoveries += 1;
                     note(
                         ui,

@@ -49,8 +49,8 @@ pub struct PlanLoaded {
     pub name: String,
     /// Waypoints handed to the VAS so far.
     pub queued: u64,
-    /// Why the VAS refused WAYPOINT_NAVIGATION, when it was asked and refused (the plan is loaded
-    /// all the same and flies once the vehicle is put in that state).
+    /// Always `None` now: the FPMa no longer asks for WAYPOINT_NAVIGATION (the operator does;
+    /// see [`Readiness`]). Kept so older stations still decode the answer.
     pub navigation_refused: Option<String>,
 }
 
@@ -211,6 +211,22 @@ pub struct Progress {
     /// Seconds to the end of the current leg (the target waypoint's), likewise.
     #[serde(default)]
     pub leg_eta_s: Option<f64>,
+}
+
+/// Whether the loaded plan waits for the operator's start (variable `ready`). The FPMa never
+/// changes the flight state (issue 15, pilot in command): a loaded plan fills the VAS queue
+/// and waits until the operator puts the vehicle in WAYPOINT_NAVIGATION (the VAS's
+/// `change_state`, from a station or `usal call`).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Readiness {
+    /// Plan version (0 before any plan).
+    pub version: u64,
+    /// Plan name.
+    pub plan: String,
+    /// Waypoints are queued at a configured VAS that is not navigating: "press Start".
+    pub ready: bool,
+    /// For the operator, e.g. "plan `carpark` ready, press Start (WAYPOINT_NAVIGATION)".
+    pub text: String,
 }
 
 /// The executive's variables and loops (variable `state`), for stations.

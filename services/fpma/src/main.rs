@@ -64,7 +64,8 @@ struct RunArgs {
     /// Waypoints kept in the VAS queue ahead of the vehicle.
     #[arg(long)]
     lookahead: Option<usize>,
-    /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts: true or false.
+    /// Ignored (the FPMa never changes the flight state; the operator starts a plan); kept
+    /// so older command lines still run.
     #[arg(long)]
     start_navigation: Option<bool>,
     /// Where plan files sent to fpma/plans are stored.

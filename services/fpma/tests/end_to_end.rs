@@ -14,10 +14,10 @@ use fpma::api::{PlanLoaded, VarValue};
 use marea::{NetworkConfig, Node, SendFileOptions};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::time::{timeout, Instant};
-use usal_types::{FlightState, WaypointReached};
+use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
 
 mod common;
-use common::{close, kill, sibling_bins, sim_reached, spawn};
+use common::{close, kill, sibling_bins, sim_reached, spawn, start_when_ready};
 
 /// Bound on each single wait.
 const STEP: Duration = Duration::from_secs(20);
@@ -141,6 +141,12 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     let state = gcs
         .subscribe_variable::<FlightState>("rover1/vas/flight_state")
         .unwrap();
+    let ready = gcs
+        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .unwrap();
+    let change = gcs
+        .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
+        .unwrap();
     // The FPMa declares its items one by one: wait for each function used below.
     assert!(load.wait_provider(STEP).await, "fpma not discovered");
     assert!(skip.wait_provider(STEP).await, "skip_leg not discovered");
@@ -190,7 +196,7 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
         r.value
     );
 
-    // The real plan, as a file: it starts flying by itself.
+    // The real plan, as a file: it waits for the operator's start.
     let plan_file = dir.path().join("rover-carpark.xml");
     std::fs::write(&plan_file, &src).unwrap();
     let started = Instant::now();
@@ -219,6 +225,13 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
             PlanEventKind::PlanLoaded { name } => {
                 assert_eq!(name, "castelldefels-carpark");
                 loaded = true;
+                // "Plan ready, press Start": the operator does.
+                let from = start_when_ready(&ready, &change, STEP).await;
+                assert_eq!(
+                    from,
+                    FlightState::Parking,
+                    "the FPMa changed the state itself"
+                );
             }
             PlanEventKind::WaypointReached { seq, leg } => {
                 reached.push((e.version, seq, leg.clone()));

@@ -3,6 +3,8 @@
 //!
 //! - Battery: mavsim drains a small battery; the VAS publishes it; the FPMa's `battery` follows
 //!   it and the rover car-park plan's `low-battery` rule sends the rover to the approach.
+//! - Pilot in command (item 4): a plan loaded while the operator drives (MANUAL_NAVIGATION,
+//!   then DIRECTED) only waits, saying "press Start"; the operator's WAYPOINT_NAVIGATION flies it.
 //! - Altitude references: with home at 584 m above sea level, a copter flies a plan written in
 //!   MSL and one written relative to home; each reaches its waypoints at the height the plan
 //!   means, and the FPMa's `alt` is measured from the plan's reference.
@@ -157,6 +159,12 @@ async fn the_carpark_low_battery_rule_fires_as_mavsim_drains_its_battery() {
     let battery = gcs
         .subscribe_variable::<Battery>("rover1/vas/battery")
         .unwrap();
+    let ready = gcs
+        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .unwrap();
+    let change = gcs
+        .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
+        .unwrap();
     let flight_state = gcs
         .subscribe_variable::<FlightState>("rover1/vas/flight_state")
         .unwrap();
@@ -178,6 +186,9 @@ async fn the_carpark_low_battery_rule_fires_as_mavsim_drains_its_battery() {
     load.call(&src, STEP)
         .await
         .expect("the car-park plan loads");
+    // The operator starts it once the FPMa says it is ready.
+    let from = common::start_when_ready(&ready, &change, STEP).await;
+    assert_eq!(from, FlightState::Parking);
 
     let mut fired_at = None;
     let mut stages = Vec::new();
@@ -329,17 +340,25 @@ async fn fly_copter(
         "the copter did not climb to {climb_to} m above home"
     );
     let mut out = Vec::new();
-    // The FPMa asks for WAYPOINT_NAVIGATION by itself once the copter is airborne (the
-    // pilot-in-command behaviour issue 15 item 4 removes), so the VAS may already be there.
-    match change
+    // The FPMa never changes the flight state by itself (issue 15 item 4): airborne with the
+    // plan queued, the copter is still in TAKE_OFF, until the operator starts navigating.
+    let mut seen = Vec::new();
+    while let Some(s) = flight_state.try_recv() {
+        seen.push(s.expect("flight_state").value);
+    }
+    assert!(
+        !seen.contains(&FlightState::WaypointNavigation),
+        "the VAS went to WAYPOINT_NAVIGATION without the operator: {seen:?}"
+    );
+    let reply = change
         .call(&to(FlightState::WaypointNavigation), STEP)
         .await
-    {
-        Ok(_) => {}
-        Err(marea::CallError::Remote { message, .. })
-            if message == "already in WAYPOINT_NAVIGATION" => {}
-        Err(e) => panic!("WAYPOINT_NAVIGATION: {e:?}"),
-    }
+        .expect("the operator's WAYPOINT_NAVIGATION");
+    assert_eq!(
+        reply.from,
+        FlightState::TakeOff,
+        "the FPMa switched the VAS by itself"
+    );
     while out.len() < 2 {
         let r = timeout(STEP, reached.recv())
             .await
@@ -392,4 +411,98 @@ async fn msl_and_relative_plans_reach_their_heights_with_home_at_584_m() {
         alts.last().is_some_and(|a| (a - 30.0).abs() < 2.0),
         "the FPMa's alt is above home: {alts:?}"
     );
+}
+
+/// The FPMa never takes the vehicle from the operator: a plan loaded in MANUAL_NAVIGATION
+/// fills the queue and waits ("press Start") while the operator drives, also through a change
+/// to DIRECTED; the operator's WAYPOINT_NAVIGATION starts it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plan_loaded_while_the_operator_drives_waits_for_start() {
+    let home = format!("{},{},0", HOME.0, HOME.1);
+    let f = Flight::start(
+        "pic",
+        "rover",
+        "rover",
+        &["--speedup", "10", "--home", &home],
+    )
+    .await;
+    let gcs = f.node.service("fpmo").unwrap();
+    let load = gcs
+        .function::<String, PlanLoaded>("rover1/fpma/load_plan")
+        .unwrap();
+    let change = gcs
+        .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
+        .unwrap();
+    let ready = gcs
+        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .unwrap();
+    let reached = gcs
+        .subscribe_event::<WaypointReached>("rover1/vas/waypoint_reached")
+        .unwrap();
+    let flight_state = gcs
+        .subscribe_variable::<FlightState>("rover1/vas/flight_state")
+        .unwrap();
+    assert!(load.wait_provider(STEP).await, "fpma not discovered");
+    assert!(change.wait_provider(STEP).await, "vas not discovered");
+    timeout(STEP, async {
+        while flight_state.recv().await.expect("flight_state").value != FlightState::Parking {}
+    })
+    .await
+    .expect("the VAS reached PARKING");
+    let to = |to| StateChangeRequest { to };
+    change
+        .call(&to(FlightState::ManualNavigation), STEP)
+        .await
+        .expect("MANUAL_NAVIGATION");
+    let src = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/flightplans/rover-carpark.xml"),
+    )
+    .unwrap();
+    let loaded = load.call(&src, STEP).await.expect("the plan loads");
+    assert_eq!(loaded.navigation_refused, None);
+    let r = timeout(STEP, async {
+        loop {
+            let r = ready.recv().await.expect("ready").value;
+            if r.ready {
+                return r;
+            }
+        }
+    })
+    .await
+    .expect("the FPMa never said press Start");
+    assert!(r.text.contains("press Start"), "{r:?}");
+    // The operator keeps driving, then changes to DIRECTED: the plan still only waits.
+    let reply = change
+        .call(&to(FlightState::Directed), STEP)
+        .await
+        .expect("DIRECTED");
+    assert_eq!(
+        reply.from,
+        FlightState::ManualNavigation,
+        "the FPMa switched the state"
+    );
+    let mut seen = Vec::new();
+    while let Some(s) = flight_state.try_recv() {
+        seen.push(s.expect("flight_state").value);
+    }
+    assert!(
+        !seen.contains(&FlightState::WaypointNavigation),
+        "WAYPOINT_NAVIGATION without the operator: {seen:?}"
+    );
+    let reply = change
+        .call(&to(FlightState::WaypointNavigation), STEP)
+        .await
+        .expect("the operator's Start");
+    assert_eq!(reply.from, FlightState::Directed);
+    let r = reached
+        .recv_timeout(STEP)
+        .await
+        .expect("a waypoint reached");
+    assert_eq!(r.value.seq, 0);
+    timeout(STEP, async {
+        while ready.recv().await.expect("ready").value.ready {}
+    })
+    .await
+    .expect("still ready while flying");
+    f.stop().await;
 }

@@ -21,7 +21,7 @@ use tokio::time::{timeout, Instant};
 use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
 
 mod common;
-use common::{close, kill, sibling_bins, sim_reached, spawn};
+use common::{close, kill, sibling_bins, sim_reached, spawn, start_when_ready};
 
 /// Bound on each single wait.
 const STEP: Duration = Duration::from_secs(20);
@@ -137,8 +137,11 @@ async fn a_killed_fpma_resumes_its_plan_where_it_was() {
     .await
     .expect("the VAS never reached PARKING");
 
-    // First run: the plan is loaded from the ground; the FPMa puts the VAS in
-    // WAYPOINT_NAVIGATION (its configuration says so).
+    // First run: the plan is loaded from the ground; the operator starts it when the FPMa
+    // says it is ready (the FPMa never changes the flight state).
+    let ready = gcs
+        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .unwrap();
     let first = fpma(&domain, &state_dir, &plans);
     assert!(load.wait_provider(STEP).await, "fpma not discovered");
     // A small round trip first, so the session is acknowledged before the plan is sent (as
@@ -152,6 +155,8 @@ async fn a_killed_fpma_resumes_its_plan_where_it_was() {
     let src = std::fs::read_to_string(&plan).unwrap();
     let loaded = load.call(&src, STEP).await.expect("load_plan");
     assert_eq!(loaded.name, "rover-demo");
+    let from = start_when_ready(&ready, &change_state, STEP).await;
+    assert_eq!(from, FlightState::Parking);
     // Kill it once a few waypoints were reached, mid-plan.
     for _ in 0..4 {
         reached.recv_timeout(STEP).await.expect("waypoint reached");

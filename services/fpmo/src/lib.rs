@@ -27,12 +27,17 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fpma::api::{CommandAck, PlanEvent, PlanGeometry, PlanRejected, PlanState, Progress};
+use fpma::api::{
+    CommandAck, PlanEvent, PlanGeometry, PlanRejected, PlanState, Progress, Readiness,
+};
 use fpma::vehicle::VehicleParams;
 use marea::Service;
 use station_web::{call_error, CommandStatus, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
-use usal_types::Position;
+use usal_types::{
+    AllowedChanges, CommandReply, FlightState, Position, StateChangeReply, StateChangeRequest,
+    VehicleCommand,
+};
 
 use crate::background::{Background, BackgroundSource};
 use crate::plan::CheckedPlan;
@@ -128,15 +133,112 @@ impl Shared {
         args: A,
         then: impl FnOnce(&mut State, &R) -> String + Send + 'static,
     ) -> u64 {
+        let full = format!("{}/{name}", fpma_prefix(label));
+        self.call_as_command(label, full, what, args, then)
+    }
+
+    /// Asks `label`'s VAS for flight state `to` (its `change_state`), as a command of the
+    /// log; refused here unless the VAS offers it from the state it is in.
+    ///
+    /// # Errors
+    /// `to` is not among the changes offered (the reason names what is).
+    pub fn change_state(self: &Arc<Self>, label: &str, to: FlightState) -> Result<u64, String> {
+        let what = {
+            let st = self.state();
+            let v = st
+                .vehicles
+                .get(label)
+                .ok_or_else(|| format!("unknown vehicle `{label}`"))?;
+            let offers = v.offers();
+            let Some(o) = offers.iter().find(|o| o.to == to) else {
+                let from = v
+                    .flight_state
+                    .as_ref()
+                    .map_or_else(|| "an unknown state".to_owned(), |s| s.value.to_string());
+                let names: Vec<&str> = offers.iter().map(|o| o.to.name()).collect();
+                return Err(format!(
+                    "{to} is not offered from {from} (offered: {})",
+                    if names.is_empty() {
+                        "none yet".to_owned()
+                    } else {
+                        names.join(", ")
+                    }
+                ));
+            };
+            if o.label == "Start" {
+                format!("Start (change_state {to})")
+            } else {
+                format!("change_state {to}")
+            }
+        };
+        let full = format!("{}/change_state", vas_prefix(label));
+        Ok(self.call_as_command(
+            label,
+            full,
+            what,
+            StateChangeRequest { to },
+            |_, r: &StateChangeReply| format!("{} -> {}", r.from, r.to),
+        ))
+    }
+
+    /// Sends `label`'s VAS the command `name` (`ARM`, `DISARM`) as a command of the log;
+    /// refused here unless the VAS offers it from the state it is in.
+    ///
+    /// # Errors
+    /// Not offered (the reason names what is).
+    pub fn vehicle_command(self: &Arc<Self>, label: &str, name: &str) -> Result<u64, String> {
+        let cmd = match name {
+            "ARM" => VehicleCommand::Arm,
+            "DISARM" => VehicleCommand::Disarm,
+            other => return Err(format!("unknown vehicle command `{other}` (ARM, DISARM)")),
+        };
+        {
+            let st = self.state();
+            let v = st
+                .vehicles
+                .get(label)
+                .ok_or_else(|| format!("unknown vehicle `{label}`"))?;
+            let offered = v.command_offers();
+            if !offered.iter().any(|c| c == name) {
+                let from = v
+                    .flight_state
+                    .as_ref()
+                    .map_or_else(|| "an unknown state".to_owned(), |s| s.value.to_string());
+                return Err(format!(
+                    "{name} is not offered in {from} (offered: {})",
+                    if offered.is_empty() {
+                        "none".to_owned()
+                    } else {
+                        offered.join(", ")
+                    }
+                ));
+            }
+        }
+        let full = format!("{}/command", vas_prefix(label));
+        Ok(
+            self.call_as_command(label, full, name.to_owned(), cmd, |_, r: &CommandReply| {
+                format!("{} in {}", r.command, r.state)
+            }),
+        )
+    }
+
+    /// Calls the function `full` in the background as command `what` of `label`.
+    fn call_as_command<A: marea::Payload, R: marea::Payload>(
+        self: &Arc<Self>,
+        label: &str,
+        full: String,
+        what: String,
+        args: A,
+        then: impl FnOnce(&mut State, &R) -> String + Send + 'static,
+    ) -> u64 {
         let id = self.state().start(label, what, None);
         self.live.changed.notify_waiters();
         let me = self.clone();
-        let full = format!("{}/{name}", fpma_prefix(label));
         self.live.tasks.spawn(async move {
             let outcome = async {
                 let f = me.svc.function::<A, R>(&full).map_err(|e| e.to_string())?;
                 if !f.has_provider() && !f.wait_provider(me.call_timeout).await {
-                    return Err(format!("no FPMa provides {full}"));
+                    return Err(format!("no service provides {full}"));
                 }
                 tokio::select! {
                     r = f.call(&args, me.call_timeout) => r.map_err(call_error),
@@ -321,6 +423,31 @@ fn spawn_sub<T: marea::Payload>(
     });
 }
 
+/// The `vas` prefix of a vehicle label (`rover1` → `rover1/vas`, `` → `vas`).
+pub fn vas_prefix(label: &str) -> String {
+    if label.is_empty() {
+        "vas".into()
+    } else {
+        format!("{label}/vas")
+    }
+}
+
+/// Follows one of the VAS's state items; every change is shown at once (unlike positions).
+fn spawn_vas_state_sub<T: marea::Payload>(
+    shared: &Arc<Shared>,
+    sub: marea::Subscription<T>,
+    apply: fn(&mut crate::state::Vehicle, T),
+) {
+    let me = shared.clone();
+    shared.live.follow(sub, "vas", move |s| {
+        let Some(label) = label_of(&s.name, "vas") else {
+            return;
+        };
+        apply(me.state().vehicle(&label), s.value);
+        me.live.changed.notify_waiters();
+    });
+}
+
 /// Asks an FPMa for its plan when the drawing lags its progress (see [`GEOMETRY_LAG`]).
 async fn geometry_loop(me: Arc<Shared>) {
     let mut tick = tokio::time::interval(GEOMETRY_CHECK);
@@ -418,6 +545,22 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         svc.subscribe_variable::<Position>(&format!("{ns}/vas/position"))?,
         "vas",
         State::position,
+    );
+    spawn_vas_state_sub(
+        &shared,
+        svc.subscribe_variable::<FlightState>(&format!("{ns}/vas/flight_state"))?,
+        |v, s| v.flight_state = Some(Stamped::now(s)),
+    );
+    spawn_vas_state_sub(
+        &shared,
+        svc.subscribe_variable::<AllowedChanges>(&format!("{ns}/vas/allowed_changes"))?,
+        |v, a| v.allowed = Some(Stamped::now(a)),
+    );
+    spawn_sub(
+        &shared,
+        svc.subscribe_variable::<Readiness>(&format!("{ns}/fpma/ready"))?,
+        "fpma",
+        |st, l, r| st.vehicle(l).readiness = Some(Stamped::now(r)),
     );
     shared.live.tasks.spawn(geometry_loop(shared.clone()));
     tracing::info!("fpmo up on http://{addr}/, following {ns}");

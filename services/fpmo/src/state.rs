@@ -8,11 +8,12 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use fpma::api::{
-    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, PlanState, Progress, VarValue,
+    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, PlanState, Progress,
+    Readiness, VarValue,
 };
 use marea::Function;
 use station_web::{ms, CommandLog};
-use usal_types::Position;
+use usal_types::{AllowedChanges, FlightState, Position};
 
 use crate::plan::{distance_m, CheckedPlan, PlanView};
 
@@ -62,6 +63,68 @@ pub(crate) struct Vehicle {
     events: VecDeque<(Instant, String)>,
     /// A function of its FPMa, whose provider's presence says whether the FPMa is reachable.
     pub(crate) probe: Option<Arc<Function<(), CommandAck>>>,
+    /// The VAS's flight state (`flight_state`).
+    pub(crate) flight_state: Option<Stamped<FlightState>>,
+    /// What the VAS accepts from its state (`allowed_changes`, its own transition table).
+    pub(crate) allowed: Option<Stamped<AllowedChanges>>,
+    /// Whether the FPMa's plan waits for the operator's start (`ready`).
+    pub(crate) readiness: Option<Stamped<Readiness>>,
+}
+
+/// A state change the page offers as a button.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Offer {
+    /// The state asked for.
+    pub to: FlightState,
+    /// The button's text: the state's name, or `Start` for WAYPOINT_NAVIGATION when the
+    /// FPMa's plan is ready.
+    pub label: String,
+}
+
+impl Vehicle {
+    /// Exactly the state changes the VAS says it accepts from the state it is in (none while
+    /// its `allowed_changes` describes another state than its `flight_state`: one of the two
+    /// is still on its way), WAYPOINT_NAVIGATION labelled `Start` when a plan is ready.
+    pub(crate) fn offers(&self) -> Vec<Offer> {
+        let (Some(state), Some(allowed)) = (&self.flight_state, &self.allowed) else {
+            return Vec::new();
+        };
+        if allowed.value.from != Some(state.value) {
+            return Vec::new();
+        }
+        let ready = self.readiness.as_ref().is_some_and(|r| r.value.ready);
+        allowed
+            .value
+            .states
+            .iter()
+            .map(|&to| Offer {
+                to,
+                label: if to == FlightState::WaypointNavigation && ready {
+                    "Start".into()
+                } else {
+                    to.name().into()
+                },
+            })
+            .collect()
+    }
+
+    /// The commands (ARM, DISARM) the VAS accepts from the state it is in; DIRECTED, which
+    /// needs a bearing, altitude and speed, is the FMo's.
+    pub(crate) fn command_offers(&self) -> Vec<String> {
+        let (Some(state), Some(allowed)) = (&self.flight_state, &self.allowed) else {
+            return Vec::new();
+        };
+        if allowed.value.from != Some(state.value) {
+            return Vec::new();
+        }
+        allowed
+            .value
+            .commands
+            .iter()
+            .filter(|c| matches!(c.as_str(), "ARM" | "DISARM"))
+            .cloned()
+            .collect()
+    }
 }
 
 /// The station's state.
@@ -255,6 +318,18 @@ impl State {
                         serde_json::json!({"name": name, "value": value})
                     }).collect::<Vec<_>>()).unwrap_or_default(),
                     "loops": v.plan_state.as_ref().map(|s| s.value.loops.clone()).unwrap_or_default(),
+                    "flight_state": v.flight_state.as_ref().map(|f| serde_json::json!({
+                        "value": f.value,
+                        "age_ms": ms(now.saturating_duration_since(f.at)),
+                    })),
+                    "armed": v.allowed.as_ref().map(|a| a.value.armed),
+                    "offers": v.offers(),
+                    "command_offers": v.command_offers(),
+                    "ready": v.readiness.as_ref().map(|r| serde_json::json!({
+                        "ready": r.value.ready,
+                        "text": r.value.text,
+                        "stale": !fpma_ok,
+                    })),
                     "plan_rev": v.plan_rev,
                     "plan_name": v.geometry.as_ref().filter(|g| g.version > 0).map(|g| g.name.clone()),
                     "plan_version": v.geometry.as_ref().map(|g| g.version),
@@ -284,6 +359,37 @@ impl State {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_offers_are_the_vas_answer_for_the_state_it_is_in_with_start_for_a_ready_plan() {
+        use FlightState::*;
+        let mut v = Vehicle::default();
+        assert!(v.offers().is_empty());
+        v.flight_state = Some(Stamped::now(Parking));
+        v.allowed = Some(Stamped::now(AllowedChanges {
+            from: Some(Parking),
+            states: vec![Directed, WaypointNavigation, ReturnToLaunch],
+            ..AllowedChanges::default()
+        }));
+        let names =
+            |v: &Vehicle| -> Vec<String> { v.offers().into_iter().map(|o| o.label).collect() };
+        assert_eq!(
+            names(&v),
+            ["DIRECTED", "WAYPOINT_NAVIGATION", "RETURN_TO_LAUNCH"]
+        );
+        v.readiness = Some(Stamped::now(Readiness {
+            ready: true,
+            ..Readiness::default()
+        }));
+        assert_eq!(names(&v), ["DIRECTED", "Start", "RETURN_TO_LAUNCH"]);
+        assert_eq!(v.offers()[1].to, WaypointNavigation);
+        v.allowed.as_mut().unwrap().value.commands = vec!["ARM".into(), "DIRECTED".into()];
+        assert_eq!(v.command_offers(), ["ARM"]);
+        // The state moved on and the VAS's answer for it is still on its way: offer nothing.
+        v.flight_state = Some(Stamped::now(WaypointNavigation));
+        assert!(v.offers().is_empty());
+        assert!(v.command_offers().is_empty());
+    }
 
     #[test]
     fn labels_of_item_names() {

@@ -15,6 +15,8 @@
 //! | POST | `/api/command` | `{"cmd", ..., "vehicle"?}`: `skip_leg`, `pause`, `resume`, `goto_leg {leg}`, `goto_stage {stage}`, `set_var {name, value}`, `hold_here {length?, width?, turn?}`, `exit_hold {now}`, `emergency {rule?}` | 202 `{id}` / 400 `{error}` |
 //! | POST | `/api/modify_leg` | `{"leg", "changes": [["spacing", "10"]], "vehicle"?}` | 202 `{id}` |
 //! | POST | `/api/retask` | `{"points": [[lat, lon]], "when": "now"\|"after", "alt"?, "vehicle"?}` | 202 `{id}` |
+//! | POST | `/api/vehicle_command` | `{"command": "ARM"\|"DISARM", "vehicle"?}`: one of the vehicle's `command_offers` | 202 `{id}` / 409 `{error}` |
+//! | POST | `/api/change_state` | `{"to": "WAYPOINT_NAVIGATION", "vehicle"?}`: one of the vehicle's `offers` | 202 `{id}` / 409 `{error}` (not offered from its state) |
 
 use std::sync::Arc;
 
@@ -53,6 +55,8 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/command", post(command))
         .route("/api/modify_leg", post(modify))
         .route("/api/retask", post(retask))
+        .route("/api/change_state", post(change_state))
+        .route("/api/vehicle_command", post(vehicle_command))
         .with_state(shared)
 }
 
@@ -356,4 +360,50 @@ async fn retask(State(shared): State<Arc<Shared>>, Json(r): Json<RetaskReq>) -> 
         when,
     };
     accepted(shared.command(&label, "retask", what, args, ack_text))
+}
+
+#[derive(Deserialize)]
+struct ChangeState {
+    to: String,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+/// `POST /api/change_state`: a flight-state change the VAS offers (the `Start` button is
+/// WAYPOINT_NAVIGATION with a plan ready).
+async fn change_state(State(shared): State<Arc<Shared>>, Json(c): Json<ChangeState>) -> Response {
+    let label = match shared.target(c.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    let to: usal_types::FlightState = match c.to.parse() {
+        Ok(s) => s,
+        Err(e) => return bad(StatusCode::BAD_REQUEST, e.to_string()),
+    };
+    match shared.change_state(&label, to) {
+        Ok(id) => accepted(id),
+        Err(e) => bad(StatusCode::CONFLICT, e),
+    }
+}
+
+#[derive(Deserialize)]
+struct VehicleCommandReq {
+    command: String,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+/// `POST /api/vehicle_command`: ARM or DISARM, when the VAS offers it.
+async fn vehicle_command(
+    State(shared): State<Arc<Shared>>,
+    Json(c): Json<VehicleCommandReq>,
+) -> Response {
+    let label = match shared.target(c.vehicle) {
+        Ok(l) => l,
+        Err(e) => return bad(StatusCode::CONFLICT, e),
+    };
+    match shared.vehicle_command(&label, &c.command) {
+        Ok(id) => accepted(id),
+        Err(e) => bad(StatusCode::CONFLICT, e),
+    }
 }

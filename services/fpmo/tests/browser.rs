@@ -1,6 +1,7 @@
 //! The FPMo page in headless Chromium against `mavsim`, `vas` and `fpma run`: the car-park plan
 //! chosen in the page's file input is uploaded and loaded, its legs listed with the current one
-//! highlighted, the progress advances, "skip leg" changes the current leg, "hold here" and
+//! highlighted, the vehicle waits in PARKING with "press Start" until its Start button is
+//! clicked, the progress advances, "skip leg" changes the current leg, "hold here" and
 //! "exit hold now" interrupt and resume the plan, a plan variable is set from its row, and the
 //! units change what the page shows; a screenshot is saved to `<target>/tmp/fpmo-page.png`. Skips (passing)
 //! without chromium and chromedriver (`.ci/install-chromium`).
@@ -65,6 +66,27 @@ async fn scenario() {
             "the legs, the current one highlighted",
             "return !!document.querySelector('#legs tr[data-leg=area]') && \
              !!document.querySelector('#legs tr.current');",
+        )
+        .await;
+    // The plan waits for the operator: the vehicle panel shows PARKING, "press Start", and
+    // the VAS's allowed changes as buttons, WAYPOINT_NAVIGATION reading Start; click it.
+    browser
+        .wait_for(
+            "PARKING, plan ready, a Start button",
+            "const b = document.querySelector('#offers button.offer[data-to=WAYPOINT_NAVIGATION]'); \
+             const r = document.getElementById('readytext'); \
+             return document.getElementById('flightstate').textContent === 'PARKING' && \
+               !!b && b.textContent === 'Start' && !!r && r.textContent.includes('press Start') && \
+               !document.querySelector('#offers button.offer[data-to=TAKE_OFF]');",
+        )
+        .await;
+    browser
+        .click("#offers button.offer[data-to=WAYPOINT_NAVIGATION]")
+        .await;
+    browser
+        .wait_for(
+            "WAYPOINT_NAVIGATION shown",
+            "return document.getElementById('flightstate').textContent === 'WAYPOINT_NAVIGATION';",
         )
         .await;
     browser

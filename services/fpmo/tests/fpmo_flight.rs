@@ -156,6 +156,92 @@ async fn scenario() {
     drop((f, svc));
     probe.shutdown().await;
 
+    // The plan waits for the operator: the station shows the flight state, "plan ready,
+    // press Start", and offers exactly what the VAS allows from PARKING, WAYPOINT_NAVIGATION
+    // as Start (issue 15 items 4 and 7).
+    let s = st
+        .wait_state("plan ready, press Start", |s| {
+            let v = vehicle(s, "rover1").unwrap();
+            v["ready"]["ready"] == true
+                && v["offers"]
+                    .as_array()
+                    .is_some_and(|o| o.iter().any(|o| o["label"] == "Start"))
+        })
+        .await;
+    let v = vehicle(&s, "rover1").unwrap();
+    assert_eq!(
+        v["flight_state"]["value"], "PARKING",
+        "the FPMa moved the vehicle by itself"
+    );
+    assert!(
+        v["ready"]["text"].as_str().unwrap().contains("press Start"),
+        "{v:#}"
+    );
+    let offered: Vec<&str> = v["offers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o["to"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        offered,
+        [
+            "DIRECTED",
+            "MANUAL_NAVIGATION",
+            "WAYPOINT_NAVIGATION",
+            "RETURN_TO_LAUNCH",
+            "MANUAL"
+        ]
+    );
+    // Parked and disarmed: ARM is offered, DISARM is not.
+    assert_eq!(v["command_offers"], serde_json::json!(["ARM"]), "{v:#}");
+    let (status, body) = st
+        .post(
+            "/api/vehicle_command",
+            serde_json::json!({"command": "DISARM"}),
+        )
+        .await;
+    assert_eq!(status, 409, "{body}");
+    let (status, body) = st
+        .post(
+            "/api/vehicle_command",
+            serde_json::json!({"command": "ARM"}),
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    st.wait_state("armed, DISARM offered", |s| {
+        let v = vehicle(s, "rover1").unwrap();
+        v["armed"] == true && v["command_offers"] == serde_json::json!(["DISARM"])
+    })
+    .await;
+    // What is not offered is refused by the station itself, naming what is.
+    let (status, body) = st
+        .post("/api/change_state", serde_json::json!({"to": "LANDING"}))
+        .await;
+    assert_eq!(status, 409, "{body}");
+    assert!(
+        body["error"]
+            .as_str()
+            .unwrap()
+            .contains("not offered from PARKING"),
+        "{body}"
+    );
+    let (status, body) = st
+        .post(
+            "/api/change_state",
+            serde_json::json!({"to": "WAYPOINT_NAVIGATION"}),
+        )
+        .await;
+    assert_eq!(status, 202, "{body}");
+    let c = wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
+    assert!(c["what"].as_str().unwrap().starts_with("Start"), "{c:#}");
+    st.wait_state("WAYPOINT_NAVIGATION shown, no longer ready", |s| {
+        let v = vehicle(s, "rover1").unwrap();
+        v["flight_state"]["value"] == "WAYPOINT_NAVIGATION" && v["ready"]["ready"] == false
+    })
+    .await;
+
     // The progress advances as mavsim drives.
     let s = st
         .wait_state("progress", |s| {

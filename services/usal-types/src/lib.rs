@@ -175,8 +175,9 @@ impl fmt::Display for UnknownName {
 
 impl std::error::Error for UnknownName {}
 
-/// The VAS flight states (003 §3.1, §3.3.1). The rover uses the first six; aircraft add
-/// take-off, landing and return-to-launch. Serialised as the seed's upper-case names.
+/// The VAS flight states (003 §3.1, §3.3.1). The rover uses the first six and
+/// return-to-launch; aircraft add take-off and landing. Serialised as the seed's upper-case
+/// names.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "SCREAMING_SNAKE_CASE")]
 pub enum FlightState {
@@ -196,7 +197,7 @@ pub enum FlightState {
     TakeOff,
     /// Aircraft: landing.
     Landing,
-    /// Aircraft: returning to the launch point.
+    /// Returning to the launch point (every vehicle kind; a rover then holds there).
     ReturnToLaunch,
 }
 
@@ -232,7 +233,7 @@ impl FlightState {
     /// Whether a vehicle of `kind` has this state at all.
     pub fn applies_to(self, kind: VehicleKind) -> bool {
         match self {
-            Self::TakeOff | Self::Landing | Self::ReturnToLaunch => kind != VehicleKind::Rover,
+            Self::TakeOff | Self::Landing => kind != VehicleKind::Rover,
             _ => true,
         }
     }
@@ -452,6 +453,75 @@ pub struct StateChangeReply {
     pub to: FlightState,
 }
 
+/// A command that is not a flight-state change (argument of the VAS function `command`),
+/// checked like one by the VAL's command checker (seed 000: Arm, Disarm, ...).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum VehicleCommand {
+    /// Arm the motors (on the ground, parked).
+    Arm,
+    /// Disarm the motors (on the ground, parked).
+    Disarm,
+    /// Aircraft: fly on a bearing at an altitude and speed (DIRECTED, 003 §3.3.1), entering
+    /// DIRECTED first when the vehicle is elsewhere.
+    Directed(DirectedTarget),
+}
+
+impl VehicleCommand {
+    /// The command's name, e.g. `ARM`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Arm => "ARM",
+            Self::Disarm => "DISARM",
+            Self::Directed(_) => "DIRECTED",
+        }
+    }
+}
+
+impl fmt::Display for VehicleCommand {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// What a DIRECTED aircraft flies (003 §3.3.1: "desired altitude, speed and bearing").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DirectedTarget {
+    /// Altitude above the home point, metres.
+    pub alt: f64,
+    /// Speed, m/s (ground speed for a copter, airspeed for a plane).
+    pub speed: f32,
+    /// Bearing, degrees from north, 0..360.
+    pub bearing: f32,
+}
+
+/// Answer of the VAS function `command`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CommandReply {
+    /// The command done.
+    pub command: String,
+    /// The flight state after it.
+    pub state: FlightState,
+}
+
+/// What the vehicle may be asked now (VAS variable `allowed_changes`, published with every
+/// state change and arming change): the VAL's transition table and command checker answered
+/// for the present state, so stations offer exactly these and copy no table.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct AllowedChanges {
+    /// The present state (`None` before the VAS knows it).
+    pub from: Option<FlightState>,
+    /// The vehicle kind.
+    pub kind: VehicleKind,
+    /// The states `change_state` accepts from here (subject to run-time conditions such as
+    /// queued waypoints for WAYPOINT_NAVIGATION).
+    pub states: Vec<FlightState>,
+    /// The commands `command` accepts from here, by name (`ARM`, `DISARM`, `DIRECTED`).
+    pub commands: Vec<String>,
+    /// The motors are armed.
+    pub armed: bool,
+}
+
 /// A flight-state change (event `state_changed`).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct StateChanged {
@@ -497,7 +567,8 @@ mod tests {
             .into_iter()
             .filter(|s| s.applies_to(VehicleKind::Rover))
             .collect();
-        assert_eq!(rover.len(), 6);
+        assert_eq!(rover.len(), 7);
+        assert!(rover.contains(&FlightState::ReturnToLaunch));
         assert!(FlightState::Landing.applies_to(VehicleKind::Copter));
     }
 

@@ -160,6 +160,12 @@ pub struct VasConfig {
     /// `<namespace>/link/<radioLink>/stats`.
     #[serde(rename = "@radioLink")]
     pub radio_link: String,
+    /// After an autopilot reboot (it comes back in another mode than commanded), put it
+    /// back in the commanded state, re-arming it, and raise an alarm saying so
+    /// (`resumeAfterReboot`, default false: the VAS follows the state the autopilot reports
+    /// and an alarm asks the operator to restart).
+    #[serde(rename = "@resumeAfterReboot")]
+    pub resume_after_reboot: bool,
 }
 
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
@@ -218,6 +224,7 @@ impl Default for VasConfig {
             link_recovery: val.link_loss.recovery.name().into(),
             station_heartbeat: val.link_loss.heartbeat.clone(),
             radio_link: val.link_loss.radio_link.clone().unwrap_or_default(),
+            resume_after_reboot: false,
         }
     }
 }
@@ -377,6 +384,7 @@ impl VasConfig {
                 target_system: self.target_system,
                 ..ManagerConfig::default()
             },
+            resume_after_reboot: self.resume_after_reboot,
         }
     }
 

@@ -59,6 +59,10 @@ struct Args {
     /// The autopilot's MAVLink system id, where several vehicles share one link.
     #[arg(long)]
     target_system: Option<u8>,
+    /// After an autopilot reboot, put it back in the commanded state (re-arming it) and
+    /// raise an alarm saying so; default: follow the autopilot and ask the operator.
+    #[arg(long)]
+    resume_after_reboot: bool,
 }
 
 #[tokio::main]
@@ -77,6 +81,9 @@ async fn main() -> anyhow::Result<()> {
     };
     if let Some(v) = args.endpoint {
         cfg.endpoint = v;
+    }
+    if args.resume_after_reboot {
+        cfg.resume_after_reboot = true;
     }
     if let Some(v) = args.vehicle {
         cfg.vehicle = v;

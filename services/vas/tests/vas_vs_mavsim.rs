@@ -120,7 +120,8 @@ async fn transitions_checked_and_applied() {
 }
 
 /// mavsim dies mid-flight and comes back at the same address: the VAS raises an alarm,
-/// reconnects, re-uploads its window and finishes the plan.
+/// reconnects and, as configured (`--resume-after-reboot`), re-uploads its window, resumes
+/// with an alarm saying so and finishes the plan.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn autopilot_restart_mid_flight() {
     let dir = tempfile::tempdir().unwrap();
@@ -130,7 +131,7 @@ async fn autopilot_restart_mid_flight() {
     let vas = VasProc::start(
         &format!("udpout:{addr}"),
         &domain,
-        &["--heartbeat-timeout-ms", "1000"],
+        &["--heartbeat-timeout-ms", "1000", "--resume-after-reboot"],
     );
     let g = Ground::open(&domain).await;
     g.wait_state(FlightState::Parking, STEP).await;
@@ -151,7 +152,8 @@ async fn autopilot_restart_mid_flight() {
     sim.kill().await;
     g.wait_alarm("heartbeat lost", STEP).await;
     let sim2 = Sim::start(&addr, 20.0, &dir.path().join("sim2.jsonl")).await;
-    g.wait_alarm("resumed WAYPOINT_NAVIGATION", STEP).await;
+    let a = g.wait_alarm("resumed WAYPOINT_NAVIGATION", STEP).await;
+    assert!(a.text.contains("resumeAfterReboot"), "{a:?}");
 
     while seen.last() != Some(&29) {
         let r = tokio::time::timeout(STEP, g.reached.recv())

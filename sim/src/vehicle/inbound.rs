@@ -209,6 +209,45 @@ impl Vehicle {
         MavResult::MAV_RESULT_ACCEPTED
     }
 
+    /// MAV_CMD_DO_REPOSITION as a COMMAND_LONG (no frame: the altitude is MSL): in GUIDED,
+    /// fly to the point (at param1 m/s when positive), then hold there.
+    fn reposition(&mut self, c: &COMMAND_LONG_DATA) -> MavResult {
+        let (lat, lon, alt) = (
+            f64::from(c.param5),
+            f64::from(c.param6),
+            f64::from(c.param7),
+        );
+        if !(lat.is_finite() && lon.is_finite() && alt.is_finite())
+            || lat.abs() > 90.0
+            || lon.abs() > 180.0
+        {
+            return MavResult::MAV_RESULT_DENIED;
+        }
+        if self.behaviour() != Behaviour::Guided || !self.armed {
+            return MavResult::MAV_RESULT_FAILED;
+        }
+        let mut to = self.frame.to_local(GeoPoint {
+            lat_deg: lat,
+            lon_deg: lon,
+            alt_m: 0.0,
+        });
+        to.up = if self.cfg.kind == VehicleKind::Rover {
+            0.0
+        } else {
+            alt - self.cfg.home.alt_m
+        };
+        if c.param1.is_finite() && c.param1 > 0.0 {
+            self.change_speed(c.param1);
+        }
+        self.guided_to = Some(to);
+        self.record(LogEvent::Repositioned {
+            lat,
+            lon,
+            alt: to.up,
+        });
+        MavResult::MAV_RESULT_ACCEPTED
+    }
+
     fn mission_item(
         &mut self,
         from: (u8, u8),
@@ -257,6 +296,14 @@ impl Vehicle {
     ) -> MavResult {
         match c.command {
             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
+                if c.param1 == 1.0 && self.behaviour() == Behaviour::Land {
+                    // As ArduCopter: LAND is not a mode to arm in.
+                    out.push(statustext(
+                        MavSeverity::MAV_SEVERITY_CRITICAL,
+                        "Arm: Mode not armable",
+                    ));
+                    return MavResult::MAV_RESULT_FAILED;
+                }
                 if c.param1 == 1.0 {
                     self.set_armed(true, out);
                 } else if c.param1 == 0.0 {
@@ -314,6 +361,7 @@ impl Vehicle {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
+            MavCmd::MAV_CMD_DO_REPOSITION => self.reposition(c),
             // PX4: into the mission (AUTO.MISSION), from item param1 when given.
             MavCmd::MAV_CMD_MISSION_START if self.profile == Profile::Px4 => {
                 let Some(auto) = modes::table(self.cfg.kind)

@@ -53,7 +53,11 @@ impl Vehicle {
         match self.behaviour() {
             Behaviour::Manual => base |= MavModeFlag::MAV_MODE_FLAG_MANUAL_INPUT_ENABLED,
             Behaviour::Hold => base |= MavModeFlag::MAV_MODE_FLAG_STABILIZE_ENABLED,
-            Behaviour::Auto | Behaviour::Rtl | Behaviour::Guided => {
+            Behaviour::Auto
+            | Behaviour::Rtl
+            | Behaviour::Guided
+            | Behaviour::Land
+            | Behaviour::Takeoff => {
                 base |= MavModeFlag::MAV_MODE_FLAG_STABILIZE_ENABLED
                     | MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED
                     | MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED

@@ -11,6 +11,11 @@
 //! unless that target is still the executive's next waypoint, the new waypoints are numbered
 //! past everything handed out before, and the report of the abandoned target is ignored.
 //!
+//! The flight state is the operator's (issue 15, pilot in command): the core never asks the
+//! VAS for one. A loaded plan fills the queue and waits; [`Readiness`] (variable `ready`)
+//! tells stations "plan ready, press Start" until the operator puts the vehicle in
+//! WAYPOINT_NAVIGATION.
+//!
 //! One file of ~1,000 lines on purpose: about 530 are the core, one state machine whose feeding
 //! rule above is read as a whole; the rest are its tests and their VAS double, at the bottom of
 //! the file they test.
@@ -20,12 +25,10 @@ use std::time::Instant;
 
 use crate::eta::EtaEstimator;
 use async_trait::async_trait;
-use usal_types::{
-    AltRef, Battery, FlightState, Position, QueueStatus, StateChangeReply, WaypointKind,
-};
+use usal_types::{AltRef, Battery, FlightState, Position, QueueStatus, WaypointKind};
 
 use crate::api::{
-    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanLoaded, PlanState, Progress,
+    CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanLoaded, PlanState, Progress, Readiness,
 };
 use crate::exec::{Executive, HoldHere, RetaskMode, Telemetry};
 use crate::expand::{Waypoint, WaypointTag};
@@ -34,16 +37,15 @@ use crate::geo::GeoPoint;
 use crate::model::{FlightPlan, Stage};
 use crate::vehicle::VehicleParams;
 
-/// What the core needs of the VAS (`<vas>/push_waypoints`, `clear_waypoints`, `change_state`).
-/// Errors are the reason as text, as the middleware's functions give it.
+/// What the core needs of the VAS (`<vas>/push_waypoints`, `clear_waypoints`): no state
+/// change, which is the operator's. Errors are the reason as text, as the middleware's
+/// functions give it.
 #[async_trait]
 pub trait VasPort: Send + Sync {
     /// Appends waypoints (after a clear: replaces what follows the target).
     async fn push(&self, wps: Vec<usal_types::Waypoint>) -> Result<QueueStatus, String>;
     /// "A new queue follows".
     async fn clear(&self) -> Result<QueueStatus, String>;
-    /// Asks for a flight state.
-    async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String>;
     /// Hands the plan's fence to the VAS (`None`: the plan has none), issue 15. The default
     /// does nothing (a VAS that checks no fence).
     async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, String> {
@@ -59,8 +61,6 @@ pub struct CoreConfig {
     pub vehicle: VehicleParams,
     /// Waypoints the VAS should hold ahead of the vehicle.
     pub lookahead: usize,
-    /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts (or resumes).
-    pub start_navigation: bool,
 }
 
 /// An in-flight command (the service's functions, one variant each).
@@ -103,6 +103,8 @@ pub struct Outputs {
     pub state: Option<PlanState>,
     /// The plan's geometry, when the plan changed (a new version).
     pub geometry: Option<PlanGeometry>,
+    /// Whether the plan waits for the operator's start, when that changed.
+    pub readiness: Option<Readiness>,
 }
 
 /// The service's core. See the module docs.
@@ -119,11 +121,9 @@ pub struct Core<V> {
     must_flush: bool,
     /// A call to the VAS failed: [`Core::sync`] should be retried.
     dirty: bool,
-    /// Ask for WAYPOINT_NAVIGATION once waypoints are queued.
-    engage: bool,
-    /// The last refusal of WAYPOINT_NAVIGATION, for the caller that caused the request.
-    refused: Option<String>,
     vas_state: Option<FlightState>,
+    /// The readiness last handed out for publishing.
+    readiness: Option<Readiness>,
     last_reached: Option<u64>,
     started: Option<Instant>,
     /// The speed flown, for the ETAs in the progress.
@@ -183,9 +183,8 @@ impl<V: VasPort> Core<V> {
             max_pushed: None,
             must_flush: false,
             dirty: false,
-            engage: false,
-            refused: None,
             vas_state: None,
+            readiness: None,
             last_reached: None,
             started: None,
             eta: EtaEstimator::new(),
@@ -215,8 +214,8 @@ impl<V: VasPort> Core<V> {
     /// Goes on from a persisted state (after a restart): the plan and its position are taken
     /// as they were; the VAS queue, which may have moved on meanwhile, is cleared and refilled
     /// ("a new queue follows"), first accounting for a waypoint it reports reached. The
-    /// vehicle's flight state is left as it is: resuming never asks for WAYPOINT_NAVIGATION
-    /// by itself (the pilot in command decides), whatever `start_navigation` says.
+    /// vehicle's flight state is left as it is: the FPMa never asks for one (the pilot in
+    /// command decides).
     pub async fn resume(&mut self, p: Persisted) {
         let st = p.exec.state();
         tracing::info!(
@@ -242,8 +241,6 @@ impl<V: VasPort> Core<V> {
         self.max_pushed = p.max_pushed;
         self.last_reached = p.last_reached;
         self.started = Some(Instant::now());
-        self.engage = false;
-        self.refused = None;
         self.must_flush = true;
         self.after_change().await;
     }
@@ -344,8 +341,6 @@ impl<V: VasPort> Core<V> {
             kind: PlanEventKind::PlanLoaded { name: name.clone() },
         });
         tracing::info!("plan `{name}` loaded as version {version}");
-        self.engage = self.cfg.start_navigation;
-        self.refused = None;
         // A new version: nothing handed out before belongs to it.
         self.must_flush = true;
         self.after_change().await;
@@ -353,7 +348,7 @@ impl<V: VasPort> Core<V> {
             version,
             name,
             queued: self.pending.len() as u64,
-            navigation_refused: self.refused.take(),
+            navigation_refused: None,
         })
     }
 
@@ -366,7 +361,6 @@ impl<V: VasPort> Core<V> {
             .exec
             .as_mut()
             .ok_or("no plan is loaded (load_plan first)")?;
-        let was_done = ex.state().completed || ex.state().paused;
         let r = match cmd {
             Command::SkipLeg => ex.skip_leg(),
             Command::GotoLeg(id) => ex.goto_leg(&id),
@@ -382,12 +376,9 @@ impl<V: VasPort> Core<V> {
             Command::Emergency(rule) => ex.emergency(rule.as_deref()),
         };
         r.map_err(|e| e.to_string())?;
-        // The queue ran out (completed or paused) and now has waypoints again: drive on.
-        if was_done && self.cfg.start_navigation {
-            self.engage = true;
-        }
+        // A queue that ran out (completed or paused) and has waypoints again waits for the
+        // operator's WAYPOINT_NAVIGATION: `ready` says so.
         self.after_change().await;
-        self.refused = None;
         Ok(self.ack())
     }
 
@@ -475,11 +466,58 @@ impl<V: VasPort> Core<V> {
         }
     }
 
-    /// The VAS's flight state changed.
-    pub async fn on_flight_state(&mut self, s: FlightState) {
+    /// The VAS's flight state changed: only what stations are told changes (the plan waits
+    /// for, or no longer waits for, the operator's start).
+    pub fn on_flight_state(&mut self, s: FlightState) {
         self.vas_state = Some(s);
-        if self.engage {
-            self.sync().await;
+        self.update_readiness();
+    }
+
+    /// Whether the plan waits for the operator to start it, and what to tell them.
+    pub fn readiness(&self) -> Readiness {
+        let Some(ex) = &self.exec else {
+            return Readiness {
+                text: "no plan loaded".into(),
+                ..Readiness::default()
+            };
+        };
+        let st = ex.state();
+        let name = &st.plan;
+        let (ready, text) = if st.completed {
+            (false, format!("plan `{name}` completed"))
+        } else if self.vas_state == Some(FlightState::WaypointNavigation) {
+            (false, format!("flying plan `{name}`"))
+        } else if self.pending.is_empty() {
+            let why = if st.paused {
+                "paused"
+            } else {
+                "loaded, its waypoints not queued at the VAS yet"
+            };
+            (false, format!("plan `{name}` {why}"))
+        } else if matches!(self.vas_state, None | Some(FlightState::ConfigureCheck)) {
+            (
+                false,
+                format!("plan `{name}` loaded, waiting for the VAS to configure the autopilot"),
+            )
+        } else {
+            (
+                true,
+                format!("plan `{name}` ready, press Start (WAYPOINT_NAVIGATION)"),
+            )
+        };
+        Readiness {
+            version: st.version,
+            plan: st.plan.clone(),
+            ready,
+            text,
+        }
+    }
+
+    fn update_readiness(&mut self) {
+        let r = self.readiness();
+        if self.readiness.as_ref() != Some(&r) {
+            self.readiness = Some(r.clone());
+            self.out.readiness = Some(r);
         }
     }
 
@@ -507,6 +545,7 @@ impl<V: VasPort> Core<V> {
     }
 
     fn publish_state(&mut self) {
+        self.update_readiness();
         let Some(ex) = &self.exec else { return };
         // Geometry only when the plan itself changed: it is the largest value the FPMa
         // publishes, and a skip or a reached waypoint leaves it as it was.
@@ -563,8 +602,7 @@ impl<V: VasPort> Core<V> {
         }
     }
 
-    /// Brings the VAS queue in line with the executive's look-ahead, then asks for
-    /// WAYPOINT_NAVIGATION when a plan (re)started.
+    /// Brings the VAS queue in line with the executive's look-ahead.
     pub async fn sync(&mut self) {
         if self.exec.is_none() {
             return;
@@ -586,7 +624,6 @@ impl<V: VasPort> Core<V> {
         } else {
             self.flush().await;
         }
-        self.maybe_engage().await;
     }
 
     async fn push(&mut self, version: u64, wps: Vec<usal_types::Waypoint>) -> bool {
@@ -639,29 +676,6 @@ impl<V: VasPort> Core<V> {
             self.must_flush = true;
         }
     }
-
-    async fn maybe_engage(&mut self) {
-        if !self.engage || self.pending.is_empty() {
-            return;
-        }
-        match self.vas_state {
-            // Not configured yet: asked again when the state changes.
-            Some(FlightState::ConfigureCheck) => return,
-            Some(FlightState::WaypointNavigation) => {
-                self.engage = false;
-                return;
-            }
-            _ => {}
-        }
-        self.engage = false;
-        match self.vas.change_state(FlightState::WaypointNavigation).await {
-            Ok(_) => tracing::info!("VAS in WAYPOINT_NAVIGATION"),
-            Err(e) => {
-                tracing::warn!("WAYPOINT_NAVIGATION refused: {e}");
-                self.refused = Some(e);
-            }
-        }
-    }
 }
 
 #[cfg(test)]
@@ -685,7 +699,6 @@ mod tests {
         replacing: bool,
         last_reached: Option<u64>,
         calls: Vec<String>,
-        refuse: Option<String>,
     }
 
     impl FakeVas {
@@ -721,6 +734,12 @@ mod tests {
         fn calls(&self) -> Vec<String> {
             std::mem::take(&mut self.st().calls)
         }
+        /// The operator's WAYPOINT_NAVIGATION (not the core's: it has no such call).
+        fn start(&self) -> bool {
+            let mut s = self.st();
+            s.running = !s.queue.is_empty();
+            s.running
+        }
     }
 
     #[async_trait]
@@ -745,21 +764,6 @@ mod tests {
             s.calls.push("clear".into());
             s.replacing = true;
             Ok(Self::status(&s))
-        }
-        async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String> {
-            let mut s = self.st();
-            s.calls.push(format!("state {to}"));
-            if let Some(r) = &s.refuse {
-                return Err(r.clone());
-            }
-            if s.queue.is_empty() {
-                return Err("no waypoints queued".into());
-            }
-            s.running = true;
-            Ok(StateChangeReply {
-                from: FlightState::Parking,
-                to,
-            })
         }
     }
 
@@ -788,7 +792,6 @@ mod tests {
             CoreConfig {
                 vehicle: VehicleParams::rover(),
                 lookahead,
-                start_navigation: true,
             },
             FakeVas::default(),
         )
@@ -805,8 +808,12 @@ mod tests {
             .collect()
     }
 
-    /// Flies until the fake VAS runs out, reporting each reach; returns what was reached.
+    /// The operator starts the plan (when the vehicle is not navigating already), then it
+    /// flies until the fake VAS runs out, reporting each reach; returns what was reached.
     async fn fly(c: &mut Core<FakeVas>, at_most: usize) -> Vec<usal_types::Waypoint> {
+        if !c.vas().st().running {
+            c.vas().start();
+        }
         let mut flown = Vec::new();
         while flown.len() < at_most {
             let Some(w) = c.vas().reach() else { break };
@@ -830,7 +837,6 @@ mod tests {
             CoreConfig {
                 vehicle: VehicleParams::rover(),
                 lookahead: 4,
-                start_navigation: true,
             },
             vas,
         )
@@ -904,7 +910,7 @@ mod tests {
         vas.calls();
         let mut r = core_on(vas);
         r.resume(state).await;
-        r.on_flight_state(FlightState::Parking).await;
+        r.on_flight_state(FlightState::Parking);
         let calls = r.vas().calls();
         assert!(
             !calls.iter().any(|c| c.starts_with("state")),
@@ -915,19 +921,28 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn a_loaded_plan_fills_the_queue_starts_navigation_and_flies_to_the_end() {
+    async fn a_loaded_plan_fills_the_queue_waits_for_the_operator_and_flies_to_the_end() {
         let mut c = core(4);
+        c.on_flight_state(FlightState::Parking);
         let loaded = c.load(PLAN, "t.xml").await.unwrap();
         assert_eq!((loaded.version, loaded.queued), (1, 4));
         assert_eq!(loaded.navigation_refused, None);
-        assert_eq!(
-            c.vas().calls(),
-            ["clear", "push 4", "state WAYPOINT_NAVIGATION"]
+        // The queue is filled, and no flight state asked for: that is the operator's.
+        assert_eq!(c.vas().calls(), ["clear", "push 4"]);
+        assert!(
+            c.vas().reach().is_none(),
+            "the vehicle does not move by itself"
         );
         assert_eq!(c.vas().seqs(), [0, 1, 2, 3]);
         let out = c.take_outputs();
         assert!(matches!(&out.events[0].kind, K::PlanLoaded { name } if name == "t"));
         assert_eq!(out.progress.as_ref().map(|p| p.fraction), Some(0.0));
+        let r = out.readiness.expect("readiness published");
+        assert!(r.ready && r.text.contains("press Start"), "{r:?}");
+        // The operator starts it: no longer "ready".
+        c.on_flight_state(FlightState::WaypointNavigation);
+        let r = c.take_outputs().readiness.expect("readiness changed");
+        assert!(!r.ready && r.text.contains("flying"), "{r:?}");
 
         let flown = fly(&mut c, 1000).await;
         assert_eq!(flown, nominal(), "the nominal stream, in order, once");
@@ -1176,8 +1191,11 @@ mod tests {
         let w = c.vas().reach().unwrap();
         c.on_reached(w.seq).await;
         assert!(c.vas().reach().is_none(), "stopped");
+        c.on_flight_state(FlightState::Parking);
         c.command(Command::Resume).await.unwrap();
-        assert_eq!(c.vas().calls(), ["push 4", "state WAYPOINT_NAVIGATION"]);
+        // Refilled, and waiting for the operator to drive on.
+        assert_eq!(c.vas().calls(), ["push 4"]);
+        assert!(c.readiness().ready, "{:?}", c.readiness());
         let rest = fly(&mut c, 1000).await;
         assert_eq!(rest.last().unwrap().leg, "app");
     }
@@ -1186,6 +1204,7 @@ mod tests {
     async fn a_report_still_in_flight_at_a_clear_is_accounted_for() {
         let mut c = core(4);
         c.load(PLAN, "t.xml").await.unwrap();
+        assert!(c.vas().start());
         // The VAS reaches A and B but the reports are not delivered before the command.
         let a = c.vas().reach().unwrap();
         let b = c.vas().reach().unwrap();
@@ -1200,12 +1219,16 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn a_refused_navigation_is_reported_and_the_plan_stays_loaded() {
-        let mut c = core(4);
-        c.vas().st().refuse = Some("cannot go to WAYPOINT_NAVIGATION: MANUAL is a failsafe".into());
-        let loaded = c.load(PLAN, "t.xml").await.unwrap();
-        assert!(loaded.navigation_refused.unwrap().contains("failsafe"));
-        assert_eq!(c.vas().seqs().len(), 4);
+    async fn from_manual_navigation_or_directed_a_loaded_plan_only_waits() {
+        for state in [FlightState::ManualNavigation, FlightState::Directed] {
+            let mut c = core(4);
+            c.on_flight_state(state);
+            let loaded = c.load(PLAN, "t.xml").await.unwrap();
+            assert_eq!(loaded.navigation_refused, None);
+            assert_eq!(c.vas().calls(), ["clear", "push 4"], "{state}");
+            let r = c.readiness();
+            assert!(r.ready && r.plan == "t" && r.version == 1, "{r:?}");
+        }
     }
 
     #[tokio::test]
@@ -1222,12 +1245,19 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn navigation_waits_for_the_vas_to_be_configured() {
+    async fn readiness_waits_for_the_vas_to_be_configured() {
         let mut c = core(4);
-        c.on_flight_state(FlightState::ConfigureCheck).await;
+        assert_eq!(c.readiness().text, "no plan loaded");
+        c.on_flight_state(FlightState::ConfigureCheck);
         c.load(PLAN, "t.xml").await.unwrap();
         assert_eq!(c.vas().calls(), ["clear", "push 4"]);
-        c.on_flight_state(FlightState::Parking).await;
-        assert_eq!(c.vas().calls(), ["state WAYPOINT_NAVIGATION"]);
+        let r = c.readiness();
+        assert!(!r.ready && r.text.contains("configure"), "{r:?}");
+        c.on_flight_state(FlightState::Parking);
+        assert!(c.readiness().ready);
+        assert!(c.vas().calls().is_empty(), "no call to the VAS");
+        fly(&mut c, 1000).await;
+        let r = c.readiness();
+        assert!(!r.ready && r.text.contains("completed"), "{r:?}");
     }
 }

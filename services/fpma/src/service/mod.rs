@@ -18,15 +18,12 @@ use marea::{Event, Function, IService, Service, ServiceError, Variable};
 use serde::Deserialize;
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
-use usal_types::{
-    Battery, FlightState, Position, QueueStatus, StateChangeReply, StateChangeRequest, Waypoint,
-    WaypointReached,
-};
+use usal_types::{Battery, FlightState, Position, QueueStatus, Waypoint, WaypointReached};
 
 use self::core::{Command, Core, CoreConfig, VasPort};
 use crate::api::{
     CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanGeometry, PlanLoaded, PlanRejected,
-    PlanState, Progress, Retask, SetVar,
+    PlanState, Progress, Readiness, Retask, SetVar,
 };
 use crate::geo::GeoPoint;
 use crate::model::Stage;
@@ -66,7 +63,9 @@ pub struct FpmaConfig {
     /// VAS's rolling-queue slots keeps its window full.
     #[serde(rename = "@lookahead")]
     pub lookahead: usize,
-    /// Put the VAS in WAYPOINT_NAVIGATION when a plan starts or resumes (`startNavigation`).
+    /// Ignored (`startNavigation`), kept so older files load: the FPMa no longer changes the
+    /// flight state (issue 15, pilot in command). A loaded plan waits for the operator's
+    /// WAYPOINT_NAVIGATION and says so in the variable `ready`.
     #[serde(rename = "@startNavigation")]
     pub start_navigation: bool,
     /// Where plan files sent to `fpma/plans` are stored (`plansDir`); none: under the user's
@@ -97,7 +96,7 @@ impl Default for FpmaConfig {
             default_speed: None,
             turn_radius: None,
             lookahead: 8,
-            start_navigation: true,
+            start_navigation: false,
             plans_dir: None,
             state_dir: None,
             plan: None,
@@ -279,7 +278,6 @@ pub async fn run(config: FpmaConfig, shutdown: CancellationToken) -> anyhow::Res
 struct MareaVas {
     push: Function<Vec<Waypoint>, QueueStatus>,
     clear: Function<(), QueueStatus>,
-    change_state: Function<StateChangeRequest, StateChangeReply>,
     set_fence: Function<Option<usal_types::Fence>, String>,
     timeout: Duration,
 }
@@ -305,10 +303,6 @@ impl VasPort for MareaVas {
 
     async fn clear(&self) -> Result<QueueStatus, String> {
         call_vas(&self.clear, &(), self.timeout).await
-    }
-
-    async fn change_state(&self, to: FlightState) -> Result<StateChangeReply, String> {
-        call_vas(&self.change_state, &StateChangeRequest { to }, self.timeout).await
     }
 
     async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, String> {
@@ -360,6 +354,8 @@ struct Outlets {
     state: Variable<PlanState>,
     plan: Variable<PlanGeometry>,
     plan_event: Event<PlanEvent>,
+    /// Whether the plan waits for the operator's start.
+    ready: Variable<Readiness>,
 }
 
 /// Sends `req` to the core and waits for its answer.
@@ -417,16 +413,26 @@ impl IService for Fpma {
             state: ctx.publish_variable("state")?,
             plan: ctx.publish_variable("plan")?,
             plan_event: ctx.publish_event("plan_event")?,
+            ready: ctx.publish_variable("ready")?,
         };
         let rejected: Event<PlanRejected> = ctx.publish_event("plan_rejected")?;
         let _ = outlets.progress.set(&Progress::default());
         let _ = outlets.state.set(&PlanState::default());
         let _ = outlets.plan.set(&PlanGeometry::default());
+        let _ = outlets.ready.set(&Readiness {
+            text: "no plan loaded".into(),
+            ..Readiness::default()
+        });
+        if self.config.start_navigation {
+            tracing::warn!(
+                "startNavigation is ignored: the FPMa never changes the flight state; the \
+                 operator starts a loaded plan (WAYPOINT_NAVIGATION) when `ready` says so"
+            );
+        }
         let vas = &self.vas;
         let port = MareaVas {
             push: ctx.function(&format!("{vas}/push_waypoints"))?,
             clear: ctx.function(&format!("{vas}/clear_waypoints"))?,
-            change_state: ctx.function(&format!("{vas}/change_state"))?,
             set_fence: ctx.function(&format!("{vas}/set_fence"))?,
             timeout: Duration::from_millis(self.config.call_timeout_ms),
         };
@@ -557,7 +563,6 @@ impl IService for Fpma {
             CoreConfig {
                 vehicle,
                 lookahead: self.config.lookahead,
-                start_navigation: self.config.start_navigation,
             },
             port,
         );
@@ -625,7 +630,7 @@ impl IService for Fpma {
                         Err(e) => tracing::warn!("battery: {e}"),
                     },
                     s = flight_state.recv() => match s {
-                        Ok(s) => core.on_flight_state(s.value).await,
+                        Ok(s) => core.on_flight_state(s.value),
                         Err(marea::RecvError::Closed) => return,
                         Err(e) => tracing::warn!("flight_state: {e}"),
                     },
@@ -634,6 +639,8 @@ impl IService for Fpma {
                         if let Some((p, at)) = &mut last_progress {
                             if at.elapsed() >= PROGRESS_REFRESH {
                                 let _ = outlets.progress.set(p);
+                                // "Press Start" must not be lost on a lossy link either.
+                                let _ = outlets.ready.set(&core.readiness());
                                 *at = tokio::time::Instant::now();
                             }
                         }
@@ -720,6 +727,10 @@ fn publish<V: VasPort>(core: &mut Core<V>, out: &Outlets) -> Option<Progress> {
     }
     if let Some(s) = &o.state {
         let _ = out.state.set(s);
+    }
+    if let Some(r) = &o.readiness {
+        tracing::info!("{}", r.text);
+        let _ = out.ready.set(r);
     }
     if let Some(g) = &o.geometry {
         if let Err(e) = out.plan.set(g) {

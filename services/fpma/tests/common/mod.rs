@@ -71,3 +71,24 @@ pub fn sim_reached(log: &Path) -> Vec<(f64, f64)> {
 pub fn close(a: (f64, f64), b: (f64, f64)) -> bool {
     (a.0 - b.0).abs() < 1e-6 && (a.1 - b.1).abs() < 1e-6
 }
+
+/// The operator's "Start": waits until the FPMa says its plan is ready (variable `ready`), then
+/// puts the VAS in WAYPOINT_NAVIGATION (the FPMa never does, issue 15); returns the state the
+/// VAS left.
+pub async fn start_when_ready(
+    ready: &marea::VariableSubscriber<fpma::api::Readiness>,
+    change: &marea::Function<usal_types::StateChangeRequest, usal_types::StateChangeReply>,
+    within: Duration,
+) -> usal_types::FlightState {
+    timeout(within, async {
+        while !ready.recv().await.expect("fpma ready").value.ready {}
+    })
+    .await
+    .expect("the FPMa never said its plan was ready");
+    let to = usal_types::FlightState::WaypointNavigation;
+    change
+        .call(&usal_types::StateChangeRequest { to }, within)
+        .await
+        .expect("the operator's WAYPOINT_NAVIGATION")
+        .from
+}

@@ -20,8 +20,9 @@ use tokio::time::interval;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::{
-    Alarm, AltRef, Attitude, AutopilotStatus, Battery, FlightState, ManualControl, MissionChanged,
-    Position, QueueStatus, Severity, Speeds, VehicleKind, Waypoint, WaypointKind, WaypointReached,
+    Alarm, AltRef, Attitude, AutopilotStatus, Battery, DirectedTarget, FlightState, ManualControl,
+    MissionChanged, Position, QueueStatus, Severity, Speeds, VehicleCommand, VehicleKind, Waypoint,
+    WaypointKind, WaypointReached,
 };
 
 use super::queue::{QueueAction, RollingQueue};
@@ -53,6 +54,10 @@ pub struct ArduPilotConfig {
     pub status_hz: f32,
     /// The MAVLink manager's tuning.
     pub manager: ManagerConfig,
+    /// After the autopilot comes back in another mode (a reboot), put it back in the state
+    /// the VAL had commanded, re-arming if needed (`resumeAfterReboot`). Off: the VAL follows
+    /// the state the autopilot reports and an alarm asks the operator to restart.
+    pub resume_after_reboot: bool,
 }
 
 impl Default for ArduPilotConfig {
@@ -63,6 +68,7 @@ impl Default for ArduPilotConfig {
             telemetry_hz: 4.0,
             status_hz: 1.0,
             manager: ManagerConfig::default(),
+            resume_after_reboot: false,
         }
     }
 }
@@ -83,6 +89,7 @@ enum Cmd {
     Push(Vec<Waypoint>, oneshot::Sender<QueueStatus>),
     Clear(oneshot::Sender<QueueStatus>),
     Status(oneshot::Sender<QueueStatus>),
+    Command(VehicleCommand, oneshot::Sender<Result<(), AutopilotError>>),
 }
 
 /// The ArduPilot implementation of [`IAutopilot`] (Rover first; Copter and Plane modes mapped).
@@ -108,7 +115,8 @@ impl ArduPilot {
         let (events_tx, _) = broadcast::channel(1024);
         let cancel = CancellationToken::new();
         let tasks = TaskTracker::new();
-        let driver = Driver::new(mgr.clone(), cfg.vehicle, queue, events_tx.clone());
+        let mut driver = Driver::new(mgr.clone(), cfg.vehicle, queue, events_tx.clone());
+        driver.resume_after_reboot = cfg.resume_after_reboot;
         tasks.spawn(driver.run(cmd_rx, cancel.clone()));
         tasks.close();
         Ok(Self {
@@ -207,6 +215,10 @@ impl IAutopilot for ArduPilot {
             .rc_override(rc_channels(self.cfg.vehicle, mc.as_ref()))
             .await
             .map_err(|e| AutopilotError::NotConnected(e.to_string()))
+    }
+
+    async fn command(&self, cmd: VehicleCommand) -> Result<(), AutopilotError> {
+        self.ask(|tx| Cmd::Command(cmd, tx)).await?
     }
 
     async fn shutdown(&self) {

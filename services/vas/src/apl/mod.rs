@@ -14,7 +14,7 @@ use async_trait::async_trait;
 use tokio::sync::broadcast;
 use usal_types::{
     Alarm, Attitude, AutopilotStatus, Battery, FlightState, ManualControl, MissionChanged,
-    Position, QueueStatus, Speeds, VehicleKind, Waypoint, WaypointReached,
+    Position, QueueStatus, Speeds, VehicleCommand, VehicleKind, Waypoint, WaypointReached,
 };
 
 pub use queue::{QueueAction, QueueCreateError, RollingQueue};
@@ -124,6 +124,18 @@ pub trait IAutopilot: Send + Sync {
     /// # Errors
     /// Not connected.
     async fn manual_navigation(&self, mc: Option<ManualControl>) -> Result<(), AutopilotError>;
+
+    /// A command that is not a state change (ARM, DISARM, DIRECTED with its target). The VAL
+    /// has already checked it; a DIRECTED command from another state enters DIRECTED first.
+    /// An autopilot layer without them refuses them all (the default).
+    ///
+    /// # Errors
+    /// Unsupported, or the autopilot refused.
+    async fn command(&self, cmd: VehicleCommand) -> Result<(), AutopilotError> {
+        Err(AutopilotError::Unsupported(format!(
+            "{cmd} is not implemented for this autopilot"
+        )))
+    }
 
     /// Stops the layer's tasks.
     async fn shutdown(&self);

@@ -17,13 +17,16 @@ use async_trait::async_trait;
 use marea::{Event, IService, Service, ServiceError, Variable};
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, Battery, FlightState, ManualCommand, MissionChanged,
-    MissionTime, Position, QueueStatus, Severity, Speeds, StateChangeReply, StateChangeRequest,
-    StateChanged, Waypoint, WaypointReached,
+    Alarm, AllowedChanges, Attitude, AutopilotStatus, Battery, CommandReply, FlightState,
+    ManualCommand, MissionChanged, MissionTime, Position, QueueStatus, Severity, Speeds,
+    StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand, Waypoint, WaypointReached,
 };
 use usal_types::{Failsafe, FailsafeKind, Fence, StationHeartbeat};
 
 use crate::apl::{ApEvent, IAutopilot};
+
+/// How often the flight state and `allowed_changes` are published again though unchanged.
+const STATE_REFRESH: Duration = Duration::from_secs(2);
 
 /// Settings of the VAL.
 #[derive(Clone, Debug)]
@@ -68,6 +71,8 @@ impl Default for ValConfig {
 
 struct ValState {
     state: FlightState,
+    /// The motors' arming as last published in `allowed_changes`.
+    armed: bool,
     since: Instant,
     mission_start: Option<Instant>,
 }
@@ -81,6 +86,7 @@ struct Items {
     flight_state: Variable<FlightState>,
     mission_time: Variable<MissionTime>,
     queue: Variable<QueueStatus>,
+    allowed_changes: Variable<AllowedChanges>,
     state_changed: Event<StateChanged>,
     waypoint_reached: Event<WaypointReached>,
     alarm: Event<Alarm>,
@@ -135,6 +141,7 @@ impl Core {
         };
         tracing::info!("flight state {from} -> {to} ({cause})");
         let _ = self.items.flight_state.set(&to);
+        self.publish_allowed();
         let ev = StateChanged {
             from,
             to,
@@ -144,6 +151,51 @@ impl Core {
             tracing::warn!("raising state_changed: {e}");
         }
         from
+    }
+
+    /// Publishes what may be asked from the present state (`allowed_changes`).
+    fn publish_allowed(&self) {
+        let (state, armed) = {
+            let s = lock(&self.state);
+            (s.state, s.armed)
+        };
+        let a = transitions::allowed_changes(self.apl.vehicle(), state, armed);
+        let _ = self.items.allowed_changes.set(&a);
+    }
+
+    /// `command` (ARM, DISARM, DIRECTED): the command checker, then the autopilot.
+    async fn command(&self, cmd: VehicleCommand) -> Result<CommandReply, String> {
+        let _t = self.transition.lock().await;
+        let from = self.state();
+        let kind = self.apl.vehicle();
+        let status = self.apl.status();
+        if !status.connected {
+            return Err(format!("{cmd} refused in {from}: autopilot not connected"));
+        }
+        transitions::check_command(kind, from, status.armed, &cmd)?;
+        self.apl
+            .command(cmd)
+            .await
+            .map_err(|e| format!("{cmd} in {from} failed: {e}"))?;
+        if matches!(cmd, VehicleCommand::Directed(_)) && from != FlightState::Directed {
+            self.enter(FlightState::Directed, "request");
+        }
+        self.note_armed(self.apl.status().armed);
+        Ok(CommandReply {
+            command: cmd.name().to_owned(),
+            state: self.state(),
+        })
+    }
+
+    /// Republishes `allowed_changes` when the motors' arming changed.
+    fn note_armed(&self, armed: bool) {
+        let changed = {
+            let mut s = lock(&self.state);
+            std::mem::replace(&mut s.armed, armed) != armed
+        };
+        if changed {
+            self.publish_allowed();
+        }
     }
 
     /// `change_state`: the command checker, then the autopilot.
@@ -347,7 +399,10 @@ impl Core {
             ApEvent::Attitude(a) => drop(self.items.attitude.set(&a)),
             ApEvent::Speeds(s) => drop(self.items.speeds.set(&s)),
             ApEvent::Battery(b) => drop(self.items.battery.set(&b)),
-            ApEvent::Status(s) => drop(self.items.autopilot.set(&s)),
+            ApEvent::Status(s) => {
+                self.note_armed(s.armed);
+                let _ = self.items.autopilot.set(&s);
+            }
             ApEvent::WaypointReached(w) => {
                 if let Err(e) = self.items.waypoint_reached.raise_nowait(&w) {
                     tracing::warn!("raising waypoint_reached: {e}");
@@ -442,6 +497,7 @@ impl IService for Vas {
             flight_state: ctx.publish_variable("flight_state")?,
             mission_time: ctx.publish_variable("mission_time")?,
             queue: ctx.publish_variable("queue")?,
+            allowed_changes: ctx.publish_variable("allowed_changes")?,
             state_changed: ctx.publish_event("state_changed")?,
             waypoint_reached: ctx.publish_event("waypoint_reached")?,
             alarm: ctx.publish_event("alarm")?,
@@ -453,6 +509,7 @@ impl IService for Vas {
             cfg: self.cfg.clone(),
             state: StdMutex::new(ValState {
                 state: FlightState::ConfigureCheck,
+                armed: false,
                 since: Instant::now(),
                 mission_start: None,
             }),
@@ -462,11 +519,17 @@ impl IService for Vas {
         });
         let _ = core.items.flight_state.set(&FlightState::ConfigureCheck);
         let _ = core.items.queue.set(&QueueStatus::default());
+        core.publish_allowed();
 
         let c = core.clone();
         let change = ctx.provide_function("change_state", move |req: StateChangeRequest| {
             let c = c.clone();
             async move { c.request(req.to).await }
+        })?;
+        let c = core.clone();
+        let command = ctx.provide_function("command", move |cmd: VehicleCommand| {
+            let c = c.clone();
+            async move { c.command(cmd).await }
         })?;
         let c = core.clone();
         let allowed = ctx.provide_function("allowed_states", move |(): ()| {
@@ -695,13 +758,21 @@ impl IService for Vas {
         let c = core;
         let cx = ctx.clone();
         ctx.spawn(async move {
-            let _handles = (change, allowed, push, clear, set_fence);
+            let _handles = (change, command, allowed, push, clear, set_fence);
             let mut tick =
                 tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
+            // The flight state and what may be asked from it are published on change only; a
+            // change lost on a lossy radio would leave a station showing an old state (and
+            // offering the wrong buttons) until the next one: repeat them now and then.
+            let mut refresh = tokio::time::interval(STATE_REFRESH);
             loop {
                 tokio::select! {
                     _ = cx.cancelled() => return,
                     _ = tick.tick() => drop(c.items.mission_time.set(&c.mission_time())),
+                    _ = refresh.tick() => {
+                        let _ = c.items.flight_state.set(&c.state());
+                        c.publish_allowed();
+                    }
                 }
             }
         });

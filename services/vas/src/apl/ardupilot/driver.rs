@@ -163,6 +163,8 @@ pub(super) struct Driver {
     queue_error: Option<String>,
     /// Home's altitude above mean sea level, from the last position (MSL minus relative).
     home_alt_msl: Option<f64>,
+    /// Put a rebooted autopilot back in the commanded state (`resumeAfterReboot`).
+    pub(super) resume_after_reboot: bool,
 }
 
 impl Driver {
@@ -196,6 +198,7 @@ impl Driver {
             backtracks: 0,
             queue_error: None,
             home_alt_msl: None,
+            resume_after_reboot: false,
         }
     }
 
@@ -271,6 +274,61 @@ impl Driver {
             Cmd::Status(reply) => {
                 let _ = reply.send(self.queue_status());
             }
+            Cmd::Command(cmd, reply) => {
+                let r = self.command(cmd).await;
+                let _ = reply.send(r);
+            }
+        }
+    }
+
+    /// ARM, DISARM, or DIRECTED flight (entering DIRECTED first): the VAL checked it.
+    async fn command(&mut self, cmd: VehicleCommand) -> Result<(), AutopilotError> {
+        let refused = |e: &dyn std::fmt::Display| AutopilotError::Refused(format!("{cmd}: {e}"));
+        match cmd {
+            VehicleCommand::Arm => self.mgr.arm(true).await.map_err(|e| refused(&e)),
+            VehicleCommand::Disarm => self.mgr.arm(false).await.map_err(|e| refused(&e)),
+            VehicleCommand::Directed(t) => {
+                let Some((lat, lon)) = self.position else {
+                    return Err(refused(&"no position from the autopilot yet"));
+                };
+                if self.commanded != Some(FlightState::Directed) {
+                    self.change_state(FlightState::Directed).await?;
+                }
+                // The airspeed for a plane, the ground speed for a copter.
+                let speed_kind = if self.kind == VehicleKind::Plane {
+                    0.0
+                } else {
+                    1.0
+                };
+                let speed = [speed_kind, t.speed, -1.0, 0.0, 0.0, 0.0, 0.0];
+                self.mgr
+                    .command_long(MavCmd::MAV_CMD_DO_CHANGE_SPEED, speed)
+                    .await
+                    .map_err(|e| refused(&e))?;
+                let (to_lat, to_lon) = directed_point((lat, lon), &t);
+                // DO_REPOSITION in a COMMAND_LONG carries no frame: the altitude is MSL.
+                let alt_msl = t.alt + self.home_alt_msl.unwrap_or(0.0);
+                let reposition = [
+                    t.speed,
+                    0.0,
+                    0.0,
+                    f32::NAN,
+                    to_lat as f32,
+                    to_lon as f32,
+                    alt_msl as f32,
+                ];
+                self.mgr
+                    .command_long(MavCmd::MAV_CMD_DO_REPOSITION, reposition)
+                    .await
+                    .map_err(|e| refused(&e))?;
+                tracing::info!(
+                    "DIRECTED: bearing {}°, {} m/s, {} m above home",
+                    t.bearing,
+                    t.speed,
+                    t.alt
+                );
+                Ok(())
+            }
         }
     }
 
@@ -298,7 +356,10 @@ impl Driver {
         } else {
             self.queue.stop();
         }
-        if arming == Arming::Arm && !self.mgr.state().armed {
+        // A parked copter sits in LAND, where ArduCopter refuses to arm: a take-off enters
+        // its mode (GUIDED) first and arms there; navigation arms before switching to AUTO.
+        let arm_first = to != FlightState::TakeOff;
+        if arm_first && arming == Arming::Arm && !self.mgr.state().armed {
             if let Err(e) = self.mgr.arm(true).await {
                 self.commanded = previous;
                 return Err(refused(&e));
@@ -315,6 +376,17 @@ impl Driver {
                     .is_ok();
             if !started {
                 self.queue.stop();
+                self.commanded = previous;
+                return Err(refused(&e));
+            }
+        }
+        if !arm_first && arming == Arming::Arm && !self.mgr.state().armed {
+            if let Err(e) = self.mgr.arm(true).await {
+                // Back to where it was, so the refusal changes no state.
+                if let Some((m, _)) = previous.and_then(|p| mode_for(self.kind, p)) {
+                    let _ = self.mgr.set_mode(m).await;
+                    self.last_mode = Some(m.to_owned());
+                }
                 self.commanded = previous;
                 return Err(refused(&e));
             }
@@ -894,12 +966,45 @@ impl Driver {
         let mode = self.mgr.state().mode_name;
         if let Some(state) = self.commanded {
             let wanted = mode_for(self.kind, state).map(|m| m.0);
-            let resume = state == FlightState::WaypointNavigation && (!intact || mode != wanted);
-            if resume || (wanted.is_some() && mode != wanted) {
+            // Still in the commanded mode (the link dropped, the autopilot flew on): only the
+            // queue may need priming again, which changes no state.
+            let reprime = state == FlightState::WaypointNavigation && !intact && mode == wanted;
+            // In another mode: the autopilot rebooted (or someone changed it meanwhile).
+            // Putting it back re-arms and moves the vehicle: only when configured to, and
+            // announced; otherwise the operator decides.
+            let moved = wanted.is_some() && mode != wanted;
+            if moved && !self.resume_after_reboot {
+                self.queue.stop();
+                self.last_pending = None;
+                self.last_mode = None;
+                self.alarm(
+                    Severity::Critical,
+                    format!(
+                        "autopilot came back in {} (rebooted?) while {state} was commanded: \
+                         not resuming it (resumeAfterReboot is off); the operator must restart {state}",
+                        mode.unwrap_or("an unknown mode")
+                    ),
+                );
+                // The VAL follows the state the autopilot now reports.
+                self.restorations_handled();
+                self.check_mode();
+            } else if reprime || moved {
                 self.last_mode = None;
                 tracing::info!("autopilot is in {mode:?}: resuming {state}");
+                let why = if moved {
+                    "after the autopilot came back (resumeAfterReboot)"
+                } else {
+                    "after the link came back"
+                };
                 match self.change_state(state).await {
-                    Ok(()) => self.alarm(Severity::Notice, format!("resumed {state}")),
+                    Ok(()) => self.alarm(
+                        if moved {
+                            Severity::Warning
+                        } else {
+                            Severity::Notice
+                        },
+                        format!("resumed {state} {why}"),
+                    ),
                     Err(e) => self.alarm(Severity::Error, format!("cannot resume {state}: {e}")),
                 }
             }

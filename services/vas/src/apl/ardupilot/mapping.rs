@@ -20,17 +20,20 @@ pub(super) fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'stati
         (VehicleKind::Rover, Parking) => ("HOLD", Keep),
         (VehicleKind::Rover, Directed | Manual) => ("MANUAL", Keep),
         (VehicleKind::Rover, ManualNavigation) => ("MANUAL", Arm),
+        // Driving home needs the motors, as navigating does.
+        (VehicleKind::Rover, ReturnToLaunch) => ("RTL", Arm),
         (_, WaypointNavigation) => ("AUTO", Arm),
         (VehicleKind::Rover, _) => return None,
         (VehicleKind::Copter, Parking | Landing) => ("LAND", Keep),
         (VehicleKind::Copter, TakeOff) => ("GUIDED", Arm),
-        (VehicleKind::Copter, Directed) => ("LOITER", Keep),
+        // GUIDED holds where it is until given a bearing, altitude and speed (003 §3.3.1).
+        (VehicleKind::Copter, Directed) => ("GUIDED", Keep),
         (VehicleKind::Copter, ManualNavigation) => ("ALT_HOLD", Arm),
         (VehicleKind::Copter, ReturnToLaunch) => ("RTL", Keep),
         (VehicleKind::Copter, Manual) => ("STABILIZE", Keep),
         (VehicleKind::Plane, Parking | Manual) => ("MANUAL", Keep),
         (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
-        (VehicleKind::Plane, Directed) => ("FBWA", Keep),
+        (VehicleKind::Plane, Directed) => ("GUIDED", Keep),
         (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
         (VehicleKind::Plane, Landing | ReturnToLaunch) => ("RTL", Keep),
     })
@@ -43,11 +46,13 @@ pub(super) fn state_for_mode(kind: VehicleKind, mode: &str) -> Option<FlightStat
         (_, "AUTO") => WaypointNavigation,
         (VehicleKind::Rover, "HOLD" | "LOITER") => Parking,
         (VehicleKind::Rover, "MANUAL" | "ACRO" | "STEERING") => Directed,
+        (VehicleKind::Rover, "RTL" | "SMART_RTL") => ReturnToLaunch,
         (VehicleKind::Copter, "LAND") => Landing,
         (VehicleKind::Copter, "RTL" | "SMART_RTL") => ReturnToLaunch,
         (VehicleKind::Copter, "LOITER" | "POSHOLD" | "BRAKE" | "GUIDED") => Directed,
         (VehicleKind::Copter, "STABILIZE" | "ACRO" | "ALT_HOLD") => Manual,
         (VehicleKind::Plane, "RTL") => ReturnToLaunch,
+        (VehicleKind::Plane, "TAKEOFF") => TakeOff,
         (VehicleKind::Plane, "LOITER" | "CIRCLE" | "FBWA" | "FBWB" | "CRUISE" | "GUIDED") => {
             Directed
         }
@@ -118,6 +123,18 @@ pub(super) fn altitude_refusal(
         w.leg,
         terrain_enable.map_or_else(|| "absent".to_owned(), |v| v.to_string())
     ))
+}
+
+/// How far ahead a DIRECTED aircraft is sent along its bearing: an hour at its speed, at
+/// least 2 km, so it flies the bearing until told otherwise.
+pub(super) fn directed_point(from: (f64, f64), t: &DirectedTarget) -> (f64, f64) {
+    let d = (f64::from(t.speed) * 3600.0).max(2000.0);
+    let b = f64::from(t.bearing).to_radians();
+    let m_per_deg = 111_319.49;
+    let lat = from.0 + d * b.cos() / m_per_deg;
+    let cos_lat = from.0.to_radians().cos().max(0.01);
+    let lon = from.1 + d * b.sin() / (m_per_deg * cos_lat);
+    (lat.clamp(-89.9, 89.9), lon)
 }
 
 /// The speed a waypoint asks for, m/s; 0 for the autopilot's cruise speed.
@@ -199,7 +216,15 @@ mod tests {
             let expect = s.applies_to(VehicleKind::Rover) && s != FlightState::ConfigureCheck;
             assert_eq!(has, expect, "{s}");
         }
+        assert_eq!(
+            mode_for(VehicleKind::Rover, FlightState::ReturnToLaunch),
+            Some(("RTL", Arming::Arm))
+        );
         for kind in [VehicleKind::Copter, VehicleKind::Plane] {
+            assert_eq!(
+                mode_for(kind, FlightState::Directed).map(|m| m.0),
+                Some("GUIDED")
+            );
             for s in FlightState::ALL.into_iter().skip(1) {
                 assert!(mode_for(kind, s).is_some(), "{kind} {s}");
             }
@@ -298,6 +323,27 @@ mod tests {
         assert!(!passed(from, target, at(90.0, 5.0), 2.0));
         // No leg (navigation started on the waypoint): only the radius counts.
         assert!(!passed(target, target, at(103.0, 0.0), 2.0));
+    }
+
+    #[test]
+    fn a_directed_aircraft_is_sent_far_along_its_bearing() {
+        let t = DirectedTarget {
+            alt: 30.0,
+            speed: 5.0,
+            bearing: 90.0,
+        };
+        let (lat, lon) = directed_point((41.0, 2.0), &t);
+        assert!((lat - 41.0).abs() < 1e-9, "{lat}");
+        let east_m = (lon - 2.0) * 111_319.49 * 41f64.to_radians().cos();
+        assert!((east_m - 18_000.0).abs() < 1.0, "{east_m}");
+        let (lat, _) = directed_point(
+            (41.0, 2.0),
+            &DirectedTarget {
+                bearing: 180.0,
+                ..t
+            },
+        );
+        assert!(lat < 41.0);
     }
 
     #[test]
