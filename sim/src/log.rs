@@ -83,6 +83,20 @@ pub enum LogEvent {
         /// Metres above home.
         alt: f64,
     },
+    /// MAV_CMD_DO_REPOSITION accepted (PX4 profile): the vehicle goes there and holds.
+    Repositioned {
+        /// Target latitude, degrees.
+        lat: f64,
+        /// Target longitude, degrees.
+        lon: f64,
+    },
+    /// The reposition target was reached; the vehicle holds there.
+    RepositionReached {
+        /// Its latitude, degrees.
+        lat: f64,
+        /// Its longitude, degrees.
+        lon: f64,
+    },
 }
 
 /// A log line: simulated time plus the event.
