@@ -26,7 +26,12 @@ impl Vehicle {
                     MavCmd::MAV_CMD_DO_REPOSITION if self.profile == Profile::Px4 => self
                         .reposition(
                             [c.param1, c.param2, c.param4],
-                            (f64::from(c.x) / 1e7, f64::from(c.y) / 1e7),
+                            // INT32_MAX: unchanged (where it is), as in PX4.
+                            if c.x == i32::MAX || c.y == i32::MAX {
+                                (f64::NAN, f64::NAN)
+                            } else {
+                                (f64::from(c.x) / 1e7, f64::from(c.y) / 1e7)
+                            },
                             c.z,
                             &mut out,
                         ),

@@ -163,6 +163,8 @@ pub(super) struct Driver {
     queue_error: Option<String>,
     /// Home's altitude above mean sea level, from the last position (MSL minus relative).
     home_alt_msl: Option<f64>,
+    /// The family-specific part the configuration fixed; `None`: the heartbeat's family.
+    fixed_modes: Option<&'static dyn ApFamily>,
 }
 
 impl Driver {
@@ -171,6 +173,7 @@ impl Driver {
         kind: VehicleKind,
         queue: RollingQueue<Waypoint>,
         events: broadcast::Sender<ApEvent>,
+        fixed_modes: Option<&'static dyn ApFamily>,
     ) -> Self {
         Self {
             mav: mgr.subscribe(),
@@ -196,7 +199,14 @@ impl Driver {
             backtracks: 0,
             queue_error: None,
             home_alt_msl: None,
+            fixed_modes,
         }
+    }
+
+    /// The family-specific part in force: the configured one, else the heartbeat's.
+    fn modes(&self) -> &'static dyn ApFamily {
+        self.fixed_modes
+            .unwrap_or_else(|| family_modes(self.mgr.family()))
     }
 
     pub(super) async fn run(mut self, mut cmds: mpsc::Receiver<Cmd>, cancel: CancellationToken) {
@@ -259,6 +269,21 @@ impl Driver {
                 let r = self.change_state(to).await;
                 let _ = reply.send(r);
             }
+            Cmd::DirectTo([lat, lon, alt, speed], reply) => {
+                let r = if self.commanded == Some(FlightState::Directed) {
+                    self.modes()
+                        .direct_to(&self.mgr, lat, lon, alt as f32, speed as f32)
+                        .await
+                        .map_err(|e| AutopilotError::Refused(e.to_string()))
+                } else {
+                    Err(AutopilotError::Refused(format!(
+                        "a DIRECTED target needs DIRECTED, not {}",
+                        self.commanded
+                            .map_or_else(|| "CONFIGURE_CHECK".to_owned(), |s| s.to_string())
+                    )))
+                };
+                let _ = reply.send(r);
+            }
             Cmd::Push(wps, reply) => {
                 self.queue.push(wps);
                 let _ = reply.send(self.queue_status());
@@ -275,7 +300,8 @@ impl Driver {
     }
 
     async fn change_state(&mut self, to: FlightState) -> Result<(), AutopilotError> {
-        let Some((mode, arming)) = mode_for(self.kind, to) else {
+        let modes = self.modes();
+        let Some((mode, arming)) = modes.mode_for(self.kind, to) else {
             return Err(AutopilotError::Unsupported(format!(
                 "no autopilot mode for {to} on a {}",
                 self.kind
@@ -304,20 +330,11 @@ impl Driver {
                 return Err(refused(&e));
             }
         }
-        if let Err(e) = self.mgr.set_mode(mode).await {
-            // PX4 also enters its mission with MAV_CMD_MISSION_START.
-            let started = to == FlightState::WaypointNavigation
-                && self.mgr.state().px4_modes
-                && self
-                    .mgr
-                    .mission_start(self.queue.current_slot().unwrap_or(1))
-                    .await
-                    .is_ok();
-            if !started {
-                self.queue.stop();
-                self.commanded = previous;
-                return Err(refused(&e));
-            }
+        let first_slot = self.queue.current_slot().unwrap_or(1);
+        if let Err(e) = modes.enter(&self.mgr, to, mode, first_slot).await {
+            self.queue.stop();
+            self.commanded = previous;
+            return Err(refused(&e));
         }
         if to == FlightState::WaypointNavigation {
             // Entering AUTO puts the autopilot back to its default speed.
@@ -730,9 +747,10 @@ impl Driver {
             }
             self.queue.stop();
         }
-        let expected = self.commanded.and_then(|st| mode_for(self.kind, st));
+        let modes = self.modes();
+        let expected = self.commanded.and_then(|st| modes.mode_for(self.kind, st));
         if expected.map(|m| m.0) != Some(mode) {
-            let state = state_for_mode(self.kind, mode);
+            let state = modes.state_for_mode(self.kind, mode);
             if state.is_some() {
                 self.commanded = state;
             }
@@ -893,7 +911,7 @@ impl Driver {
         }
         let mode = self.mgr.state().mode_name;
         if let Some(state) = self.commanded {
-            let wanted = mode_for(self.kind, state).map(|m| m.0);
+            let wanted = self.modes().mode_for(self.kind, state).map(|m| m.0);
             let resume = state == FlightState::WaypointNavigation && (!intact || mode != wanted);
             if resume || (wanted.is_some() && mode != wanted) {
                 self.last_mode = None;
