@@ -140,6 +140,11 @@ pub struct VasConfig {
     /// (`targetSystem`); none: the first autopilot heard.
     #[serde(rename = "@targetSystem")]
     pub target_system: Option<u8>,
+    /// The autopilot's MAVLink component id where several components of the vehicle share
+    /// the link (`targetComponent`, 1 for MAV_COMP_ID_AUTOPILOT1); none: the first autopilot
+    /// component heard. Other components' traffic is ignored (and forwarded).
+    #[serde(rename = "@targetComponent")]
+    pub target_component: Option<u8>,
 }
 
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
@@ -192,6 +197,7 @@ impl Default for VasConfig {
             autopilot_sysid: None,
             autopilot_peer: None,
             target_system: None,
+            target_component: None,
             forward: Vec::new(),
         }
     }
@@ -323,6 +329,7 @@ impl VasConfig {
         self.pin_autopilot.then_some(mavconn::Pin {
             // `targetSystem` names the same autopilot for routing: pin that one too.
             system_id: self.autopilot_sysid.or(self.target_system),
+            component_id: self.target_component,
             peer: self.autopilot_peer,
             release_after: Some(Duration::from_millis(self.heartbeat_timeout_ms)),
         })
@@ -342,7 +349,9 @@ impl VasConfig {
                 pin: self.pin(),
                 family: self.autopilot.family(),
                 forward: self.forward.iter().map(|f| f.endpoint.clone()).collect(),
-                target_system: self.target_system,
+                // One autopilot: `autopilotSysid` (what is pinned) names it for routing too.
+                target_system: self.target_system.or(self.autopilot_sysid),
+                target_component: self.target_component,
                 ..ManagerConfig::default()
             },
         }

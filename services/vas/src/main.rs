@@ -59,6 +59,9 @@ struct Args {
     /// The autopilot's MAVLink system id, where several vehicles share one link.
     #[arg(long)]
     target_system: Option<u8>,
+    /// The autopilot's MAVLink component id, where several components share the link.
+    #[arg(long)]
+    target_component: Option<u8>,
 }
 
 #[tokio::main]
@@ -113,6 +116,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.target_system.is_some() {
         cfg.target_system = args.target_system;
+    }
+    if args.target_component.is_some() {
+        cfg.target_component = args.target_component;
     }
     cfg.forward.extend(
         args.forward

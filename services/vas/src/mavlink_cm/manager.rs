@@ -54,6 +54,10 @@ pub struct ManagerConfig {
     /// The autopilot's system id, where several vehicles share one link; `None`: the first
     /// autopilot heard.
     pub target_system: Option<u8>,
+    /// The autopilot's component id, where several components of a vehicle share the link
+    /// (MAV_COMP_ID_AUTOPILOT1 is 1); `None`: the first autopilot component heard. Traffic of
+    /// every other component is ignored (and forwarded).
+    pub target_component: Option<u8>,
     /// Extra endpoints MAVLink is forwarded to and from (another ground station), as
     /// `udpout:HOST:PORT` and the like.
     pub forward: Vec<String>,
@@ -73,6 +77,7 @@ impl Default for ManagerConfig {
             pin: None,
             family: None,
             target_system: None,
+            target_component: None,
             forward: Vec::new(),
         }
     }

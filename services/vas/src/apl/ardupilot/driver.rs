@@ -111,10 +111,10 @@ async fn exec(
     }
 }
 
-/// How soon after our MISSION_SET_CURRENT is confirmed a further jump of the current item is
-/// taken for a race with the autopilot's own advance rather than a lost reach report (a leg
-/// takes far longer, even at a simulator's speed-up).
-const JUMP_AFTER_SET_CURRENT: std::time::Duration = std::time::Duration::from_millis(100);
+/// How long a set-current after a reach waits for the autopilot to report its own advance
+/// (MISSION_CURRENT) before going ahead without it: an autopilot that reports reaches reports
+/// its current item far sooner.
+const ADVANCE_WAIT: std::time::Duration = std::time::Duration::from_millis(400);
 
 pub(super) struct Driver {
     mgr: Arc<MavlinkManager>,
@@ -153,8 +153,9 @@ pub(super) struct Driver {
     last_pending: Option<(u16, Waypoint)>,
     /// What the last whole upload put in item 0 where it is an ordinary item.
     item0: Option<Waypoint>,
-    /// The slot our last MISSION_SET_CURRENT made current, and when it was confirmed.
-    set_current_at: Option<(u16, std::time::Instant)>,
+    /// When the last waypoint was reached (a set-current waits for the autopilot's own
+    /// advance after it, [`ADVANCE_WAIT`] at most).
+    reached_at: Option<std::time::Instant>,
     /// Times the vehicle's reported current item went back to an item already passed while
     /// navigating (issue 14: each is a drive back toward a passed waypoint).
     backtracks: u64,
@@ -195,7 +196,7 @@ impl Driver {
             passing: None,
             last_pending: None,
             item0: None,
-            set_current_at: None,
+            reached_at: None,
             backtracks: 0,
             queue_error: None,
             home_alt_msl: None,
@@ -236,6 +237,12 @@ impl Driver {
                 },
                 _ = tick.tick() => {
                     self.failing = false;
+                    if self.queue.awaits_advance()
+                        && self.reached_at.is_none_or(|t| t.elapsed() >= ADVANCE_WAIT)
+                    {
+                        tracing::debug!("queue: the autopilot did not report its advance; going on");
+                        self.queue.assume_advanced();
+                    }
                     self.resync().await;
                 }
             }
@@ -394,9 +401,6 @@ impl Driver {
             match result {
                 Ok(()) => {
                     self.queue.done(&action);
-                    if let QueueAction::SetCurrent(slot) = action {
-                        self.set_current_at = Some((slot, std::time::Instant::now()));
-                    }
                     if matches!(action, QueueAction::Upload(_)) {
                         self.after_upload();
                     }
@@ -505,6 +509,7 @@ impl Driver {
     }
 
     fn reached(&mut self, w: Waypoint) {
+        self.reached_at = Some(std::time::Instant::now());
         self.last_reached = Some(w.seq);
         self.leg_start = Some((w.lat, w.lon));
         self.emit(ApEvent::WaypointReached(WaypointReached {
@@ -565,19 +570,8 @@ impl Driver {
             }
             MavEvent::MissionCurrent { seq } => {
                 self.check_backtrack(seq);
-                // A jump past the slot we made current a moment ago is no proof it was
-                // reached: an autopilot whose "reached, advance" step raced our set-current
-                // (MAVSDK's server does) advanced from our slot instead of its own.
-                let just_set = self
-                    .set_current_at
-                    .filter(|(_, at)| at.elapsed() < JUMP_AFTER_SET_CURRENT)
-                    .map(|(slot, _)| slot);
-                if self.queue.jumped_past(seq, just_set) {
-                    tracing::warn!(
-                        "the autopilot moved on to slot {seq} right after we made the target's \
-                         slot current, with no reach reported: making the target current again"
-                    );
-                } else if let Some(w) = self.queue.on_current(seq) {
+                // Also the autopilot's own advance after a reach, which a set-current waits for.
+                if let Some(w) = self.queue.on_current(seq) {
                     self.reached(w);
                 }
                 true
@@ -631,6 +625,8 @@ impl Driver {
         match self.queue.on_reached(slot) {
             Some(w) => {
                 tracing::debug!("waypoint {} reached (from position)", w.seq);
+                // Inferred two samples past it: the autopilot's own advance is long done.
+                self.queue.assume_advanced();
                 self.reached(w);
                 true
             }
