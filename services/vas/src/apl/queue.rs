@@ -641,9 +641,8 @@ mod tests {
             q.start();
             settle(&mut q, &mut ap);
             let mut wraps = 0;
-            loop {
-                // Reached: reported now, the advance a step later.
-                let Some(slot) = ap.reach_only() else { break };
+            // Reached: reported now, the advance a step later.
+            while let Some(slot) = ap.reach_only() {
                 let w = q.on_reached(slot);
                 assert_eq!(w, ap.reached.last().copied());
                 if racing {

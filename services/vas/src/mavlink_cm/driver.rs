@@ -185,11 +185,11 @@ impl Inner {
             // companion computer), may share the link: the configured system and component,
             // else the first autopilot heard.
             let wanted = self.cfg.target_system.is_none_or(|t| t == sys)
-                && self
-                    .cfg
-                    .target_component
-                    .is_none_or(|c| c == comp);
-            if mavconn::is_autopilot_heartbeat(hb) && wanted && known.is_none_or(|k| k == (sys, comp)) {
+                && self.cfg.target_component.is_none_or(|c| c == comp);
+            if mavconn::is_autopilot_heartbeat(hb)
+                && wanted
+                && known.is_none_or(|k| k == (sys, comp))
+            {
                 *last_hb = Some(Instant::now());
                 came_up = self.on_heartbeat(sys, comp, hb);
             }

@@ -165,9 +165,9 @@ impl MavlinkManager {
         if let Some(known) = partial_writes_by_identity(&self.state()) {
             *lock(&self.inner.partial) = Some(known);
             tracing::info!(
-                "partial mission writes {} (as {:?} advertises, no probe)",
+                "partial mission writes {} (the identified {} autopilot; no probe)",
                 if known { "supported" } else { "not supported" },
-                self.state().autopilot
+                if known { "ArduPilot" } else { "PX4" }
             );
             return Ok(known);
         }
@@ -494,7 +494,11 @@ mod tests {
             autopilot: Some(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA),
             ..VehicleState::default()
         };
-        assert_eq!(partial_writes_by_identity(&s), None, "no AUTOPILOT_VERSION yet");
+        assert_eq!(
+            partial_writes_by_identity(&s),
+            None,
+            "no AUTOPILOT_VERSION yet"
+        );
         s.capabilities = Some(0x200d);
         assert_eq!(partial_writes_by_identity(&s), Some(true));
         s.autopilot = Some(MavAutopilot::MAV_AUTOPILOT_PX4);
