@@ -510,6 +510,10 @@ impl Driver {
 
     fn reached(&mut self, w: Waypoint) {
         self.reached_at = Some(std::time::Instant::now());
+        if self.mgr.family().advances_with_its_report() {
+            // Its advance is done by the time we hear of the reach: nothing to wait for.
+            self.queue.assume_advanced();
+        }
         self.last_reached = Some(w.seq);
         self.leg_start = Some((w.lat, w.lon));
         self.emit(ApEvent::WaypointReached(WaypointReached {
