@@ -83,6 +83,9 @@ pub struct RollingQueue<W> {
     /// The autopilot has moved to `cur` by itself since the last reach, or no advance of its
     /// own is pending (after a set-current or an upload of ours): a set-current cannot race it.
     advanced: bool,
+    /// The last reach was of the last item on board while waypoints remain: the autopilot
+    /// ended its mission early (a wrap or a growing write came too late).
+    ended_early: bool,
 }
 
 impl<W: Clone + PartialEq> RollingQueue<W> {
@@ -105,6 +108,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             partial_ok: true,
             replacing: false,
             advanced: true,
+            ended_early: false,
         })
     }
 
@@ -211,6 +215,13 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     /// waypoint last reached.
     pub fn awaits_advance(&self) -> bool {
         !self.advanced && self.cur.is_some() && self.wants_set_current()
+    }
+
+    /// Whether the last reach ended the autopilot's mission with waypoints still queued (its
+    /// last item on board was reached before the wrap or a growing write): navigation must be
+    /// restarted ([`Self::start`]) to go on. Reading it clears it.
+    pub fn take_ended_early(&mut self) -> bool {
+        std::mem::take(&mut self.ended_early)
     }
 
     /// The autopilot will not report its advance (it reports no progress, or not in time):
@@ -446,10 +457,13 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             return None;
         }
         let w = self.ahead.pop_front()?;
-        if self.ahead.is_empty() || slot == self.n {
-            // Last waypoint, or the wrap was missed and the mission ended: the autopilot
-            // holds; navigation must be restarted.
+        let last_on_board = self.have_known && usize::from(slot) == self.have.len();
+        if self.ahead.is_empty() || slot == self.n || last_on_board {
+            // Last waypoint, or the last item on board (the wrap, or the write growing the
+            // mission, came too late) and the mission ended: the autopilot holds; navigation
+            // must be restarted.
             self.cur = None;
+            self.ended_early = !self.ahead.is_empty();
         } else {
             self.cur = Some(slot + 1);
             self.advanced = false;
@@ -692,6 +706,50 @@ mod tests {
         q.stop();
         q.start();
         assert!(!q.awaits_advance());
+    }
+
+    #[test]
+    fn a_mission_ended_at_its_last_item_with_waypoints_left_is_restarted_from_slot_1() {
+        let mut q = RollingQueue::new(4).unwrap();
+        let mut ap = Autopilot::new(true);
+        q.push(0..12);
+        q.start();
+        settle(&mut q, &mut ap);
+        // Reaches slots 1 and 2 while every write is lost (a stalled link).
+        for _ in 0..2 {
+            let s = ap.drive().unwrap();
+            q.on_reached(s);
+            q.on_current(ap.current);
+        }
+        let s = ap.drive().unwrap();
+        assert_eq!(q.on_reached(s), Some(2));
+        q.on_current(ap.current);
+        assert!(!q.take_ended_early());
+        // Driving to the mirror slot 4; slot 1 still holds waypoint 0: the wrap needs a
+        // write first, which is lost too; the autopilot reaches slot 4 and ends its mission.
+        assert_eq!(q.current_slot(), Some(4));
+        assert!(matches!(
+            q.poll(),
+            Some(QueueAction::WritePartial { start: 1, .. })
+        ));
+        assert_eq!(ap.drive(), Some(4));
+        assert!(ap.holding);
+        assert_eq!(q.on_reached(4), Some(3));
+        assert!(!q.is_running());
+        assert!(q.take_ended_early());
+        assert!(!q.take_ended_early(), "read once");
+        // Restarted: the next waypoint from slot 1, and the rest in order.
+        q.start();
+        ap.holding = false;
+        settle(&mut q, &mut ap);
+        while let Some(slot) = ap.drive() {
+            q.on_reached(slot);
+            q.on_current(ap.current);
+            settle(&mut q, &mut ap);
+        }
+        assert_eq!(ap.reached, (0..12).collect::<Vec<_>>());
+        // The plan's own end is no early end.
+        assert!(!q.take_ended_early());
     }
 
     #[test]

@@ -166,6 +166,10 @@ pub(super) struct Driver {
     home_alt_msl: Option<f64>,
     /// The family-specific part the configuration fixed; `None`: the heartbeat's family.
     fixed_modes: Option<&'static dyn ApFamily>,
+    /// The autopilot ended its mission at its last item on board with waypoints still queued
+    /// (a wrap or a growing write came too late): navigation is restarted, and the mode it
+    /// ends the mission in is not taken for a pilot's choice meanwhile.
+    restart: bool,
 }
 
 impl Driver {
@@ -201,6 +205,7 @@ impl Driver {
             queue_error: None,
             home_alt_msl: None,
             fixed_modes,
+            restart: false,
         }
     }
 
@@ -495,6 +500,10 @@ impl Driver {
         if self.failing || !s.link_up || s.restorations != self.restorations_seen {
             return;
         }
+        if std::mem::take(&mut self.restart) {
+            self.restart_navigation().await;
+            return;
+        }
         if let Err(e) = self.prime().await {
             tracing::warn!("rolling queue: {e}; retrying");
             if e.starts_with("refused: ") && self.queue_error.as_deref() != Some(e.as_str()) {
@@ -508,8 +517,44 @@ impl Driver {
         self.sync_speed().await;
     }
 
+    /// The autopilot ended its mission early: wait (a heartbeat period or so) for it to leave
+    /// AUTO for its end-of-mission mode, then enter WAYPOINT_NAVIGATION again, the window laid
+    /// out afresh from slot 1 with the next waypoint; the VAL stays in WAYPOINT_NAVIGATION.
+    async fn restart_navigation(&mut self) {
+        let mut rx = self.mgr.watch_state();
+        let wait = self
+            .mgr
+            .heartbeat_timeout()
+            .min(Duration::from_millis(1500));
+        let _ = tokio::time::timeout(wait, rx.wait_for(|s| s.mode_name != Some("AUTO"))).await;
+        let left = self.queue.len();
+        tracing::warn!("the autopilot ended its mission with {left} waypoints queued: restarting");
+        self.last_mode = None;
+        match self.change_state(FlightState::WaypointNavigation).await {
+            Ok(()) => self.alarm(
+                Severity::Warning,
+                format!(
+                    "the autopilot ended its mission early (a slot write came too late); \
+                     navigation restarted with {left} waypoints left"
+                ),
+            ),
+            Err(e) => {
+                self.alarm(
+                    Severity::Error,
+                    format!("the autopilot ended its mission early; cannot restart: {e}"),
+                );
+                // Follow the autopilot's own mode, as for any other.
+                self.check_mode();
+            }
+        }
+    }
+
     fn reached(&mut self, w: Waypoint) {
         self.reached_at = Some(std::time::Instant::now());
+        if self.queue.take_ended_early() && self.commanded == Some(FlightState::WaypointNavigation)
+        {
+            self.restart = true;
+        }
         if self.mgr.family().advances_with_its_report() {
             // Its advance is done by the time we hear of the reach: nothing to wait for.
             self.queue.assume_advanced();
@@ -730,6 +775,10 @@ impl Driver {
             return;
         }
         if self.last_mode.as_deref() == Some(mode) {
+            return;
+        }
+        if self.restart && mode != "AUTO" {
+            // The end-of-mission mode of an early end: navigation is being restarted.
             return;
         }
         self.last_mode = Some(mode.to_owned());
