@@ -170,7 +170,17 @@ pub(super) struct Driver {
     /// (a wrap or a growing write came too late): navigation is restarted, and the mode it
     /// ends the mission in is not taken for a pilot's choice meanwhile.
     restart: bool,
+    /// Until then, the autopilot seen out of AUTO after a restart is taken for the end of
+    /// the mission heard late (its mode change may arrive after the restart on a lossy link,
+    /// the restart then finding it "already" in AUTO), and navigation is restarted again.
+    restart_guard_until: Option<std::time::Instant>,
+    /// Restarts since a waypoint was last reached normally (at most [`MAX_RESTARTS`]).
+    restarts_in_row: u8,
 }
+
+/// Restarts in a row after early mission ends (or failed restarts) before the VAS follows the
+/// autopilot out of WAYPOINT_NAVIGATION.
+const MAX_RESTARTS: u8 = 3;
 
 impl Driver {
     pub(super) fn new(
@@ -206,7 +216,27 @@ impl Driver {
             home_alt_msl: None,
             fixed_modes,
             restart: false,
+            restart_guard_until: None,
+            restarts_in_row: 0,
         }
+    }
+
+    /// Whether a mode out of AUTO is (probably) the autopilot ending its mission early, for
+    /// which navigation is restarted: a restart is pending, or one was just made.
+    fn early_end_mode(&mut self, mode: &str) -> bool {
+        if mode == "AUTO" || self.commanded != Some(FlightState::WaypointNavigation) {
+            return false;
+        }
+        // With the last waypoint alone left, the mission most likely ended there (its report
+        // late): that end is followed as usual.
+        let guarded = self.queue.len() >= 2
+            && self
+                .restart_guard_until
+                .is_some_and(|t| std::time::Instant::now() < t);
+        if !self.restart && guarded && self.restarts_in_row < MAX_RESTARTS {
+            self.restart = true;
+        }
+        self.restart
     }
 
     /// The family-specific part in force: the configured one, else the heartbeat's.
@@ -530,14 +560,23 @@ impl Driver {
         let left = self.queue.len();
         tracing::warn!("the autopilot ended its mission with {left} waypoints queued: restarting");
         self.last_mode = None;
+        self.restarts_in_row = self.restarts_in_row.saturating_add(1);
         match self.change_state(FlightState::WaypointNavigation).await {
-            Ok(()) => self.alarm(
-                Severity::Warning,
-                format!(
-                    "the autopilot ended its mission early (a slot write came too late); \
-                     navigation restarted with {left} waypoints left"
-                ),
-            ),
+            Ok(()) => {
+                self.restart_guard_until =
+                    Some(std::time::Instant::now() + self.mgr.heartbeat_timeout());
+                self.alarm(
+                    Severity::Warning,
+                    format!(
+                        "the autopilot ended its mission early (a slot write came too late); \
+                         navigation restarted with {left} waypoints left"
+                    ),
+                )
+            }
+            Err(e) if self.restarts_in_row < MAX_RESTARTS => {
+                tracing::warn!("restarting navigation: {e}; retrying");
+                self.restart = true;
+            }
             Err(e) => {
                 self.alarm(
                     Severity::Error,
@@ -554,6 +593,8 @@ impl Driver {
         if self.queue.take_ended_early() && self.commanded == Some(FlightState::WaypointNavigation)
         {
             self.restart = true;
+        } else {
+            self.restarts_in_row = 0;
         }
         if self.mgr.family().advances_with_its_report() {
             // Its advance is done by the time we hear of the reach: nothing to wait for.
@@ -777,7 +818,7 @@ impl Driver {
         if self.last_mode.as_deref() == Some(mode) {
             return;
         }
-        if self.restart && mode != "AUTO" {
+        if self.early_end_mode(mode) {
             // The end-of-mission mode of an early end: navigation is being restarted.
             return;
         }
