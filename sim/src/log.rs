@@ -99,7 +99,8 @@ pub enum LogEvent {
         /// Where, longitude.
         lon: f64,
     },
-    /// A guided target (MAV_CMD_DO_REPOSITION) was accepted.
+    /// A target of MAV_CMD_DO_REPOSITION was accepted (ArduPilot: in GUIDED; PX4 profile:
+    /// into its hold mode): the vehicle goes there and holds.
     Repositioned {
         /// Target latitude, degrees.
         lat: f64,
@@ -110,6 +111,13 @@ pub enum LogEvent {
     },
     /// A LAND reached the ground.
     Landed,
+    /// The reposition target was reached; the vehicle holds there.
+    RepositionReached {
+        /// Its latitude, degrees.
+        lat: f64,
+        /// Its longitude, degrees.
+        lon: f64,
+    },
 }
 
 /// A log line: simulated time plus the event.

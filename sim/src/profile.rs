@@ -11,6 +11,8 @@
 //! | MISSION_WRITE_PARTIAL_LIST | supported | unanswered | unanswered |
 //! | current item after an upload | kept | reset to 0 | reset to 0 |
 //! | MISSION_CURRENT | streamed and on change | only on change | streamed and on change |
+//! | MAV_CMD_MISSION_START | unsupported | starts AUTO.MISSION | unsupported |
+//! | MAV_CMD_DO_REPOSITION | unsupported | AUTO.LOITER, go there and hold | unsupported |
 
 use crate::kinematics::VehicleKind;
 use crate::modes;

@@ -99,6 +99,9 @@ pub struct Vehicle {
     takeoff_to: Option<Ned>,
     /// Where GUIDED flies to (MAV_CMD_DO_REPOSITION) until it holds there.
     guided_to: Option<Ned>,
+    /// Where MAV_CMD_DO_REPOSITION sent the vehicle (PX4 profile, in its hold mode): it goes
+    /// there, then holds there.
+    reposition: Option<(Ned, GeoPoint)>,
     /// Speed set by DO_CHANGE_SPEED (mission item or command) until the mode changes, m/s.
     speed_override: Option<f64>,
     /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
@@ -172,6 +175,7 @@ impl Vehicle {
             hold_point: Ned::default(),
             takeoff_to: None,
             guided_to: None,
+            reposition: None,
             speed_override: None,
             quiet_progress: false,
             profile: Profile::ArduPilot,
@@ -523,6 +527,7 @@ impl Vehicle {
                 up: alt,
             });
         }
+        self.reposition = None;
         if self.speed_override.take().is_some() {
             self.record(LogEvent::SpeedChanged { speed: 0.0 });
         }
@@ -615,7 +620,10 @@ impl Vehicle {
                 up: 0.0,
                 ..self.hold_point
             }),
-            Behaviour::Hold => Command::Hold(self.hold_point),
+            Behaviour::Hold => match self.reposition {
+                Some((p, _)) => Command::GoTo(p),
+                None => Command::Hold(self.hold_point),
+            },
         };
         let before = self.state.pos;
         self.state.step(self.cfg.kind, command, &limits, dt);
@@ -634,6 +642,19 @@ impl Vehicle {
             // ArduCopter disarms once LAND touches down.
             self.record(LogEvent::Landed);
             self.set_armed(false, &mut out);
+        }
+        if let Some((p, geo)) = self
+            .reposition
+            .filter(|_| self.behaviour() == Behaviour::Hold)
+        {
+            if self.within(&p, self.wp_radius()) {
+                self.reposition = None;
+                self.hold_point = p;
+                self.record(LogEvent::RepositionReached {
+                    lat: geo.lat_deg,
+                    lon: geo.lon_deg,
+                });
+            }
         }
         if let Some(t) = self
             .guided_to
@@ -1460,6 +1481,70 @@ mod tests {
         let mut a = rover();
         assert_eq!(
             command(&mut a, MavCmd::MAV_CMD_MISSION_START, 0.0, 0.0),
+            MavResult::MAV_RESULT_UNSUPPORTED
+        );
+    }
+
+    #[test]
+    fn px4_profile_repositions_then_holds_there() {
+        use mavlink::dialects::ardupilotmega::COMMAND_INT_DATA;
+        let mut v = rover();
+        v.set_profile(Profile::Px4);
+        let target = v.frame.to_geo(Ned {
+            north: 30.0,
+            east: 10.0,
+            up: 0.0,
+        });
+        let reposition = |v: &mut Vehicle, flags: f32| {
+            let cmd = COMMAND_INT_DATA {
+                command: MavCmd::MAV_CMD_DO_REPOSITION,
+                param1: -1.0,
+                param2: flags,
+                x: (target.lat_deg * 1e7).round() as i32,
+                y: (target.lon_deg * 1e7).round() as i32,
+                z: f32::NAN,
+                ..Default::default()
+            };
+            let out = v.handle(GCS, &MavMessage::COMMAND_INT(cmd), Instant::now());
+            out.iter()
+                .find_map(|m| match m {
+                    MavMessage::COMMAND_ACK(a) => Some(a.result),
+                    _ => None,
+                })
+                .unwrap()
+        };
+        // Disarmed: refused for now; armed in MANUAL without the mode flag: refused.
+        assert_eq!(
+            reposition(&mut v, 1.0),
+            MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+        );
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(reposition(&mut v, 0.0), MavResult::MAV_RESULT_DENIED);
+        assert_eq!(reposition(&mut v, 1.0), MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(v.behaviour(), Behaviour::Hold);
+        assert!(
+            matches!(v.heartbeat(), MavMessage::HEARTBEAT(h) if h.custom_mode == 4 << 16 | 3 << 24),
+            "AUTO.LOITER"
+        );
+        run_until(&mut v, 60.0, |v| v.reposition.is_none());
+        let here = v.position();
+        assert!((here.north - 30.0).abs() < 3.0 && (here.east - 10.0).abs() < 3.0);
+        let log = v.take_log();
+        assert!(log
+            .iter()
+            .any(|(_, e)| matches!(e, LogEvent::RepositionReached { .. })));
+        // It holds there.
+        for _ in 0..500 {
+            v.step(0.02);
+        }
+        assert!(v.position().horizontal_distance(&here) < 1.0);
+        // Not an ArduPilot command in mavsim.
+        let mut a = rover();
+        assert_eq!(
+            command(&mut a, MavCmd::MAV_CMD_DO_REPOSITION, -1.0, 1.0),
             MavResult::MAV_RESULT_UNSUPPORTED
         );
     }

@@ -27,7 +27,7 @@ use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 use tokio_util::sync::CancellationToken;
 
 use crate::endpoint::Endpoint;
-use crate::security::{Pin, Pinned, Signing};
+use crate::security::{is_autopilot_heartbeat, Pin, Pinned, Signing};
 
 /// The longest MAVLink 2 frame: 10 header + 255 payload + 2 CRC + 13 signature bytes.
 pub const RESYNC_BYTES: usize = 280;
@@ -278,10 +278,11 @@ impl Guard {
                 ok
             }
             None => {
-                let fits = matches!(msg, MavMessage::HEARTBEAT(_))
+                let fits = matches!(&msg, MavMessage::HEARTBEAT(hb) if is_autopilot_heartbeat(hb))
                     && pin
                         .system_id
                         .is_none_or(|s| u32::from(s) == header.system_id)
+                    && pin.component_id.is_none_or(|c| c == header.component_id)
                     && (pin.peer.is_none() || pin.peer == from);
                 if fits {
                     let p = Pinned {
@@ -980,6 +981,7 @@ mod tests {
     async fn udpin_pins_the_first_heartbeat_and_ignores_spoofers() {
         let opts = OpenOptions {
             pin: Some(Pin {
+                component_id: None,
                 system_id: Some(1),
                 peer: None,
                 release_after: None,
@@ -1032,6 +1034,7 @@ mod tests {
         let release = Duration::from_millis(300);
         let opts = OpenOptions {
             pin: Some(Pin {
+                component_id: None,
                 system_id: Some(1),
                 peer: None,
                 release_after: Some(release),
@@ -1080,6 +1083,7 @@ mod tests {
         let spoof = UdpSocket::bind("127.0.0.1:0").await.expect("bind");
         let opts = OpenOptions {
             pin: Some(Pin {
+                component_id: None,
                 system_id: None,
                 peer: real.local_addr().ok(),
                 release_after: None,

@@ -36,4 +36,4 @@ pub use connection::{
     Connection, ConnectionOpenError, Counters, Frame, OpenOptions, SendError, RESYNC_BYTES,
 };
 pub use endpoint::{Endpoint, EndpointParseError};
-pub use security::{Pin, Pinned, Signing, SigningKey, SigningKeyLoadError};
+pub use security::{is_autopilot_heartbeat, Pin, Pinned, Signing, SigningKey, SigningKeyLoadError};

@@ -131,14 +131,45 @@ impl Signing {
 /// nothing but that heartbeat is delivered.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Pin {
-    /// The system id to pin to; `None`: the first heartbeat's.
+    /// The system id to pin to; `None`: the first autopilot heartbeat's.
     pub system_id: Option<u8>,
+    /// The component id to pin to; `None`: the first autopilot heartbeat's (a camera's or a
+    /// gimbal's never pins: see [`is_autopilot_heartbeat`]).
+    pub component_id: Option<u8>,
     /// The UDP address to pin to (`peer="ip:port"`); `None`: the first heartbeat's sender.
     /// A `udpin` connection answers it from the start.
     pub peer: Option<SocketAddr>,
     /// A pinned peer silent for longer than this is released: the next matching heartbeat
     /// pins again (an autopilot restarted from another port). `None`: pinned for good.
     pub release_after: Option<std::time::Duration>,
+}
+
+/// Whether a heartbeat may be an autopilot's: it names an autopilot and a vehicle type, not
+/// a ground station nor a peripheral component (camera, gimbal, companion computer...), which
+/// may also fill in the autopilot field.
+pub fn is_autopilot_heartbeat(hb: &mavlink::dialects::ardupilotmega::HEARTBEAT_DATA) -> bool {
+    use mavlink::dialects::ardupilotmega::{MavAutopilot, MavType::*};
+    hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+        && !matches!(
+            hb.mavtype,
+            MAV_TYPE_GCS
+                | MAV_TYPE_CAMERA
+                | MAV_TYPE_GIMBAL
+                | MAV_TYPE_ONBOARD_CONTROLLER
+                | MAV_TYPE_ADSB
+                | MAV_TYPE_ANTENNA_TRACKER
+                | MAV_TYPE_FLARM
+                | MAV_TYPE_SERVO
+                | MAV_TYPE_ODID
+                | MAV_TYPE_BATTERY
+                | MAV_TYPE_CHARGING_STATION
+                | MAV_TYPE_LOG
+                | MAV_TYPE_OSD
+                | MAV_TYPE_IMU
+                | MAV_TYPE_GPS
+                | MAV_TYPE_WINCH
+                | MAV_TYPE_PARACHUTE
+        )
 }
 
 /// What was pinned.

@@ -166,6 +166,11 @@ pub struct VasConfig {
     /// and an alarm asks the operator to restart).
     #[serde(rename = "@resumeAfterReboot")]
     pub resume_after_reboot: bool,
+    /// The autopilot's MAVLink component id where several components of the vehicle share
+    /// the link (`targetComponent`, 1 for MAV_COMP_ID_AUTOPILOT1); none: the first autopilot
+    /// component heard. Other components' traffic is ignored (and forwarded).
+    #[serde(rename = "@targetComponent")]
+    pub target_component: Option<u8>,
 }
 
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
@@ -218,6 +223,7 @@ impl Default for VasConfig {
             autopilot_sysid: None,
             autopilot_peer: None,
             target_system: None,
+            target_component: None,
             forward: Vec::new(),
             link_loss_timeout_ms: val.link_loss.timeout.as_millis() as u64,
             link_loss_action: val.link_loss.action.name().into(),
@@ -362,6 +368,7 @@ impl VasConfig {
         self.pin_autopilot.then_some(mavconn::Pin {
             // `targetSystem` names the same autopilot for routing: pin that one too.
             system_id: self.autopilot_sysid.or(self.target_system),
+            component_id: self.target_component,
             peer: self.autopilot_peer,
             release_after: Some(Duration::from_millis(self.heartbeat_timeout_ms)),
         })
@@ -381,7 +388,9 @@ impl VasConfig {
                 pin: self.pin(),
                 family: self.autopilot.family(),
                 forward: self.forward.iter().map(|f| f.endpoint.clone()).collect(),
-                target_system: self.target_system,
+                // One autopilot: `autopilotSysid` (what is pinned) names it for routing too.
+                target_system: self.target_system.or(self.autopilot_sysid),
+                target_component: self.target_component,
                 ..ManagerConfig::default()
             },
             resume_after_reboot: self.resume_after_reboot,

@@ -7,7 +7,8 @@
 //!   waypoint queue the FPMa feeds, manual control from the FMo. [`val::Vas`] is the
 //!   middleware service (`IService`).
 //! - [`apl`]: the Autopilot Layer, per autopilot family: the [`apl::IAutopilot`] trait and its
-//!   ArduPilot implementation [`apl::ardupilot::ArduPilot`], which keeps the autopilot fed
+//!   ArduPilot and PX4 implementations [`apl::ardupilot::ArduPilot`], [`apl::px4::Px4`] (one
+//!   MAVLink layer, a family-specific [`apl::ApFamily`] each), which keep the autopilot fed
 //!   through the [rolling waypoint queue](apl::queue) (003 §3.3.2), built on
 //! - [`mavlink_cm`]: the MAVLink Communication Manager (003 §3.2.2), independent of USAL.
 //!
@@ -25,6 +26,7 @@ use anyhow::Context;
 use tokio_util::sync::CancellationToken;
 
 use crate::apl::ardupilot::ArduPilot;
+use crate::apl::px4::Px4;
 use crate::apl::IAutopilot;
 use crate::config::{AutopilotKind, VasConfig};
 
@@ -43,22 +45,21 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
     )
     .context("loading the network configuration")?;
     let signing = config.signing().context("MAVLink signing")?;
-    // One APL for every family: the manager applies the family's conventions (modes, item 0,
-    // the current item after an upload), chosen from the heartbeat unless configured.
-    let apl: Arc<dyn IAutopilot> = match config.autopilot {
-        AutopilotKind::Auto
-        | AutopilotKind::Ardupilot
-        | AutopilotKind::Px4
-        | AutopilotKind::Generic => Arc::new(
-            ArduPilot::open(&config.endpoint, {
-                let mut ap = config.ardupilot();
-                ap.manager.signing = signing;
-                ap
-            })
+    // The PX4 APL where the configuration names PX4; otherwise the shared MAVLink layer with
+    // the family's modes the configuration names, or the heartbeat's (`auto`).
+    let mut ap = config.ardupilot();
+    ap.manager.signing = signing;
+    let opened = match config.autopilot {
+        AutopilotKind::Px4 => Px4::open(&config.endpoint, ap)
             .await
-            .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
-        ),
+            .map(|a| Arc::new(a) as Arc<dyn IAutopilot>),
+        AutopilotKind::Auto | AutopilotKind::Ardupilot | AutopilotKind::Generic => {
+            ArduPilot::open(&config.endpoint, ap)
+                .await
+                .map(|a| Arc::new(a) as Arc<dyn IAutopilot>)
+        }
     };
+    let apl = opened.with_context(|| format!("opening the autopilot at {}", config.endpoint))?;
     if config.manual_stations.is_none() {
         tracing::warn!("manualStations not set: manual control is obeyed from any station");
     }

@@ -63,6 +63,9 @@ struct Args {
     /// raise an alarm saying so; default: follow the autopilot and ask the operator.
     #[arg(long)]
     resume_after_reboot: bool,
+    /// The autopilot's MAVLink component id, where several components share the link.
+    #[arg(long)]
+    target_component: Option<u8>,
 }
 
 #[tokio::main]
@@ -120,6 +123,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.target_system.is_some() {
         cfg.target_system = args.target_system;
+    }
+    if args.target_component.is_some() {
+        cfg.target_component = args.target_component;
     }
     cfg.forward.extend(
         args.forward

@@ -11,7 +11,18 @@ use usal_types::{FlightState, QueueStatus};
 
 /// Flies `n` waypoints on mavsim `--autopilot profile`; returns after checking them.
 async fn fly_on(profile: &str, n: usize) {
+    fly_configured(profile, n, None).await;
+}
+
+/// [`fly_on`] with the VAS's `autopilot` attribute set to `family` (else `auto`).
+async fn fly_configured(profile: &str, n: usize, family: Option<&str>) {
     let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("vas.xml");
+    std::fs::write(
+        &cfg,
+        format!(r#"<vas autopilot="{}"/>"#, family.unwrap_or("auto")),
+    )
+    .unwrap();
     let sim = Sim::start_with(
         "127.0.0.1:0",
         30.0,
@@ -23,7 +34,7 @@ async fn fly_on(profile: &str, n: usize) {
     let vas = VasProc::start(
         &format!("udpout:{}", sim.addr),
         &domain,
-        &["--queue-size", "5"],
+        &["--config", cfg.to_str().unwrap(), "--queue-size", "5"],
     );
     let g = Ground::open(&domain).await;
     let queue = g
@@ -104,6 +115,15 @@ async fn forty_waypoints_on_the_px4_profile() {
     tokio::time::timeout(STEP * 12, fly_on("px4", 40))
         .await
         .expect("px4 profile flight bounded");
+}
+
+/// The PX4 APL (`autopilot="px4"`), not only the heartbeat's choice: PX4's modes, the
+/// mission started with MAV_CMD_MISSION_START.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thirty_waypoints_on_the_px4_profile_with_the_px4_layer() {
+    tokio::time::timeout(STEP * 10, fly_configured("px4", 30, Some("px4")))
+        .await
+        .expect("px4 layer flight bounded");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -19,6 +19,26 @@ impl Vehicle {
                 let result = self.command(c, now, &mut out);
                 out.push(command_ack(c.command, result));
             }
+            // PX4 takes DO_REPOSITION as COMMAND_INT (lat/lon in 1e-7 degrees); nothing else
+            // arrives that way here.
+            MavMessage::COMMAND_INT(c) if self.for_us(c.target_system) => {
+                let result = match c.command {
+                    MavCmd::MAV_CMD_DO_REPOSITION if self.profile == Profile::Px4 => self
+                        .px4_reposition(
+                            [c.param1, c.param2, c.param4],
+                            // INT32_MAX: unchanged (where it is), as in PX4.
+                            if c.x == i32::MAX || c.y == i32::MAX {
+                                (f64::NAN, f64::NAN)
+                            } else {
+                                (f64::from(c.x) / 1e7, f64::from(c.y) / 1e7)
+                            },
+                            c.z,
+                            &mut out,
+                        ),
+                    _ => MavResult::MAV_RESULT_UNSUPPORTED,
+                };
+                out.push(command_ack(c.command, result));
+            }
             MavMessage::SET_MODE(m) if self.for_us(m.target_system) => {
                 let result = match self.profile.decode_mode(self.cfg.kind, m.custom_mode) {
                     Some(mode) => self.change_mode(mode, &mut out),
@@ -211,7 +231,7 @@ impl Vehicle {
 
     /// MAV_CMD_DO_REPOSITION as a COMMAND_LONG (no frame: the altitude is MSL): in GUIDED,
     /// fly to the point (at param1 m/s when positive), then hold there.
-    fn reposition(&mut self, c: &COMMAND_LONG_DATA) -> MavResult {
+    fn guided_reposition(&mut self, c: &COMMAND_LONG_DATA) -> MavResult {
         let (lat, lon, alt) = (
             f64::from(c.param5),
             f64::from(c.param6),
@@ -244,6 +264,73 @@ impl Vehicle {
             lat,
             lon,
             alt: to.up,
+        });
+        MavResult::MAV_RESULT_ACCEPTED
+    }
+
+    /// MAV_CMD_DO_REPOSITION as PX4 does it: with the CHANGE_MODE flag (param2 bit 0), or
+    /// already holding, the vehicle switches to its hold mode (AUTO.LOITER), goes to
+    /// (lat, lon) at the ground speed `param1` (when positive) and holds there. A NaN or zero
+    /// position means where it is; a NaN altitude its own (above home).
+    /// `params` are param1 (speed), param2 (flags) and param4 (yaw, ignored).
+    fn px4_reposition(
+        &mut self,
+        params: [f32; 3],
+        (lat, lon): (f64, f64),
+        alt: f32,
+        out: &mut Vec<MavMessage>,
+    ) -> MavResult {
+        let [speed, flags, _yaw] = params;
+        let change_mode = flags.is_finite() && (flags as u32) & 1 == 1;
+        if !change_mode && self.behaviour() != Behaviour::Hold {
+            return MavResult::MAV_RESULT_DENIED;
+        }
+        if !self.armed {
+            // PX4 refuses to move a disarmed vehicle.
+            return MavResult::MAV_RESULT_TEMPORARILY_REJECTED;
+        }
+        let here = !lat.is_finite() || !lon.is_finite() || (lat == 0.0 && lon == 0.0);
+        if !here && (lat.abs() > 90.0 || lon.abs() > 180.0) {
+            return MavResult::MAV_RESULT_DENIED;
+        }
+        // PX4's AUTO.LOITER: the first mode of the table with that encoding.
+        let Some(hold) = self.profile.decode_mode(self.cfg.kind, 4 << 16 | 3 << 24) else {
+            return MavResult::MAV_RESULT_UNSUPPORTED;
+        };
+        if self.behaviour() != Behaviour::Hold {
+            let r = self.change_mode(hold, out);
+            if r != MavResult::MAV_RESULT_ACCEPTED {
+                return r;
+            }
+        }
+        let geo = if here {
+            self.frame.to_geo(self.state.pos)
+        } else {
+            GeoPoint {
+                lat_deg: lat,
+                lon_deg: lon,
+                alt_m: 0.0,
+            }
+        };
+        let mut pos = if here {
+            self.state.pos
+        } else {
+            self.frame.to_local(geo)
+        };
+        pos.up = match self.cfg.kind {
+            VehicleKind::Rover => 0.0,
+            _ if alt.is_finite() => f64::from(alt),
+            _ => self.state.pos.up,
+        };
+        if speed.is_finite() && speed > 0.0 {
+            self.change_speed(speed);
+        }
+        self.hold_point = pos;
+        self.reposition = Some((pos, geo));
+        self.record(LogEvent::Repositioned {
+            lat: geo.lat_deg,
+            lon: geo.lon_deg,
+            alt: pos.up,
         });
         MavResult::MAV_RESULT_ACCEPTED
     }
@@ -361,7 +448,15 @@ impl Vehicle {
                 MavResult::MAV_RESULT_ACCEPTED
             }
             MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(c.param7),
-            MavCmd::MAV_CMD_DO_REPOSITION => self.reposition(c),
+            // PX4 also takes DO_REPOSITION as COMMAND_LONG (degrees as floats).
+            MavCmd::MAV_CMD_DO_REPOSITION if self.profile == Profile::Px4 => self.px4_reposition(
+                [c.param1, c.param2, c.param4],
+                (f64::from(c.param5), f64::from(c.param6)),
+                c.param7,
+                out,
+            ),
+            // ArduPilot: a guided target, in GUIDED.
+            MavCmd::MAV_CMD_DO_REPOSITION => self.guided_reposition(c),
             // PX4: into the mission (AUTO.MISSION), from item param1 when given.
             MavCmd::MAV_CMD_MISSION_START if self.profile == Profile::Px4 => {
                 let Some(auto) = modes::table(self.cfg.kind)

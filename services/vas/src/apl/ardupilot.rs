@@ -9,6 +9,11 @@
 //!
 //! This file holds the configuration and the [`ArduPilot`] handle (the [`IAutopilot`] side);
 //! `driver` is the task, `mapping` the pure USAL-to-ArduPilot translation.
+//!
+//! The layer is the MAVLink one every family shares: what is ArduPilot's in it is
+//! [`ArduPilotModes`], its [`ApFamily`] (mode table, DO_SET_MODE). [`super::px4::Px4`] is the
+//! same layer with PX4's; [`ArduPilot::open`] takes the family the configuration names, or
+//! the heartbeat's when it names none.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -26,11 +31,11 @@ use usal_types::{
 };
 
 use super::queue::{QueueAction, RollingQueue};
-use super::{ApEvent, AutopilotError, IAutopilot};
+use super::{family_modes, ApEvent, ApFamily, Arming, AutopilotError, IAutopilot};
 use crate::mavlink_cm::dialect::{MavCmd, MavFrame, MavSeverity};
 use crate::mavlink_cm::{
-    ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError, MissionItem,
-    MissionStage, Telemetry,
+    CommandError, ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError,
+    MissionItem, MissionStage, Telemetry,
 };
 
 mod driver;
@@ -84,8 +89,44 @@ pub enum ArduPilotOpenError {
     Queue(#[from] super::QueueCreateError),
 }
 
+/// ArduPilot's [`ApFamily`]: its mode table per vehicle ([`mapping`]), modes entered with
+/// DO_SET_MODE. A generic autopilot whose heartbeat shows PX4's mode encoding (MAVSDK's
+/// server) may refuse the change into AUTO: its mission is started with MAV_CMD_MISSION_START.
+pub struct ArduPilotModes;
+
+#[async_trait]
+impl ApFamily for ArduPilotModes {
+    fn name(&self) -> &'static str {
+        "ardupilot"
+    }
+
+    fn mode_for(&self, kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)> {
+        mode_for(kind, state)
+    }
+
+    fn state_for_mode(&self, kind: VehicleKind, mode: &str) -> Option<FlightState> {
+        state_for_mode(kind, mode)
+    }
+
+    async fn enter(
+        &self,
+        mgr: &MavlinkManager,
+        to: FlightState,
+        mode: &'static str,
+        first_slot: u16,
+    ) -> Result<(), CommandError> {
+        match mgr.set_mode(mode).await {
+            Err(e) if to == FlightState::WaypointNavigation && mgr.state().px4_modes => {
+                mgr.mission_start(first_slot).await.map_err(|_| e)
+            }
+            r => r,
+        }
+    }
+}
+
 enum Cmd {
     ChangeState(FlightState, oneshot::Sender<Result<(), AutopilotError>>),
+    DirectTo([f64; 4], oneshot::Sender<Result<(), AutopilotError>>),
     Push(Vec<Waypoint>, oneshot::Sender<QueueStatus>),
     Clear(oneshot::Sender<QueueStatus>),
     Status(oneshot::Sender<QueueStatus>),
@@ -104,18 +145,29 @@ pub struct ArduPilot {
 
 impl ArduPilot {
     /// Opens the MAVLink endpoint (`udpout:HOST:PORT`, `serial:PATH:BAUD`...) and starts the
-    /// layer's driver. Call [`IAutopilot::listen_ap`] next.
+    /// layer's driver. Call [`IAutopilot::listen_ap`] next. The family's modes are those the
+    /// configuration names (`cfg.manager.family`), else the heartbeat's.
     ///
     /// # Errors
     /// A malformed endpoint or queue size.
     pub async fn open(endpoint: &str, cfg: ArduPilotConfig) -> Result<Self, ArduPilotOpenError> {
+        let modes = cfg.manager.family.map(family_modes);
+        Self::open_with(endpoint, cfg, modes).await
+    }
+
+    /// [`Self::open`] with the family-specific part fixed (`None`: the heartbeat's family).
+    pub(crate) async fn open_with(
+        endpoint: &str,
+        cfg: ArduPilotConfig,
+        modes: Option<&'static dyn ApFamily>,
+    ) -> Result<Self, ArduPilotOpenError> {
         let queue = RollingQueue::new(cfg.queue_slots)?;
         let mgr = Arc::new(MavlinkManager::open(endpoint, cfg.manager.clone()).await?);
         let (cmd_tx, cmd_rx) = mpsc::channel(64);
         let (events_tx, _) = broadcast::channel(1024);
         let cancel = CancellationToken::new();
         let tasks = TaskTracker::new();
-        let mut driver = Driver::new(mgr.clone(), cfg.vehicle, queue, events_tx.clone());
+        let mut driver = Driver::new(mgr.clone(), cfg.vehicle, queue, events_tx.clone(), modes);
         driver.resume_after_reboot = cfg.resume_after_reboot;
         tasks.spawn(driver.run(cmd_rx, cancel.clone()));
         tasks.close();
@@ -219,6 +271,17 @@ impl IAutopilot for ArduPilot {
 
     async fn command(&self, cmd: VehicleCommand) -> Result<(), AutopilotError> {
         self.ask(|tx| Cmd::Command(cmd, tx)).await?
+    }
+
+    async fn direct_to(
+        &self,
+        lat: f64,
+        lon: f64,
+        alt: f32,
+        speed: f32,
+    ) -> Result<(), AutopilotError> {
+        let target = [lat, lon, f64::from(alt), f64::from(speed)];
+        self.ask(|tx| Cmd::DirectTo(target, tx)).await?
     }
 
     async fn shutdown(&self) {

@@ -1,5 +1,14 @@
 //! The Autopilot Layer (APL, 003 §3.3): the [`IAutopilot`] interface the VAL drives, and its
-//! implementation for ArduPilot ([`ardupilot::ArduPilot`]) on the MAVLink manager.
+//! implementations on the MAVLink manager: ArduPilot ([`ardupilot::ArduPilot`]) and PX4
+//! ([`px4::Px4`]).
+//!
+//! The two families share everything but their modes and how a state is entered: the MAVLink
+//! layer in `ardupilot` (rolling queue, telemetry, reconnection, the mission conventions the
+//! manager applies per [`AutopilotFamily`]) takes an [`ApFamily`], the family-specific part:
+//! the mode of each flight state and back, and the commands that enter a state (ArduPilot:
+//! DO_SET_MODE; PX4: MAV_CMD_MISSION_START into a mission, MAV_CMD_DO_REPOSITION for
+//! DIRECTED). With `autopilot="auto"` the family is read from the heartbeat each time it is
+//! needed, so a replaced autopilot is met with its own table ([`family_modes`]).
 //!
 //! The seed's interface had 14 procedures, of which a rover needs four (003 §3.3.1):
 //! `ListenAp` ([`IAutopilot::listen_ap`]), `ChangeState` ([`IAutopilot::change_state`]),
@@ -8,6 +17,7 @@
 //! What the autopilot reports comes back as [`ApEvent`]s.
 
 pub mod ardupilot;
+pub mod px4;
 pub mod queue;
 
 use async_trait::async_trait;
@@ -18,6 +28,76 @@ use usal_types::{
 };
 
 pub use queue::{QueueAction, QueueCreateError, RollingQueue};
+
+use crate::mavlink_cm::{AutopilotFamily, CommandError, MavlinkManager};
+
+/// Whether entering a flight state arms the motors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Arming {
+    /// Leave the arming as it is.
+    Keep,
+    /// Arm first.
+    Arm,
+}
+
+/// The family-specific part of a MAVLink autopilot layer: modes and the commands that enter
+/// a flight state. Everything else (queue, telemetry, mission protocol) is shared.
+#[async_trait]
+pub trait ApFamily: Send + Sync {
+    /// Lower-case family name, as in the configuration.
+    fn name(&self) -> &'static str;
+
+    /// The mode (as the manager names it) and arming of a flight state; `None`: no mode
+    /// (CONFIGURE_CHECK, or a state the vehicle does not have).
+    fn mode_for(&self, kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)>;
+
+    /// The flight state a mode the autopilot chose means (RC switch, failsafe, end of mission).
+    fn state_for_mode(&self, kind: VehicleKind, mode: &str) -> Option<FlightState>;
+
+    /// Puts the autopilot into `mode`, the mode of `to` (already armed where
+    /// [`Self::mode_for`] says so; for WAYPOINT_NAVIGATION the queue is primed and its current
+    /// slot is `first_slot`). Returns once the autopilot confirmed it.
+    ///
+    /// # Errors
+    /// Refused, unanswered or not confirmed.
+    async fn enter(
+        &self,
+        mgr: &MavlinkManager,
+        to: FlightState,
+        mode: &'static str,
+        first_slot: u16,
+    ) -> Result<(), CommandError>;
+
+    /// Sends the vehicle, in DIRECTED, to (`lat`, `lon`, `alt` metres above home; NaN: keep)
+    /// at `speed` m/s (≤ 0: its default), where it then holds.
+    ///
+    /// # Errors
+    /// [`CommandError::Rejected`] where the family has no such command, else as the command.
+    async fn direct_to(
+        &self,
+        mgr: &MavlinkManager,
+        lat: f64,
+        lon: f64,
+        alt: f32,
+        speed: f32,
+    ) -> Result<(), CommandError> {
+        let _ = (mgr, lat, lon, alt, speed);
+        Err(CommandError::Rejected {
+            command: crate::mavlink_cm::dialect::MavCmd::MAV_CMD_DO_REPOSITION,
+            result: crate::mavlink_cm::dialect::MavResult::MAV_RESULT_UNSUPPORTED,
+        })
+    }
+}
+
+/// The family-specific part for an autopilot family: PX4's for PX4, ArduPilot's otherwise
+/// (a generic autopilot such as MAVSDK's server uses ArduPilot's mode names, in whichever
+/// encoding its heartbeat shows).
+pub fn family_modes(family: AutopilotFamily) -> &'static dyn ApFamily {
+    match family {
+        AutopilotFamily::Px4 => &px4::Px4Modes,
+        AutopilotFamily::ArduPilot | AutopilotFamily::Generic => &ardupilot::ArduPilotModes,
+    }
+}
 
 /// What an autopilot layer reports to the VAL.
 #[derive(Clone, Debug, PartialEq)]
@@ -135,6 +215,24 @@ pub trait IAutopilot: Send + Sync {
         Err(AutopilotError::Unsupported(format!(
             "{cmd} is not implemented for this autopilot"
         )))
+    }
+
+    /// In DIRECTED: sends the vehicle to (`lat`, `lon`, `alt` metres above home; NaN: keep)
+    /// at `speed` m/s (≤ 0: its default), where it holds (PX4: MAV_CMD_DO_REPOSITION).
+    ///
+    /// # Errors
+    /// Not in DIRECTED, or the autopilot cannot (the default) or refused.
+    async fn direct_to(
+        &self,
+        lat: f64,
+        lon: f64,
+        alt: f32,
+        speed: f32,
+    ) -> Result<(), AutopilotError> {
+        let _ = (lat, lon, alt, speed);
+        Err(AutopilotError::Unsupported(
+            "a DIRECTED target on this autopilot".into(),
+        ))
     }
 
     /// Stops the layer's tasks.

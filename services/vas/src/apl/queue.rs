@@ -22,6 +22,13 @@
 //! driven to is owed ([`RollingQueue::current_kept`] waives it where the autopilot is known to
 //! have kept it), so the vehicle never turns back toward an item it has passed.
 //!
+//! A set-current must not race the autopilot's own advance: when it reports a waypoint
+//! reached, many autopilots (MAVSDK's server among them) move their current item on a moment
+//! later, and a set-current landing in between is advanced from, skipping the waypoint it
+//! named. So after a reach no set-current is issued (the wrap's included) until the
+//! autopilot reports it drives to the next slot ([`RollingQueue::on_current`]), or the driver
+//! knows no such report will come ([`RollingQueue::assume_advanced`]).
+//!
 //! When fewer waypoints are known than the window holds, the mission is truncated after the
 //! last one (a full upload, which ArduPilot does without changing the current target), so
 //! the vehicle stops there instead of driving back to a stale slot.
@@ -73,6 +80,12 @@ pub struct RollingQueue<W> {
     partial_ok: bool,
     /// `clear` was called: the next push replaces everything after the target.
     replacing: bool,
+    /// The autopilot has moved to `cur` by itself since the last reach, or no advance of its
+    /// own is pending (after a set-current or an upload of ours): a set-current cannot race it.
+    advanced: bool,
+    /// The last reach was of the last item on board while waypoints remain: the autopilot
+    /// ended its mission early (a wrap or a growing write came too late).
+    ended_early: bool,
 }
 
 impl<W: Clone + PartialEq> RollingQueue<W> {
@@ -94,6 +107,8 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             owe_restore: false,
             partial_ok: true,
             replacing: false,
+            advanced: true,
+            ended_early: false,
         })
     }
 
@@ -175,6 +190,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     pub fn start(&mut self) {
         self.cur = Some(1);
         self.owe_start = true;
+        self.advanced = true;
     }
 
     /// Stops navigating (the autopilot left AUTO). The waypoints stay queued.
@@ -193,6 +209,32 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     /// A set-current is owed to restore the current item after a whole upload.
     pub fn owes_restore(&self) -> bool {
         self.owe_restore
+    }
+
+    /// A set-current is due but waits for the autopilot to report its own advance past the
+    /// waypoint last reached.
+    pub fn awaits_advance(&self) -> bool {
+        !self.advanced && self.cur.is_some() && self.wants_set_current()
+    }
+
+    /// Whether the last reach ended the autopilot's mission with waypoints still queued (its
+    /// last item on board was reached before the wrap or a growing write): navigation must be
+    /// restarted ([`Self::start`]) to go on. Reading it clears it.
+    pub fn take_ended_early(&mut self) -> bool {
+        std::mem::take(&mut self.ended_early)
+    }
+
+    /// The autopilot will not report its advance (it reports no progress, or not in time):
+    /// take it as done.
+    pub fn assume_advanced(&mut self) {
+        self.advanced = true;
+    }
+
+    /// Whether the next action, advance aside, would be a set-current.
+    fn wants_set_current(&self) -> bool {
+        let mut q = self.clone();
+        q.advanced = true;
+        matches!(q.poll(), Some(QueueAction::SetCurrent(_)))
     }
 
     /// The autopilot reports it drives to mission item `slot`: is that back toward a waypoint
@@ -310,12 +352,14 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         if c == self.n {
             // Driving to the mirror slot: wrap to slot 1 unless this is the last waypoint.
             if self.ahead.len() < 2 {
-                return self.owe_restore.then_some(QueueAction::SetCurrent(c));
+                return (self.owe_restore && self.advanced).then_some(QueueAction::SetCurrent(c));
             }
             if self.have.first() != Some(&Some(a0.clone())) {
                 return Some(self.write(1, vec![a0]));
             }
-            return Some(QueueAction::SetCurrent(1));
+            // Once the autopilot is seen driving to the mirror: a set-current before its
+            // own advance would be advanced from, skipping slot 1's waypoint.
+            return self.advanced.then_some(QueueAction::SetCurrent(1));
         }
         let want = self.wanted(c);
         let filler = || a0.clone();
@@ -349,7 +393,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         if let Some(write) = first_run() {
             return Some(write);
         }
-        if self.owe_start || self.owe_restore {
+        if self.owe_start || (self.owe_restore && self.advanced) {
             return Some(QueueAction::SetCurrent(c));
         }
         None
@@ -381,7 +425,8 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             QueueAction::Upload(items) => {
                 self.have = items.iter().cloned().map(Some).collect();
                 self.have_known = true;
-                // The autopilot may have reset its current item: it is restored next.
+                // The autopilot may have reset its current item: it is restored next (once
+                // its own advance, if one is pending, is done).
                 self.owe_restore = self.cur.is_some();
             }
             QueueAction::WritePartial { start, items } => {
@@ -398,6 +443,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
                 }
                 self.owe_start = false;
                 self.owe_restore = false;
+                self.advanced = true;
             }
         }
     }
@@ -411,49 +457,37 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             return None;
         }
         let w = self.ahead.pop_front()?;
-        if self.ahead.is_empty() || slot == self.n {
-            // Last waypoint, or the wrap was missed and the mission ended: the autopilot
-            // holds; navigation must be restarted.
+        let last_on_board = self.have_known && usize::from(slot) == self.have.len();
+        if self.ahead.is_empty() || slot == self.n || last_on_board {
+            // Last waypoint, or the last item on board (the wrap, or the write growing the
+            // mission, came too late) and the mission ended: the autopilot holds; navigation
+            // must be restarted.
             self.cur = None;
+            self.ended_early = !self.ahead.is_empty();
         } else {
             self.cur = Some(slot + 1);
+            self.advanced = false;
         }
         Some(w)
     }
 
-    /// MISSION_CURRENT says the autopilot drives to `slot`, the slot after the target, while
-    /// the target's slot is `just_set` (ours, made current a moment ago, no reach reported):
-    /// the autopilot's own advance raced our set-current and skipped the target. The target
-    /// stays, and it is made current again (returns true); [`Self::on_current`] must not take
-    /// the jump for a reach.
-    pub fn jumped_past(&mut self, slot: u16, just_set: Option<u16>) -> bool {
-        let Some(c) = self.cur else {
-            return false;
-        };
-        if self.owe_start || just_set != Some(c) || self.ahead.len() < 2 {
-            return false;
-        }
-        match self.slot_of(c, 1) {
-            Some((s, _)) if s == slot => {
-                self.owe_restore = true;
-                true
-            }
-            _ => false,
-        }
-    }
-
     /// MISSION_CURRENT says the autopilot drives to `slot`. When that is the slot of the
     /// waypoint after the target, the target's reached message was missed: it is returned
-    /// as reached.
+    /// as reached. When it is the target's slot, the autopilot's own advance is done.
     pub fn on_current(&mut self, slot: u16) -> Option<W> {
         let c = self.cur?;
-        if self.owe_start || c == self.n || self.ahead.len() < 2 {
-            return None;
+        let reached = if self.owe_start || c == self.n || self.ahead.len() < 2 {
+            None
+        } else {
+            match self.slot_of(c, 1) {
+                Some((s, _)) if s == slot => self.on_reached(c),
+                _ => None,
+            }
+        };
+        if self.cur == Some(slot) {
+            self.advanced = true;
         }
-        match self.slot_of(c, 1) {
-            Some((s, _)) if s == slot => self.on_reached(c),
-            _ => None,
-        }
+        reached
     }
 }
 
@@ -511,6 +545,25 @@ mod tests {
             }
             true
         }
+        /// Reaches the current item without advancing (the report goes out first).
+        fn reach_only(&mut self) -> Option<u16> {
+            if self.holding {
+                return None;
+            }
+            let slot = self.current;
+            assert_ne!(slot, 0, "never sent back to item 0 here");
+            let wp = *self.mission.get(usize::from(slot) - 1)?;
+            self.reached.push(wp);
+            Some(slot)
+        }
+        /// The advance after [`Self::reach_only`], from whatever is current by then.
+        fn advance(&mut self) {
+            if usize::from(self.current) == self.mission.len() {
+                self.holding = true;
+            } else {
+                self.current += 1;
+            }
+        }
         /// Drives to the current item; returns the slot reached.
         fn drive(&mut self) -> Option<u16> {
             if self.holding {
@@ -564,6 +617,7 @@ mod tests {
             }
             let w = q.on_reached(slot);
             assert_eq!(w, ap.reached.last().copied(), "queue and autopilot agree");
+            q.on_current(ap.current);
             settle(&mut q, &mut ap);
         }
         ap
@@ -590,24 +644,112 @@ mod tests {
         assert_eq!(ap.reached, (0..50).collect::<Vec<_>>());
     }
 
+    /// An autopilot whose "reached, advance" is two steps (MAVSDK's server): a set-current
+    /// landing between them is advanced from.
     #[test]
-    fn a_jump_right_after_our_set_current_is_not_a_reach_and_the_target_is_made_current_again() {
-        let mut q = RollingQueue::new(5).unwrap();
-        q.push(10..20);
+    fn the_wrap_waits_for_the_autopilots_own_advance_so_it_cannot_be_advanced_from() {
+        for racing in [false, true] {
+            let mut q = RollingQueue::new(5).unwrap();
+            let mut ap = Autopilot::new(true);
+            q.push(0..30);
+            q.start();
+            settle(&mut q, &mut ap);
+            let mut wraps = 0;
+            // Reached: reported now, the advance a step later.
+            while let Some(slot) = ap.reach_only() {
+                let w = q.on_reached(slot);
+                assert_eq!(w, ap.reached.last().copied());
+                if racing {
+                    // What the queue asks before the advance must not be a set-current.
+                    while let Some(a) = q.poll() {
+                        assert!(
+                            !matches!(a, QueueAction::SetCurrent(_)),
+                            "set-current before the advance: {a:?}"
+                        );
+                        assert!(ap.apply(&a));
+                        q.done(&a);
+                    }
+                    if q.current_slot() == Some(5) {
+                        assert!(q.awaits_advance(), "the wrap waits");
+                        wraps += 1;
+                    }
+                }
+                ap.advance();
+                assert_eq!(q.on_current(ap.current), None, "the advance is no reach");
+                assert!(!q.awaits_advance());
+                settle(&mut q, &mut ap);
+            }
+            assert_eq!(ap.reached, (0..30).collect::<Vec<_>>(), "racing: {racing}");
+            assert!(!racing || wraps >= 5, "{wraps} wraps");
+        }
+    }
+
+    #[test]
+    fn without_an_advance_report_the_set_current_goes_ahead_when_told() {
+        let mut q = RollingQueue::new(3).unwrap();
+        let mut ap = Autopilot::new(true);
+        q.push(0..10);
         q.start();
-        let up = q.poll().unwrap();
-        q.done(&up);
+        settle(&mut q, &mut ap);
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        settle(&mut q, &mut ap);
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        // Driving to the mirror slot 3; slot 1 holds its waypoint: only the wrap is left.
+        assert_eq!(q.current_slot(), Some(3));
+        assert_eq!(q.poll(), None);
+        assert!(q.awaits_advance());
+        q.assume_advanced();
         assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
-        q.done(&QueueAction::SetCurrent(1));
-        // The autopilot reports slot 2 at once: its own advance raced our set-current.
-        assert!(q.jumped_past(2, Some(1)));
-        assert_eq!(q.target(), Some(&10), "the target stays");
-        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
-        // Without a set-current of that slot a moment ago, the jump is a lost reach report.
-        q.done(&QueueAction::SetCurrent(1));
-        assert!(!q.jumped_past(2, None));
-        assert_eq!(q.on_current(2), Some(10));
-        assert_eq!(q.target(), Some(&11));
+        // A restart owes its set-current at once: no advance of the autopilot's is pending.
+        q.stop();
+        q.start();
+        assert!(!q.awaits_advance());
+    }
+
+    #[test]
+    fn a_mission_ended_at_its_last_item_with_waypoints_left_is_restarted_from_slot_1() {
+        let mut q = RollingQueue::new(4).unwrap();
+        let mut ap = Autopilot::new(true);
+        q.push(0..12);
+        q.start();
+        settle(&mut q, &mut ap);
+        // Reaches slots 1 and 2 while every write is lost (a stalled link).
+        for _ in 0..2 {
+            let s = ap.drive().unwrap();
+            q.on_reached(s);
+            q.on_current(ap.current);
+        }
+        let s = ap.drive().unwrap();
+        assert_eq!(q.on_reached(s), Some(2));
+        q.on_current(ap.current);
+        assert!(!q.take_ended_early());
+        // Driving to the mirror slot 4; slot 1 still holds waypoint 0: the wrap needs a
+        // write first, which is lost too; the autopilot reaches slot 4 and ends its mission.
+        assert_eq!(q.current_slot(), Some(4));
+        assert!(matches!(
+            q.poll(),
+            Some(QueueAction::WritePartial { start: 1, .. })
+        ));
+        assert_eq!(ap.drive(), Some(4));
+        assert!(ap.holding);
+        assert_eq!(q.on_reached(4), Some(3));
+        assert!(!q.is_running());
+        assert!(q.take_ended_early());
+        assert!(!q.take_ended_early(), "read once");
+        // Restarted: the next waypoint from slot 1, and the rest in order.
+        q.start();
+        ap.holding = false;
+        settle(&mut q, &mut ap);
+        while let Some(slot) = ap.drive() {
+            q.on_reached(slot);
+            q.on_current(ap.current);
+            settle(&mut q, &mut ap);
+        }
+        assert_eq!(ap.reached, (0..12).collect::<Vec<_>>());
+        // The plan's own end is no early end.
+        assert!(!q.take_ended_early());
     }
 
     #[test]
@@ -648,8 +790,11 @@ mod tests {
             );
             q.done(&a);
         }
-        // Reached slot 4: driving to 5, the mirror: wrap to 1 first, then refill 4.
+        // Reached slot 4: driving to 5, the mirror: wrap to 1 first (once the autopilot
+        // reports it drives to 5), then refill 4.
         assert_eq!(q.on_reached(4), Some(13));
+        assert_eq!(q.poll(), None);
+        assert_eq!(q.on_current(5), None);
         assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
         q.done(&QueueAction::SetCurrent(1));
         let a = q.poll().unwrap();
@@ -676,6 +821,7 @@ mod tests {
         settle(&mut q, &mut ap);
         let slot = ap.drive().unwrap();
         q.on_reached(slot);
+        q.on_current(ap.current);
         settle(&mut q, &mut ap);
         // A new, short queue: the target (1) stays, 100 follows, and the mission must end.
         q.clear();
@@ -701,6 +847,7 @@ mod tests {
         assert_eq!(actions[n - 1], QueueAction::SetCurrent(2));
         while let Some(slot) = ap.drive() {
             q.on_reached(slot);
+            q.on_current(ap.current);
             settle(&mut q, &mut ap);
         }
         assert_eq!(ap.reached, [0, 1, 100]);
@@ -739,6 +886,7 @@ mod tests {
         settle(&mut q, &mut ap);
         while let Some(slot) = ap.drive() {
             q.on_reached(slot);
+            q.on_current(ap.current);
             settle(&mut q, &mut ap);
         }
         assert_eq!(ap.reached, [0, 1, 100, 101, 102, 103, 104]);
@@ -770,6 +918,7 @@ mod tests {
         for _ in 0..6 {
             let s = ap.drive().unwrap();
             q.on_reached(s);
+            q.on_current(ap.current);
             settle(&mut q, &mut ap);
         }
         // Autopilot reboots: empty mission, current 1.
@@ -780,6 +929,7 @@ mod tests {
         settle(&mut q, &mut ap2);
         while let Some(s) = ap2.drive() {
             q.on_reached(s);
+            q.on_current(ap2.current);
             settle(&mut q, &mut ap2);
         }
         assert_eq!(ap2.reached, (6..20).collect::<Vec<_>>());
@@ -808,6 +958,7 @@ mod tests {
             while let Some(slot) = ap.drive() {
                 let w = q.on_reached(slot);
                 assert_eq!(w, ap.reached.last().copied());
+                q.on_current(ap.current);
                 while let Some(a) = q.poll() {
                     if let QueueAction::Upload(_) = a {
                         uploads += 1;

@@ -175,19 +175,28 @@ impl Inner {
             let _ = self.frames_tx.send(Arc::new((header, msg.clone())));
         }
         let (sys, comp) = (header.system_id as u8, header.component_id);
-        let known = self.state_tx.borrow().system_id;
+        let known = {
+            let s = self.state_tx.borrow();
+            s.system_id.zip(s.component_id)
+        };
         let mut came_up = false;
         if let MavMessage::HEARTBEAT(hb) = &msg {
-            let is_autopilot = hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
-                && hb.mavtype != MavType::MAV_TYPE_GCS;
-            // Several vehicles may share the link: the configured one, else the first heard.
-            let wanted = self.cfg.target_system.is_none_or(|t| t == sys);
-            if is_autopilot && wanted && (known.is_none() || known == Some(sys)) {
+            // Several vehicles, and several components of one vehicle (camera, gimbal,
+            // companion computer), may share the link: the configured system and component,
+            // else the first autopilot heard.
+            let wanted = self.cfg.target_system.is_none_or(|t| t == sys)
+                && self.cfg.target_component.is_none_or(|c| c == comp);
+            if mavconn::is_autopilot_heartbeat(hb)
+                && wanted
+                && known.is_none_or(|k| k == (sys, comp))
+            {
                 *last_hb = Some(Instant::now());
                 came_up = self.on_heartbeat(sys, comp, hb);
             }
         }
-        if known.is_some_and(|k| k != sys) || (known.is_none() && !came_up) {
+        // Anything else from another system or component is not the autopilot's (it still
+        // reaches the forward endpoints above).
+        if known.is_some_and(|k| k != (sys, comp)) || (known.is_none() && !came_up) {
             return came_up;
         }
         match &msg {

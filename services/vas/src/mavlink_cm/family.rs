@@ -45,6 +45,14 @@ impl AutopilotFamily {
         self == Self::ArduPilot
     }
 
+    /// The autopilot moves its current item on in the same step that reports a waypoint
+    /// reached (ArduPilot's mission update, PX4's navigator), so a set-current sent after the
+    /// report cannot be overtaken by that advance. Otherwise (MAVSDK's server: the
+    /// application reports, then advances) a set-current waits for the advance to be reported.
+    pub fn advances_with_its_report(self) -> bool {
+        self != Self::Generic
+    }
+
     /// Custom modes are PX4's (main, sub) encoding.
     pub fn px4_modes(self) -> bool {
         self == Self::Px4
@@ -75,5 +83,7 @@ mod tests {
         let other = AutopilotFamily::from_heartbeat(MavAutopilot::MAV_AUTOPILOT_GENERIC);
         assert_eq!(other, AutopilotFamily::Generic);
         assert!(!other.item0_is_home() && !other.keeps_current_on_upload());
+        assert!(ap.advances_with_its_report() && px4.advances_with_its_report());
+        assert!(!other.advances_with_its_report());
     }
 }

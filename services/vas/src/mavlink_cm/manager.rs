@@ -13,8 +13,8 @@ use std::time::Duration;
 use marea::sync::lock;
 use mavconn::Endpoint;
 use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavDataStream, MavMessage, MavModeFlag, MavResult, MavState, MavType,
-    COMMAND_LONG_DATA, RC_CHANNELS_OVERRIDE_DATA,
+    MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavResult, MavState,
+    MavType, COMMAND_INT_DATA, COMMAND_LONG_DATA, RC_CHANNELS_OVERRIDE_DATA,
 };
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::task::JoinHandle;
@@ -54,6 +54,10 @@ pub struct ManagerConfig {
     /// The autopilot's system id, where several vehicles share one link; `None`: the first
     /// autopilot heard.
     pub target_system: Option<u8>,
+    /// The autopilot's component id, where several components of a vehicle share the link
+    /// (MAV_COMP_ID_AUTOPILOT1 is 1); `None`: the first autopilot component heard. Traffic of
+    /// every other component is ignored (and forwarded).
+    pub target_component: Option<u8>,
     /// Extra endpoints MAVLink is forwarded to and from (another ground station), as
     /// `udpout:HOST:PORT` and the like.
     pub forward: Vec<String>,
@@ -73,6 +77,7 @@ impl Default for ManagerConfig {
             pin: None,
             family: None,
             target_system: None,
+            target_component: None,
             forward: Vec::new(),
         }
     }
@@ -270,6 +275,12 @@ impl MavlinkManager {
         })
     }
 
+    /// How long the manager waits for a heartbeat to confirm a change (and declares the link
+    /// lost without one).
+    pub fn heartbeat_timeout(&self) -> Duration {
+        self.inner.cfg.heartbeat_timeout
+    }
+
     /// The autopilot family whose conventions apply (configured, or from the heartbeat).
     pub fn family(&self) -> AutopilotFamily {
         self.inner.state_tx.borrow().family
@@ -357,6 +368,89 @@ impl MavlinkManager {
                 attempts: self.inner.cfg.retries,
             }),
         }
+    }
+
+    /// Sends COMMAND_INT (a command with a position: `x`, `y` in 1e-7 degrees for a global
+    /// `frame`, `z` in metres) and checks its COMMAND_ACK, retrying on silence. `params` are
+    /// param1 to param4.
+    ///
+    /// # Errors
+    /// No ACK after the retries, or an ACK other than ACCEPTED.
+    pub async fn command_int(
+        &self,
+        command: MavCmd,
+        frame: MavFrame,
+        params: [f32; 4],
+        (x, y, z): (i32, i32, f32),
+    ) -> Result<(), CommandError> {
+        let target = self.inner.target().await?;
+        let make = |_attempt: u32| {
+            MavMessage::COMMAND_INT(COMMAND_INT_DATA {
+                param1: params[0],
+                param2: params[1],
+                param3: params[2],
+                param4: params[3],
+                x,
+                y,
+                z,
+                command,
+                target_system: target.0,
+                target_component: target.1,
+                frame,
+                current: 0,
+                autocontinue: 0,
+            })
+        };
+        let matcher = |m: &MavMessage| match m {
+            MavMessage::COMMAND_ACK(a) if a.command == command => Some(a.result),
+            _ => None,
+        };
+        match self.inner.transact(make, matcher).await? {
+            Some(MavResult::MAV_RESULT_ACCEPTED) => Ok(()),
+            Some(result) => Err(CommandError::Rejected { command, result }),
+            None => Err(CommandError::RetriesExhausted {
+                command,
+                attempts: self.inner.cfg.retries,
+            }),
+        }
+    }
+
+    /// MAV_CMD_DO_REPOSITION (as COMMAND_INT): the vehicle goes to (`lat`, `lon`) (NaN: where
+    /// it is) at `speed` m/s (≤ 0: its default) and holds there, switching to its hold mode
+    /// (PX4's AUTO.LOITER) first. `alt` is metres above home (NaN: keep).
+    ///
+    /// # Errors
+    /// Refusal or no answer.
+    pub async fn reposition(
+        &self,
+        lat: f64,
+        lon: f64,
+        alt: f32,
+        speed: f32,
+    ) -> Result<(), CommandError> {
+        let deg = |d: f64| {
+            if d.is_finite() {
+                (d * 1e7)
+                    .round()
+                    .clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+            } else {
+                // "Unchanged" for PX4: its own position.
+                i32::MAX
+            }
+        };
+        // param2 bit 0: MAV_DO_REPOSITION_FLAGS_CHANGE_MODE; param4 NaN: keep the heading.
+        let speed = if speed.is_finite() && speed > 0.0 {
+            speed
+        } else {
+            -1.0
+        };
+        self.command_int(
+            MavCmd::MAV_CMD_DO_REPOSITION,
+            MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            [speed, 1.0, 0.0, f32::NAN],
+            (deg(lat), deg(lon), alt),
+        )
+        .await
     }
 
     async fn confirm(

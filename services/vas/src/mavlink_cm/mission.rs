@@ -17,6 +17,20 @@ use super::manager::MavlinkManager;
 use super::mission_upload::{mission_ack, MissionUpload, UploadConfig};
 use super::types::*;
 
+/// Whether the autopilot has partial mission writes, as its identity advertises it: an
+/// autopilot that answered AUTOPILOT_VERSION and whose heartbeat names ArduPilot (which has
+/// them) or PX4 (which has not). `None`: unknown (anything else, or no AUTOPILOT_VERSION):
+/// it must be probed.
+pub(crate) fn partial_writes_by_identity(s: &super::manager::VehicleState) -> Option<bool> {
+    use mavlink::dialects::ardupilotmega::MavAutopilot;
+    s.capabilities?;
+    match s.autopilot? {
+        MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA => Some(true),
+        MavAutopilot::MAV_AUTOPILOT_PX4 => Some(false),
+        _ => None,
+    }
+}
+
 impl MavlinkManager {
     pub fn mission_cached(&self) -> Vec<MissionItem> {
         lock(&self.inner.mission).clone()
@@ -182,10 +196,24 @@ impl MavlinkManager {
     /// answer but UNSUPPORTED or DENIED (a request, or an ACK such as INVALID_SEQUENCE for
     /// an empty mission) means the autopilot speaks it.
     ///
+    /// Where the autopilot has identified itself with AUTOPILOT_VERSION (its capabilities
+    /// are known, [`Self::request_capabilities`]), its heartbeat's `autopilot` field tells the
+    /// answer without a probe: MAVLink has no capability bit for partial writes, but ArduPilot
+    /// implements them and PX4 does not ([`partial_writes_by_identity`]).
+    ///
     /// # Errors
     /// Not connected, or shut down.
     pub async fn probe_partial_writes(&self) -> Result<bool, LinkError> {
         if let Some(known) = *lock(&self.inner.partial) {
+            return Ok(known);
+        }
+        if let Some(known) = partial_writes_by_identity(&self.state()) {
+            *lock(&self.inner.partial) = Some(known);
+            tracing::info!(
+                "partial mission writes {} (the identified {} autopilot; no probe)",
+                if known { "supported" } else { "not supported" },
+                if known { "ArduPilot" } else { "PX4" }
+            );
             return Ok(known);
         }
         let target = self.inner.target().await?;
@@ -496,5 +524,31 @@ impl Inner {
                 return result;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mavlink_cm::VehicleState;
+    use mavlink::dialects::ardupilotmega::MavAutopilot;
+
+    #[test]
+    fn an_identified_autopilot_needs_no_partial_write_probe() {
+        let mut s = VehicleState {
+            autopilot: Some(MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA),
+            ..VehicleState::default()
+        };
+        assert_eq!(
+            partial_writes_by_identity(&s),
+            None,
+            "no AUTOPILOT_VERSION yet"
+        );
+        s.capabilities = Some(0x200d);
+        assert_eq!(partial_writes_by_identity(&s), Some(true));
+        s.autopilot = Some(MavAutopilot::MAV_AUTOPILOT_PX4);
+        assert_eq!(partial_writes_by_identity(&s), Some(false));
+        s.autopilot = Some(MavAutopilot::MAV_AUTOPILOT_GENERIC);
+        assert_eq!(partial_writes_by_identity(&s), None, "probed");
     }
 }

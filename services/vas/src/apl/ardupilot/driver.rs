@@ -111,10 +111,10 @@ async fn exec(
     }
 }
 
-/// How soon after our MISSION_SET_CURRENT is confirmed a further jump of the current item is
-/// taken for a race with the autopilot's own advance rather than a lost reach report (a leg
-/// takes far longer, even at a simulator's speed-up).
-const JUMP_AFTER_SET_CURRENT: std::time::Duration = std::time::Duration::from_millis(100);
+/// How long a set-current after a reach waits for the autopilot to report its own advance
+/// (MISSION_CURRENT) before going ahead without it: an autopilot that reports reaches reports
+/// its current item far sooner.
+const ADVANCE_WAIT: std::time::Duration = std::time::Duration::from_millis(400);
 
 pub(super) struct Driver {
     mgr: Arc<MavlinkManager>,
@@ -153,8 +153,9 @@ pub(super) struct Driver {
     last_pending: Option<(u16, Waypoint)>,
     /// What the last whole upload put in item 0 where it is an ordinary item.
     item0: Option<Waypoint>,
-    /// The slot our last MISSION_SET_CURRENT made current, and when it was confirmed.
-    set_current_at: Option<(u16, std::time::Instant)>,
+    /// When the last waypoint was reached (a set-current waits for the autopilot's own
+    /// advance after it, [`ADVANCE_WAIT`] at most).
+    reached_at: Option<std::time::Instant>,
     /// Times the vehicle's reported current item went back to an item already passed while
     /// navigating (issue 14: each is a drive back toward a passed waypoint).
     backtracks: u64,
@@ -165,7 +166,23 @@ pub(super) struct Driver {
     home_alt_msl: Option<f64>,
     /// Put a rebooted autopilot back in the commanded state (`resumeAfterReboot`).
     pub(super) resume_after_reboot: bool,
+    /// The family-specific part the configuration fixed; `None`: the heartbeat's family.
+    fixed_modes: Option<&'static dyn ApFamily>,
+    /// The autopilot ended its mission at its last item on board with waypoints still queued
+    /// (a wrap or a growing write came too late): navigation is restarted, and the mode it
+    /// ends the mission in is not taken for a pilot's choice meanwhile.
+    restart: bool,
+    /// Until then, the autopilot seen out of AUTO after a restart is taken for the end of
+    /// the mission heard late (its mode change may arrive after the restart on a lossy link,
+    /// the restart then finding it "already" in AUTO), and navigation is restarted again.
+    restart_guard_until: Option<std::time::Instant>,
+    /// Restarts since a waypoint was last reached normally (at most [`MAX_RESTARTS`]).
+    restarts_in_row: u8,
 }
+
+/// Restarts in a row after early mission ends (or failed restarts) before the VAS follows the
+/// autopilot out of WAYPOINT_NAVIGATION.
+const MAX_RESTARTS: u8 = 3;
 
 impl Driver {
     pub(super) fn new(
@@ -173,6 +190,7 @@ impl Driver {
         kind: VehicleKind,
         queue: RollingQueue<Waypoint>,
         events: broadcast::Sender<ApEvent>,
+        fixed_modes: Option<&'static dyn ApFamily>,
     ) -> Self {
         Self {
             mav: mgr.subscribe(),
@@ -194,12 +212,40 @@ impl Driver {
             passing: None,
             last_pending: None,
             item0: None,
-            set_current_at: None,
+            reached_at: None,
             backtracks: 0,
             queue_error: None,
             home_alt_msl: None,
             resume_after_reboot: false,
+            fixed_modes,
+            restart: false,
+            restart_guard_until: None,
+            restarts_in_row: 0,
         }
+    }
+
+    /// Whether a mode out of AUTO is (probably) the autopilot ending its mission early, for
+    /// which navigation is restarted: a restart is pending, or one was just made.
+    fn early_end_mode(&mut self, mode: &str) -> bool {
+        if mode == "AUTO" || self.commanded != Some(FlightState::WaypointNavigation) {
+            return false;
+        }
+        // With the last waypoint alone left, the mission most likely ended there (its report
+        // late): that end is followed as usual.
+        let guarded = self.queue.len() >= 2
+            && self
+                .restart_guard_until
+                .is_some_and(|t| std::time::Instant::now() < t);
+        if !self.restart && guarded && self.restarts_in_row < MAX_RESTARTS {
+            self.restart = true;
+        }
+        self.restart
+    }
+
+    /// The family-specific part in force: the configured one, else the heartbeat's.
+    fn modes(&self) -> &'static dyn ApFamily {
+        self.fixed_modes
+            .unwrap_or_else(|| family_modes(self.mgr.family()))
     }
 
     pub(super) async fn run(mut self, mut cmds: mpsc::Receiver<Cmd>, cancel: CancellationToken) {
@@ -229,6 +275,12 @@ impl Driver {
                 },
                 _ = tick.tick() => {
                     self.failing = false;
+                    if self.queue.awaits_advance()
+                        && self.reached_at.is_none_or(|t| t.elapsed() >= ADVANCE_WAIT)
+                    {
+                        tracing::debug!("queue: the autopilot did not report its advance; going on");
+                        self.queue.assume_advanced();
+                    }
                     self.resync().await;
                 }
             }
@@ -260,6 +312,21 @@ impl Driver {
         match cmd {
             Cmd::ChangeState(to, reply) => {
                 let r = self.change_state(to).await;
+                let _ = reply.send(r);
+            }
+            Cmd::DirectTo([lat, lon, alt, speed], reply) => {
+                let r = if self.commanded == Some(FlightState::Directed) {
+                    self.modes()
+                        .direct_to(&self.mgr, lat, lon, alt as f32, speed as f32)
+                        .await
+                        .map_err(|e| AutopilotError::Refused(e.to_string()))
+                } else {
+                    Err(AutopilotError::Refused(format!(
+                        "a DIRECTED target needs DIRECTED, not {}",
+                        self.commanded
+                            .map_or_else(|| "CONFIGURE_CHECK".to_owned(), |s| s.to_string())
+                    )))
+                };
                 let _ = reply.send(r);
             }
             Cmd::Push(wps, reply) => {
@@ -333,7 +400,8 @@ impl Driver {
     }
 
     async fn change_state(&mut self, to: FlightState) -> Result<(), AutopilotError> {
-        let Some((mode, arming)) = mode_for(self.kind, to) else {
+        let modes = self.modes();
+        let Some((mode, arming)) = modes.mode_for(self.kind, to) else {
             return Err(AutopilotError::Unsupported(format!(
                 "no autopilot mode for {to} on a {}",
                 self.kind
@@ -365,25 +433,16 @@ impl Driver {
                 return Err(refused(&e));
             }
         }
-        if let Err(e) = self.mgr.set_mode(mode).await {
-            // PX4 also enters its mission with MAV_CMD_MISSION_START.
-            let started = to == FlightState::WaypointNavigation
-                && self.mgr.state().px4_modes
-                && self
-                    .mgr
-                    .mission_start(self.queue.current_slot().unwrap_or(1))
-                    .await
-                    .is_ok();
-            if !started {
-                self.queue.stop();
-                self.commanded = previous;
-                return Err(refused(&e));
-            }
+        let first_slot = self.queue.current_slot().unwrap_or(1);
+        if let Err(e) = modes.enter(&self.mgr, to, mode, first_slot).await {
+            self.queue.stop();
+            self.commanded = previous;
+            return Err(refused(&e));
         }
         if !arm_first && arming == Arming::Arm && !self.mgr.state().armed {
             if let Err(e) = self.mgr.arm(true).await {
                 // Back to where it was, so the refusal changes no state.
-                if let Some((m, _)) = previous.and_then(|p| mode_for(self.kind, p)) {
+                if let Some((m, _)) = previous.and_then(|p| modes.mode_for(self.kind, p)) {
                     let _ = self.mgr.set_mode(m).await;
                     self.last_mode = Some(m.to_owned());
                 }
@@ -449,9 +508,6 @@ impl Driver {
             match result {
                 Ok(()) => {
                     self.queue.done(&action);
-                    if let QueueAction::SetCurrent(slot) = action {
-                        self.set_current_at = Some((slot, std::time::Instant::now()));
-                    }
                     if matches!(action, QueueAction::Upload(_)) {
                         self.after_upload();
                     }
@@ -546,6 +602,10 @@ impl Driver {
         if self.failing || !s.link_up || s.restorations != self.restorations_seen {
             return;
         }
+        if std::mem::take(&mut self.restart) {
+            self.restart_navigation().await;
+            return;
+        }
         if let Err(e) = self.prime().await {
             tracing::warn!("rolling queue: {e}; retrying");
             if e.starts_with("refused: ") && self.queue_error.as_deref() != Some(e.as_str()) {
@@ -559,7 +619,59 @@ impl Driver {
         self.sync_speed().await;
     }
 
+    /// The autopilot ended its mission early: wait (a heartbeat period or so) for it to leave
+    /// AUTO for its end-of-mission mode, then enter WAYPOINT_NAVIGATION again, the window laid
+    /// out afresh from slot 1 with the next waypoint; the VAL stays in WAYPOINT_NAVIGATION.
+    async fn restart_navigation(&mut self) {
+        let mut rx = self.mgr.watch_state();
+        let wait = self
+            .mgr
+            .heartbeat_timeout()
+            .min(Duration::from_millis(1500));
+        let _ = tokio::time::timeout(wait, rx.wait_for(|s| s.mode_name != Some("AUTO"))).await;
+        let left = self.queue.len();
+        tracing::warn!("the autopilot ended its mission with {left} waypoints queued: restarting");
+        self.last_mode = None;
+        self.restarts_in_row = self.restarts_in_row.saturating_add(1);
+        match self.change_state(FlightState::WaypointNavigation).await {
+            Ok(()) => {
+                self.restart_guard_until =
+                    Some(std::time::Instant::now() + self.mgr.heartbeat_timeout());
+                self.alarm(
+                    Severity::Warning,
+                    format!(
+                        "the autopilot ended its mission early (a slot write came too late); \
+                         navigation restarted with {left} waypoints left"
+                    ),
+                )
+            }
+            Err(e) if self.restarts_in_row < MAX_RESTARTS => {
+                tracing::warn!("restarting navigation: {e}; retrying");
+                self.restart = true;
+            }
+            Err(e) => {
+                self.alarm(
+                    Severity::Error,
+                    format!("the autopilot ended its mission early; cannot restart: {e}"),
+                );
+                // Follow the autopilot's own mode, as for any other.
+                self.check_mode();
+            }
+        }
+    }
+
     fn reached(&mut self, w: Waypoint) {
+        self.reached_at = Some(std::time::Instant::now());
+        if self.queue.take_ended_early() && self.commanded == Some(FlightState::WaypointNavigation)
+        {
+            self.restart = true;
+        } else {
+            self.restarts_in_row = 0;
+        }
+        if self.mgr.family().advances_with_its_report() {
+            // Its advance is done by the time we hear of the reach: nothing to wait for.
+            self.queue.assume_advanced();
+        }
         self.last_reached = Some(w.seq);
         self.leg_start = Some((w.lat, w.lon));
         self.emit(ApEvent::WaypointReached(WaypointReached {
@@ -620,19 +732,8 @@ impl Driver {
             }
             MavEvent::MissionCurrent { seq } => {
                 self.check_backtrack(seq);
-                // A jump past the slot we made current a moment ago is no proof it was
-                // reached: an autopilot whose "reached, advance" step raced our set-current
-                // (MAVSDK's server does) advanced from our slot instead of its own.
-                let just_set = self
-                    .set_current_at
-                    .filter(|(_, at)| at.elapsed() < JUMP_AFTER_SET_CURRENT)
-                    .map(|(slot, _)| slot);
-                if self.queue.jumped_past(seq, just_set) {
-                    tracing::warn!(
-                        "the autopilot moved on to slot {seq} right after we made the target's \
-                         slot current, with no reach reported: making the target current again"
-                    );
-                } else if let Some(w) = self.queue.on_current(seq) {
+                // Also the autopilot's own advance after a reach, which a set-current waits for.
+                if let Some(w) = self.queue.on_current(seq) {
                     self.reached(w);
                 }
                 true
@@ -686,6 +787,8 @@ impl Driver {
         match self.queue.on_reached(slot) {
             Some(w) => {
                 tracing::debug!("waypoint {} reached (from position)", w.seq);
+                // Inferred two samples past it: the autopilot's own advance is long done.
+                self.queue.assume_advanced();
                 self.reached(w);
                 true
             }
@@ -787,6 +890,10 @@ impl Driver {
         if self.last_mode.as_deref() == Some(mode) {
             return;
         }
+        if self.early_end_mode(mode) {
+            // The end-of-mission mode of an early end: navigation is being restarted.
+            return;
+        }
         self.last_mode = Some(mode.to_owned());
         if self.commanded.is_none() {
             // Still in CONFIGURE_CHECK: the VAL has not taken the autopilot over yet.
@@ -802,9 +909,10 @@ impl Driver {
             }
             self.queue.stop();
         }
-        let expected = self.commanded.and_then(|st| mode_for(self.kind, st));
+        let modes = self.modes();
+        let expected = self.commanded.and_then(|st| modes.mode_for(self.kind, st));
         if expected.map(|m| m.0) != Some(mode) {
-            let state = state_for_mode(self.kind, mode);
+            let state = modes.state_for_mode(self.kind, mode);
             if state.is_some() {
                 self.commanded = state;
             }
@@ -965,7 +1073,7 @@ impl Driver {
         }
         let mode = self.mgr.state().mode_name;
         if let Some(state) = self.commanded {
-            let wanted = mode_for(self.kind, state).map(|m| m.0);
+            let wanted = self.modes().mode_for(self.kind, state).map(|m| m.0);
             // Still in the commanded mode (the link dropped, the autopilot flew on): only the
             // queue may need priming again, which changes no state.
             let reprime = state == FlightState::WaypointNavigation && !intact && mode == wanted;

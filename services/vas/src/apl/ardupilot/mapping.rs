@@ -3,13 +3,6 @@
 
 use super::*;
 
-/// Whether a state wants the motors armed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(super) enum Arming {
-    Keep,
-    Arm,
-}
-
 /// The ArduPilot mode (and arming) of a flight state; `None`: no mode (CONFIGURE_CHECK, or a
 /// state the vehicle does not have).
 pub(super) fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)> {
@@ -204,7 +197,6 @@ pub(super) fn rc_channels(kind: VehicleKind, mc: Option<&ManualControl>) -> [u16
     ]
 }
 
-#[cfg(test)]
 #[cfg(test)]
 mod tests {
     use super::*;
