@@ -145,14 +145,24 @@ impl<T: Payload> Event<T> {
             let msg = encode_data(true, offer.id, &bytes);
             for r in remote {
                 let (tx, rx) = oneshot::channel();
-                node.send_to(
-                    r.link,
-                    r.addr,
-                    Outgoing::Safe {
-                        msg: msg.clone(),
-                        done: Some(tx),
-                    },
-                );
+                // A subscriber whose node was dropped since the routes were read: fail now
+                // rather than open a fresh session with its dead address (see `drop_peer`).
+                if node
+                    .addrs
+                    .get(&(r.link, r.addr))
+                    .is_none_or(|n| *n != r.node)
+                {
+                    let _ = tx.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
+                } else {
+                    node.send_to(
+                        r.link,
+                        r.addr,
+                        Outgoing::Safe {
+                            msg: msg.clone(),
+                            done: Some(tx),
+                        },
+                    );
+                }
                 let subs = r
                     .services
                     .iter()
