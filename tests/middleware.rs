@@ -376,7 +376,10 @@ fn killed_subscriber_with_4096_raises_in_flight_completes_every_one_at_once() {
         &["ev-sub", "--pattern", "probe/ev", "--count", "100000000"],
     );
     let ready = victim.expect_key(T, "ready");
-    let pid = ready["pid"].as_u64().expect("ev-sub prints its pid").to_string();
+    let pid = ready["pid"]
+        .as_u64()
+        .expect("ev-sub prints its pid")
+        .to_string();
     let mut publ = net.probe(
         "pub",
         &[

@@ -364,7 +364,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                                 }
                                 Err(_) => {
                                     stalled = true;
-                                    out(json!({"stalled": inflight.len() + 1, "raised_so_far": i + 1}));
+                                    out(
+                                        json!({"stalled": inflight.len() + 1, "raised_so_far": i + 1}),
+                                    );
                                 }
                             }
                         }
@@ -390,7 +392,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
         } => {
             let sub = svc.subscribe_event::<u64>(pattern)?;
             out(json!({"ready": pattern, "pid": std::process::id()}));
-            let mut next: std::collections::HashMap<String, u64> = Default::default();
+            let mut next: std::collections::HashMap<marea::SharedStr, u64> = Default::default();
             let (mut n, mut in_order) = (0u64, true);
             while n < *count {
                 let s = tokio::select! {

@@ -6,15 +6,19 @@ use std::time::{Duration, Instant};
 use super::errors::{PublishError, RecvError};
 use super::publisher::Publisher;
 use super::Payload;
+use super::SharedStr;
 use crate::node::mailbox::{Delivery, RawSample};
 
 /// A received value with where it came from.
+///
+/// The names are shared with the route the value came by ([`SharedStr`] compares, prints and
+/// derefs like a `&str`): receiving allocates nothing per sample for them.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sample<T> {
     /// Full name of the item.
-    pub name: String,
+    pub name: SharedStr,
     /// Publishing node.
-    pub publisher: String,
+    pub publisher: SharedStr,
     /// The value.
     pub value: T,
     /// When it arrived.
@@ -30,10 +34,10 @@ pub(crate) fn decode_delivery<T: Payload>(d: Delivery) -> Result<Sample<T>, Recv
             payload,
             received,
             ..
-        }) => match crate::codec::decode_payload::<T>(&payload) {
+        }) => match crate::codec::decode_payload_owned::<T>(payload) {
             Ok(value) => Ok(Sample {
-                name: name.to_string(),
-                publisher: publisher.to_string(),
+                name: name.into(),
+                publisher: publisher.into(),
                 value,
                 received,
             }),

@@ -65,7 +65,8 @@ pub(crate) struct LocalOffer {
     pub ty: TypeInfo,
     pub role: OfferRole,
     /// Remote nodes with a matching interest of the same type.
-    pub remote: Mutex<Vec<RemoteSubscriber>>,
+    /// (Shared: a raise takes the list with one reference count, not a copy.)
+    pub remote: Mutex<Arc<[RemoteSubscriber]>>,
     /// Local interests with a matching pattern of the same type.
     pub local: Mutex<Vec<Arc<LocalInterest>>>,
     /// (node, interest) pairs already told that the types differ.
@@ -83,8 +84,9 @@ pub(crate) struct RemoteSubscriber {
     pub node_name: Arc<str>,
     pub link: usize,
     pub addr: PeerAddr,
-    /// Services of that node with a matching interest (for reports and listings).
-    pub services: Vec<String>,
+    /// Services of that node with a matching interest as `node/service`, as raise reports
+    /// name them (made once per route change, not per event).
+    pub labels: Arc<[String]>,
 }
 
 /// Something this node wants: a subscription or a function it calls.

@@ -355,12 +355,13 @@ impl NodeInner {
                     }
                 }
                 if !services.is_empty() {
+                    let labels = services.iter().map(|s| format!("{}/{s}", p.name)).collect();
                     remote.push(RemoteSubscriber {
                         node: p.id,
                         node_name: p.name.clone(),
                         link: p.link,
                         addr: p.addr,
-                        services,
+                        labels,
                     });
                 }
             }
@@ -396,7 +397,7 @@ impl NodeInner {
                         }
                     }
                 }
-                *cur = remote;
+                *cur = remote.into();
             }
         }
         // Routes for what peers offer, each item from its shortest path only.
@@ -812,8 +813,7 @@ impl NodeInner {
                 None => *last = Some(bytes.clone()),
             }
         }
-        let local = lock(&offer.local).clone();
-        for i in &local {
+        for i in lock(&offer.local).iter() {
             if let Some(m) = &i.mailbox {
                 m.push(Delivery::Sample(RawSample {
                     name: offer.name.clone(),

@@ -402,8 +402,7 @@ impl UdpLink {
         };
         for seq in due {
             if let Some(msg) = st.tx.message(seq) {
-                let msg = msg.to_vec();
-                push_safe(&mut w, &mut out, &mut carries_safe, seq, &msg);
+                push_safe(&mut w, &mut out, &mut carries_safe, seq, msg);
             }
         }
         while st.tx.can_push() {
@@ -412,8 +411,7 @@ impl UdpLink {
             };
             let seq = st.tx.push(now, msg, done);
             if let Some(m) = st.tx.message(seq) {
-                let m = m.to_vec();
-                push_safe(&mut w, &mut out, &mut carries_safe, seq, &m);
+                push_safe(&mut w, &mut out, &mut carries_safe, seq, m);
             }
         }
         while let Some((_, msg)) = st.fast.pop_front() {
@@ -654,7 +652,9 @@ impl UdpLink {
             }
             return;
         };
-        let mut deliver: Vec<Vec<u8>> = Vec::new();
+        // In-order messages are handed on from the datagram itself; only those the reorder
+        // buffer held are owned.
+        let mut deliver: Vec<std::borrow::Cow<'_, [u8]>> = Vec::new();
         let mut fast: Vec<&[u8]> = Vec::new();
         let mut completed = Vec::new();
         let mut reset = false;
@@ -674,7 +674,13 @@ impl UdpLink {
                         }
                     }
                     Entry::Safe { seq, msg } => {
-                        st.rx.on_safe(seq, msg, |m| deliver.push(m.to_vec()));
+                        st.rx.on_safe(seq, msg, |m| {
+                            deliver.push(if std::ptr::eq(m, msg) {
+                                std::borrow::Cow::Borrowed(msg)
+                            } else {
+                                std::borrow::Cow::Owned(m.to_vec())
+                            })
+                        });
                     }
                     Entry::Fast(msg) => fast.push(msg),
                     Entry::Ack(ack) => completed.extend(st.tx.on_ack(now, ack)),
@@ -784,6 +790,12 @@ impl Link for UdpLink {
                 }
                 st.safe.push_back((msg, done))
             }
+        }
+        if !st.has_work() {
+            // A safe message behind a full window: nothing can leave before an acknowledgement
+            // opens it, and the receive task flushes the peer when one does. Waking the
+            // transmit task for it cost a futex wake-up per raise in a fast event stream.
+            return;
         }
         let idle = st.blocked.is_empty()
             && st
