@@ -160,11 +160,7 @@ impl<T: Payload> Event<T> {
             let (tx, rx) = oneshot::channel();
             // A subscriber whose node was dropped since the routes were read: fail now rather
             // than open a fresh session with its dead address (see `drop_peer`).
-            if node
-                .addrs
-                .get(&(r.link, r.addr))
-                .is_none_or(|n| *n != r.node)
-            {
+            if !r.alive.load(std::sync::atomic::Ordering::Acquire) {
                 let _ = tx.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
             } else {
                 let m = if k + 1 == n { msg.take() } else { msg.clone() };

@@ -170,6 +170,7 @@ impl NodeInner {
                             .as_ref()
                             .and_then(|i| i.roster.as_ref())
                             .map(|_| Vec::new()),
+                        alive: Arc::new(std::sync::atomic::AtomicBool::new(true)),
                     },
                 );
                 self.addrs.insert((link, from), node_id);
@@ -353,6 +354,7 @@ impl NodeInner {
         let Some((_, p)) = self.peers.remove(&node) else {
             return;
         };
+        p.alive.store(false, Ordering::Release);
         if reason == "left" {
             tracing::info!(peer = %p.name, "peer left");
         } else {
@@ -372,8 +374,7 @@ impl NodeInner {
         // and raises again must find the peer gone from the routes, or its next events would
         // open a fresh session with the dead address and wait there for that session's expiry
         // (issue 17: 4,096 raises in flight, the last ones completed 5 s after the first).
-        // Raises that read the routes just before this are refused by `Event::raise_nowait`'s
-        // check of `addrs`.
+        // Raises that read the routes just before this see `alive` cleared and fail at once.
         self.recompute_routes();
         self.recompute_forwarding();
         for (link, addr) in paths {

@@ -87,6 +87,8 @@ pub(crate) struct RemoteSubscriber {
     /// Services of that node with a matching interest as `node/service`, as raise reports
     /// name them (made once per route change, not per event).
     pub labels: Arc<[String]>,
+    /// The peer's [`Peer::alive`].
+    pub alive: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// Something this node wants: a subscription or a function it calls.
@@ -142,6 +144,9 @@ pub(crate) struct Peer {
     /// Namespaces its identity key is authenticated for: `None` when this node checks no
     /// identities, empty until a valid proof listed in the roster arrives.
     pub authenticated: Option<Vec<String>>,
+    /// Cleared when the peer is dropped: routes copied before that (a raise in progress)
+    /// see it without a table lookup and fail at once instead of sending.
+    pub alive: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl Peer {
@@ -152,8 +157,14 @@ impl Peer {
 
     /// Records that something arrived from this peer now.
     pub fn heard(&self, epoch: Instant) {
-        let now = epoch.elapsed().as_millis() as u64;
-        self.heard_ms.store(now, Ordering::Relaxed);
+        self.heard_at(epoch, Instant::now());
+    }
+
+    /// Records that something arrived from this peer at `now` (a clock read the caller
+    /// already made: the data path reads it once per message).
+    pub fn heard_at(&self, epoch: Instant, now: Instant) {
+        let ms = now.saturating_duration_since(epoch).as_millis() as u64;
+        self.heard_ms.store(ms, Ordering::Relaxed);
     }
 
     /// When it was last heard from at all.

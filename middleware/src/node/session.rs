@@ -284,6 +284,7 @@ impl NodeInner {
             addr: crate::link::PeerAddr,
             services: std::collections::HashMap<u32, String>,
             interests: Vec<(u32, super::session::RemoteItem)>,
+            alive: Arc<std::sync::atomic::AtomicBool>,
         }
         let peers: Vec<PeerView> = self
             .peers
@@ -295,6 +296,7 @@ impl NodeInner {
                 addr: p.addr,
                 services: p.services.clone(),
                 interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
+                alive: p.alive.clone(),
             })
             .collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
@@ -362,6 +364,7 @@ impl NodeInner {
                         link: p.link,
                         addr: p.addr,
                         labels,
+                        alive: p.alive.clone(),
                     });
                 }
             }
@@ -729,8 +732,9 @@ impl NodeInner {
         if self.gateway.is_some() {
             self.forward_data(node, id, &payload);
         }
+        let received = Instant::now();
         let Some((targets, name, type_name, publisher)) = self.peers.get(&node).and_then(|p| {
-            p.heard(self.me.epoch);
+            p.heard_at(self.me.epoch, received);
             let t = p.routes.get(&id)?.clone();
             let offer = p.offers.get(&id)?;
             Some((
@@ -760,7 +764,6 @@ impl NodeInner {
             }
             return;
         };
-        let received = Instant::now();
         let n = targets.len();
         let mut payload = Some(payload);
         for (k, i) in targets.iter().enumerate() {
