@@ -122,7 +122,7 @@ impl<T: Payload> Event<T> {
     /// # Errors
     /// [`PublishError::Encode`] when the value cannot be serialised.
     pub fn raise_nowait(&self, value: &T) -> Result<PendingRaise, PublishError> {
-        let Publisher { node, offer, .. } = &self.publisher;
+        let offer = &self.publisher.offer;
         // The wire message is encoded once, straight from the value; local subscribers get
         // the payload part of it.
         let (msg, at) =
@@ -132,6 +132,12 @@ impl<T: Payload> Event<T> {
                     source,
                 }
             })?;
+        Ok(self.raise_encoded(msg, at))
+    }
+
+    /// Sends the encoded event message `msg` (its payload from `at`) to every subscriber.
+    fn raise_encoded(&self, msg: Vec<u8>, at: usize) -> PendingRaise {
+        let Publisher { node, offer, .. } = &self.publisher;
         let mut report = RaiseReport::default();
         {
             let local = lock(&offer.local);
@@ -179,7 +185,7 @@ impl<T: Payload> Event<T> {
                 done: rx,
             });
         }
-        Ok(PendingRaise { report, waiting })
+        PendingRaise { report, waiting }
     }
 
     /// Names of the remote nodes currently subscribed.
@@ -190,5 +196,33 @@ impl<T: Payload> Event<T> {
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
         self.publisher.wait_remote_subscribers(n, timeout).await
+    }
+}
+
+impl Event<Vec<u8>> {
+    /// [`Event::raise_nowait`] of borrowed bytes: subscribers of `Event<Vec<u8>>` get them as
+    /// a `Vec<u8>`, and the publisher needs no owned copy of its buffer (the wire message is
+    /// built from the slice in one copy).
+    ///
+    /// ```no_run
+    /// # fn f(ev: marea::Event<Vec<u8>>, frame: &[u8]) -> Result<(), marea::PublishError> {
+    /// let pending = ev.raise_bytes_nowait(&frame[4..])?;
+    /// # Ok(()) }
+    /// ```
+    ///
+    /// # Errors
+    /// None today (bytes always encode); the `Result` matches [`Event::raise_nowait`].
+    pub fn raise_bytes_nowait(&self, bytes: &[u8]) -> Result<PendingRaise, PublishError> {
+        let (msg, at) =
+            crate::codec::encode_data_message_from_bytes(true, self.publisher.offer.id, bytes);
+        Ok(self.raise_encoded(msg, at))
+    }
+
+    /// [`Event::raise`] of borrowed bytes (see [`Event::raise_bytes_nowait`]).
+    ///
+    /// # Errors
+    /// As [`Event::raise_bytes_nowait`].
+    pub async fn raise_bytes(&self, bytes: &[u8]) -> Result<RaiseReport, PublishError> {
+        Ok(self.raise_bytes_nowait(bytes)?.await)
     }
 }

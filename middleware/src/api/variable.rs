@@ -91,3 +91,22 @@ impl<T: Payload> Variable<T> {
         self.publisher.wait_remote_subscribers(n, timeout).await
     }
 }
+
+impl Variable<Vec<u8>> {
+    /// [`Variable::set`] from borrowed bytes: subscribers of `Variable<Vec<u8>>` get them as a
+    /// `Vec<u8>`, and the publisher needs no owned copy of its buffer.
+    ///
+    /// ```no_run
+    /// # fn f(var: marea::Variable<Vec<u8>>, frame: &[u8]) -> Result<(), marea::PublishError> {
+    /// var.set_bytes(&frame[..64])?;
+    /// # Ok(()) }
+    /// ```
+    ///
+    /// # Errors
+    /// None today (bytes always encode); the `Result` matches [`Variable::set`].
+    pub fn set_bytes(&self, bytes: &[u8]) -> Result<(), PublishError> {
+        let Publisher { node, offer, .. } = &self.publisher;
+        node.publish_variable(offer, crate::codec::encode_bytes_payload(bytes));
+        Ok(())
+    }
+}

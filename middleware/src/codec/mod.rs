@@ -94,6 +94,23 @@ pub fn encode_data_message<T: serde::Serialize + 'static>(
     })
 }
 
+/// `encode_data_message` of a `Vec<u8>` holding `bytes`, without the `Vec`.
+pub(crate) fn encode_data_message_from_bytes(
+    event: bool,
+    id: u32,
+    bytes: &[u8],
+) -> (Vec<u8>, usize) {
+    data_message_from_bytes(if event { 6 } else { 5 }, id, bytes)
+}
+
+/// `encode_payload` of a `Vec<u8>` holding `bytes`, without the `Vec` (same bytes).
+pub(crate) fn encode_bytes_payload(bytes: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(varint::len_u64(bytes.len() as u64) + bytes.len());
+    varint::put_u64(&mut out, bytes.len() as u64);
+    out.extend_from_slice(bytes);
+    out
+}
+
 /// A data message whose payload is the postcard encoding of the byte string `b`.
 fn data_message_from_bytes(tag: u8, id: u32, b: &[u8]) -> (Vec<u8>, usize) {
     let inner = varint::len_u64(b.len() as u64) + b.len();
