@@ -91,6 +91,26 @@ pub(crate) struct RemoteSubscriber {
     pub alive: Arc<std::sync::atomic::AtomicBool>,
 }
 
+/// Where a remote offer's data goes, with the names its samples carry: the data path takes
+/// one reference count per message for all of it.
+pub(crate) struct Route {
+    /// Local interests it is delivered to.
+    pub targets: Box<[Arc<LocalInterest>]>,
+    /// The item's full name.
+    pub name: Arc<str>,
+    /// Its type name.
+    pub type_name: Arc<str>,
+    /// The node publishing it (the origin behind a gateway).
+    pub publisher: Arc<str>,
+}
+
+impl std::ops::Deref for Route {
+    type Target = [Arc<LocalInterest>];
+    fn deref(&self) -> &[Arc<LocalInterest>] {
+        &self.targets
+    }
+}
+
 /// Something this node wants: a subscription or a function it calls.
 pub(crate) struct LocalInterest {
     pub id: u32,
@@ -140,7 +160,7 @@ pub(crate) struct Peer {
     pub shadowed: std::collections::HashSet<u32>,
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
-    pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
+    pub routes: HashMap<u32, Arc<Route>>,
     /// Namespaces its identity key is authenticated for: `None` when this node checks no
     /// identities, empty until a valid proof listed in the roster arrives.
     pub authenticated: Option<Vec<String>>,

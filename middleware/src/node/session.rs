@@ -412,7 +412,7 @@ impl NodeInner {
                 .iter()
                 .filter(|(oid, item)| !hidden.contains(oid) && !item.denied)
                 .map(|(oid, item)| {
-                    let targets: Arc<[Arc<LocalInterest>]> = interests
+                    let targets: Box<[Arc<LocalInterest>]> = interests
                         .iter()
                         .filter(|i| {
                             kinds_match(item.kind, i.kind)
@@ -421,7 +421,13 @@ impl NodeInner {
                         })
                         .cloned()
                         .collect();
-                    (*oid, targets)
+                    let route = super::Route {
+                        targets,
+                        name: item.name.clone(),
+                        type_name: item.type_name.clone(),
+                        publisher: item.origin_name.clone().unwrap_or_else(|| p.name.clone()),
+                    };
+                    (*oid, Arc::new(route))
                 })
                 .collect();
             p.routes = routes;
@@ -733,16 +739,9 @@ impl NodeInner {
             self.forward_data(node, id, &payload);
         }
         let received = Instant::now();
-        let Some((targets, name, type_name, publisher)) = self.peers.get(&node).and_then(|p| {
+        let Some(route) = self.peers.get(&node).and_then(|p| {
             p.heard_at(self.me.epoch, received);
-            let t = p.routes.get(&id)?.clone();
-            let offer = p.offers.get(&id)?;
-            Some((
-                t,
-                offer.name.clone(),
-                offer.type_name.clone(),
-                offer.origin_name.clone().unwrap_or_else(|| p.name.clone()),
-            ))
+            p.routes.get(&id).cloned()
         }) else {
             let denied = self.peers.get(&node).and_then(|p| {
                 let o = p.offers.get(&id).filter(|o| o.denied)?;
@@ -764,9 +763,9 @@ impl NodeInner {
             }
             return;
         };
-        let n = targets.len();
+        let n = route.targets.len();
         let mut payload = Some(payload);
-        for (k, i) in targets.iter().enumerate() {
+        for (k, i) in route.targets.iter().enumerate() {
             let Some(m) = &i.mailbox else { continue };
             let bytes = if k + 1 == n {
                 payload.take().unwrap_or_default()
@@ -774,9 +773,9 @@ impl NodeInner {
                 payload.clone().unwrap_or_default()
             };
             m.push(Delivery::Sample(RawSample {
-                name: name.clone(),
-                publisher: publisher.clone(),
-                type_name: type_name.clone(),
+                name: route.name.clone(),
+                publisher: route.publisher.clone(),
+                type_name: route.type_name.clone(),
                 payload: bytes,
                 received,
             }));
