@@ -818,7 +818,15 @@ impl Link for UdpLink {
                 .last_write
                 .is_none_or(|t| now.saturating_duration_since(t) >= BATCH_WINDOW);
         if idle {
+            let had_timer = st.tx.in_flight() > 0;
             self.flush_locked(addr, &mut st, now);
+            // The first safe message in flight starts a retransmission timer the transmit task
+            // does not know of (it may sleep with no deadline at all): tell it, or a lost lone
+            // message to a peer that sends nothing back would wait for some other wake-up.
+            if !had_timer && st.tx.in_flight() > 0 {
+                drop(st);
+                self.wake.notify_one();
+            }
         } else if !st.wake_pending {
             st.wake_pending = true;
             drop(st);
