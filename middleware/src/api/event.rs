@@ -14,8 +14,8 @@ use super::errors::PublishError;
 use super::publisher::Publisher;
 use super::Payload;
 use crate::link::{LinkSendError, Outgoing};
-use crate::node::lock;
 use crate::node::mailbox::{Delivery, RawSample};
+use crate::node::{lock, RemoteSubscriber};
 
 /// Who got an event.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -37,8 +37,8 @@ impl RaiseReport {
 /// route), its name, and the link's completion. Nothing here is allocated per event but the
 /// completion itself.
 struct AwaitedAck {
-    labels: Arc<[String]>,
-    node: Arc<str>,
+    /// Its index in [`PendingRaise::routes`].
+    route: usize,
     done: oneshot::Receiver<Result<(), LinkSendError>>,
 }
 
@@ -47,6 +47,8 @@ struct AwaitedAck {
 pub struct PendingRaise {
     report: RaiseReport,
     waiting: Vec<AwaitedAck>,
+    /// The routes the event was sent on (one reference count for all of them).
+    routes: Arc<[RemoteSubscriber]>,
 }
 
 impl Future for PendingRaise {
@@ -59,7 +61,15 @@ impl Future for PendingRaise {
             match Pin::new(&mut this.waiting[i].done).poll(cx) {
                 Poll::Pending => i += 1,
                 Poll::Ready(r) => {
-                    let AwaitedAck { labels, node, .. } = this.waiting.swap_remove(i);
+                    let route = this.waiting.swap_remove(i).route;
+                    let Some(RemoteSubscriber {
+                        labels,
+                        node_name: node,
+                        ..
+                    }) = this.routes.get(route)
+                    else {
+                        continue;
+                    };
                     let failure = match r {
                         Ok(Ok(())) => None,
                         Ok(Err(e)) => Some(e.to_string()),
@@ -179,13 +189,13 @@ impl<T: Payload> Event<T> {
                     },
                 );
             }
-            waiting.push(AwaitedAck {
-                labels: r.labels.clone(),
-                node: r.node_name.clone(),
-                done: rx,
-            });
+            waiting.push(AwaitedAck { route: k, done: rx });
         }
-        PendingRaise { report, waiting }
+        PendingRaise {
+            report,
+            waiting,
+            routes: remote,
+        }
     }
 
     /// Names of the remote nodes currently subscribed.
