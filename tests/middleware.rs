@@ -364,3 +364,75 @@ fn twenty_mb_file_arrives_identical_and_resumes_after_receiver_restart() {
         .collect();
     assert!(parts.is_empty(), "{parts:?}");
 }
+
+/// Issue 17 item 4: a subscriber process that stops acknowledging (stopped, then killed) with
+/// 4,096 events in flight towards it: every one of them completes, with an error naming it,
+/// as soon as its lease runs out, not one waits longer.
+#[test]
+fn killed_subscriber_with_4096_raises_in_flight_completes_every_one_at_once() {
+    let net = Net::new("kill_sub_4096");
+    let mut victim = net.probe(
+        "victim",
+        &["ev-sub", "--pattern", "probe/ev", "--count", "100000000"],
+    );
+    let ready = victim.expect_key(T, "ready");
+    let pid = ready["pid"]
+        .as_u64()
+        .expect("ev-sub prints its pid")
+        .to_string();
+    let mut publ = net.probe(
+        "pub",
+        &[
+            "ev-pub", "--item", "ev", "--count", "300000", "--subs", "1", "--window", "4096",
+        ],
+    );
+    publ.expect_key(T, "subscribers");
+    victim.expect_key(T, "first");
+    // Stop it: it acknowledges nothing more, so the publisher's window fills.
+    let stopped = std::process::Command::new("kill")
+        .args(["-STOP", &pid])
+        .status()
+        .expect("run kill -STOP");
+    assert!(stopped.success());
+    let stall = publ.expect_key(T, "stalled");
+    assert_eq!(stall["stalled"], 4096, "{stall}");
+    victim.kill9();
+    let killed_at = std::time::Instant::now();
+    let failed = publ.expect_key(T, "failed");
+    assert!(
+        failed["failed"].as_str().unwrap().starts_with("victim/"),
+        "{failed}"
+    );
+    assert!(
+        failed["reason"].as_str().unwrap().contains("victim"),
+        "{failed}"
+    );
+    // Every pending raise completed once the lease ran out (the ones raised after it have no
+    // subscriber and complete at once): the publisher finishes the rest soon after.
+    let done = publ.expect_key(Duration::from_secs(60), "raised");
+    let waited = killed_at.elapsed();
+    assert!(
+        done["failed_raises"].as_u64() >= Some(4096),
+        "not all pending raises failed: {done}"
+    );
+    let raised_so_far = stall["raised_so_far"].as_u64().unwrap();
+    assert_eq!(
+        done["acknowledged_by_all"].as_u64().unwrap() + done["failed_raises"].as_u64().unwrap(),
+        300_000,
+        "{done}"
+    );
+    assert!(raised_so_far >= 4096, "{stall}");
+    let failed_ms = failed["after_ms"].as_u64().unwrap();
+    let last_ms = done["last_failed_ms"].as_u64().unwrap();
+    // All of them together: the last failure came right after the first, not after a timeout
+    // of its own (generous bound: a debug build on a loaded machine).
+    assert!(
+        last_ms.saturating_sub(failed_ms) < 1_000,
+        "first failure at {failed_ms} ms, last at {last_ms} ms"
+    );
+    // And the first one within the lease (plus slack for the check) after the kill.
+    assert!(
+        waited < Duration::from_millis(net.lease_ms + 2 * net.heartbeat_ms + 5_000),
+        "done {waited:?} after the kill: {done}"
+    );
+}

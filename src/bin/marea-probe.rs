@@ -343,11 +343,17 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let mut inflight = std::collections::VecDeque::new();
             let mut reported = std::collections::HashSet::new();
             let mut acked_all = 0u64;
+            let mut failed_raises = 0u64;
+            let mut last_failed_ms = 0u64;
+            let mut stalled = false;
             let started = Instant::now();
             let mut handle =
                 |r: marea::RaiseReport, reported: &mut std::collections::HashSet<String>| {
                     if r.failed.is_empty() {
                         acked_all += 1;
+                    } else {
+                        failed_raises += 1;
+                        last_failed_ms = started.elapsed().as_millis() as u64;
                     }
                     for (sub, reason) in r.failed {
                         if reported.insert(sub.clone()) {
@@ -360,7 +366,23 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             for i in 0..*count {
                 inflight.push_back(ev.raise_nowait(&i)?);
                 if inflight.len() >= *window {
-                    if let Some(p) = inflight.pop_front() {
+                    if let Some(mut p) = inflight.pop_front() {
+                        // A full window whose oldest event waits long is reported once (a test
+                        // stops a subscriber and waits for this before killing it).
+                        if !stalled {
+                            match tokio::time::timeout(Duration::from_millis(300), &mut p).await {
+                                Ok(r) => {
+                                    handle(r, &mut reported);
+                                    continue;
+                                }
+                                Err(_) => {
+                                    stalled = true;
+                                    out(
+                                        json!({"stalled": inflight.len() + 1, "raised_so_far": i + 1}),
+                                    );
+                                }
+                            }
+                        }
                         handle(p.await, &mut reported);
                     }
                 }
@@ -372,7 +394,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 handle(p.await, &mut reported);
             }
             out(
-                json!({"raised": count, "acknowledged_by_all": acked_all, "elapsed_ms": started.elapsed().as_millis() as u64, "peers": node.peers()}),
+                json!({"raised": count, "acknowledged_by_all": acked_all, "failed_raises": failed_raises, "last_failed_ms": last_failed_ms, "elapsed_ms": started.elapsed().as_millis() as u64, "peers": node.peers()}),
             );
             marea::process::terminated().await;
         }
@@ -382,8 +404,8 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             from_any,
         } => {
             let sub = svc.subscribe_event::<u64>(pattern)?;
-            out(json!({"ready": pattern}));
-            let mut next: std::collections::HashMap<String, u64> = Default::default();
+            out(json!({"ready": pattern, "pid": std::process::id()}));
+            let mut next: std::collections::HashMap<marea::SharedStr, u64> = Default::default();
             let (mut n, mut in_order) = (0u64, true);
             while n < *count {
                 let s = tokio::select! {

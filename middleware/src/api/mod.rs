@@ -8,6 +8,7 @@ mod node;
 mod publisher;
 mod raw;
 mod service;
+mod shared_str;
 mod subscription;
 mod variable;
 
@@ -18,6 +19,7 @@ pub use function::{Function, FunctionProvider};
 pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};
 pub use raw::{RawSubscription, RawValue};
 pub use service::{IService, Service, ServiceDescription, ServiceError};
+pub use shared_str::SharedStr;
 pub use subscription::{EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 

@@ -6,15 +6,19 @@ use std::time::{Duration, Instant};
 use super::errors::{PublishError, RecvError};
 use super::publisher::Publisher;
 use super::Payload;
+use super::SharedStr;
 use crate::node::mailbox::{Delivery, RawSample};
 
 /// A received value with where it came from.
+///
+/// The names are shared with the route the value came by ([`SharedStr`] compares, prints and
+/// derefs like a `&str`): receiving allocates nothing per sample for them.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sample<T> {
     /// Full name of the item.
-    pub name: String,
+    pub name: SharedStr,
     /// Publishing node.
-    pub publisher: String,
+    pub publisher: SharedStr,
     /// The value.
     pub value: T,
     /// When it arrived.
@@ -30,10 +34,10 @@ pub(crate) fn decode_delivery<T: Payload>(d: Delivery) -> Result<Sample<T>, Recv
             payload,
             received,
             ..
-        }) => match crate::codec::decode_payload::<T>(&payload) {
+        }) => match crate::codec::decode_payload_owned::<T>(payload) {
             Ok(value) => Ok(Sample {
-                name: name.to_string(),
-                publisher: publisher.to_string(),
+                name: name.into(),
+                publisher: publisher.into(),
                 value,
                 received,
             }),
@@ -85,5 +89,24 @@ impl<T: Payload> Variable<T> {
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
         self.publisher.wait_remote_subscribers(n, timeout).await
+    }
+}
+
+impl Variable<Vec<u8>> {
+    /// [`Variable::set`] from borrowed bytes: subscribers of `Variable<Vec<u8>>` get them as a
+    /// `Vec<u8>`, and the publisher needs no owned copy of its buffer.
+    ///
+    /// ```no_run
+    /// # fn f(var: marea::Variable<Vec<u8>>, frame: &[u8]) -> Result<(), marea::PublishError> {
+    /// var.set_bytes(&frame[..64])?;
+    /// # Ok(()) }
+    /// ```
+    ///
+    /// # Errors
+    /// None today (bytes always encode); the `Result` matches [`Variable::set`].
+    pub fn set_bytes(&self, bytes: &[u8]) -> Result<(), PublishError> {
+        let Publisher { node, offer, .. } = &self.publisher;
+        node.publish_variable(offer, crate::codec::encode_bytes_payload(bytes));
+        Ok(())
     }
 }

@@ -54,6 +54,112 @@ pub fn decode_payload<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T,
     postcard::from_bytes(bytes)
 }
 
+/// Encodes a user payload as `Message::Var` (`event` false) or `Message::Event` with offer id
+/// `id`, in one buffer sized once; returns it with where the payload starts in it. The bytes
+/// are postcard's for the message holding the payload (a unit test checks it).
+///
+/// A `Vec<u8>` payload (the common "raw bytes" case) is written as postcard writes it, a
+/// length and the bytes, with one copy instead of serde's byte-by-byte sequence.
+///
+/// # Errors
+/// postcard's error when the value cannot be serialised.
+pub fn encode_data_message<T: serde::Serialize + 'static>(
+    event: bool,
+    id: u32,
+    value: &T,
+) -> Result<(Vec<u8>, usize), postcard::Error> {
+    let tag = if event { 6 } else { 5 };
+    if let Some(b) = (value as &dyn std::any::Any).downcast_ref::<Vec<u8>>() {
+        return Ok(data_message_from_bytes(tag, id, b));
+    }
+    thread_local! {
+        static SCRATCH: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
+    SCRATCH.with(|s| {
+        let mut scratch = s.borrow_mut();
+        scratch.clear();
+        let r = postcard::to_extend(value, std::mem::take(&mut *scratch));
+        match r {
+            Ok(v) => {
+                let out = data_message_with_payload(tag, id, &v);
+                *scratch = v;
+                // Kept for the next message, unless one huge value made it huge.
+                if scratch.capacity() > 64 << 10 {
+                    *scratch = Vec::new();
+                }
+                Ok(out)
+            }
+            Err(e) => Err(e),
+        }
+    })
+}
+
+/// `encode_data_message` of a `Vec<u8>` holding `bytes`, without the `Vec`.
+pub(crate) fn encode_data_message_from_bytes(
+    event: bool,
+    id: u32,
+    bytes: &[u8],
+) -> (Vec<u8>, usize) {
+    data_message_from_bytes(if event { 6 } else { 5 }, id, bytes)
+}
+
+/// `encode_payload` of a `Vec<u8>` holding `bytes`, without the `Vec` (same bytes).
+pub(crate) fn encode_bytes_payload(bytes: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(varint::len_u64(bytes.len() as u64) + bytes.len());
+    varint::put_u64(&mut out, bytes.len() as u64);
+    out.extend_from_slice(bytes);
+    out
+}
+
+/// A data message whose payload is the postcard encoding of the byte string `b`.
+fn data_message_from_bytes(tag: u8, id: u32, b: &[u8]) -> (Vec<u8>, usize) {
+    let inner = varint::len_u64(b.len() as u64) + b.len();
+    let mut out = Vec::with_capacity(1 + 5 + varint::len_u64(inner as u64) + inner);
+    out.push(tag);
+    varint::put_u64(&mut out, u64::from(id));
+    varint::put_u64(&mut out, inner as u64);
+    let at = out.len();
+    varint::put_u64(&mut out, b.len() as u64);
+    out.extend_from_slice(b);
+    (out, at)
+}
+
+/// A data message carrying the already encoded `payload`.
+fn data_message_with_payload(tag: u8, id: u32, payload: &[u8]) -> (Vec<u8>, usize) {
+    let mut out = Vec::with_capacity(1 + 5 + varint::len_u64(payload.len() as u64) + payload.len());
+    out.push(tag);
+    varint::put_u64(&mut out, u64::from(id));
+    varint::put_u64(&mut out, payload.len() as u64);
+    let at = out.len();
+    out.extend_from_slice(payload);
+    (out, at)
+}
+
+/// Decodes a user payload the caller owns, reusing its buffer when `T` is `Vec<u8>` (the
+/// length prefix is dropped in place: no allocation, no byte-by-byte sequence).
+///
+/// # Errors
+/// postcard's error when the bytes do not hold a `T`.
+pub fn decode_payload_owned<T: serde::de::DeserializeOwned + 'static>(
+    mut bytes: Vec<u8>,
+) -> Result<T, postcard::Error> {
+    let mut slot: Option<T> = None;
+    if let Some(out) = (&mut slot as &mut dyn std::any::Any).downcast_mut::<Option<Vec<u8>>>() {
+        let mut rest: &[u8] = &bytes;
+        let len = varint::take_u64(&mut rest)
+            .and_then(|l| usize::try_from(l).ok())
+            .filter(|l| *l <= rest.len())
+            .ok_or(postcard::Error::DeserializeUnexpectedEnd)?;
+        // Trailing bytes are ignored, as postcard's `from_bytes` ignores them.
+        let at = bytes.len() - rest.len();
+        bytes.truncate(at + len);
+        bytes.drain(..at);
+        *out = Some(bytes);
+        return Ok(slot.expect("set just above"));
+    }
+    postcard::from_bytes(&bytes)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -308,10 +414,51 @@ mod tests {
         assert!(decode_message(&[200]).is_err());
     }
 
+    use proptest::prelude::{any, prop_assert_eq};
     proptest::proptest! {
         #[test]
         fn random_bytes_never_panic(bytes in proptest::collection::vec(proptest::num::u8::ANY, 0..300)) {
             let _ = decode_message(&bytes);
+        }
+
+        /// The one-copy encoding of data messages is postcard's, for raw bytes and for other
+        /// payload types, and the owned decoding gives the value back.
+        #[test]
+        fn data_messages_are_postcards_and_decode_back(
+            bytes in proptest::collection::vec(proptest::num::u8::ANY, 0..2000),
+            id in any::<u32>(),
+            event in any::<bool>(),
+            words in proptest::collection::vec(any::<u64>(), 0..50),
+        ) {
+            let (msg, at) = encode_data_message(event, id, &bytes).unwrap();
+            let payload = encode_payload(&bytes).unwrap();
+            let expected = if event {
+                Message::Event { id, payload: payload.clone() }
+            } else {
+                Message::Var { id, payload: payload.clone() }
+            };
+            prop_assert_eq!(&msg, &encode_message(&expected));
+            prop_assert_eq!(&msg[at..], &payload[..]);
+            prop_assert_eq!(decode_payload_owned::<Vec<u8>>(payload).unwrap(), bytes);
+
+            let (msg, at) = encode_data_message(event, id, &words).unwrap();
+            let payload = encode_payload(&words).unwrap();
+            let expected = Message::Event { id, payload: payload.clone() };
+            if event {
+                prop_assert_eq!(&msg, &encode_message(&expected));
+            }
+            prop_assert_eq!(&msg[at..], &payload[..]);
+            prop_assert_eq!(decode_payload_owned::<Vec<u64>>(payload).unwrap(), words);
+        }
+
+        /// Truncated or garbage raw-byte payloads are refused, never a panic.
+        #[test]
+        fn raw_byte_payloads_decode_or_fail_like_postcard(
+            bytes in proptest::collection::vec(proptest::num::u8::ANY, 0..40),
+        ) {
+            let ours = decode_payload_owned::<Vec<u8>>(bytes.clone()).ok();
+            let theirs = decode_payload::<Vec<u8>>(&bytes).ok();
+            prop_assert_eq!(ours, theirs);
         }
     }
 }

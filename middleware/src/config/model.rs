@@ -125,8 +125,8 @@ pub struct ShmConfig {
     /// A peer silent this long is gone (`leaseMs`), default 3.5 × heartbeat.
     pub lease: Duration,
     /// How the link waits for messages (`wait`: `event`, the default, sleeps until a writer
-    /// wakes it; `spin` busy-polls from a thread of its own, so writers never make a system
-    /// call).
+    /// wakes it; `spin` busy-polls from a task of the link, yielding its tokio worker between
+    /// polls, so writers never make a system call).
     pub wait: ShmWait,
 }
 

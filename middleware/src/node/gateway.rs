@@ -369,7 +369,7 @@ impl NodeInner {
             return;
         }
         let msg = encode_data(event, offer.id, payload);
-        for r in remote {
+        for r in remote.iter() {
             self.send_to(
                 r.link,
                 r.addr,

@@ -66,7 +66,8 @@ pub(crate) struct LocalOffer {
     pub ty: TypeInfo,
     pub role: OfferRole,
     /// Remote nodes with a matching interest of the same type.
-    pub remote: Mutex<Vec<RemoteSubscriber>>,
+    /// (Shared: a raise takes the list with one reference count, not a copy.)
+    pub remote: Mutex<Arc<[RemoteSubscriber]>>,
     /// Local interests with a matching pattern of the same type.
     pub local: Mutex<Vec<Arc<LocalInterest>>>,
     /// (node, interest) pairs already told that the types differ.
@@ -84,8 +85,31 @@ pub(crate) struct RemoteSubscriber {
     pub node_name: Arc<str>,
     pub link: usize,
     pub addr: PeerAddr,
-    /// Services of that node with a matching interest (for reports and listings).
-    pub services: Vec<String>,
+    /// Services of that node with a matching interest as `node/service`, as raise reports
+    /// name them (made once per route change, not per event).
+    pub labels: Arc<[String]>,
+    /// The peer's [`Peer::alive`].
+    pub alive: Arc<std::sync::atomic::AtomicBool>,
+}
+
+/// Where a remote offer's data goes, with the names its samples carry: the data path takes
+/// one reference count per message for all of it.
+pub(crate) struct Route {
+    /// Local interests it is delivered to.
+    pub targets: Box<[Arc<LocalInterest>]>,
+    /// The item's full name.
+    pub name: Arc<str>,
+    /// Its type name.
+    pub type_name: Arc<str>,
+    /// The node publishing it (the origin behind a gateway).
+    pub publisher: Arc<str>,
+}
+
+impl std::ops::Deref for Route {
+    type Target = [Arc<LocalInterest>];
+    fn deref(&self) -> &[Arc<LocalInterest>] {
+        &self.targets
+    }
 }
 
 /// Something this node wants: a subscription or a function it calls.
@@ -137,13 +161,16 @@ pub(crate) struct Peer {
     pub shadowed: std::collections::HashSet<u32>,
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
-    pub routes: HashMap<u32, Arc<[Arc<LocalInterest>]>>,
+    pub routes: HashMap<u32, Arc<Route>>,
     /// Namespaces its identity key is authenticated for: `None` when this node checks no
     /// identities, empty until a valid proof listed in the roster arrives.
     pub authenticated: Option<Vec<String>>,
     /// The nonce of our identity challenge to it, until a proof answers it (`None` when this
     /// node checks no identities, or once answered).
     pub challenge: Option<[u8; 16]>,
+    /// Cleared when the peer is dropped: routes copied before that (a raise in progress)
+    /// see it without a table lookup and fail at once instead of sending.
+    pub alive: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl Peer {
@@ -154,8 +181,14 @@ impl Peer {
 
     /// Records that something arrived from this peer now.
     pub fn heard(&self, epoch: Instant) {
-        let now = epoch.elapsed().as_millis() as u64;
-        self.heard_ms.store(now, Ordering::Relaxed);
+        self.heard_at(epoch, Instant::now());
+    }
+
+    /// Records that something arrived from this peer at `now` (a clock read the caller
+    /// already made: the data path reads it once per message).
+    pub fn heard_at(&self, epoch: Instant, now: Instant) {
+        let ms = now.saturating_duration_since(epoch).as_millis() as u64;
+        self.heard_ms.store(ms, Ordering::Relaxed);
     }
 
     /// When it was last heard from at all.

@@ -284,6 +284,7 @@ impl NodeInner {
             addr: crate::link::PeerAddr,
             services: std::collections::HashMap<u32, String>,
             interests: Vec<(u32, super::session::RemoteItem)>,
+            alive: Arc<std::sync::atomic::AtomicBool>,
         }
         let peers: Vec<PeerView> = self
             .peers
@@ -295,6 +296,7 @@ impl NodeInner {
                 addr: p.addr,
                 services: p.services.clone(),
                 interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
+                alive: p.alive.clone(),
             })
             .collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
@@ -355,12 +357,14 @@ impl NodeInner {
                     }
                 }
                 if !services.is_empty() {
+                    let labels = services.iter().map(|s| format!("{}/{s}", p.name)).collect();
                     remote.push(RemoteSubscriber {
                         node: p.id,
                         node_name: p.name.clone(),
                         link: p.link,
                         addr: p.addr,
-                        services,
+                        labels,
+                        alive: p.alive.clone(),
                     });
                 }
             }
@@ -396,7 +400,7 @@ impl NodeInner {
                         }
                     }
                 }
-                *cur = remote;
+                *cur = remote.into();
             }
         }
         // Routes for what peers offer, each item from its shortest path only.
@@ -408,7 +412,7 @@ impl NodeInner {
                 .iter()
                 .filter(|(oid, item)| !hidden.contains(oid) && !item.denied)
                 .map(|(oid, item)| {
-                    let targets: Arc<[Arc<LocalInterest>]> = interests
+                    let targets: Box<[Arc<LocalInterest>]> = interests
                         .iter()
                         .filter(|i| {
                             kinds_match(item.kind, i.kind)
@@ -417,7 +421,13 @@ impl NodeInner {
                         })
                         .cloned()
                         .collect();
-                    (*oid, targets)
+                    let route = super::Route {
+                        targets,
+                        name: item.name.clone(),
+                        type_name: item.type_name.clone(),
+                        publisher: item.origin_name.clone().unwrap_or_else(|| p.name.clone()),
+                    };
+                    (*oid, Arc::new(route))
                 })
                 .collect();
             p.routes = routes;
@@ -728,16 +738,10 @@ impl NodeInner {
         if self.gateway.is_some() {
             self.forward_data(node, id, &payload);
         }
-        let Some((targets, name, type_name, publisher)) = self.peers.get(&node).and_then(|p| {
-            p.heard(self.me.epoch);
-            let t = p.routes.get(&id)?.clone();
-            let offer = p.offers.get(&id)?;
-            Some((
-                t,
-                offer.name.clone(),
-                offer.type_name.clone(),
-                offer.origin_name.clone().unwrap_or_else(|| p.name.clone()),
-            ))
+        let received = Instant::now();
+        let Some(route) = self.peers.get(&node).and_then(|p| {
+            p.heard_at(self.me.epoch, received);
+            p.routes.get(&id).cloned()
         }) else {
             let denied = self.peers.get(&node).and_then(|p| {
                 let o = p.offers.get(&id).filter(|o| o.denied)?;
@@ -759,10 +763,9 @@ impl NodeInner {
             }
             return;
         };
-        let received = Instant::now();
-        let n = targets.len();
+        let n = route.targets.len();
         let mut payload = Some(payload);
-        for (k, i) in targets.iter().enumerate() {
+        for (k, i) in route.targets.iter().enumerate() {
             let Some(m) = &i.mailbox else { continue };
             let bytes = if k + 1 == n {
                 payload.take().unwrap_or_default()
@@ -770,9 +773,9 @@ impl NodeInner {
                 payload.clone().unwrap_or_default()
             };
             m.push(Delivery::Sample(RawSample {
-                name: name.clone(),
-                publisher: publisher.clone(),
-                type_name: type_name.clone(),
+                name: route.name.clone(),
+                publisher: route.publisher.clone(),
+                type_name: route.type_name.clone(),
                 payload: bytes,
                 received,
             }));
@@ -812,8 +815,7 @@ impl NodeInner {
                 None => *last = Some(bytes.clone()),
             }
         }
-        let local = lock(&offer.local).clone();
-        for i in &local {
+        for i in lock(&offer.local).iter() {
             if let Some(m) = &i.mailbox {
                 m.push(Delivery::Sample(RawSample {
                     name: offer.name.clone(),

@@ -31,7 +31,8 @@
 //! before the reader wakes cost an atomic operation). The socket is watched by tokio's reactor,
 //! so the pass over the inbox runs on the tokio worker that woke, the same one the delivered
 //! message then wakes: one thread switch per message, as in plain iceoryx2. With
-//! [`ShmWait::Spin`] a dedicated thread polls the inbox and writers never notify.
+//! [`ShmWait::Spin`] a task of the link polls the inbox, yielding its tokio worker between
+//! polls, and writers never notify.
 //!
 //! Threads: sending is inline in the caller (a loan, a copy, an atomic store and maybe the
 //! notification: iceoryx2's non-blocking calls); receiving never blocks. Everything that may
@@ -125,11 +126,12 @@ pub enum ShmWait {
     /// has not woken yet).
     #[default]
     Event,
-    /// Busy-poll the inbox from a thread of its own: writers never notify, so sending is a
-    /// loan, a copy and an atomic store. While frames flow the thread polls without pause,
-    /// yielding the processor between polls (so on a busy host the node's own tasks still
-    /// run); after 10 ms without a frame it polls once per millisecond, so a message reaching an
-    /// idle inbox may wait up to 1 ms. It keeps a core busy while traffic flows.
+    /// Busy-poll the inbox from a task of the link: writers never notify, so sending is a
+    /// loan, a copy and an atomic store. While frames flow the task polls without pause,
+    /// yielding its tokio worker between polls (so the node's other tasks still run, and the
+    /// task a message is for is woken by a run-queue push, not a thread wake-up); after 10 ms
+    /// without a frame it polls once per millisecond, so a message reaching an idle inbox may
+    /// wait up to 1 ms. It keeps a worker busy while traffic flows.
     Spin,
 }
 

@@ -101,7 +101,8 @@ pub struct DatagramWriter {
 impl DatagramWriter {
     /// A writer for datagrams of at most `max` bytes.
     pub fn new(max: usize) -> Self {
-        let mut buf = Vec::with_capacity(max.min(65_536));
+        // Grown as entries come: a loopback writer may take 32 KiB, most datagrams are small.
+        let mut buf = Vec::with_capacity(max.min(2048));
         buf.push(KIND_DATA);
         DatagramWriter {
             buf,
@@ -187,7 +188,7 @@ impl DatagramWriter {
 
     /// The finished datagram; the writer is reset for the next one.
     pub fn take(&mut self) -> Vec<u8> {
-        let mut next = Vec::with_capacity(self.max.min(65_536));
+        let mut next = Vec::with_capacity(self.max.min(2048));
         next.push(KIND_DATA);
         self.entries = 0;
         std::mem::replace(&mut self.buf, next)
