@@ -1541,11 +1541,11 @@ mod tests {
             v.step(0.02);
         }
         assert!(v.position().horizontal_distance(&here) < 1.0);
-        // Not an ArduPilot command in mavsim.
+        // ArduPilot takes a reposition only in GUIDED (a parked rover is in HOLD).
         let mut a = rover();
         assert_eq!(
             command(&mut a, MavCmd::MAV_CMD_DO_REPOSITION, -1.0, 1.0),
-            MavResult::MAV_RESULT_UNSUPPORTED
+            MavResult::MAV_RESULT_FAILED
         );
     }
 
