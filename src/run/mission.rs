@@ -860,11 +860,12 @@ fn resolve_station(root: &Element, mission: &mut Mission) -> Result<(), Fault> {
     Ok(())
 }
 
-/// Structure-aware fuzzing of mission files on stable (the launcher is a binary crate, so no
-/// cargo-fuzz target reaches it).
-#[cfg(test)]
+/// Structure-aware fuzzing of mission files: on stable in `cargo test`, and under cargo-fuzz
+/// (`cfg(fuzzing)`) by `middleware/fuzz/fuzz_targets/mission_xml.rs`, which includes this file
+/// as a module of its own (the launcher is a binary crate, which no fuzz target can depend on).
+#[cfg(any(test, fuzzing))]
 #[path = "mission_fuzz.rs"]
-mod fuzz;
+pub mod fuzz;
 
 #[cfg(test)]
 mod tests {

@@ -4,13 +4,23 @@
 //! never a panic; a mission that parses has unique node names and at most one station.
 
 use std::fmt::Write;
-use std::path::Path;
-use std::time::{Duration, Instant};
+use std::path::{Path, PathBuf};
 
 use arbitrary::{Result, Unstructured};
-use rand::{Rng, SeedableRng};
 
 use super::{Mission, ServiceSpec};
+
+/// The repository's `config/missions`, where the generated stations' plans exist: from the root
+/// package (`cargo test`) or from `middleware/fuzz` (cargo-fuzz).
+fn missions_dir() -> PathBuf {
+    let here = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = if here.ends_with("middleware/fuzz") {
+        here.join("../..")
+    } else {
+        here.to_path_buf()
+    };
+    root.join("config/missions")
+}
 
 fn value(u: &mut Unstructured<'_>, good: &[&'static str], bent: bool) -> Result<String> {
     if bent && u.ratio(1u8, 4)? {
@@ -151,12 +161,13 @@ fn mission(u: &mut Unstructured<'_>) -> Result<String> {
     Ok(s)
 }
 
-fn check(data: &[u8]) {
+/// One fuzz case: a mission generated from `data`, parsed; never a panic, and a mission that
+/// parses has unique node names and at most one station.
+pub fn check(data: &[u8]) {
     let Ok(doc) = mission(&mut Unstructured::new(data)) else {
         return;
     };
-    let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
-    if let Ok(m) = Mission::parse(&doc, &base) {
+    if let Ok(m) = Mission::parse(&doc, &missions_dir()) {
         for (i, n) in m.nodes.iter().enumerate() {
             assert!(
                 m.nodes[..i].iter().all(|o| o.name != n.name),
@@ -177,7 +188,7 @@ fn check(data: &[u8]) {
 /// Found by this test: `timeoutS="1e30"` made `Duration::from_secs_f64` panic.
 #[test]
 fn a_huge_timeout_is_an_error_not_a_panic() {
-    let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
+    let base = missions_dir();
     for t in ["1e30", "1e308"] {
         let doc = format!(
             "<mission name=\"m\" timeoutS=\"{t}\"><node name=\"air\"><fmo/></node></mission>"
@@ -189,6 +200,8 @@ fn a_huge_timeout_is_an_error_not_a_panic() {
 
 #[test]
 fn structured_fuzz_mission_xml() {
+    use rand::{Rng, SeedableRng};
+    use std::time::{Duration, Instant};
     // A cap on the wall-clock time only shortens the run in slow debug builds.
     let started = Instant::now();
     let mut parsed = 0;
@@ -200,8 +213,7 @@ fn structured_fuzz_mission_xml() {
         let mut data = vec![0u8; rng.random_range(0..1024usize)];
         rng.fill(&mut data[..]);
         if let Ok(doc) = mission(&mut Unstructured::new(&data)) {
-            let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions");
-            parsed += usize::from(Mission::parse(&doc, &base).is_ok());
+            parsed += usize::from(Mission::parse(&doc, &missions_dir()).is_ok());
         }
         if let Err(e) = std::panic::catch_unwind(|| check(&data)) {
             panic!("seed {seed} failed: {e:?}");
