@@ -6,18 +6,18 @@
 //! plan completes.
 
 use std::path::Path;
-use std::process::Stdio;
 use std::time::Duration;
 
 use fpma::api::{CommandAck, ModifyLeg, PlanEvent, PlanEventKind, PlanRejected, Progress, SetVar};
 use fpma::api::{PlanLoaded, VarValue};
-use marea::{NetworkConfig, Node, SendFileOptions};
-use tokio::io::{AsyncBufReadExt, BufReader};
+use marea::SendFileOptions;
 use tokio::time::{timeout, Instant};
 use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
 
 mod common;
-use common::{close, kill, sibling_bins, sim_reached, spawn, start_when_ready};
+use common::{
+    close, ground, kill, sim_reached, start_fpma, start_mavsim, start_vas, start_when_ready,
+};
 
 /// Bound on each single wait.
 const STEP: Duration = Duration::from_secs(20);
@@ -39,80 +39,30 @@ fn track_gaps(points: &[(f64, f64)]) -> Vec<f64> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
-    let (vas_bin, sim_bin) = sibling_bins();
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("sim.jsonl");
     let domain = format!("fpma-e2e-{}", std::process::id());
 
-    let mut sim = spawn(
-        sim_bin,
-        &[
-            "--udp",
-            "127.0.0.1:0",
-            "--speedup",
-            "25",
-            "--home",
-            &format!("{},{},0", HOME.0, HOME.1),
-            "--log",
-            log.to_str().unwrap(),
-        ],
-        Stdio::piped(),
-    );
-    let line = timeout(
-        STEP,
-        BufReader::new(sim.stdout.take().unwrap())
-            .lines()
-            .next_line(),
-    )
-    .await
-    .expect("mavsim printed its address")
-    .unwrap()
-    .expect("mavsim exited early");
-    let addr = line
-        .strip_prefix("MAVSIM_UDP=")
-        .expect("MAVSIM_UDP=")
-        .to_owned();
-    let vas = spawn(
-        vas_bin,
-        &[
-            "--endpoint",
-            &format!("udpout:{addr}"),
-            "--domain",
-            &domain,
-            "--namespace",
-            "rover1",
-            "--queue-size",
-            "5",
-        ],
-        Stdio::null(),
-    );
-    let plans = dir.path().join("plans");
-    let state = dir.path().join("state");
-    let fpma = spawn(
-        Path::new(env!("CARGO_BIN_EXE_fpma")),
-        &[
-            "run",
-            "--domain",
-            &domain,
-            "--namespace",
-            "rover1",
-            "--vehicle",
-            "rover",
-            "--lookahead",
-            "8",
-            "--plans-dir",
-            plans.to_str().unwrap(),
-            // Not the user's state directory: this test must start without a plan.
-            "--state-dir",
-            state.to_str().unwrap(),
-        ],
-        Stdio::null(),
+    let (sim, addr) = start_mavsim(&[
+        "--speedup",
+        "25",
+        "--home",
+        &format!("{},{},0", HOME.0, HOME.1),
+        "--log",
+        log.to_str().unwrap(),
+    ])
+    .await;
+    let vas = start_vas(&addr, &domain, &["--queue-size", "5"]);
+    let fpma = start_fpma(
+        &domain,
+        "rover",
+        &dir.path().join("plans"),
+        &dir.path().join("state"),
+        &["--lookahead", "8"],
     );
 
     // The ground station.
-    let mut cfg = NetworkConfig::ethernet_loopback("ground");
-    cfg.domain.clone_from(&domain);
-    let node = Node::open(&cfg).await.expect("ground node");
+    let node = ground(&domain).await;
     let gcs = node.service("fpmo").unwrap();
     let load = gcs
         .function::<String, PlanLoaded>("rover1/fpma/load_plan")

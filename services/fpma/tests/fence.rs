@@ -3,18 +3,14 @@
 //! the same plan without that leg loads, its fence reaches the autopilot (mavsim logs the
 //! polygon it received), and a change that would cross the fence is refused in flight.
 
-use std::path::Path;
-use std::process::Stdio;
 use std::time::Duration;
 
 use fpma::api::{CommandAck, PlanLoaded};
-use marea::{NetworkConfig, Node};
-use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::time::{timeout, Instant};
 use usal_types::FlightState;
 
 mod common;
-use common::{kill, sibling_bins, spawn};
+use common::{ground, kill, start_fpma, start_mavsim, start_vas};
 
 const STEP: Duration = Duration::from_secs(30);
 const HOME: (f64, f64) = (41.275, 1.987);
@@ -57,70 +53,28 @@ fn plan(with_far: bool) -> String {
 }
 
 async fn run() {
-    let (vas_bin, sim_bin) = sibling_bins();
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("sim.jsonl");
     let domain = format!("fpma-fence-{}", std::process::id());
     let home = format!("{},{},0", HOME.0, HOME.1);
-    let mut sim = spawn(
-        sim_bin,
-        &[
-            "--udp",
-            "127.0.0.1:0",
-            "--home",
-            &home,
-            "--speedup",
-            "10",
-            "--log",
-            log.to_str().unwrap(),
-        ],
-        Stdio::piped(),
+    let (sim, addr) = start_mavsim(&[
+        "--home",
+        &home,
+        "--speedup",
+        "10",
+        "--log",
+        log.to_str().unwrap(),
+    ])
+    .await;
+    let vas = start_vas(&addr, &domain, &[]);
+    let fpma = start_fpma(
+        &domain,
+        "rover",
+        &dir.path().join("plans"),
+        &dir.path().join("state"),
+        &[],
     );
-    let line = timeout(
-        STEP,
-        BufReader::new(sim.stdout.take().unwrap())
-            .lines()
-            .next_line(),
-    )
-    .await
-    .expect("mavsim printed its address")
-    .unwrap()
-    .expect("mavsim exited early");
-    let addr = line.strip_prefix("MAVSIM_UDP=").expect("MAVSIM_UDP=");
-    let vas = spawn(
-        vas_bin,
-        &[
-            "--endpoint",
-            &format!("udpout:{addr}"),
-            "--domain",
-            &domain,
-            "--namespace",
-            "rover1",
-        ],
-        Stdio::null(),
-    );
-    let plans = dir.path().join("plans");
-    let state = dir.path().join("state");
-    let fpma = spawn(
-        Path::new(env!("CARGO_BIN_EXE_fpma")),
-        &[
-            "run",
-            "--domain",
-            &domain,
-            "--namespace",
-            "rover1",
-            "--vehicle",
-            "rover",
-            "--plans-dir",
-            plans.to_str().unwrap(),
-            "--state-dir",
-            state.to_str().unwrap(),
-        ],
-        Stdio::null(),
-    );
-    let mut cfg = NetworkConfig::ethernet_loopback("ground");
-    cfg.domain.clone_from(&domain);
-    let node = Node::open(&cfg).await.expect("ground node");
+    let node = ground(&domain).await;
     let gcs = node.service("fpmo").unwrap();
     let load = gcs
         .function::<String, PlanLoaded>("rover1/fpma/load_plan")

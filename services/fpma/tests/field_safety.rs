@@ -10,12 +10,10 @@
 //!   means, and the FPMa's `alt` is measured from the plan's reference.
 
 use std::path::Path;
-use std::process::Stdio;
 use std::time::Duration;
 
 use fpma::api::{PlanEvent, PlanEventKind, PlanLoaded, PlanState, VarValue};
-use marea::{NetworkConfig, Node};
-use tokio::io::{AsyncBufReadExt, BufReader};
+use marea::Node;
 use tokio::process::Child;
 use tokio::time::{timeout, Instant};
 use usal_types::{
@@ -23,7 +21,7 @@ use usal_types::{
 };
 
 mod common;
-use common::{sibling_bins, spawn};
+use common::{ground, start_fpma, start_mavsim, start_vas};
 
 /// Bound on each single wait.
 const STEP: Duration = Duration::from_secs(30);
@@ -46,61 +44,24 @@ impl Flight {
     /// Starts the three processes; `sim_args` and `vehicle` (`rover`, `copter`) choose the
     /// vehicle, `fpma_vehicle` (`rover`, `aircraft`) the FPMa's.
     async fn start(name: &str, vehicle: &str, fpma_vehicle: &str, sim_args: &[&str]) -> Self {
-        let (vas_bin, sim_bin) = sibling_bins();
         let dir = tempfile::tempdir().unwrap();
         let domain = format!("fpma-safety-{name}-{}", std::process::id());
-        let mut args = vec!["--udp", "127.0.0.1:0", "--vehicle", vehicle];
+        let mut args = vec!["--vehicle", vehicle];
         args.extend_from_slice(sim_args);
-        let mut sim = spawn(sim_bin, &args, Stdio::piped());
-        let line = timeout(
-            STEP,
-            BufReader::new(sim.stdout.take().unwrap())
-                .lines()
-                .next_line(),
-        )
-        .await
-        .expect("mavsim printed its address")
-        .unwrap()
-        .expect("mavsim exited early");
-        let addr = line.strip_prefix("MAVSIM_UDP=").expect("MAVSIM_UDP=");
-        let vas = spawn(
-            vas_bin,
-            &[
-                "--endpoint",
-                &format!("udpout:{addr}"),
-                "--domain",
-                &domain,
-                "--namespace",
-                "rover1",
-                "--vehicle",
-                vehicle,
-                "--telemetry-hz",
-                "10",
-            ],
-            Stdio::null(),
+        let (sim, addr) = start_mavsim(&args).await;
+        let vas = start_vas(
+            &addr,
+            &domain,
+            &["--vehicle", vehicle, "--telemetry-hz", "10"],
         );
-        let plans = dir.path().join("plans");
-        let state = dir.path().join("state");
-        let fpma = spawn(
-            Path::new(env!("CARGO_BIN_EXE_fpma")),
-            &[
-                "run",
-                "--domain",
-                &domain,
-                "--namespace",
-                "rover1",
-                "--vehicle",
-                fpma_vehicle,
-                "--plans-dir",
-                plans.to_str().unwrap(),
-                "--state-dir",
-                state.to_str().unwrap(),
-            ],
-            Stdio::null(),
+        let fpma = start_fpma(
+            &domain,
+            fpma_vehicle,
+            &dir.path().join("plans"),
+            &dir.path().join("state"),
+            &[],
         );
-        let mut cfg = NetworkConfig::ethernet_loopback("ground");
-        cfg.domain.clone_from(&domain);
-        let node = Node::open(&cfg).await.expect("ground node");
+        let node = ground(&domain).await;
         Self {
             children: vec![sim, vas, fpma],
             node,

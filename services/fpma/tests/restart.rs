@@ -10,18 +10,17 @@
 //! calls), never panics.
 
 use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::time::Duration;
 
 use fpma::api::{CommandAck, PlanLoaded, Progress};
-use marea::{NetworkConfig, Node};
-use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Child;
 use tokio::time::{timeout, Instant};
 use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
 
 mod common;
-use common::{close, kill, sibling_bins, sim_reached, spawn, start_when_ready};
+use common::{
+    close, ground, kill, sim_reached, start_fpma, start_mavsim, start_vas, start_when_ready,
+};
 
 /// Bound on each single wait.
 const STEP: Duration = Duration::from_secs(20);
@@ -35,70 +34,22 @@ fn plan_path() -> PathBuf {
 
 /// mavsim, then the VAS on it; returns them and mavsim's log.
 async fn vehicle(dir: &Path, domain: &str) -> (Child, Child, PathBuf) {
-    let (vas_bin, sim_bin) = sibling_bins();
     let log = dir.join("sim.jsonl");
-    let mut sim = spawn(
-        sim_bin,
-        &[
-            "--udp",
-            "127.0.0.1:0",
-            "--speedup",
-            "10",
-            "--home",
-            &format!("{},{},0", HOME.0, HOME.1),
-            "--log",
-            log.to_str().unwrap(),
-        ],
-        Stdio::piped(),
-    );
-    let line = timeout(
-        STEP,
-        BufReader::new(sim.stdout.take().unwrap())
-            .lines()
-            .next_line(),
-    )
-    .await
-    .expect("mavsim printed its address")
-    .unwrap()
-    .expect("mavsim exited early");
-    let addr = line
-        .strip_prefix("MAVSIM_UDP=")
-        .expect("MAVSIM_UDP=")
-        .to_owned();
-    let vas = spawn(
-        vas_bin,
-        &[
-            "--endpoint",
-            &format!("udpout:{addr}"),
-            "--domain",
-            domain,
-            "--namespace",
-            "rover1",
-            "--queue-size",
-            "5",
-        ],
-        Stdio::null(),
-    );
+    let (sim, addr) = start_mavsim(&[
+        "--speedup",
+        "10",
+        "--home",
+        &format!("{},{},0", HOME.0, HOME.1),
+        "--log",
+        log.to_str().unwrap(),
+    ])
+    .await;
+    let vas = start_vas(&addr, domain, &["--queue-size", "5"]);
     (sim, vas, log)
 }
 
 fn fpma(domain: &str, state: &Path, plans: &Path) -> Child {
-    let args = [
-        "run",
-        "--domain",
-        domain,
-        "--namespace",
-        "rover1",
-        "--vehicle",
-        "rover",
-        "--lookahead",
-        "8",
-        "--state-dir",
-        state.to_str().unwrap(),
-        "--plans-dir",
-        plans.to_str().unwrap(),
-    ];
-    spawn(Path::new(env!("CARGO_BIN_EXE_fpma")), &args, Stdio::null())
+    start_fpma(domain, "rover", plans, state, &["--lookahead", "8"])
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -110,9 +61,7 @@ async fn a_killed_fpma_resumes_its_plan_where_it_was() {
     let plans = dir.path().join("plans");
     let plan = plan_path();
 
-    let mut cfg = NetworkConfig::ethernet_loopback("ground");
-    cfg.domain.clone_from(&domain);
-    let node = Node::open(&cfg).await.expect("ground node");
+    let node = ground(&domain).await;
     let gcs = node.service("fmo").unwrap();
     let reached = gcs
         .subscribe_event::<WaypointReached>("rover1/vas/waypoint_reached")
@@ -241,9 +190,7 @@ async fn a_corrupt_state_file_gives_a_clean_start() {
     std::fs::write(&file, b"{\"format\":1,\"state\":{\"source\":").unwrap();
     let fpma = fpma(&domain, &state_dir, &dir.path().join("plans"));
 
-    let mut cfg = NetworkConfig::ethernet_loopback("ground");
-    cfg.domain.clone_from(&domain);
-    let node = Node::open(&cfg).await.expect("ground node");
+    let node = ground(&domain).await;
     let gcs = node.service("fpmo").unwrap();
     let skip = gcs
         .function::<(), CommandAck>("rover1/fpma/skip_leg")
