@@ -264,24 +264,23 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
 fn list(node: &Node, json: bool) -> anyhow::Result<()> {
     let catalog = node.catalog();
     let remote: Vec<_> = catalog.nodes.into_iter().filter(|n| !n.local).collect();
+    let mut lines = Vec::new();
     if json {
         for n in &remote {
-            println!("{}", serde_json::to_string(n)?);
+            lines.push(serde_json::to_string(n)?);
         }
-        return Ok(());
+    } else if remote.is_empty() {
+        lines.push("no nodes found (is a system running in this domain?)".to_owned());
     }
-    if remote.is_empty() {
-        println!("no nodes found (is a system running in this domain?)");
-    }
-    for n in remote {
+    for n in remote.into_iter().filter(|_| !json) {
         let ns = if n.namespace.is_empty() {
             String::new()
         } else {
             format!(" (namespace {})", n.namespace)
         };
-        println!("node {}{ns}", n.name);
+        lines.push(format!("node {}{ns}", n.name));
         for s in n.services {
-            println!("  service {}", s.name);
+            lines.push(format!("  service {}", s.name));
             for it in s.items {
                 let verb = match (it.role, it.kind) {
                     (marea::ItemRole::Offer, ItemKind::Variable | ItemKind::Event) => "publishes",
@@ -290,13 +289,19 @@ fn list(node: &Node, json: bool) -> anyhow::Result<()> {
                     (marea::ItemRole::Interest, ItemKind::Function) => "calls",
                     (marea::ItemRole::Interest, _) => "subscribes",
                 };
-                println!(
+                lines.push(format!(
                     "    {verb:<13} {:<8} {:<36} {}",
                     it.kind.as_str(),
                     it.name,
                     it.type_name
-                );
+                ));
             }
+        }
+    }
+    // `usal list | head`: a reader that stops early ends the listing, not a panic.
+    for line in &lines {
+        if !print_line(line)? {
+            break;
         }
     }
     Ok(())
