@@ -117,7 +117,17 @@ impl Core {
             severity,
             text: text.into(),
         };
-        tracing::warn!("alarm ({:?}): {}", a.severity, a.text);
+        // Logged at the alarm's own weight: notices and information are not warnings.
+        match a.severity {
+            Severity::Emergency | Severity::Alert | Severity::Critical | Severity::Error => {
+                tracing::error!("alarm ({:?}): {}", a.severity, a.text)
+            }
+            Severity::Warning => tracing::warn!("alarm ({:?}): {}", a.severity, a.text),
+            Severity::Notice | Severity::Info => {
+                tracing::info!("alarm ({:?}): {}", a.severity, a.text)
+            }
+            Severity::Debug => tracing::debug!("alarm ({:?}): {}", a.severity, a.text),
+        }
         if let Err(e) = self.items.alarm.raise_nowait(&a) {
             tracing::warn!("raising alarm: {e}");
         }
