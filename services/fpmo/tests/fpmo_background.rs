@@ -14,19 +14,7 @@ const SVG: &str = r##"<svg xmlns="http://www.w3.org/2000/svg" width="64" height=
 
 /// Runs `fpmo args`, expecting it to fail at start: its stderr.
 async fn fails(args: &[&str]) -> String {
-    let out = tokio::time::timeout(
-        STEP,
-        tokio::process::Command::new(env!("CARGO_BIN_EXE_fpmo"))
-            .args(["--listen", "127.0.0.1:0"])
-            .args(args)
-            .kill_on_drop(true)
-            .output(),
-    )
-    .await
-    .expect("fpmo did not exit")
-    .expect("running fpmo");
-    assert!(!out.status.success(), "{args:?} accepted");
-    String::from_utf8_lossy(&out.stderr).into_owned()
+    station_fails_at_start(env!("CARGO_BIN_EXE_fpmo"), args).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -279,6 +279,24 @@ pub fn vehicle<'a>(state: &'a serde_json::Value, label: &str) -> Option<&'a serd
         .find(|v| v["label"] == label)
 }
 
+/// Runs the station binary `bin` on a free port with `args`, expecting it to refuse to
+/// start: its stderr (which names the reason).
+pub async fn station_fails_at_start(bin: &str, args: &[&str]) -> String {
+    let out = tokio::time::timeout(
+        STEP,
+        tokio::process::Command::new(bin)
+            .args(["--listen", "127.0.0.1:0"])
+            .args(args)
+            .kill_on_drop(true)
+            .output(),
+    )
+    .await
+    .expect("the station did not exit")
+    .expect("running the station");
+    assert!(!out.status.success(), "{args:?} accepted");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
 /// Builds the flight binaries the scenarios start (mavsim, vas, fpma) before a scenario's own
 /// time bound starts: a cold build can take minutes on a shared machine.
 pub fn build_flight_bins() {
