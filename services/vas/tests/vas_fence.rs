@@ -96,14 +96,10 @@ async fn run() {
     g.request(FlightState::WaypointNavigation)
         .await
         .expect("navigation");
-    let deadline = tokio::time::Instant::now() + STEP;
-    while sim.log_events("item_reached").len() < 5 {
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the rover does not drive"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    sim.wait_log("item_reached", STEP, "the rover does not drive", |r| {
+        r.len() >= 5
+    })
+    .await;
     let reply = set_fence
         .call(&Some(fence(40.0)), STEP)
         .await
@@ -129,14 +125,13 @@ async fn run() {
     sim.kill().await;
     g.wait_alarm("heartbeat lost", STEP).await;
     let sim = Sim::start(&addr, 5.0, &dir.path().join("sim2.jsonl")).await;
-    let deadline = tokio::time::Instant::now() + STEP * 2;
-    while sim.log_events("fence_uploaded").is_empty() {
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the fence was not uploaded to the restarted autopilot"
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    sim.wait_log(
+        "fence_uploaded",
+        STEP * 2,
+        "the fence was not uploaded to the restarted autopilot",
+        |r| !r.is_empty(),
+    )
+    .await;
     assert_eq!(sim.log_events("fence_uploaded")[0]["vertices"], 4);
 
     vas.kill().await;

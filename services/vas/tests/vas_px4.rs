@@ -7,8 +7,6 @@
 
 mod common;
 
-use std::time::Duration;
-
 use common::*;
 use usal_types::{FlightState, ManualControl};
 use vas::apl::ardupilot::ArduPilotConfig;
@@ -26,17 +24,9 @@ fn dist(a: (f64, f64), b: (f64, f64)) -> f64 {
 
 /// Waits until mavsim's log holds a record of `event` satisfying `f`.
 async fn wait_log(sim: &Sim, event: &str, f: impl Fn(&serde_json::Value) -> bool) {
-    let found = tokio::time::timeout(STEP, async {
-        loop {
-            if sim.log_events(event).iter().any(&f) {
-                return;
-            }
-            // mavsim flushes each line; poll its log file.
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    })
-    .await;
-    assert!(found.is_ok(), "no {event} in mavsim's log");
+    let what = format!("no {event} in mavsim's log");
+    sim.wait_log(event, STEP, &what, |records| records.iter().any(&f))
+        .await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

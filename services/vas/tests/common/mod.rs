@@ -184,6 +184,27 @@ impl Sim {
         log_events(&self.log, event)
     }
 
+    /// Waits until the log's records of `event` satisfy `done` (polling the file: mavsim
+    /// flushes each line, and no other signal says a record was written); panics with `what`
+    /// after `within`. Returns those records.
+    pub async fn wait_log(
+        &self,
+        event: &str,
+        within: Duration,
+        what: &str,
+        done: impl Fn(&[serde_json::Value]) -> bool,
+    ) -> Vec<serde_json::Value> {
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            let records = self.log_events(event);
+            if done(&records) {
+                return records;
+            }
+            assert!(tokio::time::Instant::now() < deadline, "{what}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
     /// Kills it and waits.
     pub async fn kill(mut self) {
         let _ = self.child.start_kill();
