@@ -323,10 +323,12 @@ impl NodeInner {
         self.path_switches.send(self.links(), (link, addr), out);
     }
 
-    /// Sends a safe message and forgets about its acknowledgement. A Hello to a peer whose
-    /// identity we still wait for is followed by our challenge, so the peer answers it before
-    /// the declarations we ask for after it.
+    /// Sends a safe message and forgets about its acknowledgement (a Hello as
+    /// [`Self::send_safe_in_sequence`] sends it, with our challenge after it).
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
+        if matches!(msg, Message::Hello { .. }) {
+            return self.send_safe_in_sequence(link, addr, std::slice::from_ref(msg));
+        }
         self.send_to(
             link,
             addr,
@@ -335,18 +337,28 @@ impl NodeInner {
                 done: None,
             },
         );
-        if matches!(msg, Message::Hello { .. }) {
-            if let Some(nonce) = self.pending_challenge(link, addr) {
-                self.send_to(
-                    link,
-                    addr,
-                    Outgoing::Safe {
-                        msg: encode_message(&Message::Challenge { nonce }),
-                        done: None,
-                    },
-                );
+    }
+
+    /// Sends safe messages one after the other with no other safe message between them (see
+    /// [`path_switch::PathSwitches::send_in_sequence`]). A Hello to a peer whose identity we
+    /// still wait for is followed by our challenge, so the peer answers it before the
+    /// declarations we ask for after it.
+    pub fn send_safe_in_sequence(&self, link: usize, addr: PeerAddr, msgs: &[Message]) {
+        let safe = |msg: &Message| Outgoing::Safe {
+            msg: encode_message(msg),
+            done: None,
+        };
+        let mut outs = Vec::with_capacity(msgs.len() + 1);
+        for msg in msgs {
+            outs.push(safe(msg));
+            if matches!(msg, Message::Hello { .. }) {
+                if let Some(nonce) = self.pending_challenge(link, addr) {
+                    outs.push(safe(&Message::Challenge { nonce }));
+                }
             }
         }
+        self.path_switches
+            .send_in_sequence(self.links(), (link, addr), outs);
     }
 
     /// Sends a safe message to a known peer.

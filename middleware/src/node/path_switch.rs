@@ -64,6 +64,34 @@ impl PathSwitches {
         send_on(links, s.to, out);
     }
 
+    /// Sends the safe messages `outs` to `path` one after the other, with no other safe message
+    /// between them: under the write lock, which every safe send holds for reading. An
+    /// introduction (our Hello, then our declarations) goes out this way, so a message another
+    /// task sends the peer meanwhile (a late joiner's value answering the peer's own
+    /// declarations, which can arrive as soon as our Hello did) cannot overtake the
+    /// declarations that give its ids a meaning.
+    pub(crate) fn send_in_sequence(
+        &self,
+        links: &[Arc<dyn Link>],
+        path: Path,
+        outs: Vec<Outgoing>,
+    ) {
+        let map = self.map.write().unwrap_or_else(|e| e.into_inner());
+        let to = match map.get(&path) {
+            None => path,
+            Some(s) => {
+                if let Some(held) = lock(&s.held).as_mut() {
+                    held.extend(outs);
+                    return;
+                }
+                s.to
+            }
+        };
+        for out in outs {
+            send_on(links, to, out);
+        }
+    }
+
     /// Starts leaving `from` for `to` (both reaching `node`). Returns `false` when `from` is
     /// being left already.
     fn start(&self, node: NodeId, from: Path, to: Path) -> bool {
@@ -313,5 +341,70 @@ mod tests {
             [(old.1, vec![2])],
             "the old path is used again"
         );
+    }
+
+    /// A link that records what it sends and stops inside the send of message 1 until released.
+    struct Gate {
+        sent: Mutex<Vec<u8>>,
+        entered: Mutex<std::sync::mpsc::Sender<()>>,
+        release: Mutex<std::sync::mpsc::Receiver<()>>,
+    }
+
+    impl Link for Gate {
+        fn name(&self) -> &str {
+            "gate"
+        }
+        fn local_addr(&self) -> String {
+            String::new()
+        }
+        fn send(&self, _: PeerAddr, out: Outgoing) {
+            let (Outgoing::Fast { msg, .. } | Outgoing::Safe { msg, .. }) = out;
+            if msg == [1] {
+                let _ = lock(&self.entered).send(());
+                let _ = lock(&self.release).recv();
+            }
+            lock(&self.sent).extend(msg);
+        }
+        fn announce(&self, _: &[u8]) {}
+        fn close_peer(&self, _: PeerAddr) {}
+        fn stats(&self) -> LinkStats {
+            LinkStats::default()
+        }
+    }
+
+    #[test]
+    fn a_safe_message_sent_during_a_sequence_waits_for_the_whole_sequence() {
+        let (entered_tx, entered) = std::sync::mpsc::channel();
+        let (release, release_rx) = std::sync::mpsc::channel();
+        let gate = Arc::new(Gate {
+            sent: Mutex::default(),
+            entered: Mutex::new(entered_tx),
+            release: Mutex::new(release_rx),
+        });
+        let links: Arc<Vec<Arc<dyn Link>>> = Arc::new(vec![gate.clone()]);
+        let path: Path = (0, PeerAddr::Shm(7));
+        let s = Arc::new(PathSwitches::default());
+        let introduce = {
+            let (s, links) = (s.clone(), links.clone());
+            std::thread::spawn(move || s.send_in_sequence(&links, path, vec![safe(1), safe(2)]))
+        };
+        entered.recv().unwrap();
+        // Another task sends while the sequence is half out: it must not get in between.
+        let (done_tx, done) = std::sync::mpsc::channel();
+        let other = {
+            let (s, links) = (s.clone(), links.clone());
+            std::thread::spawn(move || {
+                s.send(&links, path, safe(9));
+                let _ = done_tx.send(());
+            })
+        };
+        assert!(
+            done.recv_timeout(Duration::from_millis(200)).is_err(),
+            "a safe message went out in the middle of a sequence"
+        );
+        release.send(()).unwrap();
+        introduce.join().unwrap();
+        other.join().unwrap();
+        assert_eq!(*lock(&gate.sent), [1, 2, 9]);
     }
 }

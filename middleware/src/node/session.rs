@@ -153,6 +153,37 @@ fn check_declared_name(decl: &Declaration) -> Result<(), name::NameParseError> {
     }
 }
 
+/// Declarations as batches of [`BATCH_ENTRIES`], or one empty batch when there are none, so
+/// the peer knows it is up to date. Each batch continues where the previous one ended; the last
+/// one covers up to the log's counter.
+fn batches(view: LogView) -> Vec<Message> {
+    let mut after = view.after;
+    let mut reset = view.reset;
+    let chunks: Vec<&[LoggedDeclaration]> = if view.entries.is_empty() {
+        vec![&[]]
+    } else {
+        view.entries.chunks(BATCH_ENTRIES).collect()
+    };
+    let last = chunks.len() - 1;
+    let mut out = Vec::with_capacity(chunks.len());
+    for (k, chunk) in chunks.into_iter().enumerate() {
+        let upto = if k == last {
+            view.upto
+        } else {
+            chunk.last().map_or(after, |e| e.counter)
+        };
+        out.push(Message::DeclBatch {
+            after,
+            upto,
+            reset,
+            entries: chunk.to_vec(),
+        });
+        after = upto;
+        reset = false;
+    }
+    out
+}
+
 impl NodeInner {
     /// Appends a declaration to the log and pushes it to every known peer (as a no-op to the
     /// peers on `hidden_on`).
@@ -173,44 +204,19 @@ impl NodeInner {
     }
 
     /// Sends a peer our Hello, then every declaration we have, with the log locked by the
-    /// caller (who registered the peer under the same lock). Whatever we send it later (a late
-    /// joiner's value, events, replies) comes after the declarations that give its ids a meaning.
+    /// caller (who registered the peer under the same lock), all in one sequence: whatever we
+    /// send it later (a late joiner's value, events, replies), even from another task answering
+    /// the peer's own declarations (which can arrive as soon as our Hello did), comes after the
+    /// declarations that give its ids a meaning.
     pub fn introduce_locked(&self, log: &DeclarationLog, link: usize, addr: crate::link::PeerAddr) {
-        self.send_safe(link, addr, &self.hello_at(link, log.counter));
-        self.send_batches(link, addr, log.view(link, 0));
+        let mut msgs = vec![self.hello_at(link, log.counter)];
+        msgs.extend(batches(log.view(link, 0)));
+        self.send_safe_in_sequence(link, addr, &msgs);
     }
 
-    /// Sends declarations in batches of [`BATCH_ENTRIES`], or one empty batch when there are
-    /// none, so the peer knows it is up to date. Each batch continues where the previous one
-    /// ended; the last one covers up to the log's counter.
+    /// Sends declarations as [`batches`] makes them, in one sequence.
     fn send_batches(&self, link: usize, addr: crate::link::PeerAddr, view: LogView) {
-        let mut after = view.after;
-        let mut reset = view.reset;
-        let chunks: Vec<&[LoggedDeclaration]> = if view.entries.is_empty() {
-            vec![&[]]
-        } else {
-            view.entries.chunks(BATCH_ENTRIES).collect()
-        };
-        let last = chunks.len() - 1;
-        for (k, chunk) in chunks.into_iter().enumerate() {
-            let upto = if k == last {
-                view.upto
-            } else {
-                chunk.last().map_or(after, |e| e.counter)
-            };
-            self.send_safe(
-                link,
-                addr,
-                &Message::DeclBatch {
-                    after,
-                    upto,
-                    reset,
-                    entries: chunk.to_vec(),
-                },
-            );
-            after = upto;
-            reset = false;
-        }
+        self.send_safe_in_sequence(link, addr, &batches(view));
     }
 
     pub fn counter(&self) -> u32 {
