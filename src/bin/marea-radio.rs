@@ -38,6 +38,10 @@ struct Args {
     /// Outage `START_MS:DURATION_MS` after start (repeatable): bytes on air are lost.
     #[arg(long, value_parser = parse_outage)]
     outage: Vec<(u64, u64)>,
+    /// On SIGUSR1, an outage of this many milliseconds starts at once (cut the link at a
+    /// chosen moment rather than a scheduled one); each start is printed as an `outage` line.
+    #[arg(long, value_name = "MS")]
+    outage_on_signal: Option<u64>,
     /// Seed of the fault generator.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -206,6 +210,10 @@ async fn main() -> anyhow::Result<()> {
     let mut stats_at = (args.stats_ms > 0).then(|| start + Duration::from_millis(args.stats_ms));
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .context("cannot watch SIGTERM")?;
+    let mut sigusr1 = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::user_defined1())
+        .context("cannot watch SIGUSR1")?;
+    // The end of the outage SIGUSR1 started.
+    let mut signalled_until: Option<Instant> = None;
     let report = |g2a: &Direction, a2g: &Direction, event: &str| {
         println!(
             "{}",
@@ -221,6 +229,23 @@ async fn main() -> anyhow::Result<()> {
         tokio::select! {
             _ = tokio::signal::ctrl_c() => break,
             _ = sigterm.recv() => break,
+            _ = sigusr1.recv() => {
+                match args.outage_on_signal {
+                    Some(ms) => {
+                        signalled_until = Some(Instant::now() + Duration::from_millis(ms));
+                        println!(
+                            "{}",
+                            json!({
+                                "event": "outage",
+                                "elapsed_ms": start.elapsed().as_millis() as u64,
+                                "duration_ms": ms,
+                            })
+                        );
+                    }
+                    None => eprintln!("marea-radio: SIGUSR1 ignored (no --outage-on-signal)"),
+                }
+                continue;
+            }
             Some((from_ground, bytes)) = in_rx.recv() => {
                 let d = if from_ground { &mut g2a } else { &mut a2g };
                 d.accept(&bytes, args.buffer);
@@ -235,7 +260,8 @@ async fn main() -> anyhow::Result<()> {
         let outage = args
             .outage
             .iter()
-            .any(|&(a, d)| since >= a && since < a + d);
+            .any(|&(a, d)| since >= a && since < a + d)
+            || signalled_until.is_some_and(|end| now < end);
         // Credit that is not used is not saved up beyond a few ticks: air time passes.
         let cap = bytes_per_s * 0.02;
         if args.full_duplex {

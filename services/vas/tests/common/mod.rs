@@ -61,6 +61,8 @@ pub struct Radio {
     child: Child,
     /// The latest counters it printed (`--stats-ms`).
     stats: std::sync::Arc<std::sync::Mutex<Option<serde_json::Value>>>,
+    /// How many outages it announced starting (`--outage-on-signal`).
+    outages: tokio::sync::watch::Receiver<u64>,
     /// The ground side's device (the VAS opens it).
     pub ground: String,
     /// The air side's device (mavsim opens it).
@@ -95,10 +97,16 @@ impl Radio {
         let stats: std::sync::Arc<std::sync::Mutex<Option<serde_json::Value>>> =
             std::sync::Arc::default();
         let latest = std::sync::Arc::clone(&stats);
+        let (outage_started, outages) = tokio::sync::watch::channel(0u64);
         // Ends with the child's stdout.
         tokio::spawn(async move {
             while let Ok(Some(line)) = lines.next_line().await {
-                if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+                let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) else {
+                    continue;
+                };
+                if v["event"] == "outage" {
+                    outage_started.send_modify(|n| *n += 1);
+                } else {
                     *latest.lock().unwrap_or_else(|p| p.into_inner()) = Some(v);
                 }
             }
@@ -108,7 +116,24 @@ impl Radio {
             air: dev("air"),
             child,
             stats,
+            outages,
         }
+    }
+
+    /// Cuts the link now (run it with `--outage-on-signal MS`): returns once the emulator
+    /// announced the outage.
+    pub async fn cut(&mut self) {
+        let before = *self.outages.borrow_and_update();
+        let pid = self.child.id().expect("marea-radio running");
+        let sent = std::process::Command::new("kill")
+            .args(["-USR1", &pid.to_string()])
+            .status()
+            .expect("run kill");
+        assert!(sent.success(), "SIGUSR1 to marea-radio failed");
+        tokio::time::timeout(STEP, self.outages.wait_for(|n| *n > before))
+            .await
+            .expect("marea-radio announced no outage")
+            .expect("marea-radio exited");
     }
 
     /// The latest counters printed (run it with `--stats-ms`).
