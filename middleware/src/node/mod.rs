@@ -467,17 +467,37 @@ impl NodeInner {
 }
 
 /// Adapts the node to the links' callback interface without a reference cycle.
+///
+/// A link receives as soon as it is opened, while `Node::open` still opens the others: what
+/// arrives before the node has its links (a serial peer's Hello waiting in the port, say) is
+/// dropped and counted as from an unknown sender. Handled then, it would make a peer of the
+/// sender while our answer (our Hello and declarations) had no link to leave by: the peer
+/// would never learn of us, and we, knowing it, would never introduce ourselves again. Dropped,
+/// the sender's next heartbeat makes us introduce ourselves as to any new node.
 pub(crate) struct Handler(pub Weak<NodeInner>);
+
+impl Handler {
+    /// The node, once it has its links.
+    fn node(&self) -> Option<Arc<NodeInner>> {
+        let n = self.0.upgrade()?;
+        if n.links.get().is_none() {
+            n.counters.unknown_sender.fetch_add(1, Ordering::Relaxed);
+            tracing::debug!("message before the node's links are set dropped");
+            return None;
+        }
+        Some(n)
+    }
+}
 
 impl LinkHandler for Handler {
     fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]) {
-        if let Some(n) = self.0.upgrade() {
+        if let Some(n) = self.node() {
             n.dispatch(link, from, msg);
         }
     }
 
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]) {
-        let Some(n) = self.0.upgrade() else { return };
+        let Some(n) = self.node() else { return };
         match decode_message(msg) {
             Ok(m) => n.on_discovery(link, from, m),
             Err(_) => {
@@ -487,13 +507,13 @@ impl LinkHandler for Handler {
     }
 
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {
-        if let Some(n) = self.0.upgrade() {
+        if let Some(n) = self.node() {
             n.on_peer_reset(link, from);
         }
     }
 
     fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
-        if let Some(n) = self.0.upgrade() {
+        if let Some(n) = self.node() {
             n.on_peer_unreachable(link, from);
         }
     }
