@@ -89,19 +89,7 @@ async fn a_mission_ended_by_a_late_wrap_is_restarted_not_abandoned() {
         g.wait_state(FlightState::Parking, STEP).await;
         let n = 14;
         let wps = zigzag(n, 10.0);
-        g.push_all(&wps).await;
-        let reply = g.request(FlightState::WaypointNavigation).await;
-        assert!(reply.is_ok(), "{reply:?}");
-        let mut seen = Vec::new();
-        while seen.len() < n {
-            let r = tokio::time::timeout(STEP, g.reached.recv())
-                .await
-                .unwrap_or_else(|_| panic!("stalled after {} waypoints", seen.len()))
-                .expect("waypoint_reached");
-            seen.push(r.value.seq);
-        }
-        assert_eq!(seen, (0..n as u64).collect::<Vec<_>>());
-        g.wait_state(FlightState::Parking, STEP).await;
+        g.fly_in_order(&wps, "late wrap").await;
         // The autopilot did end its mission early (the situation under test) ...
         let completes = sim.log_events("mission_complete").len();
         assert!(

@@ -44,24 +44,7 @@ async fn fly_configured(profile: &str, n: usize, family: Option<&str>) {
     g.wait_state(FlightState::Parking, STEP).await;
 
     let wps = zigzag(n, 10.0);
-    g.push_all(&wps).await;
-    let reply = g.request(FlightState::WaypointNavigation).await;
-    assert!(reply.is_ok(), "{profile}: {reply:?}");
-
-    let mut seen = Vec::new();
-    while seen.len() < wps.len() {
-        let r = tokio::time::timeout(STEP, g.reached.recv())
-            .await
-            .unwrap_or_else(|_| panic!("{profile}: stalled after {} waypoints", seen.len()))
-            .expect("waypoint_reached");
-        seen.push(r.value.seq);
-    }
-    assert_eq!(
-        seen,
-        (0..n as u64).collect::<Vec<_>>(),
-        "{profile}: VAS order"
-    );
-    g.wait_state(FlightState::Parking, STEP).await;
+    g.fly_in_order(&wps, profile).await;
 
     // What the vehicle did: every waypoint reached once, in order; item 0 (home on
     // ArduPilot, the target's copy elsewhere) never reached as anything else.

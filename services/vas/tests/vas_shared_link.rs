@@ -129,19 +129,7 @@ async fn two_vehicles_and_a_camera_on_one_link_the_vas_flies_its_own() {
         g.wait_state(FlightState::Parking, STEP).await;
         let n = 12;
         let wps = zigzag(n, 10.0);
-        g.push_all(&wps).await;
-        let reply = g.request(FlightState::WaypointNavigation).await;
-        assert!(reply.is_ok(), "{reply:?}");
-        let mut seen = Vec::new();
-        while seen.len() < n {
-            let r = tokio::time::timeout(STEP, g.reached.recv())
-                .await
-                .unwrap_or_else(|_| panic!("stalled after {} waypoints", seen.len()))
-                .expect("waypoint_reached");
-            seen.push(r.value.seq);
-        }
-        assert_eq!(seen, (0..n as u64).collect::<Vec<_>>());
-        g.wait_state(FlightState::Parking, STEP).await;
+        g.fly_in_order(&wps, "shared link").await;
 
         // Vehicle 2 flew the plan, in order.
         let order: Vec<Option<usize>> = reached_points(&mine.log_events("item_reached"))

@@ -37,19 +37,7 @@ async fn fifty_waypoints_on_a_mavsdk_vehicle() {
             .unwrap();
         g.wait_state(FlightState::Parking, STEP).await;
         let wps = zigzag(50, 10.0);
-        g.push_all(&wps).await;
-        let reply = g.request(FlightState::WaypointNavigation).await;
-        assert!(reply.is_ok(), "{reply:?}");
-        let mut seen = Vec::new();
-        while seen.len() < wps.len() {
-            let r = tokio::time::timeout(STEP, g.reached.recv())
-                .await
-                .unwrap_or_else(|_| panic!("stalled after {} waypoints", seen.len()))
-                .expect("waypoint_reached");
-            seen.push(r.value.seq);
-        }
-        assert_eq!(seen, (0..50).collect::<Vec<u64>>(), "VAS reports in order");
-        g.wait_state(FlightState::Parking, STEP).await;
+        g.fly_in_order(&wps, "mavsdk").await;
 
         let events = vehicle.drain();
         let plan: Vec<(f64, f64)> = wps.iter().map(|w| (w.lat, w.lon)).collect();

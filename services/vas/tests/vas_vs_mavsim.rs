@@ -22,20 +22,7 @@ async fn two_hundred_waypoints_through_five_slots() {
     g.wait_state(FlightState::Parking, STEP).await;
 
     let wps = zigzag(200, 10.0);
-    g.push_all(&wps).await;
-    let reply = g.request(FlightState::WaypointNavigation).await;
-    assert!(reply.is_ok(), "{reply:?}");
-
-    let mut seen = Vec::new();
-    while seen.len() < wps.len() {
-        let r = tokio::time::timeout(STEP, g.reached.recv())
-            .await
-            .unwrap_or_else(|_| panic!("stalled after {} waypoints", seen.len()))
-            .expect("waypoint_reached");
-        seen.push(r.value.seq);
-    }
-    assert_eq!(seen, (0..200).collect::<Vec<u64>>(), "VAS reports in order");
-    g.wait_state(FlightState::Parking, STEP).await;
+    g.fly_in_order(&wps, "mavsim").await;
 
     let reached = sim.log_events("item_reached");
     let order: Vec<Option<usize>> = reached_points(&reached)

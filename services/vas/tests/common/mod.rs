@@ -361,6 +361,29 @@ impl Ground {
         }
     }
 
+    /// Flies `wps` from PARKING: pushes them, asks for WAYPOINT_NAVIGATION, checks that the VAS
+    /// reports every waypoint reached once and in order (each within [`STEP`]), then waits for
+    /// PARKING. `what` names the run in failure messages.
+    pub async fn fly_in_order(&self, wps: &[Waypoint], what: &str) {
+        self.push_all(wps).await;
+        let reply = self.request(FlightState::WaypointNavigation).await;
+        assert!(reply.is_ok(), "{what}: {reply:?}");
+        let mut seen = Vec::new();
+        while seen.len() < wps.len() {
+            let r = tokio::time::timeout(STEP, self.reached.recv())
+                .await
+                .unwrap_or_else(|_| panic!("{what}: stalled after {} waypoints", seen.len()))
+                .expect("waypoint_reached");
+            seen.push(r.value.seq);
+        }
+        assert_eq!(
+            seen,
+            (0..wps.len() as u64).collect::<Vec<_>>(),
+            "{what}: VAS reports in order"
+        );
+        self.wait_state(FlightState::Parking, STEP).await;
+    }
+
     /// Waits for an alarm whose text contains `needle`.
     pub async fn wait_alarm(&self, needle: &str, within: Duration) -> Alarm {
         let deadline = tokio::time::Instant::now() + within;
