@@ -356,18 +356,7 @@ impl MavlinkManager {
                 confirmation: attempt.min(255) as u8,
             })
         };
-        let matcher = |m: &MavMessage| match m {
-            MavMessage::COMMAND_ACK(a) if a.command == command => Some(a.result),
-            _ => None,
-        };
-        match self.inner.transact(make, matcher).await? {
-            Some(MavResult::MAV_RESULT_ACCEPTED) => Ok(()),
-            Some(result) => Err(CommandError::Rejected { command, result }),
-            None => Err(CommandError::RetriesExhausted {
-                command,
-                attempts: self.inner.cfg.retries,
-            }),
-        }
+        self.acknowledged(command, make).await
     }
 
     /// Sends COMMAND_INT (a command with a position: `x`, `y` in 1e-7 degrees for a global
@@ -401,6 +390,16 @@ impl MavlinkManager {
                 autocontinue: 0,
             })
         };
+        self.acknowledged(command, make).await
+    }
+
+    /// Sends the command message `make` builds (per attempt) and checks the COMMAND_ACK for
+    /// `command`, retrying on silence.
+    async fn acknowledged(
+        &self,
+        command: MavCmd,
+        make: impl Fn(u32) -> MavMessage,
+    ) -> Result<(), CommandError> {
         let matcher = |m: &MavMessage| match m {
             MavMessage::COMMAND_ACK(a) if a.command == command => Some(a.result),
             _ => None,
