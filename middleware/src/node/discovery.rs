@@ -164,7 +164,7 @@ impl NodeInner {
                         offers: HashMap::new(),
                         interests: HashMap::new(),
                         shadowed: Default::default(),
-                        routes: HashMap::new(),
+                        routes: HashMap::default(),
                         authenticated: self
                             .identity
                             .as_ref()

@@ -67,6 +67,8 @@ struct Inner {
     /// Samples are keyed by name when the mailbox coalesces (variables); refusals never are.
     queue: CoalescingQueue<Arc<str>, Delivery>,
     closed: bool,
+    /// Readers between finding the queue empty and being woken.
+    waiting: usize,
 }
 
 /// A subscription's queue.
@@ -84,6 +86,7 @@ impl Mailbox {
             inner: Mutex::new(Inner {
                 queue: CoalescingQueue::new(MAILBOX_CAP),
                 closed: false,
+                waiting: 0,
             }),
             notify: Notify::new(),
             coalesce,
@@ -134,9 +137,9 @@ impl Mailbox {
             {
                 let mut g = self.lock();
                 if let Some((_, d)) = g.queue.pop_front() {
-                    if !g.queue.is_empty() {
-                        // Pushes onto a non-empty queue wake nobody: pass the wake-up on in
-                        // case another task waits on this mailbox too.
+                    if !g.queue.is_empty() && g.waiting > 0 {
+                        // Pushes onto a non-empty queue wake nobody: pass the wake-up on to
+                        // another task waiting on this mailbox (a lone reader pays nothing).
                         self.notify.notify_one();
                     }
                     return Some(d);
@@ -144,7 +147,12 @@ impl Mailbox {
                 if g.closed {
                     return None;
                 }
+                // Counted under the lock, so a pop that leaves deliveries behind sees it; a
+                // wake-up sent before the wait below starts is kept by `Notify` as a permit.
+                g.waiting += 1;
             }
+            // Uncounted when woken, and when the wait is dropped (a receive that timed out).
+            let _waiting = Waiting(self);
             self.notify.notified().await;
         }
     }
@@ -163,6 +171,16 @@ impl Mailbox {
     #[cfg_attr(not(test), allow(dead_code))]
     pub fn dropped(&self) -> u64 {
         self.lock().queue.dropped()
+    }
+}
+
+/// A reader counted in [`Inner::waiting`] until this is dropped.
+struct Waiting<'a>(&'a Mailbox);
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        let mut g = self.0.lock();
+        g.waiting = g.waiting.saturating_sub(1);
     }
 }
 

@@ -78,6 +78,11 @@ pub(crate) struct LocalOffer {
     pub hidden_on: Option<usize>,
 }
 
+/// The hasher of the tables the data path looks up per message (peers by id, addresses,
+/// routes by offer id): foldhash, several times cheaper than std's SipHash on these small keys,
+/// and seeded per process so a peer cannot choose colliding keys in advance.
+pub(crate) type SeededHash = foldhash::fast::RandomState;
+
 /// A remote node subscribed to an offer.
 #[derive(Clone)]
 pub(crate) struct RemoteSubscriber {
@@ -161,7 +166,7 @@ pub(crate) struct Peer {
     pub shadowed: std::collections::HashSet<u32>,
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
-    pub routes: HashMap<u32, Arc<Route>>,
+    pub routes: HashMap<u32, Arc<Route>, SeededHash>,
     /// Namespaces its identity key is authenticated for: `None` when this node checks no
     /// identities, empty until a valid proof listed in the roster arrives.
     pub authenticated: Option<Vec<String>>,
@@ -232,8 +237,8 @@ pub(crate) struct NodeInner {
     pub services: DashMap<u32, Arc<str>>,
     pub offers: DashMap<u32, Arc<LocalOffer>>,
     pub interests: DashMap<u32, Arc<LocalInterest>>,
-    pub peers: DashMap<NodeId, Peer>,
-    pub addrs: DashMap<(usize, PeerAddr), NodeId>,
+    pub peers: DashMap<NodeId, Peer, SeededHash>,
+    pub addrs: DashMap<(usize, PeerAddr), NodeId, SeededHash>,
     pub calls: call::PendingCalls,
     pub transfers: files::Transfers,
     /// Bumped whenever routes or the peer table change, so waiters can re-check.
@@ -546,8 +551,8 @@ pub(crate) fn bare_node(
         services: DashMap::new(),
         offers: DashMap::new(),
         interests: DashMap::new(),
-        peers: DashMap::new(),
-        addrs: DashMap::new(),
+        peers: DashMap::default(),
+        addrs: DashMap::default(),
         calls: Default::default(),
         transfers: Default::default(),
         changed,
