@@ -171,6 +171,98 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
     publ.expect_key(T, "raised");
 }
 
+/// Issue 17 item 2: `Event::stream` is lossless with back-pressure and no report per event:
+/// 100,000 events reach two subscriber processes exactly once and in order, and the publisher's
+/// flush returns once both acknowledged all of them.
+#[test]
+fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
+    let net = Net::new("stream_2x100k");
+    let mut subs: Vec<_> = (1..=2)
+        .map(|i| {
+            net.probe(
+                &format!("sub{i}"),
+                &["ev-sub", "--pattern", "probe/ev", "--count", "100000"],
+            )
+        })
+        .collect();
+    for s in subs.iter_mut() {
+        s.expect_key(T, "ready");
+    }
+    let mut publ = net.probe(
+        "pub",
+        &[
+            "ev-pub", "--item", "ev", "--count", "100000", "--subs", "2", "--stream",
+        ],
+    );
+    let done = publ.expect_key(Duration::from_secs(120), "raised");
+    assert_eq!(done["lost_events"], 0, "{done}");
+    for s in subs.iter_mut() {
+        let r = s.expect_key(Duration::from_secs(60), "received");
+        assert_eq!(r["received"], 100000, "{}", s.name);
+        assert_eq!(r["in_order"], true, "{}", s.name);
+        assert!(s.seen.iter().all(|v| v.get("out_of_order").is_none()));
+    }
+    assert!(
+        publ.seen.iter().all(|v| v.get("lost").is_none()),
+        "{:?}",
+        publ.seen
+    );
+}
+
+/// A stream's subscriber killed mid-stream: the stream reports the events that node did not
+/// acknowledge, naming it, within its lease, and goes on: the other subscriber gets every
+/// event in order.
+#[test]
+fn killed_subscriber_of_a_stream_is_reported_by_name_and_the_stream_goes_on() {
+    let net = Net::new("stream_kill");
+    let mut victim = net.probe(
+        "victim",
+        &["ev-sub", "--pattern", "probe/ev", "--count", "100000000"],
+    );
+    let mut keeper = net.probe(
+        "keeper",
+        &["ev-sub", "--pattern", "probe/ev", "--count", "3000"],
+    );
+    victim.expect_key(T, "ready");
+    keeper.expect_key(T, "ready");
+    let mut publ = net.probe(
+        "pub",
+        &[
+            "ev-pub",
+            "--item",
+            "ev",
+            "--count",
+            "3000",
+            "--subs",
+            "2",
+            "--interval-ms",
+            "1",
+            "--stream",
+        ],
+    );
+    publ.expect_key(T, "subscribers");
+    victim.expect_key(T, "first");
+    victim.kill9();
+    let killed_at = std::time::Instant::now();
+    let lost = publ.expect_key(T, "lost");
+    let waited = killed_at.elapsed();
+    assert_eq!(lost["lost"], "victim", "{lost}");
+    assert!(lost["events"].as_u64() >= Some(1), "{lost}");
+    assert!(
+        lost["reason"].as_str().is_some_and(|r| !r.is_empty()),
+        "{lost}"
+    );
+    assert!(
+        waited < Duration::from_millis(net.lease_ms + 2 * net.heartbeat_ms + 500),
+        "loss reported after {waited:?}"
+    );
+    let r = keeper.expect_key(Duration::from_secs(60), "received");
+    assert_eq!(r["received"], 3000);
+    assert_eq!(r["in_order"], true);
+    let done = publ.expect_key(Duration::from_secs(60), "raised");
+    assert_eq!(done["raised"], 3000, "{done}");
+}
+
 #[test]
 fn calls_fail_distinctly_no_provider_timeout_remote_error() {
     let net = Net::new("calls");

@@ -246,7 +246,7 @@ async fn conformance(pair: Pair) {
             b_at_a,
             Outgoing::Safe {
                 msg,
-                done: Some(tx),
+                done: Some(tx.into()),
             },
         );
         done.push(rx);
@@ -278,7 +278,7 @@ async fn conformance(pair: Pair) {
         a_at_b,
         Outgoing::Safe {
             msg: big.clone(),
-            done: Some(tx),
+            done: Some(tx.into()),
         },
     );
     pair.ra
@@ -300,7 +300,7 @@ async fn conformance(pair: Pair) {
             b_at_a,
             Outgoing::Safe {
                 msg: vec![7; 100],
-                done: Some(tx),
+                done: Some(tx.into()),
             },
         );
         pending.push(rx);

@@ -109,6 +109,10 @@ enum Cmd {
         /// Pause between events in ms.
         #[arg(long, default_value_t = 0)]
         interval_ms: u64,
+        /// Send through a lossless stream (`Event::stream`: back-pressure, no report per event,
+        /// losses reported by node) instead of `raise_nowait` with WINDOW in flight.
+        #[arg(long)]
+        stream: bool,
     },
     /// Receive events on PATTERN and check each publisher's sequence; exit after COUNT.
     EvSub {
@@ -221,6 +225,47 @@ fn base_config(args: &Args) -> anyhow::Result<NetworkConfig> {
     Ok(c)
 }
 
+/// `ev-pub --stream`: COUNT events through [`marea::EventStream`], each loss printed as
+/// `{"lost": NODE, "events": N, "reason": ..}`, then `{"raised": COUNT, "lost_events": N}`
+/// once every subscriber acknowledged every event or was lost.
+async fn stream_events(ev: &marea::Event<u64>, count: u64, interval_ms: u64) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let mut stream = ev.stream();
+    let mut lost_events = 0u64;
+    let mut report = |r: Result<(), marea::StreamError>| -> anyhow::Result<()> {
+        match r {
+            Ok(()) => Ok(()),
+            Err(marea::StreamError::Lost {
+                node, lost, reason, ..
+            }) => {
+                lost_events += lost;
+                out(
+                    json!({"lost": node, "events": lost, "reason": reason, "after_ms": started.elapsed().as_millis() as u64}),
+                );
+                Ok(())
+            }
+            Err(e) => Err(e.into()),
+        }
+    };
+    for i in 0..count {
+        report(stream.send(&i).await)?;
+        if interval_ms > 0 {
+            tokio::time::sleep(Duration::from_millis(interval_ms)).await;
+        }
+    }
+    // A flush reports one lossy node at a time: again until none is left.
+    loop {
+        match stream.flush().await {
+            Ok(()) => break,
+            e => report(e)?,
+        }
+    }
+    out(
+        json!({"raised": count, "lost_events": lost_events, "elapsed_ms": started.elapsed().as_millis() as u64}),
+    );
+    Ok(())
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
@@ -329,6 +374,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             subs,
             window,
             interval_ms,
+            stream,
         } => {
             let ev = svc.publish_event::<u64>(item)?;
             out(json!({"ready": ev.name()}));
@@ -340,6 +386,11 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             }
             out(json!({"subscribers": ev.remote_subscribers()}));
             out(json!({"peers": node.peers()}));
+            if *stream {
+                stream_events(&ev, *count, *interval_ms).await?;
+                marea::process::terminated().await;
+                return Ok(());
+            }
             let mut inflight = std::collections::VecDeque::new();
             let mut reported = std::collections::HashSet::new();
             let mut acked_all = 0u64;

@@ -10,10 +10,10 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 
-use super::errors::PublishError;
+use super::errors::{PublishError, StreamError};
 use super::publisher::Publisher;
 use super::Payload;
-use crate::link::{LinkSendError, Outgoing};
+use crate::link::{AckCounter, LinkSendError, Outgoing, SafeCompletion};
 use crate::node::mailbox::{Delivery, RawSample};
 use crate::node::{lock, RemoteSubscriber};
 
@@ -149,25 +149,10 @@ impl<T: Payload> Event<T> {
     fn raise_encoded(&self, msg: Vec<u8>, at: usize) -> PendingRaise {
         let Publisher { node, offer, .. } = &self.publisher;
         let mut report = RaiseReport::default();
-        {
-            let local = lock(&offer.local);
-            if !local.is_empty() {
-                let me = &node.me.name;
-                let received = Instant::now();
-                for i in local.iter() {
-                    if let Some(m) = &i.mailbox {
-                        m.push(Delivery::Sample(RawSample {
-                            name: offer.name.clone(),
-                            publisher: me.as_str().into(),
-                            type_name: offer.ty.name.as_str().into(),
-                            payload: msg[at..].to_vec(),
-                            received,
-                        }));
-                        report.acknowledged.push(format!("{me}/{}", i.service_name));
-                    }
-                }
-            }
-        }
+        let me = &node.me.name;
+        self.deliver_locally(&msg[at..], |service| {
+            report.acknowledged.push(format!("{me}/{service}"))
+        });
         let remote = lock(&offer.remote).clone();
         let mut waiting = Vec::with_capacity(remote.len());
         let mut msg = Some(msg);
@@ -185,7 +170,7 @@ impl<T: Payload> Event<T> {
                     r.addr,
                     Outgoing::Safe {
                         msg: m.unwrap_or_default(),
-                        done: Some(tx),
+                        done: Some(tx.into()),
                     },
                 );
             }
@@ -195,6 +180,52 @@ impl<T: Payload> Event<T> {
             report,
             waiting,
             routes: remote,
+        }
+    }
+
+    /// Puts `payload` into the mailbox of every subscriber on this node; `delivered` is told
+    /// each one's service name.
+    fn deliver_locally(&self, payload: &[u8], mut delivered: impl FnMut(&str)) {
+        let Publisher { node, offer, .. } = &self.publisher;
+        let local = lock(&offer.local);
+        if local.is_empty() {
+            return;
+        }
+        let received = Instant::now();
+        for i in local.iter() {
+            if let Some(m) = &i.mailbox {
+                m.push(Delivery::Sample(RawSample {
+                    name: offer.name.clone(),
+                    publisher: node.me.name.as_str().into(),
+                    type_name: offer.ty.name.as_str().into(),
+                    payload: payload.to_vec(),
+                    received,
+                }));
+                delivered(&i.service_name);
+            }
+        }
+    }
+
+    /// A lossless stream of this event: [`EventStream::send`] raises events without a report
+    /// each, and waits only while a subscriber's node has [`STREAM_WINDOW`] events not yet
+    /// acknowledged (back-pressure, never a drop). For a publisher of many events, where
+    /// [`Event::raise_nowait`]'s report per event costs more than the event.
+    ///
+    /// ```no_run
+    /// # async fn f(ev: marea::Event<u32>) -> Result<(), marea::StreamError> {
+    /// let mut stream = ev.stream();
+    /// for i in 0..1_000_000 {
+    ///     stream.send(&i).await?;
+    /// }
+    /// stream.flush().await?; // every subscriber acknowledged every event
+    /// # Ok(()) }
+    /// ```
+    pub fn stream(&self) -> EventStream<'_, T> {
+        EventStream {
+            event: self,
+            routes: None,
+            peers: Vec::new(),
+            leaving: Vec::new(),
         }
     }
 
@@ -234,5 +265,160 @@ impl Event<Vec<u8>> {
     /// As [`Event::raise_bytes_nowait`].
     pub async fn raise_bytes(&self, bytes: &[u8]) -> Result<RaiseReport, PublishError> {
         Ok(self.raise_bytes_nowait(bytes)?.await)
+    }
+}
+
+/// Events to one subscriber's node not yet acknowledged before [`EventStream::send`] waits; it
+/// goes on once half of them are.
+pub const STREAM_WINDOW: u64 = 8192;
+
+/// A lossless stream of an [`Event`] (see [`Event::stream`]): every subscriber gets every event
+/// exactly once, in order, with back-pressure instead of a report per event. Subscribers that
+/// come or go while it runs are followed at the next event.
+pub struct EventStream<'a, T> {
+    event: &'a Event<T>,
+    /// The routes `peers` was made for (compared by pointer at each event).
+    routes: Option<Arc<[RemoteSubscriber]>>,
+    /// One per route, in the routes' order.
+    peers: Vec<StreamPeer>,
+    /// Nodes no longer subscribed, until their last events are settled (and any loss reported).
+    leaving: Vec<StreamPeer>,
+}
+
+/// What a stream sent to one subscriber's node, and what came of it.
+struct StreamPeer {
+    node: crate::protocol::NodeId,
+    name: Arc<str>,
+    acks: Arc<AckCounter>,
+    sent: u64,
+    /// Failures already reported.
+    reported: u64,
+}
+
+impl<T: Payload> EventStream<'_, T> {
+    /// Raises `value` to every subscriber. Returns at once unless a subscriber's node has
+    /// [`STREAM_WINDOW`] events unacknowledged; then waits for half of them.
+    ///
+    /// # Errors
+    /// [`StreamError::Publish`] when the value cannot be encoded (nothing is sent);
+    /// [`StreamError::Lost`] when a subscriber's node did not acknowledge earlier events (it left
+    /// or was lost): `value` itself was still sent to every subscriber, and the stream goes on.
+    pub async fn send(&mut self, value: &T) -> Result<(), StreamError> {
+        let offer = &self.event.publisher.offer;
+        let (msg, at) =
+            crate::codec::encode_data_message(true, offer.id, value).map_err(|source| {
+                PublishError::Encode {
+                    name: offer.name.to_string(),
+                    source,
+                }
+            })?;
+        self.send_encoded(msg, at).await
+    }
+
+    /// Waits until every event sent so far is acknowledged by every subscriber (or lost).
+    ///
+    /// # Errors
+    /// [`StreamError::Lost`] naming a subscriber's node that did not acknowledge some.
+    pub async fn flush(&mut self) -> Result<(), StreamError> {
+        for p in self.peers.iter().chain(&self.leaving) {
+            p.acks.settled_at_least(p.sent).await;
+        }
+        self.report_losses()
+    }
+
+    async fn send_encoded(&mut self, msg: Vec<u8>, at: usize) -> Result<(), StreamError> {
+        self.event.deliver_locally(&msg[at..], |_| {});
+        let Publisher { node, offer, .. } = &self.event.publisher;
+        let remote = lock(&offer.remote).clone();
+        if !self
+            .routes
+            .as_ref()
+            .is_some_and(|r| Arc::ptr_eq(r, &remote))
+        {
+            self.follow(&remote);
+        }
+        let n = remote.len();
+        let mut msg = Some(msg);
+        for (k, (r, p)) in remote.iter().zip(&mut self.peers).enumerate() {
+            p.sent += 1;
+            let done = SafeCompletion::Counted(p.acks.clone());
+            if !r.alive.load(std::sync::atomic::Ordering::Acquire) {
+                // Its node was dropped since the routes were read (see `raise_encoded`).
+                let _ = done.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
+                continue;
+            }
+            let m = if k + 1 == n { msg.take() } else { msg.clone() };
+            node.send_to(
+                r.link,
+                r.addr,
+                Outgoing::Safe {
+                    msg: m.unwrap_or_default(),
+                    done: Some(done),
+                },
+            );
+        }
+        for p in &self.peers {
+            if p.sent - p.acks.settled() > STREAM_WINDOW {
+                p.acks.settled_at_least(p.sent - STREAM_WINDOW / 2).await;
+            }
+        }
+        self.report_losses()
+    }
+
+    /// Makes `peers` match `routes`: a node still subscribed keeps its counts, a new one starts
+    /// at zero, one gone waits in `leaving` until its events are settled.
+    fn follow(&mut self, routes: &Arc<[RemoteSubscriber]>) {
+        let mut old = std::mem::take(&mut self.peers);
+        for r in routes.iter() {
+            let p = match old.iter().position(|p| p.node == r.node) {
+                Some(i) => old.swap_remove(i),
+                None => StreamPeer {
+                    node: r.node,
+                    name: r.node_name.clone(),
+                    acks: Arc::default(),
+                    sent: 0,
+                    reported: 0,
+                },
+            };
+            self.peers.push(p);
+        }
+        self.leaving.extend(old);
+        self.routes = Some(routes.clone());
+    }
+
+    /// The first node with losses not yet reported, as an error; forgets left nodes whose
+    /// events are all settled.
+    fn report_losses(&mut self) -> Result<(), StreamError> {
+        let mut lost = None;
+        for p in self.peers.iter_mut().chain(&mut self.leaving) {
+            let (failed, reason) = p.acks.failures();
+            if failed > p.reported && lost.is_none() {
+                lost = Some(StreamError::Lost {
+                    name: self.event.publisher.offer.name.to_string(),
+                    node: p.name.to_string(),
+                    lost: failed - p.reported,
+                    reason: reason.map_or_else(|| "unknown".to_owned(), |e| e.to_string()),
+                });
+                p.reported = failed;
+            }
+        }
+        self.leaving
+            .retain(|p| p.acks.settled() < p.sent || p.acks.failures().0 > p.reported);
+        lost.map_or(Ok(()), Err)
+    }
+}
+
+impl EventStream<'_, Vec<u8>> {
+    /// [`EventStream::send`] of borrowed bytes (see [`Event::raise_bytes_nowait`]).
+    ///
+    /// # Errors
+    /// [`StreamError::Lost`] as [`EventStream::send`].
+    pub async fn send_bytes(&mut self, bytes: &[u8]) -> Result<(), StreamError> {
+        let (msg, at) = crate::codec::encode_data_message_from_bytes(
+            true,
+            self.event.publisher.offer.id,
+            bytes,
+        );
+        self.send_encoded(msg, at).await
     }
 }

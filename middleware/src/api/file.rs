@@ -434,7 +434,7 @@ impl Sender {
                     addr,
                     Outgoing::Safe {
                         msg,
-                        done: Some(tx),
+                        done: Some(tx.into()),
                     },
                 );
                 pos += want as u64;

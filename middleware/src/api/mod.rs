@@ -12,8 +12,10 @@ mod shared_str;
 mod subscription;
 mod variable;
 
-pub use errors::{DeclareError, FileSendError, NodeOpenError, PublishError, RecvError};
-pub use event::{Event, PendingRaise, RaiseReport};
+pub use errors::{
+    DeclareError, FileSendError, NodeOpenError, PublishError, RecvError, StreamError,
+};
+pub use event::{Event, EventStream, PendingRaise, RaiseReport};
 pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
 pub use function::{Function, FunctionProvider};
 pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};

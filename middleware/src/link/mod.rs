@@ -13,6 +13,7 @@
 pub mod arq;
 pub mod auth;
 pub mod coalesce;
+mod completion;
 pub mod serial;
 pub mod shm;
 pub mod udp;
@@ -60,9 +61,7 @@ pub enum LinkSendError {
     TooLarge(usize),
 }
 
-/// Completion of a safe message: resolved when the peer acknowledges it (after the peer's node
-/// has dispatched it), or with the reason it never will be.
-pub type SafeCompletion = tokio::sync::oneshot::Sender<Result<(), LinkSendError>>;
+pub use completion::{AckCounter, SafeCompletion};
 
 /// A message handed to a link.
 #[derive(Debug)]

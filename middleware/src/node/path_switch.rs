@@ -181,7 +181,7 @@ impl NodeInner {
             from,
             Outgoing::Safe {
                 msg: encode_message(&self.heartbeat()),
-                done: Some(marker),
+                done: Some(marker.into()),
             },
         );
         let me = self.clone();
@@ -299,7 +299,7 @@ mod tests {
             old,
             Outgoing::Safe {
                 msg: vec![1],
-                done: Some(tx),
+                done: Some(tx.into()),
             },
         );
         assert_eq!(s.finish(&links, old, |_, _| None), None);
@@ -322,7 +322,7 @@ mod tests {
             old,
             Outgoing::Safe {
                 msg: vec![1],
-                done: Some(tx),
+                done: Some(tx.into()),
             },
         );
         s.forget(9);

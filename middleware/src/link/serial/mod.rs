@@ -459,7 +459,7 @@ mod tests {
                 PeerAddr::PointToPoint,
                 Outgoing::Safe {
                     msg: m.clone(),
-                    done: Some(tx),
+                    done: Some(tx.into()),
                 },
             );
             dones.push(rx);
@@ -498,7 +498,7 @@ mod tests {
             PeerAddr::PointToPoint,
             Outgoing::Safe {
                 msg: b"after".to_vec(),
-                done: Some(tx),
+                done: Some(tx.into()),
             },
         );
         tokio::time::sleep(Duration::from_millis(300)).await;
@@ -527,7 +527,7 @@ mod tests {
             PeerAddr::PointToPoint,
             Outgoing::Safe {
                 msg: b"never".to_vec(),
-                done: Some(tx),
+                done: Some(tx.into()),
             },
         );
         cancel.cancel();

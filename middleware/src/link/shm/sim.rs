@@ -289,7 +289,9 @@ impl SimHost {
     /// `from` sends a safe message to `to`; the returned receiver completes on its ack.
     pub(super) fn send_safe(&mut self, from: u64, to: u64, msg: Vec<u8>) -> Done {
         let (done, rx) = oneshot::channel();
-        self.with_tx(from, to, |tx, w, c| tx.send_safe(w, c, msg, Some(done)));
+        self.with_tx(from, to, |tx, w, c| {
+            tx.send_safe(w, c, msg, Some(done.into()))
+        });
         rx
     }
 

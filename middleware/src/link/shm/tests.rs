@@ -85,7 +85,7 @@ fn safe(
     (
         Outgoing::Safe {
             msg,
-            done: Some(tx),
+            done: Some(tx.into()),
         },
         rx,
     )
