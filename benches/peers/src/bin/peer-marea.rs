@@ -1,10 +1,9 @@
 //! marea as a user would use it: `Variable<Vec<u8>>` for round trips and the lossy rate,
-//! `Event<Vec<u8>>` with up to 4,096 `raise_nowait` in flight for the reliable rate. LINK is
+//! `Event<Vec<u8>>` through its lossless stream (`Event::stream`) for the reliable rate. LINK is
 //! `udp:PORT` (loopback, discovery multicast on PORT), `shm` (iceoryx2, `wait="event"`) or
 //! `serial:DEV:BAUD` (one end of a pty pair the runner bridges). KEY is the domain (and the shm
 //! service name). Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`.
 
-use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -12,9 +11,6 @@ use anyhow::{anyhow, Context};
 use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
 use marea::{NetworkConfig, Node};
 use peers::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
-
-/// Raises in flight at most, as the user does.
-const IN_FLIGHT: usize = 4096;
 
 fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
     if let Some(rest) = link.strip_prefix("serial:") {
@@ -155,30 +151,22 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 let msg = payload(args.size, 0);
                 let start = Instant::now();
                 let mut sent = 0u64;
-                let mut inflight = VecDeque::with_capacity(IN_FLIGHT);
-                // The clock is read every 64 messages, as the other peers' publishers do.
+                // The lossless stream: back-pressure when a subscriber is STREAM_WINDOW events
+                // behind, no report per event. The clock is read every 64 messages, as the other
+                // peers' publishers do.
+                let mut stream = ev.stream();
                 while start.elapsed().as_secs_f64() < args.param {
                     for _ in 0..64 {
-                        inflight.push_back(ev.raise_nowait(&msg)?);
+                        stream.send(&msg).await?;
                         sent += 1;
-                        if inflight.len() >= IN_FLIGHT {
-                            if let Some(p) = inflight.pop_front() {
-                                p.await;
-                            }
-                        }
                     }
                 }
                 let secs = start.elapsed().as_secs_f64();
-                let drain = async {
-                    while let Some(p) = inflight.pop_front() {
-                        p.await;
-                    }
-                };
-                if tokio::time::timeout(Duration::from_secs(30), drain)
+                if tokio::time::timeout(Duration::from_secs(30), stream.flush())
                     .await
                     .is_err()
                 {
-                    eprintln!("peer-marea: raises still pending 30 s after the last one");
+                    eprintln!("peer-marea: events still unacknowledged 30 s after the last one");
                 }
                 println!("result {sent} {secs}");
             }
