@@ -42,6 +42,34 @@ impl fmt::Display for PeerAddr {
     }
 }
 
+/// How a shared-memory link's receive thread waits for frames (`wait` on `<shm>`). Here rather
+/// than in `shm` so that a configuration names it in builds without the `shm` feature.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum ShmWait {
+    /// Sleep on the inbox's wake event (watched by tokio's reactor): idle costs nothing, and
+    /// a writer notifies a sleeping reader (one datagram; an atomic operation while the reader
+    /// has not woken yet).
+    #[default]
+    Event,
+    /// Busy-poll the inbox from a task of the link: writers never notify, so sending is a
+    /// loan, a copy and an atomic store. While frames flow the task polls without pause,
+    /// yielding its tokio worker between polls (so the node's other tasks still run, and the
+    /// task a message is for is woken by a run-queue push, not a thread wake-up); after 10 ms
+    /// without a frame it polls once per millisecond, so a message reaching an idle inbox may
+    /// wait up to 1 ms. It keeps a worker busy while traffic flows.
+    Spin,
+}
+
+impl ShmWait {
+    /// The attribute value naming this mode.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ShmWait::Event => "event",
+            ShmWait::Spin => "spin",
+        }
+    }
+}
+
 /// Why a safe message was not acknowledged.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum LinkSendError {
