@@ -5,15 +5,19 @@
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
 //!
 //! Each medium's framing lives with its link: [`udp`] (and its [`udp::datagram`] batching),
-//! [`serial`] (the Serial Transport Protocol), [`shm`] (iceoryx2 inboxes). What they share is
-//! here too: the ARQ of the safe class over lossy media ([`arq`], used by UDP and serial; shared
-//! memory loses nothing and only needs flow control, see `shm`), the bounded newest-wins queue
-//! of fast messages ([`coalesce`]), and the counters behind [`LinkStats`].
+//! [`serial`] (the Serial Transport Protocol), `shm` (iceoryx2 inboxes; cargo feature `shm`, on
+//! by default). What they share is here too: the ARQ of the safe class over lossy media
+//! ([`arq`], used by UDP and serial; shared memory loses nothing and only needs flow control, see
+//! `shm`), the bounded newest-wins queue of fast messages ([`coalesce`]), and the counters behind
+//! [`LinkStats`].
 
 pub mod arq;
 pub mod auth;
 pub mod coalesce;
 pub mod serial;
+// iceoryx2 and its configuration loader are most of a UDP-only node's code; a build without
+// the feature refuses `<shm>` links when the node opens (`NodeOpenError::Unsupported`).
+#[cfg(feature = "shm")]
 pub mod shm;
 pub mod udp;
 
