@@ -13,7 +13,7 @@
 //! | [`sync`], [`name`], [`typeinfo`], [`process`], [`xml`] | utilities: the poison-ignoring lock, names and patterns, type fingerprints, the process's shutdown signal, reading XML with line and column positions (for `network.xml` and the services' files) |
 //! | [`protocol`] | the wire messages (Hello, Heartbeat, declarations, Var, Event, Call, Reply, File*) |
 //! | [`codec`] | their bytes: postcard messages, varints |
-//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`], [`link::serial`], [`link::shm`], each with its own framing; the ARQ ([`link::arq`]) and the bounded newest-wins queue ([`link::coalesce`]) they share; the domain-key seal and replay window every link applies when keyed ([`link::auth`]) |
+//! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`], [`link::serial`], `link::shm` (cargo feature `shm`, on by default), each with its own framing; the ARQ ([`link::arq`]) and the bounded newest-wins queue ([`link::coalesce`]) they share; the domain-key seal and replay window every link applies when keyed ([`link::auth`]) |
 //! | [`config`], [`identity`] | `network.xml` → [`NetworkConfig`] (names link options); per-node identity keys and the domain's roster of which key owns which namespaces |
 //! | `node` | discovery, declarations, routing by interest, dispatch, the call protocol (`node::call`), file reception, gateway forwarding |
 //! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |

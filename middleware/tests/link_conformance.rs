@@ -1,6 +1,7 @@
 //! One conformance suite generic over [`Link`], run against every link kind: UDP on loopback,
-//! serial (the Serial Transport Protocol over an in-memory line at 1 Mbit/s) and shared memory.
-//! Each check is written once, against the trait, so every link keeps the same contract.
+//! serial (the Serial Transport Protocol over an in-memory line at 1 Mbit/s) and shared memory
+//! (with the `shm` feature). Each check is written once, against the trait, so every link keeps
+//! the same contract.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -9,6 +10,7 @@ use marea::link::arq::ArqConfig;
 use marea::link::auth::{DomainKey, LinkSecurity};
 use marea::link::serial::stp::StpConfig;
 use marea::link::serial::SerialLink;
+#[cfg(feature = "shm")]
 use marea::link::shm::{ShmLink, ShmLinkOptions, ShmWait};
 use marea::link::udp::{UdpLink, UdpLinkOptions};
 use marea::link::{Link, LinkHandler, LinkSendError, Outgoing, PeerAddr};
@@ -186,6 +188,7 @@ async fn serial_pair(security: Option<LinkSecurity>) -> Pair {
     }
 }
 
+#[cfg(feature = "shm")]
 async fn shm_pair(security: Option<LinkSecurity>) -> Pair {
     let tasks = TaskTracker::new();
     let cancel = CancellationToken::new();
@@ -346,11 +349,13 @@ async fn serial_link_conforms() {
     conformance(serial_pair(None).await).await;
 }
 
+#[cfg(feature = "shm")]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shm_link_conforms() {
     conformance(shm_pair(None).await).await;
 }
 
+#[cfg(feature = "shm")]
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shm_link_with_a_key_conforms() {
     conformance(shm_pair(security(false)).await).await;

@@ -69,6 +69,7 @@ fn structured_fuzz_stp_frames() {
     run("stp_frames", marea::fuzzing::stp_frames);
 }
 
+#[cfg(feature = "shm")]
 #[test]
 fn structured_fuzz_shm_frames() {
     run("shm_frames", marea::fuzzing::shm_frames);

@@ -11,6 +11,11 @@
 //! - the same-run ratios of the issue (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed
 //!   within each round, median over the rounds, with their own `.spread_pct`.
 //!
+//! marea's cases over UDP or serial run `peer-marea-udp`, marea built without its `shm` feature
+//! (no iceoryx2, as a UDP/serial-only node is built, which matters most for the idle RSS); the
+//! shm cases run `peer-marea`, built with it. Both come from one source file
+//! (`src/bin/peer-marea.rs`) and [`build_peers`] builds them in separate cargo invocations.
+//!
 //! Every wait is bounded and every child is killed when its case ends.
 
 use std::collections::BTreeMap;
@@ -40,6 +45,8 @@ struct Case {
     /// `marea_serial`.
     imp: &'static str,
     kind: Kind,
+    /// The peer binary: `peer-udp`, `peer-zenoh`, `peer-iceoryx2`, `peer-marea` (shm) or
+    /// `peer-marea-udp` (marea over UDP or serial, built without the `shm` feature).
     bin: &'static str,
     size: usize,
     /// Round trips, or seconds of publishing, or seconds idle.
@@ -116,7 +123,7 @@ fn cases(o: &Opts) -> Vec<Case> {
             base(fig, "zenoh_tcp", Kind::Rtt, "peer-zenoh", 64, n_rtt),
             base(fig, "iceoryx2", Kind::Rtt, "peer-iceoryx2", 64, n_rtt),
             marea(
-                base(fig, "marea_udp", Kind::Rtt, "peer-marea", 64, n_rtt),
+                base(fig, "marea_udp", Kind::Rtt, "peer-marea-udp", 64, n_rtt),
                 "udp",
                 "",
             ),
@@ -137,7 +144,7 @@ fn cases(o: &Opts) -> Vec<Case> {
             base(fig, "zenoh_tcp", Kind::Rate, "peer-zenoh", size, secs),
             base(fig, "iceoryx2", Kind::Rate, "peer-iceoryx2", size, secs),
             marea(
-                base(fig, "marea_udp", Kind::Rate, "peer-marea", size, secs),
+                base(fig, "marea_udp", Kind::Rate, "peer-marea-udp", size, secs),
                 "udp",
                 "-event",
             ),
@@ -147,7 +154,14 @@ fn cases(o: &Opts) -> Vec<Case> {
                 "-event",
             ),
             marea(
-                base(fig, "marea_udp_var", Kind::Rate, "peer-marea", size, secs),
+                base(
+                    fig,
+                    "marea_udp_var",
+                    Kind::Rate,
+                    "peer-marea-udp",
+                    size,
+                    secs,
+                ),
                 "udp",
                 "-var",
             ),
@@ -159,7 +173,7 @@ fn cases(o: &Opts) -> Vec<Case> {
         base(fig, "zenoh_tcp", Kind::Idle, "peer-zenoh", 64, idle),
         base(fig, "iceoryx2", Kind::Idle, "peer-iceoryx2", 64, idle),
         marea(
-            base(fig, "marea_udp", Kind::Idle, "peer-marea", 64, idle),
+            base(fig, "marea_udp", Kind::Idle, "peer-marea-udp", 64, idle),
             "udp",
             "",
         ),
@@ -177,7 +191,7 @@ fn cases(o: &Opts) -> Vec<Case> {
                 &format!("rtt64_serial{b}"),
                 "marea_serial",
                 Kind::Rtt,
-                "peer-marea",
+                "peer-marea-udp",
                 64,
                 serial_rtt,
             ),
@@ -189,7 +203,7 @@ fn cases(o: &Opts) -> Vec<Case> {
                 &format!("event64_serial{b}"),
                 "marea_serial",
                 Kind::Rate,
-                "peer-marea",
+                "peer-marea-udp",
                 64,
                 secs.max(2.0),
             ),
@@ -205,20 +219,35 @@ fn cases(o: &Opts) -> Vec<Case> {
 
 /// `cargo run` builds only the runner: build the peer binaries beside it (same profile), so a
 /// run never measures stale ones. `--no-build` skips this.
+///
+/// One cargo invocation per package: cargo unifies a dependency's features across the packages
+/// one invocation builds, so `peer-marea-udp` built beside `peer-marea` would get marea's `shm`
+/// back.
 fn build_peers(o: &Opts) -> anyhow::Result<()> {
     if o.no_build {
         return Ok(());
     }
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let manifest = concat!(env!("CARGO_MANIFEST_DIR"), "/Cargo.toml");
-    let mut cmd = std::process::Command::new(cargo);
-    cmd.args(["build", "--bins", "--manifest-path", manifest]);
-    if !cfg!(debug_assertions) {
-        cmd.arg("--release");
-    }
-    let status = cmd.status().context("cargo build of the peer binaries")?;
-    if !status.success() {
-        bail!("cargo build of the peer binaries failed ({status})");
+    for package in ["peers", "peer-marea-udp"] {
+        let mut cmd = std::process::Command::new(&cargo);
+        cmd.args([
+            "build",
+            "--bins",
+            "--manifest-path",
+            manifest,
+            "-p",
+            package,
+        ]);
+        if !cfg!(debug_assertions) {
+            cmd.arg("--release");
+        }
+        let status = cmd
+            .status()
+            .with_context(|| format!("cargo build of the peer binaries of {package}"))?;
+        if !status.success() {
+            bail!("cargo build of the peer binaries of {package} failed ({status})");
+        }
     }
     Ok(())
 }

@@ -15,15 +15,18 @@ pub enum NodeOpenError {
     #[error(transparent)]
     Serial(#[from] crate::link::serial::SerialLinkOpenError),
     /// A shared-memory link could not be opened.
+    #[cfg(feature = "shm")]
     #[error(transparent)]
     Shm(#[from] crate::link::shm::ShmLinkOpenError),
-    /// The configuration asks for a link kind this build does not support yet.
-    #[error("link '{link}': {kind} links are not supported by this build")]
+    /// The configuration asks for a link kind this build of marea was compiled without.
+    #[error("link {link}: this build of marea has no {kind} link (cargo feature `{feature}`)")]
     Unsupported {
         /// Link name.
         link: String,
-        /// Kind of link.
+        /// Kind of link (`shared-memory`).
         kind: &'static str,
+        /// The cargo feature of `marea` that brings it (`shm`).
+        feature: &'static str,
     },
     /// The domain key named by `<security keyFile=..>` cannot be used.
     #[error(transparent)]

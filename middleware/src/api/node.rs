@@ -19,6 +19,7 @@ use crate::link::arq::ArqConfig;
 use crate::link::serial::port::SerialPorts;
 use crate::link::serial::stp::StpConfig;
 use crate::link::serial::SerialLink;
+#[cfg(feature = "shm")]
 use crate::link::shm::{ShmLink, ShmLinkOptions};
 use crate::link::udp::{UdpLink, UdpLinkOptions};
 use crate::link::{Link, LinkStats};
@@ -129,12 +130,37 @@ fn serial_setup(lc: &LinkConfig) -> Option<(&str, SerialPorts, StpConfig)> {
     }
 }
 
+/// Refuses a configuration naming a link kind this build was compiled without, before any link
+/// opens. `shm_built` is `cfg!(feature = "shm")`; a parameter so both answers are tested in
+/// every build.
+fn links_built(config: &NetworkConfig, shm_built: bool) -> Result<(), NodeOpenError> {
+    let shm = config.links.iter().find_map(|l| match l {
+        LinkConfig::Shm(s) => Some(&s.name),
+        _ => None,
+    });
+    match shm {
+        Some(link) if !shm_built => Err(shm_not_built(link)),
+        _ => Ok(()),
+    }
+}
+
+/// The refusal of the `<shm>` link `link` by a build without the `shm` feature.
+fn shm_not_built(link: &str) -> NodeOpenError {
+    NodeOpenError::Unsupported {
+        link: link.to_owned(),
+        kind: "shared-memory",
+        feature: "shm",
+    }
+}
+
 impl Node {
     /// Opens the links of `config`, announces the node and starts discovery.
     ///
     /// # Errors
-    /// [`NodeOpenError`] when a link cannot be opened or a link kind is not supported.
+    /// [`NodeOpenError`] when a link cannot be opened, or is a `<shm>` link and this build lacks
+    /// the cargo feature `shm` ([`NodeOpenError::Unsupported`]).
     pub async fn open(config: &NetworkConfig) -> Result<Node, NodeOpenError> {
+        links_built(config, cfg!(feature = "shm"))?;
         name::validate_name(&config.node)?;
         if let Some(ns) = &config.namespace {
             name::validate_name(ns)?;
@@ -272,6 +298,7 @@ impl Node {
                     .map(|l| l as Arc<dyn Link>)
                     .map_err(Into::into)
                 }
+                #[cfg(feature = "shm")]
                 LinkConfig::Shm(s) => ShmLink::open(
                     index,
                     ShmLinkOptions {
@@ -288,6 +315,9 @@ impl Node {
                 .await
                 .map(|l| l as Arc<dyn Link>)
                 .map_err(Into::into),
+                // `links_built` refused it already; kept so the match stays exhaustive.
+                #[cfg(not(feature = "shm"))]
+                LinkConfig::Shm(s) => Err(shm_not_built(&s.name)),
             };
             match opened {
                 Ok(l) => links.push(l),
@@ -569,5 +599,51 @@ impl Drop for Node {
     fn drop(&mut self) {
         self.inner.cancel.cancel();
         self.inner.tasks.close();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::ShmConfig;
+
+    fn with_shm() -> NetworkConfig {
+        let mut c = NetworkConfig::ethernet_loopback("n");
+        c.links.push(LinkConfig::Shm(ShmConfig {
+            name: "local".into(),
+            ..ShmConfig::default()
+        }));
+        c
+    }
+
+    #[test]
+    fn a_build_without_shm_refuses_a_shm_link_by_name_and_feature() {
+        let err = links_built(&with_shm(), false).expect_err("no shm in this build");
+        assert!(matches!(
+            &err,
+            NodeOpenError::Unsupported { link, feature: "shm", .. } if link == "local"
+        ));
+        assert_eq!(
+            err.to_string(),
+            "link local: this build of marea has no shared-memory link (cargo feature `shm`)"
+        );
+    }
+
+    #[test]
+    fn a_build_with_shm_takes_every_link_and_one_without_takes_the_others() {
+        assert!(links_built(&with_shm(), true).is_ok());
+        let udp = NetworkConfig::ethernet_loopback("n");
+        assert!(links_built(&udp, false).is_ok());
+        assert!(links_built(&udp, true).is_ok());
+    }
+
+    #[cfg(not(feature = "shm"))]
+    #[tokio::test]
+    async fn opening_a_shm_link_without_the_feature_fails_before_any_link_opens() {
+        let err = match Node::open(&with_shm()).await {
+            Ok(_) => panic!("a node with a <shm> link opened without the shm feature"),
+            Err(e) => e,
+        };
+        assert!(err.to_string().contains("cargo feature `shm`"), "{err}");
     }
 }

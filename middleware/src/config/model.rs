@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use super::values::*;
-pub use crate::link::shm::ShmWait;
+pub use crate::link::ShmWait;
 
 /// One node's network configuration: who it is and which links it uses.
 #[derive(Debug, Clone, PartialEq)]

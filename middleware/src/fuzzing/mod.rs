@@ -17,7 +17,7 @@
 //! | [`udp_datagrams`] | datagrams from [`DatagramWriter`], dropped/duplicated/reordered/cut/flipped, into the decoder and the ARQ receiver | writer → decoder round trip; safe messages arrive as a prefix of those sent, in order, exactly once |
 //! | [`stp_frames`] | two serial engines over a line that drops, duplicates, reorders, splits, joins and corrupts frames | safe messages in order exactly once and all of them once the line heals; nothing longer than the message limit |
 //! | [`node_decls`] | Hellos, heartbeats, declaration batches (own names, foreign names, origins, floods past the caps) and Byes of four peers into a node | declarations per peer and in all within the caps; stored offers owned by their peer (or from a gateway with an origin); stored patterns valid |
-//! | [`shm_frames`] | shared-memory frames of up to three writers (inline and bulk fragments) | safe messages whole and in order per writer; nothing invented |
+//! | `shm_frames` (with the `shm` feature) | shared-memory frames of up to three writers (inline and bulk fragments) | safe messages whole and in order per writer; nothing invented |
 //! | [`file_chunks`] | a file's chunks (resumed or not) over a line that drops, duplicates, reorders, goes back to the last acknowledgement, and forges chunks (any offset and length, empty, wrong bytes) into the receiver's reassembly machine | what is written is contiguous and never past the announced size; genuine chunks only ⇒ the original bytes; acknowledgements rise, never pass what is written, come at least every 16 chunks and at the end; once the line heals the file completes |
 
 pub use crate::protocol::gen;
@@ -508,6 +508,7 @@ pub fn node_decls(data: &[u8]) {
 }
 
 /// Shared-memory frames of up to three writers into the receiving machine.
+#[cfg(feature = "shm")]
 pub fn shm_frames(data: &[u8]) {
     let _ = crate::link::shm::fuzz::run(data);
 }

@@ -5,16 +5,20 @@
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
 //!
 //! Each medium's framing lives with its link: [`udp`] (and its [`udp::datagram`] batching),
-//! [`serial`] (the Serial Transport Protocol), [`shm`] (iceoryx2 inboxes). What they share is
-//! here too: the ARQ of the safe class over lossy media ([`arq`], used by UDP and serial; shared
-//! memory loses nothing and only needs flow control, see `shm`), the bounded newest-wins queue
-//! of fast messages ([`coalesce`]), and the counters behind [`LinkStats`].
+//! [`serial`] (the Serial Transport Protocol), `shm` (iceoryx2 inboxes; cargo feature `shm`, on
+//! by default). What they share is here too: the ARQ of the safe class over lossy media
+//! ([`arq`], used by UDP and serial; shared memory loses nothing and only needs flow control, see
+//! `shm`), the bounded newest-wins queue of fast messages ([`coalesce`]), and the counters behind
+//! [`LinkStats`].
 
 pub mod arq;
 pub mod auth;
 pub mod coalesce;
 mod completion;
 pub mod serial;
+// iceoryx2 and its configuration loader are most of a UDP-only node's code; a build without
+// the feature refuses `<shm>` links when the node opens (`NodeOpenError::Unsupported`).
+#[cfg(feature = "shm")]
 pub mod shm;
 pub mod udp;
 
@@ -39,6 +43,34 @@ impl fmt::Display for PeerAddr {
             PeerAddr::Udp(a) => write!(f, "udp://{a}"),
             PeerAddr::PointToPoint => write!(f, "point-to-point"),
             PeerAddr::Shm(id) => write!(f, "shm://{id:016x}"),
+        }
+    }
+}
+
+/// How a shared-memory link's receive thread waits for frames (`wait` on `<shm>`). Here rather
+/// than in `shm` so that a configuration names it in builds without the `shm` feature.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum ShmWait {
+    /// Sleep on the inbox's wake event (watched by tokio's reactor): idle costs nothing, and
+    /// a writer notifies a sleeping reader (one datagram; an atomic operation while the reader
+    /// has not woken yet).
+    #[default]
+    Event,
+    /// Busy-poll the inbox from a task of the link: writers never notify, so sending is a
+    /// loan, a copy and an atomic store. While frames flow the task polls without pause,
+    /// yielding its tokio worker between polls (so the node's other tasks still run, and the
+    /// task a message is for is woken by a run-queue push, not a thread wake-up); after 10 ms
+    /// without a frame it polls once per millisecond, so a message reaching an idle inbox may
+    /// wait up to 1 ms. It keeps a worker busy while traffic flows.
+    Spin,
+}
+
+impl ShmWait {
+    /// The attribute value naming this mode.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ShmWait::Event => "event",
+            ShmWait::Spin => "spin",
         }
     }
 }

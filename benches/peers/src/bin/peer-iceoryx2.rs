@@ -12,7 +12,7 @@ use anyhow::{anyhow, Context};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use peers::{finish_sub, payload, ready, seq, wait_until, Args, Arrivals, Control, Rtts};
+use peers_common::{finish_sub, payload, ready, seq, wait_until, Args, Arrivals, Control, Rtts};
 
 /// The subscriber's buffer for one-way rates (and the service's limit).
 const BUFFER: usize = 1024;

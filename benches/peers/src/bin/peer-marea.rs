@@ -3,6 +3,11 @@
 //! `udp:PORT` (loopback, discovery multicast on PORT), `shm` (iceoryx2, `wait="event"`) or
 //! `serial:DEV:BAUD` (one end of a pty pair the runner bridges). KEY is the domain (and the shm
 //! service name). Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`.
+//!
+//! Built twice from this file: `peer-marea` (package `peers`, marea's default features) for the
+//! shm cases, and `peer-marea-udp` (package `marea-udp`, without marea's `shm` feature, as a
+//! UDP/serial-only node is built) for the UDP and serial ones; given `shm`, the latter fails to
+//! open its node.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -10,7 +15,7 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, Context};
 use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
 use marea::{NetworkConfig, Node};
-use peers::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+use peers_common::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
 
 fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
     if let Some(rest) = link.strip_prefix("serial:") {

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use peers::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+use peers_common::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
 use tokio::net::UdpSocket;
 
 fn main() -> anyhow::Result<()> {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
-use peers::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+use peers_common::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
 use zenoh::qos::CongestionControl;
 
 fn main() -> anyhow::Result<()> {

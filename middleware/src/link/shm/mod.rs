@@ -66,6 +66,9 @@ use inbox::{Conn, Inbox, InboxReader, InboxSample, Pub, SelfWake, WakeFd};
 use rx::{AckSent, Receiver, RxIo};
 use tx::{InboxWriter, PeerTx};
 
+// Defined outside this module so configurations name it in builds without the `shm` feature.
+pub use super::ShmWait;
+
 mod control;
 mod frame;
 #[cfg(feature = "fuzzing")]
@@ -117,33 +120,6 @@ const YIELD_UNTIL: Duration = Duration::from_millis(10);
 const PARK: Duration = Duration::from_millis(1);
 /// How often the receiver asks again to open the inbox of a peer it must acknowledge.
 const REOPEN: Duration = Duration::from_millis(100);
-
-/// How a link's receive thread waits for frames (`wait` on `<shm>`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub enum ShmWait {
-    /// Sleep on the inbox's wake event (watched by tokio's reactor): idle costs nothing, and
-    /// a writer notifies a sleeping reader (one datagram; an atomic operation while the reader
-    /// has not woken yet).
-    #[default]
-    Event,
-    /// Busy-poll the inbox from a task of the link: writers never notify, so sending is a
-    /// loan, a copy and an atomic store. While frames flow the task polls without pause,
-    /// yielding its tokio worker between polls (so the node's other tasks still run, and the
-    /// task a message is for is woken by a run-queue push, not a thread wake-up); after 10 ms
-    /// without a frame it polls once per millisecond, so a message reaching an idle inbox may
-    /// wait up to 1 ms. It keeps a worker busy while traffic flows.
-    Spin,
-}
-
-impl ShmWait {
-    /// The attribute value naming this mode.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            ShmWait::Event => "event",
-            ShmWait::Spin => "spin",
-        }
-    }
-}
 
 /// How the shared-memory link is set up (taken from `<shm>` in network.xml).
 #[derive(Debug, Clone)]
