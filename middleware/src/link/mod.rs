@@ -128,6 +128,13 @@ impl Outgoing {
 pub trait LinkHandler: Send + Sync + 'static {
     /// A fast or (in order) safe message from `from`.
     fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]);
+    /// Several messages from `from`, in order (a datagram's): a handler may take them as one
+    /// batch.
+    fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
+        for m in msgs {
+            self.on_message(link, from, m);
+        }
+    }
     /// A discovery message (Hello, Heartbeat, Bye) from `from`.
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]);
     /// `from` started a new safe session while one was running: it restarted or reset us.

@@ -98,27 +98,34 @@ impl Mailbox {
     }
 
     pub fn push(&self, d: Delivery) {
+        self.push_all(std::iter::once(d));
+    }
+
+    /// Pushes `deliveries` in order under one lock, with at most one wake-up.
+    pub fn push_all(&self, deliveries: impl Iterator<Item = Delivery>) {
         let was_empty = {
             let mut g = self.lock();
             if g.closed {
                 return;
             }
-            let key = match &d {
-                Delivery::Sample(s) if self.coalesce => Some(s.name.clone()),
-                _ => None,
-            };
             let was_empty = g.queue.is_empty();
-            if let Pushed::DroppedOldest(old) = g.queue.push(key, d) {
-                let dropped = g.queue.dropped();
-                if dropped.is_power_of_two() {
-                    let name = match &old {
-                        Delivery::Sample(s) => s.name.to_string(),
-                        Delivery::Refused(r) => r.name.clone(),
-                    };
-                    tracing::warn!(item = %name, dropped, cap = MAILBOX_CAP, "subscriber not reading: its mailbox is full, oldest deliveries dropped");
+            for d in deliveries {
+                let key = match &d {
+                    Delivery::Sample(s) if self.coalesce => Some(s.name.clone()),
+                    _ => None,
+                };
+                if let Pushed::DroppedOldest(old) = g.queue.push(key, d) {
+                    let dropped = g.queue.dropped();
+                    if dropped.is_power_of_two() {
+                        let name = match &old {
+                            Delivery::Sample(s) => s.name.to_string(),
+                            Delivery::Refused(r) => r.name.clone(),
+                        };
+                        tracing::warn!(item = %name, dropped, cap = MAILBOX_CAP, "subscriber not reading: its mailbox is full, oldest deliveries dropped");
+                    }
                 }
             }
-            was_empty
+            was_empty && !g.queue.is_empty()
         };
         // The reader waits only on an empty queue (checked under the lock), so only the push
         // that ends the emptiness needs to wake it: one wake-up per burst, not one per value.
@@ -211,6 +218,33 @@ mod tests {
             Some(Delivery::Sample(s)) => assert_eq!(&*s.name, "e10", "the oldest went first"),
             other => panic!("expected a sample, got {other:?}"),
         }
+    }
+
+    /// A run pushed at once (a datagram's events) arrives whole and in order, and wakes the
+    /// reader waiting on the empty mailbox.
+    #[tokio::test(flavor = "current_thread")]
+    async fn a_run_pushed_at_once_wakes_the_reader_and_keeps_its_order() {
+        let m = Arc::new(Mailbox::new(false));
+        let reader = {
+            let m = m.clone();
+            tokio::spawn(async move {
+                let mut names = Vec::new();
+                for _ in 0..3 {
+                    match m.pop().await {
+                        Some(Delivery::Sample(s)) => names.push(s.name.to_string()),
+                        other => panic!("expected a sample, got {other:?}"),
+                    }
+                }
+                names
+            })
+        };
+        tokio::task::yield_now().await;
+        m.push_all(["a", "b", "c"].into_iter().map(sample));
+        let names = tokio::time::timeout(Duration::from_secs(5), reader)
+            .await
+            .expect("the reader was woken")
+            .unwrap();
+        assert_eq!(names, ["a", "b", "c"]);
     }
 
     /// Only the push onto an empty queue wakes a reader; with two readers waiting, the one

@@ -379,15 +379,48 @@ impl NodeInner {
         self.addrs.get(&(link, from)).map(|e| *e)
     }
 
-    fn dispatch(self: &Arc<Self>, link: usize, from: PeerAddr, bytes: &[u8]) {
-        let msg = match decode_message(bytes) {
-            Ok(m) => m,
-            Err(e) => {
-                self.counters.undecodable.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!(%from, error = %e, "undecodable message dropped");
-                return;
+    /// Handles `msgs` from `from`, in order. A run of data messages (variables, events) is
+    /// delivered together: one sender lookup, one clock read and one wake-up per subscriber for
+    /// the run, where a datagram of a fast stream carries hundreds.
+    fn dispatch_all(self: &Arc<Self>, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
+        let mut data: Vec<(u32, Vec<u8>)> = Vec::new();
+        for bytes in msgs {
+            match decode_message(bytes) {
+                Ok(Message::Var { id, payload } | Message::Event { id, payload }) => {
+                    data.push((id, payload))
+                }
+                Ok(msg) => {
+                    self.deliver_data(link, from, &mut data);
+                    self.handle(link, from, msg);
+                }
+                Err(e) => {
+                    self.counters.undecodable.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(%from, error = %e, "undecodable message dropped");
+                }
             }
-        };
+        }
+        self.deliver_data(link, from, &mut data);
+    }
+
+    /// Delivers (and empties) a run of data messages from `from`.
+    fn deliver_data(&self, link: usize, from: PeerAddr, data: &mut Vec<(u32, Vec<u8>)>) {
+        if data.is_empty() {
+            return;
+        }
+        match self.peer_of(link, from) {
+            Some(node) => self.deliver_remote_run(node, data.drain(..)),
+            None => {
+                self.counters
+                    .unknown_sender
+                    .fetch_add(data.len() as u64, Ordering::Relaxed);
+                tracing::trace!(%from, "data from an unknown sender dropped");
+                data.clear();
+            }
+        }
+    }
+
+    /// Handles one decoded message other than data.
+    fn handle(self: &Arc<Self>, link: usize, from: PeerAddr, msg: Message) {
         // Discovery messages may come from anyone; everything else only from a known peer.
         if matches!(
             msg,
@@ -402,8 +435,8 @@ impl NodeInner {
             return;
         };
         // Anything from a peer shows it alive (its heartbeats may be lost on a busy radio):
-        // an atomic under the peer table's read lock, taken once per message (the data path
-        // refreshes it in its own lookup).
+        // an atomic under the peer table's read lock (the data path refreshes it once per run
+        // in its own lookup).
         if !matches!(msg, Message::Var { .. } | Message::Event { .. }) {
             if let Some(p) = self.peers.get(&node) {
                 p.heard(self.me.epoch);
@@ -412,7 +445,7 @@ impl NodeInner {
         }
         match msg {
             Message::Var { id, payload } | Message::Event { id, payload } => {
-                self.deliver_remote(node, id, payload)
+                self.deliver_remote_run(node, std::iter::once((id, payload)))
             }
             Message::DeclRequest { since } => self.answer_decl_request(node, since),
             Message::DeclBatch {
@@ -496,8 +529,12 @@ impl Handler {
 
 impl LinkHandler for Handler {
     fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]) {
+        self.on_messages(link, from, &[msg]);
+    }
+
+    fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         if let Some(n) = self.node() {
-            n.dispatch(link, from, msg);
+            n.dispatch_all(link, from, msgs);
         }
     }
 

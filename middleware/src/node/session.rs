@@ -126,6 +126,33 @@ impl RemoteItem {
     }
 }
 
+/// Pushes (and empties) `payloads`, received at `received`, into the mailbox of every local
+/// subscriber on `route`: one push of the whole run per mailbox (the last one takes the
+/// payloads, the others copies).
+fn push_to_route(route: &super::Route, payloads: &mut Vec<Vec<u8>>, received: Instant) {
+    let sample = |payload: Vec<u8>| {
+        Delivery::Sample(RawSample {
+            name: route.name.clone(),
+            publisher: route.publisher.clone(),
+            type_name: route.type_name.clone(),
+            payload,
+            received,
+        })
+    };
+    let mailboxes: Vec<_> = route
+        .targets
+        .iter()
+        .filter_map(|i| i.mailbox.as_ref())
+        .collect();
+    if let Some((last, others)) = mailboxes.split_last() {
+        for m in others {
+            m.push_all(payloads.iter().cloned().map(sample));
+        }
+        last.push_all(payloads.drain(..).map(sample));
+    }
+    payloads.clear();
+}
+
 /// Encodes `Message::Var`/`Message::Event` without first copying the payload into a `Message`;
 /// the bytes are identical to postcard's (a unit test checks it).
 pub(crate) fn encode_data(event: bool, id: u32, payload: &[u8]) -> Vec<u8> {
@@ -739,52 +766,61 @@ impl NodeInner {
         }
     }
 
-    /// Delivers a remote variable value or event to the local subscribers routed to it.
-    pub fn deliver_remote(&self, node: NodeId, id: u32, payload: Vec<u8>) {
-        if self.gateway.is_some() {
-            self.forward_data(node, id, &payload);
-        }
+    /// Delivers a run of data messages from `node` (in order) to the local subscribers of each
+    /// one's route. The clock is read and the peer marked heard once for the run; consecutive
+    /// messages of one offer (a stream) share one route lookup and one push per mailbox.
+    pub fn deliver_remote_run(&self, node: NodeId, run: impl Iterator<Item = (u32, Vec<u8>)>) {
         let received = Instant::now();
-        let Some(route) = self.peers.get(&node).and_then(|p| {
+        if let Some(p) = self.peers.get(&node) {
             p.heard_at(self.me.epoch, received);
-            p.routes.get(&id).cloned()
-        }) else {
-            let denied = self.peers.get(&node).and_then(|p| {
-                let o = p.offers.get(&id).filter(|o| o.denied)?;
-                Some((p.link, p.name.clone(), o.name.clone()))
-            });
-            match denied {
-                Some((link, peer, name)) => self.policy.refuse(
-                    link,
-                    node,
-                    &peer,
-                    &name,
-                    Refusal::Denied(AccessKind::Publish),
-                ),
-                None => tracing::debug!(
-                    peer = format_args!("{node:016x}"),
-                    id,
-                    "data for an unknown or unrouted offer dropped"
-                ),
+        }
+        let mut current: Option<(u32, Arc<super::Route>)> = None;
+        let mut payloads: Vec<Vec<u8>> = Vec::new();
+        for (id, payload) in run {
+            if self.gateway.is_some() {
+                self.forward_data(node, id, &payload);
             }
-            return;
-        };
-        let n = route.targets.len();
-        let mut payload = Some(payload);
-        for (k, i) in route.targets.iter().enumerate() {
-            let Some(m) = &i.mailbox else { continue };
-            let bytes = if k + 1 == n {
-                payload.take().unwrap_or_default()
-            } else {
-                payload.clone().unwrap_or_default()
-            };
-            m.push(Delivery::Sample(RawSample {
-                name: route.name.clone(),
-                publisher: route.publisher.clone(),
-                type_name: route.type_name.clone(),
-                payload: bytes,
-                received,
-            }));
+            if current.as_ref().map(|(i, _)| *i) != Some(id) {
+                if let Some((_, route)) = &current {
+                    push_to_route(route, &mut payloads, received);
+                }
+                current = self
+                    .peers
+                    .get(&node)
+                    .and_then(|p| p.routes.get(&id).cloned())
+                    .map(|r| (id, r));
+                if current.is_none() {
+                    self.undeliverable(node, id);
+                    continue;
+                }
+            }
+            payloads.push(payload);
+        }
+        if let Some((_, route)) = &current {
+            push_to_route(route, &mut payloads, received);
+        }
+    }
+
+    /// Data for an offer with no route here: refused by our `<access>` rules (reported), or
+    /// unknown (a declaration not yet applied, or a subscription just closed).
+    fn undeliverable(&self, node: NodeId, id: u32) {
+        let denied = self.peers.get(&node).and_then(|p| {
+            let o = p.offers.get(&id).filter(|o| o.denied)?;
+            Some((p.link, p.name.clone(), o.name.clone()))
+        });
+        match denied {
+            Some((link, peer, name)) => self.policy.refuse(
+                link,
+                node,
+                &peer,
+                &name,
+                Refusal::Denied(AccessKind::Publish),
+            ),
+            None => tracing::debug!(
+                peer = format_args!("{node:016x}"),
+                id,
+                "data for an unknown or unrouted offer dropped"
+            ),
         }
     }
 

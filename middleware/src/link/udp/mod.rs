@@ -714,11 +714,12 @@ impl UdpLink {
         if reset {
             self.handler.on_peer_reset(self.index, peer);
         }
-        for m in &deliver {
-            self.handler.on_message(self.index, peer, m);
-        }
-        for m in fast {
-            self.handler.on_message(self.index, peer, m);
+        // Safe messages in order, then the fast ones, as one batch for the node.
+        let mut msgs: Vec<&[u8]> = Vec::with_capacity(deliver.len() + fast.len());
+        msgs.extend(deliver.iter().map(|m| &**m));
+        msgs.extend(fast);
+        if !msgs.is_empty() {
+            self.handler.on_messages(self.index, peer, &msgs);
         }
         for done in completed {
             let _ = done.send(Ok(()));
