@@ -338,6 +338,10 @@ impl<T> ArqSender<T> {
         let reach = (ack.next.wrapping_sub(base) as usize).saturating_add(65);
         let reach = if after(base, ack.next) { 65 } else { reach };
         let mut irregular_acked = 0;
+        // One round-trip sample per acknowledgement (RFC 6298), from the newest message it
+        // acknowledges that was sent once (Karn): the older ones in a cumulative ack waited for
+        // the window, not the path, and sampling each cost a division per message.
+        let mut newest_sent_once: Option<Instant> = None;
         for f in self.in_flight.iter_mut().take(reach) {
             if f.acked {
                 continue;
@@ -352,8 +356,8 @@ impl<T> ArqSender<T> {
             }
             f.acked = true;
             newly += 1;
-            if f.transmissions == 1 {
-                self.rto.sample(now.saturating_duration_since(f.sent_at));
+            if f.transmissions == 1 && newest_sent_once.is_none_or(|t| f.sent_at > t) {
+                newest_sent_once = Some(f.sent_at);
             }
             if let Some(t) = f.token.take() {
                 done.push(t);
@@ -363,6 +367,9 @@ impl<T> ArqSender<T> {
             }
         }
         self.irregular -= irregular_acked;
+        if let Some(sent) = newest_sent_once {
+            self.rto.sample(now.saturating_duration_since(sent));
+        }
         while self.in_flight.front().is_some_and(|f| f.acked) {
             self.in_flight.pop_front();
         }
@@ -665,6 +672,28 @@ impl ArqReceiver {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// A cumulative acknowledgement of messages sent 30, 20 and 10 ms before it gives one
+    /// round-trip sample, the newest message's 10 ms: the others waited in the window.
+    #[test]
+    fn a_cumulative_ack_samples_the_round_trip_once_from_the_newest_message() {
+        let t0 = Instant::now();
+        let mut tx: ArqSender<()> = ArqSender::new(7, cfg());
+        for i in 0..3u64 {
+            tx.push(t0 + Duration::from_millis(10 * i), vec![1], None);
+        }
+        let acked = tx.on_ack(
+            t0 + Duration::from_millis(30),
+            AckInfo {
+                session: 7,
+                next: tx.in_flight.back().map_or(0, |f| f.seq.wrapping_add(1)),
+                sack: 0,
+            },
+        );
+        assert!(acked.is_empty(), "no tokens were given");
+        assert_eq!(tx.in_flight(), 0, "all three acknowledged");
+        assert_eq!(tx.rto().srtt(), Some(Duration::from_millis(10)));
+    }
 
     fn cfg() -> ArqConfig {
         ArqConfig {
