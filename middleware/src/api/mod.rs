@@ -15,7 +15,9 @@ mod variable;
 pub use errors::{
     DeclareError, FileSendError, NodeOpenError, PublishError, RecvError, StreamError,
 };
-pub use event::{Event, EventStream, PendingRaise, RaiseReport};
+pub use event::{
+    Event, EventStream, PendingRaise, RaiseReport, STREAM_WINDOW, STREAM_WINDOW_BYTES,
+};
 pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
 pub use function::{Function, FunctionProvider};
 pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};

@@ -96,19 +96,45 @@ pub struct DatagramWriter {
     /// Entries written other than SYN: a datagram holding only the header and a SYN still
     /// takes one oversized entry (otherwise a large first safe message could never be sent).
     entries: usize,
+    /// Buffers of datagrams already sent, taken before allocating a new one.
+    spare: Vec<Vec<u8>>,
 }
 
 impl DatagramWriter {
     /// A writer for datagrams of at most `max` bytes.
     pub fn new(max: usize) -> Self {
-        // Grown as entries come: a loopback writer may take 32 KiB, most datagrams are small.
-        let mut buf = Vec::with_capacity(max.min(2048));
-        buf.push(KIND_DATA);
-        DatagramWriter {
-            buf,
+        Self::reusing(max, Vec::new())
+    }
+
+    /// A writer for datagrams of at most `max` bytes that builds them in the `spare` buffers
+    /// first: a stream's datagrams then reuse memory already grown to their size instead of
+    /// growing a fresh allocation (copies and page faults) for each one.
+    pub fn reusing(max: usize, spare: Vec<Vec<u8>>) -> Self {
+        let mut w = DatagramWriter {
+            buf: Vec::new(),
             max,
             entries: 0,
-        }
+            spare,
+        };
+        w.buf = w.fresh();
+        w
+    }
+
+    /// An empty datagram buffer: a spare one, or a new one grown as entries come (a loopback
+    /// writer may take 32 KiB, most datagrams are small).
+    fn fresh(&mut self) -> Vec<u8> {
+        let mut buf = self
+            .spare
+            .pop()
+            .unwrap_or_else(|| Vec::with_capacity(self.max.min(2048)));
+        buf.clear();
+        buf.push(KIND_DATA);
+        buf
+    }
+
+    /// The spare buffers not used.
+    pub fn into_spare(self) -> Vec<Vec<u8>> {
+        self.spare
     }
 
     /// Bytes written so far.
@@ -188,8 +214,7 @@ impl DatagramWriter {
 
     /// The finished datagram; the writer is reset for the next one.
     pub fn take(&mut self) -> Vec<u8> {
-        let mut next = Vec::with_capacity(self.max.min(2048));
-        next.push(KIND_DATA);
+        let next = self.fresh();
         self.entries = 0;
         std::mem::replace(&mut self.buf, next)
     }

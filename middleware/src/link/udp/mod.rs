@@ -105,6 +105,10 @@ const BATCH_WINDOW: Duration = Duration::from_micros(20);
 /// messages into each (a 1 KiB event stream went from one event per datagram to 30).
 const LOOPBACK_DATAGRAM: usize = 32 * 1024;
 
+/// Sent datagrams' buffers a peer keeps for its next datagrams: enough for one flush of a
+/// fast stream.
+const SPARE_BUFFERS: usize = 4;
+
 struct PeerState {
     tx: ArqSender<SafeCompletion>,
     rx: ArqReceiver,
@@ -114,6 +118,8 @@ struct PeerState {
     safe: VecDeque<(Vec<u8>, Option<SafeCompletion>)>,
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
+    /// Buffers of datagrams sent, for the next ones (at most [`SPARE_BUFFERS`]).
+    spare: Vec<Vec<u8>>,
     last_write: Option<Instant>,
     /// The transmit task was woken for this peer and has not flushed it yet: further messages
     /// need no wake-up of their own (each one costs a syscall when the task sleeps elsewhere).
@@ -131,6 +137,7 @@ impl PeerState {
             fast_bytes: 0,
             safe: VecDeque::new(),
             blocked: VecDeque::new(),
+            spare: Vec::new(),
             last_write: None,
             wake_pending: false,
             bound: false,
@@ -371,7 +378,10 @@ impl UdpLink {
             .retransmitted
             .fetch_add(due.len() as u64, Ordering::Relaxed);
         let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
-        let mut w = DatagramWriter::new(self.datagram_max(addr).saturating_sub(seal));
+        let mut w = DatagramWriter::reusing(
+            self.datagram_max(addr).saturating_sub(seal),
+            std::mem::take(&mut st.spare),
+        );
         let mut out: Vec<Vec<u8>> = Vec::new();
         let mut carries_safe = false;
         let syn = st.tx.session();
@@ -427,6 +437,7 @@ impl UdpLink {
         }
         st.fast_bytes = 0;
         finish(&mut w, &mut out, &mut carries_safe);
+        st.spare = w.into_spare();
         for d in out {
             let d = self.seal(d);
             if !st.blocked.is_empty() {
@@ -435,10 +446,16 @@ impl UdpLink {
             }
             match self.sender.send_to(&d, addr) {
                 Ok(_) => self.count_out(d.len()),
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => st.blocked.push_back(d),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    st.blocked.push_back(d);
+                    continue;
+                }
                 Err(e) => {
                     tracing::debug!(link = %self.options.name, %addr, error = %e, "datagram not sent");
                 }
+            }
+            if st.spare.len() < SPARE_BUFFERS {
+                st.spare.push(d);
             }
         }
         st.last_write = Some(now);
