@@ -40,7 +40,7 @@ async fn scenario() {
     browser
         .wait_for(
             "PARKING with its buttons",
-            "return document.getElementById('fs').textContent === 'PARKING' && \
+            "return document.getElementById('fs')?.textContent === 'PARKING' && \
              !!document.querySelector('button.transition[data-to=MANUAL_NAVIGATION]:not([disabled])');",
         )
         .await;
@@ -63,7 +63,7 @@ async fn scenario() {
     browser
         .wait_for(
             "MANUAL_NAVIGATION confirmed",
-            "return document.getElementById('fs').textContent === 'MANUAL_NAVIGATION' && \
+            "return document.getElementById('fs')?.textContent === 'MANUAL_NAVIGATION' && \
              !!document.querySelector('#commands li[data-status=ok]');",
         )
         .await;

@@ -41,7 +41,7 @@ async fn scenario() {
     browser
         .wait_for(
             "the FPMa reachable",
-            "return document.getElementById('fpma').textContent === 'reachable';",
+            "return document.getElementById('fpma')?.textContent === 'reachable';",
         )
         .await;
 
@@ -75,7 +75,7 @@ async fn scenario() {
             "PARKING, plan ready, a Start button",
             "const b = document.querySelector('#offers button.offer[data-to=WAYPOINT_NAVIGATION]'); \
              const r = document.getElementById('readytext'); \
-             return document.getElementById('flightstate').textContent === 'PARKING' && \
+             return document.getElementById('flightstate')?.textContent === 'PARKING' && \
                !!b && b.textContent === 'Start' && !!r && r.textContent.includes('press Start') && \
                !document.querySelector('#offers button.offer[data-to=TAKE_OFF]');",
         )
@@ -86,7 +86,7 @@ async fn scenario() {
     browser
         .wait_for(
             "WAYPOINT_NAVIGATION shown",
-            "return document.getElementById('flightstate').textContent === 'WAYPOINT_NAVIGATION';",
+            "return document.getElementById('flightstate')?.textContent === 'WAYPOINT_NAVIGATION';",
         )
         .await;
     browser
@@ -166,7 +166,7 @@ async fn scenario() {
     browser
         .wait_for(
             "distances in feet",
-            "return document.getElementById('progress').textContent.includes(' ft');",
+            "return document.getElementById('progress')?.textContent.includes(' ft');",
         )
         .await;
     let shot = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("fpmo-page.png");
