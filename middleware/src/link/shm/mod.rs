@@ -498,6 +498,47 @@ impl Link for ShmLink {
 struct LinkRx<'a> {
     link: &'a ShmLink,
     reader: &'a mut InboxReader,
+    /// In-order messages of this pass not yet handed to the node, all from one sender: they
+    /// go as one run ([`crate::link::LinkHandler::on_messages`]), as a UDP datagram's do.
+    run: HeldRun,
+}
+
+/// Messages held for one run: their sender, their bytes end to end, and where each ends.
+#[derive(Default)]
+struct HeldRun {
+    from: Option<u64>,
+    bytes: Vec<u8>,
+    ends: Vec<usize>,
+}
+
+/// Messages held for one run at most; a longer pass hands them on in several.
+const RUN_MAX: usize = 256;
+/// Messages longer than this are handed on at once (after the run held before them) instead
+/// of being copied into the run.
+const RUN_MESSAGE_MAX: usize = 4096;
+
+impl LinkRx<'_> {
+    /// Hands the held run to the node.
+    fn flush(&mut self) {
+        let Some(from) = self.run.from.take() else {
+            return;
+        };
+        let mut start = 0;
+        let msgs: Vec<&[u8]> = self
+            .run
+            .ends
+            .iter()
+            .map(|&end| {
+                let m = &self.run.bytes[start..end];
+                start = end;
+                m
+            })
+            .collect();
+        let l = self.link;
+        l.handler.on_messages(l.index, PeerAddr::Shm(from), &msgs);
+        self.run.bytes.clear();
+        self.run.ends.clear();
+    }
 }
 
 /// A sample whose seal (if the link has a key) was checked: it reads as the frame without it.
@@ -551,16 +592,30 @@ impl RxIo for LinkRx<'_> {
     }
 
     fn deliver(&mut self, from: u64, msg: &[u8]) {
-        let l = self.link;
-        l.handler.on_message(l.index, PeerAddr::Shm(from), msg);
+        if self.run.from.is_some_and(|f| f != from) || msg.len() > RUN_MESSAGE_MAX {
+            self.flush();
+        }
+        if msg.len() > RUN_MESSAGE_MAX {
+            let l = self.link;
+            l.handler.on_message(l.index, PeerAddr::Shm(from), msg);
+            return;
+        }
+        self.run.from = Some(from);
+        self.run.bytes.extend_from_slice(msg);
+        self.run.ends.push(self.run.bytes.len());
+        if self.run.ends.len() >= RUN_MAX {
+            self.flush();
+        }
     }
 
     fn announce(&mut self, from: u64, msg: &[u8]) {
+        self.flush();
         let l = self.link;
         l.handler.on_announce(l.index, PeerAddr::Shm(from), msg);
     }
 
     fn peer_reset(&mut self, from: u64) {
+        self.flush();
         let l = self.link;
         l.handler.on_peer_reset(l.index, PeerAddr::Shm(from));
     }
@@ -580,6 +635,8 @@ impl RxIo for LinkRx<'_> {
     }
 
     fn send_ack(&mut self, from: u64, session: u32, seq: u64) -> AckSent {
+        // What is acknowledged has been dispatched by the node first.
+        self.flush();
         let Some(p) = self.link.peer(from, true) else {
             return AckSent::NoPeer;
         };
@@ -643,9 +700,13 @@ impl RxDriver {
         let mut io = LinkRx {
             link: &link,
             reader: &mut self.reader,
+            run: HeldRun::default(),
         };
-        self.rx
-            .pass(Instant::now(), look_at_backlogs, &mut io, &link.counters)
+        let r = self
+            .rx
+            .pass(Instant::now(), look_at_backlogs, &mut io, &link.counters);
+        io.flush();
+        r
     }
 
     /// `wait="event"`: a pass whenever a writer notifies (or a retry is due), on a tokio worker.
