@@ -31,6 +31,7 @@ use tokio_util::task::TaskTracker;
 use crate::codec::{decode_message, encode_message};
 use crate::link::{Link, LinkHandler, Outgoing, PeerAddr};
 use crate::protocol::{ItemKind, Message, NodeId, Origin};
+use crate::sync::SeededHash;
 use crate::typeinfo::TypeInfo;
 use mailbox::Mailbox;
 
@@ -77,11 +78,6 @@ pub(crate) struct LocalOffer {
     /// A forwarded offer is not declared on the link it came from.
     pub hidden_on: Option<usize>,
 }
-
-/// The hasher of the tables the data path looks up per message (peers by id, addresses,
-/// routes by offer id): foldhash, several times cheaper than std's SipHash on these small keys,
-/// and seeded per process so a peer cannot choose colliding keys in advance.
-pub(crate) type SeededHash = foldhash::fast::RandomState;
 
 /// A remote node subscribed to an offer.
 #[derive(Clone)]

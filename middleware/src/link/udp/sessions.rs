@@ -14,11 +14,11 @@
 //! Pure: the caller passes `now`; what is pushed out or expires is returned for the caller to
 //! fail.
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
-use rustc_hash::FxHashMap;
+use crate::sync::SeededHash;
 
 /// Bounds of a [`SessionTable`].
 #[derive(Debug, Clone, Copy)]
@@ -39,7 +39,7 @@ struct Slot<V> {
 
 /// Sessions by peer address (see the module docs).
 pub(crate) struct SessionTable<V> {
-    slots: FxHashMap<SocketAddr, Slot<V>>,
+    slots: HashMap<SocketAddr, Slot<V>, SeededHash>,
     /// Unbound sessions oldest first, as (address, when made). Entries whose session was bound
     /// or removed since are skipped when met (and compacted when they pile up).
     unbound_order: VecDeque<(SocketAddr, Instant)>,
@@ -59,7 +59,7 @@ impl<V: Clone> SessionTable<V> {
     /// An empty table.
     pub(crate) fn new(limits: SessionLimits) -> Self {
         SessionTable {
-            slots: FxHashMap::default(),
+            slots: HashMap::default(),
             unbound_order: VecDeque::new(),
             unbound: 0,
             limits,
