@@ -132,17 +132,20 @@ impl<T: Payload> Event<T> {
     /// # Errors
     /// [`PublishError::Encode`] when the value cannot be serialised.
     pub fn raise_nowait(&self, value: &T) -> Result<PendingRaise, PublishError> {
-        let offer = &self.publisher.offer;
-        // The wire message is encoded once, straight from the value; local subscribers get
-        // the payload part of it.
-        let (msg, at) =
-            crate::codec::encode_data_message(true, offer.id, value).map_err(|source| {
-                PublishError::Encode {
-                    name: offer.name.to_string(),
-                    source,
-                }
-            })?;
+        let (msg, at) = self.encode(value)?;
         Ok(self.raise_encoded(msg, at))
+    }
+
+    /// The wire message of `value`, encoded once straight from it, and where its payload
+    /// starts (local subscribers get that part).
+    fn encode(&self, value: &T) -> Result<(Vec<u8>, usize), PublishError> {
+        let offer = &self.publisher.offer;
+        crate::codec::encode_data_message(true, offer.id, value).map_err(|source| {
+            PublishError::Encode {
+                name: offer.name.to_string(),
+                source,
+            }
+        })
     }
 
     /// Sends the encoded event message `msg` (its payload from `at`) to every subscriber.
@@ -155,31 +158,45 @@ impl<T: Payload> Event<T> {
         });
         let remote = lock(&offer.remote).clone();
         let mut waiting = Vec::with_capacity(remote.len());
-        let mut msg = Some(msg);
-        let n = remote.len();
-        for (k, r) in remote.iter().enumerate() {
+        self.send_on_routes(&remote, msg, |k| {
             let (tx, rx) = oneshot::channel();
-            // A subscriber whose node was dropped since the routes were read: fail now rather
-            // than open a fresh session with its dead address (see `drop_peer`).
-            if !r.alive.load(std::sync::atomic::Ordering::Acquire) {
-                let _ = tx.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
-            } else {
-                let m = if k + 1 == n { msg.take() } else { msg.clone() };
-                node.send_to(
-                    r.link,
-                    r.addr,
-                    Outgoing::Safe {
-                        msg: m.unwrap_or_default(),
-                        done: Some(tx.into()),
-                    },
-                );
-            }
             waiting.push(AwaitedAck { route: k, done: rx });
-        }
+            tx.into()
+        });
         PendingRaise {
             report,
             waiting,
             routes: remote,
+        }
+    }
+
+    /// Sends the encoded event `msg` to the node of each route, settling on the completion
+    /// `done(k)` makes for route `k`. A route whose node was dropped since the routes were read
+    /// fails at once rather than open a fresh session with its dead address (see `drop_peer`).
+    fn send_on_routes(
+        &self,
+        routes: &[RemoteSubscriber],
+        msg: Vec<u8>,
+        mut done: impl FnMut(usize) -> SafeCompletion,
+    ) {
+        let node = &self.publisher.node;
+        let mut msg = Some(msg);
+        let n = routes.len();
+        for (k, r) in routes.iter().enumerate() {
+            let done = done(k);
+            if !r.alive.load(std::sync::atomic::Ordering::Acquire) {
+                let _ = done.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
+                continue;
+            }
+            let m = if k + 1 == n { msg.take() } else { msg.clone() };
+            node.send_to(
+                r.link,
+                r.addr,
+                Outgoing::Safe {
+                    msg: m.unwrap_or_default(),
+                    done: Some(done),
+                },
+            );
         }
     }
 
@@ -320,14 +337,7 @@ impl<T: Payload> EventStream<'_, T> {
     /// [`StreamError::Lost`] when a subscriber's node did not acknowledge earlier events (it left
     /// or was lost): `value` itself was still sent to every subscriber, and the stream goes on.
     pub async fn send(&mut self, value: &T) -> Result<(), StreamError> {
-        let offer = &self.event.publisher.offer;
-        let (msg, at) =
-            crate::codec::encode_data_message(true, offer.id, value).map_err(|source| {
-                PublishError::Encode {
-                    name: offer.name.to_string(),
-                    source,
-                }
-            })?;
+        let (msg, at) = self.event.encode(value)?;
         self.send_encoded(msg, at).await
     }
 
@@ -344,7 +354,7 @@ impl<T: Payload> EventStream<'_, T> {
 
     async fn send_encoded(&mut self, msg: Vec<u8>, at: usize) -> Result<(), StreamError> {
         self.event.deliver_locally(&msg[at..], |_| {});
-        let Publisher { node, offer, .. } = &self.event.publisher;
+        let offer = &self.event.publisher.offer;
         let remote = lock(&offer.remote).clone();
         if !self
             .routes
@@ -353,28 +363,15 @@ impl<T: Payload> EventStream<'_, T> {
         {
             self.follow(&remote);
         }
-        let n = remote.len();
         let len = msg.len() as u64;
-        let mut msg = Some(msg);
-        for (k, (r, p)) in remote.iter().zip(&mut self.peers).enumerate() {
+        let peers = &mut self.peers;
+        self.event.send_on_routes(&remote, msg, |k| {
+            // `follow` made `peers` match `remote`, one per route in its order.
+            let p = &mut peers[k];
             p.sent += 1;
             p.bytes += len;
-            let done = SafeCompletion::Counted(p.acks.clone());
-            if !r.alive.load(std::sync::atomic::Ordering::Acquire) {
-                // Its node was dropped since the routes were read (see `raise_encoded`).
-                let _ = done.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
-                continue;
-            }
-            let m = if k + 1 == n { msg.take() } else { msg.clone() };
-            node.send_to(
-                r.link,
-                r.addr,
-                Outgoing::Safe {
-                    msg: m.unwrap_or_default(),
-                    done: Some(done),
-                },
-            );
-        }
+            SafeCompletion::Counted(p.acks.clone())
+        });
         for p in &self.peers {
             let window = p.window();
             if p.sent - p.acks.settled() > window {
