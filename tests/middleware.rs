@@ -5,7 +5,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::{Net, T};
+use common::{expect_received_in_order, ready_event_subscribers, Net, Proc, T};
 
 #[test]
 fn late_joiner_gets_the_last_value_at_once() {
@@ -87,40 +87,32 @@ fn link_health_is_published_as_variables_a_station_can_follow() {
 #[test]
 fn ten_thousand_events_reach_three_subscribers_exactly_once_in_order() {
     let net = Net::new("events_3x10k");
-    let mut subs: Vec<_> = (1..=3)
-        .map(|i| {
-            net.probe(
-                &format!("sub{i}"),
-                &["ev-sub", "--pattern", "probe/ev", "--count", "10000"],
-            )
-        })
-        .collect();
-    for s in subs.iter_mut() {
-        s.expect_key(T, "ready");
-    }
+    let mut subs = ready_event_subscribers(3, 10000, |n, c| net.probe(n, c));
     let mut publ = net.probe(
         "pub",
         &["ev-pub", "--item", "ev", "--count", "10000", "--subs", "3"],
     );
     let done = publ.expect_key(Duration::from_secs(60), "raised");
     assert_eq!(done["acknowledged_by_all"], 10000, "{done}");
-    for s in subs.iter_mut() {
-        let r = s.expect_key(Duration::from_secs(60), "received");
-        assert_eq!(r["received"], 10000);
-        assert_eq!(r["in_order"], true, "{}: {:?}", s.name, s.seen);
-    }
+    expect_received_in_order(&mut subs, 10000);
     // Exactly once: no subscriber printed an out-of-order (duplicate) line.
     for s in &subs {
         assert!(s.seen.iter().all(|v| v.get("out_of_order").is_none()));
     }
 }
 
-#[test]
-fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
-    let net = Net::new("kill_sub");
+/// Two subscribers of `probe/ev`, `victim` (never done) and `keeper` (3,000 events), and a
+/// publisher of 3,000 events, one per ms, sent as `mode` says (`--window N` or `--stream`). The
+/// victim is killed mid-stream, once it has received events and more are in flight. Returns the
+/// publisher's first `key` line, how long after the kill it came, the publisher and the keeper.
+fn kill_one_of_two_subscribers(
+    net: &Net,
+    mode: &[&str],
+    key: &str,
+) -> (serde_json::Value, Duration, Proc, Proc) {
     let mut victim = net.probe(
         "victim",
-        &["ev-sub", "--pattern", "probe/ev", "--count", "1000000"],
+        &["ev-sub", "--pattern", "probe/ev", "--count", "100000000"],
     );
     let mut keeper = net.probe(
         "keeper",
@@ -128,29 +120,32 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
     );
     victim.expect_key(T, "ready");
     keeper.expect_key(T, "ready");
-    let mut publ = net.probe(
-        "pub",
-        &[
-            "ev-pub",
-            "--item",
-            "ev",
-            "--count",
-            "3000",
-            "--subs",
-            "2",
-            "--interval-ms",
-            "1",
-            "--window",
-            "64",
-        ],
-    );
+    let mut args = vec![
+        "ev-pub",
+        "--item",
+        "ev",
+        "--count",
+        "3000",
+        "--subs",
+        "2",
+        "--interval-ms",
+        "1",
+    ];
+    args.extend_from_slice(mode);
+    let mut publ = net.probe("pub", &args);
     publ.expect_key(T, "subscribers");
-    // Kill the victim mid-stream: once it has received events and more are in flight.
     victim.expect_key(T, "first");
     victim.kill9();
     let killed_at = std::time::Instant::now();
-    let failed = publ.expect_key(T, "failed");
-    let waited = killed_at.elapsed();
+    let line = publ.expect_key(T, key);
+    (line, killed_at.elapsed(), publ, keeper)
+}
+
+#[test]
+fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
+    let net = Net::new("kill_sub");
+    let (failed, waited, mut publ, mut keeper) =
+        kill_one_of_two_subscribers(&net, &["--window", "64"], "failed");
     assert!(
         failed["failed"].as_str().unwrap().starts_with("victim/"),
         "{failed}"
@@ -177,17 +172,7 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
 #[test]
 fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
     let net = Net::new("stream_2x100k");
-    let mut subs: Vec<_> = (1..=2)
-        .map(|i| {
-            net.probe(
-                &format!("sub{i}"),
-                &["ev-sub", "--pattern", "probe/ev", "--count", "100000"],
-            )
-        })
-        .collect();
-    for s in subs.iter_mut() {
-        s.expect_key(T, "ready");
-    }
+    let mut subs = ready_event_subscribers(2, 100000, |n, c| net.probe(n, c));
     let mut publ = net.probe(
         "pub",
         &[
@@ -196,10 +181,8 @@ fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
     );
     let done = publ.expect_key(Duration::from_secs(120), "raised");
     assert_eq!(done["lost_events"], 0, "{done}");
-    for s in subs.iter_mut() {
-        let r = s.expect_key(Duration::from_secs(60), "received");
-        assert_eq!(r["received"], 100000, "{}", s.name);
-        assert_eq!(r["in_order"], true, "{}", s.name);
+    expect_received_in_order(&mut subs, 100000);
+    for s in &subs {
         assert!(s.seen.iter().all(|v| v.get("out_of_order").is_none()));
     }
     assert!(
@@ -215,37 +198,8 @@ fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
 #[test]
 fn killed_subscriber_of_a_stream_is_reported_by_name_and_the_stream_goes_on() {
     let net = Net::new("stream_kill");
-    let mut victim = net.probe(
-        "victim",
-        &["ev-sub", "--pattern", "probe/ev", "--count", "100000000"],
-    );
-    let mut keeper = net.probe(
-        "keeper",
-        &["ev-sub", "--pattern", "probe/ev", "--count", "3000"],
-    );
-    victim.expect_key(T, "ready");
-    keeper.expect_key(T, "ready");
-    let mut publ = net.probe(
-        "pub",
-        &[
-            "ev-pub",
-            "--item",
-            "ev",
-            "--count",
-            "3000",
-            "--subs",
-            "2",
-            "--interval-ms",
-            "1",
-            "--stream",
-        ],
-    );
-    publ.expect_key(T, "subscribers");
-    victim.expect_key(T, "first");
-    victim.kill9();
-    let killed_at = std::time::Instant::now();
-    let lost = publ.expect_key(T, "lost");
-    let waited = killed_at.elapsed();
+    let (lost, waited, mut publ, mut keeper) =
+        kill_one_of_two_subscribers(&net, &["--stream"], "lost");
     assert_eq!(lost["lost"], "victim", "{lost}");
     assert!(lost["events"].as_u64() >= Some(1), "{lost}");
     assert!(

@@ -7,7 +7,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use common::{Proc, T};
+use common::{expect_received_in_order, ready_event_subscribers, Proc, T};
 use serde_json::Value;
 
 /// A test's shm prefix, discovery domain, multicast port and config directory.
@@ -150,28 +150,14 @@ fn all_four_primitives_over_shared_memory_only() {
 #[test]
 fn ten_thousand_events_reach_two_subscribers_once_in_order_over_shm() {
     let net = ShmNet::new("shm_events");
-    let mut subs: Vec<Proc> = (1..=2)
-        .map(|i| {
-            net.probe(
-                &format!("sub{i}"),
-                &["ev-sub", "--pattern", "probe/ev", "--count", "10000"],
-            )
-        })
-        .collect();
-    for s in subs.iter_mut() {
-        s.expect_key(T, "ready");
-    }
+    let mut subs = ready_event_subscribers(2, 10000, |n, c| net.probe(n, c));
     let mut publ = net.probe(
         "pub",
         &["ev-pub", "--item", "ev", "--count", "10000", "--subs", "2"],
     );
     let done = publ.expect_key(Duration::from_secs(60), "raised");
     assert_eq!(done["acknowledged_by_all"], 10000, "{done}");
-    for s in subs.iter_mut() {
-        let r = s.expect_key(Duration::from_secs(60), "received");
-        assert_eq!(r["received"], 10000);
-        assert_eq!(r["in_order"], true, "{:?}", s.seen);
-    }
+    expect_received_in_order(&mut subs, 10000);
     // Give a duplicate the time to show up, then check none did.
     std::thread::sleep(Duration::from_millis(300));
     for s in subs.iter_mut() {

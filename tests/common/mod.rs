@@ -370,3 +370,34 @@ impl Drop for Radio {
         let _ = self.child.wait();
     }
 }
+
+/// `n` event subscribers `sub1`..`subN`, started by `spawn` (a network's `probe`), each
+/// expecting `count` events on `probe/ev`, all ready.
+pub fn ready_event_subscribers(
+    n: usize,
+    count: u64,
+    spawn: impl Fn(&str, &[&str]) -> Proc,
+) -> Vec<Proc> {
+    let count = count.to_string();
+    let mut subs: Vec<Proc> = (1..=n)
+        .map(|i| {
+            spawn(
+                &format!("sub{i}"),
+                &["ev-sub", "--pattern", "probe/ev", "--count", &count],
+            )
+        })
+        .collect();
+    for s in subs.iter_mut() {
+        s.expect_key(T, "ready");
+    }
+    subs
+}
+
+/// Every subscriber of [`ready_event_subscribers`] received `count` events, in order.
+pub fn expect_received_in_order(subs: &mut [Proc], count: u64) {
+    for s in subs.iter_mut() {
+        let r = s.expect_key(Duration::from_secs(60), "received");
+        assert_eq!(r["received"], count, "{}", s.name);
+        assert_eq!(r["in_order"], true, "{}: {:?}", s.name, s.seen);
+    }
+}
