@@ -10,6 +10,8 @@
 //!  +------+--------------------+----------+--------------------+               Bulk, BulkMore
 //!  | kind | sender id (u64 LE) | session  | seq (u64 LE)       | body ...   |  BulkData
 //!  +------+--------------------+----------+--------------------+------------+
+//!  | kind | sender id (u64 LE) | session  | seq (u64 LE)       | entries ...|  SafePack
+//!  +------+--------------------+----------+--------------------+------------+
 //!  | kind | sender id (u64 LE) | body ...                      |               Announce, Fast
 //!  +------+--------------------+-------------------------------+
 //! ```
@@ -17,6 +19,11 @@
 //! `Bulk` and `BulkMore` are the same in the safe inbox for a fragment whose body travels in the
 //! bulk inbox as the `BulkData` sample with the same sender, session and sequence number,
 //! written just before them.
+//!
+//! `SafePack` carries several whole safe messages, numbered `seq`, `seq + 1`, ... in order:
+//! each entry is its length (u16 LE) then its bytes. A writer packs the messages that queued
+//! while its earlier frames were unacknowledged, so one sample (one loan, one send, one
+//! release) carries many small messages.
 
 /// The parts of an inbox a frame is written into.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -37,6 +44,9 @@ pub const ACK: u8 = 5;
 pub const BULK: u8 = 6;
 pub const BULK_MORE: u8 = 7;
 pub const BULK_DATA: u8 = 8;
+pub const SAFE_PACK: u8 = 9;
+/// Bytes before each message of a `SafePack` (its length).
+pub const PACK_ENTRY_HEADER: usize = 2;
 /// Set in the kind byte of a frame sealed with the domain key (see [`crate::link::auth`]): the
 /// seal follows the frame. A link without a key drops such frames (and a keyed link any other)
 /// before [`parse`], which ignores the bit.
@@ -73,6 +83,12 @@ pub enum Frame<'a> {
         seq: u64,
         body: &'a [u8],
     },
+    /// Whole safe messages numbered from `seq` (read them with [`pack_entries`]).
+    SafePack {
+        session: u32,
+        seq: u64,
+        entries: &'a [u8],
+    },
 }
 
 /// Why a frame was dropped.
@@ -99,7 +115,7 @@ pub fn write_header(out: &mut [u8], kind: u8, sender: u64, session: u32, seq: u6
 /// Header length of a frame kind.
 pub fn header_len(kind: u8) -> usize {
     match kind {
-        SAFE | SAFE_MORE | ACK | BULK | BULK_MORE | BULK_DATA => SEQUENCED,
+        SAFE | SAFE_MORE | ACK | BULK | BULK_MORE | BULK_DATA | SAFE_PACK => SEQUENCED,
         _ => BASE,
     }
 }
@@ -155,9 +171,57 @@ pub fn parse(b: &[u8]) -> Result<(u64, Frame<'_>), FrameDecodeError> {
                 body: &b[SEQUENCED..],
             }
         }
+        SAFE_PACK => {
+            let (session, seq) = sequenced()?;
+            Frame::SafePack {
+                session,
+                seq,
+                entries: &b[SEQUENCED..],
+            }
+        }
         k => return Err(FrameDecodeError::UnknownKind(k)),
     };
     Ok((sender, f))
+}
+
+/// Appends one message to the entries of a `SafePack` being built (`msg` is at most
+/// [`u16::MAX`] bytes long: the writer packs only messages that fit one frame).
+pub fn push_pack_entry(entries: &mut Vec<u8>, msg: &[u8]) {
+    let len = u16::try_from(msg.len()).unwrap_or(u16::MAX);
+    entries.extend_from_slice(&len.to_le_bytes());
+    entries.extend_from_slice(&msg[..usize::from(len)]);
+}
+
+/// The messages of a `SafePack`'s entries, in order; an entry running past the end is an
+/// error and ends the walk.
+pub fn pack_entries(entries: &[u8]) -> PackEntries<'_> {
+    PackEntries { rest: entries }
+}
+
+/// Iterator over a `SafePack`'s messages (see [`pack_entries`]).
+pub struct PackEntries<'a> {
+    rest: &'a [u8],
+}
+
+impl<'a> Iterator for PackEntries<'a> {
+    type Item = Result<&'a [u8], FrameDecodeError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.rest.is_empty() {
+            return None;
+        }
+        let rest = std::mem::take(&mut self.rest);
+        let Some((len, after)) = rest.split_first_chunk::<PACK_ENTRY_HEADER>() else {
+            return Some(Err(FrameDecodeError::Truncated(rest.len())));
+        };
+        let len = usize::from(u16::from_le_bytes(*len));
+        if after.len() < len {
+            return Some(Err(FrameDecodeError::Truncated(rest.len())));
+        }
+        let (msg, tail) = after.split_at(len);
+        self.rest = tail;
+        Some(Ok(msg))
+    }
 }
 
 #[cfg(test)]
@@ -264,6 +328,51 @@ mod tests {
             ))
         );
         assert_eq!(parse(&b[..20]), Err(FrameDecodeError::Truncated(20)));
+    }
+
+    #[test]
+    fn golden_pack_frame() {
+        let mut entries = Vec::new();
+        push_pack_entry(&mut entries, b"ab");
+        push_pack_entry(&mut entries, b"");
+        push_pack_entry(&mut entries, b"c");
+        let mut p = vec![0u8; SEQUENCED];
+        write_header(&mut p, SAFE_PACK, 1, 2, 3);
+        p.extend_from_slice(&entries);
+        assert_eq!(
+            p,
+            [
+                9, // kind: SafePack
+                1, 0, 0, 0, 0, 0, 0, 0, // sender id
+                2, 0, 0, 0, // session
+                3, 0, 0, 0, 0, 0, 0, 0, // sequence number of the first message
+                2, 0, b'a', b'b', // message 3
+                0, 0, // message 4 (empty)
+                1, 0, b'c', // message 5
+            ]
+        );
+        let Ok((
+            1,
+            Frame::SafePack {
+                session: 2,
+                seq: 3,
+                entries,
+            },
+        )) = parse(&p)
+        else {
+            panic!("not a pack: {:?}", parse(&p));
+        };
+        let msgs: Vec<_> = pack_entries(entries).collect();
+        assert_eq!(msgs, [Ok(&b"ab"[..]), Ok(&b""[..]), Ok(&b"c"[..])]);
+    }
+
+    #[test]
+    fn a_pack_entry_running_past_the_end_ends_the_walk_with_an_error() {
+        // A whole entry, then one claiming 5 bytes with 2 there, then a lone length byte.
+        let msgs: Vec<_> = pack_entries(&[1, 0, 7, 5, 0, 1, 2]).collect();
+        assert_eq!(msgs, [Ok(&[7u8][..]), Err(FrameDecodeError::Truncated(4))]);
+        let msgs: Vec<_> = pack_entries(&[1, 0, 7, 9]).collect();
+        assert_eq!(msgs, [Ok(&[7u8][..]), Err(FrameDecodeError::Truncated(1))]);
     }
 
     #[test]

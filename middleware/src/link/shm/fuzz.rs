@@ -129,6 +129,27 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
         let w = u.int_in_range(0..=writers_n - 1)?;
         let w = &mut writers[w];
         match u.int_in_range(0u8..=9)? {
+            0 | 1 if u.ratio(1u8, 2)? => {
+                // Whole small messages packed into one frame.
+                let first = w.seq;
+                let mut entries = Vec::new();
+                for _ in 0..u.int_in_range(1usize..=4)? {
+                    let len = u.int_in_range(0usize..=200)?;
+                    let mut msg = vec![b'S'];
+                    msg.extend_from_slice(u.bytes(len.min(u.len()))?);
+                    frame::push_pack_entry(&mut entries, &msg);
+                    w.seq = w.seq.wrapping_add(1);
+                    fed += msg.len();
+                    sent_safe.entry(w.id).or_default().push(msg);
+                }
+                frames.push(Out::Safe(encode(
+                    frame::SAFE_PACK,
+                    w.id,
+                    w.session,
+                    first,
+                    &entries,
+                )));
+            }
             0..=5 => {
                 let len = u.int_in_range(0usize..=3000)?;
                 let mut msg = vec![b'S'];

@@ -90,6 +90,9 @@ pub const BULK_MAX: usize = 256 << 10;
 pub const FILE_CHUNK: usize = BULK_MAX - 1024;
 /// Frames a safe inbox buffers per writer before refusing more.
 const SAFE_BUFFER: usize = 128;
+/// Safe frames a writer leaves unacknowledged before small messages wait to be packed (see
+/// [`tx::PeerTx::send_safe`]). Bursts of up to this many go out at once; longer ones as packs.
+const SAFE_FRAMES_IN_FLIGHT: usize = 4;
 /// Samples a bulk inbox buffers per writer before refusing more. With [`BULK_MAX`] this bounds a
 /// writer's bulk segment to a few MiB, created only once it first sends something large.
 const BULK_BUFFER: usize = 8;

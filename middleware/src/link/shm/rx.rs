@@ -228,6 +228,14 @@ impl Receiver {
                         body,
                     },
                 )) => self.on_safe(io, c, from, (session, seq, more), Some(body)),
+                Ok((
+                    from,
+                    Frame::SafePack {
+                        session,
+                        seq,
+                        entries,
+                    },
+                )) => self.on_pack(io, c, from, (session, seq), entries),
                 Ok((from, Frame::Ack { session, seq })) => {
                     if io.acked(from, session, seq) {
                         acked.push(from);
@@ -249,6 +257,27 @@ impl Receiver {
             }
         }
         PASS_BUDGET
+    }
+
+    /// A `SafePack`: whole messages numbered from `seq`. An entry running past the frame's end
+    /// is corrupt and loses the rest of the pack (the gap then tears the sender's next message).
+    fn on_pack(
+        &mut self,
+        io: &mut impl RxIo,
+        c: &LinkCounters,
+        from: u64,
+        (session, first): (u32, u64),
+        entries: &[u8],
+    ) {
+        let mut seq = Some(first);
+        for entry in frame::pack_entries(entries) {
+            let (Ok(body), Some(s)) = (entry, seq) else {
+                c.corrupt.fetch_add(1, Ordering::Relaxed);
+                return;
+            };
+            self.on_safe(io, c, from, (session, s, false), Some(body));
+            seq = s.checked_add(1);
+        }
     }
 
     /// A `Bulk` frame: its body is the next bulk sample of `from` (read in place when the

@@ -403,9 +403,12 @@ async fn a_reader_that_stops_never_blocks_the_writer() {
             },
         );
     }
+    // Safe messages long enough that 1,000 of them (packed 3 to a frame) overfill the inbox.
     let mut acks = Vec::new();
     for i in 0..1000u32 {
-        let (out, done) = safe(tagged(b's', i));
+        let mut m = tagged(b's', i);
+        m.resize(2048, 0);
+        let (out, done) = safe(m);
         a.send(to, out);
         acks.push(done);
     }

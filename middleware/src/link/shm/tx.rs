@@ -13,7 +13,7 @@
 use std::collections::VecDeque;
 
 use super::frame::{self, Part};
-use super::{BULK_MAX, FRAME_MAX, MAX_FAST_BACKLOG};
+use super::{BULK_MAX, FRAME_MAX, MAX_FAST_BACKLOG, SAFE_FRAMES_IN_FLIGHT};
 use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::link::{LinkCounters, LinkSendError, SafeCompletion};
 use std::sync::atomic::Ordering;
@@ -75,10 +75,25 @@ pub(crate) struct PeerTx {
     /// Fast messages waiting for the inbox to be opened.
     fast_backlog: CoalescingQueue<u32, Vec<u8>>,
     safe_backlog: VecDeque<Pending>,
+    /// Bytes of `safe_backlog`'s messages, each counted as a pack entry.
+    backlog_bytes: usize,
     /// Written, waiting for the peer's acknowledgement.
     unacked: VecDeque<(u64, SafeCompletion)>,
+    /// The last sequence number of each safe frame written and not yet acknowledged.
+    in_flight: VecDeque<u64>,
+    /// The entries of the pack being written (kept for its allocation).
+    pack: Vec<u8>,
     /// The inbox refused a frame: wait for an acknowledgement (or the retry timer).
     blocked: bool,
+}
+
+/// Longest body of a safe frame written inline.
+const INLINE_MAX: usize = FRAME_MAX - frame::SEQUENCED;
+
+/// Whether a message fits a pack with others (at least two such messages fit one frame): it
+/// may then wait for the acknowledgement of earlier frames to go with the messages after it.
+fn packable(msg: &[u8]) -> bool {
+    2 * (msg.len() + frame::PACK_ENTRY_HEADER) <= INLINE_MAX
 }
 
 impl PeerTx {
@@ -91,7 +106,10 @@ impl PeerTx {
             bulk: BulkState::Closed,
             fast_backlog: CoalescingQueue::new(MAX_FAST_BACKLOG),
             safe_backlog: VecDeque::new(),
+            backlog_bytes: 0,
             unacked: VecDeque::new(),
+            in_flight: VecDeque::new(),
+            pack: Vec::new(),
             blocked: false,
         }
     }
@@ -131,13 +149,18 @@ impl PeerTx {
             c.fast_dropped.fetch_add(1, Ordering::Relaxed);
             return;
         }
-        self.safe_backlog.push_back(Pending::new(msg, None, true));
+        self.queue(Pending::new(msg, None, true));
         if !self.blocked && self.flush_safe(w, c) {
             w.wake();
         }
     }
 
     /// Sends a reliable message; `done` completes when the peer acknowledges it.
+    ///
+    /// A small message waits while [`SAFE_FRAMES_IN_FLIGHT`] frames are unacknowledged (the
+    /// reader is busy with them), unless a frame's worth waits already: the acknowledgement
+    /// then writes everything waiting as packs, one sample for many messages. Anything else is
+    /// written at once, as far as the inbox takes it.
     pub(crate) fn send_safe(
         &mut self,
         w: &mut impl InboxWriter,
@@ -145,10 +168,32 @@ impl PeerTx {
         msg: Vec<u8>,
         done: Option<SafeCompletion>,
     ) {
-        self.safe_backlog.push_back(Pending::new(msg, done, false));
-        if !self.blocked && self.flush_safe(w, c) {
+        self.queue(Pending::new(msg, done, false));
+        if !self.blocked && self.flush_safe_holding(w, c, true) {
             w.wake();
         }
+    }
+
+    /// Whether the front of the backlog waits for an acknowledgement: a small whole message,
+    /// with less than a frame's worth waiting, behind enough unacknowledged frames.
+    fn holds(&self) -> bool {
+        self.in_flight.len() >= SAFE_FRAMES_IN_FLIGHT
+            && self.backlog_bytes < INLINE_MAX
+            && self
+                .safe_backlog
+                .front()
+                .is_some_and(|p| p.sent == 0 && packable(&p.msg))
+    }
+
+    fn queue(&mut self, p: Pending) {
+        self.backlog_bytes += p.msg.len() + frame::PACK_ENTRY_HEADER;
+        self.safe_backlog.push_back(p);
+    }
+
+    fn dequeue(&mut self) -> Option<Pending> {
+        let p = self.safe_backlog.pop_front()?;
+        self.backlog_bytes -= p.msg.len() + frame::PACK_ENTRY_HEADER;
+        Some(p)
     }
 
     /// The peer's inbox was just opened: writes what waited for it, then wakes the peer.
@@ -164,7 +209,7 @@ impl PeerTx {
                     wrote = true;
                 }
             } else {
-                self.safe_backlog.push_back(Pending::new(msg, None, true));
+                self.queue(Pending::new(msg, None, true));
             }
         }
         self.blocked = false;
@@ -197,73 +242,144 @@ impl PeerTx {
     /// Writes as much of the safe backlog as the peer's inbox takes. Returns whether anything
     /// was written (the peer then needs waking).
     ///
-    /// A fragment longer than a safe frame carries its body in the bulk inbox: the body first
-    /// (a `BulkData` sample), then its `Bulk` frame in the safe inbox, so the reader, meeting
-    /// the frame in order, finds the body already there.
+    /// Whole small messages one after the other go together as a pack. A fragment longer than
+    /// a safe frame carries its body in the bulk inbox: the body first (a `BulkData` sample),
+    /// then its `Bulk` frame in the safe inbox, so the reader, meeting the frame in order,
+    /// finds the body already there.
     fn flush_safe(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> bool {
+        self.flush_safe_holding(w, c, false)
+    }
+
+    /// [`Self::flush_safe`], stopping where the backlog [`Self::holds`] when `hold`.
+    fn flush_safe_holding(
+        &mut self,
+        w: &mut impl InboxWriter,
+        c: &LinkCounters,
+        hold: bool,
+    ) -> bool {
         if !w.is_open() {
             return false;
         }
-        let inline_max = FRAME_MAX - frame::SEQUENCED;
-        let bulk_max = BULK_MAX - frame::SEQUENCED;
-        let session = self.session;
         let mut wrote = false;
-        while let Some(p) = self.safe_backlog.front_mut() {
-            let left = p.msg.len() - p.sent;
-            let use_bulk = if left > inline_max {
-                match self.bulk {
-                    BulkState::Open => true,
-                    BulkState::Unavailable => false,
-                    BulkState::Opening => break,
-                    BulkState::Closed => {
-                        self.bulk = BulkState::Opening;
-                        w.open_bulk();
-                        break;
-                    }
-                }
-            } else {
-                false
+        loop {
+            if hold && self.holds() {
+                break;
+            }
+            let packed = match self.safe_backlog.get(1) {
+                Some(second) if packable(&second.msg) => self.write_pack(w, c),
+                _ => None,
             };
-            let n = left.min(if use_bulk { bulk_max } else { inline_max });
-            let more = p.sent + n < p.msg.len();
-            let body = &p.msg[p.sent..p.sent + n];
-            let seq = self.next_seq;
-            let written = if use_bulk {
-                if !p.bulk_written {
-                    if !w.put(Part::Bulk, frame::BULK_DATA, session, seq, body) {
-                        self.blocked = true;
-                        c.retransmitted.fetch_add(1, Ordering::Relaxed);
-                        break;
-                    }
-                    c.count_out(frame::SEQUENCED + n);
-                    p.bulk_written = true;
-                }
-                let kind = if more { frame::BULK_MORE } else { frame::BULK };
-                w.put(Part::Safe, kind, session, seq, &[])
-                    .then_some(frame::SEQUENCED)
-            } else {
-                let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
-                w.put(Part::Safe, kind, session, seq, body)
-                    .then_some(frame::SEQUENCED + n)
+            let written = match packed {
+                Some(written) => written,
+                None => match self.write_fragment(w, c) {
+                    Some(written) => written,
+                    None => break,
+                },
             };
-            let Some(bytes) = written else {
+            if !written {
                 self.blocked = true;
                 c.retransmitted.fetch_add(1, Ordering::Relaxed);
                 break;
-            };
-            c.count_out(bytes);
-            wrote = true;
-            p.sent += n;
-            p.bulk_written = false;
-            if !more {
-                if let Some(done) = p.done.take() {
-                    self.unacked.push_back((seq, done));
-                }
-                self.safe_backlog.pop_front();
             }
-            self.next_seq += 1;
+            wrote = true;
         }
         wrote
+    }
+
+    /// Writes the whole small messages at the front of the backlog (two at least) as one
+    /// pack. Returns whether the inbox took it, or `None` when the front is not two such
+    /// messages.
+    fn write_pack(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> Option<bool> {
+        self.pack.clear();
+        let mut n = 0u64;
+        for p in &self.safe_backlog {
+            let entry = frame::PACK_ENTRY_HEADER + p.msg.len();
+            if p.sent != 0 || !packable(&p.msg) || self.pack.len() + entry > INLINE_MAX {
+                break;
+            }
+            frame::push_pack_entry(&mut self.pack, &p.msg);
+            n += 1;
+        }
+        if n < 2 {
+            return None;
+        }
+        let first = self.next_seq;
+        if !w.put(
+            Part::Safe,
+            frame::SAFE_PACK,
+            self.session,
+            first,
+            &self.pack,
+        ) {
+            return Some(false);
+        }
+        c.count_out(frame::SEQUENCED + self.pack.len());
+        for seq in first..first + n {
+            if let Some(done) = self.dequeue().and_then(|p| p.done) {
+                self.unacked.push_back((seq, done));
+            }
+        }
+        self.next_seq = first + n;
+        self.in_flight.push_back(first + n - 1);
+        Some(true)
+    }
+
+    /// Writes the next fragment of the message at the front of the backlog (the whole message
+    /// when it fits a frame). Returns whether the inbox took it, or `None` when there is
+    /// nothing to write or it waits for the bulk inbox.
+    fn write_fragment(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> Option<bool> {
+        let bulk_max = BULK_MAX - frame::SEQUENCED;
+        let session = self.session;
+        let p = self.safe_backlog.front_mut()?;
+        let left = p.msg.len() - p.sent;
+        let use_bulk = if left > INLINE_MAX {
+            match self.bulk {
+                BulkState::Open => true,
+                BulkState::Unavailable => false,
+                BulkState::Opening => return None,
+                BulkState::Closed => {
+                    self.bulk = BulkState::Opening;
+                    w.open_bulk();
+                    return None;
+                }
+            }
+        } else {
+            false
+        };
+        let n = left.min(if use_bulk { bulk_max } else { INLINE_MAX });
+        let more = p.sent + n < p.msg.len();
+        let body = &p.msg[p.sent..p.sent + n];
+        let seq = self.next_seq;
+        let written = if use_bulk {
+            if !p.bulk_written {
+                if !w.put(Part::Bulk, frame::BULK_DATA, session, seq, body) {
+                    return Some(false);
+                }
+                c.count_out(frame::SEQUENCED + n);
+                p.bulk_written = true;
+            }
+            let kind = if more { frame::BULK_MORE } else { frame::BULK };
+            w.put(Part::Safe, kind, session, seq, &[])
+                .then_some(frame::SEQUENCED)
+        } else {
+            let kind = if more { frame::SAFE_MORE } else { frame::SAFE };
+            w.put(Part::Safe, kind, session, seq, body)
+                .then_some(frame::SEQUENCED + n)
+        };
+        let Some(bytes) = written else {
+            return Some(false);
+        };
+        c.count_out(bytes);
+        p.sent += n;
+        p.bulk_written = false;
+        if !more {
+            if let Some(done) = self.dequeue().and_then(|p| p.done) {
+                self.unacked.push_back((seq, done));
+            }
+        }
+        self.next_seq += 1;
+        self.in_flight.push_back(seq);
+        Some(true)
     }
 
     /// The peer acknowledged everything up to `seq` of `session`: unblocks the writer and
@@ -274,6 +390,9 @@ impl PeerTx {
             return None;
         }
         self.blocked = false;
+        while self.in_flight.front().is_some_and(|s| *s <= seq) {
+            self.in_flight.pop_front();
+        }
         let mut done = Vec::new();
         while self.unacked.front().is_some_and(|(s, _)| *s <= seq) {
             if let Some((_, d)) = self.unacked.pop_front() {
@@ -285,6 +404,8 @@ impl PeerTx {
 
     /// Fails everything queued or unacknowledged with `err`.
     pub(crate) fn fail_all(&mut self, err: &LinkSendError) {
+        self.backlog_bytes = 0;
+        self.in_flight.clear();
         for p in self.safe_backlog.drain(..) {
             if let Some(d) = p.done {
                 let _ = d.send(Err(err.clone()));
@@ -299,7 +420,7 @@ impl PeerTx {
 #[cfg(test)]
 mod tests {
     use super::super::sim::{acked, SimHost};
-    use super::super::FAST_BUFFER;
+    use super::super::{FAST_BUFFER, SAFE_FRAMES_IN_FLIGHT};
     use std::sync::atomic::Ordering;
 
     const A: u64 = 0xA;
@@ -307,11 +428,12 @@ mod tests {
 
     #[test]
     fn a_full_safe_buffer_holds_the_writer_back_until_acknowledged() {
-        // B's safe inbox buffers 4 frames per writer.
-        let mut h = SimHost::new(&[A, B], 4);
-        let mut dones: Vec<_> = (0..20u8).map(|i| h.send_safe(A, B, vec![i; 3])).collect();
+        // B's safe inbox buffers 2 frames per writer; each message is too long to share one.
+        let mut h = SimHost::new(&[A, B], 2);
+        let msg = |i: u8| vec![i; super::INLINE_MAX / 2 + 1];
+        let mut dones: Vec<_> = (0..20u8).map(|i| h.send_safe(A, B, msg(i))).collect();
         // Only what the buffer takes is written; the rest waits, and the refusal is counted.
-        assert_eq!(h.inboxes[&B].safe.q.len(), 4);
+        assert_eq!(h.inboxes[&B].safe.q.len(), 2);
         let refused = h.nodes[&A].counters.retransmitted.load(Ordering::Relaxed);
         assert!(refused >= 1, "the refusal is counted");
         assert!(
@@ -320,17 +442,50 @@ mod tests {
         );
         // A does not retry on its own before B acknowledges or the retry timer runs out.
         h.send_safe(A, B, vec![99]);
-        assert_eq!(h.inboxes[&B].safe.q.len(), 4, "a blocked writer waits");
+        assert_eq!(h.inboxes[&B].safe.q.len(), 2, "a blocked writer waits");
         h.run(200);
         let got = h.messages(B);
         let expected: Vec<(u64, Vec<u8>)> = (0..20u8)
-            .map(|i| (A, vec![i; 3]))
+            .map(|i| (A, msg(i)))
             .chain(std::iter::once((A, vec![99])))
             .collect();
         assert_eq!(got, expected, "every message once, in order");
         assert!(dones.iter_mut().all(acked), "every message acknowledged");
         assert_eq!(h.nodes[&B].counters.duplicates.load(Ordering::Relaxed), 0);
         assert_eq!(h.nodes[&B].counters.corrupt.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn small_messages_behind_unacknowledged_frames_go_as_packs() {
+        let mut h = SimHost::standard(&[A, B]);
+        let msg = |i: u32| {
+            let mut m = i.to_le_bytes().to_vec();
+            m.resize(4 + (i % 50) as usize, b'x');
+            m
+        };
+        // B does not read yet: the first frames go one message each, then messages wait.
+        let mut dones: Vec<_> = (0..3000u32).map(|i| h.send_safe(A, B, msg(i))).collect();
+        let frames = |h: &SimHost| h.inboxes[&B].safe.q.len();
+        let singles = frames(&h);
+        assert!(
+            singles >= SAFE_FRAMES_IN_FLIGHT,
+            "a burst's first {SAFE_FRAMES_IN_FLIGHT} messages go at once, got {singles} frames"
+        );
+        // Waiting messages that fill a frame are written without waiting for B.
+        assert!(singles < 20, "{singles} frames for 3,000 small messages");
+        h.run(200);
+        let got = h.messages(B);
+        let expected: Vec<(u64, Vec<u8>)> = (0..3000u32).map(|i| (A, msg(i))).collect();
+        assert_eq!(got, expected, "every message once, in order");
+        assert!(dones.iter_mut().all(acked), "every message acknowledged");
+        let c = &h.nodes[&B].counters;
+        assert_eq!(c.duplicates.load(Ordering::Relaxed), 0);
+        assert_eq!(c.corrupt.load(Ordering::Relaxed), 0);
+        let frames_in = c.frames_in.load(Ordering::Relaxed);
+        assert!(
+            frames_in < 40,
+            "3,000 messages of up to 53 bytes took {frames_in} frames"
+        );
     }
 
     #[test]
