@@ -123,6 +123,9 @@ enum Cmd {
         /// Accept any first sequence number per publisher (a subscriber started mid-stream).
         #[arg(long)]
         from_any: bool,
+        /// Pause a millisecond after every SLOW events: a reader slower than its publisher.
+        #[arg(long)]
+        slow: Option<u64>,
     },
     /// Provide function ITEM: doubles its u64 argument after DELAY ms, or fails with FAIL.
     Provide {
@@ -453,6 +456,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             pattern,
             count,
             from_any,
+            slow,
         } => {
             let sub = svc.subscribe_event::<u64>(pattern)?;
             out(json!({"ready": pattern, "pid": std::process::id()}));
@@ -474,6 +478,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 }
                 *expected = s.value + 1;
                 n += 1;
+                if slow.is_some_and(|k| n % k.max(1) == 0) {
+                    tokio::time::sleep(Duration::from_millis(1)).await;
+                }
             }
             out(json!({"received": n, "in_order": in_order}));
             // Stay until stopped so the publisher sees our acknowledgements and lease; anything

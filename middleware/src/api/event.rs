@@ -228,6 +228,11 @@ impl<T: Payload> Event<T> {
     /// acknowledged (back-pressure, never a drop). For a publisher of many events, where
     /// [`Event::raise_nowait`]'s report per event costs more than the event.
     ///
+    /// A subscriber's node acknowledges what reached the subscription's mailbox. Over shared
+    /// memory it stops acknowledging while a reader that keeps reading is behind (its mailbox
+    /// over half full), so a slow reader holds the stream back; over UDP and serial a reader
+    /// slower than the stream for long enough to fill its mailbox loses the oldest events.
+    ///
     /// ```no_run
     /// # async fn f(ev: marea::Event<u32>) -> Result<(), marea::StreamError> {
     /// let mut stream = ev.stream();

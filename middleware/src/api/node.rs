@@ -241,6 +241,7 @@ impl Node {
             routing: Mutex::new(()),
             policy: crate::node::policy::Policy::new(config.access.clone(), config.links.len()),
             lanes: Default::default(),
+            congestion: Arc::default(),
             // The pseudo-service id is the first id handed out (ids start at 1).
             gateway: forwards.then(|| crate::node::gateway::Gateway::new(1)),
         });

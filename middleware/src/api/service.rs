@@ -215,7 +215,11 @@ impl Service {
         kind: ItemKind,
         ty: TypeInfo,
     ) -> Result<(Arc<Mailbox>, Declared), DeclareError> {
-        let mailbox = Arc::new(Mailbox::new(kind == ItemKind::Variable));
+        let congestion = self.inner.node.congestion.clone();
+        let mailbox = Arc::new(Mailbox::counted_in(
+            kind == ItemKind::Variable,
+            Some(congestion),
+        ));
         let declared = self.interest(pattern, kind, ty, Some(mailbox.clone()))?;
         Ok((mailbox, declared))
     }

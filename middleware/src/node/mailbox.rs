@@ -5,9 +5,17 @@
 //! reading while a publisher keeps raising events would otherwise grow it without limit; at the
 //! bound the oldest delivery is dropped (the newest ones matter most to a vehicle), counted
 //! ([`Mailbox::dropped`]) and logged (at the first drop and then at each power of two).
+//!
+//! Behind: an event mailbox holding more than [`MAILBOX_BEHIND`] deliveries counts in its
+//! node's [`Congestion`] until its reader brings it under [`MAILBOX_CAUGHT_UP`]. While a reader
+//! that is still reading is behind, links that can hold senders back without losing anything
+//! (shared memory) stop acknowledging, so lossless senders (`Event::stream`, `raise`) wait
+//! instead of the mailbox dropping. A reader that took nothing for [`READER_STALLED`] is not
+//! waited for: its mailbox drops its oldest deliveries at the bound, as above.
 
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use tokio::sync::Notify;
 
@@ -61,6 +69,63 @@ pub(crate) enum Delivery {
 /// Deliveries a mailbox holds before dropping the oldest: far more than a reader that keeps up
 /// ever has waiting (ten thousand events in a burst fit).
 pub(crate) const MAILBOX_CAP: usize = 65_536;
+/// An event mailbox holding more than this is behind (see the module's documentation): room
+/// is left for what senders already have in flight (a stream's window is 8,192 events).
+pub(crate) const MAILBOX_BEHIND: usize = MAILBOX_CAP / 2;
+/// A mailbox that was behind has caught up below this.
+pub(crate) const MAILBOX_CAUGHT_UP: usize = MAILBOX_CAP / 4;
+/// A behind mailbox's reader that took nothing for this long has stopped: senders are no
+/// longer held back for it.
+pub(crate) const READER_STALLED: Duration = Duration::from_millis(200);
+
+/// A node's event mailboxes that are behind, and when one of their readers last made progress.
+#[derive(Debug)]
+pub(crate) struct Congestion {
+    behind: AtomicUsize,
+    start: Instant,
+    /// Milliseconds from `start` to the last delivery taken from a behind mailbox (or to the
+    /// last mailbox falling behind).
+    progress_ms: AtomicU64,
+}
+
+impl Default for Congestion {
+    fn default() -> Self {
+        Congestion {
+            behind: AtomicUsize::new(0),
+            start: Instant::now(),
+            progress_ms: AtomicU64::new(0),
+        }
+    }
+}
+
+impl Congestion {
+    /// Whether some mailbox is behind while its reader keeps reading: links that can should
+    /// hold their senders back.
+    pub(crate) fn readers_behind(&self) -> bool {
+        self.behind.load(Ordering::Relaxed) > 0
+            && self
+                .now_ms()
+                .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
+                < READER_STALLED.as_millis() as u64
+    }
+
+    fn now_ms(&self) -> u64 {
+        u64::try_from(self.start.elapsed().as_millis()).unwrap_or(u64::MAX)
+    }
+
+    fn progress(&self) {
+        self.progress_ms.store(self.now_ms(), Ordering::Relaxed);
+    }
+
+    fn fell_behind(&self) {
+        self.behind.fetch_add(1, Ordering::Relaxed);
+        self.progress();
+    }
+
+    fn caught_up(&self) {
+        self.behind.fetch_sub(1, Ordering::Relaxed);
+    }
+}
 
 #[derive(Debug)]
 struct Inner {
@@ -69,6 +134,8 @@ struct Inner {
     closed: bool,
     /// Readers between finding the queue empty and being woken.
     waiting: usize,
+    /// Counted as behind in the node's [`Congestion`].
+    behind: bool,
 }
 
 /// A subscription's queue.
@@ -78,18 +145,55 @@ pub(crate) struct Mailbox {
     notify: Notify,
     /// Variables keep only the newest undelivered value per name.
     coalesce: bool,
+    /// Where an event mailbox counts while it is behind.
+    congestion: Option<Arc<Congestion>>,
 }
 
 impl Mailbox {
+    /// A mailbox counting nowhere when behind.
+    #[cfg(test)]
     pub fn new(coalesce: bool) -> Self {
+        Self::counted_in(coalesce, None)
+    }
+
+    /// A mailbox that, for events, counts in `congestion` while it is behind (variables keep
+    /// only their newest values and are never behind).
+    pub fn counted_in(coalesce: bool, congestion: Option<Arc<Congestion>>) -> Self {
         Mailbox {
             inner: Mutex::new(Inner {
                 queue: CoalescingQueue::new(MAILBOX_CAP),
                 closed: false,
                 waiting: 0,
+                behind: false,
             }),
             notify: Notify::new(),
             coalesce,
+            congestion: congestion.filter(|_| !coalesce),
+        }
+    }
+
+    /// Counts the mailbox as behind once it holds more than [`MAILBOX_BEHIND`].
+    fn after_push(&self, g: &mut Inner) {
+        if let Some(c) = &self.congestion {
+            if !g.behind && g.queue.len() > MAILBOX_BEHIND {
+                g.behind = true;
+                c.fell_behind();
+            }
+        }
+    }
+
+    /// A delivery was taken: progress, and maybe caught up.
+    fn after_pop(&self, g: &mut Inner) {
+        if !g.behind {
+            return;
+        }
+        if let Some(c) = &self.congestion {
+            if g.queue.len() < MAILBOX_CAUGHT_UP || g.closed {
+                g.behind = false;
+                c.caught_up();
+            } else {
+                c.progress();
+            }
         }
     }
 
@@ -125,6 +229,7 @@ impl Mailbox {
                     }
                 }
             }
+            self.after_push(&mut g);
             was_empty && !g.queue.is_empty()
         };
         // The reader waits only on an empty queue (checked under the lock), so only the push
@@ -135,7 +240,10 @@ impl Mailbox {
     }
 
     pub fn try_pop(&self) -> Option<Delivery> {
-        self.lock().queue.pop_front().map(|(_, d)| d)
+        let mut g = self.lock();
+        let d = g.queue.pop_front().map(|(_, d)| d);
+        self.after_pop(&mut g);
+        d
     }
 
     /// Waits for the next delivery; `None` once closed and drained.
@@ -144,6 +252,7 @@ impl Mailbox {
             {
                 let mut g = self.lock();
                 if let Some((_, d)) = g.queue.pop_front() {
+                    self.after_pop(&mut g);
                     if !g.queue.is_empty() && g.waiting > 0 {
                         // Pushes onto a non-empty queue wake nobody: pass the wake-up on to
                         // another task waiting on this mailbox (a lone reader pays nothing).
@@ -165,7 +274,12 @@ impl Mailbox {
     }
 
     pub fn close(&self) {
-        self.lock().closed = true;
+        {
+            let mut g = self.lock();
+            g.closed = true;
+            // Nobody reads a closed mailbox: no sender waits for it.
+            self.after_pop(&mut g);
+        }
         self.notify.notify_waiters();
         self.notify.notify_one();
     }
@@ -178,6 +292,17 @@ impl Mailbox {
     #[cfg_attr(not(test), allow(dead_code))]
     pub fn dropped(&self) -> u64 {
         self.lock().queue.dropped()
+    }
+}
+
+impl Drop for Mailbox {
+    fn drop(&mut self) {
+        let inner = self.inner.get_mut().unwrap_or_else(|e| e.into_inner());
+        if inner.behind {
+            if let Some(c) = &self.congestion {
+                c.caught_up();
+            }
+        }
     }
 }
 
@@ -218,6 +343,58 @@ mod tests {
             Some(Delivery::Sample(s)) => assert_eq!(&*s.name, "e10", "the oldest went first"),
             other => panic!("expected a sample, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn an_event_mailbox_is_behind_from_half_full_until_a_quarter_while_its_reader_reads() {
+        let c = Arc::new(Congestion::default());
+        let m = Mailbox::counted_in(false, Some(c.clone()));
+        let vars = Mailbox::counted_in(true, Some(c.clone()));
+        for i in 0..MAILBOX_BEHIND {
+            m.push(sample("e"));
+            vars.push(sample(&format!("v{i}")));
+        }
+        assert!(!c.readers_behind(), "half full is not behind yet");
+        m.push(sample("e"));
+        assert!(c.readers_behind(), "over half full is behind");
+        vars.push(sample("v"));
+        while m.len() >= MAILBOX_CAUGHT_UP {
+            assert!(c.readers_behind(), "behind until under a quarter");
+            m.try_pop();
+        }
+        assert!(!c.readers_behind(), "caught up");
+        assert_eq!(
+            c.behind.load(Ordering::Relaxed),
+            0,
+            "variables are never behind"
+        );
+        // Behind again, then dropped (its subscription ended): nobody is waited for.
+        for _ in 0..MAILBOX_BEHIND {
+            m.push(sample("e"));
+        }
+        assert!(c.readers_behind());
+        drop(m);
+        assert!(!c.readers_behind());
+    }
+
+    #[test]
+    fn a_behind_mailbox_whose_reader_stopped_holds_nobody_back() {
+        // A node started a minute ago.
+        let c = Arc::new(Congestion {
+            start: Instant::now() - Duration::from_secs(60),
+            ..Congestion::default()
+        });
+        let m = Mailbox::counted_in(false, Some(c.clone()));
+        for _ in 0..=MAILBOX_BEHIND {
+            m.push(sample("e"));
+        }
+        assert!(c.readers_behind());
+        // As if the last delivery was taken longer ago than a reader may pause.
+        let stalled = c.now_ms() - READER_STALLED.as_millis() as u64 - 1;
+        c.progress_ms.store(stalled, Ordering::Relaxed);
+        assert!(!c.readers_behind(), "a stopped reader is not waited for");
+        m.try_pop();
+        assert!(c.readers_behind(), "reading again, it is");
     }
 
     /// A run pushed at once (a datagram's events) arrives whole and in order, and wakes the

@@ -255,6 +255,8 @@ pub(crate) struct NodeInner {
     pub lanes: call::Lanes,
     /// Per-node identity keys, when configured (`<security identityFile=.. identities=..>`).
     pub identity: Option<IdentityLayer>,
+    /// Event mailboxes whose readers are behind (links may then hold senders back).
+    pub congestion: Arc<mailbox::Congestion>,
 }
 
 /// This node's identity proof and the domain's roster (see [`crate::identity`]).
@@ -544,6 +546,12 @@ impl LinkHandler for Handler {
         }
     }
 
+    fn readers_behind(&self) -> bool {
+        self.0
+            .upgrade()
+            .is_some_and(|n| n.congestion.readers_behind())
+    }
+
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.node() {
             n.on_peer_reset(link, from);
@@ -598,6 +606,7 @@ pub(crate) fn bare_node(
         policy: policy::Policy::new(access, 1),
         lanes: Default::default(),
         identity: None,
+        congestion: Arc::default(),
     });
     let _ = inner.links.set(Vec::new());
     inner

@@ -18,7 +18,13 @@
 //! - **Safe** messages carry a session and a sequence number; the receiver acknowledges
 //!   cumulatively after each pass over its inbox, and an acknowledgement both completes `done`
 //!   and tells the writer that buffer space is free again. A reader that stops reading
-//!   therefore holds back only safe traffic towards itself.
+//!   therefore holds back only safe traffic towards itself. Small safe messages that queue
+//!   while [`SAFE_FRAMES_IN_FLIGHT`] frames are unacknowledged go as one pack frame (written
+//!   on the acknowledgement, or once a frame's worth waits): one sample for many messages.
+//! - **Readers behind**: while the node says a reader that is still reading is behind
+//!   ([`LinkHandler::readers_behind`]: an event mailbox over half full), the receiver goes on
+//!   reading and delivering but acknowledges nothing, so lossless senders (a stream's window)
+//!   wait instead of the mailbox dropping.
 //! - **Large** messages (over [`FRAME_MAX`]; fast ones ride the safe path) go in pieces of up to
 //!   [`BULK_MAX`] into the bulk inbox, each followed by a small `Bulk` frame in the safe inbox
 //!   that keeps it in order. A writer opens a peer's bulk inbox with its first large message:
@@ -662,6 +668,12 @@ impl RxIo for LinkRx<'_> {
 
     fn request_open(&mut self, from: u64) {
         self.link.request(Ctl::Open(from));
+    }
+
+    fn readers_behind(&mut self) -> bool {
+        // What the node was handed so far counts.
+        self.flush();
+        self.link.handler.readers_behind()
     }
 
     fn retry_backlogs(&mut self, acked: &[u64], retry: bool) -> bool {

@@ -47,6 +47,9 @@ pub(crate) trait RxIo {
     fn send_ack(&mut self, from: u64, session: u32, seq: u64) -> AckSent;
     /// Asks for `from`'s inbox to be opened.
     fn request_open(&mut self, from: u64);
+    /// Whether the node's readers are behind (see
+    /// [`crate::link::LinkHandler::readers_behind`]): acknowledgements then wait.
+    fn readers_behind(&mut self) -> bool;
     /// Retries what peers' inboxes refused: towards the peers in `acked` (their buffer has
     /// room) or, on `retry`, towards every blocked peer. Returns whether some backlog remains.
     fn retry_backlogs(&mut self, acked: &[u64], retry: bool) -> bool;
@@ -184,7 +187,9 @@ impl Receiver {
         let mut acked = Vec::new();
         let taken_safe = self.drain_safe(io, c, &mut acked);
         let taken_fast = drain_fast(io, c);
-        if !self.ack_due.is_empty() {
+        // Unacknowledged, writers hold back (a stream's window fills); what they already wrote
+        // is still read and delivered.
+        if !self.ack_due.is_empty() && !io.readers_behind() {
             self.send_acks(now, io, c);
         }
         let retry = now >= self.next_retry;
@@ -621,6 +626,10 @@ mod tests {
             AckSent::Taken
         }
         fn request_open(&mut self, _: u64) {}
+
+        fn readers_behind(&mut self) -> bool {
+            false
+        }
         fn retry_backlogs(&mut self, _: &[u64], _: bool) -> bool {
             false
         }
