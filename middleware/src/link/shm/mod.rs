@@ -19,7 +19,7 @@
 //!   cumulatively after each pass over its inbox, and an acknowledgement both completes `done`
 //!   and tells the writer that buffer space is free again. A reader that stops reading
 //!   therefore holds back only safe traffic towards itself. Small safe messages that queue
-//!   while [`SAFE_FRAMES_IN_FLIGHT`] frames are unacknowledged go as one pack frame (written
+//!   while `SAFE_FRAMES_IN_FLIGHT` (4) frames are unacknowledged go as one pack frame (written
 //!   on the acknowledgement, or once a frame's worth waits): one sample for many messages.
 //! - **Readers behind**: while the node says a reader that is still reading is behind
 //!   ([`LinkHandler::readers_behind`]: an event mailbox over half full), the receiver goes on
