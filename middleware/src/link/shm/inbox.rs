@@ -105,6 +105,10 @@ impl InboxReader {
     }
 }
 
+/// Departed writers whose unread frames an inbox part keeps (at least iceoryx2's samples a
+/// subscriber may borrow, 2).
+const EXPIRED_CONNECTIONS: usize = 8;
+
 fn service_name(s: &str) -> Result<ServiceName, String> {
     ServiceName::new(s).map_err(|e| format!("invalid service name {s}: {e:?}"))
 }
@@ -121,7 +125,17 @@ impl Inbox {
         };
         let name = NodeName::new(&format!("{}{id:016x}", node_prefix(&options.service)))
             .map_err(|e| node_err(format!("{e:?}")))?;
+        // iceoryx2's defaults (and any iceoryx2 config file), with a subscriber's table of
+        // departed publishers' connections cut from 128 entries to a few: each entry is ~3.6 KiB
+        // of heap per inbox part, touched at creation, and a departed peer's leftover frames
+        // are needed only until the next pass.
+        let mut config = iceoryx2::config::Config::global_config().clone();
+        config
+            .defaults
+            .publish_subscribe
+            .subscriber_expired_connection_buffer = EXPIRED_CONNECTIONS;
         let node = NodeBuilder::new()
+            .config(&config)
             .name(&name)
             // The process owns its signals (tokio's ctrl_c); iceoryx2 must not take them.
             .signal_handling_mode(SignalHandlingMode::Disabled)
