@@ -424,8 +424,10 @@ impl<T: Payload> EventStream<'_, T> {
                 p.reported = failed;
             }
         }
-        self.leaving
-            .retain(|p| p.acks.settled() < p.sent || p.acks.failures().0 > p.reported);
+        if !self.leaving.is_empty() {
+            self.leaving
+                .retain(|p| p.acks.settled() < p.sent || p.acks.failures().0 > p.reported);
+        }
         lost.map_or(Ok(()), Err)
     }
 }

@@ -34,6 +34,30 @@ impl SafeCompletion {
     }
 }
 
+/// Settles acknowledged messages, in order: a run of messages counted on one stream's counter
+/// with one update of it instead of one per message (a datagram acknowledges hundreds).
+pub fn acknowledge_all(done: impl IntoIterator<Item = SafeCompletion>) {
+    let mut run: Option<(Arc<AckCounter>, u64)> = None;
+    for d in done {
+        match d {
+            SafeCompletion::Counted(c) => match &mut run {
+                Some((r, n)) if Arc::ptr_eq(r, &c) => *n += 1,
+                _ => {
+                    if let Some((r, n)) = run.replace((c, 1)) {
+                        r.settle_acknowledged(n);
+                    }
+                }
+            },
+            SafeCompletion::Once(tx) => {
+                let _ = tx.send(Ok(()));
+            }
+        }
+    }
+    if let Some((r, n)) = run {
+        r.settle_acknowledged(n);
+    }
+}
+
 impl From<oneshot::Sender<Result<(), LinkSendError>>> for SafeCompletion {
     fn from(tx: oneshot::Sender<Result<(), LinkSendError>>) -> Self {
         SafeCompletion::Once(tx)
@@ -61,7 +85,12 @@ impl AckCounter {
             }
             self.failed.fetch_add(1, Ordering::SeqCst);
         }
-        let settled = self.settled.fetch_add(1, Ordering::SeqCst) + 1;
+        self.settle_acknowledged(1);
+    }
+
+    /// `n` more messages acknowledged.
+    fn settle_acknowledged(&self, n: u64) {
+        let settled = self.settled.fetch_add(n, Ordering::SeqCst) + n;
         let at = self.wake_at.load(Ordering::SeqCst);
         if at != 0 && settled >= at {
             self.wake_at.store(0, Ordering::SeqCst);
@@ -132,6 +161,38 @@ mod tests {
             (2, Some(LinkSendError::PeerClosed("a".into()))),
             "two failures, the first reason kept"
         );
+    }
+
+    #[tokio::test]
+    async fn acknowledging_runs_of_counted_messages_settles_each_counter_once_per_message() {
+        let (a, b) = (
+            Arc::new(AckCounter::default()),
+            Arc::new(AckCounter::default()),
+        );
+        let (tx, rx) = oneshot::channel();
+        let counted = |c: &Arc<AckCounter>| SafeCompletion::Counted(c.clone());
+        let waiter = {
+            let a = a.clone();
+            tokio::spawn(async move { a.settled_at_least(5).await })
+        };
+        let done = vec![
+            counted(&a),
+            counted(&a),
+            SafeCompletion::from(tx),
+            counted(&b),
+            counted(&a),
+            counted(&a),
+            counted(&a),
+        ];
+        acknowledge_all(done);
+        assert_eq!((a.settled(), b.settled()), (5, 1));
+        assert_eq!(a.failures(), (0, None));
+        assert_eq!(rx.await, Ok(Ok(())));
+        tokio::time::timeout(Duration::from_secs(5), waiter)
+            .await
+            .expect("the waiter for 5 woken")
+            .expect("waiter task");
+        assert_eq!(Arc::strong_count(&a), 1, "no reference left behind");
     }
 
     #[test]

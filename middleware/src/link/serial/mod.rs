@@ -25,6 +25,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use super::auth::LinkSecurity;
+use super::completion::acknowledge_all;
 use super::{Link, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion};
 use port::{BoxRead, BoxWrite, PortOpener};
 use stp::{Stp, StpConfig, StpEvent, StpStats};
@@ -283,11 +284,7 @@ impl SerialLink {
         for e in events.drain(..) {
             match e {
                 StpEvent::Message(m) => self.handler.on_message(self.index, peer, &m),
-                StpEvent::Acked(done) => {
-                    for d in done {
-                        let _ = d.send(Ok(()));
-                    }
-                }
+                StpEvent::Acked(done) => acknowledge_all(done),
                 StpEvent::Failed(done, err) => {
                     for d in done {
                         let _ = d.send(Err(err.clone()));

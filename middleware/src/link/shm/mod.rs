@@ -64,6 +64,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
+use super::completion::acknowledge_all;
 use super::{Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr};
 use crate::sync::lock;
 use control::{Control, Ctl};
@@ -637,9 +638,7 @@ impl RxIo for LinkRx<'_> {
         let Some(done) = acked else {
             return false;
         };
-        for d in done {
-            let _ = d.send(Ok(()));
-        }
+        acknowledge_all(done);
         true
     }
 

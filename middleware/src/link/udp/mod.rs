@@ -25,6 +25,7 @@ use tokio_util::task::TaskTracker;
 use super::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
 use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
 use super::coalesce::{CoalescingQueue, Pushed};
+use super::completion::acknowledge_all;
 use super::{
     Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
 };
@@ -738,9 +739,7 @@ impl UdpLink {
         if !msgs.is_empty() {
             self.handler.on_messages(self.index, peer, &msgs);
         }
-        for done in completed {
-            let _ = done.send(Ok(()));
-        }
+        acknowledge_all(completed);
     }
 }
 
