@@ -192,6 +192,37 @@ fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
     );
 }
 
+/// A stream is lossless up to the application over UDP too: a subscriber reading about 20
+/// times slower than the publisher streams (a millisecond's pause every 100 events) falls
+/// behind by far more than its mailbox holds (65,536); its node tells the publisher's
+/// (`Flow`), whose stream waits instead of the mailbox dropping the oldest events.
+#[test]
+fn a_stream_to_a_slow_reader_waits_for_it_instead_of_dropping() {
+    let net = Net::new("stream_slow_reader");
+    let mut sub = net.probe(
+        "sub",
+        &[
+            "ev-sub",
+            "--pattern",
+            "probe/ev",
+            "--count",
+            "150000",
+            "--slow",
+            "100",
+        ],
+    );
+    sub.expect_key(T, "ready");
+    let mut publ = net.probe(
+        "pub",
+        &[
+            "ev-pub", "--item", "ev", "--count", "150000", "--subs", "1", "--stream",
+        ],
+    );
+    let done = publ.expect_key(Duration::from_secs(120), "raised");
+    assert_eq!(done["lost_events"], 0, "{done}");
+    expect_received_in_order(std::slice::from_mut(&mut sub), 150000);
+}
+
 /// A stream's subscriber killed mid-stream: the stream reports the events that node did not
 /// acknowledge, naming it, within its lease, and goes on: the other subscriber gets every
 /// event in order.

@@ -177,8 +177,8 @@ fn ten_thousand_events_reach_two_subscribers_once_in_order_over_shm() {
 
 /// Issue 17: a stream is lossless up to the application. A subscriber reading about 20 times
 /// slower than the publisher streams (a millisecond's pause every 100 events) falls behind by
-/// far more than its mailbox holds (65,536); its node stops acknowledging while it is behind,
-/// so the publisher waits instead of the mailbox dropping the oldest events.
+/// far more than its mailbox holds (65,536); its node tells the publisher's (`Flow`), whose
+/// stream waits instead of the mailbox dropping the oldest events.
 #[test]
 fn a_stream_to_a_slow_reader_over_shm_waits_for_it_instead_of_dropping() {
     let net = ShmNet::new("shm_slow_reader");

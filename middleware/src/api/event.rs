@@ -4,6 +4,7 @@
 use std::future::Future;
 use std::marker::PhantomData;
 use std::pin::Pin;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
@@ -228,10 +229,10 @@ impl<T: Payload> Event<T> {
     /// acknowledged (back-pressure, never a drop). For a publisher of many events, where
     /// [`Event::raise_nowait`]'s report per event costs more than the event.
     ///
-    /// A subscriber's node acknowledges what reached the subscription's mailbox. Over shared
-    /// memory it stops acknowledging while a reader that keeps reading is behind (its mailbox
-    /// over half full), so a slow reader holds the stream back; over UDP and serial a reader
-    /// slower than the stream for long enough to fill its mailbox loses the oldest events.
+    /// A subscriber's node acknowledges what reached the subscription's mailbox; while a reader
+    /// that keeps reading is behind (its mailbox over half full) the node says so and the
+    /// stream waits until it is under a quarter, so a slow reader holds the stream back instead
+    /// of losing events. A reader that stopped (nothing taken for 200 ms) is not waited for.
     ///
     /// ```no_run
     /// # async fn f(ev: marea::Event<u32>) -> Result<(), marea::StreamError> {
@@ -383,7 +384,23 @@ impl<T: Payload> EventStream<'_, T> {
                 p.acks.settled_at_least(p.sent - window / 2).await;
             }
         }
+        for r in remote.iter() {
+            if r.behind.load(Ordering::Acquire) {
+                self.wait_caught_up(r).await;
+            }
+        }
         self.report_losses()
+    }
+
+    /// Waits while `r`'s node says its subscribers are behind ([`crate::protocol::Message::Flow`]),
+    /// until it catches up or leaves.
+    async fn wait_caught_up(&self, r: &RemoteSubscriber) {
+        let mut changed = self.event.publisher.node.changed.subscribe();
+        while r.behind.load(Ordering::Acquire) && r.alive.load(Ordering::Acquire) {
+            if changed.changed().await.is_err() {
+                return;
+            }
+        }
     }
 
     /// Makes `peers` match `routes`: a node still subscribed keeps its counts, a new one starts

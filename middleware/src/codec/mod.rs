@@ -385,6 +385,8 @@ mod tests {
                 Message::Challenge { nonce: [5; 16] },
                 [&[16u8][..], &[5; 16]].concat(),
             ),
+            // Flow (17): a bool is one byte
+            (Message::Flow { behind: true }, vec![17, 1]),
         ];
         for (msg, bytes) in cases {
             assert_eq!(encode_message(&msg), bytes, "encoding of {msg:?}");

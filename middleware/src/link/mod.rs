@@ -135,12 +135,6 @@ pub trait LinkHandler: Send + Sync + 'static {
             self.on_message(link, from, m);
         }
     }
-    /// Whether the node's subscribers are behind on events while still reading them: a link
-    /// that can hold its senders back without losing anything (shared memory) stops
-    /// acknowledging meanwhile, so lossless senders wait instead of a mailbox dropping.
-    fn readers_behind(&self) -> bool {
-        false
-    }
     /// A discovery message (Hello, Heartbeat, Bye) from `from`.
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]);
     /// `from` started a new safe session while one was running: it restarted or reset us.

@@ -8,10 +8,10 @@
 //!
 //! Behind: an event mailbox holding more than [`MAILBOX_BEHIND`] deliveries counts in its
 //! node's [`Congestion`] until its reader brings it under [`MAILBOX_CAUGHT_UP`]. While a reader
-//! that is still reading is behind, links that can hold senders back without losing anything
-//! (shared memory) stop acknowledging, so lossless senders (`Event::stream`, `raise`) wait
-//! instead of the mailbox dropping. A reader that took nothing for [`READER_STALLED`] is not
-//! waited for: its mailbox drops its oldest deliveries at the bound, as above.
+//! that is still reading is behind, the node tells its peers, whose lossless streams
+//! (`Event::stream`) then wait instead of the mailbox dropping (see [`super::flow`]). A reader
+//! that took nothing for [`READER_STALLED`] is not waited for: its mailbox drops its oldest
+//! deliveries at the bound, as above.
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -86,6 +86,8 @@ pub(crate) struct Congestion {
     /// Milliseconds from `start` to the last delivery taken from a behind mailbox (or to the
     /// last mailbox falling behind).
     progress_ms: AtomicU64,
+    /// Told when a mailbox falls behind or catches up.
+    change: Notify,
 }
 
 impl Default for Congestion {
@@ -94,19 +96,30 @@ impl Default for Congestion {
             behind: AtomicUsize::new(0),
             start: Instant::now(),
             progress_ms: AtomicU64::new(0),
+            change: Notify::new(),
         }
     }
 }
 
 impl Congestion {
-    /// Whether some mailbox is behind while its reader keeps reading: links that can should
-    /// hold their senders back.
+    /// Whether some mailbox is behind while its reader keeps reading: streams to this node
+    /// should wait.
     pub(crate) fn readers_behind(&self) -> bool {
         self.behind.load(Ordering::Relaxed) > 0
             && self
                 .now_ms()
                 .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
                 < READER_STALLED.as_millis() as u64
+    }
+
+    /// Whether some mailbox is behind (its reader reading or not).
+    pub(crate) fn any_behind(&self) -> bool {
+        self.behind.load(Ordering::Relaxed) > 0
+    }
+
+    /// Resolves at the next mailbox falling behind or catching up.
+    pub(crate) fn changed(&self) -> tokio::sync::futures::Notified<'_> {
+        self.change.notified()
     }
 
     fn now_ms(&self) -> u64 {
@@ -120,10 +133,12 @@ impl Congestion {
     fn fell_behind(&self) {
         self.behind.fetch_add(1, Ordering::Relaxed);
         self.progress();
+        self.change.notify_waiters();
     }
 
     fn caught_up(&self) {
         self.behind.fetch_sub(1, Ordering::Relaxed);
+        self.change.notify_waiters();
     }
 }
 

@@ -7,6 +7,7 @@
 pub(crate) mod call;
 pub(crate) mod discovery;
 pub(crate) mod files;
+mod flow;
 #[cfg(feature = "fuzzing")]
 pub(crate) mod fuzz;
 pub(crate) mod gateway;
@@ -91,6 +92,8 @@ pub(crate) struct RemoteSubscriber {
     pub labels: Arc<[String]>,
     /// The peer's [`Peer::alive`].
     pub alive: Arc<std::sync::atomic::AtomicBool>,
+    /// The peer's [`Peer::behind`].
+    pub behind: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// Where a remote offer's data goes, with the names its samples carry: the data path takes
@@ -172,6 +175,8 @@ pub(crate) struct Peer {
     /// Cleared when the peer is dropped: routes copied before that (a raise in progress)
     /// see it without a table lookup and fail at once instead of sending.
     pub alive: Arc<std::sync::atomic::AtomicBool>,
+    /// Its event subscribers are behind ([`Message::Flow`]): streams to it wait.
+    pub behind: Arc<std::sync::atomic::AtomicBool>,
 }
 
 impl Peer {
@@ -461,6 +466,7 @@ impl NodeInner {
                 signature,
             } => self.on_identity(node, public_key, &signature),
             Message::Challenge { nonce } => self.on_challenge(node, nonce),
+            Message::Flow { behind } => self.on_flow(node, behind),
             Message::Refused {
                 interest,
                 name,
@@ -544,12 +550,6 @@ impl LinkHandler for Handler {
                 n.counters.undecodable.fetch_add(1, Ordering::Relaxed);
             }
         }
-    }
-
-    fn readers_behind(&self) -> bool {
-        self.0
-            .upgrade()
-            .is_some_and(|n| n.congestion.readers_behind())
     }
 
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {

@@ -318,6 +318,7 @@ impl NodeInner {
             services: std::collections::HashMap<u32, String>,
             interests: Vec<(u32, super::session::RemoteItem)>,
             alive: Arc<std::sync::atomic::AtomicBool>,
+            behind: Arc<std::sync::atomic::AtomicBool>,
         }
         let peers: Vec<PeerView> = self
             .peers
@@ -330,6 +331,7 @@ impl NodeInner {
                 services: p.services.clone(),
                 interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
                 alive: p.alive.clone(),
+                behind: p.behind.clone(),
             })
             .collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
@@ -398,6 +400,7 @@ impl NodeInner {
                         addr: p.addr,
                         labels,
                         alive: p.alive.clone(),
+                        behind: p.behind.clone(),
                     });
                 }
             }

@@ -222,7 +222,7 @@ fn verdict(u: &mut Unstructured<'_>) -> Result<FileVerdict> {
 
 /// Any message, shaped as a peer would send it.
 pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
-    Ok(match u.int_in_range(0u8..=15)? {
+    Ok(match u.int_in_range(0u8..=16)? {
         0 => Message::Hello {
             node_id: node_id(u)?,
             domain: segment(u)?,
@@ -297,6 +297,9 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
         },
         16 => Message::Challenge {
             nonce: u.arbitrary()?,
+        },
+        17 => Message::Flow {
+            behind: u.arbitrary()?,
         },
         _ => Message::Bye {
             node_id: node_id(u)?,

@@ -364,6 +364,13 @@ pub enum Message {
         /// Random, new for each peer registered.
         nonce: [u8; 16],
     },
+    /// The sender's event subscribers are behind while still reading (`behind`), or caught up
+    /// again: lossless streams to the sender wait while it is behind. Sent to every peer at
+    /// each change.
+    Flow {
+        /// Behind (`true`) or caught up.
+        behind: bool,
+    },
 }
 
 /// postcard already encodes `Vec<u8>` as length + bytes; this module only makes that explicit

@@ -78,10 +78,6 @@ impl RxIo for FuzzIo {
 
     fn request_open(&mut self, _from: u64) {}
 
-    fn readers_behind(&mut self) -> bool {
-        false
-    }
-
     fn retry_backlogs(&mut self, _acked: &[u64], _retry: bool) -> bool {
         false
     }

@@ -21,10 +21,6 @@
 //!   therefore holds back only safe traffic towards itself. Small safe messages that queue
 //!   while `SAFE_FRAMES_IN_FLIGHT` (4) frames are unacknowledged go as one pack frame (written
 //!   on the acknowledgement, or once a frame's worth waits): one sample for many messages.
-//! - **Readers behind**: while the node says a reader that is still reading is behind
-//!   ([`LinkHandler::readers_behind`]: an event mailbox over half full), the receiver goes on
-//!   reading and delivering but acknowledges nothing, so lossless senders (a stream's window)
-//!   wait instead of the mailbox dropping.
 //! - **Large** messages (over [`FRAME_MAX`]; fast ones ride the safe path) go in pieces of up to
 //!   [`BULK_MAX`] into the bulk inbox, each followed by a small `Bulk` frame in the safe inbox
 //!   that keeps it in order. A writer opens a peer's bulk inbox with its first large message:
@@ -116,6 +112,9 @@ const MAX_MESSAGE: usize = 256 << 20;
 const RETRY: Duration = Duration::from_millis(1);
 /// Samples taken from one inbox buffer per pass, so acknowledgements flow during bursts.
 const PASS_BUDGET: usize = 512;
+/// Safe messages (or fragments) taken per pass: a pack carries up to a few hundred, and the
+/// tasks they woke (the subscribers, the node telling peers it is behind) run between passes.
+const PASS_MESSAGES: usize = 2048;
 /// Fast samples taken per pass. Between passes the tasks the pass woke on this worker run: a
 /// subscriber would otherwise find most of its variables' values replaced by newer ones when it
 /// finally runs (one variable value per sample: about a UDP datagram's worth).
@@ -667,12 +666,6 @@ impl RxIo for LinkRx<'_> {
 
     fn request_open(&mut self, from: u64) {
         self.link.request(Ctl::Open(from));
-    }
-
-    fn readers_behind(&mut self) -> bool {
-        // What the node was handed so far counts.
-        self.flush();
-        self.link.handler.readers_behind()
     }
 
     fn retry_backlogs(&mut self, acked: &[u64], retry: bool) -> bool {

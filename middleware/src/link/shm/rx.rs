@@ -13,8 +13,8 @@ use std::time::Instant;
 
 use super::frame::{self, Frame, Part};
 use super::{
-    BULK_BUFFER, FAST_PASS_BUDGET, MAX_MESSAGE, MAX_PEERS, PASS_BUDGET, PASS_BULK_BYTES, REOPEN,
-    RETRY, SAFE_BUFFER,
+    BULK_BUFFER, FAST_PASS_BUDGET, MAX_MESSAGE, MAX_PEERS, PASS_BUDGET, PASS_BULK_BYTES,
+    PASS_MESSAGES, REOPEN, RETRY, SAFE_BUFFER,
 };
 use crate::link::LinkCounters;
 
@@ -47,9 +47,6 @@ pub(crate) trait RxIo {
     fn send_ack(&mut self, from: u64, session: u32, seq: u64) -> AckSent;
     /// Asks for `from`'s inbox to be opened.
     fn request_open(&mut self, from: u64);
-    /// Whether the node's readers are behind (see
-    /// [`crate::link::LinkHandler::readers_behind`]): acknowledgements then wait.
-    fn readers_behind(&mut self) -> bool;
     /// Retries what peers' inboxes refused: towards the peers in `acked` (their buffer has
     /// room) or, on `retry`, towards every blocked peer. Returns whether some backlog remains.
     fn retry_backlogs(&mut self, acked: &[u64], retry: bool) -> bool;
@@ -136,6 +133,8 @@ pub(crate) struct Receiver {
     next_retry: Instant,
     /// Bulk bytes delivered in the current pass.
     pass_bulk_bytes: usize,
+    /// Safe messages and fragments taken in the current pass.
+    pass_messages: usize,
     /// Some peer's inbox refused frames at the last look.
     backlog: bool,
     /// Bytes held in every writer's `partial`.
@@ -157,6 +156,7 @@ impl Receiver {
             open_requested: HashMap::new(),
             next_retry: now,
             pass_bulk_bytes: 0,
+            pass_messages: 0,
             backlog: false,
             partial_bytes: 0,
             fragments: 0,
@@ -187,9 +187,7 @@ impl Receiver {
         let mut acked = Vec::new();
         let taken_safe = self.drain_safe(io, c, &mut acked);
         let taken_fast = drain_fast(io, c);
-        // Unacknowledged, writers hold back (a stream's window fills); what they already wrote
-        // is still read and delivered.
-        if !self.ack_due.is_empty() && !io.readers_behind() {
+        if !self.ack_due.is_empty() {
             self.send_acks(now, io, c);
         }
         let retry = now >= self.next_retry;
@@ -214,8 +212,9 @@ impl Receiver {
     /// of bulk bodies. Returns how many frames it took ([`PASS_BUDGET`] when a budget ran out).
     fn drain_safe(&mut self, io: &mut impl RxIo, c: &LinkCounters, acked: &mut Vec<u64>) -> usize {
         self.pass_bulk_bytes = 0;
+        self.pass_messages = 0;
         for taken in 0..PASS_BUDGET {
-            if self.pass_bulk_bytes >= PASS_BULK_BYTES {
+            if self.pass_bulk_bytes >= PASS_BULK_BYTES || self.pass_messages >= PASS_MESSAGES {
                 return PASS_BUDGET;
             }
             let Some(sample) = io.take(Part::Safe) else {
@@ -395,6 +394,7 @@ impl Receiver {
         body: Option<&[u8]>,
     ) {
         self.fragments += 1;
+        self.pass_messages += 1;
         let now = self.fragments;
         let reset = match self.rx.get_mut(&from) {
             Some(st) if st.session == session => {
@@ -626,10 +626,6 @@ mod tests {
             AckSent::Taken
         }
         fn request_open(&mut self, _: u64) {}
-
-        fn readers_behind(&mut self) -> bool {
-            false
-        }
         fn retry_backlogs(&mut self, _: &[u64], _: bool) -> bool {
             false
         }

@@ -139,8 +139,6 @@ pub(super) struct SimNode {
     rx: Receiver,
     pub(super) got: Vec<Got>,
     pub(super) counters: LinkCounters,
-    /// What the node's [`RxIo::readers_behind`] says.
-    pub(super) behind: bool,
 }
 
 /// The receiving machine's I/O in the simulation.
@@ -150,7 +148,6 @@ struct SimRxIo<'a> {
     peers: &'a mut HashMap<u64, SimPeer>,
     got: &'a mut Vec<Got>,
     counters: &'a LinkCounters,
-    behind: &'a bool,
 }
 
 impl RxIo for SimRxIo<'_> {
@@ -200,10 +197,6 @@ impl RxIo for SimRxIo<'_> {
 
     fn request_open(&mut self, _from: u64) {}
 
-    fn readers_behind(&mut self) -> bool {
-        *self.behind
-    }
-
     fn retry_backlogs(&mut self, acked: &[u64], retry: bool) -> bool {
         let mut remaining = false;
         for (id, p) in self.peers.iter_mut() {
@@ -251,7 +244,6 @@ impl SimHost {
                         rx: Receiver::new(now),
                         got: Vec::new(),
                         counters: LinkCounters::default(),
-                        behind: false,
                     };
                     (i, node)
                 })
@@ -352,7 +344,6 @@ impl SimHost {
                 rx,
                 got,
                 counters,
-                behind,
             } = node;
             let mut io = SimRxIo {
                 me: id,
@@ -360,7 +351,6 @@ impl SimHost {
                 peers,
                 got,
                 counters,
-                behind,
             };
             let (taken, _) = rx.pass(self.now, true, &mut io, counters);
             busy |= taken > 0;

@@ -1,0 +1,59 @@
+//! Flow control for lossless streams across every kind of link: a node whose event subscribers
+//! fall behind while still reading (see [`super::mailbox::Congestion`]) tells its peers
+//! ([`Message::Flow`]), and their [`crate::EventStream`]s wait until it says it caught up,
+//! instead of its mailboxes dropping events. Links acknowledge what reached a mailbox, so a
+//! stream's window alone cannot hold a publisher back for a slow reader.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::NodeInner;
+use crate::protocol::{Message, NodeId};
+
+/// While some mailbox is behind, how often the node looks again whether its reader stopped
+/// (a stopped reader is not waited for: see [`super::mailbox::READER_STALLED`]).
+const RECHECK: Duration = Duration::from_millis(50);
+
+impl NodeInner {
+    /// A peer says its subscribers are behind, or caught up: streams to it wait, or go on.
+    pub(super) fn on_flow(&self, node: NodeId, behind: bool) {
+        let Some(p) = self.peers.get(&node) else {
+            return;
+        };
+        let was = p.behind.swap(behind, Ordering::AcqRel);
+        drop(p);
+        if was && !behind {
+            // Streams waiting for it look again.
+            self.bump();
+        }
+        if was != behind {
+            tracing::debug!(peer = node, behind, "peer's subscribers behind on events");
+        }
+    }
+
+    /// Tells every peer when this node's subscribers fall behind and when they catch up (or
+    /// stop reading), until the node stops.
+    pub(crate) async fn tell_peers_when_behind(self: Arc<Self>) {
+        let mut told = false;
+        loop {
+            let changed = self.congestion.changed();
+            tokio::pin!(changed);
+            changed.as_mut().enable();
+            let behind = self.congestion.readers_behind();
+            if behind != told {
+                told = behind;
+                let peers: Vec<NodeId> = self.peers.iter().map(|p| p.id).collect();
+                for node in peers {
+                    self.send_safe_to_node(node, &Message::Flow { behind });
+                }
+            }
+            let some_behind = self.congestion.any_behind();
+            tokio::select! {
+                _ = self.cancel.cancelled() => return,
+                _ = changed => {}
+                _ = tokio::time::sleep(RECHECK), if some_behind => {}
+            }
+        }
+    }
+}
