@@ -205,6 +205,9 @@ impl<T: Payload> Event<T> {
     /// each one's service name.
     fn deliver_locally(&self, payload: &[u8], mut delivered: impl FnMut(&str)) {
         let Publisher { node, offer, .. } = &self.publisher;
+        if !offer.has_local.load(Ordering::Acquire) {
+            return;
+        }
         let local = lock(&offer.local);
         if local.is_empty() {
             return;

@@ -161,6 +161,7 @@ impl Service {
             role,
             remote: Mutex::default(),
             local: Mutex::default(),
+            has_local: Default::default(),
             refused: Mutex::default(),
             origin: None,
             hidden_on: None,

@@ -750,6 +750,7 @@ mod tests {
             role: OfferRole::Function { handler },
             remote: Default::default(),
             local: Default::default(),
+            has_local: Default::default(),
             refused: Default::default(),
             origin: None,
             hidden_on: None,

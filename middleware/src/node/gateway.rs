@@ -247,6 +247,7 @@ impl NodeInner {
                 role,
                 remote: Mutex::default(),
                 local: Mutex::default(),
+                has_local: Default::default(),
                 refused: Mutex::default(),
                 origin: Some(w.origin.clone()),
                 hidden_on: Some(w.from_link),

@@ -119,6 +119,7 @@ impl NodeInner {
                     },
                     remote: Mutex::default(),
                     local: Mutex::default(),
+                    has_local: Default::default(),
                     refused: Mutex::default(),
                     origin: None,
                     hidden_on: None,

@@ -72,6 +72,8 @@ pub(crate) struct LocalOffer {
     pub remote: Mutex<Arc<[RemoteSubscriber]>>,
     /// Local interests with a matching pattern of the same type.
     pub local: Mutex<Vec<Arc<LocalInterest>>>,
+    /// Whether `local` has any (read on every raise without taking the lock).
+    pub has_local: std::sync::atomic::AtomicBool,
     /// (node, interest) pairs already told that the types differ.
     pub refused: Mutex<std::collections::HashSet<(NodeId, u32)>>,
     /// For an offer a gateway forwards: the node that really offers it.

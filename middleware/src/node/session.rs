@@ -425,6 +425,8 @@ impl NodeInner {
                         }
                     }
                 }
+                o.has_local
+                    .store(!local.is_empty(), std::sync::atomic::Ordering::Release);
                 *cur = local;
             }
             {
