@@ -91,7 +91,9 @@ impl SerialLink {
         });
         let l = link.clone();
         let t = tasks.clone();
-        tasks.spawn(async move { l.supervise(opener, Some(first), t, cancel).await });
+        crate::sync::spawn_tracked(tasks, async move {
+            l.supervise(opener, Some(first), t, cancel).await
+        });
         Ok(link)
     }
 
@@ -131,7 +133,7 @@ impl SerialLink {
         });
         let l = link.clone();
         let t = tasks.clone();
-        tasks.spawn(async move {
+        crate::sync::spawn_tracked(tasks, async move {
             let (r, w) = streams;
             l.run_ports(r, w, &t, &cancel).await;
             l.fail_all(LinkSendError::Shutdown);
@@ -197,7 +199,7 @@ impl SerialLink {
         let reader = {
             let l = self.clone();
             let stop = stop.clone();
-            tasks.spawn(async move {
+            crate::sync::spawn_tracked(tasks, async move {
                 l.read_loop(r, &stop).await;
                 stop.cancel();
             })
@@ -205,7 +207,7 @@ impl SerialLink {
         let writer = {
             let l = self.clone();
             let stop = stop.clone();
-            tasks.spawn(async move {
+            crate::sync::spawn_tracked(tasks, async move {
                 l.write_loop(w, &stop).await;
                 stop.cancel();
             })

@@ -286,12 +286,12 @@ impl UdpLink {
         });
         let l = link.clone();
         let c = cancel.clone();
-        tasks.spawn(async move { l.receive_loop(c).await });
+        crate::sync::spawn_tracked(tasks, async move { l.receive_loop(c).await });
         let l = link.clone();
         let c = cancel.clone();
-        tasks.spawn(async move { l.multicast_loop(mcast, c).await });
+        crate::sync::spawn_tracked(tasks, async move { l.multicast_loop(mcast, c).await });
         let l = link.clone();
-        tasks.spawn(async move { l.transmit_loop(cancel).await });
+        crate::sync::spawn_tracked(tasks, async move { l.transmit_loop(cancel).await });
         Ok(link)
     }
 
