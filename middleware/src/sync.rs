@@ -18,3 +18,27 @@ pub fn lock<T: ?Sized>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 /// than std's SipHash on these small keys, and seeded per process so a peer cannot choose
 /// colliding keys in advance.
 pub(crate) type SeededHash = foldhash::fast::RandomState;
+
+/// A task the node owns, boxed before it reaches tokio.
+pub(crate) type BoxedTask = std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>;
+
+/// Spawns `task` on `tasks` behind one boxed future type: tokio instantiates its task machinery
+/// (harness, stages, join handle, drop glue; ~4 KB of code) once per spawned future type, and
+/// the node spawns a dozen kinds of long-lived loops and per-request tasks. The one allocation
+/// more per spawn is small beside the task's own.
+pub(crate) fn spawn_tracked<F>(
+    tasks: &tokio_util::task::TaskTracker,
+    task: F,
+) -> tokio::task::JoinHandle<()>
+where
+    F: std::future::Future<Output = ()> + Send + 'static,
+{
+    spawn_boxed(tasks, Box::pin(task))
+}
+
+fn spawn_boxed(
+    tasks: &tokio_util::task::TaskTracker,
+    task: BoxedTask,
+) -> tokio::task::JoinHandle<()> {
+    tasks.spawn(task)
+}

@@ -155,7 +155,7 @@ impl FileTransfer {
         let (ptx, prx) = watch::channel(FileProgress::default());
         let (rtx, rrx) = oneshot::channel();
         let tasks = node.tasks.clone();
-        tasks.spawn(async move {
+        crate::sync::spawn_tracked(&tasks, async move {
             let r = Sender {
                 node,
                 path,

@@ -333,7 +333,7 @@ impl Node {
         let _ = inner.links.set(links);
         for link in 0..inner.links().len() {
             let hb = inner.clone();
-            inner.tasks.spawn(hb.heartbeat_loop(link));
+            crate::sync::spawn_tracked(&inner.tasks, hb.heartbeat_loop(link));
         }
         inner.start_link_health();
         inner.tasks.spawn(inner.clone().tell_peers_when_behind());

@@ -401,7 +401,7 @@ impl Service {
         let sweeping = self.inner.node.cancel.child_token();
         let stop = sweeping.clone();
         let sweeper = state.clone();
-        self.inner.node.tasks.spawn(async move {
+        crate::sync::spawn_tracked(&self.inner.node.tasks, async move {
             let period = sweeper.sweep_period();
             loop {
                 tokio::select! {
@@ -432,7 +432,7 @@ impl Service {
     where
         F: std::future::Future<Output = ()> + Send + 'static,
     {
-        self.inner.node.tasks.spawn(fut);
+        crate::sync::spawn_tracked(&self.inner.node.tasks, fut);
     }
 
     /// Resolves when the node shuts down.

@@ -583,7 +583,7 @@ impl NodeInner {
         };
         let inner = self.clone();
         let name = offer.name.clone();
-        self.tasks.spawn(async move {
+        crate::sync::spawn_tracked(&self.tasks, async move {
             let mut call = first;
             loop {
                 let now = Instant::now();

@@ -640,7 +640,7 @@ impl NodeInner {
             .unwrap_or_default();
         let inner = self.clone();
         let sink_state = state.clone();
-        self.tasks.spawn(async move {
+        crate::sync::spawn_tracked(&self.tasks, async move {
             let state = sink_state;
             let result: Result<ReceivedFile, Stop> = async {
                 let _writing = writer.lock().await;

@@ -129,11 +129,9 @@ impl NodeInner {
             })
             .collect();
         let inner = self.clone();
-        self.tasks.spawn(async move {
-            let mut last: Vec<(LinkStats, Instant)> = links
-                .iter()
-                .map(|l| (l.stats(), Instant::now()))
-                .collect();
+        crate::sync::spawn_tracked(&self.tasks, async move {
+            let mut last: Vec<(LinkStats, Instant)> =
+                links.iter().map(|l| (l.stats(), Instant::now())).collect();
             let mut tick = tokio::time::interval(PERIOD);
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             tick.tick().await;
@@ -153,7 +151,9 @@ impl NodeInner {
                     last[index] = (stats, now);
                     match crate::codec::encode_payload(&health) {
                         Ok(bytes) => inner.publish_variable(offer, bytes),
-                        Err(e) => tracing::warn!(link = link.name(), error = %e, "link health not encoded"),
+                        Err(e) => {
+                            tracing::warn!(link = link.name(), error = %e, "link health not encoded")
+                        }
                     }
                 }
             }

@@ -185,7 +185,7 @@ impl NodeInner {
             },
         );
         let me = self.clone();
-        self.tasks.spawn(async move {
+        crate::sync::spawn_tracked(&self.tasks, async move {
             tokio::select! {
                 _ = me.cancel.cancelled() => return,
                 // Acknowledged, failed (the path is gone) or never answered within the lease:

@@ -92,7 +92,9 @@ impl SerialLink {
         });
         let l = link.clone();
         let t = tasks.clone();
-        tasks.spawn(async move { l.supervise(opener, Some(first), t, cancel).await });
+        crate::sync::spawn_tracked(tasks, async move {
+            l.supervise(opener, Some(first), t, cancel).await
+        });
         Ok(link)
     }
 
@@ -132,7 +134,7 @@ impl SerialLink {
         });
         let l = link.clone();
         let t = tasks.clone();
-        tasks.spawn(async move {
+        crate::sync::spawn_tracked(tasks, async move {
             let (r, w) = streams;
             l.run_ports(r, w, &t, &cancel).await;
             l.fail_all(LinkSendError::Shutdown);
@@ -198,7 +200,7 @@ impl SerialLink {
         let reader = {
             let l = self.clone();
             let stop = stop.clone();
-            tasks.spawn(async move {
+            crate::sync::spawn_tracked(tasks, async move {
                 l.read_loop(r, &stop).await;
                 stop.cancel();
             })
@@ -206,7 +208,7 @@ impl SerialLink {
         let writer = {
             let l = self.clone();
             let stop = stop.clone();
-            tasks.spawn(async move {
+            crate::sync::spawn_tracked(tasks, async move {
                 l.write_loop(w, &stop).await;
                 stop.cancel();
             })

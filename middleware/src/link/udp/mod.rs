@@ -106,6 +106,9 @@ const BATCH_WINDOW: Duration = Duration::from_micros(20);
 /// messages into each (a 1 KiB event stream went from one event per datagram to 30).
 const LOOPBACK_DATAGRAM: usize = 32 * 1024;
 
+/// A receive buffer's capacity: the largest UDP payload (65,507 B), so no datagram is cut.
+const RECEIVE_BUFFER: usize = 65_536;
+
 /// Sent datagrams' buffers a peer keeps for its next datagrams: enough for one flush of a
 /// fast stream.
 const SPARE_BUFFERS: usize = 4;
@@ -284,12 +287,12 @@ impl UdpLink {
         });
         let l = link.clone();
         let c = cancel.clone();
-        tasks.spawn(async move { l.receive_loop(c).await });
+        crate::sync::spawn_tracked(tasks, async move { l.receive_loop(c).await });
         let l = link.clone();
         let c = cancel.clone();
-        tasks.spawn(async move { l.multicast_loop(mcast, c).await });
+        crate::sync::spawn_tracked(tasks, async move { l.multicast_loop(mcast, c).await });
         let l = link.clone();
-        tasks.spawn(async move { l.transmit_loop(cancel).await });
+        crate::sync::spawn_tracked(tasks, async move { l.transmit_loop(cancel).await });
         Ok(link)
     }
 
@@ -563,11 +566,15 @@ impl UdpLink {
     }
 
     async fn receive_loop(self: Arc<Self>, cancel: CancellationToken) {
-        let mut buf = vec![0u8; 65_536];
+        // Received into the spare capacity and never zero-filled, so only the pages datagrams
+        // actually reach become resident: an idle node's two receive buffers cost a few KiB
+        // instead of 128.
+        let mut buf = Vec::with_capacity(RECEIVE_BUFFER);
         loop {
+            buf.clear();
             let r = tokio::select! {
                 _ = cancel.cancelled() => break,
-                r = self.socket.recv_from(&mut buf) => r,
+                r = self.socket.recv_buf_from(&mut buf) => r,
             };
             match r {
                 Ok((n, from)) => {
@@ -582,7 +589,8 @@ impl UdpLink {
                     // nothing: the woken task runs as soon as this loop waits again, which
                     // keeps the round trip short.)
                     for _ in 0..64 {
-                        match self.socket.try_recv_from(&mut buf) {
+                        buf.clear();
+                        match self.socket.try_recv_buf_from(&mut buf) {
                             Ok((n, from)) => {
                                 tokio::task::yield_now().await;
                                 if let Some(d) = self.unseal(&mut buf[..n], from) {
@@ -624,11 +632,12 @@ impl UdpLink {
     }
 
     async fn multicast_loop(self: Arc<Self>, sock: UdpSocket, cancel: CancellationToken) {
-        let mut buf = vec![0u8; 65_536];
+        let mut buf = Vec::with_capacity(RECEIVE_BUFFER);
         loop {
+            buf.clear();
             let r = tokio::select! {
                 _ = cancel.cancelled() => break,
-                r = sock.recv_from(&mut buf) => r,
+                r = sock.recv_buf_from(&mut buf) => r,
             };
             match r {
                 Ok((n, from)) => {
