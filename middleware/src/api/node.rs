@@ -336,7 +336,7 @@ impl Node {
             crate::sync::spawn_tracked(&inner.tasks, hb.heartbeat_loop(link));
         }
         inner.start_link_health();
-        inner.tasks.spawn(inner.clone().tell_peers_when_behind());
+        crate::sync::spawn_tracked(&inner.tasks, inner.clone().tell_peers_when_behind());
         inner.announce_hello();
         tracing::info!(node = %config.node, id = format_args!("{:016x}", inner.me.id), authenticated = security.is_some(), "node open");
         Ok(Node {

@@ -350,7 +350,7 @@ impl ShmLink {
                 // message wakes next (one thread switch per message, as in plain iceoryx2).
                 let fd = WakeFd::watch(listener).map_err(thread_err)?;
                 let cancel = cancel.clone();
-                tasks.spawn(async move {
+                crate::sync::spawn_tracked(tasks, async move {
                     rx.drive_events(fd, cancel).await;
                     drop(receiver_tx);
                 });
@@ -360,14 +360,14 @@ impl ShmLink {
                 // the task a message is for is a push onto a run queue, not a thread wake-up.
                 drop(listener);
                 let cancel = cancel.clone();
-                tasks.spawn(async move {
+                crate::sync::spawn_tracked(tasks, async move {
                     rx.drive_polling(cancel).await;
                     drop(receiver_tx);
                 });
             }
         }
         let l = link.clone();
-        tasks.spawn(async move {
+        crate::sync::spawn_tracked(tasks, async move {
             cancel.cancelled().await;
             l.stop.store(true, Ordering::SeqCst);
             l.wake_self();
