@@ -121,7 +121,7 @@ impl DatagramWriter {
     }
 
     /// An empty datagram buffer: a spare one, or a new one grown as entries come (a loopback
-    /// writer may take 32 KiB, most datagrams are small).
+    /// writer may take 60 KiB, most datagrams are small).
     fn fresh(&mut self) -> Vec<u8> {
         let mut buf = self
             .spare

@@ -103,8 +103,9 @@ const BATCH_WINDOW: Duration = Duration::from_micros(20);
 /// Largest datagram built for a peer on this host (a loopback address): loopback has no
 /// link MTU to respect (64 KiB) and loses nothing to fragmentation, and every datagram costs
 /// a system call and a wake-up at each end, so a fast stream to a local peer packs many more
-/// messages into each (a 1 KiB event stream went from one event per datagram to 30).
-const LOOPBACK_DATAGRAM: usize = 32 * 1024;
+/// messages into each (a 1 KiB event stream went from one event per datagram to 30 at 32 KiB,
+/// and 60 KiB took ~12 % less subscriber CPU per 1 KiB event than 32 KiB).
+const LOOPBACK_DATAGRAM: usize = 60 * 1024;
 
 /// A receive buffer's capacity: the largest UDP payload (65,507 B), so no datagram is cut.
 const RECEIVE_BUFFER: usize = 65_536;
