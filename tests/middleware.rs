@@ -5,7 +5,10 @@ mod common;
 
 use std::time::Duration;
 
-use common::{expect_received_in_order, ready_event_subscribers, Net, Proc, T};
+use common::{
+    expect_received_in_order, ready_event_subscribers, stream_to_a_slow_reader_loses_nothing, Net,
+    Proc, T,
+};
 
 #[test]
 fn late_joiner_gets_the_last_value_at_once() {
@@ -192,35 +195,11 @@ fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
     );
 }
 
-/// A stream is lossless up to the application over UDP too: a subscriber reading about 20
-/// times slower than the publisher streams (a millisecond's pause every 100 events) falls
-/// behind by far more than its mailbox holds (65,536); its node tells the publisher's
-/// (`Flow`), whose stream waits instead of the mailbox dropping the oldest events.
+/// [`stream_to_a_slow_reader_loses_nothing`] over UDP.
 #[test]
 fn a_stream_to_a_slow_reader_waits_for_it_instead_of_dropping() {
     let net = Net::new("stream_slow_reader");
-    let mut sub = net.probe(
-        "sub",
-        &[
-            "ev-sub",
-            "--pattern",
-            "probe/ev",
-            "--count",
-            "150000",
-            "--slow",
-            "100",
-        ],
-    );
-    sub.expect_key(T, "ready");
-    let mut publ = net.probe(
-        "pub",
-        &[
-            "ev-pub", "--item", "ev", "--count", "150000", "--subs", "1", "--stream",
-        ],
-    );
-    let done = publ.expect_key(Duration::from_secs(120), "raised");
-    assert_eq!(done["lost_events"], 0, "{done}");
-    expect_received_in_order(std::slice::from_mut(&mut sub), 150000);
+    stream_to_a_slow_reader_loses_nothing(|n, c| net.probe(n, c));
 }
 
 /// A stream's subscriber killed mid-stream: the stream reports the events that node did not

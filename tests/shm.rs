@@ -7,7 +7,10 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use common::{expect_received_in_order, ready_event_subscribers, Proc, T};
+use common::{
+    expect_received_in_order, ready_event_subscribers, stream_to_a_slow_reader_loses_nothing, Proc,
+    T,
+};
 use serde_json::Value;
 
 /// A test's shm prefix, discovery domain, multicast port and config directory.
@@ -175,35 +178,12 @@ fn ten_thousand_events_reach_two_subscribers_once_in_order_over_shm() {
     }
 }
 
-/// Issue 17: a stream is lossless up to the application. A subscriber reading about 20 times
-/// slower than the publisher streams (a millisecond's pause every 100 events) falls behind by
-/// far more than its mailbox holds (65,536); its node tells the publisher's (`Flow`), whose
-/// stream waits instead of the mailbox dropping the oldest events.
+/// Issue 17: [`stream_to_a_slow_reader_loses_nothing`] over shared memory, where a pack frame
+/// carries hundreds of events.
 #[test]
 fn a_stream_to_a_slow_reader_over_shm_waits_for_it_instead_of_dropping() {
     let net = ShmNet::new("shm_slow_reader");
-    let mut sub = net.probe(
-        "sub",
-        &[
-            "ev-sub",
-            "--pattern",
-            "probe/ev",
-            "--count",
-            "150000",
-            "--slow",
-            "100",
-        ],
-    );
-    sub.expect_key(T, "ready");
-    let mut publ = net.probe(
-        "pub",
-        &[
-            "ev-pub", "--item", "ev", "--count", "150000", "--subs", "1", "--stream",
-        ],
-    );
-    let done = publ.expect_key(Duration::from_secs(120), "raised");
-    assert_eq!(done["lost_events"], 0, "{done}");
-    expect_received_in_order(std::slice::from_mut(&mut sub), 150000);
+    stream_to_a_slow_reader_loses_nothing(|n, c| net.probe(n, c));
 }
 
 #[test]

@@ -401,3 +401,32 @@ pub fn expect_received_in_order(subs: &mut [Proc], count: u64) {
         assert_eq!(r["in_order"], true, "{}: {:?}", s.name, s.seen);
     }
 }
+
+/// A stream is lossless up to the application: 150,000 events streamed to a subscriber that
+/// pauses a millisecond every 100 (about 20 times slower than the publisher, so it falls
+/// behind by far more than its mailbox holds, 65,536) all arrive, in order, none lost: its node
+/// tells the publisher's that it is behind (`Flow`), and the stream waits.
+pub fn stream_to_a_slow_reader_loses_nothing(spawn: impl Fn(&str, &[&str]) -> Proc) {
+    let mut sub = spawn(
+        "sub",
+        &[
+            "ev-sub",
+            "--pattern",
+            "probe/ev",
+            "--count",
+            "150000",
+            "--slow",
+            "100",
+        ],
+    );
+    sub.expect_key(T, "ready");
+    let mut publ = spawn(
+        "pub",
+        &[
+            "ev-pub", "--item", "ev", "--count", "150000", "--subs", "1", "--stream",
+        ],
+    );
+    let done = publ.expect_key(Duration::from_secs(120), "raised");
+    assert_eq!(done["lost_events"], 0, "{done}");
+    expect_received_in_order(std::slice::from_mut(&mut sub), 150000);
+}
