@@ -202,6 +202,39 @@ fn a_stream_to_a_slow_reader_waits_for_it_instead_of_dropping() {
     stream_to_a_slow_reader_loses_nothing(|n, c| net.probe(n, c));
 }
 
+/// A publisher that comes while a subscriber's node is behind is told so too: a second stream,
+/// started once a slow reader (20,000 events/s) has over half its mailbox waiting from the
+/// first, waits as well (untold, it would overfill the mailbox at once), and the reader gets
+/// all 2 × 100,000 events, in order per publisher, none dropped.
+#[test]
+fn a_publisher_joining_while_a_reader_is_behind_waits_too() {
+    let net = Net::new("stream_slow_join");
+    let mut sub = net.probe(
+        "sub",
+        &[
+            "ev-sub",
+            "--pattern",
+            "probe/ev",
+            "--count",
+            "200000",
+            "--slow",
+            "20",
+        ],
+    );
+    sub.expect_key(T, "ready");
+    let stream = [
+        "ev-pub", "--item", "ev", "--count", "100000", "--subs", "1", "--stream",
+    ];
+    let mut first = net.probe("pub1", &stream);
+    sub.expect_key(T, "behind");
+    let mut second = net.probe("pub2", &stream);
+    for p in [&mut first, &mut second] {
+        let done = p.expect_key(Duration::from_secs(120), "raised");
+        assert_eq!(done["lost_events"], 0, "{done}");
+    }
+    expect_received_in_order(std::slice::from_mut(&mut sub), 200000);
+}
+
 /// A stream's subscriber killed mid-stream: the stream reports the events that node did not
 /// acknowledge, naming it, within its lease, and goes on: the other subscriber gets every
 /// event in order.

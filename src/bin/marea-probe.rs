@@ -123,7 +123,8 @@ enum Cmd {
         /// Accept any first sequence number per publisher (a subscriber started mid-stream).
         #[arg(long)]
         from_any: bool,
-        /// Pause a millisecond after every SLOW events: a reader slower than its publisher.
+        /// Pause a millisecond after every SLOW events: a reader slower than its publisher
+        /// (says `{"behind": N}` once N events wait, over half its mailbox).
         #[arg(long)]
         slow: Option<u64>,
     },
@@ -462,6 +463,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             out(json!({"ready": pattern, "pid": std::process::id()}));
             let mut next: std::collections::HashMap<marea::SharedStr, u64> = Default::default();
             let (mut n, mut in_order) = (0u64, true);
+            let mut said_behind = false;
             while n < *count {
                 let s = tokio::select! {
                     _ = marea::process::terminated() => break,
@@ -479,6 +481,11 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 *expected = s.value + 1;
                 n += 1;
                 if slow.is_some_and(|k| n % k.max(1) == 0) {
+                    let waiting = sub.pending();
+                    if waiting > 32_768 && !said_behind {
+                        said_behind = true;
+                        out(json!({"behind": waiting}));
+                    }
                     tokio::time::sleep(Duration::from_millis(1)).await;
                 }
             }

@@ -33,25 +33,37 @@ impl NodeInner {
     }
 
     /// Tells every peer when this node's subscribers fall behind and when they catch up (or
-    /// stop reading), until the node stops.
+    /// stop reading), until the node stops; a peer that comes while they are behind is told
+    /// too.
     pub(crate) async fn tell_peers_when_behind(self: Arc<Self>) {
         let mut told = false;
+        let mut peers_changed = self.changed.subscribe();
+        let mut new_peers = false;
         loop {
             let changed = self.congestion.changed();
             tokio::pin!(changed);
             changed.as_mut().enable();
             let behind = self.congestion.readers_behind();
-            if behind != told {
+            // The peer table changed while behind: tell everyone again (peers already told
+            // ignore it), so a peer that came meanwhile waits too.
+            if behind != told || (behind && new_peers) {
                 told = behind;
                 let peers: Vec<NodeId> = self.peers.iter().map(|p| p.id).collect();
                 for node in peers {
                     self.send_safe_to_node(node, &Message::Flow { behind });
                 }
             }
+            new_peers = false;
             let some_behind = self.congestion.any_behind();
             tokio::select! {
                 _ = self.cancel.cancelled() => return,
                 _ = changed => {}
+                r = peers_changed.changed(), if told => {
+                    if r.is_err() {
+                        return;
+                    }
+                    new_peers = true;
+                }
                 _ = tokio::time::sleep(RECHECK), if some_behind => {}
             }
         }
