@@ -341,6 +341,7 @@ impl ShmLink {
             reader,
             forget: forget_rx,
             rx: Receiver::new(Instant::now()),
+            run: HeldRun::default(),
         };
         let (receiver_tx, receiver_rx) = tokio::sync::oneshot::channel::<()>();
         match wait {
@@ -509,7 +510,7 @@ struct LinkRx<'a> {
     reader: &'a mut InboxReader,
     /// In-order messages of this pass not yet handed to the node, all from one sender: they
     /// go as one run ([`crate::link::LinkHandler::on_messages`]), as a UDP datagram's do.
-    run: HeldRun,
+    run: &'a mut HeldRun,
 }
 
 /// Messages held for one run: their sender, their bytes end to end, and where each ends.
@@ -695,6 +696,8 @@ struct RxDriver {
     reader: InboxReader,
     forget: mpsc::Receiver<u64>,
     rx: Receiver,
+    /// Kept from pass to pass for its buffers (empty between passes).
+    run: HeldRun,
 }
 
 impl RxDriver {
@@ -707,7 +710,7 @@ impl RxDriver {
         let mut io = LinkRx {
             link: &link,
             reader: &mut self.reader,
-            run: HeldRun::default(),
+            run: &mut self.run,
         };
         let r = self
             .rx
