@@ -185,7 +185,7 @@ impl<T: Payload> Event<T> {
         let n = routes.len();
         for (k, r) in routes.iter().enumerate() {
             let done = done(k);
-            if !r.alive.load(std::sync::atomic::Ordering::Acquire) {
+            if !r.alive.load(Ordering::Acquire) {
                 let _ = done.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
                 continue;
             }
