@@ -6,8 +6,8 @@ mod common;
 use std::time::Duration;
 
 use common::{
-    expect_received_in_order, ready_event_subscribers, stream_to_a_slow_reader_loses_nothing, Net,
-    Proc, T,
+    event_reader, event_streamer, expect_received_in_order, expect_stream_finished,
+    ready_event_subscribers, stream_to_a_slow_reader_loses_nothing, Net, Proc, T,
 };
 
 #[test]
@@ -209,29 +209,13 @@ fn a_stream_to_a_slow_reader_waits_for_it_instead_of_dropping() {
 #[test]
 fn a_publisher_joining_while_a_reader_is_behind_waits_too() {
     let net = Net::new("stream_slow_join");
-    let mut sub = net.probe(
-        "sub",
-        &[
-            "ev-sub",
-            "--pattern",
-            "probe/ev",
-            "--count",
-            "200000",
-            "--slow",
-            "20",
-        ],
-    );
-    sub.expect_key(T, "ready");
-    let stream = [
-        "ev-pub", "--item", "ev", "--count", "100000", "--subs", "1", "--stream",
-    ];
-    let mut first = net.probe("pub1", &stream);
+    let spawn = |n: &str, c: &[&str]| net.probe(n, c);
+    let mut sub = event_reader(&spawn, "sub", 200000, &["--slow", "20"]);
+    let mut first = event_streamer(&spawn, "pub1", 100000);
     sub.expect_key(T, "behind");
-    let mut second = net.probe("pub2", &stream);
-    for p in [&mut first, &mut second] {
-        let done = p.expect_key(Duration::from_secs(120), "raised");
-        assert_eq!(done["lost_events"], 0, "{done}");
-    }
+    let mut second = event_streamer(&spawn, "pub2", 100000);
+    expect_stream_finished(&mut first);
+    expect_stream_finished(&mut second);
     expect_received_in_order(std::slice::from_mut(&mut sub), 200000);
 }
 

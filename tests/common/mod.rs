@@ -371,26 +371,49 @@ impl Drop for Radio {
     }
 }
 
-/// `n` event subscribers `sub1`..`subN`, started by `spawn` (a network's `probe`), each
-/// expecting `count` events on `probe/ev`, all ready.
+/// An event subscriber `name` started by `spawn` (a network's `probe`), expecting `count`
+/// events on `probe/ev` (`ev-sub` options `more` after), ready.
+pub fn event_reader(
+    spawn: &impl Fn(&str, &[&str]) -> Proc,
+    name: &str,
+    count: u64,
+    more: &[&str],
+) -> Proc {
+    let count = count.to_string();
+    let mut args = vec!["ev-sub", "--pattern", "probe/ev", "--count", &count];
+    args.extend_from_slice(more);
+    let mut sub = spawn(name, &args);
+    sub.expect_key(T, "ready");
+    sub
+}
+
+/// `n` event subscribers `sub1`..`subN` of [`event_reader`], all ready.
 pub fn ready_event_subscribers(
     n: usize,
     count: u64,
     spawn: impl Fn(&str, &[&str]) -> Proc,
 ) -> Vec<Proc> {
+    (1..=n)
+        .map(|i| event_reader(&spawn, &format!("sub{i}"), count, &[]))
+        .collect()
+}
+
+/// A publisher `name` streaming `count` events on `ev` (`Event::stream`) once one subscriber
+/// is there.
+pub fn event_streamer(spawn: &impl Fn(&str, &[&str]) -> Proc, name: &str, count: u64) -> Proc {
     let count = count.to_string();
-    let mut subs: Vec<Proc> = (1..=n)
-        .map(|i| {
-            spawn(
-                &format!("sub{i}"),
-                &["ev-sub", "--pattern", "probe/ev", "--count", &count],
-            )
-        })
-        .collect();
-    for s in subs.iter_mut() {
-        s.expect_key(T, "ready");
-    }
-    subs
+    spawn(
+        name,
+        &[
+            "ev-pub", "--item", "ev", "--count", &count, "--subs", "1", "--stream",
+        ],
+    )
+}
+
+/// The stream of [`event_streamer`] finished (within two minutes) with no event lost.
+pub fn expect_stream_finished(publ: &mut Proc) {
+    let done = publ.expect_key(Duration::from_secs(120), "raised");
+    assert_eq!(done["lost_events"], 0, "{}: {done}", publ.name);
 }
 
 /// Every subscriber of [`ready_event_subscribers`] received `count` events, in order.
@@ -407,26 +430,8 @@ pub fn expect_received_in_order(subs: &mut [Proc], count: u64) {
 /// behind by far more than its mailbox holds, 65,536) all arrive, in order, none lost: its node
 /// tells the publisher's that it is behind (`Flow`), and the stream waits.
 pub fn stream_to_a_slow_reader_loses_nothing(spawn: impl Fn(&str, &[&str]) -> Proc) {
-    let mut sub = spawn(
-        "sub",
-        &[
-            "ev-sub",
-            "--pattern",
-            "probe/ev",
-            "--count",
-            "150000",
-            "--slow",
-            "100",
-        ],
-    );
-    sub.expect_key(T, "ready");
-    let mut publ = spawn(
-        "pub",
-        &[
-            "ev-pub", "--item", "ev", "--count", "150000", "--subs", "1", "--stream",
-        ],
-    );
-    let done = publ.expect_key(Duration::from_secs(120), "raised");
-    assert_eq!(done["lost_events"], 0, "{done}");
+    let mut sub = event_reader(&spawn, "sub", 150000, &["--slow", "100"]);
+    let mut publ = event_streamer(&spawn, "pub", 150000);
+    expect_stream_finished(&mut publ);
     expect_received_in_order(std::slice::from_mut(&mut sub), 150000);
 }
