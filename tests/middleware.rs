@@ -219,6 +219,19 @@ fn a_publisher_joining_while_a_reader_is_behind_waits_too() {
     expect_received_in_order(std::slice::from_mut(&mut sub), 200000);
 }
 
+/// A reader that stops holds no stream back for good: once it has taken nothing for 200 ms its
+/// node stops saying it is behind, the stream to it runs to its end (its mailbox drops the
+/// oldest events at its bound, as for any reader that stopped), instead of waiting forever.
+#[test]
+fn a_stream_to_a_reader_that_stopped_goes_on() {
+    let net = Net::new("stream_stopped_reader");
+    let spawn = |n: &str, c: &[&str]| net.probe(n, c);
+    let mut sub = event_reader(&spawn, "sub", 1000, &["--then-stop"]);
+    let mut publ = event_streamer(&spawn, "pub", 150000);
+    expect_received_in_order(std::slice::from_mut(&mut sub), 1000);
+    expect_stream_finished(&mut publ);
+}
+
 /// A stream's subscriber killed mid-stream: the stream reports the events that node did not
 /// acknowledge, naming it, within its lease, and goes on: the other subscriber gets every
 /// event in order.

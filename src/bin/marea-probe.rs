@@ -127,6 +127,9 @@ enum Cmd {
         /// (says `{"behind": N}` once N events wait, over half its mailbox).
         #[arg(long)]
         slow: Option<u64>,
+        /// After COUNT, take nothing more (a reader that stopped) until terminated.
+        #[arg(long)]
+        then_stop: bool,
     },
     /// Provide function ITEM: doubles its u64 argument after DELAY ms, or fails with FAIL.
     Provide {
@@ -458,6 +461,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             count,
             from_any,
             slow,
+            then_stop,
         } => {
             let sub = svc.subscribe_event::<u64>(pattern)?;
             out(json!({"ready": pattern, "pid": std::process::id()}));
@@ -490,6 +494,10 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 }
             }
             out(json!({"received": n, "in_order": in_order}));
+            if *then_stop {
+                marea::process::terminated().await;
+                return Ok(());
+            }
             // Stay until stopped so the publisher sees our acknowledgements and lease; anything
             // more that arrives is reported (a duplicate would show here).
             loop {
