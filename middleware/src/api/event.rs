@@ -296,7 +296,7 @@ impl Event<Vec<u8>> {
 
 /// Events to one subscriber's node not yet acknowledged before [`EventStream::send`] waits; it
 /// goes on once half of them are. Large events wait sooner: see [`STREAM_WINDOW_BYTES`].
-pub const STREAM_WINDOW: u64 = 8192;
+pub const STREAM_WINDOW: u64 = 32_768;
 
 /// Bytes of events to one subscriber's node not yet acknowledged before [`EventStream::send`]
 /// waits (at least 64 events; 2,048 of 1 KiB): 8,192 events of 1 KiB in flight churned 8 MiB
@@ -485,7 +485,8 @@ mod tests {
     #[test]
     fn the_stream_window_shrinks_for_large_events_down_to_64() {
         assert_eq!(peer(0, 0).window(), STREAM_WINDOW, "nothing sent yet");
-        assert_eq!(peer(100, 100 * 72).window(), STREAM_WINDOW, "64 B events");
+        assert_eq!(peer(100, 100 * 16).window(), STREAM_WINDOW, "8 B events");
+        assert_eq!(peer(100, 100 * 72).window(), 29_127, "64 B events: 2 MiB");
         assert_eq!(peer(100, 100 * 1024).window(), 2048, "1 KiB events");
         assert_eq!(peer(10, 10 << 20).window(), 64, "1 MiB events");
     }
