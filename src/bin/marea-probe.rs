@@ -130,6 +130,10 @@ enum Cmd {
         /// After COUNT, take nothing more (a reader that stopped) until terminated.
         #[arg(long)]
         then_stop: bool,
+        /// Take events through a callback (`Service::subscribe_event_with`) instead of a
+        /// mailbox; with SLOW, the callback itself sleeps (holding the link's receive task).
+        #[arg(long, conflicts_with = "then_stop")]
+        callback: bool,
     },
     /// Provide function ITEM: doubles its u64 argument after DELAY ms, or fails with FAIL.
     Provide {
@@ -462,29 +466,43 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             from_any,
             slow,
             then_stop,
+            callback,
         } => {
+            if *callback {
+                let (count, slow) = (*count, *slow);
+                let check = std::sync::Mutex::new(InOrder::new(*from_any));
+                let _sub = svc.subscribe_event_with::<u64, _>(pattern, move |s| {
+                    let s = match s {
+                        Ok(s) => s,
+                        Err(e) => return out(json!({"error": e.to_string()})),
+                    };
+                    let mut c = check.lock().unwrap_or_else(|e| e.into_inner());
+                    if c.n >= count {
+                        return out(json!({"extra": s.value, "publisher": s.publisher}));
+                    }
+                    c.take(&s);
+                    if c.n == count {
+                        out(json!({"received": c.n, "in_order": c.in_order}));
+                    }
+                    if slow.is_some_and(|k| c.n % k.max(1) == 0) {
+                        std::thread::sleep(Duration::from_millis(1));
+                    }
+                })?;
+                out(json!({"ready": pattern, "pid": std::process::id()}));
+                marea::process::terminated().await;
+                return Ok(());
+            }
             let sub = svc.subscribe_event::<u64>(pattern)?;
             out(json!({"ready": pattern, "pid": std::process::id()}));
-            let mut next: std::collections::HashMap<marea::SharedStr, u64> = Default::default();
-            let (mut n, mut in_order) = (0u64, true);
+            let mut check = InOrder::new(*from_any);
             let mut said_behind = false;
-            while n < *count {
+            while check.n < *count {
                 let s = tokio::select! {
                     _ = marea::process::terminated() => break,
                     s = sub.recv() => s?,
                 };
-                let first = if *from_any { s.value } else { 0 };
-                if n == 0 {
-                    out(json!({"first": s.value}));
-                }
-                let expected = next.entry(s.publisher.clone()).or_insert(first);
-                if s.value != *expected {
-                    in_order = false;
-                    out(json!({"out_of_order": s.value, "expected": *expected}));
-                }
-                *expected = s.value + 1;
-                n += 1;
-                if slow.is_some_and(|k| n % k.max(1) == 0) {
+                check.take(&s);
+                if slow.is_some_and(|k| check.n % k.max(1) == 0) {
                     let waiting = sub.pending();
                     if waiting > 32_768 && !said_behind {
                         said_behind = true;
@@ -493,7 +511,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     tokio::time::sleep(Duration::from_millis(1)).await;
                 }
             }
-            out(json!({"received": n, "in_order": in_order}));
+            out(json!({"received": check.n, "in_order": check.in_order}));
             if *then_stop {
                 marea::process::terminated().await;
                 return Ok(());
@@ -755,4 +773,40 @@ async fn victim(
         }
     }
     Ok(())
+}
+
+/// `ev-sub`'s check of each publisher's sequence numbers (printing the first value and every
+/// one out of order).
+struct InOrder {
+    next: std::collections::HashMap<marea::SharedStr, u64>,
+    /// Events taken.
+    n: u64,
+    in_order: bool,
+    /// Any first sequence number is accepted per publisher.
+    from_any: bool,
+}
+
+impl InOrder {
+    fn new(from_any: bool) -> Self {
+        InOrder {
+            next: Default::default(),
+            n: 0,
+            in_order: true,
+            from_any,
+        }
+    }
+
+    fn take(&mut self, s: &marea::Sample<u64>) {
+        let first = if self.from_any { s.value } else { 0 };
+        if self.n == 0 {
+            out(json!({"first": s.value}));
+        }
+        let expected = self.next.entry(s.publisher.clone()).or_insert(first);
+        if s.value != *expected {
+            self.in_order = false;
+            out(json!({"out_of_order": s.value, "expected": *expected}));
+        }
+        *expected = s.value + 1;
+        self.n += 1;
+    }
 }

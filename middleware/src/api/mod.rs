@@ -24,7 +24,7 @@ pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerIn
 pub use raw::{RawSubscription, RawValue};
 pub use service::{IService, Service, ServiceDescription, ServiceError};
 pub use shared_str::SharedStr;
-pub use subscription::{EventSubscriber, Subscription, VariableSubscriber};
+pub use subscription::{CallbackSubscription, EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 
 pub use crate::node::call::CallError;

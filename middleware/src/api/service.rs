@@ -6,14 +6,14 @@ use std::sync::{Arc, Mutex, Weak};
 
 use serde::{Deserialize, Serialize};
 
-use super::errors::DeclareError;
+use super::errors::{DeclareError, RecvError};
 use super::event::Event;
 use super::file::{FileSink, FileTransfer, SendFileOptions};
 use super::function::{Function, FunctionProvider};
 use super::node::ItemDescription;
 use super::publisher::Publisher;
-use super::subscription::{EventSubscriber, VariableSubscriber};
-use super::variable::Variable;
+use super::subscription::{CallbackSubscription, EventSubscriber, VariableSubscriber};
+use super::variable::{decode_delivery, Sample, Variable};
 use super::Payload;
 use crate::name;
 use crate::node::files::{FileSinkOptions, SinkMailbox, SinkState};
@@ -288,6 +288,84 @@ impl Service {
         let (mailbox, declared) =
             self.mailbox_interest(pattern, ItemKind::Event, TypeInfo::of::<T>())?;
         Ok(EventSubscriber::new(mailbox, declared))
+    }
+
+    /// Subscribes to events matching `pattern` with a callback instead of a mailbox: `callback`
+    /// runs for each event (or a refusal or decode error, as [`Subscription::recv`] returns
+    /// them) until the returned handle is dropped.
+    ///
+    /// An event from another node runs the callback on the task of the link it came in on,
+    /// with no hand-off to another task; the node acknowledges it only once the callback
+    /// returned, so a lossless stream ([`Event::stream`]) waits for a slow callback and never
+    /// outruns it. The callback therefore must not block: a long one holds back that link's
+    /// other traffic (hand slow work to a task of your own). Events from this node's own
+    /// publishers run it on a task of the subscription's. It may publish or declare.
+    ///
+    /// ```no_run
+    /// # fn f(svc: &marea::Service) -> Result<(), marea::DeclareError> {
+    /// let count = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    /// let c = count.clone();
+    /// let _sub = svc.subscribe_event_with::<Vec<u8>, _>("**/telemetry", move |sample| {
+    ///     if sample.is_ok() {
+    ///         c.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    ///     }
+    /// })?;
+    /// # Ok(()) }
+    /// ```
+    ///
+    /// [`Subscription::recv`]: crate::Subscription::recv
+    /// [`Event::stream`]: crate::Event::stream
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid pattern or a stopping node.
+    pub fn subscribe_event_with<T, F>(
+        &self,
+        pattern: &str,
+        callback: F,
+    ) -> Result<CallbackSubscription, DeclareError>
+    where
+        T: Payload,
+        F: Fn(Result<Sample<T>, RecvError>) + Send + Sync + 'static,
+    {
+        self.callback_interest(pattern, ItemKind::Event, callback)
+    }
+
+    /// [`Service::subscribe_event_with`] for variables: `callback` runs for every value that
+    /// arrives (none is coalesced away), the last value of each matching variable first.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid pattern or a stopping node.
+    pub fn subscribe_variable_with<T, F>(
+        &self,
+        pattern: &str,
+        callback: F,
+    ) -> Result<CallbackSubscription, DeclareError>
+    where
+        T: Payload,
+        F: Fn(Result<Sample<T>, RecvError>) + Send + Sync + 'static,
+    {
+        self.callback_interest(pattern, ItemKind::Variable, callback)
+    }
+
+    fn callback_interest<T, F>(
+        &self,
+        pattern: &str,
+        kind: ItemKind,
+        callback: F,
+    ) -> Result<CallbackSubscription, DeclareError>
+    where
+        T: Payload,
+        F: Fn(Result<Sample<T>, RecvError>) + Send + Sync + 'static,
+    {
+        let mailbox = Arc::new(Mailbox::calling(Arc::new(move |d| {
+            callback(decode_delivery::<T>(d))
+        })));
+        let declared = self.interest(pattern, kind, TypeInfo::of::<T>(), Some(mailbox.clone()))?;
+        crate::sync::spawn_tracked(
+            &self.inner.node.tasks,
+            async move { mailbox.run_queued().await },
+        );
+        Ok(CallbackSubscription::new(declared))
     }
 
     /// Provides function `item`: `handler` gets the arguments and returns the result or an

@@ -18,6 +18,21 @@ pub struct Subscription<T> {
     _t: PhantomData<fn() -> T>,
 }
 
+/// A subscription running a callback for each delivery ([`crate::Service::subscribe_event_with`],
+/// [`crate::Service::subscribe_variable_with`]); dropping it withdraws the interest and the
+/// callback runs no more (but for a delivery already under way on another task).
+pub struct CallbackSubscription {
+    _declared: Declared,
+}
+
+impl CallbackSubscription {
+    pub(crate) fn new(declared: Declared) -> Self {
+        CallbackSubscription {
+            _declared: declared,
+        }
+    }
+}
+
 /// Subscriber of variables: holds the newest undelivered value of each matching name.
 pub type VariableSubscriber<T> = Subscription<T>;
 /// Subscriber of events: every event, in publish order per publisher.

@@ -70,7 +70,7 @@ pub(crate) enum Delivery {
 /// ever has waiting (ten thousand events in a burst fit).
 pub(crate) const MAILBOX_CAP: usize = 65_536;
 /// An event mailbox holding more than this is behind (see the module's documentation): room
-/// is left for what senders already have in flight (a stream's window is 8,192 events).
+/// is left for what senders already have in flight (a stream's window is 32,768 events).
 pub(crate) const MAILBOX_BEHIND: usize = MAILBOX_CAP / 2;
 /// A mailbox that was behind has caught up below this.
 pub(crate) const MAILBOX_CAUGHT_UP: usize = MAILBOX_CAP / 4;
@@ -153,8 +153,10 @@ struct Inner {
     behind: bool,
 }
 
-/// A subscription's queue.
-#[derive(Debug)]
+/// What a callback subscription runs for each delivery.
+pub(crate) type Callback = Arc<dyn Fn(Delivery) + Send + Sync>;
+
+/// A subscription's queue, or its callback.
 pub(crate) struct Mailbox {
     inner: Mutex<Inner>,
     notify: Notify,
@@ -162,6 +164,17 @@ pub(crate) struct Mailbox {
     coalesce: bool,
     /// Where an event mailbox counts while it is behind.
     congestion: Option<Arc<Congestion>>,
+    /// A callback subscription's (see [`Mailbox::calling`]).
+    callback: Option<Callback>,
+}
+
+impl std::fmt::Debug for Mailbox {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Mailbox")
+            .field("coalesce", &self.coalesce)
+            .field("callback", &self.callback.is_some())
+            .finish_non_exhaustive()
+    }
 }
 
 impl Mailbox {
@@ -184,6 +197,59 @@ impl Mailbox {
             notify: Notify::new(),
             coalesce,
             congestion: congestion.filter(|_| !coalesce),
+            callback: None,
+        }
+    }
+
+    /// A callback subscription's mailbox: a run of remote deliveries
+    /// ([`Mailbox::deliver_run`]) runs `callback` at once on the link's receive task, so the
+    /// node acknowledges a remote event only after its callback returned and a lossless stream
+    /// never outruns it. Other deliveries (from publishers on this node, late joiners' values,
+    /// refusals) are pushed while the node holds its locks: they queue, and
+    /// [`Mailbox::run_queued`] runs the callback for them on a task of its own, so a callback
+    /// may publish or declare without deadlocking. A callback that panics is logged; the next
+    /// delivery runs it again.
+    pub fn calling(callback: Callback) -> Self {
+        let mut m = Self::counted_in(false, None);
+        m.callback = Some(callback);
+        m
+    }
+
+    /// Runs the callback for every queued delivery until the mailbox is closed (a callback
+    /// mailbox's task; returns at once for any other).
+    pub async fn run_queued(&self) {
+        let Some(callback) = &self.callback else {
+            return;
+        };
+        while let Some(d) = self.pop().await {
+            self.call(callback, d);
+        }
+    }
+
+    /// Delivers a run from a remote publisher; called with no node lock held. A callback
+    /// mailbox runs its callback here; any other queues the run ([`Mailbox::push_all`]).
+    pub fn deliver_run(&self, deliveries: impl Iterator<Item = Delivery>) {
+        let Some(callback) = &self.callback else {
+            return self.push_all(deliveries);
+        };
+        if self.lock().closed {
+            return;
+        }
+        for d in deliveries {
+            self.call(callback, d);
+        }
+    }
+
+    /// Runs the callback for `d`; a panic is caught so it cannot end the pushing task.
+    fn call(&self, callback: &Callback, d: Delivery) {
+        let run = std::panic::AssertUnwindSafe(|| callback(d));
+        if let Err(panic) = std::panic::catch_unwind(run) {
+            let why = panic
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_owned())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a non-string panic".to_owned());
+            tracing::error!(panic = %why, "a subscription's callback panicked; its delivery is lost");
         }
     }
 

@@ -146,9 +146,9 @@ fn push_to_route(route: &super::Route, payloads: &mut Vec<Vec<u8>>, received: In
         .collect();
     if let Some((last, others)) = mailboxes.split_last() {
         for m in others {
-            m.push_all(payloads.iter().cloned().map(sample));
+            m.deliver_run(payloads.iter().cloned().map(sample));
         }
-        last.push_all(payloads.drain(..).map(sample));
+        last.deliver_run(payloads.drain(..).map(sample));
     }
     payloads.clear();
 }

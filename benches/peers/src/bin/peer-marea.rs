@@ -132,13 +132,16 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             "sub-event" | "sub-var" => {
                 let arrivals = Arc::new(Arrivals::default());
                 let a = arrivals.clone();
+                // Events through a callback, as the Zenoh peer's subscriber takes them: each
+                // counted on the link's receive task, no hand-off to a reading task.
+                let mut callback = None;
                 let task = if args.role == "sub-event" {
-                    let sub = svc.subscribe_event::<Vec<u8>>("pub/d")?;
-                    tokio::spawn(async move {
-                        while sub.recv().await.is_ok() {
+                    callback = Some(svc.subscribe_event_with::<Vec<u8>, _>("pub/d", move |s| {
+                        if s.is_ok() {
                             a.add();
                         }
-                    })
+                    })?);
+                    tokio::spawn(async {})
                 } else {
                     let sub = svc.subscribe_variable::<Vec<u8>>("pub/d")?;
                     tokio::spawn(async move {
@@ -151,6 +154,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 let c = control.clone();
                 tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
                 task.abort();
+                drop(callback);
             }
             "pub-event" => {
                 let ev = svc.publish_event::<Vec<u8>>("d")?;
