@@ -1,5 +1,6 @@
 //! marea as a user would use it: `Variable<Vec<u8>>` for round trips and the lossy rate,
-//! `Event<Vec<u8>>` through its lossless stream (`Event::stream`) for the reliable rate. LINK is
+//! `Event<Vec<u8>>` through its lossless stream (`Event::stream`) for the reliable rate, both
+//! received through callbacks (`subscribe_*_with`), as the Zenoh peer receives. LINK is
 //! `udp:PORT` (loopback, discovery multicast on PORT), `shm` (iceoryx2, `wait="event"`) or
 //! `serial:DEV:BAUD` (one end of a pty pair the runner bridges). KEY is the domain (and the shm
 //! service name). Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`.
@@ -132,29 +133,22 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             "sub-event" | "sub-var" => {
                 let arrivals = Arc::new(Arrivals::default());
                 let a = arrivals.clone();
-                // Events through a callback, as the Zenoh peer's subscriber takes them: each
-                // counted on the link's receive task, no hand-off to a reading task.
-                let mut callback = None;
-                let task = if args.role == "sub-event" {
-                    callback = Some(svc.subscribe_event_with::<Vec<u8>, _>("pub/d", move |s| {
-                        if s.is_ok() {
-                            a.add();
-                        }
-                    })?);
-                    tokio::spawn(async {})
+                // Through a callback, as the Zenoh peer's subscriber takes them: each counted
+                // on the link's receive task, no hand-off to a reading task.
+                let count = move |s: Result<_, _>| {
+                    if s.is_ok() {
+                        a.add();
+                    }
+                };
+                let sub = if args.role == "sub-event" {
+                    svc.subscribe_event_with::<Vec<u8>, _>("pub/d", count)?
                 } else {
-                    let sub = svc.subscribe_variable::<Vec<u8>>("pub/d")?;
-                    tokio::spawn(async move {
-                        while sub.recv().await.is_ok() {
-                            a.add();
-                        }
-                    })
+                    svc.subscribe_variable_with::<Vec<u8>, _>("pub/d", count)?
                 };
                 ready("");
                 let c = control.clone();
                 tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
-                task.abort();
-                drop(callback);
+                drop(sub);
             }
             "pub-event" => {
                 let ev = svc.publish_event::<Vec<u8>>("d")?;
