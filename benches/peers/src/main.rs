@@ -11,9 +11,9 @@
 //! - the same-run ratios of the issue (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed
 //!   within each round, median over the rounds, with their own `.spread_pct`.
 //!
-//! marea's cases over UDP or serial run `peer-marea-udp`, marea built without its `shm` feature
-//! (no iceoryx2, as a UDP/serial-only node is built, which matters most for the idle RSS); the
-//! shm cases run `peer-marea`, built with it. Both come from one source file
+//! marea's UDP cases run `peer-marea-udp`, marea built without its `shm` and `serial` features
+//! (no iceoryx2, no serial link, as a UDP-only node is built, which matters most for the idle
+//! RSS); the shm and serial cases run `peer-marea`, built with marea's default features. Both come from one source file
 //! (`src/bin/peer-marea.rs`) and [`build_peers`] builds them in separate cargo invocations.
 //!
 //! Every wait is bounded and every child is killed when its case ends.
@@ -45,8 +45,8 @@ struct Case {
     /// `marea_serial`.
     imp: &'static str,
     kind: Kind,
-    /// The peer binary: `peer-udp`, `peer-zenoh`, `peer-iceoryx2`, `peer-marea` (shm) or
-    /// `peer-marea-udp` (marea over UDP or serial, built without the `shm` feature).
+    /// The peer binary: `peer-udp`, `peer-zenoh`, `peer-iceoryx2`, `peer-marea` (shm, serial)
+    /// or `peer-marea-udp` (marea over UDP, built without the `shm` and `serial` features).
     bin: &'static str,
     size: usize,
     /// Round trips, or seconds of publishing, or seconds idle.
@@ -191,7 +191,7 @@ fn cases(o: &Opts) -> Vec<Case> {
                 &format!("rtt64_serial{b}"),
                 "marea_serial",
                 Kind::Rtt,
-                "peer-marea-udp",
+                "peer-marea",
                 64,
                 serial_rtt,
             ),
@@ -203,7 +203,7 @@ fn cases(o: &Opts) -> Vec<Case> {
                 &format!("event64_serial{b}"),
                 "marea_serial",
                 Kind::Rate,
-                "peer-marea-udp",
+                "peer-marea",
                 64,
                 secs.max(2.0),
             ),

@@ -12,6 +12,7 @@ pub enum NodeOpenError {
     #[error(transparent)]
     Link(#[from] crate::link::udp::LinkOpenError),
     /// A serial link could not be opened.
+    #[cfg(feature = "serial")]
     #[error(transparent)]
     Serial(#[from] crate::link::serial::SerialLinkOpenError),
     /// A shared-memory link could not be opened.
@@ -23,9 +24,9 @@ pub enum NodeOpenError {
     Unsupported {
         /// Link name.
         link: String,
-        /// Kind of link (`shared-memory`).
+        /// Kind of link (`shared-memory`, `serial`).
         kind: &'static str,
-        /// The cargo feature of `marea` that brings it (`shm`).
+        /// The cargo feature of `marea` that brings it (`shm`, `serial`).
         feature: &'static str,
     },
     /// The domain key named by `<security keyFile=..>` cannot be used.

@@ -16,9 +16,8 @@ use super::errors::{DeclareError, NodeOpenError};
 use super::service::{IService, Service, ServiceError};
 use crate::config::{LinkConfig, NetworkConfig};
 use crate::link::arq::ArqConfig;
-use crate::link::serial::port::SerialPorts;
-use crate::link::serial::stp::StpConfig;
-use crate::link::serial::SerialLink;
+#[cfg(feature = "serial")]
+use crate::link::serial::{port::SerialPorts, stp::StpConfig, SerialLink};
 #[cfg(feature = "shm")]
 use crate::link::shm::{ShmLink, ShmLinkOptions};
 use crate::link::udp::{UdpLink, UdpLinkOptions};
@@ -96,6 +95,7 @@ pub struct Catalog {
 }
 
 /// The ports and engine tuning of a `<serial>` or `<serialduo>` link, if `lc` is one.
+#[cfg(feature = "serial")]
 fn serial_setup(lc: &LinkConfig) -> Option<(&str, SerialPorts, StpConfig)> {
     match lc {
         LinkConfig::SerialDuo(s) => Some((
@@ -130,26 +130,43 @@ fn serial_setup(lc: &LinkConfig) -> Option<(&str, SerialPorts, StpConfig)> {
     }
 }
 
-/// Refuses a configuration naming a link kind this build was compiled without, before any link
-/// opens. `shm_built` is `cfg!(feature = "shm")`; a parameter so both answers are tested in
-/// every build.
-fn links_built(config: &NetworkConfig, shm_built: bool) -> Result<(), NodeOpenError> {
-    let shm = config.links.iter().find_map(|l| match l {
-        LinkConfig::Shm(s) => Some(&s.name),
-        _ => None,
-    });
-    match shm {
-        Some(link) if !shm_built => Err(shm_not_built(link)),
-        _ => Ok(()),
-    }
+/// The optional link kinds a build has (its cargo features).
+#[derive(Debug, Clone, Copy)]
+struct LinksBuilt {
+    shm: bool,
+    serial: bool,
 }
 
-/// The refusal of the `<shm>` link `link` by a build without the `shm` feature.
-fn shm_not_built(link: &str) -> NodeOpenError {
+/// This build's: a value rather than `cfg!`s at the check, so every answer is tested in every
+/// build.
+const LINKS_BUILT: LinksBuilt = LinksBuilt {
+    shm: cfg!(feature = "shm"),
+    serial: cfg!(feature = "serial"),
+};
+
+/// Refuses a configuration naming a link kind `built` lacks, before any link opens.
+fn links_built(config: &NetworkConfig, built: LinksBuilt) -> Result<(), NodeOpenError> {
+    for l in &config.links {
+        match l {
+            LinkConfig::Shm(s) if !built.shm => return Err(not_built(&s.name, "shm")),
+            LinkConfig::Serial(s) if !built.serial => return Err(not_built(&s.name, "serial")),
+            LinkConfig::SerialDuo(s) if !built.serial => return Err(not_built(&s.name, "serial")),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// The refusal of link `link` by a build without cargo feature `feature` (`shm`, `serial`).
+fn not_built(link: &str, feature: &'static str) -> NodeOpenError {
     NodeOpenError::Unsupported {
         link: link.to_owned(),
-        kind: "shared-memory",
-        feature: "shm",
+        kind: if feature == "shm" {
+            "shared-memory"
+        } else {
+            "serial"
+        },
+        feature,
     }
 }
 
@@ -157,10 +174,11 @@ impl Node {
     /// Opens the links of `config`, announces the node and starts discovery.
     ///
     /// # Errors
-    /// [`NodeOpenError`] when a link cannot be opened, or is a `<shm>` link and this build lacks
-    /// the cargo feature `shm` ([`NodeOpenError::Unsupported`]).
+    /// [`NodeOpenError`] when a link cannot be opened, or is a `<shm>` (`<serial>`,
+    /// `<serialduo>`) link and this build lacks the cargo feature `shm` (`serial`)
+    /// ([`NodeOpenError::Unsupported`]).
     pub async fn open(config: &NetworkConfig) -> Result<Node, NodeOpenError> {
-        links_built(config, cfg!(feature = "shm"))?;
+        links_built(config, LINKS_BUILT)?;
         name::validate_name(&config.node)?;
         if let Some(ns) = &config.namespace {
             name::validate_name(ns)?;
@@ -282,6 +300,7 @@ impl Node {
                 )
                 .map(|l| l as Arc<dyn Link>)
                 .map_err(Into::into),
+                #[cfg(feature = "serial")]
                 LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => {
                     let Some((name, ports, stp)) = serial_setup(lc) else {
                         continue;
@@ -316,9 +335,14 @@ impl Node {
                 .await
                 .map(|l| l as Arc<dyn Link>)
                 .map_err(Into::into),
-                // `links_built` refused it already; kept so the match stays exhaustive.
+                // `links_built` refused these already; kept so the match stays exhaustive.
                 #[cfg(not(feature = "shm"))]
-                LinkConfig::Shm(s) => Err(shm_not_built(&s.name)),
+                LinkConfig::Shm(s) => Err(not_built(&s.name, "shm")),
+                #[cfg(not(feature = "serial"))]
+                LinkConfig::Serial(crate::config::SerialConfig { name, .. })
+                | LinkConfig::SerialDuo(crate::config::SerialDuoConfig { name, .. }) => {
+                    Err(not_built(name, "serial"))
+                }
             };
             match opened {
                 Ok(l) => links.push(l),
@@ -618,9 +642,25 @@ mod tests {
         c
     }
 
+    const ALL: LinksBuilt = LinksBuilt {
+        shm: true,
+        serial: true,
+    };
+
+    fn with_serial() -> NetworkConfig {
+        let mut c = NetworkConfig::ethernet_loopback("n");
+        c.links
+            .push(LinkConfig::Serial(crate::config::SerialConfig {
+                name: "radio".into(),
+                ..Default::default()
+            }));
+        c
+    }
+
     #[test]
     fn a_build_without_shm_refuses_a_shm_link_by_name_and_feature() {
-        let err = links_built(&with_shm(), false).expect_err("no shm in this build");
+        let err = links_built(&with_shm(), LinksBuilt { shm: false, ..ALL })
+            .expect_err("no shm in this build");
         assert!(matches!(
             &err,
             NodeOpenError::Unsupported { link, feature: "shm", .. } if link == "local"
@@ -632,11 +672,41 @@ mod tests {
     }
 
     #[test]
+    fn a_build_without_serial_refuses_a_serial_link_by_name_and_feature() {
+        let err = links_built(
+            &with_serial(),
+            LinksBuilt {
+                serial: false,
+                ..ALL
+            },
+        )
+        .expect_err("no serial in this build");
+        assert_eq!(
+            err.to_string(),
+            "link radio: this build of marea has no serial link (cargo feature `serial`)"
+        );
+        assert!(links_built(
+            &with_shm(),
+            LinksBuilt {
+                serial: false,
+                ..ALL
+            }
+        )
+        .is_ok());
+    }
+
+    #[test]
     fn a_build_with_shm_takes_every_link_and_one_without_takes_the_others() {
-        assert!(links_built(&with_shm(), true).is_ok());
+        assert!(links_built(&with_shm(), ALL).is_ok());
+        assert!(links_built(&with_serial(), ALL).is_ok());
+        assert!(links_built(&with_serial(), LinksBuilt { shm: false, ..ALL }).is_ok());
         let udp = NetworkConfig::ethernet_loopback("n");
-        assert!(links_built(&udp, false).is_ok());
-        assert!(links_built(&udp, true).is_ok());
+        let none = LinksBuilt {
+            shm: false,
+            serial: false,
+        };
+        assert!(links_built(&udp, none).is_ok());
+        assert!(links_built(&udp, ALL).is_ok());
     }
 
     #[cfg(not(feature = "shm"))]

@@ -15,6 +15,8 @@ pub mod arq;
 pub mod auth;
 pub mod coalesce;
 mod completion;
+// Without the feature a node refuses `<serial>` links as it refuses `<shm>` ones.
+#[cfg(feature = "serial")]
 pub mod serial;
 // iceoryx2 and its configuration loader are most of a UDP-only node's code; a build without
 // the feature refuses `<shm>` links when the node opens (`NodeOpenError::Unsupported`).
