@@ -382,6 +382,69 @@ fn serialduo_carries_each_direction_on_its_own_radio() {
     );
 }
 
+/// A lossless stream over a radio keeps a few seconds of line queued, not everything it was
+/// given: 1,000 events of 64 B streamed at 115,200 baud (about 7 s of line) leave at most 4 s
+/// of line (46,080 B, ~690 such events) unacknowledged at any time, and all arrive in order.
+/// With a LAN's window (2 MiB) every event would have queued at once.
+#[test]
+fn a_stream_over_a_radio_queues_seconds_of_line_not_everything() {
+    let radio = Radio::start(&["--seed", "23"]);
+    let domain = format!("serial-stream-{}", std::process::id());
+    let cfg = |node: &str, dev: &str| {
+        NetworkConfig::parse(
+            &format!(
+                r#"<network node="{node}" namespace="{node}" domain="{domain}">
+  <serial name="radio" address="{dev}" baudRate="115200" heartbeatMs="1000"/>
+</network>"#
+            ),
+            None,
+        )
+        .expect("valid config")
+    };
+    let (air_cfg, ground_cfg) = (cfg("air", &radio.air), cfg("ground", &radio.ground));
+    runtime().block_on(async move {
+        let run = async move {
+            let air = Node::open(&air_cfg).await.expect("air node");
+            let ground = Node::open(&ground_cfg).await.expect("ground node");
+            let log = air.service("log").unwrap();
+            let ev = log.publish_event::<Vec<u8>>("frame").unwrap();
+            let sub = ground
+                .service("fmo")
+                .unwrap()
+                .subscribe_event::<Vec<u8>>("air/log/frame")
+                .unwrap();
+            assert!(ev.wait_remote_subscribers(1, Duration::from_secs(30)).await);
+            let mut stream = ev.stream();
+            let mut most_queued = 0;
+            for i in 0..1000u64 {
+                let mut frame = vec![0u8; 64];
+                frame[..8].copy_from_slice(&i.to_le_bytes());
+                stream.send(&frame).await.expect("sent");
+                let queued: u64 = air.link_stats().iter().map(|(_, s)| s.safe_queued).sum();
+                most_queued = most_queued.max(queued);
+            }
+            stream.flush().await.expect("all acknowledged");
+            for i in 0..1000u64 {
+                let s = sub
+                    .recv_timeout(Duration::from_secs(20))
+                    .await
+                    .expect("event");
+                assert_eq!(s.value[..8], i.to_le_bytes(), "in order");
+            }
+            assert!(
+                most_queued <= 700,
+                "{most_queued} messages queued on the radio at once"
+            );
+            ground.shutdown().await;
+            air.shutdown().await;
+        };
+        tokio::time::timeout(Duration::from_secs(90), run)
+            .await
+            .expect("test took too long")
+    });
+    radio.stop();
+}
+
 /// A 200 KB file crosses intact at 57600 baud with 0.5 % byte errors.
 #[test]
 fn a_200_kb_file_crosses_a_radio_with_half_a_percent_byte_errors() {

@@ -301,6 +301,7 @@ pub const STREAM_WINDOW: u64 = 32_768;
 /// Bytes of events to one subscriber's node not yet acknowledged before [`EventStream::send`]
 /// waits (at least 64 events; 2,048 of 1 KiB): 8,192 events of 1 KiB in flight churned 8 MiB
 /// of memory, more than a loopback or LAN path needs to stay full, and streamed 30 % slower.
+/// A node reached over a serial link gets 4 s of its line instead (46,080 B at 115,200 baud).
 pub const STREAM_WINDOW_BYTES: u64 = 2 << 20;
 
 /// A lossless stream of an [`Event`] (see [`Event::stream`]): every subscriber gets every event
@@ -326,13 +327,17 @@ struct StreamPeer {
     bytes: u64,
     /// Failures already reported.
     reported: u64,
+    /// Bytes it may have unacknowledged: [`STREAM_WINDOW_BYTES`], or less on a slow link
+    /// ([`crate::link::Link::stream_window_bytes`]).
+    window_bytes: u64,
 }
 
 impl StreamPeer {
-    /// Events it may have unacknowledged: [`STREAM_WINDOW`], or fewer for large events.
+    /// Events it may have unacknowledged: [`STREAM_WINDOW`], or fewer for large events or a
+    /// slow link.
     fn window(&self) -> u64 {
         let mean = (self.bytes / self.sent.max(1)).max(1);
-        (STREAM_WINDOW_BYTES / mean).clamp(64, STREAM_WINDOW)
+        (self.window_bytes / mean).clamp(64, STREAM_WINDOW)
     }
 }
 
@@ -410,9 +415,17 @@ impl<T: Payload> EventStream<'_, T> {
     /// at zero, one gone waits in `leaving` until its events are settled.
     fn follow(&mut self, routes: &Arc<[RemoteSubscriber]>) {
         let mut old = std::mem::take(&mut self.peers);
+        let links = self.event.publisher.node.links();
         for r in routes.iter() {
+            let window_bytes = links
+                .get(r.link)
+                .and_then(|l| l.stream_window_bytes())
+                .unwrap_or(STREAM_WINDOW_BYTES);
             let p = match old.iter().position(|p| p.node == r.node) {
-                Some(i) => old.swap_remove(i),
+                Some(i) => StreamPeer {
+                    window_bytes,
+                    ..old.swap_remove(i)
+                },
                 None => StreamPeer {
                     node: r.node,
                     name: r.node_name.clone(),
@@ -420,6 +433,7 @@ impl<T: Payload> EventStream<'_, T> {
                     sent: 0,
                     bytes: 0,
                     reported: 0,
+                    window_bytes,
                 },
             };
             self.peers.push(p);
@@ -479,6 +493,7 @@ mod tests {
             sent,
             bytes,
             reported: 0,
+            window_bytes: STREAM_WINDOW_BYTES,
         }
     }
 
@@ -489,5 +504,14 @@ mod tests {
         assert_eq!(peer(100, 100 * 72).window(), 29_127, "64 B events: 2 MiB");
         assert_eq!(peer(100, 100 * 1024).window(), 2048, "1 KiB events");
         assert_eq!(peer(10, 10 << 20).window(), 64, "1 MiB events");
+        let radio = StreamPeer {
+            window_bytes: 46_080,
+            ..peer(100, 100 * 72)
+        };
+        assert_eq!(
+            radio.window(),
+            640,
+            "64 B events, 4 s of a 115,200 baud line"
+        );
     }
 }

@@ -282,4 +282,11 @@ pub trait Link: Send + Sync + 'static {
     fn file_chunk(&self) -> usize {
         DEFAULT_FILE_CHUNK
     }
+    /// Bytes of a lossless stream's events worth leaving unacknowledged towards a peer reached
+    /// on this link, when the link is too slow for a stream's default window (`None`): a serial
+    /// link answers a few seconds of its line, so a stream waits instead of queueing minutes
+    /// of events behind a radio.
+    fn stream_window_bytes(&self) -> Option<u64> {
+        None
+    }
 }

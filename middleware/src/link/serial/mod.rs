@@ -54,7 +54,13 @@ pub struct SerialLink {
     wake: Notify,
     handler: Arc<dyn LinkHandler>,
     reopens: AtomicU64,
+    /// [`STREAM_LINE_TIME`] of line, in bytes.
+    stream_window: u64,
 }
+
+/// Line time a lossless stream may have unacknowledged on a serial link: enough to keep the
+/// line busy across a resend period, short enough that events do not queue for minutes.
+const STREAM_LINE_TIME: Duration = Duration::from_secs(4);
 
 use crate::sync::lock;
 
@@ -89,6 +95,8 @@ impl SerialLink {
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
+            // A byte is 10 bits on the line (8N1).
+            stream_window: u64::from(cfg.baud_rate) / 10 * STREAM_LINE_TIME.as_secs(),
         });
         let l = link.clone();
         let t = tasks.clone();
@@ -131,6 +139,8 @@ impl SerialLink {
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
+            // A byte is 10 bits on the line (8N1).
+            stream_window: u64::from(cfg.baud_rate) / 10 * STREAM_LINE_TIME.as_secs(),
         });
         let l = link.clone();
         let t = tasks.clone();
@@ -346,6 +356,10 @@ impl Link for SerialLink {
     fn close_peer(&self, _to: PeerAddr) {
         self.fail_all(LinkSendError::PeerClosed(self.describe.clone()));
         self.wake.notify_one();
+    }
+
+    fn stream_window_bytes(&self) -> Option<u64> {
+        Some(self.stream_window)
     }
 
     fn stats(&self) -> LinkStats {
