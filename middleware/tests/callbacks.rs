@@ -108,8 +108,9 @@ async fn callbacks_take_remote_and_local_events_in_order_and_may_publish() {
         declared.lock().unwrap().is_some(),
         "declared from the callback"
     );
-    a.shutdown().await;
-    b.shutdown().await;
+    assert!(a.shutdown().await, "a's tasks stopped");
+    // With its callback subscriptions still held: their tasks stop with the node.
+    assert!(b.shutdown().await, "b's tasks stopped");
 }
 
 /// A callback that panics loses that one delivery and nothing else: the link's receive task
@@ -163,6 +164,6 @@ async fn a_panicking_callback_loses_one_delivery_and_a_dropped_one_runs_no_more(
         rx.try_recv().is_err(),
         "a dropped subscription's callback ran"
     );
-    a.shutdown().await;
-    b.shutdown().await;
+    assert!(a.shutdown().await, "a's tasks stopped");
+    assert!(b.shutdown().await, "b's tasks stopped");
 }

@@ -361,10 +361,14 @@ impl Service {
             callback(decode_delivery::<T>(d))
         })));
         let declared = self.interest(pattern, kind, TypeInfo::of::<T>(), Some(mailbox.clone()))?;
-        crate::sync::spawn_tracked(
-            &self.inner.node.tasks,
-            async move { mailbox.run_queued().await },
-        );
+        // Ends with the subscription (its mailbox closed) or with the node.
+        let stop = self.inner.node.cancel.clone();
+        crate::sync::spawn_tracked(&self.inner.node.tasks, async move {
+            tokio::select! {
+                _ = stop.cancelled() => {}
+                _ = mailbox.run_queued() => {}
+            }
+        });
         Ok(CallbackSubscription::new(declared))
     }
 
