@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use marea::config::{EthernetConfig, LinkConfig};
-use marea::{IService, NetworkConfig, Node, Service, ServiceError};
+use marea::{IService, NetworkConfig, Node, RecvError, Service, ServiceError};
 
 fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
     let mut c = NetworkConfig::ethernet_loopback(node);
@@ -89,4 +89,43 @@ async fn shutdown_stops_services_tells_peers_and_leaves_no_task() {
     );
     drop((sub, sb));
     assert!(b.shutdown().await);
+}
+
+/// Shutting a node down closes what its receivers wait on: an event subscription's `recv`, a
+/// variable subscription's `recv_blocking` on a plain thread and a file sink's `recv` all return
+/// `Closed` at once (as documented), instead of waiting for good.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_closes_the_subscriptions_receivers_wait_on() {
+    let domain = format!("lifecycle-close-{}", std::process::id());
+    let port = 22_001 + (std::process::id() % 20_000) as u16;
+    let n = Node::open(&cfg("n", &domain, port)).await.unwrap();
+    let svc = n.service("watch").unwrap();
+    let events = svc.subscribe_event::<u64>("*/nothing/ev").unwrap();
+    let values = svc.subscribe_variable::<u64>("*/nothing/var").unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let sink = svc.file_sink("inbox", dir.path()).unwrap();
+    let event_wait = tokio::spawn(async move { events.recv().await.map(|s| s.value) });
+    let file_wait = tokio::spawn(async move { sink.recv().await.map(|_| ()) });
+    let value_wait = tokio::task::spawn_blocking(move || {
+        values
+            .recv_blocking_timeout(Duration::from_secs(20))
+            .map(|s| s.value)
+    });
+    assert!(n.shutdown().await, "tasks left behind");
+    let limit = Duration::from_secs(10);
+    let ev = tokio::time::timeout(limit, event_wait)
+        .await
+        .expect("event recv returned");
+    assert!(matches!(ev.unwrap(), Err(RecvError::Closed)));
+    let file = tokio::time::timeout(limit, file_wait)
+        .await
+        .expect("sink recv returned");
+    assert!(matches!(file.unwrap(), Err(RecvError::Closed)));
+    let var = tokio::time::timeout(limit, value_wait)
+        .await
+        .expect("blocking recv returned");
+    assert!(
+        matches!(var.unwrap(), Err(RecvError::Closed)),
+        "closed, not timed out"
+    );
 }

@@ -607,6 +607,7 @@ impl Node {
             node_id: self.inner.me.id,
         });
         self.inner.cancel.cancel();
+        self.inner.close_mailboxes();
         self.inner.tasks.close();
         let clean = tokio::time::timeout(Duration::from_secs(5), self.inner.tasks.wait())
             .await
@@ -624,6 +625,7 @@ impl Node {
 impl Drop for Node {
     fn drop(&mut self) {
         self.inner.cancel.cancel();
+        self.inner.close_mailboxes();
         self.inner.tasks.close();
     }
 }

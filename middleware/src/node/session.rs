@@ -282,6 +282,21 @@ impl NodeInner {
         self.declare(decl, hidden_on);
     }
 
+    /// Closes every subscription's and file sink's mailbox (the node is stopping): a receiver
+    /// waiting on one gets `Closed` instead of waiting for good.
+    pub fn close_mailboxes(&self) {
+        for i in self.interests.iter() {
+            if let Some(m) = &i.mailbox {
+                m.close();
+            }
+        }
+        for o in self.offers.iter() {
+            if let OfferRole::File { mailbox, .. } = &o.role {
+                mailbox.close();
+            }
+        }
+    }
+
     /// Withdraws a service, offer or interest.
     pub fn withdraw(&self, id: u32) {
         let mut any = self.services.remove(&id).is_some();
