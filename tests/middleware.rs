@@ -217,7 +217,7 @@ fn a_stream_to_a_slow_callback_subscriber_loses_nothing() {
 }
 
 /// A publisher that comes while a subscriber's node is behind is told so too: a second stream,
-/// started once a slow reader (20,000 events/s) has over half its mailbox waiting from the
+/// started once a slow reader (20,000 events/s) has over a quarter of its mailbox waiting from the
 /// first, waits as well (untold, it would overfill the mailbox at once), and the reader gets
 /// all 2 × 100,000 events, in order per publisher, none dropped.
 #[test]

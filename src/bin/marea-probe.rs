@@ -124,7 +124,7 @@ enum Cmd {
         #[arg(long)]
         from_any: bool,
         /// Pause a millisecond after every SLOW events: a reader slower than its publisher
-        /// (says `{"behind": N}` once N events wait, over half its mailbox).
+        /// (says `{"behind": N}` once N events wait, over a quarter of its mailbox).
         #[arg(long)]
         slow: Option<u64>,
         /// After COUNT, take nothing more (a reader that stopped) until terminated.
@@ -504,7 +504,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                 check.take(&s);
                 if slow.is_some_and(|k| check.n % k.max(1) == 0) {
                     let waiting = sub.pending();
-                    if waiting > 32_768 && !said_behind {
+                    if waiting > 16_384 && !said_behind {
                         said_behind = true;
                         out(json!({"behind": waiting}));
                     }

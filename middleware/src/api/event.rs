@@ -233,8 +233,8 @@ impl<T: Payload> Event<T> {
     /// [`Event::raise_nowait`]'s report per event costs more than the event.
     ///
     /// A subscriber's node acknowledges what reached the subscription's mailbox; while a reader
-    /// that keeps reading is behind (its mailbox over half full) the node says so and the
-    /// stream waits until it is under a quarter, so a slow reader holds the stream back instead
+    /// that keeps reading is behind (its mailbox over a quarter full) the node says so and the
+    /// stream waits until it is under an eighth, so a slow reader holds the stream back instead
     /// of losing events. A reader that stopped (nothing taken for 200 ms) is not waited for.
     ///
     /// ```no_run
@@ -296,7 +296,7 @@ impl Event<Vec<u8>> {
 
 /// Events to one subscriber's node not yet acknowledged before [`EventStream::send`] waits; it
 /// goes on once half of them are. Large events wait sooner: see [`STREAM_WINDOW_BYTES`].
-pub const STREAM_WINDOW: u64 = 32_768;
+pub const STREAM_WINDOW: u64 = 16_384;
 
 /// Bytes of events to one subscriber's node not yet acknowledged before [`EventStream::send`]
 /// waits (at least 64 events; 2,048 of 1 KiB): 8,192 events of 1 KiB in flight churned 8 MiB
@@ -501,7 +501,7 @@ mod tests {
     fn the_stream_window_shrinks_for_large_events_down_to_64() {
         assert_eq!(peer(0, 0).window(), STREAM_WINDOW, "nothing sent yet");
         assert_eq!(peer(100, 100 * 16).window(), STREAM_WINDOW, "8 B events");
-        assert_eq!(peer(100, 100 * 72).window(), 29_127, "64 B events: 2 MiB");
+        assert_eq!(peer(100, 100 * 72).window(), STREAM_WINDOW, "64 B events");
         assert_eq!(peer(100, 100 * 1024).window(), 2048, "1 KiB events");
         assert_eq!(peer(10, 10 << 20).window(), 64, "1 MiB events");
         let radio = StreamPeer {

@@ -70,10 +70,11 @@ pub(crate) enum Delivery {
 /// ever has waiting (ten thousand events in a burst fit).
 pub(crate) const MAILBOX_CAP: usize = 65_536;
 /// An event mailbox holding more than this is behind (see the module's documentation): room
-/// is left for what senders already have in flight (a stream's window is 32,768 events).
-pub(crate) const MAILBOX_BEHIND: usize = MAILBOX_CAP / 2;
+/// is left for what senders already have in flight when they are told (a stream's window is
+/// 16,384 events: three streams' worth fit).
+pub(crate) const MAILBOX_BEHIND: usize = MAILBOX_CAP / 4;
 /// A mailbox that was behind has caught up below this.
-pub(crate) const MAILBOX_CAUGHT_UP: usize = MAILBOX_CAP / 4;
+pub(crate) const MAILBOX_CAUGHT_UP: usize = MAILBOX_CAP / 8;
 /// A behind mailbox's reader that took nothing for this long has stopped: senders are no
 /// longer held back for it.
 pub(crate) const READER_STALLED: Duration = Duration::from_millis(200);
@@ -435,12 +436,12 @@ mod tests {
             m.push(sample("e"));
             vars.push(sample(&format!("v{i}")));
         }
-        assert!(!c.readers_behind(), "half full is not behind yet");
+        assert!(!c.readers_behind(), "a quarter full is not behind yet");
         m.push(sample("e"));
-        assert!(c.readers_behind(), "over half full is behind");
+        assert!(c.readers_behind(), "over a quarter full is behind");
         vars.push(sample("v"));
         while m.len() >= MAILBOX_CAUGHT_UP {
-            assert!(c.readers_behind(), "behind until under a quarter");
+            assert!(c.readers_behind(), "behind until under an eighth");
             m.try_pop();
         }
         assert!(!c.readers_behind(), "caught up");
