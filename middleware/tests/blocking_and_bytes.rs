@@ -2,24 +2,14 @@
 //! and receiving on a plain thread without an async runtime (`recv_blocking`,
 //! `recv_blocking_timeout`, `try_recv`), between two nodes over real UDP sockets.
 
-use std::net::{Ipv4Addr, SocketAddrV4};
+mod common;
+
 use std::time::Duration;
 
-use marea::config::{EthernetConfig, LinkConfig};
 use marea::{NetworkConfig, Node, RecvError};
 
 fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
-    let mut c = NetworkConfig::ethernet_loopback(node);
-    c.domain = domain.into();
-    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
-        interface: Ipv4Addr::LOCALHOST,
-        bind: "127.0.0.1:0".parse().unwrap(),
-        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 17), port),
-        heartbeat: Duration::from_millis(200),
-        lease: Duration::from_secs(30),
-        ..EthernetConfig::default()
-    })];
-    c
+    common::loopback_config(node, domain, 17, port, Duration::from_secs(30))
 }
 
 fn port() -> u16 {

@@ -3,26 +3,16 @@
 //! callback may publish, a panicking callback does not end its link's receive task, and a
 //! dropped subscription runs its callback no more.
 
-use std::net::{Ipv4Addr, SocketAddrV4};
+mod common;
+
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use marea::config::{EthernetConfig, LinkConfig};
 use marea::{NetworkConfig, Node};
 use tokio::sync::mpsc;
 
 fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
-    let mut c = NetworkConfig::ethernet_loopback(node);
-    c.domain = domain.into();
-    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
-        interface: Ipv4Addr::LOCALHOST,
-        bind: "127.0.0.1:0".parse().unwrap(),
-        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 18), port),
-        heartbeat: Duration::from_millis(200),
-        lease: Duration::from_secs(30),
-        ..EthernetConfig::default()
-    })];
-    c
+    common::loopback_config(node, domain, 18, port, Duration::from_secs(30))
 }
 
 const T: Duration = Duration::from_secs(20);

@@ -1,26 +1,17 @@
 //! Random, truncated and oversized datagrams sent at a node's ports are counted and dropped,
 //! and the node keeps serving its subscribers.
 
+mod common;
+
 use std::net::{Ipv4Addr, SocketAddrV4, UdpSocket};
 use std::time::Duration;
 
-use marea::config::{EthernetConfig, LinkConfig};
 use marea::link::udp::datagram::DatagramWriter;
 use marea::{NetworkConfig, Node};
 use proptest::prelude::*;
 
 fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
-    let mut c = NetworkConfig::ethernet_loopback(node);
-    c.domain = domain.into();
-    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
-        interface: Ipv4Addr::LOCALHOST,
-        bind: "127.0.0.1:0".parse().unwrap(),
-        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 2), port),
-        heartbeat: Duration::from_millis(200),
-        lease: Duration::from_millis(5000),
-        ..EthernetConfig::default()
-    })];
-    c
+    common::loopback_config(node, domain, 2, port, Duration::from_millis(5000))
 }
 
 /// Datagrams an attacker or a broken device might send: random bytes, valid-looking headers

@@ -1,26 +1,16 @@
 //! A node shuts down cleanly: hosted services are stopped, peers are told at once, and no task
 //! is left behind, even with transfers, calls and subscriptions active.
 
-use std::net::{Ipv4Addr, SocketAddrV4};
+mod common;
+
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use marea::config::{EthernetConfig, LinkConfig};
 use marea::{IService, NetworkConfig, Node, RecvError, Service, ServiceError};
 
 fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
-    let mut c = NetworkConfig::ethernet_loopback(node);
-    c.domain = domain.into();
-    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
-        interface: Ipv4Addr::LOCALHOST,
-        bind: "127.0.0.1:0".parse().unwrap(),
-        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 3), port),
-        heartbeat: Duration::from_millis(200),
-        lease: Duration::from_secs(30),
-        ..EthernetConfig::default()
-    })];
-    c
+    common::loopback_config(node, domain, 3, port, Duration::from_secs(30))
 }
 
 struct Ticker {
