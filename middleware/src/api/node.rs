@@ -147,25 +147,28 @@ const LINKS_BUILT: LinksBuilt = LinksBuilt {
 /// Refuses a configuration naming a link kind `built` lacks, before any link opens.
 fn links_built(config: &NetworkConfig, built: LinksBuilt) -> Result<(), NodeOpenError> {
     for l in &config.links {
-        match l {
-            LinkConfig::Shm(s) if !built.shm => return Err(not_built(&s.name, "shm")),
-            LinkConfig::Serial(s) if !built.serial => return Err(not_built(&s.name, "serial")),
-            LinkConfig::SerialDuo(s) if !built.serial => return Err(not_built(&s.name, "serial")),
-            _ => {}
+        let missing = match l {
+            LinkConfig::Shm(_) => !built.shm,
+            LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => !built.serial,
+            LinkConfig::Ethernet(_) => false,
+        };
+        if missing {
+            return Err(not_built(l));
         }
     }
     Ok(())
 }
 
-/// The refusal of link `link` by a build without cargo feature `feature` (`shm`, `serial`).
-fn not_built(link: &str, feature: &'static str) -> NodeOpenError {
+/// The refusal of link `link` (`<shm>`, `<serial>`, `<serialduo>`) by a build without the
+/// cargo feature that brings it.
+fn not_built(link: &LinkConfig) -> NodeOpenError {
+    let (kind, feature) = match link {
+        LinkConfig::Shm(_) => ("shared-memory", "shm"),
+        _ => ("serial", "serial"),
+    };
     NodeOpenError::Unsupported {
-        link: link.to_owned(),
-        kind: if feature == "shm" {
-            "shared-memory"
-        } else {
-            "serial"
-        },
+        link: link.name().to_owned(),
+        kind,
         feature,
     }
 }
@@ -337,12 +340,9 @@ impl Node {
                 .map_err(Into::into),
                 // `links_built` refused these already; kept so the match stays exhaustive.
                 #[cfg(not(feature = "shm"))]
-                LinkConfig::Shm(s) => Err(not_built(&s.name, "shm")),
+                LinkConfig::Shm(_) => Err(not_built(lc)),
                 #[cfg(not(feature = "serial"))]
-                LinkConfig::Serial(crate::config::SerialConfig { name, .. })
-                | LinkConfig::SerialDuo(crate::config::SerialDuoConfig { name, .. }) => {
-                    Err(not_built(name, "serial"))
-                }
+                LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => Err(not_built(lc)),
             };
             match opened {
                 Ok(l) => links.push(l),

@@ -95,8 +95,7 @@ impl SerialLink {
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
-            // A byte is 10 bits on the line (8N1).
-            stream_window: u64::from(cfg.baud_rate) / 10 * STREAM_LINE_TIME.as_secs(),
+            stream_window: cfg.line_bytes(STREAM_LINE_TIME),
         });
         let l = link.clone();
         let t = tasks.clone();
@@ -139,8 +138,7 @@ impl SerialLink {
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
-            // A byte is 10 bits on the line (8N1).
-            stream_window: u64::from(cfg.baud_rate) / 10 * STREAM_LINE_TIME.as_secs(),
+            stream_window: cfg.line_bytes(STREAM_LINE_TIME),
         });
         let l = link.clone();
         let t = tasks.clone();

@@ -97,6 +97,11 @@ impl StpConfig {
         Duration::from_nanos((bytes as u64) * 10 * 1_000_000_000 / u64::from(self.baud_rate))
     }
 
+    /// Bytes the line carries in `time` (the inverse of [`StpConfig::line_time`]).
+    pub fn line_bytes(&self, time: Duration) -> u64 {
+        (u128::from(self.baud_rate) / 10 * time.as_millis() / 1000) as u64
+    }
+
     /// Largest message the link carries (255 fragments).
     pub fn max_message(&self) -> usize {
         self.max_packet_size * fragment::MAX_FRAGMENTS
@@ -784,6 +789,17 @@ mod tests {
 
     fn cfg(baud: u32, mps: usize) -> StpConfig {
         StpConfig::new(baud, Duration::from_millis(1500), mps, 20)
+    }
+
+    #[test]
+    fn line_bytes_is_the_inverse_of_line_time() {
+        let c = cfg(115_200, 64);
+        assert_eq!(c.line_bytes(Duration::from_secs(4)), 46_080);
+        assert_eq!(c.line_time(46_080), Duration::from_secs(4));
+        assert_eq!(
+            cfg(57_600, 64).line_bytes(Duration::from_millis(500)),
+            2_880
+        );
     }
 
     #[test]
