@@ -157,3 +157,62 @@ async fn a_panicking_callback_loses_one_delivery_and_a_dropped_one_runs_no_more(
     assert!(a.shutdown().await, "a's tasks stopped");
     assert!(b.shutdown().await, "b's tasks stopped");
 }
+
+/// A callback holds its link back: while b's callback runs on the first event, b's link reads
+/// nothing more, so an event raised after it stays unacknowledged (the first one's own
+/// acknowledgement may leave with b's next heartbeat or timer: it was taken from its datagram);
+/// released, both raises complete with b's subscriber acknowledged.
+#[tokio::test(flavor = "multi_thread", worker_threads = 3)]
+async fn a_running_callback_holds_back_the_acknowledgement_of_what_follows() {
+    let (a, b) = two_nodes("callback-ack", port(2)).await;
+    let src = a.service("src").unwrap();
+    let dst = b.service("dst").unwrap();
+    let (entered_tx, entered_rx) = std::sync::mpsc::channel();
+    let (release_tx, release_rx) = std::sync::mpsc::channel::<()>();
+    let release_rx = Mutex::new(release_rx);
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let seen2 = seen.clone();
+    let _sub = dst
+        .subscribe_event_with::<u64, _>("src/ev", move |s| {
+            let v = s.expect("a u64 event").value;
+            seen2.lock().unwrap().push(v);
+            if v == 7 {
+                let _ = entered_tx.send(v);
+                // Holds b's receive task until the test releases it (or its bound passes),
+                // handing the worker's other tasks to another thread meanwhile (a task left in
+                // its LIFO slot would otherwise wait for the callback too).
+                tokio::task::block_in_place(|| {
+                    let _ = release_rx.lock().unwrap().recv_timeout(T);
+                });
+            }
+        })
+        .unwrap();
+    let ev = src.publish_event::<u64>("ev").unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "b never subscribed");
+    let first = ev.raise_nowait(&7).expect("raised");
+    let entered = tokio::task::spawn_blocking(move || entered_rx.recv_timeout(T))
+        .await
+        .unwrap()
+        .expect("the callback ran");
+    assert_eq!(entered, 7);
+    let second = ev.raise_nowait(&8).expect("raised");
+    tokio::pin!(second);
+    assert!(
+        tokio::time::timeout(Duration::from_millis(300), &mut second)
+            .await
+            .is_err(),
+        "an event after the running callback's was acknowledged"
+    );
+    release_tx.send(()).unwrap();
+    for report in [first.await, second.await] {
+        assert!(report.all_acknowledged(), "{report:?}");
+        assert_eq!(report.acknowledged, vec!["b/dst".to_owned()]);
+    }
+    assert_eq!(
+        *seen.lock().unwrap(),
+        vec![7, 8],
+        "each event once, in order"
+    );
+    assert!(a.shutdown().await, "a's tasks stopped");
+    assert!(b.shutdown().await, "b's tasks stopped");
+}

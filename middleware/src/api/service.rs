@@ -295,10 +295,14 @@ impl Service {
     /// them) until the returned handle is dropped.
     ///
     /// An event from another node runs the callback on the task of the link it came in on,
-    /// with no hand-off to another task; the node acknowledges it only once the callback
-    /// returned, so a lossless stream ([`Event::stream`]) waits for a slow callback and never
-    /// outruns it. The callback therefore must not block: a long one holds back that link's
-    /// other traffic (hand slow work to a task of your own). Events from this node's own
+    /// with no hand-off to another task; that task reads nothing more from the link until the
+    /// callback returns, so nothing after it is acknowledged and a lossless stream
+    /// ([`Event::stream`]) waits for a slow callback (at most the rest of one datagram's
+    /// events may be acknowledged early). The callback therefore must not block: a long one
+    /// holds back that link's other traffic (hand slow work to a task of your own). One that
+    /// must wait should do so inside `tokio::task::block_in_place`, so the worker's other
+    /// tasks move to another thread meanwhile (a task left waiting in the worker's slot for
+    /// its next task was seen held up for as long as the callback). Events from this node's own
     /// publishers run it on a task of the subscription's. It may publish or declare.
     ///
     /// ```no_run

@@ -203,9 +203,9 @@ impl Mailbox {
     }
 
     /// A callback subscription's mailbox: a run of remote deliveries
-    /// ([`Mailbox::deliver_run`]) runs `callback` at once on the link's receive task, so the
-    /// node acknowledges a remote event only after its callback returned and a lossless stream
-    /// never outruns it. Other deliveries (from publishers on this node, late joiners' values,
+    /// ([`Mailbox::deliver_run`]) runs `callback` at once on the link's receive task, which
+    /// reads no further datagram until it returns: what comes after is not acknowledged, so a
+    /// lossless stream waits for a slow callback. Other deliveries (from publishers on this node, late joiners' values,
     /// refusals) are pushed while the node holds its locks: they queue, and
     /// [`Mailbox::run_queued`] runs the callback for them on a task of its own, so a callback
     /// may publish or declare without deadlocking. A callback that panics is logged; the next
