@@ -1,13 +1,20 @@
-//! The control thread of a shared-memory link: owns the iceoryx2 node and does what may wait
-//! on the file system (opening peers' inboxes, listing the host's nodes, removing dead ones'
-//! resources), never on a tokio worker.
+//! The control thread of a shared-memory link: creates and owns the iceoryx2 node and does
+//! what may wait on the file system (creating the inbox, opening peers' inboxes, listing the
+//! host's nodes, removing dead ones' resources), never on a tokio worker.
+//!
+//! One thread does all of it, from the link's creation on: iceoryx2's setup runs deep on the
+//! stack and allocates much that it frees again, and a second thread doing part of it (a tokio
+//! blocking thread creating the inbox) kept a second deep stack and a second malloc arena
+//! resident for the process's life.
 
 use std::sync::atomic::Ordering;
 use std::sync::{mpsc, Arc};
 use std::time::Instant;
 
-use super::inbox::{self, Node};
-use super::ShmLink;
+use tokio::sync::oneshot;
+
+use super::inbox::{self, Inbox, Node};
+use super::{ShmLink, ShmLinkOpenError, ShmLinkOptions};
 use crate::link::{LinkSendError, PeerAddr};
 use crate::sync::lock;
 
@@ -22,16 +29,77 @@ pub(super) enum Ctl {
 }
 
 /// The control thread's state.
-pub(super) struct Control {
-    pub(super) link: Arc<ShmLink>,
-    pub(super) node: Node,
-    pub(super) ctl: mpsc::Receiver<Ctl>,
-    pub(super) next_scan: Instant,
+struct Control {
+    link: Arc<ShmLink>,
+    node: Node,
+    ctl: mpsc::Receiver<Ctl>,
+    next_scan: Instant,
+}
+
+/// A started control thread, as the opening link sees it.
+pub(super) struct Started {
+    /// The inbox the thread created, or why it could not.
+    pub(super) inbox: oneshot::Receiver<Result<Inbox, ShmLinkOpenError>>,
+    /// Gives the thread the link to serve; dropped unsent, it ends the thread.
+    pub(super) serve: mpsc::Sender<Arc<ShmLink>>,
+    /// Sent once the first scan connected to the same-host nodes already there.
+    pub(super) scanned: oneshot::Receiver<()>,
+    /// Closed when the thread ends.
+    pub(super) ended: oneshot::Receiver<()>,
+}
+
+/// Starts the control thread of link `id`: it creates the inbox, waits for the link, scans
+/// once, then serves `ctl` until the link stops.
+pub(super) fn start(
+    options: &ShmLinkOptions,
+    id: u64,
+    ctl: mpsc::Receiver<Ctl>,
+) -> std::io::Result<Started> {
+    let (inbox_tx, inbox) = oneshot::channel();
+    let (serve, serve_rx) = mpsc::channel::<Arc<ShmLink>>();
+    let (scanned_tx, scanned) = oneshot::channel();
+    let (ended_tx, ended) = oneshot::channel::<()>();
+    let opts = options.clone();
+    std::thread::Builder::new()
+        .name(format!("marea-shm-ctl-{}", options.name))
+        .spawn(move || {
+            let _ended = ended_tx;
+            let node = match Inbox::create(&opts, id) {
+                Ok((node, made)) => {
+                    if inbox_tx.send(Ok(made)).is_err() {
+                        return;
+                    }
+                    node
+                }
+                Err(e) => {
+                    let _ = inbox_tx.send(Err(e));
+                    return;
+                }
+            };
+            let Ok(link) = serve_rx.recv() else {
+                return;
+            };
+            let mut control = Control {
+                link,
+                node,
+                ctl,
+                next_scan: Instant::now(),
+            };
+            control.scan();
+            let _ = scanned_tx.send(());
+            control.run();
+        })?;
+    Ok(Started {
+        inbox,
+        serve,
+        scanned,
+        ended,
+    })
 }
 
 impl Control {
     /// Serves requests and rescans until the link stops.
-    pub(super) fn run(mut self) {
+    fn run(mut self) {
         loop {
             let timeout = self.next_scan.saturating_duration_since(Instant::now());
             match self.ctl.recv_timeout(timeout) {
@@ -101,7 +169,7 @@ impl Control {
 
     /// Lists the host's iceoryx2 nodes: connects to the inboxes of the same `service` and
     /// removes what dead ones left behind.
-    pub(super) fn scan(&mut self) {
+    fn scan(&mut self) {
         let listing = inbox::list_nodes(&self.node, &self.link.options.service);
         if let Some(e) = listing.error {
             tracing::warn!(link = %self.link.options.name, error = %e, "listing shared-memory nodes failed");

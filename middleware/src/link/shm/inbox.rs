@@ -56,10 +56,9 @@ fn inbox_name(service: &str, id: u64, part: &str) -> String {
     format!("marea/{service}/{id:016x}/{part}")
 }
 
-/// The receiving side, created before the link: the node goes to the control thread, the
-/// reader and the listener to the receive task.
+/// The receiving side, created by the control thread (which keeps the node) before the link:
+/// the reader and the listener go to the receive task.
 pub(super) struct Inbox {
-    pub(super) node: Node,
     pub(super) reader: InboxReader,
     pub(super) listener: Listener<Ipc>,
     /// Wakes our own receiver (control requests, shutdown).
@@ -115,7 +114,10 @@ fn service_name(s: &str) -> Result<ServiceName, String> {
 
 impl Inbox {
     /// Creates the iceoryx2 node and the inbox of link `id`.
-    pub(super) fn create(options: &ShmLinkOptions, id: u64) -> Result<Inbox, ShmLinkOpenError> {
+    pub(super) fn create(
+        options: &ShmLinkOptions,
+        id: u64,
+    ) -> Result<(Node, Inbox), ShmLinkOpenError> {
         // iceoryx2 logs to stderr; keep it to errors unless the user asks for more.
         iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
         let link = options.name.clone();
@@ -183,8 +185,7 @@ impl Inbox {
             .notifier_builder()
             .create()
             .map_err(|e| inbox_err("wake notifier", format!("{e:?}")))?;
-        Ok(Inbox {
-            node,
+        let inbox = Inbox {
             reader: InboxReader {
                 safe,
                 fast,
@@ -193,7 +194,8 @@ impl Inbox {
             },
             listener,
             self_wake,
-        })
+        };
+        Ok((node, inbox))
     }
 }
 

@@ -38,8 +38,8 @@
 //!
 //! Threads: sending is inline in the caller (a loan, a copy, an atomic store and maybe the
 //! notification: iceoryx2's non-blocking calls); receiving never blocks. Everything that may
-//! wait on the file system (opening services, listing nodes, cleaning up dead ones) runs on one
-//! control thread per link, never on a tokio worker.
+//! wait on the file system (creating the inbox, opening peers' inboxes, listing nodes, cleaning
+//! up dead ones) runs on one control thread per link, never on a tokio worker.
 //!
 //! Payloads are copied once into the loaned shared-memory sample and read in place by the
 //! receiver (a message that fits one frame or bulk sample reaches the node as a slice of shared
@@ -63,7 +63,7 @@ use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
 use super::completion::acknowledge_all;
 use super::{Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr};
 use crate::sync::lock;
-use control::{Control, Ctl};
+use control::Ctl;
 use frame::Part;
 use inbox::{Conn, Inbox, InboxReader, InboxSample, Pub, SelfWake, WakeFd};
 use rx::{AckSent, Receiver, RxIo};
@@ -167,8 +167,8 @@ pub enum ShmLinkOpenError {
         /// What iceoryx2 said.
         reason: String,
     },
-    /// The receive thread could not be started.
-    #[error("link {link}: cannot start the receive thread: {source}")]
+    /// The control thread could not be started, or the wake event not watched.
+    #[error("link {link}: cannot start the control thread or watch the wake event: {source}")]
     Thread {
         /// Link name.
         link: String,
@@ -272,20 +272,21 @@ impl ShmLink {
         cancel: CancellationToken,
     ) -> Result<Arc<Self>, ShmLinkOpenError> {
         let id: u64 = rand::random();
-        let opts = options.clone();
+        let (ctl_tx, ctl_rx) = mpsc::channel();
+        let name = options.name.clone();
+        let interrupted = || ShmLinkOpenError::Interrupted { link: name.clone() };
+        let thread_err = |source| ShmLinkOpenError::Thread {
+            link: name.clone(),
+            source,
+        };
         // Creating files and shared memory may wait on the file system: off the workers.
-        let inbox = tokio::task::spawn_blocking(move || Inbox::create(&opts, id))
-            .await
-            .map_err(|_| ShmLinkOpenError::Interrupted {
-                link: options.name.clone(),
-            })??;
+        let control = control::start(&options, id, ctl_rx).map_err(thread_err)?;
+        let inbox = control.inbox.await.map_err(|_| interrupted())??;
         let Inbox {
-            node,
             reader,
             listener,
             self_wake,
         } = inbox;
-        let (ctl_tx, ctl_rx) = mpsc::channel();
         let (forget_tx, forget_rx) = mpsc::channel();
         let wait = options.wait;
         let sealer = options
@@ -310,32 +311,10 @@ impl ShmLink {
             handler,
             counters: LinkCounters::default(),
         });
-        let name = link.options.name.clone();
-        let thread_err = |source| ShmLinkOpenError::Thread {
-            link: name.clone(),
-            source,
-        };
-        let mut control = Control {
-            link: link.clone(),
-            node,
-            ctl: ctl_rx,
-            next_scan: Instant::now(),
-        };
         // Connect to the nodes already here before the node announces itself.
-        control = tokio::task::spawn_blocking(move || {
-            control.scan();
-            control
-        })
-        .await
-        .map_err(|_| ShmLinkOpenError::Interrupted { link: name.clone() })?;
-        let (control_tx, control_rx) = tokio::sync::oneshot::channel::<()>();
-        std::thread::Builder::new()
-            .name(format!("marea-shm-ctl-{name}"))
-            .spawn(move || {
-                control.run();
-                drop(control_tx);
-            })
-            .map_err(thread_err)?;
+        let _ = control.serve.send(link.clone());
+        control.scanned.await.map_err(|_| interrupted())?;
+        let control_ended = control.ended;
         let rx = RxDriver {
             link: link.clone(),
             reader,
@@ -374,7 +353,7 @@ impl ShmLink {
             l.wake_self();
             l.request(Ctl::Stop);
             let _ = receiver_rx.await;
-            let _ = control_rx.await;
+            let _ = control_ended.await;
             let peers: Vec<Arc<Mutex<Peer>>> = lock(&l.peers).drain().map(|(_, p)| p).collect();
             for p in peers {
                 lock(&p).tx.fail_all(&LinkSendError::Shutdown);
