@@ -329,6 +329,7 @@ impl Node {
                         service: s.service.clone(),
                         scan: s.heartbeat,
                         wait: s.wait,
+                        max_peers: s.max_peers,
                         security: security.clone(),
                     },
                     handler,

@@ -128,6 +128,10 @@ pub struct ShmConfig {
     /// wakes it; `spin` busy-polls from a task of the link, yielding its tokio worker between
     /// polls, so writers never make a system call).
     pub wait: ShmWait,
+    /// Most same-host peers (other links of the same `service`) this link's inbox admits
+    /// (`maxPeers`), default 16. Each costs ~11 KiB of memory whether or not it comes; a peer
+    /// beyond it cannot reach this node over shared memory (both sides log it).
+    pub max_peers: usize,
 }
 
 impl Default for ShmConfig {
@@ -138,6 +142,7 @@ impl Default for ShmConfig {
             heartbeat: Duration::from_millis(SHM_HEARTBEAT_MS),
             lease: Duration::from_millis(lease_ms(SHM_HEARTBEAT_MS, SHM_LEASE)),
             wait: ShmWait::Event,
+            max_peers: SHM_MAX_PEERS as usize,
         }
     }
 }

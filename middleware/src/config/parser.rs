@@ -533,6 +533,9 @@ impl<'a> Parser<'a> {
             .unwrap_or_else(|| ShmConfig::default().service);
         let (heartbeat, lease) = self.timing(&attrs, SHM_HEARTBEAT_MS, SHM_LEASE)?;
         let wait = self.value(&attrs, "wait", parse_wait)?.unwrap_or_default();
+        let max_peers = self
+            .int(&attrs, "maxPeers", &MAX_PEERS)?
+            .unwrap_or(SHM_MAX_PEERS);
         self.no_children("shm", element)?;
         Ok(ParsedLink {
             link: LinkConfig::Shm(ShmConfig {
@@ -541,6 +544,7 @@ impl<'a> Parser<'a> {
                 heartbeat,
                 lease,
                 wait,
+                max_peers: max_peers as usize, // at most 1024
             }),
             enabled,
             name_at,

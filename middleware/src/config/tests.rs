@@ -13,7 +13,7 @@ const EXAMPLE: &str = r#"<network node="air" namespace="rover1" domain="usal">
   <ethernet name="lan" bind="0.0.0.0:0" multicast="239.255.77.1:7477" interface="127.0.0.1" heartbeatMs="1000" leaseMs="3500" ttl="1">
     <peer address="192.0.2.10:7400"/>
   </ethernet>
-  <shm name="local" service="usal" wait="spin"/>
+  <shm name="local" service="usal" wait="spin" maxPeers="8"/>
   <serial name="radio" address="/dev/ttyUSB0" baudRate="57600" TimeToResend="1500" MaxPacketSize="300" MaxMessageQueue="20" heartbeatMs="5000" leaseMs="20000"/>
   <serialduo name="duo" addressTx="/dev/ttyUSB2" baudRateTx="115200" addressRx="/dev/ttyUSB1" baudRateRx="115200" TimeToResend="1500" MaxPacketSize="300" MaxMessageQueue="20"/>
 </network>
@@ -85,6 +85,7 @@ fn example_parses_into_the_exact_config() {
                 heartbeat: ms(1000),
                 lease: ms(3500),
                 wait: ShmWait::Spin,
+                max_peers: 8,
             }),
             LinkConfig::Serial(SerialConfig {
                 name: "radio".into(),
@@ -151,6 +152,7 @@ fn defaults() {
                 heartbeat: ms(1000),
                 lease: ms(3500),
                 wait: ShmWait::Event,
+                max_peers: 16,
             }),
             LinkConfig::Serial(SerialConfig {
                 name: "serial0".into(),
@@ -485,6 +487,7 @@ fn bad_value() {
             (r#"<shm name="my link"/>"#, "attribute name: expected a name of letters, digits, '_' or '-', found \"my link\""),
             (r#"<shm service=""/>"#, "attribute service: expected a name of letters, digits, '_' or '-', found \"\""),
             (r#"<shm wait="poll"/>"#, "attribute wait: expected event or spin, found \"poll\""),
+            (r#"<shm maxPeers="many"/>"#, "attribute maxPeers: expected an integer from 1 to 1024 (peers), found \"many\""),
             (r#"<serial address="  "/>"#, "attribute address: expected a serial port path like /dev/ttyUSB0 or COM3, found \"  \""),
             (r#"<serial address="a" baudRate="fast"/>"#, "attribute baudRate: expected a positive integer in bits per second, found \"fast\""),
             (r#"<serial address="a" MaxPacketSize="1.5"/>"#, "attribute MaxPacketSize: expected a positive integer in bytes, found \"1.5\""),
@@ -538,6 +541,10 @@ fn out_of_range() {
         (
             r#"<serial address="a" TimeToResend="0"/>"#,
             "TimeToResend: 0 is out of range, expected 1 to 600000 milliseconds",
+        ),
+        (
+            r#"<shm maxPeers="0"/>"#,
+            "maxPeers: 0 is out of range, expected 1 to 1024 peers",
         ),
         (
             r#"<ethernet ttl="256"/>"#,

@@ -21,6 +21,11 @@ pub(super) const ETHERNET_LEASE: LeaseFactor = LeaseFactor { num: 7, den: 2 };
 // Same-host peers die visibly (the process exits), so the LAN timing suits shared memory too.
 pub(super) const SHM_HEARTBEAT_MS: u64 = 1000;
 pub(super) const SHM_LEASE: LeaseFactor = LeaseFactor { num: 7, den: 2 };
+// Each peer an inbox admits costs ~11 KiB of the node's memory, touched at creation (iceoryx2
+// keeps a connection entry per possible writer in each of the inbox's three buffers). Sixteen
+// cover a vehicle's services on its computer; a host running more marea processes on one
+// `service` raises it.
+pub(super) const SHM_MAX_PEERS: u64 = 16;
 // Serial radios are slow and lossy: a slower heartbeat keeps discovery off the air, a longer
 // lease (in beats) survives a couple of lost heartbeats.
 pub(super) const SERIAL_HEARTBEAT_MS: u64 = 5000;
@@ -72,6 +77,8 @@ pub(super) const LEASE_MS: IntSpec = IntSpec::new(
     "a positive integer in milliseconds",
     "milliseconds",
 );
+pub(super) const MAX_PEERS: IntSpec =
+    IntSpec::new(1, 1024, "an integer from 1 to 1024 (peers)", "peers");
 pub(super) const TTL: IntSpec = IntSpec::new(0, 255, "an integer from 0 to 255", "hops");
 pub(super) const BAUD_RATE: IntSpec = IntSpec::new(
     50,
@@ -147,6 +154,7 @@ pub(super) const SHM_ATTRS: &[&str] = &[
     "heartbeatMs",
     "leaseMs",
     "wait",
+    "maxPeers",
 ];
 pub(super) const SERIAL_ATTRS: &[&str] = &[
     "name",

@@ -7,13 +7,14 @@
 //! blocking thread creating the inbox) kept a second deep stack and a second malloc arena
 //! resident for the process's life.
 
+use std::collections::HashSet;
 use std::sync::atomic::Ordering;
 use std::sync::{mpsc, Arc};
 use std::time::Instant;
 
 use tokio::sync::oneshot;
 
-use super::inbox::{self, Inbox, Node};
+use super::inbox::{self, Inbox, Node, OpenError};
 use super::{ShmLink, ShmLinkOpenError, ShmLinkOptions};
 use crate::link::{LinkSendError, PeerAddr};
 use crate::sync::lock;
@@ -34,6 +35,9 @@ struct Control {
     node: Node,
     ctl: mpsc::Receiver<Ctl>,
     next_scan: Instant,
+    /// Peers we were told about once that no inbox has room for them (this one's or theirs:
+    /// `maxPeers` is taken); forgotten when they connect or die.
+    no_room: HashSet<u64>,
 }
 
 /// A started control thread, as the opening link sees it.
@@ -84,6 +88,7 @@ pub(super) fn start(
                 node,
                 ctl,
                 next_scan: Instant::now(),
+                no_room: HashSet::new(),
             };
             control.scan();
             let _ = scanned_tx.send(());
@@ -143,6 +148,9 @@ impl Control {
     /// Opens peer `id`'s inbox if it is not open yet, and writes what waited for it.
     fn connect(&mut self, id: u64) {
         let Some(p) = self.link.peer(id, true) else {
+            if id != self.link.id && self.no_room.insert(id) {
+                tracing::warn!(link = %self.link.options.name, peer = format_args!("{id:016x}"), max_peers = self.link.options.max_peers, "this link has maxPeers same-host peers already; this one cannot reach it over shared memory (raise maxPeers in <shm>)");
+            }
             return;
         };
         if lock(&p).conn.is_some() {
@@ -160,6 +168,12 @@ impl Control {
             Ok(c) => {
                 st.conn = Some(c);
                 self.link.with_tx(&mut st, |tx, w, c| tx.opened(w, c));
+                self.no_room.remove(&id);
+            }
+            Err(e @ OpenError::Full(_)) => {
+                if self.no_room.insert(id) {
+                    tracing::warn!(link = %self.link.options.name, peer = format_args!("{id:016x}"), error = %e, "cannot reach a same-host peer over shared memory");
+                }
             }
             Err(e) => {
                 tracing::debug!(link = %self.link.options.name, peer = format_args!("{id:016x}"), error = %e, "peer inbox not open yet");
@@ -175,6 +189,7 @@ impl Control {
             tracing::warn!(link = %self.link.options.name, error = %e, "listing shared-memory nodes failed");
         }
         for (id, dead) in listing.dead {
+            self.no_room.remove(&id);
             match dead.remove_stale() {
                 Ok(()) => {
                     tracing::info!(link = %self.link.options.name, peer = format_args!("{id:016x}"), "removed resources of a dead shared-memory node")

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use arbitrary::{Result, Unstructured};
 
 use super::frame::{self, Part};
-use super::rx::{AckSent, Receiver, RxIo};
+use super::rx::{AckSent, Receiver, RxIo, TEST_MAX_WRITERS};
 use crate::link::LinkCounters;
 
 fn encode(kind: u8, sender: u64, session: u32, seq: u64, body: &[u8]) -> Vec<u8> {
@@ -261,7 +261,7 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
     };
     let c = LinkCounters::default();
     let start = Instant::now();
-    let mut rx = Receiver::new(start);
+    let mut rx = Receiver::new(start, TEST_MAX_WRITERS);
     let mut step = 0u32;
     for f in frames {
         match f {
@@ -356,7 +356,7 @@ mod tests {
         io.safe.push_back(encode(frame::SAFE, 7, 1, 0, b"fresh"));
         let c = LinkCounters::default();
         let now = Instant::now();
-        let mut rx = Receiver::new(now);
+        let mut rx = Receiver::new(now, TEST_MAX_WRITERS);
         rx.pass(now, false, &mut io, &c);
         assert!(c.corrupt.load(std::sync::atomic::Ordering::Relaxed) >= 1);
         assert!(io.delivered.iter().all(|(_, m)| m != b"last"));

@@ -18,7 +18,7 @@ use iceoryx2::service::port_factory::PortFactory;
 use super::frame::{self, Part};
 use super::{
     ShmLinkOpenError, ShmLinkOptions, ShmWait, BULK_BUFFER, BULK_MAX, FAST_BUFFER, FRAME_MAX,
-    MAX_PEERS, SAFE_BUFFER,
+    SAFE_BUFFER,
 };
 use crate::link::auth::{Profile, Sealer};
 
@@ -155,11 +155,16 @@ impl Inbox {
             reason,
         };
         let svc = &options.service;
+        // A writer per peer (a restarted peer removed its dead predecessor's when it started);
+        // the nodes are theirs and ours.
+        let writers = options.max_peers;
         let open_pubsub = |part: &str, overflow: bool, buffer: usize| {
             let n = service_name(&inbox_name(svc, id, part)).map_err(|e| inbox_err(part, e))?;
             // The service only records its settings; the memory is the writers', allocated
             // when each opens a publisher.
             let s = pubsub_builder(&node, &n, overflow, buffer)
+                .max_publishers(writers)
+                .max_nodes(writers + 1)
                 .create()
                 .map_err(|e| inbox_err(part, format!("{e:?}")))?;
             s.subscriber_builder()
@@ -175,6 +180,9 @@ impl Inbox {
         let attributes =
             wait_attribute(options.wait).map_err(|e| inbox_err("wake attribute", e))?;
         let wake = event_builder(&node, &wn)
+            // ... and our own notifier (the receive task's wake-up).
+            .max_notifiers(writers + 1)
+            .max_nodes(writers + 1)
             .create_with_attributes(&attributes)
             .map_err(|e| inbox_err("wake", format!("{e:?}")))?;
         let listener = wake
@@ -199,6 +207,9 @@ impl Inbox {
     }
 }
 
+/// An inbox part's service as its creator and its writers both describe it. Its capacities
+/// (`max_publishers`, `max_nodes`) are the creator's `maxPeers` alone: a writer opening it
+/// requires none, so nodes with different `maxPeers` meet.
 fn pubsub_builder<'a>(
     node: &'a IoxNode<Ipc>,
     name: &'a ServiceName,
@@ -211,8 +222,6 @@ fn pubsub_builder<'a>(
         .subscriber_max_buffer_size(buffer)
         .history_size(0)
         .max_subscribers(1)
-        .max_publishers(MAX_PEERS + 1)
-        .max_nodes(MAX_PEERS + 1)
 }
 
 fn wait_key() -> Result<AttributeKey, String> {
@@ -226,15 +235,40 @@ fn wait_attribute(wait: ShmWait) -> Result<AttributeSpecifier, String> {
         .map_err(|e| format!("{e:?}"))
 }
 
+/// The wake event as its creator and its writers both describe it (capacities as for
+/// [`pubsub_builder`]).
 fn event_builder<'a>(
     node: &'a IoxNode<Ipc>,
     name: &'a ServiceName,
 ) -> iceoryx2::service::builder::event::Builder<Ipc> {
-    node.service_builder(name)
-        .event()
-        .max_listeners(1)
-        .max_notifiers(MAX_PEERS + 2)
-        .max_nodes(MAX_PEERS + 1)
+    node.service_builder(name).event().max_listeners(1)
+}
+
+/// Why a peer's inbox could not be opened for writing.
+#[derive(Debug)]
+pub(super) enum OpenError {
+    /// It admits no more writers: its `maxPeers` are taken.
+    Full(String),
+    /// Anything else (e.g. it is still being created).
+    Other(String),
+}
+
+impl std::fmt::Display for OpenError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            OpenError::Full(what) => write!(
+                f,
+                "{what}: the peer's inbox admits no more writers (raise maxPeers in its <shm>)"
+            ),
+            OpenError::Other(what) => f.write_str(what),
+        }
+    }
+}
+
+impl From<String> for OpenError {
+    fn from(what: String) -> Self {
+        OpenError::Other(what)
+    }
 }
 
 /// Opens a publisher on part `part` of peer `id`'s inbox, its samples up to `max` bytes.
@@ -243,11 +277,18 @@ fn open_pub(
     service: &str,
     id: u64,
     (part, overflow, buffer, max): (&str, bool, usize, usize),
-) -> Result<Pub, String> {
+) -> Result<Pub, OpenError> {
+    use iceoryx2::port::publisher::PublisherCreateError;
+    use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenError;
     let n = service_name(&inbox_name(service, id, part))?;
     let s = pubsub_builder(node, &n, overflow, buffer)
         .open()
-        .map_err(|e| format!("{part}: {e:?}"))?;
+        .map_err(|e| match e {
+            PublishSubscribeOpenError::ExceedsMaxNumberOfNodes => {
+                OpenError::Full(format!("{part}: {e:?}"))
+            }
+            _ => OpenError::Other(format!("{part}: {e:?}")),
+        })?;
     s.publisher_builder()
         // Room for a seal whether or not this node has a key (a sealed frame is that much
         // longer than the limits the senders split messages by).
@@ -256,31 +297,41 @@ fn open_pub(
         .max_loaned_samples(2)
         .backpressure_strategy(BackpressureStrategy::DiscardData)
         .create()
-        .map_err(|e| format!("{part} publisher: {e:?}"))
+        .map_err(|e| match e {
+            PublisherCreateError::ExceedsMaxSupportedPublishers => {
+                OpenError::Full(format!("{part} publisher: {e:?}"))
+            }
+            _ => OpenError::Other(format!("{part} publisher: {e:?}")),
+        })
 }
 
 /// Opens the writing side of peer `id`'s bulk inbox.
-pub(super) fn open_bulk(node: &Node, service: &str, id: u64) -> Result<Pub, String> {
+pub(super) fn open_bulk(node: &Node, service: &str, id: u64) -> Result<Pub, OpenError> {
     open_pub(node, service, id, ("bulk", false, BULK_BUFFER, BULK_MAX))
 }
 
 /// Opens the writing side of peer `id`'s inbox (it must exist).
-pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, String> {
+pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, OpenError> {
+    use iceoryx2::port::notifier::NotifierCreateError;
+    use iceoryx2::service::builder::event::EventOpenError;
     let safe = open_pub(node, service, id, ("safe", false, SAFE_BUFFER, FRAME_MAX))?;
     let fast = open_pub(node, service, id, ("fast", true, FAST_BUFFER, FRAME_MAX))?;
     let wn = service_name(&inbox_name(service, id, "wake"))?;
-    let wake = event_builder(node, &wn)
-        .open()
-        .map_err(|e| format!("wake: {e:?}"))?;
+    let wake = event_builder(node, &wn).open().map_err(|e| match e {
+        EventOpenError::ExceedsMaxNumberOfNodes => OpenError::Full(format!("wake: {e:?}")),
+        _ => OpenError::Other(format!("wake: {e:?}")),
+    })?;
     // An inbox without the attribute (or with a mode we do not know) is woken on every send.
     let spins = wake
         .attributes()
         .key_value(&wait_key()?, 0)
         .is_some_and(|v| v == ShmWait::Spin.as_str());
-    let wake = wake
-        .notifier_builder()
-        .create()
-        .map_err(|e| format!("wake notifier: {e:?}"))?;
+    let wake = wake.notifier_builder().create().map_err(|e| match e {
+        NotifierCreateError::ExceedsMaxSupportedNotifiers => {
+            OpenError::Full(format!("wake notifier: {e:?}"))
+        }
+        _ => OpenError::Other(format!("wake notifier: {e:?}")),
+    })?;
     Ok(Conn {
         fast,
         safe,

@@ -101,8 +101,6 @@ const SAFE_FRAMES_IN_FLIGHT: usize = 4;
 const BULK_BUFFER: usize = 8;
 /// Frames a fast inbox buffers per writer before overwriting the oldest.
 const FAST_BUFFER: usize = 64;
-/// Most peers (same-host links of the same `service`) one inbox accepts.
-const MAX_PEERS: usize = 64;
 /// Fast messages kept for a peer whose inbox is not open yet, or large fast messages queued on
 /// the safe path; beyond it the oldest is dropped.
 const MAX_FAST_BACKLOG: usize = 1024;
@@ -141,6 +139,9 @@ pub struct ShmLinkOptions {
     pub scan: Duration,
     /// How the receive thread waits for frames.
     pub wait: ShmWait,
+    /// Most peers (same-host links of the same `service`) this link's inbox admits; each costs
+    /// ~11 KiB of memory from the start (iceoryx2's connection entries).
+    pub max_peers: usize,
     /// The domain key: when set, every frame is sealed and only sealed ones are taken (see
     /// [`crate::link::auth`]).
     pub security: Option<LinkSecurity>,
@@ -319,7 +320,7 @@ impl ShmLink {
             link: link.clone(),
             reader,
             forget: forget_rx,
-            rx: Receiver::new(Instant::now()),
+            rx: Receiver::new(Instant::now(), 2 * link.options.max_peers),
             run: HeldRun::default(),
         };
         let (receiver_tx, receiver_rx) = tokio::sync::oneshot::channel::<()>();
@@ -380,7 +381,7 @@ impl ShmLink {
         if let Some(p) = peers.get(&id) {
             return Some(p.clone());
         }
-        if !create || peers.len() >= MAX_PEERS || id == self.id {
+        if !create || peers.len() >= self.options.max_peers || id == self.id {
             return None;
         }
         let p = Arc::new(Mutex::new(Peer {

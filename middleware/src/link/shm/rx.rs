@@ -13,19 +13,18 @@ use std::time::Instant;
 
 use super::frame::{self, Frame, Part};
 use super::{
-    BULK_BUFFER, FAST_PASS_BUDGET, MAX_MESSAGE, MAX_PEERS, PASS_BUDGET, PASS_BULK_BYTES,
-    PASS_MESSAGES, REOPEN, RETRY, SAFE_BUFFER,
+    BULK_BUFFER, FAST_PASS_BUDGET, MAX_MESSAGE, PASS_BUDGET, PASS_BULK_BYTES, PASS_MESSAGES,
+    REOPEN, RETRY, SAFE_BUFFER,
 };
 use crate::link::LinkCounters;
-
-/// Most writers whose streams a receiver tracks (writer ids are whatever a frame says, so a
-/// process on the host could invent any number): a new one beyond it pushes out the writer
-/// heard from longest ago.
-const MAX_WRITERS: usize = 2 * MAX_PEERS;
 
 /// Most bytes of partly reassembled messages held over all writers (each writer also holds at
 /// most [`MAX_MESSAGE`]): beyond it, the message being extended is dropped as torn.
 const MAX_REASSEMBLY_BYTES: usize = 2 * MAX_MESSAGE;
+
+/// Writers the receivers of tests and fuzz targets track (twice the default `maxPeers`).
+#[cfg(any(test, feature = "fuzzing"))]
+pub(crate) const TEST_MAX_WRITERS: usize = 32;
 
 /// What the receiving machine reads from and acts on.
 pub(crate) trait RxIo {
@@ -141,14 +140,17 @@ pub(crate) struct Receiver {
     partial_bytes: usize,
     /// Safe fragments seen (a clock ordering writers by their last one).
     fragments: u64,
-    /// [`MAX_WRITERS`] and [`MAX_REASSEMBLY_BYTES`] (lower in tests).
+    /// Most writers whose streams are tracked (writer ids are whatever a frame says, so a
+    /// process on the host could invent any number): a new one beyond it pushes out the writer
+    /// heard from longest ago.
     max_writers: usize,
+    /// [`MAX_REASSEMBLY_BYTES`] (lower in tests).
     max_reassembly: usize,
 }
 
 impl Receiver {
-    /// A receiver knowing no sender yet.
-    pub(crate) fn new(now: Instant) -> Self {
+    /// A receiver knowing no sender yet, tracking the streams of up to `max_writers` writers.
+    pub(crate) fn new(now: Instant, max_writers: usize) -> Self {
         Receiver {
             stash: HashMap::new(),
             rx: HashMap::new(),
@@ -160,7 +162,7 @@ impl Receiver {
             backlog: false,
             partial_bytes: 0,
             fragments: 0,
-            max_writers: MAX_WRITERS,
+            max_writers,
             max_reassembly: MAX_REASSEMBLY_BYTES,
         }
     }
@@ -648,8 +650,9 @@ mod tests {
     #[test]
     fn invented_writers_are_bounded_in_count_and_bytes_and_a_live_writer_keeps_its_stream() {
         let c = LinkCounters::default();
-        let mut r = Receiver::new(Instant::now());
-        r.max_reassembly = 64 * 1000;
+        let mut r = Receiver::new(Instant::now(), TEST_MAX_WRITERS);
+        // Below what the tracked writers' partial messages would hold (1000 bytes each).
+        r.max_reassembly = TEST_MAX_WRITERS / 2 * 1000;
         let mut io = Inbox::default();
         let mut seq = 0;
         // 10,000 invented writer ids, each starting a message it never finishes; between
@@ -665,8 +668,8 @@ mod tests {
             if io.safe.len() >= 256 {
                 drain(&mut r, &mut io, &c);
                 let (writers, bytes) = r.held();
-                assert!(writers <= MAX_WRITERS, "{writers} writers tracked");
-                assert!(bytes <= 64 * 1000, "{bytes} bytes held");
+                assert!(writers <= TEST_MAX_WRITERS, "{writers} writers tracked");
+                assert!(bytes <= r.max_reassembly, "{bytes} bytes held");
             }
         }
         drain(&mut r, &mut io, &c);
@@ -681,7 +684,7 @@ mod tests {
         assert_eq!(io.delivered.len(), 200, "nothing of the invented writers");
         // Pushed out and counted: all but the writers still tracked.
         let pushed = c.sessions_expired.load(Ordering::Relaxed);
-        assert!(pushed >= 10_000 - MAX_WRITERS as u64, "{pushed}");
+        assert!(pushed >= 10_000 - TEST_MAX_WRITERS as u64, "{pushed}");
         // The byte bound tore the messages that would have passed it, and counted them.
         assert!(c.corrupt.load(Ordering::Relaxed) > 0);
         // A forgotten writer's bytes are given back.

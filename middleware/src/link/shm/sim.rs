@@ -241,7 +241,7 @@ impl SimHost {
                 .map(|&i| {
                     let node = SimNode {
                         peers: HashMap::new(),
-                        rx: Receiver::new(now),
+                        rx: Receiver::new(now, super::rx::TEST_MAX_WRITERS),
                         got: Vec::new(),
                         counters: LinkCounters::default(),
                     };

@@ -43,6 +43,16 @@ async fn open_link_waiting(
     tasks: &TaskTracker,
     cancel: &CancellationToken,
 ) -> (Arc<ShmLink>, mpsc::Receiver<Got>) {
+    open_link_admitting(service, wait, 16, tasks, cancel).await
+}
+
+async fn open_link_admitting(
+    service: &str,
+    wait: ShmWait,
+    max_peers: usize,
+    tasks: &TaskTracker,
+    cancel: &CancellationToken,
+) -> (Arc<ShmLink>, mpsc::Receiver<Got>) {
     let (tx, rx) = mpsc::channel();
     let link = ShmLink::open(
         0,
@@ -51,6 +61,7 @@ async fn open_link_waiting(
             service: service.into(),
             scan: Duration::from_millis(200),
             wait,
+            max_peers,
             security: None,
         },
         Arc::new(Collect(tx)),
@@ -173,6 +184,82 @@ async fn safe_messages_arrive_once_in_order_and_are_acknowledged() {
         );
     }
     assert_eq!(b.stats().duplicates, 0);
+    stop(tasks, cancel).await;
+}
+
+async fn acknowledged(done: tokio::sync::oneshot::Receiver<Result<(), LinkSendError>>) {
+    let r = tokio::time::timeout(Duration::from_secs(5), done).await;
+    assert_eq!(
+        r.expect("acknowledged in time").expect("completion sent"),
+        Ok(())
+    );
+}
+
+/// `maxPeers` bounds a link's peers both ways: its inbox admits that many writers and it
+/// writes to that many peers. A link with other limits meets it; one beyond them does not, and
+/// what it is refused fails at once on the full side instead of waiting.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_link_admits_max_peers_and_links_with_other_limits_meet() {
+    let svc = unique_service("max");
+    let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+    let (a, arx) = open_link_admitting(&svc, ShmWait::Event, 1, &tasks, &cancel).await;
+    let (b, brx) = open_link(&svc, &tasks, &cancel).await;
+    // b (16 peers) and a (1) meet both ways.
+    let (out, done) = safe(b"b to a".to_vec());
+    b.send(PeerAddr::Shm(a.id()), out);
+    assert_eq!(
+        next_msg(&arx),
+        Got::Msg(PeerAddr::Shm(b.id()), b"b to a".to_vec())
+    );
+    acknowledged(done).await;
+    let (out, done) = safe(b"a to b".to_vec());
+    a.send(PeerAddr::Shm(b.id()), out);
+    assert_eq!(
+        next_msg(&brx),
+        Got::Msg(PeerAddr::Shm(a.id()), b"a to b".to_vec())
+    );
+    acknowledged(done).await;
+    // c comes third: a has no room for it, b has.
+    let (c, crx) = open_link(&svc, &tasks, &cancel).await;
+    let (out, refused) = safe(b"a to c".to_vec());
+    a.send(PeerAddr::Shm(c.id()), out);
+    let r = tokio::time::timeout(Duration::from_secs(5), refused).await;
+    assert!(
+        matches!(r, Ok(Ok(Err(LinkSendError::PeerClosed(_))))),
+        "a's send to a peer beyond maxPeers fails at once: {r:?}"
+    );
+    // c's first scan (before it opened) found a's inbox full. Had it been let in, this would be
+    // written and a woken here, and reach a before anything below.
+    let (out, _never) = safe(b"c to a".to_vec());
+    c.send(PeerAddr::Shm(a.id()), out);
+    let (out, done) = safe(b"c to b".to_vec());
+    c.send(PeerAddr::Shm(b.id()), out);
+    assert_eq!(
+        next_msg(&brx),
+        Got::Msg(PeerAddr::Shm(c.id()), b"c to b".to_vec())
+    );
+    acknowledged(done).await;
+    let (out, done) = safe(b"b to c".to_vec());
+    b.send(PeerAddr::Shm(c.id()), out);
+    assert_eq!(
+        next_msg(&crx),
+        Got::Msg(PeerAddr::Shm(b.id()), b"b to c".to_vec())
+    );
+    acknowledged(done).await;
+    // And a still hears b, and only b.
+    let (out, done) = safe(b"b to a again".to_vec());
+    b.send(PeerAddr::Shm(a.id()), out);
+    assert_eq!(
+        next_msg(&arx),
+        Got::Msg(PeerAddr::Shm(b.id()), b"b to a again".to_vec())
+    );
+    acknowledged(done).await;
+    while let Ok(g) = arx.try_recv() {
+        assert!(
+            !matches!(g, Got::Msg(from, _) if from == PeerAddr::Shm(c.id())),
+            "a heard c"
+        );
+    }
     stop(tasks, cancel).await;
 }
 
@@ -364,6 +451,7 @@ async fn a_reader_that_stops_never_blocks_the_writer() {
             service: svc.clone(),
             scan: Duration::from_millis(200),
             wait: ShmWait::Event,
+            max_peers: 16,
             security: None,
         },
         Arc::new(Stuck(
