@@ -11,9 +11,10 @@
 //! - the same-run ratios of the issue (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed
 //!   within each round, median over the rounds, with their own `.spread_pct`.
 //!
-//! marea's UDP cases run `peer-marea-udp`, marea built without its `shm` and `serial` features
-//! (no iceoryx2, no serial link, as a UDP-only node is built, which matters most for the idle
-//! RSS); the shm and serial cases run `peer-marea`, built with marea's default features. Both come from one source file
+//! Each marea case runs marea built as a node for that link would be, which matters most for the
+//! idle RSS: the UDP cases run `peer-marea-udp` (marea without its `shm` and `serial` features:
+//! no iceoryx2, no serial link), the shm cases `peer-marea-shm` (feature `shm` alone) and the
+//! serial cases `peer-marea` (marea's default features). All come from one source file
 //! (`src/bin/peer-marea.rs`) and [`build_peers`] builds them in separate cargo invocations.
 //!
 //! Every wait is bounded and every child is killed when its case ends.
@@ -45,8 +46,9 @@ struct Case {
     /// `marea_serial`.
     imp: &'static str,
     kind: Kind,
-    /// The peer binary: `peer-udp`, `peer-zenoh`, `peer-iceoryx2`, `peer-marea` (shm, serial)
-    /// or `peer-marea-udp` (marea over UDP, built without the `shm` and `serial` features).
+    /// The peer binary: `peer-udp`, `peer-zenoh`, `peer-iceoryx2`, `peer-marea` (serial),
+    /// `peer-marea-udp` (marea over UDP, built without the `shm` and `serial` features) or
+    /// `peer-marea-shm` (marea over shm, built with `shm` alone).
     bin: &'static str,
     size: usize,
     /// Round trips, or seconds of publishing, or seconds idle.
@@ -128,7 +130,7 @@ fn cases(o: &Opts) -> Vec<Case> {
                 "",
             ),
             marea(
-                base(fig, "marea_shm", Kind::Rtt, "peer-marea", 64, n_rtt),
+                base(fig, "marea_shm", Kind::Rtt, "peer-marea-shm", 64, n_rtt),
                 "shm",
                 "",
             ),
@@ -149,7 +151,7 @@ fn cases(o: &Opts) -> Vec<Case> {
                 "-event",
             ),
             marea(
-                base(fig, "marea_shm", Kind::Rate, "peer-marea", size, secs),
+                base(fig, "marea_shm", Kind::Rate, "peer-marea-shm", size, secs),
                 "shm",
                 "-event",
             ),
@@ -178,7 +180,7 @@ fn cases(o: &Opts) -> Vec<Case> {
             "",
         ),
         marea(
-            base(fig, "marea_shm", Kind::Idle, "peer-marea", 64, idle),
+            base(fig, "marea_shm", Kind::Idle, "peer-marea-shm", 64, idle),
             "shm",
             "",
         ),
@@ -222,14 +224,14 @@ fn cases(o: &Opts) -> Vec<Case> {
 ///
 /// One cargo invocation per package: cargo unifies a dependency's features across the packages
 /// one invocation builds, so `peer-marea-udp` built beside `peer-marea` would get marea's `shm`
-/// back.
+/// back (and `peer-marea-shm` its `serial`).
 fn build_peers(o: &Opts) -> anyhow::Result<()> {
     if o.no_build {
         return Ok(());
     }
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let manifest = concat!(env!("CARGO_MANIFEST_DIR"), "/Cargo.toml");
-    for package in ["peers", "peer-marea-udp"] {
+    for package in ["peers", "peer-marea-udp", "peer-marea-shm"] {
         let mut cmd = std::process::Command::new(&cargo);
         cmd.args([
             "build",

@@ -5,10 +5,11 @@
 //! `serial:DEV:BAUD` (one end of a pty pair the runner bridges). KEY is the domain (and the shm
 //! service name). Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`.
 //!
-//! Built twice from this file: `peer-marea` (package `peers`, marea's default features) for the
-//! shm cases, and `peer-marea-udp` (package `marea-udp`, without marea's `shm` feature, as a
-//! UDP/serial-only node is built) for the UDP and serial ones; given `shm`, the latter fails to
-//! open its node.
+//! Built three times from this file, each as a node for its link would be built: `peer-marea`
+//! (package `peers`, marea's default features) for the serial cases, `peer-marea-udp` (package
+//! `marea-udp`, without marea's `shm` and `serial` features) for the UDP ones and
+//! `peer-marea-shm` (package `marea-shm`, feature `shm` alone) for the shm ones; given a link
+//! its build lacks, a peer fails to open its node.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
