@@ -139,8 +139,9 @@ pub struct ShmLinkOptions {
     pub scan: Duration,
     /// How the receive thread waits for frames.
     pub wait: ShmWait,
-    /// Most peers (same-host links of the same `service`) this link's inbox admits; each costs
-    /// ~11 KiB of memory from the start (iceoryx2's connection entries).
+    /// Most peers (same-host links of the same `service`) this link exchanges with: its inbox
+    /// admits that many writers and it writes to that many inboxes. Each costs ~11 KiB of
+    /// memory from the start (iceoryx2's connection entries).
     pub max_peers: usize,
     /// The domain key: when set, every frame is sealed and only sealed ones are taken (see
     /// [`crate::link::auth`]).
