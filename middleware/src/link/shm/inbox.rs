@@ -265,6 +265,18 @@ impl std::fmt::Display for OpenError {
     }
 }
 
+impl OpenError {
+    /// What iceoryx2 said (`error`) when opening `what`: [`OpenError::Full`] if `full`.
+    fn from_iceoryx2(what: &str, error: impl std::fmt::Debug, full: bool) -> Self {
+        let what = format!("{what}: {error:?}");
+        if full {
+            OpenError::Full(what)
+        } else {
+            OpenError::Other(what)
+        }
+    }
+}
+
 impl From<String> for OpenError {
     fn from(what: String) -> Self {
         OpenError::Other(what)
@@ -283,11 +295,9 @@ fn open_pub(
     let n = service_name(&inbox_name(service, id, part))?;
     let s = pubsub_builder(node, &n, overflow, buffer)
         .open()
-        .map_err(|e| match e {
-            PublishSubscribeOpenError::ExceedsMaxNumberOfNodes => {
-                OpenError::Full(format!("{part}: {e:?}"))
-            }
-            _ => OpenError::Other(format!("{part}: {e:?}")),
+        .map_err(|e| {
+            let full = matches!(e, PublishSubscribeOpenError::ExceedsMaxNumberOfNodes);
+            OpenError::from_iceoryx2(part, e, full)
         })?;
     s.publisher_builder()
         // Room for a seal whether or not this node has a key (a sealed frame is that much
@@ -297,11 +307,9 @@ fn open_pub(
         .max_loaned_samples(2)
         .backpressure_strategy(BackpressureStrategy::DiscardData)
         .create()
-        .map_err(|e| match e {
-            PublisherCreateError::ExceedsMaxSupportedPublishers => {
-                OpenError::Full(format!("{part} publisher: {e:?}"))
-            }
-            _ => OpenError::Other(format!("{part} publisher: {e:?}")),
+        .map_err(|e| {
+            let full = matches!(e, PublisherCreateError::ExceedsMaxSupportedPublishers);
+            OpenError::from_iceoryx2(&format!("{part} publisher"), e, full)
         })
 }
 
@@ -317,20 +325,18 @@ pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<C
     let safe = open_pub(node, service, id, ("safe", false, SAFE_BUFFER, FRAME_MAX))?;
     let fast = open_pub(node, service, id, ("fast", true, FAST_BUFFER, FRAME_MAX))?;
     let wn = service_name(&inbox_name(service, id, "wake"))?;
-    let wake = event_builder(node, &wn).open().map_err(|e| match e {
-        EventOpenError::ExceedsMaxNumberOfNodes => OpenError::Full(format!("wake: {e:?}")),
-        _ => OpenError::Other(format!("wake: {e:?}")),
+    let wake = event_builder(node, &wn).open().map_err(|e| {
+        let full = matches!(e, EventOpenError::ExceedsMaxNumberOfNodes);
+        OpenError::from_iceoryx2("wake", e, full)
     })?;
     // An inbox without the attribute (or with a mode we do not know) is woken on every send.
     let spins = wake
         .attributes()
         .key_value(&wait_key()?, 0)
         .is_some_and(|v| v == ShmWait::Spin.as_str());
-    let wake = wake.notifier_builder().create().map_err(|e| match e {
-        NotifierCreateError::ExceedsMaxSupportedNotifiers => {
-            OpenError::Full(format!("wake notifier: {e:?}"))
-        }
-        _ => OpenError::Other(format!("wake notifier: {e:?}")),
+    let wake = wake.notifier_builder().create().map_err(|e| {
+        let full = matches!(e, NotifierCreateError::ExceedsMaxSupportedNotifiers);
+        OpenError::from_iceoryx2("wake notifier", e, full)
     })?;
     Ok(Conn {
         fast,
