@@ -177,22 +177,34 @@ async fn safe_messages_arrive_once_in_order_and_are_acknowledged() {
         assert!(m[4..].iter().all(|&x| x == (i % 251) as u8));
     }
     for d in acks {
-        let r = tokio::time::timeout(Duration::from_secs(5), d).await;
-        assert_eq!(
-            r.expect("acknowledged in time").expect("completion sent"),
-            Ok(())
-        );
+        acknowledged(d, Duration::from_secs(5)).await;
     }
     assert_eq!(b.stats().duplicates, 0);
     stop(tasks, cancel).await;
 }
 
-async fn acknowledged(done: tokio::sync::oneshot::Receiver<Result<(), LinkSendError>>) {
-    let r = tokio::time::timeout(Duration::from_secs(5), done).await;
+/// Waits up to `within` for `done` to report the message acknowledged.
+async fn acknowledged(
+    done: tokio::sync::oneshot::Receiver<Result<(), LinkSendError>>,
+    within: Duration,
+) {
+    let r = tokio::time::timeout(within, done).await;
     assert_eq!(
         r.expect("acknowledged in time").expect("completion sent"),
         Ok(())
     );
+}
+
+/// `from` sends `to` the safe message `msg`: it is the next delivery on `to_rx` and is
+/// acknowledged.
+async fn delivered(from: &ShmLink, to: &ShmLink, to_rx: &mpsc::Receiver<Got>, msg: &[u8]) {
+    let (out, done) = safe(msg.to_vec());
+    from.send(PeerAddr::Shm(to.id()), out);
+    assert_eq!(
+        next_msg(to_rx),
+        Got::Msg(PeerAddr::Shm(from.id()), msg.to_vec())
+    );
+    acknowledged(done, Duration::from_secs(5)).await;
 }
 
 /// `maxPeers` bounds a link's peers both ways: its inbox admits that many writers and it
@@ -205,20 +217,8 @@ async fn a_link_admits_max_peers_and_links_with_other_limits_meet() {
     let (a, arx) = open_link_admitting(&svc, ShmWait::Event, 1, &tasks, &cancel).await;
     let (b, brx) = open_link(&svc, &tasks, &cancel).await;
     // b (16 peers) and a (1) meet both ways.
-    let (out, done) = safe(b"b to a".to_vec());
-    b.send(PeerAddr::Shm(a.id()), out);
-    assert_eq!(
-        next_msg(&arx),
-        Got::Msg(PeerAddr::Shm(b.id()), b"b to a".to_vec())
-    );
-    acknowledged(done).await;
-    let (out, done) = safe(b"a to b".to_vec());
-    a.send(PeerAddr::Shm(b.id()), out);
-    assert_eq!(
-        next_msg(&brx),
-        Got::Msg(PeerAddr::Shm(a.id()), b"a to b".to_vec())
-    );
-    acknowledged(done).await;
+    delivered(&b, &a, &arx, b"b to a").await;
+    delivered(&a, &b, &brx, b"a to b").await;
     // c comes third: a has no room for it, b has.
     let (c, crx) = open_link(&svc, &tasks, &cancel).await;
     let (out, refused) = safe(b"a to c".to_vec());
@@ -232,28 +232,10 @@ async fn a_link_admits_max_peers_and_links_with_other_limits_meet() {
     // written and a woken here, and reach a before anything below.
     let (out, _never) = safe(b"c to a".to_vec());
     c.send(PeerAddr::Shm(a.id()), out);
-    let (out, done) = safe(b"c to b".to_vec());
-    c.send(PeerAddr::Shm(b.id()), out);
-    assert_eq!(
-        next_msg(&brx),
-        Got::Msg(PeerAddr::Shm(c.id()), b"c to b".to_vec())
-    );
-    acknowledged(done).await;
-    let (out, done) = safe(b"b to c".to_vec());
-    b.send(PeerAddr::Shm(c.id()), out);
-    assert_eq!(
-        next_msg(&crx),
-        Got::Msg(PeerAddr::Shm(b.id()), b"b to c".to_vec())
-    );
-    acknowledged(done).await;
+    delivered(&c, &b, &brx, b"c to b").await;
+    delivered(&b, &c, &crx, b"b to c").await;
     // And a still hears b, and only b.
-    let (out, done) = safe(b"b to a again".to_vec());
-    b.send(PeerAddr::Shm(a.id()), out);
-    assert_eq!(
-        next_msg(&arx),
-        Got::Msg(PeerAddr::Shm(b.id()), b"b to a again".to_vec())
-    );
-    acknowledged(done).await;
+    delivered(&b, &a, &arx, b"b to a again").await;
     while let Ok(g) = arx.try_recv() {
         assert!(
             !matches!(g, Got::Msg(from, _) if from == PeerAddr::Shm(c.id())),
@@ -330,11 +312,7 @@ async fn large_messages_of_two_writers_cross_the_bulk_inbox_whole_and_in_order()
         *expected = i + 1;
     }
     for d in acks {
-        let r = tokio::time::timeout(Duration::from_secs(10), d).await;
-        assert_eq!(
-            r.expect("acknowledged in time").expect("completion sent"),
-            Ok(())
-        );
+        acknowledged(d, Duration::from_secs(10)).await;
     }
     assert_eq!(b.stats().corrupt, 0);
     assert_eq!(b.stats().duplicates, 0);
@@ -380,11 +358,7 @@ async fn a_polling_reader_is_never_notified_and_still_gets_everything() {
     let (a, arx) = open_link(&svc, &tasks, &cancel).await;
     let (b, brx) = open_link_waiting(&svc, ShmWait::Spin, &tasks, &cancel).await;
     let (to_b, to_a) = (PeerAddr::Shm(b.id()), PeerAddr::Shm(a.id()));
-    let (out, done) = safe(b"first".to_vec());
-    a.send(to_b, out);
-    assert_eq!(next_msg(&brx), Got::Msg(to_a, b"first".to_vec()));
-    let r = tokio::time::timeout(Duration::from_secs(5), done).await;
-    assert_eq!(r.expect("acknowledged").expect("completion sent"), Ok(()));
+    delivered(&a, &b, &brx, b"first").await;
     // a learnt from b's inbox that b polls, and b that a sleeps.
     let spins = |from: &ShmLink, to: u64| {
         from.peer(to, false)
@@ -529,11 +503,7 @@ async fn a_reader_that_stops_never_blocks_the_writer() {
         }
     }
     for d in acks {
-        let r = tokio::time::timeout(Duration::from_secs(5), d).await;
-        assert_eq!(
-            r.expect("acknowledged in time").expect("completion sent"),
-            Ok(())
-        );
+        acknowledged(d, Duration::from_secs(5)).await;
     }
     stop(tasks, cancel).await;
 }
