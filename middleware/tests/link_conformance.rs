@@ -202,7 +202,7 @@ async fn shm_pair(security: Option<LinkSecurity>) -> Pair {
         service: service.clone(),
         scan: Duration::from_millis(100),
         wait: ShmWait::Event,
-        max_peers: 16,
+        max_peers: marea::config::ShmConfig::default().max_peers,
         security: security.clone(),
     };
     let (ra, rb) = (Arc::new(Recorder::default()), Arc::new(Recorder::default()));

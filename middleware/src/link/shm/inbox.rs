@@ -25,6 +25,8 @@ use crate::link::auth::{Profile, Sealer};
 pub(super) type Ipc = ipc_threadsafe::Service;
 pub(super) type Pub = Publisher<Ipc, [u8], ()>;
 type Sub = Subscriber<Ipc, [u8], ()>;
+type PubSubService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>;
+type EventService = iceoryx2::service::port_factory::event::PortFactory<Ipc>;
 /// The iceoryx2 node of a link.
 pub(super) type Node = IoxNode<Ipc>;
 
@@ -104,9 +106,11 @@ impl InboxReader {
     }
 }
 
-/// Departed writers whose unread frames an inbox part keeps (at least iceoryx2's samples a
-/// subscriber may borrow, 2).
-const EXPIRED_CONNECTIONS: usize = 8;
+/// Departed writers whose unread frames an inbox part keeps until the next pass: iceoryx2's
+/// least (the samples a subscriber may borrow, 2). Each one more costs ~3.6 KiB of heap per
+/// part, and more than two peers leaving between two passes is rare (a peer whose last
+/// frames are lost is still found gone by the next scan).
+const EXPIRED_CONNECTIONS: usize = 2;
 
 fn service_name(s: &str) -> Result<ServiceName, String> {
     ServiceName::new(s).map_err(|e| format!("invalid service name {s}: {e:?}"))
@@ -118,31 +122,10 @@ impl Inbox {
         options: &ShmLinkOptions,
         id: u64,
     ) -> Result<(Node, Inbox), ShmLinkOpenError> {
-        // iceoryx2 logs to stderr; keep it to errors unless the user asks for more.
-        iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
-        let link = options.name.clone();
-        let node_err = |reason: String| ShmLinkOpenError::Node {
-            link: link.clone(),
+        let node = create_node(&options.service, id).map_err(|reason| ShmLinkOpenError::Node {
+            link: options.name.clone(),
             reason,
-        };
-        let name = NodeName::new(&format!("{}{id:016x}", node_prefix(&options.service)))
-            .map_err(|e| node_err(format!("{e:?}")))?;
-        // iceoryx2's defaults (and any iceoryx2 config file), with a subscriber's table of
-        // departed publishers' connections cut from 128 entries to a few: each entry is ~3.6 KiB
-        // of heap per inbox part, touched at creation, and a departed peer's leftover frames
-        // are needed only until the next pass.
-        let mut config = iceoryx2::config::Config::global_config().clone();
-        config
-            .defaults
-            .publish_subscribe
-            .subscriber_expired_connection_buffer = EXPIRED_CONNECTIONS;
-        let node = NodeBuilder::new()
-            .config(&config)
-            .name(&name)
-            // The process owns its signals (tokio's ctrl_c); iceoryx2 must not take them.
-            .signal_handling_mode(SignalHandlingMode::Disabled)
-            .create::<Ipc>()
-            .map_err(|e| node_err(format!("{e:?}")))?;
+        })?;
         // A process killed earlier may have left services behind: remove them before anything
         // reads them.
         let cleaned = node.try_cleanup_dead_nodes();
@@ -154,45 +137,16 @@ impl Inbox {
             what: what.to_owned(),
             reason,
         };
-        let svc = &options.service;
-        // A writer per peer (a restarted peer removed its dead predecessor's when it started);
-        // the nodes are theirs and ours.
-        let writers = options.max_peers;
-        let open_pubsub = |part: &str, overflow: bool, buffer: usize| {
-            let n = service_name(&inbox_name(svc, id, part)).map_err(|e| inbox_err(part, e))?;
-            // The service only records its settings; the memory is the writers', allocated
-            // when each opens a publisher.
-            let s = pubsub_builder(&node, &n, overflow, buffer)
-                .max_publishers(writers)
-                .max_nodes(writers + 1)
-                .create()
-                .map_err(|e| inbox_err(part, format!("{e:?}")))?;
-            s.subscriber_builder()
-                .buffer_size(buffer)
-                .create()
-                .map_err(|e| inbox_err(part, format!("{e:?}")))
-        };
-        let safe = open_pubsub("safe", false, SAFE_BUFFER)?;
-        let fast = open_pubsub("fast", true, FAST_BUFFER)?;
-        let bulk = open_pubsub("bulk", false, BULK_BUFFER)?;
-        let wn = service_name(&inbox_name(svc, id, "wake")).map_err(|e| inbox_err("wake", e))?;
-        // Writers read how this inbox's reader waits from the wake event's attributes.
-        let attributes =
-            wait_attribute(options.wait).map_err(|e| inbox_err("wake attribute", e))?;
-        let wake = event_builder(&node, &wn)
-            // ... and our own notifier (the receive task's wake-up).
-            .max_notifiers(writers + 1)
-            .max_nodes(writers + 1)
-            .create_with_attributes(&attributes)
-            .map_err(|e| inbox_err("wake", format!("{e:?}")))?;
-        let listener = wake
-            .listener_builder()
-            .create()
-            .map_err(|e| inbox_err("wake listener", format!("{e:?}")))?;
-        let self_wake = wake
-            .notifier_builder()
-            .create()
-            .map_err(|e| inbox_err("wake notifier", format!("{e:?}")))?;
+        let (svc, writers) = (&options.service, options.max_peers);
+        let safe = create_part(&node, (svc, id, "safe"), false, SAFE_BUFFER, writers)
+            .map_err(|e| inbox_err("safe", e))?;
+        let fast = create_part(&node, (svc, id, "fast"), true, FAST_BUFFER, writers)
+            .map_err(|e| inbox_err("fast", e))?;
+        let bulk = create_part(&node, (svc, id, "bulk"), false, BULK_BUFFER, writers)
+            .map_err(|e| inbox_err("bulk", e))?;
+        let wake = create_wake(&node, (svc, id), options.wait, writers)
+            .map_err(|(what, e)| inbox_err(what, e))?;
+        let (listener, self_wake) = wake_ports(&wake).map_err(|(what, e)| inbox_err(what, e))?;
         let inbox = Inbox {
             reader: InboxReader {
                 safe,
@@ -205,6 +159,108 @@ impl Inbox {
         };
         Ok((node, inbox))
     }
+}
+
+// iceoryx2's builders carry service configurations by value, tens of KiB each; every step
+// below is kept out of line so that their stack frames follow one another rather than add up
+// in one caller's frame (the control thread's stack: ~220 -> ~176 KiB resident).
+
+/// The iceoryx2 node of inbox `id` of `service`.
+#[inline(never)]
+fn create_node(service: &str, id: u64) -> Result<Node, String> {
+    // iceoryx2 logs to stderr; keep it to errors unless the user asks for more.
+    iceoryx2::prelude::set_log_level_from_env_or(LogLevel::Error);
+    let name = NodeName::new(&format!("{}{id:016x}", node_prefix(service)))
+        .map_err(|e| format!("{e:?}"))?;
+    // iceoryx2's defaults (and any iceoryx2 config file), with a subscriber's table of
+    // departed publishers' connections cut from 128 entries to EXPIRED_CONNECTIONS.
+    let mut config = iceoryx2::config::Config::global_config().clone();
+    config
+        .defaults
+        .publish_subscribe
+        .subscriber_expired_connection_buffer = EXPIRED_CONNECTIONS;
+    NodeBuilder::new()
+        .config(&config)
+        .name(&name)
+        // The process owns its signals (tokio's ctrl_c); iceoryx2 must not take them.
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .map_err(|e| format!("{e:?}"))
+}
+
+/// Creates part `part` of inbox `id` of `service` and its subscriber: a writer per peer (a
+/// restarted peer removed its dead predecessor's when it started); the nodes are theirs and
+/// ours.
+#[inline(never)]
+fn create_part(
+    node: &Node,
+    (service, id, part): (&str, u64, &str),
+    overflow: bool,
+    buffer: usize,
+    writers: usize,
+) -> Result<Sub, String> {
+    let name = service_name(&inbox_name(service, id, part))?;
+    let created = create_part_service(node, &name, overflow, buffer, writers)?;
+    create_subscriber(&created, buffer)
+}
+
+#[inline(never)]
+fn create_part_service(
+    node: &Node,
+    name: &ServiceName,
+    overflow: bool,
+    buffer: usize,
+    writers: usize,
+) -> Result<PubSubService, String> {
+    // The service only records its settings; the memory is the writers', allocated when each
+    // opens a publisher.
+    pubsub_builder(node, name, overflow, buffer)
+        .max_publishers(writers)
+        .max_nodes(writers + 1)
+        .create()
+        .map_err(|e| format!("{e:?}"))
+}
+
+#[inline(never)]
+fn create_subscriber(service: &PubSubService, buffer: usize) -> Result<Sub, String> {
+    service
+        .subscriber_builder()
+        .buffer_size(buffer)
+        .create()
+        .map_err(|e| format!("{e:?}"))
+}
+
+/// Creates the wake event of inbox `id` of `service`: its attributes tell writers how the
+/// reader `wait`s. On failure, says what failed and why.
+#[inline(never)]
+fn create_wake(
+    node: &Node,
+    (service, id): (&str, u64),
+    wait: ShmWait,
+    writers: usize,
+) -> Result<EventService, (&'static str, String)> {
+    let name = service_name(&inbox_name(service, id, "wake")).map_err(|e| ("wake", e))?;
+    let attributes = wait_attribute(wait).map_err(|e| ("wake attribute", e))?;
+    event_builder(node, &name)
+        // ... and our own notifier (the receive task's wake-up).
+        .max_notifiers(writers + 1)
+        .max_nodes(writers + 1)
+        .create_with_attributes(&attributes)
+        .map_err(|e| ("wake", format!("{e:?}")))
+}
+
+/// The reader's ports of its wake event: the listener and its own notifier.
+#[inline(never)]
+fn wake_ports(wake: &EventService) -> Result<(Listener<Ipc>, SelfWake), (&'static str, String)> {
+    let listener = wake
+        .listener_builder()
+        .create()
+        .map_err(|e| ("wake listener", format!("{e:?}")))?;
+    let notifier = wake
+        .notifier_builder()
+        .create()
+        .map_err(|e| ("wake notifier", format!("{e:?}")))?;
+    Ok((listener, notifier))
 }
 
 /// An inbox part's service as its creator and its writers both describe it. Its capacities
@@ -290,16 +346,33 @@ fn open_pub(
     id: u64,
     (part, overflow, buffer, max): (&str, bool, usize, usize),
 ) -> Result<Pub, OpenError> {
-    use iceoryx2::port::publisher::PublisherCreateError;
-    use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenError;
     let n = service_name(&inbox_name(service, id, part))?;
-    let s = pubsub_builder(node, &n, overflow, buffer)
+    let s = open_part_service(node, &n, part, overflow, buffer)?;
+    create_publisher(&s, part, max)
+}
+
+#[inline(never)]
+fn open_part_service(
+    node: &Node,
+    name: &ServiceName,
+    part: &str,
+    overflow: bool,
+    buffer: usize,
+) -> Result<PubSubService, OpenError> {
+    use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenError;
+    pubsub_builder(node, name, overflow, buffer)
         .open()
         .map_err(|e| {
             let full = matches!(e, PublishSubscribeOpenError::ExceedsMaxNumberOfNodes);
             OpenError::from_iceoryx2(part, e, full)
-        })?;
-    s.publisher_builder()
+        })
+}
+
+#[inline(never)]
+fn create_publisher(service: &PubSubService, part: &str, max: usize) -> Result<Pub, OpenError> {
+    use iceoryx2::port::publisher::PublisherCreateError;
+    service
+        .publisher_builder()
         // Room for a seal whether or not this node has a key (a sealed frame is that much
         // longer than the limits the senders split messages by).
         .initial_max_slice_len(max + Profile::SHM.overhead())
@@ -320,10 +393,22 @@ pub(super) fn open_bulk(node: &Node, service: &str, id: u64) -> Result<Pub, Open
 
 /// Opens the writing side of peer `id`'s inbox (it must exist).
 pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<Conn, OpenError> {
-    use iceoryx2::port::notifier::NotifierCreateError;
-    use iceoryx2::service::builder::event::EventOpenError;
     let safe = open_pub(node, service, id, ("safe", false, SAFE_BUFFER, FRAME_MAX))?;
     let fast = open_pub(node, service, id, ("fast", true, FAST_BUFFER, FRAME_MAX))?;
+    let (wake, spins) = open_wake(node, service, id)?;
+    Ok(Conn {
+        fast,
+        safe,
+        wake,
+        spins,
+    })
+}
+
+/// Opens peer `id`'s wake event and a notifier on it; says whether the peer spins.
+#[inline(never)]
+fn open_wake(node: &Node, service: &str, id: u64) -> Result<(Notifier<Ipc>, bool), OpenError> {
+    use iceoryx2::port::notifier::NotifierCreateError;
+    use iceoryx2::service::builder::event::EventOpenError;
     let wn = service_name(&inbox_name(service, id, "wake"))?;
     let wake = event_builder(node, &wn).open().map_err(|e| {
         let full = matches!(e, EventOpenError::ExceedsMaxNumberOfNodes);
@@ -334,16 +419,11 @@ pub(super) fn open_conn(node: &IoxNode<Ipc>, service: &str, id: u64) -> Result<C
         .attributes()
         .key_value(&wait_key()?, 0)
         .is_some_and(|v| v == ShmWait::Spin.as_str());
-    let wake = wake.notifier_builder().create().map_err(|e| {
+    let notifier = wake.notifier_builder().create().map_err(|e| {
         let full = matches!(e, NotifierCreateError::ExceedsMaxSupportedNotifiers);
         OpenError::from_iceoryx2("wake notifier", e, full)
     })?;
-    Ok(Conn {
-        fast,
-        safe,
-        wake,
-        spins,
-    })
+    Ok((notifier, spins))
 }
 
 /// Writes one frame into `publisher`. Returns whether the inbox took it (a non-overflowing

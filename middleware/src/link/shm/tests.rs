@@ -43,8 +43,12 @@ async fn open_link_waiting(
     tasks: &TaskTracker,
     cancel: &CancellationToken,
 ) -> (Arc<ShmLink>, mpsc::Receiver<Got>) {
-    open_link_admitting(service, wait, 16, tasks, cancel).await
+    open_link_admitting(service, wait, MAX_PEERS, tasks, cancel).await
 }
+
+/// Peers a test link admits: as many as a node's `<shm>` by default, more than any test here
+/// opens (except the test of the limit itself, which sets its own).
+const MAX_PEERS: usize = 16;
 
 async fn open_link_admitting(
     service: &str,
@@ -425,7 +429,7 @@ async fn a_reader_that_stops_never_blocks_the_writer() {
             service: svc.clone(),
             scan: Duration::from_millis(200),
             wait: ShmWait::Event,
-            max_peers: 16,
+            max_peers: MAX_PEERS,
             security: None,
         },
         Arc::new(Stuck(
