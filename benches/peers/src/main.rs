@@ -68,7 +68,11 @@ struct Opts {
     only: Option<String>,
 }
 
-fn opts() -> anyhow::Result<Opts> {
+const USAGE: &str =
+    "usage: peers [--quick] [--rounds N] [--baud B] [--only SUBSTRING] [--no-build]";
+
+/// The options, or `None` when asked for help (the usage is printed).
+fn opts() -> anyhow::Result<Option<Opts>> {
     let mut o = Opts {
         no_build: false,
         rounds: 3,
@@ -86,13 +90,15 @@ fn opts() -> anyhow::Result<Opts> {
             "--baud" => o.baud = it.next().context("--baud B")?.parse()?,
             "--only" => o.only = Some(it.next().context("--only SUBSTRING")?),
             "--bench" => {} // cargo bench passes this
-            other => bail!(
-                "unknown argument {other:?} (--quick, --rounds N, --baud B, --only S, --no-build)"
-            ),
+            "-h" | "--help" => {
+                println!("{USAGE}");
+                return Ok(None);
+            }
+            other => bail!("unknown argument {other:?}\n{USAGE}"),
         }
     }
     o.rounds = rounds.unwrap_or(if o.quick { 1 } else { 3 });
-    Ok(o)
+    Ok(Some(o))
 }
 
 fn cases(o: &Opts) -> Vec<Case> {
@@ -557,9 +563,25 @@ fn unit(figure: &str) -> &'static str {
     }
 }
 
+/// Errors are printed as a chain of causes (`peers: ...: ...`), without the backtrace anyhow
+/// would add under `RUST_BACKTRACE`.
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
-    let o = opts()?;
+async fn main() -> std::process::ExitCode {
+    let result = match opts() {
+        Ok(Some(o)) => run(o).await,
+        Ok(None) => Ok(()),
+        Err(e) => Err(e),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("peers: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(o: Opts) -> anyhow::Result<()> {
     build_peers(&o)?;
     let cases = cases(&o);
     for c in &cases {
