@@ -157,7 +157,7 @@ impl<T: Payload> Event<T> {
         self.deliver_locally(&msg[at..], |service| {
             report.acknowledged.push(format!("{me}/{service}"))
         });
-        let remote = lock(&offer.remote).clone();
+        let remote = offer.remote.get();
         let mut waiting = Vec::with_capacity(remote.len());
         self.send_on_routes(&remote, msg, |k| {
             let (tx, rx) = oneshot::channel();
@@ -249,7 +249,8 @@ impl<T: Payload> Event<T> {
     pub fn stream(&self) -> EventStream<'_, T> {
         EventStream {
             event: self,
-            routes: None,
+            routes: Arc::default(),
+            routes_version: None,
             peers: Vec::new(),
             leaving: Vec::new(),
         }
@@ -294,23 +295,18 @@ impl Event<Vec<u8>> {
     }
 }
 
-/// Events to one subscriber's node not yet acknowledged before [`EventStream::send`] waits; it
-/// goes on once half of them are. Large events wait sooner: see [`STREAM_WINDOW_BYTES`].
-pub const STREAM_WINDOW: u64 = 16_384;
-
-/// Bytes of events to one subscriber's node not yet acknowledged before [`EventStream::send`]
-/// waits (at least 64 events; 2,048 of 1 KiB): 8,192 events of 1 KiB in flight churned 8 MiB
-/// of memory, more than a loopback or LAN path needs to stay full, and streamed 30 % slower.
-/// A node reached over a serial link gets 4 s of its line instead (46,080 B at 115,200 baud).
-pub const STREAM_WINDOW_BYTES: u64 = 2 << 20;
+pub use crate::link::{STREAM_WINDOW, STREAM_WINDOW_BYTES};
 
 /// A lossless stream of an [`Event`] (see [`Event::stream`]): every subscriber gets every event
 /// exactly once, in order, with back-pressure instead of a report per event. Subscribers that
 /// come or go while it runs are followed at the next event.
 pub struct EventStream<'a, T> {
     event: &'a Event<T>,
-    /// The routes `peers` was made for (compared by pointer at each event).
-    routes: Option<Arc<[RemoteSubscriber]>>,
+    /// The routes `peers` was made for.
+    routes: Arc<[RemoteSubscriber]>,
+    /// Their version ([`crate::node::Routes`]; `None` before the first event): while the
+    /// offer's stays the same, an event goes on `routes` without taking the offer's lock.
+    routes_version: Option<u64>,
     /// One per route, in the routes' order.
     peers: Vec<StreamPeer>,
     /// Nodes no longer subscribed, until their last events are settled (and any loss reported).
@@ -337,7 +333,7 @@ impl StreamPeer {
     /// slow link.
     fn window(&self) -> u64 {
         let mean = (self.bytes / self.sent.max(1)).max(1);
-        (self.window_bytes / mean).clamp(64, STREAM_WINDOW)
+        crate::link::stream_window(self.window_bytes, mean)
     }
 }
 
@@ -368,18 +364,12 @@ impl<T: Payload> EventStream<'_, T> {
 
     async fn send_encoded(&mut self, msg: Vec<u8>, at: usize) -> Result<(), StreamError> {
         self.event.deliver_locally(&msg[at..], |_| {});
-        let offer = &self.event.publisher.offer;
-        let remote = lock(&offer.remote).clone();
-        if !self
-            .routes
-            .as_ref()
-            .is_some_and(|r| Arc::ptr_eq(r, &remote))
-        {
-            self.follow(&remote);
-        }
+        self.refresh_routes();
+        let event = self.event;
+        let remote: &[RemoteSubscriber] = &self.routes;
         let len = msg.len() as u64;
         let peers = &mut self.peers;
-        self.event.send_on_routes(&remote, msg, |k| {
+        event.send_on_routes(remote, msg, |k| {
             // `follow` made `peers` match `remote`, one per route in its order.
             let p = &mut peers[k];
             p.sent += 1;
@@ -400,6 +390,20 @@ impl<T: Payload> EventStream<'_, T> {
         self.report_losses()
     }
 
+    /// Makes `peers` follow the offer's routes if they changed since the last event.
+    fn refresh_routes(&mut self) {
+        let changed = self
+            .event
+            .publisher
+            .offer
+            .remote
+            .changed_since(self.routes_version);
+        if let Some((routes, version)) = changed {
+            self.routes_version = Some(version);
+            self.follow(routes);
+        }
+    }
+
     /// Waits while `r`'s node says its subscribers are behind ([`crate::protocol::Message::Flow`]),
     /// until it catches up or leaves.
     async fn wait_caught_up(&self, r: &RemoteSubscriber) {
@@ -413,7 +417,7 @@ impl<T: Payload> EventStream<'_, T> {
 
     /// Makes `peers` match `routes`: a node still subscribed keeps its counts, a new one starts
     /// at zero, one gone waits in `leaving` until its events are settled.
-    fn follow(&mut self, routes: &Arc<[RemoteSubscriber]>) {
+    fn follow(&mut self, routes: Arc<[RemoteSubscriber]>) {
         let mut old = std::mem::take(&mut self.peers);
         let links = self.event.publisher.node.links();
         for r in routes.iter() {
@@ -439,7 +443,7 @@ impl<T: Payload> EventStream<'_, T> {
             self.peers.push(p);
         }
         self.leaving.extend(old);
-        self.routes = Some(routes.clone());
+        self.routes = routes;
     }
 
     /// The first node with losses not yet reported, as an error; forgets left nodes whose

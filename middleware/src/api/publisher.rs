@@ -7,7 +7,7 @@ use std::time::Duration;
 use super::errors::PublishError;
 use super::service::Declared;
 use super::Payload;
-use crate::node::{lock, LocalOffer, NodeInner};
+use crate::node::{LocalOffer, NodeInner};
 
 /// An offer a publisher handle keeps declared; dropping it withdraws the offer.
 pub(crate) struct Publisher {
@@ -35,7 +35,9 @@ impl Publisher {
 
     /// Names of the remote nodes currently subscribed.
     pub fn remote_subscribers(&self) -> Vec<String> {
-        lock(&self.offer.remote)
+        self.offer
+            .remote
+            .get()
             .iter()
             .map(|r| r.node_name.to_string())
             .collect()
@@ -44,7 +46,7 @@ impl Publisher {
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
         self.node
-            .wait_for(timeout, || lock(&self.offer.remote).len() >= n)
+            .wait_for(timeout, || self.offer.remote.get().len() >= n)
             .await
     }
 }

@@ -159,7 +159,7 @@ impl Service {
             name: self.full_name(item).into(),
             ty,
             role,
-            remote: Mutex::default(),
+            remote: Default::default(),
             local: Mutex::default(),
             has_local: Default::default(),
             refused: Mutex::default(),

@@ -117,7 +117,7 @@ impl NodeInner {
                     role: OfferRole::Variable {
                         last: Mutex::new(None),
                     },
-                    remote: Mutex::default(),
+                    remote: Default::default(),
                     local: Mutex::default(),
                     has_local: Default::default(),
                     refused: Mutex::default(),

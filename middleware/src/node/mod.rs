@@ -68,8 +68,7 @@ pub(crate) struct LocalOffer {
     pub ty: TypeInfo,
     pub role: OfferRole,
     /// Remote nodes with a matching interest of the same type.
-    /// (Shared: a raise takes the list with one reference count, not a copy.)
-    pub remote: Mutex<Arc<[RemoteSubscriber]>>,
+    pub remote: Routes,
     /// Local interests with a matching pattern of the same type.
     pub local: Mutex<Vec<Arc<LocalInterest>>>,
     /// Whether `local` has any (read on every raise without taking the lock).
@@ -80,6 +79,41 @@ pub(crate) struct LocalOffer {
     pub origin: Option<Origin>,
     /// A forwarded offer is not declared on the link it came from.
     pub hidden_on: Option<usize>,
+}
+
+/// The remote nodes subscribed to an offer (shared: a raise takes the list with one reference
+/// count, not a copy), and how many times the list was replaced, so that a reader that kept
+/// the version knows without the lock whether its copy is current.
+#[derive(Default)]
+pub(crate) struct Routes {
+    list: Mutex<Arc<[RemoteSubscriber]>>,
+    version: std::sync::atomic::AtomicU64,
+}
+
+impl Routes {
+    /// The current list.
+    pub fn get(&self) -> Arc<[RemoteSubscriber]> {
+        lock(&self.list).clone()
+    }
+
+    /// The current list and its version, unless the list is still the one of `version`.
+    pub fn changed_since(&self, version: Option<u64>) -> Option<(Arc<[RemoteSubscriber]>, u64)> {
+        use std::sync::atomic::Ordering;
+        if version == Some(self.version.load(Ordering::Acquire)) {
+            return None;
+        }
+        let list = lock(&self.list);
+        // Bumped under this lock: the pair is consistent.
+        Some((list.clone(), self.version.load(Ordering::Acquire)))
+    }
+
+    /// Replaces the list by what `make` makes, given the current one.
+    pub fn replace(&self, make: impl FnOnce(&[RemoteSubscriber]) -> Arc<[RemoteSubscriber]>) {
+        let mut list = lock(&self.list);
+        *list = make(&list);
+        self.version
+            .fetch_add(1, std::sync::atomic::Ordering::Release);
+    }
 }
 
 /// A remote node subscribed to an offer.

@@ -444,8 +444,7 @@ impl NodeInner {
                     .store(!local.is_empty(), std::sync::atomic::Ordering::Release);
                 *cur = local;
             }
-            {
-                let mut cur = lock(&o.remote);
+            o.remote.replace(|cur| {
                 if let Some(v) = &last {
                     for r in &remote {
                         if !cur.iter().any(|c| c.node == r.node) {
@@ -453,8 +452,8 @@ impl NodeInner {
                         }
                     }
                 }
-                *cur = remote.into();
-            }
+                remote.into()
+            });
         }
         // Routes for what peers offer, each item from its shortest path only.
         let shadowed = self.shadowed_offers();
@@ -539,7 +538,7 @@ impl NodeInner {
             let OfferRole::Variable { last } = &o.role else {
                 continue;
             };
-            if !lock(&o.remote).iter().any(|r| r.node == node) {
+            if !o.remote.get().iter().any(|r| r.node == node) {
                 continue;
             }
             if let Some(v) = lock(last).clone() {
@@ -888,7 +887,7 @@ impl NodeInner {
                 }));
             }
         }
-        let remote = lock(&offer.remote);
+        let remote = offer.remote.get();
         if remote.is_empty() {
             return;
         }
