@@ -43,13 +43,13 @@ impl Lan {
         Proc::spawn(node, env!("CARGO_BIN_EXE_marea-probe"), &args)
     }
 
-    /// A gateway: this LAN plus the radio, from a network.xml written into `dir`.
-    fn gateway(&self, dir: &Path, node: &str, namespace: &str, tty: &str) -> Proc {
+    /// A gateway: this LAN plus the radio at `baud`, from a network.xml written into `dir`.
+    fn gateway(&self, dir: &Path, node: &str, namespace: &str, tty: &str, baud: u32) -> Proc {
         let xml = format!(
             r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
   <ethernet name="lan" bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"
             heartbeatMs="200" leaseMs="1500"/>
-  <serial name="radio" address="{tty}" baudRate="57600" heartbeatMs="1000" leaseMs="15000"/>
+  <serial name="radio" address="{tty}" baudRate="{baud}" heartbeatMs="1000" leaseMs="15000"/>
 </network>"#,
             domain = self.domain,
             port = self.port,
@@ -73,34 +73,72 @@ fn forwarded(v: &Value, name: &str, cached: bool) -> bool {
     })
 }
 
+/// Two LANs on this host (same domain, their own discovery groups on ports `base` and
+/// `base + 1`, so only the gateways join them), the radio between them started with
+/// `radio_args`, and a ready gateway on each side, its serial link at `baud`.
+struct Joined {
+    ground: Lan,
+    air: Lan,
+    dir: tempfile::TempDir,
+    radio: Radio,
+    air_gw: Proc,
+    ground_gw: Proc,
+}
+
+impl Joined {
+    fn start(test: &str, base: u16, radio_args: &[&str], baud: u32) -> Joined {
+        let domain = format!("{test}-{}", std::process::id());
+        let ground = Lan {
+            domain: domain.clone(),
+            port: base,
+        };
+        let air = Lan {
+            domain,
+            port: base + 1,
+        };
+        let dir = tempfile::tempdir().expect("temp dir");
+        let radio = Radio::start(radio_args);
+        let mut air_gw = air.gateway(dir.path(), "air-gw", "rover1", &radio.air, baud);
+        let mut ground_gw = ground.gateway(dir.path(), "ground-gw", "ground", &radio.ground, baud);
+        for gw in [&mut air_gw, &mut ground_gw] {
+            let v = gw.expect_key(RADIO, "ready");
+            assert_eq!(
+                v["gateway"], true,
+                "{}: a LAN + radio node forwards",
+                gw.name
+            );
+        }
+        Joined {
+            ground,
+            air,
+            dir,
+            radio,
+            air_gw,
+            ground_gw,
+        }
+    }
+}
+
+/// Base of a test's two discovery ports (each test takes two from `offset`).
+fn base_port(offset: u16) -> u16 {
+    20_000 + (std::process::id() % 20_000) as u16 + offset
+}
+
 #[test]
 fn two_lans_joined_by_a_radio_behave_as_one_system() {
-    let pid = std::process::id();
-    let domain = format!("gateway-{pid}");
-    // Two LANs on this host: same domain, different discovery groups, so only the gateways
-    // join them.
-    let base = 20_000 + (pid % 20_000) as u16;
-    let ground = Lan {
-        domain: domain.clone(),
-        port: base,
-    };
-    let air = Lan {
-        domain: domain.clone(),
-        port: base + 1,
-    };
-    let dir = tempfile::tempdir().expect("temp dir");
-    let radio = Radio::start(&["--loss", "0.001", "--corrupt", "0.001", "--seed", "21"]);
-
-    let mut air_gw = air.gateway(dir.path(), "air-gw", "rover1", &radio.air);
-    let mut ground_gw = ground.gateway(dir.path(), "ground-gw", "ground", &radio.ground);
-    for gw in [&mut air_gw, &mut ground_gw] {
-        let v = gw.expect_key(RADIO, "ready");
-        assert_eq!(
-            v["gateway"], true,
-            "{}: a LAN + radio node forwards",
-            gw.name
-        );
-    }
+    let Joined {
+        ground,
+        air,
+        dir,
+        radio,
+        mut air_gw,
+        mut ground_gw,
+    } = Joined::start(
+        "gateway",
+        base_port(0),
+        &["--loss", "0.001", "--corrupt", "0.001", "--seed", "21"],
+        57_600,
+    );
 
     // Air LAN: two services (a vehicle publishing and providing; a payload accepting files).
     let sink_dir = dir.path().join("received");
@@ -248,4 +286,54 @@ fn two_lans_joined_by_a_radio_behave_as_one_system() {
         "duplicate events: {:?}",
         alarms_sub.seen
     );
+}
+
+/// A stream forwarded from a LAN onto the radio is held to the radio's pace: the air gateway
+/// counts the events it forwarded that the ground gateway has not acknowledged, and while more
+/// than a stream's window on the radio (4 s of its line: 192 of these 5-byte events at 2,400
+/// baud) wait, it tells the LAN's nodes it is behind (`Flow`), and the publisher's stream
+/// waits. The radio carries ~8 such events a second and the publisher sends one a millisecond,
+/// so 200 events end within half a second without flow control (the gateway queueing the rest
+/// for the radio, as it did) and only once the radio carried about half of them with it
+/// (~12 s); all arrive, in order.
+#[test]
+fn a_stream_forwarded_onto_the_radio_is_held_to_the_radio_s_pace() {
+    let j = Joined::start(
+        "gateway-flow",
+        base_port(2),
+        &["--air-rate", "2400", "--seed", "5"],
+        2_400,
+    );
+    let mut sub = j.ground.probe(
+        "stream-sub",
+        "ground",
+        &["ev-sub", "--pattern", "rover1/probe/ev", "--count", "200"],
+    );
+    sub.expect_key(RADIO, "ready");
+    let mut publ = j.air.probe(
+        "streamer",
+        "rover1",
+        &[
+            "ev-pub",
+            "--item",
+            "ev",
+            "--count",
+            "200",
+            "--subs",
+            "1",
+            "--stream",
+            "--interval-ms",
+            "1",
+        ],
+    );
+    let raised = publ.expect_key(Duration::from_secs(120), "raised");
+    assert_eq!(raised["lost_events"], 0, "{raised}");
+    let elapsed = raised["elapsed_ms"].as_u64().expect("elapsed_ms");
+    assert!(
+        elapsed >= 5_000,
+        "the stream ended after {elapsed} ms, before the radio could carry much of it: {raised}"
+    );
+    let got = sub.expect_key(Duration::from_secs(120), "received");
+    assert_eq!(got["received"], 200, "{got}");
+    assert_eq!(got["in_order"], true, "{got}");
 }

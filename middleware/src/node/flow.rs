@@ -2,7 +2,8 @@
 //! fall behind while still reading (see [`super::mailbox::Congestion`]) tells its peers
 //! ([`Message::Flow`]), and their [`crate::EventStream`]s wait until it says it caught up,
 //! instead of its mailboxes dropping events. Links acknowledge what reached a mailbox, so a
-//! stream's window alone cannot hold a publisher back for a slow reader.
+//! stream's window alone cannot hold a publisher back for a slow reader. A gateway is behind
+//! too while the events it forwards wait for a slower link (see [`super::forward_flow`]).
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -43,7 +44,7 @@ impl NodeInner {
             let changed = self.congestion.changed();
             tokio::pin!(changed);
             changed.as_mut().enable();
-            let behind = self.congestion.readers_behind();
+            let behind = self.congestion.streams_should_wait();
             // The peer table changed while behind: tell everyone again (peers already told
             // ignore it), so a peer that came meanwhile waits too.
             if behind != told || (behind && new_peers) {

@@ -74,6 +74,8 @@ pub(crate) struct Gateway {
     recompute: Mutex<()>,
     /// File transfers in progress through this node, by transfer id.
     pub files: DashMap<u64, FileRelay>,
+    /// The events forwarded to each node, acknowledged or not (flow control).
+    pub windows: super::forward_flow::ForwardWindows,
 }
 
 impl Gateway {
@@ -84,6 +86,7 @@ impl Gateway {
             interests: Mutex::default(),
             recompute: Mutex::new(()),
             files: DashMap::new(),
+            windows: Default::default(),
         }
     }
 }
@@ -245,7 +248,7 @@ impl NodeInner {
                 name: w.name.clone(),
                 ty: w.ty.clone(),
                 role,
-                remote: Mutex::default(),
+                remote: Default::default(),
                 local: Mutex::default(),
                 has_local: Default::default(),
                 refused: Mutex::default(),
@@ -356,27 +359,34 @@ impl NodeInner {
                 // must arrive, and after our declaration of the forwarded offer (a fast value
                 // can overtake it on a radio and be dropped as unknown). A variable published
                 // once would otherwise never cross.
-                self.send_safe_to_subscribers(&f.offer, false, payload);
+                self.send_safe_to_subscribers(&f.offer, None, payload);
             }
-            ItemKind::Event => self.send_safe_to_subscribers(&f.offer, true, payload),
+            ItemKind::Event => self.send_safe_to_subscribers(&f.offer, Some(&gw.windows), payload),
             ItemKind::Function | ItemKind::File => {}
         }
     }
 
-    /// Sends a value or event of `offer` to each of its remote subscribers on the safe class.
-    fn send_safe_to_subscribers(&self, offer: &LocalOffer, event: bool, payload: &[u8]) {
-        let remote = lock(&offer.remote).clone();
+    /// Sends a value, or an event (counted on its node's window in `windows`), of `offer` to
+    /// each of its remote subscribers on the safe class.
+    fn send_safe_to_subscribers(
+        &self,
+        offer: &LocalOffer,
+        windows: Option<&super::forward_flow::ForwardWindows>,
+        payload: &[u8],
+    ) {
+        let remote = offer.remote.get();
         if remote.is_empty() {
             return;
         }
-        let msg = encode_data(event, offer.id, payload);
+        let msg = encode_data(windows.is_some(), offer.id, payload);
         for r in remote.iter() {
+            let done = windows.map(|w| self.forwarded_event_done(w, r, msg.len()));
             self.send_to(
                 r.link,
                 r.addr,
                 Outgoing::Safe {
                     msg: msg.clone(),
-                    done: None,
+                    done,
                 },
             );
         }
@@ -431,11 +441,13 @@ impl NodeInner {
         true
     }
 
-    /// A peer is gone: relayed transfers through it end; a receiver still waiting for chunks
-    /// from a lost sender is told the transfer was cancelled (it keeps what it has, for a
-    /// resume).
+    /// A peer is gone: its forwarding window goes (a catch-up waiting on it ends as the link
+    /// fails what was in flight); relayed transfers through it end; a receiver still waiting
+    /// for chunks from a lost sender is told the transfer was cancelled (it keeps what it has,
+    /// for a resume).
     pub fn gateway_peer_lost(&self, node: NodeId) {
         let Some(gw) = &self.gateway else { return };
+        gw.windows.forget(node);
         let mut lost = Vec::new();
         gw.files.retain(|transfer, r| {
             let keep = r.sender != node && r.receiver != node;

@@ -79,10 +79,13 @@ pub(crate) const MAILBOX_CAUGHT_UP: usize = MAILBOX_CAP / 8;
 /// longer held back for it.
 pub(crate) const READER_STALLED: Duration = Duration::from_millis(200);
 
-/// A node's event mailboxes that are behind, and when one of their readers last made progress.
+/// A node's event mailboxes that are behind, and when one of their readers last made progress;
+/// on a gateway, also the nodes its forwarded events wait for (see [`super::forward_flow`]).
 #[derive(Debug)]
 pub(crate) struct Congestion {
     behind: AtomicUsize,
+    /// Nodes a gateway forwards to with more events unacknowledged than their window.
+    forwarding: AtomicUsize,
     start: Instant,
     /// Milliseconds from `start` to the last delivery taken from a behind mailbox (or to the
     /// last mailbox falling behind).
@@ -95,6 +98,7 @@ impl Default for Congestion {
     fn default() -> Self {
         Congestion {
             behind: AtomicUsize::new(0),
+            forwarding: AtomicUsize::new(0),
             start: Instant::now(),
             progress_ms: AtomicU64::new(0),
             change: Notify::new(),
@@ -103,14 +107,15 @@ impl Default for Congestion {
 }
 
 impl Congestion {
-    /// Whether some mailbox is behind while its reader keeps reading: streams to this node
-    /// should wait.
-    pub(crate) fn readers_behind(&self) -> bool {
-        self.behind.load(Ordering::Relaxed) > 0
-            && self
-                .now_ms()
-                .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
-                < READER_STALLED.as_millis() as u64
+    /// Whether some mailbox is behind while its reader keeps reading, or forwarded events wait
+    /// for a node: streams to this node should wait.
+    pub(crate) fn streams_should_wait(&self) -> bool {
+        self.forwarding.load(Ordering::Relaxed) > 0
+            || self.behind.load(Ordering::Relaxed) > 0
+                && self
+                    .now_ms()
+                    .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
+                    < READER_STALLED.as_millis() as u64
     }
 
     /// Whether some mailbox is behind (its reader reading or not).
@@ -139,6 +144,18 @@ impl Congestion {
 
     fn caught_up(&self) {
         self.behind.fetch_sub(1, Ordering::Relaxed);
+        self.change.notify_waiters();
+    }
+
+    /// Forwarded events to a node went over its window.
+    pub(crate) fn forwarding_fell_behind(&self) {
+        self.forwarding.fetch_add(1, Ordering::Relaxed);
+        self.change.notify_waiters();
+    }
+
+    /// Forwarded events to a node came back under half its window.
+    pub(crate) fn forwarding_caught_up(&self) {
+        self.forwarding.fetch_sub(1, Ordering::Relaxed);
         self.change.notify_waiters();
     }
 }
@@ -436,15 +453,15 @@ mod tests {
             m.push(sample("e"));
             vars.push(sample(&format!("v{i}")));
         }
-        assert!(!c.readers_behind(), "a quarter full is not behind yet");
+        assert!(!c.streams_should_wait(), "a quarter full is not behind yet");
         m.push(sample("e"));
-        assert!(c.readers_behind(), "over a quarter full is behind");
+        assert!(c.streams_should_wait(), "over a quarter full is behind");
         vars.push(sample("v"));
         while m.len() >= MAILBOX_CAUGHT_UP {
-            assert!(c.readers_behind(), "behind until under an eighth");
+            assert!(c.streams_should_wait(), "behind until under an eighth");
             m.try_pop();
         }
-        assert!(!c.readers_behind(), "caught up");
+        assert!(!c.streams_should_wait(), "caught up");
         assert_eq!(
             c.behind.load(Ordering::Relaxed),
             0,
@@ -454,9 +471,9 @@ mod tests {
         for _ in 0..MAILBOX_BEHIND {
             m.push(sample("e"));
         }
-        assert!(c.readers_behind());
+        assert!(c.streams_should_wait());
         drop(m);
-        assert!(!c.readers_behind());
+        assert!(!c.streams_should_wait());
     }
 
     #[test]
@@ -470,13 +487,38 @@ mod tests {
         for _ in 0..=MAILBOX_BEHIND {
             m.push(sample("e"));
         }
-        assert!(c.readers_behind());
+        assert!(c.streams_should_wait());
         // As if the last delivery was taken longer ago than a reader may pause.
         let stalled = c.now_ms() - READER_STALLED.as_millis() as u64 - 1;
         c.progress_ms.store(stalled, Ordering::Relaxed);
-        assert!(!c.readers_behind(), "a stopped reader is not waited for");
+        assert!(
+            !c.streams_should_wait(),
+            "a stopped reader is not waited for"
+        );
         m.try_pop();
-        assert!(c.readers_behind(), "reading again, it is");
+        assert!(c.streams_should_wait(), "reading again, it is");
+    }
+
+    /// A gateway's forwarded events waiting for a node hold streams back whatever its
+    /// mailboxes do (no stall rule: the link, not a reader, settles them), until every node
+    /// that fell behind caught up.
+    #[test]
+    fn forwarding_behind_holds_streams_until_every_node_caught_up() {
+        let c = Congestion {
+            start: Instant::now() - Duration::from_secs(60),
+            ..Congestion::default()
+        };
+        assert!(!c.streams_should_wait());
+        c.forwarding_fell_behind();
+        c.forwarding_fell_behind();
+        assert!(
+            c.streams_should_wait(),
+            "with no mailbox behind and no reader for minutes"
+        );
+        c.forwarding_caught_up();
+        assert!(c.streams_should_wait(), "one node still waits");
+        c.forwarding_caught_up();
+        assert!(!c.streams_should_wait());
     }
 
     /// A run pushed at once (a datagram's events) arrives whole and in order, and wakes the

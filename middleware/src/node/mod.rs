@@ -8,6 +8,7 @@ pub(crate) mod call;
 pub(crate) mod discovery;
 pub(crate) mod files;
 mod flow;
+mod forward_flow;
 #[cfg(feature = "fuzzing")]
 pub(crate) mod fuzz;
 pub(crate) mod gateway;
