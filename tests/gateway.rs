@@ -22,11 +22,16 @@ struct Lan {
 
 impl Lan {
     fn probe(&self, node: &str, namespace: &str, cmd: &[&str]) -> Proc {
+        let mut args = vec!["--namespace", namespace];
+        args.extend_from_slice(cmd);
+        self.probe_outside_namespaces(node, &args)
+    }
+
+    /// A probe in no namespace (its items' names are as given).
+    fn probe_outside_namespaces(&self, node: &str, cmd: &[&str]) -> Proc {
         let mut args: Vec<String> = [
             "--node",
             node,
-            "--namespace",
-            namespace,
             "--domain",
             &self.domain,
             "--mcast-port",
@@ -47,22 +52,50 @@ impl Lan {
     fn gateway(&self, dir: &Path, node: &str, namespace: &str, tty: &str, baud: u32) -> Proc {
         let xml = format!(
             r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
-  <ethernet name="lan" bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"
-            heartbeatMs="200" leaseMs="1500"/>
+  {lan}
   <serial name="radio" address="{tty}" baudRate="{baud}" heartbeatMs="1000" leaseMs="15000"/>
 </network>"#,
             domain = self.domain,
-            port = self.port,
+            lan = self.ethernet("lan"),
         );
-        let path = dir.join(format!("{node}.xml"));
-        std::fs::write(&path, xml).expect("write network.xml");
-        let args = vec![
-            "--config".to_owned(),
-            path.display().to_string(),
-            "gateway".to_owned(),
-        ];
-        Proc::spawn(node, env!("CARGO_BIN_EXE_marea-probe"), &args)
+        spawn_gateway(dir, node, &xml)
     }
+
+    /// This LAN's `<ethernet>`, named `name`.
+    fn ethernet(&self, name: &str) -> String {
+        format!(
+            r#"<ethernet name="{name}" bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"
+            heartbeatMs="200" leaseMs="1500"/>"#,
+            port = self.port
+        )
+    }
+}
+
+/// A gateway between two LANs (both in `a`'s domain), from a network.xml written into `dir`
+/// (`gateway="true"`: two Ethernet links alone do not make a node forward).
+fn lan_gateway(dir: &Path, node: &str, a: &Lan, b: &Lan) -> Proc {
+    let xml = format!(
+        r#"<network node="{node}" namespace="lab" domain="{domain}" gateway="true">
+  {a}
+  {b}
+</network>"#,
+        domain = a.domain,
+        a = a.ethernet("lan-a"),
+        b = b.ethernet("lan-b"),
+    );
+    spawn_gateway(dir, node, &xml)
+}
+
+/// `marea-probe gateway` with the network.xml `xml`, written into `dir`.
+fn spawn_gateway(dir: &Path, node: &str, xml: &str) -> Proc {
+    let path = dir.join(format!("{node}.xml"));
+    std::fs::write(&path, xml).expect("write network.xml");
+    let args = vec![
+        "--config".to_owned(),
+        path.display().to_string(),
+        "gateway".to_owned(),
+    ];
+    Proc::spawn(node, env!("CARGO_BIN_EXE_marea-probe"), &args)
 }
 
 fn forwarded(v: &Value, name: &str, cached: bool) -> bool {
@@ -336,4 +369,34 @@ fn a_stream_forwarded_onto_the_radio_is_held_to_the_radio_s_pace() {
     let got = sub.expect_key(Duration::from_secs(120), "received");
     assert_eq!(got["received"], 200, "{got}");
     assert_eq!(got["in_order"], true, "{got}");
+}
+
+/// A reader slower than the links behind a gateway (two LANs, one gateway node between them):
+/// its node tells the gateway its readers are behind (`Flow`), the gateway, which forwards the
+/// stream to it, passes that on to the publisher, and the stream of 150,000 events waits for
+/// the reader instead of its mailbox (65,536) dropping them: all arrive, in order, none lost.
+/// (Before the gateway passed it on, the reader saw a gap and the publisher reported nothing.)
+#[test]
+fn a_stream_to_a_slow_reader_behind_a_gateway_loses_nothing() {
+    let domain = format!("gateway-slow-{}", std::process::id());
+    let base = base_port(4);
+    let (a, b) = (
+        Lan {
+            domain: domain.clone(),
+            port: base,
+        },
+        Lan {
+            domain,
+            port: base + 1,
+        },
+    );
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut gw = lan_gateway(dir.path(), "lan-gw", &a, &b);
+    let v = gw.expect_key(RADIO, "ready");
+    assert_eq!(v["gateway"], true, "two LANs and gateway=\"true\" forward");
+    common::stream_to_a_slow_reader_loses_nothing(|node, cmd| {
+        // The publisher on one LAN, the reader on the other: only the gateway joins them.
+        let lan = if node == "pub" { &a } else { &b };
+        lan.probe_outside_namespaces(node, cmd)
+    });
 }

@@ -386,7 +386,13 @@ mod tests {
                 [&[16u8][..], &[5; 16]].concat(),
             ),
             // Flow (17): a bool is one byte
-            (Message::Flow { behind: true }, vec![17, 1]),
+            (
+                Message::Flow {
+                    behind: true,
+                    readers: false,
+                },
+                vec![17, 1, 0],
+            ),
         ];
         for (msg, bytes) in cases {
             assert_eq!(encode_message(&msg), bytes, "encoding of {msg:?}");

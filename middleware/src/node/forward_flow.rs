@@ -6,9 +6,12 @@
 //! instead of queueing at the gateway without bound (and delaying everything else on the
 //! radio by as much).
 //!
-//! Only the gateway's own queues count: it does not pass on a downstream node's `Flow` (two
-//! gateways passing each other's on would hold each other for ever when events cross both
-//! ways), so a reader slower than the links behind a gateway is not waited for.
+//! A node the gateway forwards events to whose own readers are behind (its
+//! [`crate::protocol::Message::Flow`] says `readers`) holds the gateway back the same way, so a
+//! reader slower than the links behind a gateway is waited for too. Only a reader's `Flow` is
+//! passed on, never one that is there because of forwarding: two gateways passing each
+//! other's on would hold each other for ever when events cross both ways. (So a reader two
+//! gateways away is not waited for: the nearer gateway's `Flow` does not say `readers`.)
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -27,6 +30,8 @@ struct Window {
     sent: AtomicU64,
     /// Over its limit: the gateway counts as behind until half of it is acknowledged.
     behind: AtomicBool,
+    /// The node said its readers are behind: the gateway counts as behind until they catch up.
+    readers_behind: AtomicBool,
 }
 
 impl Window {
@@ -41,14 +46,38 @@ impl Window {
 #[derive(Default)]
 pub(crate) struct ForwardWindows(Mutex<HashMap<NodeId, Arc<Window>>>);
 
-impl ForwardWindows {
-    /// Forgets `node`'s window (it left); a wait for it ends as its link fails what it had.
-    pub(crate) fn forget(&self, node: NodeId) {
-        lock(&self.0).remove(&node);
-    }
-}
-
 impl NodeInner {
+    /// Forgets `node`'s window (it left): a wait for its acknowledgements ends as its link
+    /// fails what it had, one for its readers ends here.
+    pub(super) fn forget_forward_window(&self, windows: &ForwardWindows, node: NodeId) {
+        let mut table = lock(&windows.0);
+        let w = table.remove(&node);
+        if w.is_some_and(|w| w.readers_behind.swap(false, Ordering::AcqRel)) {
+            self.congestion.forwarding_caught_up();
+        }
+    }
+
+    /// `node` says its readers are behind, or not (any more): if this gateway forwards events
+    /// to it, it counts as behind itself until they catch up.
+    pub(super) fn relay_readers_behind(&self, node: NodeId, behind: bool) {
+        let Some(gw) = &self.gateway else { return };
+        // Under the table's lock, as in `forget_forward_window`: a window forgotten meanwhile
+        // is never left counted.
+        let windows = lock(&gw.windows.0);
+        let Some(w) = windows.get(&node) else {
+            return;
+        };
+        if w.readers_behind.swap(behind, Ordering::AcqRel) == behind {
+            return;
+        }
+        tracing::debug!(peer = node, behind, "readers of a node forwarded to");
+        if behind {
+            self.congestion.forwarding_fell_behind();
+        } else {
+            self.congestion.forwarding_caught_up();
+        }
+    }
+
     /// The completion of one event of `len` bytes forwarded to `to`'s node, counted on that
     /// node's window; the gateway falls behind when the window is over its limit.
     pub(super) fn forwarded_event_done(

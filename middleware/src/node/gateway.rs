@@ -447,7 +447,7 @@ impl NodeInner {
     /// for a resume).
     pub fn gateway_peer_lost(&self, node: NodeId) {
         let Some(gw) = &self.gateway else { return };
-        gw.windows.forget(node);
+        self.forget_forward_window(&gw.windows, node);
         let mut lost = Vec::new();
         gw.files.retain(|transfer, r| {
             let keep = r.sender != node && r.receiver != node;

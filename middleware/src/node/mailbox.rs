@@ -84,7 +84,8 @@ pub(crate) const READER_STALLED: Duration = Duration::from_millis(200);
 #[derive(Debug)]
 pub(crate) struct Congestion {
     behind: AtomicUsize,
-    /// Nodes a gateway forwards to with more events unacknowledged than their window.
+    /// Nodes a gateway forwards events to with more of them unacknowledged than their window,
+    /// or whose readers say they are behind.
     forwarding: AtomicUsize,
     start: Instant,
     /// Milliseconds from `start` to the last delivery taken from a behind mailbox (or to the
@@ -110,12 +111,16 @@ impl Congestion {
     /// Whether some mailbox is behind while its reader keeps reading, or forwarded events wait
     /// for a node: streams to this node should wait.
     pub(crate) fn streams_should_wait(&self) -> bool {
-        self.forwarding.load(Ordering::Relaxed) > 0
-            || self.behind.load(Ordering::Relaxed) > 0
-                && self
-                    .now_ms()
-                    .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
-                    < READER_STALLED.as_millis() as u64
+        self.forwarding.load(Ordering::Relaxed) > 0 || self.readers_behind()
+    }
+
+    /// Whether some mailbox is behind while its reader keeps reading.
+    pub(crate) fn readers_behind(&self) -> bool {
+        self.behind.load(Ordering::Relaxed) > 0
+            && self
+                .now_ms()
+                .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
+                < READER_STALLED.as_millis() as u64
     }
 
     /// Whether some mailbox is behind (its reader reading or not).
@@ -147,13 +152,13 @@ impl Congestion {
         self.change.notify_waiters();
     }
 
-    /// Forwarded events to a node went over its window.
+    /// Forwarded events to a node went over its window, or its readers fell behind.
     pub(crate) fn forwarding_fell_behind(&self) {
         self.forwarding.fetch_add(1, Ordering::Relaxed);
         self.change.notify_waiters();
     }
 
-    /// Forwarded events to a node came back under half its window.
+    /// Forwarded events to a node came back under half its window, or its readers caught up.
     pub(crate) fn forwarding_caught_up(&self) {
         self.forwarding.fetch_sub(1, Ordering::Relaxed);
         self.change.notify_waiters();

@@ -503,7 +503,7 @@ impl NodeInner {
                 signature,
             } => self.on_identity(node, public_key, &signature),
             Message::Challenge { nonce } => self.on_challenge(node, nonce),
-            Message::Flow { behind } => self.on_flow(node, behind),
+            Message::Flow { behind, readers } => self.on_flow(node, behind, readers),
             Message::Refused {
                 interest,
                 name,

@@ -300,6 +300,7 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
         },
         17 => Message::Flow {
             behind: u.arbitrary()?,
+            readers: u.arbitrary()?,
         },
         _ => Message::Bye {
             node_id: node_id(u)?,

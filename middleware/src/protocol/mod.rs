@@ -370,6 +370,10 @@ pub enum Message {
     Flow {
         /// Behind (`true`) or caught up.
         behind: bool,
+        /// Behind because of its own subscribers' mailboxes (`false` when only events it
+        /// forwards, as a gateway, wait). A gateway passes on only this kind, a reader's, to
+        /// the nodes it forwards from, so gateways never hold one another.
+        readers: bool,
     },
 }
 
