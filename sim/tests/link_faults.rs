@@ -11,26 +11,35 @@ use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use vas::mavlink_cm::{ManagerConfig, MavEvent};
 
-/// A UDP relay that drops `loss` of the datagrams in each direction, with a
-/// seeded xorshift so a failure is reproducible.
-struct LossyProxy {
+/// A UDP relay between the manager and mavsim that drops the datagrams `drop_it` picks
+/// (given the datagram and whether it goes to the vehicle).
+struct Proxy {
     addr: SocketAddr,
     task: JoinHandle<()>,
 }
 
-impl LossyProxy {
-    async fn start(upstream: SocketAddr, loss: f64, seed: u64) -> Self {
+impl Proxy {
+    /// Drops `loss` of the datagrams in each direction, with a seeded xorshift so a failure
+    /// is reproducible.
+    async fn lossy(upstream: SocketAddr, loss: f64, seed: u64) -> Self {
+        let mut rng = seed | 1;
+        Self::start(upstream, move |_, _| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng % 10_000) as f64 / 10_000.0 < loss
+        })
+        .await
+    }
+
+    async fn start(
+        upstream: SocketAddr,
+        mut drop_it: impl FnMut(&[u8], bool) -> bool + Send + 'static,
+    ) -> Self {
         let front = Arc::new(UdpSocket::bind("127.0.0.1:0").await.expect("bind front"));
         let back = Arc::new(UdpSocket::bind("127.0.0.1:0").await.expect("bind back"));
         let addr = front.local_addr().expect("front addr");
         let task = tokio::spawn(async move {
-            let mut rng = seed | 1;
-            let mut drop_it = move || {
-                rng ^= rng << 13;
-                rng ^= rng >> 7;
-                rng ^= rng << 17;
-                (rng % 10_000) as f64 / 10_000.0 < loss
-            };
             let mut client: Option<SocketAddr> = None;
             let mut a = vec![0u8; 65_536];
             let mut b = vec![0u8; 65_536];
@@ -39,13 +48,13 @@ impl LossyProxy {
                     r = front.recv_from(&mut a) => {
                         let Ok((n, from)) = r else { continue };
                         client = Some(from);
-                        if !drop_it() {
+                        if !drop_it(&a[..n], true) {
                             let _ = back.send_to(&a[..n], upstream).await;
                         }
                     }
                     r = back.recv_from(&mut b) => {
                         let Ok((n, _)) = r else { continue };
-                        if let (Some(c), false) = (client, drop_it()) {
+                        if let (Some(c), false) = (client, drop_it(&b[..n], false)) {
                             let _ = front.send_to(&b[..n], c).await;
                         }
                     }
@@ -56,7 +65,7 @@ impl LossyProxy {
     }
 }
 
-impl Drop for LossyProxy {
+impl Drop for Proxy {
     fn drop(&mut self) {
         self.task.abort();
     }
@@ -66,7 +75,7 @@ impl Drop for LossyProxy {
 async fn mission_transfers_survive_ten_percent_loss() {
     let sim = Sim::start(Via::Udp, &[]).await;
     let upstream: SocketAddr = format!("127.0.0.1:{}", sim.udp_port()).parse().unwrap();
-    let proxy = LossyProxy::start(upstream, 0.10, 0x5eed).await;
+    let proxy = Proxy::lossy(upstream, 0.10, 0x5eed).await;
     let cfg = ManagerConfig {
         request_timeout: Duration::from_millis(300),
         retries: 12,
@@ -161,6 +170,83 @@ async fn garbage_bytes_do_not_stop_mavsim() {
             .await
             .expect("still answering"),
         2.0
+    );
+    mgr.shutdown().await;
+    sim.stop().await;
+}
+
+/// Whether `datagram` is a MAVLink frame (v1 or v2) of MISSION_CURRENT (id 42) reporting item
+/// `seq` (v2 drops a payload's trailing zero bytes; they are read as zeros).
+fn mission_current_of(datagram: &[u8], seq: u16) -> bool {
+    let (id, payload) = match datagram {
+        [0xFD, len, _, _, _, _, _, a, b, c, rest @ ..] => (
+            u32::from_le_bytes([*a, *b, *c, 0]),
+            &rest[..usize::from(*len).min(rest.len())],
+        ),
+        [0xFE, len, _, _, _, id, rest @ ..] => {
+            (u32::from(*id), &rest[..usize::from(*len).min(rest.len())])
+        }
+        _ => return false,
+    };
+    let byte = |i: usize| payload.get(i).copied().unwrap_or(0);
+    id == 42 && u16::from_le_bytes([byte(0), byte(1)]) == seq
+}
+
+/// Until the manager reports waypoint `want` reached.
+async fn reached(events: &mut tokio::sync::broadcast::Receiver<MavEvent>, want: u16) {
+    loop {
+        match events.recv().await {
+            Ok(MavEvent::WaypointReached { seq, .. }) if seq == want => return,
+            Ok(_) => {}
+            Err(e) => panic!("event stream: {e}"),
+        }
+    }
+}
+
+/// A set-current whose confirmation is lost, while the vehicle reaches the item at once and
+/// goes on: the manager takes the reach as the confirmation and does not set the item again,
+/// which would send the vehicle back to a waypoint it has just passed. (Every report of item
+/// 1 as current is dropped here; over a lossy radio one of them was, and the VAS flew a
+/// waypoint five times.)
+#[tokio::test]
+async fn a_set_current_confirmed_by_the_reach_is_not_repeated() {
+    let sim = Sim::start(Via::Udp, &["--speedup", "10"]).await;
+    let upstream: SocketAddr = format!("127.0.0.1:{}", sim.udp_port()).parse().unwrap();
+    let proxy = Proxy::start(upstream, |d, to_vehicle| {
+        !to_vehicle && mission_current_of(d, 1)
+    })
+    .await;
+    let cfg = ManagerConfig {
+        request_timeout: Duration::from_secs(2),
+        retries: 3,
+        ..ManagerConfig::default()
+    };
+    let mgr = connect(&format!("udpout:{}", proxy.addr), cfg).await;
+    let items = line_mission(2, 20.0, 0.0);
+    bounded("upload", mgr.mission_upload(&items))
+        .await
+        .expect("upload");
+    let mut events = mgr.subscribe();
+    bounded("arm", mgr.arm(true)).await.expect("arm");
+    bounded("auto", mgr.set_mode("AUTO")).await.expect("auto");
+    bounded("waypoint 1 reached", reached(&mut events, 1)).await;
+    // Back to the waypoint just passed: the rover is next to it and reaches it at once.
+    bounded("set current 1", mgr.mission_set_current(1))
+        .await
+        .expect("set current");
+    bounded("waypoint 2 reached", reached(&mut events, 2)).await;
+    // mavsim logs each change of its current item; a second attempt would set 1 again while
+    // the rover drives to 2 (before the change, it set 1 again after a request timeout).
+    let sets = sim
+        .log_events("current_changed")
+        .iter()
+        .filter(|r| r["cause"] == "set_current")
+        .count();
+    assert_eq!(
+        sets,
+        1,
+        "item 1 set once, confirmed by its reach: {:?}",
+        sim.log_records()
     );
     mgr.shutdown().await;
     sim.stop().await;

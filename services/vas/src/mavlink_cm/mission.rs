@@ -414,8 +414,13 @@ impl MavlinkManager {
                 target_component: target.1,
             })
         };
+        // The autopilot reporting `seq` current verifies it, and so does its reaching `seq`:
+        // a vehicle already at that item reaches it and advances at once, and when its report
+        // of `seq` is lost on the radio, another attempt would only send it back to an item
+        // it has just passed (a backtrack: the waypoint reached twice).
         let matcher = |m: &MavMessage| match m {
             MavMessage::MISSION_CURRENT(c) if c.seq == seq => Some(()),
+            MavMessage::MISSION_ITEM_REACHED(r) if r.seq == seq => Some(()),
             _ => None,
         };
         // Sent twice per attempt: the rolling queue's wrap has one leg of slack, and setting
