@@ -6,7 +6,7 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use common::{bounded, connect, line_mission, Sim, Via, STEP};
+use common::{bounded, connect, line_mission, start_mission, Sim, Via, STEP};
 use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use vas::mavlink_cm::{ManagerConfig, MavEvent};
@@ -222,13 +222,7 @@ async fn a_set_current_confirmed_by_the_reach_is_not_repeated() {
         ..ManagerConfig::default()
     };
     let mgr = connect(&format!("udpout:{}", proxy.addr), cfg).await;
-    let items = line_mission(2, 20.0, 0.0);
-    bounded("upload", mgr.mission_upload(&items))
-        .await
-        .expect("upload");
-    let mut events = mgr.subscribe();
-    bounded("arm", mgr.arm(true)).await.expect("arm");
-    bounded("auto", mgr.set_mode("AUTO")).await.expect("auto");
+    let mut events = start_mission(&mgr, &line_mission(2, 20.0, 0.0)).await;
     bounded("waypoint 1 reached", reached(&mut events, 1)).await;
     // Back to the waypoint just passed: the rover is next to it and reaches it at once.
     bounded("set current 1", mgr.mission_set_current(1))

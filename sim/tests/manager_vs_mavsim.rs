@@ -4,7 +4,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::{bounded, line_mission, Sim, Via, HOME};
+use common::{bounded, line_mission, start_mission, Sim, Via, HOME};
 use vas::mavlink_cm::dialect::{MavCmd, MavMissionResult, MavResult};
 use vas::mavlink_cm::{CommandError, MavEvent, MissionError, MissionItem, ParamError, Telemetry};
 
@@ -217,12 +217,7 @@ async fn auto_mission_at_speedup_20() {
     let sim = Sim::start(Via::Udp, &["--speedup", "20"]).await;
     let mgr = sim.manager().await;
     let items = line_mission(5, 20.0, 5.0);
-    bounded("upload", mgr.mission_upload(&items))
-        .await
-        .expect("upload");
-    let mut events = mgr.subscribe();
-    bounded("arm", mgr.arm(true)).await.expect("arm");
-    bounded("auto", mgr.set_mode("AUTO")).await.expect("auto");
+    let mut events = start_mission(&mgr, &items).await;
 
     // 100 m at 2 m/s is 50 simulated seconds, 2.5 s of wall time.
     let reached = tokio::time::timeout(Duration::from_secs(60), async {
@@ -298,12 +293,7 @@ async fn routing_capabilities_and_the_px4_profile() {
     assert!(!partial, "the px4 profile has no partial writes");
     assert_eq!(mgr.partial_writes(), Some(false));
     // PX4 modes: AUTO.LOITER by name, confirmed by the heartbeat.
-    let items = line_mission(3, 15.0, 0.0);
-    bounded("upload", mgr.mission_upload(&items))
-        .await
-        .expect("upload");
-    bounded("arm", mgr.arm(true)).await.expect("arm");
-    bounded("AUTO", mgr.set_mode("AUTO")).await.expect("AUTO");
+    start_mission(&mgr, &line_mission(3, 15.0, 0.0)).await;
     assert_eq!(mgr.state().mode, Some(4 << 16 | 4 << 24));
     assert_eq!(mgr.state().mode_name, Some("AUTO"));
     mgr.shutdown().await;

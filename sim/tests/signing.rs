@@ -7,7 +7,7 @@ mod common;
 use std::os::unix::fs::PermissionsExt;
 use std::time::Duration;
 
-use common::{bounded, connect, line_mission, Sim, Via};
+use common::{bounded, connect, line_mission, start_mission, Sim, Via};
 use mavlink::dialects::ardupilotmega::{MavCmd, MavMessage, COMMAND_LONG_DATA};
 use mavlink::{MavHeader, MavlinkVersion};
 use vas::mavlink_cm::{ManagerConfig, MavlinkManager};
@@ -109,11 +109,7 @@ async fn signed_manager_flies_and_unsigned_commands_are_ignored() {
     assert!(sim.log_events("armed").is_empty());
 
     // And the signed one flies a mission to its end.
-    bounded("upload", mgr.mission_upload(&line_mission(2, 10.0, 0.0)))
-        .await
-        .expect("upload");
-    bounded("arm", mgr.arm(true)).await.expect("arm");
-    bounded("auto", mgr.set_mode("AUTO")).await.expect("auto");
+    start_mission(&mgr, &line_mission(2, 10.0, 0.0)).await;
     bounded("mission complete", async {
         while sim.log_events("mission_complete").is_empty() {
             tokio::time::sleep(Duration::from_millis(100)).await;

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
-use vas::mavlink_cm::{ManagerConfig, MavlinkManager, MissionItem};
+use vas::mavlink_cm::{ManagerConfig, MavEvent, MavlinkManager, MissionItem};
 
 /// Bound on every await of the tests.
 pub const STEP: Duration = Duration::from_secs(20);
@@ -145,4 +145,19 @@ pub async fn bounded<F: std::future::Future>(what: &str, f: F) -> F::Output {
     tokio::time::timeout(STEP, f)
         .await
         .unwrap_or_else(|_| panic!("timed out: {what}"))
+}
+
+/// Uploads `items`, arms and switches to AUTO: the vehicle flies them. Returns the manager's
+/// events from before the arming on.
+pub async fn start_mission(
+    mgr: &MavlinkManager,
+    items: &[MissionItem],
+) -> tokio::sync::broadcast::Receiver<MavEvent> {
+    bounded("upload", mgr.mission_upload(items))
+        .await
+        .expect("upload");
+    let events = mgr.subscribe();
+    bounded("arm", mgr.arm(true)).await.expect("arm");
+    bounded("auto", mgr.set_mode("AUTO")).await.expect("auto");
+    events
 }
