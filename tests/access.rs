@@ -80,6 +80,7 @@ impl Attacker {
                 counter,
                 lease_ms: 60_000,
                 gateway: false,
+                asks_introduction: false,
             },
         );
     }

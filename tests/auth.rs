@@ -905,6 +905,7 @@ fn a_replayed_identity_proof_is_refused() {
             counter: 0,
             lease_ms: 60_000,
             gateway: false,
+            asks_introduction: false,
         },
     )
     .unwrap();
@@ -932,6 +933,7 @@ fn a_replayed_identity_proof_is_refused() {
                 counter: 2,
                 lease_ms: 60_000,
                 gateway: false,
+                asks_introduction: false,
             },
         )
         .unwrap();

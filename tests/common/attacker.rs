@@ -40,6 +40,7 @@ pub fn hello(node_id: NodeId, domain: &str, name: &str, lease_ms: u32) -> Vec<u8
         counter: 1,
         lease_ms,
         gateway: false,
+        asks_introduction: false,
     }))
 }
 
@@ -215,6 +216,18 @@ impl Forger {
         within: Duration,
         pred: impl Fn(&Message) -> bool,
     ) -> Option<Message> {
+        self.recv_numbered(from, within, |_, m| pred(m))
+            .map(|(_, m)| m)
+    }
+
+    /// [`Self::recv_message`] with each message's safe sequence number (`None` for a fast or
+    /// discovery one): a retransmission has the number of the first copy.
+    pub fn recv_numbered(
+        &self,
+        from: SocketAddr,
+        within: Duration,
+        pred: impl Fn(Option<u32>, &Message) -> bool,
+    ) -> Option<(Option<u32>, Message)> {
         use marea::link::udp::datagram::{self, Datagram, Entry};
         let deadline = Instant::now() + within;
         let trailer = marea::link::auth::Profile::UDP.overhead();
@@ -234,21 +247,22 @@ impl Forger {
                 d.truncate(d.len() - trailer);
                 d[0] = kind;
             }
-            let msgs: Vec<Vec<u8>> = match datagram::decode(&d) {
-                Ok(Datagram::Discovery(m)) => vec![m.to_vec()],
+            let msgs: Vec<(Option<u32>, Vec<u8>)> = match datagram::decode(&d) {
+                Ok(Datagram::Discovery(m)) => vec![(None, m.to_vec())],
                 Ok(Datagram::Data(entries)) => entries
                     .into_iter()
                     .filter_map(|e| match e {
-                        Entry::Safe { msg, .. } | Entry::Fast(msg) => Some(msg.to_vec()),
+                        Entry::Safe { seq, msg } => Some((Some(seq), msg.to_vec())),
+                        Entry::Fast(msg) => Some((None, msg.to_vec())),
                         _ => None,
                     })
                     .collect(),
                 Err(_) => vec![],
             };
-            for m in msgs {
+            for (seq, m) in msgs {
                 if let Ok(m) = marea::codec::decode_message(&m) {
-                    if pred(&m) {
-                        return Some(m);
+                    if pred(seq, &m) {
+                        return Some((seq, m));
                     }
                 }
             }

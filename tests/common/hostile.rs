@@ -476,6 +476,7 @@ pub fn insider(scene: &mut Scene) -> Tally {
                 counter: 5,
                 lease_ms: 60_000,
                 gateway: false,
+                asks_introduction: false,
             },
         )
         .expect("send");
@@ -548,6 +549,7 @@ pub fn insider(scene: &mut Scene) -> Tally {
                     counter: 1,
                     lease_ms: 60_000,
                     gateway: false,
+                    asks_introduction: false,
                 },
             )
             .expect("send");
@@ -630,6 +632,7 @@ pub fn insider(scene: &mut Scene) -> Tally {
                     counter: 0,
                     lease_ms: u32::MAX,
                     gateway: false,
+                    asks_introduction: false,
                 },
             )
             .expect("send");

@@ -186,9 +186,11 @@ mod tests {
                     counter: 3,
                     lease_ms: 300,
                     gateway: true,
+                    asks_introduction: false,
                 },
-                // tag 0, node_id 1, "d", "n", "", counter 3, lease 300 = 0xAC 0x02, gateway
-                vec![0, 1, 1, b'd', 1, b'n', 0, 3, 0xAC, 0x02, 1],
+                // tag 0, node_id 1, "d", "n", "", counter 3, lease 300 = 0xAC 0x02, gateway,
+                // asks_introduction
+                vec![0, 1, 1, b'd', 1, b'n', 0, 3, 0xAC, 0x02, 1, 0],
             ),
             (
                 Message::Heartbeat {

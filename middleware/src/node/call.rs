@@ -767,6 +767,7 @@ mod tests {
                     counter: 0,
                     lease_ms: 60_000,
                     gateway: false,
+                    asks_introduction: false,
                 },
             );
         }

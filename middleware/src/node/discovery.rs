@@ -67,6 +67,16 @@ impl NodeInner {
 
     /// The Hello for `link` with a given declaration counter (when the log is already locked).
     pub fn hello_at(&self, link: usize, counter: u32) -> Message {
+        self.hello_with(link, counter, false)
+    }
+
+    /// Our Hello to a node we heard a heartbeat of without knowing it: it asks that node to
+    /// introduce itself again if it knows us (see [`Message::Hello`]).
+    fn hello_asking_introduction(&self, link: usize) -> Message {
+        self.hello_with(link, self.counter(), true)
+    }
+
+    fn hello_with(&self, link: usize, counter: u32, asks_introduction: bool) -> Message {
         Message::Hello {
             node_id: self.me.id,
             domain: self.me.domain.clone(),
@@ -75,6 +85,7 @@ impl NodeInner {
             counter,
             lease_ms: u32::try_from(self.me.timing(link).1.as_millis()).unwrap_or(u32::MAX),
             gateway: self.gateway.is_some(),
+            asks_introduction,
         }
     }
 
@@ -111,6 +122,7 @@ impl NodeInner {
                 counter,
                 lease_ms,
                 gateway,
+                asks_introduction,
             } => {
                 if node_id == self.me.id || domain != self.me.domain {
                     return;
@@ -119,6 +131,9 @@ impl NodeInner {
                 if self.peers.contains_key(&node_id) {
                     if self.also_reached(node_id, link, from) {
                         self.seen(node_id, counter);
+                        if asks_introduction {
+                            self.introduce_again(node_id, link, from);
+                        }
                     }
                     return;
                 }
@@ -177,6 +192,7 @@ impl NodeInner {
                             .map(|_| rand::random()),
                         alive: Arc::new(std::sync::atomic::AtomicBool::new(true)),
                         behind: Arc::default(),
+                        introduced_again: None,
                     },
                 );
                 self.addrs.insert((link, from), node_id);
@@ -201,8 +217,9 @@ impl NodeInner {
                         self.seen(node_id, counter);
                     }
                 } else {
-                    // We missed its Hello: introduce ourselves, it answers with its own.
-                    self.send_safe(link, from, &self.hello(link));
+                    // We missed its Hello: introduce ourselves, it answers with its own (or,
+                    // knowing us already, introduces itself again).
+                    self.send_safe(link, from, &self.hello_asking_introduction(link));
                 }
             }
             Message::Bye { node_id } if self.peers.contains_key(&node_id) => {
@@ -270,6 +287,25 @@ impl NodeInner {
         };
         self.switch_path(node, old, (link, from), lease);
         true
+    }
+
+    /// A known peer does not know us (its Hello answers a heartbeat of ours): our introduction
+    /// to it was lost on the way. Introduces us again (Hello and every declaration), at most
+    /// once per heartbeat period of the link: the peer asks at each heartbeat it hears.
+    fn introduce_again(&self, node: NodeId, link: usize, from: PeerAddr) {
+        let period = self.me.timing(link).0;
+        {
+            let Some(mut p) = self.peers.get_mut(&node) else {
+                return;
+            };
+            if p.introduced_again.is_some_and(|t| t.elapsed() < period) {
+                return;
+            }
+            p.introduced_again = Some(Instant::now());
+            tracing::info!(peer = %p.name, "peer does not know us: introducing ourselves again");
+        }
+        let log = lock(&self.decls);
+        self.introduce_locked(&log, link, from);
     }
 
     /// Makes room in a full peer table for a new peer (`name`, for the log): pushes out the

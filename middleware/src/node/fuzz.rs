@@ -149,6 +149,7 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
                     counter: u.int_in_range(0u32..=200)?,
                     lease_ms: u.arbitrary()?,
                     gateway: u.ratio(1u8, 4)?,
+                    asks_introduction: u.ratio(1u8, 4)?,
                 },
             ),
             2 => inner.on_discovery(0, addr(port), inner.heartbeat()),

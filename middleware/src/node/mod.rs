@@ -214,6 +214,8 @@ pub(crate) struct Peer {
     pub alive: Arc<std::sync::atomic::AtomicBool>,
     /// Its event subscribers are behind ([`Message::Flow`]): streams to it wait.
     pub behind: Arc<std::sync::atomic::AtomicBool>,
+    /// When we last introduced ourselves again because it said it does not know us.
+    pub introduced_again: Option<Instant>,
 }
 
 impl Peer {

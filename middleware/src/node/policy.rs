@@ -329,6 +329,7 @@ mod tests {
             counter: 0,
             lease_ms: 60_000,
             gateway,
+            asks_introduction: false,
         }
     }
 

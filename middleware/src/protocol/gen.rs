@@ -231,6 +231,7 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
             counter: u.arbitrary()?,
             lease_ms: u.arbitrary()?,
             gateway: u.arbitrary()?,
+            asks_introduction: u.arbitrary()?,
         },
         1 => Message::Heartbeat {
             node_id: node_id(u)?,

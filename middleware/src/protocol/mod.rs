@@ -224,6 +224,11 @@ pub enum Message {
         /// Whether the sender forwards between links (a gateway): only a gateway's offers may
         /// name another node as their `origin`.
         gateway: bool,
+        /// Sent because the sender heard a heartbeat of the recipient without knowing it: a
+        /// recipient that knows the sender (its introduction was lost on the way) introduces
+        /// itself again. (Every other Hello, a first contact's or an introduction's, says
+        /// `false`, so two nodes never answer each other's introductions for ever.)
+        asks_introduction: bool,
     },
     /// The small periodic liveness message (multicast / point to point).
     Heartbeat {
