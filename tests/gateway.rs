@@ -371,6 +371,42 @@ fn a_stream_forwarded_onto_the_radio_is_held_to_the_radio_s_pace() {
     assert_eq!(got["in_order"], true, "{got}");
 }
 
+/// `n` LANs in a row, in one domain, on discovery ports `base`.., joined by a ready gateway
+/// between each two (written into `dir`): the gateways, kept alive by the caller, and the LANs.
+fn lans_in_a_row(test: &str, base: u16, n: u16, dir: &Path) -> (Vec<Proc>, Vec<Lan>) {
+    let domain = format!("{test}-{}", std::process::id());
+    let lans: Vec<Lan> = (0..n)
+        .map(|i| Lan {
+            domain: domain.clone(),
+            port: base + i,
+        })
+        .collect();
+    let gateways = lans
+        .windows(2)
+        .enumerate()
+        .map(|(i, pair)| {
+            let mut gw = lan_gateway(dir, &format!("gw{i}"), &pair[0], &pair[1]);
+            let v = gw.expect_key(RADIO, "ready");
+            assert_eq!(v["gateway"], true, "two LANs and gateway=\"true\" forward");
+            gw
+        })
+        .collect();
+    (gateways, lans)
+}
+
+/// Spawns probe `node` on the first of `lans` if it is the publisher (`pub`), else on the
+/// last: only gateways join them.
+fn across<'a>(lans: &'a [Lan]) -> impl Fn(&str, &[&str]) -> Proc + 'a {
+    move |node, cmd| {
+        let lan = if node == "pub" {
+            &lans[0]
+        } else {
+            &lans[lans.len() - 1]
+        };
+        lan.probe_outside_namespaces(node, cmd)
+    }
+}
+
 /// A reader slower than the links behind a gateway (two LANs, one gateway node between them):
 /// its node tells the gateway its readers are behind (`Flow`), the gateway, which forwards the
 /// stream to it, passes that on to the publisher, and the stream of 150,000 events waits for
@@ -378,25 +414,23 @@ fn a_stream_forwarded_onto_the_radio_is_held_to_the_radio_s_pace() {
 /// (Before the gateway passed it on, the reader saw a gap and the publisher reported nothing.)
 #[test]
 fn a_stream_to_a_slow_reader_behind_a_gateway_loses_nothing() {
-    let domain = format!("gateway-slow-{}", std::process::id());
-    let base = base_port(4);
-    let (a, b) = (
-        Lan {
-            domain: domain.clone(),
-            port: base,
-        },
-        Lan {
-            domain,
-            port: base + 1,
-        },
-    );
     let dir = tempfile::tempdir().expect("temp dir");
-    let mut gw = lan_gateway(dir.path(), "lan-gw", &a, &b);
-    let v = gw.expect_key(RADIO, "ready");
-    assert_eq!(v["gateway"], true, "two LANs and gateway=\"true\" forward");
-    common::stream_to_a_slow_reader_loses_nothing(|node, cmd| {
-        // The publisher on one LAN, the reader on the other: only the gateway joins them.
-        let lan = if node == "pub" { &a } else { &b };
-        lan.probe_outside_namespaces(node, cmd)
-    });
+    let (_gateways, lans) = lans_in_a_row("gateway-slow", base_port(4), 2, dir.path());
+    common::stream_to_a_slow_reader_loses_nothing(across(&lans));
+}
+
+/// The same two gateways away (three LANs in a row), with a reader five times slower (a
+/// millisecond's pause every 20 events): the nearer gateway tells the farther one that
+/// readers one gateway beyond it are behind, and that one tells the publisher. (Told only by
+/// a reader's own node, the publisher was held back only when the gateways happened to lag,
+/// and the reader lost events.)
+#[test]
+fn a_stream_to_a_slow_reader_two_gateways_away_loses_nothing() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (_gateways, lans) = lans_in_a_row("gateway-slow2", base_port(6), 3, dir.path());
+    let spawn = across(&lans);
+    let mut sub = common::event_reader(&spawn, "sub", 100_000, &["--slow", "20"]);
+    let mut publ = common::event_streamer(&spawn, "pub", 100_000);
+    common::expect_stream_finished(&mut publ);
+    common::expect_received_in_order(std::slice::from_mut(&mut sub), 100_000);
 }

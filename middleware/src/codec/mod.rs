@@ -391,9 +391,10 @@ mod tests {
             (
                 Message::Flow {
                     behind: true,
-                    readers: false,
+                    readers: Some(2),
                 },
-                vec![17, 1, 0],
+                // behind, readers Some (1) of 2 gateways beyond
+                vec![17, 1, 1, 2],
             ),
         ];
         for (msg, bytes) in cases {

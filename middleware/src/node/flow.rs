@@ -6,6 +6,7 @@
 //! too while the events it forwards wait for a slower link or for a node whose readers are
 //! behind (see [`super::forward_flow`]).
 
+use std::collections::HashMap;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -18,16 +19,16 @@ use crate::protocol::{Message, NodeId};
 const RECHECK: Duration = Duration::from_millis(50);
 
 impl NodeInner {
-    /// A peer says its subscribers are behind (its own `readers`, or events it forwards), or
+    /// A peer says its subscribers are behind (its `readers`, or events it forwards), or
     /// caught up: streams to it wait, or go on; a gateway forwarding events to it passes its
     /// readers' state on (see [`super::forward_flow`]).
-    pub(super) fn on_flow(&self, node: NodeId, behind: bool, readers: bool) {
+    pub(super) fn on_flow(&self, node: NodeId, behind: bool, readers: Option<u8>) {
         let Some(p) = self.peers.get(&node) else {
             return;
         };
         let was = p.behind.swap(behind, Ordering::AcqRel);
         drop(p);
-        self.relay_readers_behind(node, behind && readers);
+        self.relay_readers_behind(node, readers.filter(|_| behind));
         if was && !behind {
             // Streams waiting for it look again.
             self.bump();
@@ -39,38 +40,40 @@ impl NodeInner {
 
     /// Tells every peer when this node's subscribers fall behind and when they catch up (or
     /// stop reading), until the node stops; a peer that comes while they are behind is told
-    /// too.
+    /// too. On a gateway, also while the events it forwards wait (see
+    /// [`super::forward_flow`]): each peer is told what holds streams from it back.
     pub(crate) async fn tell_peers_when_behind(self: Arc<Self>) {
-        // (behind, because of our own readers) as last told.
-        let mut told = (false, false);
+        // What each peer was last told: (behind, readers).
+        let mut told: HashMap<NodeId, (bool, Option<u8>)> = HashMap::new();
         let mut peers_changed = self.changed.subscribe();
-        let mut new_peers = false;
         loop {
             let changed = self.congestion.changed();
             tokio::pin!(changed);
             changed.as_mut().enable();
             let behind = self.congestion.streams_should_wait();
-            let state = (behind, behind && self.congestion.readers_behind());
-            // The peer table changed while behind: tell everyone again (peers already told
-            // ignore it), so a peer that came meanwhile waits too.
-            if state != told || (behind && new_peers) {
-                told = state;
-                let (behind, readers) = state;
-                let peers: Vec<NodeId> = self.peers.iter().map(|p| p.id).collect();
-                for node in peers {
+            let own = self.congestion.readers_behind().then_some(0);
+            let peers: Vec<NodeId> = self.peers.iter().map(|p| p.id).collect();
+            told.retain(|node, _| peers.contains(node));
+            let mut any_behind = false;
+            for node in peers {
+                let readers = own.or_else(|| self.relayed_readers_behind(node));
+                let state = (behind || readers.is_some(), readers);
+                any_behind |= state.0;
+                // A peer not told yet (one that came meanwhile) is told only while behind.
+                if told.get(&node).copied().unwrap_or((false, None)) != state {
+                    told.insert(node, state);
+                    let (behind, readers) = state;
                     self.send_safe_to_node(node, &Message::Flow { behind, readers });
                 }
             }
-            new_peers = false;
             let some_behind = self.congestion.any_behind();
             tokio::select! {
                 _ = self.cancel.cancelled() => return,
                 _ = changed => {}
-                r = peers_changed.changed(), if told.0 => {
+                r = peers_changed.changed(), if any_behind => {
                     if r.is_err() {
                         return;
                     }
-                    new_peers = true;
                 }
                 _ = tokio::time::sleep(RECHECK), if some_behind => {}
             }

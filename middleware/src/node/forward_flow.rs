@@ -6,32 +6,49 @@
 //! instead of queueing at the gateway without bound (and delaying everything else on the
 //! radio by as much).
 //!
-//! A node the gateway forwards events to whose own readers are behind (its
-//! [`crate::protocol::Message::Flow`] says `readers`) holds the gateway back the same way, so a
-//! reader slower than the links behind a gateway is waited for too. Only a reader's `Flow` is
-//! passed on, never one that is there because of forwarding: two gateways passing each
-//! other's on would hold each other for ever when events cross both ways. (So a reader two
-//! gateways away is not waited for: the nearer gateway's `Flow` does not say `readers`.)
+//! A node the gateway forwards events to whose readers are behind (its
+//! [`crate::protocol::Message::Flow`] says `readers`: its own, or ones `n` gateways beyond it)
+//! holds the gateway back too: the gateway tells its other peers that readers `n + 1` gateways
+//! beyond it are behind, so a reader slower than the links is waited for across gateways.
+//! A readers' state is never told back to the node it came from (two gateways with events
+//! crossing both ways would otherwise hold each other for ever, each behind because the other
+//! is), and is passed across at most [`super::gateway::MAX_HOPS`] gateways (a ring of them
+//! forgets a reader that caught up within as many `Flow`s).
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 
+use super::gateway::MAX_HOPS;
 use super::{NodeInner, RemoteSubscriber};
 use crate::link::{stream_window, STREAM_WINDOW_BYTES};
 use crate::link::{AckCounter, SafeCompletion};
 use crate::protocol::NodeId;
 use crate::sync::lock;
 
+/// [`Window::reader_hops`] while the node's readers are not behind.
+const NO_READERS_BEHIND: u8 = u8::MAX;
+
 /// The events forwarded to one node and how many of them it acknowledged.
-#[derive(Default)]
 struct Window {
     acks: Arc<AckCounter>,
     sent: AtomicU64,
     /// Over its limit: the gateway counts as behind until half of it is acknowledged.
     behind: AtomicBool,
-    /// The node said its readers are behind: the gateway counts as behind until they catch up.
-    readers_behind: AtomicBool,
+    /// The node said readers this many gateways beyond it are behind (0: its own), or
+    /// [`NO_READERS_BEHIND`]. Changed under the table's lock.
+    reader_hops: AtomicU8,
+}
+
+impl Default for Window {
+    fn default() -> Self {
+        Window {
+            acks: Arc::default(),
+            sent: AtomicU64::new(0),
+            behind: AtomicBool::new(false),
+            reader_hops: AtomicU8::new(NO_READERS_BEHIND),
+        }
+    }
 }
 
 impl Window {
@@ -48,34 +65,42 @@ pub(crate) struct ForwardWindows(Mutex<HashMap<NodeId, Arc<Window>>>);
 
 impl NodeInner {
     /// Forgets `node`'s window (it left): a wait for its acknowledgements ends as its link
-    /// fails what it had, one for its readers ends here.
+    /// fails what it had; its readers hold nothing back any more.
     pub(super) fn forget_forward_window(&self, windows: &ForwardWindows, node: NodeId) {
-        let mut table = lock(&windows.0);
-        let w = table.remove(&node);
-        if w.is_some_and(|w| w.readers_behind.swap(false, Ordering::AcqRel)) {
-            self.congestion.forwarding_caught_up();
+        let w = lock(&windows.0).remove(&node);
+        if w.is_some_and(|w| w.reader_hops.load(Ordering::Acquire) != NO_READERS_BEHIND) {
+            self.congestion.relayed_readers_changed();
         }
     }
 
-    /// `node` says its readers are behind, or not (any more): if this gateway forwards events
-    /// to it, it counts as behind itself until they catch up.
-    pub(super) fn relay_readers_behind(&self, node: NodeId, behind: bool) {
+    /// `node` says readers `hops` gateways beyond it are behind (0: its own), or that none are
+    /// (`None`): if this gateway forwards events to it, its other peers are told.
+    pub(super) fn relay_readers_behind(&self, node: NodeId, hops: Option<u8>) {
         let Some(gw) = &self.gateway else { return };
-        // Under the table's lock, as in `forget_forward_window`: a window forgotten meanwhile
-        // is never left counted.
+        let hops = hops.unwrap_or(NO_READERS_BEHIND);
         let windows = lock(&gw.windows.0);
         let Some(w) = windows.get(&node) else {
             return;
         };
-        if w.readers_behind.swap(behind, Ordering::AcqRel) == behind {
+        if w.reader_hops.swap(hops, Ordering::AcqRel) == hops {
             return;
         }
-        tracing::debug!(peer = node, behind, "readers of a node forwarded to");
-        if behind {
-            self.congestion.forwarding_fell_behind();
-        } else {
-            self.congestion.forwarding_caught_up();
-        }
+        tracing::debug!(peer = node, hops, "readers behind a node forwarded to");
+        self.congestion.relayed_readers_changed();
+    }
+
+    /// How many gateways beyond this one the nearest readers that are behind are, as told to
+    /// `peer`: from the nodes this gateway forwards events to, except `peer` itself, within
+    /// [`MAX_HOPS`]. `None` on a node that is no gateway.
+    pub(super) fn relayed_readers_behind(&self, peer: NodeId) -> Option<u8> {
+        let gw = self.gateway.as_ref()?;
+        lock(&gw.windows.0)
+            .iter()
+            .filter(|(node, _)| **node != peer)
+            .map(|(_, w)| w.reader_hops.load(Ordering::Acquire))
+            .filter(|&hops| hops != NO_READERS_BEHIND && hops + 1 < MAX_HOPS)
+            .min()
+            .map(|hops| hops + 1)
     }
 
     /// The completion of one event of `len` bytes forwarded to `to`'s node, counted on that

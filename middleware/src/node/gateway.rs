@@ -32,7 +32,7 @@ use crate::protocol::{Declaration, ItemKind, Message, NodeId, Origin};
 use crate::typeinfo::TypeInfo;
 
 /// Gateways an offer may cross; stops forwarding loops in meshes of gateways.
-const MAX_HOPS: u8 = 8;
+pub(super) const MAX_HOPS: u8 = 8;
 
 /// Name of the pseudo-service owning the forwarded items.
 pub(crate) const SERVICE_NAME: &str = "gateway";

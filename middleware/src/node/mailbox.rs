@@ -80,12 +80,12 @@ pub(crate) const MAILBOX_CAUGHT_UP: usize = MAILBOX_CAP / 8;
 pub(crate) const READER_STALLED: Duration = Duration::from_millis(200);
 
 /// A node's event mailboxes that are behind, and when one of their readers last made progress;
-/// on a gateway, also the nodes its forwarded events wait for (see [`super::forward_flow`]).
+/// on a gateway, also the nodes its forwarded events wait for (see [`super::forward_flow`]; the
+/// readers behind the nodes it forwards to are kept there, by node).
 #[derive(Debug)]
 pub(crate) struct Congestion {
     behind: AtomicUsize,
-    /// Nodes a gateway forwards events to with more of them unacknowledged than their window,
-    /// or whose readers say they are behind.
+    /// Nodes a gateway forwards events to with more of them unacknowledged than their window.
     forwarding: AtomicUsize,
     start: Instant,
     /// Milliseconds from `start` to the last delivery taken from a behind mailbox (or to the
@@ -152,15 +152,21 @@ impl Congestion {
         self.change.notify_waiters();
     }
 
-    /// Forwarded events to a node went over its window, or its readers fell behind.
+    /// Forwarded events to a node went over its window.
     pub(crate) fn forwarding_fell_behind(&self) {
         self.forwarding.fetch_add(1, Ordering::Relaxed);
         self.change.notify_waiters();
     }
 
-    /// Forwarded events to a node came back under half its window, or its readers caught up.
+    /// Forwarded events to a node came back under half its window.
     pub(crate) fn forwarding_caught_up(&self) {
         self.forwarding.fetch_sub(1, Ordering::Relaxed);
+        self.change.notify_waiters();
+    }
+
+    /// A node a gateway forwards to said its readers fell behind or caught up (see
+    /// [`super::forward_flow`]): what the gateway tells its peers is looked at again.
+    pub(crate) fn relayed_readers_changed(&self) {
         self.change.notify_waiters();
     }
 }

@@ -375,10 +375,11 @@ pub enum Message {
     Flow {
         /// Behind (`true`) or caught up.
         behind: bool,
-        /// Behind because of its own subscribers' mailboxes (`false` when only events it
-        /// forwards, as a gateway, wait). A gateway passes on only this kind, a reader's, to
-        /// the nodes it forwards from, so gateways never hold one another.
-        readers: bool,
+        /// Behind because of subscribers' mailboxes: its own (`Some(0)`), or ones this many
+        /// gateways beyond it (a gateway forwarding to them passes their state on, never back
+        /// to the node it came from); `None` when only events it forwards wait for a slower
+        /// link, or when not behind.
+        readers: Option<u8>,
     },
 }
 
