@@ -434,3 +434,48 @@ fn a_stream_to_a_slow_reader_two_gateways_away_loses_nothing() {
     common::expect_stream_finished(&mut publ);
     common::expect_received_in_order(std::slice::from_mut(&mut sub), 100_000);
 }
+
+/// Streams both ways across two gateways (three LANs in a row), to a slow reader at each end:
+/// each gateway forwards events to the other and hears from it that readers beyond it are
+/// behind. A plain "behind" passed back and forth would keep each gateway behind because the
+/// other is, and hold both streams for ever (the hop count and never telling a state back to
+/// where it came from prevent it); both streams end, every event in order.
+#[test]
+fn streams_both_ways_across_two_gateways_to_slow_readers_both_end() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (_gateways, lans) = lans_in_a_row("gateway-both", base_port(9), 3, dir.path());
+    let ends = [(&lans[0], "a", "c"), (&lans[2], "c", "a")];
+    let count = "50000";
+    let mut subs: Vec<Proc> = ends
+        .iter()
+        .map(|(lan, me, _)| {
+            let pattern = format!("probe/to_{me}");
+            let args = [
+                "ev-sub",
+                "--pattern",
+                &pattern,
+                "--count",
+                count,
+                "--slow",
+                "20",
+            ];
+            let mut sub = lan.probe_outside_namespaces(&format!("sub-{me}"), &args);
+            sub.expect_key(RADIO, "ready");
+            sub
+        })
+        .collect();
+    let mut pubs: Vec<Proc> = ends
+        .iter()
+        .map(|(lan, me, other)| {
+            let item = format!("to_{other}");
+            let args = [
+                "ev-pub", "--item", &item, "--count", count, "--subs", "1", "--stream",
+            ];
+            lan.probe_outside_namespaces(&format!("pub-{me}"), &args)
+        })
+        .collect();
+    for p in &mut pubs {
+        common::expect_stream_finished(p);
+    }
+    common::expect_received_in_order(&mut subs, 50_000);
+}
