@@ -7,6 +7,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use common::{bounded, connect, line_mission, start_mission, Sim, Via, STEP};
+use mavlink::dialects::ardupilotmega::MavMessage;
 use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use vas::mavlink_cm::{ManagerConfig, MavEvent};
@@ -175,21 +176,12 @@ async fn garbage_bytes_do_not_stop_mavsim() {
     sim.stop().await;
 }
 
-/// Whether `datagram` is a MAVLink frame (v1 or v2) of MISSION_CURRENT (id 42) reporting item
-/// `seq` (v2 drops a payload's trailing zero bytes; they are read as zeros).
+/// Whether `datagram` starts with a MAVLink frame of MISSION_CURRENT reporting item `seq`.
 fn mission_current_of(datagram: &[u8], seq: u16) -> bool {
-    let (id, payload) = match datagram {
-        [0xFD, len, _, _, _, _, _, a, b, c, rest @ ..] => (
-            u32::from_le_bytes([*a, *b, *c, 0]),
-            &rest[..usize::from(*len).min(rest.len())],
-        ),
-        [0xFE, len, _, _, _, id, rest @ ..] => {
-            (u32::from(*id), &rest[..usize::from(*len).min(rest.len())])
-        }
-        _ => return false,
-    };
-    let byte = |i: usize| payload.get(i).copied().unwrap_or(0);
-    id == 42 && u16::from_le_bytes([byte(0), byte(1)]) == seq
+    matches!(
+        mavlink::MavlinkReader::new(datagram).read_any_message::<MavMessage>(),
+        Ok((_, MavMessage::MISSION_CURRENT(c))) if c.seq == seq
+    )
 }
 
 /// Until the manager reports waypoint `want` reached.
