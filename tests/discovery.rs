@@ -13,25 +13,15 @@ use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
 use std::time::Duration;
 
 use attacker::{unicast_of, Forger};
-use marea::config::{EthernetConfig, LinkConfig};
 use marea::protocol::Message;
 use marea::{NetworkConfig, Node};
 
 const PEER_ID: u64 = 0xF00D_0000_0000_0001;
 
 fn cfg(domain: &str) -> NetworkConfig {
-    let mut c = NetworkConfig::ethernet_loopback("node");
-    c.domain = domain.into();
     let port = 30_000 + (std::process::id() % 20_000) as u16;
-    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
-        interface: Ipv4Addr::LOCALHOST,
-        bind: "127.0.0.1:0".parse().expect("an address"),
-        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 17), port),
-        heartbeat: Duration::from_millis(200),
-        lease: Duration::from_secs(5),
-        ..EthernetConfig::default()
-    })];
-    c
+    let group = SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 17), port);
+    attacker::loopback_node_config("node", domain, group, Duration::from_secs(5))
 }
 
 /// The peer's Hello: a first contact, or (`asks_introduction`) the answer to a heartbeat of a

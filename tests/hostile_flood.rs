@@ -9,7 +9,6 @@ mod attacker;
 use std::net::{Ipv4Addr, SocketAddrV4, UdpSocket};
 use std::time::{Duration, Instant};
 
-use marea::config::{EthernetConfig, LinkConfig};
 use marea::{NetworkConfig, Node};
 
 /// A test's own domain and multicast port (tests run in parallel, and other test binaries too).
@@ -22,17 +21,8 @@ fn net(test: u16) -> (String, u16) {
 }
 
 fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
-    let mut c = NetworkConfig::ethernet_loopback(node);
-    c.domain = domain.into();
-    c.links = vec![LinkConfig::Ethernet(EthernetConfig {
-        interface: Ipv4Addr::LOCALHOST,
-        bind: "127.0.0.1:0".parse().unwrap(),
-        multicast: SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 13), port),
-        heartbeat: Duration::from_millis(200),
-        lease: Duration::from_secs(3),
-        ..EthernetConfig::default()
-    })];
-    c
+    let group = SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 13), port);
+    attacker::loopback_node_config(node, domain, group, Duration::from_secs(3))
 }
 
 fn knows(node: &Node, name: &str) -> bool {

@@ -70,6 +70,29 @@ pub fn interest_batch(session: u32, pattern: &str) -> Vec<u8> {
     w.take()
 }
 
+/// A node of `domain` with one Ethernet link on loopback, announcing on `group`, heartbeat
+/// every 200 ms: the victim an attacker (or a forged peer) talks to.
+pub fn loopback_node_config(
+    node: &str,
+    domain: &str,
+    group: std::net::SocketAddrV4,
+    lease: Duration,
+) -> marea::NetworkConfig {
+    let mut c = marea::NetworkConfig::ethernet_loopback(node);
+    c.domain = domain.into();
+    c.links = vec![marea::config::LinkConfig::Ethernet(
+        marea::config::EthernetConfig {
+            interface: std::net::Ipv4Addr::LOCALHOST,
+            bind: "127.0.0.1:0".parse().expect("a literal address"),
+            multicast: group,
+            heartbeat: Duration::from_millis(200),
+            lease,
+            ..marea::config::EthernetConfig::default()
+        },
+    )];
+    c
+}
+
 /// The unicast address of a node's first link (`udp://host:port`).
 pub fn unicast_of(node: &marea::Node) -> SocketAddr {
     let a = node.link_addrs().into_iter().next().expect("a link");
