@@ -479,3 +479,47 @@ fn streams_both_ways_across_two_gateways_to_slow_readers_both_end() {
     }
     common::expect_received_in_order(&mut subs, 50_000);
 }
+
+/// A reader already behind when a gateway first forwards events to it: a publisher on its
+/// own LAN keeps it behind (it is held back directly), then a publisher beyond the gateway
+/// starts a stream to it. The gateway had heard that the reader's node is behind before it
+/// forwarded anything there; it passes that on as soon as it does, so the far stream waits
+/// too and the reader's mailbox drops nothing. (When the gateway kept a node's state only
+/// once it forwarded to it, the far stream ran unchecked until the reader's state next
+/// changed, and the reader lost events.)
+#[test]
+fn a_reader_already_behind_when_a_gateway_first_forwards_to_it_loses_nothing() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (_gateways, lans) = lans_in_a_row("gateway-late", base_port(12), 2, dir.path());
+    let (far, near) = (&lans[0], &lans[1]);
+    let (near_count, far_count) = (100_000, 50_000);
+    let total = (near_count + far_count).to_string();
+    let mut sub = near.probe_outside_namespaces(
+        "sub",
+        &[
+            "ev-sub",
+            "--pattern",
+            "probe/ev",
+            "--count",
+            &total,
+            "--slow",
+            "20",
+        ],
+    );
+    sub.expect_key(RADIO, "ready");
+    let stream = |lan: &Lan, name: &str, count: u64| {
+        let count = count.to_string();
+        lan.probe_outside_namespaces(
+            name,
+            &[
+                "ev-pub", "--item", "ev", "--count", &count, "--subs", "1", "--stream",
+            ],
+        )
+    };
+    let mut near_pub = stream(near, "pub-near", near_count);
+    sub.expect_key(RADIO, "behind");
+    let mut far_pub = stream(far, "pub-far", far_count);
+    common::expect_stream_finished(&mut far_pub);
+    common::expect_stream_finished(&mut near_pub);
+    common::expect_received_in_order(std::slice::from_mut(&mut sub), near_count + far_count);
+}

@@ -36,7 +36,8 @@ struct Window {
     /// Over its limit: the gateway counts as behind until half of it is acknowledged.
     behind: AtomicBool,
     /// The node said readers this many gateways beyond it are behind (0: its own), or
-    /// [`NO_READERS_BEHIND`]. Changed under the table's lock.
+    /// [`NO_READERS_BEHIND`]; kept from before the first event forwarded to it, and counted
+    /// from then on. Changed, and `sent` first raised, under the table's lock.
     reader_hops: AtomicU8,
 }
 
@@ -52,6 +53,11 @@ impl Default for Window {
 }
 
 impl Window {
+    /// An event was forwarded to the node (its readers' state counts from then on).
+    fn forwarded_to(&self) -> bool {
+        self.sent.load(Ordering::Acquire) > 0
+    }
+
     fn in_flight(&self) -> u64 {
         self.sent
             .load(Ordering::Acquire)
@@ -74,15 +80,21 @@ impl NodeInner {
     }
 
     /// `node` says readers `hops` gateways beyond it are behind (0: its own), or that none are
-    /// (`None`): if this gateway forwards events to it, its other peers are told.
+    /// (`None`): if this gateway forwards events to it, its other peers are told; if it has not
+    /// yet, they are told when it first does (a node may be behind, fed by others, long before).
     pub(super) fn relay_readers_behind(&self, node: NodeId, hops: Option<u8>) {
         let Some(gw) = &self.gateway else { return };
         let hops = hops.unwrap_or(NO_READERS_BEHIND);
-        let windows = lock(&gw.windows.0);
-        let Some(w) = windows.get(&node) else {
-            return;
+        let mut windows = lock(&gw.windows.0);
+        let w = if hops == NO_READERS_BEHIND {
+            let Some(w) = windows.get(&node) else {
+                return;
+            };
+            w
+        } else {
+            windows.entry(node).or_default()
         };
-        if w.reader_hops.swap(hops, Ordering::AcqRel) == hops {
+        if w.reader_hops.swap(hops, Ordering::AcqRel) == hops || !w.forwarded_to() {
             return;
         }
         tracing::debug!(peer = node, hops, "readers behind a node forwarded to");
@@ -96,7 +108,7 @@ impl NodeInner {
         let gw = self.gateway.as_ref()?;
         lock(&gw.windows.0)
             .iter()
-            .filter(|(node, _)| **node != peer)
+            .filter(|(node, w)| **node != peer && w.forwarded_to())
             .map(|(_, w)| w.reader_hops.load(Ordering::Acquire))
             .filter(|&hops| hops != NO_READERS_BEHIND && hops + 1 < MAX_HOPS)
             .min()
@@ -111,8 +123,16 @@ impl NodeInner {
         to: &RemoteSubscriber,
         len: usize,
     ) -> SafeCompletion {
-        let w = lock(&windows.0).entry(to.node).or_default().clone();
-        w.sent.fetch_add(1, Ordering::AcqRel);
+        let w = {
+            let mut table = lock(&windows.0);
+            let w = table.entry(to.node).or_default().clone();
+            let first = w.sent.fetch_add(1, Ordering::AcqRel) == 0;
+            if first && w.reader_hops.load(Ordering::Acquire) != NO_READERS_BEHIND {
+                // Its readers were behind before: the other peers are told now.
+                self.congestion.relayed_readers_changed();
+            }
+            w
+        };
         let limit = self.forward_limit(to.link, len);
         if w.in_flight() > limit && !w.behind.swap(true, Ordering::AcqRel) {
             tracing::debug!(peer = %to.node_name, limit, "forwarded events to a node fell behind");
