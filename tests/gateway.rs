@@ -523,3 +523,96 @@ fn a_reader_already_behind_when_a_gateway_first_forwards_to_it_loses_nothing() {
     common::expect_stream_finished(&mut near_pub);
     common::expect_received_in_order(std::slice::from_mut(&mut sub), near_count + far_count);
 }
+
+/// The provider of `rover1/vas/retask` (taking `delay_ms` per call) on `lan`, from a
+/// network.xml written into `dir` whose `<access>` lets only nodes of namespace `ground` call it.
+fn guarded_vas(dir: &Path, lan: &Lan, delay_ms: &str) -> Proc {
+    let xml = format!(
+        r#"<network node="air" namespace="rover1" domain="{domain}">
+  {lan}
+  <access>
+    <allow kind="call" item="rover1/vas/*" from="ground/*"/>
+  </access>
+</network>"#,
+        domain = lan.domain,
+        lan = lan.ethernet("lan"),
+    );
+    let path = dir.join("air.xml");
+    std::fs::write(&path, xml).expect("write network.xml");
+    let args: Vec<String> = [
+        "--config",
+        &path.display().to_string(),
+        "--service",
+        "vas",
+        "provide",
+        "--item",
+        "retask",
+        "--delay-ms",
+        delay_ms,
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let mut vas = Proc::spawn("vas", env!("CARGO_BIN_EXE_marea-probe"), &args);
+    vas.expect_key(RADIO, "ready");
+    vas
+}
+
+/// `node` of `namespace` on `lan` calls `rover1/vas/retask` with `arg` once it sees the
+/// provider.
+fn call_retask(lan: &Lan, node: &str, namespace: &str, arg: u64) -> Proc {
+    lan.probe(
+        node,
+        namespace,
+        &[
+            "call",
+            "--name",
+            "rover1/vas/retask",
+            "--arg",
+            &arg.to_string(),
+            "--wait-ms",
+            "20000",
+            "--timeout-ms",
+            "20000",
+        ],
+    )
+}
+
+fn call_result(caller: &mut Proc) -> Value {
+    caller.expect(RADIO, "ok or error", |v| {
+        v.get("ok").is_some() || v.get("error").is_some()
+    })
+}
+
+/// A call through a gateway is the caller's, not the gateway's: the provider's `<access>`
+/// rules (`ground/*` may call) see the node that called across the gateway (`lab/gw0`,
+/// which no rule names, relays it), so the `ground` nodes are served and `evil/fmo` denied;
+/// and each caller behind the gateway has lanes of its own, so three callers whose calls
+/// overlap are all served (sharing the gateway's lane, one was superseded by another's).
+/// (Before, every call through the gateway was denied, as the gateway's.)
+#[test]
+fn calls_through_a_gateway_are_checked_and_queued_as_their_callers() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (_gateways, lans) = lans_in_a_row("gateway-call", base_port(14), 2, dir.path());
+    let (ground, air) = (&lans[0], &lans[1]);
+    let mut vas = guarded_vas(dir.path(), air, "1500");
+    let mut intruder = call_retask(ground, "fmo", "evil", 13);
+    let denied = call_result(&mut intruder);
+    assert_eq!(denied["error"], "denied", "{denied}");
+    let mut callers: Vec<Proc> = (1..=3)
+        .map(|i| call_retask(ground, &format!("fmo{i}"), "ground", i))
+        .collect();
+    for (i, caller) in (1u64..).zip(&mut callers) {
+        let got = call_result(caller);
+        assert_eq!(got["ok"], 2 * i, "{}: {got}", caller.name);
+    }
+    let mut ran: Vec<u64> = (0..3)
+        .map(|_| {
+            vas.expect_key(RADIO, "called")["called"]
+                .as_u64()
+                .unwrap_or(0)
+        })
+        .collect();
+    ran.sort_unstable();
+    assert_eq!(ran, [1, 2, 3], "the denied call (13) never ran");
+}

@@ -287,6 +287,7 @@ fn forged_session_traffic() -> Vec<Message> {
             id,
             remaining_ms: 5_000,
             args: args.clone(),
+            caller: None,
         });
         msgs.push(Message::FileOffer {
             transfer: u64::from(id),

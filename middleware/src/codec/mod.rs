@@ -278,8 +278,9 @@ mod tests {
                     id: 2,
                     remaining_ms: 1000,
                     args: vec![7],
+                    caller: None,
                 },
-                vec![7, 1, 2, 0xE8, 0x07, 1, 7],
+                vec![7, 1, 2, 0xE8, 0x07, 1, 7, 0],
             ),
             (
                 Message::Reply {

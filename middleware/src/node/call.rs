@@ -11,10 +11,11 @@ use std::time::{Duration, Instant};
 use dashmap::DashMap;
 use tokio::sync::oneshot;
 
+use super::gateway::MAX_HOPS;
 use super::policy::{Refusal, MAX_CALLS_PER_PEER, MAX_CALLS_TOTAL, MAX_CALL_TIME};
 use super::{lock, BoxFuture, NodeInner, OfferRole};
 use crate::config::AccessKind;
-use crate::protocol::{ItemKind, Message, NodeId, RemoteFailure};
+use crate::protocol::{ItemKind, Message, NodeId, Origin, RemoteFailure};
 use crate::typeinfo::TypeInfo;
 
 /// Why a remote invocation failed. Each cause is distinct, as callers react differently.
@@ -263,6 +264,18 @@ impl PendingCalls {
 type LaneRun =
     Arc<dyn Fn(Vec<u8>, Duration) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
 
+/// A lane: the calls of one caller to one function, from the peer that sent them (the caller
+/// itself, or a gateway relaying its calls).
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+struct LaneKey {
+    /// The peer the calls come from, and their replies go to.
+    peer: NodeId,
+    /// The node calling: `peer`, or the node a gateway relays for.
+    caller: NodeId,
+    /// The function's offer id.
+    function: u32,
+}
+
 /// A peer's call accepted but not started.
 struct QueuedCall {
     call_id: u64,
@@ -284,40 +297,41 @@ enum Admission {
 #[derive(Default)]
 struct LaneTable {
     /// Running lanes, each with the call waiting behind the one running.
-    lanes: HashMap<(NodeId, u32), Option<QueuedCall>>,
-    per_peer: HashMap<NodeId, usize>,
+    lanes: HashMap<LaneKey, Option<QueuedCall>>,
+    /// Running lanes by caller.
+    per_caller: HashMap<NodeId, usize>,
     total: usize,
 }
 
 impl LaneTable {
-    fn admit(&mut self, key: (NodeId, u32), call: QueuedCall) -> Admission {
+    fn admit(&mut self, key: LaneKey, call: QueuedCall) -> Admission {
         if let Some(waiting) = self.lanes.get_mut(&key) {
             let old = waiting.replace(call);
             return Admission::Queued {
                 superseded: old.map(|c| c.call_id),
             };
         }
-        let peer = self.per_peer.get(&key.0).copied().unwrap_or(0);
-        if peer >= MAX_CALLS_PER_PEER || self.total >= MAX_CALLS_TOTAL {
+        let caller = self.per_caller.get(&key.caller).copied().unwrap_or(0);
+        if caller >= MAX_CALLS_PER_PEER || self.total >= MAX_CALLS_TOTAL {
             return Admission::Busy;
         }
         self.lanes.insert(key, None);
-        *self.per_peer.entry(key.0).or_default() += 1;
+        *self.per_caller.entry(key.caller).or_default() += 1;
         self.total += 1;
         Admission::Run(call)
     }
 
     /// The call waiting in lane `key`, or `None` and the lane closes.
-    fn next(&mut self, key: (NodeId, u32)) -> Option<QueuedCall> {
+    fn next(&mut self, key: LaneKey) -> Option<QueuedCall> {
         if let Some(c) = self.lanes.get_mut(&key).and_then(Option::take) {
             return Some(c);
         }
         if self.lanes.remove(&key).is_some() {
             self.total = self.total.saturating_sub(1);
-            if let Some(n) = self.per_peer.get_mut(&key.0) {
+            if let Some(n) = self.per_caller.get_mut(&key.caller) {
                 *n = n.saturating_sub(1);
                 if *n == 0 {
-                    self.per_peer.remove(&key.0);
+                    self.per_caller.remove(&key.caller);
                 }
             }
         }
@@ -392,16 +406,18 @@ impl NodeInner {
         timeout: Duration,
     ) -> Result<Vec<u8>, CallError> {
         let provider = self.find_provider(name, expected)?;
-        self.invoke(name, provider, args, timeout).await
+        self.invoke(name, provider, args, timeout, None).await
     }
 
-    /// Invokes a provider with encoded arguments and returns the encoded result.
+    /// Invokes a provider with encoded arguments and returns the encoded result; a gateway
+    /// relaying another node's call names it as the `caller`.
     pub async fn invoke(
         &self,
         name: &str,
         provider: Provider,
         args: Vec<u8>,
         timeout: Duration,
+        caller: Option<Origin>,
     ) -> Result<Vec<u8>, CallError> {
         match provider {
             Provider::Local(handler, _) => match tokio::time::timeout(timeout, handler(args)).await
@@ -428,6 +444,7 @@ impl NodeInner {
                         id,
                         remaining_ms,
                         args,
+                        caller,
                     },
                 );
                 if !sent {
@@ -472,18 +489,33 @@ impl NodeInner {
         id: u32,
         remaining_ms: u32,
         args: Vec<u8>,
+        caller: Option<Origin>,
     ) {
         let remaining = Duration::from_millis(u64::from(remaining_ms)).min(MAX_CALL_TIME);
-        let Some(offer) = self.offers.get(&id).map(|o| o.clone()) else {
+        let refuse = |why: RemoteFailure| {
             self.send_safe_to_node(
                 node,
                 &Message::Reply {
                     call_id,
-                    result: Err(RemoteFailure::NotProvided),
+                    result: Err(why),
                 },
             );
-            return;
         };
+        let Some(offer) = self.offers.get(&id).map(|o| o.clone()) else {
+            return refuse(RemoteFailure::NotProvided);
+        };
+        if let Some(o) = &caller {
+            if !self.relays_for(node, o) {
+                self.policy.refuse(
+                    self.peer_link(node),
+                    node,
+                    &self.peer_name(node),
+                    &offer.name,
+                    Refusal::ForeignOrigin,
+                );
+                return refuse(RemoteFailure::Denied);
+            }
+        }
         let run: LaneRun = match &offer.role {
             OfferRole::Function { handler } => {
                 let handler = handler.clone();
@@ -501,6 +533,7 @@ impl NodeInner {
             }
             OfferRole::Relay { origin, remote_id } => {
                 let (origin, remote_id) = (*origin, *remote_id);
+                let caller = self.caller_to_relay(node, caller.as_ref());
                 let inner = self.clone();
                 let name = offer.name.to_string();
                 let ty = offer.ty.clone();
@@ -512,37 +545,25 @@ impl NodeInner {
                         id: remote_id,
                         ty: ty.clone(),
                     };
-                    let (inner, name) = (inner.clone(), name.clone());
+                    let (inner, name, caller) = (inner.clone(), name.clone(), caller.clone());
                     Box::pin(async move {
                         inner
-                            .invoke(&name, provider, args, left)
+                            .invoke(&name, provider, args, left, Some(caller))
                             .await
                             .map_err(|e| e.relayed(&inner.me.name))
                     })
                 })
             }
-            _ => {
-                self.send_safe_to_node(
-                    node,
-                    &Message::Reply {
-                        call_id,
-                        result: Err(RemoteFailure::NotProvided),
-                    },
-                );
-                return;
-            }
+            _ => return refuse(RemoteFailure::NotProvided),
         };
-        if !self.permitted(node, AccessKind::Call, &offer.name) {
-            self.send_safe_to_node(
-                node,
-                &Message::Reply {
-                    call_id,
-                    result: Err(RemoteFailure::Denied),
-                },
-            );
-            return;
+        if !self.permitted_for(node, caller.as_ref(), AccessKind::Call, &offer.name) {
+            return refuse(RemoteFailure::Denied);
         }
-        let key = (node, id);
+        let key = LaneKey {
+            peer: node,
+            caller: caller.as_ref().map_or(node, |o| o.node),
+            function: id,
+        };
         let queued = QueuedCall {
             call_id,
             args,
@@ -571,14 +592,7 @@ impl NodeInner {
                     &offer.name,
                     Refusal::Busy,
                 );
-                self.send_safe_to_node(
-                    node,
-                    &Message::Reply {
-                        call_id,
-                        result: Err(RemoteFailure::Busy),
-                    },
-                );
-                return;
+                return refuse(RemoteFailure::Busy);
             }
         };
         let inner = self.clone();
@@ -611,6 +625,35 @@ impl NodeInner {
                 }
             }
         });
+    }
+
+    /// Whether peer `node` may relay a call for `caller`: it is a gateway (see
+    /// [`super::Peer::gateway`]), and `caller` is another node at least one gateway away,
+    /// within [`super::gateway::MAX_HOPS`].
+    fn relays_for(&self, node: NodeId, caller: &Origin) -> bool {
+        let gateway = self.peers.get(&node).is_some_and(|p| p.gateway);
+        gateway && caller.node != node && (1..MAX_HOPS).contains(&caller.hops)
+    }
+
+    /// Who a call from `node` (relayed for `caller`, if given) is from, as this gateway names
+    /// it to the next node: one gateway further.
+    fn caller_to_relay(&self, node: NodeId, caller: Option<&Origin>) -> Origin {
+        match caller {
+            Some(o) => Origin {
+                hops: o.hops.saturating_add(1),
+                ..o.clone()
+            },
+            None => Origin {
+                node,
+                name: self.peer_name(node).to_string(),
+                hops: 1,
+                namespace: self
+                    .peers
+                    .get(&node)
+                    .map(|p| p.namespace.clone())
+                    .unwrap_or_default(),
+            },
+        }
     }
 
     /// The link a peer is reached on (0 when it is no longer known).
@@ -647,6 +690,15 @@ mod tests {
         calls.register(PROVIDER, "air".into(), "vas/double", Duration::from_secs(1))
     }
 
+    /// The lane of `caller`'s own calls of `function`.
+    fn lane(caller: NodeId, function: u32) -> LaneKey {
+        LaneKey {
+            peer: caller,
+            caller,
+            function,
+        }
+    }
+
     fn queued(call_id: u64) -> QueuedCall {
         QueuedCall {
             call_id,
@@ -658,7 +710,7 @@ mod tests {
     #[test]
     fn a_lane_runs_one_call_and_the_newest_waiting_one_wins() {
         let mut t = LaneTable::default();
-        let key = (PROVIDER, 3);
+        let key = lane(PROVIDER, 3);
         assert!(matches!(t.admit(key, queued(1)), Admission::Run(c) if c.call_id == 1));
         assert!(matches!(
             t.admit(key, queued(2)),
@@ -673,7 +725,7 @@ mod tests {
         // Call 1 done: call 3 runs next, then the lane closes.
         assert_eq!(t.next(key).map(|c| c.call_id), Some(3));
         assert!(t.next(key).is_none());
-        assert_eq!((t.total, t.per_peer.len(), t.lanes.len()), (0, 0, 0));
+        assert_eq!((t.total, t.per_caller.len(), t.lanes.len()), (0, 0, 0));
     }
 
     #[test]
@@ -681,12 +733,12 @@ mod tests {
         let mut t = LaneTable::default();
         for f in 0..MAX_CALLS_PER_PEER as u32 {
             assert!(matches!(
-                t.admit((PROVIDER, f), queued(1)),
+                t.admit(lane(PROVIDER, f), queued(1)),
                 Admission::Run(_)
             ));
         }
         assert!(matches!(
-            t.admit((PROVIDER, 9999), queued(1)),
+            t.admit(lane(PROVIDER, 9999), queued(1)),
             Admission::Busy
         ));
         // Another caller still gets in, up to the total.
@@ -697,15 +749,24 @@ mod tests {
                 if admitted == MAX_CALLS_TOTAL {
                     break;
                 }
-                assert!(matches!(t.admit((other, f), queued(1)), Admission::Run(_)));
+                assert!(matches!(
+                    t.admit(lane(other, f), queued(1)),
+                    Admission::Run(_)
+                ));
                 admitted += 1;
             }
             other += 1;
         }
-        assert!(matches!(t.admit((other, 0), queued(1)), Admission::Busy));
+        assert!(matches!(
+            t.admit(lane(other, 0), queued(1)),
+            Admission::Busy
+        ));
         // A lane closing frees its place.
-        assert!(t.next((PROVIDER, 0)).is_none());
-        assert!(matches!(t.admit((other, 0), queued(1)), Admission::Run(_)));
+        assert!(t.next(lane(PROVIDER, 0)).is_none());
+        assert!(matches!(
+            t.admit(lane(other, 0), queued(1)),
+            Admission::Run(_)
+        ));
     }
 
     /// A node without links with one function reporting each run (its argument) and then
@@ -755,7 +816,7 @@ mod tests {
             origin: None,
             hidden_on: None,
         }));
-        for (peer, ns) in [(1, "ground"), (2, "evil")] {
+        for (peer, ns, gateway) in [(1, "ground", false), (2, "evil", false), (3, "lab", true)] {
             inner.on_discovery(
                 0,
                 crate::link::PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], peer))),
@@ -766,7 +827,7 @@ mod tests {
                     namespace: ns.into(),
                     counter: 0,
                     lease_ms: 60_000,
-                    gateway: false,
+                    gateway,
                     asks_introduction: false,
                 },
             );
@@ -788,23 +849,82 @@ mod tests {
     async fn expired_denied_and_superseded_calls_never_run() {
         let (inner, id, mut ran, gate) = provider_node();
         // Out of time on arrival: dropped unexecuted.
-        inner.on_call(1, 1, id, 0, arg(1));
+        inner.on_call(1, 1, id, 0, arg(1), None);
         // Not allowed by <access>.
-        inner.on_call(2, 2, id, 5000, arg(2));
+        inner.on_call(2, 2, id, 5000, arg(2), None);
         // Call 3 runs and blocks; 4 waits; 5 replaces 4 (newest wins).
-        inner.on_call(1, 3, id, 5000, arg(3));
+        inner.on_call(1, 3, id, 5000, arg(3), None);
         assert_eq!(next(&mut ran).await, Some(3));
-        inner.on_call(1, 4, id, 5000, arg(4));
-        inner.on_call(1, 5, id, 5000, arg(5));
+        inner.on_call(1, 4, id, 5000, arg(4), None);
+        inner.on_call(1, 5, id, 5000, arg(5), None);
         gate.add_permits(1);
         assert_eq!(next(&mut ran).await, Some(5));
         gate.add_permits(1);
         // The lane is free again: a later call runs.
-        inner.on_call(1, 6, id, 5000, arg(6));
+        inner.on_call(1, 6, id, 5000, arg(6), None);
         assert_eq!(next(&mut ran).await, Some(6));
         gate.add_permits(1);
         assert!(ran.try_recv().is_err(), "nothing else ran");
         assert_eq!(inner.policy.counts(0), (1, 0), "the denied call counted");
+        inner.cancel.cancel();
+    }
+
+    /// A node `hops` gateways away, as a gateway names it.
+    fn behind_a_gateway(node: NodeId, namespace: &str, hops: u8) -> Option<Origin> {
+        Some(Origin {
+            node,
+            name: "fmo".into(),
+            hops,
+            namespace: namespace.into(),
+        })
+    }
+
+    #[tokio::test]
+    async fn calls_a_gateway_relays_are_checked_and_laned_as_their_callers() {
+        let (inner, id, mut ran, gate) = provider_node();
+        // Peer 3 is a gateway of namespace `lab`, which no rule allows; the callers it
+        // relays for are checked instead: `ground` may call, `evil` may not.
+        inner.on_call(3, 1, id, 5000, arg(1), behind_a_gateway(10, "evil", 1));
+        inner.on_call(3, 2, id, 5000, arg(2), behind_a_gateway(11, "ground", 1));
+        assert_eq!(next(&mut ran).await, Some(2));
+        // Another caller behind the same gateway has a lane of its own: its calls run beside
+        // caller 11's, and supersede none of them.
+        inner.on_call(3, 3, id, 5000, arg(3), behind_a_gateway(12, "ground", 2));
+        assert_eq!(next(&mut ran).await, Some(3));
+        inner.on_call(3, 4, id, 5000, arg(4), behind_a_gateway(11, "ground", 1));
+        inner.on_call(3, 5, id, 5000, arg(5), behind_a_gateway(12, "ground", 2));
+        gate.add_permits(2);
+        let mut next_two = vec![next(&mut ran).await, next(&mut ran).await];
+        next_two.sort();
+        assert_eq!(next_two, [Some(4), Some(5)]);
+        gate.add_permits(2);
+        assert!(ran.try_recv().is_err(), "nothing else ran");
+        assert_eq!(inner.policy.counts(0), (1, 0), "the denied caller counted");
+        inner.cancel.cancel();
+    }
+
+    #[tokio::test]
+    async fn a_call_relayed_by_a_node_that_is_no_gateway_is_refused() {
+        let (inner, id, mut ran, gate) = provider_node();
+        // Peer 1 (`ground`, no gateway) claims to relay for a `ground` node; peer 3, a
+        // gateway, names itself, or a caller zero or too many gateways away.
+        inner.on_call(1, 1, id, 5000, arg(1), behind_a_gateway(10, "ground", 1));
+        inner.on_call(3, 2, id, 5000, arg(2), behind_a_gateway(3, "ground", 1));
+        inner.on_call(3, 3, id, 5000, arg(3), behind_a_gateway(10, "ground", 0));
+        inner.on_call(
+            3,
+            4,
+            id,
+            5000,
+            arg(4),
+            behind_a_gateway(10, "ground", MAX_HOPS),
+        );
+        // A call of its own from peer 1 still runs.
+        inner.on_call(1, 5, id, 5000, arg(5), None);
+        assert_eq!(next(&mut ran).await, Some(5));
+        gate.add_permits(1);
+        assert!(ran.try_recv().is_err(), "no relayed call ran");
+        assert_eq!(inner.policy.counts(0).1, 4, "each refusal counted");
         inner.cancel.cancel();
     }
 

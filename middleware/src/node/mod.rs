@@ -516,7 +516,8 @@ impl NodeInner {
                 id,
                 remaining_ms,
                 args,
-            } => self.on_call(node, call_id, id, remaining_ms, args),
+                caller,
+            } => self.on_call(node, call_id, id, remaining_ms, args, caller),
             Message::Reply { call_id, result } => self.on_reply(node, call_id, result),
             Message::FileOffer {
                 transfer,

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use super::lock;
 use crate::config::access::{peer_path, AccessConfig, AccessKind};
-use crate::protocol::NodeId;
+use crate::protocol::{NodeId, Origin};
 
 /// Declarations (services, offers, interests) stored for one peer; beyond, new ones are
 /// refused. Far above a real node (the VAS declares a few dozen).
@@ -234,20 +234,37 @@ impl super::NodeInner {
     /// the rules see a peer's namespace only once its identity key proved it: until then (or
     /// when its key is not listed for it) the peer is refused whatever a rule governs.
     pub fn permitted(&self, node: NodeId, kind: AccessKind, item: &str) -> bool {
+        self.permitted_for(node, None, kind, item)
+    }
+
+    /// [`Self::permitted`] for what gateway `node` relays for `caller`: the rules see the
+    /// caller's namespace and name as the gateway names them (its own identity proved, where
+    /// identities are checked). Without `caller`, `node`'s own.
+    pub fn permitted_for(
+        &self,
+        node: NodeId,
+        caller: Option<&Origin>,
+        kind: AccessKind,
+        item: &str,
+    ) -> bool {
         let Some(access) = self.policy.access.as_ref() else {
             return true;
         };
         let governs = access.governs(kind);
-        let Some((link, namespace, name)) = self
-            .peers
-            .get(&node)
-            .map(|p| (p.link, p.namespace.clone(), p.name.clone()))
-        else {
+        let Some((link, namespace, name)) = self.peers.get(&node).map(|p| match caller {
+            None => (p.link, p.namespace.clone(), p.name.to_string()),
+            Some(o) => (
+                p.link,
+                o.namespace.clone(),
+                format!("{} (via {})", o.name, p.name),
+            ),
+        }) else {
             return !governs;
         };
+        let rule_name = caller.map_or(name.as_str(), |o| o.name.as_str());
         // A claimed namespace is no credential where identities are checked.
         let proven = self.identity_allows(node);
-        if (proven || !governs) && self.policy.allows(kind, item, &namespace, &name) {
+        if (proven || !governs) && self.policy.allows(kind, item, &namespace, rule_name) {
             return true;
         }
         self.policy

@@ -140,16 +140,7 @@ pub fn declaration(u: &mut Unstructured<'_>) -> Result<Declaration> {
             kind: kind(u)?,
             name: name(u)?,
             ty: type_info(u)?,
-            origin: if u.ratio(1u8, 3)? {
-                Some(Origin {
-                    node: node_id(u)?,
-                    name: segment(u)?,
-                    hops: u.arbitrary()?,
-                    namespace: segment(u)?,
-                })
-            } else {
-                None
-            },
+            origin: maybe_origin(u)?,
         },
         5..=8 => Declaration::Interest {
             id,
@@ -260,6 +251,7 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
             id: u.int_in_range(0u32..=64)?,
             remaining_ms: u.arbitrary()?,
             args: bytes(u, 128)?,
+            caller: maybe_origin(u)?,
         },
         9 => Message::Reply {
             call_id: u.arbitrary()?,
@@ -331,4 +323,18 @@ pub fn mutate(u: &mut Unstructured<'_>, b: &mut Vec<u8>) -> Result<()> {
         _ => {}
     }
     Ok(())
+}
+
+/// Another node, as a gateway names it, one time in three.
+fn maybe_origin(u: &mut Unstructured<'_>) -> Result<Option<Origin>> {
+    Ok(if u.ratio(1u8, 3)? {
+        Some(Origin {
+            node: node_id(u)?,
+            name: segment(u)?,
+            hops: u.arbitrary()?,
+            namespace: segment(u)?,
+        })
+    } else {
+        None
+    })
 }

@@ -297,6 +297,10 @@ pub enum Message {
         /// postcard-encoded arguments.
         #[serde(with = "serde_bytes_compat")]
         args: Vec<u8>,
+        /// Set by a gateway relaying another node's call: that node, which the provider checks
+        /// its `<access>` rules against and gives its own lanes (a call relayed for one caller
+        /// never supersedes another's). Taken only from a gateway.
+        caller: Option<Origin>,
     },
     /// The answer to a call (safe class).
     Reply {
