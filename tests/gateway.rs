@@ -524,14 +524,14 @@ fn a_reader_already_behind_when_a_gateway_first_forwards_to_it_loses_nothing() {
     common::expect_received_in_order(std::slice::from_mut(&mut sub), near_count + far_count);
 }
 
-/// The provider of `rover1/vas/retask` (taking `delay_ms` per call) on `lan`, from a
-/// network.xml written into `dir` whose `<access>` lets only nodes of namespace `ground` call it.
-fn guarded_vas(dir: &Path, lan: &Lan, delay_ms: &str) -> Proc {
+/// Probe `service` of node `air` (namespace `rover1`) on `lan` running `cmd`, from a
+/// network.xml written into `dir` whose `<access>` holds `rule`; ready.
+fn guarded_air(dir: &Path, lan: &Lan, rule: &str, service: &str, cmd: &[&str]) -> Proc {
     let xml = format!(
         r#"<network node="air" namespace="rover1" domain="{domain}">
   {lan}
   <access>
-    <allow kind="call" item="rover1/vas/*" from="ground/*"/>
+    {rule}
   </access>
 </network>"#,
         domain = lan.domain,
@@ -539,23 +539,16 @@ fn guarded_vas(dir: &Path, lan: &Lan, delay_ms: &str) -> Proc {
     );
     let path = dir.join("air.xml");
     std::fs::write(&path, xml).expect("write network.xml");
-    let args: Vec<String> = [
-        "--config",
-        &path.display().to_string(),
-        "--service",
-        "vas",
-        "provide",
-        "--item",
-        "retask",
-        "--delay-ms",
-        delay_ms,
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let mut vas = Proc::spawn("vas", env!("CARGO_BIN_EXE_marea-probe"), &args);
-    vas.expect_key(RADIO, "ready");
-    vas
+    let mut args: Vec<String> = vec![
+        "--config".into(),
+        path.display().to_string(),
+        "--service".into(),
+        service.into(),
+    ];
+    args.extend(cmd.iter().map(|s| s.to_string()));
+    let mut probe = Proc::spawn(service, env!("CARGO_BIN_EXE_marea-probe"), &args);
+    probe.expect_key(RADIO, "ready");
+    probe
 }
 
 /// `node` of `namespace` on `lan` calls `rover1/vas/retask` with `arg` once it sees the
@@ -595,7 +588,13 @@ fn calls_through_a_gateway_are_checked_and_queued_as_their_callers() {
     let dir = tempfile::tempdir().expect("temp dir");
     let (_gateways, lans) = lans_in_a_row("gateway-call", base_port(14), 2, dir.path());
     let (ground, air) = (&lans[0], &lans[1]);
-    let mut vas = guarded_vas(dir.path(), air, "1500");
+    let mut vas = guarded_air(
+        dir.path(),
+        air,
+        r#"<allow kind="call" item="rover1/vas/*" from="ground/*"/>"#,
+        "vas",
+        &["provide", "--item", "retask", "--delay-ms", "1500"],
+    );
     let mut intruder = call_retask(ground, "fmo", "evil", 13);
     let denied = call_result(&mut intruder);
     assert_eq!(denied["error"], "denied", "{denied}");
@@ -615,4 +614,64 @@ fn calls_through_a_gateway_are_checked_and_queued_as_their_callers() {
         .collect();
     ran.sort_unstable();
     assert_eq!(ran, [1, 2, 3], "the denied call (13) never ran");
+}
+
+/// A file through a gateway is its sender's: the sink's `<access>` (`ground/*` may send to
+/// `rover1/fpma/plans`) sees the node that sent it across the gateway, so `ground/fpmo`'s plan
+/// is stored (and named as the file's sender) and `evil/fpmo`'s denied (before, both were
+/// denied, as the gateway's).
+#[test]
+fn a_file_through_a_gateway_is_checked_as_its_sender_s() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (_gateways, lans) = lans_in_a_row("gateway-file", base_port(16), 2, dir.path());
+    let (ground, air) = (&lans[0], &lans[1]);
+    let inbox = dir.path().join("plans");
+    std::fs::create_dir_all(&inbox).expect("inbox");
+    let mut fpma = guarded_air(
+        dir.path(),
+        air,
+        r#"<allow kind="file" item="rover1/fpma/plans" from="ground/*"/>"#,
+        "fpma",
+        &[
+            "sink",
+            "--item",
+            "plans",
+            "--dir",
+            &inbox.display().to_string(),
+        ],
+    );
+    let send = |namespace: &str, file: &str| {
+        let plan = dir.path().join(file);
+        std::fs::write(&plan, format!("<plan from=\"{namespace}\"/>")).expect("plan");
+        let mut sender = ground.probe(
+            "fpmo",
+            namespace,
+            &[
+                "send",
+                "--file",
+                &plan.display().to_string(),
+                "--to",
+                "rover1/fpma/plans",
+                "--retry-secs",
+                "30",
+            ],
+        );
+        sender.expect(RADIO, "error or done", |v| {
+            v.get("error").is_some() || v.get("done").is_some()
+        })
+    };
+    let refused = send("evil", "evil.xml");
+    assert_eq!(refused["error"], "denied", "{refused}");
+    let sent = send("ground", "plan.xml");
+    assert!(sent.get("done").is_some(), "{sent}");
+    let stored = fpma.expect_key(RADIO, "received");
+    assert!(stored.to_string().contains("plan.xml"), "{stored}");
+    assert_eq!(
+        stored["from"], "fpmo",
+        "the sender, not the gateway: {stored}"
+    );
+    assert!(
+        !inbox.join("evil.xml").exists(),
+        "the denied file was stored"
+    );
 }

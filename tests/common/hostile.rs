@@ -295,6 +295,7 @@ fn forged_session_traffic() -> Vec<Message> {
             name: "evil.xml".into(),
             size: 7,
             hash: [0; 32],
+            sender: None,
         });
         msgs.push(Message::Var {
             id,

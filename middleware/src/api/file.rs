@@ -350,6 +350,7 @@ impl Sender {
                 name: name.to_owned(),
                 size,
                 hash,
+                sender: None,
             },
         );
         let report = |sent: u64, resumed_from: u64, attempts: u32| FileReport {
@@ -676,6 +677,7 @@ mod tests {
             name: "liar.bin".into(),
             size: 100,
             hash: [0; 32],
+            sender: None,
         };
         assert!(tx.inner.send_safe_to_node(peer, &offer));
         assert!(matches!(next_control(&mut ctl).await, Control::Accept(0)));
@@ -791,6 +793,7 @@ mod tests {
             name: name.into(),
             size: 1_000,
             hash: [0; 32],
+            sender: None,
         };
         let mut first = tx.inner.transfers.register_sender(1, peer);
         tx.inner.send_safe_to_node(peer, &offer(1, "a.bin"));

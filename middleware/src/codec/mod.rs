@@ -311,10 +311,12 @@ mod tests {
                     name: "f".into(),
                     size: 3,
                     hash: [0; 32],
+                    sender: None,
                 },
                 {
                     let mut v = vec![9, 1, 2, 1, b'f', 3];
                     v.extend([0u8; 32]);
+                    v.push(0);
                     v
                 },
             ),

@@ -11,7 +11,6 @@ use std::time::{Duration, Instant};
 use dashmap::DashMap;
 use tokio::sync::oneshot;
 
-use super::gateway::MAX_HOPS;
 use super::policy::{Refusal, MAX_CALLS_PER_PEER, MAX_CALLS_TOTAL, MAX_CALL_TIME};
 use super::{lock, BoxFuture, NodeInner, OfferRole};
 use crate::config::AccessKind;
@@ -556,7 +555,7 @@ impl NodeInner {
             }
             _ => return refuse(RemoteFailure::NotProvided),
         };
-        if !self.permitted_for(node, caller.as_ref(), AccessKind::Call, &offer.name) {
+        if !self.permitted(node, caller.as_ref(), AccessKind::Call, &offer.name) {
             return refuse(RemoteFailure::Denied);
         }
         let key = LaneKey {
@@ -627,42 +626,13 @@ impl NodeInner {
         });
     }
 
-    /// Whether peer `node` may relay a call for `caller`: it is a gateway (see
-    /// [`super::Peer::gateway`]), and `caller` is another node at least one gateway away,
-    /// within [`super::gateway::MAX_HOPS`].
-    fn relays_for(&self, node: NodeId, caller: &Origin) -> bool {
-        let gateway = self.peers.get(&node).is_some_and(|p| p.gateway);
-        gateway && caller.node != node && (1..MAX_HOPS).contains(&caller.hops)
-    }
-
-    /// Who a call from `node` (relayed for `caller`, if given) is from, as this gateway names
-    /// it to the next node: one gateway further.
-    fn caller_to_relay(&self, node: NodeId, caller: Option<&Origin>) -> Origin {
-        match caller {
-            Some(o) => Origin {
-                hops: o.hops.saturating_add(1),
-                ..o.clone()
-            },
-            None => Origin {
-                node,
-                name: self.peer_name(node).to_string(),
-                hops: 1,
-                namespace: self
-                    .peers
-                    .get(&node)
-                    .map(|p| p.namespace.clone())
-                    .unwrap_or_default(),
-            },
-        }
-    }
-
     /// The link a peer is reached on (0 when it is no longer known).
     fn peer_link(&self, node: NodeId) -> usize {
         self.peers.get(&node).map_or(0, |p| p.link)
     }
 
     /// A peer's name, or its id in hex when it is no longer known.
-    fn peer_name(&self, node: NodeId) -> Arc<str> {
+    pub(super) fn peer_name(&self, node: NodeId) -> Arc<str> {
         self.peers
             .get(&node)
             .map(|p| p.name.clone())
@@ -683,6 +653,7 @@ impl NodeInner {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::node::gateway::MAX_HOPS;
 
     const PROVIDER: NodeId = 7;
 

@@ -21,9 +21,10 @@ use dashmap::DashMap;
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{mpsc, Notify};
 
+use super::policy::Refusal;
 use super::reassembly::{ChunkStep, Reassembly};
 use super::{lock, NodeInner, OfferRole};
-use crate::protocol::{FileVerdict, Message, NodeId};
+use crate::protocol::{FileVerdict, Message, NodeId, Origin};
 
 /// Name of a sink's private directory of partial files (hidden: no sent file name may start
 /// with a dot, so no transfer can target it).
@@ -516,6 +517,18 @@ impl From<String> for Stop {
     }
 }
 
+/// A [`Message::FileOffer`] as it arrived.
+pub(crate) struct IncomingFileOffer {
+    pub transfer: u64,
+    /// Our sink's offer id.
+    pub sink: u32,
+    pub name: String,
+    pub size: u64,
+    pub hash: [u8; 32],
+    /// The node a gateway relays the file for.
+    pub sender: Option<Origin>,
+}
+
 impl NodeInner {
     fn reply_file(&self, node: NodeId, transfer: u64, verdict: FileVerdict) {
         self.send_safe_to_node(node, &Message::FileDone { transfer, verdict });
@@ -539,18 +552,35 @@ impl NodeInner {
         self.reply_file(node, transfer, verdict);
     }
 
-    pub fn on_file_offer(
-        self: &Arc<Self>,
-        node: NodeId,
-        transfer: u64,
-        sink: u32,
-        name: String,
-        size: u64,
-        hash: [u8; 32],
-    ) {
+    pub fn on_file_offer(self: &Arc<Self>, node: NodeId, offer: IncomingFileOffer) {
+        let IncomingFileOffer {
+            transfer,
+            sink,
+            name,
+            size,
+            hash,
+            sender,
+        } = offer;
         let sink_name = self.offers.get(&sink).map(|o| o.name.clone());
         if let Some(sink_name) = sink_name {
-            if !self.permitted(node, crate::config::AccessKind::File, &sink_name) {
+            if sender.as_ref().is_some_and(|o| !self.relays_for(node, o)) {
+                let peer = self.peer_name(node);
+                let link = self.peers.get(&node).map_or(0, |p| p.link);
+                self.policy
+                    .refuse(link, node, &peer, &sink_name, Refusal::ForeignOrigin);
+                let verdict = FileVerdict::Denied(format!(
+                    "'{peer}' sent a file on behalf of another node but is no gateway"
+                ));
+                self.reply_file(node, transfer, verdict);
+                return;
+            }
+            let permitted = self.permitted(
+                node,
+                sender.as_ref(),
+                crate::config::AccessKind::File,
+                &sink_name,
+            );
+            if !permitted {
                 let verdict = FileVerdict::Denied(format!(
                     "sending to '{sink_name}' is not allowed for this node by <access>"
                 ));
@@ -569,6 +599,7 @@ impl NodeInner {
                 name,
                 size,
                 hash,
+                sender: Some(self.caller_to_relay(node, sender.as_ref())),
             };
             self.relay_file_offer(node, receiver, transfer, &offer);
             return;
@@ -633,11 +664,15 @@ impl NodeInner {
                 chunks: tx,
             },
         );
-        let from = self
-            .peers
-            .get(&node)
-            .map(|p| p.name.to_string())
-            .unwrap_or_default();
+        // The sender: the node a gateway relays for, or the peer itself.
+        let from = match sender {
+            Some(o) => o.name,
+            None => self
+                .peers
+                .get(&node)
+                .map(|p| p.name.to_string())
+                .unwrap_or_default(),
+        };
         let inner = self.clone();
         let sink_state = state.clone();
         crate::sync::spawn_tracked(&self.tasks, async move {

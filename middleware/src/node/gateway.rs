@@ -392,6 +392,35 @@ impl NodeInner {
         }
     }
 
+    /// Whether peer `node` may relay a call or file for `caller`: it is a gateway (see
+    /// [`super::Peer::gateway`]), and `caller` is another node at least one gateway away,
+    /// within [`MAX_HOPS`].
+    pub(super) fn relays_for(&self, node: NodeId, caller: &Origin) -> bool {
+        let gateway = self.peers.get(&node).is_some_and(|p| p.gateway);
+        gateway && caller.node != node && (1..MAX_HOPS).contains(&caller.hops)
+    }
+
+    /// Who a call or file from `node` (relayed for `caller`, if given) is from, as this
+    /// gateway names it to the next node: one gateway further.
+    pub(super) fn caller_to_relay(&self, node: NodeId, caller: Option<&Origin>) -> Origin {
+        match caller {
+            Some(o) => Origin {
+                hops: o.hops.saturating_add(1),
+                ..o.clone()
+            },
+            None => Origin {
+                node,
+                name: self.peer_name(node).to_string(),
+                hops: 1,
+                namespace: self
+                    .peers
+                    .get(&node)
+                    .map(|p| p.namespace.clone())
+                    .unwrap_or_default(),
+            },
+        }
+    }
+
     /// Starts relaying a file offered by `sender` to `receiver`: `offer` is the sender's
     /// FileOffer with the sink rewritten to the receiver's.
     pub fn relay_file_offer(

@@ -525,7 +525,18 @@ impl NodeInner {
                 name,
                 size,
                 hash,
-            } => self.on_file_offer(node, transfer, sink, name, size, hash),
+                sender,
+            } => self.on_file_offer(
+                node,
+                files::IncomingFileOffer {
+                    transfer,
+                    sink,
+                    name,
+                    size,
+                    hash,
+                    sender,
+                },
+            ),
             Message::FileChunk { transfer, .. }
             | Message::FileAccept { transfer, .. }
             | Message::FileDone { transfer, .. }

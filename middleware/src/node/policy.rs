@@ -229,18 +229,13 @@ impl Policy {
 }
 
 impl super::NodeInner {
-    /// Whether peer `node` may do `kind` on our item `item`; a refusal is counted and logged.
-    /// An unknown peer is refused when a rule governs `kind`. When this node checks identities,
-    /// the rules see a peer's namespace only once its identity key proved it: until then (or
-    /// when its key is not listed for it) the peer is refused whatever a rule governs.
-    pub fn permitted(&self, node: NodeId, kind: AccessKind, item: &str) -> bool {
-        self.permitted_for(node, None, kind, item)
-    }
-
-    /// [`Self::permitted`] for what gateway `node` relays for `caller`: the rules see the
-    /// caller's namespace and name as the gateway names them (its own identity proved, where
-    /// identities are checked). Without `caller`, `node`'s own.
-    pub fn permitted_for(
+    /// Whether peer `node` may do `kind` on our item `item`, or, for what gateway `node`
+    /// relays, `caller`; a refusal is counted and logged. An unknown peer is refused when a
+    /// rule governs `kind`. When this node checks identities, the rules see a peer's namespace
+    /// only once its identity key proved it: until then (or when its key is not listed for it)
+    /// the peer is refused whatever a rule governs. A relayed caller's namespace and name are
+    /// as the gateway names them, the gateway's own identity proved.
+    pub fn permitted(
         &self,
         node: NodeId,
         caller: Option<&Origin>,

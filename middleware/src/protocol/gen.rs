@@ -267,6 +267,7 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
             name: text(u, 32)?,
             size: u.arbitrary()?,
             hash: u.arbitrary()?,
+            sender: maybe_origin(u)?,
         },
         11 => Message::FileAccept {
             transfer: u.arbitrary()?,

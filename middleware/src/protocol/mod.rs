@@ -321,6 +321,9 @@ pub enum Message {
         size: u64,
         /// blake3 hash of the content.
         hash: [u8; 32],
+        /// Set by a gateway relaying another node's file: that node, which the receiver checks
+        /// its `<access>` rules against. Taken only from a gateway.
+        sender: Option<Origin>,
     },
     /// The receiver accepts and says where to resume.
     FileAccept {
