@@ -11,7 +11,7 @@ use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use common::{Net, Proc, T};
+use common::{probe_with_config, Net, Proc, T};
 use marea::codec::{decode_message, encode_message};
 use marea::config::{EthernetConfig, LinkConfig};
 use marea::link::udp::datagram::{self, Datagram, DatagramWriter, Entry};
@@ -341,17 +341,6 @@ fn network_xml(dir: &Path, net: &Net, node: &str, namespace: &str, access: &str)
     path
 }
 
-fn probe_with_config(name: &str, config: &Path, service: &str, cmd: &[&str]) -> Proc {
-    let mut args: Vec<String> = vec![
-        "--config".into(),
-        config.display().to_string(),
-        "--service".into(),
-        service.into(),
-    ];
-    args.extend(cmd.iter().map(|s| s.to_string()));
-    Proc::spawn(name, env!("CARGO_BIN_EXE_marea-probe"), &args)
-}
-
 #[test]
 fn access_denies_a_call_from_a_node_it_does_not_name() {
     let net = Net::new("access-call");
@@ -363,7 +352,7 @@ fn access_denies_a_call_from_a_node_it_does_not_name() {
         "rover1",
         r#"<allow kind="call" item="rover1/vas/*" from="ground/*"/>"#,
     );
-    let mut vas = probe_with_config("vas", &config, "vas", &["provide", "--item", "retask"]);
+    let mut vas = probe_with_config("vas", &config, "vas", &[], &["provide", "--item", "retask"]);
     vas.expect_key(T, "ready");
     let call = |node: &str, ns: &str, arg: &str| {
         net.probe_ns(
@@ -418,6 +407,7 @@ fn access_denies_a_file_with_the_denied_verdict() {
         "fpma",
         &config,
         "fpma",
+        &[],
         &[
             "sink",
             "--item",
@@ -500,6 +490,7 @@ fn a_disallowed_publishers_manual_control_is_not_delivered() {
         "vas",
         &config,
         "vas",
+        &[],
         &[
             "var-sub",
             "--pattern",

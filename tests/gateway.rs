@@ -539,14 +539,7 @@ fn guarded_air(dir: &Path, lan: &Lan, rule: &str, service: &str, cmd: &[&str]) -
     );
     let path = dir.join("air.xml");
     std::fs::write(&path, xml).expect("write network.xml");
-    let mut args: Vec<String> = vec![
-        "--config".into(),
-        path.display().to_string(),
-        "--service".into(),
-        service.into(),
-    ];
-    args.extend(cmd.iter().map(|s| s.to_string()));
-    let mut probe = Proc::spawn(service, env!("CARGO_BIN_EXE_marea-probe"), &args);
+    let mut probe = common::probe_with_config(service, &path, service, &[], cmd);
     probe.expect_key(RADIO, "ready");
     probe
 }

@@ -10,7 +10,9 @@ use std::path::PathBuf;
 
 use marea::codec::encode_payload;
 use marea::link::auth::DomainKey;
-use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId, Origin};
+use marea::protocol::{
+    Declaration, FileOffer, ItemKind, LoggedDeclaration, Message, NodeId, Origin,
+};
 use marea::typeinfo::TypeInfo;
 use serde_json::Value;
 
@@ -289,14 +291,14 @@ fn forged_session_traffic() -> Vec<Message> {
             args: args.clone(),
             caller: None,
         });
-        msgs.push(Message::FileOffer {
+        msgs.push(Message::FileOffer(FileOffer {
             transfer: u64::from(id),
             sink: id,
             name: "evil.xml".into(),
             size: 7,
             hash: [0; 32],
             sender: None,
-        });
+        }));
         msgs.push(Message::Var {
             id,
             payload: position.clone(),

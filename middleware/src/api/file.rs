@@ -16,7 +16,7 @@ use crate::codec::encode_message;
 use crate::link::{LinkSendError, Outgoing, DEFAULT_FILE_CHUNK};
 use crate::node::files::{hash_file, Control, FileSinkStats, ReceivedFile, SinkMailbox, SinkState};
 use crate::node::{LocalOffer, NodeInner};
-use crate::protocol::{FileVerdict, ItemKind, Message, NodeId};
+use crate::protocol::{FileOffer, FileVerdict, ItemKind, Message, NodeId};
 
 /// Most bytes in flight of one transfer, whatever its window in chunks: with the large chunks of
 /// shared memory, 128 chunks would be 32 MiB read ahead of the receiver.
@@ -344,14 +344,14 @@ impl Sender {
         self.node.send_safe(
             link,
             addr,
-            &Message::FileOffer {
+            &Message::FileOffer(FileOffer {
                 transfer,
                 sink,
                 name: name.to_owned(),
                 size,
                 hash,
                 sender: None,
-            },
+            }),
         );
         let report = |sent: u64, resumed_from: u64, attempts: u32| FileReport {
             size,
@@ -671,14 +671,14 @@ mod tests {
         let (peer, sink_id) = sink_seen_from(&tx, "rx/fpma/plans").await;
         let transfer = 0x1234_5678;
         let mut ctl = tx.inner.transfers.register_sender(transfer, peer);
-        let offer = Message::FileOffer {
+        let offer = Message::FileOffer(FileOffer {
             transfer,
             sink: sink_id,
             name: "liar.bin".into(),
             size: 100,
             hash: [0; 32],
             sender: None,
-        };
+        });
         assert!(tx.inner.send_safe_to_node(peer, &offer));
         assert!(matches!(next_control(&mut ctl).await, Control::Accept(0)));
         for (offset, len) in [(0u64, 60usize), (60, 80)] {
@@ -787,13 +787,15 @@ mod tests {
             )
             .unwrap();
         let (peer, sink_id) = sink_seen_from(&tx, "rx/fpma/plans").await;
-        let offer = |transfer: u64, name: &str| Message::FileOffer {
-            transfer,
-            sink: sink_id,
-            name: name.into(),
-            size: 1_000,
-            hash: [0; 32],
-            sender: None,
+        let offer = |transfer: u64, name: &str| {
+            Message::FileOffer(FileOffer {
+                transfer,
+                sink: sink_id,
+                name: name.into(),
+                size: 1_000,
+                hash: [0; 32],
+                sender: None,
+            })
         };
         let mut first = tx.inner.transfers.register_sender(1, peer);
         tx.inner.send_safe_to_node(peer, &offer(1, "a.bin"));

@@ -305,14 +305,14 @@ mod tests {
                 vec![8, 1, 1, 0, 1, b'x'],
             ),
             (
-                Message::FileOffer {
+                Message::FileOffer(FileOffer {
                     transfer: 1,
                     sink: 2,
                     name: "f".into(),
                     size: 3,
                     hash: [0; 32],
                     sender: None,
-                },
+                }),
                 {
                     let mut v = vec![9, 1, 2, 1, b'f', 3];
                     v.extend([0u8; 32]);

@@ -24,7 +24,7 @@ use tokio::sync::{mpsc, Notify};
 use super::policy::Refusal;
 use super::reassembly::{ChunkStep, Reassembly};
 use super::{lock, NodeInner, OfferRole};
-use crate::protocol::{FileVerdict, Message, NodeId, Origin};
+use crate::protocol::{FileOffer, FileVerdict, Message, NodeId};
 
 /// Name of a sink's private directory of partial files (hidden: no sent file name may start
 /// with a dot, so no transfer can target it).
@@ -517,18 +517,6 @@ impl From<String> for Stop {
     }
 }
 
-/// A [`Message::FileOffer`] as it arrived.
-pub(crate) struct IncomingFileOffer {
-    pub transfer: u64,
-    /// Our sink's offer id.
-    pub sink: u32,
-    pub name: String,
-    pub size: u64,
-    pub hash: [u8; 32],
-    /// The node a gateway relays the file for.
-    pub sender: Option<Origin>,
-}
-
 impl NodeInner {
     fn reply_file(&self, node: NodeId, transfer: u64, verdict: FileVerdict) {
         self.send_safe_to_node(node, &Message::FileDone { transfer, verdict });
@@ -552,8 +540,8 @@ impl NodeInner {
         self.reply_file(node, transfer, verdict);
     }
 
-    pub fn on_file_offer(self: &Arc<Self>, node: NodeId, offer: IncomingFileOffer) {
-        let IncomingFileOffer {
+    pub fn on_file_offer(self: &Arc<Self>, node: NodeId, offer: FileOffer) {
+        let FileOffer {
             transfer,
             sink,
             name,
@@ -593,14 +581,14 @@ impl NodeInner {
             _ => None,
         });
         if let Some((receiver, remote_sink)) = relay {
-            let offer = Message::FileOffer {
+            let offer = Message::FileOffer(FileOffer {
                 transfer,
                 sink: remote_sink,
                 name,
                 size,
                 hash,
                 sender: Some(self.caller_to_relay(node, sender.as_ref())),
-            };
+            });
             self.relay_file_offer(node, receiver, transfer, &offer);
             return;
         }

@@ -519,24 +519,7 @@ impl NodeInner {
                 caller,
             } => self.on_call(node, call_id, id, remaining_ms, args, caller),
             Message::Reply { call_id, result } => self.on_reply(node, call_id, result),
-            Message::FileOffer {
-                transfer,
-                sink,
-                name,
-                size,
-                hash,
-                sender,
-            } => self.on_file_offer(
-                node,
-                files::IncomingFileOffer {
-                    transfer,
-                    sink,
-                    name,
-                    size,
-                    hash,
-                    sender,
-                },
-            ),
+            Message::FileOffer(offer) => self.on_file_offer(node, offer),
             Message::FileChunk { transfer, .. }
             | Message::FileAccept { transfer, .. }
             | Message::FileDone { transfer, .. }

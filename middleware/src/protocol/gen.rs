@@ -9,7 +9,8 @@
 use arbitrary::{Result, Unstructured};
 
 use super::{
-    Declaration, FileVerdict, ItemKind, LoggedDeclaration, Message, Origin, RemoteFailure,
+    Declaration, FileOffer, FileVerdict, ItemKind, LoggedDeclaration, Message, Origin,
+    RemoteFailure,
 };
 use crate::typeinfo::TypeInfo;
 
@@ -261,14 +262,14 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
                 Err(remote_failure(u)?)
             },
         },
-        10 => Message::FileOffer {
+        10 => Message::FileOffer(FileOffer {
             transfer: u.arbitrary()?,
             sink: u.int_in_range(0u32..=64)?,
             name: text(u, 32)?,
             size: u.arbitrary()?,
             hash: u.arbitrary()?,
             sender: maybe_origin(u)?,
-        },
+        }),
         11 => Message::FileAccept {
             transfer: u.arbitrary()?,
             offset: u.arbitrary()?,

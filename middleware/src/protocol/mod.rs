@@ -120,6 +120,24 @@ pub struct Origin {
     pub namespace: String,
 }
 
+/// A file offered to a sink ([`Message::FileOffer`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FileOffer {
+    /// Transfer id: derived from the content hash and the name, stable across restarts.
+    pub transfer: u64,
+    /// Offer id of the sink on the receiver.
+    pub sink: u32,
+    /// File name (no directories).
+    pub name: String,
+    /// Size in bytes.
+    pub size: u64,
+    /// blake3 hash of the content.
+    pub hash: [u8; 32],
+    /// Set by a gateway relaying another node's file: that node, which the receiver checks
+    /// its `<access>` rules against. Taken only from a gateway.
+    pub sender: Option<Origin>,
+}
+
 /// A declaration with its position in the node's declaration log.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LoggedDeclaration {
@@ -310,21 +328,7 @@ pub enum Message {
         result: Result<Vec<u8>, RemoteFailure>,
     },
     /// Offers a file to a sink (safe class).
-    FileOffer {
-        /// Transfer id: derived from the content hash and the name, stable across restarts.
-        transfer: u64,
-        /// Offer id of the sink on the receiver.
-        sink: u32,
-        /// File name (no directories).
-        name: String,
-        /// Size in bytes.
-        size: u64,
-        /// blake3 hash of the content.
-        hash: [u8; 32],
-        /// Set by a gateway relaying another node's file: that node, which the receiver checks
-        /// its `<access>` rules against. Taken only from a gateway.
-        sender: Option<Origin>,
-    },
+    FileOffer(FileOffer),
     /// The receiver accepts and says where to resume.
     FileAccept {
         /// Transfer id.
