@@ -15,7 +15,7 @@ use common::{probe_with_config, Net, Proc, T};
 use marea::codec::{decode_message, encode_message};
 use marea::config::{EthernetConfig, LinkConfig};
 use marea::link::udp::datagram::{self, Datagram, DatagramWriter, Entry};
-use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId};
+use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId, Origin};
 use marea::typeinfo::TypeInfo;
 use marea::{NetworkConfig, Node};
 
@@ -581,6 +581,77 @@ fn a_call_expired_while_waiting_never_runs_and_a_newer_one_supersedes_a_waiting_
             executed.push(x);
         }
         assert_eq!(executed, [1, 3, 5]);
+        drop((retask, station, vas));
+        gs.shutdown().await;
+        air.shutdown().await;
+    });
+}
+
+/// Only a gateway may say whom it relays a call for. A plain node (`evil`, no gateway) sends
+/// calls of every id a small node may use, each claiming to be relayed for `ground/fmo`,
+/// whom the victim's `<access>` lets call: none runs, each is refused and counted, while a
+/// real `ground` node's call is served.
+#[test]
+fn a_call_claimed_as_relayed_by_a_node_that_is_no_gateway_never_runs() {
+    let net = Net::new("access-relay");
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    rt.block_on(async {
+        let mut config = cfg(&net, "air", "rover1");
+        config.access = Some(marea::config::AccessConfig {
+            rules: vec![marea::config::AccessRule {
+                kind: marea::config::AccessKind::Call,
+                item: "rover1/vas/*".into(),
+                from: "ground/*".into(),
+            }],
+            closed: vec![],
+        });
+        let air = Node::open(&config).await.expect("air");
+        let vas = air.service("vas").expect("vas");
+        let (tx, mut ran) = tokio::sync::mpsc::unbounded_channel::<u64>();
+        let _retask = vas
+            .provide_function("retask", move |x: u64| {
+                let _ = tx.send(x);
+                async move { Ok::<u64, String>(2 * x) }
+            })
+            .expect("provide");
+
+        let victim = udp_addr(&air);
+        let mut evil = Attacker::new(&net.domain);
+        evil.hello(victim, 0);
+        let args = marea::codec::encode_payload(&13u64).expect("a u64 encodes");
+        let claimed = Origin {
+            node: 0x600d,
+            name: "fmo".into(),
+            hops: 1,
+            namespace: "ground".into(),
+        };
+        let calls: Vec<Message> = (1..=24u32)
+            .map(|id| Message::Call {
+                call_id: u64::from(id),
+                id,
+                remaining_ms: 5_000,
+                args: args.clone(),
+                caller: Some(claimed.clone()),
+            })
+            .collect();
+        for batch in calls.chunks(8) {
+            evil.safe(victim, batch);
+        }
+        assert!(
+            air.wait_until(T, |n| n.refusals().rejected >= 1).await,
+            "the claimed relays were not refused: {:?}",
+            air.refusals()
+        );
+
+        let gs = Node::open(&cfg(&net, "gs", "ground")).await.expect("gs");
+        let station = gs.service("fmo").expect("fmo");
+        let retask = station
+            .function::<u64, u64>("rover1/vas/retask")
+            .expect("function");
+        assert!(retask.wait_provider(T).await);
+        assert_eq!(retask.call(&21, T).await, Ok(42));
+        assert_eq!(ran.recv().await, Some(21));
+        assert!(ran.try_recv().is_err(), "a forged relayed call ran");
         drop((retask, station, vas));
         gs.shutdown().await;
         air.shutdown().await;
