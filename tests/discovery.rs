@@ -124,3 +124,33 @@ fn a_node_whose_introduction_was_lost_introduces_itself_again_when_asked() {
     );
     rt.block_on(node.shutdown());
 }
+
+/// A peer asks at every heartbeat it hears, and a forger may ask as often as it likes: the
+/// node introduces itself again at most once per heartbeat period (5 s here), whatever the
+/// number of asks (twenty in a burst: one new introduction, not twenty).
+#[test]
+fn asks_for_an_introduction_are_answered_at_most_once_per_heartbeat_period() {
+    let (rt, domain, node, at, mut peer) = node_and_peer("discovery-limit");
+    peer.discovery(at, &hello(&domain, false)).expect("send");
+    let first = next_new_hello(&peer, at, &[], Duration::from_secs(10))
+        .expect("the node introduces itself to a new peer");
+    assert!(
+        rt.block_on(node.wait_until(Duration::from_secs(10), |n| {
+            n.peers().iter().any(|p| p.name == "peer")
+        })),
+        "the node knows the peer"
+    );
+    for _ in 0..20 {
+        peer.discovery(at, &hello(&domain, true)).expect("send");
+    }
+    let mut seen = vec![first];
+    while let Some(s) = next_new_hello(&peer, at, &seen, Duration::from_millis(1500)) {
+        seen.push(s);
+    }
+    assert_eq!(
+        seen.len(),
+        2,
+        "one introduction, then one more for twenty asks: {seen:?}"
+    );
+    rt.block_on(node.shutdown());
+}
