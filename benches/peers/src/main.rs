@@ -7,7 +7,9 @@
 //!
 //! - `peers.<figure>.<impl>`: the median over the rounds (round trip p50 in µs, one-way
 //!   messages/s received, peak RSS in KiB), with `.p99` (round trips), `.delivered` (share of
-//!   sent messages received), `.spread_pct` ((max − min) / median of the rounds) and `.runs`;
+//!   sent messages received), `.anon` (idle: the anonymous memory resident at the end, in KiB:
+//!   what the process holds privately, without the code and libraries it maps from files),
+//!   `.spread_pct` ((max − min) / median of the rounds) and `.runs`;
 //! - the same-run ratios of the issue (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed
 //!   within each round, median over the rounds, with their own `.spread_pct`.
 //!
@@ -368,9 +370,10 @@ fn free_port(udp: bool) -> anyhow::Result<u16> {
     })
 }
 
-fn vm_hwm_kib(pid: u32) -> Option<f64> {
+/// A figure in KiB of `/proc/PID/status` (`field` with its colon, e.g. `VmHWM:`).
+fn status_kib(pid: u32, field: &str) -> Option<f64> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let line = status.lines().find(|l| l.starts_with(field))?;
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
@@ -412,6 +415,8 @@ struct Sample {
     value: f64,
     p99: Option<f64>,
     delivered: Option<f64>,
+    /// Idle: the anonymous (private) memory resident at the end, in KiB.
+    anon_kib: Option<f64>,
 }
 
 async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
@@ -447,7 +452,7 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
                 Ok::<_, anyhow::Error>(Sample {
                     value: word(&w, 0)?,
                     p99: Some(word(&w, 1)?),
-                    delivered: None,
+                    ..Sample::default()
                 })
             }
             .await;
@@ -474,8 +479,8 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
                 }
                 Ok(Sample {
                     value: count / span,
-                    p99: None,
                     delivered: Some(count / sent),
+                    ..Sample::default()
                 })
             }
             .await;
@@ -492,9 +497,10 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
                 b.expect("ready", start).await?;
                 tokio::time::sleep(Duration::from_secs_f64(case.param)).await;
                 let pid = a.pid().context("idle peer gone")?;
-                let kib = vm_hwm_kib(pid).context("no VmHWM in /proc")?;
+                let kib = status_kib(pid, "VmHWM:").context("no VmHWM in /proc")?;
                 Ok(Sample {
                     value: kib,
+                    anon_kib: status_kib(pid, "RssAnon:"),
                     ..Sample::default()
                 })
             }
@@ -629,6 +635,10 @@ async fn run(o: Opts) -> anyhow::Result<()> {
         let d: Vec<f64> = runs.iter().flatten().filter_map(|s| s.delivered).collect();
         if !d.is_empty() {
             metric(&format!("{name}.delivered"), median(&d), "ratio");
+        }
+        let anon: Vec<f64> = runs.iter().flatten().filter_map(|s| s.anon_kib).collect();
+        if !anon.is_empty() {
+            metric(&format!("{name}.anon"), median(&anon), "KiB");
         }
         metric(&format!("{name}.spread_pct"), spread_pct(&vals), "%");
         metric(&format!("{name}.runs"), vals.len() as f64, "count");
