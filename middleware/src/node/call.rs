@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use dashmap::DashMap;
 use tokio::sync::oneshot;
 
-use super::policy::{Refusal, MAX_CALLS_PER_PEER, MAX_CALLS_TOTAL, MAX_CALL_TIME};
+use super::policy::{Refusal, MAX_CALLS_PER_CALLER, MAX_CALLS_TOTAL, MAX_CALL_TIME};
 use super::{lock, BoxFuture, NodeInner, OfferRole};
 use crate::config::AccessKind;
 use crate::protocol::{ItemKind, Message, NodeId, Origin, RemoteFailure};
@@ -311,7 +311,7 @@ impl LaneTable {
             };
         }
         let caller = self.per_caller.get(&key.caller).copied().unwrap_or(0);
-        if caller >= MAX_CALLS_PER_PEER || self.total >= MAX_CALLS_TOTAL {
+        if caller >= MAX_CALLS_PER_CALLER || self.total >= MAX_CALLS_TOTAL {
             return Admission::Busy;
         }
         self.lanes.insert(key, None);
@@ -702,7 +702,7 @@ mod tests {
     #[test]
     fn lanes_are_capped_per_caller_and_in_all() {
         let mut t = LaneTable::default();
-        for f in 0..MAX_CALLS_PER_PEER as u32 {
+        for f in 0..MAX_CALLS_PER_CALLER as u32 {
             assert!(matches!(
                 t.admit(lane(PROVIDER, f), queued(1)),
                 Admission::Run(_)
@@ -714,9 +714,9 @@ mod tests {
         ));
         // Another caller still gets in, up to the total.
         let mut other = PROVIDER + 1;
-        let mut admitted = MAX_CALLS_PER_PEER;
+        let mut admitted = MAX_CALLS_PER_CALLER;
         while admitted < MAX_CALLS_TOTAL {
-            for f in 0..MAX_CALLS_PER_PEER as u32 {
+            for f in 0..MAX_CALLS_PER_CALLER as u32 {
                 if admitted == MAX_CALLS_TOTAL {
                     break;
                 }

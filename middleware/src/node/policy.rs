@@ -18,8 +18,9 @@ use crate::protocol::{NodeId, Origin};
 pub(crate) const MAX_DECLS_PER_PEER: usize = 4096;
 /// Declarations stored for all peers together.
 pub(crate) const MAX_DECLS_TOTAL: usize = 65_536;
-/// Calls of one peer running (or waiting in their function's lane) at once; beyond, `Busy`.
-pub(crate) const MAX_CALLS_PER_PEER: usize = 32;
+/// Calls of one caller (a peer, or a node a gateway relays for) running or waiting in their
+/// function's lane at once; beyond, `Busy`.
+pub(crate) const MAX_CALLS_PER_CALLER: usize = 32;
 /// Calls of all peers running at once; beyond, `Busy`.
 pub(crate) const MAX_CALLS_TOTAL: usize = 256;
 /// The longest a caller's remaining time is taken at its word (a peer once asked for 74 days).
