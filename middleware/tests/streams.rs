@@ -93,3 +93,83 @@ async fn a_stream_follows_subscribers_that_arrive_mid_stream() {
         assert!(n.shutdown().await, "tasks stopped");
     }
 }
+
+/// Flow control is per stream. On node b, a slow reader of `slow` (a millisecond's pause every
+/// 20 events) falls behind, and b tells a to hold the stream of `slow`; a's stream of `fast`
+/// to b's other reader, which keeps up, goes on: its 100,000 events all arrive while the slow
+/// reader has taken under half of its 60,000, and both streams arrive whole and in order.
+/// (When a node's Flow held every stream to it, `fast` waited as long as `slow`.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_slow_reader_holds_back_only_the_stream_it_reads() {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    use std::sync::Arc;
+    const SLOW: u64 = 60_000;
+    const FAST: u64 = 100_000;
+    let domain = format!("streams-per-offer-{}", std::process::id());
+    let a = Node::open(&cfg("a", &domain, port() + 1)).await.unwrap();
+    let src = a.service("src").unwrap();
+    let slow_ev = src.publish_event::<u64>("slow").unwrap();
+    let fast_ev = src.publish_event::<u64>("fast").unwrap();
+    let b = Node::open(&cfg("b", &domain, port() + 1)).await.unwrap();
+    let dst = b.service("dst").unwrap();
+    let slow_sub = dst.subscribe_event::<u64>("src/slow").unwrap();
+    let fast_sub = dst.subscribe_event::<u64>("src/fast").unwrap();
+    for ev in [&slow_ev, &fast_ev] {
+        assert!(ev.wait_remote_subscribers(1, T).await, "b subscribed");
+    }
+
+    let slow_taken = Arc::new(AtomicU64::new(0));
+    let taken = slow_taken.clone();
+    let slow_reader = tokio::spawn(async move {
+        let mut got = Vec::with_capacity(SLOW as usize);
+        while (got.len() as u64) < SLOW {
+            got.push(slow_sub.recv_timeout(T).await.expect("a slow event").value);
+            let n = taken.fetch_add(1, Ordering::Relaxed) + 1;
+            if n % 20 == 0 {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        }
+        got
+    });
+    let taken = slow_taken.clone();
+    let fast_reader = tokio::spawn(async move {
+        let mut got = Vec::with_capacity(FAST as usize);
+        while (got.len() as u64) < FAST {
+            got.push(fast_sub.recv_timeout(T).await.expect("a fast event").value);
+        }
+        (got, taken.load(Ordering::Relaxed))
+    });
+
+    let streams = async {
+        let slow = async {
+            let mut stream = slow_ev.stream();
+            send_all(&mut stream, 0..SLOW).await;
+            stream.flush().await.expect("slow: nothing lost");
+        };
+        let fast = async {
+            // Once the slow stream is under way: it outruns its reader many times over, and b
+            // is behind on it (its mailbox over a quarter of 65,536 full) within milliseconds.
+            while slow_taken.load(Ordering::Relaxed) < 100 {
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            let mut stream = fast_ev.stream();
+            send_all(&mut stream, 0..FAST).await;
+            stream.flush().await.expect("fast: nothing lost");
+        };
+        tokio::join!(slow, fast);
+    };
+    tokio::time::timeout(Duration::from_secs(120), streams)
+        .await
+        .expect("both streams ended in time");
+    let (fast_got, slow_taken_then) = fast_reader.await.unwrap();
+    assert_eq!(fast_got, (0..FAST).collect::<Vec<u64>>(), "fast: in order");
+    assert!(
+        slow_taken_then < SLOW / 2,
+        "the fast stream waited for the slow reader: it ended when {slow_taken_then} of {SLOW} slow events were taken"
+    );
+    let slow_got = slow_reader.await.unwrap();
+    assert_eq!(slow_got, (0..SLOW).collect::<Vec<u64>>(), "slow: in order");
+    for n in [a, b] {
+        assert!(n.shutdown().await, "tasks stopped");
+    }
+}

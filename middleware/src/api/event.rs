@@ -382,9 +382,10 @@ impl<T: Payload> EventStream<'_, T> {
                 p.acks.settled_at_least(p.sent - window / 2).await;
             }
         }
+        let offer = self.event.publisher.offer.id;
         for r in remote.iter() {
-            if r.behind.load(Ordering::Acquire) {
-                self.wait_caught_up(r).await;
+            if r.behind.holds(offer) {
+                self.wait_caught_up(r, offer).await;
             }
         }
         self.report_losses()
@@ -406,9 +407,9 @@ impl<T: Payload> EventStream<'_, T> {
 
     /// Waits while `r`'s node says its subscribers are behind ([`crate::protocol::Message::Flow`]),
     /// until it catches up or leaves.
-    async fn wait_caught_up(&self, r: &RemoteSubscriber) {
+    async fn wait_caught_up(&self, r: &RemoteSubscriber, offer: u32) {
         let mut changed = self.event.publisher.node.changed.subscribe();
-        while r.behind.load(Ordering::Acquire) && r.alive.load(Ordering::Acquire) {
+        while r.behind.holds(offer) && r.alive.load(Ordering::Acquire) {
             if changed.changed().await.is_err() {
                 return;
             }

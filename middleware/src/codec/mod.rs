@@ -395,9 +395,10 @@ mod tests {
                 Message::Flow {
                     behind: true,
                     readers: Some(2),
+                    offers: Some(vec![3]),
                 },
-                // behind, readers Some (1) of 2 gateways beyond
-                vec![17, 1, 1, 2],
+                // behind, readers Some (1) of 2 gateways beyond, offers Some (1) [3]
+                vec![17, 1, 1, 2, 1, 1, 3],
             ),
         ];
         for (msg, bytes) in cases {

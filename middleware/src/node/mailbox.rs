@@ -108,12 +108,6 @@ impl Default for Congestion {
 }
 
 impl Congestion {
-    /// Whether some mailbox is behind while its reader keeps reading, or forwarded events wait
-    /// for a node: streams to this node should wait.
-    pub(crate) fn streams_should_wait(&self) -> bool {
-        self.forwarding.load(Ordering::Relaxed) > 0 || self.readers_behind()
-    }
-
     /// Whether some mailbox is behind while its reader keeps reading.
     pub(crate) fn readers_behind(&self) -> bool {
         self.behind.load(Ordering::Relaxed) > 0
@@ -121,6 +115,11 @@ impl Congestion {
                 .now_ms()
                 .saturating_sub(self.progress_ms.load(Ordering::Relaxed))
                 < READER_STALLED.as_millis() as u64
+    }
+
+    /// Whether events forwarded by this gateway wait for a node (see [`super::forward_flow`]).
+    pub(crate) fn forwarding_behind(&self) -> bool {
+        self.forwarding.load(Ordering::Relaxed) > 0
     }
 
     /// Whether some mailbox is behind (its reader reading or not).
@@ -311,6 +310,11 @@ impl Mailbox {
         crate::sync::lock(&self.inner)
     }
 
+    /// Whether it counts as behind (see [`MAILBOX_BEHIND`]).
+    pub(crate) fn is_behind(&self) -> bool {
+        self.lock().behind
+    }
+
     pub fn push(&self, d: Delivery) {
         self.push_all(std::iter::once(d));
     }
@@ -464,15 +468,16 @@ mod tests {
             m.push(sample("e"));
             vars.push(sample(&format!("v{i}")));
         }
-        assert!(!c.streams_should_wait(), "a quarter full is not behind yet");
+        assert!(!c.readers_behind(), "a quarter full is not behind yet");
         m.push(sample("e"));
-        assert!(c.streams_should_wait(), "over a quarter full is behind");
+        assert!(c.readers_behind(), "over a quarter full is behind");
+        assert!(m.is_behind());
         vars.push(sample("v"));
         while m.len() >= MAILBOX_CAUGHT_UP {
-            assert!(c.streams_should_wait(), "behind until under an eighth");
+            assert!(c.readers_behind(), "behind until under an eighth");
             m.try_pop();
         }
-        assert!(!c.streams_should_wait(), "caught up");
+        assert!(!c.readers_behind(), "caught up");
         assert_eq!(
             c.behind.load(Ordering::Relaxed),
             0,
@@ -482,9 +487,9 @@ mod tests {
         for _ in 0..MAILBOX_BEHIND {
             m.push(sample("e"));
         }
-        assert!(c.streams_should_wait());
+        assert!(c.readers_behind());
         drop(m);
-        assert!(!c.streams_should_wait());
+        assert!(!c.readers_behind());
     }
 
     #[test]
@@ -498,16 +503,13 @@ mod tests {
         for _ in 0..=MAILBOX_BEHIND {
             m.push(sample("e"));
         }
-        assert!(c.streams_should_wait());
+        assert!(c.readers_behind());
         // As if the last delivery was taken longer ago than a reader may pause.
         let stalled = c.now_ms() - READER_STALLED.as_millis() as u64 - 1;
         c.progress_ms.store(stalled, Ordering::Relaxed);
-        assert!(
-            !c.streams_should_wait(),
-            "a stopped reader is not waited for"
-        );
+        assert!(!c.readers_behind(), "a stopped reader is not waited for");
         m.try_pop();
-        assert!(c.streams_should_wait(), "reading again, it is");
+        assert!(c.readers_behind(), "reading again, it is");
     }
 
     /// A gateway's forwarded events waiting for a node hold streams back whatever its
@@ -519,17 +521,17 @@ mod tests {
             start: Instant::now() - Duration::from_secs(60),
             ..Congestion::default()
         };
-        assert!(!c.streams_should_wait());
+        assert!(!c.forwarding_behind());
         c.forwarding_fell_behind();
         c.forwarding_fell_behind();
         assert!(
-            c.streams_should_wait(),
+            c.forwarding_behind(),
             "with no mailbox behind and no reader for minutes"
         );
         c.forwarding_caught_up();
-        assert!(c.streams_should_wait(), "one node still waits");
+        assert!(c.forwarding_behind(), "one node still waits");
         c.forwarding_caught_up();
-        assert!(!c.streams_should_wait());
+        assert!(!c.forwarding_behind());
     }
 
     /// A run pushed at once (a datagram's events) arrives whole and in order, and wakes the

@@ -7,7 +7,7 @@
 pub(crate) mod call;
 pub(crate) mod discovery;
 pub(crate) mod files;
-mod flow;
+pub(crate) mod flow;
 mod forward_flow;
 #[cfg(feature = "fuzzing")]
 pub(crate) mod fuzz;
@@ -130,7 +130,7 @@ pub(crate) struct RemoteSubscriber {
     /// The peer's [`Peer::alive`].
     pub alive: Arc<std::sync::atomic::AtomicBool>,
     /// The peer's [`Peer::behind`].
-    pub behind: Arc<std::sync::atomic::AtomicBool>,
+    pub behind: Arc<flow::StreamHold>,
 }
 
 /// Where a remote offer's data goes, with the names its samples carry: the data path takes
@@ -212,8 +212,9 @@ pub(crate) struct Peer {
     /// Cleared when the peer is dropped: routes copied before that (a raise in progress)
     /// see it without a table lookup and fail at once instead of sending.
     pub alive: Arc<std::sync::atomic::AtomicBool>,
-    /// Its event subscribers are behind ([`Message::Flow`]): streams to it wait.
-    pub behind: Arc<std::sync::atomic::AtomicBool>,
+    /// Its event subscribers are behind ([`Message::Flow`]): streams to it (of the offers it
+    /// named) wait.
+    pub behind: Arc<flow::StreamHold>,
     /// When we last introduced ourselves again because it said it does not know us.
     pub introduced_again: Option<Instant>,
 }
@@ -505,7 +506,11 @@ impl NodeInner {
                 signature,
             } => self.on_identity(node, public_key, &signature),
             Message::Challenge { nonce } => self.on_challenge(node, nonce),
-            Message::Flow { behind, readers } => self.on_flow(node, behind, readers),
+            Message::Flow {
+                behind,
+                readers,
+                offers,
+            } => self.on_flow(node, behind, readers, offers),
             Message::Refused {
                 interest,
                 name,

@@ -333,7 +333,7 @@ impl NodeInner {
             services: std::collections::HashMap<u32, String>,
             interests: Vec<(u32, super::session::RemoteItem)>,
             alive: Arc<std::sync::atomic::AtomicBool>,
-            behind: Arc<std::sync::atomic::AtomicBool>,
+            behind: Arc<super::flow::StreamHold>,
         }
         let peers: Vec<PeerView> = self
             .peers

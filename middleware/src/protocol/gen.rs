@@ -296,6 +296,16 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
         17 => Message::Flow {
             behind: u.arbitrary()?,
             readers: u.arbitrary()?,
+            offers: if u.arbitrary()? {
+                let n = u.int_in_range(0usize..=8)?;
+                Some(
+                    (0..n)
+                        .map(|_| u.int_in_range(0u32..=64))
+                        .collect::<Result<_>>()?,
+                )
+            } else {
+                None
+            },
         },
         _ => Message::Bye {
             node_id: node_id(u)?,

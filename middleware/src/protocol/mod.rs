@@ -391,6 +391,9 @@ pub enum Message {
         /// to the node it came from); `None` when only events it forwards wait for a slower
         /// link, or when not behind.
         readers: Option<u8>,
+        /// While behind, the streams that should wait: those of these offers of the node told
+        /// (ids on it), the ones its own subscribers that are behind read; `None`: all of them.
+        offers: Option<Vec<u32>>,
     },
 }
 
