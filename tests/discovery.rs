@@ -62,6 +62,27 @@ fn node_and_peer(test: &str) -> (tokio::runtime::Runtime, String, Node, SocketAd
     (rt, domain, node, at, peer)
 }
 
+/// The peer's first Hello: the node registers it and introduces itself (a numbered Hello the
+/// peer never acknowledges, so the node retransmits it under the same number): its number.
+fn first_contact(
+    rt: &tokio::runtime::Runtime,
+    domain: &str,
+    node: &Node,
+    at: SocketAddr,
+    peer: &mut Forger,
+) -> u32 {
+    peer.discovery(at, &hello(domain, false)).expect("send");
+    let first = next_new_hello(peer, at, &[], Duration::from_secs(10))
+        .expect("the node introduces itself to a new peer");
+    assert!(
+        rt.block_on(node.wait_until(Duration::from_secs(10), |n| {
+            n.peers().iter().any(|p| p.name == "peer")
+        })),
+        "the node knows the peer"
+    );
+    first
+}
+
 /// The other side of the repair: a node hearing the heartbeat of a node it does not know
 /// answers with its Hello, and that Hello says so.
 #[test]
@@ -95,15 +116,7 @@ fn a_node_whose_introduction_was_lost_introduces_itself_again_when_asked() {
 
     // First contact: the node registers the peer and introduces itself, which the peer
     // "loses" (it never acknowledges; the node retransmits the same numbered Hello).
-    peer.discovery(at, &hello(&domain, false)).expect("send");
-    let first = next_new_hello(&peer, at, &[], Duration::from_secs(10))
-        .expect("the node introduces itself to a new peer");
-    assert!(
-        rt.block_on(node.wait_until(Duration::from_secs(10), |n| {
-            n.peers().iter().any(|p| p.name == "peer")
-        })),
-        "the node knows the peer"
-    );
+    let first = first_contact(&rt, &domain, &node, at, &mut peer);
 
     // Another plain Hello of a known peer (an introduction of its own) is no reason to
     // introduce ourselves again: two nodes would answer each other for ever.
@@ -131,15 +144,7 @@ fn a_node_whose_introduction_was_lost_introduces_itself_again_when_asked() {
 #[test]
 fn asks_for_an_introduction_are_answered_at_most_once_per_heartbeat_period() {
     let (rt, domain, node, at, mut peer) = node_and_peer("discovery-limit");
-    peer.discovery(at, &hello(&domain, false)).expect("send");
-    let first = next_new_hello(&peer, at, &[], Duration::from_secs(10))
-        .expect("the node introduces itself to a new peer");
-    assert!(
-        rt.block_on(node.wait_until(Duration::from_secs(10), |n| {
-            n.peers().iter().any(|p| p.name == "peer")
-        })),
-        "the node knows the peer"
-    );
+    let first = first_contact(&rt, &domain, &node, at, &mut peer);
     for _ in 0..20 {
         peer.discovery(at, &hello(&domain, true)).expect("send");
     }
