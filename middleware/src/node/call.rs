@@ -503,18 +503,6 @@ impl NodeInner {
         let Some(offer) = self.offers.get(&id).map(|o| o.clone()) else {
             return refuse(RemoteFailure::NotProvided);
         };
-        if let Some(o) = &caller {
-            if !self.relays_for(node, o) {
-                self.policy.refuse(
-                    self.peer_link(node),
-                    node,
-                    &self.peer_name(node),
-                    &offer.name,
-                    Refusal::ForeignOrigin,
-                );
-                return refuse(RemoteFailure::Denied);
-            }
-        }
         let run: LaneRun = match &offer.role {
             OfferRole::Function { handler } => {
                 let handler = handler.clone();
@@ -555,7 +543,10 @@ impl NodeInner {
             }
             _ => return refuse(RemoteFailure::NotProvided),
         };
-        if !self.permitted(node, caller.as_ref(), AccessKind::Call, &offer.name) {
+        if self
+            .permitted(node, caller.as_ref(), AccessKind::Call, &offer.name)
+            .is_err()
+        {
             return refuse(RemoteFailure::Denied);
         }
         let key = LaneKey {
@@ -627,7 +618,7 @@ impl NodeInner {
     }
 
     /// The link a peer is reached on (0 when it is no longer known).
-    fn peer_link(&self, node: NodeId) -> usize {
+    pub(super) fn peer_link(&self, node: NodeId) -> usize {
         self.peers.get(&node).map_or(0, |p| p.link)
     }
 

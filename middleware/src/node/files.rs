@@ -551,27 +551,22 @@ impl NodeInner {
         } = offer;
         let sink_name = self.offers.get(&sink).map(|o| o.name.clone());
         if let Some(sink_name) = sink_name {
-            if sender.as_ref().is_some_and(|o| !self.relays_for(node, o)) {
-                let peer = self.peer_name(node);
-                let link = self.peers.get(&node).map_or(0, |p| p.link);
-                self.policy
-                    .refuse(link, node, &peer, &sink_name, Refusal::ForeignOrigin);
-                let verdict = FileVerdict::Denied(format!(
-                    "'{peer}' sent a file on behalf of another node but is no gateway"
-                ));
-                self.reply_file(node, transfer, verdict);
-                return;
-            }
             let permitted = self.permitted(
                 node,
                 sender.as_ref(),
                 crate::config::AccessKind::File,
                 &sink_name,
             );
-            if !permitted {
-                let verdict = FileVerdict::Denied(format!(
-                    "sending to '{sink_name}' is not allowed for this node by <access>"
-                ));
+            if let Err(why) = permitted {
+                let verdict = FileVerdict::Denied(match why {
+                    Refusal::ForeignOrigin => format!(
+                        "'{}' sent a file on behalf of another node but is no gateway",
+                        self.peer_name(node)
+                    ),
+                    _ => {
+                        format!("sending to '{sink_name}' is not allowed for this node by <access>")
+                    }
+                });
                 self.reply_file(node, transfer, verdict);
                 return;
             }

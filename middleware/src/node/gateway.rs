@@ -408,16 +408,18 @@ impl NodeInner {
                 hops: o.hops.saturating_add(1),
                 ..o.clone()
             },
-            None => Origin {
-                node,
-                name: self.peer_name(node).to_string(),
-                hops: 1,
-                namespace: self
-                    .peers
-                    .get(&node)
-                    .map(|p| p.namespace.clone())
-                    .unwrap_or_default(),
-            },
+            None => {
+                let (name, namespace) = self.peers.get(&node).map_or_else(
+                    || (format!("{node:016x}"), String::new()),
+                    |p| (p.name.to_string(), p.namespace.clone()),
+                );
+                Origin {
+                    node,
+                    name,
+                    hops: 1,
+                    namespace,
+                }
+            }
         }
     }
 

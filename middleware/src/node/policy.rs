@@ -231,41 +231,56 @@ impl Policy {
 
 impl super::NodeInner {
     /// Whether peer `node` may do `kind` on our item `item`, or, for what gateway `node`
-    /// relays, `caller`; a refusal is counted and logged. An unknown peer is refused when a
-    /// rule governs `kind`. When this node checks identities, the rules see a peer's namespace
-    /// only once its identity key proved it: until then (or when its key is not listed for it)
-    /// the peer is refused whatever a rule governs. A relayed caller's namespace and name are
-    /// as the gateway names them, the gateway's own identity proved.
+    /// relays, `caller`; a refusal is counted and logged, and says why. Only a gateway may
+    /// speak for another node (see [`Self::relays_for`]): anyone else naming a `caller` is
+    /// refused whatever the rules say ([`Refusal::ForeignOrigin`]). An unknown peer is refused
+    /// when a rule governs `kind`. When this node checks identities, the rules see a peer's
+    /// namespace only once its identity key proved it: until then (or when its key is not
+    /// listed for it) the peer is refused whatever a rule governs. A relayed caller's namespace
+    /// and name are as the gateway names them, the gateway's own identity proved.
     pub fn permitted(
         &self,
         node: NodeId,
         caller: Option<&Origin>,
         kind: AccessKind,
         item: &str,
-    ) -> bool {
+    ) -> Result<(), Refusal> {
+        if caller.is_some_and(|o| !self.relays_for(node, o)) {
+            let (link, name) = (self.peer_link(node), self.peer_name(node));
+            self.policy
+                .refuse(link, node, &name, item, Refusal::ForeignOrigin);
+            return Err(Refusal::ForeignOrigin);
+        }
         let Some(access) = self.policy.access.as_ref() else {
-            return true;
+            return Ok(());
         };
         let governs = access.governs(kind);
-        let Some((link, namespace, name)) = self.peers.get(&node).map(|p| match caller {
-            None => (p.link, p.namespace.clone(), p.name.to_string()),
-            Some(o) => (
-                p.link,
-                o.namespace.clone(),
-                format!("{} (via {})", o.name, p.name),
-            ),
-        }) else {
-            return !governs;
+        let Some((link, peer_namespace, peer_name)) = self
+            .peers
+            .get(&node)
+            .map(|p| (p.link, p.namespace.clone(), p.name.clone()))
+        else {
+            return if governs {
+                Err(Refusal::Denied(kind))
+            } else {
+                Ok(())
+            };
         };
-        let rule_name = caller.map_or(name.as_str(), |o| o.name.as_str());
+        let (namespace, name) = caller.map_or((peer_namespace.as_str(), &*peer_name), |o| {
+            (o.namespace.as_str(), o.name.as_str())
+        });
         // A claimed namespace is no credential where identities are checked.
         let proven = self.identity_allows(node);
-        if (proven || !governs) && self.policy.allows(kind, item, &namespace, rule_name) {
-            return true;
+        if (proven || !governs) && self.policy.allows(kind, item, namespace, name) {
+            return Ok(());
         }
+        let shown = match caller {
+            Some(o) => format!("{} (via {peer_name})", o.name),
+            None => peer_name.to_string(),
+        };
         self.policy
-            .refuse(link, node, &name, item, Refusal::Denied(kind));
-        false
+            .refuse(link, node, &shown, item, Refusal::Denied(kind));
+        Err(Refusal::Denied(kind))
     }
 }
 
