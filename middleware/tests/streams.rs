@@ -120,11 +120,16 @@ async fn a_slow_reader_holds_back_only_the_stream_it_reads() {
 
     let slow_taken = Arc::new(AtomicU64::new(0));
     let taken = slow_taken.clone();
+    let (under_way, slow_under_way) = tokio::sync::oneshot::channel();
     let slow_reader = tokio::spawn(async move {
         let mut got = Vec::with_capacity(SLOW as usize);
+        let mut under_way = Some(under_way);
         while (got.len() as u64) < SLOW {
             got.push(slow_sub.recv_timeout(T).await.expect("a slow event").value);
             let n = taken.fetch_add(1, Ordering::Relaxed) + 1;
+            if n == 100 {
+                let _ = under_way.take().map(|tx| tx.send(()));
+            }
             if n % 20 == 0 {
                 tokio::time::sleep(Duration::from_millis(1)).await;
             }
@@ -147,11 +152,12 @@ async fn a_slow_reader_holds_back_only_the_stream_it_reads() {
             stream.flush().await.expect("slow: nothing lost");
         };
         let fast = async {
-            // Once the slow stream is under way: it outruns its reader many times over, and b
-            // is behind on it (its mailbox over a quarter of 65,536 full) within milliseconds.
-            while slow_taken.load(Ordering::Relaxed) < 100 {
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
+            // Once the slow stream is under way (its reader took 100): it outruns its reader
+            // many times over, and b is behind on it (its mailbox over a quarter of 65,536
+            // full) within milliseconds.
+            slow_under_way
+                .await
+                .expect("the slow reader took its first 100");
             let mut stream = fast_ev.stream();
             send_all(&mut stream, 0..FAST).await;
             stream.flush().await.expect("fast: nothing lost");

@@ -384,7 +384,7 @@ impl<T: Payload> EventStream<'_, T> {
         }
         let offer = self.event.publisher.offer.id;
         for r in remote.iter() {
-            if r.behind.holds(offer) {
+            if r.held.holds(offer) {
                 self.wait_caught_up(r, offer).await;
             }
         }
@@ -409,7 +409,7 @@ impl<T: Payload> EventStream<'_, T> {
     /// until it catches up or leaves.
     async fn wait_caught_up(&self, r: &RemoteSubscriber, offer: u32) {
         let mut changed = self.event.publisher.node.changed.subscribe();
-        while r.behind.holds(offer) && r.alive.load(Ordering::Acquire) {
+        while r.held.holds(offer) && r.alive.load(Ordering::Acquire) {
             if changed.changed().await.is_err() {
                 return;
             }

@@ -191,7 +191,7 @@ impl NodeInner {
                             .and_then(|i| i.roster.as_ref())
                             .map(|_| rand::random()),
                         alive: Arc::new(std::sync::atomic::AtomicBool::new(true)),
-                        behind: Arc::default(),
+                        held: Arc::default(),
                         introduced_again: None,
                     },
                 );

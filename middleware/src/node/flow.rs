@@ -3,8 +3,8 @@
 //! ([`Message::Flow`]), and their [`crate::EventStream`]s wait until it says it caught up,
 //! instead of its mailboxes dropping events. Each peer is told which of its offers feed the
 //! mailboxes that are behind, and only their streams wait (a gateway holding streams back for
-//! its links or for readers beyond it holds all of them). Links acknowledge what reached a mailbox, so a
-//! stream's window alone cannot hold a publisher back for a slow reader. A gateway is behind
+//! its links or for readers beyond it holds all of them). Links acknowledge what reached a
+//! mailbox, so a stream's window alone cannot hold a publisher back for a slow reader. A gateway is behind
 //! too while the events it forwards wait for a slower link or for a node whose readers are
 //! behind (see [`super::forward_flow`]).
 
@@ -50,6 +50,9 @@ impl StreamHold {
 /// What a node tells a peer in a [`Message::Flow`]: (behind, readers, offers).
 type FlowState = (bool, Option<u8>, Option<Vec<u32>>);
 
+/// What a peer not told anything yet is taken to know: nothing is behind.
+const NOT_BEHIND: FlowState = (false, None, None);
+
 /// While some mailbox is behind, how often the node looks again whether its reader stopped
 /// (a stopped reader is not waited for: see [`super::mailbox::READER_STALLED`]).
 const RECHECK: Duration = Duration::from_millis(50);
@@ -68,7 +71,7 @@ impl NodeInner {
         let Some(p) = self.peers.get(&node) else {
             return;
         };
-        let changed = p.behind.set(behind, offers);
+        let changed = p.held.set(behind, offers);
         drop(p);
         self.relay_readers_behind(node, readers.filter(|_| behind));
         if changed {
@@ -119,10 +122,8 @@ impl NodeInner {
                 let state = self.flow_state(node, forwarding, own);
                 any_behind |= state.0;
                 // A peer not told yet (one that came meanwhile) is told only while behind.
-                let was = told.get(&node).cloned().unwrap_or((false, None, None));
-                if was != state {
-                    told.insert(node, state.clone());
-                    let (behind, readers, offers) = state;
+                if *told.get(&node).unwrap_or(&NOT_BEHIND) != state {
+                    let (behind, readers, offers) = state.clone();
                     self.send_safe_to_node(
                         node,
                         &Message::Flow {
@@ -131,6 +132,7 @@ impl NodeInner {
                             offers,
                         },
                     );
+                    told.insert(node, state);
                 }
             }
             let some_behind = self.congestion.any_behind();
@@ -161,6 +163,6 @@ impl NodeInner {
                 return (true, Some(0), Some(offers));
             }
         }
-        (false, None, None)
+        NOT_BEHIND
     }
 }

@@ -129,8 +129,8 @@ pub(crate) struct RemoteSubscriber {
     pub labels: Arc<[String]>,
     /// The peer's [`Peer::alive`].
     pub alive: Arc<std::sync::atomic::AtomicBool>,
-    /// The peer's [`Peer::behind`].
-    pub behind: Arc<flow::StreamHold>,
+    /// The peer's [`Peer::held`].
+    pub held: Arc<flow::StreamHold>,
 }
 
 /// Where a remote offer's data goes, with the names its samples carry: the data path takes
@@ -212,9 +212,9 @@ pub(crate) struct Peer {
     /// Cleared when the peer is dropped: routes copied before that (a raise in progress)
     /// see it without a table lookup and fail at once instead of sending.
     pub alive: Arc<std::sync::atomic::AtomicBool>,
-    /// Its event subscribers are behind ([`Message::Flow`]): streams to it (of the offers it
-    /// named) wait.
-    pub behind: Arc<flow::StreamHold>,
+    /// What its last [`Message::Flow`] holds back: streams to it (of the offers it named)
+    /// wait while its event subscribers are behind.
+    pub held: Arc<flow::StreamHold>,
     /// When we last introduced ourselves again because it said it does not know us.
     pub introduced_again: Option<Instant>,
 }

@@ -333,7 +333,7 @@ impl NodeInner {
             services: std::collections::HashMap<u32, String>,
             interests: Vec<(u32, super::session::RemoteItem)>,
             alive: Arc<std::sync::atomic::AtomicBool>,
-            behind: Arc<super::flow::StreamHold>,
+            held: Arc<super::flow::StreamHold>,
         }
         let peers: Vec<PeerView> = self
             .peers
@@ -346,7 +346,7 @@ impl NodeInner {
                 services: p.services.clone(),
                 interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
                 alive: p.alive.clone(),
-                behind: p.behind.clone(),
+                held: p.held.clone(),
             })
             .collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
@@ -415,7 +415,7 @@ impl NodeInner {
                         addr: p.addr,
                         labels,
                         alive: p.alive.clone(),
-                        behind: p.behind.clone(),
+                        held: p.held.clone(),
                     });
                 }
             }
