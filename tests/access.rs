@@ -423,15 +423,7 @@ fn access_denies_a_file_with_the_denied_verdict() {
         net.probe_ns(
             "fpmo",
             ns,
-            &[
-                "send",
-                "--file",
-                &plan.display().to_string(),
-                "--to",
-                "rover1/fpma/plans",
-                "--retry-secs",
-                "20",
-            ],
+            &common::sending(&plan.display().to_string(), "rover1/fpma/plans", "20"),
         )
     };
     let mut evil = send("evil");

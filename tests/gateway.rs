@@ -564,18 +564,14 @@ fn call_retask(lan: &Lan, node: &str, namespace: &str, arg: u64) -> Proc {
     )
 }
 
-fn call_result(caller: &mut Proc) -> Value {
-    caller.expect(RADIO, "ok or error", |v| {
-        v.get("ok").is_some() || v.get("error").is_some()
-    })
-}
-
 /// A call through a gateway is the caller's, not the gateway's: the provider's `<access>`
 /// rules (`ground/*` may call) see the node that called across the gateway (`lab/gw0`,
 /// which no rule names, relays it), so the `ground` nodes are served and `evil/fmo` denied;
-/// and each caller behind the gateway has lanes of its own, so three callers whose calls
-/// overlap are all served (sharing the gateway's lane, one was superseded by another's).
-/// (Before, every call through the gateway was denied, as the gateway's.)
+/// and three callers behind the gateway, calling a function that takes 1.5 s at about the
+/// same time, are all served. (Before, every call through the gateway was denied, as the
+/// gateway's.) That each caller has lanes of its own, so that none supersedes another's
+/// call however they overlap, is pinned by the unit test
+/// `node::call::tests::calls_a_gateway_relays_are_checked_and_laned_as_their_callers`.
 #[test]
 fn calls_through_a_gateway_are_checked_and_queued_as_their_callers() {
     let dir = tempfile::tempdir().expect("temp dir");
@@ -589,13 +585,13 @@ fn calls_through_a_gateway_are_checked_and_queued_as_their_callers() {
         &["provide", "--item", "retask", "--delay-ms", "1500"],
     );
     let mut intruder = call_retask(ground, "fmo", "evil", 13);
-    let denied = call_result(&mut intruder);
+    let denied = common::outcome_within(&mut intruder, RADIO);
     assert_eq!(denied["error"], "denied", "{denied}");
     let mut callers: Vec<Proc> = (1..=3)
         .map(|i| call_retask(ground, &format!("fmo{i}"), "ground", i))
         .collect();
     for (i, caller) in (1u64..).zip(&mut callers) {
-        let got = call_result(caller);
+        let got = common::outcome_within(caller, RADIO);
         assert_eq!(got["ok"], 2 * i, "{}: {got}", caller.name);
     }
     let mut ran: Vec<u64> = (0..3)
@@ -636,22 +632,13 @@ fn a_file_through_a_gateway_is_checked_as_its_sender_s() {
     let send = |namespace: &str, file: &str| {
         let plan = dir.path().join(file);
         std::fs::write(&plan, format!("<plan from=\"{namespace}\"/>")).expect("plan");
+        let plan = plan.display().to_string();
         let mut sender = ground.probe(
             "fpmo",
             namespace,
-            &[
-                "send",
-                "--file",
-                &plan.display().to_string(),
-                "--to",
-                "rover1/fpma/plans",
-                "--retry-secs",
-                "30",
-            ],
+            &common::sending(&plan, "rover1/fpma/plans", "30"),
         );
-        sender.expect(RADIO, "error or done", |v| {
-            v.get("error").is_some() || v.get("done").is_some()
-        })
+        common::outcome_within(&mut sender, RADIO)
     };
     let refused = send("evil", "evil.xml");
     assert_eq!(refused["error"], "denied", "{refused}");

@@ -287,9 +287,27 @@ pub fn publishing(item: &str) -> [&str; 7] {
 
 /// The outcome line of a `call` (`ok` or `error`) or a `send` (`done` or `error`).
 pub fn outcome(p: &mut Proc) -> Value {
-    p.expect(T, "an outcome", |v| {
+    outcome_within(p, T)
+}
+
+/// [`outcome`], waited for up to `within`.
+pub fn outcome_within(p: &mut Proc, within: Duration) -> Value {
+    p.expect(within, "an outcome", |v| {
         v.get("ok").is_some() || v.get("done").is_some() || v.get("error").is_some()
     })
+}
+
+/// `marea-probe` arguments sending `file` to sink `to`, retrying for up to `retry_secs`.
+pub fn sending<'a>(file: &'a str, to: &'a str, retry_secs: &'a str) -> [&'a str; 7] {
+    [
+        "send",
+        "--file",
+        file,
+        "--to",
+        to,
+        "--retry-secs",
+        retry_secs,
+    ]
 }
 
 /// The radio emulator as a child process, killed on drop.
