@@ -57,12 +57,14 @@ async fn fly_configured(profile: &str, n: usize, family: Option<&str>) {
     assert_eq!(
         dedup,
         (0..n).map(Some).collect::<Vec<_>>(),
-        "{profile}: mavsim reached every waypoint in order, nothing else"
+        "{profile}: mavsim reached every waypoint in order, nothing else; mavsim's log:\n{}",
+        sim.mission_story()
     );
     let repeated = order.len() - dedup.len();
     assert!(
         repeated == 0,
-        "{profile}: {repeated} waypoints reached twice in a row"
+        "{profile}: {repeated} waypoints reached twice in a row; mavsim's log:\n{}",
+        sim.mission_story()
     );
     if profile != "ardupilot" {
         // The profile's conventions were met: uploads reset the current item, and it was

@@ -209,6 +209,28 @@ impl Sim {
         log_events(&self.log, event)
     }
 
+    /// The mission's story in the log (uploads, current-item changes, reaches, completion,
+    /// mode changes), one record per line: for a failure message to say what the vehicle did.
+    pub fn mission_story(&self) -> String {
+        const EVENTS: [&str; 6] = [
+            "mission_uploaded",
+            "mission_partial_write",
+            "current_changed",
+            "item_reached",
+            "mission_complete",
+            "mode_changed",
+        ];
+        std::fs::read_to_string(&self.log)
+            .unwrap_or_default()
+            .lines()
+            .filter(|l| {
+                serde_json::from_str::<serde_json::Value>(l)
+                    .is_ok_and(|r| EVENTS.iter().any(|e| r["event"] == *e))
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+
     /// Waits until the log's records of `event` satisfy `done` (polling the file: mavsim
     /// flushes each line, and no other signal says a record was written); panics with `what`
     /// after `within`. Returns those records.
