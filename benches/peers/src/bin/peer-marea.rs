@@ -53,7 +53,13 @@ fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse()?;
     let control = Control::start(false);
-    let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
+    // A current-thread runtime, the leanest tokio offers: marea's tasks (links, discovery,
+    // dispatch) share the one thread with the role's, and the build links no multi-thread
+    // scheduler (the UDP and shm peers' tokio has no `rt-multi-thread`: see their Cargo.toml).
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("tokio runtime")?;
     // Behind `dyn`: `block_on` has three paths (current-thread, multi-thread, and entering the
     // runtime) and inlines a concrete future into each, which made three copies of this peer's
     // 25 KB state machine (75 KB of code, all of it resident).
