@@ -376,6 +376,11 @@ impl<T: Payload> EventStream<'_, T> {
             p.bytes += len;
             SafeCompletion::Counted(p.acks.clone())
         });
+        // A stream that never waits would hold its thread until the window fills: on a
+        // current-thread runtime the link could not read an acknowledgement before then.
+        // Yielding once in a while (tokio's task budget) keeps acknowledgements, and the
+        // datagrams they release, flowing while the stream runs.
+        tokio::task::consume_budget().await;
         for p in &self.peers {
             let window = p.window();
             if p.sent - p.acks.settled() > window {

@@ -131,6 +131,9 @@ struct PeerState {
     wake_pending: bool,
     /// The node knows who is at this address (see [`sessions`]).
     bound: bool,
+    /// Datagram bytes the queued safe messages take (at most; their sequence numbers are not
+    /// known yet).
+    safe_bytes: usize,
 }
 
 impl PeerState {
@@ -146,6 +149,7 @@ impl PeerState {
             last_write: None,
             wake_pending: false,
             bound: false,
+            safe_bytes: 0,
         }
     }
 
@@ -429,6 +433,9 @@ impl UdpLink {
             let Some((msg, done)) = st.safe.pop_front() else {
                 break;
             };
+            st.safe_bytes = st
+                .safe_bytes
+                .saturating_sub(DatagramWriter::safe_cost(u32::MAX, msg.len()));
             let seq = st.tx.push(now, msg, done);
             if let Some(m) = st.tx.message(seq) {
                 push_safe(&mut w, &mut out, &mut carries_safe, seq, m);
@@ -465,6 +472,22 @@ impl UdpLink {
         }
         st.last_write = Some(now);
         st.wake_pending = false;
+    }
+
+    /// Whether the safe messages queued for `addr` wait for the next acknowledgement instead of
+    /// leaving now (Nagle's rule, per datagram): while earlier ones are unacknowledged and
+    /// the queue fills less than a datagram, and nothing else is to send. The receive task
+    /// flushes the peer at each acknowledgement (the retransmission timer if it is lost), so a
+    /// message waits one round trip at most; a fast stream leaves in full datagrams, each
+    /// acknowledged once, instead of one small datagram per wake-up, each acknowledged too
+    /// (that cycle held a loopback stream of 64 B events at ~3 M/s with 100,000 datagrams a
+    /// second each way). A lone message, with nothing in flight, leaves at once.
+    fn gathers_safe(&self, addr: SocketAddr, st: &PeerState) -> bool {
+        st.tx.in_flight() > 0
+            && st.fast.is_empty()
+            && !st.rx.ack_pending()
+            && st.blocked.is_empty()
+            && st.safe_bytes < self.datagram_max(addr)
     }
 
     /// The largest datagram built for `addr` (see [`LOOPBACK_DATAGRAM`]).
@@ -764,6 +787,7 @@ fn is_transient(e: &io::Error) -> bool {
 }
 
 fn fail_all(st: &mut PeerState, err: LinkSendError) {
+    st.safe_bytes = 0;
     for (_, done) in st.safe.drain(..) {
         if let Some(d) = done {
             let _ = d.send(Err(err.clone()));
@@ -800,6 +824,7 @@ impl Link for UdpLink {
         let mut st = lock(&p);
         // The clock is read only where it is needed (a safe message behind a full window,
         // the common case of a fast event stream, needs none).
+        let safe = matches!(out, Outgoing::Safe { .. });
         match out {
             Outgoing::Fast { coalesce, msg } => {
                 let cost = DatagramWriter::fast_cost(msg.len());
@@ -830,6 +855,7 @@ impl Link for UdpLink {
                     drop(st);
                     return Outgoing::Safe { msg, done }.refuse(addr);
                 }
+                st.safe_bytes += DatagramWriter::safe_cost(u32::MAX, msg.len());
                 st.safe.push_back((msg, done))
             }
         }
@@ -837,6 +863,9 @@ impl Link for UdpLink {
             // A safe message behind a full window: nothing can leave before an acknowledgement
             // opens it, and the receive task flushes the peer when one does. Waking the
             // transmit task for it cost a futex wake-up per raise in a fast event stream.
+            return;
+        }
+        if safe && self.gathers_safe(addr, &st) {
             return;
         }
         let now = Instant::now();
