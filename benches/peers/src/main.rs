@@ -14,8 +14,8 @@
 //!   within each round, median over the rounds, with their own `.spread_pct`.
 //!
 //! Each marea case runs marea built as a node for that link would be, which matters most for the
-//! idle RSS: the UDP cases run `peer-marea-udp` (marea without its `shm` and `serial` features:
-//! no iceoryx2, no serial link), the shm cases `peer-marea-shm` (feature `shm` alone) and the
+//! idle RSS: the UDP cases run `peer-marea-udp` (marea's feature `udp` alone: no iceoryx2, no
+//! serial link), the shm cases `peer-marea-shm` (feature `shm` alone: no UDP link either) and the
 //! serial cases `peer-marea` (marea's default features). All come from one source file
 //! (`src/bin/peer-marea.rs`) and [`build_peers`] builds them in separate cargo invocations.
 //!
@@ -232,7 +232,7 @@ fn cases(o: &Opts) -> Vec<Case> {
 ///
 /// One cargo invocation per package: cargo unifies a dependency's features across the packages
 /// one invocation builds, so `peer-marea-udp` built beside `peer-marea` would get marea's `shm`
-/// back (and `peer-marea-shm` its `serial`).
+/// back (and `peer-marea-shm` its `serial` and `udp`).
 fn build_peers(o: &Opts) -> anyhow::Result<()> {
     if o.no_build {
         return Ok(());

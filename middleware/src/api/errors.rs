@@ -8,7 +8,8 @@ use crate::node::mailbox::TypeMismatch;
 /// Why a node could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum NodeOpenError {
-    /// A link failed to open.
+    /// An Ethernet (UDP) link failed to open.
+    #[cfg(feature = "udp")]
     #[error(transparent)]
     Link(#[from] crate::link::udp::LinkOpenError),
     /// A serial link could not be opened.
@@ -24,9 +25,9 @@ pub enum NodeOpenError {
     Unsupported {
         /// Link name.
         link: String,
-        /// Kind of link (`shared-memory`, `serial`).
+        /// Kind of link (`Ethernet`, `shared-memory`, `serial`).
         kind: &'static str,
-        /// The cargo feature of `marea` that brings it (`shm`, `serial`).
+        /// The cargo feature of `marea` that brings it (`udp`, `shm`, `serial`).
         feature: &'static str,
     },
     /// The domain key named by `<security keyFile=..>` cannot be used.

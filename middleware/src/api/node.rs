@@ -15,12 +15,15 @@ use tokio_util::task::TaskTracker;
 use super::errors::{DeclareError, NodeOpenError};
 use super::service::{IService, Service, ServiceError};
 use crate::config::{LinkConfig, NetworkConfig};
-use crate::link::arq::ArqConfig;
 #[cfg(feature = "serial")]
 use crate::link::serial::{port::SerialPorts, stp::StpConfig, SerialLink};
 #[cfg(feature = "shm")]
 use crate::link::shm::{ShmLink, ShmLinkOptions};
-use crate::link::udp::{UdpLink, UdpLinkOptions};
+#[cfg(feature = "udp")]
+use crate::link::{
+    arq::ArqConfig,
+    udp::{UdpLink, UdpLinkOptions},
+};
 use crate::link::{Link, LinkStats};
 use crate::name;
 use crate::node::discovery::domain_hash;
@@ -133,6 +136,7 @@ fn serial_setup(lc: &LinkConfig) -> Option<(&str, SerialPorts, StpConfig)> {
 /// The optional link kinds a build has (its cargo features).
 #[derive(Debug, Clone, Copy)]
 struct LinksBuilt {
+    udp: bool,
     shm: bool,
     serial: bool,
 }
@@ -140,6 +144,7 @@ struct LinksBuilt {
 /// This build's: a value rather than `cfg!`s at the check, so every answer is tested in every
 /// build.
 const LINKS_BUILT: LinksBuilt = LinksBuilt {
+    udp: cfg!(feature = "udp"),
     shm: cfg!(feature = "shm"),
     serial: cfg!(feature = "serial"),
 };
@@ -150,7 +155,7 @@ fn links_built(config: &NetworkConfig, built: LinksBuilt) -> Result<(), NodeOpen
         let missing = match l {
             LinkConfig::Shm(_) => !built.shm,
             LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => !built.serial,
-            LinkConfig::Ethernet(_) => false,
+            LinkConfig::Ethernet(_) => !built.udp,
         };
         if missing {
             return Err(not_built(l));
@@ -159,12 +164,13 @@ fn links_built(config: &NetworkConfig, built: LinksBuilt) -> Result<(), NodeOpen
     Ok(())
 }
 
-/// The refusal of link `link` (`<shm>`, `<serial>`, `<serialduo>`) by a build without the
-/// cargo feature that brings it.
+/// The refusal of link `link` (`<ethernet>`, `<shm>`, `<serial>`, `<serialduo>`) by a build
+/// without the cargo feature that brings it.
 fn not_built(link: &LinkConfig) -> NodeOpenError {
     let (kind, feature) = match link {
+        LinkConfig::Ethernet(_) => ("Ethernet", "udp"),
         LinkConfig::Shm(_) => ("shared-memory", "shm"),
-        _ => ("serial", "serial"),
+        LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => ("serial", "serial"),
     };
     NodeOpenError::Unsupported {
         link: link.name().to_owned(),
@@ -177,9 +183,15 @@ impl Node {
     /// Opens the links of `config`, announces the node and starts discovery.
     ///
     /// # Errors
-    /// [`NodeOpenError`] when a link cannot be opened, or is a `<shm>` (`<serial>`,
-    /// `<serialduo>`) link and this build lacks the cargo feature `shm` (`serial`)
-    /// ([`NodeOpenError::Unsupported`]).
+    /// [`NodeOpenError`] when a link cannot be opened, or is an `<ethernet>` (`<shm>`,
+    /// `<serial>`, `<serialduo>`) link and this build lacks the cargo feature `udp` (`shm`,
+    /// `serial`) ([`NodeOpenError::Unsupported`]).
+    // A build with no link kind at all (every link feature off) opens none: nothing uses a
+    // link's index or handler there.
+    #[cfg_attr(
+        not(any(feature = "udp", feature = "shm", feature = "serial")),
+        allow(unused_variables)
+    )]
     pub async fn open(config: &NetworkConfig) -> Result<Node, NodeOpenError> {
         links_built(config, LINKS_BUILT)?;
         name::validate_name(&config.node)?;
@@ -284,6 +296,7 @@ impl Node {
         for (index, lc) in config.links.iter().enumerate() {
             let handler = Arc::new(Handler(Arc::downgrade(&inner)));
             let opened: Result<Arc<dyn Link>, NodeOpenError> = match lc {
+                #[cfg(feature = "udp")]
                 LinkConfig::Ethernet(e) => UdpLink::open(
                     index,
                     UdpLinkOptions {
@@ -340,6 +353,8 @@ impl Node {
                 .map(|l| l as Arc<dyn Link>)
                 .map_err(Into::into),
                 // `links_built` refused these already; kept so the match stays exhaustive.
+                #[cfg(not(feature = "udp"))]
+                LinkConfig::Ethernet(_) => Err(not_built(lc)),
                 #[cfg(not(feature = "shm"))]
                 LinkConfig::Shm(_) => Err(not_built(lc)),
                 #[cfg(not(feature = "serial"))]
@@ -646,6 +661,7 @@ mod tests {
     }
 
     const ALL: LinksBuilt = LinksBuilt {
+        udp: true,
         shm: true,
         serial: true,
     };
@@ -672,6 +688,22 @@ mod tests {
             err.to_string(),
             "link local: this build of marea has no shared-memory link (cargo feature `shm`)"
         );
+    }
+
+    #[test]
+    fn a_build_without_udp_refuses_an_ethernet_link_by_name_and_feature() {
+        let config = NetworkConfig::ethernet_loopback("n");
+        let name = config.links[0].name().to_owned();
+        let err = links_built(&config, LinksBuilt { udp: false, ..ALL })
+            .expect_err("no UDP in this build");
+        assert_eq!(
+            err.to_string(),
+            format!("link {name}: this build of marea has no Ethernet link (cargo feature `udp`)")
+        );
+        // A shared-memory-only configuration opens in such a build.
+        let mut shm_only = with_shm();
+        shm_only.links.retain(|l| matches!(l, LinkConfig::Shm(_)));
+        assert!(links_built(&shm_only, LinksBuilt { udp: false, ..ALL }).is_ok());
     }
 
     #[test]
@@ -704,11 +736,12 @@ mod tests {
         assert!(links_built(&with_serial(), ALL).is_ok());
         assert!(links_built(&with_serial(), LinksBuilt { shm: false, ..ALL }).is_ok());
         let udp = NetworkConfig::ethernet_loopback("n");
-        let none = LinksBuilt {
+        let udp_alone = LinksBuilt {
+            udp: true,
             shm: false,
             serial: false,
         };
-        assert!(links_built(&udp, none).is_ok());
+        assert!(links_built(&udp, udp_alone).is_ok());
         assert!(links_built(&udp, ALL).is_ok());
     }
 

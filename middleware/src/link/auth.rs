@@ -686,6 +686,10 @@ impl Opener {
 
 /// Logs a dropped frame: the first rejections of a link, then every power of two, so a flood
 /// does not flood the log too (the counters in link health keep the exact number).
+#[cfg_attr(
+    not(any(feature = "udp", feature = "shm", feature = "serial")),
+    allow(dead_code)
+)]
 pub(crate) fn log_reject(link: &str, from: impl fmt::Display, why: AuthReject, total: u64) {
     if total.is_power_of_two() {
         tracing::warn!(

@@ -36,6 +36,10 @@ impl SafeCompletion {
 
 /// Settles acknowledged messages, in order: a run of messages counted on one stream's counter
 /// with one update of it instead of one per message (a datagram acknowledges hundreds).
+#[cfg_attr(
+    not(any(feature = "udp", feature = "shm", feature = "serial")),
+    allow(dead_code)
+)]
 pub fn acknowledge_all(done: impl IntoIterator<Item = SafeCompletion>) {
     let mut run: Option<(Arc<AckCounter>, u64)> = None;
     for d in done {

@@ -22,6 +22,8 @@ pub mod serial;
 // the feature refuses `<shm>` links when the node opens (`NodeOpenError::Unsupported`).
 #[cfg(feature = "shm")]
 pub mod shm;
+// Likewise for `<ethernet>` links: a node that only talks to its own host can do without.
+#[cfg(feature = "udp")]
 pub mod udp;
 
 use std::fmt;
@@ -206,8 +208,10 @@ pub struct LinkStats {
     pub replay_rejected: u64,
 }
 
-/// The counters of [`LinkStats`] as a link updates them from several tasks at once.
+/// The counters of [`LinkStats`] as a link updates them from several tasks at once (the UDP and
+/// shared-memory links'; the serial link keeps its own).
 #[derive(Debug, Default)]
+#[cfg_attr(not(any(feature = "udp", feature = "shm")), allow(dead_code))]
 pub(crate) struct LinkCounters {
     pub(crate) frames_out: AtomicU64,
     pub(crate) frames_in: AtomicU64,
@@ -224,6 +228,7 @@ pub(crate) struct LinkCounters {
     pub(crate) replay_rejected: AtomicU64,
 }
 
+#[cfg_attr(not(any(feature = "udp", feature = "shm")), allow(dead_code))]
 impl LinkCounters {
     /// One frame (datagram, sample) of `bytes` sent.
     pub(crate) fn count_out(&self, bytes: usize) {

@@ -7,8 +7,8 @@
 //!
 //! Built three times from this file, each as a node for its link would be built: `peer-marea`
 //! (package `peers`, marea's default features) for the serial cases, `peer-marea-udp` (package
-//! `marea-udp`, without marea's `shm` and `serial` features) for the UDP ones and
-//! `peer-marea-shm` (package `marea-shm`, feature `shm` alone) for the shm ones; given a link
+//! `marea-udp`, marea's feature `udp` alone) for the UDP ones and `peer-marea-shm` (package
+//! `marea-shm`, feature `shm` alone) for the shm ones; given a link
 //! its build lacks, a peer fails to open its node.
 
 use std::sync::Arc;
