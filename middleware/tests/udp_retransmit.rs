@@ -44,10 +44,59 @@ fn open_link(port: u16, tasks: &TaskTracker, cancel: &CancellationToken) -> Arc<
     .unwrap()
 }
 
-fn safe(msg: &[u8]) -> Outgoing {
-    Outgoing::Safe {
-        msg: msg.to_vec(),
-        done: None,
+/// A link and, as its peer, a plain socket that reads datagrams and never answers: every
+/// message it gets is lost to the link.
+struct SilentPeer {
+    tasks: TaskTracker,
+    cancel: CancellationToken,
+    link: Arc<UdpLink>,
+    sink: tokio::net::UdpSocket,
+    to: PeerAddr,
+}
+
+impl SilentPeer {
+    /// `case` keeps the tests' multicast ports apart.
+    async fn new(case: u16) -> SilentPeer {
+        let tasks = TaskTracker::new();
+        let cancel = CancellationToken::new();
+        let port = 26_000 + case + (std::process::id() % 20_000) as u16;
+        let link = open_link(port, &tasks, &cancel);
+        let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let to = PeerAddr::Udp(sink.local_addr().unwrap());
+        SilentPeer {
+            tasks,
+            cancel,
+            link,
+            sink,
+            to,
+        }
+    }
+
+    fn send(&self, msg: &[u8]) {
+        self.link.send(
+            self.to,
+            Outgoing::Safe {
+                msg: msg.to_vec(),
+                done: None,
+            },
+        );
+    }
+
+    /// The next datagram the peer gets, within `within`; panics naming `what` after it.
+    async fn recv(&self, within: Duration, what: &str) -> Vec<u8> {
+        let mut buf = vec![0u8; 65_536];
+        let n = tokio::time::timeout(within, self.sink.recv(&mut buf))
+            .await
+            .unwrap_or_else(|_| panic!("{what}"))
+            .unwrap();
+        buf.truncate(n);
+        buf
+    }
+
+    async fn close(self) {
+        self.cancel.cancel();
+        self.tasks.close();
+        let _ = tokio::time::timeout(Duration::from_secs(5), self.tasks.wait()).await;
     }
 }
 
@@ -57,56 +106,32 @@ fn contains(datagram: &[u8], msg: &[u8]) -> bool {
 
 #[tokio::test]
 async fn a_lost_lone_safe_message_is_retransmitted_without_any_reply() {
-    let tasks = TaskTracker::new();
-    let cancel = CancellationToken::new();
-    let port = 26_000 + (std::process::id() % 20_000) as u16;
-    let link = open_link(port, &tasks, &cancel);
-    // A "peer" that reads datagrams and never answers: every one it gets is lost to the link.
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let to = PeerAddr::Udp(sink.local_addr().unwrap());
+    let p = SilentPeer::new(0).await;
     // Let the transmit task go to sleep with nothing in flight.
     tokio::task::yield_now().await;
-    link.send(
-        to,
-        Outgoing::Safe {
-            msg: b"lone".to_vec(),
-            done: None,
-        },
-    );
-    let mut buf = [0u8; 2048];
-    let first = tokio::time::timeout(Duration::from_secs(5), sink.recv(&mut buf))
-        .await
-        .expect("first transmission")
-        .unwrap();
-    let first = buf[..first].to_vec();
+    p.send(b"lone");
+    let first = p.recv(Duration::from_secs(5), "first transmission").await;
     // The retransmission timer (200 ms before any round trip is measured) must fire on its
     // own: nothing else happens on this link.
-    let again = tokio::time::timeout(Duration::from_secs(10), sink.recv(&mut buf))
-        .await
-        .expect("no retransmission of the lost message")
-        .unwrap();
-    assert_eq!(buf[..again], first[..], "the same datagram again");
-    assert!(link.stats().retransmitted >= 1);
-    cancel.cancel();
-    tasks.close();
-    let _ = tokio::time::timeout(Duration::from_secs(5), tasks.wait()).await;
+    let again = p
+        .recv(
+            Duration::from_secs(10),
+            "no retransmission of the lost message",
+        )
+        .await;
+    assert_eq!(again, first, "the same datagram again");
+    assert!(p.link.stats().retransmitted >= 1);
+    p.close().await;
 }
 
 #[tokio::test]
 async fn safe_messages_sent_while_one_is_unacknowledged_leave_together() {
-    let tasks = TaskTracker::new();
-    let cancel = CancellationToken::new();
-    let port = 26_001 + (std::process::id() % 20_000) as u16;
-    let link = open_link(port, &tasks, &cancel);
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let to = PeerAddr::Udp(sink.local_addr().unwrap());
-    link.send(to, safe(b"first message"));
-    let mut buf = vec![0u8; 65_536];
-    let n = tokio::time::timeout(Duration::from_secs(5), sink.recv(&mut buf))
-        .await
-        .expect("the first message leaves at once")
-        .unwrap();
-    assert!(contains(&buf[..n], b"first message"));
+    let p = SilentPeer::new(1).await;
+    p.send(b"first message");
+    let first = p
+        .recv(Duration::from_secs(5), "the first message leaves at once")
+        .await;
+    assert!(contains(&first, b"first message"));
     // More while the first is unacknowledged (and never will be): they wait for its
     // acknowledgement, so the next datagram is its retransmission, and carries them all.
     // (Three: the timeout shrinks the congestion window to four messages.)
@@ -114,62 +139,47 @@ async fn safe_messages_sent_while_one_is_unacknowledged_leave_together() {
         .map(|i| format!("later {i:02}").into_bytes())
         .collect();
     for m in &later {
-        link.send(to, safe(m));
+        p.send(m);
     }
-    let n = tokio::time::timeout(Duration::from_secs(10), sink.recv(&mut buf))
-        .await
-        .expect("a second datagram")
-        .unwrap();
-    let second = &buf[..n];
+    let second = p.recv(Duration::from_secs(10), "a second datagram").await;
     assert!(
-        contains(second, b"first message"),
+        contains(&second, b"first message"),
         "the later messages left before the first was acknowledged or due again"
     );
     for m in &later {
         assert!(
-            contains(second, m),
+            contains(&second, m),
             "{} not in the retransmission's datagram",
             String::from_utf8_lossy(m)
         );
     }
-    assert_eq!(link.stats().frames_out, 2, "two datagrams in all");
-    cancel.cancel();
-    tasks.close();
-    let _ = tokio::time::timeout(Duration::from_secs(5), tasks.wait()).await;
+    assert_eq!(p.link.stats().frames_out, 2, "two datagrams in all");
+    p.close().await;
 }
 
 #[tokio::test]
 async fn safe_messages_that_fill_a_datagram_do_not_wait_for_an_acknowledgement() {
-    let tasks = TaskTracker::new();
-    let cancel = CancellationToken::new();
-    let port = 26_002 + (std::process::id() % 20_000) as u16;
-    let link = open_link(port, &tasks, &cancel);
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let to = PeerAddr::Udp(sink.local_addr().unwrap());
-    link.send(to, safe(b"first message"));
-    let mut buf = vec![0u8; 65_536];
-    tokio::time::timeout(Duration::from_secs(5), sink.recv(&mut buf))
-        .await
-        .expect("the first message leaves at once")
-        .unwrap();
+    let p = SilentPeer::new(2).await;
+    p.send(b"first message");
+    p.recv(Duration::from_secs(5), "the first message leaves at once")
+        .await;
     // More than a loopback datagram's worth (60 KiB) while the first is unacknowledged: a
     // full datagram leaves without waiting, before the first message is due again. (Seven: a
     // peer the node does not know yet gets at most eight queued or in flight.)
     let big = vec![7u8; 9_000];
     for _ in 0..7 {
-        link.send(to, safe(&big));
+        p.send(&big);
     }
-    let n = tokio::time::timeout(Duration::from_secs(10), sink.recv(&mut buf))
-        .await
-        .expect("a second datagram")
-        .unwrap();
+    let second = p.recv(Duration::from_secs(10), "a second datagram").await;
     assert!(
-        !contains(&buf[..n], b"first message"),
+        !contains(&second, b"first message"),
         "the full datagram waited for the first message's retransmission"
     );
-    assert_eq!(link.stats().retransmitted, 0);
-    assert!(n > 45_000, "a full datagram, not {n} bytes");
-    cancel.cancel();
-    tasks.close();
-    let _ = tokio::time::timeout(Duration::from_secs(5), tasks.wait()).await;
+    assert_eq!(p.link.stats().retransmitted, 0);
+    assert!(
+        second.len() > 45_000,
+        "a full datagram, not {} bytes",
+        second.len()
+    );
+    p.close().await;
 }
