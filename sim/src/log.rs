@@ -2,6 +2,9 @@
 //!
 //! Each line is `{"t_sim": seconds, "event": "...", ...fields}`, for example
 //! `{"t_sim":12.34,"event":"item_reached","seq":3,"lat":41.27,"lon":1.98}`.
+//!
+//! A record is on file before any message the event caused leaves the simulator, so a test that
+//! reads the log when it sees an effect (a reach, the mode after a mission) finds its cause.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};

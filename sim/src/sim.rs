@@ -14,6 +14,7 @@ use std::io;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use mavlink::dialects::ardupilotmega::MavMessage;
 use tokio_util::sync::CancellationToken;
 
 use crate::link::{Link, LinkConfig, LinkInfo, LinkOpenError};
@@ -128,6 +129,18 @@ impl Simulator {
         self.link.info()
     }
 
+    /// Sends `out` once the log holds what led to it: a test that reads the log when it sees a
+    /// message's effect (a reached waypoint, the mode after the mission) finds the events
+    /// behind it. (Sent first, on a loaded host the log lagged: the VAS saw HOLD after the last
+    /// waypoint while the log did not yet say it was reached.)
+    fn send_logged(&mut self, out: Vec<MavMessage>) -> Result<(), SimError> {
+        self.flush_log()?;
+        for msg in out {
+            self.link.send(&msg);
+        }
+        Ok(())
+    }
+
     fn flush_log(&mut self) -> Result<(), SimError> {
         let events = self.vehicle.take_log();
         if let Some(writer) = self.log.as_mut() {
@@ -178,10 +191,8 @@ impl Simulator {
                         None => return Err(SimError::LinkIo(io::ErrorKind::BrokenPipe.into())),
                     };
                     let from = (inbound.header.system_id as u8, inbound.header.component_id);
-                    for msg in self.vehicle.handle(from, &inbound.msg, Instant::now()) {
-                        self.link.send(&msg);
-                    }
-                    self.flush_log()?;
+                    let out = self.vehicle.handle(from, &inbound.msg, Instant::now());
+                    self.send_logged(out)?;
                 }
                 _ = tick.tick() => {
                     let now = Instant::now();
@@ -190,18 +201,15 @@ impl Simulator {
                     target += wall.as_secs_f64() * speedup;
                     let mut steps = 0;
                     while self.vehicle.sim_time() + STEP_S / 2.0 < target && steps < MAX_STEPS_PER_TICK {
-                        for msg in self.vehicle.step(STEP_S) {
-                            self.link.send(&msg);
-                        }
+                        let out = self.vehicle.step(STEP_S);
+                        self.send_logged(out)?;
                         steps += 1;
                         self.detect();
                     }
                     // Too slow to keep up: time runs slower rather than owing a burst.
                     target = target.min(self.vehicle.sim_time() + STEP_S);
-                    for msg in self.vehicle.poll(now) {
-                        self.link.send(&msg);
-                    }
-                    self.flush_log()?;
+                    let out = self.vehicle.poll(now);
+                    self.send_logged(out)?;
                 }
             }
         }
