@@ -1,6 +1,8 @@
 //! An event stream (`Event::stream`) between nodes over real UDP sockets follows its
 //! subscribers as they come and go: it reads the offer's routes only when they change, and a
-//! subscriber that arrives mid-stream gets every event sent once the publisher knows of it.
+//! subscriber that arrives mid-stream gets every event sent once the publisher knows of it. It
+//! holds back only the streams a slow reader reads, and it runs with every node on one
+//! current-thread runtime.
 
 mod common;
 
@@ -178,4 +180,47 @@ async fn a_slow_reader_holds_back_only_the_stream_it_reads() {
     for n in [a, b] {
         assert!(n.shutdown().await, "tasks stopped");
     }
+}
+
+/// Both nodes and their tasks on one current-thread runtime (what a program gets with
+/// `#[tokio::main(flavor = "current_thread")]`): a stream of more events than its window
+/// (16,384) reaches the subscriber whole and in order, the publisher waiting for
+/// acknowledgements the same thread must read.
+#[tokio::test(flavor = "current_thread")]
+async fn a_stream_runs_with_every_node_on_one_current_thread_runtime() {
+    const N: u64 = 50_000;
+    let domain = format!("streams-one-thread-{}", std::process::id());
+    let a = Node::open(&cfg("a", &domain, port() + 2)).await.unwrap();
+    let ev = a
+        .service("src")
+        .unwrap()
+        .publish_event::<u64>("ev")
+        .unwrap();
+    let b = Node::open(&cfg("b", &domain, port() + 2)).await.unwrap();
+    let sub = b
+        .service("dst")
+        .unwrap()
+        .subscribe_event::<u64>("src/ev")
+        .unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "b subscribed");
+    let reader = tokio::spawn(async move {
+        let mut got = Vec::with_capacity(N as usize);
+        while (got.len() as u64) < N {
+            got.push(sub.recv_timeout(T).await.expect("an event").value);
+        }
+        got
+    });
+    let streamed = async {
+        let mut stream = ev.stream();
+        send_all(&mut stream, 0..N).await;
+        stream.flush().await.expect("nothing lost");
+    };
+    tokio::time::timeout(Duration::from_secs(60), streamed)
+        .await
+        .expect("the stream ended in time");
+    let got = tokio::time::timeout(T, reader)
+        .await
+        .expect("the reader ended in time")
+        .unwrap();
+    assert_eq!(got, (0..N).collect::<Vec<u64>>(), "whole and in order");
 }
