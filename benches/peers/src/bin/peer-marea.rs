@@ -60,9 +60,10 @@ fn main() -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("tokio runtime")?;
-    // Behind `dyn`: `block_on` has three paths (current-thread, multi-thread, and entering the
-    // runtime) and inlines a concrete future into each, which made three copies of this peer's
-    // 25 KB state machine (75 KB of code, all of it resident).
+    // Behind `dyn`: `block_on` inlines a concrete future into each of its paths (with
+    // `rt-multi-thread`, as `peer-marea` is built: current-thread, multi-thread and entering
+    // the runtime), which made three copies of this peer's 25 KB state machine (75 KB of code,
+    // all of it resident).
     let main: std::pin::Pin<Box<dyn std::future::Future<Output = anyhow::Result<()>>>> =
         Box::pin(run(args, control));
     rt.block_on(main)

@@ -131,8 +131,7 @@ struct PeerState {
     wake_pending: bool,
     /// The node knows who is at this address (see [`sessions`]).
     bound: bool,
-    /// Datagram bytes the queued safe messages take (at most; their sequence numbers are not
-    /// known yet).
+    /// Datagram bytes the queued safe messages take, at most ([`queued_safe_cost`]).
     safe_bytes: usize,
 }
 
@@ -433,9 +432,7 @@ impl UdpLink {
             let Some((msg, done)) = st.safe.pop_front() else {
                 break;
             };
-            st.safe_bytes = st
-                .safe_bytes
-                .saturating_sub(DatagramWriter::safe_cost(u32::MAX, msg.len()));
+            st.safe_bytes = st.safe_bytes.saturating_sub(queued_safe_cost(msg.len()));
             let seq = st.tx.push(now, msg, done);
             if let Some(m) = st.tx.message(seq) {
                 push_safe(&mut w, &mut out, &mut carries_safe, seq, m);
@@ -786,6 +783,12 @@ fn is_transient(e: &io::Error) -> bool {
     )
 }
 
+/// What a queued safe message of `len` bytes will take in a datagram, at most (its sequence
+/// number is not known yet): counted in [`PeerState::safe_bytes`].
+fn queued_safe_cost(len: usize) -> usize {
+    DatagramWriter::safe_cost(u32::MAX, len)
+}
+
 fn fail_all(st: &mut PeerState, err: LinkSendError) {
     st.safe_bytes = 0;
     for (_, done) in st.safe.drain(..) {
@@ -855,7 +858,7 @@ impl Link for UdpLink {
                     drop(st);
                     return Outgoing::Safe { msg, done }.refuse(addr);
                 }
-                st.safe_bytes += DatagramWriter::safe_cost(u32::MAX, msg.len());
+                st.safe_bytes += queued_safe_cost(msg.len());
                 st.safe.push_back((msg, done))
             }
         }
