@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use marea::codec::{encode_message, encode_payload};
 use marea::config::{EthernetConfig, LinkConfig};
-use marea::link::udp::datagram::DatagramWriter;
+use marea::link::datagram::DatagramWriter;
 use marea::protocol::Message;
 use marea::{NetworkConfig, Node, SendFileOptions};
 use tokio::net::UdpSocket;

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 use common::{probe_with_config, Net, Proc, T};
 use marea::codec::{decode_message, encode_message};
 use marea::config::{EthernetConfig, LinkConfig};
-use marea::link::udp::datagram::{self, Datagram, DatagramWriter, Entry};
+use marea::link::datagram::{self, Datagram, DatagramWriter, Entry};
 use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId, Origin};
 use marea::typeinfo::TypeInfo;
 use marea::{NetworkConfig, Node};

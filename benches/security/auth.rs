@@ -9,8 +9,8 @@ use std::time::{Duration, Instant};
 use marea::codec::{encode_message, encode_payload};
 use marea::config::{EthernetConfig, LinkConfig, SecurityConfig};
 use marea::link::auth::{DomainKey, LinkSecurity, Profile, Sealer};
+use marea::link::datagram::{self, DatagramWriter};
 use marea::link::serial::stp::{Stp, StpConfig};
-use marea::link::udp::datagram::{self, DatagramWriter};
 use marea::protocol::Message;
 use marea::{NetworkConfig, Node};
 

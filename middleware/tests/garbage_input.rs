@@ -6,7 +6,7 @@ mod common;
 use std::net::{Ipv4Addr, SocketAddrV4, UdpSocket};
 use std::time::Duration;
 
-use marea::link::udp::datagram::DatagramWriter;
+use marea::link::datagram::DatagramWriter;
 use marea::{NetworkConfig, Node};
 use proptest::prelude::*;
 

@@ -9,7 +9,7 @@ use std::net::{SocketAddr, UdpSocket};
 use std::time::{Duration, Instant};
 
 use marea::codec::encode_message;
-use marea::link::udp::datagram::{discovery_datagram, DatagramWriter};
+use marea::link::datagram::{discovery_datagram, DatagramWriter};
 use marea::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId};
 use marea::typeinfo::TypeInfo;
 
@@ -181,10 +181,10 @@ impl Forger {
             .expect("a bound socket has an address")
     }
 
-    /// Sends datagram `d` (built by `marea::link::udp::datagram`), sealed if it has a key.
+    /// Sends datagram `d` (built by `marea::link::datagram`), sealed if it has a key.
     pub fn send(&mut self, to: SocketAddr, mut d: Vec<u8>) -> io::Result<()> {
         if let (Some(s), Some(kind)) = (&self.sealer, d.first_mut()) {
-            *kind = marea::link::udp::datagram::sealed_kind(*kind);
+            *kind = marea::link::datagram::sealed_kind(*kind);
             s.seal(&mut d, usize::MAX);
         }
         self.raw(to, &d)
@@ -251,7 +251,7 @@ impl Forger {
         within: Duration,
         pred: impl Fn(Option<u32>, &Message) -> bool,
     ) -> Option<(Option<u32>, Message)> {
-        use marea::link::udp::datagram::{self, Datagram, Entry};
+        use marea::link::datagram::{self, Datagram, Entry};
         let deadline = Instant::now() + within;
         let trailer = marea::link::auth::Profile::UDP.overhead();
         let mut buf = vec![0u8; 65_536];
@@ -349,7 +349,7 @@ impl Sniffer {
 
 /// The node id in a sealed Hello or Heartbeat, read without the key: the seal is a trailer.
 fn sealed_discovery_sender(d: &[u8]) -> Option<NodeId> {
-    use marea::link::udp::datagram::{self, Datagram, KIND_DISCOVERY, KIND_SEALED_DISCOVERY};
+    use marea::link::datagram::{self, Datagram, KIND_DISCOVERY, KIND_SEALED_DISCOVERY};
     let trailer = marea::link::auth::Profile::UDP.overhead();
     if d.first() != Some(&KIND_SEALED_DISCOVERY) || d.len() <= 1 + trailer {
         return None;

@@ -20,14 +20,18 @@ pub enum NodeOpenError {
     #[cfg(feature = "shm")]
     #[error(transparent)]
     Shm(#[from] crate::link::shm::ShmLinkOpenError),
+    /// A Zenoh link could not be opened.
+    #[cfg(feature = "zenoh")]
+    #[error(transparent)]
+    Zenoh(#[from] crate::link::zenoh::ZenohLinkOpenError),
     /// The configuration asks for a link kind this build of marea was compiled without.
     #[error("link {link}: this build of marea has no {kind} link (cargo feature `{feature}`)")]
     Unsupported {
         /// Link name.
         link: String,
-        /// Kind of link (`Ethernet`, `shared-memory`, `serial`).
+        /// Kind of link (`Ethernet`, `shared-memory`, `serial`, `Zenoh`).
         kind: &'static str,
-        /// The cargo feature of `marea` that brings it (`udp`, `shm`, `serial`).
+        /// The cargo feature of `marea` that brings it (`udp`, `shm`, `serial`, `zenoh`).
         feature: &'static str,
     },
     /// The domain key named by `<security keyFile=..>` cannot be used.

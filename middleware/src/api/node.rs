@@ -139,6 +139,7 @@ struct LinksBuilt {
     udp: bool,
     shm: bool,
     serial: bool,
+    zenoh: bool,
 }
 
 /// This build's: a value rather than `cfg!`s at the check, so every answer is tested in every
@@ -147,6 +148,7 @@ const LINKS_BUILT: LinksBuilt = LinksBuilt {
     udp: cfg!(feature = "udp"),
     shm: cfg!(feature = "shm"),
     serial: cfg!(feature = "serial"),
+    zenoh: cfg!(feature = "zenoh"),
 };
 
 /// Refuses a configuration naming a link kind `built` lacks, before any link opens.
@@ -156,6 +158,7 @@ fn links_built(config: &NetworkConfig, built: LinksBuilt) -> Result<(), NodeOpen
             LinkConfig::Shm(_) => !built.shm,
             LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => !built.serial,
             LinkConfig::Ethernet(_) => !built.udp,
+            LinkConfig::Zenoh(_) => !built.zenoh,
         };
         if missing {
             return Err(not_built(l));
@@ -171,6 +174,7 @@ fn not_built(link: &LinkConfig) -> NodeOpenError {
         LinkConfig::Ethernet(_) => ("Ethernet", "udp"),
         LinkConfig::Shm(_) => ("shared-memory", "shm"),
         LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => ("serial", "serial"),
+        LinkConfig::Zenoh(_) => ("Zenoh", "zenoh"),
     };
     NodeOpenError::Unsupported {
         link: link.name().to_owned(),
@@ -228,6 +232,7 @@ impl Node {
                 LinkConfig::Shm(s) => (s.heartbeat, s.lease),
                 LinkConfig::Serial(s) => (s.heartbeat, s.lease),
                 LinkConfig::SerialDuo(s) => (s.heartbeat, s.lease),
+                LinkConfig::Zenoh(z) => (z.heartbeat, z.lease),
             })
             .collect();
         let (heartbeat, lease) = link_timing
@@ -352,6 +357,27 @@ impl Node {
                 .await
                 .map(|l| l as Arc<dyn Link>)
                 .map_err(Into::into),
+                #[cfg(feature = "zenoh")]
+                LinkConfig::Zenoh(z) => crate::link::zenoh::ZenohLink::open(
+                    index,
+                    crate::link::zenoh::ZenohLinkOptions {
+                        name: z.name.clone(),
+                        mode: z.mode,
+                        connect: z.connect.clone(),
+                        listen: z.listen.clone(),
+                        config_file: z.config_file.clone(),
+                        domain: config.domain.clone(),
+                        node: config.node.clone(),
+                        arq: crate::link::arq::ArqConfig::lan(),
+                        security: security.clone(),
+                    },
+                    handler,
+                    &inner.tasks,
+                    inner.cancel.child_token(),
+                )
+                .await
+                .map(|l| l as Arc<dyn Link>)
+                .map_err(Into::into),
                 // `links_built` refused these already; kept so the match stays exhaustive.
                 #[cfg(not(feature = "udp"))]
                 LinkConfig::Ethernet(_) => Err(not_built(lc)),
@@ -359,6 +385,8 @@ impl Node {
                 LinkConfig::Shm(_) => Err(not_built(lc)),
                 #[cfg(not(feature = "serial"))]
                 LinkConfig::Serial(_) | LinkConfig::SerialDuo(_) => Err(not_built(lc)),
+                #[cfg(not(feature = "zenoh"))]
+                LinkConfig::Zenoh(_) => Err(not_built(lc)),
             };
             match opened {
                 Ok(l) => links.push(l),
@@ -664,6 +692,7 @@ mod tests {
         udp: true,
         shm: true,
         serial: true,
+        zenoh: true,
     };
 
     fn with_serial() -> NetworkConfig {
@@ -740,9 +769,36 @@ mod tests {
             udp: true,
             shm: false,
             serial: false,
+            zenoh: false,
         };
         assert!(links_built(&udp, udp_alone).is_ok());
         assert!(links_built(&udp, ALL).is_ok());
+    }
+
+    #[test]
+    fn a_build_without_zenoh_refuses_a_zenoh_link_by_name_and_feature() {
+        let mut config = NetworkConfig::ethernet_loopback("n");
+        config
+            .links
+            .push(LinkConfig::Zenoh(crate::config::ZenohConfig {
+                name: "wan".into(),
+                connect: vec!["tcp/127.0.0.1:7447".into()],
+                ..Default::default()
+            }));
+        let err = links_built(
+            &config,
+            LinksBuilt {
+                zenoh: false,
+                ..ALL
+            },
+        )
+        .expect_err("a <zenoh> link taken by a build without Zenoh");
+        let text = err.to_string();
+        assert!(
+            text.contains("link wan") && text.contains("cargo feature `zenoh`"),
+            "{text}"
+        );
+        assert!(links_built(&config, ALL).is_ok());
     }
 
     #[cfg(not(feature = "shm"))]

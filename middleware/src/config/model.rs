@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use super::values::*;
-pub use crate::link::ShmWait;
+pub use crate::link::{ShmWait, ZenohMode};
 
 /// One node's network configuration: who it is and which links it uses.
 #[derive(Debug, Clone, PartialEq)]
@@ -63,6 +63,8 @@ pub enum LinkConfig {
     Serial(SerialConfig),
     /// Serial Transport Protocol over two one-way ports (one for Tx, one for Rx).
     SerialDuo(SerialDuoConfig),
+    /// marea's datagrams through an Eclipse Zenoh session: beyond one LAN, through routers.
+    Zenoh(ZenohConfig),
 }
 
 impl LinkConfig {
@@ -73,6 +75,7 @@ impl LinkConfig {
             LinkConfig::Shm(c) => &c.name,
             LinkConfig::Serial(c) => &c.name,
             LinkConfig::SerialDuo(c) => &c.name,
+            LinkConfig::Zenoh(c) => &c.name,
         }
     }
 }
@@ -111,6 +114,30 @@ impl Default for EthernetConfig {
             peers: Vec::new(),
         }
     }
+}
+
+/// A `<zenoh>` link: the node's datagrams carried by an Eclipse Zenoh session, to the nodes of
+/// its domain that share no LAN with it (a ground station in another building, a cloud
+/// machine), through Zenoh routers over TCP, TLS or QUIC.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ZenohConfig {
+    /// Link name (`name`), default `zenoh<index>`.
+    pub name: String,
+    /// How the session joins (`mode`), default `client`.
+    pub mode: ZenohMode,
+    /// Endpoints to connect to (`connect`, comma-separated), e.g. `tcp/10.0.0.1:7447`.
+    pub connect: Vec<String>,
+    /// Endpoints to listen on (`listen`, comma-separated; peers only).
+    pub listen: Vec<String>,
+    /// A Zenoh configuration file (`config`, JSON5; relative to the network file) for
+    /// everything else: TLS certificates, user and password, timeouts. `mode`, `connect` and
+    /// `listen` given as attributes override it.
+    pub config_file: Option<std::path::PathBuf>,
+    /// Heartbeat period (`heartbeatMs`), default 1000 ms.
+    pub heartbeat: Duration,
+    /// A peer silent this long is gone (`leaseMs`), default 10 × heartbeat: long enough for a
+    /// router restart.
+    pub lease: Duration,
 }
 
 /// A `<shm>` link: same-host shared memory through iceoryx2.

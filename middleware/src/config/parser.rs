@@ -395,6 +395,7 @@ impl<'a> Parser<'a> {
                 "shm" => self.shm(&child, index)?,
                 "serial" => self.serial(&child, index)?,
                 "serialduo" => self.serialduo(&child, index)?,
+                "zenoh" => self.zenoh(&child, index)?,
                 _ => return Err(self.unknown_element("network", &child, NETWORK_ELEMENTS)),
             };
             kinds.push(kind);
@@ -518,6 +519,71 @@ impl<'a> Parser<'a> {
                 lease,
                 ttl,
                 peers,
+            }),
+            enabled,
+            name_at,
+            ports: Vec::new(),
+        })
+    }
+
+    /// `<zenoh mode=".." connect=".." listen=".." config=".."/>`.
+    fn zenoh(
+        &mut self,
+        element: &Element<'a>,
+        index: usize,
+    ) -> Result<ParsedLink, ConfigLoadError> {
+        let attrs = self.attributes("zenoh", element, ZENOH_ATTRS)?;
+        let (enabled, name, name_at) = self.link_common(&attrs, index)?;
+        let mode = self
+            .value(&attrs, "mode", parse_zenoh_mode)?
+            .unwrap_or_default();
+        let connect = self
+            .value(&attrs, "connect", parse_zenoh_endpoints)?
+            .unwrap_or_default();
+        let listen = self
+            .value(&attrs, "listen", parse_zenoh_endpoints)?
+            .unwrap_or_default();
+        let source = self.source;
+        let config_file = self.value(&attrs, "config", |s| {
+            let s = s.trim();
+            if s.is_empty() {
+                return Err(Invalid::Syntax(PATH_SYNTAX));
+            }
+            let p = std::path::PathBuf::from(s);
+            Ok(match source.and_then(Path::parent) {
+                Some(dir) if p.is_relative() => dir.join(p),
+                _ => p,
+            })
+        })?;
+        if mode == ZenohMode::Client && connect.is_empty() && config_file.is_none() {
+            return Err(ConfigLoadError::MissingAttribute {
+                at: self.at(attrs.pos),
+                element: "zenoh",
+                attribute: "connect",
+                expected: "the router to connect to, like tcp/10.0.0.1:7447 (a client reaches the others through a router)",
+            });
+        }
+        if mode == ZenohMode::Client && !listen.is_empty() {
+            return Err(ConfigLoadError::BadValue {
+                at: self.at(attrs.pos_of("listen")),
+                element: "zenoh",
+                attribute: "listen",
+                expected:
+                    "no listening endpoint: a client only connects (use mode=\"peer\" to listen)",
+                found: listen.join(","),
+            });
+        }
+        let (heartbeat, lease) = self.timing(&attrs, ZENOH_HEARTBEAT_MS, ZENOH_LEASE)?;
+        self.no_children("zenoh", element)?;
+        Ok(ParsedLink {
+            link: LinkConfig::Zenoh(ZenohConfig {
+                name,
+                mode,
+                connect,
+                listen,
+                config_file,
+                heartbeat,
+                lease,
             }),
             enabled,
             name_at,

@@ -393,7 +393,7 @@ fn unknown_element() {
     let (text, ..) = message(&net("<radio/>"));
     assert_eq!(
             text,
-            "config/network.xml:2:1: <network>: unknown element <radio>; expected <ethernet>, <shm>, <serial>, <serialduo>, <security>, <access>"
+            "config/network.xml:2:1: <network>: unknown element <radio>; expected <ethernet>, <shm>, <serial>, <serialduo>, <zenoh>, <security>, <access>"
         );
     let (text, line, column) = message(&net("<shm>\n    <peer/>\n</shm>"));
     assert_eq!((line, column), (3, 5));

@@ -3,7 +3,7 @@
 
 use std::net::{SocketAddr, SocketAddrV4};
 
-use super::model::ShmWait;
+use super::model::{ShmWait, ZenohMode};
 
 /// Why a value did not parse; the caller adds the attribute and location.
 pub(super) enum Invalid {
@@ -20,6 +20,10 @@ pub(super) const ETHERNET_HEARTBEAT_MS: u64 = 1000;
 pub(super) const ETHERNET_LEASE: LeaseFactor = LeaseFactor { num: 7, den: 2 };
 // Same-host peers die visibly (the process exits), so the LAN timing suits shared memory too.
 pub(super) const SHM_HEARTBEAT_MS: u64 = 1000;
+// A Zenoh link's peers are beyond a router, often over a WAN: the LAN's beat, and a lease
+// long enough for a router to restart (the sessions reconnect within a few seconds).
+pub(super) const ZENOH_HEARTBEAT_MS: u64 = 1000;
+pub(super) const ZENOH_LEASE: LeaseFactor = LeaseFactor { num: 10, den: 1 };
 pub(super) const SHM_LEASE: LeaseFactor = LeaseFactor { num: 7, den: 2 };
 // Each peer an inbox admits costs ~11 KiB of the node's memory, touched at creation (iceoryx2
 // keeps a connection entry per possible writer in each of the inbox's three buffers). Sixteen
@@ -127,6 +131,7 @@ pub(super) const NETWORK_ELEMENTS: &[&str] = &[
     "shm",
     "serial",
     "serialduo",
+    "zenoh",
     "security",
     "access",
 ];
@@ -147,6 +152,19 @@ pub(super) const ETHERNET_ATTRS: &[&str] = &[
     "ttl",
 ];
 pub(super) const PEER_ATTRS: &[&str] = &["address"];
+pub(super) const ZENOH_ATTRS: &[&str] = &[
+    "name",
+    "enabled",
+    "mode",
+    "connect",
+    "listen",
+    "config",
+    "heartbeatMs",
+    "leaseMs",
+];
+pub(super) const ZENOH_MODE_SYNTAX: &str = "`client` (through a router) or `peer`";
+pub(super) const ZENOH_ENDPOINTS_SYNTAX: &str =
+    "Zenoh endpoints separated by commas, each `protocol/address` like tcp/10.0.0.1:7447 or tls/gs.example.org:7447";
 pub(super) const SHM_ATTRS: &[&str] = &[
     "name",
     "enabled",
@@ -318,4 +336,43 @@ pub(super) fn edit_distance(a: &str, b: &str) -> usize {
         std::mem::swap(&mut previous, &mut current);
     }
     previous[b.len()]
+}
+
+/// A `<zenoh mode>`.
+pub(super) fn parse_zenoh_mode(s: &str) -> Result<ZenohMode, Invalid> {
+    match s.trim() {
+        "client" => Ok(ZenohMode::Client),
+        "peer" => Ok(ZenohMode::Peer),
+        _ => Err(Invalid::Syntax(ZENOH_MODE_SYNTAX)),
+    }
+}
+
+/// A `<zenoh connect|listen>` list: `protocol/address` endpoints separated by commas (Zenoh
+/// checks each protocol's address when the link opens).
+pub(super) fn parse_zenoh_endpoints(s: &str) -> Result<Vec<String>, Invalid> {
+    s.split(',')
+        .map(str::trim)
+        .filter(|e| !e.is_empty())
+        .map(|e| {
+            let (proto, addr) = e
+                .split_once('/')
+                .ok_or(Invalid::Syntax(ZENOH_ENDPOINTS_SYNTAX))?;
+            let proto_ok = !proto.is_empty()
+                && proto
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+            if proto_ok && !addr.trim().is_empty() && !e.contains(char::is_whitespace) {
+                Ok(e.to_owned())
+            } else {
+                Err(Invalid::Syntax(ZENOH_ENDPOINTS_SYNTAX))
+            }
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .and_then(|v| {
+            if v.is_empty() {
+                Err(Invalid::Syntax(ZENOH_ENDPOINTS_SYNTAX))
+            } else {
+                Ok(v)
+            }
+        })
 }

@@ -29,8 +29,8 @@ use arbitrary::{Result, Unstructured};
 
 use crate::codec::{decode_message, encode_message};
 use crate::link::arq::ArqReceiver;
+use crate::link::datagram::{self, Datagram, DatagramWriter, Entry};
 use crate::link::serial::stp::{Stp, StpConfig, StpEvent};
-use crate::link::udp::datagram::{self, Datagram, DatagramWriter, Entry};
 use crate::name;
 use crate::protocol::{Declaration, Message};
 

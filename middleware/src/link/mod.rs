@@ -4,17 +4,21 @@
 //! A link knows nothing of declarations or names: it carries encoded [`crate::protocol::Message`]s
 //! to peer addresses and hands what it receives to a [`LinkHandler`] (the node).
 //!
-//! Each medium's framing lives with its link: [`udp`] (and its [`udp::datagram`] batching),
-//! [`serial`] (the Serial Transport Protocol), `shm` (iceoryx2 inboxes; cargo feature `shm`, on
-//! by default). What they share is here too: the ARQ of the safe class over lossy media
-//! ([`arq`], used by UDP and serial; shared memory loses nothing and only needs flow control, see
-//! `shm`), the bounded newest-wins queue of fast messages ([`coalesce`]), and the counters behind
-//! [`LinkStats`].
+//! Each medium's framing lives with its link: [`udp`] and `zenoh` (cargo feature `zenoh`) share
+//! the [`datagram`] link (its batching format, sessions and ARQ) and differ only in how a
+//! datagram reaches an address; [`serial`] is the Serial Transport Protocol, `shm` iceoryx2
+//! inboxes (cargo feature `shm`, on by default). What they share is here too: the ARQ of the
+//! safe class over lossy media ([`arq`], used by the datagram links and serial; shared memory
+//! loses nothing and only needs flow control, see `shm`), the bounded newest-wins queue of fast
+//! messages ([`coalesce`]), and the counters behind [`LinkStats`].
 
 pub mod arq;
 pub mod auth;
 pub mod coalesce;
 mod completion;
+// The datagram format and the link of ARQ sessions over any datagram medium (UDP, Zenoh).
+#[cfg(any(feature = "udp", feature = "zenoh"))]
+pub mod datagram;
 // Without the feature a node refuses `<serial>` links as it refuses `<shm>` ones.
 #[cfg(feature = "serial")]
 pub mod serial;
@@ -25,6 +29,9 @@ pub mod shm;
 // Likewise for `<ethernet>` links: a node that only talks to its own host can do without.
 #[cfg(feature = "udp")]
 pub mod udp;
+// Zenoh is most of a build that has it: only nodes that reach beyond their LAN need it.
+#[cfg(feature = "zenoh")]
+pub mod zenoh;
 
 use std::fmt;
 use std::net::SocketAddr;
@@ -39,6 +46,8 @@ pub enum PeerAddr {
     PointToPoint,
     /// A same-host peer by shared-memory identity.
     Shm(u64),
+    /// A peer beyond a Zenoh router, by its Zenoh link's id.
+    Zenoh(u64),
 }
 
 impl fmt::Display for PeerAddr {
@@ -47,6 +56,7 @@ impl fmt::Display for PeerAddr {
             PeerAddr::Udp(a) => write!(f, "udp://{a}"),
             PeerAddr::PointToPoint => write!(f, "point-to-point"),
             PeerAddr::Shm(id) => write!(f, "shm://{id:016x}"),
+            PeerAddr::Zenoh(id) => write!(f, "zenoh://{id:016x}"),
         }
     }
 }
@@ -75,6 +85,29 @@ impl ShmWait {
         match self {
             ShmWait::Event => "event",
             ShmWait::Spin => "spin",
+        }
+    }
+}
+
+/// How a Zenoh link's session joins the Zenoh network (`mode` on `<zenoh>`). Here rather than
+/// in `zenoh` so that a configuration names it in builds without the `zenoh` feature.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ZenohMode {
+    /// Through the routers it connects to (`client`, the default): no multicast, no listening
+    /// socket; what a vehicle behind a cellular modem or NAT needs.
+    #[default]
+    Client,
+    /// A Zenoh peer (`peer`): connects and listens where told, and meets the other peers the
+    /// routers tell it of. Multicast scouting stays off unless a `config` file turns it on.
+    Peer,
+}
+
+impl ZenohMode {
+    /// The attribute value naming this mode.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ZenohMode::Client => "client",
+            ZenohMode::Peer => "peer",
         }
     }
 }

@@ -50,11 +50,13 @@ pub(crate) fn domain_hash(domain: &str) -> u32 {
 }
 
 /// Preference among the paths reaching one peer: shared memory (same host, no copies through
-/// the kernel) over the network, the network over a point-to-point radio.
+/// the kernel) over the LAN, the LAN over a Zenoh router (a detour, often a WAN), a router over
+/// a point-to-point radio.
 pub(crate) fn path_rank(addr: &PeerAddr) -> u8 {
     match addr {
-        PeerAddr::Shm(_) => 2,
-        PeerAddr::Udp(_) => 1,
+        PeerAddr::Shm(_) => 3,
+        PeerAddr::Udp(_) => 2,
+        PeerAddr::Zenoh(_) => 1,
         PeerAddr::PointToPoint => 0,
     }
 }

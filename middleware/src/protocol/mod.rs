@@ -2,7 +2,7 @@
 //!
 //! Every message is a postcard-encoded [`Message`]: one varint for the variant, then its fields
 //! in order (integers as varints, strings and byte strings as a varint length then the bytes).
-//! A link carries these messages inside its own framing (see `link::udp::datagram` for UDP, the
+//! A link carries these messages inside its own framing (see `link::datagram` for UDP, the
 //! Serial Transport Protocol for serial links).
 //!
 //! ```text

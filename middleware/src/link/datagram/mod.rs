@@ -1,5 +1,6 @@
-//! The UDP datagram framing: several link entries (fast messages, safe messages, session
-//! starts and acknowledgements) batched into one datagram.
+//! The datagram framing of the UDP and Zenoh links: several link entries (fast messages, safe
+//! messages, session starts and acknowledgements) batched into one datagram; and [`link`], the
+//! link of ARQ sessions both build on, over any datagram [`link::Medium`].
 //!
 //! ```text
 //! datagram  := kind:u8 body
@@ -16,6 +17,9 @@
 //! With a domain key the kind is 0xA3 (data) or 0xA4 (discovery) and the datagram ends with
 //! the seal of [`crate::link::auth`] (epoch, counter, tag: 16 bytes), so a position sample
 //! costs 54 bytes; a node without the key sees an unknown kind and drops the datagram.
+
+pub mod link;
+mod sessions;
 
 use crate::codec::varint::{len_u64, put_u64, take_u64};
 use crate::link::arq::AckInfo;

@@ -1,4 +1,4 @@
-//! The UDP link's table of peer sessions, keyed by address, in two classes so that anyone able
+//! A datagram link's table of peer sessions, keyed by the medium's address, in two classes so that anyone able
 //! to send a datagram cannot fill it:
 //! - **bound**: the node knows who is at the address (its Hello arrived, see
 //!   [`crate::link::Link::confirm_peer`]). Kept until the node closes it; at most `max_bound`.
@@ -15,7 +15,7 @@
 //! fail.
 
 use std::collections::{HashMap, VecDeque};
-use std::net::SocketAddr;
+use std::hash::Hash;
 use std::time::{Duration, Instant};
 
 use crate::sync::SeededHash;
@@ -38,24 +38,24 @@ struct Slot<V> {
 }
 
 /// Sessions by peer address (see the module docs).
-pub(crate) struct SessionTable<V> {
-    slots: HashMap<SocketAddr, Slot<V>, SeededHash>,
+pub(crate) struct SessionTable<K, V> {
+    slots: HashMap<K, Slot<V>, SeededHash>,
     /// Unbound sessions oldest first, as (address, when made). Entries whose session was bound
     /// or removed since are skipped when met (and compacted when they pile up).
-    unbound_order: VecDeque<(SocketAddr, Instant)>,
+    unbound_order: VecDeque<(K, Instant)>,
     unbound: usize,
     limits: SessionLimits,
 }
 
 /// What [`SessionTable::get_or_insert`] did.
-pub(crate) enum Lookup<V> {
+pub(crate) enum Lookup<K, V> {
     /// The session (found, made, or bound now), and a session pushed out to make room.
-    Found(V, Option<(SocketAddr, V)>),
+    Found(V, Option<(K, V)>),
     /// No room: the bound class is full (for a bind), or no session was wanted.
     Refused,
 }
 
-impl<V: Clone> SessionTable<V> {
+impl<K: Copy + Eq + Hash, V: Clone> SessionTable<K, V> {
     /// An empty table.
     pub(crate) fn new(limits: SessionLimits) -> Self {
         SessionTable {
@@ -67,12 +67,12 @@ impl<V: Clone> SessionTable<V> {
     }
 
     /// The session with `addr`, if any.
-    pub(crate) fn get(&self, addr: &SocketAddr) -> Option<&V> {
+    pub(crate) fn get(&self, addr: &K) -> Option<&V> {
         self.slots.get(addr).map(|s| &s.value)
     }
 
     /// Whether the session with `addr` is bound.
-    pub(crate) fn is_bound(&self, addr: &SocketAddr) -> bool {
+    pub(crate) fn is_bound(&self, addr: &K) -> bool {
         self.slots
             .get(addr)
             .is_some_and(|s| s.unbound_since.is_none())
@@ -83,12 +83,12 @@ impl<V: Clone> SessionTable<V> {
     /// existing unbound session then stays unbound).
     pub(crate) fn get_or_insert(
         &mut self,
-        addr: SocketAddr,
+        addr: K,
         now: Instant,
         create: bool,
         bind: bool,
         make: impl FnOnce() -> V,
-    ) -> Lookup<V> {
+    ) -> Lookup<K, V> {
         let bound_full = self.bound() >= self.limits.max_bound;
         if let Some(slot) = self.slots.get_mut(&addr) {
             if bind && slot.unbound_since.is_some() && !bound_full {
@@ -138,7 +138,7 @@ impl<V: Clone> SessionTable<V> {
     }
 
     /// Removes the oldest unbound session (made before `before`, if given).
-    fn pop_oldest_unbound(&mut self, before: Option<Instant>) -> Option<(SocketAddr, V)> {
+    fn pop_oldest_unbound(&mut self, before: Option<Instant>) -> Option<(K, V)> {
         while let Some(&(addr, made)) = self.unbound_order.front() {
             if before.is_some_and(|b| made > b) {
                 return None;
@@ -157,7 +157,7 @@ impl<V: Clone> SessionTable<V> {
     }
 
     /// Removes the unbound sessions older than the time-to-live at `now`.
-    pub(crate) fn expire(&mut self, now: Instant) -> Vec<(SocketAddr, V)> {
+    pub(crate) fn expire(&mut self, now: Instant) -> Vec<(K, V)> {
         let Some(before) = now.checked_sub(self.limits.unbound_ttl) else {
             return Vec::new();
         };
@@ -181,7 +181,7 @@ impl<V: Clone> SessionTable<V> {
     }
 
     /// Removes the session with `addr`.
-    pub(crate) fn remove(&mut self, addr: &SocketAddr) -> Option<V> {
+    pub(crate) fn remove(&mut self, addr: &K) -> Option<V> {
         let slot = self.slots.remove(addr)?;
         if slot.unbound_since.is_some() {
             self.unbound -= 1;
@@ -190,14 +190,14 @@ impl<V: Clone> SessionTable<V> {
     }
 
     /// Removes every session.
-    pub(crate) fn drain(&mut self) -> impl Iterator<Item = (SocketAddr, V)> + '_ {
+    pub(crate) fn drain(&mut self) -> impl Iterator<Item = (K, V)> + '_ {
         self.unbound = 0;
         self.unbound_order.clear();
         self.slots.drain().map(|(a, s)| (a, s.value))
     }
 
     /// Every session.
-    pub(crate) fn iter(&self) -> impl Iterator<Item = (&SocketAddr, &V)> {
+    pub(crate) fn iter(&self) -> impl Iterator<Item = (&K, &V)> {
         self.slots.iter().map(|(a, s)| (a, &s.value))
     }
 
@@ -221,6 +221,7 @@ impl<V: Clone> SessionTable<V> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::net::SocketAddr;
 
     fn addr(port: u16) -> SocketAddr {
         SocketAddr::from(([127, 0, 0, 1], port))
@@ -234,7 +235,7 @@ mod tests {
         }
     }
 
-    fn found(l: Lookup<u32>) -> (u32, Option<(SocketAddr, u32)>) {
+    fn found(l: Lookup<SocketAddr, u32>) -> (u32, Option<(SocketAddr, u32)>) {
         match l {
             Lookup::Found(v, out) => (v, out),
             Lookup::Refused => panic!("refused"),

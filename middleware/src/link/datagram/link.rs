@@ -1,86 +1,78 @@
-//! The Ethernet link: UDP multicast for discovery (Hello, Heartbeat, Bye), UDP unicast for data,
-//! with the ARQ of [`crate::link::arq`] for the safe class and batching of small messages
-//! into shared datagrams.
+//! The link every datagram medium shares: per-peer sessions with the ARQ of
+//! [`crate::link::arq`] for the safe class, small messages batched into shared datagrams
+//! ([`super`]'s format), the seal of [`crate::link::auth`], and the table of sessions that no
+//! sender of datagrams can fill ([`super::sessions`]). A [`Medium`] writes datagrams to
+//! addresses of its own (UDP sockets, Zenoh key expressions); its receive tasks hand what
+//! arrives to [`DatagramLink::receive`].
 //!
 //! Sending is inline when the link is idle (lowest latency: the caller's task writes the
 //! datagram) and batched by the link's transmit task when messages arrive faster than datagrams
 //! can be written (highest throughput: many messages share one datagram). Either way a peer's
 //! datagrams are written under that peer's lock, so fast messages are never reordered.
 
-pub mod datagram;
-mod sessions;
-
 use std::collections::VecDeque;
+use std::fmt;
+use std::hash::Hash;
 use std::io;
-use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use tokio::net::UdpSocket;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
-use super::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
-use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
-use super::coalesce::{CoalescingQueue, Pushed};
-use super::completion::acknowledge_all;
-use super::{
+use super::sessions::{Lookup, SessionLimits, SessionTable};
+use super::{Datagram, DatagramWriter, Entry};
+use crate::link::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
+use crate::link::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
+use crate::link::coalesce::{CoalescingQueue, Pushed};
+use crate::link::completion::acknowledge_all;
+use crate::link::{
     Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
 };
-use datagram::{Datagram, DatagramWriter, Entry};
-use sessions::{Lookup, SessionLimits, SessionTable};
+use crate::sync::lock;
 
-/// How the UDP link is set up (taken from `<ethernet>` in network.xml).
+/// What a [`DatagramLink`] needs of its medium: datagrams, which may be lost, to and from
+/// peers at addresses of the medium's own.
+pub trait Medium: Send + Sync + 'static {
+    /// Where a peer is on the medium.
+    type Addr: Copy + Eq + Hash + fmt::Display + fmt::Debug + Send + Sync + 'static;
+    /// The node's name for a peer at `addr`.
+    fn peer_addr(addr: Self::Addr) -> PeerAddr;
+    /// The medium's address inside the node's name `to`, if `to` is one of this medium's.
+    fn medium_addr(to: PeerAddr) -> Option<Self::Addr>;
+    /// Writes datagram `d` to `to` without waiting.
+    ///
+    /// # Errors
+    /// `WouldBlock` when the medium cannot take it now (the link writes it again, first, a
+    /// moment later); any other error drops it (the ARQ resends what was safe).
+    fn send_to(&self, d: &[u8], to: Self::Addr) -> io::Result<()>;
+    /// How many places a discovery datagram goes to (a multicast group, static peers).
+    fn announce_targets(&self) -> usize;
+    /// Writes discovery datagram `d` to target `target` (< [`Medium::announce_targets`]).
+    ///
+    /// # Errors
+    /// As [`Medium::send_to`]; an announce that fails is not written again.
+    fn announce_to(&self, d: &[u8], target: usize) -> io::Result<()>;
+    /// The largest datagram built for `to`.
+    fn datagram_max(&self, to: Self::Addr) -> usize;
+    /// A human-readable local address.
+    fn local_addr(&self) -> String;
+}
+
+/// How a [`DatagramLink`] behaves over its medium.
 #[derive(Debug, Clone)]
-pub struct UdpLinkOptions {
+pub(crate) struct DatagramLinkOptions {
     /// Link name.
     pub name: String,
-    /// Unicast bind address (port 0 = any).
-    pub bind: SocketAddr,
-    /// Multicast group and port for discovery.
-    pub multicast: SocketAddrV4,
-    /// Interface address for multicast (127.0.0.1 keeps everything on this host).
-    pub interface: Ipv4Addr,
-    /// Multicast TTL.
-    pub ttl: u32,
-    /// Static unicast peers that also receive discovery messages.
-    pub peers: Vec<SocketAddr>,
-    /// Largest datagram built from several messages.
-    pub mtu: usize,
     /// ARQ tuning.
     pub arq: ArqConfig,
+    /// When retransmission gives up on a session.
+    pub retry_limit: RetryLimit,
     /// The domain key: when set, every datagram is sealed and only sealed ones are taken
     /// (see [`crate::link::auth`]).
     pub security: Option<LinkSecurity>,
-}
-
-/// Why the UDP link could not be opened.
-#[derive(Debug, thiserror::Error)]
-pub enum LinkOpenError {
-    /// Binding the unicast socket failed.
-    #[error("link {link}: cannot bind unicast socket {addr}: {source}")]
-    Bind {
-        /// Link name.
-        link: String,
-        /// The address.
-        addr: SocketAddr,
-        /// The OS error.
-        source: io::Error,
-    },
-    /// Setting up the multicast socket failed.
-    #[error("link {link}: cannot join multicast group {group} on interface {interface}: {source}")]
-    Multicast {
-        /// Link name.
-        link: String,
-        /// The group.
-        group: SocketAddrV4,
-        /// The interface.
-        interface: Ipv4Addr,
-        /// The OS error.
-        source: io::Error,
-    },
 }
 
 /// Most sessions with addresses bound to a node (see [`sessions`]); beyond it, new nodes'
@@ -100,16 +92,6 @@ const MAX_UNBOUND_SAFE: usize = 8;
 const MAX_FAST_QUEUE: usize = 4096;
 /// A send within this long of the previous datagram is left to the transmit task to batch.
 const BATCH_WINDOW: Duration = Duration::from_micros(20);
-/// Largest datagram built for a peer on this host (a loopback address): loopback has no
-/// link MTU to respect (64 KiB) and loses nothing to fragmentation, and every datagram costs
-/// a system call and a wake-up at each end, so a fast stream to a local peer packs many more
-/// messages into each (a 1 KiB event stream went from one event per datagram to 30 at 32 KiB,
-/// and 60 KiB took ~12 % less subscriber CPU per 1 KiB event than 32 KiB).
-const LOOPBACK_DATAGRAM: usize = 60 * 1024;
-
-/// A receive buffer's capacity: the largest UDP payload (65,507 B), so no datagram is cut.
-const RECEIVE_BUFFER: usize = 65_536;
-
 /// Sent datagrams' buffers a peer keeps for its next datagrams: enough for one flush of a
 /// fast stream.
 const SPARE_BUFFERS: usize = 4;
@@ -160,18 +142,15 @@ impl PeerState {
     }
 }
 
-/// The UDP link.
-pub struct UdpLink {
+/// A link of ARQ sessions over a datagram [`Medium`].
+pub struct DatagramLink<M: Medium> {
     index: usize,
-    options: UdpLinkOptions,
-    socket: Arc<UdpSocket>,
-    /// The same socket as a plain non-blocking std socket, for sending: tokio's `try_send_to`
-    /// refuses to send until its reactor has seen the socket writable, which lost the first
-    /// Hello of every node.
-    sender: std::net::UdpSocket,
-    local: SocketAddr,
-    /// (Fx hashing: looked up on every send; at most [`MAX_PEERS`] + [`MAX_UNBOUND`] entries.)
-    peers: Mutex<SessionTable<Arc<Mutex<PeerState>>>>,
+    name: String,
+    arq: ArqConfig,
+    medium: M,
+    /// (Seeded hashing: looked up on every send; at most [`MAX_PEERS`] + [`MAX_UNBOUND`]
+    /// entries.)
+    peers: Mutex<SessionTable<M::Addr, Arc<Mutex<PeerState>>>>,
     /// When retransmission gives up on a session.
     retry_limit: RetryLimit,
     wake: Notify,
@@ -186,12 +165,10 @@ pub struct UdpLink {
     opener: Option<Mutex<Opener>>,
 }
 
-/// Sender epochs a UDP link remembers for replay detection.
+/// Sender epochs a datagram link remembers for replay detection.
 const MAX_REPLAY_WINDOWS: usize = 4096;
 
-use crate::sync::lock;
-
-impl UdpLink {
+impl<M: Medium> DatagramLink<M> {
     /// Round trip and queue depths over the peers, for link health.
     fn gauges(&self) -> LinkStats {
         let peers: Vec<Arc<Mutex<PeerState>>> = lock(&self.peers).values().cloned().collect();
@@ -206,61 +183,16 @@ impl UdpLink {
         g
     }
 
-    /// Opens the sockets and starts the receive and transmit tasks on `tasks`, stopping on
-    /// `cancel`.
-    ///
-    /// # Errors
-    /// [`LinkOpenError`] when a socket cannot be bound or the group joined.
-    pub fn open(
+    /// The link over `medium`, its transmit task started on `tasks` (stopping on `cancel`).
+    /// The medium's receive tasks hand it what arrives ([`DatagramLink::receive`]).
+    pub(crate) fn create(
         index: usize,
-        options: UdpLinkOptions,
+        options: DatagramLinkOptions,
+        medium: M,
         handler: Arc<dyn LinkHandler>,
         tasks: &TaskTracker,
         cancel: CancellationToken,
-    ) -> Result<Arc<Self>, LinkOpenError> {
-        let bind_err = |source| LinkOpenError::Bind {
-            link: options.name.clone(),
-            addr: options.bind,
-            source,
-        };
-        let mcast_err = |source| LinkOpenError::Multicast {
-            link: options.name.clone(),
-            group: options.multicast,
-            interface: options.interface,
-            source,
-        };
-        let data = std::net::UdpSocket::bind(options.bind).map_err(bind_err)?;
-        data.set_nonblocking(true).map_err(bind_err)?;
-        let data2 = socket2::Socket::from(data);
-        // Bigger buffers absorb bursts of a batching sender; the OS may cap them.
-        let _ = data2.set_recv_buffer_size(4 << 20);
-        let _ = data2.set_send_buffer_size(4 << 20);
-        data2
-            .set_multicast_if_v4(&options.interface)
-            .map_err(mcast_err)?;
-        data2.set_multicast_loop_v4(true).map_err(mcast_err)?;
-        data2.set_multicast_ttl_v4(options.ttl).map_err(mcast_err)?;
-        let data: std::net::UdpSocket = data2.into();
-        let sender = data.try_clone().map_err(bind_err)?;
-        let socket = Arc::new(UdpSocket::from_std(data).map_err(bind_err)?);
-        let mut local = socket.local_addr().map_err(bind_err)?;
-        if local.ip().is_unspecified() && !options.interface.is_unspecified() {
-            local.set_ip(options.interface.into());
-        }
-
-        let mcast = {
-            use socket2::{Domain, Protocol, Socket, Type};
-            let s =
-                Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).map_err(mcast_err)?;
-            s.set_reuse_address(true).map_err(mcast_err)?;
-            s.bind(&SocketAddr::V4(options.multicast).into())
-                .map_err(mcast_err)?;
-            s.join_multicast_v4(options.multicast.ip(), &options.interface)
-                .map_err(mcast_err)?;
-            s.set_nonblocking(true).map_err(mcast_err)?;
-            UdpSocket::from_std(s.into()).map_err(mcast_err)?
-        };
-
+    ) -> Arc<Self> {
         let sealer = options.security.as_ref().map(|s| {
             (
                 Sealer::new(&s.key, Profile::UDP),
@@ -271,49 +203,42 @@ impl UdpLink {
             .security
             .as_ref()
             .map(|s| Mutex::new(Opener::new(&s.key, Profile::UDP, MAX_REPLAY_WINDOWS)));
-        let link = Arc::new(UdpLink {
+        let link = Arc::new(DatagramLink {
             index,
-            options,
+            name: options.name,
+            arq: options.arq,
+            medium,
             sealer,
             opener,
-            socket,
-            sender,
-            local,
             peers: Mutex::new(SessionTable::new(SessionLimits {
                 max_bound: MAX_PEERS,
                 max_unbound: MAX_UNBOUND,
                 unbound_ttl: UNBOUND_TTL,
             })),
-            retry_limit: RetryLimit::lan(),
+            retry_limit: options.retry_limit,
             wake: Notify::new(),
             handler,
             counters: LinkCounters::default(),
         });
         let l = link.clone();
-        let c = cancel.clone();
-        crate::sync::spawn_tracked(tasks, async move { l.receive_loop(c).await });
-        let l = link.clone();
-        let c = cancel.clone();
-        crate::sync::spawn_tracked(tasks, async move { l.multicast_loop(mcast, c).await });
-        let l = link.clone();
         crate::sync::spawn_tracked(tasks, async move { l.transmit_loop(cancel).await });
-        Ok(link)
+        link
     }
 
-    /// The unicast address peers reach this link at.
-    pub fn local_socket_addr(&self) -> SocketAddr {
-        self.local
+    /// The medium the link writes to.
+    pub fn medium(&self) -> &M {
+        &self.medium
     }
 
     /// The session with `addr`; made (unbound, see [`sessions`]) if there is none and
     /// `create` is set, or made or bound if `bind` is set.
-    fn session(&self, addr: SocketAddr, create: bool, bind: bool) -> Option<Arc<Mutex<PeerState>>> {
+    fn session(&self, addr: M::Addr, create: bool, bind: bool) -> Option<Arc<Mutex<PeerState>>> {
         let found = {
             let mut peers = lock(&self.peers);
             if let Some(p) = peers.get(&addr).filter(|_| !bind) {
                 return Some(p.clone());
             }
-            let arq = self.options.arq;
+            let arq = self.arq;
             peers.get_or_insert(addr, Instant::now(), create, bind, || {
                 Arc::new(Mutex::new(PeerState::new(arq)))
             })
@@ -332,14 +257,14 @@ impl UdpLink {
         }
     }
 
-    fn peer(&self, addr: SocketAddr, create: bool) -> Option<Arc<Mutex<PeerState>>> {
+    fn peer(&self, addr: M::Addr, create: bool) -> Option<Arc<Mutex<PeerState>>> {
         self.session(addr, create, false)
     }
 
     /// Closes the sessions with unknown addresses that outlived [`UNBOUND_TTL`] and those
     /// whose peer acknowledged nothing within the retry limit (`gave_up`), then tells the
     /// node of the latter.
-    fn close_stale(&self, now: Instant, gave_up: Vec<(SocketAddr, Arc<Mutex<PeerState>>)>) {
+    fn close_stale(&self, now: Instant, gave_up: Vec<(M::Addr, Arc<Mutex<PeerState>>)>) {
         let expired = lock(&self.peers).expire(now);
         for (addr, p) in expired {
             self.counters
@@ -359,21 +284,21 @@ impl UdpLink {
             self.counters
                 .sessions_given_up
                 .fetch_add(1, Ordering::Relaxed);
-            tracing::debug!(link = %self.options.name, %addr, "retransmission gave up; session closed");
+            tracing::debug!(link = %self.name, %addr, "retransmission gave up; session closed");
             fail_all(
                 &mut lock(&p),
                 LinkSendError::RetriesExhausted(addr.to_string()),
             );
             self.handler
-                .on_peer_unreachable(self.index, PeerAddr::Udp(addr));
+                .on_peer_unreachable(self.index, M::peer_addr(addr));
         }
     }
 
     /// Builds and writes every datagram `state` has ready. Called with the peer locked, so the
     /// datagrams of one peer leave in the order they were built.
-    fn flush_locked(&self, addr: SocketAddr, st: &mut PeerState, now: Instant) {
+    fn flush_locked(&self, addr: M::Addr, st: &mut PeerState, now: Instant) {
         while let Some(d) = st.blocked.front() {
-            match self.sender.send_to(d, addr) {
+            match self.medium.send_to(d, addr) {
                 Ok(_) => {
                     self.count_out(d.len());
                     st.blocked.pop_front();
@@ -453,14 +378,14 @@ impl UdpLink {
                 st.blocked.push_back(d);
                 continue;
             }
-            match self.sender.send_to(&d, addr) {
+            match self.medium.send_to(&d, addr) {
                 Ok(_) => self.count_out(d.len()),
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
                     st.blocked.push_back(d);
                     continue;
                 }
                 Err(e) => {
-                    tracing::debug!(link = %self.options.name, %addr, error = %e, "datagram not sent");
+                    tracing::debug!(link = %self.name, %addr, error = %e, "datagram not sent");
                 }
             }
             if st.spare.len() < SPARE_BUFFERS {
@@ -479,7 +404,7 @@ impl UdpLink {
     /// acknowledged once, instead of one small datagram per wake-up, each acknowledged too
     /// (that cycle held a loopback stream of 64 B events at ~3 M/s with 100,000 datagrams a
     /// second each way). A lone message, with nothing in flight, leaves at once.
-    fn gathers_safe(&self, addr: SocketAddr, st: &PeerState) -> bool {
+    fn gathers_safe(&self, addr: M::Addr, st: &PeerState) -> bool {
         st.tx.in_flight() > 0
             && st.fast.is_empty()
             && !st.rx.ack_pending()
@@ -487,13 +412,8 @@ impl UdpLink {
             && st.safe_bytes < self.datagram_max(addr)
     }
 
-    /// The largest datagram built for `addr` (see [`LOOPBACK_DATAGRAM`]).
-    fn datagram_max(&self, addr: SocketAddr) -> usize {
-        if addr.ip().is_loopback() {
-            self.options.mtu.max(LOOPBACK_DATAGRAM)
-        } else {
-            self.options.mtu
-        }
+    fn datagram_max(&self, addr: M::Addr) -> usize {
+        self.medium.datagram_max(addr)
     }
 
     fn count_out(&self, n: usize) {
@@ -504,12 +424,12 @@ impl UdpLink {
     /// kind); without, returns it as it is.
     fn seal(&self, mut d: Vec<u8>) -> Vec<u8> {
         if let (Some((data, announce)), Some(kind)) = (&self.sealer, d.first_mut()) {
-            let s = if *kind == datagram::KIND_DISCOVERY {
+            let s = if *kind == super::KIND_DISCOVERY {
                 announce
             } else {
                 data
             };
-            *kind = datagram::sealed_kind(*kind);
+            *kind = super::sealed_kind(*kind);
             s.seal(&mut d, usize::MAX);
         }
         d
@@ -517,11 +437,11 @@ impl UdpLink {
 
     /// The datagram `buf` received from `from` as [`datagram::decode`] takes it: with a key,
     /// its seal checked and removed, or `None` (dropped and counted) when it fails.
-    fn unseal<'a>(&self, buf: &'a mut [u8], from: SocketAddr) -> Option<&'a [u8]> {
+    fn unseal<'a>(&self, buf: &'a mut [u8], from: M::Addr) -> Option<&'a [u8]> {
         let Some(opener) = &self.opener else {
             return Some(buf);
         };
-        let opened = match buf.first().copied().and_then(datagram::unsealed_kind) {
+        let opened = match buf.first().copied().and_then(super::unsealed_kind) {
             Some(kind) => lock(opener).open(0, buf, usize::MAX).map(|n| (kind, n)),
             None => Err(AuthReject::Unsealed),
         };
@@ -533,7 +453,7 @@ impl UdpLink {
             Err(why) => {
                 self.counters.count_in(buf.len());
                 let total = self.counters.count_reject(why);
-                auth::log_reject(&self.options.name, from, why, total);
+                auth::log_reject(&self.name, from, why, total);
                 None
             }
         }
@@ -545,7 +465,7 @@ impl UdpLink {
             let mut deadline: Option<Instant> = None;
             let mut blocked = false;
             let mut gave_up = Vec::new();
-            let peers: Vec<(SocketAddr, Arc<Mutex<PeerState>>)> = lock(&self.peers)
+            let peers: Vec<(M::Addr, Arc<Mutex<PeerState>>)> = lock(&self.peers)
                 .iter()
                 .map(|(a, p)| (*a, p.clone()))
                 .collect();
@@ -586,120 +506,68 @@ impl UdpLink {
         }
     }
 
-    async fn receive_loop(self: Arc<Self>, cancel: CancellationToken) {
-        // Received into the spare capacity and never zero-filled, so only the pages datagrams
-        // actually reach become resident: an idle node's two receive buffers cost a few KiB
-        // instead of 128.
-        let mut buf = Vec::with_capacity(RECEIVE_BUFFER);
-        loop {
-            buf.clear();
-            let r = tokio::select! {
-                _ = cancel.cancelled() => break,
-                r = self.socket.recv_buf_from(&mut buf) => r,
-            };
-            match r {
-                Ok((n, from)) => {
-                    let mut touched = Vec::new();
-                    if let Some(d) = self.unseal(&mut buf[..n], from) {
-                        self.handle_datagram(d, from, &mut touched);
-                    }
-                    // Drain what else is waiting so acknowledgements are batched. In such a
-                    // burst, let the tasks the previous datagram woke on this worker run first:
-                    // a subscriber would otherwise wait for the whole drain and find most of
-                    // its variables' values replaced by newer ones. (A lone datagram yields
-                    // nothing: the woken task runs as soon as this loop waits again, which
-                    // keeps the round trip short.)
-                    for _ in 0..64 {
-                        buf.clear();
-                        match self.socket.try_recv_buf_from(&mut buf) {
-                            Ok((n, from)) => {
-                                tokio::task::yield_now().await;
-                                if let Some(d) = self.unseal(&mut buf[..n], from) {
-                                    self.handle_datagram(d, from, &mut touched);
-                                }
-                            }
-                            Err(_) => break,
-                        }
-                    }
-                    let now = Instant::now();
-                    let mut timers_changed = false;
-                    for addr in touched {
-                        if let Some(p) = self.peer(addr, false) {
-                            let mut st = lock(&p);
-                            // Acks may have opened the window for queued safe messages.
-                            if st.has_work() {
-                                self.flush_locked(addr, &mut st, now);
-                            }
-                            timers_changed |=
-                                st.tx.next_deadline().is_some() || !st.blocked.is_empty();
-                        }
-                    }
-                    // The transmit task only keeps retransmission timers and blocked sends:
-                    // waking it for every datagram of fast traffic cost a thread hop each.
-                    if timers_changed {
-                        self.wake.notify_one();
-                    }
+    /// Takes datagram `buf`, received from `from`: its seal checked, its entries delivered to
+    /// the node, acknowledgements applied. The peers it touched are added to `touched`, for
+    /// [`DatagramLink::received`] once the medium has nothing more waiting.
+    pub(crate) fn receive(&self, buf: &mut [u8], from: M::Addr, touched: &mut Vec<M::Addr>) {
+        if let Some(d) = self.unseal(buf, from) {
+            self.handle_datagram(d, from, touched);
+        }
+    }
+
+    /// After a burst of [`DatagramLink::receive`]: flushes the peers it touched (their
+    /// acknowledgements may have opened the window for queued safe messages) and tells the
+    /// transmit task of new retransmission timers.
+    pub(crate) fn received(&self, touched: Vec<M::Addr>) {
+        let now = Instant::now();
+        let mut timers_changed = false;
+        for addr in touched {
+            if let Some(p) = self.peer(addr, false) {
+                let mut st = lock(&p);
+                if st.has_work() {
+                    self.flush_locked(addr, &mut st, now);
                 }
-                Err(e) if is_transient(&e) => continue,
-                Err(e) => {
-                    tracing::warn!(link = %self.options.name, error = %e, "receive failed");
-                    tokio::select! {
-                        _ = cancel.cancelled() => break,
-                        _ = tokio::time::sleep(Duration::from_millis(100)) => {}
-                    }
-                }
+                timers_changed |= st.tx.next_deadline().is_some() || !st.blocked.is_empty();
+            }
+        }
+        // The transmit task only keeps retransmission timers and blocked sends: waking it for
+        // every datagram of fast traffic cost a thread hop each.
+        if timers_changed {
+            self.wake.notify_one();
+        }
+    }
+
+    /// Takes datagram `buf` from a discovery channel (a multicast group): only a discovery
+    /// datagram is taken; anything else is counted as corrupt.
+    pub(crate) fn receive_announce(&self, buf: &mut [u8], from: M::Addr) {
+        let n = buf.len();
+        let Some(d) = self.unseal(buf, from) else {
+            return;
+        };
+        self.counters.count_in(n);
+        match super::decode(d) {
+            Ok(Datagram::Discovery(msg)) => {
+                self.handler
+                    .on_announce(self.index, M::peer_addr(from), msg)
+            }
+            _ => {
+                self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
             }
         }
     }
 
-    async fn multicast_loop(self: Arc<Self>, sock: UdpSocket, cancel: CancellationToken) {
-        let mut buf = Vec::with_capacity(RECEIVE_BUFFER);
-        loop {
-            buf.clear();
-            let r = tokio::select! {
-                _ = cancel.cancelled() => break,
-                r = sock.recv_buf_from(&mut buf) => r,
-            };
-            match r {
-                Ok((n, from)) => {
-                    let Some(d) = self.unseal(&mut buf[..n], from) else {
-                        continue;
-                    };
-                    self.counters.count_in(n);
-                    match datagram::decode(d) {
-                        Ok(Datagram::Discovery(msg)) => {
-                            self.handler
-                                .on_announce(self.index, PeerAddr::Udp(from), msg)
-                        }
-                        _ => {
-                            self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
-                        }
-                    }
-                }
-                Err(e) if is_transient(&e) => continue,
-                Err(e) => {
-                    tracing::warn!(link = %self.options.name, error = %e, "multicast receive failed");
-                    tokio::select! {
-                        _ = cancel.cancelled() => break,
-                        _ = tokio::time::sleep(Duration::from_millis(100)) => {}
-                    }
-                }
-            }
-        }
-    }
-
-    fn handle_datagram(&self, bytes: &[u8], from: SocketAddr, touched: &mut Vec<SocketAddr>) {
+    fn handle_datagram(&self, bytes: &[u8], from: M::Addr, touched: &mut Vec<M::Addr>) {
         self.counters.count_in(bytes.len());
-        let entries = match datagram::decode(bytes) {
+        let entries = match super::decode(bytes) {
             Ok(Datagram::Data(e)) => e,
             Ok(Datagram::Discovery(msg)) => {
                 self.handler
-                    .on_announce(self.index, PeerAddr::Udp(from), msg);
+                    .on_announce(self.index, M::peer_addr(from), msg);
                 return;
             }
             Err(e) => {
                 self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
-                tracing::trace!(link = %self.options.name, %from, error = %e, "corrupt datagram dropped");
+                tracing::trace!(link = %self.name, %from, error = %e, "corrupt datagram dropped");
                 return;
             }
         };
@@ -708,8 +576,7 @@ impl UdpLink {
             // No session with this address: only fast messages mean anything.
             for e in entries {
                 if let Entry::Fast(msg) = e {
-                    self.handler
-                        .on_message(self.index, PeerAddr::Udp(from), msg);
+                    self.handler.on_message(self.index, M::peer_addr(from), msg);
                 }
             }
             return;
@@ -758,7 +625,7 @@ impl UdpLink {
         if !touched.contains(&from) {
             touched.push(from);
         }
-        let peer = PeerAddr::Udp(from);
+        let peer = M::peer_addr(from);
         if reset {
             self.handler.on_peer_reset(self.index, peer);
         }
@@ -771,16 +638,6 @@ impl UdpLink {
         }
         acknowledge_all(completed);
     }
-}
-
-fn is_transient(e: &io::Error) -> bool {
-    // ICMP port unreachable from a vanished peer surfaces as ConnectionRefused on Linux.
-    matches!(
-        e.kind(),
-        io::ErrorKind::ConnectionRefused
-            | io::ErrorKind::ConnectionReset
-            | io::ErrorKind::Interrupted
-    )
 }
 
 /// What a queued safe message of `len` bytes will take in a datagram, at most (its sequence
@@ -808,17 +665,17 @@ fn fail_sender(st: &mut PeerState, err: LinkSendError) {
     }
 }
 
-impl Link for UdpLink {
+impl<M: Medium> Link for DatagramLink<M> {
     fn name(&self) -> &str {
-        &self.options.name
+        &self.name
     }
 
     fn local_addr(&self) -> String {
-        format!("udp://{}", self.local)
+        self.medium.local_addr()
     }
 
     fn send(&self, to: PeerAddr, out: Outgoing) {
-        let PeerAddr::Udp(addr) = to else {
+        let Some(addr) = M::medium_addr(to) else {
             return;
         };
         let Some(p) = self.peer(addr, true) else {
@@ -894,35 +751,33 @@ impl Link for UdpLink {
     }
 
     fn announce(&self, msg: &[u8]) {
-        let targets = std::iter::once(SocketAddr::V4(self.options.multicast))
-            .chain(self.options.peers.iter().copied());
-        for t in targets {
+        for t in 0..self.medium.announce_targets() {
             // Sealed once per target: a node reached both ways sees two datagrams, not a
             // replay.
-            let d = self.seal(datagram::discovery_datagram(msg));
-            match self.sender.send_to(&d, t) {
-                Ok(_) => self.count_out(d.len()),
+            let d = self.seal(super::discovery_datagram(msg));
+            match self.medium.announce_to(&d, t) {
+                Ok(()) => self.count_out(d.len()),
                 Err(e) => {
-                    tracing::debug!(link = %self.options.name, to = %t, error = %e, "announce not sent")
+                    tracing::debug!(link = %self.name, target = t, error = %e, "announce not sent")
                 }
             }
         }
     }
 
     fn confirm_peer(&self, to: PeerAddr) {
-        if let PeerAddr::Udp(addr) = to {
+        if let Some(addr) = M::medium_addr(to) {
             if let Some(p) = self.session(addr, false, true) {
                 if lock(&self.peers).is_bound(&addr) {
                     lock(&p).bound = true;
                 }
             } else {
-                tracing::warn!(link = %self.options.name, %addr, "no room for a session with a new peer ({MAX_PEERS} bound)");
+                tracing::warn!(link = %self.name, %addr, "no room for a session with a new peer ({MAX_PEERS} bound)");
             }
         }
     }
 
     fn close_peer(&self, to: PeerAddr) {
-        let PeerAddr::Udp(addr) = to else {
+        let Some(addr) = M::medium_addr(to) else {
             return;
         };
         let p = lock(&self.peers).remove(&addr);

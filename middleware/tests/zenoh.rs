@@ -1,0 +1,190 @@
+//! Two nodes whose only common medium is a Zenoh router (real TCP on loopback, a real Zenoh
+//! router in router mode, no multicast): they meet and every primitive holds across it as
+//! across a LAN; and across a router restart, events raised while it is down arrive once each,
+//! in order, after it is back.
+
+#![cfg(feature = "zenoh")]
+
+use std::time::Duration;
+
+use marea::{CallError, NetworkConfig, Node, SendFileOptions};
+
+const T: Duration = Duration::from_secs(20);
+
+/// A free TCP port on loopback (bound and released; a router then listens on it).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free loopback port")
+}
+
+/// A Zenoh router listening on `port`, with multicast scouting off.
+async fn router(port: u16) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    let set = |c: &mut zenoh::Config, k: &str, v: &str| c.insert_json5(k, v).expect(k);
+    set(&mut c, "mode", "\"router\"");
+    set(
+        &mut c,
+        "listen/endpoints",
+        &format!("[\"tcp/127.0.0.1:{port}\"]"),
+    );
+    set(&mut c, "scouting/multicast/enabled", "false");
+    zenoh::open(c).await.expect("router opens")
+}
+
+/// Node `node` of `domain` with a single `<zenoh>` link, a client of the router at `port`,
+/// with the default heartbeat and lease (1 s, 10 s: a router restart fits in the lease).
+fn config(node: &str, domain: &str, port: u16) -> NetworkConfig {
+    let xml = format!(
+        r#"<network node="{node}" namespace="{node}" domain="{domain}">
+             <zenoh name="wan" mode="client" connect="tcp/127.0.0.1:{port}"/>
+           </network>"#
+    );
+    NetworkConfig::parse(&xml, None).expect("a valid network file")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_nodes_meet_through_a_router_and_every_primitive_holds() {
+    let port = free_port();
+    let r = router(port).await;
+    let domain = format!("zenoh-{}", std::process::id());
+    let air = Node::open(&config("air", &domain, port)).await.unwrap();
+    let vas = air.service("vas").unwrap();
+    let position = vas.publish_variable::<(f64, f64)>("position").unwrap();
+    position.set(&(41.3, 2.1)).unwrap();
+    let alarm = vas.publish_event::<String>("alarm").unwrap();
+    let _change = vas
+        .provide_function("change_state", |to: String| async move {
+            if to == "FLYING" {
+                Err("refused: not armed".to_owned())
+            } else {
+                Ok(format!("now {to}"))
+            }
+        })
+        .unwrap();
+    let inbox = tempfile::tempdir().unwrap();
+    let sink = vas.file_sink("plans", inbox.path()).unwrap();
+
+    // The ground node joins later: it gets the variable's last value at once.
+    let ground = Node::open(&config("ground", &domain, port)).await.unwrap();
+    let fmo = ground.service("fmo").unwrap();
+    let pos = fmo
+        .subscribe_variable::<(f64, f64)>("air/vas/position")
+        .unwrap();
+    let got = pos.recv_timeout(T).await.expect("the last value");
+    assert_eq!(got.value, (41.3, 2.1));
+    assert!(
+        air.link_addrs().iter().any(|a| a.starts_with("zenoh://")),
+        "{:?}",
+        air.link_addrs()
+    );
+
+    // Events: every one, once, in order, and raise says who acknowledged.
+    let alarms = fmo.subscribe_event::<String>("air/vas/alarm").unwrap();
+    assert!(
+        alarm.wait_remote_subscribers(1, T).await,
+        "ground subscribed"
+    );
+    let report = alarm.raise(&"first".to_owned()).await.unwrap();
+    assert!(report.all_acknowledged(), "{report:?}");
+    assert_eq!(report.acknowledged.len(), 1, "{report:?}");
+    let mut stream = alarm.stream();
+    for i in 0..2000 {
+        stream.send(&format!("a{i}")).await.unwrap();
+    }
+    tokio::time::timeout(T, stream.flush())
+        .await
+        .expect("flushed in time")
+        .expect("nothing lost");
+    assert_eq!(alarms.recv_timeout(T).await.unwrap().value, "first");
+    for i in 0..2000 {
+        assert_eq!(alarms.recv_timeout(T).await.unwrap().value, format!("a{i}"));
+    }
+
+    // Calls: a result, a handler's refusal, and no provider.
+    let change = fmo
+        .function::<String, String>("air/vas/change_state")
+        .unwrap();
+    assert!(change.wait_provider(T).await);
+    assert_eq!(
+        change.call(&"PARKING".to_owned(), T).await.unwrap(),
+        "now PARKING"
+    );
+    match change.call(&"FLYING".to_owned(), T).await {
+        Err(CallError::Remote { .. }) => {}
+        other => panic!("expected the handler's refusal, got {other:?}"),
+    }
+    let nobody = fmo.function::<String, String>("air/vas/nobody").unwrap();
+    match nobody.call(&"x".to_owned(), Duration::from_secs(1)).await {
+        Err(CallError::NoProvider { .. }) => {}
+        other => panic!("expected NoProvider, got {other:?}"),
+    }
+
+    // Files: whole and verified.
+    let src = tempfile::tempdir().unwrap();
+    let data: Vec<u8> = (0..300_000u32).map(|i| (i * 7 % 251) as u8).collect();
+    let path = src.path().join("plan.bin");
+    std::fs::write(&path, &data).unwrap();
+    let transfer = fmo.send_file(&path, "air/vas/plans", SendFileOptions::default());
+    let received = sink.recv_timeout(T).await.expect("file received");
+    assert_eq!(received.from, "ground");
+    assert_eq!(std::fs::read(&received.path).unwrap(), data);
+    transfer.wait().await.expect("transfer reported");
+
+    ground.shutdown().await;
+    air.shutdown().await;
+    r.close().await.unwrap();
+}
+
+/// The router stops while events are raised and comes back on the same port: the clients
+/// reconnect and every event arrives once, in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn events_raised_while_the_router_restarts_arrive_once_in_order() {
+    let port = free_port();
+    let r = router(port).await;
+    let domain = format!("zenoh-restart-{}", std::process::id());
+    let air = Node::open(&config("air", &domain, port)).await.unwrap();
+    let ev = air
+        .service("vas")
+        .unwrap()
+        .publish_event::<u32>("alarm")
+        .unwrap();
+    let ground = Node::open(&config("ground", &domain, port)).await.unwrap();
+    let sub = ground
+        .service("fmo")
+        .unwrap()
+        .subscribe_event::<u32>("air/vas/alarm")
+        .unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "ground subscribed");
+    for i in 0..100 {
+        ev.raise_nowait(&i).unwrap();
+    }
+    r.close().await.unwrap();
+    // Raised with no router: the datagrams go nowhere, and the ARQ keeps them.
+    let pending: Vec<_> = (100..200).map(|i| ev.raise_nowait(&i).unwrap()).collect();
+    tokio::time::sleep(Duration::from_secs(1)).await; // the outage itself, not a synchronisation
+    let r = router(port).await;
+    let back = std::time::Instant::now();
+    for p in pending {
+        let report = tokio::time::timeout(T, p)
+            .await
+            .expect("acknowledged after the restart");
+        assert!(report.all_acknowledged(), "{report:?}");
+    }
+    eprintln!(
+        "acknowledged {:?} after the router came back",
+        back.elapsed()
+    );
+    for i in 0..200 {
+        let got = sub.recv_timeout(T).await.expect("every event");
+        assert_eq!(got.value, i, "once each, in order");
+    }
+    assert!(
+        sub.recv_timeout(Duration::from_millis(300)).await.is_err(),
+        "nothing twice"
+    );
+    ground.shutdown().await;
+    air.shutdown().await;
+    r.close().await.unwrap();
+}
