@@ -58,6 +58,14 @@ enum Cmd {
     Run(run::RunArgs),
     /// Play a flight log of `usal run` back into the system (for an FMo/FPMo to show).
     Replay(run::replay::ReplayArgs),
+    /// Run a Zenoh router for nodes beyond one LAN (`<zenoh>` links) and any Zenoh client:
+    /// `usal router --listen tcp/0.0.0.0:7447 [--connect ENDPOINT] [--config zenoh.json5]`
+    /// (`usal router -- --help` for all options). Built once on first use.
+    Router {
+        /// Options of usal-router.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// List nodes, services and their items (published, subscribed, provided, called).
     List,
     /// Follow variables and events matching NAME (wildcards * and ** allowed), decoded.
@@ -156,6 +164,9 @@ fn main() -> ExitCode {
     if let Cmd::Run(args) = &cli.cmd {
         return run::main(args, cli.net.json);
     }
+    if let Cmd::Router { args } = &cli.cmd {
+        return run::router::main(args, cli.net.json);
+    }
     if let Cmd::Keygen {
         path,
         identity: true,
@@ -217,7 +228,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let wait = Duration::from_millis(cli.net.wait_ms);
     let code = match &cli.cmd {
         // Dispatched in main before the tool joins the network.
-        Cmd::Run(_) | Cmd::Keygen { .. } => ExitCode::from(2),
+        Cmd::Run(_) | Cmd::Router { .. } | Cmd::Keygen { .. } => ExitCode::from(2),
         Cmd::Replay(a) => run::replay::run(&node, a, wait, cli.net.json).await?,
         Cmd::List => {
             tokio::time::sleep(wait).await;

@@ -8,6 +8,7 @@ pub mod flightlog;
 pub mod mission;
 mod radio;
 pub mod replay;
+pub mod router;
 mod station;
 mod supervisor;
 mod ui;
@@ -61,12 +62,12 @@ pub struct RunArgs {
 }
 
 /// The service binaries a mission needs, found next to the running `usal`.
-struct Bins {
+pub(crate) struct Bins {
     dir: PathBuf,
 }
 
 impl Bins {
-    fn path(&self, name: &str) -> PathBuf {
+    pub(crate) fn path(&self, name: &str) -> PathBuf {
         self.dir
             .join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
     }
@@ -209,12 +210,6 @@ fn station_setup(
 /// missing and this is a source checkout with cargo at hand, they are built once, with the
 /// profile `usal` was built with.
 fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
-    let exe = std::env::current_exe().context("locating the usal executable")?;
-    let dir = exe
-        .parent()
-        .ok_or_else(|| anyhow!("usal has no parent directory"))?
-        .to_owned();
-    let bins = Bins { dir };
     let mut needed: Vec<&str> = Vec::new();
     for n in &mission.nodes {
         for s in &n.services {
@@ -233,7 +228,20 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
     } else {
         &[]
     };
-    let missing: Vec<&str> = needed
+    find_or_build(&needed, own, ui)
+}
+
+/// The directory of `usal`'s own executable, where the binaries it starts are: packages'
+/// binaries named as their package (`packages`) and this package's own (`own`), each built
+/// once with cargo (saying so on `ui`) when missing and this is a source checkout.
+pub(crate) fn find_or_build(packages: &[&str], own: &[&str], ui: &Ui) -> anyhow::Result<Bins> {
+    let exe = std::env::current_exe().context("locating the usal executable")?;
+    let dir = exe
+        .parent()
+        .ok_or_else(|| anyhow!("usal has no parent directory"))?
+        .to_owned();
+    let bins = Bins { dir };
+    let missing: Vec<&str> = packages
         .iter()
         .chain(own)
         .copied()
@@ -254,9 +262,18 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
     let target = bins.dir.parent().map(Path::to_path_buf);
     if !workspace.join("Cargo.toml").is_file() || target.is_none() {
         bail!(
-            "{} not found next to {} (build them with `cargo build --release -p mavsim -p vas -p fpma`)",
+            "{} not found next to {} (build them with `cargo build --release {}`)",
             missing.join(", "),
-            exe.display()
+            exe.display(),
+            missing
+                .iter()
+                .map(|b| if own.contains(b) {
+                    format!("--bin {b}")
+                } else {
+                    format!("-p {b}")
+                })
+                .collect::<Vec<_>>()
+                .join(" ")
         );
     }
     ui.note(
@@ -266,11 +283,11 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
         ),
         json!({"event": "building", "bins": missing, "profile": profile}),
     );
-    // Service crates by package; this package's own binaries by name.
+    // Other packages by name; this package's own binaries by name.
     let mut selections: Vec<Vec<String>> = Vec::new();
-    if !needed.is_empty() {
+    if !packages.is_empty() {
         selections.push(
-            needed
+            packages
                 .iter()
                 .flat_map(|b| ["-p".into(), b.to_string()])
                 .collect(),
@@ -300,12 +317,12 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
         // Cargo's own progress goes to our stderr: it is the user's build.
         let status = cmd
             .status()
-            .context("running cargo (is it installed?) to build the services")?;
+            .context("running cargo (is it installed?) to build them")?;
         if !status.success() {
             bail!("building {} failed ({status})", missing.join(", "));
         }
     }
-    let still: Vec<&str> = needed
+    let still: Vec<&str> = packages
         .iter()
         .chain(own)
         .copied()

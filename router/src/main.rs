@@ -1,0 +1,111 @@
+//! `usal-router`: parses the command line, opens the router, says where it listens and how to
+//! join it, and runs until SIGINT or SIGTERM.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::Parser;
+use serde_json::json;
+use usal_router::{listen_endpoints, network_xml_line, router_config, RouterOptions};
+
+#[derive(Parser)]
+#[command(
+    name = "usal-router",
+    about = "A Zenoh router for USAL systems beyond one LAN (compatible with zenohd)"
+)]
+struct Args {
+    /// Endpoint to listen on, e.g. tcp/0.0.0.0:7447 or tls/0.0.0.0:7447 (repeatable;
+    /// default tcp/0.0.0.0:7447).
+    #[arg(long)]
+    listen: Vec<String>,
+    /// Router to connect to, e.g. tcp/gs.example.org:7447 (repeatable).
+    #[arg(long)]
+    connect: Vec<String>,
+    /// Zenoh configuration file (JSON5, as zenohd takes) for TLS, users and access control.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Print JSON lines instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let args = Args::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(args).await {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("usal-router: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    let options = RouterOptions {
+        listen: args.listen,
+        connect: args.connect,
+        config_file: args.config,
+    };
+    let config = router_config(&options)?;
+    let endpoints = listen_endpoints(&config);
+    let session = zenoh::open(config)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .with_context(|| format!("opening the router on {}", endpoints.join(", ")))?;
+    let zid = session.zid().to_string();
+    if args.json {
+        println!(
+            "{}",
+            json!({"event": "listening", "zid": zid, "endpoints": endpoints,
+                   "network_xml": endpoints.first().map(|e| network_xml_line(e))})
+        );
+    } else {
+        println!(
+            "usal-router: Zenoh router {zid} listening on {}",
+            endpoints.join(", ")
+        );
+        if let Some(e) = endpoints.first() {
+            println!(
+                "usal-router: a USAL node joins with {} in its network.xml (from another machine, this machine's address instead of 0.0.0.0)",
+                network_xml_line(e)
+            );
+            println!(
+                "usal-router: any Zenoh client joins by connecting to {e}{}",
+                if options.config_file.is_none() {
+                    "; this router asks no credentials (TLS and users: docs/zenoh.md)"
+                } else {
+                    ""
+                }
+            );
+        }
+    }
+    wait_for_stop().await;
+    session
+        .close()
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .context("closing the router")?;
+    Ok(())
+}
+
+/// Resolves on SIGINT or SIGTERM.
+async fn wait_for_stop() {
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = async {
+            match term.as_mut() {
+                Some(t) => { t.recv().await; }
+                None => std::future::pending::<()>().await,
+            }
+        } => {}
+    }
+}

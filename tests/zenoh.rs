@@ -1,0 +1,179 @@
+//! Nodes in separate processes whose only common medium is `usal router` (a Zenoh router, real
+//! TCP, no multicast between them): they meet, read each other's variables, call each other's
+//! functions, and an event stream survives the router being killed and restarted mid-stream,
+//! every event arriving once, in order.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use common::{outcome, probe_with_config, Proc, T};
+
+/// A free TCP port on loopback (bound and released; the router then listens on it).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free loopback port")
+}
+
+/// `usal router` listening on loopback `port`, once it says so.
+fn router(port: u16) -> Proc {
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let mut r = Proc::spawn(
+        "router",
+        env!("CARGO_BIN_EXE_usal"),
+        &[
+            "--json".into(),
+            "router".into(),
+            "--listen".into(),
+            endpoint.clone(),
+        ],
+    );
+    // The first run may build usal-router: allow for it.
+    let listening = r.expect(Duration::from_secs(300), "listening", |v| {
+        v["event"] == "listening"
+    });
+    assert_eq!(listening["endpoints"][0], endpoint.as_str());
+    assert_eq!(
+        listening["network_xml"],
+        format!("<zenoh mode=\"client\" connect=\"{endpoint}\"/>").as_str()
+    );
+    r
+}
+
+/// A network.xml in `dir` for node `node` (namespace too) of `domain` whose only link is a
+/// Zenoh client of the router at `port`.
+fn network_xml(dir: &Path, node: &str, domain: &str, port: u16) -> PathBuf {
+    let path = dir.join(format!("{node}.xml"));
+    std::fs::write(
+        &path,
+        format!(
+            r#"<network node="{node}" namespace="{node}" domain="{domain}">
+  <zenoh name="wan" mode="client" connect="tcp/127.0.0.1:{port}"/>
+</network>
+"#
+        ),
+    )
+    .expect("write network.xml");
+    path
+}
+
+#[test]
+fn processes_meet_through_usal_router_and_read_variables_and_call_functions() {
+    let port = free_port();
+    let _router = router(port);
+    let dir = tempfile::tempdir().unwrap();
+    let domain = format!("zenoh-meet-{}", std::process::id());
+    let air = network_xml(dir.path(), "air", &domain, port);
+    let ground = network_xml(dir.path(), "ground", &domain, port);
+
+    let _position = probe_with_config(
+        "air-pub",
+        &air,
+        "vas",
+        &[],
+        &[
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "50",
+        ],
+    );
+    let _provider = probe_with_config("air-fn", &air, "vas", &[], &["provide", "--item", "double"]);
+    let mut sub = probe_with_config(
+        "ground-sub",
+        &ground,
+        "fmo",
+        &[],
+        &["var-sub", "--pattern", "air/vas/position", "--count", "3"],
+    );
+    let got = sub.expect(T, "a position from air", |v| v.get("seq").is_some());
+    assert_eq!(got["name"], "air/vas/position", "{got}");
+    let mut call = probe_with_config(
+        "ground-call",
+        &ground,
+        "fmo",
+        &[],
+        &[
+            "call",
+            "--name",
+            "air/vas/double",
+            "--arg",
+            "21",
+            "--wait-ms",
+            "10000",
+        ],
+    );
+    let answer = outcome(&mut call);
+    assert_eq!(answer["ok"], 42, "{answer}");
+    let mut none = probe_with_config(
+        "ground-none",
+        &ground,
+        "fmo",
+        &[],
+        &["call", "--name", "air/vas/nobody", "--timeout-ms", "2000"],
+    );
+    let refused = outcome(&mut none);
+    assert_eq!(refused["error"], "no_provider", "{refused}");
+}
+
+#[test]
+fn an_event_stream_survives_the_router_killed_and_restarted() {
+    let port = free_port();
+    let mut r = router(port);
+    let dir = tempfile::tempdir().unwrap();
+    let domain = format!("zenoh-restart-{}", std::process::id());
+    let air = network_xml(dir.path(), "air", &domain, port);
+    let ground = network_xml(dir.path(), "ground", &domain, port);
+    let count = 400u64;
+    let mut sub = probe_with_config(
+        "ground-sub",
+        &ground,
+        "fmo",
+        &[],
+        &[
+            "ev-sub",
+            "--pattern",
+            "air/probe/ev",
+            "--count",
+            &count.to_string(),
+        ],
+    );
+    sub.expect_key(T, "ready");
+    // 400 events 10 ms apart: the stream is still running when the router dies.
+    let mut publ = probe_with_config(
+        "air-pub",
+        &air,
+        "probe",
+        &[],
+        &[
+            "ev-pub",
+            "--item",
+            "ev",
+            "--count",
+            &count.to_string(),
+            "--subs",
+            "1",
+            "--interval-ms",
+            "10",
+        ],
+    );
+    publ.expect_key(T, "peers");
+    // A second into the four-second stream (the fault's timing, not a synchronisation), the
+    // router dies; it is down for a second, then back on the same port.
+    std::thread::sleep(Duration::from_secs(1));
+    r.kill9();
+    std::thread::sleep(Duration::from_secs(1));
+    let _r = router(port);
+    let done = publ.expect_key(Duration::from_secs(60), "raised");
+    assert_eq!(done["failed_raises"], 0, "{done}");
+    assert_eq!(done["acknowledged_by_all"], count, "{done}");
+    let received = sub.expect_key(Duration::from_secs(60), "received");
+    assert_eq!(received["received"], count, "{received}");
+    assert_eq!(received["in_order"], true, "{:?}", sub.seen);
+}
