@@ -4,7 +4,7 @@
 //! `usal replay LOG`, which plays a run's flight log back (see `run/replay.rs`).
 
 mod run;
-mod types;
+use usal_json as types;
 
 use std::io::IsTerminal;
 use std::path::PathBuf;

@@ -177,3 +177,148 @@ fn an_event_stream_survives_the_router_killed_and_restarted() {
     assert_eq!(received["received"], count, "{received}");
     assert_eq!(received["in_order"], true, "{:?}", sub.seen);
 }
+
+#[path = "../services/vas/tests/common/mavsdk.rs"]
+mod python;
+
+/// A network.xml in `dir` for node `node` of `namespace` in `domain`, a Zenoh client of the
+/// router at `port`, holding `inner` (an `<access>` element) too.
+fn network_xml_with(
+    dir: &Path,
+    node: &str,
+    namespace: &str,
+    domain: &str,
+    port: u16,
+    inner: &str,
+) -> PathBuf {
+    let path = dir.join(format!("{node}.xml"));
+    std::fs::write(
+        &path,
+        format!(
+            r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
+  <zenoh name="wan" mode="client" connect="tcp/127.0.0.1:{port}"/>
+  {inner}
+</network>
+"#
+        ),
+    )
+    .expect("write network.xml");
+    path
+}
+
+/// The official Zenoh client for Python (`eclipse-zenoh`, no USAL code) reads a vehicle's
+/// position as JSON (its stream and its last value), sees the domain's nodes as liveliness
+/// tokens, calls a function with a JSON argument, and gets `denied` from a function whose
+/// `<access>` rule does not let the bridge call it.
+#[test]
+fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
+    let Some(py) = python::python() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI: python3 is missing, so the Zenoh client test cannot run"
+        );
+        return;
+    };
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let domain = format!("zenoh-py-{}", std::process::id());
+    let bridge = network_xml_with(dir.path(), "bridge", "zbridge", &domain, port, "");
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let mut router = Proc::spawn(
+        "router",
+        env!("CARGO_BIN_EXE_usal"),
+        &[
+            "--json".into(),
+            "router".into(),
+            "--listen".into(),
+            endpoint.clone(),
+            "--bridge".into(),
+            bridge.display().to_string(),
+        ],
+    );
+    router.expect(Duration::from_secs(300), "listening", |v| {
+        v["event"] == "listening"
+    });
+    router.expect(T, "bridging", |v| v["event"] == "bridging");
+
+    let air = network_xml_with(dir.path(), "air", "air", &domain, port, "");
+    let airdbl = network_xml_with(dir.path(), "airdbl", "air", &domain, port, "");
+    let airfn = network_xml_with(
+        dir.path(),
+        "airfn",
+        "airfn",
+        &domain,
+        port,
+        r#"<access><allow kind="call" item="airfn/vas/change_state" from="ground/*"/></access>"#,
+    );
+    let _position = probe_with_config(
+        "air",
+        &air,
+        "vas",
+        &[],
+        &[
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "50",
+            "--usal-type",
+        ],
+    );
+    let mut double = probe_with_config(
+        "airdbl",
+        &airdbl,
+        "vas",
+        &[],
+        &["provide", "--item", "double"],
+    );
+    double.expect_key(T, "ready");
+    let mut guarded = probe_with_config(
+        "airfn",
+        &airfn,
+        "vas",
+        &[],
+        &["provide", "--item", "change_state"],
+    );
+    guarded.expect_key(T, "ready");
+
+    let mut client = Proc::spawn(
+        "python",
+        py.to_str().expect("a UTF-8 path"),
+        &[
+            python::repo_root()
+                .join("tests/python/zenoh_client.py")
+                .display()
+                .to_string(),
+            endpoint,
+            domain,
+        ],
+    );
+    let nodes = client.expect_key(T, "nodes");
+    for n in ["air", "airdbl", "airfn", "bridge"] {
+        assert!(
+            nodes["nodes"]
+                .as_array()
+                .is_some_and(|a| a.iter().any(|x| x == n)),
+            "{n} missing from {nodes}"
+        );
+    }
+    let position = client.expect_key(T, "position");
+    assert_eq!(position["encoding"], "application/json", "{position}");
+    assert!(
+        position["position"]["lat"]
+            .as_f64()
+            .is_some_and(|l| (l - 41.275).abs() < 0.01),
+        "{position}"
+    );
+    assert_eq!(position["position"]["speed"], 1.5, "{position}");
+    let last = client.expect_key(T, "last");
+    assert!(last["last"]["lat"].is_number(), "{last}");
+    let doubled = client.expect_key(T, "double");
+    assert_eq!(doubled["double"], 42, "{doubled}");
+    let refused = client.expect_key(T, "change_state");
+    assert_eq!(refused["change_state"]["error"], "denied", "{refused}");
+    client.expect_key(T, "done");
+}

@@ -3,7 +3,11 @@
 //! nodes of their domain behind other routers or links; any Zenoh client connects to it too.
 //!
 //! It is the `zenoh` crate in router mode, so it interoperates with a stock `zenohd` (a router
-//! may connect to the other) and takes a `zenohd` configuration file as it is.
+//! may connect to the other) and takes a `zenohd` configuration file as it is. With a
+//! network.xml (`--bridge`) it also joins that domain as a marea node and shows every item of
+//! it to any Zenoh client ([`bridge`]).
+
+pub mod bridge;
 
 use std::path::PathBuf;
 

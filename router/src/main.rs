@@ -25,6 +25,10 @@ struct Args {
     /// Zenoh configuration file (JSON5, as zenohd takes) for TLS, users and access control.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Join the domain of this network.xml as a marea node and show its items to Zenoh
+    /// clients: variables and events on usal/<domain>/<name> (JSON), functions as queryables.
+    #[arg(long)]
+    bridge: Option<PathBuf>,
     /// Print JSON lines instead of text.
     #[arg(long)]
     json: bool,
@@ -87,7 +91,35 @@ async fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    wait_for_stop().await;
+    let cancel = tokio_util::sync::CancellationToken::new();
+    match &args.bridge {
+        Some(path) => {
+            let config = marea::NetworkConfig::load(path)?;
+            let domain = config.domain.clone();
+            let node = marea::Node::open(&config)
+                .await
+                .with_context(|| format!("joining the domain of {}", path.display()))?;
+            if args.json {
+                println!(
+                    "{}",
+                    json!({"event": "bridging", "domain": domain, "node": node.name(), "keys": format!("usal/{domain}/**")})
+                );
+            } else {
+                println!(
+                    "usal-router: bridging domain {domain} as node {}: its variables and events on usal/{domain}/<name> (JSON), its functions as queryables there",
+                    node.name()
+                );
+            }
+            let bridged = tokio::select! {
+                r = usal_router::bridge::run(session.clone(), &node, domain, cancel.clone()) => r,
+                _ = wait_for_stop() => Ok(()),
+            };
+            cancel.cancel();
+            node.shutdown().await;
+            bridged.context("bridge")?;
+        }
+        None => wait_for_stop().await,
+    }
     session
         .close()
         .await

@@ -75,6 +75,10 @@ enum Cmd {
         count: u64,
         #[arg(long, default_value_t = 0)]
         interval_ms: u64,
+        /// Publish the VAS's position type (`usal_types::Position`, which the tools and the
+        /// Zenoh bridge show as JSON) instead of the probe's own 32-byte one.
+        #[arg(long)]
+        usal_type: bool,
     },
     /// Print positions matching PATTERN; exit after COUNT (0 = run until stopped).
     VarSub {
@@ -302,19 +306,40 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             item,
             count,
             interval_ms,
+            usal_type,
         } => {
-            let var = svc.publish_variable::<Position>(item)?;
-            out(json!({"ready": var.name()}));
+            type Set = Box<dyn Fn(&Position) -> Result<(), marea::PublishError>>;
+            let (name, set): (String, Set) = if *usal_type {
+                let v = svc.publish_variable::<usal_types::Position>(item)?;
+                (
+                    v.name().to_owned(),
+                    Box::new(move |p: &Position| {
+                        v.set(&usal_types::Position {
+                            lat: p.lat,
+                            lon: p.lon,
+                            alt: p.alt,
+                            heading: p.heading,
+                            speed: p.speed,
+                            alt_rel: p.alt,
+                        })
+                    }),
+                )
+            } else {
+                let v = svc.publish_variable::<Position>(item)?;
+                (v.name().to_owned(), Box::new(move |p: &Position| v.set(p)))
+            };
+            out(json!({"ready": name}));
             let mut longest = Duration::ZERO;
             for i in 0..*count {
                 let t = Instant::now();
-                var.set(&Position {
+                let p = Position {
                     lat: 41.275 + i as f64 * 1e-6,
                     lon: 1.987,
                     alt: i as f64,
                     heading: 90.0,
                     speed: 1.5,
-                })?;
+                };
+                set(&p)?;
                 longest = longest.max(t.elapsed());
                 if *interval_ms > 0 {
                     tokio::time::sleep(Duration::from_millis(*interval_ms)).await;

@@ -423,7 +423,7 @@ pub async fn record_items(
                     "from": v.publisher,
                     "raw": hex(&v.payload),
                 });
-                if let Some(Ok(value)) = crate::types::to_json(&v.type_name, &v.payload) {
+                if let Some(Ok(value)) = usal_json::to_json(&v.type_name, &v.payload) {
                     rec["value"] = value;
                 }
                 log.record(kind_of(&v.name, &v.type_name), rec);

@@ -151,7 +151,7 @@ pub async fn run(
     // One publisher per recorded item, declared before playing so stations discover them
     // all during `wait` and no early event goes unheard.
     let mut services: BTreeMap<String, marea::Service> = BTreeMap::new();
-    let mut publishers: BTreeMap<(String, bool), crate::types::Replayer> = BTreeMap::new();
+    let mut publishers: BTreeMap<(String, bool), usal_json::Replayer> = BTreeMap::new();
     let mut skipped: Vec<String> = Vec::new();
     for ((name, event), ty) in &scan.items {
         let Some((prefix, item)) = name.rsplit_once('/') else {
@@ -173,7 +173,7 @@ pub async fn run(
         } else {
             ItemKind::Variable
         };
-        match crate::types::replayer(ty, &svc, kind, item) {
+        match usal_json::replayer(ty, &svc, kind, item) {
             Ok(p) => {
                 publishers.insert((name.clone(), *event), p);
             }

@@ -36,9 +36,11 @@ fn runs(cmd: &Path, args: &[&str]) -> bool {
         .is_ok_and(|s| s.success())
 }
 
-const IMPORTS: &[&str] = &["-c", "import mavsdk, pymavlink"];
+/// What the test venv holds (`tests/python/requirements.txt`): a venv lacking one of them is
+/// brought up to date.
+const IMPORTS: &[&str] = &["-c", "import mavsdk, pymavlink, zenoh"];
 
-/// The Python that has `mavsdk` and `pymavlink`, creating the venv if needed; `None` (after
+/// The Python that has `mavsdk`, `pymavlink` and `zenoh`, creating the venv if needed; `None` (after
 /// printing why) only where no `python3` exists. Blocking: call it off the async runtime.
 ///
 /// # Panics
@@ -49,7 +51,7 @@ pub fn python() -> Option<PathBuf> {
         let p = PathBuf::from(p);
         assert!(
             runs(&p, IMPORTS),
-            "USAL_TEST_PYTHON={} cannot import mavsdk and pymavlink",
+            "USAL_TEST_PYTHON={} cannot import mavsdk, pymavlink and zenoh",
             p.display()
         );
         return Some(p);
@@ -89,7 +91,11 @@ pub fn python() -> Option<PathBuf> {
         assert!(ok, "pip install into {} failed", venv.display());
     }
     drop(lock);
-    assert!(runs(&py, IMPORTS), "{} cannot import mavsdk", py.display());
+    assert!(
+        runs(&py, IMPORTS),
+        "{} cannot import mavsdk, pymavlink and zenoh",
+        py.display()
+    );
     Some(py)
 }
 

@@ -1,5 +1,7 @@
-//! The payload types the `usal` tools can decode and encode by name: USAL's message types and
-//! the plain Rust types, keyed by `std::any::type_name` as declarations carry it.
+//! The payload types the `usal` tools and the Zenoh bridge can decode and encode by name:
+//! USAL's message types and the plain Rust types, keyed by `std::any::type_name` as
+//! declarations carry it. A value of any of them is shown to people and to Zenoh clients as
+//! JSON; anything else stays postcard bytes.
 
 use marea::protocol::ItemKind;
 use serde::de::DeserializeOwned;

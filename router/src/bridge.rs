@@ -1,0 +1,272 @@
+//! The bridge: a marea node that shows every item of its domain to any Zenoh client, as
+//! `docs/zenoh.md` fixes it:
+//!
+//! | marea | Zenoh |
+//! |---|---|
+//! | variable or event `ns/service/item` of domain `D` | a publication on `usal/D/ns/service/item` |
+//! | a value of a type the tools describe | JSON (`application/json`) |
+//! | a value of any other type | postcard bytes, encoding `application/octet-stream;postcard;type=<Rust type>` |
+//! | a variable's last value | the reply to a `get` on its key (wildcards too) |
+//! | function `ns/service/fn` | a `get` on its key: the JSON argument as payload, the JSON result as reply, a `CallError` as an error reply `{"error": kind, "message": ..}` |
+//! | a node of the domain | liveliness token `usal/D/@node/<node>` |
+//!
+//! The bridge calls as itself: marea's `<access>` rules see the bridge's node, so a function a
+//! rule keeps from it is `Denied` to every Zenoh client.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use anyhow::Context;
+use marea::protocol::ItemKind;
+use marea::{CallError, Node, RawSubscription};
+use serde_json::{json, Value};
+use tokio_util::sync::CancellationToken;
+use zenoh::bytes::{Encoding, ZBytes};
+use zenoh::key_expr::KeyExpr;
+use zenoh::qos::CongestionControl;
+
+/// How long a call made for a Zenoh client may take unless its query says
+/// (`?timeout_ms=N` in the selector).
+pub const DEFAULT_CALL_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Service name the bridge's items are declared under.
+const SERVICE: &str = "zenoh-bridge";
+
+/// A value as the bridge shows it to Zenoh.
+#[derive(Clone)]
+struct Shown {
+    bytes: Vec<u8>,
+    encoding: Encoding,
+}
+
+/// `bytes` of Rust type `type_name`: JSON when the tools know the type, postcard otherwise.
+fn show(type_name: &str, bytes: &[u8]) -> Shown {
+    match usal_json::to_json(type_name, bytes) {
+        Some(Ok(v)) => Shown {
+            bytes: v.to_string().into_bytes(),
+            encoding: Encoding::APPLICATION_JSON,
+        },
+        // Unknown, or bytes that do not decode as their declared type: passed on as they are.
+        _ => Shown {
+            bytes: bytes.to_vec(),
+            encoding: Encoding::APPLICATION_OCTET_STREAM
+                .with_schema(format!("postcard;type={type_name}")),
+        },
+    }
+}
+
+/// The `CallError` as an error reply's JSON.
+fn call_error_json(e: &CallError) -> Value {
+    let kind = match e {
+        CallError::NoProvider { .. } => "no_provider",
+        CallError::Timeout { .. } => "timeout",
+        CallError::Remote { .. } => "remote",
+        CallError::LinkLost { .. } => "link_lost",
+        CallError::TypeMismatch { .. } => "type_mismatch",
+        CallError::Codec { .. } => "codec",
+        CallError::Denied { .. } => "denied",
+        CallError::Busy { .. } => "busy",
+        CallError::Superseded { .. } => "superseded",
+    };
+    json!({"error": kind, "message": e.to_string()})
+}
+
+/// Shares `node`'s domain with Zenoh through `session` until `cancel`.
+///
+/// # Errors
+/// The bridge's items cannot be declared on the node or on Zenoh.
+pub async fn run(
+    session: zenoh::Session,
+    node: &Node,
+    domain: String,
+    cancel: CancellationToken,
+) -> anyhow::Result<()> {
+    let svc = node
+        .service(SERVICE)
+        .context("declaring the bridge service")?;
+    let variables = svc
+        .subscribe_raw(ItemKind::Variable, "**")
+        .context("subscribing to every variable")?;
+    let events = svc
+        .subscribe_raw(ItemKind::Event, "**")
+        .context("subscribing to every event")?;
+    let prefix = format!("usal/{domain}");
+    let last: Arc<Mutex<BTreeMap<String, Shown>>> = Arc::default();
+    let queryable = session
+        .declare_queryable(format!("{prefix}/**"))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .context("declaring the bridge's queryable")?;
+
+    let forward = |sub: RawSubscription, is_event: bool| {
+        let session = session.clone();
+        let prefix = prefix.clone();
+        let last = last.clone();
+        let cancel = cancel.clone();
+        async move {
+            loop {
+                let v = tokio::select! {
+                    _ = cancel.cancelled() => break,
+                    v = sub.recv() => match v { Ok(v) => v, Err(_) => break },
+                };
+                let shown = show(&v.type_name, &v.payload);
+                if !is_event {
+                    lock(&last).insert(v.name.clone(), shown.clone());
+                }
+                // Events wait for a congested router (each one counts); variables give way to
+                // their next value.
+                let cc = if is_event {
+                    CongestionControl::Block
+                } else {
+                    CongestionControl::Drop
+                };
+                let put = session
+                    .put(format!("{prefix}/{}", v.name), shown.bytes)
+                    .encoding(shown.encoding)
+                    .congestion_control(cc)
+                    .await;
+                if let Err(e) = put {
+                    tracing::debug!(item = %v.name, error = %e, "not published on Zenoh");
+                }
+            }
+        }
+    };
+    let mut tasks = tokio::task::JoinSet::new();
+    tasks.spawn(forward(variables, false));
+    tasks.spawn(forward(events, true));
+    let mut tokens = NodeTokens::default();
+    loop {
+        tokens.sync(&session, node, &domain).await;
+        let query = tokio::select! {
+            _ = cancel.cancelled() => break,
+            q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
+            // Nodes come and go between queries too.
+            _ = tokio::time::sleep(Duration::from_millis(500)) => continue,
+        };
+        let svc = svc.clone();
+        let last = last.clone();
+        let prefix = prefix.clone();
+        tasks.spawn(async move { answer(query, &svc, &last, &prefix).await });
+    }
+    tasks.shutdown().await;
+    Ok(())
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Answers a `get`: the last values of the variables it matches; on one exact name that is no
+/// variable, a call of that function.
+async fn answer(
+    query: zenoh::query::Query,
+    svc: &marea::Service,
+    last: &Mutex<BTreeMap<String, Shown>>,
+    prefix: &str,
+) {
+    let asked = query.key_expr().clone();
+    let matching: Vec<(String, Shown)> = lock(last)
+        .iter()
+        .filter(|(name, _)| {
+            KeyExpr::try_from(format!("{prefix}/{name}")).is_ok_and(|k| asked.intersects(&k))
+        })
+        .map(|(n, s)| (n.clone(), s.clone()))
+        .collect();
+    let exact = !asked.as_str().contains('*');
+    if !matching.is_empty() || !exact {
+        for (name, shown) in matching {
+            let _ = query
+                .reply(format!("{prefix}/{name}"), shown.bytes)
+                .encoding(shown.encoding)
+                .await;
+        }
+        return;
+    }
+    let Some(name) = asked.as_str().strip_prefix(&format!("{prefix}/")) else {
+        return;
+    };
+    let timeout = query
+        .parameters()
+        .get("timeout_ms")
+        .and_then(|t| t.parse().ok())
+        .map_or(DEFAULT_CALL_TIMEOUT, Duration::from_millis);
+    let reply = call(svc, name, query.payload(), timeout).await;
+    let _ = match reply {
+        Ok(v) => {
+            query
+                .reply(asked.clone(), v.to_string())
+                .encoding(Encoding::APPLICATION_JSON)
+                .await
+        }
+        Err(v) => {
+            query
+                .reply_err(v.to_string())
+                .encoding(Encoding::APPLICATION_JSON)
+                .await
+        }
+    };
+}
+
+/// Calls function `name` with the JSON argument in `payload` (none: `null`); the JSON result,
+/// or the error as JSON.
+async fn call(
+    svc: &marea::Service,
+    name: &str,
+    payload: Option<&ZBytes>,
+    timeout: Duration,
+) -> Result<Value, Value> {
+    let arg: Value = match payload {
+        None => Value::Null,
+        Some(p) => serde_json::from_slice(&p.to_bytes())
+            .map_err(|e| json!({"error": "bad_argument", "message": format!("the argument is not JSON: {e}")}))?,
+    };
+    let Some(ty) = svc.function_type(name) else {
+        return Err(call_error_json(&CallError::NoProvider {
+            name: name.to_owned(),
+        }));
+    };
+    let (a, r) = usal_json::split_fn(&ty.name).ok_or_else(
+        || json!({"error": "type_mismatch", "message": format!("unexpected function type {}", ty.name)}),
+    )?;
+    let bytes = usal_json::from_json(a, &arg)
+        .map_err(|e| json!({"error": "bad_argument", "message": e}))?;
+    let out = svc
+        .call_raw(name, bytes, timeout)
+        .await
+        .map_err(|e| call_error_json(&e))?;
+    match usal_json::to_json(r, &out) {
+        Some(Ok(v)) => Ok(v),
+        _ => Err(
+            json!({"error": "codec", "message": format!("the result's type {r} cannot be shown as JSON")}),
+        ),
+    }
+}
+
+/// A liveliness token `usal/<domain>/@node/<name>` for each node of the domain the bridge
+/// knows (itself included), dropped when the node goes.
+#[derive(Default)]
+struct NodeTokens(HashMap<String, zenoh::liveliness::LivelinessToken>);
+
+impl NodeTokens {
+    async fn sync(&mut self, session: &zenoh::Session, node: &Node, domain: &str) {
+        let mut alive: Vec<String> = node.peers().into_iter().map(|p| p.name).collect();
+        alive.push(node.name().to_owned());
+        self.0.retain(|n, _| alive.contains(n));
+        for name in alive {
+            if self.0.contains_key(&name) {
+                continue;
+            }
+            match session
+                .liveliness()
+                .declare_token(format!("usal/{domain}/@node/{name}"))
+                .await
+            {
+                Ok(t) => {
+                    self.0.insert(name, t);
+                }
+                Err(e) => tracing::debug!(node = %name, error = %e, "no liveliness token"),
+            }
+        }
+    }
+}
