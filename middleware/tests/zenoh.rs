@@ -188,3 +188,68 @@ async fn events_raised_while_the_router_restarts_arrive_once_in_order() {
     air.shutdown().await;
     r.close().await.unwrap();
 }
+
+/// The deployment of a vehicle beyond one LAN: its services on their LAN, one gateway node with
+/// a LAN link and a `<zenoh>` link, and the ground station reaching the router only. The ground
+/// reads a variable, gets every event and calls a function of a node it has no link with.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_gateway_joins_a_lan_to_nodes_beyond_a_router() {
+    let port = free_port();
+    let r = router(port).await;
+    let domain = format!("zenoh-gw-{}", std::process::id());
+    let mcast = 41_000 + (std::process::id() % 20_000) as u16;
+    let lan = format!(
+        r#"<ethernet bind="127.0.0.1:0" multicast="239.255.77.23:{mcast}" interface="127.0.0.1" heartbeatMs="200"/>"#
+    );
+    let wan = format!(r#"<zenoh mode="client" connect="tcp/127.0.0.1:{port}"/>"#);
+    let xml = |node: &str, gateway: bool, links: &str| {
+        let text = format!(
+            r#"<network node="{node}" namespace="{node}" domain="{domain}" gateway="{gateway}">{links}</network>"#
+        );
+        NetworkConfig::parse(&text, None).expect("a valid network file")
+    };
+    let vas = Node::open(&xml("rover1", false, &lan)).await.unwrap();
+    let gw = Node::open(&xml("gw", true, &format!("{lan}{wan}")))
+        .await
+        .unwrap();
+    assert!(gw.is_gateway());
+    let svc = vas.service("vas").unwrap();
+    let position = svc.publish_variable::<u32>("position").unwrap();
+    position.set(&7).unwrap();
+    let alarm = svc.publish_event::<u32>("alarm").unwrap();
+    let _f = svc
+        .provide_function("double", |x: u64| async move { Ok::<u64, String>(x * 2) })
+        .unwrap();
+
+    let ground = Node::open(&xml("ground", false, &wan)).await.unwrap();
+    let fmo = ground.service("fmo").unwrap();
+    let pos = fmo
+        .subscribe_variable::<u32>("rover1/vas/position")
+        .unwrap();
+    assert_eq!(
+        pos.recv_timeout(T)
+            .await
+            .expect("through the gateway")
+            .value,
+        7
+    );
+    let alarms = fmo.subscribe_event::<u32>("rover1/vas/alarm").unwrap();
+    assert!(
+        alarm.wait_remote_subscribers(1, T).await,
+        "ground's interest crossed"
+    );
+    for i in 0..500 {
+        alarm.raise_nowait(&i).unwrap();
+    }
+    for i in 0..500 {
+        assert_eq!(alarms.recv_timeout(T).await.unwrap().value, i);
+    }
+    let double = fmo.function::<u64, u64>("rover1/vas/double").unwrap();
+    assert!(double.wait_provider(T).await);
+    assert_eq!(double.call(&21, T).await.unwrap(), 42);
+
+    ground.shutdown().await;
+    gw.shutdown().await;
+    vas.shutdown().await;
+    r.close().await.unwrap();
+}

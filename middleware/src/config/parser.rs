@@ -560,7 +560,7 @@ impl<'a> Parser<'a> {
                 at: self.at(attrs.pos),
                 element: "zenoh",
                 attribute: "connect",
-                expected: "the router to connect to, like tcp/10.0.0.1:7447 (a client reaches the others through a router)",
+                expected: "the endpoint of the router a client reaches the others through, like tcp/10.0.0.1:7447",
             });
         }
         if mode == ZenohMode::Client && !listen.is_empty() {

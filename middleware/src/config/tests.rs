@@ -272,6 +272,69 @@ fn example_config_loads() {
 }
 
 #[test]
+fn a_zenoh_link_takes_its_endpoints_mode_and_file_and_defaults_to_a_client() {
+    let c = NetworkConfig::parse(
+        &net(r#"<zenoh connect="tcp/10.0.0.1:7447, tls/gs.example.org:7447" config="z.json5"/>"#),
+        Some(Path::new("/etc/usal/network.xml")),
+    )
+    .unwrap();
+    assert_eq!(
+        c.links,
+        vec![LinkConfig::Zenoh(ZenohConfig {
+            name: "zenoh0".into(),
+            mode: ZenohMode::Client,
+            connect: vec!["tcp/10.0.0.1:7447".into(), "tls/gs.example.org:7447".into()],
+            listen: vec![],
+            config_file: Some("/etc/usal/z.json5".into()),
+            heartbeat: ms(1000),
+            lease: ms(10_000),
+        })]
+    );
+    let c = parse(&net(
+        r#"<zenoh name="wan" mode="peer" listen="tcp/0.0.0.0:7448" heartbeatMs="500"/>"#,
+    ))
+    .unwrap();
+    let [LinkConfig::Zenoh(z)] = c.links.as_slice() else {
+        panic!("{:?}", c.links);
+    };
+    assert_eq!(
+        (z.mode, z.listen.as_slice()),
+        (ZenohMode::Peer, &["tcp/0.0.0.0:7448".to_owned()][..])
+    );
+    assert_eq!((z.heartbeat, z.lease), (ms(500), ms(5000)));
+}
+
+#[test]
+fn a_zenoh_link_that_cannot_work_is_refused_where_it_is_written() {
+    let (text, line, column) = message(&net("  <zenoh/>"));
+    assert_eq!((line, column), (2, 3));
+    assert!(
+        text.contains("<zenoh>: missing required attribute connect")
+            && text.contains("the router a client reaches the others through"),
+        "{text}"
+    );
+    let (text, ..) = message(&net(
+        r#"<zenoh connect="tcp/10.0.0.1:7447" listen="tcp/0.0.0.0:7447"/>"#,
+    ));
+    assert!(
+        text.contains("attribute listen") && text.contains("a client only connects"),
+        "{text}"
+    );
+    let (text, ..) = message(&net(r#"<zenoh connect="10.0.0.1:7447"/>"#));
+    assert!(
+        text.contains("attribute connect") && text.contains("protocol/address"),
+        "{text}"
+    );
+    let (text, ..) = message(&net(r#"<zenoh mode="router" connect="tcp/a:1"/>"#));
+    assert!(
+        text.contains("attribute mode") && text.contains("`client`"),
+        "{text}"
+    );
+    let (text, ..) = message(&net(r#"<zenoh connect=" , "/>"#));
+    assert!(text.contains("attribute connect"), "{text}");
+}
+
+#[test]
 fn load_records_the_source_and_names_it_in_errors() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("network.xml");
