@@ -36,18 +36,22 @@ fn build_bins() {
             .expect("usal inside <target>/<profile>");
         for args in [
             &[
-                "build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "-p", "fmo", "-p", "fpmo",
-                "--bins",
-            ][..],
-            &[
                 "build",
                 "-p",
-                "usal",
-                "--bin",
-                "marea-radio",
-                "--bin",
-                "marea-probe",
+                "mavsim",
+                "-p",
+                "vas",
+                "-p",
+                "fpma",
+                "-p",
+                "fmo",
+                "-p",
+                "fpmo",
+                "-p",
+                "marea-gateway",
+                "--bins",
             ][..],
+            &["build", "-p", "usal", "--bin", "marea-radio"][..],
         ] {
             let status = std::process::Command::new(env!("CARGO"))
                 .args(args)

@@ -21,7 +21,8 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// Builds mavsim, vas, fpma, fmo and fpmo once into the directory holding `usal`, where it looks for them.
+/// Builds mavsim, vas, fpma, fmo, fpmo, and the router and gateway of missions beyond one LAN,
+/// once into the directory holding `usal`, where it looks for them.
 fn build_services() {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
@@ -32,8 +33,24 @@ fn build_services() {
             .expect("usal inside <target>/<profile>");
         let status = Command::new(env!("CARGO"))
             .args([
-                "build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "-p", "fmo", "-p", "fpmo",
-                "-p", "fleet", "--bins",
+                "build",
+                "-p",
+                "mavsim",
+                "-p",
+                "vas",
+                "-p",
+                "fpma",
+                "-p",
+                "fmo",
+                "-p",
+                "fpmo",
+                "-p",
+                "fleet",
+                "-p",
+                "usal-router",
+                "-p",
+                "marea-gateway",
+                "--bins",
             ])
             .current_dir(root())
             .env("CARGO_TARGET_DIR", target)
@@ -353,6 +370,39 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
         assert!(
             pids.iter().any(|(s, _)| s == gw),
             "{gw} not started: {pids:?}"
+        );
+    }
+    assert_no_child_left(&pids);
+}
+
+/// The same mission with air and ground on LANs of their own, no multicast between them, each
+/// reaching one Zenoh router (`usal-router`) through a gateway with a `<zenoh>` link: the plan
+/// upload, the commands and the telemetry all cross the router.
+#[test]
+fn the_rover_wan_mission_completes_through_a_zenoh_router() {
+    let mut l = Launcher::start(&[
+        "config/missions/rover-wan.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let router = l.event(STEP, "router");
+    assert!(
+        router["endpoint"]
+            .as_str()
+            .is_some_and(|e| e.starts_with("tcp/127.0.0.1:") && !e.ends_with(":0")),
+        "{router}"
+    );
+    let summary = l.event(FLIGHT * 2, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    let pids = l.pids();
+    for p in ["router", "air/gateway", "ground/gateway"] {
+        assert!(
+            pids.iter().any(|(s, _)| s == p),
+            "{p} not started: {pids:?}"
         );
     }
     assert_no_child_left(&pids);

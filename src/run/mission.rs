@@ -49,6 +49,8 @@ pub struct Mission {
     /// Further radios (a fleet over radios: one per vehicle's air node, each to the same
     /// ground node), after `radio`, in file order.
     pub extra_radios: Vec<RadioSpec>,
+    /// A Zenoh router joining some nodes, if any.
+    pub router: Option<RouterSpec>,
     /// The nodes, in file order (also the start order).
     pub nodes: Vec<NodeSpec>,
 }
@@ -195,6 +197,16 @@ pub struct RadioSpec {
     /// Scheduled outages (`outage="START_MS:DURATION_MS,..."`), from the radio's start: the
     /// lost-link rehearsal (issue 15).
     pub outages: Vec<(u64, u64)>,
+}
+
+/// `<router>`: a Zenoh router (`usal router`) the nodes it names reach, each through a gateway
+/// of its own, with no LAN in common: a system beyond one LAN, rehearsed on one host.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RouterSpec {
+    /// The nodes joined, in file order.
+    pub nodes: Vec<String>,
+    /// The router's listening endpoint (`listen`); port 0: a free one at start.
+    pub listen: String,
 }
 
 /// A validation failure before the file name is attached.
@@ -444,6 +456,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
     let mut nodes: Vec<NodeSpec> = Vec::new();
     let mut radio_el = None;
     let mut extra_radio_els = Vec::new();
+    let mut router_el = None;
     for child in &root.children {
         match child.name.as_str() {
             "node" => {
@@ -455,10 +468,14 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
             }
             "radio" if radio_el.is_none() => radio_el = Some(child),
             "radio" => extra_radio_els.push(child),
+            "router" if router_el.is_none() => router_el = Some(child),
+            "router" => return Err(Fault::at(child, "a mission has one <router> at most")),
             other => {
                 return Err(Fault::at(
                     child,
-                    format!("unknown element <{other}> in <mission> (expected <node> or <radio>)"),
+                    format!(
+                    "unknown element <{other}> in <mission> (expected <node>, <radio> or <router>)"
+                ),
                 ))
             }
         }
@@ -472,6 +489,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
         timeout,
         radio: None,
         extra_radios: Vec::new(),
+        router: None,
         nodes,
     };
     if let Some(el) = radio_el {
@@ -501,8 +519,70 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
         }
         mission.extra_radios.push(spec);
     }
+    if let Some(el) = router_el {
+        mission.router = Some(router_from(el, &mission)?);
+    }
     resolve_station(root, &mut mission)?;
     Ok(mission)
+}
+
+fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
+    let mut a = Attrs::new(el, &["nodes", "listen"]);
+    let nodes: Vec<String> = a
+        .req("nodes")?
+        .split(',')
+        .map(str::trim)
+        .filter(|n| !n.is_empty())
+        .map(str::to_owned)
+        .collect();
+    let listen = a
+        .opt("listen")
+        .unwrap_or_else(|| "tcp/127.0.0.1:0".to_owned());
+    a.finish()?;
+    if nodes.len() < 2 {
+        return Err(Fault::at(
+            el,
+            "`nodes` must name two nodes or more (comma-separated): the router joins them",
+        ));
+    }
+    let radio_nodes: Vec<&str> = mission
+        .radio
+        .iter()
+        .chain(&mission.extra_radios)
+        .flat_map(|r| [r.ground.as_str(), r.air.as_str()])
+        .collect();
+    for (i, n) in nodes.iter().enumerate() {
+        let Some(node) = mission.node(n) else {
+            return Err(Fault::at(el, format!("no node `{n}`")));
+        };
+        if nodes[..i].contains(n) {
+            return Err(Fault::at(el, format!("node `{n}` is named twice")));
+        }
+        if radio_nodes.contains(&n.as_str()) {
+            return Err(Fault::at(
+                el,
+                format!("node `{n}` is joined by a <radio> already"),
+            ));
+        }
+        if node.network.is_some() {
+            return Err(Fault::at(
+                el,
+                format!(
+                    "node `{n}` is joined by the <router>: the launcher gives it its own LAN, so it must not name a network file"
+                ),
+            ));
+        }
+    }
+    let valid = listen.split_once('/').is_some_and(|(proto, addr)| {
+        proto == "tcp" && addr.parse::<std::net::SocketAddr>().is_ok()
+    });
+    if !valid {
+        return Err(Fault::at(
+            el,
+            format!("`listen` must be a TCP endpoint like tcp/127.0.0.1:7447, found `{listen}`"),
+        ));
+    }
+    Ok(RouterSpec { nodes, listen })
 }
 
 fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
@@ -1019,6 +1099,57 @@ mod tests {
         let e = parse(&FLEET.replace("<mavsim/><vas/><fpma/>", "<mavsim/><vas/><fpma/><fpma/>"))
             .unwrap_err();
         assert!(e.contains("node `air1` already runs a fpma"), "{e}");
+    }
+
+    #[test]
+    fn a_router_joins_the_nodes_it_names_and_refuses_what_cannot_work() {
+        let with = |r: &str| parse(&FLEET.replace("</mission>", &format!("{r}\n</mission>")));
+        let m = with(r#"<router nodes="air1, air2,ground"/>"#).unwrap();
+        assert_eq!(
+            m.router,
+            Some(RouterSpec {
+                nodes: vec!["air1".into(), "air2".into(), "ground".into()],
+                listen: "tcp/127.0.0.1:0".into(),
+            })
+        );
+        let m = with(r#"<router nodes="air1,ground" listen="tcp/0.0.0.0:7447"/>"#).unwrap();
+        assert_eq!(
+            m.router.map(|r| r.listen).as_deref(),
+            Some("tcp/0.0.0.0:7447")
+        );
+        for (router, says) in [
+            (r#"<router nodes="air1"/>"#, "two nodes or more"),
+            (r#"<router nodes="air1,nowhere"/>"#, "no node `nowhere`"),
+            (
+                r#"<router nodes="air1,air1"/>"#,
+                "node `air1` is named twice",
+            ),
+            (
+                r#"<router nodes="air1,ground" listen="udp/1.2.3.4:1"/>"#,
+                "a TCP endpoint",
+            ),
+            (
+                r#"<radio ground="ground" air="air1"/><router nodes="air1,air2"/>"#,
+                "node `air1` is joined by a <radio> already",
+            ),
+            (
+                r#"<router nodes="air1,ground"/><router nodes="air2,ground"/>"#,
+                "one <router> at most",
+            ),
+        ] {
+            let e = with(router).unwrap_err();
+            assert!(e.contains("<router>") && e.contains(says), "{router}: {e}");
+        }
+        let e = parse(
+            &FLEET
+                .replace(
+                    "<node name=\"ground\">",
+                    "<node name=\"ground\" network=\"../network.xml\">",
+                )
+                .replace("</mission>", "<router nodes=\"air1,ground\"/>\n</mission>"),
+        )
+        .unwrap_err();
+        assert!(e.contains("must not name a network file"), "{e}");
     }
 
     #[test]

@@ -5,6 +5,7 @@
 mod failsafe;
 mod fleet;
 pub mod flightlog;
+mod lan;
 pub mod mission;
 mod radio;
 pub mod replay;
@@ -222,12 +223,19 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
             }
         }
     }
-    // A radio needs the emulator and the gateway node, binaries of this package.
+    // A radio needs the emulator (a binary of this package) and a gateway on each side.
     let own: &[&str] = if mission.radio.is_some() {
-        &["marea-radio", "marea-probe"]
+        &["marea-radio"]
     } else {
         &[]
     };
+    if mission.radio.is_some() || mission.router.is_some() {
+        needed.push("marea-gateway");
+    }
+    // A router needs the router (its gateways have Zenoh too: every marea-gateway has).
+    if mission.router.is_some() {
+        needed.push("usal-router");
+    }
     find_or_build(&needed, own, ui)
 }
 
@@ -425,6 +433,13 @@ async fn run(
             Err(e) => radio = Err(e),
         }
     }
+    // A router: it gives the nodes it joins their networks too.
+    let radio = match (radio, mission.router.clone()) {
+        (Ok(r), Some(spec)) => {
+            router::start(&mut mission, &spec, &domain, &bins, &scratch, &mut sup, &ui).map(|()| r)
+        }
+        (r, _) => r,
+    };
     let _radio = match radio {
         Ok(r) => r,
         Err(e) => {

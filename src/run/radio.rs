@@ -1,13 +1,13 @@
 //! A mission's `<radio>`: the two nodes it joins get a LAN each (their own discovery group on
 //! this host, so they cannot meet directly), a `marea-radio` emulator carries a serial line
-//! between them, and a gateway process on each side (`marea-probe gateway`, a node with the
-//! LAN and the serial link) forwards between LAN and radio by interest.
+//! between them, and a gateway process on each side (`marea-gateway`, a node with the LAN and
+//! the serial link) forwards between LAN and radio by interest.
 //!
 //! A fleet over radios has several `<radio>`s, each joining one vehicle's air node to the same
 //! ground node: the ground node keeps one LAN (`lans` remembers it between calls) and gets one
 //! gateway per radio (`<ground>/gateway` for the first, `<ground>/gateway-<air>` for the others).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Stdio;
 use std::sync::Arc;
 use std::time::Duration;
@@ -17,6 +17,7 @@ use serde_json::json;
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 
+use super::lan::{free_port, gateway_xml, lan_xml, write};
 use super::mission::{Mission, RadioSpec};
 use super::supervisor::{ChildSpec, Supervisor};
 use super::ui::Ui;
@@ -28,47 +29,6 @@ const RADIO_READY: Duration = Duration::from_secs(10);
 /// The running emulator; killed when dropped.
 pub struct RadioLink {
     _child: Child,
-}
-
-/// A free UDP port on the loopback interface (for a LAN's discovery group).
-fn free_port() -> anyhow::Result<u16> {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0").context("finding a free UDP port")?;
-    Ok(s.local_addr()?.port())
-}
-
-/// The Ethernet element of a node's LAN on this host.
-fn ethernet(port: u16) -> String {
-    format!(
-        r#"  <ethernet name="lan" bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"/>"#
-    )
-}
-
-/// network.xml of a service on a radio-joined node: its LAN only.
-fn lan_xml(node: &str, domain: &str, port: u16) -> String {
-    format!(
-        "<network node=\"{node}\" domain=\"{domain}\">\n{}\n</network>\n",
-        ethernet(port)
-    )
-}
-
-/// network.xml of a node's gateway (node `<gateway>-gateway`): its LAN and its end of the radio.
-fn gateway_xml(
-    node: &str,
-    namespace: &str,
-    domain: &str,
-    port: u16,
-    tty: &str,
-    baud: u32,
-) -> String {
-    let ns = if namespace.is_empty() {
-        String::new()
-    } else {
-        format!(" namespace=\"{namespace}\"")
-    };
-    format!(
-        "<network node=\"{node}-gateway\"{ns} domain=\"{domain}\" gateway=\"true\">\n{}\n  <serial name=\"radio\" address=\"{tty}\" baudRate=\"{baud}\"/>\n</network>\n",
-        ethernet(port)
-    )
 }
 
 /// Starts the emulator and both gateways, and points every process of the two nodes (and the
@@ -181,27 +141,26 @@ pub async fn start(
         let gw = write(
             &dir,
             &format!("{gw_name}-gateway.xml"),
-            &gateway_xml(&gw_name, &namespace, domain, port, tty, spec.baud),
+            &gateway_xml(
+                &gw_name,
+                &namespace,
+                domain,
+                port,
+                &format!(
+                    r#"<serial name="radio" address="{tty}" baudRate="{}"/>"#,
+                    spec.baud
+                ),
+            ),
         )?;
         sup.start(ChildSpec {
             label,
             kind: "gateway",
-            program: bins.path("marea-probe"),
-            args: vec![
-                "--config".into(),
-                gw.display().to_string(),
-                "gateway".into(),
-            ],
+            program: bins.path("marea-gateway"),
+            args: vec!["--config".into(), gw.display().to_string()],
             announce: None,
         });
     }
     Ok(RadioLink { _child: child })
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> anyhow::Result<PathBuf> {
-    let path = dir.join(name);
-    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
-    Ok(path)
 }
 
 #[cfg(test)]
@@ -213,7 +172,13 @@ mod tests {
         let lan = marea::NetworkConfig::parse(&lan_xml("air", "d", 40000), None).expect("lan");
         assert_eq!(lan.links.len(), 1);
         let gw = marea::NetworkConfig::parse(
-            &gateway_xml("air", "rover1", "d", 40000, "/dev/pts/9", 57600),
+            &gateway_xml(
+                "air",
+                "rover1",
+                "d",
+                40000,
+                r#"<serial name="radio" address="/dev/pts/9" baudRate="57600"/>"#,
+            ),
             None,
         )
         .expect("gateway");
