@@ -408,6 +408,49 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
     assert_no_child_left(&pids);
 }
 
+/// The WAN rehearsal: the ground station behind 150 ms of round trip, 1 % segment loss and
+/// 2 Mbit/s, the router killed and restarted mid-flight, then the ground's path cut for 30 s:
+/// the VAS holds the rover on the lost link and resumes when it returns, nothing the vehicle
+/// raised is lost to the station (every waypoint reached, in order; both failsafes seen), and
+/// the plan completes.
+#[test]
+fn the_rover_wan_failsafe_mission_completes_across_a_router_restart_and_an_outage() {
+    let mut l = Launcher::start(&["config/missions/rover-wan-failsafe.xml", "--until-complete"]);
+    let wan = l.event(STEP, "wan");
+    assert_eq!(wan["rtt_ms"], 150, "{wan}");
+    l.expect(Duration::from_secs(60), "the router killed", |v| {
+        v["event"] == "crash" && v["service"] == "router"
+    });
+    l.expect(Duration::from_secs(30), "the router restarted", |v| {
+        v["event"] == "started" && v["service"] == "router" && v["restarts"] == 1
+    });
+    let summary = l.event(FLIGHT * 3, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    let fired: Vec<String> = summary["summary"]["failsafes"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .map(|f| {
+                    format!(
+                        "{} {}",
+                        f["kind"].as_str().unwrap_or(""),
+                        f["action"].as_str().unwrap_or("")
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    assert!(
+        fired.contains(&"link-lost hold".to_owned())
+            && fired.contains(&"link-restored resume".to_owned()),
+        "{fired:?}"
+    );
+    assert_no_child_left(&l.pids());
+}
+
 /// Issue 16 item 1: two rovers in one mission, each its namespace, simulator, VAS, FPMa and
 /// plan; `--until-complete` waits for both, and each gets its own progress and summary.
 #[test]

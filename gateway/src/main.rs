@@ -3,8 +3,10 @@
 //! only when someone on the other side wants it, and the last value of every variable it
 //! forwards is kept for late subscribers on its side. `usal run` starts one per node a mission's
 //! `<router>` joins. It prints JSON lines: `{"ready": node, "gateway": true, "links": [..]}`,
-//! then what it forwards whenever that changes.
+//! then, whenever what it forwards changes, `{"forwarded": N, "added": [..], "removed": [..]}`
+//! (each item as `kind name from origin`).
 
+use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -59,21 +61,25 @@ async fn run(args: Args) -> anyhow::Result<()> {
         "{}",
         json!({"ready": node.name(), "gateway": node.is_gateway(), "links": node.link_addrs()})
     );
-    let mut shown = serde_json::Value::Null;
+    let mut shown: BTreeSet<String> = BTreeSet::new();
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     loop {
         tokio::select! {
             _ = marea::process::terminated() => break,
             _ = tick.tick() => {}
         }
-        let items: Vec<serde_json::Value> = node
+        let now: BTreeSet<String> = node
             .forwarded()
             .into_iter()
-            .map(|f| json!({"name": f.name, "kind": f.kind.as_str(), "origin": f.origin, "cached": f.cached}))
+            .map(|f| format!("{} {} from {}", f.kind.as_str(), f.name, f.origin))
             .collect();
-        let now = serde_json::Value::from(items);
         if now != shown {
-            println!("{}", json!({ "forwarded": now }));
+            let added: Vec<&String> = now.difference(&shown).collect();
+            let removed: Vec<&String> = shown.difference(&now).collect();
+            println!(
+                "{}",
+                json!({"forwarded": now.len(), "added": added, "removed": removed})
+            );
             shown = now;
         }
     }

@@ -207,6 +207,26 @@ pub struct RouterSpec {
     pub nodes: Vec<String>,
     /// The router's listening endpoint (`listen`); port 0: a free one at start.
     pub listen: String,
+    /// A node reaching the router through an emulated wide-area link (`wan` and its
+    /// attributes), if any.
+    pub wan: Option<WanSpec>,
+    /// A rehearsed router crash (`crashMs`): killed this long after its start, then restarted.
+    pub crash_after: Option<Duration>,
+}
+
+/// The wide-area link one node of a `<router>` reaches it through (`marea-wan`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct WanSpec {
+    /// The node (`wan`).
+    pub node: String,
+    /// One-way delay (`delayMs`).
+    pub delay_ms: u64,
+    /// Segment loss probability (`loss`).
+    pub loss: f64,
+    /// Bandwidth of each direction in kbit/s (`rateKbps`; 0: unlimited).
+    pub rate_kbps: u64,
+    /// Scheduled outages from the start (`outage="START_MS:DURATION_MS,..."`).
+    pub outages: Vec<(u64, u64)>,
 }
 
 /// A validation failure before the file name is attached.
@@ -527,7 +547,12 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
 }
 
 fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
-    let mut a = Attrs::new(el, &["nodes", "listen"]);
+    let mut a = Attrs::new(
+        el,
+        &[
+            "nodes", "listen", "wan", "delayMs", "loss", "rateKbps", "outage", "crashMs",
+        ],
+    );
     let nodes: Vec<String> = a
         .req("nodes")?
         .split(',')
@@ -538,7 +563,45 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     let listen = a
         .opt("listen")
         .unwrap_or_else(|| "tcp/127.0.0.1:0".to_owned());
+    let wan_node = a.opt("wan");
+    let delay_ms: Option<u64> = a.parsed("delayMs", "a whole number of milliseconds")?;
+    let loss: Option<f64> = a.parsed("loss", "a probability")?;
+    let rate_kbps: Option<u64> = a.parsed("rateKbps", "a whole number of kbit/s")?;
+    let outages = match a.opt("outage") {
+        None => None,
+        Some(text) => Some(parse_outages(&text).map_err(|e| Fault::at(el, e))?),
+    };
+    let crash_after = a
+        .parsed::<u64>("crashMs", "a whole number of milliseconds")?
+        .map(Duration::from_millis);
     a.finish()?;
+    let shaped = delay_ms.is_some() || loss.is_some() || rate_kbps.is_some() || outages.is_some();
+    let wan = match wan_node {
+        Some(node) => {
+            if !nodes.contains(&node) {
+                return Err(Fault::at(
+                    el,
+                    format!("`wan` names `{node}`, which is not one of `nodes`"),
+                ));
+            }
+            let loss = loss.unwrap_or(0.0);
+            if !(0.0..=1.0).contains(&loss) {
+                return Err(Fault::at(el, "`loss` must be within 0..1"));
+            }
+            Some(WanSpec {
+                node,
+                delay_ms: delay_ms.unwrap_or(0),
+                loss,
+                rate_kbps: rate_kbps.unwrap_or(0),
+                outages: outages.unwrap_or_default(),
+            })
+        }
+        None if shaped => return Err(Fault::at(
+            el,
+            "delayMs, loss, rateKbps and outage shape the link of the node named by `wan`: name it",
+        )),
+        None => None,
+    };
     if nodes.len() < 2 {
         return Err(Fault::at(
             el,
@@ -582,7 +645,12 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
             format!("`listen` must be a TCP endpoint like tcp/127.0.0.1:7447, found `{listen}`"),
         ));
     }
-    Ok(RouterSpec { nodes, listen })
+    Ok(RouterSpec {
+        nodes,
+        listen,
+        wan,
+        crash_after,
+    })
 }
 
 fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
@@ -1110,8 +1178,26 @@ mod tests {
             Some(RouterSpec {
                 nodes: vec!["air1".into(), "air2".into(), "ground".into()],
                 listen: "tcp/127.0.0.1:0".into(),
+                wan: None,
+                crash_after: None,
             })
         );
+        let m = with(
+            r#"<router nodes="air1,ground" wan="ground" delayMs="75" loss="0.01" rateKbps="2000" outage="45000:30000" crashMs="20000"/>"#,
+        )
+        .unwrap();
+        let r = m.router.unwrap();
+        assert_eq!(
+            r.wan,
+            Some(WanSpec {
+                node: "ground".into(),
+                delay_ms: 75,
+                loss: 0.01,
+                rate_kbps: 2000,
+                outages: vec![(45_000, 30_000)],
+            })
+        );
+        assert_eq!(r.crash_after, Some(Duration::from_secs(20)));
         let m = with(r#"<router nodes="air1,ground" listen="tcp/0.0.0.0:7447"/>"#).unwrap();
         assert_eq!(
             m.router.map(|r| r.listen).as_deref(),
@@ -1135,6 +1221,15 @@ mod tests {
             (
                 r#"<router nodes="air1,ground"/><router nodes="air2,ground"/>"#,
                 "one <router> at most",
+            ),
+            (r#"<router nodes="air1,ground" delayMs="75"/>"#, "name it"),
+            (
+                r#"<router nodes="air1,ground" wan="air2"/>"#,
+                "not one of `nodes`",
+            ),
+            (
+                r#"<router nodes="air1,ground" wan="ground" loss="2"/>"#,
+                "within 0..1",
             ),
         ] {
             let e = with(router).unwrap_err();

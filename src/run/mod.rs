@@ -223,12 +223,15 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
             }
         }
     }
-    // A radio needs the emulator (a binary of this package) and a gateway on each side.
-    let own: &[&str] = if mission.radio.is_some() {
-        &["marea-radio"]
-    } else {
-        &[]
-    };
+    // A radio needs the emulator (a binary of this package) and a gateway on each side; an
+    // emulated wide-area link, marea-wan (one too).
+    let mut own: Vec<&str> = Vec::new();
+    if mission.radio.is_some() {
+        own.push("marea-radio");
+    }
+    if mission.router.as_ref().is_some_and(|r| r.wan.is_some()) {
+        own.push("marea-wan");
+    }
     if mission.radio.is_some() || mission.router.is_some() {
         needed.push("marea-gateway");
     }
@@ -236,7 +239,7 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
     if mission.router.is_some() {
         needed.push("usal-router");
     }
-    find_or_build(&needed, own, ui)
+    find_or_build(&needed, &own, ui)
 }
 
 /// The directory of `usal`'s own executable, where the binaries it starts are: packages'
@@ -747,6 +750,7 @@ async fn start_services(
                 program: bins.path(svc.kind()),
                 args: a,
                 announce,
+                crash_after: None,
             });
         }
     }

@@ -158,6 +158,7 @@ pub async fn start(
             program: bins.path("marea-gateway"),
             args: vec!["--config".into(), gw.display().to_string()],
             announce: None,
+            crash_after: None,
         });
     }
     Ok(RadioLink { _child: child })

@@ -12,7 +12,7 @@ use anyhow::{anyhow, Context};
 use serde_json::json;
 
 use super::lan::{free_port, gateway_xml, lan_xml, write};
-use super::mission::{Mission, RouterSpec};
+use super::mission::{Mission, RouterSpec, WanSpec};
 use super::supervisor::{ChildSpec, Supervisor};
 use super::ui::Ui;
 use super::Bins;
@@ -42,8 +42,9 @@ pub fn main(args: &[String], json: bool) -> ExitCode {
 
 /// Starts a mission's `<router>`: `usal-router` on its endpoint (a free port when it names
 /// port 0), and for each node it joins a LAN of its own and a gateway (`marea-gateway`, node
-/// `<node>-gateway`) with that LAN and a `<zenoh>` link to the router. Says where the router
-/// listens and how a Zenoh client joins.
+/// `<node>-gateway`) with that LAN and a `<zenoh>` link to the router; the node named by `wan`
+/// reaches the router through `marea-wan`. Says where the router listens and how a Zenoh client
+/// joins.
 pub fn start(
     mission: &mut Mission,
     spec: &RouterSpec,
@@ -60,6 +61,7 @@ pub fn start(
         program: bins.path("usal-router"),
         args: vec!["--listen".into(), endpoint.clone()],
         announce: None,
+        crash_after: spec.crash_after,
     });
     ui.note(
         &format!(
@@ -68,9 +70,18 @@ pub fn start(
         ),
         json!({"event": "router", "endpoint": endpoint, "nodes": spec.nodes}),
     );
+    if let Some(after) = spec.crash_after {
+        ui.note(
+            &format!("router: it will be killed {after:?} after its start, and restarted"),
+            json!({"event": "router_crash_planned", "after_ms": after.as_millis() as u64}),
+        );
+    }
+    let wan = match &spec.wan {
+        Some(w) => Some((w.node.as_str(), start_wan(w, &endpoint, bins, sup, ui)?)),
+        None => None,
+    };
     let dir = scratch.join("network");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let far = format!(r#"<zenoh name="wan" mode="client" connect="{endpoint}"/>"#);
     for name in &spec.nodes {
         let node = mission
             .nodes
@@ -84,6 +95,11 @@ pub fn start(
             &lan_xml(name, domain, port),
         )?);
         let namespace = node.namespace.clone().unwrap_or_default();
+        let reach = match &wan {
+            Some((n, proxy)) if n == name => proxy,
+            _ => &endpoint,
+        };
+        let far = format!(r#"<zenoh name="wan" mode="client" connect="{reach}"/>"#);
         let gw = write(
             &dir,
             &format!("{name}-gateway.xml"),
@@ -95,9 +111,68 @@ pub fn start(
             program: bins.path("marea-gateway"),
             args: vec!["--config".into(), gw.display().to_string()],
             announce: None,
+            crash_after: None,
         });
     }
     Ok(())
+}
+
+/// Starts `marea-wan` in front of the router at `router` with the shaping of `wan`; returns the
+/// endpoint the node's gateway connects to instead.
+fn start_wan(
+    wan: &WanSpec,
+    router: &str,
+    bins: &Bins,
+    sup: &mut Supervisor,
+    ui: &Ui,
+) -> anyhow::Result<String> {
+    let to = router.strip_prefix("tcp/").unwrap_or(router);
+    let listen = endpoint_with_port("tcp/127.0.0.1:0")?;
+    let mut args = vec![
+        "--listen".to_owned(),
+        listen.trim_start_matches("tcp/").to_owned(),
+        "--to".to_owned(),
+        to.to_owned(),
+        "--delay-ms".to_owned(),
+        wan.delay_ms.to_string(),
+        "--loss".to_owned(),
+        wan.loss.to_string(),
+        "--rate-kbps".to_owned(),
+        wan.rate_kbps.to_string(),
+    ];
+    for (start, duration) in &wan.outages {
+        args.extend(["--outage".to_owned(), format!("{start}:{duration}")]);
+    }
+    sup.start(ChildSpec {
+        label: "wan".into(),
+        kind: "wan",
+        program: bins.path("marea-wan"),
+        args,
+        announce: None,
+        crash_after: None,
+    });
+    let outages: Vec<String> = wan
+        .outages
+        .iter()
+        .map(|(s, d)| format!("{d} ms at {s} ms"))
+        .collect();
+    ui.note(
+        &format!(
+            "wan: {} reaches the router through marea-wan ({listen}): {} ms round trip, {} % loss, {} kbit/s{}",
+            wan.node,
+            2 * wan.delay_ms,
+            wan.loss * 100.0,
+            wan.rate_kbps,
+            if outages.is_empty() {
+                String::new()
+            } else {
+                format!(", outages {}", outages.join(", "))
+            }
+        ),
+        json!({"event": "wan", "node": wan.node, "endpoint": listen, "rtt_ms": 2 * wan.delay_ms,
+               "loss": wan.loss, "rate_kbps": wan.rate_kbps, "outages": wan.outages}),
+    );
+    Ok(listen)
 }
 
 /// `tcp/IP:PORT` with a free port of that address in place of port 0.

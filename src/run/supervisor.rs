@@ -53,6 +53,9 @@ pub struct ChildSpec {
     pub args: Vec<String>,
     /// A value it announces on stdout, if any.
     pub announce: Option<Announce>,
+    /// A rehearsed crash: the child is killed (SIGKILL) this long after its first start, and
+    /// restarted as after any death.
+    pub crash_after: Option<Duration>,
 }
 
 /// What the supervisor tells the rest of the launcher.
@@ -182,9 +185,24 @@ async fn supervise(
             .take()
             .map(|s| tokio::spawn(forward(s, label.clone(), ui.clone(), None)));
 
+        // The rehearsed crash, once: of the first run only.
+        let crash = spec.crash_after.take();
         let exited = tokio::select! {
             s = child.wait() => Some(s),
             () = stop.cancelled() => None,
+            () = async {
+                match crash {
+                    Some(after) => tokio::time::sleep(after).await,
+                    None => std::future::pending().await,
+                }
+            } => {
+                ui.note(
+                    &format!("{label}: killed with SIGKILL, as the mission rehearses"),
+                    json!({"event": "crash", "service": label, "pid": pid}),
+                );
+                let _ = child.start_kill();
+                Some(child.wait().await)
+            }
         };
         let status = match exited {
             Some(s) => s,

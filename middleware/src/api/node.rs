@@ -366,6 +366,7 @@ impl Node {
                         connect: z.connect.clone(),
                         listen: z.listen.clone(),
                         config_file: z.config_file.clone(),
+                        lease: z.lease,
                         domain: config.domain.clone(),
                         node: config.node.clone(),
                         arq: crate::link::arq::ArqConfig::lan(),

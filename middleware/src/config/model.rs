@@ -135,8 +135,8 @@ pub struct ZenohConfig {
     pub config_file: Option<std::path::PathBuf>,
     /// Heartbeat period (`heartbeatMs`), default 1000 ms.
     pub heartbeat: Duration,
-    /// A peer silent this long is gone (`leaseMs`), default 10 × heartbeat: long enough for a
-    /// router restart.
+    /// A peer silent this long is gone (`leaseMs`), default 60 × heartbeat: a router restart
+    /// or a WAN outage of half a minute loses nothing.
     pub lease: Duration,
 }
 

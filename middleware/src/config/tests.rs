@@ -287,7 +287,7 @@ fn a_zenoh_link_takes_its_endpoints_mode_and_file_and_defaults_to_a_client() {
             listen: vec![],
             config_file: Some("/etc/usal/z.json5".into()),
             heartbeat: ms(1000),
-            lease: ms(10_000),
+            lease: ms(60_000),
         })]
     );
     let c = parse(&net(
@@ -301,7 +301,7 @@ fn a_zenoh_link_takes_its_endpoints_mode_and_file_and_defaults_to_a_client() {
         (z.mode, z.listen.as_slice()),
         (ZenohMode::Peer, &["tcp/0.0.0.0:7448".to_owned()][..])
     );
-    assert_eq!((z.heartbeat, z.lease), (ms(500), ms(5000)));
+    assert_eq!((z.heartbeat, z.lease), (ms(500), ms(30_000)));
 }
 
 #[test]

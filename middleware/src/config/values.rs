@@ -20,10 +20,11 @@ pub(super) const ETHERNET_HEARTBEAT_MS: u64 = 1000;
 pub(super) const ETHERNET_LEASE: LeaseFactor = LeaseFactor { num: 7, den: 2 };
 // Same-host peers die visibly (the process exits), so the LAN timing suits shared memory too.
 pub(super) const SHM_HEARTBEAT_MS: u64 = 1000;
-// A Zenoh link's peers are beyond a router, often over a WAN: the LAN's beat, and a lease
-// long enough for a router to restart (the sessions reconnect within a few seconds).
+// A Zenoh link's peers are beyond a router, often over a WAN: the LAN's beat, and a lease that
+// outlasts a router restart and a WAN outage of half a minute, so that nothing in flight is
+// given up (a peer that leaves says Bye; only a crashed one takes the whole lease to notice).
 pub(super) const ZENOH_HEARTBEAT_MS: u64 = 1000;
-pub(super) const ZENOH_LEASE: LeaseFactor = LeaseFactor { num: 10, den: 1 };
+pub(super) const ZENOH_LEASE: LeaseFactor = LeaseFactor { num: 60, den: 1 };
 pub(super) const SHM_LEASE: LeaseFactor = LeaseFactor { num: 7, den: 2 };
 // Each peer an inbox admits costs ~11 KiB of the node's memory, touched at creation (iceoryx2
 // keeps a connection entry per possible writer in each of the inbox's three buffers). Sixteen

@@ -46,6 +46,9 @@ pub struct ZenohLinkOptions {
     pub listen: Vec<String>,
     /// A Zenoh configuration file under the attributes.
     pub config_file: Option<std::path::PathBuf>,
+    /// The link's lease: retransmission keeps a session this long without an acknowledgement
+    /// (an outage up to the lease loses nothing).
+    pub lease: std::time::Duration,
     /// The discovery domain: the links of one domain meet under `usal/<domain>`.
     pub domain: String,
     /// The node's name, for its liveliness token.
@@ -183,10 +186,13 @@ impl Medium for ZenohMedium {
     }
 }
 
+/// How long a client's session waits at start for a router to answer, without a `config` file.
+pub const CLIENT_CONNECT_WAIT_MS: u64 = 15_000;
+
 /// The Zenoh configuration of a link: its `config` file if any, with `mode`, `connect` and
 /// `listen` applied over it. Without a file, multicast scouting is off (a router, or the
-/// endpoints given, is how a node meets the others) and a client keeps trying to reach its
-/// router instead of failing when it is not up yet.
+/// endpoints given, is how a node meets the others) and a client waits up to
+/// [`CLIENT_CONNECT_WAIT_MS`] for its router at start (then the node fails to open, naming it).
 ///
 /// # Errors
 /// [`ZenohLinkOpenError::ConfigFile`] or [`ZenohLinkOpenError::Config`].
@@ -226,7 +232,9 @@ pub fn zenoh_config(c: &ZenohLinkOptions) -> Result<zenoh::Config, ZenohLinkOpen
     if c.config_file.is_none() {
         set("scouting/multicast/enabled", "false".into())?;
         if c.mode == ZenohMode::Client {
-            set("connect/exit_on_failure", "false".into())?;
+            // A node started with its router (a mission, a vehicle booting) waits for it a
+            // while instead of failing at once; once connected, Zenoh reconnects by itself.
+            set("connect/timeout_ms", CLIENT_CONNECT_WAIT_MS.to_string())?;
         }
     }
     Ok(config)
@@ -307,7 +315,10 @@ impl DatagramLink<ZenohMedium> {
             DatagramLinkOptions {
                 name: c.name.clone(),
                 arq: options.arq,
-                retry_limit: RetryLimit::lan(),
+                retry_limit: RetryLimit {
+                    after: options.lease.max(RetryLimit::lan().after),
+                    ..RetryLimit::lan()
+                },
                 security: options.security,
             },
             medium,
