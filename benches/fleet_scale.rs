@@ -142,10 +142,8 @@ async fn vehicles(args: &[String]) -> anyhow::Result<()> {
                     lon: 2.0 + seq as f64 * 1e-6,
                 });
                 let _ = state.set(&3);
-                if seq % 2 == 0 {
-                    if ev.raise_nowait(&(seq / 2)).is_ok() {
-                        raised.fetch_add(1, Ordering::Relaxed);
-                    }
+                if seq % 2 == 0 && ev.raise_nowait(&(seq / 2)).is_ok() {
+                    raised.fetch_add(1, Ordering::Relaxed);
                 }
                 seq += 1;
             }
