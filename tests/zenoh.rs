@@ -1,9 +1,13 @@
 //! Nodes in separate processes whose only common medium is `usal router` (a Zenoh router, real
 //! TCP, no multicast between them): they meet, read each other's variables, call each other's
 //! functions, and an event stream survives the router being killed and restarted mid-stream,
-//! every event arriving once, in order.
+//! every event arriving once, in order. And a plain Zenoh client (the official Python one) uses
+//! a domain through `usal router --bridge`: JSON values, calls, `<access>` refusals.
 
 mod common;
+// The test venv's Python (made from tests/python/requirements.txt), as the MAVSDK suite finds it.
+#[path = "../services/vas/tests/common/mavsdk.rs"]
+mod python;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -46,18 +50,7 @@ fn router(port: u16) -> Proc {
 /// A network.xml in `dir` for node `node` (namespace too) of `domain` whose only link is a
 /// Zenoh client of the router at `port`.
 fn network_xml(dir: &Path, node: &str, domain: &str, port: u16) -> PathBuf {
-    let path = dir.join(format!("{node}.xml"));
-    std::fs::write(
-        &path,
-        format!(
-            r#"<network node="{node}" namespace="{node}" domain="{domain}">
-  <zenoh name="wan" mode="client" connect="tcp/127.0.0.1:{port}"/>
-</network>
-"#
-        ),
-    )
-    .expect("write network.xml");
-    path
+    network_xml_with(dir, node, node, domain, port, "")
 }
 
 #[test]
@@ -177,9 +170,6 @@ fn an_event_stream_survives_the_router_killed_and_restarted() {
     assert_eq!(received["received"], count, "{received}");
     assert_eq!(received["in_order"], true, "{:?}", sub.seen);
 }
-
-#[path = "../services/vas/tests/common/mavsdk.rs"]
-mod python;
 
 /// A network.xml in `dir` for node `node` of `namespace` in `domain`, a Zenoh client of the
 /// router at `port`, holding `inner` (an `<access>` element) too.
