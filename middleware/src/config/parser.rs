@@ -441,22 +441,24 @@ impl<'a> Parser<'a> {
         })
     }
 
+    /// A path attribute's value: relative to the network file's folder when relative.
+    fn file_path(&self, s: &str) -> Result<std::path::PathBuf, Invalid> {
+        let s = s.trim();
+        if s.is_empty() {
+            return Err(Invalid::Syntax(PATH_SYNTAX));
+        }
+        let p = std::path::PathBuf::from(s);
+        Ok(match self.source.and_then(Path::parent) {
+            Some(dir) if p.is_relative() => dir.join(p),
+            _ => p,
+        })
+    }
+
     /// `<security keyFile=".." encrypt="none|radio"/>`; the key file itself is read when the
     /// node opens.
     fn security(&mut self, element: &Element<'a>) -> Result<SecurityConfig, ConfigLoadError> {
         let attrs = self.attributes("security", element, SECURITY_ATTRS)?;
-        let source = self.source;
-        let path = |s: &str| -> Result<std::path::PathBuf, Invalid> {
-            let s = s.trim();
-            if s.is_empty() {
-                return Err(Invalid::Syntax(PATH_SYNTAX));
-            }
-            let p = std::path::PathBuf::from(s);
-            Ok(match source.and_then(Path::parent) {
-                Some(dir) if p.is_relative() => dir.join(p),
-                _ => p,
-            })
-        };
+        let path = |s: &str| self.file_path(s);
         let key_file = self.required(&attrs, "keyFile", KEY_FILE_SYNTAX, |s| {
             path(s).map_err(|_| Invalid::Syntax(KEY_FILE_SYNTAX))
         })?;
@@ -543,18 +545,7 @@ impl<'a> Parser<'a> {
         let listen = self
             .value(&attrs, "listen", parse_zenoh_endpoints)?
             .unwrap_or_default();
-        let source = self.source;
-        let config_file = self.value(&attrs, "config", |s| {
-            let s = s.trim();
-            if s.is_empty() {
-                return Err(Invalid::Syntax(PATH_SYNTAX));
-            }
-            let p = std::path::PathBuf::from(s);
-            Ok(match source.and_then(Path::parent) {
-                Some(dir) if p.is_relative() => dir.join(p),
-                _ => p,
-            })
-        })?;
+        let config_file = self.value(&attrs, "config", |s| self.file_path(s))?;
         if mode == ZenohMode::Client && connect.is_empty() && config_file.is_none() {
             return Err(ConfigLoadError::MissingAttribute {
                 at: self.at(attrs.pos),
