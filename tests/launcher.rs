@@ -376,8 +376,9 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
 }
 
 /// The same mission with air and ground on LANs of their own, no multicast between them, each
-/// reaching one Zenoh router (`usal-router`) through a gateway with a `<zenoh>` link: the plan
-/// upload, the commands and the telemetry all cross the router.
+/// reaching one Zenoh router (`usal-router`, over TLS with certificates made for the run)
+/// through a gateway with a `<zenoh>` link: the plan upload, the commands and the telemetry all
+/// cross the router.
 #[test]
 fn the_rover_wan_mission_completes_through_a_zenoh_router() {
     let mut l = Launcher::start(&[
@@ -390,9 +391,14 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
     assert!(
         router["endpoint"]
             .as_str()
-            .is_some_and(|e| e.starts_with("tcp/127.0.0.1:") && !e.ends_with(":0")),
+            .is_some_and(|e| e.starts_with("tls/127.0.0.1:") && !e.ends_with(":0")),
         "{router}"
     );
+    // The run's certificates, and the configuration a Zenoh client needs to trust them.
+    let client = router["client_config"]
+        .as_str()
+        .expect("TLS client configuration");
+    assert!(std::fs::read_to_string(client).is_ok_and(|c| c.contains("root_ca_certificate")));
     let summary = l.event(FLIGHT * 2, "summary");
     let status = l.wait_exit(STEP);
     l.drain();

@@ -312,3 +312,95 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
     assert_eq!(refused["change_state"]["error"], "denied", "{refused}");
     client.expect_key(T, "done");
 }
+
+/// `usal router --tls-dir` makes the deployment's certificates and serves TLS: nodes given the
+/// client configuration it wrote (trusting its authority) meet through it; a node that does not
+/// trust the authority cannot even open its link, and says why.
+#[test]
+fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let tls = dir.path().join("tls");
+    let endpoint = format!("tls/127.0.0.1:{port}");
+    let mut router = Proc::spawn(
+        "router",
+        env!("CARGO_BIN_EXE_usal"),
+        &[
+            "--json".into(),
+            "router".into(),
+            "--listen".into(),
+            endpoint.clone(),
+            "--tls-dir".into(),
+            tls.display().to_string(),
+        ],
+    );
+    let listening = router.expect(Duration::from_secs(300), "listening", |v| {
+        v["event"] == "listening"
+    });
+    let client = tls.join("client.json5");
+    assert_eq!(
+        listening["network_xml"],
+        format!(
+            "<zenoh mode=\"client\" connect=\"{endpoint}\" config=\"{}\"/>",
+            client.display()
+        )
+        .as_str()
+    );
+    let domain = format!("zenoh-tls-{}", std::process::id());
+    let trusted = format!(r#"config="{}""#, client.display());
+    let xml = |node: &str, extra: &str| {
+        let path = dir.path().join(format!("{node}.xml"));
+        std::fs::write(
+            &path,
+            format!(
+                r#"<network node="{node}" namespace="{node}" domain="{domain}">
+  <zenoh mode="client" connect="{endpoint}" {extra}/>
+</network>"#
+            ),
+        )
+        .unwrap();
+        path
+    };
+    let _publisher = probe_with_config(
+        "air",
+        &xml("air", &trusted),
+        "vas",
+        &[],
+        &[
+            "var-pub",
+            "--item",
+            "position",
+            "--count",
+            "1000000",
+            "--interval-ms",
+            "50",
+        ],
+    );
+    let mut sub = probe_with_config(
+        "ground",
+        &xml("ground", &trusted),
+        "fmo",
+        &[],
+        &["var-sub", "--pattern", "air/vas/position", "--count", "1"],
+    );
+    let got = sub.expect(T, "a position over TLS", |v| v.get("seq").is_some());
+    assert_eq!(got["name"], "air/vas/position", "{got}");
+
+    // No trust in the authority (and a short wait for the router, to fail soon).
+    let untrusting = dir.path().join("untrusting.json5");
+    std::fs::write(
+        &untrusting,
+        r#"{ mode: "client", scouting: { multicast: { enabled: false } }, connect: { timeout_ms: 2000 } }"#,
+    )
+    .unwrap();
+    let mut intruder = probe_with_config(
+        "intruder",
+        &xml("intruder", &format!(r#"config="{}""#, untrusting.display())),
+        "x",
+        &[],
+        &["var-sub", "--pattern", "air/vas/position", "--count", "1"],
+    );
+    let status = intruder.wait_exit(T);
+    assert!(!status.success(), "a node without the authority joined");
+    assert!(intruder.seen.is_empty(), "{:?}", intruder.seen);
+}

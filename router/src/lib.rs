@@ -8,6 +8,7 @@
 //! it to any Zenoh client ([`bridge`]).
 
 pub mod bridge;
+pub mod tls;
 
 use std::path::PathBuf;
 
@@ -90,7 +91,14 @@ fn json_list(v: &[String]) -> String {
     serde_json::to_string(v).unwrap_or_else(|_| "[]".into())
 }
 
-/// How a USAL node's network.xml names a router at `endpoint`.
-pub fn network_xml_line(endpoint: &str) -> String {
-    format!("<zenoh mode=\"client\" connect=\"{endpoint}\"/>")
+/// How a USAL node's network.xml names a router at `endpoint`, with the client configuration
+/// of its TLS folder (`client_config`) when it serves TLS.
+pub fn network_xml_line(endpoint: &str, client_config: Option<&std::path::Path>) -> String {
+    match client_config {
+        Some(c) => format!(
+            "<zenoh mode=\"client\" connect=\"{endpoint}\" config=\"{}\"/>",
+            c.display()
+        ),
+        None => format!("<zenoh mode=\"client\" connect=\"{endpoint}\"/>"),
+    }
 }

@@ -25,6 +25,18 @@ struct Args {
     /// Zenoh configuration file (JSON5, as zenohd takes) for TLS, users and access control.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Serve TLS with the deployment's certificates in DIR, made there when missing (an
+    /// authority, the router's certificate for --tls-host, and client.json5 for the clients).
+    /// Without --listen the router then listens on tls/0.0.0.0:7447.
+    #[arg(long, value_name = "DIR")]
+    tls_dir: Option<PathBuf>,
+    /// A name or address the router is reached at, for its certificate (repeatable; default
+    /// 127.0.0.1 and localhost).
+    #[arg(long)]
+    tls_host: Vec<String>,
+    /// With --tls-dir: make the certificates and exit.
+    #[arg(long)]
+    certs_only: bool,
     /// Join the domain of this network.xml as a marea node and show its items to Zenoh
     /// clients: variables and events on usal/<domain>/<name> (JSON), functions as queryables.
     #[arg(long)]
@@ -53,23 +65,59 @@ async fn main() -> ExitCode {
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
+    let tls = match &args.tls_dir {
+        Some(dir) => {
+            let hosts = if args.tls_host.is_empty() {
+                vec!["127.0.0.1".to_owned(), "localhost".to_owned()]
+            } else {
+                args.tls_host.clone()
+            };
+            Some(usal_router::tls::ensure(dir, &hosts)?)
+        }
+        None if args.certs_only => anyhow::bail!("--certs-only needs --tls-dir"),
+        None => None,
+    };
+    if args.certs_only {
+        if let Some(files) = &tls {
+            say(
+                args.json,
+                &format!(
+                    "usal-router: certificates in {}; clients trust {} (their Zenoh configuration: {})",
+                    files.ca.parent().map_or_else(String::new, |d| d.display().to_string()),
+                    files.ca.display(),
+                    files.client_config.display()
+                ),
+                json!({"event": "certificates", "ca": files.ca, "client_config": files.client_config}),
+            );
+        }
+        return Ok(());
+    }
+    let listen = if args.listen.is_empty() && tls.is_some() && args.config.is_none() {
+        vec!["tls/0.0.0.0:7447".to_owned()]
+    } else {
+        args.listen
+    };
     let options = RouterOptions {
-        listen: args.listen,
+        listen,
         connect: args.connect,
         config_file: args.config,
     };
-    let config = router_config(&options)?;
+    let mut config = router_config(&options)?;
+    if let Some(files) = &tls {
+        usal_router::tls::configure_router(&mut config, files)?;
+    }
     let endpoints = listen_endpoints(&config);
     let session = zenoh::open(config)
         .await
         .map_err(|e| anyhow::anyhow!("{e}"))
         .with_context(|| format!("opening the router on {}", endpoints.join(", ")))?;
     let zid = session.zid().to_string();
+    let client_config = tls.as_ref().map(|f| f.client_config.as_path());
     if args.json {
         println!(
             "{}",
             json!({"event": "listening", "zid": zid, "endpoints": endpoints,
-                   "network_xml": endpoints.first().map(|e| network_xml_line(e))})
+                   "network_xml": endpoints.first().map(|e| network_xml_line(e, client_config))})
         );
     } else {
         println!(
@@ -79,16 +127,19 @@ async fn run(args: Args) -> anyhow::Result<()> {
         if let Some(e) = endpoints.first() {
             println!(
                 "usal-router: a USAL node joins with {} in its network.xml (from another machine, this machine's address instead of 0.0.0.0)",
-                network_xml_line(e)
+                network_xml_line(e, client_config)
             );
-            println!(
-                "usal-router: any Zenoh client joins by connecting to {e}{}",
-                if options.config_file.is_none() {
-                    "; this router asks no credentials (TLS and users: docs/zenoh.md)"
-                } else {
-                    ""
-                }
-            );
+            match &tls {
+                Some(files) => println!(
+                    "usal-router: any Zenoh client joins by connecting to {e} trusting {} (Zenoh configuration for clients: {})",
+                    files.ca.display(),
+                    files.client_config.display()
+                ),
+                None if options.config_file.is_none() => println!(
+                    "usal-router: any Zenoh client joins by connecting to {e}; this router asks no credentials and does not encrypt (--tls-dir, users: docs/zenoh.md)"
+                ),
+                None => println!("usal-router: any Zenoh client joins by connecting to {e}"),
+            }
         }
     }
     let cancel = tokio_util::sync::CancellationToken::new();
@@ -126,6 +177,15 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!("{e}"))
         .context("closing the router")?;
     Ok(())
+}
+
+/// Prints `text`, or `json` with --json.
+fn say(json: bool, text: &str, value: serde_json::Value) {
+    if json {
+        println!("{value}");
+    } else {
+        println!("{text}");
+    }
 }
 
 /// Resolves on SIGINT or SIGTERM.

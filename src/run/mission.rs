@@ -212,6 +212,8 @@ pub struct RouterSpec {
     pub wan: Option<WanSpec>,
     /// A rehearsed router crash (`crashMs`): killed this long after its start, then restarted.
     pub crash_after: Option<Duration>,
+    /// Whether the router serves TLS with certificates made for the run (`tls`).
+    pub tls: bool,
 }
 
 /// The wide-area link one node of a `<router>` reaches it through (`marea-wan`).
@@ -550,7 +552,7 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     let mut a = Attrs::new(
         el,
         &[
-            "nodes", "listen", "wan", "delayMs", "loss", "rateKbps", "outage", "crashMs",
+            "nodes", "listen", "wan", "delayMs", "loss", "rateKbps", "outage", "crashMs", "tls",
         ],
     );
     let nodes: Vec<String> = a
@@ -574,6 +576,7 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     let crash_after = a
         .parsed::<u64>("crashMs", "a whole number of milliseconds")?
         .map(Duration::from_millis);
+    let tls = a.parsed::<bool>("tls", "true or false")?.unwrap_or(false);
     a.finish()?;
     let shaped = delay_ms.is_some() || loss.is_some() || rate_kbps.is_some() || outages.is_some();
     let wan = match wan_node {
@@ -650,6 +653,7 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
         listen,
         wan,
         crash_after,
+        tls,
     })
 }
 
@@ -1180,6 +1184,7 @@ mod tests {
                 listen: "tcp/127.0.0.1:0".into(),
                 wan: None,
                 crash_after: None,
+                tls: false,
             })
         );
         let m = with(

@@ -54,21 +54,52 @@ pub fn start(
     sup: &mut Supervisor,
     ui: &Ui,
 ) -> anyhow::Result<()> {
-    let endpoint = endpoint_with_port(&spec.listen)?;
+    let tcp = endpoint_with_port(&spec.listen)?;
+    // With TLS: the same address, and certificates made for this run before anyone connects.
+    let (endpoint, client_config, mut args) = if spec.tls {
+        let dir = scratch.join("tls");
+        let made = std::process::Command::new(bins.path("usal-router"))
+            .args(["--certs-only", "--tls-dir"])
+            .arg(&dir)
+            .stdout(std::process::Stdio::null())
+            .status()
+            .context("running usal-router to make the certificates")?;
+        if !made.success() {
+            anyhow::bail!(
+                "usal-router could not make the certificates in {}",
+                dir.display()
+            );
+        }
+        let endpoint = format!("tls/{}", tcp.trim_start_matches("tcp/"));
+        let args = vec!["--tls-dir".to_owned(), dir.display().to_string()];
+        (endpoint, Some(dir.join("client.json5")), args)
+    } else {
+        (tcp.clone(), None, Vec::new())
+    };
+    args.extend(["--listen".to_owned(), endpoint.clone()]);
     sup.start(ChildSpec {
         label: "router".into(),
         kind: "router",
         program: bins.path("usal-router"),
-        args: vec!["--listen".into(), endpoint.clone()],
+        args,
         announce: None,
         crash_after: spec.crash_after,
     });
+    let joins = match &client_config {
+        Some(c) => format!(
+            "a Zenoh client joins by connecting to {endpoint} with the Zenoh configuration {} (it trusts the run's authority, ca.pem beside it)",
+            c.display()
+        ),
+        None => format!(
+            "a Zenoh client joins by connecting to {endpoint} (no TLS, no credentials)"
+        ),
+    };
     ui.note(
         &format!(
-            "router: usal-router on {endpoint} joins {} (each through a gateway; no LAN between them); a Zenoh client joins by connecting to {endpoint}",
+            "router: usal-router on {endpoint} joins {} (each through a gateway; no LAN between them); {joins}",
             spec.nodes.join(", ")
         ),
-        json!({"event": "router", "endpoint": endpoint, "nodes": spec.nodes}),
+        json!({"event": "router", "endpoint": endpoint, "nodes": spec.nodes, "client_config": client_config}),
     );
     if let Some(after) = spec.crash_after {
         ui.note(
@@ -77,7 +108,15 @@ pub fn start(
         );
     }
     let wan = match &spec.wan {
-        Some(w) => Some((w.node.as_str(), start_wan(w, &endpoint, bins, sup, ui)?)),
+        Some(w) => {
+            let proxy = start_wan(w, &tcp, bins, sup, ui)?;
+            // The path is TCP either way; TLS runs through it.
+            let proxy = match spec.tls {
+                true => format!("tls/{}", proxy.trim_start_matches("tcp/")),
+                false => proxy,
+            };
+            Some((w.node.as_str(), proxy))
+        }
         None => None,
     };
     let dir = scratch.join("network");
@@ -99,7 +138,13 @@ pub fn start(
             Some((n, proxy)) if n == name => proxy,
             _ => &endpoint,
         };
-        let far = format!(r#"<zenoh name="wan" mode="client" connect="{reach}"/>"#);
+        let far = match &client_config {
+            Some(c) => format!(
+                r#"<zenoh name="wan" mode="client" connect="{reach}" config="{}"/>"#,
+                c.display()
+            ),
+            None => format!(r#"<zenoh name="wan" mode="client" connect="{reach}"/>"#),
+        };
         let gw = write(
             &dir,
             &format!("{name}-gateway.xml"),

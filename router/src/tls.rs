@@ -1,0 +1,170 @@
+//! Certificates for a router reached over TLS, made on this machine: a certificate authority of
+//! the deployment, the router's certificate (for the host names and addresses it is reached
+//! at) signed by it, and the Zenoh configuration a client needs to trust it. Kept in one
+//! folder and reused while they exist, so clients set up once keep working.
+//!
+//! ```text
+//! DIR/ca.pem          the authority's certificate: what every client trusts
+//! DIR/ca.key          its private key (mode 0600): keep it off the vehicles
+//! DIR/router.pem      the router's certificate, for the names given
+//! DIR/router.key      its private key (mode 0600)
+//! DIR/client.json5    a Zenoh client configuration trusting ca.pem (a <zenoh config="..">)
+//! ```
+//! For a real deployment, make the folder on the ground station's machine, copy `ca.pem` and
+//! `client.json5` to every node, and keep the keys where they are (docs/zenoh.md).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+
+/// The files of a router's TLS folder.
+#[derive(Debug, Clone)]
+pub struct TlsFiles {
+    /// The authority's certificate.
+    pub ca: PathBuf,
+    /// The router's certificate.
+    pub cert: PathBuf,
+    /// The router's private key.
+    pub key: PathBuf,
+    /// The client configuration.
+    pub client_config: PathBuf,
+}
+
+impl TlsFiles {
+    /// The files in `dir`.
+    pub fn in_dir(dir: &Path) -> TlsFiles {
+        TlsFiles {
+            ca: dir.join("ca.pem"),
+            cert: dir.join("router.pem"),
+            key: dir.join("router.key"),
+            client_config: dir.join("client.json5"),
+        }
+    }
+}
+
+/// The TLS files of `dir`, made when missing: a new authority and a router certificate for
+/// `hosts` (names or IP addresses). Existing files are kept as they are.
+///
+/// # Errors
+/// A file cannot be written, or a certificate cannot be made.
+pub fn ensure(dir: &Path, hosts: &[String]) -> anyhow::Result<TlsFiles> {
+    let files = TlsFiles::in_dir(dir);
+    if [&files.ca, &files.cert, &files.key, &files.client_config]
+        .iter()
+        .all(|p| p.is_file())
+    {
+        return Ok(files);
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let ca_key = rcgen::KeyPair::generate().context("making the authority's key")?;
+    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new())?;
+    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    ca_params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, "USAL deployment authority");
+    ca_params.key_usages = vec![
+        rcgen::KeyUsagePurpose::KeyCertSign,
+        rcgen::KeyUsagePurpose::CrlSign,
+        rcgen::KeyUsagePurpose::DigitalSignature,
+    ];
+    let ca = ca_params
+        .self_signed(&ca_key)
+        .context("signing the authority's certificate")?;
+    let key = rcgen::KeyPair::generate().context("making the router's key")?;
+    let mut params = rcgen::CertificateParams::new(hosts.to_vec())
+        .context("the router's names are not valid certificate names")?;
+    params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, "usal-router");
+    params.extended_key_usages = vec![
+        rcgen::ExtendedKeyUsagePurpose::ServerAuth,
+        rcgen::ExtendedKeyUsagePurpose::ClientAuth,
+    ];
+    let cert = params
+        .signed_by(&key, &ca, &ca_key)
+        .context("signing the router's certificate")?;
+    write(&files.ca, &ca.pem(), false)?;
+    write(&dir.join("ca.key"), &ca_key.serialize_pem(), true)?;
+    write(&files.cert, &cert.pem(), false)?;
+    write(&files.key, &key.serialize_pem(), true)?;
+    write(&files.client_config, &client_config(&files.ca), false)?;
+    Ok(files)
+}
+
+/// A Zenoh client configuration trusting the authority at `ca`: no multicast, and a client that
+/// waits a while for its router at start, as a `<zenoh>` link without a file does.
+fn client_config(ca: &Path) -> String {
+    format!(
+        r#"// A Zenoh client of a USAL router over TLS, made by usal-router: it trusts the
+// deployment's authority (ca.pem beside this file). Name it in a node's network.xml:
+//   <zenoh mode="client" connect="tls/HOST:PORT" config="client.json5"/>
+{{
+  mode: "client",
+  scouting: {{ multicast: {{ enabled: false }} }},
+  connect: {{ timeout_ms: 15000 }},
+  transport: {{ link: {{ tls: {{ root_ca_certificate: {ca:?} }} }} }},
+}}
+"#,
+        ca = ca.display().to_string()
+    )
+}
+
+fn write(path: &Path, text: &str, private: bool) -> anyhow::Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(if private { 0o600 } else { 0o644 })
+        .open(path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    f.write_all(text.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// Sets the router's side of TLS in `config`: its certificate and key.
+///
+/// # Errors
+/// Zenoh refuses a value.
+pub fn configure_router(config: &mut zenoh::Config, files: &TlsFiles) -> anyhow::Result<()> {
+    let path = |p: &Path| format!("{:?}", p.display().to_string());
+    for (key, value) in [
+        ("transport/link/tls/listen_certificate", path(&files.cert)),
+        ("transport/link/tls/listen_private_key", path(&files.key)),
+        ("transport/link/tls/root_ca_certificate", path(&files.ca)),
+    ] {
+        config
+            .insert_json5(key, &value)
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .with_context(|| format!("Zenoh refused {key}"))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_folder_is_made_once_and_its_keys_are_private() {
+        let dir = tempfile::tempdir().unwrap();
+        let files = ensure(dir.path(), &["127.0.0.1".into(), "localhost".into()]).unwrap();
+        let ca = std::fs::read_to_string(&files.ca).unwrap();
+        assert!(ca.starts_with("-----BEGIN CERTIFICATE-----"), "{ca}");
+        use std::os::unix::fs::PermissionsExt;
+        for key in [&files.key, &dir.path().join("ca.key")] {
+            let mode = std::fs::metadata(key).unwrap().permissions().mode() & 0o777;
+            assert_eq!(mode, 0o600, "{}", key.display());
+        }
+        // The client configuration is one Zenoh takes, trusting this authority.
+        let client = zenoh::Config::from_file(&files.client_config).unwrap();
+        let root = client
+            .get_json("transport/link/tls/root_ca_certificate")
+            .unwrap();
+        assert!(root.contains("ca.pem"), "{root}");
+        // Made again: the same files, untouched.
+        let again = ensure(dir.path(), &["127.0.0.1".into()]).unwrap();
+        assert_eq!(std::fs::read_to_string(&again.ca).unwrap(), ca);
+    }
+}
