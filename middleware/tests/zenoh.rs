@@ -253,3 +253,75 @@ async fn a_gateway_joins_a_lan_to_nodes_beyond_a_router() {
     vas.shutdown().await;
     r.close().await.unwrap();
 }
+
+/// The domain seal and `<access>` rules hold across a router as on a LAN: with the domain key,
+/// nodes meet and the call a rule allows runs; a node without the key, on the same router and
+/// domain, meets no one; a node the rule does not name is `Denied`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_seal_and_access_rules_hold_across_a_router() {
+    let port = free_port();
+    let r = router(port).await;
+    let dir = tempfile::tempdir().unwrap();
+    let key = dir.path().join("domain.key");
+    marea::link::auth::DomainKey::create_file(&key).unwrap();
+    let domain = format!("zenoh-sealed-{}", std::process::id());
+    let xml = |node: &str, inner: &str| {
+        let text = format!(
+            r#"<network node="{node}" namespace="{node}" domain="{domain}">
+                 <zenoh mode="client" connect="tcp/127.0.0.1:{port}"/>
+                 {inner}
+               </network>"#
+        );
+        NetworkConfig::parse(&text, None).expect("a valid network file")
+    };
+    let sealed = format!(r#"<security keyFile="{}"/>"#, key.display());
+    let air = Node::open(&xml(
+        "air",
+        &format!(
+            r#"{sealed}<access><allow kind="call" item="air/vas/change_state" from="ground/*"/></access>"#
+        ),
+    ))
+    .await
+    .unwrap();
+    let _f = air
+        .service("vas")
+        .unwrap()
+        .provide_function("change_state", |x: u8| async move { Ok::<u8, String>(x) })
+        .unwrap();
+    let ground = Node::open(&xml("ground", &sealed)).await.unwrap();
+    let other = Node::open(&xml("other", &sealed)).await.unwrap();
+    let outsider = Node::open(&xml("outsider", "")).await.unwrap();
+
+    let call = |node: &Node| {
+        node.service("caller")
+            .unwrap()
+            .function::<u8, u8>("air/vas/change_state")
+            .unwrap()
+    };
+    let from_ground = call(&ground);
+    assert!(from_ground.wait_provider(T).await, "sealed nodes meet");
+    assert_eq!(from_ground.call(&7, T).await.unwrap(), 7);
+    let from_other = call(&other);
+    assert!(from_other.wait_provider(T).await);
+    match from_other.call(&7, T).await {
+        Err(CallError::Denied { .. }) => {}
+        x => panic!("expected Denied for a node the rule does not name, got {x:?}"),
+    }
+    // Whoever sees the air node would have seen it by now: the ground did, seconds ago.
+    let from_outsider = call(&outsider);
+    assert!(
+        !from_outsider.wait_provider(Duration::from_secs(3)).await,
+        "a node without the key met the sealed domain"
+    );
+    assert!(outsider.peers().is_empty(), "{:?}", outsider.peers());
+    assert!(
+        air.link_stats().iter().any(|(_, s)| s.auth_rejected > 0),
+        "the outsider's datagrams reached the air node and were refused"
+    );
+
+    outsider.shutdown().await;
+    other.shutdown().await;
+    ground.shutdown().await;
+    air.shutdown().await;
+    r.close().await.unwrap();
+}
