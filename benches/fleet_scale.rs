@@ -1,5 +1,5 @@
-//! `cargo bench --bench fleet_scale [-- N...]`: a fleet of N emulated vehicles and one ground
-//! station, all on one LAN (marea's multicast discovery) and then each vehicle reaching the
+//! `cargo bench --bench fleet_scale [-- N... [lan|zenoh]]`: a fleet of N emulated vehicles and
+//! one ground station, all on one LAN (marea's multicast discovery) and then each vehicle reaching the
 //! ground through one Zenoh router, for N = 10, 50, 100, 200 (or the N given), as JSON lines
 //! `{"metric": "<lan|zenoh>.fleet<N>.<figure>", "value": ..., "unit": ...}`.
 //!
@@ -79,8 +79,14 @@ fn main() -> anyhow::Result<()> {
             } else {
                 ns
             };
+            // `lan` or `zenoh` among the arguments: that mode only.
+            let named = |z: bool| args.iter().any(|a| a == mode(z));
+            let modes: Vec<bool> = [false, true]
+                .into_iter()
+                .filter(|&z| named(z) || !named(!z))
+                .collect();
             for n in ns {
-                for zenoh in [false, true] {
+                for &zenoh in &modes {
                     if let Err(e) = run(n, zenoh) {
                         eprintln!("fleet_scale: N={n} {}: {e:#}", mode(zenoh));
                     }
