@@ -209,8 +209,12 @@ async fn ground(args: &[String]) -> anyhow::Result<()> {
                         break;
                     };
                     calls.fetch_add(1, Ordering::Relaxed);
-                    if f.call(&4, Duration::from_secs(2)).await == Ok(4) {
-                        calls_ok.fetch_add(1, Ordering::Relaxed);
+                    match f.call(&4, Duration::from_secs(2)).await {
+                        Ok(4) => {
+                            calls_ok.fetch_add(1, Ordering::Relaxed);
+                        }
+                        // Why a call failed, for the report (stderr).
+                        other => eprintln!("fleet_scale ground: call {i}: {other:?}"),
                     }
                 }
             });
