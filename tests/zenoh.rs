@@ -12,7 +12,7 @@ mod python;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use common::{outcome, probe_with_config, Proc, T};
+use common::{outcome, probe_with_config, publishing, Proc, T};
 
 /// A free TCP port on loopback (bound and released; the router then listens on it).
 fn free_port() -> u16 {
@@ -62,21 +62,7 @@ fn processes_meet_through_usal_router_and_read_variables_and_call_functions() {
     let air = network_xml(dir.path(), "air", &domain, port);
     let ground = network_xml(dir.path(), "ground", &domain, port);
 
-    let _position = probe_with_config(
-        "air-pub",
-        &air,
-        "vas",
-        &[],
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "50",
-        ],
-    );
+    let _position = probe_with_config("air-pub", &air, "vas", &[], &publishing("position"));
     let _provider = probe_with_config("air-fn", &air, "vas", &[], &["provide", "--item", "double"]);
     let mut sub = probe_with_config(
         "ground-sub",
@@ -246,16 +232,7 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
         &air,
         "vas",
         &[],
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "50",
-            "--usal-type",
-        ],
+        &[&publishing("position")[..], &["--usal-type"]].concat(),
     );
     let mut double = probe_with_config(
         "airdbl",
@@ -366,15 +343,7 @@ fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
         &xml("air", &trusted),
         "vas",
         &[],
-        &[
-            "var-pub",
-            "--item",
-            "position",
-            "--count",
-            "1000000",
-            "--interval-ms",
-            "50",
-        ],
+        &publishing("position"),
     );
     let mut sub = probe_with_config(
         "ground",
