@@ -156,6 +156,27 @@ async fn vehicles(args: &[String]) -> anyhow::Result<()> {
         });
     }
     out(json!({"ready": n}));
+    // Every 10 s, the vehicles' links summed, on stderr: what their sessions went through.
+    let nodes = Arc::new(nodes);
+    let watched = nodes.clone();
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(Duration::from_secs(10)).await;
+            let mut t = marea::link::LinkStats::default();
+            for node in watched.iter() {
+                for (_, s) in node.link_stats() {
+                    t.sessions_expired += s.sessions_expired;
+                    t.sessions_given_up += s.sessions_given_up;
+                    t.retransmitted += s.retransmitted;
+                    t.fast_dropped += s.fast_dropped;
+                }
+            }
+            eprintln!(
+                "fleet_scale vehicles: sessions expired {}, given up {}; retransmitted {}; fast dropped {}",
+                t.sessions_expired, t.sessions_given_up, t.retransmitted, t.fast_dropped
+            );
+        }
+    });
     marea::process::terminated().await;
     out(json!({"raised": raised.load(Ordering::Relaxed)}));
     Ok(())
