@@ -66,7 +66,7 @@ pub fn python() -> Option<PathBuf> {
     if !runs(&python3, &["--version"]) {
         eprintln!(
             "SKIPPED: python3 not found; the MAVSDK conformance suite needs Python 3 \
-             (see README, \"conformance suite\")"
+             (see docs/missions.md, \"conformance suite\")"
         );
         return None;
     }
