@@ -22,24 +22,29 @@ fn free_port() -> u16 {
         .expect("a free loopback port")
 }
 
-/// `usal router` listening on loopback `port`, once it says so.
-fn router(port: u16) -> Proc {
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut r = Proc::spawn(
-        "router",
-        env!("CARGO_BIN_EXE_usal"),
-        &[
-            "--json".into(),
-            "router".into(),
-            "--listen".into(),
-            endpoint.clone(),
-        ],
-    );
+/// `usal --json router --listen ENDPOINT` with `extra` options, once it says it listens; and
+/// what it said.
+fn router_on(endpoint: &str, extra: &[String]) -> (Proc, serde_json::Value) {
+    let mut args: Vec<String> = vec![
+        "--json".into(),
+        "router".into(),
+        "--listen".into(),
+        endpoint.into(),
+    ];
+    args.extend_from_slice(extra);
+    let mut r = Proc::spawn("router", env!("CARGO_BIN_EXE_usal"), &args);
     // The first run may build usal-router: allow for it.
     let listening = r.expect(Duration::from_secs(300), "listening", |v| {
         v["event"] == "listening"
     });
-    assert_eq!(listening["endpoints"][0], endpoint.as_str());
+    assert_eq!(listening["endpoints"][0], endpoint);
+    (r, listening)
+}
+
+/// `usal router` listening on loopback `port` over plain TCP, once it says so.
+fn router(port: u16) -> Proc {
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let (r, listening) = router_on(&endpoint, &[]);
     assert_eq!(
         listening["network_xml"],
         format!("<zenoh mode=\"client\" connect=\"{endpoint}\"/>").as_str()
@@ -200,21 +205,10 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
     let domain = format!("zenoh-py-{}", std::process::id());
     let bridge = network_xml_with(dir.path(), "bridge", "zbridge", &domain, port, "");
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut router = Proc::spawn(
-        "router",
-        env!("CARGO_BIN_EXE_usal"),
-        &[
-            "--json".into(),
-            "router".into(),
-            "--listen".into(),
-            endpoint.clone(),
-            "--bridge".into(),
-            bridge.display().to_string(),
-        ],
+    let (mut router, _) = router_on(
+        &endpoint,
+        &["--bridge".into(), bridge.display().to_string()],
     );
-    router.expect(Duration::from_secs(300), "listening", |v| {
-        v["event"] == "listening"
-    });
     router.expect(T, "bridging", |v| v["event"] == "bridging");
 
     let air = network_xml_with(dir.path(), "air", "air", &domain, port, "");
@@ -299,21 +293,8 @@ fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
     let dir = tempfile::tempdir().unwrap();
     let tls = dir.path().join("tls");
     let endpoint = format!("tls/127.0.0.1:{port}");
-    let mut router = Proc::spawn(
-        "router",
-        env!("CARGO_BIN_EXE_usal"),
-        &[
-            "--json".into(),
-            "router".into(),
-            "--listen".into(),
-            endpoint.clone(),
-            "--tls-dir".into(),
-            tls.display().to_string(),
-        ],
-    );
-    let listening = router.expect(Duration::from_secs(300), "listening", |v| {
-        v["event"] == "listening"
-    });
+    let (_router, listening) =
+        router_on(&endpoint, &["--tls-dir".into(), tls.display().to_string()]);
     let client = tls.join("client.json5");
     assert_eq!(
         listening["network_xml"],
