@@ -372,8 +372,17 @@ fn free_port() -> anyhow::Result<u16> {
         .port())
 }
 
-/// The release `usal-router`, built if missing, next to this bench's target directory.
+/// The release `usal-router`, built once per bench run (cargo: a no-op when fresh).
 fn router_binary() -> anyhow::Result<PathBuf> {
+    static BUILT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    if let Some(p) = BUILT.get() {
+        return Ok(p.clone());
+    }
+    let p = build_router()?;
+    Ok(BUILT.get_or_init(|| p).clone())
+}
+
+fn build_router() -> anyhow::Result<PathBuf> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let status = Command::new(env!("CARGO"))
         .args(["build", "--release", "-p", "usal-router"])
