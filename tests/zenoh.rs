@@ -152,6 +152,12 @@ fn an_event_stream_survives_the_router_killed_and_restarted() {
     // router dies; it is down for a second, then back on the same port.
     std::thread::sleep(Duration::from_secs(1));
     r.kill9();
+    // Still streaming when the router died, or the test would prove nothing.
+    assert!(
+        publ.try_expect(Duration::ZERO, |v| v.get("raised").is_some())
+            .is_none(),
+        "the stream ended before the router was killed"
+    );
     std::thread::sleep(Duration::from_secs(1));
     let _r = router(port);
     let done = publ.expect_key(Duration::from_secs(60), "raised");
