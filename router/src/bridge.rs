@@ -19,6 +19,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use marea::protocol::ItemKind;
+use marea::sync::lock;
 use marea::{CallError, Node, RawSubscription};
 use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
@@ -151,10 +152,6 @@ pub async fn run(
     }
     tasks.shutdown().await;
     Ok(())
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// Answers a `get`: the last values of the variables it matches; on one exact name that is no
