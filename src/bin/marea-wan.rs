@@ -296,10 +296,7 @@ async fn udp(args: Args, start: Instant) -> anyhow::Result<()> {
                 s
             }
         };
-        let at = up
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .datagram(Instant::now(), n);
+        let at = marea::sync::lock(&up).datagram(Instant::now(), n);
         if let Some(at) = at {
             let bytes = buf[..n].to_vec();
             tokio::spawn(async move {
