@@ -55,7 +55,14 @@ fn router(port: u16) -> Proc {
 /// A network.xml in `dir` for node `node` (namespace too) of `domain` whose only link is a
 /// Zenoh client of the router at `port`.
 fn network_xml(dir: &Path, node: &str, domain: &str, port: u16) -> PathBuf {
-    network_xml_with(dir, node, node, domain, port, "")
+    zenoh_client_xml(
+        dir,
+        node,
+        node,
+        domain,
+        &format!("tcp/127.0.0.1:{port}\""),
+        "",
+    )
 }
 
 #[test]
@@ -168,14 +175,15 @@ fn an_event_stream_survives_the_router_killed_and_restarted() {
     assert_eq!(received["in_order"], true, "{:?}", sub.seen);
 }
 
-/// A network.xml in `dir` for node `node` of `namespace` in `domain`, a Zenoh client of the
-/// router at `port`, holding `inner` (an `<access>` element) too.
-fn network_xml_with(
+/// A network.xml in `dir` for node `node` of `namespace` in `domain` whose one link is a Zenoh
+/// client with `connect` (the endpoint, its closing quote and further attributes), holding
+/// `inner` too.
+fn zenoh_client_xml(
     dir: &Path,
     node: &str,
     namespace: &str,
     domain: &str,
-    port: u16,
+    connect: &str,
     inner: &str,
 ) -> PathBuf {
     let path = dir.join(format!("{node}.xml"));
@@ -183,7 +191,7 @@ fn network_xml_with(
         &path,
         format!(
             r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
-  <zenoh name="wan" mode="client" connect="tcp/127.0.0.1:{port}"/>
+  <zenoh name="wan" mode="client" connect="{connect}/>
   {inner}
 </network>
 "#
@@ -193,12 +201,14 @@ fn network_xml_with(
     path
 }
 
-/// The official Zenoh client for Python (`eclipse-zenoh`, no USAL code) reads a vehicle's
-/// position as JSON (its stream and its last value), sees the domain's nodes as liveliness
-/// tokens, calls a function with a JSON argument, and gets `denied` from a function whose
-/// `<access>` rule does not let the bridge call it.
+/// The official Zenoh client for Python (`eclipse-zenoh`, no USAL code), logged in to the
+/// router as a user, reads a vehicle's position as JSON (its stream and its last value), sees
+/// the domain's nodes as liveliness tokens, and calls a function with a JSON argument. The
+/// guarded `change_state`, whose `<access>` rule lets only `zenoh/pilot` call it: `denied` on
+/// its plain key (anonymous), served when pilot calls as itself; `denied` to guest calling as
+/// itself; and guest calling under pilot's key gets nothing at all (the router drops it).
 #[test]
-fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
+fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
     let Some(py) = python::python() else {
         assert!(
             std::env::var_os("CI").is_none(),
@@ -209,23 +219,43 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
     let domain = format!("zenoh-py-{}", std::process::id());
-    let bridge = network_xml_with(dir.path(), "bridge", "zbridge", &domain, port, "");
+    // Every session logs in: the nodes as `node`, the Python client as pilot, then guest.
+    let users = dir.path().join("users.txt");
+    std::fs::write(&users, "node:node-pw\npilot:pilot-pw\nguest:guest-pw\n").unwrap();
+    let login = dir.path().join("node.json5");
+    std::fs::write(
+        &login,
+        r#"{transport: {auth: {usrpwd: {user: "node", password: "node-pw"}}}}"#,
+    )
+    .unwrap();
+    let connect = format!("tcp/127.0.0.1:{port}\" config=\"{}\"", login.display());
+    let xml = |node: &str, namespace: &str, inner: &str| {
+        zenoh_client_xml(dir.path(), node, namespace, &domain, &connect, inner)
+    };
+    let bridge = xml("bridge", "zbridge", "");
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let (mut router, _) = router_on(
         &endpoint,
-        &["--bridge".into(), bridge.display().to_string()],
+        &[
+            "--users".into(),
+            users.display().to_string(),
+            "--bridge".into(),
+            bridge.display().to_string(),
+        ],
     );
-    router.expect(T, "bridging", |v| v["event"] == "bridging");
+    let bridging = router.expect(T, "bridging", |v| v["event"] == "bridging");
+    assert_eq!(
+        bridging["identities"],
+        serde_json::json!(["guest", "node", "pilot"]),
+        "{bridging}"
+    );
 
-    let air = network_xml_with(dir.path(), "air", "air", &domain, port, "");
-    let airdbl = network_xml_with(dir.path(), "airdbl", "air", &domain, port, "");
-    let airfn = network_xml_with(
-        dir.path(),
+    let air = xml("air", "air", "");
+    let airdbl = xml("airdbl", "air", "");
+    let airfn = xml(
         "airfn",
         "airfn",
-        &domain,
-        port,
-        r#"<access><allow kind="call" item="airfn/vas/change_state" from="ground/*"/></access>"#,
+        r#"<access><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
     );
     let _position = probe_with_config(
         "air",
@@ -260,7 +290,9 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
                 .display()
                 .to_string(),
             endpoint,
-            domain,
+            domain.clone(),
+            "pilot:pilot-pw".into(),
+            "guest:guest-pw".into(),
         ],
     );
     let nodes = client.expect_key(T, "nodes");
@@ -285,8 +317,20 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge() {
     assert!(last["last"]["lat"].is_number(), "{last}");
     let doubled = client.expect_key(T, "double");
     assert_eq!(doubled["double"], 42, "{doubled}");
-    let refused = client.expect_key(T, "change_state");
-    assert_eq!(refused["change_state"]["error"], "denied", "{refused}");
+    let anonymous = client.expect_key(T, "change_state");
+    assert_eq!(anonymous["change_state"]["error"], "denied", "{anonymous}");
+    let pilot = client.expect_key(T, "as_self");
+    assert_eq!(pilot["as_self"]["served"], 2, "{pilot}");
+    let guest = client.expect_key(T, "other_as_self");
+    assert_eq!(
+        guest["other_as_self"]["refused"]["error"], "denied",
+        "{guest}"
+    );
+    let impersonation = client.expect_key(T, "impersonation");
+    assert_eq!(
+        impersonation["impersonation"]["refused"]["error"], "no reply",
+        "{impersonation}"
+    );
     client.expect_key(T, "done");
 }
 

@@ -8,6 +8,7 @@
 //! it to any Zenoh client ([`bridge`]).
 
 pub mod bridge;
+pub mod identity;
 pub mod tls;
 
 use std::path::PathBuf;

@@ -41,6 +41,15 @@ struct Args {
     /// clients: variables and events on usal/<domain>/<name> (JSON), functions as queryables.
     #[arg(long)]
     bridge: Option<PathBuf>,
+    /// Zenoh users: a `user:password` a line (as zenohd's usrpwd dictionary_file). Every client
+    /// must then log in, and with --bridge calls as itself under usal/<domain>/@as/<user>/,
+    /// which marea's <access> rules see as zenoh/<user>.
+    #[arg(long, value_name = "FILE")]
+    users: Option<PathBuf>,
+    /// With --bridge: a client whose mutual-TLS certificate has this common name calls as it
+    /// under usal/<domain>/@as/<NAME>/ (repeatable; users of the dictionary need not be named).
+    #[arg(long, value_name = "NAME")]
+    identity: Vec<String>,
     /// Print JSON lines instead of text.
     #[arg(long)]
     json: bool,
@@ -106,6 +115,31 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if let Some(files) = &tls {
         usal_router::tls::configure_router(&mut config, files)?;
     }
+    if let Some(users) = &args.users {
+        let file = std::fs::canonicalize(users)
+            .with_context(|| format!("the user dictionary {}", users.display()))?;
+        config
+            .insert_json5(
+                "transport/auth/usrpwd/dictionary_file",
+                &serde_json::to_string(&file).context("the user dictionary's path")?,
+            )
+            .map_err(|e| anyhow::anyhow!("{e}"))
+            .context("Zenoh refused the user dictionary")?;
+    }
+    // The domain it bridges, joined once the router is up; the calls its clients make as
+    // themselves kept to them from the start.
+    let bridged = match &args.bridge {
+        Some(path) => {
+            let mut network = marea::NetworkConfig::load(path)?;
+            // It relays calls for its Zenoh clients, as a gateway relays them for nodes.
+            network.gateway = Some(true);
+            let identities = usal_router::identity::identities(&config, &args.identity)?;
+            usal_router::identity::restrict_calls_as(&mut config, &network.domain, &identities)?;
+            Some((path, network, identities))
+        }
+        None if !args.identity.is_empty() => anyhow::bail!("--identity needs --bridge"),
+        None => None,
+    };
     let endpoints = listen_endpoints(&config);
     let session = zenoh::open(config)
         .await
@@ -143,26 +177,34 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let cancel = tokio_util::sync::CancellationToken::new();
-    match &args.bridge {
-        Some(path) => {
-            let config = marea::NetworkConfig::load(path)?;
-            let domain = config.domain.clone();
-            let node = marea::Node::open(&config)
+    match bridged {
+        Some((path, network, identities)) => {
+            let domain = network.domain.clone();
+            let node = marea::Node::open(&network)
                 .await
                 .with_context(|| format!("joining the domain of {}", path.display()))?;
             if args.json {
                 println!(
                     "{}",
-                    json!({"event": "bridging", "domain": domain, "node": node.name(), "keys": format!("usal/{domain}/**")})
+                    json!({"event": "bridging", "domain": domain, "node": node.name(),
+                           "keys": format!("usal/{domain}/**"), "identities": identities})
                 );
             } else {
                 println!(
                     "usal-router: bridging domain {domain} as node {}: its variables and events on usal/{domain}/<name> (JSON), its functions as queryables there",
                     node.name()
                 );
+                if identities.is_empty() {
+                    println!("usal-router: Zenoh clients call as zenoh/anonymous (identities: --users, --identity)");
+                } else {
+                    println!(
+                        "usal-router: a client logged in as one of {} calls as itself under usal/{domain}/@as/<name>/ (zenoh/<name> to <access> rules); others as zenoh/anonymous",
+                        identities.join(", ")
+                    );
+                }
             }
             let bridged = tokio::select! {
-                r = usal_router::bridge::run(session.clone(), &node, domain, cancel.clone()) => r,
+                r = usal_router::bridge::run(session.clone(), &node, domain, identities, cancel.clone()) => r,
                 _ = wait_for_stop() => Ok(()),
             };
             cancel.cancel();

@@ -219,6 +219,7 @@ impl<T: Payload> Event<T> {
                     name: offer.name.clone(),
                     publisher: node.me.name.as_str().into(),
                     type_name: offer.ty.name.as_str().into(),
+                    fingerprint: offer.ty.fingerprint,
                     payload: payload.to_vec(),
                     received,
                 }));

@@ -8,7 +8,7 @@ use super::errors::{DeclareError, RecvError};
 use super::service::{Declared, Service};
 use crate::node::call::CallError;
 use crate::node::mailbox::{Delivery, Mailbox};
-use crate::protocol::ItemKind;
+use crate::protocol::{ItemKind, NodeId, Origin};
 use crate::typeinfo::TypeInfo;
 
 /// A value as it travelled: still encoded (postcard), with the publisher's type name.
@@ -20,6 +20,9 @@ pub struct RawValue {
     pub publisher: String,
     /// The publisher's payload type (`std::any::type_name`).
     pub type_name: String,
+    /// Its fingerprint ([`TypeInfo::fingerprint`]: the name and the shape): tells two types
+    /// of one name apart.
+    pub fingerprint: u64,
     /// postcard bytes.
     pub payload: Vec<u8>,
     /// When it arrived.
@@ -45,6 +48,7 @@ impl RawSubscription {
                         name: s.name.to_string(),
                         publisher: s.publisher.to_string(),
                         type_name: s.type_name.to_string(),
+                        fingerprint: s.fingerprint,
                         payload: s.payload,
                         received: s.received,
                     })
@@ -106,4 +110,42 @@ impl Service {
     ) -> Result<Vec<u8>, CallError> {
         self.node().call(name, None, args, timeout).await
     }
+
+    /// Calls function `name` with postcard-encoded `args` for `namespace/caller`, a party this
+    /// node speaks for that is no marea node (the Zenoh bridge's clients, `zenoh/<identity>`):
+    /// the call travels as one a gateway relays, so the provider's `<access>` rules match
+    /// `namespace/caller`, and the provider accepts it only from a node whose Hello says it
+    /// forwards (`gateway="true"`) and that its `<access kind="gateway">` rules, if any, allow.
+    /// A function this node provides itself runs directly, as any local call.
+    ///
+    /// # Errors
+    /// As [`Service::call_raw`]; [`CallError::Denied`] when the provider refuses the caller or
+    /// does not take this node for a gateway.
+    pub async fn call_raw_for(
+        &self,
+        namespace: &str,
+        caller: &str,
+        name: &str,
+        args: Vec<u8>,
+        timeout: Duration,
+    ) -> Result<Vec<u8>, CallError> {
+        let node = self.node();
+        let provider = node.find_provider(name, None)?;
+        let origin = Origin {
+            node: stand_in_id(namespace, caller),
+            name: caller.to_owned(),
+            hops: 1,
+            namespace: namespace.to_owned(),
+        };
+        node.invoke(name, provider, args, timeout, Some(origin))
+            .await
+    }
+}
+
+/// The node id a relayed call names `namespace/caller` by: stable for a name, so the provider
+/// keeps one call lane per function for it (see [`Service::call_raw_for`]).
+fn stand_in_id(namespace: &str, caller: &str) -> NodeId {
+    let h = blake3::hash(format!("{namespace}/{caller}").as_bytes());
+    let b = h.as_bytes();
+    u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])
 }

@@ -31,6 +31,8 @@ pub(crate) struct RawSample {
     pub publisher: Arc<str>,
     /// The publisher's payload type name.
     pub type_name: Arc<str>,
+    /// The publisher's payload type fingerprint ([`TypeInfo::fingerprint`]).
+    pub fingerprint: u64,
     /// postcard bytes.
     pub payload: Vec<u8>,
     /// When it arrived.
@@ -440,6 +442,7 @@ mod tests {
             name: name.into(),
             publisher: "p".into(),
             type_name: "u8".into(),
+            fingerprint: 0,
             payload: vec![1],
             received: Instant::now(),
         })

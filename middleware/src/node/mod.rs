@@ -142,6 +142,8 @@ pub(crate) struct Route {
     pub name: Arc<str>,
     /// Its type name.
     pub type_name: Arc<str>,
+    /// Its type's fingerprint.
+    pub fingerprint: u64,
     /// The node publishing it (the origin behind a gateway).
     pub publisher: Arc<str>,
 }

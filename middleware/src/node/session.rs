@@ -135,6 +135,7 @@ fn push_to_route(route: &super::Route, payloads: &mut Vec<Vec<u8>>, received: In
             name: route.name.clone(),
             publisher: route.publisher.clone(),
             type_name: route.type_name.clone(),
+            fingerprint: route.fingerprint,
             payload,
             received,
         })
@@ -433,6 +434,7 @@ impl NodeInner {
                                     name: o.name.clone(),
                                     publisher: self.me.name.as_str().into(),
                                     type_name: o.ty.name.as_str().into(),
+                                    fingerprint: o.ty.fingerprint,
                                     payload: v.clone(),
                                     received: Instant::now(),
                                 }));
@@ -477,6 +479,7 @@ impl NodeInner {
                         targets,
                         name: item.name.clone(),
                         type_name: item.type_name.clone(),
+                        fingerprint: item.ty.fingerprint,
                         publisher: item.origin_name.clone().unwrap_or_else(|| p.name.clone()),
                     };
                     (*oid, Arc::new(route))
@@ -882,6 +885,7 @@ impl NodeInner {
                     name: offer.name.clone(),
                     publisher: self.me.name.as_str().into(),
                     type_name: offer.ty.name.as_str().into(),
+                    fingerprint: offer.ty.fingerprint,
                     payload: bytes.clone(),
                     received: Instant::now(),
                 }));
