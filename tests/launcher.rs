@@ -418,10 +418,17 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
 /// 2 Mbit/s, the router killed and restarted mid-flight, then the ground's path cut for 30 s:
 /// the VAS holds the rover on the lost link and resumes when it returns, nothing the vehicle
 /// raised is lost to the station (every waypoint reached, in order; both failsafes seen), and
-/// the plan completes.
+/// the plan completes. At 5x (the mission flies at 2x, for people to watch) the plan is still
+/// being flown when the faults come: it needs ~45 s of flight, the outage starts at 20 s and
+/// holds the rover for its 30 s.
 #[test]
 fn the_rover_wan_failsafe_mission_completes_across_a_router_restart_and_an_outage() {
-    let mut l = Launcher::start(&["config/missions/rover-wan-failsafe.xml", "--until-complete"]);
+    let mut l = Launcher::start(&[
+        "config/missions/rover-wan-failsafe.xml",
+        "--until-complete",
+        "--speedup",
+        "5",
+    ]);
     let wan = l.event(STEP, "wan");
     assert_eq!(wan["rtt_ms"], 150, "{wan}");
     l.expect(Duration::from_secs(60), "the router killed", |v| {
