@@ -19,6 +19,12 @@ use serde_json::Value;
 use tokio::process::Command;
 use usal_types::FlightState;
 
+/// The one build of the services every test that needs them asks for: every binary of the
+/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
+/// the first test to ask builds it and the others find it done (a narrower `-p` list unifies
+/// features differently and compiles the services once more, mid-suite).
+const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
+
 const USAL: &str = env!("CARGO_BIN_EXE_usal");
 /// Bound on a whole run of the demo plan (about 10 s at --speedup 20 on an idle machine).
 const FLIGHT: Duration = Duration::from_secs(180);
@@ -38,10 +44,7 @@ fn build_services() {
             .and_then(Path::parent)
             .expect("usal inside <target>/<profile>");
         let status = std::process::Command::new(env!("CARGO"))
-            .args([
-                "build", "-p", "mavsim", "-p", "vas", "-p", "fpma", "-p", "fmo", "-p", "fpmo",
-                "--bins",
-            ])
+            .args(SERVICE_BUILD)
             .current_dir(root())
             .env("CARGO_TARGET_DIR", target)
             .status()

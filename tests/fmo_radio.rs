@@ -18,6 +18,12 @@ use serde_json::{json, Value};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
 
+/// The one build of the services every test that needs them asks for: every binary of the
+/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
+/// the first test to ask builds it and the others find it done (a narrower `-p` list unifies
+/// features differently and compiles the services once more, mid-suite).
+const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
+
 const USAL: &str = env!("CARGO_BIN_EXE_usal");
 /// Bound on one step over the radio (start-up of the whole mission included).
 const STEP: Duration = Duration::from_secs(90);
@@ -34,33 +40,14 @@ fn build_bins() {
             .parent()
             .and_then(Path::parent)
             .expect("usal inside <target>/<profile>");
-        for args in [
-            &[
-                "build",
-                "-p",
-                "mavsim",
-                "-p",
-                "vas",
-                "-p",
-                "fpma",
-                "-p",
-                "fmo",
-                "-p",
-                "fpmo",
-                "-p",
-                "marea-gateway",
-                "--bins",
-            ][..],
-            &["build", "-p", "usal", "--bin", "marea-radio"][..],
-        ] {
-            let status = std::process::Command::new(env!("CARGO"))
-                .args(args)
-                .current_dir(root())
-                .env("CARGO_TARGET_DIR", target)
-                .status()
-                .expect("running cargo build");
-            assert!(status.success(), "cargo {args:?} failed");
-        }
+        // marea-radio is this package's: the test build made it.
+        let status = std::process::Command::new(env!("CARGO"))
+            .args(SERVICE_BUILD)
+            .current_dir(root())
+            .env("CARGO_TARGET_DIR", target)
+            .status()
+            .expect("running cargo build");
+        assert!(status.success(), "cargo {SERVICE_BUILD:?} failed");
     });
 }
 

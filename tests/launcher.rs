@@ -11,6 +11,17 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
+mod common;
+// The test venv's Python (made from tests/python/requirements.txt), as the MAVSDK suite finds it.
+#[path = "../services/vas/tests/common/mavsdk.rs"]
+mod python;
+
+/// The one build of the services every test that needs them asks for: every binary of the
+/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
+/// the first test to ask builds it and the others find it done (a narrower `-p` list unifies
+/// features differently and compiles the services once more, mid-suite).
+const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
+
 const USAL: &str = env!("CARGO_BIN_EXE_usal");
 /// Bound on a whole flight of the demo plan (about 10 s at --speedup 20 on an idle machine).
 const FLIGHT: Duration = Duration::from_secs(150);
@@ -32,26 +43,7 @@ fn build_services() {
             .and_then(Path::parent)
             .expect("usal inside <target>/<profile>");
         let status = Command::new(env!("CARGO"))
-            .args([
-                "build",
-                "-p",
-                "mavsim",
-                "-p",
-                "vas",
-                "-p",
-                "fpma",
-                "-p",
-                "fmo",
-                "-p",
-                "fpmo",
-                "-p",
-                "fleet",
-                "-p",
-                "usal-router",
-                "-p",
-                "marea-gateway",
-                "--bins",
-            ])
+            .args(SERVICE_BUILD)
             .current_dir(root())
             .env("CARGO_TARGET_DIR", target)
             .status()
@@ -378,9 +370,17 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
 /// The same mission with air and ground on LANs of their own, no multicast between them, each
 /// reaching one Zenoh router (`usal-router`, over TLS with certificates made for the run)
 /// through a gateway with a `<zenoh>` link: the plan upload, the commands and the telemetry all
-/// cross the router.
+/// cross the router. A plain Zenoh client (the official Python one, with the run's client
+/// configuration) reads the VAS's position as JSON from the router's bridge meanwhile.
 #[test]
 fn the_rover_wan_mission_completes_through_a_zenoh_router() {
+    let Some(py) = python::python() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI: python3 is missing, so the Zenoh client cannot watch the mission"
+        );
+        return;
+    };
     let mut l = Launcher::start(&[
         "config/missions/rover-wan.xml",
         "--until-complete",
@@ -399,6 +399,46 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
         .as_str()
         .expect("TLS client configuration");
     assert!(std::fs::read_to_string(client).is_ok_and(|c| c.contains("root_ca_certificate")));
+    let domain = l
+        .seen
+        .iter()
+        .find(|v| v["event"] == "mission")
+        .and_then(|v| v["domain"].as_str())
+        .expect("the mission's domain")
+        .to_owned();
+    let mut watcher = common::Proc::spawn(
+        "python",
+        py.to_str().expect("a UTF-8 path"),
+        &[
+            python::repo_root()
+                .join("tests/python/zenoh_watch.py")
+                .display()
+                .to_string(),
+            router["endpoint"].as_str().unwrap_or_default().to_owned(),
+            client.to_owned(),
+            domain,
+            "rover1/vas/position".into(),
+        ],
+    );
+    let position = watcher.expect_key(STEP, "sample");
+    assert_eq!(position["encoding"], "application/json", "{position}");
+    assert!(
+        position["sample"]["lat"]
+            .as_f64()
+            .is_some_and(|lat| (lat - 41.275).abs() < 0.01),
+        "{position}"
+    );
+    let nodes = watcher.expect_key(STEP, "nodes");
+    // The mission's nodes behind their gateways too (those that offer something).
+    for n in ["air", "air-gateway", "bridge", "ground-gateway"] {
+        assert!(
+            nodes["nodes"]
+                .as_array()
+                .is_some_and(|a| a.iter().any(|x| x == n)),
+            "{n} missing from {nodes}"
+        );
+    }
+    watcher.expect_key(STEP, "done");
     let summary = l.event(FLIGHT * 2, "summary");
     let status = l.wait_exit(STEP);
     l.drain();

@@ -284,13 +284,14 @@ async fn call(
 }
 
 /// A liveliness token `usal/<domain>/@node/<name>` for each node of the domain the bridge
-/// knows (itself included), dropped when the node goes.
+/// knows (itself, its peers and the nodes whose offers gateways forward to it), dropped when
+/// the node goes.
 #[derive(Default)]
 struct NodeTokens(HashMap<String, zenoh::liveliness::LivelinessToken>);
 
 impl NodeTokens {
     async fn sync(&mut self, session: &zenoh::Session, node: &Node, domain: &str) {
-        let mut alive: Vec<String> = node.peers().into_iter().map(|p| p.name).collect();
+        let mut alive = node.node_names();
         alive.push(node.name().to_owned());
         self.0.retain(|n, _| alive.contains(n));
         for name in alive {

@@ -41,10 +41,11 @@ pub fn main(args: &[String], json: bool) -> ExitCode {
 }
 
 /// Starts a mission's `<router>`: `usal-router` on its endpoint (a free port when it names
-/// port 0), and for each node it joins a LAN of its own and a gateway (`marea-gateway`, node
-/// `<node>-gateway`) with that LAN and a `<zenoh>` link to the router; the node named by `wan`
-/// reaches the router through `marea-wan`. Says where the router listens and how a Zenoh client
-/// joins.
+/// port 0), bridging the mission's domain to any Zenoh client (its node `bridge`), and for
+/// each node it joins a LAN of its own and a gateway (`marea-gateway`, node `<node>-gateway`)
+/// with that LAN and a `<zenoh>` link to the router; the node named by `wan` reaches the router
+/// through `marea-wan`. Says where the router listens and how a Zenoh client joins and reads
+/// the mission's items.
 pub fn start(
     mission: &mut Mission,
     spec: &RouterSpec,
@@ -77,6 +78,18 @@ pub fn start(
         (tcp.clone(), None, Vec::new())
     };
     args.extend(["--listen".to_owned(), endpoint.clone()]);
+    let dir = scratch.join("network");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    // The bridge joins the domain through the router it runs in, as any node beyond it does.
+    let bridge = write(
+        &dir,
+        "bridge.xml",
+        &format!(
+            "<network node=\"bridge\" namespace=\"bridge\" domain=\"{domain}\">\n  {}\n</network>\n",
+            zenoh_link(&endpoint, client_config.as_deref())
+        ),
+    )?;
+    args.extend(["--bridge".to_owned(), bridge.display().to_string()]);
     sup.start(ChildSpec {
         label: "router".into(),
         kind: "router",
@@ -94,12 +107,16 @@ pub fn start(
             "a Zenoh client joins by connecting to {endpoint} (no TLS, no credentials)"
         ),
     };
+    let joins = format!(
+        "{joins}, and reads every item as JSON on usal/{domain}/<namespace>/<service>/<item> (docs/zenoh.md)"
+    );
     ui.note(
         &format!(
             "router: usal-router on {endpoint} joins {} (each through a gateway; no LAN between them); {joins}",
             spec.nodes.join(", ")
         ),
-        json!({"event": "router", "endpoint": endpoint, "nodes": spec.nodes, "client_config": client_config}),
+        json!({"event": "router", "endpoint": endpoint, "nodes": spec.nodes, "client_config": client_config,
+               "keys": format!("usal/{domain}/**")}),
     );
     if let Some(after) = spec.crash_after {
         ui.note(
@@ -119,8 +136,6 @@ pub fn start(
         }
         None => None,
     };
-    let dir = scratch.join("network");
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     for name in &spec.nodes {
         let node = mission
             .nodes
@@ -138,13 +153,7 @@ pub fn start(
             Some((n, proxy)) if n == name => proxy,
             _ => &endpoint,
         };
-        let far = match &client_config {
-            Some(c) => format!(
-                r#"<zenoh name="wan" mode="client" connect="{reach}" config="{}"/>"#,
-                c.display()
-            ),
-            None => format!(r#"<zenoh name="wan" mode="client" connect="{reach}"/>"#),
-        };
+        let far = zenoh_link(reach, client_config.as_deref());
         let gw = write(
             &dir,
             &format!("{name}-gateway.xml"),
@@ -160,6 +169,18 @@ pub fn start(
         });
     }
     Ok(())
+}
+
+/// The `<zenoh>` element of a node reaching the router at `endpoint`, with the run's client
+/// configuration when it serves TLS.
+fn zenoh_link(endpoint: &str, client_config: Option<&Path>) -> String {
+    match client_config {
+        Some(c) => format!(
+            r#"<zenoh name="wan" mode="client" connect="{endpoint}" config="{}"/>"#,
+            c.display()
+        ),
+        None => format!(r#"<zenoh name="wan" mode="client" connect="{endpoint}"/>"#),
+    }
 }
 
 /// Starts `marea-wan` in front of the router at `router` with the shaping of `wan`; returns the

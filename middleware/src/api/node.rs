@@ -467,6 +467,22 @@ impl Node {
         v
     }
 
+    /// The names of the nodes this node knows are there: its peers, and the nodes beyond
+    /// gateways whose offers they forward (a node beyond a gateway that offers nothing is not
+    /// seen from here). Sorted, each once.
+    pub fn node_names(&self) -> Vec<String> {
+        let mut names = std::collections::BTreeSet::new();
+        for p in self.inner.peers.iter() {
+            names.insert(p.name.to_string());
+            for o in p.offers.values() {
+                if let Some(origin) = &o.origin_name {
+                    names.insert(origin.to_string());
+                }
+            }
+        }
+        names.into_iter().collect()
+    }
+
     /// Waits until `pred` holds on this node's view of the network, re-checking whenever the
     /// peer table or the routes change. Returns whether it held within `timeout`.
     pub async fn wait_until(&self, timeout: Duration, mut pred: impl FnMut(&Node) -> bool) -> bool {

@@ -13,6 +13,12 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 use tokio::time::timeout;
 
+/// The one build of the services every test that needs them asks for: every binary of the
+/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
+/// the first test to ask builds it and the others find it done (a narrower `-p` list unifies
+/// features differently and compiles the services once more, mid-suite).
+const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
+
 /// How long one start-up step may take.
 const START: Duration = Duration::from_secs(30);
 
@@ -28,7 +34,7 @@ pub fn sibling_bins() -> &'static (PathBuf, PathBuf) {
             .expect("test binary inside <target>/<profile>/deps")
             .to_owned();
         let status = std::process::Command::new(env!("CARGO"))
-            .args(["build", "-p", "vas", "-p", "mavsim", "--bins"])
+            .args(SERVICE_BUILD)
             .env("CARGO_TARGET_DIR", &target)
             .status()
             .expect("running cargo build -p vas -p mavsim");

@@ -18,6 +18,12 @@ use usal_types::{
     WaypointReached,
 };
 
+/// The one build of the services every test that needs them asks for: every binary of the
+/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
+/// the first test to ask builds it and the others find it done (a narrower `-p` list unifies
+/// features differently and compiles the services once more, mid-suite).
+const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
+
 /// Bound on every single wait of the tests.
 pub const STEP: Duration = Duration::from_secs(20);
 /// Home of every simulated vehicle.
@@ -45,7 +51,7 @@ fn build_bin(package: &str, bin: &str) -> PathBuf {
         .expect("test binary inside <target>/<profile>/deps")
         .to_owned();
     let status = std::process::Command::new(env!("CARGO"))
-        .args(["build", "-p", package, "--bin", bin])
+        .args(SERVICE_BUILD)
         .env("CARGO_TARGET_DIR", &target)
         .status()
         .unwrap_or_else(|e| panic!("running cargo build -p {package}: {e}"));
