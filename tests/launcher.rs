@@ -406,6 +406,8 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
         .and_then(|v| v["domain"].as_str())
         .expect("the mission's domain")
         .to_owned();
+    // The mission's nodes behind their gateways too (those that offer something).
+    const NODES: [&str; 4] = ["air", "air-gateway", "bridge", "ground-gateway"];
     let mut watcher = common::Proc::spawn(
         "python",
         py.to_str().expect("a UTF-8 path"),
@@ -418,7 +420,10 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
             client.to_owned(),
             domain,
             "rover1/vas/position".into(),
-        ],
+        ]
+        .into_iter()
+        .chain(NODES.iter().map(|n| n.to_string()))
+        .collect::<Vec<_>>(),
     );
     let position = watcher.expect_key(STEP, "sample");
     assert_eq!(position["encoding"], "application/json", "{position}");
@@ -429,8 +434,7 @@ fn the_rover_wan_mission_completes_through_a_zenoh_router() {
         "{position}"
     );
     let nodes = watcher.expect_key(STEP, "nodes");
-    // The mission's nodes behind their gateways too (those that offer something).
-    for n in ["air", "air-gateway", "bridge", "ground-gateway"] {
+    for n in NODES {
         assert!(
             nodes["nodes"]
                 .as_array()
