@@ -750,6 +750,27 @@ fn tool(domain: &str, args: &[&str]) -> (bool, String) {
     )
 }
 
+/// `usal run` killed with SIGKILL mid-flight (it can stop nothing itself) leaves no child
+/// running: the kernel asks each to stop when the launcher dies.
+#[test]
+fn a_launcher_killed_with_sigkill_leaves_no_child() {
+    let mut l = Launcher::start(&["config/missions/rover-demo.xml", "--speedup", "2"]);
+    l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+    let pids = l.pids();
+    assert!(pids.iter().all(|(_, p)| alive(*p)), "{pids:?}");
+    signal(l.child.id(), "KILL");
+    let _ = l.child.wait();
+    // Nothing tells us when another process's child ends: look until all are gone, within the
+    // services' own bound on stopping.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while pids.iter().any(|(_, p)| alive(*p)) && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_no_child_left(&pids);
+}
+
 #[test]
 fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
     let mut l = Launcher::start(&["config/missions/rover-demo.xml", "--speedup", "2"]);

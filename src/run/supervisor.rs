@@ -1,7 +1,8 @@
 //! Supervised child processes: each service of a mission runs as a child in its own process
 //! group (so a terminal's Ctrl-C reaches only the launcher, which then stops the children in
 //! order), its output merged into the launcher's with a `[node/service]` prefix, restarted with
-//! backoff when it dies, and stopped with SIGTERM, then SIGKILL after a grace period.
+//! backoff when it dies, and stopped with SIGTERM, then SIGKILL after a grace period. If the
+//! launcher dies without stopping them (SIGKILL, a crash), the kernel sends each SIGTERM.
 
 use std::path::PathBuf;
 use std::process::{ExitStatus, Stdio};
@@ -127,6 +128,81 @@ impl Supervisor {
     }
 }
 
+/// Has the kernel send the child SIGTERM when the launcher dies, however it dies: killed with
+/// SIGKILL, it cannot stop its children itself, and they would fly on as orphans.
+#[cfg(target_os = "linux")]
+#[allow(unsafe_code)]
+fn stop_with_launcher(cmd: &mut Command) {
+    let launcher = std::process::id();
+    // SAFETY: the closure runs in the child between fork and exec and calls only
+    // async-signal-safe functions (prctl, getppid, _exit): no lock, no allocation.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM as libc::c_ulong) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The launcher died before the request took effect: nobody would signal us.
+            if libc::getppid() as u32 != launcher {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
+}
+
+/// A request to start a child, and where its outcome goes.
+type SpawnRequest = (
+    Command,
+    tokio::sync::oneshot::Sender<std::io::Result<Child>>,
+);
+
+/// Starts `cmd` from the launcher's spawning thread. The kernel's parent-death signal follows
+/// the thread that started the child, not the process, so children are all started from one
+/// thread that lives as long as the launcher: a runtime's threads may come and go (a worker
+/// handed over by `block_in_place`, the blocking pool's idle threads), and a child started on
+/// one of them would be stopped when it ends.
+async fn spawn(cmd: Command) -> std::io::Result<Child> {
+    static SPAWNER: std::sync::OnceLock<std::sync::Mutex<std::sync::mpsc::Sender<SpawnRequest>>> =
+        std::sync::OnceLock::new();
+    let spawner = SPAWNER.get_or_init(|| {
+        let (tx, rx) = std::sync::mpsc::channel::<SpawnRequest>();
+        let runtime = tokio::runtime::Handle::current();
+        std::thread::Builder::new()
+            .name("usal-spawner".into())
+            .spawn(move || {
+                // tokio's child handles register with the runtime they are made in.
+                let _entered = runtime.enter();
+                for (mut cmd, reply) in rx {
+                    let _ = reply.send(cmd.spawn());
+                }
+            })
+            .map(|_| std::sync::Mutex::new(tx))
+            .unwrap_or_else(|e| {
+                // No thread to start children from: each request fails, saying why.
+                let (tx, rx) = std::sync::mpsc::channel::<SpawnRequest>();
+                let why = e.to_string();
+                std::thread::spawn(move || {
+                    for (_, reply) in rx {
+                        let _ = reply.send(Err(std::io::Error::other(why.clone())));
+                    }
+                });
+                std::sync::Mutex::new(tx)
+            })
+    });
+    let (reply, outcome) = tokio::sync::oneshot::channel();
+    let sent = marea::sync::lock(spawner).send((cmd, reply));
+    if sent.is_err() {
+        return Err(std::io::Error::other(
+            "the launcher's spawning thread is gone",
+        ));
+    }
+    outcome.await.unwrap_or_else(|_| {
+        Err(std::io::Error::other(
+            "the launcher's spawning thread is gone",
+        ))
+    })
+}
+
 async fn supervise(
     mut spec: ChildSpec,
     ui: Arc<Ui>,
@@ -146,12 +222,14 @@ async fn supervise(
             .kill_on_drop(true);
         #[cfg(unix)]
         cmd.process_group(0);
+        #[cfg(target_os = "linux")]
+        stop_with_launcher(&mut cmd);
         if !ui.is_tty() {
             // tracing colours its output unless told not to; escapes do not belong in a log file.
             cmd.env("NO_COLOR", "1");
         }
         let started = Instant::now();
-        let mut child = match cmd.spawn() {
+        let mut child = match spawn(cmd).await {
             Ok(c) => c,
             Err(e) => {
                 let reason = format!("cannot start {}: {e}", spec.program.display());
