@@ -15,8 +15,8 @@ use tokio::time::timeout;
 
 /// The one build of the services every test that needs them asks for: every binary of the
 /// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the first test to ask builds it and the others find it done (a narrower `-p` list unifies
-/// features differently and compiles the services once more, mid-suite).
+/// the README's test command builds it before the tests, and the first test to ask finds it
+/// done (a narrower `-p` list unifies features differently and compiles the services again).
 const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
 
 /// How long one start-up step may take.
