@@ -141,6 +141,26 @@ impl Launcher {
         }
     }
 
+    /// Reads the lines of the next `window` and fails on one matching `pred`: `what` must
+    /// not happen in it.
+    fn none_within(&mut self, window: Duration, what: &str, pred: impl Fn(&Value) -> bool) {
+        let deadline = Instant::now() + window;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(v) => {
+                    let hit = pred(&v);
+                    self.seen.push(v.clone());
+                    assert!(!hit, "{what} within {window:?}: {v}");
+                }
+                Err(mpsc::RecvTimeoutError::Timeout) => return,
+                Err(mpsc::RecvTimeoutError::Disconnected) => {
+                    panic!("usal ended within {window:?}: {}", self.stderr_tail())
+                }
+            }
+        }
+    }
+
     fn event(&mut self, timeout: Duration, name: &str) -> Value {
         self.expect(timeout, name, |v| v["event"] == name)
     }
@@ -748,6 +768,60 @@ fn tool(domain: &str, args: &[&str]) -> (bool, String) {
             String::from_utf8_lossy(&out.stderr)
         ),
     )
+}
+
+/// With `<station start="operator">` the launcher never presses Start: the plan loads and the
+/// rover stays parked (well past the second after which `start="auto"` starts it) until the
+/// pilot asks for WAYPOINT_NAVIGATION, here with `usal call`; then it flies the plan.
+#[test]
+fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = dir.path().join("rover-operator.xml");
+    let flightplans = root().join("config/flightplans/");
+    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
+        .expect("the demo mission")
+        .replace("../flightplans/", &flightplans.display().to_string())
+        .replace(r#"start="auto""#, r#"start="operator""#);
+    std::fs::write(&mission, demo).expect("write the mission");
+    let mut l = Launcher::start(&[
+        mission.to_str().expect("a UTF-8 path"),
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let domain = l.event(STEP, "mission")["domain"]
+        .as_str()
+        .expect("the domain")
+        .to_owned();
+    let by = l.event(STEP, "start_by");
+    assert_eq!(by["by"], "operator", "{by}");
+    l.event(STEP, "plan_loaded");
+    l.none_within(Duration::from_secs(4), "the rover started by itself", |v| {
+        v["event"] == "navigation_kicked"
+            || (v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION")
+    });
+    let (ok, answer) = tool(
+        &domain,
+        &[
+            "call",
+            "rover1/vas/change_state",
+            r#"{"to":"WAYPOINT_NAVIGATION"}"#,
+        ],
+    );
+    assert!(ok, "{answer}");
+    l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    assert!(
+        !l.seen.iter().any(|v| v["event"] == "navigation_kicked"),
+        "the station pressed Start"
+    );
+    assert_no_child_left(&l.pids());
 }
 
 /// `usal run` killed with SIGKILL mid-flight (it can stop nothing itself) leaves no child

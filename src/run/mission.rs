@@ -177,6 +177,19 @@ pub struct StationSpec {
     /// A plan the FPMa must refuse (`refusedPlan`), offered before `plan`: rehearses a
     /// plan check such as the geofence (issue 15); accepted, it fails the run.
     pub refused_plan: Option<PathBuf>,
+    /// Who presses Start once the plan is loaded (`start`).
+    pub start: StartBy,
+}
+
+/// Who starts the flight once the plan is loaded and the vehicle parked (`<station start>`):
+/// the pilot stays in command unless the mission hands Start to the launcher.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StartBy {
+    /// `auto`: `usal run` asks for WAYPOINT_NAVIGATION, and brings a restarted VAS back into
+    /// the plan (the shipped demo: its one command flies).
+    Auto,
+    /// `operator`: the pilot does (the FPMo's Start, `usal call`), after a VAS restart too.
+    Operator,
 }
 
 /// `<radio>`: a `marea-radio` emulator between two nodes.
@@ -747,7 +760,10 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 ServiceSpec::Fpma(spec)
             }
             "station" => {
-                let mut a = Attrs::new(s, &["plan", "fpma", "vas", "vehicle", "refusedPlan"]);
+                let mut a = Attrs::new(
+                    s,
+                    &["plan", "fpma", "vas", "vehicle", "refusedPlan", "start"],
+                );
                 let plan = a.file("plan", base)?.ok_or_else(|| {
                     Fault::at(s, "missing attribute `plan` (the flight plan to upload)")
                 })?;
@@ -757,6 +773,10 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     vas: a.opt("vas").unwrap_or_default(),
                     vehicle: a.one_of("vehicle", &["rover", "aircraft", ""], "")?,
                     refused_plan: a.file("refusedPlan", base)?,
+                    start: match a.one_of("start", &["auto", "operator"], "auto")?.as_str() {
+                        "operator" => StartBy::Operator,
+                        _ => StartBy::Auto,
+                    },
                 };
                 a.finish()?;
                 ServiceSpec::Station(spec)
@@ -1076,6 +1096,23 @@ mod tests {
         assert_eq!(st.fpma, "rover1/fpma");
         assert_eq!(st.vas, "rover1/vas");
         assert_eq!(st.vehicle, "rover");
+        assert_eq!(st.start, StartBy::Auto);
+    }
+
+    #[test]
+    fn a_station_is_started_by_the_launcher_or_the_operator() {
+        let with = |start: &str| {
+            parse(&GOOD.replace(
+                r#"<station plan="../flightplans/rover-carpark.xml"/>"#,
+                &format!(r#"<station plan="../flightplans/rover-carpark.xml" start="{start}"/>"#),
+            ))
+        };
+        let m = with("operator").unwrap();
+        assert_eq!(m.stations()[0].1.start, StartBy::Operator);
+        assert_eq!(with("auto").unwrap().stations()[0].1.start, StartBy::Auto);
+        let e = with("pilot").unwrap_err();
+        assert!(e.contains("<station>: attribute `start`"), "{e}");
+        assert!(e.contains("operator"), "{e}");
     }
 
     #[test]

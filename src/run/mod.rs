@@ -204,6 +204,7 @@ fn station_setup(
         nominal_m,
         refused_plan: st.refused_plan.clone(),
         log: None,
+        start: st.start,
     })
 }
 

@@ -1,6 +1,8 @@
 //! The ground station run inside the launcher: it joins the mission's network, uploads the
 //! flight plan to the FPMa as a file, follows the plan's progress and the vehicle's state, has
 //! the FPMa re-send its queue when the VAS comes back after a restart, and sums the flight up.
+//! It presses Start itself only when the mission says so (`<station start="auto">`); with
+//! `start="operator"` the pilot does, after a VAS restart too.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -19,6 +21,7 @@ use usal_types::{
 };
 
 use super::failsafe::{self, FailsafeNote};
+use super::mission::StartBy;
 
 use super::supervisor::Notice;
 use super::ui::{self, Ui};
@@ -31,9 +34,9 @@ const CALL_TIMEOUT: Duration = Duration::from_secs(5);
 const RETRY: Duration = Duration::from_secs(1);
 /// Upload the plan after this long even if the VAS never reports a configured autopilot.
 const UPLOAD_ANYWAY: Duration = Duration::from_secs(30);
-/// A loaded plan whose vehicle stays parked this long gets WAYPOINT_NAVIGATION asked for:
-/// `usal run` is the operator who presses Start (the FPMa never changes the flight state,
-/// issue 15); asked again this long after a refusal.
+/// A loaded plan whose vehicle stays parked this long gets WAYPOINT_NAVIGATION asked for when
+/// the mission makes `usal run` the one who presses Start (`start="auto"`; the FPMa never
+/// changes the flight state); asked again this long after a refusal.
 const KICK_AFTER: Duration = Duration::from_secs(1);
 /// How long completion waits for the last reports once the plan says it is done.
 const SETTLE: Duration = Duration::from_secs(2);
@@ -76,6 +79,8 @@ pub struct StationSetup {
     pub refused_plan: Option<PathBuf>,
     /// The run's flight log, where the station's commands and their answers go.
     pub log: Option<Arc<super::flightlog::FlightLog>>,
+    /// Who presses Start (`<station start>`).
+    pub start: StartBy,
 }
 
 /// One waypoint the FPMa reported reached.
@@ -423,6 +428,24 @@ async fn follow(
         ),
         json!({"event": "uploading", "plan": s.plan_name, "to": sink, "waypoints": s.nominal.len(), "planned_m": s.nominal_m}),
     );
+    match s.start {
+        StartBy::Auto => note(
+            ui,
+            s,
+            "station: usal run presses Start once the plan is loaded (start=\"auto\"; start=\"operator\" leaves it to the pilot)",
+            json!({"event": "start_by", "by": "auto"}),
+        ),
+        StartBy::Operator => note(
+            ui,
+            s,
+            &format!(
+                "station: the pilot presses Start (start=\"operator\"): the FPMo's Start, or usal call {} '{{\"to\":\"WAYPOINT_NAVIGATION\"}}' --domain {}",
+                vas("change_state"),
+                s.domain
+            ),
+            json!({"event": "start_by", "by": "operator"}),
+        ),
+    }
     // The plan goes once the VAS has configured its autopilot, so the FPMa's request for
     // WAYPOINT_NAVIGATION cannot come too early and be refused (or after UPLOAD_ANYWAY).
     let mut send: Option<Upload> = None;
@@ -609,7 +632,8 @@ async fn follow(
 
         // The operator's Start: once the plan is loaded and the VAS parks with waypoints
         // queued, ask for WAYPOINT_NAVIGATION (the FPMa never does, issue 15).
-        let waiting = t.started.is_some()
+        let waiting = s.start == StartBy::Auto
+            && t.started.is_some()
             && !navigated
             && t.state == Some(FlightState::Parking)
             && t.progress.as_ref().is_some_and(|p| !p.completed);
@@ -649,6 +673,17 @@ async fn follow(
             _ => {}
         }
 
+        if recovery == Recovery::Due && s.start == StartBy::Operator {
+            // The pilot brings the vehicle back into the plan (the FPMo's Resume, then Start).
+            recovery = Recovery::Idle;
+            navigated = false;
+            note(
+                ui,
+                s,
+                "station: the VAS is back, parked: resuming the plan is the pilot's (start=\"operator\")",
+                json!({"event": "recovery_left_to_operator"}),
+            );
+        }
         if recovery == Recovery::Due && last_attempt.is_none_or(|t| t.elapsed() >= RETRY) {
             last_attempt = Some(Instant::now());
             // The new VAS has an empty queue and the FPMa does not know it: a pause empties the
