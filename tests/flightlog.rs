@@ -9,7 +9,6 @@ mod common;
 use std::io::Write;
 use std::path::Path;
 use std::process::Stdio;
-use std::sync::OnceLock;
 use std::time::Duration;
 
 use fpma::api::{PlanEvent, PlanEventKind};
@@ -18,12 +17,6 @@ use marea::{NetworkConfig, Node};
 use serde_json::Value;
 use tokio::process::Command;
 use usal_types::FlightState;
-
-/// The one build of the services every test that needs them asks for: every binary of the
-/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the README's test command builds it before the tests, and the first test to ask finds it
-/// done (a narrower `-p` list unifies features differently and compiles the services again).
-const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
 
 const USAL: &str = env!("CARGO_BIN_EXE_usal");
 /// Bound on a whole run of the demo plan (about 10 s at --speedup 20 on an idle machine).
@@ -35,22 +28,10 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// Builds the services `usal run` starts into the directory holding `usal`.
+/// Builds the services `usal run` starts into the directory holding `usal` (this test's
+/// target directory): the one build every test that starts services asks for.
 fn build_services() {
-    static BUILT: OnceLock<()> = OnceLock::new();
-    BUILT.get_or_init(|| {
-        let target = Path::new(USAL)
-            .parent()
-            .and_then(Path::parent)
-            .expect("usal inside <target>/<profile>");
-        let status = std::process::Command::new(env!("CARGO"))
-            .args(SERVICE_BUILD)
-            .current_dir(root())
-            .env("CARGO_TARGET_DIR", target)
-            .status()
-            .expect("running cargo build");
-        assert!(status.success(), "building the service binaries failed");
-    });
+    common::workspace_bin("vas");
 }
 
 /// Every record of a gzip flight log, the header first.

@@ -10,19 +10,12 @@ mod common;
 
 use std::path::Path;
 use std::process::Stdio;
-use std::sync::OnceLock;
 use std::time::Duration;
 
 use common::{command, request_with, vehicle};
 use serde_json::{json, Value};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::Command;
-
-/// The one build of the services every test that needs them asks for: every binary of the
-/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the README's test command builds it before the tests, and the first test to ask finds it
-/// done (a narrower `-p` list unifies features differently and compiles the services again).
-const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
 
 const USAL: &str = env!("CARGO_BIN_EXE_usal");
 /// Bound on one step over the radio (start-up of the whole mission included).
@@ -32,23 +25,10 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// Builds what the radio mission starts into the directory holding `usal`.
+/// Builds the services `usal run` starts into the directory holding `usal` (this test's
+/// target directory): the one build every test that starts services asks for.
 fn build_bins() {
-    static BUILT: OnceLock<()> = OnceLock::new();
-    BUILT.get_or_init(|| {
-        let target = Path::new(USAL)
-            .parent()
-            .and_then(Path::parent)
-            .expect("usal inside <target>/<profile>");
-        // marea-radio is this package's: the test build made it.
-        let status = std::process::Command::new(env!("CARGO"))
-            .args(SERVICE_BUILD)
-            .current_dir(root())
-            .env("CARGO_TARGET_DIR", target)
-            .status()
-            .expect("running cargo build");
-        assert!(status.success(), "cargo {SERVICE_BUILD:?} failed");
-    });
+    common::workspace_bin("vas");
 }
 
 /// The FMo as the test reaches it: its address and token.

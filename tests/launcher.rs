@@ -6,7 +6,6 @@ use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
-use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
@@ -15,12 +14,6 @@ mod common;
 // The test venv's Python (made from tests/python/requirements.txt), as the MAVSDK suite finds it.
 #[path = "../services/vas/tests/common/mavsdk.rs"]
 mod python;
-
-/// The one build of the services every test that needs them asks for: every binary of the
-/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the README's test command builds it before the tests, and the first test to ask finds it
-/// done (a narrower `-p` list unifies features differently and compiles the services again).
-const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
 
 const USAL: &str = env!("CARGO_BIN_EXE_usal");
 /// Bound on a whole flight of the demo plan (about 10 s at --speedup 20 on an idle machine).
@@ -32,24 +25,14 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// Builds mavsim, vas, fpma, fmo, fpmo, and the router and gateway of missions beyond one LAN,
-/// once into the directory holding `usal`, where it looks for them.
+/// Builds the services `usal run` starts into the directory holding `usal`, where it looks
+/// for them.
 fn build_services() {
-    static BUILT: OnceLock<()> = OnceLock::new();
-    BUILT.get_or_init(|| {
-        let usal = Path::new(USAL);
-        let target = usal
-            .parent()
-            .and_then(Path::parent)
-            .expect("usal inside <target>/<profile>");
-        let status = Command::new(env!("CARGO"))
-            .args(SERVICE_BUILD)
-            .current_dir(root())
-            .env("CARGO_TARGET_DIR", target)
-            .status()
-            .expect("running cargo build");
-        assert!(status.success(), "building the service binaries failed");
-    });
+    let target = Path::new(USAL)
+        .parent()
+        .and_then(Path::parent)
+        .expect("usal inside <target>/<profile>");
+    test_support::build_services(target);
 }
 
 /// A `usal --json run ...` child: its JSON lines on a channel, stderr kept for failure reports,

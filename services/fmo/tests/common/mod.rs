@@ -10,12 +10,6 @@ use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpStream;
 use tokio::process::{Child, Command};
 
-/// The one build of the services every test that needs them asks for: every binary of the
-/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the README's test command builds it before the tests, and the first test to ask finds it
-/// done (a narrower `-p` list unifies features differently and compiles the services again).
-const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
-
 /// Bound on every single wait of the tests.
 pub const STEP: Duration = Duration::from_secs(20);
 
@@ -324,19 +318,8 @@ pub fn workspace_bin(package: &str) -> std::path::PathBuf {
     if let Some(p) = built.get(package) {
         return p.clone();
     }
-    // <target>/debug/deps/<test binary>: the target directory is three levels up.
-    let exe = std::env::current_exe().expect("test binary path");
-    let target = exe
-        .ancestors()
-        .nth(3)
-        .expect("test binary inside <target>/<profile>/deps")
-        .to_owned();
-    let status = std::process::Command::new(env!("CARGO"))
-        .args(SERVICE_BUILD)
-        .env("CARGO_TARGET_DIR", &target)
-        .status()
-        .expect("running cargo build");
-    assert!(status.success(), "building {package} failed");
+    let target = test_support::target_dir();
+    test_support::build_services(&target);
     let bin = target.join("debug").join(package);
     assert!(bin.exists(), "no {package} at {}", bin.display());
     built.insert(package.to_owned(), bin.clone());

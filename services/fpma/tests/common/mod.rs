@@ -13,12 +13,6 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 use tokio::time::timeout;
 
-/// The one build of the services every test that needs them asks for: every binary of the
-/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the README's test command builds it before the tests, and the first test to ask finds it
-/// done (a narrower `-p` list unifies features differently and compiles the services again).
-const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
-
 /// How long one start-up step may take.
 const START: Duration = Duration::from_secs(30);
 
@@ -26,19 +20,8 @@ const START: Duration = Duration::from_secs(30);
 pub fn sibling_bins() -> &'static (PathBuf, PathBuf) {
     static BINS: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
     BINS.get_or_init(|| {
-        // <target>/debug/deps/<test binary>: the target directory is three levels up.
-        let exe = std::env::current_exe().expect("test binary path");
-        let target = exe
-            .ancestors()
-            .nth(3)
-            .expect("test binary inside <target>/<profile>/deps")
-            .to_owned();
-        let status = std::process::Command::new(env!("CARGO"))
-            .args(SERVICE_BUILD)
-            .env("CARGO_TARGET_DIR", &target)
-            .status()
-            .expect("running cargo build -p vas -p mavsim");
-        assert!(status.success(), "building vas and mavsim failed");
+        let target = test_support::target_dir();
+        test_support::build_services(&target);
         let vas = target.join("debug").join("vas");
         let sim = target.join("debug").join("mavsim");
         assert!(

@@ -18,12 +18,6 @@ use usal_types::{
     WaypointReached,
 };
 
-/// The one build of the services every test that needs them asks for: every binary of the
-/// workspace but `usal`'s own (the test build made those). One selection, so one feature set:
-/// the README's test command builds it before the tests, and the first test to ask finds it
-/// done (a narrower `-p` list unifies features differently and compiles the services again).
-const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
-
 /// Bound on every single wait of the tests.
 pub const STEP: Duration = Duration::from_secs(20);
 /// Home of every simulated vehicle.
@@ -43,20 +37,12 @@ pub fn marea_radio_bin() -> &'static Path {
 
 /// Builds `bin` of `package` into the target directory of the running test binary.
 fn build_bin(package: &str, bin: &str) -> PathBuf {
-    // <target>/debug/deps/<test binary>: the target directory is three levels up.
-    let exe = std::env::current_exe().expect("test binary path");
-    let target = exe
-        .ancestors()
-        .nth(3)
-        .expect("test binary inside <target>/<profile>/deps")
-        .to_owned();
-    let status = std::process::Command::new(env!("CARGO"))
-        .args(SERVICE_BUILD)
-        .env("CARGO_TARGET_DIR", &target)
-        .status()
-        .unwrap_or_else(|e| panic!("running cargo build -p {package}: {e}"));
-    assert!(status.success(), "building {bin} failed");
-    let path = target.join("debug").join(bin);
+    let target = test_support::target_dir();
+    let path = if package == "usal" {
+        test_support::usal_bin(&target, bin)
+    } else {
+        test_support::build_services(&target).join(bin)
+    };
     assert!(path.exists(), "no {bin} at {}", path.display());
     path
 }

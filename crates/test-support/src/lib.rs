@@ -1,0 +1,90 @@
+//! What the cross-process tests of every package share (a dev-dependency only).
+//!
+//! The services those tests start (`vas`, `mavsim`, `fpma`, `usal-router`, ...) are built by
+//! one cargo command, the same for every test and the one the README's test command runs
+//! first, so the first test to ask finds them built and no test waits on a compile:
+//! - one selection ([`SERVICE_BUILD`]): cargo unifies features per selection, so a narrower
+//!   `-p` list would compile marea and the services once more with other features;
+//! - without the variables cargo sets for a test process (`CARGO_MANIFEST_DIR`,
+//!   `CARGO_PKG_NAME`, ...): build scripts that read them (ring's does) are rerun when they
+//!   change, and everything above them (rustls, Zenoh, marea, every service) is compiled again,
+//!   test after test, each from another package's directory.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+/// The services' build: every binary of the workspace but `usal`'s own (the test build makes
+/// those).
+pub const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];
+
+/// Variables cargo sets for the processes it runs, which a cargo started from a test must not
+/// inherit (prefixes and names).
+const CARGO_SET_PREFIXES: [&str; 4] = ["CARGO_PKG_", "CARGO_BIN_EXE_", "CARGO_CFG_", "NEXTEST_"];
+const CARGO_SET: [&str; 9] = [
+    "CARGO_MANIFEST_DIR",
+    "CARGO_MANIFEST_PATH",
+    "CARGO_MANIFEST_LINKS",
+    "CARGO_CRATE_NAME",
+    "CARGO_BIN_NAME",
+    "CARGO_PRIMARY_PACKAGE",
+    "CARGO_TARGET_TMPDIR",
+    "CARGO_RUSTC_CURRENT_DIR",
+    "OUT_DIR",
+];
+
+/// The workspace's root.
+pub fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The target directory of the running test binary (`<target>/<profile>/deps/<test>`).
+pub fn target_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test binary path");
+    exe.ancestors()
+        .nth(3)
+        .expect("test binary inside <target>/<profile>/deps")
+        .to_owned()
+}
+
+/// Builds the services into `target` ([`SERVICE_BUILD`]), once per test process; returns
+/// `<target>/debug`, where they are.
+///
+/// # Panics
+/// When cargo cannot run or the build fails: the test cannot go on.
+pub fn build_services(target: &Path) -> PathBuf {
+    static BUILT: OnceLock<()> = OnceLock::new();
+    BUILT.get_or_init(|| cargo(&SERVICE_BUILD, target));
+    target.join("debug")
+}
+
+/// `<target>/debug/<bin>`, a binary of the `usal` package (`marea-radio`, `marea-probe`): the
+/// workspace's test build makes them; a test run of one package alone builds it here.
+///
+/// # Panics
+/// When it is missing and cannot be built.
+pub fn usal_bin(target: &Path, bin: &str) -> PathBuf {
+    let path = target.join("debug").join(bin);
+    if !path.is_file() {
+        cargo(&["build", "-p", "usal", "--bin", bin], target);
+    }
+    path
+}
+
+/// Runs cargo with `args` into `target`, from the workspace's root, without the variables
+/// cargo set for this test process.
+fn cargo(args: &[&str], target: &Path) {
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let mut cmd = Command::new(cargo);
+    cmd.args(args)
+        .current_dir(workspace_root())
+        .env("CARGO_TARGET_DIR", target);
+    for (name, _) in std::env::vars_os() {
+        let Some(n) = name.to_str() else { continue };
+        if CARGO_SET.contains(&n) || CARGO_SET_PREFIXES.iter().any(|p| n.starts_with(p)) {
+            cmd.env_remove(&name);
+        }
+    }
+    let status = cmd.status().expect("running cargo");
+    assert!(status.success(), "cargo {} failed", args.join(" "));
+}
