@@ -334,6 +334,83 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
     client.expect_key(T, "done");
 }
 
+/// Mutual TLS: `usal router --tls-dir D --tls-client NAME` makes a certificate for each
+/// client, and the router knows each by its certificate's name. The Python client presenting
+/// pilot's calls `change_state` as pilot (served: the `<access>` rule names `zenoh/pilot`);
+/// presenting guest's it is denied as guest, and under pilot's key it gets nothing (the router
+/// drops it).
+#[test]
+fn a_client_known_by_its_certificate_calls_as_itself() {
+    let Some(py) = python::python() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI: python3 is missing, so the Zenoh client test cannot run"
+        );
+        return;
+    };
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let domain = format!("zenoh-mtls-{}", std::process::id());
+    let tls = dir.path().join("tls");
+    let client = |name: &str| tls.join("clients").join(format!("{name}.json5"));
+    let endpoint = format!("tls/127.0.0.1:{port}");
+    let connect = format!("{endpoint}\" config=\"{}\"", client("node").display());
+    let bridge = zenoh_client_xml(dir.path(), "bridge", "zbridge", &domain, &connect, "");
+    let mut args: Vec<String> = vec!["--tls-dir".into(), tls.display().to_string()];
+    for name in ["node", "pilot", "guest"] {
+        args.extend(["--tls-client".into(), name.into()]);
+    }
+    args.extend(["--bridge".into(), bridge.display().to_string()]);
+    let (mut router, _) = router_on(&endpoint, &args);
+    let bridging = router.expect(T, "bridging", |v| v["event"] == "bridging");
+    assert_eq!(
+        bridging["identities"],
+        serde_json::json!(["guest", "node", "pilot"]),
+        "{bridging}"
+    );
+    let airfn = zenoh_client_xml(
+        dir.path(),
+        "airfn",
+        "airfn",
+        &domain,
+        &connect,
+        r#"<access><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
+    );
+    let mut guarded = probe_with_config(
+        "airfn",
+        &airfn,
+        "vas",
+        &[],
+        &["provide", "--item", "change_state"],
+    );
+    guarded.expect_key(T, "ready");
+
+    let call = |who: &str, as_whom: &str, listen_s: &str| {
+        let mut p = Proc::spawn(
+            "python",
+            py.to_str().expect("a UTF-8 path"),
+            &[
+                python::repo_root()
+                    .join("tests/python/zenoh_call.py")
+                    .display()
+                    .to_string(),
+                client(who).display().to_string(),
+                endpoint.clone(),
+                format!("usal/{domain}/@as/{as_whom}/airfn/vas/change_state"),
+                "1".into(),
+                listen_s.into(),
+            ],
+        );
+        p.expect(T * 2, "an answer", |_| true)
+    };
+    let pilot = call("pilot", "pilot", "15");
+    assert_eq!(pilot["ok"], 2, "{pilot}");
+    let guest = call("guest", "guest", "15");
+    assert_eq!(guest["err"]["error"], "denied", "{guest}");
+    let impersonation = call("guest", "pilot", "3");
+    assert_eq!(impersonation["none"], true, "{impersonation}");
+}
+
 /// `usal router --tls-dir` makes the deployment's certificates and serves TLS: nodes given the
 /// client configuration it wrote (trusting its authority) meet through it; a node that does not
 /// trust the authority cannot even open its link, and says why.

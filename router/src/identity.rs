@@ -26,7 +26,7 @@ pub const AS: &str = "@as";
 
 /// Whether `name` can be an identity: one key chunk, no wildcard or verbatim marker, and not
 /// the name of the anonymous caller.
-fn check(name: &str) -> anyhow::Result<()> {
+pub fn check(name: &str) -> anyhow::Result<()> {
     let bad = name.is_empty()
         || name == ANONYMOUS
         || name.starts_with('@')

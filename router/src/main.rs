@@ -37,6 +37,11 @@ struct Args {
     /// With --tls-dir: make the certificates and exit.
     #[arg(long)]
     certs_only: bool,
+    /// With --tls-dir: a client certificate with this common name, in DIR/clients/NAME.pem
+    /// with NAME.json5 to connect with it (repeatable). The router then asks every client for
+    /// one (mutual TLS), and with --bridge NAME calls as itself under usal/<domain>/@as/NAME/.
+    #[arg(long, value_name = "NAME")]
+    tls_client: Vec<String>,
     /// Join the domain of this network.xml as a marea node and show its items to Zenoh
     /// clients: variables and events on usal/<domain>/<name> (JSON), functions as queryables.
     #[arg(long)]
@@ -84,8 +89,25 @@ async fn run(args: Args) -> anyhow::Result<()> {
             Some(usal_router::tls::ensure(dir, &hosts)?)
         }
         None if args.certs_only => anyhow::bail!("--certs-only needs --tls-dir"),
+        None if !args.tls_client.is_empty() => anyhow::bail!("--tls-client needs --tls-dir"),
         None => None,
     };
+    let mut clients = Vec::new();
+    if let Some(files) = &tls {
+        for name in &args.tls_client {
+            usal_router::identity::check(name)?;
+            let config = usal_router::tls::ensure_client(files, name)?;
+            say(
+                args.json,
+                &format!(
+                    "usal-router: client certificate of {name}: a client connects with {}",
+                    config.display()
+                ),
+                json!({"event": "client_certificate", "name": name, "client_config": config}),
+            );
+            clients.push(name.clone());
+        }
+    }
     if args.certs_only {
         if let Some(files) = &tls {
             say(
@@ -113,7 +135,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut config = router_config(&options)?;
     if let Some(files) = &tls {
-        usal_router::tls::configure_router(&mut config, files)?;
+        usal_router::tls::configure_router(&mut config, files, !clients.is_empty())?;
     }
     if let Some(users) = &args.users {
         let file = std::fs::canonicalize(users)
@@ -133,7 +155,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
             let mut network = marea::NetworkConfig::load(path)?;
             // It relays calls for its Zenoh clients, as a gateway relays them for nodes.
             network.gateway = Some(true);
-            let identities = usal_router::identity::identities(&config, &args.identity)?;
+            let names: Vec<String> = args.identity.iter().chain(&clients).cloned().collect();
+            let identities = usal_router::identity::identities(&config, &names)?;
             usal_router::identity::restrict_calls_as(&mut config, &network.domain, &identities)?;
             Some((path, network, identities))
         }

@@ -9,6 +9,9 @@
 //! DIR/router.pem      the router's certificate, for the names given
 //! DIR/router.key      its private key (mode 0600)
 //! DIR/client.json5    a Zenoh client configuration trusting ca.pem (a <zenoh config="..">)
+//! DIR/clients/NAME.{pem,key,json5}   with --tls-client NAME: a client certificate whose
+//!                     common name is NAME (mutual TLS: the router then asks every client for
+//!                     one), its key, and the configuration of a client presenting it
 //! ```
 //! For a real deployment, make the folder on the ground station's machine, copy `ca.pem` and
 //! `client.json5` to every node, and keep the keys where they are (docs/zenoh.md).
@@ -57,19 +60,7 @@ pub fn ensure(dir: &Path, hosts: &[String]) -> anyhow::Result<TlsFiles> {
     }
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let ca_key = rcgen::KeyPair::generate().context("making the authority's key")?;
-    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new())?;
-    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
-    ca_params
-        .distinguished_name
-        .push(rcgen::DnType::CommonName, "USAL deployment authority");
-    ca_params.key_usages = vec![
-        rcgen::KeyUsagePurpose::KeyCertSign,
-        rcgen::KeyUsagePurpose::CrlSign,
-        rcgen::KeyUsagePurpose::DigitalSignature,
-    ];
-    let ca = ca_params
-        .self_signed(&ca_key)
-        .context("signing the authority's certificate")?;
+    let ca = authority(&ca_key)?;
     let key = rcgen::KeyPair::generate().context("making the router's key")?;
     let mut params = rcgen::CertificateParams::new(hosts.to_vec())
         .context("the router's names are not valid certificate names")?;
@@ -89,6 +80,75 @@ pub fn ensure(dir: &Path, hosts: &[String]) -> anyhow::Result<TlsFiles> {
     write(&files.key, &key.serialize_pem(), true)?;
     write(&files.client_config, &client_config(&files.ca), false)?;
     Ok(files)
+}
+
+/// The authority's certificate for `key`: the same subject and key each time it is made, so a
+/// certificate it signs later verifies against the `ca.pem` made first.
+fn authority(key: &rcgen::KeyPair) -> anyhow::Result<rcgen::Certificate> {
+    let mut params = rcgen::CertificateParams::new(Vec::<String>::new())?;
+    params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, "USAL deployment authority");
+    params.key_usages = vec![
+        rcgen::KeyUsagePurpose::KeyCertSign,
+        rcgen::KeyUsagePurpose::CrlSign,
+        rcgen::KeyUsagePurpose::DigitalSignature,
+    ];
+    params
+        .self_signed(key)
+        .context("signing the authority's certificate")
+}
+
+/// The configuration of a client of the router of `files` presenting the certificate of
+/// `name` (mutual TLS), made in `DIR/clients/` with its certificate and key when missing:
+/// the router knows the client as `name` (its certificate's common name).
+///
+/// # Errors
+/// The authority's key cannot be read, or a file cannot be written.
+pub fn ensure_client(files: &TlsFiles, name: &str) -> anyhow::Result<PathBuf> {
+    let dir = files
+        .ca
+        .parent()
+        .map_or_else(|| PathBuf::from("clients"), |d| d.join("clients"));
+    let (cert, key, config) = (
+        dir.join(format!("{name}.pem")),
+        dir.join(format!("{name}.key")),
+        dir.join(format!("{name}.json5")),
+    );
+    if [&cert, &key, &config].iter().all(|p| p.is_file()) {
+        return Ok(config);
+    }
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let ca_key_path = files.ca.with_file_name("ca.key");
+    let ca_key = std::fs::read_to_string(&ca_key_path)
+        .with_context(|| format!("reading the authority's key {}", ca_key_path.display()))?;
+    let ca_key = rcgen::KeyPair::from_pem(&ca_key)
+        .with_context(|| format!("{} is no private key", ca_key_path.display()))?;
+    let ca = authority(&ca_key)?;
+    let client_key = rcgen::KeyPair::generate().context("making the client's key")?;
+    let mut params = rcgen::CertificateParams::new(Vec::<String>::new())?;
+    params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, name);
+    params.extended_key_usages = vec![rcgen::ExtendedKeyUsagePurpose::ClientAuth];
+    let signed = params
+        .signed_by(&client_key, &ca, &ca_key)
+        .with_context(|| format!("signing the certificate of {name}"))?;
+    write(&cert, &signed.pem(), false)?;
+    write(&key, &client_key.serialize_pem(), true)?;
+    let mut text = client_config(&files.ca);
+    let shown = |p: &Path| format!("{:?}", p.display().to_string());
+    text = text.replace(
+        "transport: { link: { tls: {",
+        &format!(
+            "transport: {{ link: {{ tls: {{ enable_mtls: true, connect_certificate: {}, connect_private_key: {},",
+            shown(&cert),
+            shown(&key)
+        ),
+    );
+    write(&config, &text, false)?;
+    Ok(config)
 }
 
 /// A Zenoh client configuration trusting the authority at `ca`: no multicast, and a client that
@@ -123,16 +183,22 @@ fn write(path: &Path, text: &str, private: bool) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-/// Sets the router's side of TLS in `config`: its certificate and key.
+/// Sets the router's side of TLS in `config`: its certificate and key, and with `mutual`
+/// a certificate asked of every client.
 ///
 /// # Errors
 /// Zenoh refuses a value.
-pub fn configure_router(config: &mut zenoh::Config, files: &TlsFiles) -> anyhow::Result<()> {
+pub fn configure_router(
+    config: &mut zenoh::Config,
+    files: &TlsFiles,
+    mutual: bool,
+) -> anyhow::Result<()> {
     let path = |p: &Path| format!("{:?}", p.display().to_string());
     for (key, value) in [
         ("transport/link/tls/listen_certificate", path(&files.cert)),
         ("transport/link/tls/listen_private_key", path(&files.key)),
         ("transport/link/tls/root_ca_certificate", path(&files.ca)),
+        ("transport/link/tls/enable_mtls", mutual.to_string()),
     ] {
         config
             .insert_json5(key, &value)
