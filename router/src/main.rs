@@ -169,7 +169,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!("{e}"))
         .with_context(|| format!("opening the router on {}", endpoints.join(", ")))?;
     let zid = session.zid().to_string();
-    let client_config = tls.as_ref().map(|f| f.client_config.as_path());
+    // Under mutual TLS a client presents its own certificate: the configuration of one of them.
+    let client_config = tls.as_ref().map(|f| match clients.first() {
+        Some(_) => f.client_config.with_file_name("clients").join("NAME.json5"),
+        None => f.client_config.clone(),
+    });
+    let client_config = client_config.as_deref();
     if args.json {
         println!(
             "{}",
@@ -187,6 +192,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 network_xml_line(e, client_config)
             );
             match &tls {
+                Some(files) if !clients.is_empty() => println!(
+                    "usal-router: a Zenoh client joins by connecting to {e} with the certificate of one of {} (mutual TLS; Zenoh configuration for each: {})",
+                    clients.join(", "),
+                    client_config.map_or_else(String::new, |c| c.display().to_string())
+                ),
                 Some(files) => println!(
                     "usal-router: any Zenoh client joins by connecting to {e} trusting {} (Zenoh configuration for clients: {})",
                     files.ca.display(),
