@@ -193,6 +193,11 @@ impl Drop for Launcher {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        // Every child it reported, the ones in lines a failed test never read too (its
+        // children also get SIGTERM from the kernel when it dies).
+        while let Ok(v) = self.lines.recv_timeout(Duration::from_millis(200)) {
+            self.seen.push(v);
+        }
         for (_, pid) in self.pids() {
             if alive(pid) {
                 signal(pid, "KILL");
