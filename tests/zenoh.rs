@@ -201,6 +201,52 @@ fn zenoh_client_xml(
     path
 }
 
+/// `tests/python/SCRIPT` run by `py` with `args`.
+fn python_script(py: &Path, script: &str, args: &[String]) -> Proc {
+    let path = python::repo_root().join("tests/python").join(script);
+    let args: Vec<String> = std::iter::once(path.display().to_string())
+        .chain(args.iter().cloned())
+        .collect();
+    Proc::spawn("python", py.to_str().expect("a UTF-8 path"), &args)
+}
+
+/// The identity tests' router (`usal router` on `endpoint` with `args`, bridging through the
+/// node of `bridge`), once it bridges with identities guest, node and pilot.
+fn bridging_router(endpoint: &str, args: &[String], bridge: &Path) -> Proc {
+    let args: Vec<String> = args
+        .iter()
+        .cloned()
+        .chain(["--bridge".into(), bridge.display().to_string()])
+        .collect();
+    let (mut router, _) = router_on(endpoint, &args);
+    let bridging = router.expect(T, "bridging", |v| v["event"] == "bridging");
+    assert_eq!(
+        bridging["identities"],
+        serde_json::json!(["guest", "node", "pilot"]),
+        "{bridging}"
+    );
+    router
+}
+
+/// Node `airfn` (its network.xml `xml`) providing `airfn/vas/change_state`, which its
+/// `<access>` lets only `zenoh/pilot` call; once it provides it.
+fn guarded_change_state(xml: impl Fn(&str, &str, &str) -> PathBuf) -> Proc {
+    let airfn = xml(
+        "airfn",
+        "airfn",
+        r#"<access><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
+    );
+    let mut guarded = probe_with_config(
+        "airfn",
+        &airfn,
+        "vas",
+        &[],
+        &["provide", "--item", "change_state"],
+    );
+    guarded.expect_key(T, "ready");
+    guarded
+}
+
 /// The official Zenoh client for Python (`eclipse-zenoh`, no USAL code), logged in to the
 /// router as a user, reads a vehicle's position as JSON (its stream and its last value), sees
 /// the domain's nodes as liveliness tokens, and calls a function with a JSON argument. The
@@ -209,11 +255,7 @@ fn zenoh_client_xml(
 /// itself; and guest calling under pilot's key gets nothing at all (the router drops it).
 #[test]
 fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
-    let Some(py) = python::python() else {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "CI: python3 is missing, so the Zenoh client test cannot run"
-        );
+    let Some(py) = python::python_unless_absent_outside_ci("the Zenoh client test") else {
         return;
     };
     let port = free_port();
@@ -232,31 +274,15 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
     let xml = |node: &str, namespace: &str, inner: &str| {
         zenoh_client_xml(dir.path(), node, namespace, &domain, &connect, inner)
     };
-    let bridge = xml("bridge", "zbridge", "");
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let (mut router, _) = router_on(
+    let _router = bridging_router(
         &endpoint,
-        &[
-            "--users".into(),
-            users.display().to_string(),
-            "--bridge".into(),
-            bridge.display().to_string(),
-        ],
-    );
-    let bridging = router.expect(T, "bridging", |v| v["event"] == "bridging");
-    assert_eq!(
-        bridging["identities"],
-        serde_json::json!(["guest", "node", "pilot"]),
-        "{bridging}"
+        &["--users".into(), users.display().to_string()],
+        &xml("bridge", "zbridge", ""),
     );
 
     let air = xml("air", "air", "");
     let airdbl = xml("airdbl", "air", "");
-    let airfn = xml(
-        "airfn",
-        "airfn",
-        r#"<access><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
-    );
     let _position = probe_with_config(
         "air",
         &air,
@@ -272,23 +298,12 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
         &["provide", "--item", "double"],
     );
     double.expect_key(T, "ready");
-    let mut guarded = probe_with_config(
-        "airfn",
-        &airfn,
-        "vas",
-        &[],
-        &["provide", "--item", "change_state"],
-    );
-    guarded.expect_key(T, "ready");
+    let _guarded = guarded_change_state(xml);
 
-    let mut client = Proc::spawn(
-        "python",
-        py.to_str().expect("a UTF-8 path"),
+    let mut client = python_script(
+        &py,
+        "zenoh_client.py",
         &[
-            python::repo_root()
-                .join("tests/python/zenoh_client.py")
-                .display()
-                .to_string(),
             endpoint,
             domain.clone(),
             "pilot:pilot-pw".into(),
@@ -341,11 +356,7 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
 /// drops it).
 #[test]
 fn a_client_known_by_its_certificate_calls_as_itself() {
-    let Some(py) = python::python() else {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "CI: python3 is missing, so the Zenoh client test cannot run"
-        );
+    let Some(py) = python::python_unless_absent_outside_ci("the Zenoh client test") else {
         return;
     };
     let port = free_port();
@@ -355,45 +366,21 @@ fn a_client_known_by_its_certificate_calls_as_itself() {
     let client = |name: &str| tls.join("clients").join(format!("{name}.json5"));
     let endpoint = format!("tls/127.0.0.1:{port}");
     let connect = format!("{endpoint}\" config=\"{}\"", client("node").display());
-    let bridge = zenoh_client_xml(dir.path(), "bridge", "zbridge", &domain, &connect, "");
+    let xml = |node: &str, namespace: &str, inner: &str| {
+        zenoh_client_xml(dir.path(), node, namespace, &domain, &connect, inner)
+    };
     let mut args: Vec<String> = vec!["--tls-dir".into(), tls.display().to_string()];
     for name in ["node", "pilot", "guest"] {
         args.extend(["--tls-client".into(), name.into()]);
     }
-    args.extend(["--bridge".into(), bridge.display().to_string()]);
-    let (mut router, _) = router_on(&endpoint, &args);
-    let bridging = router.expect(T, "bridging", |v| v["event"] == "bridging");
-    assert_eq!(
-        bridging["identities"],
-        serde_json::json!(["guest", "node", "pilot"]),
-        "{bridging}"
-    );
-    let airfn = zenoh_client_xml(
-        dir.path(),
-        "airfn",
-        "airfn",
-        &domain,
-        &connect,
-        r#"<access><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
-    );
-    let mut guarded = probe_with_config(
-        "airfn",
-        &airfn,
-        "vas",
-        &[],
-        &["provide", "--item", "change_state"],
-    );
-    guarded.expect_key(T, "ready");
+    let _router = bridging_router(&endpoint, &args, &xml("bridge", "zbridge", ""));
+    let _guarded = guarded_change_state(xml);
 
     let call = |who: &str, as_whom: &str, listen_s: &str| {
-        let mut p = Proc::spawn(
-            "python",
-            py.to_str().expect("a UTF-8 path"),
+        let mut p = python_script(
+            &py,
+            "zenoh_call.py",
             &[
-                python::repo_root()
-                    .join("tests/python/zenoh_call.py")
-                    .display()
-                    .to_string(),
                 client(who).display().to_string(),
                 endpoint.clone(),
                 format!("usal/{domain}/@as/{as_whom}/airfn/vas/change_state"),

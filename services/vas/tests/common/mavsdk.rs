@@ -40,6 +40,17 @@ fn runs(cmd: &Path, args: &[&str]) -> bool {
 /// brought up to date.
 const IMPORTS: &[&str] = &["-c", "import mavsdk, pymavlink, zenoh"];
 
+/// [`python`] for a test that must run under `CI` (`.ci/run` installs the venv): `None` only
+/// outside CI, where no `python3` exists; under CI a missing Python fails `what`.
+pub fn python_unless_absent_outside_ci(what: &str) -> Option<PathBuf> {
+    let py = python();
+    assert!(
+        py.is_some() || std::env::var_os("CI").is_none(),
+        "CI: python3 is missing, so {what} cannot run"
+    );
+    py
+}
+
 /// The Python that has `mavsdk`, `pymavlink` and `zenoh`, creating the venv if needed; `None` (after
 /// printing why) only where no `python3` exists. Blocking: call it off the async runtime.
 ///
