@@ -25,6 +25,8 @@ use anyhow::Context;
 pub struct TlsFiles {
     /// The authority's certificate.
     pub ca: PathBuf,
+    /// The authority's private key.
+    pub ca_key: PathBuf,
     /// The router's certificate.
     pub cert: PathBuf,
     /// The router's private key.
@@ -38,6 +40,7 @@ impl TlsFiles {
     pub fn in_dir(dir: &Path) -> TlsFiles {
         TlsFiles {
             ca: dir.join("ca.pem"),
+            ca_key: dir.join("ca.key"),
             cert: dir.join("router.pem"),
             key: dir.join("router.key"),
             client_config: dir.join("client.json5"),
@@ -61,25 +64,43 @@ pub fn ensure(dir: &Path, hosts: &[String]) -> anyhow::Result<TlsFiles> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let ca_key = rcgen::KeyPair::generate().context("making the authority's key")?;
     let ca = authority(&ca_key)?;
-    let key = rcgen::KeyPair::generate().context("making the router's key")?;
-    let mut params = rcgen::CertificateParams::new(hosts.to_vec())
-        .context("the router's names are not valid certificate names")?;
-    params
-        .distinguished_name
-        .push(rcgen::DnType::CommonName, "usal-router");
-    params.extended_key_usages = vec![
-        rcgen::ExtendedKeyUsagePurpose::ServerAuth,
-        rcgen::ExtendedKeyUsagePurpose::ClientAuth,
-    ];
-    let cert = params
-        .signed_by(&key, &ca, &ca_key)
-        .context("signing the router's certificate")?;
+    let (cert, key) = signed(
+        hosts,
+        "usal-router",
+        vec![
+            rcgen::ExtendedKeyUsagePurpose::ServerAuth,
+            rcgen::ExtendedKeyUsagePurpose::ClientAuth,
+        ],
+        (&ca, &ca_key),
+    )
+    .context("the router's certificate")?;
     write(&files.ca, &ca.pem(), false)?;
-    write(&dir.join("ca.key"), &ca_key.serialize_pem(), true)?;
+    write(&files.ca_key, &ca_key.serialize_pem(), true)?;
     write(&files.cert, &cert.pem(), false)?;
     write(&files.key, &key.serialize_pem(), true)?;
-    write(&files.client_config, &client_config(&files.ca), false)?;
+    write(&files.client_config, &client_config(&files.ca, None), false)?;
     Ok(files)
+}
+
+/// A certificate for `names` (host names or addresses) with common name `common_name`, for
+/// `usages`, signed by the authority `ca`; and its new key.
+fn signed(
+    names: &[String],
+    common_name: &str,
+    usages: Vec<rcgen::ExtendedKeyUsagePurpose>,
+    (ca, ca_key): (&rcgen::Certificate, &rcgen::KeyPair),
+) -> anyhow::Result<(rcgen::Certificate, rcgen::KeyPair)> {
+    let key = rcgen::KeyPair::generate().context("making a key")?;
+    let mut params = rcgen::CertificateParams::new(names.to_vec())
+        .context("names that are no valid certificate names")?;
+    params
+        .distinguished_name
+        .push(rcgen::DnType::CommonName, common_name);
+    params.extended_key_usages = usages;
+    let cert = params
+        .signed_by(&key, ca, ca_key)
+        .with_context(|| format!("signing the certificate of {common_name}"))?;
+    Ok((cert, key))
 }
 
 /// The authority's certificate for `key`: the same subject and key each time it is made, so a
@@ -120,52 +141,49 @@ pub fn ensure_client(files: &TlsFiles, name: &str) -> anyhow::Result<PathBuf> {
         return Ok(config);
     }
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let ca_key_path = files.ca.with_file_name("ca.key");
-    let ca_key = std::fs::read_to_string(&ca_key_path)
-        .with_context(|| format!("reading the authority's key {}", ca_key_path.display()))?;
+    let ca_key = std::fs::read_to_string(&files.ca_key)
+        .with_context(|| format!("reading the authority's key {}", files.ca_key.display()))?;
     let ca_key = rcgen::KeyPair::from_pem(&ca_key)
-        .with_context(|| format!("{} is no private key", ca_key_path.display()))?;
+        .with_context(|| format!("{} is no private key", files.ca_key.display()))?;
     let ca = authority(&ca_key)?;
-    let client_key = rcgen::KeyPair::generate().context("making the client's key")?;
-    let mut params = rcgen::CertificateParams::new(Vec::<String>::new())?;
-    params
-        .distinguished_name
-        .push(rcgen::DnType::CommonName, name);
-    params.extended_key_usages = vec![rcgen::ExtendedKeyUsagePurpose::ClientAuth];
-    let signed = params
-        .signed_by(&client_key, &ca, &ca_key)
-        .with_context(|| format!("signing the certificate of {name}"))?;
-    write(&cert, &signed.pem(), false)?;
+    let (signed_cert, client_key) = signed(
+        &[],
+        name,
+        vec![rcgen::ExtendedKeyUsagePurpose::ClientAuth],
+        (&ca, &ca_key),
+    )?;
+    write(&cert, &signed_cert.pem(), false)?;
     write(&key, &client_key.serialize_pem(), true)?;
-    let mut text = client_config(&files.ca);
-    let shown = |p: &Path| format!("{:?}", p.display().to_string());
-    text = text.replace(
-        "transport: { link: { tls: {",
-        &format!(
-            "transport: {{ link: {{ tls: {{ enable_mtls: true, connect_certificate: {}, connect_private_key: {},",
-            shown(&cert),
-            shown(&key)
-        ),
-    );
+    let text = client_config(&files.ca, Some((&cert, &key)));
     write(&config, &text, false)?;
     Ok(config)
 }
 
-/// A Zenoh client configuration trusting the authority at `ca`: no multicast, and a client that
-/// waits a while for its router at start, as a `<zenoh>` link without a file does.
-fn client_config(ca: &Path) -> String {
+/// A Zenoh client configuration trusting the authority at `ca`, presenting the certificate and
+/// key `presented` (mutual TLS) if given: no multicast, and a client that waits a while for its
+/// router at start, as a `<zenoh>` link without a file does.
+fn client_config(ca: &Path, presented: Option<(&Path, &Path)>) -> String {
+    let quoted = |p: &Path| format!("{:?}", p.display().to_string());
+    let mtls = presented.map_or_else(String::new, |(cert, key)| {
+        format!(
+            "enable_mtls: true, connect_certificate: {}, connect_private_key: {}, ",
+            quoted(cert),
+            quoted(key)
+        )
+    });
     format!(
         r#"// A Zenoh client of a USAL router over TLS, made by usal-router: it trusts the
-// deployment's authority (ca.pem beside this file). Name it in a node's network.xml:
-//   <zenoh mode="client" connect="tls/HOST:PORT" config="client.json5"/>
+// deployment's authority ({ca}). Name it in a node's network.xml:
+//   <zenoh mode="client" connect="tls/HOST:PORT" config="THIS FILE"/>
 {{
   mode: "client",
   scouting: {{ multicast: {{ enabled: false }} }},
   connect: {{ timeout_ms: 15000 }},
-  transport: {{ link: {{ tls: {{ root_ca_certificate: {ca:?} }} }} }},
+  transport: {{ link: {{ tls: {{ {mtls}root_ca_certificate: {root} }} }} }},
 }}
 "#,
-        ca = ca.display().to_string()
+        ca = ca.display(),
+        root = quoted(ca),
     )
 }
 
