@@ -153,14 +153,18 @@ pub async fn run(
     tasks.spawn(forward(variables, false));
     tasks.spawn(forward(events, true));
     let mut tokens = NodeTokens::default();
+    // The tokens follow the nodes every half second (at once the first time), not per query.
+    let mut resync = tokio::time::interval(Duration::from_millis(500));
+    resync.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        tokens.sync(&session, node, &domain).await;
         let query = tokio::select! {
             _ = cancel.cancelled() => break,
+            _ = resync.tick() => {
+                tokens.sync(&session, node, &domain).await;
+                continue;
+            }
             q = queryable.recv_async() => match q { Ok(q) => q, Err(_) => break },
             q = queryable_as.recv_async() => match q { Ok(q) => q, Err(_) => break },
-            // Nodes come and go between queries too.
-            _ = tokio::time::sleep(Duration::from_millis(500)) => continue,
         };
         let svc = svc.clone();
         let last = last.clone();

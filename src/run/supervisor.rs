@@ -162,8 +162,9 @@ type SpawnRequest = (
 /// handed over by `block_in_place`, the blocking pool's idle threads), and a child started on
 /// one of them would be stopped when it ends.
 async fn spawn(cmd: Command) -> std::io::Result<Child> {
-    static SPAWNER: std::sync::OnceLock<std::sync::Mutex<std::sync::mpsc::Sender<SpawnRequest>>> =
-        std::sync::OnceLock::new();
+    type Spawner = Option<std::sync::Mutex<std::sync::mpsc::Sender<SpawnRequest>>>;
+    static SPAWNER: std::sync::OnceLock<Spawner> = std::sync::OnceLock::new();
+    let gone = || std::io::Error::other("the launcher's spawning thread is gone");
     let spawner = SPAWNER.get_or_init(|| {
         let (tx, rx) = std::sync::mpsc::channel::<SpawnRequest>();
         let runtime = tokio::runtime::Handle::current();
@@ -176,31 +177,15 @@ async fn spawn(cmd: Command) -> std::io::Result<Child> {
                     let _ = reply.send(cmd.spawn());
                 }
             })
+            .ok()
             .map(|_| std::sync::Mutex::new(tx))
-            .unwrap_or_else(|e| {
-                // No thread to start children from: each request fails, saying why.
-                let (tx, rx) = std::sync::mpsc::channel::<SpawnRequest>();
-                let why = e.to_string();
-                std::thread::spawn(move || {
-                    for (_, reply) in rx {
-                        let _ = reply.send(Err(std::io::Error::other(why.clone())));
-                    }
-                });
-                std::sync::Mutex::new(tx)
-            })
     });
+    let spawner = spawner.as_ref().ok_or_else(gone)?;
     let (reply, outcome) = tokio::sync::oneshot::channel();
-    let sent = marea::sync::lock(spawner).send((cmd, reply));
-    if sent.is_err() {
-        return Err(std::io::Error::other(
-            "the launcher's spawning thread is gone",
-        ));
-    }
-    outcome.await.unwrap_or_else(|_| {
-        Err(std::io::Error::other(
-            "the launcher's spawning thread is gone",
-        ))
-    })
+    marea::sync::lock(spawner)
+        .send((cmd, reply))
+        .map_err(|_| gone())?;
+    outcome.await.unwrap_or_else(|_| Err(gone()))
 }
 
 async fn supervise(
