@@ -755,19 +755,25 @@ fn tool(domain: &str, args: &[&str]) -> (bool, String) {
     )
 }
 
-/// With `<station start="operator">` the launcher never presses Start: the plan loads and the
-/// rover stays parked (well past the second after which `start="auto"` starts it) until the
-/// pilot asks for WAYPOINT_NAVIGATION, here with `usal call`; then it flies the plan.
-#[test]
-fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let mission = dir.path().join("rover-operator.xml");
+/// The demo mission with `<station start="operator">`, written in `dir`.
+fn operator_mission(dir: &Path) -> std::path::PathBuf {
+    let mission = dir.join("rover-operator.xml");
     let flightplans = root().join("config/flightplans/");
     let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
         .expect("the demo mission")
         .replace("../flightplans/", &flightplans.display().to_string())
         .replace(r#"start="auto""#, r#"start="operator""#);
     std::fs::write(&mission, demo).expect("write the mission");
+    mission
+}
+
+/// With `<station start="operator">` the launcher never presses Start: the plan loads and the
+/// rover stays parked (well past the second after which `start="auto"` starts it) until the
+/// pilot asks for WAYPOINT_NAVIGATION, here with `usal call`; then it flies the plan.
+#[test]
+fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = operator_mission(dir.path());
     let mut l = Launcher::start(&[
         mission.to_str().expect("a UTF-8 path"),
         "--until-complete",
@@ -807,6 +813,50 @@ fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
         "the station pressed Start"
     );
     assert_no_child_left(&l.pids());
+}
+
+/// `<station start="operator">` after a VAS restart: the launcher does not bring the vehicle
+/// back into the plan (no re-send, no Start); it says the return is the pilot's, and the rover
+/// stays parked.
+#[test]
+fn with_start_by_the_operator_a_restarted_vas_waits_for_the_pilot() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = operator_mission(dir.path());
+    let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "10"]);
+    let domain = l.event(STEP, "mission")["domain"]
+        .as_str()
+        .expect("the domain")
+        .to_owned();
+    let vas = l.expect(STEP, "vas started", |v| {
+        v["event"] == "started" && v["service"] == "air/vas"
+    });
+    l.event(STEP, "plan_loaded");
+    let (ok, answer) = tool(
+        &domain,
+        &[
+            "call",
+            "rover1/vas/change_state",
+            r#"{"to":"WAYPOINT_NAVIGATION"}"#,
+        ],
+    );
+    assert!(ok, "{answer}");
+    l.expect(FLIGHT, "waypoint 2", |v| {
+        v["event"] == "waypoint" && v["n"].as_u64() >= Some(2)
+    });
+    signal(vas["pid"].as_u64().expect("a pid") as u32, "KILL");
+    l.expect(STEP, "vas restarted", |v| {
+        v["event"] == "started" && v["service"] == "air/vas" && v["restarts"] == 1
+    });
+    l.event(STEP, "recovery_left_to_operator");
+    l.none_within(
+        Duration::from_secs(4),
+        "the launcher resumed the plan",
+        |v| {
+            v["event"] == "vas_recovered"
+                || v["event"] == "navigation_kicked"
+                || (v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION")
+        },
+    );
 }
 
 /// `usal run` killed with SIGKILL mid-flight (it can stop nothing itself) leaves no child
