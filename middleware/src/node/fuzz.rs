@@ -5,14 +5,17 @@
 //! step it checks the invariants the node promises: per-peer and total declarations within
 //! [`MAX_DECLS_PER_PEER`] and [`MAX_DECLS_TOTAL`]; every stored offer owned by its peer's
 //! namespace unless it came with an `origin` from a gateway; every stored interest a valid
-//! pattern. Reached through [`crate::fuzzing::node_decls`] (feature `fuzzing`).
+//! pattern; and the routes kept up to date per peer (see
+//! [`NodeInner::recompute_routes_of_peer`]) are those a recomputation from scratch makes. The
+//! node has offers and interests of its own so that routes exist. Reached through
+//! [`crate::fuzzing::node_decls`] (feature `fuzzing`).
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use arbitrary::{Result, Unstructured};
 
 use super::policy::{MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
-use super::{bare_node, NodeInner};
+use super::{bare_node, LocalInterest, LocalOffer, NodeInner, OfferRole};
 use crate::link::PeerAddr;
 use crate::protocol::gen;
 use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message};
@@ -59,6 +62,100 @@ fn check(inner: &NodeInner) {
         }
     }
     assert!(total <= MAX_DECLS_TOTAL, "{total} declarations in all");
+    let kept = routes(inner);
+    inner.recompute_routes();
+    assert_eq!(
+        kept,
+        routes(inner),
+        "routes kept per peer differ from routes recomputed from scratch"
+    );
+}
+
+/// The node's routes, comparable: each local offer's remote subscribers (node and labels),
+/// and each peer's routes (offer id, name, publisher, local targets) and shadowed offers.
+fn routes(inner: &NodeInner) -> (Vec<String>, Vec<String>) {
+    let mut offers: Vec<String> = inner
+        .offers
+        .iter()
+        .map(|o| {
+            let mut subs: Vec<String> = o
+                .remote
+                .get()
+                .iter()
+                .map(|r| format!("{:x}{:?}", r.node, r.labels))
+                .collect();
+            subs.sort();
+            format!("{} -> {subs:?}", o.name)
+        })
+        .collect();
+    offers.sort();
+    let mut peers: Vec<String> = inner
+        .peers
+        .iter()
+        .map(|p| {
+            let mut routes: Vec<String> = p
+                .routes
+                .iter()
+                .map(|(id, r)| {
+                    let mut targets: Vec<u32> = r.targets.iter().map(|t| t.id).collect();
+                    targets.sort_unstable();
+                    format!("{id} {} {} {targets:?}", r.name, r.publisher)
+                })
+                .collect();
+            routes.sort();
+            let mut shadowed: Vec<u32> = p.shadowed.iter().copied().collect();
+            shadowed.sort_unstable();
+            format!("{:x}: {routes:?} shadowed {shadowed:?}", p.id)
+        })
+        .collect();
+    peers.sort();
+    (offers, peers)
+}
+
+/// Gives the node offers and interests of its own, so peers' declarations make routes both
+/// ways: items peers' generated names may match, of the types they may declare.
+fn local_items(inner: &Arc<NodeInner>) {
+    let kinds = [ItemKind::Variable, ItemKind::Event];
+    for (k, kind) in kinds.into_iter().enumerate() {
+        for (t, ty) in [TypeInfo::of::<u64>(), TypeInfo::of::<u8>()]
+            .into_iter()
+            .enumerate()
+        {
+            let id = inner.fresh_id();
+            inner.add_offer(Arc::new(LocalOffer {
+                id,
+                service: 1,
+                kind,
+                name: format!("me/s/{k}{t}").into(),
+                ty: ty.clone(),
+                role: match kind {
+                    ItemKind::Variable => OfferRole::Variable {
+                        last: Mutex::new(Some(vec![1])),
+                    },
+                    _ => OfferRole::Event,
+                },
+                remote: Default::default(),
+                local: Mutex::default(),
+                has_local: Default::default(),
+                refused: Mutex::default(),
+                origin: None,
+                hidden_on: None,
+            }));
+            for pattern in ["**", "rover1/**", "*/s/*"] {
+                inner.add_interest(Arc::new(LocalInterest {
+                    id: inner.fresh_id(),
+                    service: 1,
+                    service_name: "s".into(),
+                    kind,
+                    pattern: pattern.into(),
+                    ty: ty.clone(),
+                    mailbox: None,
+                    reported: Mutex::default(),
+                    hidden_on: None,
+                }));
+            }
+        }
+    }
 }
 
 /// A name mostly under `ns`.
@@ -97,8 +194,14 @@ fn batch(u: &mut Unstructured<'_>, inner: &Arc<NodeInner>, id: u64, ns: &str) ->
         u.arbitrary_loop(Some(1), Some(32), |u| {
             counter += 1;
             let mut decl = gen::declaration(u)?;
-            if let Declaration::Offer { name, .. } = &mut decl {
-                *name = owned_name(u, ns)?;
+            match &mut decl {
+                Declaration::Offer { name, .. } => *name = owned_name(u, ns)?,
+                // Often one taking our own items (see `local_items`), so subscriptions to
+                // them come and go.
+                Declaration::Interest { pattern, .. } if u.ratio(1u8, 2)? => {
+                    *pattern = (*u.choose(&["**", "me/**", "me/s/*", "*/s/00"])?).to_owned();
+                }
+                _ => {}
             }
             entries.push(LoggedDeclaration { counter, decl });
             Ok(std::ops::ControlFlow::Continue(()))
@@ -129,6 +232,7 @@ pub(crate) fn run(data: &[u8]) -> Result<()> {
     let mut u = Unstructured::new(data);
     let u = &mut u;
     let inner = bare_node(Some("me"), None);
+    local_items(&inner);
     let result = u.arbitrary_loop(Some(1), Some(60), |u| {
         let id = u.int_in_range(1u64..=4)?;
         let ns = NAMESPACES[(id as usize - 1) % NAMESPACES.len()];

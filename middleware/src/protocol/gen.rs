@@ -111,6 +111,14 @@ fn kind(u: &mut Unstructured<'_>) -> Result<ItemKind> {
 }
 
 fn type_info(u: &mut Unstructured<'_>) -> Result<TypeInfo> {
+    // Half the time a real type, so that items of the same type meet.
+    if u.ratio(1u8, 2)? {
+        return Ok(if u.arbitrary()? {
+            TypeInfo::of::<u64>()
+        } else {
+            TypeInfo::of::<u8>()
+        });
+    }
     Ok(TypeInfo {
         name: (*u.choose(&["u64", "f32", "usal_types::Position", "String", "()"])?).to_owned(),
         fingerprint: u.arbitrary()?,
