@@ -133,6 +133,7 @@ enum Sent {
     Safe(u32, Vec<u8>),
     Syn(u32),
     Ack(u32, u32, u64),
+    Unknown(u32),
 }
 
 fn owned(e: &Entry<'_>) -> Sent {
@@ -141,6 +142,7 @@ fn owned(e: &Entry<'_>) -> Sent {
         Entry::Safe { seq, msg } => Sent::Safe(seq, msg.to_vec()),
         Entry::Syn(s) => Sent::Syn(s),
         Entry::Ack(a) => Sent::Ack(a.session, a.next, a.sack),
+        Entry::Unknown(seq) => Sent::Unknown(seq),
     }
 }
 
@@ -187,7 +189,7 @@ fn udp_case(u: &mut Unstructured<'_>) -> Result<()> {
     w.push_syn(session);
     written.push(Sent::Syn(session));
     u.arbitrary_loop(Some(0), Some(120), |u| {
-        let pushed = match u.int_in_range(0u8..=9)? {
+        let pushed = match u.int_in_range(0u8..=10)? {
             0..=4 if next_safe < safe.len() => {
                 let (seq, m) = (next_safe as u32, &safe[next_safe]);
                 let ok = w.push_safe(seq, m);
@@ -230,6 +232,14 @@ fn udp_case(u: &mut Unstructured<'_>) -> Result<()> {
                 let ok = w.push_syn(session);
                 if ok {
                     written.push(Sent::Syn(session));
+                }
+                ok
+            }
+            9 => {
+                let seq = u.arbitrary()?;
+                let ok = w.push_unknown(seq);
+                if ok {
+                    written.push(Sent::Unknown(seq));
                 }
                 ok
             }
@@ -293,7 +303,7 @@ fn udp_case(u: &mut Unstructured<'_>) -> Result<()> {
                     rx.on_syn(s);
                 }
                 Entry::Safe { seq, msg } => rx.on_safe(seq, msg, |m| delivered.push(m.to_vec())),
-                Entry::Fast(_) | Entry::Ack(_) => {}
+                Entry::Fast(_) | Entry::Ack(_) | Entry::Unknown(_) => {}
             }
         }
         let _ = rx.take_ack();

@@ -459,6 +459,20 @@ impl<M: Medium> DatagramLink<M> {
         }
     }
 
+    /// Tells `to` that we hold no session of its and dropped its safe message `seq` unread
+    /// ([`Entry::Unknown`]): it starts a new session (and introduces itself again) at once
+    /// instead of retransmitting until its retry limit and then dropping us as unreachable.
+    fn tell_unknown(&self, to: M::Addr, seq: u32) {
+        let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
+        let mut w = DatagramWriter::new(self.datagram_max(to).saturating_sub(seal));
+        if w.push_unknown(seq) {
+            let d = self.seal(w.take());
+            if self.medium.send_to(&d, to).is_ok() {
+                self.count_out(d.len());
+            }
+        }
+    }
+
     async fn transmit_loop(self: Arc<Self>, cancel: CancellationToken) {
         loop {
             let now = Instant::now();
@@ -574,10 +588,20 @@ impl<M: Medium> DatagramLink<M> {
         let has_syn = entries.iter().any(|e| matches!(e, Entry::Syn(_)));
         let Some(p) = self.peer(from, has_syn) else {
             // No session with this address: only fast messages mean anything.
+            let mut unread = None;
             for e in entries {
-                if let Entry::Fast(msg) = e {
-                    self.handler.on_message(self.index, M::peer_addr(from), msg);
+                match e {
+                    Entry::Fast(msg) => {
+                        self.handler.on_message(self.index, M::peer_addr(from), msg);
+                    }
+                    Entry::Safe { seq, .. } => unread = unread.or(Some(seq)),
+                    _ => {}
                 }
+            }
+            // Safe messages of a session we forgot (no SYN: the sender thinks we know it).
+            // (With a SYN, we refused the session: a reply would only have it start another.)
+            if let (Some(seq), false) = (unread, has_syn) {
+                self.tell_unknown(from, seq);
             }
             return;
         };
@@ -587,6 +611,7 @@ impl<M: Medium> DatagramLink<M> {
         let mut fast: Vec<&[u8]> = Vec::new();
         let mut completed = Vec::new();
         let mut reset = false;
+        let mut unread = None;
         {
             let mut st = lock(&p);
             let now = Instant::now();
@@ -603,6 +628,12 @@ impl<M: Medium> DatagramLink<M> {
                         }
                     }
                     Entry::Safe { seq, msg } => {
+                        if !st.rx.has_session() {
+                            // The sender's session is one we forgot (this session is ours
+                            // only, made to send to it since).
+                            unread = unread.or(Some(seq));
+                            continue;
+                        }
                         st.rx.on_safe(seq, msg, |m| {
                             deliver.push(if std::ptr::eq(m, msg) {
                                 std::borrow::Cow::Borrowed(msg)
@@ -613,6 +644,13 @@ impl<M: Medium> DatagramLink<M> {
                     }
                     Entry::Fast(msg) => fast.push(msg),
                     Entry::Ack(ack) => completed.extend(st.tx.on_ack(now, ack)),
+                    // Only about a message still in flight: a late answer to an earlier
+                    // session of ours (or a made-up one) changes nothing.
+                    Entry::Unknown(seq) if st.tx.message(seq).is_some() => {
+                        reset = true;
+                        fail_sender(&mut st, LinkSendError::PeerClosed(from.to_string()));
+                    }
+                    Entry::Unknown(_) => {}
                 }
             }
             let dups = st.rx.stats().duplicates - dups_before;
@@ -621,6 +659,9 @@ impl<M: Medium> DatagramLink<M> {
             self.counters
                 .reorder_dropped
                 .fetch_add(over, Ordering::Relaxed);
+        }
+        if let Some(seq) = unread {
+            self.tell_unknown(from, seq);
         }
         if !touched.contains(&from) {
             touched.push(from);

@@ -11,6 +11,9 @@
 //!            | 0x04 session:u32le next:varint sack:varint
 //!                                               ACK   all seq < next received; bit i of sack
 //!                                                     = seq next+1+i received too
+//!            | 0x05 seq:varint                  UNKNOWN  the receiver holds no session of the
+//!                                                     sender (it forgot it) and dropped safe
+//!                                                     seq unread: the sender starts a new one
 //! ```
 //! A 32-byte position sample costs 1 (kind) + 1 (FAST) + 1 (len) + 35 (message) = 38 bytes.
 //!
@@ -53,6 +56,7 @@ pub fn unsealed_kind(kind: u8) -> Option<u8> {
 const TAG_SAFE: u8 = 0x02;
 const TAG_SYN: u8 = 0x03;
 const TAG_ACK: u8 = 0x04;
+const TAG_UNKNOWN: u8 = 0x05;
 
 /// One entry of a data datagram, borrowing from the datagram.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -70,6 +74,10 @@ pub enum Entry<'a> {
     Syn(u32),
     /// An acknowledgement.
     Ack(AckInfo),
+    /// The receiver holds no session of ours (it forgot us, a lease or a restart) and dropped
+    /// our safe message of this seq unread: without it the sender would retransmit into the
+    /// void until its retry limit.
+    Unknown(u32),
 }
 
 /// A datagram that could not be decoded.
@@ -216,6 +224,17 @@ impl DatagramWriter {
         true
     }
 
+    /// Appends an UNKNOWN entry; `false` when it does not fit.
+    pub fn push_unknown(&mut self, seq: u32) -> bool {
+        if !self.fits(1 + len_u64(u64::from(seq))) {
+            return false;
+        }
+        self.buf.push(TAG_UNKNOWN);
+        put_u64(&mut self.buf, u64::from(seq));
+        self.entries += 1;
+        true
+    }
+
     /// The finished datagram; the writer is reset for the next one.
     pub fn take(&mut self) -> Vec<u8> {
         let next = self.fresh();
@@ -297,6 +316,12 @@ pub fn decode(bytes: &[u8]) -> Result<Datagram<'_>, DatagramDecodeError> {
                             next,
                             sack,
                         })
+                    }
+                    TAG_UNKNOWN => {
+                        let seq = take_u64(&mut rest).ok_or(DatagramDecodeError::Truncated)?;
+                        Entry::Unknown(
+                            u32::try_from(seq).map_err(|_| DatagramDecodeError::SeqOutOfRange)?,
+                        )
                     }
                     other => return Err(DatagramDecodeError::UnknownTag(other)),
                 };
