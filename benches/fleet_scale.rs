@@ -20,6 +20,9 @@
 //! - `discovery_bytes_per_s` (LAN): bytes on the discovery multicast group, counted by a
 //!   socket of this bench; `ground_bytes_per_s`: bytes in and out of the ground's link;
 //! - `ground_rss_kib`, `vehicle_rss_kib` (the vehicles' process over N).
+//!
+//! `FS_LOG=marea=info` (a tracing filter) has the vehicles' process log on stderr: which peers
+//! its nodes dropped and why.
 
 use std::collections::HashMap;
 use std::io::BufRead;
@@ -70,7 +73,15 @@ fn metric(name: &str, value: f64, unit: &str) {
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.first().map(String::as_str) {
-        Some("--role-vehicles") => roles(vehicles(&args[1..])),
+        Some("--role-vehicles") => {
+            if std::env::var("FS_LOG").is_ok() {
+                tracing_subscriber::fmt()
+                    .with_env_filter(tracing_subscriber::EnvFilter::from_env("FS_LOG"))
+                    .with_writer(std::io::stderr)
+                    .init();
+            }
+            roles(vehicles(&args[1..]))
+        }
         Some("--role-ground") => roles(ground(&args[1..])),
         _ => {
             let ns: Vec<usize> = args.iter().filter_map(|a| a.parse().ok()).collect();
