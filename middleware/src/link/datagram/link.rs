@@ -22,6 +22,7 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
+use super::agenda::Agenda;
 use super::sessions::{Lookup, SessionLimits, SessionTable};
 use super::{Datagram, DatagramWriter, Entry};
 use crate::link::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
@@ -37,7 +38,7 @@ use crate::sync::lock;
 /// peers at addresses of the medium's own.
 pub trait Medium: Send + Sync + 'static {
     /// Where a peer is on the medium.
-    type Addr: Copy + Eq + Hash + fmt::Display + fmt::Debug + Send + Sync + 'static;
+    type Addr: Copy + Eq + Ord + Hash + fmt::Display + fmt::Debug + Send + Sync + 'static;
     /// The node's name for a peer at `addr`.
     fn peer_addr(addr: Self::Addr) -> PeerAddr;
     /// The medium's address inside the node's name `to`, if `to` is one of this medium's.
@@ -111,6 +112,9 @@ struct PeerState {
     /// The transmit task was woken for this peer and has not flushed it yet: further messages
     /// need no wake-up of their own (each one costs a syscall when the task sleeps elsewhere).
     wake_pending: bool,
+    /// When this session is next on the transmit task's agenda (its retransmission timer or a
+    /// blocked socket's retry), if it is.
+    timer_at: Option<Instant>,
     /// The node knows who is at this address (see [`sessions`]).
     bound: bool,
     /// Datagram bytes the queued safe messages take, at most ([`queued_safe_cost`]).
@@ -129,6 +133,7 @@ impl PeerState {
             spare: Vec::new(),
             last_write: None,
             wake_pending: false,
+            timer_at: None,
             bound: false,
             safe_bytes: 0,
         }
@@ -154,6 +159,8 @@ pub struct DatagramLink<M: Medium> {
     /// When retransmission gives up on a session.
     retry_limit: RetryLimit,
     wake: Notify,
+    /// Which sessions the transmit task visits, and when.
+    agenda: Mutex<Agenda<M::Addr>>,
     handler: Arc<dyn LinkHandler>,
     counters: LinkCounters,
     /// Seals outgoing datagrams when the node has a key: data, and discovery (announces) with
@@ -217,6 +224,7 @@ impl<M: Medium> DatagramLink<M> {
             })),
             retry_limit: options.retry_limit,
             wake: Notify::new(),
+            agenda: Mutex::default(),
             handler,
             counters: LinkCounters::default(),
         });
@@ -473,45 +481,75 @@ impl<M: Medium> DatagramLink<M> {
         }
     }
 
+    /// Puts session `addr` on the transmit task's agenda for its next deadline (a retransmission
+    /// timer, or a blocked socket's retry shortly), unless it is there for that time or sooner.
+    /// Returns whether the task must be woken for it (it became the soonest).
+    fn arm(&self, addr: M::Addr, st: &mut PeerState) -> bool {
+        let at = if st.blocked.is_empty() {
+            st.tx.next_deadline()
+        } else {
+            // The kernel's send buffer was full: retry shortly (rare; loopback drains fast).
+            Some(Instant::now() + Duration::from_millis(1))
+        };
+        let Some(at) = at else {
+            return false;
+        };
+        if st.timer_at.is_some_and(|t| t <= at) {
+            return false;
+        }
+        st.timer_at = Some(at);
+        lock(&self.agenda).at(at, addr)
+    }
+
+    /// Visits the sessions on the agenda as they fall due: retransmits what is due, flushes
+    /// what senders left to the task, gives up on a session past the retry limit.
     async fn transmit_loop(self: Arc<Self>, cancel: CancellationToken) {
         loop {
             let now = Instant::now();
-            let mut deadline: Option<Instant> = None;
-            let mut blocked = false;
+            let due = lock(&self.agenda).take_due(now);
             let mut gave_up = Vec::new();
-            let peers: Vec<(M::Addr, Arc<Mutex<PeerState>>)> = lock(&self.peers)
-                .iter()
-                .map(|(a, p)| (*a, p.clone()))
-                .collect();
-            for (addr, p) in peers {
-                let mut st = lock(&p);
-                // Checked whatever woke us: a peer sending us datagrams has its session
-                // flushed (and retransmitted) by the receive task too.
-                if st.tx.exhausted(now, self.retry_limit) {
-                    drop(st);
-                    gave_up.push((addr, p));
+            let visits = due
+                .flush
+                .into_iter()
+                .map(|a| (a, None))
+                .chain(due.timers.into_iter().map(|(t, a)| (a, Some(t))));
+            for (addr, timer) in visits {
+                let Some(p) = lock(&self.peers).get(&addr).cloned() else {
                     continue;
+                };
+                let mut st = lock(&p);
+                if timer.is_none() {
+                    // Asked by a sender: later ones ask again once this visit is done.
+                    st.wake_pending = false;
+                }
+                if let Some(t) = timer {
+                    if st.timer_at != Some(t) {
+                        // An entry this session's timer replaced, or one already served.
+                        continue;
+                    }
+                    st.timer_at = None;
+                    if st.tx.exhausted(now, self.retry_limit) {
+                        drop(st);
+                        gave_up.push((addr, p));
+                        continue;
+                    }
                 }
                 let retransmit_due = st.tx.next_deadline().is_some_and(|d| d <= now);
                 if st.has_work() || retransmit_due {
                     self.flush_locked(addr, &mut st, now);
                 }
-                blocked |= !st.blocked.is_empty();
-                if let Some(d) = st.tx.next_deadline() {
-                    deadline = Some(deadline.map_or(d, |x: Instant| x.min(d)));
-                }
+                self.arm(addr, &mut st);
             }
             self.close_stale(now, gave_up);
+            let mut sleep_until = lock(&self.agenda).next_timer();
             if let Some(d) = lock(&self.peers).next_expiry() {
-                deadline = Some(deadline.map_or(d, |x: Instant| x.min(d)));
+                sleep_until = Some(sleep_until.map_or(d, |x| x.min(d)));
             }
-            let sleep_until = deadline.unwrap_or(now + Duration::from_secs(3600));
+            let sleep_until = sleep_until.unwrap_or(now + Duration::from_secs(3600));
             tokio::select! {
                 _ = cancel.cancelled() => break,
                 _ = self.wake.notified() => {}
                 _ = tokio::time::sleep_until(sleep_until.into()) => {}
-                // The kernel's send buffer was full: retry shortly (rare; loopback drains fast).
-                _ = tokio::time::sleep(Duration::from_millis(1)), if blocked => {}
             }
         }
         let peers: Vec<Arc<Mutex<PeerState>>> = lock(&self.peers).drain().map(|(_, p)| p).collect();
@@ -534,19 +572,20 @@ impl<M: Medium> DatagramLink<M> {
     /// transmit task of new retransmission timers.
     pub(crate) fn received(&self, touched: Vec<M::Addr>) {
         let now = Instant::now();
-        let mut timers_changed = false;
+        let mut wake = false;
         for addr in touched {
             if let Some(p) = self.peer(addr, false) {
                 let mut st = lock(&p);
                 if st.has_work() {
                     self.flush_locked(addr, &mut st, now);
                 }
-                timers_changed |= st.tx.next_deadline().is_some() || !st.blocked.is_empty();
+                wake |= self.arm(addr, &mut st);
             }
         }
-        // The transmit task only keeps retransmission timers and blocked sends: waking it for
-        // every datagram of fast traffic cost a thread hop each.
-        if timers_changed {
+        // The transmit task only keeps retransmission timers and blocked sends: it is woken
+        // only when one of them is sooner than it planned to wake (waking it for every
+        // datagram cost a thread hop each, and it walked every session then).
+        if wake {
             self.wake.notify_one();
         }
     }
@@ -775,19 +814,20 @@ impl<M: Medium> Link for DatagramLink<M> {
                 .last_write
                 .is_none_or(|t| now.saturating_duration_since(t) >= BATCH_WINDOW);
         if idle {
-            let had_timer = st.tx.in_flight() > 0;
             self.flush_locked(addr, &mut st, now);
             // The first safe message in flight starts a retransmission timer the transmit task
             // does not know of (it may sleep with no deadline at all): tell it, or a lost lone
             // message to a peer that sends nothing back would wait for some other wake-up.
-            if !had_timer && st.tx.in_flight() > 0 {
+            if self.arm(addr, &mut st) {
                 drop(st);
                 self.wake.notify_one();
             }
         } else if !st.wake_pending {
             st.wake_pending = true;
             drop(st);
-            self.wake.notify_one();
+            if lock(&self.agenda).flush(addr) {
+                self.wake.notify_one();
+            }
         }
     }
 

@@ -21,6 +21,7 @@
 //! the seal of [`crate::link::auth`] (epoch, counter, tag: 16 bytes), so a position sample
 //! costs 54 bytes; a node without the key sees an unknown kind and drops the datagram.
 
+mod agenda;
 pub mod link;
 mod sessions;
 

@@ -196,11 +196,6 @@ impl<K: Copy + Eq + Hash, V: Clone> SessionTable<K, V> {
         self.slots.drain().map(|(a, s)| (a, s.value))
     }
 
-    /// Every session.
-    pub(crate) fn iter(&self) -> impl Iterator<Item = (&K, &V)> {
-        self.slots.iter().map(|(a, s)| (a, &s.value))
-    }
-
     /// Every session's value.
     pub(crate) fn values(&self) -> impl Iterator<Item = &V> {
         self.slots.values().map(|s| &s.value)
@@ -313,7 +308,7 @@ mod tests {
             t.get_or_insert(addr(10), t0, false, false, || 10),
             Lookup::Refused
         ));
-        assert_eq!(t.iter().count(), 5);
+        assert_eq!(t.values().count(), 5);
         assert_eq!(t.values().count(), 5);
         assert_eq!(t.drain().count(), 5);
         assert_eq!((t.bound(), t.unbound()), (0, 0));
