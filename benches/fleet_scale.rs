@@ -14,7 +14,8 @@
 //! - `delivery_ratio`: events the ground received over those raised to it (each vehicle's
 //!   sequence from its first received event; a gap or a repeat lowers it; 1.0 wanted);
 //! - `telemetry_p50_ms`, `telemetry_p99_ms`: position age at the ground (same host clock);
-//! - `calls_ok_ratio`: the ground's calls answered;
+//! - `calls_ok_ratio`: the ground's calls answered, over those answered or failed (one still
+//!   in flight when the window closes is neither);
 //! - `ground_cpu_percent`, `router_cpu_percent`, `vehicle_cpu_percent` (the vehicles'
 //!   process over N), in percent of one core over the window;
 //! - `discovery_bytes_per_s` (LAN): bytes on the discovery multicast group, counted by a
@@ -240,8 +241,11 @@ async fn ground(args: &[String]) -> anyhow::Result<()> {
                     else {
                         break;
                     };
+                    // Counted once answered or failed: one still in flight when the window
+                    // closes is neither.
+                    let outcome = f.call(&4, Duration::from_secs(2)).await;
                     calls.fetch_add(1, Ordering::Relaxed);
-                    match f.call(&4, Duration::from_secs(2)).await {
+                    match outcome {
                         Ok(4) => {
                             calls_ok.fetch_add(1, Ordering::Relaxed);
                         }
@@ -288,6 +292,8 @@ async fn ground(args: &[String]) -> anyhow::Result<()> {
         "p50_ms": pct(0.5), "p99_ms": pct(0.99), "samples": latencies.len(),
         "calls": calls.load(Ordering::Relaxed), "calls_ok": calls_ok.load(Ordering::Relaxed),
         "link_bytes": link_bytes(&node) - bytes0,
+        // Its own: the runner may find the process gone once it printed this.
+        "rss_kib": rss_kib(std::process::id()),
     }}));
     drop(svc);
     node.shutdown().await;
@@ -495,7 +501,6 @@ fn run(n: usize, zenoh: bool) -> anyhow::Result<()> {
         .collect();
     let g1 = group_bytes.load(Ordering::Relaxed);
     counting.store(false, Ordering::Relaxed);
-    let ground_rss = rss_kib(ground.pid());
     let fleet_rss = rss_kib(fleet.pid());
 
     let m = |k: &str| format!("{}.fleet{n}.{k}", mode(zenoh));
@@ -531,7 +536,7 @@ fn run(n: usize, zenoh: bool) -> anyhow::Result<()> {
         "%",
     );
     metric(&m("ground_bytes_per_s"), f("link_bytes") / secs, "B/s");
-    metric(&m("ground_rss_kib"), ground_rss as f64, "KiB");
+    metric(&m("ground_rss_kib"), f("rss_kib"), "KiB");
     metric(&m("vehicle_rss_kib"), fleet_rss as f64 / n as f64, "KiB");
     eprintln!(
         "fleet_scale {} N={n}: discovered {discovered} in {discovery_s:.1} s; {r}",
