@@ -13,7 +13,10 @@
 //!   insider with the key in another namespace), refused / sent. An outsider's datagram counts
 //!   as refused when the victim's seal rejected it (`auth_rejected`, `replay_rejected`); an
 //!   insider's message when the counter its attack must raise rose for it (`denied`,
-//!   `rejected`, `bad_declarations`), each counted at most once. Expected 1.0.
+//!   `rejected`, `bad_declarations`), each counted at most once; a flood when it was capped.
+//!   Each wait ends after a bound with what the victim counted by then, and whatever an
+//!   attacker got delivered or executed counts as one more attack not refused: an attack
+//!   that slips through lowers the figure. Expected 1.0.
 
 use std::net::{Ipv4Addr, SocketAddrV4};
 use std::sync::Arc;
@@ -34,23 +37,26 @@ pub fn run() {
     }
     // The suite asserts as it goes (a victim that never reports, an attack not refused the
     // way it must be): such a failure is reported instead of a figure.
+    // Only the scene's set-up can fail (a victim that never starts): then there is no figure.
     match std::panic::catch_unwind(rejected_ratio) {
         Ok(ratio) => metric("hostile.rejected_ratio", ratio, "ratio"),
-        Err(_) => eprintln!("hostile.rejected_ratio: the hostile suite failed (see above)"),
+        Err(_) => eprintln!("hostile.rejected_ratio: the hostile scene did not start (see above)"),
     }
 }
 
 /// Refused / sent over both attackers of the hostile suite, against one victim.
 fn rejected_ratio() -> f64 {
-    let mut scene = suite::Scene::start("bench-hostile-suite");
+    let mut scene = suite::Scene::measuring("bench-hostile-suite");
     let outsider = suite::outsider(&mut scene);
     let insider = suite::insider(&mut scene);
-    scene.assert_nothing_from_attackers();
+    let through = scene.got_through();
     let (refused, sent) = (
         outsider.refused + insider.refused,
-        outsider.sent + insider.sent,
+        outsider.sent + insider.sent + through.len() as u64,
     );
-    eprintln!("hostile.rejected_ratio: outsider {outsider:?}, insider {insider:?}");
+    eprintln!(
+        "hostile.rejected_ratio: outsider {outsider:?}, insider {insider:?}, got through {through:#?}"
+    );
     refused as f64 / sent as f64
 }
 

@@ -4,6 +4,12 @@
 //! of an outsider without the domain key and of an insider with the key but another
 //! namespace. Each attack function returns what it sent and how much of it the victim's
 //! counters show refused; the tests assert on the victim's observable outputs.
+//!
+//! A test's scene ([`Scene::start`]) fails at the first wait that ends without what it waits
+//! for and at the first attack that is not refused the way it must be. The benchmark's scene
+//! ([`Scene::measuring`]) does neither: each wait ends after its bound with whatever the
+//! victim counted by then, each failed check counts as an attack that got through, so an
+//! attack that slips through lowers `hostile.rejected_ratio` instead of hiding the figure.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -59,6 +65,8 @@ pub struct Scene {
     pub legit: Proc,
     /// The victim's latest report.
     pub last: Value,
+    /// A test's scene (see the module docs), or the benchmark's.
+    strict: bool,
 }
 
 /// A counter of a report's `refusals`.
@@ -126,6 +134,7 @@ impl Scene {
             target,
             legit,
             last: Value::Null,
+            strict: true,
         };
         scene.report_until("the legitimate peer's positions", |r| {
             legit_samples(r) >= 5 && r["peers"]["ground/gs"] == 1
@@ -133,18 +142,53 @@ impl Scene {
         scene
     }
 
-    /// Waits for a victim report satisfying `pred` (failing the test after [`T`]).
+    /// The benchmark's scene (see the module docs).
+    pub fn measuring(test: &str) -> Scene {
+        let mut scene = Scene::start(test);
+        scene.strict = false;
+        scene
+    }
+
+    /// Waits for a victim report satisfying `pred`: after [`T`] a test fails, a measurement
+    /// goes on with the victim's latest report.
     pub fn report_until(&mut self, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
         if self.last.is_object() && pred(&self.last) {
             return self.last.clone();
         }
-        let v = self
-            .victim
-            .expect(T, what, |v| v.get("report").is_some_and(&pred));
-        self.last = v["report"].clone();
+        let wanted = |v: &Value| v.get("report").is_some_and(&pred);
+        let found = if self.strict {
+            Some(self.victim.expect(T, what, wanted))
+        } else {
+            self.victim.try_expect(T, wanted)
+        };
+        match found {
+            Some(v) => self.last = v["report"].clone(),
+            None => {
+                eprintln!("hostile: no report with {what} within {T:?}: going on with the last");
+                if let Some(v) = self
+                    .victim
+                    .seen
+                    .iter()
+                    .rev()
+                    .find(|v| v.get("report").is_some())
+                {
+                    self.last = v["report"].clone();
+                }
+            }
+        }
         // `seen` would keep every report of a long run: only the last one matters.
         self.victim.seen.clear();
         self.last.clone()
+    }
+
+    /// One attack refused as it must be (`refused`), counted in `tally`: a test fails when it
+    /// was not, a measurement counts it as an attack that got through.
+    pub fn check(&self, tally: &mut Tally, refused: bool, what: impl std::fmt::Display) {
+        assert!(refused || !self.strict, "{what}");
+        if !refused {
+            eprintln!("hostile: got through: {what}");
+        }
+        tally.add(1, u64::from(refused));
     }
 
     /// The legitimate peer's address as the victim knows it.
@@ -172,25 +216,32 @@ impl Scene {
         (id.expect("captured at least one"), captured)
     }
 
-    /// Asserts that nothing an attacker sent was delivered or executed: every call the
-    /// victim ran carried the legitimate argument, every sample came from the legitimate
-    /// peer, every file from a `ground` node.
-    pub fn assert_nothing_from_attackers(&mut self) {
+    /// What an attacker sent that the victim delivered or executed, one line each: a call
+    /// without the legitimate argument, a sample not from the legitimate peer, a file not
+    /// from a `ground` node or stored in the sink.
+    pub fn got_through(&mut self) -> Vec<String> {
         let r = self.last.clone();
+        let mut through = Vec::new();
         let called = r["called"].as_array().cloned().unwrap_or_default();
-        assert!(
-            called.iter().all(|c| c.as_u64() == Some(21)),
-            "the victim executed an attacker's call: {called:?}"
+        through.extend(
+            called
+                .iter()
+                .filter(|c| c.as_u64() != Some(21))
+                .map(|c| format!("the victim executed an attacker's call ({c})")),
         );
         let samples = r["samples"].as_object().cloned().unwrap_or_default();
-        assert!(
-            samples.keys().all(|k| k == LEGIT_SAMPLES),
-            "the victim delivered an attacker's samples: {samples:?}"
+        through.extend(
+            samples
+                .iter()
+                .filter(|(k, _)| *k != LEGIT_SAMPLES)
+                .map(|(k, n)| format!("the victim delivered an attacker's samples ({k}: {n})")),
         );
         let files = r["files"].as_array().cloned().unwrap_or_default();
-        assert!(
-            files.iter().all(|f| f[0] == "fpmo" && f[1] == 7),
-            "the victim stored an attacker's file: {files:?}"
+        through.extend(
+            files
+                .iter()
+                .filter(|f| !(f[0] == "fpmo" && f[1] == 7))
+                .map(|f| format!("the victim stored an attacker's file ({f})")),
         );
         let stored: Vec<String> = std::fs::read_dir(&self.inbox)
             .map(|rd| {
@@ -200,7 +251,18 @@ impl Scene {
                     .collect()
             })
             .unwrap_or_default();
-        assert!(stored.is_empty(), "attacker files in the sink: {stored:?}");
+        through.extend(
+            stored
+                .iter()
+                .map(|n| format!("attacker file {n} in the sink")),
+        );
+        through
+    }
+
+    /// Asserts that nothing an attacker sent was delivered or executed ([`Scene::got_through`]).
+    pub fn assert_nothing_from_attackers(&mut self) {
+        let through = self.got_through();
+        assert!(through.is_empty(), "{through:#?}");
     }
 
     /// The legitimate traffic still flows: `more` new positions from the legitimate peer, the
@@ -406,18 +468,19 @@ pub fn outsider(scene: &mut Scene) -> Tally {
     let r = scene.report_until("every datagram of the outsider counted", |r| {
         at_seal(r) >= base + sent
     });
-    assert!(
+    tally.add(sent, at_seal(&r).saturating_sub(base));
+    scene.check(
+        &mut tally,
         refusals(&r, "replay_rejected") >= 5 * captured.len() as u64,
-        "replays not counted as such: {r}"
+        format_args!("replays not counted as such: {r}"),
     );
-    tally.add(sent, at_seal(&r) - base);
     tally
 }
 
 /// The insider: it has the domain key but the namespace `evil`, which `<access>` allows
 /// nothing. Returns the tally of the attacks each refused once by a counter (owned names,
 /// origins, forged Byes, second addresses, bad patterns, denied calls and files); the floods
-/// (peers, declarations) and the denied publications are asserted on directly.
+/// (peers, declarations) and the denied publications are checked once each.
 pub fn insider(scene: &mut Scene) -> Tally {
     let key = DomainKey::load(&scene.key).expect("the domain key");
     let (legit_id, _) = scene.sniff_legit(1);
@@ -442,7 +505,8 @@ pub fn insider(scene: &mut Scene) -> Tally {
         ],
     );
     let r = outcome(&mut call);
-    assert_eq!(r["error"], "denied", "{r}");
+    let call_denied = r["error"] == "denied";
+    scene.check(&mut tally, call_denied, format_args!("the call: {r}"));
     let evil_plan = scene.dir.path().join("evil.xml");
     std::fs::write(&evil_plan, b"<evil/>").expect("write");
     let mut send = scene.net.keyed(
@@ -460,11 +524,15 @@ pub fn insider(scene: &mut Scene) -> Tally {
         ],
     );
     let r = outcome(&mut send);
-    assert_eq!(r["error"], "denied", "{r}");
+    let file_denied = r["error"] == "denied";
+    scene.check(&mut tally, file_denied, format_args!("the file: {r}"));
     let r1 = scene.report_until("the denied call and file counted", |r| {
         refusals(r, "denied") >= refusals(&r0, "denied") + 2
     });
-    tally.add(2, refusals(&r1, "denied") - refusals(&r0, "denied"));
+    tally.add(
+        2,
+        refusals(&r1, "denied").saturating_sub(refusals(&r0, "denied")),
+    );
 
     // By hand, sealed: a node `evil` of namespace `evil`.
     let mut forger = Forger::new(Some(&key)).expect("a socket");
@@ -576,15 +644,16 @@ pub fn insider(scene: &mut Scene) -> Tally {
     });
     tally.add(
         rejected,
-        refusals(&r2, "rejected") - refusals(&r1, "rejected"),
+        refusals(&r2, "rejected").saturating_sub(refusals(&r1, "rejected")),
     );
     tally.add(
         1,
-        refusals(&r2, "bad_declarations") - refusals(&r1, "bad_declarations"),
+        refusals(&r2, "bad_declarations").saturating_sub(refusals(&r1, "bad_declarations")),
     );
-    assert_eq!(
-        r2["peers"]["ground/gs"], 1,
-        "the legitimate peer was evicted or doubled: {r2}"
+    scene.check(
+        &mut tally,
+        r2["peers"]["ground/gs"] == 1,
+        format_args!("the legitimate peer was evicted or doubled: {r2}"),
     );
 
     // A declaration flood: past the per-peer cap, refused and counted.
@@ -606,9 +675,13 @@ pub fn insider(scene: &mut Scene) -> Tally {
             .expect("send");
         first += chunk.len() as u32;
     }
-    scene.report_until("the declaration flood capped", |r| {
-        refusals(r, "rejected") >= refusals(&r2, "rejected") + 100
-    });
+    let capped = |r: &Value| refusals(r, "rejected") >= refusals(&r2, "rejected") + 100;
+    let r = scene.report_until("the declaration flood capped", capped);
+    scene.check(
+        &mut tally,
+        capped(&r),
+        format_args!("the declaration flood was not capped: {r}"),
+    );
 
     // Samples on the offers it tried, and calls, files and samples on guessed ids.
     for m in forged_session_traffic() {
@@ -647,12 +720,12 @@ pub fn insider(scene: &mut Scene) -> Tally {
             r["frames_in"].as_u64().unwrap_or(0) >= frames0 + n
         });
     }
-    let r3 = scene.report_until("peers pushed out of the full table", |r| {
-        refusals(r, "peers_evicted") > evicted0
-    });
-    assert_eq!(
-        r3["peers"]["ground/gs"], 1,
-        "the legitimate peer was pushed out: {r3}"
+    let pushed_out = |r: &Value| refusals(r, "peers_evicted") > evicted0;
+    let r3 = scene.report_until("peers pushed out of the full table", pushed_out);
+    scene.check(
+        &mut tally,
+        pushed_out(&r3) && r3["peers"]["ground/gs"] == 1,
+        format_args!("the peer flood took the table, or the legitimate peer: {r3}"),
     );
 
     // A publisher of its own namespace, which `<access>` does not let publish to us.
@@ -660,8 +733,13 @@ pub fn insider(scene: &mut Scene) -> Tally {
     let _imp = scene
         .net
         .keyed("imp", "evil", &scene.key, &super::publishing("position"));
-    scene.report_until("the impostor's publication denied", |r| {
+    let r = scene.report_until("the impostor's publication denied", |r| {
         refusals(r, "denied") > denied
     });
+    scene.check(
+        &mut tally,
+        refusals(&r, "denied") > denied,
+        format_args!("the impostor's publication was not denied: {r}"),
+    );
     tally
 }
