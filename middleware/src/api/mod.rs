@@ -28,10 +28,11 @@ pub use subscription::{CallbackSubscription, EventSubscriber, Subscription, Vari
 pub use variable::{Sample, Variable};
 
 pub use crate::node::call::CallError;
-pub use crate::node::files::{state_dir, FileSinkOptions, FileSinkStats, ReceivedFile};
+pub use crate::node::files::{FileSinkOptions, FileSinkStats, ReceivedFile};
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;
 pub use crate::node::policy::RefusalReport;
+pub use crate::process::state_dir;
 
 /// Payload types: anything serde can encode, shared between processes.
 pub trait Payload: serde::Serialize + serde::de::DeserializeOwned + Send + Sync + 'static {}

@@ -184,7 +184,9 @@ fn not_built(link: &LinkConfig) -> NodeOpenError {
 }
 
 impl Node {
-    /// Opens the links of `config`, announces the node and starts discovery.
+    /// Opens the links of `config`, announces the node and starts discovery. A `config`
+    /// without `<security>` is sealed with its domain's key when a running mission of the
+    /// same user has one ([`crate::config::domain_key`]); else the node warns that it is not.
     ///
     /// # Errors
     /// [`NodeOpenError`] when a link cannot be opened, or is an `<ethernet>` (`<shm>`,
@@ -197,6 +199,7 @@ impl Node {
         allow(unused_variables)
     )]
     pub async fn open(config: &NetworkConfig) -> Result<Node, NodeOpenError> {
+        let config = &*crate::config::domain_key::with_domain_key(config);
         links_built(config, LINKS_BUILT)?;
         name::validate_name(&config.node)?;
         if let Some(ns) = &config.namespace {

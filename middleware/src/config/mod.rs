@@ -35,6 +35,7 @@ use std::path::Path;
 use crate::xml::LineIndex;
 
 pub mod access;
+pub mod domain_key;
 mod error;
 mod model;
 mod parser;

@@ -24,6 +24,7 @@ use tokio::sync::{mpsc, Notify};
 use super::policy::Refusal;
 use super::reassembly::{ChunkStep, Reassembly};
 use super::{lock, NodeInner, OfferRole};
+use crate::process::state_dir;
 use crate::protocol::{FileOffer, FileVerdict, Message, NodeId};
 
 /// Name of a sink's private directory of partial files (hidden: no sent file name may start
@@ -211,27 +212,6 @@ pub(crate) struct SinkState {
 /// Least time between two log lines for the same sender's refusals of the same kind: a
 /// sender retrying in a loop is counted every time but logged once a minute.
 const LOG_EVERY: Duration = Duration::from_secs(60);
-
-/// The user's state directory for USAL: `$XDG_STATE_HOME/usal` when that is an absolute path,
-/// else `$HOME/.local/state/usal`; `None` when neither is set.
-pub fn state_dir() -> Option<PathBuf> {
-    state_dir_from(std::env::var_os("XDG_STATE_HOME"), std::env::var_os("HOME"))
-}
-
-fn state_dir_from(
-    xdg_state_home: Option<std::ffi::OsString>,
-    home: Option<std::ffi::OsString>,
-) -> Option<PathBuf> {
-    // The XDG spec: a relative path in the variable is invalid and ignored.
-    let absolute = |v: std::ffi::OsString| {
-        let p = PathBuf::from(v);
-        p.is_absolute().then_some(p)
-    };
-    if let Some(p) = xdg_state_home.and_then(absolute) {
-        return Some(p.join("usal"));
-    }
-    home.and_then(absolute).map(|h| h.join(".local/state/usal"))
-}
 
 /// Creates `dir` (and its parents) if missing, then its private subdirectory of partial files
 /// with mode 0700. An existing one must be a real directory (not a link) that this user may
@@ -799,23 +779,6 @@ impl NodeInner {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn state_dir_is_xdg_state_home_else_under_home_never_tmp() {
-        let d =
-            |x: Option<&str>, h: Option<&str>| state_dir_from(x.map(Into::into), h.map(Into::into));
-        assert_eq!(d(Some("/s"), Some("/h")), Some(PathBuf::from("/s/usal")));
-        assert_eq!(
-            d(None, Some("/home/op")),
-            Some(PathBuf::from("/home/op/.local/state/usal"))
-        );
-        // A relative XDG_STATE_HOME is ignored, as the spec says.
-        assert_eq!(
-            d(Some("rel"), Some("/home/op")),
-            Some(PathBuf::from("/home/op/.local/state/usal"))
-        );
-        assert_eq!(d(None, None), None);
-    }
 
     #[test]
     fn private_directory_is_0700_and_a_planted_link_is_refused() {
