@@ -1,6 +1,7 @@
 //! `usal run` end to end, with real child processes: the rover demo mission flies its plan to
 //! completion; a killed VAS is restarted and the plan still completes; SIGINT leaves no child
-//! behind; `usal list/echo/call` see a running mission; a malformed mission file starts nothing.
+//! behind; `usal list/echo/call` see a running mission, sealed so that another user's do not;
+//! a malformed mission file starts nothing.
 
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
@@ -724,7 +725,17 @@ fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
 }
 
 fn tool(domain: &str, args: &[&str]) -> (bool, String) {
-    let mut child = Command::new(USAL)
+    tool_with_state(None, domain, args)
+}
+
+/// [`tool`] run as another user would: with `state` as its state directory (where a mission's
+/// domain key would be), not ours.
+fn tool_with_state(state: Option<&Path>, domain: &str, args: &[&str]) -> (bool, String) {
+    let mut command = Command::new(USAL);
+    if let Some(dir) = state {
+        command.env("XDG_STATE_HOME", dir);
+    }
+    let mut child = command
         .args(["--domain", domain])
         .args(args)
         .stdin(Stdio::null())
@@ -906,6 +917,26 @@ fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
     ] {
         assert!(list.contains(needle), "`usal list` lacks {needle}:\n{list}");
     }
+
+    // Sealed with no configuration: another user (a fresh state directory, so no key) sees
+    // none of the mission's items and cannot command its vehicle.
+    let stranger = tempfile::tempdir().unwrap();
+    let (_, list) = tool_with_state(Some(stranger.path()), &domain, &["list"]);
+    assert!(
+        !list.contains("rover1/"),
+        "another user listed the sealed mission's items:\n{list}"
+    );
+    let (ok, answer) = tool_with_state(
+        Some(stranger.path()),
+        &domain,
+        &["call", "rover1/vas/change_state", r#"{"to":"PARKING"}"#],
+    );
+    assert!(!ok, "another user's call was answered: {answer}");
+    l.none_within(
+        Duration::from_secs(1),
+        "PARKING after another user's call",
+        |v| v["event"] == "state" && v["state"] == "PARKING",
+    );
 
     let (ok, echo) = tool(&domain, &["echo", "rover1/vas/position", "--count", "2"]);
     assert!(ok, "{echo}");

@@ -42,6 +42,9 @@ pub struct Mission {
     pub name: String,
     /// A fixed discovery domain; default: a unique one per run.
     pub domain: Option<String>,
+    /// Whether the run is sealed with the mission's domain key (`security="on"`, the
+    /// default; `"off"` opts out, loudly).
+    pub sealed: bool,
     /// Limit for `--until-complete`.
     pub timeout: Option<Duration>,
     /// A radio emulator joining some nodes, if any.
@@ -463,7 +466,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
     if root.name != "mission" {
         return Err(Fault::at(root, "the root element must be <mission>"));
     }
-    let mut a = Attrs::new(root, &["name", "domain", "timeoutS"]);
+    let mut a = Attrs::new(root, &["name", "domain", "timeoutS", "security"]);
     let name = a.req("name")?;
     if !is_name(&name) {
         return Err(Fault::at(
@@ -472,6 +475,16 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
         ));
     }
     let domain = a.opt("domain");
+    let sealed = match a.opt("security").as_deref() {
+        None | Some("on") => true,
+        Some("off") => false,
+        Some(other) => {
+            return Err(Fault::at(
+                root,
+                format!("attribute `security`: `{other}` (expected `on` or `off`)"),
+            ))
+        }
+    };
     let timeout = a
         .parsed::<f64>("timeoutS", "a number of seconds")?
         .map(|s| {
@@ -521,6 +534,7 @@ fn mission_from(root: &Element, base: &Path) -> Result<Mission, Fault> {
     let mut mission = Mission {
         name,
         domain,
+        sealed,
         timeout,
         radio: None,
         extra_radios: Vec::new(),
@@ -1061,6 +1075,24 @@ mod tests {
     <station plan="../flightplans/rover-carpark.xml"/>
   </node>
 </mission>"#;
+
+    #[test]
+    fn a_mission_is_sealed_unless_it_says_security_off() {
+        assert!(parse(GOOD).unwrap().sealed, "sealed by default");
+        let with = |v: &str| {
+            parse(&GOOD.replace(
+                r#"<mission name="m">"#,
+                &format!(r#"<mission name="m" security="{v}">"#),
+            ))
+        };
+        assert!(with("on").unwrap().sealed);
+        assert!(!with("off").unwrap().sealed);
+        let err = with("maybe").unwrap_err();
+        assert!(
+            err.contains("2:1: <mission>") && err.contains("`maybe`"),
+            "{err}"
+        );
+    }
 
     #[test]
     fn fpmo_tiles_resolve_against_the_mission_file_and_urls_stay() {

@@ -10,6 +10,7 @@ pub mod mission;
 mod radio;
 pub mod replay;
 pub mod router;
+mod seal;
 mod station;
 mod supervisor;
 mod ui;
@@ -369,6 +370,33 @@ async fn run(
         ),
         json!({"event": "mission", "name": mission.name, "domain": domain}),
     );
+    let _sealed = if mission.sealed {
+        match seal::seal(&mission.name, &domain) {
+            Ok(s) => {
+                ui.note(
+                    &format!(
+                        "sealed with the mission's domain key {} (this user's tools join with --domain {domain}; nobody else can)",
+                        s.key.display()
+                    ),
+                    json!({"event": "sealed", "key": s.key.display().to_string()}),
+                );
+                Some(s)
+            }
+            Err(e) => {
+                eprintln!("usal: the mission's domain key: {e:#}");
+                return ExitCode::FAILURE;
+            }
+        }
+    } else {
+        ui.note(
+            &format!(
+                "WARNING: mission {} runs with security=\"off\": NOT sealed. Any host on its networks can read every item and command its vehicles.",
+                mission.name
+            ),
+            json!({"event": "unsealed", "mission": mission.name}),
+        );
+        None
+    };
     let log = if args.no_log {
         None
     } else {
