@@ -244,54 +244,9 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
     find_or_build(&needed, &own, ui)
 }
 
-/// The newest modification time of the workspace's sources (Rust files and manifests of its
-/// packages, and the lock file) under `workspace`; `None` when none is found (not a checkout).
-fn newest_source(workspace: &Path) -> Option<std::time::SystemTime> {
-    fn walk(dir: &Path, newest: &mut Option<std::time::SystemTime>) {
-        let Ok(rd) = std::fs::read_dir(dir) else {
-            return;
-        };
-        for e in rd.filter_map(Result::ok) {
-            let path = e.path();
-            let name = e.file_name();
-            let Ok(kind) = e.file_type() else { continue };
-            if kind.is_dir() {
-                // Build outputs, and the workspaces of their own (peers bench, fuzzing).
-                if name != "target" && name != "peers" && name != "fuzz" && name != ".git" {
-                    walk(&path, newest);
-                }
-            } else if path.extension().is_some_and(|x| x == "rs") || name == "Cargo.toml" {
-                if let Ok(t) = e.metadata().and_then(|m| m.modified()) {
-                    *newest = Some(newest.map_or(t, |n| n.max(t)));
-                }
-            }
-        }
-    }
-    let mut newest = None;
-    for dir in [
-        "middleware",
-        "services",
-        "crates",
-        "sim",
-        "router",
-        "gateway",
-        "src",
-    ] {
-        walk(&workspace.join(dir), &mut newest);
-    }
-    for file in ["Cargo.toml", "Cargo.lock"] {
-        if let Ok(t) = std::fs::metadata(workspace.join(file)).and_then(|m| m.modified()) {
-            newest = Some(newest.map_or(t, |n| n.max(t)));
-        }
-    }
-    newest
-}
-
 /// The directory of `usal`'s own executable, where the binaries it starts are: packages'
-/// binaries named as their package (`packages`) and this package's own (`own`), built with
-/// cargo (saying so on `ui`) when missing, or older than the checkout's newest source (a
-/// service built before the sources changed would run old code next to a new launcher: with
-/// the domain key lookup, an old VAS joined unsealed and the sealed station never heard it).
+/// binaries named as their package (`packages`) and this package's own (`own`), each built
+/// once with cargo (saying so on `ui`) when missing and this is a source checkout.
 pub(crate) fn find_or_build(packages: &[&str], own: &[&str], ui: &Ui) -> anyhow::Result<Bins> {
     let exe = std::env::current_exe().context("locating the usal executable")?;
     let dir = exe
@@ -299,42 +254,16 @@ pub(crate) fn find_or_build(packages: &[&str], own: &[&str], ui: &Ui) -> anyhow:
         .ok_or_else(|| anyhow!("usal has no parent directory"))?
         .to_owned();
     let bins = Bins { dir };
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let sources = newest_source(workspace);
-    let built_at = |b: &str| {
-        std::fs::metadata(bins.path(b))
-            .and_then(|m| m.modified())
-            .ok()
-    };
     let missing: Vec<&str> = packages
         .iter()
         .chain(own)
         .copied()
         .filter(|b| !bins.path(b).is_file())
         .collect();
-    let stale: Vec<&str> = packages
-        .iter()
-        .chain(own)
-        .copied()
-        .filter(|b| !missing.contains(b))
-        .filter(|b| matches!((built_at(b), sources), (Some(t), Some(s)) if t < s))
-        .collect();
-    if missing.is_empty() && stale.is_empty() {
+    if missing.is_empty() {
         return Ok(bins);
     }
-    if missing.is_empty() {
-        // Only stale: rebuilt where it can be, else run as they are (an installed copy).
-        if !workspace.join("Cargo.toml").is_file() {
-            return Ok(bins);
-        }
-        ui.note(
-            &format!(
-                "{} older than the sources: bringing them up to date with cargo",
-                stale.join(", ")
-            ),
-            json!({"event": "building", "bins": stale, "stale": true}),
-        );
-    }
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"));
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     // <target>/<profile>/usal: build into the same target directory and profile.
     let profile = bins
@@ -360,15 +289,13 @@ pub(crate) fn find_or_build(packages: &[&str], own: &[&str], ui: &Ui) -> anyhow:
                 .join(" ")
         );
     }
-    if !missing.is_empty() {
-        ui.note(
-            &format!(
-                "{} not built yet: building them once with cargo ({profile} profile)",
-                missing.join(", ")
-            ),
-            json!({"event": "building", "bins": missing, "profile": profile}),
-        );
-    }
+    ui.note(
+        &format!(
+            "{} not built yet: building them once with cargo ({profile} profile)",
+            missing.join(", ")
+        ),
+        json!({"event": "building", "bins": missing, "profile": profile}),
+    );
     // Other packages by name; this package's own binaries by name.
     let mut selections: Vec<Vec<String>> = Vec::new();
     if !packages.is_empty() {
@@ -405,22 +332,7 @@ pub(crate) fn find_or_build(packages: &[&str], own: &[&str], ui: &Ui) -> anyhow:
             .status()
             .context("running cargo (is it installed?) to build them")?;
         if !status.success() {
-            bail!(
-                "building {} failed ({status})",
-                missing
-                    .iter()
-                    .chain(&stale)
-                    .copied()
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
-        }
-    }
-    // Cargo leaves a binary whose own inputs did not change as it was, older than the source
-    // that did change: marked as checked, so the next run does not ask cargo again.
-    for b in &stale {
-        if let Ok(f) = std::fs::File::options().write(true).open(bins.path(b)) {
-            let _ = f.set_modified(std::time::SystemTime::now());
+            bail!("building {} failed ({status})", missing.join(", "));
         }
     }
     let still: Vec<&str> = packages
@@ -1101,33 +1013,6 @@ async fn wait_for_signal(stop: CancellationToken, ui: Arc<Ui>) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_newest_source_is_a_rust_file_or_manifest_never_a_build_output() {
-        let ws = tempfile::tempdir().unwrap();
-        let at = |rel: &str, secs: u64| {
-            let p = ws.path().join(rel);
-            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
-            std::fs::write(&p, "x").unwrap();
-            let t = std::time::UNIX_EPOCH + Duration::from_secs(secs);
-            std::fs::File::options()
-                .write(true)
-                .open(&p)
-                .unwrap()
-                .set_modified(t)
-                .unwrap();
-            t
-        };
-        assert_eq!(newest_source(ws.path()), None, "not a checkout");
-        at("Cargo.toml", 100);
-        let vas = at("services/vas/src/main.rs", 300);
-        at("middleware/src/lib.rs", 200);
-        // Newer, but not sources of the build: outputs, notes, other workspaces.
-        at("services/vas/target/release/vas.rs", 900);
-        at("services/vas/README.md", 900);
-        at("benches/peers/src/main.rs", 900);
-        assert_eq!(newest_source(ws.path()), Some(vas));
-    }
 
     #[test]
     fn the_demo_vas_obeys_manual_control_only_from_the_demo_fmo() {
