@@ -3,74 +3,26 @@
 //! drops them all. (The TCP side is flown by the WAN missions' launcher tests; the path model
 //! itself has unit tests in the binary.)
 
-use std::io::BufRead;
 use std::net::{SocketAddr, UdpSocket};
-use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{mpsc, Arc};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use serde_json::Value;
+mod common;
+use common::Proc;
 
-/// A `marea-wan` child and the JSON lines it prints.
-struct Wan {
-    child: Child,
-    lines: mpsc::Receiver<Value>,
-    listen: SocketAddr,
-}
+/// Bound on marea-wan printing a line it owes.
+const LINE: Duration = Duration::from_secs(10);
 
-impl Wan {
-    fn start(args: &[&str]) -> Wan {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_marea-wan"))
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("start marea-wan");
-        let stdout = child.stdout.take().expect("piped stdout");
-        let (tx, lines) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in std::io::BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                if let Ok(v) = serde_json::from_str::<Value>(&line) {
-                    if tx.send(v).is_err() {
-                        break;
-                    }
-                }
-            }
-        });
-        let mut wan = Wan {
-            child,
-            lines,
-            listen: "127.0.0.1:0".parse().expect("a literal address"),
-        };
-        let first = wan.line(|v| v["listen"].is_string(), "its listening address");
-        wan.listen = first["listen"]
-            .as_str()
-            .and_then(|s| s.parse().ok())
-            .expect("an address");
-        wan
-    }
-
-    /// The next line satisfying `pred`, within 10 s.
-    fn line(&mut self, pred: impl Fn(&Value) -> bool, what: &str) -> Value {
-        let deadline = Instant::now() + Duration::from_secs(10);
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match self.lines.recv_timeout(left) {
-                Ok(v) if pred(&v) => return v,
-                Ok(_) => {}
-                Err(_) => panic!("marea-wan printed no line with {what}"),
-            }
-        }
-    }
-}
-
-impl Drop for Wan {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+/// A `marea-wan` child (its JSON lines through [`Proc`]) and where it listens.
+fn start_wan(args: &[&str]) -> (Proc, SocketAddr) {
+    let args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+    let mut wan = Proc::spawn("marea-wan", env!("CARGO_BIN_EXE_marea-wan"), &args);
+    let listen = wan.expect_key(LINE, "listen")["listen"]
+        .as_str()
+        .and_then(|s| s.parse().ok())
+        .expect("an address");
+    (wan, listen)
 }
 
 /// A UDP echo server on loopback, stopped when dropped.
@@ -124,7 +76,7 @@ fn udp_datagrams_cross_with_the_delay_each_way_and_none_during_an_outage() {
     let echo = Echo::start();
     let to = echo.addr.to_string();
     // An outage from 2 s on, for longer than the test.
-    let mut wan = Wan::start(&[
+    let (mut wan, listen) = start_wan(&[
         "--udp",
         "--to",
         &to,
@@ -135,7 +87,7 @@ fn udp_datagrams_cross_with_the_delay_each_way_and_none_during_an_outage() {
     ]);
     let c = client();
     let sent = Instant::now();
-    c.send_to(b"ping", wan.listen).expect("send");
+    c.send_to(b"ping", listen).expect("send");
     let back = receive(&c, Duration::from_secs(5)).expect("the echo through the WAN");
     let rtt = sent.elapsed();
     assert_eq!(back, b"ping");
@@ -144,8 +96,8 @@ fn udp_datagrams_cross_with_the_delay_each_way_and_none_during_an_outage() {
         "a round trip of {rtt:?} through two one-way delays of 60 ms"
     );
 
-    wan.line(|v| v["outage"] == "start", "the outage starting");
-    c.send_to(b"during the outage", wan.listen).expect("send");
+    wan.expect(LINE, "the outage starting", |v| v["outage"] == "start");
+    c.send_to(b"during the outage", listen).expect("send");
     assert_eq!(
         receive(&c, Duration::from_secs(1)),
         None,
@@ -157,10 +109,10 @@ fn udp_datagrams_cross_with_the_delay_each_way_and_none_during_an_outage() {
 fn udp_with_a_loss_of_one_drops_every_datagram() {
     let echo = Echo::start();
     let to = echo.addr.to_string();
-    let wan = Wan::start(&["--udp", "--to", &to, "--loss", "1"]);
+    let (_wan, listen) = start_wan(&["--udp", "--to", &to, "--loss", "1"]);
     let c = client();
     for i in 0..20u8 {
-        c.send_to(&[i], wan.listen).expect("send");
+        c.send_to(&[i], listen).expect("send");
     }
     assert_eq!(
         receive(&c, Duration::from_millis(500)),
