@@ -724,6 +724,19 @@ fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
     assert_no_child_left(&l.pids());
 }
 
+/// The pilot's Start: `usal call rover1/vas/change_state` to WAYPOINT_NAVIGATION, answered.
+fn press_start_as_the_pilot(domain: &str) {
+    let (ok, answer) = tool(
+        domain,
+        &[
+            "call",
+            "rover1/vas/change_state",
+            r#"{"to":"WAYPOINT_NAVIGATION"}"#,
+        ],
+    );
+    assert!(ok, "{answer}");
+}
+
 fn tool(domain: &str, args: &[&str]) -> (bool, String) {
     tool_with_state(None, domain, args)
 }
@@ -802,15 +815,7 @@ fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
         v["event"] == "navigation_kicked"
             || (v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION")
     });
-    let (ok, answer) = tool(
-        &domain,
-        &[
-            "call",
-            "rover1/vas/change_state",
-            r#"{"to":"WAYPOINT_NAVIGATION"}"#,
-        ],
-    );
-    assert!(ok, "{answer}");
+    press_start_as_the_pilot(&domain);
     l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
         v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
     });
@@ -842,15 +847,7 @@ fn with_start_by_the_operator_a_restarted_vas_waits_for_the_pilot() {
         v["event"] == "started" && v["service"] == "air/vas"
     });
     l.event(STEP, "plan_loaded");
-    let (ok, answer) = tool(
-        &domain,
-        &[
-            "call",
-            "rover1/vas/change_state",
-            r#"{"to":"WAYPOINT_NAVIGATION"}"#,
-        ],
-    );
-    assert!(ok, "{answer}");
+    press_start_as_the_pilot(&domain);
     l.expect(FLIGHT, "waypoint 2", |v| {
         v["event"] == "waypoint" && v["n"].as_u64() >= Some(2)
     });
