@@ -8,12 +8,13 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use marea::link::arq::ArqConfig;
-use marea::link::udp::{UdpLink, UdpLinkOptions};
+use marea::link::udp::UdpLink;
 use marea::link::{Link, LinkHandler, LinkSendError, Outgoing, PeerAddr};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
+
+mod common;
 
 /// What a link's handler saw, in order.
 #[derive(Debug, PartialEq, Eq)]
@@ -49,20 +50,7 @@ impl End {
         let (tx, seen) = mpsc::unbounded_channel();
         let link = UdpLink::open(
             0,
-            UdpLinkOptions {
-                name: "lan".into(),
-                bind: "127.0.0.1:0".parse().unwrap(),
-                multicast: std::net::SocketAddrV4::new(
-                    std::net::Ipv4Addr::new(239, 255, 77, 7),
-                    port,
-                ),
-                interface: std::net::Ipv4Addr::LOCALHOST,
-                ttl: 0,
-                peers: vec![],
-                mtu: 1400,
-                arq: ArqConfig::lan(),
-                security: None,
-            },
+            common::udp_link_options("lan", 7, port),
             Arc::new(Record(tx)),
             tasks,
             cancel.child_token(),

@@ -7,11 +7,12 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use marea::link::arq::ArqConfig;
-use marea::link::udp::{UdpLink, UdpLinkOptions};
+use marea::link::udp::UdpLink;
 use marea::link::{Link, LinkHandler, Outgoing, PeerAddr};
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
+
+mod common;
 
 struct Ignore;
 
@@ -26,17 +27,7 @@ impl LinkHandler for Ignore {
 fn open_link(port: u16, tasks: &TaskTracker, cancel: &CancellationToken) -> Arc<UdpLink> {
     UdpLink::open(
         0,
-        UdpLinkOptions {
-            name: "a".into(),
-            bind: "127.0.0.1:0".parse().unwrap(),
-            multicast: std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 6), port),
-            interface: std::net::Ipv4Addr::LOCALHOST,
-            ttl: 0,
-            peers: vec![],
-            mtu: 1400,
-            arq: ArqConfig::lan(),
-            security: None,
-        },
+        common::udp_link_options("a", 6, port),
         Arc::new(Ignore),
         tasks,
         cancel.child_token(),
