@@ -2,6 +2,7 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+mod bins;
 mod failsafe;
 mod fleet;
 pub mod flightlog;
@@ -25,6 +26,7 @@ use serde_json::json;
 use tokio::sync::{broadcast, watch};
 use tokio_util::sync::CancellationToken;
 
+use bins::{find_or_build, Bins};
 use mission::{Mission, ServiceSpec};
 use station::{Outcome, StationSetup};
 use supervisor::{Announce, ChildSpec, Notice, Supervisor};
@@ -61,18 +63,6 @@ pub struct RunArgs {
     /// Write no flight log.
     #[arg(long)]
     pub no_log: bool,
-}
-
-/// The service binaries a mission needs, found next to the running `usal`.
-pub(crate) struct Bins {
-    dir: PathBuf,
-}
-
-impl Bins {
-    pub(crate) fn path(&self, name: &str) -> PathBuf {
-        self.dir
-            .join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
-    }
 }
 
 /// Runs `usal run`; `json` makes the launcher's notes JSON lines on stdout.
@@ -242,113 +232,6 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
         needed.push("usal-router");
     }
     find_or_build(&needed, &own, ui)
-}
-
-/// The directory of `usal`'s own executable, where the binaries it starts are: packages'
-/// binaries named as their package (`packages`) and this package's own (`own`), each built
-/// once with cargo (saying so on `ui`) when missing and this is a source checkout.
-pub(crate) fn find_or_build(packages: &[&str], own: &[&str], ui: &Ui) -> anyhow::Result<Bins> {
-    let exe = std::env::current_exe().context("locating the usal executable")?;
-    let dir = exe
-        .parent()
-        .ok_or_else(|| anyhow!("usal has no parent directory"))?
-        .to_owned();
-    let bins = Bins { dir };
-    let missing: Vec<&str> = packages
-        .iter()
-        .chain(own)
-        .copied()
-        .filter(|b| !bins.path(b).is_file())
-        .collect();
-    if missing.is_empty() {
-        return Ok(bins);
-    }
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    // <target>/<profile>/usal: build into the same target directory and profile.
-    let profile = bins
-        .dir
-        .file_name()
-        .and_then(|p| p.to_str())
-        .unwrap_or("debug")
-        .to_owned();
-    let target = bins.dir.parent().map(Path::to_path_buf);
-    if !workspace.join("Cargo.toml").is_file() || target.is_none() {
-        bail!(
-            "{} not found next to {} (build them with `cargo build --release {}`)",
-            missing.join(", "),
-            exe.display(),
-            missing
-                .iter()
-                .map(|b| if own.contains(b) {
-                    format!("--bin {b}")
-                } else {
-                    format!("-p {b}")
-                })
-                .collect::<Vec<_>>()
-                .join(" ")
-        );
-    }
-    ui.note(
-        &format!(
-            "{} not built yet: building them once with cargo ({profile} profile)",
-            missing.join(", ")
-        ),
-        json!({"event": "building", "bins": missing, "profile": profile}),
-    );
-    // Other packages by name; this package's own binaries by name.
-    let mut selections: Vec<Vec<String>> = Vec::new();
-    if !packages.is_empty() {
-        selections.push(
-            packages
-                .iter()
-                .flat_map(|b| ["-p".into(), b.to_string()])
-                .collect(),
-        );
-    }
-    if !own.is_empty() {
-        let mut v = vec!["-p".to_owned(), "usal".to_owned()];
-        v.extend(own.iter().flat_map(|b| ["--bin".into(), b.to_string()]));
-        selections.push(v);
-    }
-    for selection in selections {
-        let mut cmd = std::process::Command::new(&cargo);
-        cmd.arg("build").current_dir(workspace);
-        match profile.as_str() {
-            "debug" => {}
-            "release" => {
-                cmd.arg("--release");
-            }
-            other => {
-                cmd.args(["--profile", other]);
-            }
-        }
-        cmd.args(&selection);
-        if let Some(t) = &target {
-            cmd.env("CARGO_TARGET_DIR", t);
-        }
-        // Cargo's own progress goes to our stderr: it is the user's build.
-        let status = cmd
-            .status()
-            .context("running cargo (is it installed?) to build them")?;
-        if !status.success() {
-            bail!("building {} failed ({status})", missing.join(", "));
-        }
-    }
-    let still: Vec<&str> = packages
-        .iter()
-        .chain(own)
-        .copied()
-        .filter(|b| !bins.path(b).is_file())
-        .collect();
-    if !still.is_empty() {
-        bail!(
-            "cargo built, but {} are not in {}",
-            still.join(", "),
-            bins.dir.display()
-        );
-    }
-    Ok(bins)
 }
 
 async fn run(

@@ -17,11 +17,11 @@ use serde_json::json;
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 
+use super::bins::Bins;
 use super::lan::{free_port, gateway_xml, lan_xml, write};
 use super::mission::{Mission, RadioSpec};
 use super::supervisor::{ChildSpec, Supervisor};
 use super::ui::Ui;
-use super::Bins;
 
 /// How long marea-radio may take to print its ports.
 const RADIO_READY: Duration = Duration::from_secs(10);

@@ -11,16 +11,16 @@ use std::process::ExitCode;
 use anyhow::{anyhow, Context};
 use serde_json::json;
 
+use super::bins::Bins;
 use super::lan::{free_port, gateway_xml, lan_xml, write};
 use super::mission::{Mission, RouterSpec, WanSpec};
 use super::supervisor::{ChildSpec, Supervisor};
 use super::ui::Ui;
-use super::Bins;
 
 /// Runs `usal-router` with `args` in place of this process (signals reach it directly).
 pub fn main(args: &[String], json: bool) -> ExitCode {
     let ui = Ui::new(json);
-    let bins = match super::find_or_build(&["usal-router"], &[], &ui) {
+    let bins = match super::bins::find_or_build(&["usal-router"], &[], &ui) {
         Ok(b) => b,
         Err(e) => {
             eprintln!("usal: {e:#}");
