@@ -791,6 +791,53 @@ fn operator_mission(dir: &Path) -> std::path::PathBuf {
     mission
 }
 
+/// `<mission security="off">`: the launcher says loudly that the run is not sealed, and so does
+/// every node of it as it opens; nothing of the mission's seal is given to them.
+#[test]
+fn a_mission_run_with_security_off_says_so_at_start_and_in_every_node() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = dir.path().join("rover-unsealed.xml");
+    let flightplans = root().join("config/flightplans/");
+    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
+        .expect("the demo mission")
+        .replace("../flightplans/", &flightplans.display().to_string())
+        .replace(
+            r#"<mission name="rover-demo""#,
+            r#"<mission name="rover-unsealed" security="off""#,
+        );
+    std::fs::write(&mission, demo).expect("write the mission");
+    let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "5"]);
+    let unsealed = l.event(STEP, "unsealed");
+    assert_eq!(unsealed["mission"], "rover-unsealed", "{unsealed}");
+    assert!(
+        !l.seen.iter().any(|v| v["event"] == "sealed"),
+        "{:?}",
+        l.seen
+    );
+    // Every service is up and talking once the FPMa has the plan and the vehicle moves.
+    l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+    let warned = |service: &str| {
+        l.stderr.lock().unwrap().lines().any(|line| {
+            line.starts_with(&format!("[{service}]"))
+                && line.contains("WARN")
+                && line.contains("not sealed: any host on this node's networks")
+        })
+    };
+    for service in ["air/vas", "air/fpma", "ground/fmo", "ground/fpmo"] {
+        assert!(
+            warned(service),
+            "{service} did not warn that it is not sealed:\n{}",
+            l.stderr_tail()
+        );
+    }
+    l.signal("INT");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}");
+}
+
 /// With `<station start="operator">` the launcher never presses Start: the plan loads and the
 /// rover stays parked (well past the second after which `start="auto"` starts it) until the
 /// pilot asks for WAYPOINT_NAVIGATION, here with `usal call`; then it flies the plan.
@@ -932,6 +979,32 @@ fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
     l.none_within(
         Duration::from_secs(1),
         "PARKING after another user's call",
+        |v| v["event"] == "state" && v["state"] == "PARKING",
+    );
+    // Holding the domain key is not enough: the shipped mission's <access> lets only proven
+    // identities command the vehicle, and a tool given the key file alone has none.
+    let sealed = l.seen.iter().find(|v| v["event"] == "sealed");
+    let key = sealed.expect("the sealed note, before the vehicle moved")["key"]
+        .as_str()
+        .expect("the domain key's path")
+        .to_owned();
+    let (ok, answer) = tool(
+        &domain,
+        &[
+            "--key-file",
+            &key,
+            "call",
+            "rover1/vas/change_state",
+            r#"{"to":"PARKING"}"#,
+        ],
+    );
+    assert!(
+        !ok && answer.to_lowercase().contains("denied"),
+        "a key holder without an identity was obeyed: {answer}"
+    );
+    l.none_within(
+        Duration::from_secs(1),
+        "PARKING after a call without an identity",
         |v| v["event"] == "state" && v["state"] == "PARKING",
     );
 

@@ -69,6 +69,9 @@ pub struct NodeSpec {
     pub network: Option<PathBuf>,
     /// The services, in start order.
     pub services: Vec<ServiceSpec>,
+    /// Who may command this node's services (`<access>`, as in network.xml): given to every
+    /// process of its namespace through the mission's seal.
+    pub access: Option<marea::config::AccessConfig>,
 }
 
 /// A service of a node.
@@ -248,7 +251,7 @@ pub struct WanSpec {
 }
 
 /// A validation failure before the file name is attached.
-struct Fault {
+pub(crate) struct Fault {
     line: usize,
     column: usize,
     element: String,
@@ -331,7 +334,7 @@ impl Mission {
         })
     }
 
-    fn parse(src: &str, base: &Path) -> Result<Mission, Fault> {
+    pub(crate) fn parse(src: &str, base: &Path) -> Result<Mission, Fault> {
         let root = marea::xml::parse_document(src)?;
         mission_from(&root, base)
     }
@@ -697,8 +700,22 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
     let network = a.file("network", base)?;
     a.finish()?;
     let mut services = Vec::new();
+    let mut access = None;
     for s in &el.children {
         let svc = match s.name.as_str() {
+            "access" => {
+                if access.is_some() {
+                    return Err(Fault::at(s, "a second <access> in this node"));
+                }
+                if namespace.is_none() {
+                    return Err(Fault::at(
+                        s,
+                        "<access> needs the node to have a namespace (its rules are given to the processes of that namespace)",
+                    ));
+                }
+                access = Some(access_from(s)?);
+                continue;
+            }
             "mavsim" => {
                 let mut a = Attrs::new(
                     s,
@@ -839,7 +856,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected mavsim, vas, fpma, station, fmo, fpmo or fleet)"
+                    "unknown service <{other}> in <node> (expected access, mavsim, vas, fpma, station, fmo, fpmo or fleet)"
                 ),
                 ))
             }
@@ -871,7 +888,55 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
         namespace,
         network,
         services,
+        access,
     })
+}
+
+/// A node's `<access>`: `<allow kind item from/>` and `<deny kind/>`, as in network.xml.
+fn access_from(el: &Element) -> Result<marea::config::AccessConfig, Fault> {
+    use marea::config::{AccessConfig, AccessKind, AccessRule};
+    Attrs::new(el, &[]).finish()?;
+    let mut config = AccessConfig::default();
+    for r in &el.children {
+        let known: &'static [&'static str] = match r.name.as_str() {
+            "allow" => &["kind", "item", "from"],
+            "deny" => &["kind"],
+            other => {
+                return Err(Fault::at(
+                    r,
+                    format!("unknown element <{other}> in <access> (expected allow or deny)"),
+                ))
+            }
+        };
+        let mut a = Attrs::new(r, known);
+        let kind = a.req("kind")?;
+        let kind = AccessKind::parse(kind.trim()).ok_or_else(|| {
+            Fault::at(
+                r,
+                format!("attribute `kind`: `{kind}` is not one of call, file, publish, gateway"),
+            )
+        })?;
+        let mut pattern = |key: &str, default: Option<&str>| -> Result<String, Fault> {
+            let v = match (a.opt(key), default) {
+                (Some(v), _) => v.trim().to_owned(),
+                (None, Some(d)) => d.to_owned(),
+                (None, None) => return Err(Fault::at(r, format!("missing attribute `{key}`"))),
+            };
+            marea::name::validate_pattern(&v)
+                .map_err(|e| Fault::at(r, format!("attribute `{key}`: `{v}`: {e}")))?;
+            Ok(v)
+        };
+        if r.name == "deny" {
+            a.finish()?;
+            config.closed.push(kind);
+        } else {
+            let item = pattern("item", Some("**"))?;
+            let from = pattern("from", None)?;
+            a.finish()?;
+            config.rules.push(AccessRule { kind, item, from });
+        }
+    }
+    Ok(config)
 }
 
 fn radio_from(el: &Element, mission: &Mission) -> Result<RadioSpec, Fault> {
@@ -1075,6 +1140,63 @@ mod tests {
     <station plan="../flightplans/rover-carpark.xml"/>
   </node>
 </mission>"#;
+
+    #[test]
+    fn a_node_s_access_rules_parse_as_in_network_xml_and_errors_name_the_line() {
+        use marea::config::AccessKind;
+        let with = |access: &str| {
+            parse(&GOOD.replace(
+                "    <fpma vehicle=\"rover\" lookahead=\"8\"/>\n",
+                &format!("    <fpma vehicle=\"rover\" lookahead=\"8\"/>\n{access}"),
+            ))
+        };
+        let m = with(
+            r#"    <access>
+      <allow kind="call" item="rover1/**" from="gcs/*"/>
+      <allow kind="file" from="*"/>
+      <deny kind="publish"/>
+    </access>
+"#,
+        )
+        .unwrap();
+        let a = m.nodes[0].access.as_ref().expect("the air node's rules");
+        assert_eq!(a.rules.len(), 2);
+        assert_eq!(
+            (a.rules[0].kind, &*a.rules[0].item, &*a.rules[0].from),
+            (AccessKind::Call, "rover1/**", "gcs/*")
+        );
+        assert_eq!(a.rules[1].item, "**", "item defaults to every item");
+        assert_eq!(a.closed, [AccessKind::Publish]);
+        assert!(m.nodes[1].access.is_none());
+        for (bad, says) in [
+            (
+                r#"<access><allow kind="fly" from="*"/></access>"#,
+                "`fly` is not one of",
+            ),
+            (
+                r#"<access><allow kind="call"/></access>"#,
+                "missing attribute `from`",
+            ),
+            (
+                r#"<access><allow kind="call" from="a//b"/></access>"#,
+                "attribute `from`",
+            ),
+            (
+                r#"<access><grant kind="call"/></access>"#,
+                "unknown element <grant>",
+            ),
+            ("<access/><access/>", "a second <access>"),
+        ] {
+            let e = with(&format!("    {bad}\n")).unwrap_err();
+            assert!(e.starts_with("8:") && e.contains(says), "{bad}: {e}");
+        }
+        let e = parse(&GOOD.replace(
+            "    <station plan",
+            "    <access><allow kind=\"call\" from=\"*\"/></access>\n    <station plan",
+        ))
+        .unwrap_err();
+        assert!(e.contains("needs the node to have a namespace"), "{e}");
+    }
 
     #[test]
     fn a_mission_is_sealed_unless_it_says_security_off() {

@@ -253,20 +253,20 @@ async fn run(
         ),
         json!({"event": "mission", "name": mission.name, "domain": domain}),
     );
-    let _sealed = if mission.sealed {
-        match seal::seal(&mission.name, &domain) {
+    let sealed = if mission.sealed {
+        match seal::seal(&mission, &domain) {
             Ok(s) => {
                 ui.note(
                     &format!(
-                        "sealed with the mission's domain key {} (this user's tools join with --domain {domain}; nobody else can)",
-                        s.key.display()
+                        "sealed: domain key, node identities, access rules and MAVLink signing from {} (this user's tools join with --domain {domain}; nobody else can)",
+                        s.dir.display()
                     ),
-                    json!({"event": "sealed", "key": s.key.display().to_string()}),
+                    json!({"event": "sealed", "key": s.key().display().to_string(), "dir": s.dir.display().to_string()}),
                 );
                 Some(s)
             }
             Err(e) => {
-                eprintln!("usal: the mission's domain key: {e:#}");
+                eprintln!("usal: the mission's seal: {e:#}");
                 return ExitCode::FAILURE;
             }
         }
@@ -374,11 +374,13 @@ async fn run(
     let recorder = log
         .as_ref()
         .map(|l| start_recorder(l, &stations, &mission, &domain, &log_stop, &ui));
+    let mavlink_key = sealed.as_ref().map(seal::Sealed::mavlink_key);
     let code = match start_services(
         &mission,
         &domain,
         &bins,
         args,
+        mavlink_key.as_deref(),
         &scratch,
         &mut sup,
         &mut notices,
@@ -524,6 +526,7 @@ async fn start_services(
     domain: &str,
     bins: &Bins,
     args: &RunArgs,
+    signing_key: Option<&Path>,
     scratch: &Path,
     sup: &mut Supervisor,
     notices: &mut broadcast::Receiver<Notice>,
@@ -575,6 +578,9 @@ async fn start_services(
                     if let Some(r) = m.sensor_radius {
                         a.extend(["--sensor-radius".into(), r.to_string()]);
                     }
+                    if let Some(key) = signing_key.filter(|_| vas_uses_sim(node)) {
+                        a.extend(["--signing-key".into(), key.display().to_string()]);
+                    }
                     let (tx, rx) = watch::channel(None);
                     sim_addr = Some(rx);
                     announce = Some(Announce {
@@ -587,6 +593,9 @@ async fn start_services(
                     let endpoint = match (&v.endpoint, &mut sim_addr) {
                         (Some(e), _) => Some(e.clone()),
                         (None, Some(rx)) => {
+                            if let Some(key) = signing_key {
+                                a.extend(["--signing-key".into(), key.display().to_string()]);
+                            }
                             Some(format!("udpout:{}", wait_sim(rx, notices, stop).await?))
                         }
                         // A config file names the endpoint.
@@ -667,6 +676,14 @@ async fn start_services(
         }
     }
     Ok(())
+}
+
+/// Whether `node`'s VAS flies `node`'s mavsim (it names no endpoint of its own): the link
+/// the mission's MAVLink signing covers.
+fn vas_uses_sim(node: &mission::NodeSpec) -> bool {
+    node.services
+        .iter()
+        .any(|s| matches!(s, ServiceSpec::Vas(v) if v.endpoint.is_none()))
 }
 
 /// The mission's FMo stations as the VAS's `--manual-stations` list (issue 13: manual control

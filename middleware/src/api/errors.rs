@@ -40,6 +40,10 @@ pub enum NodeOpenError {
     /// The domain's identities file (`<security identities=..>`) cannot be used.
     #[error(transparent)]
     Roster(#[from] crate::identity::RosterLoadError),
+    /// A configuration file the node was given by its domain's running mission (its access
+    /// rules) cannot be used.
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigLoadError),
     /// A name in the configuration is invalid.
     #[error("invalid node name or namespace: {0}")]
     Name(#[from] NameParseError),

@@ -185,11 +185,13 @@ fn not_built(link: &LinkConfig) -> NodeOpenError {
 
 impl Node {
     /// Opens the links of `config`, announces the node and starts discovery. A `config`
-    /// without `<security>` is sealed with its domain's key when a running mission of the
-    /// same user has one ([`crate::config::domain_key`]); else the node warns that it is not.
+    /// without `<security>` is sealed by its domain's running mission of the same user, when
+    /// there is one: its key, identities and access rules ([`crate::config::domain_seal`]);
+    /// else the node warns that it is not.
     ///
     /// # Errors
-    /// [`NodeOpenError`] when a link cannot be opened, or is an `<ethernet>` (`<shm>`,
+    /// [`NodeOpenError`] when a link cannot be opened, the running mission's access file for
+    /// this node cannot be read ([`NodeOpenError::Config`]), or is an `<ethernet>` (`<shm>`,
     /// `<serial>`, `<serialduo>`) link and this build lacks the cargo feature `udp` (`shm`,
     /// `serial`) ([`NodeOpenError::Unsupported`]).
     // A build with no link kind at all (every link feature off) opens none: nothing uses a
@@ -199,7 +201,7 @@ impl Node {
         allow(unused_variables)
     )]
     pub async fn open(config: &NetworkConfig) -> Result<Node, NodeOpenError> {
-        let config = &*crate::config::domain_key::with_domain_key(config);
+        let config = &*crate::config::domain_seal::with_domain_seal(config)?;
         links_built(config, LINKS_BUILT)?;
         name::validate_name(&config.node)?;
         if let Some(ns) = &config.namespace {

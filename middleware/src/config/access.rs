@@ -19,7 +19,11 @@
 //! namespace `ground`, `**/fmo` every node named `fmo`. A call or file relayed by a gateway
 //! comes from the gateway.
 
+use std::path::Path;
+
+use super::ConfigLoadError;
 use crate::name;
+use crate::xml::LineIndex;
 
 /// What an access rule governs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -80,6 +84,48 @@ pub struct AccessConfig {
 }
 
 impl AccessConfig {
+    /// Parses an access file: the `<access>` element of `network.xml` as the root of its own
+    /// document (what `usal run` writes for a mission node's `<access>`). `source` names the
+    /// text in errors.
+    ///
+    /// # Errors
+    /// As [`super::NetworkConfig::parse`], with the line and column of what is wrong.
+    pub fn parse(text: &str, source: Option<&Path>) -> Result<Self, ConfigLoadError> {
+        let index = LineIndex::new(text);
+        super::parser::Parser::new(text, &index, source).access_document()
+    }
+
+    /// Reads and parses an access file (see [`AccessConfig::parse`]).
+    ///
+    /// # Errors
+    /// [`ConfigLoadError::Unreadable`] when it cannot be read as text, else as
+    /// [`AccessConfig::parse`].
+    pub fn load(path: &Path) -> Result<Self, ConfigLoadError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigLoadError::Unreadable {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, Some(path))
+    }
+
+    /// The element as XML, which [`AccessConfig::parse`] reads back as it is.
+    pub fn to_xml(&self) -> String {
+        let mut out = String::from("<access>\n");
+        for r in &self.rules {
+            out.push_str(&format!(
+                "  <allow kind=\"{}\" item=\"{}\" from=\"{}\"/>\n",
+                r.kind.as_str(),
+                escape_attr(&r.item),
+                escape_attr(&r.from)
+            ));
+        }
+        for k in &self.closed {
+            out.push_str(&format!("  <deny kind=\"{}\"/>\n", k.as_str()));
+        }
+        out.push_str("</access>\n");
+        out
+    }
+
     /// Whether the element says anything about `kind` (then it is default-deny).
     pub fn governs(&self, kind: AccessKind) -> bool {
         self.closed.contains(&kind) || self.rules.iter().any(|r| r.kind == kind)
@@ -96,6 +142,13 @@ impl AccessConfig {
                 && name::matches(&r.from, from)
         })
     }
+}
+
+/// `s` fit for a double-quoted XML attribute.
+fn escape_attr(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('"', "&quot;")
+        .replace('<', "&lt;")
 }
 
 /// The name access rules match a peer by: `namespace/node`, or `node` without a namespace.
@@ -143,6 +196,32 @@ mod tests {
         };
         assert!(!closed.allows(AccessKind::Gateway, "", "relay"));
         assert!(AccessConfig::default().allows(AccessKind::Gateway, "", "relay"));
+    }
+
+    #[test]
+    fn an_access_file_reads_back_what_to_xml_wrote_and_errors_name_the_line() {
+        let a = AccessConfig {
+            rules: vec![
+                rule(AccessKind::Call, "rover1/**", "gcs/*"),
+                rule(AccessKind::File, "rover1/fpma/plans", "*"),
+            ],
+            closed: vec![AccessKind::Publish],
+        };
+        assert_eq!(AccessConfig::parse(&a.to_xml(), None).unwrap(), a);
+        let wrong = AccessConfig::parse(
+            "<access>\n  <allow kind=\"fly\" from=\"*\"/>\n</access>",
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(wrong.contains("2:") && wrong.contains("kind"), "{wrong}");
+        let root = AccessConfig::parse("<network node=\"x\"/>", None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            root.contains("expected the root element <access>"),
+            "{root}"
+        );
     }
 
     #[test]

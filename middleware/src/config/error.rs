@@ -62,11 +62,13 @@ pub enum ConfigLoadError {
         /// Where (the end of the input).
         at: Location,
     },
-    /// The root element is not `<network>`.
-    #[error("{at}: expected the root element <network>, found <{found}>")]
+    /// The root element is not the document's (`<network>`, or `<access>` for an access file).
+    #[error("{at}: expected the root element <{expected}>, found <{found}>")]
     WrongRoot {
         /// Where.
         at: Location,
+        /// The root element the document must have.
+        expected: &'static str,
         /// The root element's name.
         found: String,
     },

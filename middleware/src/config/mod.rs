@@ -35,7 +35,7 @@ use std::path::Path;
 use crate::xml::LineIndex;
 
 pub mod access;
-pub mod domain_key;
+pub mod domain_seal;
 mod error;
 mod model;
 mod parser;

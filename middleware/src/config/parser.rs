@@ -107,10 +107,33 @@ impl<'a> Parser<'a> {
         self.reader.read_event().map_err(|e| self.malformed(e))
     }
 
-    pub(super) fn document(mut self) -> Result<NetworkConfig, ConfigLoadError> {
+    pub(super) fn document(self) -> Result<NetworkConfig, ConfigLoadError> {
+        self.document_of("network", Self::network)
+    }
+
+    /// An access file: `<access>` as the root (see [`AccessConfig::parse`]).
+    pub(super) fn access_document(self) -> Result<AccessConfig, ConfigLoadError> {
+        self.document_of("access", Self::access)
+    }
+
+    /// A document whose one root element is `root`, read by `read`.
+    fn document_of<T>(
+        mut self,
+        root: &'static str,
+        read: fn(&mut Self, &Element<'a>) -> Result<T, ConfigLoadError>,
+    ) -> Result<T, ConfigLoadError> {
         let config = loop {
             match self.event()? {
-                XmlEvent::Start(root) => break self.network(&root)?,
+                XmlEvent::Start(found) => {
+                    if found.name() != root {
+                        return Err(ConfigLoadError::WrongRoot {
+                            at: self.at(found.pos()),
+                            expected: root,
+                            found: found.name().to_owned(),
+                        });
+                    }
+                    break read(&mut self, &found)?;
+                }
                 XmlEvent::Eof => {
                     return Err(ConfigLoadError::NoRootElement {
                         at: self.at(self.reader.pos(self.text.len())),
@@ -343,13 +366,6 @@ impl<'a> Parser<'a> {
     }
 
     fn network(&mut self, root: &Element<'a>) -> Result<NetworkConfig, ConfigLoadError> {
-        let found = root.name().to_owned();
-        if found != "network" {
-            return Err(ConfigLoadError::WrongRoot {
-                at: self.at(root.pos()),
-                found,
-            });
-        }
         let attrs = self.attributes("network", root, NETWORK_ATTRS)?;
         let node = self.required(&attrs, "node", NAME_SYNTAX, |s| parse_name(s, NAME_SYNTAX))?;
         let namespace = self.value(&attrs, "namespace", parse_namespace)?;

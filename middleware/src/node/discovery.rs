@@ -147,7 +147,6 @@ impl NodeInner {
                         self.drop_peer(old, "restarted with a new identity");
                     }
                 }
-                tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
                 // Only a gateway speaks for other nodes; our `<access>` may narrow who is one.
                 let gateway = gateway
                     && self.policy.allows(
@@ -161,6 +160,14 @@ impl NodeInner {
                 // can then neither overtake our Hello (the peer would drop it, not knowing us)
                 // nor fall between the snapshot and the push.
                 let log = lock(&self.decls);
+                // Two Hellos of a new peer handled at once (its multicast and its unicast one)
+                // both found it unknown: the first registers it, under this lock; the second
+                // must not register it again (a second challenge would void the peer's answer
+                // to the first, and its proof would be refused).
+                if self.peers.contains_key(&node_id) {
+                    return;
+                }
+                tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
                 self.peers.insert(
                     node_id,
                     Peer {

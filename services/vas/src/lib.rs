@@ -45,6 +45,10 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
     )
     .context("loading the network configuration")?;
     let signing = config.signing().context("MAVLink signing")?;
+    match &signing {
+        Some(s) => tracing::info!(link_id = s.link_id, "MAVLink 2 signing on: every frame to and from the autopilot is signed"),
+        None => tracing::warn!("MAVLink 2 signing off: anyone who can reach the autopilot's link can command it (give the VAS <signing keyFile=..> or --signing-key, and the autopilot the same key)"),
+    }
     // The PX4 APL where the configuration names PX4; otherwise the shared MAVLink layer with
     // the family's modes the configuration names, or the heartbeat's (`auto`).
     let mut ap = config.ardupilot();

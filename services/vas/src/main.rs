@@ -66,6 +66,10 @@ struct Args {
     /// The autopilot's MAVLink component id, where several components share the link.
     #[arg(long)]
     target_component: Option<u8>,
+    /// MAVLink 2 signing key file (64 hex digits, mode 600): sign every frame and accept only
+    /// correctly signed ones (replaces the file's `<signing>`, keeping its linkId).
+    #[arg(long)]
+    signing_key: Option<std::path::PathBuf>,
 }
 
 #[tokio::main]
@@ -126,6 +130,10 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.target_component.is_some() {
         cfg.target_component = args.target_component;
+    }
+    if let Some(key_file) = args.signing_key {
+        let link_id = cfg.signing.as_ref().map_or(0, |s| s.link_id);
+        cfg.signing = Some(vas::config::SigningSettings { key_file, link_id });
     }
     cfg.forward.extend(
         args.forward
