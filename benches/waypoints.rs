@@ -26,6 +26,9 @@
 //!   `--autopilot px4` (current item reset by every upload, no partial writes): reaches of a
 //!   point before one already reached, or of a point not in the plan, plus those the VAS
 //!   counted (its `queue` variable); must be 0.
+//! - `vas.conformance.reset_on_upload.waypoints_50.backtracks`: the same on mavsim
+//!   `--autopilot ardupilot-resetting`, a vehicle that says it is ArduPilot (item 0 home) but
+//!   resets its current item after every whole upload and answers no partial write; must be 0.
 //! - `vas.partial_write_probe_ms`: time the VAS's manager takes to find out that an autopilot
 //!   (mavsim `--autopilot px4`) has no partial mission writes (≤ 1500 ms).
 //!
@@ -143,7 +146,11 @@ fn start_vas(bins: &Path, addr: &str, domain: &str) -> anyhow::Result<Proc> {
         .args(["--namespace", "bench1", "--queue-size", "5"])
         .args(["--telemetry-hz", "10"])
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(if std::env::var_os("WP_VAS_LOG").is_some() {
+            Stdio::inherit()
+        } else {
+            Stdio::null()
+        })
         .spawn()
         .context("starting vas")?;
     Ok(Proc(child))
@@ -473,10 +480,13 @@ async fn mavsdk_run(bins: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-async fn px4_profile_run(bins: &Path, dir: &Path) -> anyhow::Result<()> {
-    let log = dir.join("px4.jsonl");
-    let (_sim, addr) = start_sim_with(bins, 20.0, &log, &["--autopilot", "px4"])?;
-    let vas_backtracks = conformance_flight(bins, &addr, "px4").await?;
+/// Flies the conformance plan on mavsim `--autopilot <autopilot>` and prints
+/// `vas.conformance.<tag>.waypoints_N.backtracks`: reaches of a point before one already
+/// reached, or of a point not in the plan (mavsim's own log), plus those the VAS counted.
+async fn profile_run(bins: &Path, dir: &Path, autopilot: &str, tag: &str) -> anyhow::Result<()> {
+    let log = dir.join(format!("{tag}.jsonl"));
+    let (_sim, addr) = start_sim_with(bins, 20.0, &log, &["--autopilot", autopilot])?;
+    let vas_backtracks = conformance_flight(bins, &addr, tag).await?;
     // mavsim's reached items as the vehicle's reports.
     let reached: Vec<serde_json::Value> = log_events(&log, "item_reached")
         .into_iter()
@@ -498,7 +508,7 @@ async fn px4_profile_run(bins: &Path, dir: &Path) -> anyhow::Result<()> {
         })
         .count();
     metric(
-        &format!("vas.conformance.px4_profile.waypoints_{CONFORMANCE_WAYPOINTS}.backtracks"),
+        &format!("vas.conformance.{tag}.waypoints_{CONFORMANCE_WAYPOINTS}.backtracks"),
         (flown.backtracks + regressions) as f64 + vas_backtracks as f64,
         "backtracks",
     );
@@ -544,19 +554,23 @@ async fn main() -> anyhow::Result<()> {
             cpu_run(&bins, dir.path()).await?;
         }
     }
-    let (mavsdk, px4, probe) = (
+    let (mavsdk, px4, resetting, probe) = (
         wanted("vas.conformance.mavsdk"),
         wanted("vas.conformance.px4_profile"),
+        wanted("vas.conformance.reset_on_upload"),
         wanted("vas.partial_write_probe_ms"),
     );
-    if mavsdk || px4 || probe {
+    if mavsdk || px4 || resetting || probe {
         let bins = build_bins()?;
         let dir = tempfile::tempdir()?;
         if mavsdk {
             mavsdk_run(&bins).await?;
         }
         if px4 {
-            px4_profile_run(&bins, dir.path()).await?;
+            profile_run(&bins, dir.path(), "px4", "px4_profile").await?;
+        }
+        if resetting {
+            profile_run(&bins, dir.path(), "ardupilot-resetting", "reset_on_upload").await?;
         }
         if probe {
             probe_run(&bins, dir.path()).await?;

@@ -69,7 +69,9 @@ struct Args {
     signing_link_id: u8,
     /// Whose conventions to follow: ArduPilot's (default), PX4's (PX4 custom modes, item 0
     /// ordinary, no partial writes, current item reset to 0 by an upload, MISSION_CURRENT only
-    /// on change) or a generic autopilot's (ArduPilot modes, PX4's mission conventions).
+    /// on change) or a generic autopilot's (ArduPilot modes, PX4's mission conventions);
+    /// ardupilot-resetting says it is ArduPilot but resets its current item after a whole
+    /// upload and answers no partial write.
     #[arg(long, value_enum, default_value = "ardupilot")]
     autopilot: AutopilotArg,
     /// Battery capacity, mAh.
@@ -95,6 +97,9 @@ enum AutopilotArg {
     Ardupilot,
     Px4,
     Generic,
+    /// Says it is ArduPilot but resets its current item after a whole upload and answers no
+    /// partial write (for testing ground stations).
+    ArdupilotResetting,
 }
 
 fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
@@ -187,6 +192,7 @@ async fn main() -> anyhow::Result<()> {
             AutopilotArg::Ardupilot => Profile::ArduPilot,
             AutopilotArg::Px4 => Profile::Px4,
             AutopilotArg::Generic => Profile::Generic,
+            AutopilotArg::ArdupilotResetting => Profile::ArduPilotResetting,
         },
         battery,
     };

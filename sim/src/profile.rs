@@ -3,16 +3,19 @@
 //! The MAVLink mission protocol leaves room where conforming autopilots differ, and a ground
 //! station that only ever met one of them breaks on the others (issue 14):
 //!
-//! | | ArduPilot (default) | PX4 | generic (MAVSDK-like) |
-//! |---|---|---|---|
-//! | heartbeat `autopilot` | ARDUPILOTMEGA | PX4 | GENERIC |
-//! | custom mode | ArduPilot number | `main << 16 \| sub << 24` | ArduPilot number |
-//! | item 0 | home, replaced by ours | an ordinary item | an ordinary item |
-//! | MISSION_WRITE_PARTIAL_LIST | supported | unanswered | unanswered |
-//! | current item after an upload | kept | reset to 0 | reset to 0 |
-//! | MISSION_CURRENT | streamed and on change | only on change | streamed and on change |
-//! | MAV_CMD_MISSION_START | unsupported | starts AUTO.MISSION | unsupported |
-//! | MAV_CMD_DO_REPOSITION | unsupported | AUTO.LOITER, go there and hold | unsupported |
+//! | | ArduPilot (default) | PX4 | generic (MAVSDK-like) | ArduPilot, resetting |
+//! |---|---|---|---|---|
+//! | heartbeat `autopilot` | ARDUPILOTMEGA | PX4 | GENERIC | ARDUPILOTMEGA |
+//! | custom mode | ArduPilot number | `main << 16 \| sub << 24` | ArduPilot number | ArduPilot number |
+//! | item 0 | home, replaced by ours | an ordinary item | an ordinary item | home |
+//! | MISSION_WRITE_PARTIAL_LIST | supported | unanswered | unanswered | unanswered |
+//! | current item after an upload | kept | reset to 0 | reset to 0 | reset to 0 (so 1) |
+//! | MISSION_CURRENT | streamed and on change | only on change | streamed and on change | as ArduPilot |
+//! | MAV_CMD_MISSION_START | unsupported | starts AUTO.MISSION | unsupported | unsupported |
+//! | MAV_CMD_DO_REPOSITION | unsupported | AUTO.LOITER, go there and hold | unsupported | unsupported |
+//!
+//! The last is no autopilot's documented behaviour: a vehicle that says it is ArduPilot and
+//! does not behave as one, for testing a ground station that must not trust the family alone.
 
 use crate::kinematics::VehicleKind;
 use crate::modes;
@@ -28,12 +31,15 @@ pub enum Profile {
     /// A generic autopilot (as MAVSDK's server plugins): ArduPilot mode numbers, PX4's mission
     /// conventions.
     Generic,
+    /// Says it is ArduPilot (heartbeat, modes, item 0 home) but answers no partial write and
+    /// resets its current item after every whole upload.
+    ArduPilotResetting,
 }
 
 impl Profile {
     /// Item 0 is home (replaced by the vehicle's own), never flown to.
     pub fn item0_is_home(self) -> bool {
-        self == Self::ArduPilot
+        matches!(self, Self::ArduPilot | Self::ArduPilotResetting)
     }
 
     /// MISSION_WRITE_PARTIAL_LIST is answered.

@@ -1,7 +1,8 @@
 //! The same plan flown by the `vas` binary on each of mavsim's autopilot profiles (issue 14):
 //! ArduPilot (item 0 home, partial writes, current item kept by uploads), PX4 (PX4 custom
 //! modes, item 0 ordinary, no partial writes, current item reset to 0 by every upload,
-//! MISSION_CURRENT only on change) and generic (ArduPilot modes, PX4's mission conventions).
+//! MISSION_CURRENT only on change), generic (ArduPilot modes, PX4's mission conventions) and
+//! ArduPilot-resetting (says ArduPilot, but no partial writes and the current item reset).
 //! Every waypoint is reached once, in order, and the vehicle never turns back.
 
 mod common;
@@ -116,4 +117,15 @@ async fn forty_waypoints_on_the_generic_profile() {
     tokio::time::timeout(STEP * 12, fly_on("generic", 40))
         .await
         .expect("generic profile flight bounded");
+}
+
+/// A vehicle that says it is ArduPilot (item 0 home) but resets its current item after every
+/// whole upload and answers no partial write: the VAS finds the partial writes missing, lays
+/// each whole window out from the target, so every reset lands on it, and the vehicle never
+/// heads for home or a waypoint it has passed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn thirty_waypoints_on_a_vehicle_that_says_ardupilot_but_resets_on_upload() {
+    tokio::time::timeout(STEP * 12, fly_on("ardupilot-resetting", 30))
+        .await
+        .expect("ardupilot-resetting flight bounded");
 }

@@ -74,7 +74,9 @@ impl Vehicle {
                 VehicleKind::Plane => MavType::MAV_TYPE_FIXED_WING,
             },
             autopilot: match self.profile {
-                Profile::ArduPilot => MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                Profile::ArduPilot | Profile::ArduPilotResetting => {
+                    MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
+                }
                 Profile::Px4 => MavAutopilot::MAV_AUTOPILOT_PX4,
                 Profile::Generic => MavAutopilot::MAV_AUTOPILOT_GENERIC,
             },

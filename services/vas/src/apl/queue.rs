@@ -86,6 +86,9 @@ pub struct RollingQueue<W> {
     /// The last reach was of the last item on board while waypoints remain: the autopilot
     /// ended its mission early (a wrap or a growing write came too late).
     ended_early: bool,
+    /// The last whole upload moved the target to another slot: an autopilot that kept its
+    /// current item now points at the wrong one, so the restoring set-current is owed anyway.
+    target_moved: bool,
 }
 
 impl<W: Clone + PartialEq> RollingQueue<W> {
@@ -109,6 +112,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
             replacing: false,
             advanced: true,
             ended_early: false,
+            target_moved: false,
         })
     }
 
@@ -201,9 +205,22 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     }
 
     /// The autopilot is known to have kept its current item through the last whole upload
-    /// (it reported it since): the restoring set-current is not needed.
+    /// (it reported it since): the restoring set-current is not needed, unless that upload
+    /// moved the target to another slot.
     pub fn current_kept(&mut self) {
-        self.owe_restore = false;
+        if !self.target_moved {
+            self.owe_restore = false;
+        }
+    }
+
+    /// The autopilot was seen driving somewhere it should not (back toward a passed waypoint
+    /// or home): the current item is set to the target's slot next, without waiting for an
+    /// advance of the autopilot's own.
+    pub fn restore_current(&mut self) {
+        if self.cur.is_some() {
+            self.owe_restore = true;
+            self.advanced = true;
+        }
     }
 
     /// A set-current is owed to restore the current item after a whole upload.
@@ -346,7 +363,29 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     }
 
     /// The next action needed, or `None` when the autopilot holds what it should.
+    ///
+    /// Where partial writes do not work, every whole upload while navigating lays the window
+    /// out afresh with the target in slot 1 (and item 0, where item 0 is flown: the driver's
+    /// part), followed by a set-current to it: an autopilot that resets its current item on
+    /// an upload, whatever its family says, then lands on the target, never on a waypoint it
+    /// has passed.
     pub fn poll(&mut self) -> Option<QueueAction<W>> {
+        let action = self.poll_in_place()?;
+        let c = self.cur?;
+        if self.partial_ok || c == 1 || !matches!(action, QueueAction::Upload(_)) {
+            return Some(action);
+        }
+        let a0 = self.ahead.front()?.clone();
+        let window: Vec<W> = self
+            .wanted(1)
+            .into_iter()
+            .map(|w| w.unwrap_or_else(|| a0.clone()))
+            .collect();
+        Some(QueueAction::Upload(window))
+    }
+
+    /// [`Self::poll`] with the window where it is (the target's slot kept).
+    fn poll_in_place(&self) -> Option<QueueAction<W>> {
         let c = self.cur?;
         let a0 = self.ahead.front()?.clone();
         if c == self.n {
@@ -428,6 +467,24 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
                 // The autopilot may have reset its current item: it is restored next (once
                 // its own advance, if one is pending, is done).
                 self.owe_restore = self.cur.is_some();
+                self.target_moved = false;
+                if !self.partial_ok && self.cur.is_some() {
+                    // Whole windows are laid out from the target (see `poll`): the target's
+                    // slot is where the upload put it (the next one if it was reached while
+                    // the upload went on).
+                    let at = self
+                        .ahead
+                        .front()
+                        .and_then(|t| items.iter().position(|w| w == t));
+                    if let Some(k) = at {
+                        let slot = k as u16 + 1;
+                        self.target_moved = self.cur != Some(slot);
+                        self.cur = Some(slot);
+                        // Set at once: whatever the autopilot did with its current item, it
+                        // no longer names our target's slot.
+                        self.advanced = true;
+                    }
+                }
             }
             QueueAction::WritePartial { start, items } => {
                 let s = usize::from(*start) - 1;
@@ -985,7 +1042,37 @@ mod tests {
     }
 
     #[test]
-    fn a_kept_current_item_needs_no_restoring() {
+    fn a_kept_current_item_needs_no_restoring_unless_the_upload_moved_the_target() {
+        // Partial writes work: the upload that cuts the mission short after the last
+        // waypoint leaves the target in its slot, and an autopilot that kept its current item
+        // needs no set-current.
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..10);
+        q.start();
+        let mut ap = Autopilot::new(true);
+        settle(&mut q, &mut ap);
+        let s = ap.drive().unwrap();
+        q.on_reached(s);
+        settle(&mut q, &mut ap);
+        let slot = q.current_slot();
+        q.clear();
+        q.push([1, 2]);
+        let upload = loop {
+            let a = q.poll().expect("an upload cutting the mission short");
+            assert!(ap.apply(&a));
+            q.done(&a);
+            if matches!(a, QueueAction::Upload(_)) {
+                break a;
+            }
+        };
+        assert_eq!(q.current_slot(), slot, "{upload:?}");
+        assert!(q.owes_restore());
+        q.current_kept();
+        assert!(!q.owes_restore());
+        assert_eq!(q.poll(), None);
+
+        // Whole windows: the upload lays the window out from the target, in slot 1; a kept
+        // current item names another slot, so the set-current is owed all the same.
         let mut q = RollingQueue::new(5).unwrap();
         q.push(0..10);
         q.start();
@@ -995,16 +1082,51 @@ mod tests {
         let s = ap.drive().unwrap();
         q.on_reached(s);
         let a = q.poll().unwrap();
-        assert!(matches!(a, QueueAction::Upload(_)), "{a:?}");
+        assert_eq!(
+            a,
+            QueueAction::Upload(vec![1, 2, 3, 4, 5]),
+            "from the target on"
+        );
         ap.apply(&a);
         q.done(&a);
-        assert!(q.owes_restore());
+        assert_eq!(q.current_slot(), Some(1));
         q.current_kept();
-        assert_eq!(q.poll(), None);
+        assert_eq!(q.poll(), Some(QueueAction::SetCurrent(1)));
         // Not navigating: nothing to restore.
         q.stop();
         q.done(&QueueAction::Upload(vec![1, 2, 3]));
         assert!(!q.owes_restore());
+    }
+
+    /// An autopilot that says nothing of resetting its current item on an upload but does
+    /// (to item 0, home, so in effect to slot 1): with whole windows laid out from the target,
+    /// the reset lands on the target, never on a passed waypoint.
+    #[test]
+    fn a_reset_after_a_whole_upload_lands_on_the_target() {
+        let mut q = RollingQueue::new(5).unwrap();
+        q.push(0..30);
+        q.start();
+        let mut ap = Autopilot::new(false);
+        q.partial_unsupported();
+        settle(&mut q, &mut ap);
+        let mut reached = Vec::new();
+        while let Some(s) = ap.drive() {
+            reached.extend(q.on_reached(s));
+            let Some(a) = q.poll() else { continue };
+            assert!(ap.apply(&a));
+            if matches!(a, QueueAction::Upload(_)) {
+                // The reset, before any set-current of ours: slot 1 must hold the target.
+                assert_eq!(
+                    ap.mission.first(),
+                    q.target(),
+                    "a reset would drive to {:?}",
+                    ap.mission.first()
+                );
+            }
+            q.done(&a);
+            settle(&mut q, &mut ap);
+        }
+        assert_eq!(reached, (0..30).collect::<Vec<_>>());
     }
 
     #[test]

@@ -159,6 +159,9 @@ pub(super) struct Driver {
     /// Times the vehicle's reported current item went back to an item already passed while
     /// navigating (issue 14: each is a drive back toward a passed waypoint).
     backtracks: u64,
+    /// A whole upload is under way: the autopilot's reports of its current item may already
+    /// name the mission being committed, not the one we know it holds.
+    uploading: bool,
     /// The last queue failure raised as an alarm (a refusal such as NO_SPACE or DENIED repeats
     /// on every retry; the ground hears it once until it changes or the queue recovers).
     queue_error: Option<String>,
@@ -214,6 +217,7 @@ impl Driver {
             item0: None,
             reached_at: None,
             backtracks: 0,
+            uploading: false,
             queue_error: None,
             home_alt_msl: None,
             resume_after_reboot: false,
@@ -495,7 +499,10 @@ impl Driver {
                 return Ok(());
             };
             let began = std::time::Instant::now();
-            let Some(result) = self.exec_unless_wrap_due(&action).await else {
+            self.uploading = matches!(action, QueueAction::Upload(_));
+            let outcome = self.exec_unless_wrap_due(&action).await;
+            self.uploading = false;
+            let Some(result) = outcome else {
                 // Dropped mid-transfer: the autopilot commits a transfer only when it is
                 // complete, so the abandoned write is simply redone after the wrap.
                 tracing::debug!(
@@ -510,6 +517,10 @@ impl Driver {
                     self.queue.done(&action);
                     if matches!(action, QueueAction::Upload(_)) {
                         self.after_upload();
+                        // What it reported meanwhile, judged against what it now holds.
+                        if let Some(seq) = self.mgr.state().mission_current {
+                            self.check_backtrack(seq);
+                        }
                     }
                 }
                 Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
@@ -567,10 +578,12 @@ impl Driver {
     }
 
     /// The vehicle reports it drives to item `seq`: when that item holds a waypoint already
-    /// passed (or home), while in AUTO, it is driving back. Counted and logged.
+    /// passed (or home), while in AUTO, it is driving back: counted, logged, and its current
+    /// item set back to the target's slot next.
     fn check_backtrack(&mut self, seq: u16) {
         let s = self.mgr.state();
         if s.mode_name != Some("AUTO")
+            || self.uploading
             || !self.queue.is_running()
             || !s.link_up
             || s.restorations != self.restorations_seen
@@ -588,10 +601,13 @@ impl Driver {
         };
         let back = self.queue.heads_back(seq, item0);
         if back {
+            // Turned back to the target at once: the set-current goes out next.
             self.backtracks += 1;
+            self.queue.restore_current();
             tracing::warn!(
                 "backtrack #{}: the autopilot drives to item {seq}, which holds home or a \
-                 waypoint already passed (target: waypoint {target})",
+                 waypoint already passed; setting its current item back to the target \
+                 (waypoint {target})",
                 self.backtracks
             );
         }
