@@ -32,7 +32,8 @@
 //! - `vas.partial_write_probe_ms`: time the VAS's manager takes to find out that an autopilot
 //!   (mavsim `--autopilot px4`) has no partial mission writes (≤ 1500 ms).
 //!
-//! Arguments that do not start with `--` select figures by substring, e.g.
+//! `WP_VAS_LOG=1` lets the VAS's log through to stderr (with `RUST_LOG=vas=debug`, every
+//! queue action). Arguments that do not start with `--` select figures by substring, e.g.
 //! `cargo bench --bench waypoints -- fpma.parse` runs only the parse figure (seconds), while
 //! the VAS figures build release binaries and fly for a minute or more.
 
