@@ -3,7 +3,7 @@
 //! behind; `usal list/echo/call` see a running mission, sealed so that another user's do not;
 //! a malformed mission file starts nothing.
 
-use std::io::{BufRead, BufReader, Read};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
@@ -789,6 +789,129 @@ fn operator_mission(dir: &Path) -> std::path::PathBuf {
         .replace(r#"start="auto""#, r#"start="operator""#);
     std::fs::write(&mission, demo).expect("write the mission");
     mission
+}
+
+/// Another ground station writes the autopilot's mission mid-flight (a pymavlink station
+/// behind the VAS's `<forward>`): the FPMa stops feeding the VAS and pauses the plan, `usal
+/// run` says who took over and records it, the FPMa's progress carries it for the stations,
+/// nothing resumes the plan by itself, and the operator's `resume` takes the vehicle back.
+#[test]
+fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resumes_it() {
+    let Some(py) = python::python_unless_absent_outside_ci("the takeover test") else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let port = python::free_udp_port();
+    std::fs::write(
+        dir.path().join("vas.xml"),
+        format!(r#"<vas><forward endpoint="udpout:127.0.0.1:{port}"/></vas>"#),
+    )
+    .expect("write the VAS config");
+    let flightplans = root().join("config/flightplans/");
+    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
+        .expect("the demo mission")
+        .replace("../flightplans/", &flightplans.display().to_string())
+        .replace(
+            r#"<vas vehicle="rover" queueSize="5" telemetryHz="4"/>"#,
+            r#"<vas vehicle="rover" queueSize="5" telemetryHz="4" config="vas.xml"/>"#,
+        );
+    assert!(
+        demo.contains(r#"config="vas.xml""#),
+        "the demo's <vas> changed"
+    );
+    let mission = dir.path().join("rover-takeover.xml");
+    std::fs::write(&mission, demo).expect("write the mission");
+    let mut gcs = Command::new(&py)
+        .arg(root().join("tests/python/second_gcs.py"))
+        .args(["--port", &port.to_string()])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("starting second_gcs.py");
+    let mut gcs_in = gcs.stdin.take().expect("stdin");
+    let (gcs_tx, gcs_lines) = mpsc::channel::<Value>();
+    let gcs_out = gcs.stdout.take().expect("stdout");
+    std::thread::spawn(move || {
+        for line in BufReader::new(gcs_out).lines().map_while(Result::ok) {
+            if let Ok(v) = serde_json::from_str::<Value>(&line) {
+                if gcs_tx.send(v).is_err() {
+                    break;
+                }
+            }
+        }
+    });
+    let gcs_event = |what: &str| {
+        let v = gcs_lines
+            .recv_timeout(STEP)
+            .unwrap_or_else(|_| panic!("the second station said no {what}"));
+        assert_eq!(v["event"], what, "{v}");
+        v
+    };
+
+    let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "5"]);
+    let domain = l.event(STEP, "mission")["domain"]
+        .as_str()
+        .expect("the domain")
+        .to_owned();
+    l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+    l.event(STEP, "waypoint");
+    gcs_event("heartbeat");
+    writeln!(
+        gcs_in,
+        "upload 41.2750,1.9870;41.2752,1.9872;41.2754,1.9870;41.2756,1.9872"
+    )
+    .expect("asking the second station to upload");
+    let up = gcs_event("uploaded");
+    assert_eq!(
+        up["result"], 0,
+        "the autopilot took the other mission: {up}"
+    );
+
+    let taken = l.event(STEP, "taken_over");
+    assert!(
+        taken["by"]
+            .as_str()
+            .is_some_and(|b| b.contains("system 250")),
+        "{taken}"
+    );
+    assert_eq!(taken["items"], 4, "{taken}");
+    let progress = |l: &Launcher| {
+        let (ok, out) = tool(&domain, &["echo", "rover1/fpma/progress", "--count", "1"]);
+        assert!(ok, "{out}\n{}", l.stderr_tail());
+        out
+    };
+    let p = progress(&l);
+    assert!(
+        p.contains("\"taken_over\":\"MAVLink system 250") && p.contains("4 items"),
+        "{p}"
+    );
+    // Nobody but the operator takes the vehicle back: no plan progress, no Start.
+    l.none_within(
+        Duration::from_secs(3),
+        "the plan going on after the takeover",
+        |v| v["event"] == "waypoint" || v["event"] == "navigation_kicked",
+    );
+
+    let (ok, answer) = tool(&domain, &["call", "rover1/fpma/resume"]);
+    assert!(ok, "resume: {answer}");
+    let deadline = Instant::now() + STEP;
+    while progress(&l).contains("\"taken_over\":\"") {
+        assert!(
+            Instant::now() < deadline,
+            "the takeover outlived the operator's resume"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    drop(gcs_in);
+    let _ = gcs.kill();
+    let _ = gcs.wait();
+    l.signal("INT");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}");
 }
 
 /// `<mission security="off">`: the launcher says loudly that the run is not sealed, and so does

@@ -561,6 +561,10 @@ async fn follow(
                         record = Some(json!({"event": "failsafe", "failsafe": n}));
                         t.failsafes.push(n);
                     }
+                    PlanEventKind::TakenOver { by, items } => {
+                        line = Some(format!("TAKEN OVER: the vehicle flies another ground station's mission ({by}, {items} items); the plan is paused until the operator resumes it (usal call <fpma>/resume), then Start"));
+                        record = Some(json!({"event": "taken_over", "by": by, "items": items}));
+                    }
                     other => line = Some(format!("plan: {other:?}")),
                 }
             }

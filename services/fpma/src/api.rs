@@ -211,6 +211,10 @@ pub struct Progress {
     /// Seconds to the end of the current leg (the target waypoint's), likewise.
     #[serde(default)]
     pub leg_eta_s: Option<f64>,
+    /// The vehicle flies another ground station's mission (who, and how many items): the
+    /// plan is paused until the operator resumes it.
+    #[serde(default)]
+    pub taken_over: Option<String>,
 }
 
 /// Whether the loaded plan waits for the operator's start (variable `ready`). The FPMa never
@@ -262,7 +266,16 @@ flight_events! {
             name: String,
         },
     }
-    then {}
+    then {
+        /// Another ground station wrote the autopilot's mission: the FPMa stopped feeding the
+        /// VAS and paused the plan until the operator resumes it (`resume`).
+        TakenOver {
+            /// Who, as the VAS saw it, e.g. `MAVLink system 250 component 190`.
+            by: String,
+            /// Items of the mission it wrote.
+            items: u64,
+        },
+    }
 }
 
 impl PlanEvent {

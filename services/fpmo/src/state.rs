@@ -244,6 +244,9 @@ impl State {
                 }
                 format!("plan `{name}` loaded (version {})", ev.version)
             }
+            PlanEventKind::TakenOver { by, items } => format!(
+                "TAKEN OVER: another ground station ({by}) wrote a mission of {items} items; plan paused until the operator resumes it"
+            ),
             k => format!("{k:?}"),
         };
         let v = self.vehicle(label);

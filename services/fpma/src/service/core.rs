@@ -135,6 +135,9 @@ pub struct Core<V> {
     out: Outputs,
     /// Counts the inputs that may have changed what [`Core::snapshot`] returns.
     changes: u64,
+    /// Another ground station wrote the autopilot's mission (who, and how many items): nothing
+    /// is handed to the VAS until the operator resumes the plan.
+    taken_over: Option<String>,
 }
 
 /// What the core keeps across a restart of the service: the executive (plan, cursor,
@@ -192,6 +195,7 @@ impl<V: VasPort> Core<V> {
             geometry: PlanGeometry::default(),
             out: Outputs::default(),
             changes: 0,
+            taken_over: None,
         }
     }
 
@@ -361,6 +365,18 @@ impl<V: VasPort> Core<V> {
             .exec
             .as_mut()
             .ok_or("no plan is loaded (load_plan first)")?;
+        if cmd == Command::Resume {
+            if let Some(by) = self.taken_over.take() {
+                // The operator takes the vehicle back: the plan's queue is laid out again.
+                tracing::info!("plan resumed by the operator after a takeover ({by})");
+                self.must_flush = true;
+                if ex.state().paused {
+                    ex.resume().map_err(|e| e.to_string())?;
+                }
+                self.after_change().await;
+                return Ok(self.ack());
+            }
+        }
         let r = match cmd {
             Command::SkipLeg => ex.skip_leg(),
             Command::GotoLeg(id) => ex.goto_leg(&id),
@@ -466,6 +482,30 @@ impl<V: VasPort> Core<V> {
         }
     }
 
+    /// The VAS reports that another ground station wrote the autopilot's mission (`by`, with
+    /// `items` items): the vehicle flies that mission now. The plan is paused and nothing more
+    /// is handed to the VAS until the operator resumes it ([`Command::Resume`]); stations are
+    /// told who took over.
+    pub async fn on_mission_changed(&mut self, by: &str, items: u64) {
+        let who = format!("{by}, {items} items");
+        tracing::warn!("the vehicle flies another ground station's mission ({who}): plan paused until the operator resumes it");
+        self.taken_over = Some(who);
+        let version = self.exec.as_ref().map_or(0, Executive::version);
+        if let Some(ex) = &mut self.exec {
+            if !ex.state().paused {
+                let _ = ex.pause();
+            }
+        }
+        self.out.events.push(PlanEvent {
+            version,
+            kind: PlanEventKind::TakenOver {
+                by: by.to_owned(),
+                items,
+            },
+        });
+        self.after_change().await;
+    }
+
     /// The VAS's flight state changed: only what stations are told changes (the plan waits
     /// for, or no longer waits for, the operator's start).
     pub fn on_flight_state(&mut self, s: FlightState) {
@@ -483,7 +523,12 @@ impl<V: VasPort> Core<V> {
         };
         let st = ex.state();
         let name = &st.plan;
-        let (ready, text) = if st.completed {
+        let (ready, text) = if let Some(who) = &self.taken_over {
+            (
+                false,
+                format!("the vehicle flies another ground station's mission ({who}): plan `{name}` paused; resume it to take the vehicle back"),
+            )
+        } else if st.completed {
             (false, format!("plan `{name}` completed"))
         } else if self.vas_state == Some(FlightState::WaypointNavigation) {
             (false, format!("flying plan `{name}`"))
@@ -580,6 +625,7 @@ impl<V: VasPort> Core<V> {
             holding: st.holding,
             eta_s: self.eta.eta_s(plan_left).filter(|_| !st.completed),
             leg_eta_s: self.eta.eta_s(leg_left).filter(|_| !st.completed),
+            taken_over: self.taken_over.clone(),
         });
         self.out.state = Some(PlanState {
             version: st.version,
@@ -604,7 +650,7 @@ impl<V: VasPort> Core<V> {
 
     /// Brings the VAS queue in line with the executive's look-ahead.
     pub async fn sync(&mut self) {
-        if self.exec.is_none() {
+        if self.exec.is_none() || self.taken_over.is_some() {
             return;
         }
         self.changes += 1;
@@ -1198,6 +1244,57 @@ mod tests {
         assert!(c.readiness().ready, "{:?}", c.readiness());
         let rest = fly(&mut c, 1000).await;
         assert_eq!(rest.last().unwrap().leg, "app");
+    }
+
+    #[tokio::test]
+    async fn a_takeover_stops_every_call_to_the_vas_until_the_operator_resumes() {
+        let mut c = core(4);
+        c.load(PLAN, "t.xml").await.unwrap();
+        fly(&mut c, 1).await;
+        let _ = c.vas().calls();
+        let _ = c.take_outputs();
+        c.on_mission_changed("MAVLink system 250 component 190", 4)
+            .await;
+        assert!(
+            c.vas().calls().is_empty(),
+            "nothing written over the other mission"
+        );
+        let out = c.take_outputs();
+        assert!(
+            out.events.iter().any(|e| e.kind
+                == PlanEventKind::TakenOver {
+                    by: "MAVLink system 250 component 190".into(),
+                    items: 4
+                }),
+            "{:?}",
+            out.events
+        );
+        let p = out.progress.expect("progress published");
+        assert!(p.paused);
+        assert_eq!(
+            p.taken_over.as_deref(),
+            Some("MAVLink system 250 component 190, 4 items")
+        );
+        let r = c.readiness();
+        assert!(
+            !r.ready && r.text.contains("another ground station"),
+            "{r:?}"
+        );
+        // Reaches, telemetry and the retry tick change nothing at the VAS meanwhile.
+        c.on_flight_state(FlightState::Parking);
+        c.retry().await;
+        assert!(c.vas().calls().is_empty());
+        // The operator takes the vehicle back: the plan's queue is laid out again.
+        c.command(Command::Resume).await.unwrap();
+        let calls = c.vas().calls();
+        assert_eq!(
+            calls.first().map(String::as_str),
+            Some("clear"),
+            "{calls:?}"
+        );
+        let p = c.take_outputs().progress.expect("progress published");
+        assert!(!p.paused && p.taken_over.is_none(), "{p:?}");
+        assert!(c.readiness().ready, "{:?}", c.readiness());
     }
 
     #[tokio::test]

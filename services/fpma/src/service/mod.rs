@@ -18,7 +18,9 @@ use marea::{Event, Function, IService, Service, ServiceError, Variable};
 use serde::Deserialize;
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
-use usal_types::{Battery, FlightState, Position, QueueStatus, Waypoint, WaypointReached};
+use usal_types::{
+    Battery, FlightState, MissionChanged, Position, QueueStatus, Waypoint, WaypointReached,
+};
 
 use self::core::{Command, Core, CoreConfig, VasPort};
 use crate::api::{
@@ -440,6 +442,8 @@ impl IService for Fpma {
         let position = ctx.subscribe_variable::<Position>(&format!("{vas}/position"))?;
         let battery = ctx.subscribe_variable::<Battery>(&format!("{vas}/battery"))?;
         let flight_state = ctx.subscribe_variable::<FlightState>(&format!("{vas}/flight_state"))?;
+        let mission_changed =
+            ctx.subscribe_event::<MissionChanged>(&format!("{vas}/mission_changed"))?;
         let sink = ctx.file_sink_with(
             "plans",
             marea::FileSinkOptions {
@@ -628,6 +632,14 @@ impl IService for Fpma {
                         Ok(s) => core.on_battery(&s.value).await,
                         Err(marea::RecvError::Closed) => return,
                         Err(e) => tracing::warn!("battery: {e}"),
+                    },
+                    m = mission_changed.recv() => match m {
+                        Ok(m) => {
+                            let items = m.value.waypoints.len() as u64;
+                            core.on_mission_changed(&m.value.by, items).await;
+                        }
+                        Err(marea::RecvError::Closed) => return,
+                        Err(e) => tracing::warn!("mission_changed: {e}"),
                     },
                     s = flight_state.recv() => match s {
                         Ok(s) => core.on_flight_state(s.value),
