@@ -62,7 +62,8 @@ fn goodput(baud: u32, ber: f64, mps: usize, secs: u64) -> (f64, f64) {
         Duration::from_millis(10),
         |p| {
             while p.a.stats().safe_queued < 64 {
-                p.a.push_safe(vec![0x5A; 1300], Some(sent));
+                let now = p.now;
+                p.a.push_safe(now, vec![0x5A; 1300], Some(sent));
                 sent += 1;
             }
         },
@@ -153,7 +154,7 @@ fn main() {
     for i in 0..n {
         let mut m = i.to_le_bytes().to_vec();
         m.resize(24, 0);
-        p.a.push_safe(m, None);
+        p.a.push_safe(p.now, m, None);
     }
     let mut got = Vec::new();
     let until = p.now + Duration::from_secs(300);
@@ -189,7 +190,8 @@ fn main() {
         Duration::from_millis(5),
         |p| {
             while p.a.stats().safe_queued < 50 {
-                p.a.push_safe(vec![0x55; 1300], None);
+                let now = p.now;
+                p.a.push_safe(now, vec![0x55; 1300], None);
             }
             if p.now >= next_ctl {
                 let stamp = (p.now - start).as_micros() as u64;

@@ -655,3 +655,72 @@ fn a_file_through_a_gateway_is_checked_as_its_sender_s() {
         "the denied file was stored"
     );
 }
+
+/// A call that waits behind a saturated 57600-baud radio, through the two gateways that join
+/// it to the LANs, loses that wait from its caller's remaining time: one its caller has
+/// already reported as timed out reaches the provider with no time left and is never run,
+/// and a newer call issued after it is run and answered.
+#[test]
+fn a_call_its_caller_gave_up_on_behind_a_saturated_radio_never_runs() {
+    let j = Joined::start(
+        "gateway-expiry",
+        base_port(18),
+        &["--air-rate", "57600", "--seed", "9"],
+        57_600,
+    );
+    let mut vas = j
+        .air
+        .probe("vas", "rover1", &["provide", "--item", "retask"]);
+    vas.expect_key(RADIO, "ready");
+    let call = |node: &str, arg: u64, timeout_ms: u64| {
+        j.ground.probe(
+            node,
+            "ground",
+            &[
+                "call",
+                "--name",
+                "rover1/probe/retask",
+                "--arg",
+                &arg.to_string(),
+                "--wait-ms",
+                "30000",
+                "--timeout-ms",
+                &timeout_ms.to_string(),
+            ],
+        )
+    };
+    // The provider is known on the ground before the radio fills up.
+    let mut first = call("fmo0", 1, 30_000);
+    assert_eq!(common::outcome_within(&mut first, RADIO)["ok"], 2);
+    assert_eq!(vas.expect_key(RADIO, "called")["called"], 1);
+
+    // A stream of events from the ground to the air fills the ground gateway's radio queue
+    // (seconds of line time: a call behind it took 11-14 s).
+    let mut sub = j.air.probe(
+        "flood-sub",
+        "rover1",
+        &["ev-sub", "--pattern", "ground/probe/ev", "--count", "20000"],
+    );
+    sub.expect_key(RADIO, "ready");
+    let mut flood = j.ground.probe(
+        "flood",
+        "ground",
+        &[
+            "ev-pub", "--item", "ev", "--count", "20000", "--subs", "1", "--stream",
+        ],
+    );
+    flood.expect_key(RADIO, "subscribers");
+
+    let mut late = call("fmo1", 2, 300);
+    let gave_up = common::outcome_within(&mut late, RADIO);
+    assert_eq!(gave_up["error"], "timeout", "{gave_up}");
+    let mut newer = call("fmo2", 3, 120_000);
+    let answered = common::outcome_within(&mut newer, Duration::from_secs(150));
+    assert_eq!(answered["ok"], 6, "{answered}");
+    // The provider ran the newer call and never the one its caller had given up on.
+    let ran = vas.expect_key(RADIO, "called");
+    assert_eq!(
+        ran["called"], 3,
+        "the call timed out at its caller ran at the provider: {ran}"
+    );
+}

@@ -415,7 +415,9 @@ fn stp_case(u: &mut Unstructured<'_>) -> Result<()> {
                 let mut m = vec![b'S'];
                 m.extend_from_slice(&(safe_sent.len() as u32).to_le_bytes());
                 m.extend(gen::bytes(u, len)?);
-                if a.push_safe(m.clone(), Some(safe_sent.len())).is_some() {
+                if a.push_safe(start, m.clone(), Some(safe_sent.len()))
+                    .is_some()
+                {
                     failed += 1;
                 }
                 safe_sent.push(m);

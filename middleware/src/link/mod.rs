@@ -183,6 +183,12 @@ impl Outgoing {
 pub trait LinkHandler: Send + Sync + 'static {
     /// A fast or (in order) safe message from `from`.
     fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]);
+    /// A safe message of ours leaves a link's queue for the line after `waited` in it: a
+    /// link whose queue can hold messages long (a radio) calls this so the message can carry
+    /// its age (a call takes it off its remaining time). It may only shrink `msg`.
+    fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
+        let _ = (msg, waited);
+    }
     /// Several messages from `from`, in order (a datagram's): a handler may take them as one
     /// batch.
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {

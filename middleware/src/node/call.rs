@@ -98,6 +98,47 @@ pub enum CallError {
     },
 }
 
+/// The first byte of every encoded [`Message::Call`] (its postcard variant tag).
+static CALL_TAG: std::sync::LazyLock<Option<u8>> = std::sync::LazyLock::new(|| {
+    crate::codec::encode_message(&Message::Call {
+        call_id: 0,
+        id: 0,
+        remaining_ms: 0,
+        args: Vec::new(),
+        caller: None,
+    })
+    .first()
+    .copied()
+});
+
+/// A call that waited `waited` in a link's queue (a radio's) carries that much less of its
+/// caller's remaining time when it leaves, so every hop's queue counts against it and a call
+/// its caller has given up on is dropped unexecuted by the provider (at 0 on arrival).
+/// Anything but a call is left as it is.
+pub(crate) fn age_call(msg: &mut Vec<u8>, waited: Duration) {
+    let waited_ms = u32::try_from(waited.as_millis()).unwrap_or(u32::MAX);
+    if waited_ms == 0 || msg.first().copied() != *CALL_TAG {
+        return;
+    }
+    let Ok(Message::Call {
+        call_id,
+        id,
+        remaining_ms,
+        args,
+        caller,
+    }) = crate::codec::decode_message(msg)
+    else {
+        return;
+    };
+    *msg = crate::codec::encode_message(&Message::Call {
+        call_id,
+        id,
+        remaining_ms: remaining_ms.saturating_sub(waited_ms),
+        args,
+        caller,
+    });
+}
+
 impl CallError {
     /// The caller's view of a failure reported by provider `node` of `name`.
     pub(crate) fn from_remote(node: &str, name: &str, after: Duration, f: RemoteFailure) -> Self {
@@ -647,6 +688,41 @@ mod tests {
     use crate::node::gateway::MAX_HOPS;
 
     const PROVIDER: NodeId = 7;
+
+    #[test]
+    fn a_call_leaving_a_queue_carries_its_wait_off_its_remaining_time() {
+        let call = |remaining_ms| {
+            crate::codec::encode_message(&Message::Call {
+                call_id: 9,
+                id: 3,
+                remaining_ms,
+                args: vec![1, 2, 3],
+                caller: None,
+            })
+        };
+        let mut m = call(1_000);
+        age_call(&mut m, Duration::from_millis(300));
+        assert_eq!(m, call(700));
+        age_call(&mut m, Duration::from_secs(5));
+        assert_eq!(m, call(0), "run out: the provider drops it unexecuted");
+        let mut m = call(1_000);
+        age_call(&mut m, Duration::from_micros(300));
+        assert_eq!(m, call(1_000), "under a millisecond: as it was");
+        let reply = crate::codec::encode_message(&Message::Reply {
+            call_id: 9,
+            result: Ok(vec![1]),
+        });
+        let mut m = reply.clone();
+        age_call(&mut m, Duration::from_secs(5));
+        assert_eq!(m, reply, "only calls carry a remaining time");
+        let mut junk = vec![*CALL_TAG.as_ref().unwrap(), 0xff, 0xff];
+        age_call(&mut junk, Duration::from_secs(5));
+        assert_eq!(
+            junk,
+            [CALL_TAG.unwrap(), 0xff, 0xff],
+            "undecodable: left alone"
+        );
+    }
 
     fn waiting(calls: &PendingCalls) -> (u64, oneshot::Receiver<Result<Vec<u8>, CallError>>) {
         calls.register(PROVIDER, "air".into(), "vas/double", Duration::from_secs(1))

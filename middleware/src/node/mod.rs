@@ -577,6 +577,10 @@ impl LinkHandler for Handler {
         self.on_messages(link, from, &[msg]);
     }
 
+    fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
+        call::age_call(msg, waited);
+    }
+
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         if let Some(n) = self.node() {
             n.dispatch_all(link, from, msgs);

@@ -91,7 +91,7 @@ impl SerialLink {
             index,
             name: name.to_owned(),
             describe: opener.describe(),
-            stp: Mutex::new(Stp::new(cfg, fresh_session()).named(name).secured(security)),
+            stp: Mutex::new(stp_for(cfg, name, security, &handler)),
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
@@ -134,7 +134,7 @@ impl SerialLink {
             index,
             name: name.to_owned(),
             describe: "in-memory".to_owned(),
-            stp: Mutex::new(Stp::new(cfg, fresh_session()).named(name).secured(security)),
+            stp: Mutex::new(stp_for(cfg, name, security, &handler)),
             wake: Notify::new(),
             handler,
             reopens: AtomicU64::new(0),
@@ -319,6 +319,20 @@ fn fresh_session() -> u16 {
     rand::random::<u16>().max(1)
 }
 
+/// The link's protocol machine, ageing its reliable messages through `handler`
+/// ([`LinkHandler::age_safe`]) as they leave the queue.
+fn stp_for(
+    cfg: StpConfig,
+    name: &str,
+    security: Option<&LinkSecurity>,
+    handler: &Arc<dyn LinkHandler>,
+) -> Stp<SafeCompletion> {
+    let mut stp = Stp::new(cfg, fresh_session()).named(name).secured(security);
+    let h = handler.clone();
+    stp.set_ager(Arc::new(move |msg, waited| h.age_safe(msg, waited)));
+    stp
+}
+
 impl Link for SerialLink {
     fn name(&self) -> &str {
         &self.name
@@ -337,7 +351,7 @@ impl Link for SerialLink {
                 lock(&self.stp).push_fast(Instant::now(), coalesce, msg);
             }
             Outgoing::Safe { msg, done } => {
-                let refused = lock(&self.stp).push_safe(msg, done);
+                let refused = lock(&self.stp).push_safe(Instant::now(), msg, done);
                 if let Some((d, e)) = refused {
                     let _ = d.send(Err(e));
                 }

@@ -34,6 +34,9 @@ use crate::link::auth::{self, LinkSecurity, Opener, Profile, Sealer};
 use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::link::{LinkSendError, LinkStats};
 
+/// What [`Stp::set_ager`] takes: a message and how long it waited in the queue.
+pub type Ager = std::sync::Arc<dyn Fn(&mut Vec<u8>, Duration) + Send + Sync>;
+
 /// Tuning of one line.
 #[derive(Debug, Clone, Copy)]
 pub struct StpConfig {
@@ -162,7 +165,11 @@ pub struct Stp<T> {
     cfg: StpConfig,
     tx: ArqSender<Vec<T>>,
     rx: ArqReceiver,
-    safe_q: VecDeque<(Vec<u8>, Option<T>)>,
+    /// Reliable messages not yet framed, each with when it was queued.
+    safe_q: VecDeque<(Vec<u8>, Option<T>, Instant)>,
+    /// Takes a message's time in `safe_q` off what it carries (a call's remaining time) as
+    /// it leaves for the line; see [`Stp::set_ager`].
+    ager: Option<Ager>,
     units: VecDeque<Unit<T>>,
     retx: VecDeque<u32>,
     fast: CoalescingQueue<u32, FastItem>,
@@ -202,6 +209,7 @@ impl<T> Stp<T> {
             tx: ArqSender::new(u32::from(session), cfg.arq()),
             rx: ArqReceiver::new(cfg.arq().max_window),
             safe_q: VecDeque::new(),
+            ager: None,
             units: VecDeque::new(),
             retx: VecDeque::new(),
             fast: CoalescingQueue::new(cfg.max_message_queue),
@@ -264,14 +272,35 @@ impl<T> Stp<T> {
         }
     }
 
-    /// Queues a reliable message; `done` comes back in [`StpEvent::Acked`] or
+    /// Queues a reliable message at `now`; `done` comes back in [`StpEvent::Acked`] or
     /// [`StpEvent::Failed`]. A message over the size limit fails at once (returned).
-    pub fn push_safe(&mut self, msg: Vec<u8>, done: Option<T>) -> Option<(T, LinkSendError)> {
+    pub fn push_safe(
+        &mut self,
+        now: Instant,
+        msg: Vec<u8>,
+        done: Option<T>,
+    ) -> Option<(T, LinkSendError)> {
         if msg.len() > self.cfg.max_message() {
             return done.map(|d| (d, LinkSendError::TooLarge(msg.len())));
         }
-        self.safe_q.push_back((msg, done));
+        self.safe_q.push_back((msg, done, now));
         None
+    }
+
+    /// Called with each reliable message and the time it waited in the queue as it is
+    /// framed for the line: the node takes that time off a call's remaining time (a message
+    /// may only shrink), so a call never outlives its caller's wait however long the radio
+    /// held it.
+    pub fn set_ager(&mut self, ager: Ager) {
+        self.ager = Some(ager);
+    }
+
+    /// A message leaving the queue at `now`, aged (see [`Stp::set_ager`]).
+    fn aged(&self, now: Instant, mut msg: Vec<u8>, queued: Instant) -> Vec<u8> {
+        if let Some(age) = &self.ager {
+            age(&mut msg, now.saturating_duration_since(queued));
+        }
+        msg
     }
 
     /// Queues a discovery message; only the newest waits.
@@ -300,7 +329,7 @@ impl<T> Stp<T> {
         );
         failed.extend(tx.close().into_iter().flatten());
         failed.extend(self.units.drain(..).flat_map(|(_, t)| t));
-        failed.extend(self.safe_q.drain(..).filter_map(|(_, t)| t));
+        failed.extend(self.safe_q.drain(..).filter_map(|(_, t, _)| t));
         self.retx.clear();
         self.syn_sent_at = None;
         if failed.is_empty() {
@@ -484,19 +513,20 @@ impl<T> Stp<T> {
         self.line_free_at.is_none_or(|t| t <= now + self.cfg.lead)
     }
 
-    fn prepare_units(&mut self) {
+    fn prepare_units(&mut self, now: Instant) {
         if !self.units.is_empty() {
             return;
         }
-        let Some((first, _)) = self.safe_q.front() else {
+        let Some((first, _, _)) = self.safe_q.front() else {
             return;
         };
         let mps = self.cfg.max_packet_size;
         if first.len() > mps {
-            let Some((msg, done)) = self.safe_q.pop_front() else {
+            let Some((msg, done, queued)) = self.safe_q.pop_front() else {
                 return;
             };
-            // push_safe refused anything over 255 fragments.
+            let msg = self.aged(now, msg, queued);
+            // push_safe refused anything over 255 fragments (ageing only shrinks).
             let Ok(parts) = fragment::split(&msg, mps) else {
                 return;
             };
@@ -517,10 +547,10 @@ impl<T> Stp<T> {
             }
             return;
         }
-        // Batch whole messages while they fit one frame.
+        // Batch whole messages while they fit one frame (ageing only shrinks them).
         let mut size = 0;
         let mut n = 0;
-        for (m, _) in &self.safe_q {
+        for (m, _, _) in &self.safe_q {
             let c = fragment::batch_cost(m.len());
             if m.len() > mps || size + c > mps {
                 break;
@@ -529,9 +559,10 @@ impl<T> Stp<T> {
             n += 1;
         }
         if n <= 1 {
-            let Some((msg, done)) = self.safe_q.pop_front() else {
+            let Some((msg, done, queued)) = self.safe_q.pop_front() else {
                 return;
             };
+            let msg = self.aged(now, msg, queued);
             let mut body = Vec::with_capacity(msg.len() + 2);
             body.extend_from_slice(&[0, 1]);
             body.extend_from_slice(&msg);
@@ -541,8 +572,9 @@ impl<T> Stp<T> {
         let mut body = Vec::with_capacity(size + 2);
         body.extend_from_slice(&[0, 0]);
         let mut tokens = Vec::new();
-        for (m, d) in self.safe_q.drain(..n) {
-            fragment::batch_push(&mut body, &m);
+        let batch: Vec<_> = self.safe_q.drain(..n).collect();
+        for (m, d, queued) in batch {
+            fragment::batch_push(&mut body, &self.aged(now, m, queued));
             tokens.extend(d);
         }
         self.units.push_back((body, tokens));
@@ -618,7 +650,7 @@ impl<T> Stp<T> {
                 }
             }
             if self.tx.can_push() {
-                self.prepare_units();
+                self.prepare_units(now);
                 if let Some((body, tokens)) = self.units.pop_front() {
                     let frame_body = body.clone();
                     let seq = self.tx.push(now, body, Some(tokens));
@@ -823,7 +855,7 @@ mod tests {
         for i in 0..n {
             let mut m = i.to_le_bytes().to_vec();
             m.resize(8 + (i as usize * 13) % 200, 0x10);
-            assert!(p.a.push_safe(m, Some(i)).is_none());
+            assert!(p.a.push_safe(Instant::now(), m, Some(i)).is_none());
         }
         let mut got = Vec::new();
         let mut acked = Vec::new();
@@ -886,7 +918,7 @@ mod tests {
         let t0 = Instant::now();
         let mut s: Stp<u64> = Stp::new(cfg(57_600, 300), 1);
         for _ in 0..10 {
-            s.push_safe(vec![1; 300], None);
+            s.push_safe(Instant::now(), vec![1; 300], None);
         }
         let mut sent = 0;
         while let Some(f) = s.poll_transmit(t0) {
@@ -902,12 +934,12 @@ mod tests {
     fn priorities_ack_then_safe_then_fast() {
         let t0 = Instant::now();
         let mut p = SimPair::new(cfg(57_600, 300), Faults::default(), 1, Duration::ZERO);
-        p.a.push_safe(b"s".to_vec(), None);
+        p.a.push_safe(Instant::now(), b"s".to_vec(), None);
         let until = p.now + Duration::from_millis(200);
         p.run(until, Duration::from_millis(5), |_| {}, |_, _, _| {});
         // B owes nothing now; give both classes to A and an ack to B.
         p.a.push_fast(t0, None, b"f".to_vec());
-        p.a.push_safe(b"s2".to_vec(), None);
+        p.a.push_safe(Instant::now(), b"s2".to_vec(), None);
         let f = p.a.poll_transmit(p.now + Duration::from_secs(1)).unwrap();
         assert_eq!(f[1], TYPE_SAFE);
         let f = p.a.poll_transmit(p.now + Duration::from_secs(2)).unwrap();
@@ -937,7 +969,7 @@ mod tests {
             |p| {
                 if p.a.stats().safe_queued < 50 {
                     for _ in 0..50 {
-                        p.a.push_safe(vec![0x55; 1300], None);
+                        p.a.push_safe(Instant::now(), vec![0x55; 1300], None);
                     }
                 }
                 if p.now >= next_ctl {
@@ -969,8 +1001,8 @@ mod tests {
     #[test]
     fn a_restarted_peer_is_detected_and_in_flight_messages_fail() {
         let mut p = SimPair::new(cfg(115_200, 300), Faults::default(), 3, Duration::ZERO);
-        p.a.push_safe(b"one".to_vec(), Some(1));
-        p.b.push_safe(b"from b".to_vec(), None);
+        p.a.push_safe(Instant::now(), b"one".to_vec(), Some(1));
+        p.b.push_safe(Instant::now(), b"from b".to_vec(), None);
         let until = p.now + Duration::from_millis(300);
         let mut ok = Vec::new();
         p.run(
@@ -986,7 +1018,7 @@ mod tests {
         assert_eq!(ok, vec![1]);
         // B restarts (new engine, new session) and sends; A must see a reset.
         p.b = Stp::new(cfg(115_200, 300), 0x3333);
-        p.b.push_safe(b"hi".to_vec(), None);
+        p.b.push_safe(Instant::now(), b"hi".to_vec(), None);
         let mut resets = 0;
         let mut got = Vec::new();
         let until = p.now + Duration::from_millis(500);
@@ -1009,8 +1041,8 @@ mod tests {
     #[test]
     fn forgetting_the_peer_resets_once_and_traffic_resumes() {
         let mut p = SimPair::new(cfg(115_200, 300), Faults::default(), 5, Duration::ZERO);
-        p.a.push_safe(b"before".to_vec(), None);
-        p.b.push_safe(b"before".to_vec(), None);
+        p.a.push_safe(Instant::now(), b"before".to_vec(), None);
+        p.b.push_safe(Instant::now(), b"before".to_vec(), None);
         let until = p.now + Duration::from_millis(300);
         p.run(until, Duration::from_millis(5), |_| {}, |_, _, _| {});
         let _ =
@@ -1019,8 +1051,8 @@ mod tests {
         let mut got = (Vec::new(), Vec::new());
         // Both keep talking for a while after the reset.
         for round in 0..20u8 {
-            p.a.push_safe(vec![b'a', round], None);
-            p.b.push_safe(vec![b'b', round], None);
+            p.a.push_safe(Instant::now(), vec![b'a', round], None);
+            p.b.push_safe(Instant::now(), vec![b'b', round], None);
             let until = p.now + Duration::from_millis(100);
             p.run(
                 until,
@@ -1070,7 +1102,7 @@ mod tests {
     #[test]
     fn oversized_safe_messages_are_refused() {
         let mut s: Stp<u64> = Stp::new(cfg(57_600, 32), 1);
-        let r = s.push_safe(vec![0; 32 * 255 + 1], Some(5));
+        let r = s.push_safe(Instant::now(), vec![0; 32 * 255 + 1], Some(5));
         assert!(matches!(r, Some((5, LinkSendError::TooLarge(_)))));
     }
 }
