@@ -779,16 +779,29 @@ fn tool_with_state(state: Option<&Path>, domain: &str, args: &[&str]) -> (bool, 
     )
 }
 
-/// The demo mission with `<station start="operator">`, written in `dir`.
-fn operator_mission(dir: &Path) -> std::path::PathBuf {
-    let mission = dir.join("rover-operator.xml");
+/// The demo mission written in `dir` as `name`, its plans found where they are and each
+/// `(from, to)` of `changes` made (each must apply: the demo's text changed otherwise).
+fn demo_mission_with(dir: &Path, name: &str, changes: &[(&str, &str)]) -> std::path::PathBuf {
+    let mission = dir.join(name);
     let flightplans = root().join("config/flightplans/");
-    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
+    let mut demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
         .expect("the demo mission")
-        .replace("../flightplans/", &flightplans.display().to_string())
-        .replace(r#"start="auto""#, r#"start="operator""#);
+        .replace("../flightplans/", &flightplans.display().to_string());
+    for (from, to) in changes {
+        assert!(demo.contains(from), "the demo mission has no {from}");
+        demo = demo.replace(from, to);
+    }
     std::fs::write(&mission, demo).expect("write the mission");
     mission
+}
+
+/// The demo mission with `<station start="operator">`, written in `dir`.
+fn operator_mission(dir: &Path) -> std::path::PathBuf {
+    demo_mission_with(
+        dir,
+        "rover-operator.xml",
+        &[(r#"start="auto""#, r#"start="operator""#)],
+    )
 }
 
 /// Another ground station writes the autopilot's mission mid-flight (a pymavlink station
@@ -807,20 +820,14 @@ fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resum
         format!(r#"<vas><forward endpoint="udpout:127.0.0.1:{port}"/></vas>"#),
     )
     .expect("write the VAS config");
-    let flightplans = root().join("config/flightplans/");
-    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
-        .expect("the demo mission")
-        .replace("../flightplans/", &flightplans.display().to_string())
-        .replace(
+    let mission = demo_mission_with(
+        dir.path(),
+        "rover-takeover.xml",
+        &[(
             r#"<vas vehicle="rover" queueSize="5" telemetryHz="4"/>"#,
             r#"<vas vehicle="rover" queueSize="5" telemetryHz="4" config="vas.xml"/>"#,
-        );
-    assert!(
-        demo.contains(r#"config="vas.xml""#),
-        "the demo's <vas> changed"
+        )],
     );
-    let mission = dir.path().join("rover-takeover.xml");
-    std::fs::write(&mission, demo).expect("write the mission");
     let mut gcs = Command::new(&py)
         .arg(root().join("tests/python/second_gcs.py"))
         .args(["--port", &port.to_string()])
@@ -919,16 +926,14 @@ fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resum
 #[test]
 fn a_mission_run_with_security_off_says_so_at_start_and_in_every_node() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let mission = dir.path().join("rover-unsealed.xml");
-    let flightplans = root().join("config/flightplans/");
-    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
-        .expect("the demo mission")
-        .replace("../flightplans/", &flightplans.display().to_string())
-        .replace(
+    let mission = demo_mission_with(
+        dir.path(),
+        "rover-unsealed.xml",
+        &[(
             r#"<mission name="rover-demo""#,
             r#"<mission name="rover-unsealed" security="off""#,
-        );
-    std::fs::write(&mission, demo).expect("write the mission");
+        )],
+    );
     let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "5"]);
     let unsealed = l.event(STEP, "unsealed");
     assert_eq!(unsealed["mission"], "rover-unsealed", "{unsealed}");

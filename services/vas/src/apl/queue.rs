@@ -656,6 +656,20 @@ mod tests {
         panic!("queue did not settle");
     }
 
+    /// A queue of `slots` slots navigating ten waypoints `0..10` on an autopilot whose partial writes
+    /// work (`partial_works`; else the queue knows they do not), settled.
+    fn flying_ten(slots: u16, partial_works: bool) -> (RollingQueue<u32>, Autopilot) {
+        let mut q = RollingQueue::new(slots).unwrap();
+        q.push(0..10);
+        q.start();
+        let mut ap = Autopilot::new(partial_works);
+        if !partial_works {
+            q.partial_unsupported();
+        }
+        settle(&mut q, &mut ap);
+        (q, ap)
+    }
+
     fn fly(slots: u16, plan: u32, partial_works: bool, feed_chunk: usize) -> Autopilot {
         let mut q = RollingQueue::new(slots).unwrap();
         let mut ap = Autopilot::new(partial_works);
@@ -927,11 +941,7 @@ mod tests {
 
     #[test]
     fn clear_keeps_the_target_and_replaces_the_rest() {
-        let mut q = RollingQueue::new(5).unwrap();
-        q.push(0..10);
-        q.start();
-        let mut ap = Autopilot::new(true);
-        settle(&mut q, &mut ap);
+        let (mut q, mut ap) = flying_ten(5, true);
         let slot = ap.drive().unwrap();
         q.on_reached(slot);
         settle(&mut q, &mut ap);
@@ -951,11 +961,7 @@ mod tests {
 
     #[test]
     fn missed_reach_is_inferred_from_mission_current() {
-        let mut q = RollingQueue::new(5).unwrap();
-        q.push(0..10);
-        q.start();
-        let mut ap = Autopilot::new(true);
-        settle(&mut q, &mut ap);
+        let (mut q, mut ap) = flying_ten(5, true);
         ap.drive();
         // No reached message: MISSION_CURRENT = 2 reveals it.
         assert_eq!(q.on_current(2), Some(0));
@@ -1046,11 +1052,7 @@ mod tests {
         // Partial writes work: the upload that cuts the mission short after the last
         // waypoint leaves the target in its slot, and an autopilot that kept its current item
         // needs no set-current.
-        let mut q = RollingQueue::new(5).unwrap();
-        q.push(0..10);
-        q.start();
-        let mut ap = Autopilot::new(true);
-        settle(&mut q, &mut ap);
+        let (mut q, mut ap) = flying_ten(5, true);
         let s = ap.drive().unwrap();
         q.on_reached(s);
         settle(&mut q, &mut ap);
@@ -1073,12 +1075,7 @@ mod tests {
 
         // Whole windows: the upload lays the window out from the target, in slot 1; a kept
         // current item names another slot, so the set-current is owed all the same.
-        let mut q = RollingQueue::new(5).unwrap();
-        q.push(0..10);
-        q.start();
-        let mut ap = Autopilot::new(false);
-        q.partial_unsupported();
-        settle(&mut q, &mut ap);
+        let (mut q, mut ap) = flying_ten(5, false);
         let s = ap.drive().unwrap();
         q.on_reached(s);
         let a = q.poll().unwrap();
