@@ -155,6 +155,10 @@ pub struct Persisted {
     pub max_pushed: Option<u64>,
     /// The last waypoint reached.
     pub last_reached: Option<u64>,
+    /// Another ground station's mission flies (who, how many items): a restarted FPMa still
+    /// leaves it alone until the operator resumes the plan.
+    #[serde(default)]
+    pub taken_over: Option<String>,
 }
 
 fn to_vas(w: &Waypoint, alt_ref: AltRef) -> usal_types::Waypoint {
@@ -212,6 +216,7 @@ impl<V: VasPort> Core<V> {
             pending: self.pending.iter().cloned().collect(),
             max_pushed: self.max_pushed,
             last_reached: self.last_reached,
+            taken_over: self.taken_over.clone(),
         })
     }
 
@@ -244,6 +249,7 @@ impl<V: VasPort> Core<V> {
         self.pending = p.pending.into();
         self.max_pushed = p.max_pushed;
         self.last_reached = p.last_reached;
+        self.taken_over = p.taken_over;
         self.started = Some(Instant::now());
         self.must_flush = true;
         self.after_change().await;
@@ -923,6 +929,28 @@ mod tests {
         let got: Vec<(f64, f64)> = flown.iter().map(|w| (w.lat, w.lon)).collect();
         let want: Vec<(f64, f64)> = nominal().iter().map(|w| (w.lat, w.lon)).collect();
         assert_eq!(got, want);
+    }
+
+    #[tokio::test]
+    async fn a_restarted_fpma_still_leaves_another_station_s_mission_alone() {
+        let mut c = core_on(FakeVas::default());
+        c.load(PLAN, "plan").await.unwrap();
+        fly(&mut c, 2).await;
+        c.on_mission_changed("MAVLink system 250 component 190", 4)
+            .await;
+        let state = saved(&c);
+        let vas = std::mem::take(&mut c.vas);
+        vas.calls();
+        let mut r = core_on(vas);
+        r.resume(state).await;
+        assert!(
+            r.vas().calls().is_empty(),
+            "the restarted FPMa wrote to the VAS"
+        );
+        let p = r.take_outputs().progress.expect("progress published");
+        assert!(p.taken_over.is_some_and(|t| t.contains("system 250")));
+        r.command(Command::Resume).await.unwrap();
+        assert_eq!(r.vas().calls().first().map(String::as_str), Some("clear"));
     }
 
     #[tokio::test]

@@ -148,6 +148,7 @@ mod tests {
             pending: Vec::new(),
             max_pushed: Some(7),
             last_reached: Some(0),
+            taken_over: None,
         }
     }
 
