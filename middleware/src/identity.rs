@@ -283,6 +283,25 @@ impl Roster {
         Ok(roster)
     }
 
+    /// Lists `public` as a key that may own `namespaces` (`*`: any, and no namespace).
+    pub fn allow(&mut self, public: [u8; 32], namespaces: Vec<String>) {
+        self.entries.push((public, namespaces));
+    }
+
+    /// The roster as an `identities.xml`, which [`Roster::parse`] reads back as it is.
+    pub fn to_xml(&self) -> String {
+        let mut out = String::from("<identities>\n");
+        for (key, namespaces) in &self.entries {
+            out.push_str(&format!(
+                "  <identity key=\"{}\" namespaces=\"{}\"/>\n",
+                hex(key),
+                namespaces.join(" ")
+            ));
+        }
+        out.push_str("</identities>\n");
+        out
+    }
+
     /// The namespaces `public` may own (empty when it is not listed).
     pub fn namespaces(&self, public: &[u8; 32]) -> Vec<String> {
         self.entries
@@ -306,6 +325,17 @@ mod tests {
         verifier: 99,
         nonce: [5; 16],
     };
+
+    #[test]
+    fn a_roster_reads_back_what_to_xml_wrote() {
+        let mut r = Roster::default();
+        r.allow([1; 32], vec!["rover1".into()]);
+        r.allow([2; 32], vec!["gcs".into(), "base".into()]);
+        r.allow([3; 32], vec!["*".into()]);
+        let back = Roster::parse(&r.to_xml(), Path::new("identities.xml")).unwrap();
+        assert_eq!(back, r);
+        assert_eq!(back.namespaces(&[2; 32]), ["gcs", "base"]);
+    }
 
     #[test]
     fn proofs_bind_domain_node_id_name_and_namespace() {

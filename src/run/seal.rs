@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use marea::config::domain_seal::{access_path, domain_seal_dir, identity_path};
-use marea::identity::IdentityKey;
+use marea::identity::{IdentityKey, Roster};
 use marea::link::auth::DomainKey;
 
 use super::mission::Mission;
@@ -94,25 +94,16 @@ fn secret_key(path: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The public half of the identity key at `path`: made if missing, else read (and its
-/// public file rewritten when gone).
+/// The public half of the identity key at `path`: made if missing, else read.
 fn identity(path: &Path) -> anyhow::Result<[u8; 32]> {
     let key = if path.exists() {
         IdentityKey::load(path)?
     } else {
+        // A public file left without its secret is stale: made afresh with the key.
         let _ = std::fs::remove_file(IdentityKey::public_path(path));
         IdentityKey::create_files(path)?
     };
-    let public = IdentityKey::public_path(path);
-    if !public.exists() {
-        std::fs::write(&public, format!("{}\n", hex(&key.public())))
-            .with_context(|| format!("writing {}", public.display()))?;
-    }
     Ok(key.public())
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Writes `text` to `path` through a temporary file renamed over it: a run of the same
@@ -150,9 +141,7 @@ fn make_seal(mission: &Mission, dir: &Path) -> anyhow::Result<()> {
     secret_key(&dir.join("domain.key"))?;
     secret_key(&dir.join("mavlink.key"))?;
     private_dir(&dir.join("identities"))?;
-    let mut roster = String::from(
-        "<!-- Made by usal run: which identity key may own which namespaces. -->\n<identities>\n",
-    );
+    let mut roster = Roster::default();
     let mut namespaces: Vec<&str> = mission
         .nodes
         .iter()
@@ -160,20 +149,12 @@ fn make_seal(mission: &Mission, dir: &Path) -> anyhow::Result<()> {
         .collect();
     namespaces.sort_unstable();
     namespaces.dedup();
-    for ns in &namespaces {
-        let public = identity(&identity_path(dir, ns))?;
-        roster.push_str(&format!(
-            "  <identity key=\"{}\" namespaces=\"{ns}\"/>\n",
-            hex(&public)
-        ));
+    for ns in namespaces {
+        roster.allow(identity(&identity_path(dir, ns))?, vec![ns.to_owned()]);
     }
     // Anything else of this user: usal's tools, gateways and bridges, nodes of no namespace.
-    let tools = identity(&dir.join("tools.id"))?;
-    roster.push_str(&format!(
-        "  <identity key=\"{}\" namespaces=\"*\"/>\n</identities>\n",
-        hex(&tools)
-    ));
-    replace_file(&dir.join("identities.xml"), &roster)?;
+    roster.allow(identity(&dir.join("tools.id"))?, vec!["*".to_owned()]);
+    replace_file(&dir.join("identities.xml"), &roster.to_xml())?;
     // Access rules as this run's mission file says, none left from an earlier version of it
     // (each file replaced whole: a node of a run already going reads the old or the new).
     private_dir(&dir.join("access"))?;
