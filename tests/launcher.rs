@@ -902,16 +902,39 @@ fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resum
         |v| v["event"] == "waypoint" || v["event"] == "navigation_kicked",
     );
 
+    // Following the progress as the operator resumes: a sample without the takeover follows.
+    let mut echo = Command::new(USAL)
+        .args(["--domain", &domain, "echo", "rover1/fpma/progress"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("usal echo");
+    let (tx, samples) = mpsc::channel::<String>();
+    let out = echo.stdout.take().expect("piped stdout");
+    std::thread::spawn(move || {
+        for line in BufReader::new(out).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let first = samples.recv_timeout(STEP).expect("the progress as it is");
+    assert!(first.contains("\"taken_over\":\""), "{first}");
     let (ok, answer) = tool(&domain, &["call", "rover1/fpma/resume"]);
     assert!(ok, "resume: {answer}");
     let deadline = Instant::now() + STEP;
-    while progress(&l).contains("\"taken_over\":\"") {
-        assert!(
-            Instant::now() < deadline,
-            "the takeover outlived the operator's resume"
-        );
-        std::thread::sleep(Duration::from_millis(200));
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let sample = samples
+            .recv_timeout(left)
+            .expect("the takeover outlived the operator's resume");
+        if !sample.contains("\"taken_over\":\"") {
+            break;
+        }
     }
+    let _ = echo.kill();
+    let _ = echo.wait();
     drop(gcs_in);
     let _ = gcs.kill();
     let _ = gcs.wait();
