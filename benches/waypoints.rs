@@ -13,9 +13,13 @@
 //! - `vas.cpu_percent`: CPU time of the `vas` process (from `/proc/<pid>/stat`) over
 //!   [`CPU_WINDOW`] of real-time flight (no speed-up) with 10 Hz telemetry, in percent of
 //!   one core.
-//! - `fpma.parse_1mb_ms`: wall time of [`fpma::parse::parse_plan`] (what `fpma expand` parses
-//!   with) on a generated valid plan of about 1 MB (a fix and a TF leg per waypoint), best of
+//! - `fpma.parse_1mb_ms`: wall time of [`fpma::parse::parse_plan`] (the document alone) on a
+//!   generated valid plan of about 1 MB (a fix and a TF leg per waypoint), best of
 //!   [`PARSE_RUNS`]. In process, nothing to build or start.
+//! - `fpma.load_1mb_ms`: the whole load of that plan as the FPMa makes it, best of
+//!   [`PARSE_RUNS`]: parse and check ([`fpma::check::load`]: vehicle rules, the one nominal
+//!   simulation, the fence), the executive started from the checked plan, the stations'
+//!   geometry drawn from the check's stream, and the first look-ahead handed out.
 //!
 //! - `vas.conformance.mavsdk.waypoints_50.{skipped,repeated,backtracks}`: 50 waypoints 10 m
 //!   apart flown by the `vas` binary on a rover built from MAVSDK's server plugins
@@ -395,11 +399,10 @@ fn large_plan(bytes: usize) -> String {
 
 fn parse_run() -> anyhow::Result<()> {
     let src = large_plan(PARSE_BYTES);
-    let vehicle = fpma::vehicle::VehicleParams::rover();
     let mut best = Duration::MAX;
     for _ in 0..PARSE_RUNS {
         let t0 = Instant::now();
-        let plan = fpma::parse::parse_plan(&src, &vehicle)
+        let plan = fpma::parse::parse_plan(&src)
             .map_err(|e| anyhow::anyhow!("the generated plan is refused: {e}"))?;
         best = best.min(t0.elapsed());
         anyhow::ensure!(
@@ -408,6 +411,28 @@ fn parse_run() -> anyhow::Result<()> {
         );
     }
     metric("fpma.parse_1mb_ms", best.as_secs_f64() * 1000.0, "ms");
+    Ok(())
+}
+
+fn load_run() -> anyhow::Result<()> {
+    let src = large_plan(PARSE_BYTES);
+    let vehicle = fpma::vehicle::VehicleParams::rover();
+    let mut best = Duration::MAX;
+    for _ in 0..PARSE_RUNS {
+        let t0 = Instant::now();
+        let checked = fpma::check::load(&src, &vehicle)
+            .map_err(|e| anyhow::anyhow!("the generated plan is refused: {e}"))?;
+        let ex = fpma::exec::Executive::from_checked(checked);
+        let geometry =
+            fpma::api::PlanGeometry::of(ex.plan(), &ex.nominal(), ex.version(), "bench.xml");
+        let ahead = ex.next_waypoints(fpma::service::FpmaConfig::default().lookahead);
+        best = best.min(t0.elapsed());
+        anyhow::ensure!(
+            geometry.total_points > 10_000 && !ahead.is_empty(),
+            "the generated plan is too small"
+        );
+    }
+    metric("fpma.load_1mb_ms", best.as_secs_f64() * 1000.0, "ms");
     Ok(())
 }
 
@@ -543,6 +568,9 @@ async fn main() -> anyhow::Result<()> {
     let wanted = |figure: &str| filters.is_empty() || filters.iter().any(|f| figure.contains(f));
     if wanted("fpma.parse_1mb_ms") {
         parse_run()?;
+    }
+    if wanted("fpma.load_1mb_ms") {
+        load_run()?;
     }
     let (queue, cpu) = (wanted("vas.rolling_queue"), wanted("vas.cpu_percent"));
     if queue || cpu {

@@ -137,11 +137,10 @@ fn station_setup(
         VehicleKind::Rover
     };
     let params = VehicleParams::for_kind(kind);
-    let plan =
-        fpma::parse::parse_plan(&src, &params).map_err(|e| anyhow!("{}:{e}", st.plan.display()))?;
-    let name = plan.name.clone();
-    let wps = fpma::exec::expand_nominal(plan, params)
-        .map_err(|e| anyhow!("{}: {e}", st.plan.display()))?;
+    let plan = fpma::check::load(&src, &params)
+        .map_err(|e| anyhow!("{}", e.in_file(&st.plan.display().to_string())))?;
+    let name = plan.plan().name.clone();
+    let wps = plan.nominal();
     let nominal: Vec<(String, f64, f64)> =
         wps.iter().map(|w| (w.leg.clone(), w.lat, w.lon)).collect();
     let nominal_m = wps

@@ -10,6 +10,8 @@
 //!   change, and everything above them (rustls, Zenoh, marea, every service) is compiled again,
 //!   test after test, each from another package's directory.
 
+pub mod layering;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;

@@ -918,13 +918,10 @@ impl Fleet {
 /// generated), thinned for the status; empty if it cannot be expanded.
 fn route_of(xml: &str, kind: fpma::vehicle::VehicleKind) -> Vec<(f64, f64)> {
     let params = fpma::vehicle::VehicleParams::for_kind(kind);
-    let Ok(plan) = fpma::parse::parse_plan(xml, &params) else {
+    let Ok(plan) = fpma::check::load(xml, &params) else {
         return Vec::new();
     };
-    let Ok(wps) = fpma::exec::expand_nominal(plan, params) else {
-        return Vec::new();
-    };
-    let pts: Vec<(f64, f64)> = wps.iter().map(|w| (w.lat, w.lon)).collect();
+    let pts: Vec<(f64, f64)> = plan.nominal().iter().map(|w| (w.lat, w.lon)).collect();
     api::thin(&pts, api::ROUTE_POINTS)
 }
 
@@ -1003,9 +1000,8 @@ mod tests {
     fn a_visit_plan_is_a_valid_rover_plan_to_the_point() {
         let xml = visit_plan(3, (41.2752, 1.9875), (41.2756, 1.9872), 3.0);
         let params = fpma::vehicle::VehicleParams::rover();
-        let plan = fpma::parse::parse_plan(&xml, &params).unwrap();
-        let wps = fpma::exec::expand_nominal(plan, params).unwrap();
-        let last = wps.last().unwrap();
+        let plan = fpma::check::load(&xml, &params).unwrap();
+        let last = plan.nominal().last().unwrap();
         assert!((last.lat - 41.2756).abs() < 1e-7 && (last.lon - 1.9872).abs() < 1e-7);
         assert!(last.fly_over);
     }

@@ -513,8 +513,8 @@ impl Parser<'_> {
                     FleetPlanError::at(e, format!("plan `{}`: {err}", file.display()))
                 })?;
                 let params = VehicleParams::for_kind(self.vehicles[vehicle].kind);
-                fpma::parse::parse_plan(&xml, &params)
-                    .map_err(|err| FleetPlanError::at(e, format!("plan {rel}:{err}")))?;
+                fpma::check::load(&xml, &params)
+                    .map_err(|err| FleetPlanError::at(e, format!("plan {}", err.in_file(&rel))))?;
                 BlockKind::Fly {
                     vehicle,
                     file,

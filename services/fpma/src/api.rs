@@ -7,11 +7,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::exec::{expand_nominal, flight_events, Event, EventKind, HoldHere, RetaskMode};
+use crate::exec::{flight_events, Event, EventKind, HoldHere, RetaskMode};
+use crate::expand::Waypoint;
 use crate::expr::Value;
 use crate::geo::{GeoPoint, LocalFrame, Xy};
 use crate::model::{FlightPlan, Node, NodeKind, Stage};
-use crate::vehicle::VehicleParams;
 
 /// A plan variable's value.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -431,9 +431,10 @@ fn dm(metres: f64) -> i32 {
 }
 
 impl PlanGeometry {
-    /// The geometry of `plan` flown as `version` by `vehicle`. A plan whose nominal expansion
-    /// does not end (it cannot be loaded anyway) gets its legs and no points.
-    pub fn of(plan: &FlightPlan, vehicle: &VehicleParams, version: u64, source: &str) -> Self {
+    /// The geometry of `plan` as `version`, its points thinned from `nominal` (the plan's
+    /// nominal stream, as [`crate::check::CheckedPlan::nominal`] or
+    /// [`crate::exec::Executive::nominal`] give it).
+    pub fn of(plan: &FlightPlan, nominal: &[Waypoint], version: u64, source: &str) -> Self {
         let mut legs = Vec::new();
         fn walk(nodes: &[Node], stage: Stage, depth: u8, out: &mut Vec<LegGeometry>) {
             for n in nodes {
@@ -455,7 +456,7 @@ impl PlanGeometry {
         let legs_truncated = legs.len() > GEOMETRY_MAX_LEGS;
         legs.truncate(GEOMETRY_MAX_LEGS);
 
-        let wps = expand_nominal(plan.clone(), vehicle.clone()).unwrap_or_default();
+        let wps = nominal;
         let total_points = u32::try_from(wps.len()).unwrap_or(u32::MAX);
         let origin = wps.first().map_or((0.0, 0.0), |w| (w.lat, w.lon));
         let frame = LocalFrame::new(GeoPoint::new(origin.0, origin.1));
@@ -514,6 +515,9 @@ impl PlanGeometry {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::check::CheckedPlan;
+    use crate::exec::expand_nominal;
+    use crate::vehicle::VehicleParams;
 
     /// Every wire type survives postcard, which refuses self-describing serde features.
     #[test]
@@ -591,29 +595,29 @@ mod tests {
             from: "gcs".into(),
             reason: "3:1: x".into(),
         });
+        let carpark = carpark();
         rt(PlanGeometry::of(
-            &carpark(),
-            &VehicleParams::rover(),
+            carpark.plan(),
+            carpark.nominal(),
             2,
             "rover-carpark.xml",
         ));
         rt(PlanGeometry::default());
     }
 
-    fn carpark() -> FlightPlan {
+    fn carpark() -> CheckedPlan {
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/../../config/flightplans/rover-carpark.xml"
         );
         let xml = std::fs::read_to_string(path).expect("rover-carpark.xml");
-        crate::parse::parse_plan(&xml, &VehicleParams::rover()).expect("valid plan")
+        crate::check::load(&xml, &VehicleParams::rover()).expect("valid plan")
     }
 
     #[test]
     fn geometry_of_the_carpark_plan_is_small_and_faithful() {
-        let v = VehicleParams::rover();
-        let plan = carpark();
-        let g = PlanGeometry::of(&plan, &v, 3, "rover-carpark.xml");
+        let checked = carpark();
+        let g = PlanGeometry::of(checked.plan(), checked.nominal(), 3, "rover-carpark.xml");
         assert_eq!((g.version, g.name.as_str()), (3, "castelldefels-carpark"));
         let ids: Vec<&str> = g.legs.iter().map(|l| l.id.as_str()).collect();
         assert!(ids.contains(&"hold") && ids.contains(&"area"), "{ids:?}");
@@ -624,7 +628,7 @@ mod tests {
         assert_eq!(g.legs[laps + 1].depth, 1, "loop bodies are nested");
 
         // Every nominal waypoint, in order, within a decimetre, on its leg.
-        let wps = expand_nominal(plan, v).unwrap();
+        let wps = expand_nominal(checked.plan().clone(), VehicleParams::rover()).unwrap();
         assert_eq!(g.points.len(), wps.len());
         assert_eq!(g.total_points as usize, wps.len());
         for (p, w) in g.points.iter().zip(&wps) {
@@ -651,9 +655,8 @@ mod tests {
               <iterative id="loop" count="700"><leg id="ab" type="TF" fix="B"/>
                 <leg id="ba" type="TF" fix="A"/></iterative>
               <leg id="end" type="TF" fix="C"/></mission></flightPlan>"#;
-        let v = VehicleParams::rover();
-        let plan = crate::parse::parse_plan(xml, &v).unwrap();
-        let g = PlanGeometry::of(&plan, &v, 1, "plan");
+        let checked = crate::check::load(xml, &VehicleParams::rover()).unwrap();
+        let g = PlanGeometry::of(checked.plan(), checked.nominal(), 1, "plan");
         assert!(
             g.total_points as usize > GEOMETRY_MAX_POINTS,
             "{}",

@@ -7,7 +7,6 @@
 
 use crate::geo::{self, GeoPoint, LocalFrame, Xy};
 use crate::model::*;
-use crate::parse::hold_width;
 pub use crate::polygon::auto_sweep;
 use crate::polygon::{inset, left_of, polygon_frame, signed_area};
 use crate::vehicle::VehicleParams;
@@ -201,7 +200,7 @@ fn hold_geom(h: &Hold, ctx: &Ctx<'_>) -> HoldGeom {
         frame: LocalFrame::new(h.fix.pos),
         u: Xy::new(st, ct),
         s: Xy::new(ct, -st).scale(sigma),
-        r: hold_width(h, ctx.vehicle) / 2.0,
+        r: h.flown_width(ctx.vehicle) / 2.0,
         len: h.length.unwrap_or_else(|| h.time.unwrap_or(60.0) * speed),
     }
 }
@@ -913,7 +912,7 @@ mod tests {
     #[test]
     fn parsed_scan_round_trip() {
         let src = r#"<flightPlan><mission><scan spacing="10" sweepAngle="0"><pt lat="41.2750" lon="1.9870"/><pt lat="41.2760" lon="1.9870"/><pt lat="41.2760" lon="1.9882"/></scan></mission></flightPlan>"#;
-        let p = parse_plan(src, &VehicleParams::rover()).unwrap();
+        let p = parse_plan(src).unwrap();
         let NodeKind::Scan(s) = &p.mission[0].kind else {
             panic!()
         };

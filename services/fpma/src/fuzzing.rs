@@ -11,8 +11,7 @@ use std::fmt::Write;
 
 use arbitrary::{Result, Unstructured};
 
-use crate::exec::expand_nominal;
-use crate::parse::parse_plan;
+use crate::check::load;
 use crate::vehicle::VehicleParams;
 
 thread_local! {
@@ -283,12 +282,10 @@ pub fn plan_xml(data: &[u8]) {
         doc
     };
     for vehicle in [VehicleParams::rover(), VehicleParams::aircraft()] {
-        let Ok(plan) = parse_plan(&doc, &vehicle) else {
-            continue;
-        };
-        if let Ok(wps) = expand_nominal(plan, vehicle) {
+        if let Ok(checked) = load(&doc, &vehicle) {
+            let wps = checked.nominal();
             assert!(wps.len() <= 1_000_000, "expansion past its limit");
-            for w in &wps {
+            for w in wps.iter() {
                 assert!(
                     w.lat.is_finite()
                         && w.lon.is_finite()
@@ -310,7 +307,7 @@ pub fn plan_xml(data: &[u8]) {
 pub fn generated_plan_parses(data: &[u8]) -> Option<Result<(), String>> {
     let doc = plan(&mut Unstructured::new(data)).ok()?;
     Some(
-        parse_plan(&doc, &VehicleParams::rover())
+        load(&doc, &VehicleParams::rover())
             .map(|_| ())
             .map_err(|e| format!("{e}")),
     )

@@ -3,8 +3,8 @@
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
-use fpma::exec::expand_nominal;
-use fpma::parse::{declared_vehicle, parse_plan};
+use fpma::check::{self, CheckError};
+use fpma::parse::declared_vehicle;
 use fpma::service::FpmaConfig;
 use fpma::vehicle::VehicleKind;
 use std::io::Write;
@@ -213,23 +213,24 @@ fn expand(
     };
     params.apply(&mut cfg);
     let vehicle = cfg.vehicle_params()?;
-    let plan = match parse_plan(&src, &vehicle) {
+    let checked = match check::load(&src, &vehicle) {
         Ok(p) => p,
-        Err(e) => {
+        Err(CheckError::Plan(e)) => {
             eprintln!("{}:{e}", path.display());
             return Ok(ExitCode::from(EXIT_BAD_PLAN));
         }
+        Err(e @ CheckError::Endless(_)) => {
+            return Err(anyhow::Error::new(e).context(format!("expanding {}", path.display())))
+        }
     };
     if let Some(out) = qgc {
-        let doc = fpma::qgc::export(&plan, &vehicle)
+        let doc = fpma::qgc::export(checked.plan(), &vehicle)
             .with_context(|| format!("exporting {}", path.display()))?;
         std::fs::write(out, serde_json::to_string_pretty(&doc)?)
             .with_context(|| format!("writing {}", out.display()))?;
     }
-    let wps =
-        expand_nominal(plan, vehicle).with_context(|| format!("expanding {}", path.display()))?;
     let mut stdout = std::io::stdout().lock();
-    for w in wps {
+    for w in checked.nominal().iter() {
         let mut line = serde_json::json!({
             "lat": w.lat, "lon": w.lon, "alt": w.alt, "speed": w.speed,
             "fly_over": w.fly_over, "leg": w.leg,

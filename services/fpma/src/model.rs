@@ -3,7 +3,7 @@
 
 use crate::expr::{Condition, Value, ValueType};
 use crate::geo::GeoPoint;
-use crate::vehicle::VehicleKind;
+use crate::vehicle::{VehicleKind, VehicleParams};
 use crate::xml::Element;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -25,6 +25,10 @@ pub struct FlightPlan {
     /// for another kind (and `fpma expand` uses it when no `--vehicle` is given).
     #[serde(default)]
     pub vehicle: Option<VehicleKind>,
+    /// Where `vehicle` is written (line, column; 0 for plans built in code): the check names it
+    /// when the plan is for another kind.
+    #[serde(default)]
+    pub vehicle_at: (u32, u32),
     /// Declared variables.
     pub variables: Vec<VarDecl>,
     /// Named fixes.
@@ -359,6 +363,15 @@ pub struct Hold {
     pub alt_tolerance: f64,
     /// Altitude, speed, fly-over of the fix.
     pub common: LegCommon,
+}
+
+impl Hold {
+    /// The width the hold is flown at by `v`: as given, else twice the turn radius but never
+    /// below the minimum waypoint distance.
+    pub fn flown_width(&self, v: &VehicleParams) -> f64 {
+        self.width
+            .unwrap_or_else(|| (2.0 * v.turn_radius).max(v.min_wp_distance))
+    }
 }
 
 /// Which outer track a scan starts with, looking along the sweep bearing.

@@ -394,15 +394,12 @@ fn num(v: &Json, index: usize, what: &str) -> Result<f64, QgcImportError> {
         })
 }
 
-/// Imports a QGC `.plan` document. Returns the plan and the XML it was converted to.
+/// Imports a QGC `.plan` document. Returns the plan, parsed (for [`crate::check`] to check for a
+/// vehicle), and the XML it was converted to.
 ///
 /// # Errors
-/// Not a plan, an unsupported item, or a result that does not validate for `vehicle`.
-pub fn import(
-    src: &str,
-    name: &str,
-    vehicle: &VehicleParams,
-) -> Result<(FlightPlan, String), QgcImportError> {
+/// Not a plan, an unsupported item, or XML that does not parse.
+pub fn import(src: &str, name: &str) -> Result<(FlightPlan, String), QgcImportError> {
     let doc: Json =
         serde_json::from_str(src).map_err(|e| QgcImportError::NotAPlan(e.to_string()))?;
     if doc["fileType"] != "Plan" {
@@ -580,7 +577,7 @@ pub fn import(
     let xml = format!(
         "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<flightPlan name=\"{name}\" altRef=\"{alt_ref}\">\n  <fixes>\n{fixes}  </fixes>\n{takeoff}\n  <mission>\n{body}  </mission>\n{landing}\n</flightPlan>\n"
     );
-    let plan = parse_plan(&xml, vehicle)?;
+    let plan = parse_plan(&xml)?;
     Ok((plan, xml))
 }
 
@@ -609,7 +606,7 @@ mod tests {
     #[test]
     fn export_import_round_trip_keeps_the_waypoint_stream() {
         let v = VehicleParams::rover();
-        let plan = parse_plan(PLAN, &v).unwrap();
+        let plan = parse_plan(PLAN).unwrap();
         let doc = export(&plan, &v).unwrap();
         let items = doc["mission"]["items"].as_array().unwrap();
         // The first pass enters at another speed than later ones, so it is written out and the
@@ -618,7 +615,7 @@ mod tests {
             .iter()
             .any(|i| i["command"] == DO_JUMP && i["params"][1] == 1));
         assert!(items.iter().any(|i| i["complexItemType"] == "survey"));
-        let (back, xml) = import(&doc.to_string(), "rt", &v).unwrap();
+        let (back, xml) = import(&doc.to_string(), "rt").unwrap();
         assert!(xml.contains("<iterative count=\"2\">"), "{xml}");
         let a = expand_nominal(plan, v.clone()).unwrap();
         let b = expand_nominal(back, v).unwrap();
@@ -640,7 +637,7 @@ mod tests {
             r#"<leg type="TF" fix="B"/>"#,
             r#"<leg type="TF" fix="B" speed="2"/>"#,
         );
-        let plan = parse_plan(&src, &v).unwrap();
+        let plan = parse_plan(&src).unwrap();
         let doc = export(&plan, &v).unwrap();
         let items = doc["mission"]["items"].as_array().unwrap();
         let jump = items.iter().find(|i| i["command"] == DO_JUMP).unwrap();
@@ -654,7 +651,7 @@ mod tests {
             .find(|i| i["doJumpId"] == jump["params"][0])
             .unwrap();
         assert_eq!(target["command"], DO_CHANGE_SPEED);
-        let (back, _) = import(&doc.to_string(), "rt", &v).unwrap();
+        let (back, _) = import(&doc.to_string(), "rt").unwrap();
         assert_eq!(
             expand_nominal(plan, v.clone()).unwrap().len(),
             expand_nominal(back, v).unwrap().len()
@@ -668,7 +665,7 @@ mod tests {
             r#"<leg type="TF" fix="A" speed="2"/>"#,
             r#"<alternative id="alt"><when cond="true"><leg type="TF" fix="A"/></when></alternative>"#,
         );
-        let e = export(&parse_plan(&src, &v).unwrap(), &v).unwrap_err();
+        let e = export(&parse_plan(&src).unwrap(), &v).unwrap_err();
         assert!(
             e.to_string().contains("`alt`") && e.to_string().contains("conditions"),
             "{e}"
@@ -677,13 +674,12 @@ mod tests {
             r#"<iterative count="3">"#,
             r#"<iterative id="w" until="true">"#,
         );
-        let e = export(&parse_plan(&src, &v).unwrap(), &v).unwrap_err();
+        let e = export(&parse_plan(&src).unwrap(), &v).unwrap_err();
         assert!(e.to_string().contains("`w`"), "{e}");
     }
 
     #[test]
     fn import_refuses_impossible_jump_counts_without_panicking() {
-        let v = VehicleParams::rover();
         for repeat in ["1e30", "1.5", "4294967295"] {
             let doc = format!(
                 r#"{{"fileType": "Plan", "mission": {{"items": [
@@ -691,7 +687,7 @@ mod tests {
                 {{"type": "SimpleItem", "command": 177, "doJumpId": 2, "frame": 3, "params": [1, {repeat}, 0, 0, 0, 0, 0]}}
             ]}}}}"#
             );
-            let e = import(&doc, "x", &v).unwrap_err();
+            let e = import(&doc, "x").unwrap_err();
             assert!(
                 matches!(&e, QgcImportError::Item { index: 1, why } if why.contains("repeat count")),
                 "{repeat}: {e}"
@@ -704,23 +700,22 @@ mod tests {
         #[test]
         fn import_never_panics_on_mangled_files(cut in 0usize..6000, junk in "[\\[\\]{}:,\"0-9a-zA-Z .-]{0,8}") {
             let v = VehicleParams::rover();
-            let doc = export(&parse_plan(PLAN, &v).unwrap(), &v).unwrap().to_string();
+            let doc = export(&parse_plan(PLAN).unwrap(), &v).unwrap().to_string();
             let mut s = doc.clone();
             let at = cut.min(s.len());
             s.insert_str(at, &junk);
-            let _ = import(&s, "x", &v);
-            let _ = import(&doc[..at], "x", &v);
+            let _ = import(&s, "x");
+            let _ = import(&doc[..at], "x");
         }
     }
 
     #[test]
     fn import_refuses_unknown_items() {
-        let v = VehicleParams::rover();
         let doc = json!({"fileType": "Plan", "mission": {"items": [
             {"type": "SimpleItem", "command": 16, "doJumpId": 1, "frame": 3, "params": [0, 0, 0, null, 41.0, 2.0, 10]},
             {"type": "SimpleItem", "command": 183, "doJumpId": 2, "frame": 3, "params": [0, 0, 0, 0, 0, 0, 0]}
         ]}});
-        let e = import(&doc.to_string(), "x", &v).unwrap_err();
+        let e = import(&doc.to_string(), "x").unwrap_err();
         assert_eq!(
             e,
             QgcImportError::Item {
@@ -728,9 +723,6 @@ mod tests {
                 why: "MAV_CMD 183 is not supported".into()
             }
         );
-        assert!(matches!(
-            import("{", "x", &v),
-            Err(QgcImportError::NotAPlan(_))
-        ));
+        assert!(matches!(import("{", "x"), Err(QgcImportError::NotAPlan(_))));
     }
 }

@@ -173,8 +173,9 @@ fn qgc_export_writes_a_plan_file_and_refusals_give_the_reason() {
     );
     // Read back, it flies the same stream the preview printed.
     let v = fpma::vehicle::VehicleParams::rover();
-    let (plan, _) = fpma::qgc::import(&text, "demo", &v).unwrap();
-    assert_eq!(fpma::exec::expand_nominal(plan, v).unwrap().len(), printed);
+    let (plan, _) = fpma::qgc::import(&text, "demo").unwrap();
+    let checked = fpma::check::check(plan, &v).unwrap();
+    assert_eq!(checked.nominal().len(), printed);
 
     // The car-park plan waits for a variable and has an emergency rule: refused, with why.
     let refused = dir.path().join("carpark.plan");

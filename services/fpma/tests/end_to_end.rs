@@ -309,8 +309,8 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     // commands after the same waypoints. Every waypoint the FPMa's executive counted as
     // reached is, in order, where that one says it should be (mavsim flew exactly these, above,
     // plus at most one abandoned target per change).
-    let plan = fpma::parse::parse_plan(&src, &fpma::vehicle::VehicleParams::rover()).unwrap();
-    let mut twin = fpma::exec::Executive::new(plan, fpma::vehicle::VehicleParams::rover());
+    let plan = fpma::check::load(&src, &fpma::vehicle::VehicleParams::rover()).unwrap();
+    let mut twin = fpma::exec::Executive::from_checked(plan);
     let (skip_at, modify_at) = (skip_at.expect("skip seen"), modify_at.expect("modify seen"));
     let mut released_twin = false;
     for (i, (version, seq, leg)) in reached.iter().enumerate() {

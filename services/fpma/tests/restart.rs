@@ -149,7 +149,7 @@ async fn a_killed_fpma_resumes_its_plan_where_it_was() {
 
     // What mavsim flew: the plan's waypoints, each once, in order.
     let vehicle = fpma::vehicle::VehicleParams::rover();
-    let parsed = fpma::parse::parse_plan(&src, &vehicle).unwrap();
+    let parsed = fpma::parse::parse_plan(&src).unwrap();
     let want: Vec<(f64, f64)> = fpma::exec::expand_nominal(parsed, vehicle)
         .unwrap()
         .iter()

@@ -5,10 +5,9 @@
 //! vehicle's copy, not from a guess of the station's.
 
 use fpma::api::PlanGeometry;
-use fpma::exec::expand_nominal;
+use fpma::check;
 use fpma::geo::{self, GeoPoint};
 use fpma::model::{FlightPlan, Node, Stage};
-use fpma::parse::parse_plan;
 use fpma::vehicle::VehicleParams;
 use serde::Serialize;
 
@@ -24,13 +23,15 @@ pub struct CheckedPlan {
 }
 
 impl CheckedPlan {
-    /// Parses `xml` for `vehicle` and checks that it ends, as the FPMa will.
+    /// Parses and checks `xml` for `vehicle`, as the FPMa will ([`fpma::check::load`]).
     ///
     /// # Errors
     /// `file:line:col: what` for a plan the FPMa would refuse too; a plan that never ends.
     pub fn check(file: &str, xml: &str, vehicle: &VehicleParams) -> Result<Self, String> {
-        let plan = parse_plan(xml, vehicle).map_err(|e| format!("{file}:{e}"))?;
-        expand_nominal(plan.clone(), vehicle.clone()).map_err(|e| format!("{file}: {e}"))?;
+        let plan = check::load(xml, vehicle)
+            .map_err(|e| e.in_file(file))?
+            .plan()
+            .clone();
         fn count(nodes: &[Node]) -> usize {
             nodes
                 .iter()
@@ -182,7 +183,8 @@ mod tests {
     fn view_of_the_fpma_geometry() {
         let v = VehicleParams::rover();
         let c = CheckedPlan::check("carpark.xml", &carpark(), &v).unwrap();
-        let g = PlanGeometry::of(&c.plan, &v, 2, "carpark.xml");
+        let nominal = check::load(&carpark(), &v).unwrap();
+        let g = PlanGeometry::of(&c.plan, nominal.nominal(), 2, "carpark.xml");
         assert_eq!(c.legs, g.legs.len());
         let view = PlanView::of(&g, 7);
         assert_eq!(

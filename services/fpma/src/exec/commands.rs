@@ -3,36 +3,38 @@
 //! an emergency rule. Each validates first and leaves the executive unchanged when it refuses.
 
 use super::cursor::{Active, Frame, FrameKind, HoldState};
-use super::nominal::nominal_len;
 use super::tree::{list_mut, node_mut, path_to};
 use super::types::*;
 use super::Executive;
+use crate::check::{check, check_change, CheckError, CheckedPlan};
 use crate::expand::*;
 use crate::expr::Value;
 use crate::geo::{self, GeoPoint};
 use crate::model::*;
-use crate::parse::{check_vehicle, modify_node};
+use crate::parse::modify_node;
 use crate::vehicle::VehicleKind;
-use std::sync::Arc;
 
 impl Executive {
-    /// Replaces the whole plan, atomically: it is validated first, then the old one is dropped
-    /// and the new one starts from its first stage with a new version. Returns the version.
+    /// Replaces the whole plan, atomically: the old one is dropped and the new one starts from
+    /// its first stage with a new version. Returns the version. A plan checked for another
+    /// vehicle is checked again for this one.
     ///
     /// # Errors
-    /// [`CommandError::InvalidPlan`] when the plan does not suit the vehicle.
-    pub fn replace_plan(&mut self, plan: FlightPlan) -> Result<u64, CommandError> {
-        check_vehicle(&plan, &self.vehicle)?;
-        nominal_len(plan.clone(), self.vehicle.clone())?;
-        crate::fence::check_plan(&plan, &self.vehicle)?;
+    /// [`CommandError::InvalidPlan`] when the plan does not suit this vehicle.
+    pub fn replace_plan(&mut self, plan: CheckedPlan) -> Result<u64, CommandError> {
+        let plan = if *plan.vehicle() == self.vehicle {
+            plan
+        } else {
+            let (plan, _, _) = plan.into_parts();
+            check((*plan).clone(), &self.vehicle)?
+        };
         if let Some(a) = self.active.take() {
             self.emit(EventKind::LegCompleted {
                 leg: a.id,
                 skipped: true,
             });
         }
-        self.plan = Arc::new(plan);
-        self.version += 1;
+        self.set_plan(plan);
         self.emit(EventKind::PlanReplaced);
         self.start();
         Ok(self.version)
@@ -53,15 +55,12 @@ impl Executive {
             .plan
             .find(id)
             .ok_or_else(|| CommandError::UnknownLeg(id.into()))?;
-        let new = modify_node(node, changes, &self.plan, &self.vehicle)?;
+        let new = modify_node(node, changes, &self.plan)?;
         let mut changed = (*self.plan).clone();
         if let Some(slot) = node_mut(&mut changed, id) {
             *slot = new;
         }
-        nominal_len(changed.clone(), self.vehicle.clone())?;
-        crate::fence::check_plan(&changed, &self.vehicle)?;
-        self.plan = Arc::new(changed);
-        self.version += 1;
+        self.set_plan(check_change(changed, &self.vehicle)?);
         self.emit(EventKind::PlanModified { leg: id.into() });
         let current = self
             .active
@@ -393,7 +392,7 @@ impl Executive {
             return Err(CommandError::NothingToSkip);
         }
         let prefix = format!("insert.v{}", self.version + 1);
-        let nodes = crate::parse::parse_fragment(xml, &self.plan, &self.vehicle, &prefix)?;
+        let nodes = crate::parse::parse_fragment(xml, &self.plan, &prefix)?;
         if nodes.is_empty() {
             return Err(bad_arg("legs", "the fragment has no legs"));
         }
@@ -418,10 +417,7 @@ impl Executive {
         for (k, n) in nodes.into_iter().enumerate() {
             list.insert(at + k, n);
         }
-        nominal_len(changed.clone(), self.vehicle.clone())?;
-        crate::fence::check_plan(&changed, &self.vehicle)?;
-        self.plan = Arc::new(changed);
-        self.version += 1;
+        self.set_plan(check_change(changed, &self.vehicle)?);
         self.emit(EventKind::PlanModified { leg: first });
         self.settle();
         Ok(self.version)
@@ -489,4 +485,23 @@ pub fn nearest_neighbour(from: GeoPoint, points: &[GeoPoint]) -> Vec<GeoPoint> {
         out.push(cur);
     }
     out
+}
+
+impl Executive {
+    /// Takes a checked plan as the new version (the caller starts or settles the cursor).
+    fn set_plan(&mut self, checked: CheckedPlan) {
+        let (plan, _, nominal) = checked.into_parts();
+        self.plan = plan;
+        self.checked_nominal = Some(nominal);
+        self.version += 1;
+    }
+}
+
+impl From<CheckError> for CommandError {
+    fn from(e: CheckError) -> Self {
+        match e {
+            CheckError::Plan(e) => CommandError::InvalidPlan(e),
+            CheckError::Endless(e) => CommandError::Endless(e),
+        }
+    }
 }

@@ -11,8 +11,9 @@
 //! By concern: `types` holds what goes in and out (commands' errors, events, telemetry, the
 //! state snapshot); this file the [`Executive`] itself, its queries and the vehicle's reports;
 //! `commands` the in-flight commands; `cursor` how the cursor walks the plan (frames, legs,
-//! holds, loops, emergency rules); `tree` finding nodes in the plan; [`nominal_len`] /
-//! [`expand_nominal`] the waypoint stream with no in-flight change.
+//! holds, loops, emergency rules); `tree` finding nodes in the plan; [`expand_nominal`] the
+//! waypoint stream with no in-flight change. The executive flies only checked plans
+//! ([`crate::check`]), and checks each change to its plan the same way.
 
 mod commands;
 mod cursor;
@@ -21,12 +22,13 @@ mod tree;
 mod types;
 
 pub use commands::nearest_neighbour;
-pub use nominal::{expand_nominal, nominal_len};
+pub use nominal::expand_nominal;
 pub(crate) use types::flight_events;
 pub use types::{
     CommandError, Event, EventKind, ExecState, ExpandError, HoldHere, RetaskMode, Telemetry,
 };
 
+use crate::check::CheckedPlan;
 use crate::expand::*;
 use crate::expr::Value;
 use crate::geo::GeoPoint;
@@ -62,6 +64,10 @@ pub struct Executive {
     flown: f64,
     rule_state: Vec<bool>,
     events: Vec<Event>,
+    /// The plan's nominal stream, from the check that let the plan in; not persisted (a
+    /// restored executive simulates it again when asked).
+    #[serde(skip)]
+    checked_nominal: Option<Arc<[Waypoint]>>,
 }
 
 /// The plan is shared with look-ahead copies; persisted (see `service::persist`) as itself.
@@ -79,11 +85,20 @@ mod shared_plan {
 }
 
 impl Executive {
-    /// An executive at the start of `plan` (version 1). The plan is assumed validated for
-    /// `vehicle` (as [`crate::parse::parse_plan`] does).
-    pub fn new(plan: FlightPlan, vehicle: VehicleParams) -> Self {
+    /// An executive at the start of a checked plan (version 1), for the vehicle it was checked
+    /// for.
+    pub fn from_checked(checked: CheckedPlan) -> Self {
+        let (plan, vehicle, nominal) = checked.into_parts();
+        let mut ex = Self::new(plan, vehicle);
+        ex.checked_nominal = Some(nominal);
+        ex
+    }
+
+    /// An executive at the start of `plan` (version 1), which must have passed the check for
+    /// `vehicle`: the simulations of [`crate::check`] itself.
+    pub(crate) fn new(plan: impl Into<Arc<FlightPlan>>, vehicle: VehicleParams) -> Self {
         let mut ex = Self {
-            plan: Arc::new(plan),
+            plan: plan.into(),
             vehicle,
             version: 1,
             vars: BTreeMap::new(),
@@ -101,6 +116,7 @@ impl Executive {
             flown: 0.0,
             rule_state: Vec::new(),
             events: Vec::new(),
+            checked_nominal: None,
         };
         ex.start();
         ex
@@ -153,6 +169,17 @@ impl Executive {
     /// The plan being flown.
     pub fn plan(&self) -> &FlightPlan {
         &self.plan
+    }
+
+    /// The plan's nominal waypoint stream (as [`expand_nominal`] gives it): the one its check
+    /// flew, simulated again only for an executive restored from a saved state.
+    pub fn nominal(&self) -> Arc<[Waypoint]> {
+        match &self.checked_nominal {
+            Some(n) => Arc::clone(n),
+            None => expand_nominal(Arc::clone(&self.plan), self.vehicle.clone())
+                .map(Arc::from)
+                .unwrap_or_else(|_| Arc::from(Vec::new())),
+        }
     }
 
     /// The next `n` waypoints, each with its sequence number and the plan version; empty when

@@ -7,31 +7,10 @@ use super::Executive;
 use crate::expand::*;
 use crate::model::*;
 use crate::vehicle::VehicleParams;
+use std::sync::Arc;
 
 /// Steps a simulation takes before giving up on a plan that does not end.
 pub(super) const SIM_LIMIT: usize = 1_000_000;
-
-/// The number of waypoints [`expand_nominal`] gives, without keeping them: a plan is flown
-/// only if this ends, so a mistyped count cannot make every look-ahead and progress computation
-/// walk a million waypoints.
-///
-/// # Errors
-/// [`ExpandError::Endless`] for a plan that does not end within the limit.
-pub fn nominal_len(plan: FlightPlan, vehicle: VehicleParams) -> Result<usize, ExpandError> {
-    let mut ex = Executive::new(plan, vehicle);
-    ex.nominal = true;
-    ex.simulating = true;
-    ex.settle();
-    let mut n = 0;
-    while ex.head().is_some() {
-        if n >= SIM_LIMIT {
-            return Err(ExpandError::Endless(SIM_LIMIT));
-        }
-        n += 1;
-        ex.reach_head();
-    }
-    Ok(n)
-}
 
 /// The waypoint stream the executive produces with no in-flight changes: holds and loops that
 /// wait for a command or a condition are flown once and their waypoints marked `waits`.
@@ -39,7 +18,7 @@ pub fn nominal_len(plan: FlightPlan, vehicle: VehicleParams) -> Result<usize, Ex
 /// # Errors
 /// [`ExpandError::Endless`] for a plan that does not end.
 pub fn expand_nominal(
-    plan: FlightPlan,
+    plan: impl Into<Arc<FlightPlan>>,
     vehicle: VehicleParams,
 ) -> Result<Vec<Waypoint>, ExpandError> {
     let mut ex = Executive::new(plan, vehicle);

@@ -162,7 +162,8 @@ impl PlanError {
         Self { line, col, kind }
     }
 
-    pub(super) fn at(pos: Pos, kind: PlanErrorKind) -> Self {
+    /// An error at `pos` (an element or an attribute).
+    pub fn at(pos: Pos, kind: PlanErrorKind) -> Self {
         Self {
             line: pos.line,
             col: pos.col,

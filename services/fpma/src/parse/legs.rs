@@ -4,12 +4,10 @@
 
 use super::attrs::*;
 use super::error::{PlanError, PlanErrorKind, Result};
-use super::validate::check_node;
 use super::MAX_RINGS;
 use crate::geo::GeoPoint;
 use crate::model::*;
 use crate::polygon::{polygon_frame, self_intersection, MAX_VERTICES};
-use crate::vehicle::VehicleParams;
 use crate::xml::{parse_elements, Attr, Element, Pos};
 use std::collections::BTreeSet;
 
@@ -18,33 +16,20 @@ use std::collections::BTreeSet;
 ///
 /// # Errors
 /// As [`parse_plan`]; ids already used in `plan` are refused.
-pub fn parse_fragment(
-    src: &str,
-    plan: &FlightPlan,
-    vehicle: &VehicleParams,
-    prefix: &str,
-) -> Result<Vec<Node>> {
+pub fn parse_fragment(src: &str, plan: &FlightPlan, prefix: &str) -> Result<Vec<Node>> {
     let els = parse_elements(src)?;
     let mut ids = BTreeSet::new();
     collect_ids(plan, &mut ids);
     let parent = Element::new("fragment");
-    let nodes = parse_nodes(&els, &parent, plan, &mut ids, prefix)?;
-    for n in &nodes {
-        check_node(n, vehicle)?;
-    }
-    Ok(nodes)
+    parse_nodes(&els, &parent, plan, &mut ids, prefix)
 }
 
 /// Re-parses a leaf node after changing some of its attributes, for in-flight modification.
 ///
 /// # Errors
-/// The changed leg is validated as if it had been written so.
-pub fn modify_node(
-    node: &Node,
-    changes: &[(String, String)],
-    plan: &FlightPlan,
-    vehicle: &VehicleParams,
-) -> Result<Node> {
+/// The changed leg does not parse as written; what depends on the vehicle is checked with the
+/// changed plan ([`crate::check::check_change`]).
+pub fn modify_node(node: &Node, changes: &[(String, String)], plan: &FlightPlan) -> Result<Node> {
     let pos = Pos {
         line: node.line,
         col: node.col,
@@ -77,15 +62,13 @@ pub fn modify_node(
         el.set_attr(k, v);
     }
     let kind = leaf(&el, plan)?;
-    let n = Node {
+    Ok(Node {
         id: node.id.clone(),
         line: node.line,
         col: node.col,
         kind,
         source: Some(el),
-    };
-    check_node(&n, vehicle)?;
-    Ok(n)
+    })
 }
 
 pub(super) fn collect_ids(plan: &FlightPlan, ids: &mut BTreeSet<String>) {

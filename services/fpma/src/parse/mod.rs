@@ -2,55 +2,36 @@
 //! what is wrong. No I/O: the caller reads the file.
 //!
 //! [`crate::xml`] reads the tree (positions from one line index, so parsing is linear in the
-//! plan's size); `attrs` reads attribute values, `legs` the stage bodies, `validate` what
-//! depends on the vehicle, `error` says what is wrong. This file reads the plan level:
-//! declarations, stages and emergency rules.
+//! plan's size); `attrs` reads attribute values, `legs` the stage bodies, `error` says what is
+//! wrong. This file reads the plan level: declarations, stages and emergency rules. The parser
+//! knows no vehicle and flies nothing: [`crate::check`] does that, once per plan.
 
 mod attrs;
 mod error;
 mod legs;
-mod validate;
 
 use attrs::*;
 use error::Result;
 pub use error::{PlanError, PlanErrorKind};
 use legs::parse_nodes;
 pub use legs::{modify_node, parse_fragment};
-pub use validate::{check_vehicle, hold_width};
 
 use crate::expr::{Value, ValueType};
 use crate::model::*;
-use crate::vehicle::{VehicleKind, VehicleParams};
+use crate::vehicle::VehicleKind;
 use crate::xml::{parse_document, Element};
 use std::collections::{BTreeMap, BTreeSet};
 
-/// Most tracks one scan may have.
-pub const MAX_SCAN_TRACKS: u64 = 10_000;
 /// Most rings one perimeter may have.
 pub const MAX_RINGS: u32 = 1000;
 
-/// Parses and validates a plan for `vehicle`.
+/// Parses a plan: its structure, names, values and polygons, all that holds whatever flies it.
+/// What depends on the vehicle, the plan's end and its fence are [`crate::check`]'s.
 ///
 /// # Errors
 /// The first problem found, with its line and column.
-pub fn parse_plan(src: &str, vehicle: &VehicleParams) -> Result<FlightPlan> {
-    let root = parse_document(src)?;
-    let plan = plan_from_element(&root)?;
-    if let (Some(kind), Some(a)) = (plan.vehicle, root.attr("vehicle")) {
-        if kind != vehicle.kind {
-            return Err(PlanError::at(
-                a.pos,
-                PlanErrorKind::WrongVehicle {
-                    plan: kind,
-                    vehicle: vehicle.kind,
-                },
-            ));
-        }
-    }
-    check_vehicle(&plan, vehicle)?;
-    let mut plan = plan;
-    crate::fence::resolve_and_check(&mut plan, vehicle)?;
-    Ok(plan)
+pub fn parse_plan(src: &str) -> Result<FlightPlan> {
+    plan_from_element(&parse_document(src)?)
 }
 
 /// The vehicle kind a plan says it is written for (`<flightPlan vehicle="rover">`), read from
@@ -120,6 +101,9 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
         },
         default_speed: opt_pos_num(root, "defaultSpeed")?,
         vehicle,
+        vehicle_at: root
+            .attr("vehicle")
+            .map_or((0, 0), |a| (a.pos.line, a.pos.col)),
         variables: Vec::new(),
         fixes: BTreeMap::new(),
         takeoff: Vec::new(),
@@ -399,6 +383,7 @@ fn emergency_rule(e: &Element, i: usize, plan: &FlightPlan) -> Result<EmergencyR
 mod tests {
     use super::*;
     use crate::expr::ExprError;
+    use crate::vehicle::VehicleParams;
     use proptest::prelude::*;
 
     const GOOD: &str = r#"<?xml version="1.0"?>
@@ -421,7 +406,15 @@ mod tests {
 </flightPlan>"#;
 
     fn parse(src: &str) -> Result<FlightPlan> {
-        parse_plan(src, &VehicleParams::rover())
+        parse_plan(src)
+    }
+
+    /// The refusal of a whole load (parse and check) for `vehicle`.
+    fn refused(src: &str, vehicle: &VehicleParams) -> PlanError {
+        match crate::check::load(src, vehicle) {
+            Err(crate::check::CheckError::Plan(e)) => e,
+            other => panic!("expected a refusal with a position, got {other:?}"),
+        }
     }
 
     fn err_of(src: &str) -> PlanError {
@@ -503,13 +496,13 @@ mod tests {
             r#"<scan spacing="100">
 <pt lat="41.27" lon="1.98"/><pt lat="41.28" lon="1.98"/><pt lat="41.28" lon="1.99"/></scan>"#,
         );
-        let e = parse_plan(&src, &VehicleParams::aircraft()).unwrap_err();
+        let e = refused(&src, &VehicleParams::aircraft());
         assert!(
             matches!(e.kind, PlanErrorKind::SpacingBelowTurnLimit { .. }),
             "{e}"
         );
         assert_eq!(e.line, 9);
-        parse(&src).unwrap();
+        crate::check::load(&src, &VehicleParams::rover()).unwrap();
     }
 
     #[test]
@@ -552,24 +545,12 @@ mod tests {
     fn modify_node_revalidates() {
         let p = parse(GOOD).unwrap();
         let n = &p.mission[1];
-        let m = modify_node(
-            n,
-            &[("speed".into(), "4".into())],
-            &p,
-            &VehicleParams::rover(),
-        )
-        .unwrap();
+        let m = modify_node(n, &[("speed".into(), "4".into())], &p).unwrap();
         let NodeKind::Path(leg) = &m.kind else {
             panic!()
         };
         assert_eq!(leg.common.speed, Some(4.0));
-        let e = modify_node(
-            n,
-            &[("speed".into(), "x".into())],
-            &p,
-            &VehicleParams::rover(),
-        )
-        .unwrap_err();
+        let e = modify_node(n, &[("speed".into(), "x".into())], &p).unwrap_err();
         assert!(matches!(e.kind, PlanErrorKind::BadNumber { .. }));
     }
 
@@ -616,7 +597,7 @@ mod tests {
             (r#"<leg type="TF" fix="A" speed="-1"/>"#.into(), &rover, "greater than zero"),
         ];
         for (body, vehicle, want) in cases {
-            let e = parse_plan(&with_mission(&body), vehicle).expect_err(&body);
+            let e = refused(&with_mission(&body), vehicle);
             assert_eq!(e.line, 9, "{body}: {e}");
             assert!(e.col > 0, "{body}: {e}");
             assert!(e.to_string().contains(want), "{body}: `{e}` lacks `{want}`");
@@ -629,7 +610,7 @@ mod tests {
             "<flightPlan name=\"t\"",
             "<flightPlan vehicle=\"aircraft\" name=\"t\"",
         );
-        let e = err_of(&src);
+        let e = refused(&src, &VehicleParams::rover());
         assert_eq!((e.line, e.col), (2, 13), "{e}");
         assert_eq!(
             e.to_string(),

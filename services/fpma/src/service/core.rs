@@ -30,11 +30,12 @@ use usal_types::{AltRef, Battery, FlightState, Position, QueueStatus, WaypointKi
 use crate::api::{
     CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanLoaded, PlanState, Progress, Readiness,
 };
+use crate::check::CheckedPlan;
 use crate::exec::{Executive, HoldHere, RetaskMode, Telemetry};
 use crate::expand::{Waypoint, WaypointTag};
 use crate::expr::Value;
 use crate::geo::GeoPoint;
-use crate::model::{FlightPlan, Stage};
+use crate::model::Stage;
 use crate::vehicle::VehicleParams;
 
 /// What the core needs of the VAS (`<vas>/push_waypoints`, `clear_waypoints`): no state
@@ -287,7 +288,7 @@ impl<V: VasPort> Core<V> {
     /// # Errors
     /// The plan does not parse or validate; nothing changes then.
     pub async fn load(&mut self, text: &str, source: &str) -> Result<PlanLoaded, String> {
-        let plan = self.parse(text, source)?;
+        let plan = self.check(text, source)?;
         self.start_plan(plan, source).await
     }
 
@@ -302,25 +303,24 @@ impl<V: VasPort> Core<V> {
         self.load(text, source).await
     }
 
-    fn parse(&self, text: &str, source: &str) -> Result<FlightPlan, String> {
-        let plan = if source.ends_with(".plan") {
+    /// Parses and checks a plan (the one check its load makes: the plan is flown in simulation
+    /// once, and what that gives is kept for the stations' geometry).
+    fn check(&self, text: &str, source: &str) -> Result<CheckedPlan, String> {
+        let vehicle = &self.cfg.vehicle;
+        let checked = if source.ends_with(".plan") {
             let stem = source.trim_end_matches(".plan");
-            crate::qgc::import(text, stem, &self.cfg.vehicle)
-                .map(|(plan, _xml)| plan)
-                .map_err(|e| format!("{source}: {e}"))?
+            let (plan, _xml) =
+                crate::qgc::import(text, stem).map_err(|e| format!("{source}: {e}"))?;
+            crate::check::check(plan, vehicle)
         } else {
-            crate::parse::parse_plan(text, &self.cfg.vehicle)
-                .map_err(|e| format!("{source}:{e}"))?
+            crate::check::load(text, vehicle)
         };
-        // A plan that does not end would make every look-ahead walk a million waypoints.
-        crate::exec::nominal_len(plan.clone(), self.cfg.vehicle.clone())
-            .map_err(|e| format!("{source}: {e}"))?;
-        Ok(plan)
+        checked.map_err(|e| e.in_file(source))
     }
 
-    async fn start_plan(&mut self, plan: FlightPlan, source: &str) -> Result<PlanLoaded, String> {
-        let name = plan.name.clone();
-        let fence = plan.fence.as_ref().map(|f| f.fence.clone());
+    async fn start_plan(&mut self, plan: CheckedPlan, source: &str) -> Result<PlanLoaded, String> {
+        let name = plan.plan().name.clone();
+        let fence = plan.plan().fence.as_ref().map(|f| f.fence.clone());
         let had_fence = self
             .exec
             .as_ref()
@@ -330,8 +330,7 @@ impl<V: VasPort> Core<V> {
                 ex.replace_plan(plan).map_err(|e| e.to_string())?;
             }
             None => {
-                let ex = Executive::new(plan, self.cfg.vehicle.clone());
-                self.exec = Some(ex);
+                self.exec = Some(Executive::from_checked(plan));
             }
         }
         // Before any waypoint of the plan goes out, so the VAS checks them against it.
@@ -601,8 +600,7 @@ impl<V: VasPort> Core<V> {
         // Geometry only when the plan itself changed: it is the largest value the FPMa
         // publishes, and a skip or a reached waypoint leaves it as it was.
         if ex.version() != self.geometry.version {
-            self.geometry =
-                PlanGeometry::of(ex.plan(), &self.cfg.vehicle, ex.version(), &self.source);
+            self.geometry = PlanGeometry::of(ex.plan(), &ex.nominal(), ex.version(), &self.source);
             self.out.geometry = Some(self.geometry.clone());
         }
         let st = ex.state();
@@ -851,7 +849,7 @@ mod tests {
 
     /// What the executive would stream with no changes, as the VAS sees it.
     fn nominal() -> Vec<usal_types::Waypoint> {
-        let plan = crate::parse::parse_plan(PLAN, &VehicleParams::rover()).unwrap();
+        let plan = crate::parse::parse_plan(PLAN).unwrap();
         let alt_ref = plan.altitude_reference();
         crate::exec::expand_nominal(plan, VehicleParams::rover())
             .unwrap()
@@ -1359,7 +1357,7 @@ mod tests {
     #[tokio::test]
     async fn a_qgc_plan_is_loaded_by_its_extension() {
         let rover = VehicleParams::rover();
-        let plan = crate::parse::parse_plan(PLAN, &rover).unwrap();
+        let plan = crate::parse::parse_plan(PLAN).unwrap();
         let doc = crate::qgc::export(&plan, &rover).unwrap();
         let mut c = core(4);
         let loaded = c.load(&doc.to_string(), "survey.plan").await.unwrap();

@@ -135,12 +135,12 @@ mod tests {
     use crate::vehicle::VehicleParams;
 
     fn state() -> Persisted {
-        let plan = crate::parse::parse_plan(
+        let plan = crate::check::load(
             include_str!("../../../../config/flightplans/rover-demo.xml"),
             &VehicleParams::rover(),
         )
         .unwrap();
-        let mut exec = Executive::new(plan, VehicleParams::rover());
+        let mut exec = Executive::from_checked(plan);
         exec.waypoint_reached(1, 0).unwrap();
         Persisted {
             source: "rover-demo.xml".into(),

@@ -82,27 +82,21 @@ fn replace_is_atomic_and_versioned() {
     let old = ex.next_waypoints(2);
     assert!(old.iter().all(|w| w.version == 1));
     // An invalid replacement changes nothing.
-    let mut bad = parse_plan(
-        &plan("", r#"<leg type="TF" fix="B"/>"#),
-        &VehicleParams::rover(),
-    )
-    .unwrap();
-    let aircraft_scan = parse_plan(
-        &plan(
-            "",
-            r#"<scan spacing="10"><pt lat="41.275" lon="1.987"/><pt lat="41.276" lon="1.987"/><pt lat="41.276" lon="1.988"/></scan>"#,
-        ),
-        &VehicleParams::rover(),
-    )
+    let mut bad = parse_plan(&plan("", r#"<leg type="TF" fix="B"/>"#)).unwrap();
+    let aircraft_scan = parse_plan(&plan(
+        "",
+        r#"<scan spacing="10"><pt lat="41.275" lon="1.987"/><pt lat="41.276" lon="1.987"/><pt lat="41.276" lon="1.988"/></scan>"#,
+    ))
     .unwrap();
     bad.mission = aircraft_scan.mission.clone();
-    let mut strict = Executive::new(
-        parse_plan(
+    // Checked for a rover, whose turns fit 10 m tracks; not for the aircraft flying `strict`.
+    let bad = check::check(bad, &VehicleParams::rover()).unwrap();
+    let mut strict = Executive::from_checked(
+        check::load(
             &plan("", r#"<leg type="TF" fix="B"/>"#),
             &VehicleParams::aircraft(),
         )
         .unwrap(),
-        VehicleParams::aircraft(),
     );
     assert!(matches!(
         strict.replace_plan(bad),
@@ -110,7 +104,7 @@ fn replace_is_atomic_and_versioned() {
     ));
     assert_eq!(strict.version(), 1);
 
-    let new = parse_plan(
+    let new = check::load(
         &plan("", r#"<leg type="TF" fix="D"/><leg type="TF" fix="H"/>"#),
         &VehicleParams::rover(),
     )
@@ -252,16 +246,13 @@ fn modified_scan_hands_out_exactly_the_new_geometry() {
     ex.modify_leg("s", &[("spacing".into(), "12".into())])
         .unwrap();
     // What the same plan written with spacing 12 expands to, point for point.
-    let written = parse_plan(
-        &plan(
-            "",
-            &format!(
-                r#"<leg type="TF" fix="B"/>{}<leg type="TF" fix="D"/>"#,
-                SCAN.replace(r#"spacing="6""#, r#"spacing="12""#)
-            ),
+    let written = parse_plan(&plan(
+        "",
+        &format!(
+            r#"<leg type="TF" fix="B"/>{}<leg type="TF" fix="D"/>"#,
+            SCAN.replace(r#"spacing="6""#, r#"spacing="12""#)
         ),
-        &VehicleParams::rover(),
-    )
+    ))
     .unwrap();
     let want = expand_nominal(written, VehicleParams::rover()).unwrap();
     let got = ex.next_waypoints(100);

@@ -194,8 +194,8 @@ fn example_plans_parse_and_expand() {
         ("aircraft-demo.xml", VehicleParams::aircraft()),
     ] {
         let src = std::fs::read_to_string(format!("{root}{file}")).unwrap();
-        let p = parse_plan(&src, &vehicle).unwrap_or_else(|e| panic!("{file}:{e}"));
-        let ws = expand_nominal(p, vehicle.clone()).unwrap();
+        let p = check::load(&src, &vehicle).unwrap_or_else(|e| panic!("{file}:{e}"));
+        let ws = p.nominal();
         assert!(ws.len() > 20, "{file}: {}", ws.len());
         assert!(ws.iter().any(|w| w.waits), "{file} has a waiting hold");
         for pair in ws.windows(2) {

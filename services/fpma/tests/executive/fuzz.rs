@@ -64,12 +64,12 @@ proptest! {
     fn the_executive_never_panics_on_commands(inputs in proptest::collection::vec(input(), 1..40)) {
         let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../config/flightplans/");
         let src = std::fs::read_to_string(format!("{root}rover-carpark.xml")).unwrap();
-        let plan = parse_plan(&src, &VehicleParams::rover()).unwrap();
+        let plan = check::load(&src, &VehicleParams::rover()).unwrap();
         let ids: Vec<String> = ["hold", "area", "laps", "laps.1", "check", "wait", "departure.2", "nope"]
             .iter().map(|s| s.to_string()).collect();
         let attrs = ["spacing", "length", "width", "speed", "alt", "sweepAngle", "fix", "type"];
         let vars = ["inspect", "laps", "battery", "alt", "iteration", "ghost"];
-        let mut ex = Executive::new(plan.clone(), VehicleParams::rover());
+        let mut ex = Executive::from_checked(plan.clone());
         for i in inputs {
             let _ = match i {
                 Input::Reach(k) => {

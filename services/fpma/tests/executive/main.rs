@@ -11,6 +11,7 @@ mod flow;
 mod fuzz;
 mod holds;
 
+use fpma::check;
 use fpma::exec::*;
 use fpma::expand::{enforce_min_distance, expand_scan, Ctx, Origin, Waypoint};
 use fpma::expr::Value;
@@ -42,8 +43,8 @@ fn plan(vars: &str, body: &str) -> String {
 }
 
 fn exec(vars: &str, body: &str) -> Executive {
-    let p = parse_plan(&plan(vars, body), &VehicleParams::rover()).expect("test plan parses");
-    Executive::new(p, VehicleParams::rover())
+    let p = check::load(&plan(vars, body), &VehicleParams::rover()).expect("test plan loads");
+    Executive::from_checked(p)
 }
 
 fn fix(id: &str) -> GeoPoint {

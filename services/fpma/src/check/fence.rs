@@ -1,4 +1,4 @@
-//! The plan's geofence (issue 15 item 5): `<fence>` says where the vehicle must stay (a
+//! The plan's geofence: `<fence>` says where the vehicle must stay (a
 //! maximum distance and height from home, and/or an inclusion polygon). A plan whose nominal
 //! waypoints, or the straight tracks between them, leave it is refused with the line and
 //! column of the leg that leaves; so is a change (modified leg, inserted legs, re-task). The
@@ -11,32 +11,17 @@
 //! `AGL` plans (above home; the FPMa knows no terrain); an `MSL` plan's heights are left to
 //! the autopilot, which knows its home altitude.
 
-use crate::exec::expand_nominal;
 use crate::expand::Waypoint;
 use crate::model::FlightPlan;
 use crate::parse::{PlanError, PlanErrorKind};
-use crate::vehicle::VehicleParams;
 
-/// Resolves the fence's home (when the plan does not give it) and checks the plan's nominal
-/// waypoints against the fence.
-///
-/// # Errors
-/// [`PlanErrorKind::OutsideFence`] at the leg that leaves, or the expansion's own error at the
-/// fence element.
-pub fn resolve_and_check(plan: &mut FlightPlan, vehicle: &VehicleParams) -> Result<(), PlanError> {
-    let Some(pf) = &plan.fence else {
-        return Ok(());
-    };
-    let at_fence = |kind| PlanError::at_line(pf.line, pf.col, kind);
-    let wps = expand_nominal(plan.clone(), vehicle.clone())
-        .map_err(|e| at_fence(PlanErrorKind::Structure(e.to_string())))?;
-    if !pf.home_given {
-        let home = wps.first().map(|w| (w.lat, w.lon));
-        if let (Some(home), Some(pf)) = (home, plan.fence.as_mut()) {
-            pf.fence.home = home;
+/// Gives a fence written without `homeLat`/`homeLon` the plan's first waypoint as its home.
+pub fn resolve_home(plan: &mut FlightPlan, nominal: &[Waypoint]) {
+    if let (Some(pf), Some(first)) = (plan.fence.as_mut(), nominal.first()) {
+        if !pf.home_given {
+            pf.fence.home = (first.lat, first.lon);
         }
     }
-    check_waypoints(plan, &wps)
 }
 
 /// Checks `wps` (from `plan`, in flying order) against the plan's fence.
@@ -75,24 +60,19 @@ pub fn check_waypoints(plan: &FlightPlan, wps: &[Waypoint]) -> Result<(), PlanEr
     Ok(())
 }
 
-/// Checks a changed plan: its nominal expansion from the start (the fence's home stays).
-///
-/// # Errors
-/// As [`check_waypoints`].
-pub fn check_plan(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<(), PlanError> {
-    let Some(pf) = &plan.fence else {
-        return Ok(());
-    };
-    let wps = expand_nominal(plan.clone(), vehicle.clone()).map_err(|e| {
-        PlanError::at_line(pf.line, pf.col, PlanErrorKind::Structure(e.to_string()))
-    })?;
-    check_waypoints(plan, &wps)
-}
-
 #[cfg(test)]
 mod tests {
-    use super::*;
-    use crate::parse::parse_plan;
+    use crate::check::{load, CheckError};
+    use crate::exec::Executive;
+    use crate::parse::PlanError;
+    use crate::vehicle::VehicleParams;
+
+    fn refusal(src: &str) -> PlanError {
+        match load(src, &VehicleParams::rover()) {
+            Err(CheckError::Plan(e)) => e,
+            other => panic!("expected a refusal with a position, got {other:?}"),
+        }
+    }
 
     const PLAN: &str = r#"<flightPlan name="f" vehicle="rover" altRef="REL">
   <fixes>
@@ -110,7 +90,7 @@ mod tests {
 
     #[test]
     fn a_plan_crossing_the_fence_is_refused_at_the_leg_that_leaves() {
-        let e = parse_plan(PLAN, &VehicleParams::rover()).unwrap_err();
+        let e = refusal(PLAN);
         assert_eq!((e.line, e.col), (10, 5), "{e}");
         let text = e.to_string();
         assert!(
@@ -118,8 +98,8 @@ mod tests {
             "{text}"
         );
         let ok = PLAN.replace(r#"<leg id="far" type="TF" fix="FAR"/>"#, "");
-        let plan = parse_plan(&ok, &VehicleParams::rover()).unwrap();
-        let f = plan.fence.unwrap();
+        let plan = load(&ok, &VehicleParams::rover()).unwrap();
+        let f = plan.plan().fence.clone().unwrap();
         assert_eq!(f.fence.home, (41.275, 1.987), "home: the first waypoint");
         assert_eq!(f.fence.action, usal_types::FenceAction::Hold);
     }
@@ -127,8 +107,7 @@ mod tests {
     #[test]
     fn changes_that_leave_the_fence_are_refused_and_change_nothing() {
         let ok = PLAN.replace(r#"<leg id="far" type="TF" fix="FAR"/>"#, "");
-        let plan = parse_plan(&ok, &VehicleParams::rover()).unwrap();
-        let mut ex = crate::exec::Executive::new(plan, VehicleParams::rover());
+        let mut ex = Executive::from_checked(load(&ok, &VehicleParams::rover()).unwrap());
         let v = ex.version();
         let e = ex.insert_legs(r#"<leg type="TF" fix="FAR"/>"#).unwrap_err();
         assert!(e.to_string().contains("leaves the fence"), "{e}");
@@ -163,7 +142,7 @@ mod tests {
             ),
         ] {
             let plan = PLAN.replace(r#"<fence maxDistance="100" action="hold"/>"#, fence);
-            let e = parse_plan(&plan, &VehicleParams::rover()).unwrap_err();
+            let e = refusal(&plan);
             assert_eq!(e.line, 12, "{fence}: {e}");
             assert!(e.to_string().contains(what), "{fence}: {e}");
         }

@@ -1,12 +1,16 @@
 //! What depends on the vehicle: spacings, widths and lengths against its turn radius and
 //! minimum waypoint distance, and pattern sizes against what the FPMa generates.
 
-use super::error::{PlanError, PlanErrorKind, Result};
-use super::MAX_SCAN_TRACKS;
 use crate::model::*;
+use crate::parse::{PlanError, PlanErrorKind};
 use crate::polygon::{auto_sweep, polygon_frame, width_across};
 use crate::vehicle::VehicleParams;
 use crate::xml::Pos;
+
+type Result<T> = std::result::Result<T, PlanError>;
+
+/// Most tracks one scan may have.
+pub const MAX_SCAN_TRACKS: u64 = 10_000;
 
 /// Checks what depends on the vehicle: spacings and widths against its turn radius and minimum
 /// waypoint distance.
@@ -15,15 +19,15 @@ use crate::xml::Pos;
 /// The first node that the vehicle cannot fly, with its position.
 pub fn check_vehicle(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<()> {
     if let Some(kind) = plan.vehicle.filter(|k| *k != vehicle.kind) {
-        // A plan built in code (parse_plan names the attribute's position itself).
-        return Err(PlanError {
-            line: 0,
-            col: 0,
-            kind: PlanErrorKind::WrongVehicle {
+        let (line, col) = plan.vehicle_at;
+        return Err(PlanError::at_line(
+            line,
+            col,
+            PlanErrorKind::WrongVehicle {
                 plan: kind,
                 vehicle: vehicle.kind,
             },
-        });
+        ));
     }
     fn walk(nodes: &[Node], v: &VehicleParams) -> Result<()> {
         for n in nodes {
@@ -40,7 +44,7 @@ pub fn check_vehicle(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<()> {
     Ok(())
 }
 
-pub(super) fn check_node(n: &Node, v: &VehicleParams) -> Result<()> {
+fn check_node(n: &Node, v: &VehicleParams) -> Result<()> {
     let pos = Pos {
         line: n.line,
         col: n.col,
@@ -81,7 +85,7 @@ pub(super) fn check_node(n: &Node, v: &VehicleParams) -> Result<()> {
             });
         }
         NodeKind::Hold(h) => {
-            let width = hold_width(h, v);
+            let width = h.flown_width(v);
             if h.shape == HoldShape::Racetrack && width < 2.0 * v.turn_radius - 1e-9 {
                 return err(PlanErrorKind::HoldTooNarrow {
                     width,
@@ -108,11 +112,4 @@ pub(super) fn check_node(n: &Node, v: &VehicleParams) -> Result<()> {
         _ => {}
     }
     Ok(())
-}
-
-/// The width a hold is flown at: as given, else twice the turn radius but never below the
-/// minimum waypoint distance.
-pub fn hold_width(h: &Hold, v: &VehicleParams) -> f64 {
-    h.width
-        .unwrap_or_else(|| (2.0 * v.turn_radius).max(v.min_wp_distance))
 }
