@@ -149,6 +149,77 @@ impl Fence {
         )
     }
 
+    /// The latitude, longitude `east`/`north` metres from home.
+    fn geo(&self, (east, north): (f64, f64)) -> (f64, f64) {
+        let lat0 = self.home.0.to_radians();
+        (
+            self.home.0 + (north / EARTH_RADIUS_M).to_degrees(),
+            self.home.1 + (east / (EARTH_RADIUS_M * lat0.cos())).to_degrees(),
+        )
+    }
+
+    /// The fence in force when a plan brings `plan` to a vehicle whose own fence is `self`:
+    /// the plan's fence may only narrow the vehicle's. Each part of `plan` must lie inside
+    /// `self` (polygon vertices and edges, the circle at [`Self::CIRCLE_SAMPLES`] points, the
+    /// ceiling); the result keeps the plan's parts and the vehicle's parts the plan does not
+    /// set, and the plan's action.
+    ///
+    /// # Errors
+    /// The part of the plan's fence that reaches outside the vehicle's, and where.
+    pub fn narrowed_by(&self, plan: &Fence) -> Result<Fence, String> {
+        let outside = |part: &str, e: String| {
+            format!("the plan's fence {part} reaches outside the vehicle's fence: {e}")
+        };
+        let n = plan.polygon.len();
+        for (i, &p) in plan.polygon.iter().enumerate() {
+            self.check_point(p, None)
+                .map_err(|e| outside(&format!("vertex {}", i + 1), e))?;
+        }
+        for i in 0..n {
+            self.check_segment(plan.polygon[i], plan.polygon[(i + 1) % n])
+                .map_err(|e| outside(&format!("edge {}-{}", i + 1, (i + 1) % n + 1), e))?;
+        }
+        if let Some(r) = plan.max_distance_m {
+            for k in 0..Self::CIRCLE_SAMPLES {
+                let a = std::f64::consts::TAU * f64::from(k) / f64::from(Self::CIRCLE_SAMPLES);
+                let p = plan.geo((r * a.sin(), r * a.cos()));
+                self.check_point(p, None)
+                    .map_err(|e| outside(&format!("circle ({r} m around its home)"), e))?;
+            }
+        }
+        if let (Some(p), Some(v)) = (plan.max_height_m, self.max_height_m) {
+            if p > v {
+                return Err(format!(
+                    "the plan's fence ceiling {p} m is above the vehicle's fence ceiling {v} m"
+                ));
+            }
+        }
+        let (home, max_distance_m) = match plan.max_distance_m {
+            Some(r) => (plan.home, Some(r)),
+            None => (self.home, self.max_distance_m),
+        };
+        let max_height_m = match (plan.max_height_m, self.max_height_m) {
+            (Some(p), Some(v)) => Some(p.min(v)),
+            (p, v) => p.or(v),
+        };
+        let polygon = if plan.polygon.is_empty() {
+            self.polygon.clone()
+        } else {
+            plan.polygon.clone()
+        };
+        Ok(Fence {
+            home,
+            max_distance_m,
+            max_height_m,
+            polygon,
+            action: plan.action,
+        })
+    }
+
+    /// Points of a plan's circle checked against the vehicle's fence by
+    /// [`Self::narrowed_by`] (a chord's sagitta is under 0.2 % of the radius).
+    pub const CIRCLE_SAMPLES: u16 = 64;
+
     /// Horizontal distance of `p` from home, metres.
     pub fn distance_from_home_m(&self, p: (f64, f64)) -> f64 {
         let (e, n) = self.local(p);
@@ -323,6 +394,94 @@ mod tests {
         let home: (f64, f64) = (41.275, 1.987);
         let m = 1.0 / 111_195.0;
         (home.0 + n * m, home.1 + e * m / home.0.to_radians().cos())
+    }
+
+    #[test]
+    fn a_plan_fence_may_only_narrow_the_vehicle_fence() {
+        let vehicle = fence();
+        // Inside the notched square: the plan's polygon and ceiling, the vehicle's circle.
+        let small = Fence {
+            home: at(-40.0, 0.0),
+            max_distance_m: None,
+            max_height_m: Some(20.0),
+            polygon: vec![
+                at(-50.0, -50.0),
+                at(0.0, -50.0),
+                at(0.0, 50.0),
+                at(-50.0, 50.0),
+            ],
+            action: FenceAction::Report,
+        };
+        let merged = vehicle.narrowed_by(&small).unwrap();
+        assert_eq!(merged.polygon, small.polygon);
+        assert_eq!(
+            (merged.home, merged.max_distance_m),
+            (vehicle.home, Some(150.0))
+        );
+        assert_eq!(
+            (merged.max_height_m, merged.action),
+            (Some(20.0), FenceAction::Report)
+        );
+        // A plan without a polygon keeps the vehicle's.
+        let ceiling_only = Fence {
+            polygon: vec![],
+            ..small.clone()
+        };
+        assert_eq!(
+            vehicle.narrowed_by(&ceiling_only).unwrap().polygon,
+            vehicle.polygon
+        );
+
+        // Wider in each part: refused, naming the part.
+        let e = vehicle
+            .narrowed_by(&Fence {
+                polygon: vec![at(-50.0, -50.0), at(60.0, 0.0), at(-50.0, 50.0)],
+                ..small.clone()
+            })
+            .unwrap_err();
+        assert!(
+            e.contains("vertex 2") && e.contains("outside the fence polygon"),
+            "{e}"
+        );
+        let e = vehicle
+            .narrowed_by(&Fence {
+                polygon: vec![at(50.0, -50.0), at(50.0, 50.0), at(-50.0, 0.0)],
+                ..small.clone()
+            })
+            .unwrap_err();
+        assert!(
+            e.contains("edge 1-2") && e.contains("crosses the fence polygon"),
+            "{e}"
+        );
+        let e = vehicle
+            .narrowed_by(&Fence {
+                polygon: vec![],
+                max_distance_m: Some(80.0),
+                ..small.clone()
+            })
+            .unwrap_err();
+        assert!(e.contains("circle (80 m around its home)"), "{e}");
+        let fits = Fence {
+            polygon: vec![],
+            home: at(-40.0, 0.0),
+            max_distance_m: Some(50.0),
+            ..small.clone()
+        };
+        let merged = vehicle.narrowed_by(&fits).unwrap();
+        assert_eq!(
+            (merged.home, merged.max_distance_m),
+            (fits.home, Some(50.0))
+        );
+        let e = vehicle
+            .narrowed_by(&Fence {
+                max_height_m: Some(40.0),
+                ..small
+            })
+            .unwrap_err();
+        assert!(
+            e.contains("ceiling 40 m is above the vehicle's fence ceiling 30 m"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::Deserialize;
-use usal_types::VehicleKind;
+use usal_types::{Fence, VehicleKind};
 
 use crate::apl::ardupilot::ArduPilotConfig;
 use crate::mavlink_cm::{AutopilotFamily, ManagerConfig};
@@ -117,6 +117,11 @@ pub struct VasConfig {
     /// Most waypoints queued at once (`maxQueuedWaypoints`).
     #[serde(rename = "@maxQueuedWaypoints")]
     pub max_queued_waypoints: u64,
+    /// The vehicle's own fence (`<fence maxDistance homeLat homeLon maxHeight action><pt lat
+    /// lon/>...</fence>`, the plan's `<fence>` form): uploaded to the autopilot before the
+    /// vehicle may start, and kept for the whole flight; a plan's fence may only narrow it.
+    #[serde(rename = "fence")]
+    pub fence: Option<FenceSettings>,
     /// MAVLink 2 signing toward the autopilot (`<signing keyFile=".." linkId="1"/>`).
     #[serde(rename = "signing")]
     pub signing: Option<SigningSettings>,
@@ -173,6 +178,95 @@ pub struct VasConfig {
     pub target_component: Option<u8>,
 }
 
+/// The `<fence>` element: the vehicle's fence, written as a plan writes its own.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FenceSettings {
+    /// Largest distance from home, metres (`maxDistance`; needs `homeLat`/`homeLon`).
+    #[serde(rename = "@maxDistance")]
+    pub max_distance: Option<f64>,
+    /// Largest height above home, metres (`maxHeight`).
+    #[serde(rename = "@maxHeight")]
+    pub max_height: Option<f64>,
+    /// Home's latitude (`homeLat`).
+    #[serde(rename = "@homeLat")]
+    pub home_lat: Option<f64>,
+    /// Home's longitude (`homeLon`).
+    #[serde(rename = "@homeLon")]
+    pub home_lon: Option<f64>,
+    /// `report`, `rtl` (default) or `hold` (`action`).
+    #[serde(rename = "@action")]
+    pub action: Option<String>,
+    /// The inclusion polygon (`<pt lat lon/>` children).
+    #[serde(rename = "pt", default)]
+    pub pt: Vec<FencePoint>,
+}
+
+/// One `<pt lat lon/>` of a `<fence>`.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FencePoint {
+    /// Latitude, degrees.
+    #[serde(rename = "@lat")]
+    pub lat: f64,
+    /// Longitude, degrees.
+    #[serde(rename = "@lon")]
+    pub lon: f64,
+}
+
+impl FenceSettings {
+    /// Reads a file whose root is `<fence>` (`vas --fence`, what `usal run` writes).
+    ///
+    /// # Errors
+    /// Unreadable file, malformed XML, or a fence that is not one.
+    pub fn load(path: &Path) -> Result<Self, ConfigLoadError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigLoadError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        let f: Self = quick_xml::de::from_str(&text).map_err(|e| ConfigLoadError::Parse {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        f.fence()
+            .map_err(|e| ConfigLoadError::Invalid(format!("{}: {e}", path.display())))?;
+        Ok(f)
+    }
+
+    /// The fence it describes.
+    ///
+    /// # Errors
+    /// What is wrong, e.g. `<fence>: maxDistance needs homeLat and homeLon`.
+    pub fn fence(&self) -> Result<Fence, String> {
+        let home = match (self.home_lat, self.home_lon) {
+            (Some(lat), Some(lon)) => Some((lat, lon)),
+            (None, None) => None,
+            _ => return Err("<fence>: give both homeLat and homeLon, or neither".into()),
+        };
+        if self.max_distance.is_some() && home.is_none() {
+            return Err(
+                "<fence>: maxDistance needs homeLat and homeLon (where it is measured from)".into(),
+            );
+        }
+        let action = match &self.action {
+            None => usal_types::FenceAction::default(),
+            Some(a) => a.parse().map_err(|e| format!("<fence action>: {e}"))?,
+        };
+        let fence = Fence {
+            home: home.unwrap_or_default(),
+            max_distance_m: self.max_distance,
+            max_height_m: self.max_height,
+            polygon: self.pt.iter().map(|p| (p.lat, p.lon)).collect(),
+            action,
+        };
+        if fence.is_empty() {
+            return Err("<fence>: set maxDistance, maxHeight or at least 3 <pt> vertices".into());
+        }
+        fence.validate().map_err(|e| format!("<fence>: {e}"))?;
+        Ok(fence)
+    }
+}
+
 /// The `<signing keyFile=".." linkId="1"/>` element of the VAS configuration.
 #[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -218,6 +312,7 @@ impl Default for VasConfig {
             max_altitude_m: val.waypoints.max_alt_m,
             max_waypoints_per_call: val.waypoints.max_per_call,
             max_queued_waypoints: val.waypoints.max_queued,
+            fence: None,
             signing: None,
             pin_autopilot: true,
             autopilot_sysid: None,
@@ -339,6 +434,9 @@ impl VasConfig {
             )));
         }
         self.link_loss()?;
+        if let Some(f) = &self.fence {
+            f.fence().map_err(ConfigLoadError::Invalid)?;
+        }
         if self.max_waypoints_per_call == 0 || self.max_queued_waypoints == 0 {
             return Err(ConfigLoadError::Invalid(
                 "maxWaypointsPerCall and maxQueuedWaypoints must be at least 1".into(),
@@ -432,6 +530,8 @@ impl VasConfig {
                     .collect()
             }),
             manual_skew: Duration::from_millis(self.manual_skew_ms),
+            // Checked by `validate`.
+            fence: self.fence.as_ref().and_then(|f| f.fence().ok()),
             waypoints: crate::val::limits::WaypointLimits {
                 max_alt_m: self.max_altitude_m,
                 max_per_call: self.max_waypoints_per_call,

@@ -70,6 +70,10 @@ struct Args {
     /// correctly signed ones (replaces the file's `<signing>`, keeping its linkId).
     #[arg(long)]
     signing_key: Option<std::path::PathBuf>,
+    /// The vehicle's fence: a file whose root is `<fence>` (as in the configuration file, which
+    /// it replaces): on the autopilot before the vehicle may start, kept for the whole flight.
+    #[arg(long)]
+    fence: Option<std::path::PathBuf>,
 }
 
 #[tokio::main]
@@ -130,6 +134,12 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.target_component.is_some() {
         cfg.target_component = args.target_component;
+    }
+    if let Some(path) = &args.fence {
+        cfg.fence = Some(
+            vas::config::FenceSettings::load(path)
+                .with_context(|| format!("loading the fence {}", path.display()))?,
+        );
     }
     if let Some(key_file) = args.signing_key {
         let link_id = cfg.signing.as_ref().map_or(0, |s| s.link_id);

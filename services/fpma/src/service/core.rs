@@ -47,11 +47,28 @@ pub trait VasPort: Send + Sync {
     async fn push(&self, wps: Vec<usal_types::Waypoint>) -> Result<QueueStatus, String>;
     /// "A new queue follows".
     async fn clear(&self) -> Result<QueueStatus, String>;
-    /// Hands the plan's fence to the VAS (`None`: the plan has none), issue 15. The default
-    /// does nothing (a VAS that checks no fence).
-    async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, String> {
+    /// Hands the plan's fence to the VAS (`None`: the plan has none, the vehicle's own fence
+    /// alone stays in force). The default does nothing (a VAS that checks no fence).
+    async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, FenceRefusal> {
         let _ = fence;
         Ok("no fence on this VAS".into())
+    }
+}
+
+/// Why a plan's fence is not at the VAS.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FenceRefusal {
+    /// The VAS refused it (not a fence, or wider than the vehicle's): the plan cannot fly.
+    Refused(String),
+    /// The VAS did not answer: it checks the vehicle's own fence alone meanwhile.
+    Unreachable(String),
+}
+
+impl std::fmt::Display for FenceRefusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Refused(why) | Self::Unreachable(why) => f.write_str(why),
+        }
     }
 }
 
@@ -325,21 +342,25 @@ impl<V: VasPort> Core<V> {
             .exec
             .as_ref()
             .is_some_and(|ex| ex.plan().fence.is_some());
+        // Before the plan is taken and any of its waypoints goes out, so the VAS checks them
+        // against it; a fence the VAS refuses (wider than the vehicle's) refuses the plan.
+        if fence.is_some() || had_fence {
+            match self.vas.set_fence(fence).await {
+                Ok(m) => tracing::info!("fence of plan `{name}`: {m}"),
+                Err(FenceRefusal::Refused(why)) => {
+                    return Err(format!("{source}: the VAS refused the plan's fence: {why}"))
+                }
+                Err(e @ FenceRefusal::Unreachable(_)) => tracing::warn!(
+                    "the VAS did not take the fence of plan `{name}` (the FPMa checked the plan against it, the VAS checks the vehicle's own): {e}"
+                ),
+            }
+        }
         match &mut self.exec {
             Some(ex) => {
                 ex.replace_plan(plan).map_err(|e| e.to_string())?;
             }
             None => {
                 self.exec = Some(Executive::from_checked(plan));
-            }
-        }
-        // Before any waypoint of the plan goes out, so the VAS checks them against it.
-        if fence.is_some() || had_fence {
-            match self.vas.set_fence(fence).await {
-                Ok(m) => tracing::info!("fence of plan `{name}`: {m}"),
-                Err(e) => tracing::warn!(
-                    "the VAS did not take the fence of plan `{name}` (the FPMa checked the plan against it): {e}"
-                ),
             }
         }
         self.started = Some(Instant::now());
@@ -749,6 +770,8 @@ mod tests {
         replacing: bool,
         last_reached: Option<u64>,
         calls: Vec<String>,
+        /// What `set_fence` answers a fence with (a VAS whose vehicle fence is narrower).
+        fence_refusal: Option<String>,
     }
 
     impl FakeVas {
@@ -814,6 +837,17 @@ mod tests {
             s.calls.push("clear".into());
             s.replacing = true;
             Ok(Self::status(&s))
+        }
+        async fn set_fence(
+            &self,
+            fence: Option<usal_types::Fence>,
+        ) -> Result<String, FenceRefusal> {
+            let mut s = self.st();
+            s.calls.push(format!("set_fence {}", fence.is_some()));
+            match (&s.fence_refusal, fence) {
+                (Some(why), Some(_)) => Err(FenceRefusal::Refused(why.clone())),
+                _ => Ok("fence in force".into()),
+            }
         }
     }
 
@@ -1140,6 +1174,26 @@ mod tests {
         assert!(scan10 < scan6, "{scan10} vs {scan6}");
         assert_eq!(rest.last().unwrap().leg, "app");
         assert!(c.executive().unwrap().state().completed);
+    }
+
+    #[tokio::test]
+    async fn a_plan_whose_fence_the_vas_refuses_is_not_loaded_and_the_flown_plan_stays() {
+        let mut c = core(3);
+        c.load(PLAN, "first.xml").await.unwrap();
+        let before = c.executive().map(Executive::version);
+        c.vas().st().fence_refusal = Some("the plan's fence circle reaches outside".into());
+        let fenced = PLAN.replace("</mission>", r#"</mission><fence maxDistance="500"/>"#);
+        let e = c.load(&fenced, "wide.xml").await.unwrap_err();
+        assert_eq!(
+            e,
+            "wide.xml: the VAS refused the plan's fence: the plan's fence circle reaches outside"
+        );
+        assert_eq!(c.executive().map(Executive::version), before);
+        assert_eq!(c.executive().map(|ex| ex.plan().name.as_str()), Some("t"));
+        assert!(c.executive().is_some_and(|ex| ex.plan().fence.is_none()));
+        c.vas().st().fence_refusal = None;
+        c.load(&fenced, "fits.xml").await.unwrap();
+        assert!(c.executive().is_some_and(|ex| ex.plan().fence.is_some()));
     }
 
     #[tokio::test]

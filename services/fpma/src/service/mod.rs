@@ -22,7 +22,7 @@ use usal_types::{
     Battery, FlightState, MissionChanged, Position, QueueStatus, Waypoint, WaypointReached,
 };
 
-use self::core::{Command, Core, CoreConfig, VasPort};
+use self::core::{Command, Core, CoreConfig, FenceRefusal, VasPort};
 use crate::api::{
     CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanGeometry, PlanLoaded, PlanRejected,
     PlanState, Progress, Readiness, Retask, SetVar,
@@ -307,8 +307,18 @@ impl VasPort for MareaVas {
         call_vas(&self.clear, &(), self.timeout).await
     }
 
-    async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, String> {
-        call_vas(&self.set_fence, &fence, self.timeout).await
+    async fn set_fence(&self, fence: Option<usal_types::Fence>) -> Result<String, FenceRefusal> {
+        let f = &self.set_fence;
+        if !f.has_provider() && !f.wait_provider(self.timeout).await {
+            return Err(FenceRefusal::Unreachable(format!(
+                "no VAS provides {}",
+                f.name()
+            )));
+        }
+        f.call(&fence, self.timeout).await.map_err(|e| match e {
+            marea::CallError::Remote { message, .. } => FenceRefusal::Refused(message),
+            e => FenceRefusal::Unreachable(e.to_string()),
+        })
     }
 }
 

@@ -295,15 +295,15 @@ impl IAutopilot for ArduPilot {
             .wait_connected(wait)
             .await
             .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
-        // Only ArduPilot keeps its fence as FENCE_* parameters; another family would leave
-        // each unknown parameter unanswered through every retry.
-        if self.mgr.family() != crate::mavlink_cm::AutopilotFamily::ArduPilot {
-            return Err(AutopilotError::Unsupported(format!(
-                "fences are uploaded to ArduPilot only, this autopilot is {:?}",
-                self.mgr.family()
-            )));
+        // Each family keeps its fence its own way; another autopilot would leave each unknown
+        // parameter unanswered through every retry.
+        match self.mgr.family() {
+            crate::mavlink_cm::AutopilotFamily::ArduPilot => fence::upload(&self.mgr, f).await,
+            crate::mavlink_cm::AutopilotFamily::Px4 => fence::upload_px4(&self.mgr, f).await,
+            other => Err(AutopilotError::Unsupported(format!(
+                "fences are uploaded to ArduPilot and PX4 only, this autopilot is {other:?}"
+            ))),
         }
-        fence::upload(&self.mgr, f).await
     }
 }
 

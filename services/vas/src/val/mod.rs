@@ -48,9 +48,10 @@ pub struct ValConfig {
     pub manual_skew: Duration,
     /// The lost-ground-link watch (issue 15).
     pub link_loss: linkloss::LinkLossConfig,
-    /// A fence of the VAS's own (issue 15; library users): checked from the start, uploaded
-    /// once the autopilot is configured; a plan's fence (`set_fence`) replaces it, and
-    /// `set_fence(None)` restores it.
+    /// The vehicle's own fence: checked from the start, uploaded once the autopilot is
+    /// configured (the vehicle does not start before the autopilot took it), kept for the
+    /// whole flight; a plan's fence (`set_fence`) may only narrow it, and `set_fence(None)`
+    /// restores it.
     pub fence: Option<Fence>,
 }
 
@@ -101,8 +102,10 @@ struct Core {
     /// Serialises transitions (requests and the autopilot's own changes).
     transition: tokio::sync::Mutex<()>,
     items: Items,
-    /// The fence waypoints are checked against (issue 15).
+    /// The fence in force: waypoints are checked against it, the autopilot enforces it.
     fence: StdMutex<Option<Fence>>,
+    /// Whether the autopilot took the fence in force, and which upload said so last.
+    onboard: StdMutex<(u64, fence::Onboard)>,
 }
 
 use marea::sync::lock;
@@ -183,6 +186,11 @@ impl Core {
             return Err(format!("{cmd} refused in {from}: autopilot not connected"));
         }
         transitions::check_command(kind, from, status.armed, &cmd)?;
+        if matches!(cmd, VehicleCommand::Directed(_)) {
+            lock(&self.onboard)
+                .1
+                .may_start(from, FlightState::Directed)?;
+        }
         self.apl
             .command(cmd)
             .await
@@ -222,6 +230,7 @@ impl Core {
                 "cannot go to {to}: the autopilot is still being configured"
             ));
         }
+        lock(&self.onboard).1.may_start(from, to)?;
         if to == FlightState::WaypointNavigation {
             let q = self.apl.queue_status().await.map_err(|e| e.to_string())?;
             if q.queued == 0 {
@@ -358,42 +367,87 @@ impl Core {
         self.failsafe(FailsafeKind::LinkRestored, action, &text);
     }
 
-    /// Uploads the fence in force again (after the autopilot reconnected).
-    async fn reupload_fence(&self) {
-        let f = lock(&self.fence).clone();
-        if let Err(e) = self.apl.upload_fence(f.as_ref()).await {
+    /// Uploads the fence in force (at start, after the autopilot reconnected, when a plan
+    /// brings its own) and records whether the autopilot took it: a vehicle whose fence the
+    /// autopilot refused does not start, and an alarm says why.
+    ///
+    /// # Errors
+    /// The autopilot's refusal, as the alarm says it.
+    async fn upload_fence(&self) -> Result<(), String> {
+        let (generation, f) = {
+            let mut o = lock(&self.onboard);
+            let f = lock(&self.fence).clone();
+            o.0 += 1;
+            o.1 = fence::Onboard::initial(f.as_ref());
+            (o.0, f)
+        };
+        let result = self.apl.upload_fence(f.as_ref()).await;
+        let (outcome, answer) = match (&f, result) {
+            (Some(_), Ok(())) => (fence::Onboard::Taken, Ok(())),
+            (None, Ok(())) => (fence::Onboard::NoFence, Ok(())),
+            (Some(_), Err(e)) => {
+                let text = format!(
+                    "the autopilot did not take the fence: {e}; the vehicle will not start until it does"
+                );
+                (fence::Onboard::Refused(e.to_string()), Err(text))
+            }
+            // Clearing failed: whatever the autopilot still keeps only holds it tighter.
+            (None, Err(e)) => (
+                fence::Onboard::NoFence,
+                Err(format!("the autopilot did not clear its fence: {e}")),
+            ),
+        };
+        {
+            // A later upload (another plan's fence) has the last word.
+            let mut o = lock(&self.onboard);
+            if o.0 == generation {
+                o.1 = outcome;
+            }
+        }
+        if let Err(text) = &answer {
             self.alarm(
-                Severity::Warning,
-                format!(
-                    "fence kept by the VAS only: the reconnected autopilot did not take it: {e}"
-                ),
+                if f.is_some() {
+                    Severity::Critical
+                } else {
+                    Severity::Warning
+                },
+                text,
             );
         }
+        answer
     }
 
-    /// `set_fence`: checks a plan's fence, uploads it to the autopilot where it takes one, and
-    /// keeps it for the waypoint checks. `None` restores the configured fence.
+    /// `set_fence`: a plan's fence narrows the vehicle's (`None`: the vehicle's alone), is
+    /// uploaded to the autopilot and kept for the waypoint checks.
+    ///
+    /// # Errors
+    /// A fence that is not one, or that reaches outside the vehicle's fence: nothing changes.
+    /// An autopilot that does not take it is not an error of the plan: the answer says so,
+    /// an alarm is raised and the vehicle does not start.
     async fn set_fence(&self, f: Option<Fence>) -> Result<String, String> {
+        let vehicle = self.cfg.fence.as_ref();
         let f = match f {
-            Some(f) if f.is_empty() => None,
+            Some(f) if f.is_empty() => vehicle.cloned(),
             Some(f) => {
                 f.validate().map_err(|e| format!("fence refused: {e}"))?;
-                Some(f)
+                match vehicle {
+                    Some(v) => Some(
+                        v.narrowed_by(&f)
+                            .map_err(|e| format!("fence refused: {e}"))?,
+                    ),
+                    None => Some(f),
+                }
             }
-            None => self.cfg.fence.clone(),
+            None => vehicle.cloned(),
         };
         *lock(&self.fence) = f.clone();
-        match self.apl.upload_fence(f.as_ref()).await {
-            Ok(()) => Ok(match &f {
-                Some(_) => "fence set and uploaded to the autopilot".to_owned(),
-                None => "fence cleared".to_owned(),
+        match self.upload_fence().await {
+            Ok(()) => Ok(match (&f, vehicle) {
+                (Some(_), Some(_)) => "fence in force (the vehicle's, narrowed by the plan's where it sets one) uploaded to the autopilot".to_owned(),
+                (Some(_), None) => "fence set and uploaded to the autopilot".to_owned(),
+                (None, _) => "fence cleared".to_owned(),
             }),
-            Err(e) => {
-                let text =
-                    format!("fence kept by the VAS only: the autopilot did not take it: {e}");
-                self.alarm(Severity::Warning, &text);
-                Ok(text)
-            }
+            Err(text) => Ok(text),
         }
     }
 
@@ -526,6 +580,7 @@ impl IService for Vas {
             transition: tokio::sync::Mutex::new(()),
             items,
             fence: StdMutex::new(self.cfg.fence.clone()),
+            onboard: StdMutex::new((0, fence::Onboard::initial(self.cfg.fence.as_ref()))),
         });
         let _ = core.items.flight_state.set(&FlightState::ConfigureCheck);
         let _ = core.items.queue.set(&QueueStatus::default());
@@ -613,16 +668,16 @@ impl IService for Vas {
                     ev = events.recv() => match ev {
                         Ok(ev @ (ApEvent::Configured | ApEvent::LinkRestored)) => {
                             c.on_ap(ev).await;
-                            // A restarted (reconnected) autopilot may have lost the fence:
-                            // upload it again, beside the event loop (a few parameters and a
-                            // transfer).
+                            // The fence goes up before the vehicle may start, and again to a
+                            // restarted (reconnected) autopilot, which may have lost it: beside
+                            // the event loop (a few parameters and a transfer).
                             if lock(&c.fence).is_some() {
                                 let c2 = c.clone();
                                 let cx2 = cx.clone();
                                 cx.spawn(async move {
                                     tokio::select! {
                                         () = cx2.cancelled() => {}
-                                        () = c2.reupload_fence() => {}
+                                        _ = c2.upload_fence() => {}
                                     }
                                 });
                             }
