@@ -824,8 +824,8 @@ fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resum
         dir.path(),
         "rover-takeover.xml",
         &[(
-            r#"<vas vehicle="rover" queueSize="5" telemetryHz="4"/>"#,
-            r#"<vas vehicle="rover" queueSize="5" telemetryHz="4" config="vas.xml"/>"#,
+            r#"<vas vehicle="rover" queueSize="5" telemetryHz="4">"#,
+            r#"<vas vehicle="rover" queueSize="5" telemetryHz="4" config="vas.xml">"#,
         )],
     );
     let mut gcs = Command::new(&py)
@@ -1063,6 +1063,98 @@ fn with_start_by_the_operator_a_restarted_vas_waits_for_the_pilot() {
                 || (v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION")
         },
     );
+}
+
+/// The FMo's state (`/api/state`) as JSON, from its URL as `usal run`'s log prints it.
+fn fmo_state(url: &str) -> Value {
+    let (base, token) = url
+        .split_once("/?token=")
+        .expect("a token in the FMo's URL");
+    let addr = base.trim_start_matches("http://");
+    let mut conn = std::net::TcpStream::connect(addr).expect("the FMo answers");
+    conn.set_read_timeout(Some(STEP)).expect("a read timeout");
+    write!(
+        conn,
+        "GET /api/state HTTP/1.1\r\nHost: {addr}\r\nX-Station-Token: {}\r\nConnection: close\r\n\r\n",
+        token.trim()
+    )
+    .expect("the request goes out");
+    let mut reply = String::new();
+    conn.read_to_string(&mut reply).expect("the FMo's reply");
+    let body = reply.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    serde_json::from_str(body).unwrap_or_else(|e| panic!("the FMo's state: {e}: {reply}"))
+}
+
+/// A vehicle fence the autopilot does not take (600 vertices, more than mavsim's fence
+/// storage of 500: MAV_MISSION_NO_SPACE, as a small board answers) keeps the rover parked:
+/// `usal run` prints the VAS's reason for refusing Start, the FMo shows the VAS's alarm, and
+/// the rover never navigates.
+#[test]
+fn a_vehicle_fence_the_autopilot_refuses_keeps_the_rover_parked_and_says_why() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = demo_mission_with(dir.path(), "rover-big-fence.xml", &[]);
+    let text = std::fs::read_to_string(&mission).expect("the mission");
+    let from = text
+        .find(r#"<fence maxDistance="300""#)
+        .expect("the demo's vehicle fence");
+    let to = from + text[from..].find("</fence>").expect("its end") + "</fence>".len();
+    let pts: String = (0..600)
+        .map(|i| {
+            let a = f64::from(i) / 600.0 * std::f64::consts::TAU;
+            let (n, e) = (250.0 * a.cos(), 250.0 * a.sin());
+            format!(
+                r#"<pt lat="{:.7}" lon="{:.7}"/>"#,
+                41.275 + n / 111_195.0,
+                1.987 + e / (111_195.0 * 41.275_f64.to_radians().cos())
+            )
+        })
+        .collect();
+    let big = format!(r#"<fence action="hold">{pts}</fence>"#);
+    std::fs::write(&mission, format!("{}{big}{}", &text[..from], &text[to..]))
+        .expect("write the mission");
+
+    let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "5"]);
+    let refused = l.expect(STEP, "Start refused for the fence", |v| {
+        v["event"] == "navigation_refused"
+            && v["reason"]
+                .as_str()
+                .is_some_and(|r| r.contains("did not take the fence"))
+    });
+    let reason = refused["reason"].as_str().unwrap_or_default();
+    assert!(
+        reason.contains("does not start without it") && reason.contains("fence transfer"),
+        "{reason}"
+    );
+    l.none_within(Duration::from_secs(4), "the rover started", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+    let url = l
+        .stderr
+        .lock()
+        .unwrap()
+        .lines()
+        .find_map(|line| {
+            line.split_once("[ground/fmo] FMO_URL=")
+                .map(|(_, u)| u.trim().to_owned())
+        })
+        .expect("the FMo's URL in the merged log");
+    let deadline = Instant::now() + STEP;
+    loop {
+        let state = fmo_state(&url).to_string();
+        if state.contains("did not take the fence") {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no fence alarm in the FMo: {state}"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    l.signal("INT");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    assert_no_child_left(&l.pids());
 }
 
 /// `usal run` killed with SIGKILL mid-flight (it can stop nothing itself) leaves no child

@@ -154,6 +154,9 @@ pub struct VasSpec {
     pub telemetry_hz: Option<f64>,
     /// A `vas -c` file.
     pub config: Option<PathBuf>,
+    /// The vehicle's own fence (`<fence>` inside `<vas>`, the plan's form): on the autopilot
+    /// before the vehicle may start and for the whole flight; plans may only narrow it.
+    pub fence: Option<usal_types::Fence>,
 }
 
 /// `<fpma>` settings.
@@ -687,6 +690,54 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     })
 }
 
+/// A vehicle's `<fence>` (the plan's form). A `maxDistance` is measured from the fence's own
+/// home, else from the node's simulator's home.
+fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::Fence, Fault> {
+    let pf = fpma::parse::parse_fence(el).map_err(|e| Fault {
+        line: e.line as usize,
+        column: e.col as usize,
+        element: el.name.clone(),
+        message: e.kind.to_string(),
+    })?;
+    let mut fence = pf.fence;
+    if !pf.home_given && fence.max_distance_m.is_some() {
+        let sim_home = services.iter().find_map(|s| match s {
+            ServiceSpec::Mavsim(m) => Some(m.home.clone()),
+            _ => None,
+        });
+        let home = sim_home.flatten().and_then(|h| {
+            let mut it = h.split(',').map(|x| x.trim().parse::<f64>().ok());
+            Some((it.next()??, it.next()??))
+        });
+        fence.home = home.ok_or_else(|| {
+            Fault::at(
+                el,
+                "maxDistance needs homeLat and homeLon, or a <mavsim home> before the <vas> in this node",
+            )
+        })?;
+    }
+    Ok(fence)
+}
+
+/// `fence` as the `<fence>` file `vas --fence` reads.
+pub fn fence_xml(fence: &usal_types::Fence) -> String {
+    use std::fmt::Write;
+    let mut out = String::from("<fence");
+    if let Some(d) = fence.max_distance_m {
+        let (lat, lon) = fence.home;
+        let _ = write!(out, r#" maxDistance="{d}" homeLat="{lat}" homeLon="{lon}""#);
+    }
+    if let Some(h) = fence.max_height_m {
+        let _ = write!(out, r#" maxHeight="{h}""#);
+    }
+    let _ = writeln!(out, r#" action="{}">"#, fence.action.name());
+    for (lat, lon) in &fence.polygon {
+        let _ = writeln!(out, r#"  <pt lat="{lat}" lon="{lon}"/>"#);
+    }
+    out.push_str("</fence>\n");
+    out
+}
+
 fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
     let mut a = Attrs::new(el, &["name", "namespace", "network"]);
     let name = a.req("name")?;
@@ -769,14 +820,24 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     s,
                     &["vehicle", "endpoint", "queueSize", "telemetryHz", "config"],
                 );
-                let spec = VasSpec {
+                let mut spec = VasSpec {
                     vehicle: a.one_of("vehicle", &["rover", "copter", "plane"], "rover")?,
                     endpoint: a.opt("endpoint"),
                     queue_size: a.parsed("queueSize", "a whole number")?,
                     telemetry_hz: a.parsed("telemetryHz", "a number")?,
                     config: a.file("config", base)?,
+                    fence: None,
                 };
                 a.finish()?;
+                for c in &s.children {
+                    if c.name != "fence" || spec.fence.is_some() {
+                        return Err(Fault::at(
+                            c,
+                            "<vas> holds at most one <fence> (the vehicle's own fence)",
+                        ));
+                    }
+                    spec.fence = Some(vehicle_fence(c, &services)?);
+                }
                 ServiceSpec::Vas(spec)
             }
             "fpma" => {
@@ -1140,6 +1201,63 @@ mod tests {
     <station plan="../flightplans/rover-carpark.xml"/>
   </node>
 </mission>"#;
+
+    #[test]
+    fn a_vehicle_fence_parses_in_the_plan_s_form_and_reaches_the_vas_as_written() {
+        let with = |fence: &str| {
+            parse(&GOOD.replace(
+                r#"<vas vehicle="rover" queueSize="5"/>"#,
+                &format!(r#"<vas vehicle="rover" queueSize="5">{fence}</vas>"#),
+            ))
+        };
+        let vas = |m: &Mission| {
+            m.nodes[0]
+                .services
+                .iter()
+                .find_map(|s| match s {
+                    ServiceSpec::Vas(v) => v.fence.clone(),
+                    _ => None,
+                })
+                .expect("the vehicle's fence")
+        };
+        // maxDistance from the simulator's home; the polygon as written.
+        let m = with(
+            r#"<fence maxDistance="400" maxHeight="30" action="hold"><pt lat="41.274" lon="1.986"/><pt lat="41.277" lon="1.986"/><pt lat="41.277" lon="1.989"/></fence>"#,
+        )
+        .unwrap();
+        let f = vas(&m);
+        assert_eq!(
+            (f.home, f.max_distance_m, f.max_height_m),
+            ((41.275, 1.987), Some(400.0), Some(30.0))
+        );
+        assert_eq!(
+            (f.polygon.len(), f.action),
+            (3, usal_types::FenceAction::Hold)
+        );
+        // What the VAS reads back is the same fence.
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("fence.xml");
+        std::fs::write(&file, fence_xml(&f)).unwrap();
+        let back = vas::config::FenceSettings::load(&file)
+            .unwrap()
+            .fence()
+            .unwrap();
+        assert_eq!(back, f);
+
+        let e = with(r#"<fence maxDistance="-4"/>"#).unwrap_err();
+        assert!(
+            e.starts_with("6:") && e.contains("<fence>") && e.contains("maxDistance"),
+            "{e}"
+        );
+        let e = with(r#"<fence maxDistance="100"/><fence maxHeight="3"/>"#).unwrap_err();
+        assert!(e.contains("at most one <fence>"), "{e}");
+        let no_home = GOOD.replace(r#" home="41.275,1.987,0""#, "").replace(
+            r#"<vas vehicle="rover" queueSize="5"/>"#,
+            r#"<vas vehicle="rover" queueSize="5"><fence maxDistance="100"/></vas>"#,
+        );
+        let e = parse(&no_home).unwrap_err();
+        assert!(e.contains("maxDistance needs homeLat and homeLon"), "{e}");
+    }
 
     #[test]
     fn a_node_s_access_rules_parse_as_in_network_xml_and_errors_name_the_line() {

@@ -606,6 +606,14 @@ async fn start_services(
                     if let Some(c) = &v.config {
                         a.extend(["-c".into(), c.display().to_string()]);
                     }
+                    if let Some(f) = &v.fence {
+                        let dir = scratch.join(&node.name);
+                        let file = dir.join("vehicle-fence.xml");
+                        std::fs::create_dir_all(&dir)
+                            .and_then(|()| std::fs::write(&file, mission::fence_xml(f)))
+                            .with_context(|| format!("writing {}", file.display()))?;
+                        a.extend(["--fence".into(), file.display().to_string()]);
+                    }
                     if let Some(e) = endpoint {
                         a.extend(["--endpoint".into(), e]);
                     }

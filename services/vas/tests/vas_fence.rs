@@ -145,3 +145,126 @@ async fn fence_uploaded_enforced_and_waypoints_outside_refused() {
         .await
         .expect("the test took too long");
 }
+
+/// The vehicle's own fence (`vas --fence`, what `usal run` gives from the mission), on
+/// `profile`'s autopilot: uploaded before the rover may start, never taken down by a plan
+/// without a fence, narrowed by a plan's fence and never widened by one.
+async fn vehicle_fence_on(profile: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("fence.xml");
+    let pts: String = [
+        (-150.0, -150.0),
+        (-150.0, 150.0),
+        (150.0, 150.0),
+        (150.0, -150.0),
+    ]
+    .iter()
+    .map(|&(n, e)| {
+        let (lat, lon) = at(n, e);
+        format!(r#"<pt lat="{lat}" lon="{lon}"/>"#)
+    })
+    .collect();
+    std::fs::write(
+        &file,
+        format!(
+            r#"<fence maxDistance="200" homeLat="{}" homeLon="{}" action="hold">{pts}</fence>"#,
+            HOME.0, HOME.1
+        ),
+    )
+    .unwrap();
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        5.0,
+        &dir.path().join("sim.jsonl"),
+        &["--autopilot", profile],
+    )
+    .await;
+    let domain = unique_domain("vfence");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--fence", file.to_str().unwrap()],
+    );
+    let g = Ground::open(&domain).await;
+    let set_fence = g
+        .svc
+        .function::<Option<Fence>, String>("rover1/vas/set_fence")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+    sim.wait_log(
+        "fence_uploaded",
+        STEP,
+        "the vehicle's fence never reached the autopilot",
+        |r| r.iter().any(|r| r["vertices"] == 4),
+    )
+    .await;
+
+    // A plan without a fence: the vehicle's stays, on the VAS and on the autopilot.
+    let reply = set_fence.call(&None, STEP).await.expect("no plan fence");
+    assert!(reply.contains("fence in force"), "{reply}");
+    let e = g
+        .push
+        .call(&vec![wp_at(1, at(180.0, 0.0))], STEP)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("outside the fence polygon"), "{e}");
+    // A plan's fence reaching beyond the vehicle's is refused; nothing changes.
+    let mut wide = fence(300.0);
+    wide.polygon.clear();
+    let e = set_fence
+        .call(&Some(wide), STEP)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(
+            "the plan's fence circle (300 m around its home) reaches outside the vehicle's fence"
+        ),
+        "{e}"
+    );
+    // A narrower one is in force on top of the vehicle's.
+    let mut narrow = fence(60.0);
+    narrow.polygon.clear();
+    let reply = set_fence.call(&Some(narrow), STEP).await.expect("narrower");
+    assert!(reply.contains("uploaded to the autopilot"), "{reply}");
+    let e = g
+        .push
+        .call(&vec![wp_at(1, at(100.0, 0.0))], STEP)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("(fence: 60 m)"), "{e}");
+    assert!(
+        sim.log_events("fence_uploaded")
+            .iter()
+            .all(|r| r["vertices"] == 4),
+        "the vehicle's polygon was taken down: {:?}",
+        sim.log_events("fence_uploaded")
+    );
+    // With the fence on board the rover starts.
+    g.push_all(&zigzag(4, 10.0)).await;
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigation with the fence on board");
+
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
+fn wp_at(seq: u64, (lat, lon): (f64, f64)) -> Waypoint {
+    Waypoint {
+        seq,
+        lat,
+        lon,
+        ..zigzag(1, 10.0)[0].clone()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vehicle_fence_is_on_ardupilot_before_start_and_plans_only_narrow_it() {
+    tokio::time::timeout(Duration::from_secs(120), vehicle_fence_on("ardupilot"))
+        .await
+        .expect("the vehicle fence test ran past its bound");
+}

@@ -240,6 +240,16 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
     Ok(plan)
 }
 
+/// Reads a `<fence maxDistance maxHeight homeLat homeLon action><pt lat lon/>...</fence>`
+/// element: a plan's, or a vehicle's in a mission file (the same form). Its home stays unset
+/// (`home_given` false) when it names none.
+///
+/// # Errors
+/// What is wrong with the fence, at its position.
+pub fn parse_fence(f: &Element) -> Result<PlanFence> {
+    fence_from(f)
+}
+
 /// `<fence maxDistance maxHeight homeLat homeLon action><pt lat lon/>...</fence>`.
 fn fence_from(f: &Element) -> Result<PlanFence> {
     allow(
