@@ -579,6 +579,41 @@ fn a_call_expired_while_waiting_never_runs_and_a_newer_one_supersedes_a_waiting_
     });
 }
 
+/// A provider learns who called, as its access rules see it: the calling node's namespace
+/// and name, over the network and within its own node.
+#[test]
+fn a_provider_learns_who_called() {
+    let net = Net::new("access-caller");
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    rt.block_on(async {
+        let gs = Node::open(&cfg(&net, "gs", "ground")).await.expect("gs");
+        let air = Node::open(&cfg(&net, "air", "rover1")).await.expect("air");
+        let vas = air.service("vas").expect("vas");
+        let _who = vas
+            .provide_function_with_caller("who", |(): (), caller: marea::Caller| async move {
+                Ok::<String, String>(caller.to_string())
+            })
+            .expect("provide");
+        let remote = gs
+            .service("fmo")
+            .expect("fmo")
+            .function::<(), String>("rover1/vas/who")
+            .expect("function");
+        assert!(remote.wait_provider(T).await);
+        assert_eq!(remote.call(&(), T).await.as_deref(), Ok("ground/gs"));
+        let local = air
+            .service("fpma")
+            .expect("fpma")
+            .function::<(), String>("rover1/vas/who")
+            .expect("function");
+        assert!(local.wait_provider(T).await);
+        assert_eq!(local.call(&(), T).await.as_deref(), Ok("rover1/air"));
+        drop((remote, local, vas));
+        gs.shutdown().await;
+        air.shutdown().await;
+    });
+}
+
 /// Only a gateway may say whom it relays a call for. A plain node (`evil`, no gateway) sends
 /// calls of every id a small node may use, each claiming to be relayed for `ground/fmo`,
 /// whom the victim's `<access>` lets call: none runs, each is refused and counted, while a

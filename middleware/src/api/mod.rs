@@ -27,7 +27,7 @@ pub use shared_str::SharedStr;
 pub use subscription::{CallbackSubscription, EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 
-pub use crate::node::call::CallError;
+pub use crate::node::call::{CallError, Caller};
 pub use crate::node::files::{FileSinkOptions, FileSinkStats, ReceivedFile};
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;

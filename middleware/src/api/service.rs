@@ -392,20 +392,41 @@ impl Service {
         F: Fn(A) -> Fut + Send + Sync + 'static,
         Fut: std::future::Future<Output = Result<R, String>> + Send + 'static,
     {
+        self.provide_function_with_caller(item, move |a: A, _caller| handler(a))
+    }
+
+    /// Like [`Service::provide_function`], with the [`Caller`](crate::Caller) of each call
+    /// given to `handler` beside its arguments: who sent a command, for its log.
+    ///
+    /// # Errors
+    /// [`DeclareError`] for an invalid name or a stopping node.
+    pub fn provide_function_with_caller<A, R, F, Fut>(
+        &self,
+        item: &str,
+        handler: F,
+    ) -> Result<FunctionProvider, DeclareError>
+    where
+        A: Payload,
+        R: Payload,
+        F: Fn(A, crate::node::call::Caller) -> Fut + Send + Sync + 'static,
+        Fut: std::future::Future<Output = Result<R, String>> + Send + 'static,
+    {
         let handler = Arc::new(handler);
-        let raw: crate::node::call::RawHandler = Arc::new(move |args: Vec<u8>| {
-            let handler = handler.clone();
-            let fut: BoxFuture<Result<Vec<u8>, crate::protocol::RemoteFailure>> =
-                Box::pin(async move {
-                    use crate::protocol::RemoteFailure;
-                    let a: A = crate::codec::decode_payload(&args)
-                        .map_err(|e| RemoteFailure::BadArguments(e.to_string()))?;
-                    let r = handler(a).await.map_err(RemoteFailure::Handler)?;
-                    crate::codec::encode_payload(&r)
-                        .map_err(|e| RemoteFailure::Handler(format!("cannot encode result: {e}")))
-                });
-            fut
-        });
+        let raw: crate::node::call::RawHandler =
+            Arc::new(move |args: Vec<u8>, caller: crate::node::call::Caller| {
+                let handler = handler.clone();
+                let fut: BoxFuture<Result<Vec<u8>, crate::protocol::RemoteFailure>> =
+                    Box::pin(async move {
+                        use crate::protocol::RemoteFailure;
+                        let a: A = crate::codec::decode_payload(&args)
+                            .map_err(|e| RemoteFailure::BadArguments(e.to_string()))?;
+                        let r = handler(a, caller).await.map_err(RemoteFailure::Handler)?;
+                        crate::codec::encode_payload(&r).map_err(|e| {
+                            RemoteFailure::Handler(format!("cannot encode result: {e}"))
+                        })
+                    });
+                fut
+            });
         let (offer, declared) = self.offer(
             item,
             ItemKind::Function,

@@ -190,9 +190,31 @@ impl CallError {
     }
 }
 
-/// A type-erased function handler: encoded arguments in, encoded result out.
+/// Who made a call, as the provider's access rules see it: the calling node's namespace and
+/// name (through gateways, the node the call started at; proven by its identity key where the
+/// domain has a roster).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct Caller {
+    /// The calling node's namespace (empty: none, e.g. a `usal` tool).
+    pub namespace: String,
+    /// The calling node's name.
+    pub node: String,
+}
+
+impl std::fmt::Display for Caller {
+    /// `namespace/node`, or the node alone without a namespace.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.namespace.is_empty() {
+            f.write_str(&self.node)
+        } else {
+            write!(f, "{}/{}", self.namespace, self.node)
+        }
+    }
+}
+
+/// A type-erased function handler: encoded arguments and the caller in, encoded result out.
 pub(crate) type RawHandler =
-    Arc<dyn Fn(Vec<u8>) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
+    Arc<dyn Fn(Vec<u8>, Caller) -> BoxFuture<Result<Vec<u8>, RemoteFailure>> + Send + Sync>;
 
 /// Who answers a call, with the type it declared.
 pub(crate) enum Provider {
@@ -460,7 +482,17 @@ impl NodeInner {
         caller: Option<Origin>,
     ) -> Result<Vec<u8>, CallError> {
         match provider {
-            Provider::Local(handler, _) => match tokio::time::timeout(timeout, handler(args)).await
+            Provider::Local(handler, _) => match tokio::time::timeout(
+                timeout,
+                handler(
+                    args,
+                    Caller {
+                        namespace: self.me.namespace.clone().unwrap_or_default(),
+                        node: self.me.name.clone(),
+                    },
+                ),
+            )
+            .await
             {
                 Ok(r) => r.map_err(|f| CallError::from_remote(&self.me.name, name, timeout, f)),
                 Err(_) => Err(CallError::Timeout {
@@ -547,8 +579,13 @@ impl NodeInner {
         let run: LaneRun = match &offer.role {
             OfferRole::Function { handler } => {
                 let handler = handler.clone();
+                let origin = self.caller_to_relay(node, caller.as_ref());
+                let who = Caller {
+                    namespace: origin.namespace,
+                    node: origin.name,
+                };
                 Arc::new(move |args, left: Duration| {
-                    let call = handler(args);
+                    let call = handler(args, who.clone());
                     // The caller gives up when its time runs out; the handler is given a
                     // little more, so the caller sees its own timeout, not a remote error.
                     let limit = left * 3 / 2 + Duration::from_millis(100);
@@ -829,7 +866,7 @@ mod tests {
         let (tx, ran) = tokio::sync::mpsc::unbounded_channel();
         let gate = Arc::new(tokio::sync::Semaphore::new(0));
         let g = gate.clone();
-        let handler: RawHandler = Arc::new(move |args: Vec<u8>| {
+        let handler: RawHandler = Arc::new(move |args: Vec<u8>, _caller| {
             let (tx, g) = (tx.clone(), g.clone());
             Box::pin(async move {
                 let x: u64 = crate::codec::decode_payload(&args)
