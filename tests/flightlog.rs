@@ -130,6 +130,37 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
         .collect();
     assert_eq!(ts.len(), records.len() - 1, "a record without t");
     assert!(ts.windows(2).all(|w| w[1] >= w[0]), "{ts:?}");
+    // Every command the vehicle received is there, with who sent it and the answer: here the
+    // station's Start.
+    let start = named("rover1/vas/commands")
+        .find(|r| r["value"]["command"] == "change_state")
+        .unwrap_or_else(|| panic!("no change_state in rover1/vas/commands"));
+    assert_eq!(start["kind"], "command", "{start}");
+    assert!(
+        start["value"]["from"]
+            .as_str()
+            .is_some_and(|f| f.starts_with("gcs/"))
+            && start["value"]["ok"] == true
+            && start["value"]["args"] == "WaypointNavigation",
+        "{start}"
+    );
+    // The air side kept its own log beside the ground's: states, the command, mission traffic.
+    let air = std::fs::read_to_string(dir.path().join("flight.air/air/vas-air.jsonl"))
+        .expect("the air node's VAS log beside the flight log");
+    let air: Vec<Value> = air
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("an air log line is JSON"))
+        .collect();
+    assert_eq!(air[0]["format"], "usal-air-log");
+    assert!(air
+        .iter()
+        .any(|r| r["kind"] == "state" && r["to"] == "WAYPOINT_NAVIGATION"));
+    assert!(air.iter().any(|r| r["kind"] == "command"
+        && r["command"] == "change_state"
+        && r["from"] == start["value"]["from"]));
+    assert!(air
+        .iter()
+        .any(|r| r["kind"] == "mission" && r["op"] == "push" && r["ok"] == true));
     let reached_in_log = named("rover1/fpma/plan_event")
         .filter(|r| r["value"]["kind"]["WaypointReached"].is_object())
         .count();
@@ -156,11 +187,17 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
         .args(["--domain", &domain, "--mcast-port", &port.to_string()])
         .args(["replay", "--speed", "5"])
         .arg(&log)
-        .stdout(Stdio::null())
+        .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .kill_on_drop(true)
         .spawn()
         .expect("usal replay starts");
+    let mut replay_out = replay.stdout.take().expect("piped");
+    let shown = tokio::spawn(async move {
+        let mut text = String::new();
+        let _ = tokio::io::AsyncReadExt::read_to_string(&mut replay_out, &mut text).await;
+        text
+    });
     let watch = async {
         let (mut seen_states, mut reached) = (Vec::new(), 0usize);
         loop {
@@ -194,6 +231,14 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
         .expect("usal replay ends")
         .expect("status");
     assert!(status.success(), "{status}");
+    // The replay shows the vehicle's own log with the ground's: the Start as the VAS took it.
+    let shown = shown.await.expect("the replay's output");
+    assert!(
+        shown.contains("with the air-side logs of air:")
+            && shown.contains("air air: command from gcs/")
+            && shown.contains("change_state(WaypointNavigation) -> ok"),
+        "{shown}"
+    );
     // The FPMo drew the replayed flight: the plan, the track, its completion.
     let s = fpmo
         .wait_state("the replayed plan completed in the FPMo", |s| {

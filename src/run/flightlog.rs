@@ -336,6 +336,21 @@ pub fn utc_text(secs: u64, pretty: bool) -> String {
     }
 }
 
+/// Where the air-side logs of the run whose flight log is `log` are kept: beside it, one
+/// directory per node (`logs/rover-demo-20261128T094500Z.air/air/vas-air.jsonl`), written by
+/// each node's VAS (`vas --air-log`) and read by `usal replay` with the ground log.
+pub fn air_dir(log: &Path) -> PathBuf {
+    let name = log
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let stem = name
+        .strip_suffix(".jsonl.gz")
+        .or_else(|| name.strip_suffix(".jsonl"))
+        .or_else(|| name.strip_suffix(".gz"))
+        .unwrap_or(&name);
+    log.with_file_name(format!("{stem}.air"))
+}
+
 /// The record kind of a value that travelled on the middleware, from its name and type.
 pub fn kind_of(name: &str, type_name: &str) -> &'static str {
     let ty = type_name.rsplit("::").next().unwrap_or(type_name);
@@ -343,7 +358,7 @@ pub fn kind_of(name: &str, type_name: &str) -> &'static str {
         "LinkHealth" => "link",
         "FlightState" | "StateChanged" => "state",
         "Alarm" | "Failsafe" => "alarm",
-        "ManualCommand" | "ManualControl" => "command",
+        "ManualCommand" | "ManualControl" | "CommandRecord" => "command",
         _ if type_name.starts_with("fpma::") || name.split('/').any(|s| s == "fpma") => "plan",
         _ => "telemetry",
     }

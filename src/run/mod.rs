@@ -374,12 +374,14 @@ async fn run(
         .as_ref()
         .map(|l| start_recorder(l, &stations, &mission, &domain, &log_stop, &ui));
     let mavlink_key = sealed.as_ref().map(seal::Sealed::mavlink_key);
+    let air_logs = log.as_ref().map(|l| flightlog::air_dir(l.path()));
     let code = match start_services(
         &mission,
         &domain,
         &bins,
         args,
         mavlink_key.as_deref(),
+        air_logs.as_deref(),
         &scratch,
         &mut sup,
         &mut notices,
@@ -526,6 +528,7 @@ async fn start_services(
     bins: &Bins,
     args: &RunArgs,
     signing_key: Option<&Path>,
+    air_logs: Option<&Path>,
     scratch: &Path,
     sup: &mut Supervisor,
     notices: &mut broadcast::Receiver<Notice>,
@@ -605,6 +608,12 @@ async fn start_services(
                     }
                     if let Some(c) = &v.config {
                         a.extend(["-c".into(), c.display().to_string()]);
+                    }
+                    if let Some(dir) = air_logs {
+                        a.extend([
+                            "--air-log".into(),
+                            dir.join(&node.name).display().to_string(),
+                        ]);
                     }
                     if let Some(f) = &v.fence {
                         let dir = scratch.join(&node.name);

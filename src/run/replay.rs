@@ -2,6 +2,9 @@
 //! variable and event is published again under its recorded name and type, at the recorded
 //! pace (times `--speed`), so an FMo and an FPMo joined to the same domain show the flight as
 //! the pilot saw it. Nothing is called: commands in the log are shown, not sent again.
+//!
+//! The air-side logs the run's VASes kept beside it (`flightlog::air_dir`) are shown with it,
+//! each record at its time: what the vehicle saw, also while the ground link was lost.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -111,6 +114,84 @@ fn scan(path: &Path) -> Result<Scan, FlightLogReadError> {
     Ok(s)
 }
 
+/// One record of an air-side log: when (seconds from the ground log's start), which node,
+/// and the record.
+struct AirRecord {
+    t: f64,
+    node: String,
+    record: Value,
+}
+
+/// The air-side records of the run whose log is `log` (none when it kept none), oldest first;
+/// `started_unix_ms` is the ground log's start. Unreadable lines are counted.
+fn air_records(log: &Path, started_unix_ms: Option<u64>) -> (Vec<AirRecord>, usize) {
+    let (mut out, mut bad) = (Vec::new(), 0);
+    let Some(start) = started_unix_ms else {
+        return (out, bad);
+    };
+    let Ok(nodes) = std::fs::read_dir(super::flightlog::air_dir(log)) else {
+        return (out, bad);
+    };
+    for entry in nodes.flatten() {
+        let node = entry.file_name().to_string_lossy().into_owned();
+        // The rotated file first: it holds the older records.
+        for file in ["vas-air.1.jsonl", "vas-air.jsonl"] {
+            let Ok(text) = std::fs::read_to_string(entry.path().join(file)) else {
+                continue;
+            };
+            for line in text.lines().filter(|l| !l.trim().is_empty()) {
+                match serde_json::from_str::<Value>(line) {
+                    Ok(v) if v["format"].is_string() => {}
+                    Ok(v) => match (v["unix_ms"].as_u64(), v["kind"].as_str()) {
+                        (Some(ms), Some(_)) => out.push(AirRecord {
+                            t: (ms as f64 - start as f64) / 1000.0,
+                            node: node.clone(),
+                            record: v,
+                        }),
+                        _ => bad += 1,
+                    },
+                    Err(_) => bad += 1,
+                }
+            }
+        }
+    }
+    out.sort_by(|a, b| a.t.total_cmp(&b.t));
+    (out, bad)
+}
+
+/// An air-side record as a line: `air air: command ground/gs change_state(...) -> ok: ...`.
+fn show_air(a: &AirRecord, json_out: bool) {
+    let r = &a.record;
+    let s = |k: &str| r[k].as_str().unwrap_or("?").to_owned();
+    let text = match r["kind"].as_str().unwrap_or("?") {
+        "command" => format!(
+            "command from {} {}({}) -> {}: {}",
+            s("from"),
+            s("command"),
+            s("args"),
+            if r["ok"] == true { "ok" } else { "refused" },
+            s("answer")
+        ),
+        "state" => format!("state {} -> {} ({})", s("from"), s("to"), s("cause")),
+        "failsafe" => format!(
+            "failsafe {} ({}): {}",
+            s("failsafe"),
+            s("action"),
+            s("text")
+        ),
+        "alarm" => format!("alarm {}: {}", s("severity"), s("text")),
+        kind => format!("{kind} {}", r),
+    };
+    if json_out {
+        say!(
+            "{}",
+            json!({"event": "air_record", "t": a.t, "node": a.node, "kind": r["kind"], "text": text})
+        );
+    } else {
+        say!("[{:>7.1} s] air {}: {text}", a.t, a.node);
+    }
+}
+
 /// Runs `usal replay` on `node` (already joined); `wait` is the discovery time given to
 /// stations before the first record.
 ///
@@ -205,6 +286,28 @@ pub async fn run(
             say!("  not replayed: {s}");
         }
     }
+    let (air, air_bad) = air_records(path, scan.header["started_unix_ms"].as_u64());
+    if !air.is_empty() || air_bad > 0 {
+        let nodes: std::collections::BTreeSet<&str> = air.iter().map(|a| a.node.as_str()).collect();
+        if json_out {
+            say!(
+                "{}",
+                json!({"event": "air_logs", "records": air.len(), "nodes": nodes, "unreadable": air_bad})
+            );
+        } else {
+            say!(
+                "with the air-side logs of {}: {} records{}",
+                nodes.into_iter().collect::<Vec<_>>().join(", "),
+                air.len(),
+                if air_bad > 0 {
+                    format!(" ({air_bad} unreadable lines skipped)")
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
+    let mut air = std::collections::VecDeque::from(air);
     tokio::time::sleep(wait).await;
 
     let (mut reader, _) = match tokio::task::block_in_place(|| LogReader::open(path)) {
@@ -225,6 +328,11 @@ pub async fn run(
         if r.t < args.from_s {
             continue;
         }
+        while air.front().is_some_and(|a| a.t <= r.t) {
+            if let Some(a) = air.pop_front().filter(|a| a.t >= args.from_s) {
+                show_air(&a, json_out);
+            }
+        }
         let at = start + Duration::from_secs_f64((r.t - args.from_s) / args.speed);
         tokio::time::sleep_until(at).await;
         if let Ok(Some((name, event, _, bytes))) = published(&r, &reader) {
@@ -239,6 +347,9 @@ pub async fn run(
             }
         }
         show(&r, &mut last_state, json_out);
+    }
+    for a in air.iter().filter(|a| a.t >= args.from_s) {
+        show_air(a, json_out);
     }
     // Let the last values leave before the node goes.
     tokio::time::sleep(Duration::from_millis(300)).await;
@@ -294,6 +405,23 @@ fn show(r: &Record, last_state: &mut String, json_out: bool) {
         }
         "plan" if f["item"] == "event" => plan_event(f),
         "alarm" => format!("alarm {}", f["value"]),
+        "command" if f["value"]["from"].is_string() => {
+            // A command a service received (`commands`): who sent it and the answer.
+            let v = &f["value"];
+            let s = |k: &str| v[k].as_str().unwrap_or("?").to_owned();
+            format!(
+                "command to {} from {} {}({}) -> {}: {}",
+                f["name"]
+                    .as_str()
+                    .unwrap_or("?")
+                    .trim_end_matches("/commands"),
+                s("from"),
+                s("command"),
+                s("args"),
+                if v["ok"] == true { "ok" } else { "refused" },
+                s("answer")
+            )
+        }
         "command" if f["item"].is_null() => {
             let answer = f
                 .get("answer")

@@ -101,6 +101,7 @@ fn registry() -> Vec<Known> {
         DirectedTarget,
         CommandReply,
         AllowedChanges,
+        CommandRecord,
         fpma::api::Readiness,
         marea::LinkHealth,
         fpma::api::Progress,

@@ -396,6 +396,44 @@ pub struct Alarm {
     pub text: String,
 }
 
+/// A command a service received, who sent it and what it answered (event `commands` of the
+/// VAS and the FPMa, recorded in the flight log and the VAS's air-side log).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CommandRecord {
+    /// Who sent it: the calling node's `namespace/node` as the access rules see it.
+    pub from: String,
+    /// The function, e.g. `change_state`.
+    pub command: String,
+    /// Its arguments, as text (JSON-like debug form).
+    pub args: String,
+    /// Whether it was obeyed.
+    pub ok: bool,
+    /// The answer, or why it was refused.
+    pub answer: String,
+}
+
+impl CommandRecord {
+    /// The record of `command` with `args` sent by `from`, answered `result`.
+    pub fn of<A: std::fmt::Debug, R: std::fmt::Debug>(
+        from: impl std::fmt::Display,
+        command: &str,
+        args: &A,
+        result: &Result<R, String>,
+    ) -> Self {
+        let (ok, answer) = match result {
+            Ok(r) => (true, format!("{r:?}")),
+            Err(e) => (false, e.clone()),
+        };
+        CommandRecord {
+            from: from.to_string(),
+            command: command.to_owned(),
+            args: format!("{args:?}"),
+            ok,
+            answer,
+        }
+    }
+}
+
 /// Joystick values from the Flight Monitor, as the autopilot layer applies them; they travel
 /// addressed to one vehicle inside a [`ManualCommand`].
 ///

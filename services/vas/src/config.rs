@@ -122,6 +122,13 @@ pub struct VasConfig {
     /// vehicle may start, and kept for the whole flight; a plan's fence may only narrow it.
     #[serde(rename = "fence")]
     pub fence: Option<FenceSettings>,
+    /// The directory of the air-side log (`airLog`; see `airlog`): states, commands received
+    /// with who sent them and the answers, mission traffic, failsafes and alarms. None: no log.
+    #[serde(rename = "@airLog")]
+    pub air_log: Option<PathBuf>,
+    /// The air log's bound per file, MiB (`airLogMaxMb`, default 8; two files are kept).
+    #[serde(rename = "@airLogMaxMb")]
+    pub air_log_max_mb: u64,
     /// MAVLink 2 signing toward the autopilot (`<signing keyFile=".." linkId="1"/>`).
     #[serde(rename = "signing")]
     pub signing: Option<SigningSettings>,
@@ -313,6 +320,8 @@ impl Default for VasConfig {
             max_waypoints_per_call: val.waypoints.max_per_call,
             max_queued_waypoints: val.waypoints.max_queued,
             fence: None,
+            air_log: None,
+            air_log_max_mb: 8,
             signing: None,
             pin_autopilot: true,
             autopilot_sysid: None,
@@ -434,6 +443,12 @@ impl VasConfig {
             )));
         }
         self.link_loss()?;
+        if !(1..=4096).contains(&self.air_log_max_mb) {
+            return Err(ConfigLoadError::Invalid(format!(
+                "airLogMaxMb {} not in [1, 4096]",
+                self.air_log_max_mb
+            )));
+        }
         if let Some(f) = &self.fence {
             f.fence().map_err(ConfigLoadError::Invalid)?;
         }
@@ -532,6 +547,10 @@ impl VasConfig {
             manual_skew: Duration::from_millis(self.manual_skew_ms),
             // Checked by `validate`.
             fence: self.fence.as_ref().and_then(|f| f.fence().ok()),
+            air_log: self
+                .air_log
+                .clone()
+                .map(|dir| (dir, self.air_log_max_mb.saturating_mul(1 << 20))),
             waypoints: crate::val::limits::WaypointLimits {
                 max_alt_m: self.max_altitude_m,
                 max_per_call: self.max_waypoints_per_call,

@@ -15,6 +15,7 @@
 //! [`run`] starts the whole service from a [`config::VasConfig`]; the `vas` binary is a thin
 //! shell over it. Item names and types are listed in `services/vas/README.md`.
 
+pub mod airlog;
 pub mod apl;
 pub mod config;
 pub mod mavlink_cm;

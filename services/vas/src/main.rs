@@ -74,6 +74,10 @@ struct Args {
     /// it replaces): on the autopilot before the vehicle may start, kept for the whole flight.
     #[arg(long)]
     fence: Option<std::path::PathBuf>,
+    /// Keep the air-side log in this directory (`vas-air.jsonl`, rotated): states, commands
+    /// received with who sent them and the answers, mission traffic, failsafes, alarms.
+    #[arg(long)]
+    air_log: Option<std::path::PathBuf>,
 }
 
 #[tokio::main]
@@ -134,6 +138,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.target_component.is_some() {
         cfg.target_component = args.target_component;
+    }
+    if args.air_log.is_some() {
+        cfg.air_log = args.air_log;
     }
     if let Some(path) = &args.fence {
         cfg.fence = Some(

@@ -10,6 +10,7 @@ pub mod core;
 pub mod persist;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -19,7 +20,8 @@ use serde::Deserialize;
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use usal_types::{
-    Battery, FlightState, MissionChanged, Position, QueueStatus, Waypoint, WaypointReached,
+    Battery, CommandRecord, FlightState, MissionChanged, Position, QueueStatus, Waypoint,
+    WaypointReached,
 };
 
 use self::core::{Command, Core, CoreConfig, FenceRefusal, VasPort};
@@ -383,21 +385,48 @@ async fn ask<T>(
         .map_err(|_| "the fpma service is stopping".to_string())?
 }
 
-/// Declares a command function `name` whose argument `A` becomes a [`Command`].
-fn command_fn<A: marea::Payload>(
+/// Raises the `commands` event: a command received, who sent it and the answer, for the
+/// flight log.
+fn record_command<A: std::fmt::Debug, R: std::fmt::Debug>(
+    commands: &Event<CommandRecord>,
+    from: &marea::Caller,
+    name: &str,
+    args: &A,
+    result: &Result<R, String>,
+) {
+    let rec = CommandRecord::of(from, name, args, result);
+    tracing::info!(from = %rec.from, ok = rec.ok, "{name}({}): {}", rec.args, rec.answer);
+    if let Err(e) = commands.raise_nowait(&rec) {
+        tracing::warn!("raising commands: {e}");
+    }
+}
+
+/// Declares a command function `name` whose argument `A` becomes a [`Command`]; each call is
+/// recorded on `commands` with who sent it and the answer.
+fn command_fn<A: marea::Payload + std::fmt::Debug>(
     ctx: &Service,
     tx: &mpsc::Sender<Request>,
+    commands: &Arc<Event<CommandRecord>>,
     name: &str,
     to_cmd: fn(A) -> Result<Command, String>,
 ) -> Result<marea::FunctionProvider, ServiceError> {
     let tx = tx.clone();
-    Ok(ctx.provide_function(name, move |a: A| {
-        let tx = tx.clone();
-        async move {
-            let cmd = to_cmd(a)?;
-            ask(&tx, |r| Request::Command(cmd, r)).await
-        }
-    })?)
+    let commands = commands.clone();
+    let fname = name.to_owned();
+    Ok(
+        ctx.provide_function_with_caller(name, move |a: A, from: marea::Caller| {
+            let (tx, commands, fname) = (tx.clone(), commands.clone(), fname.clone());
+            async move {
+                let args = format!("{a:?}");
+                let r = match to_cmd(a) {
+                    Ok(cmd) => ask(&tx, |r| Request::Command(cmd, r)).await,
+                    Err(e) => Err(e),
+                };
+                record_command(&commands, &from, &fname, &args, &r);
+                r
+            }
+        })?,
+    )
 }
 
 fn parse_stage(s: &str) -> Result<Stage, String> {
@@ -428,6 +457,7 @@ impl IService for Fpma {
             ready: ctx.publish_variable("ready")?,
         };
         let rejected: Event<PlanRejected> = ctx.publish_event("plan_rejected")?;
+        let commands: Arc<Event<CommandRecord>> = Arc::new(ctx.publish_event("commands")?);
         let _ = outlets.progress.set(&Progress::default());
         let _ = outlets.state.set(&PlanState::default());
         let _ = outlets.plan.set(&PlanGeometry::default());
@@ -465,62 +495,98 @@ impl IService for Fpma {
         let (tx, mut rx) = mpsc::channel::<Request>(64);
         let mut providers = Vec::new();
         let t = tx.clone();
-        providers.push(ctx.provide_function("load_plan", move |xml: String| {
-            let t = t.clone();
-            async move {
-                ask(&t, |reply| Request::Load {
-                    text: xml,
-                    source: "plan".into(),
-                    replace: false,
-                    reply,
-                })
-                .await
-            }
-        })?);
+        let c = commands.clone();
+        providers.push(ctx.provide_function_with_caller(
+            "load_plan",
+            move |xml: String, from: marea::Caller| {
+                let (t, c) = (t.clone(), c.clone());
+                async move {
+                    let args = format!("a plan of {} bytes", xml.len());
+                    let r = ask(&t, |reply| Request::Load {
+                        text: xml,
+                        source: "plan".into(),
+                        replace: false,
+                        reply,
+                    })
+                    .await;
+                    record_command(&c, &from, "load_plan", &args, &r);
+                    r
+                }
+            },
+        )?);
         let t = tx.clone();
-        providers.push(ctx.provide_function("replace_plan", move |xml: String| {
-            let t = t.clone();
-            async move {
-                ask(&t, |reply| Request::Load {
-                    text: xml,
-                    source: "plan".into(),
-                    replace: true,
-                    reply,
-                })
-                .await
-            }
-        })?);
+        let c = commands.clone();
+        providers.push(ctx.provide_function_with_caller(
+            "replace_plan",
+            move |xml: String, from: marea::Caller| {
+                let (t, c) = (t.clone(), c.clone());
+                async move {
+                    let args = format!("a plan of {} bytes", xml.len());
+                    let r = ask(&t, |reply| Request::Load {
+                        text: xml,
+                        source: "plan".into(),
+                        replace: true,
+                        reply,
+                    })
+                    .await;
+                    record_command(&c, &from, "replace_plan", &args, &r);
+                    r
+                }
+            },
+        )?);
         let t = tx.clone();
         providers.push(ctx.provide_function("plan_geometry", move |(): ()| {
             let t = t.clone();
             async move { ask(&t, Request::Geometry).await }
         })?);
-        providers.push(command_fn(&ctx, &tx, "skip_leg", |(): ()| {
+        providers.push(command_fn(&ctx, &tx, &commands, "skip_leg", |(): ()| {
             Ok(Command::SkipLeg)
         })?);
-        providers.push(command_fn(&ctx, &tx, "goto_leg", |leg: String| {
-            Ok(Command::GotoLeg(leg))
-        })?);
-        providers.push(command_fn(&ctx, &tx, "goto_stage", |s: String| {
-            parse_stage(&s).map(Command::GotoStage)
-        })?);
-        providers.push(command_fn(&ctx, &tx, "set_var", |a: SetVar| {
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            "goto_leg",
+            |leg: String| Ok(Command::GotoLeg(leg)),
+        )?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            "goto_stage",
+            |s: String| parse_stage(&s).map(Command::GotoStage),
+        )?);
+        providers.push(command_fn(&ctx, &tx, &commands, "set_var", |a: SetVar| {
             Ok(Command::SetVar(a.name, a.value.into()))
         })?);
-        providers.push(command_fn(&ctx, &tx, "hold_here", |a: HoldHereArgs| {
-            Ok(Command::HoldHere((&a).into()))
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            "hold_here",
+            |a: HoldHereArgs| Ok(Command::HoldHere((&a).into())),
+        )?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            "exit_hold",
+            |now: bool| Ok(Command::ExitHold(now)),
+        )?);
+        providers.push(command_fn(&ctx, &tx, &commands, "pause", |(): ()| {
+            Ok(Command::Pause)
         })?);
-        providers.push(command_fn(&ctx, &tx, "exit_hold", |now: bool| {
-            Ok(Command::ExitHold(now))
-        })?);
-        providers.push(command_fn(&ctx, &tx, "pause", |(): ()| Ok(Command::Pause))?);
-        providers.push(command_fn(&ctx, &tx, "resume", |(): ()| {
+        providers.push(command_fn(&ctx, &tx, &commands, "resume", |(): ()| {
             Ok(Command::Resume)
         })?);
-        providers.push(command_fn(&ctx, &tx, "modify_leg", |a: ModifyLeg| {
-            Ok(Command::ModifyLeg(a.leg, a.changes))
-        })?);
-        providers.push(command_fn(&ctx, &tx, "retask", |a: Retask| {
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            "modify_leg",
+            |a: ModifyLeg| Ok(Command::ModifyLeg(a.leg, a.changes)),
+        )?);
+        providers.push(command_fn(&ctx, &tx, &commands, "retask", |a: Retask| {
             let points = a
                 .points
                 .iter()
@@ -528,12 +594,17 @@ impl IService for Fpma {
                 .collect();
             Ok(Command::Retask(points, a.alt, a.when.into()))
         })?);
-        providers.push(command_fn(&ctx, &tx, "insert_legs", |xml: String| {
-            Ok(Command::InsertLegs(xml))
-        })?);
         providers.push(command_fn(
             &ctx,
             &tx,
+            &commands,
+            "insert_legs",
+            |xml: String| Ok(Command::InsertLegs(xml)),
+        )?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
             "emergency",
             |rule: Option<String>| Ok(Command::Emergency(rule)),
         )?);

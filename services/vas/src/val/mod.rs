@@ -21,8 +21,9 @@ use usal_types::{
     ManualCommand, MissionChanged, MissionTime, Position, QueueStatus, Severity, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand, Waypoint, WaypointReached,
 };
-use usal_types::{Failsafe, FailsafeKind, Fence, StationHeartbeat};
+use usal_types::{CommandRecord, Failsafe, FailsafeKind, Fence, StationHeartbeat};
 
+use crate::airlog::AirLog;
 use crate::apl::{ApEvent, IAutopilot};
 
 /// How often the flight state and `allowed_changes` are published again though unchanged.
@@ -53,6 +54,8 @@ pub struct ValConfig {
     /// whole flight; a plan's fence (`set_fence`) may only narrow it, and `set_fence(None)`
     /// restores it.
     pub fence: Option<Fence>,
+    /// Where the air-side log is kept (`crate::airlog`), and its size bound per file.
+    pub air_log: Option<(std::path::PathBuf, u64)>,
 }
 
 impl Default for ValConfig {
@@ -66,6 +69,7 @@ impl Default for ValConfig {
             manual_skew: Duration::from_secs(2),
             link_loss: linkloss::LinkLossConfig::default(),
             fence: None,
+            air_log: None,
         }
     }
 }
@@ -93,6 +97,7 @@ struct Items {
     alarm: Event<Alarm>,
     mission_changed: Event<MissionChanged>,
     failsafe: Event<Failsafe>,
+    commands: Event<CommandRecord>,
 }
 
 struct Core {
@@ -106,6 +111,8 @@ struct Core {
     fence: StdMutex<Option<Fence>>,
     /// Whether the autopilot took the fence in force, and which upload said so last.
     onboard: StdMutex<(u64, fence::Onboard)>,
+    /// The air-side log, when configured.
+    air: Option<AirLog>,
 }
 
 use marea::sync::lock;
@@ -115,11 +122,48 @@ impl Core {
         lock(&self.state).state
     }
 
+    /// Appends to the air-side log, when there is one.
+    fn air(&self, kind: &str, fields: serde_json::Value) {
+        if let Some(log) = &self.air {
+            log.record(kind, fields);
+        }
+    }
+
+    /// Records a command received: the `commands` event (the ground's flight log) and the
+    /// air-side log, with who sent it and the answer.
+    fn command_received<A: std::fmt::Debug, R: std::fmt::Debug>(
+        &self,
+        from: &marea::Caller,
+        command: &str,
+        args: &A,
+        result: &Result<R, String>,
+    ) {
+        let rec = CommandRecord::of(from, command, args, result);
+        tracing::info!(
+            from = %rec.from,
+            ok = rec.ok,
+            "{command}({}): {}",
+            rec.args,
+            rec.answer
+        );
+        self.air(
+            "command",
+            serde_json::json!({"from": rec.from, "command": rec.command, "args": rec.args, "ok": rec.ok, "answer": rec.answer}),
+        );
+        if let Err(e) = self.items.commands.raise_nowait(&rec) {
+            tracing::warn!("raising commands: {e}");
+        }
+    }
+
     fn alarm(&self, severity: Severity, text: impl Into<String>) {
         let a = Alarm {
             severity,
             text: text.into(),
         };
+        self.air(
+            "alarm",
+            serde_json::json!({"severity": format!("{:?}", a.severity), "text": a.text}),
+        );
         // Logged at the alarm's own weight: notices and information are not warnings.
         match a.severity {
             Severity::Emergency | Severity::Alert | Severity::Critical | Severity::Error => {
@@ -153,6 +197,10 @@ impl Core {
             from
         };
         tracing::info!("flight state {from} -> {to} ({cause})");
+        self.air(
+            "state",
+            serde_json::json!({"from": from.to_string(), "to": to.to_string(), "cause": cause}),
+        );
         let _ = self.items.flight_state.set(&to);
         self.publish_allowed();
         let ev = StateChanged {
@@ -250,6 +298,10 @@ impl Core {
     /// Raises the `failsafe` event (and logs it).
     fn failsafe(&self, kind: FailsafeKind, action: &str, text: &str) {
         tracing::warn!("failsafe {}: {action}: {text}", kind.name());
+        self.air(
+            "failsafe",
+            serde_json::json!({"failsafe": kind.name(), "action": action, "text": text}),
+        );
         let ev = Failsafe {
             kind,
             action: action.to_owned(),
@@ -512,6 +564,10 @@ impl Core {
                 }
             }
             ApEvent::MissionChanged(m) => {
+                self.air(
+                    "mission",
+                    serde_json::json!({"op": "written by another station", "by": m.by, "items": m.waypoints.len()}),
+                );
                 if let Err(e) = self.items.mission_changed.raise_nowait(&m) {
                     tracing::warn!("raising mission_changed: {e}");
                 }
@@ -567,6 +623,21 @@ impl IService for Vas {
             alarm: ctx.publish_event("alarm")?,
             mission_changed: ctx.publish_event("mission_changed")?,
             failsafe: ctx.publish_event("failsafe")?,
+            commands: ctx.publish_event("commands")?,
+        };
+        let air = match &self.cfg.air_log {
+            None => None,
+            Some((dir, max)) => match AirLog::open(dir, *max) {
+                Ok(log) => Some(log),
+                Err(e) => {
+                    // Flying without it beats not flying; the alarm says so once connected.
+                    tracing::error!(
+                        "air log {}: {e}: not logging on the air side",
+                        dir.display()
+                    );
+                    None
+                }
+            },
         };
         let core = Arc::new(Core {
             apl: self.apl.clone(),
@@ -581,21 +652,36 @@ impl IService for Vas {
             items,
             fence: StdMutex::new(self.cfg.fence.clone()),
             onboard: StdMutex::new((0, fence::Onboard::initial(self.cfg.fence.as_ref()))),
+            air,
         });
         let _ = core.items.flight_state.set(&FlightState::ConfigureCheck);
         let _ = core.items.queue.set(&QueueStatus::default());
         core.publish_allowed();
 
         let c = core.clone();
-        let change = ctx.provide_function("change_state", move |req: StateChangeRequest| {
-            let c = c.clone();
-            async move { c.request(req.to).await }
-        })?;
+        let change = ctx.provide_function_with_caller(
+            "change_state",
+            move |req: StateChangeRequest, from: marea::Caller| {
+                let c = c.clone();
+                async move {
+                    let r = c.request(req.to).await;
+                    c.command_received(&from, "change_state", &req.to, &r);
+                    r
+                }
+            },
+        )?;
         let c = core.clone();
-        let command = ctx.provide_function("command", move |cmd: VehicleCommand| {
-            let c = c.clone();
-            async move { c.command(cmd).await }
-        })?;
+        let command = ctx.provide_function_with_caller(
+            "command",
+            move |cmd: VehicleCommand, from: marea::Caller| {
+                let c = c.clone();
+                async move {
+                    let r = c.command(cmd).await;
+                    c.command_received(&from, "command", &cmd, &r);
+                    r
+                }
+            },
+        )?;
         let c = core.clone();
         let allowed = ctx.provide_function("allowed_states", move |(): ()| {
             let c = c.clone();
@@ -618,7 +704,17 @@ impl IService for Vas {
                         return Err(e);
                     }
                 }
-                let q = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string())?;
+                let (count, seqs) = (
+                    wps.len(),
+                    (wps.first().map(|w| w.seq), wps.last().map(|w| w.seq)),
+                );
+                let r = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string());
+                c.air(
+                    "mission",
+                    serde_json::json!({"op": "push", "count": count, "first_seq": seqs.0, "last_seq": seqs.1,
+                        "ok": r.is_ok(), "answer": r.as_ref().map_or_else(|e| e.clone(), |q| format!("{q:?}"))}),
+                );
+                let q = r?;
                 let _ = c.items.queue.set(&q);
                 Ok(q)
             }
@@ -627,16 +723,29 @@ impl IService for Vas {
         let clear = ctx.provide_function("clear_waypoints", move |(): ()| {
             let c = c.clone();
             async move {
-                let q = c.apl.clear_waypoints().await.map_err(|e| e.to_string())?;
+                let r = c.apl.clear_waypoints().await.map_err(|e| e.to_string());
+                c.air(
+                    "mission",
+                    serde_json::json!({"op": "clear", "ok": r.is_ok(),
+                        "answer": r.as_ref().map_or_else(|e| e.clone(), |q| format!("{q:?}"))}),
+                );
+                let q = r?;
                 let _ = c.items.queue.set(&q);
                 Ok(q)
             }
         })?;
         let c = core.clone();
-        let set_fence = ctx.provide_function("set_fence", move |f: Option<Fence>| {
-            let c = c.clone();
-            async move { c.set_fence(f).await }
-        })?;
+        let set_fence = ctx.provide_function_with_caller(
+            "set_fence",
+            move |f: Option<Fence>, from: marea::Caller| {
+                let c = c.clone();
+                async move {
+                    let r = c.set_fence(f.clone()).await;
+                    c.command_received(&from, "set_fence", &f, &r);
+                    r
+                }
+            },
+        )?;
         let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
         // This VAS's item prefix, the address a manual command must carry to be obeyed.
         let me = ctx.full_name("").trim_end_matches('/').to_owned();
