@@ -2,7 +2,8 @@
 //! message is retransmitted, even when nothing else wakes the link's transmit task (the first
 //! message in flight arms its timer: it was written inline by the sender, and the task slept
 //! with no deadline at all); messages sent while one is unacknowledged gather for the next
-//! acknowledgement (or retransmission) unless they fill a datagram.
+//! acknowledgement (or retransmission) unless they fill a datagram, and leave aged by their wait
+//! (a call among them carries its caller's time left, not its time at the queue's door).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -22,13 +23,31 @@ impl LinkHandler for Ignore {
     fn on_peer_reset(&self, _: usize, _: PeerAddr) {}
 }
 
+/// Records the waits of the safe messages the link ages as they leave its queue.
+#[derive(Default)]
+struct Ages(std::sync::Mutex<Vec<(Vec<u8>, Duration)>>);
+
+impl LinkHandler for Ages {
+    fn on_message(&self, _: usize, _: PeerAddr, _: &[u8]) {}
+    fn on_announce(&self, _: usize, _: PeerAddr, _: &[u8]) {}
+    fn on_peer_reset(&self, _: usize, _: PeerAddr) {}
+    fn age_safe(&self, msg: &mut Vec<u8>, waited: Duration) {
+        self.0.lock().unwrap().push((msg.clone(), waited));
+    }
+}
+
 /// A UDP link on loopback (MTU 1,400 for every peer but loopback ones; the test's peer is a
 /// loopback address, so its datagrams are up to 60 KiB) whose multicast port is `port`.
-fn open_link(port: u16, tasks: &TaskTracker, cancel: &CancellationToken) -> Arc<UdpLink> {
+fn open_link(
+    port: u16,
+    handler: Arc<dyn LinkHandler>,
+    tasks: &TaskTracker,
+    cancel: &CancellationToken,
+) -> Arc<UdpLink> {
     UdpLink::open(
         0,
         common::udp_link_options("a", 6, port),
-        Arc::new(Ignore),
+        handler,
         tasks,
         cancel.child_token(),
     )
@@ -48,10 +67,14 @@ struct SilentPeer {
 impl SilentPeer {
     /// `case` keeps the tests' multicast ports apart.
     async fn new(case: u16) -> SilentPeer {
+        SilentPeer::with_handler(case, Arc::new(Ignore)).await
+    }
+
+    async fn with_handler(case: u16, handler: Arc<dyn LinkHandler>) -> SilentPeer {
         let tasks = TaskTracker::new();
         let cancel = CancellationToken::new();
         let port = 26_000 + case + (std::process::id() % 20_000) as u16;
-        let link = open_link(port, &tasks, &cancel);
+        let link = open_link(port, handler, &tasks, &cancel);
         let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let to = PeerAddr::Udp(sink.local_addr().unwrap());
         SilentPeer {
@@ -172,5 +195,38 @@ async fn safe_messages_that_fill_a_datagram_do_not_wait_for_an_acknowledgement()
         "a full datagram, not {} bytes",
         second.len()
     );
+    p.close().await;
+}
+
+#[tokio::test]
+async fn safe_messages_that_waited_leave_aged_by_their_wait() {
+    let ages = Arc::new(Ages::default());
+    let p = SilentPeer::with_handler(3, ages.clone()).await;
+    p.send(b"first message");
+    p.recv(Duration::from_secs(5), "the first message leaves at once")
+        .await;
+    let later: Vec<Vec<u8>> = (0..3)
+        .map(|i| format!("later {i:02}").into_bytes())
+        .collect();
+    for m in &later {
+        p.send(m);
+    }
+    // They wait for the first one's retransmission (200 ms before any round trip is known).
+    let second = p.recv(Duration::from_secs(10), "a second datagram").await;
+    assert!(later.iter().all(|m| contains(&second, m)));
+    let aged = ages.0.lock().unwrap().clone();
+    let msgs: Vec<&Vec<u8>> = aged.iter().map(|(m, _)| m).collect();
+    assert_eq!(
+        msgs,
+        later.iter().collect::<Vec<_>>(),
+        "each waiting one aged, the first not"
+    );
+    for (m, waited) in &aged {
+        assert!(
+            *waited >= Duration::from_millis(100),
+            "{} aged by {waited:?} only",
+            String::from_utf8_lossy(m)
+        );
+    }
     p.close().await;
 }

@@ -103,7 +103,11 @@ struct PeerState {
     fast: CoalescingQueue<u32, Vec<u8>>,
     /// Datagram bytes the queued fast messages take.
     fast_bytes: usize,
-    safe: VecDeque<(Vec<u8>, Option<SafeCompletion>)>,
+    /// Safe messages waiting for the window, each with when it started waiting when that can
+    /// be long (the window was full or others waited): it leaves aged by that wait
+    /// ([`LinkHandler::age_safe`]), so a call queued behind a slow peer carries its caller's
+    /// time left, not its time at the queue's door.
+    safe: VecDeque<(Vec<u8>, Option<SafeCompletion>, Option<Instant>)>,
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
     /// Buffers of datagrams sent, for the next ones (at most [`SPARE_BUFFERS`]).
@@ -362,10 +366,15 @@ impl<M: Medium> DatagramLink<M> {
             }
         }
         while st.tx.can_push() {
-            let Some((msg, done)) = st.safe.pop_front() else {
+            let Some((mut msg, done, queued)) = st.safe.pop_front() else {
                 break;
             };
             st.safe_bytes = st.safe_bytes.saturating_sub(queued_safe_cost(msg.len()));
+            if let Some(waited) = queued.map(|t| now.saturating_duration_since(t)) {
+                if !waited.is_zero() {
+                    self.handler.age_safe(&mut msg, waited);
+                }
+            }
             let seq = st.tx.push(now, msg, done);
             if let Some(m) = st.tx.message(seq) {
                 push_safe(&mut w, &mut out, &mut carries_safe, seq, m);
@@ -728,7 +737,7 @@ fn queued_safe_cost(len: usize) -> usize {
 
 fn fail_all(st: &mut PeerState, err: LinkSendError) {
     st.safe_bytes = 0;
-    for (_, done) in st.safe.drain(..) {
+    for (_, done, _) in st.safe.drain(..) {
         if let Some(d) = done {
             let _ = d.send(Err(err.clone()));
         }
@@ -796,7 +805,10 @@ impl<M: Medium> Link for DatagramLink<M> {
                     return Outgoing::Safe { msg, done }.refuse(addr);
                 }
                 st.safe_bytes += queued_safe_cost(msg.len());
-                st.safe.push_back((msg, done))
+                // Only a message that may wait reads the clock: one behind others, or gathered
+                // for the acknowledgement of one in flight (or behind a full window).
+                let queued = (st.tx.in_flight() > 0 || !st.safe.is_empty()).then(Instant::now);
+                st.safe.push_back((msg, done, queued))
             }
         }
         if !st.has_work() {
