@@ -1,9 +1,16 @@
-//! The geofence of the simulated autopilot (issue 15), as ArduPilot keeps it: the circle
-//! around home and the ceiling are parameters (`FENCE_RADIUS`, `FENCE_ALT_MAX`), which parts
-//! are enforced is `FENCE_TYPE` (bits: 1 ceiling, 2 circle, 4 polygon), the breach action is
-//! `FENCE_ACTION` (rover: 0 report, 1 RTL, 2 hold) and the whole is on with `FENCE_ENABLE`.
-//! The inclusion polygon arrives as a fence transfer (`mission_type` FENCE) of
-//! MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION items.
+//! The geofence of the simulated autopilot, as each family keeps it. The area arrives as a
+//! fence transfer (`mission_type` FENCE) of MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION items
+//! (one inclusion polygon) and MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION items (an inclusion circle:
+//! param1 its radius, x/y its centre; the last one counts).
+//!
+//! ArduPilot: the circle around home and the ceiling are parameters (`FENCE_RADIUS`,
+//! `FENCE_ALT_MAX`), which parts are enforced is `FENCE_TYPE` (bits: 1 ceiling, 2 circle, 4 the
+//! transfer's polygon and circle), the breach action is `FENCE_ACTION` (rover: 0 report, 1 RTL,
+//! 2 hold) and the whole is on with `FENCE_ENABLE`.
+//!
+//! PX4 (`Params::use_px4_geofence`): no switch; a stored area, `GF_MAX_HOR_DIST` (from home) or
+//! `GF_MAX_VER_DIST` (above home) is in force unless `GF_ACTION` is 0 (1 warning, 2 hold, 3
+//! return, 4 terminate, 5 land).
 //!
 //! [`FenceStore`] is the receiving side of that transfer (requests each item, acknowledges
 //! the whole; a new count restarts it) and [`FenceStore::breach`] the pure check the
@@ -49,6 +56,8 @@ struct Pending {
 pub struct FenceStore {
     /// Inclusion polygon, local metres (north, east) from home.
     polygon: Vec<(f64, f64)>,
+    /// Inclusion circle: its centre, local metres (north, east) from home, and its radius.
+    circle: Option<((f64, f64), f64)>,
     pending: Option<Pending>,
     /// Outside now (a breach was reported and the vehicle has not come back).
     breached: bool,
@@ -79,10 +88,21 @@ impl FenceStore {
         self.polygon.len()
     }
 
+    /// The radius of the inclusion circle on board, metres.
+    pub fn circle_m(&self) -> Option<f64> {
+        self.circle.map(|(_, r)| r)
+    }
+
+    /// Whether an area (polygon or circle) is on board.
+    pub fn has_area(&self) -> bool {
+        self.polygon.len() >= 3 || self.circle.is_some()
+    }
+
     /// MISSION_COUNT for the fence: starts a transfer (0 clears).
     pub fn on_count(&mut self, from: (u8, u8), count: u16) -> Vec<MavMessage> {
         if count == 0 {
             self.polygon.clear();
+            self.circle = None;
             self.pending = None;
             return vec![ack(from, MavMissionResult::MAV_MISSION_ACCEPTED)];
         }
@@ -113,7 +133,11 @@ impl FenceStore {
             // A stale resend: ask again for the one we want.
             return (vec![request(from, expected)], None);
         }
-        if item.command != MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION {
+        if !matches!(
+            item.command,
+            MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
+                | MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION
+        ) {
             self.pending = None;
             return (
                 vec![ack(from, MavMissionResult::MAV_MISSION_UNSUPPORTED)],
@@ -125,17 +149,21 @@ impl FenceStore {
             return (vec![request(from, expected + 1)], None);
         }
         let done = self.pending.take().map(|p| p.items).unwrap_or_default();
-        self.polygon = done
+        let local = |i: &Item| {
+            let n = frame.to_local(GeoPoint {
+                lat_deg: f64::from(i.x) / 1e7,
+                lon_deg: f64::from(i.y) / 1e7,
+                alt_m: frame.home().alt_m,
+            });
+            (n.north, n.east)
+        };
+        let is_circle = |i: &&Item| i.command == MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION;
+        self.polygon = done.iter().filter(|i| !is_circle(i)).map(local).collect();
+        self.circle = done
             .iter()
-            .map(|i| {
-                let n = frame.to_local(GeoPoint {
-                    lat_deg: f64::from(i.x) / 1e7,
-                    lon_deg: f64::from(i.y) / 1e7,
-                    alt_m: frame.home().alt_m,
-                });
-                (n.north, n.east)
-            })
-            .collect();
+            .rev()
+            .find(is_circle)
+            .map(|i| (local(i), f64::from(i.param1)));
         self.breached = false;
         (
             vec![ack(from, MavMissionResult::MAV_MISSION_ACCEPTED)],
@@ -146,6 +174,7 @@ impl FenceStore {
     /// MISSION_CLEAR_ALL for the fence.
     pub fn on_clear(&mut self, from: (u8, u8)) -> Vec<MavMessage> {
         self.polygon.clear();
+        self.circle = None;
         self.pending = None;
         self.breached = false;
         vec![ack(from, MavMissionResult::MAV_MISSION_ACCEPTED)]
@@ -192,6 +221,14 @@ impl FenceStore {
         }
         if p.kinds & 4 != 0 && self.polygon.len() >= 3 && !self.inside(pos) {
             return Some("polygon".into());
+        }
+        if let (true, Some(((n, e), r))) = (p.kinds & 4 != 0, self.circle) {
+            let d = (pos.north - n).hypot(pos.east - e);
+            if d > r {
+                return Some(format!(
+                    "circle item ({d:.0} m from its centre, radius {r:.0} m)"
+                ));
+            }
         }
         None
     }
@@ -309,6 +346,45 @@ mod tests {
     }
 
     #[test]
+    fn a_circle_item_is_kept_beside_the_polygon_and_enforced() {
+        let f = frame();
+        let mut s = FenceStore::default();
+        s.on_count(GCS, 2);
+        let mut circle = vertex(&f, 1, 20.0, 0.0);
+        circle.command = MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION;
+        circle.param1 = 50.0;
+        s.on_item(GCS, vertex(&f, 0, 0.0, 0.0), &f);
+        let (out, done) = s.on_item(GCS, circle, &f);
+        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
+            if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED));
+        assert_eq!((done, s.circle_m()), (Some(1), Some(50.0)));
+        assert!(s.has_area());
+        let p = FenceParams {
+            enabled: true,
+            kinds: 4,
+            radius_m: 0.0,
+            alt_max_m: 0.0,
+        };
+        let at = |north, east| Ned {
+            north,
+            east,
+            up: 0.0,
+        };
+        assert_eq!(
+            s.breach(&p, &at(60.0, 0.0)),
+            None,
+            "within 50 m of its centre"
+        );
+        let why = s.breach(&p, &at(-40.0, 0.0)).expect("a breach");
+        assert!(
+            why.starts_with("circle item (60 m from its centre"),
+            "{why}"
+        );
+        s.on_clear(GCS);
+        assert!(!s.has_area() && s.circle_m().is_none());
+    }
+
+    #[test]
     fn odd_transfers_are_refused() {
         let f = frame();
         let mut s = FenceStore::default();
@@ -319,10 +395,10 @@ mod tests {
         assert!(
             matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_DENIED)
         );
-        // Not a polygon vertex (circles are parameters here).
+        // Not an inclusion area (an exclusion circle).
         s.on_count(GCS, 1);
         let mut item = vertex(&f, 0, 0.0, 0.0);
-        item.command = MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION;
+        item.command = MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION;
         let (out, _) = s.on_item(GCS, item, &f);
         assert!(
             matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED)

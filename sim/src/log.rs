@@ -88,8 +88,10 @@ pub enum LogEvent {
     },
     /// A fence polygon was uploaded (issue 15).
     FenceUploaded {
-        /// Its vertices (0: cleared).
+        /// Its polygon's vertices (0: none, or cleared).
         vertices: usize,
+        /// Its inclusion circle's radius, metres, if it has one.
+        circle_m: Option<f64>,
     },
     /// The vehicle left the fence (issue 15).
     FenceBreached {

@@ -112,6 +112,20 @@ impl Params {
         self.by_name(name).map_or(default, |(_, p)| p.value)
     }
 
+    /// Keeps the geofence parameters of PX4 (`GF_ACTION`: 0 none, 1 warning, 2 hold, 3 return,
+    /// 4 terminate, 5 land; `GF_MAX_HOR_DIST`, `GF_MAX_VER_DIST`: metres from home, 0 off)
+    /// instead of ArduPilot's `FENCE_*`, as a PX4 autopilot does.
+    pub fn use_px4_geofence(&mut self) {
+        self.list.retain(|p| !p.name.starts_with("FENCE_"));
+        if self.by_name("GF_ACTION").is_none() {
+            self.list.extend([
+                p("GF_ACTION", 2.0, MavParamType::MAV_PARAM_TYPE_INT32),
+                p("GF_MAX_HOR_DIST", 0.0, F32),
+                p("GF_MAX_VER_DIST", 0.0, F32),
+            ]);
+        }
+    }
+
     /// Sets `name`, rounding integer types; returns the index, or `None` when unknown.
     pub fn set(&mut self, name: &str, value: f32) -> Option<usize> {
         let (index, _) = self.by_name(name)?;

@@ -219,6 +219,9 @@ impl Vehicle {
     pub fn set_profile(&mut self, profile: Profile) {
         self.profile = profile;
         self.mission.set_item0_is_home(profile.item0_is_home());
+        if profile == Profile::Px4 {
+            self.params.use_px4_geofence();
+        }
     }
 
     /// The autopilot profile followed.
@@ -680,22 +683,49 @@ impl Vehicle {
         out
     }
 
-    /// Enforces the fence: on a breach, a STATUSTEXT, a log record and `FENCE_ACTION`
-    /// (rover: 0 report, 1 RTL, 2 hold; ArduPilot's numbering).
+    /// Enforces the fence: on a breach, a STATUSTEXT, a log record and the family's action:
+    /// ArduPilot's `FENCE_ACTION` (rover: 0 report, 1 RTL, 2 hold), PX4's `GF_ACTION` (1
+    /// warning, 2 hold, 3 return, 4 terminate and 5 land: land where the vehicle has a land
+    /// mode, else hold).
     fn check_fence(&mut self, out: &mut Vec<MavMessage>) {
-        let p = FenceParams {
-            enabled: self.params.get_or("FENCE_ENABLE", 0.0) >= 1.0,
-            kinds: self.params.get_or("FENCE_TYPE", 0.0).clamp(0.0, 255.0) as u8,
-            radius_m: f64::from(self.params.get_or("FENCE_RADIUS", 0.0)),
-            alt_max_m: f64::from(self.params.get_or("FENCE_ALT_MAX", 0.0)),
+        let (p, wanted) = if self.profile == Profile::Px4 {
+            let (hor, ver) = (
+                f64::from(self.params.get_or("GF_MAX_HOR_DIST", 0.0)),
+                f64::from(self.params.get_or("GF_MAX_VER_DIST", 0.0)),
+            );
+            let action = self.params.get_or("GF_ACTION", 2.0).round() as i64;
+            let p = FenceParams {
+                enabled: action != 0 && (self.fence.has_area() || hor > 0.0 || ver > 0.0),
+                kinds: 4 | u8::from(ver > 0.0) | (u8::from(hor > 0.0) << 1),
+                radius_m: hor,
+                alt_max_m: ver,
+            };
+            let land = modes::table(self.cfg.kind)
+                .iter()
+                .any(|m| m.2 == Behaviour::Land);
+            let wanted = match action {
+                1 => None,
+                3 => Some(Behaviour::Rtl),
+                4 | 5 if land => Some(Behaviour::Land),
+                _ => Some(Behaviour::Hold),
+            };
+            (p, wanted)
+        } else {
+            let p = FenceParams {
+                enabled: self.params.get_or("FENCE_ENABLE", 0.0) >= 1.0,
+                kinds: self.params.get_or("FENCE_TYPE", 0.0).clamp(0.0, 255.0) as u8,
+                radius_m: f64::from(self.params.get_or("FENCE_RADIUS", 0.0)),
+                alt_max_m: f64::from(self.params.get_or("FENCE_ALT_MAX", 0.0)),
+            };
+            let wanted = match self.params.get_or("FENCE_ACTION", 1.0).round() as i64 {
+                0 => None,
+                2 => Some(Behaviour::Hold),
+                _ => Some(Behaviour::Rtl),
+            };
+            (p, wanted)
         };
         let Some(why) = self.fence.breach(&p, &self.state.pos) else {
             return;
-        };
-        let wanted = match self.params.get_or("FENCE_ACTION", 1.0).round() as i64 {
-            0 => None,
-            2 => Some(Behaviour::Hold),
-            _ => Some(Behaviour::Rtl),
         };
         let mode = wanted.and_then(|b| {
             modes::table(self.cfg.kind)
@@ -1632,6 +1662,69 @@ mod tests {
         assert!(v.take_log().iter().any(
             |(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
                 if fence == "polygon" && action == "hold")
+        ));
+    }
+
+    /// PX4 keeps no FENCE_* switch: an area uploaded is in force, and GF_ACTION (hold by
+    /// default) acts on a breach.
+    #[test]
+    fn a_px4_vehicle_enforces_an_uploaded_circle_with_gf_action() {
+        use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
+        let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
+        let mut v = rover();
+        v.set_profile(Profile::Px4);
+        assert!(v.params.by_name("FENCE_ENABLE").is_none());
+        assert_eq!(v.params.get_or("GF_ACTION", -1.0), 2.0);
+        upload(&mut v, &[10.0, 80.0]);
+        let now = Instant::now();
+        v.handle(
+            GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 1,
+                mission_type: fence,
+                ..Default::default()
+            }),
+            now,
+        );
+        let home = v.frame.to_geo(Ned {
+            north: 0.0,
+            east: 0.0,
+            up: 0.0,
+        });
+        let circle = Item {
+            seq: 0,
+            command: MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
+            param1: 30.0,
+            x: (home.lat_deg * 1e7).round() as i32,
+            y: (home.lon_deg * 1e7).round() as i32,
+            mission_type: fence,
+            target_system: 1,
+            ..Default::default()
+        };
+        let out = v.handle(GCS, &MavMessage::MISSION_ITEM_INT(circle), now);
+        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
+            if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED));
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_MISSION_START, 0.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        run_until(&mut v, 120.0, |v| v.behaviour() == Behaviour::Hold);
+        assert_eq!(v.behaviour(), Behaviour::Hold, "held at the breach");
+        let north = v.position().north;
+        assert!(
+            (30.0..40.0).contains(&north),
+            "stopped near the circle: {north}"
+        );
+        let log = v.take_log();
+        assert!(log.iter().any(|(_, e)| matches!(e,
+            LogEvent::FenceUploaded { vertices: 0, circle_m: Some(r) } if *r == 30.0)));
+        assert!(log.iter().any(
+            |(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
+                if fence.starts_with("circle item") && action == "hold")
         ));
     }
 

@@ -198,6 +198,16 @@ async fn vehicle_fence_on(profile: &str) {
         |r| r.iter().any(|r| r["vertices"] == 4),
     )
     .await;
+    if profile == "px4" {
+        // PX4 keeps the circle as an inclusion item of the transfer, around the fence's home.
+        assert!(
+            sim.log_events("fence_uploaded")
+                .iter()
+                .any(|r| r["circle_m"] == 200.0),
+            "{:?}",
+            sim.log_events("fence_uploaded")
+        );
+    }
 
     // A plan without a fence: the vehicle's stays, on the VAS and on the autopilot.
     let reply = set_fence.call(&None, STEP).await.expect("no plan fence");
@@ -265,6 +275,15 @@ fn wp_at(seq: u64, (lat, lon): (f64, f64)) -> Waypoint {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_vehicle_fence_is_on_ardupilot_before_start_and_plans_only_narrow_it() {
     tokio::time::timeout(Duration::from_secs(120), vehicle_fence_on("ardupilot"))
+        .await
+        .expect("the vehicle fence test ran past its bound");
+}
+
+/// The same on PX4: the fence goes as the FENCE transfer (the polygon and the circle as an
+/// inclusion item) with GF_ACTION, and mavsim's PX4 vehicle takes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vehicle_fence_is_on_px4_before_start_and_plans_only_narrow_it() {
+    tokio::time::timeout(Duration::from_secs(120), vehicle_fence_on("px4"))
         .await
         .expect("the vehicle fence test ran past its bound");
 }

@@ -104,7 +104,10 @@ impl Vehicle {
             {
                 out.extend(self.fence.on_count(from, c.count));
                 if c.count == 0 {
-                    self.record(LogEvent::FenceUploaded { vertices: 0 });
+                    self.record(LogEvent::FenceUploaded {
+                        vertices: 0,
+                        circle_m: None,
+                    });
                 }
             }
             MavMessage::MISSION_ITEM_INT(item)
@@ -114,7 +117,8 @@ impl Vehicle {
                 let (replies, done) = self.fence.on_item(from, item.clone(), &self.frame);
                 out.extend(replies);
                 if let Some(vertices) = done {
-                    self.record(LogEvent::FenceUploaded { vertices });
+                    let circle_m = self.fence.circle_m();
+                    self.record(LogEvent::FenceUploaded { vertices, circle_m });
                 }
             }
             MavMessage::MISSION_CLEAR_ALL(c)
@@ -122,7 +126,10 @@ impl Vehicle {
                     && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE =>
             {
                 out.extend(self.fence.on_clear(from));
-                self.record(LogEvent::FenceUploaded { vertices: 0 });
+                self.record(LogEvent::FenceUploaded {
+                    vertices: 0,
+                    circle_m: None,
+                });
             }
             MavMessage::MISSION_ACK(a)
                 if self.for_us(a.target_system)
