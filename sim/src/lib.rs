@@ -6,6 +6,8 @@
 //! - [`mission`]: the vehicle side of the mission protocol (pure state machine);
 //! - [`params`], [`modes`]: ArduPilot parameter and mode tables;
 //! - [`profile`]: ArduPilot, PX4 or generic autopilot conventions (`--autopilot`);
+//! - [`fence`]: the geofence (the FENCE transfer of polygon and circle items, ArduPilot's
+//!   `FENCE_*` and PX4's `GF_*`, breaches; `--fence-capacity`);
 //! - [`vehicle`]: the simulated autopilot (message handling, navigation, telemetry), pure;
 //! - [`link`]: which transport (UDP, serial, pty) and the vehicle's frame header, over a
 //!   [`mavconn::Connection`] (shared with the VAS);

@@ -86,18 +86,21 @@ pub enum LogEvent {
         /// Metres above home.
         alt: f64,
     },
-    /// A fence polygon was uploaded (issue 15).
+    /// A fence transfer was committed, or the fence cleared (issue 15).
     FenceUploaded {
         /// Its polygon's vertices (0: none, or cleared).
         vertices: usize,
-        /// Its inclusion circle's radius, metres, if it has one.
+        /// Its inclusion circle item's radius, metres, if it has one (`null` in JSON if not).
         circle_m: Option<f64>,
     },
     /// The vehicle left the fence (issue 15).
     FenceBreached {
-        /// Which part: `circle (..)`, `ceiling (..)`, `polygon`.
+        /// Which part: `circle (..)` (FENCE_RADIUS or GF_MAX_HOR_DIST), `ceiling (..)`
+        /// (FENCE_ALT_MAX or GF_MAX_VER_DIST), `polygon`, `circle item (..)`.
         fence: String,
-        /// What was done: `report`, `rtl`, `hold`.
+        /// What was done: `report` or (PX4) `warning`; else the lower-case name of the mode
+        /// entered (`rtl`, `hold`, `loiter`, `land`...); PX4's terminate is
+        /// `terminate as <mode>`.
         action: String,
         /// Where, latitude.
         lat: f64,
@@ -183,5 +186,24 @@ mod tests {
         );
         let back: LogRecord = serde_json::from_str(&line).unwrap();
         assert_eq!(back, rec);
+    }
+
+    #[test]
+    fn fence_uploaded_keeps_vertices_and_gains_circle_m() {
+        let line = |event| serde_json::to_string(&LogRecord { t_sim: 2.0, event }).unwrap();
+        assert_eq!(
+            line(LogEvent::FenceUploaded {
+                vertices: 4,
+                circle_m: None
+            }),
+            r#"{"t_sim":2.0,"event":"fence_uploaded","vertices":4,"circle_m":null}"#
+        );
+        assert_eq!(
+            line(LogEvent::FenceUploaded {
+                vertices: 0,
+                circle_m: Some(200.0)
+            }),
+            r#"{"t_sim":2.0,"event":"fence_uploaded","vertices":0,"circle_m":200.0}"#
+        );
     }
 }

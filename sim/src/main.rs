@@ -90,6 +90,11 @@ struct Args {
     /// Sensor footprint radius of the detector, metres (with --poi-file).
     #[arg(long, default_value_t = 10.0)]
     sensor_radius: f64,
+    /// Most items one fence transfer may have (polygon vertices and circles); a larger
+    /// MISSION_COUNT for the fence is answered MAV_MISSION_NO_SPACE, as a board with little
+    /// storage does.
+    #[arg(long, default_value_t = mavsim::fence::DEFAULT_CAPACITY)]
+    fence_capacity: u16,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -195,6 +200,7 @@ async fn main() -> anyhow::Result<()> {
             AutopilotArg::ArdupilotResetting => Profile::ArduPilotResetting,
         },
         battery,
+        fence_capacity: args.fence_capacity,
     };
     let detector = args
         .poi_file
@@ -234,4 +240,20 @@ async fn main() -> anyhow::Result<()> {
         signal_token.cancel();
     });
     sim.run(shutdown).await.context("mavsim failed")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fence_capacity_defaults_to_500_and_is_read() {
+        let args = Args::try_parse_from(["mavsim"]).unwrap();
+        assert_eq!(args.fence_capacity, 500);
+        let args = Args::try_parse_from(["mavsim", "--fence-capacity", "16"]).unwrap();
+        assert_eq!(args.fence_capacity, 16);
+        // A MISSION_COUNT is a u16: more could never be asked for.
+        assert!(Args::try_parse_from(["mavsim", "--fence-capacity", "70000"]).is_err());
+        assert!(Args::try_parse_from(["mavsim", "--fence-capacity", "-1"]).is_err());
+    }
 }

@@ -1,4 +1,5 @@
-//! A small, realistic set of ArduPilot parameters per vehicle kind.
+//! A small, realistic set of ArduPilot parameters per vehicle kind, built for the autopilot
+//! profile: the geofence's are ArduPilot's `FENCE_*` except on PX4, which keeps `GF_*` instead.
 //!
 //! Values travel as `f32` in PARAM_VALUE whatever their declared type, as
 //! ArduPilot does (integers are sent by value, not bit-cast).
@@ -6,6 +7,7 @@
 use mavlink::dialects::ardupilotmega::MavParamType;
 
 use crate::kinematics::VehicleKind;
+use crate::profile::Profile;
 
 /// One parameter.
 #[derive(Clone, Debug, PartialEq)]
@@ -26,6 +28,7 @@ pub struct Params {
 
 const I8: MavParamType = MavParamType::MAV_PARAM_TYPE_INT8;
 const I16: MavParamType = MavParamType::MAV_PARAM_TYPE_INT16;
+const I32: MavParamType = MavParamType::MAV_PARAM_TYPE_INT32;
 const F32: MavParamType = MavParamType::MAV_PARAM_TYPE_REAL32;
 
 fn p(name: &'static str, value: f32, kind: MavParamType) -> Param {
@@ -33,8 +36,8 @@ fn p(name: &'static str, value: f32, kind: MavParamType) -> Param {
 }
 
 impl Params {
-    /// The defaults of `kind`, with SYSID_THISMAV set to `sysid`.
-    pub fn defaults(kind: VehicleKind, sysid: u8) -> Self {
+    /// The defaults of `kind` as `profile` keeps them, with SYSID_THISMAV set to `sysid`.
+    pub fn defaults(kind: VehicleKind, sysid: u8, profile: Profile) -> Self {
         let mut list = vec![
             p("SYSID_THISMAV", f32::from(sysid), I16),
             p("SYSID_MYGCS", 255.0, I16),
@@ -45,13 +48,26 @@ impl Params {
             p("MIS_RESTART", 0.0, I8),
             p("FS_ACTION", 2.0, I8),
             p("INITIAL_MODE", 0.0, I8),
-            // The geofence (issue 15, `fence.rs`): off until a ground station sets it.
-            p("FENCE_ENABLE", 0.0, I8),
-            p("FENCE_TYPE", 7.0, I8),
-            p("FENCE_ACTION", 1.0, I8),
-            p("FENCE_RADIUS", 300.0, F32),
-            p("FENCE_ALT_MAX", 100.0, F32),
         ];
+        // The geofence (issue 15, `fence.rs`).
+        if profile == Profile::Px4 {
+            // PX4: no switch (an uploaded area is in force); `GF_ACTION` 0 none, 1 warning,
+            // 2 hold, 3 return, 4 terminate, 5 land; the distances are metres from home, 0 off.
+            list.extend([
+                p("GF_ACTION", 2.0, I32),
+                p("GF_MAX_HOR_DIST", 0.0, F32),
+                p("GF_MAX_VER_DIST", 0.0, F32),
+            ]);
+        } else {
+            // ArduPilot: off until a ground station sets it.
+            list.extend([
+                p("FENCE_ENABLE", 0.0, I8),
+                p("FENCE_TYPE", 7.0, I8),
+                p("FENCE_ACTION", 1.0, I8),
+                p("FENCE_RADIUS", 300.0, F32),
+                p("FENCE_ALT_MAX", 100.0, F32),
+            ]);
+        }
         match kind {
             VehicleKind::Rover => list.extend([
                 p("WP_RADIUS", 2.0, F32),
@@ -112,18 +128,17 @@ impl Params {
         self.by_name(name).map_or(default, |(_, p)| p.value)
     }
 
-    /// Keeps the geofence parameters of PX4 (`GF_ACTION`: 0 none, 1 warning, 2 hold, 3 return,
-    /// 4 terminate, 5 land; `GF_MAX_HOR_DIST`, `GF_MAX_VER_DIST`: metres from home, 0 off)
-    /// instead of ArduPilot's `FENCE_*`, as a PX4 autopilot does.
-    pub fn use_px4_geofence(&mut self) {
-        self.list.retain(|p| !p.name.starts_with("FENCE_"));
-        if self.by_name("GF_ACTION").is_none() {
-            self.list.extend([
-                p("GF_ACTION", 2.0, MavParamType::MAV_PARAM_TYPE_INT32),
-                p("GF_MAX_HOR_DIST", 0.0, F32),
-                p("GF_MAX_VER_DIST", 0.0, F32),
-            ]);
+    /// This table as `profile` keeps it for `kind`: `profile`'s parameters (defaults), each
+    /// carrying the value set here when this table has it too.
+    pub fn rebuilt_for(&self, kind: VehicleKind, profile: Profile) -> Self {
+        let sysid = self.get_or("SYSID_THISMAV", 1.0).clamp(0.0, 255.0) as u8;
+        let mut fresh = Self::defaults(kind, sysid, profile);
+        for old in &self.list {
+            if let Some(new) = fresh.list.iter_mut().find(|p| p.name == old.name) {
+                new.value = old.value;
+            }
         }
+        fresh
     }
 
     /// Sets `name`, rounding integer types; returns the index, or `None` when unknown.
@@ -145,7 +160,7 @@ mod tests {
 
     #[test]
     fn rover_defaults_and_set() {
-        let mut params = Params::defaults(VehicleKind::Rover, 7);
+        let mut params = Params::defaults(VehicleKind::Rover, 7, Profile::ArduPilot);
         assert_eq!(params.get_or("SYSID_THISMAV", 0.0), 7.0);
         assert_eq!(params.get_or("WP_RADIUS", 0.0), 2.0);
         assert_eq!(
@@ -161,5 +176,58 @@ mod tests {
         );
         assert_eq!(params.set("NO_SUCH_PARAM", 1.0), None);
         assert!(params.list.iter().all(|p| p.name.len() <= 16));
+    }
+
+    #[test]
+    fn the_geofence_params_follow_the_profile() {
+        let ardupilot_fence = ["FENCE_ENABLE", "FENCE_TYPE", "FENCE_ACTION", "FENCE_RADIUS"];
+        let px4_fence = ["GF_ACTION", "GF_MAX_HOR_DIST", "GF_MAX_VER_DIST"];
+        for profile in [
+            Profile::ArduPilot,
+            Profile::Generic,
+            Profile::ArduPilotResetting,
+        ] {
+            let params = Params::defaults(VehicleKind::Rover, 1, profile);
+            assert!(
+                ardupilot_fence.iter().all(|n| params.by_name(n).is_some()),
+                "{profile:?}"
+            );
+            assert!(
+                px4_fence.iter().all(|n| params.by_name(n).is_none()),
+                "{profile:?}"
+            );
+        }
+        let px4 = Params::defaults(VehicleKind::Copter, 1, Profile::Px4);
+        assert!(ardupilot_fence.iter().all(|n| px4.by_name(n).is_none()));
+        assert_eq!(
+            px4_fence.map(|n| px4.get_or(n, -1.0)),
+            [2.0, 0.0, 0.0],
+            "GF_ACTION hold, no distance limits"
+        );
+        assert_eq!(
+            px4.by_name("GF_ACTION").map(|(_, p)| p.kind),
+            Some(MavParamType::MAV_PARAM_TYPE_INT32)
+        );
+        assert_eq!(px4.get_or("WPNAV_SPEED", 0.0), 500.0, "the kind's own stay");
+    }
+
+    #[test]
+    fn a_rebuilt_table_keeps_the_values_both_profiles_share() {
+        let mut params = Params::defaults(VehicleKind::Rover, 3, Profile::ArduPilot);
+        params.set("CRUISE_SPEED", 4.0);
+        params.set("FENCE_RADIUS", 50.0);
+        let mut px4 = params.rebuilt_for(VehicleKind::Rover, Profile::Px4);
+        assert_eq!(px4.get_or("CRUISE_SPEED", 0.0), 4.0);
+        assert_eq!(px4.get_or("SYSID_THISMAV", 0.0), 3.0);
+        assert!(px4.by_name("FENCE_RADIUS").is_none());
+        px4.set("GF_MAX_HOR_DIST", 120.0);
+        let back = px4.rebuilt_for(VehicleKind::Rover, Profile::ArduPilot);
+        assert_eq!(
+            back.get_or("FENCE_RADIUS", 0.0),
+            300.0,
+            "ArduPilot's default again"
+        );
+        assert!(back.by_name("GF_MAX_HOR_DIST").is_none());
+        assert_eq!(back.get_or("CRUISE_SPEED", 0.0), 4.0);
     }
 }

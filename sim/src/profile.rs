@@ -13,6 +13,7 @@
 //! | MISSION_CURRENT | streamed and on change | only on change | streamed and on change | as ArduPilot |
 //! | MAV_CMD_MISSION_START | unsupported | starts AUTO.MISSION | unsupported | unsupported |
 //! | MAV_CMD_DO_REPOSITION | unsupported | AUTO.LOITER, go there and hold | unsupported | unsupported |
+//! | geofence parameters (`fence.rs`) | `FENCE_*` | `GF_*` | `FENCE_*` | `FENCE_*` |
 //!
 //! The last is no autopilot's documented behaviour: a vehicle that says it is ArduPilot and
 //! does not behave as one, for testing a ground station that must not trust the family alone.

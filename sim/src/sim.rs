@@ -49,6 +49,9 @@ pub struct SimConfig {
     pub autopilot: crate::profile::Profile,
     /// The battery (see [`Vehicle::set_battery`]).
     pub battery: crate::battery::BatteryConfig,
+    /// Most items one fence transfer may have (see [`Vehicle::set_fence_capacity`];
+    /// [`crate::fence::DEFAULT_CAPACITY`] unless told otherwise).
+    pub fence_capacity: u16,
 }
 
 /// Errors of the simulator.
@@ -68,6 +71,16 @@ pub enum SimError {
         /// Cause.
         source: io::Error,
     },
+}
+
+/// The vehicle `cfg` describes, as it starts.
+fn vehicle_of(cfg: &SimConfig, now: Instant) -> Vehicle {
+    let mut vehicle = Vehicle::new(cfg.vehicle, now);
+    vehicle.set_quiet_progress(cfg.quiet_progress);
+    vehicle.set_profile(cfg.autopilot);
+    vehicle.set_battery(cfg.battery);
+    vehicle.set_fence_capacity(cfg.fence_capacity);
+    vehicle
 }
 
 /// An opened simulator, ready to run.
@@ -94,10 +107,7 @@ impl Simulator {
             None => None,
         };
         let link = Link::open_signed(&cfg.link, cfg.vehicle.sysid, cfg.signing.clone()).await?;
-        let mut vehicle = Vehicle::new(cfg.vehicle, Instant::now());
-        vehicle.set_quiet_progress(cfg.quiet_progress);
-        vehicle.set_profile(cfg.autopilot);
-        vehicle.set_battery(cfg.battery);
+        let vehicle = vehicle_of(&cfg, Instant::now());
         Ok(Self {
             cfg,
             vehicle,
@@ -213,5 +223,58 @@ impl Simulator {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kinematics::{GeoPoint, VehicleKind};
+    use crate::profile::Profile;
+    use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType, MISSION_COUNT_DATA};
+
+    /// The options reach the vehicle: here the profile (PX4's geofence parameters) and the
+    /// fence capacity (a larger fence transfer is refused with NO_SPACE).
+    #[test]
+    fn the_config_reaches_the_vehicle() {
+        let cfg = SimConfig {
+            vehicle: VehicleConfig {
+                kind: VehicleKind::Rover,
+                sysid: 1,
+                home: GeoPoint {
+                    lat_deg: 41.2757,
+                    lon_deg: 1.9881,
+                    alt_m: 10.0,
+                },
+            },
+            link: LinkConfig::Pty,
+            speedup: 1.0,
+            log: None,
+            quiet_progress: false,
+            signing: None,
+            autopilot: Profile::Px4,
+            battery: crate::battery::BatteryConfig::default(),
+            fence_capacity: 2,
+        };
+        let mut v = vehicle_of(&cfg, Instant::now());
+        assert_eq!(v.profile(), Profile::Px4);
+        let count = |v: &mut Vehicle, count| {
+            v.handle(
+                (255, 190),
+                &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                    count,
+                    target_system: 1,
+                    mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+                    ..Default::default()
+                }),
+                Instant::now(),
+            )
+        };
+        assert!(matches!(count(&mut v, 3).as_slice(),
+            [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_NO_SPACE));
+        assert!(matches!(
+            count(&mut v, 2).as_slice(),
+            [MavMessage::MISSION_REQUEST_INT(_)]
+        ));
     }
 }

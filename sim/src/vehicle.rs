@@ -8,8 +8,9 @@
 //! switches to HOLD.
 //!
 //! Layout: this file holds the state, navigation and the simulation step; `inbound` handles
-//! the messages received, `telemetry` the wall-clock duties and the messages built to send.
-//! It stays over 800 lines because of its tests (about 560 lines), which drive the whole
+//! the messages received, `telemetry` the wall-clock duties and the messages built to send;
+//! `fence_tests` tests the geofence through the whole vehicle.
+//! It stays over 800 lines because of its tests (about 850 lines), which drive the whole
 //! vehicle through `handle`, `step` and `poll` and so belong with the state they inspect.
 
 use std::collections::BTreeMap;
@@ -32,6 +33,8 @@ use crate::modes::{self, Behaviour};
 use crate::params::Params;
 use crate::profile::Profile;
 
+#[cfg(test)]
+mod fence_tests;
 mod inbound;
 mod telemetry;
 
@@ -162,7 +165,7 @@ fn pwm_to_unit(pwm: u16) -> Option<f64> {
 impl Vehicle {
     /// A disarmed vehicle at home in its initial mode.
     pub fn new(cfg: VehicleConfig, now: Instant) -> Self {
-        let params = Params::defaults(cfg.kind, cfg.sysid);
+        let params = Params::defaults(cfg.kind, cfg.sysid, Profile::ArduPilot);
         let mut v = Self {
             cfg,
             frame: LocalFrame::new(cfg.home),
@@ -215,13 +218,18 @@ impl Vehicle {
     }
 
     /// Follows `profile`'s conventions (heartbeat, modes, item 0, partial writes, current item
-    /// after an upload, MISSION_CURRENT); see [`crate::profile`].
+    /// after an upload, MISSION_CURRENT, the geofence's parameters); see [`crate::profile`].
+    /// The parameter table becomes `profile`'s, keeping the values set of those both share.
     pub fn set_profile(&mut self, profile: Profile) {
         self.profile = profile;
         self.mission.set_item0_is_home(profile.item0_is_home());
-        if profile == Profile::Px4 {
-            self.params.use_px4_geofence();
-        }
+        self.params = self.params.rebuilt_for(self.cfg.kind, profile);
+    }
+
+    /// The most items one fence transfer may have (`--fence-capacity`; a larger MISSION_COUNT
+    /// is answered NO_SPACE).
+    pub fn set_fence_capacity(&mut self, capacity: u16) {
+        self.fence.set_capacity(capacity);
     }
 
     /// The autopilot profile followed.
@@ -683,59 +691,23 @@ impl Vehicle {
         out
     }
 
-    /// Enforces the fence: on a breach, a STATUSTEXT, a log record and the family's action:
-    /// ArduPilot's `FENCE_ACTION` (rover: 0 report, 1 RTL, 2 hold), PX4's `GF_ACTION` (1
-    /// warning, 2 hold, 3 return, 4 terminate and 5 land: land where the vehicle has a land
-    /// mode, else hold).
+    /// Enforces the fence: on a breach, a STATUSTEXT (critical, `Fence breached: {why};
+    /// {action}`), a log record and the family's action: ArduPilot's `FENCE_ACTION` (rover: 0
+    /// report, 1 RTL, 2 hold), PX4's `GF_ACTION` (see [`Self::px4_fence_action`]).
     fn check_fence(&mut self, out: &mut Vec<MavMessage>) {
-        let (p, wanted) = if self.profile == Profile::Px4 {
-            let (hor, ver) = (
-                f64::from(self.params.get_or("GF_MAX_HOR_DIST", 0.0)),
-                f64::from(self.params.get_or("GF_MAX_VER_DIST", 0.0)),
-            );
-            let action = self.params.get_or("GF_ACTION", 2.0).round() as i64;
-            let p = FenceParams {
-                enabled: action != 0 && (self.fence.has_area() || hor > 0.0 || ver > 0.0),
-                kinds: 4 | u8::from(ver > 0.0) | (u8::from(hor > 0.0) << 1),
-                radius_m: hor,
-                alt_max_m: ver,
-            };
-            let land = modes::table(self.cfg.kind)
-                .iter()
-                .any(|m| m.2 == Behaviour::Land);
-            let wanted = match action {
-                1 => None,
-                3 => Some(Behaviour::Rtl),
-                4 | 5 if land => Some(Behaviour::Land),
-                _ => Some(Behaviour::Hold),
-            };
-            (p, wanted)
+        let px4 = self.profile == Profile::Px4;
+        let p = if px4 {
+            self.px4_fence()
         } else {
-            let p = FenceParams {
-                enabled: self.params.get_or("FENCE_ENABLE", 0.0) >= 1.0,
-                kinds: self.params.get_or("FENCE_TYPE", 0.0).clamp(0.0, 255.0) as u8,
-                radius_m: f64::from(self.params.get_or("FENCE_RADIUS", 0.0)),
-                alt_max_m: f64::from(self.params.get_or("FENCE_ALT_MAX", 0.0)),
-            };
-            let wanted = match self.params.get_or("FENCE_ACTION", 1.0).round() as i64 {
-                0 => None,
-                2 => Some(Behaviour::Hold),
-                _ => Some(Behaviour::Rtl),
-            };
-            (p, wanted)
+            self.ardupilot_fence()
         };
         let Some(why) = self.fence.breach(&p, &self.state.pos) else {
             return;
         };
-        let mode = wanted.and_then(|b| {
-            modes::table(self.cfg.kind)
-                .iter()
-                .find(|m| m.2 == b)
-                .map(|m| (m.0, m.1))
-        });
-        let action = match mode {
-            None => "report".to_owned(),
-            Some((_, name)) => name.to_ascii_lowercase(),
+        let (mode, action) = if px4 {
+            self.px4_fence_action()
+        } else {
+            self.ardupilot_fence_action()
         };
         let here = self.frame.to_geo(self.state.pos);
         out.push(statustext(
@@ -748,8 +720,87 @@ impl Vehicle {
             lat: here.lat_deg,
             lon: here.lon_deg,
         });
-        if let Some((number, _)) = mode {
+        if let Some(number) = mode {
             self.change_mode(number, out);
+        }
+    }
+
+    /// The first mode of the table that behaves as `b`: its number and lower-case name.
+    fn mode_for(&self, b: Behaviour) -> Option<(u32, String)> {
+        modes::table(self.cfg.kind)
+            .iter()
+            .find(|m| m.2 == b)
+            .map(|m| (m.0, m.1.to_ascii_lowercase()))
+    }
+
+    /// ArduPilot's fence (all profiles but PX4's): `FENCE_ENABLE`, `FENCE_TYPE`,
+    /// `FENCE_RADIUS`, `FENCE_ALT_MAX`.
+    fn ardupilot_fence(&self) -> FenceParams {
+        FenceParams {
+            enabled: self.params.get_or("FENCE_ENABLE", 0.0) >= 1.0,
+            kinds: self.params.get_or("FENCE_TYPE", 0.0).clamp(0.0, 255.0) as u8,
+            radius_m: f64::from(self.params.get_or("FENCE_RADIUS", 0.0)),
+            alt_max_m: f64::from(self.params.get_or("FENCE_ALT_MAX", 0.0)),
+        }
+    }
+
+    /// ArduPilot's breach action, `FENCE_ACTION` (rover: 0 report, 1 RTL, 2 hold): the mode to
+    /// enter, if any, and the action's name.
+    fn ardupilot_fence_action(&self) -> (Option<u32>, String) {
+        let wanted = match self.params.get_or("FENCE_ACTION", 1.0).round() as i64 {
+            0 => None,
+            2 => Some(Behaviour::Hold),
+            _ => Some(Behaviour::Rtl),
+        };
+        match wanted.and_then(|b| self.mode_for(b)) {
+            Some((number, name)) => (Some(number), name),
+            None => (None, "report".to_owned()),
+        }
+    }
+
+    /// PX4's geofence: in force when an area is on board or `GF_MAX_HOR_DIST` /
+    /// `GF_MAX_VER_DIST` is set, unless `GF_ACTION` is 0.
+    fn px4_fence(&self) -> FenceParams {
+        let (hor, ver) = (
+            f64::from(self.params.get_or("GF_MAX_HOR_DIST", 0.0)),
+            f64::from(self.params.get_or("GF_MAX_VER_DIST", 0.0)),
+        );
+        let gf_action = self.params.get_or("GF_ACTION", 2.0).round() as i64;
+        FenceParams {
+            enabled: gf_action != 0 && (self.fence.has_area() || hor > 0.0 || ver > 0.0),
+            kinds: 4 | u8::from(ver > 0.0) | (u8::from(hor > 0.0) << 1),
+            radius_m: hor,
+            alt_max_m: ver,
+        }
+    }
+
+    /// PX4's breach action, `GF_ACTION`: 1 warning (report only), 2 hold (the kind's hold
+    /// mode; also any other value), 3 return (RTL), 5 land (LAND where the kind has it, else
+    /// hold), 4 terminate (not simulated: as 5, named `terminate as <mode>`).
+    fn px4_fence_action(&self) -> (Option<u32>, String) {
+        let hold = modes::hold(self.cfg.kind);
+        let hold = (hold, modes::name(self.cfg.kind, hold).to_ascii_lowercase());
+        let land = || {
+            self.mode_for(Behaviour::Land)
+                .unwrap_or_else(|| hold.clone())
+        };
+        match self.params.get_or("GF_ACTION", 2.0).round() as i64 {
+            1 => (None, "warning".to_owned()),
+            3 => {
+                let (number, name) = self
+                    .mode_for(Behaviour::Rtl)
+                    .unwrap_or_else(|| hold.clone());
+                (Some(number), name)
+            }
+            4 => {
+                let (number, name) = land();
+                (Some(number), format!("terminate as {name}"))
+            }
+            5 => {
+                let (number, name) = land();
+                (Some(number), name)
+            }
+            _ => (Some(hold.0), hold.1.clone()),
         }
     }
 
@@ -770,9 +821,9 @@ mod tests {
         lon_deg: 1.9881,
         alt_m: 10.0,
     };
-    const GCS: (u8, u8) = (255, 190);
+    pub(super) const GCS: (u8, u8) = (255, 190);
 
-    fn rover() -> Vehicle {
+    pub(super) fn rover() -> Vehicle {
         Vehicle::new(
             VehicleConfig {
                 kind: VehicleKind::Rover,
@@ -800,7 +851,7 @@ mod tests {
         }
     }
 
-    fn upload(v: &mut Vehicle, norths: &[f64]) {
+    pub(super) fn upload(v: &mut Vehicle, norths: &[f64]) {
         let now = Instant::now();
         let count = norths.len() as u16 + 1;
         v.handle(
@@ -837,7 +888,7 @@ mod tests {
         v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item), now);
     }
 
-    fn command(v: &mut Vehicle, command: MavCmd, p1: f32, p2: f32) -> MavResult {
+    pub(super) fn command(v: &mut Vehicle, command: MavCmd, p1: f32, p2: f32) -> MavResult {
         command_long(
             v,
             COMMAND_LONG_DATA {
@@ -850,7 +901,7 @@ mod tests {
     }
 
     /// Sends `cmd` and returns the result its COMMAND_ACK carries.
-    fn command_long(v: &mut Vehicle, cmd: COMMAND_LONG_DATA) -> MavResult {
+    pub(super) fn command_long(v: &mut Vehicle, cmd: COMMAND_LONG_DATA) -> MavResult {
         let out = v.handle(GCS, &MavMessage::COMMAND_LONG(cmd), Instant::now());
         out.iter()
             .find_map(|m| match m {
@@ -871,7 +922,7 @@ mod tests {
     }
 
     /// Steps until `f` holds (at most `max_s` simulated seconds).
-    fn run_until(v: &mut Vehicle, max_s: f64, mut f: impl FnMut(&Vehicle) -> bool) {
+    pub(super) fn run_until(v: &mut Vehicle, max_s: f64, mut f: impl FnMut(&Vehicle) -> bool) {
         let mut t = 0.0;
         while !f(v) {
             v.step(0.02);
@@ -880,7 +931,7 @@ mod tests {
         }
     }
 
-    fn start_auto(v: &mut Vehicle) {
+    pub(super) fn start_auto(v: &mut Vehicle) {
         assert_eq!(
             command(v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
             MavResult::MAV_RESULT_ACCEPTED
@@ -919,7 +970,7 @@ mod tests {
         }
     }
 
-    fn copter() -> Vehicle {
+    pub(super) fn copter() -> Vehicle {
         Vehicle::new(
             VehicleConfig {
                 kind: VehicleKind::Copter,
@@ -1597,135 +1648,6 @@ mod tests {
             if a.mavtype == MavMissionResult::MAV_MISSION_UNSUPPORTED
                 && a.mission_type == MavMissionType::MAV_MISSION_TYPE_RALLY));
         assert_eq!(v.mission().len(), 3, "the mission is untouched");
-    }
-
-    #[test]
-    fn a_fence_upload_is_kept_apart_from_the_mission_and_a_breach_triggers_fence_action() {
-        use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
-        let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
-        let mut v = rover();
-        upload(&mut v, &[10.0, 80.0]);
-        let now = Instant::now();
-        let out = v.handle(
-            GCS,
-            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
-                count: 4,
-                mission_type: fence,
-                ..Default::default()
-            }),
-            now,
-        );
-        assert!(
-            matches!(out.as_slice(), [MavMessage::MISSION_REQUEST_INT(r)] if r.mission_type == fence)
-        );
-        for (i, (n, e)) in [(-40.0, -40.0), (-40.0, 40.0), (40.0, 40.0), (40.0, -40.0)]
-            .into_iter()
-            .enumerate()
-        {
-            let g = v.frame.to_geo(Ned {
-                north: n,
-                east: e,
-                up: 0.0,
-            });
-            let item = Item {
-                seq: i as u16,
-                command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
-                param1: 4.0,
-                x: (g.lat_deg * 1e7).round() as i32,
-                y: (g.lon_deg * 1e7).round() as i32,
-                mission_type: fence,
-                target_system: 1,
-                ..Default::default()
-            };
-            let out = v.handle(GCS, &MavMessage::MISSION_ITEM_INT(item), now);
-            if i == 3 {
-                assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
-                    if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED && a.mission_type == fence));
-            }
-        }
-        assert_eq!(v.mission().len(), 3, "the mission is untouched");
-        for (name, value) in [
-            ("FENCE_TYPE", 4.0),
-            ("FENCE_ACTION", 2.0),
-            ("FENCE_ENABLE", 1.0),
-        ] {
-            v.params.set(name, value);
-        }
-        start_auto(&mut v);
-        run_until(&mut v, 120.0, |v| v.behaviour() == Behaviour::Hold);
-        assert_eq!(v.behaviour(), Behaviour::Hold, "held at the breach");
-        let north = v.position().north;
-        assert!(
-            (40.0..50.0).contains(&north),
-            "stopped near the fence: {north}"
-        );
-        assert!(v.take_log().iter().any(
-            |(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
-                if fence == "polygon" && action == "hold")
-        ));
-    }
-
-    /// PX4 keeps no FENCE_* switch: an area uploaded is in force, and GF_ACTION (hold by
-    /// default) acts on a breach.
-    #[test]
-    fn a_px4_vehicle_enforces_an_uploaded_circle_with_gf_action() {
-        use mavlink::dialects::ardupilotmega::{MavMissionResult, MavMissionType};
-        let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
-        let mut v = rover();
-        v.set_profile(Profile::Px4);
-        assert!(v.params.by_name("FENCE_ENABLE").is_none());
-        assert_eq!(v.params.get_or("GF_ACTION", -1.0), 2.0);
-        upload(&mut v, &[10.0, 80.0]);
-        let now = Instant::now();
-        v.handle(
-            GCS,
-            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
-                count: 1,
-                mission_type: fence,
-                ..Default::default()
-            }),
-            now,
-        );
-        let home = v.frame.to_geo(Ned {
-            north: 0.0,
-            east: 0.0,
-            up: 0.0,
-        });
-        let circle = Item {
-            seq: 0,
-            command: MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
-            param1: 30.0,
-            x: (home.lat_deg * 1e7).round() as i32,
-            y: (home.lon_deg * 1e7).round() as i32,
-            mission_type: fence,
-            target_system: 1,
-            ..Default::default()
-        };
-        let out = v.handle(GCS, &MavMessage::MISSION_ITEM_INT(circle), now);
-        assert!(matches!(out.as_slice(), [MavMessage::MISSION_ACK(a)]
-            if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED));
-        assert_eq!(
-            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
-            MavResult::MAV_RESULT_ACCEPTED
-        );
-        assert_eq!(
-            command(&mut v, MavCmd::MAV_CMD_MISSION_START, 0.0, 0.0),
-            MavResult::MAV_RESULT_ACCEPTED
-        );
-        run_until(&mut v, 120.0, |v| v.behaviour() == Behaviour::Hold);
-        assert_eq!(v.behaviour(), Behaviour::Hold, "held at the breach");
-        let north = v.position().north;
-        assert!(
-            (30.0..40.0).contains(&north),
-            "stopped near the circle: {north}"
-        );
-        let log = v.take_log();
-        assert!(log.iter().any(|(_, e)| matches!(e,
-            LogEvent::FenceUploaded { vertices: 0, circle_m: Some(r) } if *r == 30.0)));
-        assert!(log.iter().any(
-            |(_, e)| matches!(e, LogEvent::FenceBreached { fence, action, .. }
-                if fence.starts_with("circle item") && action == "hold")
-        ));
     }
 
     #[test]
