@@ -19,7 +19,7 @@ use marea::{NetworkConfig, Node};
 const PEER_ID: u64 = 0xF00D_0000_0000_0001;
 
 fn cfg(domain: &str) -> NetworkConfig {
-    let port = 30_000 + (std::process::id() % 20_000) as u16;
+    let port = test_support::multicast_port(u64::from(std::process::id()));
     let group = SocketAddrV4::new(Ipv4Addr::new(239, 255, 77, 17), port);
     attacker::loopback_node_config("node", domain, group, Duration::from_secs(5))
 }

@@ -154,7 +154,7 @@ impl Joined {
 
 /// Base of a test's two discovery ports (each test takes two from `offset`).
 fn base_port(offset: u16) -> u16 {
-    20_000 + (std::process::id() % 20_000) as u16 + offset
+    test_support::multicast_port(u64::from(std::process::id())) + offset
 }
 
 #[test]

@@ -30,7 +30,7 @@ impl ShmNet {
         ShmNet {
             service: format!("t{}-{pid}", test.replace('_', "-")),
             domain: format!("{test}-{pid}"),
-            port: 20_000 + (h % 30_000) as u16,
+            port: test_support::multicast_port(h),
             dir: tempfile::tempdir().expect("temp dir"),
         }
     }

@@ -13,7 +13,7 @@ fn cfg(node: &str, domain: &str, port: u16) -> NetworkConfig {
 }
 
 fn port() -> u16 {
-    30_000 + (std::process::id() % 20_000) as u16
+    test_support::multicast_port(u64::from(std::process::id()))
 }
 
 const T: Duration = Duration::from_secs(20);

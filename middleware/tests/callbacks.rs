@@ -25,7 +25,7 @@ async fn two_nodes(test: &str, port: u16) -> (Node, Node) {
 }
 
 fn port(offset: u16) -> u16 {
-    20_000 + (std::process::id() % 10_000) as u16 * 2 + offset
+    test_support::multicast_port(u64::from(std::process::id()) * 2) + offset
 }
 
 /// Node b's callback takes a's events as they come and republishes each on b's own event

@@ -44,7 +44,7 @@ fn hostile() -> impl Strategy<Value = Vec<u8>> {
 fn hostile_datagrams_are_dropped_and_the_node_keeps_serving() {
     let rt = tokio::runtime::Runtime::new().unwrap();
     let domain = format!("garbage-{}", std::process::id());
-    let port = 21_000 + (std::process::id() % 20_000) as u16;
+    let port = test_support::multicast_port(u64::from(std::process::id()) + 1_000);
     let (target, publisher, var, sub) = rt.block_on(async {
         let target = Node::open(&cfg("target", &domain, port)).await.unwrap();
         let publisher = Node::open(&cfg("publisher", &domain, port)).await.unwrap();

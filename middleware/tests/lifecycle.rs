@@ -49,7 +49,7 @@ impl IService for Ticker {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_stops_services_tells_peers_and_leaves_no_task() {
     let domain = format!("lifecycle-{}", std::process::id());
-    let port = 22_000 + (std::process::id() % 20_000) as u16;
+    let port = test_support::multicast_port(u64::from(std::process::id()) + 2_000);
     let a = Node::open(&cfg("a", &domain, port)).await.unwrap();
     let b = Node::open(&cfg("b", &domain, port)).await.unwrap();
     let stopped = Arc::new(AtomicBool::new(false));
@@ -87,7 +87,7 @@ async fn shutdown_stops_services_tells_peers_and_leaves_no_task() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_closes_the_subscriptions_receivers_wait_on() {
     let domain = format!("lifecycle-close-{}", std::process::id());
-    let port = 22_001 + (std::process::id() % 20_000) as u16;
+    let port = test_support::multicast_port(u64::from(std::process::id()) + 2_001);
     let n = Node::open(&cfg("n", &domain, port)).await.unwrap();
     let svc = n.service("watch").unwrap();
     let events = svc.subscribe_event::<u64>("*/nothing/ev").unwrap();

@@ -126,7 +126,8 @@ async fn udp_pair(security: Option<LinkSecurity>) -> Pair {
     let tasks = TaskTracker::new();
     let cancel = CancellationToken::new();
     // The keyed pair uses its own group port: the tests of this file run in parallel.
-    let port = 24_000 + (std::process::id() % 20_000) as u16 + u16::from(security.is_some());
+    let port = test_support::multicast_port(u64::from(std::process::id()) + 4_000)
+        + u16::from(security.is_some());
     let opts = |name: &str| UdpLinkOptions {
         name: name.into(),
         bind: "127.0.0.1:0".parse().unwrap(),

@@ -169,7 +169,7 @@ impl Net {
         let h = h ^ u64::from(std::process::id()).wrapping_mul(0x9E37_79B9_7F4A_7C15);
         Net {
             domain: format!("{test}-{}", std::process::id()),
-            port: 20_000 + (h % 30_000) as u16,
+            port: test_support::multicast_port(h),
             heartbeat_ms: 200,
             lease_ms: 1200,
         }

@@ -86,11 +86,13 @@ def main():
         if words[0] == "upload" and len(words) == 2:
             points = [tuple(float(v) for v in p.split(",")) for p in words[1].split(";") if p.strip()]
             # The autopilot takes one mission transfer at a time: items of ours that met the
-            # VAS's own write are refused (MAV_MISSION_DENIED, or OPERATION_CANCELLED), and a
-            # station tries again.
+            # VAS's own write are refused (MAV_MISSION_DENIED, or OPERATION_CANCELLED, or
+            # MAV_MISSION_ERROR once the VAS's write replaced our transfer), and a station
+            # tries again.
             busy = (
                 mavutil.mavlink.MAV_MISSION_DENIED,
                 mavutil.mavlink.MAV_MISSION_OPERATION_CANCELLED,
+                mavutil.mavlink.MAV_MISSION_ERROR,
             )
             result = upload(m, target, points)
             for _ in range(3):

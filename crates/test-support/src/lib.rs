@@ -12,6 +12,14 @@
 
 pub mod layering;
 
+/// A UDP port for a test's multicast group, from `key` (a hash of the test's name, or the
+/// process id): in 20000..32000, below the kernel's ephemeral range (32768-60999 on Linux), so
+/// no socket the system hands out meanwhile holds it without SO_REUSEADDR (a join then fails
+/// with "Address already in use"). Tests sharing a port are kept apart by their domains.
+pub fn multicast_port(key: u64) -> u16 {
+    20_000 + (key % 12_000) as u16
+}
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
