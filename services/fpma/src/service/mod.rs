@@ -401,6 +401,35 @@ fn record_command<A: std::fmt::Debug, R: std::fmt::Debug>(
     }
 }
 
+/// Declares `load_plan` (or, with `replace`, `replace_plan`): the XML argument is loaded as
+/// the plan; each call is recorded on `commands` with who sent it and the answer.
+fn load_fn(
+    ctx: &Service,
+    tx: &mpsc::Sender<Request>,
+    commands: &Arc<Event<CommandRecord>>,
+    name: &'static str,
+    replace: bool,
+) -> Result<marea::FunctionProvider, ServiceError> {
+    let (tx, commands) = (tx.clone(), commands.clone());
+    Ok(
+        ctx.provide_function_with_caller(name, move |xml: String, from: marea::Caller| {
+            let (tx, commands) = (tx.clone(), commands.clone());
+            async move {
+                let args = format!("a plan of {} bytes", xml.len());
+                let r = ask(&tx, |reply| Request::Load {
+                    text: xml,
+                    source: "plan".into(),
+                    replace,
+                    reply,
+                })
+                .await;
+                record_command(&commands, &from, name, &args, &r);
+                r
+            }
+        })?,
+    )
+}
+
 /// Declares a command function `name` whose argument `A` becomes a [`Command`]; each call is
 /// recorded on `commands` with who sent it and the answer.
 fn command_fn<A: marea::Payload + std::fmt::Debug>(
@@ -494,46 +523,9 @@ impl IService for Fpma {
 
         let (tx, mut rx) = mpsc::channel::<Request>(64);
         let mut providers = Vec::new();
-        let t = tx.clone();
-        let c = commands.clone();
-        providers.push(ctx.provide_function_with_caller(
-            "load_plan",
-            move |xml: String, from: marea::Caller| {
-                let (t, c) = (t.clone(), c.clone());
-                async move {
-                    let args = format!("a plan of {} bytes", xml.len());
-                    let r = ask(&t, |reply| Request::Load {
-                        text: xml,
-                        source: "plan".into(),
-                        replace: false,
-                        reply,
-                    })
-                    .await;
-                    record_command(&c, &from, "load_plan", &args, &r);
-                    r
-                }
-            },
-        )?);
-        let t = tx.clone();
-        let c = commands.clone();
-        providers.push(ctx.provide_function_with_caller(
-            "replace_plan",
-            move |xml: String, from: marea::Caller| {
-                let (t, c) = (t.clone(), c.clone());
-                async move {
-                    let args = format!("a plan of {} bytes", xml.len());
-                    let r = ask(&t, |reply| Request::Load {
-                        text: xml,
-                        source: "plan".into(),
-                        replace: true,
-                        reply,
-                    })
-                    .await;
-                    record_command(&c, &from, "replace_plan", &args, &r);
-                    r
-                }
-            },
-        )?);
+        for (name, replace) in [("load_plan", false), ("replace_plan", true)] {
+            providers.push(load_fn(&ctx, &tx, &commands, name, replace)?);
+        }
         let t = tx.clone();
         providers.push(ctx.provide_function("plan_geometry", move |(): ()| {
             let t = t.clone();
