@@ -1157,6 +1157,49 @@ fn a_vehicle_fence_the_autopilot_refuses_keeps_the_rover_parked_and_says_why() {
     assert_no_child_left(&l.pids());
 }
 
+/// A bad plan another tool sends into a running mission is refused by the FPMa and changes
+/// nothing: `usal run` says so and the mission flies on to its end (it used to stop every
+/// service at the first `plan_rejected`, whoever's plan it was).
+#[test]
+fn a_bad_plan_sent_by_another_tool_is_refused_and_the_mission_flies_on() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bad = dir.path().join("bad-plan.xml");
+    std::fs::write(
+        &bad,
+        r#"<flightPlan name="bad"><mission><leg type="TF" fix="NOPE"/></mission></flightPlan>"#,
+    )
+    .expect("write the bad plan");
+    let mut l = Launcher::start(&[
+        "config/missions/rover-demo.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let domain = l.event(STEP, "mission")["domain"]
+        .as_str()
+        .expect("the domain")
+        .to_owned();
+    l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
+        v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
+    });
+    let bad_path = bad.to_str().expect("a UTF-8 path");
+    let _ = tool(&domain, &["send", bad_path, "--to", "rover1/fpma/plans"]);
+    let refused = l.expect(STEP, "the refusal noted", |v| v["event"] == "plan_refused");
+    assert!(
+        refused["reason"]
+            .as_str()
+            .is_some_and(|r| r.contains("unknown fix `NOPE`"))
+            && refused["file"] == "bad-plan.xml",
+        "{refused}"
+    );
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    assert_no_child_left(&l.pids());
+}
+
 /// `usal run` killed with SIGKILL mid-flight (it can stop nothing itself) leaves no child
 /// running: the kernel asks each to stop when the launcher dies.
 #[test]

@@ -570,7 +570,17 @@ async fn follow(
             }
             r = rejected.recv() => {
                 let r = r.context("following plan rejections")?.value;
-                return Ok(Outcome::Failed(format!("the FPMa rejected the plan: {}", r.reason)));
+                // Only the refusal of this station's own plan ends its run; a bad plan another
+                // station or tool sent changes nothing the FPMa flies, and the flight goes on.
+                let own_file = s.plan_file.file_name().and_then(|n| n.to_str());
+                if r.from == node.name() && own_file == Some(r.file.as_str()) {
+                    return Ok(Outcome::Failed(format!("the FPMa rejected the plan: {}", r.reason)));
+                }
+                line = Some(format!(
+                    "the FPMa refused a plan {} sent ({}): {}; the flight goes on",
+                    r.from, r.file, r.reason
+                ));
+                record = Some(json!({"event": "plan_refused", "from": r.from, "file": r.file, "reason": r.reason}));
             }
             st = state.recv() => {
                 let st = st.context("following the VAS state")?.value;
