@@ -20,6 +20,7 @@ use marea::{NetworkConfig, Node, SendFileOptions};
 #[derive(Parser)]
 #[command(
     name = "usal",
+    version,
     about = "USAL-rs tools: run a mission, replay its flight log; list, echo, call, send"
 )]
 struct Cli {

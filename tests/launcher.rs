@@ -1157,6 +1157,19 @@ fn a_vehicle_fence_the_autopilot_refuses_keeps_the_rover_parked_and_says_why() {
     assert_no_child_left(&l.pids());
 }
 
+#[test]
+fn usal_says_its_version() {
+    let out = Command::new(USAL)
+        .arg("--version")
+        .output()
+        .expect("usal --version");
+    assert!(out.status.success(), "{out:?}");
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        format!("usal {}", env!("CARGO_PKG_VERSION"))
+    );
+}
+
 /// A bad plan another tool sends into a running mission is refused by the FPMa and changes
 /// nothing: `usal run` says so and the mission flies on to its end (it used to stop every
 /// service at the first `plan_rejected`, whoever's plan it was).

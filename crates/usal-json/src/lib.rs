@@ -81,6 +81,7 @@ fn registry() -> Vec<Known> {
         Speeds,
         VehicleKind,
         FlightState,
+        Vec<FlightState>,
         AutopilotStatus,
         WaypointKind,
         Waypoint,
@@ -203,6 +204,19 @@ mod tests {
             serde_json::json!({"DIRECTED": {"alt": 30.0, "speed": 5.0, "bearing": 90.0}});
         let bytes = from_json(name, &directed).unwrap();
         assert_eq!(to_json(name, &bytes).unwrap().unwrap(), directed);
+        // `usal call rover1/vas/allowed_states` answers a list of states.
+        let states = vec![
+            usal_types::FlightState::Parking,
+            usal_types::FlightState::Manual,
+        ];
+        let bytes = postcard::to_stdvec(&states).unwrap();
+        let json = to_json(
+            std::any::type_name::<Vec<usal_types::FlightState>>(),
+            &bytes,
+        )
+        .expect("a known type")
+        .unwrap();
+        assert_eq!(json, serde_json::json!(["PARKING", "MANUAL"]));
         assert_eq!(
             split_fn("fn(u64) -> alloc::string::String"),
             Some(("u64", "alloc::string::String"))
