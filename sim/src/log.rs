@@ -86,14 +86,14 @@ pub enum LogEvent {
         /// Metres above home.
         alt: f64,
     },
-    /// A fence transfer was committed, or the fence cleared (issue 15).
+    /// A fence transfer was committed, or the fence cleared.
     FenceUploaded {
         /// Its polygon's vertices (0: none, or cleared).
         vertices: usize,
         /// Its inclusion circle item's radius, metres, if it has one (`null` in JSON if not).
         circle_m: Option<f64>,
     },
-    /// The vehicle left the fence (issue 15).
+    /// The vehicle left the fence.
     FenceBreached {
         /// Which part: `circle (..)` (FENCE_RADIUS or GF_MAX_HOR_DIST), `ceiling (..)`
         /// (FENCE_ALT_MAX or GF_MAX_VER_DIST), `polygon`, `circle item (..)`.

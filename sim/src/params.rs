@@ -49,7 +49,7 @@ impl Params {
             p("FS_ACTION", 2.0, I8),
             p("INITIAL_MODE", 0.0, I8),
         ];
-        // The geofence (issue 15, `fence.rs`).
+        // The geofence (`fence.rs`): what each family keeps it as.
         if profile == Profile::Px4 {
             // PX4: no switch (an uploaded area is in force); `GF_ACTION` 0 none, 1 warning,
             // 2 hold, 3 return, 4 terminate, 5 land; the distances are metres from home, 0 off.
