@@ -149,6 +149,14 @@ impl Launcher {
         self.expect(timeout, name, |v| v["event"] == name)
     }
 
+    /// The mission's domain, as the launcher prints it first.
+    fn domain(&mut self) -> String {
+        self.event(STEP, "mission")["domain"]
+            .as_str()
+            .expect("the domain")
+            .to_owned()
+    }
+
     fn wait_exit(&mut self, timeout: Duration) -> std::process::ExitStatus {
         let deadline = Instant::now() + timeout;
         loop {
@@ -589,10 +597,7 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
         "--speedup",
         "10",
     ]);
-    let domain = l.event(STEP, "mission")["domain"]
-        .as_str()
-        .unwrap()
-        .to_owned();
+    let domain = l.domain();
     // Once the surveyor has found something (it is then scanning), pause it and resume it.
     l.expect(FLIGHT, "a detection", |v| {
         v["event"] == "fleet_progress" && v["detections"].as_u64().is_some_and(|d| d >= 1)
@@ -857,10 +862,7 @@ fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resum
     };
 
     let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "5"]);
-    let domain = l.event(STEP, "mission")["domain"]
-        .as_str()
-        .expect("the domain")
-        .to_owned();
+    let domain = l.domain();
     l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
         v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
     });
@@ -1002,10 +1004,7 @@ fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
         "--speedup",
         "20",
     ]);
-    let domain = l.event(STEP, "mission")["domain"]
-        .as_str()
-        .expect("the domain")
-        .to_owned();
+    let domain = l.domain();
     let by = l.event(STEP, "start_by");
     assert_eq!(by["by"], "operator", "{by}");
     l.event(STEP, "plan_loaded");
@@ -1037,10 +1036,7 @@ fn with_start_by_the_operator_a_restarted_vas_waits_for_the_pilot() {
     let dir = tempfile::tempdir().expect("tempdir");
     let mission = operator_mission(dir.path());
     let mut l = Launcher::start(&[mission.to_str().expect("a UTF-8 path"), "--speedup", "10"]);
-    let domain = l.event(STEP, "mission")["domain"]
-        .as_str()
-        .expect("the domain")
-        .to_owned();
+    let domain = l.domain();
     let vas = l.expect(STEP, "vas started", |v| {
         v["event"] == "started" && v["service"] == "air/vas"
     });
@@ -1188,10 +1184,7 @@ fn a_bad_plan_sent_by_another_tool_is_refused_and_the_mission_flies_on() {
         "--speedup",
         "20",
     ]);
-    let domain = l.event(STEP, "mission")["domain"]
-        .as_str()
-        .expect("the domain")
-        .to_owned();
+    let domain = l.domain();
     l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
         v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
     });
@@ -1237,10 +1230,7 @@ fn a_launcher_killed_with_sigkill_leaves_no_child() {
 #[test]
 fn tools_see_a_running_mission_and_sigint_leaves_no_child() {
     let mut l = Launcher::start(&["config/missions/rover-demo.xml", "--speedup", "2"]);
-    let domain = l.event(STEP, "mission")["domain"]
-        .as_str()
-        .unwrap()
-        .to_owned();
+    let domain = l.domain();
     l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
         v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
     });

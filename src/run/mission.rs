@@ -690,6 +690,15 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     })
 }
 
+/// A `LAT,LON,ALT` (a `<mavsim home>`), `None` when it is not three numbers.
+fn lat_lon_alt(text: &str) -> Option<[f64; 3]> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|x| x.trim().parse().ok())
+        .collect::<Option<_>>()?;
+    v.try_into().ok()
+}
+
 /// A vehicle's `<fence>` (the plan's form). A `maxDistance` is measured from the fence's own
 /// home, else from the node's simulator's home.
 fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::Fence, Fault> {
@@ -701,15 +710,11 @@ fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::F
     })?;
     let mut fence = pf.fence;
     if !pf.home_given && fence.max_distance_m.is_some() {
-        let sim_home = services.iter().find_map(|s| match s {
-            ServiceSpec::Mavsim(m) => Some(m.home.clone()),
+        let home = services.iter().find_map(|s| match s {
+            ServiceSpec::Mavsim(m) => m.home.as_deref().and_then(lat_lon_alt),
             _ => None,
         });
-        let home = sim_home.flatten().and_then(|h| {
-            let mut it = h.split(',').map(|x| x.trim().parse::<f64>().ok());
-            Some((it.next()??, it.next()??))
-        });
-        fence.home = home.ok_or_else(|| {
+        fence.home = home.map(|[lat, lon, _]| (lat, lon)).ok_or_else(|| {
             Fault::at(
                 el,
                 "maxDistance needs homeLat and homeLon, or a <mavsim home> before the <vas> in this node",
@@ -804,9 +809,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 }
                 a.finish()?;
                 if let Some(h) = &spec.home {
-                    let ok = h.split(',').count() == 3
-                        && h.split(',').all(|x| x.trim().parse::<f64>().is_ok());
-                    if !ok {
+                    if lat_lon_alt(h).is_none() {
                         return Err(Fault::at(s, format!("home `{h}` is not LAT,LON,ALT")));
                     }
                 }
