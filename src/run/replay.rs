@@ -135,23 +135,25 @@ fn air_records(log: &Path, started_unix_ms: Option<u64>) -> (Vec<AirRecord>, usi
     for entry in nodes.flatten() {
         let node = entry.file_name().to_string_lossy().into_owned();
         // The rotated file first: it holds the older records.
-        for file in ["vas-air.1.jsonl", "vas-air.jsonl"] {
-            let Ok(text) = std::fs::read_to_string(entry.path().join(file)) else {
+        let texts: Vec<String> = ["vas-air.1.jsonl", "vas-air.jsonl"]
+            .iter()
+            .filter_map(|file| std::fs::read_to_string(entry.path().join(file)).ok())
+            .collect();
+        for line in texts.iter().flat_map(|t| t.lines()) {
+            if line.trim().is_empty() {
                 continue;
-            };
-            for line in text.lines().filter(|l| !l.trim().is_empty()) {
-                match serde_json::from_str::<Value>(line) {
-                    Ok(v) if v["format"].is_string() => {}
-                    Ok(v) => match (v["unix_ms"].as_u64(), v["kind"].as_str()) {
-                        (Some(ms), Some(_)) => out.push(AirRecord {
-                            t: (ms as f64 - start as f64) / 1000.0,
-                            node: node.clone(),
-                            record: v,
-                        }),
-                        _ => bad += 1,
-                    },
-                    Err(_) => bad += 1,
-                }
+            }
+            let v: Value = serde_json::from_str(line).unwrap_or(Value::Null);
+            if v["format"].is_string() {
+                continue; // a file's header
+            }
+            match (v["unix_ms"].as_u64(), v["kind"].is_string()) {
+                (Some(ms), true) => out.push(AirRecord {
+                    t: (ms as f64 - start as f64) / 1000.0,
+                    node: node.clone(),
+                    record: v,
+                }),
+                _ => bad += 1,
             }
         }
     }
@@ -159,19 +161,26 @@ fn air_records(log: &Path, started_unix_ms: Option<u64>) -> (Vec<AirRecord>, usi
     (out, bad)
 }
 
+/// A `CommandRecord` (as JSON) as words: `from gcs/station change_state(WaypointNavigation)
+/// -> ok: ...`.
+fn command_record_text(v: &Value) -> String {
+    let s = |k: &str| v[k].as_str().unwrap_or("?").to_owned();
+    format!(
+        "from {} {}({}) -> {}: {}",
+        s("from"),
+        s("command"),
+        s("args"),
+        if v["ok"] == true { "ok" } else { "refused" },
+        s("answer")
+    )
+}
+
 /// An air-side record as a line: `air air: command ground/gs change_state(...) -> ok: ...`.
 fn show_air(a: &AirRecord, json_out: bool) {
     let r = &a.record;
     let s = |k: &str| r[k].as_str().unwrap_or("?").to_owned();
     let text = match r["kind"].as_str().unwrap_or("?") {
-        "command" => format!(
-            "command from {} {}({}) -> {}: {}",
-            s("from"),
-            s("command"),
-            s("args"),
-            if r["ok"] == true { "ok" } else { "refused" },
-            s("answer")
-        ),
+        "command" => format!("command {}", command_record_text(r)),
         "state" => format!("state {} -> {} ({})", s("from"), s("to"), s("cause")),
         "failsafe" => format!(
             "failsafe {} ({}): {}",
@@ -405,23 +414,15 @@ fn show(r: &Record, last_state: &mut String, json_out: bool) {
         }
         "plan" if f["item"] == "event" => plan_event(f),
         "alarm" => format!("alarm {}", f["value"]),
-        "command" if f["value"]["from"].is_string() => {
-            // A command a service received (`commands`): who sent it and the answer.
-            let v = &f["value"];
-            let s = |k: &str| v[k].as_str().unwrap_or("?").to_owned();
-            format!(
-                "command to {} from {} {}({}) -> {}: {}",
-                f["name"]
-                    .as_str()
-                    .unwrap_or("?")
-                    .trim_end_matches("/commands"),
-                s("from"),
-                s("command"),
-                s("args"),
-                if v["ok"] == true { "ok" } else { "refused" },
-                s("answer")
-            )
-        }
+        // A command a service received (`commands`): who sent it and the answer.
+        "command" if f["value"]["from"].is_string() => format!(
+            "command to {} {}",
+            f["name"]
+                .as_str()
+                .unwrap_or("?")
+                .trim_end_matches("/commands"),
+            command_record_text(&f["value"])
+        ),
         "command" if f["item"].is_null() => {
             let answer = f
                 .get("answer")

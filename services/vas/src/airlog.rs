@@ -105,42 +105,44 @@ impl AirLog {
     }
 }
 
-/// Reads the records of the air log in `dir`, oldest first (the rotated file, then the
-/// current one); lines that do not read are skipped and counted.
-///
-/// # Errors
-/// Neither file can be read.
-pub fn read(dir: &Path) -> std::io::Result<(Vec<Value>, usize)> {
-    let mut records = Vec::new();
-    let mut bad = 0;
-    let mut found = false;
-    for name in [ROTATED, FILE] {
-        let text = match std::fs::read_to_string(dir.join(name)) {
-            Ok(t) => t,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-            Err(e) => return Err(e),
-        };
-        found = true;
-        for line in text.lines().filter(|l| !l.trim().is_empty()) {
-            match serde_json::from_str::<Value>(line) {
-                Ok(v) if v["format"] == FORMAT => {}
-                Ok(v) if v["kind"].is_string() => records.push(v),
-                _ => bad += 1,
-            }
-        }
-    }
-    if !found {
-        return Err(std::io::Error::new(
-            std::io::ErrorKind::NotFound,
-            format!("no {FILE} in {}", dir.display()),
-        ));
-    }
-    Ok((records, bad))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    // What `usal replay` does with the files (it reads them itself: `usal` does not depend on
+    // the VAS), for the tests here.
+    /// Reads the records of the air log in `dir`, oldest first (the rotated file, then the
+    /// current one); lines that do not read are skipped and counted.
+    ///
+    /// # Errors
+    /// Neither file can be read.
+    fn read(dir: &Path) -> std::io::Result<(Vec<Value>, usize)> {
+        let mut records = Vec::new();
+        let mut bad = 0;
+        let mut found = false;
+        for name in [ROTATED, FILE] {
+            let text = match std::fs::read_to_string(dir.join(name)) {
+                Ok(t) => t,
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => return Err(e),
+            };
+            found = true;
+            for line in text.lines().filter(|l| !l.trim().is_empty()) {
+                match serde_json::from_str::<Value>(line) {
+                    Ok(v) if v["format"] == FORMAT => {}
+                    Ok(v) if v["kind"].is_string() => records.push(v),
+                    _ => bad += 1,
+                }
+            }
+        }
+        if !found {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!("no {FILE} in {}", dir.display()),
+            ));
+        }
+        Ok((records, bad))
+    }
 
     #[test]
     fn records_append_rotate_past_the_limit_and_read_back_in_order() {
