@@ -148,7 +148,8 @@ async fn fence_uploaded_enforced_and_waypoints_outside_refused() {
 
 /// The vehicle's own fence (`vas --fence`, what `usal run` gives from the mission), on
 /// `profile`'s autopilot: uploaded before the rover may start, never taken down by a plan
-/// without a fence, narrowed by a plan's fence and never widened by one.
+/// without a fence, narrowed by a plan's fence and never widened by one, and enforced by the
+/// autopilot (a breach under the moving rover).
 async fn vehicle_fence_on(profile: &str) {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("fence.xml");
@@ -189,6 +190,10 @@ async fn vehicle_fence_on(profile: &str) {
     let set_fence = g
         .svc
         .function::<Option<Fence>, String>("rover1/vas/set_fence")
+        .unwrap();
+    let failsafes = g
+        .svc
+        .subscribe_event::<Failsafe>("rover1/vas/failsafe")
         .unwrap();
     g.wait_state(FlightState::Parking, STEP).await;
     sim.wait_log(
@@ -257,6 +262,28 @@ async fn vehicle_fence_on(profile: &str) {
     g.request(FlightState::WaypointNavigation)
         .await
         .expect("navigation with the fence on board");
+    // The autopilot enforces the fence in force: narrowed under the moving rover, it breaches.
+    sim.wait_log("item_reached", STEP, "the rover does not drive", |r| {
+        r.len() >= 2
+    })
+    .await;
+    let mut tight = fence(15.0);
+    tight.polygon.clear();
+    set_fence
+        .call(&Some(tight), STEP)
+        .await
+        .expect("a tighter fence");
+    let breach = loop {
+        let f = tokio::time::timeout(STEP, failsafes.recv())
+            .await
+            .expect("a breach the autopilot reports")
+            .expect("failsafe");
+        if f.value.kind == FailsafeKind::Fence && f.value.action == "autopilot" {
+            break f.value;
+        }
+    };
+    assert!(breach.text.contains("Fence breached"), "{breach:?}");
+    assert!(!sim.log_events("fence_breached").is_empty());
 
     vas.kill().await;
     sim.kill().await;
