@@ -163,7 +163,7 @@ impl PlanError {
     }
 
     /// An error at `pos` (an element or an attribute).
-    pub fn at(pos: Pos, kind: PlanErrorKind) -> Self {
+    pub(crate) fn at(pos: Pos, kind: PlanErrorKind) -> Self {
         Self {
             line: pos.line,
             col: pos.col,
