@@ -3,7 +3,7 @@
 
 pub mod varint;
 
-use crate::protocol::Message;
+use crate::protocol::{tag, Message};
 
 /// A message that could not be decoded.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -68,7 +68,7 @@ pub fn encode_data_message<T: serde::Serialize + 'static>(
     id: u32,
     value: &T,
 ) -> Result<(Vec<u8>, usize), postcard::Error> {
-    let tag = if event { 6 } else { 5 };
+    let tag = data_tag(event);
     if let Some(b) = (value as &dyn std::any::Any).downcast_ref::<Vec<u8>>() {
         return Ok(data_message_from_bytes(tag, id, b));
     }
@@ -100,7 +100,23 @@ pub(crate) fn encode_data_message_from_bytes(
     id: u32,
     bytes: &[u8],
 ) -> (Vec<u8>, usize) {
-    data_message_from_bytes(if event { 6 } else { 5 }, id, bytes)
+    data_message_from_bytes(data_tag(event), id, bytes)
+}
+
+/// `Message::Var` (`event` false) or `Message::Event` with offer id `id` carrying the already
+/// encoded `payload`, without first copying it into a `Message`; the bytes are postcard's (a
+/// unit test checks it).
+pub(crate) fn encode_data_message_of_payload(event: bool, id: u32, payload: &[u8]) -> Vec<u8> {
+    data_message_with_payload(data_tag(event), id, payload).0
+}
+
+/// The tag of a data message.
+fn data_tag(event: bool) -> u8 {
+    if event {
+        tag::EVENT
+    } else {
+        tag::VAR
+    }
 }
 
 /// `encode_payload` of a `Vec<u8>` holding `bytes`, without the `Vec` (same bytes).
@@ -165,6 +181,28 @@ mod tests {
     use super::*;
     use crate::protocol::*;
     use crate::typeinfo::TypeInfo;
+
+    #[test]
+    fn fast_data_encoding_equals_postcard() {
+        for event in [false, true] {
+            let payload: Vec<u8> = (0..200u8).collect();
+            let msg = if event {
+                Message::Event {
+                    id: 300,
+                    payload: payload.clone(),
+                }
+            } else {
+                Message::Var {
+                    id: 300,
+                    payload: payload.clone(),
+                }
+            };
+            assert_eq!(
+                encode_data_message_of_payload(event, 300, &payload),
+                encode_message(&msg)
+            );
+        }
+    }
 
     fn ti() -> TypeInfo {
         TypeInfo {

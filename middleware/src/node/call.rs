@@ -14,7 +14,7 @@ use tokio::sync::oneshot;
 use super::policy::{Refusal, MAX_CALLS_PER_CALLER, MAX_CALLS_TOTAL, MAX_CALL_TIME};
 use super::{lock, BoxFuture, NodeInner, OfferRole};
 use crate::config::AccessKind;
-use crate::protocol::{ItemKind, Message, NodeId, Origin, RemoteFailure};
+use crate::protocol::{tag, ItemKind, Message, NodeId, Origin, RemoteFailure};
 use crate::typeinfo::TypeInfo;
 
 /// Why a remote invocation failed. Each cause is distinct, as callers react differently.
@@ -98,26 +98,13 @@ pub enum CallError {
     },
 }
 
-/// The first byte of every encoded [`Message::Call`] (its postcard variant tag).
-static CALL_TAG: std::sync::LazyLock<Option<u8>> = std::sync::LazyLock::new(|| {
-    crate::codec::encode_message(&Message::Call {
-        call_id: 0,
-        id: 0,
-        remaining_ms: 0,
-        args: Vec::new(),
-        caller: None,
-    })
-    .first()
-    .copied()
-});
-
 /// A call that waited `waited` in a link's queue (a radio's) carries that much less of its
 /// caller's remaining time when it leaves, so every hop's queue counts against it and a call
 /// its caller has given up on is dropped unexecuted by the provider (at 0 on arrival).
 /// Anything but a call is left as it is.
 pub(crate) fn age_call(msg: &mut Vec<u8>, waited: Duration) {
     let waited_ms = u32::try_from(waited.as_millis()).unwrap_or(u32::MAX);
-    if waited_ms == 0 || msg.first().copied() != *CALL_TAG {
+    if waited_ms == 0 || msg.first().copied() != Some(tag::CALL) {
         return;
     }
     let Ok(Message::Call {
@@ -752,13 +739,9 @@ mod tests {
         let mut m = reply.clone();
         age_call(&mut m, Duration::from_secs(5));
         assert_eq!(m, reply, "only calls carry a remaining time");
-        let mut junk = vec![*CALL_TAG.as_ref().unwrap(), 0xff, 0xff];
+        let mut junk = vec![tag::CALL, 0xff, 0xff];
         age_call(&mut junk, Duration::from_secs(5));
-        assert_eq!(
-            junk,
-            [CALL_TAG.unwrap(), 0xff, 0xff],
-            "undecodable: left alone"
-        );
+        assert_eq!(junk, [tag::CALL, 0xff, 0xff], "undecodable: left alone");
     }
 
     fn waiting(calls: &PendingCalls) -> (u64, oneshot::Receiver<Result<Vec<u8>, CallError>>) {

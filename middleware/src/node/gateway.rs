@@ -24,8 +24,8 @@ use std::time::{Duration, Instant};
 
 use dashmap::DashMap;
 
-use super::session::encode_data;
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
+use crate::codec::encode_data_message_of_payload;
 use crate::link::Outgoing;
 use crate::name;
 use crate::protocol::{Declaration, ItemKind, Message, NodeId, Origin};
@@ -378,7 +378,7 @@ impl NodeInner {
         if remote.is_empty() {
             return;
         }
-        let msg = encode_data(windows.is_some(), offer.id, payload);
+        let msg = encode_data_message_of_payload(windows.is_some(), offer.id, payload);
         for r in remote.iter() {
             let done = windows.map(|w| self.forwarded_event_done(w, r, msg.len()));
             self.send_to(

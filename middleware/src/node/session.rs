@@ -8,7 +8,7 @@ use std::time::Instant;
 use super::mailbox::{Delivery, RawSample, TypeMismatch};
 use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole, RemoteSubscriber};
-use crate::codec::varint;
+use crate::codec::encode_data_message_of_payload;
 use crate::config::AccessKind;
 use crate::link::Outgoing;
 use crate::name;
@@ -313,17 +313,6 @@ fn push_to_route(route: &super::Route, payloads: &mut Vec<Vec<u8>>, received: In
     payloads.clear();
 }
 
-/// Encodes `Message::Var`/`Message::Event` without first copying the payload into a `Message`;
-/// the bytes are identical to postcard's (a unit test checks it).
-pub(crate) fn encode_data(event: bool, id: u32, payload: &[u8]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(payload.len() + 12);
-    out.push(if event { 6 } else { 5 });
-    varint::put_u64(&mut out, u64::from(id));
-    varint::put_u64(&mut out, payload.len() as u64);
-    out.extend_from_slice(payload);
-    out
-}
-
 fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
     offer == interest && matches!(offer, ItemKind::Variable | ItemKind::Event)
 }
@@ -542,7 +531,11 @@ impl NodeInner {
                 if let Some(v) = &last {
                     for r in &remote {
                         if !cur.iter().any(|c| c.node == r.node) {
-                            late_remote.push((r.link, r.addr, encode_data(false, o.id, v)));
+                            late_remote.push((
+                                r.link,
+                                r.addr,
+                                encode_data_message_of_payload(false, o.id, v),
+                            ));
                         }
                     }
                 }
@@ -589,7 +582,11 @@ impl NodeInner {
                 continue;
             }
             if let (Some(s), false, Some(v)) = (&subscriber, had, last_value(o)) {
-                late_remote.push((s.link, s.addr, encode_data(false, o.id, &v)));
+                late_remote.push((
+                    s.link,
+                    s.addr,
+                    encode_data_message_of_payload(false, o.id, &v),
+                ));
             }
             o.remote.replace(|cur| {
                 cur.iter()
@@ -651,7 +648,7 @@ impl NodeInner {
                 continue;
             }
             if let Some(v) = lock(last).clone() {
-                let msg = encode_data(false, o.id, &v);
+                let msg = encode_data_message_of_payload(false, o.id, &v);
                 self.send_to(link, addr, Outgoing::Safe { msg, done: None });
             }
         }
@@ -1013,7 +1010,7 @@ impl NodeInner {
         if remote.is_empty() {
             return;
         }
-        let mut msg = Some(encode_data(false, offer.id, &bytes));
+        let mut msg = Some(encode_data_message_of_payload(false, offer.id, &bytes));
         let n = remote.len();
         for (k, r) in remote.iter().enumerate() {
             let msg = if k + 1 == n {
@@ -1129,24 +1126,5 @@ mod tests {
         let on1 = log.view(1, 2001);
         assert_eq!(on1.entries[0].decl, Declaration::Withdraw { id: 6000 });
         assert_eq!(log.view(0, 2001).entries[0].decl, svc(6000));
-    }
-
-    #[test]
-    fn fast_data_encoding_equals_postcard() {
-        for event in [false, true] {
-            let payload: Vec<u8> = (0..200u8).collect();
-            let msg = if event {
-                Message::Event {
-                    id: 300,
-                    payload: payload.clone(),
-                }
-            } else {
-                Message::Var {
-                    id: 300,
-                    payload: payload.clone(),
-                }
-            };
-            assert_eq!(encode_data(event, 300, &payload), encode_message(&msg));
-        }
     }
 }

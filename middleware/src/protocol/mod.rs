@@ -8,9 +8,12 @@
 //! ```text
 //! Var (fast, 35 bytes for a 32-byte position):
 //! +---------+----------------+-------------+----------------------+
-//! | tag = 6 | pub id (varint)| len (varint)| payload (postcard T) |
+//! | tag = 5 | pub id (varint)| len (varint)| payload (postcard T) |
 //! +---------+----------------+-------------+----------------------+
 //! ```
+//!
+//! The tag is the message's variant ([`tag::VAR`] here); fast paths that write or read a
+//! message's bytes without postcard name it by the constants of [`tag`].
 
 use serde::{Deserialize, Serialize};
 
@@ -397,6 +400,48 @@ pub enum Message {
     },
 }
 
+/// The first byte of each encoded [`Message`]: its variant's index, which postcard writes as
+/// a one-byte varint. A unit test checks every constant against postcard's encoding, so a
+/// variant added anywhere but at the end fails it instead of silently changing the wire.
+pub mod tag {
+    /// [`Message::Hello`](super::Message::Hello).
+    pub const HELLO: u8 = 0;
+    /// [`Message::Heartbeat`](super::Message::Heartbeat).
+    pub const HEARTBEAT: u8 = 1;
+    /// [`Message::DeclRequest`](super::Message::DeclRequest).
+    pub const DECL_REQUEST: u8 = 2;
+    /// [`Message::DeclBatch`](super::Message::DeclBatch).
+    pub const DECL_BATCH: u8 = 3;
+    /// [`Message::Refused`](super::Message::Refused).
+    pub const REFUSED: u8 = 4;
+    /// [`Message::Var`](super::Message::Var).
+    pub const VAR: u8 = 5;
+    /// [`Message::Event`](super::Message::Event).
+    pub const EVENT: u8 = 6;
+    /// [`Message::Call`](super::Message::Call).
+    pub const CALL: u8 = 7;
+    /// [`Message::Reply`](super::Message::Reply).
+    pub const REPLY: u8 = 8;
+    /// [`Message::FileOffer`](super::Message::FileOffer).
+    pub const FILE_OFFER: u8 = 9;
+    /// [`Message::FileAccept`](super::Message::FileAccept).
+    pub const FILE_ACCEPT: u8 = 10;
+    /// [`Message::FileChunk`](super::Message::FileChunk).
+    pub const FILE_CHUNK: u8 = 11;
+    /// [`Message::FileDone`](super::Message::FileDone).
+    pub const FILE_DONE: u8 = 12;
+    /// [`Message::FileCancel`](super::Message::FileCancel).
+    pub const FILE_CANCEL: u8 = 13;
+    /// [`Message::Bye`](super::Message::Bye).
+    pub const BYE: u8 = 14;
+    /// [`Message::Identity`](super::Message::Identity).
+    pub const IDENTITY: u8 = 15;
+    /// [`Message::Challenge`](super::Message::Challenge).
+    pub const CHALLENGE: u8 = 16;
+    /// [`Message::Flow`](super::Message::Flow).
+    pub const FLOW: u8 = 17;
+}
+
 /// postcard already encodes `Vec<u8>` as length + bytes; this module only makes that explicit
 /// and decodes through a borrowed slice so a claimed length is checked against the input before
 /// anything is allocated.
@@ -410,5 +455,132 @@ mod serde_bytes_compat {
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
         let b: &[u8] = <&[u8]>::deserialize(d)?;
         Ok(b.to_vec())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codec::encode_message;
+
+    /// The tag constant of `m`'s variant (a match that a new variant makes incomplete).
+    fn tag_of(m: &Message) -> u8 {
+        match m {
+            Message::Hello { .. } => tag::HELLO,
+            Message::Heartbeat { .. } => tag::HEARTBEAT,
+            Message::DeclRequest { .. } => tag::DECL_REQUEST,
+            Message::DeclBatch { .. } => tag::DECL_BATCH,
+            Message::Refused { .. } => tag::REFUSED,
+            Message::Var { .. } => tag::VAR,
+            Message::Event { .. } => tag::EVENT,
+            Message::Call { .. } => tag::CALL,
+            Message::Reply { .. } => tag::REPLY,
+            Message::FileOffer(_) => tag::FILE_OFFER,
+            Message::FileAccept { .. } => tag::FILE_ACCEPT,
+            Message::FileChunk { .. } => tag::FILE_CHUNK,
+            Message::FileDone { .. } => tag::FILE_DONE,
+            Message::FileCancel { .. } => tag::FILE_CANCEL,
+            Message::Bye { .. } => tag::BYE,
+            Message::Identity { .. } => tag::IDENTITY,
+            Message::Challenge { .. } => tag::CHALLENGE,
+            Message::Flow { .. } => tag::FLOW,
+        }
+    }
+
+    #[test]
+    fn every_tag_constant_is_the_first_byte_postcard_writes_for_its_variant() {
+        let ty = TypeInfo::of::<u32>();
+        let samples = [
+            Message::Hello {
+                node_id: 1,
+                domain: "d".into(),
+                node: "n".into(),
+                namespace: String::new(),
+                counter: 2,
+                lease_ms: 3,
+                gateway: false,
+                asks_introduction: false,
+            },
+            Message::Heartbeat {
+                node_id: 1,
+                domain_hash: 2,
+                counter: 3,
+            },
+            Message::DeclRequest { since: 0 },
+            Message::DeclBatch {
+                after: 0,
+                upto: 0,
+                reset: true,
+                entries: Vec::new(),
+            },
+            Message::Refused {
+                interest: 1,
+                name: "x".into(),
+                offered: ty.clone(),
+            },
+            Message::Var {
+                id: 1,
+                payload: vec![1],
+            },
+            Message::Event {
+                id: 1,
+                payload: vec![1],
+            },
+            Message::Call {
+                call_id: 1,
+                id: 2,
+                remaining_ms: 3,
+                args: Vec::new(),
+                caller: None,
+            },
+            Message::Reply {
+                call_id: 1,
+                result: Ok(Vec::new()),
+            },
+            Message::FileOffer(FileOffer {
+                transfer: 1,
+                sink: 2,
+                name: "f".into(),
+                size: 3,
+                hash: [0; 32],
+                sender: None,
+            }),
+            Message::FileAccept {
+                transfer: 1,
+                offset: 0,
+            },
+            Message::FileChunk {
+                transfer: 1,
+                offset: 0,
+                data: vec![1],
+            },
+            Message::FileDone {
+                transfer: 1,
+                verdict: FileVerdict::Stored,
+            },
+            Message::FileCancel { transfer: 1 },
+            Message::Bye { node_id: 1 },
+            Message::Identity {
+                public_key: [0; 32],
+                signature: vec![0; 64],
+            },
+            Message::Challenge { nonce: [0; 16] },
+            Message::Flow {
+                behind: false,
+                readers: None,
+                offers: None,
+            },
+        ];
+        let mut seen = std::collections::BTreeSet::new();
+        for m in &samples {
+            assert_eq!(
+                encode_message(m).first().copied(),
+                Some(tag_of(m)),
+                "tag of {m:?}"
+            );
+            seen.insert(tag_of(m));
+        }
+        // One sample per variant, the tags 0..n without a gap.
+        assert!(seen.iter().copied().eq(0..samples.len() as u8), "{seen:?}");
     }
 }
