@@ -1054,7 +1054,6 @@ pub(crate) type ReportedSet = HashSet<String>;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::codec::encode_message;
 
     #[test]
     fn a_peers_declared_names_are_checked_like_ours() {
