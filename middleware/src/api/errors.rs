@@ -68,40 +68,6 @@ pub enum DeclareError {
     },
 }
 
-/// Why a value could not be published.
-#[derive(Debug, thiserror::Error)]
-pub enum PublishError {
-    /// The value could not be encoded.
-    #[error("cannot encode value for '{name}': {source}")]
-    Encode {
-        /// Item name.
-        name: String,
-        /// postcard's error.
-        source: postcard::Error,
-    },
-}
-
-/// Why an [`crate::EventStream`] reports a problem.
-#[derive(Debug, thiserror::Error)]
-pub enum StreamError {
-    /// The value could not be encoded (nothing was sent).
-    #[error(transparent)]
-    Publish(#[from] PublishError),
-    /// Events sent to a subscriber's node were not acknowledged: it left, was lost or reset
-    /// its session. Events to the other subscribers are unaffected.
-    #[error("event stream '{name}': node '{node}' did not acknowledge {lost} event(s): {reason}")]
-    Lost {
-        /// Item name.
-        name: String,
-        /// The subscriber's node.
-        node: String,
-        /// How many events it did not acknowledge (since the last report).
-        lost: u64,
-        /// Why (the first reason).
-        reason: String,
-    },
-}
-
 /// Why a subscription yielded no value.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RecvError {

@@ -12,11 +12,9 @@ mod shared_str;
 mod subscription;
 mod variable;
 
-pub use errors::{
-    DeclareError, FileSendError, NodeOpenError, PublishError, RecvError, StreamError,
-};
+pub use errors::{DeclareError, FileSendError, NodeOpenError, RecvError};
 pub use event::{
-    Event, EventStream, PendingRaise, RaiseReport, STREAM_WINDOW, STREAM_WINDOW_BYTES,
+    Event, EventStream, PendingRaise, RaiseReport, StreamError, STREAM_WINDOW, STREAM_WINDOW_BYTES,
 };
 pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
 pub use function::{Function, FunctionProvider};
@@ -28,6 +26,7 @@ pub use subscription::{CallbackSubscription, EventSubscriber, Subscription, Vari
 pub use variable::{Sample, Variable};
 
 pub use crate::node::call::{CallError, Caller};
+pub use crate::node::data::PublishError;
 pub use crate::node::files::{FileSinkOptions, FileSinkStats, ReceivedFile};
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;

@@ -4,9 +4,9 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::errors::PublishError;
 use super::service::Declared;
 use super::Payload;
+use crate::node::data::PublishError;
 use crate::node::{LocalOffer, NodeInner};
 
 /// An offer a publisher handle keeps declared; dropping it withdraws the offer.

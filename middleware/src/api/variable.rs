@@ -3,10 +3,11 @@
 use std::marker::PhantomData;
 use std::time::{Duration, Instant};
 
-use super::errors::{PublishError, RecvError};
+use super::errors::RecvError;
 use super::publisher::Publisher;
 use super::Payload;
 use super::SharedStr;
+use crate::node::data::PublishError;
 use crate::node::mailbox::{Delivery, RawSample};
 
 /// A received value with where it came from.

@@ -5,7 +5,10 @@
 //! only where a remote node declared a matching interest (interest-based routing).
 
 pub(crate) mod call;
+pub(crate) mod data;
+pub(crate) mod declarations;
 pub(crate) mod discovery;
+pub(crate) mod events;
 pub(crate) mod files;
 pub(crate) mod flow;
 mod forward_flow;
@@ -18,7 +21,8 @@ pub(crate) mod mailbox;
 pub(crate) mod path_switch;
 pub(crate) mod policy;
 pub(crate) mod reassembly;
-pub(crate) mod session;
+pub(crate) mod routes;
+mod variables;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
@@ -36,6 +40,7 @@ use crate::protocol::{ItemKind, Message, NodeId, Origin};
 use crate::sync::SeededHash;
 use crate::typeinfo::TypeInfo;
 use mailbox::Mailbox;
+pub(crate) use routes::{RemoteSubscriber, Route, Routes};
 
 pub(crate) use crate::sync::lock;
 
@@ -82,79 +87,6 @@ pub(crate) struct LocalOffer {
     pub hidden_on: Option<usize>,
 }
 
-/// The remote nodes subscribed to an offer (shared: a raise takes the list with one reference
-/// count, not a copy), and how many times the list was replaced, so that a reader that kept
-/// the version knows without the lock whether its copy is current.
-#[derive(Default)]
-pub(crate) struct Routes {
-    list: Mutex<Arc<[RemoteSubscriber]>>,
-    version: std::sync::atomic::AtomicU64,
-}
-
-impl Routes {
-    /// The current list.
-    pub fn get(&self) -> Arc<[RemoteSubscriber]> {
-        lock(&self.list).clone()
-    }
-
-    /// The current list and its version, unless the list is still the one of `version`.
-    pub fn changed_since(&self, version: Option<u64>) -> Option<(Arc<[RemoteSubscriber]>, u64)> {
-        use std::sync::atomic::Ordering;
-        if version == Some(self.version.load(Ordering::Acquire)) {
-            return None;
-        }
-        let list = lock(&self.list);
-        // Bumped under this lock: the pair is consistent.
-        Some((list.clone(), self.version.load(Ordering::Acquire)))
-    }
-
-    /// Replaces the list by what `make` makes, given the current one.
-    pub fn replace(&self, make: impl FnOnce(&[RemoteSubscriber]) -> Arc<[RemoteSubscriber]>) {
-        let mut list = lock(&self.list);
-        *list = make(&list);
-        self.version
-            .fetch_add(1, std::sync::atomic::Ordering::Release);
-    }
-}
-
-/// A remote node subscribed to an offer.
-#[derive(Clone)]
-pub(crate) struct RemoteSubscriber {
-    pub node: NodeId,
-    pub node_name: Arc<str>,
-    pub link: usize,
-    pub addr: PeerAddr,
-    /// Services of that node with a matching interest as `node/service`, as raise reports
-    /// name them (made once per route change, not per event).
-    pub labels: Arc<[String]>,
-    /// The peer's [`Peer::alive`].
-    pub alive: Arc<std::sync::atomic::AtomicBool>,
-    /// The peer's [`Peer::held`].
-    pub held: Arc<flow::StreamHold>,
-}
-
-/// Where a remote offer's data goes, with the names its samples carry: the data path takes
-/// one reference count per message for all of it.
-pub(crate) struct Route {
-    /// Local interests it is delivered to.
-    pub targets: Box<[Arc<LocalInterest>]>,
-    /// The item's full name.
-    pub name: Arc<str>,
-    /// Its type name.
-    pub type_name: Arc<str>,
-    /// Its type's fingerprint.
-    pub fingerprint: u64,
-    /// The node publishing it (the origin behind a gateway).
-    pub publisher: Arc<str>,
-}
-
-impl std::ops::Deref for Route {
-    type Target = [Arc<LocalInterest>];
-    fn deref(&self) -> &[Arc<LocalInterest>] {
-        &self.targets
-    }
-}
-
 /// Something this node wants: a subscription or a function it calls.
 pub(crate) struct LocalInterest {
     pub id: u32,
@@ -165,7 +97,7 @@ pub(crate) struct LocalInterest {
     pub ty: TypeInfo,
     pub mailbox: Option<Arc<Mailbox>>,
     /// Type mismatches already reported to the subscriber.
-    pub reported: Mutex<session::ReportedSet>,
+    pub reported: Mutex<routes::ReportedSet>,
     /// A gateway's forwarded interest is not declared on the link it came from.
     pub hidden_on: Option<usize>,
 }
@@ -197,8 +129,8 @@ pub(crate) struct Peer {
     /// When declarations were last requested, if an answer is outstanding.
     pub requested: Option<Instant>,
     pub services: HashMap<u32, String>,
-    pub offers: HashMap<u32, session::RemoteItem>,
-    pub interests: HashMap<u32, session::RemoteItem>,
+    pub offers: HashMap<u32, declarations::RemoteItem>,
+    pub interests: HashMap<u32, declarations::RemoteItem>,
     /// Offers of this peer ignored because the same item is reached by a shorter path (a
     /// gateway's copy of an offer we also get directly, or our own offer forwarded back).
     pub shadowed: std::collections::HashSet<u32>,
@@ -226,19 +158,16 @@ impl Peer {
     pub fn declarations(&self) -> usize {
         self.services.len() + self.offers.len() + self.interests.len()
     }
-
     /// Records that something arrived from this peer now.
     pub fn heard(&self, epoch: Instant) {
         self.heard_at(epoch, Instant::now());
     }
-
     /// Records that something arrived from this peer at `now` (a clock read the caller
     /// already made: the data path reads it once per message).
     pub fn heard_at(&self, epoch: Instant, now: Instant) {
         let ms = now.saturating_duration_since(epoch).as_millis() as u64;
         self.heard_ms.store(ms, Ordering::Relaxed);
     }
-
     /// When it was last heard from at all.
     pub fn last_heard(&self, epoch: Instant) -> Instant {
         let data = epoch + Duration::from_millis(self.heard_ms.load(Ordering::Relaxed));
@@ -275,7 +204,7 @@ impl Identity {
 pub(crate) struct NodeInner {
     pub me: Identity,
     pub links: OnceLock<Vec<Arc<dyn Link>>>,
-    pub decls: Mutex<session::DeclarationLog>,
+    pub decls: Mutex<declarations::DeclarationLog>,
     pub next_id: AtomicU32,
     pub services: DashMap<u32, Arc<str>>,
     pub offers: DashMap<u32, Arc<LocalOffer>>,
@@ -343,7 +272,6 @@ impl NodeInner {
     pub fn links(&self) -> &[Arc<dyn Link>] {
         self.links.get().map(|v| v.as_slice()).unwrap_or(&[])
     }
-
     /// Waits until `pred` holds, re-checking whenever the peer table or the routes change;
     /// returns whether it held within `timeout`.
     pub async fn wait_for(&self, timeout: Duration, mut pred: impl FnMut() -> bool) -> bool {
@@ -359,20 +287,16 @@ impl NodeInner {
         }
         true
     }
-
     pub fn bump(&self) {
         self.changed.send_modify(|v| *v += 1);
     }
-
     pub fn fresh_id(&self) -> u32 {
         self.next_id.fetch_add(1, Ordering::Relaxed)
     }
-
     /// Sends a message to a peer on its link.
     pub fn send_to(&self, link: usize, addr: PeerAddr, out: Outgoing) {
         self.path_switches.send(self.links(), (link, addr), out);
     }
-
     /// Sends a safe message and forgets about its acknowledgement (a Hello as
     /// [`Self::send_safe_in_sequence`] sends it, with our challenge after it).
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
@@ -388,7 +312,6 @@ impl NodeInner {
             },
         );
     }
-
     /// Sends safe messages one after the other with no other safe message between them (see
     /// [`path_switch::PathSwitches::send_in_sequence`]). A Hello to a peer whose identity we
     /// still wait for is followed by our challenge, so the peer answers it before the
@@ -410,7 +333,6 @@ impl NodeInner {
         self.path_switches
             .send_in_sequence(self.links(), (link, addr), outs);
     }
-
     /// Sends a safe message to a known peer.
     pub fn send_safe_to_node(&self, node: NodeId, msg: &Message) -> bool {
         let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
@@ -419,11 +341,9 @@ impl NodeInner {
         self.send_safe(link, addr, msg);
         true
     }
-
     fn peer_of(&self, link: usize, from: PeerAddr) -> Option<NodeId> {
         self.addrs.get(&(link, from)).map(|e| *e)
     }
-
     /// Handles `msgs` from `from`, in order. A run of data messages (variables, events) is
     /// delivered together: one sender lookup, one clock read and one wake-up per subscriber for
     /// the run, where a datagram of a fast stream carries hundreds.
@@ -446,7 +366,6 @@ impl NodeInner {
         }
         self.deliver_data(link, from, &mut data);
     }
-
     /// Delivers (and empties) a run of data messages from `from`.
     fn deliver_data(&self, link: usize, from: PeerAddr, data: &mut Vec<(u32, Vec<u8>)>) {
         if data.is_empty() {
@@ -463,7 +382,6 @@ impl NodeInner {
             }
         }
     }
-
     /// Handles one decoded message other than data.
     fn handle(self: &Arc<Self>, link: usize, from: PeerAddr, msg: Message) {
         // Discovery messages may come from anyone; everything else only from a known peer.
@@ -576,17 +494,14 @@ impl LinkHandler for Handler {
     fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]) {
         self.on_messages(link, from, &[msg]);
     }
-
     fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
         call::age_call(msg, waited);
     }
-
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         if let Some(n) = self.node() {
             n.dispatch_all(link, from, msgs);
         }
     }
-
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]) {
         let Some(n) = self.node() else { return };
         match decode_message(msg) {
@@ -596,13 +511,11 @@ impl LinkHandler for Handler {
             }
         }
     }
-
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.node() {
             n.on_peer_reset(link, from);
         }
     }
-
     fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.node() {
             n.on_peer_unreachable(link, from);

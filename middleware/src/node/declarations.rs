@@ -1,16 +1,13 @@
-//! Declarations and matching: the node's own declaration log, applying peers' declarations, and
-//! computing routes (which remote nodes and local subscribers each offer goes to).
+//! Declarations: the node's own log (what it offers and wants, pushed to peers as it changes
+//! and replayed to a newcomer), and applying peers' declarations under our policy.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::mailbox::{Delivery, RawSample, TypeMismatch};
 use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
-use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole, RemoteSubscriber};
-use crate::codec::encode_data_message_of_payload;
+use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
 use crate::config::AccessKind;
-use crate::link::Outgoing;
 use crate::name;
 use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId};
 use crate::typeinfo::TypeInfo;
@@ -58,13 +55,11 @@ impl DeclarationLog {
         }
         entry
     }
-
     /// Live declarations held.
     #[cfg(test)]
     fn len(&self) -> usize {
         self.entries.len()
     }
-
     /// What a peer on `link` that knows our declarations up to `since` is sent.
     pub fn view(&self, link: usize, since: u32) -> LogView {
         // A peer that knows nothing yet (0) holds nothing a withdrawal could leave behind.
@@ -124,197 +119,6 @@ impl RemoteItem {
     pub fn source(&self, peer: NodeId) -> (NodeId, u8) {
         self.origin.as_ref().map_or((peer, 0), |o| (o.node, o.hops))
     }
-}
-
-/// A peer as route computation reads it: a copy, so the peer table is not held meanwhile.
-struct PeerView {
-    id: NodeId,
-    name: Arc<str>,
-    link: usize,
-    addr: crate::link::PeerAddr,
-    services: HashMap<u32, String>,
-    interests: Vec<(u32, RemoteItem)>,
-    alive: Arc<std::sync::atomic::AtomicBool>,
-    held: Arc<super::flow::StreamHold>,
-}
-
-impl PeerView {
-    fn of(p: &super::Peer) -> Self {
-        PeerView {
-            id: p.id,
-            name: p.name.clone(),
-            link: p.link,
-            addr: p.addr,
-            services: p.services.clone(),
-            interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
-            alive: p.alive.clone(),
-            held: p.held.clone(),
-        }
-    }
-}
-
-/// Peer `p` as a subscriber of our offer `o`, if one of its interests takes it; an exact
-/// interest of another type gets a refusal (once per interest) in `refusals`.
-fn remote_subscriber(
-    o: &LocalOffer,
-    p: &PeerView,
-    refusals: &mut Vec<(usize, crate::link::PeerAddr, Message)>,
-) -> Option<RemoteSubscriber> {
-    if o.hidden_on == Some(p.link) {
-        return None;
-    }
-    let mut services = Vec::new();
-    for (iid, it) in &p.interests {
-        if !kinds_match(o.kind, it.kind) || !name::matches(&it.name, &o.name) {
-            continue;
-        }
-        if !it.ty.accepts(&o.ty) {
-            if !name::is_wildcard(&it.name) && lock(&o.refused).insert((p.id, *iid)) {
-                refusals.push((
-                    p.link,
-                    p.addr,
-                    Message::Refused {
-                        interest: *iid,
-                        name: o.name.to_string(),
-                        offered: o.ty.clone(),
-                    },
-                ));
-            }
-            continue;
-        }
-        let svc = p
-            .services
-            .get(&it.service)
-            .cloned()
-            .unwrap_or_else(|| format!("#{}", it.service));
-        if !services.contains(&svc) {
-            services.push(svc);
-        }
-    }
-    if services.is_empty() {
-        return None;
-    }
-    let labels = services.iter().map(|s| format!("{}/{s}", p.name)).collect();
-    Some(RemoteSubscriber {
-        node: p.id,
-        node_name: p.name.clone(),
-        link: p.link,
-        addr: p.addr,
-        labels,
-        alive: p.alive.clone(),
-        held: p.held.clone(),
-    })
-}
-
-/// The newest value of offer `o`, if it is a variable that has one.
-fn last_value(o: &LocalOffer) -> Option<Vec<u8>> {
-    match &o.role {
-        OfferRole::Variable { last } => lock(last).clone(),
-        _ => None,
-    }
-}
-
-/// Peer `p`'s routes: each of its offers not `hidden` nor denied, to the local interests
-/// taking it.
-fn routes_of(
-    p: &super::Peer,
-    hidden: &HashSet<u32>,
-    interests: &[Arc<LocalInterest>],
-) -> HashMap<u32, Arc<super::Route>, crate::sync::SeededHash> {
-    p.offers
-        .iter()
-        .filter(|(oid, item)| !hidden.contains(oid) && !item.denied)
-        .map(|(oid, item)| {
-            let targets: Box<[Arc<LocalInterest>]> = interests
-                .iter()
-                .filter(|i| {
-                    kinds_match(item.kind, i.kind)
-                        && name::matches(&i.pattern, &item.name)
-                        && i.ty.accepts(&item.ty)
-                })
-                .cloned()
-                .collect();
-            let route = super::Route {
-                targets,
-                name: item.name.clone(),
-                type_name: item.type_name.clone(),
-                fingerprint: item.ty.fingerprint,
-                publisher: item.origin_name.clone().unwrap_or_else(|| p.name.clone()),
-            };
-            (*oid, Arc::new(route))
-        })
-        .collect()
-}
-
-/// One item wherever it is declared from: its source node, kind and name.
-type ItemKey = (NodeId, ItemKind, Arc<str>);
-
-/// The shadowing rule of [`NodeInner::shadowed_offers`], one peer's offers at a time.
-#[derive(Default)]
-struct Shadowing {
-    /// The best path to each item: (hops, peer, offer id).
-    best: HashMap<ItemKey, (u8, NodeId, u32)>,
-    /// The offers to ignore, by peer.
-    hidden: HashMap<NodeId, HashSet<u32>>,
-}
-
-impl Shadowing {
-    /// Takes peer `peer`'s `offers` into account (`me`: our own id).
-    fn add(&mut self, me: NodeId, peer: NodeId, offers: &HashMap<u32, RemoteItem>) {
-        for (oid, item) in offers {
-            let (source, hops) = item.source(peer);
-            if source == me {
-                self.hidden.entry(peer).or_default().insert(*oid);
-                continue;
-            }
-            let key = (source, item.kind, item.name.clone());
-            let cand = (hops, peer, *oid);
-            match self.best.get(&key) {
-                Some(cur) if *cur <= cand => {
-                    self.hidden.entry(peer).or_default().insert(*oid);
-                }
-                Some(cur) => {
-                    self.hidden.entry(cur.1).or_default().insert(cur.2);
-                    self.best.insert(key, cand);
-                }
-                None => {
-                    self.best.insert(key, cand);
-                }
-            }
-        }
-    }
-}
-
-/// Pushes (and empties) `payloads`, received at `received`, into the mailbox of every local
-/// subscriber on `route`: one push of the whole run per mailbox (the last one takes the
-/// payloads, the others copies).
-fn push_to_route(route: &super::Route, payloads: &mut Vec<Vec<u8>>, received: Instant) {
-    let sample = |payload: Vec<u8>| {
-        Delivery::Sample(RawSample {
-            name: route.name.clone(),
-            publisher: route.publisher.clone(),
-            type_name: route.type_name.clone(),
-            fingerprint: route.fingerprint,
-            payload,
-            received,
-        })
-    };
-    let mailboxes: Vec<_> = route
-        .targets
-        .iter()
-        .filter_map(|i| i.mailbox.as_ref())
-        .collect();
-    if let Some((last, others)) = mailboxes.split_last() {
-        for m in others {
-            m.deliver_run(payloads.iter().cloned().map(sample));
-        }
-        last.deliver_run(payloads.drain(..).map(sample));
-    }
-    payloads.clear();
-}
-
-fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
-    offer == interest && matches!(offer, ItemKind::Variable | ItemKind::Event)
 }
 
 /// Checks the name a peer declares as the API checks ours: a plain name for a service or an
@@ -378,7 +182,6 @@ impl NodeInner {
             self.send_safe(link, addr, &msg);
         }
     }
-
     /// Sends a peer our Hello, then every declaration we have, with the log locked by the
     /// caller (who registered the peer under the same lock), all in one sequence: whatever we
     /// send it later (a late joiner's value, events, replies), even from another task answering
@@ -389,16 +192,13 @@ impl NodeInner {
         msgs.extend(batches(log.view(link, 0)));
         self.send_safe_in_sequence(link, addr, &msgs);
     }
-
     /// Sends declarations as [`batches`] makes them, in one sequence.
     fn send_batches(&self, link: usize, addr: crate::link::PeerAddr, view: LogView) {
         self.send_safe_in_sequence(link, addr, &batches(view));
     }
-
     pub fn counter(&self) -> u32 {
         lock(&self.decls).counter
     }
-
     pub fn add_offer(&self, offer: Arc<LocalOffer>) {
         let decl = Declaration::Offer {
             id: offer.id,
@@ -414,7 +214,6 @@ impl NodeInner {
         self.recompute_routes();
         self.declare(decl, hidden_on);
     }
-
     pub fn add_interest(&self, interest: Arc<LocalInterest>) {
         let decl = Declaration::Interest {
             id: interest.id,
@@ -430,22 +229,6 @@ impl NodeInner {
         self.recompute_routes();
         self.declare(decl, hidden_on);
     }
-
-    /// Closes every subscription's and file sink's mailbox (the node is stopping): a receiver
-    /// waiting on one gets `Closed` instead of waiting for good.
-    pub fn close_mailboxes(&self) {
-        for i in self.interests.iter() {
-            if let Some(m) = &i.mailbox {
-                m.close();
-            }
-        }
-        for o in self.offers.iter() {
-            if let OfferRole::File { mailbox, .. } = &o.role {
-                mailbox.close();
-            }
-        }
-    }
-
     /// Withdraws a service, offer or interest.
     pub fn withdraw(&self, id: u32) {
         let mut any = self.services.remove(&id).is_some();
@@ -466,194 +249,20 @@ impl NodeInner {
             self.recompute_routes();
         }
     }
-
-    /// Recomputes every route from scratch. Declarations change rarely (start-up, a service
-    /// coming or going), so clarity beats incremental bookkeeping here, except for a peer's
-    /// own declarations arriving: see [`NodeInner::recompute_routes_of_peer`].
-    pub fn recompute_routes(&self) {
-        let _serialised = lock(&self.routing);
-        let interests: Vec<Arc<LocalInterest>> =
-            self.interests.iter().map(|e| e.value().clone()).collect();
-        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
-        let peers: Vec<PeerView> = self.peers.iter().map(|p| PeerView::of(&p)).collect();
-        let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
-        let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
-        for o in &offers {
-            // Local subscribers. A gateway's forwarded offers and forwarded interests only
-            // carry traffic between links: they never meet a local item.
-            let mut local = Vec::new();
-            for i in &interests {
-                if o.origin.is_some() || i.hidden_on.is_some() {
-                    continue;
-                }
-                if !kinds_match(o.kind, i.kind) || !name::matches(&i.pattern, &o.name) {
-                    continue;
-                }
-                if !i.ty.accepts(&o.ty) {
-                    // A pattern takes the items of its type among those it matches; only an
-                    // exact name can be "the wrong type".
-                    if !name::is_wildcard(&i.pattern) {
-                        i.report_mismatch(&o.name, &self.me.name, &o.ty);
-                    }
-                    continue;
-                }
-                local.push(i.clone());
+    /// Closes every subscription's and file sink's mailbox (the node is stopping): a receiver
+    /// waiting on one gets `Closed` instead of waiting for good.
+    pub fn close_mailboxes(&self) {
+        for i in self.interests.iter() {
+            if let Some(m) = &i.mailbox {
+                m.close();
             }
-            // Remote subscribers.
-            let remote: Vec<RemoteSubscriber> = peers
-                .iter()
-                .filter_map(|p| remote_subscriber(o, p, &mut refusals))
-                .collect();
-            let last = last_value(o);
-            {
-                let mut cur = lock(&o.local);
-                if let Some(v) = &last {
-                    for i in &local {
-                        if !cur.iter().any(|c| Arc::ptr_eq(c, i)) {
-                            if let Some(m) = &i.mailbox {
-                                m.push(Delivery::Sample(RawSample {
-                                    name: o.name.clone(),
-                                    publisher: self.me.name.as_str().into(),
-                                    type_name: o.ty.name.as_str().into(),
-                                    fingerprint: o.ty.fingerprint,
-                                    payload: v.clone(),
-                                    received: Instant::now(),
-                                }));
-                            }
-                        }
-                    }
-                }
-                o.has_local
-                    .store(!local.is_empty(), std::sync::atomic::Ordering::Release);
-                *cur = local;
-            }
-            o.remote.replace(|cur| {
-                if let Some(v) = &last {
-                    for r in &remote {
-                        if !cur.iter().any(|c| c.node == r.node) {
-                            late_remote.push((
-                                r.link,
-                                r.addr,
-                                encode_data_message_of_payload(false, o.id, v),
-                            ));
-                        }
-                    }
-                }
-                remote.into()
-            });
         }
-        // Routes for what peers offer, each item from its shortest path only.
-        let shadowed = self.shadowed_offers();
-        for mut p in self.peers.iter_mut() {
-            let hidden = shadowed.get(&p.id).cloned().unwrap_or_default();
-            p.routes = routes_of(&p, &hidden, &interests);
-            p.shadowed = hidden;
-        }
-        self.send_route_news(refusals, late_remote);
-    }
-
-    /// Recomputes what peer `node`'s declarations change (after a batch of them): whether it
-    /// subscribes to each of our offers, and where its offers go here. A fleet's node applies
-    /// one batch per peer at start and per peer's change after: recomputing every peer's routes
-    /// for each made joining a LAN of N nodes cost N³ in all (at 200 nodes on one host, the
-    /// batches kept both cores busy and acknowledgements late for good).
-    ///
-    /// Exact while no gateway is involved: only a gateway's offers name another node as their
-    /// origin, so without one no item is declared by two peers and one peer's offers shadow
-    /// nothing of another's. With a gateway (a peer or ourselves), every route is recomputed.
-    fn recompute_routes_of_peer(&self, node: NodeId) {
-        if self.gateway.is_some() || self.peers.iter().any(|p| p.gateway) {
-            self.recompute_routes();
-            return;
-        }
-        let _serialised = lock(&self.routing);
-        let Some(peer) = self.peers.get(&node).map(|p| PeerView::of(&p)) else {
-            return;
-        };
-        let interests: Vec<Arc<LocalInterest>> =
-            self.interests.iter().map(|e| e.value().clone()).collect();
-        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
-        let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
-        let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
-        for o in &offers {
-            let subscriber = remote_subscriber(o, &peer, &mut refusals);
-            let had = o.remote.get().iter().any(|r| r.node == node);
-            if subscriber.is_none() && !had {
-                continue;
-            }
-            if let (Some(s), false, Some(v)) = (&subscriber, had, last_value(o)) {
-                late_remote.push((
-                    s.link,
-                    s.addr,
-                    encode_data_message_of_payload(false, o.id, &v),
-                ));
-            }
-            o.remote.replace(|cur| {
-                cur.iter()
-                    .filter(|r| r.node != node)
-                    .cloned()
-                    .chain(subscriber)
-                    .collect()
-            });
-        }
-        if let Some(mut p) = self.peers.get_mut(&node) {
-            let mut shadowing = Shadowing::default();
-            shadowing.add(self.me.id, p.id, &p.offers);
-            let hidden = shadowing.hidden.remove(&node).unwrap_or_default();
-            p.routes = routes_of(&p, &hidden, &interests);
-            p.shadowed = hidden;
-        }
-        self.send_route_news(refusals, late_remote);
-    }
-
-    /// What a route change owes peers: the type refusals found, and a late joiner's first
-    /// value; then the node's state version moves on.
-    fn send_route_news(
-        &self,
-        refusals: Vec<(usize, crate::link::PeerAddr, Message)>,
-        late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)>,
-    ) {
-        for (link, addr, msg) in refusals {
-            self.send_safe(link, addr, &msg);
-        }
-        // A late joiner's first value goes on the safe class: it must arrive (the subscriber
-        // gets the last value at once) and after our declarations in the same ordered stream.
-        for (link, addr, msg) in late_remote {
-            tracing::debug!(%addr, "late joiner served the last value");
-            self.send_to(link, addr, Outgoing::Safe { msg, done: None });
-        }
-        self.bump();
-    }
-
-    /// The offers of each peer to ignore: where one item (same source node, kind and name) is
-    /// declared by several peers (directly and through gateways), only the path with the
-    /// fewest gateways counts (ties: the lowest peer id); our own items forwarded back to us
-    /// are ignored altogether.
-    pub fn shadowed_offers(&self) -> HashMap<NodeId, HashSet<u32>> {
-        let mut shadowing = Shadowing::default();
-        for p in self.peers.iter() {
-            shadowing.add(self.me.id, p.id, &p.offers);
-        }
-        shadowing.hidden
-    }
-
-    /// Sends `node` the newest value of every variable of ours it subscribes to (safe class).
-    pub fn resend_last_values(&self, node: NodeId, link: usize, addr: crate::link::PeerAddr) {
-        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|o| o.value().clone()).collect();
-        for o in offers {
-            let OfferRole::Variable { last } = &o.role else {
-                continue;
-            };
-            if !o.remote.get().iter().any(|r| r.node == node) {
-                continue;
-            }
-            if let Some(v) = lock(last).clone() {
-                let msg = encode_data_message_of_payload(false, o.id, &v);
-                self.send_to(link, addr, Outgoing::Safe { msg, done: None });
+        for o in self.offers.iter() {
+            if let OfferRole::File { mailbox, .. } = &o.role {
+                mailbox.close();
             }
         }
     }
-
     /// Answers a peer's request with our declarations after `since` (an empty batch when
     /// there are none, so it knows it is up to date).
     pub fn answer_decl_request(&self, node: NodeId, since: u32) {
@@ -664,7 +273,6 @@ impl NodeInner {
         let log = lock(&self.decls);
         self.send_batches(link, addr, log.view(link, since));
     }
-
     /// Applies a peer's declarations: checks each against our policy (names well formed and
     /// owned, origins only from gateways, caps), and recomputes routes when anything changed.
     pub fn apply_decl_batch(
@@ -868,7 +476,6 @@ impl NodeInner {
             self.recompute_forwarding();
         }
     }
-
     /// Whether peer `p` may offer `name`: a plain offer only under its own namespace; an offer
     /// on behalf of another node (`origin`) only from a gateway, at least one hop away, and
     /// under the origin's namespace (the one we know when we reach the origin directly too).
@@ -902,154 +509,7 @@ impl NodeInner {
             Err(Refusal::NotOwned)
         }
     }
-
-    /// Delivers a run of data messages from `node` (in order) to the local subscribers of each
-    /// one's route. The clock is read and the peer marked heard once for the run; consecutive
-    /// messages of one offer (a stream) share one route lookup and one push per mailbox.
-    pub fn deliver_remote_run(&self, node: NodeId, run: impl Iterator<Item = (u32, Vec<u8>)>) {
-        let received = Instant::now();
-        if let Some(p) = self.peers.get(&node) {
-            p.heard_at(self.me.epoch, received);
-        }
-        let mut current: Option<(u32, Arc<super::Route>)> = None;
-        let mut payloads: Vec<Vec<u8>> = Vec::new();
-        for (id, payload) in run {
-            if self.gateway.is_some() {
-                self.forward_data(node, id, &payload);
-            }
-            if current.as_ref().map(|(i, _)| *i) != Some(id) {
-                if let Some((_, route)) = &current {
-                    push_to_route(route, &mut payloads, received);
-                }
-                current = self
-                    .peers
-                    .get(&node)
-                    .and_then(|p| p.routes.get(&id).cloned())
-                    .map(|r| (id, r));
-                if current.is_none() {
-                    self.undeliverable(node, id);
-                    continue;
-                }
-            }
-            payloads.push(payload);
-        }
-        if let Some((_, route)) = &current {
-            push_to_route(route, &mut payloads, received);
-        }
-    }
-
-    /// Data for an offer with no route here: refused by our `<access>` rules (reported), or
-    /// unknown (a declaration not yet applied, or a subscription just closed).
-    fn undeliverable(&self, node: NodeId, id: u32) {
-        let denied = self.peers.get(&node).and_then(|p| {
-            let o = p.offers.get(&id).filter(|o| o.denied)?;
-            Some((p.link, p.name.clone(), o.name.clone()))
-        });
-        match denied {
-            Some((link, peer, name)) => self.policy.refuse(
-                link,
-                node,
-                &peer,
-                &name,
-                Refusal::Denied(AccessKind::Publish),
-            ),
-            None => tracing::debug!(
-                peer = format_args!("{node:016x}"),
-                id,
-                "data for an unknown or unrouted offer dropped"
-            ),
-        }
-    }
-
-    pub fn on_refused(&self, node: NodeId, interest: u32, name: String, offered: TypeInfo) {
-        // Through a gateway, the publisher is the node behind it.
-        let publisher = self
-            .peers
-            .get(&node)
-            .map(|p| {
-                p.offers
-                    .values()
-                    .find(|o| *o.name == *name)
-                    .and_then(|o| o.origin_name.clone())
-                    .unwrap_or_else(|| p.name.clone())
-                    .to_string()
-            })
-            .unwrap_or_else(|| format!("{node:016x}"));
-        if let Some(i) = self.interests.get(&interest) {
-            i.report_mismatch(&name, &publisher, &offered);
-        }
-    }
-
-    /// Publishes a variable value: stored for late joiners, delivered locally, and sent to every
-    /// remote subscriber on the fast class (coalesced per variable while unsent).
-    pub fn publish_variable(&self, offer: &LocalOffer, bytes: Vec<u8>) {
-        if let OfferRole::Variable { last } = &offer.role {
-            // Into the previous value's buffer: no allocation per publish.
-            let mut last = lock(last);
-            match last.as_mut() {
-                Some(v) => {
-                    v.clear();
-                    v.extend_from_slice(&bytes);
-                }
-                None => *last = Some(bytes.clone()),
-            }
-        }
-        for i in lock(&offer.local).iter() {
-            if let Some(m) = &i.mailbox {
-                m.push(Delivery::Sample(RawSample {
-                    name: offer.name.clone(),
-                    publisher: self.me.name.as_str().into(),
-                    type_name: offer.ty.name.as_str().into(),
-                    fingerprint: offer.ty.fingerprint,
-                    payload: bytes.clone(),
-                    received: Instant::now(),
-                }));
-            }
-        }
-        let remote = offer.remote.get();
-        if remote.is_empty() {
-            return;
-        }
-        let mut msg = Some(encode_data_message_of_payload(false, offer.id, &bytes));
-        let n = remote.len();
-        for (k, r) in remote.iter().enumerate() {
-            let msg = if k + 1 == n {
-                msg.take().unwrap_or_default()
-            } else {
-                msg.clone().unwrap_or_default()
-            };
-            self.send_to(
-                r.link,
-                r.addr,
-                Outgoing::Fast {
-                    coalesce: Some(offer.id),
-                    msg,
-                },
-            );
-        }
-    }
 }
-
-impl LocalInterest {
-    /// Reports a type mismatch to the subscriber once per (publisher, name).
-    pub fn report_mismatch(&self, name: &str, publisher: &str, offered: &TypeInfo) {
-        let key = format!("{publisher}\u{0}{name}");
-        if !lock(&self.reported).insert(key) {
-            return;
-        }
-        if let Some(m) = &self.mailbox {
-            m.push(Delivery::Refused(TypeMismatch {
-                name: name.to_owned(),
-                publisher: publisher.to_owned(),
-                offered: offered.clone(),
-                expected: self.ty.clone(),
-            }));
-        }
-    }
-}
-
-/// A set type used for once-only reports.
-pub(crate) type ReportedSet = HashSet<String>;
 
 #[cfg(test)]
 mod tests {

@@ -1,0 +1,445 @@
+//! Routes: which remote nodes and local subscribers each offer goes to, computed from the
+//! declarations on both sides (each item from its shortest path only), and type refusals.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+use std::time::Instant;
+
+use super::declarations::RemoteItem;
+use super::mailbox::{Delivery, TypeMismatch};
+use super::variables::last_value;
+use super::{flow, lock, LocalInterest, LocalOffer, NodeInner};
+use crate::codec::encode_data_message_of_payload;
+use crate::link::Outgoing;
+use crate::link::PeerAddr;
+use crate::name;
+use crate::protocol::{ItemKind, Message, NodeId};
+use crate::typeinfo::TypeInfo;
+use std::sync::Mutex;
+
+/// The remote nodes subscribed to an offer (shared: a raise takes the list with one reference
+/// count, not a copy), and how many times the list was replaced, so that a reader that kept
+/// the version knows without the lock whether its copy is current.
+#[derive(Default)]
+pub(crate) struct Routes {
+    list: Mutex<Arc<[RemoteSubscriber]>>,
+    version: std::sync::atomic::AtomicU64,
+}
+
+impl Routes {
+    /// The current list.
+    pub fn get(&self) -> Arc<[RemoteSubscriber]> {
+        lock(&self.list).clone()
+    }
+    /// The current list and its version, unless the list is still the one of `version`.
+    pub fn changed_since(&self, version: Option<u64>) -> Option<(Arc<[RemoteSubscriber]>, u64)> {
+        use std::sync::atomic::Ordering;
+        if version == Some(self.version.load(Ordering::Acquire)) {
+            return None;
+        }
+        let list = lock(&self.list);
+        // Bumped under this lock: the pair is consistent.
+        Some((list.clone(), self.version.load(Ordering::Acquire)))
+    }
+    /// Replaces the list by what `make` makes, given the current one.
+    pub fn replace(&self, make: impl FnOnce(&[RemoteSubscriber]) -> Arc<[RemoteSubscriber]>) {
+        let mut list = lock(&self.list);
+        *list = make(&list);
+        self.version
+            .fetch_add(1, std::sync::atomic::Ordering::Release);
+    }
+}
+
+/// A remote node subscribed to an offer.
+#[derive(Clone)]
+pub(crate) struct RemoteSubscriber {
+    pub node: NodeId,
+    pub node_name: Arc<str>,
+    pub link: usize,
+    pub addr: PeerAddr,
+    /// Services of that node with a matching interest as `node/service`, as raise reports
+    /// name them (made once per route change, not per event).
+    pub labels: Arc<[String]>,
+    /// The peer's [`Peer::alive`].
+    pub alive: Arc<std::sync::atomic::AtomicBool>,
+    /// The peer's [`Peer::held`].
+    pub held: Arc<flow::StreamHold>,
+}
+
+/// Where a remote offer's data goes, with the names its samples carry: the data path takes
+/// one reference count per message for all of it.
+pub(crate) struct Route {
+    /// Local interests it is delivered to.
+    pub targets: Box<[Arc<LocalInterest>]>,
+    /// The item's full name.
+    pub name: Arc<str>,
+    /// Its type name.
+    pub type_name: Arc<str>,
+    /// Its type's fingerprint.
+    pub fingerprint: u64,
+    /// The node publishing it (the origin behind a gateway).
+    pub publisher: Arc<str>,
+}
+
+impl std::ops::Deref for Route {
+    type Target = [Arc<LocalInterest>];
+    fn deref(&self) -> &[Arc<LocalInterest>] {
+        &self.targets
+    }
+}
+
+/// A peer as route computation reads it: a copy, so the peer table is not held meanwhile.
+struct PeerView {
+    id: NodeId,
+    name: Arc<str>,
+    link: usize,
+    addr: crate::link::PeerAddr,
+    services: HashMap<u32, String>,
+    interests: Vec<(u32, RemoteItem)>,
+    alive: Arc<std::sync::atomic::AtomicBool>,
+    held: Arc<super::flow::StreamHold>,
+}
+
+impl PeerView {
+    fn of(p: &super::Peer) -> Self {
+        PeerView {
+            id: p.id,
+            name: p.name.clone(),
+            link: p.link,
+            addr: p.addr,
+            services: p.services.clone(),
+            interests: p.interests.iter().map(|(k, v)| (*k, v.clone())).collect(),
+            alive: p.alive.clone(),
+            held: p.held.clone(),
+        }
+    }
+}
+
+/// Peer `p` as a subscriber of our offer `o`, if one of its interests takes it; an exact
+/// interest of another type gets a refusal (once per interest) in `refusals`.
+fn remote_subscriber(
+    o: &LocalOffer,
+    p: &PeerView,
+    refusals: &mut Vec<(usize, crate::link::PeerAddr, Message)>,
+) -> Option<RemoteSubscriber> {
+    if o.hidden_on == Some(p.link) {
+        return None;
+    }
+    let mut services = Vec::new();
+    for (iid, it) in &p.interests {
+        if !kinds_match(o.kind, it.kind) || !name::matches(&it.name, &o.name) {
+            continue;
+        }
+        if !it.ty.accepts(&o.ty) {
+            if !name::is_wildcard(&it.name) && lock(&o.refused).insert((p.id, *iid)) {
+                refusals.push((
+                    p.link,
+                    p.addr,
+                    Message::Refused {
+                        interest: *iid,
+                        name: o.name.to_string(),
+                        offered: o.ty.clone(),
+                    },
+                ));
+            }
+            continue;
+        }
+        let svc = p
+            .services
+            .get(&it.service)
+            .cloned()
+            .unwrap_or_else(|| format!("#{}", it.service));
+        if !services.contains(&svc) {
+            services.push(svc);
+        }
+    }
+    if services.is_empty() {
+        return None;
+    }
+    let labels = services.iter().map(|s| format!("{}/{s}", p.name)).collect();
+    Some(RemoteSubscriber {
+        node: p.id,
+        node_name: p.name.clone(),
+        link: p.link,
+        addr: p.addr,
+        labels,
+        alive: p.alive.clone(),
+        held: p.held.clone(),
+    })
+}
+
+/// Peer `p`'s routes: each of its offers not `hidden` nor denied, to the local interests
+/// taking it.
+fn routes_of(
+    p: &super::Peer,
+    hidden: &HashSet<u32>,
+    interests: &[Arc<LocalInterest>],
+) -> HashMap<u32, Arc<Route>, crate::sync::SeededHash> {
+    p.offers
+        .iter()
+        .filter(|(oid, item)| !hidden.contains(oid) && !item.denied)
+        .map(|(oid, item)| {
+            let targets: Box<[Arc<LocalInterest>]> = interests
+                .iter()
+                .filter(|i| {
+                    kinds_match(item.kind, i.kind)
+                        && name::matches(&i.pattern, &item.name)
+                        && i.ty.accepts(&item.ty)
+                })
+                .cloned()
+                .collect();
+            let route = Route {
+                targets,
+                name: item.name.clone(),
+                type_name: item.type_name.clone(),
+                fingerprint: item.ty.fingerprint,
+                publisher: item.origin_name.clone().unwrap_or_else(|| p.name.clone()),
+            };
+            (*oid, Arc::new(route))
+        })
+        .collect()
+}
+
+/// One item wherever it is declared from: its source node, kind and name.
+type ItemKey = (NodeId, ItemKind, Arc<str>);
+
+/// The shadowing rule of [`NodeInner::shadowed_offers`], one peer's offers at a time.
+#[derive(Default)]
+struct Shadowing {
+    /// The best path to each item: (hops, peer, offer id).
+    best: HashMap<ItemKey, (u8, NodeId, u32)>,
+    /// The offers to ignore, by peer.
+    hidden: HashMap<NodeId, HashSet<u32>>,
+}
+
+impl Shadowing {
+    /// Takes peer `peer`'s `offers` into account (`me`: our own id).
+    fn add(&mut self, me: NodeId, peer: NodeId, offers: &HashMap<u32, RemoteItem>) {
+        for (oid, item) in offers {
+            let (source, hops) = item.source(peer);
+            if source == me {
+                self.hidden.entry(peer).or_default().insert(*oid);
+                continue;
+            }
+            let key = (source, item.kind, item.name.clone());
+            let cand = (hops, peer, *oid);
+            match self.best.get(&key) {
+                Some(cur) if *cur <= cand => {
+                    self.hidden.entry(peer).or_default().insert(*oid);
+                }
+                Some(cur) => {
+                    self.hidden.entry(cur.1).or_default().insert(cur.2);
+                    self.best.insert(key, cand);
+                }
+                None => {
+                    self.best.insert(key, cand);
+                }
+            }
+        }
+    }
+}
+
+fn kinds_match(offer: ItemKind, interest: ItemKind) -> bool {
+    offer == interest && matches!(offer, ItemKind::Variable | ItemKind::Event)
+}
+
+impl NodeInner {
+    /// Recomputes every route from scratch. Declarations change rarely (start-up, a service
+    /// coming or going), so clarity beats incremental bookkeeping here, except for a peer's
+    /// own declarations arriving: see [`NodeInner::recompute_routes_of_peer`].
+    pub fn recompute_routes(&self) {
+        let _serialised = lock(&self.routing);
+        let interests: Vec<Arc<LocalInterest>> =
+            self.interests.iter().map(|e| e.value().clone()).collect();
+        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
+        let peers: Vec<PeerView> = self.peers.iter().map(|p| PeerView::of(&p)).collect();
+        let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
+        let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
+        for o in &offers {
+            // Local subscribers. A gateway's forwarded offers and forwarded interests only
+            // carry traffic between links: they never meet a local item.
+            let mut local = Vec::new();
+            for i in &interests {
+                if o.origin.is_some() || i.hidden_on.is_some() {
+                    continue;
+                }
+                if !kinds_match(o.kind, i.kind) || !name::matches(&i.pattern, &o.name) {
+                    continue;
+                }
+                if !i.ty.accepts(&o.ty) {
+                    // A pattern takes the items of its type among those it matches; only an
+                    // exact name can be "the wrong type".
+                    if !name::is_wildcard(&i.pattern) {
+                        i.report_mismatch(&o.name, &self.me.name, &o.ty);
+                    }
+                    continue;
+                }
+                local.push(i.clone());
+            }
+            // Remote subscribers.
+            let remote: Vec<RemoteSubscriber> = peers
+                .iter()
+                .filter_map(|p| remote_subscriber(o, p, &mut refusals))
+                .collect();
+            let last = last_value(o);
+            {
+                let mut cur = lock(&o.local);
+                if let Some(v) = &last {
+                    for i in &local {
+                        if !cur.iter().any(|c| Arc::ptr_eq(c, i)) {
+                            if let Some(m) = &i.mailbox {
+                                m.push(o.own_sample(&self.me.name, v.clone(), Instant::now()));
+                            }
+                        }
+                    }
+                }
+                o.has_local
+                    .store(!local.is_empty(), std::sync::atomic::Ordering::Release);
+                *cur = local;
+            }
+            o.remote.replace(|cur| {
+                if let Some(v) = &last {
+                    for r in &remote {
+                        if !cur.iter().any(|c| c.node == r.node) {
+                            late_remote.push((
+                                r.link,
+                                r.addr,
+                                encode_data_message_of_payload(false, o.id, v),
+                            ));
+                        }
+                    }
+                }
+                remote.into()
+            });
+        }
+        // Routes for what peers offer, each item from its shortest path only.
+        let shadowed = self.shadowed_offers();
+        for mut p in self.peers.iter_mut() {
+            let hidden = shadowed.get(&p.id).cloned().unwrap_or_default();
+            p.routes = routes_of(&p, &hidden, &interests);
+            p.shadowed = hidden;
+        }
+        self.send_route_news(refusals, late_remote);
+    }
+    /// Recomputes what peer `node`'s declarations change (after a batch of them): whether it
+    /// subscribes to each of our offers, and where its offers go here. A fleet's node applies
+    /// one batch per peer at start and per peer's change after: recomputing every peer's routes
+    /// for each made joining a LAN of N nodes cost N³ in all (at 200 nodes on one host, the
+    /// batches kept both cores busy and acknowledgements late for good).
+    ///
+    /// Exact while no gateway is involved: only a gateway's offers name another node as their
+    /// origin, so without one no item is declared by two peers and one peer's offers shadow
+    /// nothing of another's. With a gateway (a peer or ourselves), every route is recomputed.
+    pub(super) fn recompute_routes_of_peer(&self, node: NodeId) {
+        if self.gateway.is_some() || self.peers.iter().any(|p| p.gateway) {
+            self.recompute_routes();
+            return;
+        }
+        let _serialised = lock(&self.routing);
+        let Some(peer) = self.peers.get(&node).map(|p| PeerView::of(&p)) else {
+            return;
+        };
+        let interests: Vec<Arc<LocalInterest>> =
+            self.interests.iter().map(|e| e.value().clone()).collect();
+        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
+        let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
+        let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
+        for o in &offers {
+            let subscriber = remote_subscriber(o, &peer, &mut refusals);
+            let had = o.remote.get().iter().any(|r| r.node == node);
+            if subscriber.is_none() && !had {
+                continue;
+            }
+            if let (Some(s), false, Some(v)) = (&subscriber, had, last_value(o)) {
+                late_remote.push((
+                    s.link,
+                    s.addr,
+                    encode_data_message_of_payload(false, o.id, &v),
+                ));
+            }
+            o.remote.replace(|cur| {
+                cur.iter()
+                    .filter(|r| r.node != node)
+                    .cloned()
+                    .chain(subscriber)
+                    .collect()
+            });
+        }
+        if let Some(mut p) = self.peers.get_mut(&node) {
+            let mut shadowing = Shadowing::default();
+            shadowing.add(self.me.id, p.id, &p.offers);
+            let hidden = shadowing.hidden.remove(&node).unwrap_or_default();
+            p.routes = routes_of(&p, &hidden, &interests);
+            p.shadowed = hidden;
+        }
+        self.send_route_news(refusals, late_remote);
+    }
+    /// What a route change owes peers: the type refusals found, and a late joiner's first
+    /// value; then the node's state version moves on.
+    fn send_route_news(
+        &self,
+        refusals: Vec<(usize, crate::link::PeerAddr, Message)>,
+        late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)>,
+    ) {
+        for (link, addr, msg) in refusals {
+            self.send_safe(link, addr, &msg);
+        }
+        // A late joiner's first value goes on the safe class: it must arrive (the subscriber
+        // gets the last value at once) and after our declarations in the same ordered stream.
+        for (link, addr, msg) in late_remote {
+            tracing::debug!(%addr, "late joiner served the last value");
+            self.send_to(link, addr, Outgoing::Safe { msg, done: None });
+        }
+        self.bump();
+    }
+    /// The offers of each peer to ignore: where one item (same source node, kind and name) is
+    /// declared by several peers (directly and through gateways), only the path with the
+    /// fewest gateways counts (ties: the lowest peer id); our own items forwarded back to us
+    /// are ignored altogether.
+    pub fn shadowed_offers(&self) -> HashMap<NodeId, HashSet<u32>> {
+        let mut shadowing = Shadowing::default();
+        for p in self.peers.iter() {
+            shadowing.add(self.me.id, p.id, &p.offers);
+        }
+        shadowing.hidden
+    }
+    pub fn on_refused(&self, node: NodeId, interest: u32, name: String, offered: TypeInfo) {
+        // Through a gateway, the publisher is the node behind it.
+        let publisher = self
+            .peers
+            .get(&node)
+            .map(|p| {
+                p.offers
+                    .values()
+                    .find(|o| *o.name == *name)
+                    .and_then(|o| o.origin_name.clone())
+                    .unwrap_or_else(|| p.name.clone())
+                    .to_string()
+            })
+            .unwrap_or_else(|| format!("{node:016x}"));
+        if let Some(i) = self.interests.get(&interest) {
+            i.report_mismatch(&name, &publisher, &offered);
+        }
+    }
+}
+
+impl LocalInterest {
+    /// Reports a type mismatch to the subscriber once per (publisher, name).
+    pub fn report_mismatch(&self, name: &str, publisher: &str, offered: &TypeInfo) {
+        let key = format!("{publisher}\u{0}{name}");
+        if !lock(&self.reported).insert(key) {
+            return;
+        }
+        if let Some(m) = &self.mailbox {
+            m.push(Delivery::Refused(TypeMismatch {
+                name: name.to_owned(),
+                publisher: publisher.to_owned(),
+                offered: offered.clone(),
+                expected: self.ty.clone(),
+            }));
+        }
+    }
+}
+
+/// A set type used for once-only reports.
+pub(crate) type ReportedSet = HashSet<String>;

@@ -1,0 +1,78 @@
+//! Variables: publishing a value (kept for late joiners, sent on the fast class, coalesced
+//! while unsent) and serving a new subscriber the newest one.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use super::{lock, LocalOffer, NodeInner, OfferRole};
+use crate::codec::encode_data_message_of_payload;
+use crate::link::Outgoing;
+use crate::protocol::NodeId;
+
+/// The newest value of offer `o`, if it is a variable that has one.
+pub(super) fn last_value(o: &LocalOffer) -> Option<Vec<u8>> {
+    match &o.role {
+        OfferRole::Variable { last } => lock(last).clone(),
+        _ => None,
+    }
+}
+
+impl NodeInner {
+    /// Publishes a variable value: stored for late joiners, delivered locally, and sent to every
+    /// remote subscriber on the fast class (coalesced per variable while unsent).
+    pub fn publish_variable(&self, offer: &LocalOffer, bytes: Vec<u8>) {
+        if let OfferRole::Variable { last } = &offer.role {
+            // Into the previous value's buffer: no allocation per publish.
+            let mut last = lock(last);
+            match last.as_mut() {
+                Some(v) => {
+                    v.clear();
+                    v.extend_from_slice(&bytes);
+                }
+                None => *last = Some(bytes.clone()),
+            }
+        }
+        for i in lock(&offer.local).iter() {
+            if let Some(m) = &i.mailbox {
+                m.push(offer.own_sample(&self.me.name, bytes.clone(), Instant::now()));
+            }
+        }
+        let remote = offer.remote.get();
+        if remote.is_empty() {
+            return;
+        }
+        let mut msg = Some(encode_data_message_of_payload(false, offer.id, &bytes));
+        let n = remote.len();
+        for (k, r) in remote.iter().enumerate() {
+            let msg = if k + 1 == n {
+                msg.take().unwrap_or_default()
+            } else {
+                msg.clone().unwrap_or_default()
+            };
+            self.send_to(
+                r.link,
+                r.addr,
+                Outgoing::Fast {
+                    coalesce: Some(offer.id),
+                    msg,
+                },
+            );
+        }
+    }
+    /// Sends `node` the newest value of every variable of ours it subscribes to (safe class).
+    pub fn resend_last_values(&self, node: NodeId, link: usize, addr: crate::link::PeerAddr) {
+        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|o| o.value().clone()).collect();
+        for o in offers {
+            let OfferRole::Variable { last } = &o.role else {
+                continue;
+            };
+            if !o.remote.get().iter().any(|r| r.node == node) {
+                continue;
+            }
+            if let Some(v) = lock(last).clone() {
+                let msg = encode_data_message_of_payload(false, o.id, &v);
+                self.send_to(link, addr, Outgoing::Safe { msg, done: None });
+            }
+        }
+    }
+}
