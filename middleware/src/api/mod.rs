@@ -12,11 +12,11 @@ mod shared_str;
 mod subscription;
 mod variable;
 
-pub use errors::{DeclareError, FileSendError, NodeOpenError, RecvError};
+pub use errors::{DeclareError, NodeOpenError, RecvError};
 pub use event::{
     Event, EventStream, PendingRaise, RaiseReport, StreamError, STREAM_WINDOW, STREAM_WINDOW_BYTES,
 };
-pub use file::{FileProgress, FileReport, FileSink, FileTransfer, SendFileOptions};
+pub use file::{FileSink, FileTransfer};
 pub use function::{Function, FunctionProvider};
 pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};
 pub use raw::{RawSubscription, RawValue};
@@ -27,7 +27,10 @@ pub use variable::{Sample, Variable};
 
 pub use crate::node::call::{CallError, Caller};
 pub use crate::node::data::PublishError;
-pub use crate::node::files::{FileSinkOptions, FileSinkStats, ReceivedFile};
+pub use crate::node::files::{
+    FileProgress, FileReport, FileSendError, FileSinkOptions, FileSinkStats, ReceivedFile,
+    SendFileOptions,
+};
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;
 pub use crate::node::policy::RefusalReport;

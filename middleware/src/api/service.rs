@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use super::errors::{DeclareError, RecvError};
 use super::event::Event;
-use super::file::{FileSink, FileTransfer, SendFileOptions};
+use super::file::{FileSink, FileTransfer};
 use super::function::{Function, FunctionProvider};
 use super::node::ItemDescription;
 use super::publisher::Publisher;
@@ -16,6 +16,7 @@ use super::subscription::{CallbackSubscription, EventSubscriber, VariableSubscri
 use super::variable::{decode_delivery, Sample, Variable};
 use super::Payload;
 use crate::name;
+use crate::node::files::SendFileOptions;
 use crate::node::files::{FileSinkOptions, SinkMailbox, SinkState};
 use crate::node::mailbox::Mailbox;
 use crate::node::{BoxFuture, LocalInterest, LocalOffer, NodeInner, OfferRole};

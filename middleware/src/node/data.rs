@@ -74,6 +74,7 @@ impl NodeInner {
             push_to_route(route, &mut payloads, received);
         }
     }
+
     /// Data for an offer with no route here: refused by our `<access>` rules (reported), or
     /// unknown (a declaration not yet applied, or a subscription just closed).
     fn undeliverable(&self, node: NodeId, id: u32) {

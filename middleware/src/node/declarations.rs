@@ -55,11 +55,13 @@ impl DeclarationLog {
         }
         entry
     }
+
     /// Live declarations held.
     #[cfg(test)]
     fn len(&self) -> usize {
         self.entries.len()
     }
+
     /// What a peer on `link` that knows our declarations up to `since` is sent.
     pub fn view(&self, link: usize, since: u32) -> LogView {
         // A peer that knows nothing yet (0) holds nothing a withdrawal could leave behind.
@@ -182,6 +184,7 @@ impl NodeInner {
             self.send_safe(link, addr, &msg);
         }
     }
+
     /// Sends a peer our Hello, then every declaration we have, with the log locked by the
     /// caller (who registered the peer under the same lock), all in one sequence: whatever we
     /// send it later (a late joiner's value, events, replies), even from another task answering
@@ -192,13 +195,16 @@ impl NodeInner {
         msgs.extend(batches(log.view(link, 0)));
         self.send_safe_in_sequence(link, addr, &msgs);
     }
+
     /// Sends declarations as [`batches`] makes them, in one sequence.
     fn send_batches(&self, link: usize, addr: crate::link::PeerAddr, view: LogView) {
         self.send_safe_in_sequence(link, addr, &batches(view));
     }
+
     pub fn counter(&self) -> u32 {
         lock(&self.decls).counter
     }
+
     pub fn add_offer(&self, offer: Arc<LocalOffer>) {
         let decl = Declaration::Offer {
             id: offer.id,
@@ -214,6 +220,7 @@ impl NodeInner {
         self.recompute_routes();
         self.declare(decl, hidden_on);
     }
+
     pub fn add_interest(&self, interest: Arc<LocalInterest>) {
         let decl = Declaration::Interest {
             id: interest.id,
@@ -229,6 +236,7 @@ impl NodeInner {
         self.recompute_routes();
         self.declare(decl, hidden_on);
     }
+
     /// Withdraws a service, offer or interest.
     pub fn withdraw(&self, id: u32) {
         let mut any = self.services.remove(&id).is_some();
@@ -249,6 +257,7 @@ impl NodeInner {
             self.recompute_routes();
         }
     }
+
     /// Closes every subscription's and file sink's mailbox (the node is stopping): a receiver
     /// waiting on one gets `Closed` instead of waiting for good.
     pub fn close_mailboxes(&self) {
@@ -263,6 +272,7 @@ impl NodeInner {
             }
         }
     }
+
     /// Answers a peer's request with our declarations after `since` (an empty batch when
     /// there are none, so it knows it is up to date).
     pub fn answer_decl_request(&self, node: NodeId, since: u32) {
@@ -273,6 +283,7 @@ impl NodeInner {
         let log = lock(&self.decls);
         self.send_batches(link, addr, log.view(link, since));
     }
+
     /// Applies a peer's declarations: checks each against our policy (names well formed and
     /// owned, origins only from gateways, caps), and recomputes routes when anything changed.
     pub fn apply_decl_batch(
@@ -476,6 +487,7 @@ impl NodeInner {
             self.recompute_forwarding();
         }
     }
+
     /// Whether peer `p` may offer `name`: a plain offer only under its own namespace; an offer
     /// on behalf of another node (`origin`) only from a gateway, at least one hop away, and
     /// under the origin's namespace (the one we know when we reach the origin directly too).

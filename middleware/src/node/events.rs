@@ -226,7 +226,7 @@ struct StreamPeer {
 }
 
 impl StreamPeer {
-    /// Events it may have unacknowledged: [`STREAM_WINDOW`], or fewer for large events or a
+    /// Events it may have unacknowledged: [`crate::link::STREAM_WINDOW`], or fewer for large events or a
     /// slow link.
     fn window(&self) -> u64 {
         let mean = (self.bytes / self.sent.max(1)).max(1);

@@ -158,16 +158,19 @@ impl Peer {
     pub fn declarations(&self) -> usize {
         self.services.len() + self.offers.len() + self.interests.len()
     }
+
     /// Records that something arrived from this peer now.
     pub fn heard(&self, epoch: Instant) {
         self.heard_at(epoch, Instant::now());
     }
+
     /// Records that something arrived from this peer at `now` (a clock read the caller
     /// already made: the data path reads it once per message).
     pub fn heard_at(&self, epoch: Instant, now: Instant) {
         let ms = now.saturating_duration_since(epoch).as_millis() as u64;
         self.heard_ms.store(ms, Ordering::Relaxed);
     }
+
     /// When it was last heard from at all.
     pub fn last_heard(&self, epoch: Instant) -> Instant {
         let data = epoch + Duration::from_millis(self.heard_ms.load(Ordering::Relaxed));
@@ -272,6 +275,7 @@ impl NodeInner {
     pub fn links(&self) -> &[Arc<dyn Link>] {
         self.links.get().map(|v| v.as_slice()).unwrap_or(&[])
     }
+
     /// Waits until `pred` holds, re-checking whenever the peer table or the routes change;
     /// returns whether it held within `timeout`.
     pub async fn wait_for(&self, timeout: Duration, mut pred: impl FnMut() -> bool) -> bool {
@@ -287,16 +291,20 @@ impl NodeInner {
         }
         true
     }
+
     pub fn bump(&self) {
         self.changed.send_modify(|v| *v += 1);
     }
+
     pub fn fresh_id(&self) -> u32 {
         self.next_id.fetch_add(1, Ordering::Relaxed)
     }
+
     /// Sends a message to a peer on its link.
     pub fn send_to(&self, link: usize, addr: PeerAddr, out: Outgoing) {
         self.path_switches.send(self.links(), (link, addr), out);
     }
+
     /// Sends a safe message and forgets about its acknowledgement (a Hello as
     /// [`Self::send_safe_in_sequence`] sends it, with our challenge after it).
     pub fn send_safe(&self, link: usize, addr: PeerAddr, msg: &Message) {
@@ -312,6 +320,7 @@ impl NodeInner {
             },
         );
     }
+
     /// Sends safe messages one after the other with no other safe message between them (see
     /// [`path_switch::PathSwitches::send_in_sequence`]). A Hello to a peer whose identity we
     /// still wait for is followed by our challenge, so the peer answers it before the
@@ -333,6 +342,7 @@ impl NodeInner {
         self.path_switches
             .send_in_sequence(self.links(), (link, addr), outs);
     }
+
     /// Sends a safe message to a known peer.
     pub fn send_safe_to_node(&self, node: NodeId, msg: &Message) -> bool {
         let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
@@ -341,9 +351,11 @@ impl NodeInner {
         self.send_safe(link, addr, msg);
         true
     }
+
     fn peer_of(&self, link: usize, from: PeerAddr) -> Option<NodeId> {
         self.addrs.get(&(link, from)).map(|e| *e)
     }
+
     /// Handles `msgs` from `from`, in order. A run of data messages (variables, events) is
     /// delivered together: one sender lookup, one clock read and one wake-up per subscriber for
     /// the run, where a datagram of a fast stream carries hundreds.
@@ -366,6 +378,7 @@ impl NodeInner {
         }
         self.deliver_data(link, from, &mut data);
     }
+
     /// Delivers (and empties) a run of data messages from `from`.
     fn deliver_data(&self, link: usize, from: PeerAddr, data: &mut Vec<(u32, Vec<u8>)>) {
         if data.is_empty() {
@@ -382,6 +395,7 @@ impl NodeInner {
             }
         }
     }
+
     /// Handles one decoded message other than data.
     fn handle(self: &Arc<Self>, link: usize, from: PeerAddr, msg: Message) {
         // Discovery messages may come from anyone; everything else only from a known peer.
@@ -494,14 +508,17 @@ impl LinkHandler for Handler {
     fn on_message(&self, link: usize, from: PeerAddr, msg: &[u8]) {
         self.on_messages(link, from, &[msg]);
     }
+
     fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
         call::age_call(msg, waited);
     }
+
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         if let Some(n) = self.node() {
             n.dispatch_all(link, from, msgs);
         }
     }
+
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]) {
         let Some(n) = self.node() else { return };
         match decode_message(msg) {
@@ -511,11 +528,13 @@ impl LinkHandler for Handler {
             }
         }
     }
+
     fn on_peer_reset(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.node() {
             n.on_peer_reset(link, from);
         }
     }
+
     fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.node() {
             n.on_peer_unreachable(link, from);

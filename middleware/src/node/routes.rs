@@ -31,6 +31,7 @@ impl Routes {
     pub fn get(&self) -> Arc<[RemoteSubscriber]> {
         lock(&self.list).clone()
     }
+
     /// The current list and its version, unless the list is still the one of `version`.
     pub fn changed_since(&self, version: Option<u64>) -> Option<(Arc<[RemoteSubscriber]>, u64)> {
         use std::sync::atomic::Ordering;
@@ -41,6 +42,7 @@ impl Routes {
         // Bumped under this lock: the pair is consistent.
         Some((list.clone(), self.version.load(Ordering::Acquire)))
     }
+
     /// Replaces the list by what `make` makes, given the current one.
     pub fn replace(&self, make: impl FnOnce(&[RemoteSubscriber]) -> Arc<[RemoteSubscriber]>) {
         let mut list = lock(&self.list);
@@ -60,9 +62,9 @@ pub(crate) struct RemoteSubscriber {
     /// Services of that node with a matching interest as `node/service`, as raise reports
     /// name them (made once per route change, not per event).
     pub labels: Arc<[String]>,
-    /// The peer's [`Peer::alive`].
+    /// The peer's [`super::Peer::alive`].
     pub alive: Arc<std::sync::atomic::AtomicBool>,
-    /// The peer's [`Peer::held`].
+    /// The peer's [`super::Peer::held`].
     pub held: Arc<flow::StreamHold>,
 }
 
@@ -321,6 +323,7 @@ impl NodeInner {
         }
         self.send_route_news(refusals, late_remote);
     }
+
     /// Recomputes what peer `node`'s declarations change (after a batch of them): whether it
     /// subscribes to each of our offers, and where its offers go here. A fleet's node applies
     /// one batch per peer at start and per peer's change after: recomputing every peer's routes
@@ -374,6 +377,7 @@ impl NodeInner {
         }
         self.send_route_news(refusals, late_remote);
     }
+
     /// What a route change owes peers: the type refusals found, and a late joiner's first
     /// value; then the node's state version moves on.
     fn send_route_news(
@@ -392,6 +396,7 @@ impl NodeInner {
         }
         self.bump();
     }
+
     /// The offers of each peer to ignore: where one item (same source node, kind and name) is
     /// declared by several peers (directly and through gateways), only the path with the
     /// fewest gateways counts (ties: the lowest peer id); our own items forwarded back to us
@@ -403,6 +408,7 @@ impl NodeInner {
         }
         shadowing.hidden
     }
+
     pub fn on_refused(&self, node: NodeId, interest: u32, name: String, offered: TypeInfo) {
         // Through a gateway, the publisher is the node behind it.
         let publisher = self

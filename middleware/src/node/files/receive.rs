@@ -1,12 +1,12 @@
-//! File transfer, node side: routing control messages to sending tasks, and receiving files
-//! into a sink's directory (temp file, hash check, atomic rename, resume from what is on disk).
+//! Receiving files into a sink's directory: temp file, hash check, atomic rename, resume from
+//! what is on disk; a sink's caps, refusals and the removal of stale partial files.
 //!
 //! A sink keeps its partial (`.part`) files in a private directory (`<dir>/.partial`, mode
 //! 0700, owned by this user) and opens them without following symbolic links, so another user
 //! cannot redirect what a sender writes. A stored file is synced before its rename and the
 //! directories after it, so a crash leaves either the old state or the whole new file. Each sink
 //! has caps ([`FileSinkOptions`]): file size (announced and actually sent), bytes on disk and
-//! transfers at once; a refusal is a [`FileVerdict`] the sender sees, logged and counted
+//! transfers at once; a refusal is a [`crate::protocol::FileVerdict`] the sender sees, logged and counted
 //! ([`FileSinkStats`]). Partial files older than an age are removed at sink open and
 //! periodically.
 
@@ -17,68 +17,19 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime};
 
-use dashmap::DashMap;
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{mpsc, Notify};
 
-use super::policy::Refusal;
-use super::reassembly::{ChunkStep, Reassembly};
-use super::{lock, NodeInner, OfferRole};
+use super::{hash_with, Incoming};
+use crate::node::policy::Refusal;
+use crate::node::reassembly::{ChunkStep, Reassembly};
+use crate::node::{lock, NodeInner, OfferRole};
 use crate::process::state_dir;
 use crate::protocol::{FileOffer, FileVerdict, Message, NodeId};
 
 /// Name of a sink's private directory of partial files (hidden: no sent file name may start
 /// with a dot, so no transfer can target it).
 pub(crate) const PARTIAL_DIR: &str = ".partial";
-
-/// What a sending task hears from the receiver (or about it).
-#[derive(Debug)]
-pub(crate) enum Control {
-    Accept(u64),
-    Done(FileVerdict),
-    PeerLost(String),
-}
-
-struct Incoming {
-    node: NodeId,
-    /// Tells this receiving task from one that replaced it (same transfer offered again).
-    generation: u64,
-    chunks: mpsc::UnboundedSender<(u64, Vec<u8>)>,
-}
-
-/// Transfers in progress on this node.
-#[derive(Default)]
-pub(crate) struct Transfers {
-    senders: DashMap<u64, (NodeId, mpsc::UnboundedSender<Control>)>,
-    incoming: DashMap<u64, Incoming>,
-    generations: AtomicU64,
-}
-
-impl Transfers {
-    pub fn register_sender(&self, transfer: u64, node: NodeId) -> mpsc::UnboundedReceiver<Control> {
-        let (tx, rx) = mpsc::unbounded_channel();
-        self.senders.insert(transfer, (node, tx));
-        rx
-    }
-
-    pub fn unregister_sender(&self, transfer: u64) {
-        self.senders.remove(&transfer);
-    }
-
-    pub fn to_sender(&self, transfer: u64, c: Control) {
-        if let Some(s) = self.senders.get(&transfer) {
-            let _ = s.1.send(c);
-        }
-    }
-
-    pub fn peer_lost(&self, node: NodeId, name: &str, reason: &str) {
-        for s in self.senders.iter().filter(|s| s.0 == node) {
-            let _ =
-                s.1.send(Control::PeerLost(format!("node '{name}' {reason}")));
-        }
-        self.incoming.retain(|_, i| i.node != node);
-    }
-}
 
 /// A file that arrived in a sink.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -427,27 +378,6 @@ pub(crate) fn part_path(partial: &Path, name: &str, transfer: u64) -> PathBuf {
     partial.join(format!(".{name}.{transfer:016x}.part"))
 }
 
-/// blake3 of a file, off the async workers.
-pub(crate) async fn hash_file(path: PathBuf) -> std::io::Result<[u8; 32]> {
-    hash_with(path, false).await
-}
-
-async fn hash_with(path: PathBuf, no_follow: bool) -> std::io::Result<[u8; 32]> {
-    tokio::task::spawn_blocking(move || {
-        let mut h = blake3::Hasher::new();
-        let mut o = std::fs::OpenOptions::new();
-        o.read(true);
-        if no_follow {
-            o.custom_flags(libc::O_NOFOLLOW);
-        }
-        let mut f = o.open(&path)?;
-        std::io::copy(&mut f, &mut h)?;
-        Ok(*h.finalize().as_bytes())
-    })
-    .await
-    .map_err(std::io::Error::other)?
-}
-
 /// Opens (creates, or reopens to resume) a partial file without following a symbolic link
 /// planted at its path. Returns the file, positioned at its end, and the bytes already in it
 /// (kept only when they are a plausible prefix: a regular file no larger than the announced
@@ -511,7 +441,7 @@ impl NodeInner {
             .map(|p| (p.name.to_string(), Some(p.link)))
             .unwrap_or_default();
         if let Some(link) = link {
-            self.policy.count(link, super::policy::Refusal::File);
+            self.policy.count(link, Refusal::File);
         }
         if sink.should_log(node, &verdict) {
             tracing::warn!(sink = %sink.name, %from, %verdict, "incoming file refused (logged once a minute per sender and kind; all counted)");
@@ -573,7 +503,7 @@ impl NodeInner {
         }) else {
             if let Some((link, name)) = self.peers.get(&node).map(|p| (p.link, p.name.clone())) {
                 self.policy
-                    .refuse(link, node, &name, "file sink", super::policy::Refusal::File);
+                    .refuse(link, node, &name, "file sink", Refusal::File);
             }
             self.reply_file(
                 node,
