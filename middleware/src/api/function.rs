@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use super::service::Declared;
 use super::Payload;
-use crate::node::call::CallError;
+use crate::node::calls::CallError;
 use crate::node::{LocalOffer, NodeInner};
 use crate::typeinfo::TypeInfo;
 

@@ -25,7 +25,7 @@ pub use shared_str::SharedStr;
 pub use subscription::{CallbackSubscription, EventSubscriber, Subscription, VariableSubscriber};
 pub use variable::{Sample, Variable};
 
-pub use crate::node::call::{CallError, Caller};
+pub use crate::node::calls::{CallError, Caller};
 pub use crate::node::data::PublishError;
 pub use crate::node::files::{
     FileProgress, FileReport, FileSendError, FileSinkOptions, FileSinkStats, ReceivedFile,

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use super::errors::{DeclareError, RecvError};
 use super::service::{Declared, Service};
-use crate::node::call::CallError;
+use crate::node::calls::CallError;
 use crate::node::mailbox::{Delivery, Mailbox};
 use crate::protocol::{ItemKind, NodeId, Origin};
 use crate::typeinfo::TypeInfo;

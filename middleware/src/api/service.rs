@@ -409,12 +409,12 @@ impl Service {
     where
         A: Payload,
         R: Payload,
-        F: Fn(A, crate::node::call::Caller) -> Fut + Send + Sync + 'static,
+        F: Fn(A, crate::node::calls::Caller) -> Fut + Send + Sync + 'static,
         Fut: std::future::Future<Output = Result<R, String>> + Send + 'static,
     {
         let handler = Arc::new(handler);
-        let raw: crate::node::call::RawHandler =
-            Arc::new(move |args: Vec<u8>, caller: crate::node::call::Caller| {
+        let raw: crate::node::calls::RawHandler =
+            Arc::new(move |args: Vec<u8>, caller: crate::node::calls::Caller| {
                 let handler = handler.clone();
                 let fut: BoxFuture<Result<Vec<u8>, crate::protocol::RemoteFailure>> =
                     Box::pin(async move {

@@ -4,7 +4,7 @@
 //! Local deliveries go straight into the local subscribers' mailboxes; a message goes to a link
 //! only where a remote node declared a matching interest (interest-based routing).
 
-pub(crate) mod call;
+pub(crate) mod calls;
 pub(crate) mod data;
 pub(crate) mod declarations;
 pub(crate) mod discovery;
@@ -54,7 +54,7 @@ pub(crate) enum OfferRole {
     /// An event publisher.
     Event,
     /// A function provider.
-    Function { handler: call::RawHandler },
+    Function { handler: calls::RawHandler },
     /// A file sink: its directory, limits and counters, and the files stored.
     File {
         state: Arc<files::SinkState>,
@@ -214,7 +214,7 @@ pub(crate) struct NodeInner {
     pub interests: DashMap<u32, Arc<LocalInterest>>,
     pub peers: DashMap<NodeId, Peer, SeededHash>,
     pub addrs: DashMap<(usize, PeerAddr), NodeId, SeededHash>,
-    pub calls: call::PendingCalls,
+    pub calls: calls::PendingCalls,
     pub transfers: files::Transfers,
     /// Bumped whenever routes or the peer table change, so waiters can re-check.
     pub changed: watch::Sender<u64>,
@@ -231,7 +231,7 @@ pub(crate) struct NodeInner {
     /// What this node accepts from peers, and the refusals counted.
     pub policy: policy::Policy,
     /// Peers' calls running or waiting, by (caller, function id).
-    pub lanes: call::Lanes,
+    pub lanes: calls::Lanes,
     /// Per-node identity keys, when configured (`<security identityFile=.. identities=..>`).
     pub identity: Option<IdentityLayer>,
     /// Event mailboxes whose readers are behind (links may then hold senders back).
@@ -510,7 +510,7 @@ impl LinkHandler for Handler {
     }
 
     fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
-        call::age_call(msg, waited);
+        calls::age_call(msg, waited);
     }
 
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
