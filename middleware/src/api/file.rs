@@ -187,7 +187,7 @@ mod tests {
     /// node id and the sink's id as `tx` knows them.
     async fn sink_seen_from(tx: &Node, sink: &str) -> (NodeId, u32) {
         let found = || {
-            tx.inner.peers.iter().find_map(|p| {
+            tx.inner.peers.by_id.iter().find_map(|p| {
                 p.offers
                     .iter()
                     .find(|(_, o)| o.kind == ItemKind::File && *o.name == *sink)

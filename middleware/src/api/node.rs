@@ -2,11 +2,9 @@
 //! what the network offers.
 
 use std::collections::HashMap;
-use std::sync::atomic::AtomicU32;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-use dashmap::DashMap;
 use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
@@ -266,32 +264,26 @@ impl Node {
                 epoch: Instant::now(),
             },
             links: OnceLock::new(),
-            decls: Mutex::default(),
-            next_id: AtomicU32::new(1),
-            services: DashMap::new(),
-            offers: DashMap::new(),
-            interests: DashMap::new(),
-            peers: DashMap::default(),
-            addrs: DashMap::default(),
+            local: Default::default(),
+            peers: Default::default(),
             calls: Default::default(),
             transfers: Default::default(),
             changed,
             tasks: TaskTracker::new(),
             cancel: CancellationToken::new(),
-            counters: Default::default(),
             path_switches: Default::default(),
             identity,
             routing: Mutex::new(()),
             policy: crate::node::policy::Policy::new(config.access.clone(), config.links.len()),
-            lanes: Default::default(),
             congestion: Arc::default(),
             // The pseudo-service id is the first id handed out (ids start at 1).
             gateway: forwards.then(|| crate::node::gateway::Gateway::new(1)),
         });
         if let Some(gw) = &inner.gateway {
-            let id = inner.fresh_id();
+            let id = inner.local.fresh_id();
             debug_assert_eq!(id, gw.service);
             inner
+                .local
                 .services
                 .insert(id, crate::node::gateway::SERVICE_NAME.into());
             inner.declare(
@@ -455,6 +447,7 @@ impl Node {
         let mut v: Vec<PeerInfo> = self
             .inner
             .peers
+            .by_id
             .iter()
             .map(|p| PeerInfo {
                 name: p.name.to_string(),
@@ -477,7 +470,7 @@ impl Node {
     /// seen from here). Sorted, each once.
     pub fn node_names(&self) -> Vec<String> {
         let mut names = std::collections::BTreeSet::new();
-        for p in self.inner.peers.iter() {
+        for p in self.inner.peers.by_id.iter() {
             names.insert(p.name.to_string());
             for o in p.offers.values() {
                 if let Some(origin) = &o.origin_name {
@@ -496,12 +489,13 @@ impl Node {
 
     /// Whether some peer offers an item of `kind` whose name matches `pattern`.
     pub fn is_offered(&self, kind: ItemKind, pattern: &str) -> bool {
-        self.inner.peers.iter().any(|p| {
+        self.inner.peers.by_id.iter().any(|p| {
             p.offers
                 .values()
                 .any(|o| o.kind == kind && name::matches(pattern, &o.name))
         }) || self
             .inner
+            .local
             .offers
             .iter()
             .any(|o| o.kind == kind && name::matches(pattern, &o.name))
@@ -536,8 +530,8 @@ impl Node {
     pub fn dropped_input(&self) -> (u64, u64) {
         use std::sync::atomic::Ordering::Relaxed;
         (
-            self.inner.counters.undecodable.load(Relaxed),
-            self.inner.counters.unknown_sender.load(Relaxed),
+            self.inner.policy.dropped.undecodable.load(Relaxed),
+            self.inner.policy.dropped.unknown_sender.load(Relaxed),
         )
     }
 
@@ -557,7 +551,7 @@ impl Node {
             r.auth_rejected += s.auth_rejected;
             r.replay_rejected += s.replay_rejected;
         }
-        self.inner.counters.add_to(&mut r);
+        self.inner.policy.dropped.add_to(&mut r);
         r
     }
 
@@ -567,6 +561,7 @@ impl Node {
         let mut nodes = Vec::new();
         let mut services: HashMap<u32, super::service::ServiceDescription> = self
             .inner
+            .local
             .services
             .iter()
             .map(|e| {
@@ -579,7 +574,7 @@ impl Node {
                 )
             })
             .collect();
-        for o in self.inner.offers.iter() {
+        for o in self.inner.local.offers.iter() {
             if let Some(s) = services.get_mut(&o.service) {
                 s.items.push(I {
                     kind: o.kind,
@@ -589,7 +584,7 @@ impl Node {
                 });
             }
         }
-        for i in self.inner.interests.iter() {
+        for i in self.inner.local.interests.iter() {
             if let Some(s) = services.get_mut(&i.service) {
                 s.items.push(I {
                     kind: i.kind,
@@ -613,6 +608,7 @@ impl Node {
         let mut remote: Vec<NodeDescription> = self
             .inner
             .peers
+            .by_id
             .iter()
             .map(|p| {
                 let mut svcs: HashMap<u32, super::service::ServiceDescription> = p

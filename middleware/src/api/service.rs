@@ -94,8 +94,8 @@ impl Service {
         if node.cancel.is_cancelled() {
             return Err(DeclareError::Closed);
         }
-        let id = node.fresh_id();
-        node.services.insert(id, name.into());
+        let id = node.local.fresh_id();
+        node.local.services.insert(id, name.into());
         node.declare(
             Declaration::Service {
                 id,
@@ -152,7 +152,7 @@ impl Service {
         if node.cancel.is_cancelled() {
             return Err(DeclareError::Closed);
         }
-        let id = node.fresh_id();
+        let id = node.local.fresh_id();
         let offer = Arc::new(LocalOffer {
             id,
             service: self.inner.id,
@@ -190,7 +190,7 @@ impl Service {
         if node.cancel.is_cancelled() {
             return Err(DeclareError::Closed);
         }
-        let id = node.fresh_id();
+        let id = node.local.fresh_id();
         node.add_interest(Arc::new(LocalInterest {
             id,
             service: self.inner.id,
@@ -553,6 +553,7 @@ impl Service {
         use super::node::ItemRole;
         let node = &self.inner.node;
         let mut items: Vec<ItemDescription> = node
+            .local
             .offers
             .iter()
             .filter(|o| o.service == self.inner.id)
@@ -563,7 +564,8 @@ impl Service {
                 type_name: o.ty.name.clone(),
             })
             .chain(
-                node.interests
+                node.local
+                    .interests
                     .iter()
                     .filter(|i| i.service == self.inner.id)
                     .map(|i| ItemDescription {

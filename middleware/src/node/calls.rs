@@ -394,6 +394,15 @@ pub(crate) struct Lanes {
     inner: Mutex<LaneTable>,
 }
 
+/// Both ends of the calls in progress on this node.
+#[derive(Default)]
+pub(crate) struct Calls {
+    /// Our calls waiting for their replies.
+    pub pending: PendingCalls,
+    /// Peers' calls running or waiting, by (caller, function id).
+    pub lanes: Lanes,
+}
+
 impl NodeInner {
     /// The provider of `name`: local first, then remote. With `expected`, a provider of another
     /// type is refused (and reported if no matching one exists); without, any type is taken.
@@ -404,7 +413,7 @@ impl NodeInner {
     ) -> Result<Provider, CallError> {
         let fits = |ty: &TypeInfo| expected.is_none_or(|e| e == ty);
         let mut mismatch: Option<TypeInfo> = None;
-        for o in self.offers.iter() {
+        for o in self.local.offers.iter() {
             if o.kind == ItemKind::Function && *o.name == *name {
                 if fits(&o.ty) {
                     if let OfferRole::Function { handler } = &o.role {
@@ -415,7 +424,7 @@ impl NodeInner {
                 }
             }
         }
-        for p in self.peers.iter() {
+        for p in self.peers.by_id.iter() {
             for (id, o) in &p.offers {
                 if p.shadowed.contains(id) {
                     continue;
@@ -494,7 +503,10 @@ impl NodeInner {
                 id,
                 ..
             } => {
-                let (call_id, rx) = self.calls.register(peer, node_name.clone(), name, timeout);
+                let (call_id, rx) =
+                    self.calls
+                        .pending
+                        .register(peer, node_name.clone(), name, timeout);
                 let remaining_ms = u32::try_from(timeout.as_millis()).unwrap_or(u32::MAX);
                 let sent = self.send_safe_to_node(
                     peer,
@@ -507,7 +519,7 @@ impl NodeInner {
                     },
                 );
                 if !sent {
-                    self.calls.forget(call_id);
+                    self.calls.pending.forget(call_id);
                     return Err(CallError::LinkLost {
                         node: node_name.to_string(),
                         reason: "peer no longer known".into(),
@@ -520,7 +532,7 @@ impl NodeInner {
                         reason: "node shutting down".into(),
                     }),
                     Err(_) => {
-                        self.calls.forget(call_id);
+                        self.calls.pending.forget(call_id);
                         Err(CallError::Timeout {
                             name: name.to_owned(),
                             node: node_name.to_string(),
@@ -560,7 +572,7 @@ impl NodeInner {
                 },
             );
         };
-        let Some(offer) = self.offers.get(&id).map(|o| o.clone()) else {
+        let Some(offer) = self.local.offers.get(&id).map(|o| o.clone()) else {
             return refuse(RemoteFailure::NotProvided);
         };
         let run: LaneRun = match &offer.role {
@@ -624,7 +636,7 @@ impl NodeInner {
             args,
             expires: Instant::now() + remaining,
         };
-        let first = match lock(&self.lanes.inner).admit(key, queued) {
+        let first = match lock(&self.calls.lanes.inner).admit(key, queued) {
             Admission::Run(call) => call,
             Admission::Queued { superseded } => {
                 if let Some(old) = superseded {
@@ -674,7 +686,7 @@ impl NodeInner {
                 if inner.cancel.is_cancelled() {
                     break;
                 }
-                match lock(&inner.lanes.inner).next(key) {
+                match lock(&inner.calls.lanes.inner).next(key) {
                     Some(c) => call = c,
                     None => break,
                 }
@@ -684,12 +696,13 @@ impl NodeInner {
 
     /// The link a peer is reached on (0 when it is no longer known).
     pub(super) fn peer_link(&self, node: NodeId) -> usize {
-        self.peers.get(&node).map_or(0, |p| p.link)
+        self.peers.by_id.get(&node).map_or(0, |p| p.link)
     }
 
     /// A peer's name, or its id in hex when it is no longer known.
     pub(super) fn peer_name(&self, node: NodeId) -> Arc<str> {
         self.peers
+            .by_id
             .get(&node)
             .map(|p| p.name.clone())
             .unwrap_or_else(|| format!("{node:016x}").into())
@@ -702,7 +715,7 @@ impl NodeInner {
         call_id: u64,
         result: Result<Vec<u8>, RemoteFailure>,
     ) {
-        self.calls.complete(node, call_id, result);
+        self.calls.pending.complete(node, call_id, result);
     }
 }
 
@@ -859,7 +872,7 @@ mod tests {
                 Ok(args)
             })
         });
-        let id = inner.fresh_id();
+        let id = inner.local.fresh_id();
         inner.add_offer(Arc::new(super::super::LocalOffer {
             id,
             service: 0,

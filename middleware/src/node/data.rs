@@ -45,7 +45,7 @@ impl NodeInner {
     /// messages of one offer (a stream) share one route lookup and one push per mailbox.
     pub fn deliver_remote_run(&self, node: NodeId, run: impl Iterator<Item = (u32, Vec<u8>)>) {
         let received = Instant::now();
-        if let Some(p) = self.peers.get(&node) {
+        if let Some(p) = self.peers.by_id.get(&node) {
             p.heard_at(self.me.epoch, received);
         }
         let mut current: Option<(u32, Arc<super::Route>)> = None;
@@ -60,6 +60,7 @@ impl NodeInner {
                 }
                 current = self
                     .peers
+                    .by_id
                     .get(&node)
                     .and_then(|p| p.routes.get(&id).cloned())
                     .map(|r| (id, r));
@@ -78,7 +79,7 @@ impl NodeInner {
     /// Data for an offer with no route here: refused by our `<access>` rules (reported), or
     /// unknown (a declaration not yet applied, or a subscription just closed).
     fn undeliverable(&self, node: NodeId, id: u32) {
-        let denied = self.peers.get(&node).and_then(|p| {
+        let denied = self.peers.by_id.get(&node).and_then(|p| {
             let o = p.offers.get(&id).filter(|o| o.denied)?;
             Some((p.link, p.name.clone(), o.name.clone()))
         });

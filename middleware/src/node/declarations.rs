@@ -2,7 +2,10 @@
 //! and replayed to a newcomer), and applying peers' declarations under our policy.
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+
+use dashmap::DashMap;
 use std::time::Instant;
 
 use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
@@ -14,6 +17,38 @@ use crate::typeinfo::TypeInfo;
 
 /// Declarations sent per DeclBatch message.
 const BATCH_ENTRIES: usize = 64;
+
+/// What this node declares: its services, offers and interests by id, and the log its peers
+/// learn them from.
+pub(crate) struct LocalItems {
+    /// The declarations in order (peers are sent what follows the counter they know).
+    pub log: Mutex<DeclarationLog>,
+    /// The next id to hand out (services, offers and interests share the space).
+    next_id: AtomicU32,
+    pub services: DashMap<u32, Arc<str>>,
+    pub offers: DashMap<u32, Arc<LocalOffer>>,
+    pub interests: DashMap<u32, Arc<LocalInterest>>,
+}
+
+impl Default for LocalItems {
+    fn default() -> Self {
+        LocalItems {
+            log: Mutex::default(),
+            // 0 is no id.
+            next_id: AtomicU32::new(1),
+            services: DashMap::new(),
+            offers: DashMap::new(),
+            interests: DashMap::new(),
+        }
+    }
+}
+
+impl LocalItems {
+    /// A new id for a service, offer or interest.
+    pub fn fresh_id(&self) -> u32 {
+        self.next_id.fetch_add(1, Ordering::Relaxed)
+    }
+}
 
 /// The node's own declarations, in order; a peer asks for those after the counter it knows.
 ///
@@ -171,9 +206,9 @@ impl NodeInner {
     /// peers on `hidden_on`).
     pub fn declare(&self, decl: Declaration, hidden_on: Option<usize>) {
         // The log stays locked while the delta is pushed: see `introduce_locked`.
-        let mut log = lock(&self.decls);
+        let mut log = lock(&self.local.log);
         let entry = log.push(decl, hidden_on);
-        let targets: Vec<_> = self.peers.iter().map(|p| (p.link, p.addr)).collect();
+        let targets: Vec<_> = self.peers.by_id.iter().map(|p| (p.link, p.addr)).collect();
         for (link, addr) in targets {
             let msg = Message::DeclBatch {
                 after: entry.counter - 1,
@@ -202,7 +237,7 @@ impl NodeInner {
     }
 
     pub fn counter(&self) -> u32 {
-        lock(&self.decls).counter
+        lock(&self.local.log).counter
     }
 
     pub fn add_offer(&self, offer: Arc<LocalOffer>) {
@@ -215,7 +250,7 @@ impl NodeInner {
             origin: offer.origin.clone(),
         };
         let hidden_on = offer.hidden_on;
-        self.offers.insert(offer.id, offer);
+        self.local.offers.insert(offer.id, offer);
         // Routes first: once peers learn of the offer they may act on it at once.
         self.recompute_routes();
         self.declare(decl, hidden_on);
@@ -230,7 +265,7 @@ impl NodeInner {
             ty: interest.ty.clone(),
         };
         let hidden_on = interest.hidden_on;
-        self.interests.insert(interest.id, interest);
+        self.local.interests.insert(interest.id, interest);
         // Routes first: a publisher learning of this interest answers with its last value at
         // once, and that value must find the interest routed when it arrives.
         self.recompute_routes();
@@ -239,14 +274,14 @@ impl NodeInner {
 
     /// Withdraws a service, offer or interest.
     pub fn withdraw(&self, id: u32) {
-        let mut any = self.services.remove(&id).is_some();
-        if let Some((_, o)) = self.offers.remove(&id) {
+        let mut any = self.local.services.remove(&id).is_some();
+        if let Some((_, o)) = self.local.offers.remove(&id) {
             if let OfferRole::File { mailbox, .. } = &o.role {
                 mailbox.close();
             }
             any = true;
         }
-        if let Some((_, i)) = self.interests.remove(&id) {
+        if let Some((_, i)) = self.local.interests.remove(&id) {
             if let Some(m) = &i.mailbox {
                 m.close();
             }
@@ -261,12 +296,12 @@ impl NodeInner {
     /// Closes every subscription's and file sink's mailbox (the node is stopping): a receiver
     /// waiting on one gets `Closed` instead of waiting for good.
     pub fn close_mailboxes(&self) {
-        for i in self.interests.iter() {
+        for i in self.local.interests.iter() {
             if let Some(m) = &i.mailbox {
                 m.close();
             }
         }
-        for o in self.offers.iter() {
+        for o in self.local.offers.iter() {
             if let OfferRole::File { mailbox, .. } = &o.role {
                 mailbox.close();
             }
@@ -276,11 +311,11 @@ impl NodeInner {
     /// Answers a peer's request with our declarations after `since` (an empty batch when
     /// there are none, so it knows it is up to date).
     pub fn answer_decl_request(&self, node: NodeId, since: u32) {
-        let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
+        let Some((link, addr)) = self.peers.by_id.get(&node).map(|p| (p.link, p.addr)) else {
             return;
         };
         // Under the log's lock, as `declare` pushes its deltas: none can overtake the answer.
-        let log = lock(&self.decls);
+        let log = lock(&self.local.log);
         self.send_batches(link, addr, log.view(link, since));
     }
 
@@ -302,6 +337,7 @@ impl NodeInner {
         // batch of every peer cost a fleet's node N² copies at start.
         let Some(reads_namespaces) = self
             .peers
+            .by_id
             .get(&node)
             .map(|p| p.namespace.is_empty() || p.gateway)
         else {
@@ -310,7 +346,7 @@ impl NodeInner {
         let mut namespaces: Vec<String> = self.me.namespace.iter().cloned().collect();
         let mut direct: HashMap<NodeId, String> = HashMap::new();
         let mut total = 0usize;
-        for p in self.peers.iter() {
+        for p in self.peers.by_id.iter() {
             if p.id != node {
                 if reads_namespaces {
                     namespaces.push(p.namespace.clone());
@@ -324,7 +360,7 @@ impl NodeInner {
         let mut refusals: Vec<(usize, String, Refusal)> = Vec::new();
         let (peer_name, peer_link);
         {
-            let Some(mut p) = self.peers.get_mut(&node) else {
+            let Some(mut p) = self.peers.by_id.get_mut(&node) else {
                 return;
             };
             peer_name = p.name.clone();
@@ -348,7 +384,8 @@ impl NodeInner {
                     // A peer's names are checked as ours are: a malformed or oversized one is
                     // skipped (its counter still counts, so no gap is asked for again).
                     if let Err(err) = check_declared_name(&e.decl) {
-                        self.counters
+                        self.policy
+                            .dropped
                             .bad_declarations
                             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         tracing::debug!(peer = %p.name, error = %err, "declaration with a bad name skipped");

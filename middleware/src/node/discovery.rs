@@ -6,10 +6,13 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use dashmap::DashMap;
+
 use super::{lock, NodeInner, Peer};
 use crate::codec::encode_message;
 use crate::link::PeerAddr;
 use crate::protocol::{Message, NodeId};
+use crate::sync::SeededHash;
 
 /// Most peers a node keeps. A Hello beyond it pushes out the oldest peer that never confirmed
 /// (sent anything in a session), or is ignored when every peer has: a flood of forged Hellos
@@ -59,6 +62,13 @@ pub(crate) fn path_rank(addr: &PeerAddr) -> u8 {
         PeerAddr::Zenoh(_) => 1,
         PeerAddr::PointToPoint => 0,
     }
+}
+
+/// The peers: each by its id, and the id of each by the (link, address) it speaks from.
+#[derive(Default)]
+pub(crate) struct PeerTable {
+    pub by_id: DashMap<NodeId, Peer, SeededHash>,
+    pub by_addr: DashMap<(usize, PeerAddr), NodeId, SeededHash>,
 }
 
 impl NodeInner {
@@ -130,7 +140,7 @@ impl NodeInner {
                     return;
                 }
                 let lease = clamp_lease(lease_ms, self.me.timing(link).1);
-                if self.peers.contains_key(&node_id) {
+                if self.peers.by_id.contains_key(&node_id) {
                     if self.also_reached(node_id, link, from) {
                         self.seen(node_id, counter);
                         if asks_introduction {
@@ -142,7 +152,7 @@ impl NodeInner {
                 if !self.make_room_for_peer(&node) {
                     return;
                 }
-                if let Some(old) = self.addrs.get(&(link, from)).map(|e| *e) {
+                if let Some(old) = self.peers.by_addr.get(&(link, from)).map(|e| *e) {
                     if old != node_id {
                         self.drop_peer(old, "restarted with a new identity");
                     }
@@ -159,16 +169,16 @@ impl NodeInner {
                 // declaration log's lock, as `declare` pushes its deltas under it too: a delta
                 // can then neither overtake our Hello (the peer would drop it, not knowing us)
                 // nor fall between the snapshot and the push.
-                let log = lock(&self.decls);
+                let log = lock(&self.local.log);
                 // Two Hellos of a new peer handled at once (its multicast and its unicast one)
                 // both found it unknown: the first registers it, under this lock; the second
                 // must not register it again (a second challenge would void the peer's answer
                 // to the first, and its proof would be refused).
-                if self.peers.contains_key(&node_id) {
+                if self.peers.by_id.contains_key(&node_id) {
                     return;
                 }
                 tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
-                self.peers.insert(
+                self.peers.by_id.insert(
                     node_id,
                     Peer {
                         id: node_id,
@@ -204,7 +214,7 @@ impl NodeInner {
                         introduced_again: None,
                     },
                 );
-                self.addrs.insert((link, from), node_id);
+                self.peers.by_addr.insert((link, from), node_id);
                 if let Some(l) = self.links().get(link) {
                     l.confirm_peer(from);
                 }
@@ -221,7 +231,7 @@ impl NodeInner {
                 if node_id == self.me.id || domain_hash != self.me.domain_hash {
                     return;
                 }
-                if self.peers.contains_key(&node_id) {
+                if self.peers.by_id.contains_key(&node_id) {
                     if self.also_reached(node_id, link, from) {
                         self.seen(node_id, counter);
                     }
@@ -231,12 +241,17 @@ impl NodeInner {
                     self.send_safe(link, from, &self.hello_asking_introduction(link));
                 }
             }
-            Message::Bye { node_id } if self.peers.contains_key(&node_id) => {
+            Message::Bye { node_id } if self.peers.by_id.contains_key(&node_id) => {
                 // Only the node itself says it leaves: from an address it was heard at.
-                if self.addrs.get(&(link, from)).is_some_and(|e| *e == node_id) {
+                if self
+                    .peers
+                    .by_addr
+                    .get(&(link, from))
+                    .is_some_and(|e| *e == node_id)
+                {
                     self.drop_peer(node_id, "left");
                 } else {
-                    let name = self.peers.get(&node_id).map(|p| p.name.to_string());
+                    let name = self.peers.by_id.get(&node_id).map(|p| p.name.to_string());
                     self.policy.refuse(
                         link,
                         node_id,
@@ -264,13 +279,19 @@ impl NodeInner {
     /// say Bye for it, or take its traffic).
     /// Returns whether `from` is (now) a path of `node`.
     fn also_reached(self: &Arc<Self>, node: NodeId, link: usize, from: PeerAddr) -> bool {
-        if self.addrs.get(&(link, from)).is_none_or(|e| *e != node) {
+        if self
+            .peers
+            .by_addr
+            .get(&(link, from))
+            .is_none_or(|e| *e != node)
+        {
             let other = self
-                .addrs
+                .peers
+                .by_addr
                 .iter()
                 .any(|e| e.key().0 == link && e.key().1 != from && *e.value() == node);
             if other {
-                let name = self.peers.get(&node).map(|p| p.name.to_string());
+                let name = self.peers.by_id.get(&node).map(|p| p.name.to_string());
                 self.policy.refuse(
                     link,
                     node,
@@ -280,13 +301,13 @@ impl NodeInner {
                 );
                 return false;
             }
-            self.addrs.insert((link, from), node);
+            self.peers.by_addr.insert((link, from), node);
             if let Some(l) = self.links().get(link) {
                 l.confirm_peer(from);
             }
         }
         let (old, lease) = {
-            let Some(p) = self.peers.get(&node) else {
+            let Some(p) = self.peers.by_id.get(&node) else {
                 return true;
             };
             if (p.link, p.addr) == (link, from) || path_rank(&from) <= path_rank(&p.addr) {
@@ -304,7 +325,7 @@ impl NodeInner {
     fn introduce_again(&self, node: NodeId, link: usize, from: PeerAddr) {
         let period = self.me.timing(link).0;
         {
-            let Some(mut p) = self.peers.get_mut(&node) else {
+            let Some(mut p) = self.peers.by_id.get_mut(&node) else {
                 return;
             };
             if p.introduced_again.is_some_and(|t| t.elapsed() < period) {
@@ -313,24 +334,29 @@ impl NodeInner {
             p.introduced_again = Some(Instant::now());
             tracing::info!(peer = %p.name, "peer does not know us: introducing ourselves again");
         }
-        let log = lock(&self.decls);
+        let log = lock(&self.local.log);
         self.introduce_locked(&log, link, from);
     }
 
     /// Makes room in a full peer table for a new peer (`name`, for the log): pushes out the
     /// oldest unconfirmed peer, or returns false (counted) when every peer is confirmed.
     fn make_room_for_peer(&self, name: &str) -> bool {
-        if self.peers.len() < MAX_PEERS {
+        if self.peers.by_id.len() < MAX_PEERS {
             return true;
         }
         let candidate = eviction_candidate(
             self.peers
+                .by_id
                 .iter()
                 .map(|p| (p.id, p.confirmed.load(Ordering::Relaxed), p.since)),
         );
         match candidate {
             Some(old) => {
-                let n = self.counters.peers_evicted.fetch_add(1, Ordering::Relaxed);
+                let n = self
+                    .policy
+                    .dropped
+                    .peers_evicted
+                    .fetch_add(1, Ordering::Relaxed);
                 if (n + 1).is_power_of_two() {
                     tracing::warn!(peer = %name, evicted = n + 1, "peer table full ({MAX_PEERS}): an unconfirmed peer pushed out for a new one");
                 }
@@ -338,7 +364,11 @@ impl NodeInner {
                 true
             }
             None => {
-                let n = self.counters.peers_refused.fetch_add(1, Ordering::Relaxed);
+                let n = self
+                    .policy
+                    .dropped
+                    .peers_refused
+                    .fetch_add(1, Ordering::Relaxed);
                 // Logged at the 1st, 2nd, 4th, 8th... refusal: a flood is seen, not echoed.
                 if (n + 1).is_power_of_two() {
                     tracing::warn!(peer = %name, refused = n + 1, "peer table full of confirmed peers ({MAX_PEERS}); new peer ignored");
@@ -351,11 +381,12 @@ impl NodeInner {
     /// The link closed its session with `from` after its retry limit: a peer reached there
     /// (and nowhere better) is gone, or was never there.
     pub fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
-        let Some(node) = self.addrs.get(&(link, from)).map(|e| *e) else {
+        let Some(node) = self.peers.by_addr.get(&(link, from)).map(|e| *e) else {
             return;
         };
         let current = self
             .peers
+            .by_id
             .get(&node)
             .is_some_and(|p| (p.link, p.addr) == (link, from));
         if current {
@@ -366,7 +397,7 @@ impl NodeInner {
     /// A peer is alive; ask for declarations if its counter is ahead of ours.
     fn seen(&self, node: NodeId, counter: u32) {
         let request = {
-            let Some(mut p) = self.peers.get_mut(&node) else {
+            let Some(mut p) = self.peers.by_id.get_mut(&node) else {
                 return;
             };
             p.last_seen = Instant::now();
@@ -387,12 +418,14 @@ impl NodeInner {
     /// The peer restarted its session with us: anything in flight towards it was lost, so
     /// re-introduce ourselves in the new session.
     pub fn on_peer_reset(&self, link: usize, from: PeerAddr) {
-        let node = self.addrs.get(&(link, from)).map(|e| *e);
+        let node = self.peers.by_addr.get(&(link, from)).map(|e| *e);
         if let Some(node) = node {
-            self.calls.fail_to(node, "session reset by the peer");
+            self.calls
+                .pending
+                .fail_to(node, "session reset by the peer");
         }
         // It dropped us (and our declarations) before starting over.
-        let log = lock(&self.decls);
+        let log = lock(&self.local.log);
         self.introduce_locked(&log, link, from);
         drop(log);
         // What we had in flight towards it is lost, a late joiner's value among them: serve the
@@ -405,7 +438,7 @@ impl NodeInner {
     /// Forgets a peer: its subscriptions are dropped and everything pending on it completes
     /// with an error naming it.
     pub fn drop_peer(&self, node: NodeId, reason: &str) {
-        let Some((_, p)) = self.peers.remove(&node) else {
+        let Some((_, p)) = self.peers.by_id.remove(&node) else {
             return;
         };
         p.alive.store(false, Ordering::Release);
@@ -420,13 +453,14 @@ impl NodeInner {
         }
         // Every path it was heard on, the one we used among them.
         let paths: Vec<(usize, PeerAddr)> = self
-            .addrs
+            .peers
+            .by_addr
             .iter()
             .filter(|e| *e.value() == node)
             .map(|e| *e.key())
             .collect();
         for path in &paths {
-            self.addrs.remove(path);
+            self.peers.by_addr.remove(path);
         }
         // Routes first, links second: a raise that completes with the closed session's error
         // and raises again must find the peer gone from the routes, or its next events would
@@ -441,7 +475,7 @@ impl NodeInner {
             }
         }
         self.path_switches.forget(node);
-        self.calls.fail_to(node, reason);
+        self.calls.pending.fail_to(node, reason);
         self.transfers.peer_lost(node, &p.name, reason);
         self.gateway_peer_lost(node);
     }
@@ -463,6 +497,7 @@ impl NodeInner {
             let now = Instant::now();
             let expired: Vec<(NodeId, Duration)> = self
                 .peers
+                .by_id
                 .iter()
                 .filter(|p| {
                     p.link == link

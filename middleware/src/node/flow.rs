@@ -68,7 +68,7 @@ impl NodeInner {
         readers: Option<u8>,
         offers: Option<Vec<u32>>,
     ) {
-        let Some(p) = self.peers.get(&node) else {
+        let Some(p) = self.peers.by_id.get(&node) else {
             return;
         };
         let changed = p.held.set(behind, offers);
@@ -84,7 +84,7 @@ impl NodeInner {
     /// The offers of `peer` whose events go to one of our mailboxes that is behind (ids on
     /// the peer), in order.
     fn offers_read_behind(&self, peer: NodeId) -> Vec<u32> {
-        let Some(p) = self.peers.get(&peer) else {
+        let Some(p) = self.peers.by_id.get(&peer) else {
             return Vec::new();
         };
         let mut ids: Vec<u32> = p
@@ -115,7 +115,7 @@ impl NodeInner {
             changed.as_mut().enable();
             let forwarding = self.congestion.forwarding_behind();
             let own = self.congestion.readers_behind();
-            let peers: Vec<NodeId> = self.peers.iter().map(|p| p.id).collect();
+            let peers: Vec<NodeId> = self.peers.by_id.iter().map(|p| p.id).collect();
             told.retain(|node, _| peers.contains(node));
             let mut any_behind = false;
             for node in peers {

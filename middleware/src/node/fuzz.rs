@@ -29,7 +29,7 @@ fn addr(port: u16) -> PeerAddr {
 
 fn check(inner: &NodeInner) {
     let mut total = 0;
-    for p in inner.peers.iter() {
+    for p in inner.peers.by_id.iter() {
         let n = p.declarations();
         assert!(
             n <= MAX_DECLS_PER_PEER,
@@ -75,6 +75,7 @@ fn check(inner: &NodeInner) {
 /// and each peer's routes (offer id, name, publisher, local targets) and shadowed offers.
 fn routes(inner: &NodeInner) -> (Vec<String>, Vec<String>) {
     let mut offers: Vec<String> = inner
+        .local
         .offers
         .iter()
         .map(|o| {
@@ -91,6 +92,7 @@ fn routes(inner: &NodeInner) -> (Vec<String>, Vec<String>) {
     offers.sort();
     let mut peers: Vec<String> = inner
         .peers
+        .by_id
         .iter()
         .map(|p| {
             let mut routes: Vec<String> = p
@@ -121,7 +123,7 @@ fn local_items(inner: &Arc<NodeInner>) {
             .into_iter()
             .enumerate()
         {
-            let id = inner.fresh_id();
+            let id = inner.local.fresh_id();
             inner.add_offer(Arc::new(LocalOffer {
                 id,
                 service: 1,
@@ -143,7 +145,7 @@ fn local_items(inner: &Arc<NodeInner>) {
             }));
             for pattern in ["**", "rover1/**", "*/s/*"] {
                 inner.add_interest(Arc::new(LocalInterest {
-                    id: inner.fresh_id(),
+                    id: inner.local.fresh_id(),
                     service: 1,
                     service_name: "s".into(),
                     kind,
@@ -169,7 +171,7 @@ fn owned_name(u: &mut Unstructured<'_>, ns: &str) -> Result<String> {
 }
 
 fn batch(u: &mut Unstructured<'_>, inner: &Arc<NodeInner>, id: u64, ns: &str) -> Result<()> {
-    let known = inner.peers.get(&id).map_or(0, |p| p.known);
+    let known = inner.peers.by_id.get(&id).map_or(0, |p| p.known);
     let mut entries = Vec::new();
     let mut counter = known;
     let flood = u.ratio(1u8, 16)?;

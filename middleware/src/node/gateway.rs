@@ -129,7 +129,7 @@ impl NodeInner {
         // Interests by link, for the offers' interest test below.
         let mut interests_by_link: Vec<(usize, ItemKind, Arc<str>, TypeInfo)> = Vec::new();
         let mut wanted_offers: HashMap<(NodeId, u32), WantedOffer> = HashMap::new();
-        for p in self.peers.iter() {
+        for p in self.peers.by_id.iter() {
             for it in p.interests.values() {
                 if !matches!(it.kind, ItemKind::Variable | ItemKind::Event) {
                     continue;
@@ -145,7 +145,7 @@ impl NodeInner {
                 }
             }
         }
-        for p in self.peers.iter() {
+        for p in self.peers.by_id.iter() {
             let hidden = shadowed.get(&p.id);
             for (oid, item) in &p.offers {
                 if hidden.is_some_and(|h| h.contains(oid)) {
@@ -230,7 +230,7 @@ impl NodeInner {
             if gw.offers.contains_key(&key) {
                 continue;
             }
-            let id = self.fresh_id();
+            let id = self.local.fresh_id();
             let role = match w.kind {
                 ItemKind::Variable => OfferRole::Variable {
                     last: Mutex::new(None),
@@ -266,7 +266,7 @@ impl NodeInner {
                 },
                 Some(w.from_link),
             ));
-            self.offers.insert(id, offer.clone());
+            self.local.offers.insert(id, offer.clone());
             gw.offers.insert(
                 key,
                 Arc::new(Forwarded {
@@ -281,8 +281,8 @@ impl NodeInner {
                 if cur.contains_key(&key) {
                     continue;
                 }
-                let id = self.fresh_id();
-                self.interests.insert(
+                let id = self.local.fresh_id();
+                self.local.interests.insert(
                     id,
                     Arc::new(LocalInterest {
                         id,
@@ -310,8 +310,8 @@ impl NodeInner {
             }
         }
         for id in &withdrawn {
-            self.offers.remove(id);
-            self.interests.remove(id);
+            self.local.offers.remove(id);
+            self.local.interests.remove(id);
         }
         if added.is_empty() && withdrawn.is_empty() {
             return;
@@ -396,7 +396,7 @@ impl NodeInner {
     /// [`super::Peer::gateway`]), and `caller` is another node at least one gateway away,
     /// within [`MAX_HOPS`].
     pub(super) fn relays_for(&self, node: NodeId, caller: &Origin) -> bool {
-        let gateway = self.peers.get(&node).is_some_and(|p| p.gateway);
+        let gateway = self.peers.by_id.get(&node).is_some_and(|p| p.gateway);
         gateway && caller.node != node && (1..MAX_HOPS).contains(&caller.hops)
     }
 
@@ -409,7 +409,7 @@ impl NodeInner {
                 ..o.clone()
             },
             None => {
-                let (name, namespace) = self.peers.get(&node).map_or_else(
+                let (name, namespace) = self.peers.by_id.get(&node).map_or_else(
                     || (format!("{node:016x}"), String::new()),
                     |p| (p.name.to_string(), p.namespace.clone()),
                 );

@@ -90,8 +90,8 @@ impl NodeInner {
         if links.is_empty() {
             return;
         }
-        let service = self.fresh_id();
-        self.services.insert(service, SERVICE_NAME.into());
+        let service = self.local.fresh_id();
+        self.local.services.insert(service, SERVICE_NAME.into());
         self.declare(
             Declaration::Service {
                 id: service,
@@ -109,7 +109,7 @@ impl NodeInner {
             .iter()
             .map(|l| {
                 let offer = Arc::new(LocalOffer {
-                    id: self.fresh_id(),
+                    id: self.local.fresh_id(),
                     service,
                     kind: ItemKind::Variable,
                     name: format!("{prefix}link/{}/stats", l.name()).into(),
@@ -143,7 +143,7 @@ impl NodeInner {
                 for (index, (link, offer)) in links.iter().zip(&offers).enumerate() {
                     let now = Instant::now();
                     let stats = link.stats();
-                    let peers = inner.peers.iter().filter(|p| p.link == index).count() as u32;
+                    let peers = inner.peers.by_id.iter().filter(|p| p.link == index).count() as u32;
                     let (old, at) = &last[index];
                     let mut health =
                         LinkHealth::between(link.name(), peers, old, &stats, now - *at);

@@ -16,7 +16,7 @@ impl NodeInner {
     /// Whether declarations from `node` are taken: always when this node checks no identities,
     /// else only once the peer's key is authenticated for its namespace.
     pub fn identity_allows(&self, node: NodeId) -> bool {
-        let Some(p) = self.peers.get(&node) else {
+        let Some(p) = self.peers.by_id.get(&node) else {
             return false;
         };
         let ok = match &p.authenticated {
@@ -32,8 +32,8 @@ impl NodeInner {
     /// The nonce of our unanswered challenge to the peer at `addr` on `link`, if any.
     pub fn pending_challenge(&self, link: usize, addr: PeerAddr) -> Option<[u8; 16]> {
         self.identity.as_ref()?.roster.as_ref()?;
-        let node = *self.addrs.get(&(link, addr))?;
-        self.peers.get(&node)?.challenge
+        let node = *self.peers.by_addr.get(&(link, addr))?;
+        self.peers.by_id.get(&node)?.challenge
     }
 
     /// A peer's challenge: we answer with our proof over its nonce, if we have a key.
@@ -64,7 +64,7 @@ impl NodeInner {
         let Some(roster) = self.identity.as_ref().and_then(|i| i.roster.as_ref()) else {
             return;
         };
-        let Some(mut p) = self.peers.get_mut(&node) else {
+        let Some(mut p) = self.peers.by_id.get_mut(&node) else {
             return;
         };
         let (link, name) = (p.link, p.name.clone());

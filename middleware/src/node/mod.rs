@@ -25,11 +25,10 @@ pub(crate) mod routes;
 mod variables;
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::{Duration, Instant};
 
-use dashmap::DashMap;
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
@@ -203,39 +202,40 @@ impl Identity {
     }
 }
 
-/// The shared state of a node.
+/// The shared state of a node, by the part that owns each piece.
 pub(crate) struct NodeInner {
+    /// Who this node is (fixed at open).
     pub me: Identity,
+    /// The links, by index (set once, when all are open).
     pub links: OnceLock<Vec<Arc<dyn Link>>>,
-    pub decls: Mutex<declarations::DeclarationLog>,
-    pub next_id: AtomicU32,
-    pub services: DashMap<u32, Arc<str>>,
-    pub offers: DashMap<u32, Arc<LocalOffer>>,
-    pub interests: DashMap<u32, Arc<LocalInterest>>,
-    pub peers: DashMap<NodeId, Peer, SeededHash>,
-    pub addrs: DashMap<(usize, PeerAddr), NodeId, SeededHash>,
-    pub calls: calls::PendingCalls,
+    /// Peers being moved to a better path, whose safe messages wait for the old one to drain
+    /// (`path_switch`).
+    pub path_switches: path_switch::PathSwitches,
+    /// What this node declares and the log peers learn it from (`declarations`).
+    pub local: declarations::LocalItems,
+    /// Held for a whole route computation (`routes`): two computations interleaving could write
+    /// routes from an older snapshot over newer ones (a subscriber would then miss a publisher).
+    pub routing: Mutex<()>,
+    /// The peers, by id and by address (`discovery`).
+    pub peers: discovery::PeerTable,
+    /// Our calls waiting for replies, and peers' calls running or waiting (`calls`).
+    pub calls: calls::Calls,
+    /// File transfers in progress (`files`).
     pub transfers: files::Transfers,
+    /// Event mailboxes whose readers are behind: links may then hold senders back (`flow`).
+    pub congestion: Arc<mailbox::Congestion>,
+    /// Forwarding between links, when this node is a gateway (`gateway`).
+    pub gateway: Option<gateway::Gateway>,
+    /// What this node accepts from peers, the refusals and the dropped input counted (`policy`).
+    pub policy: policy::Policy,
+    /// Per-node identity keys, when configured (`<security identityFile=.. identities=..>`;
+    /// `identity_check`).
+    pub identity: Option<IdentityLayer>,
     /// Bumped whenever routes or the peer table change, so waiters can re-check.
     pub changed: watch::Sender<u64>,
+    /// The node's tasks, and what stops them at shutdown.
     pub tasks: TaskTracker,
     pub cancel: CancellationToken,
-    pub counters: NodeCounters,
-    /// Forwarding between links, when this node is a gateway.
-    pub gateway: Option<gateway::Gateway>,
-    /// Held for a whole route computation: two computations interleaving could write routes
-    /// from an older snapshot over newer ones (a subscriber would then miss a publisher).
-    pub routing: Mutex<()>,
-    /// Peers being moved to a better path, whose safe messages wait for the old one to drain.
-    pub path_switches: path_switch::PathSwitches,
-    /// What this node accepts from peers, and the refusals counted.
-    pub policy: policy::Policy,
-    /// Peers' calls running or waiting, by (caller, function id).
-    pub lanes: calls::Lanes,
-    /// Per-node identity keys, when configured (`<security identityFile=.. identities=..>`).
-    pub identity: Option<IdentityLayer>,
-    /// Event mailboxes whose readers are behind (links may then hold senders back).
-    pub congestion: Arc<mailbox::Congestion>,
 }
 
 /// This node's identity proof and the domain's roster (see [`crate::identity`]).
@@ -244,31 +244,6 @@ pub(crate) struct IdentityLayer {
     pub key: Option<crate::identity::IdentityKey>,
     /// Which key may own which namespaces; `None`: peers are not checked.
     pub roster: Option<crate::identity::Roster>,
-}
-
-/// Things a node counts (dropped input among them).
-#[derive(Default)]
-pub(crate) struct NodeCounters {
-    pub undecodable: AtomicU64,
-    pub unknown_sender: AtomicU64,
-    /// Peers' declarations ignored for a malformed or oversized name or pattern.
-    pub bad_declarations: AtomicU64,
-    /// Hellos of new peers ignored because the peer table was full of confirmed peers.
-    pub peers_refused: AtomicU64,
-    /// Unconfirmed peers forgotten to make room for a new one.
-    pub peers_evicted: AtomicU64,
-}
-
-impl NodeCounters {
-    /// Adds the counters now to `report`.
-    pub fn add_to(&self, report: &mut policy::RefusalReport) {
-        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
-        report.undecodable += get(&self.undecodable);
-        report.unknown_sender += get(&self.unknown_sender);
-        report.bad_declarations += get(&self.bad_declarations);
-        report.peers_refused += get(&self.peers_refused);
-        report.peers_evicted += get(&self.peers_evicted);
-    }
 }
 
 impl NodeInner {
@@ -294,10 +269,6 @@ impl NodeInner {
 
     pub fn bump(&self) {
         self.changed.send_modify(|v| *v += 1);
-    }
-
-    pub fn fresh_id(&self) -> u32 {
-        self.next_id.fetch_add(1, Ordering::Relaxed)
     }
 
     /// Sends a message to a peer on its link.
@@ -345,7 +316,7 @@ impl NodeInner {
 
     /// Sends a safe message to a known peer.
     pub fn send_safe_to_node(&self, node: NodeId, msg: &Message) -> bool {
-        let Some((link, addr)) = self.peers.get(&node).map(|p| (p.link, p.addr)) else {
+        let Some((link, addr)) = self.peers.by_id.get(&node).map(|p| (p.link, p.addr)) else {
             return false;
         };
         self.send_safe(link, addr, msg);
@@ -353,7 +324,7 @@ impl NodeInner {
     }
 
     fn peer_of(&self, link: usize, from: PeerAddr) -> Option<NodeId> {
-        self.addrs.get(&(link, from)).map(|e| *e)
+        self.peers.by_addr.get(&(link, from)).map(|e| *e)
     }
 
     /// Handles `msgs` from `from`, in order. A run of data messages (variables, events) is
@@ -371,7 +342,10 @@ impl NodeInner {
                     self.handle(link, from, msg);
                 }
                 Err(e) => {
-                    self.counters.undecodable.fetch_add(1, Ordering::Relaxed);
+                    self.policy
+                        .dropped
+                        .undecodable
+                        .fetch_add(1, Ordering::Relaxed);
                     tracing::debug!(%from, error = %e, "undecodable message dropped");
                 }
             }
@@ -387,7 +361,8 @@ impl NodeInner {
         match self.peer_of(link, from) {
             Some(node) => self.deliver_remote_run(node, data.drain(..)),
             None => {
-                self.counters
+                self.policy
+                    .dropped
                     .unknown_sender
                     .fetch_add(data.len() as u64, Ordering::Relaxed);
                 tracing::trace!(%from, "data from an unknown sender dropped");
@@ -407,7 +382,10 @@ impl NodeInner {
             return;
         }
         let Some(node) = self.peer_of(link, from) else {
-            self.counters.unknown_sender.fetch_add(1, Ordering::Relaxed);
+            self.policy
+                .dropped
+                .unknown_sender
+                .fetch_add(1, Ordering::Relaxed);
             tracing::trace!(%from, "message from an unknown sender dropped");
             return;
         };
@@ -415,7 +393,7 @@ impl NodeInner {
         // an atomic under the peer table's read lock (the data path refreshes it once per run
         // in its own lookup).
         if !matches!(msg, Message::Var { .. } | Message::Event { .. }) {
-            if let Some(p) = self.peers.get(&node) {
+            if let Some(p) = self.peers.by_id.get(&node) {
                 p.heard(self.me.epoch);
                 p.confirmed.store(true, Ordering::Relaxed);
             }
@@ -496,7 +474,10 @@ impl Handler {
     fn node(&self) -> Option<Arc<NodeInner>> {
         let n = self.0.upgrade()?;
         if n.links.get().is_none() {
-            n.counters.unknown_sender.fetch_add(1, Ordering::Relaxed);
+            n.policy
+                .dropped
+                .unknown_sender
+                .fetch_add(1, Ordering::Relaxed);
             tracing::debug!("message before the node's links are set dropped");
             return None;
         }
@@ -524,7 +505,7 @@ impl LinkHandler for Handler {
         match decode_message(msg) {
             Ok(m) => n.on_discovery(link, from, m),
             Err(_) => {
-                n.counters.undecodable.fetch_add(1, Ordering::Relaxed);
+                n.policy.dropped.undecodable.fetch_add(1, Ordering::Relaxed);
             }
         }
     }
@@ -564,24 +545,17 @@ pub(crate) fn bare_node(
             epoch: Instant::now(),
         },
         links: OnceLock::new(),
-        decls: Mutex::default(),
-        next_id: AtomicU32::new(1),
-        services: DashMap::new(),
-        offers: DashMap::new(),
-        interests: DashMap::new(),
-        peers: DashMap::default(),
-        addrs: DashMap::default(),
+        local: Default::default(),
+        peers: Default::default(),
         calls: Default::default(),
         transfers: Default::default(),
         changed,
         tasks: TaskTracker::new(),
         cancel: CancellationToken::new(),
-        counters: Default::default(),
         gateway: None,
         routing: Mutex::new(()),
         path_switches: Default::default(),
         policy: policy::Policy::new(access, 1),
-        lanes: Default::default(),
         identity: None,
         congestion: Arc::default(),
     });

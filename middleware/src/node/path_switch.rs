@@ -200,7 +200,7 @@ impl NodeInner {
     /// path from now on, introduced there by our Hello, followed by what was held.
     fn finish_switch(&self, from: Path) {
         let made = self.path_switches.finish(self.links(), from, |node, to| {
-            let mut p = self.peers.get_mut(&node)?;
+            let mut p = self.peers.by_id.get_mut(&node)?;
             tracing::info!(peer = %p.name, was = %from.1, now = %to.1, "peer reached over a better link");
             p.link = to.0;
             p.addr = to.1;

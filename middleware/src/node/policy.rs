@@ -136,6 +136,34 @@ pub(crate) struct Policy {
     /// By link index.
     counters: Vec<RefusalCounters>,
     logged: Mutex<LogMemory>,
+    /// Input dropped before any rule applied (undecodable, unknown senders, bad declarations,
+    /// a full peer table).
+    pub dropped: DroppedInput,
+}
+
+/// Input a node dropped, counted.
+#[derive(Default)]
+pub(crate) struct DroppedInput {
+    pub undecodable: AtomicU64,
+    pub unknown_sender: AtomicU64,
+    /// Peers' declarations ignored for a malformed or oversized name or pattern.
+    pub bad_declarations: AtomicU64,
+    /// Hellos of new peers ignored because the peer table was full of confirmed peers.
+    pub peers_refused: AtomicU64,
+    /// Unconfirmed peers forgotten to make room for a new one.
+    pub peers_evicted: AtomicU64,
+}
+
+impl DroppedInput {
+    /// Adds the counters now to `report`.
+    pub fn add_to(&self, report: &mut RefusalReport) {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        report.undecodable += get(&self.undecodable);
+        report.unknown_sender += get(&self.unknown_sender);
+        report.bad_declarations += get(&self.bad_declarations);
+        report.peers_refused += get(&self.peers_refused);
+        report.peers_evicted += get(&self.peers_evicted);
+    }
 }
 
 /// What was logged lately.
@@ -151,6 +179,7 @@ impl Policy {
         Policy {
             access,
             // At least one, so a node without links (tests) still counts.
+            dropped: DroppedInput::default(),
             counters: (0..links.max(1))
                 .map(|_| RefusalCounters::default())
                 .collect(),
@@ -257,6 +286,7 @@ impl super::NodeInner {
         let governs = access.governs(kind);
         let Some((link, peer_namespace, peer_name)) = self
             .peers
+            .by_id
             .get(&node)
             .map(|p| (p.link, p.namespace.clone(), p.name.clone()))
         else {
@@ -374,7 +404,7 @@ mod tests {
 
     /// Applies `decls` as peer `id`'s next declarations.
     fn declare(inner: &Arc<NodeInner>, id: NodeId, decls: Vec<Declaration>) {
-        let known = inner.peers.get(&id).map_or(0, |p| p.known);
+        let known = inner.peers.by_id.get(&id).map_or(0, |p| p.known);
         let entries: Vec<LoggedDeclaration> = decls
             .into_iter()
             .enumerate()
@@ -390,6 +420,7 @@ mod tests {
     fn offered(inner: &NodeInner, id: NodeId) -> Vec<String> {
         let mut v: Vec<String> = inner
             .peers
+            .by_id
             .get(&id)
             .map(|p| p.offers.values().map(|o| o.name.to_string()).collect())
             .unwrap_or_default();
@@ -533,18 +564,18 @@ mod tests {
         // A forged Bye from another address: ignored, counted.
         inner.on_discovery(0, addr(9), Message::Bye { node_id: 1 });
         assert!(
-            inner.peers.contains_key(&1),
+            inner.peers.by_id.contains_key(&1),
             "a forged Bye evicted the peer"
         );
         // Heard at a second address on the same link: not mapped, so its Bye is no better.
         inner.on_discovery(0, addr(9), hello(1, "air", "rover1", false));
-        assert!(inner.addrs.get(&(0, addr(9))).is_none());
+        assert!(inner.peers.by_addr.get(&(0, addr(9))).is_none());
         inner.on_discovery(0, addr(9), Message::Bye { node_id: 1 });
-        assert!(inner.peers.contains_key(&1));
+        assert!(inner.peers.by_id.contains_key(&1));
         assert_eq!(inner.policy.counts(0), (0, 3));
         // The node's own Bye.
         inner.on_discovery(0, addr(1), Message::Bye { node_id: 1 });
-        assert!(!inner.peers.contains_key(&1));
+        assert!(!inner.peers.by_id.contains_key(&1));
         inner.cancel.cancel();
     }
 
@@ -566,7 +597,7 @@ mod tests {
             })
             .collect();
         declare(&inner, 1, services);
-        let stored = inner.peers.get(&1).map(|p| p.declarations());
+        let stored = inner.peers.by_id.get(&1).map(|p| p.declarations());
         assert_eq!(stored, Some(MAX_DECLS_PER_PEER));
         inner.cancel.cancel();
     }
@@ -579,11 +610,11 @@ mod tests {
             .map(|i| offer(i + 10, ItemKind::Variable, &format!("rover1/s/v{i}"), None))
             .collect();
         declare(&inner, 1, many);
-        let stored = inner.peers.get(&1).map(|p| p.declarations());
+        let stored = inner.peers.by_id.get(&1).map(|p| p.declarations());
         assert_eq!(stored, Some(MAX_DECLS_PER_PEER));
         assert_eq!(inner.policy.counts(0), (0, 10));
         // A reset batch: the peer's whole state, replacing what we held.
-        let known = inner.peers.get(&1).map_or(0, |p| p.known);
+        let known = inner.peers.by_id.get(&1).map_or(0, |p| p.known);
         inner.apply_decl_batch(
             1,
             0,
@@ -595,7 +626,7 @@ mod tests {
             }],
         );
         assert_eq!(offered(&inner, 1), ["rover1/s/only"]);
-        assert_eq!(inner.peers.get(&1).map(|p| p.known), Some(known + 5));
+        assert_eq!(inner.peers.by_id.get(&1).map(|p| p.known), Some(known + 5));
         inner.cancel.cancel();
     }
 
@@ -611,7 +642,7 @@ mod tests {
         };
         let inner = bare(Some("rover1"), Some(access));
         inner.add_interest(Arc::new(LocalInterest {
-            id: inner.fresh_id(),
+            id: inner.local.fresh_id(),
             service: 0,
             service_name: "vas".into(),
             kind: ItemKind::Variable,
@@ -646,6 +677,7 @@ mod tests {
         let routed = |id: NodeId| {
             inner
                 .peers
+                .by_id
                 .get(&id)
                 .and_then(|p| p.routes.get(&10).map(|r| r.len()))
                 .unwrap_or(0)

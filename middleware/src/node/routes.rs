@@ -251,10 +251,19 @@ impl NodeInner {
     /// own declarations arriving: see [`NodeInner::recompute_routes_of_peer`].
     pub fn recompute_routes(&self) {
         let _serialised = lock(&self.routing);
-        let interests: Vec<Arc<LocalInterest>> =
-            self.interests.iter().map(|e| e.value().clone()).collect();
-        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
-        let peers: Vec<PeerView> = self.peers.iter().map(|p| PeerView::of(&p)).collect();
+        let interests: Vec<Arc<LocalInterest>> = self
+            .local
+            .interests
+            .iter()
+            .map(|e| e.value().clone())
+            .collect();
+        let offers: Vec<Arc<LocalOffer>> = self
+            .local
+            .offers
+            .iter()
+            .map(|e| e.value().clone())
+            .collect();
+        let peers: Vec<PeerView> = self.peers.by_id.iter().map(|p| PeerView::of(&p)).collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
         let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
         for o in &offers {
@@ -316,7 +325,7 @@ impl NodeInner {
         }
         // Routes for what peers offer, each item from its shortest path only.
         let shadowed = self.shadowed_offers();
-        for mut p in self.peers.iter_mut() {
+        for mut p in self.peers.by_id.iter_mut() {
             let hidden = shadowed.get(&p.id).cloned().unwrap_or_default();
             p.routes = routes_of(&p, &hidden, &interests);
             p.shadowed = hidden;
@@ -334,17 +343,26 @@ impl NodeInner {
     /// origin, so without one no item is declared by two peers and one peer's offers shadow
     /// nothing of another's. With a gateway (a peer or ourselves), every route is recomputed.
     pub(super) fn recompute_routes_of_peer(&self, node: NodeId) {
-        if self.gateway.is_some() || self.peers.iter().any(|p| p.gateway) {
+        if self.gateway.is_some() || self.peers.by_id.iter().any(|p| p.gateway) {
             self.recompute_routes();
             return;
         }
         let _serialised = lock(&self.routing);
-        let Some(peer) = self.peers.get(&node).map(|p| PeerView::of(&p)) else {
+        let Some(peer) = self.peers.by_id.get(&node).map(|p| PeerView::of(&p)) else {
             return;
         };
-        let interests: Vec<Arc<LocalInterest>> =
-            self.interests.iter().map(|e| e.value().clone()).collect();
-        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|e| e.value().clone()).collect();
+        let interests: Vec<Arc<LocalInterest>> = self
+            .local
+            .interests
+            .iter()
+            .map(|e| e.value().clone())
+            .collect();
+        let offers: Vec<Arc<LocalOffer>> = self
+            .local
+            .offers
+            .iter()
+            .map(|e| e.value().clone())
+            .collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
         let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
         for o in &offers {
@@ -368,7 +386,7 @@ impl NodeInner {
                     .collect()
             });
         }
-        if let Some(mut p) = self.peers.get_mut(&node) {
+        if let Some(mut p) = self.peers.by_id.get_mut(&node) {
             let mut shadowing = Shadowing::default();
             shadowing.add(self.me.id, p.id, &p.offers);
             let hidden = shadowing.hidden.remove(&node).unwrap_or_default();
@@ -403,7 +421,7 @@ impl NodeInner {
     /// are ignored altogether.
     pub fn shadowed_offers(&self) -> HashMap<NodeId, HashSet<u32>> {
         let mut shadowing = Shadowing::default();
-        for p in self.peers.iter() {
+        for p in self.peers.by_id.iter() {
             shadowing.add(self.me.id, p.id, &p.offers);
         }
         shadowing.hidden
@@ -413,6 +431,7 @@ impl NodeInner {
         // Through a gateway, the publisher is the node behind it.
         let publisher = self
             .peers
+            .by_id
             .get(&node)
             .map(|p| {
                 p.offers
@@ -423,7 +442,7 @@ impl NodeInner {
                     .to_string()
             })
             .unwrap_or_else(|| format!("{node:016x}"));
-        if let Some(i) = self.interests.get(&interest) {
+        if let Some(i) = self.local.interests.get(&interest) {
             i.report_mismatch(&name, &publisher, &offered);
         }
     }

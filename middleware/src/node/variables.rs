@@ -62,7 +62,12 @@ impl NodeInner {
 
     /// Sends `node` the newest value of every variable of ours it subscribes to (safe class).
     pub fn resend_last_values(&self, node: NodeId, link: usize, addr: crate::link::PeerAddr) {
-        let offers: Vec<Arc<LocalOffer>> = self.offers.iter().map(|o| o.value().clone()).collect();
+        let offers: Vec<Arc<LocalOffer>> = self
+            .local
+            .offers
+            .iter()
+            .map(|o| o.value().clone())
+            .collect();
         for o in offers {
             let OfferRole::Variable { last } = &o.role else {
                 continue;

@@ -437,6 +437,7 @@ impl NodeInner {
     fn refuse_file(&self, sink: &SinkState, node: NodeId, transfer: u64, verdict: FileVerdict) {
         let (from, link) = self
             .peers
+            .by_id
             .get(&node)
             .map(|p| (p.name.to_string(), Some(p.link)))
             .unwrap_or_default();
@@ -459,7 +460,7 @@ impl NodeInner {
             hash,
             sender,
         } = offer;
-        let sink_name = self.offers.get(&sink).map(|o| o.name.clone());
+        let sink_name = self.local.offers.get(&sink).map(|o| o.name.clone());
         if let Some(sink_name) = sink_name {
             let permitted = self.permitted(
                 node,
@@ -481,7 +482,7 @@ impl NodeInner {
                 return;
             }
         }
-        let relay = self.offers.get(&sink).and_then(|o| match o.role {
+        let relay = self.local.offers.get(&sink).and_then(|o| match o.role {
             OfferRole::Relay { origin, remote_id } => Some((origin, remote_id)),
             _ => None,
         });
@@ -497,11 +498,16 @@ impl NodeInner {
             self.relay_file_offer(node, receiver, transfer, &offer);
             return;
         }
-        let Some((state, mailbox)) = self.offers.get(&sink).and_then(|o| match &o.role {
+        let Some((state, mailbox)) = self.local.offers.get(&sink).and_then(|o| match &o.role {
             OfferRole::File { state, mailbox } => Some((state.clone(), mailbox.clone())),
             _ => None,
         }) else {
-            if let Some((link, name)) = self.peers.get(&node).map(|p| (p.link, p.name.clone())) {
+            if let Some((link, name)) = self
+                .peers
+                .by_id
+                .get(&node)
+                .map(|p| (p.link, p.name.clone()))
+            {
                 self.policy
                     .refuse(link, node, &name, "file sink", Refusal::File);
             }
@@ -562,6 +568,7 @@ impl NodeInner {
             Some(o) => o.name,
             None => self
                 .peers
+                .by_id
                 .get(&node)
                 .map(|p| p.name.to_string())
                 .unwrap_or_default(),

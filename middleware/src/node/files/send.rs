@@ -192,7 +192,7 @@ impl Sender {
     /// The peer to send to, the receiving node's name, the sink's id there, and whether the
     /// receiver is that peer itself (not a node behind a gateway).
     fn find_sink(&self) -> Option<(NodeId, String, u32, bool)> {
-        self.node.peers.iter().find_map(|p| {
+        self.node.peers.by_id.iter().find_map(|p| {
             p.offers
                 .iter()
                 .find(|(id, o)| {
@@ -294,7 +294,7 @@ impl Sender {
         started: Instant,
     ) -> Attempt {
         let mut ctl = self.node.transfers.register_sender(transfer, peer);
-        let Some((link, addr)) = self.node.peers.get(&peer).map(|p| (p.link, p.addr)) else {
+        let Some((link, addr)) = self.node.peers.by_id.get(&peer).map(|p| (p.link, p.addr)) else {
             return Attempt::Retry("receiver vanished".into());
         };
         self.node.send_safe(
