@@ -15,7 +15,7 @@
 //! | [`codec`] | their bytes: postcard messages, varints |
 //! | [`link`] | moving messages over a medium in two classes, fast and safe: [`link::udp`], [`link::serial`], `link::shm` (cargo feature `shm`, on by default), each with its own framing; the ARQ ([`link::arq`]) and the bounded newest-wins queue ([`link::coalesce`]) they share; the domain-key seal and replay window every link applies when keyed ([`link::auth`]) |
 //! | [`config`], [`identity`] | `network.xml` → [`NetworkConfig`] (names link options); per-node identity keys and the domain's roster of which key owns which namespaces |
-//! | `node` | discovery, declarations, routing by interest, dispatch, the call protocol (`node::call`), file reception, gateway forwarding |
+//! | `node` | each primitive's sending and receiving side by side (`variables`, `events`, `calls`, `files`; `data`: the receive path variables and events share), `declarations` and `routes` (routing by interest), discovery, dispatch, flow, policy, gateway forwarding |
 //! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |
 //! | `fuzzing` | (feature `fuzzing` only) structure-aware input generators and harnesses for `middleware/fuzz/` and `tests/structured_fuzz.rs` |
 //!
