@@ -173,9 +173,9 @@ fn mixed_traffic_over_a_radio_losing_one_percent_of_bytes() {
         let mut ages = ages.await.unwrap();
         ages.sort_unstable();
         assert!(ages.len() > 50, "control samples {}", ages.len());
+        // How fresh control stays is a figure (`serial.manual_control.age_p99_ms`, measured by
+        // benches/serial.rs against the line's own event ages); here it must keep flowing.
         let p99 = ages[ages.len() * 99 / 100];
-        // Generous: the benchmark reports the real figure.
-        assert!(p99 < 2_000_000, "control age p99 {p99} us");
         eprintln!(
             "mixed: {raised} events, {ok} calls ok, {timeouts} timeouts, control p50 {} us p99 {p99} us, stats {:?}",
             ages[ages.len() / 2],

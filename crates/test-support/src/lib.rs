@@ -24,6 +24,26 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
+/// Whether the tests run under CI (`CI` set to anything but empty, `0` or `false`), where
+/// `.ci/run` installed every tool a test needs.
+pub fn under_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "0" && !v.eq_ignore_ascii_case("false"))
+}
+
+/// A tool a test needs (`what`) is missing; `install` says how to get it. Under CI the test
+/// fails here: a missing tool there is a broken install step, and a test that skips would pass
+/// without testing anything. Elsewhere the test is skipped, saying so (the caller returns).
+///
+/// # Panics
+/// Under CI, always.
+pub fn tool_missing(what: &str, install: &str) {
+    assert!(
+        !under_ci(),
+        "{what} is missing under CI, where `.ci/run` installs it ({install})"
+    );
+    eprintln!("SKIPPED: {what} is missing ({install})");
+}
+
 /// The services' build: every binary of the workspace but `usal`'s own (the test build makes
 /// those).
 pub const SERVICE_BUILD: [&str; 5] = ["build", "--workspace", "--exclude", "usal", "--bins"];

@@ -28,7 +28,7 @@ fn speed_and_pos(s: &serde_json::Value) -> (f64, f64, f64, f64) {
 
 async fn scenario() {
     let Some(browser) = Browser::start().await else {
-        eprintln!("skipped: chromium/chromedriver not installed (run .ci/install-chromium)");
+        test_support::tool_missing("chromium/chromedriver", "run .ci/install-chromium");
         return;
     };
     let domain = unique_domain("fmo-browser");

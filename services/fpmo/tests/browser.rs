@@ -23,7 +23,7 @@ async fn operator_uploads_and_skips_from_the_page() {
 
 async fn scenario() {
     let Some(browser) = Browser::start().await else {
-        eprintln!("skipped: chromium/chromedriver not installed (run .ci/install-chromium)");
+        test_support::tool_missing("chromium/chromedriver", "run .ci/install-chromium");
         return;
     };
     let dir = tempfile::tempdir().unwrap();

@@ -97,7 +97,10 @@ async fn scenario() {
             .await;
         browser.close().await;
     } else {
-        eprintln!("browser part skipped: chromium/chromedriver not installed");
+        test_support::tool_missing(
+            "chromium/chromedriver (the browser part)",
+            "run .ci/install-chromium",
+        );
     }
 
     // Without a background the page is told so and nothing is served.

@@ -131,7 +131,10 @@ async fn scenario() {
             .await;
         browser.close().await;
     } else {
-        eprintln!("browser part skipped: chromium/chromedriver not installed");
+        test_support::tool_missing(
+            "chromium/chromedriver (the browser part)",
+            "run .ci/install-chromium",
+        );
     }
     st.kill().await;
 

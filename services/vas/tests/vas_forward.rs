@@ -9,7 +9,7 @@ mod common;
 use std::process::Stdio;
 use std::time::Duration;
 
-use common::mavsdk::{free_udp_port, python_unless_absent_outside_ci, repo_root};
+use common::mavsdk::{free_udp_port, python, repo_root};
 use common::*;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::process::Command;
@@ -17,11 +17,10 @@ use usal_types::{FlightState, MissionChanged};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_second_ground_station_is_forwarded_and_its_mission_followed() {
-    let Some(py) = tokio::task::spawn_blocking(|| {
-        python_unless_absent_outside_ci("the second ground station test")
-    })
-    .await
-    .expect("finding python") else {
+    let Some(py) = tokio::task::spawn_blocking(python)
+        .await
+        .expect("finding python")
+    else {
         return;
     };
     let run = async {

@@ -8,17 +8,16 @@
 
 mod common;
 
-use common::mavsdk::{python_unless_absent_outside_ci, score, MavsdkVehicle};
+use common::mavsdk::{python, score, MavsdkVehicle};
 use common::*;
 use usal_types::{FlightState, QueueStatus};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fifty_waypoints_on_a_mavsdk_vehicle() {
-    let Some(py) = tokio::task::spawn_blocking(|| {
-        python_unless_absent_outside_ci("the MAVSDK conformance test")
-    })
-    .await
-    .expect("finding python") else {
+    let Some(py) = tokio::task::spawn_blocking(python)
+        .await
+        .expect("finding python")
+    else {
         return;
     };
     let run = async {

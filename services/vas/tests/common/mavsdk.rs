@@ -40,19 +40,8 @@ fn runs(cmd: &Path, args: &[&str]) -> bool {
 /// brought up to date.
 const IMPORTS: &[&str] = &["-c", "import mavsdk, pymavlink, zenoh"];
 
-/// [`python`] for a test that must run under `CI` (`.ci/run` installs the venv): `None` only
-/// outside CI, where no `python3` exists; under CI a missing Python fails `what`.
-pub fn python_unless_absent_outside_ci(what: &str) -> Option<PathBuf> {
-    let py = python();
-    assert!(
-        py.is_some() || std::env::var_os("CI").is_none(),
-        "CI: python3 is missing, so {what} cannot run"
-    );
-    py
-}
-
 /// The Python that has `mavsdk`, `pymavlink` and `zenoh`, creating the venv if needed; `None` (after
-/// printing why) only where no `python3` exists. Blocking: call it off the async runtime.
+/// printing why) only where no `python3` exists, outside CI (under `CI` the test fails there). Blocking: call it off the async runtime.
 ///
 /// # Panics
 /// When `USAL_TEST_PYTHON` lacks the packages, or Python exists but the venv cannot be made:
@@ -75,9 +64,9 @@ pub fn python() -> Option<PathBuf> {
     }
     let python3 = PathBuf::from("python3");
     if !runs(&python3, &["--version"]) {
-        eprintln!(
-            "SKIPPED: python3 not found; the MAVSDK conformance suite needs Python 3 \
-             (see docs/missions.md, \"conformance suite\")"
+        test_support::tool_missing(
+            "python3 (the MAVSDK conformance suite's vehicle)",
+            "see docs/autopilots.md, \"Autopilots we did not write\"",
         );
         return None;
     }
