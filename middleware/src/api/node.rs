@@ -3,7 +3,7 @@
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
@@ -261,7 +261,7 @@ impl Node {
                 heartbeat,
                 lease,
                 link_timing,
-                epoch: Instant::now(),
+                epoch: tokio::time::Instant::now(),
             },
             links: OnceLock::new(),
             local: Default::default(),

@@ -724,6 +724,58 @@ mod tests {
     use super::*;
     use crate::node::gateway::MAX_HOPS;
 
+    /// A call nobody answers fails as a timeout when its caller's time is up, not before, and
+    /// is forgotten. On paused time: the timer itself is checked, to the millisecond.
+    #[tokio::test(start_paused = true)]
+    async fn an_unanswered_call_times_out_at_its_timeout_and_not_before() {
+        let node = crate::node::bare_node(None, None);
+        let from = crate::link::PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], 9)));
+        node.on_discovery(
+            0,
+            from,
+            Message::Hello {
+                node_id: PROVIDER,
+                domain: crate::config::DEFAULT_DOMAIN.into(),
+                node: "air".into(),
+                namespace: "rover1".into(),
+                counter: 0,
+                lease_ms: 60_000,
+                gateway: false,
+                asks_introduction: false,
+            },
+        );
+        let timeout = Duration::from_millis(1_500);
+        let provider = Provider::Remote {
+            node: PROVIDER,
+            node_name: "air".into(),
+            id: 3,
+            ty: TypeInfo::of::<u64>(),
+        };
+        let started = tokio::time::Instant::now();
+        let call = {
+            let node = node.clone();
+            tokio::spawn(async move {
+                let r = node
+                    .invoke("rover1/vas/double", provider, arg(2), timeout, None)
+                    .await;
+                (r, started.elapsed())
+            })
+        };
+        tokio::time::sleep(timeout - Duration::from_millis(1)).await;
+        assert!(!call.is_finished(), "the call ended before its timeout");
+        let (r, after) = call.await.expect("the call's task");
+        assert!(
+            matches!(&r, Err(CallError::Timeout { after, .. }) if *after == timeout),
+            "{r:?}"
+        );
+        assert_eq!(after, timeout, "ended {after:?} after it was made");
+        assert_eq!(
+            node.calls.pending.waiting.len(),
+            0,
+            "the call is still waiting"
+        );
+    }
+
     const PROVIDER: NodeId = 7;
 
     #[test]

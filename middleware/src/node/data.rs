@@ -46,7 +46,7 @@ impl NodeInner {
     pub fn deliver_remote_run(&self, node: NodeId, run: impl Iterator<Item = (u32, Vec<u8>)>) {
         let received = Instant::now();
         if let Some(p) = self.peers.by_id.get(&node) {
-            p.heard_at(self.me.epoch, received);
+            p.heard_at(self.me.epoch, tokio::time::Instant::from_std(received));
         }
         let mut current: Option<(u32, Arc<super::Route>)> = None;
         let mut payloads: Vec<Vec<u8>> = Vec::new();

@@ -6,7 +6,6 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
 use dashmap::DashMap;
-use std::time::Instant;
 
 use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
@@ -505,7 +504,7 @@ impl NodeInner {
             }
             let stale = p.requested.is_none_or(|t| t.elapsed() > self.me.heartbeat);
             if gap && stale {
-                p.requested = Some(Instant::now());
+                p.requested = Some(tokio::time::Instant::now());
                 request = Some(p.known);
             } else if !gap {
                 p.requested = None;

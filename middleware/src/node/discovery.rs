@@ -4,7 +4,9 @@
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use tokio::time::Instant;
 
 use dashmap::DashMap;
 
@@ -515,6 +517,55 @@ impl NodeInner {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::node::files::Control;
+
+    /// A peer that falls silent is dropped once its lease has run out, not before, and what
+    /// waited on it hears why. On paused time: the timer logic itself is checked, to the
+    /// heartbeat, not a shared machine's scheduling.
+    #[tokio::test(start_paused = true)]
+    async fn a_silent_peer_is_dropped_when_its_lease_runs_out_and_not_before() {
+        let node = crate::node::bare_node(None, None);
+        let (heartbeat, _) = node.me.timing(0);
+        let lease = Duration::from_millis(2_000);
+        let from = PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], 9)));
+        node.on_discovery(
+            0,
+            from,
+            Message::Hello {
+                node_id: 7,
+                domain: crate::config::DEFAULT_DOMAIN.into(),
+                node: "air".into(),
+                namespace: "rover1".into(),
+                counter: 0,
+                lease_ms: lease.as_millis() as u32,
+                gateway: false,
+                asks_introduction: false,
+            },
+        );
+        let heard = Instant::now();
+        assert!(node.peers.by_id.contains_key(&7), "the Hello made a peer");
+        // A transfer to it, as a sending task registers one.
+        let mut sender = node.transfers.register_sender(1, 7);
+        tokio::spawn(node.clone().heartbeat_loop(0));
+
+        tokio::time::sleep(lease).await;
+        assert!(
+            node.peers.by_id.contains_key(&7),
+            "dropped before its lease ran out"
+        );
+        let why = match sender.recv().await {
+            Some(Control::PeerLost(why)) => why,
+            other => panic!("the transfer heard {other:?}"),
+        };
+        let after = heard.elapsed();
+        assert!(!node.peers.by_id.contains_key(&7), "still a peer");
+        assert!(why.contains("lease of 2000 ms expired"), "{why}");
+        assert!(
+            after > lease && after <= lease + heartbeat,
+            "dropped {after:?} after it was last heard, lease {lease:?}, heartbeat {heartbeat:?}"
+        );
+        node.cancel.cancel();
+    }
 
     #[test]
     fn a_peers_lease_is_clamped_on_receipt() {

@@ -27,7 +27,11 @@ mod variables;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, Weak};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+// The node's clock for leases and peers' timing: tokio's, so timer logic runs on paused time in
+// tests (outside a paused runtime it is the system's monotonic clock).
+use tokio::time::Instant;
 
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
