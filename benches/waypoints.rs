@@ -13,11 +13,11 @@
 //! - `vas.cpu_percent`: CPU time of the `vas` process (from `/proc/<pid>/stat`) over
 //!   [`CPU_WINDOW`] of real-time flight (no speed-up) with 10 Hz telemetry, in percent of
 //!   one core.
-//! - `fpma.parse_1mb_ms`: wall time of [`fpma::parse::parse_plan`] (the document alone) on a
+//! - `fpma.parse_1mb_ms`: wall time of [`flightplan::parse::parse_plan`] (the document alone) on a
 //!   generated valid plan of about 1 MB (a fix and a TF leg per waypoint), best of
 //!   [`PARSE_RUNS`]. In process, nothing to build or start.
 //! - `fpma.load_1mb_ms`: the whole load of that plan as the FPMa makes it, best of
-//!   [`PARSE_RUNS`]: parse and check ([`fpma::check::load`]: vehicle rules, the one nominal
+//!   [`PARSE_RUNS`]: parse and check ([`flightplan::check::load`]: vehicle rules, the one nominal
 //!   simulation, the fence), the executive started from the checked plan, the stations'
 //!   geometry drawn from the check's stream, and the first look-ahead handed out.
 //!
@@ -402,7 +402,7 @@ fn parse_run() -> anyhow::Result<()> {
     let mut best = Duration::MAX;
     for _ in 0..PARSE_RUNS {
         let t0 = Instant::now();
-        let plan = fpma::parse::parse_plan(&src)
+        let plan = flightplan::parse::parse_plan(&src)
             .map_err(|e| anyhow::anyhow!("the generated plan is refused: {e}"))?;
         best = best.min(t0.elapsed());
         anyhow::ensure!(
@@ -416,15 +416,15 @@ fn parse_run() -> anyhow::Result<()> {
 
 fn load_run() -> anyhow::Result<()> {
     let src = large_plan(PARSE_BYTES);
-    let vehicle = fpma::vehicle::VehicleParams::rover();
+    let vehicle = flightplan::vehicle::VehicleParams::rover();
     let mut best = Duration::MAX;
     for _ in 0..PARSE_RUNS {
         let t0 = Instant::now();
-        let checked = fpma::check::load(&src, &vehicle)
+        let checked = flightplan::check::load(&src, &vehicle)
             .map_err(|e| anyhow::anyhow!("the generated plan is refused: {e}"))?;
-        let ex = fpma::exec::Executive::from_checked(checked);
+        let ex = flightplan::exec::Executive::from_checked(checked);
         let geometry =
-            fpma::api::PlanGeometry::of(ex.plan(), &ex.nominal(), ex.version(), "bench.xml");
+            flightplan::api::PlanGeometry::of(ex.plan(), &ex.nominal(), ex.version(), "bench.xml");
         let ahead = ex.next_waypoints(fpma::service::FpmaConfig::default().lookahead);
         best = best.min(t0.elapsed());
         anyhow::ensure!(

@@ -11,7 +11,7 @@ use std::path::Path;
 use std::process::Stdio;
 use std::time::Duration;
 
-use fpma::api::{PlanEvent, PlanEventKind};
+use flightplan::api::{PlanEvent, PlanEventKind};
 use marea::config::{EthernetConfig, LinkConfig};
 use marea::{NetworkConfig, Node};
 use serde_json::Value;

@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use fpma::api::PlanLoaded;
+use flightplan::api::PlanLoaded;
 use serde::Serialize;
 use usal_types::{Failsafe, FailsafeKind, StationHeartbeat};
 

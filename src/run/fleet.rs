@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use fleet::api::FleetStatus;
+use flightplan::fleet_api::FleetStatus;
 use marea::{NetworkConfig, Node};
 use serde_json::json;
 use tokio::sync::broadcast;

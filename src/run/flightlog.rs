@@ -359,7 +359,9 @@ pub fn kind_of(name: &str, type_name: &str) -> &'static str {
         "FlightState" | "StateChanged" => "state",
         "Alarm" | "Failsafe" => "alarm",
         "ManualCommand" | "ManualControl" | "CommandRecord" => "command",
-        _ if type_name.starts_with("fpma::") || name.split('/').any(|s| s == "fpma") => "plan",
+        _ if type_name.starts_with("flightplan::") || name.split('/').any(|s| s == "fpma") => {
+            "plan"
+        }
         _ => "telemetry",
     }
 }
@@ -638,7 +640,7 @@ mod tests {
             "state"
         );
         assert_eq!(
-            kind_of("rover1/fpma/progress", "fpma::api::Progress"),
+            kind_of("rover1/fpma/progress", "flightplan::api::Progress"),
             "plan"
         );
         assert_eq!(

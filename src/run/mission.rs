@@ -702,7 +702,7 @@ fn lat_lon_alt(text: &str) -> Option<[f64; 3]> {
 /// A vehicle's `<fence>` (the plan's form). A `maxDistance` is measured from the fence's own
 /// home, else from the node's simulator's home.
 fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::Fence, Fault> {
-    let pf = fpma::parse::parse_fence(el).map_err(|e| Fault {
+    let pf = flightplan::parse::parse_fence(el).map_err(|e| Fault {
         line: e.line as usize,
         column: e.col as usize,
         element: el.name.clone(),

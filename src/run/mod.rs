@@ -128,7 +128,7 @@ fn station_setup(
     st: &mission::StationSpec,
     fleet: bool,
 ) -> anyhow::Result<StationSetup> {
-    use fpma::vehicle::{VehicleKind, VehicleParams};
+    use flightplan::vehicle::{VehicleKind, VehicleParams};
     let src = std::fs::read_to_string(&st.plan)
         .with_context(|| format!("reading {}", st.plan.display()))?;
     let kind = if st.vehicle == "aircraft" {
@@ -137,7 +137,7 @@ fn station_setup(
         VehicleKind::Rover
     };
     let params = VehicleParams::for_kind(kind);
-    let plan = fpma::check::load(&src, &params)
+    let plan = flightplan::check::load(&src, &params)
         .map_err(|e| anyhow!("{}", e.in_file(&st.plan.display().to_string())))?;
     let name = plan.plan().name.clone();
     let wps = plan.nominal();
@@ -146,9 +146,9 @@ fn station_setup(
     let nominal_m = wps
         .windows(2)
         .map(|w| {
-            fpma::geo::distance(
-                fpma::geo::GeoPoint::new(w[0].lat, w[0].lon),
-                fpma::geo::GeoPoint::new(w[1].lat, w[1].lon),
+            flightplan::geo::distance(
+                flightplan::geo::GeoPoint::new(w[0].lat, w[0].lon),
+                flightplan::geo::GeoPoint::new(w[1].lat, w[1].lon),
             )
         })
         .sum();

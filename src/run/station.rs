@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use fpma::api::{CommandAck, PlanEvent, PlanEventKind, PlanRejected, Progress};
+use flightplan::api::{CommandAck, PlanEvent, PlanEventKind, PlanRejected, Progress};
 use marea::{NetworkConfig, Node, SendFileOptions};
 use serde_json::json;
 use tokio::sync::broadcast;

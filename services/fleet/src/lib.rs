@@ -33,7 +33,6 @@
 //! # }
 //! ```
 
-pub mod api;
 pub mod plan;
 pub mod search;
 pub mod separation;
@@ -46,17 +45,17 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context};
-use fpma::api::{CommandAck, PlanLoaded, Progress};
-use fpma::expr::Value;
+use flightplan::api::{CommandAck, PlanLoaded, Progress};
+use flightplan::expr::Value;
 use marea::{CallError, Function, NetworkConfig, Node, Service};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::{Alarm, FlightState, Position, StateChangeReply, StateChangeRequest};
 
-use crate::api::{Detection, FleetStatus, VehicleStatus};
 use crate::plan::{Block, BlockKind, FleetPlan, WaitEvent};
 use crate::separation::{Action, Monitor};
+use flightplan::fleet_api::{Detection, FleetStatus, VehicleStatus};
 
 /// Everything the service needs.
 #[derive(Clone, Debug)]
@@ -308,7 +307,7 @@ impl Fleet {
         }
     }
 
-    fn holds(&self, cond: &fpma::expr::Condition) -> bool {
+    fn holds(&self, cond: &flightplan::expr::Condition) -> bool {
         let st = self.state();
         cond.holds(&|n| self.var(&st, n))
     }
@@ -470,7 +469,7 @@ impl Fleet {
     async fn investigate(
         &self,
         i: usize,
-        until: &fpma::expr::Condition,
+        until: &flightplan::expr::Condition,
         speed: f64,
     ) -> anyhow::Result<()> {
         let keep_off = self.plan.separation.map_or(0.0, |s| s.hold_m);
@@ -518,9 +517,9 @@ impl Fleet {
                 continue;
             };
             let id = self.state().detections[k].id;
-            let far = fpma::geo::distance(
-                fpma::geo::GeoPoint::new(here.0, here.1),
-                fpma::geo::GeoPoint::new(target.0, target.1),
+            let far = flightplan::geo::distance(
+                flightplan::geo::GeoPoint::new(here.0, here.1),
+                flightplan::geo::GeoPoint::new(target.0, target.1),
             );
             tracing::info!(
                 "{}: visiting detection #{id} ({far:.0} m away)",
@@ -916,13 +915,13 @@ impl Fleet {
 
 /// The nominal waypoints of a flight plan (already checked when the fleet plan was loaded, or
 /// generated), thinned for the status; empty if it cannot be expanded.
-fn route_of(xml: &str, kind: fpma::vehicle::VehicleKind) -> Vec<(f64, f64)> {
-    let params = fpma::vehicle::VehicleParams::for_kind(kind);
-    let Ok(plan) = fpma::check::load(xml, &params) else {
+fn route_of(xml: &str, kind: flightplan::vehicle::VehicleKind) -> Vec<(f64, f64)> {
+    let params = flightplan::vehicle::VehicleParams::for_kind(kind);
+    let Ok(plan) = flightplan::check::load(xml, &params) else {
         return Vec::new();
     };
     let pts: Vec<(f64, f64)> = plan.nominal().iter().map(|w| (w.lat, w.lon)).collect();
-    api::thin(&pts, api::ROUTE_POINTS)
+    flightplan::fleet_api::thin(&pts, flightplan::fleet_api::ROUTE_POINTS)
 }
 
 /// A detection in a VAS alarm's text: `autopilot: POI <id> <lat> <lon>` (the mavsim detector's
@@ -999,8 +998,8 @@ mod tests {
     #[test]
     fn a_visit_plan_is_a_valid_rover_plan_to_the_point() {
         let xml = visit_plan(3, (41.2752, 1.9875), (41.2756, 1.9872), 3.0);
-        let params = fpma::vehicle::VehicleParams::rover();
-        let plan = fpma::check::load(&xml, &params).unwrap();
+        let params = flightplan::vehicle::VehicleParams::rover();
+        let plan = flightplan::check::load(&xml, &params).unwrap();
         let last = plan.nominal().last().unwrap();
         assert!((last.lat - 41.2756).abs() < 1e-7 && (last.lon - 1.9872).abs() < 1e-7);
         assert!(last.fly_over);
@@ -1009,16 +1008,16 @@ mod tests {
     #[test]
     fn routes_are_thinned_with_their_ends_kept() {
         let pts: Vec<(f64, f64)> = (0..1000).map(|i| (f64::from(i), 0.0)).collect();
-        let t = api::thin(&pts, 300);
+        let t = flightplan::fleet_api::thin(&pts, 300);
         assert_eq!(t.len(), 300);
         assert_eq!((t[0].0, t[299].0), (0.0, 999.0));
-        assert_eq!(api::thin(&pts[..5], 300).len(), 5);
+        assert_eq!(flightplan::fleet_api::thin(&pts[..5], 300).len(), 5);
         let r = route_of(
             &visit_plan(1, (41.2752, 1.9875), (41.2756, 1.9872), 3.0),
-            fpma::vehicle::VehicleKind::Rover,
+            flightplan::vehicle::VehicleKind::Rover,
         );
         assert_eq!(r.len(), 2);
-        assert!(route_of("<nope/>", fpma::vehicle::VehicleKind::Rover).is_empty());
+        assert!(route_of("<nope/>", flightplan::vehicle::VehicleKind::Rover).is_empty());
     }
 
     #[test]

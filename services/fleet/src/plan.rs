@@ -7,8 +7,8 @@ use std::collections::HashMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use fpma::expr::{Condition, Expr, Value, ValueType};
-use fpma::vehicle::{VehicleKind, VehicleParams};
+use flightplan::expr::{Condition, Expr, Value, ValueType};
+use flightplan::vehicle::{VehicleKind, VehicleParams};
 use marea::xml::Element;
 
 /// Why a fleet plan was refused.
@@ -513,7 +513,7 @@ impl Parser<'_> {
                     FleetPlanError::at(e, format!("plan `{}`: {err}", file.display()))
                 })?;
                 let params = VehicleParams::for_kind(self.vehicles[vehicle].kind);
-                fpma::check::load(&xml, &params)
+                flightplan::check::load(&xml, &params)
                     .map_err(|err| FleetPlanError::at(e, format!("plan {}", err.in_file(&rel))))?;
                 BlockKind::Fly {
                     vehicle,

@@ -2,7 +2,7 @@
 //! nearest to where the vehicle is now, so the tour is built in nearest-neighbour order as
 //! detections arrive. Pure.
 
-use fpma::geo::{distance, GeoPoint};
+use flightplan::geo::{distance, GeoPoint};
 
 /// The index in `pending` of the point to visit next from `here`: the nearest one that is not
 /// within `keep_off_m` of any of `others` (another vehicle's position: going there would only

@@ -9,10 +9,10 @@
 
 use std::collections::HashSet;
 
-use fpma::geo::{distance, GeoPoint};
+use flightplan::geo::{distance, GeoPoint};
 
-use crate::api::SeparationStatus;
 use crate::plan::SeparationRule;
+use flightplan::fleet_api::SeparationStatus;
 
 /// What the service must do.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

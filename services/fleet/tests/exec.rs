@@ -6,8 +6,8 @@
 use std::path::Path;
 use std::time::Duration;
 
-use fleet::api::FleetStatus;
-use fpma::api::VarValue;
+use flightplan::api::VarValue;
+use flightplan::fleet_api::FleetStatus;
 use tokio_util::sync::CancellationToken;
 
 /// Runs `plan` (the statements inside a `<seq>`) and returns its final status. With `alarm`,

@@ -1,46 +1,7 @@
-//! FPMa: the USAL Flight Plan Manager library: XML flight plans → validated model → waypoint
-//! stream, and the executive that flies it and takes changes in flight; and the networked
-//! `fpma` service around it.
-//!
-//! Layers, each using only those above: `xml` (plan wording over `marea::xml`) → `expr`, `geo`,
-//! `vehicle` → `model` → `parse` (`parse/{error,attrs,legs}`: the document, no vehicle),
-//! `polygon` → `expand`, `eta` → `exec` and `check` (one layer: the check flies a plan once in
-//! the executive; the executive checks each change) → `qgc` → `api` → `service` → `fuzzing`. Everything up to
-//! `api` is pure (no I/O, no clock); `service` is the only module on the network
-//! ([`service::run`]). `tests/layering.rs` keeps the table true. See `README.md` for the
-//! format, the API and the service's items.
-//!
-//! A plan is parsed, then checked once for a vehicle ([`check::load`] does both); the checked
-//! plan carries its nominal waypoint stream, and only a checked plan starts an executive:
-//!
-//! ```
-//! use fpma::{check, exec::Executive, vehicle::VehicleParams};
-//! let xml = r#"<flightPlan><fixes><fix id="A" lat="41.275" lon="1.987"/>
-//!   <fix id="B" lat="41.2754" lon="1.987"/></fixes>
-//!   <mission><leg type="IF" fix="A"/><leg type="TF" fix="B"/></mission></flightPlan>"#;
-//! let plan = check::load(xml, &VehicleParams::rover()).unwrap();
-//! assert_eq!(plan.nominal().len(), 2);
-//! let mut ex = Executive::from_checked(plan);
-//! let next = ex.next_waypoints(2);
-//! assert_eq!(next.len(), 2);
-//! ex.waypoint_reached(next[0].version, next[0].seq).unwrap();
-//! assert_eq!(ex.next_waypoints(2)[0].leg, "mission.2");
-//! ```
-pub mod api;
-pub mod check;
-pub mod eta;
-pub mod exec;
-pub mod expand;
-pub mod expr;
-#[cfg(feature = "fuzzing")]
-pub mod fuzzing;
-pub mod geo;
-pub mod model;
-pub mod parse;
-pub mod polygon;
-pub mod qgc;
+//! FPMa: the USAL Flight Plan Manager, the networked service that loads plans (checked by the
+//! `flightplan` library), flies them through the VAS and takes changes in flight
+//! ([`service::run`]). See `README.md` for its items and options.
+
 pub mod service;
-pub mod vehicle;
-pub mod xml;
 
 pub use service::run;

@@ -3,10 +3,10 @@
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
-use fpma::check::{self, CheckError};
-use fpma::parse::declared_vehicle;
+use flightplan::check::{self, CheckError};
+use flightplan::parse::declared_vehicle;
+use flightplan::vehicle::VehicleKind;
 use fpma::service::FpmaConfig;
-use fpma::vehicle::VehicleKind;
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -224,7 +224,7 @@ fn expand(
         }
     };
     if let Some(out) = qgc {
-        let doc = fpma::qgc::export(checked.plan(), &vehicle)
+        let doc = flightplan::qgc::export(checked.plan(), &vehicle)
             .with_context(|| format!("exporting {}", path.display()))?;
         std::fs::write(out, serde_json::to_string_pretty(&doc)?)
             .with_context(|| format!("writing {}", out.display()))?;
@@ -238,7 +238,7 @@ fn expand(
         if w.waits {
             line["waits"] = true.into();
         }
-        if w.tag != fpma::expand::WaypointTag::Nav {
+        if w.tag != flightplan::expand::WaypointTag::Nav {
             line["tag"] = serde_json::to_value(w.tag)?;
         }
         writeln!(stdout, "{line}")?;

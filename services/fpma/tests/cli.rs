@@ -172,9 +172,9 @@ fn qgc_export_writes_a_plan_file_and_refusals_give_the_reason() {
         "the laps loop is a DO_JUMP"
     );
     // Read back, it flies the same stream the preview printed.
-    let v = fpma::vehicle::VehicleParams::rover();
-    let (plan, _) = fpma::qgc::import(&text, "demo").unwrap();
-    let checked = fpma::check::check(plan, &v).unwrap();
+    let v = flightplan::vehicle::VehicleParams::rover();
+    let (plan, _) = flightplan::qgc::import(&text, "demo").unwrap();
+    let checked = flightplan::check::check(plan, &v).unwrap();
     assert_eq!(checked.nominal().len(), printed);
 
     // The car-park plan waits for a variable and has an emergency rule: refused, with why.

@@ -8,8 +8,10 @@
 use std::path::Path;
 use std::time::Duration;
 
-use fpma::api::{CommandAck, ModifyLeg, PlanEvent, PlanEventKind, PlanRejected, Progress, SetVar};
-use fpma::api::{PlanLoaded, VarValue};
+use flightplan::api::{
+    CommandAck, ModifyLeg, PlanEvent, PlanEventKind, PlanRejected, Progress, SetVar,
+};
+use flightplan::api::{PlanLoaded, VarValue};
 use marea::SendFileOptions;
 use tokio::time::{timeout, Instant};
 use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
@@ -92,7 +94,7 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
         .subscribe_variable::<FlightState>("rover1/vas/flight_state")
         .unwrap();
     let ready = gcs
-        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .subscribe_variable::<flightplan::api::Readiness>("rover1/fpma/ready")
         .unwrap();
     let change = gcs
         .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
@@ -309,8 +311,8 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     // commands after the same waypoints. Every waypoint the FPMa's executive counted as
     // reached is, in order, where that one says it should be (mavsim flew exactly these, above,
     // plus at most one abandoned target per change).
-    let plan = fpma::check::load(&src, &fpma::vehicle::VehicleParams::rover()).unwrap();
-    let mut twin = fpma::exec::Executive::from_checked(plan);
+    let plan = flightplan::check::load(&src, &flightplan::vehicle::VehicleParams::rover()).unwrap();
+    let mut twin = flightplan::exec::Executive::from_checked(plan);
     let (skip_at, modify_at) = (skip_at.expect("skip seen"), modify_at.expect("modify seen"));
     let mut released_twin = false;
     for (i, (version, seq, leg)) in reached.iter().enumerate() {
@@ -339,7 +341,7 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
         // crossing, three corners on, however late it arrived within the circuit.
         if leg == "wait" && !released_twin {
             released_twin = true;
-            twin.set_var("inspect", fpma::expr::Value::Bool(true))
+            twin.set_var("inspect", flightplan::expr::Value::Bool(true))
                 .unwrap();
         }
     }

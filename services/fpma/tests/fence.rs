@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use fpma::api::{CommandAck, PlanLoaded};
+use flightplan::api::{CommandAck, PlanLoaded};
 use tokio::time::{timeout, Instant};
 use usal_types::FlightState;
 

@@ -12,7 +12,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use fpma::api::{PlanEvent, PlanEventKind, PlanLoaded, PlanState, VarValue};
+use flightplan::api::{PlanEvent, PlanEventKind, PlanLoaded, PlanState, VarValue};
 use marea::Node;
 use tokio::process::Child;
 use tokio::time::{timeout, Instant};
@@ -121,7 +121,7 @@ async fn the_carpark_low_battery_rule_fires_as_mavsim_drains_its_battery() {
         .subscribe_variable::<Battery>("rover1/vas/battery")
         .unwrap();
     let ready = gcs
-        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .subscribe_variable::<flightplan::api::Readiness>("rover1/fpma/ready")
         .unwrap();
     let change = gcs
         .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
@@ -395,7 +395,7 @@ async fn a_plan_loaded_while_the_operator_drives_waits_for_start() {
         .function::<StateChangeRequest, StateChangeReply>("rover1/vas/change_state")
         .unwrap();
     let ready = gcs
-        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .subscribe_variable::<flightplan::api::Readiness>("rover1/fpma/ready")
         .unwrap();
     let reached = gcs
         .subscribe_event::<WaypointReached>("rover1/vas/waypoint_reached")

@@ -12,7 +12,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use fpma::api::{CommandAck, PlanLoaded, Progress};
+use flightplan::api::{CommandAck, PlanLoaded, Progress};
 use tokio::process::Child;
 use tokio::time::{timeout, Instant};
 use usal_types::{FlightState, StateChangeReply, StateChangeRequest, WaypointReached};
@@ -89,7 +89,7 @@ async fn a_killed_fpma_resumes_its_plan_where_it_was() {
     // First run: the plan is loaded from the ground; the operator starts it when the FPMa
     // says it is ready (the FPMa never changes the flight state).
     let ready = gcs
-        .subscribe_variable::<fpma::api::Readiness>("rover1/fpma/ready")
+        .subscribe_variable::<flightplan::api::Readiness>("rover1/fpma/ready")
         .unwrap();
     let first = fpma(&domain, &state_dir, &plans);
     assert!(load.wait_provider(STEP).await, "fpma not discovered");
@@ -148,9 +148,9 @@ async fn a_killed_fpma_resumes_its_plan_where_it_was() {
     assert!(completed, "the plan did not complete after the restart");
 
     // What mavsim flew: the plan's waypoints, each once, in order.
-    let vehicle = fpma::vehicle::VehicleParams::rover();
-    let parsed = fpma::parse::parse_plan(&src).unwrap();
-    let want: Vec<(f64, f64)> = fpma::exec::expand_nominal(parsed, vehicle)
+    let vehicle = flightplan::vehicle::VehicleParams::rover();
+    let parsed = flightplan::parse::parse_plan(&src).unwrap();
+    let want: Vec<(f64, f64)> = flightplan::exec::expand_nominal(parsed, vehicle)
         .unwrap()
         .iter()
         .map(|w| (w.lat, w.lon))

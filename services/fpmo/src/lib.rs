@@ -27,10 +27,10 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fpma::api::{
+use flightplan::api::{
     CommandAck, PlanEvent, PlanGeometry, PlanRejected, PlanState, Progress, Readiness,
 };
-use fpma::vehicle::VehicleParams;
+use flightplan::vehicle::VehicleParams;
 use marea::Service;
 use station_web::{call_error, CommandStatus, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
@@ -396,7 +396,7 @@ pub fn modify_leg(
             .collect::<Vec<_>>()
             .join(", ")
     );
-    let args = fpma::api::ModifyLeg { leg, changes };
+    let args = flightplan::api::ModifyLeg { leg, changes };
     shared.command(label, "modify_leg", what, args, |_, ack: &CommandAck| {
         format!("version {}", ack.version)
     })

@@ -4,7 +4,7 @@ use std::net::SocketAddr;
 
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
-use fpma::vehicle::VehicleParams;
+use flightplan::vehicle::VehicleParams;
 
 /// USAL Flight Plan Monitor: the flight-plan station as a web page (upload, legs, progress,
 /// map, skip / go to / pause / resume / modify / re-task). Prints FPMO_URL=http://ADDR/?token=TOKEN.

@@ -4,11 +4,11 @@
 //! page shows plans another station uploaded, and a plan changed in flight is redrawn from the
 //! vehicle's copy, not from a guess of the station's.
 
-use fpma::api::PlanGeometry;
-use fpma::check;
-use fpma::geo::{self, GeoPoint};
-use fpma::model::{FlightPlan, Node, Stage};
-use fpma::vehicle::VehicleParams;
+use flightplan::api::PlanGeometry;
+use flightplan::check;
+use flightplan::geo::{self, GeoPoint};
+use flightplan::model::{FlightPlan, Node, Stage};
+use flightplan::vehicle::VehicleParams;
 use serde::Serialize;
 
 /// A plan file checked for upload.
@@ -23,7 +23,7 @@ pub struct CheckedPlan {
 }
 
 impl CheckedPlan {
-    /// Parses and checks `xml` for `vehicle`, as the FPMa will ([`fpma::check::load`]).
+    /// Parses and checks `xml` for `vehicle`, as the FPMa will ([`flightplan::check::load`]).
     ///
     /// # Errors
     /// `file:line:col: what` for a plan the FPMa would refuse too; a plan that never ends.

@@ -7,7 +7,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use fpma::api::{
+use flightplan::api::{
     CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanRejected, PlanState, Progress,
     Readiness, VarValue,
 };

@@ -25,7 +25,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use fpma::api::{CommandAck, HoldHereArgs, HoldTurn, Retask, RetaskWhen, SetVar, VarValue};
+use flightplan::api::{CommandAck, HoldHereArgs, HoldTurn, Retask, RetaskWhen, SetVar, VarValue};
 use serde::Deserialize;
 use station_web::{accepted, error as bad};
 

@@ -146,7 +146,7 @@ async fn scenario() {
     let probe = marea::Node::open(&cfg).await.expect("probe node");
     let svc = probe.service("probe").unwrap();
     let f = svc
-        .function::<(), fpma::api::PlanGeometry>("rover1/fpma/plan_geometry")
+        .function::<(), flightplan::api::PlanGeometry>("rover1/fpma/plan_geometry")
         .unwrap();
     assert!(f.wait_provider(STEP).await, "no plan_geometry provider");
     let g = f.call(&(), STEP).await.expect("plan_geometry");

@@ -23,20 +23,20 @@
 use std::collections::VecDeque;
 use std::time::Instant;
 
-use crate::eta::EtaEstimator;
 use async_trait::async_trait;
+use flightplan::eta::EtaEstimator;
 use usal_types::{AltRef, Battery, FlightState, Position, QueueStatus, WaypointKind};
 
-use crate::api::{
+use flightplan::api::{
     CommandAck, PlanEvent, PlanEventKind, PlanGeometry, PlanLoaded, PlanState, Progress, Readiness,
 };
-use crate::check::CheckedPlan;
-use crate::exec::{Executive, HoldHere, RetaskMode, Telemetry};
-use crate::expand::{Waypoint, WaypointTag};
-use crate::expr::Value;
-use crate::geo::GeoPoint;
-use crate::model::Stage;
-use crate::vehicle::VehicleParams;
+use flightplan::check::CheckedPlan;
+use flightplan::exec::{Executive, HoldHere, RetaskMode, Telemetry};
+use flightplan::expand::{Waypoint, WaypointTag};
+use flightplan::expr::Value;
+use flightplan::geo::GeoPoint;
+use flightplan::model::Stage;
+use flightplan::vehicle::VehicleParams;
 
 /// What the core needs of the VAS (`<vas>/push_waypoints`, `clear_waypoints`): no state
 /// change, which is the operator's. Errors are the reason as text, as the middleware's
@@ -327,10 +327,10 @@ impl<V: VasPort> Core<V> {
         let checked = if source.ends_with(".plan") {
             let stem = source.trim_end_matches(".plan");
             let (plan, _xml) =
-                crate::qgc::import(text, stem).map_err(|e| format!("{source}: {e}"))?;
-            crate::check::check(plan, vehicle)
+                flightplan::qgc::import(text, stem).map_err(|e| format!("{source}: {e}"))?;
+            flightplan::check::check(plan, vehicle)
         } else {
-            crate::check::load(text, vehicle)
+            flightplan::check::load(text, vehicle)
         };
         checked.map_err(|e| e.in_file(source))
     }
@@ -609,7 +609,7 @@ impl<V: VasPort> Core<V> {
         self.publish_state();
     }
 
-    fn collect(&mut self, events: Vec<crate::exec::Event>) {
+    fn collect(&mut self, events: Vec<flightplan::exec::Event>) {
         self.out
             .events
             .extend(events.into_iter().filter_map(PlanEvent::from_exec));
@@ -752,7 +752,7 @@ impl<V: VasPort> Core<V> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::api::PlanEventKind as K;
+    use flightplan::api::PlanEventKind as K;
     use std::sync::Mutex;
 
     /// The VAS queue as its README describes it: push appends; after clear, a push replaces
@@ -883,9 +883,9 @@ mod tests {
 
     /// What the executive would stream with no changes, as the VAS sees it.
     fn nominal() -> Vec<usal_types::Waypoint> {
-        let plan = crate::parse::parse_plan(PLAN).unwrap();
+        let plan = flightplan::parse::parse_plan(PLAN).unwrap();
         let alt_ref = plan.altitude_reference();
-        crate::exec::expand_nominal(plan, VehicleParams::rover())
+        flightplan::exec::expand_nominal(plan, VehicleParams::rover())
             .unwrap()
             .iter()
             .map(|w| to_vas(w, alt_ref))
@@ -1411,8 +1411,8 @@ mod tests {
     #[tokio::test]
     async fn a_qgc_plan_is_loaded_by_its_extension() {
         let rover = VehicleParams::rover();
-        let plan = crate::parse::parse_plan(PLAN).unwrap();
-        let doc = crate::qgc::export(&plan, &rover).unwrap();
+        let plan = flightplan::parse::parse_plan(PLAN).unwrap();
+        let doc = flightplan::qgc::export(&plan, &rover).unwrap();
         let mut c = core(4);
         let loaded = c.load(&doc.to_string(), "survey.plan").await.unwrap();
         assert_eq!((loaded.version, loaded.queued), (1, 4));

@@ -1,4 +1,4 @@
-//! The networked `fpma` service (`fpma run`): hosts one [`Executive`](crate::exec::Executive) on a
+//! The networked `fpma` service (`fpma run`): hosts one [`Executive`](flightplan::exec::Executive) on a
 //! middleware node, takes plans as files or through a function, feeds the VAS's waypoint queue,
 //! follows its waypoint-reached events, and offers the in-flight commands as functions. Items
 //! and config keys are listed in `services/fpma/README.md`.
@@ -25,13 +25,13 @@ use usal_types::{
 };
 
 use self::core::{Command, Core, CoreConfig, FenceRefusal, VasPort};
-use crate::api::{
+use flightplan::api::{
     CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanGeometry, PlanLoaded, PlanRejected,
     PlanState, Progress, Readiness, Retask, SetVar,
 };
-use crate::geo::GeoPoint;
-use crate::model::Stage;
-use crate::vehicle::{VehicleKind, VehicleParams};
+use flightplan::geo::GeoPoint;
+use flightplan::model::Stage;
+use flightplan::vehicle::{VehicleKind, VehicleParams};
 
 /// Everything `fpma run` needs. Attribute names of the `<fpma .../>` file in brackets.
 #[derive(Clone, Debug, PartialEq, Deserialize)]

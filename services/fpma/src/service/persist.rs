@@ -131,11 +131,11 @@ mod tests {
     use std::os::unix::fs::PermissionsExt;
 
     use super::*;
-    use crate::exec::Executive;
-    use crate::vehicle::VehicleParams;
+    use flightplan::exec::Executive;
+    use flightplan::vehicle::VehicleParams;
 
     fn state() -> Persisted {
-        let plan = crate::check::load(
+        let plan = flightplan::check::load(
             include_str!("../../../../config/flightplans/rover-demo.xml"),
             &VehicleParams::rover(),
         )

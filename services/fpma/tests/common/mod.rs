@@ -147,7 +147,7 @@ pub fn close(a: (f64, f64), b: (f64, f64)) -> bool {
 /// puts the VAS in WAYPOINT_NAVIGATION (the FPMa never does, issue 15); returns the state the
 /// VAS left.
 pub async fn start_when_ready(
-    ready: &marea::VariableSubscriber<fpma::api::Readiness>,
+    ready: &marea::VariableSubscriber<flightplan::api::Readiness>,
     change: &marea::Function<usal_types::StateChangeRequest, usal_types::StateChangeReply>,
     within: Duration,
 ) -> usal_types::FlightState {

@@ -1,6 +1,6 @@
 //! The fleet view both stations serve (issue 16 item 5): every vehicle of a fleet mission on
 //! one map with its plan, state and the detections, and a vehicle selected to command it. It
-//! reads the fleet layer's one variable (`**/fleet/status`, `fleet::api::FleetStatus`) and
+//! reads the fleet layer's one variable (`**/fleet/status`, `flightplan::fleet_api::FleetStatus`) and
 //! commands through the fleet service's `pause`/`resume`, so it adds one subscription to a
 //! station, whatever the number of vehicles.
 //!
@@ -22,7 +22,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use fleet::api::FleetStatus;
+use flightplan::fleet_api::FleetStatus;
 use marea::Service;
 use serde::Deserialize;
 

@@ -1,6 +1,6 @@
-//! Keeps the FPMa's layering true (the table in `src/lib.rs`): the parser knows no vehicle and
-//! flies nothing; the check and the executive are one layer above the expansion; only the
-//! service touches the network.
+//! Keeps the flight-plan library's layering true (the table in `src/lib.rs`): the parser knows
+//! no vehicle and flies nothing; the check and the executive are one layer above the expansion;
+//! the wire types are above everything they describe.
 
 use test_support::layering::Layers;
 
@@ -15,7 +15,7 @@ const LAYERS: Layers<'static> = Layers {
         &["exec", "check"],
         &["qgc"],
         &["api"],
-        &["service"],
+        &["fleet_api"],
         &["fuzzing"],
     ],
     table: "LAYERS in services/fpma/tests/layering.rs, the table in src/lib.rs",

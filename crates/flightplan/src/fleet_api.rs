@@ -98,7 +98,7 @@ pub struct FleetStatus {
     /// Separation.
     pub separation: SeparationStatus,
     /// The fleet plan's variables and their values now, in declaration order.
-    pub vars: Vec<(String, fpma::api::VarValue)>,
+    pub vars: Vec<(String, crate::api::VarValue)>,
 }
 
 impl FleetStatus {

@@ -199,7 +199,7 @@ fn example_plans_parse_and_expand() {
         assert!(ws.len() > 20, "{file}: {}", ws.len());
         assert!(ws.iter().any(|w| w.waits), "{file} has a waiting hold");
         for pair in ws.windows(2) {
-            if pair[1].tag == fpma::expand::WaypointTag::Nav {
+            if pair[1].tag == flightplan::expand::WaypointTag::Nav {
                 let d = distance(pair[0].pos(), pair[1].pos());
                 assert!(
                     d >= vehicle.min_wp_distance - 1e-6,

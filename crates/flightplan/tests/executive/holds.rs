@@ -38,7 +38,7 @@ fn hold_here_then_exit_resumes_the_interrupted_leg() {
     // A rover's hold is a rectangle east of the inbound (north) course: 4 corners back to A.
     let a = fix("A");
     let expect = [(10.0, 0.0), (10.0, -20.0), (0.0, -20.0), (0.0, 0.0)];
-    let f = fpma::geo::LocalFrame::new(a);
+    let f = flightplan::geo::LocalFrame::new(a);
     for (w, (e, n)) in ahead.iter().zip(expect.iter().cycle()) {
         let p = f.to_local(w.pos());
         assert!((p.e - e).abs() < 0.01 && (p.n - n).abs() < 0.01, "{p:?}");
@@ -55,7 +55,7 @@ fn hold_here_then_exit_resumes_the_interrupted_leg() {
 
 /// Local east/north of a waypoint around fix `f`, rounded to centimetres for exact comparison.
 fn enu(f: &str, w: &Waypoint) -> (f64, f64) {
-    let p = fpma::geo::LocalFrame::new(fix(f)).to_local(w.pos());
+    let p = flightplan::geo::LocalFrame::new(fix(f)).to_local(w.pos());
     ((p.e * 100.0).round() / 100.0, (p.n * 100.0).round() / 100.0)
 }
 

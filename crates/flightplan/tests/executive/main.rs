@@ -11,14 +11,14 @@ mod flow;
 mod fuzz;
 mod holds;
 
-use fpma::check;
-use fpma::exec::*;
-use fpma::expand::{enforce_min_distance, expand_scan, Ctx, Origin, Waypoint};
-use fpma::expr::Value;
-use fpma::geo::{distance, GeoPoint};
-use fpma::model::{NodeKind, Stage};
-use fpma::parse::parse_plan;
-use fpma::vehicle::VehicleParams;
+use flightplan::check;
+use flightplan::exec::*;
+use flightplan::expand::{enforce_min_distance, expand_scan, Ctx, Origin, Waypoint};
+use flightplan::expr::Value;
+use flightplan::geo::{distance, GeoPoint};
+use flightplan::model::{NodeKind, Stage};
+use flightplan::parse::parse_plan;
+use flightplan::vehicle::VehicleParams;
 
 /// Fixes 40-odd metres apart around the car park.
 const FIXES: &str = r#"

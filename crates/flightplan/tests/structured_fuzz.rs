@@ -1,4 +1,4 @@
-//! The plan XML harness of `fpma::fuzzing` (target `fpma_plan` of `middleware/fuzz/`) on
+//! The plan XML harness of `flightplan::fuzzing` (target `fpma_plan` of `middleware/fuzz/`) on
 //! stable, over a bounded number of seeded inputs plus every input a fuzzer once failed on
 //! (`middleware/fuzz/regressions/fpma_plan/`).
 
@@ -13,7 +13,9 @@ fn structured_fuzz_plan_xml() {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../middleware/fuzz/regressions/fpma_plan");
     if let Ok(entries) = std::fs::read_dir(&dir) {
         for e in entries.flatten() {
-            fpma::fuzzing::plan_xml(&std::fs::read(e.path()).expect("regression input readable"));
+            flightplan::fuzzing::plan_xml(
+                &std::fs::read(e.path()).expect("regression input readable"),
+            );
         }
     }
     // A cap on the wall-clock time only shortens the run in slow debug builds.
@@ -25,7 +27,7 @@ fn structured_fuzz_plan_xml() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0xF1A9);
         let mut data = vec![0u8; rng.random_range(0..4096usize)];
         rng.fill(&mut data[..]);
-        if let Err(e) = std::panic::catch_unwind(|| fpma::fuzzing::plan_xml(&data)) {
+        if let Err(e) = std::panic::catch_unwind(|| flightplan::fuzzing::plan_xml(&data)) {
             let keep = std::env::temp_dir().join(format!("structured_fuzz-fpma_plan-{seed}"));
             let _ = std::fs::write(&keep, &data);
             panic!(
@@ -43,7 +45,7 @@ fn the_plan_generator_makes_plans_that_parse() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let mut data = vec![0u8; 4096];
         rng.fill(&mut data[..]);
-        match fpma::fuzzing::generated_plan_parses(&data) {
+        match flightplan::fuzzing::generated_plan_parses(&data) {
             Some(Ok(())) => parsed += 1,
             Some(Err(e)) if seed < 8 => eprintln!("seed {seed}: {e}"),
             _ => {}
