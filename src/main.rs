@@ -263,6 +263,7 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 file,
                 to,
                 Duration::from_secs(*retry_secs),
+                &cfg.domain,
                 cli.net.json,
             )
             .await?
@@ -446,11 +447,15 @@ async fn call(
     }
 }
 
+/// `usal send`: exit 0 once the sink stored the file (an FPMa's plans sink stores a plan once it
+/// loaded it), 1 with the sink's verdict or why nothing answered, 2 for a file that cannot be
+/// read here.
 async fn send(
     svc: &marea::Service,
     file: &std::path::Path,
     to: &str,
     retry: Duration,
+    domain: &str,
     json: bool,
 ) -> anyhow::Result<ExitCode> {
     if !file.is_file() {
@@ -487,10 +492,9 @@ async fn send(
             last = pct;
         }
     };
-    let result = tokio::select! {
-        r = t.wait() => r,
-        _ = progress => Err(marea::FileSendError::Closed),
-    };
+    // Both run to their end: the progress ends when the transfer's task does, just before its
+    // outcome is handed over, so neither may cut the other short.
+    let (result, ()) = tokio::join!(t.wait(), progress);
     if tty {
         eprintln!();
     }
@@ -513,7 +517,15 @@ async fn send(
             Ok(ExitCode::SUCCESS)
         }
         Err(e) => {
-            eprintln!("usal: {e}");
+            let why = match &e {
+                marea::FileSendError::NoSink { .. } => format!("{e} in domain {domain}"),
+                _ => e.to_string(),
+            };
+            if json {
+                println!("{}", serde_json::json!({"error": why, "to": to}));
+            } else {
+                eprintln!("usal: {} not sent: {why}", file.display());
+            }
             Ok(ExitCode::FAILURE)
         }
     }

@@ -1166,8 +1166,8 @@ fn usal_says_its_version() {
 }
 
 /// A bad plan another tool sends into a running mission is refused by the FPMa and changes
-/// nothing: `usal run` says so and the mission flies on to its end (it used to stop every
-/// service at the first `plan_rejected`, whoever's plan it was).
+/// nothing: the sender is told why, `usal run` says so and the mission flies on to its end (it
+/// used to stop every service at the first `plan_rejected`, whoever's plan it was).
 #[test]
 fn a_bad_plan_sent_by_another_tool_is_refused_and_the_mission_flies_on() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -1188,7 +1188,13 @@ fn a_bad_plan_sent_by_another_tool_is_refused_and_the_mission_flies_on() {
         v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
     });
     let bad_path = bad.to_str().expect("a UTF-8 path");
-    let _ = tool(&domain, &["send", bad_path, "--to", "rover1/fpma/plans"]);
+    // The sender hears the refusal itself: the FPMa loads a plan before its sink stores it.
+    let (sent, said) = tool(&domain, &["send", bad_path, "--to", "rover1/fpma/plans"]);
+    assert!(!sent, "a refused plan was reported sent: {said}");
+    assert!(
+        said.contains("refused the file") && said.contains("unknown fix `NOPE`"),
+        "{said}"
+    );
     let refused = l.expect(STEP, "the refusal noted", |v| v["event"] == "plan_refused");
     assert!(
         refused["reason"]

@@ -168,9 +168,9 @@ fn killed_subscriber_fails_pending_events_by_name_and_publisher_goes_on() {
     publ.expect_key(T, "raised");
 }
 
-/// Issue 17 item 2: `Event::stream` is lossless with back-pressure and no report per event:
-/// 100,000 events reach two subscriber processes exactly once and in order, and the publisher's
-/// flush returns once both acknowledged all of them.
+/// `Event::stream` is lossless with back-pressure and no report per event: 100,000 events reach
+/// two subscriber processes exactly once and in order, and the publisher's flush returns once
+/// both acknowledged all of them.
 #[test]
 fn a_stream_of_100k_events_reaches_two_subscribers_exactly_once_in_order() {
     let net = Net::new("stream_2x100k");
@@ -462,9 +462,9 @@ fn twenty_mb_file_arrives_identical_and_resumes_after_receiver_restart() {
     assert!(parts.is_empty(), "{parts:?}");
 }
 
-/// Issue 17 item 4: a subscriber process that stops acknowledging (stopped, then killed) with
-/// 4,096 events in flight towards it: every one of them completes, with an error naming it,
-/// as soon as its lease runs out, not one waits longer.
+/// A subscriber process that stops acknowledging (stopped, then killed) with 4,096 events in
+/// flight towards it: every one of them completes, with an error naming it, as soon as its
+/// lease runs out, not one waits longer.
 #[test]
 fn killed_subscriber_with_4096_raises_in_flight_completes_every_one_at_once() {
     let net = Net::new("kill_sub_4096");
@@ -529,4 +529,63 @@ fn killed_subscriber_with_4096_raises_in_flight_completes_every_one_at_once() {
     );
     // When the lease ran out is the node's unit test's (on paused time); here `T` bounds it.
     eprintln!("done {waited:?} after the kill: {done}");
+}
+
+/// `usal send` says how a send ended, every time: 0 once the sink stored the file (six sends in
+/// a row, where a race between the progress and the outcome once made most of them say "node is
+/// shutting down" after the sink had stored them), 1 naming the domain when no node offers the
+/// sink.
+#[test]
+fn usal_send_exits_0_once_stored_and_1_naming_the_domain_without_a_sink() {
+    let net = Net::new("usal_send");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let inbox = dir.path().join("inbox");
+    let mut sink = net.probe_ns(
+        "air",
+        "rover1",
+        &[
+            "sink",
+            "--item",
+            "plans",
+            "--dir",
+            inbox.to_str().expect("UTF-8"),
+        ],
+    );
+    sink.expect_key(T, "ready");
+    let file = dir.path().join("plan.xml");
+    std::fs::write(&file, "<flightPlan/>").expect("write the file");
+    let usal = |to: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_usal"))
+            .args([
+                "--domain",
+                &net.domain,
+                "--mcast-port",
+                &net.port.to_string(),
+            ])
+            .args(["send", file.to_str().expect("UTF-8"), "--to", to])
+            .args(["--retry-secs", "10"])
+            .output()
+            .expect("usal send")
+    };
+    for i in 0..6 {
+        let out = usal("rover1/probe/plans");
+        assert!(
+            out.status.success(),
+            "send {i}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(
+            String::from_utf8_lossy(&out.stdout).contains("to air"),
+            "{out:?}"
+        );
+        sink.expect_key(T, "received");
+    }
+    let out = usal("rover1/probe/nothing");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("no file sink 'rover1/probe/nothing'")
+            && err.contains(&format!("in domain {}", net.domain)),
+        "{err}"
+    );
 }

@@ -401,6 +401,66 @@ mod tests {
         tx.shutdown().await;
     }
 
+    /// A sink's check decides after the file arrived whole: a refusal reaches the sender with
+    /// its reason and nothing is stored; a file it takes is stored and delivered.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_sinks_check_refuses_with_its_reason_and_stores_what_it_takes() {
+        let (rx, tx) = pair("check", 6).await;
+        let t = tempfile::tempdir().unwrap();
+        let dir = t.path().join("inbox");
+        let check = crate::FileCheck::new(|f: crate::FileToCheck| async move {
+            let text = tokio::fs::read_to_string(&f.path)
+                .await
+                .map_err(|e| e.to_string())?;
+            if text.contains("NOPE") {
+                Err(format!("{} from {}: unknown fix `NOPE`", f.name, f.from))
+            } else {
+                Ok(())
+            }
+        });
+        let sink = rx
+            .service("fpma")
+            .unwrap()
+            .file_sink_with(
+                "plans",
+                FileSinkOptions {
+                    check: Some(check),
+                    ..opts(&dir)
+                },
+            )
+            .unwrap();
+        let sender = tx.service("fpmo").unwrap();
+        let bad = t.path().join("bad.xml");
+        std::fs::write(&bad, "<flightPlan><leg fix=\"NOPE\"/></flightPlan>").unwrap();
+        let r = sender
+            .send_file(&bad, "rx/fpma/plans", SendFileOptions::default())
+            .wait()
+            .await;
+        match r {
+            Err(FileSendError::Rejected { node, reason }) => {
+                assert_eq!(node, "rx");
+                assert_eq!(reason, "bad.xml from tx: unknown fix `NOPE`");
+            }
+            other => panic!("expected Rejected, got {other:?}"),
+        }
+        assert!(!dir.join("bad.xml").exists(), "a refused file was stored");
+        assert_eq!(sink.stats().stored, 0);
+
+        let good = t.path().join("good.xml");
+        std::fs::write(&good, "<flightPlan/>").unwrap();
+        let report = sender
+            .send_file(&good, "rx/fpma/plans", SendFileOptions::default())
+            .wait()
+            .await
+            .expect("the good file is taken");
+        assert_eq!(report.receiver, "rx");
+        let got = sink.recv_timeout(T).await.expect("delivered");
+        assert_eq!(got.name, "good.xml");
+        assert_eq!(std::fs::read_to_string(&got.path).unwrap(), "<flightPlan/>");
+        rx.shutdown().await;
+        tx.shutdown().await;
+    }
+
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_sink_receiving_its_maximum_refuses_one_more_as_busy() {
         let (rx, tx) = pair("busy", 4).await;

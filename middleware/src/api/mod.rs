@@ -28,8 +28,8 @@ pub use variable::{Sample, Variable};
 pub use crate::node::calls::{CallError, Caller};
 pub use crate::node::data::PublishError;
 pub use crate::node::files::{
-    FileProgress, FileReport, FileSendError, FileSinkOptions, FileSinkStats, ReceivedFile,
-    SendFileOptions,
+    FileCheck, FileCheckFuture, FileProgress, FileReport, FileSendError, FileSinkOptions,
+    FileSinkStats, FileToCheck, ReceivedFile, SendFileOptions,
 };
 pub use crate::node::gateway::ForwardedItem;
 pub use crate::node::mailbox::TypeMismatch;

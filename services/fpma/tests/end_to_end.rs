@@ -137,10 +137,19 @@ async fn fpma_vas_mavsim_fly_the_rover_plan_with_changes_in_flight() {
     );
     let bad_file = dir.path().join("broken.xml");
     std::fs::write(&bad_file, &bad).unwrap();
-    gcs.send_file(&bad_file, "rover1/fpma/plans", SendFileOptions::default())
+    // The sender hears the refusal (the plan is loaded before the sink stores it), and the
+    // stations see it as `plan_rejected`.
+    let sent = gcs
+        .send_file(&bad_file, "rover1/fpma/plans", SendFileOptions::default())
         .wait()
-        .await
-        .expect("sending the broken plan");
+        .await;
+    match sent {
+        Err(marea::FileSendError::Rejected { reason, .. }) => assert!(
+            reason.starts_with("broken.xml:") && reason.contains("NOWHERE"),
+            "{reason}"
+        ),
+        other => panic!("the broken plan was not refused to its sender: {other:?}"),
+    }
     let r = rejected.recv_timeout(STEP).await.expect("plan_rejected");
     assert!(
         r.value.reason.starts_with("broken.xml:") && r.value.reason.contains("NOWHERE"),

@@ -17,7 +17,9 @@ use crate::protocol::{FileVerdict, NodeId};
 
 #[cfg(test)]
 pub(crate) use receive::{part_path, PARTIAL_DIR};
-pub use receive::{FileSinkOptions, FileSinkStats, ReceivedFile};
+pub use receive::{
+    FileCheck, FileCheckFuture, FileSinkOptions, FileSinkStats, FileToCheck, ReceivedFile,
+};
 pub(crate) use receive::{SinkMailbox, SinkState};
 pub(crate) use send::start_sending;
 pub use send::{FileProgress, FileReport, FileSendError, SendFileOptions};

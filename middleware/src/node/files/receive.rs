@@ -11,8 +11,10 @@
 //! periodically.
 
 use std::collections::{HashMap, VecDeque};
+use std::future::Future;
 use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt, PermissionsExt};
 use std::path::{Path, PathBuf};
+use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime};
@@ -98,7 +100,61 @@ pub struct FileSinkOptions {
     /// Partial files not written to for this long are removed (at sink open and periodically):
     /// an interrupted transfer may resume within this time.
     pub stale_part_age: Duration,
+    /// Asked about each file received whole (hash verified) before it is stored: a refusal is
+    /// the sender's verdict (`FileSendError::Rejected` with the reason) and nothing is stored.
+    /// `None`: every file that arrives whole is stored.
+    pub check: Option<FileCheck>,
 }
+
+/// A received file, complete and hash verified, not yet stored: what a [`FileCheck`] decides on.
+#[derive(Debug, Clone)]
+pub struct FileToCheck {
+    /// File name (no directories).
+    pub name: String,
+    /// Where its content is now (a partial file of the sink; read it, do not keep the path).
+    pub path: PathBuf,
+    /// The sending node (the node behind a gateway).
+    pub from: String,
+}
+
+/// The future a [`FileCheck`] returns.
+pub type FileCheckFuture = Pin<Box<dyn Future<Output = Result<(), String>> + Send>>;
+
+/// Decides whether a sink stores a file it received (see [`FileSinkOptions::check`]): `Ok` stores
+/// it, `Err(reason)` refuses it with that reason. The sender waits for the decision, so a sink
+/// that loads what it receives (a flight plan) can answer with the load's outcome.
+#[derive(Clone)]
+pub struct FileCheck(Arc<dyn Fn(FileToCheck) -> FileCheckFuture + Send + Sync>);
+
+impl FileCheck {
+    /// A check made of `f`.
+    pub fn new<F, Fut>(f: F) -> Self
+    where
+        F: Fn(FileToCheck) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<(), String>> + Send + 'static,
+    {
+        FileCheck(Arc::new(move |file| Box::pin(f(file))))
+    }
+
+    fn run(&self, file: FileToCheck) -> FileCheckFuture {
+        (self.0)(file)
+    }
+}
+
+impl std::fmt::Debug for FileCheck {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("FileCheck")
+    }
+}
+
+/// Two checks are equal when they are the same one (clones of one `FileCheck`).
+impl PartialEq for FileCheck {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+impl Eq for FileCheck {}
 
 impl Default for FileSinkOptions {
     fn default() -> Self {
@@ -108,6 +164,7 @@ impl Default for FileSinkOptions {
             quota_bytes: 1 << 30,
             max_concurrent: 4,
             stale_part_age: Duration::from_secs(24 * 3600),
+            check: None,
         }
     }
 }
@@ -657,6 +714,17 @@ impl NodeInner {
                     return Err("content hash mismatch; partial file discarded"
                         .to_owned()
                         .into());
+                }
+                if let Some(check) = &state.options.check {
+                    let file = FileToCheck {
+                        name: name.clone(),
+                        path: part.clone(),
+                        from: from.clone(),
+                    };
+                    if let Err(reason) = check.run(file).await {
+                        let _ = tokio::fs::remove_file(&part).await;
+                        return Err(reason.into());
+                    }
                 }
                 let dest = state.dir.join(&name);
                 tokio::fs::rename(&part, &dest)

@@ -385,6 +385,39 @@ async fn ask<T>(
         .map_err(|_| "the fpma service is stopping".to_string())?
 }
 
+/// The plans sink's check: each plan file received whole is loaded like `load_plan` before it
+/// is stored; a refusal is the sender's verdict and is raised as `plan_rejected`.
+fn load_on_receipt(
+    tx: mpsc::Sender<Request>,
+    rejected: Arc<Event<PlanRejected>>,
+) -> marea::FileCheck {
+    marea::FileCheck::new(move |f: marea::FileToCheck| {
+        let (tx, rejected) = (tx.clone(), rejected.clone());
+        async move {
+            let outcome = match tokio::fs::read_to_string(&f.path).await {
+                Ok(text) => ask(&tx, |reply| Request::Load {
+                    text,
+                    source: f.name.clone(),
+                    replace: false,
+                    reply,
+                })
+                .await
+                .map(|_| ()),
+                Err(e) => Err(format!("{}: cannot read: {e}", f.name)),
+            };
+            if let Err(reason) = &outcome {
+                tracing::warn!("plan file {} from {} refused: {reason}", f.name, f.from);
+                let _ = rejected.raise_nowait(&PlanRejected {
+                    file: f.name,
+                    from: f.from,
+                    reason: reason.clone(),
+                });
+            }
+            outcome
+        }
+    })
+}
+
 /// Raises the `commands` event: a command received, who sent it and the answer, for the
 /// flight log.
 fn record_command<A: std::fmt::Debug, R: std::fmt::Debug>(
@@ -485,7 +518,7 @@ impl IService for Fpma {
             plan_event: ctx.publish_event("plan_event")?,
             ready: ctx.publish_variable("ready")?,
         };
-        let rejected: Event<PlanRejected> = ctx.publish_event("plan_rejected")?;
+        let rejected: Arc<Event<PlanRejected>> = Arc::new(ctx.publish_event("plan_rejected")?);
         let commands: Arc<Event<CommandRecord>> = Arc::new(ctx.publish_event("commands")?);
         let _ = outlets.progress.set(&Progress::default());
         let _ = outlets.state.set(&PlanState::default());
@@ -513,15 +546,18 @@ impl IService for Fpma {
         let flight_state = ctx.subscribe_variable::<FlightState>(&format!("{vas}/flight_state"))?;
         let mission_changed =
             ctx.subscribe_event::<MissionChanged>(&format!("{vas}/mission_changed"))?;
+        let (tx, mut rx) = mpsc::channel::<Request>(64);
+        // A plan file is loaded before the sink stores it: the sender's verdict is the load's
+        // outcome (`usal send` prints the reason a plan was refused), and a refusal is raised as
+        // `plan_rejected` for the stations too.
         let sink = ctx.file_sink_with(
             "plans",
             marea::FileSinkOptions {
                 dir: self.config.plans_dir.clone(),
+                check: Some(load_on_receipt(tx.clone(), rejected.clone())),
                 ..marea::FileSinkOptions::default()
             },
         )?;
-
-        let (tx, mut rx) = mpsc::channel::<Request>(64);
         let mut providers = Vec::new();
         for (name, replace) in [("load_plan", false), ("replace_plan", true)] {
             providers.push(load_fn(&ctx, &tx, &commands, name, replace)?);
@@ -601,37 +637,16 @@ impl IService for Fpma {
             |rule: Option<String>| Ok(Command::Emergency(rule)),
         )?);
 
-        // Files: each one is loaded like `load_plan`; a refusal is raised as `plan_rejected`.
-        let t = tx.clone();
+        // Files arrive loaded (see `load_on_receipt`); the sink's mailbox is only drained.
         let cx = ctx.clone();
         ctx.spawn(async move {
             loop {
-                let f = tokio::select! {
+                tokio::select! {
                     _ = cx.cancelled() => return,
                     f = sink.recv() => match f {
-                        Ok(f) => f,
+                        Ok(f) => tracing::info!("plan file {} from {} loaded", f.name, f.from),
                         Err(_) => return,
                     },
-                };
-                let outcome = match tokio::fs::read_to_string(&f.path).await {
-                    Ok(text) => {
-                        ask(&t, |reply| Request::Load {
-                            text,
-                            source: f.name.clone(),
-                            replace: false,
-                            reply,
-                        })
-                        .await
-                    }
-                    Err(e) => Err(format!("{}: cannot read: {e}", f.name)),
-                };
-                if let Err(reason) = outcome {
-                    tracing::warn!("plan file from {} refused: {reason}", f.from);
-                    let _ = rejected.raise_nowait(&PlanRejected {
-                        file: f.name,
-                        from: f.from,
-                        reason,
-                    });
                 }
             }
         });
