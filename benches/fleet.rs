@@ -1,5 +1,5 @@
-//! `cargo bench --bench fleet`: ten vehicles on one `usal run` on this machine (issue 16 item
-//! 6), as JSON lines `{"metric": ..., "value": ..., "unit": ...}`.
+//! `cargo bench --bench fleet`: ten vehicles on one `usal run` on this machine, as JSON lines
+//! `{"metric": ..., "value": ..., "unit": ...}`.
 //!
 //! Real processes, as a user runs them: a generated mission of [`VEHICLES`] nodes, each with
 //! its mavsim (real time, no speed-up), its VAS (10 Hz telemetry) and its FPMa, started by the
@@ -18,8 +18,8 @@
 //!
 //! The per-program split of the CPU time goes to stderr, to show where the cost is.
 //!
-//! The two-vehicle search (issue 16 items 3-4): `usal run config/missions/search.xml
-//! --until-complete --speedup 10` with the release binaries, read from its `fleet_plan_summary`:
+//! The two-vehicle search: `usal run config/missions/search.xml --until-complete --speedup 10`
+//! with the release binaries, read from its `fleet_plan_summary`:
 //!
 //! - `fleet.search.detections_visited_ratio`: detections visited over the points of interest
 //!   the mission placed (`config/search/pois.txt`), so a point never detected counts as

@@ -1,4 +1,4 @@
-//! Owned names and access control, over real sockets and processes (issue 13, items 2 and 3).
+//! Owned names and access control, over real sockets and processes.
 //!
 //! The attacker of the first two tests is a plain UDP socket speaking the wire protocol by
 //! hand (what anyone on the LAN can do); the victims are real nodes. The `<access>` tests run

@@ -1,7 +1,7 @@
-//! Link authentication (issue 13, item 1) through the real path: `usal keygen` makes the key,
-//! `marea-probe` child processes carry it (as `<security keyFile=..>` would), and what crosses
-//! UDP, a pty pair or shared memory is sealed; nodes without the key, or with another, are
-//! neither discovered nor delivered, and the keyed nodes' link health counts the rejections.
+//! Link authentication through the real path: `usal keygen` makes the key, `marea-probe` child
+//! processes carry it (as `<security keyFile=..>` would), and what crosses UDP, a pty pair or
+//! shared memory is sealed; nodes without the key, or with another, are neither discovered nor
+//! delivered, and the keyed nodes' link health counts the rejections.
 
 mod common;
 

@@ -1,7 +1,7 @@
-//! Issue 15 item 8, end to end with real processes: `usal run` of the rover demo writes a
-//! flight log holding every record kind; `usal replay` of that log is seen by a marea
-//! subscriber and by an FPMo station joined to the replay's domain; a corrupt or cut log is
-//! refused naming its line.
+//! The flight log, end to end with real processes: `usal run` of the rover demo writes a flight
+//! log holding every record kind; `usal replay` of that log is seen by a marea subscriber and
+//! by an FPMo station joined to the replay's domain; a corrupt or cut log is refused naming its
+//! line.
 
 #[path = "../services/fmo/tests/common/mod.rs"]
 mod common;

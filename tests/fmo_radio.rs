@@ -1,9 +1,9 @@
-//! FMo manual control end to end over the radio (issue 15 item 7): `usal run` of the rover
-//! radio mission (its air and ground nodes joined only by `marea-radio` at 57600 baud with byte
-//! errors, a gateway on each side) without its plan-following station; from the ground FMo's
-//! HTTP API the pilot takes MANUAL_NAVIGATION and drives with the throttle as the page posts it:
-//! mavsim's rover moves forward (its position, telemetry back over the radio), and stops when
-//! the dead-man is released. The run's flight log holds the manual control and the state.
+//! FMo manual control end to end over the radio: `usal run` of the rover radio mission (its air
+//! and ground nodes joined only by `marea-radio` at 57600 baud with byte errors, a gateway on
+//! each side) without its plan-following station; from the ground FMo's HTTP API the pilot
+//! takes MANUAL_NAVIGATION and drives with the throttle as the page posts it: mavsim's rover
+//! moves forward (its position, telemetry back over the radio), and stops when the dead-man is
+//! released. The run's flight log holds the manual control and the state.
 
 #[path = "../services/fmo/tests/common/mod.rs"]
 mod common;
@@ -227,7 +227,7 @@ async fn fmo_manual_control_drives_mavsim_over_the_radio() {
     assert!(status.success(), "{status}");
     reader.abort();
 
-    // The flight log (issue 15 item 8) holds the pilot's manual control and the state taken.
+    // The flight log holds the pilot's manual control and the state taken.
     let file = std::fs::File::open(dir.path().join("flight.jsonl.gz")).expect("the log");
     let text = std::io::read_to_string(flate2::read::GzDecoder::new(file)).expect("gzip");
     let records: Vec<Value> = text

@@ -1,9 +1,9 @@
-//! Hostile tests (issue 13, item 9), all real processes: a victim node (`marea-probe victim`,
-//! keyed, `<access>` rules allowing only `ground/*`), a legitimate peer publishing positions to
-//! it, and an attacker trying every attack of the issue: an outsider without the key, then an
-//! insider with the key but another namespace. Nothing from the attacker is delivered or
-//! executed (the victim's report of what it ran, delivered and stored), the legitimate traffic
-//! keeps flowing (counts), and the victim's counters show every rejection. The attacks are in
+//! Hostile tests, all real processes: a victim node (`marea-probe victim`, keyed, `<access>`
+//! rules allowing only `ground/*`), a legitimate peer publishing positions to it, and an
+//! attacker trying every attack of the suite: an outsider without the key, then an insider with
+//! the key but another namespace. Nothing from the attacker is delivered or executed (the
+//! victim's report of what it ran, delivered and stored), the legitimate traffic keeps flowing
+//! (counts), and the victim's counters show every rejection. The attacks are in
 //! `tests/common/hostile.rs`, shared with the `hostile.rejected_ratio` benchmark.
 
 mod common;

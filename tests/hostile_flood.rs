@@ -1,7 +1,6 @@
-//! Robust without a key (issue 13, item 4): an attacker on the LAN, with real UDP sockets,
-//! floods a victim node with forged discovery and session datagrams; the victim keeps its live
-//! peers, a node started during or after the attack still finds it, and its counters show what
-//! it dropped.
+//! Robust without a key: an attacker on the LAN, with real UDP sockets, floods a victim node
+//! with forged discovery and session datagrams; the victim keeps its live peers, a node started
+//! during or after the attack still finds it, and its counters show what it dropped.
 
 #[path = "common/attacker.rs"]
 mod attacker;

@@ -314,7 +314,7 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
         n.len(),
         summary["summary"]["planned"].as_u64().unwrap() as usize
     );
-    // With an ETA from the speeds flown (issue 15 item 6), shrinking as the plan goes on.
+    // With an ETA from the speeds flown, shrinking as the plan goes on.
     let etas: Vec<f64> = l
         .seen
         .iter()
@@ -332,7 +332,7 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
         err.contains("[air/vas] ") && err.contains("[air/fpma] "),
         "{err}"
     );
-    // Issue 13: the stations' URLs carry their token; the VAS knows the mission's FMo.
+    // The stations' URLs carry their token; the VAS knows the mission's FMo.
     let all = l.stderr.lock().unwrap().clone();
     for line in [
         "[ground/fmo] FMO_URL=http://127.0.0.1:",
@@ -521,7 +521,7 @@ fn the_rover_wan_failsafe_mission_completes_across_a_router_restart_and_an_outag
     assert_no_child_left(&l.pids());
 }
 
-/// Issue 16 item 1: two rovers in one mission, each its namespace, simulator, VAS, FPMa and
+/// Two rovers in one mission, each its namespace, simulator, VAS, FPMa and
 /// plan; `--until-complete` waits for both, and each gets its own progress and summary.
 #[test]
 fn two_rovers_in_one_mission_each_complete_their_own_plan() {
@@ -579,7 +579,7 @@ fn two_rovers_in_one_mission_each_complete_their_own_plan() {
     assert_no_child_left(&pids);
 }
 
-/// Issue 16 items 2-4: the Broz search through real processes. The surveyor's mavsim detects
+/// The Broz search through real processes. The surveyor's mavsim detects
 /// the mission's points of interest, the fleet service re-tasks the investigator to each, the
 /// surveyor is paused and resumed by a call to the fleet service meanwhile, and the run ends 0
 /// once the area is covered and every detection visited, with no separation violation.
@@ -664,7 +664,7 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
     assert_no_child_left(&pids);
 }
 
-/// Issue 16 item 3: the same search over the radio arrangement (an air LAN per rover, one
+/// The same search over the radio arrangement (an air LAN per rover, one
 /// ground LAN, a lossy marea-radio per rover): the fleet layer commands both rovers across.
 #[test]
 fn the_search_over_a_radio_per_rover_visits_every_detection() {
@@ -1412,7 +1412,7 @@ fn a_malformed_mission_file_names_element_and_line_and_starts_nothing() {
     );
 }
 
-/// Issue 15: the failsafe rehearsal. Over a lossy radio the station first offers a plan that
+/// The failsafe rehearsal. Over a lossy radio the station first offers a plan that
 /// leaves the field's geofence (refused), the radio goes silent mid-mission (the VAS holds,
 /// then resumes) and the battery runs low (the plan's rule sends the rover to the approach);
 /// the run ends with status 0 and a summary naming each failsafe that fired.

@@ -178,8 +178,8 @@ fn ten_thousand_events_reach_two_subscribers_once_in_order_over_shm() {
     }
 }
 
-/// Issue 17: [`stream_to_a_slow_reader_loses_nothing`] over shared memory, where a pack frame
-/// carries hundreds of events.
+/// The same as [`stream_to_a_slow_reader_loses_nothing`], over shared memory, where a pack
+/// frame carries hundreds of events.
 #[test]
 fn a_stream_to_a_slow_reader_over_shm_waits_for_it_instead_of_dropping() {
     let net = ShmNet::new("shm_slow_reader");

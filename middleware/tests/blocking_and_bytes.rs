@@ -1,6 +1,6 @@
-//! Issue 17 item 3: publishing borrowed bytes (`Variable::set_bytes`, `Event::raise_bytes`)
-//! and receiving on a plain thread without an async runtime (`recv_blocking`,
-//! `recv_blocking_timeout`, `try_recv`), between two nodes over real UDP sockets.
+//! Publishing borrowed bytes (`Variable::set_bytes`, `Event::raise_bytes`) and receiving on a
+//! plain thread without an async runtime (`recv_blocking`, `recv_blocking_timeout`,
+//! `try_recv`), between two nodes over real UDP sockets.
 
 mod common;
 

@@ -1,6 +1,6 @@
-//! A simple on-board detector (issue 16, the Broz search): points of interest placed by the
-//! mission (`--poi-file`), each detected once when the vehicle comes within the sensor
-//! footprint radius (`--sensor-radius`) of it, horizontally.
+//! A simple on-board detector (the Broz search): points of interest placed by the mission
+//! (`--poi-file`), each detected once when the vehicle comes within the sensor footprint radius
+//! (`--sensor-radius`) of it, horizontally.
 //!
 //! A detection goes to the ground as a STATUSTEXT of severity WARNING,
 //! `POI <id> <lat> <lon>` (at most 50 characters, the field's size). The VAS raises every

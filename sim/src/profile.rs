@@ -1,7 +1,7 @@
 //! Autopilot profiles: how far mavsim behaves like ArduPilot, PX4 or a generic autopilot.
 //!
 //! The MAVLink mission protocol leaves room where conforming autopilots differ, and a ground
-//! station that only ever met one of them breaks on the others (issue 14):
+//! station that only ever met one of them breaks on the others:
 //!
 //! | | ArduPilot (default) | PX4 | generic (MAVSDK-like) | ArduPilot, resetting |
 //! |---|---|---|---|---|

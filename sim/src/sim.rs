@@ -89,7 +89,7 @@ pub struct Simulator {
     vehicle: Vehicle,
     link: Link,
     log: Option<LogWriter>,
-    /// Points of interest the vehicle reports when it passes them (issue 16).
+    /// Points of interest the vehicle reports when it passes them.
     detector: Option<crate::detector::Detector>,
 }
 

@@ -117,7 +117,7 @@ pub struct Vehicle {
     /// Drained while armed, by time and distance; reported in SYS_STATUS.
     battery: Battery,
     streams: BTreeMap<u32, (Duration, Instant)>,
-    /// The geofence on board (issue 15).
+    /// The geofence on board.
     fence: FenceStore,
     next_heartbeat: Instant,
     log: Vec<(f64, LogEvent)>,

@@ -253,10 +253,10 @@ async fn auto_mission_at_speedup_20() {
     sim.stop().await;
 }
 
-/// The manager as a good ground-station citizen (issue 14): it listens only to the configured
-/// system on a shared link, reads AUTOPILOT_VERSION's capabilities, and knows the PX4
-/// profile's conventions (family from the heartbeat, PX4 modes, no partial writes found out
-/// by one short probe; its time is `vas.partial_write_probe_ms` in the waypoint benchmark).
+/// The manager as a good ground-station citizen: it listens only to the configured system on a
+/// shared link, reads AUTOPILOT_VERSION's capabilities, and knows the PX4 profile's conventions
+/// (family from the heartbeat, PX4 modes, no partial writes found out by one short probe; its
+/// time is `vas.partial_write_probe_ms` in the waypoint benchmark).
 #[tokio::test]
 async fn routing_capabilities_and_the_px4_profile() {
     use common::connect;

@@ -1,6 +1,6 @@
-//! MAVLink 2 signing between the VAS's manager and the real mavsim binary (issue 13): with the
-//! same key they fly a mission; unsigned commands (a raw socket, a manager without the key) are
-//! ignored by mavsim.
+//! MAVLink 2 signing between the VAS's manager and the real mavsim binary: with the same key
+//! they fly a mission; unsigned commands (a raw socket, a manager without the key) are ignored
+//! by mavsim.
 
 mod common;
 

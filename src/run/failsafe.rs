@@ -1,7 +1,7 @@
-//! The station's side of the failsafes (issue 15): it publishes the heartbeat by which the VAS
-//! knows its ground station is there, rehearses a plan the FPMa must refuse (`refusedPlan`,
-//! e.g. one crossing the geofence), and collects every failsafe that fired (the VAS's
-//! `failsafe` events, the FPMa's emergency rules) for the run's lines and summary.
+//! The station's side of the failsafes: it publishes the heartbeat by which the VAS knows its
+//! ground station is there, rehearses a plan the FPMa must refuse (`refusedPlan`, e.g. one
+//! crossing the geofence), and collects every failsafe that fired (the VAS's `failsafe` events,
+//! the FPMa's emergency rules) for the run's lines and summary.
 
 use std::path::Path;
 use std::time::Duration;

@@ -1,8 +1,8 @@
-//! `usal run` of a mission with a `<fleet>` and no `<station>` (issue 16): the fleet service
-//! flies the vehicles; the launcher follows its `status` variable from the fleet's node (so
-//! over a radio it listens on the ground side like any station), shows progress, and with
-//! `--until-complete` exits 0 once the fleet plan is done, with the fleet summary
-//! (`FleetStatus::text`, JSON record `fleet_plan_summary` with `--json`).
+//! `usal run` of a mission with a `<fleet>` and no `<station>`: the fleet service flies the
+//! vehicles; the launcher follows its `status` variable from the fleet's node (so over a radio
+//! it listens on the ground side like any station), shows progress, and with `--until-complete`
+//! exits 0 once the fleet plan is done, with the fleet summary (`FleetStatus::text`, JSON
+//! record `fleet_plan_summary` with `--json`).
 
 use std::process::ExitCode;
 use std::sync::Arc;

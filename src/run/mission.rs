@@ -98,7 +98,7 @@ pub enum ServiceSpec {
         /// local paths resolved against the mission file.
         tiles: Option<String>,
     },
-    /// The fleet mission layer (`fleet`, issue 16): runs a fleet plan over the vehicles.
+    /// The fleet mission layer (`fleet`): runs a fleet plan over the vehicles.
     Fleet {
         /// The fleet plan file.
         plan: PathBuf,
@@ -184,7 +184,7 @@ pub struct StationSpec {
     /// rover or aircraft: how the plan is expanded for the summary.
     pub vehicle: String,
     /// A plan the FPMa must refuse (`refusedPlan`), offered before `plan`: rehearses a
-    /// plan check such as the geofence (issue 15); accepted, it fails the run.
+    /// plan check such as the geofence; accepted, it fails the run.
     pub refused_plan: Option<PathBuf>,
     /// Who presses Start once the plan is loaded (`start`).
     pub start: StartBy,
@@ -217,7 +217,7 @@ pub struct RadioSpec {
     /// Seed of the emulator's RNG.
     pub seed: Option<u64>,
     /// Scheduled outages (`outage="START_MS:DURATION_MS,..."`), from the radio's start: the
-    /// lost-link rehearsal (issue 15).
+    /// lost-link rehearsal.
     pub outages: Vec<(u64, u64)>,
 }
 

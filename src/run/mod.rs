@@ -657,7 +657,7 @@ async fn start_services(
                     a.extend(["--state-dir".into(), state.display().to_string()]);
                     common(&mut a);
                 }
-                // The fleet layer: a service of the ground node (issue 16).
+                // The fleet layer: a service of the ground node.
                 ServiceSpec::Fleet { plan } => {
                     a.extend([
                         "--plan".into(),
@@ -702,8 +702,8 @@ fn vas_uses_sim(node: &mission::NodeSpec) -> bool {
         .any(|s| matches!(s, ServiceSpec::Vas(v) if v.endpoint.is_none()))
 }
 
-/// The mission's FMo stations as the VAS's `--manual-stations` list (issue 13: manual control
-/// only from them): each FMo's node name (`NODE-fmo`, as started below) and, with a
+/// The mission's FMo stations as the VAS's `--manual-stations` list (the VAS obeys manual
+/// control only from them): each FMo's node name (`NODE-fmo`, as started below) and, with a
 /// namespace, its item prefix (`NS/fmo`). Empty without an FMo.
 fn manual_stations(mission: &Mission) -> String {
     let mut out: Vec<String> = Vec::new();

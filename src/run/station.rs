@@ -75,7 +75,7 @@ pub struct StationSetup {
     pub nominal: Vec<(String, f64, f64)>,
     /// Its nominal length, metres.
     pub nominal_m: f64,
-    /// A plan the FPMa must refuse, offered first (`<station refusedPlan>`, issue 15).
+    /// A plan the FPMa must refuse, offered first (`<station refusedPlan>`).
     pub refused_plan: Option<PathBuf>,
     /// The run's flight log, where the station's commands and their answers go.
     pub log: Option<Arc<super::flightlog::FlightLog>>,
@@ -120,7 +120,7 @@ pub struct Summary {
     pub elapsed_s: f64,
     /// Times the VAS was restarted and the queue re-sent.
     pub vas_recoveries: u32,
-    /// The failsafes that fired, in order (issue 15).
+    /// The failsafes that fired, in order.
     pub failsafes: Vec<FailsafeNote>,
 }
 
@@ -645,7 +645,8 @@ async fn follow(
         }
 
         // The operator's Start: once the plan is loaded and the VAS parks with waypoints
-        // queued, ask for WAYPOINT_NAVIGATION (the FPMa never does, issue 15).
+        // queued, ask for WAYPOINT_NAVIGATION (the FPMa never does: the flight state is the
+        // operator's).
         let waiting = s.start == StartBy::Auto
             && t.started.is_some()
             && !navigated
@@ -838,7 +839,7 @@ async fn follow(
 }
 
 /// Seconds as `m:ss` (whole seconds, rounded).
-/// Offers the mission's `refusedPlan`, if any, before the plan itself (issue 15).
+/// Offers the mission's `refusedPlan`, if any, before the plan itself.
 async fn rehearse(
     svc: &marea::Service,
     s: &StationSetup,

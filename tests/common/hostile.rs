@@ -1,9 +1,9 @@
-//! The hostile suite (issue 13, item 9), shared by `tests/hostile.rs` and
-//! `benches/security/hostile.rs`: a victim node process (`marea-probe victim`, keyed, with
-//! `<access>` rules) and a legitimate peer process publishing positions to it, then the attacks
-//! of an outsider without the domain key and of an insider with the key but another
-//! namespace. Each attack function returns what it sent and how much of it the victim's
-//! counters show refused; the tests assert on the victim's observable outputs.
+//! The hostile suite, shared by `tests/hostile.rs` and `benches/security/hostile.rs`: a victim
+//! node process (`marea-probe victim`, keyed, with `<access>` rules) and a legitimate peer
+//! process publishing positions to it, then the attacks of an outsider without the domain key
+//! and of an insider with the key but another namespace. Each attack function returns what it
+//! sent and how much of it the victim's counters show refused; the tests assert on the victim's
+//! observable outputs.
 //!
 //! A test's scene ([`Scene::start`]) fails at the first wait that ends without what it waits
 //! for and at the first attack that is not refused the way it must be. The benchmark's scene

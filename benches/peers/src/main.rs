@@ -10,8 +10,8 @@
 //!   sent messages received), `.anon` (idle: the anonymous memory resident at the end, in KiB:
 //!   what the process holds privately, without the code and libraries it maps from files),
 //!   `.spread_pct` ((max − min) / median of the rounds) and `.runs`;
-//! - the same-run ratios of the issue (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed
-//!   within each round, median over the rounds, with their own `.spread_pct`.
+//! - the same-run ratios (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed within each
+//!   round, median over the rounds, with their own `.spread_pct`.
 //!
 //! Each marea case runs marea built as a node for that link would be, which matters most for the
 //! idle RSS: the UDP cases run `peer-marea-udp` (marea's feature `udp` alone: no iceoryx2, no

@@ -218,9 +218,9 @@ pub struct Progress {
 }
 
 /// Whether the loaded plan waits for the operator's start (variable `ready`). The FPMa never
-/// changes the flight state (issue 15, pilot in command): a loaded plan fills the VAS queue
-/// and waits until the operator puts the vehicle in WAYPOINT_NAVIGATION (the VAS's
-/// `change_state`, from a station or `usal call`).
+/// changes the flight state (pilot in command): a loaded plan fills the VAS queue and waits
+/// until the operator puts the vehicle in WAYPOINT_NAVIGATION (the VAS's `change_state`, from a
+/// station or `usal call`).
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Readiness {
     /// Plan version (0 before any plan).

@@ -45,7 +45,7 @@ pub struct FlightPlan {
     pub landing: Vec<Node>,
     /// `<emergency>` rules in priority order.
     pub emergencies: Vec<EmergencyRule>,
-    /// `<fence>`: where the vehicle must stay (issue 15, `crate::fence`).
+    /// `<fence>`: where the vehicle must stay (`crate::fence`).
     #[serde(default)]
     pub fence: Option<PlanFence>,
 }

@@ -1,6 +1,6 @@
-//! Who may use a station (issue 13): a random token printed in the station's URL and required
-//! on every `/api/*` call (the live channel included), a `Host` allowlist against DNS
-//! rebinding, and an `Origin` check on state-changing requests against cross-site forms.
+//! Who may use a station: a random token printed in the station's URL and required on every
+//! `/api/*` call (the live channel included), a `Host` allowlist against DNS rebinding, and an
+//! `Origin` check on state-changing requests against cross-site forms.
 //!
 //! | request | answer |
 //! |---|---|

@@ -1,8 +1,8 @@
-//! The fleet view both stations serve (issue 16 item 5): every vehicle of a fleet mission on
-//! one map with its plan, state and the detections, and a vehicle selected to command it. It
-//! reads the fleet layer's one variable (`**/fleet/status`, `flightplan::fleet_api::FleetStatus`) and
-//! commands through the fleet service's `pause`/`resume`, so it adds one subscription to a
-//! station, whatever the number of vehicles.
+//! The fleet view both stations serve: every vehicle of a fleet mission on one map with its
+//! plan, state and the detections, and a vehicle selected to command it. It reads the fleet
+//! layer's one variable (`**/fleet/status`, `flightplan::fleet_api::FleetStatus`) and commands
+//! through the fleet service's `pause`/`resume`, so it adds one subscription to a station,
+//! whatever the number of vehicles.
 //!
 //! | method | path | body | answer |
 //! |---|---|---|---|

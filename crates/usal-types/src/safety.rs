@@ -1,7 +1,7 @@
-//! Flight-safety types shared by the services (issue 15): the geofence a plan carries (checked
-//! by the FPMa on plans and changes, by the VAS on waypoints, uploaded to the autopilot), the
-//! ground station's heartbeat the VAS follows to detect a lost ground link, and the
-//! `failsafe` event the VAS raises when one of them acts.
+//! Flight-safety types shared by the services: the geofence a plan carries (checked by the FPMa
+//! on plans and changes, by the VAS on waypoints, uploaded to the autopilot), the ground
+//! station's heartbeat the VAS follows to detect a lost ground link, and the `failsafe` event
+//! the VAS raises when one of them acts.
 //!
 //! The fence geometry is plain flat-earth arithmetic in a local east/north frame around the
 //! fence's home: fences are a few kilometres across, where the error against the geodesic

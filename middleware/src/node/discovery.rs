@@ -467,7 +467,7 @@ impl NodeInner {
         // Routes first, links second: a raise that completes with the closed session's error
         // and raises again must find the peer gone from the routes, or its next events would
         // open a fresh session with the dead address and wait there for that session's expiry
-        // (issue 17: 4,096 raises in flight, the last ones completed 5 s after the first).
+        // (seen with 4,096 raises in flight: the last ones completed 5 s after the first).
         // Raises that read the routes just before this see `alive` cleared and fail at once.
         self.recompute_routes();
         self.recompute_forwarding();

@@ -483,7 +483,7 @@ mod tests {
             hops,
             namespace: "rover1".into(),
         };
-        // The forged origin of the issue: another node's id, 0 hops, from a non-gateway.
+        // The forged origin: another node's id, 0 hops, from a non-gateway.
         declare(
             &inner,
             2,

@@ -1,8 +1,7 @@
-//! The fleet mission layer (issue 16 items 2–4; seeds 001 EAMOS and 002 Broz): runs a *fleet
-//! plan* (`plan`, format in `services/fleet/README.md`) of EAMOS-style statements — `seq`,
-//! `par`, `wait` for an event or a condition on variables, `repeat`, `if`/`else`, `sync`
-//! points, the Broz `investigate` — over the flight plans of several vehicles, and keeps them
-//! apart (`separation`).
+//! The fleet mission layer (seeds 001 EAMOS and 002 Broz): runs a *fleet plan* (`plan`, format
+//! in `services/fleet/README.md`) of EAMOS-style statements — `seq`, `par`, `wait` for an event
+//! or a condition on variables, `repeat`, `if`/`else`, `sync` points, the Broz `investigate` —
+//! over the flight plans of several vehicles, and keeps them apart (`separation`).
 //!
 //! **Why a service of its own** (and not part of the launcher's station): the fleet layer is
 //! flight logic that must go on whatever watches it. As a process on the ground node it is

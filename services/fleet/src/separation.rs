@@ -1,5 +1,5 @@
-//! Separation between the fleet's vehicles (issue 16 item 4), from their positions. Pure: the
-//! service feeds it each position and carries out the holds and releases it returns.
+//! Separation between the fleet's vehicles, from their positions. Pure: the service feeds it
+//! each position and carries out the holds and releases it returns.
 //!
 //! Rule (`<separation minDistance holdDistance clearDistance>`): when two vehicles come closer
 //! than `holdDistance`, the one of lower priority (the later one in the plan on a tie) holds

@@ -285,8 +285,8 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         Item::Alarm,
     );
     let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
-    // Issue 15: the VAS knows its ground station is there by this heartbeat (lost ground link,
-    // `vas` `linkLossAction`); the FMo is the pilot's station.
+    // The VAS knows its ground station is there by this heartbeat (lost ground link, `vas`
+    // `linkLossAction`); the FMo is the pilot's station.
     let beat = svc.publish_variable::<usal_types::StationHeartbeat>("heartbeat")?;
     let station = svc.full_name("").trim_end_matches('/').to_owned();
     let stop = cancel.clone();
@@ -305,7 +305,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
     shared.live.tasks.spawn(manual_loop(shared.clone(), manual));
     tracing::info!("fmo up on http://{addr}/, following {vas}");
 
-    // The fleet view (issue 16): every vehicle of a fleet mission on one map, `/fleet`.
+    // The fleet view: every vehicle of a fleet mission on one map, `/fleet`.
     let fleet_view =
         station_web::fleet::FleetView::start(&svc, &shared.live, config.station.call_timeout)?;
     let router = web::router(shared.clone()).merge(station_web::fleet::router(fleet_view));

@@ -322,7 +322,7 @@ impl Station {
             Item::StateChanged(c) => {
                 // The event is reliable and ordered; the `flight_state` variable is best effort
                 // and published only on a change, so over a lossy radio its last value may never
-                // arrive (issue 15 item 7: the FMo showed CONFIGURE_CHECK long after PARKING).
+                // arrive (the FMo was seen showing CONFIGURE_CHECK long after PARKING).
                 state_changed = v.flight_state.as_ref().map(|x| x.value) != Some(c.to);
                 v.flight_state = st(c.to, now);
                 v.last_change = st(c, now);

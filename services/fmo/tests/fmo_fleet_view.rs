@@ -1,8 +1,8 @@
-//! The stations' fleet view (issue 16 item 5) through the HTTP API the page uses, on real
-//! processes: two rovers (`mavsim` + `vas`, `rover1` and `rover2`), a `fleet` service running a
-//! fleet plan over both, and an `fmo` and an `fpmo` following them. Both stations show both
-//! vehicles with their state and position; a vehicle selected on the FMo is paused and resumed
-//! through the fleet service; bad commands are refused with the reason.
+//! The stations' fleet view through the HTTP API the page uses, on real processes: two rovers
+//! (`mavsim` + `vas`, `rover1` and `rover2`), a `fleet` service running a fleet plan over both,
+//! and an `fmo` and an `fpmo` following them. Both stations show both vehicles with their state
+//! and position; a vehicle selected on the FMo is paused and resumed through the fleet service;
+//! bad commands are refused with the reason.
 
 mod common;
 

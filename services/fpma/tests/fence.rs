@@ -1,7 +1,7 @@
-//! The plan's geofence through the processes (issue 15 item 5): `fpma run` + `vas` + `mavsim`.
-//! A plan one of whose legs crosses its `<fence>` is refused with the leg's line and column;
-//! the same plan without that leg loads, its fence reaches the autopilot (mavsim logs the
-//! polygon it received), and a change that would cross the fence is refused in flight.
+//! The plan's geofence through the processes: `fpma run` + `vas` + `mavsim`. A plan one of
+//! whose legs crosses its `<fence>` is refused with the leg's line and column; the same plan
+//! without that leg loads, its fence reaches the autopilot (mavsim logs the polygon it
+//! received), and a change that would cross the fence is refused in flight.
 
 use std::time::Duration;
 

@@ -1,10 +1,9 @@
-//! Flight safety in the field (issue 15, items 1 and 2), in separate processes: `fpma run` +
-//! `vas` + `mavsim`.
+//! Flight safety in the field, in separate processes: `fpma run` + `vas` + `mavsim`.
 //!
 //! - Battery: mavsim drains a small battery; the VAS publishes it; the FPMa's `battery` follows
 //!   it and the rover car-park plan's `low-battery` rule sends the rover to the approach.
-//! - Pilot in command (item 4): a plan loaded while the operator drives (MANUAL_NAVIGATION,
-//!   then DIRECTED) only waits, saying "press Start"; the operator's WAYPOINT_NAVIGATION flies it.
+//! - Pilot in command: a plan loaded while the operator drives (MANUAL_NAVIGATION, then
+//!   DIRECTED) only waits, saying "press Start"; the operator's WAYPOINT_NAVIGATION flies it.
 //! - Altitude references: with home at 584 m above sea level, a copter flies a plan written in
 //!   MSL and one written relative to home; each reaches its waypoints at the height the plan
 //!   means, and the FPMa's `alt` is measured from the plan's reference.
@@ -301,8 +300,9 @@ async fn fly_copter(
         "the copter did not climb to {climb_to} m above home"
     );
     let mut out = Vec::new();
-    // The FPMa never changes the flight state by itself (issue 15 item 4): airborne with the
-    // plan queued, the copter is still in TAKE_OFF, until the operator starts navigating.
+    // The FPMa never changes the flight state by itself (the pilot is in command): airborne
+    // with the plan queued, the copter is still in TAKE_OFF, until the operator starts
+    // navigating.
     let mut seen = Vec::new();
     while let Some(s) = flight_state.try_recv() {
         seen.push(s.expect("flight_state").value);

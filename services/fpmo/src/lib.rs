@@ -564,7 +564,7 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
     );
     shared.live.tasks.spawn(geometry_loop(shared.clone()));
     tracing::info!("fpmo up on http://{addr}/, following {ns}");
-    // The fleet view (issue 16): every vehicle of a fleet mission on one map, `/fleet`.
+    // The fleet view: every vehicle of a fleet mission on one map, `/fleet`.
     let fleet_view =
         station_web::fleet::FleetView::start(&svc, &shared.live, config.station.call_timeout)?;
     let router = web::router(shared.clone()).merge(station_web::fleet::router(fleet_view));

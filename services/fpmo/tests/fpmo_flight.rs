@@ -158,7 +158,7 @@ async fn scenario() {
 
     // The plan waits for the operator: the station shows the flight state, "plan ready,
     // press Start", and offers exactly what the VAS allows from PARKING, WAYPOINT_NAVIGATION
-    // as Start (issue 15 items 4 and 7).
+    // as Start.
     let s = st
         .wait_state("plan ready, press Start", |s| {
             let v = vehicle(s, "rover1").unwrap();

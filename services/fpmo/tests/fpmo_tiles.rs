@@ -1,8 +1,8 @@
-//! Map tiles under the FPMo's map (issue 15 item 7): `fpmo --tiles FILE.mbtiles` serves the
-//! tiles of a local MBTiles file itself (a field laptop is often offline), rows flipped from
-//! TMS to the page's XYZ; a local `{z}/{x}/{y}` directory template is served the same way; an
-//! http(s) template is handed to the browser; vector or broken MBTiles files stop the station
-//! at start with the reason; in headless Chromium (when installed) the page draws the tiles.
+//! Map tiles under the FPMo's map: `fpmo --tiles FILE.mbtiles` serves the tiles of a local
+//! MBTiles file itself (a field laptop is often offline), rows flipped from TMS to the page's
+//! XYZ; a local `{z}/{x}/{y}` directory template is served the same way; an http(s) template is
+//! handed to the browser; vector or broken MBTiles files stop the station at start with the
+//! reason; in headless Chromium (when installed) the page draws the tiles.
 
 #[path = "../../fmo/tests/common/mod.rs"]
 mod common;

@@ -1,8 +1,8 @@
-//! The geofence on the VAS (issue 15 item 5), with the `vas` and `mavsim` binaries over UDP:
-//! `set_fence` uploads it to the autopilot (mavsim logs the polygon it received), waypoints
-//! outside it are refused naming the waypoint, and when the fence is tightened under a moving
-//! rover, mavsim's enforcement holds it (its `FENCE_ACTION`) and the VAS raises the breach as a
-//! `failsafe` event. A restarted autopilot gets the fence again.
+//! The geofence on the VAS, with the `vas` and `mavsim` binaries over UDP: `set_fence` uploads
+//! it to the autopilot (mavsim logs the polygon it received), waypoints outside it are refused
+//! naming the waypoint, and when the fence is tightened under a moving rover, mavsim's
+//! enforcement holds it (its `FENCE_ACTION`) and the VAS raises the breach as a `failsafe`
+//! event. A restarted autopilot gets the fence again.
 
 mod common;
 

@@ -1,8 +1,8 @@
-//! A ground station alongside (issue 14): the `vas` binary forwards MAVLink between mavsim and
-//! an extra endpoint (`--forward`, the `<forward>` element), where a pymavlink ground station
+//! A ground station alongside: the `vas` binary forwards MAVLink between mavsim and an extra
+//! endpoint (`--forward`, the `<forward>` element), where a pymavlink ground station
 //! (`tests/python/second_gcs.py`) sees the autopilot and uploads a mission of its own. The VAS
-//! notices it (the autopilot's MISSION_ACK to that station), stops feeding its queue instead
-//! of fighting, reads the mission back and raises `mission_changed`.
+//! notices it (the autopilot's MISSION_ACK to that station), stops feeding its queue instead of
+//! fighting, reads the mission back and raises `mission_changed`.
 
 mod common;
 

@@ -1,6 +1,5 @@
-//! A wrap that comes too late (issue 14 item 6): the slot writes stall (a hub between the VAS
-//! and mavsim drops every MISSION_WRITE_PARTIAL_LIST and MISSION_COUNT for a while after the
-//! first waypoint), so
+//! A wrap that comes too late: the slot writes stall (a hub between the VAS and mavsim drops
+//! every MISSION_WRITE_PARTIAL_LIST and MISSION_COUNT for a while after the first waypoint), so
 //! slot 1 does not hold the target when the vehicle heads for the mirror slot, and the
 //! autopilot reaches the last item on board and ends its mission with waypoints left. The VAS
 //! restarts the navigation instead of following the autopilot into HOLD: every waypoint is

@@ -1,9 +1,8 @@
-//! Lost ground link (issue 15 item 3): the `vas` binary flies `mavsim` (UDP) while its ground
-//! station sits on the far side of a `marea-radio` (real ptys). The station publishes its
-//! heartbeat over the radio; the radio goes silent mid-mission (cut by a signal once the rover
-//! navigates); the VAS
-//! must apply `linkLossAction` (hold) and, when the link returns, what `linkRecovery` says:
-//! resume the navigation, or wait for the operator.
+//! Lost ground link: the `vas` binary flies `mavsim` (UDP) while its ground station sits on the
+//! far side of a `marea-radio` (real ptys). The station publishes its heartbeat over the radio;
+//! the radio goes silent mid-mission (cut by a signal once the rover navigates); the VAS must
+//! apply `linkLossAction` (hold) and, when the link returns, what `linkRecovery` says: resume
+//! the navigation, or wait for the operator.
 //!
 //! The VAS's node has the radio and a LAN; an observer on the LAN follows its `failsafe`
 //! events and flight state while the radio is down.

@@ -1,8 +1,8 @@
-//! Pilot in command (issue 15 item 4), the `vas` binary against the `mavsim` binary over real
-//! UDP MAVLink: a rebooted autopilot is not resumed without the operator (unless configured,
-//! see `vas_vs_mavsim::autopilot_restart_mid_flight`); explicit ARM and DISARM, return to
-//! launch, take-off, DIRECTED flight on a bearing and landing, each checked by the VAL's
-//! command checker and executed by mavsim; `allowed_changes` tells stations what may be asked.
+//! Pilot in command, the `vas` binary against the `mavsim` binary over real UDP MAVLink: a
+//! rebooted autopilot is not resumed without the operator (unless configured, see
+//! `vas_vs_mavsim::autopilot_restart_mid_flight`); explicit ARM and DISARM, return to launch,
+//! take-off, DIRECTED flight on a bearing and landing, each checked by the VAL's command
+//! checker and executed by mavsim; `allowed_changes` tells stations what may be asked.
 
 mod common;
 

@@ -1,9 +1,9 @@
-//! The same plan flown by the `vas` binary on each of mavsim's autopilot profiles (issue 14):
-//! ArduPilot (item 0 home, partial writes, current item kept by uploads), PX4 (PX4 custom
-//! modes, item 0 ordinary, no partial writes, current item reset to 0 by every upload,
-//! MISSION_CURRENT only on change), generic (ArduPilot modes, PX4's mission conventions) and
-//! ArduPilot-resetting (says ArduPilot, but no partial writes and the current item reset).
-//! Every waypoint is reached once, in order, and the vehicle never turns back.
+//! The same plan flown by the `vas` binary on each of mavsim's autopilot profiles: ArduPilot
+//! (item 0 home, partial writes, current item kept by uploads), PX4 (PX4 custom modes, item 0
+//! ordinary, no partial writes, current item reset to 0 by every upload, MISSION_CURRENT only
+//! on change), generic (ArduPilot modes, PX4's mission conventions) and ArduPilot-resetting
+//! (says ArduPilot, but no partial writes and the current item reset). Every waypoint is
+//! reached once, in order, and the vehicle never turns back.
 
 mod common;
 

@@ -1,6 +1,6 @@
-//! The PX4 autopilot layer against mavsim `--autopilot px4` (issue 14 item 4): DIRECTED by
-//! MAV_CMD_DO_REPOSITION through the `vas` binary, and [`Px4`]'s `direct_to` sending the
-//! vehicle to a point (the library over a real UDP link to the mavsim process).
+//! The PX4 autopilot layer against mavsim `--autopilot px4`: DIRECTED by MAV_CMD_DO_REPOSITION
+//! through the `vas` binary, and [`Px4`]'s `direct_to` sending the vehicle to a point (the
+//! library over a real UDP link to the mavsim process).
 //!
 //! MAVSDK's server plugins have no DO_REPOSITION (its action server answers arming, take-off,
 //! landing, return and mode changes only), so DIRECTED is not driven on the MAVSDK vehicle.

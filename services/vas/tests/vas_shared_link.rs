@@ -1,9 +1,9 @@
-//! A good GCS citizen on a shared link (issue 14 item 5): two vehicles (mavsim system 1 and
-//! system 2) and a camera component of vehicle 2 behind one UDP link, joined by a small hub
-//! in this test (as mavlink-router would). The VAS, told `targetSystem="2"`, flies vehicle 2
-//! only, and the camera's heartbeats and MISSION_CURRENT 0 (which, taken for the autopilot's,
-//! would read as a drive back home) are ignored. Pinning is off, so the routing alone keeps
-//! the other traffic out.
+//! A good GCS citizen on a shared link: two vehicles (mavsim system 1 and system 2) and a
+//! camera component of vehicle 2 behind one UDP link, joined by a small hub in this test (as
+//! mavlink-router would). The VAS, told `targetSystem="2"`, flies vehicle 2 only, and the
+//! camera's heartbeats and MISSION_CURRENT 0 (which, taken for the autopilot's, would read as a
+//! drive back home) are ignored. Pinning is off, so the routing alone keeps the other traffic
+//! out.
 
 mod common;
 

@@ -1,6 +1,6 @@
-//! What the VAS trusts (issue 13), the real `vas` and `mavsim` binaries over UDP MAVLink: a
-//! signed link flies and commands normally; pushed waypoints outside the globe, the altitude
-//! bound or the count caps are refused naming the waypoint and the field.
+//! What the VAS trusts, the real `vas` and `mavsim` binaries over UDP MAVLink: a signed link
+//! flies and commands normally; pushed waypoints outside the globe, the altitude bound or the
+//! count caps are refused naming the waypoint and the field.
 
 mod common;
 

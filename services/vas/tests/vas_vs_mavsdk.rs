@@ -1,7 +1,7 @@
 //! Conformance: the `vas` binary flying a vehicle whose MAVLink side is MAVSDK's server
 //! plugins (`tests/python/mavsdk_vehicle.py`), an implementation not written here, with its
 //! own conventions: a generic autopilot with PX4 custom modes, item 0 ordinary, no partial
-//! writes, the current item reset to 0 by every upload (issue 14).
+//! writes, the current item reset to 0 by every upload.
 //!
 //! The 50-waypoint plan completes through the rolling queue with 0 skipped, 0 repeated and 0
 //! backtracks as the vehicle reports them. Skipped, saying so, only where `python3` is absent.

@@ -97,7 +97,7 @@ impl Vehicle {
                     out.extend(self.param_value(index));
                 }
             }
-            // The fence (issue 15, `fence.rs`): its own transfer, beside the mission.
+            // The fence (`fence.rs`): its own transfer, beside the mission.
             MavMessage::MISSION_COUNT(c)
                 if self.for_us(c.target_system)
                     && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE =>

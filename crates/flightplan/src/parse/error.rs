@@ -143,7 +143,7 @@ pub enum PlanErrorKind {
         /// The most allowed.
         max: u64,
     },
-    /// A waypoint, or the track to it, outside the plan's `<fence>` (issue 15).
+    /// A waypoint, or the track to it, outside the plan's `<fence>`.
     #[error("leg `{leg}` leaves the fence: {why}")]
     OutsideFence {
         /// The leg.

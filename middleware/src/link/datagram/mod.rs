@@ -397,7 +397,7 @@ mod tests {
         assert_eq!(w.take().len(), 38);
     }
 
-    /// Issue 13: sealed with a domain key, the same sample costs at most 54 bytes.
+    /// Sealed with a domain key, the same sample costs at most 54 bytes.
     #[test]
     fn sealed_position_sample_is_54_bytes_of_udp_payload() {
         use crate::link::auth::{DomainKey, Opener, Profile, Sealer};

@@ -586,8 +586,8 @@ mod tests {
         assert_eq!(f.encode().len(), 35 + DATA_OVERHEAD);
     }
 
-    /// Issue 13: authenticated, the position sample's frame stays within 60 bytes; a node
-    /// without the key drops it as an unknown type; a keyed one refuses unsealed frames.
+    /// Authenticated, the position sample's frame stays within 60 bytes; a node without the key
+    /// drops it as an unknown type; a keyed one refuses unsealed frames.
     #[test]
     fn sealed_position_sample_frame_is_58_bytes_before_stuffing() {
         use crate::link::auth::{DomainKey, Profile};

@@ -11,7 +11,7 @@
 //! unless that target is still the executive's next waypoint, the new waypoints are numbered
 //! past everything handed out before, and the report of the abandoned target is ignored.
 //!
-//! The flight state is the operator's (issue 15, pilot in command): the core never asks the
+//! The flight state is the operator's (pilot in command): the core never asks the
 //! VAS for one. A loaded plan fills the queue and waits; [`Readiness`] (variable `ready`)
 //! tells stations "plan ready, press Start" until the operator puts the vehicle in
 //! WAYPOINT_NAVIGATION.

@@ -68,7 +68,7 @@ pub struct FpmaConfig {
     #[serde(rename = "@lookahead")]
     pub lookahead: usize,
     /// Ignored (`startNavigation`), kept so older files load: the FPMa no longer changes the
-    /// flight state (issue 15, pilot in command). A loaded plan waits for the operator's
+    /// flight state (pilot in command). A loaded plan waits for the operator's
     /// WAYPOINT_NAVIGATION and says so in the variable `ready`.
     #[serde(rename = "@startNavigation")]
     pub start_navigation: bool,

@@ -144,8 +144,8 @@ pub fn close(a: (f64, f64), b: (f64, f64)) -> bool {
 }
 
 /// The operator's "Start": waits until the FPMa says its plan is ready (variable `ready`), then
-/// puts the VAS in WAYPOINT_NAVIGATION (the FPMa never does, issue 15); returns the state the
-/// VAS left.
+/// puts the VAS in WAYPOINT_NAVIGATION (the FPMa never does: the flight state is the
+/// operator's); returns the state the VAS left.
 pub async fn start_when_ready(
     ready: &marea::VariableSubscriber<flightplan::api::Readiness>,
     change: &marea::Function<usal_types::StateChangeRequest, usal_types::StateChangeReply>,

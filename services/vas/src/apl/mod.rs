@@ -238,9 +238,9 @@ pub trait IAutopilot: Send + Sync {
     /// Stops the layer's tasks.
     async fn shutdown(&self);
 
-    /// Uploads `fence` to the autopilot (`None` clears it) so the vehicle enforces it itself
-    /// (issue 15). Layers that cannot upload one answer `Unsupported`; the VAS then keeps
-    /// checking waypoints against it alone.
+    /// Uploads `fence` to the autopilot (`None` clears it) so the vehicle enforces it itself.
+    /// Layers that cannot upload one answer `Unsupported`; the VAS then keeps checking
+    /// waypoints against it alone.
     ///
     /// # Errors
     /// Unsupported, not connected, or the autopilot refused.

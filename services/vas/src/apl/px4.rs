@@ -1,5 +1,5 @@
-//! The PX4 autopilot layer (issue 14): the MAVLink layer every family shares (rolling queue,
-//! telemetry, reconnection; see [`super::ardupilot`]) with PX4's part, [`Px4Modes`]:
+//! The PX4 autopilot layer: the MAVLink layer every family shares (rolling queue, telemetry,
+//! reconnection; see [`super::ardupilot`]) with PX4's part, [`Px4Modes`]:
 //!
 //! - modes are PX4's custom main/sub modes (`main << 16 | sub << 24`), named by the manager
 //!   as the APL asks for them: `AUTO` is AUTO.MISSION, `HOLD` AUTO.LOITER, `RTL`

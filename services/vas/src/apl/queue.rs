@@ -1009,7 +1009,7 @@ mod tests {
     #[test]
     fn the_current_item_is_restored_after_every_whole_upload() {
         // No partial writes and a current item reset by every upload: without restoring,
-        // the vehicle would turn back to item 0 after each one (issue 14).
+        // the vehicle would turn back to item 0 after each one.
         for slots in [3u16, 5] {
             let mut q = RollingQueue::new(slots).unwrap();
             let mut ap = Autopilot::new(false);

@@ -44,8 +44,8 @@ pub struct ManagerConfig {
     pub reconnect_backoff: Duration,
     /// How long a request waits for the first heartbeat before failing.
     pub connect_wait: Duration,
-    /// MAVLink 2 signing toward the autopilot (issue 13): sign everything, accept only
-    /// correctly signed frames.
+    /// MAVLink 2 signing toward the autopilot: sign everything, accept only correctly signed
+    /// frames.
     pub signing: Option<mavconn::Signing>,
     /// Pin the autopilot (system, component, UDP address) at its first heartbeat.
     pub pin: Option<mavconn::Pin>,

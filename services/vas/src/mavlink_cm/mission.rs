@@ -60,7 +60,7 @@ impl MavlinkManager {
         Ok(())
     }
 
-    /// Uploads the fence (`mission_type` FENCE, issue 15): polygon vertices and circles as
+    /// Uploads the fence (`mission_type` FENCE): polygon vertices and circles as
     /// MAV_CMD_NAV_FENCE_* items, numbered from 0 (no home slot). An empty list clears it.
     ///
     /// # Errors

@@ -92,8 +92,8 @@ pub(crate) struct MissionUpload<'a> {
     deadline: Instant,
     /// The start message is MISSION_WRITE_PARTIAL_LIST.
     partial: bool,
-    /// What is transferred (the start message's `mission_type`): the mission, or the fence
-    /// (issue 15); requests and acknowledgements of other types are someone else's.
+    /// What is transferred (the start message's `mission_type`): the mission, or the fence;
+    /// requests and acknowledgements of other types are someone else's.
     mission_type: MavMissionType,
 }
 

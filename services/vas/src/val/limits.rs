@@ -1,6 +1,6 @@
-//! What the VAS accepts from the network before it reaches the autopilot (issue 13): waypoints
-//! with finite coordinates inside the globe and an altitude inside a bound, a bounded number per
-//! call and in the queue. A refusal names the waypoint (its index in the call) and the field.
+//! What the VAS accepts from the network before it reaches the autopilot: waypoints with finite
+//! coordinates inside the globe and an altitude inside a bound, a bounded number per call and
+//! in the queue. A refusal names the waypoint (its index in the call) and the field.
 
 use usal_types::Waypoint;
 

@@ -1,4 +1,4 @@
-//! Lost ground link (issue 15 item 3): the VAS follows the ground station's heartbeat
+//! Lost ground link: the VAS follows the ground station's heartbeat
 //! (`usal_types::StationHeartbeat`, published by `usal run`'s station) and the health of the
 //! radio (`<namespace>/link/<radio>/stats`, published by the node carrying the radio, the
 //! air-side gateway), and when the ground has been silent for `linkLossTimeoutMs` it applies
@@ -62,7 +62,7 @@ pub enum LinkRecovery {
     /// Go back to the state the loss interrupted (if nobody changed it meanwhile).
     Resume,
     /// Stay as the action left it until the operator decides: the default, as the pilot in
-    /// command decides when a held vehicle moves again (issue 15 item 4).
+    /// command decides when a held vehicle moves again.
     #[default]
     Wait,
 }

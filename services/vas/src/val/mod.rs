@@ -40,14 +40,14 @@ pub struct ValConfig {
     pub manual_timeout: Duration,
     /// Period of the `mission_time` variable.
     pub mission_time_period: Duration,
-    /// What `push_waypoints` accepts (issue 13).
+    /// What `push_waypoints` accepts from the network.
     pub waypoints: limits::WaypointLimits,
     /// The stations whose manual control is obeyed: each entry is a publishing node's name
     /// or a prefix of the sample's item name (`ground` or `ground/fmo`); `None`: any station.
     pub manual_stations: Option<Vec<String>>,
     /// Manual-control samples stamped further than this ahead of our clock are refused.
     pub manual_skew: Duration,
-    /// The lost-ground-link watch (issue 15).
+    /// The lost-ground-link watch.
     pub link_loss: linkloss::LinkLossConfig,
     /// The vehicle's own fence: checked from the start, uploaded once the autopilot is
     /// configured (the vehicle does not start before the autopilot took it), kept for the

@@ -157,7 +157,7 @@ pub(super) struct Driver {
     /// advance after it, [`ADVANCE_WAIT`] at most).
     reached_at: Option<std::time::Instant>,
     /// Times the vehicle's reported current item went back to an item already passed while
-    /// navigating (issue 14: each is a drive back toward a passed waypoint).
+    /// navigating (each is a drive back toward a passed waypoint).
     backtracks: u64,
     /// A whole upload is under way: the autopilot's reports of its current item may already
     /// name the mission being committed, not the one we know it holds.
