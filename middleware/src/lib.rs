@@ -17,7 +17,7 @@
 //! | [`config`], [`identity`] | `network.xml` → [`NetworkConfig`] (names link options); per-node identity keys and the domain's roster of which key owns which namespaces |
 //! | `node` | each primitive's sending and receiving side by side (`variables`, `events`, `calls`, `files`; `data`: the receive path variables and events share), `declarations` and `routes` (routing by interest), discovery, dispatch, flow, policy, gateway forwarding |
 //! | [`api`] | [`Node`], the typed handles, [`IService`]; re-exports the node's public types ([`CallError`], [`ReceivedFile`], …) |
-//! | `fuzzing` | (feature `fuzzing` only) structure-aware input generators and harnesses for `middleware/fuzz/` and `tests/structured_fuzz.rs` |
+//! | `fuzzing` | (feature `fuzzing` only) structure-aware input generators and harnesses for `fuzz/` and `tests/structured_fuzz.rs` |
 //!
 //! ## Concepts
 //!

@@ -1,6 +1,6 @@
-//! The structure-aware fuzz harnesses of `marea::fuzzing` (the ones `middleware/fuzz/` runs
+//! The structure-aware fuzz harnesses of `marea::fuzzing` (the ones `fuzz/` runs
 //! under libFuzzer) run here on stable over a bounded number of seeded inputs, plus every input
-//! a fuzzer once failed on (`middleware/fuzz/regressions/<target>/`), so `cargo test` keeps
+//! a fuzzer once failed on (`fuzz/regressions/<target>/`), so `cargo test` keeps
 //! what the fuzzers found fixed.
 //!
 //! Each harness panics when one of its properties fails (see `marea::fuzzing`); a test fails
@@ -19,7 +19,7 @@ const CAP: Duration = Duration::from_secs(4);
 fn run(target: &str, harness: fn(&[u8])) {
     // What the fuzzers found, first.
     let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("fuzz/regressions")
+        .join("../fuzz/regressions")
         .join(target);
     if let Ok(entries) = std::fs::read_dir(&dir) {
         for e in entries.flatten() {

@@ -1176,7 +1176,7 @@ fn resolve_station(root: &Element, mission: &mut Mission) -> Result<(), Fault> {
 }
 
 /// Structure-aware fuzzing of mission files: on stable in `cargo test`, and under cargo-fuzz
-/// (`cfg(fuzzing)`) by `middleware/fuzz/fuzz_targets/mission_xml.rs`, which includes this file
+/// (`cfg(fuzzing)`) by `fuzz/fuzz_targets/mission_xml.rs`, which includes this file
 /// as a module of its own (the launcher is a binary crate, which no fuzz target can depend on).
 #[cfg(any(test, fuzzing))]
 #[path = "mission_fuzz.rs"]

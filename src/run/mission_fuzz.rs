@@ -11,11 +11,11 @@ use arbitrary::{Result, Unstructured};
 use super::{Mission, ServiceSpec};
 
 /// The repository's `config/missions`, where the generated stations' plans exist: from the root
-/// package (`cargo test`) or from `middleware/fuzz` (cargo-fuzz).
+/// package (`cargo test`) or from `fuzz` (cargo-fuzz).
 fn missions_dir() -> PathBuf {
     let here = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let root = if here.ends_with("middleware/fuzz") {
-        here.join("../..")
+    let root = if here.ends_with("fuzz") {
+        here.join("..")
     } else {
         here.to_path_buf()
     };

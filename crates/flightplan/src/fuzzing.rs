@@ -4,7 +4,7 @@
 //! bent ones (NaN, huge, negative, missing, unknown), then XML-level damage (a range cut,
 //! duplicated or swapped). The harness [`plan_xml`] parses for both vehicles and expands the
 //! plans that parse, checking: never a panic, every expanded waypoint finite and in range, the
-//! expansion within its stated limit. It runs from `middleware/fuzz/` (target `fpma_plan`) and
+//! expansion within its stated limit. It runs from `fuzz/` (target `fpma_plan`) and
 //! on stable from `tests/structured_fuzz.rs`.
 
 use std::fmt::Write;

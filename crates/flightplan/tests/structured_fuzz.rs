@@ -1,6 +1,6 @@
-//! The plan XML harness of `flightplan::fuzzing` (target `fpma_plan` of `middleware/fuzz/`) on
+//! The plan XML harness of `flightplan::fuzzing` (target `fpma_plan` of `fuzz/`) on
 //! stable, over a bounded number of seeded inputs plus every input a fuzzer once failed on
-//! (`middleware/fuzz/regressions/fpma_plan/`).
+//! (`fuzz/regressions/fpma_plan/`).
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -9,8 +9,7 @@ use rand::{Rng, SeedableRng};
 
 #[test]
 fn structured_fuzz_plan_xml() {
-    let dir =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../middleware/fuzz/regressions/fpma_plan");
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/fpma_plan");
     if let Ok(entries) = std::fs::read_dir(&dir) {
         for e in entries.flatten() {
             flightplan::fuzzing::plan_xml(

@@ -7,7 +7,7 @@
 //! split) and feeds it to the real machine, checking properties that must hold for any input.
 //! A harness panics when a property fails; that is what the fuzzer reports.
 //!
-//! The same functions run from `middleware/fuzz/` (cargo-fuzz, nightly) and, on stable, from
+//! The same functions run from `fuzz/` (cargo-fuzz, nightly) and, on stable, from
 //! `middleware/tests/structured_fuzz.rs` over a bounded number of seeded inputs.
 //!
 //! | harness | feeds | checks |

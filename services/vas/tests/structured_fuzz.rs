@@ -1,6 +1,6 @@
 //! The mission upload harness (`vas::mavlink_cm::fuzz_mission_upload`, target
-//! `vas_mission_upload` of `middleware/fuzz/`) on stable, over a bounded number of seeded
-//! inputs plus every input a fuzzer once failed on (`middleware/fuzz/regressions/vas_mission_upload/`).
+//! `vas_mission_upload` of `fuzz/`) on stable, over a bounded number of seeded
+//! inputs plus every input a fuzzer once failed on (`fuzz/regressions/vas_mission_upload/`).
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -9,8 +9,8 @@ use rand::{Rng, SeedableRng};
 
 #[test]
 fn structured_fuzz_mission_upload() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../middleware/fuzz/regressions/vas_mission_upload");
+    let dir =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/vas_mission_upload");
     if let Ok(entries) = std::fs::read_dir(&dir) {
         for e in entries.flatten() {
             let bytes = std::fs::read(e.path()).expect("regression input readable");

@@ -4,7 +4,7 @@
 #![no_main]
 
 #[allow(dead_code)]
-#[path = "../../../src/run/mission.rs"]
+#[path = "../../src/run/mission.rs"]
 mod mission;
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| mission::fuzz::check(data));
