@@ -382,6 +382,14 @@ fn the_rover_radio_mission_completes_over_a_lossy_radio() {
         );
     }
     assert_no_child_left(&pids);
+    // Quiet by default: the gateways' output is relayed (their ready line), their tables of
+    // what they forward are not (`--verbose` shows them).
+    let err = l.stderr.lock().unwrap().clone();
+    assert!(err.contains("\"ready\":\"air-gateway\""), "{err}");
+    assert!(
+        !err.contains("\"forwarded\":"),
+        "a gateway table was printed"
+    );
 }
 
 /// The same mission with air and ground on LANs of their own, no multicast between them, each

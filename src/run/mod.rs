@@ -63,6 +63,10 @@ pub struct RunArgs {
     /// Write no flight log.
     #[arg(long)]
     pub no_log: bool,
+    /// Show the children's routine output too (the gateways' tables of what they forward,
+    /// rewritten whenever it changes); by default only what a pilot needs is printed.
+    #[arg(long)]
+    pub verbose: bool,
 }
 
 /// Runs `usal run`; `json` makes the launcher's notes JSON lines on stdout.
@@ -102,7 +106,7 @@ pub fn main(args: &RunArgs, json: bool) -> ExitCode {
         );
         return ExitCode::from(EXIT_USAGE);
     }
-    let ui = Arc::new(Ui::new(json));
+    let ui = Arc::new(Ui::new(json).verbose(args.verbose));
     let bins = match find_or_build_bins(&mission, &ui) {
         Ok(b) => b,
         Err(e) => {

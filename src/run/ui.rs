@@ -10,6 +10,8 @@ use serde_json::Value;
 /// The launcher's output, shared by the supervisor's and the station's tasks.
 pub struct Ui {
     json: bool,
+    /// Children's routine lines shown too ([`routine`]).
+    verbose: bool,
     tty: bool,
     /// The progress bar now on screen (tty only), redrawn under every log line.
     bar: Mutex<Option<String>>,
@@ -19,16 +21,31 @@ pub struct Ui {
     log: std::sync::OnceLock<std::sync::Arc<super::flightlog::FlightLog>>,
 }
 
+/// A child's line a pilot does not need, shown only with `--verbose`: a gateway's table of what
+/// it forwards (`{"forwarded": N, "added": [..], "removed": [..]}`), rewritten at every change of
+/// the routes, which made most of a radio mission's output.
+fn routine(line: &str) -> bool {
+    line.starts_with('{')
+        && serde_json::from_str::<Value>(line).is_ok_and(|v| v.get("forwarded").is_some())
+}
+
 impl Ui {
     /// Output for this process: a bar only when stderr is a terminal and JSON is off.
     pub fn new(json: bool) -> Ui {
         Ui {
             json,
+            verbose: false,
             tty: !json && std::io::stderr().is_terminal(),
             bar: Mutex::new(None),
             parts: Mutex::new(Vec::new()),
             log: std::sync::OnceLock::new(),
         }
+    }
+
+    /// Shows the children's routine lines too (`usal run --verbose`).
+    pub fn verbose(mut self, on: bool) -> Ui {
+        self.verbose = on;
+        self
     }
 
     /// Copies every note, progress record and result into `log` from now on.
@@ -63,6 +80,9 @@ impl Ui {
 
     /// One log line of a child, as `[node/service] line`.
     pub fn child_line(&self, label: &str, line: &str) {
+        if !self.verbose && routine(line) {
+            return;
+        }
         self.stderr_lines(&format!("[{label}] {line}"));
     }
 
@@ -174,6 +194,17 @@ pub fn bar(fraction: f64, width: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn only_gateway_tables_are_routine() {
+        assert!(routine(
+            r#"{"forwarded":3,"added":["variable rover1/vas/position from air"],"removed":[]}"#
+        ));
+        assert!(!routine(r#"{"ready":"air-gw","gateway":true,"links":[]}"#));
+        assert!(!routine(
+            "... INFO vas::val: flight state CONFIGURE_CHECK -> PARKING"
+        ));
+    }
 
     #[test]
     fn bars_are_full_only_at_one() {
