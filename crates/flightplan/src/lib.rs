@@ -6,7 +6,7 @@
 //! Layers, each using only those above: `xml` (plan wording over `marea::xml`) → `expr`, `geo`,
 //! `vehicle` → `model` → `parse` (`parse/{error,attrs,legs}`: the document, no vehicle),
 //! `polygon` → `expand`, `eta` → `exec` and `check` (one layer: the check flies a plan once in
-//! the executive; the executive checks each change) → `qgc` → `api`, `fleet_api` → `fuzzing`. Everything is pure (no I/O, no clock, no
+//! the executive; the executive checks each change) → `qgc` → `plan_file` → `api`, `fleet_api` → `fuzzing`. Everything is pure (no I/O, no clock, no
 //! network: the FPMa's `service` is). `tests/layering.rs` keeps the table true. See
 //! `services/fpma/README.md` for the format, the API and the service's items.
 //!
@@ -38,6 +38,7 @@ pub mod fuzzing;
 pub mod geo;
 pub mod model;
 pub mod parse;
+pub mod plan_file;
 pub mod polygon;
 pub mod qgc;
 pub mod vehicle;

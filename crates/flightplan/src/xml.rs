@@ -35,7 +35,7 @@ impl From<XmlReadError> for XmlError {
                 e.pos,
                 format!(
                     "unexpected text `{}`; the format has attributes only",
-                    t.content.trim()
+                    excerpt(t.content.trim())
                 ),
             ),
             XmlReadErrorKind::Text(_) => (
@@ -68,9 +68,38 @@ pub fn parse_elements(src: &str) -> Result<Vec<Element>, XmlError> {
     Ok(marea::xml::parse_fragment(src)?)
 }
 
+/// The start of `text` as an error quotes it: its first line, at most 40 characters, `…` where
+/// cut (a whole foreign file once came back inside its own error).
+fn excerpt(text: &str) -> String {
+    let line = text.lines().next().unwrap_or("");
+    let mut out: String = line.chars().take(40).collect();
+    if out.len() < text.len() {
+        out.push('…');
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn foreign_text_is_quoted_by_its_start_only() {
+        let json = format!(
+            "{{\n  \"fileType\": \"Plan\",\n{}}}",
+            "  \"x\": 1,\n".repeat(500)
+        );
+        let err = parse_document(&json).unwrap_err();
+        assert_eq!(
+            err.message,
+            "unexpected text `{…`; the format has attributes only"
+        );
+        let err = parse_document("<a>hello</a>").unwrap_err();
+        assert_eq!(
+            err.message,
+            "unexpected text `hello`; the format has attributes only"
+        );
+    }
 
     #[test]
     fn errors_keep_the_plan_wording() {

@@ -14,6 +14,7 @@ const LAYERS: Layers<'static> = Layers {
         &["expand", "eta"],
         &["exec", "check"],
         &["qgc"],
+        &["plan_file"],
         &["api"],
         &["fleet_api"],
         &["fuzzing"],

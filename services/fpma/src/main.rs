@@ -3,8 +3,8 @@
 
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
-use flightplan::check::{self, CheckError};
 use flightplan::parse::declared_vehicle;
+use flightplan::plan_file::{self, PlanFileError};
 use flightplan::vehicle::VehicleKind;
 use fpma::service::FpmaConfig;
 use std::io::Write;
@@ -213,15 +213,13 @@ fn expand(
     };
     params.apply(&mut cfg);
     let vehicle = cfg.vehicle_params()?;
-    let checked = match check::load(&src, &vehicle) {
+    let checked = match plan_file::load(&src, &path.display().to_string(), &vehicle) {
         Ok(p) => p,
-        Err(CheckError::Plan(e)) => {
-            eprintln!("{}:{e}", path.display());
+        Err(PlanFileError::Refused(e)) => {
+            eprintln!("{e}");
             return Ok(ExitCode::from(EXIT_BAD_PLAN));
         }
-        Err(e @ CheckError::Endless(_)) => {
-            return Err(anyhow::Error::new(e).context(format!("expanding {}", path.display())))
-        }
+        Err(PlanFileError::Endless(e)) => return Err(anyhow::anyhow!("{e}")),
     };
     if let Some(out) = qgc {
         let doc = flightplan::qgc::export(checked.plan(), &vehicle)

@@ -176,6 +176,24 @@ fn qgc_export_writes_a_plan_file_and_refusals_give_the_reason() {
     let (plan, _) = flightplan::qgc::import(&text, "demo").unwrap();
     let checked = flightplan::check::check(plan, &v).unwrap();
     assert_eq!(checked.nominal().len(), printed);
+    // `fpma expand` reads the exported plan itself (imported by its name), the same stream.
+    let expanded = fpma_ok(&[
+        OsStr::new("expand"),
+        out_plan.as_os_str(),
+        OsStr::new("--vehicle"),
+        OsStr::new("rover"),
+    ]);
+    assert_eq!(expanded.lines().count(), printed);
+    // JSON that is no QGroundControl plan is named for what it is, briefly.
+    let other = dir.path().join("other.json");
+    std::fs::write(&other, format!("{{\"items\": [{}0]}}", "1, ".repeat(3000))).unwrap();
+    let out = fpma().arg("expand").arg(&other).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("holds JSON, not a flight plan") && err.len() < 300,
+        "{err}"
+    );
 
     // The car-park plan waits for a variable and has an emergency rule: refused, with why.
     let refused = dir.path().join("carpark.plan");

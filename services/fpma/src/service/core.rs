@@ -323,16 +323,7 @@ impl<V: VasPort> Core<V> {
     /// Parses and checks a plan (the one check its load makes: the plan is flown in simulation
     /// once, and what that gives is kept for the stations' geometry).
     fn check(&self, text: &str, source: &str) -> Result<CheckedPlan, String> {
-        let vehicle = &self.cfg.vehicle;
-        let checked = if source.ends_with(".plan") {
-            let stem = source.trim_end_matches(".plan");
-            let (plan, _xml) =
-                flightplan::qgc::import(text, stem).map_err(|e| format!("{source}: {e}"))?;
-            flightplan::check::check(plan, vehicle)
-        } else {
-            flightplan::check::load(text, vehicle)
-        };
-        checked.map_err(|e| e.in_file(source))
+        flightplan::plan_file::load(text, source, &self.cfg.vehicle).map_err(|e| e.to_string())
     }
 
     async fn start_plan(&mut self, plan: CheckedPlan, source: &str) -> Result<PlanLoaded, String> {
