@@ -690,13 +690,44 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     })
 }
 
-/// A `LAT,LON,ALT` (a `<mavsim home>`), `None` when it is not three numbers.
+/// A `LAT,LON,ALT` (a `<mavsim home>`), `None` when it is not three numbers in range (see
+/// [`home_fault`]).
 fn lat_lon_alt(text: &str) -> Option<[f64; 3]> {
+    home_fault(text)
+        .is_none()
+        .then(|| parse_lat_lon_alt(text))
+        .flatten()
+}
+
+fn parse_lat_lon_alt(text: &str) -> Option<[f64; 3]> {
     let v: Vec<f64> = text
         .split(',')
         .map(|x| x.trim().parse().ok())
         .collect::<Option<_>>()?;
     v.try_into().ok()
+}
+
+/// What is wrong with a `<mavsim home>`, if anything: not three numbers, or a latitude, longitude
+/// or altitude no place on Earth has (caught here, before anything starts, instead of by a
+/// simulator failing to start again and again).
+fn home_fault(text: &str) -> Option<String> {
+    let Some([lat, lon, alt]) = parse_lat_lon_alt(text) else {
+        return Some(format!("home `{text}` is not LAT,LON,ALT"));
+    };
+    if !(-90.0..=90.0).contains(&lat) {
+        return Some(format!("home `{text}`: latitude {lat} is outside -90..90"));
+    }
+    if !(-180.0..=180.0).contains(&lon) {
+        return Some(format!(
+            "home `{text}`: longitude {lon} is outside -180..180"
+        ));
+    }
+    if !(-500.0..=9_000.0).contains(&alt) {
+        return Some(format!(
+            "home `{text}`: altitude {alt} m is outside -500..9000 (metres above sea level)"
+        ));
+    }
+    None
 }
 
 /// A vehicle's `<fence>` (the plan's form). A `maxDistance` is measured from the fence's own
@@ -808,10 +839,8 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     ));
                 }
                 a.finish()?;
-                if let Some(h) = &spec.home {
-                    if lat_lon_alt(h).is_none() {
-                        return Err(Fault::at(s, format!("home `{h}` is not LAT,LON,ALT")));
-                    }
+                if let Some(fault) = spec.home.as_deref().and_then(home_fault) {
+                    return Err(Fault::at(s, fault));
                 }
                 if spec.speedup.is_some_and(|x| !(x >= 0.01 && x.is_finite())) {
                     return Err(Fault::at(s, "speedup must be at least 0.01"));
@@ -1254,6 +1283,16 @@ mod tests {
         );
         let e = with(r#"<fence maxDistance="100"/><fence maxHeight="3"/>"#).unwrap_err();
         assert!(e.contains("at most one <fence>"), "{e}");
+        for (home, says) in [
+            ("141.275,1.987,0", "latitude 141.275 is outside -90..90"),
+            ("41.275,200,0", "longitude 200 is outside -180..180"),
+            ("41.275,1.987,12000", "altitude 12000 m is outside"),
+            ("41.275,1.987", "is not LAT,LON,ALT"),
+        ] {
+            let bad = GOOD.replace(r#"home="41.275,1.987,0""#, &format!(r#"home="{home}""#));
+            let e = parse(&bad).unwrap_err();
+            assert!(e.contains(says), "{home}: {e}");
+        }
         let no_home = GOOD.replace(r#" home="41.275,1.987,0""#, "").replace(
             r#"<vas vehicle="rover" queueSize="5"/>"#,
             r#"<vas vehicle="rover" queueSize="5"><fence maxDistance="100"/></vas>"#,
