@@ -75,6 +75,16 @@ impl VehicleParams {
             cf_length: 1000.0,
         }
     }
+    /// The longest track between two consecutive waypoints a plan for this vehicle may have,
+    /// metres: a sanity bound that catches a coordinate typed wrong before the plan flies (a
+    /// small rover's battery does not reach 50 km, a small aircraft's not 500 km).
+    pub fn longest_leg_m(&self) -> f64 {
+        match self.kind {
+            VehicleKind::Rover => 50_000.0,
+            VehicleKind::Aircraft => 500_000.0,
+        }
+    }
+
     /// The defaults for `kind`.
     pub fn for_kind(kind: VehicleKind) -> Self {
         match kind {

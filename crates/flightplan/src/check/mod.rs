@@ -12,6 +12,7 @@
 pub mod fence;
 mod vehicle;
 
+use vehicle::check_leg_lengths;
 pub use vehicle::{check_vehicle, MAX_SCAN_TRACKS};
 
 use crate::exec::{expand_nominal, ExpandError};
@@ -116,6 +117,7 @@ fn checked(
         fence::resolve_home(&mut plan, &nominal);
     }
     fence::check_waypoints(&plan, &nominal)?;
+    check_leg_lengths(&plan, &nominal, vehicle)?;
     Ok(CheckedPlan {
         plan: Arc::new(plan),
         vehicle: vehicle.clone(),

@@ -151,6 +151,22 @@ pub enum PlanErrorKind {
         /// Which limit, where.
         why: String,
     },
+    /// A leg far longer than the vehicle flies in one: most often a coordinate typed wrong (a
+    /// negated latitude made a rover's leg 36,569 km).
+    #[error(
+        "leg `{leg}` is {km:.1} km long, more than a {vehicle} flies in one leg ({max_km:.0} km): \
+         is a coordinate typed wrong?"
+    )]
+    LegTooLong {
+        /// The leg.
+        leg: String,
+        /// Its length, km.
+        km: f64,
+        /// The longest a leg of this vehicle may be, km.
+        max_km: f64,
+        /// The vehicle.
+        vehicle: crate::vehicle::VehicleKind,
+    },
     /// The `<fence>` itself is unusable.
     #[error("fence: {0}")]
     BadFence(String),
