@@ -309,7 +309,14 @@ impl Shared {
                         c = progress.changed() => {
                             if c.is_ok() {
                                 let p = *progress.borrow();
-                                if let Some(c) = me.state().commands.get_mut(id) {
+                                // The FPMa loads a plan before its sink says stored, so the
+                                // plan's own event may have settled the command already.
+                                if let Some(c) = me
+                                    .state()
+                                    .commands
+                                    .get_mut(id)
+                                    .filter(|c| c.status == CommandStatus::Pending)
+                                {
                                     c.detail = format!("sending {}/{} bytes", p.acknowledged, p.total);
                                 }
                                 me.live.changed.notify_waiters();

@@ -107,10 +107,13 @@ async fn scenario() {
         .await;
     assert_eq!(status, 202, "{body}");
     let c = wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
-    assert!(c["detail"]
-        .as_str()
-        .unwrap()
-        .starts_with("loaded as version"));
+    assert!(
+        c["detail"]
+            .as_str()
+            .unwrap()
+            .starts_with("loaded as version"),
+        "{c}"
+    );
     let plan = wait_plan(&st, "the uploaded plan drawn", |p| {
         p["version"].as_u64() >= Some(1)
     })
