@@ -88,13 +88,17 @@ enum Cmd {
         #[arg(long, default_value_t = 5000)]
         timeout_ms: u64,
     },
-    /// Send FILE to the file sink TO (e.g. rover1/fpma/plans).
+    /// Send FILE to the file sink TO (e.g. `usal send plan.xml rover1/fpma/plans`); exit 0 once
+    /// the sink stored it, 1 with its verdict or why nothing answered.
     Send {
         /// The file.
         file: PathBuf,
-        /// Full name of the sink.
-        #[arg(long)]
-        to: String,
+        /// Full name of the sink (positional, as `call` and `echo` take their names).
+        #[arg(required_unless_present = "to_flag", conflicts_with = "to_flag")]
+        to: Option<String>,
+        /// The sink, as a flag (the form earlier versions wanted).
+        #[arg(long = "to", value_name = "TO")]
+        to_flag: Option<String>,
         /// How long to keep trying to reach the sink, in s.
         #[arg(long, default_value_t = 30)]
         retry_secs: u64,
@@ -256,8 +260,11 @@ async fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Cmd::Send {
             file,
             to,
+            to_flag,
             retry_secs,
         } => {
+            // One of the two is there: clap requires it.
+            let to = to.as_deref().or(to_flag.as_deref()).unwrap_or_default();
             send(
                 &svc,
                 file,

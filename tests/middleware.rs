@@ -531,7 +531,8 @@ fn killed_subscriber_with_4096_raises_in_flight_completes_every_one_at_once() {
     eprintln!("done {waited:?} after the kill: {done}");
 }
 
-/// `usal send` says how a send ended, every time: 0 once the sink stored the file (six sends in
+/// `usal send FILE SINK` (the sink named positionally, as `call` and `echo` name theirs) says
+/// how a send ended, every time: 0 once the sink stored the file (six sends in
 /// a row, where a race between the progress and the outcome once made most of them say "node is
 /// shutting down" after the sink had stored them), 1 naming the domain when no node offers the
 /// sink.
@@ -562,7 +563,7 @@ fn usal_send_exits_0_once_stored_and_1_naming_the_domain_without_a_sink() {
                 "--mcast-port",
                 &net.port.to_string(),
             ])
-            .args(["send", file.to_str().expect("UTF-8"), "--to", to])
+            .args(["send", file.to_str().expect("UTF-8"), to])
             .args(["--retry-secs", "10"])
             .output()
             .expect("usal send")
