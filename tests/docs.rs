@@ -160,17 +160,16 @@ fn every_relative_link_of_the_readme_and_the_book_resolves() {
     assert!(broken.is_empty(), "broken links:\n{}", broken.join("\n"));
 }
 
-/// The `usal` subcommand a snippet line runs, if it runs `usal`.
+/// The `usal` subcommand a snippet line runs, if it runs `usal`: the word after `--` in
+/// `cargo run ... --bin usal -- SUB`, else the word after `usal` or `path/usal`.
 fn usal_subcommand(line: &str) -> Option<String> {
     let words: Vec<&str> = line.split_whitespace().collect();
-    let at = words.iter().position(|w| {
-        *w == "usal" || w.ends_with("/usal") || *w == "--" && line.contains("--bin usal")
-    })?;
-    // `cargo run ... --bin usal -- SUB`: the word after `--`; `usal SUB`: the word after it.
-    let at = if words[at] == "usal" && line.contains("--bin usal") {
+    let at = if line.contains("--bin usal") {
         words.iter().position(|w| *w == "--")?
     } else {
-        at
+        words
+            .iter()
+            .position(|w| *w == "usal" || w.ends_with("/usal"))?
     };
     words
         .get(at + 1)

@@ -690,44 +690,28 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
     })
 }
 
-/// A `LAT,LON,ALT` (a `<mavsim home>`), `None` when it is not three numbers in range (see
-/// [`home_fault`]).
-fn lat_lon_alt(text: &str) -> Option<[f64; 3]> {
-    home_fault(text)
-        .is_none()
-        .then(|| parse_lat_lon_alt(text))
-        .flatten()
-}
-
-fn parse_lat_lon_alt(text: &str) -> Option<[f64; 3]> {
-    let v: Vec<f64> = text
-        .split(',')
-        .map(|x| x.trim().parse().ok())
-        .collect::<Option<_>>()?;
-    v.try_into().ok()
-}
-
-/// What is wrong with a `<mavsim home>`, if anything: not three numbers, or a latitude, longitude
-/// or altitude no place on Earth has (caught here, before anything starts, instead of by a
-/// simulator failing to start again and again).
-fn home_fault(text: &str) -> Option<String> {
-    let Some([lat, lon, alt]) = parse_lat_lon_alt(text) else {
-        return Some(format!("home `{text}` is not LAT,LON,ALT"));
+/// A `<mavsim home>` `LAT,LON,ALT`, or what is wrong with it: not three numbers, or a latitude,
+/// longitude or altitude no place on Earth has (caught here, before anything starts, instead of
+/// by a simulator failing to start again and again).
+fn home(text: &str) -> Result<[f64; 3], String> {
+    let parsed: Option<Vec<f64>> = text.split(',').map(|x| x.trim().parse().ok()).collect();
+    let Some([lat, lon, alt]) = parsed.and_then(|v| <[f64; 3]>::try_from(v).ok()) else {
+        return Err(format!("home `{text}` is not LAT,LON,ALT"));
     };
     if !(-90.0..=90.0).contains(&lat) {
-        return Some(format!("home `{text}`: latitude {lat} is outside -90..90"));
+        return Err(format!("home `{text}`: latitude {lat} is outside -90..90"));
     }
     if !(-180.0..=180.0).contains(&lon) {
-        return Some(format!(
+        return Err(format!(
             "home `{text}`: longitude {lon} is outside -180..180"
         ));
     }
     if !(-500.0..=9_000.0).contains(&alt) {
-        return Some(format!(
+        return Err(format!(
             "home `{text}`: altitude {alt} m is outside -500..9000 (metres above sea level)"
         ));
     }
-    None
+    Ok([lat, lon, alt])
 }
 
 /// A vehicle's `<fence>` (the plan's form). A `maxDistance` is measured from the fence's own
@@ -742,7 +726,7 @@ fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::F
     let mut fence = pf.fence;
     if !pf.home_given && fence.max_distance_m.is_some() {
         let home = services.iter().find_map(|s| match s {
-            ServiceSpec::Mavsim(m) => m.home.as_deref().and_then(lat_lon_alt),
+            ServiceSpec::Mavsim(m) => m.home.as_deref().and_then(|h| home(h).ok()),
             _ => None,
         });
         fence.home = home.map(|[lat, lon, _]| (lat, lon)).ok_or_else(|| {
@@ -839,7 +823,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     ));
                 }
                 a.finish()?;
-                if let Some(fault) = spec.home.as_deref().and_then(home_fault) {
+                if let Some(Err(fault)) = spec.home.as_deref().map(home) {
                     return Err(Fault::at(s, fault));
                 }
                 if spec.speedup.is_some_and(|x| !(x >= 0.01 && x.is_finite())) {

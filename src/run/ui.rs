@@ -25,7 +25,9 @@ pub struct Ui {
 /// it forwards (`{"forwarded": N, "added": [..], "removed": [..]}`), rewritten at every change of
 /// the routes, which made most of a radio mission's output.
 fn routine(line: &str) -> bool {
+    // Parsed only when it may be one: every child line passes here.
     line.starts_with('{')
+        && line.contains("\"forwarded\":")
         && serde_json::from_str::<Value>(line).is_ok_and(|v| v.get("forwarded").is_some())
 }
 

@@ -19,8 +19,8 @@ pub enum PlanFileError {
 }
 
 /// Loads `text`, the content of the file named `source`, and checks it for `vehicle`: a
-/// QGroundControl plan when `source` ends in `.plan` or the text is one (JSON with `"fileType":
-/// "Plan"`), else a USAL flight plan.
+/// QGroundControl plan when `source` ends in `.plan` or the text is JSON (a QGC plan has
+/// `"fileType": "Plan"`; other JSON is refused for what it is), else a USAL flight plan.
 ///
 /// # Errors
 /// [`PlanFileError::Refused`] naming the file and, for XML, the line and column;
@@ -31,16 +31,18 @@ pub fn load(
     vehicle: &VehicleParams,
 ) -> Result<CheckedPlan, PlanFileError> {
     let json = text.trim_start().starts_with(['{', '[']);
-    let checked = if source.ends_with(".plan") || (json && is_qgc_plan(text)) {
+    let named_qgc = source.ends_with(".plan");
+    let checked = if named_qgc || json {
         let stem = source.strip_suffix(".plan").unwrap_or(source);
-        let (plan, _xml) = qgc::import(text, stem)
-            .map_err(|e| PlanFileError::Refused(format!("{source}: {e}")))?;
+        let (plan, _xml) = qgc::import(text, stem).map_err(|e| match e {
+            // JSON that is no QGC plan, in a file not named as one: named for what it is.
+            qgc::QgcImportError::NotAPlan(_) if !named_qgc => PlanFileError::Refused(format!(
+                "{source}: holds JSON, not a flight plan (a USAL flight plan is XML, \
+                 <flightPlan>; a QGroundControl plan has \"fileType\": \"Plan\")"
+            )),
+            e => PlanFileError::Refused(format!("{source}: {e}")),
+        })?;
         check::check(plan, vehicle)
-    } else if json {
-        return Err(PlanFileError::Refused(format!(
-            "{source}: holds JSON, not a flight plan (a USAL flight plan is XML, <flightPlan>; \
-             a QGroundControl plan has \"fileType\": \"Plan\")"
-        )));
     } else {
         check::load(text, vehicle)
     };
@@ -48,11 +50,6 @@ pub fn load(
         CheckError::Plan(_) => PlanFileError::Refused(e.in_file(source)),
         CheckError::Endless(_) => PlanFileError::Endless(e.in_file(source)),
     })
-}
-
-/// Whether `text` is a QGroundControl plan document.
-fn is_qgc_plan(text: &str) -> bool {
-    serde_json::from_str::<serde_json::Value>(text).is_ok_and(|v| v["fileType"] == "Plan")
 }
 
 #[cfg(test)]

@@ -43,6 +43,16 @@ impl Default for LocalItems {
 }
 
 impl LocalItems {
+    /// The offers now (a copy: route computations and resends do not hold the map meanwhile).
+    pub fn offers_now(&self) -> Vec<Arc<LocalOffer>> {
+        self.offers.iter().map(|e| e.value().clone()).collect()
+    }
+
+    /// The interests now (a copy, as [`LocalItems::offers_now`]).
+    pub fn interests_now(&self) -> Vec<Arc<LocalInterest>> {
+        self.interests.iter().map(|e| e.value().clone()).collect()
+    }
+
     /// A new id for a service, offer or interest.
     pub fn fresh_id(&self) -> u32 {
         self.next_id.fetch_add(1, Ordering::Relaxed)

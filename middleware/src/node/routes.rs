@@ -251,18 +251,8 @@ impl NodeInner {
     /// own declarations arriving: see [`NodeInner::recompute_routes_of_peer`].
     pub fn recompute_routes(&self) {
         let _serialised = lock(&self.routing);
-        let interests: Vec<Arc<LocalInterest>> = self
-            .local
-            .interests
-            .iter()
-            .map(|e| e.value().clone())
-            .collect();
-        let offers: Vec<Arc<LocalOffer>> = self
-            .local
-            .offers
-            .iter()
-            .map(|e| e.value().clone())
-            .collect();
+        let interests = self.local.interests_now();
+        let offers = self.local.offers_now();
         let peers: Vec<PeerView> = self.peers.by_id.iter().map(|p| PeerView::of(&p)).collect();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
         let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
@@ -351,18 +341,8 @@ impl NodeInner {
         let Some(peer) = self.peers.by_id.get(&node).map(|p| PeerView::of(&p)) else {
             return;
         };
-        let interests: Vec<Arc<LocalInterest>> = self
-            .local
-            .interests
-            .iter()
-            .map(|e| e.value().clone())
-            .collect();
-        let offers: Vec<Arc<LocalOffer>> = self
-            .local
-            .offers
-            .iter()
-            .map(|e| e.value().clone())
-            .collect();
+        let interests = self.local.interests_now();
+        let offers = self.local.offers_now();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
         let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
         for o in &offers {

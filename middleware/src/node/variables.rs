@@ -1,7 +1,6 @@
 //! Variables: publishing a value (kept for late joiners, sent on the fast class, coalesced
 //! while unsent) and serving a new subscriber the newest one.
 
-use std::sync::Arc;
 use std::time::Instant;
 
 use super::{lock, LocalOffer, NodeInner, OfferRole};
@@ -62,12 +61,7 @@ impl NodeInner {
 
     /// Sends `node` the newest value of every variable of ours it subscribes to (safe class).
     pub fn resend_last_values(&self, node: NodeId, link: usize, addr: crate::link::PeerAddr) {
-        let offers: Vec<Arc<LocalOffer>> = self
-            .local
-            .offers
-            .iter()
-            .map(|o| o.value().clone())
-            .collect();
+        let offers = self.local.offers_now();
         for o in offers {
             let OfferRole::Variable { last } = &o.role else {
                 continue;
