@@ -124,6 +124,17 @@ impl<X> CommandLog<X> {
         self.entries.iter_mut().find(|c| c.id == id)
     }
 
+    /// Shows `detail` on command `id` while it is pending (how far it got); an answered one
+    /// keeps its outcome, whichever came first (progress can trail the answer).
+    pub fn progress(&mut self, id: u64, detail: String) {
+        if let Some(c) = self
+            .get_mut(id)
+            .filter(|c| c.status == CommandStatus::Pending)
+        {
+            c.detail = detail;
+        }
+    }
+
     /// Records the outcome of command `id` (see [`Command::finish`]).
     pub fn finish(&mut self, id: u64, outcome: Result<String, String>, now: Instant) {
         if let Some(c) = self.get_mut(id) {
@@ -176,6 +187,21 @@ impl<X> CommandLog<X> {
 mod tests {
     use super::*;
     use std::time::Duration;
+
+    /// Progress shows on a pending command only: one answered keeps its outcome even when the
+    /// progress of its transfer comes after the answer.
+    #[test]
+    fn progress_never_overwrites_an_answer() {
+        let t = Instant::now();
+        let mut log = CommandLog::<()>::default();
+        log.start(1, "r", "upload".into(), t, ());
+        log.progress(1, "sending 10/20 bytes".into());
+        assert_eq!(log.get(1).unwrap().detail, "sending 10/20 bytes");
+        log.finish(1, Ok("loaded as version 1".into()), t);
+        log.progress(1, "sending 20/20 bytes".into());
+        log.progress(7, "no such command".into());
+        assert_eq!(log.get(1).unwrap().detail, "loaded as version 1");
+    }
 
     #[test]
     fn pending_then_answered_once_and_shown_newest_first() {

@@ -32,7 +32,7 @@ use flightplan::api::{
 };
 use flightplan::vehicle::VehicleParams;
 use marea::Service;
-use station_web::{call_error, CommandStatus, Live, StationConfig};
+use station_web::{call_error, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
 use usal_types::{
     AllowedChanges, CommandReply, FlightState, Position, StateChangeReply, StateChangeRequest,
@@ -311,14 +311,10 @@ impl Shared {
                                 let p = *progress.borrow();
                                 // The FPMa loads a plan before its sink says stored, so the
                                 // plan's own event may have settled the command already.
-                                if let Some(c) = me
-                                    .state()
-                                    .commands
-                                    .get_mut(id)
-                                    .filter(|c| c.status == CommandStatus::Pending)
-                                {
-                                    c.detail = format!("sending {}/{} bytes", p.acknowledged, p.total);
-                                }
+                                me.state().commands.progress(
+                                    id,
+                                    format!("sending {}/{} bytes", p.acknowledged, p.total),
+                                );
                                 me.live.changed.notify_waiters();
                             }
                         }
@@ -328,21 +324,22 @@ impl Shared {
             };
             match result {
                 Ok(r) => {
-                    if let Some(c) = me.state().commands.get_mut(id) {
-                        if c.status == CommandStatus::Pending {
-                            c.detail = format!(
-                                "delivered {} bytes to {}, waiting for the FPMa to load it",
-                                r.size, r.receiver
-                            );
-                        }
-                    }
+                    me.state().commands.progress(
+                        id,
+                        format!(
+                            "delivered {} bytes to {}, waiting for the FPMa to load it",
+                            r.size, r.receiver
+                        ),
+                    );
                     me.live.changed.notify_waiters();
                     tokio::select! {
                         _ = tokio::time::sleep(LOAD_TIMEOUT) => {}
                         _ = me.live.cancel.cancelled() => return,
                     }
-                    me.state()
-                        .finish(id, Err("the FPMa neither loaded nor refused the plan".into()));
+                    me.state().finish(
+                        id,
+                        Err("the FPMa neither loaded nor refused the plan".into()),
+                    );
                 }
                 Err(e) => me.state().finish(id, Err(e.to_string())),
             }
