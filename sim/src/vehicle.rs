@@ -78,6 +78,10 @@ struct Target {
     lon: f64,
     /// The item's own acceptance radius (NAV_WAYPOINT param2), else WP_RADIUS.
     radius: Option<f64>,
+    /// A NAV_LAND: the vehicle lands at the point instead of passing it.
+    land: bool,
+    /// Where the vehicle was when the item became current (a plane glides from there).
+    from: Ned,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -133,6 +137,9 @@ fn kind_name(kind: VehicleKind) -> &'static str {
 
 /// Whether a command moves the vehicle (and is therefore "reached"); the others
 /// (DO_*, CONDITION_*) are executed instantly when the mission passes them.
+/// Height above the ground at which a landing counts as touched down, metres.
+const TOUCHDOWN_M: f64 = 0.05;
+
 fn is_nav(cmd: MavCmd) -> bool {
     (cmd as u32) < 80 || matches!(cmd, MavCmd::MAV_CMD_NAV_SPLINE_WAYPOINT)
 }
@@ -379,6 +386,8 @@ impl Vehicle {
             lat,
             lon,
             radius,
+            land: item.command == MavCmd::MAV_CMD_NAV_LAND,
+            from: self.state.pos,
         })
     }
 
@@ -437,6 +446,57 @@ impl Vehicle {
         });
     }
 
+    /// Where a NAV_LAND steers the vehicle this step. A copter flies to the point at its
+    /// altitude, then descends straight down (ArduCopter's NAV_LAND); a plane glides on the
+    /// straight slope from where the item began to the touchdown point (ArduPlane's
+    /// approach), so an approach that starts too high or too close touches down long.
+    fn landing_aim(&self, t: &Target) -> Ned {
+        let ground = Ned { up: 0.0, ..t.pos };
+        match self.cfg.kind {
+            VehicleKind::Copter => {
+                if self.state.pos.horizontal_distance(&ground) > self.wp_radius() {
+                    Ned {
+                        up: self.state.pos.up,
+                        ..ground
+                    }
+                } else {
+                    ground
+                }
+            }
+            _ => {
+                // Along the approach line from `from` to the touchdown point: the height the
+                // slope asks for here, a metre under the ground at the point so the wheels
+                // meet it before; past the point the plane keeps descending ahead (it lands
+                // long) instead of turning back.
+                let total = t.from.horizontal_distance(&ground).max(1.0);
+                let (un, ue) = (
+                    (ground.north - t.from.north) / total,
+                    (ground.east - t.from.east) / total,
+                );
+                let along = (self.state.pos.north - t.from.north) * un
+                    + (self.state.pos.east - t.from.east) * ue;
+                let left = total - along;
+                let ahead = if left > 0.0 { 0.0 } else { 1_000.0 };
+                Ned {
+                    north: ground.north + un * ahead,
+                    east: ground.east + ue * ahead,
+                    up: t.from.up * (left / total).clamp(0.0, 1.0) - 1.0,
+                }
+            }
+        }
+    }
+
+    /// A NAV_LAND touched the ground: the item is reached where the wheels are, and the
+    /// autopilot disarms (ArduCopter at once; ArduPlane after LAND_DISARMDELAY, shortened
+    /// here to touchdown, since a plane rolling to a stop changes nothing a test looks at).
+    fn touch_down(&mut self, t: Target, out: &mut Vec<MavMessage>) {
+        self.state.pos.up = 0.0;
+        self.record(LogEvent::Landed);
+        out.push(statustext(MavSeverity::MAV_SEVERITY_INFO, "Land complete"));
+        self.set_armed(false, out);
+        self.reached(t, out);
+    }
+
     fn finish_mission(&mut self, out: &mut Vec<MavMessage>) {
         let last = self.target.map_or(self.current, |t| t.seq);
         self.target = None;
@@ -446,6 +506,11 @@ impl Vehicle {
             "Mission Complete",
         ));
         self.record(LogEvent::MissionComplete { seq: last });
+        // A mission that ended with a landing leaves the vehicle on the ground, disarmed, in
+        // AUTO: nothing to loiter over.
+        if !self.armed {
+            return;
+        }
         if let Some(mode) = modes::mission_complete(self.cfg.kind) {
             self.change_mode(mode, out);
         }
@@ -601,6 +666,7 @@ impl Vehicle {
                 }
             }
             Behaviour::Auto => match self.target {
+                Some(t) if t.land => Command::GoTo(self.landing_aim(&t)),
                 Some(t) => Command::GoTo(t.pos),
                 None => Command::Hold(self.hold_point),
             },
@@ -644,7 +710,11 @@ impl Vehicle {
         self.check_fence(&mut out);
         if self.behaviour() == Behaviour::Auto {
             if let Some(t) = self.target {
-                if self.within(&t.pos, t.radius.unwrap_or_else(|| self.wp_radius())) {
+                if t.land {
+                    if self.state.pos.up <= TOUCHDOWN_M {
+                        self.touch_down(t, &mut out);
+                    }
+                } else if self.within(&t.pos, t.radius.unwrap_or_else(|| self.wp_radius())) {
                     self.reached(t, &mut out);
                 }
             }
@@ -1148,6 +1218,101 @@ mod tests {
         assert!((p.up - 15.0).abs() <= 2.0, "{p:?}");
         run_until(&mut v, 120.0, |v| v.target_seq().is_none());
         assert_eq!(reached_seqs(&mut v), vec![1, 2]);
+    }
+
+    #[test]
+    fn a_mission_ending_in_nav_land_lands_the_copter_at_the_point_and_disarms() {
+        let mut v = copter();
+        let takeoff = Item {
+            command: MavCmd::MAV_CMD_NAV_TAKEOFF,
+            z: 20.0,
+            ..item_at(&v, 1, 0.0)
+        };
+        let out = Item {
+            z: 20.0,
+            ..item_at(&v, 2, 80.0)
+        };
+        let land = Item {
+            command: MavCmd::MAV_CMD_NAV_LAND,
+            ..item_at(&v, 3, 40.0)
+        };
+        upload_items(&mut v, &[takeoff, out, land]);
+        command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0);
+        command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 3.0);
+        run_until(&mut v, 60.0, |v| v.current() == 3);
+        // It flies to the landing point at its altitude, then descends straight down.
+        run_until(&mut v, 60.0, |v| (v.position().north - 40.0).abs() < 2.0);
+        assert!(v.position().up > 15.0, "{:?}", v.position());
+        run_until(&mut v, 60.0, |v| !v.armed());
+        let p = v.position();
+        assert!(p.up < 0.1 && (p.north - 40.0).abs() < 2.5, "{p:?}");
+        let log = v.take_log();
+        let reached: Vec<u16> = log
+            .iter()
+            .filter_map(|(_, e)| match e {
+                LogEvent::ItemReached { seq, .. } => Some(*seq),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(reached, [1, 2, 3]);
+        assert!(log.iter().any(|(_, e)| *e == LogEvent::Landed));
+        assert!(log
+            .iter()
+            .any(|(_, e)| matches!(e, LogEvent::MissionComplete { .. })));
+        // On the ground it stays, disarmed, in AUTO: no loiter over the runway.
+        assert_eq!(v.mode, 3);
+        for _ in 0..100 {
+            v.step(0.02);
+        }
+        assert_eq!(v.position().up, 0.0);
+    }
+
+    #[test]
+    fn a_plane_glides_down_the_approach_and_a_steep_one_lands_long() {
+        let plane = || {
+            Vehicle::new(
+                VehicleConfig {
+                    kind: VehicleKind::Plane,
+                    sysid: 1,
+                    home: HOME,
+                },
+                Instant::now(),
+            )
+        };
+        // (approach start north of home, its height, how far past the point it may land)
+        for (start, height, long_m) in [(1_200.0, 60.0, 20.0), (300.0, 150.0, 100.0)] {
+            let mut v = plane();
+            let faf = Item {
+                z: height,
+                ..item_at(&v, 1, start)
+            };
+            let land = Item {
+                command: MavCmd::MAV_CMD_NAV_LAND,
+                ..item_at(&v, 2, 0.0)
+            };
+            upload_items(&mut v, &[faf, land]);
+            // Airborne at the approach height, heading south toward the runway.
+            v.state.pos = Ned {
+                north: start + 300.0,
+                east: 0.0,
+                up: f64::from(height),
+            };
+            v.state.yaw = std::f64::consts::PI;
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0);
+            command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0);
+            run_until(&mut v, 600.0, |v| !v.armed());
+            let p = v.position();
+            assert_eq!(reached_seqs(&mut v), vec![1, 2]);
+            assert!(p.up == 0.0 && p.east.abs() < 5.0, "{p:?}");
+            if long_m < 50.0 {
+                assert!(
+                    p.north.abs() < long_m,
+                    "a gentle slope lands on the point: {p:?}"
+                );
+            } else {
+                assert!(-p.north > 50.0, "too steep a slope lands long: {p:?}");
+            }
+        }
     }
 
     #[test]

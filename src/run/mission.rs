@@ -162,7 +162,7 @@ pub struct VasSpec {
 /// `<fpma>` settings.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FpmaSpec {
-    /// rover or aircraft.
+    /// rover, aircraft or copter.
     pub vehicle: String,
     /// Waypoints queued at the VAS.
     pub lookahead: Option<u32>,
@@ -181,7 +181,7 @@ pub struct StationSpec {
     pub fpma: String,
     /// Prefix of the VAS it feeds, e.g. `rover1/vas`.
     pub vas: String,
-    /// rover or aircraft: how the plan is expanded for the summary.
+    /// rover, aircraft or copter: how the plan is expanded for the summary.
     pub vehicle: String,
     /// A plan the FPMa must refuse (`refusedPlan`), offered before `plan`: rehearses a
     /// plan check such as the geofence; accepted, it fails the run.
@@ -859,7 +859,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
             "fpma" => {
                 let mut a = Attrs::new(s, &["vehicle", "lookahead", "vas", "config"]);
                 let spec = FpmaSpec {
-                    vehicle: a.one_of("vehicle", &["rover", "aircraft"], "rover")?,
+                    vehicle: a.one_of("vehicle", &["rover", "aircraft", "copter"], "rover")?,
                     lookahead: a.parsed("lookahead", "a whole number")?,
                     vas: a.opt("vas"),
                     config: a.file("config", base)?,
@@ -879,7 +879,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     plan,
                     fpma: a.opt("fpma").unwrap_or_default(),
                     vas: a.opt("vas").unwrap_or_default(),
-                    vehicle: a.one_of("vehicle", &["rover", "aircraft", ""], "")?,
+                    vehicle: a.one_of("vehicle", &["rover", "aircraft", "copter", ""], "")?,
                     refused_plan: a.file("refusedPlan", base)?,
                     start: match a.one_of("start", &["auto", "operator"], "auto")?.as_str() {
                         "operator" => StartBy::Operator,

@@ -135,11 +135,7 @@ fn station_setup(
     use flightplan::vehicle::{VehicleKind, VehicleParams};
     let src = std::fs::read_to_string(&st.plan)
         .with_context(|| format!("reading {}", st.plan.display()))?;
-    let kind = if st.vehicle == "aircraft" {
-        VehicleKind::Aircraft
-    } else {
-        VehicleKind::Rover
-    };
+    let kind = VehicleKind::from_name(&st.vehicle).unwrap_or(VehicleKind::Rover);
     let params = VehicleParams::for_kind(kind);
     let plan = flightplan::check::load(&src, &params)
         .map_err(|e| anyhow!("{}", e.in_file(&st.plan.display().to_string())))?;

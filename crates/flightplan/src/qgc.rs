@@ -375,7 +375,11 @@ pub fn export(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<Json, QgcExp
         "rallyPoints": {"points": [], "version": 2},
         "mission": {
             "version": 2, "firmwareType": 3,
-            "vehicleType": match vehicle.kind { VehicleKind::Rover => 10, VehicleKind::Aircraft => 1 },
+            "vehicleType": match vehicle.kind {
+                VehicleKind::Rover => 10,
+                VehicleKind::Aircraft => 1,
+                VehicleKind::Copter => 2,
+            },
             "cruiseSpeed": plan.default_speed.unwrap_or(vehicle.default_speed),
             "hoverSpeed": plan.default_speed.unwrap_or(vehicle.default_speed),
             "globalPlanAltitudeMode": 1,

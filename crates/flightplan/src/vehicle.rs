@@ -11,6 +11,8 @@ pub enum VehicleKind {
     Rover,
     /// A fixed-wing aircraft.
     Aircraft,
+    /// A multirotor: hovers, turns where it stands, climbs and lands vertically.
+    Copter,
 }
 
 impl VehicleKind {
@@ -19,13 +21,22 @@ impl VehicleKind {
         match self {
             VehicleKind::Rover => "rover",
             VehicleKind::Aircraft => "aircraft",
+            VehicleKind::Copter => "copter",
         }
     }
-    /// The kind named `s` (`rover`, `aircraft`).
+    /// Every kind, in the order plans and config files list them.
+    pub const ALL: [VehicleKind; 3] = [
+        VehicleKind::Rover,
+        VehicleKind::Aircraft,
+        VehicleKind::Copter,
+    ];
+    /// The names of every kind, for an error message: "`rover`, `aircraft` or `copter`".
+    pub fn choices() -> String {
+        "`rover`, `aircraft` or `copter`".to_owned()
+    }
+    /// The kind named `s` (`rover`, `aircraft`, `copter`).
     pub fn from_name(s: &str) -> Option<Self> {
-        [VehicleKind::Rover, VehicleKind::Aircraft]
-            .into_iter()
-            .find(|k| k.name() == s)
+        Self::ALL.into_iter().find(|k| k.name() == s)
     }
 }
 
@@ -75,13 +86,27 @@ impl VehicleParams {
             cf_length: 1000.0,
         }
     }
+    /// A small multirotor (the MAUVET and EAMOS quadcopters): waypoints a few metres apart,
+    /// turns on the spot, 5 m/s cruise.
+    pub fn copter() -> Self {
+        Self {
+            kind: VehicleKind::Copter,
+            min_wp_distance: 3.0,
+            default_speed: 5.0,
+            turn_radius: 1.0,
+            max_arc_step_deg: 30.0,
+            cf_length: 100.0,
+        }
+    }
     /// The longest track between two consecutive waypoints a plan for this vehicle may have,
     /// metres: a sanity bound that catches a coordinate typed wrong before the plan flies (a
-    /// small rover's battery does not reach 50 km, a small aircraft's not 500 km).
+    /// small rover's battery does not reach 50 km, a small multirotor's not 20 km, a small
+    /// aircraft's not 500 km).
     pub fn longest_leg_m(&self) -> f64 {
         match self.kind {
             VehicleKind::Rover => 50_000.0,
             VehicleKind::Aircraft => 500_000.0,
+            VehicleKind::Copter => 20_000.0,
         }
     }
 
@@ -90,6 +115,7 @@ impl VehicleParams {
         match kind {
             VehicleKind::Rover => Self::rover(),
             VehicleKind::Aircraft => Self::aircraft(),
+            VehicleKind::Copter => Self::copter(),
         }
     }
 }

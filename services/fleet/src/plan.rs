@@ -365,14 +365,16 @@ impl Parser<'_> {
             })?,
         };
         let kind = match a.opt("vehicle").as_deref() {
-            None | Some("rover") => VehicleKind::Rover,
-            Some("aircraft") => VehicleKind::Aircraft,
-            Some(other) => {
-                return Err(FleetPlanError::at(
+            None => VehicleKind::Rover,
+            Some(name) => VehicleKind::from_name(name).ok_or_else(|| {
+                FleetPlanError::at(
                     e,
-                    format!("attribute `vehicle`: `{other}` is not rover or aircraft"),
-                ))
-            }
+                    format!(
+                        "attribute `vehicle`: `{name}` is not {}",
+                        VehicleKind::choices()
+                    ),
+                )
+            })?,
         };
         a.finish()?;
         let ok = |s: &str| {

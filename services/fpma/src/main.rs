@@ -83,7 +83,7 @@ struct RunArgs {
 /// `turnRadius`).
 #[derive(clap::Args)]
 struct VehicleArgs {
-    /// Minimum distance between waypoints, metres (rover 4.5, aircraft 100).
+    /// Minimum distance between waypoints, metres (rover 4.5, copter 3, aircraft 100).
     #[arg(long, value_name = "M")]
     min_wp_distance: Option<f64>,
     /// Speed when neither the leg nor the plan gives one, m/s.
@@ -107,6 +107,7 @@ impl VehicleArgs {
 enum Vehicle {
     Rover,
     Aircraft,
+    Copter,
 }
 
 impl From<Vehicle> for VehicleKind {
@@ -114,6 +115,7 @@ impl From<Vehicle> for VehicleKind {
         match v {
             Vehicle::Rover => VehicleKind::Rover,
             Vehicle::Aircraft => VehicleKind::Aircraft,
+            Vehicle::Copter => VehicleKind::Copter,
         }
     }
 }

@@ -78,10 +78,9 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
     )?;
     let vehicle = match root.attr("vehicle") {
         None => None,
-        Some(a) => Some(
-            VehicleKind::from_name(&a.value)
-                .ok_or_else(|| bad_value(a, &a.value, "must be `rover` or `aircraft`"))?,
-        ),
+        Some(a) => Some(VehicleKind::from_name(&a.value).ok_or_else(|| {
+            bad_value(a, &a.value, &format!("must be {}", VehicleKind::choices()))
+        })?),
     };
     let mut plan = FlightPlan {
         name: root

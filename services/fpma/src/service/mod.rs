@@ -50,7 +50,7 @@ pub struct FpmaConfig {
     /// (`rover1/vas`).
     #[serde(rename = "@vas")]
     pub vas: String,
-    /// Vehicle parameters plans are shaped by (`vehicle`): rover, aircraft.
+    /// Vehicle parameters plans are shaped by (`vehicle`): rover, aircraft, copter.
     #[serde(rename = "@vehicle")]
     pub vehicle: VehicleKind,
     /// Overrides the vehicle's minimum distance between waypoints, metres
