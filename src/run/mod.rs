@@ -2,6 +2,7 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
+mod aircraft;
 mod bins;
 mod failsafe;
 mod fleet;
@@ -141,6 +142,8 @@ fn station_setup(
         .map_err(|e| anyhow!("{}", e.in_file(&st.plan.display().to_string())))?;
     let name = plan.plan().name.clone();
     let wps = plan.nominal();
+    let aircraft = (kind != VehicleKind::Rover)
+        .then(|| aircraft::AircraftPlan::of(plan.plan().altitude_reference(), wps));
     let nominal: Vec<(String, f64, f64)> =
         wps.iter().map(|w| (w.leg.clone(), w.lat, w.lon)).collect();
     let nominal_m = wps
@@ -195,6 +198,7 @@ fn station_setup(
         refused_plan: st.refused_plan.clone(),
         log: None,
         start: st.start,
+        aircraft,
     })
 }
 

@@ -17,9 +17,11 @@ use tokio::sync::broadcast;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use usal_types::{
-    FlightState, Position, StateChangeReply, StateChangeRequest, StateChanged, WaypointReached,
+    AllowedChanges, FlightState, Position, StateChangeReply, StateChangeRequest, StateChanged,
+    WaypointReached,
 };
 
+use super::aircraft::{self, AircraftPlan, AircraftSummary, FlightRecord};
 use super::failsafe::{self, FailsafeNote};
 use super::mission::StartBy;
 
@@ -81,6 +83,8 @@ pub struct StationSetup {
     pub log: Option<Arc<super::flightlog::FlightLog>>,
     /// Who presses Start (`<station start>`).
     pub start: StartBy,
+    /// The plan's altitudes, take-off and landing, when an aircraft flies it.
+    pub aircraft: Option<AircraftPlan>,
 }
 
 /// One waypoint the FPMa reported reached.
@@ -122,6 +126,9 @@ pub struct Summary {
     pub vas_recoveries: u32,
     /// The failsafes that fired, in order.
     pub failsafes: Vec<FailsafeNote>,
+    /// An aircraft's altitudes and landing against the plan's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub aircraft: Option<AircraftSummary>,
 }
 
 impl Summary {
@@ -164,6 +171,9 @@ impl Summary {
             );
         }
         s += &failsafe::summary_text(&self.failsafes);
+        if let Some(a) = &self.aircraft {
+            s += &a.text();
+        }
         s += "  reached:";
         for (i, r) in self.reached.iter().enumerate() {
             if i % 4 == 0 {
@@ -259,6 +269,12 @@ struct Tracker<'a> {
     /// The FPMa's PlanCompleted event arrived (reliable, unlike the progress variable's last
     /// value, which a lossy radio may drop).
     completed_event: bool,
+    /// The vehicle's last position.
+    position: Option<Position>,
+    /// What the VAS last said may be asked of it.
+    allowed: Option<AllowedChanges>,
+    /// An aircraft's flight, as it goes.
+    flight: FlightRecord,
 }
 
 impl Tracker<'_> {
@@ -377,7 +393,27 @@ impl Tracker<'_> {
             elapsed_s: self.elapsed().as_secs_f64(),
             vas_recoveries: self.recoveries,
             failsafes: self.failsafes.clone(),
+            aircraft: self.setup.aircraft.as_ref().map(|a| self.flight.summary(a)),
         }
+    }
+}
+
+/// The VAS's refusals of the operator's Start, asked again with a growing delay.
+#[derive(Default)]
+struct Refusals {
+    count: u32,
+    last: Option<String>,
+}
+
+impl Refusals {
+    /// A refusal: how long to wait before asking again (1 s, doubling up to 8 s), and whether
+    /// it repeats the last one (said once).
+    fn next(&mut self, reason: &str) -> (Duration, bool) {
+        let repeated = self.last.as_deref() == Some(reason);
+        self.last = Some(reason.to_owned());
+        let delay = Duration::from_secs(1 << self.count.min(3)).saturating_sub(KICK_AFTER);
+        self.count += 1;
+        (delay, repeated)
     }
 }
 
@@ -410,6 +446,7 @@ async fn follow(
     let changes = svc.subscribe_event::<StateChanged>(&vas("state_changed"))?;
     let vas_reached = svc.subscribe_event::<WaypointReached>(&vas("waypoint_reached"))?;
     let position = svc.subscribe_variable::<Position>(&vas("position"))?;
+    let allowed = svc.subscribe_variable::<AllowedChanges>(&vas("allowed_changes"))?;
     let failsafes = svc.subscribe_event::<usal_types::Failsafe>(&vas("failsafe"))?;
     failsafe::start_heartbeat(&svc, &s.service)?;
     let opened = Instant::now();
@@ -468,8 +505,12 @@ async fn follow(
         recoveries: 0,
         failsafes: Vec::new(),
         completed_event: false,
+        position: None,
+        allowed: None,
+        flight: FlightRecord::default(),
     };
     let mut navigated = false;
+    let mut refusals = Refusals::default();
     let mut recovery = Recovery::Idle;
     let mut last_attempt: Option<Instant> = None;
     let mut saw_configure = false;
@@ -538,6 +579,9 @@ async fn follow(
                     }
                     PlanEventKind::WaypointReached { seq, leg } => {
                         t.reached.push((seq, leg.clone()));
+                        if let Some(a) = &s.aircraft {
+                            t.flight.reached(a, t.reached.len() - 1, t.position.as_ref());
+                        }
                         // Shown once the progress variable has caught up with it (it travels
                         // apart from events), so the line carries the distance at that point.
                         unshown.push_back((seq, leg, t.reached.len(), Instant::now()));
@@ -589,6 +633,7 @@ async fn follow(
                     record = Some(json!({"event": "state", "state": st.to_string()}));
                 }
                 t.state = Some(st);
+                t.flight.state(st, t.position.as_ref());
                 if send.is_none() && st != FlightState::ConfigureCheck {
                     if let Err(e) = rehearse(&svc, s, ui, &mut t, opened).await {
                         return Ok(Outcome::Failed(e));
@@ -626,7 +671,15 @@ async fn follow(
                 t.vas_points.insert(w.seq, (w.lat, w.lon));
             }
             p = position.recv() => {
-                t.speed = p.context("following the position")?.value.speed;
+                let p = p.context("following the position")?.value;
+                t.speed = p.speed;
+                if let Some(a) = &s.aircraft {
+                    t.flight.position(a, &p);
+                }
+                t.position = Some(p);
+            }
+            a = allowed.recv() => {
+                t.allowed = Some(a.context("following what the VAS allows")?.value);
             }
             n = notices.recv(), if notices_open => match n {
                 Ok(Notice::Restarted { kind: "vas", label, pid })
@@ -646,17 +699,24 @@ async fn follow(
 
         // The operator's Start: once the plan is loaded and the VAS parks with waypoints
         // queued, ask for WAYPOINT_NAVIGATION (the FPMa never does: the flight state is the
-        // operator's).
+        // operator's); an aircraft takes off first and navigates once it has climbed.
+        let request = t.state.and_then(|st| {
+            let climbed = match (&s.aircraft, &t.position) {
+                (Some(a), Some(p)) => a.climbed(p),
+                (Some(_), None) => false,
+                (None, _) => true,
+            };
+            aircraft::start_request(st, t.allowed.as_ref(), climbed)
+        });
         let waiting = s.start == StartBy::Auto
             && t.started.is_some()
             && !navigated
-            && t.state == Some(FlightState::Parking)
+            && request.is_some()
             && t.progress.as_ref().is_some_and(|p| !p.completed);
-        match (waiting, kick_at) {
-            (true, None) => kick_at = Some(Instant::now()),
-            (true, Some(at)) if at.elapsed() >= KICK_AFTER => {
+        match (waiting, kick_at, request) {
+            (true, None, _) => kick_at = Some(Instant::now()),
+            (true, Some(at), Some(to)) if at.elapsed() >= KICK_AFTER => {
                 kick_at = Some(Instant::now() + Duration::from_secs(3600));
-                let to = FlightState::WaypointNavigation;
                 let answer = vas_state_fn
                     .call(&StateChangeRequest { to }, CALL_TIMEOUT)
                     .await;
@@ -670,21 +730,47 @@ async fn follow(
                         .map_err(ToString::to_string),
                 );
                 match answer {
-                    Ok(_) => note(ui, s,
-                        "station: plan ready and the vehicle parked; started it (WAYPOINT_NAVIGATION), as the operator",
-                        json!({"event": "navigation_kicked"}),
-                    ),
+                    Ok(_) => {
+                        refusals = Refusals::default();
+                        let takeoff_alt = s
+                            .aircraft
+                            .as_ref()
+                            .and_then(|a| a.takeoff_alt.map(|t| (t, a.alt_ref)));
+                        match (to, takeoff_alt) {
+                            (FlightState::TakeOff, Some((alt, r))) => note(ui, s,
+                                &format!("station: plan ready and the aircraft parked; taking off (TAKE_OFF) to {alt:.0} m {r}, as the operator"),
+                                json!({"event": "takeoff_kicked", "alt": alt, "alt_ref": r.to_string()}),
+                            ),
+                            (FlightState::TakeOff, None) => note(ui, s,
+                                "station: plan ready and the aircraft parked; taking off (TAKE_OFF), as the operator",
+                                json!({"event": "takeoff_kicked"}),
+                            ),
+                            _ if t.state == Some(FlightState::TakeOff) => note(ui, s,
+                                &format!("station: climbed to {:.1} m; started the plan (WAYPOINT_NAVIGATION), as the operator",
+                                    t.position.as_ref().map_or(f64::NAN, |p| s.aircraft.as_ref().map_or(p.alt_rel, |a| a.altitude(p)))),
+                                json!({"event": "navigation_kicked"}),
+                            ),
+                            _ => note(ui, s,
+                                "station: plan ready and the vehicle parked; started it (WAYPOINT_NAVIGATION), as the operator",
+                                json!({"event": "navigation_kicked"}),
+                            ),
+                        }
+                    }
                     Err(e) => {
-                        // Asked again a little later (the queue may still be on its way).
-                        kick_at = Some(Instant::now());
-                        note(ui, s,
-                            &format!("station: the vehicle stays parked and the VAS refused WAYPOINT_NAVIGATION: {e}"),
-                            json!({"event": "navigation_refused", "reason": e.to_string()}),
-                        )
+                        // Asked again a little later (the queue may still be on its way),
+                        // less and less often; the same refusal is said once.
+                        let (delay, repeated) = refusals.next(&e.to_string());
+                        kick_at = Some(Instant::now() + delay);
+                        if !repeated {
+                            note(ui, s,
+                                &format!("station: the vehicle stays {} and the VAS refused {to}: {e} (asked again until it accepts)", t.state_name()),
+                                json!({"event": "navigation_refused", "to": to.to_string(), "reason": e.to_string()}),
+                            );
+                        }
                     }
                 }
             }
-            (false, _) => kick_at = None,
+            (false, _, _) => kick_at = None,
             _ => {}
         }
 
@@ -808,11 +894,19 @@ async fn follow(
         // last value may be lost (it is best effort; the FPMa repeats it every 2 s), the event
         // is not: on the event alone, wait long enough for a repeat to bring the final
         // distance, then settle anyway.
+        // An aircraft whose plan lands is done once it is parked on the ground, disarmed (or
+        // a while after, to say it is not).
+        let on_ground = s
+            .aircraft
+            .as_ref()
+            .is_none_or(|a| a.landing.is_none() || t.flight.parked_after_flight());
         let settled = completing.is_some_and(|since| {
             let progress_done = t.progress.as_ref().is_some_and(|p| p.completed);
-            (progress_done && t.completed_event && t.reached.len() >= s.nominal.len())
-                || (progress_done && since.elapsed() >= SETTLE)
-                || (t.completed_event && since.elapsed() >= SETTLE_ON_EVENT)
+            let waited = since.elapsed() >= SETTLE_ON_EVENT;
+            (on_ground || waited)
+                && ((progress_done && t.completed_event && t.reached.len() >= s.nominal.len())
+                    || (progress_done && since.elapsed() >= SETTLE)
+                    || (t.completed_event && waited))
         });
         if settled && !reported {
             reported = true;

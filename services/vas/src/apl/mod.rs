@@ -124,6 +124,9 @@ pub enum ApEvent {
         /// The flight state that mode means for this vehicle.
         state: Option<FlightState>,
     },
+    /// An aircraft that was flying is disarmed: it landed (a mission's NAV_LAND, a LAND,
+    /// an RTL that ends on the ground). A pilot sees it parked only now.
+    Landed,
     /// The autopilot is configured and ready (CONFIGURE_CHECK is over).
     Configured,
     /// Another ground station changed the mission on the autopilot: the queue stopped

@@ -552,6 +552,25 @@ impl Core {
                     ),
                 }
             }
+            ApEvent::Landed => {
+                let _t = self.transition.lock().await;
+                let from = self.state();
+                if matches!(
+                    from,
+                    FlightState::Parking | FlightState::Manual | FlightState::ConfigureCheck
+                ) {
+                    return;
+                }
+                match self.apl.change_state(FlightState::Parking).await {
+                    Ok(()) => {
+                        self.enter(FlightState::Parking, "landed and disarmed");
+                    }
+                    Err(e) => self.alarm(
+                        Severity::Warning,
+                        format!("landed and disarmed in {from}, but cannot park: {e}"),
+                    ),
+                }
+            }
             ApEvent::Configured => {
                 if self.state() == FlightState::ConfigureCheck {
                     let _t = self.transition.lock().await;

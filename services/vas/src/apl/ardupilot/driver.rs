@@ -890,6 +890,24 @@ impl Driver {
         self.restorations_seen = self.mgr.state().restorations;
     }
 
+    /// Whether this is an aircraft in a state that flies it (an aircraft's motors stop only on
+    /// the ground: disarmed in one of these states, it has landed).
+    fn was_flying(&self) -> bool {
+        use FlightState::*;
+        self.kind != VehicleKind::Rover
+            && matches!(
+                self.commanded,
+                Some(
+                    TakeOff
+                        | WaypointNavigation
+                        | Directed
+                        | ManualNavigation
+                        | ReturnToLaunch
+                        | Landing
+                )
+            )
+    }
+
     /// Reacts to the autopilot's latest mode when it is not the one commanded.
     fn check_mode(&mut self) {
         let s = self.mgr.state();
@@ -948,6 +966,9 @@ impl Driver {
             MavEvent::ModeChanged { .. } | MavEvent::ArmedChanged { .. } => {
                 self.check_mode();
                 self.emit(ApEvent::Status(status_of(&self.mgr)));
+                if matches!(ev, MavEvent::ArmedChanged { armed: false }) && self.was_flying() {
+                    self.emit(ApEvent::Landed);
+                }
             }
             MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
             MavEvent::StatusText {
