@@ -235,7 +235,8 @@ fn alive(pid: u32) -> bool {
 fn nominal(plan: &Path) -> Vec<(String, f64, f64)> {
     let fpma = Path::new(USAL).with_file_name("fpma");
     let out = Command::new(fpma)
-        .args(["expand", plan.to_str().unwrap(), "--vehicle", "rover"])
+        // Expanded for the vehicle the plan names, as the launcher does.
+        .args(["expand", plan.to_str().unwrap()])
         .output()
         .expect("fpma expand");
     assert!(out.status.success(), "{out:?}");
@@ -349,6 +350,67 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
         !all.contains("manualStations not set"),
         "the demo VAS obeys any station"
     );
+}
+
+/// A copter flies the survey as a pilot would: take off (the launcher asks for TAKE_OFF, then
+/// for WAYPOINT_NAVIGATION once it has climbed), scan at 30 m, land on the pad, and is parked
+/// and disarmed at the end; the summary compares altitudes and the touchdown with the plan.
+#[test]
+fn the_copter_demo_takes_off_surveys_at_altitude_and_lands_on_the_pad() {
+    let mut l = Launcher::start(&[
+        "config/missions/copter-demo.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = &summary["summary"];
+    check_summary_of(summary, "config/flightplans/copter-survey.xml", 3_000.0);
+    // The operator's order: take off first, navigate after the climb.
+    let kicks: Vec<&str> = l
+        .seen
+        .iter()
+        .filter_map(|v| v["event"].as_str())
+        .filter(|e| e.ends_with("_kicked"))
+        .collect();
+    assert_eq!(kicks, ["takeoff_kicked", "navigation_kicked"], "{summary}");
+    let climbed = l
+        .seen
+        .iter()
+        .position(|v| v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION");
+    let took_off = l
+        .seen
+        .iter()
+        .position(|v| v["event"] == "state" && v["state"] == "TAKE_OFF");
+    assert!(took_off < climbed && took_off.is_some(), "{summary}");
+    assert!(
+        l.seen.iter().all(|v| v["event"] != "navigation_refused"),
+        "nothing asked out of order"
+    );
+    // Ends parked on the ground, near the pad, having flown the scan at its altitude.
+    let last_state = l
+        .seen
+        .iter()
+        .filter(|v| v["event"] == "state")
+        .last()
+        .map(|v| v["state"].clone());
+    assert_eq!(last_state, Some(Value::from("PARKING")), "{summary}");
+    let a = &summary["aircraft"];
+    assert_eq!(a["took_off"], true, "{a}");
+    assert_eq!(a["landed"], true, "{a}");
+    assert_eq!(a["alt_ref"], "REL", "{a}");
+    let landing = a["landing_error_m"].as_f64().expect("a touchdown");
+    assert!(landing < 5.0, "touched down {landing} m from the pad: {a}");
+    assert_eq!(a["planned_alt_m"], serde_json::json!([30.0, 30.0]), "{a}");
+    let worst = a["worst_alt_error_m"].as_f64().unwrap();
+    assert!(worst.abs() < 2.0, "{a}");
+    assert!(a["waypoints_checked"].as_u64().unwrap() >= 18, "{a}");
+    let highest = a["highest_m"].as_f64().unwrap();
+    assert!((29.0..35.0).contains(&highest), "{a}");
+    assert_no_child_left(&l.pids());
 }
 
 /// The same mission with the ground on the far side of an emulated 57600-baud radio with byte
