@@ -394,8 +394,8 @@ fn the_copter_demo_takes_off_surveys_at_altitude_and_lands_on_the_pad() {
     let last_state = l
         .seen
         .iter()
-        .filter(|v| v["event"] == "state")
-        .last()
+        .rev()
+        .find(|v| v["event"] == "state")
         .map(|v| v["state"].clone());
     assert_eq!(last_state, Some(Value::from("PARKING")), "{summary}");
     let a = &summary["aircraft"];
