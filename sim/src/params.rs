@@ -93,6 +93,7 @@ impl Params {
             VehicleKind::Plane => list.extend([
                 p("WP_RADIUS", 90.0, I16),
                 p("WP_LOITER_RAD", 60.0, I16),
+                p("TKOFF_ALT", 50.0, I16),
                 p("AIRSPEED_CRUISE", 15.0, F32),
                 p("ROLL_LIMIT_DEG", 45.0, I16),
                 p("TECS_CLMB_MAX", 5.0, F32),
