@@ -357,19 +357,52 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
 /// and disarmed at the end; the summary compares altitudes and the touchdown with the plan.
 #[test]
 fn the_copter_demo_takes_off_surveys_at_altitude_and_lands_on_the_pad() {
-    let mut l = Launcher::start(&[
+    let a = fly_aircraft_mission(
         "config/missions/copter-demo.xml",
-        "--until-complete",
-        "--speedup",
-        "20",
-    ]);
+        "config/flightplans/copter-survey.xml",
+        3_000.0,
+    );
+    assert_eq!(a["alt_ref"], "REL", "{a}");
+    let landing = a["landing_error_m"].as_f64().expect("a touchdown");
+    assert!(landing < 5.0, "touched down {landing} m from the pad: {a}");
+    assert_eq!(a["planned_alt_m"], serde_json::json!([30.0, 30.0]), "{a}");
+    assert!(a["waypoints_checked"].as_u64().unwrap() >= 18, "{a}");
+    let highest = a["highest_m"].as_f64().unwrap();
+    assert!((29.0..35.0).contains(&highest), "{a}");
+}
+
+/// A plane flies a circuit with altitude changes and a hold, then glides down the approach
+/// onto the strip, parked and disarmed at the end.
+#[test]
+fn the_plane_demo_flies_its_circuit_and_lands_on_the_strip() {
+    let a = fly_aircraft_mission(
+        "config/missions/plane-demo.xml",
+        "config/flightplans/plane-circuit.xml",
+        9_000.0,
+    );
+    assert_eq!(a["alt_ref"], "MSL", "{a}");
+    let landing = a["landing_error_m"].as_f64().expect("a touchdown");
+    assert!(
+        landing < 150.0,
+        "came to rest {landing} m from the touchdown point: {a}"
+    );
+    assert_eq!(a["planned_alt_m"], serde_json::json!([80.0, 180.0]), "{a}");
+    let highest = a["highest_m"].as_f64().unwrap();
+    assert!((175.0..200.0).contains(&highest), "{a}");
+}
+
+/// Runs an aircraft mission to completion and checks what every aircraft flight must show:
+/// the plan's waypoints in order, take-off asked before navigation (and navigation only after
+/// the climb), nothing asked out of order, parked on the ground at the end, and altitudes
+/// flown as planned. Returns the summary's aircraft part.
+fn fly_aircraft_mission(mission: &str, plan: &str, min_m: f64) -> Value {
+    let mut l = Launcher::start(&[mission, "--until-complete", "--speedup", "20"]);
     let summary = l.event(FLIGHT, "summary");
     let status = l.wait_exit(STEP);
     l.drain();
     assert!(status.success(), "{status}\n{}", l.stderr_tail());
     let summary = &summary["summary"];
-    check_summary_of(summary, "config/flightplans/copter-survey.xml", 3_000.0);
-    // The operator's order: take off first, navigate after the climb.
+    check_summary_of(summary, plan, min_m);
     let kicks: Vec<&str> = l
         .seen
         .iter()
@@ -377,20 +410,17 @@ fn the_copter_demo_takes_off_surveys_at_altitude_and_lands_on_the_pad() {
         .filter(|e| e.ends_with("_kicked"))
         .collect();
     assert_eq!(kicks, ["takeoff_kicked", "navigation_kicked"], "{summary}");
-    let climbed = l
-        .seen
-        .iter()
-        .position(|v| v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION");
-    let took_off = l
-        .seen
-        .iter()
-        .position(|v| v["event"] == "state" && v["state"] == "TAKE_OFF");
-    assert!(took_off < climbed && took_off.is_some(), "{summary}");
+    let state_at = |name: &str| {
+        l.seen
+            .iter()
+            .position(|v| v["event"] == "state" && v["state"] == name)
+    };
+    let (took_off, navigated) = (state_at("TAKE_OFF"), state_at("WAYPOINT_NAVIGATION"));
+    assert!(took_off.is_some() && took_off < navigated, "{summary}");
     assert!(
         l.seen.iter().all(|v| v["event"] != "navigation_refused"),
         "nothing asked out of order"
     );
-    // Ends parked on the ground, near the pad, having flown the scan at its altitude.
     let last_state = l
         .seen
         .iter()
@@ -398,19 +428,13 @@ fn the_copter_demo_takes_off_surveys_at_altitude_and_lands_on_the_pad() {
         .find(|v| v["event"] == "state")
         .map(|v| v["state"].clone());
     assert_eq!(last_state, Some(Value::from("PARKING")), "{summary}");
-    let a = &summary["aircraft"];
+    let a = summary["aircraft"].clone();
     assert_eq!(a["took_off"], true, "{a}");
     assert_eq!(a["landed"], true, "{a}");
-    assert_eq!(a["alt_ref"], "REL", "{a}");
-    let landing = a["landing_error_m"].as_f64().expect("a touchdown");
-    assert!(landing < 5.0, "touched down {landing} m from the pad: {a}");
-    assert_eq!(a["planned_alt_m"], serde_json::json!([30.0, 30.0]), "{a}");
-    let worst = a["worst_alt_error_m"].as_f64().unwrap();
+    let worst = a["worst_alt_error_m"].as_f64().expect("altitudes compared");
     assert!(worst.abs() < 2.0, "{a}");
-    assert!(a["waypoints_checked"].as_u64().unwrap() >= 18, "{a}");
-    let highest = a["highest_m"].as_f64().unwrap();
-    assert!((29.0..35.0).contains(&highest), "{a}");
     assert_no_child_left(&l.pids());
+    a
 }
 
 /// The same mission with the ground on the far side of an emulated 57600-baud radio with byte
