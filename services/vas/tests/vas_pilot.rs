@@ -310,6 +310,19 @@ async fn copter_takes_off_flies_a_bearing_and_lands() {
     assert!(metres_from_home(&p).0.abs() < 5.0, "off the bearing: {p:?}");
 
     g.request(FlightState::Landing).await.expect("LANDING");
+    // Descending it is LANDING, not yet parked: a pilot sees PARKING only once it is down.
+    wait_position(&position, "descending", Duration::from_secs(60), |p| {
+        p.alt_rel < 15.0
+    })
+    .await;
+    let mut seen = Vec::new();
+    while let Some(Ok(s)) = g.state.try_recv() {
+        seen.push(s.value);
+    }
+    assert!(
+        seen.iter().all(|s| *s != FlightState::Parking),
+        "parked in the air: {seen:?}"
+    );
     wait_position(&position, "landed", Duration::from_secs(60), |p| {
         p.alt_rel < 0.3
     })
@@ -319,6 +332,7 @@ async fn copter_takes_off_flies_a_bearing_and_lands() {
     })
     .await
     .expect("disarmed on the ground");
+    g.wait_state(FlightState::Parking, STEP).await;
     assert_eq!(sim.log_events("landed").len(), 1);
     vas.kill().await;
     sim.kill().await;

@@ -430,14 +430,16 @@ impl Driver {
         }
         if to == FlightState::TakeOff && self.kind == VehicleKind::Plane {
             // ArduPlane's TAKEOFF mode climbs to TKOFF_ALT (above home): the queue's take-off
-            // altitude, so the climb ends where the plan's begins.
-            let alt = self.takeoff_alt_above_home();
-            if let Err(e) = self.mgr.param_set("TKOFF_ALT", alt).await {
-                self.queue.stop();
-                self.commanded = previous;
-                return Err(AutopilotError::Refused(format!(
-                    "setting the take-off altitude (TKOFF_ALT {alt} m): {e}"
-                )));
+            // altitude, so the climb ends where the plan's begins (with nothing queued, the
+            // autopilot's own TKOFF_ALT).
+            if let Some(alt) = self.takeoff_alt_above_home() {
+                if let Err(e) = self.mgr.param_set("TKOFF_ALT", alt).await {
+                    self.queue.stop();
+                    self.commanded = previous;
+                    return Err(AutopilotError::Refused(format!(
+                        "setting the take-off altitude (TKOFF_ALT {alt} m): {e}"
+                    )));
+                }
             }
         }
         // A parked copter sits in LAND, where ArduCopter refuses to arm: a take-off enters
@@ -475,7 +477,7 @@ impl Driver {
         }
         if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
             // NAV_TAKEOFF climbs to an altitude above home.
-            let alt = self.takeoff_alt_above_home();
+            let alt = self.takeoff_alt_above_home().unwrap_or(10.0);
             let takeoff = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, alt];
             if let Err(e) = self
                 .mgr
@@ -494,13 +496,13 @@ impl Driver {
     }
 
     /// The altitude a take-off climbs to, metres above home: the queue's first waypoint's
-    /// (10 m with nothing queued, 2 m at least).
-    fn takeoff_alt_above_home(&self) -> f32 {
+    /// (2 m at least); `None` with nothing queued.
+    fn takeoff_alt_above_home(&self) -> Option<f32> {
         let above_home = |w: &Waypoint| match w.alt_ref {
             AltRef::Msl => w.alt - self.home_alt_msl.unwrap_or(0.0),
             AltRef::Relative | AltRef::Terrain => w.alt,
         };
-        self.queue.target().map_or(10.0, |w| above_home(w).max(2.0)) as f32
+        self.queue.target().map(|w| above_home(w).max(2.0) as f32)
     }
 
     /// Performs queue actions until the autopilot holds what it should.
