@@ -45,6 +45,19 @@ pub use access::{AccessConfig, AccessKind, AccessRule};
 pub use error::{ConfigLoadError, Location};
 pub use model::*;
 
+/// The environment a launcher (`usal run`) hands a service it starts, read by
+/// [`NetworkConfig::from_env`].
+pub mod env {
+    /// Path of the node's network.xml.
+    pub const NETWORK: &str = "MAREA_NETWORK";
+    /// The node name to use when there is no network file.
+    pub const NODE: &str = "MAREA_NODE";
+    /// The discovery domain (the mission's).
+    pub const DOMAIN: &str = "MAREA_DOMAIN";
+    /// The namespace of the node's items (`rover1`).
+    pub const NAMESPACE: &str = "MAREA_NAMESPACE";
+}
+
 /// The discovery domain used when `<network>` has no `domain` attribute.
 pub const DEFAULT_DOMAIN: &str = "usal";
 
@@ -99,6 +112,36 @@ impl NetworkConfig {
             config.namespace = Some(ns.to_owned());
         }
         Ok(config)
+    }
+
+    /// What a service started by a launcher runs with, from the environment it was handed:
+    /// [`env::NETWORK`] (a network.xml), [`env::NODE`] (the node name when there is no file;
+    /// else `default_node`), [`env::DOMAIN`] and [`env::NAMESPACE`] (overriding the file's), as
+    /// [`NetworkConfig::for_service`] combines them. Outside a launcher, with none set: Ethernet
+    /// on loopback as `default_node`, in the default domain. The mission's seal (domain key,
+    /// identity) is found by the domain's name, as for the built-in services.
+    ///
+    /// # Errors
+    /// The network file's [`ConfigLoadError`].
+    pub fn from_env(default_node: &str) -> Result<Self, ConfigLoadError> {
+        Self::from_vars(default_node, |name| {
+            std::env::var_os(name).filter(|v| !v.is_empty())
+        })
+    }
+
+    fn from_vars(
+        default_node: &str,
+        var: impl Fn(&str) -> Option<std::ffi::OsString>,
+    ) -> Result<Self, ConfigLoadError> {
+        let text = |name| var(name).map(|v| v.to_string_lossy().into_owned());
+        let network = var(env::NETWORK).map(std::path::PathBuf::from);
+        let node = text(env::NODE).unwrap_or_else(|| default_node.to_owned());
+        Self::for_service(
+            network.as_deref(),
+            &node,
+            text(env::DOMAIN).as_deref(),
+            text(env::NAMESPACE).as_deref(),
+        )
     }
 
     /// A configuration for `node` with one Ethernet link on the loopback interface (127.0.0.1)

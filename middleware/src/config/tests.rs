@@ -999,3 +999,47 @@ fn security_errors_have_line_and_column() {
     let (text, ..) = message(&net(r#"<securty keyFile="k"/><ethernet/>"#));
     assert!(text.contains("did you mean <security>"), "{text}");
 }
+
+#[test]
+fn a_service_started_by_a_launcher_takes_its_node_domain_and_namespace_from_the_environment() {
+    let none = NetworkConfig::from_vars("hello", |_| None).unwrap();
+    assert_eq!(none.node, "hello");
+    assert_eq!(none.domain, DEFAULT_DOMAIN);
+    assert_eq!(none.namespace, None);
+    let launched = NetworkConfig::from_vars("hello", |name| {
+        Some(
+            match name {
+                env::NODE => "air-hello",
+                env::DOMAIN => "rover-demo-42",
+                env::NAMESPACE => "rover1",
+                _ => return None,
+            }
+            .into(),
+        )
+    })
+    .unwrap();
+    assert_eq!(
+        (
+            launched.node.as_str(),
+            launched.domain.as_str(),
+            launched.namespace.as_deref()
+        ),
+        ("air-hello", "rover-demo-42", Some("rover1"))
+    );
+    // A network file named there is read, and an unreadable one says which.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("net.xml");
+    std::fs::write(&file, EXAMPLE).unwrap();
+    let from_file = NetworkConfig::from_vars("hello", |name| {
+        (name == env::NETWORK).then(|| file.clone().into_os_string())
+    })
+    .unwrap();
+    assert_eq!(from_file.node, "air");
+    assert_eq!(from_file.namespace.as_deref(), Some("rover1"));
+    let missing = dir.path().join("absent.xml");
+    let e = NetworkConfig::from_vars("hello", |name| {
+        (name == env::NETWORK).then(|| missing.clone().into_os_string())
+    })
+    .unwrap_err();
+    assert!(e.to_string().contains("absent.xml"), "{e}");
+}
