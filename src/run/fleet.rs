@@ -116,7 +116,7 @@ async fn follow(
                 return interrupted(args);
             }
             n = notices.recv() => {
-                if let Ok(Notice::GaveUp { reason, .. }) = n {
+                if let Ok(Notice::GaveUp { reason, essential: true }) = n {
                     break reason;
                 }
             }

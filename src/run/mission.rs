@@ -103,6 +103,36 @@ pub enum ServiceSpec {
         /// The fleet plan file.
         plan: PathBuf,
     },
+    /// A program of the user's, supervised as a service of the node (`<service>`).
+    Custom(CustomSpec),
+}
+
+/// `<service>`: any executable, started and supervised as a service of its node and handed
+/// the node's network the way the built-ins are (`marea::NetworkConfig::from_env`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CustomSpec {
+    /// Its name in the node (`hello`): the `[node/name]` prefix of its output.
+    pub name: String,
+    /// What to run.
+    pub program: Program,
+    /// Its arguments (`<arg value=".."/>`, in order).
+    pub args: Vec<String>,
+    /// Environment variables it gets (`<env name=".." value=".."/>`).
+    pub env: Vec<(String, String)>,
+    /// When it is started again after it ends.
+    pub restart: super::supervisor::Restart,
+}
+
+/// The executable of a `<service>`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Program {
+    /// A binary of this workspace's package (`package`), found next to `usal` and built with
+    /// cargo when missing, as the built-in services are.
+    Package(String),
+    /// A file (`command` with a `/`, relative to the mission file).
+    File(PathBuf),
+    /// A program found on the `PATH` (`command` without a `/`).
+    OnPath(PathBuf),
 }
 
 impl ServiceSpec {
@@ -116,6 +146,15 @@ impl ServiceSpec {
             ServiceSpec::Fmo { .. } => "fmo",
             ServiceSpec::Fpmo { .. } => "fpmo",
             ServiceSpec::Fleet { .. } => "fleet",
+            ServiceSpec::Custom(_) => "service",
+        }
+    }
+
+    /// Its name in the node: the kind, or a `<service>`'s own name.
+    pub fn name(&self) -> &str {
+        match self {
+            ServiceSpec::Custom(c) => &c.name,
+            other => other.kind(),
         }
     }
 }
@@ -929,11 +968,12 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 }
                 ServiceSpec::Fleet { plan }
             }
+            "service" => ServiceSpec::Custom(custom_from(s, base)?),
             other => {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected access, mavsim, vas, fpma, station, fmo, fpmo or fleet)"
+                    "unknown service <{other}> in <node> (expected access, mavsim, vas, fpma, station, fmo, fpmo, fleet or service)"
                 ),
                 ))
             }
@@ -942,11 +982,16 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
         if !matches!(svc, ServiceSpec::Station(_))
             && services
                 .iter()
-                .any(|x: &ServiceSpec| x.kind() == svc.kind())
+                .any(|x: &ServiceSpec| x.name() == svc.name())
         {
             return Err(Fault::at(
                 s,
-                format!("node `{name}` already runs a {}", svc.kind()),
+                match &svc {
+                    ServiceSpec::Custom(c) => {
+                        format!("node `{name}` already runs a service named `{}`", c.name)
+                    }
+                    other => format!("node `{name}` already runs a {}", other.kind()),
+                },
             ));
         }
         if let ServiceSpec::Vas(v) = &svc {
@@ -967,6 +1012,126 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
         services,
         access,
     })
+}
+
+/// A `<service name command|package restart>` with its `<arg value/>` and `<env name value/>`.
+fn custom_from(el: &Element, base: &Path) -> Result<CustomSpec, Fault> {
+    use super::supervisor::Restart;
+    let mut a = Attrs::new(el, &["name", "command", "package", "restart"]);
+    let name = a.req("name")?;
+    if !is_name(&name) {
+        return Err(Fault::at(
+            el,
+            format!("name `{name}`: use letters, digits, '_' and '-'"),
+        ));
+    }
+    let program = match (a.opt("command"), a.opt("package")) {
+        (Some(_), Some(_)) => {
+            return Err(Fault::at(
+                el,
+                "both `command` and `package`: name the program one way",
+            ))
+        }
+        (None, None) => {
+            return Err(Fault::at(
+                el,
+                "missing attribute `command` (an executable) or `package` (a package of this workspace)",
+            ))
+        }
+        (None, Some(p)) => {
+            if !is_name(&p) {
+                return Err(Fault::at(
+                    el,
+                    format!("package `{p}`: use letters, digits, '_' and '-'"),
+                ));
+            }
+            Program::Package(p)
+        }
+        (Some(c), None) if c.contains('/') => {
+            let p = base.join(&c);
+            if !p.is_file() {
+                return Err(Fault::at(
+                    el,
+                    format!("attribute `command`: no file {}", p.display()),
+                ));
+            }
+            Program::File(p)
+        }
+        (Some(c), None) => Program::OnPath(on_path(&c).ok_or_else(|| {
+            Fault::at(
+                el,
+                format!("attribute `command`: no program `{c}` on the PATH (give its path, e.g. ./{c})"),
+            )
+        })?),
+    };
+    let restart = match a
+        .one_of("restart", &["always", "on-failure", "never"], "always")?
+        .as_str()
+    {
+        "on-failure" => Restart::OnFailure,
+        "never" => Restart::Never,
+        _ => Restart::Always,
+    };
+    a.finish()?;
+    let mut args = Vec::new();
+    let mut env = Vec::new();
+    for c in &el.children {
+        match c.name.as_str() {
+            "arg" => {
+                let mut a = Attrs::new(c, &["value"]);
+                args.push(a.req("value")?);
+                a.finish()?;
+            }
+            "env" => {
+                let mut a = Attrs::new(c, &["name", "value"]);
+                let key = a.req("name")?;
+                let value = a.req("value")?;
+                a.finish()?;
+                let valid = !key.is_empty()
+                    && key.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+                    && !key.starts_with(|c: char| c.is_ascii_digit());
+                if !valid {
+                    return Err(Fault::at(
+                        c,
+                        format!("name `{key}` is not an environment variable name (letters, digits and '_', not starting with a digit)"),
+                    ));
+                }
+                if key.starts_with("MAREA_") {
+                    return Err(Fault::at(
+                        c,
+                        format!(
+                            "`{key}`: the MAREA_ variables are the launcher's, set from the node"
+                        ),
+                    ));
+                }
+                env.push((key, value));
+            }
+            other => {
+                return Err(Fault::at(
+                    c,
+                    format!("unknown element <{other}> in <service> (expected arg or env)"),
+                ))
+            }
+        }
+    }
+    Ok(CustomSpec {
+        name,
+        program,
+        args,
+        env,
+        restart,
+    })
+}
+
+/// The executable `name` on the `PATH`, as a shell finds it.
+fn on_path(name: &str) -> Option<PathBuf> {
+    use std::os::unix::fs::PermissionsExt;
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path)
+        .map(|dir| dir.join(name))
+        .find(|p| {
+            std::fs::metadata(p).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        })
 }
 
 /// A node's `<access>`: `<allow kind item from/>` and `<deny kind/>`, as in network.xml.
@@ -1411,6 +1576,104 @@ mod tests {
         let e = with("pilot").unwrap_err();
         assert!(e.contains("<station>: attribute `start`"), "{e}");
         assert!(e.contains("operator"), "{e}");
+    }
+
+    #[test]
+    fn a_service_of_the_user_s_runs_a_package_a_file_or_a_program_on_the_path() {
+        use crate::run::supervisor::Restart;
+        let with = |svc: &str| {
+            parse(&GOOD.replace(
+                r#"<fpma vehicle="rover" lookahead="8"/>"#,
+                &format!(r#"<fpma vehicle="rover" lookahead="8"/>{svc}"#),
+            ))
+        };
+        let custom = |m: &Mission| {
+            m.nodes[0]
+                .services
+                .iter()
+                .find_map(|s| match s {
+                    ServiceSpec::Custom(c) => Some(c.clone()),
+                    _ => None,
+                })
+                .expect("a <service>")
+        };
+        let m = with(
+            r#"<service name="hello" package="hello-service" restart="on-failure">
+                 <arg value="--greeting"/><arg value="hi there"/>
+                 <env name="HELLO_VEHICLE" value="rover1"/>
+               </service>"#,
+        )
+        .unwrap();
+        let c = custom(&m);
+        assert_eq!(c.program, Program::Package("hello-service".into()));
+        assert_eq!(c.args, ["--greeting", "hi there"]);
+        assert_eq!(c.env, [("HELLO_VEHICLE".to_owned(), "rover1".to_owned())]);
+        assert_eq!(c.restart, Restart::OnFailure);
+        assert_eq!(
+            m.nodes[0].services.last().map(ServiceSpec::name),
+            Some("hello")
+        );
+        // A program on the PATH (sh is on every PATH), found when the mission is read.
+        let c = custom(&with(r#"<service name="s" command="sh"/>"#).unwrap());
+        assert!(
+            matches!(&c.program, Program::OnPath(p) if p.ends_with("sh")),
+            "{c:?}"
+        );
+        assert_eq!(c.restart, Restart::Always);
+        // A file relative to the mission.
+        let c = custom(&with(r#"<service name="s" command="./rover-demo.xml"/>"#).unwrap());
+        assert!(matches!(&c.program, Program::File(p) if p.ends_with("rover-demo.xml")));
+        // Two services of the user's with different names may share a node; not one name twice.
+        let two = r#"<service name="a" command="sh"/><service name="b" command="sh"/>"#;
+        assert_eq!(with(two).unwrap().nodes[0].services.len(), 5);
+        for (bad, says) in [
+            (r#"<service command="sh"/>"#, "missing attribute `name`"),
+            (
+                r#"<service name="a b" command="sh"/>"#,
+                "use letters, digits",
+            ),
+            (r#"<service name="s"/>"#, "missing attribute `command`"),
+            (
+                r#"<service name="s" command="sh" package="p"/>"#,
+                "both `command` and `package`",
+            ),
+            (
+                r#"<service name="s" command="no-such-program-here"/>"#,
+                "no program `no-such-program-here` on the PATH",
+            ),
+            (r#"<service name="s" command="./absent"/>"#, "no file"),
+            (
+                r#"<service name="s" command="sh" restart="sometimes"/>"#,
+                "`sometimes` is not one of always, on-failure, never",
+            ),
+            (
+                r#"<service name="s" command="sh"><arg/></service>"#,
+                "<arg>: missing attribute `value`",
+            ),
+            (
+                r#"<service name="s" command="sh"><env name="MAREA_DOMAIN" value="x"/></service>"#,
+                "the MAREA_ variables are the launcher's",
+            ),
+            (
+                r#"<service name="s" command="sh"><env name="1X" value="x"/></service>"#,
+                "not an environment variable name",
+            ),
+            (
+                r#"<service name="s" command="sh"><flag/></service>"#,
+                "unknown element <flag> in <service>",
+            ),
+            (
+                r#"<service name="s" command="sh"/><service name="s" command="sh"/>"#,
+                "already runs a service named `s`",
+            ),
+            (
+                r#"<service name="vas" command="sh"/>"#,
+                "already runs a service named `vas`",
+            ),
+        ] {
+            let e = with(bad).unwrap_err();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
     }
 
     #[test]

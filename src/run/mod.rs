@@ -30,7 +30,7 @@ use tokio_util::sync::CancellationToken;
 use bins::{find_or_build, Bins};
 use mission::{Mission, ServiceSpec};
 use station::{Outcome, StationSetup};
-use supervisor::{Announce, ChildSpec, Notice, Supervisor};
+use supervisor::{Announce, ChildSpec, Notice, Restart, Supervisor};
 use ui::Ui;
 
 /// Exit status for a mission or plan file at fault, or bad arguments.
@@ -211,6 +211,10 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
         for s in &n.services {
             let name = match s {
                 ServiceSpec::Station(_) => continue,
+                ServiceSpec::Custom(c) => match &c.program {
+                    mission::Program::Package(p) => p.as_str(),
+                    mission::Program::File(_) | mission::Program::OnPath(_) => continue,
+                },
                 other => other.kind(),
             };
             if !needed.contains(&name) {
@@ -551,11 +555,15 @@ async fn start_services(
             }
         };
         for svc in &node.services {
-            let label = format!("{}/{}", node.name, svc.kind());
+            let label = format!("{}/{}", node.name, svc.name());
             let mut a: Vec<String> = Vec::new();
             let mut announce = None;
             match svc {
                 ServiceSpec::Station(_) => continue,
+                ServiceSpec::Custom(c) => {
+                    sup.start(custom_child(c, node, domain, bins, label));
+                    continue;
+                }
                 ServiceSpec::Mavsim(m) => {
                     let speedup = args.speedup.or(m.speedup).unwrap_or(1.0);
                     a.extend([
@@ -692,10 +700,51 @@ async fn start_services(
                 args: a,
                 announce,
                 crash_after: None,
+                env: Vec::new(),
+                restart: Restart::Always,
+                essential: true,
             });
         }
     }
     Ok(())
+}
+
+/// A user's `<service>` as a supervised child: its program, arguments and environment, and
+/// the node's network as `marea::NetworkConfig::from_env` reads it (node `NODE-NAME`, the
+/// mission's domain, the node's namespace and network file). Not essential: if it cannot be
+/// kept running, the mission flies on.
+fn custom_child(
+    c: &mission::CustomSpec,
+    node: &mission::NodeSpec,
+    domain: &str,
+    bins: &Bins,
+    label: String,
+) -> ChildSpec {
+    use marea::config::env;
+    let program = match &c.program {
+        mission::Program::Package(p) => bins.path(p),
+        mission::Program::File(p) | mission::Program::OnPath(p) => p.clone(),
+    };
+    let mut vars = c.env.clone();
+    vars.push((env::NODE.into(), format!("{}-{}", node.name, c.name)));
+    vars.push((env::DOMAIN.into(), domain.to_owned()));
+    if let Some(ns) = &node.namespace {
+        vars.push((env::NAMESPACE.into(), ns.clone()));
+    }
+    if let Some(n) = &node.network {
+        vars.push((env::NETWORK.into(), n.display().to_string()));
+    }
+    ChildSpec {
+        label,
+        kind: "service",
+        program,
+        args: c.args.clone(),
+        announce: None,
+        crash_after: None,
+        env: vars,
+        restart: c.restart,
+        essential: false,
+    }
 }
 
 /// Whether `node`'s VAS flies `node`'s mavsim (it names no endpoint of its own): the link
@@ -738,7 +787,7 @@ async fn wait_sim(
         }
         tokio::select! {
             r = rx.changed() => if r.is_err() { bail!("mavsim's supervisor ended") },
-            n = notices.recv() => if let Ok(Notice::GaveUp { reason, .. }) = n { bail!(reason) },
+            n = notices.recv() => if let Ok(Notice::GaveUp { reason, essential: true }) = n { bail!(reason) },
             () = stop.cancelled() => return Ok(String::new()),
             () = &mut deadline => bail!("mavsim did not print MAVSIM_UDP= within {SIM_READY:?}"),
         }
@@ -811,7 +860,7 @@ async fn supervise(
         tokio::select! {
             outs = &mut follow => return conclude(mission, args, ui, outs),
             n = notices.recv() => {
-                if let Ok(Notice::GaveUp { reason, .. }) = n {
+                if let Ok(Notice::GaveUp { reason, essential: true }) = n {
                     break reason;
                 }
             }

@@ -20,7 +20,7 @@ use tokio::process::{Child, Command};
 use super::bins::Bins;
 use super::lan::{free_port, gateway_xml, lan_xml, write};
 use super::mission::{Mission, RadioSpec};
-use super::supervisor::{ChildSpec, Supervisor};
+use super::supervisor::{ChildSpec, Restart, Supervisor};
 use super::ui::Ui;
 
 /// How long marea-radio may take to print its ports.
@@ -159,6 +159,9 @@ pub async fn start(
             args: vec!["--config".into(), gw.display().to_string()],
             announce: None,
             crash_after: None,
+            env: Vec::new(),
+            restart: Restart::Always,
+            essential: true,
         });
     }
     Ok(RadioLink { _child: child })

@@ -14,7 +14,7 @@ use serde_json::json;
 use super::bins::Bins;
 use super::lan::{free_port, gateway_xml, lan_xml, write};
 use super::mission::{Mission, RouterSpec, WanSpec};
-use super::supervisor::{ChildSpec, Supervisor};
+use super::supervisor::{ChildSpec, Restart, Supervisor};
 use super::ui::Ui;
 
 /// Runs `usal-router` with `args` in place of this process (signals reach it directly).
@@ -97,6 +97,9 @@ pub fn start(
         args,
         announce: None,
         crash_after: spec.crash_after,
+        env: Vec::new(),
+        restart: Restart::Always,
+        essential: true,
     });
     let joins = match &client_config {
         Some(c) => format!(
@@ -166,6 +169,9 @@ pub fn start(
             args: vec!["--config".into(), gw.display().to_string()],
             announce: None,
             crash_after: None,
+            env: Vec::new(),
+            restart: Restart::Always,
+            essential: true,
         });
     }
     Ok(())
@@ -216,6 +222,9 @@ fn start_wan(
         args,
         announce: None,
         crash_after: None,
+        env: Vec::new(),
+        restart: Restart::Always,
+        essential: true,
     });
     let outages: Vec<String> = wan
         .outages

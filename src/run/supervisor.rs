@@ -57,6 +57,35 @@ pub struct ChildSpec {
     /// A rehearsed crash: the child is killed (SIGKILL) this long after its first start, and
     /// restarted as after any death.
     pub crash_after: Option<Duration>,
+    /// Environment variables it is given besides the launcher's own.
+    pub env: Vec<(String, String)>,
+    /// When it is started again after it ends.
+    pub restart: Restart,
+    /// The mission cannot fly without it: when it cannot be kept running, the run ends. A
+    /// service of the user's is not: it is reported, and the mission flies on.
+    pub essential: bool,
+}
+
+/// When a child that ended is started again (`<service restart>`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Restart {
+    /// Whatever ended it (the built-in services: a service ending is a failure).
+    Always,
+    /// Only when it failed (an exit status other than 0, or a signal).
+    OnFailure,
+    /// Never: it runs once.
+    Never,
+}
+
+impl Restart {
+    /// Its name in a mission file.
+    pub fn name(self) -> &'static str {
+        match self {
+            Restart::Always => "always",
+            Restart::OnFailure => "on-failure",
+            Restart::Never => "never",
+        }
+    }
 }
 
 /// What the supervisor tells the rest of the launcher.
@@ -75,6 +104,8 @@ pub enum Notice {
     GaveUp {
         /// Why, naming the child.
         reason: String,
+        /// Whether the mission needs it ([`ChildSpec::essential`]).
+        essential: bool,
     },
 }
 
@@ -201,6 +232,7 @@ async fn supervise(
     loop {
         let mut cmd = Command::new(&spec.program);
         cmd.args(&spec.args)
+            .envs(spec.env.iter().map(|(k, v)| (k, v)))
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -222,7 +254,10 @@ async fn supervise(
                     &format!("{label}: {reason}"),
                     json!({"event": "gave_up", "service": label, "reason": reason}),
                 );
-                let _ = notices.send(Notice::GaveUp { reason });
+                let _ = notices.send(Notice::GaveUp {
+                    reason,
+                    essential: spec.essential,
+                });
                 return;
             }
         };
@@ -280,10 +315,21 @@ async fn supervise(
             }
         };
         drain(out, err).await;
+        let succeeded = status.as_ref().is_ok_and(ExitStatus::success);
         let status = match status {
             Ok(s) => describe(s),
             Err(e) => format!("wait failed: {e}"),
         };
+        if spec.restart == Restart::Never || (spec.restart == Restart::OnFailure && succeeded) {
+            ui.note(
+                &format!(
+                    "{label} {status}; not restarted (restart=\"{}\")",
+                    spec.restart.name()
+                ),
+                json!({"event": "ended", "service": label, "pid": pid, "status": status}),
+            );
+            return;
+        }
         if started.elapsed() >= STABLE {
             quick_failures = 0;
             backoff = BACKOFF_START;
@@ -297,7 +343,10 @@ async fn supervise(
                 &reason,
                 json!({"event": "gave_up", "service": label, "reason": reason}),
             );
-            let _ = notices.send(Notice::GaveUp { reason });
+            let _ = notices.send(Notice::GaveUp {
+                reason,
+                essential: spec.essential,
+            });
             return;
         }
         restarts += 1;

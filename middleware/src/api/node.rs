@@ -557,101 +557,7 @@ impl Node {
 
     /// Everything this node knows: itself and every peer, with services and items.
     pub fn catalog(&self) -> Catalog {
-        use super::node::{ItemDescription as I, ItemRole as R};
-        let mut nodes = Vec::new();
-        let mut services: HashMap<u32, super::service::ServiceDescription> = self
-            .inner
-            .local
-            .services
-            .iter()
-            .map(|e| {
-                (
-                    *e.key(),
-                    super::service::ServiceDescription {
-                        name: e.value().to_string(),
-                        items: Vec::new(),
-                    },
-                )
-            })
-            .collect();
-        for o in self.inner.local.offers.iter() {
-            if let Some(s) = services.get_mut(&o.service) {
-                s.items.push(I {
-                    kind: o.kind,
-                    role: R::Offer,
-                    name: o.name.to_string(),
-                    type_name: o.ty.name.clone(),
-                });
-            }
-        }
-        for i in self.inner.local.interests.iter() {
-            if let Some(s) = services.get_mut(&i.service) {
-                s.items.push(I {
-                    kind: i.kind,
-                    role: R::Interest,
-                    name: i.pattern.clone(),
-                    type_name: i.ty.name.clone(),
-                });
-            }
-        }
-        for s in services.values_mut() {
-            s.items.sort_by(|a, b| a.name.cmp(&b.name));
-        }
-        let mut svc_list: Vec<_> = services.into_values().collect();
-        svc_list.sort_by(|a, b| a.name.cmp(&b.name));
-        nodes.push(NodeDescription {
-            name: self.inner.me.name.clone(),
-            namespace: self.inner.me.namespace.clone().unwrap_or_default(),
-            local: true,
-            services: svc_list,
-        });
-        let mut remote: Vec<NodeDescription> = self
-            .inner
-            .peers
-            .by_id
-            .iter()
-            .map(|p| {
-                let mut svcs: HashMap<u32, super::service::ServiceDescription> = p
-                    .services
-                    .iter()
-                    .map(|(id, n)| {
-                        (
-                            *id,
-                            super::service::ServiceDescription {
-                                name: n.clone(),
-                                items: Vec::new(),
-                            },
-                        )
-                    })
-                    .collect();
-                for (role, map) in [(R::Offer, &p.offers), (R::Interest, &p.interests)] {
-                    for it in map.values() {
-                        if let Some(s) = svcs.get_mut(&it.service) {
-                            s.items.push(I {
-                                kind: it.kind,
-                                role,
-                                name: it.name.to_string(),
-                                type_name: it.ty.name.clone(),
-                            });
-                        }
-                    }
-                }
-                let mut list: Vec<_> = svcs.into_values().collect();
-                for s in &mut list {
-                    s.items.sort_by(|a, b| a.name.cmp(&b.name));
-                }
-                list.sort_by(|a, b| a.name.cmp(&b.name));
-                NodeDescription {
-                    name: p.name.to_string(),
-                    namespace: p.namespace.clone(),
-                    local: false,
-                    services: list,
-                }
-            })
-            .collect();
-        remote.sort_by(|a, b| a.name.cmp(&b.name));
-        nodes.extend(remote);
-        Catalog { nodes }
+        catalog_of(&self.inner)
     }
 
     /// Stops the hosted services, tells peers we leave, and waits for every task the node owns
@@ -690,6 +596,103 @@ impl Drop for Node {
         self.inner.close_mailboxes();
         self.inner.tasks.close();
     }
+}
+
+/// Everything `node` knows: itself and every peer, with services and items.
+pub(super) fn catalog_of(node: &NodeInner) -> Catalog {
+    use super::node::{ItemDescription as I, ItemRole as R};
+    let mut nodes = Vec::new();
+    let mut services: HashMap<u32, super::service::ServiceDescription> = node
+        .local
+        .services
+        .iter()
+        .map(|e| {
+            (
+                *e.key(),
+                super::service::ServiceDescription {
+                    name: e.value().to_string(),
+                    items: Vec::new(),
+                },
+            )
+        })
+        .collect();
+    for o in node.local.offers.iter() {
+        if let Some(s) = services.get_mut(&o.service) {
+            s.items.push(I {
+                kind: o.kind,
+                role: R::Offer,
+                name: o.name.to_string(),
+                type_name: o.ty.name.clone(),
+            });
+        }
+    }
+    for i in node.local.interests.iter() {
+        if let Some(s) = services.get_mut(&i.service) {
+            s.items.push(I {
+                kind: i.kind,
+                role: R::Interest,
+                name: i.pattern.clone(),
+                type_name: i.ty.name.clone(),
+            });
+        }
+    }
+    for s in services.values_mut() {
+        s.items.sort_by(|a, b| a.name.cmp(&b.name));
+    }
+    let mut svc_list: Vec<_> = services.into_values().collect();
+    svc_list.sort_by(|a, b| a.name.cmp(&b.name));
+    nodes.push(NodeDescription {
+        name: node.me.name.clone(),
+        namespace: node.me.namespace.clone().unwrap_or_default(),
+        local: true,
+        services: svc_list,
+    });
+    let mut remote: Vec<NodeDescription> = node
+        .peers
+        .by_id
+        .iter()
+        .map(|p| {
+            let mut svcs: HashMap<u32, super::service::ServiceDescription> = p
+                .services
+                .iter()
+                .map(|(id, n)| {
+                    (
+                        *id,
+                        super::service::ServiceDescription {
+                            name: n.clone(),
+                            items: Vec::new(),
+                        },
+                    )
+                })
+                .collect();
+            for (role, map) in [(R::Offer, &p.offers), (R::Interest, &p.interests)] {
+                for it in map.values() {
+                    if let Some(s) = svcs.get_mut(&it.service) {
+                        s.items.push(I {
+                            kind: it.kind,
+                            role,
+                            name: it.name.to_string(),
+                            type_name: it.ty.name.clone(),
+                        });
+                    }
+                }
+            }
+            let mut list: Vec<_> = svcs.into_values().collect();
+            for s in &mut list {
+                s.items.sort_by(|a, b| a.name.cmp(&b.name));
+            }
+            list.sort_by(|a, b| a.name.cmp(&b.name));
+            NodeDescription {
+                name: p.name.to_string(),
+                namespace: p.namespace.clone(),
+                local: false,
+                services: list,
+            }
+        })
+        .collect();
+    remote.sort_by(|a, b| a.name.cmp(&b.name));
+    nodes.extend(remote);
+    Catalog { nodes }
 }
 
 #[cfg(test)]

@@ -121,6 +121,12 @@ impl Service {
         &self.inner.node
     }
 
+    /// Everything its node knows: itself and every peer, with services and items (as
+    /// [`crate::Node::catalog`]), for a service that discovers what to follow.
+    pub fn catalog(&self) -> super::node::Catalog {
+        super::node::catalog_of(&self.inner.node)
+    }
+
     /// The service name.
     pub fn name(&self) -> &str {
         &self.inner.name

@@ -19,6 +19,7 @@
 //! ```
 
 pub mod model;
+mod others;
 pub mod web;
 
 use std::collections::HashMap;
@@ -303,6 +304,10 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
     });
     shared.live.tasks.spawn(allowed_loop(shared.clone()));
     shared.live.tasks.spawn(manual_loop(shared.clone(), manual));
+    shared
+        .live
+        .tasks
+        .spawn(others::follow_other_services(shared.clone()));
     tracing::info!("fmo up on http://{addr}/, following {vas}");
 
     // The fleet view: every vehicle of a fleet mission on one map, `/fleet`.

@@ -64,6 +64,9 @@ struct Vehicle {
     allowed: Allowed,
     heard: Option<Instant>,
     publisher: String,
+    /// The variables of the vehicle's other services (a user's own, beside the VAS), by full
+    /// name: type name and latest value.
+    others: BTreeMap<String, Stamped<(String, serde_json::Value)>>,
 }
 
 /// Stick input from the page.
@@ -204,6 +207,17 @@ struct VehicleView {
     allowed: AllowedView,
     alarms: Vec<AlarmView>,
     unacked_alarms: usize,
+    /// The variables of its other services, by name.
+    services: Vec<OtherItemView>,
+}
+
+#[derive(Serialize)]
+struct OtherItemView {
+    name: String,
+    type_name: String,
+    value: serde_json::Value,
+    age_ms: u64,
+    stale: bool,
 }
 
 #[derive(Serialize)]
@@ -345,6 +359,32 @@ impl Station {
             self.selected = Some(prefix.to_owned());
         }
         state_changed
+    }
+
+    /// The vehicles heard of (their VAS prefixes).
+    pub fn vehicle_ids(&self) -> Vec<String> {
+        self.vehicles.keys().cloned().collect()
+    }
+
+    /// Records the value of `name`, a variable of another service of the vehicle at `prefix`
+    /// (its type's name, and its value as JSON). Ignored for a vehicle not heard of.
+    pub fn update_other(
+        &mut self,
+        prefix: &str,
+        name: &str,
+        type_name: &str,
+        value: serde_json::Value,
+        now: Instant,
+    ) {
+        if let Some(v) = self.vehicles.get_mut(prefix) {
+            v.others.insert(
+                name.to_owned(),
+                Stamped {
+                    value: (type_name.to_owned(), value),
+                    at: now,
+                },
+            );
+        }
     }
 
     /// Stores an `allowed_states` answer for `prefix`, asked while it was in `asked_in`.
@@ -545,6 +585,20 @@ impl Station {
                         })
                         .collect(),
                     unacked_alarms: v.alarms.iter().filter(|a| !a.acked).count(),
+                    services: v
+                        .others
+                        .iter()
+                        .map(|(name, s)| {
+                            let (age_ms, stale) = aged(s.at, true, link_ok);
+                            OtherItemView {
+                                name: name.clone(),
+                                type_name: s.value.0.clone(),
+                                value: s.value.1.clone(),
+                                age_ms,
+                                stale,
+                            }
+                        })
+                        .collect(),
                 }
             })
             .collect();
