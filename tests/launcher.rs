@@ -352,6 +352,132 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
     );
 }
 
+/// A service of the user's own (examples/hello-service, `<service>` in the mission) runs beside
+/// the VAS: its items are in `usal list` under its node, its function answers `usal call`, its
+/// variable (computed from the VAS's position) shows in the FMo, and the mission completes.
+#[test]
+fn a_service_of_your_own_runs_beside_the_vas_and_shows_in_usal_list_and_the_fmo() {
+    let mut l = Launcher::start(&[
+        "config/missions/rover-hello.xml",
+        "--until-complete",
+        "--speedup",
+        "5",
+    ]);
+    let domain = l.domain();
+    l.expect(STEP, "the user's service started", |v| {
+        v["event"] == "started" && v["service"] == "air/hello"
+    });
+    let deadline = Instant::now() + STEP;
+    let listed = loop {
+        let (ok, out) = tool(&domain, &["list"]);
+        if ok && out.contains("rover1/hello/distance_m") {
+            break out;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "hello's items never listed: {out}"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    let node = listed
+        .split("node ")
+        .find(|n| n.starts_with("air-hello "))
+        .unwrap_or_else(|| panic!("no node air-hello: {listed}"));
+    for item in [
+        "variable rover1/hello/distance_m",
+        "variable rover1/hello/uptime_s",
+        "event    rover1/hello/greeted",
+        "function rover1/hello/greet",
+        "subscribes    variable rover1/vas/position",
+    ] {
+        assert!(node.contains(item), "{item} missing: {node}");
+    }
+    let (ok, said) = tool(&domain, &["call", "rover1/hello/greet", r#""pilot""#]);
+    assert!(ok && said.contains("hello, pilot"), "{said}");
+    let (ok, said) = tool(&domain, &["call", "rover1/hello/greet", r#""""#]);
+    assert!(
+        !ok && said.contains("greet whom?"),
+        "the service's own refusal: {said}"
+    );
+    let url = l
+        .stderr
+        .lock()
+        .unwrap()
+        .lines()
+        .find_map(|line| {
+            line.split_once("[ground/fmo] FMO_URL=")
+                .map(|(_, u)| u.trim().to_owned())
+        })
+        .expect("the FMo's URL in the merged log");
+    // The rover moves off: the distance the service computes grows, and the FMo shows it.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let state = fmo_state(&url);
+        let distance = state["vehicles"]
+            .as_array()
+            .and_then(|vs| vs.iter().find(|v| v["id"] == "rover1/vas"))
+            .and_then(|v| v["services"].as_array())
+            .and_then(|items| {
+                items
+                    .iter()
+                    .find(|i| i["name"] == "rover1/hello/distance_m")
+            })
+            .and_then(|i| i["value"].as_f64());
+        if distance.is_some_and(|d| d > 5.0) {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "hello's distance never shown in the FMo: {state}"
+        );
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    let pids = l.pids();
+    assert!(pids.iter().any(|(s, _)| s == "air/hello"), "{pids:?}");
+    assert_no_child_left(&pids);
+}
+
+/// A user's service that keeps failing is restarted with backoff, then given up on, and the
+/// mission flies on and completes: it is not one the flight needs.
+#[test]
+fn a_service_of_your_own_that_keeps_failing_does_not_stop_the_mission() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = demo_mission_with(
+        dir.path(),
+        "flaky.xml",
+        &[(
+            r#"<fpma vehicle="rover" lookahead="8"/>"#,
+            r#"<fpma vehicle="rover" lookahead="8"/><service name="flaky" command="false"/>"#,
+        )],
+    );
+    let mut l = Launcher::start(&[
+        mission.to_str().expect("a UTF-8 path"),
+        "--until-complete",
+        "--speedup",
+        "5",
+    ]);
+    let gave_up = l.expect(Duration::from_secs(60), "giving up on flaky", |v| {
+        v["event"] == "gave_up" && v["service"] == "air/flaky"
+    });
+    assert!(
+        gave_up["reason"]
+            .as_str()
+            .is_some_and(|r| r.contains("exited with status 1")),
+        "{gave_up}"
+    );
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    assert_no_child_left(&l.pids());
+}
+
 /// A copter flies the survey as a pilot would: take off (the launcher asks for TAKE_OFF, then
 /// for WAYPOINT_NAVIGATION once it has climbed), scan at 30 m, land on the pad, and is parked
 /// and disarmed at the end; the summary compares altitudes and the touchdown with the plan.
