@@ -32,8 +32,8 @@ use station_web::{call_error, Live, StationConfig};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, MissionTime, Position, Speeds,
-    StateChangeReply, StateChangeRequest, StateChanged,
+    Alarm, Attitude, AutopilotStatus, CommandReply, FlightState, ManualCommand, MissionTime,
+    Position, Speeds, StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand,
 };
 
 use crate::model::{Item, ManualTick, Station};
@@ -65,6 +65,7 @@ const ALLOWED_RETRY: Duration = Duration::from_secs(2);
 
 type ChangeStateFn = Function<StateChangeRequest, StateChangeReply>;
 type AllowedFn = Function<(), Vec<FlightState>>;
+type CommandFn = Function<VehicleCommand, CommandReply>;
 
 /// What the HTTP handlers and the middleware tasks share.
 pub struct Shared {
@@ -76,6 +77,7 @@ pub struct Shared {
     refresh_allowed: Notify,
     change_state: Mutex<HashMap<String, Arc<ChangeStateFn>>>,
     allowed: Mutex<HashMap<String, Arc<AllowedFn>>>,
+    command: Mutex<HashMap<String, Arc<CommandFn>>>,
     call_timeout: Duration,
 }
 
@@ -127,9 +129,49 @@ impl Shared {
         id
     }
 
+    /// Sends `cmd` (ARM, DISARM, DIRECTED with its altitude, speed and bearing) to `vehicle`
+    /// (a VAS prefix) in the background; returns the command's id. It shows as pending until
+    /// the VAS answers; a refusal carries the VAS's reason.
+    pub fn send_command(self: &Arc<Self>, vehicle: &str, cmd: VehicleCommand) -> u64 {
+        let id = self.station().command_started(
+            vehicle,
+            &format!("command {}", describe(&cmd)),
+            Instant::now(),
+        );
+        self.live.changed.notify_waiters();
+        let me = self.clone();
+        let vehicle = vehicle.to_owned();
+        self.live.tasks.spawn(async move {
+            let outcome = async {
+                let f = me.function(&me.command, format!("{vehicle}/command"))?;
+                tokio::select! {
+                    r = f.call(&cmd, me.call_timeout) => r.map_err(call_error),
+                    _ = me.live.cancel.cancelled() => Err("station stopping".to_string()),
+                }
+            }
+            .await
+            .map(|r: CommandReply| format!("{} done, now {}", r.command, r.state));
+            me.station().command_finished(id, outcome, Instant::now());
+            me.refresh_allowed.notify_one();
+            me.live.changed.notify_waiters();
+        });
+        id
+    }
+
     /// Asks for the commanded vehicle's allowed transitions again.
     pub fn refresh_allowed(&self) {
         self.refresh_allowed.notify_one();
+    }
+}
+
+/// A command as the command list shows it: DIRECTED with its target.
+fn describe(cmd: &VehicleCommand) -> String {
+    match cmd {
+        VehicleCommand::Directed(t) => format!(
+            "DIRECTED alt {} m, {} m/s, bearing {}°",
+            t.alt, t.speed, t.bearing
+        ),
+        other => other.to_string(),
     }
 }
 
@@ -232,6 +274,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         refresh_allowed: Notify::new(),
         change_state: Mutex::new(HashMap::new()),
         allowed: Mutex::new(HashMap::new()),
+        command: Mutex::new(HashMap::new()),
         call_timeout: config.station.call_timeout,
         live: Live::new(cancel.clone()),
     });

@@ -9,6 +9,7 @@
 //! | GET | `/api/events` | | SSE: `state` events carrying snapshots, at least 4 per second |
 //! | POST | `/api/select` | `{"vehicle": "rover1/vas"}` | 204, or 404 |
 //! | POST | `/api/change_state` | `{"to": "DIRECTED", "vehicle"?: ...}` | 202 `{"id"}`: pending, see `commands` |
+//! | POST | `/api/command` | `{"command": "ARM" \| "DISARM" \| {"DIRECTED": {"alt","speed","bearing"}}, "vehicle"?: ...}` | 202 `{"id"}`: pending, see `commands` |
 //! | POST | `/api/alarms/ack` | `{"id"?: 3, "vehicle"?: ...}` | `{"acked": n}` |
 //! | POST | `/api/manual` | `{"roll","pitch","throttle","yaw","deadman","source"}` | 204 |
 
@@ -22,7 +23,7 @@ use axum::routing::post;
 use axum::{Json, Router};
 use serde::Deserialize;
 use station_web::error as bad;
-use usal_types::FlightState;
+use usal_types::{FlightState, VehicleCommand};
 
 use crate::model::StickInput;
 use crate::Shared;
@@ -45,6 +46,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
     station_web::routes::<Shared>()
         .route("/api/select", post(select))
         .route("/api/change_state", post(change_state))
+        .route("/api/command", post(command))
         .route("/api/alarms/ack", post(ack))
         .route("/api/manual", post(manual))
         .with_state(shared)
@@ -79,14 +81,47 @@ async fn change_state(State(shared): State<Arc<Shared>>, Json(c): Json<ChangeSta
         Ok(s) => s,
         Err(e) => return bad(StatusCode::BAD_REQUEST, e.to_string()),
     };
-    let vehicle = match c.vehicle {
-        Some(v) => v,
-        None => match shared.station().selected() {
-            Some(v) => v.to_owned(),
-            None => return bad(StatusCode::CONFLICT, "no vehicle heard yet"),
-        },
+    match commanded(&shared, c.vehicle) {
+        Some(vehicle) => station_web::accepted(shared.request_state(&vehicle, to)),
+        None => no_vehicle(),
+    }
+}
+
+/// The vehicle a request names, else the one commanded (`None`: none heard yet).
+fn commanded(shared: &Shared, vehicle: Option<String>) -> Option<String> {
+    vehicle.or_else(|| shared.station().selected().map(str::to_owned))
+}
+
+fn no_vehicle() -> Response {
+    bad(StatusCode::CONFLICT, "no vehicle heard yet")
+}
+
+#[derive(Deserialize)]
+struct Command {
+    command: serde_json::Value,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+async fn command(State(shared): State<Arc<Shared>>, Json(c): Json<Command>) -> Response {
+    // The command's JSON is the VAS's own (`"ARM"`, `{"DIRECTED": {...}}`); a target that
+    // cannot be flown is the VAS's to refuse, with its reason.
+    let cmd: VehicleCommand = match serde_json::from_value(c.command.clone()) {
+        Ok(cmd) => cmd,
+        Err(e) => {
+            return bad(
+                StatusCode::BAD_REQUEST,
+                format!(
+                    "`{}` is not a command (ARM, DISARM or {{\"DIRECTED\": {{\"alt\", \"speed\", \"bearing\"}}}}): {e}",
+                    c.command
+                ),
+            )
+        }
     };
-    station_web::accepted(shared.request_state(&vehicle, to))
+    match commanded(&shared, c.vehicle) {
+        Some(vehicle) => station_web::accepted(shared.send_command(&vehicle, cmd)),
+        None => no_vehicle(),
+    }
 }
 
 #[derive(Deserialize)]

@@ -628,7 +628,8 @@ mod tests {
         assert_eq!(declared_vehicle(&src), Some(VehicleKind::Aircraft));
         let e = err_of(&GOOD.replace("<flightPlan ", "<flightPlan vehicle=\"boat\" "));
         assert!(
-            e.to_string().contains("must be `rover`, `aircraft` or `copter`"),
+            e.to_string()
+                .contains("must be `rover`, `aircraft` or `copter`"),
             "{e}"
         );
         let ok = parse(&GOOD.replace("<flightPlan ", "<flightPlan vehicle=\"rover\" ")).unwrap();

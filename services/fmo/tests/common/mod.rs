@@ -397,9 +397,17 @@ pub fn fpma_rover1_args(domain: &str, plans: &std::path::Path) -> Vec<String> {
 
 /// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `ns`.
 pub async fn rover_named(domain: &str, speedup: f64, ns: &str) -> (Proc, Proc) {
+    vehicle_named(domain, speedup, ns, "rover").await
+}
+
+/// A mavsim `kind` (rover, copter, plane) on any UDP port at `speedup`, and a `vas` for it
+/// in `domain`, namespace `ns`.
+pub async fn vehicle_named(domain: &str, speedup: f64, ns: &str, kind: &str) -> (Proc, Proc) {
     let sim = Proc::start(
         &workspace_bin("mavsim"),
         &[
+            "--vehicle".into(),
+            kind.into(),
             "--udp".into(),
             "127.0.0.1:0".into(),
             "--speedup".into(),
@@ -424,6 +432,8 @@ pub async fn rover_named(domain: &str, speedup: f64, ns: &str) -> (Proc, Proc) {
             domain.into(),
             "--namespace".into(),
             ns.into(),
+            "--vehicle".into(),
+            kind.into(),
         ],
         false,
     )
