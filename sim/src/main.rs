@@ -60,6 +60,11 @@ struct Args {
     /// only in answer to a set-current), like autopilots whose ground station must infer it.
     #[arg(long)]
     quiet_progress: bool,
+    /// For this many simulated seconds after start, answer mode changes and arming with
+    /// MAV_RESULT_TEMPORARILY_REJECTED, as an autopilot whose pre-flight checks are still
+    /// running does (PX4, MAVSDK-built vehicles).
+    #[arg(long, default_value_t = 0.0)]
+    not_ready_s: f64,
     /// MAVLink 2 signing key file (64 hex digits, mode 600): sign every frame and accept only
     /// frames signed with this key.
     #[arg(long)]
@@ -182,6 +187,7 @@ async fn main() -> anyhow::Result<()> {
         speedup: args.speedup,
         log: args.log,
         quiet_progress: args.quiet_progress,
+        not_ready_s: args.not_ready_s,
         signing: args
             .signing_key
             .as_deref()

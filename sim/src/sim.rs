@@ -43,6 +43,9 @@ pub struct SimConfig {
     pub log: Option<PathBuf>,
     /// Report no mission progress (see [`Vehicle::set_quiet_progress`]).
     pub quiet_progress: bool,
+    /// Seconds (simulated) the autopilot answers mode changes and arming "temporarily
+    /// rejected" (see [`Vehicle::set_not_ready_for`]).
+    pub not_ready_s: f64,
     /// MAVLink 2 signing: sign everything, accept only correctly signed frames.
     pub signing: Option<mavconn::Signing>,
     /// Which autopilot's conventions to follow (see [`crate::profile`]).
@@ -77,6 +80,7 @@ pub enum SimError {
 fn vehicle_of(cfg: &SimConfig, now: Instant) -> Vehicle {
     let mut vehicle = Vehicle::new(cfg.vehicle, now);
     vehicle.set_quiet_progress(cfg.quiet_progress);
+    vehicle.set_not_ready_for(cfg.not_ready_s);
     vehicle.set_profile(cfg.autopilot);
     vehicle.set_battery(cfg.battery);
     vehicle.set_fence_capacity(cfg.fence_capacity);
@@ -251,6 +255,7 @@ mod tests {
             speedup: 1.0,
             log: None,
             quiet_progress: false,
+            not_ready_s: 0.0,
             signing: None,
             autopilot: Profile::Px4,
             battery: crate::battery::BatteryConfig::default(),

@@ -114,6 +114,9 @@ pub struct Vehicle {
     /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
     /// in answer to a set-current (autopilots that leave progress to be inferred).
     quiet_progress: bool,
+    /// Simulated time before which the autopilot's own checks are not done: mode changes and
+    /// arming are answered TEMPORARILY_REJECTED.
+    ready_at: f64,
     /// Which autopilot's conventions to follow.
     profile: Profile,
     sticks: Option<(Sticks, Instant)>,
@@ -188,6 +191,7 @@ impl Vehicle {
             reposition: None,
             speed_override: None,
             quiet_progress: false,
+            ready_at: 0.0,
             profile: Profile::ArduPilot,
             sticks: None,
             sim_time: 0.0,
@@ -216,6 +220,18 @@ impl Vehicle {
             home_lon: cfg.home.lon_deg,
         });
         v
+    }
+
+    /// Answers mode changes and arming MAV_RESULT_TEMPORARILY_REJECTED for the first
+    /// `seconds` of simulated time, as an autopilot whose pre-flight checks are still running
+    /// does (PX4, a MAVSDK-built vehicle): a ground station must ask again.
+    pub fn set_not_ready_for(&mut self, seconds: f64) {
+        self.ready_at = self.sim_time + seconds.max(0.0);
+    }
+
+    /// Whether the autopilot's own checks are still running (see [`Self::set_not_ready_for`]).
+    pub(super) fn not_ready(&self) -> bool {
+        self.sim_time < self.ready_at
     }
 
     /// Stops (or resumes) reporting mission progress: no MISSION_ITEM_REACHED, no "Reached"
@@ -1218,6 +1234,32 @@ mod tests {
         assert!((p.up - 15.0).abs() <= 2.0, "{p:?}");
         run_until(&mut v, 120.0, |v| v.target_seq().is_none());
         assert_eq!(reached_seqs(&mut v), vec![1, 2]);
+    }
+
+    #[test]
+    fn an_autopilot_still_checking_itself_answers_temporarily_rejected_then_accepts() {
+        let mut v = rover();
+        v.set_not_ready_for(2.0);
+        for (cmd, p1, p2) in [
+            (MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 0.0),
+            (MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+        ] {
+            assert_eq!(
+                command(&mut v, cmd, p1, p2),
+                MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+            );
+        }
+        for _ in 0..101 {
+            v.step(0.02);
+        }
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(
+            command(&mut v, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
     }
 
     #[test]

@@ -413,3 +413,44 @@ async fn plane_takes_off_flies_a_bearing_and_returns_to_launch() {
     sim.kill().await;
     g.node.shutdown().await;
 }
+
+/// An autopilot whose own checks are still running answers "not now"
+/// (MAV_RESULT_TEMPORARILY_REJECTED) to every mode change and arming: the VAS asks again with a
+/// growing delay instead of giving up, says why in an alarm while it waits, and parks the
+/// vehicle once the autopilot accepts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_autopilot_that_says_not_now_is_asked_again_until_it_parks() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        1.0,
+        &dir.path().join("sim.jsonl"),
+        &["--not-ready-s", "6"],
+    )
+    .await;
+    let domain = unique_domain("notnow");
+    let vas = VasProc::start(&format!("udpout:{}", sim.addr), &domain, &[]);
+    let g = Ground::open(&domain).await;
+    // While the autopilot says "not now": an alarm saying so, and still configuring.
+    let alarm = tokio::time::timeout(Duration::from_secs(20), async {
+        loop {
+            let a = g.alarms.recv().await.expect("alarms").value;
+            if a.text.contains("cannot park") {
+                return a;
+            }
+        }
+    })
+    .await
+    .expect("no alarm while the autopilot refused");
+    assert!(
+        alarm.text.contains("TEMPORARILY_REJECTED") && alarm.text.contains("asks again"),
+        "{}",
+        alarm.text
+    );
+    // Then parked, once the autopilot accepts.
+    g.wait_state(FlightState::Parking, Duration::from_secs(30))
+        .await;
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}

@@ -41,6 +41,7 @@ impl Vehicle {
             }
             MavMessage::SET_MODE(m) if self.for_us(m.target_system) => {
                 let result = match self.profile.decode_mode(self.cfg.kind, m.custom_mode) {
+                    Some(_) if self.not_ready() => MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
                     Some(mode) => self.change_mode(mode, &mut out),
                     None => MavResult::MAV_RESULT_DENIED,
                 };
@@ -389,6 +390,11 @@ impl Vehicle {
         out: &mut Vec<MavMessage>,
     ) -> MavResult {
         match c.command {
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM | MavCmd::MAV_CMD_DO_SET_MODE
+                if self.not_ready() =>
+            {
+                MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+            }
             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
                 if c.param1 == 1.0 && self.behaviour() == Behaviour::Land {
                     // As ArduCopter: LAND is not a mode to arm in.

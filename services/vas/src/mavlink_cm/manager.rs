@@ -27,6 +27,12 @@ use super::forward::forwarder;
 use super::modes::{self, ModeSpec};
 use super::types::*;
 
+/// How many times a command answered MAV_RESULT_TEMPORARILY_REJECTED is asked in all.
+const TEMPORARY_ASKS: u32 = 4;
+/// The wait before asking again a command answered TEMPORARILY_REJECTED, doubled each time
+/// (0.25 + 0.5 + 1 s: under two seconds before the refusal is final).
+const TEMPORARY_RETRY_START: Duration = Duration::from_millis(250);
+
 /// Tuning of the manager.
 #[derive(Clone, Debug)]
 pub struct ManagerConfig {
@@ -404,14 +410,27 @@ impl MavlinkManager {
             MavMessage::COMMAND_ACK(a) if a.command == command => Some(a.result),
             _ => None,
         };
-        match self.inner.transact(make, matcher).await? {
-            Some(MavResult::MAV_RESULT_ACCEPTED) => Ok(()),
-            Some(result) => Err(CommandError::Rejected { command, result }),
-            None => Err(CommandError::RetriesExhausted {
-                command,
-                attempts: self.inner.cfg.retries,
-            }),
+        // "Not now" (an autopilot whose own checks are still running) is asked again, a
+        // little later each time; any other answer is final.
+        let mut wait = TEMPORARY_RETRY_START;
+        for asked in 1.. {
+            match self.inner.transact(&make, matcher).await? {
+                Some(MavResult::MAV_RESULT_ACCEPTED) => return Ok(()),
+                Some(MavResult::MAV_RESULT_TEMPORARILY_REJECTED) if asked < TEMPORARY_ASKS => {
+                    tracing::debug!("{command:?} temporarily rejected; asking again in {wait:?}");
+                    tokio::time::sleep(wait).await;
+                    wait *= 2;
+                }
+                Some(result) => return Err(CommandError::Rejected { command, result }),
+                None => {
+                    return Err(CommandError::RetriesExhausted {
+                        command,
+                        attempts: self.inner.cfg.retries,
+                    })
+                }
+            }
         }
+        unreachable!("the loop returns")
     }
 
     /// MAV_CMD_DO_REPOSITION (as COMMAND_INT): the vehicle goes to (`lat`, `lon`) (NaN: where

@@ -26,6 +26,12 @@ use usal_types::{CommandRecord, Failsafe, FailsafeKind, Fence, StationHeartbeat}
 use crate::airlog::AirLog;
 use crate::apl::{ApEvent, IAutopilot};
 
+/// The wait before asking an autopilot that refused to park again, doubled up to
+/// [`PARK_RETRY_MAX`].
+const PARK_RETRY_START: Duration = Duration::from_secs(1);
+/// The longest wait between two attempts to park a configured autopilot.
+const PARK_RETRY_MAX: Duration = Duration::from_secs(8);
+
 /// How often the flight state and `allowed_changes` are published again though unchanged.
 const STATE_REFRESH: Duration = Duration::from_secs(2);
 
@@ -571,17 +577,9 @@ impl Core {
                     ),
                 }
             }
-            ApEvent::Configured => {
-                if self.state() == FlightState::ConfigureCheck {
-                    let _t = self.transition.lock().await;
-                    match self.apl.change_state(FlightState::Parking).await {
-                        Ok(()) => {
-                            self.enter(FlightState::Parking, "autopilot configured");
-                        }
-                        Err(e) => self.alarm(Severity::Error, format!("cannot park: {e}")),
-                    }
-                }
-            }
+            // Parking after the configuration is asked again until the autopilot accepts
+            // (`park_when_configured`, beside the event loop).
+            ApEvent::Configured => {}
             ApEvent::MissionChanged(m) => {
                 self.air(
                     "mission",
@@ -595,6 +593,56 @@ impl Core {
             ApEvent::LinkLost | ApEvent::LinkRestored => {
                 let _ = self.items.autopilot.set(&self.apl.status());
             }
+        }
+    }
+
+    /// CONFIGURE_CHECK is over: parks the vehicle. An autopilot that refuses (its own checks
+    /// still running: TEMPORARILY_REJECTED past the manager's own retries, a mode it will not
+    /// enter yet) is asked again with a growing delay, for as long as it takes; each new reason
+    /// is an alarm, so the stations and `usal run` say why the vehicle is not ready.
+    async fn park_when_configured(&self) {
+        let mut wait = PARK_RETRY_START;
+        let mut last: Option<String> = None;
+        for attempt in 1u32.. {
+            {
+                let _t = self.transition.lock().await;
+                if self.state() != FlightState::ConfigureCheck {
+                    return;
+                }
+                match self.apl.change_state(FlightState::Parking).await {
+                    Ok(()) => {
+                        let cause = if attempt == 1 {
+                            "autopilot configured".to_owned()
+                        } else {
+                            format!("autopilot configured (parked at attempt {attempt})")
+                        };
+                        self.enter(FlightState::Parking, &cause);
+                        if last.is_some() {
+                            self.alarm(
+                                Severity::Info,
+                                format!("the autopilot accepted at attempt {attempt}: parked"),
+                            );
+                        }
+                        return;
+                    }
+                    Err(e) => {
+                        let text = e.to_string();
+                        if last.as_deref() == Some(text.as_str()) {
+                            tracing::info!("still cannot park (attempt {attempt}): {text}");
+                        } else {
+                            self.alarm(
+                                Severity::Error,
+                                format!(
+                                    "cannot park: {text}; the vehicle stays in CONFIGURE_CHECK and the VAS asks again until the autopilot accepts"
+                                ),
+                            );
+                        }
+                        last = Some(text);
+                    }
+                }
+            }
+            tokio::time::sleep(wait).await;
+            wait = (wait * 2).min(PARK_RETRY_MAX);
         }
     }
 
@@ -795,20 +843,28 @@ impl IService for Vas {
                     _ = cx.cancelled() => return,
                     ev = events.recv() => match ev {
                         Ok(ev @ (ApEvent::Configured | ApEvent::LinkRestored)) => {
+                            let configured = matches!(ev, ApEvent::Configured);
                             c.on_ap(ev).await;
-                            // The fence goes up before the vehicle may start, and again to a
-                            // restarted (reconnected) autopilot, which may have lost it: beside
-                            // the event loop (a few parameters and a transfer).
-                            if lock(&c.fence).is_some() {
-                                let c2 = c.clone();
-                                let cx2 = cx.clone();
-                                cx.spawn(async move {
-                                    tokio::select! {
-                                        () = cx2.cancelled() => {}
-                                        _ = c2.upload_fence() => {}
-                                    }
-                                });
-                            }
+                            // Beside the event loop: a configured autopilot is parked (asked
+                            // again until it accepts), then the fence goes up before the
+                            // vehicle may start, and again to a restarted (reconnected)
+                            // autopilot, which may have lost it (a few parameters and a
+                            // transfer).
+                            let c2 = c.clone();
+                            let cx2 = cx.clone();
+                            cx.spawn(async move {
+                                tokio::select! {
+                                    () = cx2.cancelled() => {}
+                                    () = async {
+                                        if configured {
+                                            c2.park_when_configured().await;
+                                        }
+                                        if lock(&c2.fence).is_some() {
+                                            let _ = c2.upload_fence().await;
+                                        }
+                                    } => {}
+                                }
+                            });
                         }
                         Ok(ev) => c.on_ap(ev).await,
                         Err(broadcast::error::RecvError::Lagged(n)) => {
