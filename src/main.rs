@@ -309,11 +309,21 @@ fn list(node: &Node, json: bool) -> anyhow::Result<()> {
                     (marea::ItemRole::Interest, ItemKind::Function) => "calls",
                     (marea::ItemRole::Interest, _) => "subscribes",
                 };
+                // What the tools cannot decode is said where it is listed: `echo` and `call`
+                // show such values as raw bytes.
+                let raw = it.role == marea::ItemRole::Offer
+                    && it.kind != ItemKind::File
+                    && !types::knows(&it.type_name);
                 lines.push(format!(
-                    "    {verb:<13} {:<8} {:<36} {}",
+                    "    {verb:<13} {:<8} {:<36} {}{}",
                     it.kind.as_str(),
                     it.name,
-                    it.type_name
+                    it.type_name,
+                    if raw {
+                        "  (raw: a type usal does not know)"
+                    } else {
+                        ""
+                    }
                 ));
             }
         }

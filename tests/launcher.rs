@@ -379,6 +379,17 @@ fn a_service_of_your_own_runs_beside_the_vas_and_shows_in_usal_list_and_the_fmo(
         );
         std::thread::sleep(Duration::from_millis(200));
     };
+    // Every item of the mission's services (VAS, FPMa, stations, links, the user's) is of a
+    // type the tools decode: none is listed as raw.
+    assert!(
+        !listed.contains("(raw:"),
+        "items usal cannot decode: {}",
+        listed
+            .lines()
+            .filter(|l| l.contains("(raw:"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
     let node = listed
         .split("node ")
         .find(|n| n.starts_with("air-hello "))

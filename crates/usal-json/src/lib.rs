@@ -103,6 +103,13 @@ fn registry() -> Vec<Known> {
         CommandReply,
         AllowedChanges,
         CommandRecord,
+        MissionChanged,
+        Failsafe,
+        FailsafeKind,
+        StationHeartbeat,
+        Fence,
+        Option<Fence>,
+        FenceAction,
         flightplan::api::Readiness,
         marea::LinkHealth,
         flightplan::api::Progress,
@@ -112,6 +119,10 @@ fn registry() -> Vec<Known> {
         flightplan::api::PlanLoaded,
         flightplan::api::PlanRejected,
         flightplan::api::CommandAck,
+        flightplan::api::ModifyLeg,
+        flightplan::api::SetVar,
+        flightplan::api::HoldHereArgs,
+        flightplan::api::Retask,
         flightplan::fleet_api::FleetStatus,
         (),
         bool,
@@ -128,11 +139,22 @@ fn registry() -> Vec<Known> {
         String,
         Vec<u8>,
         Vec<String>,
+        Option<String>,
     ]
 }
 
 fn find(type_name: &str) -> Option<Known> {
     registry().into_iter().find(|k| k.name == type_name)
+}
+
+/// Whether the tools can show and write values of `type_name`: a payload type of the
+/// registry, or a function type `fn(A) -> R` whose argument and result both are.
+pub fn knows(type_name: &str) -> bool {
+    let known = |t: &str| find(t).is_some();
+    match split_fn(type_name) {
+        Some((args, ret)) => known(args) && known(ret),
+        None => known(type_name),
+    }
 }
 
 /// Decodes `bytes` of type `type_name` into JSON; `None` when the type is unknown to the tool.
@@ -221,5 +243,31 @@ mod tests {
             split_fn("fn(u64) -> alloc::string::String"),
             Some(("u64", "alloc::string::String"))
         );
+        // Every item type the built-in services declared in a rover mission (`usal list`).
+        for t in [
+            "fn(()) -> alloc::vec::Vec<usal_types::FlightState>",
+            "fn(()) -> flightplan::api::PlanGeometry",
+            "fn(alloc::string::String) -> flightplan::api::PlanLoaded",
+            "fn(alloc::vec::Vec<usal_types::Waypoint>) -> usal_types::QueueStatus",
+            "fn(bool) -> flightplan::api::CommandAck",
+            "fn(core::option::Option<alloc::string::String>) -> flightplan::api::CommandAck",
+            "fn(core::option::Option<usal_types::safety::Fence>) -> alloc::string::String",
+            "fn(flightplan::api::HoldHereArgs) -> flightplan::api::CommandAck",
+            "fn(flightplan::api::ModifyLeg) -> flightplan::api::CommandAck",
+            "fn(flightplan::api::Retask) -> flightplan::api::CommandAck",
+            "fn(flightplan::api::SetVar) -> flightplan::api::CommandAck",
+            "fn(usal_types::StateChangeRequest) -> usal_types::StateChangeReply",
+            "fn(usal_types::VehicleCommand) -> usal_types::CommandReply",
+            "usal_types::safety::Failsafe",
+            "usal_types::safety::StationHeartbeat",
+            "usal_types::MissionChanged",
+            "usal_types::ManualCommand",
+            "usal_types::AllowedChanges",
+            "marea::node::health::LinkHealth",
+        ] {
+            assert!(knows(t), "{t}");
+        }
+        assert!(!knows("fn(my::Secret) -> u64"));
+        assert!(!knows("my::Secret"));
     }
 }
