@@ -732,7 +732,7 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
 /// A `<mavsim home>` `LAT,LON,ALT`, or what is wrong with it: not three numbers, or a latitude,
 /// longitude or altitude no place on Earth has (caught here, before anything starts, instead of
 /// by a simulator failing to start again and again).
-fn home(text: &str) -> Result<[f64; 3], String> {
+pub(crate) fn home(text: &str) -> Result<[f64; 3], String> {
     let parsed: Option<Vec<f64>> = text.split(',').map(|x| x.trim().parse().ok()).collect();
     let Some([lat, lon, alt]) = parsed.and_then(|v| <[f64; 3]>::try_from(v).ok()) else {
         return Err(format!("home `{text}` is not LAT,LON,ALT"));

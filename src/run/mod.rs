@@ -144,6 +144,10 @@ fn station_setup(
     let wps = plan.nominal();
     let aircraft = (kind != VehicleKind::Rover)
         .then(|| aircraft::AircraftPlan::of(plan.plan().altitude_reference(), wps));
+    let warnings = sim_home(mission, &st.vas)
+        .and_then(|home| far_from_home(wps, home, params.far_from_home_m()))
+        .into_iter()
+        .collect();
     let nominal: Vec<(String, f64, f64)> =
         wps.iter().map(|w| (w.leg.clone(), w.lat, w.lon)).collect();
     let nominal_m = wps
@@ -199,6 +203,51 @@ fn station_setup(
         log: None,
         start: st.start,
         aircraft,
+        warnings,
+    })
+}
+
+/// The home of the simulator flying the VAS at `vas` (`rover1/vas`): that node's `<mavsim>`.
+fn sim_home(mission: &Mission, vas: &str) -> Option<(f64, f64)> {
+    let ns = vas.rsplit_once('/').map(|(ns, _)| ns);
+    mission
+        .nodes
+        .iter()
+        .filter(|n| n.namespace.as_deref() == ns)
+        .flat_map(|n| &n.services)
+        .find_map(|s| match s {
+            ServiceSpec::Mavsim(m) => m.home.as_deref().and_then(|h| mission::home(h).ok()),
+            _ => None,
+        })
+        .map(|[lat, lon, _]| (lat, lon))
+}
+
+/// A warning naming the plan's waypoint farthest from `home` when it lies beyond `limit_m`:
+/// a coordinate typed wrong (a sign, a swapped pair) flies the vehicle away.
+fn far_from_home(
+    wps: &[flightplan::expand::Waypoint],
+    home: (f64, f64),
+    limit_m: f64,
+) -> Option<String> {
+    use flightplan::geo::{distance, GeoPoint};
+    let from = GeoPoint::new(home.0, home.1);
+    let (i, w, d) = wps
+        .iter()
+        .enumerate()
+        .map(|(i, w)| (i, w, distance(from, GeoPoint::new(w.lat, w.lon))))
+        .max_by(|a, b| a.2.total_cmp(&b.2))?;
+    (d > limit_m).then(|| {
+        format!(
+            "waypoint {} (leg {}, {:.6},{:.6}) is {:.1} km from home ({:.6},{:.6}), beyond the {:.0} km a plan for this vehicle usually stays within: check its coordinates",
+            i + 1,
+            w.leg,
+            w.lat,
+            w.lon,
+            d / 1000.0,
+            home.0,
+            home.1,
+            limit_m / 1000.0
+        )
     })
 }
 
@@ -988,6 +1037,34 @@ mod tests {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/missions/rover-demo.xml");
         let mission = Mission::load(&path).expect("the demo mission parses");
         assert_eq!(manual_stations(&mission), "ground-fmo,gcs/fmo");
+    }
+
+    #[test]
+    fn a_waypoint_far_from_home_is_named_before_the_upload() {
+        let wp = |lat: f64, lon: f64| flightplan::expand::Waypoint {
+            lat,
+            lon,
+            alt: 0.0,
+            speed: 2.0,
+            fly_over: false,
+            leg: "east".into(),
+            tag: Default::default(),
+            waits: false,
+            fix_crossing: false,
+            seq: 0,
+            version: 0,
+        };
+        let home = (41.275, 1.987);
+        let near = [wp(41.275, 1.987), wp(41.276, 1.988)];
+        assert_eq!(far_from_home(&near, home, 5_000.0), None);
+        // One latitude with its sign lost: 9,000 km away.
+        let typo = [wp(41.275, 1.987), wp(-41.276, 1.988), wp(41.276, 1.989)];
+        let w = far_from_home(&typo, home, 5_000.0).expect("a warning");
+        assert!(
+            w.starts_with("waypoint 2 (leg east, -41.276000,1.988000) is 9142.3 km from home")
+                && w.contains("check its coordinates"),
+            "{w}"
+        );
     }
 
     #[test]

@@ -85,6 +85,9 @@ pub struct StationSetup {
     pub start: StartBy,
     /// The plan's altitudes, take-off and landing, when an aircraft flies it.
     pub aircraft: Option<AircraftPlan>,
+    /// What looks wrong in the plan without making it unflyable (a waypoint far from home),
+    /// said before the upload.
+    pub warnings: Vec<String>,
 }
 
 /// One waypoint the FPMa reported reached.
@@ -454,6 +457,14 @@ async fn follow(
     let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
 
     let sink = fpma("plans");
+    for w in &s.warnings {
+        note(
+            ui,
+            s,
+            &format!("station: WARNING: {w}"),
+            json!({"event": "plan_warning", "text": w}),
+        );
+    }
     note(
         ui,
         s,

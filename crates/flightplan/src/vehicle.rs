@@ -110,6 +110,15 @@ impl VehicleParams {
         }
     }
 
+    /// How far from home a waypoint may lie before the launcher warns that a coordinate may be
+    /// typed wrong, metres (a warning, not a refusal: a long survey is a choice).
+    pub fn far_from_home_m(&self) -> f64 {
+        match self.kind {
+            VehicleKind::Rover | VehicleKind::Copter => 5_000.0,
+            VehicleKind::Aircraft => 50_000.0,
+        }
+    }
+
     /// The defaults for `kind`.
     pub fn for_kind(kind: VehicleKind) -> Self {
         match kind {

@@ -135,6 +135,49 @@ pub(super) fn opt_pos_num(el: &Element, name: &str) -> Result<Option<f64>> {
     }
 }
 
+/// The altitudes a plan may give, metres (MSL, above home or above ground): from below the
+/// lowest shore on Earth to above any small aircraft's ceiling. A value outside is a typo.
+const ALTITUDES_M: std::ops::RangeInclusive<f64> = -500.0..=20_000.0;
+/// The fastest a plan may ask any vehicle to go, m/s.
+const FASTEST_MPS: f64 = 150.0;
+
+/// An altitude, checked against [`ALTITUDES_M`].
+pub(super) fn opt_alt(el: &Element, name: &str) -> Result<Option<f64>> {
+    match el.attr(name) {
+        None => Ok(None),
+        Some(a) => {
+            let v = number(a)?;
+            if !ALTITUDES_M.contains(&v) {
+                return Err(bad_value(
+                    a,
+                    &a.value,
+                    &format!(
+                        "is not an altitude a vehicle flies ({} to {} m)",
+                        ALTITUDES_M.start(),
+                        ALTITUDES_M.end()
+                    ),
+                ));
+            }
+            Ok(Some(v))
+        }
+    }
+}
+
+/// A speed: greater than zero and at most [`FASTEST_MPS`].
+pub(super) fn opt_speed(el: &Element, name: &str) -> Result<Option<f64>> {
+    let v = opt_pos_num(el, name)?;
+    if let (Some(v), Some(a)) = (v, el.attr(name)) {
+        if v > FASTEST_MPS {
+            return Err(bad_value(
+                a,
+                &a.value,
+                &format!("is faster than any vehicle flies a plan (at most {FASTEST_MPS} m/s)"),
+            ));
+        }
+    }
+    Ok(v)
+}
+
 pub(super) fn req_pos_num(el: &Element, name: &str) -> Result<f64> {
     req(el, name)?;
     opt_pos_num(el, name).map(|v| v.unwrap_or_default())
@@ -212,8 +255,8 @@ pub(super) fn turn(el: &Element) -> Result<Option<Turn>> {
 
 pub(super) fn common(el: &Element, with_fly_over: bool) -> Result<LegCommon> {
     Ok(LegCommon {
-        alt: opt_num(el, "alt")?,
-        speed: opt_pos_num(el, "speed")?,
+        alt: opt_alt(el, "alt")?,
+        speed: opt_speed(el, "speed")?,
         fly_over: if with_fly_over {
             opt_bool(el, "flyOver")?
         } else {

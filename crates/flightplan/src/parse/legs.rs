@@ -358,7 +358,7 @@ pub(super) fn leaf(el: &Element, plan: &FlightPlan) -> Result<NodeKind> {
                     let fix = fix_ref(el, plan)?;
                     let common = common(el, true)?;
                     if kind == HoldKind::HA
-                        && opt_num(el, "targetAlt")?
+                        && opt_alt(el, "targetAlt")?
                             .or(common.alt)
                             .or(fix.alt)
                             .is_none()
@@ -382,7 +382,7 @@ pub(super) fn leaf(el: &Element, plan: &FlightPlan) -> Result<NodeKind> {
                         shape,
                         circuits,
                         until,
-                        target_alt: opt_num(el, "targetAlt")?,
+                        target_alt: opt_alt(el, "targetAlt")?,
                         alt_tolerance: opt_pos_num(el, "altTolerance")?.unwrap_or(5.0),
                         common,
                     }))

@@ -98,7 +98,7 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
                 a.value.clone()
             }
         },
-        default_speed: opt_pos_num(root, "defaultSpeed")?,
+        default_speed: opt_speed(root, "defaultSpeed")?,
         vehicle,
         vehicle_at: root
             .attr("vehicle")
@@ -177,7 +177,7 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
             let fix = Fix {
                 id: id.clone(),
                 pos: point(f)?,
-                alt: opt_num(f, "alt")?,
+                alt: opt_alt(f, "alt")?,
             };
             if plan.fixes.insert(id.clone(), fix).is_some() {
                 return Err(PlanError::at(f.pos, PlanErrorKind::DuplicateFix(id)));
@@ -194,7 +194,7 @@ fn plan_from_element(root: &Element) -> Result<FlightPlan> {
                 let kind = NodeKind::Takeoff(Takeoff {
                     fix: fix_ref(c, &plan)?,
                     heading: opt_num(c, "heading")?,
-                    clear_alt: opt_num(c, "clearAlt")?.unwrap_or(10.0),
+                    clear_alt: opt_alt(c, "clearAlt")?.unwrap_or(10.0),
                 });
                 plan.takeoff = vec![node(c, id, kind)];
             }
@@ -604,6 +604,9 @@ mod tests {
             (r#"<scan spacing="5"><pt lat="41" lon="2"/><pt lat="42" lon="2"/><pt lat="42" lon="3"/><pt lat="41" lon="3"/></scan>"#.into(), &rover, "scan tracks (the area's width / spacing): 16"),
             (format!(r#"<perimeter spacing="5" rings="5000">{TRI}</perimeter>"#), &rover, "perimeter rings: 5000"),
             (r#"<leg type="TF" fix="A" speed="-1"/>"#.into(), &rover, "greater than zero"),
+            (r#"<leg type="TF" fix="A" speed="400"/>"#.into(), &rover, "faster than any vehicle flies a plan (at most 150 m/s)"),
+            (r#"<leg type="TF" fix="A" alt="30000"/>"#.into(), &aircraft, "is not an altitude a vehicle flies (-500 to 20000 m)"),
+            (r#"<leg type="HA" fix="A" inboundCourse="0" length="200" width="150" targetAlt="-900"/>"#.into(), &aircraft, "is not an altitude"),
         ];
         for (body, vehicle, want) in cases {
             let e = refused(&with_mission(&body), vehicle);
@@ -611,6 +614,22 @@ mod tests {
             assert!(e.col > 0, "{body}: {e}");
             assert!(e.to_string().contains(want), "{body}: `{e}` lacks `{want}`");
         }
+    }
+
+    #[test]
+    fn altitudes_and_speeds_out_of_any_vehicle_s_range_are_refused_where_written() {
+        let e = err_of(&GOOD.replace(r#"defaultSpeed="3""#, r#"defaultSpeed="300""#));
+        assert_eq!((e.line, e.col), (2, 22), "{e}");
+        assert!(e.to_string().contains("at most 150 m/s"), "{e}");
+        let e = err_of(&GOOD.replace(r#"lon="1.987" alt="0""#, r#"lon="1.987" alt="41000""#));
+        assert_eq!(e.line, 5, "{e}");
+        assert!(
+            e.to_string().contains("`41000`") && e.to_string().contains("-500 to 20000 m"),
+            "{e}"
+        );
+        // The edges are flyable.
+        assert!(parse(&GOOD.replace(r#"alt="0""#, r#"alt="20000""#)).is_ok());
+        assert!(parse(&GOOD.replace(r#"defaultSpeed="3""#, r#"defaultSpeed="150""#)).is_ok());
     }
 
     #[test]
