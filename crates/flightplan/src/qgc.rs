@@ -24,6 +24,7 @@ const NAV_LAND: u64 = 21;
 const NAV_TAKEOFF: u64 = 22;
 const DO_JUMP: u64 = 177;
 const DO_CHANGE_SPEED: u64 = 178;
+const DO_LAND_START: u64 = 189;
 
 /// Why a plan cannot be exported to QGC.
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -349,7 +350,41 @@ pub fn export(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<Json, QgcExp
             3
         },
     };
+    // A plan that lands marks where its landing sequence begins, as ArduPilot's missions do:
+    // DO_LAND_START before the approach (or before the landing when there is none), where
+    // RTL_AUTOLAND and MAV_CMD_DO_LAND_START jump to.
+    let landing_begins = if plan.landing.is_empty() {
+        None
+    } else if plan.approach.is_empty() {
+        Some(Stage::Landing)
+    } else {
+        Some(Stage::Approach)
+    };
     for s in Stage::ALL {
+        if Some(s) == landing_begins {
+            let at = plan
+                .stage(s)
+                .first()
+                .and_then(|n| match &n.kind {
+                    NodeKind::Path(l) => Some(l.fix.pos),
+                    NodeKind::Landing(l) => Some(l.fix.pos),
+                    _ => None,
+                })
+                .map_or((0.0, 0.0), |p| (p.lat, p.lon));
+            ex.simple(
+                DO_LAND_START,
+                [
+                    json!(0),
+                    json!(0),
+                    json!(0),
+                    json!(0),
+                    json!(at.0),
+                    json!(at.1),
+                    json!(0),
+                ],
+                0.0,
+            );
+        }
         ex.nodes(plan.stage(s))?;
     }
     let items = ex.items;
@@ -418,6 +453,8 @@ pub fn import(src: &str, name: &str) -> Result<(FlightPlan, String), QgcImportEr
     let mut fixes = String::new();
     let (mut takeoff, mut landing) = (String::new(), String::new());
     let mut speed: Option<f64> = None;
+    // The node index where a DO_LAND_START put the start of the approach.
+    let mut approach_from: Option<usize> = None;
     // A jump may target the speed change that opens a loop body: it belongs to the next node.
     let mut pending: Option<u64> = None;
     let mut nfix = 0;
@@ -479,6 +516,14 @@ pub fn import(src: &str, name: &str) -> Result<(FlightPlan, String), QgcImportEr
                     DO_CHANGE_SPEED => {
                         speed = Some(num(&p[1], index, "speed")?);
                         pending.get_or_insert(own_id);
+                    }
+                    // Where the landing sequence begins: what follows is the approach.
+                    DO_LAND_START if approach_from.is_none() => approach_from = Some(nodes.len()),
+                    DO_LAND_START => {
+                        return Err(QgcImportError::Item {
+                            index,
+                            why: "a second DO_LAND_START: a plan has one landing sequence".into(),
+                        })
                     }
                     DO_JUMP => {
                         let target = p[0].as_f64().unwrap_or(0.0) as u64;
@@ -574,12 +619,18 @@ pub fn import(src: &str, name: &str) -> Result<(FlightPlan, String), QgcImportEr
     }
     let alt_ref = if frame == 0 { "MSL" } else { "REL" };
     let name = name.replace(['"', '<', '>', '&'], "_");
-    let body: String = nodes
-        .into_iter()
-        .map(|(_, x)| format!("    {x}\n"))
-        .collect();
+    let lines = |nodes: &[(u64, String)]| -> String {
+        nodes.iter().map(|(_, x)| format!("    {x}\n")).collect()
+    };
+    let split = approach_from.unwrap_or(nodes.len()).min(nodes.len());
+    let body = lines(&nodes[..split]);
+    let approach = if split < nodes.len() {
+        format!("  <approach>\n{}  </approach>\n", lines(&nodes[split..]))
+    } else {
+        String::new()
+    };
     let xml = format!(
-        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<flightPlan name=\"{name}\" altRef=\"{alt_ref}\">\n  <fixes>\n{fixes}  </fixes>\n{takeoff}\n  <mission>\n{body}  </mission>\n{landing}\n</flightPlan>\n"
+        "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<flightPlan name=\"{name}\" altRef=\"{alt_ref}\">\n  <fixes>\n{fixes}  </fixes>\n{takeoff}\n  <mission>\n{body}  </mission>\n{approach}{landing}\n</flightPlan>\n"
     );
     let plan = parse_plan(&xml)?;
     Ok((plan, xml))
@@ -606,6 +657,61 @@ mod tests {
     <leg type="TF" fix="A" speed="2"/>
   </mission>
 </flightPlan>"#;
+
+    #[test]
+    fn a_landing_plan_marks_its_approach_with_do_land_start_both_ways() {
+        let v = VehicleParams::aircraft();
+        let src = r#"<flightPlan name="circuit" altRef="MSL" defaultSpeed="20">
+  <fixes>
+    <fix id="STRIP" lat="41.27500" lon="1.98700" alt="0"/>
+    <fix id="OUT" lat="41.28400" lon="1.98700" alt="150"/>
+    <fix id="FAF" lat="41.27500" lon="2.00140" alt="80"/>
+  </fixes>
+  <takeoff fix="STRIP" clearAlt="60"/>
+  <mission><leg type="TF" fix="OUT"/></mission>
+  <approach><leg type="TF" fix="FAF" flyOver="true"/></approach>
+  <landing fix="STRIP"/>
+</flightPlan>"#;
+        let plan = parse_plan(src).unwrap();
+        let doc = export(&plan, &v).unwrap();
+        let commands: Vec<u64> = doc["mission"]["items"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|i| i["command"].as_u64().unwrap())
+            .filter(|c| *c != DO_CHANGE_SPEED)
+            .collect();
+        assert_eq!(
+            commands,
+            [
+                NAV_TAKEOFF,
+                NAV_WAYPOINT,
+                DO_LAND_START,
+                NAV_WAYPOINT,
+                NAV_LAND
+            ]
+        );
+        let (back, xml) = import(&doc.to_string(), "circuit").unwrap();
+        assert_eq!(back.approach.len(), 1, "{xml}");
+        assert_eq!(back.mission.len(), 1, "{xml}");
+        let a = expand_nominal(plan, v.clone()).unwrap();
+        let b = expand_nominal(back, v).unwrap();
+        assert_eq!(a.len(), b.len(), "{xml}");
+        for (x, y) in a.iter().zip(&b) {
+            assert!(distance(x.pos(), y.pos()) < 0.01, "{x:?} vs {y:?}");
+        }
+        // One landing sequence only.
+        let mut twice = doc.clone();
+        let items = twice["mission"]["items"].as_array_mut().unwrap();
+        let mark = items
+            .iter()
+            .find(|i| i["command"] == DO_LAND_START)
+            .unwrap()
+            .clone();
+        items.insert(1, mark);
+        let e = import(&twice.to_string(), "circuit").unwrap_err();
+        assert!(e.to_string().contains("a second DO_LAND_START"), "{e}");
+    }
 
     #[test]
     fn export_import_round_trip_keeps_the_waypoint_stream() {
