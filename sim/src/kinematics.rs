@@ -103,6 +103,35 @@ pub struct Limits {
     pub max_climb: f64,
     /// Loiter radius, metres (plane).
     pub loiter_radius: f64,
+    /// The air mass's velocity, metres per second north and east (a steady wind blowing
+    /// *toward* that direction): a plane flies through the air and drifts with it, crabbing
+    /// into it to hold its track; a copter leans into it, its ground speed what its top speed
+    /// leaves. A rover feels none.
+    pub wind: (f64, f64),
+    /// The slowest airspeed a plane flies, m/s: asked to go slower, it flies this fast.
+    pub stall_speed: f64,
+}
+
+impl Limits {
+    /// Limits of no particular vehicle: no wind, no stall.
+    pub fn calm(cruise_speed: f64, max_yaw_rate: f64, max_accel: f64, max_climb: f64) -> Self {
+        Self {
+            cruise_speed,
+            max_yaw_rate,
+            max_accel,
+            max_climb,
+            loiter_radius: 0.0,
+            wind: (0.0, 0.0),
+            stall_speed: 0.0,
+        }
+    }
+}
+
+/// A steady wind of `speed` m/s blowing *from* `from_deg` (degrees clockwise from north, as a
+/// forecast gives it) as the air's velocity north and east.
+pub fn wind_from(speed: f64, from_deg: f64) -> (f64, f64) {
+    let to = (from_deg + 180.0).to_radians();
+    (speed * to.cos(), speed * to.sin())
 }
 
 /// What the vehicle is asked to do during one step.
@@ -152,6 +181,26 @@ pub fn wrap_pi(a: f64) -> f64 {
         a += 2.0 * PI;
     }
     a
+}
+
+/// The heading correction (radians, to add to `course`) that holds a ground track along
+/// `course` at `airspeed` in `wind`: the plane points into the crosswind. A crosswind stronger
+/// than the airspeed cannot be crabbed: the plane points straight into it and drifts.
+fn crab(course: f64, airspeed: f64, wind: (f64, f64)) -> f64 {
+    // The wind's component across the course, positive from the left (pushing right).
+    let cross = -wind.0 * course.sin() + wind.1 * course.cos();
+    -(cross / airspeed.max(0.1)).clamp(-1.0, 1.0).asin()
+}
+
+/// The ground velocity a copter makes good when it wants `ground` (north, east) in the wind
+/// of `limits`: the air velocity that needs, cut to its top speed, plus the wind.
+fn against_wind(ground: (f64, f64), limits: &Limits) -> (f64, f64) {
+    let (wn, we) = limits.wind;
+    let (an, ae) = (ground.0 - wn, ground.1 - we);
+    let air = an.hypot(ae);
+    let top = limits.cruise_speed.max(0.1);
+    let scale = if air > top { top / air } else { 1.0 };
+    (an * scale + wn, ae * scale + we)
 }
 
 /// Bearing from `from` to `to`, radians clockwise from north.
@@ -249,6 +298,7 @@ impl State {
                 } else {
                     (0.0, 0.0)
                 };
+                let (vn, ve) = against_wind((vn, ve), limits);
                 (
                     vn,
                     ve,
@@ -258,13 +308,15 @@ impl State {
             }
             Command::Hold(_) => {
                 self.yaw_rate = 0.0;
-                (0.0, 0.0, 0.0)
+                let (vn, ve) = against_wind((0.0, 0.0), limits);
+                (vn, ve, 0.0)
             }
             Command::Sticks { steer, throttle } => {
                 let turn = steer.clamp(-1.0, 1.0) * limits.max_yaw_rate * dt;
                 self.yaw += turn;
                 self.yaw_rate = turn / dt;
-                (0.0, 0.0, throttle.clamp(-1.0, 1.0) * limits.max_climb)
+                let (vn, ve) = against_wind((0.0, 0.0), limits);
+                (vn, ve, throttle.clamp(-1.0, 1.0) * limits.max_climb)
             }
         };
         let max_dv = limits.max_accel * dt;
@@ -279,9 +331,11 @@ impl State {
     }
 
     fn step_plane(&mut self, cmd: Command, limits: &Limits, dt: f64) {
+        let airspeed = limits.cruise_speed.max(limits.stall_speed);
         let target_up = match cmd {
             Command::GoTo(target) => {
-                self.turn_toward(bearing(&self.pos, &target), limits, dt);
+                let course = bearing(&self.pos, &target);
+                self.turn_toward(course + crab(course, airspeed, limits.wind), limits, dt);
                 target.up
             }
             Command::Hold(centre) => {
@@ -293,7 +347,8 @@ impl State {
                 } else {
                     PI / 2.0 * (dist / limits.loiter_radius.max(1.0)).max(0.5)
                 };
-                self.turn_toward(to_centre - offset, limits, dt);
+                let course = to_centre - offset;
+                self.turn_toward(course + crab(course, airspeed, limits.wind), limits, dt);
                 centre.up
             }
             Command::Sticks { steer, .. } => {
@@ -303,7 +358,8 @@ impl State {
                 self.pos.up
             }
         };
-        self.speed = approach(self.speed, limits.cruise_speed, limits.max_accel * dt);
+        // `speed` is the airspeed along the heading; the ground velocity adds the wind.
+        self.speed = approach(self.speed, airspeed, limits.max_accel * dt);
         let du = target_up - self.pos.up;
         self.climb = du
             .clamp(-limits.max_climb, limits.max_climb)
@@ -311,7 +367,10 @@ impl State {
         self.pos.up += self.climb * dt;
         // Coordinated turn: tan(roll) = v * yaw_rate / g.
         self.roll = (self.speed * self.yaw_rate / 9.81).atan();
-        self.advance_along_heading(dt);
+        self.vel_north = self.speed * self.yaw.cos() + limits.wind.0;
+        self.vel_east = self.speed * self.yaw.sin() + limits.wind.1;
+        self.pos.north += self.vel_north * dt;
+        self.pos.east += self.vel_east * dt;
     }
 }
 
@@ -327,11 +386,8 @@ mod tests {
 
     fn limits() -> Limits {
         Limits {
-            cruise_speed: 2.0,
-            max_yaw_rate: 90f64.to_radians(),
-            max_accel: 2.0,
-            max_climb: 2.0,
             loiter_radius: 30.0,
+            ..Limits::calm(2.0, 90f64.to_radians(), 2.0, 2.0)
         }
     }
 
@@ -428,6 +484,87 @@ mod tests {
         }
         assert!(s.pos.horizontal_distance(&target) < 0.1, "{:?}", s.pos);
         assert!((s.pos.up - 15.0).abs() < 0.1);
+    }
+
+    fn plane_limits(wind: (f64, f64)) -> Limits {
+        Limits {
+            loiter_radius: 60.0,
+            wind,
+            stall_speed: 9.0,
+            ..Limits::calm(15.0, 9.81 / 15.0, 3.0, 5.0)
+        }
+    }
+
+    #[test]
+    fn a_plane_crabs_into_a_crosswind_and_holds_its_track() {
+        // 6 m/s from the west (blowing east) across a track due north.
+        let l = plane_limits(wind_from(6.0, 270.0));
+        let mut s = State::at(Ned::default());
+        s.speed = 15.0;
+        let target = Ned {
+            north: 2_000.0,
+            east: 0.0,
+            up: 0.0,
+        };
+        let mut worst_off_track: f64 = 0.0;
+        while s.pos.north < 1_900.0 {
+            s.step(VehicleKind::Plane, Command::GoTo(target), &l, 0.02);
+            if s.pos.north > 300.0 {
+                worst_off_track = worst_off_track.max(s.pos.east.abs());
+            }
+        }
+        assert!(
+            worst_off_track < 5.0,
+            "blown {worst_off_track} m off the track"
+        );
+        // Pointing into the wind (left of north) by asin(6/15), about 23.6 degrees.
+        let heading = wrap_pi(s.yaw).to_degrees();
+        assert!((heading + 23.6).abs() < 1.0, "heading {heading}");
+        // Over the ground it goes slower than through the air: sqrt(15² - 6²).
+        let ground = s.vel_north.hypot(s.vel_east);
+        assert!((ground - 13.75).abs() < 0.1, "ground speed {ground}");
+    }
+
+    #[test]
+    fn a_plane_cannot_fly_against_a_wind_faster_than_itself_and_a_copter_holds_in_its_own() {
+        // 20 m/s from the north against a 15 m/s plane heading for a point north of it.
+        let l = plane_limits(wind_from(20.0, 0.0));
+        let mut s = State::at(Ned::default());
+        s.speed = 15.0;
+        let target = Ned {
+            north: 1_000.0,
+            east: 0.0,
+            up: 0.0,
+        };
+        for _ in 0..3_000 {
+            s.step(VehicleKind::Plane, Command::GoTo(target), &l, 0.02);
+        }
+        assert!(s.pos.north < -100.0, "it should be blown back: {:?}", s.pos);
+        // A copter with a 5 m/s top speed holds its place in a 4 m/s wind, and drifts in 8.
+        for (wind, holds) in [(4.0, true), (8.0, false)] {
+            let l = Limits {
+                wind: wind_from(wind, 90.0),
+                ..Limits::calm(5.0, 1.0, 2.5, 2.5)
+            };
+            let mut c = State::at(Ned::default());
+            for _ in 0..3_000 {
+                c.step(VehicleKind::Copter, Command::Hold(Ned::default()), &l, 0.02);
+            }
+            let drift = c.pos.horizontal_distance(&Ned::default());
+            assert_eq!(drift < 1.0, holds, "{wind} m/s: drifted {drift} m");
+        }
+    }
+
+    #[test]
+    fn a_plane_asked_to_fly_below_its_stall_speed_flies_at_it() {
+        let mut l = plane_limits((0.0, 0.0));
+        l.cruise_speed = 4.0;
+        let mut s = State::at(Ned::default());
+        s.speed = 15.0;
+        for _ in 0..1_000 {
+            s.step(VehicleKind::Plane, Command::Hold(Ned::default()), &l, 0.02);
+        }
+        assert!((s.speed - 9.0).abs() < 1e-6, "{}", s.speed);
     }
 
     #[test]

@@ -65,6 +65,11 @@ struct Args {
     /// running does (PX4, MAVSDK-built vehicles).
     #[arg(long, default_value_t = 0.0)]
     not_ready_s: f64,
+    /// A steady wind, SPEED,FROM: metres per second and the direction it blows from (degrees
+    /// clockwise from north, as a forecast gives it). Aircraft drift with it and fly against
+    /// it (a plane crabs, a copter leans); a rover does not feel it.
+    #[arg(long, value_parser = parse_wind, default_value = "0,0")]
+    wind: (f64, f64),
     /// MAVLink 2 signing key file (64 hex digits, mode 600): sign every frame and accept only
     /// frames signed with this key.
     #[arg(long)]
@@ -110,6 +115,19 @@ enum AutopilotArg {
     /// Says it is ArduPilot but resets its current item after a whole upload and answers no
     /// partial write (for testing ground stations).
     ArdupilotResetting,
+}
+
+fn parse_wind(s: &str) -> Result<(f64, f64), String> {
+    let parsed: Option<Vec<f64>> = s.split(',').map(|x| x.trim().parse().ok()).collect();
+    match parsed.as_deref() {
+        Some(&[speed, from]) if (0.0..=60.0).contains(&speed) && (0.0..=360.0).contains(&from) => {
+            Ok((speed, from))
+        }
+        Some(&[_, _]) => Err(format!(
+            "`{s}`: the speed must be 0..60 m/s and the direction 0..360 degrees"
+        )),
+        _ => Err(format!("`{s}` is not SPEED,FROM (m/s, degrees)")),
+    }
 }
 
 fn parse_home(s: &str) -> anyhow::Result<GeoPoint> {
@@ -188,6 +206,7 @@ async fn main() -> anyhow::Result<()> {
         log: args.log,
         quiet_progress: args.quiet_progress,
         not_ready_s: args.not_ready_s,
+        wind: args.wind,
         signing: args
             .signing_key
             .as_deref()

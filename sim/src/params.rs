@@ -95,6 +95,7 @@ impl Params {
                 p("WP_LOITER_RAD", 60.0, I16),
                 p("TKOFF_ALT", 50.0, I16),
                 p("AIRSPEED_CRUISE", 15.0, F32),
+                p("AIRSPEED_MIN", 9.0, I16),
                 p("ROLL_LIMIT_DEG", 45.0, I16),
                 p("TECS_CLMB_MAX", 5.0, F32),
                 p("FLTMODE1", 0.0, I8),

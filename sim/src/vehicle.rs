@@ -114,6 +114,9 @@ pub struct Vehicle {
     /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
     /// in answer to a set-current (autopilots that leave progress to be inferred).
     quiet_progress: bool,
+    /// The steady wind's velocity, metres per second north and east (see
+    /// [`Limits::wind`]).
+    wind: (f64, f64),
     /// Simulated time before which the autopilot's own checks are not done: mode changes and
     /// arming are answered TEMPORARILY_REJECTED.
     ready_at: f64,
@@ -192,6 +195,7 @@ impl Vehicle {
             speed_override: None,
             quiet_progress: false,
             ready_at: 0.0,
+            wind: (0.0, 0.0),
             profile: Profile::ArduPilot,
             sticks: None,
             sim_time: 0.0,
@@ -220,6 +224,11 @@ impl Vehicle {
             home_lon: cfg.home.lon_deg,
         });
         v
+    }
+
+    /// A steady wind of `speed` m/s blowing from `from_deg` (degrees clockwise from north).
+    pub fn set_wind(&mut self, speed: f64, from_deg: f64) {
+        self.wind = crate::kinematics::wind_from(speed, from_deg);
     }
 
     /// Answers mode changes and arming MAV_RESULT_TEMPORARILY_REJECTED for the first
@@ -319,29 +328,40 @@ impl Vehicle {
         let speed = |default: f64| self.speed_override.unwrap_or(default).max(0.1);
         match self.cfg.kind {
             VehicleKind::Rover => Limits {
-                cruise_speed: speed(p("CRUISE_SPEED", 2.0)),
-                max_yaw_rate: p("ATC_STR_RAT_MAX", 120.0).max(1.0).to_radians(),
-                max_accel: p("ATC_ACCEL_MAX", 2.0).max(0.1),
-                max_climb: 0.0,
                 loiter_radius: 2.0,
+                ..Limits::calm(
+                    speed(p("CRUISE_SPEED", 2.0)),
+                    p("ATC_STR_RAT_MAX", 120.0).max(1.0).to_radians(),
+                    p("ATC_ACCEL_MAX", 2.0).max(0.1),
+                    0.0,
+                )
             },
             VehicleKind::Copter => Limits {
-                cruise_speed: speed(p("WPNAV_SPEED", 500.0) / 100.0),
-                max_yaw_rate: p("ATC_RATE_Y_MAX", 90.0).max(1.0).to_radians(),
-                max_accel: (p("WPNAV_ACCEL", 250.0) / 100.0).max(0.1),
-                max_climb: (p("WPNAV_SPEED_UP", 250.0) / 100.0).max(0.1),
-                loiter_radius: 0.0,
+                wind: self.wind,
+                ..Limits::calm(
+                    speed(p("WPNAV_SPEED", 500.0) / 100.0),
+                    p("ATC_RATE_Y_MAX", 90.0).max(1.0).to_radians(),
+                    (p("WPNAV_ACCEL", 250.0) / 100.0).max(0.1),
+                    (p("WPNAV_SPEED_UP", 250.0) / 100.0).max(0.1),
+                )
             },
             VehicleKind::Plane => {
-                let speed = speed(p("AIRSPEED_CRUISE", 15.0)).max(1.0);
+                // Asked to fly slower than it can, a plane flies at its stall margin.
+                let stall = p("AIRSPEED_MIN", 9.0).max(1.0);
+                let speed = speed(p("AIRSPEED_CRUISE", 15.0)).max(stall);
                 let bank = p("ROLL_LIMIT_DEG", 45.0).clamp(5.0, 80.0).to_radians();
                 Limits {
-                    cruise_speed: speed,
-                    // Coordinated turn at the bank limit: ω = g·tan(φ)/v.
-                    max_yaw_rate: 9.81 * bank.tan() / speed,
-                    max_accel: 3.0,
-                    max_climb: p("TECS_CLMB_MAX", 5.0).max(0.1),
+                    // Coordinated turn at the bank limit: ω = g·tan(φ)/v, so the turn radius
+                    // v²/(g·tan φ) grows with the speed.
                     loiter_radius: p("WP_LOITER_RAD", 60.0).max(10.0),
+                    wind: self.wind,
+                    stall_speed: stall,
+                    ..Limits::calm(
+                        speed,
+                        9.81 * bank.tan() / speed,
+                        3.0,
+                        p("TECS_CLMB_MAX", 5.0).max(0.1),
+                    )
                 }
             }
         }

@@ -178,6 +178,8 @@ pub struct MavsimSpec {
     pub poi_file: Option<PathBuf>,
     /// The detector's footprint radius, metres (mavsim `--sensor-radius`).
     pub sensor_radius: Option<f64>,
+    /// A steady wind, `SPEED,FROM` (m/s, degrees it blows from; mavsim `--wind`).
+    pub wind: Option<(f64, f64)>,
 }
 
 /// `<vas>` settings.
@@ -732,6 +734,23 @@ fn router_from(el: &Element, mission: &Mission) -> Result<RouterSpec, Fault> {
 /// A `<mavsim home>` `LAT,LON,ALT`, or what is wrong with it: not three numbers, or a latitude,
 /// longitude or altitude no place on Earth has (caught here, before anything starts, instead of
 /// by a simulator failing to start again and again).
+/// A `<mavsim wind>` `SPEED,FROM`: metres per second (0..60) and the direction it blows from
+/// (degrees, 0..360).
+fn wind(text: &str) -> Result<(f64, f64), String> {
+    let parsed: Option<Vec<f64>> = text.split(',').map(|x| x.trim().parse().ok()).collect();
+    let Some([speed, from]) = parsed.and_then(|v| <[f64; 2]>::try_from(v).ok()) else {
+        return Err(format!(
+            "wind `{text}` is not SPEED,FROM (m/s, degrees it blows from)"
+        ));
+    };
+    if !(0.0..=60.0).contains(&speed) || !(0.0..=360.0).contains(&from) {
+        return Err(format!(
+            "wind `{text}`: the speed must be 0..60 m/s and the direction 0..360 degrees"
+        ));
+    }
+    Ok((speed, from))
+}
+
 pub(crate) fn home(text: &str) -> Result<[f64; 3], String> {
     let parsed: Option<Vec<f64>> = text.split(',').map(|x| x.trim().parse().ok()).collect();
     let Some([lat, lon, alt]) = parsed.and_then(|v| <[f64; 3]>::try_from(v).ok()) else {
@@ -838,6 +857,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                         "batteryWhPerKm",
                         "poiFile",
                         "sensorRadius",
+                        "wind",
                     ],
                 );
                 let spec = MavsimSpec {
@@ -849,6 +869,10 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     battery_wh_per_km: a.parsed("batteryWhPerKm", "a number")?,
                     poi_file: a.file("poiFile", base)?,
                     sensor_radius: a.parsed("sensorRadius", "a number")?,
+                    wind: match a.opt("wind") {
+                        None => None,
+                        Some(w) => Some(wind(&w).map_err(|e| Fault::at(s, e))?),
+                    },
                 };
                 if spec.sensor_radius.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
                     return Err(Fault::at(s, "sensorRadius must be above 0 metres"));
@@ -1917,6 +1941,15 @@ mod tests {
         );
         let e = with(r#"batteryWhPerKm="lots""#).unwrap_err();
         assert!(e.contains("batteryWhPerKm"), "{e}");
+        let m = with(r#"wind="6,270""#).unwrap();
+        let ServiceSpec::Mavsim(sim) = &m.nodes[0].services[0] else {
+            panic!("mavsim first");
+        };
+        assert_eq!(sim.wind, Some((6.0, 270.0)));
+        for bad in [r#"wind="70,0""#, r#"wind="6""#, r#"wind="6,400""#] {
+            let e = with(bad).unwrap_err();
+            assert!(e.contains("<mavsim>") && e.contains("wind"), "{bad}: {e}");
+        }
     }
 
     #[test]

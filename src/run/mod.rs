@@ -641,6 +641,9 @@ async fn start_services(
                     if let Some(r) = m.sensor_radius {
                         a.extend(["--sensor-radius".into(), r.to_string()]);
                     }
+                    if let Some((speed, from)) = m.wind {
+                        a.extend(["--wind".into(), format!("{speed},{from}")]);
+                    }
                     if let Some(key) = signing_key.filter(|_| vas_uses_sim(node)) {
                         a.extend(["--signing-key".into(), key.display().to_string()]);
                     }

@@ -123,8 +123,9 @@ impl Vehicle {
                 yawspeed: self.state.yaw_rate as f32,
             }),
             VFR_HUD_ID => MavMessage::VFR_HUD(VFR_HUD_DATA {
+                // The plane's `speed` is its airspeed; over the ground the wind adds to it.
                 airspeed: self.state.speed as f32,
-                groundspeed: self.state.speed as f32,
+                groundspeed: self.state.vel_north.hypot(self.state.vel_east) as f32,
                 alt: geo.alt_m as f32,
                 climb: self.state.climb as f32,
                 heading: heading_deg.round() as i16 % 360,
