@@ -601,9 +601,7 @@ async fn follow(
                         t.completed_event = true;
                         completing.get_or_insert_with(Instant::now);
                     }
-                    PlanEventKind::StageChanged { stage } => {
-                        line = Some(format!("stage {stage:?}"));
-                    }
+                    k @ PlanEventKind::StageChanged { .. } => line = Some(k.to_string()),
                     PlanEventKind::LegCompleted { leg, skipped } => {
                         line = Some(format!("leg {leg} {}", if skipped { "skipped" } else { "completed" }));
                     }
@@ -620,7 +618,7 @@ async fn follow(
                         line = Some(format!("TAKEN OVER: the vehicle flies another ground station's mission ({by}, {items} items); the plan is paused until the operator resumes it (usal call <fpma>/resume), then Start"));
                         record = Some(json!({"event": "taken_over", "by": by, "items": items}));
                     }
-                    other => line = Some(format!("plan: {other:?}")),
+                    other => line = Some(format!("plan: {other}")),
                 }
             }
             r = rejected.recv() => {

@@ -278,6 +278,39 @@ flight_events! {
     }
 }
 
+/// An event in words, as a pilot reads it in a station or `usal run`'s log.
+impl std::fmt::Display for PlanEventKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PlanEventKind::PlanLoaded { name } => write!(f, "plan `{name}` loaded"),
+            PlanEventKind::LegStarted { leg } => write!(f, "leg `{leg}` started"),
+            PlanEventKind::LegCompleted { leg, skipped: false } => {
+                write!(f, "leg `{leg}` completed")
+            }
+            PlanEventKind::LegCompleted { leg, skipped: true } => {
+                write!(f, "leg `{leg}` skipped by command")
+            }
+            PlanEventKind::WaypointReached { seq, leg } => {
+                write!(f, "waypoint #{seq} of leg `{leg}` reached")
+            }
+            PlanEventKind::IterationDone { leg, n } => write!(f, "loop `{leg}`: pass {n} done"),
+            PlanEventKind::BranchTaken { leg, branch } => {
+                write!(f, "alternative `{leg}`: branch {} taken", branch + 1)
+            }
+            PlanEventKind::StageChanged { stage } => write!(f, "{stage} stage begins"),
+            PlanEventKind::PlanCompleted => f.write_str("plan completed"),
+            PlanEventKind::PlanModified { leg } => write!(f, "plan changed in flight at leg `{leg}`"),
+            PlanEventKind::EmergencyFired { rule } => write!(f, "emergency rule `{rule}` fired"),
+            PlanEventKind::Paused => f.write_str("plan paused"),
+            PlanEventKind::Resumed => f.write_str("plan resumed"),
+            PlanEventKind::TakenOver { by, items } => write!(
+                f,
+                "TAKEN OVER: another ground station ({by}) wrote a mission of {items} items; the plan is paused until the operator resumes it"
+            ),
+        }
+    }
+}
+
 impl PlanEvent {
     /// The wire form of an executive event; `None` for progress (published as a variable) and
     /// for the replacement notice (the service raises [`PlanEventKind::PlanLoaded`] instead).
@@ -518,6 +551,40 @@ mod tests {
     use crate::check::CheckedPlan;
     use crate::exec::expand_nominal;
     use crate::vehicle::VehicleParams;
+
+    #[test]
+    fn plan_events_read_as_words() {
+        let cases = [
+            (
+                PlanEventKind::LegStarted { leg: "hold".into() },
+                "leg `hold` started",
+            ),
+            (
+                PlanEventKind::LegCompleted {
+                    leg: "hold".into(),
+                    skipped: true,
+                },
+                "leg `hold` skipped by command",
+            ),
+            (
+                PlanEventKind::StageChanged {
+                    stage: Stage::Approach,
+                },
+                "approach stage begins",
+            ),
+            (
+                PlanEventKind::BranchTaken {
+                    leg: "search".into(),
+                    branch: 0,
+                },
+                "alternative `search`: branch 1 taken",
+            ),
+            (PlanEventKind::Paused, "plan paused"),
+        ];
+        for (kind, words) in cases {
+            assert_eq!(kind.to_string(), words);
+        }
+    }
 
     /// Every wire type survives postcard, which refuses self-describing serde features.
     #[test]

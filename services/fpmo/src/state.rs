@@ -244,10 +244,7 @@ impl State {
                 }
                 format!("plan `{name}` loaded (version {})", ev.version)
             }
-            PlanEventKind::TakenOver { by, items } => format!(
-                "TAKEN OVER: another ground station ({by}) wrote a mission of {items} items; plan paused until the operator resumes it"
-            ),
-            k => format!("{k:?}"),
+            k => k.to_string(),
         };
         let v = self.vehicle(label);
         v.events

@@ -262,10 +262,28 @@ async fn scenario() {
         .post("/api/command", serde_json::json!({"cmd": "skip_leg"}))
         .await;
     wait_command(&st, body["id"].as_u64().unwrap(), "ok").await;
-    st.wait_state("the leg after the hold", |s| {
-        progress(s)["leg"] != "hold" && progress(s)["version"].as_u64() >= Some(v)
-    })
-    .await;
+    let s = st
+        .wait_state("the leg after the hold", |s| {
+            progress(s)["leg"] != "hold" && progress(s)["version"].as_u64() >= Some(v)
+        })
+        .await;
+    // The plan's events read as words, not as the program's data.
+    let events: Vec<String> = vehicle(&s, "rover1").expect("rover1")["events"]
+        .as_array()
+        .expect("events")
+        .iter()
+        .filter_map(|e| e["text"].as_str().map(str::to_owned))
+        .collect();
+    assert!(
+        events.iter().any(|e| e.ends_with("leg `hold` started")),
+        "{events:?}"
+    );
+    assert!(
+        events
+            .iter()
+            .all(|e| !e.contains('{') && !e.contains("LegStarted")),
+        "{events:?}"
+    );
 
     // Widen the scan: confirmed, and the station's copy is redrawn with fewer waypoints.
     let count = |p: &serde_json::Value| {
