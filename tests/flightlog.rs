@@ -183,6 +183,8 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
     // And a flight-plan station, as a pilot reviewing the flight would open one.
     let fpmo_bin = Path::new(USAL).with_file_name("fpmo").display().to_string();
     let fpmo = common::Station::start(&fpmo_bin, "FPMO_URL", &["--domain", &domain]).await;
+    let fmo_bin = Path::new(USAL).with_file_name("fmo").display().to_string();
+    let fmo = common::Station::start(&fmo_bin, "FMO_URL", &["--domain", &domain]).await;
     let mut replay = Command::new(USAL)
         .args(["--domain", &domain, "--mcast-port", &port.to_string()])
         .args(["replay", "--speed", "5"])
@@ -221,6 +223,19 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
     let (seen_states, reached) = tokio::time::timeout(REPLAY, watch)
         .await
         .expect("the replayed plan completes at the subscriber");
+    // Both stations say it is a replay, of which mission, while it plays.
+    for (station, name) in [(&fpmo, "FPMo"), (&fmo, "FMo")] {
+        let s = station
+            .wait_state(&format!("REPLAY in the {name}"), |s| {
+                s["replay"]["live"] == true && s["replay"]["mission"] == "rover-demo"
+            })
+            .await;
+        assert!(
+            s["replay"]["duration_s"].as_f64().is_some_and(|d| d > 1.0),
+            "{}",
+            s["replay"]
+        );
+    }
     assert!(
         seen_states.contains(&FlightState::WaypointNavigation),
         "{seen_states:?}"
@@ -249,7 +264,13 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
         .await;
     let v = common::vehicle(&s, "rover1").expect("rover1");
     assert!(v["track"].as_array().is_some_and(|t| t.len() > 5), "{v:#}");
+    // Its end is said too, so the stations do not show a link that died.
+    fmo.wait_state("the replay's end in the FMo", |s| {
+        s["replay"]["ended"] == true
+    })
+    .await;
     fpmo.kill().await;
+    fmo.kill().await;
     node.shutdown().await;
 }
 

@@ -317,6 +317,17 @@ pub async fn run(
         }
     }
     let mut air = std::collections::VecDeque::from(air);
+    // The stations say REPLAY while this is fresh (twice a second, the discovery wait included).
+    let status = usal_types::ReplayStatus {
+        log: path.display().to_string(),
+        mission: mission.clone(),
+        flown_utc: started.clone(),
+        at_s: args.from_s,
+        duration_s: scan.duration,
+        speed: args.speed,
+        ended: false,
+    };
+    let (at_tx, status_task) = announce_replay(node, status)?;
     tokio::time::sleep(wait).await;
 
     let (mut reader, _) = match tokio::task::block_in_place(|| LogReader::open(path)) {
@@ -344,6 +355,7 @@ pub async fn run(
         }
         let at = start + Duration::from_secs_f64((r.t - args.from_s) / args.speed);
         tokio::time::sleep_until(at).await;
+        at_tx.send_replace((r.t, false));
         if let Ok(Some((name, event, _, bytes))) = published(&r, &reader) {
             if let Some(p) = publishers.get(&(name.clone(), event)) {
                 match p(&bytes) {
@@ -360,8 +372,10 @@ pub async fn run(
     for a in air.iter().filter(|a| a.t >= args.from_s) {
         show_air(a, json_out);
     }
-    // Let the last values leave before the node goes.
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    at_tx.send_replace((scan.duration, true));
+    // Let the last values (the replay's end among them) leave before the node goes.
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    status_task.abort();
     if json_out {
         say!(
             "{}",
@@ -385,6 +399,32 @@ pub async fn run(
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// Where the playback is: seconds into the recorded flight, and whether it has ended.
+type PlaybackAt = tokio::sync::watch::Sender<(f64, bool)>;
+
+/// Publishes `replay/status` twice a second from `status`, its time and end as the returned
+/// sender gives them, until the returned task is aborted.
+fn announce_replay(
+    node: &Node,
+    mut status: usal_types::ReplayStatus,
+) -> anyhow::Result<(PlaybackAt, tokio::task::JoinHandle<()>)> {
+    let var = node
+        .service("replay")
+        .context("declaring service replay")?
+        .publish_variable::<usal_types::ReplayStatus>("status")
+        .context("declaring replay/status")?;
+    let (tx, rx) = tokio::sync::watch::channel((status.at_s, false));
+    let task = tokio::spawn(async move {
+        let mut tick = tokio::time::interval(Duration::from_millis(500));
+        loop {
+            tick.tick().await;
+            (status.at_s, status.ended) = *rx.borrow();
+            let _ = var.set(&status);
+        }
+    });
+    Ok((tx, task))
 }
 
 /// Shows the records a reviewer follows: state changes, plan events, commands and the

@@ -38,6 +38,7 @@ pub mod commands;
 pub mod fleet;
 pub mod http;
 pub mod live;
+pub mod replay;
 pub mod startup;
 
 pub use access::Access;

@@ -104,6 +104,7 @@ fn registry() -> Vec<Known> {
         AllowedChanges,
         CommandRecord,
         MissionChanged,
+        ReplayStatus,
         Failsafe,
         FailsafeKind,
         StationHeartbeat,

@@ -581,6 +581,27 @@ pub struct MissionTime {
     pub in_state: f64,
 }
 
+/// A flight log being played back (`usal replay`, variable `replay/status`, twice a second):
+/// the stations show REPLAY while it is fresh, so a recorded flight is never taken for a live
+/// one, nor a replay's end for a lost link.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ReplayStatus {
+    /// The log file played.
+    pub log: String,
+    /// The mission it recorded.
+    pub mission: String,
+    /// When it was flown (UTC, as the log's header says).
+    pub flown_utc: String,
+    /// Seconds into the recorded flight.
+    pub at_s: f64,
+    /// The recorded flight's length, seconds.
+    pub duration_s: f64,
+    /// Playback speed (2: twice as fast as flown).
+    pub speed: f64,
+    /// The playback has ended.
+    pub ended: bool,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

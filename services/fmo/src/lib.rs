@@ -79,6 +79,8 @@ pub struct Shared {
     allowed: Mutex<HashMap<String, Arc<AllowedFn>>>,
     command: Mutex<HashMap<String, Arc<CommandFn>>>,
     call_timeout: Duration,
+    /// A flight log being played back (`usal replay`), shown as a REPLAY.
+    pub replay: station_web::replay::ReplayWatch,
 }
 
 impl Shared {
@@ -275,6 +277,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         change_state: Mutex::new(HashMap::new()),
         allowed: Mutex::new(HashMap::new()),
         command: Mutex::new(HashMap::new()),
+        replay: station_web::replay::ReplayWatch::default(),
         call_timeout: config.station.call_timeout,
         live: Live::new(cancel.clone()),
     });
@@ -345,6 +348,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
             }
         }
     });
+    shared.replay.follow(&svc, &shared.live)?;
     shared.live.tasks.spawn(allowed_loop(shared.clone()));
     shared.live.tasks.spawn(manual_loop(shared.clone(), manual));
     shared

@@ -188,6 +188,8 @@ pub struct Snapshot {
     vehicles: Vec<VehicleView>,
     commands: Vec<CommandView>,
     manual: ManualView,
+    /// A flight log being played back, if one is heard (set by the station, not the model).
+    pub replay: Option<station_web::replay::ReplayView>,
 }
 
 #[derive(Serialize)]
@@ -610,6 +612,7 @@ impl Station {
             selected: self.selected.clone(),
             vehicles,
             commands,
+            replay: None,
             manual: ManualView {
                 deadman: m.input.deadman,
                 active: m.active,

@@ -32,7 +32,9 @@ impl station_web::Station for Shared {
     const PAGE: &'static str = include_str!("page.html");
 
     fn snapshot_json(&self) -> String {
-        let snap = self.station().snapshot(Instant::now());
+        let now = Instant::now();
+        let mut snap = self.station().snapshot(now);
+        snap.replay = self.replay.view(now);
         serde_json::to_string(&snap).unwrap_or_else(|e| format!("{{\"error\":\"{e}\"}}"))
     }
 

@@ -92,6 +92,8 @@ pub struct Shared {
     pub background: Option<Background>,
     /// The map's tiles, if any.
     pub tiles: Option<Arc<background::Tiles>>,
+    /// A flight log being played back (`usal replay`), shown as a REPLAY.
+    pub replay: station_web::replay::ReplayWatch,
 }
 
 impl Shared {
@@ -507,7 +509,9 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         probes: Mutex::new(HashMap::new()),
         background: config.background.clone(),
         tiles,
+        replay: station_web::replay::ReplayWatch::default(),
     });
+    shared.replay.follow(&svc, &shared.live)?;
     // `*` also matches nothing, so a vehicle without namespace is followed too.
     let ns = if config.vehicles == "*" {
         "**".to_owned()

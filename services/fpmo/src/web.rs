@@ -35,7 +35,10 @@ impl station_web::Station for Shared {
     const PAGE: &'static str = include_str!("page.html");
 
     fn snapshot_json(&self) -> String {
-        self.state().snapshot().to_string()
+        let mut snap = self.state().snapshot();
+        snap["replay"] =
+            serde_json::to_value(self.replay.view(std::time::Instant::now())).unwrap_or_default();
+        snap.to_string()
     }
 
     fn live(&self) -> &station_web::Live {
