@@ -435,6 +435,18 @@ fn a_service_of_your_own_runs_beside_the_vas_and_shows_in_usal_list_and_the_fmo(
             })
             .and_then(|i| i["value"].as_f64());
         if distance.is_some_and(|d| d > 5.0) {
+            // The pilot's instruments: the battery with its charge, and the plan's ETA.
+            let v = state["vehicles"]
+                .as_array()
+                .and_then(|vs| vs.iter().find(|v| v["id"] == "rover1/vas"))
+                .expect("rover1");
+            assert!(
+                v["battery"]["value"]["remaining"]
+                    .as_f64()
+                    .is_some_and(|r| r > 0.0),
+                "{v}"
+            );
+            assert_eq!(v["plan"]["value"]["name"], "rover-demo", "{v}");
             break;
         }
         assert!(

@@ -32,8 +32,9 @@ use station_web::{call_error, Live, StationConfig};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, CommandReply, FlightState, ManualCommand, MissionTime,
-    Position, Speeds, StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand,
+    Alarm, Attitude, AutopilotStatus, Battery, CommandReply, FlightState, ManualCommand,
+    MissionTime, Position, Speeds, StateChangeReply, StateChangeRequest, StateChanged,
+    VehicleCommand,
 };
 
 use crate::model::{Item, ManualTick, Station};
@@ -210,6 +211,30 @@ fn follow<T: marea::Payload>(
     });
 }
 
+/// Follows the plan's progress of each vehicle's FPMa (`NS/fpma/progress` beside `NS/vas`),
+/// for its ETA.
+fn follow_progress(shared: &Arc<Shared>, svc: &Service, vas: &str) -> anyhow::Result<()> {
+    let Some(ns_pattern) = vas.strip_suffix("vas") else {
+        return Ok(());
+    };
+    let sub =
+        svc.subscribe_variable::<flightplan::api::Progress>(&format!("{ns_pattern}fpma/progress"))?;
+    let me = shared.clone();
+    shared.live.follow(sub, "progress", move |s| {
+        let Some(ns) = s.name.strip_suffix("fpma/progress") else {
+            return;
+        };
+        let vehicle = format!("{ns}vas");
+        me.station().update(
+            &vehicle,
+            &s.publisher,
+            Item::Progress(s.value),
+            Instant::now(),
+        );
+    });
+    Ok(())
+}
+
 /// Keeps the commanded vehicle's allowed transitions current.
 async fn allowed_loop(me: Arc<Shared>) {
     loop {
@@ -331,6 +356,13 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         "alarm",
         Item::Alarm,
     );
+    follow(
+        &shared,
+        svc.subscribe_variable::<Battery>(&pat("battery"))?,
+        "battery",
+        Item::Battery,
+    );
+    follow_progress(&shared, &svc, vas)?;
     let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
     // The VAS knows its ground station is there by this heartbeat (lost ground link, `vas`
     // `linkLossAction`); the FMo is the pilot's station.

@@ -8,12 +8,13 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
+use flightplan::api::Progress;
 use serde::Serialize;
 pub use station_web::CommandStatus;
 use station_web::{ms, CommandLog, CommandView};
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, FlightState, ManualCommand, ManualControl, MissionTime,
-    Position, Severity, Speeds, StateChanged,
+    Alarm, Attitude, AutopilotStatus, Battery, FlightState, ManualCommand, ManualControl,
+    MissionTime, Position, Severity, Speeds, StateChanged,
 };
 
 /// Alarms kept per vehicle (oldest dropped first).
@@ -50,9 +51,17 @@ struct AlarmEntry {
     acked: bool,
 }
 
+/// How far back the battery's trend is read to estimate the time left.
+const BATTERY_TREND: Duration = Duration::from_secs(60);
+
 /// What the station knows of one vehicle (one VAS), keyed by the VAS's item prefix.
 #[derive(Clone, Debug, Default)]
 struct Vehicle {
+    battery: Option<Stamped<Battery>>,
+    /// Charge remaining (percent) over the last [`BATTERY_TREND`], oldest first.
+    battery_trend: VecDeque<(Instant, f32)>,
+    /// The plan's progress, from the vehicle's FPMa.
+    plan: Option<Stamped<Progress>>,
     position: Option<Stamped<Position>>,
     attitude: Option<Stamped<Attitude>>,
     speeds: Option<Stamped<Speeds>>,
@@ -157,6 +166,10 @@ pub enum Item {
     StateChanged(StateChanged),
     /// Event `alarm`.
     Alarm(Alarm),
+    /// `battery`.
+    Battery(Battery),
+    /// The vehicle's FPMa's `progress` (ETA).
+    Progress(Progress),
 }
 
 /// What the manual-control loop does on one tick.
@@ -209,8 +222,42 @@ struct VehicleView {
     allowed: AllowedView,
     alarms: Vec<AlarmView>,
     unacked_alarms: usize,
+    battery: Option<Aged<BatteryView>>,
+    plan: Option<Aged<PlanView>>,
     /// The variables of its other services, by name.
     services: Vec<OtherItemView>,
+}
+
+#[derive(Clone, Serialize)]
+struct BatteryView {
+    voltage: f32,
+    current: Option<f32>,
+    remaining: Option<f32>,
+    /// Seconds left at the rate the charge fell over the last minute; `None` while it has not
+    /// fallen measurably.
+    time_left_s: Option<f64>,
+}
+
+#[derive(Clone, Serialize)]
+struct PlanView {
+    name: String,
+    leg: Option<String>,
+    fraction: f64,
+    completed: bool,
+    paused: bool,
+    /// Seconds to the end of the plan and of the leg (vehicle time).
+    eta_s: Option<f64>,
+    leg_eta_s: Option<f64>,
+}
+
+/// Seconds until `trend`'s last charge reaches zero at the rate it fell since its first
+/// sample; `None` while it has not fallen (or over less than five seconds).
+fn time_left(trend: &VecDeque<(Instant, f32)>) -> Option<f64> {
+    let (t0, r0) = *trend.front()?;
+    let (t1, r1) = *trend.back()?;
+    let span = t1.saturating_duration_since(t0).as_secs_f64();
+    let fell = f64::from(r0 - r1);
+    (span >= 5.0 && fell > 0.0).then(|| f64::from(r1) * span / fell)
 }
 
 #[derive(Serialize)]
@@ -318,6 +365,13 @@ impl Station {
     /// Records an item from the VAS at `prefix` (published by node `publisher`). Returns true
     /// when the flight state changed (the allowed transitions must be asked again).
     pub fn update(&mut self, prefix: &str, publisher: &str, item: Item, now: Instant) -> bool {
+        if let Item::Progress(p) = item {
+            // The FPMa's, beside the VAS: it neither makes a vehicle nor says its link is up.
+            if let Some(v) = self.vehicles.get_mut(prefix) {
+                v.plan = Some(Stamped { value: p, at: now });
+            }
+            return false;
+        }
         let v = self.vehicles.entry(prefix.to_owned()).or_default();
         v.heard = Some(now);
         publisher.clone_into(&mut v.publisher);
@@ -343,6 +397,20 @@ impl Station {
                 v.flight_state = st(c.to, now);
                 v.last_change = st(c, now);
             }
+            Item::Battery(b) => {
+                if let Some(r) = b.remaining {
+                    v.battery_trend.push_back((now, r));
+                    while v
+                        .battery_trend
+                        .front()
+                        .is_some_and(|(t, _)| now.saturating_duration_since(*t) > BATTERY_TREND)
+                    {
+                        v.battery_trend.pop_front();
+                    }
+                }
+                v.battery = st(b, now);
+            }
+            Item::Progress(_) => {}
             Item::Alarm(alarm) => {
                 let id = self.next_id;
                 self.next_id += 1;
@@ -587,6 +655,38 @@ impl Station {
                         })
                         .collect(),
                     unacked_alarms: v.alarms.iter().filter(|a| !a.acked).count(),
+                    battery: v.battery.as_ref().map(|s| {
+                        let (age_ms, stale) = aged(s.at, true, link_ok);
+                        Aged {
+                            value: BatteryView {
+                                voltage: s.value.voltage,
+                                current: s.value.current,
+                                remaining: s.value.remaining,
+                                time_left_s: time_left(&v.battery_trend),
+                            },
+                            age_ms,
+                            stale,
+                        }
+                    }),
+                    plan: v.plan.as_ref().map(|s| {
+                        // The FPMa repeats an unchanged progress every 2 s.
+                        let (age_ms, _) = aged(s.at, true, true);
+                        let stale = age_ms > 3 * ms(stale);
+                        let p = &s.value;
+                        Aged {
+                            value: PlanView {
+                                name: p.plan.clone(),
+                                leg: p.leg.clone(),
+                                fraction: p.fraction,
+                                completed: p.completed,
+                                paused: p.paused,
+                                eta_s: p.eta_s,
+                                leg_eta_s: p.leg_eta_s,
+                            },
+                            age_ms,
+                            stale,
+                        }
+                    }),
                     services: v
                         .others
                         .iter()
@@ -643,6 +743,55 @@ mod tests {
 
     fn t0() -> Instant {
         Instant::now()
+    }
+
+    #[test]
+    fn battery_time_left_follows_the_charge_s_fall_and_the_plan_s_eta_its_fpma() {
+        let t = t0();
+        let mut st = Station::new(Duration::from_secs(2), t);
+        let battery = |remaining: f32| {
+            Item::Battery(Battery {
+                voltage: 12.0,
+                current: Some(3.0),
+                remaining: Some(remaining),
+            })
+        };
+        // A progress before the vehicle is heard makes no vehicle.
+        st.update("rover1/vas", "fpma", Item::Progress(Progress::default()), t);
+        assert!(st.vehicle_ids().is_empty());
+        st.update("rover1/vas", "air", battery(80.0), t);
+        let snap = serde_json::to_value(st.snapshot(t)).unwrap();
+        assert_eq!(
+            snap["vehicles"][0]["battery"]["value"]["time_left_s"],
+            serde_json::Value::Null
+        );
+        // 2 % in 10 s: 78 % left lasts 390 s.
+        st.update(
+            "rover1/vas",
+            "air",
+            battery(78.0),
+            t + Duration::from_secs(10),
+        );
+        let progress = Progress {
+            plan: "carpark".into(),
+            fraction: 0.5,
+            eta_s: Some(95.0),
+            ..Progress::default()
+        };
+        st.update(
+            "rover1/vas",
+            "fpma-node",
+            Item::Progress(progress),
+            t + Duration::from_secs(10),
+        );
+        let snap = serde_json::to_value(st.snapshot(t + Duration::from_secs(10))).unwrap();
+        let v = &snap["vehicles"][0];
+        let left = v["battery"]["value"]["time_left_s"].as_f64().unwrap();
+        assert!((left - 390.0).abs() < 0.5, "{left}");
+        assert_eq!(v["plan"]["value"]["eta_s"], 95.0);
+        assert_eq!(v["plan"]["value"]["name"], "carpark");
+        // The FPMa's progress does not pass for the VAS's link.
+        assert_eq!(v["publisher"], "air");
     }
 
     #[test]

@@ -44,6 +44,23 @@ async fn scenario() {
              !!document.querySelector('button.transition[data-to=MANUAL_NAVIGATION]:not([disabled])');",
         )
         .await;
+    // The instruments: the battery's charge and voltage, and the Services panel and the
+    // vehicle commands (ARM, DIRECTED's form) drawn.
+    browser
+        .wait_for(
+            "the battery row",
+            "const c = document.querySelector('#t-battery td:last-child'); \
+             return !!c && c.textContent.includes('%') && c.textContent.includes(' V');",
+        )
+        .await;
+    browser
+        .wait_for(
+            "the Services panel and the commands",
+            "return !!document.getElementById('services') && \
+             !!document.querySelector('button.vcmd[data-cmd=ARM]') && \
+             !!document.getElementById('d-fly') && !!document.getElementById('t-plan');",
+        )
+        .await;
     let offered = browser
         .eval("return Array.from(document.querySelectorAll('button.transition')).map(b => b.dataset.to);")
         .await;
