@@ -501,6 +501,65 @@ fn a_service_of_your_own_that_keeps_failing_does_not_stop_the_mission() {
     assert_no_child_left(&l.pids());
 }
 
+/// An autopilot the mission does not start (SITL, a flight controller on a serial port) is
+/// named by `<autopilot endpoint family>` instead of a `<mavsim>`: the node's VAS flies it.
+/// Here a mavsim started apart, on its own UDP port, in ArduPilot's and then in PX4's mode
+/// encoding; the mission completes in both.
+#[test]
+fn a_mission_flies_an_autopilot_it_did_not_start_in_both_mode_encodings() {
+    build_services();
+    for family in ["ardupilot", "px4"] {
+        let sim_bin = Path::new(USAL).with_file_name("mavsim");
+        let mut sim = Command::new(&sim_bin)
+            .args(["--udp", "127.0.0.1:0", "--speedup", "20"])
+            .args(["--home", "41.27500,1.98700,0", "--autopilot", family])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("mavsim starts");
+        let mut first = String::new();
+        BufReader::new(sim.stdout.take().expect("piped"))
+            .read_line(&mut first)
+            .expect("mavsim says where it listens");
+        let addr = first
+            .trim()
+            .strip_prefix("MAVSIM_UDP=")
+            .unwrap_or_else(|| panic!("mavsim said {first:?}"))
+            .to_owned();
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mission = demo_mission_with(
+            dir.path(),
+            "external.xml",
+            &[
+                (
+                    r#"<mavsim vehicle="rover" home="41.27500,1.98700,0" speedup="5"/>"#,
+                    &format!(r#"<autopilot endpoint="udpout:{addr}" family="{family}"/>"#),
+                ),
+                (
+                    r#"<fence maxDistance="300" action="hold">"#,
+                    r#"<fence maxDistance="300" homeLat="41.275" homeLon="1.987" action="hold">"#,
+                ),
+            ],
+        );
+        let mut l = Launcher::start(&[mission.to_str().expect("UTF-8"), "--until-complete"]);
+        let summary = l.event(FLIGHT, "summary");
+        let status = l.wait_exit(STEP);
+        l.drain();
+        let _ = sim.kill();
+        let _ = sim.wait();
+        assert!(status.success(), "{family}: {status}\n{}", l.stderr_tail());
+        check_summary(&summary["summary"]);
+        // The launcher started no simulator: only the VAS, the FPMa and the stations.
+        let pids = l.pids();
+        assert!(
+            pids.iter().all(|(s, _)| !s.ends_with("/mavsim")),
+            "{family}: {pids:?}"
+        );
+        assert_no_child_left(&pids);
+    }
+}
+
 /// A copter flies the survey as a pilot would: take off (the launcher asks for TAKE_OFF, then
 /// for WAYPOINT_NAVIGATION once it has climbed), scan at 30 m, land on the pad, and is parked
 /// and disarmed at the end; the summary compares altitudes and the touchdown with the plan.

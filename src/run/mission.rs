@@ -105,6 +105,19 @@ pub enum ServiceSpec {
     },
     /// A program of the user's, supervised as a service of the node (`<service>`).
     Custom(CustomSpec),
+    /// An autopilot not started by the mission (`<autopilot>`: SITL, a flight controller on
+    /// a serial port), which the node's VAS flies instead of a `<mavsim>`.
+    Autopilot(AutopilotSpec),
+}
+
+/// `<autopilot endpoint family>`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AutopilotSpec {
+    /// Its MAVLink endpoint, as the VAS's `--endpoint` takes it (`udpin:0.0.0.0:14550`,
+    /// `udpout:HOST:PORT`, `tcpout:HOST:PORT`, `serial:PATH:BAUD`).
+    pub endpoint: String,
+    /// Its family: `auto` (its heartbeat says), `ardupilot`, `px4` or `generic`.
+    pub family: String,
 }
 
 /// `<service>`: any executable, started and supervised as a service of its node and handed
@@ -147,6 +160,7 @@ impl ServiceSpec {
             ServiceSpec::Fpmo { .. } => "fpmo",
             ServiceSpec::Fleet { .. } => "fleet",
             ServiceSpec::Custom(_) => "service",
+            ServiceSpec::Autopilot(_) => "autopilot",
         }
     }
 
@@ -993,11 +1007,32 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 ServiceSpec::Fleet { plan }
             }
             "service" => ServiceSpec::Custom(custom_from(s, base)?),
+            "autopilot" => {
+                let mut a = Attrs::new(s, &["endpoint", "family"]);
+                let endpoint = a.req("endpoint")?;
+                let family =
+                    a.one_of("family", &["auto", "ardupilot", "px4", "generic"], "auto")?;
+                a.finish()?;
+                let scheme = endpoint.split(':').next().unwrap_or_default();
+                if !["udpin", "udpout", "tcpout", "tcpin", "serial"].contains(&scheme) {
+                    return Err(Fault::at(
+                        s,
+                        format!("endpoint `{endpoint}` is not udpin:ADDR:PORT, udpout:HOST:PORT, tcpout:HOST:PORT or serial:PATH:BAUD"),
+                    ));
+                }
+                if services.iter().any(|x| matches!(x, ServiceSpec::Mavsim(_))) {
+                    return Err(Fault::at(
+                        s,
+                        "a node flies either its <mavsim> or an <autopilot>, not both",
+                    ));
+                }
+                ServiceSpec::Autopilot(AutopilotSpec { endpoint, family })
+            }
             other => {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected access, mavsim, vas, fpma, station, fmo, fpmo, fleet or service)"
+                    "unknown service <{other}> in <node> (expected access, mavsim, autopilot, vas, fpma, station, fmo, fpmo, fleet or service)"
                 ),
                 ))
             }
@@ -1019,11 +1054,13 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
             ));
         }
         if let ServiceSpec::Vas(v) = &svc {
-            let has_sim = services.iter().any(|x| matches!(x, ServiceSpec::Mavsim(_)));
+            let has_sim = services
+                .iter()
+                .any(|x| matches!(x, ServiceSpec::Mavsim(_) | ServiceSpec::Autopilot(_)));
             if v.endpoint.is_none() && v.config.is_none() && !has_sim {
                 return Err(Fault::at(
                     s,
-                    "no `endpoint` and no <mavsim> before it in this node",
+                    "no `endpoint` and no <mavsim> or <autopilot> before it in this node",
                 ));
             }
         }

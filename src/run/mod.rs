@@ -259,7 +259,7 @@ fn find_or_build_bins(mission: &Mission, ui: &Ui) -> anyhow::Result<Bins> {
     for n in &mission.nodes {
         for s in &n.services {
             let name = match s {
-                ServiceSpec::Station(_) => continue,
+                ServiceSpec::Station(_) | ServiceSpec::Autopilot(_) => continue,
                 ServiceSpec::Custom(c) => match &c.program {
                     mission::Program::Package(p) => p.as_str(),
                     mission::Program::File(_) | mission::Program::OnPath(_) => continue,
@@ -608,7 +608,7 @@ async fn start_services(
             let mut a: Vec<String> = Vec::new();
             let mut announce = None;
             match svc {
-                ServiceSpec::Station(_) => continue,
+                ServiceSpec::Station(_) | ServiceSpec::Autopilot(_) => continue,
                 ServiceSpec::Custom(c) => {
                     sup.start(custom_child(c, node, domain, bins, label));
                     continue;
@@ -656,8 +656,17 @@ async fn start_services(
                     });
                 }
                 ServiceSpec::Vas(v) => {
+                    // An autopilot the mission did not start (SITL, a flight controller).
+                    let autopilot = node.services.iter().find_map(|s| match s {
+                        ServiceSpec::Autopilot(ap) => Some(ap),
+                        _ => None,
+                    });
+                    if let Some(ap) = autopilot {
+                        a.extend(["--autopilot".into(), ap.family.clone()]);
+                    }
                     let endpoint = match (&v.endpoint, &mut sim_addr) {
                         (Some(e), _) => Some(e.clone()),
+                        (None, _) if autopilot.is_some() => autopilot.map(|ap| ap.endpoint.clone()),
                         (None, Some(rx)) => {
                             if let Some(key) = signing_key {
                                 a.extend(["--signing-key".into(), key.display().to_string()]);

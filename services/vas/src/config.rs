@@ -49,6 +49,19 @@ impl AutopilotKind {
     }
 }
 
+impl std::str::FromStr for AutopilotKind {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Self::Auto, Self::Ardupilot, Self::Px4, Self::Generic]
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| {
+                format!("`{s}` is not an autopilot family (auto, ardupilot, px4, generic)")
+            })
+    }
+}
+
 /// Everything `vas` needs to run. Attribute names of the XML file in brackets.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(default, deny_unknown_fields)]

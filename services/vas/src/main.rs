@@ -21,6 +21,9 @@ struct Args {
     /// Vehicle kind: rover, copter or plane.
     #[arg(long)]
     vehicle: Option<VehicleKind>,
+    /// Autopilot family: auto (the heartbeat's), ardupilot, px4 or generic.
+    #[arg(long)]
+    autopilot: Option<vas::config::AutopilotKind>,
     /// Rolling-queue slots on the autopilot (≥ 3).
     #[arg(long)]
     queue_size: Option<u16>,
@@ -102,6 +105,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if let Some(v) = args.vehicle {
         cfg.vehicle = v;
+    }
+    if let Some(a) = args.autopilot {
+        cfg.autopilot = a;
     }
     if let Some(v) = args.queue_size {
         cfg.queue_size = v;
