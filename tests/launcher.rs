@@ -150,6 +150,16 @@ impl Launcher {
     }
 
     /// The mission's domain, as the launcher prints it first.
+    /// Waits for the run's summary and a successful exit (status 0), then reads what is
+    /// left of its output; returns the summary's event.
+    fn completed(&mut self) -> Value {
+        let summary = self.event(FLIGHT, "summary");
+        let status = self.wait_exit(STEP);
+        self.drain();
+        assert!(status.success(), "{status}\n{}", self.stderr_tail());
+        summary
+    }
+
     fn domain(&mut self) -> String {
         self.event(STEP, "mission")["domain"]
             .as_str()
@@ -298,10 +308,7 @@ fn the_rover_demo_completes_and_its_summary_matches_the_plan() {
         "--speedup",
         "20",
     ]);
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     check_summary(&summary["summary"]);
     // Progress was shown waypoint by waypoint.
     let n: Vec<u64> = l
@@ -455,10 +462,7 @@ fn a_service_of_your_own_runs_beside_the_vas_and_shows_in_usal_list_and_the_fmo(
         );
         std::thread::sleep(Duration::from_millis(300));
     }
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     check_summary(&summary["summary"]);
     let pids = l.pids();
     assert!(pids.iter().any(|(s, _)| s == "air/hello"), "{pids:?}");
@@ -493,10 +497,7 @@ fn a_service_of_your_own_that_keeps_failing_does_not_stop_the_mission() {
             .is_some_and(|r| r.contains("exited with status 1")),
         "{gave_up}"
     );
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     check_summary(&summary["summary"]);
     assert_no_child_left(&l.pids());
 }
@@ -605,10 +606,7 @@ fn the_plane_demo_flies_its_circuit_and_lands_on_the_strip() {
 /// flown as planned. Returns the summary's aircraft part.
 fn fly_aircraft_mission(mission: &str, plan: &str, min_m: f64) -> Value {
     let mut l = Launcher::start(&[mission, "--until-complete", "--speedup", "20"]);
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     let summary = &summary["summary"];
     check_summary_of(summary, plan, min_m);
     let kicks: Vec<&str> = l
@@ -1020,10 +1018,7 @@ fn a_killed_vas_is_restarted_and_the_plan_still_completes() {
     assert_ne!(again["pid"].as_u64(), Some(u64::from(pid)));
     assert_eq!(again["restarts"], 1);
     l.event(STEP, "vas_recovered");
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     assert_eq!(summary["summary"]["vas_recoveries"], 1);
     // Each waypoint reported once, in order, the plan's legs; positions are those of the plan.
     check_summary(&summary["summary"]);
@@ -1317,10 +1312,7 @@ fn with_start_by_the_operator_the_rover_waits_for_the_pilot() {
     l.expect(STEP, "WAYPOINT_NAVIGATION", |v| {
         v["event"] == "state" && v["state"] == "WAYPOINT_NAVIGATION"
     });
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     check_summary(&summary["summary"]);
     assert!(
         !l.seen.iter().any(|v| v["event"] == "navigation_kicked"),
@@ -1505,10 +1497,7 @@ fn a_bad_plan_sent_by_another_tool_is_refused_and_the_mission_flies_on() {
             && refused["file"] == "bad-plan.xml",
         "{refused}"
     );
-    let summary = l.event(FLIGHT, "summary");
-    let status = l.wait_exit(STEP);
-    l.drain();
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let summary = l.completed();
     check_summary(&summary["summary"]);
     assert_no_child_left(&l.pids());
 }

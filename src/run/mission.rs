@@ -212,6 +212,8 @@ pub struct VasSpec {
     /// The vehicle's own fence (`<fence>` inside `<vas>`, the plan's form): on the autopilot
     /// before the vehicle may start and for the whole flight; plans may only narrow it.
     pub fence: Option<usal_types::Fence>,
+    /// A parameter file set on the autopilot at start-up (`params`; vas `--params`).
+    pub params: Option<PathBuf>,
 }
 
 /// `<fpma>` settings.
@@ -911,7 +913,14 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
             "vas" => {
                 let mut a = Attrs::new(
                     s,
-                    &["vehicle", "endpoint", "queueSize", "telemetryHz", "config"],
+                    &[
+                        "vehicle",
+                        "endpoint",
+                        "queueSize",
+                        "telemetryHz",
+                        "config",
+                        "params",
+                    ],
                 );
                 let mut spec = VasSpec {
                     vehicle: a.one_of("vehicle", &["rover", "copter", "plane"], "rover")?,
@@ -920,6 +929,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     telemetry_hz: a.parsed("telemetryHz", "a number")?,
                     config: a.file("config", base)?,
                     fence: None,
+                    params: a.file("params", base)?,
                 };
                 a.finish()?;
                 for c in &s.children {

@@ -682,6 +682,9 @@ async fn start_services(
                     if let Some(c) = &v.config {
                         a.extend(["-c".into(), c.display().to_string()]);
                     }
+                    if let Some(p) = &v.params {
+                        a.extend(["--params".into(), p.display().to_string()]);
+                    }
                     if let Some(dir) = air_logs {
                         a.extend([
                             "--air-log".into(),

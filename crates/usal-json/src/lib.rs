@@ -105,6 +105,8 @@ fn registry() -> Vec<Known> {
         CommandRecord,
         MissionChanged,
         ReplayStatus,
+        ParamValue,
+        Vec<ParamValue>,
         Failsafe,
         FailsafeKind,
         StationHeartbeat,

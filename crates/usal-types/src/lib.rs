@@ -581,6 +581,15 @@ pub struct MissionTime {
     pub in_state: f64,
 }
 
+/// One autopilot parameter, by name (the VAS's `get_param`, `set_param`, `list_params`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ParamValue {
+    /// Its name, as the autopilot knows it (`WP_SPEED`), at most 16 characters.
+    pub name: String,
+    /// Its value (MAVLink carries every parameter as a float).
+    pub value: f32,
+}
+
 /// A flight log being played back (`usal replay`, variable `replay/status`, twice a second):
 /// the stations show REPLAY while it is fresh, so a recorded flight is never taken for a live
 /// one, nor a replay's end for a lost link.

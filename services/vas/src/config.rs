@@ -142,6 +142,10 @@ pub struct VasConfig {
     /// The air log's bound per file, MiB (`airLogMaxMb`, default 8; two files are kept).
     #[serde(rename = "@airLogMaxMb")]
     pub air_log_max_mb: u64,
+    /// A parameter file (`params`, Mission Planner's or QGroundControl's format) set on the
+    /// autopilot at start-up, each value verified; refusals are alarms.
+    #[serde(rename = "@params")]
+    pub params: Option<PathBuf>,
     /// MAVLink 2 signing toward the autopilot (`<signing keyFile=".." linkId="1"/>`).
     #[serde(rename = "signing")]
     pub signing: Option<SigningSettings>,
@@ -333,6 +337,7 @@ impl Default for VasConfig {
             max_waypoints_per_call: val.waypoints.max_per_call,
             max_queued_waypoints: val.waypoints.max_queued,
             fence: None,
+            params: None,
             air_log: None,
             air_log_max_mb: 8,
             signing: None,

@@ -19,6 +19,7 @@ pub mod airlog;
 pub mod apl;
 pub mod config;
 pub mod mavlink_cm;
+pub mod params_file;
 pub mod val;
 
 use std::sync::Arc;
@@ -65,13 +66,20 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
         }
     };
     let apl = opened.with_context(|| format!("opening the autopilot at {}", config.endpoint))?;
+    // A bad parameter file stops the VAS before it flies anything, naming its line.
+    let params = match &config.params {
+        Some(path) => params_file::load(path).map_err(|e| anyhow::anyhow!("parameter file {e}"))?,
+        None => Vec::new(),
+    };
     if config.manual_stations.is_none() {
         tracing::warn!("manualStations not set: manual control is obeyed from any station");
     }
     let node = marea::Node::open(&net)
         .await
         .context("opening the middleware node")?;
-    node.add_service(Box::new(val::Vas::new(apl.clone(), config.val())))
+    let mut val_config = config.val();
+    val_config.params = params;
+    node.add_service(Box::new(val::Vas::new(apl.clone(), val_config)))
         .await
         .context("starting the vas service")?;
     tracing::info!(

@@ -77,6 +77,11 @@ struct Args {
     /// it replaces): on the autopilot before the vehicle may start, kept for the whole flight.
     #[arg(long)]
     fence: Option<std::path::PathBuf>,
+    /// A parameter file (Mission Planner's `NAME,VALUE` or QGroundControl's format) set on
+    /// the autopilot at start-up, before the vehicle is parked; each value is verified and
+    /// each refusal raised as an alarm.
+    #[arg(long)]
+    params: Option<std::path::PathBuf>,
     /// Keep the air-side log in this directory (`vas-air.jsonl`, rotated): states, commands
     /// received with who sent them and the answers, mission traffic, failsafes, alarms.
     #[arg(long)]
@@ -147,6 +152,9 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.air_log.is_some() {
         cfg.air_log = args.air_log;
+    }
+    if args.params.is_some() {
+        cfg.params = args.params;
     }
     if let Some(path) = &args.fence {
         cfg.fence = Some(

@@ -454,3 +454,82 @@ async fn an_autopilot_that_says_not_now_is_asked_again_until_it_parks() {
     sim.kill().await;
     g.node.shutdown().await;
 }
+
+/// Parameters: a file (Mission Planner's format) set on the autopilot at start-up, each value
+/// verified and a refusal raised as an alarm, before the vehicle is parked; then read, set and
+/// listed through the VAS's functions.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn parameters_are_set_at_start_up_then_read_set_and_listed() {
+    use usal_types::ParamValue;
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("rover.params");
+    std::fs::write(&file, "# start-up\nCRUISE_SPEED,3.5\nNO_SUCH_PARAM,1\n").unwrap();
+    let sim = Sim::start("127.0.0.1:0", 5.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("params");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--params", file.to_str().unwrap()],
+    );
+    let g = Ground::open(&domain).await;
+    let mut refusals = Vec::new();
+    let summary = tokio::time::timeout(Duration::from_secs(60), async {
+        loop {
+            let a = g.alarms.recv().await.expect("alarms").value;
+            if a.text.starts_with("start-up parameters:") {
+                return a.text;
+            }
+            if a.text.contains("refused") {
+                refusals.push(a.text);
+            }
+        }
+    })
+    .await
+    .expect("no summary of the start-up parameters");
+    assert_eq!(summary, "start-up parameters: 1 of 2 set and verified");
+    assert!(
+        refusals.len() == 1 && refusals[0].contains("NO_SUCH_PARAM = 1 (line 3) refused"),
+        "{refusals:?}"
+    );
+    g.wait_state(FlightState::Parking, STEP).await;
+    let get = g
+        .svc
+        .function::<String, ParamValue>("rover1/vas/get_param")
+        .unwrap();
+    let set = g
+        .svc
+        .function::<ParamValue, ParamValue>("rover1/vas/set_param")
+        .unwrap();
+    let list = g
+        .svc
+        .function::<(), Vec<ParamValue>>("rover1/vas/list_params")
+        .unwrap();
+    assert!(get.wait_provider(STEP).await, "get_param not discovered");
+    let v = get.call(&"CRUISE_SPEED".to_owned(), STEP).await.unwrap();
+    assert_eq!(v.value, 3.5);
+    let v = set
+        .call(
+            &ParamValue {
+                name: "CRUISE_SPEED".into(),
+                value: 2.5,
+            },
+            STEP,
+        )
+        .await
+        .unwrap();
+    assert_eq!(v.value, 2.5);
+    let all = list.call(&(), Duration::from_secs(20)).await.unwrap();
+    assert!(
+        all.iter()
+            .any(|p| p.name == "CRUISE_SPEED" && p.value == 2.5),
+        "{all:?}"
+    );
+    let e = get
+        .call(&"NO_SUCH_PARAM".to_owned(), Duration::from_secs(20))
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("no such parameter"), "{e}");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}

@@ -199,6 +199,18 @@ impl ArduPilot {
     }
 }
 
+/// A parameter operation's failure as the operator reads it (an unknown name goes unanswered
+/// by ArduPilot: said so).
+fn param_error(e: crate::mavlink_cm::ParamError) -> AutopilotError {
+    use crate::mavlink_cm::ParamError;
+    match e {
+        ParamError::RetriesExhausted { name, .. } => AutopilotError::Refused(format!(
+            "no answer for parameter {name}: the autopilot has no such parameter, or the link is down"
+        )),
+        other => AutopilotError::Refused(other.to_string()),
+    }
+}
+
 fn status_of(mgr: &MavlinkManager) -> AutopilotStatus {
     let s = mgr.state();
     AutopilotStatus {
@@ -287,6 +299,19 @@ impl IAutopilot for ArduPilot {
     async fn shutdown(&self) {
         self.cancel.cancel();
         self.tasks.wait().await;
+    }
+
+    async fn get_param(&self, name: &str) -> Result<f32, AutopilotError> {
+        self.mgr.param_get(name).await.map_err(param_error)
+    }
+
+    async fn set_param(&self, name: &str, value: f32) -> Result<f32, AutopilotError> {
+        self.mgr.param_set(name, value).await.map_err(param_error)
+    }
+
+    async fn list_params(&self) -> Result<Vec<(String, f32)>, AutopilotError> {
+        let all = self.mgr.params_list().await.map_err(param_error)?;
+        Ok(all.into_iter().collect())
     }
 
     async fn upload_fence(&self, f: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {

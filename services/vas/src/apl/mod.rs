@@ -238,6 +238,32 @@ pub trait IAutopilot: Send + Sync {
         ))
     }
 
+    /// Reads parameter `name` from the autopilot.
+    ///
+    /// # Errors
+    /// Unsupported, not connected, or no such parameter.
+    async fn get_param(&self, name: &str) -> Result<f32, AutopilotError> {
+        let _ = name;
+        Err(AutopilotError::Unsupported("parameters".into()))
+    }
+
+    /// Sets parameter `name` and checks the autopilot took it; returns the value it holds.
+    ///
+    /// # Errors
+    /// Unsupported, not connected, no such parameter, or another value reported back.
+    async fn set_param(&self, name: &str, value: f32) -> Result<f32, AutopilotError> {
+        let _ = (name, value);
+        Err(AutopilotError::Unsupported("parameters".into()))
+    }
+
+    /// Every parameter of the autopilot, by name.
+    ///
+    /// # Errors
+    /// Unsupported, not connected, or parameters still missing after the retries.
+    async fn list_params(&self) -> Result<Vec<(String, f32)>, AutopilotError> {
+        Err(AutopilotError::Unsupported("parameters".into()))
+    }
+
     /// Stops the layer's tasks.
     async fn shutdown(&self);
 

@@ -234,6 +234,18 @@ impl IAutopilot for Px4 {
         self.layer.upload_fence(fence).await
     }
 
+    async fn get_param(&self, name: &str) -> Result<f32, AutopilotError> {
+        self.layer.get_param(name).await
+    }
+
+    async fn set_param(&self, name: &str, value: f32) -> Result<f32, AutopilotError> {
+        self.layer.set_param(name, value).await
+    }
+
+    async fn list_params(&self) -> Result<Vec<(String, f32)>, AutopilotError> {
+        self.layer.list_params().await
+    }
+
     async fn shutdown(&self) {
         self.layer.shutdown().await;
     }

@@ -21,7 +21,7 @@ use usal_types::{
     ManualCommand, MissionChanged, MissionTime, Position, QueueStatus, Severity, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand, Waypoint, WaypointReached,
 };
-use usal_types::{CommandRecord, Failsafe, FailsafeKind, Fence, StationHeartbeat};
+use usal_types::{CommandRecord, Failsafe, FailsafeKind, Fence, ParamValue, StationHeartbeat};
 
 use crate::airlog::AirLog;
 use crate::apl::{ApEvent, IAutopilot};
@@ -62,6 +62,9 @@ pub struct ValConfig {
     pub fence: Option<Fence>,
     /// Where the air-side log is kept (`crate::airlog`), and its size bound per file.
     pub air_log: Option<(std::path::PathBuf, u64)>,
+    /// Parameters set on the autopilot once it is configured, before the vehicle is parked
+    /// (`vas --params`).
+    pub params: Vec<crate::params_file::ParamLine>,
 }
 
 impl Default for ValConfig {
@@ -76,6 +79,7 @@ impl Default for ValConfig {
             link_loss: linkloss::LinkLossConfig::default(),
             fence: None,
             air_log: None,
+            params: Vec::new(),
         }
     }
 }
@@ -596,6 +600,60 @@ impl Core {
         }
     }
 
+    /// Sets a parameter for the operator: not while the autopilot is still being configured.
+    async fn set_param(&self, p: &ParamValue) -> Result<ParamValue, String> {
+        if self.state() == FlightState::ConfigureCheck {
+            return Err(format!(
+                "set_param {} refused in CONFIGURE_CHECK: the autopilot is still being configured",
+                p.name
+            ));
+        }
+        let value = self
+            .apl
+            .set_param(&p.name, p.value)
+            .await
+            .map_err(|e| e.to_string())?;
+        Ok(ParamValue {
+            name: p.name.clone(),
+            value,
+        })
+    }
+
+    /// Uploads the start-up parameters (`vas --params`), each checked against what the
+    /// autopilot echoes; each refusal is an alarm, and a summary says how many took.
+    async fn upload_params(&self) {
+        let params = &self.cfg.params;
+        if params.is_empty() {
+            return;
+        }
+        let mut refused = 0usize;
+        for p in params {
+            if let Err(e) = self.apl.set_param(&p.name, p.value).await {
+                refused += 1;
+                self.alarm(
+                    Severity::Warning,
+                    format!(
+                        "start-up parameter {} = {} (line {}) refused: {e}",
+                        p.name, p.value, p.line
+                    ),
+                );
+            }
+        }
+        let severity = if refused == 0 {
+            Severity::Info
+        } else {
+            Severity::Warning
+        };
+        self.alarm(
+            severity,
+            format!(
+                "start-up parameters: {} of {} set and verified",
+                params.len() - refused,
+                params.len()
+            ),
+        );
+    }
+
     /// CONFIGURE_CHECK is over: parks the vehicle. An autopilot that refuses (its own checks
     /// still running: TEMPORARILY_REJECTED past the manager's own retries, a mode it will not
     /// enter yet) is asked again with a growing delay, for as long as it takes; each new reason
@@ -813,6 +871,39 @@ impl IService for Vas {
                 }
             },
         )?;
+        // The autopilot's parameters: read, set (logged as a command, like every change), listed.
+        let c = core.clone();
+        let get_param = ctx.provide_function("get_param", move |name: String| {
+            let c = c.clone();
+            async move {
+                let value = c.apl.get_param(&name).await.map_err(|e| e.to_string())?;
+                Ok::<ParamValue, String>(ParamValue { name, value })
+            }
+        })?;
+        let c = core.clone();
+        let set_param = ctx.provide_function_with_caller(
+            "set_param",
+            move |p: ParamValue, from: marea::Caller| {
+                let c = c.clone();
+                async move {
+                    let r = c.set_param(&p).await;
+                    c.command_received(&from, "set_param", &p, &r);
+                    r
+                }
+            },
+        )?;
+        let c = core.clone();
+        let list_params = ctx.provide_function("list_params", move |(): ()| {
+            let c = c.clone();
+            async move {
+                let all = c.apl.list_params().await.map_err(|e| e.to_string())?;
+                Ok::<Vec<ParamValue>, String>(
+                    all.into_iter()
+                        .map(|(name, value)| ParamValue { name, value })
+                        .collect(),
+                )
+            }
+        })?;
         let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
         // This VAS's item prefix, the address a manual command must carry to be obeyed.
         let me = ctx.full_name("").trim_end_matches('/').to_owned();
@@ -857,6 +948,9 @@ impl IService for Vas {
                                     () = cx2.cancelled() => {}
                                     () = async {
                                         if configured {
+                                            // The start-up parameters go up before the
+                                            // vehicle is parked (and so before it may start).
+                                            c2.upload_params().await;
                                             c2.park_when_configured().await;
                                         }
                                         if lock(&c2.fence).is_some() {
@@ -1008,6 +1102,7 @@ impl IService for Vas {
         let cx = ctx.clone();
         ctx.spawn(async move {
             let _handles = (change, command, allowed, push, clear, set_fence);
+            let _params = (get_param, set_param, list_params);
             let mut tick =
                 tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
             // The flight state and what may be asked from it are published on change only; a
