@@ -146,8 +146,13 @@ fn registry() -> Vec<Known> {
     ]
 }
 
-fn find(type_name: &str) -> Option<Known> {
-    registry().into_iter().find(|k| k.name == type_name)
+/// The registry, built once: `usal echo` and the FMo decode every sample through it.
+fn find(type_name: &str) -> Option<&'static Known> {
+    static REGISTRY: std::sync::OnceLock<Vec<Known>> = std::sync::OnceLock::new();
+    REGISTRY
+        .get_or_init(registry)
+        .iter()
+        .find(|k| k.name == type_name)
 }
 
 /// Whether the tools can show and write values of `type_name`: a payload type of the
