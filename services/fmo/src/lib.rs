@@ -67,6 +67,8 @@ const ALLOWED_RETRY: Duration = Duration::from_secs(2);
 type ChangeStateFn = Function<StateChangeRequest, StateChangeReply>;
 type AllowedFn = Function<(), Vec<FlightState>>;
 type CommandFn = Function<VehicleCommand, CommandReply>;
+/// The function handles of the vehicles called so far, by full name.
+type FunctionCache<A, R> = Mutex<HashMap<String, Arc<Function<A, R>>>>;
 
 /// What the HTTP handlers and the middleware tasks share.
 pub struct Shared {
@@ -93,7 +95,7 @@ impl Shared {
 
     fn function<A: marea::Payload, R: marea::Payload>(
         &self,
-        cache: &Mutex<HashMap<String, Arc<Function<A, R>>>>,
+        cache: &FunctionCache<A, R>,
         name: String,
     ) -> Result<Arc<Function<A, R>>, String> {
         let mut map = marea::sync::lock(cache);
@@ -108,52 +110,58 @@ impl Shared {
     /// Asks `vehicle` (a VAS prefix) for `to` in the background; returns the command's id. The
     /// command shows as pending until the VAS answers or the call fails.
     pub fn request_state(self: &Arc<Self>, vehicle: &str, to: FlightState) -> u64 {
-        let id =
-            self.station()
-                .command_started(vehicle, &format!("change_state {to}"), Instant::now());
-        self.live.changed.notify_waiters();
-        let me = self.clone();
-        let vehicle = vehicle.to_owned();
-        self.live.tasks.spawn(async move {
-            let outcome = async {
-                let f = me.function(&me.change_state, format!("{vehicle}/change_state"))?;
-                let req = StateChangeRequest { to };
-                tokio::select! {
-                    r = f.call(&req, me.call_timeout) => r.map_err(call_error),
-                    _ = me.live.cancel.cancelled() => Err("station stopping".to_string()),
-                }
-            }
-            .await
-            .map(|r: StateChangeReply| format!("{} → {}", r.from, r.to));
-            me.station().command_finished(id, outcome, Instant::now());
-            me.refresh_allowed.notify_one();
-            me.live.changed.notify_waiters();
-        });
-        id
+        self.call_vehicle(
+            vehicle,
+            format!("change_state {to}"),
+            |me| &me.change_state,
+            "change_state",
+            StateChangeRequest { to },
+            |r: StateChangeReply| format!("{} → {}", r.from, r.to),
+        )
     }
 
     /// Sends `cmd` (ARM, DISARM, DIRECTED with its altitude, speed and bearing) to `vehicle`
     /// (a VAS prefix) in the background; returns the command's id. It shows as pending until
     /// the VAS answers; a refusal carries the VAS's reason.
     pub fn send_command(self: &Arc<Self>, vehicle: &str, cmd: VehicleCommand) -> u64 {
-        let id = self.station().command_started(
+        self.call_vehicle(
             vehicle,
-            &format!("command {}", describe(&cmd)),
-            Instant::now(),
-        );
+            format!("command {}", describe(&cmd)),
+            |me| &me.command,
+            "command",
+            cmd,
+            |r: CommandReply| format!("{} done, now {}", r.command, r.state),
+        )
+    }
+
+    /// Calls `vehicle`'s function `item` with `arg` in the background, listed in the command
+    /// log as `what` (pending until the answer, then `answered(reply)` or the failure); the
+    /// allowed transitions are asked again after it. Returns the command's id.
+    fn call_vehicle<A: marea::Payload, R: marea::Payload>(
+        self: &Arc<Self>,
+        vehicle: &str,
+        what: String,
+        cache: fn(&Shared) -> &FunctionCache<A, R>,
+        item: &'static str,
+        arg: A,
+        answered: fn(R) -> String,
+    ) -> u64 {
+        let id = self
+            .station()
+            .command_started(vehicle, &what, Instant::now());
         self.live.changed.notify_waiters();
         let me = self.clone();
         let vehicle = vehicle.to_owned();
         self.live.tasks.spawn(async move {
             let outcome = async {
-                let f = me.function(&me.command, format!("{vehicle}/command"))?;
+                let f = me.function(cache(&me), format!("{vehicle}/{item}"))?;
                 tokio::select! {
-                    r = f.call(&cmd, me.call_timeout) => r.map_err(call_error),
+                    r = f.call(&arg, me.call_timeout) => r.map_err(call_error),
                     _ = me.live.cancel.cancelled() => Err("station stopping".to_string()),
                 }
             }
             .await
-            .map(|r: CommandReply| format!("{} done, now {}", r.command, r.state));
+            .map(answered);
             me.station().command_finished(id, outcome, Instant::now());
             me.refresh_allowed.notify_one();
             me.live.changed.notify_waiters();
@@ -225,12 +233,7 @@ fn follow_progress(shared: &Arc<Shared>, svc: &Service, vas: &str) -> anyhow::Re
             return;
         };
         let vehicle = format!("{ns}vas");
-        me.station().update(
-            &vehicle,
-            &s.publisher,
-            Item::Progress(s.value),
-            Instant::now(),
-        );
+        me.station().update_plan(&vehicle, s.value, Instant::now());
     });
     Ok(())
 }

@@ -168,8 +168,6 @@ pub enum Item {
     Alarm(Alarm),
     /// `battery`.
     Battery(Battery),
-    /// The vehicle's FPMa's `progress` (ETA).
-    Progress(Progress),
 }
 
 /// What the manual-control loop does on one tick.
@@ -365,13 +363,6 @@ impl Station {
     /// Records an item from the VAS at `prefix` (published by node `publisher`). Returns true
     /// when the flight state changed (the allowed transitions must be asked again).
     pub fn update(&mut self, prefix: &str, publisher: &str, item: Item, now: Instant) -> bool {
-        if let Item::Progress(p) = item {
-            // The FPMa's, beside the VAS: it neither makes a vehicle nor says its link is up.
-            if let Some(v) = self.vehicles.get_mut(prefix) {
-                v.plan = Some(Stamped { value: p, at: now });
-            }
-            return false;
-        }
         let v = self.vehicles.entry(prefix.to_owned()).or_default();
         v.heard = Some(now);
         publisher.clone_into(&mut v.publisher);
@@ -410,7 +401,6 @@ impl Station {
                 }
                 v.battery = st(b, now);
             }
-            Item::Progress(_) => {}
             Item::Alarm(alarm) => {
                 let id = self.next_id;
                 self.next_id += 1;
@@ -429,6 +419,17 @@ impl Station {
             self.selected = Some(prefix.to_owned());
         }
         state_changed
+    }
+
+    /// Records the plan's progress from the FPMa feeding the VAS at `prefix`. Not an item of
+    /// the VAS: it neither makes a vehicle nor says the vehicle's link is up.
+    pub fn update_plan(&mut self, prefix: &str, progress: Progress, now: Instant) {
+        if let Some(v) = self.vehicles.get_mut(prefix) {
+            v.plan = Some(Stamped {
+                value: progress,
+                at: now,
+            });
+        }
     }
 
     /// The vehicles heard of (their VAS prefixes).
@@ -757,7 +758,7 @@ mod tests {
             })
         };
         // A progress before the vehicle is heard makes no vehicle.
-        st.update("rover1/vas", "fpma", Item::Progress(Progress::default()), t);
+        st.update_plan("rover1/vas", Progress::default(), t);
         assert!(st.vehicle_ids().is_empty());
         st.update("rover1/vas", "air", battery(80.0), t);
         let snap = serde_json::to_value(st.snapshot(t)).unwrap();
@@ -778,12 +779,7 @@ mod tests {
             eta_s: Some(95.0),
             ..Progress::default()
         };
-        st.update(
-            "rover1/vas",
-            "fpma-node",
-            Item::Progress(progress),
-            t + Duration::from_secs(10),
-        );
+        st.update_plan("rover1/vas", progress, t + Duration::from_secs(10));
         let snap = serde_json::to_value(st.snapshot(t + Duration::from_secs(10))).unwrap();
         let v = &snap["vehicles"][0];
         let left = v["battery"]["value"]["time_left_s"].as_f64().unwrap();
