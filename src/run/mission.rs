@@ -767,7 +767,7 @@ fn wind(text: &str) -> Result<(f64, f64), String> {
     Ok((speed, from))
 }
 
-pub(crate) fn home(text: &str) -> Result<[f64; 3], String> {
+fn home(text: &str) -> Result<[f64; 3], String> {
     let parsed: Option<Vec<f64>> = text.split(',').map(|x| x.trim().parse().ok()).collect();
     let Some([lat, lon, alt]) = parsed.and_then(|v| <[f64; 3]>::try_from(v).ok()) else {
         return Err(format!("home `{text}` is not LAT,LON,ALT"));
@@ -788,6 +788,18 @@ pub(crate) fn home(text: &str) -> Result<[f64; 3], String> {
     Ok([lat, lon, alt])
 }
 
+/// The home `(lat, lon)` of the `<mavsim>` among `services` (a node's), if it has one.
+pub(crate) fn sim_home(services: &[ServiceSpec]) -> Option<(f64, f64)> {
+    services.iter().find_map(|s| match s {
+        ServiceSpec::Mavsim(m) => m
+            .home
+            .as_deref()
+            .and_then(|h| home(h).ok())
+            .map(|[lat, lon, _]| (lat, lon)),
+        _ => None,
+    })
+}
+
 /// A vehicle's `<fence>` (the plan's form). A `maxDistance` is measured from the fence's own
 /// home, else from the node's simulator's home.
 fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::Fence, Fault> {
@@ -799,11 +811,7 @@ fn vehicle_fence(el: &Element, services: &[ServiceSpec]) -> Result<usal_types::F
     })?;
     let mut fence = pf.fence;
     if !pf.home_given && fence.max_distance_m.is_some() {
-        let home = services.iter().find_map(|s| match s {
-            ServiceSpec::Mavsim(m) => m.home.as_deref().and_then(|h| home(h).ok()),
-            _ => None,
-        });
-        fence.home = home.map(|[lat, lon, _]| (lat, lon)).ok_or_else(|| {
+        fence.home = sim_home(services).ok_or_else(|| {
             Fault::at(
                 el,
                 "maxDistance needs homeLat and homeLon, or a <mavsim home> before the <vas> in this node",

@@ -214,12 +214,7 @@ fn sim_home(mission: &Mission, vas: &str) -> Option<(f64, f64)> {
         .nodes
         .iter()
         .filter(|n| n.namespace.as_deref() == ns)
-        .flat_map(|n| &n.services)
-        .find_map(|s| match s {
-            ServiceSpec::Mavsim(m) => m.home.as_deref().and_then(|h| mission::home(h).ok()),
-            _ => None,
-        })
-        .map(|[lat, lon, _]| (lat, lon))
+        .find_map(|n| mission::sim_home(&n.services))
 }
 
 /// A warning naming the plan's waypoint farthest from `home` when it lies beyond `limit_m`:
