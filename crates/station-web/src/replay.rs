@@ -30,6 +30,29 @@ pub struct ReplayView {
     pub age_ms: u64,
     /// Heard lately: the replay is going on (or just ended).
     pub live: bool,
+    /// The banner both stations show while it is live.
+    pub text: String,
+}
+
+/// `REPLAY of mission M (flown T): 1:23 of 4:56 at 4x — ...`.
+fn banner(s: &ReplayStatus) -> String {
+    let mmss = |secs: f64| {
+        let secs = secs.max(0.0) as u64;
+        format!("{}:{:02}", secs / 60, secs % 60)
+    };
+    format!(
+        "REPLAY of mission {} (flown {}): {} of {} at {}× — {}",
+        s.mission,
+        s.flown_utc,
+        mmss(s.at_s),
+        mmss(s.duration_s),
+        s.speed,
+        if s.ended {
+            "ended: the values shown are the recording's last"
+        } else {
+            "a recorded flight, not a live one; commands go nowhere"
+        }
+    )
 }
 
 impl ReplayWatch {
@@ -52,10 +75,35 @@ impl ReplayWatch {
         latest.map(|(status, at)| {
             let age = now.saturating_duration_since(at);
             ReplayView {
+                text: banner(&status),
                 status,
                 age_ms: u64::try_from(age.as_millis()).unwrap_or(u64::MAX),
                 live: age <= FRESH,
             }
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_banner_says_which_flight_where_in_it_and_whether_it_ended() {
+        let mut s = ReplayStatus {
+            log: "logs/x.jsonl.gz".into(),
+            mission: "rover-demo".into(),
+            flown_utc: "2026-11-28T14:00:00Z".into(),
+            at_s: 83.4,
+            duration_s: 296.0,
+            speed: 4.0,
+            ended: false,
+        };
+        assert_eq!(
+            banner(&s),
+            "REPLAY of mission rover-demo (flown 2026-11-28T14:00:00Z): 1:23 of 4:56 at 4× — a recorded flight, not a live one; commands go nowhere"
+        );
+        s.ended = true;
+        assert!(banner(&s).ends_with("ended: the values shown are the recording's last"));
     }
 }
