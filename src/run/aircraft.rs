@@ -131,18 +131,12 @@ impl FlightRecord {
     pub fn summary(&self, plan: &AircraftPlan) -> AircraftSummary {
         // The en-route waypoints: the take-off's and the landing's altitudes are where the
         // climb ends and the ground, not heights to hold.
+        let first = usize::from(plan.takeoff_alt.is_some());
+        let end = plan.alts.len() - usize::from(plan.landing.is_some() && !plan.alts.is_empty());
         let en_route: Vec<(f64, f64)> = self
             .at_waypoints
             .iter()
-            .filter(|(i, _)| {
-                Some(*i)
-                    != plan
-                        .alts
-                        .len()
-                        .checked_sub(1)
-                        .filter(|_| plan.landing.is_some())
-                    && !(*i == 0 && plan.takeoff_alt.is_some())
-            })
+            .filter(|(i, _)| (first..end).contains(i))
             .filter_map(|(i, flown)| plan.alts.get(*i).map(|planned| (*planned, *flown)))
             .collect();
         let worst = en_route
