@@ -511,16 +511,18 @@ fn a_mission_flies_an_autopilot_it_did_not_start_in_both_mode_encodings() {
     build_services();
     for family in ["ardupilot", "px4"] {
         let sim_bin = Path::new(USAL).with_file_name("mavsim");
-        let mut sim = Command::new(&sim_bin)
-            .args(["--udp", "127.0.0.1:0", "--speedup", "20"])
-            .args(["--home", "41.27500,1.98700,0", "--autopilot", family])
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("mavsim starts");
+        let mut sim = KilledOnDrop(
+            Command::new(&sim_bin)
+                .args(["--udp", "127.0.0.1:0", "--speedup", "20"])
+                .args(["--home", "41.27500,1.98700,0", "--autopilot", family])
+                .stdin(Stdio::piped())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::null())
+                .spawn()
+                .expect("mavsim starts"),
+        );
         let mut first = String::new();
-        BufReader::new(sim.stdout.take().expect("piped"))
+        BufReader::new(sim.0.stdout.take().expect("piped"))
             .read_line(&mut first)
             .expect("mavsim says where it listens");
         let addr = first
@@ -547,8 +549,7 @@ fn a_mission_flies_an_autopilot_it_did_not_start_in_both_mode_encodings() {
         let summary = l.event(FLIGHT, "summary");
         let status = l.wait_exit(STEP);
         l.drain();
-        let _ = sim.kill();
-        let _ = sim.wait();
+        drop(sim);
         assert!(status.success(), "{family}: {status}\n{}", l.stderr_tail());
         check_summary(&summary["summary"]);
         // The launcher started no simulator: only the VAS, the FPMa and the stations.
@@ -558,6 +559,16 @@ fn a_mission_flies_an_autopilot_it_did_not_start_in_both_mode_encodings() {
             "{family}: {pids:?}"
         );
         assert_no_child_left(&pids);
+    }
+}
+
+/// A child the test started itself, killed when the test ends, a failed one included.
+struct KilledOnDrop(Child);
+
+impl Drop for KilledOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
     }
 }
 
