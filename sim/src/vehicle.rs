@@ -20,8 +20,8 @@ use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavDataStream, MavFrame, MavMessage, MavModeFlag, MavProtocolCapability,
     MavResult, MavSeverity, MavState, MavSysStatusSensor, MavType, ATTITUDE_DATA,
     AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, GLOBAL_POSITION_INT_DATA,
-    HEARTBEAT_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA, PARAM_VALUE_DATA,
-    STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
+    HEARTBEAT_DATA, HOME_POSITION_DATA, MISSION_CURRENT_DATA, MISSION_ITEM_REACHED_DATA,
+    PARAM_VALUE_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, VFR_HUD_DATA,
 };
 
 use crate::battery::{Battery, BatteryConfig};
@@ -58,6 +58,8 @@ const MISSION_CURRENT_ID: u32 = 42;
 const VFR_HUD_ID: u32 = 74;
 /// Answered to MAV_CMD_REQUEST_MESSAGE (and REQUEST_AUTOPILOT_CAPABILITIES), never streamed.
 const AUTOPILOT_VERSION_ID: u32 = 148;
+/// Answered to MAV_CMD_REQUEST_MESSAGE (and MAV_CMD_GET_HOME_POSITION), never streamed.
+const HOME_POSITION_ID: u32 = 242;
 
 /// Static configuration of a simulated vehicle.
 #[derive(Clone, Copy, Debug)]

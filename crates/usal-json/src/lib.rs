@@ -79,6 +79,7 @@ fn registry() -> Vec<Known> {
         Position,
         Attitude,
         Speeds,
+        Home,
         VehicleKind,
         FlightState,
         Vec<FlightState>,

@@ -45,6 +45,18 @@ pub struct Position {
     pub alt_rel: f64,
 }
 
+/// The autopilot's home (variable `home` of the VAS): where it returns to and what relative
+/// altitudes are measured from, as its HOME_POSITION says (set again at arming).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Home {
+    /// Latitude, degrees (WGS-84).
+    pub lat: f64,
+    /// Longitude, degrees (WGS-84).
+    pub lon: f64,
+    /// Altitude above mean sea level, metres.
+    pub alt: f64,
+}
+
 /// What a waypoint's altitude is measured from (a plan's `altRef`), which decides the
 /// MAVLink frame of its mission item.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]

@@ -9,7 +9,7 @@ mod common;
 use std::time::Duration;
 
 use common::*;
-use usal_types::{Failsafe, FailsafeKind, Fence, FenceAction, FlightState, Waypoint};
+use usal_types::{Failsafe, FailsafeKind, Fence, FenceAction, FlightState, Home, Waypoint};
 
 /// A point `north`, `east` metres from home.
 fn at(north: f64, east: f64) -> (f64, f64) {
@@ -203,6 +203,31 @@ async fn vehicle_fence_on(profile: &str) {
         |r| r.iter().any(|r| r["vertices"] == 4),
     )
     .await;
+    // The stations' map: the autopilot's home (its HOME_POSITION) and the fence in force.
+    let home = g.svc.subscribe_variable::<Home>("rover1/vas/home").unwrap();
+    let home = tokio::time::timeout(STEP, home.recv())
+        .await
+        .expect("no home published")
+        .unwrap()
+        .value;
+    assert!(
+        (home.lat - HOME.0).abs() < 1e-6 && (home.lon - HOME.1).abs() < 1e-6,
+        "home {home:?}, the simulator's is {HOME:?}"
+    );
+    let in_force = g
+        .svc
+        .subscribe_variable::<Fence>("rover1/vas/fence")
+        .unwrap();
+    let in_force = tokio::time::timeout(STEP, in_force.recv())
+        .await
+        .expect("no fence published")
+        .unwrap()
+        .value;
+    assert_eq!(
+        (in_force.max_distance_m, in_force.polygon.len()),
+        (Some(200.0), 4),
+        "{in_force:?}"
+    );
     if profile == "px4" {
         // PX4 keeps the circle as an inclusion item of the transfer, around the fence's home.
         assert!(

@@ -484,6 +484,10 @@ impl Vehicle {
                 }
                 self.change_mode(auto, out)
             }
+            MavCmd::MAV_CMD_GET_HOME_POSITION => {
+                out.extend(self.telemetry(HOME_POSITION_ID));
+                MavResult::MAV_RESULT_ACCEPTED
+            }
             MavCmd::MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES => {
                 out.extend(self.telemetry(AUTOPILOT_VERSION_ID));
                 MavResult::MAV_RESULT_ACCEPTED

@@ -154,6 +154,13 @@ impl Vehicle {
                     ..SYS_STATUS_DATA::default()
                 })
             }
+            HOME_POSITION_ID => MavMessage::HOME_POSITION(HOME_POSITION_DATA {
+                latitude: (self.cfg.home.lat_deg * 1e7).round() as i32,
+                longitude: (self.cfg.home.lon_deg * 1e7).round() as i32,
+                altitude: (self.cfg.home.alt_m * 1000.0).round() as i32,
+                q: [1.0, 0.0, 0.0, 0.0],
+                ..HOME_POSITION_DATA::default()
+            }),
             AUTOPILOT_VERSION_ID => MavMessage::AUTOPILOT_VERSION(AUTOPILOT_VERSION_DATA {
                 capabilities: MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
                     | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_INT

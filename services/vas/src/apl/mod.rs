@@ -104,6 +104,8 @@ pub fn family_modes(family: AutopilotFamily) -> &'static dyn ApFamily {
 pub enum ApEvent {
     /// Position telemetry.
     Position(Position),
+    /// The autopilot's home (HOME_POSITION), at connection and after each arming.
+    Home(usal_types::Home),
     /// Attitude telemetry.
     Attitude(Attitude),
     /// Speeds telemetry.

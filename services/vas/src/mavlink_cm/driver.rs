@@ -260,6 +260,11 @@ impl Inner {
                 heading_deg: (p.hdg != u16::MAX).then(|| f32::from(p.hdg) / 100.0),
                 time_boot_ms: p.time_boot_ms,
             })),
+            MavMessage::HOME_POSITION(h) => self.emit(MavEvent::Home(usal_types::Home {
+                lat: f64::from(h.latitude) / 1e7,
+                lon: f64::from(h.longitude) / 1e7,
+                alt: f64::from(h.altitude) / 1000.0,
+            })),
             MavMessage::ATTITUDE(a) => self.emit(MavEvent::Attitude(Attitude {
                 roll: a.roll,
                 pitch: a.pitch,

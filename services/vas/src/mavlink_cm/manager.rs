@@ -234,6 +234,19 @@ impl MavlinkManager {
         self.inner.events_tx.subscribe()
     }
 
+    /// Asks for HOME_POSITION (MAV_CMD_REQUEST_MESSAGE); the answer arrives as
+    /// [`MavEvent::Home`].
+    ///
+    /// # Errors
+    /// Not connected, or the autopilot refused or did not answer the request.
+    pub async fn request_home(&self) -> Result<(), CommandError> {
+        self.command_long(
+            MavCmd::MAV_CMD_REQUEST_MESSAGE,
+            [242.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        )
+        .await
+    }
+
     /// Asks for AUTOPILOT_VERSION (MAV_CMD_REQUEST_MESSAGE, else the older
     /// MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES) and waits up to one request timeout for its
     /// capabilities ([`VehicleState::capabilities`]).

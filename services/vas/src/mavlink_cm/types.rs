@@ -132,6 +132,9 @@ pub enum MavEvent {
     },
     /// GLOBAL_POSITION_INT.
     Position(Position),
+    /// HOME_POSITION: the autopilot's home (set at arming, asked for with
+    /// [`super::MavlinkManager::request_home`]).
+    Home(usal_types::Home),
     /// ATTITUDE.
     Attitude(Attitude),
     /// VFR_HUD.

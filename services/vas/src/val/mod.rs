@@ -17,7 +17,7 @@ use async_trait::async_trait;
 use marea::{Event, IService, Service, ServiceError, Variable};
 use tokio::sync::broadcast;
 use usal_types::{
-    Alarm, AllowedChanges, Attitude, AutopilotStatus, Battery, CommandReply, FlightState,
+    Alarm, AllowedChanges, Attitude, AutopilotStatus, Battery, CommandReply, FlightState, Home,
     ManualCommand, MissionChanged, MissionTime, Position, QueueStatus, Severity, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand, Waypoint, WaypointReached,
 };
@@ -94,6 +94,8 @@ struct ValState {
 
 struct Items {
     position: Variable<Position>,
+    home: Variable<Home>,
+    fence: Variable<Fence>,
     attitude: Variable<Attitude>,
     speeds: Variable<Speeds>,
     battery: Variable<Battery>,
@@ -503,6 +505,7 @@ impl Core {
             None => vehicle.cloned(),
         };
         *lock(&self.fence) = f.clone();
+        self.publish_fence();
         match self.upload_fence().await {
             Ok(()) => Ok(match (&f, vehicle) {
                 (Some(_), Some(_)) => "fence in force (the vehicle's, narrowed by the plan's where it sets one) uploaded to the autopilot".to_owned(),
@@ -511,6 +514,12 @@ impl Core {
             }),
             Err(text) => Ok(text),
         }
+    }
+
+    /// Publishes the fence in force for the stations' maps (an empty fence: none).
+    fn publish_fence(&self) {
+        let f = lock(&self.fence).clone().unwrap_or_default();
+        let _ = self.items.fence.set(&f);
     }
 
     async fn publish_queue(&self) {
@@ -522,6 +531,7 @@ impl Core {
     async fn on_ap(&self, ev: ApEvent) {
         match ev {
             ApEvent::Position(p) => drop(self.items.position.set(&p)),
+            ApEvent::Home(h) => drop(self.items.home.set(&h)),
             ApEvent::Attitude(a) => drop(self.items.attitude.set(&a)),
             ApEvent::Speeds(s) => drop(self.items.speeds.set(&s)),
             ApEvent::Battery(b) => drop(self.items.battery.set(&b)),
@@ -735,6 +745,8 @@ impl IService for Vas {
     async fn start(&mut self, ctx: Service) -> Result<(), ServiceError> {
         let items = Items {
             position: ctx.publish_variable("position")?,
+            home: ctx.publish_variable("home")?,
+            fence: ctx.publish_variable("fence")?,
             attitude: ctx.publish_variable("attitude")?,
             speeds: ctx.publish_variable("speeds")?,
             battery: ctx.publish_variable("battery")?,
@@ -781,6 +793,7 @@ impl IService for Vas {
         });
         let _ = core.items.flight_state.set(&FlightState::ConfigureCheck);
         let _ = core.items.queue.set(&QueueStatus::default());
+        core.publish_fence();
         core.publish_allowed();
 
         let c = core.clone();

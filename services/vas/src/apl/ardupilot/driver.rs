@@ -6,7 +6,7 @@ use super::*;
 
 /// Reads the parameters and sets the telemetry rates (`AP_Parameters`).
 pub(super) async fn configure(
-    mgr: &MavlinkManager,
+    mgr: &Arc<MavlinkManager>,
     cfg: &ArduPilotConfig,
 ) -> Result<(), AutopilotError> {
     match mgr.params_list().await {
@@ -30,7 +30,19 @@ pub(super) async fn configure(
         Err(e) => tracing::warn!("asking for AUTOPILOT_VERSION: {e}"),
     }
     probe_partial(mgr).await;
+    request_home(mgr);
     Ok(())
+}
+
+/// Asks for the autopilot's home beside the caller (the answer is a [`MavEvent::Home`]); an
+/// autopilot that does not tell is logged, not an error: the stations then draw no home.
+pub(super) fn request_home(mgr: &Arc<MavlinkManager>) {
+    let mgr = mgr.clone();
+    tokio::spawn(async move {
+        if let Err(e) = mgr.request_home().await {
+            tracing::info!("asking for HOME_POSITION: {e}");
+        }
+    });
 }
 
 /// Finds out on the ground, once per connection, whether the autopilot has partial mission
@@ -989,6 +1001,10 @@ impl Driver {
                 if matches!(ev, MavEvent::ArmedChanged { armed: false }) && self.was_flying() {
                     self.emit(ApEvent::Landed);
                 }
+                // Arming sets the home again (ArduPilot, PX4).
+                if matches!(ev, MavEvent::ArmedChanged { armed: true }) {
+                    request_home(&self.mgr);
+                }
             }
             MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
             MavEvent::StatusText {
@@ -1019,6 +1035,10 @@ impl Driver {
                     speed,
                     alt_rel: f64::from(p.alt_rel_m),
                 }));
+            }
+            MavEvent::Home(h) => {
+                self.home = Some((h.lat, h.lon));
+                self.emit(ApEvent::Home(h));
             }
             MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(Attitude {
                 roll: a.roll.to_degrees(),
