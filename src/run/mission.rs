@@ -89,13 +89,15 @@ pub enum ServiceSpec {
     Fmo {
         /// HTTP address (port 0: any free port).
         listen: String,
+        /// Map tiles for its map (`--tiles`): `osm` (the default), `none`, an MBTiles file or
+        /// a `{z}/{x}/{y}` template, local paths resolved against the mission file.
+        tiles: Option<String>,
     },
     /// The Flight Plan Monitor web station (`fpmo`).
     Fpmo {
         /// HTTP address (port 0: any free port).
         listen: String,
-        /// Map tiles for its map (`fpmo --tiles`): an MBTiles file or a `{z}/{x}/{y}` template,
-        /// local paths resolved against the mission file.
+        /// Map tiles for its map, as the FMo's.
         tiles: Option<String>,
     },
     /// The fleet mission layer (`fleet`): runs a fleet plan over the vehicles.
@@ -985,15 +987,13 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 ServiceSpec::Station(spec)
             }
             kind @ ("fmo" | "fpmo") => {
-                let known: &[&str] = if kind == "fpmo" {
-                    &["listen", "tiles"]
-                } else {
-                    &["listen"]
-                };
-                let mut a = Attrs::new(s, known);
+                let mut a = Attrs::new(s, &["listen", "tiles"]);
                 let listen = a.opt("listen").unwrap_or_else(|| "127.0.0.1:0".into());
-                let tiles = (kind == "fpmo").then(|| a.opt("tiles")).flatten().map(|t| {
-                    if t.starts_with("http://") || t.starts_with("https://") {
+                let tiles = a.opt("tiles").map(|t| {
+                    // The stations' named choices (OpenStreetMap's tiles, or none).
+                    let named = ["osm", "none"];
+                    if t.starts_with("http://") || t.starts_with("https://") || named.contains(&t.as_str())
+                    {
                         t
                     } else {
                         base.join(t).display().to_string()
@@ -1007,7 +1007,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     ));
                 }
                 if kind == "fmo" {
-                    ServiceSpec::Fmo { listen }
+                    ServiceSpec::Fmo { listen, tiles }
                 } else {
                     ServiceSpec::Fpmo { listen, tiles }
                 }
@@ -1622,8 +1622,11 @@ mod tests {
             panic!("no fpmo with tiles");
         };
         assert_eq!(t, "https://tiles.example/{z}/{x}/{y}.png");
-        let e = with(r#"<fmo tiles="a.mbtiles"/>"#).unwrap_err();
-        assert!(e.contains("tiles"), "{e}");
+        let m = with(r#"<fmo tiles="none"/>"#).unwrap();
+        let Some(ServiceSpec::Fmo { tiles: Some(t), .. }) = m.nodes[1].services.first() else {
+            panic!("no fmo with tiles");
+        };
+        assert_eq!(t, "none");
     }
 
     #[test]

@@ -739,14 +739,14 @@ async fn start_services(
                     common(&mut a);
                 }
                 // The web stations print `FMO_URL=` / `FPMO_URL=` first; the merged log shows it.
-                ServiceSpec::Fmo { listen } | ServiceSpec::Fpmo { listen, .. } => {
+                ServiceSpec::Fmo { listen, tiles } | ServiceSpec::Fpmo { listen, tiles } => {
                     a.extend([
                         "--listen".into(),
                         listen.clone(),
                         "--node".into(),
                         format!("{}-{}", node.name, svc.kind()),
                     ]);
-                    if let ServiceSpec::Fpmo { tiles: Some(t), .. } = svc {
+                    if let Some(t) = tiles {
                         a.extend(["--tiles".into(), t.clone()]);
                     }
                     common(&mut a);

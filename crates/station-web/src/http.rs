@@ -7,6 +7,9 @@
 //! | GET | `/` | [`Station::PAGE`], `Cache-Control: no-store` |
 //! | GET | `/api/state` | [`Station::snapshot_json`], `application/json` |
 //! | GET | `/api/events` | SSE: `state` events carrying snapshots, at least every [`SNAPSHOT_PERIOD`] |
+//! | GET | `/map.js` | the map script every station's page draws with ([`MAP_SCRIPT`]) |
+//! | GET | `/api/map` | `{tiles: null \| {url, minzoom, maxzoom, bounds, attribution}}` ([`Station::tiles`]) |
+//! | GET | `/api/tiles/{z}/{x}/{y}` | a tile from the station's MBTiles file or tile directory / 404 |
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -21,6 +24,7 @@ use axum::{Json, Router};
 use futures_util::stream::Stream;
 use tokio_util::sync::CancellationToken;
 
+use crate::tiles::{Tiles, TILE_ROUTE};
 use crate::Live;
 
 /// Longest interval between two snapshots on the live channel, so the page can tell a silent
@@ -37,7 +41,15 @@ pub trait Station: Send + Sync + 'static {
     fn snapshot_json(&self) -> String;
     /// Its change notification (wakes the live channels) and cancellation (ends them).
     fn live(&self) -> &Live;
+    /// The map tiles its page draws under the map (none: the page's grid alone).
+    fn tiles(&self) -> Option<Arc<Tiles>> {
+        None
+    }
 }
+
+/// The map both stations' pages draw with (projection, tiles or the grid, fence, home,
+/// numbered waypoints, vehicles, tracks, legend, scale), served at `/map.js`.
+pub const MAP_SCRIPT: &str = include_str!("map.js");
 
 /// The routes every station serves (`/`, `/api/state`, `/api/events`); the station adds its own
 /// and its state.
@@ -46,6 +58,57 @@ pub fn routes<S: Station>() -> Router<Arc<S>> {
         .route("/", get(page::<S>))
         .route("/api/state", get(state::<S>))
         .route("/api/events", get(events::<S>))
+        .route("/map.js", get(map_script))
+        .route("/api/map", get(map_config::<S>))
+        .route(TILE_ROUTE, get(tile::<S>))
+}
+
+async fn map_script() -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, "text/javascript; charset=utf-8"),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        MAP_SCRIPT,
+    )
+        .into_response()
+}
+
+async fn map_config<S: Station>(State(shared): State<Arc<S>>) -> Response {
+    let tiles = shared.tiles().map(|t| t.view());
+    Json(serde_json::json!({ "tiles": tiles })).into_response()
+}
+
+async fn tile<S: Station>(
+    State(shared): State<Arc<S>>,
+    axum::extract::Path((z, x, y)): axum::extract::Path<(u32, u32, String)>,
+) -> Response {
+    let Some(tiles) = shared.tiles() else {
+        return error(StatusCode::NOT_FOUND, "no map tiles");
+    };
+    // `{y}` may carry the extension a tile URL template often has (`3.png`).
+    let Ok(y) = y.split('.').next().unwrap_or_default().parse::<u32>() else {
+        return error(StatusCode::BAD_REQUEST, "tile row is not a number");
+    };
+    match tokio::task::spawn_blocking(move || tiles.tile(z, x, y)).await {
+        Ok(Ok(Some((bytes, ty)))) => (
+            [
+                (header::CONTENT_TYPE, ty),
+                (header::CACHE_CONTROL, "max-age=3600"),
+            ],
+            bytes,
+        )
+            .into_response(),
+        Ok(Ok(None)) => error(StatusCode::NOT_FOUND, format!("no tile {z}/{x}/{y}")),
+        Ok(Err(e)) => {
+            tracing::warn!("{e}");
+            error(StatusCode::INTERNAL_SERVER_ERROR, e)
+        }
+        Err(e) => error(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            format!("tile reader: {e}"),
+        ),
+    }
 }
 
 async fn page<S: Station>() -> Response {

@@ -14,6 +14,9 @@
 //!   every `/api/*` call, the `Host` allowlist and the `Origin` check.
 //! - [`commands`]: the commands a station has sent, pending until the vehicle answers
 //!   ([`CommandLog`]), and how the page sees them.
+//! - [`tiles`]: the map tiles under every station's map ([`tiles::Tiles`]; OpenStreetMap's by
+//!   default), and the map script both pages draw with (`GET /map.js`, `GET /api/map`,
+//!   `GET /api/tiles/{z}/{x}/{y}`).
 //! - [`fleet`]: the fleet view (`/fleet`, `/api/fleet`): every vehicle of a fleet mission on
 //!   one map with its plan, state and detections, from the fleet layer's status.
 //!
@@ -40,6 +43,7 @@ pub mod http;
 pub mod live;
 pub mod replay;
 pub mod startup;
+pub mod tiles;
 
 pub use access::Access;
 pub use commands::{CommandLog, CommandStatus, CommandView};

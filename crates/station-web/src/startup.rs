@@ -32,6 +32,16 @@ pub struct StationArgs {
     /// Time limit of each call to a vehicle's service (VAS, FPMa), milliseconds.
     #[arg(long, default_value_t = 5000)]
     pub call_timeout_ms: u64,
+    /// Map tiles under the map: `osm` (OpenStreetMap's tile server, the default), `none` (a
+    /// metric grid alone), an http(s):// URL template `https://tiles.example/{z}/{x}/{y}.png`
+    /// the browser loads, a local MBTiles file or a local path template `/maps/{z}/{x}/{y}.png`
+    /// (served by the station, so the page works offline). Where tiles cannot be loaded the
+    /// page draws the grid and says so.
+    #[arg(long, default_value = crate::tiles::CHOICE_OSM)]
+    pub tiles: String,
+    /// The credit shown under the map tiles (OpenStreetMap's carry theirs).
+    #[arg(long)]
+    pub tiles_attribution: Option<String>,
 }
 
 impl StationArgs {
@@ -46,6 +56,8 @@ impl StationArgs {
             listen,
             stale_after: Duration::from_millis(self.stale_ms.max(100)),
             call_timeout: Duration::from_millis(self.call_timeout_ms.max(100)),
+            tiles: self.tiles,
+            tiles_attribution: self.tiles_attribution,
         }
     }
 }
@@ -67,6 +79,22 @@ pub struct StationConfig {
     pub stale_after: Duration,
     /// Time limit of each call to a vehicle's service.
     pub call_timeout: Duration,
+    /// The map tiles, as `--tiles` names them ([`crate::tiles::Tiles::choose`]).
+    pub tiles: String,
+    /// The credit shown under the tiles, when given.
+    pub tiles_attribution: Option<String>,
+}
+
+impl StationConfig {
+    /// The map tiles this configuration names (none: the page's grid alone).
+    ///
+    /// # Errors
+    /// A template missing a placeholder, an MBTiles file that cannot be used.
+    pub fn open_tiles(&self) -> anyhow::Result<Option<Arc<crate::tiles::Tiles>>> {
+        let t = crate::tiles::Tiles::choose(&self.tiles, self.tiles_attribution.as_deref())
+            .with_context(|| format!("--tiles {}", self.tiles))?;
+        Ok(t.map(Arc::new))
+    }
 }
 
 impl StationConfig {
@@ -80,6 +108,8 @@ impl StationConfig {
             listen: SocketAddr::from(([127, 0, 0, 1], port)),
             stale_after: Duration::from_secs(2),
             call_timeout: Duration::from_secs(5),
+            tiles: crate::tiles::CHOICE_OSM.into(),
+            tiles_attribution: None,
         }
     }
 }

@@ -32,9 +32,9 @@ use station_web::{call_error, Live, StationConfig};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, Battery, CommandReply, FlightState, ManualCommand,
-    MissionTime, Position, Speeds, StateChangeReply, StateChangeRequest, StateChanged,
-    VehicleCommand,
+    Alarm, Attitude, AutopilotStatus, Battery, CommandReply, Fence, FlightState, Home,
+    ManualCommand, MissionTime, Position, Speeds, StateChangeReply, StateChangeRequest,
+    StateChanged, VehicleCommand,
 };
 
 use crate::model::{Item, ManualTick, Station};
@@ -84,6 +84,8 @@ pub struct Shared {
     call_timeout: Duration,
     /// A flight log being played back (`usal replay`), shown as a REPLAY.
     pub replay: station_web::replay::ReplayWatch,
+    /// The map's tiles, if any.
+    pub tiles: Option<Arc<station_web::tiles::Tiles>>,
 }
 
 impl Shared {
@@ -219,9 +221,9 @@ fn follow<T: marea::Payload>(
     });
 }
 
-/// Follows the plan's progress of each vehicle's FPMa (`NS/fpma/progress` beside `NS/vas`),
-/// for its ETA.
-fn follow_progress(shared: &Arc<Shared>, svc: &Service, vas: &str) -> anyhow::Result<()> {
+/// Follows what the map and the instruments show beside each VAS (`NS/vas`): its FPMa's
+/// progress (the ETA) and plan (the route drawn), and its nodes' link health (`NS/link/*/stats`).
+fn follow_vehicle_extras(shared: &Arc<Shared>, svc: &Service, vas: &str) -> anyhow::Result<()> {
     let Some(ns_pattern) = vas.strip_suffix("vas") else {
         return Ok(());
     };
@@ -234,6 +236,26 @@ fn follow_progress(shared: &Arc<Shared>, svc: &Service, vas: &str) -> anyhow::Re
         };
         let vehicle = format!("{ns}vas");
         me.station().update_plan(&vehicle, s.value, Instant::now());
+    });
+    let sub =
+        svc.subscribe_variable::<flightplan::api::PlanGeometry>(&format!("{ns_pattern}fpma/plan"))?;
+    let me = shared.clone();
+    shared.live.follow(sub, "plan", move |s| {
+        let Some(ns) = s.name.strip_suffix("fpma/plan") else {
+            return;
+        };
+        me.station().update_route(&format!("{ns}vas"), &s.value);
+        me.live.changed.notify_waiters();
+    });
+    let sub = svc.subscribe_variable::<marea::LinkHealth>(&format!("{ns_pattern}link/*/stats"))?;
+    let me = shared.clone();
+    shared.live.follow(sub, "link health", move |s| {
+        // `NS/link/NAME/stats` → the vehicle `NS/vas`.
+        let Some((ns, _)) = s.name.rsplit_once("link/") else {
+            return;
+        };
+        me.station()
+            .update_link(&format!("{ns}vas"), s.value, Instant::now());
     });
     Ok(())
 }
@@ -294,6 +316,7 @@ async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
 /// # Errors
 /// The address cannot be bound, bad network file or pattern, a node that cannot open.
 pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
+    let tiles = config.station.open_tiles()?;
     let (listener, addr) = station_web::bind(config.station.listen, "FMO_URL").await?;
     let node = station_web::open_node(&config.station).await?;
     let svc = node.service("fmo").context("declaring the fmo service")?;
@@ -306,6 +329,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         allowed: Mutex::new(HashMap::new()),
         command: Mutex::new(HashMap::new()),
         replay: station_web::replay::ReplayWatch::default(),
+        tiles,
         call_timeout: config.station.call_timeout,
         live: Live::new(cancel.clone()),
     });
@@ -365,7 +389,19 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         "battery",
         Item::Battery,
     );
-    follow_progress(&shared, &svc, vas)?;
+    follow(
+        &shared,
+        svc.subscribe_variable::<Home>(&pat("home"))?,
+        "home",
+        Item::Home,
+    );
+    follow(
+        &shared,
+        svc.subscribe_variable::<Fence>(&pat("fence"))?,
+        "fence",
+        Item::Fence,
+    );
+    follow_vehicle_extras(&shared, &svc, vas)?;
     let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
     // The VAS knows its ground station is there by this heartbeat (lost ground link, `vas`
     // `linkLossAction`); the FMo is the pilot's station.

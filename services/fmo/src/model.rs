@@ -13,8 +13,8 @@ use serde::Serialize;
 pub use station_web::CommandStatus;
 use station_web::{ms, CommandLog, CommandView};
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, Battery, FlightState, ManualCommand, ManualControl,
-    MissionTime, Position, Severity, Speeds, StateChanged,
+    Alarm, Attitude, AutopilotStatus, Battery, Fence, FlightState, Home, ManualCommand,
+    ManualControl, MissionTime, Position, Severity, Speeds, StateChanged,
 };
 
 /// Alarms kept per vehicle (oldest dropped first).
@@ -51,6 +51,24 @@ struct AlarmEntry {
     acked: bool,
 }
 
+/// A new track point when the vehicle moved at least this far, metres.
+const TRACK_STEP_M: f64 = 2.0;
+/// Track points kept per vehicle (oldest dropped first).
+const MAX_TRACK: usize = 600;
+
+/// One nominal waypoint of the plan the vehicle's FPMa flies, as the map draws it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RoutePoint {
+    /// Latitude, degrees.
+    pub lat: f64,
+    /// Longitude, degrees.
+    pub lon: f64,
+    /// Its leg's id.
+    pub leg: String,
+    /// Part of a hold or loop that waits (drawn once).
+    pub waits: bool,
+}
+
 /// How far back the battery's trend is read to estimate the time left.
 const BATTERY_TREND: Duration = Duration::from_secs(60);
 
@@ -62,7 +80,17 @@ struct Vehicle {
     battery_trend: VecDeque<(Instant, f32)>,
     /// The plan's progress, from the vehicle's FPMa.
     plan: Option<Stamped<Progress>>,
+    /// The nominal waypoints of the plan its FPMa flies (empty: none loaded).
+    route: Vec<RoutePoint>,
     position: Option<Stamped<Position>>,
+    /// Where it has been: a point every [`TRACK_STEP_M`], the last [`MAX_TRACK`].
+    track: VecDeque<(f64, f64)>,
+    /// The autopilot's home.
+    home: Option<Stamped<Home>>,
+    /// The fence in force on the vehicle (an empty fence: none).
+    fence: Option<Stamped<Fence>>,
+    /// The health of the vehicle's links, by link name, as its nodes publish it.
+    links: BTreeMap<String, Stamped<marea::LinkHealth>>,
     attitude: Option<Stamped<Attitude>>,
     speeds: Option<Stamped<Speeds>>,
     autopilot: Option<Stamped<AutopilotStatus>>,
@@ -168,6 +196,10 @@ pub enum Item {
     Alarm(Alarm),
     /// `battery`.
     Battery(Battery),
+    /// `home`.
+    Home(Home),
+    /// `fence`.
+    Fence(Fence),
 }
 
 /// What the manual-control loop does on one tick.
@@ -222,6 +254,15 @@ struct VehicleView {
     unacked_alarms: usize,
     battery: Option<Aged<BatteryView>>,
     plan: Option<Aged<PlanView>>,
+    /// The plan's nominal waypoints, in flying order.
+    route: Vec<RoutePoint>,
+    /// Where it has been, `[lat, lon]`, oldest first.
+    track: Vec<(f64, f64)>,
+    home: Option<Aged<Home>>,
+    /// The fence in force, when it has one.
+    fence: Option<Fence>,
+    /// Its links as its nodes see them.
+    links: Vec<LinkView>,
     /// The variables of its other services, by name.
     services: Vec<OtherItemView>,
 }
@@ -256,6 +297,20 @@ fn time_left(trend: &VecDeque<(Instant, f32)>) -> Option<f64> {
     let span = t1.saturating_duration_since(t0).as_secs_f64();
     let fell = f64::from(r0 - r1);
     (span >= 5.0 && fell > 0.0).then(|| f64::from(r1) * span / fell)
+}
+
+#[derive(Serialize)]
+struct LinkView {
+    link: String,
+    peers: u32,
+    /// Smoothed round trip, ms (0: not measured).
+    rtt_ms: f32,
+    /// Frames received corrupt, fraction, over the last period.
+    loss: f32,
+    /// Safe messages sent again, fraction, over the last period.
+    retransmit_ratio: f32,
+    age_ms: u64,
+    stale: bool,
 }
 
 #[derive(Serialize)]
@@ -371,7 +426,23 @@ impl Station {
         }
         let mut state_changed = false;
         match item {
-            Item::Position(p) => v.position = st(p, now),
+            Item::Position(p) => {
+                let far_enough = v.track.back().is_none_or(|&(lat, lon)| {
+                    flightplan::geo::distance(
+                        flightplan::geo::GeoPoint::new(lat, lon),
+                        flightplan::geo::GeoPoint::new(p.lat, p.lon),
+                    ) >= TRACK_STEP_M
+                });
+                if far_enough && p.lat.is_finite() && p.lon.is_finite() {
+                    v.track.push_back((p.lat, p.lon));
+                    while v.track.len() > MAX_TRACK {
+                        v.track.pop_front();
+                    }
+                }
+                v.position = st(p, now);
+            }
+            Item::Home(h) => v.home = st(h, now),
+            Item::Fence(f) => v.fence = st(f, now),
             Item::Attitude(a) => v.attitude = st(a, now),
             Item::Speeds(s) => v.speeds = st(s, now),
             Item::Autopilot(a) => v.autopilot = st(a, now),
@@ -429,6 +500,40 @@ impl Station {
                 value: progress,
                 at: now,
             });
+        }
+    }
+
+    /// Records the plan the FPMa feeding the VAS at `prefix` flies, for the map. Ignored for
+    /// a vehicle not heard of.
+    pub fn update_route(&mut self, prefix: &str, g: &flightplan::api::PlanGeometry) {
+        if let Some(v) = self.vehicles.get_mut(prefix) {
+            v.route = g
+                .points
+                .iter()
+                .map(|p| {
+                    let (lat, lon) = g.lat_lon(p);
+                    RoutePoint {
+                        lat,
+                        lon,
+                        leg: g.leg_of(p).map(|l| l.id.clone()).unwrap_or_default(),
+                        waits: p.waits,
+                    }
+                })
+                .collect();
+        }
+    }
+
+    /// Records the health of a link of the vehicle at `prefix` (published by one of its
+    /// nodes). Ignored for a vehicle not heard of.
+    pub fn update_link(&mut self, prefix: &str, health: marea::LinkHealth, now: Instant) {
+        if let Some(v) = self.vehicles.get_mut(prefix) {
+            v.links.insert(
+                health.link.clone(),
+                Stamped {
+                    value: health,
+                    at: now,
+                },
+            );
         }
     }
 
@@ -688,6 +793,31 @@ impl Station {
                             stale,
                         }
                     }),
+                    route: v.route.clone(),
+                    track: v.track.iter().copied().collect(),
+                    home: view!(v.home, false),
+                    fence: v
+                        .fence
+                        .as_ref()
+                        .filter(|f| !f.value.is_empty())
+                        .map(|f| f.value.clone()),
+                    links: v
+                        .links
+                        .values()
+                        .map(|s| {
+                            // Published every second by each node.
+                            let (age_ms, stale) = aged(s.at, true, link_ok);
+                            LinkView {
+                                link: s.value.link.clone(),
+                                peers: s.value.peers,
+                                rtt_ms: s.value.rtt_ms,
+                                loss: s.value.loss,
+                                retransmit_ratio: s.value.retransmit_ratio,
+                                age_ms,
+                                stale,
+                            }
+                        })
+                        .collect(),
                     services: v
                         .others
                         .iter()

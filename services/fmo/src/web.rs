@@ -41,6 +41,10 @@ impl station_web::Station for Shared {
     fn live(&self) -> &station_web::Live {
         &self.live
     }
+
+    fn tiles(&self) -> Option<Arc<station_web::tiles::Tiles>> {
+        self.tiles.clone()
+    }
 }
 
 /// The FMo's routes.

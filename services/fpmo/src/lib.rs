@@ -56,9 +56,6 @@ pub struct FpmoConfig {
     pub vehicle: VehicleParams,
     /// A georeferenced image drawn under the map.
     pub background: Option<Background>,
-    /// Map tiles drawn under the map (and the image): an `.mbtiles` file or a `{z}/{x}/{y}`
-    /// template, as [`background::Tiles::open`] takes it.
-    pub tiles: Option<String>,
 }
 
 impl Default for FpmoConfig {
@@ -68,7 +65,6 @@ impl Default for FpmoConfig {
             vehicles: "*".into(),
             vehicle: VehicleParams::rover(),
             background: None,
-            tiles: None,
         }
     }
 }
@@ -91,7 +87,7 @@ pub struct Shared {
     /// The map's background image, if any.
     pub background: Option<Background>,
     /// The map's tiles, if any.
-    pub tiles: Option<Arc<background::Tiles>>,
+    pub tiles: Option<Arc<station_web::tiles::Tiles>>,
     /// A flight log being played back (`usal replay`), shown as a REPLAY.
     pub replay: station_web::replay::ReplayWatch,
 }
@@ -491,10 +487,7 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
             path.display()
         );
     }
-    let tiles = match &config.tiles {
-        Some(spec) => Some(Arc::new(background::Tiles::open(spec)?)),
-        None => None,
-    };
+    let tiles = config.station.open_tiles()?;
     let (listener, addr) = station_web::bind(config.station.listen, "FPMO_URL").await?;
     let node = station_web::open_node(&config.station).await?;
     let svc = node.service("fpmo").context("declaring the fpmo service")?;
@@ -558,6 +551,21 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
         &shared,
         svc.subscribe_variable::<FlightState>(&format!("{ns}/vas/flight_state"))?,
         |v, s| v.flight_state = Some(Stamped::now(s)),
+    );
+    spawn_vas_state_sub(
+        &shared,
+        svc.subscribe_variable::<usal_types::Battery>(&format!("{ns}/vas/battery"))?,
+        |v, b| v.battery = Some(Stamped::now(b)),
+    );
+    spawn_vas_state_sub(
+        &shared,
+        svc.subscribe_variable::<usal_types::Home>(&format!("{ns}/vas/home"))?,
+        |v, h| v.home = Some(h),
+    );
+    spawn_vas_state_sub(
+        &shared,
+        svc.subscribe_variable::<usal_types::Fence>(&format!("{ns}/vas/fence"))?,
+        |v, f| v.fence = Some(f),
     );
     spawn_vas_state_sub(
         &shared,

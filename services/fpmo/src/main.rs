@@ -33,11 +33,6 @@ struct Cli {
     /// The background image's edges, degrees: NORTH,WEST,SOUTH,EAST.
     #[arg(long, requires = "background", allow_hyphen_values = true)]
     background_bounds: Option<String>,
-    /// Map tiles drawn under the map: a local MBTiles file (raster; served by the station, so
-    /// the page works offline), a local path template `/maps/{z}/{x}/{y}.png` (served too), or
-    /// an http(s):// URL template `https://tiles.example/{z}/{x}/{y}.png` the browser loads.
-    #[arg(long)]
-    tiles: Option<String>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -64,7 +59,6 @@ async fn main() -> anyhow::Result<()> {
             Vehicle::Aircraft => VehicleParams::aircraft(),
         },
         background,
-        tiles: cli.tiles,
     };
     let shutdown = marea::process::cancelled_on_signal();
     fpmo::run(config, shutdown).await.context("fpmo")

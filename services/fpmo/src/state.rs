@@ -69,6 +69,12 @@ pub(crate) struct Vehicle {
     pub(crate) allowed: Option<Stamped<AllowedChanges>>,
     /// Whether the FPMa's plan waits for the operator's start (`ready`).
     pub(crate) readiness: Option<Stamped<Readiness>>,
+    /// The vehicle's battery (the VAS's `battery`).
+    pub(crate) battery: Option<Stamped<usal_types::Battery>>,
+    /// The autopilot's home (the VAS's `home`).
+    pub(crate) home: Option<usal_types::Home>,
+    /// The fence in force on the vehicle (the VAS's `fence`; empty: none).
+    pub(crate) fence: Option<usal_types::Fence>,
 }
 
 /// A state change the page offers as a button.
@@ -310,6 +316,13 @@ impl State {
                         "stale": pos_age.is_none_or(|a| a > self.stale_after),
                     })),
                     "track": v.track,
+                    "home": v.home,
+                    "battery": v.battery.as_ref().map(|b| serde_json::json!({
+                        "value": b.value,
+                        "age_ms": ms(now.saturating_duration_since(b.at)),
+                        "stale": now.saturating_duration_since(b.at) > self.stale_after,
+                    })),
+                    "fence": v.fence.as_ref().filter(|f| !f.is_empty()),
                     "vars": v.plan_state.as_ref().map(|s| s.value.vars.iter().map(|(name, val)| {
                         let value = match val {
                             VarValue::Bool(b) => serde_json::json!(b),

@@ -6,9 +6,9 @@
 //! | GET | `/` | | the page |
 //! | GET | `/api/state` | | snapshot |
 //! | GET | `/api/events` | | SSE `state` events carrying snapshots |
-//! | GET | `/api/config` | | `{background: null \| {url, north, west, south, east}, tiles: null \| {url, minzoom, maxzoom, bounds, attribution}}` |
+//! | GET | `/api/config` | | `{background: null \| {url, north, west, south, east}}` |
 //! | GET | `/api/background` | | the background image file / 404 |
-//! | GET | `/api/tiles/{z}/{x}/{y}` | | a map tile from the station's MBTiles file or tile directory / 404 |
+//! | GET | `/map.js`, `/api/map`, `/api/tiles/{z}/{x}/{y}` | | the map every station draws ([`station_web::http`]) |
 //! | GET | `/api/plan?vehicle=rover1` | | the FPMa's plan: `{rev, version, file, name, legs, waypoints, total_points, legs_truncated}` / 404 |
 //! | POST | `/api/select` | `{"vehicle"}` | 204 / 404 |
 //! | POST | `/api/upload` | `{"file", "xml", "vehicle"?}` | 202 `{id}` / 400 `{error}` (checked here first) |
@@ -44,6 +44,10 @@ impl station_web::Station for Shared {
     fn live(&self) -> &station_web::Live {
         &self.live
     }
+
+    fn tiles(&self) -> Option<Arc<station_web::tiles::Tiles>> {
+        self.tiles.clone()
+    }
 }
 
 /// The FPMo's routes.
@@ -52,7 +56,6 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/plan", get(plan))
         .route("/api/config", get(config))
         .route("/api/background", get(background))
-        .route(crate::background::TILE_ROUTE, get(tile))
         .route("/api/select", post(select))
         .route("/api/upload", post(upload))
         .route("/api/command", post(command))
@@ -65,40 +68,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
 
 async fn config(State(shared): State<Arc<Shared>>) -> Response {
     let bg = shared.background.as_ref().map(|b| b.view());
-    let tiles = shared.tiles.as_ref().map(|t| t.view());
-    Json(serde_json::json!({ "background": bg, "tiles": tiles })).into_response()
-}
-
-async fn tile(
-    State(shared): State<Arc<Shared>>,
-    axum::extract::Path((z, x, y)): axum::extract::Path<(u32, u32, String)>,
-) -> Response {
-    let Some(tiles) = shared.tiles.clone() else {
-        return bad(StatusCode::NOT_FOUND, "no map tiles");
-    };
-    // `{y}` may carry the extension a tile URL template often has (`3.png`).
-    let Ok(y) = y.split('.').next().unwrap_or_default().parse::<u32>() else {
-        return bad(StatusCode::BAD_REQUEST, "tile row is not a number");
-    };
-    match tokio::task::spawn_blocking(move || tiles.tile(z, x, y)).await {
-        Ok(Ok(Some((bytes, ty)))) => (
-            [
-                (header::CONTENT_TYPE, ty),
-                (header::CACHE_CONTROL, "max-age=3600"),
-            ],
-            bytes,
-        )
-            .into_response(),
-        Ok(Ok(None)) => bad(StatusCode::NOT_FOUND, format!("no tile {z}/{x}/{y}")),
-        Ok(Err(e)) => {
-            tracing::warn!("{e}");
-            bad(StatusCode::INTERNAL_SERVER_ERROR, e)
-        }
-        Err(e) => bad(
-            StatusCode::INTERNAL_SERVER_ERROR,
-            format!("tile reader: {e}"),
-        ),
-    }
+    Json(serde_json::json!({ "background": bg })).into_response()
 }
 
 async fn background(State(shared): State<Arc<Shared>>) -> Response {

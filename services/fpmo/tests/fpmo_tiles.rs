@@ -2,7 +2,8 @@
 //! MBTiles file itself (a field laptop is often offline), rows flipped from TMS to the page's
 //! XYZ; a local `{z}/{x}/{y}` directory template is served the same way; an http(s) template is
 //! handed to the browser; vector or broken MBTiles files stop the station at start with the
-//! reason; in headless Chromium (when installed) the page draws the tiles.
+//! reason; in headless Chromium (when installed) the page draws the tiles. Without `--tiles`
+//! the map is OpenStreetMap's, with its credit; `--tiles none` leaves the grid alone.
 
 #[path = "../../fmo/tests/common/mod.rs"]
 mod common;
@@ -87,7 +88,7 @@ async fn scenario() {
         &["--domain", &domain, "--tiles", &file.display().to_string()],
     )
     .await;
-    let c = st.get_json("/api/config").await;
+    let c = st.get_json("/api/map").await;
     assert_eq!(
         c["tiles"],
         serde_json::json!({"url": "/api/tiles/{z}/{x}/{y}", "minzoom": 1, "maxzoom": 3,
@@ -117,9 +118,9 @@ async fn scenario() {
             .await;
         assert_eq!(drawn, "z3:1");
         let credit = browser
-            .eval("return document.getElementById('attribution').textContent;")
+            .eval("return document.getElementById('mapstatus').textContent;")
             .await;
-        assert_eq!(credit, "map tiles: made by the test");
+        assert_eq!(credit, "map tiles made by the test");
         browser
             .eval("document.getElementById('tilesshow').click(); return true;")
             .await;
@@ -149,7 +150,7 @@ async fn scenario() {
     )
     .await;
     assert_eq!(
-        local.get_json("/api/config").await["tiles"]["url"],
+        local.get_json("/api/map").await["tiles"]["url"],
         "/api/tiles/{z}/{x}/{y}"
     );
     assert_eq!(
@@ -171,9 +172,34 @@ async fn scenario() {
     )
     .await;
     assert_eq!(
-        remote.get_json("/api/config").await["tiles"]["url"],
+        remote.get_json("/api/map").await["tiles"]["url"],
         "https://tiles.example/{z}/{x}/{y}.png"
     );
     assert_eq!(remote.get("/api/tiles/3/4/2").await.0, 404);
     remote.kill().await;
+
+    // By default OpenStreetMap's tiles, with their credit; `none`: the page's grid alone.
+    let default = Station::start_as_shipped(
+        env!("CARGO_BIN_EXE_fpmo"),
+        "FPMO_URL",
+        &["--domain", &domain],
+    )
+    .await;
+    assert_eq!(
+        default.get_json("/api/map").await["tiles"],
+        serde_json::json!({"url": "https://tile.openstreetmap.org/{z}/{x}/{y}.png", "minzoom": 0,
+            "maxzoom": 19, "bounds": null, "attribution": "© OpenStreetMap contributors"})
+    );
+    default.kill().await;
+    let none = Station::start(
+        env!("CARGO_BIN_EXE_fpmo"),
+        "FPMO_URL",
+        &["--domain", &domain, "--tiles", "none"],
+    )
+    .await;
+    assert_eq!(
+        none.get_json("/api/map").await["tiles"],
+        serde_json::Value::Null
+    );
+    none.kill().await;
 }

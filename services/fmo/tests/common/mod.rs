@@ -37,7 +37,19 @@ pub struct Station {
 
 impl Station {
     /// Starts `bin` with `args` plus `--listen 127.0.0.1:0` and reads the `NAME=URL` line.
+    /// Unless `args` name their `--tiles`, the station draws no tiles (`--tiles none`): a test
+    /// never loads a tile server's maps from the internet.
     pub async fn start(bin: &str, url_var: &str, args: &[&str]) -> Station {
+        let no_tiles: &[&str] = if args.contains(&"--tiles") {
+            &[]
+        } else {
+            &["--tiles", "none"]
+        };
+        Self::start_as_shipped(bin, url_var, &[args, no_tiles].concat()).await
+    }
+
+    /// As [`Station::start`], with the station's own defaults (its map tiles included).
+    pub async fn start_as_shipped(bin: &str, url_var: &str, args: &[&str]) -> Station {
         let mut child = Command::new(bin)
             .args(["--listen", "127.0.0.1:0"])
             .args(args)
