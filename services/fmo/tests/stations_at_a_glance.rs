@@ -3,7 +3,9 @@
 //! the FMo's instrument strip (attitude, heading, altitude, speed, battery with time left, plan
 //! ETA, link quality) and map (the vehicle, its home, the fence, the plan's numbered waypoints,
 //! a legend), the FPMo's battery, ETA and the same map; with a tile server that cannot be
-//! reached, both draw the grid and say why. Screenshots go to `<target>/tmp/`.
+//! reached, both draw the grid and say why; the FPMo's plan events read in words; and a
+//! flight log played back (`replay/status` published) puts both under a REPLAY banner.
+//! Screenshots go to `<target>/tmp/`.
 
 mod common;
 
@@ -28,6 +30,35 @@ fn unreachable_tiles() -> String {
         .port();
     format!("http://127.0.0.1:{port}/{{z}}/{{x}}/{{y}}.png")
 }
+
+/// Publishes `replay/status` as `usal replay` does, twice a second, until dropped.
+async fn replaying(domain: &str) -> (marea::Node, tokio::task::JoinHandle<()>) {
+    let mut net = marea::NetworkConfig::ethernet_loopback("replayer");
+    net.domain = domain.to_owned();
+    let node = marea::Node::open(&net).await.expect("replayer node");
+    let svc = node.service("replay").expect("replay service");
+    let status = svc
+        .publish_variable::<usal_types::ReplayStatus>("status")
+        .expect("replay/status");
+    let task = tokio::spawn(async move {
+        for tick in 0u32.. {
+            let _ = status.set(&usal_types::ReplayStatus {
+                log: "flight.jsonl.gz".into(),
+                mission: "rover-demo".into(),
+                flown_utc: "2026-11-28T14:00:00Z".into(),
+                at_s: f64::from(tick) / 2.0,
+                duration_s: 300.0,
+                speed: 1.0,
+                ended: false,
+            });
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+    });
+    (node, task)
+}
+
+/// The REPLAY banner, naming the recorded mission.
+const REPLAY_BANNER: &str = "const r = document.getElementById('replay');      return r.style.display === 'block' && r.textContent.startsWith('REPLAY of mission rover-demo');";
 
 /// What `canvas#map` says it drew, and whether the legend lists each layer.
 const MAP_DRAWN: &str = "const m = document.getElementById('map'); \
@@ -143,6 +174,15 @@ async fn scenario(fpmo_bin: &std::path::Path) {
     let shot = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("fmo-glance.png");
     browser.screenshot(&shot).await;
     eprintln!("screenshot: {}", shot.display());
+    // No banner on a live flight; a flight log played back into the domain raises it.
+    let banner = browser
+        .eval("return document.getElementById('replay').style.display;")
+        .await;
+    assert_eq!(banner, "none");
+    let (replayer, replay_task) = replaying(&domain).await;
+    browser
+        .wait_for("the FMo's REPLAY banner", REPLAY_BANNER)
+        .await;
 
     // The FPMo: battery, ETA and the same map.
     browser.goto(&fpmo.url).await;
@@ -156,6 +196,16 @@ async fn scenario(fpmo_bin: &std::path::Path) {
         .await;
     browser.wait_for("the FPMo's map", MAP_DRAWN).await;
     browser
+        .wait_for(
+            "the plan's events in words",
+            "const e = Array.from(document.querySelectorAll('#events li')).map((l) => l.textContent); \
+             return e.some((t) => /^v\\d+: leg `[^`]+` started/.test(t)) && !e.some((t) => t.includes('{'));",
+        )
+        .await;
+    browser
+        .wait_for("the FPMo's REPLAY banner", REPLAY_BANNER)
+        .await;
+    browser
         .wait_for("the FPMo's grid and why", GRID_FALLBACK)
         .await;
     let shot = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("fpmo-glance.png");
@@ -163,6 +213,8 @@ async fn scenario(fpmo_bin: &std::path::Path) {
     eprintln!("screenshot: {}", shot.display());
 
     browser.close().await;
+    replay_task.abort();
+    drop(replayer);
     fmo.kill().await;
     fpmo.kill().await;
     fpma.kill().await;
