@@ -562,6 +562,65 @@ fn a_mission_flies_an_autopilot_it_did_not_start_in_both_mode_encodings() {
     }
 }
 
+/// The same against a vehicle built from MAVSDK's server plugins (a MAVLink implementation not
+/// written here, speaking PX4's mode encoding, keeping no fence): named by `<autopilot
+/// endpoint family="px4">`, flown through the rolling queue to the end of the plan.
+#[test]
+fn a_mission_flies_a_mavsdk_vehicle_it_did_not_start() {
+    let Some(py) = python::python() else {
+        return;
+    };
+    build_services();
+    let port = python::free_udp_port();
+    let mut vehicle = KilledOnDrop(
+        Command::new(&py)
+            .arg(root().join("tests/python/mavsdk_vehicle.py"))
+            .args(["--port", &port.to_string(), "--speedup", "2"])
+            .args(["--home", "41.27500,1.98700"])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the MAVSDK vehicle starts"),
+    );
+    let mut out = BufReader::new(vehicle.0.stdout.take().expect("piped"));
+    let mut first = String::new();
+    out.read_line(&mut first)
+        .expect("the MAVSDK vehicle says it is ready");
+    assert!(
+        first.contains(r#""ready""#),
+        "the MAVSDK vehicle said {first:?}"
+    );
+    // It prints a line per event for as long as it runs: read them (a closed pipe stops it).
+    std::thread::spawn(move || out.lines().map_while(Result::ok).for_each(drop));
+    let dir = tempfile::tempdir().expect("tempdir");
+    // MAVSDK's servers keep no fence, and a vehicle whose autopilot does not take its fence
+    // never starts (tested above): this mission has none.
+    let demo = std::fs::read_to_string(root().join("config/missions/rover-demo.xml"))
+        .expect("the demo mission");
+    let fence = &demo[demo.find("<fence ").expect("the demo's fence")
+        ..demo.find("</fence>").expect("its end") + "</fence>".len()];
+    let mission = demo_mission_with(
+        dir.path(),
+        "mavsdk.xml",
+        &[
+            (
+                r#"<mavsim vehicle="rover" home="41.27500,1.98700,0" speedup="5"/>"#,
+                &format!(r#"<autopilot endpoint="udpout:127.0.0.1:{port}"/>"#),
+            ),
+            (fence, ""),
+        ],
+    );
+    let mut l = Launcher::start(&[mission.to_str().expect("UTF-8"), "--until-complete"]);
+    let summary = l.event(FLIGHT, "summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    drop(vehicle);
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    check_summary(&summary["summary"]);
+    assert_no_child_left(&l.pids());
+}
+
 /// A child the test started itself, killed when the test ends, a failed one included.
 struct KilledOnDrop(Child);
 

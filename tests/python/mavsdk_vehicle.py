@@ -67,6 +67,9 @@ class Rover:
         self.mode = FlightMode.HOLD
         self.items = []
         self.current = None  # (seq, lat, lon)
+        # The current item was reported reached: once per time it becomes current (a new
+        # mission or a new current item), even where two items share a position.
+        self.current_reported = False
         self.vn = 0.0
         self.ve = 0.0
         self.heading = 0.0
@@ -139,26 +142,37 @@ def main():
     def on_mission(result, plan, _):
         with rover.lock:
             rover.items = list(plan.mission_items)
+            rover.current_reported = False
         emit(event="mission", result=str(result).split(".")[-1], count=len(plan.mission_items))
 
     def on_current(item, _):
         lat, lon = item.x / 1e7, item.y / 1e7
         with rover.lock:
+            # The same item said current again is not a new visit.
+            if rover.current is None or rover.current[0] != item.seq:
+                rover.current_reported = False
             rover.current = (item.seq, lat, lon)
         emit(event="current", seq=item.seq, lat=lat, lon=lon)
 
+    # Setting the server's state calls these callbacks again with the state just set: only a
+    # change is applied (else they would call each other forever, millions of times a minute).
     def on_arm(result, arm, _):
+        armed = bool(arm.arm)
         with rover.lock:
-            rover.armed = bool(arm.arm)
-        action.set_armed_state(bool(arm.arm))
-        emit(event="armed", armed=bool(arm.arm))
+            changed = rover.armed != armed
+            rover.armed = armed
+        if changed:
+            action.set_armed_state(armed)
+            emit(event="armed", armed=armed)
 
     def on_mode(result, mode, _):
         mode = FlightMode(int(mode))
         with rover.lock:
+            changed = rover.mode != mode
             rover.mode = mode
-        action.set_flight_mode(mode)
-        emit(event="mode", mode=mode.name)
+        if changed:
+            action.set_flight_mode(mode)
+            emit(event="mode", mode=mode.name)
 
     mission.subscribe_incoming_mission(on_mission)
     mission.subscribe_current_item_changed(on_current)
@@ -184,7 +198,6 @@ def main():
     tick = 0.02
     sim_t = 0.0
     last_pub = 0.0
-    last_reported = None
     while not stop.is_set():
         time.sleep(tick)
         dt = tick * args.speedup
@@ -194,8 +207,9 @@ def main():
             with rover.lock:
                 seq, rlat, rlon = rover.current
                 last = len(rover.items) - 1
-            if last_reported != (seq, rlat, rlon):
-                last_reported = (seq, rlat, rlon)
+                first = not rover.current_reported
+                rover.current_reported = True
+            if first:
                 emit(event="reached", seq=seq, lat=rlat, lon=rlon, t=round(sim_t, 3))
                 if seq >= last:
                     # The end of the mission: hold there, as autopilots do.

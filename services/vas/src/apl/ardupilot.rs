@@ -32,7 +32,7 @@ use usal_types::{
 
 use super::queue::{QueueAction, RollingQueue};
 use super::{family_modes, ApEvent, ApFamily, Arming, AutopilotError, IAutopilot};
-use crate::mavlink_cm::dialect::{MavCmd, MavFrame, MavSeverity};
+use crate::mavlink_cm::dialect::{MavCmd, MavFrame, MavResult, MavSeverity};
 use crate::mavlink_cm::{
     CommandError, ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError,
     MissionItem, MissionStage, Telemetry,

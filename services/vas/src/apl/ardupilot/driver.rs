@@ -148,6 +148,10 @@ pub(super) struct Driver {
     deferred: VecDeque<MavEvent>,
     /// The speed last commanded with DO_CHANGE_SPEED (0: the autopilot's default).
     speed_sent: Option<f64>,
+    /// The autopilot refused DO_CHANGE_SPEED or never answered it, since (re)connecting: it is
+    /// not asked again (each unanswered try held the queue for the command's whole retry
+    /// time, long enough for a fast vehicle to run off the end of its window).
+    speed_unsupported: bool,
     /// The autopilot reported a waypoint reached since (re)connecting; until it does, progress
     /// is inferred from its position.
     reports_progress: bool,
@@ -221,6 +225,7 @@ impl Driver {
             failing: false,
             deferred: VecDeque::new(),
             speed_sent: None,
+            speed_unsupported: false,
             reports_progress: false,
             position: None,
             leg_start: None,
@@ -880,7 +885,7 @@ impl Driver {
             return;
         };
         let want = wanted_speed(w);
-        if self.speed_sent == Some(want) {
+        if self.speed_sent == Some(want) || self.speed_unsupported {
             return;
         }
         let speed = if want > 0.0 {
@@ -901,6 +906,31 @@ impl Driver {
             .await
         {
             Ok(()) => self.speed_sent = Some(want),
+            Err(
+                e @ (CommandError::RetriesExhausted { .. }
+                | CommandError::Rejected {
+                    result: MavResult::MAV_RESULT_UNSUPPORTED,
+                    ..
+                }),
+            ) => {
+                self.speed_unsupported = true;
+                self.alarm(
+                    Severity::Warning,
+                    format!(
+                        "the autopilot does not take speed changes ({e}): the plan's speeds \
+                         are not flown, the vehicle keeps its own"
+                    ),
+                );
+            }
+            Err(e @ CommandError::Rejected { .. }) => {
+                // This value refused (out of the autopilot's range, say): not asked again
+                // until the plan wants another.
+                self.speed_sent = Some(want);
+                self.alarm(
+                    Severity::Warning,
+                    format!("the autopilot refused the speed {speed} m/s: {e}"),
+                );
+            }
             Err(e) => tracing::warn!("setting speed {want} m/s: {e}; retrying"),
         }
     }
@@ -1123,6 +1153,7 @@ impl Driver {
         self.alarm(Severity::Notice, "autopilot heartbeat restored");
         // Perhaps another autopilot, or the same rebooted: learn again what it reports.
         self.reports_progress = false;
+        self.speed_unsupported = false;
         match self.mgr.params_list().await {
             Ok(p) => tracing::info!("re-read {} parameters", p.len()),
             Err(e) => tracing::warn!("re-reading parameters: {e}"),
