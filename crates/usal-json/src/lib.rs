@@ -108,6 +108,7 @@ fn registry() -> Vec<Known> {
         ReplayStatus,
         ParamValue,
         Vec<ParamValue>,
+        (u16, u16),
         Failsafe,
         FailsafeKind,
         StationHeartbeat,

@@ -33,7 +33,7 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use usal_types::{
     Alarm, Attitude, AutopilotStatus, Battery, CommandReply, Fence, FlightState, Home,
-    ManualCommand, MissionTime, Position, Speeds, StateChangeReply, StateChangeRequest,
+    ManualCommand, MissionTime, ParamValue, Position, Speeds, StateChangeReply, StateChangeRequest,
     StateChanged, VehicleCommand,
 };
 
@@ -67,6 +67,8 @@ const ALLOWED_RETRY: Duration = Duration::from_secs(2);
 type ChangeStateFn = Function<StateChangeRequest, StateChangeReply>;
 type AllowedFn = Function<(), Vec<FlightState>>;
 type CommandFn = Function<VehicleCommand, CommandReply>;
+type ListParamsFn = Function<(), Vec<ParamValue>>;
+type SetParamFn = Function<ParamValue, ParamValue>;
 /// The function handles of the vehicles called so far, by full name.
 type FunctionCache<A, R> = Mutex<HashMap<String, Arc<Function<A, R>>>>;
 
@@ -81,6 +83,8 @@ pub struct Shared {
     change_state: Mutex<HashMap<String, Arc<ChangeStateFn>>>,
     allowed: Mutex<HashMap<String, Arc<AllowedFn>>>,
     command: Mutex<HashMap<String, Arc<CommandFn>>>,
+    list_params: Mutex<HashMap<String, Arc<ListParamsFn>>>,
+    set_param: Mutex<HashMap<String, Arc<SetParamFn>>>,
     call_timeout: Duration,
     /// A flight log being played back (`usal replay`), shown as a REPLAY.
     pub replay: station_web::replay::ReplayWatch,
@@ -133,6 +137,32 @@ impl Shared {
             "command",
             cmd,
             |r: CommandReply| format!("{} done, now {}", r.command, r.state),
+        )
+    }
+
+    /// The autopilot parameters of `vehicle` (a VAS prefix), as its VAS lists them now.
+    ///
+    /// # Errors
+    /// The VAS cannot be reached or cannot list them, in words.
+    pub async fn params(&self, vehicle: &str) -> Result<Vec<ParamValue>, String> {
+        let f = self.function(&self.list_params, format!("{vehicle}/list_params"))?;
+        tokio::select! {
+            r = f.call(&(), self.call_timeout) => r.map_err(call_error),
+            _ = self.live.cancel.cancelled() => Err("station stopping".to_string()),
+        }
+    }
+
+    /// Sets the autopilot parameter `p` of `vehicle` (a VAS prefix) in the background; returns
+    /// the command's id. It shows as pending until the VAS answers with the value the
+    /// autopilot took, or with why it did not.
+    pub fn set_param(self: &Arc<Self>, vehicle: &str, p: ParamValue) -> u64 {
+        self.call_vehicle(
+            vehicle,
+            format!("set_param {} = {}", p.name, p.value),
+            |me| &me.set_param,
+            "set_param",
+            p,
+            |r: ParamValue| format!("{} is {}", r.name, r.value),
         )
     }
 
@@ -328,6 +358,8 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         change_state: Mutex::new(HashMap::new()),
         allowed: Mutex::new(HashMap::new()),
         command: Mutex::new(HashMap::new()),
+        list_params: Mutex::new(HashMap::new()),
+        set_param: Mutex::new(HashMap::new()),
         replay: station_web::replay::ReplayWatch::default(),
         tiles,
         call_timeout: config.station.call_timeout,

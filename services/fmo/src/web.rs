@@ -11,15 +11,18 @@
 //! | POST | `/api/change_state` | `{"to": "DIRECTED", "vehicle"?: ...}` | 202 `{"id"}`: pending, see `commands` |
 //! | POST | `/api/command` | `{"command": "ARM" \| "DISARM" \| {"DIRECTED": {"alt","speed","bearing"}}, "vehicle"?: ...}` | 202 `{"id"}`: pending, see `commands` |
 //! | POST | `/api/alarms/ack` | `{"id"?: 3, "vehicle"?: ...}` | `{"acked": n}` |
+//! | GET | `/api/params?vehicle=...` | | the autopilot's parameters as its VAS lists them: `[{"name", "value"}]`, or 502 `{error}` |
+//! | POST | `/api/params` | `{"name": "WP_SPEED", "value": 3.0, "vehicle"?: ...}` | 202 `{"id"}`: pending, see `commands` |
 //! | POST | `/api/manual` | `{"roll","pitch","throttle","yaw","deadman","source"}` | 204 |
 
 use std::sync::Arc;
 use std::time::Instant;
 
+use axum::extract::Query;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
-use axum::routing::post;
+use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde::Deserialize;
 use station_web::error as bad;
@@ -55,6 +58,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/command", post(command))
         .route("/api/alarms/ack", post(ack))
         .route("/api/manual", post(manual))
+        .route("/api/params", get(params).post(set_param))
         .with_state(shared)
 }
 
@@ -126,6 +130,62 @@ async fn command(State(shared): State<Arc<Shared>>, Json(c): Json<Command>) -> R
     };
     match commanded(&shared, c.vehicle) {
         Some(vehicle) => station_web::accepted(shared.send_command(&vehicle, cmd)),
+        None => no_vehicle(),
+    }
+}
+
+#[derive(Deserialize)]
+struct ParamsQuery {
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+async fn params(State(shared): State<Arc<Shared>>, Query(q): Query<ParamsQuery>) -> Response {
+    let Some(vehicle) = commanded(&shared, q.vehicle) else {
+        return no_vehicle();
+    };
+    match shared.params(&vehicle).await {
+        Ok(mut all) => {
+            all.sort_by(|a, b| a.name.cmp(&b.name));
+            Json(all).into_response()
+        }
+        Err(e) => bad(
+            StatusCode::BAD_GATEWAY,
+            format!("cannot list {vehicle}'s parameters: {e}"),
+        ),
+    }
+}
+
+#[derive(Deserialize)]
+struct SetParam {
+    name: String,
+    value: f32,
+    #[serde(default)]
+    vehicle: Option<String>,
+}
+
+async fn set_param(State(shared): State<Arc<Shared>>, Json(p): Json<SetParam>) -> Response {
+    // MAVLink names are at most 16 characters; the autopilot checks the rest.
+    if p.name.is_empty() || p.name.len() > 16 || !p.name.is_ascii() {
+        return bad(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "`{}` is not a parameter name (1 to 16 ASCII characters)",
+                p.name
+            ),
+        );
+    }
+    if !p.value.is_finite() {
+        return bad(StatusCode::BAD_REQUEST, "the value is not a number");
+    }
+    match commanded(&shared, p.vehicle) {
+        Some(vehicle) => station_web::accepted(shared.set_param(
+            &vehicle,
+            usal_types::ParamValue {
+                name: p.name,
+                value: p.value,
+            },
+        )),
         None => no_vehicle(),
     }
 }

@@ -1,6 +1,7 @@
 //! The FMo page in headless Chromium (WebDriver through chromedriver) against real `mavsim` and
 //! `vas` processes: the allowed transitions are the only buttons, a click changes the state,
-//! Space + W on the keyboard drives the rover forward, releasing stops it; a screenshot is saved
+//! Space + W on the keyboard drives the rover forward, releasing stops it; the autopilot's
+//! parameters are read, filtered and one is set from the page; a screenshot is saved
 //! to `<target>/tmp/fmo-page.png`. Skips (passing) when chromium or chromedriver is missing:
 //! `.ci/install-chromium` installs them.
 
@@ -59,6 +60,37 @@ async fn scenario() {
             "return !!document.getElementById('services') && \
              !!document.querySelector('button.vcmd[data-cmd=ARM]') && \
              !!document.getElementById('d-fly') && !!document.getElementById('t-plan');",
+        )
+        .await;
+    // The autopilot's parameters: read through the VAS, filtered, one set as a command the
+    // VAS confirms with the value the autopilot took.
+    browser.click("#readparams").await;
+    browser
+        .wait_for(
+            "the parameters read",
+            "return !!document.querySelector('#params tr[data-param=CRUISE_SPEED]') && \
+               document.getElementById('paramnote').textContent.includes('parameters of rover1');",
+        )
+        .await;
+    browser.send_keys("#pfilter", "CRUISE").await;
+    browser
+        .wait_for(
+            "the filter applied",
+            "const rows = document.querySelectorAll('#params tr'); \
+             return rows.length > 0 && Array.from(rows).every((r) => r.dataset.param.includes('CRUISE'));",
+        )
+        .await;
+    browser
+        .send_keys("#params tr[data-param=CRUISE_SPEED] input.pin", "2.5")
+        .await;
+    browser
+        .click("#params tr[data-param=CRUISE_SPEED] button.setparam")
+        .await;
+    browser
+        .wait_for(
+            "the parameter set",
+            "return Array.from(document.querySelectorAll('#commands li[data-status=ok]')) \
+               .some((l) => l.textContent.includes('set_param CRUISE_SPEED = 2.5') && l.textContent.includes('CRUISE_SPEED is 2.5'));",
         )
         .await;
     let offered = browser

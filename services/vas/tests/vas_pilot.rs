@@ -533,3 +533,56 @@ async fn parameters_are_set_at_start_up_then_read_set_and_listed() {
     sim.kill().await;
     g.node.shutdown().await;
 }
+
+/// A partial mission read (`read_mission`): the items asked for, as the autopilot holds them
+/// once navigation started (item 0 is ArduPilot's home); a range past the mission's end is refused
+/// naming its length.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn part_of_the_mission_on_board_is_read_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 5.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("readmission");
+    let vas = VasProc::start(&format!("udpout:{}", sim.addr), &domain, &[]);
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+    let wps = zigzag(3, 20.0);
+    g.push.call(&wps, STEP).await.expect("push");
+    // The queue lays the waypoints out on the autopilot from slot 1 when navigation starts.
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("WAYPOINT_NAVIGATION");
+    let read = g
+        .svc
+        .function::<(u16, u16), Vec<usal_types::Waypoint>>("rover1/vas/read_mission")
+        .unwrap();
+    assert!(
+        read.wait_provider(STEP).await,
+        "read_mission not discovered"
+    );
+    // Asked until the upload is done.
+    let deadline = tokio::time::Instant::now() + STEP;
+    let items = loop {
+        match read.call(&(1, 2), STEP).await {
+            Ok(items) if items.len() == 2 => break items,
+            other => {
+                assert!(
+                    tokio::time::Instant::now() < deadline,
+                    "never read: {other:?}"
+                );
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+    };
+    for (got, want) in items.iter().zip(&wps) {
+        assert!(
+            (got.lat - want.lat).abs() < 1e-6 && (got.lon - want.lon).abs() < 1e-6,
+            "read {got:?}, pushed {want:?}"
+        );
+    }
+    assert_eq!((items[0].seq, items[1].seq), (1, 2));
+    let e = read.call(&(2, 40), STEP).await.unwrap_err().to_string();
+    assert!(e.contains("2..=40") && e.contains("the mission has"), "{e}");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}

@@ -314,6 +314,29 @@ impl IAutopilot for ArduPilot {
         Ok(all.into_iter().collect())
     }
 
+    async fn read_mission(&self, first: u16, last: u16) -> Result<Vec<Waypoint>, AutopilotError> {
+        let items = self
+            .mgr
+            .mission_download_range(first, last)
+            .await
+            .map_err(|e| match e {
+                MissionError::Link(l) => AutopilotError::NotConnected(l.to_string()),
+                other => AutopilotError::Refused(other.to_string()),
+            })?;
+        Ok(items
+            .iter()
+            .zip(first..)
+            .map(|(m, seq)| Waypoint {
+                seq: u64::from(seq),
+                lat: m.lat_deg(),
+                lon: m.lon_deg(),
+                alt: f64::from(m.z),
+                leg: "autopilot".into(),
+                ..Waypoint::default()
+            })
+            .collect())
+    }
+
     async fn upload_fence(&self, f: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {
         let wait = self.cfg.manager.connect_wait;
         self.mgr

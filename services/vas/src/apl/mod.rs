@@ -258,6 +258,16 @@ pub trait IAutopilot: Send + Sync {
         Err(AutopilotError::Unsupported("parameters".into()))
     }
 
+    /// Mission items `first..=last` as the autopilot holds them now (a partial read; item 0
+    /// is ArduPilot's home), `seq` their index.
+    ///
+    /// # Errors
+    /// Unsupported, not connected, a range past the mission's end, or no answer.
+    async fn read_mission(&self, first: u16, last: u16) -> Result<Vec<Waypoint>, AutopilotError> {
+        let _ = (first, last);
+        Err(AutopilotError::Unsupported("mission reads".into()))
+    }
+
     /// Every parameter of the autopilot, by name.
     ///
     /// # Errors

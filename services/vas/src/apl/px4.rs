@@ -246,6 +246,10 @@ impl IAutopilot for Px4 {
         self.layer.list_params().await
     }
 
+    async fn read_mission(&self, first: u16, last: u16) -> Result<Vec<Waypoint>, AutopilotError> {
+        self.layer.read_mission(first, last).await
+    }
+
     async fn shutdown(&self) {
         self.layer.shutdown().await;
     }

@@ -282,6 +282,37 @@ impl MavlinkManager {
     /// # Errors
     /// Retries exhausted at the count or at some item.
     pub async fn mission_download(&self) -> Result<Vec<MissionItem>, MissionError> {
+        let items = self.mission_read(None).await?;
+        *lock(&self.inner.mission) = items.clone();
+        Ok(items)
+    }
+
+    /// Reads items `first..=last` only, a partial read (the seed's GetWaypointsPartialList):
+    /// the item count, those items by index, then MISSION_ACK. Not with
+    /// MISSION_REQUEST_PARTIAL_LIST, which ArduPilot and PX4 leave unanswered; every autopilot
+    /// answers item requests by index. What was last downloaded whole is not changed.
+    ///
+    /// # Errors
+    /// `first > last` or `last` past the mission's end (`Invalid`, naming the mission's
+    /// length), refusal or no answer.
+    pub async fn mission_download_range(
+        &self,
+        first: u16,
+        last: u16,
+    ) -> Result<Vec<MissionItem>, MissionError> {
+        if first > last {
+            return Err(MissionError::Invalid(format!(
+                "items {first}..={last}: the first is after the last"
+            )));
+        }
+        self.mission_read(Some((first, last))).await
+    }
+
+    /// The mission download: every item (`None`) or `first..=last`.
+    async fn mission_read(
+        &self,
+        range: Option<(u16, u16)>,
+    ) -> Result<Vec<MissionItem>, MissionError> {
         let target = self.inner.target().await?;
         let _op = self.inner.ops.lock().await;
         let make = |_| {
@@ -306,12 +337,26 @@ impl MavlinkManager {
                 stage: MissionStage::Count,
                 attempts: self.inner.cfg.retries,
             })?;
-        let mut items = Vec::with_capacity(usize::from(count));
+        let seqs = match range {
+            None => 0..count,
+            Some((first, last)) if last < count => first..last + 1,
+            Some((first, last)) => {
+                // End the transfer the count began before saying why.
+                self.inner
+                    .send(mission_ack(target, MavMissionResult::MAV_MISSION_ACCEPTED))
+                    .await?;
+                return Err(MissionError::Invalid(format!(
+                    "items {first}..={last} asked, the mission has {count} (0..={})",
+                    count.saturating_sub(1)
+                )));
+            }
+        };
+        let mut items = Vec::with_capacity(seqs.len());
         // MISSION_REQUEST_INT unless AUTOPILOT_VERSION said the autopilot lacks MISSION_INT.
         let int = self.state().capabilities.is_none_or(|c| {
             c & MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MISSION_INT.bits() != 0
         });
-        for seq in 0..count {
+        for seq in seqs {
             #[allow(deprecated)] // The float request, for autopilots without MISSION_INT.
             let make = |_| {
                 if int {
@@ -357,7 +402,6 @@ impl MavlinkManager {
         self.inner
             .send(mission_ack(target, MavMissionResult::MAV_MISSION_ACCEPTED))
             .await?;
-        *lock(&self.inner.mission) = items.clone();
         Ok(items)
     }
 

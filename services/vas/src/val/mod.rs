@@ -917,6 +917,18 @@ impl IService for Vas {
                 )
             }
         })?;
+        // Part of the mission on board, as the autopilot holds it (a partial read).
+        let c = core.clone();
+        let read_mission =
+            ctx.provide_function("read_mission", move |(first, last): (u16, u16)| {
+                let c = c.clone();
+                async move {
+                    c.apl
+                        .read_mission(first, last)
+                        .await
+                        .map_err(|e| format!("reading mission items {first}..={last}: {e}"))
+                }
+            })?;
         let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
         // This VAS's item prefix, the address a manual command must carry to be obeyed.
         let me = ctx.full_name("").trim_end_matches('/').to_owned();
@@ -1115,7 +1127,7 @@ impl IService for Vas {
         let cx = ctx.clone();
         ctx.spawn(async move {
             let _handles = (change, command, allowed, push, clear, set_fence);
-            let _params = (get_param, set_param, list_params);
+            let _params = (get_param, set_param, list_params, read_mission);
             let mut tick =
                 tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
             // The flight state and what may be asked from it are published on change only; a
