@@ -339,10 +339,11 @@ async fn copter_takes_off_flies_a_bearing_and_lands() {
     g.node.shutdown().await;
 }
 
-/// A plane takes off in ArduPlane's TAKEOFF mode, flies DIRECTED on a bearing, then returns
-/// to launch and circles over home.
+/// A plane takes off in ArduPlane's TAKEOFF mode, flies DIRECTED on a bearing, returns to
+/// launch and circles over home, then lands: an approach and NAV_LAND in AUTO, parked once
+/// down and disarmed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn plane_takes_off_flies_a_bearing_and_returns_to_launch() {
+async fn plane_takes_off_flies_a_bearing_returns_and_lands() {
     let dir = tempfile::tempdir().unwrap();
     let sim = Sim::start_with(
         "127.0.0.1:0",
@@ -409,6 +410,32 @@ async fn plane_takes_off_flies_a_bearing_and_returns_to_launch() {
         },
     )
     .await;
+    // LANDING is a landing, not RTL: an approach from the side the plane is on, NAV_LAND on
+    // home in AUTO, down on the strip and disarmed, then parked.
+    let r = g.request(FlightState::Landing).await.expect("LANDING");
+    assert_eq!(r.from, FlightState::ReturnToLaunch);
+    let uploaded = sim.log_events("mission_uploaded");
+    let last = uploaded.last().expect("a landing mission uploaded");
+    assert_eq!(last["count"], 3, "{last}");
+    assert!(
+        sim.log_events("mode_changed")
+            .iter()
+            .any(|m| m["name"] == "AUTO"),
+        "mavsim not in AUTO for the landing"
+    );
+    g.wait_state(FlightState::Parking, Duration::from_secs(120))
+        .await;
+    let p = wait_position(&position, "stopped on the ground", STEP, |p| {
+        p.alt_rel.abs() < 1.0 && p.speed < 0.5
+    })
+    .await;
+    let (n, e) = metres_from_home(&p);
+    assert!(
+        p.alt_rel.abs() < 1.0 && n.hypot(e) < 250.0,
+        "landed {:.0} m from home at {:.1} m: {p:?}",
+        n.hypot(e),
+        p.alt_rel
+    );
     vas.kill().await;
     sim.kill().await;
     g.node.shutdown().await;

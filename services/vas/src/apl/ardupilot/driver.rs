@@ -468,6 +468,14 @@ impl Driver {
                 return Err(refused(&e));
             }
         }
+        if to == FlightState::Landing && mode == "AUTO" {
+            if let Err(e) = self.lay_out_landing().await {
+                self.commanded = previous;
+                return Err(AutopilotError::Refused(format!(
+                    "laying out the landing: {e}"
+                )));
+            }
+        }
         let first_slot = self.queue.current_slot().unwrap_or(1);
         if let Err(e) = modes.enter(&self.mgr, to, mode, first_slot).await {
             self.queue.stop();
@@ -510,6 +518,23 @@ impl Driver {
         }
         self.last_mode = Some(mode.to_owned());
         Ok(())
+    }
+
+    /// Puts a plane's landing on the autopilot ([`landing_mission`]) in place of the queue's
+    /// window, from the approach on; the queue lays its window out afresh when navigation
+    /// starts again.
+    async fn lay_out_landing(&mut self) -> Result<(), String> {
+        let home = self.home.ok_or("the autopilot's home is not known yet")?;
+        let position = self.position.unwrap_or(home);
+        self.queue.forget_onboard();
+        self.mgr
+            .mission_upload(&landing_mission(home, position))
+            .await
+            .map_err(|e| e.to_string())?;
+        self.mgr
+            .mission_set_current(1)
+            .await
+            .map_err(|e| e.to_string())
     }
 
     /// The altitude a take-off climbs to, metres above home: the queue's first waypoint's

@@ -28,8 +28,45 @@ pub(super) fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'stati
         (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
         (VehicleKind::Plane, Directed) => ("GUIDED", Keep),
         (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
-        (VehicleKind::Plane, Landing | ReturnToLaunch) => ("RTL", Keep),
+        // A landing is a mission of its own, flown in AUTO: an approach and NAV_LAND at home
+        // (the driver lays it out, `landing_mission`), as ArduPilot lands a plane.
+        (VehicleKind::Plane, Landing) => ("AUTO", Keep),
+        (VehicleKind::Plane, ReturnToLaunch) => ("RTL", Keep),
     })
+}
+
+/// Where a plane's landing approach begins: this far from home, metres, on the side the plane
+/// is (so it turns onto final without crossing the field)...
+pub(super) const LANDING_APPROACH_M: f64 = 700.0;
+/// ...at this height above home, metres (a 3.3° glide slope to the touchdown point).
+pub(super) const LANDING_APPROACH_ALT_M: f32 = 40.0;
+
+/// A plane's landing, as ArduPilot flies one: the final approach fix on the line from `home`
+/// through the plane's `position` ([`LANDING_APPROACH_M`] out, [`LANDING_APPROACH_ALT_M`]
+/// up), then NAV_LAND on `home`. Item 0 is home itself (ArduPilot's).
+pub(super) fn landing_mission(home: (f64, f64), position: (f64, f64)) -> Vec<MissionItem> {
+    const M_PER_DEG: f64 = 111_319.49;
+    let cos_lat = home.0.to_radians().cos().max(1e-6);
+    let north = (position.0 - home.0) * M_PER_DEG;
+    let east = (position.1 - home.1) * M_PER_DEG * cos_lat;
+    let d = north.hypot(east);
+    // Over home already: approach from the north.
+    let (un, ue) = if d < 1.0 {
+        (1.0, 0.0)
+    } else {
+        (north / d, east / d)
+    };
+    let fix = (
+        home.0 + un * LANDING_APPROACH_M / M_PER_DEG,
+        home.1 + ue * LANDING_APPROACH_M / (M_PER_DEG * cos_lat),
+    );
+    let mut land = MissionItem::waypoint(home.0, home.1, 0.0);
+    land.command = MavCmd::MAV_CMD_NAV_LAND;
+    vec![
+        MissionItem::waypoint(home.0, home.1, 0.0),
+        MissionItem::waypoint(fix.0, fix.1, LANDING_APPROACH_ALT_M),
+        land,
+    ]
 }
 
 /// The flight state an autopilot-chosen mode means (RC switch, failsafe, end of mission).
@@ -200,6 +237,32 @@ pub(super) fn rc_channels(kind: VehicleKind, mc: Option<&ManualControl>) -> [u16
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_landing_approaches_from_the_planes_side_and_lands_on_home() {
+        let home = (41.275, 1.987);
+        // The plane 2 km east of home: the approach fix 700 m east, 40 m up; NAV_LAND on home.
+        let east = (
+            41.275,
+            1.987 + 2000.0 / (111_319.49 * 41.275_f64.to_radians().cos()),
+        );
+        let m = landing_mission(home, east);
+        assert_eq!(m.len(), 3);
+        assert_eq!(m[1].command, MavCmd::MAV_CMD_NAV_WAYPOINT);
+        assert_eq!(m[2].command, MavCmd::MAV_CMD_NAV_LAND);
+        assert_eq!(
+            (m[2].lat_deg(), m[2].lon_deg()),
+            (m[0].lat_deg(), m[0].lon_deg())
+        );
+        let fix_east = (m[1].lon_deg() - home.1) * 111_319.49 * home.0.to_radians().cos();
+        let fix_north = (m[1].lat_deg() - home.0) * 111_319.49;
+        assert!((fix_east - LANDING_APPROACH_M).abs() < 1.0, "{fix_east}");
+        assert!(fix_north.abs() < 1.0, "{fix_north}");
+        assert_eq!(m[1].z, LANDING_APPROACH_ALT_M);
+        // Over home: from the north.
+        let m = landing_mission(home, home);
+        assert!(m[1].lat_deg() > home.0);
+    }
 
     #[test]
     fn every_rover_state_but_configure_has_a_mode() {
