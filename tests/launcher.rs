@@ -1009,6 +1009,13 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
     assert_eq!(s["done"], true, "{end}");
     let detections = s["detections"].as_array().unwrap();
     assert_eq!(detections.len(), placed, "every point found: {end}");
+    // Typed detections (the VAS's `detection` event): how sure the detector was, as it passed.
+    assert!(
+        detections.iter().all(|d| d["confidence"]
+            .as_f64()
+            .is_some_and(|c| (0.5..=1.0).contains(&c))),
+        "{end}"
+    );
     assert!(
         detections.iter().all(|d| d["visited"].is_array()),
         "every detection visited: {end}"

@@ -3,12 +3,11 @@
 //! (`--sensor-radius`) of it, horizontally.
 //!
 //! A detection goes to the ground as a STATUSTEXT of severity WARNING,
-//! `POI <id> <lat> <lon>` (at most 50 characters, the field's size). The VAS raises every
-//! STATUSTEXT of severity WARNING or worse as its `alarm` event (`autopilot: POI 3 41.2751234
-//! 1.9871234`), so the detection reaches the fleet layer through the path any autopilot's
-//! text already takes, with no new MAVLink message and no change to the VAS. WARNING rather
-//! than NOTICE only because that is the VAS's alarm threshold; [`parse_detection`] reads the
-//! text back (the fleet layer uses the same format, documented in `services/fleet/README.md`).
+//! `POI <id> <lat> <lon> <confidence>` ([`usal_types::PoiDetection::to_text`], at most 50
+//! characters, the field's size): no new MAVLink message. The VAS reads it back
+//! ([`usal_types::PoiDetection::parse`]) and raises its typed `detection` event (position,
+//! confidence, which vehicle), not an alarm. The confidence falls from 1 over the point to 0.5
+//! at the footprint's edge.
 //!
 //! Pure: [`Detector::check`] takes the vehicle's local position and returns what it newly
 //! sees; the driver in [`crate::sim`] calls it after each step.
@@ -131,13 +130,15 @@ impl Detector {
         Ok(Self { radius_m, points })
     }
 
-    /// The points within the footprint of `pos` not seen before, now marked seen.
-    pub fn check(&mut self, pos: Ned) -> Vec<Poi> {
+    /// The points within the footprint of `pos` not seen before, now marked seen, each with
+    /// how sure the detector is (1 over it, 0.5 at the footprint's edge).
+    pub fn check(&mut self, pos: Ned) -> Vec<(Poi, f32)> {
         let mut out = Vec::new();
         for (poi, local, seen) in &mut self.points {
-            if !*seen && pos.horizontal_distance(local) <= self.radius_m {
+            let d = pos.horizontal_distance(local);
+            if !*seen && d <= self.radius_m {
                 *seen = true;
-                out.push(*poi);
+                out.push((*poi, (1.0 - 0.5 * d / self.radius_m) as f32));
             }
         }
         out
@@ -149,10 +150,16 @@ impl Detector {
     }
 }
 
-/// The STATUSTEXT of a detection: `POI <id> <lat> <lon>` with 7 decimals (about 1 cm), at most
-/// 34 characters, within the field's 50.
-pub fn detection_text(p: &Poi) -> String {
-    format!("POI {} {:.7} {:.7}", p.id, p.lat, p.lon)
+/// The STATUSTEXT of a detection seen with `confidence` (see the module doc).
+pub fn detection_text(p: &Poi, confidence: f32) -> String {
+    usal_types::PoiDetection {
+        id: p.id,
+        lat: p.lat,
+        lon: p.lon,
+        confidence,
+        by: String::new(),
+    }
+    .to_text()
 }
 
 /// The STATUSTEXT message carrying `text` at severity WARNING (see the module doc).
@@ -162,21 +169,6 @@ pub fn statustext(text: &str) -> mavlink::dialects::ardupilotmega::MavMessage {
         severity: MavSeverity::MAV_SEVERITY_WARNING,
         text: text.into(),
         ..Default::default()
-    })
-}
-
-/// Reads a detection back from a STATUSTEXT, or from the VAS's alarm text that carries it
-/// (`autopilot: POI 3 41.2751234 1.9871234`); `None` for any other text.
-pub fn parse_detection(text: &str) -> Option<Poi> {
-    let at = text.find("POI ")?;
-    let mut it = text[at + 4..].split_whitespace();
-    let id = it.next()?.parse().ok()?;
-    let lat: f64 = it.next()?.parse().ok()?;
-    let lon: f64 = it.next()?.parse().ok()?;
-    ((-90.0..=90.0).contains(&lat) && (-180.0..=180.0).contains(&lon)).then_some(Poi {
-        id,
-        lat,
-        lon,
     })
 }
 
@@ -201,7 +193,10 @@ mod tests {
         assert_eq!((pois[0].id, pois[1].id), (1, 2));
         let mut d = Detector::new(HOME, &pois, 12.0).unwrap();
         // The first point is ~11.1 m north of home.
-        assert!(d.check(Ned::default()).iter().map(|p| p.id).eq([1]));
+        let seen = d.check(Ned::default());
+        assert!(seen.iter().map(|p| p.0.id).eq([1]));
+        // 11.1 m of a 12 m footprint: near its edge, not sure.
+        assert!((0.5..0.6).contains(&seen[0].1), "{seen:?}");
         assert!(d.check(Ned::default()).is_empty(), "seen only once");
         assert!(d
             .check(Ned {
@@ -227,18 +222,14 @@ mod tests {
     }
 
     #[test]
-    fn the_text_fits_statustext_and_reads_back_through_the_vas_alarm() {
+    fn the_text_says_how_sure_and_reads_back() {
         let p = Poi {
-            id: 4_000_000_000,
-            lat: -89.123_456_7,
-            lon: -179.123_456_7,
+            id: 7,
+            lat: 41.275_123_4,
+            lon: 1.987_123_4,
         };
-        let t = detection_text(&p);
-        assert!(t.len() <= 50, "{t}");
-        let back = parse_detection(&format!("autopilot: {t}")).unwrap();
-        assert_eq!(back.id, p.id);
-        assert!((back.lat - p.lat).abs() < 1e-7 && (back.lon - p.lon).abs() < 1e-7);
-        assert_eq!(parse_detection("autopilot: Reached waypoint #3"), None);
-        assert_eq!(parse_detection("POI x 1 2"), None);
+        let d = usal_types::PoiDetection::parse(&detection_text(&p, 0.5)).unwrap();
+        assert_eq!((d.id, d.confidence), (7, 0.5));
+        assert!((d.lat - p.lat).abs() < 1e-7 && (d.lon - p.lon).abs() < 1e-7);
     }
 }

@@ -134,8 +134,8 @@ impl Simulator {
         let Some(d) = self.detector.as_mut() else {
             return;
         };
-        for poi in d.check(self.vehicle.position()) {
-            let text = crate::detector::detection_text(&poi);
+        for (poi, confidence) in d.check(self.vehicle.position()) {
+            let text = crate::detector::detection_text(&poi, confidence);
             tracing::info!(poi = poi.id, "detected: {text}");
             self.link.send(&crate::detector::statustext(&text));
         }

@@ -543,6 +543,35 @@ impl PlanGeometry {
     pub fn leg_of(&self, p: &PlanPoint) -> Option<&LegGeometry> {
         self.legs.get(usize::from(p.leg))
     }
+
+    /// The nominal waypoints as a map draws them, in flying order.
+    pub fn map_points(&self) -> Vec<MapPoint> {
+        self.points
+            .iter()
+            .map(|p| {
+                let (lat, lon) = self.lat_lon(p);
+                MapPoint {
+                    lat,
+                    lon,
+                    leg: self.leg_of(p).map(|l| l.id.clone()).unwrap_or_default(),
+                    waits: p.waits,
+                }
+            })
+            .collect()
+    }
+}
+
+/// One nominal waypoint of a plan on a station's map ([`PlanGeometry::map_points`]).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct MapPoint {
+    /// Latitude, degrees.
+    pub lat: f64,
+    /// Longitude, degrees.
+    pub lon: f64,
+    /// Its leg's id (empty for a leg the FPMa left out).
+    pub leg: String,
+    /// Part of a hold or loop that waits (drawn once).
+    pub waits: bool,
 }
 
 #[cfg(test)]

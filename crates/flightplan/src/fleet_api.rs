@@ -56,6 +56,9 @@ pub struct Detection {
     pub lat: f64,
     /// Longitude, degrees.
     pub lon: f64,
+    /// How sure the detector was, 0..1.
+    #[serde(default)]
+    pub confidence: f32,
     /// Seconds into the fleet plan when it was reported.
     pub at_s: f64,
     /// Visited by an investigator (which, and when).

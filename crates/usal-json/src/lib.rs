@@ -80,6 +80,7 @@ fn registry() -> Vec<Known> {
         Attitude,
         Speeds,
         Home,
+        PoiDetection,
         VehicleKind,
         FlightState,
         Vec<FlightState>,

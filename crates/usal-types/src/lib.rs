@@ -57,6 +57,58 @@ pub struct Home {
     pub alt: f64,
 }
 
+/// A point of interest an on-board detector reported (event `detection` of the VAS; the Broz
+/// search, seed 002): where it is, how sure the detector is, and which vehicle saw it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoiDetection {
+    /// The detector's number for it.
+    pub id: u32,
+    /// Latitude, degrees.
+    pub lat: f64,
+    /// Longitude, degrees.
+    pub lon: f64,
+    /// How sure the detector is, 0..1.
+    pub confidence: f32,
+    /// The vehicle that saw it (its namespace, `rover1`); empty as read from MAVLink.
+    pub by: String,
+}
+
+impl PoiDetection {
+    /// The text a detector sends over MAVLink (a STATUSTEXT, at most 50 characters):
+    /// `POI <id> <lat> <lon> <confidence>`, 7 decimals (about 1 cm) and 2.
+    pub fn to_text(&self) -> String {
+        format!(
+            "POI {} {:.7} {:.7} {:.2}",
+            self.id, self.lat, self.lon, self.confidence
+        )
+    }
+
+    /// Reads [`PoiDetection::to_text`] back (`by` empty); a text without the confidence (an
+    /// older detector) reads as sure. `None` for any other text, coordinates out of range or a
+    /// confidence outside 0..1.
+    pub fn parse(text: &str) -> Option<Self> {
+        let mut it = text.trim().strip_prefix("POI ")?.split_whitespace();
+        let id = it.next()?.parse().ok()?;
+        let lat: f64 = it.next()?.parse().ok()?;
+        let lon: f64 = it.next()?.parse().ok()?;
+        let confidence: f32 = match it.next() {
+            Some(c) => c.parse().ok()?,
+            None => 1.0,
+        };
+        let ok = (-90.0..=90.0).contains(&lat)
+            && (-180.0..=180.0).contains(&lon)
+            && (0.0..=1.0).contains(&confidence)
+            && it.next().is_none();
+        ok.then(|| Self {
+            id,
+            lat,
+            lon,
+            confidence,
+            by: String::new(),
+        })
+    }
+}
+
 /// What a waypoint's altitude is measured from (a plan's `altRef`), which decides the
 /// MAVLink frame of its mission item.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -626,6 +678,35 @@ pub struct ReplayStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_detection_fits_a_statustext_and_reads_back() {
+        let d = PoiDetection {
+            id: 4_000_000_000,
+            lat: -89.123_456_7,
+            lon: -179.123_456_7,
+            confidence: 0.73,
+            by: String::new(),
+        };
+        let t = d.to_text();
+        assert!(t.len() <= 50, "{t}");
+        let back = PoiDetection::parse(&t).unwrap();
+        assert_eq!((back.id, back.confidence), (d.id, 0.73));
+        assert!((back.lat - d.lat).abs() < 1e-7 && (back.lon - d.lon).abs() < 1e-7);
+        assert_eq!(
+            PoiDetection::parse("POI 3 41.2 1.9").unwrap().confidence,
+            1.0
+        );
+        for not in [
+            "Reached waypoint #3",
+            "POI x 1 2",
+            "POI 3 91 1",
+            "POI 3 1 1 1.5",
+            "xPOI 3 1 1",
+        ] {
+            assert_eq!(PoiDetection::parse(not), None, "{not}");
+        }
+    }
 
     #[test]
     fn state_names_round_trip() {

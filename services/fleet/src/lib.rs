@@ -16,8 +16,9 @@
 //! [`search`] is the investigator's nearest-neighbour choice and [`separation`] the distance
 //! monitor, both pure; [`api`] the wire types; this file the executor on a middleware node.
 //!
-//! Detections come from the vehicles' detectors as the VAS's `alarm` event (a mavsim detector
-//! sends `POI <id> <lat> <lon>` as a STATUSTEXT of severity WARNING, see `sim/src/detector.rs`).
+//! Detections come from the vehicles' detectors as the VAS's typed `detection` event (position,
+//! confidence, which vehicle: `usal_types::PoiDetection`; a mavsim detector sends it as a
+//! STATUSTEXT the VAS reads back, see `sim/src/detector.rs`).
 //! Holds (separation, `pause`) put the vehicle's VAS in PARKING (the autopilot's HOLD: the
 //! vehicle stops where it is, its waypoint queue kept) and release it with
 //! WAYPOINT_NAVIGATION; every plan started is followed by an explicit WAYPOINT_NAVIGATION, so
@@ -50,7 +51,7 @@ use marea::{CallError, Function, NetworkConfig, Node, Service};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
-use usal_types::{Alarm, FlightState, Position, StateChangeReply, StateChangeRequest};
+use usal_types::{FlightState, PoiDetection, Position, StateChangeReply, StateChangeRequest};
 
 use crate::plan::{Block, BlockKind, FleetPlan, WaitEvent};
 use crate::separation::{Action, Monitor};
@@ -764,9 +765,9 @@ impl Fleet {
             let progress = self
                 .svc
                 .subscribe_variable::<Progress>(&format!("{}/fpma/progress", v.prefix))?;
-            let alarms = self
+            let detections = self
                 .svc
-                .subscribe_event::<Alarm>(&format!("{}/vas/alarm", v.prefix))?;
+                .subscribe_event::<PoiDetection>(&format!("{}/vas/detection", v.prefix))?;
             let me = self.clone();
             let stop = stop.clone();
             let id = v.id.clone();
@@ -822,24 +823,26 @@ impl Fleet {
                             drop(st);
                             me.bump();
                         }
-                        a = alarms.recv() => {
-                            let a = match a {
-                                Ok(x) => x,
+                        d = detections.recv() => {
+                            let d = match d {
+                                Ok(x) => x.value,
                                 Err(marea::RecvError::Closed) => return,
                                 Err(e) => { tracing::warn!("{id}: {e}"); continue }
                             };
-                            if let Some((pid, lat, lon)) = parse_detection(&a.value.text) {
-                                let mut st = me.state();
-                                if !st.detections.iter().any(|d| d.id == pid && d.by == id) {
-                                    tracing::info!("{id} detected #{pid} at {lat:.7},{lon:.7}");
-                                    let at_s = me.elapsed();
-                                    st.detections.push(Detection {
-                                        id: pid, by: id.clone(), lat, lon, at_s, visited: None,
-                                    });
-                                }
-                                drop(st);
-                                me.bump();
+                            let mut st = me.state();
+                            if !st.detections.iter().any(|x| x.id == d.id && x.by == id) {
+                                tracing::info!(
+                                    "{id} detected #{} at {:.7},{:.7} ({:.0} % sure)",
+                                    d.id, d.lat, d.lon, d.confidence * 100.0
+                                );
+                                let at_s = me.elapsed();
+                                st.detections.push(Detection {
+                                    id: d.id, by: id.clone(), lat: d.lat, lon: d.lon,
+                                    confidence: d.confidence, at_s, visited: None,
+                                });
                             }
+                            drop(st);
+                            me.bump();
                         }
                     }
                 }
@@ -921,17 +924,6 @@ fn route_of(xml: &str, kind: flightplan::vehicle::VehicleKind) -> Vec<(f64, f64)
     };
     let pts: Vec<(f64, f64)> = plan.nominal().iter().map(|w| (w.lat, w.lon)).collect();
     flightplan::fleet_api::thin(&pts, flightplan::fleet_api::ROUTE_POINTS)
-}
-
-/// A detection in a VAS alarm's text: `autopilot: POI <id> <lat> <lon>` (the mavsim detector's
-/// STATUSTEXT, `sim/src/detector.rs`).
-pub fn parse_detection(text: &str) -> Option<(u32, f64, f64)> {
-    let at = text.find("POI ")?;
-    let mut it = text[at + 4..].split_whitespace();
-    let id = it.next()?.parse().ok()?;
-    let lat: f64 = it.next()?.parse().ok()?;
-    let lon: f64 = it.next()?.parse().ok()?;
-    ((-90.0..=90.0).contains(&lat) && (-180.0..=180.0).contains(&lon)).then_some((id, lat, lon))
 }
 
 /// The flight plan of one visit: from where the vehicle is to the detection, fly-over.
@@ -1017,16 +1009,5 @@ mod tests {
         );
         assert_eq!(r.len(), 2);
         assert!(route_of("<nope/>", flightplan::vehicle::VehicleKind::Rover).is_empty());
-    }
-
-    #[test]
-    fn detections_are_read_from_the_vas_alarm_text_only() {
-        assert_eq!(
-            parse_detection("autopilot: POI 3 41.2751234 1.9871234"),
-            Some((3, 41.275_123_4, 1.987_123_4))
-        );
-        assert_eq!(parse_detection("autopilot: Reached waypoint #3"), None);
-        assert_eq!(parse_detection("autopilot: POI 3 91 1"), None);
-        assert_eq!(parse_detection("POI -1 1 1"), None);
     }
 }

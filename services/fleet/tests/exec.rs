@@ -16,7 +16,12 @@ async fn run_plan(tag: &str, vars: &str, body: &str) -> FleetStatus {
     run_plan_with(tag, vars, body, None).await
 }
 
-async fn run_plan_with(tag: &str, vars: &str, body: &str, alarm: Option<&str>) -> FleetStatus {
+async fn run_plan_with(
+    tag: &str,
+    vars: &str,
+    body: &str,
+    detection: Option<usal_types::PoiDetection>,
+) -> FleetStatus {
     let src = format!(
         "<fleetPlan name=\"{tag}\">\n<vehicle id=\"a\" prefix=\"nobody-{tag}\"/>\n<variables>{vars}</variables>\n<seq>\n{body}\n</seq>\n</fleetPlan>"
     );
@@ -36,7 +41,7 @@ async fn run_plan_with(tag: &str, vars: &str, body: &str, alarm: Option<&str>) -
         .unwrap()
         .subscribe_variable::<FleetStatus>("gcs/fleet/status")
         .unwrap();
-    // The vehicle's VAS, as far as alarms go: a node in its namespace.
+    // The vehicle's VAS, as far as detections go: a node in its namespace.
     let vas_net = marea::NetworkConfig::for_service(
         None,
         "vas",
@@ -45,27 +50,23 @@ async fn run_plan_with(tag: &str, vars: &str, body: &str, alarm: Option<&str>) -
     )
     .unwrap();
     let vas_node = marea::Node::open(&vas_net).await.unwrap();
-    let alarms = vas_node
+    let detections = vas_node
         .service("vas")
         .unwrap()
-        .publish_event::<usal_types::Alarm>("alarm")
+        .publish_event::<usal_types::PoiDetection>("detection")
         .unwrap();
-    let alarms = std::sync::Arc::new(alarms);
+    let detections = std::sync::Arc::new(detections);
     // Raised once the plan waits for an event, so the wait cannot miss it.
     let mut raising = None;
     let end = tokio::time::timeout(Duration::from_secs(30), async {
         loop {
             let s = sub.recv().await.expect("status").value;
-            if let Some(text) = alarm.filter(|_| raising.is_none()) {
+            if let Some(d) = detection.clone().filter(|_| raising.is_none()) {
                 if s.doing.iter().any(|d| d.contains("wait for")) {
-                    let alarm = usal_types::Alarm {
-                        severity: usal_types::Severity::Warning,
-                        text: text.to_owned(),
-                    };
-                    let alarms = alarms.clone();
+                    let detections = detections.clone();
                     raising = Some(tokio::spawn(async move {
                         loop {
-                            let _ = alarms.raise(&alarm).await;
+                            let _ = detections.raise(&d).await;
                             tokio::time::sleep(Duration::from_millis(200)).await;
                         }
                     }));
@@ -151,14 +152,20 @@ async fn a_wait_past_its_time_fails_the_plan_naming_the_statement() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_detection_in_a_vas_alarm_ends_a_wait_for_detections_once() {
+async fn a_detection_event_of_the_vas_ends_a_wait_for_detections_once() {
     let s = run_plan_with(
         "detect",
         r#"<var name="seen" type="bool" init="false"/>"#,
         r#"<wait event="detection" vehicle="a" timeoutS="20"/>
 <wait until="detections == 1 and pending == 1 and visited == 0" timeoutS="5"/>
 <set var="seen" value="true"/>"#,
-        Some("autopilot: POI 3 41.2751234 1.9871234"),
+        Some(usal_types::PoiDetection {
+            id: 3,
+            lat: 41.275_123_4,
+            lon: 1.987_123_4,
+            confidence: 0.8,
+            by: "nobody-detect".into(),
+        }),
     )
     .await;
     assert!(s.done, "{s:?}");
@@ -167,5 +174,6 @@ async fn a_detection_in_a_vas_alarm_ends_a_wait_for_detections_once() {
     assert_eq!(s.detections.len(), 1, "{:?}", s.detections);
     let d = &s.detections[0];
     assert_eq!((d.id, d.by.as_str(), d.visited.is_none()), (3, "a", true));
+    assert_eq!(d.confidence, 0.8);
     assert!((d.lat - 41.275_123_4).abs() < 1e-9 && (d.lon - 1.987_123_4).abs() < 1e-9);
 }

@@ -56,19 +56,6 @@ const TRACK_STEP_M: f64 = 2.0;
 /// Track points kept per vehicle (oldest dropped first).
 const MAX_TRACK: usize = 600;
 
-/// One nominal waypoint of the plan the vehicle's FPMa flies, as the map draws it.
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct RoutePoint {
-    /// Latitude, degrees.
-    pub lat: f64,
-    /// Longitude, degrees.
-    pub lon: f64,
-    /// Its leg's id.
-    pub leg: String,
-    /// Part of a hold or loop that waits (drawn once).
-    pub waits: bool,
-}
-
 /// How far back the battery's trend is read to estimate the time left.
 const BATTERY_TREND: Duration = Duration::from_secs(60);
 
@@ -81,7 +68,7 @@ struct Vehicle {
     /// The plan's progress, from the vehicle's FPMa.
     plan: Option<Stamped<Progress>>,
     /// The nominal waypoints of the plan its FPMa flies (empty: none loaded).
-    route: Vec<RoutePoint>,
+    route: Vec<flightplan::api::MapPoint>,
     position: Option<Stamped<Position>>,
     /// Where it has been: a point every [`TRACK_STEP_M`], the last [`MAX_TRACK`].
     track: VecDeque<(f64, f64)>,
@@ -255,7 +242,7 @@ struct VehicleView {
     battery: Option<Aged<BatteryView>>,
     plan: Option<Aged<PlanView>>,
     /// The plan's nominal waypoints, in flying order.
-    route: Vec<RoutePoint>,
+    route: Vec<flightplan::api::MapPoint>,
     /// Where it has been, `[lat, lon]`, oldest first.
     track: Vec<(f64, f64)>,
     home: Option<Aged<Home>>,
@@ -507,19 +494,7 @@ impl Station {
     /// a vehicle not heard of.
     pub fn update_route(&mut self, prefix: &str, g: &flightplan::api::PlanGeometry) {
         if let Some(v) = self.vehicles.get_mut(prefix) {
-            v.route = g
-                .points
-                .iter()
-                .map(|p| {
-                    let (lat, lon) = g.lat_lon(p);
-                    RoutePoint {
-                        lat,
-                        lon,
-                        leg: g.leg_of(p).map(|l| l.id.clone()).unwrap_or_default(),
-                        waits: p.waits,
-                    }
-                })
-                .collect();
+            v.route = g.map_points();
         }
     }
 

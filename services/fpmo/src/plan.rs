@@ -4,7 +4,7 @@
 //! page shows plans another station uploaded, and a plan changed in flight is redrawn from the
 //! vehicle's copy, not from a guess of the station's.
 
-use flightplan::api::PlanGeometry;
+use flightplan::api::{MapPoint, PlanGeometry};
 use flightplan::check;
 use flightplan::geo::{self, GeoPoint};
 use flightplan::model::{FlightPlan, Node, Stage};
@@ -64,19 +64,6 @@ pub struct LegInfo {
     pub length_m: f64,
 }
 
-/// One waypoint on the map.
-#[derive(Clone, Debug, Serialize)]
-pub struct MapPoint {
-    /// Latitude, degrees.
-    pub lat: f64,
-    /// Longitude, degrees.
-    pub lon: f64,
-    /// Leg id (empty for a leg the FPMa left out).
-    pub leg: String,
-    /// Part of a hold or loop shown once.
-    pub waits: bool,
-}
-
 /// The page's view of a plan (`GET /api/plan`).
 #[derive(Clone, Debug, Serialize)]
 pub struct PlanView {
@@ -111,19 +98,7 @@ pub fn distance_m(a: (f64, f64), b: (f64, f64)) -> f64 {
 impl PlanView {
     /// What the page draws of `g`, as the station's revision `rev`.
     pub fn of(g: &PlanGeometry, rev: u64) -> Self {
-        let waypoints: Vec<MapPoint> = g
-            .points
-            .iter()
-            .map(|p| {
-                let (lat, lon) = g.lat_lon(p);
-                MapPoint {
-                    lat,
-                    lon,
-                    leg: g.leg_of(p).map(|l| l.id.clone()).unwrap_or_default(),
-                    waits: p.waits,
-                }
-            })
-            .collect();
+        let waypoints = g.map_points();
         let stages = Stage::ALL
             .into_iter()
             .filter(|s| g.legs.iter().any(|l| l.stage == *s))

@@ -106,6 +106,8 @@ pub enum ApEvent {
     Position(Position),
     /// The autopilot's home (HOME_POSITION), at connection and after each arming.
     Home(usal_types::Home),
+    /// An on-board detector reported a point of interest (its STATUSTEXT, read back).
+    Detection(usal_types::PoiDetection),
     /// Attitude telemetry.
     Attitude(Attitude),
     /// Speeds telemetry.

@@ -21,7 +21,9 @@ use usal_types::{
     ManualCommand, MissionChanged, MissionTime, Position, QueueStatus, Severity, Speeds,
     StateChangeReply, StateChangeRequest, StateChanged, VehicleCommand, Waypoint, WaypointReached,
 };
-use usal_types::{CommandRecord, Failsafe, FailsafeKind, Fence, ParamValue, StationHeartbeat};
+use usal_types::{
+    CommandRecord, Failsafe, FailsafeKind, Fence, ParamValue, PoiDetection, StationHeartbeat,
+};
 
 use crate::airlog::AirLog;
 use crate::apl::{ApEvent, IAutopilot};
@@ -110,6 +112,7 @@ struct Items {
     mission_changed: Event<MissionChanged>,
     failsafe: Event<Failsafe>,
     commands: Event<CommandRecord>,
+    detection: Event<PoiDetection>,
 }
 
 struct Core {
@@ -125,6 +128,8 @@ struct Core {
     onboard: StdMutex<(u64, fence::Onboard)>,
     /// The air-side log, when configured.
     air: Option<AirLog>,
+    /// The vehicle's name, its namespace (`rover1`; empty without one): who saw a detection.
+    vehicle: String,
 }
 
 use marea::sync::lock;
@@ -532,6 +537,12 @@ impl Core {
         match ev {
             ApEvent::Position(p) => drop(self.items.position.set(&p)),
             ApEvent::Home(h) => drop(self.items.home.set(&h)),
+            ApEvent::Detection(mut d) => {
+                d.by.clone_from(&self.vehicle);
+                if let Err(e) = self.items.detection.raise_nowait(&d) {
+                    tracing::warn!("raising detection: {e}");
+                }
+            }
             ApEvent::Attitude(a) => drop(self.items.attitude.set(&a)),
             ApEvent::Speeds(s) => drop(self.items.speeds.set(&s)),
             ApEvent::Battery(b) => drop(self.items.battery.set(&b)),
@@ -761,6 +772,7 @@ impl IService for Vas {
             mission_changed: ctx.publish_event("mission_changed")?,
             failsafe: ctx.publish_event("failsafe")?,
             commands: ctx.publish_event("commands")?,
+            detection: ctx.publish_event("detection")?,
         };
         let air = match &self.cfg.air_log {
             None => None,
@@ -787,6 +799,14 @@ impl IService for Vas {
             }),
             transition: tokio::sync::Mutex::new(()),
             items,
+            vehicle: {
+                let me = ctx.full_name("");
+                let me = me.trim_end_matches('/');
+                me.strip_suffix("vas")
+                    .unwrap_or(me)
+                    .trim_end_matches('/')
+                    .to_owned()
+            },
             fence: StdMutex::new(self.cfg.fence.clone()),
             onboard: StdMutex::new((0, fence::Onboard::initial(self.cfg.fence.as_ref()))),
             air,

@@ -1062,6 +1062,13 @@ impl Driver {
                 }
             }
             MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
+            MavEvent::StatusText { text, .. }
+                if usal_types::PoiDetection::parse(&text).is_some() =>
+            {
+                if let Some(d) = usal_types::PoiDetection::parse(&text) {
+                    self.emit(ApEvent::Detection(d));
+                }
+            }
             MavEvent::StatusText {
                 severity: sev,
                 text,
