@@ -1009,6 +1009,10 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
     assert_eq!(s["done"], true, "{end}");
     let detections = s["detections"].as_array().unwrap();
     assert_eq!(detections.len(), placed, "every point found: {end}");
+    // The shed between the investigator and the area: driven round, never entered.
+    let sep = &s["separation"];
+    assert_eq!(sep["obstacle_entries"], 0, "{end}");
+    assert!(sep["detours"].as_u64().is_some_and(|d| d >= 1), "{end}");
     // Typed detections (the VAS's `detection` event): how sure the detector was, as it passed.
     assert!(
         detections.iter().all(|d| d["confidence"]

@@ -455,6 +455,8 @@ async fn follow(
     let opened = Instant::now();
     let pause = svc.function::<(), CommandAck>(&fpma("pause"))?;
     let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
+    let last_progress = svc.function::<(), Progress>(&fpma("progress"))?;
+    let mut asked_progress = false;
 
     let sink = fpma("plans");
     for w in &s.warnings {
@@ -909,6 +911,20 @@ async fn follow(
             .aircraft
             .as_ref()
             .is_none_or(|a| a.landing.is_none() || t.flight.parked_after_flight());
+        // Completed by the event alone and no repeat of the variable yet: ask the FPMa for
+        // its last progress (a call, which a lossy radio does not lose), once.
+        if let Some(since) = completing {
+            let progress_done = t.progress.as_ref().is_some_and(|p| p.completed);
+            if t.completed_event && !progress_done && !asked_progress && since.elapsed() >= SETTLE {
+                asked_progress = true;
+                let ask = last_progress.call(&(), SETTLE);
+                if let Ok(Ok(p)) = tokio::time::timeout(2 * SETTLE, ask).await {
+                    if p.version > 0 {
+                        t.progress = Some(p);
+                    }
+                }
+            }
+        }
         let settled = completing.is_some_and(|since| {
             let progress_done = t.progress.as_ref().is_some_and(|p| p.completed);
             let waited = since.elapsed() >= SETTLE_ON_EVENT;

@@ -76,6 +76,12 @@ pub struct SeparationStatus {
     pub violations: u32,
     /// The closest two vehicles came, metres (`None` before two positions are known).
     pub closest_m: Option<f64>,
+    /// Times a vehicle entered a static obstacle (below its top).
+    #[serde(default)]
+    pub obstacle_entries: u32,
+    /// Visits routed round an obstacle (the straight line was not clear).
+    #[serde(default)]
+    pub detours: u32,
 }
 
 /// Variable `<namespace>/fleet/status`: the whole fleet, published on every change (at most

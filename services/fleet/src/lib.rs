@@ -36,6 +36,7 @@
 pub mod plan;
 pub mod search;
 pub mod separation;
+pub mod wavefront;
 
 use std::collections::{HashMap, HashSet};
 use std::future::Future;
@@ -205,6 +206,8 @@ struct VehState {
     paused: bool,
     /// The nominal waypoints of its plan, for the stations' maps.
     route: Vec<(f64, f64)>,
+    /// The static obstacle it is inside now, if any (an entry is counted once).
+    inside: Option<String>,
 }
 
 #[derive(Default)]
@@ -221,6 +224,10 @@ struct State {
     done: bool,
     failed: Option<String>,
     ended: Option<f64>,
+    /// Times a vehicle entered a static obstacle.
+    obstacle_entries: u32,
+    /// Visits routed round an obstacle.
+    detours: u32,
 }
 
 type Exec<'a> = Pin<Box<dyn Future<Output = anyhow::Result<()>> + Send + 'a>>;
@@ -526,8 +533,24 @@ impl Fleet {
                 self.plan.vehicles[i].id
             );
             let r = if far > VISIT_RADIUS_M {
-                self.fly(i, &visit_plan(id, here, target, speed), true)
-                    .await
+                // Round the static obstacles (a rover at ground level: every one is in the way).
+                match wavefront::route(here, target, 0.0, &self.plan.obstacles) {
+                    Ok(via) => {
+                        if via.len() > 1 {
+                            tracing::info!(
+                                "{}: detection #{id} routed round the obstacles ({} turns)",
+                                self.plan.vehicles[i].id,
+                                via.len() - 1
+                            );
+                            self.state().detours += 1;
+                        }
+                        self.fly(i, &visit_plan(id, here, &via, speed), true).await
+                    }
+                    Err(e) => Err(anyhow!(
+                        "{}: cannot reach detection #{id}: {e}",
+                        self.plan.vehicles[i].id
+                    )),
+                }
             } else {
                 Ok(())
             };
@@ -784,6 +807,24 @@ impl Fleet {
                             let actions = {
                                 let mut st = me.state();
                                 st.vs[i].position = Some((p.value.lat, p.value.lon));
+                                // An obstacle entered below its top: counted once per entry.
+                                let inside = me
+                                    .plan
+                                    .obstacles
+                                    .iter()
+                                    .find(|o| {
+                                        p.value.alt_rel < o.height_m
+                                            && wavefront::contains(o, (p.value.lat, p.value.lon))
+                                    })
+                                    .map(|o| o.name.clone());
+                                if inside.is_some() && st.vs[i].inside.is_none() {
+                                    tracing::error!(
+                                        "{id} entered obstacle `{}`",
+                                        inside.as_deref().unwrap_or_default()
+                                    );
+                                    st.obstacle_entries += 1;
+                                }
+                                st.vs[i].inside = inside;
                                 st.monitor
                                     .as_mut()
                                     .map(|m| m.update(i, p.value.lat, p.value.lon))
@@ -880,11 +921,16 @@ impl Fleet {
                 .collect(),
             detections: st.detections.clone(),
             visit_order: st.visit_order.clone(),
-            separation: st
-                .monitor
-                .as_ref()
-                .map(|m| m.status().clone())
-                .unwrap_or_default(),
+            separation: {
+                let mut s = st
+                    .monitor
+                    .as_ref()
+                    .map(|m| m.status().clone())
+                    .unwrap_or_default();
+                s.obstacle_entries = st.obstacle_entries;
+                s.detours = st.detours;
+                s
+            },
             vars: self
                 .plan
                 .vars
@@ -927,19 +973,39 @@ fn route_of(xml: &str, kind: flightplan::vehicle::VehicleKind) -> Vec<(f64, f64)
 }
 
 /// The flight plan of one visit: from where the vehicle is to the detection, fly-over.
-pub fn visit_plan(id: u32, from: (f64, f64), to: (f64, f64), speed: f64) -> String {
+/// The route is `via` (the wavefront planner's turns, the detection last), fly-over at the
+/// detection.
+pub fn visit_plan(id: u32, from: (f64, f64), via: &[(f64, f64)], speed: f64) -> String {
+    let mut fixes = format!(
+        r#"    <fix id="HERE" lat="{:.8}" lon="{:.8}" alt="0"/>"#,
+        from.0, from.1
+    );
+    let mut legs = String::from(r#"    <leg type="IF" fix="HERE"/>"#);
+    for (k, p) in via.iter().enumerate() {
+        let last = k + 1 == via.len();
+        let fix = if last {
+            "POI".to_owned()
+        } else {
+            format!("T{k}")
+        };
+        fixes.push_str(&format!(
+            "\n    <fix id=\"{fix}\" lat=\"{:.8}\" lon=\"{:.8}\" alt=\"0\"/>",
+            p.0, p.1
+        ));
+        legs.push_str(&format!(
+            "\n    <leg type=\"TF\" fix=\"{fix}\"{}/>",
+            if last { " flyOver=\"true\"" } else { "" }
+        ));
+    }
     format!(
         r#"<flightPlan name="visit-{id}" version="1" altRef="REL" defaultSpeed="{speed}">
   <fixes>
-    <fix id="HERE" lat="{:.8}" lon="{:.8}" alt="0"/>
-    <fix id="POI" lat="{:.8}" lon="{:.8}" alt="0"/>
+{fixes}
   </fixes>
   <mission>
-    <leg type="IF" fix="HERE"/>
-    <leg type="TF" fix="POI" flyOver="true"/>
+{legs}
   </mission>
-</flightPlan>"#,
-        from.0, from.1, to.0, to.1
+</flightPlan>"#
     )
 }
 
@@ -988,12 +1054,25 @@ mod tests {
 
     #[test]
     fn a_visit_plan_is_a_valid_rover_plan_to_the_point() {
-        let xml = visit_plan(3, (41.2752, 1.9875), (41.2756, 1.9872), 3.0);
+        let xml = visit_plan(3, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0);
         let params = flightplan::vehicle::VehicleParams::rover();
         let plan = flightplan::check::load(&xml, &params).unwrap();
         let last = plan.nominal().last().unwrap();
         assert!((last.lat - 41.2756).abs() < 1e-7 && (last.lon - 1.9872).abs() < 1e-7);
         assert!(last.fly_over);
+        // Round an obstacle: through each turn, the detection last.
+        let via = [(41.2753, 1.9876), (41.2755, 1.9874), (41.2756, 1.9872)];
+        let xml = visit_plan(4, (41.2752, 1.9875), &via, 3.0);
+        let plan = flightplan::check::load(&xml, &params).unwrap();
+        let n = plan.nominal();
+        for p in via {
+            assert!(
+                n.iter()
+                    .any(|w| (w.lat - p.0).abs() < 1e-7 && (w.lon - p.1).abs() < 1e-7),
+                "{p:?} not flown: {xml}"
+            );
+        }
+        assert!(n.last().unwrap().fly_over);
     }
 
     #[test]
@@ -1004,7 +1083,7 @@ mod tests {
         assert_eq!((t[0].0, t[299].0), (0.0, 999.0));
         assert_eq!(flightplan::fleet_api::thin(&pts[..5], 300).len(), 5);
         let r = route_of(
-            &visit_plan(1, (41.2752, 1.9875), (41.2756, 1.9872), 3.0),
+            &visit_plan(1, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0),
             flightplan::vehicle::VehicleKind::Rover,
         );
         assert_eq!(r.len(), 2);

@@ -197,6 +197,8 @@ pub struct FleetPlan {
     pub vars: Vec<(String, Value)>,
     /// The separation rule, if any.
     pub separation: Option<SeparationRule>,
+    /// The static obstacles investigators fly around (`<obstacles>`).
+    pub obstacles: Vec<crate::wavefront::Obstacle>,
     /// The statements (a sequence).
     pub body: Block,
 }
@@ -273,12 +275,18 @@ pub fn parse(src: &str, base: &Path) -> Result<FleetPlan, FleetPlanError> {
         syncs: HashMap::new(),
     };
     let mut separation = None;
+    let mut obstacles = Vec::new();
     let mut body: Option<&Element> = None;
     for c in &root.children {
         match c.name.as_str() {
             "vehicle" => p.vehicle(c)?,
             "variables" => p.variables(c)?,
             "separation" if separation.is_none() => separation = Some(separation_rule(c)?),
+            "obstacles" => {
+                for o in &c.children {
+                    obstacles.push(obstacle(o)?);
+                }
+            }
             "seq" | "par" if body.is_none() => body = Some(c),
             "separation" | "seq" | "par" => {
                 return Err(FleetPlanError::at(c, "only one of these per plan"))
@@ -286,7 +294,7 @@ pub fn parse(src: &str, base: &Path) -> Result<FleetPlan, FleetPlanError> {
             other => {
                 return Err(FleetPlanError::at(
                     c,
-                    format!("unknown element <{other}> (expected vehicle, variables, separation, seq or par)"),
+                    format!("unknown element <{other}> (expected vehicle, variables, separation, obstacles, seq or par)"),
                 ))
             }
         }
@@ -307,7 +315,70 @@ pub fn parse(src: &str, base: &Path) -> Result<FleetPlan, FleetPlanError> {
         vehicles: p.vehicles,
         vars: p.vars,
         separation,
+        obstacles,
         body,
+    })
+}
+
+/// `<obstacle name height><pt lat lon/>...</obstacle>`: an area at least 3 points round and
+/// how tall it stands above home.
+fn obstacle(e: &Element) -> Result<crate::wavefront::Obstacle, FleetPlanError> {
+    if e.name != "obstacle" {
+        return Err(FleetPlanError::at(
+            e,
+            format!(
+                "unknown element <{}> in <obstacles> (expected obstacle)",
+                e.name
+            ),
+        ));
+    }
+    let mut a = Attrs::new(e, &["name", "height"]);
+    let name = a.req("name")?;
+    let height_m = a
+        .number("height")?
+        .ok_or_else(|| FleetPlanError::at(e, "missing attribute `height` (metres above home)"))?;
+    a.finish()?;
+    if !(height_m.is_finite() && height_m > 0.0) {
+        return Err(FleetPlanError::at(
+            e,
+            format!("height {height_m} must be above 0 metres"),
+        ));
+    }
+    let mut polygon = Vec::new();
+    for p in &e.children {
+        if p.name != "pt" {
+            return Err(FleetPlanError::at(
+                p,
+                format!("unknown element <{}> in <obstacle> (expected pt)", p.name),
+            ));
+        }
+        let mut a = Attrs::new(p, &["lat", "lon"]);
+        let (lat, lon) = (a.number("lat")?, a.number("lon")?);
+        a.finish()?;
+        match (lat, lon) {
+            (Some(lat), Some(lon))
+                if (-90.0..=90.0).contains(&lat) && (-180.0..=180.0).contains(&lon) =>
+            {
+                polygon.push((lat, lon));
+            }
+            _ => {
+                return Err(FleetPlanError::at(
+                    p,
+                    "a point needs lat (-90..90) and lon (-180..180)",
+                ))
+            }
+        }
+    }
+    if polygon.len() < 3 {
+        return Err(FleetPlanError::at(
+            e,
+            format!("obstacle `{name}` has {} points: at least 3", polygon.len()),
+        ));
+    }
+    Ok(crate::wavefront::Obstacle {
+        name,
+        polygon,
+        height_m,
     })
 }
 
@@ -899,6 +970,32 @@ mod tests {
     <wait event="completed" vehicle="a"/>
   </par>
 </fleetPlan>"#;
+
+    #[test]
+    fn obstacles_are_read_and_a_bad_one_names_its_line() {
+        let with = |o: &str| {
+            parse_str(&GOOD.replace("<par>", &format!("<obstacles>{o}</obstacles>\n  <par>")))
+        };
+        let p = with(r#"<obstacle name="shed" height="6"><pt lat="41.2" lon="1.9"/><pt lat="41.3" lon="1.9"/><pt lat="41.3" lon="2.0"/></obstacle>"#).unwrap();
+        assert_eq!(p.obstacles.len(), 1);
+        assert_eq!(
+            (p.obstacles[0].name.as_str(), p.obstacles[0].height_m),
+            ("shed", 6.0)
+        );
+        assert_eq!(p.obstacles[0].polygon[2], (41.3, 2.0));
+        let e = with(r#"<obstacle name="shed" height="6"><pt lat="41.2" lon="1.9"/></obstacle>"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("<obstacle>") && e.contains("at least 3"), "{e}");
+        let e = with(r#"<obstacle name="x" height="-1"/>"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("height -1 must be above 0"), "{e}");
+        let e = with(r#"<obstacle name="x" height="3"><pt lat="95" lon="1"/></obstacle>"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("<pt>"), "{e}");
+    }
 
     #[test]
     fn a_good_plan_parses_with_its_blocks_and_sync_parties() {

@@ -334,6 +334,7 @@ enum Request {
     },
     Command(Command, oneshot::Sender<Result<CommandAck, String>>),
     Geometry(oneshot::Sender<Result<PlanGeometry, String>>),
+    Progress(oneshot::Sender<Result<Progress, String>>),
 }
 
 /// The `fpma` middleware service.
@@ -567,6 +568,13 @@ impl IService for Fpma {
             let t = t.clone();
             async move { ask(&t, Request::Geometry).await }
         })?);
+        // The progress last published, for a caller that must not miss the last one (the
+        // variable is best effort: over a lossy radio its final value can be lost).
+        let t = tx.clone();
+        providers.push(ctx.provide_function("progress", move |(): ()| {
+            let t = t.clone();
+            async move { ask(&t, Request::Progress).await }
+        })?);
         providers.push(command_fn(&ctx, &tx, &commands, "skip_leg", |(): ()| {
             Ok(Command::SkipLeg)
         })?);
@@ -703,6 +711,10 @@ impl IService for Fpma {
                         }
                         Some(Request::Geometry(reply)) => {
                             let _ = reply.send(Ok(core.geometry().clone()));
+                        }
+                        Some(Request::Progress(reply)) => {
+                            let p = last_progress.as_ref().map(|(p, _)| p.clone()).unwrap_or_default();
+                            let _ = reply.send(Ok(p));
                         }
                         None => return,
                     },
