@@ -32,8 +32,8 @@ pub struct Obstacle {
 /// Why no route was found.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RouteError {
-    /// The start or the goal is inside an obstacle (or its clearance).
-    #[error("{what} is inside obstacle `{obstacle}` (or within {CLEARANCE_M} m of it)")]
+    /// The start or the goal is inside an obstacle.
+    #[error("{what} is inside obstacle `{obstacle}`")]
     Inside {
         /// `the start` or `the goal`.
         what: &'static str,
@@ -74,7 +74,7 @@ pub fn route(
         .collect();
     let (s, g) = (local(start), local(goal));
     for (what, p) in [("the start", s), ("the goal", g)] {
-        if let Some((name, _)) = walls.iter().find(|(_, w)| near_or_inside(p, w)) {
+        if let Some((name, _)) = walls.iter().find(|(_, w)| inside(p, w)) {
             return Err(RouteError::Inside {
                 what,
                 obstacle: name.clone(),
@@ -86,10 +86,24 @@ pub fn route(
         return Ok(vec![goal]);
     }
     let grid = Grid::around(&[s, g], &walls).ok_or(RouteError::TooFar)?;
+    // A start or goal closer to an obstacle than the clearance (a point of interest beside a
+    // wall, a vehicle that stopped there) keeps a way out: near it only the obstacle itself
+    // is blocked.
+    let near_end = |c: Xy| {
+        [s, g]
+            .iter()
+            .any(|e| (c.e - e.e).hypot(c.n - e.n) < CLEARANCE_M + CELL_M)
+    };
     let free: Vec<bool> = (0..grid.w * grid.h)
         .map(|i| {
             let c = grid.centre(i % grid.w, i / grid.w);
-            !walls.iter().any(|(_, w)| near_or_inside(c, w))
+            !walls.iter().any(|(_, w)| {
+                if near_end(c) {
+                    inside(c, w)
+                } else {
+                    near_or_inside(c, w)
+                }
+            })
         })
         .collect();
     let cost = grid.wave(&free, grid.cell_of(g));
@@ -347,6 +361,19 @@ mod tests {
             prev = q;
         }
         assert!(len < 130.0, "{len:.0} m: {r:?}");
+    }
+
+    #[test]
+    fn a_goal_beside_a_wall_is_reached_from_its_side() {
+        // 2 m south of the wall, closer than the clearance: reached, never through the wall.
+        let goal = at(45.0, 0.0);
+        let r = route(HOME, goal, 0.0, &[wall(30.0)]).unwrap();
+        assert_eq!(*r.last().unwrap(), goal);
+        let w: Vec<Xy> = wall(30.0).polygon.iter().map(|p| metres(*p)).collect();
+        assert!(r.iter().all(|p| !inside(metres(*p), &w)), "{r:?}");
+        // And from there on to the far side, round the wall.
+        let r = route(goal, at(60.0, 0.0), 0.0, &[wall(30.0)]).unwrap();
+        assert!(r.len() >= 2, "{r:?}");
     }
 
     #[test]
