@@ -1013,6 +1013,7 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
     let sep = &s["separation"];
     assert_eq!(sep["obstacle_entries"], 0, "{end}");
     assert!(sep["detours"].as_u64().is_some_and(|d| d >= 1), "{end}");
+    assert_eq!(s["obstacles"][0]["name"], "shed", "{end}");
     // Typed detections (the VAS's `detection` event): how sure the detector was, as it passed.
     assert!(
         detections.iter().all(|d| d["confidence"]

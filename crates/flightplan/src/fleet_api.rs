@@ -108,6 +108,20 @@ pub struct FleetStatus {
     pub separation: SeparationStatus,
     /// The fleet plan's variables and their values now, in declaration order.
     pub vars: Vec<(String, crate::api::VarValue)>,
+    /// The static obstacles of the fleet plan, for the maps.
+    #[serde(default)]
+    pub obstacles: Vec<ObstacleView>,
+}
+
+/// A static obstacle as the maps draw it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ObstacleView {
+    /// Its name.
+    pub name: String,
+    /// Its height above home, metres.
+    pub height_m: f64,
+    /// Its outline, `(lat, lon)` degrees.
+    pub polygon: Vec<(f64, f64)>,
 }
 
 impl FleetStatus {
@@ -161,6 +175,16 @@ impl FleetStatus {
             sep.violations,
             sep.closest_m.map_or("-".into(), |d| format!("{d:.1} m"))
         );
+        if !self.obstacles.is_empty() {
+            let names: Vec<&str> = self.obstacles.iter().map(|o| o.name.as_str()).collect();
+            s += &format!(
+                "  obstacles: {} ({}), {} visits routed round them, entered {} times\n",
+                names.len(),
+                names.join(", "),
+                sep.detours,
+                sep.obstacle_entries
+            );
+        }
         for v in &self.vehicles {
             s += &format!(
                 "  {} ({}): {} {}\n",

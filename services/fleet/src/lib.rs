@@ -937,6 +937,16 @@ impl Fleet {
                 .iter()
                 .filter_map(|(n, _)| st.vars.get(n).map(|v| (n.clone(), (*v).into())))
                 .collect(),
+            obstacles: self
+                .plan
+                .obstacles
+                .iter()
+                .map(|o| flightplan::fleet_api::ObstacleView {
+                    name: o.name.clone(),
+                    height_m: o.height_m,
+                    polygon: o.polygon.clone(),
+                })
+                .collect(),
         }
     }
 

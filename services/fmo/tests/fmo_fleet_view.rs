@@ -51,6 +51,11 @@ async fn scenario() {
         r#"<fleetPlan name="view">
   <vehicle id="scout" prefix="rover1" priority="2"/>
   <vehicle id="helper" prefix="rover2"/>
+  <obstacles>
+    <obstacle name="shed" height="6">
+      <pt lat="41.2760" lon="1.9883"/><pt lat="41.2760" lon="1.9885"/><pt lat="41.2762" lon="1.9884"/>
+    </obstacle>
+  </obstacles>
   <seq><wait event="detection"/></seq>
 </fleetPlan>"#,
     )
@@ -91,6 +96,7 @@ async fn scenario() {
         assert_eq!(s["plan"], "view");
         assert_eq!(s["vehicles"][0]["id"], "scout");
         assert_eq!(s["vehicles"][1]["prefix"], "rover2");
+        assert_eq!(s["obstacles"][0]["name"], "shed", "{s}");
         let lat = s["vehicles"][0]["position"][0].as_f64().unwrap();
         assert!((lat - HOME.0).abs() < 0.001, "{s}");
         let (status, page) = station.get("/fleet").await;
@@ -99,6 +105,24 @@ async fn scenario() {
         // The token guards the fleet API like the rest.
         let (status, _) = request(&station.addr, "GET", "/api/fleet", None).await;
         assert!(status == 401 || status == 403, "{status}");
+    }
+
+    // The fleet view draws the obstacle among the vehicles.
+    match Browser::start().await {
+        Some(browser) => {
+            browser
+                .goto(&format!("http://{}/fleet?token={}", fmo.addr, fmo.token))
+                .await;
+            browser
+                .wait_for(
+                    "the shed on the fleet map",
+                    "const o = document.querySelector('#map [data-obstacle=shed]'); \
+                     return !!o && o.textContent.includes('shed 6 m');",
+                )
+                .await;
+            browser.close().await;
+        }
+        None => test_support::tool_missing("chromium/chromedriver", "run .ci/install-chromium"),
     }
 
     // The selected vehicle, paused and resumed from the FMo.
