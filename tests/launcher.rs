@@ -545,15 +545,8 @@ fn a_mission_flies_an_autopilot_it_did_not_start_in_both_mode_encodings() {
                 ),
             ],
         );
-        let mut l = Launcher::start(&[mission.to_str().expect("UTF-8"), "--until-complete"]);
-        let summary = l.event(FLIGHT, "summary");
-        let status = l.wait_exit(STEP);
-        l.drain();
-        drop(sim);
-        assert!(status.success(), "{family}: {status}\n{}", l.stderr_tail());
-        check_summary(&summary["summary"]);
+        let pids = completes_with_autopilot(&mission, sim, family);
         // The launcher started no simulator: only the VAS, the FPMa and the stations.
-        let pids = l.pids();
         assert!(
             pids.iter().all(|(s, _)| !s.ends_with("/mavsim")),
             "{family}: {pids:?}"
@@ -611,14 +604,26 @@ fn a_mission_flies_a_mavsdk_vehicle_it_did_not_start() {
             (fence, ""),
         ],
     );
+    let pids = completes_with_autopilot(&mission, vehicle, "MAVSDK");
+    assert_no_child_left(&pids);
+}
+
+/// Runs `mission` (which names `autopilot` by its endpoint) until complete: it exits 0 with a
+/// summary that matches the plan. The autopilot is stopped once the launcher is; returns the
+/// launcher's children.
+fn completes_with_autopilot(
+    mission: &Path,
+    autopilot: KilledOnDrop,
+    what: &str,
+) -> Vec<(String, u32)> {
     let mut l = Launcher::start(&[mission.to_str().expect("UTF-8"), "--until-complete"]);
     let summary = l.event(FLIGHT, "summary");
     let status = l.wait_exit(STEP);
     l.drain();
-    drop(vehicle);
-    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    drop(autopilot);
+    assert!(status.success(), "{what}: {status}\n{}", l.stderr_tail());
     check_summary(&summary["summary"]);
-    assert_no_child_left(&l.pids());
+    l.pids()
 }
 
 /// A child the test started itself, killed when the test ends, a failed one included.

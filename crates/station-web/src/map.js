@@ -32,7 +32,6 @@ class StationMap {
     this.tiles = null;
     this.tilesShown = true;
     this.tileImgs = new Map();
-    this.tilesStatus = "";
     this.drag = null;
     const wt = opts.withToken || ((u) => u);
     fetch(wt("/api/map")).then((r) => r.json()).then((c) => { this.tiles = c.tiles; this.draw(); })
@@ -315,7 +314,6 @@ class StationMap {
     else status = t.attribution ? `map tiles ${t.attribution}` : "map tiles";
     if (tilesFailed && !tilesDrawn) cv.dataset.tiles = "unreachable";
     if (this.opts.status && this.opts.status.textContent !== status) this.opts.status.textContent = status;
-    this.tilesStatus = status;
     this.legend([
       L.vehicles.length && ["vehicle", "▲", "#f44", "vehicle (grey: not heard lately)"],
       L.homes.length && ["home", "H", "#ffd23f", "home (the autopilot's)"],

@@ -586,20 +586,19 @@ async fn part_of_the_mission_on_board_is_read_back() {
         read.wait_provider(STEP).await,
         "read_mission not discovered"
     );
-    // Asked until the upload is done.
-    let deadline = tokio::time::Instant::now() + STEP;
-    let items = loop {
-        match read.call(&(1, 2), STEP).await {
-            Ok(items) if items.len() == 2 => break items,
-            other => {
-                assert!(
-                    tokio::time::Instant::now() < deadline,
-                    "never read: {other:?}"
-                );
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
-        }
-    };
+    // Once mavsim committed the upload (home and the waypoints), read two of them back.
+    sim.wait_log(
+        "mission_uploaded",
+        STEP,
+        "the waypoints never reached the autopilot",
+        |r| {
+            r.iter()
+                .any(|r| r["count"].as_u64().is_some_and(|c| c >= 3))
+        },
+    )
+    .await;
+    let items = read.call(&(1, 2), STEP).await.expect("read_mission");
+    assert_eq!(items.len(), 2, "{items:?}");
     for (got, want) in items.iter().zip(&wps) {
         assert!(
             (got.lat - want.lat).abs() < 1e-6 && (got.lon - want.lon).abs() < 1e-6,

@@ -1062,22 +1062,19 @@ impl Driver {
                 }
             }
             MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
-            MavEvent::StatusText { text, .. }
-                if usal_types::PoiDetection::parse(&text).is_some() =>
-            {
-                if let Some(d) = usal_types::PoiDetection::parse(&text) {
-                    self.emit(ApEvent::Detection(d));
-                }
-            }
+            // A detector's report is a detection, not an alarm.
             MavEvent::StatusText {
                 severity: sev,
                 text,
-            } => {
-                let sev = severity(sev);
-                if sev <= Severity::Warning {
-                    self.alarm(sev, format!("autopilot: {text}"));
+            } => match usal_types::PoiDetection::parse(&text) {
+                Some(d) => self.emit(ApEvent::Detection(d)),
+                None => {
+                    let sev = severity(sev);
+                    if sev <= Severity::Warning {
+                        self.alarm(sev, format!("autopilot: {text}"));
+                    }
                 }
-            }
+            },
             MavEvent::Position(p) => {
                 // Progress from it was taken when it was absorbed.
                 self.home.get_or_insert((p.lat_deg, p.lon_deg));
