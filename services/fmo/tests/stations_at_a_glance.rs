@@ -4,7 +4,8 @@
 //! ETA, link quality) and map (the vehicle, its home, the fence, the plan's numbered waypoints,
 //! a legend), the FPMo's battery, ETA and the same map; with a tile server that cannot be
 //! reached, both draw the grid and say why; the FPMo's plan events read in words; and a
-//! flight log played back (`replay/status` published) puts both under a REPLAY banner.
+//! flight log played back (`replay/status` published) puts both under a REPLAY banner; the
+//! FPMa answers its last progress on request.
 //! Screenshots go to `<target>/tmp/`.
 
 mod common;
@@ -180,6 +181,23 @@ async fn scenario(fpmo_bin: &std::path::Path) {
         .await;
     assert_eq!(banner, "none");
     let (replayer, replay_task) = replaying(&domain).await;
+    // The FPMa's last progress on request (what `usal run` asks when a lossy radio lost the
+    // variable's last value): the plan flying.
+    let progress = replayer
+        .service("asker")
+        .unwrap()
+        .function::<(), flightplan::api::Progress>("rover1/fpma/progress")
+        .unwrap();
+    assert!(
+        progress.wait_provider(Duration::from_secs(10)).await,
+        "no fpma/progress"
+    );
+    let p = progress
+        .call(&(), Duration::from_secs(5))
+        .await
+        .expect("the FPMa's progress");
+    assert_eq!((p.plan.as_str(), p.version), ("failsafe-field", 1), "{p:?}");
+    assert!(p.fraction > 0.0 && !p.completed, "{p:?}");
     browser
         .wait_for("the FMo's REPLAY banner", REPLAY_BANNER)
         .await;
