@@ -7,7 +7,7 @@ use std::time::Duration;
 use serde::Deserialize;
 use usal_types::{Fence, VehicleKind};
 
-use crate::apl::ardupilot::ArduPilotConfig;
+use crate::apl::mavlink::MavlinkApConfig;
 use crate::mavlink_cm::{AutopilotFamily, ManagerConfig};
 use crate::val::ValConfig;
 
@@ -506,8 +506,8 @@ impl VasConfig {
     }
 
     /// The APL's settings (without the signing key, see [`VasConfig::signing`]).
-    pub fn ardupilot(&self) -> ArduPilotConfig {
-        ArduPilotConfig {
+    pub fn apl(&self) -> MavlinkApConfig {
+        MavlinkApConfig {
             vehicle: self.vehicle,
             queue_slots: self.queue_size,
             telemetry_hz: self.telemetry_hz,
@@ -606,7 +606,7 @@ mod tests {
         )
         .unwrap();
         let cfg = VasConfig::load(&p).unwrap();
-        let mgr = cfg.ardupilot().manager;
+        let mgr = cfg.apl().manager;
         assert_eq!(
             mgr.forward,
             ["udpout:127.0.0.1:14550", "udpin:0.0.0.0:14551"]
@@ -677,7 +677,7 @@ mod tests {
             Err(ConfigLoadError::Invalid(_))
         ));
         std::fs::write(&p, r#"<vas requestTimeoutMs="150" retries="12"/>"#).unwrap();
-        let mgr = VasConfig::load(&p).unwrap().ardupilot().manager;
+        let mgr = VasConfig::load(&p).unwrap().apl().manager;
         assert_eq!(
             (mgr.request_timeout, mgr.retries),
             (Duration::from_millis(150), 12)
@@ -704,7 +704,7 @@ mod tests {
         let cfg = VasConfig::load(&p).unwrap();
         let signing = cfg.signing().unwrap().expect("configured");
         assert_eq!((signing.key.bytes(), signing.link_id), (&[0x11; 32], 2));
-        let pin = cfg.ardupilot().manager.pin.expect("pinned by default");
+        let pin = cfg.apl().manager.pin.expect("pinned by default");
         assert_eq!(pin.system_id, Some(3));
         assert_eq!(pin.peer, "127.0.0.1:14551".parse().ok());
         std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o644)).unwrap();
@@ -716,7 +716,7 @@ mod tests {
         ));
         std::fs::write(&p, r#"<vas pinAutopilot="false"/>"#).unwrap();
         let cfg = VasConfig::load(&p).unwrap();
-        assert!(cfg.ardupilot().manager.pin.is_none() && cfg.signing().unwrap().is_none());
+        assert!(cfg.apl().manager.pin.is_none() && cfg.signing().unwrap().is_none());
         assert_eq!(cfg.val().manual_stations, None, "any station by default");
         std::fs::write(
             &p,

@@ -6,9 +6,9 @@
 //!   [transition table](val::transitions) per vehicle kind, telemetry variables, events, the
 //!   waypoint queue the FPMa feeds, manual control from the FMo. [`val::Vas`] is the
 //!   middleware service (`IService`).
-//! - [`apl`]: the Autopilot Layer, per autopilot family: the [`apl::IAutopilot`] trait and its
-//!   ArduPilot and PX4 implementations [`apl::ardupilot::ArduPilot`], [`apl::px4::Px4`] (one
-//!   MAVLink layer, a family-specific [`apl::ApFamily`] each), which keep the autopilot fed
+//! - [`apl`]: the Autopilot Layer: the [`apl::IAutopilot`] trait and its MAVLink
+//!   implementation [`apl::mavlink::MavlinkAutopilot`] (one layer; a family-specific
+//!   [`apl::ApFamily`] each for ArduPilot and PX4), which keeps the autopilot fed
 //!   through the [rolling waypoint queue](apl::queue) (003 §3.3.2), built on
 //! - [`mavlink_cm`]: the MAVLink Communication Manager (003 §3.2.2), independent of USAL.
 //!
@@ -27,10 +27,9 @@ use std::sync::Arc;
 use anyhow::Context;
 use tokio_util::sync::CancellationToken;
 
-use crate::apl::ardupilot::ArduPilot;
-use crate::apl::px4::Px4;
+use crate::apl::mavlink::MavlinkAutopilot;
 use crate::apl::IAutopilot;
-use crate::config::{AutopilotKind, VasConfig};
+use crate::config::VasConfig;
 
 /// Runs the VAS until `shutdown` is cancelled: opens the middleware node and the autopilot
 /// link, hosts the `vas` service, then shuts everything down.
@@ -51,21 +50,15 @@ pub async fn run(config: VasConfig, shutdown: CancellationToken) -> anyhow::Resu
         Some(s) => tracing::info!(link_id = s.link_id, "MAVLink 2 signing on: every frame to and from the autopilot is signed"),
         None => tracing::warn!("MAVLink 2 signing off: anyone who can reach the autopilot's link can command it (give the VAS <signing keyFile=..> or --signing-key, and the autopilot the same key)"),
     }
-    // The PX4 APL where the configuration names PX4; otherwise the shared MAVLink layer with
-    // the family's modes the configuration names, or the heartbeat's (`auto`).
-    let mut ap = config.ardupilot();
+    // The MAVLink layer with the family's modes the configuration names, or the heartbeat's
+    // (`auto`).
+    let mut ap = config.apl();
     ap.manager.signing = signing;
-    let opened = match config.autopilot {
-        AutopilotKind::Px4 => Px4::open(&config.endpoint, ap)
+    let apl: Arc<dyn IAutopilot> = Arc::new(
+        MavlinkAutopilot::open(&config.endpoint, ap)
             .await
-            .map(|a| Arc::new(a) as Arc<dyn IAutopilot>),
-        AutopilotKind::Auto | AutopilotKind::Ardupilot | AutopilotKind::Generic => {
-            ArduPilot::open(&config.endpoint, ap)
-                .await
-                .map(|a| Arc::new(a) as Arc<dyn IAutopilot>)
-        }
-    };
-    let apl = opened.with_context(|| format!("opening the autopilot at {}", config.endpoint))?;
+            .with_context(|| format!("opening the autopilot at {}", config.endpoint))?,
+    );
     // A bad parameter file stops the VAS before it flies anything, naming its line.
     let params = match &config.params {
         Some(path) => params_file::load(path).map_err(|e| anyhow::anyhow!("parameter file {e}"))?,

@@ -9,10 +9,9 @@ mod common;
 
 use common::*;
 use usal_types::{FlightState, ManualControl};
-use vas::apl::ardupilot::ArduPilotConfig;
-use vas::apl::px4::Px4;
+use vas::apl::mavlink::{MavlinkApConfig, MavlinkAutopilot};
 use vas::apl::{ApEvent, IAutopilot};
-use vas::mavlink_cm::ManagerConfig;
+use vas::mavlink_cm::{AutopilotFamily, ManagerConfig};
 
 /// Metres between two (lat, lon).
 fn dist(a: (f64, f64), b: (f64, f64)) -> f64 {
@@ -101,14 +100,15 @@ async fn the_px4_layer_directs_the_vehicle_to_a_point_and_it_holds_there() {
             &["--autopilot", "px4"],
         )
         .await;
-        let cfg = ArduPilotConfig {
+        let cfg = MavlinkApConfig {
             manager: ManagerConfig {
                 connect_wait: STEP,
+                family: Some(AutopilotFamily::Px4),
                 ..ManagerConfig::default()
             },
-            ..ArduPilotConfig::default()
+            ..MavlinkApConfig::default()
         };
-        let px4 = Px4::open(&format!("udpout:{}", sim.addr), cfg)
+        let px4 = MavlinkAutopilot::open(&format!("udpout:{}", sim.addr), cfg)
             .await
             .expect("open");
         let mut events = px4.events();

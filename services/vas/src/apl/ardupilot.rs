@@ -1,97 +1,15 @@
-//! The ArduPilot autopilot layer (003 §3.3.3): USAL states to ArduPilot modes, telemetry and
-//! alarms from the MAVLink manager, and the rolling waypoint queue kept fed.
-//!
-//! One driver task owns the [`RollingQueue`]: it receives the VAL's commands and the
-//! manager's events in order, performs the queue's actions on the autopilot and retries them
-//! on a tick when they fail. Its duties follow the seed's objects: `AP_Navigation` (modes,
-//! queue), `AP_Reader` (telemetry, status texts, mode changes), `AP_Parameters` (read at
-//! start and after every reconnection).
-//!
-//! This file holds the configuration and the [`ArduPilot`] handle (the [`IAutopilot`] side);
-//! `driver` is the task, `mapping` the pure USAL-to-ArduPilot translation.
-//!
-//! The layer is the MAVLink one every family shares: what is ArduPilot's in it is
-//! [`ArduPilotModes`], its [`ApFamily`] (mode table, DO_SET_MODE). [`super::px4::Px4`] is the
-//! same layer with PX4's; [`ArduPilot::open`] takes the family the configuration names, or
-//! the heartbeat's when it names none.
-
-use std::collections::VecDeque;
-use std::sync::Arc;
-use std::time::Duration;
+//! ArduPilot's family (003 §3.3.3): its mode of each flight state per vehicle and back, and
+//! DO_SET_MODE to enter one. The MAVLink layer every family shares is [`super::mavlink`].
 
 use async_trait::async_trait;
-use tokio::sync::{broadcast, mpsc, oneshot};
-use tokio::time::interval;
-use tokio_util::sync::CancellationToken;
-use tokio_util::task::TaskTracker;
-use usal_types::{
-    Alarm, AltRef, Attitude, AutopilotStatus, Battery, DirectedTarget, FlightState, ManualControl,
-    MissionChanged, Position, QueueStatus, Severity, Speeds, VehicleCommand, VehicleKind, Waypoint,
-    WaypointKind, WaypointReached,
-};
+use usal_types::{FlightState, VehicleKind};
 
-use super::queue::{QueueAction, RollingQueue};
-use super::{family_modes, ApEvent, ApFamily, Arming, AutopilotError, IAutopilot};
-use crate::mavlink_cm::dialect::{MavCmd, MavFrame, MavResult, MavSeverity};
-use crate::mavlink_cm::{
-    CommandError, ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError,
-    MissionItem, MissionStage, Telemetry,
-};
+use super::{ApFamily, Arming};
+use crate::mavlink_cm::{CommandError, MavlinkManager};
 
-mod driver;
-mod fence;
-mod mapping;
-
-use driver::{configure, Driver};
-pub use mapping::FLY_OVER_RADIUS_M;
-use mapping::*;
-
-/// Settings of the ArduPilot layer.
-#[derive(Clone, Debug)]
-pub struct ArduPilotConfig {
-    /// Vehicle kind (decides the mode table).
-    pub vehicle: VehicleKind,
-    /// Rolling-queue slots on the autopilot (after home), ≥ 3.
-    pub queue_slots: u16,
-    /// Position, attitude and speed telemetry rate, Hz.
-    pub telemetry_hz: f32,
-    /// SYS_STATUS and MISSION_CURRENT rate, Hz.
-    pub status_hz: f32,
-    /// The MAVLink manager's tuning.
-    pub manager: ManagerConfig,
-    /// After the autopilot comes back in another mode (a reboot), put it back in the state
-    /// the VAL had commanded, re-arming if needed (`resumeAfterReboot`). Off: the VAL follows
-    /// the state the autopilot reports and an alarm asks the operator to restart.
-    pub resume_after_reboot: bool,
-}
-
-impl Default for ArduPilotConfig {
-    fn default() -> Self {
-        Self {
-            vehicle: VehicleKind::Rover,
-            queue_slots: 5,
-            telemetry_hz: 4.0,
-            status_hz: 1.0,
-            manager: ManagerConfig::default(),
-            resume_after_reboot: false,
-        }
-    }
-}
-
-/// Errors opening the ArduPilot layer.
-#[derive(Debug, thiserror::Error)]
-pub enum ArduPilotOpenError {
-    /// Bad endpoint.
-    #[error(transparent)]
-    Manager(#[from] ManagerOpenError),
-    /// Bad queue size.
-    #[error(transparent)]
-    Queue(#[from] super::QueueCreateError),
-}
-
-/// ArduPilot's [`ApFamily`]: its mode table per vehicle ([`mapping`]), modes entered with
-/// DO_SET_MODE. A generic autopilot whose heartbeat shows PX4's mode encoding (MAVSDK's
-/// server) may refuse the change into AUTO: its mission is started with MAV_CMD_MISSION_START.
+/// ArduPilot's [`ApFamily`]: its mode table per vehicle, modes entered with DO_SET_MODE. A
+/// generic autopilot whose heartbeat shows PX4's mode encoding (MAVSDK's server) may refuse
+/// the change into AUTO: its mission is started with MAV_CMD_MISSION_START.
 pub struct ArduPilotModes;
 
 #[async_trait]
@@ -124,239 +42,99 @@ impl ApFamily for ArduPilotModes {
     }
 }
 
-enum Cmd {
-    ChangeState(FlightState, oneshot::Sender<Result<(), AutopilotError>>),
-    DirectTo([f64; 4], oneshot::Sender<Result<(), AutopilotError>>),
-    Push(Vec<Waypoint>, oneshot::Sender<QueueStatus>),
-    Clear(oneshot::Sender<QueueStatus>),
-    Status(oneshot::Sender<QueueStatus>),
-    Command(VehicleCommand, oneshot::Sender<Result<(), AutopilotError>>),
+/// The ArduPilot mode (and arming) of a flight state; `None`: no mode (CONFIGURE_CHECK, or a
+/// state the vehicle does not have).
+fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)> {
+    use Arming::*;
+    use FlightState::*;
+    Some(match (kind, state) {
+        (_, ConfigureCheck) => return None,
+        (VehicleKind::Rover, Parking) => ("HOLD", Keep),
+        (VehicleKind::Rover, Directed | Manual) => ("MANUAL", Keep),
+        (VehicleKind::Rover, ManualNavigation) => ("MANUAL", Arm),
+        // Driving home needs the motors, as navigating does.
+        (VehicleKind::Rover, ReturnToLaunch) => ("RTL", Arm),
+        (_, WaypointNavigation) => ("AUTO", Arm),
+        (VehicleKind::Rover, _) => return None,
+        (VehicleKind::Copter, Parking | Landing) => ("LAND", Keep),
+        (VehicleKind::Copter, TakeOff) => ("GUIDED", Arm),
+        // GUIDED holds where it is until given a bearing, altitude and speed (003 §3.3.1).
+        (VehicleKind::Copter, Directed) => ("GUIDED", Keep),
+        (VehicleKind::Copter, ManualNavigation) => ("ALT_HOLD", Arm),
+        (VehicleKind::Copter, ReturnToLaunch) => ("RTL", Keep),
+        (VehicleKind::Copter, Manual) => ("STABILIZE", Keep),
+        (VehicleKind::Plane, Parking | Manual) => ("MANUAL", Keep),
+        (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
+        (VehicleKind::Plane, Directed) => ("GUIDED", Keep),
+        (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
+        // A landing is a mission of its own, flown in AUTO: an approach and NAV_LAND at home
+        // (the driver lays it out, `landing_mission`), as ArduPilot lands a plane.
+        (VehicleKind::Plane, Landing) => ("AUTO", Keep),
+        (VehicleKind::Plane, ReturnToLaunch) => ("RTL", Keep),
+    })
 }
 
-/// The ArduPilot implementation of [`IAutopilot`] (Rover first; Copter and Plane modes mapped).
-pub struct ArduPilot {
-    mgr: Arc<MavlinkManager>,
-    cfg: ArduPilotConfig,
-    cmd_tx: mpsc::Sender<Cmd>,
-    events_tx: broadcast::Sender<ApEvent>,
-    cancel: CancellationToken,
-    tasks: TaskTracker,
-}
-
-impl ArduPilot {
-    /// Opens the MAVLink endpoint (`udpout:HOST:PORT`, `serial:PATH:BAUD`...) and starts the
-    /// layer's driver. Call [`IAutopilot::listen_ap`] next. The family's modes are those the
-    /// configuration names (`cfg.manager.family`), else the heartbeat's.
-    ///
-    /// # Errors
-    /// A malformed endpoint or queue size.
-    pub async fn open(endpoint: &str, cfg: ArduPilotConfig) -> Result<Self, ArduPilotOpenError> {
-        let modes = cfg.manager.family.map(family_modes);
-        Self::open_with(endpoint, cfg, modes).await
-    }
-
-    /// [`Self::open`] with the family-specific part fixed (`None`: the heartbeat's family).
-    pub(crate) async fn open_with(
-        endpoint: &str,
-        cfg: ArduPilotConfig,
-        modes: Option<&'static dyn ApFamily>,
-    ) -> Result<Self, ArduPilotOpenError> {
-        let queue = RollingQueue::new(cfg.queue_slots)?;
-        let mgr = Arc::new(MavlinkManager::open(endpoint, cfg.manager.clone()).await?);
-        let (cmd_tx, cmd_rx) = mpsc::channel(64);
-        let (events_tx, _) = broadcast::channel(1024);
-        let cancel = CancellationToken::new();
-        let tasks = TaskTracker::new();
-        let mut driver = Driver::new(mgr.clone(), cfg.vehicle, queue, events_tx.clone(), modes);
-        driver.resume_after_reboot = cfg.resume_after_reboot;
-        tasks.spawn(driver.run(cmd_rx, cancel.clone()));
-        tasks.close();
-        Ok(Self {
-            mgr,
-            cfg,
-            cmd_tx,
-            events_tx,
-            cancel,
-            tasks,
-        })
-    }
-
-    /// The MAVLink manager underneath (parameters, raw commands).
-    pub fn manager(&self) -> &MavlinkManager {
-        &self.mgr
-    }
-
-    async fn ask<T>(
-        &self,
-        make: impl FnOnce(oneshot::Sender<T>) -> Cmd,
-    ) -> Result<T, AutopilotError> {
-        let (tx, rx) = oneshot::channel();
-        self.cmd_tx
-            .send(make(tx))
-            .await
-            .map_err(|_| AutopilotError::Stopped)?;
-        rx.await.map_err(|_| AutopilotError::Stopped)
-    }
-}
-
-/// A parameter operation's failure as the operator reads it (an unknown name goes unanswered
-/// by ArduPilot: said so).
-fn param_error(e: crate::mavlink_cm::ParamError) -> AutopilotError {
-    use crate::mavlink_cm::ParamError;
-    match e {
-        ParamError::RetriesExhausted { name, .. } => AutopilotError::Refused(format!(
-            "no answer for parameter {name}: the autopilot has no such parameter, or the link is down"
-        )),
-        other => AutopilotError::Refused(other.to_string()),
-    }
-}
-
-fn status_of(mgr: &MavlinkManager) -> AutopilotStatus {
-    let s = mgr.state();
-    AutopilotStatus {
-        connected: s.link_up,
-        armed: s.armed,
-        mode: s.mode_name.unwrap_or_default().to_owned(),
-        mode_number: s.mode.unwrap_or_default(),
-        system_status: s
-            .system_status
-            .map(|st| {
-                format!("{st:?}")
-                    .trim_start_matches("MAV_STATE_")
-                    .to_owned()
-            })
-            .unwrap_or_default(),
-    }
-}
-
-#[async_trait]
-impl IAutopilot for ArduPilot {
-    fn vehicle(&self) -> VehicleKind {
-        self.cfg.vehicle
-    }
-
-    fn events(&self) -> broadcast::Receiver<ApEvent> {
-        self.events_tx.subscribe()
-    }
-
-    fn status(&self) -> AutopilotStatus {
-        status_of(&self.mgr)
-    }
-
-    async fn listen_ap(&self) -> Result<(), AutopilotError> {
-        let wait = self.cfg.manager.connect_wait;
-        self.mgr
-            .wait_connected(wait)
-            .await
-            .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
-        configure(&self.mgr, &self.cfg).await?;
-        let _ = self.events_tx.send(ApEvent::Configured);
-        Ok(())
-    }
-
-    async fn change_state(&self, to: FlightState) -> Result<(), AutopilotError> {
-        self.ask(|tx| Cmd::ChangeState(to, tx)).await?
-    }
-
-    async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError> {
-        let terrain = self.mgr.param_cached("TERRAIN_ENABLE");
-        if let Some(why) = altitude_refusal(self.cfg.vehicle, terrain, &wps) {
-            return Err(AutopilotError::Unsupported(why));
+/// The flight state an autopilot-chosen mode means (RC switch, failsafe, end of mission).
+fn state_for_mode(kind: VehicleKind, mode: &str) -> Option<FlightState> {
+    use FlightState::*;
+    Some(match (kind, mode) {
+        (_, "AUTO") => WaypointNavigation,
+        (VehicleKind::Rover, "HOLD" | "LOITER") => Parking,
+        (VehicleKind::Rover, "MANUAL" | "ACRO" | "STEERING") => Directed,
+        (VehicleKind::Rover, "RTL" | "SMART_RTL") => ReturnToLaunch,
+        (VehicleKind::Copter, "LAND") => Landing,
+        (VehicleKind::Copter, "RTL" | "SMART_RTL") => ReturnToLaunch,
+        (VehicleKind::Copter, "LOITER" | "POSHOLD" | "BRAKE" | "GUIDED") => Directed,
+        (VehicleKind::Copter, "STABILIZE" | "ACRO" | "ALT_HOLD") => Manual,
+        (VehicleKind::Plane, "RTL") => ReturnToLaunch,
+        (VehicleKind::Plane, "TAKEOFF") => TakeOff,
+        (VehicleKind::Plane, "LOITER" | "CIRCLE" | "FBWA" | "FBWB" | "CRUISE" | "GUIDED") => {
+            Directed
         }
-        self.ask(|tx| Cmd::Push(wps, tx)).await
-    }
+        (VehicleKind::Plane, "MANUAL" | "STABILIZE" | "ACRO") => Manual,
+        _ => return None,
+    })
+}
 
-    async fn clear_waypoints(&self) -> Result<QueueStatus, AutopilotError> {
-        self.ask(Cmd::Clear).await
-    }
+#[cfg(test)]
+mod tests {
+    use super::*;
 
-    async fn queue_status(&self) -> Result<QueueStatus, AutopilotError> {
-        self.ask(Cmd::Status).await
-    }
-
-    async fn manual_navigation(&self, mc: Option<ManualControl>) -> Result<(), AutopilotError> {
-        self.mgr
-            .rc_override(rc_channels(self.cfg.vehicle, mc.as_ref()))
-            .await
-            .map_err(|e| AutopilotError::NotConnected(e.to_string()))
-    }
-
-    async fn command(&self, cmd: VehicleCommand) -> Result<(), AutopilotError> {
-        self.ask(|tx| Cmd::Command(cmd, tx)).await?
-    }
-
-    async fn direct_to(
-        &self,
-        lat: f64,
-        lon: f64,
-        alt: f32,
-        speed: f32,
-    ) -> Result<(), AutopilotError> {
-        let target = [lat, lon, f64::from(alt), f64::from(speed)];
-        self.ask(|tx| Cmd::DirectTo(target, tx)).await?
-    }
-
-    async fn shutdown(&self) {
-        self.cancel.cancel();
-        self.tasks.wait().await;
-    }
-
-    async fn get_param(&self, name: &str) -> Result<f32, AutopilotError> {
-        self.mgr.param_get(name).await.map_err(param_error)
-    }
-
-    async fn set_param(&self, name: &str, value: f32) -> Result<f32, AutopilotError> {
-        self.mgr.param_set(name, value).await.map_err(param_error)
-    }
-
-    async fn list_params(&self) -> Result<Vec<(String, f32)>, AutopilotError> {
-        let all = self.mgr.params_list().await.map_err(param_error)?;
-        Ok(all.into_iter().collect())
-    }
-
-    async fn read_mission(&self, first: u16, last: u16) -> Result<Vec<Waypoint>, AutopilotError> {
-        let items = self
-            .mgr
-            .mission_download_range(first, last)
-            .await
-            .map_err(|e| match e {
-                MissionError::Link(l) => AutopilotError::NotConnected(l.to_string()),
-                other => AutopilotError::Refused(other.to_string()),
-            })?;
-        Ok(items
-            .iter()
-            .zip(first..)
-            .map(|(m, seq)| Waypoint {
-                seq: u64::from(seq),
-                lat: m.lat_deg(),
-                lon: m.lon_deg(),
-                alt: f64::from(m.z),
-                leg: "autopilot".into(),
-                ..Waypoint::default()
-            })
-            .collect())
-    }
-
-    async fn upload_fence(&self, f: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {
-        let wait = self.cfg.manager.connect_wait;
-        self.mgr
-            .wait_connected(wait)
-            .await
-            .map_err(|e| AutopilotError::NotConnected(e.to_string()))?;
-        // Each family keeps its fence its own way; another autopilot would leave each unknown
-        // parameter unanswered through every retry.
-        match self.mgr.family() {
-            crate::mavlink_cm::AutopilotFamily::ArduPilot => fence::upload(&self.mgr, f).await,
-            crate::mavlink_cm::AutopilotFamily::Px4 => fence::upload_px4(&self.mgr, f).await,
-            other => Err(AutopilotError::Unsupported(format!(
-                "fences are uploaded to ArduPilot and PX4 only, this autopilot is {other:?}"
-            ))),
+    #[test]
+    fn every_rover_state_but_configure_has_a_mode() {
+        for s in FlightState::ALL {
+            let has = mode_for(VehicleKind::Rover, s).is_some();
+            let expect = s.applies_to(VehicleKind::Rover) && s != FlightState::ConfigureCheck;
+            assert_eq!(has, expect, "{s}");
+        }
+        assert_eq!(
+            mode_for(VehicleKind::Rover, FlightState::ReturnToLaunch),
+            Some(("RTL", Arming::Arm))
+        );
+        for kind in [VehicleKind::Copter, VehicleKind::Plane] {
+            assert_eq!(
+                mode_for(kind, FlightState::Directed).map(|m| m.0),
+                Some("GUIDED")
+            );
+            for s in FlightState::ALL.into_iter().skip(1) {
+                assert!(mode_for(kind, s).is_some(), "{kind} {s}");
+            }
         }
     }
-}
 
-impl Drop for ArduPilot {
-    fn drop(&mut self) {
-        self.cancel.cancel();
+    #[test]
+    fn modes_map_back_to_their_states() {
+        assert_eq!(
+            state_for_mode(VehicleKind::Rover, "HOLD"),
+            Some(FlightState::Parking)
+        );
+        assert_eq!(
+            state_for_mode(VehicleKind::Rover, "AUTO"),
+            Some(FlightState::WaypointNavigation)
+        );
+        assert_eq!(
+            state_for_mode(VehicleKind::Copter, "LAND"),
+            Some(FlightState::Landing)
+        );
     }
 }

@@ -1,9 +1,9 @@
 //! The Autopilot Layer (APL, 003 §3.3): the [`IAutopilot`] interface the VAL drives, and its
-//! implementations on the MAVLink manager: ArduPilot ([`ardupilot::ArduPilot`]) and PX4
-//! ([`px4::Px4`]).
+//! implementation on the MAVLink manager, [`mavlink::MavlinkAutopilot`], for ArduPilot
+//! ([`ardupilot`]) and PX4 ([`px4`]).
 //!
-//! The two families share everything but their modes and how a state is entered: the MAVLink
-//! layer in `ardupilot` (rolling queue, telemetry, reconnection, the mission conventions the
+//! The families share everything but their modes and how a state is entered: the MAVLink
+//! layer in [`mavlink`] (rolling queue, telemetry, reconnection, the mission conventions the
 //! manager applies per [`AutopilotFamily`]) takes an [`ApFamily`], the family-specific part:
 //! the mode of each flight state and back, and the commands that enter a state (ArduPilot:
 //! DO_SET_MODE; PX4: MAV_CMD_MISSION_START into a mission, MAV_CMD_DO_REPOSITION for
@@ -17,6 +17,7 @@
 //! What the autopilot reports comes back as [`ApEvent`]s.
 
 pub mod ardupilot;
+pub mod mavlink;
 pub mod px4;
 pub mod queue;
 

@@ -1,5 +1,5 @@
-//! The PX4 autopilot layer: the MAVLink layer every family shares (rolling queue, telemetry,
-//! reconnection; see [`super::ardupilot`]) with PX4's part, [`Px4Modes`]:
+//! PX4's family: what the MAVLink layer every family shares ([`super::mavlink`]: rolling
+//! queue, telemetry, reconnection) does PX4's way, [`Px4Modes`]:
 //!
 //! - modes are PX4's custom main/sub modes (`main << 16 | sub << 24`), named by the manager
 //!   as the APL asks for them: `AUTO` is AUTO.MISSION, `HOLD` AUTO.LOITER, `RTL`
@@ -11,21 +11,17 @@
 //!   [`IAutopilot::direct_to`] sends it elsewhere with the same command;
 //! - the mission conventions (item 0 an ordinary item, no partial writes assumed, the
 //!   current item reset to 0 by every whole upload and restored after it) are the manager's
-//!   for [`AutopilotFamily::Px4`](crate::mavlink_cm::AutopilotFamily::Px4), which [`Px4::open`]
-//!   configures.
+//!   for [`AutopilotFamily::Px4`](crate::mavlink_cm::AutopilotFamily::Px4), which a
+//!   configuration naming PX4 sets ([`super::mavlink::MavlinkAutopilot::open`]).
 //!
 //! Arming is the shared MAV_CMD_COMPONENT_ARM_DISARM, confirmed by the heartbeat.
 
 use async_trait::async_trait;
-use tokio::sync::broadcast;
-use usal_types::{
-    AutopilotStatus, FlightState, ManualControl, QueueStatus, VehicleCommand, VehicleKind, Waypoint,
-};
+use usal_types::{FlightState, VehicleKind};
 
-use super::ardupilot::{ArduPilot, ArduPilotConfig, ArduPilotOpenError};
-use super::{ApEvent, ApFamily, Arming, AutopilotError, IAutopilot};
+use super::{ApFamily, Arming};
 use crate::mavlink_cm::dialect::MavResult;
-use crate::mavlink_cm::{AutopilotFamily, CommandError, MavlinkManager};
+use crate::mavlink_cm::{CommandError, MavlinkManager};
 
 /// PX4's [`ApFamily`]: mode table, MISSION_START, DO_REPOSITION.
 pub struct Px4Modes;
@@ -149,109 +145,6 @@ impl ApFamily for Px4Modes {
         speed: f32,
     ) -> Result<(), CommandError> {
         mgr.reposition(lat, lon, alt, speed).await
-    }
-}
-
-/// The PX4 implementation of [`IAutopilot`]: the shared MAVLink layer with [`Px4Modes`] and
-/// the manager set to PX4's mission conventions, whatever the heartbeat says.
-pub struct Px4 {
-    layer: ArduPilot,
-}
-
-impl Px4 {
-    /// Opens the MAVLink endpoint and starts the layer; call [`IAutopilot::listen_ap`] next.
-    ///
-    /// # Errors
-    /// A malformed endpoint or queue size.
-    pub async fn open(
-        endpoint: &str,
-        mut cfg: ArduPilotConfig,
-    ) -> Result<Self, ArduPilotOpenError> {
-        cfg.manager.family = Some(AutopilotFamily::Px4);
-        let layer = ArduPilot::open_with(endpoint, cfg, Some(&Px4Modes)).await?;
-        Ok(Self { layer })
-    }
-
-    /// The MAVLink manager underneath (parameters, raw commands).
-    pub fn manager(&self) -> &MavlinkManager {
-        self.layer.manager()
-    }
-}
-
-#[async_trait]
-impl IAutopilot for Px4 {
-    fn vehicle(&self) -> VehicleKind {
-        self.layer.vehicle()
-    }
-
-    fn events(&self) -> broadcast::Receiver<ApEvent> {
-        self.layer.events()
-    }
-
-    fn status(&self) -> AutopilotStatus {
-        self.layer.status()
-    }
-
-    async fn listen_ap(&self) -> Result<(), AutopilotError> {
-        self.layer.listen_ap().await
-    }
-
-    async fn change_state(&self, to: FlightState) -> Result<(), AutopilotError> {
-        self.layer.change_state(to).await
-    }
-
-    async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError> {
-        self.layer.push_waypoints(wps).await
-    }
-
-    async fn clear_waypoints(&self) -> Result<QueueStatus, AutopilotError> {
-        self.layer.clear_waypoints().await
-    }
-
-    async fn queue_status(&self) -> Result<QueueStatus, AutopilotError> {
-        self.layer.queue_status().await
-    }
-
-    async fn manual_navigation(&self, mc: Option<ManualControl>) -> Result<(), AutopilotError> {
-        self.layer.manual_navigation(mc).await
-    }
-
-    async fn direct_to(
-        &self,
-        lat: f64,
-        lon: f64,
-        alt: f32,
-        speed: f32,
-    ) -> Result<(), AutopilotError> {
-        self.layer.direct_to(lat, lon, alt, speed).await
-    }
-
-    async fn command(&self, cmd: VehicleCommand) -> Result<(), AutopilotError> {
-        self.layer.command(cmd).await
-    }
-
-    async fn upload_fence(&self, fence: Option<&usal_types::Fence>) -> Result<(), AutopilotError> {
-        self.layer.upload_fence(fence).await
-    }
-
-    async fn get_param(&self, name: &str) -> Result<f32, AutopilotError> {
-        self.layer.get_param(name).await
-    }
-
-    async fn set_param(&self, name: &str, value: f32) -> Result<f32, AutopilotError> {
-        self.layer.set_param(name, value).await
-    }
-
-    async fn list_params(&self) -> Result<Vec<(String, f32)>, AutopilotError> {
-        self.layer.list_params().await
-    }
-
-    async fn read_mission(&self, first: u16, last: u16) -> Result<Vec<Waypoint>, AutopilotError> {
-        self.layer.read_mission(first, last).await
-    }
-
-    async fn shutdown(&self) {
-        self.layer.shutdown().await;
     }
 }
 

@@ -1,13 +1,14 @@
-//! The ArduPilot layer's driver task: owns the [`RollingQueue`], applies the VAL's commands
+//! The MAVLink layer's driver task: owns the [`RollingQueue`], applies the VAL's commands
 //! and the manager's events in order, performs the queue's actions on the autopilot (retrying
 //! on a tick) and infers waypoint progress when the autopilot does not report it.
 
+use super::progress::{backtracks_judged, PassWatch};
 use super::*;
 
 /// Reads the parameters and sets the telemetry rates (`AP_Parameters`).
 pub(super) async fn configure(
     mgr: &Arc<MavlinkManager>,
-    cfg: &ArduPilotConfig,
+    cfg: &MavlinkApConfig,
 ) -> Result<(), AutopilotError> {
     match mgr.params_list().await {
         Ok(p) => tracing::info!("autopilot has {} parameters", p.len()),
@@ -56,14 +57,29 @@ pub(super) async fn probe_partial(mgr: &MavlinkManager) {
 
 /// Why a queue action failed.
 enum ExecError {
+    /// The autopilot has no partial mission writes: whole windows from now on.
     PartialUnsupported,
-    Other(String),
+    /// The transfer failed.
+    Mission(MissionError),
 }
 
-/// The autopilot refused a mission transfer (a MISSION_ACK result such as NO_SPACE or DENIED):
-/// unlike a lost frame, worth telling the ground.
-fn is_refusal(e: &MissionError) -> bool {
-    matches!(e, MissionError::Rejected(_))
+/// Why the rolling queue could not be laid out on the autopilot.
+#[derive(Debug, thiserror::Error)]
+pub(super) enum QueueError {
+    /// A mission transfer failed.
+    #[error("{0}")]
+    Mission(MissionError),
+    /// Actions kept coming without the autopilot ever holding what it should.
+    #[error("the queue did not settle")]
+    Unsettled,
+}
+
+impl QueueError {
+    /// The autopilot refused a transfer (a MISSION_ACK result such as NO_SPACE or DENIED):
+    /// unlike a lost frame, worth telling the ground.
+    fn is_refusal(&self) -> bool {
+        matches!(self, Self::Mission(MissionError::Rejected(_)))
+    }
 }
 
 /// Performs one queue action on the autopilot. `item0` is what a whole upload puts in item 0
@@ -75,10 +91,7 @@ async fn exec(
     item0: Option<&Waypoint>,
     action: &QueueAction<Waypoint>,
 ) -> Result<(), ExecError> {
-    let other = |e: MissionError| {
-        let refused = if is_refusal(&e) { "refused: " } else { "" };
-        ExecError::Other(format!("{refused}{e}"))
-    };
+    let other = ExecError::Mission;
     match action {
         QueueAction::Upload(items) => {
             let home = home
@@ -113,7 +126,7 @@ async fn exec(
                     );
                     Err(ExecError::PartialUnsupported)
                 }
-                Err(e) => Err(other(e)),
+                Err(e) => Err(ExecError::Mission(e)),
             }
         }
         QueueAction::SetCurrent(seq) => {
@@ -157,12 +170,8 @@ pub(super) struct Driver {
     reports_progress: bool,
     /// Latest position (lat, lon).
     position: Option<(f64, f64)>,
-    /// Where the leg to the target starts: the last waypoint reached, or where navigation
-    /// started.
-    leg_start: Option<(f64, f64)>,
-    /// The slot whose waypoint the last position sample showed passed (a second sample must
-    /// agree before it counts).
-    passing: Option<u16>,
+    /// Progress inferred from position, on the leg to the target.
+    pass: PassWatch,
     /// The last waypoint and its slot, when the autopilot left AUTO on the way to it (most
     /// likely the mission ended there and its report is late, lost or never sent): a late
     /// report of that slot, or a position at or past it, still counts it.
@@ -228,8 +237,7 @@ impl Driver {
             speed_unsupported: false,
             reports_progress: false,
             position: None,
-            leg_start: None,
-            passing: None,
+            pass: PassWatch::default(),
             last_pending: None,
             item0: None,
             reached_at: None,
@@ -496,8 +504,7 @@ impl Driver {
         if to == FlightState::WaypointNavigation {
             // Entering AUTO puts the autopilot back to its default speed.
             self.speed_sent = Some(0.0);
-            self.leg_start = self.position;
-            self.passing = None;
+            self.pass = PassWatch::starting_at(self.position);
             self.last_pending = None;
         }
         if to == FlightState::TakeOff && self.kind == VehicleKind::Copter {
@@ -548,7 +555,7 @@ impl Driver {
     }
 
     /// Performs queue actions until the autopilot holds what it should.
-    async fn prime(&mut self) -> Result<(), String> {
+    async fn prime(&mut self) -> Result<(), QueueError> {
         if self.mgr.partial_writes() == Some(false) && self.queue.partial_supported() {
             // The probe found none: whole windows from the start, no partial write tried.
             self.queue.partial_unsupported();
@@ -586,10 +593,10 @@ impl Driver {
                     }
                 }
                 Err(ExecError::PartialUnsupported) => self.queue.partial_unsupported(),
-                Err(ExecError::Other(e)) => return Err(e),
+                Err(ExecError::Mission(e)) => return Err(QueueError::Mission(e)),
             }
         }
-        Err("the queue did not settle".into())
+        Err(QueueError::Unsettled)
     }
 
     /// Performs `action` while following the vehicle's progress; gives up on it (`None`) when
@@ -644,13 +651,14 @@ impl Driver {
     /// item set back to the target's slot next.
     fn check_backtrack(&mut self, seq: u16) {
         let s = self.mgr.state();
-        if s.mode_name != Some("AUTO")
-            || self.uploading
-            || !self.queue.is_running()
-            || !s.link_up
-            || s.restorations != self.restorations_seen
-        {
-            // Not driving a mission of ours, or a restarted autopilot not yet handled.
+        let judged = backtracks_judged(
+            s.mode_name,
+            self.queue.is_running(),
+            self.uploading,
+            s.link_up,
+            s.restorations == self.restorations_seen,
+        );
+        if !judged {
             return;
         }
         let Some(target) = self.queue.target().map(|w| w.seq) else {
@@ -686,9 +694,13 @@ impl Driver {
         }
         if let Err(e) = self.prime().await {
             tracing::warn!("rolling queue: {e}; retrying");
-            if e.starts_with("refused: ") && self.queue_error.as_deref() != Some(e.as_str()) {
-                self.alarm(Severity::Warning, format!("rolling queue: {e}; retrying"));
-                self.queue_error = Some(e);
+            let text = e.to_string();
+            if e.is_refusal() && self.queue_error.as_deref() != Some(text.as_str()) {
+                self.alarm(
+                    Severity::Warning,
+                    format!("rolling queue: refused: {text}; retrying"),
+                );
+                self.queue_error = Some(text);
             }
             self.failing = true;
             return;
@@ -751,7 +763,7 @@ impl Driver {
             self.queue.assume_advanced();
         }
         self.last_reached = Some(w.seq);
-        self.leg_start = Some((w.lat, w.lon));
+        self.pass.leg_from((w.lat, w.lon));
         self.emit(ApEvent::WaypointReached(WaypointReached {
             seq: w.seq,
             leg: w.leg,
@@ -828,16 +840,17 @@ impl Driver {
         }
     }
 
-    /// The fallback for autopilots that report no progress (neither MISSION_ITEM_REACHED,
-    /// nor a "Reached" text, nor MISSION_CURRENT changes): the target counts as reached once
-    /// two position samples in a row show it passed.
+    /// The fallback for autopilots that report no progress ([`PassWatch`]); also the last
+    /// waypoint of a mission the autopilot ended there, its report late or lost.
     fn progress_from_position(&mut self, lat: f64, lon: f64) -> bool {
         self.position = Some((lat, lon));
         if let Some((slot, w)) = self.last_pending.take() {
-            let from = self.leg_start.unwrap_or((lat, lon));
             // Also when the autopilot reports progress: it ended the mission at the last
             // waypoint (which is why it left AUTO), and its report may be lost on a radio.
-            if passed(from, (w.lat, w.lon), (lat, lon), self.radius_of(&w)) {
+            if self
+                .pass
+                .is_past((w.lat, w.lon), (lat, lon), self.radius_of(&w))
+            {
                 tracing::debug!("last waypoint {} reached (from position)", w.seq);
                 self.queue.discard();
                 self.reached(w);
@@ -846,22 +859,16 @@ impl Driver {
             self.last_pending = Some((slot, w));
         }
         let (Some(slot), Some(w)) = (self.queue.current_slot(), self.queue.target()) else {
-            self.passing = None;
+            self.pass.no_target();
             return false;
         };
         if self.reports_progress {
             return false;
         }
         let radius = self.radius_of(w);
-        let from = *self.leg_start.get_or_insert((lat, lon));
-        if !passed(from, (w.lat, w.lon), (lat, lon), radius) {
-            self.passing = None;
+        if !self.pass.sample(slot, (w.lat, w.lon), (lat, lon), radius) {
             return false;
         }
-        if self.passing.replace(slot) != Some(slot) {
-            return false;
-        }
-        self.passing = None;
         match self.queue.on_reached(slot) {
             Some(w) => {
                 tracing::debug!("waypoint {} reached (from position)", w.seq);
@@ -1063,52 +1070,23 @@ impl Driver {
             }
             MavEvent::Heartbeat { .. } => self.emit(ApEvent::Status(status_of(&self.mgr))),
             // A detector's report is a detection, not an alarm.
-            MavEvent::StatusText {
-                severity: sev,
-                text,
-            } => match usal_types::PoiDetection::parse(&text) {
-                Some(d) => self.emit(ApEvent::Detection(d)),
-                None => {
-                    let sev = severity(sev);
-                    if sev <= Severity::Warning {
-                        self.alarm(sev, format!("autopilot: {text}"));
-                    }
+            MavEvent::StatusText { severity, text } => {
+                if let Some(e) = telemetry::status_text(severity, &text) {
+                    self.emit(e);
                 }
-            },
+            }
             MavEvent::Position(p) => {
                 // Progress from it was taken when it was absorbed.
                 self.home.get_or_insert((p.lat_deg, p.lon_deg));
-                let speed = p.vel_ned[0].hypot(p.vel_ned[1]);
-                let heading = p.heading_deg.unwrap_or_else(|| {
-                    p.vel_ned[1]
-                        .atan2(p.vel_ned[0])
-                        .to_degrees()
-                        .rem_euclid(360.0)
-                });
-                self.home_alt_msl = Some(f64::from(p.alt_msl_m) - f64::from(p.alt_rel_m));
-                self.emit(ApEvent::Position(Position {
-                    lat: p.lat_deg,
-                    lon: p.lon_deg,
-                    alt: f64::from(p.alt_msl_m),
-                    heading,
-                    speed,
-                    alt_rel: f64::from(p.alt_rel_m),
-                }));
+                self.home_alt_msl = Some(telemetry::home_alt_msl(&p));
+                self.emit(ApEvent::Position(telemetry::position(&p)));
             }
             MavEvent::Home(h) => {
                 self.home = Some((h.lat, h.lon));
                 self.emit(ApEvent::Home(h));
             }
-            MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(Attitude {
-                roll: a.roll.to_degrees(),
-                pitch: a.pitch.to_degrees(),
-                yaw: a.yaw.to_degrees(),
-            })),
-            MavEvent::VfrHud(v) => self.emit(ApEvent::Speeds(Speeds {
-                ground: v.groundspeed,
-                air: v.airspeed,
-                climb: v.climb,
-            })),
+            MavEvent::Attitude(a) => self.emit(ApEvent::Attitude(telemetry::attitude(&a))),
+            MavEvent::VfrHud(v) => self.emit(ApEvent::Speeds(telemetry::speeds(&v))),
             MavEvent::LinkLost => {
                 self.alarm(Severity::Critical, "autopilot heartbeat lost");
                 self.emit(ApEvent::LinkLost);
@@ -1122,22 +1100,15 @@ impl Driver {
                 system_id,
                 component_id,
             } => self.on_mission_changed(system_id, component_id).await,
-            MavEvent::SysStatus(s) => self.emit(ApEvent::Battery(Battery {
-                voltage: s.voltage_v,
-                current: s.current_a,
-                remaining: s.battery_pct.map(f32::from),
-            })),
-            // The first battery only: the one SYS_STATUS describes too.
-            MavEvent::BatteryStatus(b) if b.id == 0 => {
-                if let Some(voltage) = b.voltage_v {
-                    self.emit(ApEvent::Battery(Battery {
-                        voltage,
-                        current: b.current_a,
-                        remaining: b.battery_pct.map(f32::from),
-                    }));
+            MavEvent::SysStatus(s) => {
+                self.emit(ApEvent::Battery(telemetry::battery_of_sys_status(&s)));
+            }
+            MavEvent::BatteryStatus(b) => {
+                if let Some(battery) = telemetry::battery_of_status(&b) {
+                    self.emit(ApEvent::Battery(battery));
                 }
             }
-            MavEvent::Connected { .. } | MavEvent::BatteryStatus(_) => {}
+            MavEvent::Connected { .. } => {}
         }
     }
 

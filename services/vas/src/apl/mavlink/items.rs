@@ -1,39 +1,8 @@
-//! USAL to ArduPilot translation, pure: flight states to modes and back, severities, waypoints
-//! to mission items, the fly-over radius, when a waypoint counts as passed, sticks to RC PWM.
+//! USAL to MAVLink mission items and commands, pure: waypoints to mission items (frames, the
+//! fly-over radius, what terrain altitudes need), a plane's landing, a DIRECTED bearing as a
+//! point, speeds, sticks to RC PWM.
 
 use super::*;
-
-/// The ArduPilot mode (and arming) of a flight state; `None`: no mode (CONFIGURE_CHECK, or a
-/// state the vehicle does not have).
-pub(super) fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, Arming)> {
-    use Arming::*;
-    use FlightState::*;
-    Some(match (kind, state) {
-        (_, ConfigureCheck) => return None,
-        (VehicleKind::Rover, Parking) => ("HOLD", Keep),
-        (VehicleKind::Rover, Directed | Manual) => ("MANUAL", Keep),
-        (VehicleKind::Rover, ManualNavigation) => ("MANUAL", Arm),
-        // Driving home needs the motors, as navigating does.
-        (VehicleKind::Rover, ReturnToLaunch) => ("RTL", Arm),
-        (_, WaypointNavigation) => ("AUTO", Arm),
-        (VehicleKind::Rover, _) => return None,
-        (VehicleKind::Copter, Parking | Landing) => ("LAND", Keep),
-        (VehicleKind::Copter, TakeOff) => ("GUIDED", Arm),
-        // GUIDED holds where it is until given a bearing, altitude and speed (003 §3.3.1).
-        (VehicleKind::Copter, Directed) => ("GUIDED", Keep),
-        (VehicleKind::Copter, ManualNavigation) => ("ALT_HOLD", Arm),
-        (VehicleKind::Copter, ReturnToLaunch) => ("RTL", Keep),
-        (VehicleKind::Copter, Manual) => ("STABILIZE", Keep),
-        (VehicleKind::Plane, Parking | Manual) => ("MANUAL", Keep),
-        (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
-        (VehicleKind::Plane, Directed) => ("GUIDED", Keep),
-        (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
-        // A landing is a mission of its own, flown in AUTO: an approach and NAV_LAND at home
-        // (the driver lays it out, `landing_mission`), as ArduPilot lands a plane.
-        (VehicleKind::Plane, Landing) => ("AUTO", Keep),
-        (VehicleKind::Plane, ReturnToLaunch) => ("RTL", Keep),
-    })
-}
 
 /// Where a plane's landing approach begins: this far from home, metres, on the side the plane
 /// is (so it turns onto final without crossing the field)...
@@ -67,41 +36,6 @@ pub(super) fn landing_mission(home: (f64, f64), position: (f64, f64)) -> Vec<Mis
         MissionItem::waypoint(fix.0, fix.1, LANDING_APPROACH_ALT_M),
         land,
     ]
-}
-
-/// The flight state an autopilot-chosen mode means (RC switch, failsafe, end of mission).
-pub(super) fn state_for_mode(kind: VehicleKind, mode: &str) -> Option<FlightState> {
-    use FlightState::*;
-    Some(match (kind, mode) {
-        (_, "AUTO") => WaypointNavigation,
-        (VehicleKind::Rover, "HOLD" | "LOITER") => Parking,
-        (VehicleKind::Rover, "MANUAL" | "ACRO" | "STEERING") => Directed,
-        (VehicleKind::Rover, "RTL" | "SMART_RTL") => ReturnToLaunch,
-        (VehicleKind::Copter, "LAND") => Landing,
-        (VehicleKind::Copter, "RTL" | "SMART_RTL") => ReturnToLaunch,
-        (VehicleKind::Copter, "LOITER" | "POSHOLD" | "BRAKE" | "GUIDED") => Directed,
-        (VehicleKind::Copter, "STABILIZE" | "ACRO" | "ALT_HOLD") => Manual,
-        (VehicleKind::Plane, "RTL") => ReturnToLaunch,
-        (VehicleKind::Plane, "TAKEOFF") => TakeOff,
-        (VehicleKind::Plane, "LOITER" | "CIRCLE" | "FBWA" | "FBWB" | "CRUISE" | "GUIDED") => {
-            Directed
-        }
-        (VehicleKind::Plane, "MANUAL" | "STABILIZE" | "ACRO") => Manual,
-        _ => return None,
-    })
-}
-
-pub(super) fn severity(s: MavSeverity) -> Severity {
-    match s {
-        MavSeverity::MAV_SEVERITY_EMERGENCY => Severity::Emergency,
-        MavSeverity::MAV_SEVERITY_ALERT => Severity::Alert,
-        MavSeverity::MAV_SEVERITY_CRITICAL => Severity::Critical,
-        MavSeverity::MAV_SEVERITY_ERROR => Severity::Error,
-        MavSeverity::MAV_SEVERITY_WARNING => Severity::Warning,
-        MavSeverity::MAV_SEVERITY_NOTICE => Severity::Notice,
-        MavSeverity::MAV_SEVERITY_INFO => Severity::Info,
-        MavSeverity::MAV_SEVERITY_DEBUG => Severity::Debug,
-    }
 }
 
 /// Acceptance radius of a fly-over waypoint (NAV_WAYPOINT param2), metres: the vehicle
@@ -176,32 +110,6 @@ pub(super) fn wanted_speed(w: &Waypoint) -> f64 {
     }
 }
 
-/// Whether a vehicle at `pos` has reached `target` on the leg from `from`: within `radius`
-/// of it, or past the line across the leg `radius` before it (the autopilot may switch there
-/// without coming within the radius, and position samples arrive far apart at a speed-up).
-pub(super) fn passed(from: (f64, f64), target: (f64, f64), pos: (f64, f64), radius: f64) -> bool {
-    let m_per_deg = 111_319.49;
-    let cos_lat = target.0.to_radians().cos();
-    let local = |p: (f64, f64)| {
-        (
-            (p.0 - target.0) * m_per_deg,
-            (p.1 - target.1) * m_per_deg * cos_lat,
-        )
-    };
-    let (pn, pe) = local(pos);
-    if pn.hypot(pe) <= radius {
-        return true;
-    }
-    let (an, ae) = local(from);
-    let leg = an.hypot(ae);
-    if leg < 0.1 {
-        return false;
-    }
-    // Distance still to go along the leg (negative once past the target).
-    let to_go = (an * pn + ae * pe) / leg;
-    to_go <= radius
-}
-
 pub(super) fn same_item(a: &MissionItem, b: &MissionItem) -> bool {
     a.command == b.command && a.x == b.x && a.y == b.y && (a.z - b.z).abs() < 0.01
 }
@@ -265,44 +173,6 @@ mod tests {
     }
 
     #[test]
-    fn every_rover_state_but_configure_has_a_mode() {
-        for s in FlightState::ALL {
-            let has = mode_for(VehicleKind::Rover, s).is_some();
-            let expect = s.applies_to(VehicleKind::Rover) && s != FlightState::ConfigureCheck;
-            assert_eq!(has, expect, "{s}");
-        }
-        assert_eq!(
-            mode_for(VehicleKind::Rover, FlightState::ReturnToLaunch),
-            Some(("RTL", Arming::Arm))
-        );
-        for kind in [VehicleKind::Copter, VehicleKind::Plane] {
-            assert_eq!(
-                mode_for(kind, FlightState::Directed).map(|m| m.0),
-                Some("GUIDED")
-            );
-            for s in FlightState::ALL.into_iter().skip(1) {
-                assert!(mode_for(kind, s).is_some(), "{kind} {s}");
-            }
-        }
-    }
-
-    #[test]
-    fn modes_map_back_to_their_states() {
-        assert_eq!(
-            state_for_mode(VehicleKind::Rover, "HOLD"),
-            Some(FlightState::Parking)
-        );
-        assert_eq!(
-            state_for_mode(VehicleKind::Rover, "AUTO"),
-            Some(FlightState::WaypointNavigation)
-        );
-        assert_eq!(
-            state_for_mode(VehicleKind::Copter, "LAND"),
-            Some(FlightState::Landing)
-        );
-    }
-
-    #[test]
     fn the_altitude_reference_chooses_the_frame_and_terrain_needs_terrain_data() {
         let mut w = Waypoint {
             lat: 41.0,
@@ -356,28 +226,6 @@ mod tests {
             0.0
         );
         assert_eq!(wanted_speed(&Waypoint { speed: 3.5, ..w }), 3.5);
-    }
-
-    #[test]
-    fn a_waypoint_is_passed_inside_its_radius_or_past_its_finish_line() {
-        let m = 1.0 / 111_319.49;
-        let (from, target) = ((41.0, 2.0), (41.0 + 100.0 * m, 2.0));
-        let at =
-            |north: f64, east: f64| (41.0 + north * m, 2.0 + east * m / 41f64.to_radians().cos());
-        assert!(!passed(from, target, at(50.0, 0.0), 2.0));
-        assert!(!passed(from, target, at(97.0, 0.5), 2.0));
-        assert!(
-            passed(from, target, at(98.5, 0.5), 2.0),
-            "inside the radius"
-        );
-        // Already turned away towards the next waypoint, 5 m aside, never within 2 m.
-        assert!(
-            passed(from, target, at(99.0, 5.0), 2.0),
-            "past the finish line"
-        );
-        assert!(!passed(from, target, at(90.0, 5.0), 2.0));
-        // No leg (navigation started on the waypoint): only the radius counts.
-        assert!(!passed(target, target, at(103.0, 0.0), 2.0));
     }
 
     #[test]
