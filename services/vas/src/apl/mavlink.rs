@@ -31,7 +31,7 @@ use usal_types::{
 };
 
 use super::queue::{QueueAction, RollingQueue};
-use super::{family_modes, ApEvent, ApFamily, Arming, AutopilotError, IAutopilot};
+use super::{check_room, family_modes, ApEvent, ApFamily, Arming, AutopilotError, IAutopilot};
 use crate::mavlink_cm::dialect::{MavCmd, MavFrame, MavResult};
 use crate::mavlink_cm::{
     CommandError, ManagerConfig, ManagerOpenError, MavEvent, MavlinkManager, MissionError,
@@ -94,7 +94,11 @@ pub enum MavlinkApOpenError {
 enum Cmd {
     ChangeState(FlightState, oneshot::Sender<Result<(), AutopilotError>>),
     DirectTo([f64; 4], oneshot::Sender<Result<(), AutopilotError>>),
-    Push(Vec<Waypoint>, oneshot::Sender<QueueStatus>),
+    Push(
+        Vec<Waypoint>,
+        u64,
+        oneshot::Sender<Result<QueueStatus, AutopilotError>>,
+    ),
     Clear(oneshot::Sender<QueueStatus>),
     Status(oneshot::Sender<QueueStatus>),
     Command(VehicleCommand, oneshot::Sender<Result<(), AutopilotError>>),
@@ -203,12 +207,16 @@ impl IAutopilot for MavlinkAutopilot {
         self.ask(|tx| Cmd::ChangeState(to, tx)).await?
     }
 
-    async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError> {
+    async fn push_waypoints(
+        &self,
+        wps: Vec<Waypoint>,
+        max_queued: u64,
+    ) -> Result<QueueStatus, AutopilotError> {
         let terrain = self.mgr.param_cached("TERRAIN_ENABLE");
         if let Some(why) = altitude_refusal(self.cfg.vehicle, terrain, &wps) {
             return Err(AutopilotError::Unsupported(why));
         }
-        self.ask(|tx| Cmd::Push(wps, tx)).await
+        self.ask(|tx| Cmd::Push(wps, max_queued, tx)).await?
     }
 
     async fn clear_waypoints(&self) -> Result<QueueStatus, AutopilotError> {

@@ -158,6 +158,36 @@ pub enum AutopilotError {
     /// The layer is shut down.
     #[error("autopilot layer stopped")]
     Stopped,
+    /// A push would queue more waypoints than allowed: refused whole.
+    #[error("{queued} queued + {pushed} pushed = {total} waypoints: at most {max} queued")]
+    QueueFull {
+        /// Waypoints queued before the push.
+        queued: u64,
+        /// Waypoints pushed.
+        pushed: u64,
+        /// What they would make.
+        total: u64,
+        /// The most the queue may hold.
+        max: u64,
+    },
+}
+
+/// Whether `pushed` more waypoints fit in a queue holding `queued`, `max` at most.
+///
+/// # Errors
+/// [`AutopilotError::QueueFull`].
+pub fn check_room(queued: u64, pushed: usize, max: u64) -> Result<(), AutopilotError> {
+    let pushed = pushed as u64;
+    let total = queued.saturating_add(pushed);
+    if total > max {
+        return Err(AutopilotError::QueueFull {
+            queued,
+            pushed,
+            total,
+            max,
+        });
+    }
+    Ok(())
 }
 
 /// The APL interface (003 §3.3.1, figure 3.5), implemented per autopilot family.
@@ -188,11 +218,17 @@ pub trait IAutopilot: Send + Sync {
     async fn change_state(&self, to: FlightState) -> Result<(), AutopilotError>;
 
     /// Appends waypoints to the queue (after `clear_waypoints`, replaces what follows the
-    /// current target).
+    /// current target), unless the queue would then hold more than `max_queued`: the room is
+    /// checked and the waypoints queued in one step, so pushes side by side cannot overfill it.
     ///
     /// # Errors
-    /// Only when the layer is stopped.
-    async fn push_waypoints(&self, wps: Vec<Waypoint>) -> Result<QueueStatus, AutopilotError>;
+    /// [`AutopilotError::QueueFull`], waypoints this autopilot cannot fly, or the layer is
+    /// stopped.
+    async fn push_waypoints(
+        &self,
+        wps: Vec<Waypoint>,
+        max_queued: u64,
+    ) -> Result<QueueStatus, AutopilotError>;
 
     /// `ClearAllWp`: "a new queue follows" (003 §6.2.2); the autopilot keeps navigating.
     ///

@@ -29,25 +29,18 @@ impl Default for WaypointLimits {
 }
 
 impl WaypointLimits {
-    /// Checks `wps` against the limits, `queued` being the queue's length before them.
+    /// Checks `wps` against the limits (the queue's room is the APL's to check, as it queues
+    /// them: [`crate::apl::check_room`]).
     ///
     /// # Errors
     /// The first violation, as the caller reads it: `waypoint 3 (seq 12): lat 91 not in
     /// [-90, 90]`.
-    pub fn check(&self, wps: &[Waypoint], queued: u64) -> Result<(), String> {
+    pub fn check(&self, wps: &[Waypoint]) -> Result<(), String> {
         if wps.len() > self.max_per_call {
             return Err(format!(
                 "{} waypoints in one call: at most {}",
                 wps.len(),
                 self.max_per_call
-            ));
-        }
-        let total = queued.saturating_add(wps.len() as u64);
-        if total > self.max_queued {
-            return Err(format!(
-                "{queued} queued + {} pushed = {total} waypoints: at most {} queued",
-                wps.len(),
-                self.max_queued
             ));
         }
         for (i, w) in wps.iter().enumerate() {
@@ -93,7 +86,7 @@ mod tests {
     fn bad_coordinates_are_refused_naming_the_index_and_field() {
         let l = WaypointLimits::default();
         assert!(l
-            .check(&[wp(41.0, 2.0, 10.0), wp(-90.0, 180.0, -10.0)], 0)
+            .check(&[wp(41.0, 2.0, 10.0), wp(-90.0, 180.0, -10.0)])
             .is_ok());
         let cases = [
             (wp(91.0, 0.0, 0.0), "waypoint 1 (seq 7): lat 91"),
@@ -103,12 +96,12 @@ mod tests {
             (wp(0.0, 0.0, 10_001.0), "waypoint 1 (seq 7): alt 10001"),
         ];
         for (bad, msg) in cases {
-            let e = l.check(&[wp(0.0, 0.0, 0.0), bad], 0).unwrap_err();
+            let e = l.check(&[wp(0.0, 0.0, 0.0), bad]).unwrap_err();
             assert!(e.starts_with(msg), "{e}");
         }
         let mut fast = wp(0.0, 0.0, 0.0);
         fast.speed = f64::NAN;
-        assert!(l.check(&[fast], 0).unwrap_err().contains("speed NaN"));
+        assert!(l.check(&[fast]).unwrap_err().contains("speed NaN"));
     }
 
     #[test]
@@ -119,10 +112,17 @@ mod tests {
             ..WaypointLimits::default()
         };
         let four = vec![wp(0.0, 0.0, 0.0); 4];
-        assert!(l.check(&four, 0).unwrap_err().contains("at most 3"));
-        assert!(l.check(&four[..3], 2).is_ok());
-        let e = l.check(&four[..3], 3).unwrap_err();
+        assert!(l.check(&four).unwrap_err().contains("at most 3"));
+        assert!(l.check(&four[..3]).is_ok());
+        // The queue's room, checked by the APL with the push.
+        use crate::apl::check_room;
+        assert!(check_room(2, 3, l.max_queued).is_ok());
+        let e = check_room(3, 3, l.max_queued).unwrap_err().to_string();
         assert!(e.contains("at most 5 queued"), "{e}");
-        assert!(l.check(&four[..1], u64::MAX).is_err(), "no overflow");
+        assert_eq!(e, "3 queued + 3 pushed = 6 waypoints: at most 5 queued");
+        assert!(
+            check_room(u64::MAX, 1, l.max_queued).is_err(),
+            "no overflow"
+        );
     }
 }

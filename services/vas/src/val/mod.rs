@@ -853,9 +853,9 @@ impl IService for Vas {
         let push = ctx.provide_function("push_waypoints", move |wps: Vec<Waypoint>| {
             let c = c.clone();
             async move {
-                // Checked before anything reaches the autopilot; refused whole.
-                let queued = c.apl.queue_status().await.map_err(|e| e.to_string())?;
-                c.cfg.waypoints.check(&wps, queued.queued)?;
+                // Checked before anything reaches the autopilot; refused whole. The queue's
+                // room is checked by the APL as it queues them (one step).
+                c.cfg.waypoints.check(&wps)?;
                 if let Some(f) = lock(&c.fence).as_ref() {
                     if let Err(e) = fence::check_waypoints(f, &wps) {
                         c.failsafe(FailsafeKind::Fence, "refused", &e);
@@ -866,7 +866,11 @@ impl IService for Vas {
                     wps.len(),
                     (wps.first().map(|w| w.seq), wps.last().map(|w| w.seq)),
                 );
-                let r = c.apl.push_waypoints(wps).await.map_err(|e| e.to_string());
+                let r = c
+                    .apl
+                    .push_waypoints(wps, c.cfg.waypoints.max_queued)
+                    .await
+                    .map_err(|e| e.to_string());
                 c.air(
                     "mission",
                     serde_json::json!({"op": "push", "count": count, "first_seq": seqs.0, "last_seq": seqs.1,

@@ -358,9 +358,13 @@ impl Driver {
                 };
                 let _ = reply.send(r);
             }
-            Cmd::Push(wps, reply) => {
+            Cmd::Push(wps, max_queued, reply) => {
+                if let Err(e) = check_room(self.queue.len() as u64, wps.len(), max_queued) {
+                    let _ = reply.send(Err(e));
+                    return;
+                }
                 self.queue.push(wps);
-                let _ = reply.send(self.queue_status());
+                let _ = reply.send(Ok(self.queue_status()));
                 self.pump().await;
             }
             Cmd::Clear(reply) => {
