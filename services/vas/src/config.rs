@@ -248,9 +248,9 @@ impl FenceSettings {
             path: path.to_owned(),
             source,
         })?;
-        let f: Self = quick_xml::de::from_str(&text).map_err(|e| ConfigLoadError::Parse {
+        let f: Self = marea::xml::de::from_document(&text).map_err(|e| ConfigLoadError::Parse {
             path: path.to_owned(),
-            reason: e.to_string(),
+            source: Box::new(e),
         })?;
         f.fence()
             .map_err(|e| ConfigLoadError::Invalid(format!("{}: {e}", path.display())))?;
@@ -369,12 +369,12 @@ pub enum ConfigLoadError {
         source: std::io::Error,
     },
     /// The XML is malformed or has unknown or ill-typed attributes.
-    #[error("{path}: {reason}")]
+    #[error("{}:{source}", path.display())]
     Parse {
         /// The file.
         path: PathBuf,
-        /// The parser's message.
-        reason: String,
+        /// What was refused, and where.
+        source: Box<marea::xml::de::XmlDeError>,
     },
     /// A value is out of range.
     #[error("{0}")]
@@ -394,10 +394,11 @@ impl VasConfig {
             path: path.to_owned(),
             source,
         })?;
-        let cfg: Self = quick_xml::de::from_str(&text).map_err(|e| ConfigLoadError::Parse {
-            path: path.to_owned(),
-            reason: e.to_string(),
-        })?;
+        let cfg: Self =
+            marea::xml::de::from_document(&text).map_err(|e| ConfigLoadError::Parse {
+                path: path.to_owned(),
+                source: Box::new(e),
+            })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -663,6 +664,26 @@ mod tests {
         let p = dir.path().join("vas.xml");
         std::fs::write(&p, r#"<vas queueSise="5"/>"#).unwrap();
         assert!(VasConfig::load(&p).is_err());
+        // Each refusal names the file, the line and column, and the attribute.
+        std::fs::write(&p, "<vas vehicle=\"copter\"\n     queueSise=\"5\"/>").unwrap();
+        let e = VasConfig::load(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("vas.xml:2:6: queueSise: unknown field `queueSise`"),
+            "{e}"
+        );
+        std::fs::write(
+            &p,
+            "<vas>\n  <forward endpoint=\"udpout:1.2.3.4:5\" x=\"1\"/>\n</vas>",
+        )
+        .unwrap();
+        let e = VasConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("vas.xml:2:40: x: unknown field `x`"), "{e}");
+        std::fs::write(&p, "<vas queueSize=\"many\"/>").unwrap();
+        let e = VasConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("vas.xml:1:6: queueSize: "), "{e}");
+        std::fs::write(&p, "<vas>\n<fence>").unwrap();
+        let e = VasConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("vas.xml:2:1: <fence> is never closed"), "{e}");
         std::fs::write(&p, r#"<vas queueSize="2"/>"#).unwrap();
         assert!(matches!(
             VasConfig::load(&p),
