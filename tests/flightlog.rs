@@ -43,13 +43,6 @@ fn read_log(path: &Path) -> Vec<Value> {
         .collect()
 }
 
-fn free_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .expect("a free port")
-        .port()
-}
-
 /// A node joined like `usal --domain DOMAIN --mcast-port PORT` joins.
 fn net(node: &str, domain: &str, port: u16) -> NetworkConfig {
     let mut c = NetworkConfig::ethernet_loopback(node);
@@ -278,7 +271,12 @@ async fn a_run_writes_a_log_of_each_kind_and_its_replay_is_seen_by_a_subscriber(
 async fn replay_of(log: &Path) -> (bool, String) {
     let out = Command::new(USAL)
         .args(["--domain", &format!("bad-log-{}", std::process::id())])
-        .args(["--mcast-port", &free_port().to_string(), "--wait-ms", "0"])
+        .args([
+            "--mcast-port",
+            &test_support::free_udp_port().to_string(),
+            "--wait-ms",
+            "0",
+        ])
         .args(["replay", "--speed", "100"])
         .arg(log)
         .kill_on_drop(true)

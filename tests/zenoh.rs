@@ -13,14 +13,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use common::{outcome, probe_with_config, publishing, Proc, T};
-
-/// A free TCP port on loopback (bound and released; the router then listens on it).
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free loopback port")
-}
+use test_support::free_tcp_port;
 
 /// `usal --json router --listen ENDPOINT` with `extra` options, once it says it listens; and
 /// what it said.
@@ -67,7 +60,7 @@ fn network_xml(dir: &Path, node: &str, domain: &str, port: u16) -> PathBuf {
 
 #[test]
 fn processes_meet_through_usal_router_and_read_variables_and_call_functions() {
-    let port = free_port();
+    let port = free_tcp_port();
     let _router = router(port);
     let dir = tempfile::tempdir().unwrap();
     let domain = format!("zenoh-meet-{}", std::process::id());
@@ -115,7 +108,7 @@ fn processes_meet_through_usal_router_and_read_variables_and_call_functions() {
 
 #[test]
 fn an_event_stream_survives_the_router_killed_and_restarted() {
-    let port = free_port();
+    let port = free_tcp_port();
     let mut r = router(port);
     let dir = tempfile::tempdir().unwrap();
     let domain = format!("zenoh-restart-{}", std::process::id());
@@ -258,7 +251,7 @@ fn a_python_zenoh_client_reads_json_and_calls_through_the_bridge_as_itself() {
     let Some(py) = python::python() else {
         return;
     };
-    let port = free_port();
+    let port = free_tcp_port();
     let dir = tempfile::tempdir().unwrap();
     let domain = format!("zenoh-py-{}", std::process::id());
     // Every session logs in: the nodes as `node`, the Python client as pilot, then guest.
@@ -359,7 +352,7 @@ fn a_client_known_by_its_certificate_calls_as_itself() {
     let Some(py) = python::python() else {
         return;
     };
-    let port = free_port();
+    let port = free_tcp_port();
     let dir = tempfile::tempdir().unwrap();
     let domain = format!("zenoh-mtls-{}", std::process::id());
     let tls = dir.path().join("tls");
@@ -403,7 +396,7 @@ fn a_client_known_by_its_certificate_calls_as_itself() {
 /// trust the authority cannot even open its link, and says why.
 #[test]
 fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
-    let port = free_port();
+    let port = free_tcp_port();
     let dir = tempfile::tempdir().unwrap();
     let tls = dir.path().join("tls");
     let endpoint = format!("tls/127.0.0.1:{port}");

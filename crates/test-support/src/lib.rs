@@ -11,6 +11,7 @@
 //!   test after test, each from another package's directory.
 
 pub mod layering;
+pub mod process;
 
 /// A UDP port for a test's multicast group, from `key` (a hash of the test's name, or the
 /// process id): in 20000..32000, below the kernel's ephemeral range (32768-60999 on Linux), so
@@ -18,6 +19,30 @@ pub mod layering;
 /// with "Address already in use"). Tests sharing a port are kept apart by their domains.
 pub fn multicast_port(key: u64) -> u16 {
     20_000 + (key % 12_000) as u16
+}
+
+/// A UDP port free on loopback a moment ago, for a child process to bind (the kernel hands
+/// ports out in turn, so it is not handed out again soon). For a port the test binds itself,
+/// bind port 0 instead.
+///
+/// # Panics
+/// When no socket can be bound at all.
+pub fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("a free UDP port")
+}
+
+/// [`free_udp_port`] for TCP.
+///
+/// # Panics
+/// When no socket can be bound at all.
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free TCP port")
 }
 
 use std::path::{Path, PathBuf};

@@ -25,10 +25,7 @@ async fn both_stations_show_instruments_fence_home_waypoints_and_eta() {
 
 /// A tile template on a local port nothing listens on: every tile fails at once.
 fn unreachable_tiles() -> String {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port();
+    let port = test_support::free_tcp_port();
     format!("http://127.0.0.1:{port}/{{z}}/{{x}}/{{y}}.png")
 }
 

@@ -23,13 +23,6 @@ const OUTAGE_FOR: Duration = Duration::from_secs(12);
 /// Generous bound for what crosses the radio.
 const RADIO: Duration = Duration::from_secs(60);
 
-fn free_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .map(|a| a.port())
-        .expect("a free UDP port")
-}
-
 fn lan(port: u16) -> String {
     format!(
         r#"<ethernet name="lan" bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1" heartbeatMs="200" leaseMs="1500"/>"#
@@ -98,7 +91,7 @@ async fn outage_mid_mission(recovery: &str) {
     let mut radio = Radio::start(&["--outage-on-signal", &outage, "--seed", "3"]).await;
     let sim = Sim::start("127.0.0.1:0", 2.0, &dir.path().join("sim.jsonl")).await;
     let domain = unique_domain("linkloss");
-    let port = free_port();
+    let port = test_support::free_udp_port();
     let (net, cfg) = vas_files(dir.path(), &domain, port, &radio.air, recovery);
     let vas = VasProc::start(
         &format!("udpout:{}", sim.addr),

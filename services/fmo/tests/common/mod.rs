@@ -474,10 +474,7 @@ impl Browser {
         let chromium = ["/usr/bin/chromium", "/usr/lib/chromium/chromium"]
             .into_iter()
             .find(|p| std::path::Path::new(p).exists())?;
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("free port")
-            .port();
+        let port = test_support::free_tcp_port();
         let driver = Proc::start(&driver_bin, &[format!("--port={port}")], false).await;
         let addr = format!("127.0.0.1:{port}");
         // Its first line comes before it listens: wait until it accepts connections.

@@ -142,13 +142,7 @@ impl Drop for DirLock {
     }
 }
 
-/// A free UDP port on 127.0.0.1 (bound then released: the vehicle binds it next).
-pub fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .map(|a| a.port())
-        .expect("a free UDP port")
-}
+pub use test_support::free_udp_port;
 
 /// The running MAVSDK vehicle: its events as JSON values; killed on drop (and its stdin
 /// closing stops it too).
