@@ -24,7 +24,9 @@
 //! A process opens one [`Node`]; services declare items through a [`Service`]. Names are
 //! `namespace/service/item`; subscriptions may use `*` (one segment) and `**` (any number).
 //! Every declaration carries a type fingerprint: a subscriber expecting another type gets
-//! [`RecvError::TypeMismatch`], never garbage.
+//! [`RecvError::TypeMismatch`], never garbage. A service's catalogue of typed item handles
+//! ([`VariableItem`], [`EventItem`], [`FunctionItem`]: a name and its type together) keeps its
+//! subscribers, callers and providers from pairing a name with the wrong type in the first place.
 //!
 //! ## One example per primitive
 //!

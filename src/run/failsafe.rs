@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use flightplan::api::PlanLoaded;
+use flightplan::api::items as fpma;
 use serde::Serialize;
 use usal_types::{Failsafe, FailsafeKind, StationHeartbeat};
 
@@ -90,7 +90,7 @@ pub fn summary_text(notes: &[FailsafeNote]) -> String {
 /// # Errors
 /// The variable cannot be declared.
 pub fn start_heartbeat(svc: &marea::Service, station: &str) -> anyhow::Result<()> {
-    let beat = svc.publish_variable::<StationHeartbeat>("heartbeat")?;
+    let beat = usal_types::items::station::HEARTBEAT.publish(svc)?;
     let station = station.to_owned();
     let cx = svc.clone();
     svc.spawn(async move {
@@ -107,24 +107,26 @@ pub fn start_heartbeat(svc: &marea::Service, station: &str) -> anyhow::Result<()
     Ok(())
 }
 
-/// Offers the plan in `path` to the FPMa's `load_plan`, which must refuse it.
+/// Offers the plan in `path` to the `load_plan` of the FPMa at `fpma_at` (`rover1/fpma`), which
+/// must refuse it.
 ///
 /// # Errors
 /// The file cannot be read, the FPMa cannot be called, or it accepted the plan.
 pub async fn rehearse_refusal(
     svc: &marea::Service,
-    fpma: &str,
+    fpma_at: &str,
     path: &Path,
     at_s: f64,
     timeout: Duration,
 ) -> Result<FailsafeNote, String> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| format!("reading refusedPlan {}: {e}", path.display()))?;
-    let load = svc
-        .function::<String, PlanLoaded>(&format!("{fpma}/load_plan"))
+    let load = fpma::LOAD_PLAN
+        .function(svc, fpma_at)
         .map_err(|e| e.to_string())?;
     if !load.wait_provider(timeout).await {
-        return Err(format!("no {fpma}/load_plan to offer refusedPlan to"));
+        let name = fpma::LOAD_PLAN.at(fpma_at);
+        return Err(format!("no {name} to offer refusedPlan to"));
     }
     let name = path.file_name().map_or_else(
         || path.display().to_string(),

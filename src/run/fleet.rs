@@ -9,6 +9,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use flightplan::fleet_api::items as fleet;
 use flightplan::fleet_api::FleetStatus;
 use marea::{NetworkConfig, Node};
 use serde_json::json;
@@ -39,9 +40,9 @@ pub async fn supervise(
         return ExitCode::FAILURE;
     };
     let ns = node.namespace.clone();
-    let status_name = match &ns {
-        Some(ns) => format!("{ns}/fleet/status"),
-        None => "fleet/status".to_owned(),
+    let fleet_at = match &ns {
+        Some(ns) => format!("{ns}/fleet"),
+        None => "fleet".to_owned(),
     };
     let mut cfg = match NetworkConfig::for_service(
         node.network.as_deref(),
@@ -68,7 +69,7 @@ pub async fn supervise(
     let code = follow(
         mission,
         &net,
-        &status_name,
+        &fleet_at,
         args,
         ui,
         &mut notices,
@@ -84,7 +85,7 @@ pub async fn supervise(
 async fn follow(
     mission: &Mission,
     net: &Node,
-    status_name: &str,
+    fleet_at: &str,
     args: &RunArgs,
     ui: &Arc<Ui>,
     notices: &mut broadcast::Receiver<Notice>,
@@ -93,11 +94,11 @@ async fn follow(
 ) -> ExitCode {
     let sub = match net
         .service("usal")
-        .and_then(|s| s.subscribe_variable::<FleetStatus>(status_name))
+        .and_then(|s| fleet::STATUS.subscribe(&s, fleet_at))
     {
         Ok(s) => s,
         Err(e) => {
-            eprintln!("usal: following {status_name}: {e}");
+            eprintln!("usal: following {}: {e}", fleet::STATUS.at(fleet_at));
             return ExitCode::FAILURE;
         }
     };

@@ -410,10 +410,9 @@ fn announce_replay(
     node: &Node,
     mut status: usal_types::ReplayStatus,
 ) -> anyhow::Result<(PlaybackAt, tokio::task::JoinHandle<()>)> {
-    let var = node
-        .service("replay")
-        .context("declaring service replay")?
-        .publish_variable::<usal_types::ReplayStatus>("status")
+    let svc = node.service("replay").context("declaring service replay")?;
+    let var = usal_types::items::replay::STATUS
+        .publish(&svc)
         .context("declaring replay/status")?;
     let (tx, rx) = tokio::sync::watch::channel((status.at_s, false));
     let task = tokio::spawn(async move {

@@ -10,16 +10,15 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
-use flightplan::api::{CommandAck, PlanEvent, PlanEventKind, PlanRejected, Progress};
+use flightplan::api::items as fpma;
+use flightplan::api::{PlanEventKind, Progress};
 use marea::{NetworkConfig, Node, SendFileOptions};
 use serde_json::json;
 use tokio::sync::broadcast;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use usal_types::{
-    AllowedChanges, FlightState, Position, StateChangeReply, StateChangeRequest, StateChanged,
-    WaypointReached,
-};
+use usal_types::items::vas;
+use usal_types::{AllowedChanges, FlightState, Position, StateChangeRequest};
 
 use super::aircraft::{self, AircraftPlan, AircraftSummary, FlightRecord};
 use super::failsafe::{self, FailsafeNote};
@@ -440,25 +439,25 @@ async fn follow(
     until_complete: bool,
 ) -> anyhow::Result<Outcome> {
     let svc = node.service(&s.service)?;
-    let fpma = |item: &str| format!("{}/{item}", s.fpma);
-    let vas = |item: &str| format!("{}/{item}", s.vas);
-    let progress = svc.subscribe_variable::<Progress>(&fpma("progress"))?;
-    let events = svc.subscribe_event::<PlanEvent>(&fpma("plan_event"))?;
-    let rejected = svc.subscribe_event::<PlanRejected>(&fpma("plan_rejected"))?;
-    let state = svc.subscribe_variable::<FlightState>(&vas("flight_state"))?;
-    let changes = svc.subscribe_event::<StateChanged>(&vas("state_changed"))?;
-    let vas_reached = svc.subscribe_event::<WaypointReached>(&vas("waypoint_reached"))?;
-    let position = svc.subscribe_variable::<Position>(&vas("position"))?;
-    let allowed = svc.subscribe_variable::<AllowedChanges>(&vas("allowed_changes"))?;
-    let failsafes = svc.subscribe_event::<usal_types::Failsafe>(&vas("failsafe"))?;
+    let (fpma_at, vas_at) = (s.fpma.as_str(), s.vas.as_str());
+    let progress = fpma::PROGRESS.subscribe(&svc, fpma_at)?;
+    let events = fpma::PLAN_EVENT.subscribe(&svc, fpma_at)?;
+    let rejected = fpma::PLAN_REJECTED.subscribe(&svc, fpma_at)?;
+    let state = vas::FLIGHT_STATE.subscribe(&svc, vas_at)?;
+    let changes = vas::STATE_CHANGED.subscribe(&svc, vas_at)?;
+    let vas_reached = vas::WAYPOINT_REACHED.subscribe(&svc, vas_at)?;
+    let position = vas::POSITION.subscribe(&svc, vas_at)?;
+    let allowed = vas::ALLOWED_CHANGES.subscribe(&svc, vas_at)?;
+    let failsafes = vas::FAILSAFE.subscribe(&svc, vas_at)?;
     failsafe::start_heartbeat(&svc, &s.service)?;
     let opened = Instant::now();
-    let pause = svc.function::<(), CommandAck>(&fpma("pause"))?;
-    let resume = svc.function::<(), CommandAck>(&fpma("resume"))?;
-    let last_progress = svc.function::<(), Progress>(&fpma("progress"))?;
+    let pause = fpma::PAUSE.function(&svc, fpma_at)?;
+    let resume = fpma::RESUME.function(&svc, fpma_at)?;
+    let last_progress = fpma::LAST_PROGRESS.function(&svc, fpma_at)?;
     let mut asked_progress = false;
 
-    let sink = fpma("plans");
+    // A file sink: no typed handle, its name written here.
+    let sink = format!("{fpma_at}/plans");
     for w in &s.warnings {
         note(
             ui,
@@ -490,7 +489,7 @@ async fn follow(
             s,
             &format!(
                 "station: the pilot presses Start (start=\"operator\"): the FPMo's Start, or usal call {} '{{\"to\":\"WAYPOINT_NAVIGATION\"}}' --domain {}",
-                vas("change_state"),
+                vas::CHANGE_STATE.at(vas_at),
                 s.domain
             ),
             json!({"event": "start_by", "by": "operator"}),
@@ -502,8 +501,7 @@ async fn follow(
     let upload_anyway = tokio::time::sleep(UPLOAD_ANYWAY);
     tokio::pin!(upload_anyway);
     let mut kick_at: Option<Instant> = None;
-    let vas_state_fn =
-        svc.function::<StateChangeRequest, StateChangeReply>(&vas("change_state"))?;
+    let vas_state_fn = vas::CHANGE_STATE.function(&svc, vas_at)?;
     let mut sent = false;
     let mut t = Tracker {
         setup: s,
@@ -733,7 +731,7 @@ async fn follow(
                     .await;
                 command(
                     s,
-                    &vas("change_state"),
+                    &vas::CHANGE_STATE.at(vas_at),
                     json!({"to": to.to_string()}),
                     answer
                         .as_ref()
@@ -806,7 +804,7 @@ async fn follow(
             let answer = pause.call(&(), CALL_TIMEOUT).await;
             command(
                 s,
-                &fpma("pause"),
+                &fpma::PAUSE.at(fpma_at),
                 json!(null),
                 answer
                     .as_ref()
@@ -823,7 +821,7 @@ async fn follow(
                     let answer = resume.call(&(), CALL_TIMEOUT).await;
                     command(
                         s,
-                        &fpma("resume"),
+                        &fpma::RESUME.at(fpma_at),
                         json!(null),
                         answer
                             .as_ref()

@@ -1,9 +1,12 @@
 //! The `fpma` service's wire types: the arguments and results of its functions and the values of
-//! its variables and events, shared by the service and the ground stations (FPMo, `usal call`).
+//! its variables and events, shared by the service and the ground stations (FPMo, `usal call`);
+//! [`items`] pairs each item's name with its type.
 //!
 //! The middleware encodes payloads with postcard, which is not self-describing: every type here
 //! is a plain struct or an externally tagged enum (no `untagged`, no internally tagged enums, no
 //! skipped fields), unlike the library's own JSON-oriented types, which are converted here.
+
+pub mod items;
 
 use serde::{Deserialize, Serialize};
 

@@ -1,6 +1,8 @@
 //! The fleet service's wire types (`<namespace>/fleet/...`), shared with the launcher and the
-//! stations. Plain structs and externally tagged enums only: the middleware encodes with
-//! postcard, which is not self-describing.
+//! stations ([`items`] pairs each item's name with its type). Plain structs and externally
+//! tagged enums only: the middleware encodes with postcard, which is not self-describing.
+
+pub mod items;
 
 use serde::{Deserialize, Serialize};
 

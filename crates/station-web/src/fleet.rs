@@ -22,6 +22,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
+use flightplan::fleet_api::items as fleet;
 use flightplan::fleet_api::FleetStatus;
 use marea::Service;
 use serde::Deserialize;
@@ -50,10 +51,11 @@ impl FleetView {
             call_timeout,
             latest: Mutex::new(BTreeMap::new()),
         });
-        let sub = svc.subscribe_variable::<FleetStatus>("**/fleet/status")?;
+        let sub = fleet::STATUS.subscribe(svc, "**/fleet")?;
         let me = view.clone();
+        let suffix = format!("/{}", fleet::STATUS.name());
         live.follow(sub, "fleet status", move |s| {
-            let Some(prefix) = s.name.strip_suffix("/status") else {
+            let Some(prefix) = s.name.strip_suffix(&suffix) else {
                 return;
             };
             marea::sync::lock(&me.latest).insert(prefix.to_owned(), (s.value, s.received));
@@ -88,12 +90,16 @@ impl FleetView {
         vehicle: &str,
         action: &str,
     ) -> Result<String, (StatusCode, String)> {
-        if !matches!(action, "pause" | "resume") {
-            return Err((
-                StatusCode::BAD_REQUEST,
-                format!("action `{action}`: pause or resume"),
-            ));
-        }
+        let item = match action {
+            "pause" => fleet::PAUSE,
+            "resume" => fleet::RESUME,
+            _ => {
+                return Err((
+                    StatusCode::BAD_REQUEST,
+                    format!("action `{action}`: pause or resume"),
+                ))
+            }
+        };
         let service = {
             let latest = marea::sync::lock(&self.latest);
             latest
@@ -110,9 +116,8 @@ impl FleetView {
                 format!("no fleet has a vehicle `{vehicle}`"),
             ));
         };
-        let f = self
-            .svc
-            .function::<String, String>(&format!("{service}/{action}"))
+        let f = item
+            .function(&self.svc, &service)
             .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
         f.call(&vehicle.to_owned(), self.call_timeout)
             .await

@@ -6,6 +6,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
+use usal_types::items::replay;
 use usal_types::ReplayStatus;
 
 use crate::Live;
@@ -61,7 +62,7 @@ impl ReplayWatch {
     /// # Errors
     /// The subscription cannot be declared.
     pub fn follow(&self, svc: &marea::Service, live: &Live) -> Result<(), marea::DeclareError> {
-        let sub = svc.subscribe_variable::<ReplayStatus>("**/replay/status")?;
+        let sub = replay::STATUS.subscribe(svc, "**/replay")?;
         let latest = self.latest.clone();
         live.follow(sub, "replay status", move |s| {
             *marea::sync::lock(&latest) = Some((s.value, Instant::now()));

@@ -4,7 +4,8 @@
 //! These are the payloads of the VAS's middleware items (see `services/vas/README.md` for the
 //! item names) and of the FPMa and the ground stations that talk to it. They are plain serde
 //! structs with no behaviour beyond naming, so any service can depend on this crate without
-//! pulling in another service.
+//! pulling in another service. [`items`] pairs each of those items' names with its type, as
+//! `marea`'s typed handles, for the services that publish, follow or call them.
 //!
 //! Units: degrees for angles and geographic coordinates, metres, metres per second, seconds.
 //!
@@ -23,6 +24,7 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
+pub mod items;
 pub mod safety;
 pub use safety::{Failsafe, FailsafeKind, Fence, FenceAction, StationHeartbeat};
 

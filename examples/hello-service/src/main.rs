@@ -5,7 +5,8 @@
 //! - raises an event: `NS/hello/greeted`, each time someone is greeted;
 //! - provides a function: `NS/hello/greet`, `"name"` -> `"hello, name"`;
 //! - subscribes to another service's variable: the VAS's `position` (`HELLO_VEHICLE/vas/position`,
-//!   by default its own node's namespace).
+//!   by default its own node's namespace), through its typed handle in the VAS's catalogue
+//!   (`usal_types::items::vas::POSITION`: the name and the type together).
 //!
 //! `usal run` starts it with the node's network in the environment (`MAREA_DOMAIN`,
 //! `MAREA_NAMESPACE`, `MAREA_NODE`, `MAREA_NETWORK`), which `NetworkConfig::from_env` reads;
@@ -15,6 +16,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use marea::{IService, NetworkConfig, Node, Service, ServiceError};
+use usal_types::items::vas;
 use usal_types::Position;
 
 /// The service: everything it needs is declared in `start`.
@@ -34,8 +36,7 @@ impl IService for Hello {
         let uptime = ctx.publish_variable::<u64>("uptime_s")?;
         // Handles are shared between the function's calls through an Arc.
         let greeted = Arc::new(ctx.publish_event::<String>("greeted")?);
-        let position =
-            ctx.subscribe_variable::<Position>(&format!("{}/vas/position", self.vehicle))?;
+        let position = vas::POSITION.subscribe(&ctx, &format!("{}/vas", self.vehicle))?;
         // A function's handler answers each call; an Err is the caller's error message.
         let greet = ctx.provide_function("greet", move |name: String| {
             let greeted = Arc::clone(&greeted);

@@ -1,9 +1,12 @@
-//! The public API: [`Node`], the typed handles of the four primitives, and [`IService`].
+//! The public API: [`Node`], the typed handles of the four primitives, the typed item handles
+//! (an item's name and type together: [`VariableItem`], [`EventItem`], [`FunctionItem`]), and
+//! [`IService`].
 
 mod errors;
 mod event;
 mod file;
 mod function;
+mod item;
 mod node;
 mod publisher;
 mod raw;
@@ -18,6 +21,7 @@ pub use event::{
 };
 pub use file::{FileSink, FileTransfer};
 pub use function::{Function, FunctionProvider};
+pub use item::{EventItem, FunctionItem, VariableItem};
 pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};
 pub use raw::{RawSubscription, RawValue};
 pub use service::{IService, Service, ServiceDescription, ServiceError};

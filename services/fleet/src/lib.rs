@@ -46,16 +46,19 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context};
-use flightplan::api::{CommandAck, PlanLoaded, Progress};
+use flightplan::api::items as fpma;
+use flightplan::api::{CommandAck, PlanLoaded};
 use flightplan::expr::Value;
 use marea::{CallError, Function, NetworkConfig, Node, Service};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
-use usal_types::{FlightState, PoiDetection, Position, StateChangeReply, StateChangeRequest};
+use usal_types::items::vas;
+use usal_types::{FlightState, StateChangeReply, StateChangeRequest};
 
 use crate::plan::{Block, BlockKind, FleetPlan, WaitEvent};
 use crate::separation::{Action, Monitor};
+use flightplan::fleet_api::items as fleet;
 use flightplan::fleet_api::{Detection, FleetStatus, VehicleStatus};
 
 /// Everything the service needs.
@@ -126,7 +129,7 @@ pub async fn run(config: FleetConfig, shutdown: CancellationToken) -> anyhow::Re
     let fleet = Arc::new(Fleet::new(svc.clone(), &config)?);
     let tasks = TaskTracker::new();
     fleet.watch_vehicles(&tasks, &shutdown)?;
-    let status_var = svc.publish_variable::<FleetStatus>("status")?;
+    let status_var = fleet::STATUS.publish(&svc)?;
     {
         let fleet = fleet.clone();
         let stop = shutdown.clone();
@@ -134,14 +137,14 @@ pub async fn run(config: FleetConfig, shutdown: CancellationToken) -> anyhow::Re
     }
     let _pause = {
         let f = fleet.clone();
-        svc.provide_function("pause", move |id: String| {
+        fleet::PAUSE.provide(&svc, move |id: String| {
             let f = f.clone();
             async move { f.command_pause(&id, true).await }
         })?
     };
     let _resume = {
         let f = fleet.clone();
-        svc.provide_function("resume", move |id: String| {
+        fleet::RESUME.provide(&svc, move |id: String| {
             let f = f.clone();
             async move { f.command_pause(&id, false).await }
         })?
@@ -248,10 +251,11 @@ impl Fleet {
         let plan = config.plan.clone();
         let mut vehicles = Vec::new();
         for v in &plan.vehicles {
+            let (fpma_at, vas_at) = (format!("{}/fpma", v.prefix), format!("{}/vas", v.prefix));
             vehicles.push(Vehicle {
-                load_plan: svc.function(&format!("{}/fpma/load_plan", v.prefix))?,
-                goto_leg: svc.function(&format!("{}/fpma/goto_leg", v.prefix))?,
-                change_state: svc.function(&format!("{}/vas/change_state", v.prefix))?,
+                load_plan: fpma::LOAD_PLAN.function(&svc, &fpma_at)?,
+                goto_leg: fpma::GOTO_LEG.function(&svc, &fpma_at)?,
+                change_state: vas::CHANGE_STATE.function(&svc, &vas_at)?,
             });
         }
         let st = State {
@@ -779,18 +783,11 @@ impl Fleet {
         stop: &CancellationToken,
     ) -> anyhow::Result<()> {
         for (i, v) in self.plan.vehicles.iter().enumerate() {
-            let position = self
-                .svc
-                .subscribe_variable::<Position>(&format!("{}/vas/position", v.prefix))?;
-            let state = self
-                .svc
-                .subscribe_variable::<FlightState>(&format!("{}/vas/flight_state", v.prefix))?;
-            let progress = self
-                .svc
-                .subscribe_variable::<Progress>(&format!("{}/fpma/progress", v.prefix))?;
-            let detections = self
-                .svc
-                .subscribe_event::<PoiDetection>(&format!("{}/vas/detection", v.prefix))?;
+            let (fpma_at, vas_at) = (format!("{}/fpma", v.prefix), format!("{}/vas", v.prefix));
+            let position = vas::POSITION.subscribe(&self.svc, &vas_at)?;
+            let state = vas::FLIGHT_STATE.subscribe(&self.svc, &vas_at)?;
+            let progress = fpma::PROGRESS.subscribe(&self.svc, &fpma_at)?;
+            let detections = vas::DETECTION.subscribe(&self.svc, &vas_at)?;
             let me = self.clone();
             let stop = stop.clone();
             let id = v.id.clone();

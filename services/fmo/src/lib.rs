@@ -27,14 +27,14 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
-use marea::{Function, Service, VariableSubscriber};
+use flightplan::api::items as fpma;
+use marea::{Function, FunctionItem, Service, VariableSubscriber};
 use station_web::{call_error, Live, StationConfig};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
+use usal_types::items::{fmo, station, vas};
 use usal_types::{
-    Alarm, Attitude, AutopilotStatus, Battery, CommandReply, Fence, FlightState, Home,
-    ManualCommand, MissionTime, ParamValue, Position, Speeds, StateChangeReply, StateChangeRequest,
-    StateChanged, VehicleCommand,
+    CommandReply, FlightState, ParamValue, StateChangeReply, StateChangeRequest, VehicleCommand,
 };
 
 use crate::model::{Item, ManualTick, Station};
@@ -99,16 +99,22 @@ impl Shared {
         marea::sync::lock(&self.station)
     }
 
+    /// The handle of `vehicle`'s (a VAS prefix) function `item`, from `cache` once made.
     fn function<A: marea::Payload, R: marea::Payload>(
         &self,
         cache: &FunctionCache<A, R>,
-        name: String,
+        item: FunctionItem<A, R>,
+        vehicle: &str,
     ) -> Result<Arc<Function<A, R>>, String> {
+        let name = item.at(vehicle);
         let mut map = marea::sync::lock(cache);
         if let Some(f) = map.get(&name) {
             return Ok(f.clone());
         }
-        let f = Arc::new(self.svc.function(&name).map_err(|e| e.to_string())?);
+        let f = item
+            .function(&self.svc, vehicle)
+            .map_err(|e| e.to_string())?;
+        let f = Arc::new(f);
         map.insert(name, f.clone());
         Ok(f)
     }
@@ -120,7 +126,7 @@ impl Shared {
             vehicle,
             format!("change_state {to}"),
             |me| &me.change_state,
-            "change_state",
+            vas::CHANGE_STATE,
             StateChangeRequest { to },
             |r: StateChangeReply| format!("{} → {}", r.from, r.to),
         )
@@ -134,7 +140,7 @@ impl Shared {
             vehicle,
             format!("command {}", describe(&cmd)),
             |me| &me.command,
-            "command",
+            vas::COMMAND,
             cmd,
             |r: CommandReply| format!("{} done, now {}", r.command, r.state),
         )
@@ -145,7 +151,7 @@ impl Shared {
     /// # Errors
     /// The VAS cannot be reached or cannot list them, in words.
     pub async fn params(&self, vehicle: &str) -> Result<Vec<ParamValue>, String> {
-        let f = self.function(&self.list_params, format!("{vehicle}/list_params"))?;
+        let f = self.function(&self.list_params, vas::LIST_PARAMS, vehicle)?;
         tokio::select! {
             r = f.call(&(), self.call_timeout) => r.map_err(call_error),
             _ = self.live.cancel.cancelled() => Err("station stopping".to_string()),
@@ -160,7 +166,7 @@ impl Shared {
             vehicle,
             format!("set_param {} = {}", p.name, p.value),
             |me| &me.set_param,
-            "set_param",
+            vas::SET_PARAM,
             p,
             |r: ParamValue| format!("{} is {}", r.name, r.value),
         )
@@ -174,7 +180,7 @@ impl Shared {
         vehicle: &str,
         what: String,
         cache: fn(&Shared) -> &FunctionCache<A, R>,
-        item: &'static str,
+        item: FunctionItem<A, R>,
         arg: A,
         answered: fn(R) -> String,
     ) -> u64 {
@@ -186,7 +192,7 @@ impl Shared {
         let vehicle = vehicle.to_owned();
         self.live.tasks.spawn(async move {
             let outcome = async {
-                let f = me.function(cache(&me), format!("{vehicle}/{item}"))?;
+                let f = me.function(cache(&me), item, &vehicle)?;
                 tokio::select! {
                     r = f.call(&arg, me.call_timeout) => r.map_err(call_error),
                     _ = me.live.cancel.cancelled() => Err("station stopping".to_string()),
@@ -245,7 +251,7 @@ fn follow<T: marea::Payload>(
             me.refresh_allowed.notify_one();
             me.live.changed.notify_waiters();
         }
-        if matches!(item, "alarm" | "state_changed") {
+        if item == vas::ALARM.name() || item == vas::STATE_CHANGED.name() {
             me.live.changed.notify_waiters();
         }
     });
@@ -257,21 +263,22 @@ fn follow_vehicle_extras(shared: &Arc<Shared>, svc: &Service, vas: &str) -> anyh
     let Some(ns_pattern) = vas.strip_suffix("vas") else {
         return Ok(());
     };
-    let sub =
-        svc.subscribe_variable::<flightplan::api::Progress>(&format!("{ns_pattern}fpma/progress"))?;
+    let fpmas = format!("{ns_pattern}fpma");
+    let sub = fpma::PROGRESS.subscribe(svc, &fpmas)?;
     let me = shared.clone();
+    let suffix = fpma::PROGRESS.at("fpma");
     shared.live.follow(sub, "progress", move |s| {
-        let Some(ns) = s.name.strip_suffix("fpma/progress") else {
+        let Some(ns) = s.name.strip_suffix(&suffix) else {
             return;
         };
         let vehicle = format!("{ns}vas");
         me.station().update_plan(&vehicle, s.value, Instant::now());
     });
-    let sub =
-        svc.subscribe_variable::<flightplan::api::PlanGeometry>(&format!("{ns_pattern}fpma/plan"))?;
+    let sub = fpma::PLAN.subscribe(svc, &fpmas)?;
     let me = shared.clone();
+    let suffix = fpma::PLAN.at("fpma");
     shared.live.follow(sub, "plan", move |s| {
-        let Some(ns) = s.name.strip_suffix("fpma/plan") else {
+        let Some(ns) = s.name.strip_suffix(&suffix) else {
             return;
         };
         me.station().update_route(&format!("{ns}vas"), &s.value);
@@ -309,7 +316,7 @@ async fn allowed_loop(me: Arc<Shared>) {
             let s = st.flight_state(&v);
             (v, s)
         };
-        let answer = match me.function(&me.allowed, format!("{vehicle}/allowed_states")) {
+        let answer = match me.function(&me.allowed, vas::ALLOWED_STATES, &vehicle) {
             Ok(f) => tokio::select! {
                 r = f.call(&(), me.call_timeout) => r.map_err(call_error),
                 _ = me.live.cancel.cancelled() => return,
@@ -323,7 +330,7 @@ async fn allowed_loop(me: Arc<Shared>) {
 }
 
 /// Publishes the sticks at 20 Hz while the dead-man is held (then neutral briefly).
-async fn manual_loop(me: Arc<Shared>, var: marea::Variable<ManualCommand>) {
+async fn manual_loop(me: Arc<Shared>, var: marea::Variable<usal_types::ManualCommand>) {
     let mut tick = tokio::time::interval(MANUAL_PERIOD);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
@@ -365,79 +372,78 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         call_timeout: config.station.call_timeout,
         live: Live::new(cancel.clone()),
     });
-    let vas = &config.vas;
-    let pat = |item: &str| format!("{vas}/{item}");
+    let vases = config.vas.as_str();
     follow(
         &shared,
-        svc.subscribe_variable::<Position>(&pat("position"))?,
-        "position",
+        vas::POSITION.subscribe(&svc, vases)?,
+        vas::POSITION.name(),
         Item::Position,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<Attitude>(&pat("attitude"))?,
-        "attitude",
+        vas::ATTITUDE.subscribe(&svc, vases)?,
+        vas::ATTITUDE.name(),
         Item::Attitude,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<Speeds>(&pat("speeds"))?,
-        "speeds",
+        vas::SPEEDS.subscribe(&svc, vases)?,
+        vas::SPEEDS.name(),
         Item::Speeds,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<AutopilotStatus>(&pat("autopilot"))?,
-        "autopilot",
+        vas::AUTOPILOT.subscribe(&svc, vases)?,
+        vas::AUTOPILOT.name(),
         Item::Autopilot,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<FlightState>(&pat("flight_state"))?,
-        "flight_state",
+        vas::FLIGHT_STATE.subscribe(&svc, vases)?,
+        vas::FLIGHT_STATE.name(),
         Item::FlightState,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<MissionTime>(&pat("mission_time"))?,
-        "mission_time",
+        vas::MISSION_TIME.subscribe(&svc, vases)?,
+        vas::MISSION_TIME.name(),
         Item::MissionTime,
     );
     follow(
         &shared,
-        svc.subscribe_event::<StateChanged>(&pat("state_changed"))?,
-        "state_changed",
+        vas::STATE_CHANGED.subscribe(&svc, vases)?,
+        vas::STATE_CHANGED.name(),
         Item::StateChanged,
     );
     follow(
         &shared,
-        svc.subscribe_event::<Alarm>(&pat("alarm"))?,
-        "alarm",
+        vas::ALARM.subscribe(&svc, vases)?,
+        vas::ALARM.name(),
         Item::Alarm,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<Battery>(&pat("battery"))?,
-        "battery",
+        vas::BATTERY.subscribe(&svc, vases)?,
+        vas::BATTERY.name(),
         Item::Battery,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<Home>(&pat("home"))?,
-        "home",
+        vas::HOME.subscribe(&svc, vases)?,
+        vas::HOME.name(),
         Item::Home,
     );
     follow(
         &shared,
-        svc.subscribe_variable::<Fence>(&pat("fence"))?,
-        "fence",
+        vas::FENCE.subscribe(&svc, vases)?,
+        vas::FENCE.name(),
         Item::Fence,
     );
-    follow_vehicle_extras(&shared, &svc, vas)?;
-    let manual = svc.publish_variable::<ManualCommand>("manual_control")?;
+    follow_vehicle_extras(&shared, &svc, vases)?;
+    let manual = fmo::MANUAL_CONTROL.publish(&svc)?;
     // The VAS knows its ground station is there by this heartbeat (lost ground link, `vas`
     // `linkLossAction`); the FMo is the pilot's station.
-    let beat = svc.publish_variable::<usal_types::StationHeartbeat>("heartbeat")?;
+    let beat = station::HEARTBEAT.publish(&svc)?;
     let station = svc.full_name("").trim_end_matches('/').to_owned();
     let stop = cancel.clone();
     shared.live.tasks.spawn(async move {
@@ -458,7 +464,7 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
         .live
         .tasks
         .spawn(others::follow_other_services(shared.clone()));
-    tracing::info!("fmo up on http://{addr}/, following {vas}");
+    tracing::info!("fmo up on http://{addr}/, following {vases}");
 
     // The fleet view: every vehicle of a fleet mission on one map, `/fleet`.
     let fleet_view =

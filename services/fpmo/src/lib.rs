@@ -27,17 +27,14 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use flightplan::api::{
-    CommandAck, PlanEvent, PlanGeometry, PlanRejected, PlanState, Progress, Readiness,
-};
+use flightplan::api::items as fpma;
+use flightplan::api::CommandAck;
 use flightplan::vehicle::VehicleParams;
-use marea::Service;
+use marea::{FunctionItem, Service};
 use station_web::{call_error, Live, StationConfig};
 use tokio_util::sync::CancellationToken;
-use usal_types::{
-    AllowedChanges, CommandReply, FlightState, Position, StateChangeReply, StateChangeRequest,
-    VehicleCommand,
-};
+use usal_types::items::vas;
+use usal_types::{CommandReply, FlightState, StateChangeReply, StateChangeRequest, VehicleCommand};
 
 use crate::background::{Background, BackgroundSource};
 use crate::plan::CheckedPlan;
@@ -121,18 +118,17 @@ impl Shared {
         Ok(())
     }
 
-    /// Calls `<fpma>/name` in the background as command `what`; `then` runs on success with
-    /// the answer (under the state lock) and returns the confirmation text.
+    /// Calls `label`'s FPMa function `item` in the background as command `what`; `then` runs
+    /// on success with the answer (under the state lock) and returns the confirmation text.
     pub fn command<A: marea::Payload, R: marea::Payload>(
         self: &Arc<Self>,
         label: &str,
-        name: &str,
+        item: FunctionItem<A, R>,
         what: String,
         args: A,
         then: impl FnOnce(&mut State, &R) -> String + Send + 'static,
     ) -> u64 {
-        let full = format!("{}/{name}", fpma_prefix(label));
-        self.call_as_command(label, full, what, args, then)
+        self.call_as_command(label, item, fpma_prefix(label), what, args, then)
     }
 
     /// Asks `label`'s VAS for flight state `to` (its `change_state`), as a command of the
@@ -169,10 +165,10 @@ impl Shared {
                 format!("change_state {to}")
             }
         };
-        let full = format!("{}/change_state", vas_prefix(label));
         Ok(self.call_as_command(
             label,
-            full,
+            vas::CHANGE_STATE,
+            vas_prefix(label),
             what,
             StateChangeRequest { to },
             |_, r: &StateChangeReply| format!("{} -> {}", r.from, r.to),
@@ -212,19 +208,23 @@ impl Shared {
                 ));
             }
         }
-        let full = format!("{}/command", vas_prefix(label));
-        Ok(
-            self.call_as_command(label, full, name.to_owned(), cmd, |_, r: &CommandReply| {
-                format!("{} in {}", r.command, r.state)
-            }),
-        )
+        Ok(self.call_as_command(
+            label,
+            vas::COMMAND,
+            vas_prefix(label),
+            name.to_owned(),
+            cmd,
+            |_, r: &CommandReply| format!("{} in {}", r.command, r.state),
+        ))
     }
 
-    /// Calls the function `full` in the background as command `what` of `label`.
+    /// Calls function `item` of the service at `prefix` in the background as command `what`
+    /// of `label`.
     fn call_as_command<A: marea::Payload, R: marea::Payload>(
         self: &Arc<Self>,
         label: &str,
-        full: String,
+        item: FunctionItem<A, R>,
+        prefix: String,
         what: String,
         args: A,
         then: impl FnOnce(&mut State, &R) -> String + Send + 'static,
@@ -234,9 +234,9 @@ impl Shared {
         let me = self.clone();
         self.live.tasks.spawn(async move {
             let outcome = async {
-                let f = me.svc.function::<A, R>(&full).map_err(|e| e.to_string())?;
+                let f = item.function(&me.svc, &prefix).map_err(|e| e.to_string())?;
                 if !f.has_provider() && !f.wait_provider(me.call_timeout).await {
-                    return Err(format!("no service provides {full}"));
+                    return Err(format!("no service provides {}", item.at(&prefix)));
                 }
                 tokio::select! {
                     r = f.call(&args, me.call_timeout) => r.map_err(call_error),
@@ -348,8 +348,8 @@ impl Shared {
 
     /// Asks the FPMa of `label` for its plan geometry and draws the answer.
     async fn fetch_geometry(&self, label: &str) {
-        let full = format!("{}/plan_geometry", fpma_prefix(label));
-        let answer = match self.svc.function::<(), PlanGeometry>(&full) {
+        let fpma_at = fpma_prefix(label);
+        let answer = match fpma::PLAN_GEOMETRY.function(&self.svc, &fpma_at) {
             Ok(f) => tokio::select! {
                 r = f.call(&(), self.call_timeout) => r.map_err(call_error),
                 _ = self.live.cancel.cancelled() => return,
@@ -361,7 +361,7 @@ impl Shared {
                 self.state().geometry(label, g);
                 self.live.changed.notify_waiters();
             }
-            Err(e) => tracing::debug!("{full}: {e}"),
+            Err(e) => tracing::debug!("{}: {e}", fpma::PLAN_GEOMETRY.at(&fpma_at)),
         }
     }
 
@@ -372,10 +372,7 @@ impl Shared {
         if probes.contains_key(label) {
             return;
         }
-        if let Ok(f) = self
-            .svc
-            .function::<(), CommandAck>(&format!("{}/skip_leg", fpma_prefix(label)))
-        {
+        if let Ok(f) = fpma::SKIP_LEG.function(&self.svc, &fpma_prefix(label)) {
             self.state().vehicle(label).probe = Some(Arc::new(f));
             probes.insert(label.to_owned(), ());
         }
@@ -399,9 +396,13 @@ pub fn modify_leg(
             .join(", ")
     );
     let args = flightplan::api::ModifyLeg { leg, changes };
-    shared.command(label, "modify_leg", what, args, |_, ack: &CommandAck| {
-        format!("version {}", ack.version)
-    })
+    shared.command(
+        label,
+        fpma::MODIFY_LEG,
+        what,
+        args,
+        |_, ack: &CommandAck| format!("version {}", ack.version),
+    )
 }
 
 fn spawn_sub<T: marea::Payload>(
@@ -511,70 +512,65 @@ pub async fn run(config: FpmoConfig, shutdown: CancellationToken) -> anyhow::Res
     } else {
         config.vehicles.clone()
     };
+    let (fpmas, vases) = (format!("{ns}/fpma"), format!("{ns}/vas"));
     spawn_sub(
         &shared,
-        svc.subscribe_variable::<Progress>(&format!("{ns}/fpma/progress"))?,
+        fpma::PROGRESS.subscribe(&svc, &fpmas)?,
         "fpma",
         |st, l, p| st.vehicle(l).progress = Some(Stamped::now(p)),
     );
     spawn_sub(
         &shared,
-        svc.subscribe_variable::<PlanState>(&format!("{ns}/fpma/state"))?,
+        fpma::STATE.subscribe(&svc, &fpmas)?,
         "fpma",
         |st, l, p| st.vehicle(l).plan_state = Some(Stamped::now(p)),
     );
     spawn_sub(
         &shared,
-        svc.subscribe_variable::<PlanGeometry>(&format!("{ns}/fpma/plan"))?,
+        fpma::PLAN.subscribe(&svc, &fpmas)?,
         "fpma",
         State::geometry,
     );
     spawn_sub(
         &shared,
-        svc.subscribe_event::<PlanEvent>(&format!("{ns}/fpma/plan_event"))?,
+        fpma::PLAN_EVENT.subscribe(&svc, &fpmas)?,
         "fpma",
         State::plan_event,
     );
     spawn_sub(
         &shared,
-        svc.subscribe_event::<PlanRejected>(&format!("{ns}/fpma/plan_rejected"))?,
+        fpma::PLAN_REJECTED.subscribe(&svc, &fpmas)?,
         "fpma",
         State::plan_rejected,
     );
     spawn_sub(
         &shared,
-        svc.subscribe_variable::<Position>(&format!("{ns}/vas/position"))?,
+        vas::POSITION.subscribe(&svc, &vases)?,
         "vas",
         State::position,
     );
     spawn_vas_state_sub(
         &shared,
-        svc.subscribe_variable::<FlightState>(&format!("{ns}/vas/flight_state"))?,
+        vas::FLIGHT_STATE.subscribe(&svc, &vases)?,
         |v, s| v.flight_state = Some(Stamped::now(s)),
     );
+    spawn_vas_state_sub(&shared, vas::BATTERY.subscribe(&svc, &vases)?, |v, b| {
+        v.battery = Some(Stamped::now(b))
+    });
+    spawn_vas_state_sub(&shared, vas::HOME.subscribe(&svc, &vases)?, |v, h| {
+        v.home = Some(h)
+    });
+    spawn_vas_state_sub(&shared, vas::FENCE.subscribe(&svc, &vases)?, |v, f| {
+        v.fence = Some(f)
+    });
     spawn_vas_state_sub(
         &shared,
-        svc.subscribe_variable::<usal_types::Battery>(&format!("{ns}/vas/battery"))?,
-        |v, b| v.battery = Some(Stamped::now(b)),
-    );
-    spawn_vas_state_sub(
-        &shared,
-        svc.subscribe_variable::<usal_types::Home>(&format!("{ns}/vas/home"))?,
-        |v, h| v.home = Some(h),
-    );
-    spawn_vas_state_sub(
-        &shared,
-        svc.subscribe_variable::<usal_types::Fence>(&format!("{ns}/vas/fence"))?,
-        |v, f| v.fence = Some(f),
-    );
-    spawn_vas_state_sub(
-        &shared,
-        svc.subscribe_variable::<AllowedChanges>(&format!("{ns}/vas/allowed_changes"))?,
+        vas::ALLOWED_CHANGES.subscribe(&svc, &vases)?,
         |v, a| v.allowed = Some(Stamped::now(a)),
     );
     spawn_sub(
         &shared,
-        svc.subscribe_variable::<Readiness>(&format!("{ns}/fpma/ready"))?,
+        fpma::READY.subscribe(&svc, &fpmas)?,
         "fpma",
         |st, l, r| st.vehicle(l).readiness = Some(Stamped::now(r)),
     );

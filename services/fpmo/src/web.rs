@@ -25,6 +25,7 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
+use flightplan::api::items as fpma;
 use flightplan::api::{CommandAck, HoldHereArgs, HoldTurn, Retask, RetaskWhen, SetVar, VarValue};
 use serde::Deserialize;
 use station_web::{accepted, error as bad};
@@ -211,17 +212,23 @@ async fn command(State(shared): State<Arc<Shared>>, Json(c): Json<Command>) -> R
 /// Checks the arguments of `c` and starts it (pending until the FPMa answers).
 fn start_command(shared: &Arc<Shared>, label: &str, c: Command) -> Result<u64, String> {
     let id = match c.cmd.as_str() {
-        name @ ("skip_leg" | "pause" | "resume") => {
-            shared.command(label, name, name.to_owned(), (), ack_text)
-        }
+        "skip_leg" => shared.command(label, fpma::SKIP_LEG, "skip_leg".into(), (), ack_text),
+        "pause" => shared.command(label, fpma::PAUSE, "pause".into(), (), ack_text),
+        "resume" => shared.command(label, fpma::RESUME, "resume".into(), (), ack_text),
         "goto_leg" => {
             let leg = c.leg.ok_or("goto_leg needs `leg`")?;
-            shared.command(label, "goto_leg", format!("goto_leg {leg}"), leg, ack_text)
+            shared.command(
+                label,
+                fpma::GOTO_LEG,
+                format!("goto_leg {leg}"),
+                leg,
+                ack_text,
+            )
         }
         "goto_stage" => {
             let stage = c.stage.ok_or("goto_stage needs `stage`")?;
             let what = format!("goto_stage {stage}");
-            shared.command(label, "goto_stage", what, stage, ack_text)
+            shared.command(label, fpma::GOTO_STAGE, what, stage, ack_text)
         }
         "set_var" => {
             let name = c
@@ -240,7 +247,7 @@ fn start_command(shared: &Arc<Shared>, label: &str, c: Command) -> Result<u64, S
                 VarValue::Bool(b) => format!("set_var {name} = {b}"),
                 VarValue::Number(x) => format!("set_var {name} = {x}"),
             };
-            shared.command(label, "set_var", what, SetVar { name, value }, ack_text)
+            shared.command(label, fpma::SET_VAR, what, SetVar { name, value }, ack_text)
         }
         "hold_here" => {
             let turn = match c.turn.as_deref() {
@@ -254,7 +261,7 @@ fn start_command(shared: &Arc<Shared>, label: &str, c: Command) -> Result<u64, S
                 turn,
                 ..HoldHereArgs::default()
             };
-            shared.command(label, "hold_here", "hold_here".into(), args, ack_text)
+            shared.command(label, fpma::HOLD_HERE, "hold_here".into(), args, ack_text)
         }
         "exit_hold" => {
             let what = if c.now {
@@ -262,14 +269,14 @@ fn start_command(shared: &Arc<Shared>, label: &str, c: Command) -> Result<u64, S
             } else {
                 "exit_hold at the fix"
             };
-            shared.command(label, "exit_hold", what.into(), c.now, ack_text)
+            shared.command(label, fpma::EXIT_HOLD, what.into(), c.now, ack_text)
         }
         "emergency" => {
             let what = match &c.rule {
                 Some(r) => format!("emergency {r}"),
                 None => "emergency (default reaction)".into(),
             };
-            shared.command(label, "emergency", what, c.rule, ack_text)
+            shared.command(label, fpma::EMERGENCY, what, c.rule, ack_text)
         }
         other => return Err(format!("unknown command `{other}`")),
     };
@@ -332,7 +339,7 @@ async fn retask(State(shared): State<Arc<Shared>>, Json(r): Json<RetaskReq>) -> 
         alt: r.alt,
         when,
     };
-    accepted(shared.command(&label, "retask", what, args, ack_text))
+    accepted(shared.command(&label, fpma::RETASK, what, args, ack_text))
 }
 
 #[derive(Deserialize)]

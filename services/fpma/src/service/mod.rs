@@ -15,16 +15,15 @@ use std::time::Duration;
 
 use anyhow::Context;
 use async_trait::async_trait;
-use marea::{Event, Function, IService, Service, ServiceError, Variable};
+use marea::{Event, Function, FunctionItem, IService, Service, ServiceError, Variable};
 use serde::Deserialize;
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
-use usal_types::{
-    Battery, CommandRecord, FlightState, MissionChanged, Position, QueueStatus, Waypoint,
-    WaypointReached,
-};
+use usal_types::items::vas;
+use usal_types::{CommandRecord, QueueStatus, Waypoint};
 
 use self::core::{Command, Core, CoreConfig, FenceRefusal, VasPort};
+use flightplan::api::items as fpma;
 use flightplan::api::{
     CommandAck, HoldHereArgs, ModifyLeg, PlanEvent, PlanGeometry, PlanLoaded, PlanRejected,
     PlanState, Progress, Readiness, Retask, SetVar,
@@ -441,12 +440,13 @@ fn load_fn(
     ctx: &Service,
     tx: &mpsc::Sender<Request>,
     commands: &Arc<Event<CommandRecord>>,
-    name: &'static str,
+    item: FunctionItem<String, PlanLoaded>,
     replace: bool,
 ) -> Result<marea::FunctionProvider, ServiceError> {
     let (tx, commands) = (tx.clone(), commands.clone());
+    let name = item.name();
     Ok(
-        ctx.provide_function_with_caller(name, move |xml: String, from: marea::Caller| {
+        item.provide_with_caller(ctx, move |xml: String, from: marea::Caller| {
             let (tx, commands) = (tx.clone(), commands.clone());
             async move {
                 let args = format!("a plan of {} bytes", xml.len());
@@ -464,28 +464,28 @@ fn load_fn(
     )
 }
 
-/// Declares a command function `name` whose argument `A` becomes a [`Command`]; each call is
-/// recorded on `commands` with who sent it and the answer.
+/// Declares the command function `item` whose argument `A` becomes a [`Command`]; each call
+/// is recorded on `commands` with who sent it and the answer.
 fn command_fn<A: marea::Payload + std::fmt::Debug>(
     ctx: &Service,
     tx: &mpsc::Sender<Request>,
     commands: &Arc<Event<CommandRecord>>,
-    name: &str,
+    item: FunctionItem<A, CommandAck>,
     to_cmd: fn(A) -> Result<Command, String>,
 ) -> Result<marea::FunctionProvider, ServiceError> {
     let tx = tx.clone();
     let commands = commands.clone();
-    let fname = name.to_owned();
+    let name = item.name();
     Ok(
-        ctx.provide_function_with_caller(name, move |a: A, from: marea::Caller| {
-            let (tx, commands, fname) = (tx.clone(), commands.clone(), fname.clone());
+        item.provide_with_caller(ctx, move |a: A, from: marea::Caller| {
+            let (tx, commands) = (tx.clone(), commands.clone());
             async move {
                 let args = format!("{a:?}");
                 let r = match to_cmd(a) {
                     Ok(cmd) => ask(&tx, |r| Request::Command(cmd, r)).await,
                     Err(e) => Err(e),
                 };
-                record_command(&commands, &from, &fname, &args, &r);
+                record_command(&commands, &from, name, &args, &r);
                 r
             }
         })?,
@@ -513,14 +513,14 @@ impl IService for Fpma {
             .vehicle_params()
             .map_err(|e| ServiceError::Failed(e.to_string()))?;
         let outlets = Outlets {
-            progress: ctx.publish_variable("progress")?,
-            state: ctx.publish_variable("state")?,
-            plan: ctx.publish_variable("plan")?,
-            plan_event: ctx.publish_event("plan_event")?,
-            ready: ctx.publish_variable("ready")?,
+            progress: fpma::PROGRESS.publish(&ctx)?,
+            state: fpma::STATE.publish(&ctx)?,
+            plan: fpma::PLAN.publish(&ctx)?,
+            plan_event: fpma::PLAN_EVENT.publish(&ctx)?,
+            ready: fpma::READY.publish(&ctx)?,
         };
-        let rejected: Arc<Event<PlanRejected>> = Arc::new(ctx.publish_event("plan_rejected")?);
-        let commands: Arc<Event<CommandRecord>> = Arc::new(ctx.publish_event("commands")?);
+        let rejected: Arc<Event<PlanRejected>> = Arc::new(fpma::PLAN_REJECTED.publish(&ctx)?);
+        let commands: Arc<Event<CommandRecord>> = Arc::new(fpma::COMMANDS.publish(&ctx)?);
         let _ = outlets.progress.set(&Progress::default());
         let _ = outlets.state.set(&PlanState::default());
         let _ = outlets.plan.set(&PlanGeometry::default());
@@ -534,19 +534,18 @@ impl IService for Fpma {
                  operator starts a loaded plan (WAYPOINT_NAVIGATION) when `ready` says so"
             );
         }
-        let vas = &self.vas;
+        let at = self.vas.as_str();
         let port = MareaVas {
-            push: ctx.function(&format!("{vas}/push_waypoints"))?,
-            clear: ctx.function(&format!("{vas}/clear_waypoints"))?,
-            set_fence: ctx.function(&format!("{vas}/set_fence"))?,
+            push: vas::PUSH_WAYPOINTS.function(&ctx, at)?,
+            clear: vas::CLEAR_WAYPOINTS.function(&ctx, at)?,
+            set_fence: vas::SET_FENCE.function(&ctx, at)?,
             timeout: Duration::from_millis(self.config.call_timeout_ms),
         };
-        let reached = ctx.subscribe_event::<WaypointReached>(&format!("{vas}/waypoint_reached"))?;
-        let position = ctx.subscribe_variable::<Position>(&format!("{vas}/position"))?;
-        let battery = ctx.subscribe_variable::<Battery>(&format!("{vas}/battery"))?;
-        let flight_state = ctx.subscribe_variable::<FlightState>(&format!("{vas}/flight_state"))?;
-        let mission_changed =
-            ctx.subscribe_event::<MissionChanged>(&format!("{vas}/mission_changed"))?;
+        let reached = vas::WAYPOINT_REACHED.subscribe(&ctx, at)?;
+        let position = vas::POSITION.subscribe(&ctx, at)?;
+        let battery = vas::BATTERY.subscribe(&ctx, at)?;
+        let flight_state = vas::FLIGHT_STATE.subscribe(&ctx, at)?;
+        let mission_changed = vas::MISSION_CHANGED.subscribe(&ctx, at)?;
         let (tx, mut rx) = mpsc::channel::<Request>(64);
         // A plan file is loaded before the sink stores it: the sender's verdict is the load's
         // outcome (`usal send` prints the reason a plan was refused), and a refusal is raised as
@@ -560,88 +559,102 @@ impl IService for Fpma {
             },
         )?;
         let mut providers = Vec::new();
-        for (name, replace) in [("load_plan", false), ("replace_plan", true)] {
-            providers.push(load_fn(&ctx, &tx, &commands, name, replace)?);
+        for (item, replace) in [(fpma::LOAD_PLAN, false), (fpma::REPLACE_PLAN, true)] {
+            providers.push(load_fn(&ctx, &tx, &commands, item, replace)?);
         }
         let t = tx.clone();
-        providers.push(ctx.provide_function("plan_geometry", move |(): ()| {
+        providers.push(fpma::PLAN_GEOMETRY.provide(&ctx, move |(): ()| {
             let t = t.clone();
             async move { ask(&t, Request::Geometry).await }
         })?);
         // The progress last published, for a caller that must not miss the last one (the
         // variable is best effort: over a lossy radio its final value can be lost).
         let t = tx.clone();
-        providers.push(ctx.provide_function("progress", move |(): ()| {
+        providers.push(fpma::LAST_PROGRESS.provide(&ctx, move |(): ()| {
             let t = t.clone();
             async move { ask(&t, Request::Progress).await }
-        })?);
-        providers.push(command_fn(&ctx, &tx, &commands, "skip_leg", |(): ()| {
-            Ok(Command::SkipLeg)
         })?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "goto_leg",
+            fpma::SKIP_LEG,
+            |(): ()| Ok(Command::SkipLeg),
+        )?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            fpma::GOTO_LEG,
             |leg: String| Ok(Command::GotoLeg(leg)),
         )?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "goto_stage",
+            fpma::GOTO_STAGE,
             |s: String| parse_stage(&s).map(Command::GotoStage),
         )?);
-        providers.push(command_fn(&ctx, &tx, &commands, "set_var", |a: SetVar| {
-            Ok(Command::SetVar(a.name, a.value.into()))
-        })?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "hold_here",
+            fpma::SET_VAR,
+            |a: SetVar| Ok(Command::SetVar(a.name, a.value.into())),
+        )?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            fpma::HOLD_HERE,
             |a: HoldHereArgs| Ok(Command::HoldHere((&a).into())),
         )?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "exit_hold",
+            fpma::EXIT_HOLD,
             |now: bool| Ok(Command::ExitHold(now)),
         )?);
-        providers.push(command_fn(&ctx, &tx, &commands, "pause", |(): ()| {
+        providers.push(command_fn(&ctx, &tx, &commands, fpma::PAUSE, |(): ()| {
             Ok(Command::Pause)
         })?);
-        providers.push(command_fn(&ctx, &tx, &commands, "resume", |(): ()| {
+        providers.push(command_fn(&ctx, &tx, &commands, fpma::RESUME, |(): ()| {
             Ok(Command::Resume)
         })?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "modify_leg",
+            fpma::MODIFY_LEG,
             |a: ModifyLeg| Ok(Command::ModifyLeg(a.leg, a.changes)),
         )?);
-        providers.push(command_fn(&ctx, &tx, &commands, "retask", |a: Retask| {
-            let points = a
-                .points
-                .iter()
-                .map(|&(lat, lon)| GeoPoint::new(lat, lon))
-                .collect();
-            Ok(Command::Retask(points, a.alt, a.when.into()))
-        })?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "insert_legs",
+            fpma::RETASK,
+            |a: Retask| {
+                let points = a
+                    .points
+                    .iter()
+                    .map(|&(lat, lon)| GeoPoint::new(lat, lon))
+                    .collect();
+                Ok(Command::Retask(points, a.alt, a.when.into()))
+            },
+        )?);
+        providers.push(command_fn(
+            &ctx,
+            &tx,
+            &commands,
+            fpma::INSERT_LEGS,
             |xml: String| Ok(Command::InsertLegs(xml)),
         )?);
         providers.push(command_fn(
             &ctx,
             &tx,
             &commands,
-            "emergency",
+            fpma::EMERGENCY,
             |rule: Option<String>| Ok(Command::Emergency(rule)),
         )?);
 
