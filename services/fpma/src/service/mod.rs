@@ -124,12 +124,12 @@ pub enum ConfigLoadError {
         source: std::io::Error,
     },
     /// Malformed XML, unknown or ill-typed attributes.
-    #[error("{path}: {reason}")]
+    #[error("{}:{source}", path.display())]
     Parse {
         /// The file.
         path: PathBuf,
-        /// The parser's message.
-        reason: String,
+        /// What was refused, and where.
+        source: Box<marea::xml::de::XmlDeError>,
     },
     /// A value out of range.
     #[error("{0}")]
@@ -146,10 +146,11 @@ impl FpmaConfig {
             path: path.to_owned(),
             source,
         })?;
-        let cfg: Self = quick_xml::de::from_str(&text).map_err(|e| ConfigLoadError::Parse {
-            path: path.to_owned(),
-            reason: e.to_string(),
-        })?;
+        let cfg: Self =
+            marea::xml::de::from_document(&text).map_err(|e| ConfigLoadError::Parse {
+                path: path.to_owned(),
+                source: Box::new(e),
+            })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -882,6 +883,16 @@ mod tests {
         let p = dir.path().join("fpma.xml");
         std::fs::write(&p, r#"<fpma lookahed="5"/>"#).unwrap();
         assert!(FpmaConfig::load(&p).is_err());
+        // Each refusal names the file, the line and column, and the attribute.
+        std::fs::write(&p, "<fpma vas=\"vas\"\n  lookahed=\"5\"/>").unwrap();
+        let e = FpmaConfig::load(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("fpma.xml:2:3: lookahed: unknown field `lookahed`"),
+            "{e}"
+        );
+        std::fs::write(&p, "<fpma lookahead=\"five\"/>").unwrap();
+        let e = FpmaConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("fpma.xml:1:7: lookahead: "), "{e}");
         for bad in ["0", "1000000000"] {
             std::fs::write(&p, format!(r#"<fpma lookahead="{bad}"/>"#)).unwrap();
             let e = FpmaConfig::load(&p).unwrap_err().to_string();
