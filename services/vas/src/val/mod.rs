@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 use async_trait::async_trait;
 use marea::{Event, IService, Service, ServiceError, Variable};
 use tokio::sync::broadcast;
+use usal_types::items::vas;
 use usal_types::{
     Alarm, AllowedChanges, Attitude, AutopilotStatus, Battery, CommandReply, FlightState, Home,
     ManualCommand, MissionChanged, MissionTime, Position, QueueStatus, Severity, Speeds,
@@ -755,24 +756,24 @@ impl IService for Vas {
 
     async fn start(&mut self, ctx: Service) -> Result<(), ServiceError> {
         let items = Items {
-            position: ctx.publish_variable("position")?,
-            home: ctx.publish_variable("home")?,
-            fence: ctx.publish_variable("fence")?,
-            attitude: ctx.publish_variable("attitude")?,
-            speeds: ctx.publish_variable("speeds")?,
-            battery: ctx.publish_variable("battery")?,
-            autopilot: ctx.publish_variable("autopilot")?,
-            flight_state: ctx.publish_variable("flight_state")?,
-            mission_time: ctx.publish_variable("mission_time")?,
-            queue: ctx.publish_variable("queue")?,
-            allowed_changes: ctx.publish_variable("allowed_changes")?,
-            state_changed: ctx.publish_event("state_changed")?,
-            waypoint_reached: ctx.publish_event("waypoint_reached")?,
-            alarm: ctx.publish_event("alarm")?,
-            mission_changed: ctx.publish_event("mission_changed")?,
-            failsafe: ctx.publish_event("failsafe")?,
-            commands: ctx.publish_event("commands")?,
-            detection: ctx.publish_event("detection")?,
+            position: vas::POSITION.publish(&ctx)?,
+            home: vas::HOME.publish(&ctx)?,
+            fence: vas::FENCE.publish(&ctx)?,
+            attitude: vas::ATTITUDE.publish(&ctx)?,
+            speeds: vas::SPEEDS.publish(&ctx)?,
+            battery: vas::BATTERY.publish(&ctx)?,
+            autopilot: vas::AUTOPILOT.publish(&ctx)?,
+            flight_state: vas::FLIGHT_STATE.publish(&ctx)?,
+            mission_time: vas::MISSION_TIME.publish(&ctx)?,
+            queue: vas::QUEUE.publish(&ctx)?,
+            allowed_changes: vas::ALLOWED_CHANGES.publish(&ctx)?,
+            state_changed: vas::STATE_CHANGED.publish(&ctx)?,
+            waypoint_reached: vas::WAYPOINT_REACHED.publish(&ctx)?,
+            alarm: vas::ALARM.publish(&ctx)?,
+            mission_changed: vas::MISSION_CHANGED.publish(&ctx)?,
+            failsafe: vas::FAILSAFE.publish(&ctx)?,
+            commands: vas::COMMANDS.publish(&ctx)?,
+            detection: vas::DETECTION.publish(&ctx)?,
         };
         let air = match &self.cfg.air_log {
             None => None,
@@ -817,8 +818,8 @@ impl IService for Vas {
         core.publish_allowed();
 
         let c = core.clone();
-        let change = ctx.provide_function_with_caller(
-            "change_state",
+        let change = vas::CHANGE_STATE.provide_with_caller(
+            &ctx,
             move |req: StateChangeRequest, from: marea::Caller| {
                 let c = c.clone();
                 async move {
@@ -829,8 +830,8 @@ impl IService for Vas {
             },
         )?;
         let c = core.clone();
-        let command = ctx.provide_function_with_caller(
-            "command",
+        let command = vas::COMMAND.provide_with_caller(
+            &ctx,
             move |cmd: VehicleCommand, from: marea::Caller| {
                 let c = c.clone();
                 async move {
@@ -841,7 +842,7 @@ impl IService for Vas {
             },
         )?;
         let c = core.clone();
-        let allowed = ctx.provide_function("allowed_states", move |(): ()| {
+        let allowed = vas::ALLOWED_STATES.provide(&ctx, move |(): ()| {
             let c = c.clone();
             async move {
                 let kind = c.apl.vehicle();
@@ -850,7 +851,7 @@ impl IService for Vas {
             }
         })?;
         let c = core.clone();
-        let push = ctx.provide_function("push_waypoints", move |wps: Vec<Waypoint>| {
+        let push = vas::PUSH_WAYPOINTS.provide(&ctx, move |wps: Vec<Waypoint>| {
             let c = c.clone();
             async move {
                 // Checked before anything reaches the autopilot; refused whole. The queue's
@@ -882,7 +883,7 @@ impl IService for Vas {
             }
         })?;
         let c = core.clone();
-        let clear = ctx.provide_function("clear_waypoints", move |(): ()| {
+        let clear = vas::CLEAR_WAYPOINTS.provide(&ctx, move |(): ()| {
             let c = c.clone();
             async move {
                 let r = c.apl.clear_waypoints().await.map_err(|e| e.to_string());
@@ -897,8 +898,8 @@ impl IService for Vas {
             }
         })?;
         let c = core.clone();
-        let set_fence = ctx.provide_function_with_caller(
-            "set_fence",
+        let set_fence = vas::SET_FENCE.provide_with_caller(
+            &ctx,
             move |f: Option<Fence>, from: marea::Caller| {
                 let c = c.clone();
                 async move {
@@ -910,7 +911,7 @@ impl IService for Vas {
         )?;
         // The autopilot's parameters: read, set (logged as a command, like every change), listed.
         let c = core.clone();
-        let get_param = ctx.provide_function("get_param", move |name: String| {
+        let get_param = vas::GET_PARAM.provide(&ctx, move |name: String| {
             let c = c.clone();
             async move {
                 let value = c.apl.get_param(&name).await.map_err(|e| e.to_string())?;
@@ -918,8 +919,8 @@ impl IService for Vas {
             }
         })?;
         let c = core.clone();
-        let set_param = ctx.provide_function_with_caller(
-            "set_param",
+        let set_param = vas::SET_PARAM.provide_with_caller(
+            &ctx,
             move |p: ParamValue, from: marea::Caller| {
                 let c = c.clone();
                 async move {
@@ -930,7 +931,7 @@ impl IService for Vas {
             },
         )?;
         let c = core.clone();
-        let list_params = ctx.provide_function("list_params", move |(): ()| {
+        let list_params = vas::LIST_PARAMS.provide(&ctx, move |(): ()| {
             let c = c.clone();
             async move {
                 let all = c.apl.list_params().await.map_err(|e| e.to_string())?;
@@ -943,16 +944,15 @@ impl IService for Vas {
         })?;
         // Part of the mission on board, as the autopilot holds it (a partial read).
         let c = core.clone();
-        let read_mission =
-            ctx.provide_function("read_mission", move |(first, last): (u16, u16)| {
-                let c = c.clone();
-                async move {
-                    c.apl
-                        .read_mission(first, last)
-                        .await
-                        .map_err(|e| format!("reading mission items {first}..={last}: {e}"))
-                }
-            })?;
+        let read_mission = vas::READ_MISSION.provide(&ctx, move |(first, last): (u16, u16)| {
+            let c = c.clone();
+            async move {
+                c.apl
+                    .read_mission(first, last)
+                    .await
+                    .map_err(|e| format!("reading mission items {first}..={last}: {e}"))
+            }
+        })?;
         let manual = ctx.subscribe_variable::<ManualCommand>(&core.cfg.manual_control)?;
         // This VAS's item prefix, the address a manual command must carry to be obeyed.
         let me = ctx.full_name("").trim_end_matches('/').to_owned();
