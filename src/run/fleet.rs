@@ -19,7 +19,7 @@ use tokio_util::sync::CancellationToken;
 use super::mission::Mission;
 use super::supervisor::Notice;
 use super::ui::Ui;
-use super::{interrupted, run_limit, RunArgs, DEFAULT_TIMEOUT};
+use super::{interrupted, time_limit, RunArgs};
 
 /// Follows the fleet until its plan ends (with `--until-complete`), a child cannot be kept
 /// running, the time limit, or a signal.
@@ -31,11 +31,7 @@ pub async fn supervise(
     mut notices: broadcast::Receiver<Notice>,
     stop: &CancellationToken,
 ) -> ExitCode {
-    let limit = args
-        .timeout_s
-        .and_then(run_limit)
-        .or(mission.timeout)
-        .unwrap_or(DEFAULT_TIMEOUT);
+    let limit = time_limit(args, mission);
     let Some((node, _)) = mission.fleet() else {
         return ExitCode::FAILURE;
     };

@@ -853,8 +853,6 @@ async fn wait_sim(
     }
 }
 
-/// Runs until every station's plan completes (with `--until-complete`), a station fails, a
-/// child cannot be kept running, the time limit, or a signal.
 /// `--timeout-s` as a duration: positive and representable (a huge value made
 /// `Duration::from_secs_f64` panic), else `None`.
 pub(crate) fn run_limit(seconds: f64) -> Option<Duration> {
@@ -863,6 +861,17 @@ pub(crate) fn run_limit(seconds: f64) -> Option<Duration> {
         .flatten()
 }
 
+/// How long a run may last: `--timeout-s`, else the mission's `timeout`, else
+/// [`DEFAULT_TIMEOUT`].
+pub(crate) fn time_limit(args: &RunArgs, mission: &Mission) -> Duration {
+    args.timeout_s
+        .and_then(run_limit)
+        .or(mission.timeout)
+        .unwrap_or(DEFAULT_TIMEOUT)
+}
+
+/// Runs until every station's plan completes (with `--until-complete`), a station fails, a
+/// child cannot be kept running, the time limit, or a signal.
 #[allow(clippy::too_many_arguments)]
 async fn supervise(
     mission: &Mission,
@@ -874,11 +883,7 @@ async fn supervise(
     station_notices: Vec<broadcast::Receiver<Notice>>,
     stop: &CancellationToken,
 ) -> ExitCode {
-    let limit = args
-        .timeout_s
-        .and_then(run_limit)
-        .or(mission.timeout)
-        .unwrap_or(DEFAULT_TIMEOUT);
+    let limit = time_limit(args, mission);
     let deadline = tokio::time::sleep(limit);
     tokio::pin!(deadline);
     let station_stop = stop.child_token();

@@ -20,7 +20,7 @@ use tokio::process::{Child, Command};
 use super::bins::Bins;
 use super::lan::{free_port, gateway_xml, lan_xml, write};
 use super::mission::{Mission, RadioSpec};
-use super::supervisor::{ChildSpec, Restart, Supervisor};
+use super::supervisor::{ChildSpec, Supervisor};
 use super::ui::Ui;
 
 /// How long marea-radio may take to print its ports.
@@ -152,17 +152,7 @@ pub async fn start(
                 ),
             ),
         )?;
-        sup.start(ChildSpec {
-            label,
-            kind: "gateway",
-            program: bins.path("marea-gateway"),
-            args: vec!["--config".into(), gw.display().to_string()],
-            announce: None,
-            crash_after: None,
-            env: Vec::new(),
-            restart: Restart::Always,
-            essential: true,
-        });
+        sup.start(ChildSpec::gateway(label, bins.path("marea-gateway"), &gw));
     }
     Ok(RadioLink { _child: child })
 }

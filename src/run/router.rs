@@ -162,17 +162,11 @@ pub fn start(
             &format!("{name}-gateway.xml"),
             &gateway_xml(name, &namespace, domain, port, &far),
         )?;
-        sup.start(ChildSpec {
-            label: format!("{name}/gateway"),
-            kind: "gateway",
-            program: bins.path("marea-gateway"),
-            args: vec!["--config".into(), gw.display().to_string()],
-            announce: None,
-            crash_after: None,
-            env: Vec::new(),
-            restart: Restart::Always,
-            essential: true,
-        });
+        sup.start(ChildSpec::gateway(
+            format!("{name}/gateway"),
+            bins.path("marea-gateway"),
+            &gw,
+        ));
     }
     Ok(())
 }

@@ -66,6 +66,23 @@ pub struct ChildSpec {
     pub essential: bool,
 }
 
+impl ChildSpec {
+    /// A `marea-gateway` reading `config`, essential and restarted whenever it ends.
+    pub fn gateway(label: String, program: PathBuf, config: &std::path::Path) -> Self {
+        Self {
+            label,
+            kind: "gateway",
+            program,
+            args: vec!["--config".into(), config.display().to_string()],
+            announce: None,
+            crash_after: None,
+            env: Vec::new(),
+            restart: Restart::Always,
+            essential: true,
+        }
+    }
+}
+
 /// When a child that ended is started again (`<service restart>`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Restart {
