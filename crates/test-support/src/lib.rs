@@ -126,6 +126,30 @@ pub fn usal_bin(target: &Path, bin: &str) -> PathBuf {
     path
 }
 
+/// A binary of the workspace (`vas`, `mavsim`, `fpma`, `marea-radio`...), built once per test
+/// process into the running test's target directory: the services' build ([`build_services`]),
+/// or the `usal` package's own binaries ([`usal_bin`]).
+///
+/// # Panics
+/// When it is not there once built.
+pub fn workspace_bin(bin: &str) -> PathBuf {
+    let target = target_dir();
+    let service = build_services(&target).join(bin);
+    let path = if service.is_file() {
+        service
+    } else {
+        usal_bin(&target, bin)
+    };
+    assert!(path.is_file(), "no {bin} at {}", path.display());
+    path
+}
+
+/// Stops a child process: kills it and reaps it, waiting 20 s at most.
+pub async fn stop(child: &mut tokio::process::Child) {
+    let _ = child.start_kill();
+    let _ = tokio::time::timeout(std::time::Duration::from_secs(20), child.wait()).await;
+}
+
 /// Runs cargo with `args` into `target`, from the workspace's root, without the variables
 /// cargo set for this test process.
 fn cargo(args: &[&str], target: &Path) {

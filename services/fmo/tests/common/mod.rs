@@ -142,8 +142,7 @@ impl Station {
 
     /// Kills it and waits.
     pub async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+        test_support::stop(&mut self.child).await;
     }
 }
 
@@ -317,26 +316,7 @@ pub fn build_flight_bins() {
     }
 }
 
-/// A binary of another package of the workspace (`vas`, `mavsim`, `fpma`), built once per test
-/// process into this test's own target directory.
-pub fn workspace_bin(package: &str) -> std::path::PathBuf {
-    use std::collections::HashMap;
-    use std::sync::{Mutex, OnceLock};
-    static BUILT: OnceLock<Mutex<HashMap<String, std::path::PathBuf>>> = OnceLock::new();
-    let mut built = BUILT
-        .get_or_init(Default::default)
-        .lock()
-        .unwrap_or_else(|p| p.into_inner());
-    if let Some(p) = built.get(package) {
-        return p.clone();
-    }
-    let target = test_support::target_dir();
-    test_support::build_services(&target);
-    let bin = target.join("debug").join(package);
-    assert!(bin.exists(), "no {package} at {}", bin.display());
-    built.insert(package.to_owned(), bin.clone());
-    bin
-}
+pub use test_support::workspace_bin;
 
 /// A child process killed on drop.
 pub struct Proc {
@@ -372,8 +352,7 @@ impl Proc {
 
     /// Kills it and waits.
     pub async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+        test_support::stop(&mut self.child).await;
     }
 }
 

@@ -20,16 +20,10 @@ const START: Duration = Duration::from_secs(30);
 pub fn sibling_bins() -> &'static (PathBuf, PathBuf) {
     static BINS: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
     BINS.get_or_init(|| {
-        let target = test_support::target_dir();
-        test_support::build_services(&target);
-        let vas = target.join("debug").join("vas");
-        let sim = target.join("debug").join("mavsim");
-        assert!(
-            vas.exists() && sim.exists(),
-            "no binaries in {}",
-            target.display()
-        );
-        (vas, sim)
+        (
+            test_support::workspace_bin("vas"),
+            test_support::workspace_bin("mavsim"),
+        )
     })
 }
 
@@ -123,8 +117,7 @@ pub async fn ground(domain: &str) -> Node {
 
 /// Kills `c` and waits for it, at most 20 s.
 pub async fn kill(mut c: Child) {
-    let _ = c.start_kill();
-    let _ = timeout(Duration::from_secs(20), c.wait()).await;
+    test_support::stop(&mut c).await;
 }
 
 /// mavsim's `item_reached` records as (lat, lon).

@@ -219,8 +219,7 @@ impl MavsdkVehicle {
 
     /// Kills it and waits.
     pub async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = tokio::time::timeout(Duration::from_secs(5), self.child.wait()).await;
+        test_support::stop(&mut self.child).await;
     }
 }
 

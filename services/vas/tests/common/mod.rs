@@ -26,25 +26,13 @@ pub const HOME: (f64, f64) = (41.2757, 1.9881);
 /// The `mavsim` binary, built once per test process into this test's own target directory.
 pub fn mavsim_bin() -> &'static Path {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
-    BIN.get_or_init(|| build_bin("mavsim", "mavsim"))
+    BIN.get_or_init(|| test_support::workspace_bin("mavsim"))
 }
 
 /// The `marea-radio` radio emulator (a bin of the root package `usal`), built like mavsim.
 pub fn marea_radio_bin() -> &'static Path {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
-    BIN.get_or_init(|| build_bin("usal", "marea-radio"))
-}
-
-/// Builds `bin` of `package` into the target directory of the running test binary.
-fn build_bin(package: &str, bin: &str) -> PathBuf {
-    let target = test_support::target_dir();
-    let path = if package == "usal" {
-        test_support::usal_bin(&target, bin)
-    } else {
-        test_support::build_services(&target).join(bin)
-    };
-    assert!(path.exists(), "no {bin} at {}", path.display());
-    path
+    BIN.get_or_init(|| test_support::workspace_bin("marea-radio"))
 }
 
 /// A running `marea-radio`: two pty pairs joined by an emulated 3DR radio link. Killed on
@@ -135,8 +123,7 @@ impl Radio {
 
     /// Kills it and waits.
     pub async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+        test_support::stop(&mut self.child).await;
     }
 }
 
@@ -246,8 +233,7 @@ impl Sim {
 
     /// Kills it and waits.
     pub async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+        test_support::stop(&mut self.child).await;
     }
 }
 
@@ -290,8 +276,7 @@ impl VasProc {
 
     /// Kills it and waits.
     pub async fn kill(mut self) {
-        let _ = self.child.start_kill();
-        let _ = tokio::time::timeout(STEP, self.child.wait()).await;
+        test_support::stop(&mut self.child).await;
     }
 }
 
