@@ -66,22 +66,12 @@ impl Proc {
         what: &str,
         pred: impl Fn(&Value) -> bool,
     ) -> Value {
-        let deadline = Instant::now() + timeout;
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match self.lines.recv_timeout(left) {
-                Ok(v) => {
-                    self.seen.push(v.clone());
-                    if pred(&v) {
-                        return v;
-                    }
-                }
-                Err(_) => panic!(
-                    "{}: no line with {what} within {timeout:?}; saw {:?}",
-                    self.name, self.seen
-                ),
-            }
-        }
+        self.try_expect(timeout, pred).unwrap_or_else(|| {
+            panic!(
+                "{}: no line with {what} within {timeout:?}; saw {:?}",
+                self.name, self.seen
+            )
+        })
     }
 
     /// Waits up to `timeout` for a line satisfying `pred`; `None` when none came (the lines
