@@ -281,6 +281,66 @@ async fn copter_takes_off_and_flies_the_waypoint_speeds() {
     g.node.shutdown().await;
 }
 
+/// A copter flown one waypoint at a time, the next pushed only once the last was reached (a
+/// fleet sending an investigator from point to point): every mission ends at its one item,
+/// which stays current on the autopilot, and each next one reuses that slot. Every reach is
+/// reported, the third as the first.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_copter_sent_one_waypoint_at_a_time_reaches_each() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("sim.jsonl");
+    let sim = Sim::start_with("127.0.0.1:0", 10.0, &log, &["--vehicle", "copter"]).await;
+    let domain = unique_domain("copter-one");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--vehicle", "copter", "--telemetry-hz", "10"],
+    );
+    let g = Ground::open(&domain).await;
+    let position = g
+        .svc
+        .subscribe_variable::<usal_types::Position>("rover1/vas/position")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+    let mut wps = zigzag(4, 25.0);
+    for w in &mut wps {
+        w.alt = 10.0;
+    }
+    g.push_all(&wps[..1]).await;
+    g.request(FlightState::TakeOff).await.expect("TAKE_OFF");
+    tokio::time::timeout(STEP, async {
+        while position.recv().await.expect("position").value.alt_rel < 9.5 {}
+    })
+    .await
+    .expect("the copter climbed");
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigate");
+    for (k, w) in wps.iter().enumerate() {
+        if k > 0 {
+            g.push_all(std::slice::from_ref(w)).await;
+        }
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| {
+                panic!(
+                    "waypoint {k} never reported reached:\n{}",
+                    sim.mission_story()
+                )
+            })
+            .expect("waypoint_reached");
+        assert_eq!(r.value.seq, w.seq);
+    }
+    let order: Vec<Option<usize>> = reached_points(&sim.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    assert_eq!(order, (0..4).map(Some).collect::<Vec<_>>());
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
 /// mavsim's log shows the rover left AUTO (mode 10) exactly once: at the end of the mission,
 /// never mid-way for lack of a next waypoint.
 fn assert_left_auto_once(sim: &Sim) {

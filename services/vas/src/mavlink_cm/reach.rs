@@ -45,9 +45,15 @@ impl ReachDetector {
         Self::default()
     }
 
-    /// We are about to set the current item to `seq`: that change is not a reach.
+    /// We are about to set the current item to `seq`: that change is not a reach, and it starts
+    /// a new visit of `seq` even when `seq` is current already (a mission that ended at its
+    /// last item keeps it current; the next upload reuses that slot and sets it again), so
+    /// its next reach is a new one.
     pub fn expect_jump(&mut self, seq: u16) {
-        self.expected_jump = Some(seq);
+        self.reported.retain(|&s| s != seq);
+        if self.current != Some(seq) {
+            self.expected_jump = Some(seq);
+        }
     }
 
     /// Forgets all history (after a reconnection or a new mission).
@@ -135,6 +141,21 @@ mod tests {
         d.expect_jump(2);
         assert_eq!(d.on_mission_current(2), None);
         assert_eq!(d.on_mission_current(3), Some(2));
+    }
+
+    #[test]
+    fn setting_the_item_already_current_starts_a_new_visit() {
+        // One-item missions, each uploaded once the last ended: item 1 stays current.
+        let mut d = ReachDetector::new();
+        d.on_mission_current(1);
+        for _mission in 0..3 {
+            d.expect_jump(1);
+            assert_eq!(d.on_mission_current(1), None);
+            assert_eq!(d.on_item_reached(1), Some(1));
+            assert_eq!(d.on_status_text("Reached command #1"), None);
+        }
+        // An advance after the last reach is that same reach, not a second one.
+        assert_eq!(d.on_mission_current(2), None);
     }
 
     #[test]

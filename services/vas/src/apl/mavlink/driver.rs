@@ -365,6 +365,18 @@ impl Driver {
                 }
                 self.queue.push(wps);
                 let _ = reply.send(Ok(self.queue_status()));
+                if self.mission_ended_in_navigation() {
+                    // An aircraft holds over its last waypoint in AUTO: the waypoints pushed
+                    // since extend its navigation, as they would have before it got there.
+                    tracing::info!("navigation resumed with the waypoints pushed since its end");
+                    if let Err(e) = self.change_state(FlightState::WaypointNavigation).await {
+                        self.alarm(
+                            Severity::Warning,
+                            format!("resuming navigation with the new waypoints: {e}"),
+                        );
+                    }
+                    return;
+                }
                 self.pump().await;
             }
             Cmd::Clear(reply) => {
@@ -379,6 +391,23 @@ impl Driver {
                 let _ = reply.send(r);
             }
         }
+    }
+
+    /// Navigation was commanded and the autopilot ended its mission at the last waypoint
+    /// queued, still in AUTO (a copter or plane holding there), with waypoints queued since.
+    fn mission_ended_in_navigation(&self) -> bool {
+        let s = self.mgr.state();
+        self.commanded == Some(FlightState::WaypointNavigation)
+            && !self.queue.is_running()
+            && !self.queue.is_empty()
+            && !self.restart
+            && s.link_up
+            && s.mode_name.is_some()
+            && self
+                .modes()
+                .mode_for(self.kind, FlightState::WaypointNavigation)
+                .map(|(mode, _)| mode)
+                == s.mode_name
     }
 
     /// ARM, DISARM, or DIRECTED flight (entering DIRECTED first): the VAL checked it.
