@@ -2,7 +2,6 @@
 //! processes, runs the ground station in-process, shows the flight plan's progress and, with
 //! `--until-complete`, exits with the plan's outcome and a summary.
 
-mod aircraft;
 mod bins;
 mod failsafe;
 mod fleet;
@@ -143,7 +142,7 @@ fn station_setup(
     let name = plan.plan().name.clone();
     let wps = plan.nominal();
     let aircraft = (kind != VehicleKind::Rover)
-        .then(|| aircraft::AircraftPlan::of(plan.plan().altitude_reference(), wps));
+        .then(|| flightplan::aircraft::AircraftPlan::of(plan.plan().altitude_reference(), wps));
     let warnings = sim_home(mission, &st.vas)
         .and_then(|home| far_from_home(wps, home, params.far_from_home_m()))
         .into_iter()

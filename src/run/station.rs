@@ -20,9 +20,9 @@ use tokio_util::sync::CancellationToken;
 use usal_types::items::vas;
 use usal_types::{AllowedChanges, FlightState, Position, StateChangeRequest};
 
-use super::aircraft::{self, AircraftPlan, AircraftSummary, FlightRecord};
 use super::failsafe::{self, FailsafeNote};
 use super::mission::StartBy;
+use flightplan::aircraft::{self, AircraftPlan, AircraftSummary, FlightRecord};
 
 use super::supervisor::Notice;
 use super::ui::{self, Ui};
@@ -591,7 +591,7 @@ async fn follow(
                     PlanEventKind::WaypointReached { seq, leg } => {
                         t.reached.push((seq, leg.clone()));
                         if let Some(a) = &s.aircraft {
-                            t.flight.reached(a, t.reached.len() - 1, t.position.as_ref());
+                            t.flight.reached(a, &leg, t.position.as_ref());
                         }
                         // Shown once the progress variable has caught up with it (it travels
                         // apart from events), so the line carries the distance at that point.

@@ -6,7 +6,8 @@
 //! Layers, each using only those above: `xml` (plan wording over `marea::xml`) → `expr`, `geo`,
 //! `vehicle` → `model` → `parse` (`parse/{error,attrs,legs}`: the document, no vehicle),
 //! `polygon` → `expand`, `eta` → `exec` and `check` (one layer: the check flies a plan once in
-//! the executive; the executive checks each change) → `qgc` → `plan_file` → `api`, `fleet_api` → `fuzzing`. Everything is pure (no I/O, no clock, no
+//! the executive; the executive checks each change), `aircraft` (an aircraft's take-off,
+//! climb and touchdown against its plan) → `qgc` → `plan_file` → `api`, `fleet_api` → `fuzzing`. Everything is pure (no I/O, no clock, no
 //! network: the FPMa's `service` is). `tests/layering.rs` keeps the table true. See
 //! `services/fpma/README.md` for the format, the API and the service's items.
 //!
@@ -26,6 +27,7 @@
 //! ex.waypoint_reached(next[0].version, next[0].seq).unwrap();
 //! assert_eq!(ex.next_waypoints(2)[0].leg, "mission.2");
 //! ```
+pub mod aircraft;
 pub mod api;
 pub mod check;
 pub mod eta;

@@ -12,14 +12,14 @@ const LAYERS: Layers<'static> = Layers {
         &["model"],
         &["parse", "polygon"],
         &["expand", "eta"],
-        &["exec", "check"],
+        &["exec", "check", "aircraft"],
         &["qgc"],
         &["plan_file"],
         &["api"],
         &["fleet_api"],
         &["fuzzing"],
     ],
-    table: "LAYERS in services/fpma/tests/layering.rs, the table in src/lib.rs",
+    table: "LAYERS in crates/flightplan/tests/layering.rs, the table in src/lib.rs",
 };
 
 #[test]

@@ -1,9 +1,10 @@
-//! What the launcher's station does for an aircraft, as its pilot would: start by taking off,
-//! navigate once the climb is done, and read the flight back as altitudes flown against the
-//! plan's and a touchdown against the planned landing point.
+//! Flying a plan with an aircraft, as its pilot would: start by taking off, navigate once the
+//! climb is done, and read the flight back as altitudes flown against the plan's and a
+//! touchdown against the planned landing point. Pure; the launcher's station and the fleet
+//! layer carry it out.
 
-use flightplan::expand::{Waypoint, WaypointTag};
-use flightplan::geo::{distance, GeoPoint};
+use crate::expand::{Waypoint, WaypointTag};
+use crate::geo::{distance, GeoPoint};
 use usal_types::{AllowedChanges, AltRef, FlightState, Position};
 
 /// A climb counts as done this close to the take-off altitude, metres (or at 95 % of it).
@@ -16,8 +17,8 @@ pub struct AircraftPlan {
     pub alt_ref: AltRef,
     /// The altitude the take-off climbs to, in `alt_ref`.
     pub takeoff_alt: Option<f64>,
-    /// The planned altitude of each nominal waypoint, in `alt_ref` and in stream order.
-    pub alts: Vec<f64>,
+    /// The nominal waypoints, in stream order.
+    pub points: Vec<PlannedPoint>,
     /// Where the plan lands, `(lat, lon)`.
     pub landing: Option<(f64, f64)>,
 }
@@ -31,13 +32,33 @@ impl AircraftPlan {
                 .iter()
                 .find(|w| w.tag == WaypointTag::Takeoff)
                 .map(|w| w.alt),
-            alts: wps.iter().map(|w| w.alt).collect(),
+            points: wps
+                .iter()
+                .map(|w| PlannedPoint {
+                    leg: w.leg.clone(),
+                    alt: (w.tag == WaypointTag::Nav).then_some(w.alt),
+                })
+                .collect(),
             landing: wps
                 .iter()
                 .rev()
                 .find(|w| w.tag == WaypointTag::Land)
                 .map(|w| (w.lat, w.lon)),
         }
+    }
+
+    /// One flight of several plans: `next` flown after this one. The take-off stays this
+    /// one's (the next's where this has none), the landing is the next's (where the flight now
+    /// ends), the waypoints follow one another; returns the index of `next`'s first waypoint
+    /// (for [`FlightRecord::next_plan`]).
+    pub fn then(&mut self, next: Self) -> usize {
+        let offset = self.points.len();
+        if self.takeoff_alt.is_none() && offset == 0 {
+            self.takeoff_alt = next.takeoff_alt;
+        }
+        self.points.extend(next.points);
+        self.landing = next.landing;
+        offset
     }
 
     /// The vehicle's altitude in the plan's reference.
@@ -83,6 +104,16 @@ pub fn start_request(
     }
 }
 
+/// A nominal waypoint of an aircraft's plan.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlannedPoint {
+    /// The leg it belongs to (what the FPMa's reach events name).
+    pub leg: String,
+    /// The altitude it holds en route, in the plan's reference; `None` for a take-off's and
+    /// a landing's (where the climb ends and the ground, not heights to hold).
+    pub alt: Option<f64>,
+}
+
 /// The flight of an aircraft, recorded as it goes.
 #[derive(Clone, Debug, Default)]
 pub struct FlightRecord {
@@ -94,6 +125,8 @@ pub struct FlightRecord {
     took_off: bool,
     /// Where it came to rest after flying, `(lat, lon)`, once parked (landed and disarmed).
     parked_at: Option<(f64, f64)>,
+    /// The plan's waypoint the next reach is looked for from.
+    next_index: usize,
 }
 
 impl FlightRecord {
@@ -106,10 +139,28 @@ impl FlightRecord {
         }
     }
 
-    /// The FPMa reported nominal waypoint `index` reached, the vehicle last seen at `p`.
-    pub fn reached(&mut self, plan: &AircraftPlan, index: usize, p: Option<&Position>) {
+    /// The flight goes on with the plan whose first waypoint is `index` ([`AircraftPlan::then`]).
+    pub fn next_plan(&mut self, index: usize) {
+        self.next_index = index;
+    }
+
+    /// The FPMa reported a waypoint of `leg` reached, the vehicle last seen at `p`: the plan's
+    /// next waypoint of that leg. Waypoints before it were not flown (a leg's first point
+    /// where the vehicle already was: a plan starting from where it is); a reach of no leg
+    /// ahead (an operator's change) is not compared.
+    pub fn reached(&mut self, plan: &AircraftPlan, leg: &str, p: Option<&Position>) {
+        let Some(k) = plan
+            .points
+            .iter()
+            .skip(self.next_index)
+            .position(|w| w.leg == leg)
+            .map(|k| k + self.next_index)
+        else {
+            return;
+        };
+        self.next_index = k + 1;
         if let Some(p) = p {
-            self.at_waypoints.push((index, plan.altitude(p)));
+            self.at_waypoints.push((k, plan.altitude(p)));
         }
     }
 
@@ -129,15 +180,10 @@ impl FlightRecord {
 
     /// The flight summed up against `plan`.
     pub fn summary(&self, plan: &AircraftPlan) -> AircraftSummary {
-        // The en-route waypoints: the take-off's and the landing's altitudes are where the
-        // climb ends and the ground, not heights to hold.
-        let first = usize::from(plan.takeoff_alt.is_some());
-        let end = plan.alts.len() - usize::from(plan.landing.is_some() && !plan.alts.is_empty());
         let en_route: Vec<(f64, f64)> = self
             .at_waypoints
             .iter()
-            .filter(|(i, _)| (first..end).contains(i))
-            .filter_map(|(i, flown)| plan.alts.get(*i).map(|planned| (*planned, *flown)))
+            .filter_map(|(i, flown)| Some((plan.points.get(*i)?.alt?, *flown)))
             .collect();
         let worst = en_route
             .iter()
@@ -173,7 +219,7 @@ fn range(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
 }
 
 /// An aircraft's flight in a run's summary.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct AircraftSummary {
     /// The reference of every altitude below (`MSL`, `REL`, `AGL`).
     pub alt_ref: String,
@@ -245,14 +291,14 @@ mod tests {
     use super::*;
     use usal_types::VehicleKind;
 
-    fn wp(alt: f64, tag: WaypointTag, lat: f64) -> Waypoint {
+    fn wp(alt: f64, tag: WaypointTag, lat: f64, leg: &str) -> Waypoint {
         Waypoint {
             lat,
             lon: 2.0,
             alt,
             speed: 5.0,
             fly_over: false,
-            leg: "l".into(),
+            leg: leg.into(),
             tag,
             waits: false,
             fix_crossing: false,
@@ -276,10 +322,10 @@ mod tests {
         AircraftPlan::of(
             AltRef::Relative,
             &[
-                wp(30.0, WaypointTag::Takeoff, 41.0),
-                wp(30.0, WaypointTag::Nav, 41.001),
-                wp(40.0, WaypointTag::Nav, 41.002),
-                wp(0.0, WaypointTag::Land, 41.0),
+                wp(30.0, WaypointTag::Takeoff, 41.0, "takeoff"),
+                wp(30.0, WaypointTag::Nav, 41.001, "mission.1"),
+                wp(40.0, WaypointTag::Nav, 41.002, "mission.2"),
+                wp(0.0, WaypointTag::Land, 41.0, "landing"),
             ],
         )
     }
@@ -325,11 +371,11 @@ mod tests {
             "parked before flying is not a landing"
         );
         f.position(&p, &at(30.5, 41.0));
-        f.reached(&p, 0, Some(&at(30.5, 41.0)));
-        f.reached(&p, 1, Some(&at(29.0, 41.001)));
+        f.reached(&p, "takeoff", Some(&at(30.5, 41.0)));
+        f.reached(&p, "mission.1", Some(&at(29.0, 41.001)));
         f.position(&p, &at(41.0, 41.002));
-        f.reached(&p, 2, Some(&at(39.5, 41.002)));
-        f.reached(&p, 3, Some(&at(0.0, 41.0001)));
+        f.reached(&p, "mission.2", Some(&at(39.5, 41.002)));
+        f.reached(&p, "landing", Some(&at(0.0, 41.0001)));
         f.state(FlightState::Parking, Some(&at(0.0, 41.0001)));
         assert!(f.parked_after_flight());
         let s = f.summary(&p);
@@ -351,5 +397,40 @@ mod tests {
         let mut g = FlightRecord::default();
         g.position(&p, &at(30.0, 41.0));
         assert!(g.summary(&p).text().contains("NOT on the ground"));
+    }
+
+    #[test]
+    fn a_flight_of_several_plans_checks_the_altitudes_of_each_en_route_only() {
+        let nav = |alt, lat, leg| wp(alt, WaypointTag::Nav, lat, leg);
+        let start = [
+            wp(10.0, WaypointTag::Takeoff, 41.0, "takeoff"),
+            nav(10.0, 41.001, "mission.1"),
+        ];
+        let mut flight = AircraftPlan::of(AltRef::Relative, &start);
+        // Plans that start from where the vehicle is: their first point is not flown.
+        let visit = [
+            nav(10.0, 41.001, "mission.1"),
+            nav(10.0, 41.002, "mission.2"),
+        ];
+        let home = [
+            nav(10.0, 41.002, "mission.1"),
+            wp(0.0, WaypointTag::Land, 41.0, "landing"),
+        ];
+        let mut f = FlightRecord::default();
+        f.reached(&flight, "takeoff", Some(&at(9.6, 41.0)));
+        f.reached(&flight, "mission.1", Some(&at(10.2, 41.001)));
+        f.next_plan(flight.then(AircraftPlan::of(AltRef::Relative, &visit)));
+        f.reached(&flight, "mission.2", Some(&at(9.9, 41.002)));
+        f.next_plan(flight.then(AircraftPlan::of(AltRef::Relative, &home)));
+        // Touchdown: the landing's reach, not the unflown point above it.
+        f.reached(&flight, "landing", Some(&at(0.1, 41.0)));
+        // A reach of no leg ahead (an operator's change) is not compared.
+        f.reached(&flight, "hold-here.9", Some(&at(0.1, 41.0)));
+        assert_eq!(flight.takeoff_alt, Some(10.0));
+        assert_eq!(flight.landing, Some((41.0, 2.0)));
+        let s = f.summary(&flight);
+        assert_eq!(s.waypoints_checked, 2);
+        assert_eq!(s.flown_alt_m, Some((9.9, 10.2)));
+        assert!(s.worst_alt_error_m.is_some_and(|e| (e - 0.2).abs() < 1e-9));
     }
 }
