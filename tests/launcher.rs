@@ -1051,6 +1051,100 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
     assert_no_child_left(&pids);
 }
 
+/// The two-drone search as Broz flew it: two copters take off, the surveyor scans at 30 m, the
+/// investigator visits every detection at 10 m round the shed in its way, and both land back
+/// on their pads; the summary says so, copter by copter.
+#[test]
+fn the_copter_search_takes_off_visits_every_detection_and_lands_both() {
+    let pois = std::fs::read_to_string(root().join("config/search/pois.txt")).unwrap();
+    let placed = pois
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
+        .count();
+    let mut l = Launcher::start(&[
+        "config/missions/search-copters.xml",
+        "--until-complete",
+        "--speedup",
+        "20",
+    ]);
+    let end = l.event(FLIGHT * 2, "fleet_plan_summary");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    let s = &end["summary"];
+    assert_eq!(s["done"], true, "{end}");
+    let detections = s["detections"].as_array().unwrap();
+    assert_eq!(detections.len(), placed, "every point found: {end}");
+    assert!(
+        detections
+            .iter()
+            .all(|d| d["visited"][0] == "investigator" && d["by"] == "surveyor"),
+        "every detection the surveyor made visited by the investigator: {end}"
+    );
+    assert_eq!(end["visited_ratio"], 1.0);
+    // The shed (6 m) is in the investigator's way at 10 m: flown round, never entered.
+    let sep = &s["separation"];
+    assert_eq!(sep["obstacle_entries"], 0, "{end}");
+    assert!(sep["detours"].as_u64().is_some_and(|d| d >= 1), "{end}");
+    // 20 m apart in altitude: never a conflict, whatever their horizontal distance.
+    assert_eq!(
+        (sep["violations"].as_u64(), sep["holds"].as_u64()),
+        (Some(0), Some(0)),
+        "{end}"
+    );
+    // Each copter took off to its altitude and landed on its pad, disarmed.
+    for (k, (id, alt)) in [("surveyor", 30.0), ("investigator", 10.0)]
+        .into_iter()
+        .enumerate()
+    {
+        let v = &s["vehicles"][k];
+        assert_eq!(v["id"], id, "{end}");
+        let a = &v["aircraft"];
+        assert_eq!(a["took_off"], true, "{id}: {end}");
+        assert_eq!(a["takeoff_alt_m"].as_f64(), Some(alt), "{id}: {end}");
+        assert!(
+            a["highest_m"]
+                .as_f64()
+                .is_some_and(|h| h >= alt - 1.5 && h < alt + 5.0),
+            "{id} flew at its altitude: {end}"
+        );
+        // En route (take-off and touchdown aside) it held the plans' altitude.
+        assert!(
+            a["waypoints_checked"].as_u64().is_some_and(|n| n >= 2)
+                && a["worst_alt_error_m"]
+                    .as_f64()
+                    .is_some_and(|e| e.abs() < 2.0),
+            "{id} held its altitude en route: {end}"
+        );
+        assert_eq!(a["landed"], true, "{id}: {end}");
+        assert!(
+            a["landing_error_m"].as_f64().is_some_and(|d| d < 5.0),
+            "{id} on its pad: {end}"
+        );
+        assert_eq!(v["state"], "PARKING", "{id}: {end}");
+    }
+    // The summary in words (what a run without --json prints): take-offs, landings,
+    // detections, the shed.
+    let status: flightplan::fleet_api::FleetStatus =
+        serde_json::from_value(s.clone()).expect("the summary is a fleet status");
+    let text = status.text("search-copters");
+    for want in [
+        "take-off: to 30 m REL planned",
+        "take-off: to 10 m REL planned",
+        "landing: on the ground, disarmed",
+        &format!("detections: {placed} reported, {placed} visited"),
+        "obstacles: 1 (shed)",
+        "entered 0 times",
+    ] {
+        assert!(text.contains(want), "no `{want}` in the summary:\n{text}");
+    }
+    let pids = l.pids();
+    for svc in ["air1/mavsim", "air2/mavsim", "ground/fleet"] {
+        assert!(pids.iter().any(|(p, _)| p == svc), "{svc}: {pids:?}");
+    }
+    assert_no_child_left(&pids);
+}
+
 /// The same search over the radio arrangement (an air LAN per rover, one
 /// ground LAN, a lossy marea-radio per rover): the fleet layer commands both rovers across.
 #[test]

@@ -32,6 +32,9 @@ pub struct VehicleStatus {
     /// The nominal waypoints of the plan it was last given, (lat, lon), at most
     /// [`ROUTE_POINTS`], for a station's map.
     pub route: Vec<(f64, f64)>,
+    /// An aircraft's flight so far against its plans: the take-off, the altitudes flown, the
+    /// landing (`None` for a rover).
+    pub aircraft: Option<crate::aircraft::AircraftSummary>,
 }
 
 /// Most points of a [`VehicleStatus::route`] (a longer plan is thinned evenly, ends kept).
@@ -195,6 +198,12 @@ impl FleetStatus {
                 v.plan.as_deref().unwrap_or("no plan"),
                 if v.done { "done" } else { "not done" }
             );
+            if let Some(a) = &v.aircraft {
+                // The flight's own lines, under the vehicle's.
+                for line in a.text().lines() {
+                    s += &format!("  {line}\n");
+                }
+            }
         }
         if let Some(f) = &self.failed {
             s += &format!("  failed: {f}\n");

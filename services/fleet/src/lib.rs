@@ -46,15 +46,16 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context};
+use flightplan::aircraft::{self, AircraftPlan, FlightRecord};
 use flightplan::api::items as fpma;
-use flightplan::api::{CommandAck, PlanLoaded};
+use flightplan::api::{CommandAck, PlanEventKind, PlanLoaded};
 use flightplan::expr::Value;
 use marea::{CallError, Function, NetworkConfig, Node, Service};
 use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use usal_types::items::vas;
-use usal_types::{FlightState, StateChangeReply, StateChangeRequest};
+use usal_types::{AllowedChanges, FlightState, Position, StateChangeReply, StateChangeRequest};
 
 use crate::plan::{Block, BlockKind, FleetPlan, WaitEvent};
 use crate::separation::{Action, Monitor};
@@ -107,6 +108,12 @@ const NAV_ATTEMPTS: u32 = 20;
 /// A detection nearer than this to the investigator counts as visited without a plan (the
 /// FPMa drops waypoints closer than a rover's minimum waypoint distance).
 const VISIT_RADIUS_M: f64 = 4.0;
+/// How long an aircraft's landing (from its plan's last waypoint to parked on the ground,
+/// disarmed) and a step of its start (the VAS's state, the first waypoints queued) may take, s.
+const LANDING_WAIT_S: f64 = 300.0;
+const STEP_WAIT_S: f64 = 60.0;
+/// How long a take-off's climb may take, s.
+const CLIMB_WAIT_S: f64 = 300.0;
 
 /// Runs the fleet plan until it ends, then keeps publishing the final status until
 /// `shutdown`; prints `FLEET_DONE=<status as JSON>` (or `FLEET_FAILED=`) on stdout when the
@@ -197,6 +204,16 @@ struct Vehicle {
 struct VehState {
     flight_state: Option<FlightState>,
     position: Option<(f64, f64)>,
+    /// The last position report whole (altitudes included).
+    last: Option<Position>,
+    /// What the VAS allows from its present state.
+    allowed: Option<AllowedChanges>,
+    /// Waypoints queued at the VAS.
+    queued: u64,
+    /// An aircraft: the plan it flies now, checked for take-off and climb.
+    current: Option<AircraftPlan>,
+    /// An aircraft: its plans so far as one flight, and the flight recorded against them.
+    flight: Option<(AircraftPlan, FlightRecord)>,
     plan: Option<String>,
     /// The version of the plan last loaded by us.
     version: Option<u64>,
@@ -424,14 +441,21 @@ impl Fleet {
         }
     }
 
-    /// Stops the vehicle where it is (the VAS's PARKING: the autopilot's HOLD).
+    /// Stops the vehicle where it is: a rover parks (the VAS's PARKING, the autopilot's
+    /// HOLD); an aircraft, whose PARKING is a landing, holds in the air (DIRECTED: the
+    /// autopilot's GUIDED, holding where it is until told more).
     async fn stop(&self, i: usize) -> anyhow::Result<()> {
         let moving = matches!(
             self.state().vs[i].flight_state,
             Some(FlightState::WaypointNavigation) | None
         );
         if moving {
-            self.set_state(i, FlightState::Parking).await?;
+            let hold = if self.plan.vehicles[i].kind == flightplan::vehicle::VehicleKind::Rover {
+                FlightState::Parking
+            } else {
+                FlightState::Directed
+            };
+            self.set_state(i, hold).await?;
         }
         Ok(())
     }
@@ -457,12 +481,28 @@ impl Fleet {
             let v = &mut st.vs[i];
             v.version = Some(loaded.version);
             v.plan = Some(loaded.name.clone());
-            v.route = route_of(xml, self.plan.vehicles[i].kind);
+            let (route, aircraft) = route_of(xml, self.plan.vehicles[i].kind);
+            v.route = route;
             v.done = false;
             v.progress = 0.0;
             v.wants_nav = true;
+            v.current.clone_from(&aircraft);
+            if let Some(a) = aircraft {
+                match &mut v.flight {
+                    Some((flight, record)) => record.next_plan(flight.then(a)),
+                    None => v.flight = Some((a, FlightRecord::default())),
+                }
+            }
         }
         self.bump();
+        // `Some` for an aircraft: whether this plan ends with a landing.
+        let lands = {
+            let st = self.state();
+            st.vs[i].current.as_ref().map(|a| a.landing.is_some())
+        };
+        if lands.is_some() {
+            self.take_off(i).await?;
+        }
         self.navigate(i).await?;
         if wait {
             let version = loaded.version;
@@ -471,8 +511,96 @@ impl Fleet {
             })
             .await?;
             tracing::info!("{who}: plan `{}` completed", loaded.name);
+            if lands == Some(false) {
+                // An aircraft at the end of its mission stays in it (a copter hovers at the
+                // last waypoint in AUTO), where a next plan would not start: it holds there
+                // (DIRECTED), as its pilot would have it, until the next plan navigates.
+                self.set_state(i, FlightState::Directed).await?;
+            }
+            if lands == Some(true) {
+                // Landed only once on the ground and disarmed (the VAS parks it then).
+                self.wait_for(
+                    Some(LANDING_WAIT_S),
+                    &format!("{who}: landing"),
+                    move |st| {
+                        st.vs[i]
+                            .flight
+                            .as_ref()
+                            .is_some_and(|(_, r)| r.parked_after_flight())
+                    },
+                )
+                .await?;
+                tracing::info!("{who}: landed and parked");
+            }
         }
         Ok(())
+    }
+
+    /// An aircraft on the ground takes off before it navigates, as its pilot would: once the
+    /// FPMa has queued the plan's first waypoints (the climb goes to the first one's
+    /// altitude), TAKE_OFF, then wait for the climb. One already flying does nothing.
+    async fn take_off(&self, i: usize) -> anyhow::Result<()> {
+        let who = self.plan.vehicles[i].id.clone();
+        self.wait_for(
+            Some(STEP_WAIT_S),
+            &format!("{who}: the VAS configured, and what it allows"),
+            // Past CONFIGURE_CHECK, and what it allows from the state it is in (the two are
+            // published apart).
+            move |st| {
+                let v = &st.vs[i];
+                v.flight_state
+                    .is_some_and(|s| s != FlightState::ConfigureCheck)
+                    && v.allowed.as_ref().is_some_and(|a| a.from == v.flight_state)
+            },
+        )
+        .await?;
+        let due = {
+            let st = self.state();
+            let v = &st.vs[i];
+            v.flight_state
+                .and_then(|s| aircraft::start_request(s, v.allowed.as_ref(), false))
+        };
+        if due != Some(FlightState::TakeOff) {
+            return Ok(());
+        }
+        self.wait_for(
+            Some(STEP_WAIT_S),
+            &format!("{who}: the plan's waypoints at the VAS"),
+            move |st| st.vs[i].queued > 0,
+        )
+        .await?;
+        let mut attempt = 0;
+        loop {
+            match self.set_state(i, FlightState::TakeOff).await {
+                Ok(()) => break,
+                Err(e) if attempt + 1 >= NAV_ATTEMPTS => return Err(e),
+                Err(e) => {
+                    tracing::debug!("{e:#}; asking again");
+                    attempt += 1;
+                    tokio::time::sleep(NAV_RETRY).await;
+                }
+            }
+        }
+        let to = self.state().vs[i]
+            .current
+            .as_ref()
+            .and_then(|a| a.takeoff_alt);
+        tracing::info!(
+            "{who}: taking off (TAKE_OFF){}",
+            to.map_or_else(String::new, |t| format!(" to {t:.0} m"))
+        );
+        self.wait_for(
+            Some(CLIMB_WAIT_S),
+            &format!("{who}: the climb"),
+            move |st| {
+                let v = &st.vs[i];
+                match (&v.current, &v.last) {
+                    (Some(a), Some(p)) => a.climbed(p),
+                    _ => false,
+                }
+            },
+        )
+        .await
     }
 
     /// The Broz investigator: visits detections nearest first until `until` holds and none
@@ -482,8 +610,10 @@ impl Fleet {
         i: usize,
         until: &flightplan::expr::Condition,
         speed: f64,
+        alt_m: f64,
     ) -> anyhow::Result<()> {
         let keep_off = self.plan.separation.map_or(0.0, |s| s.hold_m);
+        let vertical = self.plan.separation.and_then(|s| s.vertical_m);
         let mut rx = self.changed.subscribe();
         loop {
             rx.borrow_and_update();
@@ -499,8 +629,13 @@ impl Fleet {
                             .iter()
                             .map(|&k| (st.detections[k].lat, st.detections[k].lon))
                             .collect();
+                        // Vehicles apart in altitude from the visits are not in the way.
                         let others: Vec<(f64, f64)> = (0..st.vs.len())
                             .filter(|&o| o != i)
+                            .filter(|&o| {
+                                let alt = st.vs[o].last.as_ref().map_or(0.0, |p| p.alt_rel);
+                                vertical.is_none_or(|v| (alt - alt_m).abs() < v)
+                            })
                             .filter_map(|o| st.vs[o].position)
                             .collect();
                         search::next_target(here, &pts, &others, keep_off).map(|j| {
@@ -537,8 +672,9 @@ impl Fleet {
                 self.plan.vehicles[i].id
             );
             let r = if far > VISIT_RADIUS_M {
-                // Round the static obstacles (a rover at ground level: every one is in the way).
-                match wavefront::route(here, target, 0.0, &self.plan.obstacles) {
+                // Round the static obstacles that reach the visits' altitude (a rover at ground
+                // level: every one).
+                match wavefront::route(here, target, alt_m, &self.plan.obstacles) {
                     Ok(via) => {
                         if via.len() > 1 {
                             tracing::info!(
@@ -548,7 +684,8 @@ impl Fleet {
                             );
                             self.state().detours += 1;
                         }
-                        self.fly(i, &visit_plan(id, here, &via, speed), true).await
+                        self.fly(i, &visit_plan(id, here, &via, speed, alt_m), true)
+                            .await
                     }
                     Err(e) => Err(anyhow!(
                         "{}: cannot reach detection #{id}: {e}",
@@ -731,7 +868,8 @@ impl Fleet {
                 vehicle,
                 until,
                 speed,
-            } => self.investigate(*vehicle, until, *speed).await?,
+                alt_m,
+            } => self.investigate(*vehicle, until, *speed, *alt_m).await?,
             BlockKind::Log { text } => tracing::info!("{text}"),
         }
         Ok(())
@@ -776,7 +914,8 @@ impl Fleet {
         }
     }
 
-    /// The subscriptions to every vehicle's position, state, progress and alarms.
+    /// The subscriptions to every vehicle's position, state, progress, plan events, detections,
+    /// allowed changes and queue.
     fn watch_vehicles(
         self: &Arc<Self>,
         tasks: &TaskTracker,
@@ -787,7 +926,10 @@ impl Fleet {
             let position = vas::POSITION.subscribe(&self.svc, &vas_at)?;
             let state = vas::FLIGHT_STATE.subscribe(&self.svc, &vas_at)?;
             let progress = fpma::PROGRESS.subscribe(&self.svc, &fpma_at)?;
+            let plan_events = fpma::PLAN_EVENT.subscribe(&self.svc, &fpma_at)?;
             let detections = vas::DETECTION.subscribe(&self.svc, &vas_at)?;
+            let allowed = vas::ALLOWED_CHANGES.subscribe(&self.svc, &vas_at)?;
+            let queue = vas::QUEUE.subscribe(&self.svc, &vas_at)?;
             let me = self.clone();
             let stop = stop.clone();
             let id = v.id.clone();
@@ -804,6 +946,11 @@ impl Fleet {
                             let actions = {
                                 let mut st = me.state();
                                 st.vs[i].position = Some((p.value.lat, p.value.lon));
+                                let v = &mut st.vs[i];
+                                if let Some((plan, record)) = &mut v.flight {
+                                    record.position(plan, &p.value);
+                                }
+                                v.last = Some(p.value);
                                 // An obstacle entered below its top: counted once per entry.
                                 let inside = me
                                     .plan
@@ -824,7 +971,7 @@ impl Fleet {
                                 st.vs[i].inside = inside;
                                 st.monitor
                                     .as_mut()
-                                    .map(|m| m.update(i, p.value.lat, p.value.lon))
+                                    .map(|m| m.update(i, p.value.lat, p.value.lon, p.value.alt_rel))
                                     .unwrap_or_default()
                             };
                             me.bump();
@@ -838,7 +985,31 @@ impl Fleet {
                                 Err(marea::RecvError::Closed) => return,
                                 Err(e) => { tracing::warn!("{id}: {e}"); continue }
                             };
-                            me.state().vs[i].flight_state = Some(s.value);
+                            let mut st = me.state();
+                            let v = &mut st.vs[i];
+                            v.flight_state = Some(s.value);
+                            if let Some((_, record)) = &mut v.flight {
+                                record.state(s.value, v.last.as_ref());
+                            }
+                            drop(st);
+                            me.bump();
+                        }
+                        a = allowed.recv() => {
+                            let a = match a {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            me.state().vs[i].allowed = Some(a.value);
+                            me.bump();
+                        }
+                        q = queue.recv() => {
+                            let q = match q {
+                                Ok(x) => x,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            me.state().vs[i].queued = q.value.queued;
                             me.bump();
                         }
                         p = progress.recv() => {
@@ -860,6 +1031,22 @@ impl Fleet {
                             }
                             drop(st);
                             me.bump();
+                        }
+                        e = plan_events.recv() => {
+                            let e = match e {
+                                Ok(x) => x.value,
+                                Err(marea::RecvError::Closed) => return,
+                                Err(e) => { tracing::warn!("{id}: {e}"); continue }
+                            };
+                            let mut st = me.state();
+                            let v = &mut st.vs[i];
+                            if let (Some((plan, record)), PlanEventKind::WaypointReached { leg, .. }) =
+                                (&mut v.flight, &e.kind)
+                            {
+                                if v.version == Some(e.version) {
+                                    record.reached(plan, leg, v.last.as_ref());
+                                }
+                            }
                         }
                         d = detections.recv() => {
                             let d = match d {
@@ -914,6 +1101,7 @@ impl Fleet {
                     holding: v.held,
                     paused: v.paused,
                     route: v.route.clone(),
+                    aircraft: v.flight.as_ref().map(|(plan, r)| r.summary(plan)),
                 })
                 .collect(),
             detections: st.detections.clone(),
@@ -970,21 +1158,31 @@ impl Fleet {
 
 /// The nominal waypoints of a flight plan (already checked when the fleet plan was loaded, or
 /// generated), thinned for the status; empty if it cannot be expanded.
-fn route_of(xml: &str, kind: flightplan::vehicle::VehicleKind) -> Vec<(f64, f64)> {
+/// A plan's route for the maps and, for an aircraft, its take-off, altitudes and landing.
+fn route_of(
+    xml: &str,
+    kind: flightplan::vehicle::VehicleKind,
+) -> (Vec<(f64, f64)>, Option<AircraftPlan>) {
     let params = flightplan::vehicle::VehicleParams::for_kind(kind);
     let Ok(plan) = flightplan::check::load(xml, &params) else {
-        return Vec::new();
+        return (Vec::new(), None);
     };
-    let pts: Vec<(f64, f64)> = plan.nominal().iter().map(|w| (w.lat, w.lon)).collect();
-    flightplan::fleet_api::thin(&pts, flightplan::fleet_api::ROUTE_POINTS)
+    let wps = plan.nominal();
+    let pts: Vec<(f64, f64)> = wps.iter().map(|w| (w.lat, w.lon)).collect();
+    let aircraft = (kind != flightplan::vehicle::VehicleKind::Rover)
+        .then(|| AircraftPlan::of(plan.plan().altitude_reference(), wps));
+    (
+        flightplan::fleet_api::thin(&pts, flightplan::fleet_api::ROUTE_POINTS),
+        aircraft,
+    )
 }
 
 /// The flight plan of one visit: from where the vehicle is to the detection, fly-over.
 /// The route is `via` (the wavefront planner's turns, the detection last), fly-over at the
-/// detection.
-pub fn visit_plan(id: u32, from: (f64, f64), via: &[(f64, f64)], speed: f64) -> String {
+/// detection, at `alt` metres above home (0 for a rover).
+pub fn visit_plan(id: u32, from: (f64, f64), via: &[(f64, f64)], speed: f64, alt: f64) -> String {
     let mut fixes = format!(
-        r#"    <fix id="HERE" lat="{:.8}" lon="{:.8}" alt="0"/>"#,
+        r#"    <fix id="HERE" lat="{:.8}" lon="{:.8}" alt="{alt}"/>"#,
         from.0, from.1
     );
     let mut legs = String::from(r#"    <leg type="IF" fix="HERE"/>"#);
@@ -996,7 +1194,7 @@ pub fn visit_plan(id: u32, from: (f64, f64), via: &[(f64, f64)], speed: f64) -> 
             format!("T{k}")
         };
         fixes.push_str(&format!(
-            "\n    <fix id=\"{fix}\" lat=\"{:.8}\" lon=\"{:.8}\" alt=\"0\"/>",
+            "\n    <fix id=\"{fix}\" lat=\"{:.8}\" lon=\"{:.8}\" alt=\"{alt}\"/>",
             p.0, p.1
         ));
         legs.push_str(&format!(
@@ -1061,7 +1259,7 @@ mod tests {
 
     #[test]
     fn a_visit_plan_is_a_valid_rover_plan_to_the_point() {
-        let xml = visit_plan(3, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0);
+        let xml = visit_plan(3, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0, 0.0);
         let params = flightplan::vehicle::VehicleParams::rover();
         let plan = flightplan::check::load(&xml, &params).unwrap();
         let last = plan.nominal().last().unwrap();
@@ -1069,7 +1267,7 @@ mod tests {
         assert!(last.fly_over);
         // Round an obstacle: through each turn, the detection last.
         let via = [(41.2753, 1.9876), (41.2755, 1.9874), (41.2756, 1.9872)];
-        let xml = visit_plan(4, (41.2752, 1.9875), &via, 3.0);
+        let xml = visit_plan(4, (41.2752, 1.9875), &via, 3.0, 0.0);
         let plan = flightplan::check::load(&xml, &params).unwrap();
         let n = plan.nominal();
         for p in via {
@@ -1080,6 +1278,12 @@ mod tests {
             );
         }
         assert!(n.last().unwrap().fly_over);
+        // An aircraft's visit, at its altitude.
+        let xml = visit_plan(5, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0, 12.0);
+        let copter =
+            flightplan::vehicle::VehicleParams::for_kind(flightplan::vehicle::VehicleKind::Copter);
+        let plan = flightplan::check::load(&xml, &copter).unwrap();
+        assert!(plan.nominal().iter().all(|w| w.alt == 12.0), "{xml}");
     }
 
     #[test]
@@ -1090,10 +1294,13 @@ mod tests {
         assert_eq!((t[0].0, t[299].0), (0.0, 999.0));
         assert_eq!(flightplan::fleet_api::thin(&pts[..5], 300).len(), 5);
         let r = route_of(
-            &visit_plan(1, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0),
+            &visit_plan(1, (41.2752, 1.9875), &[(41.2756, 1.9872)], 3.0, 0.0),
             flightplan::vehicle::VehicleKind::Rover,
         );
-        assert_eq!(r.len(), 2);
-        assert!(route_of("<nope/>", flightplan::vehicle::VehicleKind::Rover).is_empty());
+        assert_eq!(r.0.len(), 2);
+        assert!(r.1.is_none(), "a rover has no aircraft plan");
+        assert!(route_of("<nope/>", flightplan::vehicle::VehicleKind::Rover)
+            .0
+            .is_empty());
     }
 }

@@ -58,6 +58,10 @@ pub struct SeparationRule {
     pub hold_m: f64,
     /// A held vehicle goes on once every vehicle is farther than this.
     pub clear_m: f64,
+    /// Vehicles at least this far apart in altitude are separated whatever their horizontal
+    /// distance (aircraft at two altitudes, as Broz's surveyor and investigator); `None`:
+    /// horizontal distance alone.
+    pub vertical_m: Option<f64>,
 }
 
 /// An event a `<wait>` can wait for.
@@ -178,6 +182,8 @@ pub enum BlockKind {
         until: Condition,
         /// Flight plan speed, m/s.
         speed: f64,
+        /// Altitude of the visits, metres above home (0 for a rover).
+        alt_m: f64,
     },
     /// A line in the service's log.
     Log {
@@ -394,13 +400,25 @@ fn count_syncs(e: &Element, out: &mut HashMap<String, usize>) {
 }
 
 fn separation_rule(e: &Element) -> Result<SeparationRule, FleetPlanError> {
-    let mut a = Attrs::new(e, &["minDistance", "holdDistance", "clearDistance"]);
+    let mut a = Attrs::new(
+        e,
+        &[
+            "minDistance",
+            "holdDistance",
+            "clearDistance",
+            "verticalDistance",
+        ],
+    );
     let min_m = a
         .number("minDistance")?
         .ok_or_else(|| FleetPlanError::at(e, "missing attribute `minDistance` (metres)"))?;
     let hold_m = a.number("holdDistance")?.unwrap_or(2.0 * min_m);
     let clear_m = a.number("clearDistance")?.unwrap_or(hold_m + min_m / 2.0);
+    let vertical_m = a.number("verticalDistance")?;
     a.finish()?;
+    if vertical_m.is_some_and(|v| v.is_nan() || v <= 0.0) {
+        return Err(FleetPlanError::at(e, "verticalDistance must be above 0 m"));
+    }
     if !(min_m > 0.0 && hold_m >= min_m && clear_m > hold_m) {
         return Err(FleetPlanError::at(
             e,
@@ -411,6 +429,7 @@ fn separation_rule(e: &Element) -> Result<SeparationRule, FleetPlanError> {
         min_m,
         hold_m,
         clear_m,
+        vertical_m,
     })
 }
 
@@ -813,19 +832,41 @@ impl Parser<'_> {
                 }
             }
             "investigate" => {
-                let mut a = Attrs::new(e, &["vehicle", "until", "speed"]);
+                let mut a = Attrs::new(e, &["vehicle", "until", "speed", "alt"]);
                 let vehicle = self.vehicle_ref(e, &mut a)?;
                 let src = a.req("until")?;
                 let speed = a.number("speed")?.unwrap_or(2.0);
+                let alt = a.number("alt")?;
                 a.finish()?;
                 self.no_children(e)?;
                 if !(speed > 0.0 && speed < 1000.0) {
                     return Err(FleetPlanError::at(e, "speed must be above 0 m/s"));
                 }
+                let rover = self.vehicles[vehicle].kind == VehicleKind::Rover;
+                let alt_m = match alt {
+                    None if rover => 0.0,
+                    None => {
+                        return Err(FleetPlanError::at(
+                            e,
+                            "an aircraft investigates at an altitude: give `alt` (metres above home)",
+                        ))
+                    }
+                    Some(a) if rover && a != 0.0 => {
+                        return Err(FleetPlanError::at(e, "a rover has no `alt` to fly at"))
+                    }
+                    Some(a) if !rover && !(2.0..=1000.0).contains(&a) => {
+                        return Err(FleetPlanError::at(
+                            e,
+                            "alt must be between 2 and 1000 m above home",
+                        ))
+                    }
+                    Some(a) => a,
+                };
                 BlockKind::Investigate {
                     vehicle,
                     until: self.cond(e, "until", &src)?,
                     speed,
+                    alt_m,
                 }
             }
             "log" => {
@@ -1097,6 +1138,16 @@ mod tests {
                 "5:3: <separation>: distances must be",
             ),
             (
+                "clearDistance=\"20\"",
+                "clearDistance=\"20\" verticalDistance=\"0\"",
+                "5:3: <separation>: verticalDistance must be above 0 m",
+            ),
+            (
+                "until=\"a.done and pending == 0\"",
+                "until=\"a.done and pending == 0\" alt=\"10\"",
+                "15:7: <investigate>: a rover has no `alt` to fly at",
+            ),
+            (
                 "<wait until",
                 "<whait until",
                 "18:59: <whait>: unknown statement",
@@ -1150,5 +1201,37 @@ mod tests {
             }
         }
         assert!(n > 0);
+        // An aircraft investigates at an altitude it is given.
+        let copter = GOOD
+            .replace(
+                "<vehicle id=\"b\" prefix=\"rover2\"/>",
+                "<vehicle id=\"b\" prefix=\"rover2\" vehicle=\"copter\"/>",
+            )
+            .replace(
+                "search-investigator-start.xml",
+                "search-copter-investigator-start.xml",
+            );
+        let e = parse_str(&copter).unwrap_err();
+        assert!(
+            e.starts_with("15:7: <investigate>: an aircraft investigates at an altitude"),
+            "{e}"
+        );
+        let with_alt = copter.replace("pending == 0\"", "pending == 0\" alt=\"12\"");
+        let p = parse_str(&with_alt).unwrap();
+        let BlockKind::Par(branches) = &p.body.kind else {
+            panic!("{:?}", p.body)
+        };
+        let BlockKind::Seq(b) = &branches[1].kind else {
+            panic!("{:?}", branches[1])
+        };
+        assert!(
+            matches!(b[2].kind, BlockKind::Investigate { alt_m, .. } if alt_m == 12.0),
+            "{:?}",
+            b[2]
+        );
+        // The copters' search: two altitudes, the investigator's low.
+        let p = load(&dir().join("search-copters.xml")).unwrap();
+        assert_eq!(p.separation.and_then(|s| s.vertical_m), Some(10.0));
+        assert!(p.vehicles.iter().all(|v| v.kind == VehicleKind::Copter));
     }
 }
