@@ -66,17 +66,7 @@ fn show(type_name: &str, fingerprint: u64, bytes: &[u8]) -> Shown {
 
 /// The `CallError` as an error reply's JSON.
 fn call_error_json(e: &CallError) -> Value {
-    let kind = match e {
-        CallError::NoProvider { .. } => "no_provider",
-        CallError::Timeout { .. } => "timeout",
-        CallError::Remote { .. } => "remote",
-        CallError::LinkLost { .. } => "link_lost",
-        CallError::TypeMismatch { .. } => "type_mismatch",
-        CallError::Codec { .. } => "codec",
-        CallError::Denied { .. } => "denied",
-        CallError::Busy { .. } => "busy",
-        CallError::Superseded { .. } => "superseded",
-    };
+    let kind = e.kind();
     json!({"error": kind, "message": e.to_string()})
 }
 

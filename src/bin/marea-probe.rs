@@ -587,17 +587,7 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             match f.call(arg, Duration::from_millis(*timeout_ms)).await {
                 Ok(v) => out(json!({"ok": v, "ms": started.elapsed().as_millis() as u64})),
                 Err(e) => {
-                    let kind = match &e {
-                        marea::CallError::NoProvider { .. } => "no_provider",
-                        marea::CallError::Timeout { .. } => "timeout",
-                        marea::CallError::Remote { .. } => "remote",
-                        marea::CallError::LinkLost { .. } => "link_lost",
-                        marea::CallError::TypeMismatch { .. } => "type_mismatch",
-                        marea::CallError::Codec { .. } => "codec",
-                        marea::CallError::Denied { .. } => "denied",
-                        marea::CallError::Busy { .. } => "busy",
-                        marea::CallError::Superseded { .. } => "superseded",
-                    };
+                    let kind = e.kind();
                     out(
                         json!({"error": kind, "message": e.to_string(), "ms": started.elapsed().as_millis() as u64}),
                     );

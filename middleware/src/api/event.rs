@@ -56,12 +56,15 @@ impl<T: Payload> Event<T> {
     /// starts (local subscribers get that part).
     fn encode(&self, value: &T) -> Result<(Vec<u8>, usize), PublishError> {
         let offer = &self.publisher.offer;
-        crate::codec::encode_data_message(true, offer.id, value).map_err(|source| {
-            PublishError::Encode {
-                name: offer.name.to_string(),
-                source,
-            }
-        })
+        let (msg, at) =
+            crate::codec::encode_data_message(true, offer.id, value).map_err(|source| {
+                PublishError::Encode {
+                    name: offer.name.to_string(),
+                    source,
+                }
+            })?;
+        PublishError::check_size(&offer.name, msg.len() - at)?;
+        Ok((msg, at))
     }
 
     /// A lossless stream of this event: [`EventStream::send`] raises events without a report
@@ -113,8 +116,9 @@ impl Event<Vec<u8>> {
     /// ```
     ///
     /// # Errors
-    /// None today (bytes always encode); the `Result` matches [`Event::raise_nowait`].
+    /// [`PublishError::TooLarge`] above [`crate::protocol::MAX_PAYLOAD`] (nothing is sent).
     pub fn raise_bytes_nowait(&self, bytes: &[u8]) -> Result<PendingRaise, PublishError> {
+        PublishError::check_size(&self.publisher.offer.name, bytes.len())?;
         let (msg, at) =
             crate::codec::encode_data_message_from_bytes(true, self.publisher.offer.id, bytes);
         Ok(self
@@ -172,8 +176,10 @@ impl EventStream<'_, Vec<u8>> {
     /// [`EventStream::send`] of borrowed bytes (see [`Event::raise_bytes_nowait`]).
     ///
     /// # Errors
-    /// [`StreamError::Lost`] as [`EventStream::send`].
+    /// [`StreamError::Lost`] as [`EventStream::send`]; [`StreamError::Publish`] above
+    /// [`crate::protocol::MAX_PAYLOAD`] (nothing is sent).
     pub async fn send_bytes(&mut self, bytes: &[u8]) -> Result<(), StreamError> {
+        PublishError::check_size(&self.event.publisher.offer.name, bytes.len())?;
         let (msg, at) = crate::codec::encode_data_message_from_bytes(
             true,
             self.event.publisher.offer.id,

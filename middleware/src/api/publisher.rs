@@ -27,10 +27,12 @@ impl Publisher {
 
     /// `value` encoded for the offer.
     pub fn encode<T: Payload>(&self, value: &T) -> Result<Vec<u8>, PublishError> {
-        crate::codec::encode_payload(value).map_err(|source| PublishError::Encode {
+        let bytes = crate::codec::encode_payload(value).map_err(|source| PublishError::Encode {
             name: self.offer.name.to_string(),
             source,
-        })
+        })?;
+        PublishError::check_size(&self.offer.name, bytes.len())?;
+        Ok(bytes)
     }
 
     /// Names of the remote nodes currently subscribed.

@@ -104,9 +104,10 @@ impl Variable<Vec<u8>> {
     /// ```
     ///
     /// # Errors
-    /// None today (bytes always encode); the `Result` matches [`Variable::set`].
+    /// [`PublishError::TooLarge`] above [`crate::protocol::MAX_PAYLOAD`] (nothing is sent).
     pub fn set_bytes(&self, bytes: &[u8]) -> Result<(), PublishError> {
         let Publisher { node, offer, .. } = &self.publisher;
+        PublishError::check_size(&offer.name, bytes.len())?;
         node.publish_variable(offer, crate::codec::encode_bytes_payload(bytes));
         Ok(())
     }

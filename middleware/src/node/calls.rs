@@ -52,6 +52,19 @@ pub enum CallError {
         /// What happened.
         reason: String,
     },
+    /// The arguments encode to more than marea carries ([`crate::protocol::MAX_PAYLOAD`]):
+    /// nothing was sent.
+    #[error(
+        "call to '{name}': arguments of {size} bytes are larger than the {max} bytes marea carries"
+    )]
+    TooLarge {
+        /// Function name.
+        name: String,
+        /// Their encoded size.
+        size: usize,
+        /// [`crate::protocol::MAX_PAYLOAD`].
+        max: usize,
+    },
     /// The provider declares other argument or result types.
     #[error("function '{name}' is provided as {offered} but called as {expected}")]
     TypeMismatch {
@@ -96,6 +109,26 @@ pub enum CallError {
         /// What failed.
         reason: String,
     },
+}
+
+impl CallError {
+    /// A short name of the cause, for a tool's or a bridge's JSON (`no_provider`, `timeout`,
+    /// `remote`, `link_lost`, `type_mismatch`, `codec`, `denied`, `busy`, `superseded`,
+    /// `too_large`).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            CallError::NoProvider { .. } => "no_provider",
+            CallError::Timeout { .. } => "timeout",
+            CallError::Remote { .. } => "remote",
+            CallError::LinkLost { .. } => "link_lost",
+            CallError::TypeMismatch { .. } => "type_mismatch",
+            CallError::Codec { .. } => "codec",
+            CallError::Denied { .. } => "denied",
+            CallError::Busy { .. } => "busy",
+            CallError::Superseded { .. } => "superseded",
+            CallError::TooLarge { .. } => "too_large",
+        }
+    }
 }
 
 /// A call that waited `waited` in a link's queue (a radio's) carries that much less of its
@@ -477,6 +510,14 @@ impl NodeInner {
         timeout: Duration,
         caller: Option<Origin>,
     ) -> Result<Vec<u8>, CallError> {
+        let max = crate::protocol::MAX_PAYLOAD;
+        if args.len() > max {
+            return Err(CallError::TooLarge {
+                name: name.to_owned(),
+                size: args.len(),
+                max,
+            });
+        }
         match provider {
             Provider::Local(handler, _) => match tokio::time::timeout(
                 timeout,
@@ -675,6 +716,17 @@ impl NodeInner {
                         r = run(call.args, call.expires - now) => r,
                         _ = inner.cancel.cancelled() => Err(RemoteFailure::Handler("provider node shutting down".into())),
                     };
+                    let result = result.and_then(|r| {
+                        let max = crate::protocol::MAX_PAYLOAD;
+                        if r.len() > max {
+                            tracing::warn!(function = %name, "a result of {} bytes is larger than the {max} bytes marea carries: the caller is told", r.len());
+                            return Err(RemoteFailure::Handler(format!(
+                                "the result of {} bytes is larger than the {max} bytes marea carries",
+                                r.len()
+                            )));
+                        }
+                        Ok(r)
+                    });
                     inner.send_safe_to_node(
                         node,
                         &Message::Reply {

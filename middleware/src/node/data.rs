@@ -111,6 +111,32 @@ pub enum PublishError {
         /// postcard's error.
         source: postcard::Error,
     },
+    /// The value encodes to more than marea carries ([`crate::protocol::MAX_PAYLOAD`]):
+    /// nothing was sent. Send it as a file instead, or in pieces.
+    #[error("'{name}': a value of {size} bytes is larger than the {max} bytes marea carries")]
+    TooLarge {
+        /// Item name.
+        name: String,
+        /// Its encoded size.
+        size: usize,
+        /// [`crate::protocol::MAX_PAYLOAD`].
+        max: usize,
+    },
+}
+
+impl PublishError {
+    /// [`PublishError::TooLarge`] for a payload of `size` bytes over the limit.
+    pub(crate) fn check_size(name: &str, size: usize) -> Result<(), PublishError> {
+        let max = crate::protocol::MAX_PAYLOAD;
+        if size > max {
+            return Err(PublishError::TooLarge {
+                name: name.to_owned(),
+                size,
+                max,
+            });
+        }
+        Ok(())
+    }
 }
 
 impl super::LocalOffer {

@@ -400,8 +400,20 @@ pub enum Message {
     },
 }
 
+/// The largest payload marea carries, encoded: an event, a variable's value, a call's
+/// arguments or its result (32 MiB). `raise`, `set` and `call` refuse a larger one at once
+/// ([`crate::PublishError::TooLarge`], [`crate::CallError::TooLarge`]); a file of any size
+/// goes as a file transfer instead. Links carry messages up to [`MAX_MESSAGE`] whole, in
+/// parts where one does not fit their frames.
+pub const MAX_PAYLOAD: usize = 32 << 20;
+
+/// The largest message a link takes: [`MAX_PAYLOAD`] and room for its header (item names,
+/// call ids); a message joined from parts past it is dropped.
+pub const MAX_MESSAGE: usize = MAX_PAYLOAD + (64 << 10);
+
 /// The first byte of each encoded [`Message`]: its variant's index, which postcard writes as
-/// a one-byte varint. A unit test checks every constant against postcard's encoding, so a
+/// a one-byte varint. Links mark the parts of a message too large for one frame with bytes
+/// no tag takes (`0xFD`, `0xFE`). A unit test checks every constant against postcard's encoding, so a
 /// variant added anywhere but at the end fails it instead of silently changing the wire.
 pub mod tag {
     /// [`Message::Hello`](super::Message::Hello).

@@ -23,6 +23,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use super::agenda::Agenda;
+use super::parts;
 use super::sessions::{Lookup, SessionLimits, SessionTable};
 use super::{Datagram, DatagramWriter, Entry};
 use crate::link::arq::{ArqConfig, ArqReceiver, ArqSender, RetryLimit, SynOutcome};
@@ -93,6 +94,8 @@ const MAX_UNBOUND_SAFE: usize = 8;
 const MAX_FAST_QUEUE: usize = 4096;
 /// A send within this long of the previous datagram is left to the transmit task to batch.
 const BATCH_WINDOW: Duration = Duration::from_micros(20);
+/// Datagram bytes kept beside a part for its entry header, a SYN and an acknowledgement.
+const PART_HEADROOM: usize = 48;
 /// Sent datagrams' buffers a peer keeps for its next datagrams: enough for one flush of a
 /// fast stream.
 const SPARE_BUFFERS: usize = 4;
@@ -123,6 +126,8 @@ struct PeerState {
     bound: bool,
     /// Datagram bytes the queued safe messages take, at most ([`queued_safe_cost`]).
     safe_bytes: usize,
+    /// The peer's message being joined from its parts ([`parts`]).
+    joiner: parts::Joiner,
 }
 
 impl PeerState {
@@ -140,6 +145,7 @@ impl PeerState {
             timer_at: None,
             bound: false,
             safe_bytes: 0,
+            joiner: parts::Joiner::default(),
         }
     }
 
@@ -371,7 +377,8 @@ impl<M: Medium> DatagramLink<M> {
             };
             st.safe_bytes = st.safe_bytes.saturating_sub(queued_safe_cost(msg.len()));
             if let Some(waited) = queued.map(|t| now.saturating_duration_since(t)) {
-                if !waited.is_zero() {
+                // A part is not a message the handler could read.
+                if !waited.is_zero() && !parts::is_part(&msg) {
                     self.handler.age_safe(&mut msg, waited);
                 }
             }
@@ -431,6 +438,15 @@ impl<M: Medium> DatagramLink<M> {
 
     fn datagram_max(&self, addr: M::Addr) -> usize {
         self.medium.datagram_max(addr)
+    }
+
+    /// The largest safe message that fits a datagram to `addr` with a SYN and an
+    /// acknowledgement beside it: larger ones go in parts of this size.
+    fn part_room(&self, addr: M::Addr) -> usize {
+        let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
+        self.datagram_max(addr)
+            .saturating_sub(seal + PART_HEADROOM)
+            .max(parts::MIN_ROOM)
     }
 
     fn count_out(&self, n: usize) {
@@ -618,6 +634,29 @@ impl<M: Medium> DatagramLink<M> {
         }
     }
 
+    /// The safe messages delivered in order, with parts joined into the messages they make.
+    fn join_parts<'a>(
+        &self,
+        joiner: &mut parts::Joiner,
+        delivered: Vec<std::borrow::Cow<'a, [u8]>>,
+        from: M::Addr,
+    ) -> Vec<std::borrow::Cow<'a, [u8]>> {
+        let mut whole = Vec::with_capacity(delivered.len());
+        for m in delivered {
+            let (joined, dropped) = joiner.take(m, crate::protocol::MAX_MESSAGE);
+            if let Some(why) = dropped {
+                self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
+                tracing::warn!(
+                    link = %self.name, %from, ?why,
+                    "a message sent in parts was dropped (larger than {} bytes, or cut)",
+                    crate::protocol::MAX_MESSAGE
+                );
+            }
+            whole.extend(joined);
+        }
+        whole
+    }
+
     fn handle_datagram(&self, bytes: &[u8], from: M::Addr, touched: &mut Vec<M::Addr>) {
         self.counters.count_in(bytes.len());
         let entries = match super::decode(bytes) {
@@ -668,7 +707,12 @@ impl<M: Medium> DatagramLink<M> {
             for e in &entries {
                 match *e {
                     Entry::Syn(session) => {
-                        if st.rx.on_syn(session) == SynOutcome::Reset {
+                        let outcome = st.rx.on_syn(session);
+                        if outcome != SynOutcome::Same {
+                            // A message joined from the last session's parts is not this one's.
+                            st.joiner.reset();
+                        }
+                        if outcome == SynOutcome::Reset {
                             // The peer lost our session too: what we had in flight to it will
                             // never be acknowledged, and our next messages start a new session.
                             reset = true;
@@ -700,6 +744,9 @@ impl<M: Medium> DatagramLink<M> {
                     }
                     Entry::Unknown(_) => {}
                 }
+            }
+            if !deliver.is_empty() {
+                deliver = self.join_parts(&mut st.joiner, deliver, from);
             }
             let dups = st.rx.stats().duplicates - dups_before;
             self.counters.duplicates.fetch_add(dups, Ordering::Relaxed);
@@ -771,6 +818,13 @@ impl<M: Medium> Link for DatagramLink<M> {
             return out.refuse(addr);
         };
         let mut st = lock(&p);
+        // A message larger than a datagram goes in parts, reliably (a fast one too: a lost
+        // part would lose the whole).
+        let room = self.part_room(addr);
+        let out = match out {
+            Outgoing::Fast { msg, .. } if msg.len() > room => Outgoing::Safe { msg, done: None },
+            out => out,
+        };
         // The clock is read only where it is needed (a safe message behind a full window,
         // the common case of a fast event stream, needs none).
         let safe = matches!(out, Outgoing::Safe { .. });
@@ -804,11 +858,23 @@ impl<M: Medium> Link for DatagramLink<M> {
                     drop(st);
                     return Outgoing::Safe { msg, done }.refuse(addr);
                 }
-                st.safe_bytes += queued_safe_cost(msg.len());
                 // Only a message that may wait reads the clock: one behind others, or gathered
                 // for the acknowledgement of one in flight (or behind a full window).
                 let queued = (st.tx.in_flight() > 0 || !st.safe.is_empty()).then(Instant::now);
-                st.safe.push_back((msg, done, queued))
+                if msg.len() > room {
+                    // Told when its last part is acknowledged.
+                    let parts = parts::split(&msg, room);
+                    let last = parts.len() - 1;
+                    let mut done = done;
+                    for (k, part) in parts.into_iter().enumerate() {
+                        st.safe_bytes += queued_safe_cost(part.len());
+                        let done = if k == last { done.take() } else { None };
+                        st.safe.push_back((part, done, queued));
+                    }
+                } else {
+                    st.safe_bytes += queued_safe_cost(msg.len());
+                    st.safe.push_back((msg, done, queued));
+                }
             }
         }
         if !st.has_work() {

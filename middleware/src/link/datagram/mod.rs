@@ -15,6 +15,8 @@
 //!                                                     sender (it forgot it) and dropped safe
 //!                                                     seq unread: the sender starts a new one
 //! ```
+//! A message larger than a datagram goes as consecutive SAFE entries, its parts ([`parts`]).
+//!
 //! A 32-byte position sample costs 1 (kind) + 1 (FAST) + 1 (len) + 35 (message) = 38 bytes.
 //!
 //! With a domain key the kind is 0xA3 (data) or 0xA4 (discovery) and the datagram ends with
@@ -23,6 +25,7 @@
 
 mod agenda;
 pub mod link;
+mod parts;
 mod sessions;
 
 use crate::codec::varint::{len_u64, put_u64, take_u64};
