@@ -15,7 +15,7 @@
 //!                                                     sender (it forgot it) and dropped safe
 //!                                                     seq unread: the sender starts a new one
 //! ```
-//! A message larger than a datagram goes as consecutive SAFE entries, its parts ([`parts`]).
+//! A message larger than a datagram goes as consecutive SAFE entries, its parts (module `parts`).
 //!
 //! A 32-byte position sample costs 1 (kind) + 1 (FAST) + 1 (len) + 35 (message) = 38 bytes.
 //!
