@@ -68,6 +68,40 @@ pub struct Detection {
     pub at_s: f64,
     /// Visited by an investigator (which, and when).
     pub visited: Option<(String, f64)>,
+    /// The operator deleted it: no investigator goes there.
+    #[serde(default)]
+    pub deleted: bool,
+}
+
+/// Who reported the points the operator adds ([`PointEdit::Add`]).
+pub const OPERATOR: &str = "operator";
+
+/// An operator's change to the points the investigators visit (the fleet's `edit_points`),
+/// made mid-flight from a station's fleet view. A point is named by who reported it and its
+/// number (`("surveyor", 3)`; `("operator", 1)` for the operator's own).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum PointEdit {
+    /// A point of the operator's own, to visit as a detection (`by` [`OPERATOR`], numbered
+    /// from 1).
+    Add {
+        /// Latitude, degrees.
+        lat: f64,
+        /// Longitude, degrees.
+        lon: f64,
+    },
+    /// No investigator goes to this point (it stays listed, marked deleted; a visit already
+    /// under way is finished).
+    Delete {
+        /// Who reported it.
+        by: String,
+        /// Its number.
+        id: u32,
+    },
+    /// Visit these pending points first, in this order; the others after them, nearest first.
+    Order {
+        /// The points, first to visit first.
+        points: Vec<(String, u32)>,
+    },
 }
 
 /// Separation figures.
@@ -116,6 +150,9 @@ pub struct FleetStatus {
     /// The static obstacles of the fleet plan, for the maps.
     #[serde(default)]
     pub obstacles: Vec<ObstacleView>,
+    /// The pending points the operator put first, in their order ([`PointEdit::Order`]).
+    #[serde(default)]
+    pub visit_first: Vec<(String, u32)>,
 }
 
 /// A static obstacle as the maps draw it.
@@ -130,17 +167,19 @@ pub struct ObstacleView {
 }
 
 impl FleetStatus {
-    /// Visited detections over reported ones (1 when none was reported).
+    /// Visited detections over those to visit, the deleted ones aside (1 when none is
+    /// left to visit).
     pub fn visited_ratio(&self) -> f64 {
-        if self.detections.is_empty() {
+        let to_visit = self.detections.iter().filter(|d| !d.deleted).count();
+        if to_visit == 0 {
             1.0
         } else {
             let v = self
                 .detections
                 .iter()
-                .filter(|d| d.visited.is_some())
+                .filter(|d| d.visited.is_some() && !d.deleted)
                 .count();
-            v as f64 / self.detections.len() as f64
+            v as f64 / to_visit as f64
         }
     }
 
@@ -162,8 +201,14 @@ impl FleetStatus {
             self.elapsed_s
         );
         let order: Vec<String> = self.visit_order.iter().map(|i| format!("#{i}")).collect();
+        let deleted = self.detections.iter().filter(|d| d.deleted).count();
+        let added = self.detections.iter().filter(|d| d.by == OPERATOR).count();
+        let by_operator = match (added, deleted) {
+            (0, 0) => String::new(),
+            (a, d) => format!(" ({a} added, {d} deleted by the operator)"),
+        };
         s += &format!(
-            "  detections: {} reported, {visited} visited (ratio {:.2}), in the order {}\n",
+            "  detections: {} reported, {visited} visited (ratio {:.2}){by_operator}, in the order {}\n",
             self.detections.len(),
             self.visited_ratio(),
             if order.is_empty() {

@@ -34,6 +34,7 @@
 //! ```
 
 pub mod plan;
+pub mod points;
 pub mod search;
 pub mod separation;
 pub mod wavefront;
@@ -149,6 +150,13 @@ pub async fn run(config: FleetConfig, shutdown: CancellationToken) -> anyhow::Re
             async move { f.command_pause(&id, true).await }
         })?
     };
+    let _edit_points = {
+        let f = fleet.clone();
+        fleet::EDIT_POINTS.provide(&svc, move |edit| {
+            let f = f.clone();
+            async move { f.edit_points(edit) }
+        })?
+    };
     let _resume = {
         let f = fleet.clone();
         fleet::RESUME.provide(&svc, move |id: String| {
@@ -238,6 +246,8 @@ struct State {
     /// Detections an investigator is on its way to.
     claimed: HashSet<usize>,
     visit_order: Vec<u32>,
+    /// The pending points the operator put first, in order.
+    visit_first: Vec<(String, u32)>,
     monitor: Option<Monitor>,
     barriers: HashMap<String, (usize, u64)>,
     doing: Vec<String>,
@@ -315,11 +325,12 @@ impl Fleet {
             return Some(*v);
         }
         let visited = st.detections.iter().filter(|d| d.visited.is_some()).count();
+        let pending = st.detections.iter().filter(|d| points::pending(d)).count();
         let n = |x: usize| Some(Value::Number(x as f64));
         match name {
             "detections" => return n(st.detections.len()),
             "visited" => return n(visited),
-            "pending" => return n(st.detections.len() - visited),
+            "pending" => return n(pending),
             "elapsed_s" => return Some(Value::Number(self.elapsed())),
             _ => {}
         }
@@ -620,11 +631,22 @@ impl Fleet {
             let choice = {
                 let mut st = self.state();
                 let pending: Vec<usize> = (0..st.detections.len())
-                    .filter(|k| st.detections[*k].visited.is_none() && !st.claimed.contains(k))
+                    .filter(|k| points::pending(&st.detections[*k]) && !st.claimed.contains(k))
                     .collect();
-                match st.vs[i].position {
-                    None => None,
-                    Some(here) => {
+                let st = &mut *st;
+                let ordered = points::Points {
+                    detections: &mut st.detections,
+                    visit_first: &mut st.visit_first,
+                }
+                .first_ordered(|k| !st.claimed.contains(&k));
+                match (st.vs[i].position, ordered) {
+                    (None, _) => None,
+                    // The operator's order first.
+                    (Some(here), Some(k)) => {
+                        st.claimed.insert(k);
+                        Some((k, here, (st.detections[k].lat, st.detections[k].lon)))
+                    }
+                    (Some(here), None) => {
                         let pts: Vec<(f64, f64)> = pending
                             .iter()
                             .map(|&k| (st.detections[k].lat, st.detections[k].lon))
@@ -649,8 +671,7 @@ impl Fleet {
             let Some((k, here, target)) = choice else {
                 let finished = {
                     let st = self.state();
-                    st.detections.iter().all(|d| d.visited.is_some())
-                        && until.holds(&|n| self.var(&st, n))
+                    !st.detections.iter().any(points::pending) && until.holds(&|n| self.var(&st, n))
                 };
                 if finished {
                     let mut st = self.state();
@@ -876,6 +897,26 @@ impl Fleet {
     }
 
     /// `pause` / `resume` of a vehicle, by command or by the plan.
+    /// An operator's edit of the points to visit ([`points`]).
+    fn edit_points(&self, edit: flightplan::fleet_api::PointEdit) -> Result<String, String> {
+        let at_s = self.elapsed();
+        let said = {
+            let mut st = self.state();
+            let st = &mut *st;
+            points::Points {
+                detections: &mut st.detections,
+                visit_first: &mut st.visit_first,
+            }
+            .apply(edit, &self.plan.obstacles, &st.claimed, at_s)
+        };
+        match &said {
+            Ok(text) => tracing::info!("operator: {text}"),
+            Err(e) => tracing::warn!("operator's point edit refused: {e}"),
+        }
+        self.bump();
+        said
+    }
+
     async fn command_pause(&self, id: &str, pause: bool) -> Result<String, String> {
         let i = self
             .plan
@@ -1064,6 +1105,7 @@ impl Fleet {
                                 st.detections.push(Detection {
                                     id: d.id, by: id.clone(), lat: d.lat, lon: d.lon,
                                     confidence: d.confidence, at_s, visited: None,
+                                    deleted: false,
                                 });
                             }
                             drop(st);
@@ -1132,6 +1174,7 @@ impl Fleet {
                     polygon: o.polygon.clone(),
                 })
                 .collect(),
+            visit_first: st.visit_first.clone(),
         }
     }
 

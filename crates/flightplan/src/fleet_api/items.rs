@@ -9,7 +9,7 @@
 
 use marea::{FunctionItem, VariableItem};
 
-use super::FleetStatus;
+use super::{FleetStatus, PointEdit};
 
 /// The fleet plan's state: vehicles, detections, separation, variables.
 pub const STATUS: VariableItem<FleetStatus> = VariableItem::new("status");
@@ -17,3 +17,6 @@ pub const STATUS: VariableItem<FleetStatus> = VariableItem::new("status");
 pub const PAUSE: FunctionItem<String, String> = FunctionItem::new("pause");
 /// Lets a paused vehicle (its id) go on; answers in words.
 pub const RESUME: FunctionItem<String, String> = FunctionItem::new("resume");
+/// An operator's change to the points the investigators visit: add, delete, put first;
+/// answers in words, or refuses saying why (a point inside an obstacle, an unknown one).
+pub const EDIT_POINTS: FunctionItem<PointEdit, String> = FunctionItem::new("edit_points");
