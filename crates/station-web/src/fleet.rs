@@ -6,9 +6,10 @@
 //!
 //! | method | path | body | answer |
 //! |---|---|---|---|
-//! | GET | `/fleet` | | the page (map, vehicle list, pause/resume of the selected vehicle) |
+//! | GET | `/fleet` | | the page (map, vehicle list, pause/resume of the selected vehicle, the points to visit: added by a click on the map, deleted, put in order) |
 //! | GET | `/api/fleet` | | `{"fleets": [{"service": "gcs/fleet", "age_ms": 120, "status": FleetStatus}]}` |
 //! | POST | `/api/fleet/command` | `{"vehicle": "surveyor", "action": "pause"\|"resume", "fleet"?: "gcs/fleet"}` | 200 `{"answer": "surveyor paused"}`; 400 bad action, 404 no such fleet or vehicle, 502 the fleet service refused or did not answer |
+//! | POST | `/api/fleet/points` | `{"edit": PointEdit, "fleet"?: "gcs/fleet"}`: `{"Add": {"lat", "lon"}}`, `{"Delete": {"by", "id"}}`, `{"Order": {"points": [["surveyor", 3], ...]}}` | 200 `{"answer": "point #1 added at ..."}`; 404 no fleet, 502 refused (the reason: a point inside an obstacle, an unknown one) |
 //!
 //! The routes are guarded by the station's [`crate::Access`] like its own (the token on every
 //! `/api/*` call), as they are merged into its router before serving.
@@ -23,7 +24,7 @@ use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use flightplan::fleet_api::items as fleet;
-use flightplan::fleet_api::FleetStatus;
+use flightplan::fleet_api::{FleetStatus, PointEdit};
 use marea::Service;
 use serde::Deserialize;
 
@@ -125,12 +126,49 @@ impl FleetView {
     }
 }
 
+impl FleetView {
+    /// Sends an operator's edit of the points to visit to the fleet service `fleet` (or the
+    /// only one heard).
+    ///
+    /// # Errors
+    /// `(status, message)`: 404 when no fleet service is heard (or not that one), 502 when
+    /// the fleet service refuses (the reason) or does not answer.
+    pub async fn edit_points(
+        &self,
+        fleet: Option<&str>,
+        edit: PointEdit,
+    ) -> Result<String, (StatusCode, String)> {
+        let service = {
+            let latest = marea::sync::lock(&self.latest);
+            latest
+                .keys()
+                .find(|name| fleet.is_none_or(|f| f == name.as_str()))
+                .cloned()
+        };
+        let Some(service) = service else {
+            return Err((
+                StatusCode::NOT_FOUND,
+                fleet.map_or("no fleet service heard".to_owned(), |f| {
+                    format!("no fleet service `{f}` heard")
+                }),
+            ));
+        };
+        let f = fleet::EDIT_POINTS
+            .function(&self.svc, &service)
+            .map_err(|e| (StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+        f.call(&edit, self.call_timeout)
+            .await
+            .map_err(|e| (StatusCode::BAD_GATEWAY, call_error(e)))
+    }
+}
+
 /// The fleet view's routes, with their state: merge into a station's router.
 pub fn router(view: Arc<FleetView>) -> Router {
     Router::new()
         .route("/fleet", get(page))
         .route("/api/fleet", get(status))
         .route("/api/fleet/command", post(command))
+        .route("/api/fleet/points", post(edit_points))
         .with_state(view)
 }
 
@@ -159,6 +197,20 @@ async fn command(State(view): State<Arc<FleetView>>, Json(c): Json<Command>) -> 
         .command(c.fleet.as_deref(), &c.vehicle, &c.action)
         .await
     {
+        Ok(answer) => Json(serde_json::json!({ "answer": answer })).into_response(),
+        Err((status, msg)) => error(status, msg),
+    }
+}
+
+#[derive(Deserialize)]
+struct EditPoints {
+    edit: PointEdit,
+    #[serde(default)]
+    fleet: Option<String>,
+}
+
+async fn edit_points(State(view): State<Arc<FleetView>>, Json(e): Json<EditPoints>) -> Response {
+    match view.edit_points(e.fleet.as_deref(), e.edit).await {
         Ok(answer) => Json(serde_json::json!({ "answer": answer })).into_response(),
         Err((status, msg)) => error(status, msg),
     }

@@ -130,6 +130,7 @@ fn registry() -> Vec<Known> {
         flightplan::api::HoldHereArgs,
         flightplan::api::Retask,
         flightplan::fleet_api::FleetStatus,
+        flightplan::fleet_api::PointEdit,
         (),
         bool,
         u8,

@@ -18,27 +18,6 @@ async fn the_stations_show_the_whole_fleet_and_command_a_selected_vehicle() {
         .expect("scenario timed out");
 }
 
-/// Polls `GET /api/fleet` until the first fleet's status satisfies `pred`.
-async fn wait_fleet(
-    station: &Station,
-    what: &str,
-    pred: impl Fn(&serde_json::Value) -> bool,
-) -> serde_json::Value {
-    let deadline = tokio::time::Instant::now() + STEP * 3;
-    loop {
-        let j = station.get_json("/api/fleet").await;
-        let status = &j["fleets"][0]["status"];
-        if pred(status) {
-            return j;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "never saw {what}; last {j:#}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
 async fn scenario() {
     let domain = unique_domain("fleet-view");
     let (_sim1, _vas1) = rover_named(&domain, 2.0, "rover1").await;
@@ -83,14 +62,15 @@ async fn scenario() {
 
     // Every vehicle, with its state and position, on both stations.
     for station in [&fmo, &fpmo] {
-        let j = wait_fleet(station, "both vehicles placed", |s| {
-            s["vehicles"].as_array().is_some_and(|v| {
-                v.len() == 2
-                    && v.iter()
-                        .all(|v| v["position"].is_array() && v["state"].is_string())
+        let j = station
+            .wait_fleet("both vehicles placed", |s| {
+                s["vehicles"].as_array().is_some_and(|v| {
+                    v.len() == 2
+                        && v.iter()
+                            .all(|v| v["position"].is_array() && v["state"].is_string())
+                })
             })
-        })
-        .await;
+            .await;
         assert_eq!(j["fleets"][0]["service"], "gcs/fleet", "{j}");
         let s = &j["fleets"][0]["status"];
         assert_eq!(s["plan"], "view");
@@ -134,10 +114,8 @@ async fn scenario() {
         .await;
     assert_eq!((status, &answer["answer"]), (200, &"scout paused".into()));
     // Seen by the other station too.
-    wait_fleet(&fpmo, "scout paused", |s| {
-        s["vehicles"][0]["paused"] == true
-    })
-    .await;
+    fpmo.wait_fleet("scout paused", |s| s["vehicles"][0]["paused"] == true)
+        .await;
     let (status, answer) = fmo
         .post(
             "/api/fleet/command",
@@ -145,10 +123,8 @@ async fn scenario() {
         )
         .await;
     assert_eq!((status, &answer["answer"]), (200, &"scout resumed".into()));
-    wait_fleet(&fmo, "scout resumed", |s| {
-        s["vehicles"][0]["paused"] == false
-    })
-    .await;
+    fmo.wait_fleet("scout resumed", |s| s["vehicles"][0]["paused"] == false)
+        .await;
 
     let (status, answer) = fmo
         .post(

@@ -102,6 +102,27 @@ impl Station {
         serde_json::from_str(&body).unwrap_or_else(|e| panic!("GET {path}: {e}: {body}"))
     }
 
+    /// Polls `GET /api/fleet` (the fleet view) until the first fleet's status satisfies
+    /// `pred`; returns the whole answer.
+    pub async fn wait_fleet(
+        &self,
+        what: &str,
+        pred: impl Fn(&serde_json::Value) -> bool,
+    ) -> serde_json::Value {
+        let deadline = tokio::time::Instant::now() + STEP * 3;
+        loop {
+            let j = self.get_json("/api/fleet").await;
+            if pred(&j["fleets"][0]["status"]) {
+                return j;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "never saw {what}; last {j:#}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
     /// POST `body` as JSON to `path`: status and body as JSON (null when empty).
     pub async fn post(&self, path: &str, body: serde_json::Value) -> (u16, serde_json::Value) {
         let (status, text) = request_with(
