@@ -20,6 +20,7 @@
 #![allow(deprecated)]
 
 pub mod battery;
+pub mod camera;
 pub mod detector;
 pub mod fence;
 pub mod kinematics;

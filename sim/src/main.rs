@@ -105,6 +105,34 @@ struct Args {
     /// storage does.
     #[arg(long, default_value_t = mavsim::fence::DEFAULT_CAPACITY)]
     fence_capacity: u16,
+    /// A downward camera of WIDTHxHEIGHT pixels (e.g. 320x240): frames of the ground, the
+    /// points of interest and home, served over TCP (--camera-listen; its address is printed as
+    /// `MAVSIM_CAMERA=ADDR` after the link's line) to the camera service.
+    #[arg(long, value_parser = mavsim::camera::CameraConfig::parse_size)]
+    camera: Option<(u32, u32)>,
+    /// Camera frames a second.
+    #[arg(long, default_value_t = 5.0, value_parser = parse_fps)]
+    camera_fps: f64,
+    /// Camera horizontal field of view, degrees.
+    #[arg(long, default_value_t = 70.0, value_parser = parse_hfov)]
+    camera_hfov: f64,
+    /// Where the camera's frames are served (port 0: any; printed).
+    #[arg(long, default_value = "127.0.0.1:0")]
+    camera_listen: SocketAddr,
+}
+
+fn parse_fps(s: &str) -> Result<f64, String> {
+    s.parse::<f64>()
+        .ok()
+        .filter(|f| (0.1..=60.0).contains(f))
+        .ok_or_else(|| format!("`{s}` is not a frame rate from 0.1 to 60 a second"))
+}
+
+fn parse_hfov(s: &str) -> Result<f64, String> {
+    s.parse::<f64>()
+        .ok()
+        .filter(|f| (5.0..=150.0).contains(f))
+        .ok_or_else(|| format!("`{s}` is not a field of view from 5 to 150 degrees"))
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -227,19 +255,51 @@ async fn main() -> anyhow::Result<()> {
         battery,
         fence_capacity: args.fence_capacity,
     };
-    let detector = args
+    let pois = args
         .poi_file
         .as_deref()
-        .map(|path| -> anyhow::Result<Detector> {
-            let pois = mavsim::detector::load_pois(path)?;
-            Ok(Detector::new(cfg.vehicle.home, &pois, args.sensor_radius)?)
-        })
+        .map(mavsim::detector::load_pois)
+        .transpose()
+        .context("--poi-file")?
+        .unwrap_or_default();
+    let detector = args
+        .poi_file
+        .is_some()
+        .then(|| Detector::new(cfg.vehicle.home, &pois, args.sensor_radius))
         .transpose()
         .context("--poi-file")?;
+    let home = cfg.vehicle.home;
     let mut sim = Simulator::open(cfg).await.context("starting mavsim")?;
     if let Some(d) = detector {
         sim.set_detector(d);
     }
+    let camera = match args.camera {
+        Some((width, height)) => {
+            let listener = tokio::net::TcpListener::bind(args.camera_listen)
+                .await
+                .with_context(|| format!("--camera-listen {}", args.camera_listen))?;
+            let cfg = mavsim::camera::CameraConfig {
+                width,
+                height,
+                fps: args.camera_fps,
+                hfov_deg: args.camera_hfov,
+            };
+            let frame = mavsim::kinematics::LocalFrame::new(home);
+            let local: Vec<(f64, f64)> = pois
+                .iter()
+                .map(|p| {
+                    let n = frame.to_local(GeoPoint {
+                        lat_deg: p.lat,
+                        lon_deg: p.lon,
+                        alt_m: home.alt_m,
+                    });
+                    (n.north, n.east)
+                })
+                .collect();
+            Some((cfg, listener, sim.camera_view(cfg.hfov_deg), local))
+        }
+        None => None,
+    };
     // One machine-readable line on stdout so scripts and tests find the endpoint.
     let line = match sim.link_info() {
         LinkInfo::Udp(addr) => format!("MAVSIM_UDP={addr}"),
@@ -252,8 +312,29 @@ async fn main() -> anyhow::Result<()> {
         stdout.flush()?;
     }
     tracing::info!("{line}");
-
     let shutdown = CancellationToken::new();
+    if let Some((cfg, listener, view, pois)) = camera {
+        let line = format!("MAVSIM_CAMERA={}", listener.local_addr()?);
+        {
+            let mut stdout = std::io::stdout().lock();
+            writeln!(stdout, "{line}")?;
+            stdout.flush()?;
+        }
+        tracing::info!(
+            "{line} ({}x{} at {} frames a second)",
+            cfg.width,
+            cfg.height,
+            cfg.fps
+        );
+        tokio::spawn(mavsim::camera::serve(
+            cfg,
+            listener,
+            view,
+            pois,
+            shutdown.clone(),
+        ));
+    }
+
     let signal_token = shutdown.clone();
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
         .context("installing the SIGTERM handler")?;

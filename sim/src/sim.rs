@@ -15,8 +15,11 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use mavlink::dialects::ardupilotmega::MavMessage;
+use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
+use usal_types::camera::CameraPose;
 
+use crate::camera::CameraView;
 use crate::link::{Link, LinkConfig, LinkInfo, LinkOpenError};
 use crate::log::{LogRecord, LogWriter};
 use crate::vehicle::{Vehicle, VehicleConfig};
@@ -98,6 +101,8 @@ pub struct Simulator {
     log: Option<LogWriter>,
     /// Points of interest the vehicle reports when it passes them.
     detector: Option<crate::detector::Detector>,
+    /// The camera's view of the vehicle, updated each tick, and its field of view.
+    camera: Option<(watch::Sender<CameraView>, f64)>,
 }
 
 impl Simulator {
@@ -121,7 +126,31 @@ impl Simulator {
             link,
             log,
             detector: None,
+            camera: None,
         })
+    }
+
+    /// A camera of field of view `hfov_deg` under the vehicle: the view it follows, updated
+    /// each tick (see [`crate::camera`]).
+    pub fn camera_view(&mut self, hfov_deg: f64) -> watch::Receiver<CameraView> {
+        let (tx, rx) = watch::channel(self.view(hfov_deg));
+        self.camera = Some((tx, hfov_deg));
+        rx
+    }
+
+    fn view(&self, hfov_deg: f64) -> CameraView {
+        let at = self.vehicle.position();
+        let geo = self.vehicle.frame().to_geo(at);
+        CameraView {
+            at,
+            pose: CameraPose {
+                lat: geo.lat_deg,
+                lon: geo.lon_deg,
+                height_m: at.up,
+                heading_deg: self.vehicle.heading_deg(),
+                hfov_deg,
+            },
+        }
     }
 
     /// Carries `detector`: each point it newly sees after a step goes out as a STATUSTEXT
@@ -227,6 +256,9 @@ impl Simulator {
                     target = target.min(self.vehicle.sim_time() + STEP_S);
                     let out = self.vehicle.poll(now);
                     self.send_logged(out)?;
+                    if let Some((tx, hfov)) = &self.camera {
+                        tx.send_replace(self.view(*hfov));
+                    }
                 }
             }
         }

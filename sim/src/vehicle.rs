@@ -306,6 +306,16 @@ impl Vehicle {
         self.state.pos
     }
 
+    /// Heading, degrees from north, clockwise (0..360).
+    pub fn heading_deg(&self) -> f64 {
+        self.state.yaw.to_degrees().rem_euclid(360.0)
+    }
+
+    /// The local frame (home and its axes).
+    pub fn frame(&self) -> &LocalFrame {
+        &self.frame
+    }
+
     /// Simulated seconds since start.
     pub fn sim_time(&self) -> f64 {
         self.sim_time

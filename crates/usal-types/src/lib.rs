@@ -24,6 +24,7 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
+pub mod camera;
 pub mod items;
 pub mod safety;
 pub use safety::{Failsafe, FailsafeKind, Fence, FenceAction, StationHeartbeat};
