@@ -115,3 +115,18 @@ pub mod replay {
     /// Where the replay is, so a station shows a recorded flight as one.
     pub const STATUS: VariableItem<ReplayStatus> = VariableItem::new("status");
 }
+
+/// The camera service's items (`<namespace>/camera/<item>`).
+pub mod camera {
+    use marea::{FunctionItem, VariableItem};
+
+    use crate::camera::CameraFrame;
+
+    /// The latest frame, JPEG: for the stations, over any link but a radio.
+    pub const FRAME: VariableItem<CameraFrame> = VariableItem::new("frame");
+    /// The latest frame, uncompressed (`rgb8`): for services on board, over shared memory.
+    pub const RAW: VariableItem<CameraFrame> = VariableItem::new("raw");
+    /// The latest frame as a small JPEG at most this many pixels wide: over a radio, on
+    /// request.
+    pub const SNAPSHOT: FunctionItem<u32, CameraFrame> = FunctionItem::new("snapshot");
+}
