@@ -41,26 +41,6 @@ pub struct CameraConfig {
     pub hfov_deg: f64,
 }
 
-impl CameraConfig {
-    /// Parses `WxH` (e.g. `320x240`, each 16-1920).
-    ///
-    /// # Errors
-    /// What is wrong with `s`.
-    pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
-        let (w, h) = s
-            .split_once(['x', 'X'])
-            .ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT (e.g. 320x240)"))?;
-        let dim = |v: &str| -> Result<u32, String> {
-            v.trim()
-                .parse::<u32>()
-                .ok()
-                .filter(|n| (16..=1920).contains(n))
-                .ok_or_else(|| format!("`{v}` in `{s}` is not a size from 16 to 1920 pixels"))
-        };
-        Ok((dim(w)?, dim(h)?))
-    }
-}
-
 /// The vehicle as the camera sees it: where it is (local and geographic) and its heading.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CameraView {
@@ -292,9 +272,5 @@ mod tests {
         let dl = u32::from_le_bytes(f[8 + hl..12 + hl].try_into().unwrap()) as usize;
         assert_eq!(dl, rgb.len());
         assert_eq!(&f[12 + hl..], &rgb[..]);
-        assert_eq!(CameraConfig::parse_size("320x240"), Ok((320, 240)));
-        assert!(CameraConfig::parse_size("320").is_err());
-        assert!(CameraConfig::parse_size("8x8").is_err());
-        assert!(CameraConfig::parse_size("axb").is_err());
     }
 }

@@ -108,7 +108,7 @@ struct Args {
     /// A downward camera of WIDTHxHEIGHT pixels (e.g. 320x240): frames of the ground, the
     /// points of interest and home, served over TCP (--camera-listen; its address is printed as
     /// `MAVSIM_CAMERA=ADDR` after the link's line) to the camera service.
-    #[arg(long, value_parser = mavsim::camera::CameraConfig::parse_size)]
+    #[arg(long, value_parser = usal_types::camera::parse_size)]
     camera: Option<(u32, u32)>,
     /// Camera frames a second.
     #[arg(long, default_value_t = 5.0, value_parser = parse_fps)]

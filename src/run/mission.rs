@@ -100,6 +100,9 @@ pub enum ServiceSpec {
         /// Map tiles for its map, as the FMo's.
         tiles: Option<String>,
     },
+    /// A camera on the vehicle (`camera`): the node's mavsim films, the camera service
+    /// publishes the frames.
+    Camera(CameraSpec),
     /// The fleet mission layer (`fleet`): runs a fleet plan over the vehicles.
     Fleet {
         /// The fleet plan file.
@@ -161,6 +164,7 @@ impl ServiceSpec {
             ServiceSpec::Fmo { .. } => "fmo",
             ServiceSpec::Fpmo { .. } => "fpmo",
             ServiceSpec::Fleet { .. } => "fleet",
+            ServiceSpec::Camera(_) => "camera",
             ServiceSpec::Custom(_) => "service",
             ServiceSpec::Autopilot(_) => "autopilot",
         }
@@ -196,6 +200,20 @@ pub struct MavsimSpec {
     pub sensor_radius: Option<f64>,
     /// A steady wind, `SPEED,FROM` (m/s, degrees it blows from; mavsim `--wind`).
     pub wind: Option<(f64, f64)>,
+}
+
+/// `<camera size fps hfov quality>`: a downward camera the node's `<mavsim>` renders (seeds
+/// 000, 002), its frames published by the camera service.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraSpec {
+    /// Picture size, pixels (`size="320x240"`, each 16-1920).
+    pub size: (u32, u32),
+    /// Frames a second (0.1-60, default 5).
+    pub fps: f64,
+    /// Horizontal field of view, degrees (5-150, default 70).
+    pub hfov_deg: f64,
+    /// JPEG quality of the frames to the stations (1-100, default 75).
+    pub quality: u8,
 }
 
 /// `<vas>` settings.
@@ -1012,6 +1030,29 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     ServiceSpec::Fpmo { listen, tiles }
                 }
             }
+            "camera" => {
+                let mut a = Attrs::new(s, &["size", "fps", "hfov", "quality"]);
+                let size = a.opt("size").unwrap_or_else(|| "320x240".into());
+                let size = usal_types::camera::parse_size(&size)
+                    .map_err(|e| Fault::at(s, format!("size: {e}")))?;
+                let spec = CameraSpec {
+                    size,
+                    fps: a.parsed("fps", "a number")?.unwrap_or(5.0),
+                    hfov_deg: a.parsed("hfov", "a number")?.unwrap_or(70.0),
+                    quality: a.parsed("quality", "a whole number from 1 to 100")?.unwrap_or(75),
+                };
+                a.finish()?;
+                if !(0.1..=60.0).contains(&spec.fps) {
+                    return Err(Fault::at(s, "fps must be from 0.1 to 60 frames a second"));
+                }
+                if !(5.0..=150.0).contains(&spec.hfov_deg) {
+                    return Err(Fault::at(s, "hfov must be from 5 to 150 degrees"));
+                }
+                if !(1..=100).contains(&spec.quality) {
+                    return Err(Fault::at(s, "quality must be from 1 to 100"));
+                }
+                ServiceSpec::Camera(spec)
+            }
             "fleet" => {
                 let mut a = Attrs::new(s, &["plan"]);
                 let plan = a.file("plan", base)?.ok_or_else(|| {
@@ -1050,7 +1091,7 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                 return Err(Fault::at(
                     s,
                     format!(
-                    "unknown service <{other}> in <node> (expected access, mavsim, autopilot, vas, fpma, station, fmo, fpmo, fleet or service)"
+                    "unknown service <{other}> in <node> (expected access, mavsim, autopilot, vas, fpma, station, fmo, fpmo, fleet, camera or service)"
                 ),
                 ))
             }
@@ -1069,6 +1110,14 @@ fn node_from(el: &Element, base: &Path) -> Result<NodeSpec, Fault> {
                     }
                     other => format!("node `{name}` already runs a {}", other.kind()),
                 },
+            ));
+        }
+        if matches!(svc, ServiceSpec::Camera(_))
+            && !services.iter().any(|x| matches!(x, ServiceSpec::Mavsim(_)))
+        {
+            return Err(Fault::at(
+                s,
+                "a <camera> films through the node's <mavsim>: put one before it in this node",
             ));
         }
         if let ServiceSpec::Vas(v) = &svc {

@@ -597,6 +597,14 @@ async fn start_services(
                 v.extend(["--network".into(), n.display().to_string()]);
             }
         };
+        // The node's camera: its mavsim serves the frames here, the camera service reads them.
+        let camera = node.services.iter().find_map(|s| match s {
+            ServiceSpec::Camera(c) => Some(c),
+            _ => None,
+        });
+        let camera_at = camera
+            .map(|_| free_local_port().map(|p| format!("127.0.0.1:{p}")))
+            .transpose()?;
         for svc in &node.services {
             let label = format!("{}/{}", node.name, svc.name());
             let mut a: Vec<String> = Vec::new();
@@ -637,6 +645,18 @@ async fn start_services(
                     }
                     if let Some((speed, from)) = m.wind {
                         a.extend(["--wind".into(), format!("{speed},{from}")]);
+                    }
+                    if let (Some(c), Some(at)) = (camera, &camera_at) {
+                        a.extend([
+                            "--camera".into(),
+                            format!("{}x{}", c.size.0, c.size.1),
+                            "--camera-fps".into(),
+                            c.fps.to_string(),
+                            "--camera-hfov".into(),
+                            c.hfov_deg.to_string(),
+                            "--camera-listen".into(),
+                            at.clone(),
+                        ]);
                     }
                     if let Some(key) = signing_key.filter(|_| vas_uses_sim(node)) {
                         a.extend(["--signing-key".into(), key.display().to_string()]);
@@ -725,6 +745,18 @@ async fn start_services(
                     // Per run: a supervised restart resumes the plan, a new run starts clean.
                     let state = scratch.join(&node.name).join("fpma-state");
                     a.extend(["--state-dir".into(), state.display().to_string()]);
+                    common(&mut a);
+                }
+                ServiceSpec::Camera(c) => {
+                    let Some(at) = &camera_at else { continue };
+                    a.extend([
+                        "--source".into(),
+                        at.clone(),
+                        "--quality".into(),
+                        c.quality.to_string(),
+                        "--node".into(),
+                        format!("{}-camera", node.name),
+                    ]);
                     common(&mut a);
                 }
                 // The fleet layer: a service of the ground node.
@@ -829,6 +861,12 @@ fn manual_stations(mission: &Mission) -> String {
         }
     }
     out.join(",")
+}
+
+/// A TCP port free on this host now (the kernel's pick, released for a child to take).
+fn free_local_port() -> anyhow::Result<u16> {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").context("finding a free TCP port")?;
+    Ok(l.local_addr()?.port())
 }
 
 /// Waits for mavsim's `MAVSIM_UDP=` line.

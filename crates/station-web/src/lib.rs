@@ -37,6 +37,7 @@
 //! ```
 
 pub mod access;
+pub mod camera;
 pub mod commands;
 pub mod fleet;
 pub mod http;

@@ -15,6 +15,24 @@ const M_PER_DEG: f64 = 111_319.49;
 /// The lowest a camera is taken to be above the ground, metres: a rover's camera on its mast.
 pub const MIN_CAMERA_HEIGHT_M: f64 = 2.0;
 
+/// Parses a picture size `WxH` (e.g. `320x240`, each 16-1920 pixels).
+///
+/// # Errors
+/// What is wrong with `s`.
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT (e.g. 320x240)"))?;
+    let dim = |v: &str| -> Result<u32, String> {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|n| (16..=1920).contains(n))
+            .ok_or_else(|| format!("`{v}` in `{s}` is not a size from 16 to 1920 pixels"))
+    };
+    Ok((dim(w)?, dim(h)?))
+}
+
 /// Where a camera is and how it looks: what a frame's pixels mean on the ground.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CameraPose {
@@ -133,6 +151,15 @@ mod tests {
         assert!(close((n, e), (0.0, 22.5)), "{n} {e}");
         let (n, e) = pose(90.0).ground_offset(399.5, 149.5, 400, 300);
         assert!(close((n, e), (-30.0, 0.0)), "{n} {e}");
+    }
+
+    #[test]
+    fn a_size_is_width_x_height_in_range() {
+        assert_eq!(parse_size("320x240"), Ok((320, 240)));
+        assert_eq!(parse_size("64X48"), Ok((64, 48)));
+        assert!(parse_size("320").unwrap_err().contains("not WIDTHxHEIGHT"));
+        assert!(parse_size("8x8").unwrap_err().contains("16 to 1920"));
+        assert!(parse_size("axb").is_err());
     }
 
     #[test]

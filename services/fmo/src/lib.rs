@@ -469,7 +469,12 @@ pub async fn run(config: FmoConfig, shutdown: CancellationToken) -> anyhow::Resu
     // The fleet view: every vehicle of a fleet mission on one map, `/fleet`.
     let fleet_view =
         station_web::fleet::FleetView::start(&svc, &shared.live, config.station.call_timeout)?;
-    let router = web::router(shared.clone()).merge(station_web::fleet::router(fleet_view));
+    // The vehicles' cameras: the latest picture, and a point marked on it sent to the fleet.
+    let camera_view =
+        station_web::camera::CameraView::start(&svc, &shared.live, fleet_view.clone())?;
+    let router = web::router(shared.clone())
+        .merge(station_web::fleet::router(fleet_view))
+        .merge(station_web::camera::router(camera_view));
     let tasks = shared.live.tasks.clone();
     station_web::serve_and_shut_down(listener, router, cancel, tasks, (shared, svc), node).await
 }

@@ -415,21 +415,29 @@ pub async fn rover_named(domain: &str, speedup: f64, ns: &str) -> (Proc, Proc) {
 /// A mavsim `kind` (rover, copter, plane) on any UDP port at `speedup`, and a `vas` for it
 /// in `domain`, namespace `ns`.
 pub async fn vehicle_named(domain: &str, speedup: f64, ns: &str, kind: &str) -> (Proc, Proc) {
-    let sim = Proc::start(
-        &workspace_bin("mavsim"),
-        &[
-            "--vehicle".into(),
-            kind.into(),
-            "--udp".into(),
-            "127.0.0.1:0".into(),
-            "--speedup".into(),
-            speedup.to_string(),
-            "--home".into(),
-            format!("{},{},0", HOME.0, HOME.1),
-        ],
-        true,
-    )
-    .await;
+    vehicle_with(domain, speedup, ns, kind, &[]).await
+}
+
+/// As [`vehicle_named`], mavsim given `sim_args` besides (a camera, say).
+pub async fn vehicle_with(
+    domain: &str,
+    speedup: f64,
+    ns: &str,
+    kind: &str,
+    sim_args: &[String],
+) -> (Proc, Proc) {
+    let mut args: Vec<String> = vec![
+        "--vehicle".into(),
+        kind.into(),
+        "--udp".into(),
+        "127.0.0.1:0".into(),
+        "--speedup".into(),
+        speedup.to_string(),
+        "--home".into(),
+        format!("{},{},0", HOME.0, HOME.1),
+    ];
+    args.extend_from_slice(sim_args);
+    let sim = Proc::start(&workspace_bin("mavsim"), &args, true).await;
     let line = sim.first_line.clone().unwrap_or_default();
     let addr = line
         .strip_prefix("MAVSIM_UDP=")
