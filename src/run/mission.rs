@@ -2008,8 +2008,8 @@ mod tests {
     #[test]
     fn a_camera_films_through_its_nodes_mavsim_with_sizes_and_rates_in_range() {
         let with = |node: &str| parse(&FLEET.replace("<mavsim/><vas/><fpma/>", node));
-        let m = with(r#"<mavsim/><camera size="640x480" fps="2" hfov="90"/><vas/><fpma/>"#)
-            .unwrap();
+        let m =
+            with(r#"<mavsim/><camera size="640x480" fps="2" hfov="90"/><vas/><fpma/>"#).unwrap();
         let cam = m.nodes[0].services.iter().find_map(|s| match s {
             ServiceSpec::Camera(c) => Some(c.clone()),
             _ => None,
@@ -2024,9 +2024,15 @@ mod tests {
             })
         );
         let e = with(r#"<camera/><mavsim/><vas/><fpma/>"#).unwrap_err();
-        assert!(e.contains("<camera>: a <camera> films through the node's <mavsim>"), "{e}");
+        assert!(
+            e.contains("<camera>: a <camera> films through the node's <mavsim>"),
+            "{e}"
+        );
         let e = with(r#"<mavsim/><camera size="8x8"/><vas/><fpma/>"#).unwrap_err();
-        assert!(e.contains("<camera>: size: `8` in `8x8` is not a size from 16"), "{e}");
+        assert!(
+            e.contains("<camera>: size: `8` in `8x8` is not a size from 16"),
+            "{e}"
+        );
         let e = with(r#"<mavsim/><camera fps="0"/><vas/><fpma/>"#).unwrap_err();
         assert!(e.contains("fps must be from 0.1 to 60"), "{e}");
         let e = with(r#"<mavsim/><camera quality="0"/><vas/><fpma/>"#).unwrap_err();
