@@ -65,6 +65,12 @@ struct Args {
     /// running does (PX4, MAVSDK-built vehicles).
     #[arg(long, default_value_t = 0.0)]
     not_ready_s: f64,
+    /// Move the current mission item on this many wall-clock milliseconds after reporting a
+    /// waypoint reached, to the item after the one reached whatever was set meanwhile, as
+    /// MAVSDK's mission server does (for testing ground stations: a set-current sent before it
+    /// is overridden).
+    #[arg(long, default_value_t = 0)]
+    late_advance_ms: u64,
     /// A steady wind, SPEED,FROM: metres per second and the direction it blows from (degrees
     /// clockwise from north, as a forecast gives it). Aircraft drift with it and fly against
     /// it (a plane crabs, a copter leans); a rover does not feel it.
@@ -234,6 +240,7 @@ async fn main() -> anyhow::Result<()> {
         log: args.log,
         quiet_progress: args.quiet_progress,
         not_ready_s: args.not_ready_s,
+        late_advance_s: args.late_advance_ms as f64 / 1000.0 * args.speedup,
         wind: args.wind,
         signing: args
             .signing_key

@@ -49,6 +49,9 @@ pub struct SimConfig {
     /// Seconds (simulated) the autopilot answers mode changes and arming "temporarily
     /// rejected" (see [`Vehicle::set_not_ready_for`]).
     pub not_ready_s: f64,
+    /// Seconds (simulated) between reporting a waypoint reached and moving the current item
+    /// on (see [`Vehicle::set_late_advance`]); 0: at once.
+    pub late_advance_s: f64,
     /// A steady wind: speed (m/s) and the direction it blows from (degrees).
     pub wind: (f64, f64),
     /// MAVLink 2 signing: sign everything, accept only correctly signed frames.
@@ -86,6 +89,7 @@ fn vehicle_of(cfg: &SimConfig, now: Instant) -> Vehicle {
     let mut vehicle = Vehicle::new(cfg.vehicle, now);
     vehicle.set_quiet_progress(cfg.quiet_progress);
     vehicle.set_not_ready_for(cfg.not_ready_s);
+    vehicle.set_late_advance(cfg.late_advance_s);
     vehicle.set_wind(cfg.wind.0, cfg.wind.1);
     vehicle.set_profile(cfg.autopilot);
     vehicle.set_battery(cfg.battery);
@@ -291,6 +295,7 @@ mod tests {
             log: None,
             quiet_progress: false,
             not_ready_s: 0.0,
+            late_advance_s: 0.0,
             wind: (0.0, 0.0),
             signing: None,
             autopilot: Profile::Px4,

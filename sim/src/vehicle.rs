@@ -116,6 +116,10 @@ pub struct Vehicle {
     /// Report no progress: no MISSION_ITEM_REACHED, no "Reached" text, MISSION_CURRENT only
     /// in answer to a set-current (autopilots that leave progress to be inferred).
     quiet_progress: bool,
+    /// Simulated seconds between a reach and the advance to the next item (0: at once).
+    late_advance_s: f64,
+    /// A late advance due: at this simulated time, to this item.
+    pending_advance: Option<(f64, u16)>,
     /// The steady wind's velocity, metres per second north and east (see
     /// [`Limits::wind`]).
     wind: (f64, f64),
@@ -196,6 +200,8 @@ impl Vehicle {
             reposition: None,
             speed_override: None,
             quiet_progress: false,
+            late_advance_s: 0.0,
+            pending_advance: None,
             ready_at: 0.0,
             wind: (0.0, 0.0),
             profile: Profile::ArduPilot,
@@ -249,6 +255,13 @@ impl Vehicle {
     /// STATUSTEXT, no MISSION_CURRENT stream or change; set-currents are still answered.
     pub fn set_quiet_progress(&mut self, quiet: bool) {
         self.quiet_progress = quiet;
+    }
+
+    /// Moves the current item on `seconds` (simulated) after reporting a waypoint reached,
+    /// holding meanwhile, and to the item after the one reached whatever was set since: a
+    /// set-current sent before it is overridden, as MAVSDK's mission server does.
+    pub fn set_late_advance(&mut self, seconds: f64) {
+        self.late_advance_s = seconds.max(0.0);
     }
 
     /// Follows `profile`'s conventions (heartbeat, modes, item 0, partial writes, current item
@@ -586,6 +599,11 @@ impl Vehicle {
         });
         // The next index of whatever mission is on board *now* (003 §2.5.4).
         self.target = None;
+        if self.late_advance_s > 0.0 {
+            self.hold_point = self.state.pos;
+            self.pending_advance = Some((self.sim_time + self.late_advance_s, t.seq + 1));
+            return;
+        }
         self.go_to_index(t.seq + 1, "advance", out);
     }
 
@@ -695,6 +713,14 @@ impl Vehicle {
     pub fn step(&mut self, dt: f64) -> Vec<MavMessage> {
         let mut out = Vec::new();
         self.sim_time += dt;
+        if let Some((due, seq)) = self.pending_advance {
+            if self.sim_time >= due {
+                self.pending_advance = None;
+                if self.behaviour() == Behaviour::Auto {
+                    self.go_to_index(seq, "late advance", &mut out);
+                }
+            }
+        }
         if !self.armed {
             self.battery.drain(dt, 0.0, false);
             self.state.speed = 0.0;

@@ -50,6 +50,59 @@ async fn two_hundred_waypoints_through_five_slots() {
     g.node.shutdown().await;
 }
 
+/// An autopilot that moves its current item on well after reporting a reach, to the item
+/// after the one reached whatever was set meanwhile (MAVSDK's mission server, slow under load):
+/// the VAS's set-current for the next window lands before it and is overridden, sending the
+/// vehicle one slot too far. The VAS sees the advance past a target the vehicle is far from,
+/// sets it back, and every waypoint is reached, in order, none skipped.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_advance_of_the_autopilot_never_skips_a_waypoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("sim.jsonl");
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        10.0,
+        &log,
+        &["--late-advance-ms", "900", "--autopilot", "generic"],
+    )
+    .await;
+    let domain = unique_domain("late-advance");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--queue-size", "4"],
+    );
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+    let wps = zigzag(14, 25.0);
+    g.push_all(&wps).await;
+    g.request(FlightState::WaypointNavigation)
+        .await
+        .expect("navigate");
+    let mut seen = Vec::new();
+    while seen.len() < wps.len() {
+        let r = tokio::time::timeout(STEP, g.reached.recv())
+            .await
+            .unwrap_or_else(|_| panic!("stalled after {seen:?}:\n{}", sim.mission_story()))
+            .expect("waypoint_reached");
+        seen.push(r.value.seq);
+    }
+    assert_eq!(seen, (0..14).collect::<Vec<u64>>());
+    let order: Vec<Option<usize>> = reached_points(&sim.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    assert_eq!(
+        order,
+        (0..14).map(Some).collect::<Vec<_>>(),
+        "mavsim reached every waypoint once, in order:\n{}",
+        sim.mission_story()
+    );
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
 /// The command checker refuses with its reason; an accepted change reaches the autopilot.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn transitions_checked_and_applied() {

@@ -228,10 +228,10 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         self.owe_restore
     }
 
-    /// A set-current is due but waits for the autopilot to report its own advance past the
-    /// waypoint last reached.
+    /// An action is due but waits for the autopilot to report its own advance past the
+    /// waypoint last reached (a set-current, or a window laid out afresh, which one follows).
     pub fn awaits_advance(&self) -> bool {
-        !self.advanced && self.cur.is_some() && self.wants_set_current()
+        !self.advanced && self.cur.is_some() && self.waits_for_advance()
     }
 
     /// Whether the last reach ended the autopilot's mission with waypoints still queued (its
@@ -247,11 +247,11 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         self.advanced = true;
     }
 
-    /// Whether the next action, advance aside, would be a set-current.
-    fn wants_set_current(&self) -> bool {
-        let mut q = self.clone();
-        q.advanced = true;
-        matches!(q.poll(), Some(QueueAction::SetCurrent(_)))
+    /// Whether the autopilot's advance changes the next action (it waits for it).
+    fn waits_for_advance(&self) -> bool {
+        let mut advanced = self.clone();
+        advanced.advanced = true;
+        advanced.poll() != self.clone().poll()
     }
 
     /// The autopilot reports it drives to mission item `slot`: is that back toward a waypoint
@@ -374,6 +374,12 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         let c = self.cur?;
         if self.partial_ok || c == 1 || !matches!(action, QueueAction::Upload(_)) {
             return Some(action);
+        }
+        // The window laid out afresh is followed by a set-current to slot 1: like one, it
+        // waits for the autopilot's own advance after a reach, or that late advance would
+        // move the vehicle from slot 1 to 2, past the target.
+        if !self.advanced {
+            return None;
         }
         let a0 = self.ahead.front()?.clone();
         let window: Vec<W> = self
@@ -1078,6 +1084,12 @@ mod tests {
         let (mut q, mut ap) = flying_ten(5, false);
         let s = ap.drive().unwrap();
         q.on_reached(s);
+        // Laid out afresh only once the autopilot moved on by itself: its late advance would
+        // otherwise follow the set-current to slot 1 and skip the target.
+        assert_eq!(q.poll(), None);
+        assert!(q.awaits_advance());
+        q.on_current(ap.current);
+        assert!(!q.awaits_advance());
         let a = q.poll().unwrap();
         assert_eq!(
             a,
@@ -1109,6 +1121,8 @@ mod tests {
         let mut reached = Vec::new();
         while let Some(s) = ap.drive() {
             reached.extend(q.on_reached(s));
+            // Its MISSION_CURRENT after moving on.
+            q.on_current(ap.current);
             let Some(a) = q.poll() else { continue };
             assert!(ap.apply(&a));
             if matches!(a, QueueAction::Upload(_)) {

@@ -137,9 +137,16 @@ async fn exec(
 }
 
 /// How long a set-current after a reach waits for the autopilot to report its own advance
-/// (MISSION_CURRENT) before going ahead without it: an autopilot that reports reaches reports
-/// its current item far sooner.
+/// (MISSION_CURRENT) before going ahead without it, when it reports no reaches (progress is
+/// inferred from its position, and its advance may never be reported).
 const ADVANCE_WAIT: std::time::Duration = std::time::Duration::from_millis(400);
+
+/// The same wait for an autopilot that reports its reaches: it moves its current item on
+/// after each, and may take long to (MAVSDK's mission server under load took over 400 ms); a
+/// set-current sent before its advance would be overridden by it, sending the vehicle one
+/// waypoint too far. Meanwhile the vehicle drives on to the next slot or holds: nothing is
+/// lost by waiting.
+const ADVANCE_WAIT_REPORTING: std::time::Duration = std::time::Duration::from_secs(3);
 
 pub(super) struct Driver {
     mgr: Arc<MavlinkManager>,
@@ -179,7 +186,7 @@ pub(super) struct Driver {
     /// What the last whole upload put in item 0 where it is an ordinary item.
     item0: Option<Waypoint>,
     /// When the last waypoint was reached (a set-current waits for the autopilot's own
-    /// advance after it, [`ADVANCE_WAIT`] at most).
+    /// advance after it, [`ADVANCE_WAIT`] or [`ADVANCE_WAIT_REPORTING`] at most).
     reached_at: Option<std::time::Instant>,
     /// Times the vehicle's reported current item went back to an item already passed while
     /// navigating (each is a drive back toward a passed waypoint).
@@ -304,8 +311,13 @@ impl Driver {
                 },
                 _ = tick.tick() => {
                     self.failing = false;
+                    let wait = if self.reports_progress {
+                        ADVANCE_WAIT_REPORTING
+                    } else {
+                        ADVANCE_WAIT
+                    };
                     if self.queue.awaits_advance()
-                        && self.reached_at.is_none_or(|t| t.elapsed() >= ADVANCE_WAIT)
+                        && self.reached_at.is_none_or(|t| t.elapsed() >= wait)
                     {
                         tracing::debug!("queue: the autopilot did not report its advance; going on");
                         self.queue.assume_advanced();
