@@ -151,6 +151,10 @@ pub enum Command {
     },
 }
 
+/// The fastest a plane rolls on the ground under the sticks, m/s: a brisk taxi, well under any
+/// take-off speed.
+pub const TAXI_SPEED_MAX: f64 = 8.0;
+
 /// The kinematic state of the vehicle.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct State {
@@ -279,6 +283,27 @@ impl State {
         self.advance_along_heading(dt);
     }
 
+    /// A plane on its wheels under the sticks: the throttle (from its bottom, -1, idle) sets
+    /// the ground speed, up to [`TAXI_SPEED_MAX`], the steering turns it as a rover's does; it
+    /// never leaves the ground (taking off is the TAKEOFF mode's) and the wind does not push
+    /// it.
+    fn taxi(&mut self, steer: f64, throttle: f64, limits: &Limits, dt: f64) {
+        let open = (throttle.clamp(-1.0, 1.0) + 1.0) / 2.0;
+        let target = (open * limits.cruise_speed).min(TAXI_SPEED_MAX);
+        if self.speed.abs() > 0.05 {
+            let turn = steer.clamp(-1.0, 1.0) * limits.max_yaw_rate * dt;
+            self.yaw += turn;
+            self.yaw_rate = turn / dt;
+        } else {
+            self.yaw_rate = 0.0;
+        }
+        self.speed = approach(self.speed, target, limits.max_accel * dt);
+        self.climb = 0.0;
+        self.roll = 0.0;
+        self.pos.up = 0.0;
+        self.advance_along_heading(dt);
+    }
+
     fn step_copter(&mut self, cmd: Command, limits: &Limits, dt: f64) {
         let (vn, ve, vu) = match cmd {
             Command::GoTo(target) => {
@@ -331,6 +356,10 @@ impl State {
     }
 
     fn step_plane(&mut self, cmd: Command, limits: &Limits, dt: f64) {
+        if let (Command::Sticks { steer, throttle }, true) = (cmd, self.pos.up <= 0.0) {
+            self.taxi(steer, throttle, limits, dt);
+            return;
+        }
         let airspeed = limits.cruise_speed.max(limits.stall_speed);
         let target_up = match cmd {
             Command::GoTo(target) => {
@@ -409,6 +438,44 @@ mod tests {
             ..HOME
         });
         assert!((north.north - 111_319.0).abs() < 50.0, "{north:?}");
+    }
+
+    #[test]
+    fn a_plane_on_its_wheels_taxis_under_the_sticks_and_never_takes_off() {
+        let limits = Limits {
+            stall_speed: 9.0,
+            wind: (0.0, 5.0),
+            ..Limits::calm(18.0, 30f64.to_radians(), 3.0, 4.0)
+        };
+        let mut s = State::at(Ned::default());
+        let sticks = |steer, throttle| Command::Sticks { steer, throttle };
+        // Idle: stands still, the wind does not push it.
+        for _ in 0..50 {
+            s.step(VehicleKind::Plane, sticks(0.0, -1.0), &limits, 0.1);
+        }
+        assert!(
+            s.pos.north.abs() < 1e-9 && s.pos.east.abs() < 1e-9,
+            "{:?}",
+            s.pos
+        );
+        // Full throttle on the ground: a taxi, capped, never airborne; steering turns it.
+        for _ in 0..200 {
+            s.step(VehicleKind::Plane, sticks(0.5, 1.0), &limits, 0.1);
+        }
+        assert!((s.speed - TAXI_SPEED_MAX).abs() < 1e-9, "{}", s.speed);
+        assert_eq!(s.pos.up, 0.0);
+        assert!(s.yaw.abs() > 1.0, "it turned: {}", s.yaw);
+        // A third of the throttle's travel: a third of cruise, under the cap.
+        let mut s = State::at(Ned::default());
+        for _ in 0..100 {
+            s.step(
+                VehicleKind::Plane,
+                sticks(0.0, -1.0 + 2.0 / 3.0),
+                &limits,
+                0.1,
+            );
+        }
+        assert!((s.speed - 6.0).abs() < 1e-6, "{}", s.speed);
     }
 
     #[test]

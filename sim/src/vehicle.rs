@@ -733,7 +733,17 @@ impl Vehicle {
         let limits = self.limits();
         let command = match self.behaviour() {
             Behaviour::Manual => {
-                let s = self.sticks.map(|(s, _)| s).unwrap_or_default();
+                // No override: sticks centred (a copter hovers), a plane's throttle at idle
+                // (its bottom: on the ground it stands still).
+                let idle = Sticks {
+                    steer: 0.0,
+                    throttle: if self.cfg.kind == VehicleKind::Plane {
+                        -1.0
+                    } else {
+                        0.0
+                    },
+                };
+                let s = self.sticks.map_or(idle, |(s, _)| s);
                 Command::Sticks {
                     steer: s.steer,
                     throttle: s.throttle,

@@ -266,11 +266,14 @@ pub enum FlightState {
     Landing,
     /// Returning to the launch point (every vehicle kind; a rover then holds there).
     ReturnToLaunch,
+    /// A plane on the ground, armed, steered by the ground station's joystick at taxiing
+    /// speed (throttle capped), to or from its runway; never airborne.
+    Taxi,
 }
 
 impl FlightState {
     /// Every state, in declaration order.
-    pub const ALL: [FlightState; 9] = [
+    pub const ALL: [FlightState; 10] = [
         Self::ConfigureCheck,
         Self::Parking,
         Self::Directed,
@@ -280,6 +283,7 @@ impl FlightState {
         Self::TakeOff,
         Self::Landing,
         Self::ReturnToLaunch,
+        Self::Taxi,
     ];
 
     /// The seed's name, e.g. `WAYPOINT_NAVIGATION`.
@@ -294,6 +298,7 @@ impl FlightState {
             Self::TakeOff => "TAKE_OFF",
             Self::Landing => "LANDING",
             Self::ReturnToLaunch => "RETURN_TO_LAUNCH",
+            Self::Taxi => "TAXI",
         }
     }
 
@@ -301,6 +306,7 @@ impl FlightState {
     pub fn applies_to(self, kind: VehicleKind) -> bool {
         match self {
             Self::TakeOff | Self::Landing => kind != VehicleKind::Rover,
+            Self::Taxi => kind == VehicleKind::Plane,
             _ => true,
         }
     }

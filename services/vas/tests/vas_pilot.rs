@@ -612,3 +612,97 @@ async fn part_of_the_mission_on_board_is_read_back() {
     sim.kill().await;
     g.node.shutdown().await;
 }
+
+/// A plane taxis: from PARKING to TAXI (armed, MANUAL), steered by the station's sticks at
+/// full throttle it rolls on the ground at taxiing speed (the VAS caps the throttle), never
+/// leaving it; back to PARKING it stops and disarms.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plane_taxis_on_the_ground_under_the_sticks_and_parks_disarmed() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        5.0,
+        &dir.path().join("sim.jsonl"),
+        &["--vehicle", "plane"],
+    )
+    .await;
+    let domain = unique_domain("taxi");
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--vehicle", "plane", "--telemetry-hz", "10"],
+    );
+    let g = Ground::open(&domain).await;
+    let position = g
+        .svc
+        .subscribe_variable::<Position>("rover1/vas/position")
+        .unwrap();
+    let autopilot = g
+        .svc
+        .subscribe_variable::<usal_types::AutopilotStatus>("rover1/vas/autopilot")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+    let r = g.request(FlightState::Taxi).await.expect("TAXI");
+    assert_eq!((r.from, r.to), (FlightState::Parking, FlightState::Taxi));
+    let sticks_node = {
+        let mut cfg = marea::NetworkConfig::ethernet_loopback("station");
+        cfg.domain = domain.clone();
+        marea::Node::open(&cfg).await.expect("node")
+    };
+    let sticks = sticks_node
+        .service("fmo")
+        .unwrap()
+        .publish_variable::<usal_types::ManualCommand>("manual_control")
+        .unwrap();
+    let drive = async {
+        let mut tick = tokio::time::interval(Duration::from_millis(50));
+        loop {
+            tick.tick().await;
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+                .as_millis() as u64;
+            let _ = sticks.set(&usal_types::ManualCommand {
+                target: "rover1/vas".into(),
+                sticks: usal_types::ManualControl {
+                    throttle: 1.0,
+                    pitch: 1.0,
+                    roll: 0.3,
+                    timestamp_ms: now,
+                    ..Default::default()
+                },
+            });
+        }
+    };
+    let rolled = tokio::select! {
+        () = drive => unreachable!("the sticks never stop"),
+        p = wait_position(&position, "rolled 40 m", Duration::from_secs(60), |p| {
+            let (n, e) = metres_from_home(p);
+            n.hypot(e) > 40.0
+        }) => p,
+    };
+    // Full throttle and full pitch: a taxi, on the ground, under the take-off speed.
+    assert!(rolled.alt_rel.abs() < 0.5, "{rolled:?}");
+    assert!(rolled.speed > 1.0 && rolled.speed < 9.0, "{rolled:?}");
+    let r = g.request(FlightState::Parking).await.expect("PARKING");
+    assert_eq!(r.from, FlightState::Taxi);
+    tokio::time::timeout(STEP, async {
+        loop {
+            let a = autopilot.recv().await.expect("autopilot").value;
+            if !a.armed {
+                return;
+            }
+        }
+    })
+    .await
+    .expect("disarmed once parked");
+    // Standing: the motor stopped.
+    wait_position(&position, "stopped", Duration::from_secs(30), |p| {
+        p.speed < 0.1
+    })
+    .await;
+    vas.kill().await;
+    sim.kill().await;
+    sticks_node.shutdown().await;
+    g.node.shutdown().await;
+}

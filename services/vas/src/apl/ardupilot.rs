@@ -65,12 +65,15 @@ fn mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, Armi
         (VehicleKind::Copter, Manual) => ("STABILIZE", Keep),
         (VehicleKind::Plane, Parking | Manual) => ("MANUAL", Keep),
         (VehicleKind::Plane, TakeOff) => ("TAKEOFF", Arm),
+        // Steered on the ground by the station's joystick (RC override, throttle capped).
+        (VehicleKind::Plane, Taxi) => ("MANUAL", Arm),
         (VehicleKind::Plane, Directed) => ("GUIDED", Keep),
         (VehicleKind::Plane, ManualNavigation) => ("FBWA", Arm),
         // A landing is a mission of its own, flown in AUTO: an approach and NAV_LAND at home
         // (the driver lays it out, `landing_mission`), as ArduPilot lands a plane.
         (VehicleKind::Plane, Landing) => ("AUTO", Keep),
         (VehicleKind::Plane, ReturnToLaunch) => ("RTL", Keep),
+        (VehicleKind::Copter, Taxi) => return None,
     })
 }
 
@@ -117,7 +120,11 @@ mod tests {
                 Some("GUIDED")
             );
             for s in FlightState::ALL.into_iter().skip(1) {
-                assert!(mode_for(kind, s).is_some(), "{kind} {s}");
+                assert_eq!(
+                    mode_for(kind, s).is_some(),
+                    s.applies_to(kind),
+                    "{kind} {s}"
+                );
             }
         }
     }

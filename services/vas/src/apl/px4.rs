@@ -48,6 +48,8 @@ fn px4_mode_for(kind: VehicleKind, state: FlightState) -> Option<(&'static str, 
         (VehicleKind::Copter, Manual) => ("STABILIZED", Keep),
         (VehicleKind::Plane, ManualNavigation) => ("STABILIZED", Arm),
         (VehicleKind::Plane, Manual) => ("MANUAL", Keep),
+        (VehicleKind::Plane, Taxi) => ("MANUAL", Arm),
+        (_, Taxi) => return None,
     })
 }
 
@@ -171,6 +173,8 @@ mod tests {
                     (VehicleKind::Rover, FlightState::Directed)
                         | (_, FlightState::Parking | FlightState::ManualNavigation)
                         | (VehicleKind::Rover, FlightState::Manual)
+                        // MANUAL, armed on the ground: the mode is the plane's MANUAL.
+                        | (VehicleKind::Plane, FlightState::Taxi)
                 );
                 assert!(shared || back == Some(s), "{kind} {s}: {mode} -> {back:?}");
             }

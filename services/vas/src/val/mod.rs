@@ -847,7 +847,7 @@ impl IService for Vas {
             async move {
                 let kind = c.apl.vehicle();
                 let from = c.state();
-                Ok::<Vec<FlightState>, String>(transitions::allowed(kind, from).to_vec())
+                Ok::<Vec<FlightState>, String>(transitions::allowed(kind, from))
             }
         })?;
         let c = core.clone();
@@ -1056,8 +1056,14 @@ impl IService for Vas {
                                 continue;
                             }
                             last = Some((sticks.timestamp_ms, s.received));
-                            if c.state() == FlightState::ManualNavigation {
+                            let state = c.state();
+                            if matches!(state, FlightState::ManualNavigation | FlightState::Taxi) {
                                 released = false;
+                                let sticks = if state == FlightState::Taxi {
+                                    taxi_sticks(sticks)
+                                } else {
+                                    sticks
+                                };
                                 if let Err(e) = c.apl.manual_navigation(Some(sticks)).await {
                                     tracing::debug!("manual control: {e}");
                                 }
@@ -1073,7 +1079,7 @@ impl IService for Vas {
                         if stale && !released {
                             released = true;
                             let _ = c.apl.manual_navigation(None).await;
-                            if c.state() == FlightState::ManualNavigation {
+                            if matches!(c.state(), FlightState::ManualNavigation | FlightState::Taxi) {
                                 c.alarm(Severity::Warning, "manual control stale: sticks released");
                             }
                         }
@@ -1270,9 +1276,43 @@ fn takes_manual_sample(
     age <= timeout && newer
 }
 
+/// Most throttle a taxiing plane gets (of full): ground speed, never take-off speed.
+pub const TAXI_THROTTLE: f32 = 0.3;
+
+/// The station's sticks as a taxiing plane obeys them: steering as given, the throttle capped
+/// at [`TAXI_THROTTLE`], no pitch (it stays on its wheels).
+pub fn taxi_sticks(mut mc: usal_types::ManualControl) -> usal_types::ManualControl {
+    mc.throttle = if mc.throttle.is_finite() {
+        mc.throttle.clamp(0.0, TAXI_THROTTLE)
+    } else {
+        0.0
+    };
+    mc.pitch = 0.0;
+    mc
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_taxiing_plane_gets_a_capped_throttle_and_no_pitch() {
+        let mc = |throttle, pitch| usal_types::ManualControl {
+            roll: 0.5,
+            pitch,
+            throttle,
+            yaw: -0.2,
+            timestamp_ms: 7,
+        };
+        let t = taxi_sticks(mc(1.0, 0.8));
+        assert_eq!(
+            (t.throttle, t.pitch, t.roll, t.yaw),
+            (TAXI_THROTTLE, 0.0, 0.5, -0.2)
+        );
+        assert_eq!(taxi_sticks(mc(0.1, 0.0)).throttle, 0.1);
+        assert_eq!(taxi_sticks(mc(-1.0, 0.0)).throttle, 0.0);
+        assert_eq!(taxi_sticks(mc(f32::NAN, 0.0)).throttle, 0.0);
+    }
 
     #[test]
     fn a_sample_stamped_in_the_far_future_orders_the_others_only_while_it_is_live() {

@@ -63,9 +63,12 @@ const ROVER: &[(FlightState, &[FlightState])] = &[
     (Manual, &[]),
 ];
 
+/// Copters and planes (TAXI is a plane's only: [`allowed`] leaves it out for a copter).
 const AIRCRAFT: &[(FlightState, &[FlightState])] = &[
     (ConfigureCheck, &[Parking, Manual]),
-    (Parking, &[TakeOff, Manual]),
+    (Parking, &[TakeOff, Taxi, Manual]),
+    // On the ground: back to parking, or onto the runway and off.
+    (Taxi, &[Parking, TakeOff, Manual]),
     (
         TakeOff,
         &[
@@ -115,12 +118,16 @@ fn table(kind: VehicleKind) -> &'static [(FlightState, &'static [FlightState])] 
     }
 }
 
-/// The states reachable from `from` by request.
-pub fn allowed(kind: VehicleKind, from: FlightState) -> &'static [FlightState] {
+/// The states reachable from `from` by request (those a vehicle of `kind` has).
+pub fn allowed(kind: VehicleKind, from: FlightState) -> Vec<FlightState> {
     table(kind)
         .iter()
         .find(|(s, _)| *s == from)
-        .map_or(&[], |(_, to)| to)
+        .map_or(&[][..], |(_, to)| to)
+        .iter()
+        .copied()
+        .filter(|s| s.applies_to(kind))
+        .collect()
 }
 
 /// Checks a requested transition against the table.
@@ -255,7 +262,7 @@ pub fn allowed_changes(kind: VehicleKind, from: FlightState, armed: bool) -> All
     AllowedChanges {
         from: Some(from),
         kind,
-        states: allowed(kind, from).to_vec(),
+        states: allowed(kind, from),
         commands: allowed_commands(kind, from, armed)
             .into_iter()
             .map(str::to_owned)
@@ -269,13 +276,27 @@ mod tests {
     use super::*;
 
     #[test]
-    fn tables_only_name_states_of_their_vehicle() {
+    fn only_states_of_the_vehicle_are_allowed() {
         for kind in [VehicleKind::Rover, VehicleKind::Copter, VehicleKind::Plane] {
-            for (from, to) in table(kind) {
-                assert!(from.applies_to(kind));
-                assert!(to.iter().all(|s| s.applies_to(kind) && s != from));
+            for from in FlightState::ALL.into_iter().filter(|s| s.applies_to(kind)) {
+                let to = allowed(kind, from);
+                assert!(
+                    to.iter().all(|s| s.applies_to(kind) && *s != from),
+                    "{kind} {from}"
+                );
             }
         }
+        // A plane on the ground taxis; a copter has no TAXI.
+        assert!(allowed(VehicleKind::Plane, Parking).contains(&Taxi));
+        assert!(!allowed(VehicleKind::Copter, Parking).contains(&Taxi));
+        assert_eq!(
+            allowed(VehicleKind::Plane, Taxi),
+            [Parking, TakeOff, Manual]
+        );
+        let e = check(VehicleKind::Copter, Parking, Taxi).unwrap_err();
+        assert_eq!(e, "TAXI is not a state of a copter");
+        let e = check(VehicleKind::Plane, Taxi, WaypointNavigation).unwrap_err();
+        assert!(e.contains("allowed: PARKING, TAKE_OFF, MANUAL"), "{e}");
     }
 
     #[test]

@@ -546,6 +546,15 @@ impl Driver {
                 return Err(refused(&e));
             }
         }
+        if to == FlightState::Parking
+            && previous == Some(FlightState::Taxi)
+            && self.mgr.state().armed
+        {
+            // A plane parks on the ground disarmed: back from taxiing, the motor stops.
+            if let Err(e) = self.mgr.arm(false).await {
+                return Err(refused(&e));
+            }
+        }
         if to == FlightState::WaypointNavigation {
             // Entering AUTO puts the autopilot back to its default speed.
             self.speed_sent = Some(0.0);
