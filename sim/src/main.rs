@@ -125,6 +125,10 @@ struct Args {
     /// Where the camera's frames are served (port 0: any; printed).
     #[arg(long, default_value = "127.0.0.1:0")]
     camera_listen: SocketAddr,
+    /// Obstacles the camera sees (grey roofs): one a line, `NAME HEIGHT LAT,LON LAT,LON
+    /// LAT,LON ...`, `#` comments.
+    #[arg(long)]
+    obstacles: Option<PathBuf>,
 }
 
 fn parse_fps(s: &str) -> Result<f64, String> {
@@ -292,18 +296,31 @@ async fn main() -> anyhow::Result<()> {
                 hfov_deg: args.camera_hfov,
             };
             let frame = mavsim::kinematics::LocalFrame::new(home);
-            let local: Vec<(f64, f64)> = pois
-                .iter()
-                .map(|p| {
-                    let n = frame.to_local(GeoPoint {
-                        lat_deg: p.lat,
-                        lon_deg: p.lon,
-                        alt_m: home.alt_m,
-                    });
-                    (n.north, n.east)
-                })
-                .collect();
-            Some((cfg, listener, sim.camera_view(cfg.hfov_deg), local))
+            let local = |(lat, lon): (f64, f64)| {
+                let n = frame.to_local(GeoPoint {
+                    lat_deg: lat,
+                    lon_deg: lon,
+                    alt_m: home.alt_m,
+                });
+                (n.north, n.east)
+            };
+            let obstacles = match &args.obstacles {
+                Some(path) => {
+                    let src = std::fs::read_to_string(path)
+                        .with_context(|| format!("--obstacles {}", path.display()))?;
+                    mavsim::camera::parse_obstacles(&src, &path.display().to_string())
+                        .map_err(|e| anyhow::anyhow!("--obstacles: {e}"))?
+                }
+                None => Vec::new(),
+            };
+            let scene = mavsim::camera::Scene {
+                pois: pois.iter().map(|p| local((p.lat, p.lon))).collect(),
+                obstacles: obstacles
+                    .into_iter()
+                    .map(|o| o.into_iter().map(local).collect())
+                    .collect(),
+            };
+            Some((cfg, listener, sim.camera_view(cfg.hfov_deg), scene))
         }
         None => None,
     };
@@ -320,7 +337,7 @@ async fn main() -> anyhow::Result<()> {
     }
     tracing::info!("{line}");
     let shutdown = CancellationToken::new();
-    if let Some((cfg, listener, view, pois)) = camera {
+    if let Some((cfg, listener, view, scene)) = camera {
         let line = format!("MAVSIM_CAMERA={}", listener.local_addr()?);
         {
             let mut stdout = std::io::stdout().lock();
@@ -328,16 +345,18 @@ async fn main() -> anyhow::Result<()> {
             stdout.flush()?;
         }
         tracing::info!(
-            "{line} ({}x{} at {} frames a second)",
+            "{line} ({}x{} at {} frames a second; {} points of interest, {} obstacles)",
             cfg.width,
             cfg.height,
-            cfg.fps
+            cfg.fps,
+            scene.pois.len(),
+            scene.obstacles.len()
         );
         tokio::spawn(mavsim::camera::serve(
             cfg,
             listener,
             view,
-            pois,
+            scene,
             shutdown.clone(),
         ));
     }

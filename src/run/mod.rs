@@ -586,6 +586,8 @@ async fn start_services(
     stop: &CancellationToken,
 ) -> anyhow::Result<()> {
     let manual_stations = manual_stations(mission);
+    // What the cameras see standing on the ground: the fleet plan's obstacles.
+    let obstacles = camera_obstacles(mission, scratch)?;
     for node in &mission.nodes {
         let mut sim_addr: Option<watch::Receiver<Option<String>>> = None;
         let common = |v: &mut Vec<String>| {
@@ -657,6 +659,9 @@ async fn start_services(
                             "--camera-listen".into(),
                             at.clone(),
                         ]);
+                        if let Some(file) = &obstacles {
+                            a.extend(["--obstacles".into(), file.display().to_string()]);
+                        }
                     }
                     if let Some(key) = signing_key.filter(|_| vas_uses_sim(node)) {
                         a.extend(["--signing-key".into(), key.display().to_string()]);
@@ -861,6 +866,39 @@ fn manual_stations(mission: &Mission) -> String {
         }
     }
     out.join(",")
+}
+
+/// The fleet plan's obstacles as mavsim's `--obstacles` file (in `scratch`), when a node has
+/// a camera and the fleet plan obstacles.
+fn camera_obstacles(mission: &Mission, scratch: &Path) -> anyhow::Result<Option<PathBuf>> {
+    let filming = mission.nodes.iter().any(|n| {
+        n.services
+            .iter()
+            .any(|s| matches!(s, ServiceSpec::Camera(_)))
+    });
+    let Some((_, plan)) = mission.fleet().filter(|_| filming) else {
+        return Ok(None);
+    };
+    let plan = ::fleet::plan::load(plan).map_err(|e| anyhow!("fleet plan {e}"))?;
+    if plan.obstacles.is_empty() {
+        return Ok(None);
+    }
+    let mut text =
+        String::from("# The fleet plan's obstacles, for the cameras: NAME HEIGHT LAT,LON ...\n");
+    for o in &plan.obstacles {
+        let corners: Vec<String> = o
+            .polygon
+            .iter()
+            .map(|(la, lo)| format!("{la:.8},{lo:.8}"))
+            .collect();
+        // Names are the fleet plan's: one word each here.
+        let name: String = o.name.split_whitespace().collect::<Vec<_>>().join("_");
+        text += &format!("{name} {} {}\n", o.height_m, corners.join(" "));
+    }
+    std::fs::create_dir_all(scratch).with_context(|| format!("creating {}", scratch.display()))?;
+    let file = scratch.join("camera-obstacles.txt");
+    std::fs::write(&file, text).with_context(|| format!("writing {}", file.display()))?;
+    Ok(Some(file))
 }
 
 /// A TCP port free on this host now (the kernel's pick, released for a child to take).
