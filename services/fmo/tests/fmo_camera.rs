@@ -65,18 +65,7 @@ async fn scenario() {
 </fleetPlan>"#,
     )
     .unwrap();
-    let fleet_args: Vec<String> = [
-        "--plan",
-        &plan.display().to_string(),
-        "--domain",
-        &domain,
-        "--namespace",
-        "gcs",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let _fleet = Proc::start(&workspace_bin("fleet"), &fleet_args, false).await;
+    let _fleet = fleet_service(&plan, &domain).await;
     let fmo = Station::start(env!("CARGO_BIN_EXE_fmo"), "FMO_URL", &["--domain", &domain]).await;
     fmo.wait_fleet("the rover placed", |s| {
         s["vehicles"][0]["position"].is_array()

@@ -39,19 +39,7 @@ async fn scenario() {
 </fleetPlan>"#,
     )
     .unwrap();
-    let _fleet = Proc::start(
-        &workspace_bin("fleet"),
-        &[
-            "--plan".into(),
-            plan.display().to_string(),
-            "--domain".into(),
-            domain.clone(),
-            "--namespace".into(),
-            "gcs".into(),
-        ],
-        false,
-    )
-    .await;
+    let _fleet = fleet_service(&plan, &domain).await;
     let fmo = Station::start(env!("CARGO_BIN_EXE_fmo"), "FMO_URL", &["--domain", &domain]).await;
     let fpmo = Station::start(
         workspace_bin("fpmo").to_str().unwrap(),

@@ -87,19 +87,7 @@ async fn scenario() {
         ),
     )
     .unwrap();
-    let _fleet = Proc::start(
-        &workspace_bin("fleet"),
-        &[
-            "--plan".into(),
-            plan.display().to_string(),
-            "--domain".into(),
-            domain.clone(),
-            "--namespace".into(),
-            "gcs".into(),
-        ],
-        false,
-    )
-    .await;
+    let _fleet = fleet_service(&plan, &domain).await;
     let fpmo = Station::start(
         workspace_bin("fpmo").to_str().unwrap(),
         "FPMO_URL",

@@ -380,6 +380,19 @@ impl Proc {
 /// Home of the simulated rover: the car park of `config/flightplans/rover-carpark.xml`.
 pub const HOME: (f64, f64) = (41.275, 1.987);
 
+/// A `fleet` service running the fleet plan `plan` in `domain`, namespace `gcs`.
+pub async fn fleet_service(plan: &std::path::Path, domain: &str) -> Proc {
+    let args: Vec<String> = vec![
+        "--plan".into(),
+        plan.display().to_string(),
+        "--domain".into(),
+        domain.into(),
+        "--namespace".into(),
+        "gcs".into(),
+    ];
+    Proc::start(&workspace_bin("fleet"), &args, false).await
+}
+
 /// mavsim on any UDP port at `speedup`, and a `vas` for it in `domain`, namespace `rover1`.
 pub async fn rover(domain: &str, speedup: f64) -> (Proc, Proc) {
     rover_named(domain, speedup, "rover1").await
