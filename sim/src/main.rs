@@ -340,9 +340,10 @@ async fn main() -> anyhow::Result<()> {
     if let Some((cfg, listener, view, scene)) = camera {
         let line = format!("MAVSIM_CAMERA={}", listener.local_addr()?);
         {
+            // A reader that took only the link's line may have closed our stdout: the address
+            // is in the log too, and the simulator goes on.
             let mut stdout = std::io::stdout().lock();
-            writeln!(stdout, "{line}")?;
-            stdout.flush()?;
+            let _ = writeln!(stdout, "{line}").and_then(|()| stdout.flush());
         }
         tracing::info!(
             "{line} ({}x{} at {} frames a second; {} points of interest, {} obstacles)",
