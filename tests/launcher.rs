@@ -1045,7 +1045,7 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
         "{end}"
     );
     let pids = l.pids();
-    for svc in ["air1/mavsim", "air1/camera", "air2/mavsim", "ground/fleet"] {
+    for svc in ["air1/mavsim", "air2/mavsim", "ground/fleet"] {
         assert!(pids.iter().any(|(p, _)| p == svc), "{svc}: {pids:?}");
     }
     assert_no_child_left(&pids);
