@@ -954,17 +954,21 @@ fn two_rovers_in_one_mission_each_complete_their_own_plan() {
     assert_no_child_left(&pids);
 }
 
+/// The points of interest the search missions place (`config/search/pois.txt`).
+fn placed_pois() -> usize {
+    let pois = std::fs::read_to_string(root().join("config/search/pois.txt")).unwrap();
+    pois.lines()
+        .filter(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
+        .count()
+}
+
 /// The Broz search through real processes. The surveyor's mavsim detects
 /// the mission's points of interest, the fleet service re-tasks the investigator to each, the
 /// surveyor is paused and resumed by a call to the fleet service meanwhile, and the run ends 0
 /// once the area is covered and every detection visited, with no separation violation.
 #[test]
 fn the_search_mission_visits_every_detection_with_no_separation_violation() {
-    let pois = std::fs::read_to_string(root().join("config/search/pois.txt")).unwrap();
-    let placed = pois
-        .lines()
-        .filter(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
-        .count();
+    let placed = placed_pois();
     let mut l = Launcher::start(&[
         "config/missions/search.xml",
         "--until-complete",
@@ -1056,11 +1060,7 @@ fn the_search_mission_visits_every_detection_with_no_separation_violation() {
 /// on their pads; the summary says so, copter by copter.
 #[test]
 fn the_copter_search_takes_off_visits_every_detection_and_lands_both() {
-    let pois = std::fs::read_to_string(root().join("config/search/pois.txt")).unwrap();
-    let placed = pois
-        .lines()
-        .filter(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
-        .count();
+    let placed = placed_pois();
     let mut l = Launcher::start(&[
         "config/missions/search-copters.xml",
         "--until-complete",

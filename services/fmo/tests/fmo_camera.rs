@@ -37,12 +37,7 @@ async fn scenario() {
     .collect();
     let (_sim, _vas) = vehicle_with(&domain, 4.0, "rover1", "rover", &sim_args).await;
     let dir = tempfile::tempdir().unwrap();
-    let _fpma = Proc::start(
-        &workspace_bin("fpma"),
-        &fpma_rover1_args(&domain, dir.path()),
-        false,
-    )
-    .await;
+    let _fpma = fpma_rover1(&domain, dir.path()).await;
     let camera_args: Vec<String> = [
         "--source",
         &camera_at,

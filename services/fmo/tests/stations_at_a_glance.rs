@@ -80,12 +80,7 @@ async fn scenario(fpmo_bin: &std::path::Path) {
     let dir = tempfile::tempdir().unwrap();
     let domain = unique_domain("glance");
     let (sim, vas) = rover(&domain, 2.0).await;
-    let fpma = Proc::start(
-        &workspace_bin("fpma"),
-        &fpma_rover1_args(&domain, dir.path()),
-        false,
-    )
-    .await;
+    let fpma = fpma_rover1(&domain, dir.path()).await;
     let tiles = unreachable_tiles();
     let station_args = ["--domain", domain.as_str(), "--tiles", tiles.as_str()];
     let fpmo = Station::start(&fpmo_bin.display().to_string(), "FPMO_URL", &station_args).await;

@@ -57,12 +57,7 @@ async fn scenario() {
     let domain = unique_domain("fleet-points");
     let (_sim, _vas) = rover_named(&domain, 5.0, "rover1").await;
     let dir = tempfile::tempdir().unwrap();
-    let _fpma = Proc::start(
-        &workspace_bin("fpma"),
-        &fpma_rover1_args(&domain, dir.path()),
-        false,
-    )
-    .await;
+    let _fpma = fpma_rover1(&domain, dir.path()).await;
     let plan = dir.path().join("fleet.xml");
     let shed = [
         at(-80.0, -10.0),

@@ -380,6 +380,16 @@ impl Proc {
 /// Home of the simulated rover: the car park of `config/flightplans/rover-carpark.xml`.
 pub const HOME: (f64, f64) = (41.275, 1.987);
 
+/// `fpma run` for the rover `rover1` in `domain` (plans and state under `plans`).
+pub async fn fpma_rover1(domain: &str, plans: &std::path::Path) -> Proc {
+    Proc::start(
+        &workspace_bin("fpma"),
+        &fpma_rover1_args(domain, plans),
+        false,
+    )
+    .await
+}
+
 /// A `fleet` service running the fleet plan `plan` in `domain`, namespace `gcs`.
 pub async fn fleet_service(plan: &std::path::Path, domain: &str) -> Proc {
     let args: Vec<String> = vec![
