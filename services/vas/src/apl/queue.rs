@@ -251,7 +251,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     fn waits_for_advance(&self) -> bool {
         let mut advanced = self.clone();
         advanced.advanced = true;
-        advanced.poll() != self.clone().poll()
+        advanced.poll() != self.poll()
     }
 
     /// The autopilot reports it drives to mission item `slot`: is that back toward a waypoint
@@ -314,7 +314,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     }
 
     /// Everything the autopilot reported is consistent with the plan and nothing is owed.
-    pub fn is_synced(&mut self) -> bool {
+    pub fn is_synced(&self) -> bool {
         self.poll().is_none()
     }
 
@@ -369,7 +369,7 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
     /// part), followed by a set-current to it: an autopilot that resets its current item on
     /// an upload, whatever its family says, then lands on the target, never on a waypoint it
     /// has passed.
-    pub fn poll(&mut self) -> Option<QueueAction<W>> {
+    pub fn poll(&self) -> Option<QueueAction<W>> {
         let action = self.poll_in_place()?;
         let c = self.cur?;
         if self.partial_ok || c == 1 || !matches!(action, QueueAction::Upload(_)) {
