@@ -910,10 +910,13 @@ impl Fleet {
             .apply(edit, &self.plan.obstacles, &st.claimed, at_s)
         };
         match &said {
-            Ok(text) => tracing::info!("operator: {text}"),
+            Ok(text) => {
+                tracing::info!("operator: {text}");
+                self.bump();
+            }
+            // Nothing changed: nobody to wake.
             Err(e) => tracing::warn!("operator's point edit refused: {e}"),
         }
-        self.bump();
         said
     }
 
