@@ -1140,6 +1140,7 @@ mod tests {
             leg: "east".into(),
             tag: Default::default(),
             waits: false,
+            land_start: false,
             fix_crossing: false,
             seq: 0,
             version: 0,

@@ -301,6 +301,7 @@ mod tests {
             leg: leg.into(),
             tag,
             waits: false,
+            land_start: false,
             fix_crossing: false,
             seq: 0,
             version: 0,

@@ -46,6 +46,10 @@ pub struct Waypoint {
     /// Part of a hold or loop that waits for a command or condition (shown once by `expand`).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub waits: bool,
+    /// The plan's landing sequence begins here (its approach's first waypoint, or the landing
+    /// where there is no approach): an autopilot mission marks it with DO_LAND_START.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub land_start: bool,
     /// A hold's fix crossing, where its termination is checked.
     #[serde(skip)]
     pub fix_crossing: bool,
@@ -111,6 +115,7 @@ fn wp(pos: GeoPoint, alt: f64, speed: f64, fly_over: bool, leg: &str) -> Waypoin
         leg: leg.to_string(),
         tag: WaypointTag::Nav,
         waits: false,
+        land_start: false,
         fix_crossing: false,
         seq: 0,
         version: 0,

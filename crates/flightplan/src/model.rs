@@ -123,6 +123,18 @@ impl FlightPlan {
         self.alt_ref.parse().unwrap_or(usal_types::AltRef::Msl)
     }
 
+    /// The stage a landing plan's landing sequence begins with: its approach, or its landing
+    /// where there is no approach; `None` for a plan that does not land.
+    pub fn landing_begins(&self) -> Option<Stage> {
+        if self.landing.is_empty() {
+            None
+        } else if self.approach.is_empty() {
+            Some(Stage::Landing)
+        } else {
+            Some(Stage::Approach)
+        }
+    }
+
     /// The nodes of stage `s`.
     pub fn stage(&self, s: Stage) -> &[Node] {
         match s {

@@ -353,13 +353,7 @@ pub fn export(plan: &FlightPlan, vehicle: &VehicleParams) -> Result<Json, QgcExp
     // A plan that lands marks where its landing sequence begins, as ArduPilot's missions do:
     // DO_LAND_START before the approach (or before the landing when there is none), where
     // RTL_AUTOLAND and MAV_CMD_DO_LAND_START jump to.
-    let landing_begins = if plan.landing.is_empty() {
-        None
-    } else if plan.approach.is_empty() {
-        Some(Stage::Landing)
-    } else {
-        Some(Stage::Approach)
-    };
+    let landing_begins = plan.landing_begins();
     for s in Stage::ALL {
         if Some(s) == landing_begins {
             let at = plan

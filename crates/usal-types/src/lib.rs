@@ -392,6 +392,10 @@ pub struct Waypoint {
     /// What `alt` is measured from (default: the home point).
     #[serde(default)]
     pub alt_ref: AltRef,
+    /// The plan's landing sequence begins here: on the autopilot a DO_LAND_START precedes it,
+    /// where ArduPilot's RTL_AUTOLAND and MAV_CMD_DO_LAND_START jump to.
+    #[serde(default)]
+    pub land_start: bool,
 }
 
 /// A waypoint of the queue was reached (event `waypoint_reached`).

@@ -437,6 +437,9 @@ impl Executive {
         for w in &mut wps {
             w.waits = waits;
         }
+        if let Some(first) = wps.first_mut() {
+            first.land_start = self.begins_landing_sequence();
+        }
         self.emit(EventKind::LegStarted {
             leg: node.id.clone(),
         });
@@ -452,6 +455,19 @@ impl Executive {
             self.hold_crossing();
         }
         self.mark_produced();
+    }
+
+    /// Whether the node being activated is where the plan's landing sequence begins: the first
+    /// one (first pass of any loop) of the stage [`FlightPlan::landing_begins`] names.
+    fn begins_landing_sequence(&self) -> bool {
+        let Some(FrameKind::Stage(s)) = self.frames.first().map(|f| &f.kind) else {
+            return false;
+        };
+        Some(*s) == self.plan.landing_begins()
+            && self.frames.iter().all(|f| {
+                f.index == 0
+                    && !matches!(f.kind, FrameKind::Loop { iteration, .. } if iteration > 0)
+            })
     }
 
     pub(super) fn in_waiting_loop(&self) -> bool {

@@ -273,3 +273,41 @@ fn the_distance_left_for_the_eta_covers_the_plan_and_the_target_leg() {
     reach(&mut ex); // B: heading for C
     assert!((ex.remaining_m().1 - bc).abs() < 0.5);
 }
+
+/// The first waypoint of a plan's landing sequence is marked for the autopilot's
+/// DO_LAND_START: the approach's first in a plan with an approach, the landing in one without,
+/// none in a plan that does not land; also when a command jumps to the approach.
+#[test]
+fn the_landing_sequence_is_marked_where_it_begins() {
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../../config/flightplans/");
+    let marked = |ws: &[Waypoint]| -> Vec<String> {
+        ws.iter()
+            .filter(|w| w.land_start)
+            .map(|w| w.leg.clone())
+            .collect()
+    };
+    let src = std::fs::read_to_string(format!("{root}plane-circuit.xml")).unwrap();
+    let p = check::load(&src, &VehicleParams::aircraft()).unwrap();
+    assert_eq!(marked(p.nominal()), ["final"]);
+    let mut ex = Executive::from_checked(p);
+    ex.goto_stage(Stage::Approach).unwrap();
+    let next = ex.next_waypoints(3);
+    assert_eq!(marked(&next), ["final"]);
+    assert!(next[0].land_start, "the approach begins at once");
+
+    let no_approach = src.replace(
+        r#"<approach>
+    <leg id="final" type="TF" fix="FAF" flyOver="true"/>
+  </approach>"#,
+        "",
+    );
+    assert_ne!(no_approach, src);
+    let p = check::load(&no_approach, &VehicleParams::aircraft()).unwrap();
+    let ws = p.nominal();
+    let at: Vec<_> = ws.iter().filter(|w| w.land_start).collect();
+    assert_eq!(at.len(), 1, "{ws:?}");
+    assert_eq!(at[0].tag, flightplan::expand::WaypointTag::Land);
+
+    // A plan without a landing has no landing sequence, its approach included.
+    assert!(marked(&exec("", r#"<leg type="TF" fix="B"/>"#).nominal()).is_empty());
+}

@@ -194,6 +194,7 @@ fn to_vas(w: &Waypoint, alt_ref: AltRef) -> usal_types::Waypoint {
             WaypointTag::Land => WaypointKind::Land,
         },
         alt_ref,
+        land_start: w.land_start,
     }
 }
 
