@@ -656,13 +656,51 @@ fn the_copter_demo_takes_off_surveys_at_altitude_and_lands_on_the_pad() {
 }
 
 /// A plane flies a circuit with altitude changes and a hold, then glides down the approach
-/// onto the strip, parked and disarmed at the end.
+/// onto the strip, parked and disarmed at the end. The landing is flown as ArduPilot flies
+/// one: the autopilot passes a DO_LAND_START, then the approach fix, then lands.
 #[test]
 fn the_plane_demo_flies_its_circuit_and_lands_on_the_strip() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mission = dir.path().join("plane-demo.xml");
+    let demo = std::fs::read_to_string(root().join("config/missions/plane-demo.xml"))
+        .expect("the plane demo")
+        .replace(
+            "../flightplans/",
+            &root().join("config/flightplans/").display().to_string(),
+        )
+        .replacen("<mavsim ", r#"<mavsim log="mavsim.jsonl" "#, 1);
+    std::fs::write(&mission, demo).expect("write the mission");
     let a = fly_aircraft_mission(
-        "config/missions/plane-demo.xml",
+        mission.to_str().expect("UTF-8"),
         "config/flightplans/plane-circuit.xml",
         9_000.0,
+    );
+    let log: Vec<Value> = std::fs::read_to_string(dir.path().join("mavsim.jsonl"))
+        .expect("mavsim's log")
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("a JSON line"))
+        .collect();
+    const DO_LAND_START: u64 = 189;
+    let marker = log
+        .iter()
+        .position(|e| e["event"] == "do_command" && e["command"] == DO_LAND_START)
+        .expect("the autopilot passed a DO_LAND_START");
+    let after: Vec<&Value> = log[marker..]
+        .iter()
+        .filter(|e| e["event"] == "item_reached" || e["event"] == "landed")
+        .collect();
+    let faf = (41.275, 2.0014);
+    assert!(
+        (after[0]["lat"].as_f64().unwrap() - faf.0).abs() < 1e-6
+            && (after[0]["lon"].as_f64().unwrap() - faf.1).abs() < 1e-6,
+        "the approach fix follows the marker: {after:?}"
+    );
+    assert!(after.iter().any(|e| e["event"] == "landed"), "{after:?}");
+    assert!(
+        log[..marker].iter().all(|e| e["event"] != "item_reached"
+            || (e["lat"].as_f64().unwrap() - faf.0).abs() > 1e-6
+            || (e["lon"].as_f64().unwrap() - faf.1).abs() > 1e-6),
+        "the marker precedes the approach"
     );
     assert_eq!(a["alt_ref"], "MSL", "{a}");
     let landing = a["landing_error_m"].as_f64().expect("a touchdown");

@@ -57,6 +57,13 @@ pub enum LogEvent {
         /// The item's longitude, degrees.
         lon: f64,
     },
+    /// The mission passed a DO_ command (executed at once, never "reached").
+    DoCommand {
+        /// Its index.
+        seq: u16,
+        /// Its MAV_CMD number (189: DO_LAND_START).
+        command: u32,
+    },
     /// The last item was reached (or the mission ended) and nothing follows.
     MissionComplete {
         /// Index of the last item reached.

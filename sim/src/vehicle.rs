@@ -452,8 +452,12 @@ impl Vehicle {
         })
     }
 
-    /// Executes a DO_ item the mission passes over.
-    fn do_item(&mut self, item: &Item) {
+    /// Executes the DO_ item at `seq` the mission passes over.
+    fn do_item(&mut self, seq: u16, item: &Item) {
+        self.record(LogEvent::DoCommand {
+            seq,
+            command: item.command as u32,
+        });
         if item.command == MavCmd::MAV_CMD_DO_CHANGE_SPEED {
             self.change_speed(item.param2);
         }
@@ -489,7 +493,7 @@ impl Vehicle {
         };
         while next < count && !is_nav(self.mission.items()[usize::from(next)].command) {
             let item = self.mission.items()[usize::from(next)].clone();
-            self.do_item(&item);
+            self.do_item(next, &item);
             next += 1;
         }
         if next >= count {

@@ -56,7 +56,10 @@ async fn two_hundred_waypoints_over_a_lossy_radio() {
     let g = Ground::open(&domain).await;
     g.wait_state(FlightState::Parking, STEP).await;
 
-    let wps = zigzag(200, 10.0);
+    // One begins a landing sequence: its DO_LAND_START comes and goes on board through the
+    // radio too (whole uploads, which never renumber the waypoint the vehicle drives to).
+    let mut wps = zigzag(200, 10.0);
+    wps[170].land_start = true;
     g.push_all(&wps).await;
     let reply = g.request(FlightState::WaypointNavigation).await;
     assert!(reply.is_ok(), "{reply:?}");
@@ -119,6 +122,12 @@ async fn two_hundred_waypoints_over_a_lossy_radio() {
         (0..200).map(Some).collect::<Vec<_>>(),
         "mavsim reached every waypoint once, in order"
     );
+    let markers: Vec<u64> = sim
+        .log_events("do_command")
+        .iter()
+        .filter_map(|e| e["command"].as_u64())
+        .collect();
+    assert_eq!(markers, [189], "the DO_LAND_START was passed once");
     // The radio really did damage the stream.
     let stats = radio.stats().expect("marea-radio counters");
     let damaged = |dir: &str| {

@@ -410,13 +410,13 @@ async fn plane_takes_off_flies_a_bearing_returns_and_lands() {
         },
     )
     .await;
-    // LANDING is a landing, not RTL: an approach from the side the plane is on, NAV_LAND on
-    // home in AUTO, down on the strip and disarmed, then parked.
+    // LANDING is a landing, not RTL: DO_LAND_START, an approach from the side the plane is
+    // on, NAV_LAND on home in AUTO, down on the strip and disarmed, then parked.
     let r = g.request(FlightState::Landing).await.expect("LANDING");
     assert_eq!(r.from, FlightState::ReturnToLaunch);
     let uploaded = sim.log_events("mission_uploaded");
     let last = uploaded.last().expect("a landing mission uploaded");
-    assert_eq!(last["count"], 3, "{last}");
+    assert_eq!(last["count"], 4, "{last}");
     assert!(
         sim.log_events("mode_changed")
             .iter()
@@ -435,6 +435,11 @@ async fn plane_takes_off_flies_a_bearing_returns_and_lands() {
         "landed {:.0} m from home at {:.1} m: {p:?}",
         n.hypot(e),
         p.alt_rel
+    );
+    let marker = sim.log_events("do_command");
+    assert!(
+        marker.iter().any(|m| m["command"] == 189 && m["seq"] == 1),
+        "the landing began at its DO_LAND_START: {marker:?}"
     );
     vas.kill().await;
     sim.kill().await;

@@ -404,3 +404,93 @@ fn assert_left_auto_once(sim: &Sim) {
         .count();
     assert_eq!(auto_exits, 1, "left AUTO only once, at the end");
 }
+
+/// Waypoints that begin a landing sequence go on board behind a DO_LAND_START, through a
+/// 5-slot rolling queue that wraps around them (ArduPilot's partial writes, PX4's whole
+/// uploads): the autopilot passes each marker once, just before its waypoint, every waypoint
+/// is reached once and in order, and the VAS never sees the vehicle head back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn landing_markers_ride_the_rolling_queue_on_ardupilot() {
+    landing_markers_fly_in_order("ardupilot").await;
+}
+
+/// [`landing_markers_ride_the_rolling_queue_on_ardupilot`] on an autopilot that resets its
+/// current item on every whole upload.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn landing_markers_ride_the_rolling_queue_on_px4() {
+    landing_markers_fly_in_order("px4").await;
+}
+
+async fn landing_markers_fly_in_order(profile: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start_with(
+        "127.0.0.1:0",
+        30.0,
+        &dir.path().join("sim.jsonl"),
+        &["--autopilot", profile],
+    )
+    .await;
+    let domain = unique_domain(&format!("markers-{profile}"));
+    let vas = VasProc::start(
+        &format!("udpout:{}", sim.addr),
+        &domain,
+        &["--queue-size", "5"],
+    );
+    let g = Ground::open(&domain).await;
+    let queue = g
+        .svc
+        .subscribe_variable::<usal_types::QueueStatus>("rover1/vas/queue")
+        .unwrap();
+    g.wait_state(FlightState::Parking, STEP).await;
+    // Marked waypoints at every offset from a wrap of the 5-slot window.
+    let marked = [3, 9, 14, 16, 20, 25];
+    let mut wps = zigzag(28, 10.0);
+    for &i in &marked {
+        wps[i].land_start = true;
+    }
+    g.fly_in_order(&wps, profile).await;
+
+    // mavsim's story: each marker passed once, the next thing it reached the marked waypoint.
+    let story: Vec<serde_json::Value> = sim
+        .log_records()
+        .into_iter()
+        .filter(|e| {
+            e["event"] == "item_reached" || (e["event"] == "do_command" && e["command"] == 189)
+        })
+        .collect();
+    let mut passed = Vec::new();
+    for (k, e) in story.iter().enumerate() {
+        if e["event"] == "do_command" {
+            let next = story[k + 1..]
+                .iter()
+                .find(|e| e["event"] == "item_reached")
+                .expect("a waypoint follows the marker");
+            passed.push(which(&wps, reached_points(std::slice::from_ref(next))[0]));
+        }
+    }
+    assert_eq!(
+        passed,
+        marked.iter().map(|&i| Some(i)).collect::<Vec<_>>(),
+        "{profile}: markers passed, each before its waypoint; mavsim's log:\n{}",
+        sim.mission_story()
+    );
+    let order: Vec<Option<usize>> = reached_points(&sim.log_events("item_reached"))
+        .into_iter()
+        .map(|p| which(&wps, p))
+        .collect();
+    assert_eq!(
+        order,
+        (0..wps.len()).map(Some).collect::<Vec<_>>(),
+        "{profile}: every waypoint reached once, in order; mavsim's log:\n{}",
+        sim.mission_story()
+    );
+    let mut last = None;
+    while let Some(Ok(s)) = queue.try_recv() {
+        last = Some(s.value);
+    }
+    let last = last.expect("queue status published");
+    assert_eq!(last.backtracks, 0, "{profile}: {last:?}");
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}

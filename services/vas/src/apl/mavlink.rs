@@ -10,7 +10,8 @@
 //!
 //! This file holds the configuration and the [`MavlinkAutopilot`] handle (the
 //! [`IAutopilot`] side); `driver` is the task; the pure parts beside it are `items`
-//! (waypoints to mission items, the landing, sticks to PWM), `progress` (waypoints passed,
+//! (waypoints to mission items, the landing, sticks to PWM), `layout` (queue slots to
+//! mission sequence numbers, DO_LAND_START markers between them), `progress` (waypoints passed,
 //! backtracks judged), `telemetry` (reports in USAL's units) and `fence`. What differs per
 //! family is an [`ApFamily`] ([`super::ardupilot::ArduPilotModes`],
 //! [`super::px4::Px4Modes`]): [`MavlinkAutopilot::open`] takes the family the
@@ -41,12 +42,14 @@ use crate::mavlink_cm::{
 mod driver;
 mod fence;
 mod items;
+mod layout;
 mod progress;
 mod telemetry;
 
 use driver::{configure, Driver};
 pub use items::FLY_OVER_RADIUS_M;
 use items::*;
+use layout::Layout;
 
 /// Settings of the MAVLink autopilot layer.
 #[derive(Clone, Debug)]

@@ -448,20 +448,34 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         if self.partial_ok && self.have_known {
             QueueAction::WritePartial { start, items }
         } else {
-            let mut all: Vec<W> = self
-                .have
-                .iter()
-                .map(|w| w.clone().or_else(|| items.first().cloned()))
-                .collect::<Option<Vec<W>>>()
-                .unwrap_or_default();
-            let s = usize::from(start) - 1;
-            if all.len() < s + items.len() {
-                // Unknown contents: fall back to the computed window.
-                return QueueAction::Upload(items);
-            }
-            all[s..s + items.len()].clone_from_slice(&items);
-            QueueAction::Upload(all)
+            self.spliced(start, items)
         }
+    }
+
+    /// `action` done as a whole upload (where the driver cannot write those slots alone): a
+    /// partial write becomes the whole mission it would leave on board.
+    pub fn as_upload(&self, action: QueueAction<W>) -> QueueAction<W> {
+        match action {
+            QueueAction::WritePartial { start, items } => self.spliced(start, items),
+            other => other,
+        }
+    }
+
+    /// The whole mission with slots `start..` replaced by `items`.
+    fn spliced(&self, start: u16, items: Vec<W>) -> QueueAction<W> {
+        let mut all: Vec<W> = self
+            .have
+            .iter()
+            .map(|w| w.clone().or_else(|| items.first().cloned()))
+            .collect::<Option<Vec<W>>>()
+            .unwrap_or_default();
+        let s = usize::from(start) - 1;
+        if all.len() < s + items.len() {
+            // Unknown contents: fall back to the computed window.
+            return QueueAction::Upload(items);
+        }
+        all[s..s + items.len()].clone_from_slice(&items);
+        QueueAction::Upload(all)
     }
 
     /// The driver performed `action` successfully.

@@ -188,11 +188,21 @@ impl Sim {
         log_events(&self.log, event)
     }
 
+    /// Every record of the log, in order.
+    pub fn log_records(&self) -> Vec<serde_json::Value> {
+        std::fs::read_to_string(&self.log)
+            .unwrap_or_default()
+            .lines()
+            .filter_map(|l| serde_json::from_str(l).ok())
+            .collect()
+    }
+
     /// The mission's story in the log (uploads, current-item changes, reaches, completion,
     /// mode changes), one record per line: for a failure message to say what the vehicle did.
     pub fn mission_story(&self) -> String {
-        const EVENTS: [&str; 6] = [
+        const EVENTS: [&str; 7] = [
             "mission_uploaded",
+            "do_command",
             "mission_partial_write",
             "current_changed",
             "item_reached",

@@ -82,13 +82,15 @@ impl QueueError {
     }
 }
 
-/// Performs one queue action on the autopilot. `item0` is what a whole upload puts in item 0
-/// where item 0 is an ordinary item (not ArduPilot's home): the target, so an autopilot that
-/// falls back to item 0 after the upload keeps driving where it was going.
+/// Performs one queue action on the autopilot, whose mission is laid out as `layout` says.
+/// `item0` is what a whole upload puts in item 0 where item 0 is an ordinary item (not
+/// ArduPilot's home): the target, so an autopilot that falls back to item 0 after the upload
+/// keeps driving where it was going.
 async fn exec(
     mgr: &MavlinkManager,
     home: Option<(f64, f64)>,
     item0: Option<&Waypoint>,
+    layout: &Layout,
     action: &QueueAction<Waypoint>,
 ) -> Result<(), ExecError> {
     let other = ExecError::Mission;
@@ -102,14 +104,14 @@ async fn exec(
                 _ => MissionItem::waypoint(home.0, home.1, 0.0),
             };
             let mut mission = vec![first];
-            mission.extend(items.iter().map(mission_item));
+            mission.extend(layout.items(items));
             tracing::debug!("queue: upload {} slots", items.len());
             mgr.mission_upload(&mission).await.map_err(other)
         }
         QueueAction::WritePartial { start, items } => {
-            let mission: Vec<MissionItem> = items.iter().map(mission_item).collect();
+            let (seq, mission) = layout.partial(*start, items);
             tracing::debug!("queue: write slot {start} (+{})", items.len() - 1);
-            match mgr.mission_write_partial(*start, &mission).await {
+            match mgr.mission_write_partial(seq, &mission).await {
                 Ok(()) => Ok(()),
                 Err(MissionError::PartialUnsupported) => {
                     tracing::warn!(
@@ -129,9 +131,10 @@ async fn exec(
                 Err(e) => Err(ExecError::Mission(e)),
             }
         }
-        QueueAction::SetCurrent(seq) => {
-            tracing::debug!("queue: set current {seq}");
-            mgr.mission_set_current(*seq).await.map_err(other)
+        QueueAction::SetCurrent(slot) => {
+            let seq = layout.seq(*slot);
+            tracing::debug!("queue: set current slot {slot} (item {seq})");
+            mgr.mission_set_current(seq).await.map_err(other)
         }
     }
 }
@@ -194,6 +197,8 @@ pub(super) struct Driver {
     /// A whole upload is under way: the autopilot's reports of its current item may already
     /// name the mission being committed, not the one we know it holds.
     uploading: bool,
+    /// Where the DO_LAND_START markers are on board (between the queue's slots).
+    markers: Layout,
     /// The last queue failure raised as an alarm (a refusal such as NO_SPACE or DENIED repeats
     /// on every retry; the ground hears it once until it changes or the queue recovers).
     queue_error: Option<String>,
@@ -250,6 +255,7 @@ impl Driver {
             reached_at: None,
             backtracks: 0,
             uploading: false,
+            markers: Layout::default(),
             queue_error: None,
             home_alt_msl: None,
             resume_after_reboot: false,
@@ -587,7 +593,7 @@ impl Driver {
     async fn lay_out_landing(&mut self) -> Result<(), String> {
         let home = self.home.ok_or("the autopilot's home is not known yet")?;
         let position = self.position.unwrap_or(home);
-        self.queue.forget_onboard();
+        self.forget_onboard();
         self.mgr
             .mission_upload(&landing_mission(home, position))
             .await
@@ -618,12 +624,12 @@ impl Driver {
             // Progress reported while the last action ran changes what is most urgent (the
             // wrap to slot 1 has one leg of slack): take it into account first.
             self.absorb_progress();
-            let Some(action) = self.queue.poll() else {
+            let Some((action, layout)) = self.next_action() else {
                 return Ok(());
             };
             let began = std::time::Instant::now();
             self.uploading = matches!(action, QueueAction::Upload(_));
-            let outcome = self.exec_unless_wrap_due(&action).await;
+            let outcome = self.exec_unless_wrap_due(&action, &layout).await;
             self.uploading = false;
             let Some(result) = outcome else {
                 // Dropped mid-transfer: the autopilot commits a transfer only when it is
@@ -639,10 +645,11 @@ impl Driver {
                 Ok(()) => {
                     self.queue.done(&action);
                     if matches!(action, QueueAction::Upload(_)) {
+                        self.markers = layout;
                         self.after_upload();
                         // What it reported meanwhile, judged against what it now holds.
                         if let Some(seq) = self.mgr.state().mission_current {
-                            self.check_backtrack(seq);
+                            self.check_backtrack(self.markers.slot(seq));
                         }
                     }
                 }
@@ -653,18 +660,54 @@ impl Driver {
         Err(QueueError::Unsettled)
     }
 
-    /// Performs `action` while following the vehicle's progress; gives up on it (`None`) when
-    /// that progress makes the wrap to slot 1 due, which cannot wait for a slow transfer.
+    /// The queue's next action, with the layout of the mission it leaves on board; also the
+    /// whole upload that puts DO_LAND_START markers where they were waiting to go (see
+    /// [`Layout::next`]) once the queue itself has nothing to do.
+    fn next_action(&self) -> Option<(QueueAction<Waypoint>, Layout)> {
+        // Where the autopilot keeps its current item through an upload (it writes partially),
+        // the target's number must not change under it.
+        let fixed = self
+            .queue
+            .current_slot()
+            .filter(|_| self.queue.partial_supported());
+        let Some(action) = self.queue.poll() else {
+            let slots = self.queue.onboard()?;
+            let layout = self.markers.next(&slots, fixed);
+            return (layout != self.markers).then_some((QueueAction::Upload(slots), layout));
+        };
+        let after = match &action {
+            QueueAction::SetCurrent(_) => return Some((action, self.markers.clone())),
+            QueueAction::Upload(slots) => slots.clone(),
+            QueueAction::WritePartial { .. } => match self.queue.as_upload(action.clone()) {
+                QueueAction::Upload(slots) => slots,
+                _ => return Some((action, self.markers.clone())),
+            },
+        };
+        let layout = self.markers.next(&after, fixed);
+        match action {
+            // A marker coming or going moves every item after it: not a partial write.
+            QueueAction::WritePartial { .. } if layout != self.markers => {
+                Some((QueueAction::Upload(after), layout))
+            }
+            QueueAction::WritePartial { .. } => Some((action, self.markers.clone())),
+            upload => Some((upload, layout)),
+        }
+    }
+
+    /// Performs `action` (leaving the mission laid out as `layout`) while following the
+    /// vehicle's progress; gives up on it (`None`) when that progress makes the wrap to slot 1
+    /// due, which cannot wait for a slow transfer.
     async fn exec_unless_wrap_due(
         &mut self,
         action: &QueueAction<Waypoint>,
+        layout: &Layout,
     ) -> Option<Result<(), ExecError>> {
         let mgr = Arc::clone(&self.mgr);
         let item0 = self.queue.target().cloned();
         if matches!(action, QueueAction::Upload(_)) {
             self.item0 = item0.clone();
         }
-        let exec = exec(&mgr, self.home, item0.as_ref(), action);
+        let exec = exec(&mgr, self.home, item0.as_ref(), layout, action);
         tokio::pin!(exec);
         let mut listening = !matches!(action, QueueAction::SetCurrent(_));
         loop {
@@ -700,10 +743,16 @@ impl Driver {
         }
     }
 
-    /// The vehicle reports it drives to item `seq`: when that item holds a waypoint already
+    /// What the autopilot holds is no longer known: the next upload lays it out afresh.
+    fn forget_onboard(&mut self) {
+        self.queue.forget_onboard();
+        self.markers = Layout::default();
+    }
+
+    /// The vehicle reports it drives to `slot`: when that slot holds a waypoint already
     /// passed (or home), while in AUTO, it is driving back: counted, logged, and its current
     /// item set back to the target's slot next.
-    fn check_backtrack(&mut self, seq: u16) {
+    fn check_backtrack(&mut self, slot: u16) {
         let s = self.mgr.state();
         let judged = backtracks_judged(
             s.mode_name,
@@ -723,13 +772,13 @@ impl Driver {
         } else {
             self.item0.as_ref()
         };
-        let back = self.queue.heads_back(seq, item0);
+        let back = self.queue.heads_back(slot, item0);
         if back {
             // Turned back to the target at once: the set-current goes out next.
             self.backtracks += 1;
             self.queue.restore_current();
             tracing::warn!(
-                "backtrack #{}: the autopilot drives to item {seq}, which holds home or a \
+                "backtrack #{}: the autopilot drives to slot {slot}, which holds home or a \
                  waypoint already passed; setting its current item back to the target \
                  (waypoint {target})",
                 self.backtracks
@@ -850,6 +899,7 @@ impl Driver {
         match ev {
             MavEvent::WaypointReached { seq, .. } => {
                 self.reports_progress = true;
+                let seq = self.markers.slot(seq);
                 // Item 0 holds the target where item 0 is flown: an autopilot that reset its
                 // current item by an upload and got there before the restoration reached the
                 // target itself. Counted as such, the restoration then goes to the next slot,
@@ -875,9 +925,10 @@ impl Driver {
                 true
             }
             MavEvent::MissionCurrent { seq } => {
-                self.check_backtrack(seq);
+                let slot = self.markers.slot(seq);
+                self.check_backtrack(slot);
                 // Also the autopilot's own advance after a reach, which a set-current waits for.
-                if let Some(w) = self.queue.on_current(seq) {
+                if let Some(w) = self.queue.on_current(slot) {
                     self.reached(w);
                 }
                 true
@@ -1024,7 +1075,7 @@ impl Driver {
     /// Catches up with the autopilot from its latest state (after a lag, on every tick).
     async fn resync(&mut self) {
         if let Some(seq) = self.mgr.state().mission_current {
-            if let Some(w) = self.queue.on_current(seq) {
+            if let Some(w) = self.queue.on_current(self.markers.slot(seq)) {
                 self.reached(w);
             }
         }
@@ -1171,7 +1222,7 @@ impl Driver {
     async fn on_mission_changed(&mut self, system_id: u8, component_id: u8) {
         let by = format!("MAVLink system {system_id} component {component_id}");
         self.queue.stop();
-        self.queue.forget_onboard();
+        self.forget_onboard();
         self.last_pending = None;
         self.alarm(
             Severity::Warning,
@@ -1218,10 +1269,8 @@ impl Driver {
         }
         let intact = match self.mgr.mission_download().await {
             Ok(onboard) => {
-                let expected: Option<Vec<MissionItem>> = self
-                    .queue
-                    .onboard()
-                    .map(|v| v.iter().map(mission_item).collect());
+                let expected: Option<Vec<MissionItem>> =
+                    self.queue.onboard().map(|v| self.markers.items(&v));
                 matches!(expected, Some(e) if e.len() + 1 == onboard.len()
                     && e.iter().zip(&onboard[1..]).all(|(a, b)| same_item(a, b)))
             }
@@ -1231,7 +1280,7 @@ impl Driver {
             }
         };
         if !intact {
-            self.queue.forget_onboard();
+            self.forget_onboard();
         }
         let mode = self.mgr.state().mode_name;
         if let Some(state) = self.commanded {

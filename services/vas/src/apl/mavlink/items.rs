@@ -10,9 +10,11 @@ pub(super) const LANDING_APPROACH_M: f64 = 700.0;
 /// ...at this height above home, metres (a 3.3° glide slope to the touchdown point).
 pub(super) const LANDING_APPROACH_ALT_M: f32 = 40.0;
 
-/// A plane's landing, as ArduPilot flies one: the final approach fix on the line from `home`
-/// through the plane's `position` ([`LANDING_APPROACH_M`] out, [`LANDING_APPROACH_ALT_M`]
-/// up), then NAV_LAND on `home`. Item 0 is home itself (ArduPilot's).
+/// A plane's landing, as ArduPilot flies one: DO_LAND_START, the final approach fix on the
+/// line from `home` through the plane's `position` ([`LANDING_APPROACH_M`] out,
+/// [`LANDING_APPROACH_ALT_M`] up), then NAV_LAND on `home`. Item 0 is home itself
+/// (ArduPilot's); the landing begins at item 1, the marker, as ArduPilot's own jump to a
+/// landing sequence does.
 pub(super) fn landing_mission(home: (f64, f64), position: (f64, f64)) -> Vec<MissionItem> {
     const M_PER_DEG: f64 = 111_319.49;
     let cos_lat = home.0.to_radians().cos().max(1e-6);
@@ -31,9 +33,11 @@ pub(super) fn landing_mission(home: (f64, f64), position: (f64, f64)) -> Vec<Mis
     );
     let mut land = MissionItem::waypoint(home.0, home.1, 0.0);
     land.command = MavCmd::MAV_CMD_NAV_LAND;
+    let approach = MissionItem::waypoint(fix.0, fix.1, LANDING_APPROACH_ALT_M);
     vec![
         MissionItem::waypoint(home.0, home.1, 0.0),
-        MissionItem::waypoint(fix.0, fix.1, LANDING_APPROACH_ALT_M),
+        super::layout::land_start_item(fix.0, fix.1, approach.frame),
+        approach,
         land,
     ]
 }
@@ -154,9 +158,12 @@ mod tests {
             41.275,
             1.987 + 2000.0 / (111_319.49 * 41.275_f64.to_radians().cos()),
         );
-        let m = landing_mission(home, east);
-        assert_eq!(m.len(), 3);
+        let mut m = landing_mission(home, east);
+        assert_eq!(m.len(), 4);
+        assert_eq!(m[1].command, MavCmd::MAV_CMD_DO_LAND_START);
+        let marker = m.remove(1);
         assert_eq!(m[1].command, MavCmd::MAV_CMD_NAV_WAYPOINT);
+        assert_eq!((marker.x, marker.y), (m[1].x, m[1].y), "marks the approach");
         assert_eq!(m[2].command, MavCmd::MAV_CMD_NAV_LAND);
         assert_eq!(
             (m[2].lat_deg(), m[2].lon_deg()),
@@ -169,7 +176,7 @@ mod tests {
         assert_eq!(m[1].z, LANDING_APPROACH_ALT_M);
         // Over home: from the north.
         let m = landing_mission(home, home);
-        assert!(m[1].lat_deg() > home.0);
+        assert!(m[2].lat_deg() > home.0);
     }
 
     #[test]
