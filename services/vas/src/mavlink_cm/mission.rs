@@ -467,10 +467,12 @@ impl MavlinkManager {
             MavMessage::MISSION_ITEM_REACHED(r) if r.seq == seq => Some(()),
             _ => None,
         };
-        // Sent twice per attempt: the rolling queue's wrap has one leg of slack, and setting
-        // the same current item twice within milliseconds changes nothing. An autopilot that
-        // sends MISSION_CURRENT only on change says nothing when `seq` already was current:
-        // after a silent attempt, the last MISSION_CURRENT it reported verifies it.
+        // Sent twice per attempt (the rolling queue's wrap has one leg of slack), the second
+        // copy only when the first is unconfirmed half a request timeout later: sent at once,
+        // it could reach a vehicle that took the first, reached `seq` and went on, and set it
+        // back. An autopilot that sends MISSION_CURRENT only on change says nothing when `seq`
+        // already was current: after a silent attempt, the last MISSION_CURRENT it reported
+        // verifies it.
         let mut rx = self.inner.raw_tx.subscribe();
         for attempt in 0..self.inner.cfg.retries {
             if attempt > 0 {
@@ -479,15 +481,17 @@ impl MavlinkManager {
                 }
                 self.inner.resync().await?;
             }
-            for _ in 0..2 {
+            let sent = Instant::now();
+            let halfway = sent + self.inner.cfg.request_timeout / 2;
+            let deadline = sent + self.inner.cfg.request_timeout;
+            for until in [halfway, deadline] {
                 self.inner.send(make(attempt)).await?;
-            }
-            let deadline = Instant::now() + self.inner.cfg.request_timeout;
-            if super::driver::wait_for(&mut rx, deadline, matcher)
-                .await?
-                .is_some()
-            {
-                return Ok(());
+                if super::driver::wait_for(&mut rx, until, matcher)
+                    .await?
+                    .is_some()
+                {
+                    return Ok(());
+                }
             }
         }
         if self.inner.state_tx.borrow().mission_current == Some(seq) {
