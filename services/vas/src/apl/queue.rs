@@ -228,6 +228,13 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         self.owe_restore
     }
 
+    /// The slot of the restoring set-current, when it is owed and may go out now (no advance
+    /// of the autopilot's own pending), for a driver that must send it before anything else
+    /// [`Self::poll`] would do first.
+    pub fn restore_due(&self) -> Option<u16> {
+        (self.owe_restore && self.advanced).then_some(self.cur?)
+    }
+
     /// An action is due but waits for the autopilot to report its own advance past the
     /// waypoint last reached (a set-current, or a window laid out afresh, which one follows).
     pub fn awaits_advance(&self) -> bool {

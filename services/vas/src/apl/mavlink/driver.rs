@@ -2,7 +2,7 @@
 //! and the manager's events in order, performs the queue's actions on the autopilot (retrying
 //! on a tick) and infers waypoint progress when the autopilot does not report it.
 
-use super::progress::{backtracks_judged, PassWatch};
+use super::progress::{backtracks_judged, metres, PassWatch, WallSpeed};
 use super::*;
 
 /// Reads the parameters and sets the telemetry rates (`AP_Parameters`).
@@ -199,6 +199,14 @@ pub(super) struct Driver {
     uploading: bool,
     /// Where the DO_LAND_START markers are on board (between the queue's slots).
     markers: Layout,
+    /// The vehicle's speed in wall-clock time, and how long the last whole upload took: a
+    /// marker comes or goes next to the target only if an upload ends before it gets there.
+    wall_speed: WallSpeed,
+    upload_took: Duration,
+    /// An upload changed a marker before the slot the vehicle drives to (it got there while
+    /// the upload ran): the autopilot's current item names another item until the restoring
+    /// set-current, and its progress reports are not taken meanwhile ([`Self::index_stale`]).
+    renumbered_target: bool,
     /// The last queue failure raised as an alarm (a refusal such as NO_SPACE or DENIED repeats
     /// on every retry; the ground hears it once until it changes or the queue recovers).
     queue_error: Option<String>,
@@ -256,6 +264,9 @@ impl Driver {
             backtracks: 0,
             uploading: false,
             markers: Layout::default(),
+            wall_speed: WallSpeed::default(),
+            upload_took: Duration::from_secs(1),
+            renumbered_target: false,
             queue_error: None,
             home_alt_msl: None,
             resume_after_reboot: false,
@@ -644,8 +655,26 @@ impl Driver {
             match result {
                 Ok(()) => {
                     self.queue.done(&action);
+                    if matches!(action, QueueAction::SetCurrent(_)) {
+                        self.renumbered_target = false;
+                    }
                     if matches!(action, QueueAction::Upload(_)) {
-                        self.markers = layout;
+                        self.upload_took = began.elapsed();
+                        let before = std::mem::replace(&mut self.markers, layout);
+                        let c = self
+                            .queue
+                            .current_slot()
+                            .filter(|_| self.queue.partial_supported());
+                        if c.is_some_and(|c| before.seq(c) != self.markers.seq(c)) {
+                            // The vehicle got to its target while the upload ran and drives to
+                            // the slot whose marker it changed: the current item it kept names
+                            // another item now. The restoring set-current goes out first.
+                            tracing::debug!(
+                                "queue: the upload renumbered the target: restoring it"
+                            );
+                            self.renumbered_target = true;
+                            continue;
+                        }
                         self.after_upload();
                         // What it reported meanwhile, judged against what it now holds.
                         if let Some(seq) = self.mgr.state().mission_current {
@@ -665,11 +694,16 @@ impl Driver {
     /// [`Layout::next`]) once the queue itself has nothing to do.
     fn next_action(&self) -> Option<(QueueAction<Waypoint>, Layout)> {
         // Where the autopilot keeps its current item through an upload (it writes partially),
-        // the target's number must not change under it.
+        // the target's number must not change under it, nor the next slot's when the vehicle
+        // may get to its target (and on to that slot) before the upload ends.
         let fixed = self
             .queue
             .current_slot()
-            .filter(|_| self.queue.partial_supported());
+            .filter(|_| self.queue.partial_supported())
+            .map(|c| c + u16::from(!self.upload_ends_before_the_target()));
+        if let Some(slot) = self.queue.restore_due().filter(|_| self.index_stale()) {
+            return Some((QueueAction::SetCurrent(slot), self.markers.clone()));
+        }
         let Some(action) = self.queue.poll() else {
             let slots = self.queue.onboard()?;
             let layout = self.markers.next(&slots, fixed);
@@ -741,6 +775,23 @@ impl Driver {
         if s.family.keeps_current_on_upload() && s.mission_current != Some(0) {
             self.queue.current_kept();
         }
+    }
+
+    /// Whether a whole upload started now ends (with room to spare) before the vehicle gets to
+    /// its target, at its wall-clock speed and as long as the last upload took.
+    fn upload_ends_before_the_target(&self) -> bool {
+        let (Some(pos), Some(t)) = (self.position, self.queue.target()) else {
+            return true;
+        };
+        self.wall_speed
+            .eta(metres(pos, (t.lat, t.lon)))
+            .is_none_or(|eta| eta > 3.0 * self.upload_took.as_secs_f64())
+    }
+
+    /// The autopilot's current item names another item than the one it drives to (see
+    /// [`Self::renumbered_target`]) until the restoring set-current.
+    fn index_stale(&self) -> bool {
+        self.renumbered_target && self.queue.owes_restore()
     }
 
     /// What the autopilot holds is no longer known: the next upload lays it out afresh.
@@ -899,6 +950,10 @@ impl Driver {
         match ev {
             MavEvent::WaypointReached { seq, .. } => {
                 self.reports_progress = true;
+                if self.index_stale() {
+                    tracing::debug!("reach of item {seq} before the restore: not taken");
+                    return true;
+                }
                 let seq = self.markers.slot(seq);
                 // Item 0 holds the target where item 0 is flown: an autopilot that reset its
                 // current item by an upload and got there before the restoration reached the
@@ -925,6 +980,9 @@ impl Driver {
                 true
             }
             MavEvent::MissionCurrent { seq } => {
+                if self.index_stale() {
+                    return true;
+                }
                 let slot = self.markers.slot(seq);
                 self.check_backtrack(slot);
                 // Also the autopilot's own advance after a reach, which a set-current waits for.
@@ -949,6 +1007,8 @@ impl Driver {
     /// waypoint of a mission the autopilot ended there, its report late or lost.
     fn progress_from_position(&mut self, lat: f64, lon: f64) -> bool {
         self.position = Some((lat, lon));
+        self.wall_speed
+            .sample(std::time::Instant::now(), (lat, lon));
         if let Some((slot, w)) = self.last_pending.take() {
             // Also when the autopilot reports progress: it ended the mission at the last
             // waypoint (which is why it left AUTO), and its report may be lost on a radio.
@@ -1074,7 +1134,12 @@ impl Driver {
 
     /// Catches up with the autopilot from its latest state (after a lag, on every tick).
     async fn resync(&mut self) {
-        if let Some(seq) = self.mgr.state().mission_current {
+        if let Some(seq) = self
+            .mgr
+            .state()
+            .mission_current
+            .filter(|_| !self.index_stale())
+        {
             if let Some(w) = self.queue.on_current(self.markers.slot(seq)) {
                 self.reached(w);
             }

@@ -1,6 +1,49 @@
 //! Waypoint progress the driver infers itself, pure: when a position counts as past a
-//! waypoint, two samples in a row past it for an autopilot that reports no progress, and
-//! when a report of the vehicle's current item can show it driving back.
+//! waypoint, two samples in a row past it for an autopilot that reports no progress, when a
+//! report of the vehicle's current item can show it driving back, and how soon it gets to its
+//! target in wall-clock time.
+
+use std::time::{Duration, Instant};
+
+/// Metres between two points (flat earth: what separates waypoints and a vehicle).
+pub(super) fn metres(a: (f64, f64), b: (f64, f64)) -> f64 {
+    let m_per_deg = 111_319.49;
+    let north = (b.0 - a.0) * m_per_deg;
+    let east = (b.1 - a.1) * m_per_deg * a.0.to_radians().cos();
+    north.hypot(east)
+}
+
+/// The vehicle's speed over the ground in wall-clock time, from its position samples: what a
+/// transfer to the autopilot races against, whatever a simulator's speed-up.
+#[derive(Clone, Debug, Default)]
+pub(super) struct WallSpeed {
+    last: Option<(Instant, (f64, f64))>,
+    mps: Option<f64>,
+}
+
+impl WallSpeed {
+    /// Samples closer in time than this are not used (telemetry comes in bursts).
+    const MIN_INTERVAL: Duration = Duration::from_millis(100);
+
+    /// A position sample taken `now`.
+    pub(super) fn sample(&mut self, now: Instant, pos: (f64, f64)) {
+        if let Some((t, p)) = self.last {
+            let dt = now.saturating_duration_since(t);
+            if dt < Self::MIN_INTERVAL {
+                return;
+            }
+            self.mps = Some(metres(p, pos) / dt.as_secs_f64());
+        }
+        self.last = Some((now, pos));
+    }
+
+    /// Wall-clock seconds to cover `d` metres at the latest speed; `None` when the speed is
+    /// unknown or the vehicle stands still.
+    pub(super) fn eta(&self, d: f64) -> Option<f64> {
+        let v = self.mps?;
+        (v > 0.05).then(|| d / v)
+    }
+}
 
 /// Whether a vehicle at `pos` has reached `target` on the leg from `from`: within `radius`
 /// of it, or past the line across the leg `radius` before it (the autopilot may switch there
@@ -190,5 +233,22 @@ mod tests {
             !backtracks_judged(Some("AUTO"), true, false, true, false),
             "a restarted autopilot not handled yet"
         );
+    }
+
+    #[test]
+    fn wall_speed_times_the_way_to_a_target() {
+        let mut w = WallSpeed::default();
+        let t0 = Instant::now();
+        assert_eq!(w.eta(100.0), None);
+        w.sample(t0, (41.0, 2.0));
+        // 111 m north in half a second: 222 m/s; samples 50 ms apart are skipped.
+        w.sample(t0 + Duration::from_millis(50), (41.0005, 2.0));
+        w.sample(t0 + Duration::from_millis(500), (41.001, 2.0));
+        let eta = w.eta(222.6).unwrap();
+        assert!((eta - 1.0).abs() < 0.01, "{eta}");
+        // Standing still: it never gets there.
+        w.sample(t0 + Duration::from_millis(700), (41.001, 2.0));
+        assert_eq!(w.eta(10.0), None);
+        assert!((metres((41.0, 2.0), (41.001, 2.0)) - 111.3).abs() < 0.1);
     }
 }
