@@ -1,12 +1,13 @@
 //! The runner: `cargo run --release --manifest-path benches/peers/Cargo.toml [-- --quick]
-//! [--rounds N] [--baud B] [--only SUBSTRING] [--no-build]`.
+//! [--rounds N] [--baud B] [--only SUBSTRING[,SUBSTRING...]] [--no-build]`.
 //!
 //! Runs every case of [`cases`] as two processes of the same peer binary (responder first, then
 //! initiator), round after round so each middleware sees the same machine state, and prints
 //! JSON lines `{"metric": ..., "value": ..., "unit": ...}`:
 //!
 //! - `peers.<figure>.<impl>`: the median over the rounds (round trip p50 in µs, one-way
-//!   messages/s received, peak RSS in KiB), with `.p99` (round trips), `.delivered` (share of
+//!   messages/s received, MB/s for the 1 MiB `blob1m`, summed over the subscriber processes of
+//!   a `fanoutN` figure, peak RSS in KiB), with `.p99` (round trips), `.delivered` (share of
 //!   sent messages received), `.anon` (idle: the anonymous memory resident at the end, in KiB:
 //!   what the process holds privately, without the code and libraries it maps from files),
 //!   `.spread_pct` ((max − min) / median of the rounds) and `.runs`;
@@ -15,9 +16,10 @@
 //!
 //! Each marea case runs marea built as a node for that link would be, which matters most for the
 //! idle RSS: the UDP cases run `peer-marea-udp` (marea's feature `udp` alone: no iceoryx2, no
-//! serial link), the shm cases `peer-marea-shm` (feature `shm` alone: no UDP link either) and the
-//! serial cases `peer-marea` (marea's default features). All come from one source file
-//! (`src/bin/peer-marea.rs`) and [`build_peers`] builds them in separate cargo invocations.
+//! serial link), the shm cases `peer-marea-shm` (feature `shm` alone: no UDP link either), the
+//! serial cases and `event64_default_api` (the API and runtime services use) `peer-marea`
+//! (marea's default features). All come from one source file (`src/bin/peer-marea.rs`) and
+//! [`build_peers`] builds them in separate cargo invocations.
 //!
 //! Every wait is bounded and every child is killed when its case ends.
 
@@ -60,6 +62,8 @@ struct Case {
     /// marea's pub/sub role suffix: `-event` or `-var`.
     suffix: &'static str,
     pinned: bool,
+    /// Subscriber processes of a rate case (a fan-out when more than one).
+    subs: usize,
 }
 
 struct Opts {
@@ -71,7 +75,7 @@ struct Opts {
 }
 
 const USAGE: &str =
-    "usage: peers [--quick] [--rounds N] [--baud B] [--only SUBSTRING] [--no-build]";
+    "usage: peers [--quick] [--rounds N] [--baud B] [--only SUBSTRING[,SUBSTRING...]] [--no-build]";
 
 /// The options, or `None` when asked for help (the usage is printed).
 fn opts() -> anyhow::Result<Option<Opts>> {
@@ -119,6 +123,7 @@ fn cases(o: &Opts) -> Vec<Case> {
         link: None,
         suffix: "",
         pinned: false,
+        subs: 1,
     };
     let marea = |mut c: Case, link, suffix| {
         c.link = Some(link);
@@ -177,6 +182,61 @@ fn cases(o: &Opts) -> Vec<Case> {
             ),
         ]);
     }
+    // Large payloads: 1 MiB events, reliable (MB/s received).
+    let blob_secs = if o.quick { 1.0 } else { 3.0 };
+    let fig = "blob1m";
+    v.extend([
+        base(
+            fig,
+            "zenoh_tcp",
+            Kind::Rate,
+            "peer-zenoh",
+            1 << 20,
+            blob_secs,
+        ),
+        marea(
+            base(
+                fig,
+                "marea_udp",
+                Kind::Rate,
+                "peer-marea-udp",
+                1 << 20,
+                blob_secs,
+            ),
+            "udp",
+            "-event",
+        ),
+    ]);
+    // The API services use: `raise_nowait` and `recv().await` on the multi-thread runtime,
+    // marea's default features (compared with Zenoh's `event64`).
+    v.push(marea(
+        base(
+            "event64_default_api",
+            "marea_udp",
+            Kind::Rate,
+            "peer-marea",
+            64,
+            secs,
+        ),
+        "udp",
+        "-api",
+    ));
+    // Fan-out: one publisher, N subscriber processes (events/s summed over them).
+    for n in [10, 50] {
+        let fig = format!("fanout{n}.event64");
+        let mut row = [
+            base(&fig, "zenoh_tcp", Kind::Rate, "peer-zenoh", 64, secs),
+            marea(
+                base(&fig, "marea_udp", Kind::Rate, "peer-marea-udp", 64, secs),
+                "udp",
+                "-event",
+            ),
+        ];
+        for c in &mut row {
+            c.subs = n;
+        }
+        v.extend(row);
+    }
     let fig = "idle_rss_kib";
     v.extend([
         base(fig, "raw_udp", Kind::Idle, "peer-udp", 64, idle),
@@ -222,7 +282,10 @@ fn cases(o: &Opts) -> Vec<Case> {
         ),
     ]);
     if let Some(only) = &o.only {
-        v.retain(|c| format!("{}.{}", c.figure, c.imp).contains(only.as_str()));
+        v.retain(|c| {
+            let name = format!("{}.{}", c.figure, c.imp);
+            only.split(',').any(|o| name.contains(o))
+        });
     }
     v
 }
@@ -272,6 +335,17 @@ struct Peer {
 
 impl Peer {
     fn spawn(case: &Case, role: &str, key: &str, link: &Option<String>) -> anyhow::Result<Peer> {
+        Self::spawn_as(case, role, key, link, 0)
+    }
+
+    /// [`Self::spawn`] for subscriber `index` of a fan-out (its name in the failure messages).
+    fn spawn_as(
+        case: &Case,
+        role: &str,
+        key: &str,
+        link: &Option<String>,
+        index: usize,
+    ) -> anyhow::Result<Peer> {
         let exe = bin_dir()?.join(case.bin);
         let mut args: Vec<String> = vec![
             role.to_owned(),
@@ -290,6 +364,7 @@ impl Peer {
             Command::new(&exe)
         };
         cmd.args(&args)
+            .env("PEERS_SUBSCRIBERS", case.subs.to_string())
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
@@ -300,7 +375,11 @@ impl Peer {
         let stdin = child.stdin.take();
         let stdout = child.stdout.take().context("child without stdout")?;
         Ok(Peer {
-            what: format!("{} {role}", case.bin),
+            what: if case.subs > 1 {
+                format!("{} {role} #{index}", case.bin)
+            } else {
+                format!("{} {role}", case.bin)
+            },
             child,
             stdin,
             lines: BufReader::new(stdout).lines(),
@@ -461,9 +540,20 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
             r
         }
         Kind::Rate => {
-            let mut sub = Peer::spawn(case, &format!("sub{}", case.suffix), &key, &links.0)?;
-            let info = sub.expect("ready", start).await;
-            let ikey = info_key(case, &key, info?);
+            let (sub_keys, pub_key) = fanout_keys(case, &key)?;
+            let role = format!("sub{}", case.suffix);
+            let mut subs = Vec::with_capacity(sub_keys.len());
+            let mut infos = Vec::new();
+            for (i, k) in sub_keys.iter().enumerate() {
+                let mut sub = Peer::spawn_as(case, &role, k, &links.0, i)?;
+                let info = sub.expect("ready", start).await;
+                subs.push(sub);
+                infos.push(info?);
+            }
+            let ikey = match pub_key {
+                Some(k) => k,
+                None => info_key(case, &key, infos.swap_remove(0)),
+            };
             let mut publ = Peer::spawn(case, &format!("pub{}", case.suffix), &ikey, &links.1)?;
             let r = async {
                 publ.expect("ready", start).await?;
@@ -471,21 +561,36 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
                     .expect("result", Duration::from_secs_f64(case.param + 60.0))
                     .await?;
                 let sent = word(&w, 0)?;
-                sub.say(&format!("stop {sent}")).await?;
-                let w = sub.expect("result", Duration::from_secs(60)).await?;
-                let (count, span) = (word(&w, 0)?, word(&w, 1)?);
-                if span <= 0.0 {
-                    bail!("{}: {count} of {sent} arrived, no span", case.imp);
+                let (mut rate, mut count) = (0.0, 0.0);
+                for sub in &mut subs {
+                    sub.say(&format!("stop {sent}")).await?;
                 }
+                for sub in &mut subs {
+                    let w = sub.expect("result", Duration::from_secs(60)).await?;
+                    let (n, span) = (word(&w, 0)?, word(&w, 1)?);
+                    if span <= 0.0 {
+                        bail!("{}: {n} of {sent} arrived, no span", sub.what);
+                    }
+                    rate += n / span;
+                    count += n;
+                }
+                // Messages/s, or MB/s for the large payloads.
+                let scale = if case.figure.starts_with("blob") {
+                    case.size as f64 / 1e6
+                } else {
+                    1.0
+                };
                 Ok(Sample {
-                    value: count / span,
-                    delivered: Some(count / sent),
+                    value: rate * scale,
+                    delivered: Some(count / (sent * subs.len() as f64)),
                     ..Sample::default()
                 })
             }
             .await;
             publ.end().await;
-            sub.end().await;
+            for sub in subs {
+                sub.end().await;
+            }
             r
         }
         Kind::Idle => {
@@ -512,6 +617,31 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
     };
     drop(cable);
     out
+}
+
+/// The KEYs of a rate case's subscribers, and its publisher's where it is not
+/// [`info_key`]'s: a fan-out's Zenoh subscribers each listen on a port of their own, which the
+/// publisher connects to all of; its marea subscribers are nodes of their own names.
+fn fanout_keys(case: &Case, key: &str) -> anyhow::Result<(Vec<String>, Option<String>)> {
+    if case.subs == 1 {
+        return Ok((vec![key.to_owned()], None));
+    }
+    match case.bin {
+        "peer-zenoh" => {
+            let name = key.split_once(':').map_or(key, |(_, n)| n);
+            let ports = (0..case.subs)
+                .map(|_| free_port(false))
+                .collect::<anyhow::Result<Vec<u16>>>()?;
+            let keys = ports.iter().map(|p| format!("{p}:{name}")).collect();
+            let all: Vec<String> = ports.iter().map(u16::to_string).collect();
+            Ok((keys, Some(format!("{}:{name}", all.join(",")))))
+        }
+        b if b.starts_with("peer-marea") => Ok((
+            (0..case.subs).map(|i| format!("{key}/sub{i}")).collect(),
+            Some(key.to_owned()),
+        )),
+        other => bail!("{other}: no fan-out"),
+    }
 }
 
 /// The initiator's KEY: the responder's address for raw UDP, else the run's key.
@@ -564,6 +694,8 @@ fn unit(figure: &str) -> &'static str {
         "us"
     } else if figure.starts_with("idle") {
         "KiB"
+    } else if figure.starts_with("blob") {
+        "MB/s"
     } else {
         "msgs/s"
     }
@@ -644,64 +776,102 @@ async fn run(o: Opts) -> anyhow::Result<()> {
         metric(&format!("{name}.runs"), vals.len() as f64, "count");
     }
     // Same-run ratios: within each round, then the median over rounds.
+    // (figure, implementation) over (figure, implementation).
     let ratios = [
+        (
+            "blob1m",
+            "marea_udp",
+            "blob1m",
+            "zenoh_tcp",
+            "peers.blob1m.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "fanout10.event64",
+            "marea_udp",
+            "fanout10.event64",
+            "zenoh_tcp",
+            "peers.fanout10.event64.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "fanout50.event64",
+            "marea_udp",
+            "fanout50.event64",
+            "zenoh_tcp",
+            "peers.fanout50.event64.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "event64_default_api",
+            "marea_udp",
+            "event64",
+            "zenoh_tcp",
+            "peers.event64_default_api.marea_udp_to_zenoh_tcp",
+        ),
         (
             "event64",
             "marea_udp",
+            "event64",
             "zenoh_tcp",
             "peers.event64.marea_udp_to_zenoh_tcp",
         ),
         (
             "event1k",
             "marea_udp",
+            "event1k",
             "zenoh_tcp",
             "peers.event1k.marea_udp_to_zenoh_tcp",
         ),
         (
             "event64",
             "marea_shm",
+            "event64",
             "iceoryx2",
             "peers.event64.marea_shm_to_iceoryx2",
         ),
         (
             "event1k",
             "marea_shm",
+            "event1k",
             "iceoryx2",
             "peers.event1k.marea_shm_to_iceoryx2",
         ),
         (
             "rtt64_pinned",
             "marea_udp",
+            "rtt64_pinned",
             "raw_udp",
             "peers.rtt64_pinned.marea_udp_to_raw",
         ),
         (
             "rtt64_pinned",
             "marea_shm",
+            "rtt64_pinned",
             "iceoryx2",
             "peers.rtt64_pinned.marea_shm_to_iceoryx2",
         ),
         (
             "rtt64",
             "marea_udp",
+            "rtt64",
             "zenoh_tcp",
             "peers.rtt64.marea_udp_to_zenoh_tcp",
         ),
         (
             "rtt64",
             "marea_udp",
+            "rtt64",
             "raw_udp",
             "peers.rtt64.marea_udp_to_raw",
         ),
         (
             "rtt64",
             "marea_shm",
+            "rtt64",
             "iceoryx2",
             "peers.rtt64.marea_shm_to_iceoryx2",
         ),
     ];
-    for (fig, a, b, name) in ratios {
-        let (Some(ra), Some(rb)) = (got.get(&(fig.to_owned(), a)), got.get(&(fig.to_owned(), b)))
+    for (fa, a, fb, b, name) in ratios {
+        let (Some(ra), Some(rb)) = (got.get(&(fa.to_owned(), a)), got.get(&(fb.to_owned(), b)))
         else {
             continue;
         };

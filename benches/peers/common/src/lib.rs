@@ -13,7 +13,8 @@
 //! | `idle` | sits idle beside its partner | `ready [ADDR]` |
 //!
 //! `KEY` names the run's channel (an address, a key expression, a service name); `SIZE` is the
-//! payload in bytes. A child exits when its standard input closes (the runner dropped it) and
+//! payload in bytes. In a fan-out the runner starts several `sub`s and tells every child how
+//! many through the environment ([`subscribers`]); a publisher waits for them all. A child exits when its standard input closes (the runner dropped it) and
 //! after [`HARD_DEADLINE`] in any case, so no child outlives a run that went wrong.
 
 use std::io::BufRead;
@@ -114,6 +115,16 @@ impl Control {
     pub fn stop(&self) -> Option<u64> {
         self.stop.get().copied()
     }
+}
+
+/// How many subscribers the run has (`PEERS_SUBSCRIBERS`, 1 when unset): a fan-out's
+/// publisher waits until it reaches them all.
+pub fn subscribers() -> usize {
+    std::env::var("PEERS_SUBSCRIBERS")
+        .ok()
+        .and_then(|n| n.parse().ok())
+        .filter(|&n| n >= 1)
+        .unwrap_or(1)
 }
 
 /// Tells the runner this child is ready (with what the initiator needs, if anything).

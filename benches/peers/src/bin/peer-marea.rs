@@ -3,7 +3,11 @@
 //! received through callbacks (`subscribe_*_with`), as the Zenoh peer receives. LINK is
 //! `udp:PORT` (loopback, discovery multicast on PORT), `shm` (iceoryx2, `wait="event"`) or
 //! `serial:DEV:BAUD` (one end of a pty pair the runner bridges). KEY is the domain (and the shm
-//! service name). Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`.
+//! service name), `DOMAIN/NODE` to name the node (a fan-out's subscribers, an idle partner).
+//! Roles `pub`/`sub` take a suffix: `pub-event`, `pub-var`, `sub-event`, `sub-var`, and
+//! `pub-api`/`sub-api`: events as services use them, `raise_nowait` with up to
+//! [`IN_FLIGHT`] in flight and `recv().await` on a task, on the multi-thread runtime
+//! `#[tokio::main]` gives (built into `peer-marea` only, with marea's default features).
 //!
 //! Built three times from this file, each as a node for its link would be built: `peer-marea`
 //! (package `peers`, marea's default features) for the serial cases, `peer-marea-udp` (package
@@ -17,7 +21,7 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, Context};
 use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
 use marea::{NetworkConfig, Node};
-use peers_common::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+use peers_common::{finish_sub, payload, ready, seq, subscribers, Args, Arrivals, Control, Rtts};
 
 fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
     if let Some(rest) = link.strip_prefix("serial:") {
@@ -56,10 +60,15 @@ fn main() -> anyhow::Result<()> {
     // A current-thread runtime, the leanest tokio offers: marea's tasks (links, discovery,
     // dispatch) share the one thread with the role's, and the build links no multi-thread
     // scheduler (the UDP and shm peers' tokio has no `rt-multi-thread`: see their Cargo.toml).
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("tokio runtime")?;
+    // The `-api` roles run on the multi-thread runtime services get from `#[tokio::main]`.
+    let rt = if args.role.ends_with("-api") {
+        multi_thread_runtime()?
+    } else {
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .context("tokio runtime")?
+    };
     // Behind `dyn`: `block_on` inlines a concrete future into each of its paths (with
     // `rt-multi-thread`, as `peer-marea` is built: current-thread, multi-thread and entering
     // the runtime), which made three copies of this peer's 25 KB state machine (75 KB of code,
@@ -69,21 +78,34 @@ fn main() -> anyhow::Result<()> {
     rt.block_on(main)
 }
 
+#[cfg(feature = "multi-thread")]
+fn multi_thread_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Runtime::new().context("tokio runtime")
+}
+
+#[cfg(not(feature = "multi-thread"))]
+fn multi_thread_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    anyhow::bail!("this build of the marea peer has no multi-thread runtime: the -api roles run in peer-marea")
+}
+
 const MATCH: Duration = Duration::from_secs(20);
+
+/// Events a `pub-api` keeps in flight (raised, report not awaited yet).
+const IN_FLIGHT: usize = 4096;
 
 async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
     let link = args.link.clone().context("LINK missing")?;
     let base = args.role.split('-').next().unwrap_or("x");
-    let node_name = if args.role == "idle" && args.key.ends_with("/partner") {
-        "partner"
-    } else {
-        base
-    };
-    let domain = args.key.trim_end_matches("/partner").to_owned();
-    let node = Node::open(&config(node_name, &domain, &link)?)
+    let (domain, node_name) = args
+        .key
+        .split_once('/')
+        .unwrap_or((args.key.as_str(), base));
+    let node = Node::open(&config(node_name, domain, &link)?)
         .await
         .map_err(|e| anyhow!("open node {node_name} on {link}: {e}"))?;
-    let svc = node.service(base).map_err(|e| anyhow!("service: {e}"))?;
+    let svc = node
+        .service(node_name)
+        .map_err(|e| anyhow!("service: {e}"))?;
     let result = async {
         match args.role.as_str() {
             "pong" => {
@@ -158,10 +180,61 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
                 drop(sub);
             }
+            "sub-api" => {
+                let arrivals = Arc::new(Arrivals::default());
+                let a = arrivals.clone();
+                let sub = svc.subscribe_event::<Vec<u8>>("pub/d")?;
+                let reader = tokio::spawn(async move {
+                    while sub.recv().await.is_ok() {
+                        a.add();
+                    }
+                });
+                ready("");
+                let c = control.clone();
+                tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
+                reader.abort();
+            }
+            "pub-api" => {
+                let ev = svc.publish_event::<Vec<u8>>("d")?;
+                let n = subscribers();
+                if !ev.wait_remote_subscribers(n, MATCH).await {
+                    anyhow::bail!("pub: not {n} subscribers within {MATCH:?}");
+                }
+                ready("");
+                let msg = payload(args.size, 0);
+                let start = Instant::now();
+                let mut sent = 0u64;
+                let mut in_flight = std::collections::VecDeque::with_capacity(IN_FLIGHT);
+                while start.elapsed().as_secs_f64() < args.param {
+                    for _ in 0..64 {
+                        if in_flight.len() >= IN_FLIGHT {
+                            if let Some(oldest) = in_flight.pop_front() {
+                                let _ = oldest.await;
+                            }
+                        }
+                        in_flight.push_back(ev.raise_nowait(&msg)?);
+                        sent += 1;
+                    }
+                }
+                let secs = start.elapsed().as_secs_f64();
+                let all = async {
+                    for p in in_flight {
+                        let _ = p.await;
+                    }
+                };
+                if tokio::time::timeout(Duration::from_secs(30), all)
+                    .await
+                    .is_err()
+                {
+                    eprintln!("peer-marea: events still unreported 30 s after the last one");
+                }
+                println!("result {sent} {secs}");
+            }
             "pub-event" => {
                 let ev = svc.publish_event::<Vec<u8>>("d")?;
-                if !ev.wait_remote_subscribers(1, MATCH).await {
-                    anyhow::bail!("pub: no subscriber within {MATCH:?}");
+                let n = subscribers();
+                if !ev.wait_remote_subscribers(n, MATCH).await {
+                    anyhow::bail!("pub: not {n} subscribers within {MATCH:?}");
                 }
                 ready("");
                 let msg = payload(args.size, 0);

@@ -1,13 +1,15 @@
 //! Zenoh 1.x in peer mode over TCP on loopback: the responder (`pong`, `sub`, the first `idle`)
 //! listens, the initiator connects; multicast scouting is off so only the two talk. Reliable
 //! with `CongestionControl::Block` (a full queue holds the publisher up, nothing is dropped);
-//! everything else is Zenoh's default, as a user would have it. KEY is `PORT:NAME`.
+//! everything else is Zenoh's default, as a user would have it. KEY is `PORT:NAME`; in a
+//! fan-out every subscriber listens on its own port and the publisher's KEY lists them all,
+//! `PORT,PORT,...:NAME`.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
-use peers_common::{finish_sub, payload, ready, seq, Args, Arrivals, Control, Rtts};
+use peers_common::{finish_sub, payload, ready, seq, subscribers, Args, Arrivals, Control, Rtts};
 use zenoh::qos::CongestionControl;
 
 fn main() -> anyhow::Result<()> {
@@ -17,7 +19,7 @@ fn main() -> anyhow::Result<()> {
     rt.block_on(run(args, control))
 }
 
-async fn session(port: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
+async fn session(ports: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
     let mut c = zenoh::Config::default();
     let set = |c: &mut zenoh::Config, k: &str, v: &str| {
         c.insert_json5(k, v)
@@ -25,7 +27,14 @@ async fn session(port: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
     };
     set(&mut c, "mode", r#""peer""#)?;
     set(&mut c, "scouting/multicast/enabled", "false")?;
-    let ep = format!(r#"["tcp/127.0.0.1:{port}"]"#);
+    let ep = format!(
+        "[{}]",
+        ports
+            .split(',')
+            .map(|p| format!(r#""tcp/127.0.0.1:{p}""#))
+            .collect::<Vec<_>>()
+            .join(",")
+    );
     if listen {
         set(&mut c, "listen/endpoints", &ep)?;
     } else {
@@ -47,15 +56,17 @@ async fn publisher<'a>(
     Ok(p)
 }
 
-/// Waits until the publisher has a subscriber (the other process).
-async fn matched(p: &zenoh::pubsub::Publisher<'_>) -> anyhow::Result<()> {
+/// Waits until the publisher has a subscriber (the other process), and is connected to every
+/// subscriber of a fan-out.
+async fn matched(s: &zenoh::Session, p: &zenoh::pubsub::Publisher<'_>) -> anyhow::Result<()> {
     let end = Instant::now() + Duration::from_secs(15);
+    let n = subscribers();
     loop {
         let m = p
             .matching_status()
             .await
             .map_err(|e| anyhow!("matching status: {e}"))?;
-        if m.matching() {
+        if m.matching() && (n == 1 || s.info().peers_zid().await.count() >= n) {
             return Ok(());
         }
         if Instant::now() > end {
@@ -93,7 +104,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 .await
                 .map_err(|e| anyhow!("declare subscriber: {e}"))?;
             let p = publisher(&s, format!("{name}/ping")).await?;
-            matched(&p).await?;
+            matched(&s, &p).await?;
             ready("");
             let mut rtts = Rtts::new(args.param as usize);
             for i in 0..rtts.total() as u64 {
@@ -129,7 +140,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         }
         "pub" => {
             let p = publisher(&s, format!("{name}/data")).await?;
-            matched(&p).await?;
+            matched(&s, &p).await?;
             ready("");
             let msg = payload(args.size, 0);
             let start = Instant::now();
