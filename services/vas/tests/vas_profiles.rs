@@ -78,11 +78,7 @@ async fn fly_configured(profile: &str, n: usize, family: Option<&str>) {
         assert!(resets > 0, "{profile}: no upload reset the current item");
     }
     // The VAS saw no backtrack either.
-    let mut last = None;
-    while let Some(Ok(s)) = queue.try_recv() {
-        last = Some(s.value);
-    }
-    let last = last.expect("queue status published");
+    let last = latest_queue_status(&queue);
     assert_eq!(last.backtracks, 0, "{profile}: {last:?}");
     vas.kill().await;
     sim.kill().await;

@@ -141,11 +141,7 @@ async fn two_vehicles_and_a_camera_on_one_link_the_vas_flies_its_own() {
         assert!(other.log_events("mission_uploaded").is_empty());
         assert!(other.log_events("armed").is_empty());
         // The camera's MISSION_CURRENT 0 was not taken for the autopilot driving home.
-        let mut last = None;
-        while let Some(Ok(s)) = queue.try_recv() {
-            last = Some(s.value);
-        }
-        let last = last.expect("queue status published");
+        let last = latest_queue_status(&queue);
         assert_eq!(last.backtracks, 0, "{last:?}");
         relay.abort();
         vas.kill().await;

@@ -60,11 +60,7 @@ async fn fifty_waypoints_on_a_mavsdk_vehicle() {
                 .any(|e| e["event"] == "current" && e["seq"] == 0),
             "MAVSDK reset the current item after an upload (so restoring it was tested)"
         );
-        let mut last = None;
-        while let Some(Ok(s)) = queue.try_recv() {
-            last = Some(s.value);
-        }
-        assert_eq!(last.expect("queue status").backtracks, 0);
+        assert_eq!(latest_queue_status(&queue).backtracks, 0);
         vas.kill().await;
         vehicle.kill().await;
         g.node.shutdown().await;

@@ -484,11 +484,7 @@ async fn landing_markers_fly_in_order(profile: &str) {
         "{profile}: every waypoint reached once, in order; mavsim's log:\n{}",
         sim.mission_story()
     );
-    let mut last = None;
-    while let Some(Ok(s)) = queue.try_recv() {
-        last = Some(s.value);
-    }
-    let last = last.expect("queue status published");
+    let last = latest_queue_status(&queue);
     assert_eq!(last.backtracks, 0, "{profile}: {last:?}");
     vas.kill().await;
     sim.kill().await;

@@ -93,6 +93,18 @@ const MATCH: Duration = Duration::from_secs(20);
 /// Events a `pub-api` keeps in flight (raised, report not awaited yet).
 const IN_FLIGHT: usize = 4096;
 
+/// The publisher's event `d`, once every subscriber of the run matched it (all of a fan-out's);
+/// then tells the runner it is ready.
+async fn matched_event(svc: &marea::Service) -> anyhow::Result<marea::Event<Vec<u8>>> {
+    let ev = svc.publish_event::<Vec<u8>>("d")?;
+    let n = subscribers();
+    if !ev.wait_remote_subscribers(n, MATCH).await {
+        anyhow::bail!("pub: not {n} subscribers within {MATCH:?}");
+    }
+    ready("");
+    Ok(ev)
+}
+
 async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
     let link = args.link.clone().context("LINK missing")?;
     let base = args.role.split('-').next().unwrap_or("x");
@@ -195,12 +207,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 reader.abort();
             }
             "pub-api" => {
-                let ev = svc.publish_event::<Vec<u8>>("d")?;
-                let n = subscribers();
-                if !ev.wait_remote_subscribers(n, MATCH).await {
-                    anyhow::bail!("pub: not {n} subscribers within {MATCH:?}");
-                }
-                ready("");
+                let ev = matched_event(&svc).await?;
                 let msg = payload(args.size, 0);
                 let start = Instant::now();
                 let mut sent = 0u64;
@@ -231,12 +238,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 println!("result {sent} {secs}");
             }
             "pub-event" => {
-                let ev = svc.publish_event::<Vec<u8>>("d")?;
-                let n = subscribers();
-                if !ev.wait_remote_subscribers(n, MATCH).await {
-                    anyhow::bail!("pub: not {n} subscribers within {MATCH:?}");
-                }
-                ready("");
+                let ev = matched_event(&svc).await?;
                 let msg = payload(args.size, 0);
                 let start = Instant::now();
                 let mut sent = 0u64;

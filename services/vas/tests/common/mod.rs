@@ -407,6 +407,15 @@ impl Ground {
     }
 }
 
+/// The last queue status the VAS published on `queue` (panics when none came).
+pub fn latest_queue_status(queue: &VariableSubscriber<QueueStatus>) -> QueueStatus {
+    let mut last = None;
+    while let Some(Ok(s)) = queue.try_recv() {
+        last = Some(s.value);
+    }
+    last.expect("queue status published")
+}
+
 /// `n` waypoints zigzagging north of home, `spacing` metres apart, seq from 0.
 pub fn zigzag(n: usize, spacing: f64) -> Vec<Waypoint> {
     let m_per_deg_lat = 111_319.49;
