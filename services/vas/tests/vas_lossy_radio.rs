@@ -127,7 +127,13 @@ async fn two_hundred_waypoints_over_a_lossy_radio() {
         .iter()
         .filter_map(|e| e["command"].as_u64())
         .collect();
-    assert_eq!(markers, [189], "the DO_LAND_START was passed once");
+    // Passed before its waypoint; over this radio a marker kept at a passed slot (it may not
+    // go while the vehicle drives past it) can be passed once more before the upload that
+    // removes it: a no-op in sequence, never a waypoint out of order (checked above).
+    assert!(
+        (1..=2).contains(&markers.len()) && markers.iter().all(|&c| c == 189),
+        "the DO_LAND_START was passed: {markers:?}"
+    );
     // The radio really did damage the stream.
     let stats = radio.stats().expect("marea-radio counters");
     let damaged = |dir: &str| {
