@@ -455,21 +455,13 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         if self.partial_ok && self.have_known {
             QueueAction::WritePartial { start, items }
         } else {
-            self.spliced(start, items)
+            QueueAction::Upload(self.mission_after(start, &items))
         }
     }
 
-    /// `action` done as a whole upload (where the driver cannot write those slots alone): a
-    /// partial write becomes the whole mission it would leave on board.
-    pub fn as_upload(&self, action: QueueAction<W>) -> QueueAction<W> {
-        match action {
-            QueueAction::WritePartial { start, items } => self.spliced(start, items),
-            other => other,
-        }
-    }
-
-    /// The whole mission with slots `start..` replaced by `items`.
-    fn spliced(&self, start: u16, items: Vec<W>) -> QueueAction<W> {
+    /// The whole mission a write of `items` from slot `start` leaves on board, for a driver
+    /// that must upload it whole instead (and where partial writes do not work).
+    pub fn mission_after(&self, start: u16, items: &[W]) -> Vec<W> {
         let mut all: Vec<W> = self
             .have
             .iter()
@@ -479,10 +471,10 @@ impl<W: Clone + PartialEq> RollingQueue<W> {
         let s = usize::from(start) - 1;
         if all.len() < s + items.len() {
             // Unknown contents: fall back to the computed window.
-            return QueueAction::Upload(items);
+            return items.to_vec();
         }
-        all[s..s + items.len()].clone_from_slice(&items);
-        QueueAction::Upload(all)
+        all[s..s + items.len()].clone_from_slice(items);
+        all
     }
 
     /// The driver performed `action` successfully.

@@ -696,14 +696,14 @@ impl Driver {
         // Where the autopilot keeps its current item through an upload (it writes partially),
         // the target's number must not change under it, nor the next slot's when the vehicle
         // may get to its target (and on to that slot) before the upload ends.
+        if let Some(slot) = self.queue.restore_due().filter(|_| self.index_stale()) {
+            return Some((QueueAction::SetCurrent(slot), self.markers.clone()));
+        }
         let fixed = self
             .queue
             .current_slot()
             .filter(|_| self.queue.partial_supported())
             .map(|c| c + u16::from(!self.upload_ends_before_the_target()));
-        if let Some(slot) = self.queue.restore_due().filter(|_| self.index_stale()) {
-            return Some((QueueAction::SetCurrent(slot), self.markers.clone()));
-        }
         let Some(action) = self.queue.poll() else {
             let slots = self.queue.onboard()?;
             let layout = self.markers.next(&slots, fixed);
@@ -712,10 +712,7 @@ impl Driver {
         let after = match &action {
             QueueAction::SetCurrent(_) => return Some((action, self.markers.clone())),
             QueueAction::Upload(slots) => slots.clone(),
-            QueueAction::WritePartial { .. } => match self.queue.as_upload(action.clone()) {
-                QueueAction::Upload(slots) => slots,
-                _ => return Some((action, self.markers.clone())),
-            },
+            QueueAction::WritePartial { start, items } => self.queue.mission_after(*start, items),
         };
         let layout = self.markers.next(&after, fixed);
         match action {
