@@ -65,14 +65,21 @@ impl LocalItems {
 /// the log holds what is declared now, whatever the churn before. A peer that knows a counter
 /// from before the last withdrawal (but not 0: it then holds nothing) gets the whole log
 /// instead of what follows it (a reset batch), as it could otherwise miss a withdrawal.
+///
+/// A declaration hidden on a link (a gateway's forwarded item, never declared back on the link
+/// it came from) is not sent there at all: its counter is one the peers there skip, as they
+/// skip compacted ones. Over a radio that saves a message per forwarded item.
 #[derive(Default)]
 pub(crate) struct DeclarationLog {
     pub counter: u32,
-    /// Each live declaration with the link it is hidden on (a gateway's forwarded items are
-    /// not declared back on the link they came from).
+    /// Each live declaration with the link it is hidden on.
     entries: Vec<(LoggedDeclaration, Option<usize>)>,
     /// Counter of the newest withdrawal.
     last_withdrawal: u32,
+    /// Counter of the newest declaration (or withdrawal) seen on every link.
+    last_everywhere: u32,
+    /// Counter of the newest one seen on each link, where newer than `last_everywhere`.
+    last_on_link: Vec<u32>,
 }
 
 /// What a peer is sent to bring it up to date: the entries after `after`, or everything with
@@ -85,19 +92,54 @@ pub(crate) struct LogView {
 }
 
 impl DeclarationLog {
-    fn push(&mut self, decl: Declaration, hidden_on: Option<usize>) -> LoggedDeclaration {
+    /// Appends `decl`, hidden on `hidden_on` (a withdrawal is hidden where what it withdraws
+    /// was), for a node with `links` links. Returns the entry and the link it is hidden on.
+    fn push(
+        &mut self,
+        decl: Declaration,
+        hidden_on: Option<usize>,
+        links: usize,
+    ) -> (LoggedDeclaration, Option<usize>) {
         self.counter += 1;
         let entry = LoggedDeclaration {
             counter: self.counter,
             decl,
         };
-        if let Declaration::Withdraw { id } = entry.decl {
-            self.entries.retain(|(e, _)| e.decl.id() != id);
+        let hidden_on = if let Declaration::Withdraw { id } = entry.decl {
+            let mut hidden = hidden_on;
+            self.entries.retain(|(e, h)| {
+                let keep = e.decl.id() != id;
+                if !keep {
+                    hidden = *h;
+                }
+                keep
+            });
             self.last_withdrawal = self.counter;
+            hidden
         } else {
             self.entries.push((entry.clone(), hidden_on));
+            hidden_on
+        };
+        match hidden_on {
+            None => self.last_everywhere = self.counter,
+            Some(hidden) => {
+                self.last_on_link
+                    .resize(links.max(self.last_on_link.len()), 0);
+                for (link, last) in self.last_on_link.iter_mut().enumerate() {
+                    if link != hidden {
+                        *last = self.counter;
+                    }
+                }
+            }
         }
-        entry
+        (entry, hidden_on)
+    }
+
+    /// The counter of the newest entry a peer on `link` was sent: the next push there
+    /// continues from it.
+    fn last_seen_on(&self, link: usize) -> u32 {
+        let on_link = self.last_on_link.get(link).copied().unwrap_or(0);
+        self.last_everywhere.max(on_link)
     }
 
     /// Live declarations held.
@@ -118,25 +160,10 @@ impl DeclarationLog {
             entries: self
                 .entries
                 .iter()
-                .filter(|(e, _)| e.counter > after)
-                .map(|(e, hidden)| seen_on(e, *hidden, link))
+                .filter(|(e, hidden)| e.counter > after && *hidden != Some(link))
+                .map(|(e, _)| e.clone())
                 .collect(),
         }
-    }
-}
-
-/// `entry` as sent on `link`: a declaration hidden there becomes a withdrawal of its own id,
-/// which the peer ignores (it never saw the id) while its counter stays without a gap.
-fn seen_on(entry: &LoggedDeclaration, hidden_on: Option<usize>, link: usize) -> LoggedDeclaration {
-    if hidden_on == Some(link) {
-        LoggedDeclaration {
-            counter: entry.counter,
-            decl: Declaration::Withdraw {
-                id: entry.decl.id(),
-            },
-        }
-    } else {
-        entry.clone()
     }
 }
 
@@ -211,21 +238,48 @@ fn batches(view: LogView) -> Vec<Message> {
 }
 
 impl NodeInner {
-    /// Appends a declaration to the log and pushes it to every known peer (as a no-op to the
-    /// peers on `hidden_on`).
+    /// Appends a declaration to the log and pushes it to every known peer but those on
+    /// `hidden_on`.
     pub fn declare(&self, decl: Declaration, hidden_on: Option<usize>) {
+        self.declare_all(vec![(decl, hidden_on)]);
+    }
+
+    /// Appends declarations to the log, in order, and pushes them to every known peer in one
+    /// batch each, of those its link sees (none to a peer whose link sees none of them).
+    pub fn declare_all(&self, decls: Vec<(Declaration, Option<usize>)>) {
+        if decls.is_empty() {
+            return;
+        }
+        let links = self.links().len();
         // The log stays locked while the delta is pushed: see `introduce_locked`.
         let mut log = lock(&self.local.log);
-        let entry = log.push(decl, hidden_on);
-        let targets: Vec<_> = self.peers.by_id.iter().map(|p| (p.link, p.addr)).collect();
-        for (link, addr) in targets {
-            let msg = Message::DeclBatch {
-                after: entry.counter - 1,
-                upto: entry.counter,
+        // Each peer's batch continues from the last entry its link saw.
+        let targets: Vec<_> = self
+            .peers
+            .by_id
+            .iter()
+            .map(|p| (p.link, p.addr, log.last_seen_on(p.link)))
+            .collect();
+        let pushed: Vec<_> = decls
+            .into_iter()
+            .map(|(decl, hidden_on)| log.push(decl, hidden_on, links))
+            .collect();
+        for (link, addr, after) in targets {
+            let entries: Vec<LoggedDeclaration> = pushed
+                .iter()
+                .filter(|(_, hidden)| *hidden != Some(link))
+                .map(|(e, _)| e.clone())
+                .collect();
+            if entries.is_empty() {
+                continue;
+            }
+            let view = LogView {
+                after,
+                upto: log.counter,
                 reset: false,
-                entries: vec![seen_on(&entry, hidden_on, link)],
+                entries,
             };
-            self.send_safe(link, addr, &msg);
+            self.send_batches(link, addr, view);
         }
     }
 
@@ -619,10 +673,10 @@ mod tests {
         };
         // A service coming and going a thousand times leaves nothing behind.
         for id in 1..=1000 {
-            log.push(svc(id), None);
-            log.push(Declaration::Withdraw { id }, None);
+            log.push(svc(id), None, 1);
+            log.push(Declaration::Withdraw { id }, None, 1);
         }
-        log.push(svc(5000), None);
+        log.push(svc(5000), None, 1);
         assert_eq!((log.len(), log.counter), (1, 2001));
         // A new peer: the whole (one-entry) log; it holds nothing to reset.
         let v = log.view(0, 0);
@@ -638,10 +692,18 @@ mod tests {
         assert!(v.reset);
         // A counter from the future (a confused peer): a reset too.
         assert!(log.view(0, 9999).reset);
-        // Hidden on link 1: a withdrawal of its own id there, the declaration elsewhere.
-        log.push(svc(6000), Some(1));
+        // Hidden on link 1: not there at all (its counter skipped), the declaration elsewhere.
+        log.push(svc(6000), Some(1), 2);
         let on1 = log.view(1, 2001);
-        assert_eq!(on1.entries[0].decl, Declaration::Withdraw { id: 6000 });
+        assert_eq!((on1.upto, on1.entries.len()), (2002, 0));
         assert_eq!(log.view(0, 2001).entries[0].decl, svc(6000));
+        // A push continues from the last entry the link saw: link 1 never saw 2002.
+        assert_eq!((log.last_seen_on(0), log.last_seen_on(1)), (2002, 2001));
+        // Its withdrawal is hidden where it was.
+        let (_, hidden) = log.push(Declaration::Withdraw { id: 6000 }, None, 2);
+        assert_eq!(hidden, Some(1));
+        assert_eq!((log.last_seen_on(0), log.last_seen_on(1)), (2003, 2001));
+        log.push(svc(7000), None, 2);
+        assert_eq!((log.last_seen_on(0), log.last_seen_on(1)), (2004, 2004));
     }
 }

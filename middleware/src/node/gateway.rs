@@ -322,12 +322,14 @@ impl NodeInner {
             "gateway forwarding updated"
         );
         self.recompute_routes();
-        for id in withdrawn {
-            self.declare(Declaration::Withdraw { id }, None);
-        }
-        for (decl, hidden_on) in added {
-            self.declare(decl, hidden_on);
-        }
+        // One batch per peer: a change of interest on one side can forward tens of items,
+        // each a message of its own over a radio otherwise.
+        let decls = withdrawn
+            .into_iter()
+            .map(|id| (Declaration::Withdraw { id }, None))
+            .chain(added)
+            .collect();
+        self.declare_all(decls);
     }
 
     /// Publishes again, on our other links, a value or event that `node` sent for its offer
