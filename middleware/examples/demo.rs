@@ -99,7 +99,7 @@ async fn air() -> Result<(), Box<dyn std::error::Error>> {
                     text: format!("battery at {}%", 90 - i),
                 })
                 .await?;
-            println!("[air]    alarm acknowledged by {:?}", report.acknowledged);
+            println!("[air]    alarm acknowledged by {:?}", report.acknowledged());
         }
         if let Ok(Ok(f)) = tokio::time::timeout(Duration::from_millis(100), plans.recv()).await {
             println!(

@@ -22,7 +22,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     for text in ["battery low", "GPS glitch"] {
         let report = alarm.raise(&text.to_owned()).await?;
-        println!("raised {text:?}: acknowledged by {:?}", report.acknowledged);
+        println!(
+            "raised {text:?}: acknowledged by {:?}",
+            report.acknowledged()
+        );
     }
     for _ in 0..2 {
         let e = alarms.recv_timeout(Duration::from_secs(5)).await?;

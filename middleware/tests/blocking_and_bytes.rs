@@ -84,7 +84,7 @@ fn borrowed_bytes_reach_a_plain_thread_receiving_without_a_runtime() {
         reports
     });
     assert!(
-        reports.iter().all(|r| r.acknowledged == ["b/dst"]),
+        reports.iter().all(|r| r.acknowledged() == ["b/dst"]),
         "{reports:?}"
     );
     let (got, value, events) = receiver.join().unwrap();

@@ -206,7 +206,7 @@ async fn a_running_callback_holds_back_the_acknowledgement_of_what_follows() {
     release_tx.send(()).unwrap();
     for report in [first.await, second.await] {
         assert!(report.all_acknowledged(), "{report:?}");
-        assert_eq!(report.acknowledged, vec!["b/dst".to_owned()]);
+        assert_eq!(report.acknowledged(), vec!["b/dst".to_owned()]);
     }
     assert_eq!(
         *seen.lock().unwrap(),

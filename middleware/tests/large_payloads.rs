@@ -64,7 +64,7 @@ async fn every_size_crosses(a: &Node, b: &Node) {
             .unwrap_or_else(|_| panic!("raising {size} bytes did not complete"))
             .expect("raise");
         assert!(
-            report.all_acknowledged() && !report.acknowledged.is_empty(),
+            report.all_acknowledged() && !report.acknowledged().is_empty(),
             "{size} bytes: {report:?}"
         );
         let got = events.recv_timeout(T).await.expect("the event");
@@ -165,7 +165,7 @@ async fn a_payload_over_the_limit_is_refused_at_once_naming_its_size_and_the_lim
         .expect("raising the largest payload did not complete")
         .expect("the largest payload is taken");
     assert!(
-        report.all_acknowledged() && !report.acknowledged.is_empty(),
+        report.all_acknowledged() && !report.acknowledged().is_empty(),
         "{report:?}"
     );
 

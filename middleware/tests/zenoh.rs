@@ -88,7 +88,7 @@ async fn two_nodes_meet_through_a_router_and_every_primitive_holds() {
     );
     let report = alarm.raise(&"first".to_owned()).await.unwrap();
     assert!(report.all_acknowledged(), "{report:?}");
-    assert_eq!(report.acknowledged.len(), 1, "{report:?}");
+    assert_eq!(report.acknowledged().len(), 1, "{report:?}");
     let mut stream = alarm.stream();
     for i in 0..2000 {
         stream.send(&format!("a{i}")).await.unwrap();

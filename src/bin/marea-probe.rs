@@ -436,13 +436,13 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             let started = Instant::now();
             let mut handle =
                 |r: marea::RaiseReport, reported: &mut std::collections::HashSet<String>| {
-                    if r.failed.is_empty() {
+                    if r.all_acknowledged() {
                         acked_all += 1;
                     } else {
                         failed_raises += 1;
                         last_failed_ms = started.elapsed().as_millis() as u64;
                     }
-                    for (sub, reason) in r.failed {
+                    for (sub, reason) in r.failed() {
                         if reported.insert(sub.clone()) {
                             out(
                                 json!({"failed": sub, "reason": reason, "after_ms": started.elapsed().as_millis() as u64}),

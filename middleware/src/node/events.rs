@@ -15,27 +15,81 @@ use super::data::PublishError;
 use super::{lock, LocalOffer, NodeInner, RemoteSubscriber};
 use crate::link::{AckCounter, LinkSendError, Outgoing, SafeCompletion, STREAM_WINDOW_BYTES};
 
-/// Who got an event.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
+/// Who got an event: every subscriber that acknowledged it, and every one that did not with
+/// the reason. Built without a copy of any name: the names are made when asked for (a
+/// publisher keeping thousands of events in flight pays for none it does not read).
+#[derive(Clone)]
 pub struct RaiseReport {
-    /// Subscribers that acknowledged, as `node/service`.
-    pub acknowledged: Vec<String>,
-    /// Subscribers that did not, with the reason (naming the node).
-    pub failed: Vec<(String, String)>,
+    /// Subscribers on this node (`node/service`): they have it once raised.
+    local: Vec<String>,
+    /// The remote subscribers' nodes the event was sent to.
+    routes: Arc<[RemoteSubscriber]>,
+    /// Routes whose node did not acknowledge, with the reason.
+    failures: Vec<(usize, String)>,
+}
+
+impl Default for RaiseReport {
+    fn default() -> Self {
+        RaiseReport {
+            local: Vec::new(),
+            routes: Arc::from([]),
+            failures: Vec::new(),
+        }
+    }
 }
 
 impl RaiseReport {
     /// Whether every matched subscriber acknowledged.
     pub fn all_acknowledged(&self) -> bool {
-        self.failed.is_empty()
+        self.failures.is_empty()
+    }
+
+    /// Subscribers that acknowledged, as `node/service`, sorted.
+    pub fn acknowledged(&self) -> Vec<String> {
+        let mut names = self.local.clone();
+        for (k, r) in self.routes.iter().enumerate() {
+            if !self.failures.iter().any(|(f, _)| *f == k) {
+                names.extend(r.labels.iter().cloned());
+            }
+        }
+        names.sort();
+        names
+    }
+
+    /// Subscribers that did not acknowledge, with the reason (naming the node), sorted.
+    pub fn failed(&self) -> Vec<(String, String)> {
+        let mut failed: Vec<(String, String)> = Vec::new();
+        for (k, reason) in &self.failures {
+            if let Some(r) = self.routes.get(*k) {
+                let reason = format!("node '{}' did not acknowledge: {reason}", r.node_name);
+                failed.extend(r.labels.iter().map(|s| (s.clone(), reason.clone())));
+            }
+        }
+        failed.sort();
+        failed
     }
 }
 
-/// One remote node's acknowledgement awaited: its subscribers (`node/service`, shared with the
-/// route), its name, and the link's completion. Nothing here is allocated per event but the
-/// completion itself.
+impl std::fmt::Debug for RaiseReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RaiseReport")
+            .field("acknowledged", &self.acknowledged())
+            .field("failed", &self.failed())
+            .finish()
+    }
+}
+
+impl PartialEq for RaiseReport {
+    fn eq(&self, other: &Self) -> bool {
+        self.acknowledged() == other.acknowledged() && self.failed() == other.failed()
+    }
+}
+
+impl Eq for RaiseReport {}
+
+/// One remote node's acknowledgement awaited: the index of its route, and the link's
+/// completion.
 struct AwaitedAck {
-    /// Its index in `PendingRaise::routes`.
     route: usize,
     done: oneshot::Receiver<Result<(), LinkSendError>>,
 }
@@ -44,9 +98,29 @@ struct AwaitedAck {
 /// or was lost.
 pub struct PendingRaise {
     report: RaiseReport,
-    waiting: Vec<AwaitedAck>,
-    /// The routes the event was sent on (one reference count for all of them).
-    routes: Arc<[RemoteSubscriber]>,
+    /// The acknowledgements still awaited: the first in place (an event has one subscriber's
+    /// node in the common case, and then needs no list), the others in `more`.
+    first: Option<AwaitedAck>,
+    more: Vec<AwaitedAck>,
+}
+
+impl PendingRaise {
+    /// Polls one awaited acknowledgement: `true` once settled (a failure noted in the report).
+    fn settled(report: &mut RaiseReport, ack: &mut AwaitedAck, cx: &mut Context<'_>) -> bool {
+        let r = match Pin::new(&mut ack.done).poll(cx) {
+            Poll::Pending => return false,
+            Poll::Ready(r) => r,
+        };
+        let failure = match r {
+            Ok(Ok(())) => None,
+            Ok(Err(e)) => Some(e.to_string()),
+            Err(_) => Some("link closed".to_owned()),
+        };
+        if let Some(e) = failure {
+            report.failures.push((ack.route, e));
+        }
+        true
+    }
 }
 
 impl Future for PendingRaise {
@@ -54,42 +128,21 @@ impl Future for PendingRaise {
 
     fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<RaiseReport> {
         let this = &mut *self;
-        let mut i = 0;
-        while i < this.waiting.len() {
-            match Pin::new(&mut this.waiting[i].done).poll(cx) {
-                Poll::Pending => i += 1,
-                Poll::Ready(r) => {
-                    let route = this.waiting.swap_remove(i).route;
-                    let Some(RemoteSubscriber {
-                        labels,
-                        node_name: node,
-                        ..
-                    }) = this.routes.get(route)
-                    else {
-                        continue;
-                    };
-                    let failure = match r {
-                        Ok(Ok(())) => None,
-                        Ok(Err(e)) => Some(e.to_string()),
-                        Err(_) => Some("link closed".to_owned()),
-                    };
-                    match failure {
-                        None => this.report.acknowledged.extend(labels.iter().cloned()),
-                        Some(e) => {
-                            let reason = format!("node '{node}' did not acknowledge: {e}");
-                            this.report
-                                .failed
-                                .extend(labels.iter().map(|s| (s.clone(), reason.clone())));
-                        }
-                    }
-                }
+        if let Some(ack) = &mut this.first {
+            if Self::settled(&mut this.report, ack, cx) {
+                this.first = None;
             }
         }
-        if this.waiting.is_empty() {
-            let mut r = std::mem::take(&mut this.report);
-            r.acknowledged.sort();
-            r.failed.sort();
-            Poll::Ready(r)
+        let mut i = 0;
+        while i < this.more.len() {
+            if Self::settled(&mut this.report, &mut this.more[i], cx) {
+                this.more.swap_remove(i);
+            } else {
+                i += 1;
+            }
+        }
+        if this.first.is_none() && this.more.is_empty() {
+            Poll::Ready(std::mem::take(&mut this.report))
         } else {
             Poll::Pending
         }
@@ -121,22 +174,31 @@ impl NodeInner {
     /// Raises the encoded event message `msg` of `offer` (its payload from `at`): into every
     /// local subscriber's mailbox, and to every remote one's node, acknowledged end to end.
     pub fn raise_event(&self, offer: &LocalOffer, msg: Vec<u8>, at: usize) -> PendingRaise {
-        let mut report = RaiseReport::default();
+        let mut local = Vec::new();
         let me = &self.me.name;
         self.deliver_event_locally(offer, &msg[at..], |service| {
-            report.acknowledged.push(format!("{me}/{service}"))
+            local.push(format!("{me}/{service}"))
         });
-        let remote = offer.remote.get();
-        let mut waiting = Vec::with_capacity(remote.len());
-        self.send_event(&remote, msg, |k| {
+        let routes = offer.remote.get();
+        let (mut first, mut more) = (None, Vec::new());
+        self.send_event(&routes, msg, |k| {
             let (tx, rx) = oneshot::channel();
-            waiting.push(AwaitedAck { route: k, done: rx });
+            let ack = AwaitedAck { route: k, done: rx };
+            if first.is_none() {
+                first = Some(ack);
+            } else {
+                more.push(ack);
+            }
             tx.into()
         });
         PendingRaise {
-            report,
-            waiting,
-            routes: remote,
+            report: RaiseReport {
+                local,
+                routes,
+                failures: Vec::new(),
+            },
+            first,
+            more,
         }
     }
 
