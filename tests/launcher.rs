@@ -1461,6 +1461,42 @@ fn a_mission_written_by_another_station_pauses_the_plan_until_the_operator_resum
     assert!(status.success(), "{status}");
 }
 
+/// The launcher's scratch directory (generated network files and the like) is private to the
+/// user and named unpredictably, so nobody else can read it or make it first; it is gone
+/// once the run ends.
+#[test]
+fn the_scratch_directory_is_private_unpredictable_and_removed_at_the_end() {
+    use std::os::unix::fs::PermissionsExt;
+    let mut l = Launcher::start(&["config/missions/rover-demo.xml", "--speedup", "5"]);
+    let mission = l.event(STEP, "mission");
+    let domain = mission["domain"].as_str().expect("the domain");
+    let scratch = std::path::PathBuf::from(mission["scratch"].as_str().expect("the scratch path"));
+    let name = scratch
+        .file_name()
+        .and_then(|n| n.to_str())
+        .expect("a name")
+        .to_owned();
+    let prefix = format!("usal-run-{domain}-");
+    assert!(
+        name.starts_with(&prefix) && name.len() >= prefix.len() + 6,
+        "{name}: the domain and a random part"
+    );
+    let mode = std::fs::metadata(&scratch)
+        .expect("the scratch directory exists while the mission runs")
+        .permissions()
+        .mode();
+    assert_eq!(mode & 0o777, 0o700, "{}: mode {mode:o}", scratch.display());
+    l.expect(STEP, "vas started", |v| {
+        v["event"] == "started" && v["service"] == "air/vas"
+    });
+    l.signal("INT");
+    let status = l.wait_exit(STEP);
+    l.drain();
+    assert!(status.success(), "{status}\n{}", l.stderr_tail());
+    assert!(!scratch.exists(), "{} left behind", scratch.display());
+    assert_no_child_left(&l.pids());
+}
+
 /// `<mission security="off">`: the launcher says loudly that the run is not sealed, and so does
 /// every node of it as it opens; nothing of the mission's seal is given to them.
 #[test]

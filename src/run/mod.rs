@@ -295,13 +295,31 @@ async fn run(
         .domain
         .clone()
         .unwrap_or_else(|| format!("{}-{}", mission.name, std::process::id()));
+    // The mission's generated files (network files, keys' neighbours, the camera's obstacles):
+    // a directory only this user may enter, under a name nobody can guess or take first (a
+    // fixed name in the shared temporary directory could be made in advance by another user).
+    let scratch_dir = match tempfile::Builder::new()
+        .prefix(&format!("usal-run-{domain}-"))
+        .permissions(std::os::unix::fs::PermissionsExt::from_mode(0o700))
+        .tempdir()
+    {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!(
+                "usal: creating the mission's scratch directory in {}: {e}",
+                std::env::temp_dir().display()
+            );
+            return ExitCode::FAILURE;
+        }
+    };
+    let scratch = scratch_dir.path().to_owned();
     ui.note(
         &format!(
             "mission {} from {}, discovery domain {domain} (look inside: usal list --domain {domain})",
             mission.name,
             args.mission.display()
         ),
-        json!({"event": "mission", "name": mission.name, "domain": domain}),
+        json!({"event": "mission", "name": mission.name, "domain": domain, "scratch": scratch}),
     );
     let sealed = if mission.sealed {
         match seal::seal(&mission, &domain) {
@@ -357,7 +375,6 @@ async fn run(
     };
     let stop = CancellationToken::new();
     let signals = tokio::spawn(wait_for_signal(stop.clone(), ui.clone()));
-    let scratch = std::env::temp_dir().join(format!("usal-run-{domain}"));
     let mut sup = Supervisor::new(ui.clone());
     let mut notices = sup.subscribe();
     let station_notices: Vec<_> = stations.iter().map(|_| sup.subscribe()).collect();
