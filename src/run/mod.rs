@@ -295,9 +295,10 @@ async fn run(
         .domain
         .clone()
         .unwrap_or_else(|| format!("{}-{}", mission.name, std::process::id()));
-    // The mission's generated files (network files, keys' neighbours, the camera's obstacles):
-    // a directory only this user may enter, under a name nobody can guess or take first (a
-    // fixed name in the shared temporary directory could be made in advance by another user).
+    // The mission's generated files (network files, the camera's obstacles): a directory only
+    // this user may enter, under a name nobody can guess or take first (a fixed name in the
+    // shared temporary directory could be made in advance by another user). Removed when
+    // `scratch_dir` is dropped, on every way out of this function.
     let scratch_dir = match tempfile::Builder::new()
         .prefix(&format!("usal-run-{domain}-"))
         .permissions(std::os::unix::fs::PermissionsExt::from_mode(0o700))
@@ -429,7 +430,6 @@ async fn run(
             eprintln!("usal: {e:#}");
             sup.shutdown().await;
             signals.abort();
-            let _ = std::fs::remove_dir_all(&scratch);
             return ExitCode::FAILURE;
         }
     };
@@ -497,7 +497,6 @@ async fn run(
     }
     sup.shutdown().await;
     signals.abort();
-    let _ = std::fs::remove_dir_all(&scratch);
     code
 }
 

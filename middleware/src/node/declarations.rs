@@ -76,10 +76,9 @@ pub(crate) struct DeclarationLog {
     entries: Vec<(LoggedDeclaration, Option<usize>)>,
     /// Counter of the newest withdrawal.
     last_withdrawal: u32,
-    /// Counter of the newest declaration (or withdrawal) seen on every link.
-    last_everywhere: u32,
-    /// Counter of the newest one seen on each link, where newer than `last_everywhere`.
-    last_on_link: Vec<u32>,
+    /// While the newest entries are all hidden on one link: that link, and the counter
+    /// before them (the newest its peers were sent). Every other link saw the newest entry.
+    hidden_run: Option<(usize, u32)>,
 }
 
 /// What a peer is sent to bring it up to date: the entries after `after`, or everything with
@@ -93,13 +92,13 @@ pub(crate) struct LogView {
 
 impl DeclarationLog {
     /// Appends `decl`, hidden on `hidden_on` (a withdrawal is hidden where what it withdraws
-    /// was), for a node with `links` links. Returns the entry and the link it is hidden on.
+    /// was). Returns the entry and the link it is hidden on.
     fn push(
         &mut self,
         decl: Declaration,
         hidden_on: Option<usize>,
-        links: usize,
     ) -> (LoggedDeclaration, Option<usize>) {
+        let before = self.counter;
         self.counter += 1;
         let entry = LoggedDeclaration {
             counter: self.counter,
@@ -120,26 +119,21 @@ impl DeclarationLog {
             self.entries.push((entry.clone(), hidden_on));
             hidden_on
         };
-        match hidden_on {
-            None => self.last_everywhere = self.counter,
-            Some(hidden) => {
-                self.last_on_link
-                    .resize(links.max(self.last_on_link.len()), 0);
-                for (link, last) in self.last_on_link.iter_mut().enumerate() {
-                    if link != hidden {
-                        *last = self.counter;
-                    }
-                }
-            }
-        }
+        self.hidden_run = match (hidden_on, self.hidden_run) {
+            (Some(link), Some((run, since))) if run == link => Some((run, since)),
+            (Some(link), _) => Some((link, before)),
+            (None, _) => None,
+        };
         (entry, hidden_on)
     }
 
     /// The counter of the newest entry a peer on `link` was sent: the next push there
     /// continues from it.
     fn last_seen_on(&self, link: usize) -> u32 {
-        let on_link = self.last_on_link.get(link).copied().unwrap_or(0);
-        self.last_everywhere.max(on_link)
+        match self.hidden_run {
+            Some((run, since)) if run == link => since,
+            _ => self.counter,
+        }
     }
 
     /// Live declarations held.
@@ -250,7 +244,6 @@ impl NodeInner {
         if decls.is_empty() {
             return;
         }
-        let links = self.links().len();
         // The log stays locked while the delta is pushed: see `introduce_locked`.
         let mut log = lock(&self.local.log);
         // Each peer's batch continues from the last entry its link saw.
@@ -262,7 +255,7 @@ impl NodeInner {
             .collect();
         let pushed: Vec<_> = decls
             .into_iter()
-            .map(|(decl, hidden_on)| log.push(decl, hidden_on, links))
+            .map(|(decl, hidden_on)| log.push(decl, hidden_on))
             .collect();
         for (link, addr, after) in targets {
             let entries: Vec<LoggedDeclaration> = pushed
@@ -673,10 +666,10 @@ mod tests {
         };
         // A service coming and going a thousand times leaves nothing behind.
         for id in 1..=1000 {
-            log.push(svc(id), None, 1);
-            log.push(Declaration::Withdraw { id }, None, 1);
+            log.push(svc(id), None);
+            log.push(Declaration::Withdraw { id }, None);
         }
-        log.push(svc(5000), None, 1);
+        log.push(svc(5000), None);
         assert_eq!((log.len(), log.counter), (1, 2001));
         // A new peer: the whole (one-entry) log; it holds nothing to reset.
         let v = log.view(0, 0);
@@ -693,17 +686,17 @@ mod tests {
         // A counter from the future (a confused peer): a reset too.
         assert!(log.view(0, 9999).reset);
         // Hidden on link 1: not there at all (its counter skipped), the declaration elsewhere.
-        log.push(svc(6000), Some(1), 2);
+        log.push(svc(6000), Some(1));
         let on1 = log.view(1, 2001);
         assert_eq!((on1.upto, on1.entries.len()), (2002, 0));
         assert_eq!(log.view(0, 2001).entries[0].decl, svc(6000));
         // A push continues from the last entry the link saw: link 1 never saw 2002.
         assert_eq!((log.last_seen_on(0), log.last_seen_on(1)), (2002, 2001));
         // Its withdrawal is hidden where it was.
-        let (_, hidden) = log.push(Declaration::Withdraw { id: 6000 }, None, 2);
+        let (_, hidden) = log.push(Declaration::Withdraw { id: 6000 }, None);
         assert_eq!(hidden, Some(1));
         assert_eq!((log.last_seen_on(0), log.last_seen_on(1)), (2003, 2001));
-        log.push(svc(7000), None, 2);
+        log.push(svc(7000), None);
         assert_eq!((log.last_seen_on(0), log.last_seen_on(1)), (2004, 2004));
     }
 }

@@ -5,11 +5,13 @@
 
 use std::time::{Duration, Instant};
 
+/// Metres per degree of latitude (and of longitude at the equator).
+const M_PER_DEG: f64 = 111_319.49;
+
 /// Metres between two points (flat earth: what separates waypoints and a vehicle).
 pub(super) fn metres(a: (f64, f64), b: (f64, f64)) -> f64 {
-    let m_per_deg = 111_319.49;
-    let north = (b.0 - a.0) * m_per_deg;
-    let east = (b.1 - a.1) * m_per_deg * a.0.to_radians().cos();
+    let north = (b.0 - a.0) * M_PER_DEG;
+    let east = (b.1 - a.1) * M_PER_DEG * a.0.to_radians().cos();
     north.hypot(east)
 }
 
@@ -49,12 +51,11 @@ impl WallSpeed {
 /// of it, or past the line across the leg `radius` before it (the autopilot may switch there
 /// without coming within the radius, and position samples arrive far apart at a speed-up).
 pub(super) fn passed(from: (f64, f64), target: (f64, f64), pos: (f64, f64), radius: f64) -> bool {
-    let m_per_deg = 111_319.49;
     let cos_lat = target.0.to_radians().cos();
     let local = |p: (f64, f64)| {
         (
-            (p.0 - target.0) * m_per_deg,
-            (p.1 - target.1) * m_per_deg * cos_lat,
+            (p.0 - target.0) * M_PER_DEG,
+            (p.1 - target.1) * M_PER_DEG * cos_lat,
         )
     };
     let (pn, pe) = local(pos);
