@@ -225,7 +225,7 @@ impl NodeInner {
 
         // Add what is new: every item into the tables first, routes once, then declarations
         // (routes before declarations, as for local items).
-        let mut added: Vec<(Declaration, Option<usize>)> = Vec::new();
+        let mut added_offers: Vec<(Declaration, Option<usize>)> = Vec::new();
         for (key, w) in wanted_offers {
             if gw.offers.contains_key(&key) {
                 continue;
@@ -255,7 +255,7 @@ impl NodeInner {
                 origin: Some(w.origin.clone()),
                 hidden_on: Some(w.from_link),
             });
-            added.push((
+            added_offers.push((
                 Declaration::Offer {
                     id,
                     service: gw.service,
@@ -275,6 +275,7 @@ impl NodeInner {
                 }),
             );
         }
+        let mut added_interests: Vec<(Declaration, Option<usize>)> = Vec::new();
         {
             let mut cur = lock(&gw.interests);
             for key in wanted_interests {
@@ -296,7 +297,7 @@ impl NodeInner {
                         hidden_on: Some(key.link),
                     }),
                 );
-                added.push((
+                added_interests.push((
                     Declaration::Interest {
                         id,
                         service: gw.service,
@@ -313,23 +314,27 @@ impl NodeInner {
             self.local.offers.remove(id);
             self.local.interests.remove(id);
         }
-        if added.is_empty() && withdrawn.is_empty() {
+        if added_offers.is_empty() && added_interests.is_empty() && withdrawn.is_empty() {
             return;
         }
         tracing::debug!(
-            added = added.len(),
+            added = added_offers.len() + added_interests.len(),
             withdrawn = withdrawn.len(),
             "gateway forwarding updated"
         );
         self.recompute_routes();
-        // One batch per peer: a change of interest on one side can forward tens of items,
-        // each a message of its own over a radio otherwise.
-        let decls = withdrawn
+        // Batches, not a message per item: a change of interest on one side can forward tens
+        // of items, each a message of its own over a radio otherwise. The offers reach every
+        // peer before the interests do: an interest forwarded to a publisher brings its value
+        // or events back at once, and the offer they are forwarded under must be known by
+        // then on the other side (or they are dropped there as data for an unknown offer).
+        let offers = withdrawn
             .into_iter()
             .map(|id| (Declaration::Withdraw { id }, None))
-            .chain(added)
+            .chain(added_offers)
             .collect();
-        self.declare_all(decls);
+        self.declare_all(offers);
+        self.declare_all(added_interests);
     }
 
     /// Publishes again, on our other links, a value or event that `node` sent for its offer
