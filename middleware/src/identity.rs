@@ -22,11 +22,13 @@ use ed25519_dalek::{Signature, Signer, SigningKey, Verifier, VerifyingKey};
 
 use crate::link::auth::{hex, parse_hex, read_private, write_private_new, KeyFileError};
 use crate::xml::{LineIndex, Reader, XmlEvent};
+use zeroize::Zeroizing;
 
 /// What the signature covers, before the fields.
 const CONTEXT: &[u8] = b"usal-rs marea node identity v1\0";
 
-/// A node's identity key pair. Its `Debug` shows only the public half.
+/// A node's identity key pair. Its `Debug` shows only the public half; the secret half is
+/// wiped from memory when dropped (ed25519-dalek's key does that itself).
 pub struct IdentityKey(SigningKey);
 
 impl std::fmt::Debug for IdentityKey {
@@ -80,19 +82,22 @@ impl IdentityKey {
     /// As [`crate::link::auth::DomainKey::create_file`].
     pub fn create_files(path: &Path) -> Result<Self, KeyFileError> {
         use rand::TryRngCore;
-        let mut secret = [0u8; 32];
+        let mut secret = Zeroizing::new([0u8; 32]);
         rand::rngs::OsRng
-            .try_fill_bytes(&mut secret)
+            .try_fill_bytes(secret.as_mut())
             .map_err(|e| KeyFileError::Random {
                 path: path.to_path_buf(),
                 reason: e.to_string(),
             })?;
-        let key = IdentityKey::from_bytes(secret);
+        let key = IdentityKey::from_bytes(*secret);
         let public = Self::public_path(path);
         if public.exists() {
             return Err(KeyFileError::Exists { path: public });
         }
-        write_private_new(path, format!("{}\n", hex(&secret)).as_bytes())?;
+        write_private_new(
+            path,
+            Zeroizing::new(format!("{}\n", hex(&*secret))).as_bytes(),
+        )?;
         std::fs::write(&public, format!("{}\n", hex(&key.public()))).map_err(|source| {
             KeyFileError::Write {
                 path: public.clone(),
@@ -115,11 +120,13 @@ impl IdentityKey {
     /// [`KeyFileError`] naming the file and what is wrong.
     pub fn load(path: &Path) -> Result<Self, KeyFileError> {
         let text = read_private(path)?;
-        let secret = parse_hex::<32>(text.trim()).map_err(|reason| KeyFileError::Malformed {
-            path: path.to_path_buf(),
-            reason,
-        })?;
-        Ok(IdentityKey::from_bytes(secret))
+        let secret = Zeroizing::new(parse_hex::<32>(text.trim()).map_err(|reason| {
+            KeyFileError::Malformed {
+                path: path.to_path_buf(),
+                reason,
+            }
+        })?);
+        Ok(IdentityKey::from_bytes(*secret))
     }
 
     /// The public key.
@@ -178,6 +185,14 @@ pub enum RosterLoadError {
         /// The OS error.
         source: std::io::Error,
     },
+    /// Group or others may write the file: whoever can decides which keys own which names.
+    #[error("identities file {path} has mode {mode:03o}: group or others may write it, so they could list their own key for any namespace (chmod go-w it)")]
+    Writable {
+        /// The file.
+        path: PathBuf,
+        /// Its permission bits.
+        mode: u32,
+    },
     /// The content is wrong, at `line`:`column`.
     #[error("{path}:{line}:{column}: {reason}")]
     Invalid {
@@ -193,15 +208,28 @@ pub enum RosterLoadError {
 }
 
 impl Roster {
-    /// Reads an `identities.xml`.
+    /// Reads an `identities.xml`, refusing one that group or others may write (the mode
+    /// checked is the opened file's).
     ///
     /// # Errors
-    /// [`RosterLoadError`] with the file, line and column.
+    /// [`RosterLoadError`] naming the file, and the line and column of what is wrong in it.
     pub fn load(path: &Path) -> Result<Self, RosterLoadError> {
-        let text = std::fs::read_to_string(path).map_err(|source| RosterLoadError::Unreadable {
+        use std::io::Read;
+        use std::os::unix::fs::MetadataExt;
+        let unreadable = |source| RosterLoadError::Unreadable {
             path: path.to_path_buf(),
             source,
-        })?;
+        };
+        let mut f = std::fs::File::open(path).map_err(unreadable)?;
+        let mode = f.metadata().map_err(unreadable)?.mode() & 0o777;
+        if mode & 0o022 != 0 {
+            return Err(RosterLoadError::Writable {
+                path: path.to_path_buf(),
+                mode,
+            });
+        }
+        let mut text = String::new();
+        f.read_to_string(&mut text).map_err(unreadable)?;
         Self::parse(&text, path)
     }
 
@@ -421,5 +449,33 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("namespaces"), "{e}");
+    }
+
+    #[test]
+    fn a_roster_others_may_write_is_refused_naming_its_mode() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("identities.xml");
+        let text = format!(
+            "<identities><identity key=\"{}\" namespaces=\"a\"/></identities>",
+            hex(&[1; 32])
+        );
+        std::fs::write(&path, text).unwrap();
+        let chmod = |mode| std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode));
+        chmod(0o644).unwrap();
+        assert_eq!(Roster::load(&path).unwrap().namespaces(&[1; 32]), vec!["a"]);
+        for mode in [0o664, 0o646, 0o666] {
+            chmod(mode).unwrap();
+            let e = Roster::load(&path).unwrap_err();
+            assert!(
+                matches!(e, RosterLoadError::Writable { mode: m, .. } if m == mode),
+                "{mode:o}: {e}"
+            );
+            let text = e.to_string();
+            assert!(
+                text.contains("identities.xml") && text.contains(&format!("{mode:03o}")),
+                "{text}"
+            );
+        }
     }
 }

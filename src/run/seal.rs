@@ -108,9 +108,20 @@ fn identity(path: &Path) -> anyhow::Result<[u8; 32]> {
 
 /// Writes `text` to `path` through a temporary file renamed over it: a run of the same
 /// mission starting meanwhile reads the old file or the new, never half of one.
+/// Mode 0644 whatever the umask would add: nodes refuse a roster group or others may write.
 fn replace_file(path: &Path, text: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
     let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+    // A leftover of a crashed run of this pid would keep its mode: start afresh.
+    let _ = std::fs::remove_file(&tmp);
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o644)
+        .open(&tmp)
+        .and_then(|mut f| f.write_all(text.as_bytes()))
+        .with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 

@@ -11,9 +11,17 @@ use std::fmt;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
-/// The MAVLink 2 secret key: 32 bytes.
+use zeroize::{Zeroize, Zeroizing};
+
+/// The MAVLink 2 secret key: 32 bytes, wiped from memory when dropped.
 #[derive(Clone, PartialEq, Eq)]
 pub struct SigningKey([u8; 32]);
+
+impl Drop for SigningKey {
+    fn drop(&mut self) {
+        self.0.zeroize();
+    }
+}
 
 impl fmt::Debug for SigningKey {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -65,24 +73,30 @@ impl SigningKey {
     }
 
     /// Reads a key file: 64 hex digits (surrounding whitespace ignored) or exactly 32 raw
-    /// bytes. The file must not be accessible to group or others.
+    /// bytes. The file must not be accessible to group or others: the mode checked is the
+    /// opened file's, so swapping the path between the check and the read changes nothing.
     ///
     /// # Errors
     /// Unreadable file, group/world permissions, bad content.
     pub fn load(path: &Path) -> Result<Self, SigningKeyLoadError> {
+        use std::io::Read;
+        use std::os::unix::fs::MetadataExt;
         let read_err = |source| SigningKeyLoadError::Read {
             path: path.to_owned(),
             source,
         };
-        let meta = std::fs::metadata(path).map_err(read_err)?;
-        let mode = std::os::unix::fs::PermissionsExt::mode(&meta.permissions()) & 0o777;
+        let f = std::fs::File::open(path).map_err(read_err)?;
+        let mode = f.metadata().map_err(read_err)?.mode() & 0o777;
         if mode & 0o077 != 0 {
             return Err(SigningKeyLoadError::TooOpen {
                 path: path.to_owned(),
                 mode,
             });
         }
-        let raw = std::fs::read(path).map_err(read_err)?;
+        // A key is 64 digits and some whitespace: a larger file is not one (and is not read
+        // whole).
+        let mut raw = Zeroizing::new(Vec::with_capacity(256));
+        f.take(4096).read_to_end(&mut raw).map_err(read_err)?;
         Self::parse(&raw).ok_or_else(|| SigningKeyLoadError::BadFormat {
             path: path.to_owned(),
             len: raw.trim_ascii().len(),
@@ -92,12 +106,12 @@ impl SigningKey {
     fn parse(raw: &[u8]) -> Option<Self> {
         let text = raw.trim_ascii();
         if text.len() == 64 && text.iter().all(u8::is_ascii_hexdigit) {
-            let mut key = [0u8; 32];
+            let mut key = Self([0u8; 32]);
             for (i, pair) in text.chunks_exact(2).enumerate() {
                 let s = std::str::from_utf8(pair).ok()?;
-                key[i] = u8::from_str_radix(s, 16).ok()?;
+                key.0[i] = u8::from_str_radix(s, 16).ok()?;
             }
-            return Some(Self(key));
+            return Some(key);
         }
         <[u8; 32]>::try_from(raw).ok().map(Self)
     }

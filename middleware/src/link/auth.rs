@@ -46,6 +46,7 @@ use chacha20poly1305::aead::AeadInPlace;
 use chacha20poly1305::{ChaCha20Poly1305, KeyInit};
 
 use crate::sync::lock;
+use zeroize::{Zeroize, Zeroizing};
 
 /// Bytes of a domain key.
 pub const KEY_LEN: usize = 32;
@@ -55,9 +56,16 @@ pub const KEY_LEN: usize = 32;
 pub const WINDOW: u64 = 1024;
 const BLOCKS: usize = (WINDOW / 64) as usize;
 
-/// The secret every node of a domain shares. Its `Debug` shows nothing of it.
+/// The secret every node of a domain shares. Its `Debug` shows nothing of it; it is wiped
+/// from memory when dropped.
 #[derive(Clone, PartialEq, Eq)]
 pub struct DomainKey([u8; KEY_LEN]);
+
+impl Drop for DomainKey {
+    fn drop(&mut self) {
+        self.0.zeroize();
+    }
+}
 
 impl fmt::Debug for DomainKey {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -130,15 +138,18 @@ impl DomainKey {
     /// created; [`KeyFileError::Random`] when the OS gives no randomness.
     pub fn create_file(path: &Path) -> Result<Self, KeyFileError> {
         use rand::TryRngCore;
-        let mut bytes = [0u8; KEY_LEN];
+        let mut bytes = Zeroizing::new([0u8; KEY_LEN]);
         rand::rngs::OsRng
-            .try_fill_bytes(&mut bytes)
+            .try_fill_bytes(bytes.as_mut())
             .map_err(|e| KeyFileError::Random {
                 path: path.to_path_buf(),
                 reason: e.to_string(),
             })?;
-        write_private_new(path, format!("{}\n", hex(&bytes)).as_bytes())?;
-        Ok(DomainKey(bytes))
+        write_private_new(
+            path,
+            Zeroizing::new(format!("{}\n", hex(&*bytes))).as_bytes(),
+        )?;
+        Ok(DomainKey(*bytes))
     }
 
     /// Reads the key at `path`, refusing a file group or others may access.
@@ -147,17 +158,18 @@ impl DomainKey {
     /// [`KeyFileError::Read`], [`KeyFileError::Permissions`] or [`KeyFileError::Malformed`].
     pub fn load(path: &Path) -> Result<Self, KeyFileError> {
         let text = read_private(path)?;
-        let bytes =
-            parse_hex::<KEY_LEN>(text.trim()).map_err(|reason| KeyFileError::Malformed {
+        let bytes = Zeroizing::new(parse_hex::<KEY_LEN>(text.trim()).map_err(|reason| {
+            KeyFileError::Malformed {
                 path: path.to_path_buf(),
                 reason,
-            })?;
-        Ok(DomainKey(bytes))
+            }
+        })?);
+        Ok(DomainKey(*bytes))
     }
 
-    /// A subkey for one purpose, so no two uses share key material.
-    fn derive(&self, context: &str) -> [u8; 32] {
-        blake3::derive_key(context, &self.0)
+    /// A subkey for one purpose, so no two uses share key material (wiped when dropped).
+    fn derive(&self, context: &str) -> Zeroizing<[u8; 32]> {
+        Zeroizing::new(blake3::derive_key(context, &self.0))
     }
 }
 
@@ -186,8 +198,10 @@ pub(crate) fn write_private_new(path: &Path, content: &[u8]) -> Result<(), KeyFi
         })
 }
 
-/// Reads a secret file (at most 4 KiB), refusing one that group or others may access.
-pub(crate) fn read_private(path: &Path) -> Result<String, KeyFileError> {
+/// Reads a secret file (at most 4 KiB), refusing one that group or others may access. The
+/// permissions checked are those of the file opened (no race with a swap of the path); the
+/// text is wiped from memory when dropped.
+pub(crate) fn read_private(path: &Path) -> Result<Zeroizing<String>, KeyFileError> {
     use std::io::Read;
     use std::os::unix::fs::MetadataExt;
     let read_err = |source| KeyFileError::Read {
@@ -202,12 +216,15 @@ pub(crate) fn read_private(path: &Path) -> Result<String, KeyFileError> {
             mode,
         });
     }
-    let mut bytes = Vec::new();
+    let mut bytes = Zeroizing::new(Vec::with_capacity(4096));
     f.take(4096).read_to_end(&mut bytes).map_err(read_err)?;
-    String::from_utf8(bytes).map_err(|_| KeyFileError::Malformed {
-        path: path.to_path_buf(),
-        reason: "not text (expected hexadecimal digits)".into(),
-    })
+    match std::str::from_utf8(&bytes) {
+        Ok(text) => Ok(Zeroizing::new(text.to_owned())),
+        Err(_) => Err(KeyFileError::Malformed {
+            path: path.to_path_buf(),
+            reason: "not text (expected hexadecimal digits)".into(),
+        }),
+    }
 }
 
 /// Lowercase hex of `bytes`.
@@ -308,21 +325,28 @@ impl Profile {
     }
 }
 
-/// The keys of one profile.
+/// The keys of one profile (the MAC key is wiped when dropped, as the cipher wipes its own).
 struct Keys {
     profile: Profile,
     mac: [u8; 32],
     cipher: Option<ChaCha20Poly1305>,
 }
 
+impl Drop for Keys {
+    fn drop(&mut self) {
+        self.mac.zeroize();
+    }
+}
+
 impl Keys {
     fn new(key: &DomainKey, profile: Profile) -> Self {
-        let cipher = profile
-            .encrypt
-            .then(|| ChaCha20Poly1305::new(&key.derive("usal-rs marea serial aead v1").into()));
+        let cipher = profile.encrypt.then(|| {
+            let aead = key.derive("usal-rs marea serial aead v1");
+            ChaCha20Poly1305::new(chacha20poly1305::Key::from_slice(&aead[..]))
+        });
         Keys {
             profile,
-            mac: key.derive("usal-rs marea link mac v1"),
+            mac: *key.derive("usal-rs marea link mac v1"),
             cipher,
         }
     }
