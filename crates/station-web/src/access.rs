@@ -6,11 +6,18 @@
 //! |---|---|
 //! | `Host` missing or not allowed ([`Access::host_allowed`]) | 403 |
 //! | not GET/HEAD with an `Origin` other than `http://` + its `Host` | 403 |
-//! | `/api/*` without a token (`X-Station-Token` header, `Authorization: Bearer`, `?token=`) | 401 |
+//! | a page (not `/api/*`) with `?token=` the token | 303 to the same page without it, setting the station's cookie |
+//! | a page with `?token=` another token | 403 |
+//! | `/api/*` without a token (station cookie, `X-Station-Token` header, `Authorization: Bearer`, `?token=`) | 401 |
 //! | `/api/*` with another token | 403 |
 //!
-//! The page itself (`GET /`) needs no token: it holds no data, and reads the token from its own
-//! URL to pass it on to its API calls and its event stream.
+//! The token leaves the address bar at the first page load: the page printed as
+//! `http://ADDR/?token=TOKEN` answers with a redirect to `http://ADDR/` and an `HttpOnly`,
+//! `SameSite=Strict` cookie holding the token, which the browser then sends with every API call
+//! and the event stream (so it is neither in the history nor visible to the page's scripts).
+//! The cookie is named after the station's port ([`Access::cookie_name`]): cookies are not
+//! kept apart by port, and two stations on one host must not overwrite each other's. The pages
+//! themselves hold no data and need no token; programs use the header or `?token=`.
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
@@ -30,6 +37,7 @@ pub struct Access {
     /// Compared instead of the token itself: `blake3::Hash` equality is constant-time.
     token_hash: blake3::Hash,
     bind: IpAddr,
+    cookie_name: String,
 }
 
 impl std::fmt::Debug for Access {
@@ -42,19 +50,25 @@ impl std::fmt::Debug for Access {
 
 impl Access {
     /// A fresh random 128-bit token for a station bound to `bind`.
-    pub fn generate(bind: IpAddr) -> Self {
+    pub fn generate(bind: SocketAddr) -> Self {
         let bytes: [u8; 16] = rand::random();
         let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
         Self::with_token(bind, token)
     }
 
     /// Access with a given token (tests).
-    pub fn with_token(bind: IpAddr, token: String) -> Self {
+    pub fn with_token(bind: SocketAddr, token: String) -> Self {
         Self {
             token_hash: blake3::hash(token.as_bytes()),
             token,
-            bind,
+            bind: bind.ip(),
+            cookie_name: format!("usal_station_{}", bind.port()),
         }
+    }
+
+    /// The cookie the token is kept in once a page was opened with it: `usal_station_PORT`.
+    pub fn cookie_name(&self) -> &str {
+        &self.cookie_name
     }
 
     /// The token.
@@ -107,7 +121,13 @@ fn strip_port(host: &str) -> &str {
     }
 }
 
-fn presented_token<'a>(headers: &'a HeaderMap, query: Option<&'a str>) -> Option<&'a str> {
+/// The token a request presents: its header, bearer, the station's cookie (named `cookie`),
+/// or its `token=` query parameter, in that order.
+fn presented_token<'a>(
+    headers: &'a HeaderMap,
+    query: Option<&'a str>,
+    cookie: &str,
+) -> Option<&'a str> {
     if let Some(v) = headers.get(TOKEN_HEADER).and_then(|v| v.to_str().ok()) {
         return Some(v.trim());
     }
@@ -118,9 +138,53 @@ fn presented_token<'a>(headers: &'a HeaderMap, query: Option<&'a str>) -> Option
     {
         return Some(v.trim());
     }
+    let from_cookie = headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(';'))
+        .find_map(|pair| {
+            let (name, value) = pair.trim().split_once('=')?;
+            (name == cookie).then_some(value)
+        });
+    from_cookie.or_else(|| query_token(query))
+}
+
+/// The `token=` parameter of a query string.
+fn query_token(query: Option<&str>) -> Option<&str> {
     query?
         .split('&')
         .find_map(|pair| pair.strip_prefix("token="))
+}
+
+/// A page opened with the token in its URL: a redirect to the same page without it, setting
+/// the station's cookie; with another token, 403.
+fn token_to_cookie(access: &Access, uri: &axum::http::Uri, token: &str) -> Response {
+    if !access.token_matches(token) {
+        return crate::error(StatusCode::FORBIDDEN, "wrong station token");
+    }
+    let rest: Vec<&str> = uri
+        .query()
+        .unwrap_or_default()
+        .split('&')
+        .filter(|pair| !pair.is_empty() && !pair.starts_with("token="))
+        .collect();
+    let location = if rest.is_empty() {
+        uri.path().to_owned()
+    } else {
+        format!("{}?{}", uri.path(), rest.join("&"))
+    };
+    let cookie = format!(
+        "{}={}; Path=/; HttpOnly; SameSite=Strict",
+        access.cookie_name, access.token
+    );
+    Response::builder()
+        .status(StatusCode::SEE_OTHER)
+        .header(header::LOCATION, location)
+        .header(header::SET_COOKIE, cookie)
+        .header(header::CACHE_CONTROL, "no-store")
+        .body(axum::body::Body::empty())
+        .unwrap_or_else(|_| crate::error(StatusCode::INTERNAL_SERVER_ERROR, "redirect"))
 }
 
 async fn check(State(access): State<Arc<Access>>, req: Request, next: Next) -> Response {
@@ -144,8 +208,12 @@ async fn check(State(access): State<Arc<Access>>, req: Request, next: Next) -> R
             }
         }
     }
-    if req.uri().path().starts_with("/api/") {
-        match presented_token(headers, req.uri().query()) {
+    if !req.uri().path().starts_with("/api/") {
+        if let Some(token) = query_token(req.uri().query()) {
+            return token_to_cookie(&access, req.uri(), token);
+        }
+    } else {
+        match presented_token(headers, req.uri().query(), &access.cookie_name) {
             None => return crate::error(StatusCode::UNAUTHORIZED, "the station token is missing"),
             Some(t) if !access.token_matches(t) => {
                 return crate::error(StatusCode::FORBIDDEN, "wrong station token");
@@ -161,7 +229,7 @@ mod tests {
     use super::*;
 
     fn access(bind: [u8; 4]) -> Access {
-        Access::with_token(IpAddr::from(bind), "t0k".into())
+        Access::with_token(SocketAddr::from((bind, 8081)), "t0k".into())
     }
 
     /// A guarded router with the common routes of a fake station plus one POST route, served
@@ -185,14 +253,14 @@ mod tests {
         let router = crate::routes::<Fake>()
             .route("/api/poke", post(|| async { StatusCode::NO_CONTENT }))
             .with_state(shared);
-        let access = Arc::new(Access::with_token(addr.ip(), "s3cret".into()));
+        let access = Arc::new(Access::with_token(addr, "s3cret".into()));
         tokio::spawn(crate::serve(listener, access.guard(router), cancel.clone()));
         (addr, cancel)
     }
 
     /// Sends `head` (request line and headers, without the final blank line); the status code
-    /// and whether the answer is an event stream.
-    async fn status(addr: SocketAddr, head: &str) -> (u16, bool) {
+    /// and the answer's headers (names in lowercase).
+    async fn answer(addr: SocketAddr, head: &str) -> (u16, Vec<(String, String)>) {
         use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
         let work = async {
             let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
@@ -202,18 +270,27 @@ mod tests {
             let mut lines = BufReader::new(s).lines();
             let first = lines.next_line().await.unwrap().unwrap_or_default();
             let code = first.split_whitespace().nth(1).unwrap().parse().unwrap();
-            let mut sse = false;
+            let mut headers = Vec::new();
             while let Some(l) = lines.next_line().await.unwrap() {
-                if l.is_empty() {
+                let Some((name, value)) = l.split_once(':') else {
                     break;
-                }
-                sse |= l.eq_ignore_ascii_case("content-type: text/event-stream");
+                };
+                headers.push((name.to_ascii_lowercase(), value.trim().to_owned()));
             }
-            (code, sse)
+            (code, headers)
         };
         tokio::time::timeout(std::time::Duration::from_secs(10), work)
             .await
             .expect("answer in time")
+    }
+
+    /// The status code and whether the answer is an event stream.
+    async fn status(addr: SocketAddr, head: &str) -> (u16, bool) {
+        let (code, headers) = answer(addr, head).await;
+        let sse = headers
+            .iter()
+            .any(|(n, v)| n == "content-type" && v == "text/event-stream");
+        (code, sse)
     }
 
     #[tokio::test]
@@ -263,6 +340,48 @@ mod tests {
         cancel.cancel();
     }
 
+    #[tokio::test]
+    async fn a_page_opened_with_the_token_drops_it_from_the_url_for_a_private_cookie() {
+        let (addr, cancel) = served().await;
+        let host = format!("Host: {addr}");
+        let get = |path: &str, extra: &str| format!("GET {path} HTTP/1.1\r\n{host}{extra}");
+        let header = |headers: &[(String, String)], name: &str| {
+            headers
+                .iter()
+                .find(|(n, _)| n == name)
+                .map(|(_, v)| v.clone())
+        };
+        // The URL the station prints: answered by the page without the token, and a cookie.
+        let (code, headers) = answer(addr, &get("/?token=s3cret", "")).await;
+        assert_eq!(code, 303);
+        assert_eq!(header(&headers, "location").as_deref(), Some("/"));
+        let cookie = header(&headers, "set-cookie").expect("a cookie");
+        let name = format!("usal_station_{}", addr.port());
+        assert!(cookie.starts_with(&format!("{name}=s3cret;")), "{cookie}");
+        for attribute in ["HttpOnly", "SameSite=Strict", "Path=/"] {
+            assert!(cookie.contains(attribute), "{attribute} in {cookie}");
+        }
+        // Other parameters stay; a wrong token is refused, not turned into a cookie.
+        let (code, headers) = answer(addr, &get("/fleet?a=1&token=s3cret&b=2", "")).await;
+        assert_eq!(code, 303);
+        assert_eq!(
+            header(&headers, "location").as_deref(),
+            Some("/fleet?a=1&b=2")
+        );
+        let (code, headers) = answer(addr, &get("/?token=nope", "")).await;
+        assert_eq!(code, 403);
+        assert_eq!(header(&headers, "set-cookie"), None);
+        // The cookie opens the API and the event stream; another station's cookie does not.
+        let jar = format!("\r\nCookie: other=1; {name}=s3cret");
+        assert_eq!(status(addr, &get("/api/state", &jar)).await.0, 200);
+        assert_eq!(status(addr, &get("/api/events", &jar)).await, (200, true));
+        let wrong = format!("\r\nCookie: {name}=nope");
+        assert_eq!(status(addr, &get("/api/state", &wrong)).await.0, 403);
+        let elsewhere = "\r\nCookie: usal_station_1=s3cret";
+        assert_eq!(status(addr, &get("/api/state", elsewhere)).await.0, 401);
+        cancel.cancel();
+    }
+
     #[test]
     fn hosts_allowed_are_loopback_names_and_the_bound_address() {
         let a = access([127, 0, 0, 1]);
@@ -292,8 +411,8 @@ mod tests {
 
     #[test]
     fn tokens_are_random_128_bit_hex_and_compared_whole() {
-        let a = Access::generate(IpAddr::from([127, 0, 0, 1]));
-        let b = Access::generate(IpAddr::from([127, 0, 0, 1]));
+        let a = Access::generate(SocketAddr::from(([127, 0, 0, 1], 9)));
+        let b = Access::generate(SocketAddr::from(([127, 0, 0, 1], 9)));
         assert_eq!(a.token().len(), 32);
         assert!(a.token().bytes().all(|c| c.is_ascii_hexdigit()));
         assert_ne!(a.token(), b.token());
@@ -307,13 +426,19 @@ mod tests {
     }
 
     #[test]
-    fn the_token_is_read_from_header_bearer_or_query() {
+    fn the_token_is_read_from_header_bearer_cookie_or_query() {
         let mut h = HeaderMap::new();
-        assert_eq!(presented_token(&h, Some("a=1&token=x")), Some("x"));
-        assert_eq!(presented_token(&h, Some("a=1")), None);
+        let c = "usal_station_9";
+        assert_eq!(presented_token(&h, Some("a=1&token=x"), c), Some("x"));
+        assert_eq!(presented_token(&h, Some("a=1"), c), None);
+        h.insert(
+            header::COOKIE,
+            "usal_station_99=v; usal_station_9=w".parse().unwrap(),
+        );
+        assert_eq!(presented_token(&h, Some("token=x"), c), Some("w"));
         h.insert(header::AUTHORIZATION, "Bearer y".parse().unwrap());
-        assert_eq!(presented_token(&h, None), Some("y"));
+        assert_eq!(presented_token(&h, None, c), Some("y"));
         h.insert(TOKEN_HEADER, "z".parse().unwrap());
-        assert_eq!(presented_token(&h, Some("token=x")), Some("z"));
+        assert_eq!(presented_token(&h, Some("token=x"), c), Some("z"));
     }
 }

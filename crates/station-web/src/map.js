@@ -19,7 +19,7 @@ const latTile = (lat, z) => {
 const mapEsc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
 
 class StationMap {
-  // opts: withToken(url) (the station's token on /api/ URLs), legend and status (elements),
+  // opts: legend and status (elements),
   // onClick(lat, lon), underlay(map) and overlay(map) (the page's own drawing, under the layers
   // and over them), format(metres) and unitMetres() (the page's length unit).
   constructor(canvas, opts = {}) {
@@ -33,8 +33,7 @@ class StationMap {
     this.tilesShown = true;
     this.tileImgs = new Map();
     this.drag = null;
-    const wt = opts.withToken || ((u) => u);
-    fetch(wt("/api/map")).then((r) => r.json()).then((c) => { this.tiles = c.tiles; this.draw(); })
+    fetch("/api/map").then((r) => r.json()).then((c) => { this.tiles = c.tiles; this.draw(); })
       .catch(() => { this.tiles = null; this.draw(); });
     canvas.addEventListener("wheel", (e) => {
       e.preventDefault();
@@ -158,7 +157,6 @@ class StationMap {
     const y0 = Math.max(0, latTile(n, z)), y1 = Math.min(last, latTile(s, z));
     if ((x1 - x0 + 1) * (y1 - y0 + 1) > 300) return [0, 0, 0];
     if (this.tileImgs.size > 600) this.tileImgs.clear();
-    const wt = this.opts.withToken || ((u) => u);
     let drawn = 0, failed = 0, wanted = 0;
     for (let x = x0; x <= x1; x++) for (let y = y0; y <= y1; y++) {
       const key = `${z}/${x}/${y}`;
@@ -167,7 +165,7 @@ class StationMap {
         im = new Image();
         im.onload = () => this.draw();
         im.onerror = () => { im.failed = true; this.draw(); };
-        im.src = wt(t.url.replace("{z}", z).replace("{x}", x).replace("{y}", y));
+        im.src = t.url.replace("{z}", z).replace("{x}", x).replace("{y}", y);
         this.tileImgs.set(key, im);
       }
       wanted++;

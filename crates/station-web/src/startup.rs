@@ -145,7 +145,7 @@ pub async fn bind(listen: SocketAddr, url_var: &str) -> anyhow::Result<(Listener
         .await
         .with_context(|| format!("listening on {listen}"))?;
     let addr = tcp.local_addr().context("local address")?;
-    let access = Arc::new(Access::generate(addr.ip()));
+    let access = Arc::new(Access::generate(addr));
     print_url(url_var, &access.url(addr));
     Ok((Listener { tcp, access }, addr))
 }

@@ -149,7 +149,14 @@ async fn scenario() {
     let (status, page) = fmo.get("/").await;
     assert_eq!(status, 200);
     assert!(page.contains("FMo — Flight Monitor"));
-    assert!(page.contains("EventSource(withToken(\"/api/events\"))"));
+    assert!(page.contains("EventSource(\"/api/events\")"));
+    // The URL it printed moves its token into a cookie, which then opens the API.
+    let (status, _) = request(&fmo.addr, "GET", &fmo.with_token("/"), None).await;
+    assert_eq!(status, 303, "the token leaves the URL");
+    let port = fmo.addr.rsplit(':').next().unwrap();
+    let cookie = format!("Cookie: usal_station_{port}={}\r\n", fmo.token);
+    let (status, _) = request_with(&fmo.addr, "GET", "/api/state", None, &cookie).await;
+    assert_eq!(status, 200, "the station's cookie");
 
     // The real binary guards its API: no token, a wrong one, a cross-origin POST refused.
     let (status, _) = request(&fmo.addr, "GET", "/api/state", None).await;
