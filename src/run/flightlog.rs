@@ -7,7 +7,9 @@
 //! JSON lines, one record per line, gzip-compressed when the file name ends in `.gz` (the
 //! default, `logs/<mission>-<UTC>.jsonl.gz`), plain otherwise. `zcat LOG | jq .` reads it.
 //! The writer flushes the compressed stream every second, so the log of a run that was killed
-//! is readable up to its last second (its missing gzip trailer is then reported as truncation).
+//! is readable up to its last second (its missing gzip trailer is then reported as truncation),
+//! and has the file written to the disk itself (fsync) every five seconds, so a power cut (a
+//! crash landing with the ground station's battery) loses at most that much.
 //!
 //! The first line is the header:
 //! ```json
@@ -53,8 +55,10 @@ use tokio_util::sync::CancellationToken;
 pub const FORMAT: &str = "usal-flight-log";
 /// The format version written, and the newest read.
 pub const VERSION: u64 = 1;
-/// How often the writer flushes the compressed stream to disk.
+/// How often the writer flushes the compressed stream to the OS.
 const FLUSH_EVERY: Duration = Duration::from_secs(1);
+/// How often the recorder has the OS write the file to the disk itself.
+const SYNC_EVERY: Duration = Duration::from_secs(5);
 /// How long the recorder goes on after the run ends, for values already on their way.
 const LAST_WORDS: Duration = Duration::from_millis(500);
 
@@ -124,6 +128,8 @@ pub struct FlightLog {
     path: PathBuf,
     start: Instant,
     out: Mutex<Option<Box<dyn Write + Send>>>,
+    /// The file under `out`, to have it written to the disk without holding `out`.
+    file: std::fs::File,
     last_flush: Mutex<Instant>,
     records: AtomicU64,
     /// The first write error, reported at the end rather than on every record.
@@ -159,6 +165,7 @@ impl FlightLog {
             }
             Err(e) => return Err(io(e)),
         };
+        let synced = file.try_clone().map_err(io)?;
         let buffered = BufWriter::new(file);
         let mut out: Box<dyn Write + Send> = if is_gz(path) {
             Box::new(GzEncoder::new(buffered, flate2::Compression::default()))
@@ -183,6 +190,7 @@ impl FlightLog {
             path: path.to_owned(),
             start: Instant::now(),
             out: Mutex::new(Some(out)),
+            file: synced,
             last_flush: Mutex::new(Instant::now()),
             records: AtomicU64::new(0),
             failed: Mutex::new(None),
@@ -237,7 +245,7 @@ impl FlightLog {
         }
     }
 
-    /// Flushes what was recorded to disk.
+    /// Flushes what was recorded to the OS (a crash of this process loses none of it).
     pub fn flush(&self) {
         let mut out = marea::sync::lock(&self.out);
         if let Some(w) = out.as_mut() {
@@ -246,6 +254,16 @@ impl FlightLog {
                 marea::sync::lock(&self.failed)
                     .get_or_insert_with(|| format!("writing {}: {e}", self.path.display()));
             }
+        }
+    }
+
+    /// Flushes, then has the OS write the file to the disk itself (a power cut loses none of
+    /// it). Blocks for as long as the disk takes, without holding up records meanwhile.
+    pub fn sync_to_disk(&self) {
+        self.flush();
+        if let Err(e) = self.file.sync_data() {
+            marea::sync::lock(&self.failed)
+                .get_or_insert_with(|| format!("writing {} to disk: {e}", self.path.display()));
         }
     }
 
@@ -264,6 +282,10 @@ impl FlightLog {
                     .get_or_insert_with(|| format!("writing {}: {e}", self.path.display()));
             }
             drop(w);
+            if let Err(e) = self.file.sync_all() {
+                marea::sync::lock(&self.failed)
+                    .get_or_insert_with(|| format!("writing {} to disk: {e}", self.path.display()));
+            }
         }
         match marea::sync::lock(&self.failed).clone() {
             Some(e) => Err(e),
@@ -398,7 +420,7 @@ pub fn interests(prefixes: &[String], radio: bool) -> Vec<Interest> {
 }
 
 /// Records every value matching `interests` from a node of its own joined with `config`,
-/// until `stop`; flushes the log every second.
+/// until `stop`; flushes the log every second and has it written to the disk every five.
 ///
 /// # Errors
 /// Joining the network or declaring an interest failed.
@@ -449,10 +471,20 @@ pub async fn record_items(
     }
     let mut tick = tokio::time::interval(FLUSH_EVERY);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut synced = Instant::now();
     loop {
         tokio::select! {
             () = stop.cancelled() => break,
-            _ = tick.tick() => log.flush(),
+            _ = tick.tick() => {
+                if synced.elapsed() >= SYNC_EVERY {
+                    synced = Instant::now();
+                    let log = log.clone();
+                    // fsync can take the disk's time: off the runtime's workers.
+                    let _ = tokio::task::spawn_blocking(move || log.sync_to_disk()).await;
+                } else {
+                    log.flush();
+                }
+            }
         }
     }
     tokio::time::sleep(LAST_WORDS).await;
@@ -691,6 +723,33 @@ mod tests {
         };
         assert!(matches!(err, FlightLogReadError::Truncated { .. }), "{err}");
         assert!(err.to_string().contains("after line"), "{err}");
+    }
+
+    #[test]
+    fn what_was_synced_to_disk_reads_back_before_the_log_is_finished() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("live.jsonl.gz");
+        let log = FlightLog::create(&path, "m", Path::new("m.xml"), "d").unwrap();
+        for i in 0..10 {
+            log.record("note", json!({"i": i}));
+        }
+        log.sync_to_disk();
+        // Read as a pilot would after a power cut: every synced record, then the cut.
+        let (mut r, _) = LogReader::open(&path).unwrap();
+        let mut seen = Vec::new();
+        let end = loop {
+            match r.next_record() {
+                Ok(Some(rec)) => seen.push(rec.fields["i"].as_u64().unwrap()),
+                Ok(None) => break None,
+                Err(e) => break Some(e),
+            }
+        };
+        assert_eq!(seen, (0..10).collect::<Vec<_>>());
+        assert!(
+            matches!(end, Some(FlightLogReadError::Truncated { .. })),
+            "no trailer yet: {end:?}"
+        );
+        assert_eq!(log.finish().unwrap(), 11);
     }
 
     #[test]
