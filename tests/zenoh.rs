@@ -400,7 +400,7 @@ fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
     let dir = tempfile::tempdir().unwrap();
     let tls = dir.path().join("tls");
     let endpoint = format!("tls/127.0.0.1:{port}");
-    let (_router, listening) =
+    let (router, listening) =
         router_on(&endpoint, &["--tls-dir".into(), tls.display().to_string()]);
     let client = tls.join("client.json5");
     assert_eq!(
@@ -426,7 +426,7 @@ fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
         .unwrap();
         path
     };
-    let _publisher = probe_with_config(
+    let publisher = probe_with_config(
         "air",
         &xml("air", &trusted),
         "vas",
@@ -442,6 +442,23 @@ fn nodes_meet_over_tls_with_the_routers_certificates_and_others_cannot_join() {
     );
     let got = sub.expect(T, "a position over TLS", |v| v.get("seq").is_some());
     assert_eq!(got["name"], "air/vas/position", "{got}");
+    // Zenoh's TLS link reads and writes one connection from two tasks (zenoh#2557): on two
+    // threads that corrupted it and crashed routers under load. The router and the nodes run
+    // Zenoh's I/O on one thread (its `app` runtime), with no `rx-*`/`tx-*` threads of its own.
+    for (what, pid) in [("router", router.pid()), ("node", publisher.pid())] {
+        let names: Vec<String> = std::fs::read_dir(format!("/proc/{pid}/task"))
+            .unwrap()
+            .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("comm")).ok())
+            .map(|n| n.trim().to_owned())
+            .collect();
+        assert!(
+            names.iter().any(|n| n.starts_with("app-"))
+                && !names
+                    .iter()
+                    .any(|n| n.starts_with("rx-") || n.starts_with("tx-")),
+            "{what}'s threads: {names:?}"
+        );
+    }
 
     // No trust in the authority (and a short wait for the router, to fail soon).
     let untrusting = dir.path().join("untrusting.json5");

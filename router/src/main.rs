@@ -60,9 +60,32 @@ struct Args {
     json: bool,
 }
 
-#[tokio::main]
-async fn main() -> ExitCode {
+fn main() -> ExitCode {
     let args = Args::parse();
+    // Before any thread or Zenoh session exists: see `serialize_zenoh_io` (Zenoh's TLS link is
+    // unsound on two threads, and a router serving TLS is where it crashed). A configuration
+    // file may ask for TLS too.
+    let tls = args.tls_dir.is_some()
+        || args.config.is_some()
+        || args
+            .listen
+            .iter()
+            .chain(&args.connect)
+            .any(|e| e.starts_with("tls/"));
+    if tls {
+        marea::link::zenoh::serialize_zenoh_io();
+    }
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("usal-router: cannot start the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(run_main(args))
+}
+
+async fn run_main(args: Args) -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),

@@ -102,6 +102,41 @@ pub enum ZenohLinkOpenError {
     },
 }
 
+/// What [`serialize_zenoh_io`] sets `ZENOH_RUNTIME` to: every Zenoh runtime handed over to its
+/// application runtime, of one worker thread.
+pub const ZENOH_RUNTIME_ONE_THREAD: &str = "(rx: (handover: app), tx: (handover: app), acc: (handover: app), net: (handover: app), app: (worker_threads: 1))";
+
+/// Whether a Zenoh configuration connects or listens over TLS.
+pub fn uses_tls(config: &zenoh::Config) -> bool {
+    ["connect/endpoints", "listen/endpoints"]
+        .iter()
+        .any(|key| config.get_json(key).is_ok_and(|v| v.contains("tls/")))
+}
+
+/// Has Zenoh run its network I/O on one thread (`ZENOH_RUNTIME` =
+/// [`ZENOH_RUNTIME_ONE_THREAD`]), unless the environment already says how it should run.
+///
+/// Zenoh 1.10's TLS link reads and writes one TLS connection from two tasks at once, through
+/// an `UnsafeCell` (eclipse-zenoh/zenoh#2557): on two threads they corrupt the connection's
+/// state, and a router under load died of SIGSEGV inside rustls (3 routers of 6 runs of
+/// `launcher::the_rover_wan_failsafe_mission_completes_across_a_router_restart_and_an_outage`
+/// under two CPU hogs; none of 9 on one thread). On one thread the two tasks take turns. Zenoh
+/// reads the variable when a process opens its first session: a later call changes nothing.
+/// Returns whether it set the variable.
+pub fn serialize_zenoh_io() -> bool {
+    static SET: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *SET.get_or_init(|| {
+        if std::env::var_os("ZENOH_RUNTIME").is_some() {
+            return false;
+        }
+        std::env::set_var("ZENOH_RUNTIME", ZENOH_RUNTIME_ONE_THREAD);
+        tracing::debug!(
+            "Zenoh's network I/O on one thread (its TLS link is unsound on two: zenoh#2557)"
+        );
+        true
+    })
+}
+
 /// Largest datagram the link builds: Zenoh fragments it on the wire, and a datagram is what the
 /// ARQ resends whole after a loss (only a router restart or an outage loses one).
 const DATAGRAM_MAX: usize = 32 * 1024;
@@ -266,6 +301,9 @@ impl DatagramLink<ZenohMedium> {
             },
             reason: e.to_string(),
         };
+        if uses_tls(&config) {
+            serialize_zenoh_io();
+        }
         let session = zenoh::open(config).await.map_err(session_err)?;
         let me: u64 = rand::random();
         let prefix = format!("usal/{}/@marea", options.domain);
