@@ -123,6 +123,64 @@ async fn events_variables_and_calls_of_any_size_cross_a_gateway_from_shm_onto_ud
     }
 }
 
+/// A command does not wait behind a camera's frames: a call made while 64 MiB of frames are
+/// queued towards its provider is answered before the last of them arrives, and every frame
+/// still arrives whole, once, in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_call_passes_the_frames_queued_before_it() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+    const FRAMES: usize = 16;
+    const FRAME: usize = 4 << 20;
+    let domain = format!("large-urgent-{}", std::process::id());
+    let vehicle = Node::open(&udp("vehicle", &domain)).await.unwrap();
+    let ground = Node::open(&udp("ground", &domain)).await.unwrap();
+    let cam = vehicle.service("cam").unwrap();
+    let gs = ground.service("gs").unwrap();
+    let arrived = Arc::new(AtomicUsize::new(0));
+    let out_of_order = Arc::new(AtomicUsize::new(0));
+    let (a, o) = (arrived.clone(), out_of_order.clone());
+    let _frames = gs
+        .subscribe_event_with::<Vec<u8>, _>("cam/frame", move |s| {
+            let Ok(s) = s else { return };
+            let n = a.fetch_add(1, Ordering::SeqCst);
+            let index = u64::from_le_bytes(s.value[..8].try_into().unwrap());
+            if index != n as u64 || s.value.len() != FRAME {
+                o.fetch_add(1, Ordering::SeqCst);
+            }
+        })
+        .unwrap();
+    let _ping = gs
+        .provide_function("ping", |x: u32| async move { Ok::<u32, String>(x + 1) })
+        .unwrap();
+    let ev = cam.publish_event::<Vec<u8>>("frame").unwrap();
+    let ping = cam.function::<u32, u32>("gs/ping").unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "no subscriber");
+    assert!(ping.wait_provider(T).await, "no provider");
+    let pending: Vec<_> = (0..FRAMES as u64)
+        .map(|i| {
+            let mut frame = vec![0x5a; FRAME];
+            frame[..8].copy_from_slice(&i.to_le_bytes());
+            ev.raise_nowait(&frame).unwrap()
+        })
+        .collect();
+    assert_eq!(ping.call(&7, T).await.expect("the call"), 8);
+    let before = arrived.load(Ordering::SeqCst);
+    assert!(
+        before < FRAMES,
+        "the call was answered only after all {FRAMES} frames queued before it"
+    );
+    for p in pending {
+        let report = tokio::time::timeout(T, p).await.expect("frames delivered");
+        assert!(report.all_acknowledged(), "{report:?}");
+    }
+    assert_eq!(arrived.load(Ordering::SeqCst), FRAMES, "every frame once");
+    assert_eq!(out_of_order.load(Ordering::SeqCst), 0, "whole and in order");
+    eprintln!("the call was answered after {before} of {FRAMES} frames");
+    vehicle.shutdown().await;
+    ground.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_payload_over_the_limit_is_refused_at_once_naming_its_size_and_the_limit() {
     let domain = format!("large-limit-{}", std::process::id());

@@ -179,6 +179,8 @@ pub struct ArqSender<T> {
     session_acked: bool,
     next_seq: u32,
     in_flight: VecDeque<InFlight<T>>,
+    /// Bytes of the messages in flight not acknowledged yet.
+    in_flight_bytes: usize,
     /// Latest send time among acknowledged messages (time-based loss detection: a message
     /// sent before one that was acknowledged is lost once a round trip has passed).
     latest_acked_sent: Option<Instant>,
@@ -210,6 +212,7 @@ impl<T> ArqSender<T> {
             session_acked: false,
             next_seq: 0,
             in_flight: VecDeque::new(),
+            in_flight_bytes: 0,
             latest_acked_sent: None,
             rto: RtoEstimator::new(config.initial_rto, config.min_rto, config.max_rto),
             cwnd: f64::from(config.initial_window.min(config.max_window)),
@@ -247,10 +250,16 @@ impl<T> ArqSender<T> {
         self.in_flight.len()
     }
 
+    /// Bytes of the messages in flight that are not acknowledged yet.
+    pub fn in_flight_bytes(&self) -> usize {
+        self.in_flight_bytes
+    }
+
     /// Registers `msg` as sent now and returns its sequence number.
     pub fn push(&mut self, now: Instant, msg: Vec<u8>, token: Option<T>) -> u32 {
         let seq = self.next_seq;
         self.next_seq = self.next_seq.wrapping_add(1);
+        self.in_flight_bytes += msg.len();
         self.in_flight.push_back(InFlight {
             seq,
             msg,
@@ -364,6 +373,7 @@ impl<T> ArqSender<T> {
                 irregular_acked += 1;
             }
             f.acked = true;
+            self.in_flight_bytes = self.in_flight_bytes.saturating_sub(f.msg.len());
             newly += 1;
             if f.transmissions == 1 && newest_sent_once.is_none_or(|t| f.sent_at > t) {
                 newest_sent_once = Some(f.sent_at);

@@ -189,6 +189,14 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
         let _ = (msg, waited);
     }
+    /// Whether a safe message of ours may pass large ones queued before it (a command must
+    /// not wait behind a camera frame): a link that sends large messages in parts sends it
+    /// ahead of the parts still waiting and of what waits behind them. Other safe messages
+    /// keep the order they were sent in.
+    fn is_urgent(&self, msg: &[u8]) -> bool {
+        let _ = msg;
+        false
+    }
     /// Several messages from `from`, in order (a datagram's): a handler may take them as one
     /// batch.
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {

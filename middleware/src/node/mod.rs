@@ -498,6 +498,13 @@ impl LinkHandler for Handler {
         calls::age_call(msg, waited);
     }
 
+    /// Calls, replies and flow control pass bulk data: no order is promised between them and
+    /// events or files, and a command must not wait behind a camera frame.
+    fn is_urgent(&self, msg: &[u8]) -> bool {
+        use crate::protocol::tag;
+        matches!(msg.first(), Some(&(tag::CALL | tag::REPLY | tag::FLOW)))
+    }
+
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         if let Some(n) = self.node() {
             n.dispatch_all(link, from, msgs);

@@ -100,6 +100,21 @@ const PART_HEADROOM: usize = 48;
 /// fast stream.
 const SPARE_BUFFERS: usize = 4;
 
+/// A safe message waiting to leave: its bytes, its completion, since when it waits.
+type QueuedSafe = (Vec<u8>, Option<SafeCompletion>, Option<Instant>);
+
+/// Bytes in flight (sent, unacknowledged) past which the parts of large messages wait while
+/// urgent messages pass them ([`URGENT_RECENT`]): whatever is in flight is ahead of an urgent
+/// message on its way, so the less, the sooner it arrives; the more, the faster bulk data
+/// flows. Measured on loopback (`peers` bench, `rtt64_under_load`: 64 B calls under a stream
+/// of 4 MiB frames), call p99 over idle p99 and the stream's rate meanwhile: 256 KiB, 8.3-8.7×
+/// and 550-760 MB/s; 1 MiB, 17× and 760-910 MB/s; 4 MiB, 245× and 960 MB/s. With no urgent
+/// message about only the window limits bulk data (`blob1m`, 1 MiB events alone: 1.1-1.25×
+/// Zenoh's rate, as before the limit).
+const BULK_IN_FLIGHT: usize = 256 << 10;
+/// How long after an urgent message passed bulk data [`BULK_IN_FLIGHT`] holds.
+const URGENT_RECENT: Duration = Duration::from_secs(1);
+
 struct PeerState {
     tx: ArqSender<SafeCompletion>,
     rx: ArqReceiver,
@@ -109,8 +124,13 @@ struct PeerState {
     /// Safe messages waiting for the window, each with when it started waiting when that can
     /// be long (the window was full or others waited): it leaves aged by that wait
     /// ([`LinkHandler::age_safe`]), so a call queued behind a slow peer carries its caller's
-    /// time left, not its time at the queue's door.
-    safe: VecDeque<(Vec<u8>, Option<SafeCompletion>, Option<Instant>)>,
+    /// time left, not its time at the queue's door. They leave before those of `bulk`.
+    safe: VecDeque<QueuedSafe>,
+    /// The parts of messages larger than a datagram, and every safe message sent after them
+    /// while they wait, but urgent ones ([`LinkHandler::is_urgent`]), which go to `safe` and
+    /// so pass them. Order is kept everywhere else: a message goes to `safe` only while `bulk`
+    /// is empty. Parts leave only while less than [`BULK_IN_FLIGHT`] bytes are unacknowledged.
+    bulk: VecDeque<QueuedSafe>,
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
     /// Buffers of datagrams sent, for the next ones (at most [`SPARE_BUFFERS`]).
@@ -128,6 +148,8 @@ struct PeerState {
     safe_bytes: usize,
     /// The peer's message being joined from its parts ([`parts`]).
     joiner: parts::Joiner,
+    /// When an urgent message last passed bulk data ([`BULK_IN_FLIGHT`]).
+    urgent_at: Option<Instant>,
 }
 
 impl PeerState {
@@ -138,6 +160,7 @@ impl PeerState {
             fast: CoalescingQueue::new(MAX_FAST_QUEUE),
             fast_bytes: 0,
             safe: VecDeque::new(),
+            bulk: VecDeque::new(),
             blocked: VecDeque::new(),
             spare: Vec::new(),
             last_write: None,
@@ -146,14 +169,29 @@ impl PeerState {
             bound: false,
             safe_bytes: 0,
             joiner: parts::Joiner::default(),
+            urgent_at: None,
         }
     }
 
     fn has_work(&self) -> bool {
         !self.fast.is_empty()
             || (!self.safe.is_empty() && self.tx.can_push())
+            || (self.bulk_may_leave() && !self.bulk.is_empty())
             || self.rx.ack_pending()
             || !self.blocked.is_empty()
+    }
+
+    /// Whether the next of `bulk` may leave now: the window admits it, and while urgent
+    /// messages pass bulk data, less than [`BULK_IN_FLIGHT`] bytes are in flight.
+    fn bulk_may_leave(&self) -> bool {
+        self.tx.can_push()
+            && (self.tx.in_flight_bytes() < BULK_IN_FLIGHT
+                || self.urgent_at.is_none_or(|t| t.elapsed() >= URGENT_RECENT))
+    }
+
+    /// Safe messages queued, not yet in flight.
+    fn safe_queued(&self) -> usize {
+        self.safe.len() + self.bulk.len()
     }
 }
 
@@ -194,7 +232,7 @@ impl<M: Medium> DatagramLink<M> {
             let p = lock(&p);
             let rtt = p.tx.rto().srtt().map_or(0, |d| d.as_micros() as u64);
             g.rtt_us = g.rtt_us.max(rtt);
-            g.safe_queued += (p.safe.len() + p.tx.in_flight()) as u64;
+            g.safe_queued += (p.safe_queued() + p.tx.in_flight()) as u64;
             g.fast_queued += p.fast.len() as u64;
         }
         g
@@ -371,8 +409,17 @@ impl<M: Medium> DatagramLink<M> {
                 push_safe(&mut w, &mut out, &mut carries_safe, seq, msg);
             }
         }
-        while st.tx.can_push() {
-            let Some((mut msg, done, queued)) = st.safe.pop_front() else {
+        loop {
+            let next = if !st.tx.can_push() {
+                None
+            } else if let Some(m) = st.safe.pop_front() {
+                Some(m)
+            } else if st.bulk_may_leave() {
+                st.bulk.pop_front()
+            } else {
+                None
+            };
+            let Some((mut msg, done, queued)) = next else {
                 break;
             };
             st.safe_bytes = st.safe_bytes.saturating_sub(queued_safe_cost(msg.len()));
@@ -648,7 +695,7 @@ impl<M: Medium> DatagramLink<M> {
                 self.counters.corrupt.fetch_add(1, Ordering::Relaxed);
                 tracing::warn!(
                     link = %self.name, %from, ?why,
-                    "a message sent in parts was dropped (larger than {} bytes, or cut)",
+                    "a message sent in parts was dropped (larger than {} bytes)",
                     crate::protocol::MAX_MESSAGE
                 );
             }
@@ -784,7 +831,8 @@ fn queued_safe_cost(len: usize) -> usize {
 
 fn fail_all(st: &mut PeerState, err: LinkSendError) {
     st.safe_bytes = 0;
-    for (_, done, _) in st.safe.drain(..) {
+    let queued: Vec<QueuedSafe> = st.safe.drain(..).chain(st.bulk.drain(..)).collect();
+    for (_, done, _) in queued {
         if let Some(d) = done {
             let _ = d.send(Err(err.clone()));
         }
@@ -817,17 +865,24 @@ impl<M: Medium> Link for DatagramLink<M> {
         let Some(p) = self.peer(addr, true) else {
             return out.refuse(addr);
         };
-        let mut st = lock(&p);
         // A message larger than a datagram goes in parts, reliably (a fast one too: a lost
-        // part would lose the whole).
+        // part would lose the whole). Split before the session is locked: copying a camera
+        // frame into its parts takes a while, and a call to the same peer must not wait for it.
         let room = self.part_room(addr);
         let out = match out {
             Outgoing::Fast { msg, .. } if msg.len() > room => Outgoing::Safe { msg, done: None },
             out => out,
         };
+        let parts = match &out {
+            Outgoing::Safe { msg, .. } if msg.len() > room => Some(parts::split(msg, room)),
+            _ => None,
+        };
+        let mut st = lock(&p);
         // The clock is read only where it is needed (a safe message behind a full window,
         // the common case of a fast event stream, needs none).
         let safe = matches!(out, Outgoing::Safe { .. });
+        // A message passing bulk data leaves at once, not gathered for the next acknowledgement.
+        let mut urgent = false;
         match out {
             Outgoing::Fast { coalesce, msg } => {
                 let cost = DatagramWriter::fast_cost(msg.len());
@@ -854,26 +909,33 @@ impl<M: Medium> Link for DatagramLink<M> {
                 st.fast_bytes += cost;
             }
             Outgoing::Safe { msg, done } => {
-                if !st.bound && st.safe.len() + st.tx.in_flight() >= MAX_UNBOUND_SAFE {
+                if !st.bound && st.safe_queued() + st.tx.in_flight() >= MAX_UNBOUND_SAFE {
                     drop(st);
                     return Outgoing::Safe { msg, done }.refuse(addr);
                 }
                 // Only a message that may wait reads the clock: one behind others, or gathered
                 // for the acknowledgement of one in flight (or behind a full window).
-                let queued = (st.tx.in_flight() > 0 || !st.safe.is_empty()).then(Instant::now);
-                if msg.len() > room {
+                let queued = (st.tx.in_flight() > 0 || st.safe_queued() > 0).then(Instant::now);
+                if let Some(parts) = parts {
                     // Told when its last part is acknowledged.
-                    let parts = parts::split(&msg, room);
                     let last = parts.len() - 1;
                     let mut done = done;
                     for (k, part) in parts.into_iter().enumerate() {
                         st.safe_bytes += queued_safe_cost(part.len());
                         let done = if k == last { done.take() } else { None };
-                        st.safe.push_back((part, done, queued));
+                        st.bulk.push_back((part, done, queued));
                     }
                 } else {
+                    urgent = !st.bulk.is_empty() && self.handler.is_urgent(&msg);
+                    if urgent {
+                        st.urgent_at = Some(Instant::now());
+                    }
                     st.safe_bytes += queued_safe_cost(msg.len());
-                    st.safe.push_back((msg, done, queued));
+                    if st.bulk.is_empty() || urgent {
+                        st.safe.push_back((msg, done, queued));
+                    } else {
+                        st.bulk.push_back((msg, done, queued));
+                    }
                 }
             }
         }
@@ -883,7 +945,7 @@ impl<M: Medium> Link for DatagramLink<M> {
             // transmit task for it cost a futex wake-up per raise in a fast event stream.
             return;
         }
-        if safe && self.gathers_safe(addr, &st) {
+        if safe && !urgent && self.gathers_safe(addr, &st) {
             return;
         }
         let now = Instant::now();

@@ -1,6 +1,7 @@
-//! Messages larger than one datagram: sent as consecutive safe messages, its *parts*, and joined
-//! again by the receiver. The ARQ delivers a session's safe messages once each and in order,
-//! so a message's parts arrive one after the other, with the safe class's guarantees.
+//! Messages larger than one datagram: sent as safe messages, its *parts*, and joined again by
+//! the receiver. The ARQ delivers a session's safe messages once each and in order, so a
+//! message's parts arrive in order, with the safe class's guarantees; urgent whole messages
+//! (a call passing a camera frame) may come between two parts, never another message's parts.
 //!
 //! ```text
 //! part := 0xFE bytes    a part, more follow
@@ -44,9 +45,6 @@ pub fn split(msg: &[u8], room: usize) -> Vec<Vec<u8>> {
 pub enum JoinDrop {
     /// The message grew past the largest one taken: its parts are dropped up to its last.
     TooLarge,
-    /// A whole message, or a session's first part, came while a message was being joined:
-    /// the parts so far are dropped (a sender that restarted its session mid-message).
-    Cut,
 }
 
 /// Joins the parts of one session's messages.
@@ -59,8 +57,9 @@ pub struct Joiner {
 
 impl Joiner {
     /// Takes the next safe message in order; returns the whole message when `m` completes
-    /// one (or is one), and what was dropped on the way, if anything. Messages larger than
-    /// `max` bytes are dropped.
+    /// one (or is one: it passes a message being joined), and what was dropped on the way, if
+    /// anything. Messages larger than `max` bytes are dropped. A sender that restarts its
+    /// session mid-message is the caller's to notice ([`Joiner::reset`]).
     pub fn take<'a>(
         &mut self,
         m: Cow<'a, [u8]>,
@@ -68,9 +67,7 @@ impl Joiner {
     ) -> (Option<Cow<'a, [u8]>>, Option<JoinDrop>) {
         let marker = m.first().copied();
         if !is_part(&m) {
-            let cut = (!self.buf.is_empty() || self.dropping).then_some(JoinDrop::Cut);
-            self.reset();
-            return (Some(m), cut);
+            return (Some(m), None);
         }
         let last = marker == Some(PART_LAST);
         if self.dropping {
@@ -158,13 +155,28 @@ mod tests {
     }
 
     #[test]
-    fn a_whole_message_cuts_a_message_left_unfinished() {
+    fn whole_messages_pass_between_the_parts_of_one_being_joined() {
         let mut j = Joiner::default();
-        let mut parts = split(&[3u8; 40], 16);
-        parts.pop();
-        assert!(join_all(&mut j, parts, 100).is_empty());
-        let (out, drop) = j.take(Cow::Owned(vec![crate::protocol::tag::VAR]), 100);
-        assert_eq!(out.as_deref(), Some(&[crate::protocol::tag::VAR][..]));
-        assert_eq!(drop, Some(JoinDrop::Cut));
+        let big: Vec<u8> = (0..40u8).collect();
+        let call = vec![crate::protocol::tag::CALL, 9];
+        let mut parts = split(&big, 16).into_iter();
+        let mut got = join_all(&mut j, parts.by_ref().take(2).collect(), 100);
+        let (out, drop) = j.take(Cow::Borrowed(&call), 100);
+        assert_eq!((out.as_deref(), drop), (Some(&call[..]), None));
+        got.extend(join_all(&mut j, parts.collect(), 100));
+        assert_eq!(
+            got,
+            vec![big],
+            "joined whole, the call between its parts notwithstanding"
+        );
+        // A session restarted mid-message: the caller resets, the next message joins alone.
+        let mut cut = split(&[3u8; 40], 16);
+        cut.pop();
+        assert!(join_all(&mut j, cut, 100).is_empty());
+        j.reset();
+        assert_eq!(
+            join_all(&mut j, split(&[4u8; 20], 16), 100),
+            vec![vec![4u8; 20]]
+        );
     }
 }
