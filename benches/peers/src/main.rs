@@ -10,14 +10,18 @@
 //!   a `fanoutN` figure, peak RSS in KiB), with `.p99` (round trips), `.delivered` (share of
 //!   sent messages received), `.anon` (idle: the anonymous memory resident at the end, in KiB:
 //!   what the process holds privately, without the code and libraries it maps from files),
-//!   `.spread_pct` ((max − min) / median of the rounds) and `.runs`;
+//!   `.spread_pct` ((max − min) / median of the rounds) and `.runs`; `rtt64_under_load` (64 B
+//!   round trips while the initiator streams 4 MiB frames to the responder over the same link:
+//!   a marea call, Zenoh's put at `RealTime` against a `DataLow` stream) adds `.idle_p99` (the
+//!   same process's round trips before the stream starts), `.p99_to_idle` (its p99 over that,
+//!   per round) and `.bulk_mb_s` (what the stream moved meanwhile);
 //! - the same-run ratios (`peers.event64.marea_udp_to_zenoh_tcp`, ...): computed within each
 //!   round, median over the rounds, with their own `.spread_pct`.
 //!
 //! Each marea case runs marea built as a node for that link would be, which matters most for the
 //! idle RSS: the UDP cases run `peer-marea-udp` (marea's feature `udp` alone: no iceoryx2, no
 //! serial link), the shm cases `peer-marea-shm` (feature `shm` alone: no UDP link either), the
-//! serial cases and `event64_default_api` (the API and runtime services use) `peer-marea`
+//! serial cases, `event64_default_api` (the API and runtime services use) and `rtt64_under_load` `peer-marea`
 //! (marea's default features). All come from one source file (`src/bin/peer-marea.rs`) and
 //! [`build_peers`] builds them in separate cargo invocations.
 //!
@@ -59,7 +63,8 @@ struct Case {
     param: f64,
     /// marea's link kind: `udp`, `shm`, `serial`.
     link: Option<&'static str>,
-    /// marea's pub/sub role suffix: `-event` or `-var`.
+    /// The role suffix: `-event` or `-var` (marea's pub/sub), `-api` (marea's default API),
+    /// `-load` (round trips under a bulk stream).
     suffix: &'static str,
     pinned: bool,
     /// Subscriber processes of a rate case (a fan-out when more than one).
@@ -237,6 +242,20 @@ fn cases(o: &Opts) -> Vec<Case> {
         }
         v.extend(row);
     }
+    // Round trips under a bulk stream (4 MiB frames), against the same processes' idle ones.
+    let fig = "rtt64_under_load";
+    let n_load = if o.quick { 300.0 } else { 2000.0 };
+    v.extend([
+        Case {
+            suffix: "-load",
+            ..base(fig, "zenoh_tcp", Kind::Rtt, "peer-zenoh", 64, n_load)
+        },
+        marea(
+            base(fig, "marea_udp", Kind::Rtt, "peer-marea", 64, n_load),
+            "udp",
+            "-load",
+        ),
+    ]);
     let fig = "idle_rss_kib";
     v.extend([
         base(fig, "raw_udp", Kind::Idle, "peer-udp", 64, idle),
@@ -496,6 +515,10 @@ struct Sample {
     delivered: Option<f64>,
     /// Idle: the anonymous (private) memory resident at the end, in KiB.
     anon_kib: Option<f64>,
+    /// Under load: the p99 of the same process's round trips before the load, in µs.
+    idle_p99: Option<f64>,
+    /// Under load: what the bulk stream moved during the timed round trips, in MB/s.
+    bulk_mb_s: Option<f64>,
 }
 
 async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
@@ -521,16 +544,21 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
     let start = Duration::from_secs(30);
     let out = match case.kind {
         Kind::Rtt => {
-            let mut pong = Peer::spawn(case, "pong", &key, &links.0)?;
+            let mut pong = Peer::spawn(case, &format!("pong{}", case.suffix), &key, &links.0)?;
             let info = pong.expect("ready", start).await;
             let ikey = info_key(case, &key, info?);
-            let mut ping = Peer::spawn(case, "ping", &ikey, &links.1)?;
+            let mut ping = Peer::spawn(case, &format!("ping{}", case.suffix), &ikey, &links.1)?;
             let r = async {
                 ping.expect("ready", start).await?;
-                let w = ping.expect("result", Duration::from_secs(120)).await?;
+                let w = ping.expect("result", Duration::from_secs(110)).await?;
+                let under_load = (case.suffix == "-load")
+                    .then(|| Ok::<_, anyhow::Error>((word(&w, 3)?, word(&w, 4)?)))
+                    .transpose()?;
                 Ok::<_, anyhow::Error>(Sample {
                     value: word(&w, 0)?,
                     p99: Some(word(&w, 1)?),
+                    idle_p99: under_load.map(|(idle, _)| idle),
+                    bulk_mb_s: under_load.map(|(_, mb)| mb),
                     ..Sample::default()
                 })
             }
@@ -771,6 +799,25 @@ async fn run(o: Opts) -> anyhow::Result<()> {
         let anon: Vec<f64> = runs.iter().flatten().filter_map(|s| s.anon_kib).collect();
         if !anon.is_empty() {
             metric(&format!("{name}.anon"), median(&anon), "KiB");
+        }
+        let idle: Vec<f64> = runs.iter().flatten().filter_map(|s| s.idle_p99).collect();
+        if !idle.is_empty() {
+            metric(&format!("{name}.idle_p99"), median(&idle), "us");
+            let ratios: Vec<f64> = runs
+                .iter()
+                .flatten()
+                .filter_map(|s| Some(s.p99? / s.idle_p99?))
+                .collect();
+            metric(&format!("{name}.p99_to_idle"), median(&ratios), "ratio");
+            metric(
+                &format!("{name}.p99_to_idle.spread_pct"),
+                spread_pct(&ratios),
+                "%",
+            );
+        }
+        let bulk: Vec<f64> = runs.iter().flatten().filter_map(|s| s.bulk_mb_s).collect();
+        if !bulk.is_empty() {
+            metric(&format!("{name}.bulk_mb_s"), median(&bulk), "MB/s");
         }
         metric(&format!("{name}.spread_pct"), spread_pct(&vals), "%");
         metric(&format!("{name}.runs"), vals.len() as f64, "count");

@@ -11,6 +11,8 @@
 //! | `sub` | counts arrivals until the runner says `stop SENT` | `ready [ADDR]`, `result COUNT SPAN_S` |
 //! | `pub` | publishes as fast as it may for `PARAM` seconds (reliable unless the middleware has no reliability) | `ready`, `result SENT SECS` |
 //! | `idle` | sits idle beside its partner | `ready [ADDR]` |
+//! | `pong-load` | answers pings (a call where the middleware has calls) and takes a bulk stream | `ready` |
+//! | `ping-load` | `PARAM` round trips idle, then `PARAM` more while it streams [`BULK_FRAME`]-byte frames to the `pong-load` as fast as they go | `ready`, `result P50_US P99_US IDLE_P50_US IDLE_P99_US BULK_MB_S` |
 //!
 //! `KEY` names the run's channel (an address, a key expression, a service name); `SIZE` is the
 //! payload in bytes. In a fan-out the runner starts several `sub`s and tells every child how
@@ -27,6 +29,10 @@ pub const HARD_DEADLINE: Duration = Duration::from_secs(120);
 
 /// Round trips before the timed ones (at most; a tenth of the timed ones when fewer).
 pub const WARMUP: usize = 300;
+
+/// The frame of the bulk stream under which `ping-load` times its round trips: a camera's
+/// 4 MiB frame.
+pub const BULK_FRAME: usize = 4 << 20;
 
 /// A peer's command line.
 #[derive(Debug, Clone)]
@@ -236,14 +242,16 @@ impl Rtts {
         }
     }
 
-    /// Prints `result P50 P99`.
-    pub fn finish(mut self) {
+    /// The median and 99th percentile, in µs.
+    pub fn percentiles(mut self) -> (f64, f64) {
         self.us.sort_by(f64::total_cmp);
-        println!(
-            "result {} {}",
-            percentile(&self.us, 0.5),
-            percentile(&self.us, 0.99)
-        );
+        (percentile(&self.us, 0.5), percentile(&self.us, 0.99))
+    }
+
+    /// Prints `result P50 P99`.
+    pub fn finish(self) {
+        let (p50, p99) = self.percentiles();
+        println!("result {p50} {p99}");
     }
 }
 
@@ -267,6 +275,47 @@ pub fn payload(size: usize, i: u64) -> Vec<u8> {
 /// The sequence number in a payload made by [`payload`].
 pub fn seq(bytes: &[u8]) -> Option<u64> {
     Some(u64::from_le_bytes(bytes.get(..8)?.try_into().ok()?))
+}
+
+/// Counts the bytes a bulk stream moved: the publisher adds each frame as it is handed over.
+#[derive(Default)]
+pub struct BulkMeter {
+    bytes: AtomicU64,
+    stop: AtomicBool,
+}
+
+impl BulkMeter {
+    /// One more frame of `len` bytes sent.
+    pub fn add(&self, len: usize) {
+        self.bytes.fetch_add(len as u64, Ordering::Relaxed);
+    }
+
+    /// Bytes sent so far.
+    pub fn bytes(&self) -> u64 {
+        self.bytes.load(Ordering::Relaxed)
+    }
+
+    /// Tells the publisher to stop.
+    pub fn stop(&self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+
+    /// Whether the publisher was told to stop.
+    pub fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+}
+
+/// Prints `ping-load`'s result: the loaded and idle percentiles, and the bulk stream's MB/s
+/// over the loaded round trips.
+pub fn finish_under_load(loaded: Rtts, idle: (f64, f64), bulk_bytes: u64, secs: f64) {
+    let (p50, p99) = loaded.percentiles();
+    println!(
+        "result {p50} {p99} {} {} {}",
+        idle.0,
+        idle.1,
+        bulk_bytes as f64 / 1e6 / secs.max(1e-9)
+    );
 }
 
 /// Waits (polling, bounded) until `cond` holds.

@@ -21,7 +21,10 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, Context};
 use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
 use marea::{NetworkConfig, Node};
-use peers_common::{finish_sub, payload, ready, seq, subscribers, Args, Arrivals, Control, Rtts};
+use peers_common::{
+    finish_sub, finish_under_load, payload, ready, seq, subscribers, Args, Arrivals, BulkMeter,
+    Control, Rtts, BULK_FRAME,
+};
 
 fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
     if let Some(rest) = link.strip_prefix("serial:") {
@@ -60,8 +63,10 @@ fn main() -> anyhow::Result<()> {
     // A current-thread runtime, the leanest tokio offers: marea's tasks (links, discovery,
     // dispatch) share the one thread with the role's, and the build links no multi-thread
     // scheduler (the UDP and shm peers' tokio has no `rt-multi-thread`: see their Cargo.toml).
-    // The `-api` roles run on the multi-thread runtime services get from `#[tokio::main]`.
-    let rt = if args.role.ends_with("-api") {
+    // The `-api` and `-load` roles run on the multi-thread runtime services get from
+    // `#[tokio::main]` (under load, the bulk stream and the calls on their own workers, as
+    // Zenoh's peer has its own threads).
+    let rt = if args.role.ends_with("-api") || args.role.ends_with("-load") {
         multi_thread_runtime()?
     } else {
         tokio::runtime::Builder::new_current_thread()
@@ -96,10 +101,18 @@ const IN_FLIGHT: usize = 4096;
 /// The publisher's event `d`, once every subscriber of the run matched it (all of a fan-out's);
 /// then tells the runner it is ready.
 async fn matched_event(svc: &marea::Service) -> anyhow::Result<marea::Event<Vec<u8>>> {
-    let ev = svc.publish_event::<Vec<u8>>("d")?;
+    matched_event_named(svc, "d").await
+}
+
+/// [`matched_event`] for the event `name`.
+async fn matched_event_named(
+    svc: &marea::Service,
+    name: &str,
+) -> anyhow::Result<marea::Event<Vec<u8>>> {
+    let ev = svc.publish_event::<Vec<u8>>(name)?;
     let n = subscribers();
     if !ev.wait_remote_subscribers(n, MATCH).await {
-        anyhow::bail!("pub: not {n} subscribers within {MATCH:?}");
+        anyhow::bail!("pub: not {n} subscribers of {name} within {MATCH:?}");
     }
     ready("");
     Ok(ev)
@@ -171,6 +184,73 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                     }
                 }
                 rtts.finish();
+            }
+            "pong-load" => {
+                // Commands are calls: the round trip is one, answered with its argument.
+                let _echo = svc.provide_function("echo", |x: Vec<u8>| async move {
+                    Ok::<Vec<u8>, String>(x)
+                })?;
+                let _bulk = svc.subscribe_event_with::<Vec<u8>, _>("ping/bulk", |_| {})?;
+                ready("");
+                while !control.closed() {
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+            }
+            "ping-load" => {
+                let echo = svc.function::<Vec<u8>, Vec<u8>>("pong/echo")?;
+                if !echo.wait_provider(MATCH).await {
+                    anyhow::bail!("ping-load: no echo provider within {MATCH:?}");
+                }
+                let bulk = matched_event_named(&svc, "bulk").await?;
+                let call = |i: u64| {
+                    let echo = &echo;
+                    async move {
+                        let t = Instant::now();
+                        let back = echo.call(&payload(args.size, i), Duration::from_secs(5)).await;
+                        match back {
+                            Ok(v) if seq(&v) == Some(i) => Ok(t),
+                            Ok(_) => Err(anyhow!("ping-load: call {i} answered another's bytes")),
+                            Err(e) => Err(anyhow!("ping-load: call {i}: {e}")),
+                        }
+                    }
+                };
+                let mut idle = Rtts::new(args.param as usize);
+                for i in 0..idle.total() as u64 {
+                    idle.push(call(i).await?);
+                }
+                let idle = idle.percentiles();
+                // The bulk stream, lossless with back-pressure, on a task of its own.
+                let meter = Arc::new(BulkMeter::default());
+                let m = meter.clone();
+                let streamer = tokio::spawn(async move {
+                    let frame = payload(BULK_FRAME, 0);
+                    let mut stream = bulk.stream();
+                    while !m.stopped() {
+                        stream.send(&frame).await?;
+                        m.add(frame.len());
+                    }
+                    Ok::<_, anyhow::Error>(())
+                });
+                // Timed once the stream runs: its first frame handed over.
+                while meter.bytes() == 0 {
+                    if streamer.is_finished() {
+                        break;
+                    }
+                    tokio::time::sleep(Duration::from_millis(1)).await;
+                }
+                let (from, start) = (meter.bytes(), Instant::now());
+                let mut loaded = Rtts::new(args.param as usize);
+                for i in 0..loaded.total() as u64 {
+                    loaded.push(call(1 << 32 | i).await?);
+                }
+                let (moved, secs) = (meter.bytes() - from, start.elapsed().as_secs_f64());
+                meter.stop();
+                if streamer.is_finished() {
+                    streamer.await??;
+                    anyhow::bail!("ping-load: the bulk stream ended early");
+                }
+                streamer.abort();
+                finish_under_load(loaded, idle, moved, secs);
             }
             "sub-event" | "sub-var" => {
                 let arrivals = Arc::new(Arrivals::default());

@@ -1,7 +1,9 @@
 //! Zenoh 1.x in peer mode over TCP on loopback: the responder (`pong`, `sub`, the first `idle`)
 //! listens, the initiator connects; multicast scouting is off so only the two talk. Reliable
 //! with `CongestionControl::Block` (a full queue holds the publisher up, nothing is dropped);
-//! everything else is Zenoh's default, as a user would have it. KEY is `PORT:NAME`; in a
+//! everything else is Zenoh's default, as a user would have it; under load (`ping-load`) the
+//! pings and pongs go at `Priority::RealTime` and express, the bulk stream at
+//! `Priority::DataLow`, as a user would ask commands to pass a video. KEY is `PORT:NAME`; in a
 //! fan-out every subscriber listens on its own port and the publisher's KEY lists them all,
 //! `PORT,PORT,...:NAME`.
 
@@ -9,8 +11,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
-use peers_common::{finish_sub, payload, ready, seq, subscribers, Args, Arrivals, Control, Rtts};
-use zenoh::qos::CongestionControl;
+use peers_common::{
+    finish_sub, finish_under_load, payload, ready, seq, subscribers, Args, Arrivals, BulkMeter,
+    Control, Rtts, BULK_FRAME,
+};
+use zenoh::qos::{CongestionControl, Priority};
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse()?;
@@ -44,13 +49,25 @@ async fn session(ports: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
     zenoh::open(c).await.map_err(|e| anyhow!("zenoh open: {e}"))
 }
 
-async fn publisher<'a>(
-    s: &'a zenoh::Session,
+async fn publisher(
+    s: &zenoh::Session,
     key: String,
-) -> anyhow::Result<zenoh::pubsub::Publisher<'a>> {
+) -> anyhow::Result<zenoh::pubsub::Publisher<'static>> {
+    publisher_at(s, key, Priority::default(), false).await
+}
+
+/// A reliable publisher at `priority`, `express` (sent at once, not batched) or not.
+async fn publisher_at(
+    s: &zenoh::Session,
+    key: String,
+    priority: Priority,
+    express: bool,
+) -> anyhow::Result<zenoh::pubsub::Publisher<'static>> {
     let p = s
         .declare_publisher(key.clone())
         .congestion_control(CongestionControl::Block)
+        .priority(priority)
+        .express(express)
         .await
         .map_err(|e| anyhow!("declare publisher {key}: {e}"))?;
     Ok(p)
@@ -81,8 +98,8 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         .key
         .split_once(':')
         .ok_or_else(|| anyhow!("KEY {:?}: expected PORT:NAME", args.key))?;
-    let listen =
-        matches!(args.role.as_str(), "pong" | "sub" | "idle") && !name.ends_with("/partner");
+    let listen = matches!(args.role.as_str(), "pong" | "pong-load" | "sub" | "idle")
+        && !name.ends_with("/partner");
     let s = session(port, listen).await?;
     match args.role.as_str() {
         "pong" => {
@@ -124,6 +141,88 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 rtts.push(t);
             }
             rtts.finish();
+            Ok(())
+        }
+        "pong-load" => {
+            let sub = s
+                .declare_subscriber(format!("{name}/ping"))
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            let _bulk = s
+                .declare_subscriber(format!("{name}/bulk"))
+                .callback(|_sample| {})
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            let p = publisher_at(&s, format!("{name}/pong"), Priority::RealTime, true).await?;
+            ready("");
+            while let Ok(sample) = sub.recv_async().await {
+                let bytes = sample.payload().to_bytes().into_owned();
+                p.put(bytes).await.map_err(|e| anyhow!("pong put: {e}"))?;
+            }
+            Ok(())
+        }
+        "ping-load" => {
+            let sub = s
+                .declare_subscriber(format!("{name}/pong"))
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            let p = publisher_at(&s, format!("{name}/ping"), Priority::RealTime, true).await?;
+            let bulk = publisher_at(&s, format!("{name}/bulk"), Priority::DataLow, false).await?;
+            matched(&s, &p).await?;
+            matched(&s, &bulk).await?;
+            ready("");
+            let round_trip = |i: u64| {
+                let (p, sub) = (&p, &sub);
+                async move {
+                    let t = Instant::now();
+                    p.put(payload(args.size, i))
+                        .await
+                        .map_err(|e| anyhow!("ping put: {e}"))?;
+                    loop {
+                        let sample =
+                            tokio::time::timeout(Duration::from_secs(5), sub.recv_async())
+                                .await
+                                .context("no pong within 5 s")?
+                                .map_err(|e| anyhow!("ping recv: {e}"))?;
+                        if seq(&sample.payload().to_bytes()) == Some(i) {
+                            return Ok::<_, anyhow::Error>(t);
+                        }
+                    }
+                }
+            };
+            let mut idle = Rtts::new(args.param as usize);
+            for i in 0..idle.total() as u64 {
+                idle.push(round_trip(i).await?);
+            }
+            let idle = idle.percentiles();
+            let meter = Arc::new(BulkMeter::default());
+            let m = meter.clone();
+            let streamer = tokio::spawn(async move {
+                let frame = payload(BULK_FRAME, 0);
+                while !m.stopped() {
+                    bulk.put(frame.clone())
+                        .await
+                        .map_err(|e| anyhow!("bulk put: {e}"))?;
+                    m.add(frame.len());
+                }
+                Ok::<_, anyhow::Error>(())
+            });
+            while meter.bytes() == 0 && !streamer.is_finished() {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+            let (from, start) = (meter.bytes(), Instant::now());
+            let mut loaded = Rtts::new(args.param as usize);
+            for i in 0..loaded.total() as u64 {
+                loaded.push(round_trip(1 << 32 | i).await?);
+            }
+            let (moved, secs) = (meter.bytes() - from, start.elapsed().as_secs_f64());
+            meter.stop();
+            if streamer.is_finished() {
+                streamer.await??;
+                anyhow::bail!("ping-load: the bulk stream ended early");
+            }
+            streamer.abort();
+            finish_under_load(loaded, idle, moved, secs);
             Ok(())
         }
         "sub" => {
