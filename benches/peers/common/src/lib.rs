@@ -306,16 +306,44 @@ impl BulkMeter {
     }
 }
 
-/// Prints `ping-load`'s result: the loaded and idle percentiles, and the bulk stream's MB/s
-/// over the loaded round trips.
-pub fn finish_under_load(loaded: Rtts, idle: (f64, f64), bulk_bytes: u64, secs: f64) {
+/// The loaded half of `ping-load`: once `streamer` (publishing frames, counted on `meter`)
+/// handed over its first frame, times `n` round trips (`round_trip(i)` answers with when it
+/// started), stops the stream and prints the loaded and `idle` percentiles and the stream's
+/// MB/s meanwhile.
+pub async fn under_load<F, Fut>(
+    n: usize,
+    idle: (f64, f64),
+    meter: &BulkMeter,
+    streamer: tokio::task::JoinHandle<anyhow::Result<()>>,
+    mut round_trip: F,
+) -> anyhow::Result<()>
+where
+    F: FnMut(u64) -> Fut,
+    Fut: std::future::Future<Output = anyhow::Result<Instant>>,
+{
+    while meter.bytes() == 0 && !streamer.is_finished() {
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    let (from, start) = (meter.bytes(), Instant::now());
+    let mut loaded = Rtts::new(n);
+    for i in 0..loaded.total() as u64 {
+        loaded.push(round_trip(1 << 32 | i).await?);
+    }
+    let (moved, secs) = (meter.bytes() - from, start.elapsed().as_secs_f64());
+    meter.stop();
+    if streamer.is_finished() {
+        streamer.await??;
+        anyhow::bail!("ping-load: the bulk stream ended early");
+    }
+    streamer.abort();
     let (p50, p99) = loaded.percentiles();
     println!(
         "result {p50} {p99} {} {} {}",
         idle.0,
         idle.1,
-        bulk_bytes as f64 / 1e6 / secs.max(1e-9)
+        moved as f64 / 1e6 / secs.max(1e-9)
     );
+    Ok(())
 }
 
 /// Waits (polling, bounded) until `cond` holds.

@@ -22,8 +22,8 @@ use anyhow::{anyhow, Context};
 use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
 use marea::{NetworkConfig, Node};
 use peers_common::{
-    finish_sub, finish_under_load, payload, ready, seq, subscribers, Args, Arrivals, BulkMeter,
-    Control, Rtts, BULK_FRAME,
+    finish_sub, payload, ready, seq, subscribers, under_load, Args, Arrivals, BulkMeter, Control,
+    Rtts, BULK_FRAME,
 };
 
 fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
@@ -231,26 +231,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                     }
                     Ok::<_, anyhow::Error>(())
                 });
-                // Timed once the stream runs: its first frame handed over.
-                while meter.bytes() == 0 {
-                    if streamer.is_finished() {
-                        break;
-                    }
-                    tokio::time::sleep(Duration::from_millis(1)).await;
-                }
-                let (from, start) = (meter.bytes(), Instant::now());
-                let mut loaded = Rtts::new(args.param as usize);
-                for i in 0..loaded.total() as u64 {
-                    loaded.push(call(1 << 32 | i).await?);
-                }
-                let (moved, secs) = (meter.bytes() - from, start.elapsed().as_secs_f64());
-                meter.stop();
-                if streamer.is_finished() {
-                    streamer.await??;
-                    anyhow::bail!("ping-load: the bulk stream ended early");
-                }
-                streamer.abort();
-                finish_under_load(loaded, idle, moved, secs);
+                under_load(args.param as usize, idle, &meter, streamer, call).await?;
             }
             "sub-event" | "sub-var" => {
                 let arrivals = Arc::new(Arrivals::default());

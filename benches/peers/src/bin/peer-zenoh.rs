@@ -12,8 +12,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
 use peers_common::{
-    finish_sub, finish_under_load, payload, ready, seq, subscribers, Args, Arrivals, BulkMeter,
-    Control, Rtts, BULK_FRAME,
+    finish_sub, payload, ready, seq, subscribers, under_load, Args, Arrivals, BulkMeter, Control,
+    Rtts, BULK_FRAME,
 };
 use zenoh::qos::{CongestionControl, Priority};
 
@@ -207,23 +207,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 }
                 Ok::<_, anyhow::Error>(())
             });
-            while meter.bytes() == 0 && !streamer.is_finished() {
-                tokio::time::sleep(Duration::from_millis(1)).await;
-            }
-            let (from, start) = (meter.bytes(), Instant::now());
-            let mut loaded = Rtts::new(args.param as usize);
-            for i in 0..loaded.total() as u64 {
-                loaded.push(round_trip(1 << 32 | i).await?);
-            }
-            let (moved, secs) = (meter.bytes() - from, start.elapsed().as_secs_f64());
-            meter.stop();
-            if streamer.is_finished() {
-                streamer.await??;
-                anyhow::bail!("ping-load: the bulk stream ended early");
-            }
-            streamer.abort();
-            finish_under_load(loaded, idle, moved, secs);
-            Ok(())
+            under_load(args.param as usize, idle, &meter, streamer, round_trip).await
         }
         "sub" => {
             let arrivals = Arc::new(Arrivals::default());
