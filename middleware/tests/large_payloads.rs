@@ -177,6 +177,40 @@ async fn a_call_passes_the_frames_queued_before_it() {
     assert_eq!(arrived.load(Ordering::SeqCst), FRAMES, "every frame once");
     assert_eq!(out_of_order.load(Ordering::SeqCst), 0, "whole and in order");
     eprintln!("the call was answered after {before} of {FRAMES} frames");
+
+    // Calls keep their order among themselves: a call too large for one datagram (its parts
+    // wait behind the frames) is not passed by a small one made after it.
+    let seen = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let s = seen.clone();
+    let _note = gs
+        .provide_function("note", move |args: Vec<u8>| {
+            let s = s.clone();
+            async move {
+                s.lock().unwrap().push(args.len());
+                Ok::<usize, String>(args.len())
+            }
+        })
+        .unwrap();
+    let note = cam.function::<Vec<u8>, usize>("gs/note").unwrap();
+    assert!(note.wait_provider(T).await, "no provider");
+    let pending: Vec<_> = (0..4u64)
+        .map(|i| {
+            let mut frame = vec![0x5a; FRAME];
+            frame[..8].copy_from_slice(&(FRAMES as u64 + i).to_le_bytes());
+            ev.raise_nowait(&frame).unwrap()
+        })
+        .collect();
+    let (big_args, small_args) = (vec![1u8; 200_000], vec![2u8; 10]);
+    let (big, small) = tokio::join!(note.call(&big_args, T), note.call(&small_args, T));
+    assert_eq!((big.expect("big"), small.expect("small")), (200_000, 10));
+    assert_eq!(
+        *seen.lock().unwrap(),
+        vec![200_000, 10],
+        "in the order made"
+    );
+    for p in pending {
+        tokio::time::timeout(T, p).await.expect("frames delivered");
+    }
     vehicle.shutdown().await;
     ground.shutdown().await;
 }

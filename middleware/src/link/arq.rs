@@ -181,6 +181,8 @@ pub struct ArqSender<T> {
     in_flight: VecDeque<InFlight<T>>,
     /// Bytes of the messages in flight not acknowledged yet.
     in_flight_bytes: usize,
+    /// Bytes acknowledged since the session started.
+    acked_bytes: u64,
     /// Latest send time among acknowledged messages (time-based loss detection: a message
     /// sent before one that was acknowledged is lost once a round trip has passed).
     latest_acked_sent: Option<Instant>,
@@ -213,6 +215,7 @@ impl<T> ArqSender<T> {
             next_seq: 0,
             in_flight: VecDeque::new(),
             in_flight_bytes: 0,
+            acked_bytes: 0,
             latest_acked_sent: None,
             rto: RtoEstimator::new(config.initial_rto, config.min_rto, config.max_rto),
             cwnd: f64::from(config.initial_window.min(config.max_window)),
@@ -253,6 +256,11 @@ impl<T> ArqSender<T> {
     /// Bytes of the messages in flight that are not acknowledged yet.
     pub fn in_flight_bytes(&self) -> usize {
         self.in_flight_bytes
+    }
+
+    /// Bytes acknowledged since the session started.
+    pub fn acked_bytes(&self) -> u64 {
+        self.acked_bytes
     }
 
     /// Registers `msg` as sent now and returns its sequence number.
@@ -374,6 +382,7 @@ impl<T> ArqSender<T> {
             }
             f.acked = true;
             self.in_flight_bytes = self.in_flight_bytes.saturating_sub(f.msg.len());
+            self.acked_bytes += f.msg.len() as u64;
             newly += 1;
             if f.transmissions == 1 && newest_sent_once.is_none_or(|t| f.sent_at > t) {
                 newest_sent_once = Some(f.sent_at);

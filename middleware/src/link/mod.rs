@@ -179,6 +179,19 @@ impl Outgoing {
     }
 }
 
+/// How a safe message may be reordered against those sent before it ([`LinkHandler::precedence`]).
+/// An urgent message passes passable ones queued before it and nothing else; every other pair
+/// keeps the order it was sent in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Precedence {
+    /// May pass passable messages (a call, a reply).
+    Urgent,
+    /// May be passed by urgent ones (data: a camera frame, an event, a file's chunk).
+    Passable,
+    /// Neither (the introductions and declarations urgent messages depend on).
+    InOrder,
+}
+
 /// Receives what a link delivers. Called from the link's receive task: must not block.
 pub trait LinkHandler: Send + Sync + 'static {
     /// A fast or (in order) safe message from `from`.
@@ -189,13 +202,12 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
         let _ = (msg, waited);
     }
-    /// Whether a safe message of ours may pass large ones queued before it (a command must
-    /// not wait behind a camera frame): a link that sends large messages in parts sends it
-    /// ahead of the parts still waiting and of what waits behind them. Other safe messages
-    /// keep the order they were sent in.
-    fn is_urgent(&self, msg: &[u8]) -> bool {
+    /// How a safe message of ours may be reordered against large ones queued before it (a
+    /// command must not wait behind a camera frame): see [`Precedence`]. A link that sends
+    /// large messages in parts sends an urgent message ahead of passable ones still waiting.
+    fn precedence(&self, msg: &[u8]) -> Precedence {
         let _ = msg;
-        false
+        Precedence::InOrder
     }
     /// Several messages from `from`, in order (a datagram's): a handler may take them as one
     /// batch.

@@ -498,11 +498,18 @@ impl LinkHandler for Handler {
         calls::age_call(msg, waited);
     }
 
-    /// Calls, replies and flow control pass bulk data: no order is promised between them and
-    /// events or files, and a command must not wait behind a camera frame.
-    fn is_urgent(&self, msg: &[u8]) -> bool {
+    /// Calls, replies and flow control pass data (variables, events, file chunks): no order is
+    /// promised between them, and a command must not wait behind a camera frame. Nothing
+    /// passes an introduction or a declaration: a call there before its caller's Hello or
+    /// identity would be refused.
+    fn precedence(&self, msg: &[u8]) -> crate::link::Precedence {
+        use crate::link::Precedence;
         use crate::protocol::tag;
-        matches!(msg.first(), Some(&(tag::CALL | tag::REPLY | tag::FLOW)))
+        match msg.first() {
+            Some(&(tag::CALL | tag::REPLY | tag::FLOW)) => Precedence::Urgent,
+            Some(&(tag::VAR | tag::EVENT | tag::FILE_CHUNK)) => Precedence::Passable,
+            _ => Precedence::InOrder,
+        }
     }
 
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {

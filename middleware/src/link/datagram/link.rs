@@ -31,7 +31,8 @@ use crate::link::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer}
 use crate::link::coalesce::{CoalescingQueue, Pushed};
 use crate::link::completion::acknowledge_all;
 use crate::link::{
-    Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, SafeCompletion,
+    Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr, Precedence,
+    SafeCompletion,
 };
 use crate::sync::lock;
 
@@ -103,17 +104,28 @@ const SPARE_BUFFERS: usize = 4;
 /// A safe message waiting to leave: its bytes, its completion, since when it waits.
 type QueuedSafe = (Vec<u8>, Option<SafeCompletion>, Option<Instant>);
 
-/// Bytes in flight (sent, unacknowledged) past which the parts of large messages wait while
-/// urgent messages pass them ([`URGENT_RECENT`]): whatever is in flight is ahead of an urgent
-/// message on its way, so the less, the sooner it arrives; the more, the faster bulk data
-/// flows. Measured on loopback (`peers` bench, `rtt64_under_load`: 64 B calls under a stream
-/// of 4 MiB frames), call p99 over idle p99 and the stream's rate meanwhile: 256 KiB, 8.3-8.7×
-/// and 550-760 MB/s; 1 MiB, 17× and 760-910 MB/s; 4 MiB, 245× and 960 MB/s. With no urgent
-/// message about only the window limits bulk data (`blob1m`, 1 MiB events alone: 1.1-1.25×
-/// Zenoh's rate, as before the limit).
-const BULK_IN_FLIGHT: usize = 256 << 10;
-/// How long after an urgent message passed bulk data [`BULK_IN_FLIGHT`] holds.
+/// A safe message (or part) in the bulk queue, and whether urgent messages must stay behind it
+/// (it is not [`Precedence::Passable`]).
+type QueuedBulk = (QueuedSafe, bool);
+
+/// How long the bytes in flight ahead of an urgent message may take to drain: the parts of
+/// large messages leave only while less than that much is in flight at the rate the peer
+/// acknowledges ([`PeerState::bulk_limit`]). Whatever is in flight is ahead of a call on its
+/// way: the less, the sooner it arrives; the more, the faster bulk data flows (loopback needs
+/// megabytes in flight for its gigabytes a second, a LAN or a WAN far less).
+const BULK_DRAIN: Duration = Duration::from_millis(1);
+/// The least bulk data kept in flight, whatever the rate measured (a path starts unmeasured).
+const BULK_IN_FLIGHT_MIN: usize = 256 << 10;
+/// The most, whatever the rate.
+const BULK_IN_FLIGHT_MAX: usize = 16 << 20;
+/// While urgent messages pass bulk data (one within [`URGENT_RECENT`]), bulk data in flight is
+/// kept to [`BULK_IN_FLIGHT_MIN`]. Measured on loopback (`peers` bench, `rtt64_under_load`:
+/// 64 B calls under a stream of 4 MiB frames), call p99 over idle p99 and the stream's rate
+/// meanwhile: 256 KiB in flight, 8.3-8.9× and 550-1,060 MB/s; 1 MiB, 17× and 760-910 MB/s;
+/// 4 MiB, 245× and 960 MB/s.
 const URGENT_RECENT: Duration = Duration::from_secs(1);
+/// How often the acknowledged rate is sampled.
+const RATE_SAMPLE: Duration = Duration::from_millis(1);
 
 struct PeerState {
     tx: ArqSender<SafeCompletion>,
@@ -127,10 +139,16 @@ struct PeerState {
     /// time left, not its time at the queue's door. They leave before those of `bulk`.
     safe: VecDeque<QueuedSafe>,
     /// The parts of messages larger than a datagram, and every safe message sent after them
-    /// while they wait, but urgent ones ([`LinkHandler::is_urgent`]), which go to `safe` and
-    /// so pass them. Order is kept everywhere else: a message goes to `safe` only while `bulk`
-    /// is empty. Parts leave only while less than [`BULK_IN_FLIGHT`] bytes are unacknowledged.
-    bulk: VecDeque<QueuedSafe>,
+    /// while they wait, but urgent ones ([`LinkHandler::precedence`]) while everything here is
+    /// passable: those go to `safe` and so pass them. Order is kept everywhere else: a message
+    /// goes to `safe` only while `bulk` is empty or it may pass all of it. Parts leave only
+    /// while less than [`PeerState::bulk_limit`] bytes are unacknowledged.
+    bulk: VecDeque<QueuedBulk>,
+    /// Entries of `bulk` urgent messages must not pass.
+    bulk_holding: usize,
+    /// The last part that left was not its message's last: the rest of the message is at the
+    /// head of `bulk` (dropped if the session restarts: the peer cannot join it any more).
+    mid_message: bool,
     /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
     blocked: VecDeque<Vec<u8>>,
     /// Buffers of datagrams sent, for the next ones (at most [`SPARE_BUFFERS`]).
@@ -148,8 +166,12 @@ struct PeerState {
     safe_bytes: usize,
     /// The peer's message being joined from its parts ([`parts`]).
     joiner: parts::Joiner,
-    /// When an urgent message last passed bulk data ([`BULK_IN_FLIGHT`]).
+    /// When an urgent message last passed bulk data ([`URGENT_RECENT`]).
     urgent_at: Option<Instant>,
+    /// The rate the peer acknowledges at while data is in flight, bytes a second (smoothed),
+    /// and the last sample's time and acknowledged total.
+    acked_rate: f64,
+    rate_mark: Option<(Instant, u64)>,
 }
 
 impl PeerState {
@@ -161,6 +183,8 @@ impl PeerState {
             fast_bytes: 0,
             safe: VecDeque::new(),
             bulk: VecDeque::new(),
+            bulk_holding: 0,
+            mid_message: false,
             blocked: VecDeque::new(),
             spare: Vec::new(),
             last_write: None,
@@ -170,6 +194,8 @@ impl PeerState {
             safe_bytes: 0,
             joiner: parts::Joiner::default(),
             urgent_at: None,
+            acked_rate: 0.0,
+            rate_mark: None,
         }
     }
 
@@ -181,12 +207,47 @@ impl PeerState {
             || !self.blocked.is_empty()
     }
 
-    /// Whether the next of `bulk` may leave now: the window admits it, and while urgent
-    /// messages pass bulk data, less than [`BULK_IN_FLIGHT`] bytes are in flight.
+    /// Whether the next of `bulk` may leave now: the window admits it, and less than
+    /// [`PeerState::bulk_limit`] bytes are in flight.
     fn bulk_may_leave(&self) -> bool {
-        self.tx.can_push()
-            && (self.tx.in_flight_bytes() < BULK_IN_FLIGHT
-                || self.urgent_at.is_none_or(|t| t.elapsed() >= URGENT_RECENT))
+        self.tx.can_push() && self.tx.in_flight_bytes() < self.bulk_limit()
+    }
+
+    /// Bytes in flight past which bulk data waits: what drains in [`BULK_DRAIN`] at the
+    /// acknowledged rate, within [`BULK_IN_FLIGHT_MIN`]..[`BULK_IN_FLIGHT_MAX`]; the least
+    /// while urgent messages pass it ([`URGENT_RECENT`]).
+    fn bulk_limit(&self) -> usize {
+        if self.urgent_at.is_some_and(|t| t.elapsed() < URGENT_RECENT) {
+            return BULK_IN_FLIGHT_MIN;
+        }
+        let drains = (self.acked_rate * BULK_DRAIN.as_secs_f64()) as usize;
+        drains.clamp(BULK_IN_FLIGHT_MIN, BULK_IN_FLIGHT_MAX)
+    }
+
+    /// Samples the acknowledged rate (after acknowledgements were applied at `now`), while
+    /// bulk data waits: an idle session keeps the rate it last moved bulk data at.
+    fn sample_rate(&mut self, now: Instant) {
+        let acked = self.tx.acked_bytes();
+        match self.rate_mark {
+            // A new sending session counts from 0; after a pause, the pause is no sample.
+            Some((t, before))
+                if acked < before || now.saturating_duration_since(t) > 100 * RATE_SAMPLE =>
+            {
+                self.rate_mark = Some((now, acked));
+            }
+            Some((t, before)) if now.saturating_duration_since(t) >= RATE_SAMPLE => {
+                let secs = now.saturating_duration_since(t).as_secs_f64();
+                let sample = (acked - before) as f64 / secs;
+                self.acked_rate = if self.acked_rate == 0.0 {
+                    sample
+                } else {
+                    0.875 * self.acked_rate + 0.125 * sample
+                };
+                self.rate_mark = Some((now, acked));
+            }
+            Some(_) => {}
+            None => self.rate_mark = Some((now, acked)),
+        }
     }
 
     /// Safe messages queued, not yet in flight.
@@ -415,7 +476,11 @@ impl<M: Medium> DatagramLink<M> {
             } else if let Some(m) = st.safe.pop_front() {
                 Some(m)
             } else if st.bulk_may_leave() {
-                st.bulk.pop_front()
+                st.bulk.pop_front().map(|(m, holds)| {
+                    st.bulk_holding -= usize::from(holds);
+                    st.mid_message = m.0.first() == Some(&parts::PART_MORE);
+                    m
+                })
             } else {
                 None
             };
@@ -782,7 +847,12 @@ impl<M: Medium> DatagramLink<M> {
                         });
                     }
                     Entry::Fast(msg) => fast.push(msg),
-                    Entry::Ack(ack) => completed.extend(st.tx.on_ack(now, ack)),
+                    Entry::Ack(ack) => {
+                        completed.extend(st.tx.on_ack(now, ack));
+                        if !st.bulk.is_empty() {
+                            st.sample_rate(now);
+                        }
+                    }
                     // Only about a message still in flight: a late answer to an earlier
                     // session of ours (or a made-up one) changes nothing.
                     Entry::Unknown(seq) if st.tx.message(seq).is_some() => {
@@ -831,7 +901,13 @@ fn queued_safe_cost(len: usize) -> usize {
 
 fn fail_all(st: &mut PeerState, err: LinkSendError) {
     st.safe_bytes = 0;
-    let queued: Vec<QueuedSafe> = st.safe.drain(..).chain(st.bulk.drain(..)).collect();
+    st.bulk_holding = 0;
+    st.mid_message = false;
+    let queued: Vec<QueuedSafe> = st
+        .safe
+        .drain(..)
+        .chain(st.bulk.drain(..).map(|(m, _)| m))
+        .collect();
     for (_, done, _) in queued {
         if let Some(d) = done {
             let _ = d.send(Err(err.clone()));
@@ -846,6 +922,20 @@ fn fail_sender(st: &mut PeerState, err: LinkSendError) {
     let tx = std::mem::replace(&mut st.tx, ArqSender::new(rand::random(), config));
     for d in tx.close() {
         let _ = d.send(Err(err.clone()));
+    }
+    // The rest of a message whose first parts left in that session goes too: the peer starts
+    // joining afresh with the new session, and would take the tail for a whole message.
+    if std::mem::take(&mut st.mid_message) {
+        while let Some(((part, done, _), holds)) = st.bulk.pop_front() {
+            st.bulk_holding -= usize::from(holds);
+            st.safe_bytes = st.safe_bytes.saturating_sub(queued_safe_cost(part.len()));
+            if let Some(d) = done {
+                let _ = d.send(Err(err.clone()));
+            }
+            if part.first() == Some(&parts::PART_LAST) {
+                break;
+            }
+        }
     }
 }
 
@@ -873,8 +963,13 @@ impl<M: Medium> Link for DatagramLink<M> {
             Outgoing::Fast { msg, .. } if msg.len() > room => Outgoing::Safe { msg, done: None },
             out => out,
         };
+        // (With whether urgent messages must stay behind its parts: a large call or
+        // declaration batch keeps its place among them as a small one does.)
         let parts = match &out {
-            Outgoing::Safe { msg, .. } if msg.len() > room => Some(parts::split(msg, room)),
+            Outgoing::Safe { msg, .. } if msg.len() > room => Some((
+                parts::split(msg, room),
+                self.handler.precedence(msg) != Precedence::Passable,
+            )),
             _ => None,
         };
         let mut st = lock(&p);
@@ -916,25 +1011,30 @@ impl<M: Medium> Link for DatagramLink<M> {
                 // Only a message that may wait reads the clock: one behind others, or gathered
                 // for the acknowledgement of one in flight (or behind a full window).
                 let queued = (st.tx.in_flight() > 0 || st.safe_queued() > 0).then(Instant::now);
-                if let Some(parts) = parts {
+                if let Some((parts, holds)) = parts {
                     // Told when its last part is acknowledged.
                     let last = parts.len() - 1;
                     let mut done = done;
                     for (k, part) in parts.into_iter().enumerate() {
                         st.safe_bytes += queued_safe_cost(part.len());
                         let done = if k == last { done.take() } else { None };
-                        st.bulk.push_back((part, done, queued));
+                        st.bulk.push_back(((part, done, queued), holds));
+                        st.bulk_holding += usize::from(holds);
                     }
+                } else if st.bulk.is_empty() {
+                    st.safe_bytes += queued_safe_cost(msg.len());
+                    st.safe.push_back((msg, done, queued));
                 } else {
-                    urgent = !st.bulk.is_empty() && self.handler.is_urgent(&msg);
+                    let precedence = self.handler.precedence(&msg);
+                    urgent = precedence == Precedence::Urgent && st.bulk_holding == 0;
+                    st.safe_bytes += queued_safe_cost(msg.len());
                     if urgent {
                         st.urgent_at = Some(Instant::now());
-                    }
-                    st.safe_bytes += queued_safe_cost(msg.len());
-                    if st.bulk.is_empty() || urgent {
                         st.safe.push_back((msg, done, queued));
                     } else {
-                        st.bulk.push_back((msg, done, queued));
+                        let holds = precedence != Precedence::Passable;
+                        st.bulk.push_back(((msg, done, queued), holds));
+                        st.bulk_holding += usize::from(holds);
                     }
                 }
             }
