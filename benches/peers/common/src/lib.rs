@@ -306,6 +306,24 @@ impl BulkMeter {
     }
 }
 
+/// `n` timed round trips after the warm-up ([`Rtts`]), numbered from `first`: `round_trip(i)`
+/// answers with when it started.
+pub async fn timed_round_trips<F, Fut>(
+    n: usize,
+    first: u64,
+    round_trip: &mut F,
+) -> anyhow::Result<Rtts>
+where
+    F: FnMut(u64) -> Fut,
+    Fut: std::future::Future<Output = anyhow::Result<Instant>>,
+{
+    let mut rtts = Rtts::new(n);
+    for i in 0..rtts.total() as u64 {
+        rtts.push(round_trip(first + i).await?);
+    }
+    Ok(rtts)
+}
+
 /// The loaded half of `ping-load`: once `streamer` (publishing frames, counted on `meter`)
 /// handed over its first frame, times `n` round trips (`round_trip(i)` answers with when it
 /// started), stops the stream and prints the loaded and `idle` percentiles and the stream's
@@ -325,10 +343,8 @@ where
         tokio::time::sleep(Duration::from_millis(1)).await;
     }
     let (from, start) = (meter.bytes(), Instant::now());
-    let mut loaded = Rtts::new(n);
-    for i in 0..loaded.total() as u64 {
-        loaded.push(round_trip(1 << 32 | i).await?);
-    }
+    // Numbered apart from the idle ones, so a late idle answer is never taken for one.
+    let loaded = timed_round_trips(n, 1 << 32, &mut round_trip).await?;
     let (moved, secs) = (meter.bytes() - from, start.elapsed().as_secs_f64());
     meter.stop();
     if streamer.is_finished() {

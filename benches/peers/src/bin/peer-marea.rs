@@ -22,8 +22,8 @@ use anyhow::{anyhow, Context};
 use marea::config::{EthernetConfig, LinkConfig, ShmConfig};
 use marea::{NetworkConfig, Node};
 use peers_common::{
-    finish_sub, payload, ready, seq, subscribers, under_load, Args, Arrivals, BulkMeter, Control,
-    Rtts, BULK_FRAME,
+    finish_sub, payload, ready, seq, subscribers, timed_round_trips, under_load, Args, Arrivals,
+    BulkMeter, Control, Rtts, BULK_FRAME,
 };
 
 fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
@@ -202,7 +202,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                     anyhow::bail!("ping-load: no echo provider within {MATCH:?}");
                 }
                 let bulk = matched_event_named(&svc, "bulk").await?;
-                let call = |i: u64| {
+                let mut call = |i: u64| {
                     let echo = &echo;
                     async move {
                         let t = Instant::now();
@@ -214,11 +214,9 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                         }
                     }
                 };
-                let mut idle = Rtts::new(args.param as usize);
-                for i in 0..idle.total() as u64 {
-                    idle.push(call(i).await?);
-                }
-                let idle = idle.percentiles();
+                let idle = timed_round_trips(args.param as usize, 0, &mut call)
+                    .await?
+                    .percentiles();
                 // The bulk stream, lossless with back-pressure, on a task of its own.
                 let meter = Arc::new(BulkMeter::default());
                 let m = meter.clone();

@@ -12,8 +12,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
 use peers_common::{
-    finish_sub, payload, ready, seq, subscribers, under_load, Args, Arrivals, BulkMeter, Control,
-    Rtts, BULK_FRAME,
+    finish_sub, payload, ready, seq, subscribers, timed_round_trips, under_load, Args, Arrivals,
+    BulkMeter, Control, BULK_FRAME,
 };
 use zenoh::qos::{CongestionControl, Priority};
 
@@ -93,6 +93,28 @@ async fn matched(s: &zenoh::Session, p: &zenoh::pubsub::Publisher<'_>) -> anyhow
     }
 }
 
+/// One ping of `size` bytes numbered `i`, until its pong comes back; when it started.
+async fn round_trip(
+    p: &zenoh::pubsub::Publisher<'_>,
+    sub: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    size: usize,
+    i: u64,
+) -> anyhow::Result<Instant> {
+    let t = Instant::now();
+    p.put(payload(size, i))
+        .await
+        .map_err(|e| anyhow!("ping put: {e}"))?;
+    loop {
+        let sample = tokio::time::timeout(Duration::from_secs(5), sub.recv_async())
+            .await
+            .context("no pong within 5 s")?
+            .map_err(|e| anyhow!("ping recv: {e}"))?;
+        if seq(&sample.payload().to_bytes()) == Some(i) {
+            return Ok(t);
+        }
+    }
+}
+
 async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
     let (port, name) = args
         .key
@@ -102,12 +124,27 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         && !name.ends_with("/partner");
     let s = session(port, listen).await?;
     match args.role.as_str() {
-        "pong" => {
+        "pong" | "pong-load" => {
+            // Under load it also takes the bulk stream, and answers at the pings' priority.
+            let load = args.role == "pong-load";
             let sub = s
                 .declare_subscriber(format!("{name}/ping"))
                 .await
                 .map_err(|e| anyhow!("declare subscriber: {e}"))?;
-            let p = publisher(&s, format!("{name}/pong")).await?;
+            let _bulk = match load {
+                true => Some(
+                    s.declare_subscriber(format!("{name}/bulk"))
+                        .callback(|_sample| {})
+                        .await
+                        .map_err(|e| anyhow!("declare subscriber: {e}"))?,
+                ),
+                false => None,
+            };
+            let key = format!("{name}/pong");
+            let p = match load {
+                true => publisher_at(&s, key, Priority::RealTime, true).await?,
+                false => publisher(&s, key).await?,
+            };
             ready("");
             while let Ok(sample) = sub.recv_async().await {
                 let bytes = sample.payload().to_bytes().into_owned();
@@ -123,42 +160,10 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             let p = publisher(&s, format!("{name}/ping")).await?;
             matched(&s, &p).await?;
             ready("");
-            let mut rtts = Rtts::new(args.param as usize);
-            for i in 0..rtts.total() as u64 {
-                let t = Instant::now();
-                p.put(payload(args.size, i))
-                    .await
-                    .map_err(|e| anyhow!("ping put: {e}"))?;
-                loop {
-                    let sample = tokio::time::timeout(Duration::from_secs(5), sub.recv_async())
-                        .await
-                        .context("no pong within 5 s")?
-                        .map_err(|e| anyhow!("ping recv: {e}"))?;
-                    if seq(&sample.payload().to_bytes()) == Some(i) {
-                        break;
-                    }
-                }
-                rtts.push(t);
-            }
-            rtts.finish();
-            Ok(())
-        }
-        "pong-load" => {
-            let sub = s
-                .declare_subscriber(format!("{name}/ping"))
-                .await
-                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
-            let _bulk = s
-                .declare_subscriber(format!("{name}/bulk"))
-                .callback(|_sample| {})
-                .await
-                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
-            let p = publisher_at(&s, format!("{name}/pong"), Priority::RealTime, true).await?;
-            ready("");
-            while let Ok(sample) = sub.recv_async().await {
-                let bytes = sample.payload().to_bytes().into_owned();
-                p.put(bytes).await.map_err(|e| anyhow!("pong put: {e}"))?;
-            }
+            let mut one = |i| round_trip(&p, &sub, args.size, i);
+            timed_round_trips(args.param as usize, 0, &mut one)
+                .await?
+                .finish();
             Ok(())
         }
         "ping-load" => {
@@ -171,30 +176,10 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             matched(&s, &p).await?;
             matched(&s, &bulk).await?;
             ready("");
-            let round_trip = |i: u64| {
-                let (p, sub) = (&p, &sub);
-                async move {
-                    let t = Instant::now();
-                    p.put(payload(args.size, i))
-                        .await
-                        .map_err(|e| anyhow!("ping put: {e}"))?;
-                    loop {
-                        let sample =
-                            tokio::time::timeout(Duration::from_secs(5), sub.recv_async())
-                                .await
-                                .context("no pong within 5 s")?
-                                .map_err(|e| anyhow!("ping recv: {e}"))?;
-                        if seq(&sample.payload().to_bytes()) == Some(i) {
-                            return Ok::<_, anyhow::Error>(t);
-                        }
-                    }
-                }
-            };
-            let mut idle = Rtts::new(args.param as usize);
-            for i in 0..idle.total() as u64 {
-                idle.push(round_trip(i).await?);
-            }
-            let idle = idle.percentiles();
+            let mut one = |i| round_trip(&p, &sub, args.size, i);
+            let idle = timed_round_trips(args.param as usize, 0, &mut one)
+                .await?
+                .percentiles();
             let meter = Arc::new(BulkMeter::default());
             let m = meter.clone();
             let streamer = tokio::spawn(async move {
@@ -207,7 +192,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 }
                 Ok::<_, anyhow::Error>(())
             });
-            under_load(args.param as usize, idle, &meter, streamer, round_trip).await
+            under_load(args.param as usize, idle, &meter, streamer, one).await
         }
         "sub" => {
             let arrivals = Arc::new(Arrivals::default());
