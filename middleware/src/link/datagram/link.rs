@@ -250,6 +250,19 @@ impl PeerState {
         }
     }
 
+    /// Queues `m` in `bulk`; `holds`: urgent messages must stay behind it.
+    fn push_bulk(&mut self, m: QueuedSafe, holds: bool) {
+        self.bulk_holding += usize::from(holds);
+        self.bulk.push_back((m, holds));
+    }
+
+    /// The head of `bulk`, taken out.
+    fn pop_bulk(&mut self) -> Option<QueuedSafe> {
+        let (m, holds) = self.bulk.pop_front()?;
+        self.bulk_holding -= usize::from(holds);
+        Some(m)
+    }
+
     /// Safe messages queued, not yet in flight.
     fn safe_queued(&self) -> usize {
         self.safe.len() + self.bulk.len()
@@ -476,11 +489,11 @@ impl<M: Medium> DatagramLink<M> {
             } else if let Some(m) = st.safe.pop_front() {
                 Some(m)
             } else if st.bulk_may_leave() {
-                st.bulk.pop_front().map(|(m, holds)| {
-                    st.bulk_holding -= usize::from(holds);
-                    st.mid_message = m.0.first() == Some(&parts::PART_MORE);
-                    m
-                })
+                let m = st.pop_bulk();
+                st.mid_message = m
+                    .as_ref()
+                    .is_some_and(|m| m.0.first() == Some(&parts::PART_MORE));
+                m
             } else {
                 None
             };
@@ -926,8 +939,7 @@ fn fail_sender(st: &mut PeerState, err: LinkSendError) {
     // The rest of a message whose first parts left in that session goes too: the peer starts
     // joining afresh with the new session, and would take the tail for a whole message.
     if std::mem::take(&mut st.mid_message) {
-        while let Some(((part, done, _), holds)) = st.bulk.pop_front() {
-            st.bulk_holding -= usize::from(holds);
+        while let Some((part, done, _)) = st.pop_bulk() {
             st.safe_bytes = st.safe_bytes.saturating_sub(queued_safe_cost(part.len()));
             if let Some(d) = done {
                 let _ = d.send(Err(err.clone()));
@@ -1018,8 +1030,7 @@ impl<M: Medium> Link for DatagramLink<M> {
                     for (k, part) in parts.into_iter().enumerate() {
                         st.safe_bytes += queued_safe_cost(part.len());
                         let done = if k == last { done.take() } else { None };
-                        st.bulk.push_back(((part, done, queued), holds));
-                        st.bulk_holding += usize::from(holds);
+                        st.push_bulk((part, done, queued), holds);
                     }
                 } else if st.bulk.is_empty() {
                     st.safe_bytes += queued_safe_cost(msg.len());
@@ -1032,9 +1043,7 @@ impl<M: Medium> Link for DatagramLink<M> {
                         st.urgent_at = Some(Instant::now());
                         st.safe.push_back((msg, done, queued));
                     } else {
-                        let holds = precedence != Precedence::Passable;
-                        st.bulk.push_back(((msg, done, queued), holds));
-                        st.bulk_holding += usize::from(holds);
+                        st.push_bulk((msg, done, queued), precedence != Precedence::Passable);
                     }
                 }
             }
