@@ -239,10 +239,15 @@ impl FlightLog {
             Err(e) => {
                 // Stop writing: the rest of the run goes on without its log.
                 *out = None;
-                marea::sync::lock(&self.failed)
-                    .get_or_insert_with(|| format!("writing {}: {e}", self.path.display()));
+                self.failed_with("", &e);
             }
         }
+    }
+
+    /// Keeps the run's first write error (`writing PATH{to}: ERROR`), reported at the end.
+    fn failed_with(&self, to: &str, e: &std::io::Error) {
+        marea::sync::lock(&self.failed)
+            .get_or_insert_with(|| format!("writing {}{to}: {e}", self.path.display()));
     }
 
     /// Flushes what was recorded to the OS (a crash of this process loses none of it).
@@ -251,8 +256,7 @@ impl FlightLog {
         if let Some(w) = out.as_mut() {
             if let Err(e) = w.flush() {
                 *out = None;
-                marea::sync::lock(&self.failed)
-                    .get_or_insert_with(|| format!("writing {}: {e}", self.path.display()));
+                self.failed_with("", &e);
             }
         }
     }
@@ -262,8 +266,7 @@ impl FlightLog {
     pub fn sync_to_disk(&self) {
         self.flush();
         if let Err(e) = self.file.sync_data() {
-            marea::sync::lock(&self.failed)
-                .get_or_insert_with(|| format!("writing {} to disk: {e}", self.path.display()));
+            self.failed_with(" to disk", &e);
         }
     }
 
@@ -278,13 +281,11 @@ impl FlightLog {
         if let Some(mut w) = out {
             // Dropping a GzEncoder writes its trailer; flushing first surfaces errors.
             if let Err(e) = w.flush() {
-                marea::sync::lock(&self.failed)
-                    .get_or_insert_with(|| format!("writing {}: {e}", self.path.display()));
+                self.failed_with("", &e);
             }
             drop(w);
             if let Err(e) = self.file.sync_all() {
-                marea::sync::lock(&self.failed)
-                    .get_or_insert_with(|| format!("writing {} to disk: {e}", self.path.display()));
+                self.failed_with(" to disk", &e);
             }
         }
         match marea::sync::lock(&self.failed).clone() {
