@@ -1120,3 +1120,50 @@ impl<M: Medium> Link for DatagramLink<M> {
         self.counters.stats(self.gauges())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn peer() -> PeerState {
+        PeerState::new(ArqConfig::lan())
+    }
+
+    #[test]
+    fn bulk_in_flight_follows_the_acknowledged_rate_and_shrinks_while_urgent_messages_pass() {
+        let mut st = peer();
+        assert_eq!(st.bulk_limit(), BULK_IN_FLIGHT_MIN, "unmeasured: the least");
+        st.acked_rate = 2e9; // 2 GB/s: 2 MB drain in 1 ms
+        assert_eq!(st.bulk_limit(), 2_000_000);
+        st.acked_rate = 1e12;
+        assert_eq!(st.bulk_limit(), BULK_IN_FLIGHT_MAX);
+        st.urgent_at = Some(Instant::now());
+        assert_eq!(
+            st.bulk_limit(),
+            BULK_IN_FLIGHT_MIN,
+            "calls about: the least"
+        );
+    }
+
+    #[test]
+    fn a_session_reset_drops_the_rest_of_a_half_sent_message_and_fails_it() {
+        let mut st = peer();
+        let (tx, mut rx) = tokio::sync::oneshot::channel();
+        let mut parts = parts::split(&[7u8; 300], 100);
+        let last = parts.pop().unwrap();
+        // The first part left in the old session; two more, then a whole event, wait.
+        let first = parts.remove(0);
+        st.tx.push(Instant::now(), first, None);
+        st.mid_message = true;
+        for p in parts {
+            st.push_bulk((p, None, None), false);
+        }
+        st.push_bulk((last, Some(SafeCompletion::Once(tx)), None), false);
+        st.push_bulk((vec![crate::protocol::tag::EVENT, 1], None, None), false);
+        fail_sender(&mut st, LinkSendError::PeerClosed("peer".into()));
+        assert!(matches!(rx.try_recv(), Ok(Err(_))), "the message is failed");
+        assert_eq!(st.bulk.len(), 1, "only the next message is left");
+        assert_eq!(st.pop_bulk().unwrap().0[0], crate::protocol::tag::EVENT);
+        assert!(!st.mid_message && st.bulk_holding == 0);
+    }
+}
