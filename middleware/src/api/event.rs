@@ -5,11 +5,12 @@ use std::marker::PhantomData;
 use std::time::Duration;
 
 use super::publisher::Publisher;
-use super::Payload;
+use super::{Blob, Payload};
 pub use crate::link::{STREAM_WINDOW, STREAM_WINDOW_BYTES};
 use crate::node::data::PublishError;
 use crate::node::events::StreamSender;
 pub use crate::node::events::{PendingRaise, RaiseReport, StreamError};
+use crate::node::loans::MessageLoan;
 
 /// Publisher handle of an event. Dropping it withdraws the event.
 pub struct Event<T> {
@@ -133,6 +134,115 @@ impl Event<Vec<u8>> {
     /// As [`Event::raise_bytes_nowait`].
     pub async fn raise_bytes(&self, bytes: &[u8]) -> Result<RaiseReport, PublishError> {
         Ok(self.raise_bytes_nowait(bytes)?.await)
+    }
+}
+
+impl Event<Blob> {
+    /// A buffer for an event of `len` bytes, to be written in place and then raised: when the
+    /// event's one subscriber is on this host (a shared-memory link), the buffer is a sample of
+    /// its inbox, so the bytes are written once, where the subscriber reads them
+    /// ([`Blob::is_shared_memory`] there). Otherwise (several subscribers, another link) it is
+    /// an ordinary buffer and the event is sent as [`Event::raise`] sends it.
+    ///
+    /// A camera writes its frame with [`BlobLoan::append`] (or [`std::io::Write`]): each byte
+    /// written once. [`BlobLoan::as_mut_slice`] gives the whole buffer, first zeroing what
+    /// was not written (a second pass over a large one).
+    ///
+    /// ```no_run
+    /// # fn f(ev: marea::Event<marea::Blob>, frame: &[u8]) -> Result<(), marea::PublishError> {
+    /// let mut loan = ev.loan(frame.len())?;
+    /// loan.append(frame);
+    /// let pending = loan.raise_nowait();
+    /// # Ok(()) }
+    /// ```
+    ///
+    /// # Errors
+    /// [`PublishError::TooLarge`] above [`crate::protocol::MAX_PAYLOAD`].
+    pub fn loan(&self, len: usize) -> Result<BlobLoan<'_>, PublishError> {
+        let offer = &self.publisher.offer;
+        PublishError::check_size(&offer.name, len)?;
+        let (header, at) = crate::codec::data_message_header_of_bytes(true, offer.id, len);
+        let routes = offer.remote.get();
+        let mut loan = self.publisher.node.loan(&routes, header.len() + len);
+        loan.buf.append(&header);
+        Ok(BlobLoan {
+            event: self,
+            loan,
+            at,
+            start: header.len(),
+        })
+    }
+}
+
+/// An event's bytes being written in place ([`Event::loan`]); raised by
+/// [`BlobLoan::raise_nowait`] or [`BlobLoan::raise`], dropped without being sent otherwise.
+/// What was not written when it is raised is sent as zeros.
+pub struct BlobLoan<'a> {
+    event: &'a Event<Blob>,
+    loan: MessageLoan,
+    /// Where the event's payload starts in the message.
+    at: usize,
+    /// Where the bytes start in the message.
+    start: usize,
+}
+
+impl BlobLoan<'_> {
+    /// The event's length in bytes.
+    pub fn len(&self) -> usize {
+        self.loan.buf.len() - self.start
+    }
+
+    /// Whether the event is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes written from the start so far.
+    pub fn written(&self) -> usize {
+        self.loan.buf.written() - self.start
+    }
+
+    /// Writes as much of `bytes` as fits after what was written (each byte once); returns
+    /// how much.
+    pub fn append(&mut self, bytes: &[u8]) -> usize {
+        self.loan.buf.append(bytes)
+    }
+
+    /// The whole event's bytes, to write anywhere in them; the first call zeroes those not
+    /// written yet.
+    pub fn as_mut_slice(&mut self) -> &mut [u8] {
+        let start = self.start;
+        &mut self.loan.buf.init()[start..]
+    }
+
+    /// Whether the bytes are being written into the subscriber's shared memory.
+    pub fn is_shared_memory(&self) -> bool {
+        self.loan.is_lent()
+    }
+
+    /// Raises the event (see [`Event::raise_nowait`]).
+    pub fn raise_nowait(self) -> PendingRaise {
+        let publisher = &self.event.publisher;
+        publisher
+            .node
+            .raise_loaned_event(&publisher.offer, self.loan, self.at)
+    }
+
+    /// Raises the event and waits for the report (see [`Event::raise`]).
+    pub async fn raise(self) -> RaiseReport {
+        self.raise_nowait().await
+    }
+}
+
+impl std::io::Write for BlobLoan<'_> {
+    /// Appends (see [`BlobLoan::append`]); a full buffer takes nothing (`write_all` then fails
+    /// with [`std::io::ErrorKind::WriteZero`]).
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        Ok(self.append(buf))
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
     }
 }
 

@@ -2,6 +2,7 @@
 //! (an item's name and type together: [`VariableItem`], [`EventItem`], [`FunctionItem`]), and
 //! [`IService`].
 
+mod blob;
 mod errors;
 mod event;
 mod file;
@@ -15,9 +16,11 @@ mod shared_str;
 mod subscription;
 mod variable;
 
+pub use blob::Blob;
 pub use errors::{DeclareError, NodeOpenError, RecvError};
 pub use event::{
-    Event, EventStream, PendingRaise, RaiseReport, StreamError, STREAM_WINDOW, STREAM_WINDOW_BYTES,
+    BlobLoan, Event, EventStream, PendingRaise, RaiseReport, StreamError, STREAM_WINDOW,
+    STREAM_WINDOW_BYTES,
 };
 pub use file::{FileSink, FileTransfer};
 pub use function::{Function, FunctionProvider};

@@ -49,7 +49,7 @@ impl RawSubscription {
                         publisher: s.publisher.to_string(),
                         type_name: s.type_name.to_string(),
                         fingerprint: s.fingerprint,
-                        payload: s.payload,
+                        payload: Vec::from(s.payload.bytes),
                         received: s.received,
                     })
                 }

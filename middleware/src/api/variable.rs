@@ -35,7 +35,7 @@ pub(crate) fn decode_delivery<T: Payload>(d: Delivery) -> Result<Sample<T>, Recv
             payload,
             received,
             ..
-        }) => match crate::codec::decode_payload_owned::<T>(payload) {
+        }) => match super::blob::decode_payload::<T>(payload.bytes, payload.lent) {
             Ok(value) => Ok(Sample {
                 name: name.into(),
                 publisher: publisher.into(),

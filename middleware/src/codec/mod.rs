@@ -37,6 +37,19 @@ pub fn decode_message(bytes: &[u8]) -> Result<Message, MessageDecodeError> {
     }
 }
 
+/// Where the payload of a data message (`Message::Var` or `Message::Event`) lies in `msg`,
+/// found without decoding or copying it: its offer id and byte range. `None` for any other
+/// message, or one that does not end where its payload does.
+pub(crate) fn data_message_payload(msg: &[u8]) -> Option<(u32, std::ops::Range<usize>)> {
+    let (&t, mut rest) = msg.split_first()?;
+    if t != tag::VAR && t != tag::EVENT {
+        return None;
+    }
+    let id = u32::try_from(varint::take_u64(&mut rest)?).ok()?;
+    let len = usize::try_from(varint::take_u64(&mut rest)?).ok()?;
+    (len == rest.len()).then(|| (id, msg.len() - len..msg.len()))
+}
+
 /// Encodes a user payload.
 ///
 /// # Errors
@@ -129,14 +142,27 @@ pub(crate) fn encode_bytes_payload(bytes: &[u8]) -> Vec<u8> {
 
 /// A data message whose payload is the postcard encoding of the byte string `b`.
 fn data_message_from_bytes(tag: u8, id: u32, b: &[u8]) -> (Vec<u8>, usize) {
-    let inner = varint::len_u64(b.len() as u64) + b.len();
-    let mut out = Vec::with_capacity(1 + 5 + varint::len_u64(inner as u64) + inner);
+    let (mut out, at) = bytes_message_header(tag, id, b.len(), b.len());
+    out.extend_from_slice(b);
+    (out, at)
+}
+
+/// The bytes before the `len` bytes of a byte string in a data message (`Message::Event`
+/// when `event`, else `Message::Var`) of offer `id`, and where its payload starts in them:
+/// a message written in place is these, then the bytes.
+pub(crate) fn data_message_header_of_bytes(event: bool, id: u32, len: usize) -> (Vec<u8>, usize) {
+    bytes_message_header(data_tag(event), id, len, 0)
+}
+
+/// [`data_message_header_of_bytes`] with room for `reserve` more bytes.
+fn bytes_message_header(tag: u8, id: u32, len: usize, reserve: usize) -> (Vec<u8>, usize) {
+    let inner = varint::len_u64(len as u64) + len;
+    let mut out = Vec::with_capacity(1 + 5 + varint::len_u64(inner as u64) + inner - len + reserve);
     out.push(tag);
     varint::put_u64(&mut out, u64::from(id));
     varint::put_u64(&mut out, inner as u64);
     let at = out.len();
-    varint::put_u64(&mut out, b.len() as u64);
-    out.extend_from_slice(b);
+    varint::put_u64(&mut out, len as u64);
     (out, at)
 }
 
@@ -181,6 +207,44 @@ mod tests {
     use super::*;
     use crate::protocol::*;
     use crate::typeinfo::TypeInfo;
+
+    #[test]
+    fn a_data_message_payload_is_found_in_place() {
+        let payload: Vec<u8> = (0..=255u8).cycle().take(70_000).collect();
+        for msg in [
+            Message::Event {
+                id: 300,
+                payload: payload.clone(),
+            },
+            Message::Var {
+                id: 7,
+                payload: payload.clone(),
+            },
+        ] {
+            let bytes = encode_message(&msg);
+            let (id, range) = data_message_payload(&bytes).expect("a data message");
+            assert_eq!(
+                id,
+                if matches!(msg, Message::Event { .. }) {
+                    300
+                } else {
+                    7
+                }
+            );
+            assert_eq!(&bytes[range], &payload[..]);
+            assert_eq!(
+                data_message_payload(&bytes[..bytes.len() - 1]),
+                None,
+                "cut short"
+            );
+        }
+        let reply = encode_message(&Message::Reply {
+            call_id: 1,
+            result: Ok(vec![1, 2]),
+        });
+        assert_eq!(data_message_payload(&reply), None, "not data");
+        assert_eq!(data_message_payload(&[]), None);
+    }
 
     #[test]
     fn fast_data_encoding_equals_postcard() {

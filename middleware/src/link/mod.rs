@@ -216,6 +216,12 @@ pub trait LinkHandler: Send + Sync + 'static {
             self.on_message(link, from, m);
         }
     }
+    /// A large safe message from `from`, in order, as a view of the shared-memory sample it
+    /// arrived in: the handler may keep (slices of) it without a copy; the sample returns to
+    /// its writer when the last is dropped.
+    fn on_lent_message(&self, link: usize, from: PeerAddr, msg: bytes::Bytes) {
+        self.on_message(link, from, &msg);
+    }
     /// A discovery message (Hello, Heartbeat, Bye) from `from`.
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]);
     /// `from` started a new safe session while one was running: it restarted or reset us.
@@ -370,5 +376,86 @@ pub trait Link: Send + Sync + 'static {
     /// of events behind a radio.
     fn stream_window_bytes(&self) -> Option<u64> {
         None
+    }
+    /// Lends a buffer of `len` bytes in which a safe message to `to` can be written in place
+    /// and then sent with [`Link::send_loan`] without a copy (a shared-memory sample). `None`
+    /// when this link has none to lend (the default): the message is then sent as any other.
+    fn loan(&self, to: PeerAddr, len: usize) -> Option<Box<dyn LinkLoan>> {
+        let _ = (to, len);
+        None
+    }
+    /// Sends the safe message written into `loan`, which this link lent for `to`; like
+    /// [`Link::send`] of [`Outgoing::Safe`] otherwise. A loan of another link or peer is
+    /// refused (its completion fails).
+    fn send_loan(&self, to: PeerAddr, loan: Box<dyn LinkLoan>, done: Option<SafeCompletion>) {
+        drop(loan);
+        Outgoing::Safe {
+            msg: Vec::new(),
+            done,
+        }
+        .refuse(to);
+    }
+}
+
+/// A buffer lent for one message of a fixed length ([`Link::loan`]), written from its start:
+/// appended to (each byte written once, nothing zeroed first), or made readable and writable
+/// whole by [`LinkLoan::init`], which zeroes what was not written yet.
+pub trait LinkLoan: Send {
+    /// The message's length.
+    fn len(&self) -> usize;
+    /// Whether the message is empty.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Bytes written from the start so far.
+    fn written(&self) -> usize;
+    /// Writes as much of `bytes` as fits after what was written; returns how much.
+    fn append(&mut self, bytes: &[u8]) -> usize;
+    /// All the message's bytes, what was not written zeroed (once); everything counts as
+    /// written afterwards.
+    fn init(&mut self) -> &mut [u8];
+    /// Back to the lending link's own type.
+    fn into_any(self: Box<Self>) -> Box<dyn std::any::Any + Send>;
+}
+
+/// A [`LinkLoan`] on the heap: what a message is written into when no link lends a buffer.
+pub(crate) struct HeapLoan {
+    buf: Vec<u8>,
+    len: usize,
+}
+
+impl HeapLoan {
+    pub(crate) fn new(len: usize) -> Self {
+        HeapLoan {
+            buf: Vec::with_capacity(len),
+            len,
+        }
+    }
+
+    /// The message (zeroed where not written).
+    pub(crate) fn into_vec(mut self) -> Vec<u8> {
+        self.buf.resize(self.len, 0);
+        self.buf
+    }
+}
+
+impl LinkLoan for HeapLoan {
+    fn len(&self) -> usize {
+        self.len
+    }
+    fn written(&self) -> usize {
+        self.buf.len()
+    }
+    fn append(&mut self, bytes: &[u8]) -> usize {
+        let n = bytes.len().min(self.len - self.buf.len());
+        self.buf.extend_from_slice(&bytes[..n]);
+        n
+    }
+    fn init(&mut self) -> &mut [u8] {
+        self.buf.resize(self.len, 0);
+        &mut self.buf
+    }
+    fn into_any(self: Box<Self>) -> Box<dyn std::any::Any + Send> {
+        self
     }
 }

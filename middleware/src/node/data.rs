@@ -5,7 +5,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::mailbox::{Delivery, RawSample};
+use super::mailbox::{Delivery, Encoded, RawSample};
 use super::policy::Refusal;
 use super::NodeInner;
 use crate::config::AccessKind;
@@ -14,8 +14,8 @@ use crate::protocol::NodeId;
 /// Pushes (and empties) `payloads`, received at `received`, into the mailbox of every local
 /// subscriber on `route`: one push of the whole run per mailbox (the last one takes the
 /// payloads, the others copies).
-fn push_to_route(route: &super::Route, payloads: &mut Vec<Vec<u8>>, received: Instant) {
-    let sample = |payload: Vec<u8>| {
+fn push_to_route(route: &super::Route, payloads: &mut Vec<Encoded>, received: Instant) {
+    let sample = |payload: Encoded| {
         Delivery::Sample(RawSample {
             name: route.name.clone(),
             publisher: route.publisher.clone(),
@@ -43,16 +43,16 @@ impl NodeInner {
     /// Delivers a run of data messages from `node` (in order) to the local subscribers of each
     /// one's route. The clock is read and the peer marked heard once for the run; consecutive
     /// messages of one offer (a stream) share one route lookup and one push per mailbox.
-    pub fn deliver_remote_run(&self, node: NodeId, run: impl Iterator<Item = (u32, Vec<u8>)>) {
+    pub fn deliver_remote_run(&self, node: NodeId, run: impl Iterator<Item = (u32, Encoded)>) {
         let received = Instant::now();
         if let Some(p) = self.peers.by_id.get(&node) {
             p.heard_at(self.me.epoch, tokio::time::Instant::from_std(received));
         }
         let mut current: Option<(u32, Arc<super::Route>)> = None;
-        let mut payloads: Vec<Vec<u8>> = Vec::new();
+        let mut payloads: Vec<Encoded> = Vec::new();
         for (id, payload) in run {
             if self.gateway.is_some() {
-                self.forward_data(node, id, &payload);
+                self.forward_data(node, id, &payload.bytes);
             }
             if current.as_ref().map(|(i, _)| *i) != Some(id) {
                 if let Some((_, route)) = &current {
@@ -143,6 +143,7 @@ impl super::LocalOffer {
     /// A value of this offer of ours (published by node `me`, received at `received`) as a
     /// local subscriber's mailbox takes it.
     pub(crate) fn own_sample(&self, me: &str, payload: Vec<u8>, received: Instant) -> Delivery {
+        let payload = payload.into();
         Delivery::Sample(RawSample {
             name: self.name.clone(),
             publisher: me.into(),

@@ -12,6 +12,7 @@ use std::time::Instant;
 use tokio::sync::oneshot;
 
 use super::data::PublishError;
+use super::loans::MessageLoan;
 use super::{lock, LocalOffer, NodeInner, RemoteSubscriber};
 use crate::link::{AckCounter, LinkSendError, Outgoing, SafeCompletion, STREAM_WINDOW_BYTES};
 
@@ -199,6 +200,43 @@ impl NodeInner {
             },
             first,
             more,
+        }
+    }
+
+    /// Raises the event message written in `loan` (its payload from `at`), as
+    /// [`Self::raise_event`] does; when the link of the offer's only subscriber lent the
+    /// buffer, the message goes to it without a copy (local subscribers get theirs).
+    pub fn raise_loaned_event(
+        &self,
+        offer: &LocalOffer,
+        loan: MessageLoan,
+        at: usize,
+    ) -> PendingRaise {
+        let routes = offer.remote.get();
+        let lent_path = loan.path.filter(|p| match &routes[..] {
+            [r] => (r.link, r.addr) == *p && r.alive.load(Ordering::Acquire),
+            _ => false,
+        });
+        let Some(path) = lent_path else {
+            // The subscribers changed since the loan: the message goes as any other.
+            return self.raise_event(offer, loan.into_vec(), at);
+        };
+        let mut buf = loan.buf;
+        let mut local = Vec::new();
+        let me = &self.me.name;
+        self.deliver_event_locally(offer, &buf.init()[at..], |service| {
+            local.push(format!("{me}/{service}"))
+        });
+        let (tx, rx) = oneshot::channel();
+        self.send_loan(path, buf, tx.into());
+        PendingRaise {
+            report: RaiseReport {
+                local,
+                routes,
+                failures: Vec::new(),
+            },
+            first: Some(AwaitedAck { route: 0, done: rx }),
+            more: Vec::new(),
         }
     }
 

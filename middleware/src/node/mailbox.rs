@@ -34,9 +34,27 @@ pub(crate) struct RawSample {
     /// The publisher's payload type fingerprint ([`TypeInfo::fingerprint`]).
     pub fingerprint: u64,
     /// postcard bytes.
-    pub payload: Vec<u8>,
+    pub payload: Encoded,
     /// When it arrived.
     pub received: Instant,
+}
+
+/// A value's postcard bytes as they arrived: a slice of the message they came in, which a
+/// shared-memory link may have lent (then they are a view of its sample: no copy was made).
+#[derive(Debug, Clone)]
+pub(crate) struct Encoded {
+    pub bytes: bytes::Bytes,
+    /// The bytes are a lent shared-memory sample's ([`crate::Blob::is_shared_memory`]).
+    pub lent: bool,
+}
+
+impl From<Vec<u8>> for Encoded {
+    fn from(v: Vec<u8>) -> Self {
+        Encoded {
+            bytes: v.into(),
+            lent: false,
+        }
+    }
 }
 
 /// A publisher refused a subscription because the types differ.
@@ -443,7 +461,7 @@ mod tests {
             publisher: "p".into(),
             type_name: "u8".into(),
             fingerprint: 0,
-            payload: vec![1],
+            payload: vec![1].into(),
             received: Instant::now(),
         })
     }

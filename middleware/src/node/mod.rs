@@ -17,6 +17,7 @@ pub(crate) mod fuzz;
 pub(crate) mod gateway;
 pub(crate) mod health;
 pub(crate) mod identity_check;
+pub(crate) mod loans;
 pub(crate) mod mailbox;
 pub(crate) mod path_switch;
 pub(crate) mod policy;
@@ -42,7 +43,7 @@ use crate::link::{Link, LinkHandler, Outgoing, PeerAddr};
 use crate::protocol::{ItemKind, Message, NodeId, Origin};
 use crate::sync::SeededHash;
 use crate::typeinfo::TypeInfo;
-use mailbox::Mailbox;
+use mailbox::{Encoded, Mailbox};
 pub(crate) use routes::{RemoteSubscriber, Route, Routes};
 
 pub(crate) use crate::sync::lock;
@@ -335,11 +336,11 @@ impl NodeInner {
     /// delivered together: one sender lookup, one clock read and one wake-up per subscriber for
     /// the run, where a datagram of a fast stream carries hundreds.
     fn dispatch_all(self: &Arc<Self>, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
-        let mut data: Vec<(u32, Vec<u8>)> = Vec::new();
+        let mut data: Vec<(u32, Encoded)> = Vec::new();
         for bytes in msgs {
             match decode_message(bytes) {
                 Ok(Message::Var { id, payload } | Message::Event { id, payload }) => {
-                    data.push((id, payload))
+                    data.push((id, payload.into()))
                 }
                 Ok(msg) => {
                     self.deliver_data(link, from, &mut data);
@@ -358,7 +359,7 @@ impl NodeInner {
     }
 
     /// Delivers (and empties) a run of data messages from `from`.
-    fn deliver_data(&self, link: usize, from: PeerAddr, data: &mut Vec<(u32, Vec<u8>)>) {
+    fn deliver_data(&self, link: usize, from: PeerAddr, data: &mut Vec<(u32, Encoded)>) {
         if data.is_empty() {
             return;
         }
@@ -404,7 +405,7 @@ impl NodeInner {
         }
         match msg {
             Message::Var { id, payload } | Message::Event { id, payload } => {
-                self.deliver_remote_run(node, std::iter::once((id, payload)))
+                self.deliver_remote_run(node, std::iter::once((id, payload.into())))
             }
             Message::DeclRequest { since } => self.answer_decl_request(node, since),
             Message::DeclBatch {
@@ -515,6 +516,22 @@ impl LinkHandler for Handler {
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         if let Some(n) = self.node() {
             n.dispatch_all(link, from, msgs);
+        }
+    }
+
+    /// A value or event reaches its subscribers as a slice of the lent sample (a `Blob` is
+    /// then a view of shared memory); anything else is decoded as usual.
+    fn on_lent_message(&self, link: usize, from: PeerAddr, msg: bytes::Bytes) {
+        let Some(n) = self.node() else { return };
+        match crate::codec::data_message_payload(&msg) {
+            Some((id, payload)) => {
+                let payload = Encoded {
+                    bytes: msg.slice(payload),
+                    lent: true,
+                };
+                n.deliver_data(link, from, &mut vec![(id, payload)]);
+            }
+            None => n.dispatch_all(link, from, &[&msg]),
         }
     }
 

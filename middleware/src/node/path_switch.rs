@@ -19,7 +19,7 @@ use std::time::Duration;
 
 use super::NodeInner;
 use crate::codec::encode_message;
-use crate::link::{Link, Outgoing, PeerAddr};
+use crate::link::{Link, LinkLoan, Outgoing, PeerAddr, SafeCompletion};
 use crate::protocol::NodeId;
 use crate::sync::lock;
 
@@ -62,6 +62,25 @@ impl PathSwitches {
             return;
         }
         send_on(links, s.to, out);
+    }
+
+    /// Sends the message written in `buf`, lent by the link of `path`, on that path unless it
+    /// is being left (then `buf` and `done` come back: the message must go as a copy).
+    pub(crate) fn send_loan(
+        &self,
+        links: &[Arc<dyn Link>],
+        path: Path,
+        buf: Box<dyn LinkLoan>,
+        done: SafeCompletion,
+    ) -> Result<(), (Box<dyn LinkLoan>, SafeCompletion)> {
+        let map = self.map.read().unwrap_or_else(|e| e.into_inner());
+        match links.get(path.0) {
+            Some(l) if !map.contains_key(&path) => {
+                l.send_loan(path.1, buf, Some(done));
+                Ok(())
+            }
+            _ => Err((buf, done)),
+        }
     }
 
     /// Sends the safe messages `outs` to `path` one after the other, with no other safe message

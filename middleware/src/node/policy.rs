@@ -684,7 +684,7 @@ mod tests {
         };
         assert_eq!(routed(1), 1, "the allowed station is routed");
         assert_eq!(routed(2), 0, "the other one is not");
-        inner.deliver_remote_run(2, std::iter::once((10, vec![1])));
+        inner.deliver_remote_run(2, std::iter::once((10, vec![1].into())));
         assert_eq!(
             inner.policy.counts(0),
             (2, 0),

@@ -3,6 +3,8 @@
 //! reading samples, listing the host's nodes and watching the wake event from tokio. The
 //! machines in [`super::tx`] and [`super::rx`] see it only through their writer and I/O traits.
 
+use std::mem::MaybeUninit;
+
 use iceoryx2::node::{Node as IoxNode, NodeBuilder, NodeState, NodeView};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -17,8 +19,8 @@ use iceoryx2::service::port_factory::PortFactory;
 
 use super::frame::{self, Part};
 use super::{
-    ShmLinkOpenError, ShmLinkOptions, ShmWait, BULK_BUFFER, BULK_MAX, FAST_BUFFER, FRAME_MAX,
-    SAFE_BUFFER,
+    ShmLinkOpenError, ShmLinkOptions, ShmWait, BULK_BUFFER, BULK_LOANS, BULK_MAX, FAST_BUFFER,
+    FRAME_MAX, LENT_SAMPLES, SAFE_BUFFER,
 };
 use crate::link::auth::{Profile, Sealer};
 
@@ -200,7 +202,7 @@ fn create_part(
     writers: usize,
 ) -> Result<Sub, String> {
     let name = service_name(&inbox_name(service, id, part))?;
-    let created = create_part_service(node, &name, overflow, buffer, writers)?;
+    let created = create_part_service(node, &name, part, overflow, buffer, writers)?;
     create_subscriber(&created, buffer)
 }
 
@@ -208,13 +210,14 @@ fn create_part(
 fn create_part_service(
     node: &Node,
     name: &ServiceName,
+    part: &str,
     overflow: bool,
     buffer: usize,
     writers: usize,
 ) -> Result<PubSubService, String> {
     // The service only records its settings; the memory is the writers', allocated when each
     // opens a publisher.
-    pubsub_builder(node, name, overflow, buffer)
+    pubsub_builder(node, name, part, overflow, buffer)
         .max_publishers(writers)
         .max_nodes(writers + 1)
         .create()
@@ -265,20 +268,31 @@ fn wake_ports(wake: &EventService) -> Result<(Listener<Ipc>, SelfWake), (&'stati
 
 /// An inbox part's service as its creator and its writers both describe it. Its capacities
 /// (`max_publishers`, `max_nodes`) are the creator's `maxPeers` alone: a writer opening it
-/// requires none, so nodes with different `maxPeers` meet.
+/// requires none, so nodes with different `maxPeers` meet. The bulk part's reader may hold
+/// [`LENT_SAMPLES`] lent to its node besides the ones it reads.
 fn pubsub_builder<'a>(
     node: &'a IoxNode<Ipc>,
     name: &'a ServiceName,
+    part: &str,
     overflow: bool,
     buffer: usize,
 ) -> iceoryx2::service::builder::publish_subscribe::Builder<[u8], (), Ipc> {
+    let borrowed = if part == "bulk" {
+        LENT_SAMPLES + READER_BORROWS
+    } else {
+        READER_BORROWS
+    };
     node.service_builder(name)
         .publish_subscribe::<[u8]>()
         .enable_safe_overflow(overflow)
         .subscriber_max_buffer_size(buffer)
+        .subscriber_max_borrowed_samples(borrowed)
         .history_size(0)
         .max_subscribers(1)
 }
+
+/// Samples of one part the reader holds at once while reading (iceoryx2's default).
+const READER_BORROWS: usize = 2;
 
 fn wait_key() -> Result<AttributeKey, String> {
     AttributeKey::try_from(WAIT_ATTRIBUTE).map_err(|e| format!("{e:?}"))
@@ -360,7 +374,7 @@ fn open_part_service(
     buffer: usize,
 ) -> Result<PubSubService, OpenError> {
     use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenError;
-    pubsub_builder(node, name, overflow, buffer)
+    pubsub_builder(node, name, part, overflow, buffer)
         .open()
         .map_err(|e| {
             let full = matches!(e, PublishSubscribeOpenError::ExceedsMaxNumberOfNodes);
@@ -371,13 +385,20 @@ fn open_part_service(
 #[inline(never)]
 fn create_publisher(service: &PubSubService, part: &str, max: usize) -> Result<Pub, OpenError> {
     use iceoryx2::port::publisher::PublisherCreateError;
+    // The bulk part's samples grow (to the next power of two) when a whole large message is
+    // loaned into one: the segment is made only by a writer of large messages.
+    let (strategy, loans) = if part == "bulk" {
+        (AllocationStrategy::PowerOfTwo, BULK_LOANS)
+    } else {
+        (AllocationStrategy::Static, 2)
+    };
     service
         .publisher_builder()
         // Room for a seal whether or not this node has a key (a sealed frame is that much
         // longer than the limits the senders split messages by).
         .initial_max_slice_len(max + Profile::SHM.overhead())
-        .allocation_strategy(AllocationStrategy::Static)
-        .max_loaned_samples(2)
+        .allocation_strategy(strategy)
+        .max_loaned_samples(loans)
         .backpressure_strategy(BackpressureStrategy::DiscardData)
         .create()
         .map_err(|e| {
@@ -450,10 +471,129 @@ pub(super) fn put(
     matches!(sample.send(), Ok(n) if n > 0)
 }
 
+/// A bulk sample lent for one whole safe message to one peer (`Link::loan`): the message
+/// is written in place, after room for the frame header, which is written (and the seal after
+/// the message made) when it is sent ([`ShmLoan::send`]).
+pub(crate) struct ShmLoan {
+    sample: Option<LoanedSample>,
+    /// The message's length.
+    len: usize,
+    /// Message bytes written from its start.
+    written: usize,
+    /// The peer whose inbox the sample is for.
+    pub(super) peer: u64,
+}
+
+enum LoanedSample {
+    Uninit(iceoryx2::sample_mut_uninit::SampleMutUninit<Ipc, [MaybeUninit<u8>], ()>),
+    Init(iceoryx2::sample_mut::SampleMut<Ipc, [u8], ()>),
+}
+
+impl ShmLoan {
+    /// Loans from `publisher` (a peer's bulk inbox) a sample for a message of `len` bytes,
+    /// its frame header and the seal of `sealer`. `None` when it has none to lend.
+    pub(super) fn new(
+        publisher: &Pub,
+        len: usize,
+        peer: u64,
+        sealer: Option<&Sealer>,
+    ) -> Option<Self> {
+        let total = frame::SEQUENCED + len + sealer.map_or(0, Sealer::overhead);
+        let sample = publisher.loan_slice_uninit(total).ok()?;
+        Some(ShmLoan {
+            sample: Some(LoanedSample::Uninit(sample)),
+            len,
+            written: 0,
+            peer,
+        })
+    }
+
+    /// The whole sample, initialised.
+    fn sample(&mut self) -> &mut iceoryx2::sample_mut::SampleMut<Ipc, [u8], ()> {
+        if let Some(LoanedSample::Uninit(mut s)) = self
+            .sample
+            .take_if(|s| matches!(s, LoanedSample::Uninit(_)))
+        {
+            let (header, rest) = s.payload_mut().split_at_mut(frame::SEQUENCED);
+            for b in header.iter_mut().chain(&mut rest[self.written..]) {
+                b.write(0);
+            }
+            // SAFETY: every byte of the sample is initialised: the message's first `written`
+            // by `append` (which counts only what it wrote, from the message's start), every
+            // other one just above.
+            #[allow(unsafe_code)]
+            let s = unsafe { s.assume_init() };
+            self.written = self.len;
+            self.sample = Some(LoanedSample::Init(s));
+        }
+        match &mut self.sample {
+            Some(LoanedSample::Init(s)) => s,
+            // Only `sample` takes it, and it puts an initialised one back.
+            _ => unreachable!("a loaned sample is always present"),
+        }
+    }
+
+    /// Writes the frame header (`kind`, `sender`, `session`, `seq`), seals the frame with
+    /// `sealer` and sends it. Returns whether the inbox took it (the sample is spent either way).
+    pub(super) fn send(
+        mut self,
+        (kind, sender, session, seq): (u8, u64, u32, u64),
+        sealer: Option<&Sealer>,
+    ) -> bool {
+        let end = frame::SEQUENCED + self.len;
+        let sample = self.sample();
+        let out = sample.payload_mut();
+        frame::write_header(out, kind, sender, session, seq);
+        if let Some(s) = sealer {
+            out[0] |= frame::SEALED_KIND;
+            s.seal_slice(out, end);
+        }
+        let Some(LoanedSample::Init(s)) = self.sample.take() else {
+            return false;
+        };
+        matches!(s.send(), Ok(n) if n > 0)
+    }
+}
+
+impl crate::link::LinkLoan for ShmLoan {
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    fn written(&self) -> usize {
+        self.written
+    }
+
+    fn append(&mut self, bytes: &[u8]) -> usize {
+        let n = bytes.len().min(self.len - self.written);
+        let at = frame::SEQUENCED + self.written;
+        match &mut self.sample {
+            Some(LoanedSample::Uninit(s)) => {
+                for (d, b) in s.payload_mut()[at..at + n].iter_mut().zip(bytes) {
+                    d.write(*b);
+                }
+            }
+            Some(LoanedSample::Init(s)) => s.payload_mut()[at..at + n].copy_from_slice(&bytes[..n]),
+            None => return 0,
+        }
+        self.written += n;
+        n
+    }
+
+    fn init(&mut self) -> &mut [u8] {
+        let len = self.len;
+        &mut self.sample().payload_mut()[frame::SEQUENCED..frame::SEQUENCED + len]
+    }
+
+    fn into_any(self: Box<Self>) -> Box<dyn std::any::Any + Send> {
+        self
+    }
+}
+
 /// The wake listener as tokio's reactor sees it: its socket turns readable when a writer
 /// notifies.
 ///
-/// The only `unsafe` of the crate (the workspace denies it elsewhere): iceoryx2 hands out the
+/// With [`ShmLoan`]'s, the only `unsafe` of the crate (the workspace denies it elsewhere): iceoryx2 hands out the
 /// listener's descriptor and tokio registers one only through `unsafe` functions, because
 /// neither can check that a raw descriptor stays open. Here it does: the listener that owns it
 /// lives inside this wrapper, which the `AsyncFd` owns until it deregisters the descriptor.

@@ -52,7 +52,7 @@
 //! them together, and the receive task.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -61,11 +61,14 @@ use tokio_util::task::TaskTracker;
 
 use super::auth::{self, AuthReject, LinkSecurity, Opener, Profile, Sealer};
 use super::completion::acknowledge_all;
-use super::{Link, LinkCounters, LinkHandler, LinkSendError, LinkStats, Outgoing, PeerAddr};
+use super::{
+    Link, LinkCounters, LinkHandler, LinkLoan, LinkSendError, LinkStats, Outgoing, PeerAddr,
+    SafeCompletion,
+};
 use crate::sync::lock;
 use control::Ctl;
 use frame::Part;
-use inbox::{Conn, Inbox, InboxReader, InboxSample, Pub, SelfWake, WakeFd};
+use inbox::{Conn, Inbox, InboxReader, InboxSample, Pub, SelfWake, ShmLoan, WakeFd};
 use rx::{AckSent, Receiver, RxIo};
 use tx::{InboxWriter, PeerTx};
 
@@ -91,6 +94,13 @@ pub const BULK_MAX: usize = 256 << 10;
 /// Content bytes of a file chunk sent to a peer on this link: one chunk, its message header and
 /// the frame header fit one bulk sample.
 pub const FILE_CHUNK: usize = BULK_MAX - 1024;
+/// Bulk samples a receiver lends to its node (and the application: a [`crate::Blob`] it
+/// keeps) at once; past that, large messages are copied out of shared memory. Each one its
+/// writers' bulk segments make room for.
+pub const LENT_SAMPLES: usize = 4;
+/// Bulk samples a writer may have loaned from one peer's bulk inbox at once: one it writes a
+/// fragment into, the rest lent to the node for messages written in place (`Link::loan`).
+const BULK_LOANS: usize = 4;
 /// Frames a safe inbox buffers per writer before refusing more.
 const SAFE_BUFFER: usize = 128;
 /// Safe frames a writer leaves unacknowledged before small messages wait to be packed (see
@@ -229,6 +239,18 @@ impl InboxWriter for PeerWriter<'_> {
         }
     }
 
+    fn put_loan(&mut self, loan: Box<dyn LinkLoan>, session: u32, seq: u64) -> bool {
+        let Ok(loan) = loan.into_any().downcast::<ShmLoan>() else {
+            return false;
+        };
+        // A sample of this peer's bulk inbox (`Link::send_loan` checked), open since.
+        loan.peer == self.id
+            && loan.send(
+                (frame::BULK_DATA, self.link.id, session, seq),
+                self.link.sealer.as_ref(),
+            )
+    }
+
     fn open_bulk(&mut self) {
         self.link.request(Ctl::OpenBulk(self.id));
     }
@@ -254,6 +276,8 @@ pub struct ShmLink {
     sealer: Option<Sealer>,
     /// Checks every frame read when the node has a key (the receive thread's alone).
     opener: Option<Mutex<Opener>>,
+    /// Bulk samples lent to the node (and its application) and not yet released.
+    lent: Arc<AtomicUsize>,
 }
 
 /// Sender streams (a writer's fast, safe and bulk parts) a shared-memory link remembers for
@@ -312,6 +336,7 @@ impl ShmLink {
             stop: AtomicBool::new(false),
             handler,
             counters: LinkCounters::default(),
+            lent: Arc::default(),
         });
         // Connect to the nodes already here before the node announces itself.
         let _ = control.serve.send(link.clone());
@@ -482,6 +507,36 @@ impl Link for ShmLink {
     fn file_chunk(&self) -> usize {
         FILE_CHUNK
     }
+
+    /// A sample of the peer's bulk inbox, once it is open (a first loan asks for it to be
+    /// opened and is refused: that message goes as a copy).
+    fn loan(&self, to: PeerAddr, len: usize) -> Option<Box<dyn LinkLoan>> {
+        let PeerAddr::Shm(id) = to else {
+            return None;
+        };
+        let p = self.peer(id, false)?;
+        let mut st = lock(&p);
+        st.conn.as_ref()?;
+        if let Some(bulk) = &st.bulk {
+            return ShmLoan::new(bulk, len, id, self.sealer.as_ref())
+                .map(|l| Box::new(l) as Box<dyn LinkLoan>);
+        }
+        self.with_tx(&mut st, |tx, w, _| tx.want_bulk(w));
+        None
+    }
+
+    fn send_loan(&self, to: PeerAddr, loan: Box<dyn LinkLoan>, done: Option<SafeCompletion>) {
+        let peer = match to {
+            PeerAddr::Shm(id) => self.peer(id, false),
+            _ => None,
+        };
+        let Some(p) = peer else {
+            let msg = Vec::new();
+            return Outgoing::Safe { msg, done }.refuse(to);
+        };
+        let mut st = lock(&p);
+        self.with_tx(&mut st, |tx, w, c| tx.send_loan(w, c, loan, done));
+    }
 }
 
 /// The receiving machine's I/O on a live link: the inbox's subscribers, the node's handler,
@@ -534,6 +589,26 @@ impl LinkRx<'_> {
 
 /// A sample whose seal (if the link has a key) was checked: it reads as the frame without it.
 struct Opened(InboxSample, usize);
+
+/// A bulk sample lent to the node from `at` (a whole message): counted in the link's `lent`
+/// until the last view of it is dropped, which returns it to its writer.
+struct Lent {
+    sample: Opened,
+    at: usize,
+    lent: Arc<AtomicUsize>,
+}
+
+impl AsRef<[u8]> for Lent {
+    fn as_ref(&self) -> &[u8] {
+        &self.sample.as_ref()[self.at..]
+    }
+}
+
+impl Drop for Lent {
+    fn drop(&mut self) {
+        self.lent.fetch_sub(1, Ordering::Relaxed);
+    }
+}
 
 impl AsRef<[u8]> for Opened {
     fn as_ref(&self) -> &[u8] {
@@ -597,6 +672,26 @@ impl RxIo for LinkRx<'_> {
         if self.run.ends.len() >= RUN_MAX {
             self.flush();
         }
+    }
+
+    /// A whole message in a bulk sample goes to the node as a view of the sample while fewer
+    /// than [`LENT_SAMPLES`] are lent; beyond, as a copy (the writer's shared memory for this
+    /// inbox is sized for that many held).
+    fn deliver_sample(&mut self, from: u64, sample: Opened, at: usize) {
+        let lent = &self.link.lent;
+        if lent.fetch_add(1, Ordering::Relaxed) >= LENT_SAMPLES {
+            lent.fetch_sub(1, Ordering::Relaxed);
+            self.deliver(from, &sample.as_ref()[at..]);
+            return;
+        }
+        self.flush();
+        let msg = bytes::Bytes::from_owner(Lent {
+            sample,
+            at,
+            lent: lent.clone(),
+        });
+        let l = self.link;
+        l.handler.on_lent_message(l.index, PeerAddr::Shm(from), msg);
     }
 
     fn announce(&mut self, from: u64, msg: &[u8]) {

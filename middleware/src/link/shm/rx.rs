@@ -35,6 +35,11 @@ pub(crate) trait RxIo {
     fn take(&mut self, part: Part) -> Option<Self::Sample>;
     /// A whole message from `from` (a fast one, or a safe one in order).
     fn deliver(&mut self, from: u64, msg: &[u8]);
+    /// A whole safe message from `from` that is all of `sample` from `at` (a bulk body): the
+    /// implementation may hand the sample itself on instead of the bytes.
+    fn deliver_sample(&mut self, from: u64, sample: Self::Sample, at: usize) {
+        self.deliver(from, &sample.as_ref()[at..]);
+    }
     /// A discovery message from `from`.
     fn announce(&mut self, from: u64, msg: &[u8]);
     /// `from` started a new safe session while one was running (it restarted or reset us).
@@ -233,7 +238,11 @@ impl Receiver {
                         more,
                         body,
                     },
-                )) => self.on_safe(io, c, from, (session, seq, more), Some(body)),
+                )) => {
+                    if self.on_safe(io, c, from, (session, seq, more), Some(body)) {
+                        io.deliver(from, body);
+                    }
+                }
                 Ok((
                     from,
                     Frame::SafePack {
@@ -281,7 +290,9 @@ impl Receiver {
                 c.corrupt.fetch_add(1, Ordering::Relaxed);
                 return;
             };
-            self.on_safe(io, c, from, (session, s, false), Some(body));
+            if self.on_safe(io, c, from, (session, s, false), Some(body)) {
+                io.deliver(from, body);
+            }
             seq = s.checked_add(1);
         }
     }
@@ -300,11 +311,17 @@ impl Receiver {
                 let body = &sample.as_ref()[frame::SEQUENCED..];
                 c.count_in(body.len());
                 self.pass_bulk_bytes += body.len();
-                self.on_safe(io, c, from, (session, seq, more), Some(body));
+                if self.on_safe(io, c, from, (session, seq, more), Some(body)) {
+                    match sample {
+                        BulkBody::Sample(s) => io.deliver_sample(from, s, frame::SEQUENCED),
+                        BulkBody::Copy(v) => io.deliver(from, &v[frame::SEQUENCED..]),
+                    }
+                }
             }
             None => {
                 c.corrupt.fetch_add(1, Ordering::Relaxed);
-                self.on_safe(io, c, from, (session, seq, more), None);
+                let whole = self.on_safe(io, c, from, (session, seq, more), None);
+                debug_assert!(!whole, "no body, nothing to deliver");
             }
         }
     }
@@ -386,7 +403,9 @@ impl Receiver {
     }
 
     /// A fragment of a safe message; `body` is `None` when it went missing (a bulk body that
-    /// is not there), which tears the message.
+    /// is not there), which tears the message. Returns whether `body` is a whole message the
+    /// caller now delivers (a message of several fragments is delivered here).
+    #[must_use]
     fn on_safe(
         &mut self,
         io: &mut impl RxIo,
@@ -394,7 +413,7 @@ impl Receiver {
         from: u64,
         (session, seq, more): (u32, u64, bool),
         body: Option<&[u8]>,
-    ) {
+    ) -> bool {
         self.fragments += 1;
         self.pass_messages += 1;
         let now = self.fragments;
@@ -421,17 +440,17 @@ impl Receiver {
             io.peer_reset(from);
         }
         let Some(st) = self.rx.get_mut(&from) else {
-            return;
+            return false;
         };
         if seq < st.expected {
             c.duplicates.fetch_add(1, Ordering::Relaxed);
-            return;
+            return false;
         }
         // No session reaches the last sequence number; a frame claiming it is corrupt (the
         // structured fuzzer found that `seq + 1` overflowed on it).
         let Some(next) = seq.checked_add(1) else {
             c.corrupt.fetch_add(1, Ordering::Relaxed);
-            return;
+            return false;
         };
         if more && body.is_some_and(|b| self.partial_bytes + b.len() > self.max_reassembly) {
             // Room is made by tearing the messages other writers stopped extending longest
@@ -440,7 +459,7 @@ impl Receiver {
             self.tear_least_recent_partials(from, needed, c);
         }
         let Some(st) = self.rx.get_mut(&from) else {
-            return;
+            return false;
         };
         if seq > st.expected {
             // Shared memory loses nothing; a gap means a torn message, which is dropped.
@@ -453,7 +472,7 @@ impl Receiver {
         let Some(body) = body.filter(|_| !st.torn) else {
             st.torn = more;
             self.partial_bytes -= std::mem::take(&mut st.partial).len();
-            return;
+            return false;
         };
         if more {
             if st.partial.len() + body.len() > MAX_MESSAGE
@@ -467,16 +486,16 @@ impl Receiver {
                 st.partial.extend_from_slice(body);
                 self.partial_bytes += body.len();
             }
-            return;
+            return false;
         }
         if st.partial.is_empty() {
-            io.deliver(from, body);
-        } else {
-            st.partial.extend_from_slice(body);
-            let msg = std::mem::take(&mut st.partial);
-            self.partial_bytes -= msg.len() - body.len();
-            io.deliver(from, &msg);
+            return true;
         }
+        st.partial.extend_from_slice(body);
+        let msg = std::mem::take(&mut st.partial);
+        self.partial_bytes -= msg.len() - body.len();
+        io.deliver(from, &msg);
+        false
     }
 
     /// Tears the partly reassembled messages of writers other than `from`, least recent

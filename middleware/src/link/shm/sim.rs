@@ -115,6 +115,17 @@ impl InboxWriter for SimWriter<'_> {
     fn open_bulk(&mut self) {
         *self.bulk_requested = true;
     }
+
+    /// A loan of the simulation is a [`crate::link::HeapLoan`]: its bytes are copied.
+    fn put_loan(
+        &mut self,
+        mut loan: Box<dyn crate::link::LinkLoan>,
+        session: u32,
+        seq: u64,
+    ) -> bool {
+        let body = loan.init().to_vec();
+        self.put(Part::Bulk, super::frame::BULK_DATA, session, seq, &body)
+    }
 }
 
 /// What a node's receiver handed over.

@@ -13,9 +13,9 @@
 use std::collections::VecDeque;
 
 use super::frame::{self, Part};
-use super::{BULK_MAX, FRAME_MAX, MAX_FAST_BACKLOG, SAFE_FRAMES_IN_FLIGHT};
+use super::{BULK_BUFFER, BULK_MAX, FRAME_MAX, MAX_FAST_BACKLOG, SAFE_FRAMES_IN_FLIGHT};
 use crate::link::coalesce::{CoalescingQueue, Pushed};
-use crate::link::{LinkCounters, LinkSendError, SafeCompletion};
+use crate::link::{LinkCounters, LinkLoan, LinkSendError, SafeCompletion};
 use std::sync::atomic::Ordering;
 
 /// The writing side of one peer's inbox, as the sending machine sees it.
@@ -29,6 +29,10 @@ pub(crate) trait InboxWriter {
     fn wake(&mut self);
     /// Asks for the peer's bulk inbox to be opened; [`PeerTx::bulk_opened`] follows.
     fn open_bulk(&mut self);
+    /// Sends `loan`, a whole message written in a sample of the peer's bulk inbox, as the
+    /// `BulkData` frame `(session, seq)`. Returns whether the inbox took it (the sample is
+    /// spent either way).
+    fn put_loan(&mut self, loan: Box<dyn LinkLoan>, session: u32, seq: u64) -> bool;
 }
 
 /// Whether large fragments can go to the peer's bulk inbox.
@@ -45,7 +49,10 @@ enum BulkState {
 
 /// A safe message not yet wholly written into the peer's inbox.
 struct Pending {
+    /// The message, unless it is written in a `loan`.
     msg: Vec<u8>,
+    /// A whole message written in place in a sample of the peer's bulk inbox.
+    loan: Option<Box<dyn LinkLoan>>,
     /// Bytes already written (fragments accepted by the inbox).
     sent: usize,
     done: Option<SafeCompletion>,
@@ -59,11 +66,22 @@ impl Pending {
     fn new(msg: Vec<u8>, done: Option<SafeCompletion>, fast: bool) -> Self {
         Pending {
             msg,
+            loan: None,
             sent: 0,
             done,
             fast,
             bulk_written: false,
         }
+    }
+
+    /// Its length.
+    fn len(&self) -> usize {
+        self.loan.as_ref().map_or(self.msg.len(), |l| l.len())
+    }
+
+    /// Whether it may go in a pack (a small whole message not yet started).
+    fn packable(&self) -> bool {
+        self.sent == 0 && self.loan.is_none() && packable(&self.msg)
     }
 }
 
@@ -81,6 +99,10 @@ pub(crate) struct PeerTx {
     unacked: VecDeque<(u64, SafeCompletion)>,
     /// The last sequence number of each safe frame written and not yet acknowledged.
     in_flight: VecDeque<u64>,
+    /// The sequence number of each bulk sample written and not yet acknowledged: a loaned
+    /// sample is sent only while fewer than the bulk buffer holds are (a refused one would be
+    /// lost, where a copied body is written again).
+    bulk_in_flight: VecDeque<u64>,
     /// The entries of the pack being written (kept for its allocation).
     pack: Vec<u8>,
     /// The inbox refused a frame: wait for an acknowledgement (or the retry timer).
@@ -109,6 +131,7 @@ impl PeerTx {
             backlog_bytes: 0,
             unacked: VecDeque::new(),
             in_flight: VecDeque::new(),
+            bulk_in_flight: VecDeque::new(),
             pack: Vec::new(),
             blocked: false,
         }
@@ -179,20 +202,35 @@ impl PeerTx {
     fn holds(&self) -> bool {
         self.in_flight.len() >= SAFE_FRAMES_IN_FLIGHT
             && self.backlog_bytes < INLINE_MAX
-            && self
-                .safe_backlog
-                .front()
-                .is_some_and(|p| p.sent == 0 && packable(&p.msg))
+            && self.safe_backlog.front().is_some_and(Pending::packable)
+    }
+
+    /// Sends the whole message written in `loan` (a sample of the peer's bulk inbox, which is
+    /// open); `done` completes when the peer acknowledges it. It keeps its place among the
+    /// safe messages.
+    pub(crate) fn send_loan(
+        &mut self,
+        w: &mut impl InboxWriter,
+        c: &LinkCounters,
+        loan: Box<dyn LinkLoan>,
+        done: Option<SafeCompletion>,
+    ) {
+        let mut p = Pending::new(Vec::new(), done, false);
+        p.loan = Some(loan);
+        self.queue(p);
+        if !self.blocked && self.flush_safe(w, c) {
+            w.wake();
+        }
     }
 
     fn queue(&mut self, p: Pending) {
-        self.backlog_bytes += p.msg.len() + frame::PACK_ENTRY_HEADER;
+        self.backlog_bytes += p.len() + frame::PACK_ENTRY_HEADER;
         self.safe_backlog.push_back(p);
     }
 
     fn dequeue(&mut self) -> Option<Pending> {
         let p = self.safe_backlog.pop_front()?;
-        self.backlog_bytes -= p.msg.len() + frame::PACK_ENTRY_HEADER;
+        self.backlog_bytes -= p.len() + frame::PACK_ENTRY_HEADER;
         Some(p)
     }
 
@@ -216,6 +254,15 @@ impl PeerTx {
         wrote |= self.flush_safe(w, c);
         if wrote {
             w.wake();
+        }
+    }
+
+    /// Asks for the peer's bulk inbox to be opened (if not yet asked for): messages will be
+    /// written into it in place.
+    pub(crate) fn want_bulk(&mut self, w: &mut impl InboxWriter) {
+        if self.bulk == BulkState::Closed {
+            self.bulk = BulkState::Opening;
+            w.open_bulk();
         }
     }
 
@@ -266,7 +313,7 @@ impl PeerTx {
                 break;
             }
             let packed = match self.safe_backlog.get(1) {
-                Some(second) if packable(&second.msg) => self.write_pack(w, c),
+                Some(second) if second.packable() => self.write_pack(w, c),
                 _ => None,
             };
             let written = match packed {
@@ -294,7 +341,7 @@ impl PeerTx {
         let mut n = 0u64;
         for p in &self.safe_backlog {
             let entry = frame::PACK_ENTRY_HEADER + p.msg.len();
-            if p.sent != 0 || !packable(&p.msg) || self.pack.len() + entry > INLINE_MAX {
+            if !p.packable() || self.pack.len() + entry > INLINE_MAX {
                 break;
             }
             frame::push_pack_entry(&mut self.pack, &p.msg);
@@ -328,6 +375,9 @@ impl PeerTx {
     /// when it fits a frame). Returns whether the inbox took it, or `None` when there is
     /// nothing to write or it waits for the bulk inbox.
     fn write_fragment(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> Option<bool> {
+        if self.safe_backlog.front()?.loan.is_some() {
+            return Some(self.write_loan(w, c));
+        }
         let bulk_max = BULK_MAX - frame::SEQUENCED;
         let session = self.session;
         let p = self.safe_backlog.front_mut()?;
@@ -357,6 +407,7 @@ impl PeerTx {
                 }
                 c.count_out(frame::SEQUENCED + n);
                 p.bulk_written = true;
+                self.bulk_in_flight.push_back(seq);
             }
             let kind = if more { frame::BULK_MORE } else { frame::BULK };
             w.put(Part::Safe, kind, session, seq, &[])
@@ -382,6 +433,48 @@ impl PeerTx {
         Some(true)
     }
 
+    /// Writes the loaned message at the front of the backlog: its sample into the bulk inbox
+    /// (while the inbox surely has room for it), then its `Bulk` frame. Returns whether the
+    /// frame was written; a sample the inbox refused anyway (the peer's inbox went away) is
+    /// lost, and its message fails.
+    fn write_loan(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> bool {
+        let (session, seq) = (self.session, self.next_seq);
+        let bulk_full = self.bulk_in_flight.len() >= BULK_BUFFER;
+        let Some(p) = self.safe_backlog.front_mut() else {
+            return false;
+        };
+        if !p.bulk_written {
+            if bulk_full {
+                return false;
+            }
+            let Some(loan) = p.loan.take() else {
+                return false;
+            };
+            let len = loan.len();
+            if !w.put_loan(loan, session, seq) {
+                if let Some(done) = self.dequeue().and_then(|p| p.done) {
+                    let _ = done.send(Err(LinkSendError::PeerClosed(
+                        "a shared-memory peer whose inbox refused a loaned sample".into(),
+                    )));
+                }
+                return true;
+            }
+            c.count_out(frame::SEQUENCED + len);
+            p.bulk_written = true;
+            self.bulk_in_flight.push_back(seq);
+        }
+        if !w.put(Part::Safe, frame::BULK, session, seq, &[]) {
+            return false;
+        }
+        c.count_out(frame::SEQUENCED);
+        if let Some(done) = self.dequeue().and_then(|p| p.done) {
+            self.unacked.push_back((seq, done));
+        }
+        self.next_seq += 1;
+        self.in_flight.push_back(seq);
+        true
+    }
+
     /// The peer acknowledged everything up to `seq` of `session`: unblocks the writer and
     /// returns the completions now due, or `None` when the acknowledgement is of another
     /// session (a stale one, from before a restart of ours).
@@ -392,6 +485,9 @@ impl PeerTx {
         self.blocked = false;
         while self.in_flight.front().is_some_and(|s| *s <= seq) {
             self.in_flight.pop_front();
+        }
+        while self.bulk_in_flight.front().is_some_and(|s| *s <= seq) {
+            self.bulk_in_flight.pop_front();
         }
         let mut done = Vec::new();
         while self.unacked.front().is_some_and(|(s, _)| *s <= seq) {
@@ -406,6 +502,7 @@ impl PeerTx {
     pub(crate) fn fail_all(&mut self, err: &LinkSendError) {
         self.backlog_bytes = 0;
         self.in_flight.clear();
+        self.bulk_in_flight.clear();
         for p in self.safe_backlog.drain(..) {
             if let Some(d) = p.done {
                 let _ = d.send(Err(err.clone()));

@@ -1,0 +1,163 @@
+//! [`Blob`]: bytes that may stay where they arrived. A camera frame published as an
+//! `Event<Blob>` or `Variable<Blob>` reaches a subscriber on the same host as a view of the
+//! shared memory it crossed in (no copy), and anywhere else as an ordinary buffer; publishers
+//! fill one in place with [`crate::Event::loan`].
+
+use std::fmt;
+use std::ops::Deref;
+
+use bytes::Bytes;
+
+/// An immutable byte buffer, cheap to clone (a reference count), that a subscriber may receive
+/// without a copy: through a shared-memory link, a large [`Blob`] is a view of the sample it
+/// arrived in, released to its writer when the last clone is dropped.
+///
+/// On the wire a `Blob` is postcard's byte string (a length, then the bytes). Publishers and
+/// subscribers of one item must both use `Blob` (the type name is part of the match).
+///
+/// Hold few received blobs at once: a subscriber's node lends at most `LENT_SAMPLES` (4)
+/// samples per shared-memory link to the application; past that it copies (the writers would
+/// otherwise run out of shared memory).
+#[derive(Clone, Default)]
+pub struct Blob {
+    bytes: Bytes,
+    /// A view of a shared-memory sample lent by a link.
+    lent: bool,
+}
+
+impl Blob {
+    /// An empty blob.
+    pub fn new() -> Self {
+        Blob::default()
+    }
+
+    /// A blob of a copy of `bytes`.
+    pub fn copy_from_slice(bytes: &[u8]) -> Self {
+        Blob::from(Bytes::copy_from_slice(bytes))
+    }
+
+    /// Whether these bytes are a view of shared memory they arrived in (not a copy).
+    pub fn is_shared_memory(&self) -> bool {
+        self.lent
+    }
+
+    /// The bytes as a [`Bytes`] (no copy).
+    pub fn into_bytes(self) -> Bytes {
+        self.bytes
+    }
+
+    /// `bytes`, which are a lent shared-memory sample's when `lent`.
+    pub(crate) fn from_payload(bytes: Bytes, lent: bool) -> Self {
+        Blob { bytes, lent }
+    }
+}
+
+impl Deref for Blob {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        &self.bytes
+    }
+}
+
+impl AsRef<[u8]> for Blob {
+    fn as_ref(&self) -> &[u8] {
+        &self.bytes
+    }
+}
+
+impl From<Vec<u8>> for Blob {
+    fn from(v: Vec<u8>) -> Self {
+        Blob::from(Bytes::from(v))
+    }
+}
+
+impl From<Bytes> for Blob {
+    fn from(bytes: Bytes) -> Self {
+        Blob { bytes, lent: false }
+    }
+}
+
+impl PartialEq for Blob {
+    /// Equal bytes (wherever they are).
+    fn eq(&self, other: &Self) -> bool {
+        self.bytes == other.bytes
+    }
+}
+
+impl Eq for Blob {}
+
+impl fmt::Debug for Blob {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Blob")
+            .field("len", &self.bytes.len())
+            .field("shared_memory", &self.is_shared_memory())
+            .finish()
+    }
+}
+
+impl serde::Serialize for Blob {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(&self.bytes)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Blob {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl serde::de::Visitor<'_> for V {
+            type Value = Blob;
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("a byte string")
+            }
+            fn visit_bytes<E: serde::de::Error>(self, v: &[u8]) -> Result<Blob, E> {
+                Ok(Blob::copy_from_slice(v))
+            }
+            fn visit_byte_buf<E: serde::de::Error>(self, v: Vec<u8>) -> Result<Blob, E> {
+                Ok(Blob::from(v))
+            }
+        }
+        d.deserialize_byte_buf(V)
+    }
+}
+
+/// Decodes a user payload held in `bytes` (a slice of the message it arrived in): a
+/// [`Blob`] is that slice, without a copy (a view of shared memory when `lent`), a
+/// `Vec<u8>` as [`crate::codec::decode_payload_owned`] makes it.
+///
+/// # Errors
+/// postcard's error when the bytes do not hold a `T`.
+pub(crate) fn decode_payload<T: serde::de::DeserializeOwned + 'static>(
+    bytes: bytes::Bytes,
+    lent: bool,
+) -> Result<T, postcard::Error> {
+    let mut slot: Option<T> = None;
+    if let Some(out) = (&mut slot as &mut dyn std::any::Any).downcast_mut::<Option<Blob>>() {
+        let mut rest: &[u8] = &bytes;
+        let len = crate::codec::varint::take_u64(&mut rest)
+            .and_then(|l| usize::try_from(l).ok())
+            .filter(|l| *l <= rest.len())
+            .ok_or(postcard::Error::DeserializeUnexpectedEnd)?;
+        let at = bytes.len() - rest.len();
+        *out = Some(Blob::from_payload(bytes.slice(at..at + len), lent));
+        return Ok(slot.expect("set just above"));
+    }
+    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<Vec<u8>>() {
+        return crate::codec::decode_payload_owned(Vec::from(bytes));
+    }
+    postcard::from_bytes(&bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_blob_encodes_as_postcard_encodes_its_bytes() {
+        let b = Blob::from(vec![1u8, 2, 3]);
+        let enc = postcard::to_allocvec(&b).unwrap();
+        assert_eq!(enc, postcard::to_allocvec(&vec![1u8, 2, 3]).unwrap());
+        let back: Blob = postcard::from_bytes(&enc).unwrap();
+        assert_eq!(&*back, &[1, 2, 3]);
+        assert!(!back.is_shared_memory());
+    }
+}

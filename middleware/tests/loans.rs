@@ -1,0 +1,232 @@
+//! Large events written in place (`Event::<Blob>::loan`): towards one subscriber on the same
+//! host the buffer is a sample of its shared-memory inbox and the subscriber's `Blob` a view of
+//! it (no copy either side), sealed or not; a subscriber holding many blobs gets copies past
+//! the lending bound and the publisher never stalls; several subscribers, or another link, get
+//! the event as any other. Real iceoryx2 shared memory and real sockets, between nodes of this
+//! process.
+
+mod common;
+
+use std::io::Write;
+use std::time::Duration;
+
+use marea::config::{LinkConfig, SecurityConfig, ShmConfig};
+use marea::{Blob, Event, EventSubscriber, NetworkConfig, Node};
+
+const T: Duration = Duration::from_secs(60);
+
+fn shm(node: &str, domain: &str) -> NetworkConfig {
+    let mut c = NetworkConfig::ethernet_loopback(node);
+    c.domain = domain.into();
+    c.links = vec![LinkConfig::Shm(ShmConfig {
+        service: format!("loans-{domain}"),
+        ..ShmConfig::default()
+    })];
+    c
+}
+
+/// `len` bytes no two sizes share a prefix of, so a part lost or moved shows.
+fn payload(len: usize, salt: u8) -> Vec<u8> {
+    (0..len)
+        .map(|i| (i as u32).wrapping_mul(2_654_435_761).rotate_right(7) as u8 ^ salt)
+        .collect()
+}
+
+/// Raises `bytes` through a loan (written in two appends), checks the report and returns
+/// whether the loan was shared memory.
+async fn raise_loaned(ev: &Event<Blob>, bytes: &[u8]) -> bool {
+    let mut loan = ev.loan(bytes.len()).expect("a loan");
+    assert_eq!(loan.len(), bytes.len());
+    let half = bytes.len() / 2;
+    assert_eq!(loan.append(&bytes[..half]), half);
+    loan.write_all(&bytes[half..]).expect("the rest fits");
+    assert_eq!(loan.written(), bytes.len());
+    assert_eq!(loan.append(b"x"), 0, "nothing past the end");
+    let shared = loan.is_shared_memory();
+    let report = tokio::time::timeout(T, loan.raise())
+        .await
+        .expect("the raise completes");
+    assert!(
+        report.all_acknowledged() && !report.acknowledged().is_empty(),
+        "{report:?}"
+    );
+    shared
+}
+
+async fn next(sub: &EventSubscriber<Blob>) -> Blob {
+    sub.recv_timeout(T).await.expect("the event").value
+}
+
+/// Two nodes on one shared-memory link, a publisher of `Event<Blob>` on `a` and its
+/// subscriber on `b`.
+async fn pair(
+    domain: &str,
+    security: Option<SecurityConfig>,
+) -> (Node, Node, Event<Blob>, EventSubscriber<Blob>) {
+    let mut ca = shm("a", domain);
+    let mut cb = shm("b", domain);
+    ca.security = security.clone();
+    cb.security = security;
+    let a = Node::open(&ca).await.unwrap();
+    let b = Node::open(&cb).await.unwrap();
+    let sub = b
+        .service("dst")
+        .unwrap()
+        .subscribe_event::<Blob>("src/frame")
+        .unwrap();
+    let ev = a
+        .service("src")
+        .unwrap()
+        .publish_event::<Blob>("frame")
+        .unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "no subscriber");
+    (a, b, ev, sub)
+}
+
+/// Raises events until a loan is shared memory (the first asks for the subscriber's bulk
+/// inbox to be opened and goes as a copy); each arrives whole.
+async fn until_lent(ev: &Event<Blob>, sub: &EventSubscriber<Blob>) {
+    for i in 0..200u8 {
+        let sent = payload(100_000, i);
+        let shared = raise_loaned(ev, &sent).await;
+        let got = next(sub).await;
+        assert!(*got == sent[..], "a warm-up event arrived changed");
+        if shared {
+            assert!(got.is_shared_memory(), "lent, but it arrived as a copy");
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    panic!("no loan was ever shared memory");
+}
+
+async fn frames_arrive_in_place(domain: &str, security: Option<SecurityConfig>) {
+    let (a, b, ev, sub) = pair(domain, security).await;
+    until_lent(&ev, &sub).await;
+    for (k, size) in [64 << 10, 4 << 20, 16 << 20].into_iter().enumerate() {
+        let sent = payload(size, k as u8);
+        assert!(raise_loaned(&ev, &sent).await, "{size} bytes: not lent");
+        let got = next(&sub).await;
+        assert_eq!(got.len(), size);
+        assert!(*got == sent[..], "{size} bytes arrived changed");
+        assert!(got.is_shared_memory(), "{size} bytes arrived as a copy");
+    }
+    // Written anywhere through the slice: what was not written arrives as zeros.
+    let mut loan = ev.loan(1 << 20).unwrap();
+    assert!(loan.is_shared_memory());
+    loan.append(&[7; 10]);
+    let s = loan.as_mut_slice();
+    s[1000] = 9;
+    let report = loan.raise().await;
+    assert!(report.all_acknowledged(), "{report:?}");
+    let got = next(&sub).await;
+    assert_eq!(&got[..10], &[7; 10]);
+    assert_eq!(got[1000], 9);
+    assert!(got[10..1000].iter().chain(&got[1001..]).all(|b| *b == 0));
+    a.shutdown().await;
+    b.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_loaned_frame_crosses_shared_memory_in_place() {
+    frames_arrive_in_place(&format!("loans-{}", std::process::id()), None).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_loaned_frame_crosses_a_sealed_shared_memory_link_in_place() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = dir.path().join("domain.key");
+    marea::link::auth::DomainKey::create_file(&key).unwrap();
+    let xml = format!(
+        r#"<network node="x" domain="d"><shm/><security keyFile="{}"/></network>"#,
+        key.display()
+    );
+    let security = NetworkConfig::parse(&xml, None)
+        .expect("a valid network file")
+        .security;
+    assert!(security.is_some());
+    frames_arrive_in_place(&format!("loans-sealed-{}", std::process::id()), security).await;
+}
+
+/// A subscriber keeping every frame: past the lending bound its frames are copies (and the
+/// publisher goes on); once it lets them go, frames are views again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_subscriber_holding_frames_gets_copies_past_the_bound_and_never_stalls_the_publisher() {
+    let (a, b, ev, sub) = pair(&format!("loans-held-{}", std::process::id()), None).await;
+    until_lent(&ev, &sub).await;
+    let mut kept = Vec::new();
+    for i in 0..12u8 {
+        let sent = payload(1 << 20, i);
+        raise_loaned(&ev, &sent).await;
+        let got = next(&sub).await;
+        assert!(*got == sent[..], "frame {i} arrived changed");
+        kept.push(got);
+    }
+    let shared = kept.iter().filter(|b| b.is_shared_memory()).count();
+    assert!(
+        (1..12).contains(&shared),
+        "{shared} of 12 held frames are views: some, not all"
+    );
+    kept.clear();
+    let sent = payload(1 << 20, 99);
+    raise_loaned(&ev, &sent).await;
+    let got = next(&sub).await;
+    assert!(*got == sent[..]);
+    assert!(got.is_shared_memory(), "released, frames are views again");
+    a.shutdown().await;
+    b.shutdown().await;
+}
+
+/// With two subscriber nodes the loan is an ordinary buffer, and both get the frame.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_for_two_subscribers_is_loaned_on_the_heap_and_reaches_both() {
+    let domain = format!("loans-two-{}", std::process::id());
+    let (a, b, ev, sub) = pair(&domain, None).await;
+    let c = Node::open(&shm("c", &domain)).await.unwrap();
+    let sub_c = c
+        .service("dst")
+        .unwrap()
+        .subscribe_event::<Blob>("src/frame")
+        .unwrap();
+    assert!(
+        ev.wait_remote_subscribers(2, T).await,
+        "no second subscriber"
+    );
+    let sent = payload(3 << 20, 5);
+    assert!(!raise_loaned(&ev, &sent).await, "lent with two subscribers");
+    for s in [&sub, &sub_c] {
+        let got = next(s).await;
+        assert!(*got == sent[..], "a subscriber got it changed");
+    }
+    for n in [a, b, c] {
+        n.shutdown().await;
+    }
+}
+
+/// Over UDP nothing is lent: the frame goes as any event and arrives whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_loaned_frame_over_udp_is_an_ordinary_event() {
+    let domain = format!("loans-udp-{}", std::process::id());
+    let port = test_support::multicast_port(u64::from(std::process::id()) + 11);
+    let cfg = |n: &str| common::loopback_config(n, &domain, 23, port, Duration::from_secs(30));
+    let a = Node::open(&cfg("a")).await.unwrap();
+    let b = Node::open(&cfg("b")).await.unwrap();
+    let sub = b
+        .service("dst")
+        .unwrap()
+        .subscribe_event::<Blob>("src/frame")
+        .unwrap();
+    let ev = a
+        .service("src")
+        .unwrap()
+        .publish_event::<Blob>("frame")
+        .unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "no subscriber");
+    let sent = payload(2 << 20, 3);
+    assert!(!raise_loaned(&ev, &sent).await, "a UDP link lent a buffer");
+    let got = next(&sub).await;
+    assert!(*got == sent[..]);
+    assert!(!got.is_shared_memory());
+    a.shutdown().await;
+    b.shutdown().await;
+}
