@@ -64,7 +64,7 @@ struct Case {
     /// marea's link kind: `udp`, `shm`, `serial`.
     link: Option<&'static str>,
     /// The role suffix: `-event` or `-var` (marea's pub/sub), `-api` (marea's default API),
-    /// `-load` (round trips under a bulk stream).
+    /// `-load` (round trips under a bulk stream), `-blob` (events written in place: `loan`).
     suffix: &'static str,
     pinned: bool,
     /// Subscriber processes of a rate case (a fan-out when more than one).
@@ -210,6 +210,31 @@ fn cases(o: &Opts) -> Vec<Case> {
             ),
             "udp",
             "-event",
+        ),
+    ]);
+    // Camera frames on one host: 4 MiB events, each written once into shared memory (marea's
+    // loan, iceoryx2's `loan_slice_uninit` + `write_from_slice`), received without a copy.
+    let fig = "blob4m";
+    v.extend([
+        base(
+            fig,
+            "iceoryx2",
+            Kind::Rate,
+            "peer-iceoryx2",
+            4 << 20,
+            blob_secs,
+        ),
+        marea(
+            base(
+                fig,
+                "marea_shm",
+                Kind::Rate,
+                "peer-marea-shm",
+                4 << 20,
+                blob_secs,
+            ),
+            "shm",
+            "-blob",
         ),
     ]);
     // The API services use: `raise_nowait` and `recv().await` on the multi-thread runtime,
@@ -825,6 +850,13 @@ async fn run(o: Opts) -> anyhow::Result<()> {
     // Same-run ratios: within each round, then the median over rounds.
     // (figure, implementation) over (figure, implementation).
     let ratios = [
+        (
+            "blob4m",
+            "marea_shm",
+            "blob4m",
+            "iceoryx2",
+            "peers.blob4m.marea_shm_to_iceoryx2",
+        ),
         (
             "blob1m",
             "marea_udp",

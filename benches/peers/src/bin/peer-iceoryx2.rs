@@ -16,21 +16,38 @@ use peers_common::{finish_sub, payload, ready, seq, wait_until, Args, Arrivals, 
 
 /// The subscriber's buffer for one-way rates (and the service's limit).
 const BUFFER: usize = 1024;
+/// The same for large samples (every slot of the publisher's segment is the largest sample's
+/// size: 1,024 of 4 MiB would not fit the host's shared memory); marea's bulk inbox holds 8.
+const LARGE_BUFFER: usize = 8;
+
+/// The subscriber's buffer for samples of `size` bytes.
+fn buffer(size: usize) -> usize {
+    if size > 64 << 10 {
+        LARGE_BUFFER
+    } else {
+        BUFFER
+    }
+}
 
 type Pub = Publisher<ipc::Service, [u8], ()>;
 type Sub = Subscriber<ipc::Service, [u8], ()>;
 
 struct Ports {
     node: iceoryx2::node::Node<ipc::Service>,
+    /// The subscriber's buffer (and the service's limit).
+    buffer: usize,
 }
 
 impl Ports {
-    fn new() -> anyhow::Result<Ports> {
+    fn new(size: usize) -> anyhow::Result<Ports> {
         let node = NodeBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
             .map_err(|e| anyhow!("iceoryx2 node: {e:?}"))?;
-        Ok(Ports { node })
+        Ok(Ports {
+            node,
+            buffer: buffer(size),
+        })
     }
 
     fn service(
@@ -42,7 +59,7 @@ impl Ports {
         self.node
             .service_builder(&ServiceName::new(name).map_err(|e| anyhow!("name {name}: {e:?}"))?)
             .publish_subscribe::<[u8]>()
-            .subscriber_max_buffer_size(BUFFER)
+            .subscriber_max_buffer_size(self.buffer)
             .enable_safe_overflow(false)
             .max_publishers(2)
             .max_subscribers(2)
@@ -67,7 +84,7 @@ impl Ports {
     fn subscriber(&self, name: &str) -> anyhow::Result<Sub> {
         self.service(name)?
             .subscriber_builder()
-            .buffer_size(BUFFER)
+            .buffer_size(self.buffer)
             .create()
             .map_err(|e| anyhow!("subscriber {name}: {e:?}"))
     }
@@ -107,7 +124,7 @@ fn rtt_side(
     (rx, tx): (&str, &str),
     initiator: bool,
 ) -> anyhow::Result<()> {
-    let ports = Ports::new()?;
+    let ports = Ports::new(args.size)?;
     let k = &args.key;
     let sub = ports.subscriber(&format!("{k}/{rx}"))?;
     let listener = ports
@@ -173,7 +190,7 @@ fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         "pong" => rtt_side(&args, &control, ("ping", "pong"), false),
         "ping" => rtt_side(&args, &control, ("pong", "ping"), true),
         "sub" => {
-            let ports = Ports::new()?;
+            let ports = Ports::new(args.size)?;
             let sub = ports.subscriber(&format!("{}/data", args.key))?;
             let arrivals = Arc::new(Arrivals::default());
             let (a, c) = (arrivals.clone(), control.clone());
@@ -189,7 +206,7 @@ fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             Ok(())
         }
         "pub" => {
-            let ports = Ports::new()?;
+            let ports = Ports::new(args.size)?;
             let (publisher, _) = ports.publisher(&format!("{}/data", args.key), args.size)?;
             ready("");
             let msg = payload(args.size, 0);
@@ -224,7 +241,7 @@ fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         }
         "idle" => {
             // A node with one service; the partner (KEY ending in /partner) publishes on it.
-            let ports = Ports::new()?;
+            let ports = Ports::new(args.size)?;
             let base = args.key.trim_end_matches("/partner");
             if args.key.ends_with("/partner") {
                 let _p = ports.publisher(&format!("{base}/idle"), args.size)?;

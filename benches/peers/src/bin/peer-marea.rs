@@ -97,6 +97,8 @@ const MATCH: Duration = Duration::from_secs(20);
 
 /// Events a `pub-api` keeps in flight (raised, report not awaited yet).
 const IN_FLIGHT: usize = 4096;
+/// Frames a `pub-blob` keeps in flight.
+const BLOBS_IN_FLIGHT: usize = 3;
 
 /// The publisher's event `d`, once every subscriber of the run matched it (all of a fan-out's);
 /// then tells the runner it is ready.
@@ -250,6 +252,53 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 let c = control.clone();
                 tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
                 drop(sub);
+            }
+            "sub-blob" => {
+                // Frames received as views of shared memory, counted and released in the
+                // callback (as the iceoryx2 peer's subscriber does with its samples).
+                let arrivals = Arc::new(Arrivals::default());
+                let a = arrivals.clone();
+                let sub = svc.subscribe_event_with::<marea::Blob, _>("pub/d", move |s| {
+                    if s.is_ok() {
+                        a.add();
+                    }
+                })?;
+                ready("");
+                let c = control.clone();
+                tokio::task::spawn_blocking(move || finish_sub(&arrivals, &c)).await?;
+                drop(sub);
+            }
+            "pub-blob" => {
+                // Each frame written once, into the subscriber's shared memory when it is
+                // lent; a few raised and not yet acknowledged, as a camera pipeline keeps.
+                let ev = svc.publish_event::<marea::Blob>("d")?;
+                if !ev.wait_remote_subscribers(subscribers(), MATCH).await {
+                    anyhow::bail!("pub: no subscriber of d within {MATCH:?}");
+                }
+                ready("");
+                let frame = payload(args.size, 0);
+                let (start, mut sent, mut lent) = (Instant::now(), 0u64, 0u64);
+                let mut in_flight = std::collections::VecDeque::with_capacity(BLOBS_IN_FLIGHT);
+                while start.elapsed().as_secs_f64() < args.param {
+                    if in_flight.len() >= BLOBS_IN_FLIGHT {
+                        if let Some(oldest) = in_flight.pop_front() {
+                            let _ = oldest.await;
+                        }
+                    }
+                    let mut loan = ev.loan(frame.len())?;
+                    lent += u64::from(loan.is_shared_memory());
+                    loan.append(&frame);
+                    in_flight.push_back(loan.raise_nowait());
+                    sent += 1;
+                }
+                let secs = start.elapsed().as_secs_f64();
+                for p in in_flight {
+                    let _ = tokio::time::timeout(Duration::from_secs(30), p).await;
+                }
+                if lent < sent {
+                    eprintln!("peer-marea: {} of {sent} frames were not lent shared memory", sent - lent);
+                }
+                println!("result {sent} {secs}");
             }
             "sub-api" => {
                 let arrivals = Arc::new(Arrivals::default());
