@@ -1,4 +1,4 @@
-//! Large events written in place (`Event::<Blob>::loan`): towards one subscriber on the same
+//! Large events and variables written in place (`Event::<Blob>::loan`, `Variable::<Blob>::loan`): towards one subscriber on the same
 //! host the buffer is a sample of its shared-memory inbox and the subscriber's `Blob` a view of
 //! it (no copy either side), sealed or not; a subscriber holding many blobs gets copies past
 //! the lending bound and the publisher never stalls; several subscribers, or another link, get
@@ -11,7 +11,7 @@ use std::io::Write;
 use std::time::Duration;
 
 use marea::config::{LinkConfig, SecurityConfig, ShmConfig};
-use marea::{Blob, Event, EventSubscriber, NetworkConfig, Node};
+use marea::{Blob, Event, EventSubscriber, NetworkConfig, Node, Variable, VariableSubscriber};
 
 const T: Duration = Duration::from_secs(60);
 
@@ -229,4 +229,67 @@ async fn a_loaned_frame_over_udp_is_an_ordinary_event() {
     assert!(!got.is_shared_memory());
     a.shutdown().await;
     b.shutdown().await;
+}
+
+async fn next_value(sub: &VariableSubscriber<Blob>) -> Blob {
+    sub.recv_timeout(T).await.expect("a value").value
+}
+
+/// Sets `bytes` through a loan; returns whether it was shared memory.
+fn set_loaned(var: &Variable<Blob>, bytes: &[u8]) -> bool {
+    let mut loan = var.loan(bytes.len()).expect("a loan");
+    assert_eq!(loan.append(bytes), bytes.len());
+    let shared = loan.is_shared_memory();
+    loan.set();
+    shared
+}
+
+/// A variable's value written in place reaches its one subscriber as a view of shared memory;
+/// a late joiner still gets the newest value (the publisher keeps a copy).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_loaned_variable_value_crosses_shared_memory_in_place_and_late_joiners_get_it() {
+    let domain = format!("loans-var-{}", std::process::id());
+    let a = Node::open(&shm("a", &domain)).await.unwrap();
+    let b = Node::open(&shm("b", &domain)).await.unwrap();
+    let sub = b
+        .service("dst")
+        .unwrap()
+        .subscribe_variable::<Blob>("src/tile")
+        .unwrap();
+    let var = a
+        .service("src")
+        .unwrap()
+        .publish_variable::<Blob>("tile")
+        .unwrap();
+    assert!(var.wait_remote_subscribers(1, T).await, "no subscriber");
+    let mut lent = false;
+    for i in 0..200u8 {
+        let sent = payload(200_000, i);
+        lent = set_loaned(&var, &sent);
+        let got = next_value(&sub).await;
+        assert!(*got == sent[..], "a value arrived changed");
+        if lent {
+            assert!(got.is_shared_memory(), "lent, but it arrived as a copy");
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert!(lent, "no loan was ever shared memory");
+    let tile = payload(4 << 20, 77);
+    assert!(set_loaned(&var, &tile), "the 4 MiB value was not lent");
+    let got = next_value(&sub).await;
+    assert!(*got == tile[..], "the 4 MiB value arrived changed");
+    assert!(got.is_shared_memory());
+
+    let c = Node::open(&shm("c", &domain)).await.unwrap();
+    let late = c
+        .service("late")
+        .unwrap()
+        .subscribe_variable::<Blob>("src/tile")
+        .unwrap();
+    let got = next_value(&late).await;
+    assert!(*got == tile[..], "the late joiner got another value");
+    for n in [a, b, c] {
+        n.shutdown().await;
+    }
 }

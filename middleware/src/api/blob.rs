@@ -8,6 +8,10 @@ use std::ops::Deref;
 
 use bytes::Bytes;
 
+use super::publisher::Publisher;
+use crate::node::data::PublishError;
+use crate::node::loans::MessageLoan;
+
 /// An immutable byte buffer, cheap to clone (a reference count), that a subscriber may receive
 /// without a copy: through a shared-memory link, a large [`Blob`] is a view of the sample it
 /// arrived in, released to its writer when the last clone is dropped.
@@ -49,6 +53,88 @@ impl Blob {
     /// `bytes`, which are a lent shared-memory sample's when `lent`.
     pub(crate) fn from_payload(bytes: Bytes, lent: bool) -> Self {
         Blob { bytes, lent }
+    }
+}
+
+/// A value's bytes being written in place: an event's ([`crate::EventLoan`], from
+/// [`crate::Event::loan`]) or a variable's ([`crate::VariableLoan`], from
+/// [`crate::Variable::loan`]). Raised or set by its handle's method; dropped without being
+/// sent otherwise. What was not written when it is sent goes as zeros.
+pub struct BlobLoan<'a, H> {
+    pub(super) handle: &'a H,
+    pub(super) loan: MessageLoan,
+    /// Where the value's payload starts in the message.
+    pub(super) at: usize,
+    /// Where the bytes start in the message.
+    start: usize,
+}
+
+impl<'a, H> BlobLoan<'a, H> {
+    /// A buffer for a value of `len` bytes of `publisher` (an event's when `event`), lent by
+    /// the link of its only subscriber when that link lends one.
+    pub(super) fn new(
+        handle: &'a H,
+        publisher: &Publisher,
+        event: bool,
+        len: usize,
+    ) -> Result<Self, PublishError> {
+        let offer = &publisher.offer;
+        PublishError::check_size(&offer.name, len)?;
+        let (header, at) = crate::codec::data_message_header_of_bytes(event, offer.id, len);
+        let routes = offer.remote.get();
+        let mut loan = publisher.node.loan(&routes, header.len() + len);
+        loan.buf.append(&header);
+        Ok(BlobLoan {
+            handle,
+            loan,
+            at,
+            start: header.len(),
+        })
+    }
+
+    /// The value's length in bytes.
+    pub fn len(&self) -> usize {
+        self.loan.buf.len() - self.start
+    }
+
+    /// Whether the value is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes written from the start so far.
+    pub fn written(&self) -> usize {
+        self.loan.buf.written() - self.start
+    }
+
+    /// Writes as much of `bytes` as fits after what was written (each byte once); returns
+    /// how much.
+    pub fn append(&mut self, bytes: &[u8]) -> usize {
+        self.loan.buf.append(bytes)
+    }
+
+    /// The whole value's bytes, to write anywhere in them; the first call zeroes those not
+    /// written yet.
+    pub fn as_mut_slice(&mut self) -> &mut [u8] {
+        let start = self.start;
+        &mut self.loan.buf.init()[start..]
+    }
+
+    /// Whether the bytes are being written into the subscriber's shared memory.
+    pub fn is_shared_memory(&self) -> bool {
+        self.loan.is_lent()
+    }
+}
+
+impl<H> std::io::Write for BlobLoan<'_, H> {
+    /// Appends (see [`BlobLoan::append`]); a full buffer takes nothing (`write_all` then fails
+    /// with [`std::io::ErrorKind::WriteZero`]).
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        Ok(self.append(buf))
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
     }
 }
 

@@ -4,13 +4,13 @@
 use std::marker::PhantomData;
 use std::time::Duration;
 
+use super::blob::BlobLoan;
 use super::publisher::Publisher;
 use super::{Blob, Payload};
 pub use crate::link::{STREAM_WINDOW, STREAM_WINDOW_BYTES};
 use crate::node::data::PublishError;
 use crate::node::events::StreamSender;
 pub use crate::node::events::{PendingRaise, RaiseReport, StreamError};
-use crate::node::loans::MessageLoan;
 
 /// Publisher handle of an event. Dropping it withdraws the event.
 pub struct Event<T> {
@@ -158,71 +158,18 @@ impl Event<Blob> {
     ///
     /// # Errors
     /// [`PublishError::TooLarge`] above [`crate::protocol::MAX_PAYLOAD`].
-    pub fn loan(&self, len: usize) -> Result<BlobLoan<'_>, PublishError> {
-        let offer = &self.publisher.offer;
-        PublishError::check_size(&offer.name, len)?;
-        let (header, at) = crate::codec::data_message_header_of_bytes(true, offer.id, len);
-        let routes = offer.remote.get();
-        let mut loan = self.publisher.node.loan(&routes, header.len() + len);
-        loan.buf.append(&header);
-        Ok(BlobLoan {
-            event: self,
-            loan,
-            at,
-            start: header.len(),
-        })
+    pub fn loan(&self, len: usize) -> Result<EventLoan<'_>, PublishError> {
+        BlobLoan::new(self, &self.publisher, true, len)
     }
 }
 
-/// An event's bytes being written in place ([`Event::loan`]); raised by
-/// [`BlobLoan::raise_nowait`] or [`BlobLoan::raise`], dropped without being sent otherwise.
-/// What was not written when it is raised is sent as zeros.
-pub struct BlobLoan<'a> {
-    event: &'a Event<Blob>,
-    loan: MessageLoan,
-    /// Where the event's payload starts in the message.
-    at: usize,
-    /// Where the bytes start in the message.
-    start: usize,
-}
+/// An event's bytes being written in place ([`Event::loan`]).
+pub type EventLoan<'a> = BlobLoan<'a, Event<Blob>>;
 
-impl BlobLoan<'_> {
-    /// The event's length in bytes.
-    pub fn len(&self) -> usize {
-        self.loan.buf.len() - self.start
-    }
-
-    /// Whether the event is empty.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// Bytes written from the start so far.
-    pub fn written(&self) -> usize {
-        self.loan.buf.written() - self.start
-    }
-
-    /// Writes as much of `bytes` as fits after what was written (each byte once); returns
-    /// how much.
-    pub fn append(&mut self, bytes: &[u8]) -> usize {
-        self.loan.buf.append(bytes)
-    }
-
-    /// The whole event's bytes, to write anywhere in them; the first call zeroes those not
-    /// written yet.
-    pub fn as_mut_slice(&mut self) -> &mut [u8] {
-        let start = self.start;
-        &mut self.loan.buf.init()[start..]
-    }
-
-    /// Whether the bytes are being written into the subscriber's shared memory.
-    pub fn is_shared_memory(&self) -> bool {
-        self.loan.is_lent()
-    }
-
+impl EventLoan<'_> {
     /// Raises the event (see [`Event::raise_nowait`]).
     pub fn raise_nowait(self) -> PendingRaise {
-        let publisher = &self.event.publisher;
+        let publisher = &self.handle.publisher;
         publisher
             .node
             .raise_loaned_event(&publisher.offer, self.loan, self.at)
@@ -231,18 +178,6 @@ impl BlobLoan<'_> {
     /// Raises the event and waits for the report (see [`Event::raise`]).
     pub async fn raise(self) -> RaiseReport {
         self.raise_nowait().await
-    }
-}
-
-impl std::io::Write for BlobLoan<'_> {
-    /// Appends (see [`BlobLoan::append`]); a full buffer takes nothing (`write_all` then fails
-    /// with [`std::io::ErrorKind::WriteZero`]).
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        Ok(self.append(buf))
-    }
-
-    fn flush(&mut self) -> std::io::Result<()> {
-        Ok(())
     }
 }
 

@@ -16,10 +16,10 @@ mod shared_str;
 mod subscription;
 mod variable;
 
-pub use blob::Blob;
+pub use blob::{Blob, BlobLoan};
 pub use errors::{DeclareError, NodeOpenError, RecvError};
 pub use event::{
-    BlobLoan, Event, EventStream, PendingRaise, RaiseReport, StreamError, STREAM_WINDOW,
+    Event, EventLoan, EventStream, PendingRaise, RaiseReport, StreamError, STREAM_WINDOW,
     STREAM_WINDOW_BYTES,
 };
 pub use file::{FileSink, FileTransfer};
@@ -30,7 +30,7 @@ pub use raw::{RawSubscription, RawValue};
 pub use service::{IService, Service, ServiceDescription, ServiceError};
 pub use shared_str::SharedStr;
 pub use subscription::{CallbackSubscription, EventSubscriber, Subscription, VariableSubscriber};
-pub use variable::{Sample, Variable};
+pub use variable::{Sample, Variable, VariableLoan};
 
 pub use crate::node::calls::{CallError, Caller};
 pub use crate::node::data::PublishError;

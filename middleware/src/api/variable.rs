@@ -3,8 +3,10 @@
 use std::marker::PhantomData;
 use std::time::{Duration, Instant};
 
+use super::blob::BlobLoan;
 use super::errors::RecvError;
 use super::publisher::Publisher;
+use super::Blob;
 use super::Payload;
 use super::SharedStr;
 use crate::node::data::PublishError;
@@ -90,6 +92,30 @@ impl<T: Payload> Variable<T> {
     /// Waits until at least `n` remote nodes subscribe; returns whether they did in time.
     pub async fn wait_remote_subscribers(&self, n: usize, timeout: Duration) -> bool {
         self.publisher.wait_remote_subscribers(n, timeout).await
+    }
+}
+
+impl Variable<Blob> {
+    /// A buffer for a value of `len` bytes, to be written in place and then set: as
+    /// [`crate::Event::loan`] (the buffer is the one subscriber's shared memory when it is on
+    /// this host), except that the publisher keeps a copy of the value for late joiners, and
+    /// a value written in place goes reliably (a copy goes as [`Variable::set`] sends it).
+    ///
+    /// # Errors
+    /// [`PublishError::TooLarge`] above [`crate::protocol::MAX_PAYLOAD`].
+    pub fn loan(&self, len: usize) -> Result<VariableLoan<'_>, PublishError> {
+        BlobLoan::new(self, &self.publisher, false, len)
+    }
+}
+
+/// A variable's bytes being written in place ([`Variable::loan`]).
+pub type VariableLoan<'a> = BlobLoan<'a, Variable<Blob>>;
+
+impl VariableLoan<'_> {
+    /// Publishes the value (see [`Variable::set`]).
+    pub fn set(self) {
+        let Publisher { node, offer, .. } = &self.handle.publisher;
+        node.publish_loaned_variable(offer, self.loan, self.at);
     }
 }
 

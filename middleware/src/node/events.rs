@@ -213,11 +213,7 @@ impl NodeInner {
         at: usize,
     ) -> PendingRaise {
         let routes = offer.remote.get();
-        let lent_path = loan.path.filter(|p| match &routes[..] {
-            [r] => (r.link, r.addr) == *p && r.alive.load(Ordering::Acquire),
-            _ => false,
-        });
-        let Some(path) = lent_path else {
+        let Some(path) = loan.path_among(&routes) else {
             // The subscribers changed since the loan: the message goes as any other.
             return self.raise_event(offer, loan.into_vec(), at);
         };
@@ -228,7 +224,7 @@ impl NodeInner {
             local.push(format!("{me}/{service}"))
         });
         let (tx, rx) = oneshot::channel();
-        self.send_loan(path, buf, tx.into());
+        self.send_loan(path, buf, Some(tx.into()));
         PendingRaise {
             report: RaiseReport {
                 local,

@@ -17,6 +17,15 @@ pub(crate) struct MessageLoan {
 }
 
 impl MessageLoan {
+    /// The path to send the message in place on: the one whose link lent the buffer, if it is
+    /// still the only live one of `routes` (the subscribers may have changed since the loan).
+    pub fn path_among(&self, routes: &[RemoteSubscriber]) -> Option<Path> {
+        self.path.filter(|p| match routes {
+            [r] => (r.link, r.addr) == *p && r.alive.load(Ordering::Acquire),
+            _ => false,
+        })
+    }
+
     /// Whether the buffer is a link's (shared memory), not the heap.
     pub fn is_lent(&self) -> bool {
         self.path.is_some()
@@ -60,19 +69,12 @@ impl NodeInner {
     /// Sends the message written in `buf`, which the link of `path` lent, on that path,
     /// settling on `done`; or, when that path is being left, as a copy (held or redirected
     /// like any safe message, see [`super::path_switch`]).
-    pub fn send_loan(&self, path: Path, buf: Box<dyn LinkLoan>, done: SafeCompletion) {
+    pub fn send_loan(&self, path: Path, buf: Box<dyn LinkLoan>, done: Option<SafeCompletion>) {
         if let Err((mut buf, done)) = self.path_switches.send_loan(self.links(), path, buf, done) {
             let msg = buf.init().to_vec();
             drop(buf);
             let (link, addr) = path;
-            self.send_to(
-                link,
-                addr,
-                crate::link::Outgoing::Safe {
-                    msg,
-                    done: Some(done),
-                },
-            );
+            self.send_to(link, addr, crate::link::Outgoing::Safe { msg, done });
         }
     }
 }

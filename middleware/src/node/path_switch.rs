@@ -71,12 +71,12 @@ impl PathSwitches {
         links: &[Arc<dyn Link>],
         path: Path,
         buf: Box<dyn LinkLoan>,
-        done: SafeCompletion,
-    ) -> Result<(), (Box<dyn LinkLoan>, SafeCompletion)> {
+        done: Option<SafeCompletion>,
+    ) -> Result<(), (Box<dyn LinkLoan>, Option<SafeCompletion>)> {
         let map = self.map.read().unwrap_or_else(|e| e.into_inner());
         match links.get(path.0) {
             Some(l) if !map.contains_key(&path) => {
-                l.send_loan(path.1, buf, Some(done));
+                l.send_loan(path.1, buf, done);
                 Ok(())
             }
             _ => Err((buf, done)),

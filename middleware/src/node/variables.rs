@@ -3,6 +3,7 @@
 
 use std::time::Instant;
 
+use super::loans::MessageLoan;
 use super::{lock, LocalOffer, NodeInner, OfferRole};
 use crate::codec::encode_data_message_of_payload;
 use crate::link::Outgoing;
@@ -20,22 +21,7 @@ impl NodeInner {
     /// Publishes a variable value: stored for late joiners, delivered locally, and sent to every
     /// remote subscriber on the fast class (coalesced per variable while unsent).
     pub fn publish_variable(&self, offer: &LocalOffer, bytes: Vec<u8>) {
-        if let OfferRole::Variable { last } = &offer.role {
-            // Into the previous value's buffer: no allocation per publish.
-            let mut last = lock(last);
-            match last.as_mut() {
-                Some(v) => {
-                    v.clear();
-                    v.extend_from_slice(&bytes);
-                }
-                None => *last = Some(bytes.clone()),
-            }
-        }
-        for i in lock(&offer.local).iter() {
-            if let Some(m) = &i.mailbox {
-                m.push(offer.own_sample(&self.me.name, bytes.clone(), Instant::now()));
-            }
-        }
+        self.keep_and_deliver_locally(offer, &bytes);
         let remote = offer.remote.get();
         if remote.is_empty() {
             return;
@@ -56,6 +42,42 @@ impl NodeInner {
                     msg,
                 },
             );
+        }
+    }
+
+    /// Publishes the variable value written in `loan` (its payload from `at`), as
+    /// [`Self::publish_variable`] does; when the link of the offer's only subscriber lent the
+    /// buffer, the value goes in it, without a copy and reliably (a sample written in place
+    /// cannot wait to be replaced by the next one), else as a copy on the fast class.
+    pub fn publish_loaned_variable(&self, offer: &LocalOffer, loan: MessageLoan, at: usize) {
+        let Some(path) = loan.path_among(&offer.remote.get()) else {
+            let mut payload = loan.into_vec();
+            payload.drain(..at);
+            return self.publish_variable(offer, payload);
+        };
+        let mut buf = loan.buf;
+        self.keep_and_deliver_locally(offer, &buf.init()[at..]);
+        self.send_loan(path, buf, None);
+    }
+
+    /// Keeps the encoded value `bytes` of `offer` for late joiners and delivers it to the
+    /// local subscribers.
+    fn keep_and_deliver_locally(&self, offer: &LocalOffer, bytes: &[u8]) {
+        if let OfferRole::Variable { last } = &offer.role {
+            // Into the previous value's buffer: no allocation per publish.
+            let mut last = lock(last);
+            match last.as_mut() {
+                Some(v) => {
+                    v.clear();
+                    v.extend_from_slice(bytes);
+                }
+                None => *last = Some(bytes.to_vec()),
+            }
+        }
+        for i in lock(&offer.local).iter() {
+            if let Some(m) = &i.mailbox {
+                m.push(offer.own_sample(&self.me.name, bytes.to_vec(), Instant::now()));
+            }
         }
     }
 

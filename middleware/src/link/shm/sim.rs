@@ -306,6 +306,19 @@ impl SimHost {
         rx
     }
 
+    /// `from` sends `msg` to `to` as a message written in place (a heap loan here); the
+    /// returned receiver completes on its ack.
+    pub(super) fn send_loan(&mut self, from: u64, to: u64, msg: &[u8]) -> Done {
+        use crate::link::LinkLoan;
+        let (done, rx) = oneshot::channel();
+        let mut loan = crate::link::HeapLoan::new(msg.len());
+        loan.append(msg);
+        self.with_tx(from, to, |tx, w, c| {
+            tx.send_loan(w, c, Box::new(loan), Some(done.into()))
+        });
+        rx
+    }
+
     /// `from` sends a fast message to `to`.
     pub(super) fn send_fast(&mut self, from: u64, to: u64, key: Option<u32>, msg: Vec<u8>) {
         self.with_tx(from, to, |tx, w, c| tx.send_fast(w, c, key, msg));

@@ -517,7 +517,7 @@ impl PeerTx {
 #[cfg(test)]
 mod tests {
     use super::super::sim::{acked, SimHost};
-    use super::super::{FAST_BUFFER, SAFE_FRAMES_IN_FLIGHT};
+    use super::super::{BULK_BUFFER, FAST_BUFFER, SAFE_FRAMES_IN_FLIGHT};
     use std::sync::atomic::Ordering;
 
     const A: u64 = 0xA;
@@ -583,6 +583,39 @@ mod tests {
             frames_in < 40,
             "3,000 messages of up to 53 bytes took {frames_in} frames"
         );
+    }
+
+    /// A loaned sample refused by a full bulk inbox would be lost (a copied body is written
+    /// again): loaned messages wait for room, keep their place among the others, and all
+    /// arrive once the reader reads.
+    #[test]
+    fn loaned_messages_wait_for_room_in_the_bulk_inbox_and_keep_their_place() {
+        let mut h = SimHost::standard(&[A, B]);
+        let mut first = h.send_safe(A, B, vec![1; super::FRAME_MAX * 2]);
+        h.run(50);
+        assert!(
+            acked(&mut first),
+            "the bulk inbox opened for a large message"
+        );
+        let loaned = |i: u8| vec![i; 20_000];
+        let mut dones = Vec::new();
+        let mut expected = Vec::new();
+        // B does not read: far more loaned messages than its bulk buffer holds.
+        for i in 0..(3 * BULK_BUFFER as u8) {
+            dones.push(h.send_loan(A, B, &loaned(i)));
+            expected.push((A, loaned(i)));
+            dones.push(h.send_safe(A, B, vec![i; 10]));
+            expected.push((A, vec![i; 10]));
+        }
+        assert!(
+            h.inboxes[&B].bulk.q.len() <= BULK_BUFFER,
+            "never more loaned samples than the bulk buffer holds"
+        );
+        h.run(500);
+        let got = h.messages(B);
+        assert_eq!(&got[1..], &expected[..], "every message once, in order");
+        assert!(dones.iter_mut().all(acked), "every message acknowledged");
+        assert_eq!(h.nodes[&B].counters.corrupt.load(Ordering::Relaxed), 0);
     }
 
     #[test]
