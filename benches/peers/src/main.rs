@@ -256,9 +256,21 @@ fn cases(o: &Opts) -> Vec<Case> {
         let fig = format!("fanout{n}.event64");
         let mut row = [
             base(&fig, "zenoh_tcp", Kind::Rate, "peer-zenoh", 64, secs),
+            // Zenoh as beyond one LAN: clients of a router (TCP on loopback).
+            Case {
+                suffix: "-client",
+                ..base(&fig, "zenoh_router", Kind::Rate, "peer-zenoh", 64, secs)
+            },
             marea(
                 base(&fig, "marea_udp", Kind::Rate, "peer-marea-udp", 64, secs),
                 "udp",
+                "-event",
+            ),
+            // One host: every subscriber a process on shared memory.
+            base(&fig, "iceoryx2", Kind::Rate, "peer-iceoryx2", 64, secs),
+            marea(
+                base(&fig, "marea_shm", Kind::Rate, "peer-marea-shm", 64, secs),
+                "shm",
                 "-event",
             ),
         ];
@@ -594,6 +606,15 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
         }
         Kind::Rate => {
             let (sub_keys, pub_key) = fanout_keys(case, &key)?;
+            // Zenoh through a router: the router first, on the port every other one joins.
+            let router = match (case.suffix, &pub_key) {
+                ("-client", Some(k)) => {
+                    let mut r = Peer::spawn(case, "router", k, &links.0)?;
+                    r.expect("ready", start).await?;
+                    Some(r)
+                }
+                _ => None,
+            };
             let role = format!("sub{}", case.suffix);
             let mut subs = Vec::with_capacity(sub_keys.len());
             let mut infos = Vec::new();
@@ -644,6 +665,9 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
             for sub in subs {
                 sub.end().await;
             }
+            if let Some(router) = router {
+                router.end().await;
+            }
             r
         }
         Kind::Idle => {
@@ -674,12 +698,19 @@ async fn run_case(case: &Case, key: &str, baud: u32) -> anyhow::Result<Sample> {
 
 /// The KEYs of a rate case's subscribers, and its publisher's where it is not
 /// [`info_key`]'s: a fan-out's Zenoh subscribers each listen on a port of their own, which the
-/// publisher connects to all of; its marea subscribers are nodes of their own names.
+/// publisher connects to all of (or, with a router, all join the router's port); its marea subscribers are nodes of their own names; its
+/// iceoryx2 subscribers share the one service.
 fn fanout_keys(case: &Case, key: &str) -> anyhow::Result<(Vec<String>, Option<String>)> {
     if case.subs == 1 {
         return Ok((vec![key.to_owned()], None));
     }
     match case.bin {
+        "peer-zenoh" if case.suffix == "-client" => {
+            // Every one a client of the router on one port.
+            let name = key.split_once(':').map_or(key, |(_, n)| n);
+            let k = format!("{}:{name}", free_port(false)?);
+            Ok((vec![k.clone(); case.subs], Some(k)))
+        }
         "peer-zenoh" => {
             let name = key.split_once(':').map_or(key, |(_, n)| n);
             let ports = (0..case.subs)
@@ -693,6 +724,8 @@ fn fanout_keys(case: &Case, key: &str) -> anyhow::Result<(Vec<String>, Option<St
             (0..case.subs).map(|i| format!("{key}/sub{i}")).collect(),
             Some(key.to_owned()),
         )),
+        // Every subscriber of the one service.
+        "peer-iceoryx2" => Ok((vec![key.to_owned(); case.subs], Some(key.to_owned()))),
         other => bail!("{other}: no fan-out"),
     }
 }
@@ -877,6 +910,34 @@ async fn run(o: Opts) -> anyhow::Result<()> {
             "fanout50.event64",
             "zenoh_tcp",
             "peers.fanout50.event64.marea_udp_to_zenoh_tcp",
+        ),
+        (
+            "fanout10.event64",
+            "marea_udp",
+            "fanout10.event64",
+            "zenoh_router",
+            "peers.fanout10.event64.marea_udp_to_zenoh_router",
+        ),
+        (
+            "fanout50.event64",
+            "marea_udp",
+            "fanout50.event64",
+            "zenoh_router",
+            "peers.fanout50.event64.marea_udp_to_zenoh_router",
+        ),
+        (
+            "fanout10.event64",
+            "marea_shm",
+            "fanout10.event64",
+            "iceoryx2",
+            "peers.fanout10.event64.marea_shm_to_iceoryx2",
+        ),
+        (
+            "fanout50.event64",
+            "marea_shm",
+            "fanout50.event64",
+            "iceoryx2",
+            "peers.fanout50.event64.marea_shm_to_iceoryx2",
         ),
         (
             "event64_default_api",

@@ -12,7 +12,9 @@ use anyhow::{anyhow, Context};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use peers_common::{finish_sub, payload, ready, seq, wait_until, Args, Arrivals, Control, Rtts};
+use peers_common::{
+    finish_sub, payload, ready, seq, subscribers, wait_until, Args, Arrivals, Control, Rtts,
+};
 
 /// The subscriber's buffer for one-way rates (and the service's limit).
 const BUFFER: usize = 1024;
@@ -62,7 +64,8 @@ impl Ports {
             .subscriber_max_buffer_size(self.buffer)
             .enable_safe_overflow(false)
             .max_publishers(2)
-            .max_subscribers(2)
+            .max_subscribers(subscribers().max(2))
+            .max_nodes(subscribers().max(2) + 2)
             .open_or_create()
             .map_err(|e| anyhow!("service {name}: {e:?}"))
     }
@@ -75,8 +78,10 @@ impl Ports {
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
             .create()
             .map_err(|e| anyhow!("publisher {name}: {e:?}"))?;
-        wait_until("iceoryx2 subscriber", Duration::from_secs(15), || {
-            s.dynamic_config().number_of_subscribers() >= 1
+        // Every subscriber of a fan-out (the runner starts them all before the publisher).
+        let n = subscribers();
+        wait_until("iceoryx2 subscribers", Duration::from_secs(15), || {
+            s.dynamic_config().number_of_subscribers() >= n
         })?;
         Ok((p, s.dynamic_config().number_of_subscribers()))
     }
@@ -195,10 +200,15 @@ fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             let arrivals = Arc::new(Arrivals::default());
             let (a, c) = (arrivals.clone(), control.clone());
             let finisher = std::thread::spawn(move || finish_sub(&a, &c));
+            let fanout = subscribers() > 1;
             ready("");
             while !finisher.is_finished() {
                 match sub.receive() {
                     Ok(Some(_s)) => arrivals.add(),
+                    // Busy-polling, as iceoryx2's own benchmarks do; the subscribers of a
+                    // fan-out yield their core when empty (tens of spinning processes on two
+                    // cores would otherwise starve the publisher).
+                    Ok(None) if fanout => std::thread::yield_now(),
                     Ok(None) => std::hint::spin_loop(),
                     Err(e) => return Err(anyhow!("receive: {e:?}")),
                 }

@@ -49,6 +49,8 @@ fn config(node: &str, key: &str, link: &str) -> anyhow::Result<NetworkConfig> {
     } else if link == "shm" {
         c.links = vec![LinkConfig::Shm(ShmConfig {
             service: key.to_owned(),
+            // A fan-out's publisher and subscribers all meet on the one link.
+            max_peers: ShmConfig::default().max_peers.max(subscribers() + 1),
             ..ShmConfig::default()
         })];
     } else {

@@ -5,7 +5,9 @@
 //! pings and pongs go at `Priority::RealTime` and express, the bulk stream at
 //! `Priority::DataLow`, as a user would ask commands to pass a video. KEY is `PORT:NAME`; in a
 //! fan-out every subscriber listens on its own port and the publisher's KEY lists them all,
-//! `PORT,PORT,...:NAME`.
+//! `PORT,PORT,...:NAME`. With a router (`router`, then the `-client` roles): the router
+//! listens on PORT and the others are clients of it; each subscriber declares a liveliness
+//! token, so the publisher starts once every one is known.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -24,13 +26,13 @@ fn main() -> anyhow::Result<()> {
     rt.block_on(run(args, control))
 }
 
-async fn session(ports: &str, listen: bool) -> anyhow::Result<zenoh::Session> {
+async fn session(ports: &str, listen: bool, mode: &str) -> anyhow::Result<zenoh::Session> {
     let mut c = zenoh::Config::default();
     let set = |c: &mut zenoh::Config, k: &str, v: &str| {
         c.insert_json5(k, v)
             .map_err(|e| anyhow!("zenoh config {k}={v}: {e}"))
     };
-    set(&mut c, "mode", r#""peer""#)?;
+    set(&mut c, "mode", &format!("{mode:?}"))?;
     set(&mut c, "scouting/multicast/enabled", "false")?;
     let ep = format!(
         "[{}]",
@@ -93,6 +95,49 @@ async fn matched(s: &zenoh::Session, p: &zenoh::pubsub::Publisher<'_>) -> anyhow
     }
 }
 
+/// Waits until every subscriber of the run (behind the router) declared its liveliness token.
+async fn all_alive(s: &zenoh::Session, name: &str) -> anyhow::Result<()> {
+    let end = Instant::now() + Duration::from_secs(15);
+    let n = subscribers();
+    loop {
+        let replies = s
+            .liveliness()
+            .get(format!("{name}/alive/*"))
+            .await
+            .map_err(|e| anyhow!("liveliness get: {e}"))?;
+        let mut alive = 0;
+        while let Ok(r) = replies.recv_async().await {
+            alive += usize::from(r.result().is_ok());
+        }
+        if alive >= n {
+            return Ok(());
+        }
+        if Instant::now() > end {
+            anyhow::bail!("{alive} of {n} zenoh subscribers known within 15 s");
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Puts `size`-byte messages on `p` for `secs`; prints `result SENT SECS`.
+async fn publish_for(
+    p: &zenoh::pubsub::Publisher<'_>,
+    size: usize,
+    secs: f64,
+) -> anyhow::Result<()> {
+    let msg = payload(size, 0);
+    let start = Instant::now();
+    let mut sent = 0u64;
+    while start.elapsed().as_secs_f64() < secs {
+        for _ in 0..64 {
+            p.put(msg.clone()).await.map_err(|e| anyhow!("put: {e}"))?;
+            sent += 1;
+        }
+    }
+    println!("result {sent} {}", start.elapsed().as_secs_f64());
+    Ok(())
+}
+
 /// One ping of `size` bytes numbered `i`, until its pong comes back; when it started.
 async fn round_trip(
     p: &zenoh::pubsub::Publisher<'_>,
@@ -120,10 +165,45 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
         .key
         .split_once(':')
         .ok_or_else(|| anyhow!("KEY {:?}: expected PORT:NAME", args.key))?;
-    let listen = matches!(args.role.as_str(), "pong" | "pong-load" | "sub" | "idle")
+    let listen = matches!(args.role.as_str(), "pong" | "pong-load" | "sub" | "idle" | "router")
         && !name.ends_with("/partner");
-    let s = session(port, listen).await?;
+    let mode = match args.role.as_str() {
+        "router" => "router",
+        r if r.ends_with("-client") => "client",
+        _ => "peer",
+    };
+    let s = session(port, listen, mode).await?;
     match args.role.as_str() {
+        "router" => {
+            ready("");
+            while !control.closed() {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Ok(())
+        }
+        "sub-client" => {
+            let arrivals = Arc::new(Arrivals::default());
+            let a = arrivals.clone();
+            let _sub = s
+                .declare_subscriber(format!("{name}/data"))
+                .callback(move |_sample| a.add())
+                .await
+                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            let _alive = s
+                .liveliness()
+                .declare_token(format!("{name}/alive/{}", std::process::id()))
+                .await
+                .map_err(|e| anyhow!("liveliness token: {e}"))?;
+            ready("");
+            tokio::task::spawn_blocking(move || finish_sub(&arrivals, &control)).await?;
+            Ok(())
+        }
+        "pub-client" => {
+            let p = publisher(&s, format!("{name}/data")).await?;
+            all_alive(&s, name).await?;
+            ready("");
+            publish_for(&p, args.size, args.param).await
+        }
         "pong" | "pong-load" => {
             // Under load it also takes the bulk stream, and answers at the pings' priority.
             let load = args.role == "pong-load";
@@ -210,17 +290,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             let p = publisher(&s, format!("{name}/data")).await?;
             matched(&s, &p).await?;
             ready("");
-            let msg = payload(args.size, 0);
-            let start = Instant::now();
-            let mut sent = 0u64;
-            while start.elapsed().as_secs_f64() < args.param {
-                for _ in 0..64 {
-                    p.put(msg.clone()).await.map_err(|e| anyhow!("put: {e}"))?;
-                    sent += 1;
-                }
-            }
-            println!("result {sent} {}", start.elapsed().as_secs_f64());
-            Ok(())
+            publish_for(&p, args.size, args.param).await
         }
         "idle" => {
             ready("");
