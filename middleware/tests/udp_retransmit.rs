@@ -34,6 +34,9 @@ impl LinkHandler for Ages {
     fn age_safe(&self, msg: &mut Vec<u8>, waited: Duration) {
         self.0.lock().unwrap().push((msg.clone(), waited));
     }
+    fn ages(&self, _: &[u8]) -> bool {
+        true
+    }
 }
 
 /// A UDP link on loopback (MTU 1,400 for every peer but loopback ones; the test's peer is a

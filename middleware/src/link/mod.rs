@@ -202,6 +202,13 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn age_safe(&self, msg: &mut Vec<u8>, waited: std::time::Duration) {
         let _ = (msg, waited);
     }
+    /// Whether [`LinkHandler::age_safe`] may change `msg`: a link reads the clock when it
+    /// queues only such messages (a stream of events to ten subscribers would otherwise read
+    /// it ten times an event).
+    fn ages(&self, msg: &[u8]) -> bool {
+        let _ = msg;
+        false
+    }
     /// How a safe message of ours may be reordered against large ones queued before it (a
     /// command must not wait behind a camera frame): see [`Precedence`]. A link that sends
     /// large messages in parts sends an urgent message ahead of passable ones still waiting.

@@ -499,6 +499,11 @@ impl LinkHandler for Handler {
         calls::age_call(msg, waited);
     }
 
+    /// Calls alone carry their remaining time.
+    fn ages(&self, msg: &[u8]) -> bool {
+        msg.first() == Some(&crate::protocol::tag::CALL)
+    }
+
     /// Calls, replies and flow control pass data (variables, events, file chunks): no order is
     /// promised between them, and a command must not wait behind a camera frame. Nothing
     /// passes an introduction or a declaration: a call there before its caller's Hello or

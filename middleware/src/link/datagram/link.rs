@@ -985,8 +985,8 @@ impl<M: Medium> Link for DatagramLink<M> {
             _ => None,
         };
         let mut st = lock(&p);
-        // The clock is read only where it is needed (a safe message behind a full window,
-        // the common case of a fast event stream, needs none).
+        // The clock is read only where it is needed (an event behind a full window, the
+        // common case of a fast event stream, needs none).
         let safe = matches!(out, Outgoing::Safe { .. });
         // A message passing bulk data leaves at once, not gathered for the next acknowledgement.
         let mut urgent = false;
@@ -1020,9 +1020,11 @@ impl<M: Medium> Link for DatagramLink<M> {
                     drop(st);
                     return Outgoing::Safe { msg, done }.refuse(addr);
                 }
-                // Only a message that may wait reads the clock: one behind others, or gathered
-                // for the acknowledgement of one in flight (or behind a full window).
-                let queued = (st.tx.in_flight() > 0 || st.safe_queued() > 0).then(Instant::now);
+                // Only a message that ages as it waits (a call) reads the clock, and only when
+                // it may wait: behind others, or gathered for the acknowledgement of one in
+                // flight (or behind a full window).
+                let waits = st.tx.in_flight() > 0 || st.safe_queued() > 0;
+                let queued = (waits && self.handler.ages(&msg)).then(Instant::now);
                 if let Some((parts, holds)) = parts {
                     // Told when its last part is acknowledged.
                     let last = parts.len() - 1;
