@@ -250,7 +250,7 @@ async fn conformance(pair: Pair) {
         pair.a.send(
             b_at_a,
             Outgoing::Safe {
-                msg,
+                msg: msg.into(),
                 done: Some(tx.into()),
             },
         );
@@ -282,7 +282,7 @@ async fn conformance(pair: Pair) {
     pair.b.send(
         a_at_b,
         Outgoing::Safe {
-            msg: big.clone(),
+            msg: big.clone().into(),
             done: Some(tx.into()),
         },
     );
@@ -304,7 +304,7 @@ async fn conformance(pair: Pair) {
         pair.a.send(
             b_at_a,
             Outgoing::Safe {
-                msg: vec![7; 100],
+                msg: vec![7; 100].into(),
                 done: Some(tx.into()),
             },
         );

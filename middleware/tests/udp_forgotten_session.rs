@@ -73,7 +73,7 @@ impl End {
         self.link.send(
             to,
             Outgoing::Safe {
-                msg: msg.to_vec(),
+                msg: msg.to_vec().into(),
                 done: Some(done.into()),
             },
         );

@@ -93,7 +93,7 @@ impl SilentPeer {
         self.link.send(
             self.to,
             Outgoing::Safe {
-                msg: msg.to_vec(),
+                msg: msg.to_vec().into(),
                 done: None,
             },
         );

@@ -143,7 +143,7 @@ impl RtoEstimator {
 #[derive(Debug)]
 struct InFlight<T> {
     seq: u32,
-    msg: Vec<u8>,
+    msg: bytes::Bytes,
     sent_at: Instant,
     /// When it was first sent (`sent_at` moves with each retransmission).
     first_sent: Instant,
@@ -264,7 +264,8 @@ impl<T> ArqSender<T> {
     }
 
     /// Registers `msg` as sent now and returns its sequence number.
-    pub fn push(&mut self, now: Instant, msg: Vec<u8>, token: Option<T>) -> u32 {
+    pub fn push(&mut self, now: Instant, msg: impl Into<bytes::Bytes>, token: Option<T>) -> u32 {
+        let msg = msg.into();
         let seq = self.next_seq;
         self.next_seq = self.next_seq.wrapping_add(1);
         self.in_flight_bytes += msg.len();
@@ -342,7 +343,7 @@ impl<T> ArqSender<T> {
         self.in_flight
             .get(idx)
             .filter(|f| f.seq == seq && !f.acked)
-            .map(|f| f.msg.as_slice())
+            .map(|f| &f.msg[..])
     }
 
     fn deadline_of(&self, f: &InFlight<T>) -> Instant {

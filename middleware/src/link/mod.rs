@@ -162,8 +162,8 @@ pub enum Outgoing {
     },
     /// Reliable and ordered.
     Safe {
-        /// Encoded message.
-        msg: Vec<u8>,
+        /// Encoded message (shared: one message to several peers is one buffer).
+        msg: bytes::Bytes,
         /// Told when acknowledged.
         done: Option<SafeCompletion>,
     },
@@ -397,7 +397,7 @@ pub trait Link: Send + Sync + 'static {
     fn send_loan(&self, to: PeerAddr, loan: Box<dyn LinkLoan>, done: Option<SafeCompletion>) {
         drop(loan);
         Outgoing::Safe {
-            msg: Vec::new(),
+            msg: bytes::Bytes::new(),
             done,
         }
         .refuse(to);

@@ -245,20 +245,19 @@ impl NodeInner {
         msg: Vec<u8>,
         mut done: impl FnMut(usize) -> SafeCompletion,
     ) {
-        let mut msg = Some(msg);
-        let n = routes.len();
+        // One buffer for every route: each link holds it until its peer acknowledges.
+        let msg = bytes::Bytes::from(msg);
         for (k, r) in routes.iter().enumerate() {
             let done = done(k);
             if !r.alive.load(Ordering::Acquire) {
                 let _ = done.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
                 continue;
             }
-            let m = if k + 1 == n { msg.take() } else { msg.clone() };
             self.send_to(
                 r.link,
                 r.addr,
                 Outgoing::Safe {
-                    msg: m.unwrap_or_default(),
+                    msg: msg.clone(),
                     done: Some(done),
                 },
             );

@@ -385,7 +385,11 @@ impl NodeInner {
         if remote.is_empty() {
             return;
         }
-        let msg = encode_data_message_of_payload(windows.is_some(), offer.id, payload);
+        let msg = bytes::Bytes::from(encode_data_message_of_payload(
+            windows.is_some(),
+            offer.id,
+            payload,
+        ));
         for r in remote.iter() {
             let done = windows.map(|w| self.forwarded_event_done(w, r, msg.len()));
             self.send_to(

@@ -71,7 +71,7 @@ impl NodeInner {
     /// like any safe message, see [`super::path_switch`]).
     pub fn send_loan(&self, path: Path, buf: Box<dyn LinkLoan>, done: Option<SafeCompletion>) {
         if let Err((mut buf, done)) = self.path_switches.send_loan(self.links(), path, buf, done) {
-            let msg = buf.init().to_vec();
+            let msg = bytes::Bytes::copy_from_slice(buf.init());
             drop(buf);
             let (link, addr) = path;
             self.send_to(link, addr, crate::link::Outgoing::Safe { msg, done });

@@ -291,7 +291,7 @@ impl NodeInner {
             link,
             addr,
             Outgoing::Safe {
-                msg: encode_message(msg),
+                msg: encode_message(msg).into(),
                 done: None,
             },
         );
@@ -303,7 +303,7 @@ impl NodeInner {
     /// declarations we ask for after it.
     pub fn send_safe_in_sequence(&self, link: usize, addr: PeerAddr, msgs: &[Message]) {
         let safe = |msg: &Message| Outgoing::Safe {
-            msg: encode_message(msg),
+            msg: encode_message(msg).into(),
             done: None,
         };
         let mut outs = Vec::with_capacity(msgs.len() + 1);

@@ -199,7 +199,7 @@ impl NodeInner {
             self.links(),
             from,
             Outgoing::Safe {
-                msg: encode_message(&self.heartbeat()),
+                msg: encode_message(&self.heartbeat()).into(),
                 done: Some(marker.into()),
             },
         );
@@ -224,7 +224,7 @@ impl NodeInner {
             p.link = to.0;
             p.addr = to.1;
             Some(Outgoing::Safe {
-                msg: encode_message(&self.hello(to.0)),
+                msg: encode_message(&self.hello(to.0)).into(),
                 done: None,
             })
         });
@@ -253,7 +253,10 @@ mod tests {
             String::new()
         }
         fn send(&self, to: PeerAddr, out: Outgoing) {
-            let (Outgoing::Fast { msg, .. } | Outgoing::Safe { msg, .. }) = out;
+            let msg = match out {
+                Outgoing::Fast { msg, .. } => msg,
+                Outgoing::Safe { msg, .. } => msg.to_vec(),
+            };
             lock(&self.0).push((to, msg));
         }
         fn announce(&self, _: &[u8]) {}
@@ -265,7 +268,7 @@ mod tests {
 
     fn safe(b: u8) -> Outgoing {
         Outgoing::Safe {
-            msg: vec![b],
+            msg: vec![b].into(),
             done: None,
         }
     }
@@ -317,7 +320,7 @@ mod tests {
             &links,
             old,
             Outgoing::Safe {
-                msg: vec![1],
+                msg: vec![1u8].into(),
                 done: Some(tx.into()),
             },
         );
@@ -340,7 +343,7 @@ mod tests {
             &links,
             old,
             Outgoing::Safe {
-                msg: vec![1],
+                msg: vec![1u8].into(),
                 done: Some(tx.into()),
             },
         );
@@ -377,7 +380,10 @@ mod tests {
             String::new()
         }
         fn send(&self, _: PeerAddr, out: Outgoing) {
-            let (Outgoing::Fast { msg, .. } | Outgoing::Safe { msg, .. }) = out;
+            let msg = match out {
+                Outgoing::Fast { msg, .. } => msg,
+                Outgoing::Safe { msg, .. } => msg.to_vec(),
+            };
             if msg == [1] {
                 let _ = lock(&self.entered).send(());
                 let _ = lock(&self.release).recv();

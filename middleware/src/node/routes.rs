@@ -390,6 +390,7 @@ impl NodeInner {
         // gets the last value at once) and after our declarations in the same ordered stream.
         for (link, addr, msg) in late_remote {
             tracing::debug!(%addr, "late joiner served the last value");
+            let msg = msg.into();
             self.send_to(link, addr, Outgoing::Safe { msg, done: None });
         }
         self.bump();

@@ -92,7 +92,7 @@ impl NodeInner {
                 continue;
             }
             if let Some(v) = lock(last).clone() {
-                let msg = encode_data_message_of_payload(false, o.id, &v);
+                let msg = encode_data_message_of_payload(false, o.id, &v).into();
                 self.send_to(link, addr, Outgoing::Safe { msg, done: None });
             }
         }

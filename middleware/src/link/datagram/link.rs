@@ -18,6 +18,7 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use bytes::Bytes;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
@@ -102,7 +103,7 @@ const PART_HEADROOM: usize = 48;
 const SPARE_BUFFERS: usize = 4;
 
 /// A safe message waiting to leave: its bytes, its completion, since when it waits.
-type QueuedSafe = (Vec<u8>, Option<SafeCompletion>, Option<Instant>);
+type QueuedSafe = (Bytes, Option<SafeCompletion>, Option<Instant>);
 
 /// A safe message (or part) in the bulk queue, and whether urgent messages must stay behind it
 /// (it is not [`Precedence::Passable`]).
@@ -504,7 +505,9 @@ impl<M: Medium> DatagramLink<M> {
             if let Some(waited) = queued.map(|t| now.saturating_duration_since(t)) {
                 // A part is not a message the handler could read.
                 if !waited.is_zero() && !parts::is_part(&msg) {
-                    self.handler.age_safe(&mut msg, waited);
+                    let mut aged = Vec::from(msg);
+                    self.handler.age_safe(&mut aged, waited);
+                    msg = aged.into();
                 }
             }
             let seq = st.tx.push(now, msg, done);
@@ -972,7 +975,10 @@ impl<M: Medium> Link for DatagramLink<M> {
         // frame into its parts takes a while, and a call to the same peer must not wait for it.
         let room = self.part_room(addr);
         let out = match out {
-            Outgoing::Fast { msg, .. } if msg.len() > room => Outgoing::Safe { msg, done: None },
+            Outgoing::Fast { msg, .. } if msg.len() > room => Outgoing::Safe {
+                msg: msg.into(),
+                done: None,
+            },
             out => out,
         };
         // (With whether urgent messages must stay behind its parts: a large call or
@@ -1032,7 +1038,7 @@ impl<M: Medium> Link for DatagramLink<M> {
                     for (k, part) in parts.into_iter().enumerate() {
                         st.safe_bytes += queued_safe_cost(part.len());
                         let done = if k == last { done.take() } else { None };
-                        st.push_bulk((part, done, queued), holds);
+                        st.push_bulk((part.into(), done, queued), holds);
                     }
                 } else if st.bulk.is_empty() {
                     st.safe_bytes += queued_safe_cost(msg.len());
@@ -1158,10 +1164,11 @@ mod tests {
         st.tx.push(Instant::now(), first, None);
         st.mid_message = true;
         for p in parts {
-            st.push_bulk((p, None, None), false);
+            st.push_bulk((p.into(), None, None), false);
         }
-        st.push_bulk((last, Some(SafeCompletion::Once(tx)), None), false);
-        st.push_bulk((vec![crate::protocol::tag::EVENT, 1], None, None), false);
+        st.push_bulk((last.into(), Some(SafeCompletion::Once(tx)), None), false);
+        let event = vec![crate::protocol::tag::EVENT, 1];
+        st.push_bulk((event.into(), None, None), false);
         fail_sender(&mut st, LinkSendError::PeerClosed("peer".into()));
         assert!(matches!(rx.try_recv(), Ok(Err(_))), "the message is failed");
         assert_eq!(st.bulk.len(), 1, "only the next message is left");

@@ -351,7 +351,7 @@ impl Link for SerialLink {
                 lock(&self.stp).push_fast(Instant::now(), coalesce, msg);
             }
             Outgoing::Safe { msg, done } => {
-                let refused = lock(&self.stp).push_safe(Instant::now(), msg, done);
+                let refused = lock(&self.stp).push_safe(Instant::now(), Vec::from(msg), done);
                 if let Some((d, e)) = refused {
                     let _ = d.send(Err(e));
                 }
@@ -483,7 +483,7 @@ mod tests {
             a.send(
                 PeerAddr::PointToPoint,
                 Outgoing::Safe {
-                    msg: m.clone(),
+                    msg: m.clone().into(),
                     done: Some(tx.into()),
                 },
             );
@@ -522,7 +522,7 @@ mod tests {
         a.send(
             PeerAddr::PointToPoint,
             Outgoing::Safe {
-                msg: b"after".to_vec(),
+                msg: b"after".to_vec().into(),
                 done: Some(tx.into()),
             },
         );
@@ -551,7 +551,7 @@ mod tests {
         a.send(
             PeerAddr::PointToPoint,
             Outgoing::Safe {
-                msg: b"never".to_vec(),
+                msg: b"never".to_vec().into(),
                 done: Some(tx.into()),
             },
         );

@@ -457,7 +457,7 @@ impl Link for ShmLink {
         let unopened = st.conn.is_none();
         self.with_tx(&mut st, |tx, w, c| match out {
             Outgoing::Fast { coalesce, msg } => tx.send_fast(w, c, coalesce, msg),
-            Outgoing::Safe { msg, done } => tx.send_safe(w, c, msg, done),
+            Outgoing::Safe { msg, done } => tx.send_safe(w, c, Vec::from(msg), done),
         });
         drop(st);
         if unopened {
@@ -531,7 +531,7 @@ impl Link for ShmLink {
             _ => None,
         };
         let Some(p) = peer else {
-            let msg = Vec::new();
+            let msg = bytes::Bytes::new();
             return Outgoing::Safe { msg, done }.refuse(to);
         };
         let mut st = lock(&p);

@@ -99,7 +99,7 @@ fn safe(
     let (tx, rx) = tokio::sync::oneshot::channel();
     (
         Outgoing::Safe {
-            msg,
+            msg: msg.into(),
             done: Some(tx.into()),
         },
         rx,

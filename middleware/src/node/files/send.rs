@@ -390,7 +390,7 @@ impl Sender {
                     link,
                     addr,
                     Outgoing::Safe {
-                        msg,
+                        msg: msg.into(),
                         done: Some(tx.into()),
                     },
                 );
