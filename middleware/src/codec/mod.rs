@@ -157,7 +157,11 @@ pub(crate) fn data_message_header_of_bytes(event: bool, id: u32, len: usize) -> 
 /// [`data_message_header_of_bytes`] with room for `reserve` more bytes.
 fn bytes_message_header(tag: u8, id: u32, len: usize, reserve: usize) -> (Vec<u8>, usize) {
     let inner = varint::len_u64(len as u64) + len;
-    let mut out = Vec::with_capacity(1 + 5 + varint::len_u64(inner as u64) + inner - len + reserve);
+    // Exactly the message's length (with `reserve` = `len`): a buffer without spare room
+    // becomes a `Bytes` without an allocation.
+    let id_len = varint::len_u64(u64::from(id));
+    let mut out =
+        Vec::with_capacity(1 + id_len + varint::len_u64(inner as u64) + inner - len + reserve);
     out.push(tag);
     varint::put_u64(&mut out, u64::from(id));
     varint::put_u64(&mut out, inner as u64);
@@ -168,7 +172,9 @@ fn bytes_message_header(tag: u8, id: u32, len: usize, reserve: usize) -> (Vec<u8
 
 /// A data message carrying the already encoded `payload`.
 fn data_message_with_payload(tag: u8, id: u32, payload: &[u8]) -> (Vec<u8>, usize) {
-    let mut out = Vec::with_capacity(1 + 5 + varint::len_u64(payload.len() as u64) + payload.len());
+    let id_len = varint::len_u64(u64::from(id));
+    let mut out =
+        Vec::with_capacity(1 + id_len + varint::len_u64(payload.len() as u64) + payload.len());
     out.push(tag);
     varint::put_u64(&mut out, u64::from(id));
     varint::put_u64(&mut out, payload.len() as u64);
@@ -207,6 +213,17 @@ mod tests {
     use super::*;
     use crate::protocol::*;
     use crate::typeinfo::TypeInfo;
+
+    /// A message without spare room becomes the `Bytes` links share without an allocation.
+    #[test]
+    fn a_data_message_fills_its_buffer_exactly() {
+        for id in [1u32, 300, u32::MAX] {
+            let (m, _) = encode_data_message(true, id, &vec![7u8; 1000]).unwrap();
+            assert_eq!(m.capacity(), m.len(), "bytes, id {id}");
+            let (m, _) = encode_data_message(false, id, &(1u64, "x".to_string())).unwrap();
+            assert_eq!(m.capacity(), m.len(), "a value, id {id}");
+        }
+    }
 
     #[test]
     fn a_data_message_payload_is_found_in_place() {
