@@ -293,3 +293,43 @@ async fn a_loaned_variable_value_crosses_shared_memory_in_place_and_late_joiners
         n.shutdown().await;
     }
 }
+
+/// A camera frame with a header: its `Blob` field arrives as a view of the shared memory the
+/// message came in (a message of one bulk sample, up to 256 KiB), without a loan.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_blob_field_of_a_struct_arrives_as_a_view_of_shared_memory() {
+    #[derive(serde::Serialize, serde::Deserialize)]
+    struct Frame {
+        seq: u64,
+        pixels: Blob,
+    }
+    let domain = format!("loans-field-{}", std::process::id());
+    let a = Node::open(&shm("a", &domain)).await.unwrap();
+    let b = Node::open(&shm("b", &domain)).await.unwrap();
+    let sub = b
+        .service("dst")
+        .unwrap()
+        .subscribe_event::<Frame>("src/frame")
+        .unwrap();
+    let ev = a
+        .service("src")
+        .unwrap()
+        .publish_event::<Frame>("frame")
+        .unwrap();
+    assert!(ev.wait_remote_subscribers(1, T).await, "no subscriber");
+    for seq in 0..3u64 {
+        let pixels = payload(200_000, seq as u8);
+        let frame = Frame {
+            seq,
+            pixels: Blob::from(pixels.clone()),
+        };
+        let report = ev.raise(&frame).await.expect("raise");
+        assert!(report.all_acknowledged(), "{report:?}");
+        let got = sub.recv_timeout(T).await.expect("the frame").value;
+        assert_eq!(got.seq, seq);
+        assert!(*got.pixels == pixels[..], "frame {seq} arrived changed");
+        assert!(got.pixels.is_shared_memory(), "frame {seq}: a copy");
+    }
+    a.shutdown().await;
+    b.shutdown().await;
+}

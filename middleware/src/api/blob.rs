@@ -17,7 +17,9 @@ use crate::node::loans::MessageLoan;
 /// arrived in, released to its writer when the last clone is dropped.
 ///
 /// On the wire a `Blob` is postcard's byte string (a length, then the bytes). Publishers and
-/// subscribers of one item must both use `Blob` (the type name is part of the match).
+/// subscribers of one item must both use `Blob` (the type name is part of the match). A `Blob`
+/// field of a larger payload (a frame's pixels beside its header) is a view of the message too,
+/// and keeps the whole message's buffer alive while it lives.
 ///
 /// Hold few received blobs at once: a subscriber's node lends at most `LENT_SAMPLES` (4)
 /// samples per shared-memory link to the application; past that it copies (the writers would
@@ -195,8 +197,15 @@ impl<'de> serde::Deserialize<'de> for Blob {
             fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
                 f.write_str("a byte string")
             }
+            /// A slice of the message being decoded (see [`decode_payload`]) is kept as a
+            /// view of it; anything else is copied.
             fn visit_bytes<E: serde::de::Error>(self, v: &[u8]) -> Result<Blob, E> {
-                Ok(Blob::copy_from_slice(v))
+                Ok(SOURCE.with(|source| match &*source.borrow() {
+                    Some((bytes, lent)) if within(bytes, v) => {
+                        Blob::from_payload(bytes.slice_ref(v), *lent)
+                    }
+                    _ => Blob::copy_from_slice(v),
+                }))
             }
             fn visit_byte_buf<E: serde::de::Error>(self, v: Vec<u8>) -> Result<Blob, E> {
                 Ok(Blob::from(v))
@@ -206,9 +215,24 @@ impl<'de> serde::Deserialize<'de> for Blob {
     }
 }
 
+thread_local! {
+    /// The message a payload is being decoded from, and whether it is lent shared memory: a
+    /// [`Blob`] inside the payload (a field of a struct) becomes a slice of it, not a copy.
+    static SOURCE: std::cell::RefCell<Option<(Bytes, bool)>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// Whether `part` lies inside `whole`'s bytes.
+fn within(whole: &Bytes, part: &[u8]) -> bool {
+    let range = whole.as_ptr_range();
+    let p = part.as_ptr_range();
+    range.start <= p.start && p.end <= range.end
+}
+
 /// Decodes a user payload held in `bytes` (a slice of the message it arrived in): a
-/// [`Blob`] is that slice, without a copy (a view of shared memory when `lent`), a
-/// `Vec<u8>` as [`crate::codec::decode_payload_owned`] makes it.
+/// [`Blob`] is that slice, without a copy (a view of shared memory when `lent`), and so is any
+/// `Blob` inside another type (a frame's pixels beside its header); a `Vec<u8>` as
+/// [`crate::codec::decode_payload_owned`] makes it.
 ///
 /// # Errors
 /// postcard's error when the bytes do not hold a `T`.
@@ -230,12 +254,41 @@ pub(crate) fn decode_payload<T: serde::de::DeserializeOwned + 'static>(
     if std::any::TypeId::of::<T>() == std::any::TypeId::of::<Vec<u8>>() {
         return crate::codec::decode_payload_owned(Vec::from(bytes));
     }
-    postcard::from_bytes(&bytes)
+    // The source is set for this decode alone (and put back: a payload's `Deserialize` may
+    // decode another one).
+    let outer = SOURCE.with(|s| s.replace(Some((bytes.clone(), lent))));
+    let decoded = postcard::from_bytes(&bytes);
+    SOURCE.with(|s| *s.borrow_mut() = outer);
+    decoded
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A `Blob` field is a view of the payload it was decoded from, never of a buffer it
+    /// was not (a plain `postcard::from_bytes` copies).
+    #[test]
+    fn a_blob_inside_a_struct_is_a_slice_of_the_payload() {
+        #[derive(serde::Serialize, serde::Deserialize)]
+        struct Frame {
+            seq: u64,
+            pixels: Blob,
+        }
+        let sent = Frame {
+            seq: 7,
+            pixels: Blob::from(vec![9u8; 1000]),
+        };
+        let payload = Bytes::from(postcard::to_allocvec(&sent).unwrap());
+        let got: Frame = decode_payload(payload.clone(), true).unwrap();
+        assert_eq!(got.seq, 7);
+        assert_eq!(&*got.pixels, &[9u8; 1000][..]);
+        assert!(within(&payload, &got.pixels), "a view of the payload");
+        assert!(got.pixels.is_shared_memory(), "lent as its payload was");
+        let copied: Frame = postcard::from_bytes(&payload).unwrap();
+        assert!(!within(&payload, &copied.pixels) && !copied.pixels.is_shared_memory());
+        SOURCE.with(|s| assert!(s.borrow().is_none(), "the source is put back"));
+    }
 
     #[test]
     fn a_blob_encodes_as_postcard_encodes_its_bytes() {
