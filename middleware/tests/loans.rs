@@ -11,6 +11,7 @@ use std::io::Write;
 use std::time::Duration;
 
 use marea::config::{LinkConfig, SecurityConfig, ShmConfig};
+use marea::link::shm::{LENT_SAMPLES, LOAN_MAX};
 use marea::{Blob, Event, EventSubscriber, NetworkConfig, Node, Variable, VariableSubscriber};
 
 const T: Duration = Duration::from_secs(60);
@@ -57,12 +58,12 @@ async fn next(sub: &EventSubscriber<Blob>) -> Blob {
     sub.recv_timeout(T).await.expect("the event").value
 }
 
-/// Two nodes on one shared-memory link, a publisher of `Event<Blob>` on `a` and its
-/// subscriber on `b`.
-async fn pair(
+/// Nodes `a` and `b` on one shared-memory link, with `security`; a subscriber of `src/frame`
+/// on `b` and its publisher on `a`, matched.
+async fn event_pair<P: marea::Payload>(
     domain: &str,
     security: Option<SecurityConfig>,
-) -> (Node, Node, Event<Blob>, EventSubscriber<Blob>) {
+) -> (Node, Node, Event<P>, EventSubscriber<P>) {
     let mut ca = shm("a", domain);
     let mut cb = shm("b", domain);
     ca.security = security.clone();
@@ -72,15 +73,23 @@ async fn pair(
     let sub = b
         .service("dst")
         .unwrap()
-        .subscribe_event::<Blob>("src/frame")
+        .subscribe_event::<P>("src/frame")
         .unwrap();
     let ev = a
         .service("src")
         .unwrap()
-        .publish_event::<Blob>("frame")
+        .publish_event::<P>("frame")
         .unwrap();
     assert!(ev.wait_remote_subscribers(1, T).await, "no subscriber");
     (a, b, ev, sub)
+}
+
+/// [`event_pair`] of `Event<Blob>`.
+async fn pair(
+    domain: &str,
+    security: Option<SecurityConfig>,
+) -> (Node, Node, Event<Blob>, EventSubscriber<Blob>) {
+    event_pair(domain, security).await
 }
 
 /// Raises events until a loan is shared memory (the first asks for the subscriber's bulk
@@ -103,7 +112,7 @@ async fn until_lent(ev: &Event<Blob>, sub: &EventSubscriber<Blob>) {
 async fn frames_arrive_in_place(domain: &str, security: Option<SecurityConfig>) {
     let (a, b, ev, sub) = pair(domain, security).await;
     until_lent(&ev, &sub).await;
-    for (k, size) in [64 << 10, 4 << 20, 16 << 20].into_iter().enumerate() {
+    for (k, size) in [64 << 10, 4 << 20, LOAN_MAX - 64].into_iter().enumerate() {
         let sent = payload(size, k as u8);
         assert!(raise_loaned(&ev, &sent).await, "{size} bytes: not lent");
         let got = next(&sub).await;
@@ -111,6 +120,10 @@ async fn frames_arrive_in_place(domain: &str, security: Option<SecurityConfig>) 
         assert!(*got == sent[..], "{size} bytes arrived changed");
         assert!(got.is_shared_memory(), "{size} bytes arrived as a copy");
     }
+    // Past the bound a loan is an ordinary buffer, and the frame goes in pieces.
+    let sent = payload(LOAN_MAX + 1, 9);
+    assert!(!raise_loaned(&ev, &sent).await, "lent past LOAN_MAX");
+    assert!(*next(&sub).await == sent[..]);
     // Written anywhere through the slice: what was not written arrives as zeros.
     let mut loan = ev.loan(1 << 20).unwrap();
     assert!(loan.is_shared_memory());
@@ -164,8 +177,8 @@ async fn a_subscriber_holding_frames_gets_copies_past_the_bound_and_never_stalls
     }
     let shared = kept.iter().filter(|b| b.is_shared_memory()).count();
     assert!(
-        (1..12).contains(&shared),
-        "{shared} of 12 held frames are views: some, not all"
+        (1..=LENT_SAMPLES).contains(&shared),
+        "{shared} of 12 held frames are views: some, at most {LENT_SAMPLES}"
     );
     kept.clear();
     let sent = payload(1 << 20, 99);
@@ -173,6 +186,39 @@ async fn a_subscriber_holding_frames_gets_copies_past_the_bound_and_never_stalls
     let got = next(&sub).await;
     assert!(*got == sent[..]);
     assert!(got.is_shared_memory(), "released, frames are views again");
+    a.shutdown().await;
+    b.shutdown().await;
+}
+
+/// Loans kept without being raised never take the last sample a copied large message needs
+/// from the subscriber's bulk inbox: it goes meanwhile, and the loans after it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn loans_kept_unraised_never_stall_a_copied_frame() {
+    let (a, b, ev, sub) = pair(&format!("loans-kept-{}", std::process::id()), None).await;
+    until_lent(&ev, &sub).await;
+    let kept: Vec<_> = (0..4).map(|_| ev.loan(1 << 20).expect("a loan")).collect();
+    let lent = kept.iter().filter(|l| l.is_shared_memory()).count();
+    assert!(
+        (1..4).contains(&lent),
+        "{lent} of 4 kept loans are shared memory"
+    );
+    let sent = payload(1 << 20, 42);
+    let report = tokio::time::timeout(T, ev.raise(&Blob::from(sent.clone())))
+        .await
+        .expect("a copied frame is not stalled by kept loans")
+        .expect("raise");
+    assert!(report.all_acknowledged(), "{report:?}");
+    assert!(*next(&sub).await == sent[..]);
+    for (i, mut loan) in kept.into_iter().enumerate() {
+        let frame = payload(1 << 20, i as u8);
+        loan.append(&frame);
+        let report = tokio::time::timeout(T, loan.raise()).await.expect("raised");
+        assert!(report.all_acknowledged(), "{report:?}");
+        assert!(
+            *next(&sub).await == frame[..],
+            "kept loan {i} arrived changed"
+        );
+    }
     a.shutdown().await;
     b.shutdown().await;
 }
@@ -304,19 +350,7 @@ async fn a_blob_field_of_a_struct_arrives_as_a_view_of_shared_memory() {
         pixels: Blob,
     }
     let domain = format!("loans-field-{}", std::process::id());
-    let a = Node::open(&shm("a", &domain)).await.unwrap();
-    let b = Node::open(&shm("b", &domain)).await.unwrap();
-    let sub = b
-        .service("dst")
-        .unwrap()
-        .subscribe_event::<Frame>("src/frame")
-        .unwrap();
-    let ev = a
-        .service("src")
-        .unwrap()
-        .publish_event::<Frame>("frame")
-        .unwrap();
-    assert!(ev.wait_remote_subscribers(1, T).await, "no subscriber");
+    let (a, b, ev, sub) = event_pair::<Frame>(&domain, None).await;
     for seq in 0..3u64 {
         let pixels = payload(200_000, seq as u8);
         let frame = Frame {

@@ -254,12 +254,21 @@ pub(crate) fn decode_payload<T: serde::de::DeserializeOwned + 'static>(
     if std::any::TypeId::of::<T>() == std::any::TypeId::of::<Vec<u8>>() {
         return crate::codec::decode_payload_owned(Vec::from(bytes));
     }
-    // The source is set for this decode alone (and put back: a payload's `Deserialize` may
-    // decode another one).
-    let outer = SOURCE.with(|s| s.replace(Some((bytes.clone(), lent))));
-    let decoded = postcard::from_bytes(&bytes);
-    SOURCE.with(|s| *s.borrow_mut() = outer);
-    decoded
+    // The payload moves into the source for this decode alone (no clone: a first clone of
+    // a buffer made from a Vec allocates) and the source is emptied after it, even if a
+    // `Deserialize` panics (a lent sample left there would stay held).
+    struct Emptied;
+    impl Drop for Emptied {
+        fn drop(&mut self) {
+            SOURCE.with(|s| s.take());
+        }
+    }
+    SOURCE.with(|s| s.replace(Some((bytes, lent))));
+    let _emptied = Emptied;
+    SOURCE.with(|s| match &*s.borrow() {
+        Some((bytes, _)) => postcard::from_bytes(bytes),
+        None => Err(postcard::Error::DeserializeUnexpectedEnd),
+    })
 }
 
 #[cfg(test)]

@@ -204,7 +204,8 @@ pub trait LinkHandler: Send + Sync + 'static {
     }
     /// Whether [`LinkHandler::age_safe`] may change `msg`: a link reads the clock when it
     /// queues only such messages (a stream of events to ten subscribers would otherwise read
-    /// it ten times an event).
+    /// it ten times an event). A handler that implements `age_safe` implements this too:
+    /// with the default, nothing is aged.
     fn ages(&self, msg: &[u8]) -> bool {
         let _ = msg;
         false

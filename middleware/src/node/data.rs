@@ -13,7 +13,7 @@ use crate::protocol::NodeId;
 
 /// Pushes (and empties) `payloads`, received at `received`, into the mailbox of every local
 /// subscriber on `route`: one push of the whole run per mailbox (the last one takes the
-/// payloads, the others copies).
+/// payloads, the others clones of them: the same buffers).
 fn push_to_route(route: &super::Route, payloads: &mut Vec<Encoded>, received: Instant) {
     let sample = |payload: Encoded| {
         Delivery::Sample(RawSample {

@@ -181,23 +181,6 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             }
             Ok(())
         }
-        "sub-client" => {
-            let arrivals = Arc::new(Arrivals::default());
-            let a = arrivals.clone();
-            let _sub = s
-                .declare_subscriber(format!("{name}/data"))
-                .callback(move |_sample| a.add())
-                .await
-                .map_err(|e| anyhow!("declare subscriber: {e}"))?;
-            let _alive = s
-                .liveliness()
-                .declare_token(format!("{name}/alive/{}", std::process::id()))
-                .await
-                .map_err(|e| anyhow!("liveliness token: {e}"))?;
-            ready("");
-            tokio::task::spawn_blocking(move || finish_sub(&arrivals, &control)).await?;
-            Ok(())
-        }
         "pub-client" => {
             let p = publisher(&s, format!("{name}/data")).await?;
             all_alive(&s, name).await?;
@@ -274,7 +257,7 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
             });
             under_load(args.param as usize, idle, &meter, streamer, one).await
         }
-        "sub" => {
+        "sub" | "sub-client" => {
             let arrivals = Arc::new(Arrivals::default());
             let a = arrivals.clone();
             let _sub = s
@@ -282,6 +265,16 @@ async fn run(args: Args, control: Arc<Control>) -> anyhow::Result<()> {
                 .callback(move |_sample| a.add())
                 .await
                 .map_err(|e| anyhow!("declare subscriber: {e}"))?;
+            // Behind a router the publisher counts its subscribers by their tokens.
+            let _alive = match args.role.as_str() {
+                "sub-client" => Some(
+                    s.liveliness()
+                        .declare_token(format!("{name}/alive/{}", std::process::id()))
+                        .await
+                        .map_err(|e| anyhow!("liveliness token: {e}"))?,
+                ),
+                _ => None,
+            };
             ready("");
             tokio::task::spawn_blocking(move || finish_sub(&arrivals, &control)).await?;
             Ok(())

@@ -4,6 +4,8 @@
 //! machines in [`super::tx`] and [`super::rx`] see it only through their writer and I/O traits.
 
 use std::mem::MaybeUninit;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
 
 use iceoryx2::node::{Node as IoxNode, NodeBuilder, NodeState, NodeView};
 use iceoryx2::port::listener::Listener;
@@ -217,7 +219,16 @@ fn create_part_service(
 ) -> Result<PubSubService, String> {
     // The service only records its settings; the memory is the writers', allocated when each
     // opens a publisher.
-    pubsub_builder(node, name, part, overflow, buffer)
+    // The bulk part's reader may hold LENT_SAMPLES lent to its node besides the ones it
+    // reads. Set by the creator alone: a writer's segment follows the service's setting, and
+    // a writer asking for it would not open an inbox made with another.
+    let borrowed = if part == "bulk" {
+        LENT_SAMPLES + READER_BORROWS
+    } else {
+        READER_BORROWS
+    };
+    pubsub_builder(node, name, overflow, buffer)
+        .subscriber_max_borrowed_samples(borrowed)
         .max_publishers(writers)
         .max_nodes(writers + 1)
         .create()
@@ -268,25 +279,17 @@ fn wake_ports(wake: &EventService) -> Result<(Listener<Ipc>, SelfWake), (&'stati
 
 /// An inbox part's service as its creator and its writers both describe it. Its capacities
 /// (`max_publishers`, `max_nodes`) are the creator's `maxPeers` alone: a writer opening it
-/// requires none, so nodes with different `maxPeers` meet. The bulk part's reader may hold
-/// [`LENT_SAMPLES`] lent to its node besides the ones it reads.
+/// requires none, so nodes with different `maxPeers` meet.
 fn pubsub_builder<'a>(
     node: &'a IoxNode<Ipc>,
     name: &'a ServiceName,
-    part: &str,
     overflow: bool,
     buffer: usize,
 ) -> iceoryx2::service::builder::publish_subscribe::Builder<[u8], (), Ipc> {
-    let borrowed = if part == "bulk" {
-        LENT_SAMPLES + READER_BORROWS
-    } else {
-        READER_BORROWS
-    };
     node.service_builder(name)
         .publish_subscribe::<[u8]>()
         .enable_safe_overflow(overflow)
         .subscriber_max_buffer_size(buffer)
-        .subscriber_max_borrowed_samples(borrowed)
         .history_size(0)
         .max_subscribers(1)
 }
@@ -374,7 +377,7 @@ fn open_part_service(
     buffer: usize,
 ) -> Result<PubSubService, OpenError> {
     use iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenError;
-    pubsub_builder(node, name, part, overflow, buffer)
+    pubsub_builder(node, name, overflow, buffer)
         .open()
         .map_err(|e| {
             let full = matches!(e, PublishSubscribeOpenError::ExceedsMaxNumberOfNodes);
@@ -482,6 +485,15 @@ pub(crate) struct ShmLoan {
     written: usize,
     /// The peer whose inbox the sample is for.
     pub(super) peer: u64,
+    /// The peer's loans not yet sent or dropped (this one counted while it lives).
+    loans: Arc<AtomicUsize>,
+}
+
+impl Drop for ShmLoan {
+    fn drop(&mut self) {
+        self.sample = None;
+        self.loans.fetch_sub(1, Ordering::Relaxed);
+    }
 }
 
 enum LoanedSample {
@@ -491,21 +503,34 @@ enum LoanedSample {
 
 impl ShmLoan {
     /// Loans from `publisher` (a peer's bulk inbox) a sample for a message of `len` bytes,
-    /// its frame header and the seal of `sealer`. `None` when it has none to lend.
+    /// its frame header and the seal of `sealer`, counted in `loans`. `None` when it has none
+    /// to lend, or `loans` already holds all but the one the peer's copied fragments need.
     pub(super) fn new(
         publisher: &Pub,
-        len: usize,
-        peer: u64,
+        (len, peer): (usize, u64),
         sealer: Option<&Sealer>,
+        loans: &Arc<AtomicUsize>,
     ) -> Option<Self> {
-        let total = frame::SEQUENCED + len + sealer.map_or(0, Sealer::overhead);
-        let sample = publisher.loan_slice_uninit(total).ok()?;
-        Some(ShmLoan {
+        if loans.fetch_add(1, Ordering::Relaxed) >= BULK_LOANS - 1 {
+            loans.fetch_sub(1, Ordering::Relaxed);
+            return None;
+        }
+        let loan = |sample| ShmLoan {
             sample: Some(LoanedSample::Uninit(sample)),
             len,
             written: 0,
             peer,
-        })
+            loans: loans.clone(),
+        };
+        let total = frame::SEQUENCED + len + sealer.map_or(0, Sealer::overhead);
+        // On failure no ShmLoan was made: its count is given back here.
+        match publisher.loan_slice_uninit(total) {
+            Ok(sample) => Some(loan(sample)),
+            Err(_) => {
+                loans.fetch_sub(1, Ordering::Relaxed);
+                None
+            }
+        }
     }
 
     /// The whole sample, initialised.

@@ -98,8 +98,15 @@ pub const FILE_CHUNK: usize = BULK_MAX - 1024;
 /// keeps) at once; past that, large messages are copied out of shared memory. Each one its
 /// writers' bulk segments make room for.
 pub const LENT_SAMPLES: usize = 4;
+/// Largest message written in place in a peer's bulk inbox (`Link::loan`; larger ones go as
+/// copies, in pieces). Every sample of a writer's bulk segment takes the size of its largest
+/// one, rounded up to a power of two, and the segment has 18 (the inbox's 8, 6 its reader may
+/// hold, 4 loans): frames of up to 4 MiB cost a writer 144 MiB of shared memory per peer, of up
+/// to 8 MiB 288 MiB.
+pub const LOAN_MAX: usize = 8 << 20;
 /// Bulk samples a writer may have loaned from one peer's bulk inbox at once: one it writes a
-/// fragment into, the rest lent to the node for messages written in place (`Link::loan`).
+/// fragment into, the rest lent to the node for messages written in place (`Link::loan`; a
+/// raised one keeps its sample until it is written).
 const BULK_LOANS: usize = 4;
 /// Frames a safe inbox buffers per writer before refusing more.
 const SAFE_BUFFER: usize = 128;
@@ -201,6 +208,9 @@ struct Peer {
     conn: Option<Conn>,
     /// The peer's bulk inbox, opened with the first large message.
     bulk: Option<Pub>,
+    /// Samples of `bulk` lent for messages written in place, not yet sent or dropped: at
+    /// most all but one of [`BULK_LOANS`], so copied fragments always find one.
+    loans: Arc<AtomicUsize>,
     tx: PeerTx,
 }
 
@@ -414,6 +424,7 @@ impl ShmLink {
             id,
             conn: None,
             bulk: None,
+            loans: Arc::default(),
             tx: PeerTx::new(rand::random()),
         }));
         peers.insert(id, p.clone());
@@ -426,7 +437,9 @@ impl ShmLink {
         st: &mut Peer,
         f: impl FnOnce(&mut PeerTx, &mut PeerWriter<'_>, &LinkCounters) -> R,
     ) -> R {
-        let Peer { id, conn, bulk, tx } = st;
+        let Peer {
+            id, conn, bulk, tx, ..
+        } = st;
         let mut w = PeerWriter {
             link: self,
             id: *id,
@@ -457,7 +470,7 @@ impl Link for ShmLink {
         let unopened = st.conn.is_none();
         self.with_tx(&mut st, |tx, w, c| match out {
             Outgoing::Fast { coalesce, msg } => tx.send_fast(w, c, coalesce, msg),
-            Outgoing::Safe { msg, done } => tx.send_safe(w, c, Vec::from(msg), done),
+            Outgoing::Safe { msg, done } => tx.send_safe(w, c, msg, done),
         });
         drop(st);
         if unopened {
@@ -511,14 +524,19 @@ impl Link for ShmLink {
     /// A sample of the peer's bulk inbox, once it is open (a first loan asks for it to be
     /// opened and is refused: that message goes as a copy).
     fn loan(&self, to: PeerAddr, len: usize) -> Option<Box<dyn LinkLoan>> {
+        // A message that fits a frame gains nothing, and a variable value would go on the safe
+        // path where the next one, not lent, goes fast: it could be overtaken.
         let PeerAddr::Shm(id) = to else {
             return None;
         };
+        if len + frame::SEQUENCED <= FRAME_MAX || len > LOAN_MAX {
+            return None;
+        }
         let p = self.peer(id, false)?;
         let mut st = lock(&p);
         st.conn.as_ref()?;
         if let Some(bulk) = &st.bulk {
-            return ShmLoan::new(bulk, len, id, self.sealer.as_ref())
+            return ShmLoan::new(bulk, (len, id), self.sealer.as_ref(), &st.loans)
                 .map(|l| Box::new(l) as Box<dyn LinkLoan>);
         }
         self.with_tx(&mut st, |tx, w, _| tx.want_bulk(w));
@@ -593,19 +611,21 @@ struct Opened(InboxSample, usize);
 /// A bulk sample lent to the node from `at` (a whole message): counted in the link's `lent`
 /// until the last view of it is dropped, which returns it to its writer.
 struct Lent {
-    sample: Opened,
+    /// Always there until dropped (first, so the count never runs ahead of the samples held).
+    sample: Option<Opened>,
     at: usize,
     lent: Arc<AtomicUsize>,
 }
 
 impl AsRef<[u8]> for Lent {
     fn as_ref(&self) -> &[u8] {
-        &self.sample.as_ref()[self.at..]
+        self.sample.as_ref().map_or(&[], |s| &s.as_ref()[self.at..])
     }
 }
 
 impl Drop for Lent {
     fn drop(&mut self) {
+        self.sample = None;
         self.lent.fetch_sub(1, Ordering::Relaxed);
     }
 }
@@ -686,7 +706,7 @@ impl RxIo for LinkRx<'_> {
         }
         self.flush();
         let msg = bytes::Bytes::from_owner(Lent {
-            sample,
+            sample: Some(sample),
             at,
             lent: lent.clone(),
         });

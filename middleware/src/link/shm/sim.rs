@@ -301,7 +301,7 @@ impl SimHost {
     pub(super) fn send_safe(&mut self, from: u64, to: u64, msg: Vec<u8>) -> Done {
         let (done, rx) = oneshot::channel();
         self.with_tx(from, to, |tx, w, c| {
-            tx.send_safe(w, c, msg, Some(done.into()))
+            tx.send_safe(w, c, msg.into(), Some(done.into()))
         });
         rx
     }

@@ -12,6 +12,8 @@
 
 use std::collections::VecDeque;
 
+use bytes::Bytes;
+
 use super::frame::{self, Part};
 use super::{BULK_BUFFER, BULK_MAX, FRAME_MAX, MAX_FAST_BACKLOG, SAFE_FRAMES_IN_FLIGHT};
 use crate::link::coalesce::{CoalescingQueue, Pushed};
@@ -49,10 +51,14 @@ enum BulkState {
 
 /// A safe message not yet wholly written into the peer's inbox.
 struct Pending {
-    /// The message, unless it is written in a `loan`.
-    msg: Vec<u8>,
-    /// A whole message written in place in a sample of the peer's bulk inbox.
+    /// The message, unless it is written in a `loan` (shared with the other peers it goes to).
+    msg: Bytes,
+    /// A whole message written in place in a sample of the peer's bulk inbox, until the
+    /// sample is sent.
     loan: Option<Box<dyn LinkLoan>>,
+    /// The length of the message when it is a loan (kept once the sample is sent and its
+    /// `Bulk` frame still waits).
+    loan_len: Option<usize>,
     /// Bytes already written (fragments accepted by the inbox).
     sent: usize,
     done: Option<SafeCompletion>,
@@ -63,10 +69,11 @@ struct Pending {
 }
 
 impl Pending {
-    fn new(msg: Vec<u8>, done: Option<SafeCompletion>, fast: bool) -> Self {
+    fn new(msg: impl Into<Bytes>, done: Option<SafeCompletion>, fast: bool) -> Self {
         Pending {
-            msg,
+            msg: msg.into(),
             loan: None,
+            loan_len: None,
             sent: 0,
             done,
             fast,
@@ -74,14 +81,22 @@ impl Pending {
         }
     }
 
+    /// A message written in `loan`.
+    fn loaned(loan: Box<dyn LinkLoan>, done: Option<SafeCompletion>) -> Self {
+        let mut p = Pending::new(Bytes::new(), done, false);
+        p.loan_len = Some(loan.len());
+        p.loan = Some(loan);
+        p
+    }
+
     /// Its length.
     fn len(&self) -> usize {
-        self.loan.as_ref().map_or(self.msg.len(), |l| l.len())
+        self.loan_len.unwrap_or(self.msg.len())
     }
 
     /// Whether it may go in a pack (a small whole message not yet started).
     fn packable(&self) -> bool {
-        self.sent == 0 && self.loan.is_none() && packable(&self.msg)
+        self.sent == 0 && self.loan_len.is_none() && packable(&self.msg)
     }
 }
 
@@ -188,7 +203,7 @@ impl PeerTx {
         &mut self,
         w: &mut impl InboxWriter,
         c: &LinkCounters,
-        msg: Vec<u8>,
+        msg: Bytes,
         done: Option<SafeCompletion>,
     ) {
         self.queue(Pending::new(msg, done, false));
@@ -215,9 +230,7 @@ impl PeerTx {
         loan: Box<dyn LinkLoan>,
         done: Option<SafeCompletion>,
     ) {
-        let mut p = Pending::new(Vec::new(), done, false);
-        p.loan = Some(loan);
-        self.queue(p);
+        self.queue(Pending::loaned(loan, done));
         if !self.blocked && self.flush_safe(w, c) {
             w.wake();
         }
@@ -375,7 +388,7 @@ impl PeerTx {
     /// when it fits a frame). Returns whether the inbox took it, or `None` when there is
     /// nothing to write or it waits for the bulk inbox.
     fn write_fragment(&mut self, w: &mut impl InboxWriter, c: &LinkCounters) -> Option<bool> {
-        if self.safe_backlog.front()?.loan.is_some() {
+        if self.safe_backlog.front()?.loan_len.is_some() {
             return Some(self.write_loan(w, c));
         }
         let bulk_max = BULK_MAX - frame::SEQUENCED;
@@ -607,13 +620,40 @@ mod tests {
             dones.push(h.send_safe(A, B, vec![i; 10]));
             expected.push((A, vec![i; 10]));
         }
-        assert!(
-            h.inboxes[&B].bulk.q.len() <= BULK_BUFFER,
-            "never more loaned samples than the bulk buffer holds"
-        );
+        // (A loaned sample the full bulk buffer refused would be lost, its message failed.)
         h.run(500);
         let got = h.messages(B);
         assert_eq!(&got[1..], &expected[..], "every message once, in order");
+        assert!(dones.iter_mut().all(acked), "every message acknowledged");
+        assert_eq!(h.nodes[&B].counters.corrupt.load(Ordering::Relaxed), 0);
+    }
+
+    /// A loaned sample written while the peer's safe inbox is full waits for its `Bulk` frame
+    /// and arrives whole (not as the empty message it left behind).
+    #[test]
+    fn a_loaned_message_whose_frame_the_full_safe_inbox_refused_arrives_whole() {
+        // B's safe inbox buffers 2 frames per writer.
+        let mut h = SimHost::new(&[A, B], 2);
+        let mut first = h.send_safe(A, B, vec![1; super::FRAME_MAX * 2]);
+        h.run(50);
+        assert!(
+            acked(&mut first),
+            "the bulk inbox opened for a large message"
+        );
+        let big = |i: u8| vec![i; super::INLINE_MAX / 2 + 1];
+        let mut dones = vec![h.send_safe(A, B, big(1)), h.send_safe(A, B, big(2))];
+        assert_eq!(h.inboxes[&B].safe.q.len(), 2, "B's safe inbox is full");
+        let loaned = vec![3u8; 30_000];
+        dones.push(h.send_loan(A, B, &loaned));
+        dones.push(h.send_safe(A, B, vec![4; 10]));
+        h.run(200);
+        let got = h.messages(B);
+        let expected = [(A, big(1)), (A, big(2)), (A, loaned), (A, vec![4; 10])];
+        assert_eq!(
+            &got[1..],
+            &expected[..],
+            "every message once, whole, in order"
+        );
         assert!(dones.iter_mut().all(acked), "every message acknowledged");
         assert_eq!(h.nodes[&B].counters.corrupt.load(Ordering::Relaxed), 0);
     }
