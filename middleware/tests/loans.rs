@@ -93,7 +93,8 @@ async fn pair(
 }
 
 /// Raises events until a loan is shared memory (the first asks for the subscriber's bulk
-/// inbox to be opened and goes as a copy); each arrives whole.
+/// inbox to be opened and goes as a copy, through that inbox once it is open: the next is
+/// lent); each arrives whole.
 async fn until_lent(ev: &Event<Blob>, sub: &EventSubscriber<Blob>) {
     for i in 0..200u8 {
         let sent = payload(100_000, i);
@@ -104,7 +105,6 @@ async fn until_lent(ev: &Event<Blob>, sub: &EventSubscriber<Blob>) {
             assert!(got.is_shared_memory(), "lent, but it arrived as a copy");
             return;
         }
-        tokio::time::sleep(Duration::from_millis(10)).await;
     }
     panic!("no loan was ever shared memory");
 }
@@ -318,7 +318,6 @@ async fn a_loaned_variable_value_crosses_shared_memory_in_place_and_late_joiners
             assert!(got.is_shared_memory(), "lent, but it arrived as a copy");
             break;
         }
-        tokio::time::sleep(Duration::from_millis(10)).await;
     }
     assert!(lent, "no loan was ever shared memory");
     let tile = payload(4 << 20, 77);

@@ -173,9 +173,17 @@ impl Outgoing {
     /// Drops a message that cannot be sent to `to` (no such peer, too many peers): a safe
     /// message's completion is told [`LinkSendError::PeerClosed`].
     pub(crate) fn refuse(self, to: impl fmt::Display) {
-        if let Outgoing::Safe { done: Some(d), .. } = self {
-            let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
+        if let Outgoing::Safe { done, .. } = self {
+            refuse_done(done, to);
         }
+    }
+}
+
+/// Tells a safe message's completion, if any, that `to` cannot be sent to
+/// ([`LinkSendError::PeerClosed`]).
+pub(crate) fn refuse_done(done: Option<SafeCompletion>, to: impl fmt::Display) {
+    if let Some(d) = done {
+        let _ = d.send(Err(LinkSendError::PeerClosed(to.to_string())));
     }
 }
 
@@ -397,11 +405,7 @@ pub trait Link: Send + Sync + 'static {
     /// refused (its completion fails).
     fn send_loan(&self, to: PeerAddr, loan: Box<dyn LinkLoan>, done: Option<SafeCompletion>) {
         drop(loan);
-        Outgoing::Safe {
-            msg: bytes::Bytes::new(),
-            done,
-        }
-        .refuse(to);
+        refuse_done(done, to);
     }
 }
 

@@ -245,26 +245,16 @@ impl NodeInner {
         msg: Vec<u8>,
         mut done: impl FnMut(usize) -> SafeCompletion,
     ) {
-        // One buffer for every route: each link holds it until its peer acknowledges. The
-        // last route takes it (a first clone of a buffer made from a Vec allocates its shared
-        // count: a lone subscriber's event would pay that for nothing).
-        let mut msg = Some(bytes::Bytes::from(msg));
-        let n = routes.len();
-        for (k, r) in routes.iter().enumerate() {
+        // One buffer for every route: each link holds it until its peer acknowledges.
+        let msgs = super::per_route(msg, routes.len());
+        for ((k, r), msg) in routes.iter().enumerate().zip(msgs) {
             let done = done(k);
             if !r.alive.load(Ordering::Acquire) {
                 let _ = done.send(Err(LinkSendError::PeerClosed(r.node_name.to_string())));
                 continue;
             }
-            let m = if k + 1 == n { msg.take() } else { msg.clone() };
-            self.send_to(
-                r.link,
-                r.addr,
-                Outgoing::Safe {
-                    msg: m.unwrap_or_default(),
-                    done: Some(done),
-                },
-            );
+            let done = Some(done);
+            self.send_to(r.link, r.addr, Outgoing::Safe { msg, done });
         }
     }
 

@@ -385,21 +385,10 @@ impl NodeInner {
         if remote.is_empty() {
             return;
         }
-        let msg = bytes::Bytes::from(encode_data_message_of_payload(
-            windows.is_some(),
-            offer.id,
-            payload,
-        ));
-        for r in remote.iter() {
+        let msg = encode_data_message_of_payload(windows.is_some(), offer.id, payload);
+        for (r, msg) in remote.iter().zip(super::per_route(msg, remote.len())) {
             let done = windows.map(|w| self.forwarded_event_done(w, r, msg.len()));
-            self.send_to(
-                r.link,
-                r.addr,
-                Outgoing::Safe {
-                    msg: msg.clone(),
-                    done,
-                },
-            );
+            self.send_to(r.link, r.addr, Outgoing::Safe { msg, done });
         }
     }
 

@@ -464,6 +464,13 @@ impl NodeInner {
     }
 }
 
+/// The safe message `msg` once for each of `n` routes: one buffer, shared; the last route
+/// takes it (the first clone of a buffer made from a `Vec` allocates its shared count, which a
+/// lone subscriber's message would pay for nothing).
+pub(crate) fn per_route(msg: Vec<u8>, n: usize) -> std::iter::RepeatN<bytes::Bytes> {
+    std::iter::repeat_n(bytes::Bytes::from(msg), n)
+}
+
 /// Adapts the node to the links' callback interface without a reference cycle.
 ///
 /// A link receives as soon as it is opened, while `Node::open` still opens the others: what

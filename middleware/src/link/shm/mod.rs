@@ -549,8 +549,7 @@ impl Link for ShmLink {
             _ => None,
         };
         let Some(p) = peer else {
-            let msg = bytes::Bytes::new();
-            return Outgoing::Safe { msg, done }.refuse(to);
+            return super::refuse_done(done, to);
         };
         let mut st = lock(&p);
         self.with_tx(&mut st, |tx, w, c| tx.send_loan(w, c, loan, done));
