@@ -14,8 +14,8 @@ use std::collections::VecDeque;
 use std::fmt;
 use std::hash::Hash;
 use std::io;
-use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
@@ -128,6 +128,35 @@ const URGENT_RECENT: Duration = Duration::from_secs(1);
 /// How often the acknowledged rate is sampled.
 const RATE_SAMPLE: Duration = Duration::from_millis(1);
 
+/// The socket's side of a peer: its datagrams are written under this lock, not the peer's
+/// state's, in the order they were built. A flush builds its datagrams under the state's lock,
+/// takes this one before letting the state go (hand over hand), then writes: the socket's
+/// writes (microseconds each on loopback) no longer hold up a raiser queueing its next message
+/// while the receive task flushes what an acknowledgement let go (on the multi-thread runtime
+/// the raiser spent most of its sleeps there).
+#[derive(Default)]
+struct Wire {
+    /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
+    blocked: Mutex<VecDeque<Vec<u8>>>,
+    /// Whether `blocked` holds any (read without its lock).
+    is_blocked: AtomicBool,
+    /// Buffers of datagrams sent, for the next ones (at most [`SPARE_BUFFERS`]).
+    spare: Mutex<Vec<Vec<u8>>>,
+}
+
+impl Wire {
+    fn is_blocked(&self) -> bool {
+        self.is_blocked.load(Ordering::Acquire)
+    }
+}
+
+/// Datagrams a flush built under a peer's lock, to be written by [`DatagramLink::write`].
+#[must_use = "built datagrams must be written"]
+struct Outbound {
+    wire: Arc<Wire>,
+    datagrams: Vec<Vec<u8>>,
+}
+
 struct PeerState {
     tx: ArqSender<SafeCompletion>,
     rx: ArqReceiver,
@@ -150,10 +179,8 @@ struct PeerState {
     /// The last part that left was not its message's last: the rest of the message is at the
     /// head of `bulk` (dropped if the session restarts: the peer cannot join it any more).
     mid_message: bool,
-    /// Datagrams the socket refused (WouldBlock), written first when it is writable again.
-    blocked: VecDeque<Vec<u8>>,
-    /// Buffers of datagrams sent, for the next ones (at most [`SPARE_BUFFERS`]).
-    spare: Vec<Vec<u8>>,
+    /// Where this peer's datagrams are written, outside this state's lock.
+    wire: Arc<Wire>,
     last_write: Option<Instant>,
     /// The transmit task was woken for this peer and has not flushed it yet: further messages
     /// need no wake-up of their own (each one costs a syscall when the task sleeps elsewhere).
@@ -186,8 +213,7 @@ impl PeerState {
             bulk: VecDeque::new(),
             bulk_holding: 0,
             mid_message: false,
-            blocked: VecDeque::new(),
-            spare: Vec::new(),
+            wire: Arc::default(),
             last_write: None,
             wake_pending: false,
             timer_at: None,
@@ -205,7 +231,7 @@ impl PeerState {
             || (!self.safe.is_empty() && self.tx.can_push())
             || (self.bulk_may_leave() && !self.bulk.is_empty())
             || self.rx.ack_pending()
-            || !self.blocked.is_empty()
+            || self.wire.is_blocked()
     }
 
     /// Whether the next of `bulk` may leave now: the window admits it, and less than
@@ -427,16 +453,7 @@ impl<M: Medium> DatagramLink<M> {
 
     /// Builds and writes every datagram `state` has ready. Called with the peer locked, so the
     /// datagrams of one peer leave in the order they were built.
-    fn flush_locked(&self, addr: M::Addr, st: &mut PeerState, now: Instant) {
-        while let Some(d) = st.blocked.front() {
-            match self.medium.send_to(d, addr) {
-                Ok(_) => {
-                    self.count_out(d.len());
-                    st.blocked.pop_front();
-                }
-                Err(_) => return,
-            }
-        }
+    fn flush_locked(&self, addr: M::Addr, st: &mut PeerState, now: Instant) -> Outbound {
         let due = st.tx.due(now);
         self.counters
             .retransmitted
@@ -444,7 +461,7 @@ impl<M: Medium> DatagramLink<M> {
         let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
         let mut w = DatagramWriter::reusing(
             self.datagram_max(addr).saturating_sub(seal),
-            std::mem::take(&mut st.spare),
+            std::mem::take(&mut *lock(&st.wire.spare)),
         );
         let mut out: Vec<Vec<u8>> = Vec::new();
         let mut carries_safe = false;
@@ -523,29 +540,97 @@ impl<M: Medium> DatagramLink<M> {
         }
         st.fast_bytes = 0;
         finish(&mut w, &mut out, &mut carries_safe);
-        st.spare = w.into_spare();
-        for d in out {
+        let spare = w.into_spare();
+        if !spare.is_empty() {
+            let mut s = lock(&st.wire.spare);
+            if s.len() < SPARE_BUFFERS {
+                s.extend(spare);
+            }
+        }
+        st.last_write = Some(now);
+        st.wake_pending = false;
+        Outbound {
+            wire: st.wire.clone(),
+            datagrams: out,
+        }
+    }
+
+    /// Writes the datagrams `out` built for `addr` (after those the socket refused before),
+    /// sealed, in the order they were built: the peer's wire is taken first, then `unlock` lets
+    /// the peer's state go (a flush that can wait drops its guard there; one that must keep the
+    /// state while it writes passes a no-op). Returns whether the socket refused a write: its
+    /// retry must be armed ([`Self::retry_blocked`]) once the state is let go.
+    #[must_use]
+    fn write(&self, addr: M::Addr, out: Outbound, unlock: impl FnOnce()) -> bool {
+        let Outbound { wire, datagrams } = out;
+        let mut blocked = lock(&wire.blocked);
+        unlock();
+        if datagrams.is_empty() && blocked.is_empty() {
+            return false;
+        }
+        let mut refused = false;
+        while let Some(d) = blocked.front() {
+            match self.medium.send_to(d, addr) {
+                Ok(_) => {
+                    self.count_out(d.len());
+                    blocked.pop_front();
+                }
+                Err(_) => {
+                    refused = true;
+                    break;
+                }
+            }
+        }
+        let mut sent = Vec::new();
+        for d in datagrams {
             let d = self.seal(d);
-            if !st.blocked.is_empty() {
-                st.blocked.push_back(d);
+            if refused {
+                blocked.push_back(d);
                 continue;
             }
             match self.medium.send_to(&d, addr) {
                 Ok(_) => self.count_out(d.len()),
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    st.blocked.push_back(d);
+                    refused = true;
+                    blocked.push_back(d);
                     continue;
                 }
                 Err(e) => {
                     tracing::debug!(link = %self.name, %addr, error = %e, "datagram not sent");
                 }
             }
-            if st.spare.len() < SPARE_BUFFERS {
-                st.spare.push(d);
+            if sent.len() < SPARE_BUFFERS {
+                sent.push(d);
             }
         }
-        st.last_write = Some(now);
-        st.wake_pending = false;
+        wire.is_blocked
+            .store(!blocked.is_empty(), Ordering::Release);
+        drop(blocked);
+        if !sent.is_empty() {
+            let mut spare = lock(&wire.spare);
+            let room = SPARE_BUFFERS.saturating_sub(spare.len());
+            spare.extend(sent.into_iter().take(room));
+        }
+        refused
+    }
+
+    /// [`Self::write`] that lets the peer's state `st` go, and arms a refused write's retry.
+    fn write_unlocking(&self, addr: M::Addr, out: Outbound, st: MutexGuard<'_, PeerState>) {
+        if self.write(addr, out, || drop(st)) {
+            self.retry_blocked(addr);
+        }
+    }
+
+    /// Arms the retry of `addr`'s datagrams the socket refused (see [`Self::arm`]).
+    fn retry_blocked(&self, addr: M::Addr) {
+        let Some(p) = self.peer(addr, false) else {
+            return;
+        };
+        let mut st = lock(&p);
+        if self.arm(addr, &mut st) {
+            drop(st);
+            self.wake.notify_one();
+        }
     }
 
     /// Whether the safe messages queued for `addr` wait for the next acknowledgement instead of
@@ -560,7 +645,7 @@ impl<M: Medium> DatagramLink<M> {
         st.tx.in_flight() > 0
             && st.fast.is_empty()
             && !st.rx.ack_pending()
-            && st.blocked.is_empty()
+            && !st.wire.is_blocked()
             && st.safe_bytes < self.datagram_max(addr)
     }
 
@@ -638,7 +723,7 @@ impl<M: Medium> DatagramLink<M> {
     /// timer, or a blocked socket's retry shortly), unless it is there for that time or sooner.
     /// Returns whether the task must be woken for it (it became the soonest).
     fn arm(&self, addr: M::Addr, st: &mut PeerState) -> bool {
-        let at = if st.blocked.is_empty() {
+        let at = if !st.wire.is_blocked() {
             st.tx.next_deadline()
         } else {
             // The kernel's send buffer was full: retry shortly (rare; loopback drains fast).
@@ -688,10 +773,12 @@ impl<M: Medium> DatagramLink<M> {
                     }
                 }
                 let retransmit_due = st.tx.next_deadline().is_some_and(|d| d <= now);
-                if st.has_work() || retransmit_due {
-                    self.flush_locked(addr, &mut st, now);
-                }
+                let out = (st.has_work() || retransmit_due)
+                    .then(|| self.flush_locked(addr, &mut st, now));
                 self.arm(addr, &mut st);
+                if let Some(out) = out {
+                    self.write_unlocking(addr, out, st);
+                }
             }
             self.close_stale(now, gave_up);
             let mut sleep_until = lock(&self.agenda).next_timer();
@@ -729,10 +816,11 @@ impl<M: Medium> DatagramLink<M> {
         for addr in touched {
             if let Some(p) = self.peer(addr, false) {
                 let mut st = lock(&p);
-                if st.has_work() {
-                    self.flush_locked(addr, &mut st, now);
-                }
+                let out = st.has_work().then(|| self.flush_locked(addr, &mut st, now));
                 wake |= self.arm(addr, &mut st);
+                if let Some(out) = out {
+                    self.write_unlocking(addr, out, st);
+                }
             }
         }
         // The transmit task only keeps retransmission timers and blocked sends: it is woken
@@ -1002,8 +1090,12 @@ impl<M: Medium> Link for DatagramLink<M> {
                 // A message that would overflow the datagram being gathered sends that datagram
                 // first: a publisher faster than the transmit task fills whole datagrams itself
                 // instead of having its values coalesced away while the task waits for a core.
-                if 1 + st.fast_bytes + cost > self.datagram_max(addr) && st.blocked.is_empty() {
-                    self.flush_locked(addr, &mut st, Instant::now());
+                if 1 + st.fast_bytes + cost > self.datagram_max(addr) && !st.wire.is_blocked() {
+                    // Written with the state held: the message is queued after the flush. (A
+                    // refused write needs no retry armed here: the fast message queued below
+                    // sends this peer to the transmit task, which writes the refused first.)
+                    let out = self.flush_locked(addr, &mut st, Instant::now());
+                    let _refused = self.write(addr, out, || {});
                 }
                 match st.fast.push(coalesce, msg) {
                     Pushed::Replaced(old) => {
@@ -1066,17 +1158,18 @@ impl<M: Medium> Link for DatagramLink<M> {
             return;
         }
         let now = Instant::now();
-        let idle = st.blocked.is_empty()
+        let idle = !st.wire.is_blocked()
             && st
                 .last_write
                 .is_none_or(|t| now.saturating_duration_since(t) >= BATCH_WINDOW);
         if idle {
-            self.flush_locked(addr, &mut st, now);
+            let out = self.flush_locked(addr, &mut st, now);
             // The first safe message in flight starts a retransmission timer the transmit task
             // does not know of (it may sleep with no deadline at all): tell it, or a lost lone
             // message to a peer that sends nothing back would wait for some other wake-up.
-            if self.arm(addr, &mut st) {
-                drop(st);
+            let wake = self.arm(addr, &mut st);
+            self.write_unlocking(addr, out, st);
+            if wake {
                 self.wake.notify_one();
             }
         } else if !st.wake_pending {
@@ -1174,5 +1267,152 @@ mod tests {
         assert_eq!(st.bulk.len(), 1, "only the next message is left");
         assert_eq!(st.pop_bulk().unwrap().0[0], crate::protocol::tag::EVENT);
         assert!(!st.mid_message && st.bulk_holding == 0);
+    }
+}
+
+#[cfg(test)]
+mod wire_tests {
+    //! The socket's side of a session, over a medium in memory that refuses writes on demand
+    //! (a full send buffer; a loopback socket never refuses).
+
+    use std::net::SocketAddr;
+    use std::sync::atomic::AtomicUsize;
+
+    use super::*;
+
+    /// What a link wrote, for the test to carry; the next `refuse` writes are refused.
+    #[derive(Default)]
+    struct Written {
+        datagrams: Mutex<Vec<Vec<u8>>>,
+        refuse: AtomicUsize,
+        changed: Notify,
+    }
+
+    #[derive(Clone, Default)]
+    struct Memory(Arc<Written>);
+
+    impl Medium for Memory {
+        type Addr = SocketAddr;
+        fn peer_addr(addr: SocketAddr) -> PeerAddr {
+            PeerAddr::Udp(addr)
+        }
+        fn medium_addr(to: PeerAddr) -> Option<SocketAddr> {
+            match to {
+                PeerAddr::Udp(a) => Some(a),
+                _ => None,
+            }
+        }
+        fn send_to(&self, d: &[u8], _to: SocketAddr) -> io::Result<()> {
+            let refused = self
+                .0
+                .refuse
+                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1));
+            if refused.is_ok() {
+                return Err(io::ErrorKind::WouldBlock.into());
+            }
+            lock(&self.0.datagrams).push(d.to_vec());
+            self.0.changed.notify_one();
+            Ok(())
+        }
+        fn announce_targets(&self) -> usize {
+            0
+        }
+        fn announce_to(&self, _d: &[u8], _target: usize) -> io::Result<()> {
+            Ok(())
+        }
+        fn datagram_max(&self, _to: SocketAddr) -> usize {
+            1400
+        }
+        fn local_addr(&self) -> String {
+            "memory".into()
+        }
+    }
+
+    #[derive(Default)]
+    struct Collect(Mutex<Vec<Vec<u8>>>);
+
+    impl LinkHandler for Collect {
+        fn on_message(&self, _link: usize, _from: PeerAddr, msg: &[u8]) {
+            lock(&self.0).push(msg.to_vec());
+        }
+        fn on_announce(&self, _link: usize, _from: PeerAddr, _msg: &[u8]) {}
+        fn on_peer_reset(&self, _link: usize, _from: PeerAddr) {}
+    }
+
+    fn link(
+        name: &str,
+        medium: Memory,
+        handler: Arc<Collect>,
+        tasks: &TaskTracker,
+        cancel: &CancellationToken,
+    ) -> Arc<DatagramLink<Memory>> {
+        let options = DatagramLinkOptions {
+            name: name.into(),
+            arq: ArqConfig::lan(),
+            retry_limit: RetryLimit::lan(),
+            security: None,
+        };
+        DatagramLink::create(0, options, medium, handler, tasks, cancel.clone())
+    }
+
+    /// Hands what `from` wrote to `to`, as `to`'s receive task would.
+    fn carry(from: &Memory, from_addr: SocketAddr, to: &DatagramLink<Memory>) {
+        let written = std::mem::take(&mut *lock(&from.0.datagrams));
+        let mut touched = Vec::new();
+        for mut d in written {
+            to.receive(&mut d, from_addr, &mut touched);
+        }
+        to.received(touched);
+    }
+
+    #[tokio::test]
+    async fn datagrams_the_socket_refused_are_written_again_first_not_left_to_the_retransmission_timer(
+    ) {
+        let (tasks, cancel) = (TaskTracker::new(), CancellationToken::new());
+        let (ma, mb) = (Memory::default(), Memory::default());
+        let (ha, hb) = (Arc::new(Collect::default()), Arc::new(Collect::default()));
+        let a = link("a", ma.clone(), ha, &tasks, &cancel);
+        let b = link("b", mb.clone(), hb.clone(), &tasks, &cancel);
+        let (addr_a, addr_b): (SocketAddr, SocketAddr) = (
+            "127.0.0.1:1".parse().unwrap(),
+            "127.0.0.1:2".parse().unwrap(),
+        );
+        // 40 messages of 300 bytes: several datagrams, the first three refused.
+        let sent: Vec<Vec<u8>> = (0..40u8).map(|i| vec![i; 300]).collect();
+        // Known peers (an unknown address gets only a few safe messages queued).
+        a.confirm_peer(PeerAddr::Udp(addr_b));
+        b.confirm_peer(PeerAddr::Udp(addr_a));
+        ma.0.refuse.store(3, Ordering::SeqCst);
+        for m in &sent {
+            let out = Outgoing::Safe {
+                msg: m.clone().into(),
+                done: None,
+            };
+            a.send(PeerAddr::Udp(addr_b), out);
+        }
+        let all_arrived = async {
+            while lock(&hb.0).len() < sent.len() {
+                let written = ma.0.changed.notified();
+                carry(&ma, addr_a, &b);
+                carry(&mb, addr_b, &a);
+                if lock(&hb.0).len() < sent.len() {
+                    written.await;
+                }
+            }
+        };
+        let arrived = tokio::time::timeout(Duration::from_secs(10), all_arrived).await;
+        cancel.cancel();
+        assert!(arrived.is_ok(), "only {} of 40 arrived", lock(&hb.0).len());
+        assert_eq!(*lock(&hb.0), sent, "every message, in order");
+        assert_eq!(
+            ma.0.refuse.load(Ordering::SeqCst),
+            0,
+            "three writes were refused"
+        );
+        assert_eq!(
+            a.stats().retransmitted,
+            0,
+            "the refused datagrams were written from the blocked queue, not resent by the ARQ"
+        );
     }
 }
