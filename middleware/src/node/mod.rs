@@ -39,8 +39,8 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 use crate::codec::{decode_message, encode_message};
-use crate::link::{Link, LinkHandler, Outgoing, PeerAddr};
-use crate::protocol::{ItemKind, Message, NodeId, Origin};
+use crate::link::{Link, LinkHandler, Outgoing, PeerAddr, Precedence};
+use crate::protocol::{tag, ItemKind, Message, NodeId, Origin};
 use crate::sync::SeededHash;
 use crate::typeinfo::TypeInfo;
 use mailbox::{Encoded, Mailbox};
@@ -335,24 +335,50 @@ impl NodeInner {
     /// Handles `msgs` from `from`, in order. A run of data messages (variables, events) is
     /// delivered together: one sender lookup, one clock read and one wake-up per subscriber for
     /// the run, where a datagram of a fast stream carries hundreds.
+    ///
+    /// Data messages are decoded as they are delivered, a run at a time; a call, a reply or
+    /// flow control behind a run is handled before it, as the sender lets those pass data
+    /// ([`precedence`]): a camera frame's decoding and delivery do not hold up a command that
+    /// arrived with it.
     fn dispatch_all(self: &Arc<Self>, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
-        let mut data: Vec<(u32, Encoded)> = Vec::new();
+        let mut data: Vec<&[u8]> = Vec::new();
         for bytes in msgs {
+            if matches!(bytes.first(), Some(&(tag::VAR | tag::EVENT))) {
+                data.push(bytes);
+                continue;
+            }
+            if precedence(bytes) != Precedence::Urgent {
+                self.deliver_encoded_data(link, from, &mut data);
+            }
+            match decode_message(bytes) {
+                Ok(msg) => self.handle(link, from, msg),
+                Err(e) => self.drop_undecodable(from, &e),
+            }
+        }
+        self.deliver_encoded_data(link, from, &mut data);
+    }
+
+    fn drop_undecodable(&self, from: PeerAddr, e: &impl std::fmt::Display) {
+        self.policy
+            .dropped
+            .undecodable
+            .fetch_add(1, Ordering::Relaxed);
+        tracing::debug!(%from, error = %e, "undecodable message dropped");
+    }
+
+    /// Decodes and delivers (and empties) a run of data messages from `from`.
+    fn deliver_encoded_data(&self, link: usize, from: PeerAddr, run: &mut Vec<&[u8]>) {
+        if run.is_empty() {
+            return;
+        }
+        let mut data = Vec::with_capacity(run.len());
+        for bytes in run.drain(..) {
             match decode_message(bytes) {
                 Ok(Message::Var { id, payload } | Message::Event { id, payload }) => {
                     data.push((id, payload.into()))
                 }
-                Ok(msg) => {
-                    self.deliver_data(link, from, &mut data);
-                    self.handle(link, from, msg);
-                }
-                Err(e) => {
-                    self.policy
-                        .dropped
-                        .undecodable
-                        .fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!(%from, error = %e, "undecodable message dropped");
-                }
+                Ok(_) => self.drop_undecodable(from, &"not the data its tag says"),
+                Err(e) => self.drop_undecodable(from, &e),
             }
         }
         self.deliver_data(link, from, &mut data);
@@ -515,14 +541,8 @@ impl LinkHandler for Handler {
     /// promised between them, and a command must not wait behind a camera frame. Nothing
     /// passes an introduction or a declaration: a call there before its caller's Hello or
     /// identity would be refused.
-    fn precedence(&self, msg: &[u8]) -> crate::link::Precedence {
-        use crate::link::Precedence;
-        use crate::protocol::tag;
-        match msg.first() {
-            Some(&(tag::CALL | tag::REPLY | tag::FLOW)) => Precedence::Urgent,
-            Some(&(tag::VAR | tag::EVENT | tag::FILE_CHUNK)) => Precedence::Passable,
-            _ => Precedence::InOrder,
-        }
+    fn precedence(&self, msg: &[u8]) -> Precedence {
+        precedence(msg)
     }
 
     fn on_messages(&self, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
@@ -608,4 +628,14 @@ pub(crate) fn bare_node(
     });
     let _ = inner.links.set(Vec::new());
     inner
+}
+
+/// Which messages may pass which on their way (see [`Precedence`]): calls, replies and flow
+/// control pass data; introductions and declarations keep their place.
+fn precedence(msg: &[u8]) -> Precedence {
+    match msg.first() {
+        Some(&(tag::CALL | tag::REPLY | tag::FLOW)) => Precedence::Urgent,
+        Some(&(tag::VAR | tag::EVENT | tag::FILE_CHUNK)) => Precedence::Passable,
+        _ => Precedence::InOrder,
+    }
 }
