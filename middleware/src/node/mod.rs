@@ -337,18 +337,23 @@ impl NodeInner {
     /// the run, where a datagram of a fast stream carries hundreds.
     ///
     /// Data messages are decoded as they are delivered, a run at a time; a call, a reply or
-    /// flow control behind a run is handled before it, as the sender lets those pass data
-    /// ([`precedence`]): a camera frame's decoding and delivery do not hold up a command that
-    /// arrived with it.
+    /// flow control behind a run that holds a large message ([`PASSED_DATA_BYTES`]) is handled
+    /// before it, as the sender lets those pass the large messages it sends in parts and what
+    /// queued behind them ([`precedence`]): a camera frame's decoding and delivery do not hold
+    /// up a command that arrived with it. Behind small data, order is kept (a variable set
+    /// before a reply is read after it).
     fn dispatch_all(self: &Arc<Self>, link: usize, from: PeerAddr, msgs: &[&[u8]]) {
         let mut data: Vec<&[u8]> = Vec::new();
+        let mut large = false;
         for bytes in msgs {
             if matches!(bytes.first(), Some(&(tag::VAR | tag::EVENT))) {
+                large |= bytes.len() > PASSED_DATA_BYTES;
                 data.push(bytes);
                 continue;
             }
-            if precedence(bytes) != Precedence::Urgent {
+            if !(large && precedence(bytes) == Precedence::Urgent) {
                 self.deliver_encoded_data(link, from, &mut data);
+                large = false;
             }
             match decode_message(bytes) {
                 Ok(msg) => self.handle(link, from, msg),
@@ -629,6 +634,10 @@ pub(crate) fn bare_node(
     let _ = inner.links.set(Vec::new());
     inner
 }
+
+/// A data message larger than this (one no datagram carries whole) may be passed by a call, a
+/// reply or flow control that arrives behind it ([`NodeInner::dispatch_all`]).
+const PASSED_DATA_BYTES: usize = 64 << 10;
 
 /// Which messages may pass which on their way (see [`Precedence`]): calls, replies and flow
 /// control pass data; introductions and declarations keep their place.

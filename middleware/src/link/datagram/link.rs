@@ -8,7 +8,8 @@
 //! Sending is inline when the link is idle (lowest latency: the caller's task writes the
 //! datagram) and batched by the link's transmit task when messages arrive faster than datagrams
 //! can be written (highest throughput: many messages share one datagram). Either way a peer's
-//! datagrams are written under that peer's lock, so fast messages are never reordered.
+//! datagrams are built under that peer's lock and written in that order under its wire's
+//! ([`Wire`]), so fast messages are never reordered.
 
 use std::collections::VecDeque;
 use std::fmt;
@@ -451,9 +452,17 @@ impl<M: Medium> DatagramLink<M> {
         }
     }
 
-    /// Builds and writes every datagram `state` has ready. Called with the peer locked, so the
-    /// datagrams of one peer leave in the order they were built.
+    /// Builds every datagram `state` has ready, for [`Self::write`]. Called with the peer
+    /// locked. Builds nothing while the socket refuses this peer's datagrams: what waits stays
+    /// in its queues (fast messages coalesced, safe ones out of flight) instead of piling up
+    /// behind the refused ones; the write that drains them asks for the next flush.
     fn flush_locked(&self, addr: M::Addr, st: &mut PeerState, now: Instant) -> Outbound {
+        if st.wire.is_blocked() {
+            return Outbound {
+                wire: st.wire.clone(),
+                datagrams: Vec::new(),
+            };
+        }
         let due = st.tx.due(now);
         self.counters
             .retransmitted
@@ -543,9 +552,8 @@ impl<M: Medium> DatagramLink<M> {
         let spare = w.into_spare();
         if !spare.is_empty() {
             let mut s = lock(&st.wire.spare);
-            if s.len() < SPARE_BUFFERS {
-                s.extend(spare);
-            }
+            let room = SPARE_BUFFERS.saturating_sub(s.len());
+            s.extend(spare.into_iter().take(room));
         }
         st.last_write = Some(now);
         st.wake_pending = false;
@@ -569,17 +577,19 @@ impl<M: Medium> DatagramLink<M> {
             return false;
         }
         let mut refused = false;
+        let was_blocked = !blocked.is_empty();
         while let Some(d) = blocked.front() {
             match self.medium.send_to(d, addr) {
-                Ok(_) => {
-                    self.count_out(d.len());
-                    blocked.pop_front();
-                }
-                Err(_) => {
+                Ok(_) => self.count_out(d.len()),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
                     refused = true;
                     break;
                 }
+                Err(e) => {
+                    tracing::debug!(link = %self.name, %addr, error = %e, "datagram not sent");
+                }
             }
+            blocked.pop_front();
         }
         let mut sent = Vec::new();
         for d in datagrams {
@@ -606,6 +616,11 @@ impl<M: Medium> DatagramLink<M> {
         wire.is_blocked
             .store(!blocked.is_empty(), Ordering::Release);
         drop(blocked);
+        // Drained: what the flushes left queued meanwhile (they build nothing while blocked)
+        // goes at the transmit task's next visit.
+        if was_blocked && !refused && lock(&self.agenda).flush(addr) {
+            self.wake.notify_one();
+        }
         if !sent.is_empty() {
             let mut spare = lock(&wire.spare);
             let room = SPARE_BUFFERS.saturating_sub(spare.len());
