@@ -159,6 +159,43 @@ async fn transitions_checked_and_applied() {
     g.node.shutdown().await;
 }
 
+/// The waypoint queue, published best effort and on change, is published again though
+/// unchanged (every 2 s, with the flight state): a fleet that missed the change (a datagram
+/// lost on a busy host) still learns its waypoints are queued instead of waiting for them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_waypoint_queue_is_published_again_though_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = Sim::start("127.0.0.1:0", 10.0, &dir.path().join("sim.jsonl")).await;
+    let domain = unique_domain("queue-again");
+    let vas = VasProc::start(&format!("udpout:{}", sim.addr), &domain, &[]);
+    let g = Ground::open(&domain).await;
+    g.wait_state(FlightState::Parking, STEP).await;
+    let queue = g
+        .svc
+        .subscribe_variable::<usal_types::QueueStatus>("rover1/vas/queue")
+        .unwrap();
+    let wps = zigzag(3, 10.0);
+    g.push_all(&wps).await;
+    // The value set by the push, then the same value again with nothing changed.
+    let mut seen = 0;
+    let twice = tokio::time::timeout(std::time::Duration::from_secs(10), async {
+        while seen < 2 {
+            let q = queue.recv().await.expect("queue");
+            if q.value.queued == wps.len() as u64 {
+                seen += 1;
+            }
+        }
+    })
+    .await;
+    assert!(
+        twice.is_ok(),
+        "the queue with 3 waypoints seen {seen} time(s) in 10 s"
+    );
+    vas.kill().await;
+    sim.kill().await;
+    g.node.shutdown().await;
+}
+
 /// mavsim dies mid-flight and comes back at the same address: the VAS raises an alarm,
 /// reconnects and, as configured (`--resume-after-reboot`), re-uploads its window, resumes
 /// with an alarm saying so and finishes the plan.

@@ -35,7 +35,8 @@ const PARK_RETRY_START: Duration = Duration::from_secs(1);
 /// The longest wait between two attempts to park a configured autopilot.
 const PARK_RETRY_MAX: Duration = Duration::from_secs(8);
 
-/// How often the flight state and `allowed_changes` are published again though unchanged.
+/// How often the flight state, `allowed_changes` and the waypoint queue are published again
+/// though unchanged.
 const STATE_REFRESH: Duration = Duration::from_secs(2);
 
 /// Settings of the VAL.
@@ -1160,9 +1161,11 @@ impl IService for Vas {
             let _params = (get_param, set_param, list_params, read_mission);
             let mut tick =
                 tokio::time::interval(c.cfg.mission_time_period.max(Duration::from_millis(10)));
-            // The flight state and what may be asked from it are published on change only; a
-            // change lost on a lossy radio would leave a station showing an old state (and
-            // offering the wrong buttons) until the next one: repeat them now and then.
+            // The flight state, what may be asked from it and the waypoint queue are published
+            // on change only, best effort; a change lost (a lossy radio, a busy host's full
+            // socket buffer) would leave a station showing an old state (and offering the
+            // wrong buttons), or a fleet waiting for waypoints it already queued, until the
+            // next change: repeat them now and then.
             let mut refresh = tokio::time::interval(STATE_REFRESH);
             loop {
                 tokio::select! {
@@ -1171,6 +1174,7 @@ impl IService for Vas {
                     _ = refresh.tick() => {
                         let _ = c.items.flight_state.set(&c.state());
                         c.publish_allowed();
+                        c.publish_queue().await;
                     }
                 }
             }
