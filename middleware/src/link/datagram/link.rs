@@ -149,6 +149,16 @@ impl Wire {
     fn is_blocked(&self) -> bool {
         self.is_blocked.load(Ordering::Acquire)
     }
+
+    /// Keeps buffers for the next datagrams, up to [`SPARE_BUFFERS`].
+    fn keep_spare(&self, bufs: Vec<Vec<u8>>) {
+        if bufs.is_empty() {
+            return;
+        }
+        let mut spare = lock(&self.spare);
+        let room = SPARE_BUFFERS.saturating_sub(spare.len());
+        spare.extend(bufs.into_iter().take(room));
+    }
 }
 
 /// Datagrams a flush built under a peer's lock, to be written by [`DatagramLink::write`].
@@ -549,12 +559,7 @@ impl<M: Medium> DatagramLink<M> {
         }
         st.fast_bytes = 0;
         finish(&mut w, &mut out, &mut carries_safe);
-        let spare = w.into_spare();
-        if !spare.is_empty() {
-            let mut s = lock(&st.wire.spare);
-            let room = SPARE_BUFFERS.saturating_sub(s.len());
-            s.extend(spare.into_iter().take(room));
-        }
+        st.wire.keep_spare(w.into_spare());
         st.last_write = Some(now);
         st.wake_pending = false;
         Outbound {
@@ -621,12 +626,26 @@ impl<M: Medium> DatagramLink<M> {
         if was_blocked && !refused && lock(&self.agenda).flush(addr) {
             self.wake.notify_one();
         }
-        if !sent.is_empty() {
-            let mut spare = lock(&wire.spare);
-            let room = SPARE_BUFFERS.saturating_sub(spare.len());
-            spare.extend(sent.into_iter().take(room));
-        }
+        wire.keep_spare(sent);
         refused
+    }
+
+    /// Flushes `addr` if it has work (or `force`), arms its next deadline, then writes with
+    /// its state let go. Returns whether the transmit task must be woken ([`Self::arm`]).
+    fn visit(
+        &self,
+        addr: M::Addr,
+        mut st: MutexGuard<'_, PeerState>,
+        now: Instant,
+        force: bool,
+    ) -> bool {
+        let out = (force || st.has_work()).then(|| self.flush_locked(addr, &mut st, now));
+        let wake = self.arm(addr, &mut st);
+        match out {
+            Some(out) => self.write_unlocking(addr, out, st),
+            None => drop(st),
+        }
+        wake
     }
 
     /// [`Self::write`] that lets the peer's state `st` go, and arms a refused write's retry.
@@ -788,12 +807,7 @@ impl<M: Medium> DatagramLink<M> {
                     }
                 }
                 let retransmit_due = st.tx.next_deadline().is_some_and(|d| d <= now);
-                let out = (st.has_work() || retransmit_due)
-                    .then(|| self.flush_locked(addr, &mut st, now));
-                self.arm(addr, &mut st);
-                if let Some(out) = out {
-                    self.write_unlocking(addr, out, st);
-                }
+                self.visit(addr, st, now, retransmit_due);
             }
             self.close_stale(now, gave_up);
             let mut sleep_until = lock(&self.agenda).next_timer();
@@ -830,12 +844,7 @@ impl<M: Medium> DatagramLink<M> {
         let mut wake = false;
         for addr in touched {
             if let Some(p) = self.peer(addr, false) {
-                let mut st = lock(&p);
-                let out = st.has_work().then(|| self.flush_locked(addr, &mut st, now));
-                wake |= self.arm(addr, &mut st);
-                if let Some(out) = out {
-                    self.write_unlocking(addr, out, st);
-                }
+                wake |= self.visit(addr, lock(&p), now, false);
             }
         }
         // The transmit task only keeps retransmission timers and blocked sends: it is woken
