@@ -47,3 +47,15 @@ fn an_insider_of_another_namespace_gets_nothing_through_and_every_refusal_is_cou
     scene.assert_legit_served(25);
     scene.assert_nothing_from_attackers();
 }
+
+#[test]
+fn an_insider_churning_declarations_at_the_caps_leaves_calls_answered_and_positions_flowing() {
+    let mut scene = Scene::start("hostile-churn");
+    let churned = hostile::churn(&mut scene, std::time::Duration::from_secs(3));
+    assert!(churned.fresh_call_ok, "{churned:?}");
+    assert!(churned.batches > 100, "{churned:?}");
+    let r = scene.latest_report();
+    assert_eq!(r["peers"]["ground/gs"], 1, "{r}");
+    scene.assert_legit_served(25);
+    scene.assert_nothing_from_attackers();
+}

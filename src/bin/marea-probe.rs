@@ -690,6 +690,9 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
     Ok(())
 }
 
+/// Variables a victim publishes (`status0`..), once a second.
+const VICTIM_VARIABLES: usize = 8;
+
 /// What a victim delivered and executed, for [`Cmd::Victim`]'s reports.
 #[derive(Default)]
 struct Delivered {
@@ -723,6 +726,11 @@ async fn victim(
     })?;
     let files = svc.file_sink(sink, dir)?;
     let positions = svc.subscribe_variable::<Position>(pattern)?;
+    // What a vehicle's service publishes, as routes an attacker's interests can match.
+    let status: Vec<marea::Variable<u64>> = (0..VICTIM_VARIABLES)
+        .map(|k| svc.publish_variable(&format!("status{k}")))
+        .collect::<Result<_, _>>()?;
+    let mut published = tokio::time::interval(Duration::from_secs(1));
     out(json!({"ready": svc.full_name(call), "addrs": node.link_addrs()}));
     let mut tick = tokio::time::interval(Duration::from_millis(50));
     let mut shown = serde_json::Value::Null;
@@ -730,6 +738,12 @@ async fn victim(
         tokio::select! {
             _ = marea::process::terminated() => break,
             _ = tick.tick() => {}
+            _ = published.tick() => {
+                for (k, v) in status.iter().enumerate() {
+                    v.set(&(k as u64))?;
+                }
+                continue;
+            }
             s = positions.recv() => {
                 if let (Ok(s), Ok(mut d)) = (s, delivered.lock()) {
                     *d.samples.entry(format!("{} {}", s.publisher, s.name)).or_default() += 1;
@@ -752,7 +766,9 @@ async fn victim(
             let mut peers = std::collections::BTreeMap::<String, u64>::new();
             let mut peer_addrs = std::collections::BTreeMap::<String, String>::new();
             let mut authenticated = Vec::new();
+            let mut declarations = 0;
             for p in node.peers() {
+                declarations += p.declarations;
                 if p.authenticated_namespaces
                     .as_ref()
                     .is_some_and(|n| !n.is_empty())
@@ -771,6 +787,7 @@ async fn victim(
                 "peers": peers,
                 "peer_addrs": peer_addrs,
                 "authenticated": authenticated,
+                "declarations": declarations,
                 "frames_in": node.link_stats().iter().map(|(_, s)| s.frames_in).sum::<u64>(),
                 "refusals": {
                     "denied": r.denied, "rejected": r.rejected,

@@ -13,6 +13,7 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::{Duration, Instant};
 
 use marea::codec::encode_payload;
 use marea::link::auth::DomainKey;
@@ -269,6 +270,8 @@ impl Scene {
     /// peer still known (once), and a call and a file from `ground` nodes served.
     pub fn assert_legit_served(&mut self, more: u64) {
         let before = legit_samples(&self.last);
+        let count = |r: &Value, what: &str| r[what].as_array().map_or(0, Vec::len);
+        let (calls, files) = (count(&self.last, "called"), count(&self.last, "files"));
         self.report_until("more positions from the legitimate peer", |r| {
             legit_samples(r) >= before + more && r["peers"]["ground/gs"] == 1
         });
@@ -307,8 +310,7 @@ impl Scene {
         let r = outcome(&mut send);
         assert_eq!(r["done"], 7, "the legitimate file failed: {r}");
         self.report_until("the legitimate call and file", |r| {
-            r["called"].as_array().is_some_and(|c| c.len() == 1)
-                && r["files"].as_array().is_some_and(|f| f.len() == 1)
+            count(r, "called") == calls + 1 && count(r, "files") == files + 1
         });
     }
 }
@@ -742,4 +744,254 @@ pub fn insider(scene: &mut Scene) -> Tally {
         format_args!("the impostor's publication was not denied: {r}"),
     );
     tally
+}
+
+/// Nodes of a declaration churn ([`churn`]): with [`CHURN_INTERESTS`] each, they hold the
+/// victim's whole budget of declared items (`MAX_DECLS_TOTAL`, 65,536).
+pub const CHURN_PEERS: u64 = 16;
+/// Interests each churning node keeps declared (its cap is 4,096 items).
+const CHURN_INTERESTS: u32 = 4_000;
+/// Declarations per batch while the churners declare their interests.
+const CHURN_DECLARE_BATCH: u32 = 500;
+/// Declaration changes a second, over all churners: each a 2-entry batch (a withdrawal and a
+/// new interest) from the next churner in turn.
+const CHURN_BATCHES_PER_S: u64 = 200;
+
+/// How the victim held under a declaration churn ([`churn`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Churned {
+    /// The victim's CPU time while churned, in percent of one core.
+    pub victim_cpu_percent: f64,
+    /// The same before the churners came.
+    pub quiet_cpu_percent: f64,
+    /// The legitimate positions delivered a second while churned, against as long before.
+    pub legit_rate_ratio: f64,
+    /// Whether a fresh legitimate call, made while churned, was answered.
+    pub fresh_call_ok: bool,
+    /// Declaration batches the churners sent.
+    pub batches: u64,
+}
+
+/// A node of the churn: a sealed session of its own and its declaration log.
+struct Churner {
+    forger: Forger,
+    /// The counter of its newest declaration.
+    counter: u32,
+    /// Its live interests' ids, oldest first.
+    live: std::collections::VecDeque<u32>,
+    next_id: u32,
+    n: u64,
+}
+
+impl Churner {
+    fn interest(&self, id: u32) -> Declaration {
+        Declaration::Interest {
+            id,
+            service: 1,
+            kind: ItemKind::Variable,
+            // Every one matches every variable the victim publishes: each change concerns
+            // all of its routes.
+            pattern: "rover1/**".into(),
+            ty: TypeInfo::of::<u64>(),
+        }
+    }
+
+    /// Sends `decls` as the next batch of its log.
+    fn declare(&mut self, target: SocketAddr, decls: Vec<Declaration>) {
+        let first = self.counter + 1;
+        self.counter += decls.len() as u32;
+        self.forger
+            .safe(target, &[batch(first, decls)])
+            .expect("send");
+    }
+
+    /// Withdraws its oldest interest and declares a new one, in one batch.
+    fn churn(&mut self, target: SocketAddr) {
+        let old = self
+            .live
+            .pop_front()
+            .expect("a churner keeps its interests");
+        let new = self.next_id;
+        self.next_id += 1;
+        self.live.push_back(new);
+        let decl = self.interest(new);
+        self.declare(target, vec![Declaration::Withdraw { id: old }, decl]);
+    }
+}
+
+/// CPU time process `pid`'s threads have used so far, in seconds (the first field of each
+/// `/proc/PID/task/TID/schedstat`, nanoseconds on a core).
+fn cpu_seconds(pid: u32) -> f64 {
+    let ns: u64 = std::fs::read_dir(format!("/proc/{pid}/task"))
+        .map(|tasks| {
+            tasks
+                .filter_map(Result::ok)
+                .filter_map(|t| std::fs::read_to_string(t.path().join("schedstat")).ok())
+                .filter_map(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+                .sum()
+        })
+        .unwrap_or(0);
+    ns as f64 / 1e9
+}
+
+impl Scene {
+    /// The victim's newest report: every line it printed so far is read.
+    pub fn latest_report(&mut self) -> Value {
+        while let Some(v) = self
+            .victim
+            .try_expect(Duration::ZERO, |v| v.get("report").is_some())
+        {
+            self.last = v["report"].clone();
+        }
+        self.victim.seen.clear();
+        self.last.clone()
+    }
+
+    /// The legitimate positions delivered a second and the victim's CPU percent over `window`.
+    fn rates_over(&mut self, window: Duration) -> (f64, f64) {
+        let pid = self.victim.pid();
+        let (s0, c0, t0) = (
+            legit_samples(&self.latest_report()),
+            cpu_seconds(pid),
+            Instant::now(),
+        );
+        std::thread::sleep(window);
+        let (s1, c1) = (legit_samples(&self.latest_report()), cpu_seconds(pid));
+        let secs = t0.elapsed().as_secs_f64();
+        (
+            s1.saturating_sub(s0) as f64 / secs,
+            (c1 - c0) / secs * 100.0,
+        )
+    }
+}
+
+/// An insider's declaration churn: [`CHURN_PEERS`] sealed nodes declare [`CHURN_INTERESTS`]
+/// interests each (the victim's whole budget), then change one declaration each in turn,
+/// [`CHURN_BATCHES_PER_S`] times a second, while the victim's CPU and the legitimate
+/// peer's positions are measured over `window` (and over `window` before the churners
+/// came), and a fresh legitimate call is made.
+pub fn churn(scene: &mut Scene, window: Duration) -> Churned {
+    let key = DomainKey::load(&scene.key).expect("the domain key");
+    let target = scene.target;
+    let domain = scene.net.domain.clone();
+    let (quiet_rate, quiet_cpu) = scene.rates_over(window);
+    let declared0 = scene.latest_report()["declarations"].as_u64().unwrap_or(0);
+
+    let mut churners: Vec<Churner> = (0..CHURN_PEERS)
+        .map(|n| {
+            let mut forger = Forger::new(Some(&key)).expect("a socket");
+            forger
+                .discovery(
+                    target,
+                    &Message::Hello {
+                        node_id: 0x0c4e_0000_0000_0000 + n,
+                        domain: domain.clone(),
+                        node: format!("churn{n}"),
+                        namespace: "churn".into(),
+                        counter: 0,
+                        lease_ms: 600_000,
+                        gateway: false,
+                        asks_introduction: false,
+                    },
+                )
+                .expect("send");
+            Churner {
+                forger,
+                counter: 0,
+                live: Default::default(),
+                next_id: 2,
+                n,
+            }
+        })
+        .collect();
+    scene.report_until("the churners known as peers", |r| {
+        r["peers"].as_object().is_some_and(|p| {
+            p.keys().filter(|k| k.starts_with("churn/")).count() as u64 == CHURN_PEERS
+        })
+    });
+    for c in &mut churners {
+        c.declare(
+            target,
+            vec![Declaration::Service {
+                id: 1,
+                name: "churn".into(),
+            }],
+        );
+        while c.live.len() < CHURN_INTERESTS as usize {
+            let decls: Vec<Declaration> = (0..CHURN_DECLARE_BATCH)
+                .map(|_| {
+                    let id = c.next_id;
+                    c.next_id += 1;
+                    c.live.push_back(id);
+                    c.interest(id)
+                })
+                .collect();
+            c.declare(target, decls);
+        }
+    }
+    let all = declared0 + CHURN_PEERS * (u64::from(CHURN_INTERESTS) + 1);
+    scene.report_until("the churners' interests declared", |r| {
+        r["declarations"].as_u64().unwrap_or(0) >= all
+    });
+
+    // The churn, on a thread of its own while the victim is measured.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let churning = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let period = Duration::from_micros(1_000_000 / CHURN_BATCHES_PER_S);
+            let start = Instant::now();
+            let mut sent = 0u64;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                churners[(sent % CHURN_PEERS) as usize].churn(target);
+                sent += 1;
+                // Paced to the rate: an attacker's send schedule, not a synchronisation.
+                if let Some(wait) =
+                    (start + period * sent as u32).checked_duration_since(Instant::now())
+                {
+                    std::thread::sleep(wait);
+                }
+            }
+            sent
+        })
+    };
+    // Settled into the churn, then measured, with a fresh call in the middle.
+    std::thread::sleep(Duration::from_secs(1));
+    let mut call = scene.net.keyed(
+        "fmo",
+        "ground",
+        &scene.key,
+        &[
+            "call",
+            "--name",
+            "rover1/vas/retask",
+            "--arg",
+            "21",
+            "--wait-ms",
+            "5000",
+        ],
+    );
+    let calls = scene.latest_report()["called"]
+        .as_array()
+        .map_or(0, Vec::len);
+    let (churned_rate, churned_cpu) = scene.rates_over(window);
+    let fresh_call_ok = outcome(&mut call)["ok"] == 42;
+    if fresh_call_ok {
+        scene.report_until("the fresh call executed", |r| {
+            r["called"].as_array().map_or(0, Vec::len) > calls
+        });
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let batches = churning.join().expect("the churn thread");
+    Churned {
+        victim_cpu_percent: churned_cpu,
+        quiet_cpu_percent: quiet_cpu,
+        legit_rate_ratio: if quiet_rate > 0.0 {
+            churned_rate / quiet_rate
+        } else {
+            0.0
+        },
+        fresh_call_ok,
+        batches,
+    }
 }

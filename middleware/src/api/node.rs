@@ -51,6 +51,8 @@ pub struct PeerInfo {
     /// The namespaces its identity key is authenticated for (`<security identities=..>`):
     /// `None` when this node checks no identities, empty until the peer proved a listed key.
     pub authenticated_namespaces: Option<Vec<String>>,
+    /// How many services, offers and interests it declares now.
+    pub declarations: usize,
 }
 
 /// Whether an item is offered or wanted.
@@ -459,6 +461,7 @@ impl Node {
                 addr: p.addr.to_string(),
                 last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
                 authenticated_namespaces: p.authenticated.clone(),
+                declarations: p.declarations(),
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));

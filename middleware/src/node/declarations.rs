@@ -8,6 +8,7 @@ use std::sync::{Arc, Mutex};
 use dashmap::DashMap;
 
 use super::policy::{self, Refusal, MAX_DECLS_PER_PEER, MAX_DECLS_TOTAL};
+use super::routes::PeerChange;
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
 use crate::config::AccessKind;
 use crate::name;
@@ -412,6 +413,8 @@ impl NodeInner {
             }
         }
         let mut changed = false;
+        // What the routes must be recomputed for (see `recompute_routes_of_peer`).
+        let mut change = PeerChange::default();
         let mut request = None;
         let mut refusals: Vec<(usize, String, Refusal)> = Vec::new();
         let (peer_name, peer_link);
@@ -428,6 +431,7 @@ impl NodeInner {
                 p.routes.clear();
                 p.known = 0;
                 changed = true;
+                change.everything = true;
             }
             let gap = after > p.known;
             if !gap {
@@ -472,6 +476,7 @@ impl NodeInner {
                     match e.decl {
                         Declaration::Service { id, name } => {
                             p.services.insert(id, name);
+                            change.everything = true;
                         }
                         Declaration::Offer {
                             id,
@@ -510,6 +515,7 @@ impl NodeInner {
                                     Refusal::Denied(AccessKind::Publish),
                                 ));
                             }
+                            change.everything = true;
                             p.offers.insert(
                                 id,
                                 RemoteItem {
@@ -531,24 +537,28 @@ impl NodeInner {
                             pattern,
                             ty,
                         } => {
-                            p.interests.insert(
-                                id,
-                                RemoteItem {
-                                    service,
-                                    kind,
-                                    name: pattern.into(),
-                                    type_name: ty.name.as_str().into(),
-                                    ty,
-                                    origin: None,
-                                    origin_name: None,
-                                    denied: false,
-                                },
-                            );
+                            let item = RemoteItem {
+                                service,
+                                kind,
+                                name: pattern.into(),
+                                type_name: ty.name.as_str().into(),
+                                ty,
+                                origin: None,
+                                origin_name: None,
+                                denied: false,
+                            };
+                            let replaced = p.interests.insert(id, item.clone());
+                            change
+                                .interests
+                                .extend(replaced.map(|old| (id, old, false)));
+                            change.interests.push((id, item, true));
                         }
                         Declaration::Withdraw { id } => {
-                            p.services.remove(&id);
-                            p.offers.remove(&id);
-                            p.interests.remove(&id);
+                            change.everything |= p.services.remove(&id).is_some();
+                            change.everything |= p.offers.remove(&id).is_some();
+                            change
+                                .interests
+                                .extend(p.interests.remove(&id).map(|old| (id, old, false)));
                             p.routes.remove(&id);
                         }
                     }
@@ -576,7 +586,7 @@ impl NodeInner {
             self.send_safe_to_node(node, &Message::DeclRequest { since });
         }
         if changed {
-            self.recompute_routes_of_peer(node);
+            self.recompute_routes_of_peer(node, &change);
             self.recompute_forwarding();
         }
     }

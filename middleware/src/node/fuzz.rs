@@ -172,6 +172,15 @@ fn owned_name(u: &mut Unstructured<'_>, ns: &str) -> Result<String> {
 
 fn batch(u: &mut Unstructured<'_>, inner: &Arc<NodeInner>, id: u64, ns: &str) -> Result<()> {
     let known = inner.peers.by_id.get(&id).map_or(0, |p| p.known);
+    // The ids it declares now, so that withdrawals often take one of them.
+    let held: Vec<u32> = inner.peers.by_id.get(&id).map_or_else(Vec::new, |p| {
+        p.interests
+            .keys()
+            .chain(p.offers.keys())
+            .chain(p.services.keys())
+            .copied()
+            .collect()
+    });
     let mut entries = Vec::new();
     let mut counter = known;
     let flood = u.ratio(1u8, 16)?;
@@ -202,6 +211,10 @@ fn batch(u: &mut Unstructured<'_>, inner: &Arc<NodeInner>, id: u64, ns: &str) ->
                 // them come and go.
                 Declaration::Interest { pattern, .. } if u.ratio(1u8, 2)? => {
                     *pattern = (*u.choose(&["**", "me/**", "me/s/*", "*/s/00"])?).to_owned();
+                }
+                // Often one of what it declares, so subscriptions to our items go as well.
+                Declaration::Withdraw { id } if !held.is_empty() && u.ratio(1u8, 2)? => {
+                    *id = *u.choose(&held)?;
                 }
                 _ => {}
             }
