@@ -59,3 +59,14 @@ fn an_insider_churning_declarations_at_the_caps_leaves_calls_answered_and_positi
     scene.assert_legit_served(25);
     scene.assert_nothing_from_attackers();
 }
+
+#[test]
+fn an_insiders_peers_that_never_answer_leave_room_for_new_nodes() {
+    let mut scene = Scene::start("hostile-confirmed-flood");
+    let answered = hostile::confirmed_flood(&mut scene);
+    assert_eq!(answered, 1.0, "fresh callers answered after the flood");
+    let r = scene.latest_report();
+    assert_eq!(r["peers"]["ground/gs"], 1, "{r}");
+    assert!(refusals(&r, "peers_evicted") > 0, "{r}");
+    scene.assert_nothing_from_attackers();
+}

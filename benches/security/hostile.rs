@@ -23,6 +23,10 @@
 //!   `churn` in the suite); the victim's CPU over 5 s of churn (percent of one core), and the
 //!   legitimate peer's positions delivered a second then against 5 s before the churners
 //!   came. Targets: at most 20 % and at least 0.9.
+//! - `hostile.confirmed_flood.fresh_call_ok_ratio`: 1,100 sealed insider nodes, each from a
+//!   socket of its own, say Hello and send one message in a session but never acknowledge
+//!   the victim's (as a forged source address cannot); then 3 new nodes call the victim: the
+//!   share answered. Target 1.0.
 
 use std::net::{Ipv4Addr, SocketAddrV4};
 use std::sync::Arc;
@@ -59,6 +63,18 @@ pub fn run() {
             );
         }
         Err(_) => eprintln!("hostile.churn: the hostile scene did not start (see above)"),
+    }
+    match std::panic::catch_unwind(|| {
+        suite::confirmed_flood(&mut suite::Scene::measuring(
+            "bench-hostile-confirmed-flood",
+        ))
+    }) {
+        Ok(ratio) => metric(
+            "hostile.confirmed_flood.fresh_call_ok_ratio",
+            ratio,
+            "ratio",
+        ),
+        Err(_) => eprintln!("hostile.confirmed_flood: the hostile scene did not start (see above)"),
     }
     match std::panic::catch_unwind(rejected_ratio) {
         Ok(ratio) => metric("hostile.rejected_ratio", ratio, "ratio"),

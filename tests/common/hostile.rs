@@ -995,3 +995,73 @@ pub fn churn(scene: &mut Scene, window: Duration) -> Churned {
         batches,
     }
 }
+
+/// Forged peers of a [`confirmed_flood`]: more than the victim's peer table holds (1,024).
+const FLOOD_PEERS: u64 = 1_100;
+/// Fresh nodes that call the victim after a [`confirmed_flood`].
+const FRESH_CALLERS: usize = 3;
+
+/// An insider's flood of peers that look confirmed: [`FLOOD_PEERS`] sealed nodes, each from
+/// a socket of its own, say Hello and send one message in a session (an empty declaration
+/// batch), but never acknowledge what the victim sends them, as a forged source address cannot.
+/// Then [`FRESH_CALLERS`] new nodes of the legitimate namespace call the victim in turn;
+/// returns how many of them got their answer, over how many tried. The flood's sockets stay
+/// open meanwhile.
+pub fn confirmed_flood(scene: &mut Scene) -> f64 {
+    let key = DomainKey::load(&scene.key).expect("the domain key");
+    let target = scene.target;
+    let domain = scene.net.domain.clone();
+    let frames0 = scene.latest_report()["frames_in"].as_u64().unwrap_or(0);
+    let mut flood = Vec::new();
+    for n in 0..FLOOD_PEERS {
+        let mut f = Forger::new(Some(&key)).expect("a socket");
+        f.discovery(
+            target,
+            &Message::Hello {
+                node_id: 0x0c0f_0000_0000_0000 + n,
+                domain: domain.clone(),
+                node: format!("flood{n}"),
+                namespace: "evil".into(),
+                counter: 0,
+                lease_ms: u32::MAX,
+                gateway: false,
+                asks_introduction: false,
+            },
+        )
+        .expect("send");
+        f.safe(target, &[batch(1, Vec::new())]).expect("send");
+        flood.push(f);
+        // Read as sent (the victim's socket buffer would drop a burst of 2,200).
+        if flood.len() % 100 == 0 {
+            let sent = 2 * flood.len() as u64;
+            scene.report_until("the flood read", |r| {
+                r["frames_in"].as_u64().unwrap_or(0) >= frames0 + sent
+            });
+        }
+    }
+    let mut answered = 0;
+    for k in 0..FRESH_CALLERS {
+        let mut call = scene.net.keyed(
+            &format!("fresh{k}"),
+            "ground",
+            &scene.key,
+            &[
+                "call",
+                "--name",
+                "rover1/vas/retask",
+                "--arg",
+                "21",
+                "--wait-ms",
+                "10000",
+            ],
+        );
+        let r = outcome(&mut call);
+        if r["ok"] == 42 {
+            answered += 1;
+        } else {
+            eprintln!("hostile: a fresh caller after the flood of peers: {r}");
+        }
+    }
+    drop(flood);
+    answered as f64 / FRESH_CALLERS as f64
+}

@@ -242,6 +242,11 @@ pub trait LinkHandler: Send + Sync + 'static {
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]);
     /// `from` started a new safe session while one was running: it restarted or reset us.
     fn on_peer_reset(&self, link: usize, from: PeerAddr);
+    /// `from` acknowledged a session of ours for the first time: it receives at that address
+    /// ([`Link::answered`]).
+    fn on_peer_answered(&self, link: usize, from: PeerAddr) {
+        let _ = (link, from);
+    }
     /// The link closed its session with `from`: it acknowledged nothing within the retry
     /// limit. What was in flight failed with [`LinkSendError::RetriesExhausted`].
     fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
@@ -374,6 +379,14 @@ pub trait Link: Send + Sync + 'static {
     /// peer per medium (serial) or a bounded set of identities (shared memory) ignore it.
     fn confirm_peer(&self, to: PeerAddr) {
         let _ = to;
+    }
+    /// Whether the peer at `to` has shown that it receives there: on a medium where a source
+    /// address can be forged (UDP), by acknowledging a session of ours, whose random number
+    /// only our datagrams to that address carry; links with one peer per medium (serial) or a
+    /// bounded set of identities (shared memory) say yes.
+    fn answered(&self, to: PeerAddr) -> bool {
+        let _ = to;
+        true
     }
     /// Forgets a peer: its unacknowledged safe messages complete with
     /// [`LinkSendError::PeerClosed`]; a later message starts a fresh session.

@@ -194,7 +194,9 @@ impl NodeInner {
                         lease,
                         known: 0,
                         since: Instant::now(),
-                        confirmed: Default::default(),
+                        // A session of ours it acknowledged before (it restarted, or left and
+                        // came back) counts.
+                        confirmed: self.answered_at(link, from).into(),
                         requested: Some(Instant::now()),
                         services: HashMap::new(),
                         offers: HashMap::new(),
@@ -346,12 +348,15 @@ impl NodeInner {
         if self.peers.by_id.len() < MAX_PEERS {
             return true;
         }
-        let candidate = eviction_candidate(
-            self.peers
-                .by_id
-                .iter()
-                .map(|p| (p.id, p.confirmed.load(Ordering::Relaxed), p.since)),
-        );
+        // With a roster, only a proven identity keeps its place.
+        let proven = |p: &super::Peer| p.authenticated.as_ref().is_none_or(|a| !a.is_empty());
+        let candidate = eviction_candidate(self.peers.by_id.iter().map(|p| {
+            (
+                p.id,
+                p.confirmed.load(Ordering::Relaxed) && proven(&p),
+                p.since,
+            )
+        }));
         match candidate {
             Some(old) => {
                 let n = self
@@ -376,6 +381,21 @@ impl NodeInner {
                     tracing::warn!(peer = %name, refused = n + 1, "peer table full of confirmed peers ({MAX_PEERS}); new peer ignored");
                 }
                 false
+            }
+        }
+    }
+
+    /// Whether the peer at `from` on `link` has shown that it receives there.
+    fn answered_at(&self, link: usize, from: PeerAddr) -> bool {
+        self.links().get(link).is_some_and(|l| l.answered(from))
+    }
+
+    /// The peer at `from` acknowledged a session of ours: it is confirmed (see
+    /// [`super::Peer::confirmed`]).
+    pub fn on_peer_answered(&self, link: usize, from: PeerAddr) {
+        if let Some(node) = self.peer_of(link, from) {
+            if let Some(p) = self.peers.by_id.get(&node) {
+                p.confirmed.store(true, Ordering::Relaxed);
             }
         }
     }

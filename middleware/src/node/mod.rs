@@ -127,8 +127,9 @@ pub(crate) struct Peer {
     pub known: u32,
     /// When its Hello made it a peer.
     pub since: Instant,
-    /// It sent something in a session (beyond Hello and heartbeats): a node really running
-    /// the protocol at its address, never pushed out of a full peer table.
+    /// It showed that it receives at its address (it acknowledged a session of ours:
+    /// [`crate::link::Link::answered`]), which a forged source address cannot: with its
+    /// identity proven where a roster is kept, never pushed out of a full peer table.
     pub confirmed: std::sync::atomic::AtomicBool,
     /// When declarations were last requested, if an answer is outstanding.
     pub requested: Option<Instant>,
@@ -431,7 +432,6 @@ impl NodeInner {
         if !matches!(msg, Message::Var { .. } | Message::Event { .. }) {
             if let Some(p) = self.peers.by_id.get(&node) {
                 p.heard(self.me.epoch);
-                p.confirmed.store(true, Ordering::Relaxed);
             }
         }
         match msg {
@@ -591,6 +591,12 @@ impl LinkHandler for Handler {
     fn on_peer_unreachable(&self, link: usize, from: PeerAddr) {
         if let Some(n) = self.node() {
             n.on_peer_unreachable(link, from);
+        }
+    }
+
+    fn on_peer_answered(&self, link: usize, from: PeerAddr) {
+        if let Some(n) = self.node() {
+            n.on_peer_answered(link, from);
         }
     }
 }

@@ -466,6 +466,9 @@ impl NodeInner {
             return;
         }
         if !change.everything && change.interests.is_empty() {
+            // No route changes, but what the peer declares did (a counter, a refused entry):
+            // who waits on the node's state sees it.
+            self.bump();
             return;
         }
         let _serialised = lock(&self.routing);

@@ -201,6 +201,9 @@ struct PeerState {
     timer_at: Option<Instant>,
     /// The node knows who is at this address (see [`sessions`]).
     bound: bool,
+    /// The peer acknowledged a session of ours: it receives at this address (our session
+    /// numbers are random, read only off our datagrams), which a forged source address cannot.
+    answered: bool,
     /// Datagram bytes the queued safe messages take, at most ([`queued_safe_cost`]).
     safe_bytes: usize,
     /// The peer's message being joined from its parts ([`parts`]).
@@ -229,6 +232,7 @@ impl PeerState {
             wake_pending: false,
             timer_at: None,
             bound: false,
+            answered: false,
             safe_bytes: 0,
             joiner: parts::Joiner::default(),
             urgent_at: None,
@@ -938,6 +942,7 @@ impl<M: Medium> DatagramLink<M> {
         let mut fast: Vec<&[u8]> = Vec::new();
         let mut completed = Vec::new();
         let mut reset = false;
+        let mut answered = false;
         let mut unread = None;
         {
             let mut st = lock(&p);
@@ -977,6 +982,10 @@ impl<M: Medium> DatagramLink<M> {
                     Entry::Fast(msg) => fast.push(msg),
                     Entry::Ack(ack) => {
                         completed.extend(st.tx.on_ack(now, ack));
+                        if !st.answered && st.tx.session_acked() {
+                            st.answered = true;
+                            answered = true;
+                        }
                         if !st.bulk.is_empty() {
                             st.sample_rate(now);
                         }
@@ -1009,6 +1018,9 @@ impl<M: Medium> DatagramLink<M> {
         let peer = M::peer_addr(from);
         if reset {
             self.handler.on_peer_reset(self.index, peer);
+        }
+        if answered {
+            self.handler.on_peer_answered(self.index, peer);
         }
         // Safe messages in order, then the fast ones, as one batch for the node.
         let mut msgs: Vec<&[u8]> = Vec::with_capacity(deliver.len() + fast.len());
@@ -1229,6 +1241,12 @@ impl<M: Medium> Link for DatagramLink<M> {
                 tracing::warn!(link = %self.name, %addr, "no room for a session with a new peer ({MAX_PEERS} bound)");
             }
         }
+    }
+
+    fn answered(&self, to: PeerAddr) -> bool {
+        M::medium_addr(to)
+            .and_then(|addr| self.session(addr, false, false))
+            .is_some_and(|p| lock(&p).answered)
     }
 
     fn close_peer(&self, to: PeerAddr) {
