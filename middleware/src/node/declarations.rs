@@ -387,6 +387,10 @@ impl NodeInner {
         mut entries: Vec<LoggedDeclaration>,
     ) {
         entries.sort_by_key(|e| e.counter);
+        // Held from the change to the peer's declarations until the routes follow it: a
+        // recomputation from scratch in between would count the change, and the incremental
+        // update after it would count it again.
+        let routing = lock(&self.routing);
         // Facts about the other peers, gathered before this peer's entry is locked (the
         // peer table must not be read while one of its entries is held for writing).
         // The others' namespaces matter only to a peer without one (it owns the names no
@@ -586,7 +590,7 @@ impl NodeInner {
             self.send_safe_to_node(node, &Message::DeclRequest { since });
         }
         if changed {
-            self.recompute_routes_of_peer(node, &change);
+            self.recompute_routes_of_peer(node, &change, routing);
             self.recompute_forwarding();
         }
     }

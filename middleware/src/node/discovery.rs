@@ -194,9 +194,8 @@ impl NodeInner {
                         lease,
                         known: 0,
                         since: Instant::now(),
-                        // A session of ours it acknowledged before (it restarted, or left and
-                        // came back) counts.
-                        confirmed: self.answered_at(link, from).into(),
+                        // Set below, once its address is mapped.
+                        confirmed: Default::default(),
                         requested: Some(Instant::now()),
                         services: HashMap::new(),
                         offers: HashMap::new(),
@@ -221,6 +220,14 @@ impl NodeInner {
                 self.peers.by_addr.insert((link, from), node_id);
                 if let Some(l) = self.links().get(link) {
                     l.confirm_peer(from);
+                }
+                // A session of ours it acknowledged before it was mapped (it answered an
+                // introduction we sent on its asking) counts: the link tells each peer once,
+                // and may have told it while the address led nowhere.
+                if self.answered_at(link, from) {
+                    if let Some(p) = self.peers.by_id.get(&node_id) {
+                        p.confirmed.store(true, Ordering::Relaxed);
+                    }
                 }
                 self.introduce_locked(&log, link, from);
                 drop(log);

@@ -460,8 +460,17 @@ impl NodeInner {
     /// Exact while no gateway is involved: only a gateway's offers name another node as their
     /// origin, so without one no item is declared by two peers and one peer's offers shadow
     /// nothing of another's. With a gateway (a peer or ourselves), every route is recomputed.
-    pub(super) fn recompute_routes_of_peer(&self, node: NodeId, change: &PeerChange) {
+    ///
+    /// `routing`: the routing lock, taken before the declarations changed.
+    pub(super) fn recompute_routes_of_peer(
+        &self,
+        node: NodeId,
+        change: &PeerChange,
+        routing: std::sync::MutexGuard<'_, ()>,
+    ) {
         if self.gateway.is_some() || self.peers.by_id.iter().any(|p| p.gateway) {
+            // From scratch: nothing counted before matters.
+            drop(routing);
             self.recompute_routes();
             return;
         }
@@ -471,7 +480,6 @@ impl NodeInner {
             self.bump();
             return;
         }
-        let _serialised = lock(&self.routing);
         let offers = self.local.offers_now();
         let mut refusals: Vec<(usize, crate::link::PeerAddr, Message)> = Vec::new();
         let mut late_remote: Vec<(usize, crate::link::PeerAddr, Vec<u8>)> = Vec::new();
