@@ -512,6 +512,10 @@ impl Driver {
                 self.commanded = previous;
                 return Err(AutopilotError::Refused(format!("priming the queue: {e}")));
             }
+        } else if to == FlightState::Parking {
+            // Parking after a landing: ArduPilot reports the landing item reached after the
+            // disarm that made us park, and this may run before that report is read.
+            self.stop_queue_keeping_last();
         } else {
             self.queue.stop();
         }
@@ -1195,14 +1199,7 @@ impl Driver {
             return;
         }
         if mode != "AUTO" && self.queue.is_running() {
-            if let (1, Some(slot), Some(w)) = (
-                self.queue.len(),
-                self.queue.current_slot(),
-                self.queue.target(),
-            ) {
-                self.last_pending = Some((slot, w.clone()));
-            }
-            self.queue.stop();
+            self.stop_queue_keeping_last();
         }
         let modes = self.modes();
         let expected = self.commanded.and_then(|st| modes.mode_for(self.kind, st));
@@ -1216,6 +1213,21 @@ impl Driver {
                 state,
             });
         }
+    }
+
+    /// Stops the queue; its last waypoint, if it was flying to it, is kept (`last_pending`), so
+    /// that a reach reported after the stop still counts.
+    fn stop_queue_keeping_last(&mut self) {
+        if self.queue.is_running() {
+            if let (1, Some(slot), Some(w)) = (
+                self.queue.len(),
+                self.queue.current_slot(),
+                self.queue.target(),
+            ) {
+                self.last_pending = Some((slot, w.clone()));
+            }
+        }
+        self.queue.stop();
     }
 
     async fn on_mav(&mut self, ev: MavEvent) {
