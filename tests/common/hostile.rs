@@ -200,6 +200,25 @@ impl Scene {
         udp(r["peer_addrs"]["ground/gs"].as_str().unwrap_or_default())
     }
 
+    /// A legitimate call from ground node `node` (argument 21, answered 42), waiting up to
+    /// `wait_ms` for the answer.
+    pub fn legit_call(&self, node: &str, wait_ms: u64) -> Proc {
+        self.net.keyed(
+            node,
+            "ground",
+            &self.key,
+            &[
+                "call",
+                "--name",
+                "rover1/vas/retask",
+                "--arg",
+                "21",
+                "--wait-ms",
+                &wait_ms.to_string(),
+            ],
+        )
+    }
+
     /// The legitimate peer's node id and `replays` of its sealed announcements, read off the
     /// multicast group as any listener on the LAN can.
     pub fn sniff_legit(&mut self, replays: usize) -> (NodeId, Vec<Vec<u8>>) {
@@ -275,20 +294,7 @@ impl Scene {
         self.report_until("more positions from the legitimate peer", |r| {
             legit_samples(r) >= before + more && r["peers"]["ground/gs"] == 1
         });
-        let mut call = self.net.keyed(
-            "fmo",
-            "ground",
-            &self.key,
-            &[
-                "call",
-                "--name",
-                "rover1/vas/retask",
-                "--arg",
-                "21",
-                "--wait-ms",
-                "10000",
-            ],
-        );
+        let mut call = self.legit_call("fmo", 10_000);
         let r = outcome(&mut call);
         assert_eq!(r["ok"], 42, "the legitimate call failed: {r}");
         let plan = self.dir.path().join("legit.xml");
@@ -957,20 +963,7 @@ pub fn churn(scene: &mut Scene, window: Duration) -> Churned {
     };
     // Settled into the churn, then measured, with a fresh call in the middle.
     std::thread::sleep(Duration::from_secs(1));
-    let mut call = scene.net.keyed(
-        "fmo",
-        "ground",
-        &scene.key,
-        &[
-            "call",
-            "--name",
-            "rover1/vas/retask",
-            "--arg",
-            "21",
-            "--wait-ms",
-            "5000",
-        ],
-    );
+    let mut call = scene.legit_call("fmo", 5_000);
     let calls = scene.latest_report()["called"]
         .as_array()
         .map_or(0, Vec::len);
@@ -1041,20 +1034,7 @@ pub fn confirmed_flood(scene: &mut Scene) -> f64 {
     }
     let mut answered = 0;
     for k in 0..FRESH_CALLERS {
-        let mut call = scene.net.keyed(
-            &format!("fresh{k}"),
-            "ground",
-            &scene.key,
-            &[
-                "call",
-                "--name",
-                "rover1/vas/retask",
-                "--arg",
-                "21",
-                "--wait-ms",
-                "10000",
-            ],
-        );
+        let mut call = scene.legit_call(&format!("fresh{k}"), 10_000);
         let r = outcome(&mut call);
         if r["ok"] == 42 {
             answered += 1;
