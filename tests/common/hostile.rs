@@ -321,6 +321,33 @@ impl Scene {
     }
 }
 
+/// A node of an insider's making: a sealed socket of its own that said Hello to `target` as
+/// `peer` (node id, node name, namespace), asking for a lease of `lease_ms`.
+fn insider_peer(
+    key: &DomainKey,
+    target: SocketAddr,
+    domain: &str,
+    (node_id, node, namespace): (NodeId, String, &str),
+    lease_ms: u32,
+) -> Forger {
+    let mut f = Forger::new(Some(key)).expect("a socket");
+    f.discovery(
+        target,
+        &Message::Hello {
+            node_id,
+            domain: domain.to_owned(),
+            node,
+            namespace: namespace.to_owned(),
+            counter: 0,
+            lease_ms,
+            gateway: false,
+            asks_introduction: false,
+        },
+    )
+    .expect("send");
+    f
+}
+
 /// A declaration batch from a peer whose log starts at `first`.
 fn batch(first: u32, decls: Vec<Declaration>) -> Message {
     let n = decls.len() as u32;
@@ -706,22 +733,8 @@ pub fn insider(scene: &mut Scene) -> Tally {
     while n < 1100 {
         let mut sockets = Vec::new();
         for _ in 0..100 {
-            let mut f = Forger::new(Some(&key)).expect("a socket");
-            f.discovery(
-                target,
-                &Message::Hello {
-                    node_id: 0x0f10_0d00_0000_0000 + n,
-                    domain: domain.clone(),
-                    node: "flood".into(),
-                    namespace: "evil".into(),
-                    counter: 0,
-                    lease_ms: u32::MAX,
-                    gateway: false,
-                    asks_introduction: false,
-                },
-            )
-            .expect("send");
-            sockets.push(f);
+            let peer = (0x0f10_0d00_0000_0000 + n, "flood".to_owned(), "evil");
+            sockets.push(insider_peer(&key, target, &domain, peer, u32::MAX));
             n += 1;
         }
         scene.report_until("the peer flood read", |r| {
@@ -885,22 +898,8 @@ pub fn churn(scene: &mut Scene, window: Duration) -> Churned {
 
     let mut churners: Vec<Churner> = (0..CHURN_PEERS)
         .map(|n| {
-            let mut forger = Forger::new(Some(&key)).expect("a socket");
-            forger
-                .discovery(
-                    target,
-                    &Message::Hello {
-                        node_id: 0x0c4e_0000_0000_0000 + n,
-                        domain: domain.clone(),
-                        node: format!("churn{n}"),
-                        namespace: "churn".into(),
-                        counter: 0,
-                        lease_ms: 600_000,
-                        gateway: false,
-                        asks_introduction: false,
-                    },
-                )
-                .expect("send");
+            let peer = (0x0c4e_0000_0000_0000 + n, format!("churn{n}"), "churn");
+            let forger = insider_peer(&key, target, &domain, peer, 600_000);
             Churner {
                 forger,
                 counter: 0,
@@ -1007,21 +1006,8 @@ pub fn confirmed_flood(scene: &mut Scene) -> f64 {
     let frames0 = scene.latest_report()["frames_in"].as_u64().unwrap_or(0);
     let mut flood = Vec::new();
     for n in 0..FLOOD_PEERS {
-        let mut f = Forger::new(Some(&key)).expect("a socket");
-        f.discovery(
-            target,
-            &Message::Hello {
-                node_id: 0x0c0f_0000_0000_0000 + n,
-                domain: domain.clone(),
-                node: format!("flood{n}"),
-                namespace: "evil".into(),
-                counter: 0,
-                lease_ms: u32::MAX,
-                gateway: false,
-                asks_introduction: false,
-            },
-        )
-        .expect("send");
+        let peer = (0x0c0f_0000_0000_0000 + n, format!("flood{n}"), "evil");
+        let mut f = insider_peer(&key, target, &domain, peer, u32::MAX);
         f.safe(target, &[batch(1, Vec::new())]).expect("send");
         flood.push(f);
         // Read as sent (the victim's socket buffer would drop a burst of 2,200).

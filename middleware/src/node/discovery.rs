@@ -225,9 +225,7 @@ impl NodeInner {
                 // introduction we sent on its asking) counts: the link tells each peer once,
                 // and may have told it while the address led nowhere.
                 if self.answered_at(link, from) {
-                    if let Some(p) = self.peers.by_id.get(&node_id) {
-                        p.confirmed.store(true, Ordering::Relaxed);
-                    }
+                    self.on_peer_answered(link, from);
                 }
                 self.introduce_locked(&log, link, from);
                 drop(log);

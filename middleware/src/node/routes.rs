@@ -452,10 +452,11 @@ impl NodeInner {
     /// or services changed, where its offers go here. An interest declared or withdrawn costs
     /// a match against each of our offers, not a pass over every interest the peer holds: an
     /// insider churning declarations at the caps (16 nodes of 4,000 interests, 200 changes a
-    /// second) kept the victim at 40 % of a core when each change recomputed everything. A fleet's node applies
-    /// one batch per peer at start and per peer's change after: recomputing every peer's routes
-    /// for each made joining a LAN of N nodes cost N³ in all (at 200 nodes on one host, the
-    /// batches kept both cores busy and acknowledgements late for good).
+    /// second) kept the victim at 89 % of a core when each change recomputed everything. A
+    /// fleet's node applies one batch per peer at start and per peer's change after:
+    /// recomputing every peer's routes for each made joining a LAN of N nodes cost N³ in all
+    /// (at 200 nodes on one host, the batches kept both cores busy and acknowledgements late
+    /// for good).
     ///
     /// Exact while no gateway is involved: only a gateway's offers name another node as their
     /// origin, so without one no item is declared by two peers and one peer's offers shadow
