@@ -326,7 +326,7 @@ fn network_xml(dir: &Path, net: &Net, node: &str, namespace: &str, access: &str)
         r#"<network node="{node}" namespace="{namespace}" domain="{domain}">
   <ethernet bind="127.0.0.1:0" multicast="239.255.77.1:{port}" interface="127.0.0.1"
             heartbeatMs="{hb}" leaseMs="{lease}"/>
-  <access>
+  <access trustClaims="yes">
     {access}
   </access>
 </network>
@@ -614,6 +614,40 @@ fn a_provider_learns_who_called() {
     });
 }
 
+/// `<access>` rules match the names peers announce: without a roster to prove them, a node
+/// refuses to open (saying why and what to do) unless its rules say claims are trusted.
+#[test]
+fn access_rules_without_a_roster_refuse_to_open_unless_claims_are_trusted() {
+    let net = Net::new("access-no-roster");
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    rt.block_on(async {
+        let mut config = cfg(&net, "air", "rover1");
+        let mut rules = marea::config::AccessConfig {
+            rules: vec![marea::config::AccessRule {
+                kind: marea::config::AccessKind::Call,
+                item: "rover1/vas/*".into(),
+                from: "ground/*".into(),
+            }],
+            closed: vec![],
+            trust_claims: false,
+        };
+        config.access = Some(rules.clone());
+        let e = Node::open(&config)
+            .await
+            .err()
+            .expect("rules without a roster refused")
+            .to_string();
+        assert!(
+            e.contains("node air") && e.contains("roster") && e.contains("trustClaims"),
+            "{e}"
+        );
+        rules.trust_claims = true;
+        config.access = Some(rules);
+        let node = Node::open(&config).await.expect("claims trusted, as said");
+        node.shutdown().await;
+    });
+}
+
 /// Only a gateway may say whom it relays a call for. A plain node (`evil`, no gateway) sends
 /// calls of every id a small node may use, each claiming to be relayed for `ground/fmo`,
 /// whom the victim's `<access>` lets call: none runs, each is refused and counted, while a
@@ -631,6 +665,7 @@ fn a_call_claimed_as_relayed_by_a_node_that_is_no_gateway_never_runs() {
                 from: "ground/*".into(),
             }],
             closed: vec![],
+            trust_claims: true,
         });
         let air = Node::open(&config).await.expect("air");
         let vas = air.service("vas").expect("vas");

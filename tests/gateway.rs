@@ -530,7 +530,7 @@ fn guarded_air(dir: &Path, lan: &Lan, rule: &str, service: &str, cmd: &[&str]) -
     let xml = format!(
         r#"<network node="air" namespace="rover1" domain="{domain}">
   {lan}
-  <access>
+  <access trustClaims="yes">
     {rule}
   </access>
 </network>"#,

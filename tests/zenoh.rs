@@ -227,7 +227,7 @@ fn guarded_change_state(xml: impl Fn(&str, &str, &str) -> PathBuf) -> Proc {
     let airfn = xml(
         "airfn",
         "airfn",
-        r#"<access><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
+        r#"<access trustClaims="yes"><allow kind="call" item="airfn/vas/change_state" from="zenoh/pilot"/></access>"#,
     );
     let mut guarded = probe_with_config(
         "airfn",

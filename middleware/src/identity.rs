@@ -1,13 +1,20 @@
 //! Per-node identity keys (Ed25519), on top of the domain key of [`crate::link::auth`]: a node
-//! proves which key it holds, and the domain's roster (`identities.xml`) says which namespaces
-//! that key may own. Pure: key files, the roster, and signing and checking a proof.
+//! proves which key it holds, and the domain's roster (`identities.xml`) says what that key
+//! may be: which namespaces it may own, under which node names, and whether it may act as a
+//! gateway (speak for other nodes). Pure: key files, the roster, and signing and checking a
+//! proof.
 //!
 //! ```xml
 //! <identities>
-//!   <identity key="64 hex digits of the public key" namespaces="rover1 rover1/fpma"/>
+//!   <identity key="64 hex digits of the public key" namespaces="rover1" nodes="vas"/>
+//!   <identity key="..." namespaces="rover1 rover1/fpma"/>   <!-- any node name -->
 //!   <identity key="..." namespaces="*"/>            <!-- a station allowed any namespace -->
+//!   <identity key="..." namespaces="*" gateway="yes"/>     <!-- the domain's gateways -->
 //! </identities>
 //! ```
+//! `nodes` absent (or `*`) lets the key run under any node name in its namespaces; a gateway
+//! role is never taken from a node's own announcement where a roster is kept: only a key
+//! listed with `gateway="yes"` forwards other nodes' items and relays their calls.
 //! The proof is challenge-response: a node checking identities sends each peer it registers a
 //! [`crate::protocol::Message::Challenge`] with a fresh random nonce (after its Hello, before
 //! asking for the peer's declarations); the peer answers with a
@@ -168,10 +175,45 @@ pub fn check_proof(
     .is_ok()
 }
 
-/// The domain's roster: which public key may own which namespaces.
+/// The domain's roster: what each public key may be.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Roster {
-    entries: Vec<([u8; 32], Vec<String>)>,
+    entries: Vec<Listing>,
+}
+
+/// What one `<identity>` of a roster lets its key be.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Listing {
+    /// The public key.
+    pub key: [u8; 32],
+    /// The namespaces it may own (`*`: any, and none).
+    pub namespaces: Vec<String>,
+    /// The node names it may run under (empty: any).
+    pub nodes: Vec<String>,
+    /// Whether it may act as a gateway.
+    pub gateway: bool,
+}
+
+/// What a proven key may be, gathered from every listing of it ([`Roster::grant`]).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Grant {
+    /// The namespaces it may own (`*`: any); empty when the key is not listed.
+    pub namespaces: Vec<String>,
+    /// The node names it may run under; `None`: any.
+    pub nodes: Option<Vec<String>>,
+    /// Whether it may act as a gateway.
+    pub gateway: bool,
+}
+
+impl Grant {
+    /// Whether it lets a node named `node` own `namespace`.
+    pub fn covers(&self, namespace: &str, node: &str) -> bool {
+        allows(&self.namespaces, namespace)
+            && self
+                .nodes
+                .as_ref()
+                .is_none_or(|n| n.iter().any(|n| n == "*" || n == node))
+    }
 }
 
 /// Why a roster could not be read.
@@ -263,6 +305,7 @@ impl Roster {
                         (0, "identities") => {}
                         (1, "identity") => {
                             let (mut key, mut namespaces) = (None, None);
+                            let (mut nodes, mut gateway) = (Vec::new(), false);
                             for a in tag.attributes() {
                                 let a = a.map_err(|e| invalid(e.pos, e.kind.to_string()))?;
                                 let v = a.value().map_err(|e| invalid(e.pos, e.kind.to_string()))?;
@@ -279,10 +322,25 @@ impl Roster {
                                                 .collect::<Vec<_>>(),
                                         )
                                     }
+                                    "nodes" => {
+                                        nodes = v.split_whitespace().map(str::to_owned).collect()
+                                    }
+                                    "gateway" => {
+                                        gateway = match v.trim() {
+                                            "yes" | "true" => true,
+                                            "no" | "false" => false,
+                                            other => {
+                                                return Err(invalid(
+                                                    a.pos,
+                                                    format!("attribute gateway: {other:?}; expected yes or no"),
+                                                ))
+                                            }
+                                        }
+                                    }
                                     other => {
                                         return Err(invalid(
                                             a.pos,
-                                            format!("unknown attribute {other}; expected key, namespaces"),
+                                            format!("unknown attribute {other}; expected key, namespaces, nodes, gateway"),
                                         ))
                                     }
                                 }
@@ -293,7 +351,12 @@ impl Roster {
                             let namespaces = namespaces.filter(|n| !n.is_empty()).ok_or_else(|| {
                                 invalid(tag.pos(), "<identity> needs namespaces=\"ns1 ns2\"".into())
                             })?;
-                            roster.entries.push((key, namespaces));
+                            roster.entries.push(Listing {
+                                key,
+                                namespaces,
+                                nodes,
+                                gateway,
+                            });
                         }
                         (_, other) => {
                             return Err(invalid(
@@ -311,20 +374,37 @@ impl Roster {
         Ok(roster)
     }
 
-    /// Lists `public` as a key that may own `namespaces` (`*`: any, and no namespace).
+    /// Lists `public` as a key that may own `namespaces` (`*`: any, and no namespace), under
+    /// any node name, and act as no gateway.
     pub fn allow(&mut self, public: [u8; 32], namespaces: Vec<String>) {
-        self.entries.push((public, namespaces));
+        self.list(Listing {
+            key: public,
+            namespaces,
+            ..Listing::default()
+        });
+    }
+
+    /// Adds `listing`.
+    pub fn list(&mut self, listing: Listing) {
+        self.entries.push(listing);
     }
 
     /// The roster as an `identities.xml`, which [`Roster::parse`] reads back as it is.
     pub fn to_xml(&self) -> String {
         let mut out = String::from("<identities>\n");
-        for (key, namespaces) in &self.entries {
+        for l in &self.entries {
             out.push_str(&format!(
-                "  <identity key=\"{}\" namespaces=\"{}\"/>\n",
-                hex(key),
-                namespaces.join(" ")
+                "  <identity key=\"{}\" namespaces=\"{}\"",
+                hex(&l.key),
+                l.namespaces.join(" ")
             ));
+            if !l.nodes.is_empty() {
+                out.push_str(&format!(" nodes=\"{}\"", l.nodes.join(" ")));
+            }
+            if l.gateway {
+                out.push_str(" gateway=\"yes\"");
+            }
+            out.push_str("/>\n");
         }
         out.push_str("</identities>\n");
         out
@@ -332,11 +412,24 @@ impl Roster {
 
     /// The namespaces `public` may own (empty when it is not listed).
     pub fn namespaces(&self, public: &[u8; 32]) -> Vec<String> {
-        self.entries
-            .iter()
-            .filter(|(k, _)| k == public)
-            .flat_map(|(_, n)| n.iter().cloned())
-            .collect()
+        self.grant(public).namespaces
+    }
+
+    /// What `public` may be, from every listing of it (nothing when it is not listed). A key
+    /// listed twice gets both listings' namespaces; its node names are bound when every
+    /// listing binds them; it is a gateway when one listing says so.
+    pub fn grant(&self, public: &[u8; 32]) -> Grant {
+        let mut grant = Grant::default();
+        let mut any_node = false;
+        let mut nodes = Vec::new();
+        for l in self.entries.iter().filter(|l| l.key == *public) {
+            grant.namespaces.extend(l.namespaces.iter().cloned());
+            any_node |= l.nodes.is_empty();
+            nodes.extend(l.nodes.iter().cloned());
+            grant.gateway |= l.gateway;
+        }
+        grant.nodes = (!any_node).then_some(nodes);
+        grant
     }
 }
 
@@ -363,6 +456,42 @@ mod tests {
         let back = Roster::parse(&r.to_xml(), Path::new("identities.xml")).unwrap();
         assert_eq!(back, r);
         assert_eq!(back.namespaces(&[2; 32]), ["gcs", "base"]);
+    }
+
+    #[test]
+    fn a_roster_binds_node_names_and_the_gateway_role() {
+        let text = format!(
+            "<identities>\n  <identity key=\"{}\" namespaces=\"rover1\" nodes=\"vas fpma\"/>\n  <identity key=\"{}\" namespaces=\"*\" gateway=\"yes\"/>\n  <identity key=\"{}\" namespaces=\"gcs\"/>\n</identities>",
+            hex(&[1; 32]),
+            hex(&[2; 32]),
+            hex(&[3; 32])
+        );
+        let r = Roster::parse(&text, Path::new("identities.xml")).unwrap();
+        assert_eq!(Roster::parse(&r.to_xml(), Path::new("x")).unwrap(), r);
+        let vas = r.grant(&[1; 32]);
+        assert!(vas.covers("rover1", "vas") && vas.covers("rover1", "fpma"));
+        assert!(
+            !vas.covers("rover1", "fmo"),
+            "a node name it is not listed for"
+        );
+        assert!(!vas.covers("rover2", "vas"));
+        assert!(!vas.gateway);
+        let gw = r.grant(&[2; 32]);
+        assert!(gw.gateway && gw.covers("rover1", "anything"));
+        let gcs = r.grant(&[3; 32]);
+        assert!(gcs.covers("gcs", "fmo") && !gcs.gateway);
+        let unknown = r.grant(&[4; 32]);
+        assert!(!unknown.covers("", "x") && !unknown.gateway);
+        let e = Roster::parse(
+            &format!(
+                "<identities><identity key=\"{}\" namespaces=\"a\" gateway=\"maybe\"/></identities>",
+                hex(&[1; 32])
+            ),
+            Path::new("ids.xml"),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("gateway") && e.contains("maybe"), "{e}");
     }
 
     #[test]

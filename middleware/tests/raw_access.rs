@@ -80,7 +80,7 @@ async fn a_call_made_for_another_caller_is_judged_as_that_caller_and_only_from_a
     let mut provider_cfg = cfg("vehicle", &domain, port);
     provider_cfg.namespace = Some("vehicle".into());
     provider_cfg.access = NetworkConfig::parse(
-        r#"<network node="x"><ethernet/><access>
+        r#"<network node="x"><ethernet/><access trustClaims="yes">
              <allow kind="call" item="vehicle/vas/double" from="zenoh/pilot"/>
            </access></network>"#,
         None,

@@ -278,7 +278,7 @@ async fn the_seal_and_access_rules_hold_across_a_router() {
     let air = Node::open(&xml(
         "air",
         &format!(
-            r#"{sealed}<access><allow kind="call" item="air/vas/change_state" from="ground/*"/></access>"#
+            r#"{sealed}<access trustClaims="yes"><allow kind="call" item="air/vas/change_state" from="ground/*"/></access>"#
         ),
     ))
     .await

@@ -1,7 +1,8 @@
 //! Every mission `usal run` starts is sealed, with no configuration. The mission's seal is
 //! made once in the user's state directory (`missions/<name>/`, 0700) and reused by later
-//! runs: its domain key, an identity key per namespace of its nodes and one for this user's
-//! tools, the roster binding each namespace to its key, the `<access>` rules of its nodes,
+//! runs: its domain key, an identity key per namespace of its nodes, one for its gateways and
+//! one for this user's tools, the roster binding each namespace to its key (and the gateway
+//! role to the gateways' key only), the `<access>` rules of its nodes,
 //! and the key that signs MAVLink 2 between each VAS and its simulator (each key mode 0600).
 //! For as long as the run lasts the directory is where every node of the run's domain finds
 //! it by the domain's name ([`marea::config::domain_seal`]): the mission's services, its
@@ -12,8 +13,10 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use marea::config::domain_seal::{access_path, domain_seal_dir, identity_path};
-use marea::identity::{IdentityKey, Roster};
+use marea::config::domain_seal::{
+    access_path, domain_seal_dir, gateway_identity_path, identity_path,
+};
+use marea::identity::{IdentityKey, Listing, Roster};
 use marea::link::auth::DomainKey;
 
 use super::mission::Mission;
@@ -163,7 +166,14 @@ fn make_seal(mission: &Mission, dir: &Path) -> anyhow::Result<()> {
     for ns in namespaces {
         roster.allow(identity(&identity_path(dir, ns))?, vec![ns.to_owned()]);
     }
-    // Anything else of this user: usal's tools, gateways and bridges, nodes of no namespace.
+    // The run's gateways and bridges: the only key that may speak for other nodes.
+    roster.list(Listing {
+        key: identity(&gateway_identity_path(dir))?,
+        namespaces: vec!["*".to_owned()],
+        nodes: Vec::new(),
+        gateway: true,
+    });
+    // Anything else of this user: usal's tools, nodes of no namespace.
     roster.allow(identity(&dir.join("tools.id"))?, vec!["*".to_owned()]);
     replace_file(&dir.join("identities.xml"), &roster.to_xml())?;
     // Access rules as this run's mission file says, none left from an earlier version of it
@@ -254,6 +264,7 @@ mod tests {
             dir.join("domain.key"),
             dir.join("mavlink.key"),
             dir.join("tools.id"),
+            gateway_identity_path(&dir),
             identity_path(&dir, "rover1"),
             identity_path(&dir, "rover2"),
             identity_path(&dir, "gcs"),
@@ -270,6 +281,11 @@ mod tests {
             );
         }
         assert_eq!(roster.namespaces(&public(dir.join("tools.id"))), ["*"]);
+        // Only the gateways' key makes a gateway: not the tools', not a namespace's.
+        assert!(roster.grant(&public(gateway_identity_path(&dir))).gateway);
+        for other in [dir.join("tools.id"), identity_path(&dir, "rover1")] {
+            assert!(!roster.grant(&public(other)).gateway);
+        }
         let rules = marea::config::AccessConfig::load(&access_path(&dir, "rover1")).unwrap();
         assert_eq!(rules, mission(true).nodes[0].access.clone().unwrap());
         assert!(!access_path(&dir, "rover2").exists(), "no rules, no file");

@@ -100,7 +100,7 @@ impl Scene {
             dir.path(),
             "vas",
             "rover1",
-            r#"<access>
+            r#"<access trustClaims="yes">
     <allow kind="call" item="rover1/vas/*" from="ground/*"/>
     <allow kind="file" item="rover1/vas/*" from="ground/*"/>
     <allow kind="publish" item="**" from="ground/*"/>

@@ -44,6 +44,13 @@ pub enum NodeOpenError {
     /// rules) cannot be used.
     #[error(transparent)]
     Config(#[from] crate::config::ConfigLoadError),
+    /// `<access>` rules without a roster to prove the names they match, and no
+    /// `trustClaims="yes"` to take peers at their word.
+    #[error("node {node}: its <access> rules match the namespace/node names peers claim, and no roster proves them: anyone on its links could name itself what a rule allows. Give the node a roster (<security keyFile=.. identityFile=.. identities=\"identities.xml\">: usal keygen --identity, docs/security.md), or take peers at their word with <access trustClaims=\"yes\">")]
+    AccessWithoutRoster {
+        /// The node.
+        node: String,
+    },
     /// A name in the configuration is invalid.
     #[error("invalid node name or namespace: {0}")]
     Name(#[from] NameParseError),

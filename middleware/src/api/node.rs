@@ -229,6 +229,12 @@ impl Node {
             }
             _ => None,
         };
+        let roster = identity.as_ref().is_some_and(|i| i.roster.is_some());
+        if config.access.as_ref().is_some_and(|a| !a.trust_claims) && !roster {
+            return Err(NodeOpenError::AccessWithoutRoster {
+                node: config.node.clone(),
+            });
+        }
         let link_timing: Vec<(Duration, Duration)> = config
             .links
             .iter()
@@ -460,7 +466,7 @@ impl Node {
                     .unwrap_or_default(),
                 addr: p.addr.to_string(),
                 last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
-                authenticated_namespaces: p.authenticated.clone(),
+                authenticated_namespaces: p.authenticated.as_ref().map(|g| g.namespaces.clone()),
                 declarations: p.declarations(),
             })
             .collect();

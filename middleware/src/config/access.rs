@@ -81,6 +81,10 @@ pub struct AccessConfig {
     /// Kinds that are default-deny although no rule allows anything of them
     /// (`<deny kind="..."/>`): a node that accepts no calls at all, say.
     pub closed: Vec<AccessKind>,
+    /// `trustClaims="yes"`: the rules may match the `namespace/node` peers *claim*, with no
+    /// roster to prove them (`<security identities=..>`). Without it a node with rules and
+    /// no roster refuses to open: anyone on its links could name itself what a rule allows.
+    pub trust_claims: bool,
 }
 
 impl AccessConfig {
@@ -110,7 +114,11 @@ impl AccessConfig {
 
     /// The element as XML, which [`AccessConfig::parse`] reads back as it is.
     pub fn to_xml(&self) -> String {
-        let mut out = String::from("<access>\n");
+        let mut out = String::from(if self.trust_claims {
+            "<access trustClaims=\"yes\">\n"
+        } else {
+            "<access>\n"
+        });
         for r in &self.rules {
             out.push_str(&format!(
                 "  <allow kind=\"{}\" item=\"{}\" from=\"{}\"/>\n",
@@ -180,6 +188,7 @@ mod tests {
                 rule(AccessKind::Call, "rover1/vas/emergency", "**"),
             ],
             closed: vec![],
+            trust_claims: false,
         };
         assert!(a.allows(AccessKind::Call, "rover1/vas/retask", "ground/fmo"));
         assert!(!a.allows(AccessKind::Call, "rover1/vas/retask", "evil/fmo"));
@@ -193,6 +202,7 @@ mod tests {
         let closed = AccessConfig {
             rules: vec![],
             closed: vec![AccessKind::Gateway],
+            trust_claims: false,
         };
         assert!(!closed.allows(AccessKind::Gateway, "", "relay"));
         assert!(AccessConfig::default().allows(AccessKind::Gateway, "", "relay"));
@@ -206,6 +216,7 @@ mod tests {
                 rule(AccessKind::File, "rover1/fpma/plans", "*"),
             ],
             closed: vec![AccessKind::Publish],
+            trust_claims: false,
         };
         assert_eq!(AccessConfig::parse(&a.to_xml(), None).unwrap(), a);
         let wrong = AccessConfig::parse(

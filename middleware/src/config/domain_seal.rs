@@ -10,9 +10,10 @@
 //! | file | what |
 //! |---|---|
 //! | `domain.key` | the domain key (`<security keyFile>`) |
-//! | `identities.xml` | the roster: each namespace's identity key, and the tools' for any |
+//! | `identities.xml` | the roster: each namespace's identity key, the tools' for any, the gateways' |
 //! | `identities/<namespace>.id` | the identity of the mission's nodes of that namespace |
-//! | `tools.id` | the identity of anything else of this user (`usal list/call`, gateways ...) |
+//! | `gateway.id` | the identity of the run's gateways and bridges, the only key listed as a gateway |
+//! | `tools.id` | the identity of anything else of this user (`usal list/call` ...) |
 //! | `access/<namespace>.xml` | the `<access>` rules of that namespace's nodes, if any |
 
 use std::borrow::Cow;
@@ -35,6 +36,11 @@ pub fn domain_seal_dir(domain: &str) -> Option<PathBuf> {
 /// The identity file of a node of `namespace` in seal directory `dir`.
 pub fn identity_path(dir: &Path, namespace: &str) -> PathBuf {
     dir.join("identities").join(format!("{namespace}.id"))
+}
+
+/// The identity file of the gateways (and bridges) in seal directory `dir`.
+pub fn gateway_identity_path(dir: &Path) -> PathBuf {
+    dir.join("gateway.id")
 }
 
 /// The access file of the nodes of `namespace` in seal directory `dir`.
@@ -60,8 +66,14 @@ pub fn with_domain_seal(config: &NetworkConfig) -> Result<Cow<'_, NetworkConfig>
     };
     let existing = |p: PathBuf| p.is_file().then_some(p);
     let namespace = config.namespace.as_deref();
-    let identity_file = namespace
-        .and_then(|ns| existing(identity_path(&dir, ns)))
+    // A gateway acts as one only with the key the roster lists as a gateway.
+    let gateway = config
+        .gateway
+        .unwrap_or(false)
+        .then(|| existing(gateway_identity_path(&dir)))
+        .flatten();
+    let identity_file = gateway
+        .or_else(|| namespace.and_then(|ns| existing(identity_path(&dir, ns))))
         .or_else(|| existing(dir.join("tools.id")));
     let mut sealed = config.clone();
     sealed.security = Some(SecurityConfig {

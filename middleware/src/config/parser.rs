@@ -726,8 +726,13 @@ impl<'a> Parser<'a> {
 /// `<access>` (see `config::access`): kept apart from the links' parsing.
 impl<'a> Parser<'a> {
     fn access(&mut self, element: &Element<'a>) -> Result<AccessConfig, ConfigLoadError> {
-        self.attributes("access", element, NO_ATTRS)?;
-        let mut config = AccessConfig::default();
+        let attrs = self.attributes("access", element, ACCESS_ATTRS)?;
+        let mut config = AccessConfig {
+            trust_claims: self
+                .value(&attrs, "trustClaims", parse_yes_no)?
+                .unwrap_or(false),
+            ..AccessConfig::default()
+        };
         while let Some(child) = self.child("access", element)? {
             let rule = match child.name() {
                 "allow" => "allow",

@@ -895,7 +895,16 @@ fn access_rules_are_parsed_in_order() {
     );
     assert_eq!(a.closed, vec![AccessKind::File]);
     assert!(!a.allows(AccessKind::File, "rover1/fpma/plans", "ground/fpmo"));
+    assert!(!a.trust_claims, "claims are trusted only when said so");
     assert!(parse(&net("<ethernet/>")).unwrap().access.is_none());
+    let trusting = parse(&net(r#"<ethernet/><access trustClaims="yes"/>"#)).unwrap();
+    assert!(trusting.access.is_some_and(|a| a.trust_claims));
+    let (msg, line, _) = message(&net("<ethernet/>\n<access trustClaims=\"maybe\"/>"));
+    assert_eq!(line, 3, "{msg}");
+    assert!(
+        msg.contains("trustClaims") && msg.contains("yes or no"),
+        "{msg}"
+    );
 }
 
 #[test]

@@ -108,6 +108,7 @@ pub(super) const MAX_MESSAGE_QUEUE: IntSpec =
 pub(super) const NAME_SYNTAX: &str = "a name of letters, digits, '_' or '-'";
 pub(super) const NAMESPACE_SYNTAX: &str = "names of letters, digits, '_' or '-' separated by '/'";
 pub(super) const BOOL_SYNTAX: &str = "true or false";
+pub(super) const YES_NO_SYNTAX: &str = "yes or no";
 pub(super) const BIND_SYNTAX: &str = "a socket address like 0.0.0.0:0 or [::]:7400";
 pub(super) const MULTICAST_SYNTAX: &str =
     "an IPv4 multicast group and non-zero port like 239.255.77.1:7477";
@@ -120,7 +121,7 @@ pub(super) const WAIT_SYNTAX: &str = "event or spin";
 pub(super) const PEER_ELEMENTS: &[&str] = &["peer"];
 pub(super) const NO_ELEMENTS: &[&str] = &[];
 pub(super) const ACCESS_ELEMENTS: &[&str] = &["allow", "deny"];
-pub(super) const NO_ATTRS: &[&str] = &[];
+pub(super) const ACCESS_ATTRS: &[&str] = &["trustClaims"];
 pub(super) const ALLOW_ATTRS: &[&str] = &["kind", "item", "from"];
 pub(super) const DENY_ATTRS: &[&str] = &["kind"];
 pub(super) const ACCESS_KIND_SYNTAX: &str = "one of call, file, publish, gateway";
@@ -228,6 +229,15 @@ pub(super) fn parse_bool(s: &str) -> Result<bool, Invalid> {
         "true" | "1" => Ok(true),
         "false" | "0" => Ok(false),
         _ => Err(Invalid::Syntax(BOOL_SYNTAX)),
+    }
+}
+
+/// A deliberate choice (`trustClaims`): `yes` or `no` (`true`/`false` taken too).
+pub(super) fn parse_yes_no(s: &str) -> Result<bool, Invalid> {
+    match s.trim() {
+        "yes" | "true" => Ok(true),
+        "no" | "false" => Ok(false),
+        _ => Err(Invalid::Syntax(YES_NO_SYNTAX)),
     }
 }
 

@@ -961,6 +961,7 @@ mod tests {
                     from: "ground/*".into(),
                 }],
                 closed: vec![],
+                trust_claims: false,
             }),
         );
         let (tx, ran) = tokio::sync::mpsc::unbounded_channel();

@@ -179,6 +179,17 @@ pub(crate) struct RemoteItem {
     /// A variable or event whose publisher our `<access>` rules do not let publish it: never
     /// routed to a subscriber.
     pub denied: bool,
+    /// When this node first stored it, as a position in the order everything was stored
+    /// ([`first_seen`]): of two copies of one item through gateways equally trusted and as
+    /// far, the first seen wins (never the one whose sender picked the lowest node id).
+    pub seen: u64,
+}
+
+/// The next position in the order remote items are stored (one order for the process: within
+/// a node it is the node's order).
+fn first_seen() -> u64 {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
 }
 
 impl RemoteItem {
@@ -531,6 +542,7 @@ impl NodeInner {
                                     origin_name: origin.as_ref().map(|o| o.name.as_str().into()),
                                     origin,
                                     denied,
+                                    seen: first_seen(),
                                 },
                             );
                         }
@@ -550,6 +562,7 @@ impl NodeInner {
                                 origin: None,
                                 origin_name: None,
                                 denied: false,
+                                seen: first_seen(),
                             };
                             let replaced = p.interests.insert(id, item.clone());
                             change

@@ -159,8 +159,11 @@ impl NodeInner {
                         self.drop_peer(old, "restarted with a new identity");
                     }
                 }
-                // Only a gateway speaks for other nodes; our `<access>` may narrow who is one.
-                let gateway = gateway
+                // Only a gateway speaks for other nodes; our `<access>` may narrow who is one,
+                // and where a roster is kept only a key listed as a gateway makes one (once its
+                // proof arrives: `on_identity`). A Hello alone is a claim.
+                let roster = self.identity.as_ref().and_then(|i| i.roster.as_ref());
+                let claims_gateway = gateway
                     && self.policy.allows(
                         crate::config::AccessKind::Gateway,
                         "",
@@ -186,7 +189,8 @@ impl NodeInner {
                         id: node_id,
                         name: node.as_str().into(),
                         namespace,
-                        gateway,
+                        claims_gateway,
+                        gateway: claims_gateway && roster.is_none(),
                         link,
                         addr: from,
                         last_seen: Instant::now(),
@@ -202,16 +206,8 @@ impl NodeInner {
                         interests: HashMap::new(),
                         shadowed: Default::default(),
                         routes: HashMap::default(),
-                        authenticated: self
-                            .identity
-                            .as_ref()
-                            .and_then(|i| i.roster.as_ref())
-                            .map(|_| Vec::new()),
-                        challenge: self
-                            .identity
-                            .as_ref()
-                            .and_then(|i| i.roster.as_ref())
-                            .map(|_| rand::random()),
+                        authenticated: roster.map(|_| Default::default()),
+                        challenge: roster.map(|_| rand::random()),
                         alive: Arc::new(std::sync::atomic::AtomicBool::new(true)),
                         held: Arc::default(),
                         introduced_again: None,
@@ -354,7 +350,11 @@ impl NodeInner {
             return true;
         }
         // With a roster, only a proven identity keeps its place.
-        let proven = |p: &super::Peer| p.authenticated.as_ref().is_none_or(|a| !a.is_empty());
+        let proven = |p: &super::Peer| {
+            p.authenticated
+                .as_ref()
+                .is_none_or(|a| !a.namespaces.is_empty())
+        };
         let candidate = eviction_candidate(self.peers.by_id.iter().map(|p| {
             (
                 p.id,

@@ -1,10 +1,11 @@
 //! Checking peers' identity proofs against the domain's roster (see [`crate::identity`]): each
 //! peer registered gets a challenge with a fresh nonce; a peer's declarations are applied only
-//! once its answer verifies for that nonce and its key is listed for the namespace it announced.
-//! A proof that does not answer a pending challenge (a replay, another nonce, another key) is
-//! refused and counted.
+//! once its answer verifies for that nonce and its key is listed for the namespace and node
+//! name it announced; it acts as a gateway only when its key is also listed as one. A proof
+//! that does not answer a pending challenge (a replay, another nonce, another key) is refused
+//! and counted.
 
-use crate::identity::{allows, check_proof, Challenge};
+use crate::identity::{check_proof, Challenge};
 use crate::link::auth::hex;
 use crate::link::PeerAddr;
 use crate::protocol::{Message, NodeId};
@@ -14,14 +15,14 @@ use super::NodeInner;
 
 impl NodeInner {
     /// Whether declarations from `node` are taken: always when this node checks no identities,
-    /// else only once the peer's key is authenticated for its namespace.
+    /// else only once the peer's key is authenticated for its namespace and node name.
     pub fn identity_allows(&self, node: NodeId) -> bool {
         let Some(p) = self.peers.by_id.get(&node) else {
             return false;
         };
         let ok = match &p.authenticated {
             None => true,
-            Some(ns) => allows(ns, &p.namespace),
+            Some(grant) => grant.covers(&p.namespace, &p.name),
         };
         if !ok {
             tracing::debug!(peer = %p.name, namespace = %p.namespace, "declarations of a peer not authenticated for its namespace refused");
@@ -96,18 +97,144 @@ impl NodeInner {
             }
             return;
         }
-        let namespaces = roster.namespaces(&public);
-        if allows(&namespaces, &p.namespace) {
-            tracing::info!(peer = %p.name, namespace = %p.namespace, "peer identity authenticated");
+        let grant = roster.grant(&public);
+        if grant.covers(&p.namespace, &p.name) {
+            tracing::info!(peer = %p.name, namespace = %p.namespace, gateway = p.claims_gateway && grant.gateway, "peer identity authenticated");
         } else {
-            tracing::warn!(peer = %p.name, namespace = %p.namespace, key = %hex(&public), listed_for = ?namespaces, "identity not listed for the namespace the peer declares: its declarations are refused");
+            tracing::warn!(peer = %p.name, namespace = %p.namespace, key = %hex(&public), listed_for = ?grant.namespaces, nodes = ?grant.nodes, "identity not listed for the namespace and node name the peer declares: its declarations are refused");
         }
-        p.authenticated = Some(namespaces);
+        // A gateway's role comes from the roster, never from its own Hello.
+        p.gateway = p.claims_gateway && grant.gateway;
+        let unlisted_gateway = p.claims_gateway && !grant.gateway;
+        p.authenticated = Some(grant);
         p.challenge = None;
         let since = p.known;
         drop(p);
+        if unlisted_gateway {
+            self.policy
+                .refuse(link, node, &name, "gateway", Refusal::GatewayNotListed);
+        }
         // Declarations that came before the proof were refused: ask again from where we are.
         self.send_safe_to_node(node, &Message::DeclRequest { since });
         self.bump();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{bare_node_with_identity, IdentityLayer};
+    use crate::identity::{Challenge, IdentityKey, Listing, Roster};
+    use crate::link::PeerAddr;
+    use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId, Origin};
+    use crate::typeinfo::TypeInfo;
+
+    fn hello(id: NodeId, node: &str, namespace: &str, gateway: bool) -> Message {
+        Message::Hello {
+            node_id: id,
+            domain: crate::config::DEFAULT_DOMAIN.into(),
+            node: node.into(),
+            namespace: namespace.into(),
+            counter: 0,
+            lease_ms: 60_000,
+            gateway,
+            asks_introduction: false,
+        }
+    }
+
+    #[tokio::test]
+    async fn a_peer_is_a_gateway_only_when_the_roster_lists_its_key_as_one() {
+        let gateway_key = IdentityKey::from_bytes([1; 32]);
+        let tools_key = IdentityKey::from_bytes([2; 32]);
+        let vas_key = IdentityKey::from_bytes([3; 32]);
+        let mut roster = Roster::default();
+        roster.list(Listing {
+            key: gateway_key.public(),
+            namespaces: vec!["*".into()],
+            nodes: Vec::new(),
+            gateway: true,
+        });
+        roster.allow(tools_key.public(), vec!["*".into()]);
+        roster.list(Listing {
+            key: vas_key.public(),
+            namespaces: vec!["rover1".into()],
+            nodes: vec!["vas".into()],
+            gateway: false,
+        });
+        let me = bare_node_with_identity(
+            Some("gcs"),
+            None,
+            Some(IdentityLayer {
+                key: None,
+                roster: Some(roster),
+            }),
+        );
+        let prove = |id: NodeId, key: &IdentityKey, node: &str, namespace: &str| {
+            let nonce = me.peers.by_id.get(&id).and_then(|p| p.challenge).unwrap();
+            let sig = key.prove(
+                (crate::config::DEFAULT_DOMAIN, id, node, namespace),
+                &Challenge {
+                    verifier: me.me.id,
+                    nonce,
+                },
+            );
+            me.on_identity(id, key.public(), &sig);
+        };
+        let addr = |port| PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], port)));
+        // Two nodes announcing themselves gateways: the run's gateway, and a tool with a key
+        // listed for any namespace but not as a gateway.
+        me.on_discovery(0, addr(1), hello(1, "relay", "", true));
+        me.on_discovery(0, addr(2), hello(2, "relay2", "", true));
+        assert!(
+            !me.peers.by_id.get(&1).unwrap().gateway,
+            "a Hello alone makes no gateway where a roster is kept"
+        );
+        prove(1, &gateway_key, "relay", "");
+        prove(2, &tools_key, "relay2", "");
+        assert!(me.peers.by_id.get(&1).unwrap().gateway);
+        assert!(!me.peers.by_id.get(&2).unwrap().gateway);
+        let (_, rejected) = me.policy.counts(0);
+        assert_eq!(rejected, 1, "the unlisted gateway counted");
+        let forwarded = Declaration::Offer {
+            id: 10,
+            service: 1,
+            kind: ItemKind::Function,
+            name: "rover1/vas/arm".into(),
+            ty: TypeInfo::of::<u64>(),
+            origin: Some(Origin {
+                node: 77,
+                name: "vas".into(),
+                hops: 1,
+                namespace: "rover1".into(),
+            }),
+        };
+        for peer in [1, 2] {
+            me.apply_decl_batch(
+                peer,
+                0,
+                1,
+                false,
+                vec![LoggedDeclaration {
+                    counter: 1,
+                    decl: forwarded.clone(),
+                }],
+            );
+        }
+        assert_eq!(me.peers.by_id.get(&1).unwrap().offers.len(), 1);
+        assert!(
+            me.peers.by_id.get(&2).unwrap().offers.is_empty(),
+            "an unlisted gateway's forwarded offer is refused"
+        );
+
+        // Node names are bound: the VAS's key proves node `vas` of rover1, not `fpma`.
+        me.on_discovery(0, addr(3), hello(3, "vas", "rover1", false));
+        me.on_discovery(0, addr(4), hello(4, "fpma", "rover1", false));
+        prove(3, &vas_key, "vas", "rover1");
+        prove(4, &vas_key, "fpma", "rover1");
+        assert!(me.identity_allows(3));
+        assert!(
+            !me.identity_allows(4),
+            "a node name the key is not listed for"
+        );
+        me.cancel.cancel();
     }
 }

@@ -111,8 +111,12 @@ pub(crate) struct Peer {
     pub id: NodeId,
     pub name: Arc<str>,
     pub namespace: String,
-    /// Whether it may declare offers of other nodes (`origin`): its Hello says it forwards and
-    /// our `<access>` rules let it.
+    /// Whether its Hello says it forwards and our `<access>` rules let a node of its name do
+    /// so: a claim, which a node keeping a roster takes only from a key listed as a gateway.
+    pub claims_gateway: bool,
+    /// Whether it may declare offers of other nodes (`origin`) and relay their calls and
+    /// files: it claims to, and where a roster is kept its key proved to be listed as a
+    /// gateway ([`crate::identity::Grant::gateway`]).
     pub gateway: bool,
     pub link: usize,
     pub addr: PeerAddr,
@@ -142,9 +146,9 @@ pub(crate) struct Peer {
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
     pub routes: HashMap<u32, Arc<Route>, SeededHash>,
-    /// Namespaces its identity key is authenticated for: `None` when this node checks no
-    /// identities, empty until a valid proof listed in the roster arrives.
-    pub authenticated: Option<Vec<String>>,
+    /// What its identity key is listed for: `None` when this node checks no identities,
+    /// nothing until a valid proof arrives.
+    pub authenticated: Option<crate::identity::Grant>,
     /// The nonce of our identity challenge to it, until a proof answers it (`None` when this
     /// node checks no identities, or once answered).
     pub challenge: Option<[u8; 16]>,
@@ -174,6 +178,14 @@ impl Peer {
     pub fn heard_at(&self, epoch: Instant, now: Instant) {
         let ms = now.saturating_duration_since(epoch).as_millis() as u64;
         self.heard_ms.store(ms, Ordering::Relaxed);
+    }
+
+    /// Whether the roster proved its key for its namespace and node name (false where no
+    /// roster is kept: everything it says is a claim).
+    pub fn proven(&self) -> bool {
+        self.authenticated
+            .as_ref()
+            .is_some_and(|g| g.covers(&self.namespace, &self.name))
     }
 
     /// When it was last heard from at all.
@@ -608,6 +620,16 @@ pub(crate) fn bare_node(
     namespace: Option<&str>,
     access: Option<crate::config::AccessConfig>,
 ) -> Arc<NodeInner> {
+    bare_node_with_identity(namespace, access, None)
+}
+
+/// [`bare_node`] checking peers' identities with `identity`'s roster.
+#[cfg(any(test, feature = "fuzzing"))]
+pub(crate) fn bare_node_with_identity(
+    namespace: Option<&str>,
+    access: Option<crate::config::AccessConfig>,
+    identity: Option<IdentityLayer>,
+) -> Arc<NodeInner> {
     let domain = crate::config::DEFAULT_DOMAIN;
     let (changed, _) = watch::channel(0u64);
     let inner = Arc::new(NodeInner {
@@ -634,7 +656,7 @@ pub(crate) fn bare_node(
         routing: Mutex::new(()),
         path_switches: Default::default(),
         policy: policy::Policy::new(access, 1),
-        identity: None,
+        identity,
         congestion: Arc::default(),
     });
     let _ = inner.links.set(Vec::new());

@@ -55,6 +55,9 @@ pub(crate) enum Refusal {
     /// An identity proof that answers no challenge of ours (replayed, made for another nonce
     /// or node, or by another key).
     IdentityUnproven,
+    /// A peer announcing itself a gateway whose key the roster does not list as one: it
+    /// speaks for no other node.
+    GatewayNotListed,
     /// A file a sink refused (bad name, too large, past its announced size, over the quota,
     /// too many at once, wrong content, no such sink).
     File,
@@ -74,6 +77,7 @@ impl Refusal {
             Refusal::TooManyDeclarations => "declaration cap reached",
             Refusal::Busy => "concurrent-call cap reached",
             Refusal::IdentityUnproven => "identity proof answering no challenge of ours",
+            Refusal::GatewayNotListed => "gateway role its identity key is not listed for",
             Refusal::File => "file refused by the sink",
         }
     }
@@ -471,6 +475,51 @@ mod tests {
         inner.cancel.cancel();
     }
 
+    /// Of two copies of one item through gateways, the one with fewer gateways counts, then
+    /// the one stored first: a gateway that picks a low node id (the old tie-break) wins
+    /// nothing by it.
+    #[tokio::test]
+    async fn copies_through_gateways_go_by_hops_then_first_seen_never_by_node_id() {
+        let inner = bare(Some("ground"), None);
+        let from_air = |hops| Origin {
+            node: 77,
+            name: "vas".into(),
+            hops,
+            namespace: "rover1".into(),
+        };
+        let copy = |hops| {
+            vec![offer(
+                10,
+                ItemKind::Function,
+                "rover1/vas/arm",
+                Some(from_air(hops)),
+            )]
+        };
+        let shown = |inner: &NodeInner| {
+            let hidden = inner.shadowed_offers();
+            let mut v: Vec<NodeId> = [9, 1, 5]
+                .into_iter()
+                .filter(|p| inner.peers.by_id.contains_key(p))
+                .filter(|p| !hidden.get(p).is_some_and(|h| h.contains(&10)))
+                .collect();
+            v.sort();
+            v
+        };
+        inner.on_discovery(0, addr(9), hello(9, "gw", "", true));
+        declare(&inner, 9, copy(2));
+        inner.on_discovery(0, addr(1), hello(1, "low", "", true));
+        declare(&inner, 1, copy(2));
+        assert_eq!(
+            shown(&inner),
+            [9],
+            "as far: the first seen, not the lowest id"
+        );
+        inner.on_discovery(0, addr(5), hello(5, "near", "", true));
+        declare(&inner, 5, copy(1));
+        assert_eq!(shown(&inner), [5], "fewer gateways first");
+        inner.cancel.cancel();
+    }
+
     #[tokio::test]
     async fn only_a_gateway_speaks_for_another_node_and_never_as_the_node_itself() {
         let inner = bare(Some("ground"), None);
@@ -535,6 +584,7 @@ mod tests {
                     from: "trusted/*".into(),
                 }],
                 closed: vec![],
+                trust_claims: false,
             }),
         );
         g.on_discovery(0, addr(3), hello(3, "relay", "relay", true));
@@ -639,6 +689,7 @@ mod tests {
                 from: "ground/fmo".into(),
             }],
             closed: vec![],
+            trust_claims: false,
         };
         let inner = bare(Some("rover1"), Some(access));
         inner.add_interest(Arc::new(LocalInterest {

@@ -318,32 +318,39 @@ fn routes_of(
 /// One item wherever it is declared from: its source node, kind and name.
 type ItemKey = (NodeId, ItemKind, Arc<str>);
 
+/// How far a path to an item is from the best one, compared in this order: whether its peer
+/// is unproven (0 when the roster proved its key: see [`super::Peer::proven`]), the gateways
+/// between, when this node first stored it; then the peer and offer id (never reached: no two
+/// items share a `seen`).
+type PathRank = (bool, u8, u64, NodeId, u32);
+
 /// The shadowing rule of [`NodeInner::shadowed_offers`], one peer's offers at a time.
 #[derive(Default)]
 struct Shadowing {
-    /// The best path to each item: (hops, peer, offer id).
-    best: HashMap<ItemKey, (u8, NodeId, u32)>,
+    /// The best path to each item.
+    best: HashMap<ItemKey, PathRank>,
     /// The offers to ignore, by peer.
     hidden: HashMap<NodeId, HashSet<u32>>,
 }
 
 impl Shadowing {
-    /// Takes peer `peer`'s `offers` into account (`me`: our own id).
-    fn add(&mut self, me: NodeId, peer: NodeId, offers: &HashMap<u32, RemoteItem>) {
-        for (oid, item) in offers {
+    /// Takes peer `p`'s offers into account (`me`: our own id).
+    fn add(&mut self, me: NodeId, p: &super::Peer) {
+        let (peer, unproven) = (p.id, !p.proven());
+        for (oid, item) in &p.offers {
             let (source, hops) = item.source(peer);
             if source == me {
                 self.hidden.entry(peer).or_default().insert(*oid);
                 continue;
             }
             let key = (source, item.kind, item.name.clone());
-            let cand = (hops, peer, *oid);
+            let cand = (unproven, hops, item.seen, peer, *oid);
             match self.best.get(&key) {
                 Some(cur) if *cur <= cand => {
                     self.hidden.entry(peer).or_default().insert(*oid);
                 }
                 Some(cur) => {
-                    self.hidden.entry(cur.1).or_default().insert(cur.2);
+                    self.hidden.entry(cur.3).or_default().insert(cur.4);
                     self.best.insert(key, cand);
                 }
                 None => {
@@ -532,7 +539,7 @@ impl NodeInner {
         {
             let interests = self.local.interests_now();
             let mut shadowing = Shadowing::default();
-            shadowing.add(self.me.id, p.id, &p.offers);
+            shadowing.add(self.me.id, &p);
             let hidden = shadowing.hidden.remove(&node).unwrap_or_default();
             p.routes = routes_of(&p, &hidden, &interests);
             p.shadowed = hidden;
@@ -561,13 +568,14 @@ impl NodeInner {
     }
 
     /// The offers of each peer to ignore: where one item (same source node, kind and name) is
-    /// declared by several peers (directly and through gateways), only the path with the
-    /// fewest gateways counts (ties: the lowest peer id); our own items forwarded back to us
-    /// are ignored altogether.
+    /// declared by several peers (directly and through gateways), only one path counts: a
+    /// proven peer's before an unproven one's, then the one with the fewest gateways, then
+    /// the one this node stored first (never an order a sender can pick, such as node ids);
+    /// our own items forwarded back to us are ignored altogether.
     pub fn shadowed_offers(&self) -> HashMap<NodeId, HashSet<u32>> {
         let mut shadowing = Shadowing::default();
         for p in self.peers.by_id.iter() {
-            shadowing.add(self.me.id, p.id, &p.offers);
+            shadowing.add(self.me.id, &p);
         }
         shadowing.hidden
     }
