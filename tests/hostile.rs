@@ -70,3 +70,26 @@ fn an_insiders_peers_that_never_answer_leave_room_for_new_nodes() {
     assert!(refusals(&r, "peers_evicted") > 0, "{r}");
     scene.assert_nothing_from_attackers();
 }
+
+/// Insiders with identities of their own running as the victim's name: the FPMa's key as
+/// node `vas` of `rover1` (a node name the roster does not list it for) and the station's as
+/// namespace `rover1`. Every fresh caller reaches the genuine victim; no squatter runs a call.
+#[test]
+fn squatters_of_a_proven_name_answer_no_caller() {
+    let a = common::trust::squat("hostile-squat");
+    assert_eq!(a.hijacked, 0, "{a:?}");
+    assert_eq!(a.genuine, common::trust::CALLERS, "{a:?}");
+    assert_eq!(a.answered, common::trust::CALLERS, "{a:?}");
+}
+
+/// An insider's gateway (a key the roster lists for any namespace, not as a gateway) forwards
+/// a provider of the victim's names from a LAN of its own to the callers' LAN, beside the
+/// domain's gateway to the victim: none of its forwarded offers is taken, every fresh caller
+/// reaches the genuine victim.
+#[test]
+fn a_self_declared_gateway_answers_no_caller() {
+    let a = common::trust::gateway_forgery("hostile-gateway-forgery");
+    assert_eq!(a.hijacked, 0, "{a:?}");
+    assert_eq!(a.genuine, common::trust::CALLERS, "{a:?}");
+    assert_eq!(a.answered, common::trust::CALLERS, "{a:?}");
+}

@@ -27,6 +27,15 @@
 //!   socket of its own, say Hello and send one message in a session but never acknowledge
 //!   the victim's (as a forged source address cannot); then 3 new nodes call the victim: the
 //!   share answered. Target 1.0.
+//! - `hostile.squat.callers_hijacked` and `hostile.gateway_forgery.callers_hijacked`: a
+//!   domain sealed as `usal run` seals one (an identity per node, a roster binding each key to
+//!   its namespace and node name, one key listed as the gateways'); insiders with identities
+//!   of their own run providers of the victim's `rover1/vas/retask` as the victim's node
+//!   name (the FPMa's key) and namespace (the station's), or announce themselves a gateway (a
+//!   key listed for any namespace, not as a gateway) forwarding such a provider from a LAN of
+//!   their own beside the domain's gateway to the victim (`tests/common/trust.rs`). Eight
+//!   fresh callers, each knowing every peer there is before it calls: the calls the
+//!   attackers executed. Target 0.
 
 use std::net::{Ipv4Addr, SocketAddrV4};
 use std::sync::Arc;
@@ -37,7 +46,7 @@ use marea::{NetworkConfig, Node};
 
 use super::metric::metric;
 
-use crate::common::{attacker, hostile as suite};
+use crate::common::{attacker, hostile as suite, trust};
 
 pub fn run() {
     metric("hostile.pattern.worst_match_us", worst_match_us(), "us");
@@ -75,6 +84,24 @@ pub fn run() {
             "ratio",
         ),
         Err(_) => eprintln!("hostile.confirmed_flood: the hostile scene did not start (see above)"),
+    }
+    for (name, scene) in [
+        (
+            "hostile.squat.callers_hijacked",
+            trust::squat as fn(&str) -> trust::Answered,
+        ),
+        (
+            "hostile.gateway_forgery.callers_hijacked",
+            trust::gateway_forgery,
+        ),
+    ] {
+        match std::panic::catch_unwind(|| scene(&format!("bench-{name}"))) {
+            Ok(a) => {
+                eprintln!("{name}: {a:?}");
+                metric(name, a.hijacked as f64, "calls");
+            }
+            Err(_) => eprintln!("{name}: the scene did not start (see above)"),
+        }
     }
     match std::panic::catch_unwind(rejected_ratio) {
         Ok(ratio) => metric("hostile.rejected_ratio", ratio, "ratio"),

@@ -159,6 +159,11 @@ enum Cmd {
         /// Wait this long for a provider to be discovered first (0 = call at once).
         #[arg(long, default_value_t = 0)]
         wait_ms: u64,
+        /// Within the same wait, first know at least this many peers, each settled: its
+        /// identity proof judged (where a roster is kept) and, when taken, its declarations
+        /// in (so the call chooses among every provider there is).
+        #[arg(long, default_value_t = 0)]
+        wait_peers: usize,
     },
     /// Accept files on ITEM into DIR.
     Sink {
@@ -578,9 +583,20 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
             arg,
             timeout_ms,
             wait_ms,
+            wait_peers,
         } => {
             let f = svc.function::<u64, u64>(name)?;
             if *wait_ms > 0 {
+                let settled = |p: &marea::PeerInfo| match p.trust {
+                    marea::PeerTrust::Pending => false,
+                    marea::PeerTrust::Refused => true,
+                    marea::PeerTrust::Claimed | marea::PeerTrust::Proven => p.declarations > 0,
+                };
+                node.wait_until(Duration::from_millis(*wait_ms), |n| {
+                    let peers = n.peers();
+                    peers.len() >= *wait_peers && peers.iter().all(settled)
+                })
+                .await;
                 f.wait_provider(Duration::from_millis(*wait_ms)).await;
             }
             let started = Instant::now();

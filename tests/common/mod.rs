@@ -5,6 +5,7 @@
 
 pub mod attacker;
 pub mod hostile;
+pub mod trust;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -77,7 +78,7 @@ impl Net {
         std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 1), self.port)
     }
 
-    fn probe_args(&self, node: &str, extra: &[&str], cmd: &[&str]) -> Proc {
+    pub fn probe_args(&self, node: &str, extra: &[&str], cmd: &[&str]) -> Proc {
         let mut args: Vec<String> = vec![
             "--node".into(),
             node.into(),

@@ -25,7 +25,7 @@ pub use event::{
 pub use file::{FileSink, FileTransfer};
 pub use function::{Function, FunctionProvider};
 pub use item::{EventItem, FunctionItem, VariableItem};
-pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo};
+pub use node::{Catalog, ItemDescription, ItemRole, Node, NodeDescription, PeerInfo, PeerTrust};
 pub use raw::{RawSubscription, RawValue};
 pub use service::{IService, Service, ServiceDescription, ServiceError};
 pub use shared_str::SharedStr;

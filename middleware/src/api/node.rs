@@ -53,6 +53,29 @@ pub struct PeerInfo {
     pub authenticated_namespaces: Option<Vec<String>>,
     /// How many services, offers and interests it declares now.
     pub declarations: usize,
+    /// Whether what it announces (namespace, node name) is proven.
+    #[serde(default)]
+    pub trust: PeerTrust,
+    /// Whether it acts as a gateway towards this node (speaks for other nodes).
+    #[serde(default)]
+    pub gateway: bool,
+}
+
+/// How far a node takes a peer at its word ([`PeerInfo::trust`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum PeerTrust {
+    /// This node keeps no roster: what the peer announces is taken as said.
+    #[default]
+    Claimed,
+    /// This node keeps a roster and the peer's identity proof has not come (a node without
+    /// an identity key never sends one): nothing it declares is taken.
+    Pending,
+    /// Its key is listed for the namespace and node name it announces: its declarations are
+    /// taken.
+    Proven,
+    /// Its proof is valid but its key is not listed for the namespace and node name it
+    /// announces: nothing it declares is taken.
+    Refused,
 }
 
 /// Whether an item is offered or wanted.
@@ -468,6 +491,13 @@ impl Node {
                 last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
                 authenticated_namespaces: p.authenticated.as_ref().map(|g| g.namespaces.clone()),
                 declarations: p.declarations(),
+                trust: match &p.authenticated {
+                    None => PeerTrust::Claimed,
+                    Some(_) if p.proven() => PeerTrust::Proven,
+                    Some(_) if p.challenge.is_none() => PeerTrust::Refused,
+                    Some(_) => PeerTrust::Pending,
+                },
+                gateway: p.gateway,
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));

@@ -1,0 +1,351 @@
+//! The insiders of names and gateways, shared by `tests/hostile.rs` and
+//! `benches/security/hostile.rs`: a domain sealed the way `usal run` seals a mission (the
+//! domain key, an identity key per node, a roster binding each key to its namespace and node
+//! name, and one key listed as the gateways'), a victim `rover1/vas` whose `<access>` lets only
+//! `ground/*` call it, and insiders holding the domain key and an identity of their own who
+//! try to take the victim's fresh callers: by running as the victim's name (`squat`), or by
+//! announcing themselves gateways and forwarding a provider of the victim's names from a LAN
+//! of their own (`gateway_forgery`). Every node is a real process; every caller is a fresh
+//! `marea-probe call` that first knows every peer there is (`--wait-peers`), so it chooses
+//! among all the providers it would ever see. Each scene returns how many callers an
+//! attacker answered (the attackers are victims of their own, which report the calls they
+//! executed) and how many the genuine victim did.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use marea::identity::{IdentityKey, Listing, Roster};
+use serde_json::Value;
+
+use super::{keygen, outcome, probe_with_config, Net, Proc, T};
+
+/// Fresh callers of each scene.
+pub const CALLERS: usize = 8;
+
+/// A sealed domain's files, in a directory of their own.
+pub struct Domain {
+    pub dir: tempfile::TempDir,
+    pub key: PathBuf,
+    pub roster: PathBuf,
+}
+
+/// The identities of the domain, as the roster lists them: `vas` and `fpma` own `rover1` as
+/// nodes `vas` and `fpma` only; `ground` owns `ground` (any node); `gateway` may be any node
+/// and act as a gateway; `tools` may be any node of any namespace but no gateway.
+const IDENTITIES: &[(&str, &str, &str, bool)] = &[
+    ("vas", "rover1", "vas", false),
+    ("fpma", "rover1", "fpma", false),
+    ("ground", "ground", "", false),
+    ("gateway", "*", "", true),
+    ("tools", "*", "", false),
+];
+
+impl Domain {
+    /// Makes the keys and the roster.
+    pub fn new() -> Domain {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let key = keygen(dir.path(), "domain.key");
+        let mut roster = Roster::default();
+        for (name, namespaces, nodes, gateway) in IDENTITIES {
+            let k = IdentityKey::create_files(&dir.path().join(format!("{name}.id")))
+                .expect("an identity key");
+            roster.list(Listing {
+                key: k.public(),
+                namespaces: vec![(*namespaces).to_owned()],
+                nodes: nodes.split_whitespace().map(str::to_owned).collect(),
+                gateway: *gateway,
+            });
+        }
+        let path = dir.path().join("identities.xml");
+        std::fs::write(&path, roster.to_xml()).expect("write the roster");
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644))
+            .expect("chmod the roster");
+        Domain {
+            dir,
+            key,
+            roster: path,
+        }
+    }
+
+    /// `<security>` with identity `identity` (`None`: the domain key only) and the roster.
+    pub fn security(&self, identity: Option<&str>) -> String {
+        let id = identity.map_or(String::new(), |i| {
+            format!(r#" identityFile="{}""#, self.identity(i).display())
+        });
+        format!(
+            r#"<security keyFile="{}"{id} identities="{}"/>"#,
+            self.key.display(),
+            self.roster.display()
+        )
+    }
+
+    fn identity(&self, name: &str) -> PathBuf {
+        self.dir.path().join(format!("{name}.id"))
+    }
+
+    /// A directory of its own for `name`'s files.
+    fn subdir(&self, name: &str) -> PathBuf {
+        let d = self.dir.path().join(name);
+        std::fs::create_dir_all(d.join("inbox")).expect("a node's directory");
+        d
+    }
+}
+
+/// A victim-like provider of `<namespace>/vas/retask` (it reports each call it executes), as
+/// node `node` of `namespace` on `net`'s LAN, sealed with identity `identity`, with `inner`
+/// (`<access>`) besides. Ready.
+fn provider(
+    domain: &Domain,
+    label: &str,
+    (node, namespace): (&str, &str),
+    identity: Option<&str>,
+    net: &Net,
+    inner: &str,
+) -> Proc {
+    let dir = domain.subdir(label);
+    let xml = format!(
+        r#"<network node="{node}" namespace="{namespace}" domain="{d}">
+  {lan}
+  {security}
+  {inner}
+</network>"#,
+        d = net.domain,
+        lan = lan(net, "lan"),
+        security = domain.security(identity),
+    );
+    let path = dir.join("network.xml");
+    std::fs::write(&path, xml).expect("write network.xml");
+    let inbox = dir.join("inbox");
+    let mut p = probe_with_config(
+        label,
+        &path,
+        "vas",
+        &[],
+        &[
+            "victim",
+            "--call",
+            "retask",
+            "--sink",
+            "plans",
+            "--dir",
+            inbox.to_str().expect("utf-8 path"),
+            "--pattern",
+            "**/position",
+        ],
+    );
+    p.expect_key(T, "ready");
+    p
+}
+
+/// The `<ethernet>` element of `net`'s LAN, named `name`.
+fn lan(net: &Net, name: &str) -> String {
+    format!(
+        r#"<ethernet name="{name}" bind="127.0.0.1:0" multicast="239.255.77.1:{}" interface="127.0.0.1" heartbeatMs="{}" leaseMs="{}"/>"#,
+        net.port, net.heartbeat_ms, net.lease_ms
+    )
+}
+
+/// A gateway process between the LANs of `nets` (one domain), sealed with identity
+/// `identity`; `roster`: whether it keeps the domain's roster (a forger's gateway keeps none,
+/// so it takes what its own LAN claims). Ready.
+fn gateway(
+    domain: &Domain,
+    label: &str,
+    identity: &str,
+    roster: bool,
+    nets: [(&Net, &str); 2],
+) -> Proc {
+    let dir = domain.subdir(label);
+    let security = if roster {
+        domain.security(Some(identity))
+    } else {
+        format!(
+            r#"<security keyFile="{}" identityFile="{}"/>"#,
+            domain.key.display(),
+            domain.identity(identity).display()
+        )
+    };
+    let xml = format!(
+        r#"<network node="{label}" domain="{d}" gateway="true">
+  {a}
+  {b}
+  {security}
+</network>"#,
+        d = nets[0].0.domain,
+        a = lan(nets[0].0, nets[0].1),
+        b = lan(nets[1].0, nets[1].1),
+    );
+    let path = dir.join("network.xml");
+    std::fs::write(&path, xml).expect("write network.xml");
+    let mut p = Proc::spawn(
+        label,
+        env!("CARGO_BIN_EXE_marea-probe"),
+        &[
+            "--config".to_owned(),
+            path.display().to_string(),
+            "gateway".to_owned(),
+        ],
+    );
+    p.expect_key(T, "ready");
+    p
+}
+
+/// The calls a provider reported executing so far (it reports within 50 ms of a change).
+fn calls_executed(p: &mut Proc) -> usize {
+    let _ = p.try_expect(Duration::from_millis(300), |_| false);
+    p.seen
+        .iter()
+        .rev()
+        .find_map(|v| v.get("report"))
+        .and_then(|r| r["called"].as_array())
+        .map_or(0, Vec::len)
+}
+
+/// Who answered the fresh callers.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Answered {
+    /// Callers whose call was answered (by anyone: the attackers answer as the victim does).
+    pub answered: usize,
+    /// Calls the genuine victim executed.
+    pub genuine: usize,
+    /// Calls an attacker executed.
+    pub hijacked: usize,
+}
+
+/// [`CALLERS`] fresh callers of `rover1/vas/retask` (node `ground/caller<k>`, proven) on
+/// `net`, each knowing `peers` peers first; then who answered them.
+fn fresh_callers(
+    domain: &Domain,
+    net: &Net,
+    peers: usize,
+    victim: &mut Proc,
+    attackers: &mut [Proc],
+) -> Answered {
+    let key = domain.key.to_str().expect("utf-8 path");
+    let id = domain.identity("ground");
+    let roster = domain.roster.to_str().expect("utf-8 path");
+    let peers = peers.to_string();
+    let mut callers: Vec<Proc> = (0..CALLERS)
+        .map(|k| {
+            net.probe_args(
+                &format!("caller{k}"),
+                &[
+                    "--key-file",
+                    key,
+                    "--identity-file",
+                    id.to_str().expect("utf-8 path"),
+                    "--identities",
+                    roster,
+                    "--namespace",
+                    "ground",
+                ],
+                &[
+                    "call",
+                    "--name",
+                    "rover1/vas/retask",
+                    "--arg",
+                    "21",
+                    "--wait-ms",
+                    "15000",
+                    "--wait-peers",
+                    &peers,
+                    "--timeout-ms",
+                    "3000",
+                ],
+            )
+        })
+        .collect();
+    let answered = callers
+        .iter_mut()
+        .map(outcome)
+        .filter(|r: &Value| r["ok"] == 42)
+        .count();
+    let a = Answered {
+        answered,
+        genuine: calls_executed(victim),
+        hijacked: attackers.iter_mut().map(calls_executed).sum(),
+    };
+    eprintln!("trust: {a:?} of {CALLERS} fresh callers");
+    a
+}
+
+/// The victim `rover1/vas` (the VAS's identity, calls from `ground/*` only) on `net`.
+fn victim(domain: &Domain, net: &Net) -> Proc {
+    provider(
+        domain,
+        "victim",
+        ("vas", "rover1"),
+        Some("vas"),
+        net,
+        r#"<access><allow kind="call" item="rover1/vas/*" from="ground/*"/></access>"#,
+    )
+}
+
+/// Squatters on the victim's LAN, each a provider of `rover1/vas/retask`: the FPMa's key
+/// running as node `vas` of `rover1` (a node name its key is not listed for) and the ground
+/// station's key claiming namespace `rover1`. (The domain key alone declares nothing where a
+/// roster is kept: `tests/auth.rs`.)
+pub fn squat(test: &str) -> Answered {
+    let domain = Domain::new();
+    let net = Net::new(test);
+    let mut victim = victim(&domain, &net);
+    let mut attackers = vec![
+        provider(
+            &domain,
+            "squat-fpma",
+            ("vas", "rover1"),
+            Some("fpma"),
+            &net,
+            "",
+        ),
+        provider(
+            &domain,
+            "squat-ground",
+            ("vas2", "rover1"),
+            Some("ground"),
+            &net,
+            "",
+        ),
+    ];
+    fresh_callers(&domain, &net, 3, &mut victim, &mut attackers)
+}
+
+/// A self-declared gateway: the victim on LAN `air` behind the domain's gateway, its callers
+/// on LAN `ground`; the attacker's gateway (a key listed for any namespace, not as a
+/// gateway) joins `ground` to a LAN of its own where a provider of `rover1/vas/retask` runs.
+pub fn gateway_forgery(test: &str) -> Answered {
+    let domain = Domain::new();
+    let ground = Net::new(test);
+    let air = Net::new(&format!("{test}-air"));
+    let evil = Net::new(&format!("{test}-evil"));
+    let (air, evil) = (
+        Net {
+            domain: ground.domain.clone(),
+            ..air
+        },
+        Net {
+            domain: ground.domain.clone(),
+            ..evil
+        },
+    );
+    let mut victim = victim(&domain, &air);
+    let _gateway = gateway(
+        &domain,
+        "gateway",
+        "gateway",
+        true,
+        [(&air, "air"), (&ground, "ground")],
+    );
+    let fake = provider(&domain, "fake-vas", ("vas", "rover1"), None, &evil, "");
+    let _forger = gateway(
+        &domain,
+        "forger",
+        "tools",
+        false,
+        [(&evil, "evil"), (&ground, "ground")],
+    );
+    let mut attackers = vec![fake];
+    // Each caller knows the two gateways.
+    fresh_callers(&domain, &ground, 2, &mut victim, &mut attackers)
+}
