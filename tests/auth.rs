@@ -823,7 +823,7 @@ fn a_replayed_identity_proof_is_refused() {
     let inbox = dir.path().join("inbox");
     std::fs::create_dir_all(&inbox).unwrap();
     let (key_s, roster_s) = (key.to_str().unwrap(), roster.to_str().unwrap());
-    let mut vehicle = net.probe(
+    let mut vehicle = net.probe_args(
         "vas",
         &[
             "--key-file",
@@ -832,16 +832,8 @@ fn a_replayed_identity_proof_is_refused() {
             roster_s,
             "--namespace",
             "rover1",
-            "victim",
-            "--call",
-            "retask",
-            "--sink",
-            "plans",
-            "--dir",
-            inbox.to_str().unwrap(),
-            "--pattern",
-            "**/position",
         ],
+        &common::victim_cmd(&inbox),
     );
     let sniffer = Sniffer::join(net.group()).expect("join the group");
     let ready = vehicle.expect_key(T, "ready");

@@ -111,17 +111,7 @@ impl Scene {
             &config,
             "vas",
             &["--key-file", key.to_str().expect("utf-8 path")],
-            &[
-                "victim",
-                "--call",
-                "retask",
-                "--sink",
-                "plans",
-                "--dir",
-                inbox.to_str().expect("utf-8 path"),
-                "--pattern",
-                "**/position",
-            ],
+            &super::victim_cmd(&inbox),
         );
         let ready = victim.expect_key(T, "ready");
         let target = udp(ready["addrs"][0].as_str().expect("the victim's address"));

@@ -136,6 +136,23 @@ pub fn keygen(dir: &Path, name: &str) -> PathBuf {
     path
 }
 
+/// `marea-probe` arguments of the hostile tests' victim: it provides `retask`, keeps sink
+/// `plans` storing into `inbox`, follows `**/position`, and reports what it executed,
+/// delivered and refused.
+pub fn victim_cmd(inbox: &Path) -> [&str; 9] {
+    [
+        "victim",
+        "--call",
+        "retask",
+        "--sink",
+        "plans",
+        "--dir",
+        inbox.to_str().expect("a UTF-8 path"),
+        "--pattern",
+        "**/position",
+    ]
+}
+
 /// `marea-probe` arguments publishing positions on `item` at 50 Hz until stopped.
 pub fn publishing(item: &str) -> [&str; 7] {
     [

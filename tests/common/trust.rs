@@ -17,7 +17,7 @@ use std::time::Duration;
 use marea::identity::{IdentityKey, Listing, Roster};
 use serde_json::Value;
 
-use super::{keygen, outcome, probe_with_config, Net, Proc, T};
+use super::{keygen, outcome, probe_with_config, victim_cmd, Net, Proc, T};
 
 /// Fresh callers of each scene.
 pub const CALLERS: usize = 8;
@@ -117,23 +117,7 @@ fn provider(
     let path = dir.join("network.xml");
     std::fs::write(&path, xml).expect("write network.xml");
     let inbox = dir.join("inbox");
-    let mut p = probe_with_config(
-        label,
-        &path,
-        "vas",
-        &[],
-        &[
-            "victim",
-            "--call",
-            "retask",
-            "--sink",
-            "plans",
-            "--dir",
-            inbox.to_str().expect("utf-8 path"),
-            "--pattern",
-            "**/position",
-        ],
-    );
+    let mut p = probe_with_config(label, &path, "vas", &[], &victim_cmd(&inbox));
     p.expect_key(T, "ready");
     p
 }

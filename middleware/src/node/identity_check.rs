@@ -122,24 +122,11 @@ impl NodeInner {
 
 #[cfg(test)]
 mod tests {
-    use super::super::{bare_node_with_identity, IdentityLayer};
+    use super::super::{bare_node_with_identity, test_hello as hello, IdentityLayer};
     use crate::identity::{Challenge, IdentityKey, Listing, Roster};
     use crate::link::PeerAddr;
-    use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, Message, NodeId, Origin};
+    use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, NodeId, Origin};
     use crate::typeinfo::TypeInfo;
-
-    fn hello(id: NodeId, node: &str, namespace: &str, gateway: bool) -> Message {
-        Message::Hello {
-            node_id: id,
-            domain: crate::config::DEFAULT_DOMAIN.into(),
-            node: node.into(),
-            namespace: namespace.into(),
-            counter: 0,
-            lease_ms: 60_000,
-            gateway,
-            asks_introduction: false,
-        }
-    }
 
     #[tokio::test]
     async fn a_peer_is_a_gateway_only_when_the_roster_lists_its_key_as_one() {

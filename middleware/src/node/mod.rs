@@ -623,6 +623,22 @@ pub(crate) fn bare_node(
     bare_node_with_identity(namespace, access, None)
 }
 
+/// The Hello of peer `id` (node `node` of `namespace`, a 60 s lease) for the node modules'
+/// unit tests to feed a [`bare_node`].
+#[cfg(test)]
+pub(crate) fn test_hello(id: NodeId, node: &str, namespace: &str, gateway: bool) -> Message {
+    Message::Hello {
+        node_id: id,
+        domain: crate::config::DEFAULT_DOMAIN.into(),
+        node: node.into(),
+        namespace: namespace.into(),
+        counter: 0,
+        lease_ms: 60_000,
+        gateway,
+        asks_introduction: false,
+    }
+}
+
 /// [`bare_node`] checking peers' identities with `identity`'s roster.
 #[cfg(any(test, feature = "fuzzing"))]
 pub(crate) fn bare_node_with_identity(

@@ -382,18 +382,7 @@ mod tests {
         PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], port)))
     }
 
-    fn hello(id: NodeId, node: &str, namespace: &str, gateway: bool) -> Message {
-        Message::Hello {
-            node_id: id,
-            domain: crate::config::DEFAULT_DOMAIN.into(),
-            node: node.into(),
-            namespace: namespace.into(),
-            counter: 0,
-            lease_ms: 60_000,
-            gateway,
-            asks_introduction: false,
-        }
-    }
+    use super::super::test_hello as hello;
 
     fn offer(id: u32, kind: ItemKind, name: &str, origin: Option<Origin>) -> Declaration {
         Declaration::Offer {
