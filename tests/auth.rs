@@ -901,8 +901,14 @@ fn a_replayed_identity_proof_is_refused() {
         },
     )
     .unwrap();
-    spy.safe(station_addr, &[Message::Challenge { nonce: [7; 16] }])
-        .unwrap();
+    spy.safe(
+        station_addr,
+        &[Message::Challenge {
+            nonce: [7; 16],
+            agreement: [7; 32],
+        }],
+    )
+    .unwrap();
     let proof = spy
         .recv_message(station_addr, T, |m| matches!(m, Message::Identity { .. }))
         .expect("the station answers a challenge");

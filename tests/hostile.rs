@@ -93,3 +93,28 @@ fn a_self_declared_gateway_answers_no_caller() {
     assert_eq!(a.genuine, common::trust::CALLERS, "{a:?}");
     assert_eq!(a.answered, common::trust::CALLERS, "{a:?}");
 }
+
+/// Item 1 of "Trust that holds inside the domain": an insider with the domain key forges a
+/// proven station's source address (calls, file offers, marked samples), replays the
+/// station's frames it read off the LAN and reflects the victim's own frames back to it.
+/// Where both ends proved their identities, every frame between them is sealed with their
+/// pair's keys: nothing forged runs or is delivered, every replayed and reflected frame is
+/// refused at the seal, and the station's positions keep flowing.
+#[test]
+fn frames_forged_replayed_or_reflected_as_a_proven_station_are_refused() {
+    let Some(f) = common::trust::forged_as_station("hostile-forged-station") else {
+        return test_support::tool_missing(
+            "raw sockets (root or CAP_NET_RAW), which forging a source address takes",
+            "run the tests as root, or give the test binary CAP_NET_RAW",
+        );
+    };
+    assert_eq!(f.calls_executed, 0, "{f:?}");
+    assert_eq!(f.samples_delivered, 0, "{f:?}");
+    assert!(
+        f.replayed >= 12 && f.reflected >= 2,
+        "too little captured to replay and reflect: {f:?}"
+    );
+    assert_eq!(f.replays_accepted, 0, "{f:?}");
+    assert_eq!(f.forged_refused, f.forged, "{f:?}");
+    assert!(f.legit_flowing, "{f:?}");
+}

@@ -1,8 +1,10 @@
 //! Link authentication figures (`auth.*`): the bytes a sealed position sample takes on UDP and
 //! on serial (built by the links' own framing code), and the round trip and rate of 64-byte
-//! variables over UDP with a key against the same without one, measured in the same run,
-//! interleaved round by round; each ratio is the median of the rounds' ratios, so machine noise
-//! hits both sides alike.
+//! variables over UDP sealed as a `usal run` mission seals them (the domain key, an identity
+//! per node and the roster, so every frame between the two nodes is sealed with their pair's
+//! keys) against the same without a key, measured in the same run, interleaved round by
+//! round; each ratio is the median of the rounds' ratios, so machine noise hits both sides
+//! alike.
 
 use std::time::{Duration, Instant};
 
@@ -65,12 +67,7 @@ fn serial_bytes(key: &DomainKey) -> f64 {
     total as f64 / frames.max(1) as f64
 }
 
-fn config(
-    node: &str,
-    domain: &str,
-    port: u16,
-    key_file: Option<&std::path::Path>,
-) -> NetworkConfig {
+fn config(node: &str, domain: &str, port: u16, security: Option<SecurityConfig>) -> NetworkConfig {
     let mut c = NetworkConfig::ethernet_loopback(node);
     c.domain = domain.into();
     c.links = vec![LinkConfig::Ethernet(EthernetConfig {
@@ -79,13 +76,19 @@ fn config(
         multicast: std::net::SocketAddrV4::new(std::net::Ipv4Addr::new(239, 255, 77, 9), port),
         ..EthernetConfig::default()
     })];
-    c.security = key_file.map(|k| SecurityConfig {
-        key_file: k.to_path_buf(),
-        encrypt_radio: false,
-        identity_file: None,
-        identities: None,
-    });
+    c.security = security;
     c
+}
+
+/// The seal of node `node` (identity `<dir>/<node>.id`), as a mission's: the domain key, its
+/// identity, the roster.
+fn sealed(dir: &std::path::Path, node: &str) -> SecurityConfig {
+    SecurityConfig {
+        key_file: dir.join("domain.key"),
+        encrypt_radio: false,
+        identity_file: Some(dir.join(format!("{node}.id"))),
+        identities: Some(dir.join("identities.xml")),
+    }
 }
 
 /// Two nodes measuring round trips (ping/pong) and rate (100 variables into a subscriber).
@@ -100,14 +103,20 @@ struct Pair {
 }
 
 impl Pair {
-    async fn open(tag: &str, port: u16, key_file: Option<&std::path::Path>) -> Pair {
+    async fn open(tag: &str, port: u16, seal: Option<&std::path::Path>) -> Pair {
         let domain = format!("bench-auth-{tag}-{}", std::process::id());
-        let a = Node::open(&config("a", &domain, port, key_file))
+        let a = Node::open(&config("a", &domain, port, seal.map(|d| sealed(d, "a"))))
             .await
             .expect("node a");
-        let b = Node::open(&config("b", &domain, port, key_file))
+        let b = Node::open(&config("b", &domain, port, seal.map(|d| sealed(d, "b"))))
             .await
             .expect("node b");
+        if seal.is_some() {
+            let paired = |n: &Node| n.peers().iter().any(|p| p.pair_sealed);
+            let both = a.wait_until(Duration::from_secs(10), paired).await
+                && b.wait_until(Duration::from_secs(10), paired).await;
+            assert!(both, "the keyed nodes never sealed with their pair's keys");
+        }
         let sa = a.service("a").expect("service");
         let sb = b.service("b").expect("service");
         let ping = sa.publish_variable::<Payload64>("ping").expect("ping");
@@ -212,6 +221,19 @@ pub fn run() {
     let dir = tempfile::tempdir().expect("temp dir");
     let key_file = dir.path().join("domain.key");
     let key = DomainKey::create_file(&key_file).expect("key file");
+    let mut roster = marea::identity::Roster::default();
+    for node in ["a", "b"] {
+        let id = marea::identity::IdentityKey::create_files(&dir.path().join(format!("{node}.id")))
+            .expect("identity key");
+        roster.allow(id.public(), vec!["*".into()]);
+    }
+    let roster_file = dir.path().join("identities.xml");
+    std::fs::write(&roster_file, roster.to_xml()).expect("roster");
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&roster_file, std::fs::Permissions::from_mode(0o644))
+            .expect("chmod roster");
+    }
 
     metric(
         "auth.wire.position.udp_bytes",
@@ -232,7 +254,7 @@ pub fn run() {
     rt.block_on(async {
         let port = 30_000 + (std::process::id() % 20_000) as u16;
         let plain = Pair::open("plain", port, None).await;
-        let keyed = Pair::open("keyed", port.wrapping_add(1), Some(&key_file)).await;
+        let keyed = Pair::open("keyed", port.wrapping_add(1), Some(dir.path())).await;
         let (mut rtt, mut rate) = ([Vec::new(), Vec::new()], [Vec::new(), Vec::new()]);
         // Warm both up, then interleave.
         plain.rtt_p50(500, 1 << 40).await;

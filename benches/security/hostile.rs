@@ -28,14 +28,23 @@
 //!   the victim's (as a forged source address cannot); then 3 new nodes call the victim: the
 //!   share answered. Target 1.0.
 //! - `hostile.squat.callers_hijacked` and `hostile.gateway_forgery.callers_hijacked`: a
-//!   domain sealed as `usal run` seals one (an identity per node, a roster binding each key to
-//!   its namespace and node name, one key listed as the gateways'); insiders with identities
+//!   sealed domain (an identity per node, a roster binding each key to its namespace and node
+//!   name, one key listed as the gateways'); insiders with identities
 //!   of their own run providers of the victim's `rover1/vas/retask` as the victim's node
 //!   name (the FPMa's key) and namespace (the station's), or announce themselves a gateway (a
 //!   key listed for any namespace, not as a gateway) forwarding such a provider from a LAN of
 //!   their own beside the domain's gateway to the victim (`tests/common/trust.rs`). Eight
 //!   fresh callers, each knowing every peer there is before it calls: the calls the
 //!   attackers executed. Target 0.
+//! - `hostile.insider.forged_calls_executed`, `hostile.insider.forged_samples_delivered` and
+//!   `hostile.reflect.accepted`: the victim and two proven `ground` nodes (a publisher of
+//!   positions at 50 Hz, a subscriber of the victim's link health), every frame between them
+//!   sealed with their pair's keys; an insider holding the domain key forges the publisher's
+//!   source address (raw sockets) for calls, file offers and marked samples, replays the
+//!   publisher's frames it captured off the loopback interface and reflects the victim's
+//!   frames to the subscriber back to it. The calls executed, the marked samples delivered,
+//!   the replayed and reflected frames not refused at the seal. Targets 0. (Without raw
+//!   sockets, no figure: the bench says so.)
 
 use std::net::{Ipv4Addr, SocketAddrV4};
 use std::sync::Arc;
@@ -102,6 +111,30 @@ pub fn run() {
             }
             Err(_) => eprintln!("{name}: the scene did not start (see above)"),
         }
+    }
+    match std::panic::catch_unwind(|| trust::forged_as_station("bench-hostile-forged-station")) {
+        Ok(Some(f)) => {
+            eprintln!("hostile.insider: {f:?}");
+            metric(
+                "hostile.insider.forged_calls_executed",
+                f.calls_executed as f64,
+                "calls",
+            );
+            metric(
+                "hostile.insider.forged_samples_delivered",
+                f.samples_delivered as f64,
+                "samples",
+            );
+            metric(
+                "hostile.reflect.accepted",
+                f.replays_accepted as f64,
+                "frames",
+            );
+        }
+        Ok(None) => eprintln!(
+            "hostile.insider: no figures: forging a source address takes raw sockets (root or CAP_NET_RAW)"
+        ),
+        Err(_) => eprintln!("hostile.insider: the scene did not start (see above)"),
     }
     match std::panic::catch_unwind(rejected_ratio) {
         Ok(ratio) => metric("hostile.rejected_ratio", ratio, "ratio"),

@@ -22,17 +22,29 @@
 //! every start), its name and namespace, **and the challenger's node id and nonce**. The nonce
 //! is used once: a proof recorded on the LAN and replayed, to this node or another, under the
 //! prover's id or any other, does not verify.
+//!
+//! **Pair keys.** Each node also makes an X25519 key pair at every start ([`KeyAgreement`]).
+//! A challenge carries the challenger's public half and a proof the prover's, both inside the
+//! signature, so once a proof verifies the challenger shares a secret with exactly the node
+//! that holds the listed identity key; [`KeyAgreement::pair_keys`] derives from it one key per
+//! direction, bound to the domain and both node ids. A frame sealed with the key of one
+//! direction opens with no other: not reflected back to its sender, not between another
+//! pair.
 
 use std::path::{Path, PathBuf};
 
 use ed25519_dalek::{Signature, Signer, SigningKey, Verifier, VerifyingKey};
 
+pub use crate::link::auth::PairKeys;
 use crate::link::auth::{hex, parse_hex, read_private, write_private_new, KeyFileError};
 use crate::xml::{LineIndex, Reader, XmlEvent};
 use zeroize::Zeroizing;
 
 /// What the signature covers, before the fields.
-const CONTEXT: &[u8] = b"usal-rs marea node identity v1\0";
+const CONTEXT: &[u8] = b"usal-rs marea node identity v2\0";
+
+/// The context of [`KeyAgreement::pair_keys`]' derivation (BLAKE3's key derivation mode).
+const PAIR_CONTEXT: &str = "usal-rs marea pair key v1";
 
 /// A node's identity key pair. Its `Debug` shows only the public half; the secret half is
 /// wiped from memory when dropped (ed25519-dalek's key does that itself).
@@ -44,25 +56,26 @@ impl std::fmt::Debug for IdentityKey {
     }
 }
 
-/// What a proof answers: who asked, and the nonce it sent.
+/// What a proof answers: who asked, the nonce it sent, and its key agreement half.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Challenge {
     /// The challenger's node id.
     pub verifier: u64,
     /// The nonce it sent.
     pub nonce: [u8; 16],
+    /// The challenger's [`KeyAgreement::public`].
+    pub agreement: [u8; 32],
 }
 
-/// The bytes a node signs to answer `challenge`.
+/// The bytes a node signs to answer `challenge`, its own key agreement half `agreement`
+/// included.
 fn statement(
-    domain: &str,
-    node_id: u64,
-    node: &str,
-    namespace: &str,
+    (domain, node_id, node, namespace): (&str, u64, &str, &str),
+    agreement: &[u8; 32],
     challenge: &Challenge,
 ) -> Vec<u8> {
     let mut m =
-        Vec::with_capacity(CONTEXT.len() + domain.len() + node.len() + namespace.len() + 35);
+        Vec::with_capacity(CONTEXT.len() + domain.len() + node.len() + namespace.len() + 99);
     m.extend_from_slice(CONTEXT);
     m.extend_from_slice(domain.as_bytes());
     m.push(0);
@@ -73,7 +86,74 @@ fn statement(
     m.push(0);
     m.extend_from_slice(&challenge.verifier.to_le_bytes());
     m.extend_from_slice(&challenge.nonce);
+    m.extend_from_slice(&challenge.agreement);
+    m.extend_from_slice(agreement);
     m
+}
+
+/// A node's X25519 key agreement half, made fresh at every start: with a peer's public half,
+/// once the peer's proof binds it ([`check_proof`]), it gives the pair's keys. The secret is
+/// wiped from memory when dropped.
+pub struct KeyAgreement(x25519_dalek::StaticSecret);
+
+impl std::fmt::Debug for KeyAgreement {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "KeyAgreement({})", hex(&self.public()))
+    }
+}
+
+impl KeyAgreement {
+    /// A fresh key pair from the operating system's generator.
+    pub fn new() -> Self {
+        Self::from_bytes(rand::random())
+    }
+
+    /// A key pair from its 32 secret bytes (tests).
+    pub fn from_bytes(secret: [u8; 32]) -> Self {
+        KeyAgreement(x25519_dalek::StaticSecret::from(secret))
+    }
+
+    /// The public half, which challenges and proofs carry.
+    pub fn public(&self) -> [u8; 32] {
+        x25519_dalek::PublicKey::from(&self.0).to_bytes()
+    }
+
+    /// The keys node `me` shares with node `peer` whose public half is `peer_public`, in
+    /// `domain`: `None` when that half is no key at all (a low-order point: the secret would
+    /// be known to anyone).
+    pub fn pair_keys(
+        &self,
+        peer_public: &[u8; 32],
+        domain: &str,
+        me: u64,
+        peer: u64,
+    ) -> Option<PairKeys> {
+        let shared = self
+            .0
+            .diffie_hellman(&x25519_dalek::PublicKey::from(*peer_public));
+        if !shared.was_contributory() {
+            return None;
+        }
+        let key = |from: u64, to: u64| {
+            let mut m = Zeroizing::new(Vec::with_capacity(32 + domain.len() + 17));
+            m.extend_from_slice(shared.as_bytes());
+            m.extend_from_slice(domain.as_bytes());
+            m.push(0);
+            m.extend_from_slice(&from.to_le_bytes());
+            m.extend_from_slice(&to.to_le_bytes());
+            blake3::derive_key(PAIR_CONTEXT, &m)
+        };
+        Some(PairKeys {
+            send: key(me, peer),
+            recv: key(peer, me),
+        })
+    }
+}
+
+impl Default for KeyAgreement {
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 impl IdentityKey {
@@ -141,25 +221,27 @@ impl IdentityKey {
         self.0.verifying_key().to_bytes()
     }
 
-    /// The answer to `challenge`: a signature over domain, node id, name and namespace, and
-    /// the challenger's id and nonce.
+    /// The answer to `challenge`: a signature over domain, node id, name and namespace, our
+    /// key agreement half `agreement`, and the challenger's id, nonce and key agreement half.
     pub fn prove(
         &self,
-        (domain, node_id, node, namespace): (&str, u64, &str, &str),
+        who: (&str, u64, &str, &str),
+        agreement: &[u8; 32],
         challenge: &Challenge,
     ) -> [u8; 64] {
         self.0
-            .sign(&statement(domain, node_id, node, namespace, challenge))
+            .sign(&statement(who, agreement, challenge))
             .to_bytes()
     }
 }
 
-/// Whether `signature` by `public` proves `node_id`'s run as `node` in `namespace`, in answer
-/// to `challenge`.
+/// Whether `signature` by `public` proves `node_id`'s run as `node` in `namespace`, with key
+/// agreement half `agreement`, in answer to `challenge`.
 pub fn check_proof(
     public: &[u8; 32],
     signature: &[u8],
-    (domain, node_id, node, namespace): (&str, u64, &str, &str),
+    who: (&str, u64, &str, &str),
+    agreement: &[u8; 32],
     challenge: &Challenge,
 ) -> bool {
     let Ok(key) = VerifyingKey::from_bytes(public) else {
@@ -168,11 +250,8 @@ pub fn check_proof(
     let Ok(sig) = Signature::from_slice(signature) else {
         return false;
     };
-    key.verify(
-        &statement(domain, node_id, node, namespace, challenge),
-        &sig,
-    )
-    .is_ok()
+    key.verify(&statement(who, agreement, challenge), &sig)
+        .is_ok()
 }
 
 /// The domain's roster: what each public key may be.
@@ -194,25 +273,49 @@ pub struct Listing {
     pub gateway: bool,
 }
 
-/// What a proven key may be, gathered from every listing of it ([`Roster::grant`]).
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Grant {
-    /// The namespaces it may own (`*`: any); empty when the key is not listed.
-    pub namespaces: Vec<String>,
-    /// The node names it may run under; `None`: any.
-    pub nodes: Option<Vec<String>>,
-    /// Whether it may act as a gateway.
-    pub gateway: bool,
-}
-
-impl Grant {
+impl Listing {
     /// Whether it lets a node named `node` own `namespace`.
     pub fn covers(&self, namespace: &str, node: &str) -> bool {
         allows(&self.namespaces, namespace)
-            && self
-                .nodes
-                .as_ref()
-                .is_none_or(|n| n.iter().any(|n| n == "*" || n == node))
+            && (self.nodes.is_empty() || self.nodes.iter().any(|n| n == "*" || n == node))
+    }
+}
+
+/// What a proven key may be: every listing of it ([`Roster::grant`]), each judged on its
+/// own (a key listed as node `vas` of `rover1` and as any node of `gcs` is not any node of
+/// `rover1`).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Grant {
+    listings: Vec<Listing>,
+}
+
+impl Grant {
+    /// Whether one listing lets a node named `node` own `namespace`.
+    pub fn covers(&self, namespace: &str, node: &str) -> bool {
+        self.listings.iter().any(|l| l.covers(namespace, node))
+    }
+
+    /// Whether one listing lets a node named `node` of `namespace` act as a gateway.
+    pub fn gateway_for(&self, namespace: &str, node: &str) -> bool {
+        self.listings
+            .iter()
+            .any(|l| l.gateway && l.covers(namespace, node))
+    }
+
+    /// Every namespace a listing names (`*`: any); empty when the key is not listed.
+    pub fn namespaces(&self) -> Vec<String> {
+        self.listings
+            .iter()
+            .flat_map(|l| l.namespaces.iter().cloned())
+            .collect()
+    }
+
+    /// Every node name a listing binds (empty for a listing of any node name).
+    pub fn nodes(&self) -> Vec<String> {
+        self.listings
+            .iter()
+            .flat_map(|l| l.nodes.iter().cloned())
+            .collect()
     }
 }
 
@@ -412,24 +515,19 @@ impl Roster {
 
     /// The namespaces `public` may own (empty when it is not listed).
     pub fn namespaces(&self, public: &[u8; 32]) -> Vec<String> {
-        self.grant(public).namespaces
+        self.grant(public).namespaces()
     }
 
-    /// What `public` may be, from every listing of it (nothing when it is not listed). A key
-    /// listed twice gets both listings' namespaces; its node names are bound when every
-    /// listing binds them; it is a gateway when one listing says so.
+    /// What `public` may be: its listings (none when it is not listed).
     pub fn grant(&self, public: &[u8; 32]) -> Grant {
-        let mut grant = Grant::default();
-        let mut any_node = false;
-        let mut nodes = Vec::new();
-        for l in self.entries.iter().filter(|l| l.key == *public) {
-            grant.namespaces.extend(l.namespaces.iter().cloned());
-            any_node |= l.nodes.is_empty();
-            nodes.extend(l.nodes.iter().cloned());
-            grant.gateway |= l.gateway;
+        Grant {
+            listings: self
+                .entries
+                .iter()
+                .filter(|l| l.key == *public)
+                .cloned()
+                .collect(),
         }
-        grant.nodes = (!any_node).then_some(nodes);
-        grant
     }
 }
 
@@ -445,7 +543,33 @@ mod tests {
     const C: Challenge = Challenge {
         verifier: 99,
         nonce: [5; 16],
+        agreement: [6; 32],
     };
+    /// The prover's key agreement half in the proofs of these tests.
+    const A: [u8; 32] = [7; 32];
+
+    #[test]
+    fn both_ends_of_a_pair_derive_the_same_keys_one_per_direction() {
+        let (a, b) = (
+            KeyAgreement::from_bytes([1; 32]),
+            KeyAgreement::from_bytes([2; 32]),
+        );
+        let ab = a.pair_keys(&b.public(), "d", 10, 20).unwrap();
+        let ba = b.pair_keys(&a.public(), "d", 20, 10).unwrap();
+        assert_eq!((ab.send, ab.recv), (ba.recv, ba.send));
+        assert_ne!(
+            ab.send, ab.recv,
+            "a frame sent back to its sender opens with no key"
+        );
+        // Another domain, other ids, another peer: other keys.
+        assert_ne!(a.pair_keys(&b.public(), "e", 10, 20).unwrap(), ab);
+        assert_ne!(a.pair_keys(&b.public(), "d", 10, 21).unwrap(), ab);
+        let c = KeyAgreement::from_bytes([3; 32]);
+        assert_ne!(a.pair_keys(&c.public(), "d", 10, 20).unwrap(), ab);
+        // A low-order point is no key: the secret would be all zeros.
+        assert!(a.pair_keys(&[0; 32], "d", 10, 20).is_none());
+        assert_eq!(format!("{ab:?}"), "PairKeys(..)");
+    }
 
     #[test]
     fn a_roster_reads_back_what_to_xml_wrote() {
@@ -475,13 +599,34 @@ mod tests {
             "a node name it is not listed for"
         );
         assert!(!vas.covers("rover2", "vas"));
-        assert!(!vas.gateway);
+        assert!(!vas.gateway_for("rover1", "vas"));
         let gw = r.grant(&[2; 32]);
-        assert!(gw.gateway && gw.covers("rover1", "anything"));
+        assert!(gw.gateway_for("rover1", "anything") && gw.covers("rover1", "anything"));
         let gcs = r.grant(&[3; 32]);
-        assert!(gcs.covers("gcs", "fmo") && !gcs.gateway);
+        assert!(gcs.covers("gcs", "fmo") && !gcs.gateway_for("gcs", "fmo"));
         let unknown = r.grant(&[4; 32]);
-        assert!(!unknown.covers("", "x") && !unknown.gateway);
+        assert!(!unknown.covers("", "x") && unknown.namespaces().is_empty());
+
+        // Each listing on its own: bound in one namespace, free in another, a gateway in a
+        // third, is none of these in the others.
+        let mut r = Roster::default();
+        let listing = |ns: &str, nodes: &[&str], gateway| Listing {
+            key: [5; 32],
+            namespaces: vec![ns.into()],
+            nodes: nodes.iter().map(|n| n.to_string()).collect(),
+            gateway,
+        };
+        r.list(listing("rover1", &["vas"], false));
+        r.list(listing("gcs", &[], false));
+        r.list(listing("relay", &["gw"], true));
+        let g = r.grant(&[5; 32]);
+        assert!(g.covers("rover1", "vas") && g.covers("gcs", "anything"));
+        assert!(
+            !g.covers("rover1", "fpma"),
+            "gcs's free node names are not rover1's"
+        );
+        assert!(g.gateway_for("relay", "gw"));
+        assert!(!g.gateway_for("rover1", "vas") && !g.gateway_for("gcs", "x"));
         let e = Roster::parse(
             &format!(
                 "<identities><identity key=\"{}\" namespaces=\"a\" gateway=\"maybe\"/></identities>",
@@ -498,23 +643,30 @@ mod tests {
     fn proofs_bind_domain_node_id_name_and_namespace() {
         let k = IdentityKey::from_bytes([1; 32]);
         let p = k.public();
-        let sig = k.prove(("d", 7, "vas", "rover1"), &C);
-        assert!(check_proof(&p, &sig, ("d", 7, "vas", "rover1"), &C));
+        let sig = k.prove(("d", 7, "vas", "rover1"), &A, &C);
+        assert!(check_proof(&p, &sig, ("d", 7, "vas", "rover1"), &A, &C));
         for other in [
             ("e", 7, "vas", "rover1"),
             ("d", 8, "vas", "rover1"),
             ("d", 7, "vax", "rover1"),
             ("d", 7, "vas", "rover2"),
         ] {
-            assert!(!check_proof(&p, &sig, other, &C), "{other:?}");
+            assert!(!check_proof(&p, &sig, other, &A, &C), "{other:?}");
         }
         let q = IdentityKey::from_bytes([2; 32]).public();
-        assert!(!check_proof(&q, &sig, ("d", 7, "vas", "rover1"), &C));
-        assert!(!check_proof(&p, &sig[..63], ("d", 7, "vas", "rover1"), &C));
+        assert!(!check_proof(&q, &sig, ("d", 7, "vas", "rover1"), &A, &C));
+        assert!(!check_proof(
+            &p,
+            &sig[..63],
+            ("d", 7, "vas", "rover1"),
+            &A,
+            &C
+        ));
         assert!(!check_proof(
             &[0xFF; 32],
             &sig,
             ("d", 7, "vas", "rover1"),
+            &A,
             &C
         ));
     }
@@ -523,15 +675,24 @@ mod tests {
     fn a_proof_answers_one_challenge_only() {
         let k = IdentityKey::from_bytes([1; 32]);
         let who = ("d", 7, "vas", "rover1");
-        let sig = k.prove(who, &C);
+        let sig = k.prove(who, &A, &C);
         // Replayed to another challenger, or to the same one after it sent a new nonce.
         let elsewhere = Challenge { verifier: 100, ..C };
         let later = Challenge {
             nonce: [6; 16],
             ..C
         };
-        assert!(!check_proof(&k.public(), &sig, who, &elsewhere));
-        assert!(!check_proof(&k.public(), &sig, who, &later));
+        assert!(!check_proof(&k.public(), &sig, who, &A, &elsewhere));
+        assert!(!check_proof(&k.public(), &sig, who, &A, &later));
+        // The key agreement halves are bound: a proof passed off with another half of the
+        // prover's, or answering a challenge that carried another, proves nothing.
+        let swapped = Challenge {
+            agreement: [8; 32],
+            ..C
+        };
+        assert!(!check_proof(&k.public(), &sig, who, &A, &swapped));
+        assert!(!check_proof(&k.public(), &sig, who, &[8; 32], &C));
+        assert!(check_proof(&k.public(), &sig, who, &A, &C));
     }
 
     #[test]

@@ -159,11 +159,12 @@ enum Cmd {
         /// Wait this long for a provider to be discovered first (0 = call at once).
         #[arg(long, default_value_t = 0)]
         wait_ms: u64,
-        /// Within the same wait, first know at least this many peers, each settled: its
+        /// Within the same wait, first know a peer named NAME (`namespace/node`, or `node`
+        /// without a namespace; once per peer: twice for two of one name), settled: its
         /// identity proof judged (where a roster is kept) and, when taken, its declarations
         /// in (so the call chooses among every provider there is).
-        #[arg(long, default_value_t = 0)]
-        wait_peers: usize,
+        #[arg(long = "wait-peer", value_name = "NAME")]
+        wait_peers: Vec<String>,
     },
     /// Accept files on ITEM into DIR.
     Sink {
@@ -592,9 +593,18 @@ async fn run(node: &Node, svc: &marea::Service, args: &Args) -> anyhow::Result<(
                     marea::PeerTrust::Refused => true,
                     marea::PeerTrust::Claimed | marea::PeerTrust::Proven => p.declarations > 0,
                 };
+                let path =
+                    |p: &marea::PeerInfo| marea::config::access::peer_path(&p.namespace, &p.name);
                 node.wait_until(Duration::from_millis(*wait_ms), |n| {
-                    let peers = n.peers();
-                    peers.len() >= *wait_peers && peers.iter().all(settled)
+                    let settled: Vec<String> =
+                        n.peers().iter().filter(|p| settled(p)).map(path).collect();
+                    let mut wanted = wait_peers.clone();
+                    wanted.sort();
+                    wanted.dedup();
+                    wanted.iter().all(|w| {
+                        let want = wait_peers.iter().filter(|x| *x == w).count();
+                        settled.iter().filter(|s| *s == w).count() >= want
+                    })
                 })
                 .await;
                 f.wait_provider(Duration::from_millis(*wait_ms)).await;
@@ -718,7 +728,12 @@ struct Delivered {
     samples: std::collections::BTreeMap<String, u64>,
     /// Files stored: (sender, size).
     files: Vec<(String, u64)>,
+    /// Samples carrying the hostile tests' marker (latitude [`FORGED_LAT`]), whoever sent them.
+    marked: u64,
 }
+
+/// The latitude of the positions the hostile tests forge: no genuine publisher sends it.
+const FORGED_LAT: f64 = 666.0;
 
 async fn victim(
     node: &Node,
@@ -763,6 +778,9 @@ async fn victim(
             s = positions.recv() => {
                 if let (Ok(s), Ok(mut d)) = (s, delivered.lock()) {
                     *d.samples.entry(format!("{} {}", s.publisher, s.name)).or_default() += 1;
+                    if s.value.lat == FORGED_LAT {
+                        d.marked += 1;
+                    }
                 }
                 continue;
             }
@@ -782,6 +800,7 @@ async fn victim(
             let mut peers = std::collections::BTreeMap::<String, u64>::new();
             let mut peer_addrs = std::collections::BTreeMap::<String, String>::new();
             let mut authenticated = Vec::new();
+            let mut pair_sealed = Vec::new();
             let mut declarations = 0;
             for p in node.peers() {
                 declarations += p.declarations;
@@ -791,6 +810,9 @@ async fn victim(
                 {
                     authenticated.push(format!("{}/{}", p.namespace, p.name));
                 }
+                if p.pair_sealed {
+                    pair_sealed.push(format!("{}/{}", p.namespace, p.name));
+                }
                 *peers
                     .entry(format!("{}/{}", p.namespace, p.name))
                     .or_default() += 1;
@@ -798,11 +820,13 @@ async fn victim(
             }
             json!({
                 "called": d.called,
+                "marked": d.marked,
                 "samples": d.samples,
                 "files": d.files,
                 "peers": peers,
                 "peer_addrs": peer_addrs,
                 "authenticated": authenticated,
+                "pair_sealed": pair_sealed,
                 "declarations": declarations,
                 "frames_in": node.link_stats().iter().map(|(_, s)| s.frames_in).sum::<u64>(),
                 "refusals": {

@@ -282,9 +282,13 @@ mod tests {
         }
         assert_eq!(roster.namespaces(&public(dir.join("tools.id"))), ["*"]);
         // Only the gateways' key makes a gateway: not the tools', not a namespace's.
-        assert!(roster.grant(&public(gateway_identity_path(&dir))).gateway);
+        assert!(roster
+            .grant(&public(gateway_identity_path(&dir)))
+            .gateway_for("", "gateway"));
         for other in [dir.join("tools.id"), identity_path(&dir, "rover1")] {
-            assert!(!roster.grant(&public(other)).gateway);
+            assert!(!roster
+                .grant(&public(other))
+                .gateway_for("rover1", "gateway"));
         }
         let rules = marea::config::AccessConfig::load(&access_path(&dir, "rover1")).unwrap();
         assert_eq!(rules, mission(true).nodes[0].access.clone().unwrap());

@@ -159,6 +159,8 @@ pub struct Forger {
     seq: u32,
     /// Datagrams sent so far.
     pub sent: u64,
+    /// Sends from this address instead of its socket's (a forged source address).
+    spoof: Option<(Spoofer, std::net::SocketAddrV4)>,
 }
 
 impl Forger {
@@ -171,7 +173,19 @@ impl Forger {
             sealer: key.map(|k| marea::link::auth::Sealer::new(k, marea::link::auth::Profile::UDP)),
             seq: 0,
             sent: 0,
+            spoof: None,
         })
+    }
+
+    /// A forger whose datagrams carry source address `from` (another node's); `None` without
+    /// the privilege of raw sockets.
+    pub fn spoofing(
+        key: Option<&marea::link::auth::DomainKey>,
+        from: std::net::SocketAddrV4,
+    ) -> Option<Forger> {
+        let mut f = Forger::new(key).ok()?;
+        f.spoof = Some((Spoofer::open()?, from));
+        Some(f)
     }
 
     /// Its source address.
@@ -192,7 +206,12 @@ impl Forger {
 
     /// Sends `d` exactly as given (a replay).
     pub fn raw(&mut self, to: SocketAddr, d: &[u8]) -> io::Result<()> {
-        self.sock.send_to(d, to)?;
+        match (&self.spoof, to) {
+            (Some((s, from)), SocketAddr::V4(to)) => s.send(*from, to, d)?,
+            _ => {
+                self.sock.send_to(d, to)?;
+            }
+        }
         self.sent += 1;
         Ok(())
     }
@@ -364,5 +383,160 @@ fn sealed_discovery_sender(d: &[u8]) -> Option<NodeId> {
             Some(node_id)
         }
         _ => None,
+    }
+}
+
+/// A sender of UDP datagrams with any source address, as anyone on a LAN can forge one: a raw
+/// IP socket (root, or `CAP_NET_RAW`).
+pub struct Spoofer(socket2::Socket);
+
+impl Spoofer {
+    /// The raw socket; `None` without the privilege (the caller says so: see
+    /// `test_support::tool_missing`).
+    pub fn open() -> Option<Spoofer> {
+        use socket2::{Domain, Protocol, Socket, Type};
+        Socket::new(
+            Domain::IPV4,
+            Type::RAW,
+            Some(Protocol::from(libc::IPPROTO_RAW)),
+        )
+        .ok()
+        .map(Spoofer)
+    }
+
+    /// Sends UDP `payload` to `to` as if from `from`.
+    pub fn send(
+        &self,
+        from: std::net::SocketAddrV4,
+        to: std::net::SocketAddrV4,
+        payload: &[u8],
+    ) -> io::Result<()> {
+        let udp_len = 8 + payload.len();
+        let total = 20 + udp_len;
+        let mut p = Vec::with_capacity(total);
+        p.extend_from_slice(&[0x45, 0]);
+        p.extend_from_slice(&(total as u16).to_be_bytes());
+        // Id, flags (don't fragment), TTL, UDP, checksum (below).
+        p.extend_from_slice(&[0, 0, 0x40, 0, 64, 17, 0, 0]);
+        p.extend_from_slice(&from.ip().octets());
+        p.extend_from_slice(&to.ip().octets());
+        let sum = ipv4_checksum(&p);
+        p[10..12].copy_from_slice(&sum.to_be_bytes());
+        p.extend_from_slice(&from.port().to_be_bytes());
+        p.extend_from_slice(&to.port().to_be_bytes());
+        p.extend_from_slice(&(udp_len as u16).to_be_bytes());
+        // No UDP checksum (allowed over IPv4).
+        p.extend_from_slice(&[0, 0]);
+        p.extend_from_slice(payload);
+        self.0.send_to(&p, &SocketAddr::V4(to).into()).map(|_| ())
+    }
+}
+
+/// The Internet checksum of an IPv4 header.
+fn ipv4_checksum(header: &[u8]) -> u16 {
+    let mut sum: u32 = header
+        .chunks(2)
+        .map(|c| u32::from(u16::from_be_bytes([c[0], *c.get(1).unwrap_or(&0)])))
+        .sum();
+    while sum > 0xffff {
+        sum = (sum & 0xffff) + (sum >> 16);
+    }
+    !(sum as u16)
+}
+
+/// A listener to every IP packet on the loopback interface (a packet socket: root, or
+/// `CAP_NET_RAW`), as anyone on a LAN's segment can read the datagrams two nodes exchange.
+pub struct LoopbackCapture(std::os::fd::OwnedFd);
+
+impl LoopbackCapture {
+    /// The packet socket on `lo`; `None` without the privilege.
+    #[allow(unsafe_code)]
+    pub fn open() -> Option<LoopbackCapture> {
+        use std::os::fd::{FromRawFd, OwnedFd};
+        let proto = (libc::ETH_P_IP as u16).to_be();
+        // SAFETY: plain socket(2); the descriptor is owned below.
+        let fd = unsafe {
+            libc::socket(
+                libc::AF_PACKET,
+                libc::SOCK_DGRAM | libc::SOCK_CLOEXEC,
+                i32::from(proto),
+            )
+        };
+        if fd < 0 {
+            return None;
+        }
+        // SAFETY: `fd` is a fresh descriptor nothing else owns.
+        let owned = unsafe { OwnedFd::from_raw_fd(fd) };
+        // SAFETY: a NUL-terminated name.
+        let lo = unsafe { libc::if_nametoindex(c"lo".as_ptr()) };
+        // SAFETY: sockaddr_ll is plain data; zeroed is a valid value.
+        let mut addr: libc::sockaddr_ll = unsafe { std::mem::zeroed() };
+        addr.sll_family = libc::AF_PACKET as u16;
+        addr.sll_protocol = proto;
+        addr.sll_ifindex = lo as i32;
+        // SAFETY: `addr` is a sockaddr_ll of the size given.
+        let bound = unsafe {
+            libc::bind(
+                fd,
+                std::ptr::addr_of!(addr).cast(),
+                std::mem::size_of::<libc::sockaddr_ll>() as u32,
+            )
+        };
+        let timeout = libc::timeval {
+            tv_sec: 0,
+            tv_usec: 50_000,
+        };
+        // SAFETY: a timeval of the size given.
+        let timed = unsafe {
+            libc::setsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                libc::SO_RCVTIMEO,
+                std::ptr::addr_of!(timeout).cast(),
+                std::mem::size_of::<libc::timeval>() as u32,
+            )
+        };
+        (bound == 0 && timed == 0).then_some(LoopbackCapture(owned))
+    }
+
+    /// The payloads of up to `n` UDP datagrams from `from` to `to` seen within `within`.
+    #[allow(unsafe_code)]
+    pub fn udp(
+        &self,
+        from: std::net::SocketAddrV4,
+        to: std::net::SocketAddrV4,
+        n: usize,
+        within: Duration,
+    ) -> Vec<Vec<u8>> {
+        use std::os::fd::AsRawFd;
+        let deadline = Instant::now() + within;
+        let mut buf = vec![0u8; 70_000];
+        let mut got = Vec::new();
+        while got.len() < n && Instant::now() < deadline {
+            // SAFETY: reads at most `buf.len()` bytes into `buf`.
+            let len =
+                unsafe { libc::recv(self.0.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len(), 0) };
+            let Ok(len) = usize::try_from(len) else {
+                continue;
+            };
+            let p = &buf[..len];
+            if p.len() < 28 || p[0] >> 4 != 4 || p[9] != 17 {
+                continue;
+            }
+            let ihl = usize::from(p[0] & 0x0f) * 4;
+            if p.len() < ihl + 8 {
+                continue;
+            }
+            let ip = |o: usize| std::net::Ipv4Addr::new(p[o], p[o + 1], p[o + 2], p[o + 3]);
+            let port = |o: usize| u16::from_be_bytes([p[o], p[o + 1]]);
+            let (src, dst) = (
+                std::net::SocketAddrV4::new(ip(12), port(ihl)),
+                std::net::SocketAddrV4::new(ip(16), port(ihl + 2)),
+            );
+            if src == from && dst == to {
+                got.push(p[ihl + 8..].to_vec());
+            }
+        }
+        got
     }
 }

@@ -366,7 +366,7 @@ fn offer(id: u32, kind: ItemKind, name: &str, ty: TypeInfo, origin: Option<Origi
 
 /// What the victim would run or store if it took an attacker's word: a call of every id a
 /// node of a few dozen items may use, a file offer to each, a sample on each.
-fn forged_session_traffic() -> Vec<Message> {
+pub fn forged_session_traffic() -> Vec<Message> {
     let args = encode_payload(&EVIL_ARG).expect("a u64 encodes");
     let position = encode_payload(&[0u8; 32]).expect("bytes encode");
     let mut msgs = Vec::new();

@@ -1,7 +1,8 @@
 //! The insiders of names and gateways, shared by `tests/hostile.rs` and
-//! `benches/security/hostile.rs`: a domain sealed the way `usal run` seals a mission (the
-//! domain key, an identity key per node, a roster binding each key to its namespace and node
-//! name, and one key listed as the gateways'), a victim `rover1/vas` whose `<access>` lets only
+//! `benches/security/hostile.rs`: a sealed domain (the domain key, an identity key per node,
+//! a roster binding each key to its namespace and node name, one key listed as the gateways'
+//! as `usal run` lists its `gateway.id`, and one for any namespace as its `tools.id`), a
+//! victim `rover1/vas` whose `<access>` lets only
 //! `ground/*` call it, and insiders holding the domain key and an identity of their own who
 //! try to take the victim's fresh callers: by running as the victim's name (`squat`), or by
 //! announcing themselves gateways and forwarding a provider of the victim's names from a LAN
@@ -15,6 +16,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use marea::identity::{IdentityKey, Listing, Roster};
+use marea::protocol::Message;
 use serde_json::Value;
 
 use super::{keygen, outcome, probe_with_config, victim_cmd, Net, Proc, T};
@@ -198,18 +200,32 @@ pub struct Answered {
 }
 
 /// [`CALLERS`] fresh callers of `rover1/vas/retask` (node `ground/caller<k>`, proven) on
-/// `net`, each knowing `peers` peers first; then who answered them.
+/// `net`, each knowing the peers named `peers` first (`namespace/node`, once per peer);
+/// then who answered them.
 fn fresh_callers(
     domain: &Domain,
     net: &Net,
-    peers: usize,
+    peers: &[&str],
     victim: &mut Proc,
     attackers: &mut [Proc],
 ) -> Answered {
     let key = domain.key.to_str().expect("utf-8 path");
     let id = domain.identity("ground");
     let roster = domain.roster.to_str().expect("utf-8 path");
-    let peers = peers.to_string();
+    let mut cmd = vec![
+        "call",
+        "--name",
+        "rover1/vas/retask",
+        "--arg",
+        "21",
+        "--wait-ms",
+        "15000",
+        "--timeout-ms",
+        "3000",
+    ];
+    for p in peers {
+        cmd.extend(["--wait-peer", p]);
+    }
     let mut callers: Vec<Proc> = (0..CALLERS)
         .map(|k| {
             net.probe_args(
@@ -224,19 +240,7 @@ fn fresh_callers(
                     "--namespace",
                     "ground",
                 ],
-                &[
-                    "call",
-                    "--name",
-                    "rover1/vas/retask",
-                    "--arg",
-                    "21",
-                    "--wait-ms",
-                    "15000",
-                    "--wait-peers",
-                    &peers,
-                    "--timeout-ms",
-                    "3000",
-                ],
+                &cmd,
             )
         })
         .collect();
@@ -292,7 +296,9 @@ pub fn squat(test: &str) -> Answered {
             "",
         ),
     ];
-    fresh_callers(&domain, &net, 3, &mut victim, &mut attackers)
+    // The victim and the squatter share a name.
+    let peers = ["rover1/vas", "rover1/vas", "rover1/vas2"];
+    fresh_callers(&domain, &net, &peers, &mut victim, &mut attackers)
 }
 
 /// A self-declared gateway: the victim on LAN `air` behind the domain's gateway, its callers
@@ -331,5 +337,211 @@ pub fn gateway_forgery(test: &str) -> Answered {
     );
     let mut attackers = vec![fake];
     // Each caller knows the two gateways.
-    fresh_callers(&domain, &ground, 2, &mut victim, &mut attackers)
+    fresh_callers(
+        &domain,
+        &ground,
+        &["gateway", "forger"],
+        &mut victim,
+        &mut attackers,
+    )
+}
+
+/// What an insider forging the station's address, and replaying and reflecting what it read
+/// off the LAN, got the victim to take.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Forged {
+    /// Calls the victim executed with the forger's argument.
+    pub calls_executed: usize,
+    /// Samples carrying the forger's marker the victim delivered.
+    pub samples_delivered: u64,
+    /// Captured frames sent again (replayed as the station's, reflected back to the victim).
+    pub replayed: u64,
+    /// Of those, the victim's own frames reflected back to it.
+    pub reflected: u64,
+    /// Of those, how many the victim did not count refused at its seal.
+    pub replays_accepted: u64,
+    /// Datagrams forged with the domain key as the station's.
+    pub forged: u64,
+    /// Of those, how many the victim counted refused at its seal.
+    pub forged_refused: u64,
+    /// The station's positions kept coming (25 more after the attacks), still pair-sealed.
+    pub legit_flowing: bool,
+}
+
+/// A position of the forger's: latitude 666 (the victim counts such samples apart), the rest
+/// zero, encoded as the probes' `Position` is (three f64, two f32).
+fn marked_position() -> Vec<u8> {
+    let mut p = 666.0f64.to_le_bytes().to_vec();
+    p.resize(32, 0);
+    p
+}
+
+fn v4(addr: &str) -> std::net::SocketAddrV4 {
+    match addr
+        .trim_start_matches("udp://")
+        .parse()
+        .unwrap_or_else(|e| panic!("{addr}: not a UDP address: {e}"))
+    {
+        std::net::SocketAddr::V4(a) => a,
+        other => panic!("{other}: not IPv4"),
+    }
+}
+
+/// The insider of "Trust that holds inside the domain", item 1: it holds the domain key (no
+/// identity), reads what the victim and two proven `ground` nodes exchange (a publisher of
+/// positions at 50 Hz, a subscriber of the victim's link health), then (1) sends calls, file
+/// offers and marked position samples sealed with the domain key from the publisher's
+/// address, (2) replays the publisher's captured frames from its address, and (3) reflects
+/// the victim's captured frames to the subscriber back to the victim from the subscriber's
+/// address. `None` when this host gives no raw sockets (root or `CAP_NET_RAW`), which
+/// forging source addresses takes.
+pub fn forged_as_station(test: &str) -> Option<Forged> {
+    use marea::link::auth::DomainKey;
+    let capture = super::attacker::LoopbackCapture::open()?;
+    let domain = Domain::new();
+    let net = Net::new(test);
+    let mut victim = provider(
+        &domain,
+        "victim",
+        ("vas", "rover1"),
+        Some("vas"),
+        &net,
+        r#"<access>
+    <allow kind="call" item="rover1/vas/*" from="ground/*"/>
+    <allow kind="publish" item="**" from="ground/*"/>
+  </access>"#,
+    );
+    let target = v4(victim
+        .seen
+        .iter()
+        .find_map(|v| v["addrs"][0].as_str())
+        .expect("the victim's address"));
+    let (key, id, roster) = (
+        domain.key.to_str().expect("utf-8 path").to_owned(),
+        domain.identity("ground"),
+        domain.roster.to_str().expect("utf-8 path").to_owned(),
+    );
+    let ground = [
+        "--key-file",
+        &key,
+        "--identity-file",
+        id.to_str().expect("utf-8 path"),
+        "--identities",
+        &roster,
+        "--namespace",
+        "ground",
+    ];
+    let _publisher = net.probe_args("gs", &ground, &super::publishing("position"));
+    let _subscriber = net.probe_args(
+        "monitor",
+        &ground,
+        &[
+            "health",
+            "--pattern",
+            "rover1/link/*/stats",
+            "--count",
+            "100000000",
+        ],
+    );
+    let sealed = |r: &Value, who: &str| {
+        r["pair_sealed"]
+            .as_array()
+            .is_some_and(|a| a.iter().any(|p| p == who))
+    };
+    let samples = |r: &Value| {
+        r["samples"]["gs ground/probe/position"]
+            .as_u64()
+            .unwrap_or(0)
+    };
+    let r = victim.expect(T, "both ground nodes pair-sealed, positions flowing", |v| {
+        v.get("report").is_some_and(|r| {
+            sealed(r, "ground/gs") && sealed(r, "ground/monitor") && samples(r) >= 5
+        })
+    })["report"]
+        .clone();
+    let (gs, monitor) = (
+        v4(r["peer_addrs"]["ground/gs"].as_str().expect("gs's address")),
+        v4(r["peer_addrs"]["ground/monitor"]
+            .as_str()
+            .expect("monitor's address")),
+    );
+    // Read off the LAN: the publisher's frames to the victim, the victim's to the subscriber
+    // (its link health, once a second).
+    let from_gs = capture.udp(gs, target, 20, Duration::from_secs(5));
+    let to_monitor = capture.udp(target, monitor, 4, Duration::from_secs(10));
+    let at_seal = |r: &Value| {
+        super::hostile::refusals(r, "auth_rejected")
+            + super::hostile::refusals(r, "replay_rejected")
+    };
+    let base = at_seal(&latest_report(&mut victim));
+    let key = DomainKey::load(&domain.key).expect("the domain key");
+    let mut as_gs = super::attacker::Forger::spoofing(Some(&key), gs)?;
+    let forged_to = std::net::SocketAddr::V4(target);
+    as_gs
+        .safe(forged_to, &super::hostile::forged_session_traffic())
+        .expect("send");
+    for id in 1..=24u32 {
+        as_gs
+            .fast(
+                forged_to,
+                &Message::Var {
+                    id,
+                    payload: marked_position(),
+                },
+            )
+            .expect("send");
+    }
+    let forged = as_gs.sent;
+    let mut replayer = super::attacker::Forger::spoofing(None, gs)?;
+    for d in &from_gs {
+        replayer.raw(forged_to, d).expect("send");
+    }
+    let mut reflector = super::attacker::Forger::spoofing(None, monitor)?;
+    for d in &to_monitor {
+        reflector.raw(forged_to, d).expect("send");
+    }
+    let replayed = replayer.sent + reflector.sent;
+    let wanted = base + forged + replayed;
+    let r = victim
+        .try_expect(T, |v| v.get("report").is_some_and(|r| at_seal(r) >= wanted))
+        .map_or_else(|| latest_report(&mut victim), |v| v["report"].clone());
+    let refused = at_seal(&r).saturating_sub(base);
+    let executed = r["called"]
+        .as_array()
+        .map_or(0, |c| c.iter().filter(|c| c.as_u64() != Some(21)).count());
+    let before = samples(&r);
+    let legit_flowing = victim
+        .try_expect(T, |v| {
+            v.get("report")
+                .is_some_and(|r| samples(r) >= before + 25 && sealed(r, "ground/gs"))
+        })
+        .is_some();
+    // The forged datagrams counted first: what is left of the refusals are the replays'.
+    let f = Forged {
+        legit_flowing,
+        reflected: reflector.sent,
+        calls_executed: executed,
+        samples_delivered: r["marked"].as_u64().unwrap_or(0),
+        replayed,
+        replays_accepted: replayed.saturating_sub(refused.saturating_sub(forged)),
+        forged,
+        forged_refused: refused.min(forged),
+    };
+    eprintln!(
+        "trust: forged as the station: {f:?} (captured {} + {})",
+        from_gs.len(),
+        to_monitor.len()
+    );
+    Some(f)
+}
+
+/// The victim's latest report (waiting a little for one more).
+fn latest_report(p: &mut Proc) -> Value {
+    let _ = p.try_expect(Duration::from_millis(300), |_| false);
+    p.seen
+        .iter()
+        .rev()
+        .find_map(|v| v.get("report"))
+        .cloned()
+        .unwrap_or(Value::Null)
 }

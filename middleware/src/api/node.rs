@@ -59,6 +59,11 @@ pub struct PeerInfo {
     /// Whether it acts as a gateway towards this node (speaks for other nodes).
     #[serde(default)]
     pub gateway: bool,
+    /// Whether what it and this node exchange is sealed with the keys only the two of them
+    /// hold (both proved their identities), so a frame is taken as its because its key sealed
+    /// it, not because of the address it came from.
+    #[serde(default)]
+    pub pair_sealed: bool,
 }
 
 /// How far a node takes a peer at its word ([`PeerInfo::trust`]).
@@ -248,7 +253,11 @@ impl Node {
                     Some(f) => Some(crate::identity::Roster::load(f)?),
                     None => None,
                 };
-                Some(crate::node::IdentityLayer { key, roster })
+                Some(crate::node::IdentityLayer {
+                    key,
+                    roster,
+                    agreement: crate::identity::KeyAgreement::new(),
+                })
             }
             _ => None,
         };
@@ -275,13 +284,7 @@ impl Node {
             .min()
             .unwrap_or((Duration::from_secs(1), Duration::from_millis(3500)));
         let (changed, _) = watch::channel(0u64);
-        let has_serial = config
-            .links
-            .iter()
-            .any(|l| matches!(l, LinkConfig::Serial(_) | LinkConfig::SerialDuo(_)));
-        let forwards = config
-            .gateway
-            .unwrap_or(has_serial && config.links.len() > 1);
+        let forwards = config.forwards();
         let inner = Arc::new(NodeInner {
             me: Identity {
                 id,
@@ -489,7 +492,7 @@ impl Node {
                     .unwrap_or_default(),
                 addr: p.addr.to_string(),
                 last_seen_ms: p.last_heard(self.inner.me.epoch).elapsed().as_millis() as u64,
-                authenticated_namespaces: p.authenticated.as_ref().map(|g| g.namespaces.clone()),
+                authenticated_namespaces: p.authenticated.as_ref().map(|g| g.namespaces()),
                 declarations: p.declarations(),
                 trust: match &p.authenticated {
                     None => PeerTrust::Claimed,
@@ -498,6 +501,7 @@ impl Node {
                     Some(_) => PeerTrust::Pending,
                 },
                 gateway: p.gateway,
+                pair_sealed: links.get(p.link).is_some_and(|l| l.pair_sealed(p.addr)),
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));

@@ -114,8 +114,10 @@ impl Service {
     /// Calls function `name` with postcard-encoded `args` for `namespace/caller`, a party this
     /// node speaks for that is no marea node (the Zenoh bridge's clients, `zenoh/<identity>`):
     /// the call travels as one a gateway relays, so the provider's `<access>` rules match
-    /// `namespace/caller`, and the provider accepts it only from a node whose Hello says it
-    /// forwards (`gateway="true"`) and that its `<access kind="gateway">` rules, if any, allow.
+    /// `namespace/caller`, and the provider accepts it only from a gateway: a node whose Hello
+    /// says it forwards (`gateway="true"`), whose identity key the provider's roster lists as
+    /// a gateway where it keeps one, and that its `<access kind="gateway">` rules, if any,
+    /// allow.
     /// A function this node provides itself runs directly, as any local call.
     ///
     /// # Errors

@@ -504,10 +504,14 @@ mod tests {
             ),
             (Message::FileCancel { transfer: 3 }, vec![13, 3]),
             (Message::Bye { node_id: 4 }, vec![14, 4]),
-            // Challenge (16): the 16 nonce bytes as they are (a fixed-size array)
+            // Challenge (16): the 16 nonce bytes and the 32 of the key agreement half as they
+            // are (fixed-size arrays)
             (
-                Message::Challenge { nonce: [5; 16] },
-                [&[16u8][..], &[5; 16]].concat(),
+                Message::Challenge {
+                    nonce: [5; 16],
+                    agreement: [6; 32],
+                },
+                [&[16u8][..], &[5; 16], &[6; 32]].concat(),
             ),
             // Flow (17): a bool is one byte
             (

@@ -68,8 +68,7 @@ pub fn with_domain_seal(config: &NetworkConfig) -> Result<Cow<'_, NetworkConfig>
     let namespace = config.namespace.as_deref();
     // A gateway acts as one only with the key the roster lists as a gateway.
     let gateway = config
-        .gateway
-        .unwrap_or(false)
+        .forwards()
         .then(|| existing(gateway_identity_path(&dir)))
         .flatten();
     let identity_file = gateway

@@ -62,6 +62,16 @@ pub mod env {
 pub const DEFAULT_DOMAIN: &str = "usal";
 
 impl NetworkConfig {
+    /// Whether a node of this configuration forwards between its links (is a gateway): as
+    /// `gateway` says, else when a serial link sits beside another link (the radio gateway).
+    pub fn forwards(&self) -> bool {
+        let has_serial = self
+            .links
+            .iter()
+            .any(|l| matches!(l, LinkConfig::Serial(_) | LinkConfig::SerialDuo(_)));
+        self.gateway.unwrap_or(has_serial && self.links.len() > 1)
+    }
+
     /// Reads and parses a `network.xml` file; [`NetworkConfig::source`] records `path`.
     ///
     /// # Errors

@@ -73,6 +73,29 @@ impl fmt::Debug for DomainKey {
     }
 }
 
+/// The keys of one pair of nodes, as one of them holds them: one per direction. Wiped from
+/// memory when dropped; its `Debug` shows nothing of them.
+#[derive(Clone, PartialEq, Eq)]
+pub struct PairKeys {
+    /// Seals what this node sends to the peer.
+    pub send: [u8; 32],
+    /// Opens what the peer sends to this node.
+    pub recv: [u8; 32],
+}
+
+impl Drop for PairKeys {
+    fn drop(&mut self) {
+        self.send.zeroize();
+        self.recv.zeroize();
+    }
+}
+
+impl std::fmt::Debug for PairKeys {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("PairKeys(..)")
+    }
+}
+
 /// Why a key file could not be written or read.
 #[derive(Debug, thiserror::Error)]
 pub enum KeyFileError {
@@ -276,6 +299,16 @@ impl Profile {
     /// UDP datagrams.
     pub const UDP: Profile = Profile {
         medium: b'U',
+        epoch_len: 4,
+        counter_len: 4,
+        tag_len: 8,
+        encrypt: false,
+    };
+    /// UDP datagrams between two nodes sealed with their pair's keys
+    /// ([`PairKeys`]): a medium byte of their own, so a frame of one kind of
+    /// seal is never taken for the other.
+    pub const UDP_PAIR: Profile = Profile {
+        medium: b'u',
         epoch_len: 4,
         counter_len: 4,
         tag_len: 8,
@@ -489,6 +522,14 @@ pub enum AuthReject {
     /// The counter is older than the replay window.
     #[error("too old for the replay window")]
     TooOld,
+    /// Sealed with the domain key by (or as) a peer whose data comes sealed with the keys it
+    /// shares with this node: a key holder forging its address, or a frame of its that left
+    /// before it switched.
+    #[error("sealed with the domain key, not the pair's")]
+    NotPairSealed,
+    /// Sealed with a pair's keys this node does not hold (not yet, or not any more).
+    #[error("sealed with a pair key this node does not hold")]
+    NoPair,
 }
 
 impl AuthReject {

@@ -36,6 +36,7 @@ pub mod zenoh;
 use std::fmt;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 /// Where a peer is reached on a link.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -389,8 +390,23 @@ pub trait Link: Send + Sync + 'static {
         true
     }
     /// Forgets a peer: its unacknowledged safe messages complete with
-    /// [`LinkSendError::PeerClosed`]; a later message starts a fresh session.
+    /// [`LinkSendError::PeerClosed`]; a later message starts a fresh session. Keys set with
+    /// [`Link::set_pair`] for it are forgotten too.
     fn close_peer(&self, to: PeerAddr);
+    /// Seals data to and from `to` with `keys` (the keys this node and the peer there share
+    /// once its proof verified) as soon as the peer shows it holds them too (a frame sealed
+    /// with them arrives); from then on data from `to` sealed with the domain key is refused.
+    /// The same keys again keep the pair's replay window; `None` goes back to the domain key.
+    /// Links that do not seal per pair yet (serial, shared memory) ignore it.
+    fn set_pair(&self, to: PeerAddr, keys: Option<Arc<crate::link::auth::PairKeys>>) {
+        let _ = (to, keys);
+    }
+    /// Whether data to and from `to` is sealed with the keys of its pair now
+    /// ([`Link::set_pair`], and the peer showed it holds them).
+    fn pair_sealed(&self, to: PeerAddr) -> bool {
+        let _ = to;
+        false
+    }
     /// Counters.
     fn stats(&self) -> LinkStats;
     /// Content bytes per chunk of a file sent to a peer reached directly on this link (one

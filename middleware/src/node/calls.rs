@@ -637,6 +637,9 @@ impl NodeInner {
                 })
             }
             OfferRole::Relay { origin, remote_id } => {
+                if !self.may_relay_for(node, &offer.name) {
+                    return refuse(RemoteFailure::Denied);
+                }
                 let (origin, remote_id) = (*origin, *remote_id);
                 let caller = self.caller_to_relay(node, caller.as_ref());
                 let inner = self.clone();

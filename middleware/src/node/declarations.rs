@@ -439,9 +439,12 @@ impl NodeInner {
             };
             peer_name = p.name.clone();
             peer_link = p.link;
+            // When each offer was first stored, kept through a reset and a re-declaration of
+            // the same item: its copy through a gateway keeps its place among the others.
+            let mut previous: HashMap<u32, RemoteItem> = HashMap::new();
             if reset && after == 0 {
                 p.services.clear();
-                p.offers.clear();
+                previous = std::mem::take(&mut p.offers);
                 p.interests.clear();
                 p.routes.clear();
                 p.known = 0;
@@ -531,6 +534,18 @@ impl NodeInner {
                                 ));
                             }
                             change.everything = true;
+                            let same = |o: &RemoteItem| {
+                                o.kind == kind
+                                    && *o.name == *name
+                                    && o.origin.as_ref().map(|o| o.node)
+                                        == origin.as_ref().map(|o| o.node)
+                            };
+                            let seen = p
+                                .offers
+                                .get(&id)
+                                .or_else(|| previous.get(&id))
+                                .filter(|o| same(o))
+                                .map_or_else(first_seen, |o| o.seen);
                             p.offers.insert(
                                 id,
                                 RemoteItem {
@@ -542,7 +557,7 @@ impl NodeInner {
                                     origin_name: origin.as_ref().map(|o| o.name.as_str().into()),
                                     origin,
                                     denied,
-                                    seen: first_seen(),
+                                    seen,
                                 },
                             );
                         }

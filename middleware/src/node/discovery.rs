@@ -206,6 +206,7 @@ impl NodeInner {
                         interests: HashMap::new(),
                         shadowed: Default::default(),
                         routes: HashMap::default(),
+                        pair: None,
                         authenticated: roster.map(|_| Default::default()),
                         challenge: roster.map(|_| rand::random()),
                         alive: Arc::new(std::sync::atomic::AtomicBool::new(true)),
@@ -350,11 +351,7 @@ impl NodeInner {
             return true;
         }
         // With a roster, only a proven identity keeps its place.
-        let proven = |p: &super::Peer| {
-            p.authenticated
-                .as_ref()
-                .is_none_or(|a| !a.namespaces.is_empty())
-        };
+        let proven = |p: &super::Peer| p.authenticated.is_none() || p.proven();
         let candidate = eviction_candidate(self.peers.by_id.iter().map(|p| {
             (
                 p.id,

@@ -24,6 +24,7 @@ use std::time::{Duration, Instant};
 
 use dashmap::DashMap;
 
+use super::policy::Refusal;
 use super::{lock, LocalInterest, LocalOffer, NodeInner, OfferRole};
 use crate::codec::encode_data_message_of_payload;
 use crate::link::Outgoing;
@@ -398,6 +399,20 @@ impl NodeInner {
     pub(super) fn relays_for(&self, node: NodeId, caller: &Origin) -> bool {
         let gateway = self.peers.by_id.get(&node).is_some_and(|p| p.gateway);
         gateway && caller.node != node && (1..MAX_HOPS).contains(&caller.hops)
+    }
+
+    /// Whether this gateway may relay a call or file from `node` to `item`'s node: the next
+    /// node takes the name we pass on as proven, so where a roster is kept only a peer whose
+    /// key proved its namespace and node name (or a proven gateway relaying further) is
+    /// relayed; a refusal is counted and logged.
+    pub(super) fn may_relay_for(&self, node: NodeId, item: &str) -> bool {
+        if self.identity_allows(node) {
+            return true;
+        }
+        let (link, name) = (self.peer_link(node), self.peer_name(node));
+        self.policy
+            .refuse(link, node, &name, item, Refusal::RelayUnproven);
+        false
     }
 
     /// Who a call or file from `node` (relayed for `caller`, if given) is from, as this

@@ -37,17 +37,32 @@ impl NodeInner {
         self.peers.by_id.get(&node)?.challenge
     }
 
-    /// A peer's challenge: we answer with our proof over its nonce, if we have a key.
-    pub fn on_challenge(&self, node: NodeId, nonce: [u8; 16]) {
-        let Some(key) = self.identity.as_ref().and_then(|i| i.key.as_ref()) else {
+    /// Our key agreement half of this run (zeros when we check and prove no identities: a
+    /// low-order point, which gives no pair keys).
+    pub fn agreement_public(&self) -> [u8; 32] {
+        self.identity
+            .as_ref()
+            .map_or([0; 32], |i| i.agreement.public())
+    }
+
+    /// A peer's challenge: we answer with our proof over its nonce and both key agreement
+    /// halves, if we have a key.
+    pub fn on_challenge(&self, node: NodeId, nonce: [u8; 16], agreement: [u8; 32]) {
+        let Some(layer) = self.identity.as_ref() else {
             return;
         };
+        let Some(key) = layer.key.as_ref() else {
+            return;
+        };
+        let ours = layer.agreement.public();
         let namespace = self.me.namespace.clone().unwrap_or_default();
         let signature = key.prove(
             (&self.me.domain, self.me.id, &self.me.name, &namespace),
+            &ours,
             &Challenge {
                 verifier: node,
                 nonce,
+                agreement,
             },
         );
         self.send_safe_to_node(
@@ -55,14 +70,41 @@ impl NodeInner {
             &Message::Identity {
                 public_key: key.public(),
                 signature: signature.to_vec(),
+                agreement: ours,
             },
         );
     }
 
-    /// A peer's proof: records the namespaces its key may own when it answers our pending
-    /// challenge, then asks again for the declarations refused meanwhile.
-    pub fn on_identity(&self, node: NodeId, public: [u8; 32], signature: &[u8]) {
-        let Some(roster) = self.identity.as_ref().and_then(|i| i.roster.as_ref()) else {
+    /// Hands the keys we share with `node` to its link, once its proof verified (the link
+    /// seals with them once the peer shows it holds them too).
+    fn use_pair(&self, node: NodeId) {
+        let Some((link, addr, keys)) = self
+            .peers
+            .by_id
+            .get(&node)
+            .and_then(|p| p.pair.clone().map(|k| (p.link, p.addr, k)))
+        else {
+            return;
+        };
+        if let Some(l) = self.links().get(link) {
+            l.set_pair(addr, Some(keys));
+        }
+    }
+
+    /// A peer's proof: records what its key is listed for when it answers our pending
+    /// challenge, and the keys we share with it, then asks again for the declarations refused
+    /// meanwhile.
+    pub fn on_identity(
+        &self,
+        node: NodeId,
+        public: [u8; 32],
+        signature: &[u8],
+        agreement: [u8; 32],
+    ) {
+        let Some(layer) = self.identity.as_ref() else {
+            return;
+        };
+        let Some(roster) = layer.roster.as_ref() else {
             return;
         };
         let Some(mut p) = self.peers.by_id.get_mut(&node) else {
@@ -79,9 +121,11 @@ impl NodeInner {
                     &*p.name,
                     p.namespace.as_str(),
                 ),
+                &agreement,
                 &Challenge {
                     verifier: self.me.id,
                     nonce,
+                    agreement: layer.agreement.public(),
                 },
             )
         });
@@ -98,14 +142,25 @@ impl NodeInner {
             return;
         }
         let grant = roster.grant(&public);
-        if grant.covers(&p.namespace, &p.name) {
-            tracing::info!(peer = %p.name, namespace = %p.namespace, gateway = p.claims_gateway && grant.gateway, "peer identity authenticated");
+        let covered = grant.covers(&p.namespace, &p.name);
+        // Keys shared only with a node proven to be what it announces.
+        p.pair = covered
+            .then(|| {
+                layer
+                    .agreement
+                    .pair_keys(&agreement, &self.me.domain, self.me.id, node)
+            })
+            .flatten()
+            .map(std::sync::Arc::new);
+        if covered {
+            tracing::info!(peer = %p.name, namespace = %p.namespace, gateway = p.claims_gateway && grant.gateway_for(&p.namespace, &p.name), "peer identity authenticated");
         } else {
-            tracing::warn!(peer = %p.name, namespace = %p.namespace, key = %hex(&public), listed_for = ?grant.namespaces, nodes = ?grant.nodes, "identity not listed for the namespace and node name the peer declares: its declarations are refused");
+            tracing::warn!(peer = %p.name, namespace = %p.namespace, key = %hex(&public), listed_for = ?grant.namespaces(), nodes = ?grant.nodes(), "identity not listed for the namespace and node name the peer declares: its declarations are refused");
         }
         // A gateway's role comes from the roster, never from its own Hello.
-        p.gateway = p.claims_gateway && grant.gateway;
-        let unlisted_gateway = p.claims_gateway && !grant.gateway;
+        let listed_gateway = grant.gateway_for(&p.namespace, &p.name);
+        p.gateway = p.claims_gateway && listed_gateway;
+        let unlisted_gateway = p.claims_gateway && !listed_gateway;
         p.authenticated = Some(grant);
         p.challenge = None;
         let since = p.known;
@@ -114,6 +169,7 @@ impl NodeInner {
             self.policy
                 .refuse(link, node, &name, "gateway", Refusal::GatewayNotListed);
         }
+        self.use_pair(node);
         // Declarations that came before the proof were refused: ask again from where we are.
         self.send_safe_to_node(node, &Message::DeclRequest { since });
         self.bump();
@@ -123,7 +179,7 @@ impl NodeInner {
 #[cfg(test)]
 mod tests {
     use super::super::{bare_node_with_identity, test_hello as hello, IdentityLayer};
-    use crate::identity::{Challenge, IdentityKey, Listing, Roster};
+    use crate::identity::{Challenge, IdentityKey, KeyAgreement, Listing, Roster};
     use crate::link::PeerAddr;
     use crate::protocol::{Declaration, ItemKind, LoggedDeclaration, NodeId, Origin};
     use crate::typeinfo::TypeInfo;
@@ -153,18 +209,24 @@ mod tests {
             Some(IdentityLayer {
                 key: None,
                 roster: Some(roster),
+                agreement: KeyAgreement::from_bytes([9; 32]),
             }),
         );
+        // Each peer's key agreement half, from its id.
+        let agreement = |id: NodeId| KeyAgreement::from_bytes([id as u8 + 100; 32]);
         let prove = |id: NodeId, key: &IdentityKey, node: &str, namespace: &str| {
             let nonce = me.peers.by_id.get(&id).and_then(|p| p.challenge).unwrap();
+            let theirs = agreement(id).public();
             let sig = key.prove(
                 (crate::config::DEFAULT_DOMAIN, id, node, namespace),
+                &theirs,
                 &Challenge {
                     verifier: me.me.id,
                     nonce,
+                    agreement: me.agreement_public(),
                 },
             );
-            me.on_identity(id, key.public(), &sig);
+            me.on_identity(id, key.public(), &sig, theirs);
         };
         let addr = |port| PeerAddr::Udp(std::net::SocketAddr::from(([127, 0, 0, 1], port)));
         // Two nodes announcing themselves gateways: the run's gateway, and a tool with a key
@@ -221,6 +283,29 @@ mod tests {
         assert!(
             !me.identity_allows(4),
             "a node name the key is not listed for"
+        );
+
+        // Keys shared with the proven node only, the same the node derives on its side.
+        let pair = me
+            .peers
+            .by_id
+            .get(&3)
+            .unwrap()
+            .pair
+            .clone()
+            .expect("a pair");
+        let theirs = agreement(3)
+            .pair_keys(
+                &me.agreement_public(),
+                crate::config::DEFAULT_DOMAIN,
+                3,
+                me.me.id,
+            )
+            .unwrap();
+        assert_eq!((pair.send, pair.recv), (theirs.recv, theirs.send));
+        assert!(
+            me.peers.by_id.get(&4).unwrap().pair.is_none(),
+            "refused: no keys"
         );
         me.cancel.cancel();
     }

@@ -146,6 +146,9 @@ pub(crate) struct Peer {
     /// Local interests each remote offer is delivered to.
     /// Shared so the data path takes a reference count, not a copy, per message.
     pub routes: HashMap<u32, Arc<Route>, SeededHash>,
+    /// The keys we share with it, once its proof bound its key agreement half to a listed
+    /// identity key (`None` before, and where no roster is kept).
+    pub pair: Option<Arc<crate::identity::PairKeys>>,
     /// What its identity key is listed for: `None` when this node checks no identities,
     /// nothing until a valid proof arrives.
     pub authenticated: Option<crate::identity::Grant>,
@@ -262,6 +265,8 @@ pub(crate) struct IdentityLayer {
     pub key: Option<crate::identity::IdentityKey>,
     /// Which key may own which namespaces; `None`: peers are not checked.
     pub roster: Option<crate::identity::Roster>,
+    /// Our key agreement half of this run, which our challenges and proofs carry.
+    pub agreement: crate::identity::KeyAgreement,
 }
 
 impl NodeInner {
@@ -324,7 +329,10 @@ impl NodeInner {
             outs.push(safe(msg));
             if matches!(msg, Message::Hello { .. }) {
                 if let Some(nonce) = self.pending_challenge(link, addr) {
-                    outs.push(safe(&Message::Challenge { nonce }));
+                    outs.push(safe(&Message::Challenge {
+                        nonce,
+                        agreement: self.agreement_public(),
+                    }));
                 }
             }
         }
@@ -464,8 +472,9 @@ impl NodeInner {
             Message::Identity {
                 public_key,
                 signature,
-            } => self.on_identity(node, public_key, &signature),
-            Message::Challenge { nonce } => self.on_challenge(node, nonce),
+                agreement,
+            } => self.on_identity(node, public_key, &signature, agreement),
+            Message::Challenge { nonce, agreement } => self.on_challenge(node, nonce, agreement),
             Message::Flow {
                 behind,
                 readers,

@@ -58,6 +58,9 @@ pub(crate) enum Refusal {
     /// A peer announcing itself a gateway whose key the roster does not list as one: it
     /// speaks for no other node.
     GatewayNotListed,
+    /// A call or file to relay from a peer whose identity is not proven (where a roster is
+    /// kept): the next node would take the name we pass on as proven.
+    RelayUnproven,
     /// A file a sink refused (bad name, too large, past its announced size, over the quota,
     /// too many at once, wrong content, no such sink).
     File,
@@ -78,6 +81,7 @@ impl Refusal {
             Refusal::Busy => "concurrent-call cap reached",
             Refusal::IdentityUnproven => "identity proof answering no challenge of ours",
             Refusal::GatewayNotListed => "gateway role its identity key is not listed for",
+            Refusal::RelayUnproven => "relay for a peer whose identity is not proven",
             Refusal::File => "file refused by the sink",
         }
     }

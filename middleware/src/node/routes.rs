@@ -318,11 +318,11 @@ fn routes_of(
 /// One item wherever it is declared from: its source node, kind and name.
 type ItemKey = (NodeId, ItemKind, Arc<str>);
 
-/// How far a path to an item is from the best one, compared in this order: whether its peer
-/// is unproven (0 when the roster proved its key: see [`super::Peer::proven`]), the gateways
+/// How far a path to an item is from the best one, compared in this order: the gateways
 /// between, when this node first stored it; then the peer and offer id (never reached: no two
-/// items share a `seen`).
-type PathRank = (bool, u8, u64, NodeId, u32);
+/// items share a `seen`). Trust comes before both, at the door: where a roster is kept, only
+/// a gateway whose key is listed as one gets a copy stored at all.
+type PathRank = (u8, u64, NodeId, u32);
 
 /// The shadowing rule of [`NodeInner::shadowed_offers`], one peer's offers at a time.
 #[derive(Default)]
@@ -336,7 +336,7 @@ struct Shadowing {
 impl Shadowing {
     /// Takes peer `p`'s offers into account (`me`: our own id).
     fn add(&mut self, me: NodeId, p: &super::Peer) {
-        let (peer, unproven) = (p.id, !p.proven());
+        let peer = p.id;
         for (oid, item) in &p.offers {
             let (source, hops) = item.source(peer);
             if source == me {
@@ -344,13 +344,13 @@ impl Shadowing {
                 continue;
             }
             let key = (source, item.kind, item.name.clone());
-            let cand = (unproven, hops, item.seen, peer, *oid);
+            let cand = (hops, item.seen, peer, *oid);
             match self.best.get(&key) {
                 Some(cur) if *cur <= cand => {
                     self.hidden.entry(peer).or_default().insert(*oid);
                 }
                 Some(cur) => {
-                    self.hidden.entry(cur.3).or_default().insert(cur.4);
+                    self.hidden.entry(cur.2).or_default().insert(cur.3);
                     self.best.insert(key, cand);
                 }
                 None => {
@@ -568,10 +568,10 @@ impl NodeInner {
     }
 
     /// The offers of each peer to ignore: where one item (same source node, kind and name) is
-    /// declared by several peers (directly and through gateways), only one path counts: a
-    /// proven peer's before an unproven one's, then the one with the fewest gateways, then
-    /// the one this node stored first (never an order a sender can pick, such as node ids);
-    /// our own items forwarded back to us are ignored altogether.
+    /// declared by several peers (directly and through gateways), only one path counts: the
+    /// one with the fewest gateways, then the one this node stored first (never an order a
+    /// sender can pick, such as node ids); where a roster is kept, only gateways listed as
+    /// such have copies stored at all. Our own items forwarded back to us are ignored.
     pub fn shadowed_offers(&self) -> HashMap<NodeId, HashSet<u32>> {
         let mut shadowing = Shadowing::default();
         for p in self.peers.by_id.iter() {

@@ -297,9 +297,11 @@ pub fn message(u: &mut Unstructured<'_>) -> Result<Message> {
         15 => Message::Identity {
             public_key: u.arbitrary()?,
             signature: bytes(u, 64)?,
+            agreement: u.arbitrary()?,
         },
         16 => Message::Challenge {
             nonce: u.arbitrary()?,
+            agreement: u.arbitrary()?,
         },
         17 => Message::Flow {
             behind: u.arbitrary()?,

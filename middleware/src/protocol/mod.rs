@@ -371,10 +371,13 @@ pub enum Message {
     Identity {
         /// Ed25519 public key.
         public_key: [u8; 32],
-        /// Signature over domain, node id, node name and namespace, and the challenger's node
-        /// id and nonce (64 bytes).
+        /// Signature over domain, node id, node name and namespace, `agreement`, and the
+        /// challenger's node id, nonce and key agreement half (64 bytes).
         #[serde(with = "serde_bytes_compat")]
         signature: Vec<u8>,
+        /// The sender's X25519 key agreement half (new at every start): with the
+        /// challenger's, the pair's keys ([`crate::identity::KeyAgreement::pair_keys`]).
+        agreement: [u8; 32],
     },
     /// Asks a peer to prove its identity key over a fresh nonce (sent after our Hello by a
     /// node checking identities, once per peer it registers): a proof made for another nonce
@@ -382,6 +385,8 @@ pub enum Message {
     Challenge {
         /// Random, new for each peer registered.
         nonce: [u8; 16],
+        /// The challenger's X25519 key agreement half, which the proof signs.
+        agreement: [u8; 32],
     },
     /// The sender's event subscribers are behind while still reading (`behind`), or caught up
     /// again: lossless streams to the sender wait while it is behind. Sent to every peer at
@@ -575,8 +580,12 @@ mod tests {
             Message::Identity {
                 public_key: [0; 32],
                 signature: vec![0; 64],
+                agreement: [0; 32],
             },
-            Message::Challenge { nonce: [0; 16] },
+            Message::Challenge {
+                nonce: [0; 16],
+                agreement: [0; 32],
+            },
             Message::Flow {
                 behind: false,
                 readers: None,

@@ -1,7 +1,8 @@
 //! The link every datagram medium shares: per-peer sessions with the ARQ of
 //! [`crate::link::arq`] for the safe class, small messages batched into shared datagrams
-//! ([`super`]'s format), the seal of [`crate::link::auth`], and the table of sessions that no
-//! sender of datagrams can fill ([`super::sessions`]). A [`Medium`] writes datagrams to
+//! ([`super`]'s format), the seal of [`crate::link::auth`] (the domain key's, or the keys a
+//! peer and this node share once each proved its identity: [`PairSeal`]), and the table of
+//! sessions that no sender of datagrams can fill ([`super::sessions`]). A [`Medium`] writes datagrams to
 //! addresses of its own (UDP sockets, Zenoh key expressions); its receive tasks hand what
 //! arrives to [`DatagramLink::receive`].
 //!
@@ -334,7 +335,45 @@ pub struct DatagramLink<M: Medium> {
     sealer: Option<(Sealer, Sealer)>,
     /// Checks incoming datagrams when the node has a key (both receive tasks use it).
     opener: Option<Mutex<Opener>>,
+    /// The peers whose data is sealed with the keys they share with this node.
+    pairs: Mutex<std::collections::HashMap<M::Addr, Arc<PairSeal>>>,
 }
+
+/// The seal of one peer's data once it and this node proved their identities to each other
+/// ([`Link::set_pair`]): what we send it is sealed with the key of our direction, what it
+/// sends us opens only with the key of its. A frame is then taken as the peer's because its
+/// key sealed it, not because of the address it came from: a key holder forging the peer's
+/// address, or a frame of ours reflected back to us, does not open.
+///
+/// Each end holds the keys once it verified the other's proof, which need not happen at the
+/// same moment (or at all, when a roster does not list us). So an end seals with them only
+/// once the other showed it holds them: a frame sealed with them arrived (`confirmed`). To
+/// show it, an end sends a probe (an empty data datagram sealed with the pair's key) when it
+/// gets the keys, and again whenever data sealed with the domain key comes from the peer
+/// (at most every [`PROBE_EVERY`]): the peer has not switched, maybe for want of a probe.
+struct PairSeal {
+    keys: Arc<crate::link::auth::PairKeys>,
+    sealer: Sealer,
+    opener: Mutex<Opener>,
+    /// A frame sealed with the pair's key came: from now on what we send the peer is sealed
+    /// with it, and data from its address sealed with the domain key is refused.
+    confirmed: AtomicBool,
+    /// When the last probe left.
+    probed: Mutex<Option<Instant>>,
+    /// When `confirmed` was set.
+    confirmed_at: Mutex<Option<Instant>>,
+}
+
+/// How long after a pair's switch its frames sealed with the domain key (sent before it) are
+/// dropped without a warning.
+const SWITCH_TIME: Duration = Duration::from_secs(2);
+
+/// The shortest time between two probes of a pair ([`PairSeal`]).
+const PROBE_EVERY: Duration = Duration::from_millis(50);
+
+/// Sender epochs a pair's opener remembers: the peer's current one and one before (a
+/// restarted peer is another pair).
+const PAIR_REPLAY_WINDOWS: usize = 2;
 
 /// Sender epochs a datagram link remembers for replay detection.
 const MAX_REPLAY_WINDOWS: usize = 4096;
@@ -381,6 +420,7 @@ impl<M: Medium> DatagramLink<M> {
             medium,
             sealer,
             opener,
+            pairs: Mutex::default(),
             peers: Mutex::new(SessionTable::new(SessionLimits {
                 max_bound: MAX_PEERS,
                 max_unbound: MAX_UNBOUND,
@@ -602,7 +642,7 @@ impl<M: Medium> DatagramLink<M> {
         }
         let mut sent = Vec::new();
         for d in datagrams {
-            let d = self.seal(d);
+            let d = self.seal(d, Some(addr));
             if refused {
                 blocked.push_back(d);
                 continue;
@@ -704,30 +744,92 @@ impl<M: Medium> DatagramLink<M> {
         self.counters.count_out(n);
     }
 
-    /// With a key, seals a datagram built by [`datagram`] (its kind byte becoming the sealed
-    /// kind); without, returns it as it is.
-    fn seal(&self, mut d: Vec<u8>) -> Vec<u8> {
-        if let (Some((data, announce)), Some(kind)) = (&self.sealer, d.first_mut()) {
-            let s = if *kind == super::KIND_DISCOVERY {
-                announce
-            } else {
-                data
-            };
+    /// Sends `pair`'s peer at `addr` a probe (see [`PairSeal`]), unless one left within
+    /// [`PROBE_EVERY`].
+    fn probe(&self, addr: M::Addr, pair: &PairSeal) {
+        {
+            let mut last = lock(&pair.probed);
+            let now = Instant::now();
+            if last.is_some_and(|t| now.saturating_duration_since(t) < PROBE_EVERY) {
+                return;
+            }
+            *last = Some(now);
+        }
+        // An empty data datagram: no entry to take, only the seal to check.
+        let mut d = vec![super::KIND_PAIR_DATA];
+        pair.sealer.seal(&mut d, usize::MAX);
+        if self.medium.send_to(&d, addr).is_ok() {
+            self.count_out(d.len());
+        }
+    }
+
+    /// The pair seal of the peer at `addr`, if it has one.
+    fn pair(&self, addr: M::Addr) -> Option<Arc<PairSeal>> {
+        let pairs = lock(&self.pairs);
+        if pairs.is_empty() {
+            return None;
+        }
+        pairs.get(&addr).cloned()
+    }
+
+    /// With a key, seals a datagram built by [`datagram`] for `to` (its kind byte becoming
+    /// the sealed kind): data with the keys of `to`'s pair when it has some, else (and
+    /// discovery always) with the domain key; without, returns it as it is.
+    fn seal(&self, mut d: Vec<u8>, to: Option<M::Addr>) -> Vec<u8> {
+        let (Some((data, announce)), Some(kind)) = (&self.sealer, d.first_mut()) else {
+            return d;
+        };
+        if *kind == super::KIND_DISCOVERY {
             *kind = super::sealed_kind(*kind);
-            s.seal(&mut d, usize::MAX);
+            announce.seal(&mut d, usize::MAX);
+        } else if let Some(pair) = to
+            .and_then(|a| self.pair(a))
+            .filter(|p| p.confirmed.load(Ordering::Relaxed))
+        {
+            *kind = super::KIND_PAIR_DATA;
+            pair.sealer.seal(&mut d, usize::MAX);
+        } else {
+            *kind = super::sealed_kind(*kind);
+            data.seal(&mut d, usize::MAX);
         }
         d
     }
 
     /// The datagram `buf` received from `from` as [`datagram::decode`] takes it: with a key,
-    /// its seal checked and removed, or `None` (dropped and counted) when it fails.
+    /// its seal checked and removed, or `None` (dropped and counted) when it fails. Data from
+    /// a peer with a pair seal opens with the pair's key only, once one such frame came.
     fn unseal<'a>(&self, buf: &'a mut [u8], from: M::Addr) -> Option<&'a [u8]> {
         let Some(opener) = &self.opener else {
             return Some(buf);
         };
-        let opened = match buf.first().copied().and_then(super::unsealed_kind) {
-            Some(kind) => lock(opener).open(0, buf, usize::MAX).map(|n| (kind, n)),
-            None => Err(AuthReject::Unsealed),
+        let kind = buf.first().copied();
+        let opened = if kind == Some(super::KIND_PAIR_DATA) {
+            match self.pair(from) {
+                Some(pair) => {
+                    let opened = lock(&pair.opener).open(0, buf, usize::MAX);
+                    if opened.is_ok() && !pair.confirmed.swap(true, Ordering::Relaxed) {
+                        *lock(&pair.confirmed_at) = Some(Instant::now());
+                    }
+                    opened.map(|n| (super::KIND_DATA, n))
+                }
+                None => Err(AuthReject::NoPair),
+            }
+        } else {
+            let kind = kind.and_then(super::unsealed_kind);
+            let pair = (kind == Some(super::KIND_DATA))
+                .then(|| self.pair(from))
+                .flatten();
+            if let Some(p) = &pair {
+                // The peer still seals with the domain key: show it we hold the pair's.
+                self.probe(from, p);
+            }
+            match kind {
+                Some(_) if pair.is_some_and(|p| p.confirmed.load(Ordering::Relaxed)) => {
+                    Err(AuthReject::NotPairSealed)
+                }
+                Some(kind) => lock(opener).open(0, buf, usize::MAX).map(|n| (kind, n)),
+                None => Err(AuthReject::Unsealed),
+            }
         };
         match opened {
             Ok((kind, n)) => {
@@ -737,7 +839,21 @@ impl<M: Medium> DatagramLink<M> {
             Err(why) => {
                 self.counters.count_in(buf.len());
                 let total = self.counters.count_reject(why);
-                auth::log_reject(&self.name, from, why, total);
+                // Expected while two ends switch to their pair's keys (a frame of the peer's
+                // that left before it switched; a probe of a peer whose proof we refused):
+                // counted, and logged as a warning only past the switch.
+                let switching = match why {
+                    AuthReject::NoPair => true,
+                    AuthReject::NotPairSealed => self.pair(from).is_some_and(|p| {
+                        lock(&p.confirmed_at).is_some_and(|t| t.elapsed() < SWITCH_TIME)
+                    }),
+                    _ => false,
+                };
+                if switching {
+                    tracing::debug!(link = %self.name, %from, reason = %why, total, "frame dropped while switching to pair keys");
+                } else {
+                    auth::log_reject(&self.name, from, why, total);
+                }
                 None
             }
         }
@@ -750,7 +866,7 @@ impl<M: Medium> DatagramLink<M> {
         let seal = self.sealer.as_ref().map_or(0, |(s, _)| s.overhead());
         let mut w = DatagramWriter::new(self.datagram_max(to).saturating_sub(seal));
         if w.push_unknown(seq) {
-            let d = self.seal(w.take());
+            let d = self.seal(w.take(), Some(to));
             if self.medium.send_to(&d, to).is_ok() {
                 self.count_out(d.len());
             }
@@ -1221,7 +1337,7 @@ impl<M: Medium> Link for DatagramLink<M> {
         for t in 0..self.medium.announce_targets() {
             // Sealed once per target: a node reached both ways sees two datagrams, not a
             // replay.
-            let d = self.seal(super::discovery_datagram(msg));
+            let d = self.seal(super::discovery_datagram(msg), None);
             match self.medium.announce_to(&d, t) {
                 Ok(()) => self.count_out(d.len()),
                 Err(e) => {
@@ -1254,9 +1370,48 @@ impl<M: Medium> Link for DatagramLink<M> {
             return;
         };
         let p = lock(&self.peers).remove(&addr);
+        lock(&self.pairs).remove(&addr);
         if let Some(p) = p {
             fail_all(&mut lock(&p), LinkSendError::PeerClosed(addr.to_string()));
         }
+    }
+
+    fn pair_sealed(&self, to: PeerAddr) -> bool {
+        M::medium_addr(to)
+            .and_then(|a| self.pair(a))
+            .is_some_and(|p| p.confirmed.load(Ordering::Relaxed))
+    }
+
+    fn set_pair(&self, to: PeerAddr, keys: Option<Arc<crate::link::auth::PairKeys>>) {
+        let (Some(addr), Some(_)) = (M::medium_addr(to), &self.sealer) else {
+            return;
+        };
+        let Some(k) = keys else {
+            lock(&self.pairs).remove(&addr);
+            return;
+        };
+        let pair = {
+            let mut pairs = lock(&self.pairs);
+            // The same keys again: the replay window of a live pair is never reset.
+            if pairs.get(&addr).is_some_and(|p| p.keys == k) {
+                return;
+            }
+            let (out, back) = (
+                auth::DomainKey::from_bytes(k.send),
+                auth::DomainKey::from_bytes(k.recv),
+            );
+            let pair = Arc::new(PairSeal {
+                sealer: Sealer::new(&out, Profile::UDP_PAIR),
+                opener: Mutex::new(Opener::new(&back, Profile::UDP_PAIR, PAIR_REPLAY_WINDOWS)),
+                confirmed: AtomicBool::new(false),
+                probed: Mutex::new(None),
+                confirmed_at: Mutex::new(None),
+                keys: k,
+            });
+            pairs.insert(addr, pair.clone());
+            pair
+        };
+        self.probe(addr, &pair);
     }
 
     fn stats(&self) -> LinkStats {

@@ -39,6 +39,9 @@ pub const KIND_DISCOVERY: u8 = 0xA2;
 pub const KIND_SEALED_DATA: u8 = 0xA3;
 /// First byte of a sealed discovery datagram.
 pub const KIND_SEALED_DISCOVERY: u8 = 0xA4;
+/// First byte of a data datagram sealed with the keys its sender and receiver share
+/// ([`crate::link::auth::PairKeys`]), not the domain key.
+pub const KIND_PAIR_DATA: u8 = 0xA5;
 const TAG_FAST: u8 = 0x01;
 
 /// The kind a datagram of `kind` takes once sealed.
@@ -52,7 +55,7 @@ pub fn sealed_kind(kind: u8) -> u8 {
 /// The plain kind of a sealed datagram kind; `None` for a kind that is not sealed.
 pub fn unsealed_kind(kind: u8) -> Option<u8> {
     match kind {
-        KIND_SEALED_DATA => Some(KIND_DATA),
+        KIND_SEALED_DATA | KIND_PAIR_DATA => Some(KIND_DATA),
         KIND_SEALED_DISCOVERY => Some(KIND_DISCOVERY),
         _ => None,
     }

@@ -544,6 +544,14 @@ impl NodeInner {
             _ => None,
         });
         if let Some((receiver, remote_sink)) = relay {
+            if !self.may_relay_for(node, &name) {
+                let verdict = FileVerdict::Denied(format!(
+                    "'{}' has not proven its identity: this gateway names no unproven sender to the next node",
+                    self.peer_name(node)
+                ));
+                self.reply_file(node, transfer, verdict);
+                return;
+            }
             let offer = Message::FileOffer(FileOffer {
                 transfer,
                 sink: remote_sink,
