@@ -96,7 +96,8 @@ fn a_self_declared_gateway_answers_no_caller() {
 
 /// Item 1 of "Trust that holds inside the domain": an insider with the domain key forges a
 /// proven station's source address (calls, file offers, marked samples), replays the
-/// station's frames it read off the LAN and reflects the victim's own frames back to it.
+/// station's frames it read off the LAN, reflects the victim's own frames back to it, and
+/// says `Bye` as the station from its address.
 /// Where both ends proved their identities, every frame between them is sealed with their
 /// pair's keys: nothing forged runs or is delivered, every replayed and reflected frame is
 /// refused at the seal, and the station's positions keep flowing.

@@ -119,33 +119,42 @@ impl KeyAgreement {
     }
 
     /// The keys node `me` shares with node `peer` whose public half is `peer_public`, in
-    /// `domain`: `None` when that half is no key at all (a low-order point: the secret would
-    /// be known to anyone).
+    /// `domain`, for the handshake of challenges `(ours, theirs)` (the nonce of our challenge
+    /// to the peer, of its to us: new at every registration, so keys are never reused across
+    /// two, and nor are frames recorded under the earlier ones). `None` when that half is no
+    /// key at all (a low-order point: the secret would be known to anyone), or names us.
     pub fn pair_keys(
         &self,
         peer_public: &[u8; 32],
         domain: &str,
-        me: u64,
-        peer: u64,
+        (me, peer): (u64, u64),
+        (ours, theirs): ([u8; 16], [u8; 16]),
     ) -> Option<PairKeys> {
+        if me == peer {
+            return None;
+        }
         let shared = self
             .0
             .diffie_hellman(&x25519_dalek::PublicKey::from(*peer_public));
         if !shared.was_contributory() {
             return None;
         }
-        let key = |from: u64, to: u64| {
-            let mut m = Zeroizing::new(Vec::with_capacity(32 + domain.len() + 17));
+        // The key of the direction `from` -> `to`: with the nonce `to` challenged `from`
+        // with, then the one `from` challenged `to` with (both ends order them alike).
+        let key = |from: u64, to: u64, to_asked: &[u8; 16], from_asked: &[u8; 16]| {
+            let mut m = Zeroizing::new(Vec::with_capacity(32 + domain.len() + 49));
             m.extend_from_slice(shared.as_bytes());
             m.extend_from_slice(domain.as_bytes());
             m.push(0);
             m.extend_from_slice(&from.to_le_bytes());
             m.extend_from_slice(&to.to_le_bytes());
+            m.extend_from_slice(to_asked);
+            m.extend_from_slice(from_asked);
             blake3::derive_key(PAIR_CONTEXT, &m)
         };
         Some(PairKeys {
-            send: key(me, peer),
-            recv: key(peer, me),
+            send: key(me, peer, &theirs, &ours),
+            recv: key(peer, me, &ours, &theirs),
         })
     }
 }
@@ -554,20 +563,27 @@ mod tests {
             KeyAgreement::from_bytes([1; 32]),
             KeyAgreement::from_bytes([2; 32]),
         );
-        let ab = a.pair_keys(&b.public(), "d", 10, 20).unwrap();
-        let ba = b.pair_keys(&a.public(), "d", 20, 10).unwrap();
+        // a challenged b with nonce [1; 16], b challenged a with [2; 16].
+        let (na, nb) = ([1; 16], [2; 16]);
+        let ab = a.pair_keys(&b.public(), "d", (10, 20), (na, nb)).unwrap();
+        let ba = b.pair_keys(&a.public(), "d", (20, 10), (nb, na)).unwrap();
         assert_eq!((ab.send, ab.recv), (ba.recv, ba.send));
         assert_ne!(
             ab.send, ab.recv,
             "a frame sent back to its sender opens with no key"
         );
-        // Another domain, other ids, another peer: other keys.
-        assert_ne!(a.pair_keys(&b.public(), "e", 10, 20).unwrap(), ab);
-        assert_ne!(a.pair_keys(&b.public(), "d", 10, 21).unwrap(), ab);
-        let c = KeyAgreement::from_bytes([3; 32]);
-        assert_ne!(a.pair_keys(&c.public(), "d", 10, 20).unwrap(), ab);
-        // A low-order point is no key: the secret would be all zeros.
-        assert!(a.pair_keys(&[0; 32], "d", 10, 20).is_none());
+        // Another domain, other ids, another peer, another handshake: other keys.
+        let other = |k: &KeyAgreement, d, ids, n| a.pair_keys(&k.public(), d, ids, n).unwrap();
+        assert_ne!(other(&b, "e", (10, 20), (na, nb)), ab);
+        assert_ne!(other(&b, "d", (10, 21), (na, nb)), ab);
+        assert_ne!(other(&b, "d", (10, 20), (na, [3; 16])), ab);
+        assert_ne!(
+            other(&KeyAgreement::from_bytes([3; 32]), "d", (10, 20), (na, nb)),
+            ab
+        );
+        // A low-order point is no key: the secret would be all zeros; nor is a pair with us.
+        assert!(a.pair_keys(&[0; 32], "d", (10, 20), (na, nb)).is_none());
+        assert!(a.pair_keys(&b.public(), "d", (10, 10), (na, nb)).is_none());
         assert_eq!(format!("{ab:?}"), "PairKeys(..)");
     }
 

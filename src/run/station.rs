@@ -523,6 +523,9 @@ async fn follow(
     let mut navigated = false;
     let mut refusals = Refusals::default();
     let mut recovery = Recovery::Idle;
+    // The supervisor said the VAS restarted (the old one is gone: what the state stream says
+    // from now on is the new one's).
+    let mut restart_noticed = false;
     let mut last_attempt: Option<Instant> = None;
     let mut saw_configure = false;
     let mut completing: Option<Instant> = None;
@@ -658,7 +661,11 @@ async fn follow(
                     if navigated && !done && recovery == Recovery::Idle {
                         recovery = Recovery::Waiting;
                     }
-                } else if recovery == Recovery::Waiting && saw_configure {
+                } else if recovery == Recovery::Waiting && (saw_configure || restart_noticed) {
+                    // After the supervisor said the VAS restarted, any state but
+                    // CONFIGURE_CHECK is the new one's, configured: its start (and that first
+                    // change) may pass before this station's subscription reaches it, the
+                    // identity handshake coming first.
                     recovery = Recovery::Due;
                 }
             }
@@ -698,6 +705,7 @@ async fn follow(
                     if navigated && recovery == Recovery::Idle {
                         recovery = Recovery::Waiting;
                         saw_configure = false;
+                        restart_noticed = true;
                     }
                 }
                 Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => {}
@@ -786,6 +794,7 @@ async fn follow(
         if recovery == Recovery::Due && s.start == StartBy::Operator {
             // The pilot brings the vehicle back into the plan (the FPMo's Resume, then Start).
             recovery = Recovery::Idle;
+            restart_noticed = false;
             navigated = false;
             note(
                 ui,
@@ -835,6 +844,7 @@ async fn follow(
             match resumed {
                 Ok(()) => {
                     recovery = Recovery::Idle;
+                    restart_noticed = false;
                     last_attempt = None;
                     // The new VAS parks with the queue refilled: the operator (this station)
                     // starts it again, as after the upload.

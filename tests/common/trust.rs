@@ -364,7 +364,8 @@ pub struct Forged {
     pub forged: u64,
     /// Of those, how many the victim counted refused at its seal.
     pub forged_refused: u64,
-    /// The station's positions kept coming (25 more after the attacks), still pair-sealed.
+    /// The station's positions kept coming (25 more after the attacks, forged `Bye`s as the
+    /// station among them), the station still known and pair-sealed.
     pub legit_flowing: bool,
 }
 
@@ -492,6 +493,17 @@ pub fn forged_as_station(test: &str) -> Option<Forged> {
             .expect("send");
     }
     let forged = as_gs.sent;
+    // Its announcements, sealed with the domain key as every node's are: a Bye as the
+    // station, from its address, must not evict it.
+    let sniffer = super::attacker::Sniffer::join(net.group()).expect("join the multicast group");
+    let (gs_id, _) = sniffer
+        .capture_from(std::net::SocketAddr::V4(gs), T)
+        .expect("an announcement of the station");
+    for _ in 0..5 {
+        as_gs
+            .discovery(forged_to, &Message::Bye { node_id: gs_id })
+            .expect("send");
+    }
     let mut replayer = super::attacker::Forger::spoofing(None, gs)?;
     for d in &from_gs {
         replayer.raw(forged_to, d).expect("send");
@@ -512,8 +524,9 @@ pub fn forged_as_station(test: &str) -> Option<Forged> {
     let before = samples(&r);
     let legit_flowing = victim
         .try_expect(T, |v| {
-            v.get("report")
-                .is_some_and(|r| samples(r) >= before + 25 && sealed(r, "ground/gs"))
+            v.get("report").is_some_and(|r| {
+                samples(r) >= before + 25 && sealed(r, "ground/gs") && r["peers"]["ground/gs"] == 1
+            })
         })
         .is_some();
     // The forged datagrams counted first: what is left of the refusals are the replays'.

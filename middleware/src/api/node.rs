@@ -614,6 +614,7 @@ impl Node {
             }
         }
         drop(hosted);
+        self.inner.say_bye();
         self.inner.announce(&Message::Bye {
             node_id: self.inner.me.id,
         });

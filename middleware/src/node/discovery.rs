@@ -10,9 +10,10 @@ use tokio::time::Instant;
 
 use dashmap::DashMap;
 
+use super::policy::Refusal;
 use super::{lock, NodeInner, Peer};
 use crate::codec::encode_message;
-use crate::link::PeerAddr;
+use crate::link::{Outgoing, PeerAddr};
 use crate::protocol::{Message, NodeId};
 use crate::sync::SeededHash;
 
@@ -125,6 +126,50 @@ impl NodeInner {
         }
     }
 
+    /// Whether announcement `msg`, sealed with the domain key, from `from` on `link` is a
+    /// `Bye`, or a `Hello` of another node id, from the address of a peer whose frames come
+    /// sealed with our pair's keys: a key holder forging its address would evict it (or take
+    /// its place). Refused and counted ([`Refusal::ForgedBye`]): the peer's own `Bye` comes
+    /// inside its session too ([`Self::say_bye`]), and a node restarted at the same address
+    /// is met once the old one's lease has run out.
+    pub fn forged_over_pair(&self, link: usize, from: PeerAddr, msg: &Message) -> bool {
+        let Some(node) = self.peers.by_addr.get(&(link, from)).map(|e| *e) else {
+            return false;
+        };
+        let forged = match msg {
+            Message::Bye { .. } => true,
+            Message::Hello { node_id, .. } => *node_id != node,
+            _ => false,
+        };
+        if !forged || !self.links().get(link).is_some_and(|l| l.pair_sealed(from)) {
+            return false;
+        }
+        let name = self.peer_name(node);
+        self.policy
+            .refuse(link, node, &name, "announcement", Refusal::ForgedBye);
+        true
+    }
+
+    /// Tells every peer we leave, inside its session (so with our pair's keys where we share
+    /// some), besides the announcement.
+    pub fn say_bye(&self) {
+        let msg = encode_message(&Message::Bye {
+            node_id: self.me.id,
+        });
+        let peers: Vec<(usize, PeerAddr)> =
+            self.peers.by_id.iter().map(|p| (p.link, p.addr)).collect();
+        for (link, addr) in peers {
+            self.send_to(
+                link,
+                addr,
+                Outgoing::Fast {
+                    coalesce: None,
+                    msg: msg.clone(),
+                },
+            );
+        }
+    }
+
     /// Handles Hello, Heartbeat and Bye, whether multicast or inside a session.
     pub fn on_discovery(self: &Arc<Self>, link: usize, from: PeerAddr, msg: Message) {
         match msg {
@@ -183,6 +228,7 @@ impl NodeInner {
                     return;
                 }
                 tracing::info!(peer = %node, node_id = format_args!("{node_id:016x}"), %from, "peer discovered");
+                let challenge: Option<[u8; 16]> = roster.map(|_| rand::random());
                 self.peers.by_id.insert(
                     node_id,
                     Peer {
@@ -208,7 +254,11 @@ impl NodeInner {
                         routes: HashMap::default(),
                         pair: None,
                         authenticated: roster.map(|_| Default::default()),
-                        challenge: roster.map(|_| rand::random()),
+                        challenge,
+                        handshake: super::Handshake {
+                            ours: challenge,
+                            ..Default::default()
+                        },
                         alive: Arc::new(std::sync::atomic::AtomicBool::new(true)),
                         held: Arc::default(),
                         introduced_again: None,

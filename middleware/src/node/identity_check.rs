@@ -54,6 +54,10 @@ impl NodeInner {
         let Some(key) = layer.key.as_ref() else {
             return;
         };
+        match self.peers.by_id.get_mut(&node) {
+            Some(mut p) => p.handshake.theirs = Some(nonce),
+            None => return,
+        }
         let ours = layer.agreement.public();
         let namespace = self.me.namespace.clone().unwrap_or_default();
         let signature = key.prove(
@@ -73,21 +77,43 @@ impl NodeInner {
                 agreement: ours,
             },
         );
+        self.use_pair(node);
     }
 
-    /// Hands the keys we share with `node` to its link, once its proof verified (the link
-    /// seals with them once the peer shows it holds them too).
+    /// Makes the keys we share with `node` once its proof verified and both challenges are
+    /// known, and hands them to its link (which seals with them once the peer shows it holds
+    /// them too).
     fn use_pair(&self, node: NodeId) {
-        let Some((link, addr, keys)) = self
-            .peers
-            .by_id
-            .get(&node)
-            .and_then(|p| p.pair.clone().map(|k| (p.link, p.addr, k)))
-        else {
+        let Some(layer) = self.identity.as_ref() else {
             return;
         };
-        if let Some(l) = self.links().get(link) {
-            l.set_pair(addr, Some(keys));
+        let made = {
+            let Some(mut p) = self.peers.by_id.get_mut(&node) else {
+                return;
+            };
+            let h = &p.handshake;
+            let (Some(ours), Some(theirs), Some(agreement)) = (h.ours, h.theirs, h.agreement)
+            else {
+                return;
+            };
+            if p.pair.is_some() {
+                return;
+            }
+            p.pair = layer
+                .agreement
+                .pair_keys(
+                    &agreement,
+                    &self.me.domain,
+                    (self.me.id, node),
+                    (ours, theirs),
+                )
+                .map(std::sync::Arc::new);
+            p.pair.clone().map(|k| (p.link, p.addr, k))
+        };
+        if let Some((link, addr, keys)) = made {
+            if let Some(l) = self.links().get(link) {
+                l.set_pair(addr, Some(keys));
+            }
         }
     }
 
@@ -144,14 +170,9 @@ impl NodeInner {
         let grant = roster.grant(&public);
         let covered = grant.covers(&p.namespace, &p.name);
         // Keys shared only with a node proven to be what it announces.
-        p.pair = covered
-            .then(|| {
-                layer
-                    .agreement
-                    .pair_keys(&agreement, &self.me.domain, self.me.id, node)
-            })
-            .flatten()
-            .map(std::sync::Arc::new);
+        if covered {
+            p.handshake.agreement = Some(agreement);
+        }
         if covered {
             tracing::info!(peer = %p.name, namespace = %p.namespace, gateway = p.claims_gateway && grant.gateway_for(&p.namespace, &p.name), "peer identity authenticated");
         } else {
@@ -207,7 +228,7 @@ mod tests {
             Some("gcs"),
             None,
             Some(IdentityLayer {
-                key: None,
+                key: Some(IdentityKey::from_bytes([8; 32])),
                 roster: Some(roster),
                 agreement: KeyAgreement::from_bytes([9; 32]),
             }),
@@ -285,28 +306,29 @@ mod tests {
             "a node name the key is not listed for"
         );
 
-        // Keys shared with the proven node only, the same the node derives on its side.
-        let pair = me
+        // Keys shared with the proven node only, once it challenged us too (its nonce is
+        // part of them), the same the node derives on its side.
+        let pair_of = |id: NodeId| me.peers.by_id.get(&id).and_then(|p| p.pair.clone());
+        assert!(pair_of(3).is_none(), "its nonce not known yet");
+        me.on_challenge(3, [33; 16], agreement(3).public());
+        me.on_challenge(4, [44; 16], agreement(4).public());
+        let pair = pair_of(3).expect("a pair");
+        let our_nonce = me
             .peers
             .by_id
             .get(&3)
-            .unwrap()
-            .pair
-            .clone()
-            .expect("a pair");
+            .and_then(|p| p.handshake.ours)
+            .unwrap();
         let theirs = agreement(3)
             .pair_keys(
                 &me.agreement_public(),
                 crate::config::DEFAULT_DOMAIN,
-                3,
-                me.me.id,
+                (3, me.me.id),
+                ([33; 16], our_nonce),
             )
             .unwrap();
         assert_eq!((pair.send, pair.recv), (theirs.recv, theirs.send));
-        assert!(
-            me.peers.by_id.get(&4).unwrap().pair.is_none(),
-            "refused: no keys"
-        );
+        assert!(pair_of(4).is_none(), "refused: no keys");
         me.cancel.cancel();
     }
 }

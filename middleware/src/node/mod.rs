@@ -106,6 +106,14 @@ pub(crate) struct LocalInterest {
     pub hidden_on: Option<usize>,
 }
 
+/// The parts of one registration's identity handshake the pair's keys are made of.
+#[derive(Default)]
+pub(crate) struct Handshake {
+    pub ours: Option<[u8; 16]>,
+    pub theirs: Option<[u8; 16]>,
+    pub agreement: Option<[u8; 32]>,
+}
+
 /// What this node knows of a remote node.
 pub(crate) struct Peer {
     pub id: NodeId,
@@ -155,6 +163,10 @@ pub(crate) struct Peer {
     /// The nonce of our identity challenge to it, until a proof answers it (`None` when this
     /// node checks no identities, or once answered).
     pub challenge: Option<[u8; 16]>,
+    /// The nonces of this registration's handshake: of our challenge to it (kept once
+    /// answered), of its challenge to us; and its key agreement half, once its proof verified
+    /// for what it announces. With all three, the pair's keys ([`Peer::pair`]).
+    pub handshake: Handshake,
     /// Cleared when the peer is dropped: routes copied before that (a raise in progress)
     /// see it without a table lookup and fail at once instead of sending.
     pub alive: Arc<std::sync::atomic::AtomicBool>,
@@ -596,6 +608,7 @@ impl LinkHandler for Handler {
     fn on_announce(&self, link: usize, from: PeerAddr, msg: &[u8]) {
         let Some(n) = self.node() else { return };
         match decode_message(msg) {
+            Ok(m) if n.forged_over_pair(link, from, &m) => {}
             Ok(m) => n.on_discovery(link, from, m),
             Err(_) => {
                 n.policy.dropped.undecodable.fetch_add(1, Ordering::Relaxed);

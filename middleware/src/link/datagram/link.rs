@@ -362,7 +362,17 @@ struct PairSeal {
     probed: Mutex<Option<Instant>>,
     /// When `confirmed` was set.
     confirmed_at: Mutex<Option<Instant>>,
+    /// Since when data sealed with the domain key has come from the peer's address with no
+    /// frame sealed with the pair's keys in between (see [`PAIR_LOST_AFTER`]).
+    refused_since: Mutex<Option<Instant>>,
 }
+
+/// How long data sealed with the domain key may keep coming from a confirmed pair's address
+/// with nothing sealed with the pair's keys before the peer is taken to have lost the pair
+/// (it dropped us and starts over): the peer is then dropped here too, so both meet afresh
+/// with a new handshake. A key holder forging that long only gets the peer dropped (it
+/// cannot pass the new handshake as the peer).
+const PAIR_LOST_AFTER: Duration = Duration::from_secs(3);
 
 /// How long after a pair's switch its frames sealed with the domain key (sent before it) are
 /// dropped without a warning.
@@ -744,6 +754,24 @@ impl<M: Medium> DatagramLink<M> {
         self.counters.count_out(n);
     }
 
+    /// Data sealed with the domain key from `pair`'s peer at `addr` was refused: past
+    /// [`PAIR_LOST_AFTER`] of that with no frame sealed with the pair's keys, the peer lost
+    /// the pair: forgotten here and reported unreachable (the node drops it).
+    fn refused_by_pair(&self, addr: M::Addr, pair: &PairSeal) {
+        let now = Instant::now();
+        let lost = {
+            let mut since = lock(&pair.refused_since);
+            let first = *since.get_or_insert(now);
+            now.saturating_duration_since(first) >= PAIR_LOST_AFTER
+        };
+        if lost {
+            lock(&self.pairs).remove(&addr);
+            tracing::info!(link = %self.name, %addr, "peer seals with the domain key again: it lost our pair's keys; dropped to meet afresh");
+            self.handler
+                .on_peer_unreachable(self.index, M::peer_addr(addr));
+        }
+    }
+
     /// Sends `pair`'s peer at `addr` a probe (see [`PairSeal`]), unless one left within
     /// [`PROBE_EVERY`].
     fn probe(&self, addr: M::Addr, pair: &PairSeal) {
@@ -807,8 +835,11 @@ impl<M: Medium> DatagramLink<M> {
             match self.pair(from) {
                 Some(pair) => {
                     let opened = lock(&pair.opener).open(0, buf, usize::MAX);
-                    if opened.is_ok() && !pair.confirmed.swap(true, Ordering::Relaxed) {
-                        *lock(&pair.confirmed_at) = Some(Instant::now());
+                    if opened.is_ok() {
+                        *lock(&pair.refused_since) = None;
+                        if !pair.confirmed.swap(true, Ordering::Relaxed) {
+                            *lock(&pair.confirmed_at) = Some(Instant::now());
+                        }
                     }
                     opened.map(|n| (super::KIND_DATA, n))
                 }
@@ -816,19 +847,26 @@ impl<M: Medium> DatagramLink<M> {
             }
         } else {
             let kind = kind.and_then(super::unsealed_kind);
-            let pair = (kind == Some(super::KIND_DATA))
-                .then(|| self.pair(from))
-                .flatten();
-            if let Some(p) = &pair {
-                // The peer still seals with the domain key: show it we hold the pair's.
-                self.probe(from, p);
-            }
-            match kind {
-                Some(_) if pair.is_some_and(|p| p.confirmed.load(Ordering::Relaxed)) => {
-                    Err(AuthReject::NotPairSealed)
-                }
+            let opened = match kind {
                 Some(kind) => lock(opener).open(0, buf, usize::MAX).map(|n| (kind, n)),
                 None => Err(AuthReject::Unsealed),
+            };
+            // Data sealed with the domain key (its seal verified) from a peer with a pair:
+            // show it we hold the pair's keys; once it showed it holds them too, refuse it.
+            match (opened, kind == Some(super::KIND_DATA)) {
+                (Ok(o), true) => match self.pair(from) {
+                    Some(p) => {
+                        self.probe(from, &p);
+                        if p.confirmed.load(Ordering::Relaxed) {
+                            self.refused_by_pair(from, &p);
+                            Err(AuthReject::NotPairSealed)
+                        } else {
+                            Ok(o)
+                        }
+                    }
+                    None => Ok(o),
+                },
+                (opened, _) => opened,
             }
         };
         match opened {
@@ -843,7 +881,8 @@ impl<M: Medium> DatagramLink<M> {
                 // that left before it switched; a probe of a peer whose proof we refused):
                 // counted, and logged as a warning only past the switch.
                 let switching = match why {
-                    AuthReject::NoPair => true,
+                    // From a peer we hold a session with: it holds keys we do not (yet).
+                    AuthReject::NoPair => self.peer(from, false).is_some(),
                     AuthReject::NotPairSealed => self.pair(from).is_some_and(|p| {
                         lock(&p.confirmed_at).is_some_and(|t| t.elapsed() < SWITCH_TIME)
                     }),
@@ -1406,6 +1445,7 @@ impl<M: Medium> Link for DatagramLink<M> {
                 confirmed: AtomicBool::new(false),
                 probed: Mutex::new(None),
                 confirmed_at: Mutex::new(None),
+                refused_since: Mutex::new(None),
                 keys: k,
             });
             pairs.insert(addr, pair.clone());
