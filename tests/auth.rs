@@ -1016,17 +1016,7 @@ fn access_rules_trust_only_an_authenticated_namespace() {
         &config,
         "vas",
         &["--key-file", key_s, "--identities", roster_s],
-        &[
-            "victim",
-            "--call",
-            "retask",
-            "--sink",
-            "plans",
-            "--dir",
-            inbox.to_str().unwrap(),
-            "--pattern",
-            "**/position",
-        ],
+        &common::victim_cmd(&inbox),
     );
     vehicle.expect_key(T, "ready");
     let call = |node: &str, identity: Option<&Path>, arg: &str| {
