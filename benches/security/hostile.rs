@@ -104,7 +104,8 @@ pub fn run() {
             trust::gateway_forgery,
         ),
     ] {
-        match std::panic::catch_unwind(|| scene(&format!("bench-{name}"))) {
+        // The scene's domain is named after it: no dots in a domain name.
+        match std::panic::catch_unwind(|| scene(&format!("bench-{}", name.replace('.', "-")))) {
             Ok(a) => {
                 eprintln!("{name}: {a:?}");
                 metric(name, a.hijacked as f64, "calls");
